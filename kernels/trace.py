@@ -1,0 +1,259 @@
+"""Coherent ray tracing kernels (Warp): ray generation, one surface per launch, sensor plane.
+
+Rays are structure-of-arrays, index ``i = source * n_pupil + pupil_sample``:
+``pos`` (vec3, mm), ``dir`` (unit vec3), ``opl`` (optical path length, mm), ``valid`` (int32 0/1),
+``wl`` (int32 index into the per-wavelength index tables). Light travels +z.
+
+Surface parameters live in one float array per surface (so ``wp.Tape`` accumulates gradients for
+them); the layout is the ``P_*`` constants below. Geometry of a standard surface, local
+coordinates q = pos - (0, 0, z_vertex), r2 = qx^2 + qy^2:
+
+    sag(r2) = c r2 / (1 + sqrt(1 - (1 + k) c^2 r2)) + sum_i a_i r2^(i+2)     (a_0 is the r^4 term)
+    dsag/dr2 = c / (2 sqrt(1 - (1 + k) c^2 r2)) + sum_i (i+2) a_i r2^(i+1)
+
+Intersection: the stable root of the base sphere c|q + t d|^2 - 2(q_z + t d_z) = 0,
+``t = F / (B + sign(B) sqrt(B^2 - c F))`` with ``B = d_z - c q.d``, ``F = c|q|^2 - 2 q_z`` (no special
+case for c = 0), then a fixed number of Newton steps on ``g(t) = q_z + t d_z - sag(r2(t))``.
+Refraction: vector Snell's law with mu = n_in/n_out; total internal reflection, a missed surface,
+an unconverged Newton or a hit outside the clear aperture make the ray invalid. Invalid rays keep
+finite values (position and direction of their last valid state): no NaN leaves a kernel.
+
+OPL accumulates ``n_in * t`` (t signed: a ray started on a virtual entrance-pupil plane behind
+the first vertex travels back in object space).
+
+The ideal thin lens (kind THIN) maps direction tangents ``t' = (n_in t - p P) / n_out`` (P the power
+1/f) and adds the path that makes every ray from an object point reach its image point with equal
+optical path (a perfect spherical wave behind it). The object-side conjugate distance ``u`` and
+image-side ``v`` (mm, 1/u = 0 for infinity) come from the host.
+"""
+import functools
+
+import warp as wp
+
+# parameter layout of one surface
+P_Z = 0           # vertex z, mm
+P_C = 1           # curvature, 1/mm
+P_K = 2           # conic
+P_A0 = 3          # aspheric r^4 .. r^20 -> indices 3..11
+N_ASPH = 9
+P_SD = 12         # semi-diameter, mm (<= 0: unlimited)
+P_SQUARE = 13     # 1: square aperture, 0: circle
+P_POWER = 14      # thin lens power 1/f, 1/mm
+P_UINV = 15       # thin lens: 1/u, u = object distance in front of the lens (mm); 0 = infinity
+P_V = 16          # thin lens: image distance behind the lens, mm
+N_PARAMS = 17
+
+KIND_REFRACT = 0
+KIND_THIN = 1
+KIND_PLANE = 2     # aperture / DOE plane / sensor: intersect and clip, no bending
+
+NEWTON_STEPS = 8
+
+
+@functools.cache
+def make_trace_kernels(scalar):
+    """Build the tracing kernels for ``scalar`` = ``wp.float64`` (default) or ``wp.float32``.
+
+    Returns a namespace with ``vec3``, ``generate_kernel``, ``surface_kernel``.
+    """
+    vec3 = wp.types.vector(3, scalar)
+    tol = 1.0e-10 if scalar == wp.float64 else 1.0e-4
+
+    @wp.func
+    def sag_and_slope(r2: scalar, params: wp.array(dtype=scalar)):
+        # returns (sag, dsag/dr2, ok)
+        c = params[P_C]
+        k = params[P_K]
+        arg = scalar(1.0) - (scalar(1.0) + k) * c * c * r2
+        ok = 1
+        if arg < scalar(0.0):
+            ok = 0
+            arg = scalar(0.0)
+        q = wp.sqrt(arg)
+        s = c * r2 / (scalar(1.0) + q)
+        ds = scalar(0.0)
+        if q > scalar(0.0):
+            ds = c / (scalar(2.0) * q)
+        elif c != scalar(0.0):
+            ok = 0
+        rp = r2
+        for i in range(N_ASPH):
+            a = params[P_A0 + i]
+            ds = ds + scalar(i + 2) * a * rp
+            rp = rp * r2
+            s = s + a * rp
+        return s, ds, ok
+
+    @wp.func
+    def outside_aperture(x: scalar, y: scalar, params: wp.array(dtype=scalar)):
+        sd = params[P_SD]
+        out = 0
+        if sd > scalar(0.0):
+            if params[P_SQUARE] > scalar(0.5):
+                if wp.abs(x) > sd or wp.abs(y) > sd:
+                    out = 1
+            else:
+                if x * x + y * y > sd * sd:
+                    out = 1
+        return out
+
+    @wp.kernel(module="unique")
+    def generate_kernel(
+        pupil_u: wp.array(dtype=scalar),        # (n_pupil,) normalised pupil x in [-1, 1]
+        pupil_v: wp.array(dtype=scalar),        # (n_pupil,) normalised pupil y
+        src_pos: wp.array(dtype=vec3),          # (n_src,) source point (finite) - unused at infinity
+        src_dir: wp.array(dtype=vec3),          # (n_src,) propagation direction (infinity)
+        src_finite: wp.array(dtype=wp.int32),   # (n_src,) 1: point source at src_pos
+        aim: wp.array(dtype=vec3),              # (n_src,) pupil centre the grid is laid around (on the EP plane)
+        half_x: wp.array(dtype=scalar),         # (n_src,) pupil half width, mm
+        half_y: wp.array(dtype=scalar),         # (n_src,) pupil half height, mm
+        src_wl: wp.array(dtype=wp.int32),       # (n_src,) wavelength index
+        n_obj: wp.array(dtype=scalar),          # (n_wl,) object-space index
+        cell: scalar,                           # area of one pupil cell in normalised (u, v) units
+        n_pupil: int,
+        # outputs
+        pos_out: wp.array(dtype=vec3),
+        dir_out: wp.array(dtype=vec3),
+        opl_out: wp.array(dtype=scalar),
+        valid_out: wp.array(dtype=wp.int32),
+        wl_out: wp.array(dtype=wp.int32),
+        weight_out: wp.array(dtype=scalar),     # power of the ray for unit source radiance (mm^2 or sr)
+    ):
+        i = wp.tid()
+        s = i // n_pupil
+        j = i - s * n_pupil
+        c = aim[s]
+        p = vec3(c[0] + half_x[s] * pupil_u[j], c[1] + half_y[s] * pupil_v[j], c[2])
+        w = src_wl[s]
+        n0 = n_obj[w]
+        area = cell * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
+        if src_finite[s] == 1:
+            dvec = p - src_pos[s]
+            dist = wp.length(dvec)
+            d = dvec / dist
+            # path from the source point; weight = solid angle of the pupil cell (cos / rho^2)
+            opl_out[i] = n0 * dist
+            weight_out[i] = area * d[2] / (dist * dist)
+        else:
+            d = src_dir[s]
+            # plane wave: zero path on the plane through the pupil centre normal to d
+            opl_out[i] = n0 * wp.dot(p - c, d)
+            weight_out[i] = area * d[2]
+        pos_out[i] = p
+        dir_out[i] = d
+        valid_out[i] = 1
+        wl_out[i] = w
+
+    @wp.kernel(module="unique")
+    def surface_kernel(
+        pos: wp.array(dtype=vec3),
+        dir: wp.array(dtype=vec3),
+        opl: wp.array(dtype=scalar),
+        valid: wp.array(dtype=wp.int32),
+        wl: wp.array(dtype=wp.int32),
+        params: wp.array(dtype=scalar),     # (N_PARAMS,) this surface
+        n_in: wp.array(dtype=scalar),       # (n_wl,) index before the surface
+        n_out: wp.array(dtype=scalar),      # (n_wl,) index after the surface
+        kind: int,
+        # outputs
+        pos_out: wp.array(dtype=vec3),
+        dir_out: wp.array(dtype=vec3),
+        opl_out: wp.array(dtype=scalar),
+        valid_out: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        p0 = pos[i]
+        d = dir[i]
+        ok = valid[i]
+        w = wl[i]
+        n1 = n_in[w]
+        n2 = n_out[w]
+        zv = params[P_Z]
+        q = vec3(p0[0], p0[1], p0[2] - zv)
+        t = scalar(0.0)
+        newd = d
+        extra = scalar(0.0)
+        if ok == 1:
+            if kind == KIND_REFRACT:
+                c = params[P_C]
+                bq = d[2] - c * wp.dot(q, d)
+                fq = c * wp.dot(q, q) - scalar(2.0) * q[2]
+                disc = bq * bq - c * fq
+                if disc >= scalar(0.0):
+                    root = wp.sqrt(disc)
+                    if bq >= scalar(0.0):
+                        t = fq / (bq + root)
+                    else:
+                        t = fq / (bq - root)
+                else:
+                    t = -q[2] / d[2]
+                ds = scalar(0.0)
+                sok = 1
+                g = scalar(0.0)
+                for it in range(NEWTON_STEPS):
+                    x = q + t * d
+                    r2 = x[0] * x[0] + x[1] * x[1]
+                    sg, ds, sok = sag_and_slope(r2, params)
+                    g = x[2] - sg
+                    dg = d[2] - ds * scalar(2.0) * (x[0] * d[0] + x[1] * d[1])
+                    if dg != scalar(0.0):
+                        t = t - g / dg
+                x = q + t * d
+                r2 = x[0] * x[0] + x[1] * x[1]
+                sg, ds, sok = sag_and_slope(r2, params)
+                g = x[2] - sg
+                if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], params) == 1:
+                    ok = 0
+                else:
+                    nrm = wp.normalize(vec3(-scalar(2.0) * x[0] * ds, -scalar(2.0) * x[1] * ds, scalar(1.0)))
+                    cosi = wp.dot(d, nrm)
+                    if cosi < scalar(0.0):
+                        nrm = -nrm
+                        cosi = -cosi
+                    mu = n1 / n2
+                    kk = scalar(1.0) - mu * mu * (scalar(1.0) - cosi * cosi)
+                    if kk <= scalar(0.0):
+                        ok = 0  # total internal reflection
+                    else:
+                        newd = wp.normalize(mu * d + (wp.sqrt(kk) - mu * cosi) * nrm)
+            else:
+                # plane at the vertex: aperture, DOE plane, sensor, thin lens
+                t = -q[2] / d[2]
+                x = q + t * d
+                if outside_aperture(x[0], x[1], params) == 1:
+                    ok = 0
+                elif kind == KIND_THIN:
+                    pw = params[P_POWER]
+                    tx = (n1 * d[0] / d[2] - x[0] * pw) / n2
+                    ty = (n1 * d[1] / d[2] - x[1] * pw) / n2
+                    newd = wp.normalize(vec3(tx, ty, scalar(1.0)))
+                    # ideal-lens path: equal optical path from the object point to its image point
+                    ctr = vec3(scalar(0.0), scalar(0.0), x[2])
+                    uinv = params[P_UINV]
+                    inrel = scalar(0.0)
+                    if uinv == scalar(0.0):
+                        inrel = n1 * wp.dot(x - ctr, d)
+                    else:
+                        src = x - d * (scalar(1.0) / (uinv * d[2]))
+                        inrel = n1 * (wp.length(x - src) - wp.length(ctr - src))
+                    img = x + newd * (params[P_V] / newd[2])
+                    extra = -inrel - n2 * (wp.length(img - x) - wp.length(img - ctr))
+        if ok == 1:
+            pos_out[i] = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + zv)
+            dir_out[i] = newd
+            opl_out[i] = opl[i] + n1 * t + extra
+            valid_out[i] = 1
+        else:
+            pos_out[i] = p0
+            dir_out[i] = d
+            opl_out[i] = opl[i]
+            valid_out[i] = 0
+
+    class K:
+        pass
+
+    K.vec3 = vec3
+    K.scalar = scalar
+    K.generate_kernel = generate_kernel
+    K.surface_kernel = surface_kernel
+    return K

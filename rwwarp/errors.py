@@ -1,0 +1,38 @@
+"""Exceptions and warnings of rwwarp.
+
+Every error about user input is a :class:`LensError` (or a subclass) whose message names the
+place at fault: the file, the surface number (0-based as stored, and the keyword), the field.
+"""
+
+
+class LensError(ValueError):
+    """Invalid lens description: bad file, impossible geometry, unknown glass or surface type."""
+
+    def __init__(self, message, *, file=None, surface=None, keyword=None, field=None):
+        where = []
+        if file is not None:
+            where.append(f"file {file}")
+        if surface is not None:
+            where.append(f"surface {surface}")
+        if keyword is not None:
+            where.append(f"keyword {keyword!r}")
+        if field is not None:
+            where.append(f"field {field}")
+        self.file, self.surface, self.keyword, self.field = file, surface, keyword, field
+        super().__init__(f"{', '.join(where)}: {message}" if where else message)
+
+
+class LensFileError(LensError):
+    """A lens file could not be parsed (syntax, missing keys, unsupported entries)."""
+
+
+class GlassError(LensError):
+    """A material name is not in the glass table or a dispersion formula is unsupported."""
+
+
+class GeometryError(LensError):
+    """Surfaces cross, a thickness is impossible, or no ray reaches the image."""
+
+
+class SamplingWarning(UserWarning):
+    """A requested simulation setting violates a sampling criterion (aliasing is likely)."""

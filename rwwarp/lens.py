@@ -1,0 +1,396 @@
+"""Lens model: a sequence of surfaces, a sensor, an object distance; the native JSON format.
+
+Units: lengths in mm, wavelengths in micrometres (um), angles in degrees at the public interface.
+z is the optical axis, light travels +z, the first surface's vertex sits at z = 0.
+
+A :class:`Surface` is ``geometry + material after it + interaction + aperture``:
+
+========== ======================================================================
+type       meaning
+========== ======================================================================
+standard   plane (``radius`` None), sphere, or even asphere (``conic``, ``aspheric``
+           = coefficients of r^4, r^6, ..., r^20); refracts into ``material``
+thin_lens  ideal stigmatic lens of ``focal_length`` (like Zemax PARAXIAL)
+aperture   a plane that only clips (circle or square); stop by default
+doe        a plane that carries a diffractive phase ``profile`` (see :mod:`rwwarp.doe`);
+           ``material`` is its substrate (for the wavelength remap), the medium is unchanged
+========== ======================================================================
+
+Native file (``format: "rwwarp-lens/1"``) holds inputs only; :meth:`Lens.to_dict` and
+:meth:`Lens.from_dict` round-trip it exactly.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import GeometryError, LensError, LensFileError
+from . import materials
+
+FORMAT = "rwwarp-lens/1"
+SURFACE_TYPES = ("standard", "thin_lens", "aperture", "doe")
+MAX_ASPHERIC = 9  # r^4 .. r^20
+
+
+@dataclass
+class Surface:
+    """One optical surface. Lengths in mm.
+
+    ``radius`` is the vertex radius of curvature (None = flat); ``thickness`` the axial distance to
+    the next surface (the last surface's thickness is the distance to the sensor).
+    ``semi_diameter`` None means unlimited (no clipping).
+    """
+
+    type: str = "standard"
+    thickness: float = 0.0
+    radius: float | None = None
+    conic: float = 0.0
+    aspheric: list = field(default_factory=list)
+    material: str = "air"
+    semi_diameter: float | None = None
+    shape: str = "circle"
+    stop: bool = False
+    focal_length: float | None = None
+    profile: dict | None = None
+    design_wavelength_um: float = 0.55
+    levels: int | None = None
+
+    @property
+    def curvature(self) -> float:
+        """Vertex curvature, 1/mm (0 for flat)."""
+        return 0.0 if self.radius is None or self.radius == 0 else 1.0 / self.radius
+
+    @property
+    def refracts(self) -> bool:
+        return self.type == "standard"
+
+    def sag(self, r):
+        """Surface sag z(r) in mm at radial distance ``r`` (mm); NaN where the conic is undefined."""
+        r2 = np.asarray(r, dtype=np.float64) ** 2
+        c, k = self.curvature, self.conic
+        with np.errstate(invalid="ignore"):
+            arg = 1.0 - (1.0 + k) * c * c * r2
+            z = c * r2 / (1.0 + np.sqrt(arg))
+        rp = r2 * r2
+        for a in self.aspheric:
+            z = z + a * rp
+            rp = rp * r2
+        return z
+
+
+@dataclass
+class Sensor:
+    """Image sensor: ``pixel_pitch`` in mm, ``resolution`` (nx, ny) in pixels."""
+
+    pixel_pitch: float = 0.004
+    resolution: tuple = (2000, 2000)
+
+    @property
+    def half_size(self):
+        """Half width and height of the sensor, mm."""
+        return (0.5 * self.pixel_pitch * self.resolution[0], 0.5 * self.pixel_pitch * self.resolution[1])
+
+
+@dataclass
+class Lens:
+    """An optical system: surfaces, sensor, object distance (mm from the first vertex, inf allowed).
+
+    ``entrance_pupil_diameter`` (mm), when given, sets the system aperture (Zemax ENPD); the stop
+    surface then floats (it does not clip). Otherwise the stop's own semi-diameter sets it.
+    """
+
+    surfaces: list
+    sensor: Sensor = field(default_factory=Sensor)
+    object_distance: float = math.inf
+    wavelengths_um: list = field(default_factory=lambda: [0.55])
+    name: str = ""
+    entrance_pupil_diameter: float | None = None
+    fields_deg: list | None = None
+    source: str | None = None  # file it came from (for messages); not serialised
+
+    def __post_init__(self):
+        self.validate()
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def vertex_z(self) -> np.ndarray:
+        """z of each surface vertex, mm (first at 0)."""
+        t = np.array([s.thickness for s in self.surfaces], dtype=np.float64)
+        return np.concatenate([[0.0], np.cumsum(t[:-1])])
+
+    @property
+    def sensor_z(self) -> float:
+        """z of the sensor plane, mm."""
+        return float(sum(s.thickness for s in self.surfaces))
+
+    @property
+    def stop_index(self) -> int:
+        """Index of the aperture stop: the surface marked ``stop``, else the first aperture, else 0."""
+        for i, s in enumerate(self.surfaces):
+            if s.stop:
+                return i
+        for i, s in enumerate(self.surfaces):
+            if s.type == "aperture":
+                return i
+        return 0
+
+    @property
+    def doe_index(self) -> int | None:
+        """Index of the DOE surface, or None."""
+        idx = [i for i, s in enumerate(self.surfaces) if s.type == "doe"]
+        return idx[0] if idx else None
+
+    def media(self):
+        """Material name of the medium after each surface (a DOE and an aperture keep the medium)."""
+        out, cur = [], "air"
+        for s in self.surfaces:
+            if s.type in ("standard", "thin_lens"):
+                cur = s.material
+            out.append(cur)
+        return out
+
+    def indices(self, wavelength_um) -> np.ndarray:
+        """Refractive index after each surface at ``wavelength_um`` (um); shape (n_surfaces,)."""
+        return np.array([materials.get_material(m).n(wavelength_um) for m in self.media()], dtype=np.float64)
+
+    def validate(self):
+        """Check types, values and that consecutive surfaces do not cross; raise :class:`LensError`."""
+        f = self.source
+        if not self.surfaces:
+            raise LensError("a lens needs at least one surface", file=f)
+        if not (self.object_distance > 0):
+            raise LensError(f"object_distance must be > 0 mm or inf, got {self.object_distance}", file=f)
+        for w in self.wavelengths_um:
+            if not (0.2 <= float(w) <= 20.0):
+                raise LensError(f"wavelength {w} um outside 0.2..20 um (wavelengths are in micrometres)", file=f)
+        p = self.sensor.pixel_pitch
+        if not (p > 0) or len(self.sensor.resolution) != 2 or min(self.sensor.resolution) < 1:
+            raise LensError(f"sensor needs pixel_pitch > 0 and a 2-entry resolution, got {self.sensor}", file=f)
+        nstop = sum(1 for s in self.surfaces if s.stop)
+        if nstop > 1:
+            raise LensError(f"{nstop} surfaces are marked stop; at most one may be", file=f)
+        for i, s in enumerate(self.surfaces):
+            if s.type not in SURFACE_TYPES:
+                raise LensError(f"unknown surface type {s.type!r} (expected one of {SURFACE_TYPES})",
+                                file=f, surface=i, keyword="type")
+            if not math.isfinite(s.thickness):
+                raise LensError(f"thickness must be finite, got {s.thickness}", file=f, surface=i, keyword="thickness")
+            if s.semi_diameter is not None and not (s.semi_diameter > 0):
+                raise LensError(f"semi_diameter must be > 0 mm, got {s.semi_diameter}", file=f, surface=i,
+                                keyword="semi_diameter")
+            if s.shape not in ("circle", "square"):
+                raise LensError(f"shape must be 'circle' or 'square', got {s.shape!r}", file=f, surface=i,
+                                keyword="shape")
+            if len(s.aspheric) > MAX_ASPHERIC:
+                raise LensError(f"at most {MAX_ASPHERIC} aspheric terms (r^4..r^20), got {len(s.aspheric)}",
+                                file=f, surface=i, keyword="aspheric")
+            if s.type == "thin_lens" and (s.focal_length is None or s.focal_length == 0
+                                          or not math.isfinite(s.focal_length)):
+                raise LensError("thin_lens needs a finite non-zero focal_length", file=f, surface=i,
+                                keyword="focal_length")
+            if s.type == "doe":
+                if s.profile is None:
+                    raise LensError("doe needs a profile", file=f, surface=i, keyword="profile")
+                if s.levels is not None and int(s.levels) < 2:
+                    raise LensError(f"levels must be >= 2 or null, got {s.levels}", file=f, surface=i,
+                                    keyword="levels")
+                from . import doe as _doe
+                try:
+                    _doe.profile_from_dict(s.profile, base=Path(f).parent if f else None)
+                except LensError as e:
+                    raise LensError(str(e), file=f, surface=i, keyword="profile") from None
+            for m in ([s.material] if s.type in ("standard", "thin_lens", "doe") else []):
+                try:
+                    materials.get_material(m)
+                except LensError as e:
+                    raise type(e)(str(e), file=f, surface=i, keyword="material") from None
+        if sum(1 for s in self.surfaces if s.type == "doe") > 1:
+            raise LensError("at most one DOE surface is supported", file=f)
+        self._check_crossing()
+
+    def _check_crossing(self):
+        z = self.vertex_z
+        for i in range(len(self.surfaces) - 1):
+            a, b = self.surfaces[i], self.surfaces[i + 1]
+            sds = [s for s in (a.semi_diameter, b.semi_diameter) if s is not None]
+            h = min(sds) if sds else 0.0
+            r = np.linspace(0.0, h, 33)
+            za, zb = z[i] + a.sag(r), z[i + 1] + b.sag(r)
+            ok = np.isfinite(za) & np.isfinite(zb)
+            if np.any(zb[ok] - za[ok] < -1e-9):
+                j = int(np.argmax(za[ok] - zb[ok]))
+                raise GeometryError(
+                    f"surfaces {i} and {i + 1} cross at height {r[ok][j]:.4g} mm "
+                    f"(gap {zb[ok][j] - za[ok][j]:.4g} mm); check the thickness {a.thickness} mm",
+                    file=self.source, surface=i, keyword="thickness")
+        if self.surfaces[-1].thickness <= 0:
+            raise GeometryError(f"the sensor must lie behind the last surface (thickness "
+                                f"{self.surfaces[-1].thickness} mm)", file=self.source,
+                                surface=len(self.surfaces) - 1, keyword="thickness")
+
+    # ------------------------------------------------------------------ paraxial (see analysis.py)
+    def efl(self, wavelength_um: float = 0.5876) -> float:
+        """Paraxial effective focal length, mm, at ``wavelength_um`` (um)."""
+        from .paraxial import efl
+        return efl(self, wavelength_um)
+
+    def bfl(self, wavelength_um: float = 0.5876) -> float:
+        """Paraxial back focal length from the last surface, mm, at ``wavelength_um`` (um)."""
+        from .paraxial import bfl
+        return bfl(self, wavelength_um)
+
+    # ------------------------------------------------------------------ editing
+    def replace(self, **changes) -> "Lens":
+        """A deep copy with top-level attributes changed (validated)."""
+        new = copy.deepcopy(self)
+        for k, v in changes.items():
+            setattr(new, k, v)
+        new.validate()
+        return new
+
+    def with_surface(self, index: int, **changes) -> "Lens":
+        """A deep copy with surface ``index`` changed (validated)."""
+        new = copy.deepcopy(self)
+        for k, v in changes.items():
+            setattr(new.surfaces[index], k, v)
+        new.validate()
+        return new
+
+    # ------------------------------------------------------------------ native JSON
+    def to_dict(self) -> dict:
+        """Native ``rwwarp-lens/1`` dictionary (inputs only)."""
+        out = {"format": FORMAT, "name": self.name,
+               "object_distance": "inf" if math.isinf(self.object_distance) else self.object_distance,
+               "wavelengths_um": list(self.wavelengths_um)}
+        if self.entrance_pupil_diameter is not None:
+            out["entrance_pupil_diameter"] = self.entrance_pupil_diameter
+        if self.fields_deg is not None:
+            out["fields_deg"] = copy.deepcopy(self.fields_deg)
+        out["surfaces"] = [_surface_to_dict(s) for s in self.surfaces]
+        out["sensor"] = {"pixel_pitch": self.sensor.pixel_pitch, "resolution": list(self.sensor.resolution)}
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str | None = None) -> "Lens":
+        """Build from a native ``rwwarp-lens/1`` dictionary; raises :class:`LensFileError`."""
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise LensFileError(f"not a {FORMAT} file (format = {d.get('format') if isinstance(d, dict) else d!r})",
+                                file=source)
+        allowed = {"format", "name", "object_distance", "wavelengths_um", "surfaces", "sensor",
+                   "entrance_pupil_diameter", "fields_deg"}
+        _no_unknown(d, allowed, source, None)
+        if "surfaces" not in d or not isinstance(d["surfaces"], list):
+            raise LensFileError("missing list 'surfaces'", file=source, keyword="surfaces")
+        surfaces = [_surface_from_dict(sd, i, source) for i, sd in enumerate(d["surfaces"])]
+        sens = d.get("sensor", {})
+        _no_unknown(sens, {"pixel_pitch", "resolution"}, source, None, prefix="sensor.")
+        try:
+            sensor = Sensor(pixel_pitch=float(sens.get("pixel_pitch", 0.004)),
+                            resolution=tuple(int(v) for v in sens.get("resolution", (2000, 2000))))
+            od = d.get("object_distance", "inf")
+            od = math.inf if (isinstance(od, str) and od.lower() in ("inf", "infinity")) or od is None else float(od)
+            wls = [float(w) for w in d.get("wavelengths_um", [0.55])]
+            epd = d.get("entrance_pupil_diameter")
+        except (TypeError, ValueError) as e:
+            raise LensFileError(f"bad value: {e}", file=source) from None
+        return cls(surfaces=surfaces, sensor=sensor, object_distance=od, wavelengths_um=wls,
+                   name=str(d.get("name", "")), entrance_pupil_diameter=None if epd is None else float(epd),
+                   fields_deg=d.get("fields_deg"), source=source)
+
+    def save(self, path) -> None:
+        """Write the native JSON file."""
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+
+
+_SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
+                 "stop", "focal_length", "profile", "design_wavelength_um", "levels"}
+_DEFAULTS = Surface()
+
+
+def _surface_to_dict(s: Surface) -> dict:
+    d = {"type": s.type}
+    keys = {"standard": ["radius", "conic", "aspheric", "material", "semi_diameter", "shape", "thickness", "stop"],
+            "thin_lens": ["focal_length", "material", "semi_diameter", "shape", "thickness", "stop"],
+            "aperture": ["semi_diameter", "shape", "thickness", "stop"],
+            "doe": ["semi_diameter", "shape", "thickness", "design_wavelength_um", "material", "levels",
+                    "profile", "stop"]}[s.type]
+    for k in keys:
+        v = getattr(s, k)
+        if k == "stop" and not v:
+            continue
+        if k == "material" and s.type == "doe" and v == "air":
+            continue
+        d[k] = copy.deepcopy(list(v) if k == "aspheric" else v)
+    return d
+
+
+def _surface_from_dict(sd, i, source) -> Surface:
+    if not isinstance(sd, dict):
+        raise LensFileError(f"surface entry must be an object, got {type(sd).__name__}", file=source, surface=i)
+    _no_unknown(sd, _SURFACE_KEYS, source, i)
+    kw = {}
+    try:
+        for k, v in sd.items():
+            if k in ("thickness", "conic", "design_wavelength_um"):
+                kw[k] = float(v)
+            elif k in ("radius", "semi_diameter", "focal_length"):
+                kw[k] = None if v is None else float(v)
+            elif k == "aspheric":
+                kw[k] = [float(a) for a in v]
+            elif k == "levels":
+                kw[k] = None if v is None else int(v)
+            elif k == "stop":
+                kw[k] = bool(v)
+            else:
+                kw[k] = v
+    except (TypeError, ValueError) as e:
+        raise LensFileError(f"bad value ({e})", file=source, surface=i, keyword=k) from None
+    typ = kw.get("type", "standard")
+    if typ == "doe" and "material" not in kw:
+        kw["material"] = "fused_silica"
+    if typ == "standard" and kw.get("radius") == 0:
+        kw["radius"] = None
+    return Surface(**kw)
+
+
+def _no_unknown(d, allowed, source, surface, prefix=""):
+    if not isinstance(d, dict):
+        raise LensFileError(f"{prefix or 'entry'} must be an object", file=source, surface=surface)
+    bad = sorted(set(d) - set(allowed))
+    if bad:
+        raise LensFileError(f"unknown key(s) {', '.join(prefix + b for b in bad)}; allowed: {sorted(allowed)}",
+                            file=source, surface=surface, keyword=prefix + bad[0])
+
+
+def load_lens(path) -> Lens:
+    """Load a lens from a native JSON, DeepLens JSON, or Zemax ``.zmx`` file.
+
+    Bundled lenses can be named without a path (e.g. ``"a489_doe"``, ``"cooke_triplet"``).
+    Raises :class:`LensError` (subclasses :class:`LensFileError`, :class:`GlassError`,
+    :class:`GeometryError`) naming the file and the surface at fault.
+    """
+    p = Path(path)
+    if not p.exists():
+        bundled = Path(__file__).parent / "lenses"
+        for cand in (bundled / p.name, bundled / (p.name + ".json"), bundled / (p.name + ".zmx")):
+            if cand.exists():
+                p = cand
+                break
+        else:
+            raise LensFileError("no such file (and no bundled lens of that name)", file=str(path))
+    if p.suffix.lower() == ".zmx":
+        from .io_zemax import read_zmx
+        return read_zmx(p)
+    try:
+        d = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise LensFileError(f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}", file=str(p)) from None
+    if isinstance(d, dict) and d.get("format") == FORMAT:
+        return Lens.from_dict(d, source=str(p))
+    from .io_deeplens import lens_from_deeplens
+    return lens_from_deeplens(d, source=str(p))

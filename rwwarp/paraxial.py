@@ -1,0 +1,154 @@
+"""Paraxial (first-order) optics by y-nu ray tracing: EFL, BFL, pupils, conjugates.
+
+Reduced slopes ``nu = n * u``; refraction ``nu' = nu - y * P`` with surface power
+``P = (n' - n) * c`` (standard), ``1/f`` (thin lens), ``-lambda * 2 a1 s / (2 pi R^2)`` for an
+even-polynomial DOE (a1 the rho^2 phase coefficient in radians, s the wavelength remap);
+transfer ``y' = y + t * nu' / n'``. Lengths in mm, wavelengths in um.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import GeometryError
+
+
+def surface_powers(lens, wavelength_um: float) -> np.ndarray:
+    """Optical power of each surface at ``wavelength_um`` (um), 1/mm."""
+    n = lens.indices(wavelength_um)
+    n_before = np.concatenate([[_object_index(lens, wavelength_um)], n[:-1]])
+    out = np.zeros(len(lens.surfaces))
+    for i, s in enumerate(lens.surfaces):
+        if s.type == "standard":
+            out[i] = (n[i] - n_before[i]) * s.curvature
+        elif s.type == "thin_lens":
+            out[i] = 1.0 / s.focal_length
+        elif s.type == "doe":
+            out[i] = doe_power(s, wavelength_um)
+    return out
+
+
+def doe_power(surface, wavelength_um: float) -> float:
+    """Paraxial power (1/mm) of a DOE surface from the quadratic term of its phase at ``wavelength_um``."""
+    from . import doe
+    prof = doe.profile_from_dict(surface.profile)
+    a2 = prof.quadratic_coefficient(surface.design_wavelength_um)  # phase = a2 * r^2 (rad/mm^2)
+    scale = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    lam_mm = wavelength_um * 1e-3
+    # deflection d(nu) = (lambda / 2 pi) d(phi)/dr = lambda a2 s r / pi  ->  P = -lambda a2 s / pi
+    return -lam_mm * a2 * scale / np.pi
+
+
+def _object_index(lens, wavelength_um):
+    return 1.0
+
+
+def ynu_trace(lens, wavelength_um: float, y0: float, nu0: float):
+    """Trace a paraxial ray starting at the first vertex with height ``y0`` (mm) and reduced slope ``nu0``.
+
+    Returns ``(y, nu)``: heights at each surface (mm) and reduced slopes after each surface.
+    """
+    powers = surface_powers(lens, wavelength_um)
+    n = lens.indices(wavelength_um)
+    ys, nus = np.zeros(len(powers)), np.zeros(len(powers))
+    y, nu = y0, nu0
+    for i, s in enumerate(lens.surfaces):
+        nu = nu - y * powers[i]
+        ys[i], nus[i] = y, nu
+        y = y + s.thickness * nu / n[i]
+    return ys, nus
+
+
+def efl(lens, wavelength_um: float = 0.5876) -> float:
+    """Effective focal length, mm (image space in air), at ``wavelength_um`` (um)."""
+    _, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
+    if nu[-1] == 0:
+        raise GeometryError("afocal system: the effective focal length is infinite", file=lens.source)
+    return float(-1.0 / nu[-1])
+
+
+def bfl(lens, wavelength_um: float = 0.5876) -> float:
+    """Back focal length (paraxial focus behind the last surface vertex), mm."""
+    y, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
+    n = lens.indices(wavelength_um)[-1]
+    if nu[-1] == 0:
+        raise GeometryError("afocal system: the back focal length is infinite", file=lens.source)
+    return float(-y[-1] * n / nu[-1])
+
+
+@dataclass
+class Pupils:
+    """Paraxial pupils: positions (z, mm, from the first vertex) and radii (mm)."""
+
+    entrance_z: float
+    entrance_radius: float
+    exit_z: float
+    exit_radius: float
+    stop_semi_diameter: float
+
+
+def stop_semi_diameter(lens, wavelength_um: float) -> float:
+    """Semi-diameter of the stop (mm): its own, or derived from ``entrance_pupil_diameter``."""
+    i = lens.stop_index
+    if lens.entrance_pupil_diameter is not None:
+        ya, _ = ynu_trace(lens, wavelength_um, 1.0, 0.0)
+        return float(0.5 * lens.entrance_pupil_diameter * abs(ya[i]))
+    sd = lens.surfaces[i].semi_diameter
+    if sd is None:
+        raise GeometryError("the stop has no semi_diameter and the lens no entrance_pupil_diameter: the "
+                            "aperture is undefined", file=lens.source, surface=i, keyword="semi_diameter")
+    return float(sd)
+
+
+def pupils(lens, wavelength_um: float = 0.5876) -> Pupils:
+    """Paraxial entrance and exit pupils at ``wavelength_um`` (um)."""
+    i = lens.stop_index
+    ya, nua = ynu_trace(lens, wavelength_um, 1.0, 0.0)
+    yb, nub = ynu_trace(lens, wavelength_um, 0.0, 1.0)
+    if ya[i] == 0:
+        raise GeometryError("the stop is at a focus: no entrance pupil", file=lens.source, surface=i)
+    sd = stop_semi_diameter(lens, wavelength_um)
+    ep_z = float(yb[i] / ya[i])
+    ep_r = float(sd / abs(ya[i]))
+    # chief ray through the EP centre with unit slope: y0 = -ep_z at the first vertex
+    yc, nuc = ynu_trace(lens, wavelength_um, -ep_z, 1.0)
+    ym, num = ynu_trace(lens, wavelength_um, ep_r, 0.0)
+    n_img = lens.indices(wavelength_um)[-1]
+    z_last = lens.vertex_z[-1]
+    if nuc[-1] == 0:
+        xp_z, xp_r = np.inf, np.inf
+    else:
+        dz = -yc[-1] * n_img / nuc[-1]
+        xp_z = float(z_last + dz)
+        xp_r = float(abs(ym[-1] + dz * num[-1] / n_img))
+    return Pupils(ep_z, ep_r, xp_z, xp_r, sd)
+
+
+def f_number(lens, wavelength_um: float = 0.5876) -> float:
+    """Paraxial F/# = EFL / entrance pupil diameter (object at infinity)."""
+    return efl(lens, wavelength_um) / (2.0 * pupils(lens, wavelength_um).entrance_radius)
+
+
+def thin_lens_conjugates(lens, wavelength_um: float, index: int):
+    """Object-side 1/u (1/mm, 0 = infinity) and image-side distance v (mm) seen by thin lens ``index``.
+
+    u is the distance of the (possibly virtual) paraxial object in front of the lens, for the
+    lens's own object distance; v its paraxial image distance behind it.
+    """
+    n = lens.indices(wavelength_um)
+    n1 = 1.0 if index == 0 else n[index - 1]
+    n2 = n[index]
+    s = lens.surfaces[index]
+    if np.isinf(lens.object_distance):
+        y, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
+    else:
+        y, nu = ynu_trace(lens, wavelength_um, lens.object_distance, 1.0)
+    # reduced slope arriving at the lens (before its own refraction)
+    nu_in = nu[index] + y[index] / s.focal_length
+    uinv = 0.0 if abs(nu_in) < 1e-300 else nu_in / (n1 * y[index])
+    denom = 1.0 / s.focal_length - n1 * uinv
+    if abs(denom) < 1e-15:
+        raise GeometryError("the object is at the front focal plane of the thin lens: image at infinity is "
+                            "not supported", file=lens.source, surface=index)
+    return float(uinv), float(n2 / denom)
