@@ -203,7 +203,7 @@ class Lens:
                 try:
                     _doe.profile_from_dict(s.profile, base=Path(f).parent if f else None)
                 except LensError as e:
-                    raise LensError(str(e), file=f, surface=i, keyword="profile") from None
+                    raise type(e)(str(e), file=f, surface=i, keyword="profile") from None
             for m in ([s.material] if s.type in ("standard", "thin_lens", "doe") else []):
                 try:
                     materials.get_material(m)

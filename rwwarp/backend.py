@@ -1,0 +1,565 @@
+"""Compute backends of the wave stage: OpenCL (pyopencl + pyvkfft) and CUDA (CuPy + NVRTC).
+
+One kernel source, two builds. The propagation kernels are OpenCL C files in
+``kernels/opencl/`` (installed as ``rwwarp.kernels``). :class:`OpenCLBackend` builds them with
+pyopencl for any OpenCL device (PoCL on the CPU for tests and laptops, AMD/Intel GPUs) and does
+FFTs with pyvkfft's OpenCL backend. :class:`CudaBackend` prepends ``cuda_compat.h`` to the same
+source and compiles it with NVRTC through ``cupy.RawModule``; FFTs go through pyvkfft's CUDA backend
+when it is installed, else through ``cupy.fft`` (cuFFT). Both builds take the precision from
+``-D REAL=double|float`` (complex128 / complex64) and form phases in double whenever the device has
+it (``-D RW_HAVE_FP64=1``).
+
+Every backend offers the same small interface, used by :mod:`rwwarp.propagate`:
+``to_device``, ``to_host``, ``empty``, ``zeros``, ``fft2`` (batched over leading axes, in place),
+``launch`` (a named kernel of a named source, built once per (context, dtype)), ``workspace``
+(reused scratch arrays), ``cache`` (a byte-bounded LRU cache of device arrays) and ``synchronize``.
+Work is queued asynchronously on one in-order queue (OpenCL) or on CuPy's current stream (CUDA);
+nothing comes back to the host until ``to_host``.
+
+FFT convention (numpy's): the forward transform is unnormalised, ``exp(-2 pi i k n / N)``; the
+inverse has ``exp(+2 pi i k n / N)`` and divides by ``N`` per transformed axis.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import re
+import threading
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "Backend",
+    "OpenCLBackend",
+    "CudaBackend",
+    "get_backend",
+    "kernel_source",
+    "complex_dtype",
+    "real_dtype",
+]
+
+_COMPLEX_TO_REAL = {np.dtype(np.complex128): np.dtype(np.float64), np.dtype(np.complex64): np.dtype(np.float32)}
+
+
+def complex_dtype(dtype) -> np.dtype:
+    """The complex dtype named by ``dtype`` (complex64 or complex128); a real dtype maps to its
+    complex counterpart (float32 -> complex64, float64 -> complex128)."""
+    dt = np.dtype(dtype)
+    if dt in _COMPLEX_TO_REAL:
+        return dt
+    if dt == np.float32:
+        return np.dtype(np.complex64)
+    if dt == np.float64:
+        return np.dtype(np.complex128)
+    raise TypeError(f"unsupported dtype {dt}: use complex64 or complex128")
+
+
+def real_dtype(dtype) -> np.dtype:
+    """The real dtype of the same precision as the complex ``dtype``."""
+    return _COMPLEX_TO_REAL[complex_dtype(dtype)]
+
+
+def _kernel_dir() -> Path:
+    """Folder of the OpenCL C sources: ``rwwarp.kernels/opencl`` when installed, else the
+    repository's ``kernels/opencl``."""
+    try:
+        spec = importlib.util.find_spec("rwwarp.kernels")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is not None and spec.submodule_search_locations:
+        for loc in spec.submodule_search_locations:
+            cand = Path(loc) / "opencl"
+            if cand.is_dir():
+                return cand
+    cand = Path(__file__).resolve().parent.parent / "kernels" / "opencl"
+    if cand.is_dir():
+        return cand
+    raise FileNotFoundError("cannot find the OpenCL kernel sources (kernels/opencl)")
+
+
+_INCLUDE_RE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.MULTILINE)
+
+
+@functools.cache
+def kernel_source(name: str) -> str:
+    """Text of ``kernels/opencl/<name>`` with its ``#include "..."`` lines expanded in place
+    (each header once), so that both compilers get one self-contained source."""
+    folder = _kernel_dir()
+    seen: set[str] = set()
+
+    def expand(fname: str) -> str:
+        if fname in seen:
+            return ""
+        seen.add(fname)
+        text = (folder / fname).read_text()
+        return _INCLUDE_RE.sub(lambda m: expand(m.group(1)), text)
+
+    return expand(name)
+
+
+_KERNEL_RE = re.compile(r"__kernel\s+void\s+(\w+)\s*\(([^)]*)\)", re.MULTILINE)
+
+
+@functools.cache
+def _kernel_signatures(name: str) -> dict:
+    """Argument kinds of each ``__kernel`` in a source: 'buf' for pointers, else the scalar type
+    name (int, real_t, phase_t, idx_t)."""
+    src = re.sub(r"/\*.*?\*/", "", kernel_source(name), flags=re.DOTALL)
+    out = {}
+    for kname, args in _KERNEL_RE.findall(src):
+        kinds = []
+        for arg in args.split(","):
+            arg = arg.strip()
+            if "*" in arg:
+                kinds.append("buf")
+                continue
+            toks = arg.replace("const", "").split()
+            kinds.append(toks[0])
+        out[kname] = tuple(kinds)
+    return out
+
+
+def _round_up(n: int, m: int) -> int:
+    return -(-int(n) // int(m)) * int(m)
+
+
+class DeviceCache:
+    """Least-recently-used cache of device arrays bounded by their total size in bytes."""
+
+    def __init__(self, max_bytes: int = 512 * 2**20):
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, key, factory):
+        """The cached value for ``key``, else ``factory()`` (an array with ``nbytes``) stored."""
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        value = factory()
+        nbytes = int(getattr(value, "nbytes", 0))
+        with self._lock:
+            if nbytes <= self.max_bytes:
+                self._items[key] = value
+                self._bytes += nbytes
+                while self._bytes > self.max_bytes and self._items:
+                    _, old = self._items.popitem(last=False)
+                    self._bytes -= int(getattr(old, "nbytes", 0))
+        return value
+
+    def clear(self):
+        """Drop every entry."""
+        with self._lock:
+            self._items.clear()
+            self._bytes = 0
+
+    def __len__(self):
+        return len(self._items)
+
+
+class Backend:
+    """Common interface of the compute backends (see the module docstring).
+
+    Attributes: ``device`` (the string it was made from), ``kind`` ('opencl' or 'cuda'),
+    ``has_fp64`` (double precision available), ``phase_dtype`` (float64 if ``has_fp64`` else
+    float32: dtype of phases, frequencies and coordinates handed to kernels), ``cache``
+    (:class:`DeviceCache` for transfer functions and the like).
+    """
+
+    kind = "abstract"
+
+    def __init__(self, device: str):
+        self.device = device
+        self.cache = DeviceCache()
+        self._workspace: dict = {}
+        self._plans: dict = {}
+        self._programs: dict = {}
+        self._lock = threading.Lock()
+
+    # -- arrays ---------------------------------------------------------------------------
+    def is_device_array(self, arr) -> bool:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def to_device(self, arr, dtype=None):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def to_host(self, arr) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def empty(self, shape, dtype):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def zeros(self, shape, dtype):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def synchronize(self):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def workspace(self, tag: str, shape, dtype):
+        """A scratch device array for ``tag`` reused across calls (same tag, shape and dtype give
+        the same buffer). Valid until the next call that asks for the same tag; never returned
+        to users. Work on one queue / stream at a time when using it."""
+        key = (tag, tuple(int(s) for s in shape), np.dtype(dtype).str)
+        with self._lock:
+            arr = self._workspace.get(key)
+            if arr is None:
+                arr = self.empty(shape, dtype)
+                self._workspace[key] = arr
+        return arr
+
+    def clear_caches(self):
+        """Release cached workspaces, FFT plans and transfer functions (compiled programs stay)."""
+        with self._lock:
+            self._workspace.clear()
+            self._plans.clear()
+        self.cache.clear()
+
+    # -- kernels --------------------------------------------------------------------------
+    def _build_options(self, dtype) -> list[str]:
+        dt = complex_dtype(dtype)
+        opts = ["-DREAL=double", "-DREAL_IS_DOUBLE=1"] if dt == np.complex128 else ["-DREAL=float", "-DREAL_IS_DOUBLE=0"]
+        if self.has_fp64:
+            opts.append("-DRW_HAVE_FP64=1")
+        return opts
+
+    def _scalar(self, kind: str, value, dtype):
+        if kind == "int":
+            return np.int32(value)
+        if kind == "idx_t":
+            return np.int64(value)
+        if kind == "real_t":
+            return real_dtype(dtype).type(value)
+        if kind == "phase_t":
+            return self.phase_dtype.type(value)
+        raise TypeError(f"unsupported kernel scalar type {kind!r}")
+
+    def launch(self, source: str, name: str, dtype, global_size, local_size, *args):
+        """Queue kernel ``name`` of ``kernels/opencl/<source>`` built for ``dtype`` (complex64 or
+        complex128). ``global_size``/``local_size``: up to 3 ints, axis 0 fastest; the global size
+        is rounded up to whole work-groups (kernels check their bounds). ``args``: device arrays
+        for pointer parameters, Python numbers for scalars (converted to the declared type)."""
+        raise NotImplementedError  # pragma: no cover
+
+    def _signature(self, source: str, name: str):
+        sigs = _kernel_signatures(source)
+        if name not in sigs:
+            raise KeyError(f"no __kernel {name!r} in {source}")
+        return sigs[name]
+
+    # -- FFT ------------------------------------------------------------------------------
+    def fft2(self, arr, inverse: bool = False):
+        """In-place 2-D FFT over the last two axes of a C-contiguous complex device array,
+        batched over the leading axes; returns ``arr``. Forward unnormalised, inverse divided by
+        ``ny * nx`` (numpy convention). Plans are built once per (shape, dtype) and cached."""
+        raise NotImplementedError  # pragma: no cover
+
+    def __repr__(self):
+        return f"<{type(self).__name__} {self.device!r}: {self.name}>"
+
+
+class OpenCLBackend(Backend):
+    """pyopencl context + in-order queue on one OpenCL device, pyvkfft OpenCL FFTs.
+
+    Device arrays are ``pyopencl.array.Array`` (C-contiguous, zero offset) allocated from a
+    memory pool. Programs are built once per (context, dtype) with ``-D REAL=...``.
+    """
+
+    kind = "opencl"
+
+    def __init__(self, cl_device, device: str):
+        import pyopencl as cl
+        import pyopencl.tools
+
+        super().__init__(device)
+        self._cl = cl
+        self.cl_device = cl_device
+        self.name = f"{cl_device.platform.name.strip()} / {cl_device.name.strip()}"
+        self.context = cl.Context([cl_device])
+        self.queue = cl.CommandQueue(self.context)
+        self.allocator = cl.tools.MemoryPool(cl.tools.ImmediateAllocator(self.queue))
+        self.has_fp64 = "cl_khr_fp64" in cl_device.extensions or cl_device.double_fp_config != 0
+        self.phase_dtype = np.dtype(np.float64 if self.has_fp64 else np.float32)
+        self.is_cpu = bool(cl_device.type & cl.device_type.CPU)
+        self.max_work_group_size = int(cl_device.max_work_group_size)
+
+    # arrays
+    def is_device_array(self, arr) -> bool:
+        import pyopencl.array as cla
+
+        return isinstance(arr, cla.Array)
+
+    def to_device(self, arr, dtype=None):
+        """A device copy of a numpy array (or the device array itself, cast to ``dtype`` if
+        needed, made C-contiguous with zero offset)."""
+        import pyopencl.array as cla
+
+        if isinstance(arr, cla.Array):
+            if not arr.flags.c_contiguous:
+                raise ValueError("device arrays handed to rwwarp must be C-contiguous")
+            if dtype is not None and arr.dtype != np.dtype(dtype):
+                arr = arr.astype(dtype)
+            if arr.offset != 0:
+                arr = arr.copy()
+            return arr
+        host = np.ascontiguousarray(np.asarray(arr, dtype=dtype))
+        return cla.to_device(self.queue, host, allocator=self.allocator)
+
+    def wrap_host(self, arr: np.ndarray):
+        """A device array that uses the memory of a C-contiguous numpy array (no copy) when the
+        device is a CPU (zero-copy host pointer); a plain copy on other devices. The numpy array
+        must outlive the device array and not be touched while kernels use it."""
+        import pyopencl.array as cla
+
+        cl = self._cl
+        arr = np.ascontiguousarray(arr)
+        if not self.is_cpu:
+            return self.to_device(arr)
+        buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=arr)
+        return cla.Array(self.queue, arr.shape, arr.dtype, data=buf)
+
+    def to_host(self, arr) -> np.ndarray:
+        """Copy a device array to a new numpy array (waits for the queued work)."""
+        if isinstance(arr, np.ndarray):
+            return arr
+        return arr.get(queue=self.queue)
+
+    def empty(self, shape, dtype):
+        """Uninitialised device array."""
+        import pyopencl.array as cla
+
+        return cla.empty(self.queue, tuple(int(s) for s in shape), np.dtype(dtype), allocator=self.allocator)
+
+    def zeros(self, shape, dtype):
+        """Zero-filled device array."""
+        arr = self.empty(shape, dtype)
+        if arr.nbytes:
+            self._cl.enqueue_fill_buffer(self.queue, arr.data, np.uint8(0), 0, arr.nbytes)
+        return arr
+
+    def synchronize(self):
+        """Wait for all queued work."""
+        self.queue.finish()
+
+    # kernels
+    def _program(self, source: str, dtype):
+        key = (source, complex_dtype(dtype).str)
+        with self._lock:
+            entry = self._programs.get(key)
+            if entry is None:
+                prg = self._cl.Program(self.context, kernel_source(source)).build(
+                    options=self._build_options(dtype)
+                )
+                entry = (prg, {})
+                self._programs[key] = entry
+        return entry
+
+    def launch(self, source, name, dtype, global_size, local_size, *args):
+        prg, kernels = self._program(source, dtype)
+        sig = self._signature(source, name)
+        if len(sig) != len(args):
+            raise TypeError(f"{name}: expected {len(sig)} arguments, got {len(args)}")
+        knl = kernels.get(name)
+        if knl is None:
+            knl = getattr(prg, name)
+            kernels[name] = knl
+        import pyopencl.array as cla
+
+        cargs = []
+        for kind, a in zip(sig, args):
+            if kind == "buf":
+                cargs.append(a.data if isinstance(a, cla.Array) else a)
+            else:
+                cargs.append(self._scalar(kind, a, dtype))
+        lsize = tuple(int(v) for v in local_size)
+        gsize = tuple(_round_up(max(int(g), 1), l) for g, l in zip(global_size, lsize))
+        knl(self.queue, gsize, lsize, *cargs)
+
+    # FFT
+    def fft2(self, arr, inverse: bool = False):
+        from pyvkfft.opencl import VkFFTApp
+
+        if arr.ndim < 2:
+            raise ValueError("fft2 needs at least 2 dimensions")
+        key = (tuple(arr.shape), arr.dtype.str)
+        app = self._plans.get(key)
+        if app is None:
+            app = VkFFTApp(arr.shape, arr.dtype, self.queue, ndim=2, inplace=True, norm=1)
+            self._plans[key] = app
+        if inverse:
+            app.ifft(arr, queue=self.queue)
+        else:
+            app.fft(arr, queue=self.queue)
+        return arr
+
+
+class CudaBackend(Backend):
+    """CuPy arrays on one NVIDIA GPU; the OpenCL C kernels compiled by NVRTC after
+    ``cuda_compat.h``; FFTs by pyvkfft's CUDA backend (if importable) or ``cupy.fft``.
+
+    Work is queued on CuPy's current stream (use ``cupy.cuda.ExternalStream`` around calls to
+    share torch's stream). Device arrays are ``cupy.ndarray``; ``to_device`` wraps objects that
+    expose ``__cuda_array_interface__`` (torch, Warp) without copying.
+    """
+
+    kind = "cuda"
+
+    def __init__(self, index: int, device: str):
+        try:
+            import cupy
+        except ImportError as exc:  # pragma: no cover - depends on the machine
+            raise RuntimeError(
+                f"device {device!r} needs CuPy: install rwwarp[cuda] (cupy-cuda12x) on a machine with an "
+                "NVIDIA GPU, or use device='cpu' / 'opencl:P:D'"
+            ) from exc
+        super().__init__(device)
+        self.cp = cupy
+        self.index = int(index)
+        self.cuda_device = cupy.cuda.Device(self.index)
+        props = cupy.cuda.runtime.getDeviceProperties(self.index)
+        name = props.get("name", b"cuda")
+        self.name = name.decode() if isinstance(name, bytes) else str(name)
+        self.has_fp64 = True
+        self.phase_dtype = np.dtype(np.float64)
+        try:
+            from pyvkfft.cuda import VkFFTApp  # noqa: F401
+
+            self._vkfft = True
+        except Exception:  # ImportError or missing _vkfft_cuda library
+            self._vkfft = False
+
+    def is_device_array(self, arr) -> bool:
+        return isinstance(arr, self.cp.ndarray)
+
+    def to_device(self, arr, dtype=None):
+        """A CuPy array for ``arr`` on this GPU: numpy arrays are copied, CUDA arrays (CuPy,
+        torch, Warp: ``__cuda_array_interface__``) are used in place unless a cast or a
+        contiguous copy is needed."""
+        with self.cuda_device:
+            out = self.cp.asarray(arr, dtype=dtype)
+            return self.cp.ascontiguousarray(out)
+
+    def to_host(self, arr) -> np.ndarray:
+        """Copy to a new numpy array (synchronises the current stream)."""
+        if isinstance(arr, np.ndarray):
+            return arr
+        with self.cuda_device:
+            return self.cp.asnumpy(arr)
+
+    def empty(self, shape, dtype):
+        with self.cuda_device:
+            return self.cp.empty(tuple(int(s) for s in shape), dtype=np.dtype(dtype))
+
+    def zeros(self, shape, dtype):
+        with self.cuda_device:
+            return self.cp.zeros(tuple(int(s) for s in shape), dtype=np.dtype(dtype))
+
+    def synchronize(self):
+        with self.cuda_device:
+            self.cp.cuda.get_current_stream().synchronize()
+
+    def _module(self, source: str, dtype):
+        key = (source, complex_dtype(dtype).str)
+        with self._lock:
+            entry = self._programs.get(key)
+            if entry is None:
+                code = kernel_source("cuda_compat.h") + "\n" + kernel_source(source)
+                opts = tuple(["-DRW_CUDA=1", "--std=c++17"] + self._build_options(dtype))
+                with self.cuda_device:
+                    mod = self.cp.RawModule(code=code, options=opts)
+                entry = (mod, {})
+                self._programs[key] = entry
+        return entry
+
+    def launch(self, source, name, dtype, global_size, local_size, *args):
+        mod, kernels = self._module(source, dtype)
+        sig = self._signature(source, name)
+        if len(sig) != len(args):
+            raise TypeError(f"{name}: expected {len(sig)} arguments, got {len(args)}")
+        with self.cuda_device:
+            knl = kernels.get(name)
+            if knl is None:
+                knl = mod.get_function(name)
+                kernels[name] = knl
+            cargs = tuple(a if kind == "buf" else self._scalar(kind, a, dtype) for kind, a in zip(sig, args))
+            lsize = tuple(int(v) for v in local_size) + (1,) * (3 - len(local_size))
+            gsize = tuple(int(v) for v in global_size) + (1,) * (3 - len(global_size))
+            grid = tuple(max(1, -(-g // l)) for g, l in zip(gsize, lsize))
+            knl(grid, lsize, cargs)
+
+    def fft2(self, arr, inverse: bool = False):
+        with self.cuda_device:
+            if self._vkfft:
+                from pyvkfft.cuda import VkFFTApp
+
+                stream = self.cp.cuda.get_current_stream()
+                key = (tuple(arr.shape), arr.dtype.str, int(stream.ptr))
+                app = self._plans.get(key)
+                if app is None:
+                    app = VkFFTApp(arr.shape, arr.dtype, ndim=2, inplace=True, stream=stream, norm=1)
+                    self._plans[key] = app
+                if inverse:
+                    app.ifft(arr)
+                else:
+                    app.fft(arr)
+                return arr
+            fn = self.cp.fft.ifft2 if inverse else self.cp.fft.fft2
+            arr[...] = fn(arr, axes=(-2, -1))
+            return arr
+
+
+_DEVICE_RE = re.compile(r"^(cpu|opencl(?::(\d+):(\d+))?|cuda(?::(\d+))?)$")
+
+
+def _find_cpu_device():
+    import pyopencl as cl
+
+    for platform in cl.get_platforms():
+        try:
+            devices = platform.get_devices(device_type=cl.device_type.CPU)
+        except cl.Error:
+            continue
+        if devices:
+            return devices[0]
+    raise RuntimeError("no OpenCL CPU device found (install PoCL: pip install pocl-binary-distribution)")
+
+
+@functools.lru_cache(maxsize=None)
+def _make_backend(device: str) -> Backend:
+    m = _DEVICE_RE.match(device)
+    if m is None:
+        raise ValueError(f"unknown device {device!r}: use 'cpu', 'opencl:P:D', 'cuda' or 'cuda:N'")
+    if device == "cpu":
+        return OpenCLBackend(_find_cpu_device(), device)
+    if device.startswith("opencl"):
+        import pyopencl as cl
+
+        p = int(m.group(2) or 0)
+        d = int(m.group(3) or 0)
+        platforms = cl.get_platforms()
+        if p >= len(platforms):
+            raise RuntimeError(f"device {device!r}: only {len(platforms)} OpenCL platform(s)")
+        devs = platforms[p].get_devices()
+        if d >= len(devs):
+            raise RuntimeError(f"device {device!r}: platform {p} has only {len(devs)} device(s)")
+        return OpenCLBackend(devs[d], device)
+    return CudaBackend(int(m.group(4) or 0), device)
+
+
+def get_backend(device: str = "cpu") -> Backend:
+    """The (memoised) backend for ``device``: ``"cpu"`` = the first OpenCL CPU device (PoCL),
+    ``"opencl"`` / ``"opencl:P:D"`` = OpenCL platform P, device D, ``"cuda"`` / ``"cuda:N"`` =
+    NVIDIA GPU N through CuPy (RuntimeError if CuPy is missing). The same string always gives the
+    same object (same context/queue, compiled programs, FFT plans and caches)."""
+    if isinstance(device, Backend):
+        return device
+    dev = str(device).strip().lower()
+    if dev == "opencl":
+        dev = "opencl:0:0"
+    if dev == "cuda":
+        dev = "cuda:0"
+    return _make_backend(dev)

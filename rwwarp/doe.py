@@ -1,0 +1,703 @@
+"""Diffractive optical element (DOE) phase profiles, quantisation, wavelength remap, height export.
+
+numpy only (the torch side lives in ``torch_bridge``).
+
+Units: lengths (x, y, radii, pitches, focal lengths) in mm, wavelengths in micrometres (um), phase
+in radians, heights in micrometres.
+
+A DOE stores its phase ``phi0(x, y)`` at the design wavelength ``lambda0``. At wavelength
+``lambda`` the field is multiplied by ``exp(j * s(lambda) * phi0)`` with the wavelength remap of a
+surface-relief element of substrate index ``n``::
+
+    s(lambda) = (n(lambda) - 1) / (n(lambda0) - 1) * lambda0 / lambda      (wavelength_scale)
+
+The relief is physical, so the phase that is scaled is the *wrapped* (and, with ``levels``,
+quantised) ``phi0 mod 2 pi`` (see :func:`modulation_phase`).
+
+Profile kinds (``profile_from_dict``; ``rho = r / norm_radius``, ``r = hypot(x, y)``):
+
+=========== ======================================================================================
+kind        phase phi0 (radians)
+=========== ======================================================================================
+even_poly   ``sum_i a_i rho^(2i)``, i = 1, 2, ... (Zemax Binary 2 with diffraction order 1)
+            keys ``norm_radius`` (mm), ``coefficients`` [a1, a2, ...]
+poly        ``sum_k c_k rho^k``, k = 1, 2, 3, ... (odd + even, radial; EDoF designs)
+            keys ``norm_radius``, ``coefficients`` [c1, c2, ...]
+fresnel     ``-pi r^2 / (lambda0 f)`` (an ideal diffractive lens of focal length f at lambda0)
+            key ``focal_length`` (mm); lambda0 is the surface's ``design_wavelength_um``
+zernike     ``sum_j z_j Z_j(rho, theta)``, Noll-ordered and Noll-normalised (j = 1 piston,
+            2 tilt x, 3 tilt y, 4 defocus, ...); keys ``norm_radius``, ``coefficients``
+            [z1, z2, ...]; the polynomials are evaluated everywhere (no mask at rho > 1)
+cubic       ``alpha * ((x/R)^3 + (y/R)^3)``; keys ``norm_radius`` (R), ``alpha`` (radians)
+pixel_map   a phase map (radians) sampled piecewise-constant (nearest pixel), centred on the
+            axis, zero outside; keys ``pitch`` (mm) and ``file`` (.npy, relative to the lens
+            file) or ``data`` (nested list). ``data[row][col]``: rows run from +y (top) to -y,
+            columns from -x to +x (the array as an image is displayed); pixel (row, col) has its
+            centre at ``x = (col - (nx-1)/2) pitch``, ``y = ((ny-1)/2 - row) pitch``.
+=========== ======================================================================================
+"""
+from __future__ import annotations
+
+import functools
+import math
+import os
+from collections import namedtuple
+from pathlib import Path
+
+import numpy as np
+
+from .errors import LensError, LensFileError
+
+TWO_PI = 2.0 * math.pi
+KINDS = ("even_poly", "poly", "fresnel", "zernike", "cubic", "pixel_map")
+_KEYS = {
+    "even_poly": ({"kind", "norm_radius", "coefficients"}, {"norm_radius", "coefficients"}),
+    "poly": ({"kind", "norm_radius", "coefficients"}, {"norm_radius", "coefficients"}),
+    "fresnel": ({"kind", "focal_length"}, {"focal_length"}),
+    "zernike": ({"kind", "norm_radius", "coefficients"}, {"norm_radius", "coefficients"}),
+    "cubic": ({"kind", "norm_radius", "alpha"}, {"norm_radius", "alpha"}),
+    "pixel_map": ({"kind", "file", "data", "pitch"}, {"pitch"}),
+}
+
+
+# ====================================================================== helpers
+def _f64(a):
+    return np.asarray(a, dtype=np.float64)
+
+
+def _number(d, key, *, positive=False, nonzero=False):
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise LensFileError(f"profile.{key} must be a number, got {v!r}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise LensFileError(f"profile.{key} must be finite, got {v}")
+    if positive and not v > 0:
+        raise LensFileError(f"profile.{key} must be > 0, got {v}")
+    if nonzero and v == 0:
+        raise LensFileError(f"profile.{key} must be non-zero, got {v}")
+    return v
+
+
+def _coefficients(d, key="coefficients"):
+    v = d[key]
+    if not isinstance(v, (list, tuple)):
+        raise LensFileError(f"profile.{key} must be a list of numbers (radians), got {type(v).__name__}")
+    out = []
+    for i, a in enumerate(v):
+        if isinstance(a, bool) or not isinstance(a, (int, float)) or not math.isfinite(float(a)):
+            raise LensFileError(f"profile.{key}[{i}] must be a finite number, got {a!r}")
+        out.append(float(a))
+    return out
+
+
+def _polyval_ascending(coeffs, u):
+    """sum_k coeffs[k] * u**k by Horner's rule (coeffs ascending)."""
+    out = np.zeros_like(u)
+    for c in reversed(coeffs):
+        out = out * u + c
+    return out
+
+
+def _aperture_samples(semi_diameter, shape, n):
+    """Sample points (x, y) in mm covering the aperture (n x n grid, clipped to a circle if circular)."""
+    t = np.linspace(-semi_diameter, semi_diameter, n)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    if shape == "circle":
+        keep = x * x + y * y <= semi_diameter * semi_diameter * (1 + 1e-12)
+        x, y = x[keep], y[keep]
+    return x.ravel(), y.ravel()
+
+
+# ====================================================================== profiles
+class Profile:
+    """Base class of DOE phase profiles. Coordinates in mm, phase in radians, wavelengths in um."""
+
+    kind = ""
+    is_continuous = True  # False where the phase has steps (pixel maps); quantisation is per surface
+
+    def phase(self, x_mm, y_mm, design_wavelength_um: float = 0.55) -> np.ndarray:
+        """Unwrapped phase phi0 (radians, float64) at (``x_mm``, ``y_mm``) for the design wavelength (um)."""
+        raise NotImplementedError
+
+    def gradient(self, x_mm, y_mm, design_wavelength_um: float = 0.55):
+        """Phase gradient ``(dphi/dx, dphi/dy)`` in rad/mm at (``x_mm``, ``y_mm``), float64 arrays."""
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        """The native ``profile`` dictionary (inputs only); ``profile_from_dict(p.to_dict())`` rebuilds it."""
+        raise NotImplementedError
+
+    def quadratic_coefficient(self, design_wavelength_um: float = 0.55) -> float:
+        """Rotationally symmetric r^2 coefficient of phi0 near the axis, rad/mm^2 (paraxial power hook).
+
+        ``phi0 ~ q r^2`` gives a paraxial focal length ``f = -pi / (lambda0 q)`` at the design wavelength.
+        """
+        return 0.0
+
+    def max_gradient(self, semi_diameter: float, design_wavelength_um: float = 0.55,
+                     shape: str = "circle") -> float:
+        """Largest |grad phi0| (rad/mm) over the aperture (circle of radius ``semi_diameter`` mm, or
+        the square of half side ``semi_diameter``), from a dense grid (radially exact for radial kinds)."""
+        x, y = _aperture_samples(float(semi_diameter), shape, 257)
+        gx, gy = self.gradient(x, y, design_wavelength_um)
+        return float(np.max(np.hypot(gx, gy))) if x.size else 0.0
+
+    def feature_size_mm(self, semi_diameter: float, design_wavelength_um: float = 0.55,
+                        shape: str = "circle") -> float:
+        """Smallest feature of the (wrapped) profile over the aperture, mm.
+
+        Smooth kinds: the narrowest 2 pi zone ``2 pi / max|grad phi0|`` (inf for a flat phase).
+        Pixel maps: the pitch. Sampling plans need at least two samples per feature (Nyquist).
+        """
+        g = self.max_gradient(semi_diameter, design_wavelength_um, shape)
+        return math.inf if g == 0 else TWO_PI / g
+
+    def __repr__(self):
+        return f"{type(self).__name__}({self.to_dict()})"
+
+    def __eq__(self, other):
+        return type(self) is type(other) and self.to_dict() == other.to_dict()
+
+
+class _RadialProfile(Profile):
+    """phi0 = g(r) for rotationally symmetric kinds; subclasses give g and dg/dr / r."""
+
+    def _g(self, r2):
+        raise NotImplementedError
+
+    def _dg_over_r(self, r2):
+        """(dg/dr) / r as a function of r^2, rad/mm^2 (finite at r = 0)."""
+        raise NotImplementedError
+
+    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
+        x, y = _f64(x_mm), _f64(y_mm)
+        return self._g(x * x + y * y)
+
+    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
+        x, y = _f64(x_mm), _f64(y_mm)
+        k = self._dg_over_r(x * x + y * y)
+        return k * x, k * y
+
+    def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
+        rmax = float(semi_diameter) * (math.sqrt(2.0) if shape == "square" else 1.0)
+        r = np.linspace(0.0, rmax, 4097)
+        return float(np.max(np.abs(self._dg_over_r(r * r) * r)))
+
+
+class EvenPolyProfile(_RadialProfile):
+    """``phi0 = sum_i a_i rho^(2i)``, rho = r / norm_radius (Zemax Binary 2, order 1). Radians."""
+
+    kind = "even_poly"
+
+    def __init__(self, norm_radius: float, coefficients):
+        self.norm_radius = float(norm_radius)
+        self.coefficients = [float(a) for a in coefficients]
+
+    def _g(self, r2):
+        u = r2 / self.norm_radius ** 2
+        return u * _polyval_ascending(self.coefficients, u) if self.coefficients else np.zeros_like(u)
+
+    def _dg_over_r(self, r2):
+        # d/dr sum a_i u^i = sum a_i i u^(i-1) * 2 r / R^2
+        R2 = self.norm_radius ** 2
+        u = r2 / R2
+        d = [a * (i + 1) for i, a in enumerate(self.coefficients)]
+        return (2.0 / R2) * _polyval_ascending(d, u) if d else np.zeros_like(u)
+
+    def quadratic_coefficient(self, design_wavelength_um=0.55):
+        return self.coefficients[0] / self.norm_radius ** 2 if self.coefficients else 0.0
+
+    def to_dict(self):
+        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
+
+
+class PolyProfile(_RadialProfile):
+    """``phi0 = sum_k c_k rho^k`` (k = 1, 2, ...), rho = r / norm_radius: odd and even radial terms.
+
+    The rho^1 term is a cone: its gradient is undefined on the axis and reported as 0 there.
+    """
+
+    kind = "poly"
+
+    def __init__(self, norm_radius: float, coefficients):
+        self.norm_radius = float(norm_radius)
+        self.coefficients = [float(a) for a in coefficients]
+
+    def _g(self, r2):
+        rho = np.sqrt(r2) / self.norm_radius
+        return rho * _polyval_ascending(self.coefficients, rho) if self.coefficients else np.zeros_like(rho)
+
+    def _dg_over_r(self, r2):
+        R = self.norm_radius
+        r = np.sqrt(r2)
+        rho = r / R
+        out = np.zeros_like(r)
+        if not self.coefficients:
+            return out
+        # terms k >= 2: k c_k rho^(k-1) / R / r = k c_k rho^(k-2) / R^2 (finite at r = 0)
+        d = [c * k for k, c in enumerate(self.coefficients, start=1)][1:]
+        if d:
+            out = _polyval_ascending(d, rho) / (R * R)
+        c1 = self.coefficients[0]
+        if c1 != 0.0:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cone = np.where(r > 0, c1 / (R * np.where(r > 0, r, 1.0)), 0.0)
+            out = out + cone
+        return out
+
+    def quadratic_coefficient(self, design_wavelength_um=0.55):
+        return self.coefficients[1] / self.norm_radius ** 2 if len(self.coefficients) > 1 else 0.0
+
+    def to_dict(self):
+        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
+
+
+class FresnelProfile(_RadialProfile):
+    """``phi0 = -pi r^2 / (lambda0 f)``: ideal diffractive lens of focal length ``focal_length`` (mm)
+    at the design wavelength lambda0 (passed to :meth:`phase` in um)."""
+
+    kind = "fresnel"
+
+    def __init__(self, focal_length: float):
+        self.focal_length = float(focal_length)
+
+    def _q(self, design_wavelength_um):
+        return -math.pi / (design_wavelength_um * 1e-3 * self.focal_length)
+
+    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
+        x, y = _f64(x_mm), _f64(y_mm)
+        return self._q(design_wavelength_um) * (x * x + y * y)
+
+    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
+        x, y = _f64(x_mm), _f64(y_mm)
+        q2 = 2.0 * self._q(design_wavelength_um)
+        return q2 * x, q2 * y
+
+    def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
+        rmax = float(semi_diameter) * (math.sqrt(2.0) if shape == "square" else 1.0)
+        return abs(2.0 * self._q(design_wavelength_um)) * rmax
+
+    def quadratic_coefficient(self, design_wavelength_um=0.55):
+        return self._q(design_wavelength_um)
+
+    def to_dict(self):
+        return {"kind": self.kind, "focal_length": self.focal_length}
+
+
+def noll_to_nm(j: int):
+    """Noll index j (1-based) -> (n, m); m > 0 cosine, m < 0 sine, m = 0 rotationally symmetric."""
+    if j < 1:
+        raise ValueError(f"Noll index must be >= 1, got {j}")
+    n = 0
+    while (n + 1) * (n + 2) // 2 < j:
+        n += 1
+    p = j - n * (n + 1) // 2 - 1  # position within the row, 0..n
+    abs_m = [m for m in range(n % 2, n + 1, 2) for _ in ((0,) if m == 0 else (0, 1))][p]
+    if abs_m == 0:
+        return n, 0
+    return n, (abs_m if j % 2 == 0 else -abs_m)
+
+
+@functools.lru_cache(maxsize=None)
+def _zernike_radial_q(n: int, m: int):
+    """Coefficients (ascending in u = rho^2) of Q with R_n^m(rho) = rho^m Q(rho^2)."""
+    m = abs(m)
+    q = [0.0] * ((n - m) // 2 + 1)
+    for s in range((n - m) // 2 + 1):
+        c = (-1) ** s * math.factorial(n - s) / (
+            math.factorial(s) * math.factorial((n + m) // 2 - s) * math.factorial((n - m) // 2 - s))
+        q[(n - m) // 2 - s] += c
+    return tuple(q)
+
+
+class ZernikeProfile(Profile):
+    """``phi0 = sum_j z_j Z_j``: Noll-ordered, Noll-normalised Zernike polynomials in rho = r/norm_radius.
+
+    ``Z_j = N_n^m R_n^|m|(rho) {cos(m theta) for m > 0, sin(|m| theta) for m < 0, 1 for m = 0}`` with
+    ``N = sqrt(n + 1)`` (m = 0) or ``sqrt(2 (n + 1))``. Evaluated in Cartesian form
+    (``rho^m cos(m theta) = Re((x + i y)^m) / R^m``), so values and gradients have no singularity.
+    """
+
+    kind = "zernike"
+
+    def __init__(self, norm_radius: float, coefficients):
+        self.norm_radius = float(norm_radius)
+        self.coefficients = [float(a) for a in coefficients]
+        self._terms = []
+        for j, c in enumerate(self.coefficients, start=1):
+            if c == 0.0:
+                continue
+            n, m = noll_to_nm(j)
+            norm = math.sqrt(n + 1) if m == 0 else math.sqrt(2 * (n + 1))
+            self._terms.append((c * norm, m, _zernike_radial_q(n, m)))
+
+    def _eval(self, x_mm, y_mm, want_grad):
+        R = self.norm_radius
+        x, y = _f64(x_mm) / R, _f64(y_mm) / R
+        u = x * x + y * y
+        z = x + 1j * y
+        val = np.zeros(np.broadcast(x, y).shape)
+        gx, gy = np.zeros_like(val), np.zeros_like(val)
+        for c, m, q in self._terms:
+            am = abs(m)
+            Q = _polyval_ascending(list(q), u)
+            zm = z ** am if am else np.ones_like(z)
+            ang = zm.real if m >= 0 else zm.imag
+            val += c * Q * ang
+            if want_grad:
+                dq = [k * a for k, a in enumerate(q)][1:]
+                dQ = _polyval_ascending(dq, u) if dq else np.zeros_like(u)
+                if am:
+                    zm1 = am * z ** (am - 1)
+                    dax, day = (zm1.real, -zm1.imag) if m > 0 else (zm1.imag, zm1.real)
+                else:
+                    dax = day = 0.0
+                gx += c * (2.0 * x * dQ * ang + Q * dax)
+                gy += c * (2.0 * y * dQ * ang + Q * day)
+        return val, gx / R, gy / R
+
+    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
+        return self._eval(x_mm, y_mm, False)[0]
+
+    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
+        _, gx, gy = self._eval(x_mm, y_mm, True)
+        return gx, gy
+
+    def quadratic_coefficient(self, design_wavelength_um=0.55):
+        total = 0.0
+        for c, m, q in self._terms:
+            if m == 0 and len(q) > 1:
+                total += c * q[1]
+        return total / self.norm_radius ** 2
+
+    def to_dict(self):
+        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
+
+
+class CubicProfile(Profile):
+    """``phi0 = alpha ((x/R)^3 + (y/R)^3)`` (cubic phase plate, EDoF), R = norm_radius (mm), alpha in rad."""
+
+    kind = "cubic"
+
+    def __init__(self, norm_radius: float, alpha: float):
+        self.norm_radius = float(norm_radius)
+        self.alpha = float(alpha)
+
+    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
+        R = self.norm_radius
+        x, y = _f64(x_mm) / R, _f64(y_mm) / R
+        return self.alpha * (x ** 3 + y ** 3)
+
+    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
+        R = self.norm_radius
+        x, y = _f64(x_mm), _f64(y_mm)
+        k = 3.0 * self.alpha / R ** 3
+        return k * x * x, k * y * y
+
+    def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
+        k = 3.0 * abs(self.alpha) / self.norm_radius ** 3
+        s = float(semi_diameter)
+        # |grad| = k sqrt(x^4 + y^4): largest at a square corner, or on an axis for a circle
+        return k * s * s * (math.sqrt(2.0) if shape == "square" else 1.0)
+
+    def to_dict(self):
+        return {"kind": self.kind, "norm_radius": self.norm_radius, "alpha": self.alpha}
+
+
+@functools.lru_cache(maxsize=16)
+def _load_npy(path: str, mtime_ns: int, size: int):
+    arr = np.load(path, allow_pickle=False)
+    arr = np.array(arr, dtype=np.float64)
+    arr.setflags(write=False)
+    return arr
+
+
+class PixelMapProfile(Profile):
+    """Phase map (radians) of ``pitch`` mm square pixels, centred on the axis, nearest-pixel sampled,
+    zero outside. ``data[row, col]`` with row 0 at +y (top) and column 0 at -x.
+
+    Either ``file`` (a .npy of a 2-D float array, relative paths resolved against ``base``, the lens
+    file's folder) or inline ``data``. The phase has steps: no gradient (:meth:`gradient` raises).
+    """
+
+    kind = "pixel_map"
+    is_continuous = False
+
+    def __init__(self, pitch: float, data=None, file: str | None = None, base=None):
+        self.pitch = float(pitch)
+        self.file = file
+        self.base = None if base is None else Path(base)
+        self._inline = data is not None
+        self._data = None
+        if data is not None:
+            self._data = self._check(np.array(data, dtype=np.float64))
+            self._data.setflags(write=False)
+        elif file is not None:
+            path = self.path
+            if path.exists():
+                self._data = self._load(path)
+            elif self.base is not None or path.is_absolute():
+                raise LensFileError(f"profile.file: pixel map {str(path)!r} not found")
+            # else: relative path without a base folder: resolved lazily (against the working folder)
+
+    @property
+    def path(self) -> Path:
+        """Resolved path of the .npy file (relative paths against ``base``)."""
+        p = Path(self.file).expanduser()
+        return p if p.is_absolute() or self.base is None else self.base / p
+
+    @staticmethod
+    def _check(arr):
+        if arr.ndim != 2 or min(arr.shape) < 1:
+            raise LensFileError(f"profile pixel map must be a non-empty 2-D array, got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise LensFileError("profile pixel map contains non-finite values")
+        return arr
+
+    def _load(self, path):
+        try:
+            st = os.stat(path)
+            arr = _load_npy(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+        except (OSError, ValueError) as e:
+            raise LensFileError(f"profile.file: cannot read pixel map {str(path)!r} ({e})") from None
+        return self._check(arr)
+
+    @property
+    def data(self) -> np.ndarray:
+        """The phase map (radians), float64, read-only; shape (ny, nx)."""
+        if self._data is None:
+            path = self.path
+            if not path.exists():
+                raise LensFileError(f"profile.file: pixel map {str(path)!r} not found (relative paths are "
+                                    "resolved against the lens file's folder)")
+            self._data = self._load(path)
+        return self._data
+
+    def indices(self, x_mm, y_mm):
+        """Nearest-pixel (row, col) indices for (x, y) in mm and a mask of points inside the map."""
+        d = self.data
+        ny, nx = d.shape
+        col = np.floor(_f64(x_mm) / self.pitch + nx / 2.0)
+        row = np.floor(ny / 2.0 - _f64(y_mm) / self.pitch)
+        inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+        return np.where(inside, row, 0).astype(np.intp), np.where(inside, col, 0).astype(np.intp), inside
+
+    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
+        row, col, inside = self.indices(x_mm, y_mm)
+        return np.where(inside, self.data[row, col], 0.0)
+
+    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
+        raise LensError("discontinuous phase: no gradient (a pixel map has steps; the ray model cannot "
+                        "bend rays by it, use the ray-wave model)")
+
+    def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
+        raise LensError("discontinuous phase: no gradient")
+
+    def feature_size_mm(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
+        return self.pitch
+
+    @property
+    def half_size(self):
+        """Half width and height of the map, mm."""
+        ny, nx = self.data.shape
+        return 0.5 * nx * self.pitch, 0.5 * ny * self.pitch
+
+    def to_dict(self):
+        d = {"kind": self.kind}
+        if self._inline:
+            d["data"] = self._data.tolist()
+        else:
+            d["file"] = self.file
+        d["pitch"] = self.pitch
+        return d
+
+
+def profile_from_dict(d: dict, base=None) -> Profile:
+    """Build a :class:`Profile` from a native ``profile`` dictionary.
+
+    ``base``: folder against which a pixel map's relative ``file`` is resolved (the lens file's folder).
+    Raises :class:`~rwwarp.errors.LensFileError` (a :class:`LensError`) for a non-dict, a missing or
+    unknown ``kind``, unknown or missing keys, and bad values; the message names the key.
+    """
+    if not isinstance(d, dict):
+        raise LensFileError(f"profile must be an object with a 'kind', got {type(d).__name__}")
+    kind = d.get("kind")
+    if kind not in KINDS:
+        raise LensFileError(f"profile.kind {kind!r} unknown (expected one of {KINDS})")
+    allowed, required = _KEYS[kind]
+    bad = sorted(set(d) - allowed)
+    if bad:
+        raise LensFileError(f"unknown profile key(s) {', '.join('profile.' + b for b in bad)} for kind "
+                            f"{kind!r}; allowed: {sorted(allowed)}")
+    missing = sorted(required - set(d))
+    if missing:
+        raise LensFileError(f"profile kind {kind!r} needs {', '.join('profile.' + m for m in missing)}")
+    if kind == "even_poly":
+        return EvenPolyProfile(_number(d, "norm_radius", positive=True), _coefficients(d))
+    if kind == "poly":
+        return PolyProfile(_number(d, "norm_radius", positive=True), _coefficients(d))
+    if kind == "fresnel":
+        return FresnelProfile(_number(d, "focal_length", nonzero=True))
+    if kind == "zernike":
+        return ZernikeProfile(_number(d, "norm_radius", positive=True), _coefficients(d))
+    if kind == "cubic":
+        return CubicProfile(_number(d, "norm_radius", positive=True), _number(d, "alpha"))
+    # pixel_map
+    pitch = _number(d, "pitch", positive=True)
+    has_file, has_data = d.get("file") is not None, d.get("data") is not None
+    if has_file == has_data:
+        raise LensFileError("profile kind 'pixel_map' needs exactly one of profile.file (.npy path) and "
+                            "profile.data (nested list)")
+    if has_file:
+        if not isinstance(d["file"], str) or not d["file"]:
+            raise LensFileError(f"profile.file must be a path string, got {d['file']!r}")
+        return PixelMapProfile(pitch, file=d["file"], base=base)
+    try:
+        arr = np.array(d["data"], dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise LensFileError(f"profile.data must be a rectangular 2-D list of numbers ({e})") from None
+    return PixelMapProfile(pitch, data=arr)
+
+
+def get_profile(surface, source=None) -> Profile:
+    """The :class:`Profile` of a DOE ``surface``; ``source`` is the lens file (``lens.source``) so that a
+    pixel map's relative path resolves against its folder."""
+    if surface.profile is None:
+        raise LensError("surface has no DOE profile", keyword="profile")
+    return profile_from_dict(surface.profile, base=Path(source).parent if source else None)
+
+
+def surface_is_continuous(surface, source=None) -> bool:
+    """True when the DOE's phase is smooth: a smooth profile kind and no quantisation (``levels`` None)."""
+    return surface.levels is None and get_profile(surface, source).is_continuous
+
+
+# ====================================================================== phase operations
+def wrap_phase(phi):
+    """Phase wrapped to [0, 2 pi) (radians, float64)."""
+    w = np.mod(_f64(phi), TWO_PI)
+    return np.where(w >= TWO_PI, 0.0, w)  # mod can round up to exactly 2 pi
+
+
+def quantize(phi, levels: int):
+    """Wrap ``phi`` (radians) to [0, 2 pi) and round to the nearest of ``levels`` equally spaced levels
+    ``k 2 pi / levels`` (k = 0 .. levels-1; a value that rounds to 2 pi becomes 0).
+
+    Gradient convention (implemented on the torch side): straight-through, i.e. the backward pass
+    treats quantisation as the identity, ``d quantize(phi) / d phi = 1``; the wrap is also passed
+    straight through (its derivative is 1 almost everywhere).
+    """
+    levels = int(levels)
+    if levels < 2:
+        raise LensError(f"levels must be >= 2, got {levels}")
+    step = TWO_PI / levels
+    k = np.rint(wrap_phase(phi) / step)
+    return np.where(k >= levels, 0.0, k * step)
+
+
+def _indices(substrate, wavelengths_um):
+    from . import materials
+    mat = materials.get_material(substrate)
+    w = np.atleast_1d(_f64(wavelengths_um))
+    return np.array([float(mat.n(float(v))) for v in w.ravel()]).reshape(w.shape)
+
+
+def wavelength_scale(substrate: str, design_wavelength_um: float, wavelength_um):
+    """Phase remap of a surface-relief DOE: ``(n(lambda) - 1) / (n(lambda0) - 1) * lambda0 / lambda``.
+
+    ``substrate`` a material name (:func:`rwwarp.materials.get_material`), wavelengths in um; scalar in,
+    float out; array in, array out.
+    """
+    n0 = _indices(substrate, design_wavelength_um)[0]
+    n = _indices(substrate, wavelength_um)
+    s = (n - 1.0) / (n0 - 1.0) * float(design_wavelength_um) / np.atleast_1d(_f64(wavelength_um))
+    return float(s[0]) if np.ndim(wavelength_um) == 0 else s.reshape(np.shape(wavelength_um))
+
+
+def design_phase(profile: Profile, x_mm, y_mm, design_wavelength_um: float, levels=None):
+    """The relief phase at the design wavelength: ``phi0`` wrapped to [0, 2 pi), quantised to ``levels``
+    when given. Radians, float64."""
+    phi = profile.phase(x_mm, y_mm, design_wavelength_um)
+    return wrap_phase(phi) if levels is None else quantize(phi, levels)
+
+
+def modulation_phase(profile: Profile, x_mm, y_mm, design_wavelength_um: float, wavelength_um: float,
+                     substrate: str = "fused_silica", levels=None):
+    """Phase (radians) the DOE adds at ``wavelength_um``: ``wavelength_scale * design_phase``.
+
+    The DOE multiplies the field by ``exp(1j * modulation_phase)``.
+    """
+    s = wavelength_scale(substrate, design_wavelength_um, wavelength_um)
+    return s * design_phase(profile, x_mm, y_mm, design_wavelength_um, levels)
+
+
+def height_map_um(phi0, substrate: str, design_wavelength_um: float):
+    """Relief height (um) of a phase ``phi0`` (radians): ``wrap(phi0) * lambda0 / (2 pi (n0 - 1))``.
+
+    ``n0`` is the substrate index at ``design_wavelength_um`` (um); the height lies in
+    [0, lambda0 / (n0 - 1)). Pass an already quantised phase for a stepped relief.
+    """
+    n0 = _indices(substrate, design_wavelength_um)[0]
+    return wrap_phase(phi0) * float(design_wavelength_um) / (TWO_PI * (n0 - 1.0))
+
+
+HeightMap = namedtuple("HeightMap", "height_um pitch_mm npy_path png_path")
+
+
+def export_height_map(profile: Profile, surface, path_prefix, pitch_mm: float, levels=None,
+                      source=None) -> HeightMap:
+    """Write the fabrication height map of a DOE ``surface`` with ``profile``.
+
+    Samples the relief over the surface's aperture (``semi_diameter``, ``shape``) on a grid of
+    ``pitch_mm`` (mm) centred on the axis, quantised to ``levels`` (None: the surface's own
+    ``levels``; continuous if that is None too), zero outside a circular aperture. Writes
+    ``<path_prefix>.npy`` (float64 heights in um, row 0 at +y, column 0 at -x) and
+    ``<path_prefix>.png`` (image with a colour bar, axes in mm). Returns a :class:`HeightMap`.
+    """
+    if surface.semi_diameter is None:
+        raise LensError("cannot export a height map of a DOE without a semi_diameter", keyword="semi_diameter")
+    if not pitch_mm > 0:
+        raise LensError(f"pitch_mm must be > 0, got {pitch_mm}")
+    levels = surface.levels if levels is None else levels
+    sd = float(surface.semi_diameter)
+    n = max(1, int(math.ceil(2.0 * sd / pitch_mm - 1e-9)))
+    t = (np.arange(n) - (n - 1) / 2.0) * pitch_mm
+    h = np.empty((n, n), dtype=np.float64)
+    n0 = _indices(surface.material, surface.design_wavelength_um)[0]
+    k = float(surface.design_wavelength_um) / (TWO_PI * (n0 - 1.0))
+    rows = max(1, 4_000_000 // n)
+    for r0 in range(0, n, rows):
+        yy = t[::-1][r0:r0 + rows][:, None]  # row 0 at +y
+        xx = t[None, :]
+        phi = design_phase(profile, xx, yy, surface.design_wavelength_um, levels)
+        blk = phi * k
+        if surface.shape == "circle":
+            blk = np.where(xx * xx + yy * yy <= sd * sd, blk, 0.0)
+        h[r0:r0 + rows] = blk
+    prefix = str(path_prefix)
+    npy_path, png_path = Path(prefix + ".npy"), Path(prefix + ".png")
+    npy_path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(npy_path, h)
+    _save_png(h, pitch_mm, png_path, levels, surface)
+    return HeightMap(h, float(pitch_mm), npy_path, png_path)
+
+
+def _save_png(h, pitch_mm, path, levels, surface):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    step = max(1, int(math.ceil(max(h.shape) / 2048)))
+    half = 0.5 * h.shape[0] * pitch_mm
+    fig = Figure(figsize=(6, 5), dpi=150)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    im = ax.imshow(h[::step, ::step], extent=(-half, half, -half, half), origin="upper", cmap="viridis",
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="height (um)")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    q = "continuous" if levels is None else f"{int(levels)} levels"
+    ax.set_title(f"DOE height map, {surface.material} at {surface.design_wavelength_um} um, {q}", fontsize=9)
+    fig.savefig(path)
+

@@ -1,0 +1,347 @@
+"""Reader of DeepLens lens files (GeoLens and HybridLens JSON) into a :class:`rwwarp.lens.Lens`.
+
+Units: DeepLens files are in mm and um, as rwwarp.
+
+Layout. Surface positions come from ``d_next`` (distance to the next surface; the last surface's
+``d_next`` is the distance to the sensor) when every surface has it, else from the older absolute
+``d`` (vertex z of each surface) with ``d_sensor`` for the sensor. Keys written in parentheses, such as
+``"(d)"``, ``"(c)"``, ``"(sensor_size)"``, are derived values and are ignored; so are DeepLens outputs
+(``foclen``, ``fnum``, ``r_last``, ``mat1``, ``idx``, ...).
+
+Surfaces (``r`` is the semi-diameter in mm, ``mat2`` the material after the surface):
+
+================ =====================================================================================
+DeepLens         rwwarp
+================ =====================================================================================
+Aperture, Stop   ``aperture`` (``is_square`` -> square); the first one is the stop
+Spheric          ``standard``: curvature from ``roc`` (radius of curvature, 0 = flat) or ``c`` (1/mm)
+Aspheric         ``standard`` with ``k`` (conic) and ``ai``: ``use_ai2`` true or absent (the legacy
+                 layout) means ``ai[0]`` is the r^2 term and ``ai[1:]`` r^4, r^6, ...; ``use_ai2``
+                 false means ``ai`` starts at r^4. rwwarp's asphere starts at r^4, so a non-zero r^2
+                 term raises :class:`~rwwarp.errors.LensFileError`.
+Plane            flat ``standard`` into ``mat2``
+ThinLens         ``thin_lens`` of focal length ``f``
+================ =====================================================================================
+
+The HybridLens ``DOE`` block becomes a ``doe`` surface inserted at its absolute ``d``; its aperture
+is a square of side ``l`` (old layout), ``size``, or ``res * fab_ps``. Phase models (``type`` of the
+block, or ``param_model`` of the older ``"type": "DOE"`` block):
+
+* ``binary2`` (old): ``order2..order8`` on (r/R)^2 .. (r/R)^8 with R the half-diagonal -> ``even_poly``;
+* ``Binary2`` (new): ``pi (alpha2 r^2 + alpha4 r^4 + ...)``, r in mm -> ``even_poly`` (R = half-diagonal);
+* ``fresnel``/``Fresnel``: ``f0`` (mm) at ``fresnel_wvln``/``wvln0`` -> ``fresnel``;
+* ``zernike``/``Zernike``: 37 ``z_coeff`` -> Noll ``zernike`` (DeepLens's Z2/Z3 are sin/cos, Noll's
+  cos/sin: they are swapped here; R = half-diagonal (old) or half side (new); DeepLens masks the new
+  model outside the unit circle and writes Z29/Z30 with a constant "-4" for "-4 rho": rwwarp
+  evaluates the true Noll polynomials everywhere);
+* ``cubic`` (old): ``a3 (x^3 + y^3)``, x in mm -> ``cubic``; ``poly1d`` with zero odd terms -> ``even_poly``;
+* ``pixel2d``/``Pixel2D``: ``doe_path``/``phase_map_path`` to a ``.npy`` -> ``pixel_map`` (torch ``.pth``
+  files must be converted: ``numpy.save(p, torch.load(f).numpy())``).
+
+The new DeepLens DOE quantises its phase to ``fab_step`` levels (default 16): ``levels`` is set to
+that; the old ``"DOE"`` block does not quantise. Substrate ``mat`` (default fused_silica), design
+wavelength ``wvln0`` (default 0.55 um).
+
+Sensor: ``sensor_res`` (default 2000 x 2000) and ``sensor_size`` or the half-diagonal ``r_sensor``
+(square pixels). The object is at infinity and the wavelengths are DeepLens's RGB set
+(0.486, 0.587, 0.656 um); neither is stored in a DeepLens file. ``enpd`` sets the entrance pupil.
+
+Errors name the file, the surface (its index in the DeepLens ``surfaces`` list, or ``DOE``) and the key.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from .errors import LensError, LensFileError
+
+DEFAULT_WAVELENGTHS_UM = [0.486, 0.587, 0.656]
+_SURFACE_TYPES = ("Aperture", "Stop", "Spheric", "Aspheric", "Plane", "ThinLens")
+
+
+def _derived(key: str) -> bool:
+    return key.startswith("(") and key.endswith(")")
+
+
+def lens_from_deeplens(d: dict, source=None):
+    """Build a :class:`~rwwarp.lens.Lens` from a parsed DeepLens GeoLens/HybridLens JSON dictionary.
+
+    ``source`` is the file it came from (for messages, and to resolve a pixel map's relative path).
+    Raises :class:`~rwwarp.errors.LensFileError` for unknown surface types and bad or missing keys,
+    :class:`~rwwarp.errors.GlassError` for unknown materials, :class:`~rwwarp.errors.GeometryError`
+    for crossing surfaces; nothing is half-built.
+    """
+    from . import materials
+    from .lens import Lens, Sensor, Surface
+
+    src = None if source is None else str(source)
+
+    def err(msg, surf=None, key=None, cls=LensFileError):
+        return cls(msg, file=src, surface=surf, keyword=key)
+
+    if not isinstance(d, dict):
+        raise err(f"not a lens file: expected a JSON object, got {type(d).__name__}")
+    d = {k: v for k, v in d.items() if not _derived(k)}
+    surfs = d.get("surfaces")
+    if not isinstance(surfs, list) or not surfs:
+        raise err("not a rwwarp-lens/1 or DeepLens file: no 'format' and no 'surfaces' list", key="surfaces")
+
+    def num(sd, key, i, *, default=None, positive=False):
+        if key not in sd or sd[key] is None:
+            if default is not None:
+                return default
+            raise err(f"missing {key!r}", i, key)
+        v = sd[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise err(f"{key!r} must be a finite number, got {v!r}", i, key)
+        if positive and not v > 0:
+            raise err(f"{key!r} must be > 0, got {v}", i, key)
+        return float(v)
+
+    # ---------------------------------------------------------------- positions
+    clean = []
+    for i, sd in enumerate(surfs):
+        if not isinstance(sd, dict):
+            raise err(f"surface entry must be an object, got {type(sd).__name__}", i)
+        clean.append({k: v for k, v in sd.items() if not _derived(k)})
+    relative = all("d_next" in sd for sd in clean)
+    if relative:
+        z, zc = [], 0.0
+        for i, sd in enumerate(clean):
+            z.append(zc)
+            zc += num(sd, "d_next", i)
+        z_sensor = zc
+    else:
+        if not all("d" in sd for sd in clean):
+            i = next(i for i, sd in enumerate(clean) if "d" not in sd and "d_next" not in sd) \
+                if any("d" not in sd and "d_next" not in sd for sd in clean) else \
+                next(i for i, sd in enumerate(clean) if "d" not in sd)
+            raise err("surface positions need 'd_next' on every surface or the absolute 'd' on every surface",
+                      i, "d_next")
+        z = [num(sd, "d", i) for i, sd in enumerate(clean)]
+        if "d_sensor" not in d:
+            raise err("the absolute 'd' layout needs 'd_sensor' (sensor z, mm)", key="d_sensor")
+        z_sensor = num(d, "d_sensor", None)
+
+    # ---------------------------------------------------------------- surfaces
+    items = []  # (z, Surface, label)
+    stop_done = False
+    for i, sd in enumerate(clean):
+        typ = sd.get("type")
+        if typ not in _SURFACE_TYPES:
+            raise err(f"unknown or unsupported DeepLens surface type {typ!r} (supported: {', '.join(_SURFACE_TYPES)})",
+                      i, "type")
+        for key, neutral in (("pos_xy", [0.0, 0.0]), ("vec_local", [0.0, 0.0, 1.0]), ("origin", None)):
+            v = sd.get(key)
+            if v is not None and (neutral is None or [float(a) for a in v] != neutral):
+                raise err(f"decentred or tilted surfaces are not supported ({key} = {v})", i, key)
+        semi = num(sd, "r", i, positive=True) if sd.get("r") is not None else None
+        shape = "square" if sd.get("is_square") else "circle"
+        if typ in ("Aperture", "Stop"):
+            s = Surface(type="aperture", semi_diameter=semi, shape=shape, stop=not stop_done)
+            stop_done = True
+        elif typ == "ThinLens":
+            s = Surface(type="thin_lens", focal_length=num(sd, "f", i), semi_diameter=semi, shape=shape)
+        else:
+            material = _material(sd, i, src, err, materials)
+            if typ == "Plane":
+                s = Surface(type="standard", radius=None, material=material, semi_diameter=semi, shape=shape)
+            else:
+                if sd.get("roc") not in (None, 0, 0.0):
+                    radius = num(sd, "roc", i)
+                elif "c" in sd:
+                    c = num(sd, "c", i)
+                    radius = None if c == 0 else 1.0 / c
+                elif sd.get("roc") in (0, 0.0):
+                    radius = None
+                else:
+                    raise err("missing curvature: give 'roc' (mm) or 'c' (1/mm)", i, "roc")
+                conic, asph = 0.0, []
+                if typ == "Aspheric":
+                    conic = num(sd, "k", i, default=0.0)
+                    ai = sd.get("ai") or []
+                    if not isinstance(ai, list):
+                        raise err(f"'ai' must be a list of numbers, got {ai!r}", i, "ai")
+                    try:
+                        ai = [float(a) for a in ai]
+                    except (TypeError, ValueError):
+                        raise err(f"'ai' must be a list of numbers, got {ai!r}", i, "ai") from None
+                    if sd.get("use_ai2", True) and ai:
+                        if ai[0] != 0.0:
+                            raise err(f"the r^2 aspheric term ai[0] = {ai[0]} (legacy layout) is not supported: "
+                                      "rwwarp's even asphere starts at r^4", i, "ai")
+                        ai = ai[1:]
+                    while ai and ai[-1] == 0.0:
+                        ai.pop()
+                    asph = ai
+                s = Surface(type="standard", radius=radius, conic=conic, aspheric=asph, material=material,
+                            semi_diameter=semi, shape=shape)
+        items.append((z[i], s, i))
+
+    # ---------------------------------------------------------------- DOE (HybridLens)
+    if d.get("DOE") is not None:
+        doe_surface, z_doe = _doe(d["DOE"], err, src)
+        pos = len(items)
+        while pos > 0 and items[pos - 1][0] > z_doe:
+            pos -= 1
+        items.insert(pos, (z_doe, doe_surface, "DOE"))
+
+    # thicknesses from positions
+    surfaces = []
+    labels = []
+    for k, (zk, s, label) in enumerate(items):
+        z_next = items[k + 1][0] if k + 1 < len(items) else z_sensor
+        s.thickness = float(z_next - zk)
+        surfaces.append(s)
+        labels.append(label)
+    # a first surface not at z = 0 only shifts the origin (rwwarp puts the first vertex at z = 0)
+
+    # ---------------------------------------------------------------- sensor and system
+    res = d.get("sensor_res", [2000, 2000])
+    try:
+        res = [int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
+    except (TypeError, ValueError):
+        raise err(f"'sensor_res' must be two integers, got {res!r}", key="sensor_res") from None
+    if len(res) != 2 or min(res) < 1:
+        raise err(f"'sensor_res' must be two positive integers, got {res!r}", key="sensor_res")
+    if d.get("sensor_size") is not None:
+        size = d["sensor_size"]
+        size = size if isinstance(size, (list, tuple)) else [size, size]
+        try:
+            pitch = float(size[0]) / res[0]
+        except (TypeError, ValueError, IndexError):
+            raise err(f"'sensor_size' must be [w, h] in mm, got {size!r}", key="sensor_size") from None
+    elif d.get("r_sensor") is not None:
+        pitch = 2.0 * num(d, "r_sensor", None, positive=True) / math.hypot(res[0], res[1])
+    else:
+        raise err("no sensor size: give 'sensor_size' [w, h] (mm) or the half-diagonal 'r_sensor' (mm)",
+                  key="r_sensor")
+    epd = d.get("enpd")
+    try:
+        lens = Lens(surfaces=surfaces, sensor=Sensor(pixel_pitch=pitch, resolution=tuple(res)),
+                    object_distance=math.inf, wavelengths_um=list(DEFAULT_WAVELENGTHS_UM),
+                    name=str(d.get("info", "") or ""), entrance_pupil_diameter=None if epd is None else float(epd),
+                    source=src)
+    except LensError as e:
+        from .io_zemax import _core
+        surf = e.surface if not isinstance(e.surface, int) else labels[e.surface]
+        raise type(e)(_core(e), file=src, surface=surf, keyword=e.keyword) from None
+    return lens
+
+
+def _material(sd, i, src, err, materials):
+    name = sd.get("mat2", "air")
+    if not isinstance(name, str) or not name:
+        raise err(f"'mat2' must be a material name, got {name!r}", i, "mat2")
+    if name.lower() in ("air", "vacuum"):
+        return "air"
+    try:
+        materials.get_material(name)
+    except LensError as e:
+        from .io_zemax import _core
+        raise type(e)(f"{_core(e)} (DeepLens material names are looked up in the rwwarp glass table)",
+                      file=src, surface=i, keyword="mat2") from None
+    return name
+
+
+def _doe(dd, err, src):
+    """(doe Surface, z) from a DeepLens DOE block."""
+    from .lens import Surface
+
+    if not isinstance(dd, dict):
+        raise err(f"'DOE' must be an object, got {type(dd).__name__}", "DOE")
+    dd = {k: v for k, v in dd.items() if not _derived(k)}
+    typ = str(dd.get("type", ""))
+    old = typ == "DOE"
+    model = str(dd.get("param_model", "")).lower() if old else typ.lower()
+
+    def num(key, default=None, positive=False):
+        if dd.get(key) is None:
+            if default is not None:
+                return default
+            raise err(f"missing {key!r}", "DOE", key)
+        v = dd[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise err(f"{key!r} must be a finite number, got {v!r}", "DOE", key)
+        if positive and not v > 0:
+            raise err(f"{key!r} must be > 0, got {v}", "DOE", key)
+        return float(v)
+
+    z = num("d")
+    res = dd.get("res", [2000, 2000])
+    res = [int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
+    fab_ps = num("fab_ps", default=0.001, positive=True)
+    if dd.get("l") is not None:
+        w = h = num("l", positive=True)
+    elif dd.get("size") is not None:
+        size = dd["size"] if isinstance(dd["size"], (list, tuple)) else [dd["size"], dd["size"]]
+        w, h = float(size[0]), float(size[1])
+    else:
+        w, h = res[0] * fab_ps, res[1] * fab_ps
+    if abs(w - h) > 1e-9 * max(w, h):
+        raise err(f"rectangular DOEs are not supported ({w} x {h} mm)", "DOE", "size")
+    half = 0.5 * w
+    half_diag = half * math.sqrt(2.0)
+    pitch = w / res[0]
+    wvln0 = num("wvln0", default=0.55, positive=True)
+    mat = dd.get("mat", "fused_silica")
+    levels = None if old else int(dd.get("fab_step", 16))
+
+    if model == "binary2":
+        if old:
+            coeffs = [num(f"order{2 * i}", default=0.0) for i in range(1, 5)]
+            if dd.get("order10") is not None:
+                coeffs.append(num("order10"))
+        else:
+            keys = [f"alpha{2 * i}" for i in range(1, 11)]
+            if not any(k in dd for k in keys):
+                raise err("Binary2 DOE without alpha2.. coefficients (DeepLens would initialise it randomly)",
+                          "DOE", "alpha2")
+            coeffs = [math.pi * num(k, default=0.0) * half_diag ** (2 * i) for i, k in enumerate(keys, start=1)]
+        while coeffs and coeffs[-1] == 0.0 and len(coeffs) > 1:
+            coeffs.pop()
+        profile = {"kind": "even_poly", "norm_radius": half_diag, "coefficients": coeffs}
+    elif model == "fresnel":
+        f0 = num("f0")
+        if old and dd.get("fresnel_wvln") is not None:
+            fw = num("fresnel_wvln", positive=True)
+            if abs(fw - wvln0) > 1e-12:
+                raise err(f"fresnel_wvln {fw} um differs from the DOE design wavelength {wvln0} um", "DOE",
+                          "fresnel_wvln")
+        profile = {"kind": "fresnel", "focal_length": f0}
+    elif model == "zernike":
+        zc = dd.get("z_coeff")
+        if not isinstance(zc, list) or not zc:
+            raise err("Zernike DOE without 'z_coeff' (DeepLens would initialise it randomly)", "DOE", "z_coeff")
+        try:
+            zc = [float(v) for v in zc]
+        except (TypeError, ValueError):
+            raise err("'z_coeff' must be a list of numbers", "DOE", "z_coeff") from None
+        if len(zc) >= 3:
+            zc[1], zc[2] = zc[2], zc[1]  # DeepLens Z2 = 2 rho sin, Z3 = 2 rho cos; Noll the other way round
+        profile = {"kind": "zernike", "norm_radius": half_diag if old else half, "coefficients": zc}
+    elif model == "cubic" and old:
+        profile = {"kind": "cubic", "norm_radius": half, "alpha": num("a3") * half ** 3}
+    elif model == "poly1d" and old:
+        odd = [num(f"order{k}", default=0.0) for k in (3, 5, 7)]
+        if any(odd):
+            raise err("poly1d odd terms (x^3 + y^3, ...) are separable, not radial: no rwwarp profile", "DOE",
+                      "order3")
+        profile = {"kind": "even_poly", "norm_radius": half_diag,
+                   "coefficients": [num(f"order{k}", default=0.0) for k in (2, 4, 6)]}
+    elif model == "pixel2d":
+        key = "doe_path" if old else "phase_map_path"
+        p = dd.get(key)
+        if not p:
+            raise err(f"Pixel2D DOE without a phase map file ({key!r}); DeepLens would start from random values",
+                      "DOE", key)
+        if not str(p).lower().endswith(".npy"):
+            raise err(f"phase map {p!r} is not a .npy file; convert a torch file with "
+                      "numpy.save(path, torch.load(file).numpy())", "DOE", key)
+        profile = {"kind": "pixel_map", "file": str(p), "pitch": pitch}
+    else:
+        raise err(f"unsupported DeepLens DOE model {model or typ!r}", "DOE", "param_model" if old else "type")
+
+    s = Surface(type="doe", semi_diameter=half, shape="square", design_wavelength_um=wvln0,
+                material=str(mat), levels=levels, profile=profile)
+    return s, z

@@ -1,0 +1,475 @@
+"""Reader of Zemax OpticStudio sequential lens files (``.zmx``) into a :class:`rwwarp.lens.Lens`.
+
+Units: the file's lens unit (``UNIT MM``, ``CM``, ``IN`` or ``METER``) is converted to mm;
+wavelengths (``WAVM``/``WAVL``) are in um; field angles in degrees.
+
+Supported:
+
+* encodings: ASCII/UTF-8 (with or without BOM) and UTF-16 (LE/BE with BOM, as OpticStudio writes
+  it), LF or CRLF line ends;
+* surface types ``STANDARD`` (sphere/plane + conic), ``EVENASPH`` (conic + ``PARM 2..8`` = r^4..r^16;
+  ``PARM 1``, the r^2 term, must be 0 because rwwarp's even asphere starts at r^4: a non-zero value
+  raises :class:`~rwwarp.errors.LensFileError`), ``PARAXIAL`` (ideal thin lens, focal length
+  ``PARM 1``) and ``BINARY_2`` on a flat surface (a DOE with an ``even_poly`` profile:
+  ``XDAT 1`` = number of terms N, ``XDAT 2`` = normalisation radius, ``XDAT 3..N+2`` = A1..AN in
+  radians on rho^2..rho^(2N), each multiplied by the diffraction order ``PARM 0``);
+* per surface ``CURV``, ``DISZ`` (``INFINITY``), ``GLAS`` (a catalogue name, or a model glass
+  ``GLAS ___BLANK 1 0 nd vd ...`` -> material ``"nd/vd"``), ``CONI``, ``PARM``, ``XDAT``, ``STOP``,
+  ``DIAM``, ``CLAP`` (circular aperture), ``SQAP`` (square aperture), ``FLAP`` (floating aperture);
+* system data ``ENPD`` (entrance pupil diameter), ``FNUM`` (image-space F/#: EPD = EFL / F# at the
+  primary wavelength), ``FLOA`` (float by stop size), ``WAVM``/``WAVL``, ``PWAV``, ``FTYP``,
+  ``XFLN``/``YFLN`` (``XFLD``/``YFLD``), ``UNIT``, ``NAME``.
+
+Mapping: SURF 0 is the object (its ``DISZ`` is the object distance); the last SURF is the image
+plane and the thickness of the surface before it is the distance to the sensor; SURF k (0 < k < last)
+becomes rwwarp surface k-1 (a BINARY_2 surface between two different media becomes two rwwarp
+surfaces: a flat refracting ``standard`` surface and the DOE, at the same z).
+
+Semi-diameters: Zemax does not clip rays at a semi-diameter, only at surface apertures. rwwarp
+clips at ``semi_diameter``, so it is taken from ``CLAP``/``SQAP``/``FLAP`` apertures and from
+*fixed* ``DIAM`` values (solve flag 1); automatic ``DIAM`` values (flag 0, computed by OpticStudio
+from the rays) are ignored (no clipping), except on the stop under ``FLOA``.
+
+Fields: ``FTYP`` field type 0 (angle) gives ``fields_deg`` (a number where x = 0, else [x, y]);
+other field types (object/image heights) leave ``fields_deg`` None. The sensor is not part of a
+.zmx file: the default :class:`~rwwarp.lens.Sensor` is used.
+
+Errors: everything is checked before a :class:`Lens` is built (nothing half-loaded). Messages name
+the file, the surface as its Zemax number (``SURF k``) and the keyword. Unsupported surface types,
+multi-config-only features, mirrors, annular/elliptical/rectangular apertures, curved or glass-coated
+diffractive surfaces raise :class:`~rwwarp.errors.LensFileError`; unknown glasses
+:class:`~rwwarp.errors.GlassError`; impossible geometry :class:`~rwwarp.errors.GeometryError`.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from .errors import GlassError, LensError, LensFileError
+
+# keywords that belong to a SURF block (others are system data or ignored)
+_SURF_KEYS = {"TYPE", "CURV", "DISZ", "GLAS", "CONI", "PARM", "XDAT", "STOP", "DIAM", "CLAP", "SQAP", "FLAP",
+              "OBSC", "OBDC", "ELOB", "ELAP", "SQOB", "UDAP", "COMM", "HIDE", "MIRR", "SLAB", "POPS", "COAT",
+              "MEMA", "PZUP", "PPAR", "MAZH", "SCBD", "ATTR", "FIMP", "IGNR", "VPAR", "VCON", "VDSZ"}
+_UNITS = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "METER": 1000.0, "M": 1000.0}
+_SUPPORTED_TYPES = ("STANDARD", "EVENASPH", "PARAXIAL", "BINARY_2")
+# rwwarp keyword -> Zemax keyword, for errors raised while validating the built lens
+_KEYWORD_MAP = {"thickness": "DISZ", "material": "GLAS", "semi_diameter": "DIAM", "focal_length": "PARM 1",
+                "profile": "XDAT", "aspheric": "PARM", "type": "TYPE", "shape": "SQAP", "conic": "CONI",
+                "radius": "CURV", "levels": "XDAT"}
+
+
+# ---------------------------------------------------------------------------------------------- text
+def _decode(raw: bytes) -> str:
+    """Decode a .zmx file: UTF-16 (BOM, or NUL bytes of an unmarked UTF-16 file), UTF-8, or Latin-1."""
+    if raw.startswith(b"\xff\xfe") or raw.startswith(b"\xfe\xff"):
+        return raw.decode("utf-16")
+    if raw.startswith(b"\xef\xbb\xbf"):
+        return raw[3:].decode("utf-8", errors="replace")
+    head = raw[:400]
+    if head.count(b"\x00") > len(head) // 4:
+        even_nuls = head[0::2].count(b"\x00")
+        return raw.decode("utf-16-be" if even_nuls > len(head) // 4 else "utf-16-le")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
+class _Block:
+    """One SURF block: lines as (keyword, tokens, line number)."""
+
+    def __init__(self, number, line):
+        self.number, self.line = number, line
+        self.entries = []
+
+    def get(self, key):
+        for k, toks, ln in self.entries:
+            if k == key:
+                return toks, ln
+        return None
+
+    def all(self, key):
+        return [(toks, ln) for k, toks, ln in self.entries if k == key]
+
+    def has(self, key):
+        return any(k == key for k, _, _ in self.entries)
+
+
+class _Reader:
+    def __init__(self, path):
+        self.path = str(path)
+        self.header = []  # (keyword, tokens, line)
+        self.blocks = []
+
+    # -------- errors
+    def err(self, msg, surf=None, key=None, cls=LensFileError, line=None):
+        where = f" (line {line})" if line is not None else ""
+        return cls(msg + where, file=self.path, surface=None if surf is None else f"SURF {surf}", keyword=key)
+
+    # -------- parsing
+    def parse(self, text):
+        cur = None
+        for ln, raw in enumerate(text.splitlines(), start=1):
+            line = raw.strip()
+            if not line or line.startswith("!"):
+                continue
+            toks = line.split()
+            key, rest = toks[0].upper(), toks[1:]
+            if key == "SURF":
+                try:
+                    num = int(rest[0])
+                except (IndexError, ValueError):
+                    raise self.err(f"bad SURF line {line!r}", key="SURF", line=ln) from None
+                if num != len(self.blocks):
+                    raise self.err(f"surfaces must be numbered 0, 1, 2, ...; found SURF {num} after "
+                                   f"{len(self.blocks)} surface(s)", surf=num, key="SURF", line=ln)
+                cur = _Block(num, ln)
+                self.blocks.append(cur)
+            elif cur is not None and key in _SURF_KEYS:
+                cur.entries.append((key, rest, ln))
+            else:
+                self.header.append((key, rest, ln))
+        if len(self.blocks) < 3:
+            raise self.err(f"a sequential .zmx needs an object, at least one lens surface and an image "
+                           f"surface; found {len(self.blocks)} SURF block(s)")
+
+    def hget(self, key):
+        for k, toks, ln in self.header:
+            if k == key:
+                return toks, ln
+        return None
+
+    def hall(self, key):
+        return [(toks, ln) for k, toks, ln in self.header if k == key]
+
+    def num(self, toks, i, what, surf=None, key=None, line=None, allow_inf=False):
+        try:
+            tok = toks[i]
+        except IndexError:
+            raise self.err(f"missing value for {what}", surf=surf, key=key, line=line) from None
+        if allow_inf and tok.upper() in ("INFINITY", "INF"):
+            return math.inf
+        try:
+            v = float(tok)
+        except ValueError:
+            raise self.err(f"bad number {tok!r} for {what}", surf=surf, key=key, line=line) from None
+        if not math.isfinite(v):
+            raise self.err(f"non-finite value {tok!r} for {what}", surf=surf, key=key, line=line)
+        return v
+
+
+def read_zmx(path):
+    """Read a Zemax sequential ``.zmx`` file into a :class:`~rwwarp.lens.Lens` (lengths in mm).
+
+    See the module docstring for what is supported and how it maps. Raises
+    :class:`~rwwarp.errors.LensFileError`, :class:`~rwwarp.errors.GlassError` or
+    :class:`~rwwarp.errors.GeometryError` (all :class:`~rwwarp.errors.LensError`) naming the file, the
+    Zemax surface (``SURF k``) and the keyword; no lens is returned half-built.
+    """
+    from .lens import Lens, Sensor, Surface
+
+    path = Path(path)
+    rd = _Reader(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise LensFileError(f"cannot read file ({e.strerror})", file=str(path)) from None
+    rd.parse(_decode(raw))
+
+    # ------------------------------------------------------------------ system data
+    mode = rd.hget("MODE")
+    if mode and mode[0] and mode[0][0].upper() != "SEQ":
+        raise rd.err(f"only sequential files are supported (MODE {mode[0][0]})", key="MODE", line=mode[1])
+    unit = rd.hget("UNIT")
+    scale = 1.0
+    if unit and unit[0]:
+        u = unit[0][0].upper()
+        if u not in _UNITS:
+            raise rd.err(f"unsupported lens unit {unit[0][0]!r} (expected one of {sorted(_UNITS)})", key="UNIT",
+                         line=unit[1])
+        scale = _UNITS[u]
+    name = ""
+    nm = rd.hget("NAME")
+    if nm:
+        name = " ".join(nm[0])
+
+    # wavelengths
+    ftyp = rd.hget("FTYP")
+    n_fields = n_waves = None
+    field_type = 0
+    if ftyp:
+        field_type = int(rd.num(ftyp[0], 0, "field type", key="FTYP", line=ftyp[1]))
+        if len(ftyp[0]) >= 4:
+            n_fields = int(rd.num(ftyp[0], 2, "number of fields", key="FTYP", line=ftyp[1]))
+            n_waves = int(rd.num(ftyp[0], 3, "number of wavelengths", key="FTYP", line=ftyp[1]))
+    wavm = {}
+    for toks, ln in rd.hall("WAVM"):
+        idx = int(rd.num(toks, 0, "wavelength number", key="WAVM", line=ln))
+        wavm[idx] = rd.num(toks, 1, "wavelength (um)", key="WAVM", line=ln)
+    if wavm:
+        idxs = sorted(wavm)
+        if n_waves is not None:
+            idxs = [i for i in idxs if i <= n_waves]
+        wavelengths = [wavm[i] for i in idxs]
+    elif rd.hget("WAVL"):
+        toks, ln = rd.hget("WAVL")
+        wavelengths = [rd.num(toks, i, "wavelength (um)", key="WAVL", line=ln) for i in range(len(toks))]
+        if n_waves is not None:
+            wavelengths = wavelengths[:n_waves]
+    else:
+        wavelengths = [0.55]
+    if not wavelengths:
+        raise rd.err("no wavelengths defined", key="WAVM")
+    pw = rd.hget("PWAV")
+    primary = 1
+    if pw:
+        primary = int(rd.num(pw[0], 0, "primary wavelength number", key="PWAV", line=pw[1]))
+        if not 1 <= primary <= len(wavelengths):
+            raise rd.err(f"primary wavelength {primary} not among the {len(wavelengths)} wavelengths", key="PWAV",
+                         line=pw[1])
+    primary_um = wavelengths[primary - 1]
+
+    # fields
+    fields_deg = None
+    if field_type == 0:
+        def _vals(*keys):
+            for k in keys:
+                got = rd.hget(k)
+                if got:
+                    return [rd.num(got[0], i, "field value", key=k, line=got[1]) for i in range(len(got[0]))]
+            return None
+        xs, ys = _vals("XFLN", "XFLD"), _vals("YFLN", "YFLD")
+        if xs is not None or ys is not None:
+            xs = xs or [0.0] * len(ys)
+            ys = ys or [0.0] * len(xs)
+            n = min(len(xs), len(ys))
+            if n_fields is not None:
+                n = min(n, n_fields)
+            else:  # drop the (0, 0) padding after the first field
+                while n > 1 and xs[n - 1] == 0 and ys[n - 1] == 0:
+                    n -= 1
+            fields_deg = [ys[i] if xs[i] == 0 else [xs[i], ys[i]] for i in range(n)]
+
+    # system aperture
+    epd = fnum = None
+    floa = rd.hget("FLOA") is not None
+    if rd.hget("ENPD") and not floa:
+        toks, ln = rd.hget("ENPD")
+        epd = rd.num(toks, 0, "entrance pupil diameter", key="ENPD", line=ln) * scale
+    for key in ("OBNA", "PFNO", "OBSC"):
+        if rd.hget(key):
+            raise rd.err(f"unsupported system aperture type {key} (use ENPD, FNUM or FLOA)", key=key,
+                         line=rd.hget(key)[1])
+    if rd.hget("FNUM"):
+        toks, ln = rd.hget("FNUM")
+        fnum = rd.num(toks, 0, "image-space F/#", key="FNUM", line=ln)
+        if not fnum > 0:
+            raise rd.err(f"FNUM must be > 0, got {fnum}", key="FNUM", line=ln)
+        epd = None
+
+    # ------------------------------------------------------------------ surfaces
+    blocks = rd.blocks
+    obj, img = blocks[0], blocks[-1]
+    object_distance = math.inf
+    got = obj.get("DISZ")
+    if got:
+        object_distance = rd.num(got[0], 0, "object distance", surf=0, key="DISZ", line=got[1], allow_inf=True)
+        object_distance *= scale
+    if obj.has("STOP") or img.has("STOP"):
+        raise rd.err("the stop cannot be the object or image surface", surf=obj.number if obj.has("STOP")
+                     else img.number, key="STOP")
+    img_type = (img.get("TYPE") or (["STANDARD"], None))[0]
+    if img.get("CURV") and rd.num(img.get("CURV")[0], 0, "curvature", surf=img.number, key="CURV") != 0:
+        raise rd.err("a curved image surface is not supported (the sensor is a plane)", surf=img.number,
+                     key="CURV")
+    if img_type and img_type[0].upper() not in ("STANDARD",):
+        raise rd.err(f"image surface type {img_type[0]} not supported", surf=img.number, key="TYPE")
+
+    from . import materials
+    surfaces, zsurf = [], []  # rwwarp surfaces and their Zemax numbers
+    medium = "air"
+    for b in blocks[1:-1]:
+        k = b.number
+
+        def num(key, i=0, what=None, default=None, allow_inf=False):
+            got = b.get(key)
+            if got is None:
+                return default
+            return rd.num(got[0], i, what or key, surf=k, key=key, line=got[1], allow_inf=allow_inf)
+
+        typ = (b.get("TYPE") or (["STANDARD"], None))[0]
+        typ = typ[0].upper() if typ else "STANDARD"
+        if typ not in _SUPPORTED_TYPES:
+            raise rd.err(f"unsupported surface type {typ} (supported: {', '.join(_SUPPORTED_TYPES)})", surf=k,
+                         key="TYPE", line=b.get("TYPE")[1])
+        curv = num("CURV", what="curvature", default=0.0) / scale
+        thick = num("DISZ", what="thickness", default=0.0, allow_inf=True)
+        if not math.isfinite(thick):
+            raise rd.err("only the object surface may have an infinite thickness", surf=k, key="DISZ")
+        thick *= scale
+        conic = num("CONI", what="conic", default=0.0)
+        parms = {}
+        for toks, ln in b.all("PARM"):
+            i = int(rd.num(toks, 0, "parameter number", surf=k, key="PARM", line=ln))
+            parms[i] = rd.num(toks, 1, f"PARM {i}", surf=k, key=f"PARM {i}", line=ln)
+        xdat = {}
+        for toks, ln in b.all("XDAT"):
+            i = int(rd.num(toks, 0, "extra data number", surf=k, key="XDAT", line=ln))
+            xdat[i] = rd.num(toks, 1, f"XDAT {i}", surf=k, key=f"XDAT {i}", line=ln)
+
+        # material after the surface
+        material = "air"
+        glas = b.get("GLAS")
+        if glas:
+            toks, ln = glas
+            if not toks:
+                raise rd.err("missing glass name", surf=k, key="GLAS", line=ln)
+            gname = toks[0]
+            if gname.upper() == "MIRROR":
+                raise rd.err("mirrors are not supported", surf=k, key="GLAS", line=ln)
+            if gname.upper() == "___BLANK":
+                nd = rd.num(toks, 3, "model glass nd", surf=k, key="GLAS", line=ln)
+                vd = rd.num(toks, 4, "model glass Vd", surf=k, key="GLAS", line=ln)
+                material = f"{nd!r}/{vd!r}"
+            elif gname.upper() != "AIR":
+                material = gname
+            if material != "air":
+                try:
+                    materials.get_material(material)
+                except LensError as e:
+                    hint = ""
+                    if len(toks) >= 5 and gname.upper() != "___BLANK":
+                        hint = f" (the file also lists nd {toks[3]}, Vd {toks[4]}; no model glass is substituted)"
+                    raise rd.err(f"unknown glass {gname!r}: {_core(e)}{hint}", surf=k, key="GLAS", cls=GlassError,
+                                 line=ln) from None
+
+        # aperture
+        sd, shape = None, "circle"
+        diam = b.get("DIAM")
+        if diam:
+            d_val = rd.num(diam[0], 0, "semi-diameter", surf=k, key="DIAM", line=diam[1]) * scale
+            fixed = len(diam[0]) > 1 and diam[0][1] == "1"
+            if d_val > 0 and (fixed or (floa and b.has("STOP"))):
+                sd = d_val
+        for bad in ("OBSC", "ELOB", "ELAP", "SQOB", "UDAP", "OBDC"):
+            if b.has(bad):
+                raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP and FLAP)", surf=k, key=bad,
+                             line=b.get(bad)[1])
+        clap = b.get("CLAP")
+        if clap:
+            rmin = rd.num(clap[0], 0, "minimum radius", surf=k, key="CLAP", line=clap[1]) * scale
+            rmax = rd.num(clap[0], 1, "maximum radius", surf=k, key="CLAP", line=clap[1]) * scale
+            if rmin != 0:
+                raise rd.err(f"annular apertures are not supported (CLAP minimum radius {rmin})", surf=k,
+                             key="CLAP", line=clap[1])
+            sd = rmax
+        sqap = b.get("SQAP")
+        if sqap:
+            hx = rd.num(sqap[0], 0, "x half width", surf=k, key="SQAP", line=sqap[1]) * scale
+            hy = rd.num(sqap[0], 1, "y half width", surf=k, key="SQAP", line=sqap[1]) * scale
+            if abs(hx - hy) > 1e-12 * max(abs(hx), abs(hy)):
+                raise rd.err(f"rectangular apertures are not supported (SQAP {hx} x {hy}); only squares", surf=k,
+                             key="SQAP", line=sqap[1])
+            decs = [rd.num(sqap[0], i, "decenter", surf=k, key="SQAP", line=sqap[1]) for i in range(3, len(sqap[0]))
+                    if _isnum(sqap[0][i])]
+            if any(v != 0 for v in decs):
+                raise rd.err("decentred apertures are not supported", surf=k, key="SQAP", line=sqap[1])
+            sd, shape = hx, "square"
+        flap = b.get("FLAP")
+        if flap and not clap and not sqap:
+            vals = [float(t) for t in flap[0] if _isnum(t)]
+            rmax = vals[1] * scale if len(vals) > 1 and vals[1] > 0 else None
+            if rmax is None and diam:
+                rmax = rd.num(diam[0], 0, "semi-diameter", surf=k, key="DIAM", line=diam[1]) * scale
+            if rmax:
+                sd = rmax
+        stop = b.has("STOP")
+
+        if typ in ("STANDARD", "EVENASPH"):
+            asph = []
+            if typ == "EVENASPH":
+                if parms.get(1, 0.0) != 0.0:
+                    raise rd.err(f"EVENASPH r^2 coefficient PARM 1 = {parms[1]} is not supported (rwwarp's even "
+                                 "asphere starts at r^4; fold it into the curvature in the design)", surf=k,
+                                 key="PARM 1")
+                for i in sorted(parms):
+                    if i > 8 and parms[i] != 0:
+                        raise rd.err(f"PARM {i} is not an EVENASPH coefficient", surf=k, key=f"PARM {i}")
+                asph = [parms.get(i, 0.0) * scale ** (1 - 2 * i) for i in range(2, 9)]
+                while asph and asph[-1] == 0.0:
+                    asph.pop()
+            surfaces.append(Surface(type="standard", thickness=thick, radius=None if curv == 0 else 1.0 / curv,
+                                    conic=conic, aspheric=asph, material=material, semi_diameter=sd, shape=shape,
+                                    stop=stop))
+            zsurf.append(k)
+        elif typ == "PARAXIAL":
+            if curv != 0:
+                raise rd.err("a PARAXIAL surface must be flat (CURV 0)", surf=k, key="CURV")
+            if 1 not in parms:
+                raise rd.err("PARAXIAL surface needs its focal length in PARM 1", surf=k, key="PARM 1")
+            f = parms[1] * scale
+            if f == 0:
+                raise rd.err("PARAXIAL focal length (PARM 1) must be non-zero", surf=k, key="PARM 1")
+            surfaces.append(Surface(type="thin_lens", thickness=thick, focal_length=f, material=material,
+                                    semi_diameter=sd, shape=shape, stop=stop))
+            zsurf.append(k)
+        else:  # BINARY_2
+            if curv != 0:
+                raise rd.err("only flat BINARY_2 surfaces are supported (the rwwarp DOE is a plane)", surf=k,
+                             key="CURV")
+            for i in range(1, 9):
+                if parms.get(i, 0.0) != 0:
+                    raise rd.err(f"BINARY_2 aspheric sag PARM {i} must be 0 (the rwwarp DOE is a plane)", surf=k,
+                                 key=f"PARM {i}")
+            if conic != 0:
+                raise rd.err("BINARY_2 conic must be 0 on a flat DOE", surf=k, key="CONI")
+            order = parms.get(0, 1.0)
+            nterms = int(xdat.get(1, 0))
+            if nterms < 0:
+                raise rd.err(f"BINARY_2 number of terms XDAT 1 = {nterms} must be >= 0", surf=k, key="XDAT 1")
+            coeffs = [order * xdat.get(2 + i, 0.0) for i in range(1, nterms + 1)]
+            rnorm = xdat.get(2, 0.0) * scale
+            if nterms and not rnorm > 0:
+                raise rd.err(f"BINARY_2 normalisation radius XDAT 2 = {rnorm} must be > 0", surf=k, key="XDAT 2")
+            profile = {"kind": "even_poly", "norm_radius": rnorm if rnorm > 0 else 1.0, "coefficients": coeffs}
+            if material != medium:  # refraction at the flat DOE: a plane interface, then the phase
+                surfaces.append(Surface(type="standard", thickness=0.0, radius=None, material=material,
+                                        semi_diameter=sd, shape=shape))
+                zsurf.append(k)
+            surfaces.append(Surface(type="doe", thickness=thick, semi_diameter=sd, shape=shape,
+                                    design_wavelength_um=primary_um, material="fused_silica", profile=profile,
+                                    stop=stop))
+            zsurf.append(k)
+        medium = material
+
+    # ------------------------------------------------------------------ build (validation maps back to SURF k)
+    try:
+        lens = Lens(surfaces=surfaces, sensor=Sensor(), object_distance=object_distance,
+                    wavelengths_um=wavelengths, name=name, entrance_pupil_diameter=epd, fields_deg=fields_deg,
+                    source=str(path))
+        if fnum is not None:
+            from .paraxial import efl
+            lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum
+            lens.validate()
+    except LensError as e:
+        surf = None if e.surface is None or not isinstance(e.surface, int) else zsurf[e.surface]
+        key = _KEYWORD_MAP.get(e.keyword, e.keyword)
+        raise type(e)(_core(e), file=str(path), surface=None if surf is None else f"SURF {surf}",
+                      keyword=key) from None
+    return lens
+
+
+def _core(e: LensError) -> str:
+    """The message of a LensError without its 'file ..., surface ...: ' prefix."""
+    prefix = str(LensError("", file=e.file, surface=e.surface, keyword=e.keyword, field=e.field))
+    s = str(e)
+    return s[len(prefix):] if prefix and s.startswith(prefix) else s
+
+
+def _isnum(tok: str) -> bool:
+    try:
+        float(tok)
+        return True
+    except ValueError:
+        return False

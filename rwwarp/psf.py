@@ -1,0 +1,517 @@
+"""Point spread functions: the public ``psf`` and ``psf_map`` calls and the three models.
+
+* ``model="ray-wave"`` (the paper's model): coherent ray trace to the DOE plane (Warp), rays splatted
+  into a complex field (Warp), DOE phase, band-limited angular spectrum to the sensor and pixel
+  integration (OpenCL + VkFFT).
+* ``model="ray"``: the DOE as a local grating (rays bent by the phase gradient), geometric PSF by
+  binning ray power into pixels. Refuses discontinuous DOEs.
+* ``model="paraxial-wave"``: the refractive part replaced by an ideal thin lens of its paraxial
+  focal length at the DOE plane, then the same wave path.
+
+Normalisation: ``PSF.data`` is the fraction of the power entering the entrance pupil that lands in
+each sensor pixel (box integration of |U|^2 over the pixel). Lengths in mm, wavelengths in um.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import LensError
+from . import paraxial
+from .plan import Plan, nice_fft_length, check_explicit
+from .trace import Tracer, as_field_list, pupil_grid
+
+MODELS = ("ray-wave", "ray", "paraxial-wave")
+
+
+@dataclass
+class PSF:
+    """A PSF patch on the sensor's pixel grid.
+
+    ``data``: (size, size) fraction of entering power per pixel (row = y, column = x, y up).
+    ``pixel_mm``: pixel pitch, mm. ``center_mm``: sensor (x, y) of the centre pixel ``data[size//2, size//2]``.
+    """
+
+    data: np.ndarray
+    pixel_mm: float
+    center_mm: tuple
+    field_deg: object = 0.0
+    wavelength_um: float = 0.55
+    model: str = "ray-wave"
+    plan: dict | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def extent_mm(self):
+        """(xmin, xmax, ymin, ymax) of the patch's outer pixel edges, mm (for imshow)."""
+        n = self.data.shape[0]
+        h = 0.5 * n * self.pixel_mm
+        return (self.center_mm[0] - h, self.center_mm[0] + h, self.center_mm[1] - h, self.center_mm[1] + h)
+
+    def coords_mm(self):
+        """Pixel-centre coordinates (x, y) of the patch columns and rows, mm."""
+        n = self.data.shape[0]
+        off = (np.arange(n) - n // 2) * self.pixel_mm
+        return self.center_mm[0] + off, self.center_mm[1] + off
+
+
+@dataclass
+class PSFMap:
+    """PSFs for fields x wavelengths: ``data`` (n_fields, n_wavelengths, size, size), ``centers_mm``
+    (n_fields, n_wavelengths, 2)."""
+
+    data: np.ndarray
+    pixel_mm: float
+    centers_mm: np.ndarray
+    fields_deg: list
+    wavelengths_um: list
+    model: str
+    info: dict = field(default_factory=dict)
+
+    def __getitem__(self, idx) -> PSF:
+        i, j = idx
+        return PSF(self.data[i, j], self.pixel_mm, tuple(self.centers_mm[i, j]), self.fields_deg[i],
+                   self.wavelengths_um[j], self.model)
+
+
+# ---------------------------------------------------------------------------------------------- API
+def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave", size: int = 64,
+        device: str = "cpu", plan="auto", dtype: str = "float64", amplitude: str = "energy",
+        object_distance_mm=None, rays_per_sample: float = 1.5, pixel_mm=None, center_mm=None,
+        use_reference: bool = True, gauss_nodes: int = 3) -> PSF:
+    """PSF of ``lens`` for one field point and wavelength.
+
+    Parameters
+    ----------
+    field_deg : float or (float, float)
+        Field angle in degrees (y, or (x, y)).
+    wavelength_um : float
+        Wavelength, um.
+    model : "ray-wave" | "ray" | "paraxial-wave"
+    size : int
+        Patch size in sensor pixels (square).
+    device : "cpu" | "cuda" | "cuda:N" | "opencl:P:D"
+    plan : "auto" | "paper" | Plan
+        Sampling plan (see :mod:`rwwarp.plan`).
+    dtype : "float64" | "float32"
+        Ray-tracing precision (the field is accumulated in float64).
+    amplitude : "energy" | "paper"
+        Ray amplitude convention of the splat (DESIGN section 3).
+    object_distance_mm : float, optional
+        Overrides the lens's object distance (mm from the first vertex; inf allowed).
+    rays_per_sample : float
+        Rays per DOE-plane sample along each axis (adaptive plan).
+    pixel_mm : float, optional
+        Sensor pixel pitch (mm), default the lens's sensor.
+    center_mm : (x, y), optional
+        Sensor position of the patch centre (snapped to a pixel centre); default where the chief ray lands.
+    """
+    m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
+                dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
+                rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm,
+                use_reference=use_reference, gauss_nodes=gauss_nodes)
+    p = m[0, 0]
+    p.plan = m.info.get("plan")
+    p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
+    return p
+
+
+def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 64, device: str = "cpu",
+            plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
+            rays_per_sample: float = 1.5, pixel_mm=None, center_mm=None, use_reference: bool = True,
+            gauss_nodes: int = 3, batch: int | None = None, progress: bool = False) -> PSFMap:
+    """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
+    batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
+
+    ``batch`` limits the number of sources per launch (memory); ``progress`` shows a tqdm bar.
+    Returns :class:`PSFMap` with ``data`` of shape (n_fields, n_wavelengths, size, size).
+    """
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if amplitude not in ("energy", "paper"):
+        raise ValueError(f"amplitude must be 'energy' or 'paper', got {amplitude!r}")
+    if size < 1:
+        raise ValueError(f"size must be >= 1, got {size}")
+    fields = as_field_list(fields)
+    wavelengths_um = [float(w) for w in wavelengths_um]
+    pixel = float(pixel_mm or lens.sensor.pixel_pitch)
+    pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
+    batch = batch or len(pairs)
+    out = np.zeros((len(fields), len(wavelengths_um), size, size))
+    centers = np.zeros((len(fields), len(wavelengths_um), 2))
+    info = {"plan": None, "valid_fraction": [], "time_s": 0.0}
+    t0 = time.perf_counter()
+    chunks = [pairs[k:k + batch] for k in range(0, len(pairs), batch)]
+    if progress:
+        from tqdm.auto import tqdm
+        chunks = tqdm(chunks, desc=f"{model} PSFs", unit="batch")
+    for chunk in chunks:
+        f_list = [fields[i] for i, _ in chunk]
+        w_list = [wavelengths_um[j] for _, j in chunk]
+        if model == "ray-wave":
+            res = _raywave(lens, f_list, w_list, size, pixel, device, plan, dtype, amplitude,
+                           object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes)
+        elif model == "paraxial-wave":
+            eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
+            res = _raywave(eq, eq_fields, w_list, size, pixel, device, plan, dtype, amplitude,
+                           None, rays_per_sample, center_mm, use_reference, gauss_nodes)
+        else:
+            res = _ray_model(lens, f_list, w_list, size, pixel, device, dtype, object_distance_mm,
+                             rays_per_sample, center_mm)
+        for k, (i, j) in enumerate(chunk):
+            out[i, j] = res["data"][k]
+            centers[i, j] = res["centers"][k]
+        info["plan"] = res.get("plan")
+        info["valid_fraction"] += list(res["valid_fraction"])
+    info["time_s"] = time.perf_counter() - t0
+    return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _wave_plane_index(lens) -> int:
+    """Surface index of the plane where rays become a field: the DOE, else the last surface."""
+    d = lens.doe_index
+    if d is None:
+        return len(lens.surfaces) - 1
+    for k in range(d + 1, len(lens.surfaces)):
+        if lens.surfaces[k].type in ("standard", "thin_lens"):
+            raise LensError("the ray-wave model needs the DOE behind every refracting surface (surface "
+                            f"{k} follows the DOE)", file=lens.source, surface=k)
+    return d
+
+
+def _snap_center(x, pixel, n_pixels):
+    """Centre of the sensor pixel containing x (mm); sensor pixel centres at (i + 0.5 - n/2) * pixel."""
+    i = np.floor(np.asarray(x) / pixel + n_pixels / 2.0)
+    return (i + 0.5 - n_pixels / 2.0) * pixel
+
+
+def _pixel_centres(centers, size, pixel):
+    off = (np.arange(size) - size // 2) * pixel
+    return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
+
+
+def _doe_phase_grid(lens, plane, origin, pitch, n):
+    """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
+    s = lens.surfaces[plane]
+    if s.type != "doe":
+        return None
+    from . import doe
+    prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else __import__("pathlib").Path(lens.source).parent)
+    g = np.arange(n) * pitch
+    out = np.empty((origin.shape[0], n, n))
+    for k in range(origin.shape[0]):
+        x, y = np.meshgrid(origin[k, 0] + g, origin[k, 1] + g, indexing="xy")
+        ph = prof.phase(x, y, s.design_wavelength_um)
+        if s.levels:
+            ph = doe.quantize(ph, s.levels)
+        inside = (np.abs(x) <= s.semi_diameter) & (np.abs(y) <= s.semi_diameter) if s.shape == "square" \
+            else (x * x + y * y <= s.semi_diameter ** 2) if s.semi_diameter else np.ones_like(x, bool)
+        out[k] = np.where(inside, ph, 0.0)
+    return out
+
+
+def _doe_max_frequency(lens, plane, xy, wavelengths):
+    """Largest local spatial frequency (cycles/mm) the DOE adds at the points ``xy`` (per source)."""
+    s = lens.surfaces[plane]
+    if s.type != "doe":
+        return np.zeros(len(wavelengths)), None
+    from . import doe
+    prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else __import__("pathlib").Path(lens.source).parent)
+    feat = None
+    if not prof.is_continuous or s.levels:
+        feat = prof.feature_size_mm(s.semi_diameter or 1.0)
+        return np.zeros(len(wavelengths)), feat
+    out = np.zeros(len(wavelengths))
+    for k, w in enumerate(wavelengths):
+        gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
+        sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+        out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
+    return out, feat
+
+
+# ---------------------------------------------------------------------------------------------- ray-wave
+def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
+             rays_per_sample, center_mm, use_reference, gauss_nodes):
+    import warp as wp
+    from .kernels.splat import make_splat_kernels
+    from . import propagate, backend as bk
+
+    plane = _wave_plane_index(lens)
+    uniq = sorted(set(wls))
+    tr = Tracer(lens, uniq, device=device, dtype=dtype)
+    wl_idx = [uniq.index(w) for w in wls]
+    nsrc = len(fields)
+    src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+    n_after = np.array([lens.indices(w)[plane] for w in wls])
+    n_img = np.array([lens.indices(w)[-1] for w in wls])
+    z_plane = lens.vertex_z[plane]
+    z_sensor = lens.sensor_z
+    lam_mm = np.array(wls) * 1e-3
+
+    # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
+    pu, pv, _ = pupil_grid(31, src["shape"])
+    pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
+    pilot = tr._run(src, pu, pv, 1.0, keep=True)
+    at_plane = pilot.history[plane]
+    pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
+    pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
+    dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
+    ok = pilot.valid.numpy().reshape(nsrc, -1).astype(bool)
+    for k in range(nsrc):
+        if ok[k].sum() < 3:
+            raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
+                            file=lens.source, field=fields[k])
+    # chief ray: pupil centre if valid, else the centroid of valid rays
+    chief_plane = np.zeros((nsrc, 3))
+    chief_sensor = np.zeros((nsrc, 3))
+    chief_dir = np.zeros((nsrc, 3))
+    for k in range(nsrc):
+        if ok[k, 0]:
+            chief_plane[k], chief_sensor[k], chief_dir[k] = pos_p[k, 0], pos_s[k, 0], dir_s[k, 0]
+        else:
+            chief_plane[k] = pos_p[k, ok[k]].mean(0)
+            chief_sensor[k] = pos_s[k, ok[k]].mean(0)
+            d = dir_s[k, ok[k]].mean(0)
+            chief_dir[k] = d / np.linalg.norm(d)
+    carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
+    # local frequencies of the field relative to the carrier, and the footprint
+    fmax = np.zeros(nsrc)
+    lo = np.zeros((nsrc, 2))
+    hi = np.zeros((nsrc, 2))
+    xy_plane = []
+    for k in range(nsrc):
+        f = n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] - carrier[k]
+        fmax[k] = np.max(np.abs(f))
+        xy = pos_p[k, ok[k], :2]
+        xy_plane.append(xy)
+        lo[k], hi[k] = xy.min(0), xy.max(0)
+    f_doe, feature = _doe_max_frequency(lens, plane, xy_plane, wls)
+    width = float(np.max(hi - lo))
+    pilot_cell = width / 31.0
+    if center_mm is None:
+        centers = np.stack([_snap_center(chief_sensor[:, 0], pixel, lens.sensor.resolution[0]),
+                            _snap_center(chief_sensor[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
+    else:
+        c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
+        centers = np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, lens.sensor.resolution[0]),
+                                            _snap_center(c[:, 1], pixel, lens.sensor.resolution[1])], 1),
+                                  (nsrc, 2)).copy()
+    out_width = size * pixel
+    # ---- plan
+    need_pitch = float(np.min(1.0 / (2.0 * 1.25 * (fmax + f_doe + 1e-9))))
+    reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
+               f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {need_pitch * 1e3:.4g} um (safety 1.25)"]
+    if feature is not None:
+        if feature / 2.0 < need_pitch:
+            reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
+        need_pitch = min(need_pitch, feature / 2.0)
+    window = width + 2.0 * pilot_cell
+    if isinstance(plan, Plan):
+        pl = plan
+        check_explicit(pl, need_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
+    elif plan == "auto":
+        pitch = need_pitch
+        if feature is not None:
+            # align the grid with DOE pixels: an integer number of samples per feature
+            pitch = feature / math.ceil(feature / pitch)
+        n_grid = int(math.ceil(window / pitch)) + 3
+        n_pad = nice_fft_length(max(n_grid, math.ceil((window + out_width) / pitch) + 4))
+        ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
+        reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
+                    f"padding: window + sensor patch {out_width:.4g} mm (shifted band limit) -> FFT {n_pad}",
+                    f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
+        pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
+    elif plan == "paper":
+        s = lens.surfaces[plane]
+        half = s.semi_diameter or float(np.max(np.abs(np.concatenate([lo, hi]))))
+        pitch = (feature or 2 * need_pitch) / 2.0
+        n_grid = int(round(2 * half / pitch))
+        pl = Plan(pitch, n_grid, 2 * n_grid, 1000, "paper", False,
+                  ["paper: whole DOE aperture at half the DOE feature size, padded 2x, 1000x1000 pupil rays "
+                   "(10^6)"])
+        lo[:] = -half
+        hi[:] = half
+    else:
+        raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
+
+    # ---- full trace to the plane (one launch per surface for the whole batch)
+    u, v, cell = pupil_grid(pl.ray_grid, src["shape"])
+    rays = tr._run(src, u, v, cell, upto=plane + 1)
+    npup = len(u)
+    weights = rays.weight.numpy().reshape(nsrc, npup)
+    entering = weights.sum(1)
+    valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
+    valid_fraction = (weights * valid).sum(1) / entering
+    # chief OPL on the plane from the pilot chief ray (same generation conventions)
+    opl_p = None
+    pilot_plane = tr._run(src, np.zeros(1), np.zeros(1), 1.0, upto=plane + 1)
+    opl_p = pilot_plane.opl.numpy()
+    chief_ok = pilot_plane.valid.numpy().astype(bool)
+    chief_plane = np.where(chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
+    if not chief_ok.all():
+        # interpolate a reference OPL from the valid rays nearest the footprint centre
+        all_opl = rays.opl.numpy().reshape(nsrc, npup)
+        all_pos = rays.pos.numpy().reshape(nsrc, npup, 3)
+        for k in np.where(~chief_ok)[0]:
+            d2 = np.sum((all_pos[k, :, :2] - chief_plane[k, :2]) ** 2, axis=1) + np.where(valid[k], 0, np.inf)
+            j = int(np.argmin(d2))
+            chief_plane[k] = all_pos[k, j]
+            opl_p[k] = all_opl[k, j]
+    # reference sphere centre: where the chief ray lands on the sensor
+    target = np.concatenate([chief_sensor[:, :2], np.full((nsrc, 1), z_sensor)], axis=1)
+    target[:, 2] = z_sensor
+    # window origins centred on the footprint
+    n = pl.n_grid
+    mid = 0.5 * (lo + hi)
+    origin = mid - 0.5 * (n - 1) * pl.pitch_mm
+    if pl.kind == "paper":
+        origin = lo
+    # ---- splat
+    K = make_splat_kernels(tr.scalar)
+    dev = tr.device
+    total = nsrc * n * n
+    acc = [wp.zeros(total, dtype=wp.float64, device=dev) for _ in range(5)]
+    dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
+    k_wave = 2.0 * np.pi / lam_mm
+    common = [wp.array(origin, dtype=wp.vec2d, device=dev), wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
+              wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(target, dtype=wp.vec3d, device=dev),
+              wp.array(n_after, dtype=wp.float64, device=dev)]
+    wp.launch(K.splat_kernel, dim=nsrc * npup,
+              inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight] + common +
+                     [wp.array(opl_p.astype(np.float64), dtype=wp.float64, device=dev),
+                      wp.array(k_wave, dtype=wp.float64, device=dev), int(use_reference), n, npup],
+              outputs=acc + [dropped], device=dev)
+    field = wp.empty(total, dtype=wp.vec2d, device=dev)
+    wp.launch(K.finalize_kernel, dim=total,
+              inputs=acc + common + [wp.array(k_wave, dtype=wp.float64, device=dev),
+                                     wp.array(carrier, dtype=wp.vec2d, device=dev), int(use_reference),
+                                     int(amplitude == "energy"), n],
+              outputs=[field], device=dev)
+    u_field = field.numpy().view(np.complex128).reshape(nsrc, n, n)
+    if amplitude == "paper":
+        q = acc[4].numpy().reshape(nsrc, -1).sum(1)
+        pw = np.sum(np.abs(u_field) ** 2, axis=(1, 2)) * pl.pitch_mm ** 2
+        u_field = u_field * np.sqrt(np.where(pw > 0, q / np.maximum(pw, 1e-300), 0.0))[:, None, None]
+    # ---- DOE phase and propagation to the sensor
+    phi0 = _doe_phase_grid(lens, plane, origin, pl.pitch_mm, n)
+    scale = None
+    if phi0 is not None:
+        from . import doe
+        s = lens.surfaces[plane]
+        scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in wls])
+    px, py = _pixel_centres(centers, size, pixel)
+    be = bk.get_backend(device)
+    power = propagate.sensor_intensity(
+        be, u_field, pl.pitch_mm, origin, np.array(wls) / n_after, z_sensor - z_plane, px, py, pixel,
+        doe_phase=phi0, doe_scale=scale, carrier_cpmm=carrier, pad_to=pl.n_pad, gauss_nodes=gauss_nodes)
+    power = np.asarray(power)
+    data = power / entering[:, None, None]
+    if not np.all(np.isfinite(data)):
+        raise FloatingPointError("non-finite PSF values (please report this lens and field)")
+    return {"data": data, "centers": centers, "plan": pl.to_dict(), "valid_fraction": valid_fraction,
+            "dropped_rays": dropped.numpy()}
+
+
+# ---------------------------------------------------------------------------------------------- comparison models
+def paraxial_equivalent(lens, fields, wls, object_distance_mm=None):
+    """The paraxial-wave comparison system: the refractive part replaced by an ideal thin lens.
+
+    The thin lens sits at the wave plane (DOE) with the focal length that images the object where
+    the refractive part's paraxial image lies; its aperture is the paraxial beam footprint there.
+    Returns ``(lens, fields)`` with equivalent field angles (same paraxial image height).
+    """
+    from .lens import Lens, Surface
+    plane = _wave_plane_index(lens)
+    w0 = wls[0]
+    ys, nus = paraxial.ynu_trace(lens, w0, 1.0, 0.0)
+    z = lens.vertex_z
+    # paraxial image of an axial object at infinity formed by surfaces before the plane
+    if plane == 0:
+        raise LensError("paraxial-wave model needs refracting surfaces before the DOE", file=lens.source)
+    n_pl = lens.indices(w0)[plane]
+    y_pl, nu_pl = ys[plane], nus[plane - 1]
+    dist_img = -y_pl * n_pl / nu_pl  # image distance behind the plane
+    pup = paraxial.pupils(lens, w0)
+    marg_y, _ = paraxial.ynu_trace(lens, w0, pup.entrance_radius, 0.0)
+    half = abs(marg_y[plane])
+    s_doe = lens.surfaces[plane]
+    efl = paraxial.efl(lens, w0)
+    surfs = [Surface(type="aperture", semi_diameter=half, shape=lens.surfaces[lens.stop_index].shape, stop=True),
+             Surface(type="thin_lens", focal_length=dist_img, semi_diameter=None)]
+    if s_doe.type == "doe":
+        surfs.append(Surface(type="doe", semi_diameter=s_doe.semi_diameter, shape=s_doe.shape,
+                             profile=s_doe.profile, design_wavelength_um=s_doe.design_wavelength_um,
+                             material=s_doe.material, levels=s_doe.levels))
+    surfs[-1].thickness = lens.sensor_z - z[plane]
+    eq = Lens(surfs, lens.sensor, math.inf, list(wls), name=f"paraxial equivalent of {lens.name}",
+              source=lens.source)
+    eq_fields = []
+    for f in fields:
+        fx, fy = (0.0, float(f)) if np.ndim(f) == 0 else (float(f[0]), float(f[1]))
+        # same paraxial image height: h = efl * tan(theta) = dist_img * tan(theta_eq)
+        tx = efl * math.tan(math.radians(fx)) / dist_img
+        ty = efl * math.tan(math.radians(fy)) / dist_img
+        eq_fields.append((math.degrees(math.atan(tx)), math.degrees(math.atan(ty))))
+    return eq, eq_fields
+
+
+def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm):
+    """Geometric PSF with the DOE as a local grating (ray bending by the phase gradient)."""
+    from . import doe
+    import warp as wp
+    plane = _wave_plane_index(lens)
+    s = lens.surfaces[plane]
+    prof = None
+    if s.type == "doe":
+        prof = doe.profile_from_dict(s.profile)
+        if not prof.is_continuous or s.levels:
+            raise LensError("the ray model cannot handle a discontinuous DOE phase (pixel map or quantised "
+                            "levels): its local grating needs the phase gradient. Use model='ray-wave'.",
+                            file=lens.source, surface=plane, keyword="profile")
+    uniq = sorted(set(wls))
+    tr = Tracer(lens, uniq, device=device, dtype=dtype)
+    wl_idx = [uniq.index(w) for w in wls]
+    src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+    grid = 401
+    u, v, cell = pupil_grid(grid, src["shape"])
+    rays = tr._run(src, u, v, cell, upto=plane + 1)
+    nsrc, npup = len(fields), len(u)
+    pos = rays.pos.numpy().reshape(nsrc, npup, 3)
+    dr = rays.dir.numpy().reshape(nsrc, npup, 3)
+    valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
+    weight = rays.weight.numpy().reshape(nsrc, npup)
+    entering = weight.sum(1)
+    n_pl = np.array([lens.indices(w)[plane] for w in wls])
+    if prof is not None:
+        for k, w in enumerate(wls):
+            gx, gy = prof.gradient(pos[k, :, 0], pos[k, :, 1], s.design_wavelength_um)
+            sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+            lam = w * 1e-3
+            tx = n_pl[k] * dr[k, :, 0] + lam * sc * gx / (2 * np.pi)
+            ty = n_pl[k] * dr[k, :, 1] + lam * sc * gy / (2 * np.pi)
+            tz2 = n_pl[k] ** 2 - tx ** 2 - ty ** 2
+            valid[k] &= tz2 > 0
+            tz = np.sqrt(np.maximum(tz2, 1e-30))
+            d = np.stack([tx, ty, tz], -1)
+            dr[k] = d / np.linalg.norm(d, axis=1, keepdims=True)
+    # straight to the sensor
+    t = (lens.sensor_z - pos[..., 2]) / dr[..., 2]
+    hit = pos + t[..., None] * dr
+    chief = hit[:, grid * grid // 2 if False else 0, :2]
+    centers = np.zeros((nsrc, 2))
+    for k in range(nsrc):
+        c = hit[k, valid[k], :2].mean(0) if center_mm is None else np.asarray(center_mm, float)
+        centers[k] = [_snap_center(c[0], pixel, lens.sensor.resolution[0]),
+                      _snap_center(c[1], pixel, lens.sensor.resolution[1])]
+    data = np.zeros((nsrc, size, size))
+    for k in range(nsrc):
+        ix = np.floor((hit[k, :, 0] - centers[k, 0]) / pixel + 0.5).astype(np.int64) + size // 2
+        iy = np.floor((hit[k, :, 1] - centers[k, 1]) / pixel + 0.5).astype(np.int64) + size // 2
+        m = valid[k] & (ix >= 0) & (ix < size) & (iy >= 0) & (iy < size)
+        np.add.at(data[k], (iy[m], ix[m]), weight[k, m])
+        data[k] /= entering[k]
+    return {"data": data, "centers": centers, "valid_fraction": (weight * valid).sum(1) / entering}
