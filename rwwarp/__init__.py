@@ -1,0 +1,24 @@
+"""rwwarp: differentiable ray-wave simulation and design of hybrid refractive-diffractive lenses.
+
+Coherent ray tracing and ray-to-field splatting run as Warp kernels (float64, differentiable);
+DOE phase, band-limited angular-spectrum propagation and sensor integration run as OpenCL kernels
+with VkFFT (PoCL on the CPU, the vendor's OpenCL or CUDA/NVRTC on a GPU).
+
+Units: lengths in mm, wavelengths in um, field angles in degrees.
+
+    import rwwarp as rw
+    lens = rw.load_lens("a489_doe")                  # bundled lens, native JSON, DeepLens JSON or .zmx
+    lens.efl(0.5876), lens.bfl(0.5876)               # mm
+    rw.spot_rms(lens, field_deg=14.0, wavelength_um=0.5876)   # um
+    p = rw.psf(lens, field_deg=0.0, wavelength_um=0.55, model="ray-wave", size=64, device="cpu")
+"""
+from .errors import LensError, LensFileError, GlassError, GeometryError, SamplingWarning
+from .lens import Lens, Surface, Sensor, load_lens
+from .analysis import spot_rms, spot_diagram
+from .psf import psf, psf_map, PSF, PSFMap
+from .plan import Plan
+
+__version__ = "0.1.0"
+
+__all__ = ["LensError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
+           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "PSF", "PSFMap", "Plan"]

@@ -401,9 +401,12 @@ def _rs_block(xs, ys, cs, m2px, m2py, r2, r, cmat, k):
     inv *= inv
     b_re *= inv
     b_im *= inv
-    a = b_re @ cmat                                    # [sum Br Cr, sum Br Ci]
-    b = b_im @ cmat                                    # [sum Bi Cr, sum Bi Ci]
-    return (a[:, 0] - b[:, 1]) + 1j * (a[:, 1] + b[:, 0])
+    c_re, c_im = cmat                                  # matrix-vector products (gemv stays
+    re = b_re @ c_re                                   # single-threaded in BLAS, so the worker
+    re -= b_im @ c_im                                  # threads do not contend with BLAS threads)
+    im = b_re @ c_im
+    im += b_im @ c_re
+    return re + 1j * im
 
 
 def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_elements):
@@ -420,7 +423,7 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
     bs = max(1, int(chunk_elements) // ba)
     a_blocks = [slice(a0, min(a0 + ba, na)) for a0 in range(0, na, ba)]
     a_data = [(-2.0 * px[s], -2.0 * py[s], r2[s], r[s],
-               np.ascontiguousarray(np.stack([coef[s].real, coef[s].imag], axis=1))) for s in a_blocks]
+               (np.ascontiguousarray(coef[s].real), np.ascontiguousarray(coef[s].imag))) for s in a_blocks]
     out = np.zeros(ns, dtype=np.complex128)
 
     def work(s0):

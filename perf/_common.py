@@ -1,0 +1,58 @@
+"""Shared helpers of the benchmarks: device naming, timing bracketed by synchronisation, results I/O."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
+                                       stderr=subprocess.DEVNULL, text=True).strip()
+    except Exception:
+        return os.environ.get("RWWARP_COMMIT", "unknown")
+
+
+def device_name(device: str) -> str:
+    """Human name of the device (GPU model, or CPU model and core count)."""
+    if device.startswith("cuda"):
+        import warp as wp
+        return wp.get_device(device if ":" in device else "cuda:0").name
+    name = platform.processor() or "cpu"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{name} ({os.cpu_count()} cores)"
+
+
+def timed(fn, sync, repeat: int = 5):
+    """Median wall time (s) of ``fn()`` over ``repeat`` runs, each bracketed by ``sync()``."""
+    times = []
+    for _ in range(repeat):
+        sync()
+        t = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t)
+    times.sort()
+    return times[len(times) // 2]
+
+
+def save(name: str, data: dict, out_dir=None) -> Path:
+    out = Path(out_dir or os.environ.get("RWWARP_RESULTS", RESULTS))
+    out.mkdir(parents=True, exist_ok=True)
+    data = dict(data)
+    data.setdefault("commit", git_commit())
+    p = out / f"{name}.json"
+    p.write_text(json.dumps(data, indent=1, default=float) + "\n")
+    return p

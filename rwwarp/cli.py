@@ -1,0 +1,184 @@
+"""Command line: ``rwwarp info | psf | map | validate | demo | bench``.
+
+Run ``rwwarp <command> --help`` for the options of each. Lengths in mm, wavelengths in um,
+fields in degrees.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _lens(path):
+    from .lens import load_lens
+    return load_lens(path)
+
+
+def cmd_info(a):
+    from . import paraxial
+    lens = _lens(a.lens)
+    wl = a.wavelength or lens.wavelengths_um[len(lens.wavelengths_um) // 2]
+    p = paraxial.pupils(lens, wl)
+    print(f"{lens.name or a.lens}: {len(lens.surfaces)} surfaces, sensor {lens.sensor.resolution[0]}x"
+          f"{lens.sensor.resolution[1]} px of {lens.sensor.pixel_pitch * 1e3:.4g} um")
+    print(f"  at {wl} um:  EFL {lens.efl(wl):.6f} mm   BFL {lens.bfl(wl):.6f} mm   F/# {paraxial.f_number(lens, wl):.4f}")
+    print(f"  entrance pupil z {p.entrance_z:.4f} mm radius {p.entrance_radius:.4f} mm;"
+          f" exit pupil z {p.exit_z:.4f} mm radius {p.exit_radius:.4f} mm; stop surface {lens.stop_index}")
+    print(f"  {'#':>3} {'type':<9} {'radius':>11} {'thickness':>10} {'material':<13} {'semi-diam':>9}")
+    for i, s in enumerate(lens.surfaces):
+        rad = "inf" if s.radius is None else f"{s.radius:.5f}"
+        sd = "-" if s.semi_diameter is None else f"{s.semi_diameter:.4f}"
+        print(f"  {i:>3} {s.type:<9} {rad:>11} {s.thickness:>10.5f} {s.material:<13} {sd:>9}"
+              f"{'  STOP' if i == lens.stop_index else ''}")
+    if a.plot:
+        from .plots import layout
+        layout(lens, a.plot)
+        print(f"  layout written to {a.plot}")
+
+
+def cmd_psf(a):
+    from .psf import psf
+    lens = _lens(a.lens)
+    field = tuple(a.field) if len(a.field) == 2 else a.field[0]
+    p = psf(lens, field, a.wavelength, model=a.model, size=a.size, device=a.device, dtype=a.dtype)
+    if a.explain and p.plan:
+        from .plan import Plan
+        print(Plan(**p.plan).explain())
+    print(f"PSF {a.model} field {field} deg, {a.wavelength} um: sum {p.data.sum():.6f}, peak {p.data.max():.4g}, "
+          f"centre ({p.center_mm[0]:.5f}, {p.center_mm[1]:.5f}) mm, {p.info.get('time_s', 0):.2f} s")
+    if a.out:
+        np.save(a.out, p.data)
+        print(f"  saved {a.out}")
+
+
+def _map(lens, fields, wls, a, out: Path, title):
+    from .psf import psf_map
+    from .plots import psf_map_figure, rgb_psf_map
+    t = time.perf_counter()
+    m = psf_map(lens, fields, wls, model=a.model, size=a.size, device=a.device, progress=True,
+                batch=getattr(a, "batch", None) or len(wls))
+    dt = time.perf_counter() - t
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez(out / f"{title}.npz", psf=m.data, centers_mm=m.centers_mm, pixel_mm=m.pixel_mm,
+             fields_deg=np.array(fields, dtype=object), wavelengths_um=np.array(wls))
+    psf_map_figure(m, out / f"{title}_log.png")
+    if len(wls) == 3:
+        rgb_psf_map(m, out / f"{title}_rgb.png")
+    return m, dt
+
+
+def cmd_map(a):
+    lens = _lens(a.lens)
+    fields = [(0.0, f) for f in np.linspace(0, a.max_field, a.fields)]
+    wls = a.wavelengths or lens.wavelengths_um
+    m, dt = _map(lens, fields, wls, a, Path(a.out), "psf_map")
+    print(f"{m.data.shape[0]} fields x {m.data.shape[1]} wavelengths in {dt:.2f} s "
+          f"({m.data.shape[0] * m.data.shape[1] / dt:.2f} PSF/s); written to {a.out}/")
+
+
+def cmd_demo(a):
+    """The main job on a bundled lens: paraxial data, layout, an RGB multi-field ray-wave PSF map."""
+    from .lens import load_lens
+    from . import paraxial
+    from .plots import layout
+    lens = load_lens(a.lens)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    wl = 0.55
+    print(f"rwwarp demo: {lens.name} ({a.lens}) on device {a.device}")
+    print(f"  EFL {lens.efl(wl):.4f} mm, BFL {lens.bfl(wl):.4f} mm, F/# {paraxial.f_number(lens, wl):.3f} at {wl} um")
+    layout(lens, out / "layout.png", fields_deg=[0.0, 10.0, 20.0])
+    fields = [(0.0, f) for f in np.linspace(0.0, a.max_field, a.fields)]
+    a.model = "ray-wave"
+    m, dt = _map(lens, fields, lens.wavelengths_um, a, out, "psf_map")
+    print(f"  ray-wave PSF map: {len(fields)} fields x {len(lens.wavelengths_um)} wavelengths, {a.size}^2 px, "
+          f"{dt:.1f} s ({len(fields) * len(lens.wavelengths_um) / dt:.2f} PSF/s)")
+    print(f"  plan of the last batch: {m.info['plan']['pitch_mm'] * 1e3:.3g} um pitch, "
+          f"{m.info['plan']['n_grid']}^2 grid, FFT {m.info['plan']['n_pad']}^2, {m.info['plan']['ray_grid']}^2 rays")
+    ee = m.data.sum(axis=(2, 3))
+    for i, f in enumerate(fields):
+        print(f"    field {f[1]:5.2f} deg: power in patch " + " ".join(f"{v:.3f}" for v in ee[i]))
+    print(f"  wrote {out}/layout.png, psf_map_log.png, psf_map_rgb.png, psf_map.npz")
+
+
+def cmd_validate(a):
+    from .validate import run_validation
+    rep = run_validation(Path(a.out), device=a.device, quick=a.quick)
+    print(rep)
+
+
+def cmd_bench(a):
+    import subprocess
+    script = Path(__file__).resolve().parents[1] / "perf" / f"bench_{a.what}.py"
+    if not script.exists():
+        sys.exit(f"no benchmark {script} (benchmarks live in perf/ of the source checkout)")
+    sys.exit(subprocess.call([sys.executable, str(script)] + a.rest))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="rwwarp", description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("info", help="paraxial data and surface table; --plot writes a layout PNG")
+    p.add_argument("lens")
+    p.add_argument("--wavelength", type=float, default=None, help="um")
+    p.add_argument("--plot", default=None, help="layout PNG path")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("psf", help="one PSF")
+    p.add_argument("lens")
+    p.add_argument("--field", type=float, nargs="+", default=[0.0], help="deg: y, or x y")
+    p.add_argument("--wavelength", type=float, default=0.55, help="um")
+    p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
+    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    p.add_argument("--explain", action="store_true", help="print the sampling plan and why")
+    p.add_argument("--out", default=None, help=".npy path")
+    p.set_defaults(func=cmd_psf)
+
+    for name, fn, helptext in (("map", cmd_map, "multi-field RGB PSF map (PNG + .npz)"),
+                               ("demo", cmd_demo, "the main job on a bundled lens (CPU by default)")):
+        p = sub.add_parser(name, help=helptext)
+        if name == "map":
+            p.add_argument("lens")
+            p.add_argument("--wavelengths", type=float, nargs="+", default=None, help="um")
+            p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
+            p.add_argument("--max-field", type=float, default=14.0, help="deg")
+            p.add_argument("--fields", type=int, default=5)
+        else:
+            p.add_argument("--lens", default="a489_doe")
+            p.add_argument("--max-field", type=float, default=20.0, help="deg")
+            p.add_argument("--fields", type=int, default=3)
+        p.add_argument("--size", type=int, default=64)
+        p.add_argument("--device", default="cpu")
+        p.add_argument("--batch", type=int, default=None, help="sources per launch")
+        p.add_argument("--out", default="out/" + name)
+        p.set_defaults(func=fn)
+
+    p = sub.add_parser("validate", help="ray-wave vs scalar-diffraction ground truth (report + PNG)")
+    p.add_argument("--out", default="out/validate")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--quick", action="store_true", help="smaller sizes")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("bench", help="run a benchmark from perf/ (trace, psf, map, bridge)")
+    p.add_argument("what")
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_bench)
+
+    a = ap.parse_args(argv)
+    from .errors import LensError
+    try:
+        a.func(a)
+    except LensError as e:
+        sys.exit(f"rwwarp: error: {e}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,234 @@
+"""DOE phase profiles against hand formulas, quantisation, wavelength remap and height maps."""
+import math
+
+import numpy as np
+import pytest
+
+from rwwarp import doe
+from rwwarp.errors import LensError, LensFileError
+from rwwarp.lens import Surface
+
+RNG = np.random.default_rng(1234)
+X = RNG.uniform(-2.0, 2.0, 200)
+Y = RNG.uniform(-2.0, 2.0, 200)
+
+
+def test_even_poly_is_zemax_binary2():
+    p = doe.profile_from_dict({"kind": "even_poly", "norm_radius": 2.0, "coefficients": [3.0, -2.0, 0.5]})
+    rho2 = (X ** 2 + Y ** 2) / 4.0
+    np.testing.assert_allclose(p.phase(X, Y), 3.0 * rho2 - 2.0 * rho2 ** 2 + 0.5 * rho2 ** 3, rtol=1e-13,
+                               atol=1e-13)
+    assert p.quadratic_coefficient() == pytest.approx(3.0 / 4.0)
+
+
+def test_poly_odd_and_even_terms():
+    p = doe.profile_from_dict({"kind": "poly", "norm_radius": 1.5, "coefficients": [1.0, -2.0, 3.0, 0.25]})
+    rho = np.hypot(X, Y) / 1.5
+    np.testing.assert_allclose(p.phase(X, Y), rho - 2 * rho ** 2 + 3 * rho ** 3 + 0.25 * rho ** 4, rtol=1e-13,
+                               atol=1e-13)
+    gx, gy = p.gradient(np.array([0.0]), np.array([0.0]))
+    assert gx[0] == 0.0 and gy[0] == 0.0  # the cone's gradient is reported as 0 on the axis
+
+
+def test_fresnel_focal_length():
+    f, lam0 = 50.0, 0.55
+    p = doe.profile_from_dict({"kind": "fresnel", "focal_length": f})
+    np.testing.assert_allclose(p.phase(X, Y, lam0), -math.pi * (X ** 2 + Y ** 2) / (lam0 * 1e-3 * f), rtol=1e-14)
+    # local grating: a ray through (x, y) is deflected by sin(theta) = lambda0 / (2 pi) dphi/dx = -x / f,
+    # i.e. every ray crosses the axis f behind the DOE
+    gx, gy = p.gradient(X, Y, lam0)
+    np.testing.assert_allclose(gx * lam0 * 1e-3 / (2 * math.pi), -X / f, rtol=1e-14)
+    np.testing.assert_allclose(gy * lam0 * 1e-3 / (2 * math.pi), -Y / f, rtol=1e-14)
+    assert -math.pi / (lam0 * 1e-3 * p.quadratic_coefficient(lam0)) == pytest.approx(f, rel=1e-14)
+    # the same lens as a Binary 2 term: a1 = -pi R^2 / (lambda0 f)
+    R = 1.7
+    ev = doe.EvenPolyProfile(R, [-math.pi * R ** 2 / (lam0 * 1e-3 * f)])
+    np.testing.assert_allclose(ev.phase(X, Y), p.phase(X, Y, lam0), rtol=1e-13)
+    # narrowest zone at the rim: 2 pi / |dphi/dr| = lambda0 f / r
+    assert p.feature_size_mm(1.0, lam0) == pytest.approx(lam0 * 1e-3 * f / 1.0, rel=1e-12)
+    assert p.feature_size_mm(1.0, lam0, shape="square") == pytest.approx(lam0 * 1e-3 * f / math.sqrt(2), rel=1e-12)
+
+
+def test_zernike_noll_values():
+    R = 2.0
+    r, t = np.hypot(X, Y) / R, np.arctan2(Y, X)
+    hand = {
+        1: np.ones_like(r),
+        2: 2 * r * np.cos(t),
+        3: 2 * r * np.sin(t),
+        4: math.sqrt(3) * (2 * r ** 2 - 1),
+        5: math.sqrt(6) * r ** 2 * np.sin(2 * t),
+        6: math.sqrt(6) * r ** 2 * np.cos(2 * t),
+        7: math.sqrt(8) * (3 * r ** 3 - 2 * r) * np.sin(t),
+        8: math.sqrt(8) * (3 * r ** 3 - 2 * r) * np.cos(t),
+        9: math.sqrt(8) * r ** 3 * np.sin(3 * t),
+        10: math.sqrt(8) * r ** 3 * np.cos(3 * t),
+        11: math.sqrt(5) * (6 * r ** 4 - 6 * r ** 2 + 1),
+        12: math.sqrt(10) * (4 * r ** 4 - 3 * r ** 2) * np.cos(2 * t),
+        13: math.sqrt(10) * (4 * r ** 4 - 3 * r ** 2) * np.sin(2 * t),
+        22: math.sqrt(7) * (20 * r ** 6 - 30 * r ** 4 + 12 * r ** 2 - 1),
+        29: 4 * (35 * r ** 7 - 60 * r ** 5 + 30 * r ** 3 - 4 * r) * np.sin(t),
+        37: 3 * (70 * r ** 8 - 140 * r ** 6 + 90 * r ** 4 - 20 * r ** 2 + 1),
+    }
+    for j, ref in hand.items():
+        c = [0.0] * j
+        c[j - 1] = 1.0
+        p = doe.profile_from_dict({"kind": "zernike", "norm_radius": R, "coefficients": c})
+        np.testing.assert_allclose(p.phase(X, Y), ref, rtol=1e-12, atol=1e-11, err_msg=f"Z{j}")
+
+
+def test_zernike_orthonormal_on_unit_disk():
+    # Noll normalisation: (1/pi) * integral over the unit disk of Z_j Z_k = delta_jk (Gauss-Legendre in r, uniform in t)
+    nr, nt = 40, 64
+    xr, wr = np.polynomial.legendre.leggauss(nr)
+    r = 0.5 * (xr + 1.0)
+    w = 0.5 * wr * r
+    t = np.arange(nt) * 2 * math.pi / nt
+    rr, tt = np.meshgrid(r, t, indexing="ij")
+    ww = np.repeat(w[:, None], nt, axis=1) * (2 * math.pi / nt)
+    J = 22
+    Z = []
+    for j in range(1, J + 1):
+        c = [0.0] * j
+        c[-1] = 1.0
+        Z.append(doe.ZernikeProfile(1.0, c).phase(rr * np.cos(tt), rr * np.sin(tt)))
+    G = np.array([[np.sum(a * b * ww) for b in Z] for a in Z]) / math.pi
+    np.testing.assert_allclose(G, np.eye(J), atol=1e-10)
+
+
+def test_cubic():
+    p = doe.profile_from_dict({"kind": "cubic", "norm_radius": 1.5, "alpha": 20.0})
+    np.testing.assert_allclose(p.phase(X, Y), 20.0 * ((X / 1.5) ** 3 + (Y / 1.5) ** 3), rtol=1e-13)
+    # max |grad| over the square of half side 1 is at the corner: 3 alpha / R^3 * sqrt(2)
+    assert p.feature_size_mm(1.0, shape="square") == pytest.approx(
+        2 * math.pi / (3 * 20.0 / 1.5 ** 3 * math.sqrt(2)), rel=1e-12)
+
+
+@pytest.mark.parametrize("d", [
+    {"kind": "even_poly", "norm_radius": 1.3, "coefficients": [30.0, -4.0, 2.0, 0.5]},
+    {"kind": "poly", "norm_radius": 1.3, "coefficients": [3.0, -4.0, 2.0, 0.5, -1.0]},
+    {"kind": "fresnel", "focal_length": -80.0},
+    {"kind": "zernike", "norm_radius": 1.7, "coefficients": list(np.linspace(-1, 1, 37))},
+    {"kind": "cubic", "norm_radius": 1.1, "alpha": 7.0},
+])
+def test_gradient_matches_finite_differences(d):
+    p = doe.profile_from_dict(d)
+    x, y = X[np.hypot(X, Y) > 1e-3], Y[np.hypot(X, Y) > 1e-3]
+    h = 1e-6
+    gx, gy = p.gradient(x, y, 0.55)
+    fx = (p.phase(x + h, y, 0.55) - p.phase(x - h, y, 0.55)) / (2 * h)
+    fy = (p.phase(x, y + h, 0.55) - p.phase(x, y - h, 0.55)) / (2 * h)
+    scale = max(np.max(np.abs(fx)), np.max(np.abs(fy)))
+    np.testing.assert_allclose(gx, fx, atol=1e-7 * scale)
+    np.testing.assert_allclose(gy, fy, atol=1e-7 * scale)
+    assert p.is_continuous
+    assert doe.profile_from_dict(p.to_dict()) == p
+
+
+def test_pixel_map_sampling_and_orientation(tmp_path):
+    data = np.arange(12, dtype=float).reshape(3, 4)  # 3 rows (y), 4 columns (x)
+    pitch = 0.5
+    p = doe.profile_from_dict({"kind": "pixel_map", "data": data.tolist(), "pitch": pitch})
+    assert not p.is_continuous
+    # pixel (row, col) centre at x = (col - 1.5) pitch, y = (1 - row) pitch
+    for row in range(3):
+        for col in range(4):
+            x, y = (col - 1.5) * pitch, (1 - row) * pitch
+            jitter = 0.49 * pitch
+            for dx, dy in ((0, 0), (jitter, jitter), (-jitter, -jitter)):
+                assert p.phase(np.array([x + dx]), np.array([y + dy]))[0] == data[row, col]
+    # zero outside the map
+    assert p.phase(np.array([2.1 * pitch, 0.0]), np.array([0.0, 1.6 * pitch])).tolist() == [0.0, 0.0]
+    with pytest.raises(LensError, match="discontinuous phase: no gradient"):
+        p.gradient(np.zeros(1), np.zeros(1))
+    assert p.feature_size_mm(1.0) == pitch
+    # file form, relative to the lens file's folder
+    np.save(tmp_path / "map.npy", data)
+    q = doe.profile_from_dict({"kind": "pixel_map", "file": "map.npy", "pitch": pitch}, base=tmp_path)
+    np.testing.assert_array_equal(q.phase(X, Y), p.phase(X, Y))
+    assert q.to_dict() == {"kind": "pixel_map", "file": "map.npy", "pitch": pitch}
+    with pytest.raises(LensFileError, match="not found"):
+        doe.profile_from_dict({"kind": "pixel_map", "file": "nope.npy", "pitch": pitch}, base=tmp_path)
+
+
+@pytest.mark.parametrize("d, match", [
+    ({"kind": "spiral"}, "unknown"),
+    ({"norm_radius": 1.0}, "kind"),
+    ({"kind": "even_poly", "norm_radius": 1.0, "coefficients": [], "order": 1}, "profile.order"),
+    ({"kind": "even_poly", "coefficients": [1.0]}, "profile.norm_radius"),
+    ({"kind": "even_poly", "norm_radius": -1.0, "coefficients": [1.0]}, "norm_radius must be > 0"),
+    ({"kind": "zernike", "norm_radius": 1.0, "coefficients": [1.0, "a"]}, r"coefficients\[1\]"),
+    ({"kind": "fresnel", "focal_length": 0.0}, "non-zero"),
+    ({"kind": "pixel_map", "pitch": 0.1}, "exactly one"),
+    ({"kind": "pixel_map", "pitch": 0.1, "data": [[1.0, 2.0], [3.0]]}, "rectangular"),
+    ("even_poly", "object"),
+])
+def test_bad_profile_dicts(d, match):
+    with pytest.raises(LensFileError, match=match):
+        doe.profile_from_dict(d)
+
+
+def test_quantize_levels():
+    phi = np.linspace(-10.0, 10.0, 100001)
+    for n in (2, 4, 16):
+        q = doe.quantize(phi, n)
+        levels = np.unique(q)
+        np.testing.assert_allclose(levels, np.arange(n) * 2 * math.pi / n, atol=1e-15)
+        # error against the wrapped phase (modulo 2 pi) at most half a step
+        err = np.angle(np.exp(1j * (q - phi)))
+        assert np.max(np.abs(err)) <= math.pi / n + 1e-12
+    assert doe.quantize(np.array([2 * math.pi - 1e-9]), 8)[0] == 0.0
+    w = doe.wrap_phase(phi)
+    assert w.min() >= 0.0 and w.max() < 2 * math.pi
+
+
+def _fused_silica_malitson(lam):
+    l2 = lam * lam
+    return math.sqrt(1 + 0.6961663 * l2 / (l2 - 0.0684043 ** 2) + 0.4079426 * l2 / (l2 - 0.1162414 ** 2)
+                     + 0.8974794 * l2 / (l2 - 9.896161 ** 2))
+
+
+def test_wavelength_scale_fused_silica():
+    lam0 = 0.55
+    assert doe.wavelength_scale("fused_silica", lam0, lam0) == pytest.approx(1.0, abs=1e-15)
+    n0 = _fused_silica_malitson(lam0)
+    for lam in (0.45, 0.65):
+        ref = (_fused_silica_malitson(lam) - 1) / (n0 - 1) * lam0 / lam
+        assert doe.wavelength_scale("fused_silica", lam0, lam) == pytest.approx(ref, rel=2e-5)
+    s = doe.wavelength_scale("fused_silica", lam0, np.array([0.45, 0.55, 0.65]))
+    assert s.shape == (3,) and s[0] > 1.0 > s[2]  # diffractive dispersion: shorter waves see more phase
+
+
+def test_height_map_values(tmp_path):
+    lam0 = 0.55
+    n0 = _fused_silica_malitson(lam0)
+    h = doe.height_map_um(np.array([0.0, math.pi, 2 * math.pi + math.pi / 2, -math.pi / 2]), "fused_silica", lam0)
+    full = lam0 / (n0 - 1)  # 2 pi of phase, um
+    np.testing.assert_allclose(h, [0.0, full / 2, full / 4, 3 * full / 4], rtol=2e-5)
+
+    surf = Surface(type="doe", semi_diameter=0.05, shape="circle", design_wavelength_um=lam0,
+                   material="fused_silica", profile={"kind": "fresnel", "focal_length": 1.0})
+    prof = doe.get_profile(surf)
+    hm = doe.export_height_map(prof, surf, tmp_path / "out" / "doe", pitch_mm=0.001, levels=4)
+    assert hm.npy_path.exists() and hm.png_path.exists() and hm.png_path.stat().st_size > 1000
+    arr = np.load(hm.npy_path)
+    assert arr.shape == (100, 100)
+    np.testing.assert_array_equal(arr, hm.height_um)
+    steps = np.unique(np.round(arr / (full / 4), 3))
+    assert set(steps.tolist()) <= {0.0, 1.0, 2.0, 3.0} and len(steps) == 4
+    t = (np.arange(100) - 49.5) * 0.001
+    xx, yy = np.meshgrid(t, t[::-1])
+    assert np.all(arr[xx ** 2 + yy ** 2 > 0.05 ** 2] == 0.0)
+    # continuous export: heights of the wrapped phase
+    hc = doe.export_height_map(prof, surf, tmp_path / "c", pitch_mm=0.001).height_um
+    inside = xx ** 2 + yy ** 2 <= 0.05 ** 2
+    ref = doe.height_map_um(prof.phase(xx, yy, lam0), "fused_silica", lam0)
+    np.testing.assert_allclose(hc[inside], ref[inside], rtol=0, atol=1e-12)
+    assert hc.max() < full * (1 + 1e-4)
+
+
+def test_modulation_phase_at_design_wavelength_is_wrapped_phase():
+    p = doe.FresnelProfile(20.0)
+    m = doe.modulation_phase(p, X, Y, 0.55, 0.55, "fused_silica")
+    np.testing.assert_allclose(np.exp(1j * m), np.exp(1j * p.phase(X, Y, 0.55)), atol=1e-9)
+    assert m.min() >= 0 and m.max() < 2 * math.pi
