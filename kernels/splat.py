@@ -3,21 +3,26 @@
 Grid of one source: ``N x N`` samples, sample (row j, col i) at ``(x0 + i*pitch, y0 + j*pitch)``
 (mm), flattened ``index = (source * N + j) * N + i``.
 
-Each valid ray i (position p, direction d, optical path OPL, power q) adds, with bilinear weights
-b to its four neighbouring samples:
+Each valid ray i (position p, direction d, optical path OPL, power q, ray-tube footprint area A on
+the plane) adds, with bilinear weights b to its four neighbouring samples:
 
-    S += b * cos(theta) * exp(1j * psi),   psi = k * (OPL - OPL_ref(p))      (k = 2 pi / lambda, 1/mm)
-    B += b,   Bc += b * cos(theta),   Q += b * q
+    energy: S += o * sqrt(q * A) * exp(1j * psi) / A_box   (o: overlap area of the ray's tube box,
+            an axis-aligned box of area A, with the sample's cell; a conservative "box" splat that is
+            exact when the tubes tile the plane, so aperture edges get their exact covered fraction)
+    paper:  S += b * cos(theta) * exp(1j * psi)      (unit amplitude and the obliquity factor, with
+            bilinear weights b: the paper's inverse bilinear interpolation)
+    psi = k * (OPL - OPL_ref(p)),  k = 2 pi / lambda (1/mm)
+
+In the energy convention ``U = S / pitch^2`` is the area average of a field whose irradiance is the
+ray-tube irradiance q / A: it follows ray density, partly covered edge samples get the covered
+fraction of the amplitude, and the field power ``sum |U|^2 pitch^2`` equals the traced power.
 
 with the reference sphere ``OPL_ref(p) = OPL_c + n (|T - p_c| - |T - p|)`` converging to the point T
 (factoring it out keeps psi small, so the bilinear splat of the phasor is accurate and fits float32).
 ``theta`` is the ray angle to the DOE normal (z).
 
-:func:`finalize_kernel` turns the sums into the field handed to the wave propagation:
-
-    energy: U = S / Bc * sqrt(Q) / pitch      (irradiance follows ray density, power = traced power)
-    paper:  U = S                             (unit ray amplitude; a global scale is applied on the host)
-
+:func:`finalize_kernel` turns the sums into the field handed to the wave propagation
+(energy: ``U = S / pitch^2``; paper: ``U = S``, a global scale is applied on the host),
 multiplied by the reference sphere and divided by the carrier of the chief ray,
 ``exp(1j * (k (OPL_ref(p) - OPL_c) - 2 pi f_c . (p - p_c)))``, ``f_c`` in cycles/mm, so the result is
 the physical field with the chief ray's tilt removed (baseband).
@@ -38,12 +43,61 @@ def make_splat_kernels(scalar):
         return oplc + n * (wp.length(tpt - ctr) - wp.length(tpt - p))
 
     @wp.kernel(module="unique")
+    def tube_area_kernel(
+        pos: wp.array(dtype=vec3),
+        valid: wp.array(dtype=wp.int32),
+        n_side: int,                          # pupil grid is n_side x n_side per source (row-major)
+        # outputs
+        area_out: wp.array(dtype=f64),        # footprint area of each ray's pupil cell on the plane, mm^2
+        half_out: wp.array(dtype=wp.vec2d),   # half sizes (x, y) of the tube's box, mm
+    ):
+        i = wp.tid()
+        per = n_side * n_side
+        s = i // per
+        j = i - s * per
+        r = j // n_side
+        c = j - r * n_side
+        area_out[i] = f64(0.0)
+        half_out[i] = wp.vec2d()
+        if valid[i] == 0:
+            return
+        # central differences where both neighbours are valid, one-sided otherwise
+        du = wp.vec3d()
+        nu = 0
+        if c + 1 < n_side and valid[i + 1] == 1:
+            du = du + wp.vec3d(pos[i + 1] - pos[i])
+            nu = nu + 1
+        if c > 0 and valid[i - 1] == 1:
+            du = du + wp.vec3d(pos[i] - pos[i - 1])
+            nu = nu + 1
+        dv = wp.vec3d()
+        nv = 0
+        if r + 1 < n_side and valid[i + n_side] == 1:
+            dv = dv + wp.vec3d(pos[i + n_side] - pos[i])
+            nv = nv + 1
+        if r > 0 and valid[i - n_side] == 1:
+            dv = dv + wp.vec3d(pos[i] - pos[i - n_side])
+            nv = nv + 1
+        if nu > 0 and nv > 0:
+            du = du / f64(nu)
+            dv = dv / f64(nv)
+            a = wp.abs(du[0] * dv[1] - du[1] * dv[0])
+            area_out[i] = a
+            # axis-aligned box of the same area, aspect from the Jacobian's diagonal
+            wx = wp.max(wp.abs(du[0]), f64(1.0e-300))
+            wy = wp.max(wp.abs(dv[1]), f64(1.0e-300))
+            sc = wp.sqrt(a / (wx * wy))
+            half_out[i] = wp.vec2d(f64(0.5) * wx * sc, f64(0.5) * wy * sc)
+
+    @wp.kernel(module="unique")
     def splat_kernel(
         pos: wp.array(dtype=vec3),
         dir: wp.array(dtype=vec3),
         opl: wp.array(dtype=scalar),
         valid: wp.array(dtype=wp.int32),
         weight: wp.array(dtype=scalar),
+        area: wp.array(dtype=f64),            # ray-tube footprint area, mm^2 (energy convention)
+        half: wp.array(dtype=wp.vec2d),       # ray-tube box half sizes, mm (energy convention)
         origin: wp.array(dtype=wp.vec2d),     # (n_src,) window origin, mm
         pitch: wp.array(dtype=f64),           # (n_src,) sample pitch, mm
         chief: wp.array(dtype=wp.vec3d),      # (n_src,) chief ray point on the plane, mm
@@ -52,14 +106,12 @@ def make_splat_kernels(scalar):
         opl_chief: wp.array(dtype=f64),       # (n_src,) chief ray OPL at the plane, mm
         wavenumber: wp.array(dtype=f64),      # (n_src,) 2 pi / lambda, 1/mm
         use_reference: int,
+        energy: int,
         n_grid: int,
         n_pupil: int,
         # outputs
         s_re_out: wp.array(dtype=f64),
         s_im_out: wp.array(dtype=f64),
-        b_out: wp.array(dtype=f64),
-        bc_out: wp.array(dtype=f64),
-        q_out: wp.array(dtype=f64),
         dropped_out: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
@@ -68,9 +120,36 @@ def make_splat_kernels(scalar):
         s = i // n_pupil
         pr = pos[i]
         p = wp.vec3d(f64(pr[0]), f64(pr[1]), f64(pr[2]))
-        dr = dir[i]
         o = origin[s]
         h = pitch[s]
+        ref = f64(0.0)
+        if use_reference == 1:
+            ref = ref_opl(p, chief[s], target[s], index[s], opl_chief[s])
+        psi = wavenumber[s] * (f64(opl[i]) - ref)
+        if energy == 1:
+            # conservative box deposit: overlap of the tube's box with the sample cells (up to 3 x 3)
+            amp = wp.sqrt(f64(weight[i]) * area[i])
+            hb = half[i]
+            pre = amp * wp.cos(psi) / (f64(4.0) * hb[0] * hb[1])
+            pim = amp * wp.sin(psi) / (f64(4.0) * hb[0] * hb[1])
+            cx0 = int(wp.floor((p[0] - hb[0] - o[0]) / h + f64(0.5)))
+            cy0 = int(wp.floor((p[1] - hb[1] - o[1]) / h + f64(0.5)))
+            if cx0 < 0 or cy0 < 0 or cx0 + 2 >= n_grid or cy0 + 2 >= n_grid:
+                wp.atomic_add(dropped_out, s, 1)
+                return
+            for c in range(9):
+                ix = cx0 + c % 3
+                iy = cy0 + c // 3
+                xc = o[0] + f64(ix) * h
+                yc = o[1] + f64(iy) * h
+                ox = wp.min(p[0] + hb[0], xc + f64(0.5) * h) - wp.max(p[0] - hb[0], xc - f64(0.5) * h)
+                oy = wp.min(p[1] + hb[1], yc + f64(0.5) * h) - wp.max(p[1] - hb[1], yc - f64(0.5) * h)
+                if ox > f64(0.0) and oy > f64(0.0):
+                    k = (s * n_grid + iy) * n_grid + ix
+                    wp.atomic_add(s_re_out, k, ox * oy * pre)
+                    wp.atomic_add(s_im_out, k, ox * oy * pim)
+            return
+        # paper convention: unit amplitude with obliquity, inverse bilinear interpolation
         fx = (p[0] - o[0]) / h
         fy = (p[1] - o[1]) / h
         ix = int(wp.floor(fx))
@@ -80,14 +159,9 @@ def make_splat_kernels(scalar):
             return
         ax = fx - f64(ix)
         ay = fy - f64(iy)
-        ref = f64(0.0)
-        if use_reference == 1:
-            ref = ref_opl(p, chief[s], target[s], index[s], opl_chief[s])
-        psi = wavenumber[s] * (f64(opl[i]) - ref)
-        cos_t = wp.abs(f64(dr[2]))
-        pre = cos_t * wp.cos(psi)
-        pim = cos_t * wp.sin(psi)
-        q = f64(weight[i])
+        amp = wp.abs(f64(dir[i][2]))
+        pre = amp * wp.cos(psi)
+        pim = amp * wp.sin(psi)
         base = (s * n_grid + iy) * n_grid + ix
         for c in range(4):
             cx = c % 2
@@ -102,17 +176,11 @@ def make_splat_kernels(scalar):
             k = base + cy * n_grid + cx
             wp.atomic_add(s_re_out, k, b * pre)
             wp.atomic_add(s_im_out, k, b * pim)
-            wp.atomic_add(b_out, k, b)
-            wp.atomic_add(bc_out, k, b * cos_t)
-            wp.atomic_add(q_out, k, b * q)
 
     @wp.kernel(module="unique")
     def finalize_kernel(
         s_re: wp.array(dtype=f64),
         s_im: wp.array(dtype=f64),
-        b: wp.array(dtype=f64),
-        bc: wp.array(dtype=f64),
-        q: wp.array(dtype=f64),
         origin: wp.array(dtype=wp.vec2d),
         pitch: wp.array(dtype=f64),
         chief: wp.array(dtype=wp.vec3d),
@@ -137,11 +205,8 @@ def make_splat_kernels(scalar):
         re = s_re[k]
         im = s_im[k]
         if energy == 1:
-            amp = f64(0.0)
-            if bc[k] > f64(1.0e-12):
-                amp = wp.sqrt(wp.max(q[k], f64(0.0))) / (bc[k] * h)
-            re = re * amp
-            im = im * amp
+            re = re / (h * h)
+            im = im / (h * h)
         c = chief[s]
         p = wp.vec3d(o[0] + f64(i) * h, o[1] + f64(j) * h, c[2])
         ph = f64(0.0)
@@ -157,5 +222,6 @@ def make_splat_kernels(scalar):
         pass
 
     K.splat_kernel = splat_kernel
+    K.tube_area_kernel = tube_area_kernel
     K.finalize_kernel = finalize_kernel
     return K

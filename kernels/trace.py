@@ -110,6 +110,8 @@ def make_trace_kernels(scalar):
         src_wl: wp.array(dtype=wp.int32),       # (n_src,) wavelength index
         n_obj: wp.array(dtype=scalar),          # (n_wl,) object-space index
         cell: scalar,                           # area of one pupil cell in normalised (u, v) units
+        circle: int,                            # 1: samples outside the unit circle start invalid
+        relative: int,                          # 1: OPL relative to the chief ray (point sources)
         n_pupil: int,
         # outputs
         pos_out: wp.array(dtype=vec3),
@@ -131,8 +133,14 @@ def make_trace_kernels(scalar):
             dvec = p - src_pos[s]
             dist = wp.length(dvec)
             d = dvec / dist
-            # path from the source point; weight = solid angle of the pupil cell (cos / rho^2)
-            opl_out[i] = n0 * dist
+            # path from the source point; weight = solid angle of the pupil cell (cos / rho^2).
+            # relative: minus the chief ray's |c - S|, formed stably as (p - c).(p + c - 2 S) / (|p-S| + |c-S|)
+            # so float32 keeps the phase of a distant source (|S| ~ 1e4 mm) to ~1e-7 mm
+            if relative == 1:
+                sc = src_pos[s]
+                opl_out[i] = n0 * wp.dot(p - c, p + c - scalar(2.0) * sc) / (dist + wp.length(c - sc))
+            else:
+                opl_out[i] = n0 * dist
             weight_out[i] = area * d[2] / (dist * dist)
         else:
             d = src_dir[s]
@@ -142,6 +150,10 @@ def make_trace_kernels(scalar):
         pos_out[i] = p
         dir_out[i] = d
         valid_out[i] = 1
+        if circle == 1:
+            if pupil_u[j] * pupil_u[j] + pupil_v[j] * pupil_v[j] > scalar(1.0 + 1.0e-12):
+                valid_out[i] = 0
+                weight_out[i] = scalar(0.0)
         wl_out[i] = w
 
     @wp.kernel(module="unique")

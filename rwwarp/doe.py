@@ -35,6 +35,12 @@ pixel_map   a phase map (radians) sampled piecewise-constant (nearest pixel), ce
             columns from -x to +x (the array as an image is displayed); pixel (row, col) has its
             centre at ``x = (col - (nx-1)/2) pitch``, ``y = ((ny-1)/2 - row) pitch``.
 =========== ======================================================================================
+
+Functions: :func:`profile_from_dict` (validate and build), :func:`get_profile` (a DOE surface's
+profile), :func:`surface_is_continuous`, :func:`surface_feature_size_mm` (sampling plans),
+:func:`wrap_phase`, :func:`quantize`, :func:`wavelength_scale`, :func:`design_phase` (wrapped and
+quantised phi0), :func:`modulation_phase` (the phase applied at a wavelength), :func:`height_map_um`,
+:func:`export_height_map`.
 """
 from __future__ import annotations
 
@@ -144,14 +150,15 @@ class Profile:
         return float(np.max(np.hypot(gx, gy))) if x.size else 0.0
 
     def feature_size_mm(self, semi_diameter: float, design_wavelength_um: float = 0.55,
-                        shape: str = "circle") -> float:
+                        shape: str = "circle", levels=None) -> float:
         """Smallest feature of the (wrapped) profile over the aperture, mm.
 
-        Smooth kinds: the narrowest 2 pi zone ``2 pi / max|grad phi0|`` (inf for a flat phase).
-        Pixel maps: the pitch. Sampling plans need at least two samples per feature (Nyquist).
+        Smooth kinds: the narrowest 2 pi zone ``2 pi / max|grad phi0|`` (inf for a flat phase), divided
+        by ``levels`` when the relief is quantised (the width of one step). Pixel maps: the pitch.
+        Sampling plans need at least two samples per feature (Nyquist).
         """
         g = self.max_gradient(semi_diameter, design_wavelength_um, shape)
-        return math.inf if g == 0 else TWO_PI / g
+        return math.inf if g == 0 else TWO_PI / g / (1 if levels is None else int(levels))
 
     def __repr__(self):
         return f"{type(self).__name__}({self.to_dict()})"
@@ -494,7 +501,7 @@ class PixelMapProfile(Profile):
     def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
         raise LensError("discontinuous phase: no gradient")
 
-    def feature_size_mm(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
+    def feature_size_mm(self, semi_diameter, design_wavelength_um=0.55, shape="circle", levels=None):
         return self.pitch
 
     @property
@@ -566,6 +573,17 @@ def get_profile(surface, source=None) -> Profile:
     if surface.profile is None:
         raise LensError("surface has no DOE profile", keyword="profile")
     return profile_from_dict(surface.profile, base=Path(source).parent if source else None)
+
+
+def surface_feature_size_mm(surface, source=None) -> float:
+    """Smallest feature (mm) of a DOE ``surface`` over its aperture, quantisation included; inf for a flat
+    phase. Needs a ``semi_diameter`` for smooth profiles."""
+    prof = get_profile(surface, source)
+    if surface.semi_diameter is None and prof.is_continuous:
+        raise LensError("the feature size of a smooth DOE profile needs the surface's semi_diameter",
+                        keyword="semi_diameter")
+    return prof.feature_size_mm(surface.semi_diameter, surface.design_wavelength_um, surface.shape,
+                                surface.levels)
 
 
 def surface_is_continuous(surface, source=None) -> bool:
@@ -645,8 +663,7 @@ def height_map_um(phi0, substrate: str, design_wavelength_um: float):
 HeightMap = namedtuple("HeightMap", "height_um pitch_mm npy_path png_path")
 
 
-def export_height_map(profile: Profile, surface, path_prefix, pitch_mm: float, levels=None,
-                      source=None) -> HeightMap:
+def export_height_map(profile: Profile, surface, path_prefix, pitch_mm: float, levels=None) -> HeightMap:
     """Write the fabrication height map of a DOE ``surface`` with ``profile``.
 
     Samples the relief over the surface's aperture (``semi_diameter``, ``shape``) on a grid of
@@ -656,7 +673,8 @@ def export_height_map(profile: Profile, surface, path_prefix, pitch_mm: float, l
     ``<path_prefix>.png`` (image with a colour bar, axes in mm). Returns a :class:`HeightMap`.
     """
     if surface.semi_diameter is None:
-        raise LensError("cannot export a height map of a DOE without a semi_diameter", keyword="semi_diameter")
+        raise LensError("cannot export a height map of a DOE without a semi_diameter",
+                        keyword="semi_diameter")
     if not pitch_mm > 0:
         raise LensError(f"pitch_mm must be > 0, got {pitch_mm}")
     levels = surface.levels if levels is None else levels

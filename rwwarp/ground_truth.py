@@ -169,11 +169,16 @@ def _doe_gradient_estimate(fn, h, shape):
     return 1.25 * float(np.max(np.abs(dx))), 1.25 * float(np.max(np.abs(dy)))
 
 
-def _nodes_for(omega, quad_rtol, min_nodes):
+def _nodes_for(omega, quad_rtol, min_nodes, half_width_mm, smooth_scale_mm):
+    """Gauss-Legendre order for a cell: the linear-phase remainder, and the amplitude 1/rho^2, 1/R^2
+    whose poles lie ``smooth_scale_mm`` (min(z, f)) off the real axis (Bernstein ratio 2 scale/width)."""
     n = max(1, int(min_nodes))
     while n < 64 and gauss_legendre_exp_error(n, omega) > quad_rtol:
         n += 1
-    return n
+    if smooth_scale_mm is not None and half_width_mm > 0:
+        conv = smooth_scale_mm / half_width_mm + math.hypot(smooth_scale_mm / half_width_mm, 1.0)
+        n = max(n, math.ceil(math.log(10.0 / quad_rtol) / (2.0 * math.log(conv))))
+    return min(n, 64)
 
 
 def _subdivide(edges, parts):
@@ -258,7 +263,7 @@ def _rim_cell_nodes(x0, x1, y0, y1, h, min_nodes, quad_rtol):
 
 def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gradient_rad_per_mm=(0.0, 0.0),
                         max_cell_phase_rad=_TWO_PI, quad_rtol=1e-9, aperture_cells=None, subdivide=1,
-                        min_nodes=2):
+                        min_nodes=2, smooth_scale_mm=None):
     """Gauss-Legendre quadrature of the aperture, aware of DOE pixels (see the module docstring).
 
     Args:
@@ -273,6 +278,8 @@ def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gra
             cell edges with known discontinuities); overrides the automatic count.
         subdivide: extra subdivision factor of every cell (refinement level 2**level).
         min_nodes: smallest Gauss-Legendre order.
+        smooth_scale_mm: distance of the amplitude's complex poles (min(distance, focal)), mm; raises
+            the order where cells are not small against it (high NA). None: ignore.
 
     Returns:
         :class:`ApertureQuadrature`.
@@ -306,7 +313,7 @@ def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gra
 
     wx_cell, wy_cell = np.max(np.diff(edges_x)), np.max(np.diff(edges_y))
     omega = 0.5 * max(wx_cell * gx, wy_cell * gy)
-    nq = _nodes_for(omega, quad_rtol, min_nodes)
+    nq = _nodes_for(omega, quad_rtol, min_nodes, 0.5 * max(wx_cell, wy_cell), smooth_scale_mm)
     t, w = _leggauss(nq)
 
     def axis_nodes(edges):
@@ -378,8 +385,12 @@ def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gra
     return ApertureQuadrature(x_all, y_all, w_all, phase, area, nq, (ncx, ncy))
 
 
-def _rs_block(xs, ys, cs, m2px, m2py, r2, r, cmat, k):
-    """sum_p B(x', p) C_p for a block of sensor points; returns (Ns_block,) complex (without z/2pi)."""
+def _rs_block(xs, ys, cs, m2px, m2py, r2, r, amp, doe, k):
+    """sum_p B(x', p) C_p for a block of sensor points, (Ns_block,) complex, without the factor z/(2 pi).
+
+    B = (1/rho - jk)/rho^2 exp(jk(rho - R)), C_p = amp_p exp(j phi_p), amp_p = A w_p > 0. No BLAS
+    (its own threads would contend with the worker threads); numpy's pairwise sums.
+    """
     d2 = np.multiply.outer(xs, m2px)                   # rho^2 - R^2 = |x'|^2 + z^2 - f^2 - 2 x'.p
     tmp = np.multiply.outer(ys, m2py)
     d2 += tmp
@@ -389,24 +400,21 @@ def _rs_block(xs, ys, cs, m2px, m2py, r2, r, cmat, k):
     phase = np.add(rho, r)
     np.divide(d2, phase, out=phase)                    # rho - R, no cancellation
     phase *= k
+    phase += doe
     cos = np.cos(phase, out=d2)
     sin = np.sin(phase, out=phase)
     inv = np.divide(1.0, rho, out=rho)
-    b_re = cos * inv                                   # B = (1/rho - jk) / rho^2 * exp(j phase)
+    scale = inv * inv
+    scale *= amp
+    b_re = cos * inv
     b_im = sin * inv
     sin *= k
     cos *= k
     b_re += sin
     b_im -= cos
-    inv *= inv
-    b_re *= inv
-    b_im *= inv
-    c_re, c_im = cmat                                  # matrix-vector products (gemv stays
-    re = b_re @ c_re                                   # single-threaded in BLAS, so the worker
-    re -= b_im @ c_im                                  # threads do not contend with BLAS threads)
-    im = b_re @ c_im
-    im += b_im @ c_re
-    return re + 1j * im
+    b_re *= scale
+    b_im *= scale
+    return b_re.sum(axis=1) + 1j * b_im.sum(axis=1)
 
 
 def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_elements):
@@ -414,23 +422,22 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
     px, py = quad.x_mm, quad.y_mm
     r2 = px * px + py * py + f * f
     r = np.sqrt(r2)
-    coef = amplitude * quad.weight_mm2 * np.exp(1j * quad.phase_rad)
+    amp = amplitude * quad.weight_mm2
     xs = np.ascontiguousarray(xs, dtype=np.float64).ravel()
     ys = np.ascontiguousarray(ys, dtype=np.float64).ravel()
     cs = xs * xs + ys * ys + (z - f) * (z + f)
     ns, na = xs.size, px.size
     ba = min(na, 4096)
     bs = max(1, int(chunk_elements) // ba)
-    a_blocks = [slice(a0, min(a0 + ba, na)) for a0 in range(0, na, ba)]
-    a_data = [(-2.0 * px[s], -2.0 * py[s], r2[s], r[s],
-               (np.ascontiguousarray(coef[s].real), np.ascontiguousarray(coef[s].imag))) for s in a_blocks]
+    a_data = [(-2.0 * px[s], -2.0 * py[s], r2[s], r[s], amp[s], quad.phase_rad[s])
+              for s in (slice(a0, min(a0 + ba, na)) for a0 in range(0, na, ba))]
     out = np.zeros(ns, dtype=np.complex128)
 
     def work(s0):
         s = slice(s0, min(s0 + bs, ns))
         acc = np.zeros(s.stop - s.start, dtype=np.complex128)
-        for m2px, m2py, r2b, rb, cmat in a_data:
-            acc += _rs_block(xs[s], ys[s], cs[s], m2px, m2py, r2b, rb, cmat, k)
+        for block in a_data:
+            acc += _rs_block(xs[s], ys[s], cs[s], *block, k)
         out[s] = acc
 
     starts = range(0, ns, bs)
@@ -495,7 +502,8 @@ def rs_thin_lens_field(focal_mm, aperture_shape, aperture_half_mm, wavelength_um
                          x_range, y_range, doe_gradient_rad_per_mm)
     quad = aperture_quadrature(shape, aperture_half_mm, doe_phase, gradient_rad_per_mm=grad,
                                max_cell_phase_rad=max_cell_phase_rad, quad_rtol=quad_rtol,
-                               aperture_cells=aperture_cells, subdivide=subdivide)
+                               aperture_cells=aperture_cells, subdivide=subdivide,
+                               smooth_scale_mm=min(float(focal_mm), float(distance_mm)))
     k = _TWO_PI / (float(wavelength_um) * 1e-3)
     field = _rs_sum(x_b, y_b, quad, 1.0 / math.sqrt(quad.area_mm2), focal_mm, distance_mm, k, workers,
                     chunk_elements)
@@ -552,7 +560,8 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
     def psf_at(level):
         quad = aperture_quadrature(shape, aperture_half_mm, doe_phase, gradient_rad_per_mm=grad,
                                    max_cell_phase_rad=max_cell_phase_rad, quad_rtol=quad_rtol,
-                                   aperture_cells=aperture_cells, subdivide=2 ** level)
+                                   aperture_cells=aperture_cells, subdivide=2 ** level,
+                                   smooth_scale_mm=min(float(focal_mm), float(distance_mm)))
         field = _rs_sum(xx, yy, quad, 1.0 / math.sqrt(quad.area_mm2), focal_mm, distance_mm, k, workers,
                         chunk_elements)
         inten = (field.real ** 2 + field.imag ** 2).reshape(cy.size, g, cx.size, g)

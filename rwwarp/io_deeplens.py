@@ -51,7 +51,6 @@ Errors name the file, the surface (its index in the DeepLens ``surfaces`` list, 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 from .errors import LensError, LensFileError
 
@@ -113,11 +112,12 @@ def lens_from_deeplens(d: dict, source=None):
         z_sensor = zc
     else:
         if not all("d" in sd for sd in clean):
-            i = next(i for i, sd in enumerate(clean) if "d" not in sd and "d_next" not in sd) \
-                if any("d" not in sd and "d_next" not in sd for sd in clean) else \
-                next(i for i, sd in enumerate(clean) if "d" not in sd)
+            if any("d_next" in sd for sd in clean):
+                i, key = next(i for i, sd in enumerate(clean) if "d_next" not in sd), "d_next"
+            else:
+                i, key = next(i for i, sd in enumerate(clean) if "d" not in sd), "d"
             raise err("surface positions need 'd_next' on every surface or the absolute 'd' on every surface",
-                      i, "d_next")
+                      i, key)
         z = [num(sd, "d", i) for i, sd in enumerate(clean)]
         if "d_sensor" not in d:
             raise err("the absolute 'd' layout needs 'd_sensor' (sensor z, mm)", key="d_sensor")
@@ -129,8 +129,8 @@ def lens_from_deeplens(d: dict, source=None):
     for i, sd in enumerate(clean):
         typ = sd.get("type")
         if typ not in _SURFACE_TYPES:
-            raise err(f"unknown or unsupported DeepLens surface type {typ!r} (supported: {', '.join(_SURFACE_TYPES)})",
-                      i, "type")
+            raise err(f"unknown or unsupported DeepLens surface type {typ!r} "
+                      f"(supported: {', '.join(_SURFACE_TYPES)})", i, "type")
         for key, neutral in (("pos_xy", [0.0, 0.0]), ("vec_local", [0.0, 0.0, 1.0]), ("origin", None)):
             v = sd.get(key)
             if v is not None and (neutral is None or [float(a) for a in v] != neutral):
@@ -168,8 +168,8 @@ def lens_from_deeplens(d: dict, source=None):
                         raise err(f"'ai' must be a list of numbers, got {ai!r}", i, "ai") from None
                     if sd.get("use_ai2", True) and ai:
                         if ai[0] != 0.0:
-                            raise err(f"the r^2 aspheric term ai[0] = {ai[0]} (legacy layout) is not supported: "
-                                      "rwwarp's even asphere starts at r^4", i, "ai")
+                            raise err(f"the r^2 aspheric term ai[0] = {ai[0]} (legacy layout) is not "
+                                      "supported: rwwarp's even asphere starts at r^4", i, "ai")
                         ai = ai[1:]
                     while ai and ai[-1] == 0.0:
                         ai.pop()
@@ -180,7 +180,7 @@ def lens_from_deeplens(d: dict, source=None):
 
     # ---------------------------------------------------------------- DOE (HybridLens)
     if d.get("DOE") is not None:
-        doe_surface, z_doe = _doe(d["DOE"], err, src)
+        doe_surface, z_doe = _doe(d["DOE"], err)
         pos = len(items)
         while pos > 0 and items[pos - 1][0] > z_doe:
             pos -= 1
@@ -220,8 +220,8 @@ def lens_from_deeplens(d: dict, source=None):
     try:
         lens = Lens(surfaces=surfaces, sensor=Sensor(pixel_pitch=pitch, resolution=tuple(res)),
                     object_distance=math.inf, wavelengths_um=list(DEFAULT_WAVELENGTHS_UM),
-                    name=str(d.get("info", "") or ""), entrance_pupil_diameter=None if epd is None else float(epd),
-                    source=src)
+                    name=str(d.get("info", "") or ""),
+                    entrance_pupil_diameter=None if epd is None else float(epd), source=src)
     except LensError as e:
         from .io_zemax import _core
         surf = e.surface if not isinstance(e.surface, int) else labels[e.surface]
@@ -244,7 +244,7 @@ def _material(sd, i, src, err, materials):
     return name
 
 
-def _doe(dd, err, src):
+def _doe(dd, err):
     """(doe Surface, z) from a DeepLens DOE block."""
     from .lens import Surface
 
@@ -269,7 +269,14 @@ def _doe(dd, err, src):
 
     z = num("d")
     res = dd.get("res", [2000, 2000])
-    res = [int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
+    try:
+        res = [int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
+        levels = None if old else int(dd.get("fab_step", 16))
+    except (TypeError, ValueError):
+        raise err(f"'res' and 'fab_step' must be integers, got {res!r}, {dd.get('fab_step')!r}", "DOE",
+                  "res") from None
+    if len(res) != 2 or min(res) < 1:
+        raise err(f"'res' must be two positive integers, got {res!r}", "DOE", "res")
     fab_ps = num("fab_ps", default=0.001, positive=True)
     if dd.get("l") is not None:
         w = h = num("l", positive=True)
@@ -285,7 +292,6 @@ def _doe(dd, err, src):
     pitch = w / res[0]
     wvln0 = num("wvln0", default=0.55, positive=True)
     mat = dd.get("mat", "fused_silica")
-    levels = None if old else int(dd.get("fab_step", 16))
 
     if model == "binary2":
         if old:
@@ -297,7 +303,8 @@ def _doe(dd, err, src):
             if not any(k in dd for k in keys):
                 raise err("Binary2 DOE without alpha2.. coefficients (DeepLens would initialise it randomly)",
                           "DOE", "alpha2")
-            coeffs = [math.pi * num(k, default=0.0) * half_diag ** (2 * i) for i, k in enumerate(keys, start=1)]
+            coeffs = [math.pi * num(k, default=0.0) * half_diag ** (2 * i)
+                      for i, k in enumerate(keys, start=1)]
         while coeffs and coeffs[-1] == 0.0 and len(coeffs) > 1:
             coeffs.pop()
         profile = {"kind": "even_poly", "norm_radius": half_diag, "coefficients": coeffs}
@@ -312,7 +319,8 @@ def _doe(dd, err, src):
     elif model == "zernike":
         zc = dd.get("z_coeff")
         if not isinstance(zc, list) or not zc:
-            raise err("Zernike DOE without 'z_coeff' (DeepLens would initialise it randomly)", "DOE", "z_coeff")
+            raise err("Zernike DOE without 'z_coeff' (DeepLens would initialise it randomly)",
+                      "DOE", "z_coeff")
         try:
             zc = [float(v) for v in zc]
         except (TypeError, ValueError):
@@ -333,8 +341,8 @@ def _doe(dd, err, src):
         key = "doe_path" if old else "phase_map_path"
         p = dd.get(key)
         if not p:
-            raise err(f"Pixel2D DOE without a phase map file ({key!r}); DeepLens would start from random values",
-                      "DOE", key)
+            raise err(f"Pixel2D DOE without a phase map file ({key!r}); DeepLens would start from random "
+                      "values", "DOE", key)
         if not str(p).lower().endswith(".npy"):
             raise err(f"phase map {p!r} is not a .npy file; convert a torch file with "
                       "numpy.save(path, torch.load(file).numpy())", "DOE", key)

@@ -186,8 +186,8 @@ def read_zmx(path):
     if unit and unit[0]:
         u = unit[0][0].upper()
         if u not in _UNITS:
-            raise rd.err(f"unsupported lens unit {unit[0][0]!r} (expected one of {sorted(_UNITS)})", key="UNIT",
-                         line=unit[1])
+            raise rd.err(f"unsupported lens unit {unit[0][0]!r} (expected one of {sorted(_UNITS)})",
+                         key="UNIT", line=unit[1])
         scale = _UNITS[u]
     name = ""
     nm = rd.hget("NAME")
@@ -226,8 +226,8 @@ def read_zmx(path):
     if pw:
         primary = int(rd.num(pw[0], 0, "primary wavelength number", key="PWAV", line=pw[1]))
         if not 1 <= primary <= len(wavelengths):
-            raise rd.err(f"primary wavelength {primary} not among the {len(wavelengths)} wavelengths", key="PWAV",
-                         line=pw[1])
+            raise rd.err(f"primary wavelength {primary} not among the {len(wavelengths)} wavelengths",
+                         key="PWAV", line=pw[1])
     primary_um = wavelengths[primary - 1]
 
     # fields
@@ -257,7 +257,7 @@ def read_zmx(path):
     if rd.hget("ENPD") and not floa:
         toks, ln = rd.hget("ENPD")
         epd = rd.num(toks, 0, "entrance pupil diameter", key="ENPD", line=ln) * scale
-    for key in ("OBNA", "PFNO", "OBSC"):
+    for key in ("OBNA", "PFNO"):
         if rd.hget(key):
             raise rd.err(f"unsupported system aperture type {key} (use ENPD, FNUM or FLOA)", key=key,
                          line=rd.hget(key)[1])
@@ -274,7 +274,8 @@ def read_zmx(path):
     object_distance = math.inf
     got = obj.get("DISZ")
     if got:
-        object_distance = rd.num(got[0], 0, "object distance", surf=0, key="DISZ", line=got[1], allow_inf=True)
+        object_distance = rd.num(got[0], 0, "object distance", surf=0, key="DISZ",
+                                 line=got[1], allow_inf=True)
         object_distance *= scale
     if obj.has("STOP") or img.has("STOP"):
         raise rd.err("the stop cannot be the object or image surface", surf=obj.number if obj.has("STOP")
@@ -292,7 +293,7 @@ def read_zmx(path):
     for b in blocks[1:-1]:
         k = b.number
 
-        def num(key, i=0, what=None, default=None, allow_inf=False):
+        def num(key, i=0, what=None, default=None, allow_inf=False, b=b, k=k):
             got = b.get(key)
             if got is None:
                 return default
@@ -340,9 +341,10 @@ def read_zmx(path):
                 except LensError as e:
                     hint = ""
                     if len(toks) >= 5 and gname.upper() != "___BLANK":
-                        hint = f" (the file also lists nd {toks[3]}, Vd {toks[4]}; no model glass is substituted)"
-                    raise rd.err(f"unknown glass {gname!r}: {_core(e)}{hint}", surf=k, key="GLAS", cls=GlassError,
-                                 line=ln) from None
+                        hint = (f" (the file also lists nd {toks[3]}, Vd {toks[4]}; no model glass is "
+                                "substituted)")
+                    raise rd.err(f"unknown glass {gname!r}: {_core(e)}{hint}", surf=k, key="GLAS",
+                                 cls=GlassError, line=ln) from None
 
         # aperture
         sd, shape = None, "circle"
@@ -354,8 +356,8 @@ def read_zmx(path):
                 sd = d_val
         for bad in ("OBSC", "ELOB", "ELAP", "SQOB", "UDAP", "OBDC"):
             if b.has(bad):
-                raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP and FLAP)", surf=k, key=bad,
-                             line=b.get(bad)[1])
+                raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP and FLAP)", surf=k,
+                             key=bad, line=b.get(bad)[1])
         clap = b.get("CLAP")
         if clap:
             rmin = rd.num(clap[0], 0, "minimum radius", surf=k, key="CLAP", line=clap[1]) * scale
@@ -369,10 +371,9 @@ def read_zmx(path):
             hx = rd.num(sqap[0], 0, "x half width", surf=k, key="SQAP", line=sqap[1]) * scale
             hy = rd.num(sqap[0], 1, "y half width", surf=k, key="SQAP", line=sqap[1]) * scale
             if abs(hx - hy) > 1e-12 * max(abs(hx), abs(hy)):
-                raise rd.err(f"rectangular apertures are not supported (SQAP {hx} x {hy}); only squares", surf=k,
-                             key="SQAP", line=sqap[1])
-            decs = [rd.num(sqap[0], i, "decenter", surf=k, key="SQAP", line=sqap[1]) for i in range(3, len(sqap[0]))
-                    if _isnum(sqap[0][i])]
+                raise rd.err(f"rectangular apertures are not supported (SQAP {hx} x {hy}); only squares",
+                             surf=k, key="SQAP", line=sqap[1])
+            decs = [float(t) for t in sqap[0][3:] if _isnum(t)]
             if any(v != 0 for v in decs):
                 raise rd.err("decentred apertures are not supported", surf=k, key="SQAP", line=sqap[1])
             sd, shape = hx, "square"
@@ -390,17 +391,18 @@ def read_zmx(path):
             asph = []
             if typ == "EVENASPH":
                 if parms.get(1, 0.0) != 0.0:
-                    raise rd.err(f"EVENASPH r^2 coefficient PARM 1 = {parms[1]} is not supported (rwwarp's even "
-                                 "asphere starts at r^4; fold it into the curvature in the design)", surf=k,
-                                 key="PARM 1")
+                    raise rd.err(f"EVENASPH r^2 coefficient PARM 1 = {parms[1]} is not supported (rwwarp's "
+                                 "even asphere starts at r^4; fold it into the curvature in the design)",
+                                 surf=k, key="PARM 1")
                 for i in sorted(parms):
                     if i > 8 and parms[i] != 0:
                         raise rd.err(f"PARM {i} is not an EVENASPH coefficient", surf=k, key=f"PARM {i}")
                 asph = [parms.get(i, 0.0) * scale ** (1 - 2 * i) for i in range(2, 9)]
                 while asph and asph[-1] == 0.0:
                     asph.pop()
-            surfaces.append(Surface(type="standard", thickness=thick, radius=None if curv == 0 else 1.0 / curv,
-                                    conic=conic, aspheric=asph, material=material, semi_diameter=sd, shape=shape,
+            radius = None if curv == 0 else 1.0 / curv
+            surfaces.append(Surface(type="standard", thickness=thick, radius=radius, conic=conic,
+                                    aspheric=asph, material=material, semi_diameter=sd, shape=shape,
                                     stop=stop))
             zsurf.append(k)
         elif typ == "PARAXIAL":
@@ -420,8 +422,8 @@ def read_zmx(path):
                              key="CURV")
             for i in range(1, 9):
                 if parms.get(i, 0.0) != 0:
-                    raise rd.err(f"BINARY_2 aspheric sag PARM {i} must be 0 (the rwwarp DOE is a plane)", surf=k,
-                                 key=f"PARM {i}")
+                    raise rd.err(f"BINARY_2 aspheric sag PARM {i} must be 0 (the rwwarp DOE is a plane)",
+                                 surf=k, key=f"PARM {i}")
             if conic != 0:
                 raise rd.err("BINARY_2 conic must be 0 on a flat DOE", surf=k, key="CONI")
             order = parms.get(0, 1.0)
@@ -431,8 +433,10 @@ def read_zmx(path):
             coeffs = [order * xdat.get(2 + i, 0.0) for i in range(1, nterms + 1)]
             rnorm = xdat.get(2, 0.0) * scale
             if nterms and not rnorm > 0:
-                raise rd.err(f"BINARY_2 normalisation radius XDAT 2 = {rnorm} must be > 0", surf=k, key="XDAT 2")
-            profile = {"kind": "even_poly", "norm_radius": rnorm if rnorm > 0 else 1.0, "coefficients": coeffs}
+                raise rd.err(f"BINARY_2 normalisation radius XDAT 2 = {rnorm} must be > 0",
+                             surf=k, key="XDAT 2")
+            profile = {"kind": "even_poly", "norm_radius": rnorm if rnorm > 0 else 1.0,
+                       "coefficients": coeffs}
             if material != medium:  # refraction at the flat DOE: a plane interface, then the phase
                 surfaces.append(Surface(type="standard", thickness=0.0, radius=None, material=material,
                                         semi_diameter=sd, shape=shape))
@@ -443,11 +447,11 @@ def read_zmx(path):
             zsurf.append(k)
         medium = material
 
-    # ------------------------------------------------------------------ build (validation maps back to SURF k)
+    # ------------------------------------------------ build (validation errors map back to SURF k)
     try:
         lens = Lens(surfaces=surfaces, sensor=Sensor(), object_distance=object_distance,
-                    wavelengths_um=wavelengths, name=name, entrance_pupil_diameter=epd, fields_deg=fields_deg,
-                    source=str(path))
+                    wavelengths_um=wavelengths, name=name, entrance_pupil_diameter=epd,
+                    fields_deg=fields_deg, source=str(path))
         if fnum is not None:
             from .paraxial import efl
             lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum

@@ -60,6 +60,10 @@ class Surface:
     design_wavelength_um: float = 0.55
     levels: int | None = None
 
+    def __post_init__(self):
+        if self.type == "doe" and self.material == "air":
+            self.material = "fused_silica"  # a DOE's material is its substrate (the medium is unchanged)
+
     @property
     def curvature(self) -> float:
         """Vertex curvature, 1/mm (0 for flat)."""
@@ -322,8 +326,6 @@ def _surface_to_dict(s: Surface) -> dict:
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
-            continue
-        if k == "material" and s.type == "doe" and v == "air":
             continue
         d[k] = copy.deepcopy(list(v) if k == "aspheric" else v)
     return d

@@ -1,8 +1,8 @@
 """Paraxial (first-order) optics by y-nu ray tracing: EFL, BFL, pupils, conjugates.
 
 Reduced slopes ``nu = n * u``; refraction ``nu' = nu - y * P`` with surface power
-``P = (n' - n) * c`` (standard), ``1/f`` (thin lens), ``-lambda * 2 a1 s / (2 pi R^2)`` for an
-even-polynomial DOE (a1 the rho^2 phase coefficient in radians, s the wavelength remap);
+``P = (n' - n) * c`` (standard), ``1/f`` (thin lens), ``-lambda * a1 / (pi R^2)`` for a DOE
+(a1 the rho^2 phase coefficient in radians: first diffraction order, power proportional to lambda);
 transfer ``y' = y + t * nu' / n'``. Lengths in mm, wavelengths in um.
 """
 from __future__ import annotations
@@ -34,10 +34,11 @@ def doe_power(surface, wavelength_um: float) -> float:
     from . import doe
     prof = doe.profile_from_dict(surface.profile)
     a2 = prof.quadratic_coefficient(surface.design_wavelength_um)  # phase = a2 * r^2 (rad/mm^2)
-    scale = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
     lam_mm = wavelength_um * 1e-3
-    # deflection d(nu) = (lambda / 2 pi) d(phi)/dr = lambda a2 s r / pi  ->  P = -lambda a2 s / pi
-    return -lam_mm * a2 * scale / np.pi
+    # first diffraction order of the zone structure (grating equation): d(nu) = (lambda / 2 pi) d(phi0)/dr
+    # = lambda a2 r / pi  ->  P = -lambda a2 / pi, proportional to the wavelength (Zemax Binary 2 convention);
+    # the substrate's remap (n(l)-1)/(n0-1) l0/l only changes the diffraction efficiency
+    return -lam_mm * a2 / np.pi
 
 
 def _object_index(lens, wavelength_um):

@@ -25,6 +25,7 @@ from .plan import Plan, nice_fft_length, check_explicit
 from .trace import Tracer, as_field_list, pupil_grid
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
+_LAST = {}  # last ray-wave field, for inspection
 
 
 @dataclass
@@ -81,7 +82,7 @@ class PSFMap:
 def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave", size: int = 64,
         device: str = "cpu", plan="auto", dtype: str = "float64", amplitude: str = "energy",
         object_distance_mm=None, rays_per_sample: float = 1.5, pixel_mm=None, center_mm=None,
-        use_reference: bool = True, gauss_nodes: int = 3) -> PSF:
+        use_reference: bool = True, gauss_nodes: int = 3, nyquist_safety: float = 2.0) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -108,11 +109,15 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Sensor pixel pitch (mm), default the lens's sensor.
     center_mm : (x, y), optional
         Sensor position of the patch centre (snapped to a pixel centre); default where the chief ray lands.
+    nyquist_safety : float
+        Adaptive plan: the DOE-plane pitch samples the highest local frequency this many times above
+        its Nyquist limit of 2 samples per period (aperture-edge diffraction spreads past it; 2 keeps
+        the aliased part near 1e-4).
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
                 rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm,
-                use_reference=use_reference, gauss_nodes=gauss_nodes)
+                use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -122,7 +127,8 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
 def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 64, device: str = "cpu",
             plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
             rays_per_sample: float = 1.5, pixel_mm=None, center_mm=None, use_reference: bool = True,
-            gauss_nodes: int = 3, batch: int | None = None, progress: bool = False) -> PSFMap:
+            gauss_nodes: int = 3, batch: int | None = None, progress: bool = False,
+            nyquist_safety: float = 2.0) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -153,11 +159,12 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         w_list = [wavelengths_um[j] for _, j in chunk]
         if model == "ray-wave":
             res = _raywave(lens, f_list, w_list, size, pixel, device, plan, dtype, amplitude,
-                           object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes)
+                           object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
+                           nyquist_safety)
         elif model == "paraxial-wave":
             eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
             res = _raywave(eq, eq_fields, w_list, size, pixel, device, plan, dtype, amplitude,
-                           None, rays_per_sample, center_mm, use_reference, gauss_nodes)
+                           None, rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety)
         else:
             res = _ray_model(lens, f_list, w_list, size, pixel, device, dtype, object_distance_mm,
                              rays_per_sample, center_mm)
@@ -194,20 +201,24 @@ def _pixel_centres(centers, size, pixel):
     return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
 
 
+def _lens_dir(lens):
+    from pathlib import Path
+    return None if lens.source is None else Path(lens.source).parent
+
+
 def _doe_phase_grid(lens, plane, origin, pitch, n):
     """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
     s = lens.surfaces[plane]
     if s.type != "doe":
         return None
     from . import doe
-    prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else __import__("pathlib").Path(lens.source).parent)
+    prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
     g = np.arange(n) * pitch
     out = np.empty((origin.shape[0], n, n))
     for k in range(origin.shape[0]):
         x, y = np.meshgrid(origin[k, 0] + g, origin[k, 1] + g, indexing="xy")
-        ph = prof.phase(x, y, s.design_wavelength_um)
-        if s.levels:
-            ph = doe.quantize(ph, s.levels)
+        # the physical relief: phi0 wrapped to [0, 2 pi) (and quantised), then remapped per wavelength
+        ph = doe.design_phase(prof, x, y, s.design_wavelength_um, s.levels)
         inside = (np.abs(x) <= s.semi_diameter) & (np.abs(y) <= s.semi_diameter) if s.shape == "square" \
             else (x * x + y * y <= s.semi_diameter ** 2) if s.semi_diameter else np.ones_like(x, bool)
         out[k] = np.where(inside, ph, 0.0)
@@ -220,10 +231,10 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
     if s.type != "doe":
         return np.zeros(len(wavelengths)), None
     from . import doe
-    prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else __import__("pathlib").Path(lens.source).parent)
+    prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
     feat = None
     if not prof.is_continuous or s.levels:
-        feat = prof.feature_size_mm(s.semi_diameter or 1.0)
+        feat = doe.surface_feature_size_mm(s, lens.source)
         return np.zeros(len(wavelengths)), feat
     out = np.zeros(len(wavelengths))
     for k, w in enumerate(wavelengths):
@@ -235,7 +246,7 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
 
 # ---------------------------------------------------------------------------------------------- ray-wave
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
-             rays_per_sample, center_mm, use_reference, gauss_nodes):
+             rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety=2.0):
     import warp as wp
     from .kernels.splat import make_splat_kernels
     from . import propagate, backend as bk
@@ -246,6 +257,7 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
     wl_idx = [uniq.index(w) for w in wls]
     nsrc = len(fields)
     src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+    src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
     n_after = np.array([lens.indices(w)[plane] for w in wls])
     n_img = np.array([lens.indices(w)[-1] for w in wls])
     z_plane = lens.vertex_z[plane]
@@ -302,9 +314,11 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
                                   (nsrc, 2)).copy()
     out_width = size * pixel
     # ---- plan
-    need_pitch = float(np.min(1.0 / (2.0 * 1.25 * (fmax + f_doe + 1e-9))))
+    nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
+    need_pitch = nyq_pitch / nyquist_safety
     reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
-               f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {need_pitch * 1e3:.4g} um (safety 1.25)"]
+               f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {nyq_pitch * 1e3:.4g} um, / safety "
+               f"{nyquist_safety} for edge diffraction -> {need_pitch * 1e3:.4g} um"]
     if feature is not None:
         if feature / 2.0 < need_pitch:
             reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
@@ -312,17 +326,19 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
     window = width + 2.0 * pilot_cell
     if isinstance(plan, Plan):
         pl = plan
-        check_explicit(pl, need_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
+        check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
     elif plan == "auto":
         pitch = need_pitch
         if feature is not None:
             # align the grid with DOE pixels: an integer number of samples per feature
             pitch = feature / math.ceil(feature / pitch)
         n_grid = int(math.ceil(window / pitch)) + 3
-        n_pad = nice_fft_length(max(n_grid, math.ceil((window + out_width) / pitch) + 4))
+        # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
+        # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
+        n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
         ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
         reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
-                    f"padding: window + sensor patch {out_width:.4g} mm (shifted band limit) -> FFT {n_pad}",
+                    f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
                     f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
         pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
     elif plan == "paper":
@@ -338,22 +354,22 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
     else:
         raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
 
-    # ---- full trace to the plane (one launch per surface for the whole batch)
-    u, v, cell = pupil_grid(pl.ray_grid, src["shape"])
+    # ---- full trace to the plane (one launch per surface for the whole batch); the pupil grid is kept
+    # whole (samples outside the pupil start invalid) so ray-tube areas come from grid neighbours
+    u, v, cell = pupil_grid(pl.ray_grid, src["shape"], clip=False)
     rays = tr._run(src, u, v, cell, upto=plane + 1)
     npup = len(u)
     weights = rays.weight.numpy().reshape(nsrc, npup)
     entering = weights.sum(1)
     valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
     valid_fraction = (weights * valid).sum(1) / entering
-    # chief OPL on the plane from the pilot chief ray (same generation conventions)
-    opl_p = None
+    # chief ray OPL on the plane (same generation conventions as the full trace)
     pilot_plane = tr._run(src, np.zeros(1), np.zeros(1), 1.0, upto=plane + 1)
-    opl_p = pilot_plane.opl.numpy()
+    opl_p = pilot_plane.opl.numpy().astype(np.float64)
     chief_ok = pilot_plane.valid.numpy().astype(bool)
     chief_plane = np.where(chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
     if not chief_ok.all():
-        # interpolate a reference OPL from the valid rays nearest the footprint centre
+        # vignetted chief ray: take the valid ray nearest the footprint centre as the reference
         all_opl = rays.opl.numpy().reshape(nsrc, npup)
         all_pos = rays.pos.numpy().reshape(nsrc, npup, 3)
         for k in np.where(~chief_ok)[0]:
@@ -363,7 +379,6 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
             opl_p[k] = all_opl[k, j]
     # reference sphere centre: where the chief ray lands on the sensor
     target = np.concatenate([chief_sensor[:, :2], np.full((nsrc, 1), z_sensor)], axis=1)
-    target[:, 2] = z_sensor
     # window origins centred on the footprint
     n = pl.n_grid
     mid = 0.5 * (lo + hi)
@@ -374,28 +389,36 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
     K = make_splat_kernels(tr.scalar)
     dev = tr.device
     total = nsrc * n * n
-    acc = [wp.zeros(total, dtype=wp.float64, device=dev) for _ in range(5)]
+    energy = int(amplitude == "energy")
+    area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev)
+    half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev)
+    if energy:
+        wp.launch(K.tube_area_kernel, dim=nsrc * npup, inputs=[rays.pos, rays.valid, pl.ray_grid],
+                  outputs=[area, half], device=dev)
+    s_re = wp.zeros(total, dtype=wp.float64, device=dev)
+    s_im = wp.zeros(total, dtype=wp.float64, device=dev)
     dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
-    k_wave = 2.0 * np.pi / lam_mm
-    common = [wp.array(origin, dtype=wp.vec2d, device=dev), wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
-              wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(target, dtype=wp.vec3d, device=dev),
-              wp.array(n_after, dtype=wp.float64, device=dev)]
+    k_wave = wp.array(2.0 * np.pi / lam_mm, dtype=wp.float64, device=dev)
+    geo = [wp.array(origin, dtype=wp.vec2d, device=dev),
+           wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
+           wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(target, dtype=wp.vec3d, device=dev),
+           wp.array(n_after, dtype=wp.float64, device=dev)]
     wp.launch(K.splat_kernel, dim=nsrc * npup,
-              inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight] + common +
-                     [wp.array(opl_p.astype(np.float64), dtype=wp.float64, device=dev),
-                      wp.array(k_wave, dtype=wp.float64, device=dev), int(use_reference), n, npup],
-              outputs=acc + [dropped], device=dev)
+              inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
+                     [wp.array(opl_p, dtype=wp.float64, device=dev), k_wave, int(use_reference), energy, n, npup],
+              outputs=[s_re, s_im, dropped], device=dev)
     field = wp.empty(total, dtype=wp.vec2d, device=dev)
     wp.launch(K.finalize_kernel, dim=total,
-              inputs=acc + common + [wp.array(k_wave, dtype=wp.float64, device=dev),
-                                     wp.array(carrier, dtype=wp.vec2d, device=dev), int(use_reference),
-                                     int(amplitude == "energy"), n],
+              inputs=[s_re, s_im] + geo + [k_wave, wp.array(carrier, dtype=wp.vec2d, device=dev),
+                                          int(use_reference), energy, n],
               outputs=[field], device=dev)
     u_field = field.numpy().view(np.complex128).reshape(nsrc, n, n)
-    if amplitude == "paper":
-        q = acc[4].numpy().reshape(nsrc, -1).sum(1)
+    if not energy:
+        # paper convention: unit ray amplitude, one global scale so the field carries the traced power
+        q = (weights * valid).sum(1)
         pw = np.sum(np.abs(u_field) ** 2, axis=(1, 2)) * pl.pitch_mm ** 2
         u_field = u_field * np.sqrt(np.where(pw > 0, q / np.maximum(pw, 1e-300), 0.0))[:, None, None]
+    _LAST.update(field=u_field, origin=origin, pitch=pl.pitch_mm)
     # ---- DOE phase and propagation to the sensor
     phi0 = _doe_phase_grid(lens, plane, origin, pl.pitch_mm, n)
     scale = None
@@ -408,7 +431,7 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
     power = propagate.sensor_intensity(
         be, u_field, pl.pitch_mm, origin, np.array(wls) / n_after, z_sensor - z_plane, px, py, pixel,
         doe_phase=phi0, doe_scale=scale, carrier_cpmm=carrier, pad_to=pl.n_pad, gauss_nodes=gauss_nodes)
-    power = np.asarray(power)
+    power = be.to_host(power)
     data = power / entering[:, None, None]
     if not np.all(np.isfinite(data)):
         raise FloatingPointError("non-finite PSF values (please report this lens and field)")
@@ -489,10 +512,10 @@ def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm
     if prof is not None:
         for k, w in enumerate(wls):
             gx, gy = prof.gradient(pos[k, :, 0], pos[k, :, 1], s.design_wavelength_um)
-            sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
             lam = w * 1e-3
-            tx = n_pl[k] * dr[k, :, 0] + lam * sc * gx / (2 * np.pi)
-            ty = n_pl[k] * dr[k, :, 1] + lam * sc * gy / (2 * np.pi)
+            # local grating, first order: n' d'_xy = n d_xy + lambda / (2 pi) grad(phi0)
+            tx = n_pl[k] * dr[k, :, 0] + lam * gx / (2 * np.pi)
+            ty = n_pl[k] * dr[k, :, 1] + lam * gy / (2 * np.pi)
             tz2 = n_pl[k] ** 2 - tx ** 2 - ty ** 2
             valid[k] &= tz2 > 0
             tz = np.sqrt(np.maximum(tz2, 1e-30))
@@ -501,7 +524,6 @@ def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm
     # straight to the sensor
     t = (lens.sensor_z - pos[..., 2]) / dr[..., 2]
     hit = pos + t[..., None] * dr
-    chief = hit[:, grid * grid // 2 if False else 0, :2]
     centers = np.zeros((nsrc, 2))
     for k in range(nsrc):
         c = hit[k, valid[k], :2].mean(0) if center_mm is None else np.asarray(center_mm, float)

@@ -54,7 +54,8 @@ def warp_device(device: str) -> str:
     raise ValueError(f"unknown device {device!r}: use 'cpu', 'cuda', 'cuda:N' or 'opencl:P:D'")
 
 
-def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0, layout: str = "centers"):
+def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0, layout: str = "centers",
+               clip: bool = True):
     """Deterministic stratified pupil samples in normalised coordinates.
 
     A square ``n x n`` grid over [-1, 1]^2 (``layout="centers"``: cell centres, ``"edges"``: including
@@ -78,7 +79,7 @@ def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0
         rng = np.random.default_rng(seed)
         u = u + jitter * cell * (rng.random(u.size) - 0.5)
         v = v + jitter * cell * (rng.random(v.size) - 0.5)
-    if shape == "circle":
+    if shape == "circle" and clip:
         keep = u * u + v * v <= 1.0 + 1e-12
         u, v = u[keep], v[keep]
     return u, v, cell * cell
@@ -315,7 +316,8 @@ class Tracer:
         weight = wp.empty(n, dtype=sc, device=dev)
         inputs = [arr(u, sc), arr(v, sc), arr(src["pos"], K.vec3), arr(src["dir"], K.vec3),
                   arr(src["finite"], wp.int32), arr(src["aim"], K.vec3), arr(src["half_x"], sc),
-                  arr(src["half_y"], sc), arr(src["wl"], wp.int32), self.n_obj, sc(cell), npup]
+                  arr(src["half_y"], sc), arr(src["wl"], wp.int32), self.n_obj, sc(cell),
+                  int(src["shape"] == "circle"), int(src.get("relative_opl", False)), npup]
         wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=[pos, dr, opl, valid, wl, weight], device=dev)
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto

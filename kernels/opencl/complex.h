@@ -98,10 +98,24 @@ RW_FUNC cplx_t c_expi(const phase_t phase)
     return c_make((real_t)c, (real_t)s);
 }
 
+/* t minus the nearest integer, in [-0.5, 0.5], for |t| < 2^51 (double) or 2^22 (float).
+ * Adding and subtracting 1.5 * 2^52 (1.5 * 2^23) rounds to the nearest integer in the default
+ * rounding mode; unlike rint() this vectorises on CPUs. Needs IEEE arithmetic (no fast-math). */
+RW_FUNC phase_t rw_frac_nearest(const phase_t t)
+{
+#ifdef RW_HAVE_FP64
+    const phase_t magic = (phase_t)6755399441055744.0;
+#else
+    const phase_t magic = (phase_t)12582912.0f;
+#endif
+    const phase_t shifted = t + magic;
+    return t - (shifted - magic);
+}
+
 /* exp(2 pi i t), t in cycles; the whole cycles are removed first so that large t stays exact */
 RW_FUNC cplx_t c_cis_cycles(const phase_t t)
 {
-    return c_expi(RW_TWO_PI * (t - rint(t)));
+    return c_expi(RW_TWO_PI * rw_frac_nearest(t));
 }
 
 #endif /* RW_COMPLEX_H */

@@ -111,7 +111,7 @@ __kernel void band_transfer_kernel(__global const phase_t* restrict params,
                 const phase_t dw = -lam * rho2 / ((phase_t)1 + sqrt((phase_t)1 - s2));
                 const phase_t cyc_z = p[P_ZFRAC] + p[P_Z] * dw;
                 const phase_t cyc_s = fx * p[P_XS] + fy * p[P_YS];
-                h = c_scale(c_cis_cycles((cyc_z - rint(cyc_z)) + (cyc_s - rint(cyc_s))), scale);
+                h = c_scale(c_cis_cycles(rw_frac_nearest(cyc_z) + rw_frac_nearest(cyc_s)), scale);
             }
         }
     }
@@ -209,7 +209,7 @@ __kernel void dft_matrix_kernel(__global const phase_t* restrict coords,
         const phase_t f = (p[P_QX0 + axis] + (phase_t)k) / p[P_LPX + axis];
         const phase_t t1 = f * (s - p[P_X0 + axis] - p[P_XS + axis]);
         const phase_t t2 = p[P_CX + axis] * s;
-        e = c_cis_cycles((t1 - rint(t1)) + (t2 - rint(t2)));
+        e = c_cis_cycles(rw_frac_nearest(t1) + rw_frac_nearest(t2));
     }
     const idx_t io = transpose ? ((idx_t)b * k_max + k) * m_count + n
                                : ((idx_t)b * m_count + n) * k_max + k;
@@ -295,6 +295,88 @@ __kernel void cgemm_batched_kernel(__global const cplx_t* restrict a,
         }
     }
 }
+
+#ifndef RW_CUDA
+/* CPU variant of cgemm_batched_kernel (same arguments and result; OpenCL only, chosen by the host
+ * for CPU devices such as PoCL). CPU OpenCL runs each work-item's loop as scalar code, so this
+ * kernel vectorises explicitly: a work-item owns CGEMM_CPU_ROWS rows x 4 columns of the output,
+ * held as real4 vectors of real and imaginary parts, and streams over k with no local memory
+ * and no barriers. op(B) must not be transposed (trans_b = 0; conj_b is honoured).
+ * Global (ceil(n / 4), ceil(m / CGEMM_CPU_ROWS), batch), any local size along axis 0. */
+#define CGEMM_CPU_ROWS 8
+#if REAL_IS_DOUBLE
+typedef double2 rw_real2_t;
+typedef double4 rw_real4_t;
+#else
+typedef float2 rw_real2_t;
+typedef float4 rw_real4_t;
+#endif
+
+__kernel void cgemm_cpu_kernel(__global const cplx_t* restrict a,
+                               __global const cplx_t* restrict bmat,
+                               const int m, const int n, const int k,
+                               const int lda, const int ldb, const int ldc,
+                               const idx_t stride_a, const idx_t stride_b, const idx_t stride_c,
+                               const int trans_a, const int conj_a,
+                               const int trans_b, const int conj_b,
+                               __global cplx_t* restrict c_out)
+{
+    const int j0 = get_global_id(0) * 4;
+    const int i0 = get_global_id(1) * CGEMM_CPU_ROWS;
+    const idx_t bi = get_global_id(2);
+    if (j0 >= n || i0 >= m) return;
+    __global const cplx_t* ab = a + bi * stride_a;
+    __global const real_t* bb = (__global const real_t*)(bmat + bi * stride_b);
+    const idx_t a_si = trans_a ? 1 : lda;
+    const idx_t a_sk = trans_a ? lda : 1;
+    const real_t sign_a = conj_a ? (real_t)-1 : (real_t)1;
+    const real_t sign_b = conj_b ? (real_t)-1 : (real_t)1;
+    const int full = (j0 + 4 <= n);
+    const int rows = min(m - i0, CGEMM_CPU_ROWS);
+    int arow[CGEMM_CPU_ROWS];
+    rw_real4_t acc_re[CGEMM_CPU_ROWS], acc_im[CGEMM_CPU_ROWS];
+    for (int r = 0; r < CGEMM_CPU_ROWS; ++r) {
+        arow[r] = r < rows ? r : 0;
+        acc_re[r] = (rw_real4_t)(0);
+        acc_im[r] = (rw_real4_t)(0);
+    }
+    for (int kk = 0; kk < k; ++kk) {
+        __global const real_t* bp = bb + 2 * ((idx_t)kk * ldb + j0);
+        rw_real4_t b_re, b_im;
+        if (full) {
+            const rw_real4_t lo = vload4(0, bp);  /* re0 im0 re1 im1 */
+            const rw_real4_t hi = vload4(1, bp);  /* re2 im2 re3 im3 */
+            b_re = (rw_real4_t)(lo.even, hi.even);
+            b_im = sign_b * (rw_real4_t)(lo.odd, hi.odd);
+        } else {
+            real_t re[4], im[4];
+            for (int e = 0; e < 4; ++e) {
+                const int ok = j0 + e < n;
+                re[e] = ok ? bp[2 * e] : (real_t)0;
+                im[e] = ok ? bp[2 * e + 1] : (real_t)0;
+            }
+            b_re = (rw_real4_t)(re[0], re[1], re[2], re[3]);
+            b_im = sign_b * (rw_real4_t)(im[0], im[1], im[2], im[3]);
+        }
+        __global const cplx_t* ap = ab + (idx_t)i0 * a_si + (idx_t)kk * a_sk;
+        for (int r = 0; r < CGEMM_CPU_ROWS; ++r) {
+            const cplx_t av = ap[arow[r] * a_si];
+            const rw_real4_t ar = (rw_real4_t)(av.x);
+            const rw_real4_t ai = (rw_real4_t)(sign_a * av.y);
+            acc_re[r] = fma(ar, b_re, fma(-ai, b_im, acc_re[r]));
+            acc_im[r] = fma(ar, b_im, fma(ai, b_re, acc_im[r]));
+        }
+    }
+    __global cplx_t* cb = c_out + bi * stride_c;
+    for (int r = 0; r < rows; ++r) {
+        real_t re[4], im[4];
+        vstore4(acc_re[r], 0, re);
+        vstore4(acc_im[r], 0, im);
+        for (int e = 0; e < 4; ++e)
+            if (j0 + e < n) cb[(idx_t)(i0 + r) * ldc + j0 + e] = c_make(re[e], im[e]);
+    }
+}
+#endif /* !RW_CUDA */
 
 /* Crop the top-left (ny, nx) corner of a (npy, npx) array. Global (nx, ny, batch). */
 __kernel void crop_kernel(__global const cplx_t* restrict padded,

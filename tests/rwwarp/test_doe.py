@@ -33,7 +33,8 @@ def test_poly_odd_and_even_terms():
 def test_fresnel_focal_length():
     f, lam0 = 50.0, 0.55
     p = doe.profile_from_dict({"kind": "fresnel", "focal_length": f})
-    np.testing.assert_allclose(p.phase(X, Y, lam0), -math.pi * (X ** 2 + Y ** 2) / (lam0 * 1e-3 * f), rtol=1e-14)
+    ref = -math.pi * (X ** 2 + Y ** 2) / (lam0 * 1e-3 * f)
+    np.testing.assert_allclose(p.phase(X, Y, lam0), ref, rtol=1e-14)
     # local grating: a ray through (x, y) is deflected by sin(theta) = lambda0 / (2 pi) dphi/dx = -x / f,
     # i.e. every ray crosses the axis f behind the DOE
     gx, gy = p.gradient(X, Y, lam0)
@@ -46,7 +47,13 @@ def test_fresnel_focal_length():
     np.testing.assert_allclose(ev.phase(X, Y), p.phase(X, Y, lam0), rtol=1e-13)
     # narrowest zone at the rim: 2 pi / |dphi/dr| = lambda0 f / r
     assert p.feature_size_mm(1.0, lam0) == pytest.approx(lam0 * 1e-3 * f / 1.0, rel=1e-12)
-    assert p.feature_size_mm(1.0, lam0, shape="square") == pytest.approx(lam0 * 1e-3 * f / math.sqrt(2), rel=1e-12)
+    assert p.feature_size_mm(1.0, lam0, levels=16) == pytest.approx(lam0 * 1e-3 * f / 16, rel=1e-12)
+    surf = Surface(type="doe", semi_diameter=1.0, design_wavelength_um=lam0, material="fused_silica",
+                   levels=8, profile=p.to_dict())
+    assert doe.surface_feature_size_mm(surf) == pytest.approx(lam0 * 1e-3 * f / 8, rel=1e-12)
+    assert not doe.surface_is_continuous(surf)
+    assert p.feature_size_mm(1.0, lam0, shape="square") == pytest.approx(lam0 * 1e-3 * f / math.sqrt(2),
+                                                                     rel=1e-12)
 
 
 def test_zernike_noll_values():
@@ -78,7 +85,8 @@ def test_zernike_noll_values():
 
 
 def test_zernike_orthonormal_on_unit_disk():
-    # Noll normalisation: (1/pi) * integral over the unit disk of Z_j Z_k = delta_jk (Gauss-Legendre in r, uniform in t)
+    # Noll normalisation: (1/pi) * integral over the unit disk of Z_j Z_k = delta_jk
+    # (Gauss-Legendre in r, uniform in theta)
     nr, nt = 40, 64
     xr, wr = np.polynomial.legendre.leggauss(nr)
     r = 0.5 * (xr + 1.0)
@@ -202,7 +210,8 @@ def test_wavelength_scale_fused_silica():
 def test_height_map_values(tmp_path):
     lam0 = 0.55
     n0 = _fused_silica_malitson(lam0)
-    h = doe.height_map_um(np.array([0.0, math.pi, 2 * math.pi + math.pi / 2, -math.pi / 2]), "fused_silica", lam0)
+    phi = np.array([0.0, math.pi, 2 * math.pi + math.pi / 2, -math.pi / 2])
+    h = doe.height_map_um(phi, "fused_silica", lam0)
     full = lam0 / (n0 - 1)  # 2 pi of phase, um
     np.testing.assert_allclose(h, [0.0, full / 2, full / 4, 3 * full / 4], rtol=2e-5)
 

@@ -1,0 +1,48 @@
+"""Shared pytest fixtures.
+
+* ``cl_backend``: the OpenCL backend the tests run on: PoCL (the first OpenCL CPU device) by
+  default; the environment variable ``PYOPENCL_TEST`` selects another, in pyopencl's format
+  ``PLATFORM[:DEVICE]`` (case-insensitive substrings of the platform and device names, or their
+  indices), e.g. ``PYOPENCL_TEST=portable:cpu`` or ``PYOPENCL_TEST=0:0``.
+* ``dtype``: parametrises a test over complex128 and complex64.
+"""
+
+import os
+
+import numpy as np
+import pytest
+
+
+def _select_opencl_device(spec: str) -> str:
+    """rwwarp device string 'opencl:P:D' for a PYOPENCL_TEST-style 'platform[:device]' spec."""
+    import pyopencl as cl
+
+    plat_spec, _, dev_spec = spec.partition(":")
+    platforms = cl.get_platforms()
+    for p_idx, platform in enumerate(platforms):
+        if plat_spec and not (plat_spec == str(p_idx) or plat_spec.lower() in platform.name.lower()):
+            continue
+        for d_idx, dev in enumerate(platform.get_devices()):
+            if dev_spec and not (dev_spec == str(d_idx) or dev_spec.lower() in dev.name.lower()):
+                continue
+            return f"opencl:{p_idx}:{d_idx}"
+    raise RuntimeError(f"PYOPENCL_TEST={spec!r} matches no OpenCL device")
+
+
+@pytest.fixture(scope="session")
+def cl_backend():
+    """rwwarp OpenCL backend for the tests (PoCL unless PYOPENCL_TEST says otherwise)."""
+    pytest.importorskip("pyopencl")
+    from rwwarp.backend import get_backend
+
+    spec = os.environ.get("PYOPENCL_TEST", "").strip()
+    try:
+        return get_backend(_select_opencl_device(spec) if spec else "cpu")
+    except RuntimeError as exc:
+        pytest.skip(f"no OpenCL device: {exc}")
+
+
+@pytest.fixture(params=[np.complex128, np.complex64], ids=["c128", "c64"])
+def dtype(request):
+    """Complex dtype under test: complex128 and complex64."""
+    return np.dtype(request.param)
