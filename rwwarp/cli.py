@@ -92,7 +92,7 @@ def cmd_demo(a):
     wl = 0.55
     print(f"rwwarp demo: {lens.name} ({a.lens}) on device {a.device}")
     print(f"  EFL {lens.efl(wl):.4f} mm, BFL {lens.bfl(wl):.4f} mm, F/# {paraxial.f_number(lens, wl):.3f} at {wl} um")
-    layout(lens, out / "layout.png", fields_deg=[0.0, 10.0, 20.0])
+    layout(lens, out / "layout.png", fields_deg=[0.0, a.max_field / 2, a.max_field])
     fields = [(0.0, f) for f in np.linspace(0.0, a.max_field, a.fields)]
     a.model = "ray-wave"
     m, dt = _map(lens, fields, lens.wavelengths_um, a, out, "psf_map")
@@ -153,7 +153,7 @@ def main(argv=None):
             p.add_argument("--fields", type=int, default=5)
         else:
             p.add_argument("--lens", default="a489_doe")
-            p.add_argument("--max-field", type=float, default=20.0, help="deg")
+            p.add_argument("--max-field", type=float, default=14.0, help="deg (A489: 14 deg is the sensor corner)")
             p.add_argument("--fields", type=int, default=3)
         p.add_argument("--size", type=int, default=64)
         p.add_argument("--device", default="cpu")

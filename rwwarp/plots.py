@@ -4,6 +4,14 @@ from __future__ import annotations
 import numpy as np
 
 
+def field_label(f) -> str:
+    """Short text for a field angle (deg): a number or an (x, y) pair."""
+    if np.ndim(f) == 0:
+        return f"{float(f):g} deg"
+    x, y = float(f[0]), float(f[1])
+    return f"{y:g} deg" if x == 0 else f"({x:g}, {y:g}) deg"
+
+
 def _plt():
     import matplotlib
     matplotlib.use("Agg")
@@ -72,10 +80,11 @@ def psf_map_figure(m, path, log: bool = True):
             axes[j, i].set_xticks([])
             axes[j, i].set_yticks([])
             if j == 0:
-                axes[j, i].set_title(f"{m.fields_deg[i]}", fontsize=8)
+                axes[j, i].set_title(field_label(m.fields_deg[i]), fontsize=8)
             if i == 0:
                 axes[j, i].set_ylabel(f"{m.wavelengths_um[j]:.3g} um", fontsize=8)
-    fig.suptitle(f"{m.model} PSFs ({'log10' if log else 'linear'}), fields in deg", fontsize=9)
+    fig.suptitle(f"{m.model} PSFs ({'log10, 6 decades' if log else 'linear'}), each tile {m.data.shape[-1]} px of "
+                 f"{m.pixel_mm * 1e3:.3g} um", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -96,7 +105,7 @@ def rgb_psf_map(m, path):
             rgb = np.moveaxis(d, 0, -1)
             rgb = np.sqrt(rgb / max(rgb.max(), 1e-300))
             ax.imshow(rgb, origin="lower")
-            ax.set_title(f"{m.fields_deg[k]}", fontsize=7)
+            ax.set_title(field_label(m.fields_deg[k]), fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -80,6 +80,7 @@ _H_COLS = [c for c in range(_NPAR) if c not in (_P_X0, _P_Y0, _P_DOE_SCALE)]
 
 _LOCAL = (32, 8, 1)
 _GEMM_TS, _GEMM_WG = 32, 16
+_CPU_GEMM_ROWS = 8
 
 
 def next_fft_size(n: int) -> int:
@@ -280,11 +281,15 @@ def _launch(st, name, gsize, *args, local=_LOCAL):
 
 
 def _gemm(st, a, b, c, m, n, k, *, lda, ldb, ldc, sa, sb, sc, ta=0, ca=0, tb=0, cb=0):
-    """c[b] = op(a[b]) @ op(b[b]) over the batch (see cgemm_batched_kernel)."""
+    """c[b] = op(a[b]) @ op(b[b]) over the batch: the local-memory tiled kernel on GPUs, the
+    explicitly vectorised one on CPU OpenCL devices (same arguments, see propagate.cl)."""
+    args = (a, b, m, n, k, lda, ldb, ldc, sa, sb, sc, ta, ca, tb, cb, c)
+    if getattr(st.backend, "is_cpu", False) and not tb:
+        _launch(st, "cgemm_cpu_kernel", (-(-n // 4), -(-m // _CPU_GEMM_ROWS), st.batch), *args, local=(16, 1, 1))
+        return
     gx = -(-n // _GEMM_TS) * _GEMM_WG
     gy = -(-m // _GEMM_TS) * _GEMM_WG
-    _launch(st, "cgemm_batched_kernel", (gx, gy, st.batch), a, b, m, n, k, lda, ldb, ldc, sa, sb, sc,
-            ta, ca, tb, cb, c, local=(_GEMM_WG, _GEMM_WG, 1))
+    _launch(st, "cgemm_batched_kernel", (gx, gy, st.batch), *args, local=(_GEMM_WG, _GEMM_WG, 1))
 
 
 def _transfer(st, scale):
@@ -321,19 +326,32 @@ def _band_spectrum(st):
     return band, h
 
 
-def _dft_factors(st, xs, ys):
-    """Ex^T (B, kx_max, Mx) and Ey (B, My, ky_max) for absolute coordinates xs (B, Mx), ys (B, My)."""
+def _upload_coords(st, xs, ys):
+    """Output coordinates (B, M) to the device, before any launch of the call (uploads block)."""
     be = st.backend
-    mx, my = xs.shape[1], ys.shape[1]
-    xs_dev = be.to_device(np.ascontiguousarray(xs, dtype=be.phase_dtype))
-    ys_dev = be.to_device(np.ascontiguousarray(ys, dtype=be.phase_dtype))
-    ext = be.workspace("ext", (st.batch, st.kx_max, mx), st.dtype)
+    return (be.to_device(np.ascontiguousarray(xs, dtype=be.phase_dtype)),
+            be.to_device(np.ascontiguousarray(ys, dtype=be.phase_dtype)))
+
+
+def _dft_factors(st, coords, adjoint=False):
+    """Matrix-DFT factors for the device coordinates ``coords = (xs (B, Mx), ys (B, My))``:
+    Ey (B, My, ky_max) and Ex^T (B, kx_max, Mx) for the forward product, or Ex (B, Mx, kx_max) for
+    the adjoint one (so that the right-hand GEMM operand is never transposed)."""
+    be = st.backend
+    xs_dev, ys_dev = coords
+    mx, my = int(xs_dev.shape[1]), int(ys_dev.shape[1])
     ey = be.workspace("ey", (st.batch, my, st.ky_max), st.dtype)
-    _launch(st, "dft_matrix_kernel", (mx, st.kx_max, st.batch), xs_dev, st.params_dev, mx, st.kx_max,
-            st.batch, 0, 1, ext)
     _launch(st, "dft_matrix_kernel", (st.ky_max, my, st.batch), ys_dev, st.params_dev, my, st.ky_max,
             st.batch, 1, 0, ey)
-    return ext, ey
+    if adjoint:
+        ex = be.workspace("ex", (st.batch, mx, st.kx_max), st.dtype)
+        _launch(st, "dft_matrix_kernel", (st.kx_max, mx, st.batch), xs_dev, st.params_dev, mx, st.kx_max,
+                st.batch, 0, 0, ex)
+    else:
+        ex = be.workspace("ext", (st.batch, st.kx_max, mx), st.dtype)
+        _launch(st, "dft_matrix_kernel", (mx, st.kx_max, st.batch), xs_dev, st.params_dev, mx, st.kx_max,
+                st.batch, 0, 1, ex)
+    return ex, ey
 
 
 def _band_to_points(st, band, ext, ey, out):
@@ -352,23 +370,22 @@ def _band_to_points(st, band, ext, ey, out):
     return out
 
 
-def _points_to_band(st, grad, ext, ey, out):
-    """Adjoint of _band_to_points: out (B, ky, kx) = Ey^H @ grad @ conj(Ex^T)^T."""
+def _points_to_band(st, grad, ex, ey, out):
+    """Adjoint of _band_to_points: out (B, ky, kx) = Ey^H @ grad @ conj(Ex), with Ex (B, Mx, kx)
+    from _dft_factors(..., adjoint=True)."""
     kx, ky = st.kx_max, st.ky_max
-    my, mx = ey.shape[1], ext.shape[2]
+    my, mx = ey.shape[1], ex.shape[1]
     be = st.backend
     if my * mx * kx + ky * my * kx <= ky * my * mx + ky * mx * kx:
         tmp = be.workspace("gemm_tmp", (st.batch, my, kx), st.dtype)
-        _gemm(st, grad, ext, tmp, my, kx, mx, lda=mx, ldb=mx, ldc=kx, sa=my * mx, sb=kx * mx, sc=my * kx,
-              tb=1, cb=1)
+        _gemm(st, grad, ex, tmp, my, kx, mx, lda=mx, ldb=kx, ldc=kx, sa=my * mx, sb=mx * kx, sc=my * kx, cb=1)
         _gemm(st, ey, tmp, out, ky, kx, my, lda=ky, ldb=kx, ldc=kx, sa=my * ky, sb=my * kx, sc=ky * kx,
               ta=1, ca=1)
     else:
         tmp = be.workspace("gemm_tmp", (st.batch, ky, mx), st.dtype)
         _gemm(st, ey, grad, tmp, ky, mx, my, lda=ky, ldb=mx, ldc=mx, sa=my * ky, sb=my * mx, sc=ky * mx,
               ta=1, ca=1)
-        _gemm(st, tmp, ext, out, ky, kx, mx, lda=mx, ldb=mx, ldc=kx, sa=ky * mx, sb=kx * mx, sc=ky * kx,
-              tb=1, cb=1)
+        _gemm(st, tmp, ex, out, ky, kx, mx, lda=mx, ldb=kx, ldc=kx, sa=ky * mx, sb=mx * kx, sc=ky * kx, cb=1)
     return out
 
 
@@ -468,8 +485,9 @@ def propagate(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, o
     st = _setup(probe, field, pitch_mm, origin_mm, wavelength_um, distance_mm, doe_phase=doe_phase,
                 doe_scale=doe_scale, carrier_cpmm=carrier_cpmm, pad_to=pad_to, dtype=dtype, out_center_mm=center)
     _check_window(st, ex, ey, "propagate")
+    coords = _upload_coords(st, xs, ys)
     band, _ = _band_spectrum(st)
-    ext, eyf = _dft_factors(st, xs, ys)
+    ext, eyf = _dft_factors(st, coords)
     out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
     return _band_to_points(st, band, ext, eyf, out)
 
@@ -505,10 +523,11 @@ def propagate_adjoint(backend, grad_out, field, pitch_mm, origin_mm, wavelength_
     g = st.backend.to_device(grad_out, st.dtype)
     if tuple(g.shape) != (st.batch, ys.shape[1], xs.shape[1]):
         raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+    coords = _upload_coords(st, xs, ys)
     h = _transfer(st, 1.0 / (st.npx * st.npy))
-    ext, eyf = _dft_factors(st, xs, ys)
+    ex, eyf = _dft_factors(st, coords, adjoint=True)
     band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-    _points_to_band(st, g, ext, eyf, band_grad)
+    _points_to_band(st, g, ex, eyf, band_grad)
     return _band_adjoint_to_field(st, band_grad, h)
 
 
@@ -599,15 +618,16 @@ def sensor_intensity(backend, field, pitch_mm, origin_mm, wavelength_um, distanc
                 doe_scale=doe_scale, carrier_cpmm=carrier_cpmm, pad_to=pad_to, dtype=dtype, out_center_mm=center)
     _check_window(st, ex, ey, "sensor_intensity")
     be = st.backend
+    coords = _upload_coords(st, xs, ys)
+    w_dev = be.to_device(w.astype(st.rdtype))
     band, _ = _band_spectrum(st)
-    ext, eyf = _dft_factors(st, xs, ys)
+    ext, eyf = _dft_factors(st, coords)
     g = len(w)
     if return_nodes:
         nodes = be.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
     else:
         nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
     _band_to_points(st, band, ext, eyf, nodes)
-    w_dev = be.to_device(w.astype(st.rdtype))
     inten = be.empty((st.batch, npy_, npx_), st.rdtype)
     _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area, inten)
     if return_nodes:
@@ -640,23 +660,25 @@ def sensor_intensity_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm
                 doe_scale=doe_scale, carrier_cpmm=carrier_cpmm, pad_to=pad_to, dtype=dtype, out_center_mm=center)
     be = st.backend
     g = len(w)
-    ext, eyf = _dft_factors(st, xs, ys)
-    h = _transfer(st, 1.0 / (st.npx * st.npy))
-    if nodes is None:
-        band, _ = _band_spectrum(st)
-        nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _band_to_points(st, band, ext, eyf, nodes)
-    else:
-        nodes = be.to_device(nodes, st.dtype)
-        if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-            raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
     gi = be.to_device(grad_intensity, st.rdtype)
     if tuple(gi.shape) != (st.batch, npy_, npx_):
         raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
+    coords = _upload_coords(st, xs, ys)
     w_dev = be.to_device(w.astype(st.rdtype))
+    if nodes is not None:
+        nodes = be.to_device(nodes, st.dtype)
+        if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
+            raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+    h = _transfer(st, 1.0 / (st.npx * st.npy))
+    if nodes is None:
+        band, _ = _band_spectrum(st)
+        ext, eyf = _dft_factors(st, coords)
+        nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+        _band_to_points(st, band, ext, eyf, nodes)
     g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
     _launch(st, "sensor_reduce_adjoint_kernel", (xs.shape[1], ys.shape[1], st.batch), nodes, w_dev, gi, npx_, npy_,
             g, st.batch, area, g_nodes)
+    ex, eyf = _dft_factors(st, coords, adjoint=True)
     band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-    _points_to_band(st, g_nodes, ext, eyf, band_grad)
+    _points_to_band(st, g_nodes, ex, eyf, band_grad)
     return _band_adjoint_to_field(st, band_grad, h)

@@ -178,6 +178,10 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def _fmt_field(f):
+    return f"{float(f):g} deg" if np.ndim(f) == 0 else f"({float(f[0]):g}, {float(f[1]):g}) deg"
+
+
 def _wave_plane_index(lens) -> int:
     """Surface index of the plane where rays become a field: the DOE, else the last surface."""
     d = lens.doe_index
@@ -276,7 +280,7 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
     for k in range(nsrc):
         if ok[k].sum() < 3:
             raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
-                            file=lens.source, field=fields[k])
+                            file=lens.source, field=_fmt_field(fields[k]))
     # chief ray: pupil centre if valid, else the centroid of valid rays
     chief_plane = np.zeros((nsrc, 3))
     chief_sensor = np.zeros((nsrc, 3))

@@ -23,6 +23,7 @@ from .kernels import trace as ktrace
 from . import paraxial
 
 wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING  # no per-module load messages (compile time is reported by perf/)
 _WP_INIT = False
 
 
