@@ -49,9 +49,11 @@ Numerics.
   band-limited to ``2 NA/lambda``; 3 nodes per axis are exact to < 1e-9 relative for pixels
   below ``lambda/(8 NA)``.
 * Summation. Sensor points x aperture nodes in blocks of ``chunk_elements`` pairs (float64
-  temporaries of a few MB per worker thread), each block reduced with a matrix product; threads
-  (numpy releases the GIL) split the sensor points. Peak memory is the node arrays plus
-  ``workers * 8 * chunk_elements * 8`` bytes, far below 1 GB for any practical case.
+  temporaries of 2-15 MB per worker thread), each block reduced by numpy's pairwise sums (no
+  BLAS, whose own threads would contend); threads (numpy releases the GIL) split the sensor
+  points. Peak memory is the node arrays plus ``workers * 8 * chunk_elements * 8`` bytes
+  (< 0.6 GB at the 32-thread maximum). Cost ~35 ns per (sensor node, aperture node) pair on one
+  core, dominated by cos/sin; threads scale ~3x on 4 cores and ~6x on 16.
 
 Pixel-map convention: ``(pixel_map, pitch_mm)`` with ``pixel_map`` of shape (Ny, Nx) in rad at
 the simulated wavelength, centred on the axis: element ``[i, j]`` covers
@@ -287,7 +289,8 @@ def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gra
     shape = _check_shape(aperture_shape)
     h = float(aperture_half_mm)
     if not h > 0:
-        raise LensError(f"aperture_half_mm must be positive, got {aperture_half_mm}", keyword="aperture_half_mm")
+        raise LensError(f"aperture_half_mm must be positive, got {aperture_half_mm}",
+                        keyword="aperture_half_mm")
     kind, payload = _parse_doe(doe_phase)
     gx, gy = (float(g) for g in gradient_rad_per_mm)
     phi_max = float(max_cell_phase_rad)
@@ -361,7 +364,8 @@ def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gra
 
     if np.any(rim):
         for iy, ix in zip(*np.nonzero(rim)):
-            got = _rim_cell_nodes(edges_x[ix], edges_x[ix + 1], edges_y[iy], edges_y[iy + 1], h, nq, quad_rtol)
+            got = _rim_cell_nodes(edges_x[ix], edges_x[ix + 1], edges_y[iy], edges_y[iy + 1], h, nq,
+                                  quad_rtol)
             if got is None:
                 continue
             parts_x.append(got[0])
@@ -427,6 +431,11 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
     ys = np.ascontiguousarray(ys, dtype=np.float64).ravel()
     cs = xs * xs + ys * ys + (z - f) * (z + f)
     ns, na = xs.size, px.size
+    if workers is None:
+        workers = min(os.cpu_count() or 1, 32)
+    if chunk_elements is None:
+        # small blocks stay in cache; with many threads larger ones amortise the GIL hand-offs
+        chunk_elements = 1 << 15 if workers <= 2 else 1 << 18
     ba = min(na, 4096)
     bs = max(1, int(chunk_elements) // ba)
     a_data = [(-2.0 * px[s], -2.0 * py[s], r2[s], r[s], amp[s], quad.phase_rad[s])
@@ -441,8 +450,6 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
         out[s] = acc
 
     starts = range(0, ns, bs)
-    if workers is None:
-        workers = min(os.cpu_count() or 1, 32)
     if workers <= 1 or len(starts) == 1:
         for s0 in starts:
             work(s0)
@@ -460,7 +467,8 @@ def _setup(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, distance_m
         if not float(value) > 0:
             raise LensError(f"{name} must be positive, got {value}", keyword=name)
     kind, payload = _parse_doe(doe_phase)
-    gx, gy = lens_phase_gradient_bound(focal_mm, aperture_half_mm, wavelength_um, distance_mm, x_range, y_range)
+    gx, gy = lens_phase_gradient_bound(focal_mm, aperture_half_mm, wavelength_um, distance_mm,
+                                       x_range, y_range)
     if kind == "callable":
         if doe_gradient_rad_per_mm is None:
             dgx, dgy = _doe_gradient_estimate(payload, float(aperture_half_mm), shape)
@@ -473,7 +481,7 @@ def _setup(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, distance_m
 def rs_thin_lens_field(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, distance_mm, x_mm, y_mm,
                        doe_phase=None, *, doe_gradient_rad_per_mm=None, max_cell_phase_rad=_TWO_PI,
                        quad_rtol=1e-9, aperture_cells=None, subdivide=1, workers=None,
-                       chunk_elements=1 << 15):
+                       chunk_elements=None):
     """Complex Rayleigh-Sommerfeld field of the thin lens + DOE at arbitrary sensor points.
 
     Args:
@@ -488,7 +496,9 @@ def rs_thin_lens_field(focal_mm, aperture_shape, aperture_half_mm, wavelength_um
             rad/mm; estimated by finite differences when None.
         max_cell_phase_rad, quad_rtol, aperture_cells, subdivide: aperture quadrature controls,
             see :func:`aperture_quadrature`.
-        workers: threads (default: all CPUs). chunk_elements: sensor x aperture pairs per block.
+        workers: threads (default: all CPUs, at most 32). chunk_elements: sensor x aperture pairs
+            per block (default 2**15 for <= 2 threads, else 2**18: ~7 float64 temporaries of that
+            size per thread, i.e. <= 15 MB each).
 
     Returns:
         Complex array of the broadcast shape of ``x_mm, y_mm``: the field in sqrt(1/mm^2), so that
@@ -511,10 +521,11 @@ def rs_thin_lens_field(focal_mm, aperture_shape, aperture_half_mm, wavelength_um
 
 
 def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, distance_mm,
-                     pixel_centers_x_mm, pixel_centers_y_mm, pixel_mm, doe_phase=None, gauss_nodes_sensor=3, *,
+                     pixel_centers_x_mm, pixel_centers_y_mm, pixel_mm, doe_phase=None,
+                     gauss_nodes_sensor=3, *,
                      tolerance=None, max_refinements=3, doe_gradient_rad_per_mm=None,
                      max_cell_phase_rad=_TWO_PI, quad_rtol=1e-9, aperture_cells=None, workers=None,
-                     chunk_elements=1 << 15):
+                     chunk_elements=None):
     """Pixel-integrated Rayleigh-Sommerfeld PSF of the thin lens + DOE (ground truth).
 
     Args:

@@ -552,6 +552,8 @@ def propagate_grid(backend, field, pitch_mm, origin_mm, wavelength_um, distance_
     shift = np.zeros((batch, 2)) if out_origin_mm is None else _per_batch(out_origin_mm, batch, "out_origin_mm", (2,)) - origin
     st = _setup(probe, field, pitch_mm, origin_mm, wavelength_um, distance_mm, doe_phase=doe_phase,
                 doe_scale=doe_scale, carrier_cpmm=carrier_cpmm, pad_to=pad_to, dtype=dtype, shift_mm=shift)
+    pitch = st.params[:, _P_LPX] / st.npx
+    _check_window(st, st.nx * pitch, st.ny * pitch, "propagate_grid")
     padded = _pad_fft(st, st.field, st.has_phase)
     h = _transfer(st, 1.0)
     _launch(st, "spectrum_multiply_kernel", (st.npx, st.npy, st.batch), h, st.params_dev, st.npx, st.npy,

@@ -249,198 +249,266 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
 
 
 # ---------------------------------------------------------------------------------------------- ray-wave
+class RayWave:
+    """The ray-wave model for one batch of point sources, in stages.
+
+    ``__init__`` makes every discrete decision (pilot trace, chief rays, sampling plan, windows,
+    sensor patches); :meth:`field` runs the differentiable part on the Warp device (trace to the DOE
+    plane, ray-tube areas, splat, reference sphere and carrier) and returns the complex field;
+    :meth:`doe_phase` samples phi0 on the windows; :meth:`intensity` propagates to the sensor and
+    integrates over pixels (OpenCL); :meth:`run` chains them and normalises by the entering power.
+    Lengths in mm, wavelengths in um.
+    """
+
+    def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
+                 amplitude="energy", object_distance_mm=None, rays_per_sample=1.5, center_mm=None,
+                 use_reference=True, gauss_nodes=3, nyquist_safety=2.0, requires_grad=False):
+
+        plane = _wave_plane_index(lens)
+        uniq = sorted(set(wls))
+        tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad)
+        wl_idx = [uniq.index(w) for w in wls]
+        nsrc = len(fields)
+        src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+        src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
+        n_after = np.array([lens.indices(w)[plane] for w in wls])
+        n_img = np.array([lens.indices(w)[-1] for w in wls])
+        z_plane = lens.vertex_z[plane]
+        z_sensor = lens.sensor_z
+        lam_mm = np.array(wls) * 1e-3
+
+        # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
+        pu, pv, _ = pupil_grid(31, src["shape"])
+        pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
+        pilot = tr._run(src, pu, pv, 1.0, keep=True)
+        at_plane = pilot.history[plane]
+        pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
+        pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
+        dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
+        ok = pilot.valid.numpy().reshape(nsrc, -1).astype(bool)
+        for k in range(nsrc):
+            if ok[k].sum() < 3:
+                raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
+                                file=lens.source, field=_fmt_field(fields[k]))
+        # chief ray: pupil centre if valid, else the centroid of valid rays
+        chief_plane = np.zeros((nsrc, 3))
+        chief_sensor = np.zeros((nsrc, 3))
+        chief_dir = np.zeros((nsrc, 3))
+        for k in range(nsrc):
+            if ok[k, 0]:
+                chief_plane[k], chief_sensor[k], chief_dir[k] = pos_p[k, 0], pos_s[k, 0], dir_s[k, 0]
+            else:
+                chief_plane[k] = pos_p[k, ok[k]].mean(0)
+                chief_sensor[k] = pos_s[k, ok[k]].mean(0)
+                d = dir_s[k, ok[k]].mean(0)
+                chief_dir[k] = d / np.linalg.norm(d)
+        carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
+        # local frequencies of the field relative to the carrier, and the footprint
+        fmax = np.zeros(nsrc)
+        lo = np.zeros((nsrc, 2))
+        hi = np.zeros((nsrc, 2))
+        xy_plane = []
+        for k in range(nsrc):
+            f = n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] - carrier[k]
+            fmax[k] = np.max(np.abs(f))
+            xy = pos_p[k, ok[k], :2]
+            xy_plane.append(xy)
+            lo[k], hi[k] = xy.min(0), xy.max(0)
+        f_doe, feature = _doe_max_frequency(lens, plane, xy_plane, wls)
+        width = float(np.max(hi - lo))
+        pilot_cell = width / 31.0
+        if center_mm is None:
+            centers = np.stack([_snap_center(chief_sensor[:, 0], pixel, lens.sensor.resolution[0]),
+                                _snap_center(chief_sensor[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
+        else:
+            c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
+            centers = np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, lens.sensor.resolution[0]),
+                                                _snap_center(c[:, 1], pixel, lens.sensor.resolution[1])], 1),
+                                      (nsrc, 2)).copy()
+        out_width = size * pixel
+        # ---- plan
+        nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
+        need_pitch = nyq_pitch / nyquist_safety
+        reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
+                   f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {nyq_pitch * 1e3:.4g} um, / safety "
+                   f"{nyquist_safety} for edge diffraction -> {need_pitch * 1e3:.4g} um"]
+        if feature is not None:
+            if feature / 2.0 < need_pitch:
+                reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
+            need_pitch = min(need_pitch, feature / 2.0)
+        window = width + 2.0 * pilot_cell
+        if isinstance(plan, Plan):
+            pl = plan
+            check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
+        elif plan == "auto":
+            pitch = need_pitch
+            if feature is not None:
+                # align the grid with DOE pixels: an integer number of samples per feature
+                pitch = feature / math.ceil(feature / pitch)
+            n_grid = int(math.ceil(window / pitch)) + 3
+            # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
+            # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
+            n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
+            ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
+            reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
+                        f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
+                        f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
+            pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
+        elif plan == "paper":
+            s = lens.surfaces[plane]
+            half = s.semi_diameter or float(np.max(np.abs(np.concatenate([lo, hi]))))
+            pitch = (feature or 2 * need_pitch) / 2.0
+            n_grid = int(round(2 * half / pitch))
+            pl = Plan(pitch, n_grid, 2 * n_grid, 1000, "paper", False,
+                      ["paper: whole DOE aperture at half the DOE feature size, padded 2x, 1000x1000 pupil rays "
+                       "(10^6)"])
+            lo[:] = -half
+            hi[:] = half
+        else:
+            raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
+
+        self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
+        self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
+        self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
+        self.nsrc, self.n_after, self.lam_mm = nsrc, n_after, lam_mm
+        self.z_plane, self.z_sensor = z_plane, z_sensor
+        self.chief_plane, self.chief_sensor, self.carrier, self.centers = chief_plane, chief_sensor, carrier, centers
+        self.lo, self.hi = lo, hi
+        n = pl.n_grid
+        mid = 0.5 * (lo + hi)
+        self.origin = lo.copy() if pl.kind == "paper" else mid - 0.5 * (n - 1) * pl.pitch_mm
+        # chief ray OPL on the plane (a per-source constant phase: not differentiated)
+        pilot_plane = tr._run(src, np.zeros(1), np.zeros(1), 1.0, upto=plane + 1)
+        self.opl_chief = pilot_plane.opl.numpy().astype(np.float64)
+        self.chief_ok = pilot_plane.valid.numpy().astype(bool)
+        self.chief_plane = np.where(self.chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
+        self.target = np.concatenate([chief_sensor[:, :2], np.full((nsrc, 1), z_sensor)], axis=1)
+        self.pupil = pupil_grid(pl.ray_grid, src["shape"], clip=False)
+
+    def field(self):
+        """Trace to the DOE plane, splat, apply the reference sphere and carrier.
+
+        Returns ``(field, rays)``: a Warp ``vec2d`` array (n_sources * n * n) of the complex field on
+        the windows (carrier removed), and the traced rays. Record inside a ``wp.Tape`` (with
+        ``requires_grad=True``) to differentiate w.r.t. ``self.tracer.params``.
+        """
+        import warp as wp
+        from .kernels.splat import make_splat_kernels
+        tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
+        u, v, cell = self.pupil
+        rays = tr._run(src, u, v, cell, upto=plane + 1)
+        npup = len(u)
+        self.weights = rays.weight.numpy().reshape(nsrc, npup)
+        self.entering = self.weights.sum(1)
+        valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
+        self.valid_fraction = (self.weights * valid).sum(1) / self.entering
+        chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
+        if not self.chief_ok.all():
+            # vignetted chief ray: the valid ray nearest the footprint centre is the reference
+            all_opl = rays.opl.numpy().reshape(nsrc, npup)
+            all_pos = rays.pos.numpy().reshape(nsrc, npup, 3)
+            for k in np.where(~self.chief_ok)[0]:
+                d2 = np.sum((all_pos[k, :, :2] - chief_plane[k, :2]) ** 2, axis=1) + np.where(valid[k], 0, np.inf)
+                j = int(np.argmin(d2))
+                chief_plane[k] = all_pos[k, j]
+                opl_p[k] = all_opl[k, j]
+        n = pl.n_grid
+        K = make_splat_kernels(tr.scalar)
+        dev = tr.device
+        g = tr.requires_grad
+        total = nsrc * n * n
+        energy = int(self.amplitude == "energy")
+        area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
+        half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
+        if energy:
+            wp.launch(K.tube_area_kernel, dim=nsrc * npup, inputs=[rays.pos, rays.valid, pl.ray_grid],
+                      outputs=[area, half], device=dev)
+        s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        self.dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
+        k_wave = wp.array(2.0 * np.pi / self.lam_mm, dtype=wp.float64, device=dev)
+        geo = [wp.array(self.origin, dtype=wp.vec2d, device=dev),
+               wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
+               wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(self.target, dtype=wp.vec3d, device=dev),
+               wp.array(self.n_after, dtype=wp.float64, device=dev)]
+        wp.launch(K.splat_kernel, dim=nsrc * npup,
+                  inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
+                         [wp.array(opl_p, dtype=wp.float64, device=dev), k_wave, int(self.use_reference), energy,
+                          n, npup],
+                  outputs=[s_re, s_im, self.dropped], device=dev)
+        field = wp.zeros(total, dtype=wp.vec2d, device=dev, requires_grad=g)
+        wp.launch(K.finalize_kernel, dim=total,
+                  inputs=[s_re, s_im] + geo + [k_wave, wp.array(self.carrier, dtype=wp.vec2d, device=dev),
+                                              int(self.use_reference), energy, n],
+                  outputs=[field], device=dev)
+        return field, rays
+
+    def field_array(self):
+        """:meth:`field` as a complex128 array (n_sources, n, n), paper convention rescaled: numpy on the
+        CPU, a zero-copy CuPy view of the Warp array on CUDA (the field never visits the host)."""
+        field, rays = self.field()
+        n = self.plan.n_grid
+        if self.tracer.device.startswith("cuda"):
+            import cupy
+            u_field = cupy.asarray(field).view(cupy.complex128).reshape(self.nsrc, n, n)
+        else:
+            u_field = field.numpy().view(np.complex128).reshape(self.nsrc, n, n)
+        if self.amplitude != "energy":
+            # paper convention: unit ray amplitude, one global scale so the field carries the traced power
+            valid = rays.valid.numpy().reshape(self.nsrc, -1).astype(bool)
+            q = (self.weights * valid).sum(1)
+            xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
+            pw = xp.asnumpy(xp.sum(xp.abs(u_field) ** 2, axis=(1, 2))) if xp is not np else \
+                np.sum(np.abs(u_field) ** 2, axis=(1, 2))
+            pw = pw * self.plan.pitch_mm ** 2
+            u_field = u_field * xp.asarray(np.sqrt(np.where(pw > 0, q / np.maximum(pw, 1e-300), 0.0)))[:, None, None]
+        return u_field
+
+    def doe_phase(self):
+        """phi0 (rad) on each window, (n_sources, n, n), and the per-source wavelength scale; or (None, None)."""
+        phi0 = _doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
+        if phi0 is None:
+            return None, None
+        from . import doe
+        s = self.lens.surfaces[self.plane]
+        scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in self.wls])
+        return phi0, scale
+
+    def pixel_centres(self):
+        """Sensor pixel centres (x (S, size), y (S, size)) of each patch, mm."""
+        return _pixel_centres(self.centers, self.size, self.pixel)
+
+    def propagation_args(self):
+        """Positional arguments of :func:`rwwarp.propagate.sensor_intensity` after ``(backend, field)``."""
+        px, py = self.pixel_centres()
+        return (self.plan.pitch_mm, self.origin, np.array(self.wls) / self.n_after, self.z_sensor - self.z_plane,
+                px, py, self.pixel)
+
+    def intensity(self, u_field, phi0=None, scale=None):
+        """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n))."""
+        from . import propagate, backend as bk
+        be = bk.get_backend(self.device)
+        power = propagate.sensor_intensity(be, u_field, *self.propagation_args(), doe_phase=phi0, doe_scale=scale,
+                                           carrier_cpmm=self.carrier, pad_to=self.plan.n_pad,
+                                           gauss_nodes=self.gauss_nodes)
+        return be.to_host(power)
+
+    def run(self) -> dict:
+        """The whole model: PSFs as fractions of the entering power per pixel."""
+        u_field = self.field_array()
+        _LAST.update(field=u_field, origin=self.origin, pitch=self.plan.pitch_mm)
+        phi0, scale = self.doe_phase()
+        data = self.intensity(u_field, phi0, scale) / self.entering[:, None, None]
+        if not np.all(np.isfinite(data)):
+            raise FloatingPointError("non-finite PSF values (please report this lens and field)")
+        return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
+                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+
+
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
              rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety=2.0):
-    import warp as wp
-    from .kernels.splat import make_splat_kernels
-    from . import propagate, backend as bk
-
-    plane = _wave_plane_index(lens)
-    uniq = sorted(set(wls))
-    tr = Tracer(lens, uniq, device=device, dtype=dtype)
-    wl_idx = [uniq.index(w) for w in wls]
-    nsrc = len(fields)
-    src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
-    src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
-    n_after = np.array([lens.indices(w)[plane] for w in wls])
-    n_img = np.array([lens.indices(w)[-1] for w in wls])
-    z_plane = lens.vertex_z[plane]
-    z_sensor = lens.sensor_z
-    lam_mm = np.array(wls) * 1e-3
-
-    # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
-    pu, pv, _ = pupil_grid(31, src["shape"])
-    pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
-    pilot = tr._run(src, pu, pv, 1.0, keep=True)
-    at_plane = pilot.history[plane]
-    pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
-    pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
-    dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
-    ok = pilot.valid.numpy().reshape(nsrc, -1).astype(bool)
-    for k in range(nsrc):
-        if ok[k].sum() < 3:
-            raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
-                            file=lens.source, field=_fmt_field(fields[k]))
-    # chief ray: pupil centre if valid, else the centroid of valid rays
-    chief_plane = np.zeros((nsrc, 3))
-    chief_sensor = np.zeros((nsrc, 3))
-    chief_dir = np.zeros((nsrc, 3))
-    for k in range(nsrc):
-        if ok[k, 0]:
-            chief_plane[k], chief_sensor[k], chief_dir[k] = pos_p[k, 0], pos_s[k, 0], dir_s[k, 0]
-        else:
-            chief_plane[k] = pos_p[k, ok[k]].mean(0)
-            chief_sensor[k] = pos_s[k, ok[k]].mean(0)
-            d = dir_s[k, ok[k]].mean(0)
-            chief_dir[k] = d / np.linalg.norm(d)
-    carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
-    # local frequencies of the field relative to the carrier, and the footprint
-    fmax = np.zeros(nsrc)
-    lo = np.zeros((nsrc, 2))
-    hi = np.zeros((nsrc, 2))
-    xy_plane = []
-    for k in range(nsrc):
-        f = n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] - carrier[k]
-        fmax[k] = np.max(np.abs(f))
-        xy = pos_p[k, ok[k], :2]
-        xy_plane.append(xy)
-        lo[k], hi[k] = xy.min(0), xy.max(0)
-    f_doe, feature = _doe_max_frequency(lens, plane, xy_plane, wls)
-    width = float(np.max(hi - lo))
-    pilot_cell = width / 31.0
-    if center_mm is None:
-        centers = np.stack([_snap_center(chief_sensor[:, 0], pixel, lens.sensor.resolution[0]),
-                            _snap_center(chief_sensor[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
-    else:
-        c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
-        centers = np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, lens.sensor.resolution[0]),
-                                            _snap_center(c[:, 1], pixel, lens.sensor.resolution[1])], 1),
-                                  (nsrc, 2)).copy()
-    out_width = size * pixel
-    # ---- plan
-    nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
-    need_pitch = nyq_pitch / nyquist_safety
-    reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
-               f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {nyq_pitch * 1e3:.4g} um, / safety "
-               f"{nyquist_safety} for edge diffraction -> {need_pitch * 1e3:.4g} um"]
-    if feature is not None:
-        if feature / 2.0 < need_pitch:
-            reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
-        need_pitch = min(need_pitch, feature / 2.0)
-    window = width + 2.0 * pilot_cell
-    if isinstance(plan, Plan):
-        pl = plan
-        check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
-    elif plan == "auto":
-        pitch = need_pitch
-        if feature is not None:
-            # align the grid with DOE pixels: an integer number of samples per feature
-            pitch = feature / math.ceil(feature / pitch)
-        n_grid = int(math.ceil(window / pitch)) + 3
-        # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
-        # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
-        n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
-        ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
-        reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
-                    f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
-                    f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
-        pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
-    elif plan == "paper":
-        s = lens.surfaces[plane]
-        half = s.semi_diameter or float(np.max(np.abs(np.concatenate([lo, hi]))))
-        pitch = (feature or 2 * need_pitch) / 2.0
-        n_grid = int(round(2 * half / pitch))
-        pl = Plan(pitch, n_grid, 2 * n_grid, 1000, "paper", False,
-                  ["paper: whole DOE aperture at half the DOE feature size, padded 2x, 1000x1000 pupil rays "
-                   "(10^6)"])
-        lo[:] = -half
-        hi[:] = half
-    else:
-        raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
-
-    # ---- full trace to the plane (one launch per surface for the whole batch); the pupil grid is kept
-    # whole (samples outside the pupil start invalid) so ray-tube areas come from grid neighbours
-    u, v, cell = pupil_grid(pl.ray_grid, src["shape"], clip=False)
-    rays = tr._run(src, u, v, cell, upto=plane + 1)
-    npup = len(u)
-    weights = rays.weight.numpy().reshape(nsrc, npup)
-    entering = weights.sum(1)
-    valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
-    valid_fraction = (weights * valid).sum(1) / entering
-    # chief ray OPL on the plane (same generation conventions as the full trace)
-    pilot_plane = tr._run(src, np.zeros(1), np.zeros(1), 1.0, upto=plane + 1)
-    opl_p = pilot_plane.opl.numpy().astype(np.float64)
-    chief_ok = pilot_plane.valid.numpy().astype(bool)
-    chief_plane = np.where(chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
-    if not chief_ok.all():
-        # vignetted chief ray: take the valid ray nearest the footprint centre as the reference
-        all_opl = rays.opl.numpy().reshape(nsrc, npup)
-        all_pos = rays.pos.numpy().reshape(nsrc, npup, 3)
-        for k in np.where(~chief_ok)[0]:
-            d2 = np.sum((all_pos[k, :, :2] - chief_plane[k, :2]) ** 2, axis=1) + np.where(valid[k], 0, np.inf)
-            j = int(np.argmin(d2))
-            chief_plane[k] = all_pos[k, j]
-            opl_p[k] = all_opl[k, j]
-    # reference sphere centre: where the chief ray lands on the sensor
-    target = np.concatenate([chief_sensor[:, :2], np.full((nsrc, 1), z_sensor)], axis=1)
-    # window origins centred on the footprint
-    n = pl.n_grid
-    mid = 0.5 * (lo + hi)
-    origin = mid - 0.5 * (n - 1) * pl.pitch_mm
-    if pl.kind == "paper":
-        origin = lo
-    # ---- splat
-    K = make_splat_kernels(tr.scalar)
-    dev = tr.device
-    total = nsrc * n * n
-    energy = int(amplitude == "energy")
-    area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev)
-    half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev)
-    if energy:
-        wp.launch(K.tube_area_kernel, dim=nsrc * npup, inputs=[rays.pos, rays.valid, pl.ray_grid],
-                  outputs=[area, half], device=dev)
-    s_re = wp.zeros(total, dtype=wp.float64, device=dev)
-    s_im = wp.zeros(total, dtype=wp.float64, device=dev)
-    dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
-    k_wave = wp.array(2.0 * np.pi / lam_mm, dtype=wp.float64, device=dev)
-    geo = [wp.array(origin, dtype=wp.vec2d, device=dev),
-           wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
-           wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(target, dtype=wp.vec3d, device=dev),
-           wp.array(n_after, dtype=wp.float64, device=dev)]
-    wp.launch(K.splat_kernel, dim=nsrc * npup,
-              inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
-                     [wp.array(opl_p, dtype=wp.float64, device=dev), k_wave, int(use_reference), energy, n, npup],
-              outputs=[s_re, s_im, dropped], device=dev)
-    field = wp.empty(total, dtype=wp.vec2d, device=dev)
-    wp.launch(K.finalize_kernel, dim=total,
-              inputs=[s_re, s_im] + geo + [k_wave, wp.array(carrier, dtype=wp.vec2d, device=dev),
-                                          int(use_reference), energy, n],
-              outputs=[field], device=dev)
-    u_field = field.numpy().view(np.complex128).reshape(nsrc, n, n)
-    if not energy:
-        # paper convention: unit ray amplitude, one global scale so the field carries the traced power
-        q = (weights * valid).sum(1)
-        pw = np.sum(np.abs(u_field) ** 2, axis=(1, 2)) * pl.pitch_mm ** 2
-        u_field = u_field * np.sqrt(np.where(pw > 0, q / np.maximum(pw, 1e-300), 0.0))[:, None, None]
-    _LAST.update(field=u_field, origin=origin, pitch=pl.pitch_mm)
-    # ---- DOE phase and propagation to the sensor
-    phi0 = _doe_phase_grid(lens, plane, origin, pl.pitch_mm, n)
-    scale = None
-    if phi0 is not None:
-        from . import doe
-        s = lens.surfaces[plane]
-        scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in wls])
-    px, py = _pixel_centres(centers, size, pixel)
-    be = bk.get_backend(device)
-    power = propagate.sensor_intensity(
-        be, u_field, pl.pitch_mm, origin, np.array(wls) / n_after, z_sensor - z_plane, px, py, pixel,
-        doe_phase=phi0, doe_scale=scale, carrier_cpmm=carrier, pad_to=pl.n_pad, gauss_nodes=gauss_nodes)
-    power = be.to_host(power)
-    data = power / entering[:, None, None]
-    if not np.all(np.isfinite(data)):
-        raise FloatingPointError("non-finite PSF values (please report this lens and field)")
-    return {"data": data, "centers": centers, "plan": pl.to_dict(), "valid_fraction": valid_fraction,
-            "dropped_rays": dropped.numpy()}
+    return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
+                   rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety).run()
 
 
 # ---------------------------------------------------------------------------------------------- comparison models

@@ -115,7 +115,13 @@ RW_FUNC phase_t rw_frac_nearest(const phase_t t)
 /* exp(2 pi i t), t in cycles; the whole cycles are removed first so that large t stays exact */
 RW_FUNC cplx_t c_cis_cycles(const phase_t t)
 {
+#ifdef RW_CUDA
+    phase_t s, c;
+    sincospi((phase_t)2 * rw_frac_nearest(t), &s, &c);
+    return c_make((real_t)c, (real_t)s);
+#else
     return c_expi(RW_TWO_PI * rw_frac_nearest(t));
+#endif
 }
 
 #endif /* RW_COMPLEX_H */

@@ -31,27 +31,12 @@
 #define CLK_GLOBAL_MEM_FENCE 2
 #define barrier(flags) __syncthreads()
 
-__device__ __forceinline__ unsigned int rw_dim3_get(const uint3 v, const int d)
-{
-    return d == 0 ? v.x : (d == 1 ? v.y : v.z);
-}
-
-__device__ __forceinline__ unsigned int rw_dim3_get(const dim3 v, const int d)
-{
-    return d == 0 ? v.x : (d == 1 ? v.y : v.z);
-}
-
-__device__ __forceinline__ size_t get_local_id(const int d) { return rw_dim3_get(threadIdx, d); }
-__device__ __forceinline__ size_t get_group_id(const int d) { return rw_dim3_get(blockIdx, d); }
-__device__ __forceinline__ size_t get_local_size(const int d) { return rw_dim3_get(blockDim, d); }
-__device__ __forceinline__ size_t get_num_groups(const int d) { return rw_dim3_get(gridDim, d); }
-__device__ __forceinline__ size_t get_global_id(const int d)
-{
-    return (size_t)rw_dim3_get(blockIdx, d) * rw_dim3_get(blockDim, d) + rw_dim3_get(threadIdx, d);
-}
-__device__ __forceinline__ size_t get_global_size(const int d)
-{
-    return (size_t)rw_dim3_get(gridDim, d) * rw_dim3_get(blockDim, d);
-}
+#define RW_DIM3_AXIS(v, d) ((d) == 0 ? (v).x : ((d) == 1 ? (v).y : (v).z))
+#define get_local_id(d) ((size_t)RW_DIM3_AXIS(threadIdx, d))
+#define get_group_id(d) ((size_t)RW_DIM3_AXIS(blockIdx, d))
+#define get_local_size(d) ((size_t)RW_DIM3_AXIS(blockDim, d))
+#define get_num_groups(d) ((size_t)RW_DIM3_AXIS(gridDim, d))
+#define get_global_id(d) (get_group_id(d) * get_local_size(d) + get_local_id(d))
+#define get_global_size(d) (get_num_groups(d) * get_local_size(d))
 
 #endif /* RW_CUDA_COMPAT_H */

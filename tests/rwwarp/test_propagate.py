@@ -97,6 +97,14 @@ def pixel_integral_gaussian_intensity(cx, cy, pitch, w, peak):
     return peak * np.outer(axis(cy), axis(cx))
 
 
+@pytest.fixture(params=["opencl", pytest.param("cuda", marks=pytest.mark.gpu)])
+def backend(request):
+    """Both builds of the same kernels: OpenCL (PoCL by default) and CUDA (skipped without CuPy/GPU)."""
+    if request.param == "cuda":
+        return _cuda_backend()
+    return request.getfixturevalue("cl_backend")
+
+
 def rel_l2(a, b):
     return float(np.linalg.norm(np.ravel(a - b)) / np.linalg.norm(np.ravel(b)))
 
@@ -109,19 +117,45 @@ def _rand_complex(rng, shape):
 # FFT
 # ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("shape", [(3, 24, 40), (1, 60, 60)])
-def test_fft2_matches_numpy(cl_backend, dtype, shape):
+def test_fft2_matches_numpy(backend, dtype, shape):
     rng = np.random.default_rng(1)
     x = _rand_complex(rng, shape).astype(dtype)
     tol = 1e-14 if dtype == np.complex128 else 2e-6
-    dev = cl_backend.to_device(x)
-    cl_backend.fft2(dev, inverse=False)
+    dev = backend.to_device(x)
+    backend.fft2(dev, inverse=False)
     ref = np.fft.fft2(x.astype(np.complex128), axes=(-2, -1))
-    assert rel_l2(cl_backend.to_host(dev), ref) < tol
-    cl_backend.fft2(dev, inverse=True)
-    assert rel_l2(cl_backend.to_host(dev), x) < tol
-    dev = cl_backend.to_device(x)
-    cl_backend.fft2(dev, inverse=True)
-    assert rel_l2(cl_backend.to_host(dev), np.fft.ifft2(x.astype(np.complex128), axes=(-2, -1))) < tol
+    assert rel_l2(backend.to_host(dev), ref) < tol
+    backend.fft2(dev, inverse=True)
+    assert rel_l2(backend.to_host(dev), x) < tol
+    dev = backend.to_device(x)
+    backend.fft2(dev, inverse=True)
+    assert rel_l2(backend.to_host(dev), np.fft.ifft2(x.astype(np.complex128), axes=(-2, -1))) < tol
+
+
+def test_backend_arrays_and_selection(backend):
+    from rwwarp.backend import get_backend
+
+    assert get_backend(backend.device) is backend  # memoised
+    host = np.arange(12, dtype=np.complex64).reshape(3, 4) * (1 - 2j)
+    assert np.array_equal(backend.to_host(backend.to_device(host)), host)
+    z = backend.zeros((5, 7), np.float64)
+    assert z.shape == (5, 7) and not np.any(backend.to_host(z))
+    assert backend.empty((2, 3), np.complex128).dtype == np.complex128
+    with pytest.raises(ValueError):
+        get_backend("tpu:0")
+
+
+def test_cuda_without_cupy_is_a_clear_error():
+    try:
+        import cupy  # noqa: F401
+
+        pytest.skip("CuPy is installed")
+    except ImportError:
+        pass
+    from rwwarp.backend import get_backend
+
+    with pytest.raises(RuntimeError, match="CuPy"):
+        get_backend("cuda:0")
 
 
 def test_next_fft_size():
@@ -149,13 +183,13 @@ def _random_case(seed=0):
 
 
 @pytest.mark.parametrize("z", [0.8, 3.0])
-def test_propagate_matches_numpy_blasm(cl_backend, z):
+def test_propagate_matches_numpy_blasm(backend, z):
     """Random field, DOE phase, carrier, per-batch wavelengths and off-grid, off-axis outputs; the
     band limit is active (z = 3 mm cuts most of the spectrum)."""
     c = _random_case()
-    out = prop.propagate(cl_backend, c["field"], PITCH, c["origin"], c["lam"], z, c["ox"], c["oy"],
+    out = prop.propagate(backend, c["field"], PITCH, c["origin"], c["lam"], z, c["ox"], c["oy"],
                          doe_phase=c["phase"], doe_scale=c["scale"], carrier_cpmm=c["carrier"], pad_to=NP)
-    out = cl_backend.to_host(out)
+    out = backend.to_host(out)
     assert out.shape == (B, 13, 17) and out.dtype == np.complex128
     for b in range(B):
         ref = ref_blasm(c["field"][b], PITCH, c["origin"][b], c["lam"][b], z, c["ox"][b], c["oy"][b], NP,
@@ -163,12 +197,12 @@ def test_propagate_matches_numpy_blasm(cl_backend, z):
         assert np.abs(out[b] - ref).max() <= 1e-10 * np.abs(ref).max()
 
 
-def test_propagate_grid_matches_numpy_blasm(cl_backend):
+def test_propagate_grid_matches_numpy_blasm(backend):
     """Fixed-grid path (inverse FFT + crop) with a shifted output window and a carrier."""
     c = _random_case(1)
     z = 1.5
     out_origin = c["origin"] + np.array([[0.013, -0.021], [-0.05, 0.002]])
-    out = cl_backend.to_host(prop.propagate_grid(cl_backend, c["field"], PITCH, c["origin"], c["lam"], z,
+    out = backend.to_host(prop.propagate_grid(backend, c["field"], PITCH, c["origin"], c["lam"], z,
                                                  out_origin_mm=out_origin, doe_phase=c["phase"],
                                                  doe_scale=c["scale"], carrier_cpmm=c["carrier"], pad_to=NP))
     assert out.shape == (B, N, N)
@@ -195,50 +229,50 @@ def _gaussian_input(n=G_N, pitch=G_PITCH, w0=G_W0):
     return field[None].astype(np.complex128), origin, x
 
 
-def test_round_trip(cl_backend):
+def test_round_trip(backend):
     """propagate (DFT output on the input grid) by z, then propagate_grid by -z: identity for a
     field whose spectrum lies inside the band."""
     rng = np.random.default_rng(3)
     field, origin, x = _gaussian_input(w0=0.04)
     field = field * np.exp(1j * rng.uniform(-0.2, 0.2) * (x[None, :] / 0.1) ** 2) * (1 + 0.3j * x[:, None] / 0.1)
     z = 5.0
-    fwd = prop.propagate(cl_backend, field, G_PITCH, origin, G_LAM, z, x, x)
-    back = cl_backend.to_host(prop.propagate_grid(cl_backend, fwd, G_PITCH, origin, G_LAM, -z))
+    fwd = prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, x, x)
+    back = backend.to_host(prop.propagate_grid(backend, fwd, G_PITCH, origin, G_LAM, -z))
     assert rel_l2(back, field) < 1e-11
-    fwd2 = prop.propagate_grid(cl_backend, field, G_PITCH, origin, G_LAM, -z)
-    back2 = cl_backend.to_host(prop.propagate(cl_backend, fwd2, G_PITCH, origin, G_LAM, z, x, x))
+    fwd2 = prop.propagate_grid(backend, field, G_PITCH, origin, G_LAM, -z)
+    back2 = backend.to_host(prop.propagate(backend, fwd2, G_PITCH, origin, G_LAM, z, x, x))
     assert rel_l2(back2, field) < 1e-11
 
 
-def test_energy_conservation(cl_backend):
+def test_energy_conservation(backend):
     """Parseval: the power sum |U|^2 dA is conserved on the grid, on a different output pitch,
     and as the sum of sensor-pixel powers."""
     field, origin, x = _gaussian_input()
     p_in = np.sum(np.abs(field) ** 2) * G_PITCH**2
     z = 20.0
-    grid = cl_backend.to_host(prop.propagate_grid(cl_backend, field, G_PITCH, origin, G_LAM, z))
+    grid = backend.to_host(prop.propagate_grid(backend, field, G_PITCH, origin, G_LAM, z))
     assert abs(np.sum(np.abs(grid) ** 2) * G_PITCH**2 / p_in - 1) < 1e-12
     xo = np.arange(-0.3, 0.3, 0.0071)
-    pts = cl_backend.to_host(prop.propagate(cl_backend, field, G_PITCH, origin, G_LAM, z, xo, xo))
+    pts = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, xo))
     assert abs(np.sum(np.abs(pts) ** 2) * 0.0071**2 / p_in - 1) < 1e-10
     centers = np.arange(-0.3, 0.3, 0.02) + 0.01
-    inten = cl_backend.to_host(prop.sensor_intensity(cl_backend, field, G_PITCH, origin, G_LAM, z, centers,
+    inten = backend.to_host(prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, z, centers,
                                                      centers, 0.02))
     assert abs(inten.sum() / p_in - 1) < 1e-8
 
 
-def test_gaussian_beam_paraxial(cl_backend):
+def test_gaussian_beam_paraxial(backend):
     """Against the analytic paraxial Gaussian beam at z = 20 mm (z/zR = 1.3), off-grid outputs."""
     field, origin, _ = _gaussian_input()
     z = 20.0
     xo = np.linspace(-0.15, 0.2, 41)
     yo = np.linspace(-0.18, 0.12, 37)
-    out = cl_backend.to_host(prop.propagate(cl_backend, field, G_PITCH, origin, G_LAM, z, xo, yo))[0]
+    out = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, yo))[0]
     ref = gaussian_paraxial(xo, yo, G_W0, G_LAM, z)
     assert rel_l2(out, ref) < 1e-4
 
 
-def test_tilted_gaussian_shifted_window(cl_backend):
+def test_tilted_gaussian_shifted_window(backend):
     """Off-axis beam (8 deg in x, -5 deg in y, far above the grid's Nyquist frequency) carried by
     carrier_cpmm; the output window follows the beam 2.8 mm off axis (shifted ASM). Checked against
     the exact angular-spectrum integral and the analytic beam walk-off."""
@@ -250,7 +284,7 @@ def test_tilted_gaussian_shifted_window(cl_backend):
     walk = z * lam * carrier / dirz  # where the beam axis crosses the plane z
     xo = walk[0] + np.linspace(-0.2, 0.2, 33)
     yo = walk[1] + np.linspace(-0.2, 0.2, 29)
-    out = cl_backend.to_host(prop.propagate(cl_backend, field, G_PITCH, origin, G_LAM, z, xo, yo,
+    out = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, yo,
                                             carrier_cpmm=carrier))[0]
     ref = gaussian_angular_spectrum(xo, yo, G_W0, G_LAM, z, 0.0, 0.0, carrier)
     assert rel_l2(out, ref) < 1e-9
@@ -260,11 +294,11 @@ def test_tilted_gaussian_shifted_window(cl_backend):
     assert abs(cx - walk[0]) < 1e-3 * abs(walk[0]) and abs(cy - walk[1]) < 1e-3 * abs(walk[1])
     # without the shift the same beam would wrap around: the library says so
     with pytest.warns(SamplingWarning):
-        prop.propagate(cl_backend, field, G_PITCH, origin, G_LAM, z, np.linspace(-0.2, walk[0], 9), yo,
+        prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, np.linspace(-0.2, walk[0], 9), yo,
                        carrier_cpmm=carrier)
 
 
-def test_sensor_intensity_box_integration(cl_backend):
+def test_sensor_intensity_box_integration(backend):
     """Pixel powers: against the analytic (erf) integral of the paraxial Gaussian intensity, and
     against direct 16-point Gauss-Legendre integration of |propagate|^2 per pixel."""
     field, origin, _ = _gaussian_input()
@@ -272,7 +306,7 @@ def test_sensor_intensity_box_integration(cl_backend):
     pp = 0.012
     cx = np.arange(-6, 7) * pp + 0.003
     cy = np.arange(-5, 6) * pp - 0.002
-    inten = cl_backend.to_host(prop.sensor_intensity(cl_backend, field, G_PITCH, origin, G_LAM, z, cx, cy, pp,
+    inten = backend.to_host(prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, z, cx, cy, pp,
                                                      gauss_nodes=3))[0]
     lam = G_LAM * 1e-3
     zr = np.pi * G_W0**2 / lam
@@ -282,25 +316,25 @@ def test_sensor_intensity_box_integration(cl_backend):
     t, w = np.polynomial.legendre.leggauss(16)
     xs = (cx[:, None] + 0.5 * pp * t[None, :]).ravel()
     ys = (cy[:, None] + 0.5 * pp * t[None, :]).ravel()
-    u = cl_backend.to_host(prop.propagate(cl_backend, field, G_PITCH, origin, G_LAM, z, xs, ys))[0]
+    u = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xs, ys))[0]
     direct = np.einsum("aibj,i,j->ab", (np.abs(u) ** 2).reshape(len(cy), 16, len(cx), 16), w, w) * pp * pp / 4
     assert rel_l2(inten, direct) < 1e-7
 
 
-def test_complex64_close_to_complex128(cl_backend):
+def test_complex64_close_to_complex128(backend):
     c = _random_case(2)
     args = (c["field"], PITCH, c["origin"], c["lam"], 0.8, c["ox"], c["oy"])
     kw = dict(doe_phase=c["phase"], doe_scale=c["scale"], carrier_cpmm=c["carrier"], pad_to=NP)
-    u64 = prop.propagate(cl_backend, *args, dtype=np.complex64, **kw)
+    u64 = prop.propagate(backend, *args, dtype=np.complex64, **kw)
     assert u64.dtype == np.complex64
-    u128 = prop.propagate(cl_backend, *args, dtype=np.complex128, **kw)
-    assert rel_l2(cl_backend.to_host(u64), cl_backend.to_host(u128)) < 1e-4
+    u128 = prop.propagate(backend, *args, dtype=np.complex128, **kw)
+    assert rel_l2(backend.to_host(u64), backend.to_host(u128)) < 1e-4
     field, origin, _ = _gaussian_input()
     cx = np.arange(-8, 8) * 0.01
-    i64 = prop.sensor_intensity(cl_backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=np.complex64)
-    i128 = prop.sensor_intensity(cl_backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01)
+    i64 = prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=np.complex64)
+    i128 = prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01)
     assert i64.dtype == np.float32
-    assert rel_l2(cl_backend.to_host(i64), cl_backend.to_host(i128)) < 1e-4
+    assert rel_l2(backend.to_host(i64), backend.to_host(i128)) < 1e-4
 
 
 # ----------------------------------------------------------------------------------------------
@@ -311,7 +345,7 @@ def _vdot(a, b):
 
 
 @pytest.mark.parametrize("phase_batched", [False, True])
-def test_propagate_adjoint_dot_product(cl_backend, phase_batched):
+def test_propagate_adjoint_dot_product(backend, phase_batched):
     """<A x, y> = <x, A^H y> for the linear map field -> U (DOE phase, carrier, shift included)."""
     c = _random_case(4)
     rng = np.random.default_rng(5)
@@ -320,15 +354,15 @@ def test_propagate_adjoint_dot_product(cl_backend, phase_batched):
     args = (PITCH, c["origin"], c["lam"], 1.1, c["ox"], c["oy"])
     x = c["field"]
     y = _rand_complex(rng, (B, 13, 17))
-    ax = cl_backend.to_host(prop.propagate(cl_backend, x, *args, **kw))
-    ahy, gphi = prop.propagate_adjoint(cl_backend, y, x, *args, **kw)
-    ahy = cl_backend.to_host(ahy)
+    ax = backend.to_host(prop.propagate(backend, x, *args, **kw))
+    ahy, gphi = prop.propagate_adjoint(backend, y, x, *args, **kw)
+    ahy = backend.to_host(ahy)
     lhs, rhs = _vdot(ax, y), _vdot(x, ahy)
     assert abs(lhs - rhs) < 1e-12 * abs(lhs)
-    assert cl_backend.to_host(gphi).shape == np.shape(phase)
+    assert backend.to_host(gphi).shape == np.shape(phase)
 
 
-def test_propagate_grid_adjoint_dot_product(cl_backend):
+def test_propagate_grid_adjoint_dot_product(backend):
     c = _random_case(6)
     rng = np.random.default_rng(7)
     kw = dict(doe_phase=c["phase"], doe_scale=c["scale"], carrier_cpmm=c["carrier"], pad_to=NP,
@@ -336,8 +370,8 @@ def test_propagate_grid_adjoint_dot_product(cl_backend):
     args = (PITCH, c["origin"], c["lam"], 2.0)
     x = c["field"]
     y = _rand_complex(rng, (B, N, N))
-    ax = cl_backend.to_host(prop.propagate_grid(cl_backend, x, *args, **kw))
-    ahy = cl_backend.to_host(prop.propagate_grid_adjoint(cl_backend, y, x, *args, **kw)[0])
+    ax = backend.to_host(prop.propagate_grid(backend, x, *args, **kw))
+    ahy = backend.to_host(prop.propagate_grid_adjoint(backend, y, x, *args, **kw)[0])
     lhs, rhs = _vdot(ax, y), _vdot(x, ahy)
     assert abs(lhs - rhs) < 1e-12 * abs(lhs)
 
@@ -355,7 +389,7 @@ def _fd_check(loss, grad_field, grad_phase, field, phase, rng, eps=1e-6):
     assert abs(fd - an) < 1e-6 * max(abs(an), 1e-300)
 
 
-def test_propagate_adjoint_finite_differences(cl_backend):
+def test_propagate_adjoint_finite_differences(backend):
     """L = Re sum conj(y) U(field, phi): gradients w.r.t. field and the shared DOE phase."""
     rng = np.random.default_rng(8)
     n, b = 8, 2
@@ -367,13 +401,13 @@ def test_propagate_adjoint_finite_differences(cl_backend):
     y = _rand_complex(rng, (b, 4, 5))
 
     def loss(f, p):
-        return float(np.real(_vdot(y, cl_backend.to_host(prop.propagate(cl_backend, f, *args, doe_phase=p, **kw)))))
+        return float(np.real(_vdot(y, backend.to_host(prop.propagate(backend, f, *args, doe_phase=p, **kw)))))
 
-    gf, gp = prop.propagate_adjoint(cl_backend, y, field, *args, doe_phase=phase, **kw)
-    _fd_check(loss, cl_backend.to_host(gf), cl_backend.to_host(gp), field, phase, rng)
+    gf, gp = prop.propagate_adjoint(backend, y, field, *args, doe_phase=phase, **kw)
+    _fd_check(loss, backend.to_host(gf), backend.to_host(gp), field, phase, rng)
 
 
-def test_sensor_intensity_adjoint_finite_differences(cl_backend):
+def test_sensor_intensity_adjoint_finite_differences(backend):
     """L = sum W * I(field, phi) with per-batch DOE phases, reusing the forward node field."""
     rng = np.random.default_rng(9)
     n, b = 8, 2
@@ -385,15 +419,15 @@ def test_sensor_intensity_adjoint_finite_differences(cl_backend):
     weight = rng.standard_normal((b, 4, 3))
 
     def loss(f, p):
-        inten = cl_backend.to_host(prop.sensor_intensity(cl_backend, f, *args, *sens, doe_phase=p, **kw))
+        inten = backend.to_host(prop.sensor_intensity(backend, f, *args, *sens, doe_phase=p, **kw))
         return float(np.sum(weight * inten))
 
-    _, nodes = prop.sensor_intensity(cl_backend, field, *args, *sens, doe_phase=phase, return_nodes=True, **kw)
-    gf, gp = prop.sensor_intensity_adjoint(cl_backend, weight, field, *args, *sens, doe_phase=phase, nodes=nodes, **kw)
-    gf, gp = cl_backend.to_host(gf), cl_backend.to_host(gp)
+    _, nodes = prop.sensor_intensity(backend, field, *args, *sens, doe_phase=phase, return_nodes=True, **kw)
+    gf, gp = prop.sensor_intensity_adjoint(backend, weight, field, *args, *sens, doe_phase=phase, nodes=nodes, **kw)
+    gf, gp = backend.to_host(gf), backend.to_host(gp)
     _fd_check(loss, gf, gp, field, phase, rng)
-    gf2, _ = prop.sensor_intensity_adjoint(cl_backend, weight, field, *args, *sens, doe_phase=phase, **kw)
-    assert np.allclose(cl_backend.to_host(gf2), gf, rtol=0, atol=1e-13 * np.abs(gf).max())
+    gf2, _ = prop.sensor_intensity_adjoint(backend, weight, field, *args, *sens, doe_phase=phase, **kw)
+    assert np.allclose(backend.to_host(gf2), gf, rtol=0, atol=1e-13 * np.abs(gf).max())
 
 
 # ----------------------------------------------------------------------------------------------

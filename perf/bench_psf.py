@@ -1,0 +1,156 @@
+"""One PSF and a 5x5 x 3-wavelength PSF map of the A489 + DOE lens: time and peak memory,
+rwwarp (adaptive plan) and, when importable, DeepLens (``deeplens-core``) in the same run.
+
+DeepLens is given the same lens written in its own JSON format (from the lens facts, flat Binary2 DOE)
+and timed with its ``HybridLens.psf`` (coherent ray tracing + ASM, its own fixed 3000^2 grid padded 2x)
+at 1M rays and at its default ray count. PSFs are compared after normalising both to unit sum on
+their common centre window (both at the sensor's 1 um pixels).
+
+    python perf/bench_psf.py [--device cuda] [--deeplens]
+"""
+import argparse
+import gc
+import json
+import os
+import tempfile
+import time
+
+import numpy as np
+
+import rwwarp as rw
+from _common import device_name, save, timed
+
+FIELDS5 = [(0.0, f) for f in np.linspace(0.0, 10.0, 5)]
+WLS = [0.45, 0.55, 0.65]
+
+
+def sync_fn(device):
+    if device.startswith("cuda"):
+        import warp as wp
+        import cupy
+
+        def s():
+            wp.synchronize_device("cuda:0")
+            cupy.cuda.runtime.deviceSynchronize()
+        return s
+    return lambda: None
+
+
+def gpu_used():
+    try:
+        import cupy
+        free, total = cupy.cuda.runtime.memGetInfo()
+        return total - free
+    except Exception:
+        return None
+
+
+def host_peak():
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def bench_rwwarp(device, size, repeat):
+    lens = rw.load_lens("a489_doe")
+    s = sync_fn(device)
+    t0 = time.perf_counter()
+    p = rw.psf(lens, 0.0, 0.55, size=size, device=device)
+    s()
+    first = time.perf_counter() - t0
+    base = gpu_used()
+    out = {"first_call_s": first, "plan": p.plan}
+    out["psf_on_axis_s"] = timed(lambda: rw.psf(lens, 0.0, 0.55, size=size, device=device), s, repeat)
+    out["psf_7deg_s"] = timed(lambda: rw.psf(lens, 7.0, 0.55, size=size, device=device), s, repeat)
+    m = {}
+    out["map_5x5x3_s"] = timed(lambda: m.setdefault("m", rw.psf_map(lens, FIELDS5 * 5, WLS, size=size,
+                                                                       device=device, batch=3)), s, max(1, repeat // 2))
+    used = gpu_used()
+    out["device_mem_used_bytes"] = None if used is None or base is None else used
+    out["host_peak_rss_bytes"] = host_peak()
+    return out, p
+
+
+def deeplens_json(path):
+    d = {"info": "A489 + flat DOE (rwwarp benchmark)", "d_sensor": 11.257, "sensor_size": [3.0, 3.0],
+         "sensor_res": [3000, 3000],
+         "surfaces": [
+             {"type": "Aperture", "r": 1.0, "d": 0.0, "mat2": "air", "is_square": False, "diffraction": False},
+             {"type": "Aspheric", "r": 6.35, "roc": 4.7531, "d": 0.1, "k": -1.2051,
+              "ai": [0.0, 5.33e-4, 1.12e-5, -3.75e-7, -7.63e-9, 1.36e-10], "mat2": "h-k51"},
+             {"type": "Spheric", "r": 6.35, "roc": -15.65, "d": 7.6, "mat2": "air"}],
+         "DOE": {"type": "binary2", "d": 8.3098, "res": [3000, 3000], "fab_ps": 0.001, "is_square": True,
+                 "mat": "fused_silica", "wvln0": 0.55}}
+    with open(path, "w") as f:
+        json.dump(d, f)
+
+
+def bench_deeplens(device, repeat):
+    import torch
+    torch.set_default_dtype(torch.float64)
+    from deeplens.hybridlens import HybridLens
+    path = os.path.join(tempfile.mkdtemp(), "a489_doe_deeplens.json")
+    deeplens_json(path)
+    lens = HybridLens(filename=path, device=device)
+    for k in ("alpha2", "alpha4", "alpha6", "alpha8", "alpha10"):
+        if hasattr(lens.doe, k):
+            setattr(lens.doe, k, torch.zeros(1, device=device, dtype=torch.float64))
+    s = (lambda: torch.cuda.synchronize()) if device.startswith("cuda") else (lambda: None)
+    out = {}
+    res = {}
+    for spp in (1_000_000, 16_777_216):
+        with torch.no_grad():
+            torch.cuda.reset_peak_memory_stats() if device.startswith("cuda") else None
+            f = lambda: res.__setitem__(spp, lens.psf(points=[0.0, 0.0, -10000.0], ks=64, wvln=0.55, spp=spp))
+            f()
+            t = timed(f, s, repeat)
+            out[f"psf_{spp}_s"] = t
+            if device.startswith("cuda"):
+                out[f"psf_{spp}_peak_bytes"] = torch.cuda.max_memory_allocated()
+    with torch.no_grad():
+        def loop():
+            for fy in np.linspace(0, 10.0 / 14.0, 5):
+                for _ in range(5):
+                    for w in WLS:
+                        lens.psf(points=[0.0, float(fy), -10000.0], ks=64, wvln=w, spp=1_000_000)
+        t0 = time.perf_counter()
+        loop()
+        s()
+        out["map_5x5x3_1M_s"] = time.perf_counter() - t0
+    return out, {k: v.detach().cpu().numpy() for k, v in res.items()}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--deeplens", action="store_true")
+    a = ap.parse_args()
+    res = {"benchmark": "psf", "lens": "a489_doe (flat DOE), object at 10 m", "device": a.device,
+           "device_name": device_name(a.device), "size_px": a.size, "pixel_um": 1.0}
+    r, p = bench_rwwarp(a.device, a.size, a.repeat)
+    res["rwwarp"] = r
+    print("rwwarp:", json.dumps({k: v for k, v in r.items() if k != "plan"}, default=float))
+    if a.deeplens:
+        try:
+            dl, psfs = bench_deeplens("cuda" if a.device.startswith("cuda") else "cpu", a.repeat)
+            ours = p.data / p.data.sum()
+            for spp, d in psfs.items():
+                d = np.asarray(d, dtype=np.float64)
+                d = d / d.sum()
+                dl[f"rel_l2_vs_rwwarp_{spp}"] = float(np.linalg.norm(d - ours) / np.linalg.norm(ours))
+            res["deeplens"] = dl
+            res["ratios"] = {"psf_speedup_vs_1M": dl["psf_1000000_s"] / r["psf_on_axis_s"],
+                             "psf_speedup_vs_16M": dl["psf_16777216_s"] / r["psf_on_axis_s"],
+                             "map_speedup_vs_1M": dl["map_5x5x3_1M_s"] / r["map_5x5x3_s"]}
+            print("deeplens:", json.dumps(dl, default=float))
+            print("ratios:", res["ratios"])
+        except Exception as e:  # report, don't hide
+            res["deeplens_error"] = f"{type(e).__name__}: {e}"
+            print("deeplens failed:", res["deeplens_error"])
+    tag = "gpu" if a.device.startswith("cuda") else "cpu"
+    print("->", save(f"bench_psf_{tag}", res))
+
+
+if __name__ == "__main__":
+    main()
