@@ -218,10 +218,26 @@ def make_splat_kernels(scalar):
         sph = wp.sin(ph)
         field_out[k] = wp.vec2d(re * cph - im * sph, re * sph + im * cph)
 
+    @wp.kernel(module="unique")
+    def power_sums_kernel(
+        valid: wp.array(dtype=wp.int32),
+        weight: wp.array(dtype=scalar),
+        n_pupil: int,
+        # outputs
+        sums_out: wp.array(dtype=f64, ndim=2),   # (n_src, 2): launched power, power of valid rays
+    ):
+        i = wp.tid()
+        s = i // n_pupil
+        q = f64(weight[i])
+        wp.atomic_add(sums_out, s, 0, q)
+        if valid[i] == 1:
+            wp.atomic_add(sums_out, s, 1, q)
+
     class K:
         pass
 
     K.splat_kernel = splat_kernel
     K.tube_area_kernel = tube_area_kernel
+    K.power_sums_kernel = power_sums_kernel
     K.finalize_kernel = finalize_kernel
     return K

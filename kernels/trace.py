@@ -112,6 +112,8 @@ def make_trace_kernels(scalar):
         cell: scalar,                           # area of one pupil cell in normalised (u, v) units
         circle: int,                            # 1: samples outside the unit circle start invalid
         relative: int,                          # 1: OPL relative to the chief ray (point sources)
+        grid_n: int,                            # > 0: pupil is the full grid_n x grid_n cell-centre grid,
+                                                #      computed here (pupil_u / pupil_v unused)
         n_pupil: int,
         # outputs
         pos_out: wp.array(dtype=vec3),
@@ -125,7 +127,17 @@ def make_trace_kernels(scalar):
         s = i // n_pupil
         j = i - s * n_pupil
         c = aim[s]
-        p = vec3(c[0] + half_x[s] * pupil_u[j], c[1] + half_y[s] * pupil_v[j], c[2])
+        pu = scalar(0.0)
+        pv = scalar(0.0)
+        if grid_n > 0:
+            row = j // grid_n
+            col = j - row * grid_n
+            pu = scalar(-1.0) + (scalar(2.0) * scalar(col) + scalar(1.0)) / scalar(grid_n)
+            pv = scalar(-1.0) + (scalar(2.0) * scalar(row) + scalar(1.0)) / scalar(grid_n)
+        else:
+            pu = pupil_u[j]
+            pv = pupil_v[j]
+        p = vec3(c[0] + half_x[s] * pu, c[1] + half_y[s] * pv, c[2])
         w = src_wl[s]
         n0 = n_obj[w]
         area = cell * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
@@ -151,7 +163,7 @@ def make_trace_kernels(scalar):
         dir_out[i] = d
         valid_out[i] = 1
         if circle == 1:
-            if pupil_u[j] * pupil_u[j] + pupil_v[j] * pupil_v[j] > scalar(1.0 + 1.0e-12):
+            if pu * pu + pv * pv > scalar(1.0 + 1.0e-12):
                 valid_out[i] = 0
                 weight_out[i] = scalar(0.0)
         wl_out[i] = w

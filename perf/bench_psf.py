@@ -63,7 +63,7 @@ def bench_rwwarp(device, size, repeat):
     out["psf_7deg_s"] = timed(lambda: rw.psf(lens, 7.0, 0.55, size=size, device=device), s, repeat)
     m = {}
     out["map_5x5x3_s"] = timed(lambda: m.setdefault("m", rw.psf_map(lens, FIELDS5 * 5, WLS, size=size,
-                                                                       device=device, batch=3)), s, max(1, repeat // 2))
+                                                                       device=device, batch=15)), s, max(1, repeat // 2))
     used = gpu_used()
     out["device_mem_used_bytes"] = None if used is None or base is None else used
     out["host_peak_rss_bytes"] = host_peak()
@@ -74,10 +74,11 @@ def deeplens_json(path):
     d = {"info": "A489 + flat DOE (rwwarp benchmark)", "d_sensor": 11.257, "sensor_size": [3.0, 3.0],
          "sensor_res": [3000, 3000],
          "surfaces": [
-             {"type": "Aperture", "r": 1.0, "d": 0.0, "mat2": "air", "is_square": False, "diffraction": False},
+             {"type": "Aperture", "r": 1.0, "d": 0.0, "mat2": "air", "is_square": False, "diffraction": False,
+              "d_next": 0.1},
              {"type": "Aspheric", "r": 6.35, "roc": 4.7531, "d": 0.1, "k": -1.2051,
-              "ai": [0.0, 5.33e-4, 1.12e-5, -3.75e-7, -7.63e-9, 1.36e-10], "mat2": "h-k51"},
-             {"type": "Spheric", "r": 6.35, "roc": -15.65, "d": 7.6, "mat2": "air"}],
+              "ai": [0.0, 5.33e-4, 1.12e-5, -3.75e-7, -7.63e-9, 1.36e-10], "mat2": "h-k51", "d_next": 7.5},
+             {"type": "Spheric", "r": 6.35, "roc": -15.65, "d": 7.6, "mat2": "air", "d_next": 3.657}],
          "DOE": {"type": "binary2", "d": 8.3098, "res": [3000, 3000], "fab_ps": 0.001, "is_square": True,
                  "mat": "fused_silica", "wvln0": 0.55}}
     with open(path, "w") as f:
@@ -146,7 +147,9 @@ def main():
             print("deeplens:", json.dumps(dl, default=float))
             print("ratios:", res["ratios"])
         except Exception as e:  # report, don't hide
+            import traceback
             res["deeplens_error"] = f"{type(e).__name__}: {e}"
+            traceback.print_exc()
             print("deeplens failed:", res["deeplens_error"])
     tag = "gpu" if a.device.startswith("cuda") else "cpu"
     print("->", save(f"bench_psf_{tag}", res))

@@ -10,7 +10,8 @@ when it is installed, else through ``cupy.fft`` (cuFFT). Both builds take the pr
 it (``-D RW_HAVE_FP64=1``).
 
 Every backend offers the same small interface, used by :mod:`rwwarp.propagate`:
-``to_device``, ``to_host``, ``empty``, ``zeros``, ``fft2`` (batched over leading axes, in place),
+``to_device``, ``to_host``, ``empty``, ``zeros``, ``fft2`` / ``fft1`` (in place, batched over the
+other axes),
 ``launch`` (a named kernel of a named source, built once per (context, dtype)), ``workspace``
 (reused scratch arrays), ``cache`` (a byte-bounded LRU cache of device arrays) and ``synchronize``.
 Work is queued asynchronously on one in-order queue (OpenCL) or on CuPy's current stream (CUDA);
@@ -255,8 +256,21 @@ class Backend:
     def fft2(self, arr, inverse: bool = False):
         """In-place 2-D FFT over the last two axes of a C-contiguous complex device array,
         batched over the leading axes; returns ``arr``. Forward unnormalised, inverse divided by
-        ``ny * nx`` (numpy convention). Plans are built once per (shape, dtype) and cached."""
-        raise NotImplementedError  # pragma: no cover
+        ``ny * nx`` (numpy convention). Plans are built once per (shape, dtype, axes) and cached."""
+        if arr.ndim < 2:
+            raise ValueError("fft2 needs at least 2 dimensions")
+        return self._fft(arr, (-2, -1), inverse)
+
+    def fft1(self, arr, axis: int = -1, inverse: bool = False):
+        """In-place 1-D FFT along ``axis`` (-1 or -2) of a C-contiguous complex device array,
+        batched over all other axes; returns ``arr``. Same conventions and plan cache as
+        :meth:`fft2` (the inverse divides by the transform length)."""
+        if axis not in (-1, -2):
+            raise ValueError("fft1 transforms axis -1 or -2")
+        return self._fft(arr, (int(axis),), inverse)
+
+    def _fft(self, arr, axes, inverse):  # pragma: no cover - overridden
+        raise NotImplementedError
 
     def __repr__(self):
         return f"<{type(self).__name__} {self.device!r}: {self.name}>"
@@ -380,15 +394,13 @@ class OpenCLBackend(Backend):
         knl(self.queue, gsize, lsize, *cargs)
 
     # FFT
-    def fft2(self, arr, inverse: bool = False):
+    def _fft(self, arr, axes, inverse):
         from pyvkfft.opencl import VkFFTApp
 
-        if arr.ndim < 2:
-            raise ValueError("fft2 needs at least 2 dimensions")
-        key = (tuple(arr.shape), arr.dtype.str)
+        key = (tuple(arr.shape), arr.dtype.str, axes)
         app = self._plans.get(key)
         if app is None:
-            app = VkFFTApp(arr.shape, arr.dtype, self.queue, ndim=2, inplace=True, norm=1)
+            app = VkFFTApp(arr.shape, arr.dtype, self.queue, axes=axes, inplace=True, norm=1)
             self._plans[key] = app
         if inverse:
             app.ifft(arr, queue=self.queue)
@@ -491,24 +503,24 @@ class CudaBackend(Backend):
             grid = tuple(max(1, -(-g // l)) for g, l in zip(gsize, lsize))
             knl(grid, lsize, cargs)
 
-    def fft2(self, arr, inverse: bool = False):
+    def _fft(self, arr, axes, inverse):
         with self.cuda_device:
             if self._vkfft:
                 from pyvkfft.cuda import VkFFTApp
 
                 stream = self.cp.cuda.get_current_stream()
-                key = (tuple(arr.shape), arr.dtype.str, int(stream.ptr))
+                key = (tuple(arr.shape), arr.dtype.str, axes, int(stream.ptr))
                 app = self._plans.get(key)
                 if app is None:
-                    app = VkFFTApp(arr.shape, arr.dtype, ndim=2, inplace=True, stream=stream, norm=1)
+                    app = VkFFTApp(arr.shape, arr.dtype, axes=axes, inplace=True, stream=stream, norm=1)
                     self._plans[key] = app
                 if inverse:
                     app.ifft(arr)
                 else:
                     app.fft(arr)
                 return arr
-            fn = self.cp.fft.ifft2 if inverse else self.cp.fft.fft2
-            arr[...] = fn(arr, axes=(-2, -1))
+            fn = self.cp.fft.ifftn if inverse else self.cp.fft.fftn
+            arr[...] = fn(arr, axes=axes)
             return arr
 
 

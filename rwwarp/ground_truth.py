@@ -55,12 +55,13 @@ Numerics.
   (< 0.6 GB at the 32-thread maximum). Cost ~35 ns per (sensor node, aperture node) pair on one
   core, dominated by cos/sin; threads scale ~3x on 4 cores and ~6x on 16.
 
-Pixel-map convention: ``(pixel_map, pitch_mm)`` with ``pixel_map`` of shape (Ny, Nx) in rad at
-the simulated wavelength, centred on the axis: element ``[i, j]`` covers
-``x in [-Nx*pitch/2 + j*pitch, ... + pitch]``, ``y in [-Ny*pitch/2 + i*pitch, ... + pitch]``
-(row index along +y, column index along +x). Outside the map the DOE phase is 0. Callable
-DOEs are ``phi(x_mm, y_mm) -> rad`` on arrays. Phases are at the simulated wavelength (apply
-DESIGN's wavelength remap before calling).
+Pixel-map convention (that of ``rwwarp.doe.PixelMapProfile``): ``(pixel_map, pitch_mm)`` with
+``pixel_map`` of shape (Ny, Nx) in rad, centred on the axis, row 0 at +y (top), column 0 at -x:
+element ``[row, col]`` covers ``x in [(col - Nx/2) pitch, (col + 1 - Nx/2) pitch]`` and
+``y in [(Ny/2 - row - 1) pitch, (Ny/2 - row) pitch]``. Outside the map the DOE phase is 0. An
+object with ``kind == "pixel_map"``, ``data`` and ``pitch`` (a PixelMapProfile) is accepted as
+the pair ``(data, pitch)``. Callable DOEs are ``phi(x_mm, y_mm) -> rad`` on arrays. Phases are
+used as given: apply DESIGN's wavelength remap before calling for another wavelength.
 """
 
 import math
@@ -116,7 +117,9 @@ def _parse_doe(doe_phase):
     """-> (kind, payload): ('none', None) | ('callable', fn) | ('map', (array, pitch))."""
     if doe_phase is None:
         return "none", None
-    if callable(doe_phase):
+    if getattr(doe_phase, "kind", None) == "pixel_map" and hasattr(doe_phase, "data"):
+        doe_phase = (doe_phase.data, doe_phase.pitch)
+    elif callable(doe_phase):
         return "callable", doe_phase
     try:
         pmap, pitch = doe_phase
@@ -333,7 +336,7 @@ def aperture_quadrature(aperture_shape, aperture_half_mm, doe_phase=None, *, gra
         cxm = 0.5 * (edges_x[:-1] + edges_x[1:])
         cym = 0.5 * (edges_y[:-1] + edges_y[1:])
         jx = np.floor((cxm + 0.5 * nx * pitch) / pitch).astype(np.int64)
-        iy = np.floor((cym + 0.5 * ny * pitch) / pitch).astype(np.int64)
+        iy = np.floor(0.5 * ny - cym / pitch).astype(np.int64)            # row 0 at +y
         okx, oky = (jx >= 0) & (jx < nx), (iy >= 0) & (iy < ny)
         cell_phase = np.zeros((ncy, ncx))
         cell_phase[np.ix_(oky, okx)] = pmap[np.ix_(iy[oky], jx[okx])]

@@ -81,6 +81,11 @@ _H_COLS = [c for c in range(_NPAR) if c not in (_P_X0, _P_Y0, _P_DOE_SCALE)]
 _LOCAL = (32, 8, 1)
 _GEMM_TS, _GEMM_WG = 32, 16
 _CPU_GEMM_ROWS = 8
+_KX_ROUND = 64
+
+
+def _round_up(n, m):
+    return -(-int(n) // int(m)) * int(m)
 
 
 def next_fft_size(n: int) -> int:
@@ -231,7 +236,9 @@ def _setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, *, d
     params[:, _P_VLO], params[:, _P_VHI] = lo[:, 1], hi[:, 1]
     params[:, _P_QX0], params[:, _P_QY0] = q_lo[:, 0], q_lo[:, 1]
     params[:, _P_KXB], params[:, _P_KYB] = kb[:, 0], kb[:, 1]
-    st.kx_max = max(int(kb[:, 0].max()), 1)
+    # band width rounded up (zero columns beyond each element's band are harmless) so that few
+    # distinct y-FFT plans of shape (B, npy, kx_max) are ever built
+    st.kx_max = min(st.npx, _round_up(max(int(kb[:, 0].max()), 1), _KX_ROUND))
     st.ky_max = max(int(kb[:, 1].max()), 1)
 
     # DOE phase
@@ -317,12 +324,23 @@ def _pad_fft(st, src, has_phase):
 
 
 def _band_spectrum(st):
-    """C = H * FFT(padded field) on the band (B, ky_max, kx_max), H carrying 1/(npx npy)."""
-    padded = _pad_fft(st, st.field, st.has_phase)
+    """C = H * FFT(padded field) on the band (B, ky_max, kx_max), H carrying 1/(npx npy).
+
+    Pruned 2-D FFT: the x-FFT runs over the ny non-zero rows only, the y-FFT over the kx_max band
+    columns only (the zero padding along y is inserted between the two)."""
+    be = st.backend
+    rows = be.workspace("rows", (st.batch, st.ny, st.npx), st.dtype)
+    _launch(st, "pad_modulate_kernel", (st.npx, st.ny, st.batch), st.field, st.phase, st.params_dev,
+            st.nx, st.ny, st.npx, st.ny, st.batch, int(st.has_phase), int(st.phase_batched), rows)
+    be.fft1(rows, axis=-1)
+    cols = be.workspace("cols", (st.batch, st.npy, st.kx_max), st.dtype)
+    _launch(st, "column_gather_kernel", (st.kx_max, st.npy, st.batch), rows, st.params_dev, st.ny, st.npx,
+            st.npy, st.kx_max, st.batch, cols)
+    be.fft1(cols, axis=-2)
     h = _transfer(st, 1.0 / (st.npx * st.npy))
-    band = st.backend.workspace("band", (st.batch, st.ky_max, st.kx_max), st.dtype)
-    _launch(st, "band_gather_kernel", (st.kx_max, st.ky_max, st.batch), padded, h, st.params_dev,
-            st.npx, st.npy, st.kx_max, st.ky_max, st.batch, band)
+    band = be.workspace("band", (st.batch, st.ky_max, st.kx_max), st.dtype)
+    _launch(st, "band_gather_kernel", (st.kx_max, st.ky_max, st.batch), cols, h, st.params_dev,
+            st.npy, st.kx_max, st.ky_max, st.batch, band)
     return band, h
 
 
@@ -390,17 +408,25 @@ def _points_to_band(st, grad, ex, ey, out):
 
 
 def _band_adjoint_to_field(st, band_grad, h):
-    """From the gradient of the band spectrum to (grad_field, grad_doe_phase): scatter with
-    conj(H) * npx * npy, inverse FFT, crop and demodulate."""
+    """From the gradient of the band spectrum to (grad_field, grad_doe_phase): the transposed
+    pruned FFT (scatter with conj(H) * npx * npy, y inverse FFT of the band columns, scatter the
+    columns into the ny rows, x inverse FFT), then demodulate."""
     be = st.backend
-    padded = be.workspace("padded", (st.batch, st.npy, st.npx), st.dtype)
-    _launch(st, "band_scatter_adjoint_kernel", (st.npx, st.npy, st.batch), band_grad, h, st.params_dev,
-            st.npx, st.npy, st.kx_max, st.ky_max, st.batch, float(st.npx * st.npy), padded)
-    be.fft2(padded, inverse=True)
-    return _crop_demodulate_adjoint(st, padded)
+    cols = be.workspace("cols", (st.batch, st.npy, st.kx_max), st.dtype)
+    _launch(st, "band_scatter_adjoint_kernel", (st.kx_max, st.npy, st.batch), band_grad, h, st.params_dev,
+            st.npy, st.kx_max, st.ky_max, st.batch, float(st.npx * st.npy), cols)
+    be.fft1(cols, axis=-2, inverse=True)
+    rows = be.workspace("rows", (st.batch, st.ny, st.npx), st.dtype)
+    _launch(st, "column_scatter_adjoint_kernel", (st.npx, st.ny, st.batch), cols, st.params_dev, st.ny, st.npx,
+            st.npy, st.kx_max, st.batch, rows)
+    be.fft1(rows, axis=-1, inverse=True)
+    return _crop_demodulate_adjoint(st, rows, st.ny)
 
 
-def _crop_demodulate_adjoint(st, padded):
+def _crop_demodulate_adjoint(st, padded, rows=None):
+    """grad_field, grad_doe_phase from the gradient of the zero-padded modulated field
+    ``padded`` (B, rows, npx), rows = npy by default."""
+    rows = st.npy if rows is None else rows
     be = st.backend
     grad_field = be.empty((st.batch, st.ny, st.nx), st.dtype)
     if st.has_phase:
@@ -408,7 +434,7 @@ def _crop_demodulate_adjoint(st, padded):
     else:
         grad_phase = None
     _launch(st, "crop_demodulate_adjoint_kernel", (st.nx, st.ny, 1), padded, st.field, st.phase, st.params_dev,
-            st.nx, st.ny, st.npx, st.npy, st.batch, int(st.has_phase), int(st.phase_batched), grad_field,
+            st.nx, st.ny, st.npx, rows, st.batch, int(st.has_phase), int(st.phase_batched), grad_field,
             grad_phase if grad_phase is not None else st.phase)
     return grad_field, grad_phase
 

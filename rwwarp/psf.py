@@ -210,10 +210,19 @@ def _lens_dir(lens):
     return None if lens.source is None else Path(lens.source).parent
 
 
+def _is_flat_profile(profile: dict) -> bool:
+    """True for a polynomial-type DOE profile whose coefficients are all zero (no phase to apply)."""
+    if profile.get("kind") in ("even_poly", "poly", "zernike"):
+        return not any(float(c) for c in profile.get("coefficients", []))
+    if profile.get("kind") == "cubic":
+        return float(profile.get("alpha", 0.0)) == 0.0
+    return False
+
+
 def _doe_phase_grid(lens, plane, origin, pitch, n):
     """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
     s = lens.surfaces[plane]
-    if s.type != "doe":
+    if s.type != "doe" or _is_flat_profile(s.profile):
         return None
     from . import doe
     prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
@@ -383,7 +392,8 @@ class RayWave:
         self.chief_ok = pilot_plane.valid.numpy().astype(bool)
         self.chief_plane = np.where(self.chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
         self.target = np.concatenate([chief_sensor[:, :2], np.full((nsrc, 1), z_sensor)], axis=1)
-        self.pupil = pupil_grid(pl.ray_grid, src["shape"], clip=False)
+        # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
+        self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
 
     def field(self):
         """Trace to the DOE plane, splat, apply the reference sphere and carrier.
@@ -392,18 +402,23 @@ class RayWave:
         the windows (carrier removed), and the traced rays. Record inside a ``wp.Tape`` (with
         ``requires_grad=True``) to differentiate w.r.t. ``self.tracer.params``.
         """
+        tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
         import warp as wp
         from .kernels.splat import make_splat_kernels
-        tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
         u, v, cell = self.pupil
-        rays = tr._run(src, u, v, cell, upto=plane + 1)
-        npup = len(u)
-        self.weights = rays.weight.numpy().reshape(nsrc, npup)
-        self.entering = self.weights.sum(1)
-        valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
-        self.valid_fraction = (self.weights * valid).sum(1) / self.entering
+        npup = pl.ray_grid * pl.ray_grid
+        rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid)
+        K = make_splat_kernels(tr.scalar)
+        sums = wp.zeros((nsrc, 2), dtype=wp.float64, device=tr.device)
+        wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight, npup],
+                  outputs=[sums], device=tr.device)
+        sums = sums.numpy()
+        self.entering = sums[:, 0]
+        self.traced_power = sums[:, 1]
+        self.valid_fraction = sums[:, 1] / sums[:, 0]
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
         if not self.chief_ok.all():
+            valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
             # vignetted chief ray: the valid ray nearest the footprint centre is the reference
             all_opl = rays.opl.numpy().reshape(nsrc, npup)
             all_pos = rays.pos.numpy().reshape(nsrc, npup, 3)
@@ -455,8 +470,7 @@ class RayWave:
             u_field = field.numpy().view(np.complex128).reshape(self.nsrc, n, n)
         if self.amplitude != "energy":
             # paper convention: unit ray amplitude, one global scale so the field carries the traced power
-            valid = rays.valid.numpy().reshape(self.nsrc, -1).astype(bool)
-            q = (self.weights * valid).sum(1)
+            q = self.traced_power
             xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
             pw = xp.asnumpy(xp.sum(xp.abs(u_field) ** 2, axis=(1, 2))) if xp is not np else \
                 np.sum(np.abs(u_field) ** 2, axis=(1, 2))

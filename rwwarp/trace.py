@@ -298,9 +298,14 @@ class Tracer:
             u, v, cell = pupil
         return self._run(src, u, v, cell, upto=upto)
 
-    def _run(self, src, u, v, cell=1.0, upto=None, keep=False):
+    def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0):
+        """Generate and trace. ``grid_n > 0``: the pupil is the full ``grid_n x grid_n`` cell-centre grid,
+        generated on the device (``u``, ``v`` ignored; no upload)."""
         dev, sc, K = self.device, self.scalar, self.K
-        nsrc, npup = len(src["wl"]), len(u)
+        nsrc = len(src["wl"])
+        npup = grid_n * grid_n if grid_n > 0 else len(u)
+        if grid_n > 0:
+            u = v = np.zeros(1)
         n = nsrc * npup
         g = self.requires_grad
 
@@ -318,7 +323,7 @@ class Tracer:
         inputs = [arr(u, sc), arr(v, sc), arr(src["pos"], K.vec3), arr(src["dir"], K.vec3),
                   arr(src["finite"], wp.int32), arr(src["aim"], K.vec3), arr(src["half_x"], sc),
                   arr(src["half_y"], sc), arr(src["wl"], wp.int32), self.n_obj, sc(cell),
-                  int(src["shape"] == "circle"), int(src.get("relative_opl", False)), npup]
+                  int(src["shape"] == "circle"), int(src.get("relative_opl", False)), int(grid_n), npup]
         wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=[pos, dr, opl, valid, wl, weight], device=dev)
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto

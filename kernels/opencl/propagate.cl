@@ -21,6 +21,8 @@
  *   (xs, ys) is the shift of the output window centre from the input window centre (shifted ASM).
  *   Band (Matsushima): u in [u_lo, u_hi], v in [v_lo, v_hi] (computed on the host, see
  *   rwwarp/propagate.py), stored compactly: band column kx <-> signed grid index q = qx0 + kx.
+ *   Arbitrary-point path: the 2-D FFT is pruned: x-FFT of the ny non-zero rows only, then the
+ *   y-FFT of the band columns only (column_gather), then band_gather multiplies by H.
  *   Output field at (x, y) (matrix DFT, exact trigonometric interpolation of the band-limited
  *   result), with the carrier restored:
  *       U(x, y) = sum_{ky, kx} Ey[y, ky] C[ky, kx] Ex[x, kx]
@@ -118,47 +120,84 @@ __kernel void band_transfer_kernel(__global const phase_t* restrict params,
     h_out[((idx_t)b * ky_max + ky) * kx_max + kx] = h;
 }
 
-/* band_out = H * spectrum restricted to the band. Global (kx_max, ky_max, batch). */
-__kernel void band_gather_kernel(__global const cplx_t* restrict spectrum,
+/* Pruned 2-D FFT, step 2: after the x-FFT of the (ny, npx) rows, keep the band columns and
+ * zero-pad them to npy rows: cols_out[b, iy, kx] = rows[b, iy, qx0 + kx (mod npx)] for iy < ny, else
+ * 0. The y-FFT of cols_out then gives the padded field's spectrum on the band columns.
+ * Global (kx_max, npy, batch). */
+__kernel void column_gather_kernel(__global const cplx_t* restrict rows,
+                                   __global const phase_t* restrict params,
+                                   const int ny, const int npx, const int npy, const int kx_max,
+                                   const int batch,
+                                   __global cplx_t* restrict cols_out)
+{
+    const int kx = get_global_id(0);
+    const int iy = get_global_id(1);
+    const int b = get_global_id(2);
+    if (kx >= kx_max || iy >= npy || b >= batch) return;
+    cplx_t v = c_zero();
+    if (iy < ny) {
+        const int ix = rw_wrap((int)params[(idx_t)b * NPAR + P_QX0] + kx, npx);
+        v = rows[((idx_t)b * ny + iy) * npx + ix];
+    }
+    cols_out[((idx_t)b * npy + iy) * kx_max + kx] = v;
+}
+
+/* Adjoint of column_gather (rows of the padded grid beyond ny are dropped: they are cropped
+ * anyway): rows_out[b, iy, ix] = cols[b, iy, kx] with kx = ix - qx0 (mod npx) if kx < kx_max,
+ * else 0. Global (npx, ny, batch). */
+__kernel void column_scatter_adjoint_kernel(__global const cplx_t* restrict cols,
+                                            __global const phase_t* restrict params,
+                                            const int ny, const int npx, const int npy,
+                                            const int kx_max, const int batch,
+                                            __global cplx_t* restrict rows_out)
+{
+    const int ix = get_global_id(0);
+    const int iy = get_global_id(1);
+    const int b = get_global_id(2);
+    if (ix >= npx || iy >= ny || b >= batch) return;
+    const int kx = rw_wrap(ix - (int)params[(idx_t)b * NPAR + P_QX0], npx);
+    cplx_t v = c_zero();
+    if (kx < kx_max) v = cols[((idx_t)b * npy + iy) * kx_max + kx];
+    rows_out[((idx_t)b * ny + iy) * npx + ix] = v;
+}
+
+/* band_out = H * spectrum on the band, from the band-column spectrum cols (batch, npy, kx_max)
+ * (column kx = grid column qx0 + kx, all npy rows). Global (kx_max, ky_max, batch). */
+__kernel void band_gather_kernel(__global const cplx_t* restrict cols,
                                  __global const cplx_t* restrict h,
                                  __global const phase_t* restrict params,
-                                 const int npx, const int npy, const int kx_max, const int ky_max,
-                                 const int batch,
+                                 const int npy, const int kx_max, const int ky_max, const int batch,
                                  __global cplx_t* restrict band_out)
 {
     const int kx = get_global_id(0);
     const int ky = get_global_id(1);
     const int b = get_global_id(2);
     if (kx >= kx_max || ky >= ky_max || b >= batch) return;
-    __global const phase_t* p = params + (idx_t)b * NPAR;
-    const int ix = rw_wrap((int)p[P_QX0] + kx, npx);
-    const int iy = rw_wrap((int)p[P_QY0] + ky, npy);
+    const int iy = rw_wrap((int)params[(idx_t)b * NPAR + P_QY0] + ky, npy);
     const idx_t ib = ((idx_t)b * ky_max + ky) * kx_max + kx;
-    band_out[ib] = c_mul(spectrum[((idx_t)b * npy + iy) * npx + ix], h[ib]);
+    band_out[ib] = c_mul(cols[((idx_t)b * npy + iy) * kx_max + kx], h[ib]);
 }
 
-/* Adjoint of band_gather: spectrum_out = scale * conj(H) * band on the band, 0 elsewhere (full
- * padded grid). Global (npx, npy, batch). */
+/* Adjoint of band_gather: cols_out = scale * conj(H) * band on the band rows, 0 on the other
+ * rows, layout (batch, npy, kx_max). Global (kx_max, npy, batch). */
 __kernel void band_scatter_adjoint_kernel(__global const cplx_t* restrict band,
                                           __global const cplx_t* restrict h,
                                           __global const phase_t* restrict params,
-                                          const int npx, const int npy, const int kx_max,
-                                          const int ky_max, const int batch, const real_t scale,
-                                          __global cplx_t* restrict spectrum_out)
+                                          const int npy, const int kx_max, const int ky_max,
+                                          const int batch, const real_t scale,
+                                          __global cplx_t* restrict cols_out)
 {
-    const int ix = get_global_id(0);
+    const int kx = get_global_id(0);
     const int iy = get_global_id(1);
     const int b = get_global_id(2);
-    if (ix >= npx || iy >= npy || b >= batch) return;
-    __global const phase_t* p = params + (idx_t)b * NPAR;
-    const int kx = rw_wrap(ix - (int)p[P_QX0], npx);
-    const int ky = rw_wrap(iy - (int)p[P_QY0], npy);
+    if (kx >= kx_max || iy >= npy || b >= batch) return;
+    const int ky = rw_wrap(iy - (int)params[(idx_t)b * NPAR + P_QY0], npy);
     cplx_t v = c_zero();
-    if (kx < kx_max && ky < ky_max) {
+    if (ky < ky_max) {
         const idx_t ib = ((idx_t)b * ky_max + ky) * kx_max + kx;
         v = c_scale(c_conj_mul(h[ib], band[ib]), scale);
     }
-    spectrum_out[((idx_t)b * npy + iy) * npx + ix] = v;
+    cols_out[((idx_t)b * npy + iy) * kx_max + kx] = v;
 }
 
 /* In-place spectrum *= H (or conj(H)) on the band, 0 elsewhere (fixed-grid path and its adjoint).
@@ -222,9 +261,15 @@ __kernel void dft_matrix_kernel(__global const phase_t* restrict coords,
  * Tiled through local memory: a GEMM_TS x GEMM_TS output tile per work-group of
  * GEMM_WG x GEMM_WG work-items, each computing GEMM_WPT x GEMM_WPT outputs.
  * Global (ceil(n / GEMM_TS) * GEMM_WG, ceil(m / GEMM_TS) * GEMM_WG, batch), local (GEMM_WG, GEMM_WG, 1). */
+#ifndef GEMM_TS
 #define GEMM_TS 32
+#endif
+#ifndef GEMM_TK
 #define GEMM_TK 16
+#endif
+#ifndef GEMM_WG
 #define GEMM_WG 16
+#endif
 #define GEMM_WPT (GEMM_TS / GEMM_WG)
 
 __kernel void cgemm_batched_kernel(__global const cplx_t* restrict a,

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy import integrate, special
+from scipy import integrate
 
 from rwwarp import analytic
 from rwwarp import ground_truth as gt
@@ -105,8 +105,7 @@ def test_circular_pixel_psf_quadrature_and_energy_bounds():
     pix = analytic.circular_aperture_pixel_psf(c, c, pixel, diameter, F_MM, WL_UM)
     ref = analytic.circular_aperture_pixel_psf(c, c, pixel, diameter, F_MM, WL_UM, nodes=40)
     assert np.max(np.abs(pix - ref)) < 1e-13 * ref.max()
-    # centre pixel vs peak * area to the curvature of the Airy core (sanity), and energy bounds:
-    # EE(inscribed circle) <= window total <= EE(circumscribed circle)
+    # energy bounds: EE(inscribed circle) <= window total <= EE(circumscribed circle)
     half = 20 * pixel
     total = pix.sum()
     assert analytic.encircled_energy(half, diameter, F_MM, WL_UM) < total
@@ -272,10 +271,10 @@ def test_checkerboard_pixel_map_matches_callable():
     pitch, h = 0.25, 1.0
     board = np.pi * (np.indices((8, 8)).sum(axis=0) % 2)
 
-    def board_fn(x, y):
-        i = np.floor((y + h) / pitch).astype(int)
-        j = np.floor((x + h) / pitch).astype(int)
-        return np.pi * ((i + j) % 2)
+    def board_fn(x, y):                                 # map convention: row 0 at +y, column 0 at -x
+        row = np.floor((h - y) / pitch).astype(int)
+        col = np.floor((x + h) / pitch).astype(int)
+        return np.pi * ((row + col) % 2)
     c = centred(24, 0.010)                               # +-120 um: sees the (+-1, +-1) orders at 110 um
     common = dict(gauss_nodes_sensor=2, quad_rtol=1e-12)
     by_map = gt.rs_thin_lens_psf(F_MM, "square", h, WL_UM, F_MM, c, c, 0.010, doe_phase=(board, pitch),
@@ -286,3 +285,22 @@ def test_checkerboard_pixel_map_matches_callable():
     # and the checkerboard really diffracts: the zero order (on axis) is dark, the diagonal orders bright
     centre = by_map[11:13, 11:13].sum()
     assert centre < 1e-3 * by_map.max()
+
+
+def test_pixel_map_convention_is_that_of_doe_profiles():
+    # An asymmetric 16-level map given as a PixelMapProfile (rwwarp.doe) and its own phase(x, y)
+    # through the callable path (cells aligned with the pixels) give the same PSF; the map flipped
+    # upside down does not.
+    from rwwarp.doe import PixelMapProfile
+    rng = np.random.default_rng(7)
+    data = rng.integers(0, 16, size=(4, 6)) * (2 * np.pi / 16)
+    profile = PixelMapProfile(0.25, data=data)
+    c = centred(12, 0.010)
+    common = dict(gauss_nodes_sensor=2, quad_rtol=1e-12)
+    by_map = gt.rs_thin_lens_psf(F_MM, "square", 0.5, WL_UM, F_MM, c, c, 0.010, doe_phase=profile, **common)
+    by_fn = gt.rs_thin_lens_psf(F_MM, "square", 0.5, WL_UM, F_MM, c, c, 0.010, doe_phase=profile.phase,
+                                doe_gradient_rad_per_mm=0.0, aperture_cells=4, **common)
+    assert rel_l2(by_fn, by_map) < 1e-11
+    flipped = gt.rs_thin_lens_psf(F_MM, "square", 0.5, WL_UM, F_MM, c, c, 0.010,
+                                  doe_phase=(data[::-1], 0.25), **common)
+    assert rel_l2(flipped, by_map) > 1e-2

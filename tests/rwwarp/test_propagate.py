@@ -269,7 +269,7 @@ def test_gaussian_beam_paraxial(backend):
     yo = np.linspace(-0.18, 0.12, 37)
     out = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, yo))[0]
     ref = gaussian_paraxial(xo, yo, G_W0, G_LAM, z)
-    assert rel_l2(out, ref) < 1e-4
+    assert rel_l2(out, ref) < 2e-5  # non-paraxial terms ~ k z (lambda f)^4 / 8
 
 
 def test_tilted_gaussian_shifted_window(backend):
@@ -312,7 +312,7 @@ def test_sensor_intensity_box_integration(backend):
     zr = np.pi * G_W0**2 / lam
     wz = G_W0 * np.sqrt(1 + (z / zr) ** 2)
     analytic = pixel_integral_gaussian_intensity(cx, cy, pp, wz, (G_W0 / wz) ** 2)
-    assert rel_l2(inten, analytic) < 2e-4
+    assert rel_l2(inten, analytic) < 2e-5
     t, w = np.polynomial.legendre.leggauss(16)
     xs = (cx[:, None] + 0.5 * pp * t[None, :]).ravel()
     ys = (cy[:, None] + 0.5 * pp * t[None, :]).ravel()

@@ -1,0 +1,383 @@
+"""torch.autograd Functions around the stages of the ray-wave model.
+
+Each Function wraps one stage of :class:`rwwarp.psf.RayWave` (one batch of point sources with a
+fixed sampling plan) and runs in float64 unless said otherwise:
+
+* :class:`TraceSplat`: surface-parameter table -> complex field on the DOE-plane windows
+  (Warp coherent trace + splat, recorded on a ``wp.Tape``; backward replays the tape).
+* :class:`Propagate`: field (+ DOE phase phi0, + DOE-to-sensor distance) -> power per sensor pixel
+  (band-limited ASM + pixel integration, OpenCL/CUDA kernels; backward is the analytic adjoint
+  :func:`rwwarp.propagate.sensor_intensity_adjoint` on the same cached plans).
+* :class:`MixedPrecision`: float64 forward -> float32, float32 gradient -> float64 (the paper's
+  mixed precision: the optics in double, the network in single).
+* :class:`QuantizeSTE`: DOE phase wrapped to [0, 2 pi) and quantised to N levels with a
+  straight-through gradient.
+
+Units: lengths in mm, wavelengths in um, phases in radians, powers as in :mod:`rwwarp.propagate`
+(field units^2 mm^2 per pixel; :func:`raywave_psf` divides by the entering power).
+
+Gradient convention for complex tensors (torch's, and :mod:`rwwarp.propagate`'s): for a real loss L
+of a complex tensor z the gradient is ``dL/dRe z + 1j dL/dIm z``. Warp ``vec2d`` fields hold
+``(Re, Im)``, so the incoming torch gradient maps to the Warp adjoint component-wise, without a
+conjugation (checked with ``torch.autograd.gradcheck``).
+
+**Discrete decisions are frozen.** A RayWave's ``__init__`` fixes the sampling plan (pitch, window,
+FFT size, ray count), the sensor patch, the chief-ray carrier, the reference sphere centre, the
+entrance pupil used to launch rays and the ray validity pattern is re-evaluated but not
+differentiated (a ray crossing an aperture edge is a jump). The Functions differentiate the
+smooth part for that plan; finite differences agree only when they reuse the same RayWave.
+
+**Devices.** On CPU, Warp arrays, torch tensors and PoCL buffers all live in host memory: the
+field leaves Warp as a zero-copy torch view (``wp.to_torch``) and enters the OpenCL queue as a
+host buffer. On CUDA the same code hands device tensors across (``wp.to_torch`` /
+``__cuda_array_interface__`` into CuPy): the backend's ``to_device`` wraps a CUDA tensor in place,
+so no field passes through host memory; Warp launches run on torch's current stream
+(``wp.ScopedStream(wp.stream_from_torch())``) and CuPy on an ``ExternalStream`` of the same
+handle.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+
+import numpy as np
+import torch
+
+from rwwarp.kernels import trace as ktrace
+
+__all__ = ["TraceSplat", "Propagate", "MixedPrecision", "QuantizeSTE", "raywave_psf", "load_table",
+           "doe_scale", "distance_from_table", "mixed_precision", "quantize_ste"]
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _is_cuda(rw) -> bool:
+    return str(rw.tracer.device).startswith("cuda")
+
+
+@contextlib.contextmanager
+def _streams(rw):
+    """Run Warp (and CuPy) on torch's current CUDA stream; a no-op on CPU."""
+    if not _is_cuda(rw):
+        yield
+        return
+    import warp as wp
+    dev = wp.get_device(rw.tracer.device)
+    tstream = torch.cuda.current_stream(torch.device(str(dev)))
+    with wp.ScopedStream(wp.stream_from_torch(tstream)):
+        try:
+            import cupy as cp
+            with cp.cuda.ExternalStream(tstream.cuda_stream):
+                yield
+        except ImportError:
+            yield
+
+
+def load_table(rw, table) -> np.ndarray:
+    """Copy a parameter table ((n_surfaces + 1, N_PARAMS) float64, last row = sensor; layout
+    ``rwwarp.kernels.trace.P_*``) into ``rw``'s tracer (its Warp arrays, in place) and move the
+    reference point of the DOE-plane grid to the plane's current vertex z. Returns the numpy table."""
+    tab = table.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(table) else np.asarray(table, np.float64)
+    tr = rw.tracer
+    if tab.shape != (len(tr.params), ktrace.N_PARAMS):
+        raise ValueError(f"parameter table must be {(len(tr.params), ktrace.N_PARAMS)}, got {tab.shape}")
+    for row, arr in zip(tab, tr.params):
+        arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
+    tr.params_np = tab.copy()
+    # the field grid lies on the DOE plane: its z follows the plane (see TraceSplat.backward)
+    rw.chief_plane[:, 2] = tab[rw.plane, ktrace.P_Z]
+    return tab
+
+
+def distance_from_table(rw, table):
+    """DOE-plane-to-sensor distance (mm) from a parameter table tensor, (n_sources,)."""
+    d = table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]
+    return d.expand(rw.nsrc)
+
+
+def doe_scale(rw):
+    """Per-source DOE wavelength remap ``(n(lambda)-1)/(n0-1) lambda0/lambda`` (numpy (S,)), or None."""
+    s = rw.lens.surfaces[rw.plane]
+    if s.type != "doe":
+        return None
+    cached = getattr(rw, "_bridge_doe_scale", None)
+    if cached is None:
+        from rwwarp import doe
+        cached = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in rw.wls])
+        rw._bridge_doe_scale = cached
+    return cached
+
+
+def _field_to_torch(field_wp, shape):
+    import warp as wp
+    t = wp.to_torch(field_wp)  # (N, 2) float64, zero-copy view of the Warp array
+    return torch.view_as_complex(t).reshape(shape)
+
+
+def _grid_points(rw):
+    """DOE-plane sample coordinates x (S, 1, n), y (S, n, 1) in mm (numpy)."""
+    n, h = rw.plan.n_grid, rw.plan.pitch_mm
+    g = np.arange(n) * h
+    x = rw.origin[:, 0:1] + g[None, :]
+    y = rw.origin[:, 1:2] + g[None, :]
+    return x[:, None, :], y[:, :, None]
+
+
+def _reference_z_factor(rw):
+    """``k n (T_z - c_z) / |T - p|`` on the grid (S, n, n): d(phase of the field)/d(plane z) through
+    the grid's z (the reference sphere put back at the grid points, see kernels/splat.py)."""
+    x, y = _grid_points(rw)
+    T = rw.target
+    c = rw.chief_plane
+    dz = (T[:, 2] - c[:, 2])[:, None, None]
+    dist = np.sqrt((T[:, 0, None, None] - x) ** 2 + (T[:, 1, None, None] - y) ** 2 + dz ** 2)
+    k = (2.0 * np.pi / rw.lam_mm * rw.n_after)[:, None, None]
+    return k * dz / dist
+
+
+# ---------------------------------------------------------------------------------------------- trace + splat
+def trace_splat_forward(rw, table, record: bool):
+    """Run ``rw.field()`` for the parameter ``table``; returns ``(field tensor (S, n, n) complex128,
+    field Warp array, tape or None)``. Without ``record`` no tape and no gradient buffers are kept."""
+    import warp as wp
+    load_table(rw, table)
+    tr = rw.tracer
+    n = rw.plan.n_grid
+    shape = (rw.nsrc, n, n)
+    with _streams(rw):
+        if record:
+            if not tr.requires_grad:
+                raise ValueError("the RayWave was built without requires_grad=True: no gradients can be recorded")
+            tape = wp.Tape()
+            with tape:
+                field_wp, _ = rw.field()
+        else:
+            tape = None
+            keep = tr.requires_grad
+            tr.requires_grad = False
+            try:
+                field_wp, _ = rw.field()
+            finally:
+                tr.requires_grad = keep
+    return _field_to_torch(field_wp, shape), field_wp, tape
+
+
+class TraceSplat(torch.autograd.Function):
+    """Surface parameters -> complex field on the DOE-plane windows of a RayWave.
+
+    ``TraceSplat.apply(table, rw)``: ``table`` a float64 tensor (n_surfaces + 1, N_PARAMS) (last row
+    the sensor; columns ``rwwarp.kernels.trace.P_*``: vertex z in mm, curvature in 1/mm, conic,
+    aspheric coefficients in mm^(1-2i), ...), ``rw`` a :class:`rwwarp.psf.RayWave` built with
+    ``requires_grad=True``. Returns the complex128 field (S, n, n) on the windows, carrier and
+    reference removed as in :meth:`RayWave.field` (energy convention: ``sum |u|^2 pitch^2`` is the
+    traced power).
+
+    Forward copies the table into the tracer's Warp arrays and records ``rw.field()`` on a
+    ``wp.Tape``; backward hands the incoming gradient to the field array, replays the tape, clones the
+    parameter gradients and zeroes the tape. The grid's z follows the DOE plane's vertex z; its
+    contribution to d/d(plane z) (the reference sphere put back on the grid) is added analytically.
+    """
+
+    @staticmethod
+    def forward(ctx, table, rw):
+        record = bool(ctx.needs_input_grad[0])
+        u, field_wp, tape = trace_splat_forward(rw, table, record)
+        ctx.rw, ctx.tape, ctx.field_wp = rw, tape, field_wp
+        ctx.table_device, ctx.table_shape = table.device, tuple(table.shape)
+        ctx.save_for_backward(u)
+        return u
+
+    @staticmethod
+    def backward(ctx, grad_field):
+        import warp as wp
+        rw, tape, field_wp = ctx.rw, ctx.tape, ctx.field_wp
+        if tape is None:
+            return None, None
+        (u,) = ctx.saved_tensors
+        g = grad_field.to(torch.complex128).contiguous()
+        g_real = torch.view_as_real(g).reshape(-1, 2)
+        with _streams(rw):
+            if _is_cuda(rw):
+                g_wp = wp.from_torch(g_real, dtype=wp.vec2d)
+            else:
+                g_wp = wp.array(g_real.detach().cpu().numpy(), dtype=wp.vec2d, device=rw.tracer.device)
+            tape.backward(grads={field_wp: g_wp})
+            grads = np.stack([p.grad.numpy().astype(np.float64) for p in rw.tracer.params])
+            tape.zero()
+        ctx.tape = None  # free the recorded launches and their arrays
+        if rw.use_reference:
+            fac = torch.from_numpy(_reference_z_factor(rw)).to(u.device)
+            grads[rw.plane, ktrace.P_Z] += float(-(torch.imag(torch.conj(g) * u) * fac).sum())
+        return torch.from_numpy(grads).to(ctx.table_device), None
+
+
+# ---------------------------------------------------------------------------------------------- propagation
+def _prop_args(rw, distance):
+    args = list(rw.propagation_args())
+    if distance is not None:
+        args[3] = np.broadcast_to(np.asarray(distance, dtype=np.float64), (rw.nsrc,)).copy()
+    return args
+
+
+def _as_backend_array(t, rw):
+    """A tensor for the wave backend: numpy on CPU (shared memory), the CUDA tensor itself on CUDA
+    (the CuPy backend wraps it in place through ``__cuda_array_interface__``)."""
+    if t is None:
+        return None
+    t = t.detach().contiguous()
+    if t.is_cuda:
+        return t
+    return t.numpy()
+
+
+def _to_torch(be, arr, device):
+    if isinstance(arr, np.ndarray):
+        return torch.from_numpy(arr).to(device)
+    if getattr(be, "is_cpu", True) is False and hasattr(arr, "toDlpack"):  # CuPy
+        return torch.from_dlpack(arr)
+    return torch.from_numpy(be.to_host(arr)).to(device)
+
+
+def sensor_power(rw, field, phi0=None, distance=None):
+    """Power per sensor pixel (S, size, size) without gradients (numpy in, backend array out)."""
+    from rwwarp import propagate, backend as bk
+    be = bk.get_backend(rw.device)
+    return be, propagate.sensor_intensity(
+        be, field, *_prop_args(rw, distance), doe_phase=phi0, doe_scale=None if phi0 is None else doe_scale(rw),
+        carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes)
+
+
+class Propagate(torch.autograd.Function):
+    """DOE-plane field -> power per sensor pixel of a RayWave's sensor patches.
+
+    ``Propagate.apply(field, phi0, distance, rw)``: ``field`` complex128 (S, n, n) on the windows,
+    ``phi0`` the DOE phase (rad) float64 (S, n, n) or None (no DOE), ``distance`` the DOE-plane to
+    sensor distance in mm, float64 (S,) or None (the RayWave's own). Returns float64 (S, size, size):
+    ``|U|^2`` integrated over each pixel (field units^2 mm^2; divide by ``rw.entering`` for the
+    fraction of entering power).
+
+    Backward: :func:`rwwarp.propagate.sensor_intensity_adjoint` (conjugate transfer function on the
+    same cached FFT plans, reusing the node field of the forward pass) for ``field`` and ``phi0``.
+    The kernels have no analytic derivative in the distance, so d/d(distance) is a central
+    difference of the propagation with step ``1e-6 mm`` (truncation ~ (step / depth of focus)^2, well
+    below 1e-6 relative), computed only when the distance needs a gradient.
+    """
+
+    DISTANCE_STEP_MM = 1e-6
+
+    @staticmethod
+    def forward(ctx, field, phi0, distance, rw):
+        from rwwarp import propagate, backend as bk
+        be = bk.get_backend(rw.device)
+        f_h = _as_backend_array(field.to(torch.complex128), rw)
+        p_h = _as_backend_array(phi0.to(torch.float64), rw) if phi0 is not None else None
+        d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()
+        scale = None if phi0 is None else doe_scale(rw)
+        with _streams(rw):
+            inten, nodes = propagate.sensor_intensity(
+                be, f_h, *_prop_args(rw, d_h), doe_phase=p_h, doe_scale=scale, carrier_cpmm=rw.carrier,
+                pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, return_nodes=True)
+            out = _to_torch(be, inten, field.device)
+        ctx.rw, ctx.be, ctx.nodes = rw, be, nodes
+        ctx.host = (f_h, p_h, d_h)
+        ctx.devices = (field.device, None if phi0 is None else phi0.device,
+                       None if distance is None else distance.device)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        from rwwarp import propagate
+        rw, be = ctx.rw, ctx.be
+        f_h, p_h, d_h = ctx.host
+        need_f, need_p, need_d = ctx.needs_input_grad[:3]
+        g_h = _as_backend_array(grad_out.to(torch.float64), rw)
+        scale = None if p_h is None else doe_scale(rw)
+        common = dict(doe_phase=p_h, doe_scale=scale, carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad,
+                      gauss_nodes=rw.gauss_nodes)
+        gf = gp = gd = None
+        with _streams(rw):
+            if need_f or need_p:
+                gf_d, gp_d = propagate.sensor_intensity_adjoint(be, g_h, f_h, *_prop_args(rw, d_h), nodes=ctx.nodes,
+                                                                **common)
+                if need_f:
+                    gf = _to_torch(be, gf_d, ctx.devices[0])
+                if need_p and gp_d is not None:
+                    gp = _to_torch(be, gp_d, ctx.devices[1])
+            if need_d:
+                d0 = np.broadcast_to(d_h if d_h is not None else rw.z_sensor - rw.z_plane, (rw.nsrc,))
+                h = Propagate.DISTANCE_STEP_MM
+                ip = propagate.sensor_intensity(be, f_h, *_prop_args(rw, d0 + h), **common)
+                im = propagate.sensor_intensity(be, f_h, *_prop_args(rw, d0 - h), **common)
+                dI = (_to_torch(be, ip, ctx.devices[2]) - _to_torch(be, im, ctx.devices[2])) / (2.0 * h)
+                gd = (grad_out.to(dI.device, torch.float64) * dI).sum(dim=(1, 2))
+        ctx.nodes = None
+        return gf, gp, gd, None
+
+
+# ---------------------------------------------------------------------------------------------- precision, quantisation
+class MixedPrecision(torch.autograd.Function):
+    """float64 -> float32 on the way forward, the float32 gradient -> float64 on the way back.
+
+    The paper's mixed precision: optics in double, the network in single precision. Complex input
+    maps complex128 -> complex64.
+    """
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.dtype = x.dtype
+        return x.to(torch.complex64 if x.is_complex() else torch.float32)
+
+    @staticmethod
+    def backward(ctx, g):
+        return g.to(ctx.dtype)
+
+
+def mixed_precision(x):
+    """:class:`MixedPrecision` applied to ``x`` (float64 -> float32)."""
+    return MixedPrecision.apply(x)
+
+
+class QuantizeSTE(torch.autograd.Function):
+    """DOE relief phase: ``phi`` (rad) wrapped to [0, 2 pi) and quantised to ``levels`` levels
+    (``k 2 pi / levels``, the top level folding to 0, as :func:`rwwarp.doe.quantize`), with a
+    straight-through gradient (identity). ``levels=None``: wrap only (its derivative is 1 a.e.)."""
+
+    @staticmethod
+    def forward(ctx, phi, levels):
+        two_pi = 2.0 * math.pi
+        w = torch.remainder(phi, two_pi)
+        if levels is None:
+            return w
+        step = two_pi / int(levels)
+        k = torch.round(w / step)
+        return torch.where(k >= int(levels), torch.zeros_like(w), k * step)
+
+    @staticmethod
+    def backward(ctx, g):
+        return g, None
+
+
+def quantize_ste(phi, levels=None):
+    """:class:`QuantizeSTE` applied to ``phi`` (rad)."""
+    return QuantizeSTE.apply(phi, levels)
+
+
+# ---------------------------------------------------------------------------------------------- chained
+def raywave_psf(rw, table, phi0=None, distance=None):
+    """The ray-wave PSFs of a RayWave batch as a differentiable tensor (S, size, size): fraction of
+    the entering power per sensor pixel (as :func:`rwwarp.psf`).
+
+    ``table``: float64 parameter table (n_surfaces + 1, N_PARAMS); ``phi0``: DOE phase on the windows
+    (rad, (S, n, n)) or None for no DOE; ``distance``: DOE-to-sensor distance (mm, (S,)), default from
+    the table (so the last thickness learns). Paper amplitude convention: the global field scale is
+    formed in torch (differentiable).
+    """
+    u = TraceSplat.apply(table, rw)
+    if rw.amplitude != "energy":
+        valid_power = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
+        pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
+        u = u * torch.sqrt(torch.where(pw > 0, valid_power / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
+    if distance is None:
+        distance = distance_from_table(rw, table)
+    power = Propagate.apply(u, phi0, distance, rw)
+    entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
+    return power / entering[:, None, None]

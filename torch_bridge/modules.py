@@ -1,0 +1,543 @@
+"""torch modules: a hybrid refractive-diffractive lens whose PSFs carry gradients.
+
+:class:`HybridLens` wraps a :class:`rwwarp.lens.Lens`. Its optical quantities are tensors (float64):
+
+============ ====================== =========================================================
+name         shape                  meaning (units)
+============ ====================== =========================================================
+curvature    (n_surfaces,)          vertex curvature 1/R of ``standard`` surfaces (1/mm)
+thickness    (n_surfaces,)          axial distance to the next surface; the last one is the
+                                    distance to the sensor (mm). Vertex z = cumulative sum.
+conic        (n_surfaces,)          conic constant of ``standard`` surfaces
+aspheric     (n_surfaces, 9)        r^4 .. r^20 coefficients (mm^-3 .. mm^-19)
+doe          (n_coefficients,)      DOE profile coefficients (rad): ``even_poly``/``poly``/
+                                    ``zernike`` coefficients, ``cubic`` [alpha],
+                                    ``fresnel`` [focal_length (mm)]
+doe          (ny, nx)               ``pixel_map`` DOE: the phase map (rad)
+============ ====================== =========================================================
+
+Which entries learn is chosen per quantity and per entry with ``learn``: a dict from a name above
+to ``"all"`` or a list of entries (surface indices; ``(surface, k)`` pairs for ``aspheric``
+(k = 0 is r^4); coefficient indices or ``(row, col)`` pairs of a pixel map for ``doe``). Each
+quantity ``q`` is stored as a buffer ``q_base`` (all entries), a buffer ``q_index`` (flat indices
+of the learning entries) and an ``nn.Parameter`` ``q`` holding just those entries, so optimisers
+never touch frozen entries and ``state_dict`` round-trips exactly. ``.to(device)`` moves all of
+them; the rwwarp device follows (``"cpu"`` or ``"cuda:N"``).
+
+**Sampling plans are not differentiated.** Every forward call makes the discrete decisions of the
+ray-wave model (plan: DOE-plane pitch, window, FFT size, ray count; sensor patch position; chief
+ray carrier; reference sphere; entrance pupil; ray validity) from the current lens values, then
+differentiates the smooth part for that plan. ``replan=False`` (or :meth:`frozen_plans`) keeps
+the first plan of each (fields, wavelengths, size) request, which makes the loss an exactly
+differentiable function of the parameters between calls (needed for finite-difference checks,
+and cheaper per step); replanning now and then is advisable when parameters move a lot.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from rwwarp.kernels import trace as ktrace
+from rwwarp.lens import Lens, MAX_ASPHERIC
+from rwwarp.plan import Plan
+
+from .functions import (TraceSplat, Propagate, quantize_ste, trace_splat_forward, sensor_power, doe_scale,
+                        _to_torch)
+
+__all__ = ["HybridLens", "QUANTITIES"]
+
+QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe")
+_LINEAR_DOE = ("even_poly", "poly", "zernike", "cubic")
+
+
+def _rw_device(t: torch.Tensor) -> str:
+    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
+
+
+class HybridLens(nn.Module):
+    """A rwwarp lens as an ``nn.Module`` whose PSFs and PSF maps carry gradients to its parameters.
+
+    Parameters
+    ----------
+    lens : rwwarp.lens.Lens
+        The lens (copied). The ray-wave model needs the DOE (if any) behind every refracting surface.
+    learn : dict, optional
+        ``{quantity: "all" | [entries]}`` (see the module docstring); everything else is a buffer.
+    plan : "auto" | "paper" | rwwarp.plan.Plan
+        Sampling plan policy of each forward call.
+    rays_per_sample, nyquist_safety, amplitude, gauss_nodes, use_reference :
+        As :func:`rwwarp.psf` (``amplitude`` "energy" or "paper").
+    replan : bool
+        True (default): a new plan per forward call; False: plans cached per request (see the
+        module docstring).
+
+    Methods return tensors: :meth:`psf` (size, size), :meth:`psf_map` (n_fields, n_wavelengths,
+    size, size), fractions of the entering power per sensor pixel; :meth:`to_lens` exports the
+    current values as a :class:`~rwwarp.lens.Lens`.
+    """
+
+    def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.5,
+                 nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int = 3,
+                 use_reference: bool = True, replan: bool = True):
+        super().__init__()
+        self.lens_template = copy.deepcopy(lens)
+        self.plan_policy = plan
+        self.rays_per_sample = float(rays_per_sample)
+        self.nyquist_safety = float(nyquist_safety)
+        self.amplitude = amplitude
+        self.gauss_nodes = int(gauss_nodes)
+        self.use_reference = bool(use_reference)
+        self.replan = bool(replan)
+        self._plans: dict = {}
+        surfs = lens.surfaces
+        ns = len(surfs)
+        std = [s.type == "standard" for s in surfs]
+        self.register_buffer("standard_mask", torch.tensor(std, dtype=torch.bool), persistent=False)
+        curv = [s.curvature if s.type == "standard" else 0.0 for s in surfs]
+        asph = np.zeros((ns, MAX_ASPHERIC))
+        for i, s in enumerate(surfs):
+            if s.type == "standard" and s.aspheric:
+                asph[i, :len(s.aspheric)] = s.aspheric
+        base = {"curvature": np.array(curv, dtype=np.float64),
+                "thickness": np.array([s.thickness for s in surfs], dtype=np.float64),
+                "conic": np.array([s.conic if s.type == "standard" else 0.0 for s in surfs], dtype=np.float64),
+                "aspheric": asph,
+                "doe": self._doe_base(lens)}
+        learn = dict(learn or {})
+        unknown = set(learn) - set(QUANTITIES)
+        if unknown:
+            raise ValueError(f"unknown quantities in learn: {sorted(unknown)} (choose from {QUANTITIES})")
+        for q in QUANTITIES:
+            b = torch.from_numpy(np.ascontiguousarray(base[q], dtype=np.float64))
+            idx = self._flat_indices(q, learn.get(q), b.shape, std)
+            self.register_buffer(f"{q}_base", b)
+            self.register_buffer(f"{q}_index", idx)
+            setattr(self, q, nn.Parameter(b.reshape(-1)[idx].clone()))
+
+    # ------------------------------------------------------------------ parameters
+    def _doe_base(self, lens):
+        d = lens.doe_index
+        self.doe_kind = None
+        if d is None:
+            return np.zeros(0)
+        s = lens.surfaces[d]
+        from rwwarp import doe
+        prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else
+                                     __import__("pathlib").Path(lens.source).parent)
+        self.doe_kind = prof.kind
+        if prof.kind in ("even_poly", "poly", "zernike"):
+            return np.array(prof.coefficients, dtype=np.float64)
+        if prof.kind == "cubic":
+            return np.array([prof.alpha], dtype=np.float64)
+        if prof.kind == "fresnel":
+            return np.array([prof.focal_length], dtype=np.float64)
+        if prof.kind == "pixel_map":
+            self._pixel_pitch = prof.pitch
+            return np.array(prof.data, dtype=np.float64)
+        raise ValueError(f"unsupported DOE profile kind {prof.kind!r}")
+
+    def _flat_indices(self, q, spec, shape, std):
+        numel = int(np.prod(shape))
+        if spec is None:
+            return torch.zeros(0, dtype=torch.long)
+        if isinstance(spec, str):
+            if spec != "all":
+                raise ValueError(f"learn[{q!r}] must be 'all' or a list, got {spec!r}")
+            if q in ("curvature", "conic"):
+                flat = [i for i in range(numel) if std[i]]
+            elif q == "aspheric":
+                flat = [i for i in range(numel) if std[i // MAX_ASPHERIC]]
+            else:
+                flat = list(range(numel))
+        else:
+            flat = []
+            for e in spec:
+                if isinstance(e, (tuple, list)):
+                    if len(shape) != 2:
+                        raise ValueError(f"learn[{q!r}]: entry {e!r} is a pair but {q} is 1-D")
+                    r, c = int(e[0]), int(e[1])
+                    if not (0 <= r < shape[0] and 0 <= c < shape[1]):
+                        raise ValueError(f"learn[{q!r}]: entry {e!r} outside {tuple(shape)}")
+                    flat.append(r * shape[1] + c)
+                else:
+                    i = int(e)
+                    if len(shape) == 2 and q == "aspheric":
+                        raise ValueError("learn['aspheric'] entries are (surface, k) pairs, k = 0 for r^4")
+                    if not 0 <= i < numel:
+                        raise ValueError(f"learn[{q!r}]: index {i} outside 0..{numel - 1}")
+                    flat.append(i)
+            if q in ("curvature", "conic", "aspheric"):
+                for i in flat:
+                    s = i // MAX_ASPHERIC if q == "aspheric" else i
+                    if not std[s]:
+                        raise ValueError(f"learn[{q!r}]: surface {s} is not a 'standard' surface")
+        return torch.tensor(sorted(set(flat)), dtype=torch.long)
+
+    def value(self, q: str) -> torch.Tensor:
+        """Current full tensor of quantity ``q`` (the learning entries from the parameter, the rest
+        from the buffer); differentiable with respect to the parameter."""
+        base = getattr(self, f"{q}_base")
+        idx = getattr(self, f"{q}_index")
+        if idx.numel() == 0:
+            return base
+        flat = base.reshape(-1).index_put((idx,), getattr(self, q).to(base.dtype))
+        return flat.reshape(base.shape)
+
+    def values(self) -> dict:
+        """All quantities, ``{name: tensor}``."""
+        return {q: self.value(q) for q in QUANTITIES}
+
+    @property
+    def rw_device(self) -> str:
+        """rwwarp device string of the module's tensors ("cpu" or "cuda:N")."""
+        return _rw_device(self.thickness_base)
+
+    # ------------------------------------------------------------------ export
+    def to_lens(self) -> Lens:
+        """The current values as a new :class:`~rwwarp.lens.Lens` (validated). A pixel-map DOE is
+        written inline (``profile.data``); :meth:`save_lens` can write it to a .npy file."""
+        v = {q: self.value(q).detach().cpu().numpy() for q in QUANTITIES}
+        lens = copy.deepcopy(self.lens_template)
+        for i, s in enumerate(lens.surfaces):
+            s.thickness = float(v["thickness"][i])
+            if s.type == "standard":
+                c = float(v["curvature"][i])
+                s.radius = None if c == 0.0 else 1.0 / c
+                s.conic = float(v["conic"][i])
+                a = v["aspheric"][i]
+                nz = np.nonzero(a)[0]
+                keep = max(len(s.aspheric), int(nz[-1]) + 1 if nz.size else 0)
+                s.aspheric = [float(x) for x in a[:keep]]
+        d = lens.doe_index
+        if d is not None:
+            s = lens.surfaces[d]
+            p = dict(s.profile)
+            if self.doe_kind in ("even_poly", "poly", "zernike"):
+                p["coefficients"] = [float(x) for x in v["doe"]]
+            elif self.doe_kind == "cubic":
+                p["alpha"] = float(v["doe"][0])
+            elif self.doe_kind == "fresnel":
+                p["focal_length"] = float(v["doe"][0])
+            elif self.doe_kind == "pixel_map":
+                p.pop("file", None)
+                p["data"] = v["doe"].tolist()
+            s.profile = p
+        lens.validate()
+        return lens
+
+    def save_lens(self, path) -> None:
+        """Write the current lens as a native ``rwwarp-lens/1`` JSON file; a pixel-map DOE goes to
+        ``<path stem>_doe.npy`` next to it, referenced by ``profile.file``."""
+        from pathlib import Path
+        path = Path(path)
+        lens = self.to_lens()
+        d = lens.doe_index
+        if d is not None and self.doe_kind == "pixel_map":
+            npy = path.with_name(path.stem + "_doe.npy")
+            np.save(npy, self.value("doe").detach().cpu().numpy())
+            p = dict(lens.surfaces[d].profile)
+            p.pop("data", None)
+            p["file"] = npy.name
+            lens.surfaces[d].profile = p
+        lens.save(path)
+
+    # ------------------------------------------------------------------ plans
+    @contextlib.contextmanager
+    def frozen_plans(self):
+        """Within the block, plans (RayWave objects) are cached per request and reused."""
+        keep = self.replan
+        self.replan = False
+        try:
+            yield self
+        finally:
+            self.replan = keep
+
+    def clear_plans(self):
+        """Forget cached plans."""
+        self._plans.clear()
+
+    def raywave(self, fields, wavelengths_um, size, *, object_distance_mm=None, pixel_mm=None, center_mm=None,
+                plan=None):
+        """The :class:`rwwarp.psf.RayWave` (plan and discrete decisions) for sources ``fields`` x
+        ``wavelengths_um`` (paired element-wise), built from the current values (or cached, see
+        ``replan``)."""
+        from rwwarp.psf import RayWave
+        from rwwarp.trace import as_field_list
+        fields = as_field_list(fields)
+        wls = [float(w) for w in wavelengths_um]
+        plan = self.plan_policy if plan is None else plan
+        key = (tuple(tuple(f) if np.ndim(f) else float(f) for f in fields), tuple(wls), int(size),
+               object_distance_mm, pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)),
+               plan if isinstance(plan, str) else (plan.pitch_mm, plan.n_grid, plan.n_pad, plan.ray_grid),
+               self.rw_device)
+        if not self.replan and key in self._plans:
+            return self._plans[key]
+        lens = self.to_lens()
+        pixel = float(pixel_mm or lens.sensor.pixel_pitch)
+        rw = RayWave(lens, fields, wls, int(size), pixel, device=self.rw_device, plan=plan, dtype="float64",
+                     amplitude=self.amplitude, object_distance_mm=object_distance_mm,
+                     rays_per_sample=self.rays_per_sample, center_mm=center_mm, use_reference=self.use_reference,
+                     gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety, requires_grad=True)
+        rw._bridge_base_table = rw.tracer.params_np.copy()
+        if not self.replan:
+            self._plans[key] = rw
+        return rw
+
+    # ------------------------------------------------------------------ differentiable pieces
+    def param_table(self, rw, values=None) -> torch.Tensor:
+        """The tracer's parameter table (n_surfaces + 1, N_PARAMS) as a float64 tensor built from
+        the current values (vertex z = cumulative thickness, curvature, conic, aspheric)."""
+        v = values or self.values()
+        dev = v["thickness"].device
+        base = torch.as_tensor(rw._bridge_base_table, dtype=torch.float64, device=dev)
+        t = v["thickness"]
+        zero = torch.zeros(1, dtype=t.dtype, device=dev)
+        z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
+        std = torch.cat([self.standard_mask.to(dev), torch.zeros(1, dtype=torch.bool, device=dev)])
+        cols = [base[:, j] for j in range(ktrace.N_PARAMS)]
+        cols[ktrace.P_Z] = z
+        cols[ktrace.P_C] = torch.where(std, torch.cat([v["curvature"], zero]), cols[ktrace.P_C])
+        cols[ktrace.P_K] = torch.where(std, torch.cat([v["conic"], zero]), cols[ktrace.P_K])
+        asph = torch.cat([v["aspheric"], torch.zeros(1, MAX_ASPHERIC, dtype=t.dtype, device=dev)])
+        for k in range(ktrace.N_ASPH):
+            cols[ktrace.P_A0 + k] = torch.where(std, asph[:, k], cols[ktrace.P_A0 + k])
+        return torch.stack(cols, dim=1)
+
+    def doe_phase(self, rw, values=None):
+        """DOE relief phase phi0 (rad) on each window of ``rw``, (S, n, n) float64, built in torch from
+        the DOE values (wrapped to [0, 2 pi), quantised with a straight-through gradient when the
+        surface has ``levels``, zero outside its aperture): the same samples as
+        :meth:`rwwarp.psf.RayWave.doe_phase`. None without a DOE."""
+        s = rw.lens.surfaces[rw.plane]
+        if s.type != "doe":
+            return None
+        v = (values or self.values())["doe"]
+        dev = v.device
+        geo = getattr(rw, "_bridge_doe_geometry", None)
+        if geo is None:
+            geo = self._doe_geometry(rw, s)
+            rw._bridge_doe_geometry = geo
+        kind = self.doe_kind
+        if kind in ("even_poly", "poly"):
+            var = torch.as_tensor(geo["var"], device=dev)
+            phi = torch.zeros_like(var)
+            for a in reversed(list(v.unbind(0))):  # Horner, ascending coefficients times var
+                phi = (phi + a) * var
+        elif kind in ("zernike", "cubic"):
+            basis = torch.as_tensor(geo["basis"], device=dev)
+            phi = torch.tensordot(v, basis, dims=1) if v.numel() else torch.zeros(basis.shape[1:], dtype=v.dtype,
+                                                                                   device=dev)
+        elif kind == "fresnel":
+            r2 = torch.as_tensor(geo["r2"], device=dev)
+            phi = -math.pi * r2 / (s.design_wavelength_um * 1e-3 * v[0])
+        elif kind == "pixel_map":
+            row = torch.as_tensor(geo["row"], device=dev)
+            col = torch.as_tensor(geo["col"], device=dev)
+            phi = torch.where(torch.as_tensor(geo["in_map"], device=dev), v[row, col], torch.zeros((), dtype=v.dtype,
+                                                                                              device=dev))
+        else:
+            raise ValueError(f"unsupported DOE kind {kind!r}")
+        phi = quantize_ste(phi, s.levels)
+        return torch.where(torch.as_tensor(geo["inside"], device=dev), phi, torch.zeros((), dtype=phi.dtype, device=dev))
+
+    def _doe_geometry(self, rw, s):
+        n, h = rw.plan.n_grid, rw.plan.pitch_mm
+        g = np.arange(n) * h
+        x = rw.origin[:, 0, None, None] + g[None, None, :]
+        y = rw.origin[:, 1, None, None] + g[None, :, None]
+        x, y = np.broadcast_arrays(x, y)
+        if s.shape == "square":
+            inside = (np.abs(x) <= s.semi_diameter) & (np.abs(y) <= s.semi_diameter)
+        elif s.semi_diameter:
+            inside = x * x + y * y <= s.semi_diameter ** 2
+        else:
+            inside = np.ones_like(x, dtype=bool)
+        geo = {"inside": inside}
+        prof = s.profile
+        kind = self.doe_kind
+        if kind == "even_poly":
+            geo["var"] = (x * x + y * y) / float(prof["norm_radius"]) ** 2
+        elif kind == "poly":
+            geo["var"] = np.sqrt(x * x + y * y) / float(prof["norm_radius"])
+        elif kind == "fresnel":
+            geo["r2"] = x * x + y * y
+        elif kind in ("zernike", "cubic"):
+            from rwwarp import doe
+            m = self.doe_base.numel()
+            basis = np.empty((m,) + x.shape)
+            for j in range(m):
+                p = dict(prof)
+                if kind == "cubic":
+                    p["alpha"] = 1.0
+                else:
+                    e = [0.0] * m
+                    e[j] = 1.0
+                    p["coefficients"] = e
+                basis[j] = doe.profile_from_dict(p).phase(x, y, s.design_wavelength_um)
+            geo["basis"] = basis
+        elif kind == "pixel_map":
+            ny, nx = self.doe_base.shape
+            p = self._pixel_pitch
+            col = np.floor(x / p + nx / 2.0)
+            row = np.floor(ny / 2.0 - y / p)
+            in_map = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+            geo["row"] = np.where(in_map, row, 0).astype(np.int64)
+            geo["col"] = np.where(in_map, col, 0).astype(np.int64)
+            geo["in_map"] = in_map
+        return geo
+
+    def _psf_rw(self, rw, values, record: bool = True):
+        """PSFs (S, size, size) of one RayWave batch from the given values. ``record=False``: plain
+        forward, no tape, no graph (used by the tiled checkpointing)."""
+        table = self.param_table(rw, values)
+        phi0 = self.doe_phase(rw, values)
+        dist = (table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]).expand(rw.nsrc)
+        if record:
+            u = TraceSplat.apply(table, rw)
+        else:
+            u, _, _ = trace_splat_forward(rw, table, record=False)
+        if rw.amplitude != "energy":
+            q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
+            pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
+            u = u * torch.sqrt(torch.where(pw > 0, q / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
+        if record:
+            power = Propagate.apply(u, phi0, dist, rw)
+        else:
+            from .functions import _as_backend_array
+            be, p = sensor_power(rw, _as_backend_array(u, rw), _as_backend_array(phi0, rw),
+                                 dist.detach().cpu().numpy())
+            power = _to_torch(be, p, u.device)
+        entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
+        return power / entering[:, None, None]
+
+    # ------------------------------------------------------------------ public
+    def psf(self, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, *, object_distance_mm=None,
+            pixel_mm=None, center_mm=None, return_centers: bool = False):
+        """Differentiable PSF (size, size), float64: fraction of the entering power per sensor pixel
+        (rows along +y, columns along +x, as :func:`rwwarp.psf`). ``field_deg`` (deg, y or (x, y)),
+        ``wavelength_um`` (um), ``object_distance_mm`` (mm, default the lens's), ``pixel_mm`` (mm,
+        default the sensor's). ``return_centers``: also the sensor (x, y) of the centre pixel (mm)."""
+        rw = self.raywave([field_deg], [wavelength_um], size, object_distance_mm=object_distance_mm,
+                          pixel_mm=pixel_mm, center_mm=center_mm)
+        out = self._psf_rw(rw, self.values())[0]
+        return (out, rw.centers[0].copy()) if return_centers else out
+
+    def psf_map(self, fields, wavelengths_um, size: int = 64, *, object_distance_mm=None, pixel_mm=None,
+                tile: int | None = None, memory_budget_bytes: int | None = None, checkpoint: bool | None = None,
+                progress: bool = False, return_centers: bool = False):
+        """Differentiable PSF map (n_fields, n_wavelengths, size, size), float64.
+
+        One sampling plan covers the whole map (made from all sources' pilot traces). Sources are
+        computed in tiles of ``tile`` (field, wavelength) pairs; ``memory_budget_bytes`` chooses the
+        tile from an estimate of the bytes one source needs (rays and their gradients for every
+        traced surface, the DOE-plane grid, the padded FFT work space) and caps the transfer-function
+        cache. With ``checkpoint`` (default: on when the map has more than one tile) each tile runs
+        without a tape on the way forward and is recomputed under a fresh tape in the backward pass,
+        so peak memory is one tile's, independent of the map size.
+        ``return_centers``: also the centre-pixel sensor positions (n_fields, n_wavelengths, 2), mm.
+        """
+        from rwwarp.trace import as_field_list
+        fields = as_field_list(fields)
+        wls = [float(w) for w in wavelengths_um]
+        pairs = [(i, j) for i in range(len(fields)) for j in range(len(wls))]
+        src_f = [fields[i] for i, _ in pairs]
+        src_w = [wls[j] for _, j in pairs]
+        full = self.raywave(src_f, src_w, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
+        explicit = Plan(full.plan.pitch_mm, full.plan.n_grid, full.plan.n_pad, full.plan.ray_grid, "map",
+                        False, list(full.plan.reasons))
+        if tile is None:
+            tile = len(pairs) if memory_budget_bytes is None else \
+                max(1, int(memory_budget_bytes // max(self.bytes_per_source(full), 1)))
+        tile = max(1, min(int(tile), len(pairs)))
+        chunks = [list(range(k, min(k + tile, len(pairs)))) for k in range(0, len(pairs), tile)]
+        if checkpoint is None:
+            checkpoint = len(chunks) > 1
+        values = self.values()
+        names = list(values)
+        tensors = [values[q] for q in names]
+        it = chunks
+        if progress:
+            from tqdm.auto import tqdm
+            it = tqdm(chunks, desc="PSF tiles", unit="tile")
+        outs, centers = [], np.zeros((len(pairs), 2))
+        with self._cache_limit(memory_budget_bytes):
+            for ch in it:
+                f_t = [src_f[k] for k in ch]
+                w_t = [src_w[k] for k in ch]
+                if len(chunks) == 1:
+                    rw = full
+                else:
+                    rw = self.raywave(f_t, w_t, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
+                                      plan=explicit)
+                centers[ch] = rw.centers
+
+                def run(*ts, rw=rw, record=True):
+                    return self._psf_rw(rw, dict(zip(names, ts)), record=record)
+                if checkpoint and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+                    outs.append(_Recompute.apply(run, *tensors))
+                else:
+                    outs.append(run(*tensors))
+        out = torch.cat(outs, 0).reshape(len(fields), len(wls), size, size)
+        if return_centers:
+            return out, centers.reshape(len(fields), len(wls), 2)
+        return out
+
+    def bytes_per_source(self, rw) -> int:
+        """Estimated peak bytes one source needs in a recorded forward + backward (CPU and CUDA):
+        rays with gradients for each surface up to the DOE plane, the splat and field grids with
+        gradients, the DOE phase, the padded FFT work space and the sensor nodes."""
+        pl = rw.plan
+        rays = pl.ray_grid ** 2
+        per_ray = 120 * (rw.plane + 2) + 64          # pos, dir, opl, valid (+ grads) per launch; tube boxes
+        per_sample = 16 * 2 * 2 + 16 * 4 + 8 * 6      # s_re/s_im (+grad), field (+grad, torch views), phi0 etc.
+        per_pad = 16 * 3                              # padded FFT work space, band, transfer function
+        nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
+        return int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes)
+
+    @contextlib.contextmanager
+    def _cache_limit(self, budget):
+        if budget is None:
+            yield
+            return
+        from rwwarp import backend as bk
+        be = bk.get_backend(self.rw_device)
+        keep = be.cache.max_bytes
+        be.cache.max_bytes = min(keep, int(budget) // 4)
+        be.cache.clear()
+        try:
+            yield
+        finally:
+            be.cache.max_bytes = keep
+
+    def forward(self, fields, wavelengths_um, size: int = 64, **kw):
+        """Same as :meth:`psf_map`."""
+        return self.psf_map(fields, wavelengths_um, size, **kw)
+
+
+class _Recompute(torch.autograd.Function):
+    """Checkpoint of one tile: forward without tape or graph, backward recomputes under a fresh tape
+    (the template of warp's examples/optim/example_fluid_checkpoint.py), so a tile's tape lives
+    only while its own gradient is formed."""
+
+    @staticmethod
+    def forward(ctx, run, *tensors):
+        ctx.run = run
+        ctx.save_for_backward(*tensors)
+        return run(*tensors, record=False)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        ts = [t.detach().requires_grad_(t.requires_grad) for t in ctx.saved_tensors]
+        with torch.enable_grad():
+            out = ctx.run(*ts, record=True)
+        need = [t for t in ts if t.requires_grad]
+        got = torch.autograd.grad(out, need, grad_out, allow_unused=True)
+        it = iter(got)
+        grads = [next(it) if t.requires_grad else None for t in ts]
+        ctx.run = None
+        return (None, *grads)
