@@ -18,6 +18,7 @@ ray-tube irradiance q / A: it follows ray density, partly covered edge samples g
 fraction of the amplitude, and the field power ``sum |U|^2 pitch^2`` equals the traced power.
 
 with the reference sphere ``OPL_ref(p) = OPL_c + n (|T - p_c| - |T - p|)`` converging to the point T
+(``index`` negative: diverging from T)
 (factoring it out keeps psi small, so the bilinear splat of the phasor is accurate and fits float32).
 ``theta`` is the ray angle to the DOE normal (z).
 

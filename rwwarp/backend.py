@@ -34,15 +34,18 @@ import numpy as np
 
 __all__ = [
     "Backend",
-    "OpenCLBackend",
     "CudaBackend",
+    "OpenCLBackend",
+    "complex_dtype",
     "get_backend",
     "kernel_source",
-    "complex_dtype",
     "real_dtype",
 ]
 
-_COMPLEX_TO_REAL = {np.dtype(np.complex128): np.dtype(np.float64), np.dtype(np.complex64): np.dtype(np.float32)}
+_COMPLEX_TO_REAL = {
+    np.dtype(np.complex128): np.dtype(np.float64),
+    np.dtype(np.complex64): np.dtype(np.float32),
+}
 
 
 def complex_dtype(dtype) -> np.dtype:
@@ -221,11 +224,16 @@ class Backend:
         self.cache.clear()
 
     # -- kernels --------------------------------------------------------------------------
-    def _build_options(self, dtype) -> list[str]:
+    def _build_options(self, dtype, defines=()) -> list[str]:
         dt = complex_dtype(dtype)
-        opts = ["-DREAL=double", "-DREAL_IS_DOUBLE=1"] if dt == np.complex128 else ["-DREAL=float", "-DREAL_IS_DOUBLE=0"]
+        opts = (
+            ["-DREAL=double", "-DREAL_IS_DOUBLE=1"]
+            if dt == np.complex128
+            else ["-DREAL=float", "-DREAL_IS_DOUBLE=0"]
+        )
         if self.has_fp64:
             opts.append("-DRW_HAVE_FP64=1")
+        opts += [f"-D{d}" for d in defines]
         return opts
 
     def _scalar(self, kind: str, value, dtype):
@@ -239,11 +247,13 @@ class Backend:
             return self.phase_dtype.type(value)
         raise TypeError(f"unsupported kernel scalar type {kind!r}")
 
-    def launch(self, source: str, name: str, dtype, global_size, local_size, *args):
+    def launch(self, source: str, name: str, dtype, global_size, local_size, *args, defines=()):
         """Queue kernel ``name`` of ``kernels/opencl/<source>`` built for ``dtype`` (complex64 or
         complex128). ``global_size``/``local_size``: up to 3 ints, axis 0 fastest; the global size
         is rounded up to whole work-groups (kernels check their bounds). ``args``: device arrays
-        for pointer parameters, Python numbers for scalars (converted to the declared type)."""
+        for pointer parameters, Python numbers for scalars (converted to the declared type).
+        ``defines``: extra ``NAME=VALUE`` macros (e.g. tile sizes); each distinct set is one more
+        build of the source, cached like the others."""
         raise NotImplementedError  # pragma: no cover
 
     def _signature(self, source: str, name: str):
@@ -300,6 +310,7 @@ class OpenCLBackend(Backend):
         self.phase_dtype = np.dtype(np.float64 if self.has_fp64 else np.float32)
         self.is_cpu = bool(cl_device.type & cl.device_type.CPU)
         self.max_work_group_size = int(cl_device.max_work_group_size)
+        self.compute_units = int(cl_device.max_compute_units)
 
     # arrays
     def is_device_array(self, arr) -> bool:
@@ -360,20 +371,20 @@ class OpenCLBackend(Backend):
         self.queue.finish()
 
     # kernels
-    def _program(self, source: str, dtype):
-        key = (source, complex_dtype(dtype).str)
+    def _program(self, source: str, dtype, defines=()):
+        key = (source, complex_dtype(dtype).str, tuple(defines))
         with self._lock:
             entry = self._programs.get(key)
             if entry is None:
                 prg = self._cl.Program(self.context, kernel_source(source)).build(
-                    options=self._build_options(dtype)
+                    options=self._build_options(dtype, defines)
                 )
                 entry = (prg, {})
                 self._programs[key] = entry
         return entry
 
-    def launch(self, source, name, dtype, global_size, local_size, *args):
-        prg, kernels = self._program(source, dtype)
+    def launch(self, source, name, dtype, global_size, local_size, *args, defines=()):
+        prg, kernels = self._program(source, dtype, defines)
         sig = self._signature(source, name)
         if len(sig) != len(args):
             raise TypeError(f"{name}: expected {len(sig)} arguments, got {len(args)}")
@@ -437,11 +448,13 @@ class CudaBackend(Backend):
         self.name = name.decode() if isinstance(name, bytes) else str(name)
         self.has_fp64 = True
         self.phase_dtype = np.dtype(np.float64)
+        self.compute_units = int(props.get("multiProcessorCount", 1))
+        self.is_cpu = False
         try:
             from pyvkfft.cuda import VkFFTApp  # noqa: F401
 
             self._vkfft = True
-        except Exception:  # ImportError or missing _vkfft_cuda library
+        except (ImportError, OSError, RuntimeError):  # no CuPy/PyCUDA or no _vkfft_cuda library
             self._vkfft = False
 
     def is_device_array(self, arr) -> bool:
@@ -474,21 +487,21 @@ class CudaBackend(Backend):
         with self.cuda_device:
             self.cp.cuda.get_current_stream().synchronize()
 
-    def _module(self, source: str, dtype):
-        key = (source, complex_dtype(dtype).str)
+    def _module(self, source: str, dtype, defines=()):
+        key = (source, complex_dtype(dtype).str, tuple(defines))
         with self._lock:
             entry = self._programs.get(key)
             if entry is None:
                 code = kernel_source("cuda_compat.h") + "\n" + kernel_source(source)
-                opts = tuple(["-DRW_CUDA=1", "--std=c++17"] + self._build_options(dtype))
+                opts = tuple(["-DRW_CUDA=1", "--std=c++17"] + self._build_options(dtype, defines))
                 with self.cuda_device:
                     mod = self.cp.RawModule(code=code, options=opts)
                 entry = (mod, {})
                 self._programs[key] = entry
         return entry
 
-    def launch(self, source, name, dtype, global_size, local_size, *args):
-        mod, kernels = self._module(source, dtype)
+    def launch(self, source, name, dtype, global_size, local_size, *args, defines=()):
+        mod, kernels = self._module(source, dtype, defines)
         sig = self._signature(source, name)
         if len(sig) != len(args):
             raise TypeError(f"{name}: expected {len(sig)} arguments, got {len(args)}")
@@ -540,7 +553,7 @@ def _find_cpu_device():
     raise RuntimeError("no OpenCL CPU device found (install PoCL: pip install pocl-binary-distribution)")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _make_backend(device: str) -> Backend:
     m = _DEVICE_RE.match(device)
     if m is None:

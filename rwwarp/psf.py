@@ -232,9 +232,9 @@ def _doe_phase_grid(lens, plane, origin, pitch, n):
         x, y = np.meshgrid(origin[k, 0] + g, origin[k, 1] + g, indexing="xy")
         # the physical relief: phi0 wrapped to [0, 2 pi) (and quantised), then remapped per wavelength
         ph = doe.design_phase(prof, x, y, s.design_wavelength_um, s.levels)
-        inside = (np.abs(x) <= s.semi_diameter) & (np.abs(y) <= s.semi_diameter) if s.shape == "square" \
-            else (x * x + y * y <= s.semi_diameter ** 2) if s.semi_diameter else np.ones_like(x, bool)
-        out[k] = np.where(inside, ph, 0.0)
+        # no mask at the DOE's edge: the tracer already clipped rays there, and samples straddling the
+        # edge (partly covered) need the phase the profile has at the edge, not 0
+        out[k] = ph
     return out
 
 
@@ -386,14 +386,53 @@ class RayWave:
         n = pl.n_grid
         mid = 0.5 * (lo + hi)
         self.origin = lo.copy() if pl.kind == "paper" else mid - 0.5 * (n - 1) * pl.pitch_mm
+        self._align_to_doe_pixels()
         # chief ray OPL on the plane (a per-source constant phase: not differentiated)
         pilot_plane = tr._run(src, np.zeros(1), np.zeros(1), 1.0, upto=plane + 1)
         self.opl_chief = pilot_plane.opl.numpy().astype(np.float64)
         self.chief_ok = pilot_plane.valid.numpy().astype(bool)
         self.chief_plane = np.where(self.chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
-        self.target = np.concatenate([chief_sensor[:, :2], np.full((nsrc, 1), z_sensor)], axis=1)
+        self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
         # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
         self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
+
+    def _align_to_doe_pixels(self):
+        """For a pixel-map DOE, shift the window origins so sample cells tile the DOE pixels exactly (the
+        pitch already divides the DOE pitch): no sample cell straddles a phase step."""
+        s = self.lens.surfaces[self.plane]
+        if s.type != "doe" or s.profile.get("kind") != "pixel_map":
+            return
+        from . import doe
+        prof = doe.profile_from_dict(s.profile, base=_lens_dir(self.lens))
+        rows, cols = prof.data.shape
+        h = self.plan.pitch_mm
+        for axis, count in ((0, cols), (1, rows)):
+            first = -0.5 * count * prof.pitch + 0.5 * h  # centre of the first sample cell inside the map
+            self.origin[:, axis] = first + np.round((self.origin[:, axis] - first) / h) * h
+
+    def _ray_focus(self, pos_p, dir_s, ok, chief_sensor):
+        """Reference-sphere centres: where each source's rays converge (least-squares focus along z).
+
+        Rays are straight behind the wave plane, x_i(t) = p_i + t m_i with slopes m_i = d_xy / d_z; the
+        transverse variance is smallest at ``t* = -cov(p, m) / var(m)``. The centre is the chief ray's point
+        at that depth, so the residual phase splatted is only the aberration (not defocus). Collimated
+        beams (var(m) ~ 0) fall back to the chief ray's sensor point.
+        """
+        out = np.zeros((self.nsrc, 3))
+        for k in range(self.nsrc):
+            p = pos_p[k, ok[k], :2]
+            m = dir_s[k, ok[k], :2] / dir_s[k, ok[k], 2:3]
+            pc, mc = p - p.mean(0), m - m.mean(0)
+            var = float(np.sum(mc * mc))
+            t = -float(np.sum(pc * mc)) / var if var > 1e-18 else np.inf
+            span = self.z_sensor - self.z_plane
+            if not np.isfinite(t) or abs(t) > 1e3 * max(span, 1e-3) or abs(t) < 1e-6:
+                out[k] = [chief_sensor[k, 0], chief_sensor[k, 1], self.z_sensor]
+            else:
+                c0 = self.chief_plane[k]
+                dc = dir_s[k, 0] if ok[k, 0] else dir_s[k, ok[k]].mean(0)
+                out[k] = [c0[0] + t * dc[0] / dc[2], c0[1] + t * dc[1] / dc[2], c0[2] + t]
+        return out
 
     def field(self):
         """Trace to the DOE plane, splat, apply the reference sphere and carrier.
@@ -445,7 +484,9 @@ class RayWave:
         geo = [wp.array(self.origin, dtype=wp.vec2d, device=dev),
                wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
                wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(self.target, dtype=wp.vec3d, device=dev),
-               wp.array(self.n_after, dtype=wp.float64, device=dev)]
+               # the reference-sphere index carries the sign: + converging to T, - diverging from T
+               wp.array(self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), dtype=wp.float64,
+                        device=dev)]
         wp.launch(K.splat_kernel, dim=nsrc * npup,
                   inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
                          [wp.array(opl_p, dtype=wp.float64, device=dev), k_wave, int(self.use_reference), energy,

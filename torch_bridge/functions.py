@@ -182,8 +182,8 @@ class TraceSplat(torch.autograd.Function):
         record = bool(ctx.needs_input_grad[0])
         u, field_wp, tape = trace_splat_forward(rw, table, record)
         ctx.rw, ctx.tape, ctx.field_wp = rw, tape, field_wp
-        ctx.table_device, ctx.table_shape = table.device, tuple(table.shape)
-        ctx.save_for_backward(u)
+        ctx.table_device = table.device
+        ctx.save_for_backward(u, table.detach())
         return u
 
     @staticmethod
@@ -192,7 +192,10 @@ class TraceSplat(torch.autograd.Function):
         rw, tape, field_wp = ctx.rw, ctx.tape, ctx.field_wp
         if tape is None:
             return None, None
-        (u,) = ctx.saved_tensors
+        u, table = ctx.saved_tensors
+        # the adjoint kernels read the parameter arrays: restore this call's values (another forward
+        # on the same RayWave may have loaded different ones since)
+        load_table(rw, table)
         g = grad_field.to(torch.complex128).contiguous()
         g_real = torch.view_as_real(g).reshape(-1, 2)
         with _streams(rw):
@@ -202,8 +205,7 @@ class TraceSplat(torch.autograd.Function):
                 g_wp = wp.array(g_real.detach().cpu().numpy(), dtype=wp.vec2d, device=rw.tracer.device)
             tape.backward(grads={field_wp: g_wp})
             grads = np.stack([p.grad.numpy().astype(np.float64) for p in rw.tracer.params])
-            tape.zero()
-        ctx.tape = None  # free the recorded launches and their arrays
+            tape.zero()  # the tape (and its arrays) is freed with the graph; zeroed it can be replayed
         if rw.use_reference:
             fac = torch.from_numpy(_reference_z_factor(rw)).to(u.device)
             grads[rw.plane, ktrace.P_Z] += float(-(torch.imag(torch.conj(g) * u) * fac).sum())
@@ -309,7 +311,6 @@ class Propagate(torch.autograd.Function):
                 im = propagate.sensor_intensity(be, f_h, *_prop_args(rw, d0 - h), **common)
                 dI = (_to_torch(be, ip, ctx.devices[2]) - _to_torch(be, im, ctx.devices[2])) / (2.0 * h)
                 gd = (grad_out.to(dI.device, torch.float64) * dI).sum(dim=(1, 2))
-        ctx.nodes = None
         return gf, gp, gd, None
 
 
@@ -344,7 +345,9 @@ class QuantizeSTE(torch.autograd.Function):
     @staticmethod
     def forward(ctx, phi, levels):
         two_pi = 2.0 * math.pi
-        w = torch.remainder(phi, two_pi)
+        # the same arithmetic as rwwarp.doe.wrap_phase (so the samples agree bit for bit)
+        w = phi - two_pi * torch.floor(phi * (1.0 / two_pi))
+        w = torch.where((w >= two_pi) | (w < 0.0), torch.zeros_like(w), w)
         if levels is None:
             return w
         step = two_pi / int(levels)

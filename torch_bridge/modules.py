@@ -55,6 +55,24 @@ QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe")
 _LINEAR_DOE = ("even_poly", "poly", "zernike", "cubic")
 
 
+def _field_list(fields) -> list:
+    """Fields as a list of (x, y) pairs in degrees: a number (y angle), an (x, y) tuple, or a list of
+    either (mixed allowed)."""
+    def number(v):
+        return isinstance(v, (int, float, np.number)) or (torch.is_tensor(v) and v.ndim == 0) or \
+            (isinstance(v, np.ndarray) and v.ndim == 0)
+    if number(fields) or (isinstance(fields, tuple) and len(fields) == 2 and all(number(v) for v in fields)):
+        fields = [fields]
+    out = []
+    for f in fields:
+        if number(f):
+            out.append((0.0, float(f)))
+        else:
+            x, y = (float(v) for v in f)
+            out.append((x, y))
+    return out
+
+
 def _rw_device(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
@@ -267,11 +285,10 @@ class HybridLens(nn.Module):
         ``wavelengths_um`` (paired element-wise), built from the current values (or cached, see
         ``replan``)."""
         from rwwarp.psf import RayWave
-        from rwwarp.trace import as_field_list
-        fields = as_field_list(fields)
+        fields = _field_list(fields)
         wls = [float(w) for w in wavelengths_um]
         plan = self.plan_policy if plan is None else plan
-        key = (tuple(tuple(f) if np.ndim(f) else float(f) for f in fields), tuple(wls), int(size),
+        key = (tuple(fields), tuple(wls), int(size),
                object_distance_mm, pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)),
                plan if isinstance(plan, str) else (plan.pitch_mm, plan.n_grid, plan.n_pad, plan.ray_grid),
                self.rw_device)
@@ -441,8 +458,7 @@ class HybridLens(nn.Module):
         so peak memory is one tile's, independent of the map size.
         ``return_centers``: also the centre-pixel sensor positions (n_fields, n_wavelengths, 2), mm.
         """
-        from rwwarp.trace import as_field_list
-        fields = as_field_list(fields)
+        fields = _field_list(fields)
         wls = [float(w) for w in wavelengths_um]
         pairs = [(i, j) for i in range(len(fields)) for j in range(len(wls))]
         src_f = [fields[i] for i, _ in pairs]
@@ -488,16 +504,19 @@ class HybridLens(nn.Module):
         return out
 
     def bytes_per_source(self, rw) -> int:
-        """Estimated peak bytes one source needs in a recorded forward + backward (CPU and CUDA):
-        rays with gradients for each surface up to the DOE plane, the splat and field grids with
-        gradients, the DOE phase, the padded FFT work space and the sensor nodes."""
+        """Estimated peak bytes one source adds in a recorded forward + backward (CPU and CUDA): rays
+        with gradients for each launch up to the DOE plane (pos, dir, opl, valid), tube boxes, the
+        splat and field grids with gradients, the DOE phase, the padded FFT work space and the sensor
+        nodes, times a safety factor of 2 for allocator slack and transient copies (measured on CPU:
+        a recorded trace + splat of 41k rays x 5 launches takes 25 MB per source, a whole tile with
+        backward up to 48 MB)."""
         pl = rw.plan
         rays = pl.ray_grid ** 2
-        per_ray = 120 * (rw.plane + 2) + 64          # pos, dir, opl, valid (+ grads) per launch; tube boxes
+        per_ray = 128 * (rw.plane + 2) + 64           # 5 arrays (+ grads) per launch; tube boxes
         per_sample = 16 * 2 * 2 + 16 * 4 + 8 * 6      # s_re/s_im (+grad), field (+grad, torch views), phi0 etc.
         per_pad = 16 * 3                              # padded FFT work space, band, transfer function
         nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
-        return int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes)
+        return 2 * int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes)
 
     @contextlib.contextmanager
     def _cache_limit(self, budget):

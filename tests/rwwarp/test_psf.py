@@ -112,3 +112,16 @@ def test_fresnel_zone_doe_focal_length_scales_with_wavelength():
     lens = Lens(surfs, Sensor(0.005, (1000, 1000)), wavelengths_um=[0.55])
     for wl in (0.45, 0.55, 0.65):
         assert lens.efl(wl) == pytest.approx(100.0 * 0.55 / wl, rel=1e-6)
+
+
+@pytest.mark.parametrize("kind,tol", [("a", 1e-3), ("b", 1e-3), pytest.param("c", 1e-3, marks=pytest.mark.slow)])
+def test_validation_doe_cases_against_rayleigh_sommerfeld(kind, tol):
+    # the paper's accuracy study: thin lens + DOE vs a direct RS summation (independent of the ASM code)
+    from rwwarp.validate import _case_lens
+    from rwwarp.ground_truth import rs_thin_lens_psf
+    side, pixel = 2.0, 0.55e-3 * 100 / 2.0 / 3
+    lens, dist, phase = _case_lens(kind, side, 100.0, 1000.0, pixel, 0.02)
+    p = rw.psf(lens, 0.0, 0.55, size=16, nyquist_safety=3.0)
+    x, y = p.coords_mm()
+    gt = rs_thin_lens_psf(100.0, "square", side / 2, 0.55, dist, x, y, pixel, doe_phase=phase)
+    assert rel_l2(p.data, gt) < tol

@@ -1,0 +1,173 @@
+"""HybridLens: PSFs equal rwwarp's, DOE phases equal rwwarp's samples, gradients of a PSF loss
+against central finite differences (float64, frozen plan), state_dict and lens export round trips."""
+import copy
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import rwwarp as rw
+from rwwarp.lens import Lens, Sensor, Surface
+
+import torch_bridge as tb
+
+
+def singlet(profile, levels=None, sd=0.6):
+    """An aspheric BK7 singlet (f ~ 17 mm) with a square DOE 0.5 mm behind it."""
+    surfs = [Surface(type="aperture", semi_diameter=0.3, shape="circle", stop=True, thickness=0.2),
+             Surface(type="standard", radius=12.0, conic=-0.8, aspheric=[1e-4, 2e-6], material="N-BK7",
+                     semi_diameter=1.0, thickness=1.0),
+             Surface(type="standard", radius=-40.0, semi_diameter=1.0, thickness=0.5),
+             Surface(type="doe", semi_diameter=sd, shape="square", thickness=17.5, profile=profile, levels=levels)]
+    return Lens(surfs, Sensor(0.004, (1000, 1000)), wavelengths_um=[0.45, 0.55])
+
+
+EVEN = {"kind": "even_poly", "norm_radius": 0.3, "coefficients": [-2.0, 1.0, 0.5]}
+FIELD = (0.05, 0.4)  # off-axis in x and y: no symmetry (the box splat has kinks on symmetric layouts)
+
+
+def pixel_map_profile(seed=0, n=16, pitch=0.05):
+    rng = np.random.default_rng(seed)
+    return {"kind": "pixel_map", "pitch": pitch, "data": rng.uniform(0.5, 5.5, (n, n)).tolist()}
+
+
+@pytest.mark.parametrize("profile,levels", [
+    (EVEN, None), (EVEN, 4),
+    ({"kind": "poly", "norm_radius": 0.3, "coefficients": [0.5, -2.0, 0.3]}, None),
+    ({"kind": "zernike", "norm_radius": 0.3, "coefficients": [0.0, 0.3, -0.2, 1.5, 0.4]}, None),
+    ({"kind": "cubic", "norm_radius": 0.3, "alpha": 3.0}, None),
+    ({"kind": "fresnel", "focal_length": 200.0}, None),
+    (pixel_map_profile(), None)], ids=["even", "even4", "poly", "zernike", "cubic", "fresnel", "pixel_map"])
+def test_doe_phase_samples_equal_rwwarp(profile, levels):
+    # quantised: the plan resolves the steps (half a step width), so keep the DOE small
+    hl = tb.HybridLens(singlet(profile, levels, sd=0.6 if levels is None else 0.25), learn={"doe": "all"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rwv = hl.raywave([FIELD, 0.0], [0.55, 0.45], 8)
+    ref, _ = rwv.doe_phase()
+    got = hl.doe_phase(rwv)
+    np.testing.assert_allclose(got.detach().numpy(), ref, rtol=0, atol=1e-12)
+    assert got.requires_grad
+
+
+def test_psf_equals_rwwarp_psf():
+    lens = singlet(EVEN)
+    ref = rw.psf(lens, FIELD, 0.55, size=16)
+    hl = tb.HybridLens(lens, learn={"curvature": [1]})
+    p, center = hl.psf(FIELD, 0.55, 16, return_centers=True)
+    assert p.dtype == torch.float64 and p.shape == (16, 16) and p.requires_grad
+    np.testing.assert_allclose(p.detach().numpy(), ref.data, rtol=0, atol=1e-13 * ref.data.max())
+    np.testing.assert_allclose(center, ref.center_mm)
+
+
+def _check_fd(hl, loss, entries, rel=1e-3, tol=1e-6):
+    """Gradients of ``loss()`` w.r.t. parameter entries (name, k) against the 4-point central
+    difference (truncation O(h^4)) with h = rel * max(|x|, floor). Returns the relative errors."""
+    hl.zero_grad()
+    loss().backward()
+    errs = {}
+    for name, k, floor in entries:
+        p = getattr(hl, name)
+        g = p.grad[k].item()
+        x0 = p.data[k].item()
+        h = rel * max(abs(x0), floor)
+        vals = {}
+        with torch.no_grad():
+            for m in (-2, -1, 1, 2):
+                p.data[k] = x0 + m * h
+                vals[m] = loss().item()
+        p.data[k] = x0
+        fd = (8.0 * (vals[1] - vals[-1]) - (vals[2] - vals[-2])) / (12.0 * h)
+        errs[(name, k)] = abs(g - fd) / abs(fd)
+    bad = {k: v for k, v in errs.items() if not v < tol}
+    assert not bad, f"gradient vs central difference, relative errors {errs}"
+    return errs
+
+
+def test_gradients_match_finite_differences_lens_and_doe():
+    hl = tb.HybridLens(singlet(EVEN), replan=False,
+                       learn={"curvature": [1, 2], "thickness": [1, 2, 3], "conic": [1], "aspheric": [(1, 0)],
+                              "doe": [0, 2]})
+    weights = torch.from_numpy(np.random.default_rng(1).random((16, 16)))
+
+    def loss():
+        return (hl.psf(FIELD, 0.55, 16) * weights).sum()
+
+    # thickness 1: the lens (vertex z of everything after it moves); thickness 3: DOE to sensor
+    # (the propagation distance); floors keep steps sensible for small values
+    _check_fd(hl, loss, [("curvature", 0, 0.01), ("curvature", 1, 0.01), ("thickness", 0, 0.1),
+                         ("thickness", 1, 0.1), ("thickness", 2, 0.1), ("conic", 0, 1.0), ("aspheric", 0, 1e-4),
+                         ("doe", 0, 1.0), ("doe", 1, 1.0)])
+
+
+def test_gradients_match_finite_differences_pixel_map():
+    lens = singlet(pixel_map_profile(3))
+    hl = tb.HybridLens(lens, replan=False, learn={"doe": [(7, 7), (8, 9), (5, 10), (9, 6)]})
+    weights = torch.from_numpy(np.random.default_rng(2).random((12, 12)))
+
+    def loss():
+        return (hl.psf(FIELD, 0.55, 12) * weights).sum()
+
+    _check_fd(hl, loss, [("doe", k, 1.0) for k in range(4)])
+
+
+def test_psf_map_gradient_flows_to_each_wavelength():
+    hl = tb.HybridLens(singlet(EVEN), learn={"doe": "all"})
+    m = hl.psf_map([(0.0, 0.0), FIELD], [0.45, 0.55], 8)
+    assert m.shape == (2, 2, 8, 8)
+    ref = rw.psf_map(singlet(EVEN), [(0.0, 0.0), FIELD], [0.45, 0.55], size=8)
+    np.testing.assert_allclose(m.detach().numpy(), ref.data, rtol=0, atol=1e-12 * ref.data.max())
+    m.sum().backward()
+    assert torch.all(torch.isfinite(hl.doe.grad)) and torch.any(hl.doe.grad != 0)
+
+
+def test_state_dict_round_trip_and_export():
+    lens = singlet(EVEN)
+    learn = {"curvature": [1], "thickness": [3], "aspheric": [(1, 1)], "doe": "all"}
+    a = tb.HybridLens(lens, learn=learn)
+    with torch.no_grad():
+        a.curvature += 0.001
+        a.thickness -= 0.05
+        a.aspheric += 1e-6
+        a.doe.mul_(1.1)
+    b = tb.HybridLens(lens, learn=learn)
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    for q in tb.QUANTITIES:
+        assert torch.equal(a.value(q), b.value(q))
+    exported = a.to_lens()
+    assert exported.surfaces[1].radius == pytest.approx(1.0 / (1.0 / 12.0 + 0.001), rel=1e-15)
+    assert exported.surfaces[3].thickness == pytest.approx(17.45)
+    assert exported.surfaces[1].aspheric[1] == pytest.approx(2e-6 + 1e-6)
+    assert exported.surfaces[3].profile["coefficients"] == pytest.approx([-2.2, 1.1, 0.55])
+    # the native file round trip gives a module with the same values
+    again = Lens.from_dict(json.loads(json.dumps(exported.to_dict())))
+    c = tb.HybridLens(again)
+    for q in tb.QUANTITIES:
+        np.testing.assert_allclose(c.value(q).numpy(), a.value(q).detach().numpy(), rtol=1e-15, atol=0)
+    np.testing.assert_allclose(c.psf(FIELD, 0.55, 8).numpy(), a.psf(FIELD, 0.55, 8).detach().numpy(), rtol=1e-12,
+                               atol=1e-15)
+
+
+def test_pixel_map_export_to_npy(tmp_path):
+    hl = tb.HybridLens(singlet(pixel_map_profile(4)), learn={"doe": [(3, 3)]})
+    with torch.no_grad():
+        hl.doe += 0.5
+    hl.save_lens(tmp_path / "designed.json")
+    back = rw.load_lens(tmp_path / "designed.json")
+    assert back.surfaces[3].profile["file"] == "designed_doe.npy"
+    data = np.load(tmp_path / "designed_doe.npy")
+    assert data[3, 3] == pytest.approx(np.array(pixel_map_profile(4)["data"])[3, 3] + 0.5)
+
+
+def test_learn_spec_is_validated():
+    lens = singlet(EVEN)
+    with pytest.raises(ValueError, match="not a 'standard' surface"):
+        tb.HybridLens(lens, learn={"curvature": [0]})
+    with pytest.raises(ValueError, match="unknown quantities"):
+        tb.HybridLens(lens, learn={"radius": [1]})
+    hl = tb.HybridLens(lens, learn={"curvature": "all", "thickness": [0, 3]})
+    assert hl.curvature.shape == (2,) and hl.thickness.shape == (2,) and hl.conic.numel() == 0
+    assert {n for n, _ in hl.named_buffers()} >= {"curvature_base", "curvature_index", "doe_base"}
