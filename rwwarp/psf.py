@@ -416,7 +416,7 @@ class RayWave:
         Rays are straight behind the wave plane, x_i(t) = p_i + t m_i with slopes m_i = d_xy / d_z; the
         transverse variance is smallest at ``t* = -cov(p, m) / var(m)``. The centre is the chief ray's point
         at that depth, so the residual phase splatted is only the aberration (not defocus). Collimated
-        beams (var(m) ~ 0) fall back to the chief ray's sensor point.
+        beams (var(m) ~ 0) get a centre 1 m along the chief ray (a nearly plane reference).
         """
         out = np.zeros((self.nsrc, 3))
         for k in range(self.nsrc):
@@ -425,13 +425,11 @@ class RayWave:
             pc, mc = p - p.mean(0), m - m.mean(0)
             var = float(np.sum(mc * mc))
             t = -float(np.sum(pc * mc)) / var if var > 1e-18 else np.inf
-            span = self.z_sensor - self.z_plane
-            if not np.isfinite(t) or abs(t) > 1e3 * max(span, 1e-3) or abs(t) < 1e-6:
-                out[k] = [chief_sensor[k, 0], chief_sensor[k, 1], self.z_sensor]
-            else:
-                c0 = self.chief_plane[k]
-                dc = dir_s[k, 0] if ok[k, 0] else dir_s[k, ok[k]].mean(0)
-                out[k] = [c0[0] + t * dc[0] / dc[2], c0[1] + t * dc[1] / dc[2], c0[2] + t]
+            if not np.isfinite(t) or abs(t) > 1e6:
+                t = 1e6  # collimated: a nearly plane reference (residual curvature < 1e-2 rad over 1 mm)
+            c0 = self.chief_plane[k]
+            dc = dir_s[k, 0] if ok[k, 0] else dir_s[k, ok[k]].mean(0)
+            out[k] = [c0[0] + t * dc[0] / dc[2], c0[1] + t * dc[1] / dc[2], c0[2] + t]
         return out
 
     def field(self):

@@ -123,14 +123,17 @@ def _grid_points(rw):
 
 
 def _reference_z_factor(rw):
-    """``k n (T_z - c_z) / |T - p|`` on the grid (S, n, n): d(phase of the field)/d(plane z) through
-    the grid's z (the reference sphere put back at the grid points, see kernels/splat.py)."""
+    """``+-k n (T_z - c_z) / |T - p|`` on the grid (S, n, n): d(phase of the field)/d(plane z) through
+    the grid's z (the reference sphere put back at the grid points, see kernels/splat.py; the sign
+    is the splat's: + for a sphere converging to T, - diverging)."""
     x, y = _grid_points(rw)
     T = rw.target
     c = rw.chief_plane
     dz = (T[:, 2] - c[:, 2])[:, None, None]
     dist = np.sqrt((T[:, 0, None, None] - x) ** 2 + (T[:, 1, None, None] - y) ** 2 + dz ** 2)
-    k = (2.0 * np.pi / rw.lam_mm * rw.n_after)[:, None, None]
+    # the splat's reference index carries the sign: + converging to T, - diverging from T
+    sign = np.where(T[:, 2] >= rw.z_plane, 1.0, -1.0)
+    k = (2.0 * np.pi / rw.lam_mm * rw.n_after * sign)[:, None, None]
     return k * dz / dist
 
 

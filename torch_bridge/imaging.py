@@ -132,8 +132,6 @@ def spatially_varying_blur(image: torch.Tensor, psfs: torch.Tensor, *, boundary:
     canvas = torch.zeros(lead + (C, He + kh - 1 + ph, We + kw - 1 + pw), dtype=dtype, device=image.device)
     for r, (ya, _) in enumerate(sy):
         for c, (xa, _) in enumerate(sx):
-            canvas = canvas.index_put(
-                (..., slice(None), ), canvas[..., :, :], accumulate=False) if False else canvas
             canvas[..., ya:ya + ph + kh - 1, xa:xa + pw + kw - 1] = \
                 canvas[..., ya:ya + ph + kh - 1, xa:xa + pw + kw - 1] + conv[r, c]
     # full-convolution index of frame pixel (y, x) is (y + oy + kh // 2, x + ox + kw // 2)

@@ -328,7 +328,7 @@ class HybridLens(nn.Module):
     def doe_phase(self, rw, values=None):
         """DOE relief phase phi0 (rad) on each window of ``rw``, (S, n, n) float64, built in torch from
         the DOE values (wrapped to [0, 2 pi), quantised with a straight-through gradient when the
-        surface has ``levels``, zero outside its aperture): the same samples as
+        surface has ``levels``; not masked at the DOE's edge): the same samples as
         :meth:`rwwarp.psf.RayWave.doe_phase`. None without a DOE."""
         s = rw.lens.surfaces[rw.plane]
         if s.type != "doe":
@@ -359,8 +359,8 @@ class HybridLens(nn.Module):
                                                                                               device=dev))
         else:
             raise ValueError(f"unsupported DOE kind {kind!r}")
-        phi = quantize_ste(phi, s.levels)
-        return torch.where(torch.as_tensor(geo["inside"], device=dev), phi, torch.zeros((), dtype=phi.dtype, device=dev))
+        # no mask at the DOE's edge (as rwwarp.psf): rays are clipped there by the tracer
+        return quantize_ste(phi, s.levels)
 
     def _doe_geometry(self, rw, s):
         n, h = rw.plan.n_grid, rw.plan.pitch_mm
@@ -368,13 +368,7 @@ class HybridLens(nn.Module):
         x = rw.origin[:, 0, None, None] + g[None, None, :]
         y = rw.origin[:, 1, None, None] + g[None, :, None]
         x, y = np.broadcast_arrays(x, y)
-        if s.shape == "square":
-            inside = (np.abs(x) <= s.semi_diameter) & (np.abs(y) <= s.semi_diameter)
-        elif s.semi_diameter:
-            inside = x * x + y * y <= s.semi_diameter ** 2
-        else:
-            inside = np.ones_like(x, dtype=bool)
-        geo = {"inside": inside}
+        geo = {}
         prof = s.profile
         kind = self.doe_kind
         if kind == "even_poly":

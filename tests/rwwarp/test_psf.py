@@ -125,3 +125,17 @@ def test_validation_doe_cases_against_rayleigh_sommerfeld(kind, tol):
     x, y = p.coords_mm()
     gt = rs_thin_lens_psf(100.0, "square", side / 2, 0.55, dist, x, y, pixel, doe_phase=phase)
     assert rel_l2(p.data, gt) < tol
+
+
+def test_sixteen_level_quantisation_efficiency_is_sinc2():
+    # a Fresnel-zone DOE alone (f0 = 100 mm) focusing a plane wave: quantising it to 16 levels moves
+    # 1 - sinc^2(1/16) of the focused power to other orders (scalar diffraction efficiency)
+    def fz(levels):
+        s = [Surface(type="aperture", semi_diameter=1.0, shape="circle", stop=True),
+             Surface(type="doe", semi_diameter=1.0, shape="circle", thickness=100.0,
+                     profile={"kind": "fresnel", "focal_length": 100.0}, material="1.5/1e9", levels=levels)]
+        return Lens(s, Sensor(0.0055, (4000, 4000)), wavelengths_um=[0.55])
+    a = rw.psf(fz(None), 0.0, 0.55, size=32).data
+    b = rw.psf(fz(16), 0.0, 0.55, size=32).data
+    core = slice(12, 20)  # the focal spot (first Airy zero at 4 px)
+    assert b[core, core].sum() / a[core, core].sum() == pytest.approx(np.sinc(1 / 16) ** 2, abs=2e-3)
