@@ -9,7 +9,6 @@ their common centre window (both at the sensor's 1 um pixels).
     python perf/bench_psf.py [--device cuda] [--deeplens]
 """
 import argparse
-import gc
 import json
 import os
 import tempfile

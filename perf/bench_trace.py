@@ -10,7 +10,6 @@ import argparse
 import math
 import time
 
-import numpy as np
 import warp as wp
 
 from rwwarp.lens import load_lens
@@ -41,7 +40,7 @@ def main():
     y = wp.zeros(nbw, dtype=wp.float64, device=dev)
     bw_t = timed(lambda: wp.copy(y, x), lambda: wp.synchronize_device(dev), 5)
     bandwidth = 2 * 8 * nbw / bw_t
-    del x, y
+    x = y = None  # free the bandwidth buffers
     rows = []
     n_launch = len(lens.surfaces) + 1
     for n in a.sizes:

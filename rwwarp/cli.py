@@ -6,7 +6,6 @@ fields in degrees.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path

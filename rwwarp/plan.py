@@ -20,7 +20,6 @@ import math
 import warnings
 from dataclasses import dataclass, field, asdict
 
-import numpy as np
 
 from .errors import SamplingWarning
 

@@ -281,7 +281,6 @@ class RayWave:
         src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
         src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
         n_after = np.array([lens.indices(w)[plane] for w in wls])
-        n_img = np.array([lens.indices(w)[-1] for w in wls])
         z_plane = lens.vertex_z[plane]
         z_sensor = lens.sensor_z
         lam_mm = np.array(wls) * 1e-3
@@ -610,7 +609,6 @@ def paraxial_equivalent(lens, fields, wls, object_distance_mm=None):
 def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm):
     """Geometric PSF with the DOE as a local grating (ray bending by the phase gradient)."""
     from . import doe
-    import warp as wp
     plane = _wave_plane_index(lens)
     s = lens.surfaces[plane]
     prof = None

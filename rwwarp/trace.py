@@ -270,7 +270,7 @@ class Tracer:
             ok = rays.valid.numpy().reshape(3, n)
             if not ok.all():
                 bad = [src["fields"][k] for k in range(n) if not ok[:, k].all()]
-                raise GeometryError(f"ray aiming failed: the chief ray misses a surface before the stop",
+                raise GeometryError("ray aiming failed: the chief ray misses a surface before the stop",
                                     file=self.lens.source, surface=stop, field=bad[0])
             r0, rx, ry = xy[0], xy[1], xy[2]
             jac = np.stack([(rx - r0) / h, (ry - r0) / h], axis=2)  # (n, 2 stop coords, 2 aim coords)

@@ -1,6 +1,4 @@
 """Ray-wave PSFs against analytic diffraction, energy conservation and stability cases."""
-import math
-import warnings
 
 import numpy as np
 import pytest

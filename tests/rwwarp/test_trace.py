@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import warp as wp
 
-import rwwarp as rw
 from rwwarp.lens import Lens, Surface, Sensor
 from rwwarp.trace import Tracer, pupil_grid
 from rwwarp.analysis import spot_rms, spot_rms_tape, efl_tape
