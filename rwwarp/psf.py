@@ -540,6 +540,10 @@ class RayWave:
         """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n))."""
         from . import propagate, backend as bk
         be = bk.get_backend(self.device)
+        if isinstance(u_field, np.ndarray) and hasattr(be, "wrap_host"):
+            # PoCL: the OpenCL buffers use the numpy memory (zero-copy host pointers)
+            u_field = be.wrap_host(u_field)
+            phi0 = None if phi0 is None else be.wrap_host(phi0)
         power = propagate.sensor_intensity(be, u_field, *self.propagation_args(), doe_phase=phi0, doe_scale=scale,
                                            carrier_cpmm=self.carrier, pad_to=self.plan.n_pad,
                                            gauss_nodes=self.gauss_nodes)

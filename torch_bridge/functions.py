@@ -45,8 +45,8 @@ import torch
 
 from rwwarp.kernels import trace as ktrace
 
-__all__ = ["TraceSplat", "Propagate", "MixedPrecision", "QuantizeSTE", "raywave_psf", "load_table",
-           "doe_scale", "distance_from_table", "mixed_precision", "quantize_ste"]
+__all__ = ["TraceSplat", "Propagate", "MixedPrecision", "QuantizeSTE", "trace_splat", "propagate", "raywave_psf",
+           "load_table", "doe_scale", "distance_from_table", "mixed_precision", "quantize_ste"]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -215,6 +215,15 @@ class TraceSplat(torch.autograd.Function):
         return torch.from_numpy(grads).to(ctx.table_device), None
 
 
+def trace_splat(table, rw):
+    """:class:`TraceSplat` where a gradient is wanted (grad mode on and ``table`` requiring grad),
+    else a plain forward with no tape and no gradient buffers (``torch.no_grad()`` is honoured: a
+    Function's ``needs_input_grad`` is not)."""
+    if torch.is_grad_enabled() and table.requires_grad:
+        return TraceSplat.apply(table, rw)
+    return trace_splat_forward(rw, table, record=False)[0]
+
+
 # ---------------------------------------------------------------------------------------------- propagation
 def _prop_args(rw, distance):
     args = list(rw.propagation_args())
@@ -317,6 +326,17 @@ class Propagate(torch.autograd.Function):
         return gf, gp, gd, None
 
 
+def propagate(field, phi0, distance, rw):
+    """:class:`Propagate` where a gradient is wanted, else a plain forward (no saved node field)."""
+    wants = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (field, phi0, distance))
+    if wants:
+        return Propagate.apply(field, phi0, distance, rw)
+    be, p = sensor_power(rw, _as_backend_array(field.to(torch.complex128), rw),
+                         None if phi0 is None else _as_backend_array(phi0.to(torch.float64), rw),
+                         None if distance is None else distance.detach().to("cpu", torch.float64).numpy())
+    return _to_torch(be, p, field.device)
+
+
 # ---------------------------------------------------------------------------------------------- precision, quantisation
 class MixedPrecision(torch.autograd.Function):
     """float64 -> float32 on the way forward, the float32 gradient -> float64 on the way back.
@@ -377,13 +397,13 @@ def raywave_psf(rw, table, phi0=None, distance=None):
     the table (so the last thickness learns). Paper amplitude convention: the global field scale is
     formed in torch (differentiable).
     """
-    u = TraceSplat.apply(table, rw)
+    u = trace_splat(table, rw)
     if rw.amplitude != "energy":
         valid_power = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
         pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
         u = u * torch.sqrt(torch.where(pw > 0, valid_power / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
     if distance is None:
         distance = distance_from_table(rw, table)
-    power = Propagate.apply(u, phi0, distance, rw)
+    power = propagate(u, phi0, distance, rw)
     entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
     return power / entering[:, None, None]

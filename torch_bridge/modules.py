@@ -46,8 +46,7 @@ from rwwarp.kernels import trace as ktrace
 from rwwarp.lens import Lens, MAX_ASPHERIC
 from rwwarp.plan import Plan
 
-from .functions import (TraceSplat, Propagate, quantize_ste, trace_splat_forward, sensor_power, doe_scale,
-                        _to_torch)
+from .functions import propagate, quantize_ste, trace_splat
 
 __all__ = ["HybridLens", "QUANTITIES"]
 
@@ -404,27 +403,20 @@ class HybridLens(nn.Module):
 
     def _psf_rw(self, rw, values, record: bool = True):
         """PSFs (S, size, size) of one RayWave batch from the given values. ``record=False``: plain
-        forward, no tape, no graph (used by the tiled checkpointing)."""
-        table = self.param_table(rw, values)
-        phi0 = self.doe_phase(rw, values)
-        dist = (table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]).expand(rw.nsrc)
-        if record:
-            u = TraceSplat.apply(table, rw)
-        else:
-            u, _, _ = trace_splat_forward(rw, table, record=False)
-        if rw.amplitude != "energy":
-            q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
-            pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
-            u = u * torch.sqrt(torch.where(pw > 0, q / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
-        if record:
-            power = Propagate.apply(u, phi0, dist, rw)
-        else:
-            from .functions import _as_backend_array
-            be, p = sensor_power(rw, _as_backend_array(u, rw), _as_backend_array(phi0, rw),
-                                 dist.detach().cpu().numpy())
-            power = _to_torch(be, p, u.device)
-        entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
-        return power / entering[:, None, None]
+        forward, no tape, no graph (used by the tiled checkpointing); also when no gradient is wanted."""
+        ctx = contextlib.nullcontext() if record else torch.no_grad()
+        with ctx:
+            table = self.param_table(rw, values)
+            phi0 = self.doe_phase(rw, values)
+            dist = (table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]).expand(rw.nsrc)
+            u = trace_splat(table, rw)
+            if rw.amplitude != "energy":
+                q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
+                pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
+                u = u * torch.sqrt(torch.where(pw > 0, q / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
+            power = propagate(u, phi0, dist, rw)
+            entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
+            return power / entering[:, None, None]
 
     # ------------------------------------------------------------------ public
     def psf(self, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, *, object_distance_mm=None,
