@@ -125,8 +125,77 @@ def run_case(hl, fn, weights, device, repeat):
             "forward_backward_s": float(np.median(np.add(fwd, bwd))), "peak_bytes": pm.bytes}
 
 
+CHECK_FIELDS = [(0.0, 0.0), (0.0, 7.0)]
+
+
+def check_loss(hl, size=32):
+    """The loss of the CPU / CUDA comparison and its gradients: sum(map * w), fixed weights."""
+    dev = hl.thickness_base.device
+    w = torch.rand(len(CHECK_FIELDS), 1, size, size, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(0)).to(dev)
+    hl.zero_grad()
+    loss = (hl.psf_map(CHECK_FIELDS, [0.55], size) * w).sum()
+    loss.backward()
+    return float(loss.detach()), {n: p.grad.detach().cpu().tolist() for n, p in hl.named_parameters() if p.numel()}
+
+
+def write_reference(path, rays_per_sample):
+    """CPU loss and gradients for :func:`check_against`."""
+    import json
+    hl = make_module("cpu", rays_per_sample)
+    loss, grads = check_loss(hl)
+    path = os.path.abspath(path)
+    with open(path, "w") as f:
+        json.dump({"device": "cpu", "device_name": device_name("cpu"), "loss": loss, "grads": grads,
+                   "rays_per_sample": rays_per_sample}, f, indent=1)
+    print(f"wrote {path}")
+
+
+def check_against(path, device):
+    """Same loss and gradients on ``device`` (CUDA) as the CPU reference, and the host <-> device
+    transfers of one forward + backward (CUPTI through torch.profiler: every memcpy of the process,
+    Warp's and CuPy's included) against the size of one DOE-plane field."""
+    import json
+    import tempfile
+    ref = json.load(open(path))
+    hl = make_module(device, ref["rays_per_sample"])
+    check_loss(hl)  # warm-up: kernel builds, plans
+    loss, grads = check_loss(hl)
+    rel = {"loss": abs(loss - ref["loss"]) / abs(ref["loss"])}
+    for n, g in grads.items():
+        a, b = np.array(g), np.array(ref["grads"][n])
+        rel[n] = float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+    from torch.profiler import ProfilerActivity, profile
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        check_loss(hl)
+        torch.cuda.synchronize()
+    trace = os.path.join(tempfile.mkdtemp(), "trace.json")
+    prof.export_chrome_trace(trace)
+    events = json.load(open(trace))
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    copies = {"HtoD": [], "DtoH": [], "DtoD": []}
+    for e in events:
+        name = str(e.get("name", ""))
+        if e.get("cat") in ("gpu_memcpy", "Memcpy") or name.startswith("Memcpy"):
+            b = int((e.get("args") or {}).get("bytes", 0))
+            for k in copies:
+                if k in name:
+                    copies[k].append(b)
+    rwv = hl.raywave(CHECK_FIELDS, [0.55, 0.55], 32)
+    field_bytes = rwv.plan.n_grid ** 2 * 16
+    out = {"benchmark": "bridge_cuda_check", "device": device, "device_name": device_name(device),
+           "reference": ref["device_name"], "relative_difference": rel,
+           "transfers": {k: {"count": len(v), "bytes": int(sum(v)), "largest": int(max(v) if v else 0)}
+                         for k, v in copies.items()},
+           "one_field_bytes": field_bytes}
+    print(json.dumps(out, indent=1))
+    save("bench_bridge_cuda_check", out)
+
+
 def main():
     ap = argparse.ArgumentParser()
+    ap.add_argument("--reference", default=None, help="write the CPU loss/gradient reference to this file and stop")
+    ap.add_argument("--check", default=None, help="compare --device against this reference file and stop")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--field", type=float, default=7.0, help="field of the single PSF, deg")
@@ -138,6 +207,10 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
     device = a.device
+    if a.reference:
+        return write_reference(a.reference, a.rays_per_sample)
+    if a.check:
+        return check_against(a.check, device)
     torch.manual_seed(0)
     hl = make_module(device, a.rays_per_sample)
     tdev = hl.thickness_base.device

@@ -113,28 +113,25 @@ def _field_to_torch(field_wp, shape):
     return torch.view_as_complex(t).reshape(shape)
 
 
-def _grid_points(rw):
-    """DOE-plane sample coordinates x (S, 1, n), y (S, n, 1) in mm (numpy)."""
+def _grid_points(rw, device, dtype=torch.float64):
+    """DOE-plane sample coordinates x (S, 1, n), y (S, n, 1) in mm, computed on ``device``."""
     n, h = rw.plan.n_grid, rw.plan.pitch_mm
-    g = np.arange(n) * h
-    x = rw.origin[:, 0:1] + g[None, :]
-    y = rw.origin[:, 1:2] + g[None, :]
-    return x[:, None, :], y[:, :, None]
+    g = torch.arange(n, dtype=dtype, device=device) * h
+    o = torch.as_tensor(rw.origin, dtype=dtype, device=device)
+    return (o[:, 0, None, None] + g[None, None, :]), (o[:, 1, None, None] + g[None, :, None])
 
 
-def _reference_z_factor(rw):
-    """``+-k n (T_z - c_z) / |T - p|`` on the grid (S, n, n): d(phase of the field)/d(plane z) through
-    the grid's z (the reference sphere put back at the grid points, see kernels/splat.py; the sign
-    is the splat's: + for a sphere converging to T, - diverging)."""
-    x, y = _grid_points(rw)
-    T = rw.target
-    c = rw.chief_plane
-    dz = (T[:, 2] - c[:, 2])[:, None, None]
-    dist = np.sqrt((T[:, 0, None, None] - x) ** 2 + (T[:, 1, None, None] - y) ** 2 + dz ** 2)
-    # the splat's reference index carries the sign: + converging to T, - diverging from T
-    sign = np.where(T[:, 2] >= rw.z_plane, 1.0, -1.0)
-    k = (2.0 * np.pi / rw.lam_mm * rw.n_after * sign)[:, None, None]
-    return k * dz / dist
+def _reference_z_factor(rw, device):
+    """``+-k n (T_z - c_z) / |T - p|`` on the grid (S, n, n), on ``device``: d(phase of the field)/d(plane z)
+    through the grid's z (the reference sphere put back at the grid points, see kernels/splat.py; the
+    sign is the splat's: + for a sphere converging to T, - diverging)."""
+    x, y = _grid_points(rw, device)
+    T = torch.as_tensor(rw.target, dtype=torch.float64, device=device)
+    dz = torch.as_tensor(rw.target[:, 2] - rw.chief_plane[:, 2], dtype=torch.float64, device=device)[:, None, None]
+    dist = torch.sqrt((T[:, 0, None, None] - x) ** 2 + (T[:, 1, None, None] - y) ** 2 + dz ** 2)
+    sign = np.where(rw.target[:, 2] >= rw.z_plane, 1.0, -1.0)
+    k = torch.as_tensor(2.0 * np.pi / rw.lam_mm * rw.n_after * sign, dtype=torch.float64, device=device)
+    return k[:, None, None] * dz / dist
 
 
 # ---------------------------------------------------------------------------------------------- trace + splat
@@ -142,11 +139,11 @@ def trace_splat_forward(rw, table, record: bool):
     """Run ``rw.field()`` for the parameter ``table``; returns ``(field tensor (S, n, n) complex128,
     field Warp array, tape or None)``. Without ``record`` no tape and no gradient buffers are kept."""
     import warp as wp
-    load_table(rw, table)
     tr = rw.tracer
     n = rw.plan.n_grid
     shape = (rw.nsrc, n, n)
     with _streams(rw):
+        load_table(rw, table)
         if record:
             if not tr.requires_grad:
                 raise ValueError("the RayWave was built without requires_grad=True: no gradients can be recorded")
@@ -196,12 +193,12 @@ class TraceSplat(torch.autograd.Function):
         if tape is None:
             return None, None
         u, table = ctx.saved_tensors
-        # the adjoint kernels read the parameter arrays: restore this call's values (another forward
-        # on the same RayWave may have loaded different ones since)
-        load_table(rw, table)
         g = grad_field.to(torch.complex128).contiguous()
         g_real = torch.view_as_real(g).reshape(-1, 2)
         with _streams(rw):
+            # the adjoint kernels read the parameter arrays: restore this call's values (another forward
+            # on the same RayWave may have loaded different ones since)
+            load_table(rw, table)
             if _is_cuda(rw):
                 g_wp = wp.from_torch(g_real, dtype=wp.vec2d)
             else:
@@ -210,7 +207,7 @@ class TraceSplat(torch.autograd.Function):
             grads = np.stack([p.grad.numpy().astype(np.float64) for p in rw.tracer.params])
             tape.zero()  # the tape (and its arrays) is freed with the graph; zeroed it can be replayed
         if rw.use_reference:
-            fac = torch.from_numpy(_reference_z_factor(rw)).to(u.device)
+            fac = _reference_z_factor(rw, u.device)
             grads[rw.plane, ktrace.P_Z] += float(-(torch.imag(torch.conj(g) * u) * fac).sum())
         return torch.from_numpy(grads).to(ctx.table_device), None
 
@@ -244,9 +241,11 @@ def _as_backend_array(t, rw):
 
 
 def _to_torch(be, arr, device):
+    """A backend array as a torch tensor: CuPy arrays through DLPack (zero-copy, stays on the GPU),
+    OpenCL arrays through host memory (on PoCL that is where they live)."""
     if isinstance(arr, np.ndarray):
         return torch.from_numpy(arr).to(device)
-    if getattr(be, "is_cpu", True) is False and hasattr(arr, "toDlpack"):  # CuPy
+    if getattr(be, "kind", "") == "cuda":
         return torch.from_dlpack(arr)
     return torch.from_numpy(be.to_host(arr)).to(device)
 

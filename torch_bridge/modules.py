@@ -335,51 +335,48 @@ class HybridLens(nn.Module):
         v = (values or self.values())["doe"]
         dev = v.device
         geo = getattr(rw, "_bridge_doe_geometry", None)
-        if geo is None:
-            geo = self._doe_geometry(rw, s)
+        if geo is None or geo["device"] != dev:
+            geo = self._doe_geometry(rw, s, dev)
             rw._bridge_doe_geometry = geo
         kind = self.doe_kind
         if kind in ("even_poly", "poly"):
-            var = torch.as_tensor(geo["var"], device=dev)
+            var = geo["var"]
             phi = torch.zeros_like(var)
             for a in reversed(list(v.unbind(0))):  # Horner, ascending coefficients times var
                 phi = (phi + a) * var
         elif kind in ("zernike", "cubic"):
-            basis = torch.as_tensor(geo["basis"], device=dev)
+            basis = geo["basis"]
             phi = torch.tensordot(v, basis, dims=1) if v.numel() else torch.zeros(basis.shape[1:], dtype=v.dtype,
                                                                                    device=dev)
         elif kind == "fresnel":
-            r2 = torch.as_tensor(geo["r2"], device=dev)
-            phi = -math.pi * r2 / (s.design_wavelength_um * 1e-3 * v[0])
+            phi = -math.pi * geo["r2"] / (s.design_wavelength_um * 1e-3 * v[0])
         elif kind == "pixel_map":
-            row = torch.as_tensor(geo["row"], device=dev)
-            col = torch.as_tensor(geo["col"], device=dev)
-            phi = torch.where(torch.as_tensor(geo["in_map"], device=dev), v[row, col], torch.zeros((), dtype=v.dtype,
-                                                                                              device=dev))
+            phi = torch.where(geo["in_map"], v[geo["row"], geo["col"]], torch.zeros((), dtype=v.dtype, device=dev))
         else:
             raise ValueError(f"unsupported DOE kind {kind!r}")
         # no mask at the DOE's edge (as rwwarp.psf): rays are clipped there by the tracer
         return quantize_ste(phi, s.levels)
 
-    def _doe_geometry(self, rw, s):
-        n, h = rw.plan.n_grid, rw.plan.pitch_mm
-        g = np.arange(n) * h
-        x = rw.origin[:, 0, None, None] + g[None, None, :]
-        y = rw.origin[:, 1, None, None] + g[None, :, None]
-        x, y = np.broadcast_arrays(x, y)
-        geo = {}
+    def _doe_geometry(self, rw, s, dev):
+        """Per-plan DOE sampling helpers, built on ``dev`` (no window-sized host-to-device copies, except
+        the Zernike / cubic basis, evaluated by rwwarp.doe on the host once per plan)."""
+        from .functions import _grid_points
+        x, y = _grid_points(rw, dev)
+        x, y = torch.broadcast_tensors(x, y)
+        geo = {"device": dev}
         prof = s.profile
         kind = self.doe_kind
         if kind == "even_poly":
             geo["var"] = (x * x + y * y) / float(prof["norm_radius"]) ** 2
         elif kind == "poly":
-            geo["var"] = np.sqrt(x * x + y * y) / float(prof["norm_radius"])
+            geo["var"] = torch.sqrt(x * x + y * y) / float(prof["norm_radius"])
         elif kind == "fresnel":
             geo["r2"] = x * x + y * y
         elif kind in ("zernike", "cubic"):
             from rwwarp import doe
+            xh, yh = x.cpu().numpy(), y.cpu().numpy()
             m = self.doe_base.numel()
-            basis = np.empty((m,) + x.shape)
+            basis = np.empty((m,) + xh.shape)
             for j in range(m):
                 p = dict(prof)
                 if kind == "cubic":
@@ -388,16 +385,16 @@ class HybridLens(nn.Module):
                     e = [0.0] * m
                     e[j] = 1.0
                     p["coefficients"] = e
-                basis[j] = doe.profile_from_dict(p).phase(x, y, s.design_wavelength_um)
-            geo["basis"] = basis
+                basis[j] = doe.profile_from_dict(p).phase(xh, yh, s.design_wavelength_um)
+            geo["basis"] = torch.as_tensor(basis, device=dev)
         elif kind == "pixel_map":
             ny, nx = self.doe_base.shape
             p = self._pixel_pitch
-            col = np.floor(x / p + nx / 2.0)
-            row = np.floor(ny / 2.0 - y / p)
+            col = torch.floor(x / p + nx / 2.0)
+            row = torch.floor(ny / 2.0 - y / p)
             in_map = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
-            geo["row"] = np.where(in_map, row, 0).astype(np.int64)
-            geo["col"] = np.where(in_map, col, 0).astype(np.int64)
+            geo["row"] = torch.where(in_map, row, torch.zeros_like(row)).long()
+            geo["col"] = torch.where(in_map, col, torch.zeros_like(col)).long()
             geo["in_map"] = in_map
         return geo
 
