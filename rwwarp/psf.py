@@ -81,7 +81,7 @@ class PSFMap:
 # ---------------------------------------------------------------------------------------------- API
 def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave", size: int = 64,
         device: str = "cpu", plan="auto", dtype: str = "float64", amplitude: str = "energy",
-        object_distance_mm=None, rays_per_sample: float = 1.5, pixel_mm=None, center_mm=None,
+        object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
         use_reference: bool = True, gauss_nodes: int = 3, nyquist_safety: float = 2.0) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
@@ -126,7 +126,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
 
 def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 64, device: str = "cpu",
             plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
-            rays_per_sample: float = 1.5, pixel_mm=None, center_mm=None, use_reference: bool = True,
+            rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int = 3, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
@@ -270,7 +270,7 @@ class RayWave:
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
-                 amplitude="energy", object_distance_mm=None, rays_per_sample=1.5, center_mm=None,
+                 amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=3, nyquist_safety=2.0, requires_grad=False):
 
         plane = _wave_plane_index(lens)
