@@ -23,10 +23,10 @@ import time
 
 import numpy as np
 import torch
+from _common import device_name, save
 
 import rwwarp as rw
 import torch_bridge as tb
-from _common import RESULTS, device_name, save
 
 
 def sync_fn(device):
@@ -61,6 +61,16 @@ class PeakMemory:
 
     def __enter__(self):
         gc.collect()
+        if self.device.startswith("cuda"):
+            # caching allocators (torch, CuPy, Warp's mempool) give their free blocks back first, so
+            # "in use above start" sees this block's allocations
+            torch.cuda.synchronize()
+            torch.cuda.empty_cache()
+            try:
+                import cupy
+                cupy.get_default_memory_pool().free_all_blocks()
+            except ImportError:
+                pass
         try:
             ctypes.CDLL("libc.so.6").malloc_trim(0)
         except OSError:
@@ -157,7 +167,8 @@ def check_against(path, device):
     Warp's and CuPy's included) against the size of one DOE-plane field."""
     import json
     import tempfile
-    ref = json.load(open(path))
+    with open(path) as f:
+        ref = json.load(f)
     hl = make_module(device, ref["rays_per_sample"])
     check_loss(hl)  # warm-up: kernel builds, plans
     loss, grads = check_loss(hl)
@@ -171,16 +182,17 @@ def check_against(path, device):
         torch.cuda.synchronize()
     trace = os.path.join(tempfile.mkdtemp(), "trace.json")
     prof.export_chrome_trace(trace)
-    events = json.load(open(trace))
+    with open(trace) as f:
+        events = json.load(f)
     events = events["traceEvents"] if isinstance(events, dict) else events
     copies = {"HtoD": [], "DtoH": [], "DtoD": []}
     for e in events:
         name = str(e.get("name", ""))
         if e.get("cat") in ("gpu_memcpy", "Memcpy") or name.startswith("Memcpy"):
             b = int((e.get("args") or {}).get("bytes", 0))
-            for k in copies:
+            for k, sizes in copies.items():
                 if k in name:
-                    copies[k].append(b)
+                    sizes.append(b)
     rwv = hl.raywave(CHECK_FIELDS, [0.55, 0.55], 32)
     field_bytes = rwv.plan.n_grid ** 2 * 16
     out = {"benchmark": "bridge_cuda_check", "device": device, "device_name": device_name(device),
@@ -192,10 +204,31 @@ def check_against(path, device):
     save("bench_bridge_cuda_check", out)
 
 
+def profile_psf(device, rays_per_sample, size, field):
+    """torch.profiler tables (device kernels incl. Warp's and CuPy's, host ops) of one PSF forward and
+    backward, after a warm-up."""
+    from torch.profiler import ProfilerActivity, profile, record_function
+    hl = make_module(device, rays_per_sample)
+    w = torch.rand(size, size, dtype=torch.float64).to(hl.thickness_base.device)
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
+    for k in range(2):
+        with profile(activities=acts) as prof:
+            with record_function("forward"):
+                p = hl.psf((0.0, field), 0.55, size)
+            with record_function("backward"):
+                (p * w).sum().backward()
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+    key = "self_cuda_time_total" if device.startswith("cuda") else "self_cpu_time_total"
+    print(prof.key_averages().table(sort_by=key, row_limit=25))
+    print(prof.key_averages().table(sort_by="cpu_time_total", row_limit=25))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--reference", default=None, help="write the CPU loss/gradient reference to this file and stop")
     ap.add_argument("--check", default=None, help="compare --device against this reference file and stop")
+    ap.add_argument("--profile", action="store_true", help="print the top kernels / ops of one PSF's backward")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--field", type=float, default=7.0, help="field of the single PSF, deg")
@@ -203,14 +236,20 @@ def main():
     ap.add_argument("--wavelengths", type=float, nargs="+", default=[0.45, 0.55, 0.65])
     ap.add_argument("--tiles", type=int, nargs="+", default=[1, 4, 0])
     ap.add_argument("--budget-mb", type=float, default=None, help="also run the map under this memory budget")
-    ap.add_argument("--rays-per-sample", type=float, default=1.5)
+    ap.add_argument("--rays-per-sample", type=float, default=1.0, help="the library's default is 1.0")
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
     device = a.device
+    if device.startswith("cuda"):
+        import warp as wp
+        wp.init()
+        wp.set_mempool_release_threshold(device if ":" in device else "cuda:0", 0)  # measurable peaks
     if a.reference:
         return write_reference(a.reference, a.rays_per_sample)
     if a.check:
         return check_against(a.check, device)
+    if a.profile:
+        return profile_psf(device, a.rays_per_sample, a.size, a.field)
     torch.manual_seed(0)
     hl = make_module(device, a.rays_per_sample)
     tdev = hl.thickness_base.device
@@ -240,7 +279,8 @@ def main():
         cases.append(("budget", int(a.budget_mb * 2**20)))
     for kind, val in cases:
         kw = {"tile": val} if kind == "tile" else {"memory_budget_bytes": val}
-        r = run_case(hl, lambda: hl.psf_map(fields, a.wavelengths, a.size, **kw), wm, device, max(1, a.repeat - 2))
+        r = run_case(hl, lambda kw=kw: hl.psf_map(fields, a.wavelengths, a.size, **kw), wm, device,
+                     max(1, a.repeat - 2))
         r.update({kind: val})
         res["map"]["runs"].append(r)
         print(f"map {len(fields)}x{len(a.wavelengths)} {kind}={val}: fwd {r['forward_s']:.2f} s, "

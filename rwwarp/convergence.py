@@ -1,14 +1,16 @@
 """Converged reference PSFs, error estimates of cheaper plans, and the cheapest plan for a target error.
 
-The ray-wave PSF has three discretisation knobs (see :mod:`rwwarp.plan`):
+The ray-wave PSF has four discretisation knobs (see :mod:`rwwarp.plan`):
 
 * ``nyquist_safety``: how far below the Nyquist pitch of the local wavefront the DOE-plane grid
   goes (halves the pitch when doubled: twice the samples, and twice the rays across the pupil);
 * ``rays_per_sample``: rays per DOE-plane sample along each axis (doubling quadruples the rays);
-* ``pad_factor``: the FFT length relative to the adaptive plan's (2x the window, band limit).
+* ``pad_factor``: the FFT length relative to the adaptive plan's (2x the window, band limit);
+* ``gauss_nodes``: Gauss-Legendre nodes per axis of the pixel integration (cheap; matters when
+  the PSF has structure finer than a pixel: 3 nodes leave ~3e-2 on an f/5 lens with 5 um pixels).
 
 :func:`converged_reference` refines them by doubling until the PSF stops changing. Doubling all
-three at once multiplies the work by ~64 per step (16x the rays, 4x the FFT area) and leaves the
+of them at once multiplies the work by ~64 per step (16x the rays, 4x the FFT area) and leaves the
 CPU after one step, so the knobs are refined one coordinate at a time: every round doubles each
 knob on its own, measures the change of the PSF (relative L2), and keeps doubling those whose
 change is not yet below the tolerance. The run stops when the combined change
@@ -26,33 +28,42 @@ angles in degrees, times in seconds (wall clock of the whole ``rw.psf`` call).
 """
 from __future__ import annotations
 
+import inspect
 import math
 import time
-from dataclasses import dataclass, field, asdict, replace
+import warnings
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from .errors import SamplingWarning
 from .plan import Plan, nice_fft_length
-from .psf import PSF, RayWave, psf as _psf
+from .psf import PSF, RayWave
+from .psf import psf as _psf
 from .trace import as_field_list
 
-KNOBS = ("nyquist_safety", "rays_per_sample", "pad_factor")
+KNOBS = ("nyquist_safety", "rays_per_sample", "pad_factor", "gauss_nodes")
 
-#: (nyquist_safety, rays_per_sample) settings tried by :func:`plan_for_error`, cheapest first
-#: (ray count ~ (safety * rays_per_sample)^2, FFT area ~ safety^2).
-LADDER = ((1.0, 1.0), (1.0, 1.5), (1.5, 1.0), (1.5, 1.5), (2.0, 1.5), (2.0, 2.0), (3.0, 2.0), (4.0, 3.0))
+#: (nyquist_safety, rays_per_sample) settings tried by :func:`plan_for_error` (sorted there by predicted
+#: cost: ray count ~ (safety * rays_per_sample)^2, FFT area ~ safety^2).
+LADDER = ((1.0, 1.0), (1.5, 1.0), (2.0, 1.0), (1.5, 1.5), (2.0, 1.5), (3.0, 1.0), (3.0, 1.5), (4.0, 1.0),
+          (3.0, 2.0), (4.0, 2.0))
+
+_DEFAULTS = inspect.signature(_psf).parameters
 
 
 @dataclass(frozen=True)
 class Settings:
-    """Discretisation knobs of one ray-wave PSF (the adaptive plan's inputs plus a padding factor)."""
+    """Discretisation knobs of one ray-wave PSF (the adaptive plan's inputs plus a padding factor);
+    the defaults are :func:`rwwarp.psf`'s."""
 
-    nyquist_safety: float = 2.0
-    rays_per_sample: float = 1.5
+    nyquist_safety: float = float(_DEFAULTS["nyquist_safety"].default)
+    rays_per_sample: float = float(_DEFAULTS["rays_per_sample"].default)
     pad_factor: float = 1.0
+    gauss_nodes: int = int(_DEFAULTS["gauss_nodes"].default)
 
-    def doubled(self, *knobs) -> "Settings":
-        return replace(self, **{k: 2.0 * getattr(self, k) for k in knobs})
+    def doubled(self, *knobs) -> Settings:
+        return replace(self, **{k: type(getattr(self, k))(2 * getattr(self, k)) for k in knobs})
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -85,7 +96,7 @@ def plan_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Setting
 
 
 def psf_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings(), *, center_mm=None,
-           pixel_mm=None, object_distance_mm=None, dtype="float64", gauss_nodes=3, amplitude="energy",
+           pixel_mm=None, object_distance_mm=None, dtype="float64", amplitude="energy",
            plan=None) -> tuple[PSF, float]:
     """Ray-wave PSF at ``settings``; returns ``(psf, seconds)``.
 
@@ -94,7 +105,7 @@ def psf_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings
     (``plan`` may hand in that plan when the caller already has it).
     """
     kw = dict(size=size, device=device, dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
-              pixel_mm=pixel_mm, center_mm=center_mm, gauss_nodes=gauss_nodes,
+              pixel_mm=pixel_mm, center_mm=center_mm, gauss_nodes=int(settings.gauss_nodes),
               nyquist_safety=settings.nyquist_safety, rays_per_sample=settings.rays_per_sample)
     if settings.pad_factor == 1.0:
         t0 = time.perf_counter()
@@ -104,7 +115,11 @@ def psf_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings
         plan = plan_at(lens, field_deg, wavelength_um, size, device, settings, center_mm=center_mm,
                        pixel_mm=pixel_mm, object_distance_mm=object_distance_mm, dtype=dtype)
     t0 = time.perf_counter()
-    p = _psf(lens, field_deg, wavelength_um, plan=plan, **kw)
+    with warnings.catch_warnings():
+        # the plan is the adaptive one with a longer FFT: its ray grid covers the beam footprint by design,
+        # while the explicit-plan check counts rays across the window (footprint + margins)
+        warnings.filterwarnings("ignore", message="ray density", category=SamplingWarning)
+        p = _psf(lens, field_deg, wavelength_um, plan=plan, **kw)
     return p, time.perf_counter() - t0
 
 
@@ -112,6 +127,11 @@ def _plan_summary(plan) -> dict:
     p = plan if isinstance(plan, dict) else plan.to_dict()
     return {"pitch_um": p["pitch_mm"] * 1e3, "n_grid": p["n_grid"], "n_pad": p["n_pad"], "ray_grid": p["ray_grid"],
             "rays": p["ray_grid"] ** 2}
+
+
+def predicted_cost(plan) -> float:
+    """Relative work of a plan, for ordering ladders: pupil rays plus half the FFT area."""
+    return float(plan.ray_grid ** 2 + 0.5 * plan.n_pad ** 2)
 
 
 def _order_factor(changes: list) -> tuple[float, float | None]:
@@ -124,8 +144,7 @@ def _order_factor(changes: list) -> tuple[float, float | None]:
 
 def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=1e-5, *, start=Settings(),
                         max_rays=4096 ** 2, max_fft=8192, max_rounds=6, center_mm=None, pixel_mm=None,
-                        object_distance_mm=None, dtype="float64", gauss_nodes=6, amplitude="energy",
-                        callback=None):
+                        object_distance_mm=None, dtype="float64", amplitude="energy", callback=None):
     """A ray-wave PSF refined until doubling any knob changes it by less than ``tol`` (relative L2).
 
     Parameters
@@ -142,8 +161,6 @@ def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=
         At most this many refinement rounds.
     center_mm : (x, y), optional
         Sensor patch centre (mm); default the chief ray's pixel at the start settings. Every run uses it.
-    gauss_nodes : int
-        Pixel-integration nodes per axis for every run (6: converged to ~1e-10 for smooth PSFs).
     callback : callable, optional
         Called with each history entry as it is made (progress reporting).
 
@@ -174,8 +191,8 @@ def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=
     if not fits(pl):
         raise ValueError(f"the start settings already exceed the caps (ray_grid {pl.ray_grid}, FFT {pl.n_pad}); "
                          f"raise max_rays / max_fft or start lower")
-    cur, dt = psf_at(lens, field_deg, wavelength_um, size, device, state, center_mm=center_mm, gauss_nodes=gauss_nodes,
-                     amplitude=amplitude, plan=pl, **kw)
+    cur, dt = psf_at(lens, field_deg, wavelength_um, size, device, state, center_mm=center_mm, amplitude=amplitude,
+                     plan=pl, **kw)
     if center_mm is None:
         center_mm = tuple(float(c) for c in cur.center_mm)
     log({"round": 0, "role": "state", "knob": None, "settings": state.to_dict(), "plan": _plan_summary(pl),
@@ -194,7 +211,7 @@ def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=
                 capped.add(k)
                 continue
             p2, dt = psf_at(lens, field_deg, wavelength_um, size, device, s2, center_mm=center_mm,
-                            gauss_nodes=gauss_nodes, amplitude=amplitude, plan=pl2, **kw)
+                            amplitude=amplitude, plan=pl2, **kw)
             c = rel_l2(p2.data, cur.data)
             trials[k] = (s2, p2, pl2)
             known[k].append(c)
@@ -204,7 +221,8 @@ def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=
         if not last:
             break
         combined = math.sqrt(sum(c * c for c in last.values()))
-        if combined < tol and len(last) == len(KNOBS) and not (capped - set(trials)):
+        # a knob capped this round counts with its last measured change (made at coarser settings)
+        if combined < tol and len(last) == len(KNOBS):
             converged = True
             break
         thresh = tol / math.sqrt(len(KNOBS))
@@ -212,21 +230,23 @@ def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=
         if not grow:
             # every refinable knob is settled, the rest is capped: nothing more can be done within the caps
             break
-        # double every knob that still matters, dropping the least important ones until it fits the caps
+        # double every knob that still matters; while that passes the caps, drop the least important of the
+        # knobs that cost work (pixel quadrature is cheap and never capped)
         while True:
             new = state.doubled(*grow)
             pl_new = trials[grow[0]][2] if len(grow) == 1 else plan_at(lens, field_deg, wavelength_um, size, device,
                                                                          new, center_mm=center_mm, **kw)
-            if fits(pl_new) or len(grow) == 1:
+            heavy = [k for k in grow if k != "gauss_nodes"]
+            if fits(pl_new) or len(heavy) <= 1:
                 break
-            grow = grow[:-1]
+            grow.remove(min(heavy, key=lambda k: last[k]))
         if len(grow) == 1:
             state, cur = trials[grow[0]][0], trials[grow[0]][1]
             history[len(history) - len(trials) + list(trials).index(grow[0])]["adopted"] = True
         else:
             state, prev = new, cur
             cur, dt = psf_at(lens, field_deg, wavelength_um, size, device, state, center_mm=center_mm,
-                             gauss_nodes=gauss_nodes, amplitude=amplitude, plan=pl_new, **kw)
+                             amplitude=amplitude, plan=pl_new, **kw)
             log({"round": rnd, "role": "state", "knob": "+".join(grow), "settings": state.to_dict(),
                  "plan": _plan_summary(pl_new), "change": rel_l2(cur.data, prev.data), "time_s": dt})
         for k in grow:
@@ -241,13 +261,13 @@ def converged_reference(lens, field_deg, wavelength_um, size, device="cpu", tol=
         "converged": converged, "tol": tol, "combined_change": combined, "estimated_error": math.sqrt(est2),
         "changes": dict(last), "change_history": {k: v for k, v in known.items() if v}, "orders": orders,
         "settings": state.to_dict(), "capped": sorted(capped), "max_rays": max_rays, "max_fft": max_fft,
-        "gauss_nodes": gauss_nodes, "center_mm": list(center_mm), "total_time_s": time.perf_counter() - t_start,
+        "center_mm": list(center_mm), "total_time_s": time.perf_counter() - t_start,
         "n_psfs": len(history)}
     return cur, history
 
 
 def estimate_error(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings(), *, center_mm=None,
-                   pixel_mm=None, object_distance_mm=None, dtype="float64", gauss_nodes=3, knobs=KNOBS):
+                   pixel_mm=None, object_distance_mm=None, dtype="float64", knobs=KNOBS):
     """Error estimate of the PSF at ``settings`` from one doubling of each knob.
 
     Returns a dict: ``psf`` (the PSF at ``settings``), ``time_s``, ``changes`` (relative L2 of each
@@ -255,7 +275,7 @@ def estimate_error(lens, field_deg, wavelength_um, size, device="cpu", settings=
     convergence: the remaining error of a knob is about twice its last change; conservative for higher
     orders). Costs one PSF per knob, each more expensive than the one estimated.
     """
-    kw = dict(pixel_mm=pixel_mm, object_distance_mm=object_distance_mm, dtype=dtype, gauss_nodes=gauss_nodes)
+    kw = dict(pixel_mm=pixel_mm, object_distance_mm=object_distance_mm, dtype=dtype)
     p, t = psf_at(lens, field_deg, wavelength_um, size, device, settings, center_mm=center_mm, **kw)
     c0 = tuple(float(c) for c in p.center_mm)
     changes = {}
@@ -292,8 +312,29 @@ class PlanChoice:
         return iter((self.plan, self.error, self.time_s))
 
 
+def gauss_nodes_for(lens, field_deg, wavelength_um, size, device="cpu", target_error=1e-3, *, settings=Settings(),
+                    center_mm=None, max_nodes=48, **kw) -> tuple[int, list]:
+    """Fewest pixel-integration nodes (3, 6, 12, ...) whose doubling changes the PSF by < target_error / 4.
+
+    Cheap: only the output evaluation grows with the node count. Returns ``(nodes, changes)``.
+    """
+    g = int(settings.gauss_nodes)
+    p, _ = psf_at(lens, field_deg, wavelength_um, size, device, replace(settings, gauss_nodes=g), center_mm=center_mm,
+                  **kw)
+    center = tuple(float(c) for c in p.center_mm)
+    changes = []
+    while 2 * g <= max_nodes:
+        p2, _ = psf_at(lens, field_deg, wavelength_um, size, device, replace(settings, gauss_nodes=2 * g),
+                       center_mm=center, **kw)
+        changes.append(rel_l2(p.data, p2.data))
+        if changes[-1] < target_error / 4:
+            break
+        g, p = 2 * g, p2
+    return g, changes
+
+
 def plan_for_error(lens, field_deg, wavelength_um, size, device="cpu", target_error=1e-3, *, reference=None,
-                   ladder=LADDER, repeat=1, exhaustive=False, center_mm=None, pixel_mm=None,
+                   ladder=LADDER, gauss_nodes=None, repeat=1, exhaustive=False, center_mm=None, pixel_mm=None,
                    object_distance_mm=None, dtype="float64", reference_kwargs=None) -> PlanChoice:
     """The cheapest ladder setting whose PSF error against the converged reference is <= ``target_error``.
 
@@ -305,7 +346,10 @@ def plan_for_error(lens, field_deg, wavelength_um, size, device="cpu", target_er
         A converged reference (from :func:`converged_reference`); computed when omitted, with
         ``reference_kwargs`` passed on (e.g. ``tol``, ``max_rays``).
     ladder : sequence of (nyquist_safety, rays_per_sample)
-        Settings tried, in order of predicted cost (ray count, then FFT size) from the pilot plans.
+        Settings tried, in order of :func:`predicted_cost` of their pilot plans.
+    gauss_nodes : int, optional
+        Pixel-integration nodes for every rung; by default :func:`gauss_nodes_for` picks them first
+        (the fewest whose doubling changes the PSF by < target_error / 4).
     repeat : int
         Timed runs per rung after the first (which gives the error); the median is reported.
     exhaustive : bool
@@ -321,25 +365,26 @@ def plan_for_error(lens, field_deg, wavelength_um, size, device="cpu", target_er
         reference, _ = converged_reference(lens, field_deg, wavelength_um, size, device, center_mm=center_mm,
                                            **kw, **(reference_kwargs or {}))
     center = tuple(float(c) for c in reference.center_mm)
+    if gauss_nodes is None:
+        gauss_nodes, _ = gauss_nodes_for(lens, field_deg, wavelength_um, size, device, target_error, center_mm=center,
+                                         **kw)
     rungs = []
     for s, r in ladder:
-        st = Settings(float(s), float(r))
+        st = Settings(float(s), float(r), 1.0, int(gauss_nodes))
         pl = plan_at(lens, field_deg, wavelength_um, size, device, st, center_mm=center, **kw)
-        rungs.append((pl.ray_grid ** 2, pl.n_pad, st, pl))
-    rungs.sort(key=lambda t: (t[0] + 0.5 * t[1] ** 2, t[1]))
+        rungs.append((predicted_cost(pl), st, pl))
+    rungs.sort(key=lambda t: t[0])
     rows, best = [], None
-    for _, _, st, pl in rungs:
+    for cost, st, pl in rungs:
         p, t_first = psf_at(lens, field_deg, wavelength_um, size, device, st, center_mm=center, **kw)
         err = rel_l2(p.data, reference.data)
         times = [psf_at(lens, field_deg, wavelength_um, size, device, st, center_mm=center, **kw)[1]
                  for _ in range(repeat)] or [t_first]
         t = float(np.median(times))
-        row = {"settings": st.to_dict(), "plan": _plan_summary(pl), "error": err, "time_s": t,
-               "meets": err <= target_error}
+        row = {"settings": st.to_dict(), "plan": _plan_summary(pl), "predicted_cost": cost, "error": err,
+               "time_s": t, "meets": err <= target_error}
         rows.append(row)
-        if row["meets"] and (best is None or not best[0]["meets"] or t < best[0]["time_s"]):
-            best = (row, pl)
-        elif best is None or (not best[0]["meets"] and err < best[0]["error"]):
+        if row["meets"] and (best is None or not best[0]["meets"] or t < best[0]["time_s"]) or best is None or (not best[0]["meets"] and err < best[0]["error"]):
             best = (row, pl)
         if row["meets"] and not exhaustive:
             break

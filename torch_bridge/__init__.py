@@ -12,9 +12,16 @@ Units: mm, um (wavelengths), degrees (fields), radians (phases). See :mod:`torch
 (gradient conventions, devices), :mod:`torch_bridge.modules` (parameters, plans) and
 :mod:`torch_bridge.imaging` (image simulation).
 """
-from .functions import (MixedPrecision, Propagate, QuantizeSTE, TraceSplat, mixed_precision, quantize_ste,
-                        raywave_psf)
+from .functions import (
+    MixedPrecision,
+    Propagate,
+    QuantizeSTE,
+    TraceSplat,
+    mixed_precision,
+    quantize_ste,
+    raywave_psf,
+)
 from .modules import QUANTITIES, HybridLens
 
-__all__ = ["TraceSplat", "Propagate", "MixedPrecision", "QuantizeSTE", "mixed_precision", "quantize_ste",
-           "raywave_psf", "HybridLens", "QUANTITIES"]
+__all__ = ["QUANTITIES", "HybridLens", "MixedPrecision", "Propagate", "QuantizeSTE", "TraceSplat", "mixed_precision",
+           "quantize_ste", "raywave_psf"]

@@ -28,8 +28,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["node_positions", "blend_weights", "spatially_varying_blur", "channel_psfs", "render_rgb",
-           "sensor_noise", "psf_grid"]
+__all__ = [
+    "blend_weights",
+    "channel_psfs",
+    "node_positions",
+    "psf_grid",
+    "render_rgb",
+    "sensor_noise",
+    "spatially_varying_blur",
+]
 
 
 def node_positions(n_nodes: int, length: int) -> np.ndarray:

@@ -37,21 +37,22 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
+import warnings
 
 import numpy as np
 import torch
+from rwwarp.kernels import trace as ktrace
 from torch import nn
 
-from rwwarp.kernels import trace as ktrace
-from rwwarp.lens import Lens, MAX_ASPHERIC
+from rwwarp.errors import SamplingWarning
+from rwwarp.lens import MAX_ASPHERIC, Lens
 from rwwarp.plan import Plan
 
 from .functions import propagate, quantize_ste, trace_splat
 
-__all__ = ["HybridLens", "QUANTITIES"]
+__all__ = ["QUANTITIES", "HybridLens"]
 
 QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe")
-_LINEAR_DOE = ("even_poly", "poly", "zernike", "cubic")
 
 
 def _field_list(fields) -> list:
@@ -98,7 +99,7 @@ class HybridLens(nn.Module):
     current values as a :class:`~rwwarp.lens.Lens`.
     """
 
-    def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.5,
+    def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int = 3,
                  use_reference: bool = True, replan: bool = True):
         super().__init__()
@@ -450,8 +451,16 @@ class HybridLens(nn.Module):
         explicit = Plan(full.plan.pitch_mm, full.plan.n_grid, full.plan.n_pad, full.plan.ray_grid, "map",
                         False, list(full.plan.reasons))
         if tile is None:
-            tile = len(pairs) if memory_budget_bytes is None else \
-                max(1, int(memory_budget_bytes // max(self.bytes_per_source(full), 1)))
+            if memory_budget_bytes is None:
+                tile = len(pairs)
+            else:
+                need = self.bytes_per_source(full)
+                tile = max(1, int(memory_budget_bytes // max(need, 1)))
+                if need > memory_budget_bytes:
+                    warnings.warn(f"memory_budget_bytes = {memory_budget_bytes / 2**20:.0f} MiB is below the "
+                                  f"estimated need of one source ({need / 2**20:.0f} MiB): running one source per "
+                                  "tile (fewer rays_per_sample or a smaller plan would fit)", ResourceWarning,
+                                  stacklevel=2)
         tile = max(1, min(int(tile), len(pairs)))
         chunks = [list(range(k, min(k + tile, len(pairs)))) for k in range(0, len(pairs), tile)]
         if checkpoint is None:
@@ -471,8 +480,12 @@ class HybridLens(nn.Module):
                 if len(chunks) == 1:
                     rw = full
                 else:
-                    rw = self.raywave(f_t, w_t, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
-                                      plan=explicit)
+                    with warnings.catch_warnings():
+                        # the map's plan was made for all its sources; its rays cover each tile's footprint
+                        # (rwwarp.plan.check_explicit measures ray spacing over the window with margins)
+                        warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
+                        rw = self.raywave(f_t, w_t, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
+                                          plan=explicit)
                 centers[ch] = rw.centers
 
                 def run(*ts, rw=rw, record=True):
@@ -490,9 +503,10 @@ class HybridLens(nn.Module):
         """Estimated peak bytes one source adds in a recorded forward + backward (CPU and CUDA): rays
         with gradients for each launch up to the DOE plane (pos, dir, opl, valid), tube boxes, the
         splat and field grids with gradients, the DOE phase, the padded FFT work space and the sensor
-        nodes, times a safety factor of 2 for allocator slack and transient copies (measured on CPU:
-        a recorded trace + splat of 41k rays x 5 launches takes 25 MB per source, a whole tile with
-        backward up to 48 MB)."""
+        nodes, times a safety factor of 2 for allocator slack and transient copies. Measured: on CPU a
+        recorded trace + splat of 41k rays x 5 launches takes 25 MB per source, a whole tile with
+        backward up to 48 MB (estimate 59 MB); on an H100 the A489 at 1.5 rays per sample takes
+        1.1-1.5 GB per source (estimate 1.6 GB)."""
         pl = rw.plan
         rays = pl.ray_grid ** 2
         per_ray = 128 * (rw.plane + 2) + 64           # 5 arrays (+ grads) per launch; tube boxes

@@ -8,13 +8,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rwwarp import doe
 from rwwarp.kernels import trace as ktrace
+
+import torch_bridge as tb
+from rwwarp import doe
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.plan import Plan
 from rwwarp.psf import RayWave
-
-import torch_bridge as tb
 from torch_bridge.functions import Propagate, TraceSplat
 
 

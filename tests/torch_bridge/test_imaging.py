@@ -115,8 +115,8 @@ def test_sensor_noise_statistics_and_gradient():
 
 
 def test_psf_grid_of_a_hybrid_lens_feeds_the_blur_with_gradients():
-    from rwwarp.lens import Lens, Sensor, Surface
     import torch_bridge as tb
+    from rwwarp.lens import Lens, Sensor, Surface
     prof = {"kind": "even_poly", "norm_radius": 0.3, "coefficients": [-2.0, 1.0]}
     surfs = [Surface(type="aperture", semi_diameter=0.3, shape="circle", stop=True, thickness=0.2),
              Surface(type="standard", radius=12.0, material="N-BK7", semi_diameter=1.0, thickness=1.0),

@@ -10,9 +10,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import rwwarp as rw
-from rwwarp.lens import Lens, Sensor, Surface
-
 import torch_bridge as tb
+from rwwarp.lens import Lens, Sensor, Surface
 
 
 def singlet(profile, levels=None, sd=0.6):

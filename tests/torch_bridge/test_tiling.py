@@ -11,9 +11,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from rwwarp.lens import Lens, Sensor, Surface
-
 import torch_bridge as tb
+from rwwarp.lens import Lens, Sensor, Surface
 
 EVEN = {"kind": "even_poly", "norm_radius": 0.3, "coefficients": [-2.0, 1.0, 0.5]}
 

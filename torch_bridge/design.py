@@ -1,0 +1,550 @@
+"""Optics side of end-to-end design: PSF nodes, differentiable PSF providers, and the two classical
+comparison designs (paraxial achromatic DOE, RMS-spot optimisation with the ray model).
+
+PSF providers (all return ``(n_nodes, n_channels, size, size)`` float64 tensors: the fraction of the
+power entering the pupil per sensor pixel, rows along +y, for one wavelength per colour channel):
+
+* :class:`LiveProvider`: :meth:`HybridLens.psf_map` every call, so every learning quantity of the
+  lens (curvatures, thicknesses, aspherics, DOE) gets gradients (ray-wave model).
+* :class:`CachedProvider`: the refractive part is frozen; the aberrated DOE-plane fields
+  (:meth:`rwwarp.psf.RayWave.field_array`) are computed once per (depth, wavelength) for all nodes
+  and kept, so a step only applies the DOE phase and propagates to the sensor (the paper's remark
+  that this makes ray-wave PSFs as cheap as the paraxial model). Gradients reach the DOE only.
+  With ``model="paraxial-wave"`` the fields are those of the paraxial equivalent system
+  (:func:`rwwarp.psf.paraxial_equivalent`: an ideal thin lens at the DOE plane), which is how
+  DOEs are designed when the refractive lens is idealised.
+
+Ray model (:class:`RaySpot`): rays traced by Warp to the DOE plane (differentiable through a tape),
+bent there by the DOE as a local grating (first order: ``n' t' = n t + lambda/(2 pi) grad phi0``),
+then straight to the sensor. Its polychromatic RMS spot radius (about the polychromatic centroid,
+Zemax's default) is the "Zemax" merit function.
+
+Units: mm, um for wavelengths, degrees for fields, radians for DOE coefficients.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from rwwarp.kernels import trace as ktrace
+
+from .functions import Propagate, mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
+
+__all__ = ["field_angles", "node_positions_mm", "common_centres", "LiveProvider", "CachedProvider", "RaySpot", "paraxial_efl",
+           "paraxial_achromat", "paraxial_object_distance"]
+
+
+# ---------------------------------------------------------------------------------------------- nodes
+def node_positions_mm(layout: str, half_size_mm, grid=(2, 2), fractions=(0.0, 0.5, 0.9), region: str = "quadrant"):
+    """Sensor positions (x, y) in mm of the PSF nodes.
+
+    ``layout="grid"``: ``gy x gx`` cell centres of the region (``region="full"``: the rectangle
+    ``[-hx, hx] x [-hy, hy]``; ``"quadrant"``: ``[0, hx] x [0, hy]``), row-major from the top row
+    (+y) down, as :func:`torch_bridge.imaging.node_positions` orders image rows.
+    ``layout="diagonal"``: points on the diagonal towards (+hx, +hy) at the given ``fractions`` of the
+    corner distance (rotationally symmetric lenses: the field dependence along one azimuth).
+    """
+    hx, hy = (float(half_size_mm), float(half_size_mm)) if np.ndim(half_size_mm) == 0 else \
+        (float(half_size_mm[0]), float(half_size_mm[1]))
+    if layout == "diagonal":
+        return [(f * hx, f * hy) for f in fractions]
+    if layout != "grid":
+        raise ValueError(f"node layout must be 'grid' or 'diagonal', got {layout!r}")
+    gy, gx = (int(grid), int(grid)) if np.ndim(grid) == 0 else (int(grid[0]), int(grid[1]))
+    if region == "full":
+        x0, x1, y0, y1 = -hx, hx, -hy, hy
+    elif region == "quadrant":
+        x0, x1, y0, y1 = 0.0, hx, 0.0, hy
+    else:
+        raise ValueError(f"region must be 'full' or 'quadrant', got {region!r}")
+    out = []
+    for r in range(gy):
+        y = y1 - (r + 0.5) * (y1 - y0) / gy
+        for c in range(gx):
+            out.append((x0 + (c + 0.5) * (x1 - x0) / gx, y))
+    return out
+
+
+def field_angles(lens, positions_mm, wavelength_um: float = 0.55):
+    """Field angles (x, y) in degrees whose paraxial image lands at the sensor positions (mm):
+    ``tan(theta) = h / EFL`` (distortion is not inverted)."""
+    f = lens.efl(wavelength_um)
+    return [(math.degrees(math.atan(x / f)), math.degrees(math.atan(y / f))) for x, y in positions_mm]
+
+
+def paraxial_object_distance(lens, eq_lens, object_distance_mm: float, wavelength_um: float) -> float:
+    """Object distance (mm) in front of the paraxial-equivalent thin lens that puts its image where
+    the real lens images an object at ``object_distance_mm`` (from the first vertex) -- so the
+    paraxial-wave model sees the same defocus as the ray-wave model at each depth."""
+    from rwwarp import paraxial
+    from rwwarp.psf import _wave_plane_index
+    if not math.isfinite(object_distance_mm):
+        return math.inf
+    plane = _wave_plane_index(lens)
+    slope = 1e-3
+    ys, nus = paraxial.ynu_trace(lens, wavelength_um, object_distance_mm * slope, slope)
+    n_pl = lens.indices(wavelength_um)[plane]
+    v = -ys[plane] * n_pl / nus[plane - 1]  # image distance behind the DOE plane
+    f_eq = next(s.focal_length for s in eq_lens.surfaces if s.type == "thin_lens")
+    inv = 1.0 / f_eq - 1.0 / v
+    return math.inf if abs(inv) < 1e-15 else 1.0 / inv
+
+
+# ---------------------------------------------------------------------------------------------- providers
+def common_centres(module, fields_deg, wavelength_um: float, depth_mm=None, grid: int = 15) -> np.ndarray:
+    """Sensor positions (mm, (n_fields, 2)) the PSF patches are centred on: the ray-model centroid at
+    ``wavelength_um`` with the DOE's first-order deflection included (the tracer alone would miss it).
+    One centre per field for every wavelength, so lateral colour stays in the RGB PSFs."""
+    with torch.no_grad():
+        return RaySpot(module, fields_deg, [wavelength_um], grid=grid, object_distance_mm=depth_mm).centroids()
+
+
+class LiveProvider:
+    """Ray-wave PSFs of a :class:`~torch_bridge.HybridLens` recomputed at every call (all its
+    learning quantities get gradients). Patches are centred per field on :func:`common_centres`
+    (the green reference wavelength ``wavelength_ref_um``). ``tile``: sources per chunk; chunks are
+    checkpointed (no tape kept in the forward pass, recomputed in the backward pass) so the peak
+    memory is one chunk's."""
+
+    def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
+                 tile: int | None = None):
+        self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
+        self.wl_ref = float(wavelength_ref_um)
+        self.tile = tile
+
+    def psfs(self, wavelengths_um, depth_mm=None) -> torch.Tensor:
+        """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
+        distance ``depth_mm`` (mm, None: the lens's own)."""
+        from torch_bridge.modules import _Recompute
+        m = self.module
+        cen = common_centres(m, self.fields, self.wl_ref, depth_mm)
+        wls = [float(w) for w in wavelengths_um]
+        src_f = [f for f in self.fields for _ in wls]
+        src_w = [w for _ in self.fields for w in wls]
+        src_c = np.array([c for c in cen for _ in wls])
+        n = len(src_f)
+        tile = n if not self.tile else max(1, min(int(self.tile), n))
+        values = m.values()
+        names = list(values)
+        tensors = [values[q] for q in names]
+        outs = []
+        for k in range(0, n, tile):
+            sl = slice(k, min(k + tile, n))
+            rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
+                           center_mm=src_c[sl])
+
+            def run(*ts, rw=rw, record=True):
+                return m._psf_rw(rw, dict(zip(names, ts)), record=record)
+            if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+                outs.append(_Recompute.apply(run, *tensors))
+            else:
+                outs.append(run(*tensors))
+        return torch.cat(outs, 0).reshape(len(self.fields), len(wls), self.size, self.size)
+
+
+class CachedProvider:
+    """PSFs with a frozen refractive part: DOE-plane fields cached per (depth, wavelength).
+
+    Parameters
+    ----------
+    module : HybridLens
+        Holds the learning DOE (its ``doe`` values are used); nothing else of it may learn.
+    fields_deg : list of (x, y)
+        Node field angles (deg) of the real lens.
+    size, pixel_mm : PSF patch size (pixels) and pixel pitch (mm).
+    model : "ray-wave" | "paraxial-wave"
+        Fields of the real lens, or of its paraxial equivalent (ideal thin lens at the DOE plane).
+    doe_budget_cpmm : float
+        Spatial frequency (cycles/mm) reserved for the DOE when a plan is made: the DOE-plane pitch
+        is at most ``1 / (2 safety (f_field + f_DOE + budget))`` so the DOE can grow without replanning.
+
+    Besides the DOE, the DOE-to-sensor distance may learn (``thickness`` of the DOE when it is the
+    last surface): the cached fields do not depend on it and the propagation differentiates it.
+    PSF patches are centred per node on :func:`common_centres` (ray-model centroid at the reference
+    wavelength through the current DOE), the same centre for every wavelength.
+
+    **Plans are explicit and recorded.** Each cache entry's sampling plan is kept in
+    :attr:`plans` (``{(wavelength, depth): Plan fields}``); :meth:`check_sampling` replans an entry
+    whose DOE has outgrown it (local DOE frequency or, when quantised, the step width), and
+    :meth:`load_plans` rebuilds entries from recorded plans (exact resume: a RayWave is a
+    deterministic function of the refractive lens, the sources and the plan).
+    """
+
+    def __init__(self, module, fields_deg, size: int, pixel_mm: float, model: str = "ray-wave",
+                 wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0):
+        lens = module.to_lens()
+        self.plane = lens.doe_index
+        # the DOE-to-sensor distance may learn (the DOE-plane fields do not depend on it)
+        self.learn_distance = self.plane == len(lens.surfaces) - 1 and \
+            int(self.plane) in set(module.thickness_index.tolist())
+        if model not in ("ray-wave", "paraxial-wave"):
+            raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
+        self.module, self.size, self.pixel_mm, self.model = module, int(size), float(pixel_mm), model
+        self.real_fields = list(fields_deg)
+        self.wl_ref = float(wavelength_ref_um)
+        self.doe_budget = float(doe_budget_cpmm)
+        self._cache = {}
+        self.plans = {}
+        self.replans = 0
+
+    # ------------------------------------------------------------------ geometry
+    def _geometry(self, depth_mm):
+        """(HybridLens that makes the plans and samples the DOE, its node fields, the object distance
+        to pass (mm or None)) for one depth. The paraxial-wave system is rebuilt from the current
+        lens, its ideal thin lens made stigmatic for the equivalent object distance."""
+        from torch_bridge.modules import HybridLens
+        m = self.module
+        if self.model == "ray-wave":
+            return m, self.real_fields, depth_mm
+        from rwwarp.psf import paraxial_equivalent
+        lens = m.to_lens()
+        eq, eq_fields = paraxial_equivalent(lens, self.real_fields, [self.wl_ref])
+        d = lens.object_distance if depth_mm is None else float(depth_mm)
+        eq = eq.replace(object_distance=paraxial_object_distance(lens, eq, d, self.wl_ref))
+        geo = HybridLens(eq, plan=m.plan_policy, rays_per_sample=m.rays_per_sample, nyquist_safety=m.nyquist_safety,
+                         amplitude=m.amplitude, gauss_nodes=m.gauss_nodes, use_reference=m.use_reference)
+        return geo, eq_fields, None
+
+    def _build(self, key, plan=None):
+        from rwwarp.plan import Plan, nice_fft_length
+        wavelength_um, depth_mm = key
+        geo, fields, depth = self._geometry(depth_mm)
+        wls = [float(wavelength_um)] * len(fields)
+        if plan is None:
+            # the automatic plan of the unquantised DOE (rwwarp's auto plan cannot align a grid to the
+            # steps of a flat quantised DOE: its feature size is infinite), then the step rule below
+            from rwwarp.psf import RayWave
+            from rwwarp import doe as rdoe
+            lens_p = geo.to_lens()
+            sd = lens_p.surfaces[lens_p.doe_index] if lens_p.doe_index is not None else None
+            if sd is not None and sd.levels:
+                lens_p = lens_p.with_surface(lens_p.doe_index, levels=None)
+            pl = RayWave(lens_p, fields, wls, self.size, self.pixel_mm, device=geo.rw_device, plan=geo.plan_policy,
+                         amplitude=geo.amplitude, object_distance_mm=depth, rays_per_sample=geo.rays_per_sample,
+                         use_reference=geo.use_reference, gauss_nodes=geo.gauss_nodes,
+                         nyquist_safety=geo.nyquist_safety).plan
+            safety = geo.nyquist_safety
+            f_now = 1.0 / (2.0 * safety * pl.pitch_mm)
+            pitch = 1.0 / (2.0 * safety * (f_now + self.doe_budget))
+            if sd is not None and sd.levels:
+                feat = rdoe.surface_feature_size_mm(sd, lens_p.source)
+                pitch = min(pitch, 0.5 * feat)
+            if pitch < pl.pitch_mm:
+                ratio = pl.pitch_mm / pitch
+                n_grid = int(math.ceil(pl.n_grid * ratio))
+                plan = Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, int(math.ceil(pl.n_pad * ratio)))),
+                            int(math.ceil(pl.ray_grid * ratio)), "explicit", False,
+                            list(pl.reasons) + [f"DOE budget {self.doe_budget:g} cycles/mm reserved"])
+            else:
+                plan = Plan(pl.pitch_mm, pl.n_grid, pl.n_pad, pl.ray_grid, "explicit", False, list(pl.reasons))
+        rec = self.plans.get(key) or {}
+        if rec.get("centers") is not None:
+            cen = np.asarray(rec["centers"], dtype=np.float64)
+        else:
+            cen = common_centres(geo, fields, self.wl_ref, depth)
+        rw = geo.raywave(fields, wls, self.size, object_distance_mm=depth, pixel_mm=self.pixel_mm, plan=plan,
+                         center_mm=cen)
+        u = rw.field_array()
+        dev = self.module.thickness_base.device
+        u = torch.from_numpy(np.array(u, copy=True)).to(dev) if isinstance(u, np.ndarray) else torch.as_tensor(u,
+                                                                                                         device=dev)
+        dist = torch.full((rw.nsrc,), float(rw.z_sensor - rw.z_plane), dtype=torch.float64, device=dev)
+        entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
+        self._cache[key] = (rw, u, dist, entering, geo)
+        self.plans[key] = {"pitch_mm": plan.pitch_mm, "n_grid": plan.n_grid, "n_pad": plan.n_pad,
+                           "ray_grid": plan.ray_grid, "centers": np.asarray(cen).tolist(),
+                           "depth_arg": depth}
+        return self._cache[key]
+
+    @staticmethod
+    def _key(wavelength_um, depth_mm):
+        return (round(float(wavelength_um), 9), None if depth_mm is None else float(depth_mm))
+
+    def _entry(self, wavelength_um: float, depth_mm):
+        key = self._key(wavelength_um, depth_mm)
+        e = self._cache.get(key)
+        if e is None:
+            e = self._build(key, self._recorded_plan(key))
+        return e
+
+    def prepare(self, wavelengths_um, depths_mm, progress: bool = False):
+        """Compute and cache the DOE-plane fields for every (depth, wavelength) now."""
+        pairs = [(w, d) for d in depths_mm for w in wavelengths_um]
+        it = pairs
+        if progress:
+            from tqdm.auto import tqdm
+            it = tqdm(pairs, desc="DOE-plane fields", unit="batch", leave=False)
+        for w, d in it:
+            self._entry(w, d)
+
+    def load_plans(self, plans: dict):
+        """Use recorded plans (from :attr:`plans` of an earlier run) for the entries built from now on."""
+        self._cache.clear()
+        self.plans = {tuple(k) if not isinstance(k, tuple) else k: dict(v) for k, v in plans.items()}
+
+    def cache_bytes(self) -> int:
+        """Bytes held by the cached fields."""
+        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values())
+
+    def check_sampling(self) -> int:
+        """Replan the entries whose DOE-plane pitch no longer samples the current DOE: the local DOE
+        frequency over the window (times the wavelength remap) added to the field's own band must stay
+        below Nyquist (``pitch <= 1 / (2 (f_field + f_DOE))``), and a quantised relief needs two
+        samples per step. Returns the number of entries rebuilt."""
+        from rwwarp import doe as rdoe
+        lens = self.module.to_lens()
+        s = lens.surfaces[lens.doe_index]
+        prof = rdoe.profile_from_dict(s.profile)
+        if not prof.is_continuous:
+            return 0
+        rebuilt = 0
+        for key in list(self._cache):
+            rw, _, _, _, geo = self._cache[key]
+            pitch = rw.plan.pitch_mm
+            g = np.linspace(0.0, (rw.plan.n_grid - 1) * pitch, 33)
+            gmax = 0.0
+            for k in range(rw.nsrc):
+                x, y = np.meshgrid(rw.origin[k, 0] + g, rw.origin[k, 1] + g)
+                gx, gy = prof.gradient(x, y, s.design_wavelength_um)
+                gmax = max(gmax, float(np.max(np.hypot(gx, gy))))
+            scale = rdoe.wavelength_scale(s.material, s.design_wavelength_um, key[0])
+            f_doe = scale * gmax / (2.0 * math.pi)
+            # the field's own band, as planned: pitch = 1 / (2 safety (f_field + budget)) at build time
+            f_field = max(1.0 / (2.0 * geo.nyquist_safety * pitch) - self.doe_budget, 0.0)
+            bad = 2.0 * pitch * (f_field + f_doe) > 1.0
+            if s.levels and gmax > 0:
+                bad = bad or pitch > 0.5 * (2.0 * math.pi / gmax / int(s.levels))
+            if bad:
+                self._cache.pop(key)
+                self.plans.pop(key, None)
+                self._build(key)
+                rebuilt += 1
+                continue
+            # re-centre the patches when the DOE has moved the image by more than size / 8 pixels
+            geo_now, fields_now, depth_now = self._geometry(key[1])
+            cen = common_centres(geo_now, fields_now, self.wl_ref, depth_now)
+            if np.max(np.abs(cen - rw.centers)) > self.size * self.pixel_mm / 8.0:
+                self._cache.pop(key)
+                self.plans[key]["centers"] = None
+                self._build(key, self._recorded_plan(key))
+                rebuilt += 1
+        self.replans += rebuilt
+        return rebuilt
+
+    def _recorded_plan(self, key):
+        from rwwarp.plan import Plan
+        rec = self.plans.get(key)
+        return None if rec is None else Plan(rec["pitch_mm"], rec["n_grid"], rec["n_pad"], rec["ray_grid"],
+                                             "explicit", False, ["recorded plan"])
+
+    def psfs(self, wavelengths_um, depth_mm=None) -> torch.Tensor:
+        """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and
+        propagated to the sensor (gradients reach the DOE coefficients)."""
+        vals = {"doe": self.module.value("doe")}
+        out = []
+        for w in wavelengths_um:
+            rw, u, dist, entering, geo = self._entry(w, depth_mm)
+            if self.learn_distance:
+                dist = self.module.value("thickness")[self.plane].expand(rw.nsrc)
+            phi0 = geo.doe_phase(rw, vals)
+            power = Propagate.apply(u, phi0, dist, rw)
+            out.append(power / entering[:, None, None])
+        return torch.stack(out, 1)
+
+
+# ---------------------------------------------------------------------------------------------- ray model
+class _TraceToPlane(torch.autograd.Function):
+    """Parameter table -> ray positions and directions on the DOE plane, (S, N, 3) each, through a
+    ``wp.Tape`` (backward replays it)."""
+
+    @staticmethod
+    def forward(ctx, table, tracer, src, u, v, upto):
+        import warp as wp
+        tab = table.detach().cpu().numpy()
+        for row, arr in zip(tab, tracer.params):
+            arr.assign(np.ascontiguousarray(row, dtype=tracer.np_dtype))
+        tape = wp.Tape()
+        with tape:
+            rays = tracer._run(src, u, v, 1.0, upto=upto)
+        S, N = rays.n_sources, rays.n_pupil
+        pos = torch.from_numpy(rays.pos.numpy().astype(np.float64).reshape(S, N, 3))
+        dr = torch.from_numpy(rays.dir.numpy().astype(np.float64).reshape(S, N, 3))
+        ctx.tape, ctx.rays, ctx.tracer, ctx.shape = tape, rays, tracer, (S, N)
+        ctx.tab = tab
+        valid = torch.from_numpy(rays.valid.numpy().reshape(S, N).astype(bool))
+        ctx.mark_non_differentiable(valid)
+        return pos.to(table.device), dr.to(table.device), valid
+
+    @staticmethod
+    def backward(ctx, g_pos, g_dir, g_valid):
+        import warp as wp
+        tr, rays = ctx.tracer, ctx.rays
+        for row, arr in zip(ctx.tab, tr.params):
+            arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
+        vec = rays.pos.dtype
+        gp = wp.array(g_pos.detach().cpu().numpy().reshape(-1, 3).astype(tr.np_dtype), dtype=vec, device=tr.device)
+        gd = wp.array(g_dir.detach().cpu().numpy().reshape(-1, 3).astype(tr.np_dtype), dtype=vec, device=tr.device)
+        ctx.tape.backward(grads={rays.pos: gp, rays.dir: gd})
+        grads = np.stack([p.grad.numpy().astype(np.float64) for p in tr.params])
+        ctx.tape.zero()
+        return torch.from_numpy(grads).to(g_pos.device), None, None, None, None, None
+
+
+def _doe_gradient(kind: str, coeffs: torch.Tensor, norm_radius: float, x, y):
+    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of an ``even_poly`` or ``poly`` DOE at (x, y) mm."""
+    R = float(norm_radius)
+    if kind == "even_poly":
+        uu = (x * x + y * y) / (R * R)
+        d = torch.zeros_like(x)
+        for i in range(coeffs.numel() - 1, -1, -1):   # sum (i+1) a_i u^i, Horner
+            d = d * uu + (i + 1) * coeffs[i]
+        g = 2.0 * d / (R * R)
+        return g * x, g * y
+    if kind == "poly":
+        r = torch.sqrt(x * x + y * y)
+        rho = r / R
+        d = torch.zeros_like(x)
+        for k in range(coeffs.numel(), 1, -1):      # sum_k>=2 k c_k rho^(k-2), Horner
+            d = d * rho + k * coeffs[k - 1]
+        g = d / (R * R)
+        if coeffs.numel():
+            g = g + torch.where(r > 0, coeffs[0] / (R * torch.where(r > 0, r, torch.ones_like(r))), torch.zeros_like(r))
+        return g * x, g * y
+    raise ValueError(f"the ray model handles 'even_poly' and 'poly' DOEs, got {kind!r}")
+
+
+class RaySpot:
+    """Polychromatic RMS spot radius of a :class:`~torch_bridge.HybridLens` with the ray model
+    (the DOE as a local grating, first order), differentiable in every learning quantity.
+
+    ``fields_deg``: node fields (deg); ``wavelengths_um``: the polychromatic set (equal weights);
+    ``grid``: pupil samples across the diameter (square grid clipped to the pupil). :meth:`rms`
+    returns (n_fields,) radii in mm; :meth:`rms_per_wavelength` (n_fields, n_wavelengths) about each
+    colour's own centroid.
+    """
+
+    def __init__(self, module, fields_deg, wavelengths_um, grid: int = 31, object_distance_mm=None):
+        self.module, self.fields, self.wls, self.grid = module, list(fields_deg), [float(w) for w in
+                                                                                wavelengths_um], int(grid)
+        self.object_distance_mm = object_distance_mm
+
+    def _hits(self):
+        from rwwarp.trace import Tracer, pupil_grid
+        from rwwarp.psf import _wave_plane_index
+        lens = self.module.to_lens()
+        plane = _wave_plane_index(lens)
+        tr = Tracer(lens, self.wls, device="cpu", dtype="float64", requires_grad=True)
+        nf, nw = len(self.fields), len(self.wls)
+        fl = [f for f in self.fields for _ in range(nw)]
+        wi = [j for _ in self.fields for j in range(nw)]
+        src = tr.sources(fl, wi, object_distance=self.object_distance_mm)
+        u, v, _ = pupil_grid(self.grid, src["shape"])
+
+        class _Shim:
+            _bridge_base_table = tr.params_np.copy()
+        values = self.module.values()
+        table = self.module.param_table(_Shim, values).cpu()
+        pos, dr, valid = _TraceToPlane.apply(table, tr, src, u, v, plane + 1)  # validity: not differentiated
+        lam = torch.tensor([w * 1e-3 for w in self.wls] * nf, dtype=torch.float64)[:, None]
+        n_after = torch.tensor([lens.indices(w)[plane] for w in self.wls] * nf, dtype=torch.float64)[:, None]
+        tx, ty = n_after * dr[..., 0], n_after * dr[..., 1]
+        s = lens.surfaces[plane]
+        if s.type == "doe":
+            from rwwarp import doe as rdoe
+            prof = rdoe.profile_from_dict(s.profile)
+            gx, gy = _doe_gradient(prof.kind, values["doe"].cpu(), prof.norm_radius, pos[..., 0], pos[..., 1])
+            tx = tx + lam / (2 * math.pi) * gx
+            ty = ty + lam / (2 * math.pi) * gy
+        tz2 = n_after ** 2 - tx ** 2 - ty ** 2
+        ok = valid & (tz2 > 0)
+        tz = torch.sqrt(torch.where(ok, tz2, torch.ones_like(tz2)))
+        dz = table[-1, ktrace.P_Z] - table[plane, ktrace.P_Z]
+        hx = pos[..., 0] + dz * tx / tz
+        hy = pos[..., 1] + dz * ty / tz
+        return hx.reshape(nf, nw, -1), hy.reshape(nf, nw, -1), ok.reshape(nf, nw, -1)
+
+    def rms(self) -> torch.Tensor:
+        """Polychromatic RMS radius (mm) about the polychromatic centroid, (n_fields,)."""
+        hx, hy, ok = self._hits()
+        w = ok.to(hx.dtype)
+        n = w.sum((1, 2)).clamp_min(1.0)
+        cx = (hx * w).sum((1, 2)) / n
+        cy = (hy * w).sum((1, 2)) / n
+        r2 = ((hx - cx[:, None, None]) ** 2 + (hy - cy[:, None, None]) ** 2) * w
+        return torch.sqrt(r2.sum((1, 2)) / n)
+
+    def centroids(self) -> np.ndarray:
+        """Polychromatic centroid (mm) of the valid rays on the sensor, (n_fields, 2) numpy."""
+        hx, hy, ok = self._hits()
+        w = ok.to(hx.dtype)
+        n = w.sum((1, 2)).clamp_min(1.0)
+        return torch.stack([(hx * w).sum((1, 2)) / n, (hy * w).sum((1, 2)) / n], 1).detach().cpu().numpy()
+
+    def rms_per_wavelength(self) -> torch.Tensor:
+        """RMS radius (mm) of each wavelength about its own centroid, (n_fields, n_wavelengths)."""
+        hx, hy, ok = self._hits()
+        w = ok.to(hx.dtype)
+        n = w.sum(2).clamp_min(1.0)
+        cx = (hx * w).sum(2) / n
+        cy = (hy * w).sum(2) / n
+        return torch.sqrt((((hx - cx[..., None]) ** 2 + (hy - cy[..., None]) ** 2) * w).sum(2) / n)
+
+
+# ---------------------------------------------------------------------------------------------- paraxial
+def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
+    """Paraxial EFL (mm) of a :class:`~torch_bridge.HybridLens` as a differentiable tensor (y-nu trace
+    with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi``)."""
+    lens = module.lens_template
+    v = module.values()
+    n = lens.indices(wavelength_um)
+    n_before = np.concatenate([[1.0], n[:-1]])
+    y = torch.ones((), dtype=torch.float64)
+    nu = torch.zeros((), dtype=torch.float64)
+    for i, s in enumerate(lens.surfaces):
+        if s.type == "standard":
+            P = (n[i] - n_before[i]) * v["curvature"][i]
+        elif s.type == "thin_lens":
+            P = torch.tensor(1.0 / s.focal_length, dtype=torch.float64)
+        elif s.type == "doe" and module.doe_kind in ("even_poly", "poly"):
+            idx = 0 if module.doe_kind == "even_poly" else 1
+            R = float(s.profile["norm_radius"])
+            a2 = v["doe"][idx] / R ** 2 if v["doe"].numel() > idx else torch.zeros((), dtype=torch.float64)
+            P = -wavelength_um * 1e-3 * a2 / math.pi
+        else:
+            P = torch.zeros((), dtype=torch.float64)
+        nu = nu - y * P
+        y = y + v["thickness"][i] * nu / n[i]
+    return -1.0 / nu
+
+
+def paraxial_achromat(lens, wavelengths_um, doe_kind: str = "even_poly"):
+    """The paraxial achromatic DOE (analytic): a Fresnel (quadratic) phase whose power
+    ``P(lambda) = -lambda a1 / (pi R^2)`` best cancels the refractive part's focal shift at the DOE plane.
+
+    With ``V(lambda)`` the paraxial vergence (1/mm) of the refractive image seen from the DOE plane,
+    the DOE makes it ``V + beta lambda`` (``beta = -a1 / (pi R^2)``); least squares over the wavelengths
+    for a constant ``V0`` gives ``beta = -cov(V, lambda) / var(lambda)`` and the sensor goes to
+    ``1 / V0`` behind the DOE. Returns ``(coefficient, sensor_distance_mm)``: the phase coefficient
+    (rad) of ``rho^2`` (``even_poly`` index 0, ``poly`` index 1) and the DOE-to-sensor distance.
+    """
+    from rwwarp import paraxial
+    from rwwarp.psf import _wave_plane_index
+    plane = _wave_plane_index(lens)
+    s = lens.surfaces[plane]
+    if s.type != "doe":
+        raise ValueError("the lens has no DOE")
+    lam = np.array([float(w) * 1e-3 for w in wavelengths_um])
+    V = []
+    blank = lens.with_surface(plane, profile={**s.profile, "coefficients": [0.0] * len(s.profile["coefficients"])})
+    for w in wavelengths_um:
+        ys, nus = paraxial.ynu_trace(blank, float(w), 1.0, 0.0)
+        n_pl = blank.indices(float(w))[plane]
+        V.append(-nus[plane - 1] / (ys[plane] * n_pl) if plane > 0 else 0.0)
+    V = np.array(V)
+    beta = -np.cov(V, lam, bias=True)[0, 1] / np.var(lam)
+    V0 = float(np.mean(V + beta * lam))
+    R = float(s.profile["norm_radius"])
+    a1 = -beta * math.pi * R * R
+    return float(a1), 1.0 / V0

@@ -1,0 +1,249 @@
+"""Losses and image-quality metrics for end-to-end design.
+
+Training loss (the paper's): ``L = MSE(out, gt) + alpha * L_percep(out, gt)`` with alpha = 0.1.
+
+Perceptual term (:class:`PerceptualLoss`), ``kind``:
+
+* ``"vgg"``: the VGG loss of Johnson et al. 2016: mean squared difference of VGG16 activations at
+  relu1_2, relu2_2 and relu3_3 (inputs normalised with the ImageNet mean and standard deviation),
+  averaged over the three layers. The weights are **not downloaded**: give the path of
+  torchvision's ImageNet VGG16 ``state_dict`` file (``vgg16-397923af.pth``; keys ``features.N.*``).
+  Without a usable file the loss falls back to ``fallback`` and emits a :class:`UserWarning`
+  saying so.
+* ``"ssim"`` (the default fallback, weight-free): ``1 - SSIM(out, gt)`` with the standard 11x11
+  Gaussian window (sigma 1.5), C1 = 0.01^2, C2 = 0.03^2, per channel, averaged. Like the VGG loss it
+  rewards local structure (contrast, edges) rather than per-pixel agreement.
+* ``"gradient"``: mean absolute difference of horizontal and vertical finite differences (edges).
+* ``"none"``: no perceptual term.
+
+Metrics (:func:`image_metrics`): PSNR and SSIM from scikit-image on images clipped to [0, 1]
+(``data_range=1``; SSIM with Gaussian weights, sigma 1.5, population covariance: Wang et al. 2004),
+averaged over the batch; ``1 - LPIPS`` (VGG variant, Zhang et al. 2018) only when both the VGG16
+backbone file and the LPIPS linear-layer file (``vgg.pth`` of the ``lpips`` package, v0.1) are
+given, otherwise reported as NaN.
+
+Images are (B, 3, H, W) tensors with values in [0, 1].
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["VGG16Features", "PerceptualLoss", "ReconstructionLoss", "ssim_torch", "gradient_loss", "LPIPS",
+           "image_metrics", "psnr", "PERCEPTUAL_KINDS"]
+
+PERCEPTUAL_KINDS = ("vgg", "ssim", "gradient", "none")
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+# torchvision vgg16.features: (index of the conv, in channels, out channels); "M" = max pool
+_VGG16_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
+# relu output indices in torchvision's numbering
+RELU = {"relu1_2": 3, "relu2_2": 8, "relu3_3": 15, "relu4_3": 22, "relu5_3": 29}
+
+
+class VGG16Features(nn.Module):
+    """The convolutional part of VGG16 laid out as torchvision's ``vgg16().features`` (so its
+    ``state_dict`` keys ``features.N.weight`` load directly). Frozen (no gradients to its weights).
+    ``forward(x, layers)`` returns the activations at the named ReLUs (:data:`RELU`)."""
+
+    def __init__(self):
+        super().__init__()
+        mods, c = [], 3
+        for v in _VGG16_CFG:
+            if v == "M":
+                mods.append(nn.MaxPool2d(2, 2))
+            else:
+                mods += [nn.Conv2d(c, v, 3, padding=1), nn.ReLU(inplace=False)]
+                c = v
+        self.features = nn.Sequential(*mods)
+        for p in self.parameters():
+            p.requires_grad_(False)
+
+    @classmethod
+    def from_file(cls, path) -> "VGG16Features":
+        """Load torchvision's VGG16 ``state_dict`` (the whole model's or just ``features``)."""
+        sd = torch.load(str(path), map_location="cpu", weights_only=True)
+        if isinstance(sd, dict) and "state_dict" in sd:
+            sd = sd["state_dict"]
+        feats = {k[len("features."):]: v for k, v in sd.items() if k.startswith("features.")}
+        if not feats:
+            feats = {k: v for k, v in sd.items() if k.split(".")[0].isdigit()}
+        if not feats:
+            raise ValueError(f"{path}: no VGG16 'features.N.weight' keys found")
+        net = cls()
+        missing, unexpected = net.features.load_state_dict(feats, strict=False)
+        if missing:
+            raise ValueError(f"{path}: VGG16 weights missing {missing[:4]}...")
+        return net.eval()
+
+    def forward(self, x, layers=("relu1_2", "relu2_2", "relu3_3")):
+        want = {RELU[n]: n for n in layers}
+        last = max(want)
+        out = {}
+        for i, m in enumerate(self.features):
+            x = m(x)
+            if i in want:
+                out[want[i]] = x
+            if i >= last:
+                break
+        return [out[n] for n in layers]
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None):
+    g = torch.exp(-0.5 * ((torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2) / sigma) ** 2)
+    g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+def ssim_torch(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, data_range: float = 1.0):
+    """Differentiable mean SSIM of (B, C, H, W) images (Gaussian window, valid region only)."""
+    C = x.shape[1]
+    w = _gaussian_window(window, sigma, x.dtype, x.device).expand(C, 1, window, window)
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+
+    def blur(t):
+        return F.conv2d(t, w, groups=C)
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return s.mean()
+
+
+def gradient_loss(x: torch.Tensor, y: torch.Tensor):
+    """Mean absolute difference of the horizontal and vertical finite differences."""
+    dx = (x[..., :, 1:] - x[..., :, :-1]) - (y[..., :, 1:] - y[..., :, :-1])
+    dy = (x[..., 1:, :] - x[..., :-1, :]) - (y[..., 1:, :] - y[..., :-1, :])
+    return 0.5 * (dx.abs().mean() + dy.abs().mean())
+
+
+class PerceptualLoss(nn.Module):
+    """Perceptual term (see the module docstring). ``kind`` "vgg" with ``vgg_weights`` (path) or a
+    weight-free ``kind``; ``fallback`` is used (with a warning) when "vgg" has no usable weights.
+    :attr:`active_kind` says which one runs."""
+
+    def __init__(self, kind: str = "vgg", vgg_weights=None, fallback: str = "ssim"):
+        super().__init__()
+        if kind not in PERCEPTUAL_KINDS:
+            raise ValueError(f"perceptual kind must be one of {PERCEPTUAL_KINDS}, got {kind!r}")
+        if fallback not in ("ssim", "gradient", "none"):
+            raise ValueError(f"fallback must be 'ssim', 'gradient' or 'none', got {fallback!r}")
+        self.vgg = None
+        self.active_kind = kind
+        if kind == "vgg":
+            reason = None
+            if vgg_weights is None:
+                reason = "no VGG16 weights file was given (loss.vgg_weights)"
+            elif not Path(vgg_weights).is_file():
+                reason = f"the VGG16 weights file {vgg_weights} does not exist"
+            else:
+                try:
+                    self.vgg = VGG16Features.from_file(vgg_weights)
+                except Exception as e:  # noqa: BLE001 - any unreadable file means: fall back
+                    reason = f"the VGG16 weights file {vgg_weights} could not be read ({e})"
+            if reason is not None:
+                warnings.warn(f"perceptual loss: {reason}; using the weight-free '{fallback}' loss instead "
+                              f"(pass torchvision's vgg16 state_dict path to use the VGG loss)", UserWarning,
+                              stacklevel=2)
+                self.active_kind = fallback
+        mean = torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1)
+        std = torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1)
+        self.register_buffer("mean", mean, persistent=False)
+        self.register_buffer("std", std, persistent=False)
+
+    def forward(self, out, gt):
+        k = self.active_kind
+        if k == "vgg":
+            fa = self.vgg((out - self.mean) / self.std)
+            fb = self.vgg((gt - self.mean) / self.std)
+            return sum(F.mse_loss(a, b) for a, b in zip(fa, fb)) / len(fa)
+        if k == "ssim":
+            return 1.0 - ssim_torch(out, gt)
+        if k == "gradient":
+            return gradient_loss(out, gt)
+        return out.new_zeros(())
+
+
+class ReconstructionLoss(nn.Module):
+    """``MSE(out, gt) + alpha * perceptual(out, gt)``; :meth:`forward` returns ``(total, parts)`` with
+    ``parts = {"mse": ..., "perceptual": ...}`` (floats)."""
+
+    def __init__(self, alpha: float = 0.1, perceptual: str = "vgg", vgg_weights=None, fallback: str = "ssim"):
+        super().__init__()
+        self.alpha = float(alpha)
+        self.perceptual = PerceptualLoss(perceptual, vgg_weights, fallback)
+
+    def forward(self, out, gt):
+        mse = F.mse_loss(out, gt)
+        if self.alpha and self.perceptual.active_kind != "none":
+            per = self.perceptual(out, gt)
+        else:
+            per = out.new_zeros(())
+        total = mse + self.alpha * per
+        return total, {"mse": float(mse.detach()), "perceptual": float(per.detach())}
+
+
+class LPIPS(nn.Module):
+    """LPIPS distance, VGG variant (v0.1): unit-normalised VGG16 activations at relu1_2 .. relu5_3,
+    squared differences weighted by the learned non-negative 1x1 layers, averaged over space and
+    summed over layers. Needs torchvision's VGG16 file and the ``lpips`` package's ``vgg.pth``
+    (keys ``lin{0..4}.model.1.weight``). Inputs in [0, 1]."""
+
+    CHANNELS = (64, 128, 256, 512, 512)
+    LAYERS = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
+
+    def __init__(self, vgg_weights, lpips_weights):
+        super().__init__()
+        self.vgg = VGG16Features.from_file(vgg_weights)
+        sd = torch.load(str(lpips_weights), map_location="cpu", weights_only=True)
+        self.lins = nn.ParameterList()
+        for i, c in enumerate(self.CHANNELS):
+            w = sd.get(f"lin{i}.model.1.weight", sd.get(f"lin{i}.weight"))
+            if w is None or w.numel() != c:
+                raise ValueError(f"{lpips_weights}: no LPIPS weights lin{i} with {c} channels")
+            self.lins.append(nn.Parameter(w.reshape(1, c, 1, 1).float(), requires_grad=False))
+        self.register_buffer("shift", torch.tensor([-.030, -.088, -.188]).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("scale", torch.tensor([.458, .448, .450]).view(1, 3, 1, 1), persistent=False)
+
+    @torch.no_grad()
+    def forward(self, x, y):
+        """LPIPS distance per image, (B,)."""
+        fx = self.vgg(((2 * x - 1) - self.shift) / self.scale, self.LAYERS)
+        fy = self.vgg(((2 * y - 1) - self.shift) / self.scale, self.LAYERS)
+        d = 0.0
+        for a, b, w in zip(fx, fy, self.lins):
+            a = a / (a.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            b = b / (b.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            d = d + ((a - b) ** 2 * w).sum(1).mean((1, 2))
+        return d
+
+
+def psnr(out: torch.Tensor, gt: torch.Tensor) -> float:
+    """Mean PSNR (dB) over the batch of images clipped to [0, 1] (torch, no scikit-image)."""
+    mse = ((out.clamp(0, 1) - gt) ** 2).flatten(1).mean(1)
+    return float((10.0 * torch.log10(1.0 / mse.clamp_min(1e-12))).mean())
+
+
+def image_metrics(out: torch.Tensor, gt: torch.Tensor, lpips: LPIPS | None = None) -> dict:
+    """PSNR (dB), SSIM and 1 - LPIPS of (B, 3, H, W) images in [0, 1], averaged over the batch
+    (scikit-image for PSNR and SSIM; ``one_minus_lpips`` is NaN without an :class:`LPIPS`)."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    a = out.detach().float().clamp(0, 1).cpu().numpy().transpose(0, 2, 3, 1).astype(np.float64)
+    b = gt.detach().float().clamp(0, 1).cpu().numpy().transpose(0, 2, 3, 1).astype(np.float64)
+    ps, ss = [], []
+    for i in range(a.shape[0]):
+        ps.append(peak_signal_noise_ratio(b[i], a[i], data_range=1.0))
+        ss.append(structural_similarity(b[i], a[i], data_range=1.0, channel_axis=2, gaussian_weights=True,
+                                        sigma=1.5, use_sample_covariance=False))
+    ps = [p if math.isfinite(p) else 100.0 for p in ps]
+    res = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "one_minus_lpips": float("nan")}
+    if lpips is not None:
+        res["one_minus_lpips"] = float(1.0 - lpips(out.detach().float().clamp(0, 1).cpu(), gt.float().cpu()).mean())
+    return res
