@@ -13,7 +13,8 @@ coordinates q = pos - (0, 0, z_vertex), r2 = qx^2 + qy^2:
 
 Intersection: the stable root of the base sphere c|q + t d|^2 - 2(q_z + t d_z) = 0,
 ``t = F / (B + sign(B) sqrt(B^2 - c F))`` with ``B = d_z - c q.d``, ``F = c|q|^2 - 2 q_z`` (no special
-case for c = 0), then a fixed number of Newton steps on ``g(t) = q_z + t d_z - sag(r2(t))``.
+case for c = 0), then ``NEWTON_STEPS`` Newton steps on ``g(t) = q_z + t d_z - sag(r2(t))`` in
+``intersect_kernel`` (launched off the tape), and one more, differentiable, in ``surface_kernel``.
 Refraction: vector Snell's law with mu = n_in/n_out; total internal reflection, a missed surface,
 an unconverged Newton or a hit outside the clear aperture make the ray invalid. Invalid rays keep
 finite values (position and direction of their last valid state): no NaN leaves a kernel.
@@ -168,6 +169,57 @@ def make_trace_kernels(scalar):
                 weight_out[i] = scalar(0.0)
         wl_out[i] = w
 
+    @wp.func
+    def stable_start(q: vec3, d: vec3, params: wp.array(dtype=scalar)):
+        # root of the base sphere nearest the vertex plane (no special case for c = 0)
+        c = params[P_C]
+        bq = d[2] - c * wp.dot(q, d)
+        fq = c * wp.dot(q, q) - scalar(2.0) * q[2]
+        disc = bq * bq - c * fq
+        t = -q[2] / d[2]
+        if disc >= scalar(0.0):
+            root = wp.sqrt(disc)
+            if bq >= scalar(0.0):
+                t = fq / (bq + root)
+            else:
+                t = fq / (bq - root)
+        return t
+
+    @wp.func
+    def newton_step(q: vec3, d: vec3, t: scalar, params: wp.array(dtype=scalar)):
+        x = q + t * d
+        r2 = x[0] * x[0] + x[1] * x[1]
+        sg, ds, sok = sag_and_slope(r2, params)
+        g = x[2] - sg
+        dg = d[2] - ds * scalar(2.0) * (x[0] * d[0] + x[1] * d[1])
+        tn = t
+        if dg != scalar(0.0):
+            tn = t - g / dg
+        return tn
+
+    @wp.kernel(module="unique")
+    def intersect_kernel(
+        pos: wp.array(dtype=vec3),
+        dir: wp.array(dtype=vec3),
+        valid: wp.array(dtype=wp.int32),
+        params: wp.array(dtype=scalar),
+        # outputs
+        t_out: wp.array(dtype=scalar),
+    ):
+        """Converged ray parameter t of the intersection (launched outside the tape: the surface kernel
+        then takes one differentiable Newton step from it, which gives the exact implicit derivative)."""
+        i = wp.tid()
+        t_out[i] = scalar(0.0)
+        if valid[i] == 0:
+            return
+        d = dir[i]
+        p0 = pos[i]
+        q = vec3(p0[0], p0[1], p0[2] - params[P_Z])
+        t = stable_start(q, d, params)
+        for it in range(NEWTON_STEPS):
+            t = newton_step(q, d, t, params)
+        t_out[i] = t
+
     @wp.kernel(module="unique")
     def surface_kernel(
         pos: wp.array(dtype=vec3),
@@ -179,6 +231,7 @@ def make_trace_kernels(scalar):
         n_in: wp.array(dtype=scalar),       # (n_wl,) index before the surface
         n_out: wp.array(dtype=scalar),      # (n_wl,) index after the surface
         kind: int,
+        t_start: wp.array(dtype=scalar),    # converged intersection parameter (refracting surfaces)
         # outputs
         pos_out: wp.array(dtype=vec3),
         dir_out: wp.array(dtype=vec3),
@@ -199,29 +252,12 @@ def make_trace_kernels(scalar):
         extra = scalar(0.0)
         if ok == 1:
             if kind == KIND_REFRACT:
-                c = params[P_C]
-                bq = d[2] - c * wp.dot(q, d)
-                fq = c * wp.dot(q, q) - scalar(2.0) * q[2]
-                disc = bq * bq - c * fq
-                if disc >= scalar(0.0):
-                    root = wp.sqrt(disc)
-                    if bq >= scalar(0.0):
-                        t = fq / (bq + root)
-                    else:
-                        t = fq / (bq - root)
-                else:
-                    t = -q[2] / d[2]
+                # one Newton step from the converged root: exact value, exact (implicit) derivative,
+                # and a short adjoint (the iterations themselves are not on the tape)
+                t = newton_step(q, d, t_start[i], params)
                 ds = scalar(0.0)
                 sok = 1
                 g = scalar(0.0)
-                for it in range(NEWTON_STEPS):
-                    x = q + t * d
-                    r2 = x[0] * x[0] + x[1] * x[1]
-                    sg, ds, sok = sag_and_slope(r2, params)
-                    g = x[2] - sg
-                    dg = d[2] - ds * scalar(2.0) * (x[0] * d[0] + x[1] * d[1])
-                    if dg != scalar(0.0):
-                        t = t - g / dg
                 x = q + t * d
                 r2 = x[0] * x[0] + x[1] * x[1]
                 sg, ds, sok = sag_and_slope(r2, params)
@@ -280,6 +316,7 @@ def make_trace_kernels(scalar):
     K.scalar = scalar
     K.generate_kernel = generate_kernel
     K.surface_kernel = surface_kernel
+    K.intersect_kernel = intersect_kernel
     return K
 
 

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
-# Everything measured on a GPU in one command (device tool): results JSON under $OUT and perf/results.
+# Everything measured on a GPU in one command (device tool): results JSON under $OUT (or perf/results).
 set -u
-export RWWARP_RESULTS=${OUT:-perf/results}
+export RWWARP_RESULTS=${OUT:-$(cd "$(dirname "$0")" && pwd)/results}
 cd "$(dirname "$0")"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-python3 -c "import cupy; print('cupy', cupy.__version__)" || echo "no cupy"
-echo "== trace"; timeout 200 python3 bench_trace.py --device cuda --sizes 1000000 16000000 2>&1 | tail -5
-echo "== psf";   timeout 300 python3 bench_psf.py --device cuda --deeplens --repeat 3 2>&1 | tail -8
-echo "== gpu tests"; cd ../tests && timeout 150 python3 -m pytest -q -p no:cacheprovider rwwarp/test_propagate.py -rs 2>&1 | tail -8
+echo "== trace"; timeout 100 python3 bench_trace.py --device cuda --sizes 1000000 16000000 2>&1 | tail -4
+echo "== psf";   timeout 150 python3 bench_psf.py --device cuda --deeplens --repeat 3 2>&1 | grep -v use_ai2 | tail -4
+echo "== map";   timeout 200 python3 bench_map.py --device cuda 2>&1 | grep -v use_ai2 | tail -8
+echo "== speed/accuracy"; timeout ${SA_TIMEOUT:-240} python3 speed_accuracy.py --device cuda --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -12
+echo "== profile"; timeout 60 python3 profile_psf.py cuda 2>&1 | grep -v "^$" | cut -c1-130 | sed -n 1,22p

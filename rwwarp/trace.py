@@ -327,13 +327,21 @@ class Tracer:
         wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=[pos, dr, opl, valid, wl, weight], device=dev)
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto
+        t_start = wp.zeros(1, dtype=sc, device=dev)  # placeholder for non-refracting surfaces
         history = []
         for i in range(last):
             kind = self.kinds[i] if i < nsurf else ktrace.KIND_PLANE
             n_in = self.n_before[i] if i < nsurf else self.n_tables[-1]
             n_out = self.n_tables[i] if i < nsurf else self.n_tables[-1]
             p2, d2, o2, v2 = new()
-            wp.launch(K.surface_kernel, dim=n, inputs=[pos, dr, opl, valid, wl, self.params[i], n_in, n_out, kind],
+            if kind == ktrace.KIND_REFRACT:
+                # converge the intersection off the tape; the surface kernel differentiates one step.
+                # A buffer per surface: the adjoint reads it again during tape.backward()
+                t_start = wp.empty(n, dtype=sc, device=dev)
+                wp.launch(K.intersect_kernel, dim=n, inputs=[pos, dr, valid, self.params[i]], outputs=[t_start],
+                          device=dev, record_tape=False)
+            wp.launch(K.surface_kernel, dim=n,
+                      inputs=[pos, dr, opl, valid, wl, self.params[i], n_in, n_out, kind, t_start],
                       outputs=[p2, d2, o2, v2], device=dev)
             if keep:
                 history.append(p2)

@@ -150,50 +150,51 @@ class CachedProvider:
     Parameters
     ----------
     module : HybridLens
-        Holds the learning DOE (its ``doe`` values are used); nothing else of it may learn.
+        Holds the learning DOE (its ``doe`` values are used). Besides the DOE only the DOE-to-sensor
+        distance (``thickness`` of the DOE when it is the last surface) may learn: the cached fields
+        do not depend on it and the propagation differentiates it.
     fields_deg : list of (x, y)
         Node field angles (deg) of the real lens.
     size, pixel_mm : PSF patch size (pixels) and pixel pitch (mm).
     model : "ray-wave" | "paraxial-wave"
-        Fields of the real lens, or of its paraxial equivalent (ideal thin lens at the DOE plane).
+        Fields of the real lens, or of its paraxial equivalent (ideal thin lens at the DOE plane,
+        made stigmatic for the object distance that gives the real lens's image shift).
+    wavelength_ref_um : float
+        Reference wavelength of the patch centres (um).
     doe_budget_cpmm : float
         Spatial frequency (cycles/mm) reserved for the DOE when a plan is made: the DOE-plane pitch
         is at most ``1 / (2 safety (f_field + f_DOE + budget))`` so the DOE can grow without replanning.
 
-    Besides the DOE, the DOE-to-sensor distance may learn (``thickness`` of the DOE when it is the
-    last surface): the cached fields do not depend on it and the propagation differentiates it.
-    PSF patches are centred per node on :func:`common_centres` (ray-model centroid at the reference
-    wavelength through the current DOE), the same centre for every wavelength.
-
-    **Plans are explicit and recorded.** Each cache entry's sampling plan is kept in
-    :attr:`plans` (``{(wavelength, depth): Plan fields}``); :meth:`check_sampling` replans an entry
-    whose DOE has outgrown it (local DOE frequency or, when quantised, the step width), and
-    :meth:`load_plans` rebuilds entries from recorded plans (exact resume: a RayWave is a
-    deterministic function of the refractive lens, the sources and the plan).
+    **Plans.** The wavelengths of one depth share one sampling plan (the finest pitch and the widest
+    window of their automatic plans: one FFT size per depth). Each entry's plan, patch centres and
+    the DOE frequency it was made for are recorded in :attr:`plans`; :meth:`check_sampling` replans
+    entries whose DOE has outgrown them (Nyquist of field + DOE, two samples per quantisation step)
+    and re-centres patches the DOE has moved; :meth:`load_plans` rebuilds entries from a record
+    (exact resume: a RayWave is a deterministic function of the refractive lens, the sources, the
+    plan and the centres). Patch centres are :func:`common_centres` (one per node for all wavelengths,
+    so lateral colour stays in the RGB PSFs).
     """
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, model: str = "ray-wave",
                  wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0):
-        lens = module.to_lens()
-        self.plane = lens.doe_index
-        # the DOE-to-sensor distance may learn (the DOE-plane fields do not depend on it)
-        self.learn_distance = self.plane == len(lens.surfaces) - 1 and \
-            int(self.plane) in set(module.thickness_index.tolist())
         if model not in ("ray-wave", "paraxial-wave"):
             raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
+        lens = module.to_lens()
         self.module, self.size, self.pixel_mm, self.model = module, int(size), float(pixel_mm), model
         self.real_fields = list(fields_deg)
         self.wl_ref = float(wavelength_ref_um)
         self.doe_budget = float(doe_budget_cpmm)
+        self.plane = lens.doe_index
+        self.learn_distance = self.plane == len(lens.surfaces) - 1 and \
+            int(self.plane) in set(module.thickness_index.tolist())
         self._cache = {}
         self.plans = {}
         self.replans = 0
 
-    # ------------------------------------------------------------------ geometry
+    # ------------------------------------------------------------------ geometry and plans
     def _geometry(self, depth_mm):
         """(HybridLens that makes the plans and samples the DOE, its node fields, the object distance
-        to pass (mm or None)) for one depth. The paraxial-wave system is rebuilt from the current
-        lens, its ideal thin lens made stigmatic for the equivalent object distance."""
+        to pass (mm or None)) for one depth. The paraxial-wave system is rebuilt from the current lens."""
         from torch_bridge.modules import HybridLens
         m = self.module
         if self.model == "ray-wave":
@@ -207,60 +208,100 @@ class CachedProvider:
                          amplitude=m.amplitude, gauss_nodes=m.gauss_nodes, use_reference=m.use_reference)
         return geo, eq_fields, None
 
-    def _build(self, key, plan=None):
+    @staticmethod
+    def _key(wavelength_um, depth_mm):
+        return (round(float(wavelength_um), 9), None if depth_mm is None else float(depth_mm))
+
+    def _doe_frequency(self, geo, origin, pitch, n_grid, wavelength_um):
+        """(largest local DOE frequency (cycles/mm) over the windows at this wavelength, smallest
+        quantisation step (mm) or inf), from the current DOE profile."""
+        from rwwarp import doe as rdoe
+        lens = geo.to_lens()
+        s = lens.surfaces[lens.doe_index]
+        prof = rdoe.profile_from_dict(s.profile)
+        if not prof.is_continuous:
+            return 0.0, math.inf
+        g = np.linspace(0.0, (n_grid - 1) * pitch, 33)
+        gmax = 0.0
+        for o in origin:
+            x, y = np.meshgrid(o[0] + g, o[1] + g)
+            gx, gy = prof.gradient(x, y, s.design_wavelength_um)
+            gmax = max(gmax, float(np.max(np.hypot(gx, gy))))
+        scale = rdoe.wavelength_scale(s.material, s.design_wavelength_um, wavelength_um)
+        step = math.inf if (not s.levels or gmax == 0) else 2.0 * math.pi / gmax / int(s.levels)
+        return scale * gmax / (2.0 * math.pi), step
+
+    def _auto_plan(self, key):
+        """The automatic plan of one entry (the DOE unquantised: rwwarp's auto plan cannot align a grid
+        to the steps of a flat quantised DOE) refined by the DOE budget and the step rule."""
         from rwwarp.plan import Plan, nice_fft_length
+        from rwwarp.psf import RayWave
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
-        wls = [float(wavelength_um)] * len(fields)
+        lens_p = geo.to_lens()
+        sd = lens_p.surfaces[lens_p.doe_index]
+        if sd.levels:
+            lens_p = lens_p.with_surface(lens_p.doe_index, levels=None)
+        rw0 = RayWave(lens_p, fields, [float(wavelength_um)] * len(fields), self.size, self.pixel_mm,
+                      device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
+                      rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
+                      gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety)
+        pl = rw0.plan
+        safety = geo.nyquist_safety
+        pitch = 1.0 / (2.0 * safety * (1.0 / (2.0 * safety * pl.pitch_mm) + self.doe_budget))
+        _, step = self._doe_frequency(geo, rw0.origin, pl.pitch_mm, pl.n_grid, wavelength_um)
+        pitch = min(pitch, 0.5 * step)
+        ratio = pl.pitch_mm / pitch
+        n_grid = int(math.ceil(pl.n_grid * ratio))
+        return Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, int(math.ceil(pl.n_pad * ratio)))),
+                    int(math.ceil(pl.ray_grid * ratio)), "explicit", False,
+                    list(pl.reasons) + [f"DOE budget {self.doe_budget:g} cycles/mm reserved"])
+
+    @staticmethod
+    def _unify(plans):
+        """One plan covering several: the finest pitch, the widest window, padding and ray density."""
+        from rwwarp.plan import Plan, nice_fft_length
+        pitch = min(p.pitch_mm for p in plans)
+        n_grid = max(int(math.ceil(p.n_grid * p.pitch_mm / pitch)) for p in plans)
+        n_pad = nice_fft_length(max([2 * n_grid] + [int(math.ceil(p.n_pad * p.pitch_mm / pitch)) for p in plans]))
+        rays = max(int(math.ceil(p.ray_grid * p.pitch_mm / pitch)) for p in plans)
+        return Plan(pitch, n_grid, n_pad, rays, "explicit", False, ["shared by the wavelengths of one depth"])
+
+    def _recorded_plan(self, key):
+        from rwwarp.plan import Plan
+        rec = self.plans.get(key)
+        if rec is None or rec.get("pitch_mm") is None:
+            return None
+        return Plan(rec["pitch_mm"], rec["n_grid"], rec["n_pad"], rec["ray_grid"], "explicit", False,
+                    ["recorded plan"])
+
+    def _build(self, key, plan=None, centres=None):
+        """Compute and cache the DOE-plane fields of one (wavelength, depth) entry."""
+        wavelength_um, depth_mm = key
+        geo, fields, depth = self._geometry(depth_mm)
         if plan is None:
-            # the automatic plan of the unquantised DOE (rwwarp's auto plan cannot align a grid to the
-            # steps of a flat quantised DOE: its feature size is infinite), then the step rule below
-            from rwwarp.psf import RayWave
-            from rwwarp import doe as rdoe
-            lens_p = geo.to_lens()
-            sd = lens_p.surfaces[lens_p.doe_index] if lens_p.doe_index is not None else None
-            if sd is not None and sd.levels:
-                lens_p = lens_p.with_surface(lens_p.doe_index, levels=None)
-            pl = RayWave(lens_p, fields, wls, self.size, self.pixel_mm, device=geo.rw_device, plan=geo.plan_policy,
-                         amplitude=geo.amplitude, object_distance_mm=depth, rays_per_sample=geo.rays_per_sample,
-                         use_reference=geo.use_reference, gauss_nodes=geo.gauss_nodes,
-                         nyquist_safety=geo.nyquist_safety).plan
-            safety = geo.nyquist_safety
-            f_now = 1.0 / (2.0 * safety * pl.pitch_mm)
-            pitch = 1.0 / (2.0 * safety * (f_now + self.doe_budget))
-            if sd is not None and sd.levels:
-                feat = rdoe.surface_feature_size_mm(sd, lens_p.source)
-                pitch = min(pitch, 0.5 * feat)
-            if pitch < pl.pitch_mm:
-                ratio = pl.pitch_mm / pitch
-                n_grid = int(math.ceil(pl.n_grid * ratio))
-                plan = Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, int(math.ceil(pl.n_pad * ratio)))),
-                            int(math.ceil(pl.ray_grid * ratio)), "explicit", False,
-                            list(pl.reasons) + [f"DOE budget {self.doe_budget:g} cycles/mm reserved"])
-            else:
-                plan = Plan(pl.pitch_mm, pl.n_grid, pl.n_pad, pl.ray_grid, "explicit", False, list(pl.reasons))
+            plan = self._auto_plan(key)
         rec = self.plans.get(key) or {}
-        if rec.get("centers") is not None:
-            cen = np.asarray(rec["centers"], dtype=np.float64)
-        else:
-            cen = common_centres(geo, fields, self.wl_ref, depth)
-        rw = geo.raywave(fields, wls, self.size, object_distance_mm=depth, pixel_mm=self.pixel_mm, plan=plan,
-                         center_mm=cen)
+        if centres is None and rec.get("centers") is not None:
+            centres = np.asarray(rec["centers"], dtype=np.float64)
+        if centres is None:
+            centres = common_centres(geo, fields, self.wl_ref, depth)
+        rw = geo.raywave(fields, [float(wavelength_um)] * len(fields), self.size, object_distance_mm=depth,
+                         pixel_mm=self.pixel_mm, plan=plan, center_mm=centres)
         u = rw.field_array()
         dev = self.module.thickness_base.device
         u = torch.from_numpy(np.array(u, copy=True)).to(dev) if isinstance(u, np.ndarray) else torch.as_tensor(u,
                                                                                                          device=dev)
         dist = torch.full((rw.nsrc,), float(rw.z_sensor - rw.z_plane), dtype=torch.float64, device=dev)
         entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
+        f_doe = rec.get("f_doe_cpmm")
+        if f_doe is None:
+            f_doe = self._doe_frequency(geo, rw.origin, plan.pitch_mm, plan.n_grid, wavelength_um)[0]
         self._cache[key] = (rw, u, dist, entering, geo)
         self.plans[key] = {"pitch_mm": plan.pitch_mm, "n_grid": plan.n_grid, "n_pad": plan.n_pad,
-                           "ray_grid": plan.ray_grid, "centers": np.asarray(cen).tolist(),
-                           "depth_arg": depth}
+                           "ray_grid": plan.ray_grid, "centers": np.asarray(centres).tolist(),
+                           "f_doe_cpmm": float(f_doe), "safety": float(geo.nyquist_safety)}
         return self._cache[key]
-
-    @staticmethod
-    def _key(wavelength_um, depth_mm):
-        return (round(float(wavelength_um), 9), None if depth_mm is None else float(depth_mm))
 
     def _entry(self, wavelength_um: float, depth_mm):
         key = self._key(wavelength_um, depth_mm)
@@ -270,78 +311,70 @@ class CachedProvider:
         return e
 
     def prepare(self, wavelengths_um, depths_mm, progress: bool = False):
-        """Compute and cache the DOE-plane fields for every (depth, wavelength) now."""
-        pairs = [(w, d) for d in depths_mm for w in wavelengths_um]
-        it = pairs
+        """Compute and cache the DOE-plane fields for every (depth, wavelength) now; entries without a
+        recorded plan get the plan shared by the wavelengths of their depth."""
+        work = []
+        for d in depths_mm:
+            keys = [self._key(w, d) for w in wavelengths_um]
+            todo = [k for k in keys if k not in self._cache]
+            if not todo:
+                continue
+            fresh = [k for k in todo if self._recorded_plan(k) is None]
+            shared, centres = None, None
+            if fresh:
+                shared = self._unify([self._auto_plan(k) for k in fresh])
+                geo, fields, depth = self._geometry(d)
+                centres = common_centres(geo, fields, self.wl_ref, depth)
+            for k in todo:
+                work.append((k, None if k not in fresh else shared, None if k not in fresh else centres))
+        it = work
         if progress:
             from tqdm.auto import tqdm
-            it = tqdm(pairs, desc="DOE-plane fields", unit="batch", leave=False)
-        for w, d in it:
-            self._entry(w, d)
+            it = tqdm(work, desc="DOE-plane fields", unit="batch", leave=False)
+        for k, plan, centres in it:
+            self._build(k, plan or self._recorded_plan(k), centres)
 
     def load_plans(self, plans: dict):
-        """Use recorded plans (from :attr:`plans` of an earlier run) for the entries built from now on."""
+        """Use recorded plans (:attr:`plans` of an earlier run) for the entries built from now on."""
         self._cache.clear()
-        self.plans = {tuple(k) if not isinstance(k, tuple) else k: dict(v) for k, v in plans.items()}
+        self.plans = {k: dict(v) for k, v in plans.items()}
 
     def cache_bytes(self) -> int:
         """Bytes held by the cached fields."""
         return sum(e[1].numel() * e[1].element_size() for e in self._cache.values())
 
     def check_sampling(self) -> int:
-        """Replan the entries whose DOE-plane pitch no longer samples the current DOE: the local DOE
-        frequency over the window (times the wavelength remap) added to the field's own band must stay
-        below Nyquist (``pitch <= 1 / (2 (f_field + f_DOE))``), and a quantised relief needs two
-        samples per step. Returns the number of entries rebuilt."""
-        from rwwarp import doe as rdoe
-        lens = self.module.to_lens()
-        s = lens.surfaces[lens.doe_index]
-        prof = rdoe.profile_from_dict(s.profile)
-        if not prof.is_continuous:
-            return 0
+        """Replan the entries whose pitch no longer samples field + DOE (``2 pitch (f_field + f_DOE) <= 1``
+        with ``f_field`` the field's own band the plan was made for, and two samples per quantisation
+        step), and re-centre patches the DOE has moved by more than ``size / 8`` pixels. Returns the
+        number of entries rebuilt."""
         rebuilt = 0
         for key in list(self._cache):
             rw, _, _, _, geo = self._cache[key]
+            rec = self.plans[key]
             pitch = rw.plan.pitch_mm
-            g = np.linspace(0.0, (rw.plan.n_grid - 1) * pitch, 33)
-            gmax = 0.0
-            for k in range(rw.nsrc):
-                x, y = np.meshgrid(rw.origin[k, 0] + g, rw.origin[k, 1] + g)
-                gx, gy = prof.gradient(x, y, s.design_wavelength_um)
-                gmax = max(gmax, float(np.max(np.hypot(gx, gy))))
-            scale = rdoe.wavelength_scale(s.material, s.design_wavelength_um, key[0])
-            f_doe = scale * gmax / (2.0 * math.pi)
-            # the field's own band, as planned: pitch = 1 / (2 safety (f_field + budget)) at build time
-            f_field = max(1.0 / (2.0 * geo.nyquist_safety * pitch) - self.doe_budget, 0.0)
-            bad = 2.0 * pitch * (f_field + f_doe) > 1.0
-            if s.levels and gmax > 0:
-                bad = bad or pitch > 0.5 * (2.0 * math.pi / gmax / int(s.levels))
-            if bad:
+            f_doe, step = self._doe_frequency(geo if self.model == "ray-wave" else self._geometry(key[1])[0],
+                                              rw.origin, pitch, rw.plan.n_grid, key[0])
+            f_field = max(1.0 / (2.0 * rec["safety"] * pitch) - self.doe_budget - rec["f_doe_cpmm"], 0.0)
+            if 2.0 * pitch * (f_field + f_doe) > 1.0 or pitch > 0.5 * step:
                 self._cache.pop(key)
                 self.plans.pop(key, None)
                 self._build(key)
                 rebuilt += 1
                 continue
-            # re-centre the patches when the DOE has moved the image by more than size / 8 pixels
             geo_now, fields_now, depth_now = self._geometry(key[1])
             cen = common_centres(geo_now, fields_now, self.wl_ref, depth_now)
             if np.max(np.abs(cen - rw.centers)) > self.size * self.pixel_mm / 8.0:
                 self._cache.pop(key)
-                self.plans[key]["centers"] = None
-                self._build(key, self._recorded_plan(key))
+                self._build(key, self._recorded_plan(key), cen)
                 rebuilt += 1
         self.replans += rebuilt
         return rebuilt
 
-    def _recorded_plan(self, key):
-        from rwwarp.plan import Plan
-        rec = self.plans.get(key)
-        return None if rec is None else Plan(rec["pitch_mm"], rec["n_grid"], rec["n_pad"], rec["ray_grid"],
-                                             "explicit", False, ["recorded plan"])
-
     def psfs(self, wavelengths_um, depth_mm=None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and
-        propagated to the sensor (gradients reach the DOE coefficients)."""
+        propagated to the sensor (gradients reach the DOE coefficients and a learning DOE-to-sensor
+        distance)."""
         vals = {"doe": self.module.value("doe")}
         out = []
         for w in wavelengths_um:

@@ -419,10 +419,10 @@ def _semantic(cfg: dict, where: str, source):
                     raise ConfigError(f"{where}: 'optics.learn.{q}' index {i} is not a refracting ('standard') surface")
     refr = [q for q in learn if q != "doe"]
     method = cfg["design"]["method"]
-    live = method in ("e2e", "rms") and refr
+    live = method in ("e2e", "rms") and _refractive_learns(_learn_dict(learn), lens)
     if cfg["optics"]["model"] == "paraxial-wave" and live:
         raise ConfigError(f"{where}: 'optics.model' paraxial-wave keeps the refractive part frozen; "
-                          f"'optics.learn' may only hold 'doe' (got {sorted(learn)})")
+                          f"'optics.learn' may only hold 'doe' and the DOE-to-sensor thickness (got {sorted(learn)})")
     if cfg["optics"]["cache_fields"] is True and live:
         raise ConfigError(f"{where}: 'optics.cache_fields' true needs a frozen refractive part, but "
                           f"'optics.learn' has {sorted(refr)}")
@@ -451,6 +451,22 @@ def _semantic(cfg: dict, where: str, source):
                       f"loss will fall back to '{cfg['loss']['fallback']}'", UserWarning, stacklevel=3)
     if cfg["train"]["joint_steps"] + cfg["train"]["finetune_steps"] == 0 and method == "e2e":
         raise ConfigError(f"{where}: 'train.joint_steps' is 0: an e2e design needs joint steps")
+
+
+def _refractive_learns(learn: dict, lens) -> bool:
+    """True when a learning quantity changes the field on the DOE plane (anything but the DOE and the
+    DOE-to-sensor distance): then the DOE-plane fields cannot be cached."""
+    plane = lens.doe_index
+    for q, spec in learn.items():
+        if q == "doe":
+            continue
+        if q == "thickness":
+            idx = range(len(lens.surfaces)) if spec == "all" else [int(e) for e in spec]
+            if any(i < plane for i in idx):
+                return True
+            continue
+        return True
+    return False
 
 
 def _depth_value(v):
@@ -579,7 +595,7 @@ class Arm:
         self.method = method
         learn = _learn_dict(o["learn"]) if method in ("e2e", "rms") else {}
         self.learn = learn
-        self.live = bool([q for q in learn if q != "doe"])
+        self.live = _refractive_learns(learn, self.lens0)
         lens = self.lens0
         if cfg["design"]["init"] == "paraxial_achromat" or method == "paraxial_achromat":
             lens = self._achromat(lens)
@@ -712,7 +728,7 @@ class Arm:
                 loss = loss + efl_w * (paraxial_efl(self.module, self.wl_ref) - efl_mm) ** 2
             loss.backward()
             opt.step()
-            self.rms_log.append({"step": k, "rms_um": float(rms.detach().mean() * 1e3), "loss": float(loss)})
+            self.rms_log.append({"step": k, "rms_um": float(rms.detach().mean() * 1e3), "loss": float(loss.detach())})
         self.provider = self._provider(self.cfg["optics"]["model"])
         self.design_done = True
 
@@ -782,7 +798,9 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     t0 = time.perf_counter()
     if not arm.design_done:
         arm.run_design()
-        arm.objective_initial = objective(arm)
+        if isinstance(arm.provider, __import__("torch_bridge.design", fromlist=["CachedProvider"]).CachedProvider):
+            arm.provider.prepare(sorted({w for c in arm.wls for w in c}), arm.depths, progress=arm.progress)
+        arm.objective_initial = objective(arm, _eval_provider(arm))
         arm.save(ck)
     if isinstance(arm.provider, __import__("torch_bridge.design", fromlist=["CachedProvider"]).CachedProvider):
         allw = sorted({w for c in arm.wls for w in c})
@@ -929,9 +947,18 @@ def _truncate_csv(path: Path, step: int):
 
 # ============================================================================================== evaluation
 def _eval_provider(arm: Arm):
+    """A ray-wave provider for the current lens: the training one when it caches ray-wave fields of
+    this lens (checked for sampling and centring first), else a new one."""
     from torch_bridge import design as dz
-    return dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
+    p = arm.provider
+    if isinstance(p, dz.CachedProvider) and p.model == "ray-wave":
+        p.check_sampling()
+        return p
+    prov = dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
                              wavelength_ref_um=arm.wl_ref)
+    ev = arm.cfg["eval"]["depths_mm"] or arm.cfg["optics"]["depths_mm"]
+    prov.prepare(sorted({w for c in arm.wls for w in c}), [_depth_value(d) for d in ev], progress=False)
+    return prov
 
 
 @torch.no_grad()
