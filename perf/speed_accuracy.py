@@ -23,7 +23,8 @@ even-polynomial DOE 5 mm before the sensor (on axis; ``--full`` adds 14 deg).
     python perf/speed_accuracy.py                    # CPU, the committed run (about an hour)
     python perf/speed_accuracy.py --device cuda      # GPU, with DeepLens when importable
 
-Writes ``perf/results/speed_accuracy_<cpu|gpu>.json`` and ``.png``.
+Writes ``perf/results/speed_accuracy_<cpu|gpu>.json``, ``.png`` and ``_psfs.npz`` (the reference PSFs and
+DeepLens's patches, 64 x 64, keys ``<case>/reference``, ``<case>/deeplens_<spp>``).
 """
 import argparse
 import json
@@ -45,6 +46,7 @@ from rwwarp.psf import RayWave
 from rwwarp.trace import as_field_list
 
 SIZE = 64
+PSFS = {}   # arrays written next to the JSON (<name>_psfs.npz): references and DeepLens patches, for diagnosis
 DEEPLENS_SPP_QUICK = (1_000_000, 16_777_216)
 DEEPLENS_SPP = (1_000_000, 4_000_000, 16_777_216)
 
@@ -139,21 +141,22 @@ def run_rwwarp_methods(case, ref, device, quick, repeat, log):
         log(f"  {label:34s} {t * 1e3:10.1f} ms  error {row['error']:.3g}")
         return row
 
-    # the library's defaults (gauss_nodes=3 pixel quadrature), then, where the reference needed more nodes,
+    # the library's defaults (its pixel quadrature), then, where the reference settled on another node count,
     # the same ladder with the reference's quadrature; the other rwwarp methods use the reference's quadrature
     # so that their curves show their own model error
-    g_ref = int(ref.info["convergence"]["settings"]["gauss_nodes"])
+    g_ref = ref.info["convergence"]["settings"]["gauss_nodes"]   # None: rw.psf's automatic choice
+    g_lab = "auto" if g_ref is None else g_ref
     ladder = [(1.0, 1.0), (1.5, 1.0), (2.0, 1.0), (2.0, 1.5), (3.0, 1.5)] if quick else list(cv.LADDER)
     methods["adaptive"] = [run(f"adaptive s={s:g} r={r:g}", nyquist_safety=s, rays_per_sample=r) for s, r in ladder]
-    if g_ref != 3:
+    if g_ref is not None and g_ref != cv.Settings().gauss_nodes:
         lad = ladder[1:] if quick else ladder
-        methods["adaptive_gauss"] = [run(f"adaptive s={s:g} r={r:g} g={g_ref}", nyquist_safety=s, rays_per_sample=r,
+        methods["adaptive_gauss"] = [run(f"adaptive s={s:g} r={r:g} g={g_lab}", nyquist_safety=s, rays_per_sample=r,
                                          gauss_nodes=g_ref) for s, r in lad]
     f32 = [(1.5, 1.0), (2.0, 1.0)] if quick else [(1.5, 1.0), (2.0, 1.0), (3.0, 1.5)]
-    methods["float32"] = [run(f"float32 s={s:g} r={r:g} g={g_ref}", nyquist_safety=s, rays_per_sample=r,
+    methods["float32"] = [run(f"float32 s={s:g} r={r:g} g={g_lab}", nyquist_safety=s, rays_per_sample=r,
                               dtype="float32", gauss_nodes=g_ref) for s, r in f32]
     methods["ray"] = [run("ray model (401^2 rays)", model="ray")]
-    methods["paraxial-wave"] = [run(f"paraxial-wave s={s:g} r={r:g} g={g_ref}", model="paraxial-wave",
+    methods["paraxial-wave"] = [run(f"paraxial-wave s={s:g} r={r:g} g={g_lab}", model="paraxial-wave",
                                     nyquist_safety=s, rays_per_sample=r, gauss_nodes=g_ref)
                                 for s, r in ((1.5, 1.0), (2.0, 1.0))]
     methods["paper"] = run_paper(case, ref, device, repeat, methods["adaptive"], run, log, g_ref, quick)
@@ -174,9 +177,10 @@ def run_paper(case, ref, device, repeat, adaptive_rows, run, log, gauss_nodes, q
     n = int(round(2 * half / 0.5e-3))
     lit = rw.Plan(0.5e-3, n, 2 * n, 1000, "paper", False,
                   ["the paper's grid: whole DOE at 0.5 um (half the 1 um feature size), padded 2x, 1000^2 rays"])
-    if quick:
+    if quick or not device.startswith("cuda"):
+        # measured on 2 CPU cores: the 12000^2 FFT of the A489 took > 10 min and ~14 GB before the OOM killer
         rows.append({"label": "paper grid literal (0.5 um)", "skipped": True, "plan": cv._plan_summary(lit),
-                     "reason": f"--quick (FFT {lit.n_pad}^2)"})
+                     "reason": f"GPU only (FFT {lit.n_pad}^2: > 10 min and ~14 GB on 2 CPU cores)"})
     else:
         rows.append(guarded(lit, "paper grid literal (0.5 um)", dict(plan=lit), device, adaptive_rows, run, log,
                             gauss_nodes))
@@ -187,7 +191,8 @@ def guarded(pl, label, kw, device, adaptive_rows, run, log, gauss_nodes):
     ad = next(r for r in adaptive_rows if r["label"] == default_label())
     ratio = max(pl.ray_grid ** 2 / ad["plan"]["rays"], (pl.n_pad / ad["plan"]["n_pad"]) ** 2)
     t_pred = ad["time_s"] * ratio
-    mem_pred = 16.0 * (pl.n_pad ** 2 + pl.n_grid * pl.n_pad + 3 * pl.n_grid ** 2) + 140.0 * pl.ray_grid ** 2
+    # ~100 B per padded sample (workspaces, cached transfer function; 14 GB measured at 12000^2), rays 140 B
+    mem_pred = 100.0 * pl.n_pad ** 2 + 48.0 * pl.n_grid ** 2 + 140.0 * pl.ray_grid ** 2
     avail = available_bytes(device)
     info = {"plan": cv._plan_summary(pl), "predicted_time_s": t_pred, "predicted_bytes": mem_pred}
     reason = None
@@ -199,15 +204,15 @@ def guarded(pl, label, kw, device, adaptive_rows, run, log, gauss_nodes):
     if reason:
         log(f"  {label} skipped: {reason}")
         return {"label": label, "skipped": True, "reason": reason, **info}
-    row = run(f"{label} g={gauss_nodes}", gauss_nodes=gauss_nodes, **kw)
+    row = run(f"{label} g={'auto' if gauss_nodes is None else gauss_nodes}", gauss_nodes=gauss_nodes, **kw)
     row.update({k: v for k, v in info.items() if k != "plan"})
     row["plan"] = cv._plan_summary(pl)
     return row
 
 
 # ------------------------------------------------------------------------------------------- DeepLens
-def register(dl, ref):
-    """Best match of a DeepLens patch to the reference over flips and integer shifts (|s| <= 4 px),
+def register(dl, ref, max_shift=10):
+    """Best match of a DeepLens patch to the reference over flips and integer shifts (|s| <= max_shift px),
     after scaling it to the reference's patch power. Returns (aligned array, description)."""
     best = None
     n = ref.shape[0]
@@ -215,8 +220,8 @@ def register(dl, ref):
         for fx in (False, True):
             a = dl[::-1] if fy else dl
             a = a[:, ::-1] if fx else a
-            for sy in range(-4, 5):
-                for sx in range(-4, 5):
+            for sy in range(-max_shift, max_shift + 1):
+                for sx in range(-max_shift, max_shift + 1):
                     b = np.zeros_like(a)
                     ys, yd = (slice(0, n - sy), slice(sy, n)) if sy >= 0 else (slice(-sy, n), slice(0, n + sy))
                     xs, xd = (slice(0, n - sx), slice(sx, n)) if sx >= 0 else (slice(-sx, n), slice(0, n + sx))
@@ -267,6 +272,7 @@ def run_deeplens(case, ref, ref_point, device, quick, repeat, log):
         log(f"  {row['label']:34s} {t * 1e3:10.1f} ms  error {row['error']:.3g} "
             f"(point-sampled ref: {row['error_vs_point_sampled_reference']:.3g})")
         rows.append(row)
+        PSFS[f"{case['name']}/deeplens_{spp}"] = d
     return rows
 
 
@@ -286,45 +292,71 @@ STYLE = {"adaptive": ("C0", "o", "rwwarp adaptive (defaults)"),
 
 
 def chart(res, path):
+    """Time per PSF (x, log) against error to the reference (y, log), one panel per case, one shared legend.
+    Points at the reference's own settings (error < 1e-12) are left out; the shaded band lies below the
+    reference's own estimated error (not resolved)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import matplotlib.ticker
     cs = res["cases"]
     ncol = 2
-    nrow = math.ceil(len(cs) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(6.2 * ncol, 4.6 * nrow), squeeze=False)
+    nrow = math.ceil((len(cs) + 1) / ncol)   # one panel for the legend and notes
+    fig, axes = plt.subplots(nrow, ncol, figsize=(6.2 * ncol, 4.4 * nrow), squeeze=False)
+    handles = {}
+    notes = []
     for ax, c in zip(axes.flat, cs):
+        ts, es = [], []
         for m, rows in c["methods"].items():
-            pts = [r for r in rows if not r.get("skipped") and r.get("error") is not None]
+            pts = sorted((r for r in rows if not r.get("skipped") and r.get("error") is not None
+                          and r["error"] > 1e-12), key=lambda r: r["time_s"])
             if not pts:
                 continue
             color, marker, label = STYLE.get(m, ("k", ".", m))
-            pts = sorted(pts, key=lambda r: r["time_s"])
-            ax.loglog([r["time_s"] for r in pts], [max(r["error"], 1e-9) for r in pts], marker=marker,
-                      color=color, ls="-" if len(pts) > 1 else "none", label=label)
+            line = "none" if m in ("paper", "ray") or len(pts) == 1 else "-"
+            h, = ax.loglog([r["time_s"] for r in pts], [r["error"] for r in pts], marker=marker, color=color,
+                           ls=line)
+            handles.setdefault(label, h)
+            ts += [r["time_s"] for r in pts]
+            es += [r["error"] for r in pts]
+            if m == "paper":
+                for r in pts:
+                    ax.annotate("literal 0.5 um" if "literal" in r["label"] else "whole DOE",
+                                (r["time_s"], r["error"]), fontsize=6, xytext=(4, 3), textcoords="offset points")
             if m == "deeplens":
-                ax.loglog([r["time_s"] for r in pts], [r["error_vs_point_sampled_reference"] for r in pts],
-                          marker=marker, color=color, mfc="none", ls=":", label="DeepLens vs point-sampled ref.")
-        notes = [f"{r['label']} skipped: {r['reason'][:95]}" for rows in c["methods"].values() for r in rows
-                 if r.get("skipped")]
-        if notes:
-            ax.text(0.01, 0.01, "\n".join(notes), transform=ax.transAxes, fontsize=5.5, va="bottom")
+                h2, = ax.loglog([r["time_s"] for r in pts], [r["error_vs_point_sampled_reference"] for r in pts],
+                                marker=marker, color=color, mfc="none", ls=":")
+                handles.setdefault("DeepLens vs point-sampled reference", h2)
+                es += [r["error_vs_point_sampled_reference"] for r in pts]
+                for r in pts:
+                    ax.annotate(f"{r['spp'] / 1e6:.3g}M", (r["time_s"], r["error"]), fontsize=6, xytext=(3, 3),
+                                textcoords="offset points")
+        notes += [f"{c['name']}: {r['label']} skipped: {r['reason']}" for rows in c["methods"].values()
+                  for r in rows if r.get("skipped")]
         conv = c["reference"]["convergence"]
         floor = conv["estimated_error"]
-        ax.axhline(floor, color="0.5", ls="--", lw=1,
-                   label=f"reference's own error estimate ({'converged' if conv['converged'] else 'capped'})")
-        ax.axhspan(1e-9, floor, color="0.5", alpha=0.08, lw=0)
-        errs = [r["error"] for rows in c["methods"].values() for r in rows if r.get("error") is not None]
-        ax.set_ylim(max(min(errs + [floor]) / 3, 1e-9), max(errs + [1.0]) * 3)
-        ax.set_title(f"{c['name']}: {c['lens']}, {c['field_deg']} deg, {c['wavelength_um']} um", fontsize=9)
-        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        h = ax.axhline(floor, color="0.5", ls="--", lw=1)
+        handles.setdefault("reference's own error estimate (below: not resolved)", h)
+        lo = max(min(es + [floor]) / 3, 1e-9)
+        ax.axhspan(lo, floor, color="0.5", alpha=0.08, lw=0)
+        ax.set_ylim(lo, max(es + [1.0]) * 3)
+        if ts and max(ts) / min(ts) > 12:
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        state = "converged" if conv["converged"] else "capped"
+        ax.set_title(f"{c['lens']}, {c['field_deg']} deg, {c['wavelength_um']} um (reference {state}, "
+                     f"est. error {floor:.1g})", fontsize=8.5)
         ax.set_xlabel("time per PSF (s)")
         ax.set_ylabel("relative L2 error to the converged reference")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=6.5, loc="upper right")
-    for ax in list(axes.flat)[len(cs):]:
+    rest = list(axes.flat)[len(cs):]
+    for ax in rest:
         ax.axis("off")
+    leg_ax = rest[0]
+    leg_ax.legend(list(handles.values()), list(handles.keys()), loc="upper left", fontsize=8, frameon=False)
+    if notes:
+        import textwrap
+        txt = "\n".join(textwrap.fill(n, 95, subsequent_indent="    ") for n in notes)
+        leg_ax.text(0.0, 0.0, txt, transform=leg_ax.transAxes, fontsize=6, va="bottom")
     fig.suptitle(f"rwwarp speed vs accuracy on {res['device_name']} ({SIZE}x{SIZE} px PSFs)", fontsize=11)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
@@ -388,6 +420,7 @@ def main():
                                                                   f"{e['plan']['n_pad']:6d} {e['time_s']:7.2f} s "
                                                                   f"change {e['change']}"))
         conv = ref.info["convergence"]
+        PSFS[f"{case['name']}/reference"] = ref.data
         log(f"  reference: converged={conv['converged']} combined change {conv['combined_change']:.3g} "
             f"estimated error {conv['estimated_error']:.3g} ({time.perf_counter() - t0:.0f} s)")
         c = {"name": case["name"], "lens": case["lens_name"], "field_deg": case["field_deg"],
@@ -401,6 +434,7 @@ def main():
                     s = cv.Settings(**{**conv["settings"], "gauss_nodes": 1})
                     ref_pt, _ = cv.psf_at(case["lens"], case["field_deg"], case["wavelength_um"], SIZE, a.device, s,
                                           center_mm=tuple(conv["center_mm"]))
+                    PSFS[f"{case['name']}/reference_point_sampled"] = ref_pt.data
                     c["methods"]["deeplens"] = run_deeplens(case, ref, ref_pt.data, a.device, a.quick, repeat, log)
                 except Exception as e:
                     traceback.print_exc()
@@ -419,6 +453,7 @@ def main():
     res["total_time_s"] = time.perf_counter() - t_all
     res["load_average_end"] = os.getloadavg()
     p = save(f"speed_accuracy_{tag}", res, out_dir)
+    np.savez_compressed(os.path.join(out_dir, f"speed_accuracy_{tag}_psfs.npz"), **PSFS)
     png = os.path.join(out_dir, f"speed_accuracy_{tag}.png")
     chart(res, png)
     log(f"-> {p}\n-> {png}  ({res['total_time_s']:.0f} s)")

@@ -8,6 +8,7 @@ The ray-wave PSF has four discretisation knobs (see :mod:`rwwarp.plan`):
 * ``pad_factor``: the FFT length relative to the adaptive plan's (2x the window, band limit);
 * ``gauss_nodes``: Gauss-Legendre nodes per axis of the pixel integration (cheap; matters when
   the PSF has structure finer than a pixel: 3 nodes leave ~3e-2 on an f/5 lens with 5 um pixels).
+  ``None`` is rw.psf's automatic choice; doubling it means 16 nodes (the automatic ceiling).
 
 :func:`converged_reference` refines them by doubling until the PSF stops changing. Doubling all
 of them at once multiplies the work by ~64 per step (16x the rays, 4x the FFT area) and leaves the
@@ -60,10 +61,15 @@ class Settings:
     nyquist_safety: float = float(_DEFAULTS["nyquist_safety"].default)
     rays_per_sample: float = float(_DEFAULTS["rays_per_sample"].default)
     pad_factor: float = 1.0
-    gauss_nodes: int = int(_DEFAULTS["gauss_nodes"].default)
+    gauss_nodes: int | None = _DEFAULTS["gauss_nodes"].default  # None: chosen per scene by rw.psf
 
     def doubled(self, *knobs) -> Settings:
-        return replace(self, **{k: type(getattr(self, k))(2 * getattr(self, k)) for k in knobs})
+        def twice(k):
+            v = getattr(self, k)
+            if v is None:  # automatic pixel quadrature: its ceiling is 16 nodes
+                return 16
+            return type(v)(2 * v)
+        return replace(self, **{k: twice(k) for k in knobs})
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -105,7 +111,7 @@ def psf_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings
     (``plan`` may hand in that plan when the caller already has it).
     """
     kw = dict(size=size, device=device, dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
-              pixel_mm=pixel_mm, center_mm=center_mm, gauss_nodes=int(settings.gauss_nodes),
+              pixel_mm=pixel_mm, center_mm=center_mm, gauss_nodes=None if settings.gauss_nodes is None else int(settings.gauss_nodes),
               nyquist_safety=settings.nyquist_safety, rays_per_sample=settings.rays_per_sample)
     if settings.pad_factor == 1.0:
         t0 = time.perf_counter()
@@ -314,11 +320,19 @@ class PlanChoice:
 
 def gauss_nodes_for(lens, field_deg, wavelength_um, size, device="cpu", target_error=1e-3, *, settings=Settings(),
                     center_mm=None, max_nodes=48, **kw) -> tuple[int, list]:
-    """Fewest pixel-integration nodes (3, 6, 12, ...) whose doubling changes the PSF by < target_error / 4.
+    """Fewest pixel-integration nodes (the automatic count, then doubled) whose doubling changes the PSF by
+    < target_error / 4.
 
     Cheap: only the output evaluation grows with the node count. Returns ``(nodes, changes)``.
     """
-    g = int(settings.gauss_nodes)
+    if settings.gauss_nodes is None:   # start from the count rw.psf chooses for this scene
+        pixel = float(kw.get("pixel_mm") or lens.sensor.pixel_pitch)
+        rwm = RayWave(lens, as_field_list(field_deg), [float(wavelength_um)], size, pixel, device, "auto",
+                      kw.get("dtype", "float64"), "energy", kw.get("object_distance_mm"), settings.rays_per_sample,
+                      center_mm, True, None, settings.nyquist_safety)
+        g = int(getattr(rwm, "gauss_nodes", None) or 3)
+    else:
+        g = int(settings.gauss_nodes)
     p, _ = psf_at(lens, field_deg, wavelength_um, size, device, replace(settings, gauss_nodes=g), center_mm=center_mm,
                   **kw)
     center = tuple(float(c) for c in p.center_mm)

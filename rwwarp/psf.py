@@ -82,7 +82,7 @@ class PSFMap:
 def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave", size: int = 64,
         device: str = "cpu", plan="auto", dtype: str = "float64", amplitude: str = "energy",
         object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
-        use_reference: bool = True, gauss_nodes: int = 3, nyquist_safety: float = 2.0) -> PSF:
+        use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -109,6 +109,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Sensor pixel pitch (mm), default the lens's sensor.
     center_mm : (x, y), optional
         Sensor position of the patch centre (snapped to a pixel centre); default where the chief ray lands.
+    gauss_nodes : int, optional
+        Gauss-Legendre nodes per axis for the pixel (box) integration of |U|^2; default: the fewest
+        whose error bound for the highest intensity frequency across a pixel is below 1e-7.
     nyquist_safety : float
         Adaptive plan: the DOE-plane pitch samples the highest local frequency this many times above
         its Nyquist limit of 2 samples per period (aperture-edge diffraction spreads past it; 2 keeps
@@ -127,7 +130,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
 def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 64, device: str = "cpu",
             plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
-            gauss_nodes: int = 3, batch: int | None = None, progress: bool = False,
+            gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
@@ -178,6 +181,33 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def n_img_all(lens, wls):
+    """Refractive index of the image space at each wavelength."""
+    return np.array([lens.indices(w)[-1] for w in wls])
+
+
+def _auto_gauss_nodes(dir_s, ok, n_img, lam_mm, pixel, tol=1e-7):
+    """Fewest Gauss-Legendre nodes (3..16) per axis integrating |U|^2 over a pixel to ``tol``.
+
+    |U|^2 at the sensor holds spatial frequencies up to 2 n NA / lambda (NA: the largest direction-sine
+    spread of the beam about its mean); across a pixel the phase of that component changes by
+    ``Phi = 2 pi pixel 2 n NA / lambda``, and the node count follows the Gauss-Legendre error bound for
+    ``exp(i Phi t / 2)`` on [-1, 1].
+    """
+    from .analytic import gauss_legendre_exp_error
+    worst = 0.0
+    for k in range(dir_s.shape[0]):
+        d = dir_s[k, ok[k], :2]
+        if len(d) == 0:
+            continue
+        na = float(np.max(np.abs(d - d.mean(0))))
+        worst = max(worst, 2.0 * np.pi * pixel * 2.0 * n_img[k] * na / lam_mm[k])
+    for g in range(3, 17):
+        if gauss_legendre_exp_error(g, worst / 2.0) < tol:
+            return g
+    return 16
+
+
 def _fmt_field(f):
     return f"{float(f):g} deg" if np.ndim(f) == 0 else f"({float(f[0]):g}, {float(f[1]):g}) deg"
 
@@ -271,7 +301,7 @@ class RayWave:
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
-                 use_reference=True, gauss_nodes=3, nyquist_safety=2.0, requires_grad=False):
+                 use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False):
 
         plane = _wave_plane_index(lens)
         uniq = sorted(set(wls))
@@ -376,6 +406,10 @@ class RayWave:
             raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
 
         self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
+        if gauss_nodes is None:
+            gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)
+            pl.reasons.append(f"pixel integration: {gauss_nodes} x {gauss_nodes} Gauss-Legendre nodes per pixel "
+                              f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
         self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
         self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
         self.nsrc, self.n_after, self.lam_mm = nsrc, n_after, lam_mm
@@ -562,7 +596,7 @@ class RayWave:
 
 
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
-             rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety=2.0):
+             rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0):
     return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
                    rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety).run()
 

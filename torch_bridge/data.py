@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["ImageSet", "SKIMAGE_TRAIN", "SKIMAGE_VALID", "load_image", "srgb_to_linear"]
+__all__ = ["SKIMAGE_TRAIN", "SKIMAGE_VALID", "ImageSet", "load_image", "srgb_to_linear"]
 
 # sample images bundled with scikit-image (files in skimage/data, no download)
 SKIMAGE_TRAIN = ["astronaut.png", "coffee.png", "rocket.jpg", "ihc.png", "hubble_deep_field.jpg", "retina.jpg",
@@ -66,7 +66,7 @@ def _files_for(root: Path, split: str, valid_fraction: float):
     files = sorted(p for p in root.iterdir() if p.suffix.lower() in _EXT)
     if not files:
         raise FileNotFoundError(f"no images in {root} (looked for DIV2K_{split}_HR/, {split}/ and image files)")
-    n_valid = max(1, int(round(valid_fraction * len(files)))) if len(files) > 1 else 0
+    n_valid = max(1, round(valid_fraction * len(files))) if len(files) > 1 else 0
     return files[len(files) - n_valid:] if split == "valid" else files[:len(files) - n_valid] or files
 
 

@@ -27,13 +27,21 @@ import math
 
 import numpy as np
 import torch
-
 from rwwarp.kernels import trace as ktrace
 
 from .functions import Propagate, mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
 
-__all__ = ["field_angles", "node_positions_mm", "common_centres", "LiveProvider", "CachedProvider", "RaySpot", "paraxial_efl",
-           "paraxial_achromat", "paraxial_object_distance"]
+__all__ = [
+    "CachedProvider",
+    "LiveProvider",
+    "RaySpot",
+    "common_centres",
+    "field_angles",
+    "node_positions_mm",
+    "paraxial_achromat",
+    "paraxial_efl",
+    "paraxial_object_distance",
+]
 
 
 # ---------------------------------------------------------------------------------------------- nodes
@@ -252,9 +260,9 @@ class CachedProvider:
         _, step = self._doe_frequency(geo, rw0.origin, pl.pitch_mm, pl.n_grid, wavelength_um)
         pitch = min(pitch, 0.5 * step)
         ratio = pl.pitch_mm / pitch
-        n_grid = int(math.ceil(pl.n_grid * ratio))
-        return Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, int(math.ceil(pl.n_pad * ratio)))),
-                    int(math.ceil(pl.ray_grid * ratio)), "explicit", False,
+        n_grid = math.ceil(pl.n_grid * ratio)
+        return Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, math.ceil(pl.n_pad * ratio))),
+                    math.ceil(pl.ray_grid * ratio), "explicit", False,
                     list(pl.reasons) + [f"DOE budget {self.doe_budget:g} cycles/mm reserved"])
 
     @staticmethod
@@ -262,9 +270,9 @@ class CachedProvider:
         """One plan covering several: the finest pitch, the widest window, padding and ray density."""
         from rwwarp.plan import Plan, nice_fft_length
         pitch = min(p.pitch_mm for p in plans)
-        n_grid = max(int(math.ceil(p.n_grid * p.pitch_mm / pitch)) for p in plans)
-        n_pad = nice_fft_length(max([2 * n_grid] + [int(math.ceil(p.n_pad * p.pitch_mm / pitch)) for p in plans]))
-        rays = max(int(math.ceil(p.ray_grid * p.pitch_mm / pitch)) for p in plans)
+        n_grid = max(math.ceil(p.n_grid * p.pitch_mm / pitch) for p in plans)
+        n_pad = nice_fft_length(max([2 * n_grid] + [math.ceil(p.n_pad * p.pitch_mm / pitch) for p in plans]))
+        rays = max(math.ceil(p.ray_grid * p.pitch_mm / pitch) for p in plans)
         return Plan(pitch, n_grid, n_pad, rays, "explicit", False, ["shared by the wavelengths of one depth"])
 
     def _recorded_plan(self, key):
@@ -464,8 +472,8 @@ class RaySpot:
         self.object_distance_mm = object_distance_mm
 
     def _hits(self):
-        from rwwarp.trace import Tracer, pupil_grid
         from rwwarp.psf import _wave_plane_index
+        from rwwarp.trace import Tracer, pupil_grid
         lens = self.module.to_lens()
         plane = _wave_plane_index(lens)
         tr = Tracer(lens, self.wls, device="cpu", dtype="float64", requires_grad=True)

@@ -35,8 +35,17 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["VGG16Features", "PerceptualLoss", "ReconstructionLoss", "ssim_torch", "gradient_loss", "LPIPS",
-           "image_metrics", "psnr", "PERCEPTUAL_KINDS"]
+__all__ = [
+    "LPIPS",
+    "PERCEPTUAL_KINDS",
+    "PerceptualLoss",
+    "ReconstructionLoss",
+    "VGG16Features",
+    "gradient_loss",
+    "image_metrics",
+    "psnr",
+    "ssim_torch",
+]
 
 PERCEPTUAL_KINDS = ("vgg", "ssim", "gradient", "none")
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -66,7 +75,7 @@ class VGG16Features(nn.Module):
             p.requires_grad_(False)
 
     @classmethod
-    def from_file(cls, path) -> "VGG16Features":
+    def from_file(cls, path) -> VGG16Features:
         """Load torchvision's VGG16 ``state_dict`` (the whole model's or just ``features``)."""
         sd = torch.load(str(path), map_location="cpu", weights_only=True)
         if isinstance(sd, dict) and "state_dict" in sd:
@@ -77,7 +86,7 @@ class VGG16Features(nn.Module):
         if not feats:
             raise ValueError(f"{path}: no VGG16 'features.N.weight' keys found")
         net = cls()
-        missing, unexpected = net.features.load_state_dict(feats, strict=False)
+        missing, _ = net.features.load_state_dict(feats, strict=False)
         if missing:
             raise ValueError(f"{path}: VGG16 weights missing {missing[:4]}...")
         return net.eval()

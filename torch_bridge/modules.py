@@ -100,7 +100,7 @@ class HybridLens(nn.Module):
     """
 
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
-                 nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int = 3,
+                 nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
                  use_reference: bool = True, replan: bool = True):
         super().__init__()
         self.lens_template = copy.deepcopy(lens)
@@ -108,7 +108,7 @@ class HybridLens(nn.Module):
         self.rays_per_sample = float(rays_per_sample)
         self.nyquist_safety = float(nyquist_safety)
         self.amplitude = amplitude
-        self.gauss_nodes = int(gauss_nodes)
+        self.gauss_nodes = None if gauss_nodes is None else int(gauss_nodes)  # None: per scene, as rw.psf
         self.use_reference = bool(use_reference)
         self.replan = bool(replan)
         self._plans: dict = {}

@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["NAFNet", "NAFBlock", "LayerNorm2d", "PRESETS", "build_network"]
+__all__ = ["PRESETS", "LayerNorm2d", "NAFBlock", "NAFNet", "build_network"]
 
 PRESETS = {
     "tiny": {"width": 8, "enc_blocks": [1, 1], "middle_blocks": 1, "dec_blocks": [1, 1]},
@@ -137,7 +137,7 @@ class NAFNet(nn.Module):
 
     def forward(self, inp):
         """Restore ``inp`` (B, C, H, W); returns the same shape."""
-        B, C, H, W = inp.shape
+        H, W = inp.shape[-2:]
         ph = (-H) % self.multiple
         pw = (-W) % self.multiple
         x0 = F.pad(inp, (0, pw, 0, ph), mode="reflect") if (ph or pw) else inp

@@ -52,8 +52,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["ConfigError", "load_config", "validate_config", "resolve_config", "train", "train_arm", "main",
-           "DEFAULTS"]
+__all__ = [
+    "DEFAULTS",
+    "ConfigError",
+    "load_config",
+    "main",
+    "resolve_config",
+    "train",
+    "train_arm",
+    "validate_config",
+]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
@@ -308,7 +316,7 @@ def _read(path: Path) -> dict:
         else:
             import yaml
             data = yaml.safe_load(text)
-    except Exception as e:  # noqa: BLE001 - any parse error is reported with the file
+    except Exception as e:
         raise ConfigError(f"{path}: cannot parse ({e})") from e
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a mapping")
@@ -568,6 +576,15 @@ def _learn_dict(learn: dict) -> dict:
     return out
 
 
+def _noise(image, noise: dict, gen):
+    """Sensor noise drawn from the CPU generator ``gen`` (reproducible on any device)."""
+    from torch_bridge.imaging import sensor_noise
+    if image.device.type == "cpu":
+        return sensor_noise(image, read_std=noise["read_std"], photons=noise["photons"], generator=gen)
+    return sensor_noise(image.cpu(), read_std=noise["read_std"], photons=noise["photons"],
+                        generator=gen).to(image.device)
+
+
 def _blur_patch(images, kernels, boundary):
     """Blur each image (B, C, H, W) with its own kernel (B, C, k, k) (image orientation), FFT."""
     from torch_bridge.imaging import spatially_varying_blur
@@ -584,7 +601,7 @@ class Arm:
         import torch_bridge as tb
         from torch_bridge import design as dz
         from torch_bridge.data import ImageSet
-        from torch_bridge.losses import ReconstructionLoss, LPIPS
+        from torch_bridge.losses import LPIPS, ReconstructionLoss
         from torch_bridge.network import build_network
         self.name, self.cfg, self.out = name, cfg, out_dir
         self.progress = progress and cfg["progress"]
@@ -747,7 +764,7 @@ class Arm:
         tmp.replace(path)
 
     def load(self, path: Path):
-        st = torch.load(path, map_location=self.device, weights_only=False)
+        st = torch.load(path, map_location="cpu", weights_only=False)
         self.step = int(st["step"])
         self.design_done = bool(st["design_done"])
         self.module.load_state_dict(st["module"])
@@ -757,7 +774,7 @@ class Arm:
             self.opt_optics.load_state_dict(st["opt_optics"])
         self.rms_log = st.get("rms_log", [])
         self.objective_initial = st.get("objective_initial")
-        self.last_psf = st.get("last_psf")
+        self.last_psf = None if st.get("last_psf") is None else st["last_psf"].to(self.module.thickness_base.device)
         self.provider = self._provider(self.cfg["optics"]["model"])
         plans = st.get("plans") or {}
         if plans and hasattr(self.provider, "load_plans"):
@@ -777,7 +794,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     """Run one arm (design stage, joint phase, fine-tune phase, evaluation); returns its result dict
     (also written to ``out_dir/result.json``). ``resume``: continue from ``out_dir/checkpoint.pt``."""
     from torch_bridge.functions import mixed_precision
-    from torch_bridge.imaging import sensor_noise, spatially_varying_blur
+    from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import psnr
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -804,7 +821,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         arm.save(ck)
     if isinstance(arm.provider, __import__("torch_bridge.design", fromlist=["CachedProvider"]).CachedProvider):
         allw = sorted({w for c in arm.wls for w in c})
-        arm.provider.prepare(allw if not arm.optics_learn() else allw, arm.depths, progress=arm.progress)
+        arm.provider.prepare(allw, arm.depths, progress=arm.progress)
     fields = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
               "replans"]
     new_csv = not csv_path.exists()
@@ -854,8 +871,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                 raw = spatially_varying_blur(gt, kern.reshape(gy, gx, 3, arm.size, arm.size),
                                              boundary=cfg["render"]["boundary"])
             if noisy:
-                nz = t_cfg["noise"]
-                raw = sensor_noise(raw, read_std=nz["read_std"], photons=nz["photons"], generator=arm.gen)
+                raw = _noise(raw, t_cfg["noise"], arm.gen)
             # ---- network and loss
             f = _lr_factor(t_cfg["lr_decay"], step, total)
             for g in arm.opt_net.param_groups:
@@ -966,7 +982,7 @@ def objective(arm: Arm, prov=None) -> dict:
     """The training objective (``MSE + alpha * perceptual``) on the fixed evaluation crops: ray-wave PSFs
     of the current lens (the wavelengths of each channel averaged) at the first evaluation depth, every
     node, seeded noise, the current network. Used to compare a design with its own starting point."""
-    from torch_bridge.imaging import sensor_noise, spatially_varying_blur
+    from torch_bridge.imaging import spatially_varying_blur
     cfg = arm.cfg
     ev = cfg["eval"]
     depth = _depth_value((ev["depths_mm"] or cfg["optics"]["depths_mm"])[0])
@@ -985,7 +1001,7 @@ def objective(arm: Arm, prov=None) -> dict:
                                          boundary=cfg["render"]["boundary"])
         else:
             raw = _blur_patch(gt, kern[[v] * gt.shape[0]], cfg["render"]["boundary"])
-        raw = sensor_noise(raw, read_std=ev["noise"]["read_std"], photons=ev["noise"]["photons"], generator=g)
+        raw = _noise(raw, ev["noise"], g)
         rec = arm.net(raw)
         loss, parts = arm.criterion(rec, gt)
         tot += float(loss)
@@ -998,7 +1014,7 @@ def objective(arm: Arm, prov=None) -> dict:
 @torch.no_grad()
 def evaluate(arm: Arm, prov=None) -> dict:
     """Evaluation of a trained arm with the ray-wave model (see the module docstring)."""
-    from torch_bridge.imaging import sensor_noise, spatially_varying_blur
+    from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import image_metrics
     cfg = arm.cfg
     ev = cfg["eval"]
@@ -1022,7 +1038,7 @@ def evaluate(arm: Arm, prov=None) -> dict:
         if cfg["render"]["mode"] == "patch":
             for n in range(len(arm.fields)):
                 raw = _blur_patch(gt_all, kern[[n] * gt_all.shape[0]], cfg["render"]["boundary"])
-                raw = sensor_noise(raw, read_std=ev["noise"]["read_std"], photons=ev["noise"]["photons"], generator=g)
+                raw = _noise(raw, ev["noise"], g)
                 rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0],
                                                                                       ev["batch_size"])])
                 m_raw = image_metrics(raw, gt_all, arm.lpips)
@@ -1035,13 +1051,13 @@ def evaluate(arm: Arm, prov=None) -> dict:
             gy, gx = arm.grid
             raw = spatially_varying_blur(gt_all, kern.reshape(gy, gx, 3, arm.size, arm.size),
                                          boundary=cfg["render"]["boundary"])
-            raw = sensor_noise(raw, read_std=ev["noise"]["read_std"], photons=ev["noise"]["photons"], generator=g)
+            raw = _noise(raw, ev["noise"], g)
             rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0], ev["batch_size"])])
             node_rows.append({"node": "all", "raw": image_metrics(raw, gt_all, arm.lpips),
                               "rec": image_metrics(rec, gt_all, arm.lpips)})
             sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
 
-        def avg(part, key):
+        def avg(part, key, node_rows=node_rows):
             return float(np.mean([r[part][key] for r in node_rows]))
         rows.append({"depth_mm": depth, "nodes": node_rows,
                      "raw": {k: avg("raw", k) for k in ("psnr", "ssim", "one_minus_lpips")},
@@ -1133,13 +1149,14 @@ def _designs_figure(results: dict, out: Path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     import rwwarp as rw
     arms = [a for a in results if (out / a / "lens.json").exists()]
     if not arms:
         return
     psfs = {a: np.load(out / a / "eval_psfs.npz") for a in arms}
     first = psfs[arms[0]]
-    key0 = list(first.keys())[0]
+    key0 = next(iter(first.keys()))
     nn_ = first[key0].shape[0]
     ncol = 1 + nn_ + 2
     fig, ax = plt.subplots(len(arms), ncol, figsize=(2.0 * ncol, 2.1 * len(arms)), squeeze=False)
@@ -1175,8 +1192,8 @@ def _fmt(m):
 def write_table(results: dict, out: Path, title: str = "", preset=None):
     """``table.md`` and ``table.csv`` of an experiment from its arms' results (numbers as measured)."""
     lines = [f"# {title}" + (f" (preset {preset})" if preset else ""), "",
-             "| design | depth | RMS radius um (on/off-axis/avg) | PSNR/SSIM/1-LPIPS raw | PSNR/SSIM/1-LPIPS rec | "
-             "EFL mm |", "|---|---|---|---|---|---|"]
+             ("| design | depth | RMS radius um (on/off-axis/avg) | PSNR/SSIM/1-LPIPS raw | PSNR/SSIM/1-LPIPS rec | "
+              "EFL mm |"), "|---|---|---|---|---|---|"]
     rows = []
     for a, r in results.items():
         if "eval" not in r:

@@ -1,0 +1,344 @@
+"""End-to-end design: a tiny design runs end to end and improves its objective over its own starting
+point; resuming from a checkpoint gives the same next step as an uninterrupted run; bad configs fail
+before any training with the key named. Plus the pieces: the ray model (RMS spot against rwwarp's
+spot_rms, gradients against finite differences), the paraxial achromat (focal shift cancelled), the
+cached-field PSFs against rwwarp's own ray-wave PSFs, the NAFNet, the data set and the losses."""
+import copy
+import csv
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import rwwarp as rw
+import torch_bridge as tb
+from torch_bridge import design as dz
+from torch_bridge.train import ConfigError, build_lens, load_config, main, train
+
+# a tiny design: the bundled A489 asphere + 16-level DOE, one wavelength per colour channel, two
+# PSF nodes, 32 px crops, the tiny NAFNet
+TINY = {
+    "experiment": "tiny",
+    "seed": 3,
+    "lens": {"file": "a489_doe", "doe_levels": 16},
+    "optics": {"learn": {"doe": "all"}, "psf_size": 15, "pixel_um": 3.0,
+               "nodes": {"layout": "diagonal", "fractions": [0.0, 0.6], "half_size_mm": 1.5},
+               "wavelengths_um": [[0.63], [0.55], [0.47]], "nyquist_safety": 1.0, "rays_per_sample": 1.2,
+               "doe_budget_cpmm": 10},
+    "data": {"crop": 32, "batch_size": 2, "eval_images": 2},
+    "network": {"preset": "tiny"},
+    "loss": {"alpha": 0.1, "perceptual": "ssim"},
+    "train": {"joint_steps": 8, "finetune_steps": 2, "lr_network": 1e-3, "lr_optics": {"doe": 0.5},
+              "log_every": 1, "image_every": 5, "checkpoint_every": 0},
+    "eval": {"rms_fractions": [0.0, 0.6], "rms_grid": 15, "batch_size": 2},
+    "progress": False,
+    "arms": [{"name": "e2e", "design": {"method": "e2e"}}],
+}
+
+
+def tiny(**over):
+    cfg = copy.deepcopy(TINY)
+    for dotted, v in over.items():
+        d = cfg
+        keys = dotted.split(".")
+        for k in keys[:-1]:
+            d = d.setdefault(k, {})
+        d[keys[-1]] = v
+    return cfg
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+def test_tiny_design_end_to_end(tmp_path):
+    res = train(tiny(), out_dir=tmp_path)["e2e"]
+    assert res["steps_done"] == 10
+    # the design improves its objective (MSE + alpha (1 - SSIM) on fixed validation crops) over its
+    # starting point: the initial DOE (blank) with the untrained (identity) network
+    assert res["objective_final"]["loss"] < res["objective_initial"]["loss"]
+    assert any(abs(c) > 1e-3 for c in res["eval"]["doe_coefficients"])       # the DOE learned
+    d = res["eval"]["depths"][0]
+    assert 0.0 < d["psf_energy"] <= 1.0 + 1e-9                               # fraction of entering power
+    for part in ("raw", "rec"):
+        assert math.isfinite(d[part]["psnr"]) and 0.0 < d[part]["ssim"] <= 1.0
+    out = tmp_path / "e2e"
+    for f in ("metrics.csv", "checkpoint.pt", "lens.json", "network.pt", "result.json", "step_000000.png",
+              "step_000005.png"):
+        assert (out / f).exists(), f
+    assert (tmp_path / "table.md").exists() and (tmp_path / "designs.png").exists()
+    rows = _rows(out / "metrics.csv")
+    assert [int(r["step"]) for r in rows] == list(range(10))
+    assert {r["phase"] for r in rows} == {"joint", "finetune"}
+    # the designed lens file loads and keeps the quantised DOE
+    lens = rw.load_lens(out / "lens.json")
+    assert lens.surfaces[lens.doe_index].levels == 16
+
+
+def test_resume_gives_the_same_next_step(tmp_path):
+    cfg = tiny(**{"train.joint_steps": 4, "train.finetune_steps": 2, "train.image_every": 0,
+                  "train.stop_after": 4})
+    train(cfg, out_dir=tmp_path / "straight")
+    straight = _rows(tmp_path / "straight" / "e2e" / "metrics.csv")
+    # interrupted after 3 steps, then resumed for the 4th
+    train(tiny(**{"train.joint_steps": 4, "train.finetune_steps": 2, "train.image_every": 0,
+                  "train.stop_after": 3}), out_dir=tmp_path / "resumed")
+    train(cfg, out_dir=tmp_path / "resumed")
+    resumed = _rows(tmp_path / "resumed" / "e2e" / "metrics.csv")
+    assert [int(r["step"]) for r in resumed] == [0, 1, 2, 3]
+    for key in ("loss", "mse", "perceptual", "psnr_train"):
+        assert float(resumed[3][key]) == float(straight[3][key]), key
+    a = torch.load(tmp_path / "straight" / "e2e" / "checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "resumed" / "e2e" / "checkpoint.pt", weights_only=False)
+    assert a["step"] == b["step"] == 4
+    assert torch.equal(a["module"]["doe"], b["module"]["doe"])
+    for k in a["net"]:
+        assert torch.equal(a["net"][k], b["net"][k]), k
+
+
+@pytest.mark.parametrize("over,key", [
+    ({"trian": {"joint_steps": 3}}, "trian"),
+    ({"train.lr_netwrok": 1e-3}, "train.lr_netwrok"),
+    ({"train.joint_steps": -5}, "train.joint_steps"),
+    ({"train.lr_network": 0.0}, "train.lr_network"),
+    ({"optics.psf_size": 0}, "optics.psf_size"),
+    ({"optics.psf_size": 16}, "optics.psf_size"),
+    ({"optics.wavelengths_um": [[0.63], [0.55]]}, "optics.wavelengths_um"),
+    ({"optics.wavelengths_um": [[0.63], [0.55], [5.0]]}, "optics.wavelengths_um"),
+    ({"optics.model": "wave"}, "optics.model"),
+    ({"optics.learn": {"doe": [7]}}, "optics.learn.doe"),
+    ({"optics.learn": {"curvature": [0]}}, "optics.learn.curvature"),
+    ({"data.batch_size": "four"}, "data.batch_size"),
+    ({"lens.file": "no_such_lens.json"}, "lens"),
+    ({"lens.doe_distance_mm": 50.0}, "lens"),
+    ({"network.preset": "huge"}, "network.preset"),
+])
+def test_bad_config_fails_before_training_naming_the_key(tmp_path, over, key):
+    cfg = tiny()
+    for dotted, v in over.items():
+        d = cfg
+        ks = dotted.split(".")
+        for k in ks[:-1]:
+            d = d.setdefault(k, {})
+        d[ks[-1]] = v
+    with pytest.raises(ConfigError) as e:
+        train(cfg, out_dir=tmp_path)
+    assert f"'{key}" in str(e.value)
+    assert not any(tmp_path.rglob("metrics.csv")) and not any(tmp_path.rglob("checkpoint.pt"))
+
+
+def test_bad_config_in_an_arm_or_preset(tmp_path):
+    cfg = tiny()
+    cfg["arms"] = [{"name": "a", "design": {"method": "e2e"}}, {"name": "b", "design": {"methd": "rms"}}]
+    with pytest.raises(ConfigError, match=r"arms\[1\].*'design.methd'"):
+        train(cfg, out_dir=tmp_path)
+    assert not (tmp_path / "a" / "metrics.csv").exists()   # arm a did not start either
+    cfg = tiny()
+    cfg["presets"] = {"cpu": {"train": {"finetune_steps": -1}}}
+    with pytest.raises(ConfigError, match=r"presets.cpu.*'train.finetune_steps'"):
+        load_config(cfg, "cpu")
+    with pytest.raises(ConfigError, match="unknown preset 'gpu'"):
+        load_config(cfg, "gpu")
+    cfg = tiny(**{"optics.model": "paraxial-wave"})
+    cfg["optics"]["learn"] = {"doe": "all", "curvature": [1]}
+    with pytest.raises(ConfigError, match="'optics.model' paraxial-wave"):
+        load_config(cfg)
+
+
+def test_cli_reports_config_errors(tmp_path, capsys):
+    p = tmp_path / "bad.yaml"
+    p.write_text("experiment: x\nlens: {file: a489_doe}\ntrain: {joint_stepz: 3}\n")
+    assert main([str(p), "--check"]) == 2
+    assert "'train.joint_stepz'" in capsys.readouterr().err
+    p = tmp_path / "bad.toml"
+    p.write_text('experiment = "x"\n[lens]\nfile = "a489_doe"\n[optics]\npsf_size = -3\n')
+    assert main([str(p), "--check"]) == 2
+    assert "'optics.psf_size'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["cooke_hybrid", "a489_aberration", "a489_edof"])
+def test_bundled_configs_are_valid(name):
+    for preset in ("cpu", "gpu"):
+        exp = load_config(name, preset)
+        assert len(exp["arms"]) >= 2
+
+
+def test_cooke_lens_matches_the_paper_specification():
+    exp = load_config("cooke_hybrid", None)
+    lens = build_lens(exp["base"], exp["source"])
+    from rwwarp import paraxial
+    assert lens.efl(0.55) == pytest.approx(47.0, abs=0.2)
+    assert paraxial.f_number(lens, 0.55) == pytest.approx(4.0, abs=0.02)
+    s = lens.surfaces[lens.doe_index]
+    assert s.semi_diameter == 4.0 and s.shape == "square" and s.profile["kind"] == "even_poly"
+    assert len(s.profile["coefficients"]) == 4
+    assert lens.sensor.resolution[0] * lens.sensor.pixel_pitch == pytest.approx(8.0)
+    # 14 deg diagonal: the sensor corner (5.66 mm) is at 7 deg
+    assert math.degrees(math.atan(4.0 * math.sqrt(2) / lens.efl(0.55))) == pytest.approx(7.0, abs=0.2)
+
+
+# ---------------------------------------------------------------------------------------------- optics pieces
+def _cooke():
+    exp = load_config("cooke_hybrid", None)
+    return build_lens(exp["base"], exp["source"])
+
+
+def test_ray_model_rms_equals_rwwarp_spot_rms_without_doe():
+    lens = _cooke()
+    m = tb.HybridLens(lens)
+    fields = [(0.0, 0.0), (2.0, 2.0), (3.5, 3.5)]
+    for w in (0.47, 0.63):
+        ours = dz.RaySpot(m, fields, [w], grid=41).rms().detach().numpy() * 1e3
+        ref = [rw.spot_rms(lens, f, w, grid=41, layout="centers") for f in fields]
+        np.testing.assert_allclose(ours, ref, rtol=1e-10)
+
+
+def test_ray_model_gradients_match_finite_differences():
+    lens = _cooke()
+    d = lens.doe_index
+    lens = lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [-300.0, 20.0, 5.0, 0.0]})
+    m = tb.HybridLens(lens, learn={"curvature": [2], "doe": [1], "thickness": [d]})
+    fields = [(0.0, 0.0), (3.0, 3.0)]
+
+    def f():
+        return dz.RaySpot(m, fields, [0.47, 0.55, 0.63], grid=21).rms().sum()
+    f().backward()
+    for q, h in (("curvature", 1e-6), ("doe", 1e-3), ("thickness", 1e-5)):
+        p = getattr(m, q)
+        g = float(p.grad[0])
+        with torch.no_grad():
+            p[0] += h
+            fp = float(f())
+            p[0] -= 2 * h
+            fm = float(f())
+            p[0] += h
+        assert g == pytest.approx((fp - fm) / (2 * h), rel=1e-5), q
+
+
+def test_paraxial_achromat_cancels_the_focal_shift():
+    lens = _cooke()
+    d = lens.doe_index
+    wls = [0.47, 0.55, 0.63]
+    a1, dist = dz.paraxial_achromat(lens, wls)
+    hyb = lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [a1, 0, 0, 0]}, thickness=dist)
+    before = np.ptp([lens.bfl(w) for w in wls])
+    after = np.ptp([hyb.bfl(w) for w in wls])
+    # the linear (primary) focal shift is gone: the end wavelengths focus together; what is left is
+    # the secondary spectrum of a crown + diffractive achromat (curvature in lambda, ~8 % here)
+    assert after < 0.1 * before
+    assert abs(hyb.bfl(0.47) - hyb.bfl(0.63)) < 0.02 * before
+    # the sensor sits at the mean paraxial focus
+    assert np.mean([hyb.bfl(w) for w in wls]) == pytest.approx(dist, abs=0.05 * before)
+    m = tb.HybridLens(hyb)
+    assert float(dz.paraxial_efl(m, 0.55)) == pytest.approx(hyb.efl(0.55), rel=1e-12)
+
+
+def test_cached_psfs_equal_rwwarp_raywave_psfs():
+    """Caching the DOE-plane fields and applying the DOE in torch reproduces rwwarp's ray-wave PSF
+    (same plan and centres) to round-off."""
+    lens = rw.load_lens("a489_doe")
+    d = lens.doe_index
+    lens = lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [-20.0, 8.0, 3.0, -1.0]})
+    m = tb.HybridLens(lens, learn={"doe": "all"}, nyquist_safety=1.0, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, [(0.0, 0.0), (0.8, 0.8)], 0.55)
+    prov = dz.CachedProvider(m, fields, 21, 0.003, wavelength_ref_um=0.55)
+    psf = prov.psfs([0.63, 0.47]).detach().numpy()                      # (2 nodes, 2 wavelengths, 21, 21)
+    for j, w in enumerate([0.63, 0.47]):
+        rec = prov.plans[prov._key(w, None)]
+        plan = rw.Plan(rec["pitch_mm"], rec["n_grid"], rec["n_pad"], rec["ray_grid"], "explicit")
+        for i, f in enumerate(fields):
+            ref = rw.psf(lens, f, w, size=21, pixel_mm=0.003, plan=plan, center_mm=rec["centers"][i],
+                         rays_per_sample=1.2, nyquist_safety=1.0, gauss_nodes=m.gauss_nodes)
+            np.testing.assert_allclose(psf[i, j], ref.data, rtol=0, atol=1e-9 * ref.data.max())
+    # gradients reach the DOE
+    prov.psfs([0.55]).sum().backward()
+    assert torch.all(torch.isfinite(m.doe.grad)) and m.doe.grad.abs().sum() > 0
+
+
+def test_paraxial_wave_provider_is_aberration_free_off_axis():
+    """The paraxial-wave model idealises the lens: its off-axis PSF is as compact as on axis, the
+    ray-wave one is not (the A489 has off-axis aberrations)."""
+    lens = rw.load_lens("a489_doe")
+    m = tb.HybridLens(lens, nyquist_safety=1.0, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, [(0.0, 0.0), (1.2, 1.2)], 0.55)
+
+    def second_moment(p):
+        y, x = np.mgrid[:p.shape[0], :p.shape[1]]
+        s = p.sum()
+        cy, cx = (p * y).sum() / s, (p * x).sum() / s
+        return ((p * ((y - cy) ** 2 + (x - cx) ** 2)).sum() / s) ** 0.5
+    par = dz.CachedProvider(m, fields, 31, 0.003, model="paraxial-wave").psfs([0.55]).detach().numpy()[:, 0]
+    ray = dz.CachedProvider(m, fields, 31, 0.003, model="ray-wave").psfs([0.55]).detach().numpy()[:, 0]
+    assert second_moment(par[1]) < 1.5 * second_moment(par[0])
+    assert second_moment(ray[1]) > 2.0 * second_moment(par[1])
+
+
+# ---------------------------------------------------------------------------------------------- network, data, losses
+def test_nafnet_presets_shapes_and_identity_start():
+    from torch_bridge.network import PRESETS, build_network
+    x = torch.rand(2, 3, 37, 50)
+    for p in PRESETS:
+        if p == "paper":
+            continue
+        net = build_network(p)
+        y = net(x)
+        assert y.shape == x.shape
+        assert torch.equal(y, x)                 # zero-initialised output convolution: the identity
+    net = build_network("tiny", zero_init=False)
+    assert not torch.equal(net(x), x)
+    n_paper = sum(q.numel() for q in build_network("paper").parameters())
+    assert 15e6 < n_paper < 20e6                 # NAFNet-width32 (GoPro) has 17.1 M parameters
+
+
+def test_image_set_folder_layout_and_reproducible_crops(tmp_path):
+    from skimage import io
+
+    from torch_bridge.data import ImageSet
+    rng = np.random.default_rng(0)
+    for split, n in (("DIV2K_train_HR", 3), ("DIV2K_valid_HR", 1)):
+        (tmp_path / split).mkdir()
+        for i in range(n):
+            io.imsave(tmp_path / split / f"{i:04d}.png", (rng.random((40, 50, 3)) * 255).astype(np.uint8),
+                      check_contrast=False)
+    tr = ImageSet(tmp_path, "train", crop=16)
+    va = ImageSet(tmp_path, "valid", crop=16)
+    assert len(tr) == 3 and len(va) == 1
+    a = tr.sample(5, torch.Generator().manual_seed(1))
+    b = tr.sample(5, torch.Generator().manual_seed(1))
+    assert a.shape == (5, 3, 16, 16) and torch.equal(a, b) and 0.0 <= float(a.min()) and float(a.max()) <= 1.0
+    assert torch.equal(va.fixed_crops(2), va.fixed_crops(2))
+    # offline default: scikit-image's bundled samples
+    d = ImageSet(None, "valid", crop=32)
+    assert len(d) >= 3
+
+
+def test_losses_fallback_warns_and_vgg_loads_from_a_file(tmp_path):
+    from torch_bridge.losses import ReconstructionLoss, VGG16Features, image_metrics, psnr, ssim_torch
+    x = torch.rand(2, 3, 32, 32)
+    y = (x + 0.05 * torch.randn_like(x)).clamp(0, 1)
+    with pytest.warns(UserWarning, match="no VGG16 weights"):
+        L = ReconstructionLoss(0.1, "vgg", None, "ssim")
+    assert L.perceptual.active_kind == "ssim"
+    total, parts = L(y, x)
+    assert float(total) == pytest.approx(parts["mse"] + 0.1 * parts["perceptual"], rel=1e-6)
+    assert float(ssim_torch(x, x)) == pytest.approx(1.0, abs=1e-6)
+    # a torchvision-layout state dict loads (random weights here: the layout is what is tested)
+    v = VGG16Features()
+    torch.save({"features." + k: t for k, t in v.features.state_dict().items()}, tmp_path / "vgg16.pth")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        L2 = ReconstructionLoss(0.1, "vgg", tmp_path / "vgg16.pth")
+    assert L2.perceptual.active_kind == "vgg"
+    assert float(L2(y, x)[0]) > float(L2(x, x)[0])
+    m = image_metrics(y, x)
+    from skimage.metrics import peak_signal_noise_ratio
+    ref = np.mean([peak_signal_noise_ratio(x[i].numpy().transpose(1, 2, 0), y[i].numpy().transpose(1, 2, 0),
+                                           data_range=1.0) for i in range(2)])
+    assert m["psnr"] == pytest.approx(ref, rel=1e-6)
+    assert m["psnr"] == pytest.approx(psnr(y, x), rel=1e-4)
+    assert math.isnan(m["one_minus_lpips"])
