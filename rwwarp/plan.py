@@ -26,15 +26,8 @@ from .errors import SamplingWarning
 
 def nice_fft_length(n: int) -> int:
     """Smallest integer >= n whose prime factors are all in {2, 3, 5, 7} (fast for VkFFT)."""
-    n = max(int(n), 1)
-    while True:
-        m = n
-        for p in (2, 3, 5, 7):
-            while m % p == 0:
-                m //= p
-        if m == 1:
-            return n
-        n += 1
+    from .propagate import next_fft_size
+    return next_fft_size(n)
 
 
 @dataclass
