@@ -829,6 +829,34 @@ def propagate_adjoint(
     return _band_adjoint_to_field(st, band_grad, h)
 
 
+def _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm, doe_phase,
+                doe_scale, carrier_cpmm, pad_to, dtype):
+    """Shared state of :func:`propagate_grid` and its adjoint (output window shifted by ``out_origin_mm``)."""
+    probe = get_backend(backend)
+    batch = _batch_of(field)
+    origin = _per_batch(origin_mm, batch, "origin_mm", (2,))
+    shift = (
+        np.zeros((batch, 2))
+        if out_origin_mm is None
+        else _per_batch(out_origin_mm, batch, "out_origin_mm", (2,)) - origin
+    )
+    st = _setup(
+        probe,
+        field,
+        pitch_mm,
+        origin_mm,
+        wavelength_um,
+        distance_mm,
+        doe_phase=doe_phase,
+        doe_scale=doe_scale,
+        carrier_cpmm=carrier_cpmm,
+        pad_to=pad_to,
+        dtype=dtype,
+        shift_mm=shift,
+    )
+    return st
+
+
 def propagate_grid(
     backend,
     field,
@@ -857,28 +885,8 @@ def propagate_grid(
         (B, Ny, Nx) complex device array, with the carrier (if any) still factored out:
         the true field is ``out * exp(2j pi (fx0 x + fy0 y))``.
     """
-    probe = get_backend(backend)
-    batch = _batch_of(field)
-    origin = _per_batch(origin_mm, batch, "origin_mm", (2,))
-    shift = (
-        np.zeros((batch, 2))
-        if out_origin_mm is None
-        else _per_batch(out_origin_mm, batch, "out_origin_mm", (2,)) - origin
-    )
-    st = _setup(
-        probe,
-        field,
-        pitch_mm,
-        origin_mm,
-        wavelength_um,
-        distance_mm,
-        doe_phase=doe_phase,
-        doe_scale=doe_scale,
-        carrier_cpmm=carrier_cpmm,
-        pad_to=pad_to,
-        dtype=dtype,
-        shift_mm=shift,
-    )
+    st = _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm,
+                     doe_phase, doe_scale, carrier_cpmm, pad_to, dtype)
     pitch = st.params[:, _P_LPX] / st.npx
     _check_window(st, st.nx * pitch, st.ny * pitch, "propagate_grid")
     padded = _pad_fft(st, st.field, st.has_phase)
@@ -922,28 +930,8 @@ def propagate_grid_adjoint(
     """Adjoint of :func:`propagate_grid`: ``grad_out`` (B, Ny, Nx) in the convention
     ``dL/dRe + 1j dL/dIm`` -> ``(grad_field, grad_doe_phase or None)`` (device arrays; see
     :func:`propagate_adjoint`)."""
-    probe = get_backend(backend)
-    batch = _batch_of(field)
-    origin = _per_batch(origin_mm, batch, "origin_mm", (2,))
-    shift = (
-        np.zeros((batch, 2))
-        if out_origin_mm is None
-        else _per_batch(out_origin_mm, batch, "out_origin_mm", (2,)) - origin
-    )
-    st = _setup(
-        probe,
-        field,
-        pitch_mm,
-        origin_mm,
-        wavelength_um,
-        distance_mm,
-        doe_phase=doe_phase,
-        doe_scale=doe_scale,
-        carrier_cpmm=carrier_cpmm,
-        pad_to=pad_to,
-        dtype=dtype,
-        shift_mm=shift,
-    )
+    st = _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm,
+                     doe_phase, doe_scale, carrier_cpmm, pad_to, dtype)
     g = st.backend.to_device(grad_out, st.dtype)
     if tuple(g.shape) != (st.batch, st.ny, st.nx):
         raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, st.ny, st.nx)}")
