@@ -173,8 +173,8 @@ class CachedProvider:
         Spatial frequency (cycles/mm) reserved for the DOE when a plan is made: the DOE-plane pitch
         is at most ``1 / (2 safety (f_field + f_DOE + budget))`` so the DOE can grow without replanning.
 
-    **Plans.** The wavelengths of one depth share one sampling plan (the finest pitch and the widest
-    window of their automatic plans: one FFT size per depth). Each entry's plan, patch centres and
+    **Plans.** Each entry gets its automatic plan (plus the DOE budget); the wavelengths of one depth
+    share their patch centres. Each entry's plan, patch centres and
     the DOE frequency it was made for are recorded in :attr:`plans`; :meth:`check_sampling` replans
     entries whose DOE has outgrown them (Nyquist of field + DOE, two samples per quantisation step)
     and re-centres patches the DOE has moved; :meth:`load_plans` rebuilds entries from a record
@@ -198,6 +198,7 @@ class CachedProvider:
         self._cache = {}
         self.plans = {}
         self.replans = 0
+        self.replan_log = []
 
     # ------------------------------------------------------------------ geometry and plans
     def _geometry(self, depth_mm):
@@ -328,19 +329,18 @@ class CachedProvider:
             if not todo:
                 continue
             fresh = [k for k in todo if self._recorded_plan(k) is None]
-            shared, centres = None, None
+            centres = None
             if fresh:
-                shared = self._unify([self._auto_plan(k) for k in fresh])
                 geo, fields, depth = self._geometry(d)
                 centres = common_centres(geo, fields, self.wl_ref, depth)
             for k in todo:
-                work.append((k, None if k not in fresh else shared, None if k not in fresh else centres))
+                work.append((k, None, None if k not in fresh else centres))
         it = work
         if progress:
             from tqdm.auto import tqdm
             it = tqdm(work, desc="DOE-plane fields", unit="batch", leave=False)
         for k, plan, centres in it:
-            self._build(k, plan or self._recorded_plan(k), centres)
+            self._build(k, plan or self._recorded_plan(k), centres)  # no record: the automatic plan
 
     def load_plans(self, plans: dict):
         """Use recorded plans (:attr:`plans` of an earlier run) for the entries built from now on."""
@@ -365,6 +365,8 @@ class CachedProvider:
                                               rw.origin, pitch, rw.plan.n_grid, key[0])
             f_field = max(1.0 / (2.0 * rec["safety"] * pitch) - self.doe_budget - rec["f_doe_cpmm"], 0.0)
             if 2.0 * pitch * (f_field + f_doe) > 1.0 or pitch > 0.5 * step:
+                self.replan_log.append({"key": list(key), "reason": "sampling", "pitch_um": pitch * 1e3,
+                                        "f_field_cpmm": f_field, "f_doe_cpmm": f_doe, "doe_step_um": step * 1e3})
                 self._cache.pop(key)
                 self.plans.pop(key, None)
                 self._build(key)
@@ -373,6 +375,8 @@ class CachedProvider:
             geo_now, fields_now, depth_now = self._geometry(key[1])
             cen = common_centres(geo_now, fields_now, self.wl_ref, depth_now)
             if np.max(np.abs(cen - rw.centers)) > self.size * self.pixel_mm / 8.0:
+                self.replan_log.append({"key": list(key), "reason": "re-centre",
+                                        "shift_um": float(np.max(np.abs(cen - rw.centers))) * 1e3})
                 self._cache.pop(key)
                 self._build(key, self._recorded_plan(key), cen)
                 rebuilt += 1

@@ -851,7 +851,6 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             noisy = phase == "finetune" or t_cfg["noise_in_joint"]
             # ---- optics
             optics_step = phase == "joint" and arm.optics_learn() and step % t_cfg["optics_every"] == 0
-            key = (tuple(wls), depth)
             if optics_step:
                 psf = arm.psfs(wls, depth, grad=True)
                 psf_cache.clear()
@@ -860,9 +859,13 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                 # between optics updates the network sees the PSFs of the last update (no extra forward)
                 psf = arm.last_psf
             else:
-                if key not in psf_cache:
-                    psf_cache[key] = arm.psfs(wls, depth, grad=False)
-                psf = psf_cache[key]
+                # frozen optics: single-wavelength PSFs cached, a channel combination is a stack of them
+                per = []
+                for w in wls:
+                    if (w, depth) not in psf_cache:
+                        psf_cache[(w, depth)] = arm.psfs([w], depth, grad=False)[:, 0]
+                    per.append(psf_cache[(w, depth)])
+                psf = torch.stack(per, 1)
             kern = _psf_kernels(mixed_precision(psf) if psf.dtype == torch.float64 else psf).to(arm.device)
             if cfg["render"]["mode"] == "patch":
                 raw = _blur_patch(gt, kern[nodes], cfg["render"]["boundary"])
@@ -919,7 +922,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         fcsv.close()
     result = {"arm": name, "method": arm.method, "steps_done": arm.step, "steps_total": total,
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
-              "replans": getattr(arm.provider, "replans", 0)}
+              "replans": getattr(arm.provider, "replans", 0),
+              "replan_log": getattr(arm.provider, "replan_log", [])}
     if arm.step < total:
         result["stopped_early"] = True
         return result
