@@ -180,7 +180,8 @@ def run_paper(case, ref, device, repeat, adaptive_rows, run, log, gauss_nodes, q
     if quick or not device.startswith("cuda"):
         # measured on 2 CPU cores: the 12000^2 FFT of the A489 took > 10 min and ~14 GB before the OOM killer
         rows.append({"label": "paper grid literal (0.5 um)", "skipped": True, "plan": cv._plan_summary(lit),
-                     "reason": f"GPU only (FFT {lit.n_pad}^2: > 10 min and ~14 GB on 2 CPU cores)"})
+                     "reason": f"GPU only (FFT {lit.n_pad}^2; the A489's 12000^2 ran > 10 min on 2 CPU cores and "
+                               f"was killed for memory at ~14 GB)"})
     else:
         rows.append(guarded(lit, "paper grid literal (0.5 um)", dict(plan=lit), device, adaptive_rows, run, log,
                             gauss_nodes))

@@ -1,4 +1,4 @@
-"""Command line: ``rwwarp info | psf | map | validate | demo | bench``.
+"""Command line: ``rwwarp info | psf | map | validate | demo | design | bench``.
 
 Run ``rwwarp <command> --help`` for the options of each. Lengths in mm, wavelengths in um,
 fields in degrees.
@@ -111,6 +111,15 @@ def cmd_validate(a):
     print(rep)
 
 
+def cmd_design(a):
+    """End-to-end design from a YAML/TOML config (torch_bridge; needs torch)."""
+    try:
+        from torch_bridge.train import main as train_main
+    except ImportError as e:
+        sys.exit(f"rwwarp design needs torch and torch_bridge ({e}); install with: pip install 'rwwarp[torch]'")
+    sys.exit(train_main([a.config] + a.rest))
+
+
 def cmd_bench(a):
     import subprocess
     script = Path(__file__).resolve().parents[1] / "perf" / f"bench_{a.what}.py"
@@ -165,6 +174,11 @@ def main(argv=None):
     p.add_argument("--device", default="cpu")
     p.add_argument("--quick", action="store_true", help="smaller sizes")
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("design", help="end-to-end lens + DOE + network design from a YAML/TOML config")
+    p.add_argument("config")
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to torch_bridge.train")
+    p.set_defaults(func=cmd_design)
 
     p = sub.add_parser("bench", help="run a benchmark from perf/ (trace, psf, map, bridge)")
     p.add_argument("what")
