@@ -357,11 +357,18 @@ class CachedProvider:
         step), and re-centre patches the DOE has moved by more than ``size / 8`` pixels. Returns the
         number of entries rebuilt."""
         rebuilt = 0
+        per_depth = {}   # the current geometry and patch centres, once per depth
+
+        def current(depth_key):
+            if depth_key not in per_depth:
+                geo_now, fields_now, depth_now = self._geometry(depth_key)
+                per_depth[depth_key] = (geo_now, common_centres(geo_now, fields_now, self.wl_ref, depth_now))
+            return per_depth[depth_key]
         for key in list(self._cache):
             rw, _, _, _, geo = self._cache[key]
             rec = self.plans[key]
             pitch = rw.plan.pitch_mm
-            f_doe, step = self._doe_frequency(geo if self.model == "ray-wave" else self._geometry(key[1])[0],
+            f_doe, step = self._doe_frequency(geo if self.model == "ray-wave" else current(key[1])[0],
                                               rw.origin, pitch, rw.plan.n_grid, key[0])
             f_field = max(1.0 / (2.0 * rec["safety"] * pitch) - self.doe_budget - rec["f_doe_cpmm"], 0.0)
             if 2.0 * pitch * (f_field + f_doe) > 1.0 or pitch > 0.5 * step:
@@ -372,8 +379,7 @@ class CachedProvider:
                 self._build(key)
                 rebuilt += 1
                 continue
-            geo_now, fields_now, depth_now = self._geometry(key[1])
-            cen = common_centres(geo_now, fields_now, self.wl_ref, depth_now)
+            cen = current(key[1])[1]
             if np.max(np.abs(cen - rw.centers)) > self.size * self.pixel_mm / 8.0:
                 self.replan_log.append({"key": list(key), "reason": "re-centre",
                                         "shift_um": float(np.max(np.abs(cen - rw.centers))) * 1e3})
