@@ -268,21 +268,9 @@ def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
 
 
 def deeplens_lens(device):
-    """DeepLens's HybridLens of the A489 + flat DOE (perf/bench_psf.py's file)."""
-    import tempfile
-
-    import torch
-    torch.set_default_dtype(torch.float64)
-    from bench_psf import deeplens_json
-    from deeplens.hybridlens import HybridLens
-    path = os.path.join(tempfile.mkdtemp(), "a489_doe_deeplens.json")
-    deeplens_json(path)
-    dev = "cuda" if device.startswith("cuda") else "cpu"
-    lens = HybridLens(filename=path, device=dev)
-    for k in ("alpha2", "alpha4", "alpha6", "alpha8", "alpha10"):
-        if hasattr(lens.doe, k):
-            setattr(lens.doe, k, torch.zeros(1, device=dev, dtype=torch.float64))
-    return lens
+    """DeepLens's HybridLens of the A489 + flat DOE (perf/_deeplens.py)."""
+    import _deeplens
+    return _deeplens.a489_hybridlens("cuda" if device.startswith("cuda") else "cpu")
 
 
 def bench_deeplens(n, device, bandwidth, log, spp_loop=1_000_000):
@@ -340,8 +328,8 @@ def bench_deeplens(n, device, bandwidth, log, spp_loop=1_000_000):
 
 def deeplens_importable():
     try:
-        import deeplens  # noqa: F401  (importability check)
-        return True
+        import _deeplens
+        return _deeplens.deeplens_importable()   # stubs a torchvision that cannot load (image writing only)
     except Exception:
         return False
 

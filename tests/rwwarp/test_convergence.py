@@ -76,6 +76,25 @@ def test_estimate_covers_error_with_a_doe():
     assert cv.rel_l2(est["psf"].data, ref.data) <= est["estimated_error"]
 
 
+@pytest.mark.parametrize("doe", [even_poly(20.0, -5.0), even_poly(200.0)], ids=["weak", "strong"])
+def test_adaptive_psf_agrees_with_paper_grid_within_its_estimate(doe):
+    # the paper's fixed grid (whole DOE, padded 2x, 10^6 rays) is a different discretisation of the same
+    # PSF: the default adaptive plan must agree with it to the error it reports for itself
+    lens = thin_lens(doe=doe, doe_to_sensor_mm=10.0)
+    est = cv.estimate_error(lens, 0.0, WL, SIZE)
+    adaptive = est["psf"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SamplingWarning)
+        paper = rw.psf(lens, 0.0, WL, size=SIZE, plan="paper", center_mm=adaptive.center_mm)
+    # it is the paper's grid: the whole 2 mm DOE, 2x padding, 1000 rays across; the adaptive window is the
+    # beam's footprint (~0.2 mm)
+    assert paper.plan["kind"] == "paper" and paper.plan["ray_grid"] == 1000
+    assert paper.plan["n_grid"] * paper.plan["pitch_mm"] == pytest.approx(2.0, abs=paper.plan["pitch_mm"])
+    assert paper.plan["n_pad"] == 2 * paper.plan["n_grid"]
+    assert adaptive.plan["n_grid"] * adaptive.plan["pitch_mm"] < 0.5
+    assert 0 < cv.rel_l2(adaptive.data, paper.data) <= est["estimated_error"]
+
+
 def test_plan_for_error_returns_cheapest_rung_meeting_target(circle):
     lens, ref, _ = circle
     target = 2e-3
