@@ -1,13 +1,29 @@
 #!/usr/bin/env bash
-# Everything measured on a GPU in one command (device tool): results JSON under $OUT (or perf/results).
+# Everything measured on a GPU, in three parts that each fit one device-tool command (<= 10 min):
+#   bash perf/gpu_suite.sh a   # trace, single PSF vs DeepLens, 10x10x3 map vs DeepLens, latency profile
+#   bash perf/gpu_suite.sh b   # torch bridge: CPU/CUDA gradient check, DeepLens psf+backward, tile study
+#   bash perf/gpu_suite.sh c   # speed/accuracy chart, GPU tests
+# Results JSON under $OUT (device tool) or perf/results.
 set -u
+part=${1:-a}
 export RWWARP_RESULTS=${OUT:-$(cd "$(dirname "$0")" && pwd)/results}
 cd "$(dirname "$0")"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-echo "== trace"; timeout 100 python3 bench_trace.py --device cuda --sizes 1000000 16000000 2>&1 | tail -4
-echo "== psf";   timeout 150 python3 bench_psf.py --device cuda --deeplens --repeat 3 2>&1 | grep -v use_ai2 | tail -4
-echo "== map";   timeout 200 python3 bench_map.py --device cuda 2>&1 | grep -v use_ai2 | tail -8
-echo "== profile"; timeout 60 python3 profile_psf.py cuda 2>&1 | grep -v "^$" | cut -c1-130 | sed -n 1,22p
-echo "== bridge"; timeout 150 python3 bench_bridge.py --device cuda --check results/bench_bridge_reference_cpu.json 2>&1 | tail -4
-timeout 200 python3 bench_bridge.py --device cuda 2>&1 | tail -6
-echo "== speed/accuracy"; timeout ${SA_TIMEOUT:-170} python3 speed_accuracy.py --device cuda --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -12
+git -C .. rev-parse --short HEAD 2>/dev/null || true
+case $part in
+a)
+  echo "== trace";   timeout 90 python3 bench_trace.py --device cuda --sizes 1000000 16000000 2>&1 | tail -4
+  echo "== psf";     timeout 150 python3 bench_psf.py --device cuda --deeplens --repeat 5 2>&1 | grep -v use_ai2 | tail -4
+  echo "== latency"; timeout 60 python3 profile_latency.py cuda --reps 30 2>&1 | grep -v "^$" | cut -c1-150 | sed -n 1,25p \
+                       | tee "$RWWARP_RESULTS/profile_latency_gpu.txt"
+  echo "== map";     timeout 240 python3 bench_map.py --device cuda 2>&1 | grep -v use_ai2 | tail -8
+  ;;
+b)
+  echo "== bridge check"; timeout 150 python3 bench_bridge.py --device cuda --check results/bench_bridge_reference_cpu.json 2>&1 | tail -4
+  echo "== bridge";  timeout 400 python3 bench_bridge.py --device cuda --study --deeplens --no-map 2>&1 | grep -v use_ai2 | tail -20
+  ;;
+c)
+  echo "== speed/accuracy"; timeout ${SA_TIMEOUT:-400} python3 speed_accuracy.py --device cuda --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -14
+  echo "== GPU tests"; (cd ../tests && timeout 150 python3 -m pytest -q -m gpu 2>&1 | tail -4)
+  ;;
+esac
