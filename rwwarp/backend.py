@@ -13,7 +13,9 @@ Every backend offers the same small interface, used by :mod:`rwwarp.propagate`:
 ``to_device``, ``to_host``, ``empty``, ``zeros``, ``fft2`` / ``fft1`` (in place, batched over the
 other axes),
 ``launch`` (a named kernel of a named source, built once per (context, dtype)), ``workspace``
-(reused scratch arrays), ``cache`` (a byte-bounded LRU cache of device arrays) and ``synchronize``.
+(reused scratch arrays, one per tag), ``cache`` (a byte-bounded LRU cache of device arrays),
+``synchronize`` and ``allocated_bytes`` / ``memory_report`` (what is held between calls). FFT plans
+are an LRU bounded by count and bytes.
 Work is queued asynchronously on one in-order queue (OpenCL) or on CuPy's current stream (CUDA);
 nothing comes back to the host until ``to_host``.
 
@@ -162,6 +164,11 @@ class DeviceCache:
             self._items.clear()
             self._bytes = 0
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the cached arrays."""
+        return self._bytes
+
     def __len__(self):
         return len(self._items)
 
@@ -177,11 +184,18 @@ class Backend:
 
     kind = "abstract"
 
+    #: FFT plans kept (least recently used dropped first), and the byte budget of their temporary buffers.
+    #: Plans without a temporary buffer hold next to no device memory but cost a kernel build (NVRTC on
+    #: CUDA) to remake, so the count bound is generous: a map's batches can all keep theirs.
+    max_fft_plans = 64
+    max_fft_plan_bytes = 512 * 2**20
+
     def __init__(self, device: str):
         self.device = device
         self.cache = DeviceCache()
-        self._workspace: dict = {}
-        self._plans: dict = {}
+        self._workspace: dict = {}  # (tag, dtype) -> (flat device array, {shape: view}), grown on demand
+        self._plans: OrderedDict = OrderedDict()  # key -> (plan, estimated bytes), LRU order
+        self._plan_bytes = 0
         self._programs: dict = {}
         self._lock = threading.Lock()
 
@@ -205,23 +219,85 @@ class Backend:
         raise NotImplementedError
 
     def workspace(self, tag: str, shape, dtype):
-        """A scratch device array for ``tag`` reused across calls (same tag, shape and dtype give
-        the same buffer). Valid until the next call that asks for the same tag; never returned
-        to users. Work on one queue / stream at a time when using it."""
-        key = (tag, tuple(int(s) for s in shape), np.dtype(dtype).str)
+        """A scratch device array of ``shape`` and ``dtype`` for ``tag``, reused across calls.
+
+        One buffer per (tag, dtype): a request no larger than the tag's buffer gets a C-contiguous view of its
+        start (zero offset), a larger one replaces it (the old one is released, so a PSF map whose
+        batches have many shapes holds one buffer per tag, as big as the largest request, never one
+        per shape). Valid until the next request for the same tag, whatever its shape; never
+        returned to users. Work on one queue / stream at a time when using it."""
+        shape = tuple(int(s) for s in shape)
+        dt = np.dtype(dtype)
+        count = int(np.prod(shape, dtype=np.int64))
+        key = (tag, dt.str)
         with self._lock:
-            arr = self._workspace.get(key)
-            if arr is None:
-                arr = self.empty(shape, dtype)
-                self._workspace[key] = arr
-        return arr
+            entry = self._workspace.get(key)
+            if entry is None or entry[0].size < count:
+                if entry is not None:
+                    del self._workspace[key]  # released when the last queued use ends
+                entry = (self._empty_unpooled(max(count, 1), dt), {})
+                self._workspace[key] = entry
+            buf, views = entry
+            view = views.get(shape)
+            if view is None:
+                if len(views) >= 16:  # views are cheap to remake; keep the dict small
+                    views.clear()
+                view = views[shape] = buf[:count].reshape(shape)
+        return view
+
+    def _empty_unpooled(self, count: int, dtype):
+        """A 1-D device array allocated outside the memory pool (freed to the device when dropped)."""
+        return self.empty((count,), dtype)
+
+    def _release_pool(self):
+        """Give the allocator's unused blocks back to the device (no-op by default)."""
+
+    def _plan(self, key, nbytes, factory):
+        """The cached FFT plan for ``key``, else ``factory()`` stored; least recently used plans beyond
+        :attr:`max_fft_plans` or :attr:`max_fft_plan_bytes` are dropped. A plan's bytes are VkFFT's
+        temporary buffer (``tmp_buffer_nbytes``) where pyvkfft reports it, else ``nbytes`` (an upper bound)."""
+        with self._lock:
+            entry = self._plans.get(key)
+            if entry is not None:
+                self._plans.move_to_end(key)
+                return entry[0]
+        plan = factory()
+        nbytes = int(getattr(plan, "tmp_buffer_nbytes", nbytes))
+        with self._lock:
+            self._plans[key] = (plan, int(nbytes))
+            self._plan_bytes += int(nbytes)
+            while len(self._plans) > 1 and (len(self._plans) > self.max_fft_plans
+                                            or self._plan_bytes > self.max_fft_plan_bytes):
+                _, (_, old) = self._plans.popitem(last=False)
+                self._plan_bytes -= old
+        return plan
+
+    def allocated_bytes(self) -> int:
+        """Bytes the backend keeps between calls: workspaces + cached transfer functions + FFT plans'
+        temporary buffers. Excludes compiled programs and memory a pool holds for reuse. See
+        :meth:`memory_report` for the parts."""
+        r = self.memory_report()
+        return r["workspace_bytes"] + r["cache_bytes"] + r["fft_plan_bytes"]
+
+    def memory_report(self) -> dict:
+        """Bookkeeping of held device memory, bytes: ``workspace_bytes`` (per tag in
+        ``workspaces``), ``cache_bytes`` (transfer functions and the like, ``cache_entries``),
+        ``fft_plan_bytes`` (VkFFT temporary buffers) and ``fft_plans`` (count)."""
+        with self._lock:
+            ws = {f"{tag}:{dt}": int(e[0].nbytes) for (tag, dt), e in self._workspace.items()}
+            return {"workspace_bytes": sum(ws.values()), "workspaces": ws, "cache_bytes": self.cache.nbytes,
+                    "cache_entries": len(self.cache), "fft_plan_bytes": self._plan_bytes,
+                    "fft_plans": len(self._plans)}
 
     def clear_caches(self):
-        """Release cached workspaces, FFT plans and transfer functions (compiled programs stay)."""
+        """Release cached workspaces, FFT plans and transfer functions (compiled programs stay), and
+        the memory pool's unused blocks."""
         with self._lock:
             self._workspace.clear()
             self._plans.clear()
+            self._plan_bytes = 0
         self.cache.clear()
+        self._release_pool()
 
     # -- kernels --------------------------------------------------------------------------
     def _build_options(self, dtype, defines=()) -> list[str]:
@@ -305,7 +381,8 @@ class OpenCLBackend(Backend):
         self.name = f"{cl_device.platform.name.strip()} / {cl_device.name.strip()}"
         self.context = cl.Context([cl_device])
         self.queue = cl.CommandQueue(self.context)
-        self.allocator = cl.tools.MemoryPool(cl.tools.ImmediateAllocator(self.queue))
+        self._immediate = cl.tools.ImmediateAllocator(self.queue)
+        self.allocator = cl.tools.MemoryPool(self._immediate)
         self.has_fp64 = "cl_khr_fp64" in cl_device.extensions or cl_device.double_fp_config != 0
         self.phase_dtype = np.dtype(np.float64 if self.has_fp64 else np.float32)
         self.is_cpu = bool(cl_device.type & cl.device_type.CPU)
@@ -359,6 +436,11 @@ class OpenCLBackend(Backend):
 
         return cla.empty(self.queue, tuple(int(s) for s in shape), np.dtype(dtype), allocator=self.allocator)
 
+    def _empty_unpooled(self, count, dtype):
+        import pyopencl.array as cla
+
+        return cla.empty(self.queue, (int(count),), np.dtype(dtype), allocator=self._immediate)
+
     def zeros(self, shape, dtype):
         """Zero-filled device array."""
         arr = self.empty(shape, dtype)
@@ -369,6 +451,11 @@ class OpenCLBackend(Backend):
     def synchronize(self):
         """Wait for all queued work."""
         self.queue.finish()
+
+    def _release_pool(self):
+        """Free the memory pool's held (unused) blocks; buffers still queued stay alive (OpenCL
+        reference counting)."""
+        self.allocator.free_held()
 
     # kernels
     def _program(self, source: str, dtype, defines=()):
@@ -409,10 +496,8 @@ class OpenCLBackend(Backend):
         from pyvkfft.opencl import VkFFTApp
 
         key = (tuple(arr.shape), arr.dtype.str, axes)
-        app = self._plans.get(key)
-        if app is None:
-            app = VkFFTApp(arr.shape, arr.dtype, self.queue, axes=axes, inplace=True, norm=1)
-            self._plans[key] = app
+        app = self._plan(key, arr.nbytes,
+                         lambda: VkFFTApp(arr.shape, arr.dtype, self.queue, axes=axes, inplace=True, norm=1))
         if inverse:
             app.ifft(arr, queue=self.queue)
         else:
@@ -483,9 +568,21 @@ class CudaBackend(Backend):
         with self.cuda_device:
             return self.cp.zeros(tuple(int(s) for s in shape), dtype=np.dtype(dtype))
 
+    def _empty_unpooled(self, count, dtype):
+        cp = self.cp
+        dt = np.dtype(dtype)
+        with self.cuda_device:
+            mem = cp.cuda.Memory(max(int(count) * dt.itemsize, 1))
+            return cp.ndarray((int(count),), dtype=dt, memptr=cp.cuda.MemoryPointer(mem, 0))
+
     def synchronize(self):
         with self.cuda_device:
             self.cp.cuda.get_current_stream().synchronize()
+
+    def _release_pool(self):
+        """Free CuPy's unused pool blocks (``cudaFree`` waits for the device)."""
+        with self.cuda_device:
+            self.cp.get_default_memory_pool().free_all_blocks()
 
     def _module(self, source: str, dtype, defines=()):
         key = (source, complex_dtype(dtype).str, tuple(defines))
@@ -523,10 +620,9 @@ class CudaBackend(Backend):
 
                 stream = self.cp.cuda.get_current_stream()
                 key = (tuple(arr.shape), arr.dtype.str, axes, int(stream.ptr))
-                app = self._plans.get(key)
-                if app is None:
-                    app = VkFFTApp(arr.shape, arr.dtype, axes=axes, inplace=True, stream=stream, norm=1)
-                    self._plans[key] = app
+                app = self._plan(key, arr.nbytes,
+                                 lambda: VkFFTApp(arr.shape, arr.dtype, axes=axes, inplace=True, stream=stream,
+                                                  norm=1))
                 if inverse:
                     app.ifft(arr)
                 else:

@@ -191,6 +191,12 @@ def _canonical_formula(formula) -> str:
 # ---------------------------------------------------------------------------------------------
 # Material
 # ---------------------------------------------------------------------------------------------
+# refractive indices at scalar wavelengths, keyed by (formula, coefficients, wavelength): a PSF asks for
+# the same few dozen values many times (surface tables, pupils, DOE scale)
+_N_CACHE: dict = {}
+_N_CACHE_MAX = 4096
+
+
 @dataclass(frozen=True)
 class Material:
     """An optical material: a dispersion formula and its coefficients (immutable).
@@ -250,6 +256,18 @@ class Material:
         Returns:
             float64 index of the same shape (a numpy float64 scalar for a scalar input).
         """
+        if isinstance(wavelength_um, (float, int, np.floating)) and not isinstance(wavelength_um, bool):
+            key = (self.formula, self.coefficients, float(wavelength_um))
+            hit = _N_CACHE.get(key)
+            if hit is None:
+                hit = self._n(wavelength_um)
+                if len(_N_CACHE) >= _N_CACHE_MAX:
+                    _N_CACHE.clear()
+                _N_CACHE[key] = hit
+            return hit
+        return self._n(wavelength_um)
+
+    def _n(self, wavelength_um):
         lam = np.asarray(wavelength_um, dtype=np.float64)
         if not np.all(lam > 0.0) or not np.all(np.isfinite(lam)):
             raise ValueError(f"{self.name}: wavelength_um must be positive and finite, got {wavelength_um!r}")

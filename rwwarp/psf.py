@@ -22,7 +22,7 @@ import numpy as np
 from .errors import LensError
 from . import paraxial
 from .plan import Plan, nice_fft_length, check_explicit
-from .trace import Tracer, as_field_list, pupil_grid
+from .trace import Tracer, as_field_list, pupil_grid, upload_packed
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 _LAST = {}  # last ray-wave field, for inspection
@@ -135,8 +135,13 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
-    ``batch`` limits the number of sources per launch (memory); ``progress`` shows a tqdm bar.
-    Returns :class:`PSFMap` with ``data`` of shape (n_fields, n_wavelengths, size, size).
+    With ``plan="auto"`` (ray-wave model) every (field, wavelength) pair is planned on its own first
+    (a pilot trace) and pairs with similar plans share a batch (:func:`group_sources`): a batch's plan
+    is the finest any member needs, and no member's FFT area is more than twice its own plan's.
+    ``batch`` limits the number of sources per launch (memory; default no limit); ``progress`` shows a
+    tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields, n_wavelengths, size, size);
+    ``info["batches"]`` lists each batch's (field, wavelength) index pairs and plan, ``info["plan"]``
+    is the last batch's plan.
     """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
@@ -148,12 +153,22 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     wavelengths_um = [float(w) for w in wavelengths_um]
     pixel = float(pixel_mm or lens.sensor.pixel_pitch)
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
-    batch = batch or len(pairs)
     out = np.zeros((len(fields), len(wavelengths_um), size, size))
     centers = np.zeros((len(fields), len(wavelengths_um), 2))
-    info = {"plan": None, "valid_fraction": [], "time_s": 0.0}
+    info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": []}
     t0 = time.perf_counter()
-    chunks = [pairs[k:k + batch] for k in range(0, len(pairs), batch)]
+    if model == "ray-wave" and isinstance(plan, str) and plan == "auto" and len(pairs) > 1:
+        # plan per source: a pilot of every pair, then batches of pairs with similar needs, so an on-axis
+        # field is not sampled on the grid a corner field needs
+        probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
+                        device, "auto", dtype, amplitude, object_distance_mm, rays_per_sample, center_mm,
+                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety)
+        chunks = [[pairs[k] for k in g] for g in group_sources(probe.source_needs, batch)]
+        del probe
+    else:
+        b = batch or len(pairs)
+        chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
+    index = {pr: k for k, pr in enumerate(pairs)}
     if progress:
         from tqdm.auto import tqdm
         chunks = tqdm(chunks, desc=f"{model} PSFs", unit="batch")
@@ -174,8 +189,10 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         for k, (i, j) in enumerate(chunk):
             out[i, j] = res["data"][k]
             centers[i, j] = res["centers"][k]
+            info["valid_fraction"][index[(i, j)]] = res["valid_fraction"][k]
         info["plan"] = res.get("plan")
-        info["valid_fraction"] += list(res["valid_fraction"])
+        info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan")})
+    info["valid_fraction"] = list(info["valid_fraction"])
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
 
@@ -287,6 +304,52 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
     return out, feat
 
 
+def _auto_sizes(need_pitch, width, feature, out_width, rays_per_sample):
+    """Adaptive plan sizes for a beam footprint ``width`` (mm) that needs a pitch <= ``need_pitch`` (mm):
+    ``(pitch_mm, n_grid, n_pad, ray_grid)``. ``feature``: DOE pixel size (mm) or None; ``out_width``:
+    sensor patch width (mm)."""
+    pitch = need_pitch
+    if feature is not None:
+        # align the grid with DOE pixels: an integer number of samples per feature
+        pitch = feature / math.ceil(feature / pitch)
+    window = width + 2.0 * width / 31.0  # footprint + 2 pilot cells (31-ray pilot grid)
+    n_grid = int(math.ceil(window / pitch)) + 3
+    # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
+    # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
+    n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
+    ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
+    return pitch, n_grid, n_pad, ray_grid
+
+
+def group_sources(needs: dict, max_batch: int | None = None, waste: float = 2.0) -> list:
+    """Batches of source indices whose shared plan stays close to what each source needs alone.
+
+    ``needs``: :attr:`RayWave.source_needs` (per-source pitch and footprint width, mm). Sources are
+    sorted by their own FFT size (largest first) and added greedily to the current batch while it has
+    fewer than ``max_batch`` members and the shared plan's (finest pitch, widest footprint) FFT area is at
+    most ``waste`` times the candidate's own (the smallest in the batch so far, so this holds for every
+    member). Returns a list of index lists (each sorted)."""
+    pitch, width = np.asarray(needs["pitch_mm"], float), np.asarray(needs["width_mm"], float)
+    args = (needs["feature_mm"], needs["out_width_mm"], needs["rays_per_sample"])
+    own = [_auto_sizes(pitch[k], width[k], *args)[2] for k in range(len(pitch))]
+    order = sorted(range(len(pitch)), key=lambda k: (-own[k], pitch[k], k))
+    groups, cur, cur_pitch, cur_width = [], [], math.inf, 0.0
+    for k in order:
+        if cur:
+            p2, w2 = min(cur_pitch, pitch[k]), max(cur_width, width[k])
+            pad2 = _auto_sizes(p2, w2, *args)[2]
+            # sorted by own FFT size: the candidate's is the group's smallest, so this bounds every member
+            if (max_batch is None or len(cur) < max_batch) and pad2 * pad2 <= waste * own[k] * own[k]:
+                cur.append(k)
+                cur_pitch, cur_width = p2, w2
+                continue
+            groups.append(sorted(cur))
+        cur, cur_pitch, cur_width = [k], pitch[k], width[k]
+    if cur:
+        groups.append(sorted(cur))
+    return groups
+
+
 # ---------------------------------------------------------------------------------------------- ray-wave
 class RayWave:
     """The ray-wave model for one batch of point sources, in stages.
@@ -318,8 +381,8 @@ class RayWave:
         # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
         pu, pv, _ = pupil_grid(31, src["shape"])
         pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
-        pilot = tr._run(src, pu, pv, 1.0, keep=True)
-        at_plane = pilot.history[plane]
+        pilot = tr._run(src, pu, pv, 1.0, keep=(plane,))
+        at_plane, opl_plane, valid_plane = pilot.kept[plane]
         pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
         pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
         dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
@@ -379,15 +442,7 @@ class RayWave:
             pl = plan
             check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
         elif plan == "auto":
-            pitch = need_pitch
-            if feature is not None:
-                # align the grid with DOE pixels: an integer number of samples per feature
-                pitch = feature / math.ceil(feature / pitch)
-            n_grid = int(math.ceil(window / pitch)) + 3
-            # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
-            # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
-            n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
-            ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
+            pitch, n_grid, n_pad, ray_grid = _auto_sizes(need_pitch, width, feature, out_width, rays_per_sample)
             reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
                         f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
                         f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
@@ -405,6 +460,12 @@ class RayWave:
         else:
             raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
 
+        # what each source alone would need (psf_map groups sources with similar needs into batches)
+        src_need = 1.0 / (2.0 * (fmax + f_doe + 1e-9)) / nyquist_safety
+        if feature is not None:
+            src_need = np.minimum(src_need, feature / 2.0)
+        self.source_needs = {"pitch_mm": src_need, "width_mm": np.max(hi - lo, axis=1), "feature_mm": feature,
+                             "out_width_mm": out_width, "rays_per_sample": rays_per_sample}
         self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
         if gauss_nodes is None:
             gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)
@@ -420,11 +481,11 @@ class RayWave:
         mid = 0.5 * (lo + hi)
         self.origin = lo.copy() if pl.kind == "paper" else mid - 0.5 * (n - 1) * pl.pitch_mm
         self._align_to_doe_pixels()
-        # chief ray OPL on the plane (a per-source constant phase: not differentiated)
-        pilot_plane = tr._run(src, np.zeros(1), np.zeros(1), 1.0, upto=plane + 1)
-        self.opl_chief = pilot_plane.opl.numpy().astype(np.float64)
-        self.chief_ok = pilot_plane.valid.numpy().astype(bool)
-        self.chief_plane = np.where(self.chief_ok[:, None], pilot_plane.pos.numpy(), chief_plane)
+        # chief ray OPL on the plane (a per-source constant phase: not differentiated); the pilot's pupil
+        # sample 0 is the chief ray (u = v = 0), traced alone before as the same independent ray
+        self.opl_chief = opl_plane.numpy().reshape(nsrc, -1)[:, 0].astype(np.float64)
+        self.chief_ok = valid_plane.numpy().reshape(nsrc, -1)[:, 0].astype(bool)
+        self.chief_plane = np.where(self.chief_ok[:, None], pos_p[:, 0], chief_plane)
         self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
         # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
         self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
@@ -482,10 +543,7 @@ class RayWave:
         sums = wp.zeros((nsrc, 2), dtype=wp.float64, device=tr.device)
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight, npup],
                   outputs=[sums], device=tr.device)
-        sums = sums.numpy()
-        self.entering = sums[:, 0]
-        self.traced_power = sums[:, 1]
-        self.valid_fraction = sums[:, 1] / sums[:, 0]
+        self._sums_dev, self._sums = sums, None  # read (one device sync) when first asked for
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
         if not self.chief_ok.all():
             valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
@@ -503,32 +561,58 @@ class RayWave:
         g = tr.requires_grad
         total = nsrc * n * n
         energy = int(self.amplitude == "energy")
-        area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
-        half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
+        if energy or g:
+            area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
+            half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
         if energy:
             wp.launch(K.tube_area_kernel, dim=nsrc * npup, inputs=[rays.pos, rays.valid, pl.ray_grid],
                       outputs=[area, half], device=dev)
+        elif not g:  # not read by the splat in the paper convention
+            area = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=g)
+            half = wp.zeros(1, dtype=wp.vec2d, device=dev, requires_grad=g)
         s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
         s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
         self.dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
-        k_wave = wp.array(2.0 * np.pi / self.lam_mm, dtype=wp.float64, device=dev)
-        geo = [wp.array(self.origin, dtype=wp.vec2d, device=dev),
-               wp.array(np.full(nsrc, pl.pitch_mm), dtype=wp.float64, device=dev),
-               wp.array(chief_plane, dtype=wp.vec3d, device=dev), wp.array(self.target, dtype=wp.vec3d, device=dev),
-               # the reference-sphere index carries the sign: + converging to T, - diverging from T
-               wp.array(self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), dtype=wp.float64,
-                        device=dev)]
+        # per-source constants in one upload
+        origin, pitch, chief, target, index, opl_c, k_wave, carrier = upload_packed(
+            [(self.origin, np.float64, wp.vec2d), (np.full(nsrc, pl.pitch_mm), np.float64, wp.float64),
+             (chief_plane, np.float64, wp.vec3d), (self.target, np.float64, wp.vec3d),
+             # the reference-sphere index carries the sign: + converging to T, - diverging from T
+             (self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), np.float64, wp.float64),
+             (opl_p, np.float64, wp.float64), (2.0 * np.pi / self.lam_mm, np.float64, wp.float64),
+             (self.carrier, np.float64, wp.vec2d)], dev)
+        geo = [origin, pitch, chief, target, index]
         wp.launch(K.splat_kernel, dim=nsrc * npup,
                   inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
-                         [wp.array(opl_p, dtype=wp.float64, device=dev), k_wave, int(self.use_reference), energy,
-                          n, npup],
+                         [opl_c, k_wave, int(self.use_reference), energy, n, npup],
                   outputs=[s_re, s_im, self.dropped], device=dev)
-        field = wp.zeros(total, dtype=wp.vec2d, device=dev, requires_grad=g)
+        # the finalize kernel writes every sample
+        field = (wp.zeros if g else wp.empty)(total, dtype=wp.vec2d, device=dev, requires_grad=g)
         wp.launch(K.finalize_kernel, dim=total,
-                  inputs=[s_re, s_im] + geo + [k_wave, wp.array(self.carrier, dtype=wp.vec2d, device=dev),
-                                              int(self.use_reference), energy, n],
+                  inputs=[s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n],
                   outputs=[field], device=dev)
         return field, rays
+
+    def _power_sums(self):
+        if self._sums is None:
+            self._sums = self._sums_dev.numpy()
+        return self._sums
+
+    @property
+    def entering(self):
+        """Power entering the pupil per source (unit source radiance), from the last :meth:`field` call."""
+        return self._power_sums()[:, 0]
+
+    @property
+    def traced_power(self):
+        """Power of the rays that reach the wave plane per source, from the last :meth:`field` call."""
+        return self._power_sums()[:, 1]
+
+    @property
+    def valid_fraction(self):
+        """``traced_power / entering`` per source."""
+        s = self._power_sums()
+        return s[:, 1] / s[:, 0]
 
     def field_array(self):
         """:meth:`field` as a complex128 array (n_sources, n, n), paper convention rescaled: numpy on the

@@ -12,7 +12,11 @@ Typical use::
 """
 from __future__ import annotations
 
+import concurrent.futures
 import math
+import os
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +37,74 @@ def init_warp():
     if not _WP_INIT:
         wp.init()
         _WP_INIT = True
+
+
+#: fewest rays per CPU thread worth a parallel chunk (below it the launch overhead dominates)
+PARALLEL_MIN_RAYS = 32768
+_POOL = None
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(workers: int):
+    """The module's thread pool for parallel CPU trace chunks (grown to ``workers``)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers < workers:
+            _POOL = concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="rwwarp-trace")
+        return _POOL
+
+
+def cpu_threads() -> int:
+    """CPU cores this process may run on (the default number of trace threads on the CPU)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+_UPLOADS: OrderedDict = OrderedDict()  # packed bytes -> views, for upload_packed(..., cache=True)
+_UPLOADS_MAX = 64
+_UPLOADS_MAX_BYTES = 1 << 16
+_UPLOADS_LOCK = threading.Lock()
+
+
+def upload_packed(parts, device: str, cache: bool = False):
+    """Several small host arrays to ``device`` in one copy.
+
+    ``parts``: ``(array, numpy dtype, warp dtype)`` triples (vector warp dtypes take ``(n, k)`` arrays).
+    The arrays are packed into one byte buffer (each part 16-byte aligned), uploaded once, and returned
+    as typed Warp views into it, in order (each view keeps the buffer alive). Read-only inputs only.
+    ``cache``: reuse the views of an earlier upload with the same bytes, types and device (a small LRU
+    of packs up to 64 KiB: surface tables of a lens, a source's inputs, the pilot pupil)."""
+    host = [np.ascontiguousarray(a, dtype=dt) for a, dt, _ in parts]
+    offsets, total = [], 0
+    for h in host:
+        offsets.append(total)
+        total += -(-max(h.nbytes, 1) // 16) * 16
+    buf = np.zeros(total, dtype=np.uint8)
+    for h, off in zip(host, offsets):
+        buf[off:off + h.nbytes] = h.reshape(-1).view(np.uint8)
+    key = None
+    if cache and total <= _UPLOADS_MAX_BYTES:
+        key = (str(device), buf.tobytes(), tuple((h.shape, wdt) for h, (_, _, wdt) in zip(host, parts)))
+        with _UPLOADS_LOCK:
+            hit = _UPLOADS.get(key)
+            if hit is not None:
+                _UPLOADS.move_to_end(key)
+                return list(hit)
+    base = wp.array(buf, dtype=wp.uint8, device=device)
+    out = []
+    for h, off, (_, _, wdt) in zip(host, offsets, parts):
+        length = h.shape[0] if h.ndim else 1
+        a = wp.array(ptr=base.ptr + off, dtype=wdt, shape=(length,), device=device)
+        a._rw_base = base  # the views do not own the memory
+        out.append(a)
+    if key is not None:
+        with _UPLOADS_LOCK:
+            _UPLOADS[key] = tuple(out)
+            while len(_UPLOADS) > _UPLOADS_MAX:
+                _UPLOADS.popitem(last=False)
+    return out
 
 
 def warp_scalar(dtype: str):
@@ -148,11 +220,15 @@ class Tracer:
         ``"float64"`` (default) or ``"float32"``.
     requires_grad : bool
         Allocate gradient buffers for surface parameters and rays (for ``wp.Tape``).
+    threads : int, optional
+        CPU only, without gradients: trace this many ray chunks in parallel (default: the cores this
+        process may use, :func:`cpu_threads`). 1 traces in the calling thread.
     """
 
     def __init__(self, lens, wavelengths_um, device: str = "cpu", dtype: str = "float64",
-                 requires_grad: bool = False):
+                 requires_grad: bool = False, threads: int | None = None):
         init_warp()
+        self.threads = cpu_threads() if threads is None else max(1, int(threads))
         self.lens = lens
         self.wavelengths_um = [float(w) for w in wavelengths_um]
         self.device = warp_device(device)
@@ -201,11 +277,21 @@ class Tracer:
         return out
 
     def _upload(self):
+        """Surface parameters and index tables to the device: one upload (read-only views) without
+        gradients; separate parameter arrays (each with its gradient) with ``requires_grad``."""
         dev, sc, g = self.device, self.scalar, self.requires_grad
-        self.params = [wp.array(p, dtype=sc, device=dev, requires_grad=g) for p in self.params_np]
+        fdt = self.np_dtype
+        tables = [(self.n_obj_np, fdt, sc)] + [(self.index_np[i], fdt, sc) for i in range(self.index_np.shape[0])]
+        if g:
+            self.params = [wp.array(p, dtype=sc, device=dev, requires_grad=True) for p in self.params_np]
+            views = upload_packed(tables, dev, cache=True)
+        else:
+            views = upload_packed([(p, fdt, sc) for p in self.params_np] + tables, dev, cache=True)
+            self.params = views[:len(self.params_np)]
+            views = views[len(self.params_np):]
         nw = len(self.wavelengths_um)
-        self.n_obj = wp.array(self.n_obj_np, dtype=sc, device=dev)
-        self.n_tables = [wp.array(self.index_np[i], dtype=sc, device=dev) for i in range(self.index_np.shape[0])]
+        self.n_obj = views[0]
+        self.n_tables = views[1:]
         self.n_before = [self.n_obj] + self.n_tables[:-1]
         self._n_wl = nw
 
@@ -300,7 +386,15 @@ class Tracer:
 
     def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0):
         """Generate and trace. ``grid_n > 0``: the pupil is the full ``grid_n x grid_n`` cell-centre grid,
-        generated on the device (``u``, ``v`` ignored; no upload)."""
+        generated on the device (``u``, ``v`` ignored; no upload). ``keep=True``: also return
+        ``rays.history`` (positions after each surface); ``keep`` (True or surface indices): ``rays.kept``,
+        a dict surface index -> (pos, opl, valid) after that surface.
+
+        The per-source inputs and the pupil go to the device in one upload. Without gradients
+        (``requires_grad=False``) the rays ping-pong between two buffer sets (the tape needs every
+        surface's state only when it records), and on the CPU the surfaces are traced for
+        :attr:`threads` ray chunks in parallel (Warp's CPU launches release the GIL; every ray is
+        independent, so the result is the same bit for bit)."""
         dev, sc, K = self.device, self.scalar, self.K
         nsrc = len(src["wl"])
         npup = grid_n * grid_n if grid_n > 0 else len(u)
@@ -308,45 +402,97 @@ class Tracer:
             u = v = np.zeros(1)
         n = nsrc * npup
         g = self.requires_grad
-
-        def arr(x, dtype):
-            return wp.array(np.ascontiguousarray(x), dtype=dtype, device=dev)
+        fdt = self.np_dtype
+        pu, pv, spos, sdir, sfin, saim, shx, shy, swl = upload_packed(
+            [(u, fdt, sc), (v, fdt, sc), (src["pos"], fdt, K.vec3), (src["dir"], fdt, K.vec3),
+             (src["finite"], np.int32, wp.int32), (src["aim"], fdt, K.vec3), (src["half_x"], fdt, sc),
+             (src["half_y"], fdt, sc), (src["wl"], np.int32, wp.int32)], dev, cache=True)
 
         def new():
             return (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                     wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                     wp.empty(n, dtype=sc, device=dev, requires_grad=g),
                     wp.empty(n, dtype=wp.int32, device=dev))
-        pos, dr, opl, valid = new()
+        gen = new()
         wl = wp.empty(n, dtype=wp.int32, device=dev)
         weight = wp.empty(n, dtype=sc, device=dev)
-        inputs = [arr(u, sc), arr(v, sc), arr(src["pos"], K.vec3), arr(src["dir"], K.vec3),
-                  arr(src["finite"], wp.int32), arr(src["aim"], K.vec3), arr(src["half_x"], sc),
-                  arr(src["half_y"], sc), arr(src["wl"], wp.int32), self.n_obj, sc(cell),
+        inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell),
                   int(src["shape"] == "circle"), int(src.get("relative_opl", False)), int(grid_n), npup]
-        wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=[pos, dr, opl, valid, wl, weight], device=dev)
+        wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev)
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto
-        t_start = wp.zeros(1, dtype=sc, device=dev)  # placeholder for non-refracting surfaces
-        history = []
+        kept = set(range(last)) if keep is True else set(keep or ())
+        # a state is reused once the next surface has read it, unless the tape (every state) or the
+        # caller (``keep``) reads it again
+        outs, spare, prev, prev_kept = [], [], gen, False
+        for i in range(last):
+            out = new() if (g or i in kept or not spare) else spare.pop()
+            if not (g or prev_kept):
+                spare.append(prev)
+            outs.append(out)
+            prev, prev_kept = out, i in kept
+        steps = []
+        t_shared = t_dummy = None
         for i in range(last):
             kind = self.kinds[i] if i < nsurf else ktrace.KIND_PLANE
             n_in = self.n_before[i] if i < nsurf else self.n_tables[-1]
             n_out = self.n_tables[i] if i < nsurf else self.n_tables[-1]
-            p2, d2, o2, v2 = new()
             if kind == ktrace.KIND_REFRACT:
-                # converge the intersection off the tape; the surface kernel differentiates one step.
-                # A buffer per surface: the adjoint reads it again during tape.backward()
-                t_start = wp.empty(n, dtype=sc, device=dev)
-                wp.launch(K.intersect_kernel, dim=n, inputs=[pos, dr, valid, self.params[i]], outputs=[t_start],
-                          device=dev, record_tape=False)
-            wp.launch(K.surface_kernel, dim=n,
-                      inputs=[pos, dr, opl, valid, wl, self.params[i], n_in, n_out, kind, t_start],
-                      outputs=[p2, d2, o2, v2], device=dev)
-            if keep:
-                history.append(p2)
-            pos, dr, opl, valid = p2, d2, o2, v2
+                # converge the intersection off the tape; the surface kernel differentiates one step. A
+                # buffer per surface when recording (the adjoint reads it again during tape.backward())
+                if g:
+                    t_buf = wp.empty(n, dtype=sc, device=dev)
+                else:
+                    if t_shared is None:
+                        t_shared = wp.empty(n, dtype=sc, device=dev)
+                    t_buf = t_shared
+            else:
+                if t_dummy is None:
+                    t_dummy = wp.zeros(1, dtype=sc, device=dev)  # placeholder for non-refracting surfaces
+                t_buf = t_dummy
+            steps.append((kind, self.params[i], n_in, n_out, t_buf))
+        chunks = self._chunks(n)
+        if len(chunks) == 1:
+            self._trace_range(steps, gen, outs, wl, None)
+        else:
+            futures = [_pool(len(chunks)).submit(self._trace_range, steps, gen, outs, wl, c) for c in chunks]
+            for f in futures:
+                f.result()
+        pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
+        if keep is True:
+            rays.history = [o[0] for o in outs]
         if keep:
-            rays.history = history
+            rays.kept = {i: (outs[i][0], outs[i][2], outs[i][3]) for i in sorted(kept)}
         return rays
+
+    def _chunks(self, n: int):
+        """Ray index ranges traced in parallel: one per thread on the CPU without a tape and with at least
+        :data:`PARALLEL_MIN_RAYS` rays per chunk, else one."""
+        t = self.threads
+        if self.device != "cpu" or self.requires_grad or t <= 1 or n < 2 * PARALLEL_MIN_RAYS:
+            return [None]
+        t = min(t, n // PARALLEL_MIN_RAYS)
+        b = np.linspace(0, n, t + 1).astype(np.int64)
+        return [(int(b[k]), int(b[k + 1])) for k in range(t)]
+
+    def _trace_range(self, steps, gen, outs, wl, rng):
+        """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if
+        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch."""
+        K, dev = self.K, self.device
+
+        def cut(a):
+            return a if rng is None else a[rng[0]:rng[1]]
+        n = gen[0].shape[0] if rng is None else rng[1] - rng[0]
+        state = tuple(cut(a) for a in gen)
+        wlc = cut(wl)
+        for (kind, params, n_in, n_out, t_buf), out in zip(steps, outs):
+            nxt = tuple(cut(a) for a in out)
+            tc = cut(t_buf) if kind == ktrace.KIND_REFRACT else t_buf
+            if kind == ktrace.KIND_REFRACT:
+                wp.launch(K.intersect_kernel, dim=n, inputs=[state[0], state[1], state[3], params], outputs=[tc],
+                          device=dev, record_tape=False)
+            wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, params, n_in, n_out, kind, tc],
+                      outputs=list(nxt), device=dev)
+            state = nxt
+

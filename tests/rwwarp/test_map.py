@@ -1,0 +1,160 @@
+"""PSF maps: per-source plans (batches of sources with similar needs), accuracy against single-PSF calls,
+and the backend's memory bookkeeping staying bounded over many plan shapes (small thin-lens + DOE system)."""
+import numpy as np
+import pytest
+
+import rwwarp as rw
+from rwwarp import backend as bk
+from rwwarp import convergence as cv
+from rwwarp.lens import Lens, Sensor, Surface
+from rwwarp.psf import RayWave, group_sources
+
+WLS = [0.45, 0.65]
+SIZE = 32
+
+
+def doe_lens(side_mm=1.0, f=50.0, doe_to_sensor_mm=10.0):
+    """Aperture + ideal thin lens + an even-polynomial DOE 10 mm before the sensor: the DOE's local
+    frequency grows with the footprint's distance from the axis, so fields need different pitches."""
+    pixel_mm = 0.55e-3 * f / side_mm / 3
+    doe = {"kind": "even_poly", "norm_radius": 0.5, "coefficients": [20.0, -5.0]}
+    surfs = [Surface(type="aperture", semi_diameter=side_mm / 2, shape="circle", stop=True),
+             Surface(type="thin_lens", focal_length=f, semi_diameter=side_mm, thickness=f - doe_to_sensor_mm),
+             Surface(type="doe", semi_diameter=side_mm, shape="square", thickness=doe_to_sensor_mm, profile=doe)]
+    return Lens(surfs, Sensor(pixel_mm, (1000, 1000)), wavelengths_um=[0.55])
+
+
+def own_plans(lens, fields, wls):
+    """The plan each (field, wavelength) pair gets alone (rw.psf), by pair."""
+    return {(i, j): RayWave(lens, [f], [w], SIZE, lens.sensor.pixel_pitch).plan
+            for i, f in enumerate(fields) for j, w in enumerate(wls)}
+
+
+def test_grouping_bounds_each_sources_fft_area_and_respects_the_batch_limit():
+    needs = {"pitch_mm": np.array([1e-3, 1e-3, 2e-3, 2e-3, 4e-3]), "width_mm": np.full(5, 0.5),
+             "feature_mm": None, "out_width_mm": 0.1, "rays_per_sample": 1.0}
+    groups = group_sources(needs, max_batch=None)
+    assert sorted(k for g in groups for k in g) == list(range(5))
+    # a 2x coarser pitch is a 4x smaller FFT area: never in one batch with the fine ones
+    assert [0, 1] in groups and [4] in groups and [2, 3] in groups
+    assert all(len(g) <= 1 for g in group_sources(needs, max_batch=1))
+    # with a large allowed waste everything shares one plan
+    assert group_sources(needs, max_batch=None, waste=100.0) == [[0, 1, 2, 3, 4]]
+
+
+def test_map_batches_follow_per_source_plans_and_match_single_psfs_within_their_error():
+    lens = doe_lens()
+    fields = [0.0, 0.8]
+    m = rw.psf_map(lens, fields, WLS, size=SIZE)
+    own = own_plans(lens, fields, WLS)
+    batches = m.info["batches"]
+    assert len(batches) >= 2  # not every source on the finest source's grid
+    seen = set()
+    for b in batches:
+        for pr in b["pairs"]:
+            seen.add(tuple(pr))
+            o = own[tuple(pr)]
+            # the shared plan is at least as fine as the source's own, and its FFT area at most 2x the own
+            assert b["plan"]["pitch_mm"] <= o.pitch_mm * (1 + 1e-12)
+            assert b["plan"]["n_pad"] ** 2 <= 2.0 * o.n_pad ** 2
+    assert seen == set(own)
+    for i, f in enumerate(fields):
+        for j, w in enumerate(WLS):
+            est = cv.estimate_error(lens, f, w, SIZE)
+            single = est["psf"]
+            np.testing.assert_allclose(m.centers_mm[i, j], single.center_mm, rtol=0, atol=1e-12)
+            # both discretise the same PSF; the map's plan is at least as fine in pitch, window and rays
+            assert cv.rel_l2(m.data[i, j], single.data) <= est["estimated_error"]
+            batch = next(b for b in batches if (i, j) in [tuple(p) for p in b["pairs"]])
+            if batch["plan"]["pitch_mm"] == own[(i, j)].pitch_mm and batch["plan"]["n_grid"] == own[(i, j)].n_grid \
+                    and batch["plan"]["n_pad"] == own[(i, j)].n_pad and batch["plan"]["ray_grid"] == own[(i, j)].ray_grid:
+                # same plan as alone: the same numbers
+                assert cv.rel_l2(m.data[i, j], single.data) <= 1e-12
+
+
+def test_backend_memory_stays_bounded_over_a_map_and_results_do_not_depend_on_it():
+    lens = doe_lens()
+    fields = [0.0, 0.3, 0.6, 0.9]
+    wls = [0.45, 0.55, 0.65]
+    be = bk.get_backend("cpu")
+    be.clear_caches()
+    assert be.allocated_bytes() == 0
+    # batch=1: one propagation per (field, wavelength), each with its own grid and FFT shapes
+    m = rw.psf_map(lens, fields, wls, size=SIZE, batch=1)
+    after_map = be.memory_report()
+    pads = [b["plan"]["n_pad"] for b in m.info["batches"]]
+    assert len(set(pads)) >= 4  # many shapes went through the backend
+    # working set of the largest plan alone, on an emptied backend
+    (i, j), = m.info["batches"][int(np.argmax(pads))]["pairs"]
+    be.clear_caches()
+    p = rw.psf(lens, fields[i], wls[j], size=SIZE)
+    largest = be.memory_report()
+    np.testing.assert_allclose(p.data, m.data[i, j], rtol=0, atol=1e-12 * p.data.max())
+    # scratch arrays: one per tag, as big as the largest request, not one per shape
+    assert after_map["workspace_bytes"] <= largest["workspace_bytes"]
+    assert set(after_map["workspaces"]) == set(largest["workspaces"])
+    # FFT plans and transfer functions are LRU caches with fixed bounds
+    assert after_map["fft_plans"] <= be.max_fft_plans
+    assert after_map["fft_plan_bytes"] <= be.max_fft_plan_bytes
+    assert after_map["cache_bytes"] <= be.cache.max_bytes
+    assert be.allocated_bytes() == largest["workspace_bytes"] + largest["cache_bytes"] + largest["fft_plan_bytes"]
+    # every other map entry equals its PSF computed on an emptied backend
+    for (i2, j2) in [(0, 0), (3, 2), (1, 1)]:
+        be.clear_caches()
+        q = rw.psf(lens, fields[i2], wls[j2], size=SIZE)
+        np.testing.assert_allclose(q.data, m.data[i2, j2], rtol=0, atol=1e-12 * q.data.max())
+
+
+def test_workspace_views_share_one_buffer_per_tag():
+    be = bk.get_backend("cpu")
+    be.clear_caches()
+    a = be.workspace("t_probe", (4, 8), np.complex128)
+    b = be.workspace("t_probe", (2, 3), np.complex128)  # smaller: a view of the same buffer
+    assert b.shape == (2, 3) and be.memory_report()["workspaces"]["t_probe:<c16"] == 4 * 8 * 16
+    c = be.workspace("t_probe", (16, 16), np.complex128)  # larger: replaced
+    assert c.shape == (16, 16) and be.memory_report()["workspaces"]["t_probe:<c16"] == 16 * 16 * 16
+    be.workspace("t_probe", (4,), np.complex64)  # another dtype: its own buffer
+    assert be.memory_report()["workspaces"]["t_probe:<c8"] == 4 * 8
+    # views are usable device arrays: write through one, read the same memory back
+    c.fill(1.0 + 2.0j)
+    d = be.workspace("t_probe", (3, 5), np.complex128)
+    np.testing.assert_array_equal(be.to_host(d), np.full((3, 5), 1.0 + 2.0j))
+    del a
+    be.clear_caches()
+    assert be.allocated_bytes() == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_parallel_cpu_trace_is_bitwise_the_serial_trace(threads):
+    from rwwarp.trace import Tracer, pupil_grid
+    lens = rw.load_lens("cooke_triplet")
+    ref = Tracer(lens, [0.55, 0.45], device="cpu", threads=1).trace(
+        [(0.0, 0.0), (0.0, 10.0), (3.0, 5.0)], grid=201, wavelength_index=[0, 1, 0]).numpy()
+    tr = Tracer(lens, [0.55, 0.45], device="cpu", threads=threads + 1)
+    got = tr.trace([(0.0, 0.0), (0.0, 10.0), (3.0, 5.0)], grid=201, wavelength_index=[0, 1, 0]).numpy()
+    n_rays = got["valid"].size
+    assert len(tr._chunks(n_rays)) == min(threads + 1, n_rays // 32768) > 1
+    for k in ref:
+        np.testing.assert_array_equal(got[k], ref[k])
+    # an independent check of the traced geometry: the chief ray of the on-axis field stays on the axis
+    u, v, _ = pupil_grid(201, "circle")
+    centre = int(np.flatnonzero((u == 0) & (v == 0))[0])
+    assert got["valid"][0, centre] and np.abs(got["pos"][0, centre, :2]).max() < 1e-12
+
+
+def test_fft_plan_cache_is_an_lru_with_a_count_bound_and_stays_correct():
+    be = bk.get_backend("cpu")
+    be.clear_caches()
+    keep = be.max_fft_plans
+    be.max_fft_plans = 2
+    try:
+        rng = np.random.default_rng(1)
+        for n in (8, 12, 16, 8, 20):
+            x = rng.standard_normal((2, n, n)) + 1j * rng.standard_normal((2, n, n))
+            d = be.to_device(x)
+            be.fft2(d)
+            np.testing.assert_allclose(be.to_host(d), np.fft.fft2(x), rtol=0, atol=1e-12 * n * n)
+            assert be.memory_report()["fft_plans"] <= 2
+    finally:
+        be.max_fft_plans = keep
+        be.clear_caches()
