@@ -65,6 +65,8 @@ __all__ = [
     "propagate_grid_adjoint",
     "sensor_intensity",
     "sensor_intensity_adjoint",
+    "sensor_intensity_distance_adjoint",
+    "sensor_window_center",
 ]
 
 _SRC = "propagate.cl"
@@ -675,6 +677,24 @@ def _center_extent(xs, ys):
     return np.stack([cx, cy], axis=1), xs.max(axis=1) - xs.min(axis=1), ys.max(axis=1) - ys.min(axis=1)
 
 
+def _window_center(center, window_center_mm, batch):
+    """The output window centre (B, 2): the nodes' own, or ``window_center_mm`` (spatial tiles of a
+    sensor patch keep the whole patch's centre, hence its band limits and its result)."""
+    if window_center_mm is None:
+        return center
+    return _per_batch(window_center_mm, batch, "window_center_mm", (2,))
+
+
+def sensor_window_center(pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes=3):
+    """Centre (B, 2) in mm of the output window that :func:`sensor_intensity` forms for these pixels
+    (the middle of its Gauss nodes' extent); pass it as ``window_center_mm`` when evaluating a part
+    of the patch so that the part equals the same pixels of the whole patch."""
+    cx = np.asarray(pixel_centers_x_mm, dtype=np.float64)
+    batch = cx.shape[0] if cx.ndim == 2 else 1
+    _, _, xs, ys, _, _ = _sensor_nodes(pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch)
+    return _center_extent(xs, ys)[0]
+
+
 def _sensor_nodes(pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch):
     cx = _coords(pixel_centers_x_mm, batch, "pixel_centers_x_mm")
     cy = _coords(pixel_centers_y_mm, batch, "pixel_centers_y_mm")
@@ -973,6 +993,7 @@ def sensor_intensity(
     pad_to=None,
     dtype=None,
     return_nodes=False,
+    window_center_mm=None,
 ):
     """Power landing in each sensor pixel: ``|U|^2`` integrated over the pixel's area.
 
@@ -991,6 +1012,10 @@ def sensor_intensity(
         gauss_nodes: Gauss-Legendre nodes per axis inside each pixel.
         return_nodes: also return the node field (B, Py*G, Px*G) (row py*G+gy, column px*G+gx),
             which :func:`sensor_intensity_adjoint` can reuse.
+        window_center_mm: optional (2,) or (B, 2) centre (mm) of the output window that sets the
+            shifted band limits, instead of the middle of these pixels' nodes
+            (:func:`sensor_window_center` of a whole patch: a part of it then equals those pixels
+            of the whole).
 
     Returns:
         (B, Py, Px) real device array (field units^2 * mm^2, i.e. power per pixel), or
@@ -1002,6 +1027,7 @@ def sensor_intensity(
         pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch
     )
     center, ex, ey = _center_extent(xs, ys)
+    center = _window_center(center, window_center_mm, batch)
     st = _setup(
         probe,
         field,
@@ -1056,6 +1082,7 @@ def sensor_intensity_adjoint(
     pad_to=None,
     dtype=None,
     nodes=None,
+    window_center_mm=None,
 ):
     """Gradient of a real loss through :func:`sensor_intensity`.
 
@@ -1064,6 +1091,7 @@ def sensor_intensity_adjoint(
         field ... gauss_nodes, doe_phase, ...: the arguments of the forward call.
         nodes: the node field returned by ``sensor_intensity(..., return_nodes=True)``; recomputed
             when None.
+        window_center_mm: as the forward call.
 
     Returns:
         ``(grad_field, grad_doe_phase or None)`` as :func:`propagate_adjoint`
@@ -1075,6 +1103,7 @@ def sensor_intensity_adjoint(
         pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch
     )
     center, _, _ = _center_extent(xs, ys)
+    center = _window_center(center, window_center_mm, batch)
     st = _setup(
         probe,
         field,
@@ -1125,3 +1154,124 @@ def sensor_intensity_adjoint(
     band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
     _points_to_band(st, g_nodes, ex, eyf, band_grad)
     return _band_adjoint_to_field(st, band_grad, h)
+
+
+def sensor_intensity_distance_adjoint(
+    backend,
+    grad_intensity,
+    field,
+    pitch_mm,
+    origin_mm,
+    wavelength_um,
+    distance_mm,
+    pixel_centers_x_mm,
+    pixel_centers_y_mm,
+    pixel_pitch_mm,
+    *,
+    gauss_nodes=3,
+    doe_phase=None,
+    doe_scale=None,
+    carrier_cpmm=None,
+    pad_to=None,
+    dtype=None,
+    nodes=None,
+    need_field=True,
+    window_center_mm=None,
+):
+    """Gradient of a real loss through :func:`sensor_intensity`, the propagation distance included.
+
+    The distance enters through the transfer function only: ``H = exp(2 pi i z w)``,
+    ``w = sqrt(1/lambda^2 - u^2 - v^2)`` (cycles/mm), so ``dH/dz = 2 pi i w H`` and
+    ``dL/dz = Re sum_band conj(G) 2 pi i w C`` with ``C = H FFT(field)`` the band spectrum and ``G`` its
+    gradient (the adjoint of the matrix DFT applied to the node gradient), evaluated on the device by
+    ``band_distance_grad_kernel``. The global phase ``exp(2 pi i z / lambda)`` is left out of ``w``
+    (intensities do not see it). The Matsushima band limits also depend on z; they are held fixed
+    (their jumps have zero derivative almost everywhere), as are the sensor nodes.
+
+    Args:
+        grad_intensity ... nodes, window_center_mm: as :func:`sensor_intensity_adjoint` (``nodes``
+            from ``sensor_intensity(..., return_nodes=True)``, recomputed when None).
+        need_field: also form ``grad_field`` and ``grad_doe_phase`` (the transposed pruned FFT);
+            False returns None for both.
+
+    Returns:
+        ``(grad_field or None, grad_doe_phase or None, grad_distance)``: the first two as
+        :func:`sensor_intensity_adjoint`, ``grad_distance`` a numpy float64 (B,) array, dL/dz in
+        loss units per mm (one small device-to-host copy of B x ky partial sums).
+    """
+    probe = get_backend(backend)
+    batch = _batch_of(field)
+    npx_, npy_, xs, ys, w, area = _sensor_nodes(
+        pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch
+    )
+    center, _, _ = _center_extent(xs, ys)
+    center = _window_center(center, window_center_mm, batch)
+    st = _setup(
+        probe,
+        field,
+        pitch_mm,
+        origin_mm,
+        wavelength_um,
+        distance_mm,
+        doe_phase=doe_phase,
+        doe_scale=doe_scale,
+        carrier_cpmm=carrier_cpmm,
+        pad_to=pad_to,
+        dtype=dtype,
+        out_center_mm=center,
+    )
+    be = st.backend
+    g = len(w)
+    gi = be.to_device(grad_intensity, st.rdtype)
+    if tuple(gi.shape) != (st.batch, npy_, npx_):
+        raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
+    coords = _upload_coords(st, xs, ys)
+    w_dev = be.to_device(w.astype(st.rdtype))
+    if nodes is not None:
+        nodes = be.to_device(nodes, st.dtype)
+        if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
+            raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+    # the band spectrum C (dC/dz = 2 pi i w C needs it; the node field is reused when given)
+    band, h = _band_spectrum(st)
+    if nodes is None:
+        ext, eyf = _dft_factors(st, coords)
+        nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+        _band_to_points(st, band, ext, eyf, nodes)
+    g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+    _launch(
+        st,
+        "sensor_reduce_adjoint_kernel",
+        (xs.shape[1], ys.shape[1], st.batch),
+        nodes,
+        w_dev,
+        gi,
+        npx_,
+        npy_,
+        g,
+        st.batch,
+        area,
+        g_nodes,
+    )
+    ex, eyf = _dft_factors(st, coords, adjoint=True)
+    band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
+    _points_to_band(st, g_nodes, ex, eyf, band_grad)
+    partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
+    _launch(
+        st,
+        "band_distance_grad_kernel",
+        (st.ky_max, st.batch, 1),
+        band,
+        band_grad,
+        st.params_dev,
+        st.kx_max,
+        st.ky_max,
+        st.batch,
+        0,
+        partial,
+        local=(64, 1, 1),
+    )
+    grad_distance = np.asarray(be.to_host(partial), dtype=np.float64).sum(axis=1)
+    if not need_field:
+        return None, None, grad_distance
+    grad_field, grad_phase = _band_adjoint_to_field(st, band_grad, h)
+    return grad_field, grad_phase, grad_distance

@@ -235,11 +235,41 @@ def trace_splat(table, rw):
 
 
 # ---------------------------------------------------------------------------------------------- propagation
-def _prop_args(rw, distance):
+def _prop_args(rw, distance, tile=None):
+    """Positional arguments of the sensor functions after ``(backend, field)``; with ``tile =
+    (r0, r1, c0, c1)`` only those sensor pixel rows / columns (the window centre of the whole patch
+    then goes in ``_tile_kw``)."""
     args = list(rw.propagation_args())
     if distance is not None:
         args[3] = np.broadcast_to(np.asarray(distance, dtype=np.float64), (rw.nsrc,)).copy()
+    if tile is not None:
+        r0, r1, c0, c1 = tile
+        args[4] = np.ascontiguousarray(np.atleast_2d(args[4])[:, c0:c1])
+        args[5] = np.ascontiguousarray(np.atleast_2d(args[5])[:, r0:r1])
     return args
+
+
+def _tile_kw(rw, tile):
+    """``window_center_mm`` of the whole sensor patch for a spatial tile (so that the tile has the
+    whole patch's band limits and equals its pixels), cached per RayWave; {} without a tile."""
+    if tile is None:
+        return {}
+    c = getattr(rw, "_bridge_window_center", None)
+    if c is None:
+        from rwwarp import propagate
+        args = rw.propagation_args()
+        c = propagate.sensor_window_center(np.atleast_2d(args[4]), np.atleast_2d(args[5]), args[6], rw.gauss_nodes)
+        rw._bridge_window_center = c
+    return {"window_center_mm": c}
+
+
+def spatial_tiles(size: int, tile_px: int | None):
+    """Tiles ``(r0, r1, c0, c1)`` of a ``size`` x ``size`` sensor patch, ``tile_px`` pixels a side (the
+    last ones ragged); ``[None]`` (one untiled call) when ``tile_px`` is None or covers the patch."""
+    if tile_px is None or int(tile_px) >= size:
+        return [None]
+    t = max(1, int(tile_px))
+    return [(r, min(r + t, size), c, min(c + t, size)) for r in range(0, size, t) for c in range(0, size, t)]
 
 
 def _as_backend_array(t, rw):
@@ -264,14 +294,15 @@ def _to_torch(be, arr, device):
     return torch.from_numpy(be.to_host(arr)).to(device)
 
 
-def sensor_power(rw, field, phi0=None, distance=None):
-    """Power per sensor pixel (S, size, size) without gradients (numpy in, backend array out)."""
+def sensor_power(rw, field, phi0=None, distance=None, tile=None):
+    """Power per sensor pixel (S, size, size) without gradients (numpy in, backend array out); with
+    ``tile = (r0, r1, c0, c1)`` those pixels only (S, r1 - r0, c1 - c0)."""
     from rwwarp import backend as bk
     from rwwarp import propagate
     be = bk.get_backend(rw.device)
     return be, propagate.sensor_intensity(
-        be, field, *_prop_args(rw, distance), doe_phase=phi0, doe_scale=None if phi0 is None else doe_scale(rw),
-        carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes)
+        be, field, *_prop_args(rw, distance, tile), doe_phase=phi0, doe_scale=None if phi0 is None else doe_scale(rw),
+        carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, **_tile_kw(rw, tile))
 
 
 class Propagate(torch.autograd.Function):
@@ -283,18 +314,22 @@ class Propagate(torch.autograd.Function):
     ``|U|^2`` integrated over each pixel (field units^2 mm^2; divide by ``rw.entering`` for the
     fraction of entering power).
 
+    ``Propagate.apply(field, phi0, distance, rw, tile, keep_nodes)``: optional spatial tile
+    ``(r0, r1, c0, c1)`` of sensor pixel rows / columns (output (S, r1 - r0, c1 - c0), evaluated
+    with the whole patch's window centre, so equal to those pixels of the whole patch), and
+    ``keep_nodes=False`` to keep no node field for backward (recomputed there: a checkpoint).
+
     Backward: :func:`rwwarp.propagate.sensor_intensity_adjoint` (conjugate transfer function on the
-    same cached FFT plans, reusing the node field of the forward pass) for ``field`` and ``phi0``.
-    The kernels have no analytic derivative in the distance, so d/d(distance) is a 4-point central
-    difference of the propagation with step ``1e-5 mm`` (truncation ~ (step / depth of focus)^4,
-    rounding ~ 1e-16 / step relative; measured agreement with finite differences of the whole model
-    ~1e-9), computed only when the distance needs a gradient (4 extra propagations).
+    same cached FFT plans, reusing the node field of the forward pass) for ``field`` and ``phi0``;
+    when the distance needs a gradient, :func:`rwwarp.propagate.sensor_intensity_distance_adjoint`
+    instead, which also returns the analytic d/d(distance): ``dH/dz = 2 pi i w H``
+    (``w = sqrt(1/lambda^2 - fx^2 - fy^2)``), contracted with the band spectrum and its gradient on
+    the device (one extra pruned FFT of the field; the band limits, which move with z in jumps, are
+    held fixed).
     """
 
-    DISTANCE_STEP_MM = 1e-5
-
     @staticmethod
-    def forward(ctx, field, phi0, distance, rw):
+    def forward(ctx, field, phi0, distance, rw, tile=None, keep_nodes=True):
         from rwwarp import backend as bk
         from rwwarp import propagate
         be = bk.get_backend(rw.device)
@@ -303,11 +338,12 @@ class Propagate(torch.autograd.Function):
         d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()
         scale = None if phi0 is None else doe_scale(rw)
         with _streams(rw):
-            inten, nodes = propagate.sensor_intensity(
-                be, f_h, *_prop_args(rw, d_h), doe_phase=p_h, doe_scale=scale, carrier_cpmm=rw.carrier,
-                pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, return_nodes=True)
+            res = propagate.sensor_intensity(
+                be, f_h, *_prop_args(rw, d_h, tile), doe_phase=p_h, doe_scale=scale, carrier_cpmm=rw.carrier,
+                pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, return_nodes=keep_nodes, **_tile_kw(rw, tile))
+            inten, nodes = res if keep_nodes else (res, None)
             out = _to_torch(be, inten, field.device)
-        ctx.rw, ctx.be, ctx.nodes = rw, be, nodes
+        ctx.rw, ctx.be, ctx.nodes, ctx.tile = rw, be, nodes, tile
         ctx.host = (f_h, p_h, d_h)
         ctx.devices = (field.device, None if phi0 is None else phi0.device,
                        None if distance is None else distance.device)
@@ -322,38 +358,52 @@ class Propagate(torch.autograd.Function):
         g_h = _as_backend_array(grad_out.to(torch.float64), rw)
         scale = None if p_h is None else doe_scale(rw)
         common = {"doe_phase": p_h, "doe_scale": scale, "carrier_cpmm": rw.carrier, "pad_to": rw.plan.n_pad,
-                  "gauss_nodes": rw.gauss_nodes}
+                  "gauss_nodes": rw.gauss_nodes, **_tile_kw(rw, ctx.tile)}
+        args = _prop_args(rw, d_h, ctx.tile)
         gf = gp = gd = None
         with _streams(rw):
-            if need_f or need_p:
-                gf_d, gp_d = propagate.sensor_intensity_adjoint(be, g_h, f_h, *_prop_args(rw, d_h), nodes=ctx.nodes,
-                                                                **common)
-                if need_f:
-                    gf = _to_torch(be, gf_d, ctx.devices[0])
-                if need_p and gp_d is not None:
-                    gp = _to_torch(be, gp_d, ctx.devices[1])
+            gf_d = gp_d = None
             if need_d:
-                d0 = np.broadcast_to(d_h if d_h is not None else rw.z_sensor - rw.z_plane, (rw.nsrc,))
-                h = Propagate.DISTANCE_STEP_MM
+                gf_d, gp_d, gd_h = propagate.sensor_intensity_distance_adjoint(
+                    be, g_h, f_h, *args, nodes=ctx.nodes, need_field=need_f or need_p, **common)
+                gd = torch.from_numpy(gd_h).to(ctx.devices[2])
+            elif need_f or need_p:
+                gf_d, gp_d = propagate.sensor_intensity_adjoint(be, g_h, f_h, *args, nodes=ctx.nodes, **common)
+            if need_f:
+                gf = _to_torch(be, gf_d, ctx.devices[0])
+            if need_p and gp_d is not None:
+                gp = _to_torch(be, gp_d, ctx.devices[1])
+        ctx.nodes = None
+        return gf, gp, gd, None, None, None
 
-                def at(m):
-                    return _to_torch(be, propagate.sensor_intensity(be, f_h, *_prop_args(rw, d0 + m * h), **common),
-                                     ctx.devices[2])
-                # 4-point central difference: truncation O(h^4), rounding ~ 1e-16 / h
-                dI = (8.0 * (at(1) - at(-1)) - (at(2) - at(-2))) / (12.0 * h)
-                gd = (grad_out.to(dI.device, torch.float64) * dI).sum(dim=(1, 2))
-        return gf, gp, gd, None
 
+def propagate(field, phi0, distance, rw, tile_px=None):
+    """:class:`Propagate` where a gradient is wanted, else a plain forward (no saved node field).
 
-def propagate(field, phi0, distance, rw):
-    """:class:`Propagate` where a gradient is wanted, else a plain forward (no saved node field)."""
+    ``tile_px``: evaluate the sensor patch in spatial tiles of ``tile_px`` x ``tile_px`` pixels (the
+    matrix DFT evaluates any subset of output points; each tile keeps the whole patch's window
+    centre, so the result equals the untiled one). Each tile is its own :class:`Propagate` that keeps
+    no node field (its backward recomputes the tile: one more pruned FFT of the field per tile), so
+    the output-side work space (nodes, DFT factors, GEMM temporaries) is one tile's. None: one call."""
+    tiles = spatial_tiles(rw.size, tile_px)
     wants = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (field, phi0, distance))
     if wants:
-        return Propagate.apply(field, phi0, distance, rw)
-    be, p = sensor_power(rw, _as_backend_array(field.to(torch.complex128), rw),
-                         None if phi0 is None else _as_backend_array(phi0.to(torch.float64), rw),
-                         None if distance is None else distance.detach().to("cpu", torch.float64).numpy())
-    return _to_torch(be, p, field.device)
+        if tiles == [None]:
+            return Propagate.apply(field, phi0, distance, rw)
+        parts = [Propagate.apply(field, phi0, distance, rw, t, False) for t in tiles]
+    else:
+        f_h = _as_backend_array(field.to(torch.complex128), rw)
+        p_h = None if phi0 is None else _as_backend_array(phi0.to(torch.float64), rw)
+        d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()
+        parts = []
+        for t in tiles:
+            be, p = sensor_power(rw, f_h, p_h, d_h, t)
+            parts.append(_to_torch(be, p, field.device))
+        if tiles == [None]:
+            return parts[0]
+    n_col = len({(t[2], t[3]) for t in tiles})
+    rows = [torch.cat(parts[k:k + n_col], dim=2) for k in range(0, len(parts), n_col)]
+    return torch.cat(rows, dim=1)
 
 
 # ---------------------------------------------------------------------------------------------- precision, quantisation

@@ -178,6 +178,50 @@ __kernel void band_gather_kernel(__global const cplx_t* restrict cols,
     band_out[ib] = c_mul(cols[((idx_t)b * npy + iy) * kx_max + kx], h[ib]);
 }
 
+/* Gradient of a real loss with respect to the propagation distance z, through the band spectrum
+ * C = H * FFT(field) (band_gather's output). H depends on z through exp(2 pi i z w),
+ * w = sqrt(1/lambda^2 - u^2 - v^2) (cycles/mm), so dC/dz = 2 pi i w C and, for
+ * G = dL/dRe C + i dL/dIm C (the gradient of the band, from the adjoint of the matrix DFT),
+ *     dL/dz = Re sum conj(G) dC/dz = 2 pi sum w (Im G Re C - Re G Im C).
+ * full_w = 0 uses w - 1/lambda = -lambda rho^2 / (1 + sqrt(1 - lambda^2 rho^2)) instead of w: it
+ * drops the z-derivative of the global phase exp(2 pi i z / lambda), which intensities do not see
+ * (and which would otherwise be summed to ~0 from terms 1/(lambda |w - 1/lambda|) times larger).
+ * The band limits also move with z; their jumps are not differentiated (zero a.e.).
+ * out[b, ky] = partial sum over kx (phase_t, 1/mm units of the loss); the host sums over ky.
+ * Global (ky_max, batch, 1). */
+__kernel void band_distance_grad_kernel(__global const cplx_t* restrict band,
+                                        __global const cplx_t* restrict band_grad,
+                                        __global const phase_t* restrict params,
+                                        const int kx_max, const int ky_max, const int batch,
+                                        const int full_w,
+                                        __global phase_t* restrict out)
+{
+    const int ky = get_global_id(0);
+    const int b = get_global_id(1);
+    if (ky >= ky_max || b >= batch) return;
+    __global const phase_t* p = params + (idx_t)b * NPAR;
+    phase_t acc = (phase_t)0;
+    if (ky < (int)p[P_KYB]) {
+        const phase_t lam = p[P_LAMBDA];
+        const phase_t v = (p[P_QY0] + (phase_t)ky) / p[P_LPY] + p[P_CY];
+        const int kxb = (int)p[P_KXB];
+        const idx_t row = ((idx_t)b * ky_max + ky) * kx_max;
+        for (int kx = 0; kx < kxb && kx < kx_max; ++kx) {
+            const phase_t u = (p[P_QX0] + (phase_t)kx) / p[P_LPX] + p[P_CX];
+            const phase_t rho2 = u * u + v * v;
+            const phase_t s2 = lam * lam * rho2;
+            if (s2 < (phase_t)1) {
+                const phase_t dw = -lam * rho2 / ((phase_t)1 + sqrt((phase_t)1 - s2));
+                const phase_t w = full_w ? dw + (phase_t)1 / lam : dw;
+                const cplx_t g = band_grad[row + kx];
+                const cplx_t c = band[row + kx];
+                acc += w * ((phase_t)g.y * (phase_t)c.x - (phase_t)g.x * (phase_t)c.y);
+            }
+        }
+    }
+    out[(idx_t)b * ky_max + ky] = RW_TWO_PI * acc;
+}
+
 /* Adjoint of band_gather: cols_out = scale * conj(H) * band on the band rows, 0 on the other
  * rows, layout (batch, npy, kx_max). Global (kx_max, npy, batch). */
 __kernel void band_scatter_adjoint_kernel(__global const cplx_t* restrict band,

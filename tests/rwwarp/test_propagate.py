@@ -29,9 +29,12 @@ def _matsushima_limits(lam, z, x0s, sx):
     return -u_minus, u_plus
 
 
-def ref_blasm(field, pitch, origin, lam_um, z, out_x, out_y, npad, carrier=(0.0, 0.0), phase=None, scale=1.0):
+def ref_blasm(field, pitch, origin, lam_um, z, out_x, out_y, npad, carrier=(0.0, 0.0), phase=None, scale=1.0,
+              d_dz=False):
     """numpy BL-ASM of one (N, N) field, evaluated at out_x (Mx,), out_y (My,) by an explicit
-    inverse DFT sum over the whole padded spectrum (numpy fftfreq frequencies)."""
+    inverse DFT sum over the whole padded spectrum (numpy fftfreq frequencies). ``d_dz``: the
+    derivative of the output with respect to z instead (transfer function times
+    ``2 pi i sqrt(1/lambda^2 - u^2 - v^2)``, band limits held fixed)."""
     u = np.asarray(field, dtype=complex)
     if phase is not None:
         u = u * np.exp(1j * scale * phase)
@@ -51,6 +54,8 @@ def ref_blasm(field, pitch, origin, lam_um, z, out_x, out_y, npad, carrier=(0.0,
     arg = 1.0 / lam**2 - uu**2 - vv**2
     keep = (uu >= ulo) & (uu <= uhi) & (vv >= vlo) & (vv <= vhi) & (arg > 0)
     h = np.where(keep, np.exp(2j * np.pi * z * np.sqrt(np.maximum(arg, 0.0))), 0.0)
+    if d_dz:
+        h = h * 2j * np.pi * np.sqrt(np.maximum(arg, 0.0))
     ex = (
         np.exp(2j * np.pi * np.outer(out_x - origin[0], f)) * np.exp(2j * np.pi * carrier[0] * out_x)[:, None]
     )
@@ -557,6 +562,55 @@ def test_sensor_intensity_adjoint_finite_differences(backend):
     _fd_check(loss, gf, gp, field, phase, rng)
     gf2, _ = prop.sensor_intensity_adjoint(backend, weight, field, *args, *sens, doe_phase=phase, **kw)
     assert np.allclose(backend.to_host(gf2), gf, rtol=0, atol=1e-13 * np.abs(gf).max())
+
+
+@pytest.mark.parametrize("z", [0.8, 3.0])
+def test_sensor_intensity_distance_gradient(backend, z):
+    """dL/dz of L = sum W * I (I the pixel-integrated intensity) from
+    sensor_intensity_distance_adjoint against (a) an independent numpy derivative (ref_blasm with
+    dH/dz = 2 pi i w H, Gauss-Legendre nodes summed here) and (b) 4-point central differences of the
+    loss; its field / phase gradients equal sensor_intensity_adjoint's. z = 3 mm: band limit active."""
+    c = _random_case(3)
+    gauss = 3
+    pp = 0.006
+    cx = np.linspace(-0.04, 0.06, 6)[None, :] + np.array([[0.0], [0.02]])
+    cy = np.linspace(-0.03, 0.04, 5)[None, :] + np.array([[0.01], [-0.01]])
+    kw = {"doe_phase": c["phase"], "doe_scale": c["scale"], "carrier_cpmm": c["carrier"], "pad_to": NP,
+          "gauss_nodes": gauss}
+    rng = np.random.default_rng(4)
+    weight = rng.random((B, 5, 6))
+    zs = np.array([z, 1.1 * z])
+    args = (PITCH, c["origin"], c["lam"])
+    sens = (cx, cy, pp)
+    gf, gp, gd = prop.sensor_intensity_distance_adjoint(backend, weight, c["field"], *args, zs, *sens, **kw)
+    assert gd.shape == (B,) and gd.dtype == np.float64
+    gf0, gp0 = prop.sensor_intensity_adjoint(backend, weight, c["field"], *args, zs, *sens, **kw)
+    np.testing.assert_array_equal(backend.to_host(gf), backend.to_host(gf0))
+    np.testing.assert_array_equal(backend.to_host(gp), backend.to_host(gp0))
+    # (a) numpy: dI/dz = area sum w w 2 Re(conj(U) dU/dz) at the Gauss nodes
+    t, wg = np.polynomial.legendre.leggauss(gauss)
+    for b in range(B):
+        nx = (cx[b][:, None] + 0.5 * pp * t[None, :]).ravel()
+        ny = (cy[b][:, None] + 0.5 * pp * t[None, :]).ravel()
+        ref = [ref_blasm(c["field"][b], PITCH, c["origin"][b], c["lam"][b], zs[b], nx, ny, NP, c["carrier"][b],
+                         c["phase"], c["scale"][b], d_dz=d) for d in (False, True)]
+        di = 2.0 * np.real(np.conj(ref[0]) * ref[1]).reshape(5, gauss, 6, gauss)
+        di = 0.25 * pp * pp * np.einsum("yaxb,a,b->yx", di, wg, wg)
+        expect = float(np.sum(weight[b] * di))
+        assert abs(gd[b] - expect) <= 1e-9 * abs(expect), (b, gd[b], expect)
+    # (b) central differences of the loss (step small enough that no band edge crosses a sample)
+    def loss(zz):
+        inten = backend.to_host(prop.sensor_intensity(backend, c["field"], *args, zz, *sens, **kw))
+        return np.sum(weight * inten, axis=(1, 2))
+
+    h = 1e-5 * z
+    fd = (8.0 * (loss(zs + h) - loss(zs - h)) - (loss(zs + 2 * h) - loss(zs - 2 * h))) / (12.0 * h)
+    np.testing.assert_allclose(gd, fd, rtol=1e-6, atol=0)
+    # only the distance
+    none_f, none_p, gd2 = prop.sensor_intensity_distance_adjoint(backend, weight, c["field"], *args, zs, *sens,
+                                                                 need_field=False, **kw)
+    assert none_f is None and none_p is None
+    np.testing.assert_array_equal(gd2, gd)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -113,6 +113,55 @@ def test_gradients_match_finite_differences_pixel_map():
     _check_fd(hl, loss, [("doe", k, 1.0) for k in range(4)])
 
 
+def thin_lens_system():
+    """The aspheric singlet, then an ideal thin lens (f = 60 mm) 0.5 mm behind it, the DOE 0.5 mm
+    further; object at 500 mm (so the thin lens's object-side conjugate 1/u is not 0)."""
+    surfs = [Surface(type="aperture", semi_diameter=0.3, shape="circle", stop=True, thickness=0.2),
+             Surface(type="standard", radius=12.0, conic=-0.8, aspheric=[1e-4], material="N-BK7",
+                     semi_diameter=1.0, thickness=1.0),
+             Surface(type="standard", radius=-40.0, semi_diameter=1.0, thickness=0.5),
+             Surface(type="thin_lens", focal_length=60.0, semi_diameter=1.0, thickness=0.5),
+             Surface(type="doe", semi_diameter=0.6, shape="square", thickness=13.0, profile=EVEN)]
+    lens = Lens(surfs, Sensor(0.004, (1000, 1000)), wavelengths_um=[0.55])
+    lens.object_distance = 500.0
+    return lens
+
+
+def test_thin_lens_conjugates_equal_rwwarp_and_focal_length_exports():
+    """The torch paraxial trace of the thin lens's power, 1/u and v reproduces the tracer's table
+    (rwwarp.paraxial.thin_lens_conjugates); a changed focal length reaches to_lens and state_dict."""
+    from rwwarp.kernels import trace as ktrace
+    hl = tb.HybridLens(thin_lens_system(), learn={"focal_length": "all", "curvature": [1]})
+    assert hl.focal_length_index.tolist() == [3]
+    rwv = hl.raywave([FIELD], [0.55], 8)
+    got = hl.param_table(rwv).detach().numpy()
+    for c in (ktrace.P_POWER, ktrace.P_UINV, ktrace.P_V):
+        np.testing.assert_allclose(got[:, c], rwv._bridge_base_table[:, c], rtol=1e-14, atol=1e-17)
+    assert rwv._bridge_base_table[3, ktrace.P_UINV] != 0.0
+    with torch.no_grad():
+        hl.focal_length[0] = 55.0
+    assert hl.to_lens().surfaces[3].focal_length == 55.0
+    hl2 = tb.HybridLens(thin_lens_system(), learn={"focal_length": [3], "curvature": [1]})
+    hl2.load_state_dict(hl.state_dict())
+    assert float(hl2.focal_length.detach()[0]) == 55.0
+    with pytest.raises(ValueError, match="thin_lens"):
+        tb.HybridLens(thin_lens_system(), learn={"focal_length": [1]})
+
+
+def test_thin_lens_focal_length_gradient_matches_finite_differences():
+    """d(loss)/d(focal length) of an ideal thin lens (power and both conjugates move), together with
+    a curvature and the thickness in front of the thin lens (which move its conjugates too)."""
+    hl = tb.HybridLens(thin_lens_system(), replan=False,
+                       learn={"focal_length": "all", "curvature": [1], "thickness": [2, 3]})
+    weights = torch.from_numpy(np.random.default_rng(5).random((16, 16)))
+
+    def loss():
+        return (hl.psf(FIELD, 0.55, 16) * weights).sum()
+
+    _check_fd(hl, loss, [("focal_length", 0, 10.0), ("curvature", 0, 0.01), ("thickness", 0, 0.1),
+                         ("thickness", 1, 0.1)])
+
+
 def test_psf_map_gradient_flows_to_each_wavelength():
     hl = tb.HybridLens(singlet(EVEN), learn={"doe": "all"})
     m = hl.psf_map([(0.0, 0.0), FIELD], [0.45, 0.55], 8)

@@ -107,3 +107,63 @@ def test_peak_memory_is_flat_in_the_map_size_and_under_the_budget():
     assert whole > p8 + 2 * per_source / 2 / 2, (whole, p8, per_source)
     budget = int(2.2 * per_source)  # room for two sources
     assert peak(8, memory_budget_bytes=budget) < budget
+
+
+# --------------------------------------------------------------------------------------- spatial tiles
+@pytest.mark.parametrize("tile_px", [5, 8])
+def test_spatial_tiles_of_the_propagation_equal_untiled(tile_px):
+    """The sensor patch evaluated in spatial tiles (ragged for 5 px), each tile checkpointed: the same
+    PSF and the same gradients (lens, DOE, distance) as one untiled propagation, to 1e-12."""
+    hl = tb.HybridLens(singlet(), learn={"doe": "all", "curvature": [1], "thickness": [2, 3]}, replan=False)
+    w = torch.from_numpy(np.random.default_rng(3).random((16, 16)))
+    out = []
+    for st in (None, tile_px):
+        hl.zero_grad()
+        p = hl.psf(FIELDS[1], 0.55, 16, spatial_tile=st)
+        (p * w).sum().backward()
+        out.append((p.detach().numpy(), torch.cat([q.grad for q in hl.parameters() if q.numel()]).numpy()))
+    (p0, g0), (p1, g1) = out
+    np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-12 * p0.max())
+    np.testing.assert_allclose(g1, g0, rtol=1e-12, atol=1e-12 * np.abs(g0).max())
+
+
+def test_spatial_tiles_field_phase_and_distance_gradients():
+    """At the Function level: a random complex field, DOE phase and distance; every gradient of the
+    tiled propagation equals the untiled one to 1e-12, and the values are bit-compatible to 1e-12."""
+    import warnings
+
+    from torch_bridge.functions import propagate
+    hl = tb.HybridLens(singlet(), learn={"doe": "all"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rw = hl.raywave(FIELDS[:2], [0.55, 0.45], 12)
+    n = rw.plan.n_grid
+    g = torch.Generator().manual_seed(0)
+    f0 = torch.randn(2, n, n, dtype=torch.complex128, generator=g)
+    p0 = torch.rand(2, n, n, dtype=torch.float64, generator=g) * 6.0
+    d0 = torch.full((2,), rw.z_sensor - rw.z_plane, dtype=torch.float64)
+    w = torch.rand(2, 12, 12, dtype=torch.float64, generator=g)
+    res = []
+    for t in (None, 5):
+        f, p, d = (x.clone().requires_grad_() for x in (f0, p0, d0))
+        out = propagate(f, p, d, rw, t)
+        (out * w).sum().backward()
+        res.append([out.detach(), f.grad, p.grad, d.grad])
+    for a, b in zip(res[1], res[0]):
+        scale = b.abs().max()
+        assert float((a - b).abs().max()) <= 1e-12 * float(scale), (float((a - b).abs().max()), float(scale))
+    with torch.no_grad():
+        np.testing.assert_allclose(propagate(f0, p0, d0, rw, 5).numpy(), res[0][0].numpy(), rtol=0,
+                                   atol=1e-12 * float(res[0][0].abs().max()))
+
+
+def test_memory_budget_chooses_spatial_tiles_for_large_patches():
+    hl = tb.HybridLens(singlet(), learn={"doe": "all"})
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rw = hl.raywave([FIELDS[0]], [0.55], 64)
+    whole = hl.output_bytes_per_source(rw)
+    assert hl.spatial_tile_for(rw, 8 * whole) is None
+    t = hl.spatial_tile_for(rw, 8 * whole // 3)
+    assert t is not None and 8 <= t < 64 and hl.output_bytes_per_source(rw, t) <= whole // 3
