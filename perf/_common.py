@@ -12,6 +12,10 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def git_commit() -> str:
+    """The commit measured: $RWWARP_COMMIT when set (a copied working tree may carry a stale .git),
+    else git's HEAD."""
+    if os.environ.get("RWWARP_COMMIT"):
+        return os.environ["RWWARP_COMMIT"]
     try:
         return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
                                        stderr=subprocess.DEVNULL, text=True).strip()

@@ -9,7 +9,6 @@ part=${1:-a}
 export RWWARP_RESULTS=${OUT:-$(cd "$(dirname "$0")" && pwd)/results}
 cd "$(dirname "$0")"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-git -C .. rev-parse --short HEAD 2>/dev/null || true
 case $part in
 a)
   echo "== trace";   timeout 90 python3 bench_trace.py --device cuda --sizes 1000000 16000000 2>&1 | tail -4
