@@ -655,3 +655,26 @@ def test_cuda_matches_opencl(cl_backend):
     grid_ref = cl_backend.to_host(prop.propagate_grid(cl_backend, field, G_PITCH, origin, G_LAM, 5.0))
     grid_cu = cu.to_host(prop.propagate_grid(cu, field, G_PITCH, origin, G_LAM, 5.0))
     assert rel_l2(grid_cu, grid_ref) < 1e-12
+
+
+def test_x_fft_plans_shared_across_window_heights(cl_backend):
+    """Windows a few rows apart share one x-FFT plan (row count on a coarse ladder, plans cost
+    ~0.5 s each), and the shared plan's extra rows do not leak into the result: every window still
+    conserves energy to 1e-8 (Parseval, as in test_energy_conservation)."""
+    from rwwarp.propagate import _fft_rows
+
+    be = cl_backend
+    assert [_fft_rows(n) for n in (1, 7, 8, 9, 15, 16, 17)] == [1, 7, 8, 9, 15, 16, 18]
+    assert all(n <= _fft_rows(n) <= 1.125 * n for n in range(1, 5000, 37))
+    pitch, lam, z = 0.002, 0.55, 1.0
+    before = {k for k in be._plans if k[2] == (-1,)}
+    for ny in (121, 124, 127):  # all on the ladder step 128
+        y = (np.arange(ny) - ny / 2) * pitch
+        x = (np.arange(128) - 64) * pitch
+        field = np.exp(-(y[:, None] ** 2 + x[None, :] ** 2) / 0.02**2).astype(np.complex128)
+        p_in = np.sum(np.abs(field) ** 2) * pitch**2
+        centers = np.arange(-0.08, 0.08, 0.01) + 0.005
+        inten = be.to_host(prop.sensor_intensity(be, field, pitch, (x[0], y[0]), lam, z, centers, centers, 0.01, gauss_nodes=8))
+        assert abs(inten.sum() / p_in - 1) < 1e-8, ny
+    new = {k for k in be._plans if k[2] == (-1,)} - before
+    assert len(new) == 1, new
