@@ -226,10 +226,6 @@ def deeplens_bytes(spp, n_doe=3000, launches=4):
     return {"trace": spp * (124 * launches + 60), "rays_to_field": spp * (68 + 64) + field, "propagation": waves}
 
 
-def batches(n_pairs, batch):
-    return [list(range(k, min(k + batch, n_pairs))) for k in range(0, n_pairs, batch)]
-
-
 # ------------------------------------------------------------------------------------------- runs
 def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
     s = sync_fn(device)
@@ -243,12 +239,14 @@ def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
         m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch)
         s()
         warm = time.perf_counter() - t0
-    # bytes model from the plans each batch used (pilot traces only)
+    # bytes model from the batches psf_map ran (m.info["batches"]: its grouping of sources with similar
+    # plans), each rebuilt up to its plan (pilot traces only)
     tot = {"trace": 0, "rays_to_field": 0, "propagation": 0}
     plans = []
-    for idx in batches(len(pairs), batch):
-        f_list = [fields[pairs[k][0]] for k in idx]
-        w_list = [WLS[pairs[k][1]] for k in idx]
+    for b in m.info["batches"]:
+        idx = b["pairs"]
+        f_list = [fields[i] for i, _ in idx]
+        w_list = [WLS[j] for _, j in idx]
         rwm = RayWave(lens, as_field_list(f_list), w_list, SIZE, lens.sensor.pixel_pitch, device, "auto")
         for k, v in rwwarp_bytes(rwm).items():
             tot[k] += v
@@ -340,13 +338,13 @@ def main():
     ap.add_argument("--grid", type=int, default=None, help="fields per axis (default 10; --quick: 3)")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--batch", type=int, nargs="+", default=None,
-                    help="sources per launch, one run each (default CPU 9, GPU 6 15 30)")
+                    help="sources per launch, one run each (default CPU 9, GPU 3 6 15 30)")
     ap.add_argument("--no-deeplens", action="store_true")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     gpu = a.device.startswith("cuda")
     n = a.grid or (3 if a.quick else 10)
-    batch_list = a.batch or ([6, 15, 30] if gpu else [9])
+    batch_list = a.batch or ([3, 6, 15, 30] if gpu else [9])
 
     def log(msg):
         print(msg, flush=True)
