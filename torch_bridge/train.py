@@ -11,7 +11,8 @@ Per arm:
    ``paraxial_achromat`` (analytic Fresnel-phase DOE and refocus, :func:`design.paraxial_achromat`),
    ``rms`` (the "Zemax" arm: the learning quantities minimise the polychromatic RMS spot radius of
    the ray model, :class:`design.RaySpot`), or ``e2e`` (the optics learn with the network below).
-   ``design.init`` may first set the DOE to the paraxial achromat.
+   ``design.init`` may first set the DOE to the paraxial achromat (``paraxial_achromat``) or run the
+   RMS-spot design from it (``rms``: an e2e design that starts where the "Zemax" arm ends).
 2. **Joint phase** (``train.joint_steps``): each step draws image crops and, per colour channel, one
    of its wavelengths (and one depth); computes the RGB PSFs of the nodes (ray-wave, or the
    paraxial-wave model), converts them to float32 (:class:`MixedPrecision`), blurs the crops,
@@ -206,6 +207,7 @@ SCHEMA = {
         "alpha": _num(0),
         "perceptual": _choice("vgg", "ssim", "gradient", "none"),
         "fallback": _choice("ssim", "gradient", "none"),
+        "fallback_alpha": _num(0, none=True),
         "vgg_weights": _str(none=True),
         "lpips_weights": _str(none=True),
     },
@@ -226,7 +228,7 @@ SCHEMA = {
     },
     "design": {
         "method": _choice("fixed", "paraxial_achromat", "rms", "e2e"),
-        "init": _choice("paraxial_achromat", none=True),
+        "init": _choice("paraxial_achromat", "rms", none=True),
         "efl_mm": _num(0, lo_open=True, none=True),
         "efl_weight": _num(0),
         "rms": {
@@ -263,7 +265,8 @@ DEFAULTS = {
              "linearize": False},
     "network": {"preset": "tiny", "width": None, "enc_blocks": None, "middle_blocks": None, "dec_blocks": None,
                 "zero_init": True},
-    "loss": {"alpha": 0.1, "perceptual": "vgg", "fallback": "ssim", "vgg_weights": None, "lpips_weights": None},
+    "loss": {"alpha": 0.1, "perceptual": "vgg", "fallback": "ssim", "fallback_alpha": 0.01, "vgg_weights": None,
+             "lpips_weights": None},
     "train": {"joint_steps": 100, "finetune_steps": 50, "lr_network": 1e-3, "lr_optics": {"doe": 0.5},
               "lr_decay": "cosine", "optics_every": 1, "noise": {"read_std": 0.01, "photons": None},
               "noise_in_joint": False, "grad_clip": 1.0, "log_every": 5, "image_every": 50,
@@ -438,7 +441,18 @@ def _semantic(cfg: dict, where: str, source):
         kind = lens.surfaces[lens.doe_index].profile.get("kind")
         if kind not in ("even_poly", "poly"):
             raise ConfigError(f"{where}: 'design.method' rms needs an even_poly or poly DOE, got {kind!r}")
-    if cfg["design"]["init"] == "paraxial_achromat" or method == "paraxial_achromat":
+    if cfg["design"]["init"] == "rms" and method not in ("e2e", "rms"):
+        raise ConfigError(f"{where}: 'design.init' rms needs 'design.method' e2e (the optics learn after it)")
+    # every learning quantity needs its learning rate (checked here, not when the arm reaches it)
+    if method == "rms" or cfg["design"]["init"] == "rms":
+        missing = sorted(q for q in learn if q not in cfg["design"]["rms"]["lr"])
+        if missing:
+            raise ConfigError(f"{where}: 'design.rms.lr' has no learning rate for {missing} ('optics.learn')")
+    if method == "e2e":
+        missing = sorted(q for q in learn if q not in cfg["train"]["lr_optics"])
+        if missing:
+            raise ConfigError(f"{where}: 'train.lr_optics' has no learning rate for {missing} ('optics.learn')")
+    if cfg["design"]["init"] in ("paraxial_achromat", "rms") or method == "paraxial_achromat":
         kind = lens.surfaces[lens.doe_index].profile.get("kind")
         if kind not in ("even_poly", "poly"):
             raise ConfigError(f"{where}: 'design.method' paraxial_achromat needs an even_poly or poly DOE")
@@ -614,7 +628,7 @@ class Arm:
         self.learn = learn
         self.live = _refractive_learns(learn, self.lens0)
         lens = self.lens0
-        if cfg["design"]["init"] == "paraxial_achromat" or method == "paraxial_achromat":
+        if cfg["design"]["init"] in ("paraxial_achromat", "rms") or method == "paraxial_achromat":
             lens = self._achromat(lens)
         self.lens_init = lens
         self.module = tb.HybridLens(lens, learn=learn, nyquist_safety=o["nyquist_safety"],
@@ -651,8 +665,12 @@ class Arm:
         lo = cfg["loss"]
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            self.criterion = ReconstructionLoss(lo["alpha"], lo["perceptual"], lo["vgg_weights"], lo["fallback"])
+            self.criterion = ReconstructionLoss(lo["alpha"], lo["perceptual"], lo["vgg_weights"], lo["fallback"],
+                                                lo["fallback_alpha"])
         self.notes = [str(w.message) for w in caught]
+        if self.criterion.perceptual.active_kind != lo["perceptual"]:
+            self.notes.append(f"perceptual term: {self.criterion.perceptual.active_kind} with weight "
+                              f"{self.criterion.alpha:g} (loss.fallback_alpha)")
         for w in caught:
             warnings.warn(w.message, UserWarning, stacklevel=2)
         self.criterion.to(self.device)
@@ -719,8 +737,9 @@ class Arm:
 
     # ------------------------------------------------------------------ design stage
     def run_design(self):
-        """RMS-spot optimisation (``design.method: rms``); nothing for the other methods."""
-        if self.method != "rms" or self.design_done:
+        """RMS-spot optimisation (``design.method: rms``, or ``design.init: rms`` before an e2e design:
+        the paraxial achromat, then the RMS-spot design, then end to end); nothing otherwise."""
+        if (self.method != "rms" and self.cfg["design"]["init"] != "rms") or self.design_done:
             self.design_done = True
             return
         from torch_bridge.design import RaySpot, paraxial_efl
@@ -1214,15 +1233,25 @@ def write_table(results: dict, out: Path, title: str = "", preset=None):
                          "ssim_rec": d["rec"]["ssim"], "one_minus_lpips_rec": d["rec"]["one_minus_lpips"],
                          "efl_mm": e["efl_mm"], "train_wall_s": r.get("train_wall_s")})
     lines.append("")
-    lines.append("Per node (PSNR rec, dB), first depth:")
+    lines.append("Per node (PSNR raw / rec, dB; node positions on the sensor in mm):")
     lines.append("")
     for a, r in results.items():
         if "eval" in r:
-            nodes = r["eval"]["depths"][0]["nodes"]
-            lines.append(f"- {a}: " + ", ".join(
-                f"node {n['node']}" + (f" {tuple(round(v, 2) for v in n['position_mm'])} mm" if 'position_mm' in n
-                                       else "") + f": raw {n['raw']['psnr']:.2f} / rec {n['rec']['psnr']:.2f}"
-                for n in nodes))
+            for d in r["eval"]["depths"]:
+                lines.append(f"- {a}, depth {_depth_tag(d['depth_mm'])}: " + ", ".join(
+                    f"node {n['node']}" + (f" {tuple(round(v, 2) for v in n['position_mm'])}" if 'position_mm' in n
+                                           else "") + f": {n['raw']['psnr']:.2f} / {n['rec']['psnr']:.2f}"
+                    for n in d["nodes"]))
+    lines.append("")
+    lines.append("Objective (MSE + alpha * perceptual on the evaluation crops, first evaluation depth; initial = "
+                 "the arm's starting lens with the untrained network) and wall time:")
+    lines.append("")
+    for a, r in results.items():
+        if "eval" in r:
+            oi, of = r.get("objective_initial") or {}, r.get("objective_final") or {}
+            obj = f"{oi['loss']:.5f} -> {of['loss']:.5f}" if "loss" in oi and "loss" in of else "-"
+            lines.append(f"- {a}: objective {obj}; training {r.get('train_wall_s', float('nan')):.0f} s, "
+                         f"evaluation {r.get('eval_wall_s', float('nan')):.0f} s")
     (out / "table.md").write_text("\n".join(lines) + "\n")
     if rows:
         with open(out / "table.csv", "w", newline="") as f:
@@ -1268,7 +1297,7 @@ def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bo
 
 
 def main(argv=None) -> int:
-    """``rwwarp design CONFIG [--preset P] [--arm NAME ...] [--out DIR] [--fresh] [--check]``."""
+    """``rwwarp design CONFIG [--preset P] [--arm NAME ...] [--out DIR] [--fresh] [--check] [--table]``."""
     ap = argparse.ArgumentParser(prog="rwwarp design", description="end-to-end hybrid lens design")
     ap.add_argument("config", help="YAML/TOML config (a path, or the name of a bundled config: "
                                    + ", ".join(sorted(p.stem for p in CONFIG_DIR.glob('*.yaml'))) + ")")
@@ -1277,6 +1306,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="output folder")
     ap.add_argument("--fresh", action="store_true", help="ignore existing checkpoints")
     ap.add_argument("--check", action="store_true", help="validate the config and exit")
+    ap.add_argument("--table", action="store_true",
+                    help="train nothing: rewrite table.md/table.csv/designs.png/summary.json from the arms "
+                         "finished in the output folder (e.g. after running arms in separate processes)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
     try:
@@ -1284,7 +1316,8 @@ def main(argv=None) -> int:
             exp = load_config(a.config, a.preset)
             print(f"{exp['source'] or a.config}: valid; arms: {', '.join(x['name'] for x in exp['arms'])}")
             return 0
-        res = train(a.config, a.preset, a.arm, a.out, resume=not a.fresh, progress=not a.no_progress)
+        res = train(a.config, a.preset, [] if a.table else a.arm, a.out, resume=not a.fresh,
+                    progress=not a.no_progress)
     except ConfigError as e:
         print(f"rwwarp design: error: {e}", file=sys.stderr)
         return 2

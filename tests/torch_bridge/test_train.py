@@ -78,24 +78,38 @@ def test_tiny_design_end_to_end(tmp_path):
     # the designed lens file loads and keeps the quantised DOE
     lens = rw.load_lens(out / "lens.json")
     assert lens.surfaces[lens.doe_index].levels == 16
+    # --table rebuilds the table from the finished arm without training
+    import yaml
+    (tmp_path / "table.md").unlink()
+    p = tmp_path / "tiny.yaml"
+    p.write_text(yaml.safe_dump(tiny()))
+    assert main([str(p), "--table", "--out", str(tmp_path)]) == 0
+    assert "| e2e |" in (tmp_path / "table.md").read_text()
+    assert len(_rows(out / "metrics.csv")) == 10
 
 
-def test_resume_gives_the_same_next_step(tmp_path):
-    cfg = tiny(**{"train.joint_steps": 4, "train.finetune_steps": 2, "train.image_every": 0,
-                  "train.stop_after": 4})
+@pytest.mark.parametrize("optics_every,stop", [(1, 4), (2, 5)])
+def test_resume_gives_the_same_next_step(tmp_path, optics_every, stop):
+    # (1, 4): interrupted after 3 joint steps, resumed for the 4th (an optics step).
+    # (2, 5): the optics update every 2nd step; interrupted after 3 steps, resumed for step 3 (no optics
+    # update: the network sees the PSFs of step 2, restored from the checkpoint) and step 4 (the first
+    # fine-tune step: frozen optics, sensor noise drawn from the restored generator)
+    over = {"train.joint_steps": 4, "train.finetune_steps": 2, "train.image_every": 0,
+            "train.optics_every": optics_every}
+    cfg = tiny(**over, **{"train.stop_after": stop})
     train(cfg, out_dir=tmp_path / "straight")
     straight = _rows(tmp_path / "straight" / "e2e" / "metrics.csv")
-    # interrupted after 3 steps, then resumed for the 4th
-    train(tiny(**{"train.joint_steps": 4, "train.finetune_steps": 2, "train.image_every": 0,
-                  "train.stop_after": 3}), out_dir=tmp_path / "resumed")
+    train(tiny(**over, **{"train.stop_after": 3}), out_dir=tmp_path / "resumed")
     train(cfg, out_dir=tmp_path / "resumed")
     resumed = _rows(tmp_path / "resumed" / "e2e" / "metrics.csv")
-    assert [int(r["step"]) for r in resumed] == [0, 1, 2, 3]
-    for key in ("loss", "mse", "perceptual", "psnr_train"):
-        assert float(resumed[3][key]) == float(straight[3][key]), key
+    assert [int(r["step"]) for r in resumed] == list(range(stop))
+    assert resumed[-1]["phase"] == ("finetune" if stop > 4 else "joint")
+    for k in range(3, stop):
+        for key in ("loss", "mse", "perceptual", "psnr_train", "optics_step"):
+            assert float(resumed[k][key]) == float(straight[k][key]), (k, key)
     a = torch.load(tmp_path / "straight" / "e2e" / "checkpoint.pt", weights_only=False)
     b = torch.load(tmp_path / "resumed" / "e2e" / "checkpoint.pt", weights_only=False)
-    assert a["step"] == b["step"] == 4
+    assert a["step"] == b["step"] == stop
     assert torch.equal(a["module"]["doe"], b["module"]["doe"])
     for k in a["net"]:
         assert torch.equal(a["net"][k], b["net"][k]), k
@@ -117,6 +131,11 @@ def test_resume_gives_the_same_next_step(tmp_path):
     ({"lens.file": "no_such_lens.json"}, "lens"),
     ({"lens.doe_distance_mm": 50.0}, "lens"),
     ({"network.preset": "huge"}, "network.preset"),
+    ({"loss.fallback_alpha": -0.1}, "loss.fallback_alpha"),
+    ({"optics.nodes.fractions": [0.0, 1.5]}, "optics.nodes.fractions"),
+    ({"eval.depths_mm": [300, -200]}, "eval.depths_mm"),
+    ({"train.optics_every": 0}, "train.optics_every"),
+    ({"train.lr_optics": {"curvature": 1e-5}}, "train.lr_optics"),
 ])
 def test_bad_config_fails_before_training_naming_the_key(tmp_path, over, key):
     cfg = tiny()
@@ -148,6 +167,27 @@ def test_bad_config_in_an_arm_or_preset(tmp_path):
     cfg["optics"]["learn"] = {"doe": "all", "curvature": [1]}
     with pytest.raises(ConfigError, match="'optics.model' paraxial-wave"):
         load_config(cfg)
+    cfg = tiny()
+    cfg["arms"] = [{"name": "f", "design": {"method": "fixed", "init": "rms"}}]
+    with pytest.raises(ConfigError, match=r"arms\[0\].*'design.init' rms"):
+        load_config(cfg)
+
+
+def test_e2e_can_start_from_the_rms_spot_design(tmp_path):
+    # design.init rms: the paraxial achromat, then the RMS-spot stage, then (not run here) end to end
+    from torch_bridge.design import RaySpot
+    from torch_bridge.train import Arm
+    cfg = load_config(tiny(**{"design.rms": {"steps": 4, "grid": 9, "lr": {"doe": 2.0}}}))["arms"][0]["config"]
+    cfg["design"]["init"] = "rms"
+    arm = Arm("e2e", cfg, None, tmp_path, progress=False)
+    start = arm.module.value("doe").detach().clone()
+    assert abs(float(start[0])) > 1.0                              # the achromat's quadratic term
+    wls = [c[0] for c in arm.wls]
+    before = float(RaySpot(arm.module, arm.fields, wls, grid=9).rms().detach().mean())
+    arm.run_design()
+    assert len(arm.rms_log) == 4 and arm.design_done
+    assert not torch.equal(arm.module.value("doe").detach(), start)
+    assert float(RaySpot(arm.module, arm.fields, wls, grid=9).rms().detach().mean()) < before
 
 
 def test_cli_reports_config_errors(tmp_path, capsys):
@@ -326,6 +366,14 @@ def test_losses_fallback_warns_and_vgg_loads_from_a_file(tmp_path):
     assert L.perceptual.active_kind == "ssim"
     total, parts = L(y, x)
     assert float(total) == pytest.approx(parts["mse"] + 0.1 * parts["perceptual"], rel=1e-6)
+    # the fallback has its own weight (the SSIM term's scale is not the VGG term's); an explicitly
+    # chosen weight-free term keeps alpha
+    with pytest.warns(UserWarning, match="no VGG16 weights"):
+        Lf = ReconstructionLoss(0.1, "vgg", None, "ssim", fallback_alpha=0.01)
+    total, parts = Lf(y, x)
+    assert Lf.alpha == 0.01
+    assert float(total) == pytest.approx(parts["mse"] + 0.01 * parts["perceptual"], rel=1e-6)
+    assert ReconstructionLoss(0.1, "ssim", None, "ssim", fallback_alpha=0.01).alpha == 0.1
     assert float(ssim_torch(x, x)) == pytest.approx(1.0, abs=1e-6)
     # a torchvision-layout state dict loads (random weights here: the layout is what is tested)
     v = VGG16Features()
