@@ -3,6 +3,7 @@
 #   bash perf/gpu_suite.sh a   # trace, single PSF vs DeepLens, 10x10x3 map vs DeepLens, latency profile
 #   bash perf/gpu_suite.sh b   # torch bridge: CPU/CUDA gradient check, DeepLens psf+backward, tile study
 #   bash perf/gpu_suite.sh c   # speed/accuracy chart, GPU tests
+#   bash perf/gpu_suite.sh d   # design smoke run: a489_aberration's gpu preset cut to 40 + 40 steps
 # Results JSON under $OUT (device tool) or perf/results.
 set -u
 part=${1:-a}
@@ -24,5 +25,19 @@ b)
 c)
   echo "== speed/accuracy"; timeout ${SA_TIMEOUT:-400} python3 speed_accuracy.py --device cuda --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -14
   echo "== GPU tests"; (cd ../tests && timeout 150 python3 -m pytest -q -m gpu 2>&1 | tail -4)
+  ;;
+d)
+  python3 - <<'PY'
+import os
+import yaml
+import torch_bridge
+c = yaml.safe_load(open(os.path.join(os.path.dirname(torch_bridge.__file__), "configs", "a489_aberration.yaml")))
+c["presets"]["gpu"]["train"].update(joint_steps=40, finetune_steps=40, log_every=10, image_every=40,
+                                    checkpoint_every=40)
+c["presets"]["gpu"]["data"]["eval_images"] = 8
+yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberration_gpu_smoke.yaml"), "w"))
+PY
+  timeout 540 python3 -m torch_bridge.train "$RWWARP_RESULTS/a489_aberration_gpu_smoke.yaml" --preset gpu \
+      --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
   ;;
 esac
