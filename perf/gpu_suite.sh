@@ -39,5 +39,15 @@ yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberrati
 PY
   timeout 540 python3 -m torch_bridge.train "$RWWARP_RESULTS/a489_aberration_gpu_smoke.yaml" --preset gpu \
       --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
+  # the field builds: batches of nodes and the library's peak estimate against the budget (GB)
+  python3 - <<'PY'
+import glob, json, os
+for f in sorted(glob.glob(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberration_gpu_smoke", "*", "result.json"))):
+    r = json.load(open(f))
+    for e in r.get("field_build", []):
+        print(f"{r['arm']}: wl {e['key'][0]:.3f} um  {e['nsrc']} nodes in {e['batches']} batches of {e['batch']}  "
+              f"ray grid {e['ray_grid']}  n_pad {e['n_pad']}  peak est. {e['peak'] / 1e9:.1f} GB / budget {e['budget'] / 1e9:.1f} GB")
+PY
+  nvidia-smi --query-gpu=memory.used,memory.total --format=csv,noheader
   ;;
 esac

@@ -172,6 +172,12 @@ class CachedProvider:
     doe_budget_cpmm : float
         Spatial frequency (cycles/mm) reserved for the DOE when a plan is made: the DOE-plane pitch
         is at most ``1 / (2 safety (f_field + f_DOE + budget))`` so the DOE can grow without replanning.
+    memory_budget_bytes : int, optional
+        Peak bytes one entry's field build may use (default
+        :func:`~torch_bridge.modules.default_memory_budget_bytes`: half the free memory of a CUDA
+        device, 4 GiB on the CPU). The nodes of an entry are traced in batches of :meth:`build_batch`
+        sources (rays without gradient buffers: the refractive part is frozen), so the peak does
+        not grow with the node count; :attr:`build_log` records each entry's batches and estimates.
 
     **Plans.** Each entry gets its automatic plan (plus the DOE budget); the wavelengths of one depth
     share their patch centres. Each entry's plan, patch centres and
@@ -184,9 +190,11 @@ class CachedProvider:
     """
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, model: str = "ray-wave",
-                 wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0):
+                 wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0, memory_budget_bytes: int | None = None):
         if model not in ("ray-wave", "paraxial-wave"):
             raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
+        if memory_budget_bytes is not None and not memory_budget_bytes > 0:
+            raise ValueError(f"memory_budget_bytes must be > 0 or None, got {memory_budget_bytes!r}")
         lens = module.to_lens()
         self.module, self.size, self.pixel_mm, self.model = module, int(size), float(pixel_mm), model
         self.real_fields = list(fields_deg)
@@ -199,6 +207,8 @@ class CachedProvider:
         self.plans = {}
         self.replans = 0
         self.replan_log = []
+        self.memory_budget_bytes = None if memory_budget_bytes is None else int(memory_budget_bytes)
+        self.build_log = []
 
     # ------------------------------------------------------------------ geometry and plans
     def _geometry(self, depth_mm):
@@ -284,8 +294,41 @@ class CachedProvider:
         return Plan(rec["pitch_mm"], rec["n_grid"], rec["n_pad"], rec["ray_grid"], "explicit", False,
                     ["recorded plan"])
 
+    def budget_bytes(self) -> int:
+        """The memory budget (bytes) of one entry's field build: ``memory_budget_bytes`` or the
+        device default (:func:`~torch_bridge.modules.default_memory_budget_bytes`, read now)."""
+        from torch_bridge.modules import default_memory_budget_bytes
+        if self.memory_budget_bytes is not None:
+            return self.memory_budget_bytes
+        return default_memory_budget_bytes(self.module.rw_device)
+
+    def build_batch(self, rw, budget_bytes: int | None = None) -> dict:
+        """Sources per trace batch of a field build under the budget (bytes, default
+        :meth:`budget_bytes`), from the library's own estimates: ``fixed`` = the planning pilot and
+        maps (:meth:`HybridLens.bytes_fixed`) plus the entry's cached field (``nsrc n_grid^2``
+        complex128), ``per_source`` = one source of a frozen build
+        (:meth:`HybridLens.bytes_per_source` with ``record=False``). Returns a dict with ``batch``,
+        ``per_source``, ``fixed``, ``budget`` and ``peak`` (``fixed + batch per_source``, bytes);
+        warns when even one source exceeds the budget (the build then runs one source at a time)."""
+        import warnings
+        from rwwarp.errors import SamplingWarning
+        budget = self.budget_bytes() if budget_bytes is None else int(budget_bytes)
+        m = self.module
+        per = int(m.bytes_per_source(rw, record=False))
+        fixed = int(m.bytes_fixed(rw)) + rw.nsrc * rw.plan.n_grid ** 2 * 16
+        batch = int(max(1, min(rw.nsrc, (budget - fixed) // max(per, 1))))
+        if fixed + per > budget:
+            warnings.warn(f"field build: one source needs ~{(fixed + per) / 1e9:.3g} GB (ray grid "
+                          f"{rw.plan.ray_grid}^2, DOE-plane grid {rw.plan.n_grid}^2, {rw.nsrc} cached fields) "
+                          f"> memory budget {budget / 1e9:.3g} GB; tracing one source at a time", SamplingWarning,
+                          stacklevel=3)
+        return {"batch": batch, "per_source": per, "fixed": fixed, "budget": budget, "peak": fixed + batch * per}
+
     def _build(self, key, plan=None, centres=None):
-        """Compute and cache the DOE-plane fields of one (wavelength, depth) entry."""
+        """Compute and cache the DOE-plane fields of one (wavelength, depth) entry: the nodes are traced
+        in batches of :meth:`build_batch` sources (no gradient buffers), each batch a RayWave of its
+        nodes with the entry's plan and patch centres (the field of a source does not depend on the
+        others in its batch)."""
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
         if plan is None:
@@ -295,14 +338,34 @@ class CachedProvider:
             centres = np.asarray(rec["centers"], dtype=np.float64)
         if centres is None:
             centres = common_centres(geo, fields, self.wl_ref, depth)
-        rw = geo.raywave(fields, [float(wavelength_um)] * len(fields), self.size, object_distance_mm=depth,
-                         pixel_mm=self.pixel_mm, plan=plan, center_mm=centres)
-        u = rw.field_array()
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        kw = dict(object_distance_mm=depth, pixel_mm=self.pixel_mm, plan=plan, requires_grad=False)
+        wl = float(wavelength_um)
+        rw = geo.raywave(fields, [wl] * len(fields), self.size, center_mm=centres, **kw)
+        est = self.build_batch(rw)
+        b = est["batch"]
         dev = self.module.thickness_base.device
-        u = torch.from_numpy(np.array(u, copy=True)).to(dev) if isinstance(u, np.ndarray) else torch.as_tensor(u,
-                                                                                                         device=dev)
+        n = rw.plan.n_grid
+        if b >= rw.nsrc:
+            u = self._to_torch(rw.field_array(), dev)
+            entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
+        else:
+            u = torch.empty((rw.nsrc, n, n), dtype=torch.complex128, device=dev)
+            entering = torch.empty(rw.nsrc, dtype=torch.float64, device=dev)
+            for k in range(0, rw.nsrc, b):
+                sl = slice(k, min(k + b, rw.nsrc))
+                sub = geo.raywave(fields[sl], [wl] * (sl.stop - sl.start), self.size, center_mm=centres[sl], **kw)
+                u[sl] = self._to_torch(sub.field_array(), dev)
+                entering[sl] = torch.as_tensor(sub.entering, dtype=torch.float64, device=dev)
+                del sub
+        if str(rw.tracer.device).startswith("cuda"):
+            import warp as wp
+            # the batch's ray buffers go back to Warp's memory pool; a device sync lets the pool hand
+            # memory above its release threshold back to the driver (for torch and the next entries)
+            wp.synchronize_device(rw.tracer.device)
+        self.build_log.append({"key": list(key), "nsrc": rw.nsrc, "batches": -(-rw.nsrc // b),
+                               "ray_grid": rw.plan.ray_grid, "n_grid": n, "n_pad": rw.plan.n_pad, **est})
         dist = torch.full((rw.nsrc,), float(rw.z_sensor - rw.z_plane), dtype=torch.float64, device=dev)
-        entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
         f_doe = rec.get("f_doe_cpmm")
         if f_doe is None:
             f_doe = self._doe_frequency(geo, rw.origin, plan.pitch_mm, plan.n_grid, wavelength_um)[0]
@@ -311,6 +374,14 @@ class CachedProvider:
                            "ray_grid": plan.ray_grid, "centers": np.asarray(centres).tolist(),
                            "f_doe_cpmm": float(f_doe), "safety": float(geo.nyquist_safety)}
         return self._cache[key]
+
+    @staticmethod
+    def _to_torch(u, dev) -> torch.Tensor:
+        """A field from :meth:`RayWave.field_array` (numpy, or a CuPy view of a Warp array) as a complex128
+        tensor on ``dev`` that owns its memory."""
+        if isinstance(u, np.ndarray):
+            return torch.from_numpy(np.array(u, copy=True)).to(dev)
+        return torch.as_tensor(u, device=dev).clone()
 
     def _entry(self, wavelength_um: float, depth_mm):
         key = self._key(wavelength_um, depth_mm)

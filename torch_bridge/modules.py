@@ -81,6 +81,17 @@ def _field_list(fields) -> list:
     return out
 
 
+def default_memory_budget_bytes(device) -> int:
+    """Default memory budget (bytes) of a frozen field build (:class:`~torch_bridge.design.CachedProvider`)
+    on ``device`` (a torch device or Warp device string): half the free memory of a CUDA device
+    (``torch.cuda.mem_get_info``, so what torch, Warp and CuPy already hold is left out), 4 GiB on the CPU."""
+    dev = str(device)
+    if dev.startswith("cuda") and torch.cuda.is_available():
+        free, _ = torch.cuda.mem_get_info(torch.device(dev))
+        return int(free) // 2
+    return 4 * 2 ** 30
+
+
 def _rw_device(t: torch.Tensor) -> str:
     return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
 
@@ -298,10 +309,11 @@ class HybridLens(nn.Module):
         self._plans.clear()
 
     def raywave(self, fields, wavelengths_um, size, *, object_distance_mm=None, pixel_mm=None, center_mm=None,
-                plan=None):
+                plan=None, requires_grad: bool = True):
         """The :class:`rwwarp.psf.RayWave` (plan and discrete decisions) for sources ``fields`` x
         ``wavelengths_um`` (paired element-wise), built from the current values (or cached, see
-        ``replan``)."""
+        ``replan``). ``requires_grad=False``: the tracer keeps no gradient buffers and ping-pongs two
+        ray-state buffers (a frozen refractive part, e.g. :class:`~torch_bridge.design.CachedProvider`)."""
         from rwwarp.psf import RayWave
         fields = _field_list(fields)
         wls = [float(w) for w in wavelengths_um]
@@ -309,7 +321,7 @@ class HybridLens(nn.Module):
         key = (tuple(fields), tuple(wls), int(size),
                object_distance_mm, pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)),
                plan if isinstance(plan, str) else (plan.pitch_mm, plan.n_grid, plan.n_pad, plan.ray_grid),
-               self.rw_device)
+               self.rw_device, bool(requires_grad))
         if not self.replan and key in self._plans:
             return self._plans[key]
         lens = self.to_lens()
@@ -317,7 +329,8 @@ class HybridLens(nn.Module):
         rw = RayWave(lens, fields, wls, int(size), pixel, device=self.rw_device, plan=plan, dtype="float64",
                      amplitude=self.amplitude, object_distance_mm=object_distance_mm,
                      rays_per_sample=self.rays_per_sample, center_mm=center_mm, use_reference=self.use_reference,
-                     gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety, requires_grad=True)
+                     gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
+                     requires_grad=bool(requires_grad))
         rw._bridge_base_table = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw
@@ -609,16 +622,25 @@ class HybridLens(nn.Module):
             return out, centers.reshape(len(fields), len(wls), 2)
         return out
 
-    def bytes_per_source(self, rw) -> int:
+    def bytes_per_source(self, rw, record: bool = True) -> int:
         """Estimated peak bytes one source adds in a recorded forward + backward (CPU and CUDA): rays
         with gradients for each launch up to the DOE plane (pos, dir, opl, valid), tube boxes, the
         splat and field grids with gradients, the DOE phase, the padded FFT work space and the sensor
         nodes, times a safety factor of 2 for allocator slack and transient copies. Measured: on CPU a
         recorded trace + splat of 41k rays x 5 launches takes 25 MB per source, a whole tile with
         backward up to 48 MB (estimate 59 MB); on an H100 the A489 at 1.5 rays per sample takes
-        1.1-1.5 GB per source (estimate 1.6 GB)."""
+        1.1-1.5 GB per source (estimate 1.6 GB).
+
+        ``record=False``: the bytes of one source of a frozen field build (``rw.field_array()`` of a
+        RayWave made with ``requires_grad=False``, no tape, no propagation), the same factor 2: two
+        ray states (ping-pong: pos, dir, opl, valid, 60 bytes a ray in float64), wavelength index,
+        weight, the shared intersection parameter and the tube boxes (164 bytes a ray); the splat
+        sums, the field and its copy into the cache (48 bytes a DOE-plane sample). Measured on CPU (A489
+        F/4, 1425^2 rays, 1015^2 samples): 268 MB a source (RSS), estimate 765 MB."""
         pl = rw.plan
         rays = pl.ray_grid ** 2
+        if not record:
+            return 2 * int(rays * 164 + pl.n_grid ** 2 * 48)
         per_ray = 128 * (rw.plane + 2) + 64           # 5 arrays (+ grads) per launch; tube boxes
         per_sample = 16 * 2 * 2 + 16 * 4 + 8 * 6      # s_re/s_im (+grad), field (+grad, torch views), phi0 etc.
         per_pad = 16 * 3                              # padded FFT work space, band, transfer function

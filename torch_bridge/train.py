@@ -491,6 +491,12 @@ def _refractive_learns(learn: dict, lens) -> bool:
     return False
 
 
+def _budget_bytes(optics: dict):
+    """``optics.memory_budget_gb`` in bytes (1 GB = 1e9 bytes), None when unset (the device default)."""
+    gb = optics.get("memory_budget_gb")
+    return None if not gb else int(float(gb) * 1e9)
+
+
 def _depth_value(v):
     return math.inf if v == "inf" else (None if v is None else float(v))
 
@@ -717,7 +723,8 @@ class Arm:
             cache = not (self.method == "e2e" and self.live)
         if model == "paraxial-wave" or cache:
             return dz.CachedProvider(module, self.fields, self.size, self.pixel_mm, model=model,
-                                     wavelength_ref_um=self.wl_ref, doe_budget_cpmm=o["doe_budget_cpmm"])
+                                     wavelength_ref_um=self.wl_ref, doe_budget_cpmm=o["doe_budget_cpmm"],
+                                     memory_budget_bytes=_budget_bytes(o))
         tile = None
         if o["memory_budget_gb"]:
             tile = max(1, int(o["memory_budget_gb"] * 1e9 // max(1, module.bytes_per_source(
@@ -942,7 +949,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     result = {"arm": name, "method": arm.method, "steps_done": arm.step, "steps_total": total,
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
               "replans": getattr(arm.provider, "replans", 0),
-              "replan_log": getattr(arm.provider, "replan_log", [])}
+              "replan_log": getattr(arm.provider, "replan_log", []),
+              "field_build": getattr(arm.provider, "build_log", [])}
     if arm.step < total:
         result["stopped_early"] = True
         return result
@@ -994,7 +1002,7 @@ def _eval_provider(arm: Arm):
         p.check_sampling()
         return p
     prov = dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
-                             wavelength_ref_um=arm.wl_ref)
+                             wavelength_ref_um=arm.wl_ref, memory_budget_bytes=_budget_bytes(arm.cfg["optics"]))
     ev = arm.cfg["eval"]["depths_mm"] or arm.cfg["optics"]["depths_mm"]
     prov.prepare(sorted({w for c in arm.wls for w in c}), [_depth_value(d) for d in ev], progress=False)
     return prov
