@@ -38,7 +38,7 @@ c["presets"]["gpu"]["data"]["eval_images"] = 8
 yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberration_gpu_smoke.yaml"), "w"))
 PY
   timeout 540 python3 -m torch_bridge.train "$RWWARP_RESULTS/a489_aberration_gpu_smoke.yaml" --preset gpu \
-      --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
+      --arm e2e_doe --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
   # the field builds: batches of nodes and the library's peak estimate against the budget (GB)
   python3 - <<'PY'
 import glob, json, os
