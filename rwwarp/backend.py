@@ -198,6 +198,7 @@ class Backend:
         self._plan_bytes = 0
         self._programs: dict = {}
         self._lock = threading.Lock()
+        self._release_hooks: list = []  # callables that free device memory held by other allocators
 
     # -- arrays ---------------------------------------------------------------------------
     def is_device_array(self, arr) -> bool:  # pragma: no cover - overridden
@@ -248,6 +249,32 @@ class Backend:
     def _empty_unpooled(self, count: int, dtype):
         """A 1-D device array allocated outside the memory pool (freed to the device when dropped)."""
         return self.empty((count,), dtype)
+
+    def add_release_hook(self, fn):
+        """Register ``fn()``, called when a device allocation fails, before one retry: it should give
+        back memory that another allocator on the same device caches (torch_bridge registers
+        ``torch.cuda.empty_cache``). Registering the same callable twice has no effect."""
+        with self._lock:
+            if fn not in self._release_hooks:
+                self._release_hooks.append(fn)
+
+    def _is_out_of_memory(self, exc: BaseException) -> bool:
+        """Whether ``exc`` is this device's out-of-memory error."""
+        return isinstance(exc, MemoryError)
+
+    def _allocate(self, alloc):
+        """``alloc()``; on out-of-memory, free what can be freed (the transfer-function cache, the pool's
+        unused blocks, the release hooks' allocators) and try once more."""
+        try:
+            return alloc()
+        except Exception as exc:
+            if not self._is_out_of_memory(exc):
+                raise
+            self.cache.clear()
+            self._release_pool()
+            for fn in list(self._release_hooks):
+                fn()
+            return alloc()
 
     def _release_pool(self):
         """Give the allocator's unused blocks back to the device (no-op by default)."""
@@ -562,17 +589,23 @@ class CudaBackend(Backend):
 
     def empty(self, shape, dtype):
         with self.cuda_device:
-            return self.cp.empty(tuple(int(s) for s in shape), dtype=np.dtype(dtype))
+            return self._allocate(lambda: self.cp.empty(tuple(int(s) for s in shape), dtype=np.dtype(dtype)))
 
     def zeros(self, shape, dtype):
         with self.cuda_device:
-            return self.cp.zeros(tuple(int(s) for s in shape), dtype=np.dtype(dtype))
+            return self._allocate(lambda: self.cp.zeros(tuple(int(s) for s in shape), dtype=np.dtype(dtype)))
+
+    def _is_out_of_memory(self, exc):
+        cp = self.cp
+        if isinstance(exc, (MemoryError, cp.cuda.memory.OutOfMemoryError)):
+            return True
+        return isinstance(exc, cp.cuda.runtime.CUDARuntimeError) and "out of memory" in str(exc).lower()
 
     def _empty_unpooled(self, count, dtype):
         cp = self.cp
         dt = np.dtype(dtype)
         with self.cuda_device:
-            mem = cp.cuda.Memory(max(int(count) * dt.itemsize, 1))
+            mem = self._allocate(lambda: cp.cuda.Memory(max(int(count) * dt.itemsize, 1)))
             return cp.ndarray((int(count),), dtype=dt, memptr=cp.cuda.MemoryPointer(mem, 0))
 
     def synchronize(self):

@@ -294,12 +294,28 @@ def _to_torch(be, arr, device):
     return torch.from_numpy(be.to_host(arr)).to(device)
 
 
+def _torch_release():
+    """Give torch's cached CUDA blocks back to the driver (a release hook of the rwwarp backend)."""
+    torch.cuda.synchronize()
+    torch.cuda.empty_cache()
+
+
+def backend_for(device: str):
+    """rwwarp's backend for ``device``; on CUDA it gets a release hook that empties torch's caching
+    allocator when a propagation allocation fails, so torch's cached blocks and rwwarp's buffers
+    share the GPU instead of one allocator starving the other."""
+    from rwwarp import backend as bk
+    be = bk.get_backend(device)
+    if be.kind == "cuda":
+        be.add_release_hook(_torch_release)
+    return be
+
+
 def sensor_power(rw, field, phi0=None, distance=None, tile=None):
     """Power per sensor pixel (S, size, size) without gradients (numpy in, backend array out); with
     ``tile = (r0, r1, c0, c1)`` those pixels only (S, r1 - r0, c1 - c0)."""
-    from rwwarp import backend as bk
     from rwwarp import propagate
-    be = bk.get_backend(rw.device)
+    be = backend_for(rw.device)
     return be, propagate.sensor_intensity(
         be, field, *_prop_args(rw, distance, tile), doe_phase=phi0, doe_scale=None if phi0 is None else doe_scale(rw),
         carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, **_tile_kw(rw, tile))
@@ -330,9 +346,8 @@ class Propagate(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, field, phi0, distance, rw, tile=None, keep_nodes=True):
-        from rwwarp import backend as bk
         from rwwarp import propagate
-        be = bk.get_backend(rw.device)
+        be = backend_for(rw.device)
         f_h = _as_backend_array(field.to(torch.complex128), rw)
         p_h = _as_backend_array(phi0.to(torch.float64), rw) if phi0 is not None else None
         d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()

@@ -56,7 +56,7 @@ from rwwarp.errors import SamplingWarning
 from rwwarp.lens import MAX_ASPHERIC, Lens
 from rwwarp.plan import Plan
 
-from .functions import propagate, quantize_ste, trace_splat
+from .functions import backend_for, propagate, quantize_ste, trace_splat
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -664,8 +664,7 @@ class HybridLens(nn.Module):
         if budget is None:
             yield
             return
-        from rwwarp import backend as bk
-        be = bk.get_backend(self.rw_device)
+        be = backend_for(self.rw_device)
         keep = be.cache.max_bytes
         be.cache.max_bytes = min(keep, int(budget) // 4)
         be.cache.clear()

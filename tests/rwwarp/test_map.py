@@ -158,3 +158,38 @@ def test_fft_plan_cache_is_an_lru_with_a_count_bound_and_stays_correct():
     finally:
         be.max_fft_plans = keep
         be.clear_caches()
+
+
+def test_allocation_retries_after_release_hooks(cl_backend):
+    """An out-of-memory allocation frees the backend's cache and calls the release hooks (torch_bridge
+    registers torch's empty_cache) before one retry; other errors pass through untouched."""
+    be = cl_backend
+    calls = []
+    be.cache.get(("test-oom", 1), lambda: be.empty((16,), np.complex128))
+    assert len(be.cache) >= 1
+
+    def hook():
+        calls.append("hook")
+
+    be.add_release_hook(hook)
+    be.add_release_hook(hook)  # registered once
+    attempts = []
+
+    def alloc():
+        attempts.append(1)
+        if len(attempts) == 1:
+            raise MemoryError("out of memory")
+        return "ok"
+
+    try:
+        assert be._allocate(alloc) == "ok"
+        assert attempts == [1, 1] and calls == ["hook"] and len(be.cache) == 0
+
+        def bad():
+            raise ValueError("not memory")
+
+        with pytest.raises(ValueError):
+            be._allocate(bad)
+        assert calls == ["hook"]
+    finally:
+        be._release_hooks.remove(hook)
