@@ -599,7 +599,9 @@ class CudaBackend(Backend):
         cp = self.cp
         if isinstance(exc, (MemoryError, cp.cuda.memory.OutOfMemoryError)):
             return True
-        return isinstance(exc, cp.cuda.runtime.CUDARuntimeError) and "out of memory" in str(exc).lower()
+        if isinstance(exc, cp.cuda.runtime.CUDARuntimeError):
+            return "out of memory" in str(exc).lower()
+        return isinstance(exc, RuntimeError) and str(exc).startswith("Failed to allocate")  # Warp
 
     def _empty_unpooled(self, count, dtype):
         cp = self.cp

@@ -158,6 +158,16 @@ def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0
     return u, v, cell * cell
 
 
+def _with_release(device, alloc):
+    """``alloc()`` (Warp arrays on ``device``); on CUDA, when Warp cannot allocate, the device's rwwarp
+    backend frees its caches and calls its release hooks (torch's caching allocator, where
+    torch_bridge registered it), then ``alloc()`` runs once more."""
+    if not str(device).startswith("cuda"):
+        return alloc()
+    from .backend import get_backend
+    return get_backend(str(device))._allocate(alloc)
+
+
 @dataclass
 class Rays:
     """Rays on the device (structure of arrays), ``n_sources x n_pupil`` of them, source-major."""
@@ -409,10 +419,10 @@ class Tracer:
              (src["half_y"], fdt, sc), (src["wl"], np.int32, wp.int32)], dev, cache=True)
 
         def new():
-            return (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
-                    wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
-                    wp.empty(n, dtype=sc, device=dev, requires_grad=g),
-                    wp.empty(n, dtype=wp.int32, device=dev))
+            return _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                               wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                               wp.empty(n, dtype=sc, device=dev, requires_grad=g),
+                                               wp.empty(n, dtype=wp.int32, device=dev)))
         gen = new()
         wl = wp.empty(n, dtype=wp.int32, device=dev)
         weight = wp.empty(n, dtype=sc, device=dev)
