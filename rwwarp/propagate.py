@@ -1082,6 +1082,94 @@ def sensor_intensity(
     return inten
 
 
+def _band_gradient(
+    backend,
+    grad_intensity,
+    field,
+    pitch_mm,
+    origin_mm,
+    wavelength_um,
+    distance_mm,
+    pixel_centers_x_mm,
+    pixel_centers_y_mm,
+    pixel_pitch_mm,
+    *,
+    gauss_nodes,
+    doe_phase,
+    doe_scale,
+    carrier_cpmm,
+    pad_to,
+    dtype,
+    nodes,
+    window_center_mm,
+    need_band,
+):
+    """The part the adjoints of :func:`sensor_intensity` share: the setup of the forward call, its node
+    field (given or recomputed), and dL/dC, the gradient of the band spectrum C (workspace
+    'band_grad'). Returns ``(st, band_grad, h, band)``; ``band`` (C itself) only with ``need_band``."""
+    probe = get_backend(backend)
+    batch = _batch_of(field)
+    npx_, npy_, xs, ys, w, area = _sensor_nodes(
+        pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch
+    )
+    center, _, _ = _center_extent(xs, ys)
+    center = _window_center(center, window_center_mm, batch)
+    st = _setup(
+        probe,
+        field,
+        pitch_mm,
+        origin_mm,
+        wavelength_um,
+        distance_mm,
+        doe_phase=doe_phase,
+        doe_scale=doe_scale,
+        carrier_cpmm=carrier_cpmm,
+        pad_to=pad_to,
+        dtype=dtype,
+        out_center_mm=center,
+    )
+    be = st.backend
+    g = len(w)
+    gi = be.to_device(grad_intensity, st.rdtype)
+    if tuple(gi.shape) != (st.batch, npy_, npx_):
+        raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
+    coords = _upload_coords(st, xs, ys)
+    w_dev = be.to_device(w.astype(st.rdtype))
+    if nodes is not None:
+        nodes = be.to_device(nodes, st.dtype)
+        if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
+            raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+    if need_band:  # the band spectrum C itself is needed (the distance gradient)
+        band, h = _band_spectrum(st)
+    else:
+        band, h = None, _transfer(st, 1.0 / (st.npx * st.npy))
+    if nodes is None:
+        if band is None:
+            band, _ = _band_spectrum(st)
+        ext, eyf = _dft_factors(st, coords)
+        nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+        _band_to_points(st, band, ext, eyf, nodes)
+    g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+    _launch(
+        st,
+        "sensor_reduce_adjoint_kernel",
+        (xs.shape[1], ys.shape[1], st.batch),
+        nodes,
+        w_dev,
+        gi,
+        npx_,
+        npy_,
+        g,
+        st.batch,
+        area,
+        g_nodes,
+    )
+    ex, eyf = _dft_factors(st, coords, adjoint=True)
+    band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
+    _points_to_band(st, g_nodes, ex, eyf, band_grad)
+    return st, band_grad, h, band if need_band else None
+
+
 def sensor_intensity_adjoint(
     backend,
     grad_intensity,
@@ -1116,62 +1204,11 @@ def sensor_intensity_adjoint(
         ``(grad_field, grad_doe_phase or None)`` as :func:`propagate_adjoint`
         (``grad_field = dL/dRe field + 1j dL/dIm field``).
     """
-    probe = get_backend(backend)
-    batch = _batch_of(field)
-    npx_, npy_, xs, ys, w, area = _sensor_nodes(
-        pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch
-    )
-    center, _, _ = _center_extent(xs, ys)
-    center = _window_center(center, window_center_mm, batch)
-    st = _setup(
-        probe,
-        field,
-        pitch_mm,
-        origin_mm,
-        wavelength_um,
-        distance_mm,
-        doe_phase=doe_phase,
-        doe_scale=doe_scale,
-        carrier_cpmm=carrier_cpmm,
-        pad_to=pad_to,
-        dtype=dtype,
-        out_center_mm=center,
-    )
-    be = st.backend
-    g = len(w)
-    gi = be.to_device(grad_intensity, st.rdtype)
-    if tuple(gi.shape) != (st.batch, npy_, npx_):
-        raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
-    coords = _upload_coords(st, xs, ys)
-    w_dev = be.to_device(w.astype(st.rdtype))
-    if nodes is not None:
-        nodes = be.to_device(nodes, st.dtype)
-        if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-            raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
-    h = _transfer(st, 1.0 / (st.npx * st.npy))
-    if nodes is None:
-        band, _ = _band_spectrum(st)
-        ext, eyf = _dft_factors(st, coords)
-        nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _band_to_points(st, band, ext, eyf, nodes)
-    g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-    _launch(
-        st,
-        "sensor_reduce_adjoint_kernel",
-        (xs.shape[1], ys.shape[1], st.batch),
-        nodes,
-        w_dev,
-        gi,
-        npx_,
-        npy_,
-        g,
-        st.batch,
-        area,
-        g_nodes,
-    )
-    ex, eyf = _dft_factors(st, coords, adjoint=True)
-    band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-    _points_to_band(st, g_nodes, ex, eyf, band_grad)
+    st, band_grad, h, _ = _band_gradient(
+        backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um, distance_mm,
+        pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes=gauss_nodes, doe_phase=doe_phase,
+        doe_scale=doe_scale, carrier_cpmm=carrier_cpmm, pad_to=pad_to, dtype=dtype, nodes=nodes,
+        window_center_mm=window_center_mm, need_band=False)
     return _band_adjoint_to_field(st, band_grad, h)
 
 
@@ -1218,62 +1255,12 @@ def sensor_intensity_distance_adjoint(
         :func:`sensor_intensity_adjoint`, ``grad_distance`` a numpy float64 (B,) array, dL/dz in
         loss units per mm (one small device-to-host copy of B x ky partial sums).
     """
-    probe = get_backend(backend)
-    batch = _batch_of(field)
-    npx_, npy_, xs, ys, w, area = _sensor_nodes(
-        pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes, batch
-    )
-    center, _, _ = _center_extent(xs, ys)
-    center = _window_center(center, window_center_mm, batch)
-    st = _setup(
-        probe,
-        field,
-        pitch_mm,
-        origin_mm,
-        wavelength_um,
-        distance_mm,
-        doe_phase=doe_phase,
-        doe_scale=doe_scale,
-        carrier_cpmm=carrier_cpmm,
-        pad_to=pad_to,
-        dtype=dtype,
-        out_center_mm=center,
-    )
+    st, band_grad, h, band = _band_gradient(
+        backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um, distance_mm,
+        pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes=gauss_nodes, doe_phase=doe_phase,
+        doe_scale=doe_scale, carrier_cpmm=carrier_cpmm, pad_to=pad_to, dtype=dtype, nodes=nodes,
+        window_center_mm=window_center_mm, need_band=True)
     be = st.backend
-    g = len(w)
-    gi = be.to_device(grad_intensity, st.rdtype)
-    if tuple(gi.shape) != (st.batch, npy_, npx_):
-        raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
-    coords = _upload_coords(st, xs, ys)
-    w_dev = be.to_device(w.astype(st.rdtype))
-    if nodes is not None:
-        nodes = be.to_device(nodes, st.dtype)
-        if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-            raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
-    # the band spectrum C (dC/dz = 2 pi i w C needs it; the node field is reused when given)
-    band, h = _band_spectrum(st)
-    if nodes is None:
-        ext, eyf = _dft_factors(st, coords)
-        nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _band_to_points(st, band, ext, eyf, nodes)
-    g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-    _launch(
-        st,
-        "sensor_reduce_adjoint_kernel",
-        (xs.shape[1], ys.shape[1], st.batch),
-        nodes,
-        w_dev,
-        gi,
-        npx_,
-        npy_,
-        g,
-        st.batch,
-        area,
-        g_nodes,
-    )
-    ex, eyf = _dft_factors(st, coords, adjoint=True)
-    band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-    _points_to_band(st, g_nodes, ex, eyf, band_grad)
     partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
     _launch(
         st,
