@@ -60,3 +60,24 @@ def save(name: str, data: dict, out_dir=None) -> Path:
     p = out / f"{name}.json"
     p.write_text(json.dumps(data, indent=1, default=float) + "\n")
     return p
+
+
+def sync_fn(device: str):
+    """A function that waits for all queued GPU work of ``device`` (Warp, CuPy, and torch where it is
+    imported); a no-op on the CPU."""
+    if not device.startswith("cuda"):
+        return lambda: None
+    import sys
+
+    import warp as wp
+
+    def sync():
+        wp.synchronize_device(device if ":" in device else "cuda:0")
+        try:
+            import cupy
+            cupy.cuda.runtime.deviceSynchronize()
+        except ImportError:
+            pass
+        if "torch" in sys.modules:
+            sys.modules["torch"].cuda.synchronize()
+    return sync

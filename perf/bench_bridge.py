@@ -44,26 +44,10 @@ import time
 
 import numpy as np
 import torch
-from _common import device_name, save
+from _common import device_name, save, sync_fn
 
 import rwwarp as rw
 import torch_bridge as tb
-
-
-def sync_fn(device):
-    if device.startswith("cuda"):
-        import warp as wp
-
-        def s():
-            wp.synchronize_device(device if ":" in device else "cuda:0")
-            torch.cuda.synchronize()
-            try:
-                import cupy
-                cupy.cuda.runtime.deviceSynchronize()
-            except ImportError:
-                pass
-        return s
-    return lambda: None
 
 
 def _allocators_in_use(device):

@@ -45,7 +45,7 @@ import time
 import traceback
 
 import numpy as np
-from _common import RESULTS, device_name, git_commit, save
+from _common import RESULTS, device_name, git_commit, save, sync_fn
 
 import rwwarp as rw
 from rwwarp import propagate as prop
@@ -127,18 +127,6 @@ class PeakSampler:
         if self.cuda:
             out.update({"device_used_peak_bytes": self.peak_dev, "device_used_increase_bytes": self.peak_dev - self.base_dev})
         return out
-
-
-def sync_fn(device):
-    if device.startswith("cuda"):
-        import cupy
-        import warp as wp
-
-        def s():
-            wp.synchronize_device("cuda:0")
-            cupy.cuda.runtime.deviceSynchronize()
-        return s
-    return lambda: None
 
 
 def copy_bandwidth(device):

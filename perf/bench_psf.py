@@ -17,23 +17,11 @@ import time
 import numpy as np
 
 import rwwarp as rw
-from _common import device_name, save, timed
+from _common import device_name, save, sync_fn, timed
 from _deeplens import a489_hybridlens, deeplens_json  # noqa: F401  (deeplens_json: kept importable here)
 
 FIELDS5 = [(0.0, f) for f in np.linspace(0.0, 10.0, 5)]
 WLS = [0.45, 0.55, 0.65]
-
-
-def sync_fn(device):
-    if device.startswith("cuda"):
-        import warp as wp
-        import cupy
-
-        def s():
-            wp.synchronize_device("cuda:0")
-            cupy.cuda.runtime.deviceSynchronize()
-        return s
-    return lambda: None
 
 
 def gpu_used():
