@@ -383,6 +383,8 @@ def main():
         except Exception as e:
             traceback.print_exc()
             res["deeplens_error"] = f"{type(e).__name__}: {e}"
+    elif a.no_deeplens:
+        res["deeplens"] = "not run (--no-deeplens): on 2 CPU cores its default 16.7M-ray psf_map takes ~8 min per PSF; timed on the GPU run"
     else:
         res["deeplens"] = "not importable on this machine (deeplens-core); timed on the GPU run"
     res["load_average_end"] = os.getloadavg()
