@@ -263,7 +263,8 @@ class Backend:
         return isinstance(exc, MemoryError)
 
     def _allocate(self, alloc):
-        """``alloc()``; on out-of-memory, free what can be freed (the transfer-function cache, the pool's
+        """``alloc()``; on out-of-memory, free what can be freed (the transfer-function cache, the scratch
+        workspaces -- a buffer still viewed by a running call stays alive through its views --, the pool's
         unused blocks, the release hooks' allocators) and try once more."""
         try:
             return alloc()
@@ -271,6 +272,8 @@ class Backend:
             if not self._is_out_of_memory(exc):
                 raise
             self.cache.clear()
+            with self._lock:
+                self._workspace.clear()
             self._release_pool()
             for fn in list(self._release_hooks):
                 fn()

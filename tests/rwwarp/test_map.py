@@ -166,7 +166,8 @@ def test_allocation_retries_after_release_hooks(cl_backend):
     be = cl_backend
     calls = []
     be.cache.get(("test-oom", 1), lambda: be.empty((16,), np.complex128))
-    assert len(be.cache) >= 1
+    view = be.workspace("test-oom", (4, 4), np.complex128)
+    assert len(be.cache) >= 1 and be.memory_report()["workspaces"]
 
     def hook():
         calls.append("hook")
@@ -184,6 +185,8 @@ def test_allocation_retries_after_release_hooks(cl_backend):
     try:
         assert be._allocate(alloc) == "ok"
         assert attempts == [1, 1] and calls == ["hook"] and len(be.cache) == 0
+        assert not be.memory_report()["workspaces"]
+        assert view.shape == (4, 4)  # a view still held keeps its buffer
 
         def bad():
             raise ValueError("not memory")
