@@ -153,6 +153,19 @@ def make_module(device, rays_per_sample, stop_scale=1.0):
     return hl.to("cpu" if device == "cpu" else torch.device(device if ":" in device else "cuda:0"))
 
 
+def _timed_step(fn, weights, sync):
+    """One forward ``fn()`` and the backward of ``sum(out * weights)``, each bracketed by ``sync()``:
+    (forward s, backward s)."""
+    sync()
+    t0 = time.perf_counter()
+    out = fn()
+    sync()
+    t1 = time.perf_counter()
+    (out * weights).sum().backward()
+    sync()
+    return t1 - t0, time.perf_counter() - t1
+
+
 def run_case(hl, fn, weights, device, repeat):
     """First call, then median forward / backward times and the peak memory of one forward + backward."""
     s = sync_fn(device)
@@ -165,16 +178,9 @@ def run_case(hl, fn, weights, device, repeat):
     fwd, bwd = [], []
     for _ in range(repeat):
         hl.zero_grad()
-        s()
-        t0 = time.perf_counter()
-        out = fn()
-        s()
-        t1 = time.perf_counter()
-        (out * weights).sum().backward()
-        s()
-        fwd.append(t1 - t0)
-        bwd.append(time.perf_counter() - t1)
-        del out
+        tf, tb_ = _timed_step(fn, weights, s)
+        fwd.append(tf)
+        bwd.append(tb_)
     hl.zero_grad()
     with PeakMemory(device) as pm:
         out = fn()
@@ -206,16 +212,9 @@ def run_timed_peak(hl, fn, weights, device, repeat, warmup):
         last = k == repeat - 1 and not cuda
         pm = PeakMemory(device) if last else contextlib.nullcontext()
         with pm:
-            s()
-            t0 = time.perf_counter()
-            out = fn()
-            s()
-            t1 = time.perf_counter()
-            (out * weights).sum().backward()
-            s()
-            fwd.append(t1 - t0)
-            bwd.append(time.perf_counter() - t1)
-            del out
+            tf, tb_ = _timed_step(fn, weights, s)
+        fwd.append(tf)
+        bwd.append(tb_)
     if cuda:
         hl.zero_grad()
         with PeakMemory(device) as pm:
