@@ -27,18 +27,22 @@ c)
   echo "== GPU tests"; (cd ../tests && timeout 150 python3 -m pytest -q -m gpu 2>&1 | tail -4)
   ;;
 d)
+  # the a489_aberration gpu preset, cut to 12 + 4 steps with a log line per step (wall time and the
+  # device's used memory per step in metrics.csv)
   python3 - <<'PY'
 import os
 import yaml
 import torch_bridge
 c = yaml.safe_load(open(os.path.join(os.path.dirname(torch_bridge.__file__), "configs", "a489_aberration.yaml")))
-c["presets"]["gpu"]["train"].update(joint_steps=40, finetune_steps=40, log_every=10, image_every=40,
-                                    checkpoint_every=40)
+c["presets"]["gpu"]["train"].update(joint_steps=int(os.environ.get("SMOKE_JOINT", 12)),
+                                    finetune_steps=int(os.environ.get("SMOKE_FINETUNE", 4)), log_every=1,
+                                    image_every=0, checkpoint_every=0)
 c["presets"]["gpu"]["data"]["eval_images"] = 8
 yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberration_gpu_smoke.yaml"), "w"))
 PY
-  timeout 540 python3 -m torch_bridge.train "$RWWARP_RESULTS/a489_aberration_gpu_smoke.yaml" --preset gpu \
-      --arm e2e_doe --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
+  timeout ${SMOKE_TIMEOUT:-500} python3 -m torch_bridge.train "$RWWARP_RESULTS/a489_aberration_gpu_smoke.yaml" --preset gpu \
+      --arm ${SMOKE_ARM:-e2e_doe} --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
+  cat "$RWWARP_RESULTS"/a489_aberration_gpu_smoke/*/metrics.csv
   # the field builds: batches of nodes and the library's peak estimate against the budget (GB)
   python3 - <<'PY'
 import glob, json, os
@@ -46,7 +50,10 @@ for f in sorted(glob.glob(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberr
     r = json.load(open(f))
     for e in r.get("field_build", []):
         print(f"{r['arm']}: wl {e['key'][0]:.3f} um  {e['nsrc']} nodes in {e['batches']} batches of {e['batch']}  "
-              f"ray grid {e['ray_grid']}  n_pad {e['n_pad']}  peak est. {e['peak'] / 1e9:.1f} GB / budget {e['budget'] / 1e9:.1f} GB")
+              f"ray grid {e['ray_grid']}  n_grid {e['n_grid']}  n_pad {e['n_pad']}  peak est. {e['peak'] / 1e9:.1f} GB / budget {e['budget'] / 1e9:.1f} GB")
+    for e in r.get("step_log", [])[-3:]:
+        print(f"{r['arm']}: step chunks {e}")
+    print({k: r.get(k) for k in ("steps_done", "train_wall_s", "eval_wall_s", "objective_initial", "objective_final")})
 PY
   nvidia-smi --query-gpu=memory.used,memory.total --format=csv,noheader
   ;;

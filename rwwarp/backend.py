@@ -618,9 +618,12 @@ class CudaBackend(Backend):
             self.cp.cuda.get_current_stream().synchronize()
 
     def _release_pool(self):
-        """Free CuPy's unused pool blocks (``cudaFree`` waits for the device)."""
+        """Free CuPy's unused pool blocks (``cudaFree`` waits for the device) and the unused blocks of
+        Warp's memory pool on the same device (the ray buffers of the trace stage)."""
         with self.cuda_device:
             self.cp.get_default_memory_pool().free_all_blocks()
+        from .trace import release_warp_pool
+        release_warp_pool(f"cuda:{self.index}")
 
     def _module(self, source: str, dtype, defines=()):
         key = (source, complex_dtype(dtype).str, tuple(defines))

@@ -209,6 +209,8 @@ class CachedProvider:
         self.replan_log = []
         self.memory_budget_bytes = None if memory_budget_bytes is None else int(memory_budget_bytes)
         self.build_log = []
+        self.step_log = []
+        self._chunks = {}   # entry key -> {chunk size: [(slice, RayWave)]}
 
     # ------------------------------------------------------------------ geometry and plans
     def _geometry(self, depth_mm):
@@ -359,10 +361,10 @@ class CachedProvider:
                 entering[sl] = torch.as_tensor(sub.entering, dtype=torch.float64, device=dev)
                 del sub
         if str(rw.tracer.device).startswith("cuda"):
-            import warp as wp
-            # the batch's ray buffers go back to Warp's memory pool; a device sync lets the pool hand
-            # memory above its release threshold back to the driver (for torch and the next entries)
-            wp.synchronize_device(rw.tracer.device)
+            from rwwarp.trace import release_warp_pool
+            # the batches' ray buffers went back to Warp's memory pool; hand them to the driver (for
+            # torch, CuPy and the next entries: the pool would otherwise keep up to the build budget)
+            release_warp_pool(rw.tracer.device)
         self.build_log.append({"key": list(key), "nsrc": rw.nsrc, "batches": -(-rw.nsrc // b),
                                "ray_grid": rw.plan.ray_grid, "n_grid": n, "n_pad": rw.plan.n_pad, **est})
         dist = torch.full((rw.nsrc,), float(rw.z_sensor - rw.z_plane), dtype=torch.float64, device=dev)
@@ -416,6 +418,7 @@ class CachedProvider:
     def load_plans(self, plans: dict):
         """Use recorded plans (:attr:`plans` of an earlier run) for the entries built from now on."""
         self._cache.clear()
+        self._chunks.clear()
         self.plans = {k: dict(v) for k, v in plans.items()}
 
     def cache_bytes(self) -> int:
@@ -446,6 +449,7 @@ class CachedProvider:
                 self.replan_log.append({"key": list(key), "reason": "sampling", "pitch_um": pitch * 1e3,
                                         "f_field_cpmm": f_field, "f_doe_cpmm": f_doe, "doe_step_um": step * 1e3})
                 self._cache.pop(key)
+                self._chunks.pop(key, None)
                 self.plans.pop(key, None)
                 self._build(key)
                 rebuilt += 1
@@ -455,23 +459,96 @@ class CachedProvider:
                 self.replan_log.append({"key": list(key), "reason": "re-centre",
                                         "shift_um": float(np.max(np.abs(cen - rw.centers))) * 1e3})
                 self._cache.pop(key)
+                self._chunks.pop(key, None)
                 self._build(key, self._recorded_plan(key), cen)
                 rebuilt += 1
         self.replans += rebuilt
         return rebuilt
 
-    def psfs(self, wavelengths_um, depth_mm=None) -> torch.Tensor:
+    def step_bytes_per_source(self, rw) -> int:
+        """Estimated peak bytes one node adds to a training step (DOE phase applied to its cached field,
+        propagated, and back): the DOE phase and its autograd intermediates (about ``2 k + 8`` real
+        arrays of the DOE-plane grid for a ``k``-term polynomial), the field and phase gradients, the
+        padded FFT work space (3 complex arrays of ``n_pad^2``) and the sensor nodes, times a safety
+        factor of 2 (allocator slack, transient copies)."""
+        n, n_pad = rw.plan.n_grid, rw.plan.n_pad
+        k = int(self.module.doe_base.numel()) if hasattr(self.module, "doe_base") else 8
+        per_sample = 8 * (2 * min(k, 16) + 8) + 16 * 2
+        nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
+        return 2 * int(n * n * per_sample + n_pad * n_pad * 16 * 3 + nodes)
+
+    def step_chunk(self, rw, budget_bytes: int | None = None) -> int:
+        """Nodes per propagation chunk of a step under the budget (bytes, default :meth:`budget_bytes`):
+        ``budget // step_bytes_per_source`` (at least 1, at most all nodes)."""
+        budget = self.budget_bytes() if budget_bytes is None else int(budget_bytes)
+        return int(max(1, min(rw.nsrc, budget // max(self.step_bytes_per_source(rw), 1))))
+
+    def _chunk_raywaves(self, key, rw, geo, chunk: int):
+        """[(slice, RayWave of those nodes)] for propagation chunks of ``chunk`` nodes: RayWaves made
+        with the entry's plan and patch centres (their windows equal the entry's, checked), cached
+        per entry and chunk size (no trace runs: only their propagation arguments are used)."""
+        import warnings
+        from rwwarp.errors import SamplingWarning
+        from rwwarp.plan import Plan
+        if chunk >= rw.nsrc:
+            return [(slice(0, rw.nsrc), rw)]
+        store = self._chunks.setdefault(key, {})
+        if chunk in store:
+            return store[chunk]
+        pl = rw.plan
+        plan = Plan(pl.pitch_mm, pl.n_grid, pl.n_pad, pl.ray_grid, "explicit", False, ["entry plan"])
+        out = []
+        for k0 in range(0, rw.nsrc, chunk):
+            sl = slice(k0, min(k0 + chunk, rw.nsrc))
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
+                depth = key[1] if self.model == "ray-wave" else None
+                sub = geo.raywave(list(rw.fields[sl]), list(rw.wls[sl]), self.size, object_distance_mm=depth,
+                                  pixel_mm=self.pixel_mm, plan=plan, center_mm=rw.centers[sl], requires_grad=False)
+            if not np.allclose(sub.origin, rw.origin[sl], rtol=0, atol=1e-9):
+                raise RuntimeError(f"propagation chunk {sl.start}:{sl.stop} of entry {key}: its DOE-plane windows "
+                                   "differ from the cached field's (internal error)")
+            out.append((sl, sub))
+        store[chunk] = out
+        return out
+
+    def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and
         propagated to the sensor (gradients reach the DOE coefficients and a learning DOE-to-sensor
-        distance)."""
-        vals = {"doe": self.module.value("doe")}
+        distance).
+
+        The nodes of a wavelength are propagated in chunks of ``chunk`` nodes (default
+        :meth:`step_chunk` under the memory budget, recorded in :attr:`step_log`); with more than one
+        chunk and a gradient wanted each chunk is a checkpoint (forward without graph, recomputed in
+        backward), so a step's peak memory is one chunk's whatever the node count."""
+        from torch_bridge.functions import propagate
+        from torch_bridge.modules import _Recompute
+        doe = self.module.value("doe")
+        thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
         out = []
         for w in wavelengths_um:
+            key = self._key(w, depth_mm)
             rw, u, dist, entering, geo = self._entry(w, depth_mm)
-            if self.learn_distance:
-                dist = self.module.value("thickness")[self.plane].expand(rw.nsrc)
-            phi0 = geo.doe_phase(rw, vals)
-            power = Propagate.apply(u, phi0, dist, rw)
+            c = self.step_chunk(rw) if chunk is None else max(1, int(chunk))
+            parts = self._chunk_raywaves(key, rw, geo, c)
+            self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),
+                                  "bytes_per_source": self.step_bytes_per_source(rw)})
+            del self.step_log[:-64]
+            outs = []
+            for sl, sub in parts:
+                def run(doe_t, thick_t=None, record=True, sl=sl, sub=sub, dist=dist, u=u, geo=geo):
+                    ctx = torch.enable_grad() if record else torch.no_grad()
+                    with ctx:
+                        d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
+                        phi0 = geo.doe_phase(sub, {"doe": doe_t})
+                        return propagate(u[sl], phi0, d, sub)
+                ts = [doe] if thick is None else [doe, thick]
+                wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
+                if len(parts) > 1 and wants:
+                    outs.append(_Recompute.apply(run, *ts))
+                else:
+                    outs.append(run(*ts, record=torch.is_grad_enabled()))
+            power = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
             out.append(power / entering[:, None, None])
         return torch.stack(out, 1)
 

@@ -426,7 +426,12 @@ class HybridLens(nn.Module):
             rw._bridge_doe_geometry = geo
         kind = self.doe_kind
         if kind in ("even_poly", "poly"):
-            var = geo["var"]
+            # the window-sized radius is formed per call from the separable x^2 (S, 1, n), y^2 (S, n, 1):
+            # a cached (S, n, n) copy per plan would cost more memory than the whole training step
+            var = geo["x2"] + geo["y2"]
+            if kind == "poly":
+                var = torch.sqrt(var)
+            var = var / geo["scale"]
             phi = torch.zeros_like(var)
             for a in reversed(list(v.unbind(0))):  # Horner, ascending coefficients times var
                 phi = (phi + a) * var
@@ -435,7 +440,7 @@ class HybridLens(nn.Module):
             phi = torch.tensordot(v, basis, dims=1) if v.numel() else torch.zeros(basis.shape[1:], dtype=v.dtype,
                                                                                    device=dev)
         elif kind == "fresnel":
-            phi = -math.pi * geo["r2"] / (s.design_wavelength_um * 1e-3 * v[0])
+            phi = -math.pi * (geo["x2"] + geo["y2"]) / (s.design_wavelength_um * 1e-3 * v[0])
         elif kind == "pixel_map":
             phi = torch.where(geo["in_map"], v[geo["row"], geo["col"]], torch.zeros((), dtype=v.dtype, device=dev))
         else:
@@ -448,17 +453,17 @@ class HybridLens(nn.Module):
         the Zernike / cubic basis, evaluated by rwwarp.doe on the host once per plan)."""
         from .functions import _grid_points
         x, y = _grid_points(rw, dev)
-        x, y = torch.broadcast_tensors(x, y)
         geo = {"device": dev}
         prof = s.profile
         kind = self.doe_kind
-        if kind == "even_poly":
-            geo["var"] = (x * x + y * y) / float(prof["norm_radius"]) ** 2
-        elif kind == "poly":
-            geo["var"] = torch.sqrt(x * x + y * y) / float(prof["norm_radius"])
-        elif kind == "fresnel":
-            geo["r2"] = x * x + y * y
-        elif kind in ("zernike", "cubic"):
+        if kind in ("even_poly", "poly", "fresnel"):
+            geo["x2"], geo["y2"] = x * x, y * y          # (S, 1, n), (S, n, 1)
+            if kind != "fresnel":
+                r = float(prof["norm_radius"])
+                geo["scale"] = r * r if kind == "even_poly" else r
+            return geo
+        x, y = torch.broadcast_tensors(x, y)
+        if kind in ("zernike", "cubic"):
             from rwwarp import doe
             xh, yh = x.cpu().numpy(), y.cpu().numpy()
             m = self.doe_base.numel()

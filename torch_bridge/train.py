@@ -849,7 +849,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         allw = sorted({w for c in arm.wls for w in c})
         arm.provider.prepare(allw, arm.depths, progress=arm.progress)
     fields = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
-              "replans"]
+              "replans", "memory_gb"]
     new_csv = not csv_path.exists()
     fcsv = open(csv_path, "a", newline="")
     writer = csv.DictWriter(fcsv, fieldnames=fields)
@@ -930,7 +930,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             last = {"step": step, "phase": phase, "loss": float(loss.detach()), "mse": parts["mse"],
                     "perceptual": parts["perceptual"], "psnr_train": psnr(rec.detach(), gt),
                     "lr_network": t_cfg["lr_network"] * f, "optics_step": int(optics_step),
-                    "wall_s": time.perf_counter() - t0, "replans": getattr(arm.provider, "replans", 0)}
+                    "wall_s": time.perf_counter() - t0, "replans": getattr(arm.provider, "replans", 0),
+                    "memory_gb": _memory_gb(arm.device)}
             if step % t_cfg["log_every"] == 0 or arm.step == total:
                 writer.writerow(last)
                 fcsv.flush()
@@ -950,7 +951,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
               "replans": getattr(arm.provider, "replans", 0),
               "replan_log": getattr(arm.provider, "replan_log", []),
-              "field_build": getattr(arm.provider, "build_log", [])}
+              "field_build": getattr(arm.provider, "build_log", []),
+              "step_log": getattr(arm.provider, "step_log", [])[-8:]}
     if arm.step < total:
         result["stopped_early"] = True
         return result
@@ -973,6 +975,19 @@ def _json_default(o):
     if isinstance(o, float) and not math.isfinite(o):
         return None
     return str(o)
+
+
+def _memory_gb(device) -> float:
+    """Memory in use (GB = 1e9 bytes) after a step: on CUDA the whole device's used memory (total - free,
+    so torch, Warp and CuPy pools all count), on the CPU the process's peak resident set size."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        free, total = torch.cuda.mem_get_info(dev)
+        return round((total - free) / 1e9, 3)
+    import resource
+    import sys
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss          # kB on Linux, bytes on macOS
+    return round(rss * (1 if sys.platform == "darwin" else 1024) / 1e9, 3)
 
 
 def _truncate_csv(path: Path, step: int):

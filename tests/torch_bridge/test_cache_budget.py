@@ -70,3 +70,39 @@ def test_memory_budget_validated():
     with pytest.raises(ConfigError, match="memory_budget_gb"):
         load_config(base)
     assert tb.modules.default_memory_budget_bytes("cpu") == 4 * 2 ** 30
+
+
+def test_step_chunks_equal_one_chunk_values_and_gradients():
+    """A step propagated in checkpointed chunks of nodes gives the one-chunk PSFs and gradients
+    (DOE coefficients and the learning DOE-to-sensor distance), and the default chunk follows the
+    budget (bytes) through the library's own per-node estimate."""
+    lens = rw.load_lens("a489_doe")
+    d = lens.doe_index
+    lens = lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [-20.0, 8.0, 3.0, -1.0]})
+    m = tb.HybridLens(lens, learn={"doe": "all", "thickness": [d]}, nyquist_safety=1.0, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, dz.node_positions_mm("grid", 1.0, (2, 2), region="quadrant"), 0.55)
+    prov = dz.CachedProvider(m, fields, 21, 0.003, wavelength_ref_um=0.55, memory_budget_bytes=10 ** 12)
+    assert prov.learn_distance
+    wls = [0.47, 0.63]
+    prov.prepare(wls, [None])
+    w = torch.linspace(0.5, 1.5, 21, dtype=torch.float64)[None, None, :, None]   # a non-uniform loss weight
+
+    def run(chunk):
+        m.zero_grad()
+        p = prov.psfs(wls, chunk=chunk)
+        (p * w).sum().backward()
+        return p.detach().numpy(), m.doe.grad.numpy().copy(), m.thickness.grad.numpy().copy()
+    p1, g1, t1 = run(None)
+    assert prov.step_log[-1]["chunks"] == 1
+    for c in (1, 3):
+        pc, gc, tc = run(c)
+        assert prov.step_log[-1]["chunks"] == -(-4 // c)
+        np.testing.assert_allclose(pc, p1, rtol=0, atol=1e-13 * p1.max())
+        np.testing.assert_allclose(gc, g1, rtol=1e-10, atol=1e-12 * np.abs(g1).max())
+        np.testing.assert_allclose(tc, t1, rtol=1e-10, atol=1e-12 * np.abs(t1).max())
+    assert np.abs(g1).max() > 0 and np.abs(t1).max() > 0
+    # the default chunk under a budget of 2.5 nodes' estimate: 2 nodes, 2 chunks
+    e = prov._entry(0.63, None)[0]
+    prov.memory_budget_bytes = int(2.5 * prov.step_bytes_per_source(e))
+    prov.psfs([0.63])
+    assert prov.step_log[-1]["chunk"] == 2 and prov.step_log[-1]["chunks"] == 2
