@@ -33,20 +33,23 @@ d)
 import os
 import yaml
 import torch_bridge
-c = yaml.safe_load(open(os.path.join(os.path.dirname(torch_bridge.__file__), "configs", "a489_aberration.yaml")))
+name = os.environ.get("SMOKE_CONFIG", "a489_aberration")
+c = yaml.safe_load(open(os.path.join(os.path.dirname(torch_bridge.__file__), "configs", name + ".yaml")))
 c["presets"]["gpu"]["train"].update(joint_steps=int(os.environ.get("SMOKE_JOINT", 12)),
                                     finetune_steps=int(os.environ.get("SMOKE_FINETUNE", 4)), log_every=1,
                                     image_every=0, checkpoint_every=0)
 c["presets"]["gpu"]["data"]["eval_images"] = 8
-yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberration_gpu_smoke.yaml"), "w"))
+yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], name + "_gpu_smoke.yaml"), "w"))
 PY
-  timeout ${SMOKE_TIMEOUT:-500} python3 -m torch_bridge.train "$RWWARP_RESULTS/a489_aberration_gpu_smoke.yaml" --preset gpu \
-      --arm ${SMOKE_ARM:-e2e_doe} --out "$RWWARP_RESULTS/a489_aberration_gpu_smoke" --no-progress 2>&1 | grep -v use_ai2 | tail -25
-  cat "$RWWARP_RESULTS"/a489_aberration_gpu_smoke/*/metrics.csv
+  S=${SMOKE_CONFIG:-a489_aberration}_gpu_smoke
+  timeout ${SMOKE_TIMEOUT:-500} python3 -m torch_bridge.train "$RWWARP_RESULTS/$S.yaml" --preset gpu \
+      --arm ${SMOKE_ARM:-e2e_doe} --out "$RWWARP_RESULTS/$S" --no-progress 2>&1 | grep -v "use_ai2\|SamplingWarning\|self._build" | tail -25
+  cat "$RWWARP_RESULTS"/$S/*/metrics.csv
   # the field builds: batches of nodes and the library's peak estimate against the budget (GB)
   python3 - <<'PY'
 import glob, json, os
-for f in sorted(glob.glob(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberration_gpu_smoke", "*", "result.json"))):
+S = os.environ.get("SMOKE_CONFIG", "a489_aberration") + "_gpu_smoke"
+for f in sorted(glob.glob(os.path.join(os.environ["RWWARP_RESULTS"], S, "*", "result.json"))):
     r = json.load(open(f))
     for e in r.get("field_build", []):
         print(f"{r['arm']}: wl {e['key'][0]:.3f} um  {e['nsrc']} nodes in {e['batches']} batches of {e['batch']}  "
@@ -54,6 +57,7 @@ for f in sorted(glob.glob(os.path.join(os.environ["RWWARP_RESULTS"], "a489_aberr
     for e in r.get("step_log", [])[-3:]:
         print(f"{r['arm']}: step chunks {e}")
     print({k: r.get(k) for k in ("steps_done", "train_wall_s", "eval_wall_s", "objective_initial", "objective_final")})
+    print("replans:", [(e["key"], e["reason"]) for e in r.get("replan_log", [])][:12])
 PY
   nvidia-smi --query-gpu=memory.used,memory.total --format=csv,noheader
   ;;

@@ -84,10 +84,15 @@ def _field_list(fields) -> list:
 def default_memory_budget_bytes(device) -> int:
     """Default memory budget (bytes) of a frozen field build (:class:`~torch_bridge.design.CachedProvider`)
     on ``device`` (a torch device or Warp device string): half the free memory of a CUDA device
-    (``torch.cuda.mem_get_info``, so what torch, Warp and CuPy already hold is left out), 4 GiB on the CPU."""
+    (``torch.cuda.mem_get_info`` plus the blocks torch's allocator caches unused; what torch, Warp and
+    CuPy hold in use is left out), 4 GiB on the CPU."""
     dev = str(device)
     if dev.startswith("cuda") and torch.cuda.is_available():
-        free, _ = torch.cuda.mem_get_info(torch.device(dev))
+        d = torch.device(dev)
+        free, _ = torch.cuda.mem_get_info(d)
+        # blocks torch's caching allocator holds but does not use are free for the next allocation
+        # (rwwarp's release hook hands them back when another allocator needs them)
+        free += torch.cuda.memory_reserved(d) - torch.cuda.memory_allocated(d)
         return int(free) // 2
     return 4 * 2 ** 30
 
