@@ -36,9 +36,10 @@ import torch_bridge
 name = os.environ.get("SMOKE_CONFIG", "a489_aberration")
 c = yaml.safe_load(open(os.path.join(os.path.dirname(torch_bridge.__file__), "configs", name + ".yaml")))
 c["presets"]["gpu"]["train"].update(joint_steps=int(os.environ.get("SMOKE_JOINT", 12)),
-                                    finetune_steps=int(os.environ.get("SMOKE_FINETUNE", 4)), log_every=1,
+                                    finetune_steps=int(os.environ.get("SMOKE_FINETUNE", 4)),
+                                    log_every=int(os.environ.get("SMOKE_LOG", 1)),
                                     image_every=0, checkpoint_every=0)
-c["presets"]["gpu"]["data"]["eval_images"] = 8
+c["presets"]["gpu"]["data"]["eval_images"] = int(os.environ.get("SMOKE_EVAL", 8))
 yaml.safe_dump(c, open(os.path.join(os.environ["RWWARP_RESULTS"], name + "_gpu_smoke.yaml"), "w"))
 PY
   S=${SMOKE_CONFIG:-a489_aberration}_gpu_smoke
