@@ -62,7 +62,8 @@ def plan_preset(config: str, preset: str, budget_gb: float, arms=None) -> list:
         depths = [T._depth_value(d) for d in o["depths_mm"]]
         if o["model"] == "paraxial-wave" or cache:
             prov = dz.CachedProvider(module, fields, size, pixel, model=o["model"], wavelength_ref_um=wl_ref,
-                                     doe_budget_cpmm=o["doe_budget_cpmm"], memory_budget_bytes=budget)
+                                     doe_budget_cpmm=o["doe_budget_cpmm"], memory_budget_bytes=budget,
+                                     min_feature_mm=T._feature_mm(o))
             for d in depths:
                 geo, gf, depth = prov._geometry(d)
                 centres = dz.common_centres(geo, gf, wl_ref, depth)

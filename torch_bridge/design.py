@@ -172,6 +172,12 @@ class CachedProvider:
     doe_budget_cpmm : float
         Spatial frequency (cycles/mm) reserved for the DOE when a plan is made: the DOE-plane pitch
         is at most ``1 / (2 safety (f_field + f_DOE + budget))`` so the DOE can grow without replanning.
+    min_feature_mm : float, optional
+        Fabrication limit of the DOE (smallest feature, mm; see :meth:`HybridLens.limit_doe_feature`,
+        which the training applies after every optics update). Plans are then made for any DOE
+        within the limit: pitch at most half the feature, and at least ``1 / (levels feature)``
+        cycles/mm (``1 / (2 feature)`` unquantised, times the wavelength's DOE scale) reserved for
+        the DOE, so a DOE that grows up to the limit needs no replanning.
     memory_budget_bytes : int, optional
         Peak bytes one entry's field build may use (default
         :func:`~torch_bridge.modules.default_memory_budget_bytes`: half the free memory of a CUDA
@@ -190,11 +196,15 @@ class CachedProvider:
     """
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, model: str = "ray-wave",
-                 wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0, memory_budget_bytes: int | None = None):
+                 wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0, memory_budget_bytes: int | None = None,
+                 min_feature_mm: float | None = None):
         if model not in ("ray-wave", "paraxial-wave"):
             raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
         if memory_budget_bytes is not None and not memory_budget_bytes > 0:
             raise ValueError(f"memory_budget_bytes must be > 0 or None, got {memory_budget_bytes!r}")
+        if min_feature_mm is not None and not min_feature_mm > 0:
+            raise ValueError(f"min_feature_mm must be > 0 or None, got {min_feature_mm!r}")
+        self.min_feature_mm = None if min_feature_mm is None else float(min_feature_mm)
         lens = module.to_lens()
         self.module, self.size, self.pixel_mm, self.model = module, int(size), float(pixel_mm), model
         self.real_fields = list(fields_deg)
@@ -269,14 +279,21 @@ class CachedProvider:
                       gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety)
         pl = rw0.plan
         safety = geo.nyquist_safety
-        pitch = 1.0 / (2.0 * safety * (1.0 / (2.0 * safety * pl.pitch_mm) + self.doe_budget))
+        budget = self.doe_budget
+        if self.min_feature_mm is not None:
+            from rwwarp import doe as rdoe
+            f_lim = 1.0 / ((int(sd.levels) if sd.levels else 2) * self.min_feature_mm)
+            budget = max(budget, f_lim * rdoe.wavelength_scale(sd.material, sd.design_wavelength_um, wavelength_um))
+        pitch = 1.0 / (2.0 * safety * (1.0 / (2.0 * safety * pl.pitch_mm) + budget))
         _, step = self._doe_frequency(geo, rw0.origin, pl.pitch_mm, pl.n_grid, wavelength_um)
+        if self.min_feature_mm is not None:
+            step = min(step, self.min_feature_mm)
         pitch = min(pitch, 0.5 * step)
         ratio = pl.pitch_mm / pitch
         n_grid = math.ceil(pl.n_grid * ratio)
         return Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, math.ceil(pl.n_pad * ratio))),
                     math.ceil(pl.ray_grid * ratio), "explicit", False,
-                    list(pl.reasons) + [f"DOE budget {self.doe_budget:g} cycles/mm reserved"])
+                    list(pl.reasons) + [f"DOE budget {budget:g} cycles/mm reserved"])
 
     @staticmethod
     def _unify(plans):

@@ -415,6 +415,32 @@ class HybridLens(nn.Module):
             y = y + v["thickness"][i] * nu / n[i]
         return torch.where(thin, power, torch.zeros_like(power)), torch.stack(uinv), torch.stack(vdist)
 
+    def limit_doe_feature(self, min_feature_mm: float) -> float:
+        """Project the DOE onto the fabrication limit: when its smallest feature over the aperture
+        (:func:`rwwarp.doe.surface_feature_size_mm`: the narrowest 2 pi zone, divided by the number of
+        levels for a quantised relief; mm) is below ``min_feature_mm``, scale the whole phase profile
+        (buffer and learning entries) by ``feature / min_feature_mm`` so the smallest feature equals
+        the limit (the phase gradient is linear in the coefficients of every supported kind).
+        Returns the scale applied (1.0 when the DOE already complies or is flat).
+
+        Supported kinds: ``even_poly``, ``poly``, ``zernike``, ``cubic``; others raise ValueError."""
+        from rwwarp.doe import surface_feature_size_mm
+        if not min_feature_mm > 0:
+            raise ValueError(f"min_feature_mm must be > 0, got {min_feature_mm!r}")
+        if self.doe_kind not in ("even_poly", "poly", "zernike", "cubic"):
+            raise ValueError(f"limit_doe_feature: DOE kind {self.doe_kind!r} is not linear in its values "
+                             "(supported: even_poly, poly, zernike, cubic)")
+        lens = self.to_lens()
+        feat = surface_feature_size_mm(lens.surfaces[lens.doe_index])
+        if feat >= min_feature_mm:
+            return 1.0
+        c = feat / float(min_feature_mm) * (1.0 - 1e-9)
+        with torch.no_grad():
+            self.doe_base.mul_(c)
+            if self.doe_index.numel():
+                self.doe.mul_(c)
+        return c
+
     def doe_phase(self, rw, values=None):
         """DOE relief phase phi0 (rad) on each window of ``rw``, (S, n, n) float64, built in torch from
         the DOE values (wrapped to [0, 2 pi), quantised with a straight-through gradient when the

@@ -179,6 +179,7 @@ SCHEMA = {
         "nyquist_safety": _num(0.5),
         "rays_per_sample": _num(0.5),
         "doe_budget_cpmm": _num(0),
+        "min_feature_um": _num(0, lo_open=True, none=True),
         "check_sampling_every": _num(0, integer=True),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
     },
@@ -259,6 +260,7 @@ DEFAULTS = {
                          "half_size_mm": None},
                "wavelengths_um": [[0.60, 0.63, 0.66], [0.52, 0.55, 0.58], [0.45, 0.47, 0.49]],
                "depths_mm": [None], "nyquist_safety": 1.0, "rays_per_sample": 1.2, "doe_budget_cpmm": 0.0,
+               "min_feature_um": None,
                "check_sampling_every": 10, "memory_budget_gb": None},
     "render": {"mode": "patch", "boundary": "reflect"},
     "data": {"root": None, "crop": 64, "scale": 1.0, "batch_size": 4, "eval_images": 8, "max_images": None,
@@ -724,13 +726,25 @@ class Arm:
         if model == "paraxial-wave" or cache:
             return dz.CachedProvider(module, self.fields, self.size, self.pixel_mm, model=model,
                                      wavelength_ref_um=self.wl_ref, doe_budget_cpmm=o["doe_budget_cpmm"],
-                                     memory_budget_bytes=_budget_bytes(o))
+                                     memory_budget_bytes=_budget_bytes(o), min_feature_mm=_feature_mm(o))
         tile = None
         if o["memory_budget_gb"]:
             tile = max(1, int(o["memory_budget_gb"] * 1e9 // max(1, module.bytes_per_source(
                 module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm)))))
         return dz.LiveProvider(module, self.fields, self.size, self.pixel_mm, wavelength_ref_um=self.wl_ref,
                                tile=tile)
+
+    def limit_feature(self) -> float:
+        """After an optics update: project the DOE onto ``optics.min_feature_um`` (a learning DOE only;
+        :meth:`HybridLens.limit_doe_feature`). Counts the projections in :attr:`feature_projections`;
+        returns the scale applied (1.0: none needed or no limit)."""
+        mf = _feature_mm(self.cfg["optics"])
+        if mf is None or "doe" not in self.learn:
+            return 1.0
+        c = self.module.limit_doe_feature(mf)
+        if c < 1.0:
+            self.feature_projections = getattr(self, "feature_projections", 0) + 1
+        return c
 
     def optics_learn(self) -> bool:
         return self.method == "e2e" and self.opt_optics is not None
@@ -771,6 +785,7 @@ class Arm:
                 loss = loss + efl_w * (paraxial_efl(self.module, self.wl_ref) - efl_mm) ** 2
             loss.backward()
             opt.step()
+            self.limit_feature()
             self.rms_log.append({"step": k, "rms_um": float(rms.detach().mean() * 1e3), "loss": float(loss.detach())})
         self.provider = self._provider(self.cfg["optics"]["model"])
         self.design_done = True
@@ -923,6 +938,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                     g["lr"] = float(t_cfg["lr_optics"][g["name"]]) * _lr_factor(t_cfg["lr_decay"], step,
                                                                                t_cfg["joint_steps"])
                 arm.opt_optics.step()
+                arm.limit_feature()
                 ev = cfg["optics"]["check_sampling_every"]
                 if ev and hasattr(arm.provider, "check_sampling") and (step // t_cfg["optics_every"]) % ev == 0:
                     arm.provider.check_sampling()
@@ -950,6 +966,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     result = {"arm": name, "method": arm.method, "steps_done": arm.step, "steps_total": total,
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
               "replans": getattr(arm.provider, "replans", 0),
+              "feature_projections": getattr(arm, "feature_projections", 0),
               "replan_log": getattr(arm.provider, "replan_log", []),
               "field_build": getattr(arm.provider, "build_log", []),
               "step_log": getattr(arm.provider, "step_log", [])[-8:]}
@@ -990,6 +1007,12 @@ def _memory_gb(device) -> float:
     return round(rss * (1 if sys.platform == "darwin" else 1024) / 1e9, 3)
 
 
+def _feature_mm(optics: dict):
+    """``optics.min_feature_um`` in mm, None when unset."""
+    f = optics.get("min_feature_um")
+    return None if f is None else float(f) * 1e-3
+
+
 def _truncate_csv(path: Path, step: int):
     """Drop rows at or after ``step`` (a resumed run rewrites them)."""
     if not path.exists():
@@ -1017,7 +1040,8 @@ def _eval_provider(arm: Arm):
         p.check_sampling()
         return p
     prov = dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
-                             wavelength_ref_um=arm.wl_ref, memory_budget_bytes=_budget_bytes(arm.cfg["optics"]))
+                             wavelength_ref_um=arm.wl_ref, memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
+                             min_feature_mm=_feature_mm(arm.cfg["optics"]))
     ev = arm.cfg["eval"]["depths_mm"] or arm.cfg["optics"]["depths_mm"]
     prov.prepare(sorted({w for c in arm.wls for w in c}), [_depth_value(d) for d in ev], progress=False)
     return prov

@@ -1,0 +1,69 @@
+"""The DOE fabrication limit (optics.min_feature_um): the projection leaves a compliant DOE alone and
+scales an over-fine one so that its smallest feature, measured independently on the DOE's own
+gradient, equals the limit; the cached plans sample that limit; bad values are refused."""
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import rwwarp as rw
+import torch_bridge as tb
+from torch_bridge import design as dz
+from torch_bridge.train import ConfigError, load_config
+
+
+def _lens(coeffs, levels=16):
+    lens = rw.load_lens("a489_doe")
+    d = lens.doe_index
+    return lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": list(coeffs)}, levels=levels)
+
+
+def _smallest_step_mm(lens):
+    """Independent check: narrowest quantisation step from the analytic radial derivative of the
+    even polynomial, sum 2 i a_i r^(2i-1) / R^(2i), on a fine radial grid over the semi-diameter."""
+    s = lens.surfaces[lens.doe_index]
+    R = s.profile["norm_radius"]
+    r = np.linspace(0, s.semi_diameter, 20001)
+    g = sum(2 * (i + 1) * a * r ** (2 * i + 1) / R ** (2 * i + 2) for i, a in enumerate(s.profile["coefficients"]))
+    return 2 * math.pi / np.max(np.abs(g)) / s.levels
+
+
+def test_projection_scales_to_the_limit_and_leaves_compliant_doe():
+    m = tb.HybridLens(_lens([-400.0, 120.0, 30.0, -10.0]), learn={"doe": [0, 1]})
+    before = _smallest_step_mm(m.to_lens())
+    limit = 2.0 * before
+    c = m.limit_doe_feature(limit)
+    assert 0.45 < c < 0.55                        # the feature grows as 1 / scale
+    after = _smallest_step_mm(m.to_lens())
+    assert after == pytest.approx(limit, rel=1e-3)
+    coeffs = m.value("doe").detach().numpy()
+    np.testing.assert_allclose(coeffs, c * np.array([-400.0, 120.0, 30.0, -10.0]), rtol=1e-12)
+    assert m.limit_doe_feature(0.5 * after) == 1.0   # compliant: untouched
+    np.testing.assert_array_equal(m.value("doe").detach().numpy(), coeffs)
+    with pytest.raises(ValueError, match="min_feature_mm"):
+        m.limit_doe_feature(0.0)
+
+
+def test_cached_plan_samples_the_feature_limit():
+    lens = _lens([-20.0, 8.0, 3.0, -1.0])
+    m = tb.HybridLens(lens, learn={"doe": "all"}, nyquist_safety=1.0, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, [(0.0, 0.0)], 0.55)
+    feat = 0.006   # mm: 16 levels -> DOE frequency up to 10.4 cycles/mm at the design wavelength
+    free = dz.CachedProvider(m, fields, 15, 0.003, wavelength_ref_um=0.55)
+    lim = dz.CachedProvider(m, fields, 15, 0.003, wavelength_ref_um=0.55, min_feature_mm=feat)
+    for p in (free, lim):
+        p.prepare([0.55], [None])
+    k = free._key(0.55, None)
+    assert lim.plans[k]["pitch_mm"] <= 0.5 * feat + 1e-15
+    assert lim.plans[k]["pitch_mm"] < free.plans[k]["pitch_mm"]
+    with pytest.raises(ValueError, match="min_feature_mm"):
+        dz.CachedProvider(m, fields, 15, 0.003, min_feature_mm=-1.0)
+
+
+def test_min_feature_config_validated():
+    with pytest.raises(ConfigError, match="min_feature_um"):
+        load_config({"lens": {"file": "a489_doe"}, "optics": {"min_feature_um": 0}})
+    cfg = load_config({"lens": {"file": "a489_doe"}, "optics": {"min_feature_um": 1.0}})
+    assert cfg["arms"][0]["config"]["optics"]["min_feature_um"] == 1.0
