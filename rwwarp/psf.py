@@ -644,6 +644,18 @@ class RayWave:
         scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in self.wls])
         return phi0, scale
 
+    def recentre(self, center_mm):
+        """Move the sensor patches to new centres ((x, y) mm, one pair or one per source; snapped to
+        the sensor's pixel centres as in the constructor). Only the output positions change: the
+        DOE-plane windows, the traced field and the plan do not depend on them, so a field computed
+        before stays valid (the propagation evaluates any sensor positions)."""
+        c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
+        res = self.lens.sensor.resolution
+        self.centers = np.broadcast_to(np.stack([_snap_center(c[:, 0], self.pixel, res[0]),
+                                                 _snap_center(c[:, 1], self.pixel, res[1])], 1),
+                                       (self.nsrc, 2)).copy()
+        self.__dict__.pop("_bridge_window_center", None)   # torch_bridge's cached tile window centre
+
     def pixel_centres(self):
         """Sensor pixel centres (x (S, size), y (S, size)) of each patch, mm."""
         return _pixel_centres(self.centers, self.size, self.pixel)

@@ -254,8 +254,16 @@ class CachedProvider:
             return 0.0, math.inf
         g = np.linspace(0.0, (n_grid - 1) * pitch, 33)
         gmax = 0.0
+        sd = s.semi_diameter
         for o in origin:
             x, y = np.meshgrid(o[0] + g, o[1] + g)
+            if sd is not None:
+                # only the clear aperture transmits (the tracer clips rays outside it): the profile's
+                # continuation beyond it must not drive the sampling
+                inside = (np.maximum(np.abs(x), np.abs(y)) <= sd) if s.shape == "square" else (x * x + y * y <= sd * sd)
+                x, y = x[inside], y[inside]
+                if x.size == 0:
+                    continue
             gx, gy = prof.gradient(x, y, s.design_wavelength_um)
             gmax = max(gmax, float(np.max(np.hypot(gx, gy))))
         scale = rdoe.wavelength_scale(s.material, s.design_wavelength_um, wavelength_um)
@@ -445,8 +453,9 @@ class CachedProvider:
     def check_sampling(self) -> int:
         """Replan the entries whose pitch no longer samples field + DOE (``2 pitch (f_field + f_DOE) <= 1``
         with ``f_field`` the field's own band the plan was made for, and two samples per quantisation
-        step), and re-centre patches the DOE has moved by more than ``size / 8`` pixels. Returns the
-        number of entries rebuilt."""
+        step), and re-centre patches the DOE has moved by more than ``size / 8`` pixels (the sensor
+        patches move, the cached field is kept: :meth:`rwwarp.psf.RayWave.recentre`). Returns the
+        number of entries replanned or re-centred."""
         rebuilt = 0
         per_depth = {}   # the current geometry and patch centres, once per depth
 
@@ -473,11 +482,15 @@ class CachedProvider:
                 continue
             cen = current(key[1])[1]
             if np.max(np.abs(cen - rw.centers)) > self.size * self.pixel_mm / 8.0:
+                # only the sensor patches move: the cached DOE-plane field stays valid (no rebuild)
                 self.replan_log.append({"key": list(key), "reason": "re-centre",
                                         "shift_um": float(np.max(np.abs(cen - rw.centers))) * 1e3})
-                self._cache.pop(key)
-                self._chunks.pop(key, None)
-                self._build(key, self._recorded_plan(key), cen)
+                rw.recentre(cen)
+                for parts in self._chunks.get(key, {}).values():
+                    for sl, sub in parts:
+                        if sub is not rw:
+                            sub.recentre(rw.centers[sl])
+                self.plans[key]["centers"] = np.asarray(rw.centers).tolist()
                 rebuilt += 1
         self.replans += rebuilt
         return rebuilt
