@@ -24,6 +24,11 @@ Per arm:
    validation crops with seeded noise, PSNR / SSIM / 1-LPIPS of the raw and reconstructed images
    per depth and node; the ray-model RMS spot radius on axis, at the outer node and averaged.
 
+Fabrication limit (``optics.min_feature_um``, default none): after every optics update the DOE is
+scaled onto its smallest allowed feature (the narrowest quantisation step over the aperture,
+:meth:`HybridLens.limit_doe_feature`; counted in ``result.json`` as ``feature_projections``), and
+cached plans sample that limit, so a DOE growing up to it never forces a replan.
+
 Rendering (``render.mode``): ``patch`` (each crop is a patch of the sensor at one PSF node,
 blurred by that node's PSF at the native pixel pitch: cheap, and the blur has its real size) or
 ``full`` (the crop covers the node grid's region and is blurred with a spatially varying PSF,
