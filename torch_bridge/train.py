@@ -852,7 +852,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     total = t_cfg["joint_steps"] + t_cfg["finetune_steps"]
     if resume and ck.exists():
         arm.load(ck)
-        _truncate_csv(csv_path, arm.step)
+        _truncate_csv(csv_path, arm.step, _CSV_FIELDS)
     else:
         for f in out.glob("step_*.png"):
             f.unlink()
@@ -868,11 +868,9 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     if isinstance(arm.provider, __import__("torch_bridge.design", fromlist=["CachedProvider"]).CachedProvider):
         allw = sorted({w for c in arm.wls for w in c})
         arm.provider.prepare(allw, arm.depths, progress=arm.progress)
-    fields = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
-              "replans", "memory_gb"]
     new_csv = not csv_path.exists()
     fcsv = open(csv_path, "a", newline="")
-    writer = csv.DictWriter(fcsv, fieldnames=fields)
+    writer = csv.DictWriter(fcsv, fieldnames=_CSV_FIELDS)
     if new_csv:
         writer.writeheader()
     B = cfg["data"]["batch_size"]
@@ -1018,17 +1016,22 @@ def _feature_mm(optics: dict):
     return None if f is None else float(f) * 1e-3
 
 
-def _truncate_csv(path: Path, step: int):
-    """Drop rows at or after ``step`` (a resumed run rewrites them)."""
+_CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
+               "replans", "memory_gb"]
+
+
+def _truncate_csv(path: Path, step: int, fields=None):
+    """Drop rows at or after ``step`` (a resumed run rewrites them). With ``fields``, the file is
+    rewritten with those columns (a CSV of an older version gets the new ones, empty in old rows)."""
     if not path.exists():
         return
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
-        fields = rows[0].keys() if rows else None
-    if fields is None:
+        old = list(rows[0].keys()) if rows else None
+    if old is None:
         return
     with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(fields))
+        w = csv.DictWriter(f, fieldnames=list(fields or old), restval="", extrasaction="ignore")
         w.writeheader()
         for r in rows:
             if int(r["step"]) < step:

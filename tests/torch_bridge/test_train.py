@@ -401,3 +401,16 @@ def test_losses_fallback_warns_and_vgg_loads_from_a_file(tmp_path):
     assert m["psnr"] == pytest.approx(ref, rel=1e-6)
     assert m["psnr"] == pytest.approx(psnr(y, x), rel=1e-4)
     assert math.isnan(m["one_minus_lpips"])
+
+
+def test_resume_rewrites_an_older_metrics_csv_with_the_current_columns(tmp_path):
+    """A metrics.csv written before a column was added (memory_gb) is truncated at the resume step and
+    rewritten with every current column, so the rows appended after it line up with the header."""
+    from torch_bridge.train import _CSV_FIELDS, _truncate_csv
+    p = tmp_path / "metrics.csv"
+    old = [f for f in _CSV_FIELDS if f != "memory_gb"]
+    p.write_text(",".join(old) + "\n" + "\n".join(",".join([str(k)] + ["1"] * (len(old) - 1)) for k in range(5)) + "\n")
+    _truncate_csv(p, 3, _CSV_FIELDS)
+    rows = _rows(p)
+    assert [int(r["step"]) for r in rows] == [0, 1, 2]
+    assert list(rows[0].keys()) == _CSV_FIELDS and rows[0]["memory_gb"] == ""
