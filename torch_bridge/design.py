@@ -485,12 +485,13 @@ class CachedProvider:
                 # only the sensor patches move: the cached DOE-plane field stays valid (no rebuild)
                 self.replan_log.append({"key": list(key), "reason": "re-centre",
                                         "shift_um": float(np.max(np.abs(cen - rw.centers))) * 1e3})
-                rw.recentre(cen)
-                for parts in self._chunks.get(key, {}).values():
-                    for sl, sub in parts:
-                        if sub is not rw:
-                            sub.recentre(rw.centers[sl])
-                self.plans[key]["centers"] = np.asarray(rw.centers).tolist()
+                # copies: the RayWaves themselves stay as HybridLens.raywave cached them (keyed by centres)
+                moved = _recentred(rw, cen)
+                self._cache[key] = (moved,) + tuple(self._cache[key][1:])
+                chunks = self._chunks.get(key, {})
+                for c, parts in chunks.items():
+                    chunks[c] = [(sl, moved if sub is rw else _recentred(sub, moved.centers[sl])) for sl, sub in parts]
+                self.plans[key]["centers"] = np.asarray(moved.centers).tolist()
                 rebuilt += 1
         self.replans += rebuilt
         return rebuilt
@@ -581,6 +582,14 @@ class CachedProvider:
             power = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
             out.append(power / entering[:, None, None])
         return torch.stack(out, 1)
+
+
+def _recentred(rw, center_mm):
+    """A shallow copy of RayWave ``rw`` with its sensor patches moved to ``center_mm`` (mm)."""
+    import copy
+    out = copy.copy(rw)
+    out.recentre(center_mm)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- ray model

@@ -120,11 +120,14 @@ def test_recentre_keeps_the_cached_field_and_matches_an_independent_psf():
     prov = dz.CachedProvider(m, fields, 21, 0.003, wavelength_ref_um=0.55, doe_budget_cpmm=40)
     prov.prepare([0.55], [None])
     u_before = prov._cache[prov._key(0.55, None)][1]
+    rw_before = prov._cache[prov._key(0.55, None)][0]
+    c_before = rw_before.centers.copy()
     with torch.no_grad():
         m.doe.copy_(torch.tensor([-60.0, 0.0, 0.0, 0.0], dtype=torch.float64))   # added power: the patch moves
     assert prov.check_sampling() == 1
     assert [e["reason"] for e in prov.replan_log] == ["re-centre"] and prov.replan_log[0]["shift_um"] > 21 * 3 / 8
     assert prov._cache[prov._key(0.55, None)][1] is u_before        # kept, not rebuilt
+    np.testing.assert_array_equal(rw_before.centers, c_before)       # the module's cached RayWave untouched
     cen = prov._cache[prov._key(0.55, None)][0].centers[0]
     with torch.no_grad():
         got = prov.psfs([0.55])[0, 0].numpy()
