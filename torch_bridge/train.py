@@ -703,6 +703,7 @@ class Arm:
         self.step = 0
         self.design_done = False
         self.rms_log = []
+        self.feature_projections = 0
         self.objective_initial = None
         self.last_psf = None
 
@@ -748,7 +749,7 @@ class Arm:
             return 1.0
         c = self.module.limit_doe_feature(mf)
         if c < 1.0:
-            self.feature_projections = getattr(self, "feature_projections", 0) + 1
+            self.feature_projections += 1
         return c
 
     def optics_learn(self) -> bool:
@@ -800,7 +801,8 @@ class Arm:
         return {"step": self.step, "design_done": self.design_done, "module": self.module.state_dict(),
                 "net": self.net.state_dict(), "opt_net": self.opt_net.state_dict(),
                 "opt_optics": None if self.opt_optics is None else self.opt_optics.state_dict(),
-                "rng": _rng_state(self.gen), "rms_log": self.rms_log, "objective_initial": self.objective_initial,
+                "rng": _rng_state(self.gen), "rms_log": self.rms_log,
+                "feature_projections": self.feature_projections, "objective_initial": self.objective_initial,
                 "last_psf": self.last_psf,
                 "plans": {f"{k[0]}|{k[1]}": v for k, v in getattr(self.provider, "plans", {}).items()}}
 
@@ -819,6 +821,7 @@ class Arm:
         if self.opt_optics is not None and st["opt_optics"] is not None:
             self.opt_optics.load_state_dict(st["opt_optics"])
         self.rms_log = st.get("rms_log", [])
+        self.feature_projections = st.get("feature_projections", 0)
         self.objective_initial = st.get("objective_initial")
         self.last_psf = None if st.get("last_psf") is None else st["last_psf"].to(self.module.thickness_base.device)
         self.provider = self._provider(self.cfg["optics"]["model"])
@@ -969,7 +972,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     result = {"arm": name, "method": arm.method, "steps_done": arm.step, "steps_total": total,
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
               "replans": getattr(arm.provider, "replans", 0),
-              "feature_projections": getattr(arm, "feature_projections", 0),
+              "feature_projections": arm.feature_projections,
               "replan_log": getattr(arm.provider, "replan_log", []),
               "field_build": getattr(arm.provider, "build_log", []),
               "step_log": getattr(arm.provider, "step_log", [])[-8:]}
