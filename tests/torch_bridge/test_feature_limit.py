@@ -22,10 +22,11 @@ def _lens(coeffs, levels=16):
 
 def _smallest_step_mm(lens):
     """Independent check: narrowest quantisation step from the analytic radial derivative of the
-    even polynomial, sum 2 i a_i r^(2i-1) / R^(2i), on a fine radial grid over the semi-diameter."""
+    even polynomial, sum 2 i a_i r^(2i-1) / R^(2i), on a fine radial grid over the aperture (a square
+    of half side sd reaches r = sqrt(2) sd at its corners)."""
     s = lens.surfaces[lens.doe_index]
     R = s.profile["norm_radius"]
-    r = np.linspace(0, s.semi_diameter, 20001)
+    r = np.linspace(0, s.semi_diameter * (math.sqrt(2) if s.shape == "square" else 1.0), 20001)
     g = sum(2 * (i + 1) * a * r ** (2 * i + 1) / R ** (2 * i + 2) for i, a in enumerate(s.profile["coefficients"]))
     return 2 * math.pi / np.max(np.abs(g)) / s.levels
 
