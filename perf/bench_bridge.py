@@ -611,6 +611,17 @@ def main():
     print(path)
 
 
+def _time_bars(ax, runs, labels, fontsize):
+    """Forward / backward wall time (s) bars of ``runs`` on ``ax``; returns the bar positions."""
+    x = np.arange(len(runs))
+    ax.bar(x - 0.2, [r["forward_s"] for r in runs], 0.4, label="forward")
+    ax.bar(x + 0.2, [r["backward_s"] for r in runs], 0.4, label="backward")
+    ax.set_xticks(x, labels, fontsize=fontsize)
+    ax.set_ylabel("s")
+    ax.legend(fontsize=8)
+    return x
+
+
 def chart_study(res, png):
     """Bars: forward / backward time and peak memory per tile size of the tile study."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -622,12 +633,7 @@ def chart_study(res, png):
     fig = Figure(figsize=(10, 3.8), dpi=120)
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    x = np.arange(len(runs))
-    ax1.bar(x - 0.2, [r["forward_s"] for r in runs], 0.4, label="forward")
-    ax1.bar(x + 0.2, [r["backward_s"] for r in runs], 0.4, label="backward")
-    ax1.set_xticks(x, labels, fontsize=7)
-    ax1.set_ylabel("s")
-    ax1.legend(fontsize=8)
+    x = _time_bars(ax1, runs, labels, 7)
     ax1.set_title(f"{st['sources']} PSFs ({st['size_px']} px), {res['device_name'][:30]}", fontsize=8)
     ax2.bar(x, [r["peak_bytes"] / 2**20 for r in runs], label="peak above start")
     for r, xi in zip(runs, x):
@@ -649,12 +655,7 @@ def chart(res, png):
     fig = Figure(figsize=(9, 3.6), dpi=120)
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    x = np.arange(len(runs))
-    ax1.bar(x - 0.2, [r["forward_s"] for r in runs], 0.4, label="forward")
-    ax1.bar(x + 0.2, [r["backward_s"] for r in runs], 0.4, label="backward")
-    ax1.set_xticks(x, labels, fontsize=8)
-    ax1.set_ylabel("s")
-    ax1.legend(fontsize=8)
+    x = _time_bars(ax1, runs, labels, 8)
     ax1.set_title(f"map {res['map']['sources']} PSFs, {res['device_name'][:30]}", fontsize=8)
     ax2.bar(x, [r["peak_bytes"] / 2**20 for r in runs])
     ax2.set_xticks(x, labels, fontsize=8)
