@@ -181,14 +181,20 @@ def run_case(hl, fn, weights, device, repeat):
         tf, tb_ = _timed_step(fn, weights, s)
         fwd.append(tf)
         bwd.append(tb_)
+    pm = _peak_run(hl, fn, weights, device, s)
+    return {"first_call_s": first, "forward_s": float(np.median(fwd)), "backward_s": float(np.median(bwd)),
+            "forward_backward_s": float(np.median(np.add(fwd, bwd))), **pm.report()}
+
+
+def _peak_run(hl, fn, weights, device, s):
+    """One forward + backward under :class:`PeakMemory` (gradients zeroed first); returns the monitor."""
     hl.zero_grad()
     with PeakMemory(device) as pm:
         out = fn()
         (out * weights).sum().backward()
         s()
         del out
-    return {"first_call_s": first, "forward_s": float(np.median(fwd)), "backward_s": float(np.median(bwd)),
-            "forward_backward_s": float(np.median(np.add(fwd, bwd))), **pm.report()}
+    return pm
 
 
 def run_timed_peak(hl, fn, weights, device, repeat, warmup):
@@ -216,12 +222,7 @@ def run_timed_peak(hl, fn, weights, device, repeat, warmup):
         fwd.append(tf)
         bwd.append(tb_)
     if cuda:
-        hl.zero_grad()
-        with PeakMemory(device) as pm:
-            out = fn()
-            (out * weights).sum().backward()
-            s()
-            del out
+        pm = _peak_run(hl, fn, weights, device, s)
     res.update({"forward_s": float(np.median(fwd)), "backward_s": float(np.median(bwd)),
                 "forward_backward_s": float(np.median(np.add(fwd, bwd))), "timed_runs": repeat, **pm.report()})
     return res
