@@ -247,6 +247,14 @@ def _snap_center(x, pixel, n_pixels):
     return (i + 0.5 - n_pixels / 2.0) * pixel
 
 
+def _snap_centers(center_mm, pixel, resolution, nsrc):
+    """(nsrc, 2) patch centres: ``center_mm`` ((x, y) mm, one pair or one per source) snapped to the
+    sensor's pixel centres."""
+    c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
+    return np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, resolution[0]),
+                                     _snap_center(c[:, 1], pixel, resolution[1])], 1), (nsrc, 2)).copy()
+
+
 def _pixel_centres(centers, size, pixel):
     off = (np.arange(size) - size // 2) * pixel
     return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
@@ -422,10 +430,7 @@ class RayWave:
             centers = np.stack([_snap_center(chief_sensor[:, 0], pixel, lens.sensor.resolution[0]),
                                 _snap_center(chief_sensor[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
         else:
-            c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
-            centers = np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, lens.sensor.resolution[0]),
-                                                _snap_center(c[:, 1], pixel, lens.sensor.resolution[1])], 1),
-                                      (nsrc, 2)).copy()
+            centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         out_width = size * pixel
         # ---- plan
         nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
@@ -649,12 +654,7 @@ class RayWave:
         the sensor's pixel centres as in the constructor). Only the output positions change: the
         DOE-plane windows, the traced field and the plan do not depend on them, so a field computed
         before stays valid (the propagation evaluates any sensor positions)."""
-        c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
-        res = self.lens.sensor.resolution
-        self.centers = np.broadcast_to(np.stack([_snap_center(c[:, 0], self.pixel, res[0]),
-                                                 _snap_center(c[:, 1], self.pixel, res[1])], 1),
-                                       (self.nsrc, 2)).copy()
-        self.__dict__.pop("_bridge_window_center", None)   # torch_bridge's cached tile window centre
+        self.centers = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
 
     def pixel_centres(self):
         """Sensor pixel centres (x (S, size), y (S, size)) of each patch, mm."""

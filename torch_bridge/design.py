@@ -528,12 +528,12 @@ class CachedProvider:
             return store[chunk]
         pl = rw.plan
         plan = Plan(pl.pitch_mm, pl.n_grid, pl.n_pad, pl.ray_grid, "explicit", False, ["entry plan"])
+        depth = key[1] if self.model == "ray-wave" else None
         out = []
         for k0 in range(0, rw.nsrc, chunk):
             sl = slice(k0, min(k0 + chunk, rw.nsrc))
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
-                depth = key[1] if self.model == "ray-wave" else None
                 sub = geo.raywave(list(rw.fields[sl]), list(rw.wls[sl]), self.size, object_distance_mm=depth,
                                   pixel_mm=self.pixel_mm, plan=plan, center_mm=rw.centers[sl], requires_grad=False)
             if not np.allclose(sub.origin, rw.origin[sl], rtol=0, atol=1e-9):

@@ -251,16 +251,16 @@ def _prop_args(rw, distance, tile=None):
 
 def _tile_kw(rw, tile):
     """``window_center_mm`` of the whole sensor patch for a spatial tile (so that the tile has the
-    whole patch's band limits and equals its pixels), cached per RayWave; {} without a tile."""
+    whole patch's band limits and equals its pixels), cached per RayWave and its centres; {} without a tile."""
     if tile is None:
         return {}
-    c = getattr(rw, "_bridge_window_center", None)
-    if c is None:
+    cached = getattr(rw, "_bridge_window_center", None)
+    if cached is None or cached[0] is not rw.centers:      # RayWave.recentre assigns new centres
         from rwwarp import propagate
         args = rw.propagation_args()
         c = propagate.sensor_window_center(np.atleast_2d(args[4]), np.atleast_2d(args[5]), args[6], rw.gauss_nodes)
-        rw._bridge_window_center = c
-    return {"window_center_mm": c}
+        cached = rw._bridge_window_center = (rw.centers, c)
+    return {"window_center_mm": cached[1]}
 
 
 def spatial_tiles(size: int, tile_px: int | None):
