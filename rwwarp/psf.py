@@ -698,46 +698,7 @@ def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, obj
 
 
 # ---------------------------------------------------------------------------------------------- comparison models
-def paraxial_equivalent(lens, fields, wls, object_distance_mm=None):
-    """The paraxial-wave comparison system: the refractive part replaced by an ideal thin lens.
-
-    The thin lens sits at the wave plane (DOE) with the focal length that images the object where
-    the refractive part's paraxial image lies; its aperture is the paraxial beam footprint there.
-    Returns ``(lens, fields)`` with equivalent field angles (same paraxial image height).
-    """
-    from .lens import Lens, Surface
-    plane = _wave_plane_index(lens)
-    w0 = wls[0]
-    ys, nus = paraxial.ynu_trace(lens, w0, 1.0, 0.0)
-    z = lens.vertex_z
-    # paraxial image of an axial object at infinity formed by surfaces before the plane
-    if plane == 0:
-        raise LensError("paraxial-wave model needs refracting surfaces before the DOE", file=lens.source)
-    n_pl = lens.indices(w0)[plane]
-    y_pl, nu_pl = ys[plane], nus[plane - 1]
-    dist_img = -y_pl * n_pl / nu_pl  # image distance behind the plane
-    pup = paraxial.pupils(lens, w0)
-    marg_y, _ = paraxial.ynu_trace(lens, w0, pup.entrance_radius, 0.0)
-    half = abs(marg_y[plane])
-    s_doe = lens.surfaces[plane]
-    efl = paraxial.efl(lens, w0)
-    surfs = [Surface(type="aperture", semi_diameter=half, shape=lens.surfaces[lens.stop_index].shape, stop=True),
-             Surface(type="thin_lens", focal_length=dist_img, semi_diameter=None)]
-    if s_doe.type == "doe":
-        surfs.append(Surface(type="doe", semi_diameter=s_doe.semi_diameter, shape=s_doe.shape,
-                             profile=s_doe.profile, design_wavelength_um=s_doe.design_wavelength_um,
-                             material=s_doe.material, levels=s_doe.levels))
-    surfs[-1].thickness = lens.sensor_z - z[plane]
-    eq = Lens(surfs, lens.sensor, math.inf, list(wls), name=f"paraxial equivalent of {lens.name}",
-              source=lens.source)
-    eq_fields = []
-    for f in fields:
-        fx, fy = (0.0, float(f)) if np.ndim(f) == 0 else (float(f[0]), float(f[1]))
-        # same paraxial image height: h = efl * tan(theta) = dist_img * tan(theta_eq)
-        tx = efl * math.tan(math.radians(fx)) / dist_img
-        ty = efl * math.tan(math.radians(fy)) / dist_img
-        eq_fields.append((math.degrees(math.atan(tx)), math.degrees(math.atan(ty))))
-    return eq, eq_fields
+from .paraxial_wave import paraxial_equivalent  # noqa: E402,F401  (public here for compatibility)
 
 
 def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm):

@@ -1,0 +1,55 @@
+"""Regression tests for the physics defects of issue 11, each against physics: an analytic PSF or
+conjugate, energy conservation, or an independent trace.
+"""
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+import rwwarp as rw
+from rwwarp import analytic, paraxial
+from rwwarp.errors import GeometryError, LensError
+from rwwarp.lens import Lens, Sensor, Surface
+
+
+def rel_l2(a, b):
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def _blank_doe(thickness, sd=1.0, shape="square", levels=None):
+    return Surface(type="doe", semi_diameter=sd, shape=shape, thickness=thickness, levels=levels,
+                   profile={"kind": "even_poly", "norm_radius": sd, "coefficients": [0.0, 0.0]})
+
+
+# ------------------------------------------------------------------ defect 1: paraxial-wave object distance
+def test_paraxial_wave_uses_object_distance_analytic_conjugate():
+    """Ideal f = 100 mm lens, 2 mm square aperture, object at 300 mm: the image lies at 150 mm
+    (1/v = 1/f - 1/u), where the sensor is. The paraxial-wave PSF must be the focused sinc^2 of a
+    2 mm square at 150 mm (closed form, pixel-integrated); before the fix the model put the object at
+    infinity (image at 100 mm, 50 mm of defocus: relative L2 error 0.997)."""
+    lens = Lens([Surface(type="aperture", semi_diameter=1.0, shape="square"),
+                 Surface(type="thin_lens", focal_length=100.0), _blank_doe(150.0)],
+                Sensor(0.002, (2000, 2000)), math.inf, [0.55])
+    p = rw.psf(lens, 0.0, 0.55, model="paraxial-wave", size=32, object_distance_mm=300.0)
+    x, y = p.coords_mm()
+    ref = analytic.square_aperture_pixel_psf(x, y, p.pixel_mm, 2.0, 150.0, 0.55)
+    # measured 1.06e-3 (the ray-wave model of the same lens at 300 mm: the same to 1e-8; the residual is
+    # the sampling of the energy splat on the aperture edge plus the Fresnel/Fraunhofer difference)
+    assert rel_l2(p.data, ref) < 3e-3
+    # the lens's own object distance is used when none is passed
+    p2 = rw.psf(lens.replace(object_distance=300.0), 0.0, 0.55, model="paraxial-wave", size=32)
+    assert rel_l2(p2.data, ref) < 3e-3
+
+
+def test_paraxial_wave_field_at_finite_object_lands_at_analytic_image_height():
+    """Object at 300 mm, field 2 deg (object height 300 tan 2deg below the axis, pupil at the lens): the
+    image at 150 mm has height 150 tan(2 deg) = 5.238115 mm (magnification -1/2). Measured centroid
+    5.238101 mm (1.4e-5 mm off: the sinc^2 tails cut by the 32-pixel patch); bound 5e-5 mm."""
+    lens = Lens([Surface(type="aperture", semi_diameter=1.0, shape="square"),
+                 Surface(type="thin_lens", focal_length=100.0), _blank_doe(150.0)],
+                Sensor(0.002, (20000, 20000)), 300.0, [0.55])
+    p = rw.psf(lens, 2.0, 0.55, model="paraxial-wave", size=32)
+    _, y = p.coords_mm()
+    cy = float((p.data.sum(1) * y).sum() / p.data.sum())
+    assert abs(cy - 150.0 * math.tan(math.radians(2.0))) < 5e-5
