@@ -133,8 +133,10 @@ def lens_from_deeplens(d: dict, source=None):
                       f"(supported: {', '.join(_SURFACE_TYPES)})", i, "type")
         for key, neutral in (("pos_xy", [0.0, 0.0]), ("vec_local", [0.0, 0.0, 1.0]), ("origin", None)):
             v = sd.get(key)
-            if v is not None and (neutral is None or [float(a) for a in v] != neutral):
-                raise err(f"decentred or tilted surfaces are not supported ({key} = {v})", i, key)
+            if v is not None and (neutral is None or not isinstance(v, list)
+                                  or any(isinstance(a, bool) or not isinstance(a, (int, float)) for a in v)
+                                  or [float(a) for a in v] != neutral):
+                raise err(f"decentred or tilted surfaces are not supported ({key} = {v!r:.80})", i, key)
         semi = num(sd, "r", i, positive=True) if sd.get("r") is not None else None
         shape = "square" if sd.get("is_square") else "circle"
         if typ in ("Aperture", "Stop"):
@@ -199,8 +201,8 @@ def lens_from_deeplens(d: dict, source=None):
     # ---------------------------------------------------------------- sensor and system
     res = d.get("sensor_res", [2000, 2000])
     try:
-        res = [int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
-    except (TypeError, ValueError):
+        res = [_int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
+    except (TypeError, ValueError, OverflowError):
         raise err(f"'sensor_res' must be two integers, got {res!r}", key="sensor_res") from None
     if len(res) != 2 or min(res) < 1:
         raise err(f"'sensor_res' must be two positive integers, got {res!r}", key="sensor_res")
@@ -208,15 +210,17 @@ def lens_from_deeplens(d: dict, source=None):
         size = d["sensor_size"]
         size = size if isinstance(size, (list, tuple)) else [size, size]
         try:
-            pitch = float(size[0]) / res[0]
-        except (TypeError, ValueError, IndexError):
+            pitch = num({"sensor_size": size[0]}, "sensor_size", None, positive=True) / res[0]
+        except (TypeError, ValueError, IndexError, KeyError):
             raise err(f"'sensor_size' must be [w, h] in mm, got {size!r}", key="sensor_size") from None
     elif d.get("r_sensor") is not None:
         pitch = 2.0 * num(d, "r_sensor", None, positive=True) / math.hypot(res[0], res[1])
     else:
         raise err("no sensor size: give 'sensor_size' [w, h] (mm) or the half-diagonal 'r_sensor' (mm)",
                   key="r_sensor")
-    epd = d.get("enpd")
+    epd = None if d.get("enpd") is None else num(d, "enpd", None, positive=True)
+    if not isinstance(d.get("info", ""), (str, type(None))):
+        raise err(f"'info' must be a string, got {type(d['info']).__name__}", key="info")
     try:
         lens = Lens(surfaces=surfaces, sensor=Sensor(pixel_pitch=pitch, resolution=tuple(res)),
                     object_distance=math.inf, wavelengths_um=list(DEFAULT_WAVELENGTHS_UM),
@@ -227,6 +231,13 @@ def lens_from_deeplens(d: dict, source=None):
         surf = e.surface if not isinstance(e.surface, int) else labels[e.surface]
         raise type(e)(_core(e), file=src, surface=surf, keyword=e.keyword) from None
     return lens
+
+
+def _int(v) -> int:
+    """An integral JSON number (refuses bools, strings, fractions, inf and NaN with ValueError)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v):
+        raise ValueError(v)
+    return int(v)
 
 
 def _material(sd, i, src, err, materials):
@@ -270,9 +281,9 @@ def _doe(dd, err):
     z = num("d")
     res = dd.get("res", [2000, 2000])
     try:
-        res = [int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
-        levels = None if old else int(dd.get("fab_step", 16))
-    except (TypeError, ValueError):
+        res = [_int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]
+        levels = None if old else _int(dd.get("fab_step", 16))
+    except (TypeError, ValueError, OverflowError):
         raise err(f"'res' and 'fab_step' must be integers, got {res!r}, {dd.get('fab_step')!r}", "DOE",
                   "res") from None
     if len(res) != 2 or min(res) < 1:
@@ -282,6 +293,11 @@ def _doe(dd, err):
         w = h = num("l", positive=True)
     elif dd.get("size") is not None:
         size = dd["size"] if isinstance(dd["size"], (list, tuple)) else [dd["size"], dd["size"]]
+        if len(size) != 2:
+            raise err(f"'size' must be a number or [w, h] in mm, got {size!r:.80}", "DOE", "size")
+        for v in size:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not v > 0:
+                raise err(f"'size' entries must be finite numbers > 0 (mm), got {v!r:.80}", "DOE", "size")
         w, h = float(size[0]), float(size[1])
     else:
         w, h = res[0] * fab_ps, res[1] * fab_ps
@@ -292,6 +308,8 @@ def _doe(dd, err):
     pitch = w / res[0]
     wvln0 = num("wvln0", default=0.55, positive=True)
     mat = dd.get("mat", "fused_silica")
+    if not isinstance(mat, str):
+        raise err(f"'mat' must be a material name, got {mat!r:.80}", "DOE", "mat")
 
     if model == "binary2":
         if old:

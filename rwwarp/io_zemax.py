@@ -124,6 +124,9 @@ class _Reader:
                 if num != len(self.blocks):
                     raise self.err(f"surfaces must be numbered 0, 1, 2, ...; found SURF {num} after "
                                    f"{len(self.blocks)} surface(s)", surf=num, key="SURF", line=ln)
+                from .validate_input import MAX_SURFACES
+                if num > MAX_SURFACES + 1:
+                    raise self.err(f"more than {MAX_SURFACES} lens surfaces", surf=num, key="SURF", line=ln)
                 cur = _Block(num, ln)
                 self.blocks.append(cur)
             elif cur is not None and key in _SURF_KEYS:
@@ -171,11 +174,14 @@ def read_zmx(path):
 
     path = Path(path)
     rd = _Reader(path)
+    from .validate_input import read_lens_bytes
+    raw = read_lens_bytes(path)  # regular files only, size capped (LensFileError naming the file)
     try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise LensFileError(f"cannot read file ({e.strerror})", file=str(path)) from None
-    rd.parse(_decode(raw))
+        text = _decode(raw)
+    except UnicodeDecodeError as e:
+        raise LensFileError(f"cannot decode the file as {e.encoding} text at byte {e.start}: {e.reason}",
+                            file=str(path)) from None
+    rd.parse(text)
 
     # ------------------------------------------------------------------ system data
     mode = rd.hget("MODE")
@@ -430,6 +436,10 @@ def read_zmx(path):
             nterms = int(xdat.get(1, 0))
             if nterms < 0:
                 raise rd.err(f"BINARY_2 number of terms XDAT 1 = {nterms} must be >= 0", surf=k, key="XDAT 1")
+            from .validate_input import MAX_TERMS
+            if nterms > MAX_TERMS or xdat.get(1, 0) != nterms:
+                raise rd.err(f"BINARY_2 number of terms XDAT 1 = {xdat.get(1)} must be an integer 0..{MAX_TERMS}",
+                             surf=k, key="XDAT 1")
             coeffs = [order * xdat.get(2 + i, 0.0) for i in range(1, nterms + 1)]
             rnorm = xdat.get(2, 0.0) * scale
             if nterms and not rnorm > 0:

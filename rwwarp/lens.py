@@ -167,6 +167,8 @@ class Lens:
         f = self.source
         if not self.surfaces:
             raise LensError("a lens needs at least one surface", file=f)
+        from .validate_input import check_doe_steepness, check_lens_values
+        check_lens_values(self)  # types, finiteness and ranges of every value (issue 12)
         if not (self.object_distance > 0):
             raise LensError(f"object_distance must be > 0 mm or inf, got {self.object_distance}", file=f)
         for w in self.wavelengths_um:
@@ -205,9 +207,10 @@ class Lens:
                                     keyword="levels")
                 from . import doe as _doe
                 try:
-                    _doe.profile_from_dict(s.profile, base=Path(f).parent if f else None)
+                    prof = _doe.profile_from_dict(s.profile, base=Path(f).parent if f else None)
                 except LensError as e:
                     raise type(e)(str(e), file=f, surface=i, keyword="profile") from None
+                check_doe_steepness(s, i, self, prof)
             for m in ([s.material] if s.type in ("standard", "thin_lens", "doe") else []):
                 try:
                     materials.get_material(m)
@@ -293,18 +296,28 @@ class Lens:
         surfaces = [_surface_from_dict(sd, i, source) for i, sd in enumerate(d["surfaces"])]
         sens = d.get("sensor", {})
         _no_unknown(sens, {"pixel_pitch", "resolution"}, source, None, prefix="sensor.")
-        try:
-            sensor = Sensor(pixel_pitch=float(sens.get("pixel_pitch", 0.004)),
-                            resolution=tuple(int(v) for v in sens.get("resolution", (2000, 2000))))
-            od = d.get("object_distance", "inf")
-            od = math.inf if (isinstance(od, str) and od.lower() in ("inf", "infinity")) or od is None else float(od)
-            wls = [float(w) for w in d.get("wavelengths_um", [0.55])]
-            epd = d.get("entrance_pupil_diameter")
-        except (TypeError, ValueError) as e:
-            raise LensFileError(f"bad value: {e}", file=source) from None
+        res = sens.get("resolution", [2000, 2000])
+        if not isinstance(res, list) or len(res) != 2:
+            raise LensFileError(f"sensor.resolution must be a list of two integers, got {_brief(res)}", file=source,
+                                keyword="sensor.resolution")
+        sensor = Sensor(pixel_pitch=_num(sens.get("pixel_pitch", 0.004), source, None, "sensor.pixel_pitch"),
+                        resolution=tuple(_integer(v, source, None, "sensor.resolution") for v in res))
+        od = d.get("object_distance", "inf")
+        od = math.inf if (isinstance(od, str) and od.lower() in ("inf", "infinity")) or od is None else \
+            _num(od, source, None, "object_distance")
+        wls = d.get("wavelengths_um", [0.55])
+        if not isinstance(wls, list):
+            raise LensFileError(f"wavelengths_um must be a list of numbers (um), got {_brief(wls)}", file=source,
+                                keyword="wavelengths_um")
+        wls = [_num(w, source, None, "wavelengths_um") for w in wls]
+        epd = d.get("entrance_pupil_diameter")
+        name = d.get("name", "")
+        if not isinstance(name, str):
+            raise LensFileError(f"name must be a string, got {_brief(name)}", file=source, keyword="name")
         return cls(surfaces=surfaces, sensor=sensor, object_distance=od, wavelengths_um=wls,
-                   name=str(d.get("name", "")), entrance_pupil_diameter=None if epd is None else float(epd),
-                   fields_deg=d.get("fields_deg"), source=source)
+                   name=name, entrance_pupil_diameter=None if epd is None else
+                   _num(epd, source, None, "entrance_pupil_diameter"),
+                   fields_deg=copy.deepcopy(d.get("fields_deg")), source=source)
 
     def save(self, path) -> None:
         """Write the native JSON file."""
@@ -336,28 +349,57 @@ def _surface_from_dict(sd, i, source) -> Surface:
         raise LensFileError(f"surface entry must be an object, got {type(sd).__name__}", file=source, surface=i)
     _no_unknown(sd, _SURFACE_KEYS, source, i)
     kw = {}
-    try:
-        for k, v in sd.items():
-            if k in ("thickness", "conic", "design_wavelength_um"):
-                kw[k] = float(v)
-            elif k in ("radius", "semi_diameter", "focal_length"):
-                kw[k] = None if v is None else float(v)
-            elif k == "aspheric":
-                kw[k] = [float(a) for a in v]
-            elif k == "levels":
-                kw[k] = None if v is None else int(v)
-            elif k == "stop":
-                kw[k] = bool(v)
-            else:
-                kw[k] = v
-    except (TypeError, ValueError) as e:
-        raise LensFileError(f"bad value ({e})", file=source, surface=i, keyword=k) from None
+    for k, v in sd.items():
+        if k in ("thickness", "conic", "design_wavelength_um"):
+            kw[k] = _num(v, source, i, k)
+        elif k in ("radius", "semi_diameter", "focal_length"):
+            kw[k] = None if v is None else _num(v, source, i, k)
+        elif k == "aspheric":
+            if not isinstance(v, list):
+                raise LensFileError(f"aspheric must be a list of numbers, got {_brief(v)}", file=source, surface=i,
+                                    keyword=k)
+            kw[k] = [_num(a, source, i, k) for a in v]
+        elif k == "levels":
+            kw[k] = None if v is None else _integer(v, source, i, k)
+        elif k == "stop":
+            if not isinstance(v, bool):
+                raise LensFileError(f"stop must be true or false, got {_brief(v)}", file=source, surface=i,
+                                    keyword=k)
+            kw[k] = v
+        elif k == "profile":
+            kw[k] = copy.deepcopy(v)
+        else:
+            if not isinstance(v, str):
+                raise LensFileError(f"{k} must be a string, got {_brief(v)}", file=source, surface=i, keyword=k)
+            kw[k] = v
     typ = kw.get("type", "standard")
     if typ == "doe" and "material" not in kw:
         kw["material"] = "fused_silica"
     if typ == "standard" and kw.get("radius") == 0:
         kw["radius"] = None
     return Surface(**kw)
+
+
+def _brief(v, n=60) -> str:
+    r = repr(v)
+    return r if len(r) <= n else r[:n] + "..."
+
+
+def _num(v, source, surface, key) -> float:
+    """A JSON number (not a bool, string, list or object); NaN and inf pass here and are refused by
+    :meth:`Lens.validate`, which names them."""
+    from .validate_input import is_real
+    if not is_real(v):
+        raise LensFileError(f"{key} must be a number, got {type(v).__name__} {_brief(v)}", file=source,
+                            surface=surface, keyword=key)
+    return float(v)
+
+
+def _integer(v, source, surface, key) -> int:
+    from .validate_input import is_real
+    if not is_real(v) or not math.isfinite(v) or float(v) != int(v):
+        raise LensFileError(f"{key} must be an integer, got {_brief(v)}", file=source, surface=surface, keyword=key)
+    return int(v)
 
 
 def _no_unknown(d, allowed, source, surface, prefix=""):
@@ -376,23 +418,43 @@ def load_lens(path) -> Lens:
     Raises :class:`LensError` (subclasses :class:`LensFileError`, :class:`GlassError`,
     :class:`GeometryError`) naming the file and the surface at fault.
     """
+    from . import validate_input as vi
+
+    vi.check_path_string(path)
     p = Path(path)
-    if not p.exists():
+    try:
+        exists = p.exists()
+    except (OSError, ValueError):  # over-long or odd paths
+        exists = False
+    if not exists:
         bundled = Path(__file__).parent / "lenses"
         for cand in (bundled / p.name, bundled / (p.name + ".json"), bundled / (p.name + ".zmx")):
-            if cand.exists():
-                p = cand
-                break
+            try:
+                if p.name and cand.is_file():
+                    p = cand
+                    break
+            except (OSError, ValueError):
+                continue
         else:
-            raise LensFileError("no such file (and no bundled lens of that name)", file=str(path))
-    if p.suffix.lower() == ".zmx":
-        from .io_zemax import read_zmx
-        return read_zmx(p)
+            raise LensFileError("no such file (and no bundled lens of that name)", file=vi._short(str(path)))
     try:
-        d = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise LensFileError(f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}", file=str(p)) from None
-    if isinstance(d, dict) and d.get("format") == FORMAT:
-        return Lens.from_dict(d, source=str(p))
-    from .io_deeplens import lens_from_deeplens
-    return lens_from_deeplens(d, source=str(p))
+        if p.suffix.lower() == ".zmx":
+            from .io_zemax import read_zmx
+            lens = read_zmx(p)
+        else:
+            d = vi.parse_json(vi.read_lens_bytes(p), p)
+            if isinstance(d, dict) and isinstance(d.get("surfaces"), list) and len(d["surfaces"]) > vi.MAX_SURFACES:
+                raise LensFileError(f"{len(d['surfaces'])} surfaces; at most {vi.MAX_SURFACES} are supported",
+                                    file=str(p), keyword="surfaces")
+            if isinstance(d, dict) and d.get("format") == FORMAT:
+                lens = Lens.from_dict(d, source=str(p))
+            else:
+                from .io_deeplens import lens_from_deeplens
+                lens = lens_from_deeplens(d, source=str(p))
+        vi.check_loaded(lens)
+    except LensError:
+        raise
+    except (TypeError, ValueError, OverflowError, KeyError, IndexError, AttributeError, ZeroDivisionError,
+            RecursionError, MemoryError, UnicodeError) as e:  # last line of defence: still a LensError
+        raise LensFileError(f"cannot interpret the file ({type(e).__name__}: {str(e)[:200]})", file=str(p)) from None
+    return lens
