@@ -47,6 +47,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import stat
 from collections import namedtuple
 from pathlib import Path
 
@@ -465,8 +466,10 @@ class PixelMapProfile(Profile):
     def _load(self, path):
         try:
             st = os.stat(path)
+            if not stat.S_ISREG(st.st_mode) or st.st_size > 2 ** 30:  # no FIFOs/devices (would block), <= 1 GiB
+                raise ValueError("not a regular file of at most 1 GiB")
             arr = _load_npy(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
-        except (OSError, ValueError) as e:
+        except (OSError, ValueError, EOFError, TypeError) as e:
             raise LensFileError(f"profile.file: cannot read pixel map {str(path)!r} ({e})") from None
         return self._check(arr)
 

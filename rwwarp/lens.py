@@ -455,6 +455,6 @@ def load_lens(path) -> Lens:
     except LensError:
         raise
     except (TypeError, ValueError, OverflowError, KeyError, IndexError, AttributeError, ZeroDivisionError,
-            RecursionError, MemoryError, UnicodeError) as e:  # last line of defence: still a LensError
+            RecursionError, MemoryError, UnicodeError, OSError) as e:  # last line of defence: a LensError
         raise LensFileError(f"cannot interpret the file ({type(e).__name__}: {str(e)[:200]})", file=str(p)) from None
     return lens
