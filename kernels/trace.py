@@ -50,6 +50,19 @@ KIND_PLANE = 2     # aperture / DOE plane / sensor: intersect and clip, no bendi
 
 NEWTON_STEPS = 8
 
+#: The one tolerance at a clear-aperture edge: a pupil sample or a ray counts as inside a circle of
+#: radius R while r^2 <= R^2 (1 + EDGE_RTOL) (a square: |x| <= R (1 + EDGE_RTOL)). Grid points that lie
+#: on the pupil circle exactly (0.6, 0.8) carry r^2 = 1 + 2e-16 after rounding; without a tolerance they
+#: are lost. float32 kernels use EDGE_RTOL_F32 (a few float32 roundings). The host's pupil grids
+#: (:func:`rwwarp.trace.pupil_grid`) use :func:`edge_rtol` too.
+EDGE_RTOL = 1.0e-9
+EDGE_RTOL_F32 = 1.0e-6
+
+
+def edge_rtol(scalar=wp.float64) -> float:
+    """The aperture-edge tolerance for kernels of ``scalar`` type (see :data:`EDGE_RTOL`)."""
+    return EDGE_RTOL if scalar == wp.float64 else EDGE_RTOL_F32
+
 
 @functools.cache
 def make_trace_kernels(scalar):
@@ -59,6 +72,7 @@ def make_trace_kernels(scalar):
     """
     vec3 = wp.types.vector(3, scalar)
     tol = 1.0e-10 if scalar == wp.float64 else 1.0e-4
+    edge = edge_rtol(scalar)
 
     @wp.func
     def sag_and_slope(r2: scalar, params: wp.array(dtype=scalar)):
@@ -91,10 +105,11 @@ def make_trace_kernels(scalar):
         out = 0
         if sd > scalar(0.0):
             if params[P_SQUARE] > scalar(0.5):
-                if wp.abs(x) > sd or wp.abs(y) > sd:
+                lim = sd * (scalar(1.0) + scalar(edge))
+                if wp.abs(x) > lim or wp.abs(y) > lim:
                     out = 1
             else:
-                if x * x + y * y > sd * sd:
+                if x * x + y * y > sd * sd * (scalar(1.0) + scalar(edge)):
                     out = 1
         return out
 
@@ -164,7 +179,7 @@ def make_trace_kernels(scalar):
         dir_out[i] = d
         valid_out[i] = 1
         if circle == 1:
-            if pu * pu + pv * pv > scalar(1.0 + 1.0e-12):
+            if pu * pu + pv * pv > scalar(1.0) + scalar(edge):
                 valid_out[i] = 0
                 weight_out[i] = scalar(0.0)
         wl_out[i] = w

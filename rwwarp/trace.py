@@ -153,7 +153,7 @@ def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0
         u = u + jitter * cell * (rng.random(u.size) - 0.5)
         v = v + jitter * cell * (rng.random(v.size) - 0.5)
     if shape == "circle" and clip:
-        keep = u * u + v * v <= 1.0 + 1e-12
+        keep = u * u + v * v <= 1.0 + ktrace.EDGE_RTOL  # the kernels' tolerance (kernels.trace.EDGE_RTOL)
         u, v = u[keep], v[keep]
     return u, v, cell * cell
 

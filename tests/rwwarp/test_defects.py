@@ -53,3 +53,28 @@ def test_paraxial_wave_field_at_finite_object_lands_at_analytic_image_height():
     _, y = p.coords_mm()
     cy = float((p.data.sum(1) * y).sum() / p.data.sum())
     assert abs(cy - 150.0 * math.tan(math.radians(2.0))) < 5e-5
+
+
+# ------------------------------------------------------------------ defect 9: pupil-edge rays
+def test_pupil_edge_rays_are_kept_on_a_401_grid():
+    """The 401 x 401 'edges' grid holds exactly the integer points i^2 + j^2 <= 200^2 (125629 of them,
+    20 on the circle itself: (0, 200), (120, 160), (56, 192), ...). Every one enters the Cooke triplet
+    (no vignetting on axis, floating stop): the host grid and the kernel share one edge tolerance.
+    Before the fix the kernel dropped the 4 whose u^2 + v^2 rounds to 1 + 2e-16."""
+    from rwwarp.trace import Tracer, pupil_grid
+    i = np.arange(-200, 201)
+    exact = int(np.sum(i[:, None] ** 2 + i[None, :] ** 2 <= 200 ** 2))
+    assert exact == 125629
+    u, v, _ = pupil_grid(401, "circle", layout="edges")
+    assert len(u) == exact
+    lens = rw.load_lens("cooke_triplet")
+    rays = Tracer(lens, [0.5876]).trace([0.0], grid=401, layout="edges").numpy()
+    assert int(rays["valid"].sum()) == exact
+    # the same tolerance at a surface's clear aperture: a stop whose semi-diameter is exactly the
+    # marginal ray height on axis (a thin-lens system: the paraxial marginal ray is exact there)
+    thin = Lens([Surface(type="aperture", semi_diameter=2.0, stop=True),
+                 Surface(type="thin_lens", focal_length=50.0, thickness=10.0),
+                 Surface(type="aperture", semi_diameter=2.0 * 40.0 / 50.0, thickness=40.0)],
+                Sensor(0.004, (1000, 1000)), math.inf, [0.55])
+    rays = Tracer(thin, [0.55]).trace([0.0], grid=401, layout="edges").numpy()
+    assert int(rays["valid"].sum()) == exact
