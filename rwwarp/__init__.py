@@ -12,7 +12,7 @@ Units: lengths in mm, wavelengths in um, field angles in degrees.
     rw.spot_rms(lens, field_deg=14.0, wavelength_um=0.5876)   # um
     p = rw.psf(lens, field_deg=0.0, wavelength_um=0.55, model="ray-wave", size=64, device="cpu")
 """
-from .errors import LensError, LensFileError, GlassError, GeometryError, SamplingWarning
+from .errors import LensError, LensFileError, GlassError, GeometryError, ArgumentError, SamplingWarning
 from .lens import Lens, Surface, Sensor, load_lens
 from .analysis import spot_rms, spot_diagram
 from .psf import psf, psf_map, PSF, PSFMap
@@ -20,5 +20,5 @@ from .plan import Plan
 
 __version__ = "0.1.0"
 
-__all__ = ["LensError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
+__all__ = ["LensError", "ArgumentError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
            "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "PSF", "PSFMap", "Plan"]

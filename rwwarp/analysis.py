@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .errors import GeometryError
 from .kernels.trace import make_analysis_kernels
-from .trace import Tracer, as_field_list, pupil_grid
+from .trace import Tracer, pupil_grid
 
 
 def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401, reference: str = "centroid",
@@ -19,7 +20,16 @@ def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401
     convention, grid points include the pupil edge). ``reference``: ``"centroid"`` or ``"chief"``
     (the ray through the pupil centre). ``field_deg``: one field (deg) or a list (returns an array).
     """
-    fields = as_field_list(field_deg)
+    from . import checks
+    checks.check_lens(lens)
+    fields = checks.check_fields(field_deg, "field_deg")
+    single = isinstance(field_deg, tuple) or not isinstance(field_deg, (list, np.ndarray))
+    wavelength_um = checks.check_wavelength(wavelength_um, lens)
+    grid = checks.check_grid(grid)
+    checks.check_choice(reference, "reference", ("centroid", "chief"))
+    checks.check_choice(layout, "layout", ("edges", "centers"))
+    checks.check_choice(dtype, "dtype", ("float64", "float32"))
+    checks.check_device(device)
     tr = Tracer(lens, [wavelength_um], device=device, dtype=dtype)
     rays = tr.trace(fields, grid=grid, ray_aiming=ray_aiming, layout=layout)
     r = rays.numpy()
@@ -32,17 +42,29 @@ def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401
     for k in range(len(fields)):
         ok = r["valid"][k]
         if not ok.any():
-            out[k] = np.nan
-            continue
+            raise GeometryError(f"field_deg={fields[k]!r} at {wavelength_um:g} um: no ray of the {grid}x{grid} "
+                                "pupil grid reaches the sensor (the field is fully vignetted or misses a surface)",
+                                file=lens.source, field=fields[k])
         xy = r["pos"][k, ok, :2]
         c = xy.mean(0) if chief is None else chief["pos"][k, 0, :2]
+        if chief is not None and not np.all(np.isfinite(c)):
+            raise GeometryError(f"field_deg={fields[k]!r}: the chief ray does not reach the sensor "
+                                "(use reference='centroid')", file=lens.source, field=fields[k])
         out[k] = 1e3 * np.sqrt(np.mean(np.sum((xy - c) ** 2, axis=1)))
-    return out[0] if np.ndim(field_deg) == 0 or isinstance(field_deg, tuple) else out
+        if not np.isfinite(out[k]):
+            raise GeometryError(f"field_deg={fields[k]!r}: the RMS spot radius is not finite (rays overflow)",
+                                file=lens.source, field=fields[k])
+    return out[0] if single else out
 
 
 def spot_diagram(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 41, device: str = "cpu"):
     """Spot-diagram data: (x, y) sensor hits (mm) of valid rays, per field. Returns a list of (n, 2) arrays."""
-    fields = as_field_list(field_deg)
+    from . import checks
+    checks.check_lens(lens)
+    fields = checks.check_fields(field_deg, "field_deg")
+    wavelength_um = checks.check_wavelength(wavelength_um, lens)
+    grid = checks.check_grid(grid)
+    checks.check_device(device)
     tr = Tracer(lens, [wavelength_um], device=device)
     r = tr.trace(fields, grid=grid).numpy()
     return [r["pos"][k, r["valid"][k], :2] for k in range(len(fields))]

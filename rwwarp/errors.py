@@ -34,5 +34,10 @@ class GeometryError(LensError):
     """Surfaces cross, a thickness is impossible, or no ray reaches the image."""
 
 
+class ArgumentError(LensError):
+    """An argument of a public function is of the wrong type or out of range; the message names the
+    argument, the value and the accepted range (see :mod:`rwwarp.checks`). A ``ValueError``."""
+
+
 class SamplingWarning(UserWarning):
     """A requested simulation setting violates a sampling criterion (aliasing is likely)."""

@@ -61,21 +61,36 @@ def ynu_trace(lens, wavelength_um: float, y0: float, nu0: float):
     return ys, nus
 
 
+def _checked(lens, wavelength_um) -> float:
+    from . import checks
+    checks.check_lens(lens)
+    return checks.check_wavelength(wavelength_um, lens)
+
+
+def _finite(v, what, lens) -> float:
+    if not np.isfinite(v):
+        raise GeometryError(f"the paraxial {what} is not finite ({v}); the lens data overflow float64",
+                            file=lens.source)
+    return float(v)
+
+
 def efl(lens, wavelength_um: float = 0.5876) -> float:
     """Effective focal length, mm (image space in air), at ``wavelength_um`` (um)."""
+    wavelength_um = _checked(lens, wavelength_um)
     _, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     if nu[-1] == 0:
         raise GeometryError("afocal system: the effective focal length is infinite", file=lens.source)
-    return float(-1.0 / nu[-1])
+    return _finite(-1.0 / nu[-1], "effective focal length", lens)
 
 
 def bfl(lens, wavelength_um: float = 0.5876) -> float:
     """Back focal length (paraxial focus behind the last surface vertex), mm."""
+    wavelength_um = _checked(lens, wavelength_um)
     y, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     n = lens.indices(wavelength_um)[-1]
     if nu[-1] == 0:
         raise GeometryError("afocal system: the back focal length is infinite", file=lens.source)
-    return float(-y[-1] * n / nu[-1])
+    return _finite(-y[-1] * n / nu[-1], "back focal length", lens)
 
 
 @dataclass
@@ -104,6 +119,7 @@ def stop_semi_diameter(lens, wavelength_um: float) -> float:
 
 def pupils(lens, wavelength_um: float = 0.5876) -> Pupils:
     """Paraxial entrance and exit pupils at ``wavelength_um`` (um)."""
+    wavelength_um = _checked(lens, wavelength_um)
     i = lens.stop_index
     ya, nua = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     yb, nub = ynu_trace(lens, wavelength_um, 0.0, 1.0)
@@ -128,6 +144,7 @@ def pupils(lens, wavelength_um: float = 0.5876) -> Pupils:
 
 def f_number(lens, wavelength_um: float = 0.5876) -> float:
     """Paraxial F/# = EFL / entrance pupil diameter (object at infinity)."""
+    wavelength_um = _checked(lens, wavelength_um)
     return efl(lens, wavelength_um) / (2.0 * pupils(lens, wavelength_um).entrance_radius)
 
 
@@ -137,6 +154,12 @@ def thin_lens_conjugates(lens, wavelength_um: float, index: int):
     u is the distance of the (possibly virtual) paraxial object in front of the lens, for the
     lens's own object distance; v its paraxial image distance behind it.
     """
+    wavelength_um = _checked(lens, wavelength_um)
+    from . import checks
+    index = checks.check_int(index, "index", lo=0, hi=len(lens.surfaces) - 1)
+    if lens.surfaces[index].type != "thin_lens":
+        raise checks.ArgumentError(f"index={index}: surface {index} is a {lens.surfaces[index].type!r} "
+                                   "surface, not a thin_lens")
     n = lens.indices(wavelength_um)
     n1 = 1.0 if index == 0 else n[index - 1]
     n2 = n[index]

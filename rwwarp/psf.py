@@ -143,6 +143,24 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     ``info["batches"]`` lists each batch's (field, wavelength) index pairs and plan, ``info["plan"]``
     is the last batch's plan.
     """
+    from . import checks  # arguments at the public edge (issue 12): names the argument and its range
+    checks.check_lens(lens)
+    checks.check_choice(model, "model", MODELS)
+    fields = checks.check_fields(fields)
+    wavelengths_um = checks.check_wavelengths(wavelengths_um, lens)
+    size = checks.check_size(size)
+    checks.check_device(device)
+    checks.check_choice(dtype, "dtype", ("float64", "float32"))
+    checks.check_object_distance(object_distance_mm)
+    checks.check_rays_per_sample(rays_per_sample)
+    checks.check_pixel_mm(pixel_mm)
+    checks.check_center(center_mm)
+    checks.check_batch(batch)
+    checks.check_nyquist_safety(nyquist_safety)
+    if gauss_nodes is not None:
+        checks.check_int(gauss_nodes, "gauss_nodes", lo=1, hi=64)
+    checks.check_int(len(fields) * len(wavelengths_um), "number of (field, wavelength) pairs", lo=1,
+                     hi=checks.MAX_SOURCES)
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if amplitude not in ("energy", "paper"):
