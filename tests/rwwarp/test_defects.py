@@ -112,3 +112,20 @@ def test_ray_aiming_ignores_clear_apertures():
     a_clip = Tracer(clipped, [0.5876]).sources([20.0], ray_aiming=True)["aim"]
     assert np.max(np.abs(a_free - a_clip)) < 1e-12
     assert not _chief_at_stop(clipped, [20.0], True)["valid"].any()  # the chief ray itself is vignetted
+
+
+# ------------------------------------------------------------------ defect 5: no ray reaches the image
+def test_fully_vignetted_field_raises_in_spot_rms_and_ray_model():
+    """A489 + DOE at 60 deg: every ray misses a lens surface (the 6.35 mm clear apertures). spot_rms
+    returned NaN and the ray model an all-zero PSF centred at (nan, nan); both now raise the ray-wave
+    model's error, naming the field."""
+    lens = rw.load_lens("a489_doe")
+    with pytest.raises(LensError, match="no ray") as e1:
+        rw.spot_rms(lens, 60.0, 0.55)
+    with pytest.raises(LensError, match="no rays reach the sensor") as e2:
+        rw.psf(lens, 60.0, 0.55, model="ray", size=8)
+    assert "60" in str(e1.value) and "field 60" in str(e2.value)
+    # a field that is not vignetted keeps its power: the ray PSF's patch plus what falls outside it is
+    # the traced fraction (energy conservation of the binning)
+    p = rw.psf(lens, 5.0, 0.55, model="ray", size=256)
+    assert 0.0 < p.data.sum() <= p.info["valid_fraction"] + 1e-12

@@ -1,0 +1,73 @@
+"""The ``model="ray"`` PSF: the DOE as a local grating (rays bent by the phase gradient, first order),
+geometric PSF by binning ray power into sensor pixels. Refuses discontinuous DOEs.
+
+A field none of whose rays reach the sensor raises the same :class:`~rwwarp.errors.LensError` as the
+ray-wave model (no all-zero PSF centred at NaN).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import GeometryError, LensError
+from .trace import Tracer, pupil_grid
+
+
+def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm):
+    """Geometric PSF with the DOE as a local grating (ray bending by the phase gradient)."""
+    from . import doe
+    from .psf import _fmt_field, _snap_center, _wave_plane_index
+    plane = _wave_plane_index(lens)
+    s = lens.surfaces[plane]
+    prof = None
+    if s.type == "doe":
+        prof = doe.profile_from_dict(s.profile)
+        if not prof.is_continuous or s.levels:
+            raise LensError("the ray model cannot handle a discontinuous DOE phase (pixel map or quantised "
+                            "levels): its local grating needs the phase gradient. Use model='ray-wave'.",
+                            file=lens.source, surface=plane, keyword="profile")
+    uniq = sorted(set(wls))
+    tr = Tracer(lens, uniq, device=device, dtype=dtype)
+    wl_idx = [uniq.index(w) for w in wls]
+    src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+    grid = 401
+    u, v, cell = pupil_grid(grid, src["shape"])
+    rays = tr._run(src, u, v, cell, upto=plane + 1)
+    nsrc, npup = len(fields), len(u)
+    pos = rays.pos.numpy().reshape(nsrc, npup, 3)
+    dr = rays.dir.numpy().reshape(nsrc, npup, 3)
+    valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
+    weight = rays.weight.numpy().reshape(nsrc, npup)
+    entering = weight.sum(1)
+    n_pl = np.array([lens.indices(w)[plane] for w in wls])
+    if prof is not None:
+        for k, w in enumerate(wls):
+            gx, gy = prof.gradient(pos[k, :, 0], pos[k, :, 1], s.design_wavelength_um)
+            lam = w * 1e-3
+            # local grating, first order: n' d'_xy = n d_xy + lambda / (2 pi) grad(phi0)
+            tx = n_pl[k] * dr[k, :, 0] + lam * gx / (2 * np.pi)
+            ty = n_pl[k] * dr[k, :, 1] + lam * gy / (2 * np.pi)
+            tz2 = n_pl[k] ** 2 - tx ** 2 - ty ** 2
+            valid[k] &= tz2 > 0
+            tz = np.sqrt(np.maximum(tz2, 1e-30))
+            d = np.stack([tx, ty, tz], -1)
+            dr[k] = d / np.linalg.norm(d, axis=1, keepdims=True)
+    # straight to the sensor
+    t = (lens.sensor_z - pos[..., 2]) / dr[..., 2]
+    hit = pos + t[..., None] * dr
+    for k in range(nsrc):
+        if not np.any(valid[k] & (weight[k] > 0)):
+            raise GeometryError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
+                            file=lens.source, field=_fmt_field(fields[k]))
+    centers = np.zeros((nsrc, 2))
+    for k in range(nsrc):
+        c = hit[k, valid[k], :2].mean(0) if center_mm is None else np.asarray(center_mm, float)
+        centers[k] = [_snap_center(c[0], pixel, lens.sensor.resolution[0]),
+                      _snap_center(c[1], pixel, lens.sensor.resolution[1])]
+    data = np.zeros((nsrc, size, size))
+    for k in range(nsrc):
+        ix = np.floor((hit[k, :, 0] - centers[k, 0]) / pixel + 0.5).astype(np.int64) + size // 2
+        iy = np.floor((hit[k, :, 1] - centers[k, 1]) / pixel + 0.5).astype(np.int64) + size // 2
+        m = valid[k] & (ix >= 0) & (ix < size) & (iy >= 0) & (iy < size)
+        np.add.at(data[k], (iy[m], ix[m]), weight[k, m])
+        data[k] /= entering[k]
+    return {"data": data, "centers": centers, "valid_fraction": (weight * valid).sum(1) / entering}
