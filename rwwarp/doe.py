@@ -589,6 +589,23 @@ def surface_feature_size_mm(surface, source=None) -> float:
                                 surface.levels)
 
 
+def surface_has_steps(surface, source=None) -> bool:
+    """True when the DOE's relief has phase steps, so sampling plans must resolve its features: a pixel
+    map, or a quantised (``levels``) phase that is not flat. A flat (or constant) phase stays flat when
+    quantised (every level rounds the same), so a blank DOE with a fabrication ``levels`` setting -- the
+    paper's baseline arm, DeepLens's default 16 levels -- has no features and no sampling limit."""
+    prof = get_profile(surface, source)
+    if not prof.is_continuous:
+        return True
+    if surface.levels is None:
+        return False
+    if surface.semi_diameter is not None:
+        return prof.max_gradient(surface.semi_diameter, surface.design_wavelength_um, surface.shape) > 0
+    d = prof.to_dict()
+    return any(float(c) for c in d.get("coefficients", [])) or float(d.get("alpha", 0.0)) != 0.0 or \
+        d.get("kind") not in ("even_poly", "poly", "zernike", "cubic")
+
+
 def surface_is_continuous(surface, source=None) -> bool:
     """True when the DOE's phase is smooth: a smooth profile kind and no quantisation (``levels`` None)."""
     return surface.levels is None and get_profile(surface, source).is_continuous

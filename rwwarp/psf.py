@@ -319,7 +319,7 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
     from . import doe
     prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
     feat = None
-    if not prof.is_continuous or s.levels:
+    if doe.surface_has_steps(s, lens.source):  # (a quantised flat phase has none: issue 11 defect 6)
         feat = doe.surface_feature_size_mm(s, lens.source)
         return np.zeros(len(wavelengths)), feat
     out = np.zeros(len(wavelengths))

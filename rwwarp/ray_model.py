@@ -21,7 +21,7 @@ def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm
     prof = None
     if s.type == "doe":
         prof = doe.profile_from_dict(s.profile)
-        if not prof.is_continuous or s.levels:
+        if doe.surface_has_steps(s, lens.source):
             raise LensError("the ray model cannot handle a discontinuous DOE phase (pixel map or quantised "
                             "levels): its local grating needs the phase gradient. Use model='ray-wave'.",
                             file=lens.source, surface=plane, keyword="profile")

@@ -129,3 +129,25 @@ def test_fully_vignetted_field_raises_in_spot_rms_and_ray_model():
     # the traced fraction (energy conservation of the binning)
     p = rw.psf(lens, 5.0, 0.55, model="ray", size=256)
     assert 0.0 < p.data.sum() <= p.info["valid_fraction"] + 1e-12
+
+
+# ------------------------------------------------------------------ defect 6: blank DOE with levels
+@pytest.mark.parametrize("model", ["ray-wave", "paraxial-wave", "ray"])
+def test_blank_doe_with_levels_is_a_plain_window(model):
+    """Quantising a flat phase leaves it flat: a blank DOE with 16 levels (DeepLens's default
+    fabrication step; the paper's baseline arm) must act as no DOE. Before the fix the plan took its
+    'feature size' (inf) and raised OverflowError. Ideal f = 100 mm lens, 2 mm square: the ray-wave and
+    paraxial-wave PSFs equal the closed-form pixel-integrated sinc^2 (measured 1.06e-3, as without
+    levels); the ray model (geometric, a perfect focus on a pixel corner) keeps all the power within
+    the 2 x 2 pixels around the focus."""
+    lens = Lens([Surface(type="aperture", semi_diameter=1.0, shape="square"),
+                 Surface(type="thin_lens", focal_length=100.0), _blank_doe(100.0, levels=16)],
+                Sensor(0.002, (2000, 2000)), math.inf, [0.55])
+    p = rw.psf(lens, 0.0, 0.55, model=model, size=32)
+    if model == "ray":
+        c = p.data.shape[0] // 2
+        assert p.data[c - 1:c + 1, c - 1:c + 1].sum() == pytest.approx(1.0, abs=1e-12)
+        return
+    x, y = p.coords_mm()
+    ref = analytic.square_aperture_pixel_psf(x, y, p.pixel_mm, 2.0, 100.0, 0.55)
+    assert rel_l2(p.data, ref) < 3e-3
