@@ -162,7 +162,10 @@ def check_fields(fields, name: str = "fields", single: str = "field_deg"):
         raise ArgumentError(f"{name} is empty; give at least one field angle (deg)")
     if len(items) > MAX_SOURCES:
         raise ArgumentError(f"{name} has {len(items)} entries; at most {MAX_SOURCES}")
-    return [check_field(f, f"{name}[{k}]" if len(items) > 1 else single) for k, f in enumerate(items)]
+    out = [check_field(f, f"{name}[{k}]" if len(items) > 1 else single) for k, f in enumerate(items)]
+    if any(isinstance(f, tuple) for f in out):  # mixed y angles and (x, y) pairs: all pairs (as numpy wants)
+        out = [f if isinstance(f, tuple) else (0.0, f) for f in out]
+    return out
 
 
 def check_size(size, name: str = "size") -> int:
