@@ -12,6 +12,62 @@ from pathlib import Path
 
 import numpy as np
 
+# ---------------------------------------------------------------- bad input: one line, exit 2 (issue 12)
+EXIT_BAD_INPUT = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (``rwwarp psf: error: ...``) and exit status 2."""
+
+    def error(self, message):
+        sys.stderr.write(f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
+        sys.exit(EXIT_BAD_INPUT)
+
+
+def _one_line(msg) -> str:
+    return " ".join(str(msg).split())
+
+
+def _finite(text):
+    """argparse type: a finite float."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
+def _positive_int(text):
+    """argparse type: an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text} must be >= 1")
+    return v
+
+
+def _atomic(path, write):
+    """Write ``path`` by ``write(tmp_path)`` to a temporary name in the same folder, then rename: a failure
+    leaves no partial file. Returns the path."""
+    import os
+
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"output {path} is a directory")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
 
 def _lens(path):
     from .lens import load_lens
@@ -36,13 +92,15 @@ def cmd_info(a):
               f"{'  STOP' if i == lens.stop_index else ''}")
     if a.plot:
         from .plots import layout
-        layout(lens, a.plot)
+        _atomic(a.plot, lambda tmp: layout(lens, tmp))
         print(f"  layout written to {a.plot}")
 
 
 def cmd_psf(a):
     from .psf import psf
     lens = _lens(a.lens)
+    if len(a.field) not in (1, 2):
+        raise ValueError(f"--field takes one angle (y) or two (x y) in degrees, got {len(a.field)} values")
     field = tuple(a.field) if len(a.field) == 2 else a.field[0]
     p = psf(lens, field, a.wavelength, model=a.model, size=a.size, device=a.device, dtype=a.dtype)
     if a.explain and p.plan:
@@ -51,8 +109,13 @@ def cmd_psf(a):
     print(f"PSF {a.model} field {field} deg, {a.wavelength} um: sum {p.data.sum():.6f}, peak {p.data.max():.4g}, "
           f"centre ({p.center_mm[0]:.5f}, {p.center_mm[1]:.5f}) mm, {p.info.get('time_s', 0):.2f} s")
     if a.out:
-        np.save(a.out, p.data)
-        print(f"  saved {a.out}")
+        out = a.out if str(a.out).endswith(".npy") else str(a.out) + ".npy"  # as numpy.save names it
+
+        def _save(tmp):
+            with open(tmp, "wb") as fh:
+                np.save(fh, p.data)
+        _atomic(out, _save)
+        print(f"  saved {out}")
 
 
 def _map(lens, fields, wls, a, out: Path, title):
@@ -62,12 +125,17 @@ def _map(lens, fields, wls, a, out: Path, title):
     m = psf_map(lens, fields, wls, model=a.model, size=a.size, device=a.device, progress=True,
                 batch=getattr(a, "batch", None) or len(wls))
     dt = time.perf_counter() - t
-    out.mkdir(parents=True, exist_ok=True)
-    np.savez(out / f"{title}.npz", psf=m.data, centers_mm=m.centers_mm, pixel_mm=m.pixel_mm,
-             fields_deg=np.array(fields, dtype=object), wavelengths_um=np.array(wls))
-    psf_map_figure(m, out / f"{title}_log.png")
+    if not np.all(np.isfinite(m.data)):
+        raise FloatingPointError("the PSF map has non-finite values; nothing written")
+
+    def _npz(tmp):
+        with open(tmp, "wb") as fh:
+            np.savez(fh, psf=m.data, centers_mm=m.centers_mm, pixel_mm=m.pixel_mm,
+                     fields_deg=np.array(fields, dtype=object), wavelengths_um=np.array(wls))
+    _atomic(out / f"{title}.npz", _npz)
+    _atomic(out / f"{title}_log.png", lambda tmp: psf_map_figure(m, tmp))
     if len(wls) == 3:
-        rgb_psf_map(m, out / f"{title}_rgb.png")
+        _atomic(out / f"{title}_rgb.png", lambda tmp: rgb_psf_map(m, tmp))
     return m, dt
 
 
@@ -87,14 +155,13 @@ def cmd_demo(a):
     from .plots import layout
     lens = load_lens(a.lens)
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     wl = 0.55
     print(f"rwwarp demo: {lens.name} ({a.lens}) on device {a.device}")
     print(f"  EFL {lens.efl(wl):.4f} mm, BFL {lens.bfl(wl):.4f} mm, F/# {paraxial.f_number(lens, wl):.3f} at {wl} um")
-    layout(lens, out / "layout.png", fields_deg=[0.0, a.max_field / 2, a.max_field])
     fields = [(0.0, f) for f in np.linspace(0.0, a.max_field, a.fields)]
     a.model = "ray-wave"
     m, dt = _map(lens, fields, lens.wavelengths_um, a, out, "psf_map")
+    _atomic(out / "layout.png", lambda tmp: layout(lens, tmp, fields_deg=[0.0, a.max_field / 2, a.max_field]))
     print(f"  ray-wave PSF map: {len(fields)} fields x {len(lens.wavelengths_um)} wavelengths, {a.size}^2 px, "
           f"{dt:.1f} s ({len(fields) * len(lens.wavelengths_um) / dt:.2f} PSF/s)")
     print(f"  plan of the last batch: {m.info['plan']['pitch_mm'] * 1e3:.3g} um pitch, "
@@ -122,28 +189,32 @@ def cmd_design(a):
 
 def cmd_bench(a):
     import subprocess
+    import re
+    if not re.fullmatch(r"[A-Za-z0-9_]+", a.what):
+        raise ValueError(f"no benchmark {a.what!r} (a name such as trace, psf, map, bridge)")
     script = Path(__file__).resolve().parents[1] / "perf" / f"bench_{a.what}.py"
     if not script.exists():
-        sys.exit(f"no benchmark {script} (benchmarks live in perf/ of the source checkout)")
+        raise ValueError(f"no benchmark {script} (benchmarks live in perf/ of the source checkout)")
     sys.exit(subprocess.call([sys.executable, str(script)] + a.rest))
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="rwwarp", description=__doc__.splitlines()[0])
+    ap = _Parser(prog="rwwarp", description=__doc__.splitlines()[0])
+    ap.add_argument("--debug", action="store_true", help="show the Python traceback of an error")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     p = sub.add_parser("info", help="paraxial data and surface table; --plot writes a layout PNG")
     p.add_argument("lens")
-    p.add_argument("--wavelength", type=float, default=None, help="um")
+    p.add_argument("--wavelength", type=_finite, default=None, help="um")
     p.add_argument("--plot", default=None, help="layout PNG path")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("psf", help="one PSF")
     p.add_argument("lens")
-    p.add_argument("--field", type=float, nargs="+", default=[0.0], help="deg: y, or x y")
-    p.add_argument("--wavelength", type=float, default=0.55, help="um")
+    p.add_argument("--field", type=_finite, nargs="+", default=[0.0], help="deg: y, or x y")
+    p.add_argument("--wavelength", type=_finite, default=0.55, help="um")
     p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
-    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--size", type=_positive_int, default=64)
     p.add_argument("--device", default="cpu")
     p.add_argument("--dtype", default="float64", choices=["float64", "float32"])
     p.add_argument("--explain", action="store_true", help="print the sampling plan and why")
@@ -155,17 +226,17 @@ def main(argv=None):
         p = sub.add_parser(name, help=helptext)
         if name == "map":
             p.add_argument("lens")
-            p.add_argument("--wavelengths", type=float, nargs="+", default=None, help="um")
+            p.add_argument("--wavelengths", type=_finite, nargs="+", default=None, help="um")
             p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
-            p.add_argument("--max-field", type=float, default=14.0, help="deg")
-            p.add_argument("--fields", type=int, default=5)
+            p.add_argument("--max-field", type=_finite, default=14.0, help="deg")
+            p.add_argument("--fields", type=_positive_int, default=5)
         else:
             p.add_argument("--lens", default="a489_doe")
-            p.add_argument("--max-field", type=float, default=14.0, help="deg (A489: 14 deg is the sensor corner)")
-            p.add_argument("--fields", type=int, default=3)
-        p.add_argument("--size", type=int, default=64)
+            p.add_argument("--max-field", type=_finite, default=14.0, help="deg (A489: 14 deg is the sensor corner)")
+            p.add_argument("--fields", type=_positive_int, default=3)
+        p.add_argument("--size", type=_positive_int, default=64)
         p.add_argument("--device", default="cpu")
-        p.add_argument("--batch", type=int, default=None, help="sources per launch")
+        p.add_argument("--batch", type=_positive_int, default=None, help="sources per launch")
         p.add_argument("--out", default="out/" + name)
         p.set_defaults(func=fn)
 
@@ -185,12 +256,40 @@ def main(argv=None):
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_bench)
 
+    for name, sp in sub.choices.items():
+        if name not in ("design", "bench"):  # those pass their remaining options on
+            sp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                            help="show the Python traceback of an error")
+    argv = list(sys.argv[1:] if argv is None else argv)
     a = ap.parse_args(argv)
+    return _run(a, debug=a.debug)
+
+
+def _run(a, debug=False):
+    """Run a parsed command: bad input prints one line and exits 2; --debug adds the traceback."""
+    import traceback
+
     from .errors import LensError
+    prog = f"rwwarp {a.cmd}"
     try:
-        a.func(a)
-    except LensError as e:
-        sys.exit(f"rwwarp: error: {e}")
+        return a.func(a)
+    except KeyboardInterrupt:
+        sys.stderr.write(f"{prog}: interrupted\n")
+        sys.exit(130)
+    except SystemExit:
+        raise
+    except (LensError, ValueError, TypeError, OSError, FloatingPointError, MemoryError, ImportError) as e:
+        if debug:
+            traceback.print_exc()
+        what = "" if isinstance(e, (LensError, ValueError)) else f"{type(e).__name__}: "
+        sys.stderr.write(f"{prog}: error: {what}{_one_line(e)}\n")
+        sys.exit(EXIT_BAD_INPUT)
+    except Exception as e:  # noqa: BLE001 - a bug, not bad input: still one line without --debug
+        if debug:
+            traceback.print_exc()
+        sys.stderr.write(f"{prog}: internal error: {type(e).__name__}: {_one_line(e)} "
+                         "(run with --debug for the traceback and please report it)\n")
+        sys.exit(1)
 
 
 if __name__ == "__main__":

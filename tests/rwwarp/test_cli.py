@@ -22,10 +22,11 @@ def test_psf_explain_prints_the_plan(capsys, tmp_path):
     assert npy.exists()
 
 
-def test_bad_lens_file_exits_with_the_place_named(tmp_path):
+def test_bad_lens_file_exits_with_the_place_named(tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"format": "rwwarp-lens/1", "surfaces": [{"type": "toroid", "thickness": 1.0}]}))
     with pytest.raises(SystemExit) as e:
         main(["info", str(bad)])
-    msg = str(e.value)
+    assert e.value.code == 2
+    msg = capsys.readouterr().err
     assert "bad.json" in msg and "surface 0" in msg and "toroid" in msg

@@ -1,0 +1,94 @@
+"""Command line on bad input (issue 12): one-line error on stderr, exit status 2, no traceback (unless
+--debug), wrong arity refused, no partial output files."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from rwwarp.cli import main
+
+A489 = "a489_doe"
+
+
+def _fails(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    cap = capsys.readouterr()
+    return e.value.code, cap.err
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["psf", A489, "--field", "1", "2", "3"], "--field"),
+    (["psf", A489, "--size", "0"], "--size"),
+    (["psf", A489, "--size", "abc"], "--size"),
+    (["psf", A489, "--wavelength", "nan"], "--wavelength"),
+    (["psf", A489, "--wavelength", "550", "--model", "ray"], "wavelength_um=550"),
+    (["psf", A489, "--field", "inf"], "--field"),
+    (["psf", A489, "--device", "gpu7", "--model", "ray"], "device='gpu7'"),
+    (["psf", A489, "--model", "wave"], "--model"),
+    (["info", A489, "--wavelength", "550"], "wavelength_um=550 is outside 0.2-20 um"),
+    (["info", "/nonexistent/lens.json"], "/nonexistent/lens.json"),
+    (["info", "/"], "directory"),
+    (["info", "/dev/null"], "regular file"),
+    (["map", A489, "--fields", "0"], "--fields"),
+    (["map", A489, "--batch", "-1"], "--batch"),
+    (["map", A489, "--max-field", "95", "--fields", "2", "--size", "8", "--model", "ray"], "89.9"),
+    (["bench", "../../etc/passwd"], "no benchmark"),
+    (["demo", "--fields", "x"], "--fields"),
+    (["nosuchcommand"], "invalid choice"),
+    (["psf"], "lens"),
+])
+def test_bad_input_one_line_exit_2(argv, needle, capsys, tmp_path):
+    code, err = _fails(argv, capsys)
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert needle in lines[0], lines[0]
+    assert "Traceback" not in err
+
+
+def test_bad_lens_file_in_every_format_is_one_line(tmp_path, capsys):
+    for name, data in (("bad.json", b"\xff\xfe\x00{"), ("bad.zmx", b"SURF 0\nSURF 1\n  CURV nan\nSURF 2\n"),
+                       ("deep.json", b"[" * 5000)):
+        p = tmp_path / name
+        p.write_bytes(data)
+        code, err = _fails(["info", str(p)], capsys)
+        assert code == 2 and str(p) in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_debug_shows_the_traceback(capsys):
+    code, err = _fails(["--debug", "info", A489, "--wavelength", "550"], capsys)
+    assert code == 2 and "Traceback" in err and "wavelength_um=550" in err.splitlines()[-1]
+    code, err = _fails(["info", A489, "--wavelength", "550", "--debug"], capsys)
+    assert code == 2 and "Traceback" in err
+
+
+def test_failed_psf_leaves_no_output(tmp_path, capsys):
+    out = tmp_path / "p.npy"
+    code, _ = _fails(["psf", A489, "--model", "ray", "--size", "8", "--field", "60", "--out", str(out)], capsys)
+    assert code == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_psf_output_written_atomically(tmp_path, capsys):
+    out = tmp_path / "p.npy"
+    main(["psf", A489, "--model", "ray", "--size", "8", "--field", "1", "--out", str(out)])
+    assert out.exists() and [p.name for p in tmp_path.iterdir()] == ["p.npy"]  # no temporary left
+
+
+def test_failed_map_writes_no_folder(tmp_path, capsys):
+    out = tmp_path / "map"
+    code, err = _fails(["map", A489, "--model", "ray", "--size", "8", "--fields", "2", "--max-field", "60",
+                        "--out", str(out)], capsys)
+    assert code == 2 and not out.exists(), err
+
+
+def test_console_script_exit_status_and_no_traceback(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"format": "rwwarp-lens/1", "surfaces": [{"type": "standard", "radius": [1]}]}))
+    r = subprocess.run([sys.executable, "-m", "rwwarp.cli", "info", str(bad)], capture_output=True, text=True,
+                       env={**os.environ, "PYTHONWARNINGS": "ignore"}, timeout=300)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr and "radius" in r.stderr and str(bad) in r.stderr
