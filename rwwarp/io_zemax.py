@@ -28,7 +28,11 @@ surfaces: a flat refracting ``standard`` surface and the DOE, at the same z).
 Semi-diameters: Zemax does not clip rays at a semi-diameter, only at surface apertures. rwwarp
 clips at ``semi_diameter``, so it is taken from ``CLAP``/``SQAP``/``FLAP`` apertures and from
 *fixed* ``DIAM`` values (solve flag 1); automatic ``DIAM`` values (flag 0, computed by OpticStudio
-from the rays) are ignored (no clipping), except on the stop under ``FLOA``.
+from the rays) are ignored (no clipping). Under ``FLOA`` the stop's ``DIAM`` sets the entrance pupil
+(its paraxial image at the primary wavelength, stored as ``entrance_pupil_diameter``) and, as under
+``ENPD`` and ``FNUM``, the stop floats: real rays are not clipped at its size. An explicit aperture
+(``CLAP``/``SQAP``/``FLAP``) on the stop still clips: the stop becomes a floating aperture plane at
+the surface's vertex, followed by the surface with its aperture (two rwwarp surfaces, one SURF).
 
 Fields: ``FTYP`` field type 0 (angle) gives ``fields_deg`` (a number where x = 0, else [x, y]);
 other field types (object/image heights) leave ``fields_deg`` None. The sensor is not part of a
@@ -267,6 +271,7 @@ def read_zmx(path):
         if rd.hget(key):
             raise rd.err(f"unsupported system aperture type {key} (use ENPD, FNUM or FLOA)", key=key,
                          line=rd.hget(key)[1])
+    floa_sd = None  # the stop's DIAM under FLOA
     if rd.hget("FNUM"):
         toks, ln = rd.hget("FNUM")
         fnum = rd.num(toks, 0, "image-space F/#", key="FNUM", line=ln)
@@ -274,6 +279,7 @@ def read_zmx(path):
             raise rd.err(f"FNUM must be > 0, got {fnum}", key="FNUM", line=ln)
         epd = None
 
+    pupil_set = epd is not None or fnum is not None or floa  # the stop floats; its own size sets nothing
     # ------------------------------------------------------------------ surfaces
     blocks = rd.blocks
     obj, img = blocks[0], blocks[-1]
@@ -355,11 +361,14 @@ def read_zmx(path):
         # aperture
         sd, shape = None, "circle"
         diam = b.get("DIAM")
+        is_stop = b.has("STOP")
         if diam:
             d_val = rd.num(diam[0], 0, "semi-diameter", surf=k, key="DIAM", line=diam[1]) * scale
             fixed = len(diam[0]) > 1 and diam[0][1] == "1"
-            if d_val > 0 and (fixed or (floa and b.has("STOP"))):
-                sd = d_val
+            if is_stop and floa:
+                floa_sd = d_val  # float by stop size: the stop's size sets the pupil (it does not clip)
+            if d_val > 0 and (fixed or (is_stop and floa)):
+                sd = d_val  # (on a stop under ENPD/FNUM/FLOA: recorded, but the stop floats)
         for bad in ("OBSC", "ELOB", "ELAP", "SQOB", "UDAP", "OBDC"):
             if b.has(bad):
                 raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP and FLAP)", surf=k,
@@ -391,7 +400,15 @@ def read_zmx(path):
                 rmax = rd.num(diam[0], 0, "semi-diameter", surf=k, key="DIAM", line=diam[1]) * scale
             if rmax:
                 sd = rmax
-        stop = b.has("STOP")
+        stop = is_stop
+        hard = bool(clap or sqap or (flap and sd is not None))
+        if stop and pupil_set and hard:
+            # the system aperture (ENPD, FNUM, FLOA) sets the pupil and the stop floats, but an explicit
+            # aperture on the stop still clips (as in Zemax): a floating stop plane at the vertex, then
+            # the surface itself with its hard aperture (issue 11 defect 7)
+            surfaces.append(Surface(type="aperture", thickness=0.0, semi_diameter=None, stop=True))
+            zsurf.append(k)
+            stop = False
 
         if typ in ("STANDARD", "EVENASPH"):
             asph = []
@@ -465,6 +482,20 @@ def read_zmx(path):
         if fnum is not None:
             from .paraxial import efl
             lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum
+            lens.validate()
+        elif floa:
+            # float by stop size: the entrance pupil is the paraxial image of the stop at its DIAM size
+            # (primary wavelength); the stop then floats like under ENPD: real rays are not clipped there
+            stop_k = next((b.number for b in blocks if b.has("STOP")), None)
+            if floa_sd is None or not floa_sd > 0:
+                raise rd.err("FLOA (float by stop size) needs the stop's semi-diameter (DIAM)", surf=stop_k,
+                             key="DIAM")
+            from .paraxial import ynu_trace
+            ya, _ = ynu_trace(lens, primary_um, 1.0, 0.0)
+            m = abs(ya[lens.stop_index])
+            if m == 0:
+                raise rd.err("FLOA: the stop is at a focus (no entrance pupil)", surf=stop_k, key="FLOA")
+            lens.entrance_pupil_diameter = 2.0 * floa_sd / m
             lens.validate()
     except LensError as e:
         surf = None if e.surface is None or not isinstance(e.surface, int) else zsurf[e.surface]

@@ -224,6 +224,8 @@ class Lens:
         z = self.vertex_z
         for i in range(len(self.surfaces) - 1):
             a, b = self.surfaces[i], self.surfaces[i + 1]
+            if any(s.type == "aperture" and s.semi_diameter is None for s in (a, b)):
+                continue  # a floating stop plane (no aperture) is a reference plane, not a physical surface
             sds = [s for s in (a.semi_diameter, b.semi_diameter) if s is not None]
             h = min(sds) if sds else 0.0
             r = np.linspace(0.0, h, 33)

@@ -151,3 +151,68 @@ def test_blank_doe_with_levels_is_a_plain_window(model):
     x, y = p.coords_mm()
     ref = analytic.square_aperture_pixel_psf(x, y, p.pixel_mm, 2.0, 100.0, 0.55)
     assert rel_l2(p.data, ref) < 3e-3
+
+
+# ------------------------------------------------------------------ defect 7: stop apertures in Zemax files
+def _cooke_zmx_text():
+    from importlib import resources
+    from rwwarp.io_zemax import _decode
+    return _decode((resources.files("rwwarp") / "lenses" / "cooke_triplet.zmx").read_bytes()).replace("\r\n", "\n")
+
+
+def _write(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _rms_um(xy):
+    return 1e3 * float(np.sqrt(np.mean(np.sum((xy - xy.mean(0)) ** 2, axis=1))))
+
+
+def test_clap_on_the_stop_clips_under_enpd(tmp_path):
+    """Cooke triplet (ENPD 10: the stop floats; paraxially its beam is 3.80 mm high there) with a hard
+    CLAP of 3.5 mm on the stop. Reference: the file without the CLAP traced to the stop and on to the
+    image, and the rays farther than 3.5 mm from the axis on the stop removed by hand (numpy). Before the
+    fix the CLAP was dropped: 4.829 / 15.218 um at 0 / 14 deg (201 grid) instead of the clipped 5.242 /
+    13.342 um; the fixed reader agrees with the hand-clipped reference to rounding, bound 1e-9."""
+    from rwwarp.trace import Tracer, pupil_grid
+    text = _cooke_zmx_text().replace("SURF 4\n  STOP\n", "SURF 4\n  STOP\n  CLAP 0 3.5 0 0 0\n")
+    clipped = rw.load_lens(_write(tmp_path, "clap.zmx", text))
+    ref = rw.load_lens(_write(tmp_path, "plain.zmx", _cooke_zmx_text()))
+    tr = Tracer(ref, [0.5876])
+    u, v, cell = pupil_grid(201, "circle", layout="edges")
+    for field in (0.0, 14.0):
+        src = tr.sources([field])
+        rays = tr._run(src, u, v, cell, keep=(ref.stop_index,))
+        at_stop = rays.kept[ref.stop_index][0].numpy()
+        r = rays.numpy()
+        inside = r["valid"][0] & (np.hypot(at_stop[:, 0], at_stop[:, 1]) <= 3.5)
+        want = _rms_um(r["pos"][0, inside, :2])
+        got = rw.spot_rms(clipped, field, 0.5876, grid=201)
+        free = rw.spot_rms(ref, field, 0.5876, grid=201)
+        assert 0 < inside.sum() < r["valid"][0].sum()
+        assert got == pytest.approx(want, rel=1e-9)
+        assert abs(free - want) > 1e-3 * want  # the aperture matters
+    assert clipped.entrance_pupil_diameter == 10.0
+
+
+def test_floa_stop_sets_the_pupil_and_does_not_clip(tmp_path):
+    """FLOA (float by stop size) with the stop's DIAM at 3.8045565 mm: the entrance pupil is the paraxial
+    image of the stop, 10 mm across (the ENPD file's, analytic y-nu conjugate), and Zemax does not clip
+    real rays at the stop: the spots equal those of the ENPD file (which floats the stop) to 1e-12
+    (measured 0). Before the fix the real rays were clipped at the paraxial semi-diameter (pupil
+    aberration): spots off by +0.92 / -0.40 / -0.23 % at 0 / 14 / 20 deg."""
+    ref = rw.load_lens(_write(tmp_path, "plain.zmx", _cooke_zmx_text()))
+    sd = paraxial.stop_semi_diameter(ref, 0.5875618)  # at the primary wavelength (PWAV 2)
+    text = _cooke_zmx_text().replace("ENPD 1.0E+1\n", "FLOA\n").replace(
+        "SURF 4\n  STOP\n  TYPE STANDARD\n  CURV 0.04928069891858434 0 0 0 0 \"\"\n  HIDE 0 0 0 0 0 0 0 0 0 0\n"
+        "  MIRR 2 0\n  DISZ 4.75041\n  DIAM 0 0 0 0 1 \"\"\n",
+        "SURF 4\n  STOP\n  TYPE STANDARD\n  CURV 0.04928069891858434 0 0 0 0 \"\"\n  HIDE 0 0 0 0 0 0 0 0 0 0\n"
+        f"  MIRR 2 0\n  DISZ 4.75041\n  DIAM {sd!r} 1 0 0 1 \"\"\n")
+    assert "FLOA" in text and repr(sd) in text
+    floa = rw.load_lens(_write(tmp_path, "floa.zmx", text))
+    assert floa.entrance_pupil_diameter == pytest.approx(10.0, rel=1e-13)
+    for field in (0.0, 14.0, 20.0):
+        assert rw.spot_rms(floa, field, 0.5876, grid=201) == pytest.approx(
+            rw.spot_rms(ref, field, 0.5876, grid=201), rel=1e-12)
