@@ -17,8 +17,12 @@ from .lens import Lens, Surface, Sensor, load_lens
 from .analysis import spot_rms, spot_diagram
 from .psf import psf, psf_map, PSF, PSFMap
 from .plan import Plan
+from .metrics import (mtf, through_focus_mtf, strehl, encircled_energy, ensquared_energy,
+                      chromatic_focal_shift, field_curves)
 
 __version__ = "0.1.0"
 
 __all__ = ["LensError", "ArgumentError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
-           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "PSF", "PSFMap", "Plan"]
+           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "PSF", "PSFMap", "Plan",
+           "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy", "chromatic_focal_shift",
+           "field_curves"]

@@ -1,0 +1,259 @@
+"""Figures of merit (rwwarp.metrics) against analytic oracles and independent numpy paths.
+
+Lenses: small ideal thin lenses (f = 5 mm, aperture radius 0.25 mm, F/10, 0.55 um) so that a
+ray-wave PSF takes well under a second. Tolerances are a small multiple (about 2-3x) of the error
+measured when the test was written; the measured value is quoted next to each.
+"""
+import math
+
+import numpy as np
+import pytest
+from scipy import special
+
+import rwwarp as rw
+from rwwarp import metrics as M
+from rwwarp.lens import Lens, Sensor, Surface
+
+WL = 0.55
+R_AP, F = 0.25, 5.0
+FNO = F / (2 * R_AP)  # 10
+
+
+def thin(shape="circle", defocus_rad=0.0, R=R_AP, f=F):
+    """Ideal thin lens with a stop at the lens and a flat DOE carrying ``defocus_rad * rho^2``."""
+    s = [Surface(type="aperture", semi_diameter=R, shape=shape, thickness=0.0, stop=True),
+         Surface(type="thin_lens", focal_length=f, thickness=0.0),
+         Surface(type="doe", semi_diameter=R, shape=shape, thickness=f,
+                 profile={"kind": "even_poly", "norm_radius": R, "coefficients": [defocus_rad]})]
+    return Lens(s, Sensor(0.001, (2000, 2000)), wavelengths_um=[WL])
+
+
+def disk(n, radius, sub=8):
+    """Area-weighted disk of ``radius`` samples on an n x n grid (centre at n // 2)."""
+    c = np.arange(n) - n // 2
+    s = (np.arange(sub) + 0.5) / sub - 0.5
+    x = (c[:, None] + s[None, :]).ravel()
+    m = (x[None, :] ** 2 + x[:, None] ** 2 <= radius * radius).astype(float)
+    return m.reshape(n, sub, n, sub).mean(axis=(1, 3))
+
+
+# ------------------------------------------------------------------------------------------ numpy cores
+def test_square_pupil_mtf_is_triangle_exactly():
+    """A discrete square pupil's periodic PSF: its MTF at the DFT bins is exactly 1 - f / fc."""
+    n, h = 256, 50
+    P = np.zeros((n, n))
+    P[n // 2 - h:n // 2 + h, n // 2 - h:n // 2 + h] = 1.0
+    psf = np.abs(np.fft.fftshift(np.fft.fft2(np.fft.ifftshift(P)))) ** 2
+    k = np.arange(0, 2 * h + 1, 5)
+    for d in ((1, 0), (0, 1)):
+        o = np.abs(M.otf_from_psf(psf, 1.0, k / n, d, pixel_integrated=False))
+        assert np.max(np.abs(o - (1 - k / (2 * h)))) < 1e-12  # measured 4.7e-15
+
+
+def test_circular_pupil_mtf_equals_direct_autocorrelation():
+    """MTF from the PSF (Fourier sum over PSF samples) equals the pupil's autocorrelation computed
+    directly (overlap of shifted pupils, no FFT), and that converges to the diffraction formula."""
+    n, R = 256, 60
+    P = disk(n, R)
+    psf = np.abs(np.fft.fftshift(np.fft.fft2(np.fft.ifftshift(P)))) ** 2
+    k = np.arange(0, 2 * R + 1, 8)
+    o = np.abs(M.otf_from_psf(psf, 1.0, k / n, (0, 1), pixel_integrated=False))
+    auto = np.array([np.sum(P[s:, :] * P[:n - s, :]) for s in k]) / np.sum(P * P)
+    assert np.max(np.abs(o - auto)) < 1e-12  # measured ~1e-15
+    # the discrete pupil's staircase edge costs ~0.3/R (measured 5.1e-3 at R = 60, 2.6e-3 at R = 120)
+    assert np.max(np.abs(o - M.diffraction_mtf_circular(k, 2 * R))) < 8e-3
+
+
+def test_pixel_box_mtf_is_sinc():
+    """Box-integrating a Gaussian PSF over pixels multiplies its OTF by sinc(f p) exactly; the
+    default (pixel_integrated=True) divides it out again."""
+    p, sigma, n = 1.0, 3.0, 64  # sigma = 3 p: aliased part exp(-2 pi^2 9 / 4) ~ 5e-20
+    e = (np.arange(n + 1) - n // 2 - 0.5) * p
+    cdf = special.ndtr(e / sigma)
+    line = np.diff(cdf)
+    data = np.outer(line, line)  # exact pixel integrals of a unit Gaussian
+    f = np.linspace(0.0, 0.5 / p, 21)
+    gauss = np.exp(-2 * np.pi ** 2 * sigma ** 2 * f ** 2)
+    o_box = np.abs(M.otf_from_psf(data, p, f, (1, 0), pixel_integrated=False))
+    assert np.max(np.abs(o_box - gauss * np.abs(np.sinc(f * p)))) < 1e-12  # measured ~1e-16
+    o = np.abs(M.otf_from_psf(data, p, f, (1, 0)))
+    assert np.max(np.abs(o - gauss)) < 1e-12
+    assert np.allclose(M.pixel_mtf([0.0, 0.25, 0.5], 2.0), [1.0, 2 * math.sqrt(2) / math.pi, 0.0], atol=1e-15)
+
+
+def test_core_argument_errors():
+    with pytest.raises(ValueError, match="pixel_mm"):
+        M.otf_from_psf(np.ones((4, 4)), -1.0, [0.0])
+    with pytest.raises(ValueError, match="direction"):
+        M.otf_from_psf(np.ones((4, 4)), 1.0, [0.0], direction=(0, 0))
+    with pytest.raises(ValueError, match="square 2-D"):
+        M.encircled_energy_from_psf(np.ones(4), 1.0, [1.0])
+    with pytest.raises(ValueError, match="radii_mm"):
+        M.encircled_energy_from_psf(np.ones((4, 4)), 1.0, [-1.0])
+
+
+# ------------------------------------------------------------------------------------------ library
+@pytest.fixture(scope="module")
+def circ():
+    return thin("circle")
+
+
+def test_mtf_raywave_circular_pupil(circ):
+    r = rw.mtf(circ, 0.0, WL, size=256)
+    # cutoff 2 NA / lambda, NA = sin(atan(R / f))
+    fc = 2 * math.sin(math.atan(R_AP / F)) / (WL * 1e-3)
+    assert r.cutoff_lp_mm == pytest.approx(fc, rel=2e-3)
+    ref = M.diffraction_mtf_circular(r.frequencies_lp_mm, fc)
+    # the 256 x 1 um patch keeps 99.2 % of the Airy power; truncating the tails costs the MTF 8.8e-3
+    # (measured; 1.7e-2 at 128 px, 3.3e-2 at 64 px: the error follows the lost power)
+    assert np.max(np.abs(r.tangential - ref)) < 1.5e-2
+    assert np.max(np.abs(r.sagittal - r.tangential)) < 1e-6  # rotational symmetry
+
+
+def test_mtf_equals_numpy_fft_of_same_samples(circ):
+    """rw.mtf's numbers equal an independent numpy FFT of the very PSF samples (box divided out)."""
+    size = 128
+    pix = 0.001
+    k = np.arange(0, 40)
+    f = k / (size * pix)
+    r = rw.mtf(circ, 2.0, WL, frequencies_lp_mm=f, size=size, pixel_mm=pix)
+    data = r.info["psf_map"].data[0, 0]
+    F = np.abs(np.fft.fft2(data))
+    tan_np = F[k, 0] / F[0, 0] / np.abs(np.sinc(f * pix))  # rows = y: tangential for a y field
+    sag_np = F[0, k] / F[0, 0] / np.abs(np.sinc(f * pix))
+    assert np.max(np.abs(r.tangential - tan_np)) < 1e-12
+    assert np.max(np.abs(r.sagittal - sag_np)) < 1e-12
+
+
+def test_mtf_square_pupil_triangle():
+    sq = thin("square")
+    r = rw.mtf(sq, 0.0, WL, size=256)
+    fc = 2 * R_AP / F / (WL * 1e-3)  # square of side 2R: cutoff (2R / f) / lambda along x and y
+    tri = np.clip(1 - r.frequencies_lp_mm / fc, 0, None)
+    # measured 1.1e-2 at 128 px (sinc^2 tails cut by the patch); 256 px
+    assert np.max(np.abs(r.tangential - tri)) < 1.5e-2
+    assert np.max(np.abs(r.sagittal - tri)) < 1.5e-2
+
+
+def test_mtf_with_pixel_and_polychromatic(circ):
+    f = np.array([0.0, 50.0, 100.0])
+    a = rw.mtf(circ, 0.0, WL, frequencies_lp_mm=f, size=128, pixel_mm=0.001)
+    b = rw.mtf(circ, 0.0, WL, frequencies_lp_mm=f, size=128, pixel_mm=0.001, include_pixel=True)
+    assert np.allclose(b.tangential, a.tangential * np.abs(np.sinc(f * circ.sensor.pixel_pitch)), atol=1e-14)
+    # an ideal thin lens has no colour: equal weights of two wavelengths average their MTFs
+    p = rw.mtf(circ, 0.0, [0.5, 0.6], frequencies_lp_mm=f, size=128, pixel_mm=0.001)
+    m5 = rw.mtf(circ, 0.0, 0.5, frequencies_lp_mm=f, size=128, pixel_mm=0.001)
+    m6 = rw.mtf(circ, 0.0, 0.6, frequencies_lp_mm=f, size=128, pixel_mm=0.001)
+    # measured 6e-5: the batched pair shares the finer of the two sampling plans
+    assert np.allclose(p.tangential, 0.5 * (m5.tangential + m6.tangential), atol=2e-4)
+
+
+def test_encircled_energy_airy_first_zero(circ):
+    r0 = 1.2196699 * WL * FNO  # first dark ring, um
+    e = rw.encircled_energy(circ, 0.0, WL, radii_um=[r0, 2 * r0], size=128)
+    airy = [1 - special.j0(v) ** 2 - special.j1(v) ** 2 for v in (np.pi * r0 / (WL * FNO), 2 * np.pi * r0 / (WL * FNO))]
+    assert airy[0] == pytest.approx(0.8378, abs=1e-4)
+    # measured 6.6e-4 (pixels taken as uniform across the circle's edge; non-paraxial NA 0.05)
+    assert np.max(np.abs(e.fraction - airy)) < 2e-3
+
+
+def test_ensquared_energy_square_pupil():
+    h = np.array([2.0, 3.0, 5.0])  # half widths, um
+    e = rw.ensquared_energy(thin("square"), 0.0, WL, half_widths_um=h, size=128)
+    # PSF sinc^2(2 R x / (lambda f)) per axis; fraction within +-a of one axis:
+    # (2/pi) [Si(2 pi u) - sin^2(pi u) / (pi u)], u = 2 R a / (lambda f); the square: its square
+    u = 2 * R_AP * h * 1e-3 / (WL * 1e-3 * F)
+    si, _ = special.sici(2 * np.pi * u)
+    one = (2 / np.pi) * (si - np.sin(np.pi * u) ** 2 / (np.pi * u))
+    assert np.max(np.abs(e.fraction - one ** 2)) < 2.5e-3  # measured 1.1e-3
+
+
+@pytest.mark.parametrize("a", [0.5, 1.0, 1.5])
+def test_strehl_defocus_exact_and_marechal(a):
+    """Defocus phase a rho^2 on a uniform circular pupil: Strehl = sinc^2(a / 2) exactly (|<e^{i a t}>|^2,
+    t = rho^2 uniform); Marechal exp(-sigma^2), sigma^2 = a^2 / 12, holds to O(a^4)."""
+    s = rw.strehl(thin("circle", a), 0.0, WL, size=128)
+    exact = (math.sin(a / 2) / (a / 2)) ** 2
+    assert s.ratio == pytest.approx(exact, abs=1.5e-3)  # measured 6.2e-4 (a=0.5), 2.9e-4, 4.7e-5
+    marechal = math.exp(-a * a / 12)
+    if a <= 1.0:
+        assert s.ratio == pytest.approx(marechal, abs=3e-3)
+
+
+def test_strehl_refuses_ray_model(circ):
+    with pytest.raises(ValueError, match="ray-wave"):
+        rw.strehl(circ, 0.0, WL, model="ray")
+
+
+def test_through_focus_peaks_at_focus(circ):
+    dz = np.array([-0.1, -0.05, 0.0, 0.05, 0.1])
+    t = rw.through_focus_mtf(circ, 0.0, WL, frequencies_lp_mm=[50.0], focus_mm=dz, size=128)
+    assert t.tangential.shape == (5, 1)
+    v = t.tangential[:, 0]
+    assert int(np.argmax(v)) == 2
+    # nearly symmetric: measured 8.2e-3 / 6.0e-3 apart at +-0.1 / +-0.05 mm (the PSF scales with the
+    # sensor distance, 2 % over +-0.1 mm of 5 mm, and the Fresnel number is only 23)
+    assert v[0] == pytest.approx(v[4], abs=1.5e-2) and v[1] == pytest.approx(v[3], abs=1.5e-2)
+    fc = 2 * math.sin(math.atan(R_AP / F)) / (WL * 1e-3)
+    # a 50 mm-sized shift stays paraxial: the 0 shift equals the single-plane MTF
+    assert v[2] == pytest.approx(rw.mtf(circ, 0.0, WL, frequencies_lp_mm=[50.0], size=128).tangential[0], abs=1e-12)
+    assert v[2] == pytest.approx(M.diffraction_mtf_circular(50.0, fc), abs=2e-2)
+
+
+def test_mtf_ray_model_runs(circ):
+    r = rw.mtf(circ, 0.0, WL, frequencies_lp_mm=[0.0, 20.0], model="ray", size=64, pixel_mm=0.001)
+    assert r.tangential[0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="model"):
+        rw.mtf(circ, 0.0, WL, model="wave")
+    with pytest.raises(ValueError, match="weights"):
+        rw.mtf(circ, 0.0, [0.5, 0.6], weights=[1.0])
+    with pytest.raises(ValueError, match="frequencies_lp_mm"):
+        rw.mtf(circ, 0.0, WL, frequencies_lp_mm=[-1.0])
+
+
+# ------------------------------------------------------------------------------------------ ray-based curves
+def test_chromatic_focal_shift_hybrid_oracle():
+    """Ideal thin lens f0 = 100 mm plus a DOE of f = 1000 mm at 0.55 um (power ~ lambda): the image
+    distance is 1 / (1/100 + (lambda/0.55)/1000) exactly (both at the same plane)."""
+    a1 = -math.pi * 5.0 ** 2 / (WL * 1e-3 * 1000.0)  # phase a1 rho^2, rho = r / 5 mm: P = -lambda a1 / (pi R^2)
+    s = [Surface(type="aperture", semi_diameter=5.0, thickness=0.0, stop=True),
+         Surface(type="thin_lens", focal_length=100.0, thickness=0.0),
+         Surface(type="doe", semi_diameter=5.0, thickness=90.0,
+                 profile={"kind": "even_poly", "norm_radius": 5.0, "coefficients": [a1]})]
+    lens = Lens(s, wavelengths_um=[0.45, 0.55, 0.65])
+    c = rw.chromatic_focal_shift(lens, [0.45, 0.5, 0.55, 0.65])
+    v = lambda w: 1.0 / (1 / 100.0 + (w / 0.55) / 1000.0)
+    expect = np.array([1e3 * (v(w) - v(0.55)) for w in c.wavelengths_um])
+    assert np.max(np.abs(c.shift_um - expect)) < 1e-8
+
+
+def test_field_curves_ideal_lens_zero():
+    lens = thin("circle", R=2.0, f=50.0)
+    fc = rw.field_curves(lens, [0.0, 5.0, 10.0], WL)
+    assert np.max(np.abs(fc.distortion_percent)) < 1e-9
+    assert np.max(np.abs(fc.tangential_mm)) < 1e-6 and np.max(np.abs(fc.sagittal_mm)) < 1e-6
+    assert fc.paraxial_height_mm[2] == pytest.approx(50.0 * math.tan(math.radians(10.0)), rel=1e-12)
+
+
+def test_field_curves_thin_singlet_seidel():
+    """Thin plano-convex lens, stop at the lens, object at infinity: third-order sagittal and
+    tangential field curvature z = -(1 + 1/n) h^2 / (2 f) and -(3 + 1/n) h^2 / (2 f) (independent of
+    bending), distortion 0 to third order."""
+    n_glass = rw.materials.get_material("N-BK7").n(WL)
+    f = 100.0
+    R1 = f * (n_glass - 1)
+    s = [Surface(type="aperture", semi_diameter=2.0, thickness=0.0, stop=True),
+         Surface(type="standard", radius=R1, material="N-BK7", semi_diameter=2.5, thickness=0.1),
+         Surface(type="standard", radius=None, semi_diameter=2.5, thickness=f)]
+    lens = Lens(s, wavelengths_um=[WL])
+    bfl = lens.bfl(WL)
+    lens = lens.with_surface(2, thickness=bfl)
+    fl = np.array([1.0, 2.0])
+    c = rw.field_curves(lens, fl, WL)
+    h = lens.efl(WL) * np.tan(np.radians(fl))
+    zs = -(1 + 1 / n_glass) * h ** 2 / (2 * f)
+    zt = -(3 + 1 / n_glass) * h ** 2 / (2 * f)
+    # higher orders ~ (h/f)^2 and the 0.1 mm thickness: measured relative error 1.4e-3 (s), 2.1e-3 (t)
+    assert np.allclose(c.sagittal_mm, zs, rtol=5e-3)
+    assert np.allclose(c.tangential_mm, zt, rtol=5e-3)
+    assert np.max(np.abs(c.distortion_percent)) < 1e-4  # measured 2.3e-5 % (fifth order)
