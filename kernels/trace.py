@@ -24,8 +24,9 @@ the first vertex travels back in object space).
 
 The ideal thin lens (kind THIN) maps direction tangents ``t' = (n_in t - p P) / n_out`` (P the power
 1/f) and adds the path that makes every ray from an object point reach its image point with equal
-optical path (a perfect spherical wave behind it). The object-side conjugate distance ``u`` and
-image-side ``v`` (mm, 1/u = 0 for infinity) come from the host.
+optical path (a perfect spherical wave behind it; a plane wave when the object sits at its front
+focal plane). The object-side conjugate distance ``u`` and image-side ``v`` (mm, 1/u = 0 for an
+object at infinity, v = 0 for an image at infinity) come from the host.
 """
 import functools
 
@@ -41,7 +42,7 @@ P_SD = 12         # semi-diameter, mm (<= 0: unlimited)
 P_SQUARE = 13     # 1: square aperture, 0: circle
 P_POWER = 14      # thin lens power 1/f, 1/mm
 P_UINV = 15       # thin lens: 1/u, u = object distance in front of the lens (mm); 0 = infinity
-P_V = 16          # thin lens: image distance behind the lens, mm
+P_V = 16          # thin lens: image distance behind the lens, mm; 0 = image at infinity
 N_PARAMS = 17
 
 KIND_REFRACT = 0
@@ -311,8 +312,14 @@ def make_trace_kernels(scalar):
                     else:
                         src = x - d * (scalar(1.0) / (uinv * d[2]))
                         inrel = n1 * (wp.length(x - src) - wp.length(ctr - src))
-                    img = x + newd * (params[P_V] / newd[2])
-                    extra = -inrel - n2 * (wp.length(img - x) - wp.length(img - ctr))
+                    vdist = params[P_V]
+                    if vdist == scalar(0.0):
+                        # image at infinity (object at the front focal plane): a plane wave leaves, equal
+                        # path up to the plane through the centre normal to the (common) direction
+                        extra = -inrel + n2 * wp.dot(x - ctr, newd)
+                    else:
+                        img = x + newd * (vdist / newd[2])
+                        extra = -inrel - n2 * (wp.length(img - x) - wp.length(img - ctr))
         if ok == 1:
             pos_out[i] = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + zv)
             dir_out[i] = newd

@@ -478,7 +478,7 @@ def read_zmx(path):
     try:
         lens = Lens(surfaces=surfaces, sensor=Sensor(), object_distance=object_distance,
                     wavelengths_um=wavelengths, name=name, entrance_pupil_diameter=epd,
-                    fields_deg=fields_deg, source=str(path))
+                    fields_deg=fields_deg, source=str(path), surface_labels=[f"SURF {k}" for k in zsurf])
         if fnum is not None:
             from .paraxial import efl
             lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum

@@ -116,9 +116,19 @@ class Lens:
     entrance_pupil_diameter: float | None = None
     fields_deg: list | None = None
     source: str | None = None  # file it came from (for messages); not serialised
+    #: how the source file numbers each surface (``"SURF 3"`` in a Zemax file), for messages; not serialised
+    surface_labels: list | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         self.validate()
+
+    def surface_label(self, i):
+        """Surface ``i`` as the source file numbers it (``"SURF 3"`` for a Zemax file), else ``i``: error
+        messages name surfaces this way."""
+        labels = self.surface_labels
+        if labels is not None and isinstance(i, (int, np.integer)) and 0 <= i < len(labels):
+            return labels[i]
+        return i
 
     # ------------------------------------------------------------------ geometry
     @property

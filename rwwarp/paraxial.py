@@ -7,6 +7,7 @@ transfer ``y' = y + t * nu' / n'``. Lengths in mm, wavelengths in um.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,7 +114,7 @@ def stop_semi_diameter(lens, wavelength_um: float) -> float:
     sd = lens.surfaces[i].semi_diameter
     if sd is None:
         raise GeometryError("the stop has no semi_diameter and the lens no entrance_pupil_diameter: the "
-                            "aperture is undefined", file=lens.source, surface=i, keyword="semi_diameter")
+                            "aperture is undefined", file=lens.source, surface=lens.surface_label(i), keyword="semi_diameter")
     return float(sd)
 
 
@@ -124,7 +125,7 @@ def pupils(lens, wavelength_um: float = 0.5876) -> Pupils:
     ya, nua = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     yb, nub = ynu_trace(lens, wavelength_um, 0.0, 1.0)
     if ya[i] == 0:
-        raise GeometryError("the stop is at a focus: no entrance pupil", file=lens.source, surface=i)
+        raise GeometryError("the stop is at a focus: no entrance pupil", file=lens.source, surface=lens.surface_label(i))
     sd = stop_semi_diameter(lens, wavelength_um)
     ep_z = float(yb[i] / ya[i])
     ep_r = float(sd / abs(ya[i]))
@@ -148,11 +149,13 @@ def f_number(lens, wavelength_um: float = 0.5876) -> float:
     return efl(lens, wavelength_um) / (2.0 * pupils(lens, wavelength_um).entrance_radius)
 
 
-def thin_lens_conjugates(lens, wavelength_um: float, index: int):
+def thin_lens_conjugates(lens, wavelength_um: float, index: int, object_distance=None):
     """Object-side 1/u (1/mm, 0 = infinity) and image-side distance v (mm) seen by thin lens ``index``.
 
-    u is the distance of the (possibly virtual) paraxial object in front of the lens, for the
-    lens's own object distance; v its paraxial image distance behind it.
+    u is the distance of the (possibly virtual) paraxial object in front of the lens, for
+    ``object_distance`` (mm from the first vertex; default the lens's own); v its paraxial image
+    distance behind it: ``math.inf`` when the object sits at the lens's front focal plane (a
+    collimator: the image is at infinity).
     """
     wavelength_um = _checked(lens, wavelength_um)
     from . import checks
@@ -164,15 +167,18 @@ def thin_lens_conjugates(lens, wavelength_um: float, index: int):
     n1 = 1.0 if index == 0 else n[index - 1]
     n2 = n[index]
     s = lens.surfaces[index]
-    if np.isinf(lens.object_distance):
+    od = lens.object_distance if object_distance is None else float(object_distance)
+    if np.isinf(od):
         y, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     else:
-        y, nu = ynu_trace(lens, wavelength_um, lens.object_distance, 1.0)
+        y, nu = ynu_trace(lens, wavelength_um, od, 1.0)
     # reduced slope arriving at the lens (before its own refraction)
     nu_in = nu[index] + y[index] / s.focal_length
+    if y[index] == 0:
+        raise GeometryError("the object is imaged onto the thin lens (its conjugates are undefined)",
+                            file=lens.source, surface=lens.surface_label(index))
     uinv = 0.0 if abs(nu_in) < 1e-300 else nu_in / (n1 * y[index])
     denom = 1.0 / s.focal_length - n1 * uinv
-    if abs(denom) < 1e-15:
-        raise GeometryError("the object is at the front focal plane of the thin lens: image at infinity is "
-                            "not supported", file=lens.source, surface=index)
+    if abs(denom) <= 1e-12 * abs(1.0 / s.focal_length):
+        return float(uinv), math.inf  # object at the front focal plane: image at infinity
     return float(uinv), float(n2 / denom)

@@ -39,7 +39,7 @@ def _image_distance_behind(lens, plane, wl, od):
     nu = nus[plane - 1]
     if nu == 0:
         raise LensError("paraxial-wave model: the refractive part images the object at infinity (afocal at "
-                        "this object distance)", file=lens.source, surface=plane)
+                        "this object distance)", file=lens.source, surface=lens.surface_label(plane))
     return float(-ys[plane] * n_pl / nu)
 
 

@@ -24,7 +24,7 @@ def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm
         if doe.surface_has_steps(s, lens.source):
             raise LensError("the ray model cannot handle a discontinuous DOE phase (pixel map or quantised "
                             "levels): its local grating needs the phase gradient. Use model='ray-wave'.",
-                            file=lens.source, surface=plane, keyword="profile")
+                            file=lens.source, surface=lens.surface_label(plane), keyword="profile")
     uniq = sorted(set(wls))
     tr = Tracer(lens, uniq, device=device, dtype=dtype)
     wl_idx = [uniq.index(w) for w in wls]

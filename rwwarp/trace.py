@@ -278,7 +278,7 @@ class Tracer:
     def _kind(self, s):
         return {"standard": ktrace.KIND_REFRACT, "thin_lens": ktrace.KIND_THIN}.get(s.type, ktrace.KIND_PLANE)
 
-    def _surface_params(self) -> np.ndarray:
+    def _surface_params(self, object_distance=None) -> np.ndarray:
         lens = self.lens
         z = lens.vertex_z
         out = np.zeros((len(lens.surfaces) + 1, ktrace.N_PARAMS))
@@ -296,10 +296,10 @@ class Tracer:
             p[ktrace.P_SD] = -1.0 if sd is None else sd
             p[ktrace.P_SQUARE] = 1.0 if s.shape == "square" else 0.0
             if s.type == "thin_lens":
-                uinv, v = paraxial.thin_lens_conjugates(lens, self.wavelengths_um[0], i)
+                uinv, v = paraxial.thin_lens_conjugates(lens, self.wavelengths_um[0], i, object_distance)
                 p[ktrace.P_POWER] = 1.0 / s.focal_length
                 p[ktrace.P_UINV] = uinv
-                p[ktrace.P_V] = v
+                p[ktrace.P_V] = 0.0 if math.isinf(v) else v  # 0: image at infinity (see kernels.trace)
         out[-1, ktrace.P_Z] = lens.sensor_z
         out[-1, ktrace.P_SD] = -1.0
         return out
@@ -368,10 +368,35 @@ class Tracer:
         shape = self.lens.surfaces[self.lens.stop_index].shape
         half = np.full(n, pup.entrance_radius)
         src = {"pos": pos, "dir": dirs, "finite": finite, "aim": aim, "half_x": half, "half_y": half.copy(),
-               "wl": wli, "shape": shape, "fields": fields}
+               "wl": wli, "shape": shape, "fields": fields, "object_distance": od}
         if ray_aiming:
             self._aim_at_stop(src)
         return src
+
+    def _params_for(self, object_distance):
+        """The surface parameter views for sources at ``object_distance`` (mm, inf allowed): :attr:`params`
+        unless the lens has thin lenses and the distance differs from the lens's own (an ideal lens's
+        path correction depends on its conjugates); those rows are then rebuilt (cached)."""
+        lens = self.lens
+        od = lens.object_distance if object_distance is None else float(object_distance)
+        if od == lens.object_distance or not any(s.type == "thin_lens" for s in lens.surfaces):
+            return self.params
+        if self.requires_grad:
+            raise LensError(f"object distance {od} mm differs from the lens's ({lens.object_distance} mm) and "
+                            "the lens has an ideal thin lens: with gradients, set the distance on the lens "
+                            "(lens.replace(object_distance=...))", file=lens.source)
+        cache = getattr(self, "_od_params", None)
+        if cache is None or cache[0] is not self.params_np:
+            cache = self._od_params = (self.params_np, {})
+        if od not in cache[1]:
+            table = np.array(self.params_np, dtype=np.float64)
+            fresh = self._surface_params(od)
+            for i, s in enumerate(lens.surfaces):
+                if s.type == "thin_lens":
+                    table[i, [ktrace.P_UINV, ktrace.P_V]] = fresh[i, [ktrace.P_UINV, ktrace.P_V]]
+            cache[1][od] = upload_packed([(row, self.np_dtype, self.scalar) for row in table], self.device,
+                                         cache=True)
+        return cache[1][od]
 
     def _unclipped_params(self):
         """The surface parameter views with every clear aperture removed (for ray aiming)."""
@@ -407,7 +432,8 @@ class Tracer:
             if not ok.all():
                 bad = [src["fields"][k] for k in range(n) if not ok[:, k].all()]
                 raise GeometryError("ray aiming failed: the chief ray misses a surface before the stop (or is "
-                                    "totally reflected)", file=self.lens.source, surface=stop, field=bad[0])
+                                    "totally reflected)", file=self.lens.source, surface=self.lens.surface_label(stop),
+                                    field=bad[0])
             r0, rx, ry = xy[0], xy[1], xy[2]
             if np.max(np.abs(r0)) < tol_mm:
                 break
@@ -447,6 +473,8 @@ class Tracer:
         independent, so the result is the same bit for bit). ``params``: per-surface parameter views to
         trace with instead of :attr:`params` (ray aiming traces without clear apertures)."""
         dev, sc, K = self.device, self.scalar, self.K
+        if params is None:
+            params = self._params_for(src.get("object_distance"))
         nsrc = len(src["wl"])
         npup = grid_n * grid_n if grid_n > 0 else len(u)
         if grid_n > 0:
