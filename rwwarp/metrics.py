@@ -201,8 +201,9 @@ def peak_intensity_from_psf(data, pixel_mm, upsample: int = 4):
 
 # ============================================================================== lens helpers
 def _wave_plane(lens):
-    from .psf import _wave_plane_index
-    return _wave_plane_index(lens)
+    """Index of the plane where the wave models start: the DOE, else the last surface."""
+    d = lens.doe_index
+    return len(lens.surfaces) - 1 if d is None else d
 
 
 def _image_space_rays(lens, fields, wavelength_um, u, v, object_distance_mm=None, device="cpu",
