@@ -12,6 +12,19 @@ import os
 import numpy as np
 import pytest
 
+try:  # hypothesis profiles of the fuzz suite (tests/fuzz): ``ci`` by default, ``long`` on request
+    from hypothesis import HealthCheck, settings
+
+    _quiet = [HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much,
+              HealthCheck.function_scoped_fixture]
+    settings.register_profile("ci", derandomize=True, max_examples=100, deadline=None, database=None,
+                              print_blob=True, suppress_health_check=_quiet)
+    settings.register_profile("long", derandomize=False, max_examples=1500, deadline=None, database=None,
+                              print_blob=True, suppress_health_check=_quiet)
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))  # --hypothesis-profile overrides
+except ImportError:  # hypothesis is a test extra; tests/fuzz skips without it
+    pass
+
 
 def _select_opencl_device(spec: str) -> str:
     """rwwarp device string 'opencl:P:D' for a PYOPENCL_TEST-style 'platform[:device]' spec."""
