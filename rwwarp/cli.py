@@ -77,7 +77,7 @@ def _lens(path):
 def cmd_info(a):
     from . import paraxial
     lens = _lens(a.lens)
-    wl = a.wavelength or lens.wavelengths_um[len(lens.wavelengths_um) // 2]
+    wl = a.wavelength if a.wavelength is not None else lens.wavelengths_um[len(lens.wavelengths_um) // 2]
     p = paraxial.pupils(lens, wl)
     print(f"{lens.name or a.lens}: {len(lens.surfaces)} surfaces, sensor {lens.sensor.resolution[0]}x"
           f"{lens.sensor.resolution[1]} px of {lens.sensor.pixel_pitch * 1e3:.4g} um")

@@ -29,6 +29,7 @@ def _fails(argv, capsys):
     (["psf", A489, "--device", "gpu7", "--model", "ray"], "device='gpu7'"),
     (["psf", A489, "--model", "wave"], "--model"),
     (["info", A489, "--wavelength", "550"], "wavelength_um=550 is outside 0.2-20 um"),
+    (["info", A489, "--wavelength", "0"], "wavelength_um=0 is outside"),  # not silently the default
     (["info", "/nonexistent/lens.json"], "/nonexistent/lens.json"),
     (["info", "/"], "directory"),
     (["info", "/dev/null"], "regular file"),
