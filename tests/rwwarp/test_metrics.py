@@ -108,6 +108,11 @@ def test_mtf_raywave_circular_pupil(circ):
     # (measured; 1.7e-2 at 128 px, 3.3e-2 at 64 px: the error follows the lost power)
     assert np.max(np.abs(r.tangential - ref)) < 1.5e-2
     assert np.max(np.abs(r.sagittal - r.tangential)) < 1e-6  # rotational symmetry
+    # normalised by all the power reaching the sensor, the cut tails only lower f ~ 0:
+    # measured 7.2e-4 above f = 0 on 256 x 2 um samples (the residual: NA 0.05 is not quite paraxial)
+    s = rw.mtf(circ, 0.0, WL, size=256, pixel_mm=0.002, normalize="sensor")
+    ref = M.diffraction_mtf_circular(s.frequencies_lp_mm, fc)
+    assert np.max(np.abs(s.tangential - ref)[1:]) < 1.5e-3
 
 
 def test_mtf_equals_numpy_fft_of_same_samples(circ):
