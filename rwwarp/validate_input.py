@@ -327,6 +327,12 @@ def check_doe_steepness(s, i, lens, prof) -> None:
             data = prof.data if getattr(prof, "_data", None) is not None else None
             if data is not None and data.size > MAX_PIXELS:
                 raise _fail(f"pixel map of {data.size} pixels; at most {MAX_PIXELS}", lens, i, "profile")
+            pitch = getattr(prof, "pitch", None)
+            lam_mm = float(s.design_wavelength_um) * 1e-3
+            if pitch is not None and pitch < 0.5 * lam_mm:
+                raise _fail(f"pixel map pitch {pitch * 1e3:.3g} um is below half the design wavelength "
+                            f"({s.design_wavelength_um:g} um): sub-wavelength pixels cannot be simulated by the "
+                            "scalar model and no sampling plan can resolve them", lens, i, "profile")
         return
     h = float(s.semi_diameter)
     with np.errstate(all="ignore"):

@@ -310,3 +310,18 @@ def test_inputs_not_mutated(a489):
     assert fields == [0.0, (0.0, 2.0)] and wls == [0.55, 0.65]
     assert a489.to_dict() == before
     assert np.all(np.isfinite(m.data)) and np.all(m.data.sum(axis=(2, 3)) <= 1 + 1e-9)
+
+
+def test_pixel_map_files_and_pitch(tmp_path):
+    def with_map(profile):
+        return _native(lambda d: d["surfaces"][3].update(profile=profile))
+    os.mkfifo(tmp_path / "fifo.npy")
+    t = time.perf_counter()
+    e = _refused(tmp_path, with_map({"kind": "pixel_map", "file": "fifo.npy", "pitch": 0.01}))
+    assert time.perf_counter() - t < 5 and "fifo.npy" in str(e)
+    (tmp_path / "dir.npy").mkdir()
+    _refused(tmp_path, with_map({"kind": "pixel_map", "file": "dir.npy", "pitch": 0.01}))
+    (tmp_path / "text.npy").write_text("not numpy")
+    _refused(tmp_path, with_map({"kind": "pixel_map", "file": "text.npy", "pitch": 0.01}))
+    e = _refused(tmp_path, with_map({"kind": "pixel_map", "data": [[0.0, 1.0], [1.0, 0.0]], "pitch": 1e-5}))
+    assert "half the design wavelength" in str(e)
