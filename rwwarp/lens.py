@@ -331,9 +331,18 @@ class Lens:
                    _num(epd, source, None, "entrance_pupil_diameter"),
                    fields_deg=copy.deepcopy(d.get("fields_deg")), source=source)
 
-    def save(self, path) -> None:
-        """Write the native JSON file."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+    def save(self, path, format: str | None = None) -> None:
+        """Write the lens to ``path``: native JSON, or a Zemax sequential ``.zmx``
+        (:mod:`rwwarp.io_zemax_write`). ``format``: ``"json"`` or ``"zmx"``; default from the
+        suffix (``.zmx`` -> zmx, anything else -> json)."""
+        fmt = format or ("zmx" if Path(path).suffix.lower() == ".zmx" else "json")
+        if fmt == "zmx":
+            from .io_zemax_write import write_zmx
+            write_zmx(self, path)
+        elif fmt == "json":
+            Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        else:
+            raise ValueError(f"format must be 'json' or 'zmx', got {format!r}")
 
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",

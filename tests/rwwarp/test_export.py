@@ -1,0 +1,186 @@
+"""Zemax .zmx export (rwwarp.io_zemax_write, Lens.save): round trips through the reader, the text
+itself, and refusals of what a .zmx cannot hold."""
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+import rwwarp as rw
+from rwwarp.errors import LensError
+from rwwarp.io_zemax_write import zmx_text
+from rwwarp.lens import Lens, Sensor, Surface
+
+BUNDLED = ["cooke_triplet", "cooke_triplet.zmx", "a489_doe", "thin_lens_doe"]
+
+
+def canonical(lens):
+    """The optical content of a lens as (kind, numbers...) tuples, independent of how it is spelled:
+    planes that neither refract nor clip are dropped (a stop flag on them is kept as the stop's z);
+    an ``aperture`` and a flat ``standard`` surface that keeps the medium are both a clipping 'plane';
+    materials compare by their indices at the lens's wavelengths; trailing zero aspheric terms dropped."""
+    out, medium = [], "air"
+    z = lens.vertex_z
+    wls = lens.wavelengths_um
+    n = lambda m: tuple(rw.materials.get_material(m).n(w) if m != "air" else 1.0 for w in wls)
+    stop_z = float(z[lens.stop_index])
+    for i, s in enumerate(lens.surfaces):
+        flat_plane = s.type == "aperture" or (s.type == "standard" and s.radius is None and not any(s.aspheric)
+                                              and n(s.material) == n(medium))
+        if flat_plane:
+            if s.semi_diameter is not None:
+                out.append(("plane", z[i], s.semi_diameter, s.shape))
+            continue
+        if s.type == "standard":
+            a = [float(v) for v in s.aspheric]
+            while a and a[-1] == 0:
+                a.pop()
+            out.append(("standard", z[i], s.curvature, s.conic, *a, *n(s.material), s.semi_diameter or 0.0, s.shape))
+            medium = s.material
+        elif s.type == "thin_lens":
+            out.append(("thin_lens", z[i], s.focal_length, *n(s.material), s.semi_diameter or 0.0, s.shape))
+            medium = s.material
+        elif s.type == "doe":
+            p = s.profile
+            out.append(("doe", z[i], p["norm_radius"], *p["coefficients"], s.semi_diameter or 0.0, s.shape,
+                        s.design_wavelength_um, str(s.levels)))
+    return out, stop_z, float(lens.sensor_z)
+
+
+def assert_same(a, b, tol=1e-12):
+    assert len(a) == len(b), (a, b)
+    for x, y in zip(a, b):
+        if isinstance(x, (tuple, list)):
+            assert_same(x, y, tol)
+        elif isinstance(x, str) or x is None:
+            assert x == y
+        else:
+            assert abs(float(x) - float(y)) <= tol * max(1.0, abs(float(x))), (x, y)
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_roundtrip_bundled(name, tmp_path):
+    a = rw.load_lens(name)
+    path = tmp_path / "lens.zmx"
+    a.save(path)
+    b = rw.load_lens(path)
+    for w in a.wavelengths_um:
+        assert b.efl(w) == pytest.approx(a.efl(w), abs=1e-12)  # measured: bit-identical
+        assert b.bfl(w) == pytest.approx(a.bfl(w), abs=1e-12)
+    assert_same(canonical(a), canonical(b))
+    assert b.wavelengths_um == a.wavelengths_um
+    assert b.object_distance == a.object_distance
+    assert (b.fields_deg or [0.0]) == (a.fields_deg or [0.0])
+    # the same real rays reach the sensor at the same points (grid over the entrance pupil)
+    wl = a.wavelengths_um[len(a.wavelengths_um) // 2]
+    f = [0.0, max(abs(v) if np.ndim(v) == 0 else max(abs(t) for t in v) for v in (a.fields_deg or [1.0]))]
+    # pupil coordinates are normalised to each lens's entrance pupil: a square pupil reads back as its
+    # circumscribed circle (documented), so the same physical rays sit at (u, v) / sqrt(2) there
+    ra = rw.paraxial.pupils(a, wl).entrance_radius
+    rb = rw.paraxial.pupils(b, wl).entrance_radius
+    g = np.linspace(-1, 1, 21)
+    u, v = (x.ravel() for x in np.meshgrid(g, g))
+    if a.surfaces[a.stop_index].shape == "circle":
+        keep = u * u + v * v <= 1
+        u, v = u[keep], v[keep]
+    ha = rw.trace.Tracer(a, [wl]).trace(f, pupil=(u, v, 1.0)).numpy()
+    hb = rw.trace.Tracer(b, [wl]).trace(f, pupil=(u * ra / rb, v * ra / rb, 1.0)).numpy()
+    assert np.array_equal(ha["valid"], hb["valid"]) and ha["valid"].sum() > 100
+    ok = ha["valid"]
+    assert np.max(np.abs(ha["pos"][ok] - hb["pos"][ok])) < 1e-12  # measured 3.3e-16
+
+
+def test_reference_file_written_by_opticstudio_reads_back_identically(tmp_path):
+    """cooke_triplet.zmx was written by OpticStudio (UTF-16): load -> save -> load gives the same lens."""
+    a = rw.load_lens("cooke_triplet.zmx")
+    for enc in ("utf-8", "utf-16"):
+        p = tmp_path / f"c_{enc}.zmx"
+        from rwwarp.io_zemax_write import write_zmx
+        write_zmx(a, p, encoding=enc)
+        b = rw.load_lens(p)
+        da, db = a.to_dict(), b.to_dict()
+        assert da == db
+    assert p.read_bytes()[:2] == b"\xff\xfe"  # UTF-16 LE BOM, as OpticStudio writes
+
+
+def test_saved_a489_is_idempotent(tmp_path):
+    a = rw.load_lens("a489_doe")
+    a.save(tmp_path / "1.zmx")
+    b = rw.load_lens(tmp_path / "1.zmx")
+    b.save(tmp_path / "2.zmx")
+    c = rw.load_lens(tmp_path / "2.zmx")
+    assert_same(canonical(b), canonical(c))
+    assert b.entrance_pupil_diameter == c.entrance_pupil_diameter == 2.0
+
+
+def test_zmx_text_a489():
+    """The written text, checked against the A489 file's values (not against the reader)."""
+    t = zmx_text(rw.load_lens("a489_doe"))
+    lines = [ln.strip() for ln in t.splitlines()]
+    assert "UNIT MM X W X CM MR CPMM" in lines
+    assert "ENPD 2.0" in lines  # stop radius 1 mm in front of everything: EPD 2 mm
+    assert "PWAV 2" in lines  # the DOE's design wavelength 0.55 um is wavelength 2
+    assert "WAVM 1 0.45 1" in lines and "WAVM 3 0.65 1" in lines
+    assert "TYPE EVENASPH" in lines and "PARM 2 0.000533" in lines and "PARM 6 1.36e-10" in lines
+    assert "CONI -1.2051" in lines
+    assert f"CURV {1 / 4.7531!r} 0 0 0 0 \"\"" in lines
+    assert any(ln.startswith("GLAS H-K51") for ln in lines)
+    assert "GCAT CDGM" in lines
+    assert "TYPE BINARY_2" in lines and "XDAT 1 4 0 0 0 0 0 \"\"" in lines and "XDAT 2 1.5 0 0 0 0 0 \"\"" in lines
+    assert "SQAP 1.5 1.5 0 0 0" in lines and "CLAP 0 6.35 0" in lines
+    assert "DISZ 10000.0" in lines and "STOP" in lines
+
+
+def _doe_lens(profile, levels=None, n_asph=0):
+    s = [Surface(type="aperture", semi_diameter=2.0, thickness=1.0, stop=True),
+         Surface(type="standard", radius=50.0, material="N-BK7", semi_diameter=3.0, thickness=2.0,
+                 aspheric=[0.0] * (n_asph - 1) + [1e-22] if n_asph else []),
+         Surface(type="standard", radius=None, semi_diameter=3.0, thickness=1.0),
+         Surface(type="doe", semi_diameter=2.0, thickness=90.0, profile=profile, levels=levels)]
+    return Lens(s, wavelengths_um=[0.486, 0.55, 0.656])
+
+
+def test_doe_profiles_and_refusals(tmp_path):
+    # even_poly with real coefficients: exact
+    a = _doe_lens({"kind": "even_poly", "norm_radius": 2.0, "coefficients": [-30.0, 1.5, -0.25]})
+    a.save(tmp_path / "e.zmx")
+    b = rw.load_lens(tmp_path / "e.zmx")
+    assert_same(canonical(a), canonical(b))
+    for w in a.wavelengths_um:
+        assert b.efl(w) == pytest.approx(a.efl(w), abs=1e-12)
+    # fresnel f = 200 mm at 0.55 um -> one BINARY_2 term; the DOE's power 1/200 at 0.55 um (analytic)
+    c = _doe_lens({"kind": "fresnel", "focal_length": 200.0})
+    c.save(tmp_path / "f.zmx")
+    d = rw.load_lens(tmp_path / "f.zmx")
+    assert rw.paraxial.doe_power(d.surfaces[-1], 0.55) == pytest.approx(1 / 200.0, rel=1e-12)
+    assert d.efl(0.486) == pytest.approx(c.efl(0.486), rel=1e-12)
+    # refusals, each naming the surface and what is wrong
+    data = [[0.0, 1.0], [2.0, 3.0]]
+    with pytest.raises(LensError, match="pixel-map") as e:
+        _doe_lens({"kind": "pixel_map", "pitch": 0.01, "data": data}).save(tmp_path / "p.zmx")
+    assert "surface 3" in str(e.value)
+    with pytest.raises(LensError, match="levels"):
+        _doe_lens({"kind": "even_poly", "norm_radius": 2.0, "coefficients": [1.0]}, levels=8).save(tmp_path / "q.zmx")
+    with pytest.raises(LensError, match="zernike"):
+        _doe_lens({"kind": "zernike", "norm_radius": 2.0, "coefficients": [0, 0, 0, 1.0]}).save(tmp_path / "z.zmx")
+    with pytest.raises(LensError, match="odd powers"):
+        _doe_lens({"kind": "poly", "norm_radius": 2.0, "coefficients": [1.0, 2.0]}).save(tmp_path / "o.zmx")
+    with pytest.raises(LensError, match="r\\^16"):
+        _doe_lens({"kind": "even_poly", "norm_radius": 2.0, "coefficients": [1.0]}, n_asph=9).save(tmp_path / "a.zmx")
+    with pytest.raises(ValueError, match="format"):
+        a.save(tmp_path / "x.zmx", format="codev")
+
+
+def test_model_glass_and_design_wavelength_warning(tmp_path):
+    s = [Surface(type="standard", radius=40.0, material="1.6/40.0", semi_diameter=5.0, thickness=3.0, stop=True),
+         Surface(type="standard", radius=None, semi_diameter=5.0, thickness=60.0)]
+    a = Lens(s, wavelengths_um=[0.5, 0.6], entrance_pupil_diameter=8.0)
+    a.save(tmp_path / "m.zmx")
+    assert "GLAS ___BLANK 1 0 1.6 40.0" in (tmp_path / "m.zmx").read_text()
+    b = rw.load_lens(tmp_path / "m.zmx")
+    assert [x.material for x in b.surfaces] == ["1.6/40.0", "air"]  # the stop floats: no extra plane
+    assert b.efl(0.5) == pytest.approx(a.efl(0.5), abs=1e-12)
+    c = _doe_lens({"kind": "even_poly", "norm_radius": 2.0, "coefficients": [1.0]})
+    c = c.with_surface(3, design_wavelength_um=0.6)
+    with pytest.warns(UserWarning, match="design wavelength"):
+        c.save(tmp_path / "w.zmx")
