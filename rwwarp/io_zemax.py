@@ -348,15 +348,19 @@ def read_zmx(path):
             elif gname.upper() != "AIR":
                 material = gname
             if material != "air":
+                file_nd = file_vd = None
+                if gname.upper() != "___BLANK" and len(toks) >= 5 and _isnum(toks[3]) and _isnum(toks[4]):
+                    file_nd, file_vd = float(toks[3]), float(toks[4])
                 try:
-                    materials.get_material(material)
+                    material, note = materials.resolve_glass(material, file_nd, file_vd)
                 except LensError as e:
-                    hint = ""
-                    if len(toks) >= 5 and gname.upper() != "___BLANK":
-                        hint = (f" (the file also lists nd {toks[3]}, Vd {toks[4]}; no model glass is "
-                                "substituted)")
-                    raise rd.err(f"unknown glass {gname!r}: {_core(e)}{hint}", surf=k, key="GLAS",
-                                 cls=GlassError, line=ln) from None
+                    # the lookup's own message names the glass once; Zemax's nd 0 / Vd 0 placeholders are no data
+                    raise rd.err(f"{_core(e)} (and the file lists no usable nd / Vd for a model glass)", surf=k,
+                                 key="GLAS", cls=GlassError, line=ln) from None
+                if note is not None:
+                    import warnings
+                    warnings.warn(f"{path}: SURF {k} GLAS (line {ln}): {note}", materials.GlassSubstitutionWarning,
+                                  stacklevel=2)
 
         # aperture
         sd, shape = None, "circle"

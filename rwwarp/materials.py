@@ -25,6 +25,10 @@ AGF   name          formula
                           + c6 lam^-8 + c7 lam^-10 + c8 lam^-12
 -     Constant      n = c0                                            (air, vacuum)
 -     Model         n = nd + (nd - 1)/vd * (lam^-2 - lam_d^-2) / (lam_F^-2 - lam_C^-2),  c = (nd, vd)
+-     ModelLines    the Model law with its own lines, c = (nd, vd, lam_d, lam_F, lam_C)
+-     RII1          n^2 - 1 = c0 + sum_i c_{2i-1} lam^2 / (lam^2 - c_{2i}^2)      (refractiveindex.info 1)
+-     RII2          n^2 - 1 = c0 + sum_i c_{2i-1} lam^2 / (lam^2 - c_{2i})        (refractiveindex.info 2)
+-     RII3          n^2 = c0 + sum_i c_{2i-1} lam^c_{2i}                        (refractiveindex.info 3)
 ====  ============  ==========================================================================
 
 The ``Model`` formula is the two-term Cauchy law n = A + B / lam^2 through (nd, vd) (as in
@@ -53,7 +57,7 @@ import numpy as np
 
 from .errors import GlassError, LensFileError
 
-__all__ = ["Material", "get_material", "model_glass", "load_agf", "register_catalog", "reset_catalogs",
+__all__ = ["Material", "get_material", "resolve_glass", "GlassSubstitutionWarning", "model_glass", "load_agf", "register_catalog", "reset_catalogs",
            "available_materials", "WAVELENGTH_D_UM", "WAVELENGTH_F_UM", "WAVELENGTH_C_UM"]
 
 WAVELENGTH_D_UM = 0.5875618  # helium d line
@@ -61,6 +65,12 @@ WAVELENGTH_F_UM = 0.4861327  # hydrogen F line
 WAVELENGTH_C_UM = 0.6562725  # hydrogen C line
 
 _TABLE_PATH = Path(__file__).resolve().parent / "data" / "glasses.json"
+_EXTRA_PATH = Path(__file__).resolve().parent / "data" / "glasses_extra.json"
+
+
+class GlassSubstitutionWarning(UserWarning):
+    """A lens file names a glass the tables do not hold and another material stands in for it (a SCHOTT
+    lead-free successor, or a model glass from the nd/Vd the file lists); the message names both."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -149,6 +159,37 @@ def _model(lam, c):
     return nd + (nd - 1.0) / vd * (1.0 / (lam * lam) - _INV_D2) / _INV_F2_MINUS_C2
 
 
+def _model_lines(lam, c):
+    nd, vd, ld, lf, lc = c[0], c[1], c[2], c[3], c[4]
+    return nd + (nd - 1.0) / vd * (1.0 / (lam * lam) - 1.0 / (ld * ld)) / (1.0 / (lf * lf) - 1.0 / (lc * lc))
+
+
+def _rii1(lam, c):
+    l2 = lam * lam
+    n2 = 1.0 + c[0]
+    for i in range(1, len(c) - 1, 2):
+        if c[i] != 0.0:
+            n2 = n2 + c[i] * l2 / (l2 - c[i + 1] * c[i + 1])
+    return np.sqrt(n2)
+
+
+def _rii2(lam, c):
+    l2 = lam * lam
+    n2 = 1.0 + c[0]
+    for i in range(1, len(c) - 1, 2):
+        if c[i] != 0.0:
+            n2 = n2 + c[i] * l2 / (l2 - c[i + 1])
+    return np.sqrt(n2)
+
+
+def _rii3(lam, c):
+    n2 = c[0] + 0.0 * lam
+    for i in range(1, len(c) - 1, 2):
+        if c[i] != 0.0:
+            n2 = n2 + c[i] * lam ** c[i + 1]
+    return np.sqrt(n2)
+
+
 # name -> (Zemax AGF formula number or None, number of coefficients, evaluator)
 _FORMULAS = {
     "Schott": (1, 6, _schott),
@@ -166,6 +207,10 @@ _FORMULAS = {
     "Extended3": (13, 9, _extended3),
     "Constant": (None, 1, _constant),
     "Model": (None, 2, _model),
+    "ModelLines": (None, 5, _model_lines),
+    "RII1": (None, 17, _rii1),
+    "RII2": (None, 17, _rii2),
+    "RII3": (None, 17, _rii3),
 }
 _FORMULA_BY_NUMBER = {v[0]: k for k, v in _FORMULAS.items() if v[0] is not None}
 _FORMULA_BY_KEY = {k.lower(): k for k in _FORMULAS}
@@ -297,7 +342,7 @@ _AIR = Material("air", "Constant", (1.0,), catalog="MISC", source="n = 1 (catalo
 _VACUUM = Material("vacuum", "Constant", (1.0,), catalog="MISC", source="n = 1")
 
 
-def model_glass(nd: float, vd: float) -> Material:
+def model_glass(nd: float, vd: float, lines_um=None) -> Material:
     """Model glass through (nd, vd), like Zemax's MODEL glass (without partial dispersion).
 
     Dispersion: two-term Cauchy n(lam) = A + B / lam^2 with A, B set so that n(lam_d) = nd and
@@ -309,13 +354,21 @@ def model_glass(nd: float, vd: float) -> Material:
     Args:
         nd: index at the d line (dimensionless, > 0).
         vd: Abbe number (dimensionless, non-zero; ``inf`` gives a non-dispersive material).
+        lines_um: optional ``(d, F, C)`` wavelengths (um) that define nd and vd in the source format
+            (DeepLens: 0.5876, 0.4861, 0.6563); default the exact helium d / hydrogen F, C lines.
 
     Returns:
-        the :class:`Material` named ``"nd/vd"``.
+        the :class:`Material` named ``"nd/vd"`` (``"nd/vd@d,F,C"`` with ``lines_um``).
     """
     nd, vd = float(nd), float(vd)
     if not (math.isfinite(nd) and nd > 0.0) or math.isnan(vd) or vd == 0.0:
         raise GlassError(f"model glass needs a finite nd > 0 and a non-zero vd, got nd={nd!r}, vd={vd!r}")
+    if lines_um is not None:
+        ld, lf, lc = (float(v) for v in lines_um)
+        if not (0.0 < lf < ld < lc):
+            raise GlassError(f"model glass lines must satisfy 0 < F < d < C (um), got {lines_um!r}")
+        return Material(f"{nd!r}/{vd!r}@{ld!r},{lf!r},{lc!r}", "ModelLines", (nd, vd, ld, lf, lc), catalog="MODEL",
+                        catalog_nd=nd, catalog_vd=vd, source="model glass (Cauchy through nd, vd at the given lines)")
     return Material(f"{nd!r}/{vd!r}", "Model", (nd, vd), catalog="MODEL", catalog_nd=nd, catalog_vd=vd,
                     source="model glass (Cauchy through nd, vd)")
 
@@ -465,6 +518,13 @@ def _shipped():
     return _load_table_json(_TABLE_PATH)
 
 
+@functools.lru_cache(maxsize=1)
+def _extra():
+    """Glasses beyond the makers' current catalogues (``data/glasses_extra.json``: HIKARI, SUMITA,
+    older OHARA/CDGM/HOYA/SCHOTT glasses, B 270, optical plastics); looked up after the shipped table."""
+    return _load_table_json(_EXTRA_PATH)
+
+
 def _plain_name(m: Material) -> str:
     return m.name.split(":", 1)[1] if ":" in m.name else m.name
 
@@ -474,7 +534,13 @@ def _index() -> dict:
     """lower-case name -> Material. Precedence, lowest first: shipped aliases, shipped names,
     registered catalogues in registration order; "air" and "vacuum" always mean n = 1."""
     shipped, aliases = _shipped()
-    index = {alias.lower(): shipped[key] for alias, key in aliases.items()}
+    extra, extra_aliases = _extra()
+    index = {alias.lower(): extra[key] for alias, key in extra_aliases.items()}
+    for key, m in extra.items():
+        index[key.lower()] = m
+        if m.catalog and ":" not in key:
+            index[f"{m.catalog}:{key}".lower()] = m
+    index.update({alias.lower(): shipped[key] for alias, key in aliases.items()})
     for layer in [shipped] + list(_REGISTERED):
         for key, m in layer.items():
             if m.catalog:
@@ -486,6 +552,9 @@ def _index() -> dict:
 
 _NUMBER = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
 _MODEL_RE = re.compile(rf"^\s*({_NUMBER})\s*[/,]\s*({_NUMBER}|[+]?inf)\s*$", re.IGNORECASE)
+# "nd/vd@d,F,C": a model glass defined at its own d, F, C lines (um), e.g. DeepLens's 587.6/486.1/656.3 nm
+_MODEL_LINES_RE = re.compile(rf"^\s*({_NUMBER})\s*/\s*({_NUMBER}|[+]?inf)\s*@\s*({_NUMBER})\s*,\s*({_NUMBER})"
+                             rf"\s*,\s*({_NUMBER})\s*$", re.IGNORECASE)
 
 
 @functools.lru_cache(maxsize=None)
@@ -515,6 +584,10 @@ def get_material(name: str) -> Material:
     match = _MODEL_RE.match(key)
     if match:
         return model_glass(float(match.group(1)), float(match.group(2)))
+    match = _MODEL_LINES_RE.match(key)
+    if match:
+        lines = tuple(float(match.group(i)) for i in (3, 4, 5))
+        return model_glass(float(match.group(1)), float(match.group(2)), lines_um=lines)
     key_compact = re.sub(r"\s+", "", key)
     if key_compact in index:
         return index[key_compact]
@@ -523,6 +596,61 @@ def get_material(name: str) -> Material:
     hint = (f"; did you mean {', '.join(repr(d) for d in display)}?" if close else
             "; give 'nd/vd' for a model glass or add a catalogue with register_catalog()")
     raise GlassError(f"unknown glass {name.strip()!r}{hint}")
+
+
+def _successor(name: str):
+    """SCHOTT's lead-free successor of a legacy glass name ("SK16" -> "N-SK16"), or None."""
+    base = name.strip().upper()
+    if base.startswith("SCHOTT:"):
+        base = base[7:]
+    if base.startswith(("N-", "P-", "H-")):
+        return None
+    cand = f"N-{base}"
+    try:
+        m = get_material(cand)
+    except GlassError:
+        return None
+    return m if (m.catalog or "").upper() == "SCHOTT" else None
+
+
+def _plausible(nd, vd) -> bool:
+    return nd is not None and vd is not None and math.isfinite(nd) and math.isfinite(vd) and 1.0 < nd < 4.5 \
+        and 0.0 < vd < 200.0
+
+
+def resolve_glass(name: str, nd=None, vd=None, lines_um=None):
+    """The material a lens file's glass name stands for: ``(material name, note)``.
+
+    ``note`` is None when ``name`` is in the tables. Otherwise a substitute is chosen and ``note`` says
+    which (the caller warns with :class:`GlassSubstitutionWarning`, naming the surface):
+
+    * a legacy SCHOTT name whose lead-free successor ``N-<name>`` is in the SCHOTT catalogue
+      ("BK7", "SK16", "LAK9"), when the file's nd / vd (if any) agree with it (1e-3 / 0.5);
+    * else, where the file lists a plausible nd and vd (not Zemax's 0 placeholders), a model glass
+      through them (:func:`model_glass`; with ``lines_um = (d, F, C)`` the format's own defining lines).
+
+    Raises :class:`~rwwarp.errors.GlassError` (the lookup's own message, with close matches) when
+    there is no substitute.
+    """
+    try:
+        get_material(name)
+        return name, None
+    except GlassError as e:
+        err = e
+    nd = None if nd is None else float(nd)
+    vd = None if vd is None else float(vd)
+    succ = _successor(name)
+    if succ is not None and (not _plausible(nd, vd) or (abs(succ.nd - nd) < 1e-3 and abs(succ.vd - vd) < 0.5)):
+        return succ.name, (f"glass {name.strip()!r} is not in the tables: SCHOTT's lead-free successor "
+                           f"{succ.name!r} (nd {succ.nd:.5f}, vd {succ.vd:.2f}) stands in")
+    if _plausible(nd, vd):
+        if lines_um is None:
+            sub = f"{nd!r}/{vd!r}"
+        else:
+            sub = f"{nd!r}/{vd!r}@" + ",".join(repr(float(v)) for v in lines_um)
+        return sub, (f"glass {name.strip()!r} is not in the tables: a model glass from the file's nd {nd:g}, "
+                     f"vd {vd:g} stands in (no partial dispersion)")
+    raise err
 
 
 def register_catalog(path_or_dict, catalog: str | None = None) -> dict:

@@ -165,7 +165,8 @@ def test_zmx_binary2_between_media_splits(tmp_path):
 
 @pytest.mark.parametrize("body, cls, surf, key, match", [
     ([["STOP", "TYPE TOROIDAL", "CURV 0.01", "DISZ 5"]], LensFileError, "SURF 1", "TYPE", "TOROIDAL"),
-    ([["STOP", "CURV 0.01", "DISZ 5", "GLAS NOSUCHGLASS 0 0 1.6 40"]], GlassError, "SURF 1", "GLAS",
+    # unknown glass with Zemax's nd 0 / Vd 0 placeholders: no model glass can stand in (issue 11)
+    ([["STOP", "CURV 0.01", "DISZ 5", "GLAS NOSUCHGLASS 0 0 0 0"]], GlassError, "SURF 1", "GLAS",
      "NOSUCHGLASS"),
     ([["STOP", "CURV 0.05", "DISZ 5", "GLAS N-BK7", 'DIAM 8 1 0 0 1 ""'],
       ["CURV -0.05", "DISZ -4.5", 'DIAM 8 1 0 0 1 ""'], ["CURV 0", "DISZ 30"]],
@@ -187,7 +188,7 @@ def test_zmx_errors_name_file_surface_keyword(tmp_path, body, cls, surf, key, ma
 
 
 def test_zmx_error_utf16(tmp_path):
-    text = _cooke_text().replace("GLAS F2", "GLAS UNOBTAINIUM")
+    text = _cooke_text().replace("GLAS F2 0 0 1.62004 36.37", "GLAS UNOBTAINIUM 0 0 0 0")
     p = _write(tmp_path, text, encoding="utf-16")
     with pytest.raises(GlassError, match="UNOBTAINIUM") as ei:
         load_lens(p)
