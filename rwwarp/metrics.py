@@ -35,7 +35,8 @@ __all__ = ["MTF", "ThroughFocusMTF", "Strehl", "EnergyCurve", "FieldCurves", "Ch
            "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy",
            "chromatic_focal_shift", "field_curves", "otf_from_psf", "encircled_energy_from_psf",
            "ensquared_energy_from_psf", "peak_intensity_from_psf", "pixel_mtf", "default_sampling_mm",
-           "image_space_na", "diffraction_mtf_circular"]
+           "image_space_na", "diffraction_mtf_circular", "mtf_from_psf_map", "energy_from_psf_map",
+           "ideal_peak_intensity", "paraxial_image_distance"]
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -371,6 +372,20 @@ def _poly_mtf(m, weights, freqs, include_pixel, sensor_pixel, normalize="patch")
     return tan, sag
 
 
+def mtf_from_psf_map(m, frequencies_lp_mm, weights=None, include_pixel: bool = False, sensor_pixel_mm=None,
+                     normalize: str = "patch"):
+    """Tangential and sagittal MTF, each (n_fields, n_frequencies), of a :class:`rwwarp.PSFMap` ``m``
+    (polychromatic over its wavelengths with ``weights``, default equal); frequencies in lp/mm.
+    ``include_pixel`` multiplies by ``|sinc(f sensor_pixel_mm)|``. See :func:`mtf`."""
+    if normalize not in ("patch", "sensor"):
+        raise ValueError(f"normalize must be 'patch' or 'sensor', got {normalize!r}")
+    _, wt = _as_wavelengths(m.wavelengths_um, weights)
+    freqs = np.atleast_1d(np.asarray(frequencies_lp_mm, dtype=float))
+    if include_pixel and sensor_pixel_mm is None:
+        raise ValueError("include_pixel needs sensor_pixel_mm (mm)")
+    return _poly_mtf(m, wt, freqs, include_pixel, sensor_pixel_mm, normalize)
+
+
 def mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm=None, model: str = "ray-wave",
         include_pixel: bool = False, size: int = 128, pixel_mm=None, device: str = "cpu", normalize: str = "patch",
         **psf_kwargs) -> MTF:
@@ -622,11 +637,33 @@ def _energy(kind, lens, field_deg, wavelength_um, weights, sizes_um, model, refe
     wls, wt = _as_wavelengths(wavelength_um, weights)
     pixel = _check_positive(pixel_mm, "pixel_mm") if pixel_mm is not None else \
         (float(lens.sensor.pixel_pitch) if model == "ray" else default_sampling_mm(lens, fields, wls, device))
+    if sizes_um is not None:
+        chk = np.atleast_1d(np.asarray(sizes_um, dtype=float))
+        if chk.ndim != 1 or np.any(chk < 0) or not np.all(np.isfinite(chk)):
+            raise ValueError(f"{'radii_um' if kind == 'encircled' else 'half_widths_um'} must be a 1-D array of "
+                             f"non-negative um, got {sizes_um!r}")
     m = _psfs(lens, fields, wls, model, size, pixel, device, psf_kwargs)
     _patch_check(m, kind + "_energy")
-    vf = np.asarray(m.info["valid_fraction"], float).reshape(len(fields), len(wls))
     if sizes_um is None:
         sizes_um = np.linspace(0.0, 0.5 * size * pixel * 1e3, 41)
+    sz = np.atleast_1d(np.asarray(sizes_um, dtype=float))
+    out = energy_from_psf_map(m, sz, kind, wt, reference)
+    if scalar:
+        out = out[0]
+    return EnergyCurve(sz, out, kind, fields, wls, model, {"pixel_mm": pixel, "psf_map": m})
+
+
+def energy_from_psf_map(m, sizes_um, kind: str = "encircled", weights=None, reference: str = "centroid"):
+    """Encircled (``sizes_um`` = radii) or ensquared (half widths) energy, (n_fields, n_sizes), of a
+    :class:`rwwarp.PSFMap`, as fractions of the power reaching the sensor; polychromatic with
+    ``weights``; about the centroid or the chief ray (``reference``). See :func:`encircled_energy`."""
+    if kind not in ("encircled", "ensquared"):
+        raise ValueError(f"kind must be 'encircled' or 'ensquared', got {kind!r}")
+    if reference not in ("centroid", "chief"):
+        raise ValueError(f"reference must be 'centroid' or 'chief', got {reference!r}")
+    fields, wls = m.fields_deg, m.wavelengths_um
+    _, wt = _as_wavelengths(wls, weights)
+    vf = np.asarray(m.info["valid_fraction"], float).reshape(len(fields), len(wls))
     sz = np.atleast_1d(np.asarray(sizes_um, dtype=float))
     if sz.ndim != 1 or np.any(sz < 0):
         raise ValueError(f"{'radii_um' if kind == 'encircled' else 'half_widths_um'} must be a 1-D array of "
@@ -647,9 +684,7 @@ def _energy(kind, lens, field_deg, wavelength_um, weights, sizes_um, model, refe
         else:  # chief ray of the primary (heaviest) wavelength: the patch centre is where it lands
             c = (0.0, 0.0)
         out[i] = fn(acc, m.pixel_mm, sz * 1e-3, total=1.0, center_rel_mm=c)
-    if scalar:
-        out = out[0]
-    return EnergyCurve(sz, out, kind, fields, wls, model, {"pixel_mm": pixel, "psf_map": m})
+    return out
 
 
 def _shift_patch(a, sx, sy):
