@@ -240,19 +240,48 @@ def _int(v) -> int:
     return int(v)
 
 
+#: DeepLens defines a "nd/Vd" material as a Cauchy glass through nd at 587.6 nm and Vd from 486.1 / 656.3 nm
+DEEPLENS_MODEL_LINES_UM = (0.5876, 0.4861, 0.6563)
+
+
 def _material(sd, i, src, err, materials):
+    """rwwarp material name for a DeepLens ``mat2``, resolved as DeepLens resolves it: its own catalogue
+    entries (``DEEPLENS:<name>``, :mod:`rwwarp.materials`), then the makers' tables, then ``"nd/Vd"`` as a
+    model glass at DeepLens's defining lines; a legacy name without data gets its successor, with a
+    :class:`~rwwarp.materials.GlassSubstitutionWarning`."""
     name = sd.get("mat2", "air")
     if not isinstance(name, str) or not name:
         raise err(f"'mat2' must be a material name, got {name!r}", i, "mat2")
-    if name.lower() in ("air", "vacuum"):
+    key = name.strip().lower()
+    if key in ("air", "vacuum", "occluder"):
         return "air"
+    if "/" in key:
+        parts = key.split("/")
+        try:
+            nd, vd = float(parts[0]), float(parts[1])
+        except (ValueError, IndexError):
+            raise err(f"'mat2' {name!r} is not 'nd/Vd'", i, "mat2") from None
+        out = f"{nd!r}/{vd!r}@" + ",".join(repr(v) for v in DEEPLENS_MODEL_LINES_UM)
+        try:
+            materials.get_material(out)
+        except LensError as e:
+            from .io_zemax import _core
+            raise type(e)(_core(e), file=src, surface=i, keyword="mat2") from None
+        return out
     try:
-        materials.get_material(name)
+        return materials.get_material(f"DEEPLENS:{key}").name
+    except LensError:
+        pass
+    try:
+        out, note = materials.resolve_glass(name)
     except LensError as e:
         from .io_zemax import _core
-        raise type(e)(f"{_core(e)} (DeepLens material names are looked up in the rwwarp glass table)",
-                      file=src, surface=i, keyword="mat2") from None
-    return name
+        raise type(e)(f"{_core(e)} (DeepLens material names are looked up in DeepLens's own table, then the "
+                      "rwwarp glass tables)", file=src, surface=i, keyword="mat2") from None
+    if note is not None:
+        import warnings
+        warnings.warn(f"{src}: surface {i} mat2: {note}", materials.GlassSubstitutionWarning, stacklevel=3)
+    return out
 
 
 def _doe(dd, err):

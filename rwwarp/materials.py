@@ -66,6 +66,7 @@ WAVELENGTH_C_UM = 0.6562725  # hydrogen C line
 
 _TABLE_PATH = Path(__file__).resolve().parent / "data" / "glasses.json"
 _EXTRA_PATH = Path(__file__).resolve().parent / "data" / "glasses_extra.json"
+_DEEPLENS_PATH = Path(__file__).resolve().parent / "data" / "deeplens_materials.json"
 
 
 class GlassSubstitutionWarning(UserWarning):
@@ -519,6 +520,13 @@ def _shipped():
 
 
 @functools.lru_cache(maxsize=1)
+def _deeplens():
+    """DeepLens's own material names as DeepLens defines them (``data/deeplens_materials.json``), only as
+    ``"DEEPLENS:<name>"`` (the DeepLens reader looks there first)."""
+    return _load_table_json(_DEEPLENS_PATH)
+
+
+@functools.lru_cache(maxsize=1)
 def _extra():
     """Glasses beyond the makers' current catalogues (``data/glasses_extra.json``: HIKARI, SUMITA,
     older OHARA/CDGM/HOYA/SCHOTT glasses, B 270, optical plastics); looked up after the shipped table."""
@@ -535,7 +543,8 @@ def _index() -> dict:
     registered catalogues in registration order; "air" and "vacuum" always mean n = 1."""
     shipped, aliases = _shipped()
     extra, extra_aliases = _extra()
-    index = {alias.lower(): extra[key] for alias, key in extra_aliases.items()}
+    index = {key.lower(): m for key, m in _deeplens()[0].items()}
+    index.update({alias.lower(): extra[key] for alias, key in extra_aliases.items()})
     for key, m in extra.items():
         index[key.lower()] = m
         if m.catalog and ":" not in key:

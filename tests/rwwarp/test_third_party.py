@@ -68,3 +68,39 @@ def test_zemax_unknown_glass_becomes_a_model_glass_with_a_warning(tmp_path):
         rw.load_lens(_zmx_one(tmp_path, "D-ZK3M 0 0 0 0 0 0"))
     msg = str(e.value)
     assert msg.count("'D-ZK3M'") == 1 and "SURF 1" in msg and "nd 0" not in msg
+
+
+# ------------------------------------------------------------------ DeepLens material names
+def _deeplens_singlet(tmp_path, mat):
+    d = {"r_sensor": 3.0, "surfaces": [
+        {"type": "Spheric", "r": 5.0, "roc": 40.0, "mat2": mat, "d_next": 3.0},
+        {"type": "Spheric", "r": 5.0, "roc": -40.0, "mat2": "air", "d_next": 37.0}]}
+    p = tmp_path / f"singlet_{abs(hash(mat))}.json"
+    p.write_text(json.dumps(d))
+    return rw.load_lens(p)
+
+
+@pytest.mark.parametrize("mat, nd, vd, tol", [
+    # DeepLens's own definitions (its AGF and JSON tables; nd at 587.56 nm): values DeepLens's catalogue lists
+    ("bk7", 1.5168, 64.17, 1e-4),      # SCHOTT.AGF legacy BK7
+    ("hk51", 1.52307, 58.64, 1e-4),    # JSON SELLMEIER_TABLE (CDGM H-K51 data)
+    ("okp4", 1.607283, 26.65, 1e-4),   # PLASTIC2022.AGF OKP4
+    ("coc", 1.533732, 56.23, 1e-4),    # MISC.AGF COC
+    ("polycarb", 1.58547, 29.91, 1e-4),  # MISC.AGF POLYCARB
+    ("sk16", 1.62041, 60.32, 1e-4),    # SCHOTT.AGF SK16
+])
+def test_deeplens_material_names_resolve_as_deeplens_defines_them(tmp_path, mat, nd, vd, tol):
+    lens = _deeplens_singlet(tmp_path, mat)
+    m = materials.get_material(lens.surfaces[0].material)
+    assert m.nd == pytest.approx(nd, abs=tol) and m.vd == pytest.approx(vd, abs=0.05)
+
+
+def test_deeplens_model_glass_uses_its_own_defining_lines(tmp_path):
+    """DeepLens's "nd/Vd": Cauchy n = A + B / l^2 with n(587.6 nm) = nd and (nd - 1) / (n(486.1) - n(656.3))
+    = Vd (its own lines, not the exact d / F / C lines): exact to rounding."""
+    lens = _deeplens_singlet(tmp_path, "1.80518/25.4")
+    m = materials.get_material(lens.surfaces[0].material)
+    assert m.n(0.5876) == pytest.approx(1.80518, abs=1e-14)
+    assert (1.80518 - 1.0) / (m.n(0.4861) - m.n(0.6563)) == pytest.approx(25.4, rel=1e-12)
+    # the exact-line Abbe number differs (the lines are not the same): the distinction matters at 1e-3
+    assert abs(m.vd - 25.4) > 1e-3
