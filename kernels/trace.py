@@ -8,8 +8,8 @@ Surface parameters live in one float array per surface (so ``wp.Tape`` accumulat
 them); the layout is the ``P_*`` constants below. Geometry of a standard surface, local
 coordinates q = pos - (0, 0, z_vertex), r2 = qx^2 + qy^2:
 
-    sag(r2) = c r2 / (1 + sqrt(1 - (1 + k) c^2 r2)) + sum_i a_i r2^(i+2)     (a_0 is the r^4 term)
-    dsag/dr2 = c / (2 sqrt(1 - (1 + k) c^2 r2)) + sum_i (i+2) a_i r2^(i+1)
+    sag(r2) = c r2 / (1 + sqrt(1 - (1 + k) c^2 r2)) + a2 r2 + sum_i a_i r2^(i+2)     (a_0 is the r^4 term)
+    dsag/dr2 = c / (2 sqrt(1 - (1 + k) c^2 r2)) + a2 + sum_i (i+2) a_i r2^(i+1)
 
 Intersection: the stable root of the base sphere c|q + t d|^2 - 2(q_z + t d_z) = 0,
 ``t = F / (B + sign(B) sqrt(B^2 - c F))`` with ``B = d_z - c q.d``, ``F = c|q|^2 - 2 q_z`` (no special
@@ -43,7 +43,8 @@ P_SQUARE = 13     # 1: square aperture, 0: circle
 P_POWER = 14      # thin lens power 1/f, 1/mm
 P_UINV = 15       # thin lens: 1/u, u = object distance in front of the lens (mm); 0 = infinity
 P_V = 16          # thin lens: image distance behind the lens, mm; 0 = image at infinity
-N_PARAMS = 17
+P_A2 = 17         # r^2 coefficient of the even asphere, 1/mm
+N_PARAMS = 18
 
 KIND_REFRACT = 0
 KIND_THIN = 1
@@ -92,6 +93,9 @@ def make_trace_kernels(scalar):
             ds = c / (scalar(2.0) * q)
         elif c != scalar(0.0):
             ok = 0
+        a2 = params[P_A2]
+        s = s + a2 * r2
+        ds = ds + a2
         rp = r2
         for i in range(N_ASPH):
             a = params[P_A0 + i]
@@ -187,8 +191,9 @@ def make_trace_kernels(scalar):
 
     @wp.func
     def stable_start(q: vec3, d: vec3, params: wp.array(dtype=scalar)):
-        # root of the base sphere nearest the vertex plane (no special case for c = 0)
-        c = params[P_C]
+        # root of the base sphere nearest the vertex plane (no special case for c = 0); the r^2 term is
+        # part of the vertex curvature c + 2 a2
+        c = params[P_C] + scalar(2.0) * params[P_A2]
         bq = d[2] - c * wp.dot(q, d)
         fq = c * wp.dot(q, q) - scalar(2.0) * q[2]
         disc = bq * bq - c * fq

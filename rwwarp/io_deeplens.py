@@ -16,9 +16,8 @@ DeepLens         rwwarp
 Aperture, Stop   ``aperture`` (``is_square`` -> square); the first one is the stop
 Spheric          ``standard``: curvature from ``roc`` (radius of curvature, 0 = flat) or ``c`` (1/mm)
 Aspheric         ``standard`` with ``k`` (conic) and ``ai``: ``use_ai2`` true or absent (the legacy
-                 layout) means ``ai[0]`` is the r^2 term and ``ai[1:]`` r^4, r^6, ...; ``use_ai2``
-                 false means ``ai`` starts at r^4. rwwarp's asphere starts at r^4, so a non-zero r^2
-                 term raises :class:`~rwwarp.errors.LensFileError`.
+                 layout) means ``ai[0]`` is the r^2 term (``Surface.a2``) and ``ai[1:]`` r^4, r^6, ...;
+                 ``use_ai2`` false means ``ai`` starts at r^4.
 Plane            flat ``standard`` into ``mat2``
 ThinLens         ``thin_lens`` of focal length ``f``
 ================ =====================================================================================
@@ -158,7 +157,7 @@ def lens_from_deeplens(d: dict, source=None):
                     radius = None
                 else:
                     raise err("missing curvature: give 'roc' (mm) or 'c' (1/mm)", i, "roc")
-                conic, asph = 0.0, []
+                conic, asph, a2 = 0.0, [], 0.0
                 if typ == "Aspheric":
                     conic = num(sd, "k", i, default=0.0)
                     ai = sd.get("ai") or []
@@ -169,15 +168,12 @@ def lens_from_deeplens(d: dict, source=None):
                     except (TypeError, ValueError):
                         raise err(f"'ai' must be a list of numbers, got {ai!r}", i, "ai") from None
                     if sd.get("use_ai2", True) and ai:
-                        if ai[0] != 0.0:
-                            raise err(f"the r^2 aspheric term ai[0] = {ai[0]} (legacy layout) is not "
-                                      "supported: rwwarp's even asphere starts at r^4", i, "ai")
-                        ai = ai[1:]
+                        a2, ai = ai[0], ai[1:]  # the r^2 term (Surface.a2)
                     while ai and ai[-1] == 0.0:
                         ai.pop()
                     asph = ai
                 s = Surface(type="standard", radius=radius, conic=conic, aspheric=asph, material=material,
-                            semi_diameter=semi, shape=shape)
+                            semi_diameter=semi, shape=shape, a2=a2)
         items.append((z[i], s, i))
 
     # ---------------------------------------------------------------- DOE (HybridLens)

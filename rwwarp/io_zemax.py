@@ -7,9 +7,8 @@ Supported:
 
 * encodings: ASCII/UTF-8 (with or without BOM) and UTF-16 (LE/BE with BOM, as OpticStudio writes
   it), LF or CRLF line ends;
-* surface types ``STANDARD`` (sphere/plane + conic), ``EVENASPH`` (conic + ``PARM 2..8`` = r^4..r^16;
-  ``PARM 1``, the r^2 term, must be 0 because rwwarp's even asphere starts at r^4: a non-zero value
-  raises :class:`~rwwarp.errors.LensFileError`), ``PARAXIAL`` (ideal thin lens, focal length
+* surface types ``STANDARD`` (sphere/plane + conic), ``EVENASPH`` (conic + ``PARM 1`` = the r^2 term
+  ``Surface.a2``, ``PARM 2..8`` = r^4..r^16), ``PARAXIAL`` (ideal thin lens, focal length
   ``PARM 1``) and ``BINARY_2`` on a flat surface (a DOE with an ``even_poly`` profile:
   ``XDAT 1`` = number of terms N, ``XDAT 2`` = normalisation radius, ``XDAT 3..N+2`` = A1..AN in
   radians on rho^2..rho^(2N), each multiplied by the diffraction order ``PARM 0``);
@@ -415,12 +414,9 @@ def read_zmx(path):
             stop = False
 
         if typ in ("STANDARD", "EVENASPH"):
-            asph = []
+            asph, a2 = [], 0.0
             if typ == "EVENASPH":
-                if parms.get(1, 0.0) != 0.0:
-                    raise rd.err(f"EVENASPH r^2 coefficient PARM 1 = {parms[1]} is not supported (rwwarp's "
-                                 "even asphere starts at r^4; fold it into the curvature in the design)",
-                                 surf=k, key="PARM 1")
+                a2 = parms.get(1, 0.0) / scale  # the r^2 term (Surface.a2, 1/mm)
                 for i in sorted(parms):
                     if i > 8 and parms[i] != 0:
                         raise rd.err(f"PARM {i} is not an EVENASPH coefficient", surf=k, key=f"PARM {i}")
@@ -428,7 +424,7 @@ def read_zmx(path):
                 while asph and asph[-1] == 0.0:
                     asph.pop()
             radius = None if curv == 0 else 1.0 / curv
-            surfaces.append(Surface(type="standard", thickness=thick, radius=radius, conic=conic,
+            surfaces.append(Surface(type="standard", thickness=thick, radius=radius, conic=conic, a2=a2,
                                     aspheric=asph, material=material, semi_diameter=sd, shape=shape,
                                     stop=stop))
             zsurf.append(k)

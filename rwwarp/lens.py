@@ -59,6 +59,7 @@ class Surface:
     profile: dict | None = None
     design_wavelength_um: float = 0.55
     levels: int | None = None
+    a2: float = 0.0  # r^2 coefficient of the even asphere, 1/mm (Zemax EVENASPH PARM 1, DeepLens use_ai2)
 
     def __post_init__(self):
         if self.type == "doe" and self.material == "air":
@@ -68,6 +69,11 @@ class Surface:
     def curvature(self) -> float:
         """Vertex curvature, 1/mm (0 for flat)."""
         return 0.0 if self.radius is None or self.radius == 0 else 1.0 / self.radius
+
+    @property
+    def paraxial_curvature(self) -> float:
+        """Vertex curvature including the r^2 asphere term, 1/mm: c + 2 a2 (what paraxial optics sees)."""
+        return self.curvature + 2.0 * self.a2 if self.type == "standard" else self.curvature
 
     @property
     def refracts(self) -> bool:
@@ -80,6 +86,8 @@ class Surface:
         with np.errstate(invalid="ignore"):
             arg = 1.0 - (1.0 + k) * c * c * r2
             z = c * r2 / (1.0 + np.sqrt(arg))
+        if self.a2:
+            z = z + self.a2 * r2
         rp = r2 * r2
         for a in self.aspheric:
             z = z + a * rp
@@ -346,7 +354,7 @@ class Lens:
 
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
-                 "stop", "focal_length", "profile", "design_wavelength_um", "levels"}
+                 "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2"}
 _DEFAULTS = Surface()
 
 
@@ -357,6 +365,8 @@ def _surface_to_dict(s: Surface) -> dict:
             "aperture": ["semi_diameter", "shape", "thickness", "stop"],
             "doe": ["semi_diameter", "shape", "thickness", "design_wavelength_um", "material", "levels",
                     "profile", "stop"]}[s.type]
+    if s.type == "standard" and s.a2:
+        keys = keys[:2] + ["a2"] + keys[2:]
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
@@ -371,7 +381,7 @@ def _surface_from_dict(sd, i, source) -> Surface:
     _no_unknown(sd, _SURFACE_KEYS, source, i)
     kw = {}
     for k, v in sd.items():
-        if k in ("thickness", "conic", "design_wavelength_um"):
+        if k in ("thickness", "conic", "design_wavelength_um", "a2"):
             kw[k] = _num(v, source, i, k)
         elif k in ("radius", "semi_diameter", "focal_length"):
             kw[k] = None if v is None else _num(v, source, i, k)

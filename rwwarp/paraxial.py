@@ -22,7 +22,7 @@ def surface_powers(lens, wavelength_um: float) -> np.ndarray:
     out = np.zeros(len(lens.surfaces))
     for i, s in enumerate(lens.surfaces):
         if s.type == "standard":
-            out[i] = (n[i] - n_before[i]) * s.curvature
+            out[i] = (n[i] - n_before[i]) * s.paraxial_curvature  # c + 2 a2 (r^2 asphere term)
         elif s.type == "thin_lens":
             out[i] = 1.0 / s.focal_length
         elif s.type == "doe":

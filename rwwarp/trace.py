@@ -290,6 +290,7 @@ class Tracer:
             p[ktrace.P_K] = s.conic if s.type == "standard" else 0.0
             if s.type == "standard":
                 p[ktrace.P_A0:ktrace.P_A0 + len(s.aspheric)] = s.aspheric
+                p[ktrace.P_A2] = s.a2
             sd = s.semi_diameter
             if i == stop and lens.entrance_pupil_diameter is not None:
                 sd = None  # floating stop: the entrance pupil sets the beam

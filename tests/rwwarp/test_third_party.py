@@ -104,3 +104,35 @@ def test_deeplens_model_glass_uses_its_own_defining_lines(tmp_path):
     assert (1.80518 - 1.0) / (m.n(0.4861) - m.n(0.6563)) == pytest.approx(25.4, rel=1e-12)
     # the exact-line Abbe number differs (the lines are not the same): the distinction matters at 1e-3
     assert abs(m.vd - 25.4) > 1e-3
+
+
+# ------------------------------------------------------------------ the r^2 asphere term
+def test_r2_asphere_term_is_a_paraboloid(tmp_path):
+    """sag = a2 r^2 is exactly the paraboloid of vertex curvature 2 a2 (conic -1): an EVENASPH surface with
+    CURV 0 and PARM 1 = a2 must trace like STANDARD CURV 2 a2, CONI -1 (EFL, BFL and the RMS spot equal
+    to rounding: measured 1e-15 relative), and the DeepLens use_ai2 layout reads ai[0] as that term."""
+    a2 = 0.01
+    def zmx(front):
+        text = ("VERS 190513 80 123457 L123457\nMODE SEQ\nUNIT MM X W X CM MR CPMM\nENPD 8\nFTYP 0 0 1 1 0 0 0\n"
+                f"WAVM 1 0.5876 1\nPWAV 1\nSURF 0\n  DISZ INFINITY\nSURF 1\n  STOP\n{front}  DISZ 4\n"
+                "  GLAS N-BK7 0 0 1.5168 64.17\nSURF 2\n  CURV -0.01\n  DISZ 40\nSURF 3\n  DISZ 0\n")
+        p = tmp_path / f"a2_{abs(hash(front))}.zmx"
+        p.write_text(text)
+        return rw.load_lens(p)
+    asph = zmx(f"  TYPE EVENASPH\n  CURV 0\n  PARM 1 {a2}\n")
+    para = zmx(f"  TYPE STANDARD\n  CURV {2 * a2}\n  CONI -1\n")
+    assert asph.surfaces[0].a2 == a2
+    assert asph.efl() == pytest.approx(para.efl(), rel=1e-13)
+    assert asph.bfl() == pytest.approx(para.bfl(), rel=1e-13)
+    for f in (0.0, 5.0):
+        assert rw.spot_rms(asph, f, 0.5876, grid=101) == pytest.approx(rw.spot_rms(para, f, 0.5876, grid=101),
+                                                                        rel=1e-9)
+    d = {"r_sensor": 3.0, "surfaces": [
+        {"type": "Aspheric", "r": 4.0, "roc": 0.0, "k": 0.0, "ai": [a2, 0.0], "mat2": "n-bk7", "d_next": 4.0},
+        {"type": "Spheric", "r": 4.0, "roc": -100.0, "mat2": "air", "d_next": 40.0}]}
+    p = tmp_path / "dl.json"
+    p.write_text(json.dumps(d))
+    dl = rw.load_lens(p)
+    assert dl.surfaces[0].a2 == a2 and dl.surfaces[0].aspheric == []
+    rt = rw.lens.Lens.from_dict(dl.to_dict())
+    assert rt.surfaces[0].a2 == a2
