@@ -39,6 +39,9 @@ def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401
         chief = tr.trace(fields, pupil=(np.zeros(1), np.zeros(1), 1.0), ray_aiming=ray_aiming).numpy()
     elif reference != "centroid":
         raise ValueError(f"reference must be 'centroid' or 'chief', got {reference!r}")
+    if r["valid"].size == 0:
+        raise checks.ArgumentError(f"grid={grid} with layout={layout!r} puts no pupil sample inside the "
+                                   "circular pupil; use grid=1 or grid >= 3")
     for k in range(len(fields)):
         ok = r["valid"][k]
         if not ok.any():

@@ -293,7 +293,7 @@ def test_psf_map_arguments_named(a489, kwargs, name):
 
 
 def test_spot_rms_arguments_and_vignetting(a489):
-    for kwargs, name in ((dict(grid=0), "grid"), (dict(field_deg=float("inf")), "field_deg"),
+    for kwargs, name in ((dict(grid=0), "grid"), (dict(grid=2), "grid"), (dict(field_deg=float("inf")), "field_deg"),
                          (dict(reference="mean"), "reference"), (dict(device="tpu"), "device")):
         with pytest.raises(ArgumentError, match=name):
             rw.spot_rms(a489, **{"field_deg": 0.0, "wavelength_um": 0.55, "grid": 11, **kwargs})
