@@ -257,6 +257,8 @@ def _check_surface(s, i, lens):
             if r != 0 and abs(r) < MIN_RADIUS_MM:
                 raise _fail(f"radius {r:.3g} mm is smaller in magnitude than {MIN_RADIUS_MM:g} mm", lens, i, "radius")
         _real(s.conic, "conic", lens, i, "conic", lo=-MAX_CONIC, hi=MAX_CONIC)
+        if getattr(s, "a2", None) is not None:  # r^2 asphere term, 1/mm: bounded like a curvature
+            _real(s.a2, "a2 (1/mm)", lens, i, "a2", lo=-1.0 / MIN_RADIUS_MM, hi=1.0 / MIN_RADIUS_MM)
         if not isinstance(s.aspheric, (list, tuple)):
             raise _fail(f"aspheric must be a list of numbers, got {_brief(s.aspheric)}", lens, i, "aspheric")
         for k, a in enumerate(s.aspheric):
