@@ -241,7 +241,8 @@ def read_zmx(path):
 
     # fields
     fields_deg = None
-    if field_type == 0:
+    field_heights = None  # FTYP 1: object heights (lens units), turned into angles once the pupil is known
+    if field_type in (0, 1):
         def _vals(*keys):
             for k in keys:
                 got = rd.hget(k)
@@ -259,6 +260,8 @@ def read_zmx(path):
                 while n > 1 and xs[n - 1] == 0 and ys[n - 1] == 0:
                     n -= 1
             fields_deg = [ys[i] if xs[i] == 0 else [xs[i], ys[i]] for i in range(n)]
+            if field_type == 1:
+                field_heights, fields_deg = [(xs[i] * scale, ys[i] * scale) for i in range(n)], None
 
     # system aperture
     epd = fnum = None
@@ -266,7 +269,14 @@ def read_zmx(path):
     if rd.hget("ENPD") and not floa:
         toks, ln = rd.hget("ENPD")
         epd = rd.num(toks, 0, "entrance pupil diameter", key="ENPD", line=ln) * scale
-    for key in ("OBNA", "PFNO"):
+    obna = None
+    if rd.hget("OBNA") and not floa:
+        toks, ln = rd.hget("OBNA")
+        obna = rd.num(toks, 0, "object-space numerical aperture", key="OBNA", line=ln)
+        if not 0 < obna < 1:
+            raise rd.err(f"OBNA must be in (0, 1) (object space is air), got {obna}", key="OBNA", line=ln)
+        epd = None
+    for key in ("PFNO",):
         if rd.hget(key):
             raise rd.err(f"unsupported system aperture type {key} (use ENPD, FNUM or FLOA)", key=key,
                          line=rd.hget(key)[1])
@@ -278,7 +288,8 @@ def read_zmx(path):
             raise rd.err(f"FNUM must be > 0, got {fnum}", key="FNUM", line=ln)
         epd = None
 
-    pupil_set = epd is not None or fnum is not None or floa  # the stop floats; its own size sets nothing
+    # the stop floats; its own size sets nothing
+    pupil_set = epd is not None or fnum is not None or floa or obna is not None
     # ------------------------------------------------------------------ surfaces
     blocks = rd.blocks
     obj, img = blocks[0], blocks[-1]
@@ -478,10 +489,19 @@ def read_zmx(path):
     try:
         lens = Lens(surfaces=surfaces, sensor=Sensor(), object_distance=object_distance,
                     wavelengths_um=wavelengths, name=name, entrance_pupil_diameter=epd,
-                    fields_deg=fields_deg, source=str(path), surface_labels=[f"SURF {k}" for k in zsurf])
+                    fields_deg=fields_deg, source=str(path), surface_labels=[f"SURF {k}" for k in zsurf],
+                    primary_wavelength_um=primary_um)
         if fnum is not None:
             from .paraxial import efl
             lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum
+            lens.validate()
+        elif obna is not None:
+            # object-space NA: the marginal ray from the axial object point to the paraxial entrance pupil's
+            # edge makes the angle asin(NA) (object space in air), as Zemax and optiland size it
+            if not math.isfinite(object_distance):
+                raise rd.err("OBNA needs a finite object distance (SURF 0 DISZ)", key="OBNA")
+            lens.entrance_pupil_diameter = 2.0 * abs(object_distance + _ep_z(lens, primary_um)) * \
+                math.tan(math.asin(obna))
             lens.validate()
         elif floa:
             # float by stop size: the entrance pupil is the paraxial image of the stop at its DIAM size
@@ -497,12 +517,34 @@ def read_zmx(path):
                 raise rd.err("FLOA: the stop is at a focus (no entrance pupil)", surf=stop_k, key="FLOA")
             lens.entrance_pupil_diameter = 2.0 * floa_sd / m
             lens.validate()
+        if field_heights is not None:
+            # FTYP 1 (object heights): each field as the angle of its chief ray to the paraxial entrance
+            # pupil centre, atan(h / (object distance + EP z)) (a rotationally symmetric lens images +-h alike)
+            if not math.isfinite(object_distance):
+                raise rd.err("FTYP 1 (object-height fields) needs a finite object distance (SURF 0 DISZ)",
+                             key="FTYP")
+            dist = object_distance + _ep_z(lens, primary_um)
+            ang = [tuple(math.degrees(math.atan(v / dist)) for v in h) for h in field_heights]
+            lens.fields_deg = [a[1] if a[0] == 0 else [a[0], a[1]] for a in ang]
     except LensError as e:
         surf = None if e.surface is None or not isinstance(e.surface, int) else zsurf[e.surface]
         key = _KEYWORD_MAP.get(e.keyword, e.keyword)
         raise type(e)(_core(e), file=str(path), surface=None if surf is None else f"SURF {surf}",
                       keyword=key) from None
     return lens
+
+
+def _ep_z(lens, wavelength_um) -> float:
+    """Paraxial entrance-pupil position (mm from the first vertex): the stop imaged back through the
+    surfaces before it (independent of the pupil's size)."""
+    from .paraxial import ynu_trace
+    i = lens.stop_index
+    ya, _ = ynu_trace(lens, wavelength_um, 1.0, 0.0)
+    yb, _ = ynu_trace(lens, wavelength_um, 0.0, 1.0)
+    if ya[i] == 0:
+        raise LensError("the stop is at a focus: no entrance pupil", file=lens.source,
+                        surface=lens.surface_label(i))
+    return float(yb[i] / ya[i])
 
 
 def _core(e: LensError) -> str:

@@ -123,6 +123,7 @@ class Lens:
     name: str = ""
     entrance_pupil_diameter: float | None = None
     fields_deg: list | None = None
+    primary_wavelength_um: float | None = None  # the file's primary wavelength (Zemax PWAV), um
     source: str | None = None  # file it came from (for messages); not serialised
     #: how the source file numbers each surface (``"SURF 3"`` in a Zemax file), for messages; not serialised
     surface_labels: list | None = field(default=None, compare=False, repr=False)
@@ -298,6 +299,8 @@ class Lens:
             out["entrance_pupil_diameter"] = self.entrance_pupil_diameter
         if self.fields_deg is not None:
             out["fields_deg"] = copy.deepcopy(self.fields_deg)
+        if self.primary_wavelength_um is not None:
+            out["primary_wavelength_um"] = self.primary_wavelength_um
         out["surfaces"] = [_surface_to_dict(s) for s in self.surfaces]
         out["sensor"] = {"pixel_pitch": self.sensor.pixel_pitch, "resolution": list(self.sensor.resolution)}
         return out
@@ -309,7 +312,7 @@ class Lens:
             raise LensFileError(f"not a {FORMAT} file (format = {d.get('format') if isinstance(d, dict) else d!r})",
                                 file=source)
         allowed = {"format", "name", "object_distance", "wavelengths_um", "surfaces", "sensor",
-                   "entrance_pupil_diameter", "fields_deg"}
+                   "entrance_pupil_diameter", "fields_deg", "primary_wavelength_um"}
         _no_unknown(d, allowed, source, None)
         if "surfaces" not in d or not isinstance(d["surfaces"], list):
             raise LensFileError("missing list 'surfaces'", file=source, keyword="surfaces")
@@ -337,7 +340,9 @@ class Lens:
         return cls(surfaces=surfaces, sensor=sensor, object_distance=od, wavelengths_um=wls,
                    name=name, entrance_pupil_diameter=None if epd is None else
                    _num(epd, source, None, "entrance_pupil_diameter"),
-                   fields_deg=copy.deepcopy(d.get("fields_deg")), source=source)
+                   fields_deg=copy.deepcopy(d.get("fields_deg")), source=source,
+                   primary_wavelength_um=None if d.get("primary_wavelength_um") is None else
+                   _num(d["primary_wavelength_um"], source, None, "primary_wavelength_um"))
 
     def save(self, path, format: str | None = None) -> None:
         """Write the lens to ``path``: native JSON, or a Zemax sequential ``.zmx``

@@ -136,3 +136,40 @@ def test_r2_asphere_term_is_a_paraboloid(tmp_path):
     assert dl.surfaces[0].a2 == a2 and dl.surfaces[0].aspheric == []
     rt = rw.lens.Lens.from_dict(dl.to_dict())
     assert rt.surfaces[0].a2 == a2
+
+
+# ------------------------------------------------------------------ Zemax system keywords
+def _zmx_sys(tmp_path, head, obj="100", stop_first=False):
+    body = ("SURF 1\n  TYPE STANDARD\n  DISZ 10\n" if stop_first else "") + \
+        f"SURF {2 if stop_first else 1}\n  STOP\n  TYPE PARAXIAL\n  PARM 1 50\n  DISZ 100\n"
+    n = 3 if stop_first else 2
+    text = ("VERS 190513 80 123457 L123457\nMODE SEQ\nUNIT MM X W X CM MR CPMM\n" + head +
+            "WAVM 1 0.48613 1\nWAVM 2 0.58756 1\nWAVM 3 0.65627 1\nPWAV 2\n"
+            f"SURF 0\n  DISZ {obj}\n" + body + f"SURF {n}\n  DISZ 0\n")
+    p = tmp_path / f"sys_{abs(hash(head + obj + str(stop_first)))}.zmx"
+    p.write_text(text)
+    return rw.load_lens(p)
+
+
+def test_obna_sets_the_pupil_from_the_object_space_na(tmp_path):
+    """OBNA 0.05, object 100 mm before the entrance pupil (the stop 10 mm behind a flat first surface,
+    pupil at 10 mm): EPD = 2 (100 + 10) tan(asin 0.05) (the marginal ray's angle), as optiland sizes it."""
+    lens = _zmx_sys(tmp_path, "OBNA 0.05 0\nFTYP 0 0 1 3 0 0 0\n", stop_first=True)
+    assert lens.entrance_pupil_diameter == pytest.approx(2 * 110 * math.tan(math.asin(0.05)), rel=1e-14)
+    with pytest.raises(LensError, match="OBNA"):
+        _zmx_sys(tmp_path, "OBNA 0.05 0\nFTYP 0 0 1 3 0 0 0\n", obj="INFINITY")
+
+
+def test_ftyp1_object_height_fields_and_primary_wavelength(tmp_path):
+    """FTYP 1 (object heights 0, 5, 10 mm), object 100 mm from a PARAXIAL f = 50 mm lens that is its own
+    stop: each field is the chief ray's angle atan(h / 100); an ideal lens images it at magnification
+    -v/u = -1 (v = 100 mm: 1/v = 1/50 - 1/100), i.e. at image height |h| exactly. PWAV 2 -> 0.58756 um."""
+    lens = _zmx_sys(tmp_path, "ENPD 4\nFTYP 1 0 3 3 0 0 0\nXFLN 0 0 0\nYFLN 0 5 10\n")
+    assert lens.primary_wavelength_um == 0.58756
+    assert lens.fields_deg == pytest.approx([0.0, math.degrees(math.atan(0.05)), math.degrees(math.atan(0.1))],
+                                            rel=1e-14)
+    xy = rw.spot_diagram(lens, lens.fields_deg, 0.58756, grid=5)
+    for h, pts in zip([0.0, 5.0, 10.0], xy):
+        assert np.max(np.abs(np.abs(pts[:, 1]) - h)) < 1e-9
+    rt = rw.lens.Lens.from_dict(lens.to_dict())
+    assert rt.primary_wavelength_um == 0.58756
