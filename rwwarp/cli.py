@@ -198,9 +198,21 @@ def cmd_bench(a):
     sys.exit(subprocess.call([sys.executable, str(script)] + a.rest))
 
 
+def cmd_report(a):
+    """A lens report: PNG figures and report.md in a folder (rwwarp.report)."""
+    from .report import write_report
+    out = Path(a.out or Path("out/report") / Path(a.lens).stem)
+    page = write_report(_lens(a.lens), out, fields_deg=a.fields, model=a.model, psf_size=a.psf_size,
+                        mtf_size=a.mtf_size, through_focus_planes=a.through_focus, device=a.device,
+                        progress=not a.quiet, lens_label=a.lens)
+    print(f"report written to {page}")
+
+
 def main(argv=None):
     ap = _Parser(prog="rwwarp", description=__doc__.splitlines()[0])
     ap.add_argument("--debug", action="store_true", help="show the Python traceback of an error")
+    from . import __version__
+    ap.add_argument("--version", action="version", version=f"rwwarp {__version__}")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     p = sub.add_parser("info", help="paraxial data and surface table; --plot writes a layout PNG")
@@ -250,6 +262,19 @@ def main(argv=None):
     p.add_argument("config")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to torch_bridge.train")
     p.set_defaults(func=cmd_design)
+
+    p = sub.add_parser("report", help="lens report: layout, spots, PSFs, MTF, through focus, encircled energy, "
+                                      "colour, field curves, DOE (PNGs + report.md)")
+    p.add_argument("lens")
+    p.add_argument("--out", default=None, help="folder (default out/report/<lens>)")
+    p.add_argument("--fields", type=_finite, nargs="+", default=None, help="y field angles, deg")
+    p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
+    p.add_argument("--psf-size", type=_positive_int, default=64, help="PSF tile, sensor pixels")
+    p.add_argument("--mtf-size", type=_positive_int, default=128, help="finely sampled PSF for MTF/EE, samples")
+    p.add_argument("--through-focus", type=int, default=9, help="planes (0: skip)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("bench", help="run a benchmark from perf/ (trace, psf, map, bridge)")
     p.add_argument("what")

@@ -1,0 +1,472 @@
+"""Lens report: a folder of PNG figures and a Markdown page (``rwwarp report LENS``).
+
+Figures (every image has a colour bar with units; per-tile normalisation is stated in the titles):
+layout drawn to the real clear apertures (the surfaces' semi-diameters, else the height of the
+outermost ray that reaches the sensor), spot diagrams, PSFs across the field, MTF curves
+(tangential / sagittal, polychromatic), through-focus MTF, encircled energy, chromatic focal shift,
+field curvature and distortion, and the DOE's phase and height map where there is one.
+
+Units: mm, um (wavelengths, spot and PSF coordinates), degrees, lp/mm.
+"""
+from __future__ import annotations
+
+import math
+import time
+import traceback
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import metrics as M
+from .plots import field_label
+
+__all__ = ["write_report", "clear_semi_diameters", "layout_figure"]
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+# ---------------------------------------------------------------------------------------------- layout
+def _fan(lens, field, wl, u, v, device="cpu"):
+    """Positions after every surface ((n_surfaces + 1, n, 3), the start included) and validity of rays."""
+    from .trace import Tracer
+    tr = Tracer(lens, [wl], device=device)
+    src = tr.sources([field])
+    r = tr._run(src, np.asarray(u, float), np.asarray(v, float), 1.0, keep=True)
+    hist = np.stack([h.numpy().reshape(-1, 3) for h in r.history])
+    return hist, r.valid.numpy().astype(bool).ravel(), src
+
+
+def clear_semi_diameters(lens, fields_deg, wavelengths_um, grid: int = 21, device: str = "cpu") -> np.ndarray:
+    """Clear semi-diameter of each surface, mm: its ``semi_diameter`` where set, else the largest
+    radial height at that surface of the rays (``grid`` x ``grid`` pupil, every field and wavelength)
+    that reach the sensor (as Zemax's automatic semi-diameters)."""
+    from .trace import pupil_grid
+    shape = lens.surfaces[lens.stop_index].shape
+    u, v, _ = pupil_grid(grid, shape, layout="edges")
+    h = np.zeros(len(lens.surfaces))
+    for wl in wavelengths_um:
+        for f in fields_deg:
+            hist, ok, _ = _fan(lens, f, wl, u, v, device)
+            if not ok.any():
+                continue
+            r = np.hypot(hist[:len(lens.surfaces), ok, 0], hist[:len(lens.surfaces), ok, 1])
+            h = np.maximum(h, np.nanmax(r, axis=1))
+    for i, s in enumerate(lens.surfaces):
+        if s.semi_diameter is not None:
+            h[i] = s.semi_diameter  # (a square's half side: its extent in the y-z section)
+    return h
+
+
+def layout_figure(lens, path, fields_deg, wavelength_um, device: str = "cpu", rays: int = 9):
+    """Save the y-z layout: surfaces to their clear apertures (:func:`clear_semi_diameters`), lens
+    elements filled between surfaces in glass, a meridional fan of ``rays`` rays per field. mm axes."""
+    plt = _plt()
+    z = lens.vertex_z
+    sd = clear_semi_diameters(lens, fields_deg, [wavelength_um], device=device)
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    colors = plt.cm.viridis(np.linspace(0, 0.85, max(len(fields_deg), 1)))
+    v = np.linspace(-1, 1, rays)
+    for k, f in enumerate(fields_deg):
+        hist, ok, src = _fan(lens, f, wavelength_um, np.zeros(rays), v, device)
+        # start every ray on the plane 10 % of the track in front of the first vertex, along its direction
+        p1, p2 = hist[0], hist[1] if len(hist) > 1 else hist[0]
+        d = p2 - p1
+        z0 = -0.1 * max(lens.sensor_z, 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = np.where(np.abs(d[:, 2]) > 1e-12, (z0 - p1[:, 2]) / np.where(d[:, 2] != 0, d[:, 2], 1), 0)
+        start = p1 + t[:, None] * d
+        for j in range(rays):
+            if ok[j]:
+                pts = np.vstack([start[j], hist[:, j]])
+                ax.plot(pts[:, 2], pts[:, 1], color=colors[k], lw=0.7,
+                        label=field_label(f) if j == next(i for i in range(rays) if ok[i]) else None)
+    media = lens.media()
+    edge = []
+    for i, s in enumerate(lens.surfaces):
+        h = sd[i] if sd[i] > 0 else 1.0
+        r = np.linspace(-h, h, 121)
+        sag = s.sag(np.abs(r)) if s.type == "standard" else np.zeros_like(r)
+        edge.append((z[i] + (s.sag(h) if s.type == "standard" else 0.0), h))
+        if s.type == "aperture":
+            ax.plot([z[i], z[i]], [h, h * 1.25], color="tab:red", lw=2)
+            ax.plot([z[i], z[i]], [-h, -h * 1.25], color="tab:red", lw=2)
+        else:
+            style = {"standard": ("k", "-"), "thin_lens": ("tab:blue", "-"), "doe": ("tab:purple", "--")}[s.type]
+            ax.plot(z[i] + sag, r, color=style[0], ls=style[1], lw=1.2)
+    # glass elements: between a surface whose medium after it is not air and the next surface
+    for i in range(len(lens.surfaces) - 1):
+        if media[i].lower() == "air" or lens.surfaces[i].type not in ("standard",):
+            continue
+        j = i + 1
+        (za, ha), (zb, hb) = edge[i], edge[j]
+        H = max(ha, hb)
+        for sgn in (1, -1):
+            ax.plot([za, za], [sgn * ha, sgn * H], color="k", lw=1.0)
+            ax.plot([zb, zb], [sgn * hb, sgn * H], color="k", lw=1.0)
+            ax.plot([za, zb], [sgn * H, sgn * H], color="k", lw=1.0)
+        sa, sb = lens.surfaces[i], lens.surfaces[j]
+        ra = np.linspace(-ha, ha, 121)
+        rb = np.linspace(hb, -hb, 121)
+        za_c = z[i] + (sa.sag(np.abs(ra)) if sa.type == "standard" else 0 * ra)
+        zb_c = z[j] + (sb.sag(np.abs(rb)) if sb.type == "standard" else 0 * rb)
+        poly_z = np.concatenate([[za], za_c, [za, zb], zb_c, [zb]])
+        poly_y = np.concatenate([[-H], ra, [H, H], rb, [-H]])
+        ax.fill(poly_z, poly_y, color="tab:cyan", alpha=0.15, lw=0)
+    ax.axvline(lens.sensor_z, color="gray", lw=1.5)
+    ax.set_xlabel("z (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"{lens.name or 'lens'}: layout at {wavelength_um:g} um (surfaces to their clear apertures)")
+    ax.set_aspect("equal", adjustable="datalim")
+    if fields_deg:
+        ax.legend(fontsize=7, loc="upper left", title="field", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return sd
+
+
+# ---------------------------------------------------------------------------------------------- figures
+def _spots(lens, fields, wls, path, device):
+    from .trace import Tracer, pupil_grid
+    plt = _plt()
+    shape = lens.surfaces[lens.stop_index].shape
+    u, v, _ = pupil_grid(31, shape, layout="edges")
+    fig, axes = plt.subplots(1, len(fields), figsize=(3.0 * len(fields) + 0.4, 3.3), squeeze=False)
+    colors = {w: plt.cm.turbo((w - 0.38) / 0.4) for w in wls}
+    rms = np.zeros((len(fields), len(wls)))
+    for i, f in enumerate(fields):
+        ax = axes[0, i]
+        ref = None
+        for j, w in enumerate(wls):
+            r = Tracer(lens, [w], device=device).trace([f], pupil=(u, v, 1.0)).numpy()
+            ok = r["valid"][0]
+            xy = r["pos"][0, ok, :2]
+            if ref is None:  # centroid of the first wavelength: all colours on one origin
+                ref = xy.mean(0) if len(xy) else np.zeros(2)
+            d = (xy - ref) * 1e3
+            rms[i, j] = 1e3 * np.sqrt(np.mean(np.sum((xy - xy.mean(0)) ** 2, 1))) if len(xy) else np.nan
+            ax.scatter(d[:, 0], d[:, 1], s=1.5, color=colors[w], label=f"{w:g} um")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(f"{field_label(f)}\nRMS " + " / ".join(f"{x:.2f}" for x in rms[i]) + " um", fontsize=8)
+        ax.set_xlabel("x (um)", fontsize=8)
+        if i == 0:
+            ax.set_ylabel("y (um)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0, -1].legend(fontsize=6, markerscale=4)
+    fig.suptitle("spot diagrams (centroid of the first wavelength at 0, 0)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return rms
+
+
+def _psf_grid(m, path, title):
+    """PSF map figure: rows wavelengths, columns fields; log10 of each tile over its own peak, colour bar."""
+    plt = _plt()
+    nf, nw = m.data.shape[:2]
+    fig, axes = plt.subplots(nw, nf, figsize=(2.3 * nf + 1.0, 2.2 * nw + 0.6), squeeze=False)
+    n = m.data.shape[-1]
+    half = 0.5 * n * m.pixel_mm * 1e3
+    vf = np.asarray(m.info["valid_fraction"], float).reshape(nf, nw)
+    im = None
+    for i in range(nf):
+        for j in range(nw):
+            d = m.data[i, j]
+            img = np.log10(np.maximum(d / max(d.max(), 1e-300), 1e-6))
+            ax = axes[j, i]
+            im = ax.imshow(img, origin="lower", cmap="inferno", vmin=-6, vmax=0, extent=(-half, half, -half, half))
+            ax.set_title(f"{field_label(m.fields_deg[i])}, {m.wavelengths_um[j]:g} um\nin patch "
+                         f"{d.sum() / max(vf[i, j], 1e-300):.3f}", fontsize=7)
+            ax.tick_params(labelsize=6)
+            if j == nw - 1:
+                ax.set_xlabel("x - centre (um)", fontsize=7)
+            if i == 0:
+                ax.set_ylabel("y - centre (um)", fontsize=7)
+    cb = fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8)
+    cb.set_label("log10(power per pixel / tile peak)", fontsize=8)
+    fig.suptitle(title + " (each tile normalised to its own peak)", fontsize=9)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _line_fig(path, title, xlabel, ylabel, curves, xlim=None, ylim=None, legend=True):
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.2, 4.0))
+    for x, y, kw in curves:
+        ax.plot(x, y, **kw)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    if xlim:
+        ax.set_xlim(*xlim)
+    if ylim:
+        ax.set_ylim(*ylim)
+    ax.grid(alpha=0.3)
+    if legend:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def _doe_figure(lens, path):
+    """Phase (wrapped, rad) and relief height (um) of the DOE over its aperture, with colour bars."""
+    from . import doe
+    plt = _plt()
+    i = lens.doe_index
+    s = lens.surfaces[i]
+    prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else Path(lens.source).parent)
+    h = s.semi_diameter or 1.0
+    n = 301
+    g = np.linspace(-h, h, n)
+    x, y = np.meshgrid(g, g)
+    ph = doe.design_phase(prof, x, y, s.design_wavelength_um, s.levels)
+    if s.shape == "circle":
+        ph = np.where(x * x + y * y <= h * h, ph, np.nan)
+    height = doe.height_map_um(np.nan_to_num(ph), s.material, s.design_wavelength_um)
+    height = np.where(np.isnan(ph), np.nan, height)
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.9))
+    hmax = float(doe.height_map_um(np.array([2 * np.pi - 1e-12]), s.material, s.design_wavelength_um)[0])
+    for ax, data, lab, cm, lim in ((axes[0], ph, "phase phi0 wrapped (rad)", "twilight", (0, 2 * np.pi)),
+                                   (axes[1], height, "relief height (um)", "viridis", (0, hmax))):
+        im = ax.imshow(data, origin="lower", extent=(-h, h, -h, h), cmap=cm, vmin=lim[0], vmax=lim[1])
+        cb = fig.colorbar(im, ax=ax)
+        cb.set_label(lab, fontsize=8)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+    raw = prof.phase(x, y, s.design_wavelength_um)
+    axes[0].set_title(f"DOE phase at {s.design_wavelength_um:g} um ({prof.kind})\nunwrapped range "
+                      f"{np.nanmax(raw) - np.nanmin(raw):.3g} rad", fontsize=8)
+    axes[1].set_title(f"relief in {s.material}" + (f", {s.levels} levels" if s.levels else ""), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return float(np.nanmax(raw) - np.nanmin(raw))
+
+
+# ---------------------------------------------------------------------------------------------- report
+def _default_fields(lens, wl):
+    if lens.fields_deg:
+        return list(lens.fields_deg)
+    # the sensor's half height seen through the EFL
+    fmax = math.degrees(math.atan(lens.sensor.half_size[1] / abs(lens.efl(wl))))
+    return [0.0, round(0.7 * fmax, 2), round(fmax, 2)]
+
+
+def write_report(lens, out, *, fields_deg=None, wavelengths_um=None, model: str = "ray-wave", psf_size: int = 64,
+                 mtf_size: int = 128, through_focus_planes: int = 9, device: str = "cpu",
+                 progress: bool = True, lens_label: str | None = None) -> Path:
+    """Write ``out/report.md`` and its PNG figures for ``lens``; returns the Markdown path.
+
+    ``fields_deg`` (deg; default the lens's fields, else 0, 0.7 and 1 x the sensor's half height),
+    ``wavelengths_um`` (um; default the lens's), ``model`` for the PSFs, MTF and encircled energy
+    (``"ray-wave"``, ``"ray"`` or ``"paraxial-wave"``), ``psf_size`` (sensor pixels per PSF tile),
+    ``mtf_size`` (samples of the finely sampled PSFs behind MTF / encircled energy),
+    ``through_focus_planes`` (0 skips it), ``progress``: a bar over the sections. A section that fails
+    is reported on the page with its error; the others still run.
+    """
+    from . import paraxial
+    from .psf import psf_map
+    if model not in M.MODELS:
+        raise ValueError(f"model must be one of {M.MODELS}, got {model!r}")
+    for name, v in (("psf_size", psf_size), ("mtf_size", mtf_size)):
+        if int(v) < 8:
+            raise ValueError(f"{name} must be >= 8, got {v}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    wls = [float(w) for w in (wavelengths_um or lens.wavelengths_um)]
+    wl0 = wls[len(wls) // 2]
+    fields = list(fields_deg) if fields_deg is not None else _default_fields(lens, wl0)
+    y_fields = [float(f) if np.ndim(f) == 0 else float(np.hypot(*f)) for f in fields]
+    md = [f"# Lens report: {lens.name or lens_label or 'lens'}", ""]
+    if lens_label:
+        md += [f"Source: `{lens_label}`. Generated by `rwwarp report` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.",
+               ""]
+    pup = paraxial.pupils(lens, wl0)
+    md += ["## System", "", "| quantity | value |", "|---|---|",
+           f"| EFL at {wl0:g} um | {lens.efl(wl0):.6f} mm |", f"| BFL | {lens.bfl(wl0):.6f} mm |",
+           f"| F/# (paraxial, object at infinity) | {paraxial.f_number(lens, wl0):.4f} |",
+           f"| entrance pupil | diameter {2 * pup.entrance_radius:.4f} mm at z = {pup.entrance_z:.4f} mm |",
+           f"| object distance | {lens.object_distance:g} mm |",
+           f"| wavelengths | {', '.join(f'{w:g}' for w in wls)} um |",
+           f"| fields | {', '.join(field_label(f) for f in fields)} |",
+           f"| sensor | {lens.sensor.resolution[0]} x {lens.sensor.resolution[1]} px of "
+           f"{lens.sensor.pixel_pitch * 1e3:g} um |",
+           f"| figure model | {model} |", ""]
+    sections = [("layout", "Layout"), ("spots", "Spot diagrams"), ("psf", "PSFs across the field"),
+                ("mtf", "MTF and encircled energy"), ("through_focus", "Through-focus MTF"),
+                ("chromatic", "Chromatic focal shift"), ("field", "Field curvature and distortion")]
+    if lens.doe_index is not None:
+        sections.append(("doe", "DOE phase and height"))
+    if not through_focus_planes:
+        sections = [s for s in sections if s[0] != "through_focus"]
+    it = sections
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(sections, desc="report", unit="section")
+        it = bar
+    timings = {}
+    for key, title in it:
+        if bar is not None:
+            bar.set_postfix_str(key)
+        t0 = time.perf_counter()
+        md += [f"## {title}", ""]
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            try:
+                md += _section(key, lens, fields, y_fields, wls, wl0, model, psf_size, mtf_size,
+                               through_focus_planes, device, out, psf_map)
+            except Exception as e:  # a failed section is reported, the others still run
+                md += [f"**This section failed:** `{type(e).__name__}: {e}`", "", "```",
+                       traceback.format_exc(limit=3).strip(), "```", ""]
+        msgs = sorted({str(w.message) for w in rec if issubclass(w.category, Warning)})
+        if msgs:
+            md += ["Warnings:", ""] + [f"* {m}" for m in msgs] + [""]
+        timings[key] = time.perf_counter() - t0
+    md += ["## Timings", "", "| section | seconds |", "|---|---|"]
+    md += [f"| {k} | {v:.1f} |" for k, v in timings.items()] + [""]
+    page = out / "report.md"
+    page.write_text("\n".join(md) + "\n")
+    return page
+
+
+def _section(key, lens, fields, y_fields, wls, wl0, model, psf_size, mtf_size, tf_planes, device, out, psf_map):
+    if key == "layout":
+        sd = layout_figure(lens, out / "layout.png", fields, wl0, device)
+        rows = ["![layout](layout.png)", "",
+                "| surface | type | radius (mm) | thickness (mm) | material | clear semi-diameter (mm) |",
+                "|---|---|---|---|---|---|"]
+        for i, s in enumerate(lens.surfaces):
+            rad = "inf" if s.radius is None else f"{s.radius:.5g}"
+            tag = " (set)" if s.semi_diameter is not None else " (rays)"
+            rows.append(f"| {i}{' STOP' if i == lens.stop_index else ''} | {s.type} | {rad} | {s.thickness:.5g} | "
+                        f"{s.material} | {sd[i]:.4f}{tag} |")
+        return rows + [""]
+    if key == "spots":
+        rms = _spots(lens, fields, wls, out / "spots.png", device)
+        rows = ["![spots](spots.png)", "", "RMS spot radius about each colour's centroid (um):", "",
+                "| field | " + " | ".join(f"{w:g} um" for w in wls) + " |", "|---|" + "---|" * len(wls)]
+        rows += [f"| {field_label(f)} | " + " | ".join(f"{v:.3f}" for v in rms[i]) + " |" for i, f in enumerate(fields)]
+        return rows + [""]
+    if key == "psf":
+        m = psf_map(lens, fields, wls, model=model, size=psf_size, device=device)
+        vf = np.asarray(m.info["valid_fraction"], float).reshape(m.data.shape[:2])
+        inside = m.data.sum(axis=(2, 3)) / np.maximum(vf, 1e-300)
+        if np.any(inside < 0.98):
+            warnings.warn(f"some PSFs do not fit their {psf_size}-pixel tiles (as little as {inside.min():.3f} of "
+                          "the power inside): raise --psf-size", M.SamplingWarning)
+        _psf_grid(m, out / "psf_map.png", f"{model} PSFs on the sensor pixels ({lens.sensor.pixel_pitch * 1e3:g} um)")
+        return ["![psf map](psf_map.png)", "",
+                f"{model} PSFs, {psf_size} x {psf_size} sensor pixels of {lens.sensor.pixel_pitch * 1e3:g} um; "
+                f"log scale, each tile over its own peak. Power inside each tile (of the power reaching the "
+                f"sensor): min {inside.min():.3f}, max {inside.max():.3f}.", ""]
+    if key == "mtf":
+        pixel = M.default_sampling_mm(lens, fields, wls, device)
+        m = psf_map(lens, fields, wls, model=model, size=mtf_size, pixel_mm=pixel, device=device)
+        na = max(M.image_space_na(lens, f, min(wls), device=device) for f in fields)
+        fc = 2 * na / (min(wls) * 1e-3)
+        nyq = 0.5 / lens.sensor.pixel_pitch
+        freqs = np.linspace(0, min(fc, 0.5 / pixel * 0.98), 61)
+        tan, sag = M.mtf_from_psf_map(m, freqs)
+        vf = np.asarray(m.info["valid_fraction"], float).reshape(m.data.shape[:2])
+        inside = m.data.sum(axis=(2, 3)) / np.maximum(vf, 1e-300)
+        if np.any(inside < 0.98):
+            warnings.warn(f"the finely sampled PSFs keep as little as {inside.min():.3f} of their power in "
+                          f"{mtf_size} samples of {pixel * 1e3:.3g} um: raise --mtf-size", M.SamplingWarning)
+        plt = _plt()
+        colors = plt.cm.viridis(np.linspace(0, 0.85, len(fields)))
+        curves = [(freqs, M.diffraction_mtf_circular(freqs, fc), dict(color="gray", ls=":", label="diffraction limit"))]
+        for i, f in enumerate(fields):
+            curves.append((freqs, tan[i], dict(color=colors[i], label=f"{field_label(f)} T")))
+            curves.append((freqs, sag[i], dict(color=colors[i], ls="--", label=f"{field_label(f)} S")))
+        _line_fig(out / "mtf.png", f"polychromatic MTF ({model}; {', '.join(f'{w:g}' for w in wls)} um, equal "
+                  f"weights)\nT solid, S dashed; sensor Nyquist {nyq:.0f} lp/mm", "spatial frequency (lp/mm)",
+                  "modulation", curves, ylim=(0, 1.02))
+        r = np.linspace(0, 0.5 * mtf_size * pixel * 1e3, 81)
+        ee = M.energy_from_psf_map(m, r, "encircled")
+        curves = [(r, ee[i], dict(color=colors[i], label=field_label(f))) for i, f in enumerate(fields)]
+        _line_fig(out / "encircled_energy.png", f"polychromatic encircled energy about the centroid ({model})\n"
+                  "fraction of the power reaching the sensor", "radius (um)", "encircled energy", curves,
+                  ylim=(0, 1.02))
+        at = [f for f in (0.25 * nyq, 0.5 * nyq, nyq) if f <= freqs[-1]]
+        tat, sat = M.mtf_from_psf_map(m, at) if at else (np.zeros((len(fields), 0)),) * 2
+        rows = ["![mtf](mtf.png)", "", "![encircled energy](encircled_energy.png)", "",
+                f"Diffraction cutoff 2 NA / lambda = {fc:.1f} lp/mm (NA {na:.4f}); PSFs sampled at "
+                f"{pixel * 1e3:.3g} um on {mtf_size} x {mtf_size} samples (sensor pixel MTF not included).", "",
+                "| field | " + " | ".join(f"MTF T/S at {f:.0f} lp/mm" for f in at) + " | 80 % EE radius (um) |",
+                "|---|" + "---|" * (len(at) + 1)]
+        for i, f in enumerate(fields):
+            r80 = float(np.interp(0.8, ee[i], r)) if ee[i].max() >= 0.8 else float("nan")
+            rows.append(f"| {field_label(f)} | " + " | ".join(f"{tat[i, k]:.3f} / {sat[i, k]:.3f}" for k in range(len(at)))
+                        + f" | {r80:.2f} |")
+        if model != "ray":
+            st = []
+            for j, w in enumerate(wls):
+                pk, (dx, dy) = M.peak_intensity_from_psf(m.data[0, j], pixel)
+                c = m.centers_mm[0, j]
+                ideal = M.ideal_peak_intensity(lens, fields[0], w, (c[0] + dx, c[1] + dy), grid=201, device=device) \
+                    if model == "ray-wave" else float("nan")
+                st.append(pk / ideal)
+            rows += ["", f"Strehl ratio at {field_label(fields[0])}: " +
+                     ", ".join(f"{s:.4f} ({w:g} um)" for s, w in zip(st, wls)), ""]
+        return rows + [""]
+    if key == "through_focus":
+        na = M.image_space_na(lens, 0.0, wl0, device=device)
+        fc = 2 * na / (wl0 * 1e-3)
+        freqs = [0.25 * fc, 0.5 * fc]
+        pixel = M.default_sampling_mm(lens, [0.0], [wl0], device)
+        t = M.through_focus_mtf(lens, 0.0, wl0, frequencies_lp_mm=freqs,
+                                focus_mm=np.linspace(-1, 1, int(tf_planes)) * 4 * wl0 * 1e-3 / (2 * na) ** 2,
+                                model=model, size=mtf_size, pixel_mm=pixel, device=device)
+        curves = []
+        for k, f in enumerate(freqs):
+            curves.append((t.focus_mm * 1e3, t.tangential[:, k], dict(color=f"C{k}", label=f"{f:.0f} lp/mm T")))
+            curves.append((t.focus_mm * 1e3, t.sagittal[:, k], dict(color=f"C{k}", ls="--", label=f"{f:.0f} lp/mm S")))
+        _line_fig(out / "through_focus.png", f"through-focus MTF on axis at {wl0:g} um ({model}); T solid, S dashed",
+                  "sensor shift (um, + away from the lens)", "modulation", curves, ylim=(0, 1.02))
+        best = t.focus_mm[int(np.argmax(t.tangential[:, 0] + t.sagittal[:, 0]))]
+        return ["![through focus](through_focus.png)", "",
+                f"Best focus at {freqs[0]:.0f} lp/mm: {best * 1e3:+.2f} um from the sensor plane.", ""]
+    if key == "chromatic":
+        c = M.chromatic_focal_shift(lens, reference_um=wl0)
+        _line_fig(out / "chromatic_focal_shift.png", f"paraxial chromatic focal shift (reference {wl0:g} um)",
+                  "wavelength (um)", "focal shift (um)", [(c.wavelengths_um, c.shift_um, dict(color="C0", label="shift"))],
+                  legend=False)
+        return ["![chromatic focal shift](chromatic_focal_shift.png)", "",
+                f"Range over {c.wavelengths_um[0]:g}-{c.wavelengths_um[-1]:g} um: "
+                f"{np.ptp(c.shift_um):.2f} um.", ""]
+    if key == "field":
+        fmax = max(abs(v) for v in y_fields) or 1.0
+        fc = M.field_curves(lens, np.linspace(0, fmax, 21), wl0, device=device)
+        plt = _plt()
+        fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+        axes[0].plot(fc.tangential_mm * 1e3, fc.fields_deg, label="tangential")
+        axes[0].plot(fc.sagittal_mm * 1e3, fc.fields_deg, "--", label="sagittal")
+        axes[0].set_xlabel("focus - sensor plane (um)")
+        axes[0].set_ylabel("field (deg)")
+        axes[0].set_title(f"field curvature at {wl0:g} um", fontsize=9)
+        axes[0].legend(fontsize=7)
+        axes[1].plot(fc.distortion_percent, fc.fields_deg)
+        axes[1].set_xlabel("F-tan(theta) distortion (%)")
+        axes[1].set_ylabel("field (deg)")
+        axes[1].set_title("distortion (real chief ray vs paraxial height)", fontsize=9)
+        for ax in axes:
+            ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / "field_curves.png", dpi=130)
+        plt.close(fig)
+        return ["![field curvature and distortion](field_curves.png)", "",
+                f"At {fmax:g} deg: tangential {fc.tangential_mm[-1] * 1e3:+.2f} um, sagittal "
+                f"{fc.sagittal_mm[-1] * 1e3:+.2f} um, distortion {fc.distortion_percent[-1]:+.4f} %.", ""]
+    if key == "doe":
+        rng = _doe_figure(lens, out / "doe.png")
+        return ["![doe](doe.png)", "", f"Unwrapped phase range over the aperture: {rng:.4g} rad"
+                + (" (the DOE is blank: no phase)" if rng == 0 else "") + ".", ""]
+    raise ValueError(key)
