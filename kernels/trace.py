@@ -44,7 +44,10 @@ P_POWER = 14      # thin lens power 1/f, 1/mm
 P_UINV = 15       # thin lens: 1/u, u = object distance in front of the lens (mm); 0 = infinity
 P_V = 16          # thin lens: image distance behind the lens, mm; 0 = image at infinity
 P_A2 = 17         # r^2 coefficient of the even asphere, 1/mm
-N_PARAMS = 18
+P_OB_KIND = 18    # central obscuration: 0 none, 1 circle (radius P_OB_X), 2 rectangle (half sides P_OB_X, P_OB_Y)
+P_OB_X = 19
+P_OB_Y = 20
+N_PARAMS = 21
 
 KIND_REFRACT = 0
 KIND_THIN = 1
@@ -115,6 +118,17 @@ def make_trace_kernels(scalar):
                     out = 1
             else:
                 if x * x + y * y > sd * sd * (scalar(1.0) + scalar(edge)):
+                    out = 1
+        kind = params[P_OB_KIND]
+        if kind > scalar(0.5):
+            # an obscuration blocks rays strictly inside it (its edge, within the same tolerance, passes)
+            ox = params[P_OB_X]
+            if kind < scalar(1.5):
+                if x * x + y * y < ox * ox * (scalar(1.0) - scalar(edge)):
+                    out = 1
+            else:
+                lim = scalar(1.0) - scalar(edge)
+                if wp.abs(x) < ox * lim and wp.abs(y) < params[P_OB_Y] * lim:
                     out = 1
         return out
 

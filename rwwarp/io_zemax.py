@@ -14,7 +14,8 @@ Supported:
   radians on rho^2..rho^(2N), each multiplied by the diffraction order ``PARM 0``);
 * per surface ``CURV``, ``DISZ`` (``INFINITY``), ``GLAS`` (a catalogue name, or a model glass
   ``GLAS ___BLANK 1 0 nd vd ...`` -> material ``"nd/vd"``), ``CONI``, ``PARM``, ``XDAT``, ``STOP``,
-  ``DIAM``, ``CLAP`` (circular aperture), ``SQAP`` (square aperture), ``FLAP`` (floating aperture);
+  ``DIAM``, ``CLAP`` (circular aperture; annular with a minimum radius), ``SQAP`` (square aperture),
+  ``FLAP`` (floating aperture), ``OBSC`` / ``SQOB`` (circular / rectangular central obscurations);
 * system data ``ENPD`` (entrance pupil diameter), ``FNUM`` (image-space F/#: EPD = EFL / F# at the
   primary wavelength), ``FLOA`` (float by stop size), ``WAVM``/``WAVL``, ``PWAV``, ``FTYP``,
   ``XFLN``/``YFLN`` (``XFLD``/``YFLD``), ``UNIT``, ``NAME``.
@@ -383,17 +384,39 @@ def read_zmx(path):
                 floa_sd = d_val  # float by stop size: the stop's size sets the pupil (it does not clip)
             if d_val > 0 and (fixed or (is_stop and floa)):
                 sd = d_val  # (on a stop under ENPD/FNUM/FLOA: recorded, but the stop floats)
-        for bad in ("OBSC", "ELOB", "ELAP", "SQOB", "UDAP", "OBDC"):
+        for bad in ("ELOB", "ELAP", "UDAP", "OBDC"):
             if b.has(bad):
-                raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP and FLAP)", surf=k,
-                             key=bad, line=b.get(bad)[1])
+                raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP, FLAP, OBSC and SQOB)",
+                             surf=k, key=bad, line=b.get(bad)[1])
+        obscuration = None
+        for key in ("OBSC", "SQOB"):
+            got = b.get(key)
+            if not got:
+                continue
+            if obscuration is not None:
+                raise rd.err("one obscuration per surface", surf=k, key=key, line=got[1])
+            v0 = rd.num(got[0], 0, "first size", surf=k, key=key, line=got[1]) * scale
+            v1 = rd.num(got[0], 1, "second size", surf=k, key=key, line=got[1]) * scale
+            decs = [float(t) for t in got[0][3:5] if _isnum(t)]
+            if any(v != 0 for v in decs):
+                raise rd.err("decentred obscurations are not supported", surf=k, key=key, line=got[1])
+            if key == "OBSC":  # circular obscuration: min radius, max radius (blocks inside the max radius)
+                if v0 != 0:
+                    raise rd.err(f"annular obscurations are not supported (OBSC minimum radius {v0})", surf=k,
+                                 key=key, line=got[1])
+                obscuration = {"shape": "circle", "radius": v1}
+            else:  # rectangular obscuration: x half width, y half width
+                obscuration = {"shape": "rectangle", "half_x": v0, "half_y": v1}
         clap = b.get("CLAP")
         if clap:
             rmin = rd.num(clap[0], 0, "minimum radius", surf=k, key="CLAP", line=clap[1]) * scale
             rmax = rd.num(clap[0], 1, "maximum radius", surf=k, key="CLAP", line=clap[1]) * scale
             if rmin != 0:
-                raise rd.err(f"annular apertures are not supported (CLAP minimum radius {rmin})", surf=k,
-                             key="CLAP", line=clap[1])
+                # an annular aperture: clear between rmin and rmax (a circular obscuration inside)
+                if obscuration is not None:
+                    raise rd.err("an annular CLAP and an obscuration on one surface", surf=k, key="CLAP",
+                                 line=clap[1])
+                obscuration = {"shape": "circle", "radius": rmin}
             sd = rmax
         sqap = b.get("SQAP")
         if sqap:
@@ -437,6 +460,7 @@ def read_zmx(path):
             radius = None if curv == 0 else 1.0 / curv
             surfaces.append(Surface(type="standard", thickness=thick, radius=radius, conic=conic, a2=a2,
                                     aspheric=asph, material=material, semi_diameter=sd, shape=shape,
+                                    obscuration=obscuration,
                                     stop=stop))
             zsurf.append(k)
         elif typ == "PARAXIAL":
@@ -448,7 +472,7 @@ def read_zmx(path):
             if f == 0:
                 raise rd.err("PARAXIAL focal length (PARM 1) must be non-zero", surf=k, key="PARM 1")
             surfaces.append(Surface(type="thin_lens", thickness=thick, focal_length=f, material=material,
-                                    semi_diameter=sd, shape=shape, stop=stop))
+                                    semi_diameter=sd, shape=shape, stop=stop, obscuration=obscuration))
             zsurf.append(k)
         else:  # BINARY_2
             if curv != 0:
@@ -481,7 +505,7 @@ def read_zmx(path):
                 zsurf.append(k)
             surfaces.append(Surface(type="doe", thickness=thick, semi_diameter=sd, shape=shape,
                                     design_wavelength_um=primary_um, material="fused_silica", profile=profile,
-                                    stop=stop))
+                                    stop=stop, obscuration=obscuration))
             zsurf.append(k)
         medium = material
 

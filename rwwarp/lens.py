@@ -60,6 +60,9 @@ class Surface:
     design_wavelength_um: float = 0.55
     levels: int | None = None
     a2: float = 0.0  # r^2 coefficient of the even asphere, 1/mm (Zemax EVENASPH PARM 1, DeepLens use_ai2)
+    #: central obstruction (blocks rays inside it): {"shape": "circle", "radius": r} or
+    #: {"shape": "rectangle", "half_x": a, "half_y": b} (mm, centred on the axis); None: none
+    obscuration: dict | None = None
 
     def __post_init__(self):
         if self.type == "doe" and self.material == "air":
@@ -208,6 +211,19 @@ class Lens:
             if s.semi_diameter is not None and not (s.semi_diameter > 0):
                 raise LensError(f"semi_diameter must be > 0 mm, got {s.semi_diameter}", file=f, surface=i,
                                 keyword="semi_diameter")
+            if s.obscuration is not None:
+                ob = s.obscuration
+                ok = isinstance(ob, dict) and ((ob.get("shape") == "circle" and set(ob) == {"shape", "radius"})
+                                               or (ob.get("shape") == "rectangle"
+                                                   and set(ob) == {"shape", "half_x", "half_y"}))
+                if ok:
+                    vals = [v for k2, v in ob.items() if k2 != "shape"]
+                    ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+                             for v in vals)
+                if not ok:
+                    raise LensError(f"obscuration must be {{'shape': 'circle', 'radius': r}} or {{'shape': "
+                                    f"'rectangle', 'half_x': a, 'half_y': b}} with sizes > 0 mm, got {ob!r}",
+                                    file=f, surface=i, keyword="obscuration")
             if s.shape not in ("circle", "square"):
                 raise LensError(f"shape must be 'circle' or 'square', got {s.shape!r}", file=f, surface=i,
                                 keyword="shape")
@@ -359,7 +375,7 @@ class Lens:
 
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
-                 "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2"}
+                 "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2", "obscuration"}
 _DEFAULTS = Surface()
 
 
@@ -372,6 +388,8 @@ def _surface_to_dict(s: Surface) -> dict:
                     "profile", "stop"]}[s.type]
     if s.type == "standard" and s.a2:
         keys = keys[:2] + ["a2"] + keys[2:]
+    if s.obscuration is not None:
+        keys = keys + ["obscuration"]
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
@@ -402,7 +420,7 @@ def _surface_from_dict(sd, i, source) -> Surface:
                 raise LensFileError(f"stop must be true or false, got {_brief(v)}", file=source, surface=i,
                                     keyword=k)
             kw[k] = v
-        elif k == "profile":
+        elif k in ("profile", "obscuration"):
             kw[k] = copy.deepcopy(v)
         else:
             if not isinstance(v, str):

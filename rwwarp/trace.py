@@ -296,6 +296,12 @@ class Tracer:
                 sd = None  # floating stop: the entrance pupil sets the beam
             p[ktrace.P_SD] = -1.0 if sd is None else sd
             p[ktrace.P_SQUARE] = 1.0 if s.shape == "square" else 0.0
+            ob = s.obscuration
+            if ob is not None:
+                circ = ob["shape"] == "circle"
+                p[ktrace.P_OB_KIND] = 1.0 if circ else 2.0
+                p[ktrace.P_OB_X] = ob["radius"] if circ else ob["half_x"]
+                p[ktrace.P_OB_Y] = 0.0 if circ else ob["half_y"]
             if s.type == "thin_lens":
                 uinv, v = paraxial.thin_lens_conjugates(lens, self.wavelengths_um[0], i, object_distance)
                 p[ktrace.P_POWER] = 1.0 / s.focal_length
@@ -404,6 +410,7 @@ class Tracer:
         if getattr(self, "_noclip", None) is None or self._noclip[0] is not self.params_np:
             p = np.array(self.params_np, dtype=np.float64)
             p[:, ktrace.P_SD] = -1.0
+            p[:, ktrace.P_OB_KIND] = 0.0  # nor obscurations (the chief ray of an obscured pupil is still aimed)
             views = upload_packed([(row, self.np_dtype, self.scalar) for row in p], self.device, cache=True)
             self._noclip = (self.params_np, views)
         return self._noclip[1]
