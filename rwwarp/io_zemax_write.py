@@ -10,7 +10,8 @@ rwwarp         .zmx
 ============== =====================================================================================
 object         ``SURF 0``, ``DISZ`` = object distance (``INFINITY``)
 standard       ``STANDARD`` (``CURV`` = 1/radius, ``CONI``), or ``EVENASPH`` when it has aspheric terms
-               (``PARM 2..8`` = r^4 .. r^16; r^18 and r^20 terms have no EVENASPH slot: refused)
+               (``PARM 1`` = the r^2 term ``a2``, ``PARM 2..8`` = r^4 .. r^16; r^18 and r^20 terms have
+               no EVENASPH slot: refused)
 thin_lens      ``PARAXIAL``, ``PARM 1`` = focal length
 aperture       flat ``STANDARD`` that keeps the medium (``GLAS`` of the medium it sits in)
 doe            flat ``BINARY_2`` that keeps the medium: ``PARM 0`` = 1 (diffraction order),
@@ -24,6 +25,7 @@ semi_diameter  ``DIAM sd 1`` (fixed) plus a hard aperture ``CLAP 0 sd`` (circle)
                (not on the stop of a lens with an ``entrance_pupil_diameter``: that stop floats)
 material       ``GLAS NAME`` (the catalogue name; fused silica as ``F_SILICA``), a model glass
                ``"nd/vd"`` as ``GLAS ___BLANK 1 0 nd vd``; the catalogues used go in ``GCAT``
+obscuration    ``OBSC 0 r`` (circle) or ``SQOB hx hy`` (rectangle), centred
 stop           ``STOP`` on :attr:`Lens.stop_index`
 aperture size  ``ENPD``: the lens's ``entrance_pupil_diameter``, or the paraxial entrance pupil
                of the stop at the primary wavelength (the stop keeps its hard aperture, so it still
@@ -171,12 +173,13 @@ def zmx_text(lens) -> str:
             if len(asph) > 7:
                 raise LensError(f"aspheric terms beyond r^16 ({len(asph)} terms) have no EVENASPH slot in a .zmx",
                                 file=lens.source, surface=i, keyword="aspheric")
-            lines.append("TYPE EVENASPH" if asph else "TYPE STANDARD")
+            even = bool(asph) or bool(s.a2)
+            lines.append("TYPE EVENASPH" if even else "TYPE STANDARD")
             lines.append(f"CURV {_num(s.curvature)} 0 0 0 0 \"\"")
             if s.conic:
                 lines.append(f"CONI {_num(s.conic)}")
-            if asph:
-                lines.append("PARM 1 0")
+            if even:
+                lines.append(f"PARM 1 {_num(s.a2)}")
                 lines += [f"PARM {k + 2} {_num(a)}" for k, a in enumerate(asph)]
             medium = s.material
         elif s.type == "thin_lens":
@@ -207,6 +210,15 @@ def zmx_text(lens) -> str:
                 lines.append(f"CLAP 0 {sd} 0" if s.shape == "circle" else f"SQAP {sd} {sd} 0 0 0")
         else:
             lines.append("DIAM 0 0 0 0 1 \"\"")
+        ob = s.obscuration
+        if ob:
+            if ob.get("shape") == "circle":
+                lines.append(f"OBSC 0 {_num(ob['radius'])} 0 0 0")
+            elif ob.get("shape") == "rectangle":
+                lines.append(f"SQOB {_num(ob['half_x'])} {_num(ob['half_y'])} 0 0 0")
+            else:
+                raise LensError(f"obscuration {ob!r} has no .zmx form", file=lens.source, surface=i,
+                                keyword="obscuration")
         blocks.append(lines)
 
     fields = lens.fields_deg if lens.fields_deg else [0.0]

@@ -35,7 +35,8 @@ def canonical(lens):
             a = [float(v) for v in s.aspheric]
             while a and a[-1] == 0:
                 a.pop()
-            out.append(("standard", z[i], s.curvature, s.conic, *a, *n(s.material), s.semi_diameter or 0.0, s.shape))
+            out.append(("standard", z[i], s.curvature, s.a2, s.conic, *a, *n(s.material), s.semi_diameter or 0.0,
+                        s.shape, str(sorted((s.obscuration or {}).items()))))
             medium = s.material
         elif s.type == "thin_lens":
             out.append(("thin_lens", z[i], s.focal_length, *n(s.material), s.semi_diameter or 0.0, s.shape))
@@ -169,6 +170,21 @@ def test_doe_profiles_and_refusals(tmp_path):
         _doe_lens({"kind": "even_poly", "norm_radius": 2.0, "coefficients": [1.0]}, n_asph=9).save(tmp_path / "a.zmx")
     with pytest.raises(ValueError, match="format"):
         a.save(tmp_path / "x.zmx", format="codev")
+
+
+def test_r2_term_and_obscuration(tmp_path):
+    s = [Surface(type="standard", radius=40.0, a2=1e-3, aspheric=[2e-6], material="N-BK7", semi_diameter=5.0,
+                 thickness=3.0, obscuration={"shape": "circle", "radius": 1.0}),
+         Surface(type="standard", radius=None, semi_diameter=5.0, thickness=60.0,
+                 obscuration={"shape": "rectangle", "half_x": 0.5, "half_y": 0.25})]
+    a = Lens(s, wavelengths_um=[0.55], entrance_pupil_diameter=8.0)
+    t = zmx_text(a)
+    assert "PARM 1 0.001" in t and "OBSC 0 1.0 0 0 0" in t and "SQOB 0.5 0.25 0 0 0" in t
+    a.save(tmp_path / "r2.zmx")
+    b = rw.load_lens(tmp_path / "r2.zmx")
+    assert_same(canonical(a), canonical(b))
+    assert b.surfaces[0].obscuration == {"shape": "circle", "radius": 1.0}
+    assert b.efl(0.55) == pytest.approx(a.efl(0.55), abs=1e-12)
 
 
 def test_model_glass_and_design_wavelength_warning(tmp_path):
