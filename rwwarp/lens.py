@@ -361,17 +361,21 @@ class Lens:
                    _num(d["primary_wavelength_um"], source, None, "primary_wavelength_um"))
 
     def save(self, path, format: str | None = None) -> None:
-        """Write the lens to ``path``: native JSON, or a Zemax sequential ``.zmx``
-        (:mod:`rwwarp.io_zemax_write`). ``format``: ``"json"`` or ``"zmx"``; default from the
-        suffix (``.zmx`` -> zmx, anything else -> json)."""
+        """Write the lens to ``path``: native JSON, a Zemax sequential ``.zmx``
+        (:mod:`rwwarp.io_zemax_write`) or a DeepLens JSON (:mod:`rwwarp.io_deeplens_write`).
+        ``format``: ``"json"``, ``"zmx"`` or ``"deeplens"``; default from the suffix (``.zmx`` ->
+        zmx, anything else -> json)."""
         fmt = format or ("zmx" if Path(path).suffix.lower() == ".zmx" else "json")
         if fmt == "zmx":
             from .io_zemax_write import write_zmx
             write_zmx(self, path)
+        elif fmt == "deeplens":
+            from .io_deeplens_write import write_deeplens
+            write_deeplens(self, path)
         elif fmt == "json":
             Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
         else:
-            raise ValueError(f"format must be 'json' or 'zmx', got {format!r}")
+            raise ValueError(f"format must be 'json', 'zmx' or 'deeplens', got {format!r}")
 
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",

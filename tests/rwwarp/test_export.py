@@ -14,14 +14,14 @@ from rwwarp.lens import Lens, Sensor, Surface
 BUNDLED = ["cooke_triplet", "cooke_triplet.zmx", "a489_doe", "thin_lens_doe"]
 
 
-def canonical(lens):
+def canonical(lens, wls=None):
     """The optical content of a lens as (kind, numbers...) tuples, independent of how it is spelled:
     planes that neither refract nor clip are dropped (a stop flag on them is kept as the stop's z);
     an ``aperture`` and a flat ``standard`` surface that keeps the medium are both a clipping 'plane';
     materials compare by their indices at the lens's wavelengths; trailing zero aspheric terms dropped."""
     out, medium = [], "air"
     z = lens.vertex_z
-    wls = lens.wavelengths_um
+    wls = wls or lens.wavelengths_um
     n = lambda m: tuple(rw.materials.get_material(m).n(w) if m != "air" else 1.0 for w in wls)
     stop_z = float(z[lens.stop_index])
     for i, s in enumerate(lens.surfaces):
@@ -42,9 +42,11 @@ def canonical(lens):
             out.append(("thin_lens", z[i], s.focal_length, *n(s.material), s.semi_diameter or 0.0, s.shape))
             medium = s.material
         elif s.type == "doe":
-            p = s.profile
-            out.append(("doe", z[i], p["norm_radius"], *p["coefficients"], s.semi_diameter or 0.0, s.shape,
-                        s.design_wavelength_um, str(s.levels)))
+            # the phase itself, sampled along x and the diagonal (the same phase has many spellings)
+            prof = rw.doe.profile_from_dict(s.profile)
+            t = np.linspace(0, 1, 6) * (s.semi_diameter or 1.0)
+            ph = np.concatenate([prof.phase(t, 0 * t, s.design_wavelength_um), prof.phase(t, t, s.design_wavelength_um)])
+            out.append(("doe", z[i], *ph, s.semi_diameter or 0.0, s.shape, s.design_wavelength_um, str(s.levels)))
     return out, stop_z, float(lens.sensor_z)
 
 
@@ -200,3 +202,54 @@ def test_model_glass_and_design_wavelength_warning(tmp_path):
     c = c.with_surface(3, design_wavelength_um=0.6)
     with pytest.warns(UserWarning, match="design wavelength"):
         c.save(tmp_path / "w.zmx")
+
+
+# ------------------------------------------------------------------------------------------ DeepLens JSON
+@pytest.mark.parametrize("name", ["cooke_triplet", "a489_doe", "thin_lens_doe"])
+def test_deeplens_roundtrip_bundled(name, tmp_path):
+    a = rw.load_lens(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # wavelengths / object distance are not in the format (tested below)
+        a.save(tmp_path / "d.json", format="deeplens")
+    b = rw.load_lens(tmp_path / "d.json")
+    for w in a.wavelengths_um:
+        # positions are cumulated and differenced by the reader: measured 1.4e-14 mm
+        assert b.efl(w) == pytest.approx(a.efl(w), abs=1e-12)
+        assert b.bfl(w) == pytest.approx(a.bfl(w), abs=1e-12)
+    assert_same(canonical(a), canonical(b, a.wavelengths_um))
+    assert b.sensor.pixel_pitch == pytest.approx(a.sensor.pixel_pitch, rel=1e-15)
+    assert tuple(b.sensor.resolution) == tuple(a.sensor.resolution)
+    assert b.entrance_pupil_diameter == a.entrance_pupil_diameter
+
+
+def test_deeplens_doe_models_and_refusals(tmp_path):
+    sq = lambda prof, levels=None: Lens(
+        [Surface(type="aperture", semi_diameter=1.0, shape="square", stop=True),
+         Surface(type="thin_lens", focal_length=50.0, semi_diameter=1.0, shape="square", thickness=1.0),
+         Surface(type="doe", semi_diameter=1.0, shape="square", thickness=49.0, profile=prof, levels=levels)],
+        wavelengths_um=[0.55])
+    for prof, levels in (({"kind": "even_poly", "norm_radius": 0.8, "coefficients": [-20.0, 3.0, 0.5]}, None),
+                         ({"kind": "even_poly", "norm_radius": 0.8, "coefficients": [-20.0, 3.0, 0.5]}, 16),
+                         ({"kind": "fresnel", "focal_length": 300.0}, None),
+                         ({"kind": "fresnel", "focal_length": 300.0}, 8)):
+        a = sq(prof, levels)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            a.save(tmp_path / "q.json", format="deeplens")
+        b = rw.load_lens(tmp_path / "q.json")
+        # phases agree to rounding (a rescaled normalisation radius): 1e-12 relative
+        assert_same(canonical(a), canonical(b, a.wavelengths_um), tol=1e-12)
+        assert b.surfaces[-1].levels == levels
+    with pytest.raises(LensError, match="square"):
+        Lens([Surface(type="aperture", semi_diameter=1.0, stop=True),
+              Surface(type="doe", semi_diameter=1.0, thickness=10.0,
+                      profile={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [1.0]})],
+             wavelengths_um=[0.55]).save(tmp_path / "c.json", format="deeplens")
+    with pytest.raises(LensError, match="pixel-map"):
+        sq({"kind": "pixel_map", "pitch": 0.5, "data": [[0.0, 1.0], [2.0, 3.0]]}).save(tmp_path / "p.json",
+                                                                                      format="deeplens")
+    with pytest.raises(LensError, match="at most 5"):
+        sq({"kind": "even_poly", "norm_radius": 1.0, "coefficients": [1.0] * 6}).save(tmp_path / "6.json",
+                                                                                    format="deeplens")
+    with pytest.warns(UserWarning, match="object distance"):
+        rw.load_lens("a489_doe").save(tmp_path / "o.json", format="deeplens")
