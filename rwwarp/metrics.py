@@ -202,9 +202,16 @@ def peak_intensity_from_psf(data, pixel_mm, upsample: int = 4):
 
 # ============================================================================== lens helpers
 def _wave_plane(lens):
-    """Index of the plane where the wave models start: the DOE, else the last surface."""
+    """Index of the plane where the wave models start: the DOE, else the last surface. Rays go
+    straight from it to the sensor, so nothing may refract behind the DOE."""
     d = lens.doe_index
-    return len(lens.surfaces) - 1 if d is None else d
+    if d is None:
+        return len(lens.surfaces) - 1
+    for k in range(d + 1, len(lens.surfaces)):
+        if lens.surfaces[k].type in ("standard", "thin_lens"):
+            raise LensError("the DOE must follow every refracting surface (surface "
+                            f"{k} follows it)", file=lens.source, surface=k)
+    return d
 
 
 def _image_space_rays(lens, fields, wavelength_um, u, v, object_distance_mm=None, device="cpu",

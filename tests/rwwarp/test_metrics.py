@@ -262,3 +262,15 @@ def test_field_curves_thin_singlet_seidel():
     assert np.allclose(c.sagittal_mm, zs, rtol=5e-3)
     assert np.allclose(c.tangential_mm, zt, rtol=5e-3)
     assert np.max(np.abs(c.distortion_percent)) < 1e-4  # measured 2.3e-5 % (fifth order)
+
+
+def test_refracting_surface_behind_doe_refused():
+    s = [Surface(type="aperture", semi_diameter=1.0, thickness=0.0, stop=True),
+         Surface(type="doe", semi_diameter=1.0, thickness=1.0,
+                 profile={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [1.0]}),
+         Surface(type="thin_lens", focal_length=20.0, thickness=20.0)]
+    lens = Lens(s, wavelengths_um=[WL])
+    with pytest.raises(rw.LensError, match="DOE must follow"):
+        rw.field_curves(lens, [0.0, 1.0], WL)
+    with pytest.raises(ValueError, match="eps"):
+        rw.field_curves(thin(), [0.0], WL, eps=0.7)
