@@ -170,7 +170,7 @@ def mutated_json(draw, bases):
         elif action == "delete":
             del parent[key]
         elif action == "add" and isinstance(parent, dict):
-            parent[draw(st.sampled_from(["unknown", "radius", "stop", "levels", "DOE", "(x)", "fields_deg"]))] = \
+            parent[draw(st.sampled_from(["unknown", "radius", "stop", "levels", "DOE", "(x)", "fields_deg", "a2"]))] = \
                 draw(values)
         elif action == "nest":
             depth = draw(st.sampled_from([2, 50, 70, 200]))
