@@ -623,8 +623,10 @@ def _successor(name: str):
 
 
 def _plausible(nd, vd) -> bool:
+    """nd / vd that describe a glass: not Zemax's placeholders (0 / 0, and the 1.5 / 40 it writes for a
+    catalogue glass whose data it looks up)."""
     return nd is not None and vd is not None and math.isfinite(nd) and math.isfinite(vd) and 1.0 < nd < 4.5 \
-        and 0.0 < vd < 200.0
+        and 0.0 < vd < 200.0 and (nd, vd) != (1.5, 40.0)
 
 
 def resolve_glass(name: str, nd=None, vd=None, lines_um=None):
@@ -648,6 +650,16 @@ def resolve_glass(name: str, nd=None, vd=None, lines_um=None):
         err = e
     nd = None if nd is None else float(nd)
     vd = None if vd is None else float(vd)
+    base = re.sub(r"_MOLD$", "", name.strip(), flags=re.IGNORECASE)
+    if base != name.strip():
+        # a maker's moulding-grade variant (OHARA "L-TIM28_MOLD"): the base glass's data (the moulded index
+        # differs by the annealing shift, ~1e-3)
+        try:
+            m = get_material(base)
+            return m.name, (f"glass {name.strip()!r} is not in the tables: the base glass {m.name!r} stands in "
+                            "(moulded glasses differ by their annealing shift)")
+        except GlassError:
+            pass
     succ = _successor(name)
     if succ is not None and (not _plausible(nd, vd) or (abs(succ.nd - nd) < 1e-3 and abs(succ.vd - vd) < 0.5)):
         return succ.name, (f"glass {name.strip()!r} is not in the tables: SCHOTT's lead-free successor "
