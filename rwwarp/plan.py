@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field, asdict
+from dataclasses import dataclass, asdict, replace
+
+import numpy as np
 
 
 from .errors import SamplingWarning
@@ -30,10 +32,17 @@ def nice_fft_length(n: int) -> int:
     return next_fft_size(n)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Plan:
-    """Sampling of one batch: ``pitch_mm`` of the DOE-plane grid, ``n_grid`` samples per side,
-    ``n_pad`` FFT length, ``ray_grid`` pupil samples across the diameter, ``reasons`` (text)."""
+    """Sampling of one batch (immutable: a caller's plan is never changed by a call that uses it).
+
+    ``pitch_mm`` of the wave-plane grid, ``n_grid`` samples per side, ``n_pad`` FFT length of the
+    band-limited ASM (``method="asm"``), ``ray_grid`` pupil samples across the diameter, ``reasons``
+    (text, a tuple). ``method``: ``"asm"`` (band-limited angular spectrum over the whole beam) or
+    ``"focal"`` (reference wave handled analytically, :mod:`rwwarp.focal`), which also uses the sensor-side
+    grid ``sensor_pitch_mm`` x ``n_sensor`` and its FFT length ``n_sensor_fft``. ``estimate``: the
+    planner's cost estimate (``memory_bytes``, ``flops``) for the whole batch, or None.
+    """
 
     pitch_mm: float
     n_grid: int
@@ -41,16 +50,38 @@ class Plan:
     ray_grid: int
     kind: str = "auto"
     output_on_grid: bool = False
-    reasons: list = field(default_factory=list)
+    reasons: tuple = ()
+    method: str = "asm"
+    sensor_pitch_mm: float | None = None
+    n_sensor: int | None = None
+    n_sensor_fft: int | None = None
+    estimate: dict | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "reasons", tuple(self.reasons))
+        if self.method not in ("asm", "focal"):
+            raise ValueError(f"Plan.method must be 'asm' or 'focal', got {self.method!r}")
+
+    def with_reasons(self, *more) -> "Plan":
+        """A copy with ``more`` reasons appended."""
+        return replace(self, reasons=tuple(self.reasons) + tuple(more))
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["reasons"] = list(d["reasons"])
+        return d
 
     def explain(self) -> str:
-        """Human-readable summary of the plan and why."""
-        head = (f"plan {self.kind}: pitch {self.pitch_mm * 1e3:.4g} um, grid {self.n_grid}^2, "
-                f"FFT {self.n_pad}^2, pupil rays {self.ray_grid} across")
-        return "\n".join([head] + [f"  - {r}" for r in self.reasons])
+        """Human-readable summary of the plan, its cost estimate and why."""
+        head = (f"plan {self.kind} ({self.method}): pitch {self.pitch_mm * 1e3:.4g} um, grid {self.n_grid}^2, "
+                + (f"FFT {self.n_pad}^2, " if self.method == "asm" else
+                   f"sensor grid {self.n_sensor}^2 at {self.sensor_pitch_mm * 1e3:.4g} um, FFT {self.n_sensor_fft}^2, ")
+                + f"pupil rays {self.ray_grid} across")
+        lines = [head]
+        if self.estimate:
+            lines.append(f"  estimate: peak memory {self.estimate['memory_bytes'] / 2 ** 30:.3g} GiB, "
+                         f"{self.estimate['flops'] / 1e9:.3g} GFLOP")
+        return "\n".join(lines + [f"  - {r}" for r in self.reasons])
 
 
 def check_explicit(plan: Plan, needed_pitch_mm: float, needed_pad: int, window_mm: float):
@@ -75,3 +106,176 @@ def check_explicit(plan: Plan, needed_pitch_mm: float, needed_pad: int, window_m
                       f"footprint leave samples without rays (ray spacing {ray_pitch * 1e3:.4g} um > pitch "
                       f"{plan.pitch_mm * 1e3:.4g} um). Fix: ray_grid >= {math.ceil(window_mm / plan.pitch_mm)}",
                       SamplingWarning, stacklevel=3)
+
+
+# ---------------------------------------------------------------------------------------------- cost
+def default_memory_budget_bytes(device: str = "cpu") -> int:
+    """Default memory budget (bytes) of one PSF call on ``device``: half of what the operating system
+    reports available (``MemAvailable``) on the CPU, half the free memory of a CUDA device."""
+    dev = str(device)
+    if dev.startswith("cuda"):
+        try:
+            import cupy
+            idx = int(dev.split(":")[1]) if ":" in dev else 0
+            with cupy.cuda.Device(idx):
+                free, _ = cupy.cuda.runtime.memGetInfo()
+            return int(free) // 2
+        except Exception:  # no CuPy: a conservative 8 GiB
+            return 8 * 2 ** 30
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024 // 2
+    except OSError:
+        pass
+    return 4 * 2 ** 30
+
+
+def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> dict:
+    """Peak memory (bytes, the planned arrays of one batch) and work (flops) of a ray-wave batch.
+
+    Counted: the traced rays (two ping-pong ray states of position, direction, OPL and validity, plus
+    tube areas, weights and wavelengths: ~200 bytes a ray), the splat accumulators and the field
+    (~64 bytes a wave-plane sample), and the propagation's arrays: for ``asm`` the padded FFT
+    (``n_pad^2``, two complex buffers) and the output matrix DFT; for ``focal`` the two separable
+    kernel matrices (``n_sensor x n_grid``), the sensor-side FFT (``n_sensor_fft^2``, three complex
+    buffers) and its output DFT. Flops: ~400 a ray and surface-free step, 5 N log2 N per FFT,
+    8 per complex multiply-add. Checked against measured peak RSS in ``perf/bench_focal.py``.
+    """
+    S = int(n_sources)
+    m = int(size) * int(gauss_nodes)
+    rays = S * plan.ray_grid ** 2
+    n2 = plan.n_grid ** 2
+    mem = rays * 200 + S * n2 * 64
+    flops = rays * 4000.0
+    if plan.method == "asm":
+        npd = plan.n_pad
+        mem += S * (2 * npd * npd * 16 + 2 * npd * m * 16 + m * m * 16)
+        flops += S * (5.0 * npd * npd * math.log2(max(npd * npd, 2)) + 8.0 * (npd * npd * m + npd * m * m))
+    else:
+        ns, nf, n = plan.n_sensor, plan.n_sensor_fft, plan.n_grid
+        mem += S * (2 * ns * n * 16 + n * ns * 16 + 3 * nf * nf * 16 + 2 * nf * m * 16 + nf * m * 16 + m * m * 16)
+        flops += S * (8.0 * (n * n * ns + ns * ns * n) + 5.0 * nf * nf * math.log2(max(nf * nf, 2))
+                      + 8.0 * (nf * nf * m + nf * m * m))
+    return {"memory_bytes": int(mem), "flops": float(flops)}
+
+
+class MemoryBudgetError(MemoryError):
+    """A planned computation would exceed the memory budget; the message names the estimate and the knob."""
+
+
+def check_budget(estimate: dict, budget_bytes: int, what: str, knobs: str):
+    """Raise :class:`MemoryBudgetError` when ``estimate['memory_bytes']`` exceeds ``budget_bytes``."""
+    if estimate["memory_bytes"] > budget_bytes:
+        raise MemoryBudgetError(
+            f"{what} needs an estimated {estimate['memory_bytes'] / 2 ** 30:.3g} GiB, over the memory budget of "
+            f"{budget_bytes / 2 ** 30:.3g} GiB (memory_budget_gb). What drives it: {knobs}. Reduce one of them, "
+            f"split the batch (batch=...), or raise memory_budget_gb if the machine has the memory.")
+
+
+# ---------------------------------------------------------------------------------------------- focal
+def landing_points(xy, f, inv_lam, distance_mm):
+    """Where straight rays from wave-plane points ``xy`` (N, 2) mm with transverse frequencies ``f`` (N, 2)
+    cycles/mm (``n d_xy / lambda``) meet the sensor ``distance_mm`` behind: ``xy + z f / w(f)``,
+    ``w = sqrt(inv_lam^2 - |f|^2)``. Rays with ``|f| >= inv_lam`` (evanescent) give NaN."""
+    w2 = inv_lam ** 2 - np.sum(f * f, axis=-1)
+    w = np.sqrt(np.where(w2 > 0, w2, np.nan))
+    return xy + distance_mm * f / w[..., None]
+
+
+def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
+               rays_per_sample, nyquist_safety, order_tol=1e-8):
+    """Sampling of the focal propagation (:mod:`rwwarp.focal`) for one batch, from a pilot trace.
+
+    Per source ``k``: ``xy[k]`` (N, 2) wave-plane points of the pilot rays (mm), ``freq[k]`` (N, 2) their
+    transverse frequencies before the DOE (cycles/mm), ``doe_freq[k]`` (N, 2) the DOE's
+    ``grad(phi0) / (2 pi)`` there or None, ``orders[k]`` a list of ``(m, c_m)`` DOE orders,
+    ``centers`` (S, 2) patch centres T, ``carrier`` (S, 2) the chief frequency ``f_c`` after the main
+    order, ``inv_lam`` (S,) ``n / lambda`` (1/mm). ``width_mm``: beam footprint on the wave plane.
+
+    Rules (each recorded in the plan's reasons):
+
+    * an order is computed iff it carries ``|c_m|^2 >= order_tol`` and the bounding box of its pilot
+      rays' landing points comes within a diffraction margin of the patch; the others' power is
+      reported as leaving the patch;
+    * the sensor-side grid covers the patch widened by the remainder's displacement ``H_R`` and every
+      kept ray's landing point under the quadratic transfer, plus a diffraction margin of
+      ``6 / B`` (``B``: the beam's largest frequency offset from ``f_c``, so ~12 Airy radii);
+      its pitch samples ``B`` ``nyquist_safety`` times above Nyquist;
+    * the wave-plane pitch makes the generalised-Fresnel sum periodic over ``nyquist_safety`` times that
+      sensor-side box (``pitch = 1 / (|A| safety box)``, ``|A| ~ n / (lambda z)``): the patch's
+      space-bandwidth product, not the beam's;
+    * rays: ``rays_per_sample`` per wave-plane sample across the footprint.
+
+    Returns ``(plan, geometry)``; ``geometry`` has ``sensor_origin`` (S, 2), ``orders`` (the kept
+    ``(m, c_m)`` per source) and ``lost_power`` (S,), the fraction in dropped orders.
+    """
+    from .focal import transfer_curvature
+    S = len(xy)
+    z = float(distance_mm)
+    half_w = 0.5 * size * pixel_mm
+    w_c, g, q = transfer_curvature(carrier, inv_lam)
+    A = np.abs(1.0 / (z * q))
+    boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
+    for k in range(S):
+        T = centers[k]
+        cand = []
+        for m, c in orders[k]:
+            if abs(c) ** 2 < order_tol:
+                lost[k] += abs(c) ** 2
+                continue
+            f = freq[k] + (m * doe_freq[k] if doe_freq[k] is not None else 0.0)
+            L = landing_points(xy[k], f, inv_lam[k], z)
+            ok = np.all(np.isfinite(L), axis=1)
+            cand.append((m, c, f[ok], L[ok], xy[k][ok]))
+        band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
+        margin = 6.0 / band
+        keep, lo, hi = [], T - half_w, T + half_w
+        for m, c, f, L, x in cand:
+            if len(L) == 0:
+                lost[k] += abs(c) ** 2
+                continue
+            llo, lhi = L.min(0), L.max(0)
+            if np.any(llo > T + half_w + margin) or np.any(lhi < T - half_w - margin):
+                lost[k] += abs(c) ** 2      # every ray of this order misses the patch
+                continue
+            keep.append((int(m), complex(c)))
+            lg = x - z * (g[k] + (f - carrier[k]) * q[k])       # landing under the quadratic transfer
+            d = float(np.max(np.abs(L - lg)))
+            shifts[k] = max(shifts[k], d)
+            lo = np.minimum(lo, lg.min(0))
+            hi = np.maximum(hi, lg.max(0))
+        if not keep:  # nothing reaches the patch: keep the main order so the (dark) patch is computed
+            m, c = max(orders[k], key=lambda mc: abs(mc[1]))
+            keep.append((int(m), complex(c)))
+            lost[k] -= abs(c) ** 2
+        lo = np.minimum(lo, T - half_w - shifts[k]) - margin
+        hi = np.maximum(hi, T + half_w + shifts[k]) + margin
+        boxes.append((lo, hi))
+        kept.append(keep)
+        bands[k] = band
+    box = max(float(np.max(hi - lo)) for lo, hi in boxes)
+    hs = 1.0 / (2.0 * nyquist_safety * float(np.max(bands)))
+    ns = int(math.ceil(box / hs)) + 2
+    room = 2.0 * float(np.max(shifts)) + 6.0 / float(np.min(bands))
+    nf = nice_fft_length(ns + int(math.ceil(room / hs)))
+    sensor_origin = np.array([0.5 * (lo + hi) - 0.5 * (ns - 1) * hs for lo, hi in boxes])
+    pitch = 1.0 / (float(np.max(A)) * nyquist_safety * box)
+    window = width_mm + 2.0 * width_mm / 31.0
+    n_grid = int(math.ceil(window / pitch)) + 3
+    ray_grid = int(math.ceil(rays_per_sample * width_mm / pitch)) + 1
+    reasons = (
+        f"focal propagation: reference wave to the patch centre handled analytically (rwwarp.focal)",
+        f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
+        f"{float(np.max(lost)):.3g}",
+        f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
+        f"margin 6/B = {6e3 / np.min(bands):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
+        f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
+        f"wave-plane pitch 1 / (|A| {nyquist_safety} box) = {pitch * 1e3:.4g} um over the footprint {width_mm:.4g} mm "
+        f"-> {n_grid}^2 samples",
+        f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil",
+    )
+    plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
+    centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
+    return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost}

@@ -82,7 +82,8 @@ class PSFMap:
 def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave", size: int = 64,
         device: str = "cpu", plan="auto", dtype: str = "float64", amplitude: str = "energy",
         object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
-        use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0) -> PSF:
+        use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
+        method: str = "auto", memory_budget_gb: float | None = None) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -116,11 +117,20 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Adaptive plan: the DOE-plane pitch samples the highest local frequency this many times above
         its Nyquist limit of 2 samples per period (aperture-edge diffraction spreads past it; 2 keeps
         the aliased part near 1e-4).
+    method : "auto" | "focal" | "asm"
+        Wave propagation (ray-wave model). ``"focal"`` handles the wave converging to the patch
+        analytically and samples only what reaches the patch (:mod:`rwwarp.focal`); ``"asm"`` is the
+        band-limited angular spectrum over the whole converging beam (the reference path; its cost grows
+        with footprint x NA / lambda). ``"auto"``: focal, except for pixel-map DOEs and ``plan="paper"``.
+    memory_budget_gb : float, optional
+        Refuse (:class:`rwwarp.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
+        batch whose planned arrays would exceed this many GiB; default half the available memory.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
                 rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm,
-                use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety)
+                use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
+                method=method, memory_budget_gb=memory_budget_gb)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -131,7 +141,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
-            nyquist_safety: float = 2.0) -> PSFMap:
+            nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -175,33 +185,60 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     centers = np.zeros((len(fields), len(wavelengths_um), 2))
     info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": []}
     t0 = time.perf_counter()
+    checks.check_choice(method, "method", ("auto", "focal", "asm"))
+    from .plan import default_memory_budget_bytes, MemoryBudgetError
+    if memory_budget_gb is not None:
+        if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
+            raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
+        budget = int(memory_budget_gb * 2 ** 30)
+    else:
+        budget = default_memory_budget_bytes(device)
     if model == "ray-wave" and isinstance(plan, str) and plan == "auto" and len(pairs) > 1:
-        # plan per source: a pilot of every pair, then batches of pairs with similar needs, so an on-axis
-        # field is not sampled on the grid a corner field needs
+        # plan per source: a pilot of every pair, then batches: for the ASM, pairs with similar needs (so an
+        # on-axis field is not sampled on the grid a corner field needs); for the focal method, as many
+        # pairs as the memory budget holds (its grids follow the patch, so they differ little)
         probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
                         device, "auto", dtype, amplitude, object_distance_mm, rays_per_sample, center_mm,
-                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety)
-        chunks = [[pairs[k] for k in g] for g in group_sources(probe.source_needs, batch)]
+                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety, method=method)
+        if probe.plan.method == "focal":
+            per = probe.plan.estimate["memory_bytes"] / len(pairs)
+            b = max(1, min(batch or len(pairs), int(budget // max(per, 1))))
+            chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
+        else:
+            chunks = [[pairs[k] for k in g] for g in group_sources(probe.source_needs, batch)]
         del probe
     else:
         b = batch or len(pairs)
         chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
     index = {pr: k for k, pr in enumerate(pairs)}
+    bar = None
     if progress:
         from tqdm.auto import tqdm
-        chunks = tqdm(chunks, desc=f"{model} PSFs", unit="batch")
-    for chunk in chunks:
+        bar = tqdm(total=len(pairs), desc=f"{model} PSFs", unit="PSF")
+    chunks = list(chunks)
+    while chunks:
+        chunk = chunks.pop(0)
         f_list = [fields[i] for i, _ in chunk]
         w_list = [wavelengths_um[j] for _, j in chunk]
-        if model == "ray-wave":
-            res = _raywave(lens, f_list, w_list, size, pixel, device, plan, dtype, amplitude,
-                           object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
-                           nyquist_safety)
-        elif model == "paraxial-wave":
-            eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
-            res = _raywave(eq, eq_fields, w_list, size, pixel, device, plan, dtype, amplitude,
-                           None, rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety)
-        else:
+        try:
+            if model == "ray-wave":
+                res = _raywave(lens, f_list, w_list, size, pixel, device, plan, dtype, amplitude,
+                               object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
+                               nyquist_safety, method, budget)
+            elif model == "paraxial-wave":
+                eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
+                res = _raywave(eq, eq_fields, w_list, size, pixel, device, plan, dtype, amplitude,
+                               None, rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety,
+                               method, budget)
+            else:
+                res = None
+        except MemoryBudgetError:
+            if len(chunk) == 1:
+                raise
+            half = len(chunk) // 2   # split the batch and try again
+            chunks[:0] = [chunk[:half], chunk[half:]]
+            continue
+        if res is None:
             res = _ray_model(lens, f_list, w_list, size, pixel, device, dtype, object_distance_mm,
                              rays_per_sample, center_mm)
         for k, (i, j) in enumerate(chunk):
@@ -210,6 +247,10 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             info["valid_fraction"][index[(i, j)]] = res["valid_fraction"][k]
         info["plan"] = res.get("plan")
         info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan")})
+        if bar is not None:
+            bar.update(len(chunk))
+    if bar is not None:
+        bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
@@ -281,6 +322,13 @@ def _pixel_centres(centers, size, pixel):
 def _lens_dir(lens):
     from pathlib import Path
     return None if lens.source is None else Path(lens.source).parent
+
+
+def _is_curved(surface) -> bool:
+    """True for a refracting surface with sag (curvature or aspheric terms): not a plane."""
+    if surface.type != "standard":
+        return False
+    return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
 
 
 def _is_flat_profile(profile: dict) -> bool:
@@ -390,7 +438,10 @@ class RayWave:
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
-                 use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False):
+                 use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
+                 memory_budget_bytes=None):
+        if method not in ("asm", "focal", "auto"):
+            raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
 
         plane = _wave_plane_index(lens)
         uniq = sorted(set(wls))
@@ -412,6 +463,14 @@ class RayWave:
         pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
         pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
         dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
+        opl_p = opl_plane.numpy().reshape(nsrc, -1).astype(np.float64)
+        # a curved last surface: carry the rays on to its vertex plane (straight, in the image medium,
+        # OPL included) so the field is formed on a true plane
+        self.curved_plane = _is_curved(lens.surfaces[plane])
+        if self.curved_plane:
+            t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
+            pos_p = pos_p + t[..., None] * dir_s
+            opl_p = opl_p + n_after[:, None] * t
         ok = pilot.valid.numpy().reshape(nsrc, -1).astype(bool)
         for k in range(nsrc):
             if ok[k].sum() < 3:
@@ -450,6 +509,19 @@ class RayWave:
         else:
             centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         out_width = size * pixel
+        if method == "auto":
+            method = "asm" if (isinstance(plan, str) and plan == "paper") else "focal"
+            if isinstance(plan, Plan):
+                method = plan.method
+            s_pl = lens.surfaces[plane]
+            if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
+                method = "asm"  # discontinuous: no smooth diffraction orders to factor
+        self.method = method
+        self.focal = None
+        if method == "focal":
+            self._plan_focal(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
+                             z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety)
+            carrier, centers = self.carrier, self.centers
         # ---- plan
         nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
         need_pitch = nyq_pitch / nyquist_safety
@@ -461,7 +533,9 @@ class RayWave:
                 reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
             need_pitch = min(need_pitch, feature / 2.0)
         window = width + 2.0 * pilot_cell
-        if isinstance(plan, Plan):
+        if method == "focal":
+            pl = self.plan
+        elif isinstance(plan, Plan):
             pl = plan
             check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
         elif plan == "auto":
@@ -492,8 +566,16 @@ class RayWave:
         self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
         if gauss_nodes is None:
             gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)
-            pl.reasons.append(f"pixel integration: {gauss_nodes} x {gauss_nodes} Gauss-Legendre nodes per pixel "
-                              f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
+            pl = pl.with_reasons(f"pixel integration: {gauss_nodes} x {gauss_nodes} Gauss-Legendre nodes per pixel "
+                                 f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
+        from .plan import estimate_cost, check_budget
+        from dataclasses import replace as _replace
+        pl = _replace(pl, estimate=estimate_cost(pl, nsrc, size, gauss_nodes))
+        if memory_budget_bytes is not None:
+            check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
+                         f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
+                         "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
+                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else ""))
         self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
         self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
         self.nsrc, self.n_after, self.lam_mm = nsrc, n_after, lam_mm
@@ -506,12 +588,64 @@ class RayWave:
         self._align_to_doe_pixels()
         # chief ray OPL on the plane (a per-source constant phase: not differentiated); the pilot's pupil
         # sample 0 is the chief ray (u = v = 0), traced alone before as the same independent ray
-        self.opl_chief = opl_plane.numpy().reshape(nsrc, -1)[:, 0].astype(np.float64)
+        self.opl_chief = opl_p[:, 0].copy()
         self.chief_ok = valid_plane.numpy().reshape(nsrc, -1)[:, 0].astype(bool)
         self.chief_plane = np.where(self.chief_ok[:, None], pos_p[:, 0], chief_plane)
         self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
         # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
         self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
+
+    def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
+                    center_mm, size, pixel, width, rays_per_sample, nyquist_safety):
+        """Plan the focal propagation: DOE orders, carrier and patch centre after the main order, grids
+        (:func:`rwwarp.plan.plan_focal`). Sets ``plan``, ``focal``, ``carrier`` and ``centers``."""
+        from . import doe
+        from .focal import doe_order_coefficients
+        from .plan import plan_focal, landing_points
+        nsrc = len(n_after)
+        inv_lam = n_after / lam_mm
+        s = lens.surfaces[plane]
+        prof = None
+        if s.type == "doe" and not _is_flat_profile(s.profile):
+            prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
+        orders, doe_freq = [], []
+        xy = [pos_p[k, ok[k], :2] for k in range(nsrc)]
+        freq = [n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] for k in range(nsrc)]
+        f_c = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]
+        for k in range(nsrc):
+            if prof is None:
+                orders.append([(0, 1.0 + 0j)])
+                doe_freq.append(None)
+                continue
+            alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
+            ms = set(range(-8, 9))
+            if s.levels:
+                ms |= {1 + j * int(s.levels) for j in (-2, -1, 1, 2)}
+            ms = np.array(sorted(ms))
+            cm = doe_order_coefficients(alpha, s.levels, ms)
+            orders.append(list(zip(ms.tolist(), cm.tolist())))
+            gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
+            doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
+            m0 = int(ms[np.argmax(np.abs(cm))])
+            cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)
+            f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
+        if center_mm is None:
+            land = np.array([landing_points(chief_plane[k, :2], f_c[k], inv_lam[k], dist) for k in range(nsrc)])
+            if not np.all(np.isfinite(land)):
+                raise LensError("the chief ray's main diffraction order is evanescent behind the DOE", file=lens.source)
+            centers = np.stack([_snap_center(land[:, 0], pixel, lens.sensor.resolution[0]),
+                                _snap_center(land[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
+        else:
+            centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
+        self.plan, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, width, size, pixel,
+                                    rays_per_sample, nyquist_safety)
+        if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
+            if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:
+                raise ValueError("an explicit Plan with method='focal' needs sensor_pitch_mm, n_sensor and n_sensor_fft")
+            geo["sensor_origin"] = geo["sensor_center"] - 0.5 * (plan.n_sensor - 1) * plan.sensor_pitch_mm
+            self.plan = plan
+        geo["profile"] = prof
+        self.focal, self.carrier, self.centers = geo, f_c, centers
 
     def _align_to_doe_pixels(self):
         """For a pixel-map DOE, shift the window origins so sample cells tile the DOE pixels exactly (the
@@ -562,6 +696,8 @@ class RayWave:
         u, v, cell = self.pupil
         npup = pl.ray_grid * pl.ray_grid
         rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid)
+        if self.curved_plane:
+            rays = tr.to_plane(rays, self.z_plane, plane)
         K = make_splat_kernels(tr.scalar)
         sums = wp.zeros((nsrc, 2), dtype=wp.float64, device=tr.device)
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight, npup],
@@ -697,12 +833,62 @@ class RayWave:
                                            gauss_nodes=self.gauss_nodes)
         return be.to_host(power)
 
+    def focal_operator(self):
+        """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once."""
+        if getattr(self, "_focal_op", None) is None:
+            from .focal import FocalPropagator
+            from .propagate import gauss_legendre
+            xp = np
+            if self.tracer.device.startswith("cuda"):
+                import cupy as xp
+            px, py = self.pixel_centres()
+            t, _ = gauss_legendre(self.gauss_nodes)
+            off = 0.5 * self.pixel * t
+            nx = (px[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
+            ny = (py[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
+            pl = self.plan
+            self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
+                                             self.z_sensor - self.z_plane, self.centers, self.carrier,
+                                             self.focal["sensor_origin"], pl.sensor_pitch_mm, pl.n_sensor,
+                                             pl.n_sensor_fft, nx, ny, xp=xp)
+        return self._focal_op
+
+    def doe_orders_factor(self):
+        """``sum_m c_m exp(1j m phi0)`` on each window (S, n, n) for the DOE orders the focal plan kept, or
+        None (no DOE, blank DOE, or only the zeroth order with c_0 = 1)."""
+        geo, prof = self.focal, self.focal["profile"]
+        if prof is None:
+            return None
+        s = self.lens.surfaces[self.plane]
+        g = np.arange(self.plan.n_grid) * self.plan.pitch_mm
+        out = np.zeros((self.nsrc, self.plan.n_grid, self.plan.n_grid), dtype=np.complex128)
+        for k in range(self.nsrc):
+            x, y = np.meshgrid(self.origin[k, 0] + g, self.origin[k, 1] + g, indexing="xy")
+            phi0 = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
+            for m, c in geo["orders"][k]:
+                out[k] += c * np.exp(1j * m * phi0)
+        return out
+
+    def focal_intensity(self, u_field):
+        """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``)."""
+        from .focal import pixel_power
+        op = self.focal_operator()
+        fac = self.doe_orders_factor()
+        if fac is not None:
+            u_field = u_field * op.xp.asarray(fac)
+        u = op.forward(u_field)
+        power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
+        return power if op.xp is np else op.xp.asnumpy(power)
+
     def run(self) -> dict:
         """The whole model: PSFs as fractions of the entering power per pixel."""
         u_field = self.field_array()
         _LAST.update(field=u_field, origin=self.origin, pitch=self.plan.pitch_mm)
-        phi0, scale = self.doe_phase()
-        data = self.intensity(u_field, phi0, scale) / self.entering[:, None, None]
+        if self.plan.method == "focal":
+            data = self.focal_intensity(u_field) / self.entering[:, None, None]
+        else:
+            phi0, scale = self.doe_phase()
+            data = self.intensity(u_field, phi0, scale) / self.entering[:, None, None]
         if not np.all(np.isfinite(data)):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
@@ -710,9 +896,11 @@ class RayWave:
 
 
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
-             rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0):
+             rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0, method="auto",
+             memory_budget_bytes=None):
     return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
-                   rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety).run()
+                   rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method=method,
+                   memory_budget_bytes=memory_budget_bytes).run()
 
 
 # ---------------------------------------------------------------------------------------------- comparison models

@@ -553,6 +553,26 @@ class Tracer:
             rays.kept = {i: (outs[i][0], outs[i][2], outs[i][3]) for i in sorted(kept)}
         return rays
 
+    def to_plane(self, rays, z_mm: float, surface_index: int):
+        """Carry traced rays straight on (or back) to the plane ``z = z_mm`` in the medium behind surface
+        ``surface_index``, adding ``n t`` to their OPL (one launch, recorded on an active ``wp.Tape``; the
+        plane's position is not differentiated). Returns new :class:`Rays`."""
+        K, dev, sc, g = self.K, self.device, self.scalar, self.requires_grad
+        n = rays.pos.shape[0]
+        row = np.zeros(ktrace.N_PARAMS)
+        row[ktrace.P_Z] = z_mm
+        row[ktrace.P_SD] = -1.0
+        params = wp.array(row.astype(self.np_dtype), dtype=sc, device=dev)
+        out = _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                          wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                          wp.empty(n, dtype=sc, device=dev, requires_grad=g),
+                                          wp.empty(n, dtype=wp.int32, device=dev)))
+        idx = self.n_tables[surface_index]
+        dummy = wp.zeros(1, dtype=sc, device=dev)
+        wp.launch(K.surface_kernel, dim=n, inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.wl, params, idx,
+                                                   idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
+        return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
+
     def _chunks(self, n: int):
         """Ray index ranges traced in parallel: one per thread on the CPU without a tape and with at least
         :data:`PARALLEL_MIN_RAYS` rays per chunk, else one."""
