@@ -52,6 +52,7 @@ N_PARAMS = 21
 KIND_REFRACT = 0
 KIND_THIN = 1
 KIND_PLANE = 2     # aperture / DOE plane / sensor: intersect and clip, no bending
+KIND_REFLECT = 3   # mirror: intersect like KIND_REFRACT, then reflect (the medium is unchanged)
 
 NEWTON_STEPS = 8
 
@@ -286,7 +287,7 @@ def make_trace_kernels(scalar):
         newd = d
         extra = scalar(0.0)
         if ok == 1:
-            if kind == KIND_REFRACT:
+            if kind == KIND_REFRACT or kind == KIND_REFLECT:
                 # one Newton step from the converged root: exact value, exact (implicit) derivative,
                 # and a short adjoint (the iterations themselves are not on the tape)
                 t = newton_step(q, d, t_start[i], params)
@@ -305,12 +306,15 @@ def make_trace_kernels(scalar):
                     if cosi < scalar(0.0):
                         nrm = -nrm
                         cosi = -cosi
-                    mu = n1 / n2
-                    kk = scalar(1.0) - mu * mu * (scalar(1.0) - cosi * cosi)
-                    if kk <= scalar(0.0):
-                        ok = 0  # total internal reflection
+                    if kind == KIND_REFLECT:
+                        newd = wp.normalize(d - scalar(2.0) * cosi * nrm)
                     else:
-                        newd = wp.normalize(mu * d + (wp.sqrt(kk) - mu * cosi) * nrm)
+                        mu = n1 / n2
+                        kk = scalar(1.0) - mu * mu * (scalar(1.0) - cosi * cosi)
+                        if kk <= scalar(0.0):
+                            ok = 0  # total internal reflection
+                        else:
+                            newd = wp.normalize(mu * d + (wp.sqrt(kk) - mu * cosi) * nrm)
             else:
                 # plane at the vertex: aperture, DOE plane, sensor, thin lens
                 t = -q[2] / d[2]

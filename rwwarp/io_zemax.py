@@ -344,6 +344,7 @@ def read_zmx(path):
 
         # material after the surface
         material = "air"
+        mirror = False
         glas = b.get("GLAS")
         if glas:
             toks, ln = glas
@@ -351,14 +352,17 @@ def read_zmx(path):
                 raise rd.err("missing glass name", surf=k, key="GLAS", line=ln)
             gname = toks[0]
             if gname.upper() == "MIRROR":
-                raise rd.err("mirrors are not supported", surf=k, key="GLAS", line=ln)
-            if gname.upper() == "___BLANK":
+                if typ not in ("STANDARD", "EVENASPH"):
+                    raise rd.err(f"a {typ} mirror is not supported (STANDARD and EVENASPH mirrors are)", surf=k,
+                                 key="GLAS", line=ln)
+                mirror, material = True, medium  # light turns back in the same medium
+            elif gname.upper() == "___BLANK":
                 nd = rd.num(toks, 3, "model glass nd", surf=k, key="GLAS", line=ln)
                 vd = rd.num(toks, 4, "model glass Vd", surf=k, key="GLAS", line=ln)
                 material = f"{nd!r}/{vd!r}"
             elif gname.upper() != "AIR":
                 material = gname
-            if material != "air":
+            if material != "air" and not mirror:
                 file_nd = file_vd = None
                 if gname.upper() != "___BLANK" and len(toks) >= 5 and _isnum(toks[3]) and _isnum(toks[4]):
                     file_nd, file_vd = float(toks[3]), float(toks[4])
@@ -460,7 +464,7 @@ def read_zmx(path):
             radius = None if curv == 0 else 1.0 / curv
             surfaces.append(Surface(type="standard", thickness=thick, radius=radius, conic=conic, a2=a2,
                                     aspheric=asph, material=material, semi_diameter=sd, shape=shape,
-                                    obscuration=obscuration,
+                                    obscuration=obscuration, mirror=mirror,
                                     stop=stop))
             zsurf.append(k)
         elif typ == "PARAXIAL":

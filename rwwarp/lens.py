@@ -63,6 +63,9 @@ class Surface:
     #: central obstruction (blocks rays inside it): {"shape": "circle", "radius": r} or
     #: {"shape": "rectangle", "half_x": a, "half_y": b} (mm, centred on the axis); None: none
     obscuration: dict | None = None
+    #: a reflecting standard surface (Zemax GLAS MIRROR): light turns back, the medium is unchanged (its
+    #: ``material`` is the medium in front of it); thicknesses after an odd number of mirrors are negative
+    mirror: bool = False
 
     def __post_init__(self):
         if self.type == "doe" and self.material == "air":
@@ -180,6 +183,15 @@ class Lens:
             out.append(cur)
         return out
 
+    def directions(self) -> np.ndarray:
+        """+1 / -1: the sense along z in which light travels after each surface (mirrors turn it back)."""
+        out, cur = [], 1.0
+        for s in self.surfaces:
+            if s.type == "standard" and s.mirror:
+                cur = -cur
+            out.append(cur)
+        return np.array(out)
+
     def indices(self, wavelength_um) -> np.ndarray:
         """Refractive index after each surface at ``wavelength_um`` (um); shape (n_surfaces,)."""
         return np.array([materials.get_material(m).n(wavelength_um) for m in self.media()], dtype=np.float64)
@@ -257,6 +269,7 @@ class Lens:
 
     def _check_crossing(self):
         z = self.vertex_z
+        sense = self.directions()  # the gap after surface i is crossed in the sense sense[i] along z
         for i in range(len(self.surfaces) - 1):
             a, b = self.surfaces[i], self.surfaces[i + 1]
             if any(s.type == "aperture" and s.semi_diameter is None for s in (a, b)):
@@ -266,13 +279,13 @@ class Lens:
             r = np.linspace(0.0, h, 33)
             za, zb = z[i] + a.sag(r), z[i + 1] + b.sag(r)
             ok = np.isfinite(za) & np.isfinite(zb)
-            if np.any(zb[ok] - za[ok] < -1e-9):
-                j = int(np.argmax(za[ok] - zb[ok]))
+            if np.any(sense[i] * (zb[ok] - za[ok]) < -1e-9):
+                j = int(np.argmax(sense[i] * (za[ok] - zb[ok])))
                 raise GeometryError(
                     f"surfaces {i} and {i + 1} cross at height {r[ok][j]:.4g} mm "
                     f"(gap {zb[ok][j] - za[ok][j]:.4g} mm); check the thickness {a.thickness} mm",
                     file=self.source, surface=i, keyword="thickness")
-        if self.surfaces[-1].thickness <= 0:
+        if sense[-1] * self.surfaces[-1].thickness <= 0:
             raise GeometryError(f"the sensor must lie behind the last surface (thickness "
                                 f"{self.surfaces[-1].thickness} mm)", file=self.source,
                                 surface=len(self.surfaces) - 1, keyword="thickness")
@@ -379,7 +392,8 @@ class Lens:
 
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
-                 "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2", "obscuration"}
+                 "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2", "obscuration",
+                 "mirror"}
 _DEFAULTS = Surface()
 
 
@@ -394,6 +408,8 @@ def _surface_to_dict(s: Surface) -> dict:
         keys = keys[:2] + ["a2"] + keys[2:]
     if s.obscuration is not None:
         keys = keys + ["obscuration"]
+    if s.type == "standard" and s.mirror:
+        keys = keys + ["mirror"]
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
@@ -419,9 +435,9 @@ def _surface_from_dict(sd, i, source) -> Surface:
             kw[k] = [_num(a, source, i, k) for a in v]
         elif k == "levels":
             kw[k] = None if v is None else _integer(v, source, i, k)
-        elif k == "stop":
+        elif k in ("stop", "mirror"):
             if not isinstance(v, bool):
-                raise LensFileError(f"stop must be true or false, got {_brief(v)}", file=source, surface=i,
+                raise LensFileError(f"{k} must be true or false, got {_brief(v)}", file=source, surface=i,
                                     keyword=k)
             kw[k] = v
         elif k in ("profile", "obscuration"):

@@ -17,7 +17,7 @@ from .errors import GeometryError
 
 def surface_powers(lens, wavelength_um: float) -> np.ndarray:
     """Optical power of each surface at ``wavelength_um`` (um), 1/mm."""
-    n = lens.indices(wavelength_um)
+    n = signed_indices(lens, wavelength_um)
     n_before = np.concatenate([[_object_index(lens, wavelength_um)], n[:-1]])
     out = np.zeros(len(lens.surfaces))
     for i, s in enumerate(lens.surfaces):
@@ -46,13 +46,19 @@ def _object_index(lens, wavelength_um):
     return 1.0
 
 
+def signed_indices(lens, wavelength_um) -> np.ndarray:
+    """Index after each surface with the sign of the travel direction (negative after an odd number of
+    mirrors), the usual paraxial convention that makes a mirror a surface of power -2 n c."""
+    return lens.indices(wavelength_um) * lens.directions()
+
+
 def ynu_trace(lens, wavelength_um: float, y0: float, nu0: float):
     """Trace a paraxial ray starting at the first vertex with height ``y0`` (mm) and reduced slope ``nu0``.
 
     Returns ``(y, nu)``: heights at each surface (mm) and reduced slopes after each surface.
     """
     powers = surface_powers(lens, wavelength_um)
-    n = lens.indices(wavelength_um)
+    n = signed_indices(lens, wavelength_um)
     ys, nus = np.zeros(len(powers)), np.zeros(len(powers))
     y, nu = y0, nu0
     for i, s in enumerate(lens.surfaces):
@@ -88,7 +94,7 @@ def bfl(lens, wavelength_um: float = 0.5876) -> float:
     """Back focal length (paraxial focus behind the last surface vertex), mm."""
     wavelength_um = _checked(lens, wavelength_um)
     y, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
-    n = lens.indices(wavelength_um)[-1]
+    n = signed_indices(lens, wavelength_um)[-1]
     if nu[-1] == 0:
         raise GeometryError("afocal system: the back focal length is infinite", file=lens.source)
     return _finite(-y[-1] * n / nu[-1], "back focal length", lens)
@@ -132,7 +138,7 @@ def pupils(lens, wavelength_um: float = 0.5876) -> Pupils:
     # chief ray through the EP centre with unit slope: y0 = -ep_z at the first vertex
     yc, nuc = ynu_trace(lens, wavelength_um, -ep_z, 1.0)
     ym, num = ynu_trace(lens, wavelength_um, ep_r, 0.0)
-    n_img = lens.indices(wavelength_um)[-1]
+    n_img = signed_indices(lens, wavelength_um)[-1]
     z_last = lens.vertex_z[-1]
     if nuc[-1] == 0:
         xp_z, xp_r = np.inf, np.inf
@@ -163,7 +169,7 @@ def thin_lens_conjugates(lens, wavelength_um: float, index: int, object_distance
     if lens.surfaces[index].type != "thin_lens":
         raise checks.ArgumentError(f"index={index}: surface {index} is a {lens.surfaces[index].type!r} "
                                    "surface, not a thin_lens")
-    n = lens.indices(wavelength_um)
+    n = signed_indices(lens, wavelength_um)
     n1 = 1.0 if index == 0 else n[index - 1]
     n2 = n[index]
     s = lens.surfaces[index]

@@ -276,6 +276,8 @@ class Tracer:
 
     # -------------------------------------------------------------- setup
     def _kind(self, s):
+        if s.type == "standard" and s.mirror:
+            return ktrace.KIND_REFLECT
         return {"standard": ktrace.KIND_REFRACT, "thin_lens": ktrace.KIND_THIN}.get(s.type, ktrace.KIND_PLANE)
 
     def _surface_params(self, object_distance=None) -> np.ndarray:
@@ -524,7 +526,7 @@ class Tracer:
             kind = self.kinds[i] if i < nsurf else ktrace.KIND_PLANE
             n_in = self.n_before[i] if i < nsurf else self.n_tables[-1]
             n_out = self.n_tables[i] if i < nsurf else self.n_tables[-1]
-            if kind == ktrace.KIND_REFRACT:
+            if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT):
                 # converge the intersection off the tape; the surface kernel differentiates one step. A
                 # buffer per surface when recording (the adjoint reads it again during tape.backward())
                 if g:
@@ -595,8 +597,8 @@ class Tracer:
         wlc = cut(wl)
         for (kind, params, n_in, n_out, t_buf), out in zip(steps, outs):
             nxt = tuple(cut(a) for a in out)
-            tc = cut(t_buf) if kind == ktrace.KIND_REFRACT else t_buf
-            if kind == ktrace.KIND_REFRACT:
+            tc = cut(t_buf) if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT) else t_buf
+            if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT):
                 wp.launch(K.intersect_kernel, dim=n, inputs=[state[0], state[1], state[3], params], outputs=[tc],
                           device=dev, record_tape=False)
             wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, params, n_in, n_out, kind, tc],
