@@ -19,7 +19,7 @@ Aspheric         ``standard`` with ``k`` (conic) and ``ai``: ``use_ai2`` true or
                  layout) means ``ai[0]`` is the r^2 term (``Surface.a2``) and ``ai[1:]`` r^4, r^6, ...;
                  ``use_ai2`` false means ``ai`` starts at r^4.
 Plane            flat ``standard`` into ``mat2``
-ThinLens         ``thin_lens`` of focal length ``f``
+ThinLens         ``thin_lens`` of focal length ``f`` (``foclen`` in newer files)
 ================ =====================================================================================
 
 The HybridLens ``DOE`` block becomes a ``doe`` surface inserted at its absolute ``d``; its aperture
@@ -44,6 +44,10 @@ wavelength ``wvln0`` (default 0.55 um).
 Sensor: ``sensor_res`` (default 2000 x 2000) and ``sensor_size`` or the half-diagonal ``r_sensor``
 (square pixels). The object is at infinity and the wavelengths are DeepLens's RGB set
 (0.486, 0.587, 0.656 um); neither is stored in a DeepLens file. ``enpd`` sets the entrance pupil.
+
+The newer inline layout, where the DOE (``{"type": "DOE", "param_model": ..., "d_next": ...}``) and the
+sensor (a last ``{"type": "Sensor", "l": side_mm, "res": [nx, ny]}``) are entries of ``surfaces``, is read
+the same way (the sensor entry ends the ``d_next`` chain and gives the sensor's size and resolution).
 
 Errors name the file, the surface (its index in the DeepLens ``surfaces`` list, or ``DOE``) and the key.
 """
@@ -102,6 +106,14 @@ def lens_from_deeplens(d: dict, source=None):
         if not isinstance(sd, dict):
             raise err(f"surface entry must be an object, got {type(sd).__name__}", i)
         clean.append({k: v for k, v in sd.items() if not _derived(k)})
+    # the newer inline layout: the DOE and the sensor are entries of 'surfaces' ({"type": "DOE", ...} with
+    # its d_next, and a last {"type": "Sensor", "l": side, "res": [nx, ny]} whose position ends the chain)
+    inline_sensor = None
+    if clean and clean[-1].get("type") == "Sensor":
+        inline_sensor = clean.pop()
+    for i, sd in enumerate(clean):
+        if sd.get("type") == "Sensor":
+            raise err("a 'Sensor' entry must be the last of 'surfaces'", i, "type")
     relative = all("d_next" in sd for sd in clean)
     if relative:
         z, zc = [], 0.0
@@ -125,8 +137,15 @@ def lens_from_deeplens(d: dict, source=None):
     # ---------------------------------------------------------------- surfaces
     items = []  # (z, Surface, label)
     stop_done = False
+    inline_doe = None
     for i, sd in enumerate(clean):
         typ = sd.get("type")
+        if typ == "DOE":
+            if inline_doe is not None or d.get("DOE") is not None:
+                raise err("at most one DOE (inline in 'surfaces' or the 'DOE' block)", i, "type")
+            inline_doe = (i, dict({k: v for k, v in sd.items() if k not in ("idx", "d_next", "type")},
+                                  type=sd.get("param_model", "pixel2d"), d=z[i]))
+            continue
         if typ not in _SURFACE_TYPES:
             raise err(f"unknown or unsupported DeepLens surface type {typ!r} "
                       f"(supported: {', '.join(_SURFACE_TYPES)})", i, "type")
@@ -142,7 +161,8 @@ def lens_from_deeplens(d: dict, source=None):
             s = Surface(type="aperture", semi_diameter=semi, shape=shape, stop=not stop_done)
             stop_done = True
         elif typ == "ThinLens":
-            s = Surface(type="thin_lens", focal_length=num(sd, "f", i), semi_diameter=semi, shape=shape)
+            fkey = "foclen" if "f" not in sd and "foclen" in sd else "f"  # newer DeepLens writes 'foclen'
+            s = Surface(type="thin_lens", focal_length=num(sd, fkey, i), semi_diameter=semi, shape=shape)
         else:
             material = _material(sd, i, src, err, materials)
             if typ == "Plane":
@@ -177,8 +197,13 @@ def lens_from_deeplens(d: dict, source=None):
         items.append((z[i], s, i))
 
     # ---------------------------------------------------------------- DOE (HybridLens)
-    if d.get("DOE") is not None:
-        doe_surface, z_doe = _doe(d["DOE"], err)
+    if d.get("DOE") is not None or inline_doe is not None:
+        if inline_doe is not None:
+            def err_inline(msg, surf=None, key=None, cls=LensFileError, _i=inline_doe[0]):
+                return err(f"inline DOE: {msg}", _i, key, cls)
+            doe_surface, z_doe = _doe(inline_doe[1], err_inline)
+        else:
+            doe_surface, z_doe = _doe(d["DOE"], err)
         pos = len(items)
         while pos > 0 and items[pos - 1][0] > z_doe:
             pos -= 1
@@ -195,6 +220,11 @@ def lens_from_deeplens(d: dict, source=None):
     # a first surface not at z = 0 only shifts the origin (rwwarp puts the first vertex at z = 0)
 
     # ---------------------------------------------------------------- sensor and system
+    if inline_sensor is not None:
+        if d.get("sensor_res") is None and inline_sensor.get("res") is not None:
+            d = dict(d, sensor_res=inline_sensor["res"])
+        if d.get("sensor_size") is None and d.get("r_sensor") is None and inline_sensor.get("l") is not None:
+            d = dict(d, sensor_size=inline_sensor["l"])
     res = d.get("sensor_res", [2000, 2000])
     try:
         res = [_int(v) for v in (res if isinstance(res, (list, tuple)) else [res, res])]

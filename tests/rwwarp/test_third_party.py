@@ -207,7 +207,7 @@ UNIT_MM = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "METER": 1000.0, "M": 1000.0}
 REFUSED = {
     "DeepLens/camera__rf35mm_f1.8.json": None,                 # not JSON (an empty / LFS placeholder file)
     "DeepLens/diffraclens__doelens.json": "type",              # Fresnel diffractive-only lens
-    "DeepLens/diffraclens__doethinlens.json": "d_next",        # newer inline DOE layout
+    "DeepLens/diffraclens__doethinlens.json": "phase_map_path",  # inline Pixel2D DOE without its phase map
     "DeepLens/hybridlens__a489_doe.json": "alpha2",            # Binary2 DOE without coefficients
     "DeepLens/hybridlens__a489_grating.json": "type",          # grating DOE model
     # surfaces that cross inside their semi-diameters (rwwarp checks; DeepLens and Zemax do not)
@@ -339,3 +339,17 @@ def test_parabolic_mirror_focuses_perfectly_at_half_its_radius(tmp_path):
     hit = np.stack([x + t * out[:, 0], y + t * out[:, 1]], 1)
     assert ok.all()
     assert np.max(np.abs(rays["pos"][0, :, :2] - hit)) < 1e-9
+
+
+def test_deeplens_inline_doe_and_sensor_layout(tmp_path):
+    """DeepLens's newer layout puts the DOE and the sensor in 'surfaces': the DOE sits at the end of its
+    predecessors' d_next chain (0 + 2 + 2 = 4 mm), the sensor 48 mm behind it, and the sensor entry's side
+    4 mm / 2000 pixels gives a 2 um pitch."""
+    d = json.loads((DATA / "files" / "DeepLens" / "diffraclens__doethinlens.json").read_text())
+    d["surfaces"][2].update(param_model="fresnel", f0=100.0, wvln0=0.55)
+    p = tmp_path / "inline.json"
+    p.write_text(json.dumps(d))
+    lens = rw.load_lens(p)
+    assert [s.type for s in lens.surfaces] == ["aperture", "thin_lens", "doe"]
+    assert lens.vertex_z[2] == pytest.approx(4.0) and lens.sensor_z == pytest.approx(52.0)
+    assert lens.sensor.pixel_pitch == pytest.approx(0.002) and tuple(lens.sensor.resolution) == (2000, 2000)
