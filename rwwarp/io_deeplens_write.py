@@ -24,8 +24,9 @@ system           ``enpd`` when the lens has an ``entrance_pupil_diameter``; ``in
 
 Not in the format (a ``UserWarning`` says so): the object distance (DeepLens: infinity), the
 wavelengths (DeepLens's RGB), a model glass's exact dispersion (DeepLens defines ``"nd/vd"`` at its
-own lines). Refused (:class:`~rwwarp.errors.LensError` naming the surface): circular DOEs, pixel-map,
-Zernike and cubic DOE profiles, odd ``poly`` terms, obscurations, thin lenses in glass, more than
+own lines); a warning names each material DeepLens's lookup would read back differently. Refused
+(:class:`~rwwarp.errors.LensError` naming the surface): circular DOEs, pixel-map, Zernike and cubic
+DOE profiles, odd ``poly`` terms, obscurations, mirrors, thin lenses in glass, more than
 5 (unquantised) or 10 (quantised) DOE terms.
 """
 from __future__ import annotations
@@ -64,6 +65,8 @@ def deeplens_dict(lens) -> dict:
         where = dict(file=lens.source, surface=i)
         if s.obscuration:
             raise LensError("DeepLens surfaces have no obscuration", keyword="obscuration", **where)
+        if s.type == "standard" and s.mirror:
+            raise LensError("a DeepLens GeoLens has no mirrors (refracting surfaces only)", keyword="mirror", **where)
         base = {"d": float(z[i])}
         if s.semi_diameter is not None:
             base["r"] = float(s.semi_diameter)
@@ -118,15 +121,24 @@ def deeplens_dict(lens) -> dict:
 
 
 def _material(name, i, lens, materials):
+    """The ``mat2`` text for a material, warning when DeepLens's lookup would read back another one."""
+    from .io_deeplens import _material as read_material
+    from .io_zemax_write import _check_dispersion
     if name.lower() == "air":
         return "air"
     m = materials.get_material(name)
-    if m.formula == "Model":
-        warnings.warn(f"surface {i}: the model glass {name!r} reads back as DeepLens's 'nd/vd' glass (defined at "
-                      "DeepLens's own lines): its dispersion changes slightly", UserWarning, stacklevel=4)
-        return name.split("@", 1)[0]
-    plain = name.split(":", 1)[-1]
-    return plain
+    if m.formula == "Model" or "@" in name:
+        text = name.split("@", 1)[0] if "/" in name else f"{m.nd!r}/{m.vd!r}"
+    else:
+        text = name.split(":", 1)[-1]
+
+    def err(msg, surf=None, key=None, cls=LensError):
+        return cls(msg, file=lens.source, surface=i, keyword="material")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        back = read_material({"mat2": text}, i, None, err, materials)
+    _check_dispersion(name, back, i, lens, "DeepLens")
+    return text
 
 
 def _doe_block(s, i, lens, z):

@@ -23,6 +23,7 @@ doe            flat ``BINARY_2`` that keeps the medium: ``PARM 0`` = 1 (diffract
 semi_diameter  ``DIAM sd 1`` (fixed) plus a hard aperture ``CLAP 0 sd`` (circle) or ``SQAP sd sd``
                (square): rwwarp clips rays at every semi-diameter, Zemax only at surface apertures
                (not on the stop of a lens with an ``entrance_pupil_diameter``: that stop floats)
+mirror         ``GLAS MIRROR`` on a reflecting standard surface (the medium is unchanged)
 material       ``GLAS NAME`` (the catalogue name; fused silica as ``F_SILICA``), a model glass
                ``"nd/vd"`` as ``GLAS ___BLANK 1 0 nd vd``; the catalogues used go in ``GCAT``
 obscuration    ``OBSC 0 r`` (circle) or ``SQOB hx hy`` (rectangle), centred
@@ -77,23 +78,55 @@ def _glass(name: str, surface: int, lens):
     except LensError as e:
         raise LensError(f"material {name!r} is unknown: {e}", file=lens.source, surface=surface,
                         keyword="material") from None
-    if m.formula == "Model":
+    if m.formula == "Model" or "@" in name:
         nd, vd = m.nd, m.vd
-        if "/" in name:
+        if "/" in name and "@" not in name:
             try:
                 nd, vd = (float(t) for t in name.split("/"))
             except ValueError:
                 pass
+        _check_dispersion(name, f"{float(nd)!r}/{float(vd)!r}", surface, lens, ".zmx")
         return f"___BLANK 1 0 {_num(nd)} {_num(vd)} 0 0 0 0 0 0", None
     plain = name.split(":", 1)[-1]
     plain = _ZEMAX_NAMES.get(plain.lower(), plain)
+    nd = m.catalog_nd if m.catalog_nd is not None else m.nd
+    vd = m.catalog_vd if m.catalog_vd is not None else m.vd
+    ok_nv = bool(nd and vd and math.isfinite(vd))
+    nd_w, vd_w = (round(nd, 6), round(vd, 4)) if ok_nv else (None, None)
+    back = plain
+    try:
+        materials.get_material(plain)
+    except LensError:  # the reader substitutes (a model glass through the nd / vd written on the line)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                back = materials.resolve_glass(plain, nd_w, vd_w)[0]
+        except LensError:
+            warnings.warn(f"surface {surface}: the material {name!r} is written as {plain!r}, which no glass table "
+                          "knows: the file will not read back", UserWarning, stacklevel=3)
+    _check_dispersion(name, back, surface, lens, ".zmx")
     if any(c.isspace() for c in plain):
         raise LensError(f"material name {name!r} has spaces: a .zmx GLAS entry cannot hold it", file=lens.source,
                         surface=surface, keyword="material")
-    nd = m.catalog_nd if m.catalog_nd is not None else m.nd
-    vd = m.catalog_vd if m.catalog_vd is not None else m.vd
-    extra = f" 0 0 {_num(round(nd, 6))} {_num(round(vd, 4))} 0 0 0 0 0 0" if nd and vd and math.isfinite(vd) else ""
+    extra = f" 0 0 {_num(nd_w)} {_num(vd_w)} 0 0 0 0 0 0" if ok_nv else ""
     return plain + extra, m.catalog
+
+
+def _check_dispersion(original: str, read_back: str, surface: int, lens, fmt: str):
+    """Warn when the material a file will read back as differs from the lens's own (indices at the
+    lens's wavelengths and 0.4-0.8 um)."""
+    from . import materials
+    try:
+        a, b = materials.get_material(original), materials.get_material(read_back)
+    except LensError:
+        return
+    if a == b:
+        return
+    wls = sorted(set([float(w) for w in lens.wavelengths_um] + [0.45, 0.5876, 0.65]))
+    dn = max(abs(float(a.n(w)) - float(b.n(w))) for w in wls)
+    if dn > 1e-12:
+        warnings.warn(f"surface {surface}: the material {original!r} has no exact {fmt} name; it reads back as "
+                      f"{read_back!r} (index differs by up to {dn:.2g})", UserWarning, stacklevel=4)
 
 
 def _binary2(s, i, lens):
@@ -181,7 +214,8 @@ def zmx_text(lens) -> str:
             if even:
                 lines.append(f"PARM 1 {_num(s.a2)}")
                 lines += [f"PARM {k + 2} {_num(a)}" for k, a in enumerate(asph)]
-            medium = s.material
+            if not s.mirror:  # a mirror keeps the medium (its material is the medium in front of it)
+                medium = s.material
         elif s.type == "thin_lens":
             lines += ["TYPE PARAXIAL", "CURV 0.0 0 0 0 0 \"\"", f"PARM 1 {_num(s.focal_length)}", "PARM 2 0"]
             medium = s.material
@@ -197,7 +231,7 @@ def zmx_text(lens) -> str:
         else:
             raise LensError(f"surface type {s.type!r} has no .zmx form", file=lens.source, surface=i, keyword="type")
         lines.append(f"DISZ {_num(s.thickness)}")
-        glas, cat = _glass(medium, i, lens)
+        glas, cat = ("MIRROR", None) if s.type == "standard" and s.mirror else _glass(medium, i, lens)
         if glas:
             lines.append(f"GLAS {glas}")
             if cat and cat not in cats:
