@@ -36,7 +36,10 @@ def _is_real(v) -> bool:
 
 def _to_float(v, name):
     if _is_real(v):
-        return float(v)
+        try:
+            return float(v)
+        except OverflowError:
+            raise ArgumentError(f"{name}={_brief(v, 30)} overflows float64") from None
     # 0-d numpy arrays and torch scalars
     try:
         import numpy as np
@@ -73,7 +76,8 @@ def check_int(v, name: str, *, lo: int = 1, hi: int | None = None) -> int:
         raise ArgumentError(f"{name} must be an integer, got {type(v).__name__} {_brief(v)}")
     x = int(v)
     if x < lo or (hi is not None and x > hi):
-        raise ArgumentError(f"{name}={x} is out of range; it must be an integer in {lo}..{hi if hi is not None else ''}")
+        raise ArgumentError(f"{name}={_brief(x, 30)} is out of range; it must be an integer in "
+                            f"{lo}..{hi if hi is not None else ''}")
     return x
 
 

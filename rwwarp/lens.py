@@ -466,12 +466,16 @@ def _num(v, source, surface, key) -> float:
     if not is_real(v):
         raise LensFileError(f"{key} must be a number, got {type(v).__name__} {_brief(v)}", file=source,
                             surface=surface, keyword=key)
-    return float(v)
+    try:
+        return float(v)
+    except OverflowError:
+        raise LensFileError(f"{key} = {_brief(v, 30)} overflows float64", file=source, surface=surface,
+                            keyword=key) from None
 
 
 def _integer(v, source, surface, key) -> int:
     from .validate_input import is_real
-    if not is_real(v) or not math.isfinite(v) or float(v) != int(v):
+    if not is_real(v) or not math.isfinite(_num(v, source, surface, key)) or float(v) != int(v):
         raise LensFileError(f"{key} must be an integer, got {_brief(v)}", file=source, surface=surface, keyword=key)
     return int(v)
 

@@ -130,8 +130,8 @@ def parse_json(raw: bytes, path):
     if pos is not None:
         line = text.count("\n", 0, pos) + 1
         raise LensFileError(f"JSON nested more than {MAX_JSON_DEPTH} levels deep (line {line})", file=str(path))
-    try:
-        return json.loads(text)
+    try:  # integer literals past float range become inf, refused by name where a number belongs
+        return json.loads(text, parse_int=lambda t: int(t) if len(t) <= 300 else float(t))
     except json.JSONDecodeError as e:
         raise LensFileError(f"malformed JSON at line {e.lineno} column {e.colno}: {e.msg}", file=str(path)) from None
     except (ValueError, RecursionError) as e:  # over-long integer literals, pathological input
@@ -152,7 +152,10 @@ def _real(v, what, lens, surface=None, keyword=None, *, lo=None, hi=None, positi
           nonzero=False):
     if not is_real(v):
         raise _fail(f"{what} must be a number, got {type(v).__name__} {_brief(v)}", lens, surface, keyword)
-    x = float(v)
+    try:
+        x = float(v)
+    except OverflowError:
+        raise _fail(f"{what} = {_brief(v, 30)} overflows float64", lens, surface, keyword) from None
     if math.isnan(x) or (math.isinf(x) and not allow_inf):
         raise _fail(f"{what} must be finite, got {x}", lens, surface, keyword)
     if positive and not x > 0:
@@ -172,7 +175,8 @@ def _brief(v, n=60) -> str:
 
 
 def _int(v, what, lens, surface=None, keyword=None, *, lo, hi):
-    if isinstance(v, bool) or not (isinstance(v, numbers.Integral) or (is_real(v) and float(v).is_integer())):
+    if isinstance(v, bool) or not (isinstance(v, numbers.Integral) or (is_real(v) and math.isfinite(v)
+                                                                        and float(v).is_integer())):
         raise _fail(f"{what} must be an integer, got {_brief(v)}", lens, surface, keyword)
     x = int(v)
     if not lo <= x <= hi:

@@ -325,3 +325,25 @@ def test_pixel_map_files_and_pitch(tmp_path):
     _refused(tmp_path, with_map({"kind": "pixel_map", "file": "text.npy", "pitch": 0.01}))
     e = _refused(tmp_path, with_map({"kind": "pixel_map", "data": [[0.0, 1.0], [1.0, 0.0]], "pitch": 1e-5}))
     assert "half the design wavelength" in str(e)
+
+
+def test_integer_literals_past_float_range(tmp_path, a489):
+    d = copy.deepcopy(A489)
+    d["object_distance"] = "@@"  # past float range: infinity, a legal object distance
+    lens, _ = _load_bytes(tmp_path, json.dumps(d).replace('"@@"', "1" + "0" * 400).encode())
+    assert math.isinf(lens.object_distance)
+    for key in ("entrance_pupil_diameter", "thickness"):
+        d = copy.deepcopy(A489)
+        (d if key == "entrance_pupil_diameter" else d["surfaces"][1])[key] = "@@"
+        e = _refused(tmp_path, json.dumps(d).replace('"@@"', "1" + "0" * 400).encode())
+        assert key in str(e) and "cannot interpret" not in str(e)
+    d = copy.deepcopy(A489)
+    d["sensor"]["resolution"] = ["@@", 10]
+    e = _refused(tmp_path, json.dumps(d).replace('"@@"', "9" * 400).encode())
+    assert "resolution" in str(e)
+    for call, name in ((lambda: a489.efl(10 ** 400), "wavelength_um"), (lambda: rw.psf(a489, 0.0, 0.55, size=10 ** 400),
+                                                                        "size"),
+                       (lambda: rw.spot_rms(a489, 10 ** 400, 0.55, grid=5), "field_deg")):
+        with pytest.raises(ArgumentError, match=name) as ei:
+            call()
+        assert len(str(ei.value)) < 300
