@@ -235,11 +235,16 @@ REFUSED = {
 
 
 def _with_reference_indices(lens, ref):
-    """The lens with the refractive index optiland used after each Zemax SURF (a non-dispersive model glass
-    at the reference wavelength): the comparison then tests geometry and tracing, not glass data."""
+    """The lens with the refractive index optiland used after each Zemax SURF (or DeepLens surface) as a
+    non-dispersive model glass at the reference wavelength: the comparison then tests geometry and
+    tracing, not glass data."""
     for i, s in enumerate(lens.surfaces):
         if s.type in ("standard", "thin_lens"):
-            n = ref["index_after_surf"][int(lens.surface_labels[i].split()[1])]
+            if "index_after_surf" in ref:
+                n = ref["index_after_surf"][int(lens.surface_labels[i].split()[1])]
+            else:
+                assert len(ref["n_after_surface"]) == len(lens.surfaces)
+                n = ref["n_after_surface"][i]
             lens = lens.with_surface(i, material="air" if n == 1.0 else f"{n!r}/1e300")
     return lens
 
@@ -247,10 +252,13 @@ def _with_reference_indices(lens, ref):
 @pytest.mark.parametrize("entry", MANIFEST["files"], ids=[e["file"] for e in MANIFEST["files"]])
 def test_third_party_file_loads_and_matches_optiland(entry):
     """Every stored prescription loads, or is refused with a LensError naming the keyword at fault. Where
-    optiland computed references (22 Zemax files; mirrors included: a Cassegrain, Mangin mirrors): EFL, BFL and EPD / EFL agree to 1e-9 relative and
+    optiland computed references (22 Zemax files; mirrors included: a Cassegrain, Mangin mirrors; and 17
+    DeepLens lenses): EFL, BFL and EPD / EFL agree to 1e-9 relative and
     the RMS spot of each angle field to 0.1 % at the same pupil samples (measured: paraxial <= 2e-15,
-    spots <= 4e-9 except one 2-ray vignetting difference at 6.8e-4, optiland/lens2.zmx), with optiland's
-    refractive indices substituted (glass data are tested on their own above)."""
+    spots <= 4e-5 except one 2-ray vignetting difference at 6.8e-4, optiland/lens2.zmx), with optiland's
+    refractive indices substituted (glass data are tested on their own above). optiland's paraxial trace
+    ignores the even asphere's r^2 term, so for the 4 DeepLens files with one only the real-ray spots are
+    compared (they agree to 1e-5: the r^2 geometry is the same)."""
     from rwwarp.trace import Tracer
     path = DATA / "files" / entry["file"]
     assert path.exists()
@@ -271,8 +279,9 @@ def test_third_party_file_loads_and_matches_optiland(entry):
     wl = ref["wavelength_um"]
     lens0, lens = lens, _with_reference_indices(lens, ref)
     efl, bfl = lens.efl(wl), lens.bfl(wl)
-    assert efl == pytest.approx(ref["efl_mm"] * sc, rel=1e-9)
-    assert bfl == pytest.approx(ref["bfl_mm"] * sc, rel=1e-9)
+    if not ref.get("paraxial_ignores_r2_term"):
+        assert efl == pytest.approx(ref["efl_mm"] * sc, rel=1e-9)
+        assert bfl == pytest.approx(ref["bfl_mm"] * sc, rel=1e-9)
     if b"FNUM" in path.read_bytes().replace(b"\x00", b""):
         # the pupil follows the F-number: EPD / EFL at the loaded glasses equals optiland's 1 / F#
         ratio = lens0.entrance_pupil_diameter / lens0.efl(lens0.primary_wavelength_um)
