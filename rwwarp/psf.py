@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import LensError
-from . import paraxial
 from .plan import Plan, nice_fft_length, check_explicit
 from .trace import Tracer, as_field_list, pupil_grid, upload_packed
 

@@ -2,14 +2,13 @@
 conjugate, energy conservation, or an independent trace.
 """
 import math
-import warnings
 
 import numpy as np
 import pytest
 
 import rwwarp as rw
 from rwwarp import analytic, paraxial
-from rwwarp.errors import GeometryError, LensError
+from rwwarp.errors import LensError
 from rwwarp.lens import Lens, Sensor, Surface
 
 
@@ -157,7 +156,8 @@ def test_blank_doe_with_levels_is_a_plain_window(model):
 def _cooke_zmx_text():
     from importlib import resources
     from rwwarp.io_zemax import _decode
-    return _decode((resources.files("rwwarp") / "lenses" / "cooke_triplet.zmx").read_bytes()).replace("\r\n", "\n")
+    raw = (resources.files("rwwarp") / "lenses" / "cooke_triplet.zmx").read_bytes()
+    return _decode(raw).replace("\r\n", "\n")
 
 
 def _write(tmp_path, name, text):
