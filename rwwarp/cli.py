@@ -184,7 +184,11 @@ def cmd_design(a):
         from torch_bridge.train import main as train_main
     except ImportError as e:
         sys.exit(f"rwwarp design needs torch and torch_bridge ({e}); install with: pip install 'rwwarp[torch]'")
-    sys.exit(train_main([a.config] + a.rest))
+    try:
+        code = train_main([a.config] + a.rest)
+    except UnicodeError as e:
+        raise ValueError(f"config {a.config}: not a UTF-8 text file ({e.reason} at byte {getattr(e, 'start', '?')})") from None
+    sys.exit(code)
 
 
 def cmd_bench(a):

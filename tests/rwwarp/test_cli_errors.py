@@ -93,3 +93,13 @@ def test_console_script_exit_status_and_no_traceback(tmp_path):
                        env={**os.environ, "PYTHONWARNINGS": "ignore"}, timeout=300)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "radius" in r.stderr and str(bad) in r.stderr
+
+
+def test_design_binary_config_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("torch")
+    monkeypatch.chdir(tmp_path)
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_bytes(b"\xff\xfe\x00\x01binary")
+    code, err = _fails(["design", str(cfg)], capsys)
+    assert code == 2 and "bad.yaml" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
