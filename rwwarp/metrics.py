@@ -535,14 +535,18 @@ class Strehl:
 
 
 def ideal_peak_intensity(lens, field_deg, wavelength_um, image_point_mm, grid: int = 401, device: str = "cpu",
-                         object_distance_mm=None, paraxial_doe: bool = False) -> float:
+                         object_distance_mm=None, paraxial_doe: bool = False, per: str = "entering") -> float:
     """Peak intensity (fraction of the entering power per mm^2) of the aberration-free wave with the
     lens's pupil: the beam's amplitude on the wave plane (ray density; vignetting included) with a
     spherical phase converging exactly to ``image_point_mm`` ((x, y) on the sensor, mm).
 
     Rayleigh-Sommerfeld at the focus: ``U = (n / lambda) sum_i sqrt(w_i dA_i) cos(theta_i) / r_i`` over
     the rays of a ``grid`` x ``grid`` entrance-pupil grid (``w_i`` ray power, ``dA_i`` its cell's area on
-    the wave plane from the grid's Jacobian), normalised by the entering power."""
+    the wave plane from the grid's Jacobian), normalised by the entering power (``per="entering"``) or
+    by the power that passes the lens (``per="passing"``: then independent of how the pupil edge is
+    counted; multiply by a model's own passing fraction to compare with its PSF)."""
+    if per not in ("entering", "passing"):
+        raise ValueError(f"per must be 'entering' or 'passing', got {per!r}")
     from .trace import pupil_grid
     plane = _wave_plane(lens)
     shape = lens.surfaces[lens.stop_index].shape
@@ -575,7 +579,7 @@ def ideal_peak_intensity(lens, field_deg, wavelength_um, image_point_mm, grid: i
     r = np.sqrt(dx * dx + dy * dy + dz * dz)
     lam = wavelength_um * 1e-3
     u0 = (n / lam) * np.sum(np.sqrt(w[okj] * jac[okj]) * (dz / r[okj]) / r[okj])
-    return float(u0 * u0 / entering)
+    return float(u0 * u0 / (entering if per == "entering" else np.sum(w[okj])))
 
 
 def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", size: int = 128, pixel_mm=None,
@@ -587,7 +591,7 @@ def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", siz
     its point-intensity peak is recovered by :func:`peak_intensity_from_psf`. The ideal peak is
     :func:`ideal_peak_intensity` at the PSF's peak position (same amplitude over the pupil, vignetting
     included, spherical wave converging to that point; for the paraxial-wave model, of its paraxial
-    equivalent system). Fields and wavelengths batch like :func:`rwwarp.psf_map`; returns :class:`Strehl`.
+    equivalent system), carrying the fraction of the entering power that the PSF model lets through. Fields and wavelengths batch like :func:`rwwarp.psf_map`; returns :class:`Strehl`.
     """
     _check_model(model)
     if model == "ray":
@@ -600,6 +604,8 @@ def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", siz
         default_sampling_mm(lens, fields, wls, device)
     m = _psfs(lens, fields, wls, model, size, pixel, device, psf_kwargs)
     _patch_check(m, "strehl")
+    # the ideal wave carries the power the model lets through (its own pupil-edge bookkeeping)
+    vf = np.asarray(m.info["valid_fraction"], float).reshape(len(fields), len(wls))
     ratio = np.zeros((len(fields), len(wls)))
     peak = np.zeros_like(ratio)
     ideal = np.zeros_like(ratio)
@@ -610,9 +616,10 @@ def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", siz
             if model == "paraxial-wave":
                 from .psf import paraxial_equivalent
                 eq, eqf = paraxial_equivalent(lens, [f], [w], psf_kwargs.get("object_distance_mm"))
-                ideal[i, j] = ideal_peak_intensity(eq, eqf[0], w, pt, grid, device)
+                ideal[i, j] = vf[i, j] * ideal_peak_intensity(eq, eqf[0], w, pt, grid, device, per="passing")
             else:
-                ideal[i, j] = ideal_peak_intensity(lens, f, w, pt, grid, device, psf_kwargs.get("object_distance_mm"))
+                ideal[i, j] = vf[i, j] * ideal_peak_intensity(lens, f, w, pt, grid, device,
+                                                              psf_kwargs.get("object_distance_mm"), per="passing")
             peak[i, j] = pk
             ratio[i, j] = pk / ideal[i, j]
     sl = (0 if fscalar else slice(None), 0 if wscalar else slice(None))
