@@ -264,6 +264,15 @@ def read_zmx(path):
             if field_type == 1:
                 field_heights, fields_deg = [(xs[i] * scale, ys[i] * scale) for i in range(n)], None
 
+    # Zemax's per-field vignetting factors shrink / shift each field's pupil; rwwarp traces the whole
+    # paraxial pupil of every field (as with the factors at 0), and says so
+    vig = [k for k in ("VDXN", "VDYN", "VCXN", "VCYN", "VANN")
+           if any(_isnum(t) and float(t) != 0 for toks, _ in rd.hall(k) for t in toks)]
+    if vig:
+        import warnings
+        warnings.warn(f"{path}: vignetting factors {', '.join(vig)} are ignored: every field traces the whole "
+                      "paraxial entrance pupil", UserWarning, stacklevel=2)
+
     # system aperture
     epd = fnum = None
     floa = rd.hget("FLOA") is not None

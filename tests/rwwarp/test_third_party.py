@@ -264,6 +264,7 @@ def test_third_party_file_loads_and_matches_optiland(entry):
     assert path.exists()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", materials.GlassSubstitutionWarning)
+        warnings.filterwarnings("ignore", message=".*vignetting factors", category=UserWarning)
         if entry["file"] in REFUSED:
             with pytest.raises(LensError) as e:
                 rw.load_lens(path)
