@@ -32,12 +32,21 @@ import functools
 
 import warp as wp
 
+from .pupil import disc_cell_coverage
+
 
 @functools.cache
 def make_splat_kernels(scalar):
     """Splat kernels for ray scalar type ``scalar`` (fields are always accumulated in float64)."""
     vec3 = wp.types.vector(3, scalar)
     f64 = wp.float64
+
+    @wp.func
+    def sinc_half(a: f64):
+        # sin(a / 2) / (a / 2): the mean of exp(1j g x) over an interval of length L, a = g L
+        if wp.abs(a) < f64(1.0e-4):
+            return f64(1.0) - a * a / f64(24.0)
+        return wp.sin(f64(0.5) * a) / (f64(0.5) * a)
 
     @wp.func
     def ref_opl(p: wp.vec3d, ctr: wp.vec3d, tpt: wp.vec3d, n: f64, oplc: f64):
@@ -48,6 +57,7 @@ def make_splat_kernels(scalar):
         pos: wp.array(dtype=vec3),
         valid: wp.array(dtype=wp.int32),
         n_side: int,                          # pupil grid is n_side x n_side per source (row-major)
+        circle: int,                          # 1: circular pupil (rim cells cover part of their cell)
         # outputs
         area_out: wp.array(dtype=f64),        # footprint area of each ray's pupil cell on the plane, mm^2
         half_out: wp.array(dtype=wp.vec2d),   # half sizes (x, y) of the tube's box, mm
@@ -83,6 +93,12 @@ def make_splat_kernels(scalar):
             du = du / f64(nu)
             dv = dv / f64(nv)
             a = wp.abs(du[0] * dv[1] - du[1] * dv[0])
+            if circle == 1:
+                # a rim cell carries only its covered fraction: its tube shrinks by that fraction
+                side = f64(2.0) / f64(n_side)
+                cov = disc_cell_coverage(f64(-1.0) + (f64(2.0) * f64(c) + f64(1.0)) / f64(n_side),
+                                         f64(-1.0) + (f64(2.0) * f64(r) + f64(1.0)) / f64(n_side), side)
+                a = a * cov[0]
             area_out[i] = a
             # axis-aligned box of the same area, aspect from the Jacobian's diagonal
             wx = wp.max(wp.abs(du[0]), f64(1.0e-300))
@@ -128,16 +144,49 @@ def make_splat_kernels(scalar):
             ref = ref_opl(p, chief[s], target[s], index[s], opl_chief[s])
         psi = wavenumber[s] * (f64(opl[i]) - ref)
         if energy == 1:
-            # conservative box deposit: overlap of the tube's box with the sample cells (up to 3 x 3)
+            # conservative box deposit: overlap of the tube's box with the sample cells (up to 3 x 3), with
+            # the ray's local phase slope across its tube (first-order splat): the phase at x in the box is
+            # psi + g.(x - p), g = k n (d_xy - u_T), u_T the unit vector to T (the gradient of the OPL on the
+            # plane is n d_xy, that of the reference sphere n u_T). Each overlap rectangle gets the exact
+            # integral of exp(1j (psi + g.(x - p))): its area times exp(1j g.(centre - p)) times sinc per axis.
             amp = wp.sqrt(f64(weight[i]) * area[i])
             hb = half[i]
-            pre = amp * wp.cos(psi) / (f64(4.0) * hb[0] * hb[1])
-            pim = amp * wp.sin(psi) / (f64(4.0) * hb[0] * hb[1])
-            cx0 = int(wp.floor((p[0] - hb[0] - o[0]) / h + f64(0.5)))
-            cy0 = int(wp.floor((p[1] - hb[1] - o[1]) / h + f64(0.5)))
-            if cx0 < 0 or cy0 < 0 or cx0 + 2 >= n_grid or cy0 + 2 >= n_grid:
+            gx = f64(0.0)
+            gy = f64(0.0)
+            if use_reference == 1:
+                dr = dir[i]
+                ut = wp.normalize(target[s] - p)
+                sgn = f64(1.0)
+                if index[s] < f64(0.0):
+                    sgn = f64(-1.0)
+                gx = wavenumber[s] * index[s] * (f64(dr[0]) - sgn * ut[0])
+                gy = wavenumber[s] * index[s] * (f64(dr[1]) - sgn * ut[1])
+            pre = amp / (f64(4.0) * hb[0] * hb[1])
+            bx = p[0]                         # box centre
+            by = p[1]
+            # every sample cell the tube's box overlaps (a tube may span many cells: no power is lost)
+            cx0 = int(wp.floor((bx - hb[0] - o[0]) / h + f64(0.5)))
+            cy0 = int(wp.floor((by - hb[1] - o[1]) / h + f64(0.5)))
+            cx1 = int(wp.floor((bx + hb[0] - o[0]) / h + f64(0.5)))
+            cy1 = int(wp.floor((by + hb[1] - o[1]) / h + f64(0.5)))
+            if cx0 < 0 or cy0 < 0 or cx1 >= n_grid or cy1 >= n_grid:
                 wp.atomic_add(dropped_out, s, 1)
                 return
+            for iy in range(cy0, cy1 + 1):
+                for ix in range(cx0, cx1 + 1):
+                    xc = o[0] + f64(ix) * h
+                    yc = o[1] + f64(iy) * h
+                    ox = wp.min(p[0] + hb[0], xc + f64(0.5) * h) - wp.max(p[0] - hb[0], xc - f64(0.5) * h)
+                    oy = wp.min(p[1] + hb[1], yc + f64(0.5) * h) - wp.max(p[1] - hb[1], yc - f64(0.5) * h)
+                    if ox > f64(0.0) and oy > f64(0.0):
+                        k = (s * n_grid + iy) * n_grid + ix
+                        mx = wp.max(p[0] - hb[0], xc - f64(0.5) * h) + f64(0.5) * ox - p[0]
+                        my = wp.max(p[1] - hb[1], yc - f64(0.5) * h) + f64(0.5) * oy - p[1]
+                        ph = psi + gx * mx + gy * my
+                        w = ox * oy * pre * sinc_half(gx * ox) * sinc_half(gy * oy)
+                        wp.atomic_add(s_re_out, k, w * wp.cos(ph))
+                        wp.atomic_add(s_im_out, k, w * wp.sin(ph))
+            return
             for c in range(9):
                 ix = cx0 + c % 3
                 iy = cy0 + c // 3
@@ -147,8 +196,12 @@ def make_splat_kernels(scalar):
                 oy = wp.min(p[1] + hb[1], yc + f64(0.5) * h) - wp.max(p[1] - hb[1], yc - f64(0.5) * h)
                 if ox > f64(0.0) and oy > f64(0.0):
                     k = (s * n_grid + iy) * n_grid + ix
-                    wp.atomic_add(s_re_out, k, ox * oy * pre)
-                    wp.atomic_add(s_im_out, k, ox * oy * pim)
+                    mx = wp.max(p[0] - hb[0], xc - f64(0.5) * h) + f64(0.5) * ox - p[0]
+                    my = wp.max(p[1] - hb[1], yc - f64(0.5) * h) + f64(0.5) * oy - p[1]
+                    ph = psi + gx * mx + gy * my
+                    w = ox * oy * pre * sinc_half(gx * ox) * sinc_half(gy * oy)
+                    wp.atomic_add(s_re_out, k, w * wp.cos(ph))
+                    wp.atomic_add(s_im_out, k, w * wp.sin(ph))
             return
         # paper convention: unit amplitude with obliquity, inverse bilinear interpolation
         fx = (p[0] - o[0]) / h

@@ -32,6 +32,8 @@ import functools
 
 import warp as wp
 
+from .pupil import disc_cell_coverage
+
 # parameter layout of one surface
 P_Z = 0           # vertex z, mm
 P_C = 1           # curvature, 1/mm
@@ -47,7 +49,10 @@ P_A2 = 17         # r^2 coefficient of the even asphere, 1/mm
 P_OB_KIND = 18    # central obscuration: 0 none, 1 circle (radius P_OB_X), 2 rectangle (half sides P_OB_X, P_OB_Y)
 P_OB_X = 19
 P_OB_Y = 20
-N_PARAMS = 21
+P_ODD_ON = 21     # 1: the surface has power-series terms in r (Zemax ODDASPHE), coefficients below
+P_ODD0 = 22       # b_1 .. b_8: sag += sum_i b_i r^i (r^1 .. r^8), mm^(1-i)
+N_ODD = 8
+N_PARAMS = 30
 
 KIND_REFRACT = 0
 KIND_THIN = 1
@@ -100,6 +105,23 @@ def make_trace_kernels(scalar):
         a2 = params[P_A2]
         s = s + a2 * r2
         ds = ds + a2
+        if params[P_ODD_ON] > scalar(0.5):
+            # sum_i b_i r^i (i = 1..8): d(r^i)/d(r2) = i r^(i-2) / 2; the r^1 term is a cone at the axis
+            # (its slope is taken as 0 there). Inside this branch only, so r = sqrt(r2) never enters the
+            # adjoint of an ordinary surface (its derivative is infinite at r = 0).
+            r = wp.sqrt(r2)
+            p = scalar(1.0)  # r^(i-1) for the term of power i = 1 + loop index
+            q = scalar(1.0)  # r^(i-2), from i = 2
+            for j in range(N_ODD):
+                b = params[P_ODD0 + j]
+                s = s + b * p * r
+                if j == 0:
+                    if r > scalar(0.0):
+                        ds = ds + scalar(0.5) * b / r
+                else:
+                    ds = ds + scalar(0.5) * scalar(j + 1) * b * q
+                    q = q * r
+                p = p * r
         rp = r2
         for i in range(N_ASPH):
             a = params[P_A0 + i]
@@ -173,10 +195,15 @@ def make_trace_kernels(scalar):
         else:
             pu = pupil_u[j]
             pv = pupil_v[j]
+        frac = scalar(1.0)
+        if grid_n > 0 and circle == 1:
+            # a cell cut by the rim carries the covered share of its power (the ray stays at the cell centre)
+            cov = disc_cell_coverage(wp.float64(pu), wp.float64(pv), wp.float64(2.0) / wp.float64(grid_n))
+            frac = scalar(cov[0])
         p = vec3(c[0] + half_x[s] * pu, c[1] + half_y[s] * pv, c[2])
         w = src_wl[s]
         n0 = n_obj[w]
-        area = cell * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
+        area = cell * frac * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
         if src_finite[s] == 1:
             dvec = p - src_pos[s]
             dist = wp.length(dvec)
@@ -199,7 +226,11 @@ def make_trace_kernels(scalar):
         dir_out[i] = d
         valid_out[i] = 1
         if circle == 1:
-            if pu * pu + pv * pv > scalar(1.0) + scalar(edge):
+            if grid_n > 0:
+                if frac <= scalar(0.0):
+                    valid_out[i] = 0
+                    weight_out[i] = scalar(0.0)
+            elif pu * pu + pv * pv > scalar(1.0) + scalar(edge):
                 valid_out[i] = 0
                 weight_out[i] = scalar(0.0)
         wl_out[i] = w

@@ -723,7 +723,8 @@ class RayWave:
             area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
             half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
         if energy:
-            wp.launch(K.tube_area_kernel, dim=nsrc * npup, inputs=[rays.pos, rays.valid, pl.ray_grid],
+            wp.launch(K.tube_area_kernel, dim=nsrc * npup,
+                      inputs=[rays.pos, rays.valid, pl.ray_grid, int(self.src["shape"] == "circle")],
                       outputs=[area, half], device=dev)
         elif not g:  # not read by the splat in the paper convention
             area = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=g)
