@@ -7,7 +7,8 @@ Supported:
 
 * encodings: ASCII/UTF-8 (with or without BOM) and UTF-16 (LE/BE with BOM, as OpticStudio writes
   it), LF or CRLF line ends;
-* surface types ``STANDARD`` (sphere/plane + conic), ``EVENASPH`` (conic + ``PARM 1`` = the r^2 term
+* surface types ``STANDARD`` (sphere/plane + conic), ``ODDASPHE`` (``PARM 1..8`` = the r^1..r^8 terms,
+  ``Surface.odd_aspheric``), ``EVENASPH`` (conic + ``PARM 1`` = the r^2 term
   ``Surface.a2``, ``PARM 2..8`` = r^4..r^16), ``PARAXIAL`` (ideal thin lens, focal length
   ``PARM 1``) and ``BINARY_2`` on a flat surface (a DOE with an ``even_poly`` profile:
   ``XDAT 1`` = number of terms N, ``XDAT 2`` = normalisation radius, ``XDAT 3..N+2`` = A1..AN in
@@ -56,7 +57,7 @@ _SURF_KEYS = {"TYPE", "CURV", "DISZ", "GLAS", "CONI", "PARM", "XDAT", "STOP", "D
               "OBSC", "OBDC", "ELOB", "ELAP", "SQOB", "UDAP", "COMM", "HIDE", "MIRR", "SLAB", "POPS", "COAT",
               "MEMA", "PZUP", "PPAR", "MAZH", "SCBD", "ATTR", "FIMP", "IGNR", "VPAR", "VCON", "VDSZ"}
 _UNITS = {"MM": 1.0, "CM": 10.0, "IN": 25.4, "METER": 1000.0, "M": 1000.0}
-_SUPPORTED_TYPES = ("STANDARD", "EVENASPH", "PARAXIAL", "BINARY_2")
+_SUPPORTED_TYPES = ("STANDARD", "EVENASPH", "ODDASPHE", "PARAXIAL", "BINARY_2")
 # rwwarp keyword -> Zemax keyword, for errors raised while validating the built lens
 _KEYWORD_MAP = {"thickness": "DISZ", "material": "GLAS", "semi_diameter": "DIAM", "focal_length": "PARM 1",
                 "profile": "XDAT", "aspheric": "PARM", "type": "TYPE", "shape": "SQAP", "conic": "CONI",
@@ -361,8 +362,8 @@ def read_zmx(path):
                 raise rd.err("missing glass name", surf=k, key="GLAS", line=ln)
             gname = toks[0]
             if gname.upper() == "MIRROR":
-                if typ not in ("STANDARD", "EVENASPH"):
-                    raise rd.err(f"a {typ} mirror is not supported (STANDARD and EVENASPH mirrors are)", surf=k,
+                if typ not in ("STANDARD", "EVENASPH", "ODDASPHE"):
+                    raise rd.err(f"a {typ} mirror is not supported (STANDARD and aspheric mirrors are)", surf=k,
                                  key="GLAS", line=ln)
                 mirror, material = True, medium  # light turns back in the same medium
             elif gname.upper() == "___BLANK":
@@ -460,8 +461,15 @@ def read_zmx(path):
             zsurf.append(k)
             stop = False
 
-        if typ in ("STANDARD", "EVENASPH"):
-            asph, a2 = [], 0.0
+        if typ in ("STANDARD", "EVENASPH", "ODDASPHE"):
+            asph, a2, odd = [], 0.0, []
+            if typ == "ODDASPHE":  # PARM 1..8: the coefficients of r^1 .. r^8
+                for i in sorted(parms):
+                    if (i < 1 or i > 8) and parms[i] != 0:
+                        raise rd.err(f"PARM {i} is not an ODDASPHE coefficient", surf=k, key=f"PARM {i}")
+                odd = [parms.get(i, 0.0) * scale ** (1 - i) for i in range(1, 9)]
+                while odd and odd[-1] == 0.0:
+                    odd.pop()
             if typ == "EVENASPH":
                 a2 = parms.get(1, 0.0) / scale  # the r^2 term (Surface.a2, 1/mm)
                 for i in sorted(parms):
@@ -473,7 +481,7 @@ def read_zmx(path):
             radius = None if curv == 0 else 1.0 / curv
             surfaces.append(Surface(type="standard", thickness=thick, radius=radius, conic=conic, a2=a2,
                                     aspheric=asph, material=material, semi_diameter=sd, shape=shape,
-                                    obscuration=obscuration, mirror=mirror,
+                                    obscuration=obscuration, mirror=mirror, odd_aspheric=odd,
                                     stop=stop))
             zsurf.append(k)
         elif typ == "PARAXIAL":

@@ -66,6 +66,8 @@ class Surface:
     #: a reflecting standard surface (Zemax GLAS MIRROR): light turns back, the medium is unchanged (its
     #: ``material`` is the medium in front of it); thicknesses after an odd number of mirrors are negative
     mirror: bool = False
+    #: power series in r (Zemax ODDASPHE): sag += sum_i odd_aspheric[i-1] r^i, i = 1..8 (mm^(1-i))
+    odd_aspheric: list = field(default_factory=list)
 
     def __post_init__(self):
         if self.type == "doe" and self.material == "air":
@@ -79,7 +81,10 @@ class Surface:
     @property
     def paraxial_curvature(self) -> float:
         """Vertex curvature including the r^2 asphere term, 1/mm: c + 2 a2 (what paraxial optics sees)."""
-        return self.curvature + 2.0 * self.a2 if self.type == "standard" else self.curvature
+        if self.type != "standard":
+            return self.curvature
+        b2 = self.odd_aspheric[1] if len(self.odd_aspheric) > 1 else 0.0
+        return self.curvature + 2.0 * (self.a2 + b2)
 
     @property
     def refracts(self) -> bool:
@@ -94,6 +99,10 @@ class Surface:
             z = c * r2 / (1.0 + np.sqrt(arg))
         if self.a2:
             z = z + self.a2 * r2
+        if self.odd_aspheric:
+            r = np.sqrt(r2)
+            for i, b in enumerate(self.odd_aspheric):
+                z = z + b * r ** (i + 1)
         rp = r2 * r2
         for a in self.aspheric:
             z = z + a * rp
@@ -239,6 +248,9 @@ class Lens:
             if s.shape not in ("circle", "square"):
                 raise LensError(f"shape must be 'circle' or 'square', got {s.shape!r}", file=f, surface=i,
                                 keyword="shape")
+            if len(s.odd_aspheric) > 8:
+                raise LensError(f"at most 8 odd_aspheric terms (r^1..r^8), got {len(s.odd_aspheric)}", file=f,
+                                surface=i, keyword="odd_aspheric")
             if len(s.aspheric) > MAX_ASPHERIC:
                 raise LensError(f"at most {MAX_ASPHERIC} aspheric terms (r^4..r^20), got {len(s.aspheric)}",
                                 file=f, surface=i, keyword="aspheric")
@@ -393,7 +405,7 @@ class Lens:
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
                  "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2", "obscuration",
-                 "mirror"}
+                 "mirror", "odd_aspheric"}
 _DEFAULTS = Surface()
 
 
@@ -410,11 +422,13 @@ def _surface_to_dict(s: Surface) -> dict:
         keys = keys + ["obscuration"]
     if s.type == "standard" and s.mirror:
         keys = keys + ["mirror"]
+    if s.type == "standard" and s.odd_aspheric:
+        keys = keys + ["odd_aspheric"]
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
             continue
-        d[k] = copy.deepcopy(list(v) if k == "aspheric" else v)
+        d[k] = copy.deepcopy(list(v) if k in ("aspheric", "odd_aspheric") else v)
     return d
 
 
@@ -428,9 +442,9 @@ def _surface_from_dict(sd, i, source) -> Surface:
             kw[k] = _num(v, source, i, k)
         elif k in ("radius", "semi_diameter", "focal_length"):
             kw[k] = None if v is None else _num(v, source, i, k)
-        elif k == "aspheric":
+        elif k in ("aspheric", "odd_aspheric"):
             if not isinstance(v, list):
-                raise LensFileError(f"aspheric must be a list of numbers, got {_brief(v)}", file=source, surface=i,
+                raise LensFileError(f"{k} must be a list of numbers, got {_brief(v)}", file=source, surface=i,
                                     keyword=k)
             kw[k] = [_num(a, source, i, k) for a in v]
         elif k == "levels":

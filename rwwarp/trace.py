@@ -293,6 +293,9 @@ class Tracer:
             if s.type == "standard":
                 p[ktrace.P_A0:ktrace.P_A0 + len(s.aspheric)] = s.aspheric
                 p[ktrace.P_A2] = s.a2
+                if any(s.odd_aspheric):
+                    p[ktrace.P_ODD_ON] = 1.0
+                    p[ktrace.P_ODD0:ktrace.P_ODD0 + len(s.odd_aspheric)] = s.odd_aspheric
             sd = s.semi_diameter
             if i == stop and lens.entrance_pupil_diameter is not None:
                 sd = None  # floating stop: the entrance pupil sets the beam
