@@ -36,7 +36,7 @@ __all__ = ["MTF", "ThroughFocusMTF", "Strehl", "EnergyCurve", "FieldCurves", "Ch
            "chromatic_focal_shift", "field_curves", "otf_from_psf", "encircled_energy_from_psf",
            "ensquared_energy_from_psf", "peak_intensity_from_psf", "pixel_mtf", "default_sampling_mm",
            "image_space_na", "diffraction_mtf_circular", "mtf_from_psf_map", "energy_from_psf_map",
-           "ideal_peak_intensity", "paraxial_image_distance"]
+           "ideal_peak_intensity", "paraxial_image_distance", "strehl_from_psf_map"]
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -591,7 +591,8 @@ def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", siz
     its point-intensity peak is recovered by :func:`peak_intensity_from_psf`. The ideal peak is
     :func:`ideal_peak_intensity` at the PSF's peak position (same amplitude over the pupil, vignetting
     included, spherical wave converging to that point; for the paraxial-wave model, of its paraxial
-    equivalent system), carrying the fraction of the entering power that the PSF model lets through. Fields and wavelengths batch like :func:`rwwarp.psf_map`; returns :class:`Strehl`.
+    equivalent system), carrying the fraction of the entering power that the PSF model lets through.
+    Fields and wavelengths batch like :func:`rwwarp.psf_map`; returns :class:`Strehl`.
     """
     _check_model(model)
     if model == "ray":
@@ -604,26 +605,35 @@ def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", siz
         default_sampling_mm(lens, fields, wls, device)
     m = _psfs(lens, fields, wls, model, size, pixel, device, psf_kwargs)
     _patch_check(m, "strehl")
-    # the ideal wave carries the power the model lets through (its own pupil-edge bookkeeping)
-    vf = np.asarray(m.info["valid_fraction"], float).reshape(len(fields), len(wls))
-    ratio = np.zeros((len(fields), len(wls)))
-    peak = np.zeros_like(ratio)
-    ideal = np.zeros_like(ratio)
-    for i, f in enumerate(fields):
-        for j, w in enumerate(wls):
-            pk, (dx, dy) = peak_intensity_from_psf(m.data[i, j], pixel)
-            pt = (m.centers_mm[i, j, 0] + dx, m.centers_mm[i, j, 1] + dy)
-            if model == "paraxial-wave":
-                from .psf import paraxial_equivalent
-                eq, eqf = paraxial_equivalent(lens, [f], [w], psf_kwargs.get("object_distance_mm"))
-                ideal[i, j] = vf[i, j] * ideal_peak_intensity(eq, eqf[0], w, pt, grid, device, per="passing")
-            else:
-                ideal[i, j] = vf[i, j] * ideal_peak_intensity(lens, f, w, pt, grid, device,
-                                                              psf_kwargs.get("object_distance_mm"), per="passing")
-            peak[i, j] = pk
-            ratio[i, j] = pk / ideal[i, j]
+    ratio, peak, ideal = strehl_from_psf_map(lens, m, grid, device, psf_kwargs.get("object_distance_mm"))
     sl = (0 if fscalar else slice(None), 0 if wscalar else slice(None))
     return Strehl(ratio[sl], peak[sl], ideal[sl], fields, wls, model, {"pixel_mm": pixel, "psf_map": m})
+
+
+def strehl_from_psf_map(lens, m, grid: int = 401, device: str = "cpu", object_distance_mm=None):
+    """Strehl ratios ``(ratio, peak, ideal_peak)``, each (n_fields, n_wavelengths), of a wave-model
+    :class:`rwwarp.PSFMap` ``m`` of ``lens`` (see :func:`strehl`; peaks in fraction of the entering power
+    per mm^2). The map's samples must be finer than ``lambda / (4 NA)`` (see :func:`default_sampling_mm`)."""
+    if m.model == "ray":
+        raise ValueError("a 'ray' model PSF map has no diffraction peak: the Strehl ratio needs a wave model")
+    nf, nw = m.data.shape[:2]
+    # the ideal wave carries the power the model lets through (its own pupil-edge bookkeeping)
+    vf = np.asarray(m.info["valid_fraction"], float).reshape(nf, nw)
+    ratio, peak, ideal = np.zeros((nf, nw)), np.zeros((nf, nw)), np.zeros((nf, nw))
+    for i, f in enumerate(m.fields_deg):
+        for j, w in enumerate(m.wavelengths_um):
+            pk, (dx, dy) = peak_intensity_from_psf(m.data[i, j], m.pixel_mm)
+            pt = (m.centers_mm[i, j, 0] + dx, m.centers_mm[i, j, 1] + dy)
+            if m.model == "paraxial-wave":
+                from .psf import paraxial_equivalent
+                eq, eqf = paraxial_equivalent(lens, [f], [w], object_distance_mm)
+                ideal[i, j] = vf[i, j] * ideal_peak_intensity(eq, eqf[0], w, pt, grid, device, per="passing")
+            else:
+                ideal[i, j] = vf[i, j] * ideal_peak_intensity(lens, f, w, pt, grid, device, object_distance_mm,
+                                                              per="passing")
+            peak[i, j] = pk
+            ratio[i, j] = pk / ideal[i, j]
+    return ratio, peak, ideal
 
 
 # ============================================================================== encircled / ensquared energy

@@ -407,15 +407,11 @@ def _section(key, lens, fields, y_fields, wls, wl0, model, psf_size, mtf_size, t
             rows.append(f"| {field_label(f)} | " + " | ".join(f"{tat[i, k]:.3f} / {sat[i, k]:.3f}" for k in range(len(at)))
                         + f" | {r80:.2f} |")
         if model != "ray":
-            st = []
-            for j, w in enumerate(wls):
-                pk, (dx, dy) = M.peak_intensity_from_psf(m.data[0, j], pixel)
-                c = m.centers_mm[0, j]
-                ideal = M.ideal_peak_intensity(lens, fields[0], w, (c[0] + dx, c[1] + dy), grid=201, device=device) \
-                    if model == "ray-wave" else float("nan")
-                st.append(pk / ideal)
-            rows += ["", f"Strehl ratio at {field_label(fields[0])}: " +
-                     ", ".join(f"{s:.4f} ({w:g} um)" for s, w in zip(st, wls)), ""]
+            st = M.strehl_from_psf_map(lens, m, grid=201, device=device)[0]
+            rows += ["", "Strehl ratio (PSF peak over the aberration-free peak of the same pupil):", "",
+                     "| field | " + " | ".join(f"{w:g} um" for w in wls) + " |", "|---|" + "---|" * len(wls)]
+            rows += [f"| {field_label(f)} | " + " | ".join(f"{v:.4f}" for v in st[i]) + " |"
+                     for i, f in enumerate(fields)]
         return rows + [""]
     if key == "through_focus":
         na = M.image_space_na(lens, 0.0, wl0, device=device)
