@@ -156,11 +156,9 @@ def make_splat_kernels(scalar):
             if use_reference == 1:
                 dr = dir[i]
                 ut = wp.normalize(target[s] - p)
-                sgn = f64(1.0)
-                if index[s] < f64(0.0):
-                    sgn = f64(-1.0)
-                gx = wavenumber[s] * index[s] * (f64(dr[0]) - sgn * ut[0])
-                gy = wavenumber[s] * index[s] * (f64(dr[1]) - sgn * ut[1])
+                # index[s] carries the sphere's sign (+ converging to T, - diverging from it)
+                gx = wavenumber[s] * (wp.abs(index[s]) * f64(dr[0]) - index[s] * ut[0])
+                gy = wavenumber[s] * (wp.abs(index[s]) * f64(dr[1]) - index[s] * ut[1])
             pre = amp / (f64(4.0) * hb[0] * hb[1])
             bx = p[0]                         # box centre
             by = p[1]
