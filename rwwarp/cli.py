@@ -273,8 +273,9 @@ def main(argv=None):
     p.add_argument("--out", default=None, help="folder (default out/report/<lens>)")
     p.add_argument("--fields", type=_finite, nargs="+", default=None, help="y field angles, deg")
     p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
-    p.add_argument("--psf-size", type=_positive_int, default=64, help="PSF tile, sensor pixels")
-    p.add_argument("--mtf-size", type=_positive_int, default=128, help="finely sampled PSF for MTF/EE, samples")
+    p.add_argument("--psf-size", type=_positive_int, default=None, help="PSF tile, sensor pixels (default: fits)")
+    p.add_argument("--mtf-size", type=_positive_int, default=None,
+                   help="finely sampled PSF for MTF/EE, samples (default: fits, at most 256)")
     p.add_argument("--through-focus", type=int, default=9, help="planes (0: skip)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -21,7 +21,7 @@ import numpy as np
 from . import metrics as M
 from .plots import field_label
 
-__all__ = ["write_report", "clear_semi_diameters", "layout_figure"]
+__all__ = ["write_report", "clear_semi_diameters", "layout_figure", "patch_size_for"]
 
 
 def _plt():
@@ -251,6 +251,29 @@ def _doe_figure(lens, path):
 
 
 # ---------------------------------------------------------------------------------------------- report
+def patch_size_for(lens, fields, wavelengths_um, pixel_mm, cap: int = 256, device: str = "cpu") -> int:
+    """PSF patch size (samples of ``pixel_mm`` mm, a multiple of 8 in 32..``cap``) that holds every
+    (field, wavelength) PSF: twice the farthest ray of a 31 x 31 pupil grid from the chief ray, plus
+    4 Airy radii of diffraction, plus 10 %."""
+    from .trace import Tracer, pupil_grid
+    shape = lens.surfaces[lens.stop_index].shape
+    u, v, _ = pupil_grid(31, shape, layout="edges")
+    u, v = np.concatenate([[0.0], u]), np.concatenate([[0.0], v])
+    need = 0.0  # half width of the patch, mm
+    for w in wavelengths_um:
+        r = Tracer(lens, [w], device=device).trace(list(fields), pupil=(u, v, 1.0)).numpy()
+        for k, f in enumerate(fields):
+            ok = r["valid"][k]
+            if ok.sum() < 2:
+                continue
+            ref = r["pos"][k, 0, :2] if ok[0] else r["pos"][k, ok, :2].mean(0)
+            geo = float(np.max(np.hypot(*(r["pos"][k, ok, :2] - ref).T)))
+            airy = 0.61 * w * 1e-3 / max(M.image_space_na(lens, f, w, device=device), 1e-6)
+            need = max(need, geo + 4.0 * airy)
+    n = int(math.ceil(1.1 * 2.0 * need / pixel_mm))
+    return int(min(max(32, 8 * math.ceil(n / 8)), cap))
+
+
 def _default_fields(lens, wl):
     if lens.fields_deg:
         return list(lens.fields_deg)
@@ -259,15 +282,16 @@ def _default_fields(lens, wl):
     return [0.0, round(0.7 * fmax, 2), round(fmax, 2)]
 
 
-def write_report(lens, out, *, fields_deg=None, wavelengths_um=None, model: str = "ray-wave", psf_size: int = 64,
-                 mtf_size: int = 128, through_focus_planes: int = 9, device: str = "cpu",
-                 progress: bool = True, lens_label: str | None = None) -> Path:
+def write_report(lens, out, *, fields_deg=None, wavelengths_um=None, model: str = "ray-wave", psf_size=None,
+                 mtf_size=None, through_focus_planes: int = 9, device: str = "cpu",
+                 progress: bool = True, lens_label: str | None = None, max_size: int = 256) -> Path:
     """Write ``out/report.md`` and its PNG figures for ``lens``; returns the Markdown path.
 
     ``fields_deg`` (deg; default the lens's fields, else 0, 0.7 and 1 x the sensor's half height),
     ``wavelengths_um`` (um; default the lens's), ``model`` for the PSFs, MTF and encircled energy
     (``"ray-wave"``, ``"ray"`` or ``"paraxial-wave"``), ``psf_size`` (sensor pixels per PSF tile),
-    ``mtf_size`` (samples of the finely sampled PSFs behind MTF / encircled energy),
+    ``mtf_size`` (samples of the finely sampled PSFs behind MTF / encircled energy); both default to
+    a size that holds every PSF (:func:`patch_size_for`, at most ``max_size``),
     ``through_focus_planes`` (0 skips it), ``progress``: a bar over the sections. A section that fails
     is reported on the page with its error; the others still run.
     """
@@ -276,13 +300,18 @@ def write_report(lens, out, *, fields_deg=None, wavelengths_um=None, model: str 
     if model not in M.MODELS:
         raise ValueError(f"model must be one of {M.MODELS}, got {model!r}")
     for name, v in (("psf_size", psf_size), ("mtf_size", mtf_size)):
-        if int(v) < 8:
+        if v is not None and int(v) < 8:
             raise ValueError(f"{name} must be >= 8, got {v}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     wls = [float(w) for w in (wavelengths_um or lens.wavelengths_um)]
     wl0 = wls[len(wls) // 2]
     fields = list(fields_deg) if fields_deg is not None else _default_fields(lens, wl0)
+    if psf_size is None:
+        psf_size = patch_size_for(lens, fields, wls, lens.sensor.pixel_pitch, max_size, device)
+    if mtf_size is None:
+        mtf_size = patch_size_for(lens, fields, wls, M.default_sampling_mm(lens, fields, wls, device), max_size,
+                                  device)
     y_fields = [float(f) if np.ndim(f) == 0 else float(np.hypot(*f)) for f in fields]
     md = [f"# Lens report: {lens.name or lens_label or 'lens'}", ""]
     if lens_label:
@@ -418,9 +447,12 @@ def _section(key, lens, fields, y_fields, wls, wl0, model, psf_size, mtf_size, t
         fc = 2 * na / (wl0 * 1e-3)
         freqs = [0.25 * fc, 0.5 * fc]
         pixel = M.default_sampling_mm(lens, [0.0], [wl0], device)
-        t = M.through_focus_mtf(lens, 0.0, wl0, frequencies_lp_mm=freqs,
-                                focus_mm=np.linspace(-1, 1, int(tf_planes)) * 4 * wl0 * 1e-3 / (2 * na) ** 2,
-                                model=model, size=mtf_size, pixel_mm=pixel, device=device)
+        dz = 4 * wl0 * 1e-3 / (2 * na) ** 2
+        # on axis at focus, widened by the defocus blur 2 NA dz
+        size = min(patch_size_for(lens, [0.0], [wl0], pixel, mtf_size, device) + 8 * math.ceil(3.0 * na * dz / pixel / 8),
+                   max(mtf_size, 32))
+        t = M.through_focus_mtf(lens, 0.0, wl0, frequencies_lp_mm=freqs, focus_mm=np.linspace(-1, 1, int(tf_planes)) * dz,
+                                model=model, size=size, pixel_mm=pixel, device=device)
         curves = []
         for k, f in enumerate(freqs):
             curves.append((t.focus_mm * 1e3, t.tangential[:, k], dict(color=f"C{k}", label=f"{f:.0f} lp/mm T")))

@@ -61,3 +61,20 @@ def test_report_cli_a489(tmp_path, capsys):
     _check_folder(out, out / "report.md", ["layout.png", "spots.png", "psf_map.png", "mtf.png", "doe.png",
                                            "field_curves.png"])
     assert not (out / "through_focus.png").exists()
+
+
+def test_patch_size_for_ideal_lens():
+    """An ideal lens has no geometric spread: the patch is 2 x 1.1 x 4 Airy radii (0.61 lambda / NA)."""
+    from rwwarp.report import patch_size_for
+    s = [Surface(type="thin_lens", focal_length=50.0, thickness=50.0, stop=True)]
+    lens = Lens(s, entrance_pupil_diameter=4.0)
+    na = math.sin(math.atan(2.0 / 50.0))
+    n = 1.1 * 2 * 4 * 0.61 * 0.55e-3 / na / 0.001
+    assert patch_size_for(lens, [0.0], [0.55], 0.001) == 8 * math.ceil(n / 8)
+
+
+def test_report_a489_raywave_small(tmp_path):
+    page = write_report(rw.load_lens("a489_doe"), tmp_path, fields_deg=[0.0, 5.0], psf_size=16, mtf_size=48,
+                        through_focus_planes=3, progress=False)
+    text = _check_folder(tmp_path, page, ["psf_map.png", "mtf.png", "through_focus.png", "doe.png"])
+    assert "Strehl ratio" in text and "| 0 deg | " in text
