@@ -36,7 +36,7 @@ __all__ = ["MTF", "ThroughFocusMTF", "Strehl", "EnergyCurve", "FieldCurves", "Ch
            "chromatic_focal_shift", "field_curves", "otf_from_psf", "encircled_energy_from_psf",
            "ensquared_energy_from_psf", "peak_intensity_from_psf", "pixel_mtf", "default_sampling_mm",
            "image_space_na", "diffraction_mtf_circular", "mtf_from_psf_map", "energy_from_psf_map",
-           "ideal_peak_intensity", "paraxial_image_distance", "strehl_from_psf_map"]
+           "ideal_peak_intensity", "paraxial_image_distance", "strehl_from_psf_map", "patch_size_for"]
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -276,6 +276,29 @@ def default_sampling_mm(lens, fields, wavelengths_um, device="cpu") -> float:
     return min(float(lens.sensor.pixel_pitch), min(wavelengths_um) * 1e-3 / (5.0 * max(na, 1e-6)))
 
 
+def patch_size_for(lens, fields, wavelengths_um, pixel_mm, cap: int = 256, device: str = "cpu") -> int:
+    """PSF patch size (samples of ``pixel_mm`` mm, a multiple of 8 in 32..``cap``) that holds every
+    (field, wavelength) PSF: twice the farthest ray of a 31 x 31 pupil grid from the chief ray, plus
+    10 Airy radii of diffraction (an aberration-free PSF keeps ~98.5 % of its power), plus 10 %."""
+    from .trace import Tracer, pupil_grid
+    shape = lens.surfaces[lens.stop_index].shape
+    u, v, _ = pupil_grid(31, shape, layout="edges")
+    u, v = np.concatenate([[0.0], u]), np.concatenate([[0.0], v])
+    need = 0.0  # half width of the patch, mm
+    for w in wavelengths_um:
+        r = Tracer(lens, [w], device=device).trace(list(fields), pupil=(u, v, 1.0)).numpy()
+        for k, f in enumerate(fields):
+            ok = r["valid"][k]
+            if ok.sum() < 2:
+                continue
+            ref = r["pos"][k, 0, :2] if ok[0] else r["pos"][k, ok, :2].mean(0)
+            geo = float(np.max(np.hypot(*(r["pos"][k, ok, :2] - ref).T)))
+            airy = 0.61 * w * 1e-3 / max(image_space_na(lens, f, w, device=device), 1e-6)
+            need = max(need, geo + 10.0 * airy)
+    n = int(math.ceil(1.1 * 2.0 * need / pixel_mm))
+    return int(min(max(32, 8 * math.ceil(n / 8)), cap))
+
+
 def _as_wavelengths(wavelength_um, weights):
     wls = [float(w) for w in np.atleast_1d(np.asarray(wavelength_um, dtype=float))]
     if not wls:
@@ -316,6 +339,10 @@ def _field_direction_on_sensor(f):
 
 def _psfs(lens, fields, wls, model, size, pixel_mm, device, psf_kwargs):
     from .psf import psf_map
+    if isinstance(size, str):
+        if size != "auto":
+            raise ValueError(f"size must be a number of samples or 'auto', got {size!r}")
+        size = patch_size_for(lens, fields, wls, pixel_mm, 256, device)
     if int(size) < 8:
         raise ValueError(f"size must be >= 8 pixels, got {size}")
     return psf_map(lens, fields, wls, model=model, size=int(size), pixel_mm=pixel_mm, device=device, **psf_kwargs)
@@ -394,7 +421,7 @@ def mtf_from_psf_map(m, frequencies_lp_mm, weights=None, include_pixel: bool = F
 
 
 def mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm=None, model: str = "ray-wave",
-        include_pixel: bool = False, size: int = 128, pixel_mm=None, device: str = "cpu", normalize: str = "patch",
+        include_pixel: bool = False, size="auto", pixel_mm=None, device: str = "cpu", normalize: str = "patch",
         **psf_kwargs) -> MTF:
     """Diffraction MTF (tangential and sagittal) from the PSF, for one or several fields.
 
@@ -410,9 +437,9 @@ def mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm
     model : "ray-wave" | "ray" | "paraxial-wave"
     include_pixel : bool
         Multiply by the sensor pixel's MTF ``|sinc(f p)|`` (p = ``lens.sensor.pixel_pitch``).
-    size : int
+    size : int or "auto"
         PSF patch size in samples; the patch must hold the PSF (a :class:`SamplingWarning` says when
-        less than 98 % of the power is inside).
+        less than 98 % of the power is inside). ``"auto"``: :func:`patch_size_for` (at most 256).
     pixel_mm : float, optional
         PSF sampling pitch, mm; default :func:`default_sampling_mm` (finer than the sensor pixel).
     normalize : "patch" | "sensor"
@@ -447,7 +474,7 @@ def mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm
     if scalar:
         tan, sag = tan[0], sag[0]
     return MTF(freqs, tan, sag, fields, wls, wt, model, include_pixel, cutoff,
-               {"pixel_mm": pixel, "size": int(size), "power_in_patch": inside, "psf_map": m})
+               {"pixel_mm": pixel, "size": int(m.data.shape[-1]), "power_in_patch": inside, "psf_map": m})
 
 
 @dataclass
@@ -582,12 +609,13 @@ def ideal_peak_intensity(lens, field_deg, wavelength_um, image_point_mm, grid: i
     return float(u0 * u0 / (entering if per == "entering" else np.sum(w[okj])))
 
 
-def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", size: int = 128, pixel_mm=None,
+def strehl(lens, field_deg=0.0, wavelength_um=0.55, model: str = "ray-wave", size="auto", pixel_mm=None,
            device: str = "cpu", grid: int = 401, **psf_kwargs) -> Strehl:
     """Strehl ratio: the PSF's peak intensity over that of the aberration-free wave with the same pupil.
 
     The PSF (``model`` "ray-wave" or "paraxial-wave"; the geometric "ray" PSF has no diffraction peak
-    and is refused) is sampled at ``pixel_mm`` (default :func:`default_sampling_mm`) on ``size`` samples;
+    and is refused) is sampled at ``pixel_mm`` (default :func:`default_sampling_mm`) on ``size`` samples
+    (``"auto"``: :func:`patch_size_for`);
     its point-intensity peak is recovered by :func:`peak_intensity_from_psf`. The ideal peak is
     :func:`ideal_peak_intensity` at the PSF's peak position (same amplitude over the pupil, vignetting
     included, spherical wave converging to that point; for the paraxial-wave model, of its paraxial
@@ -669,7 +697,7 @@ def _energy(kind, lens, field_deg, wavelength_um, weights, sizes_um, model, refe
     m = _psfs(lens, fields, wls, model, size, pixel, device, psf_kwargs)
     _patch_check(m, kind + "_energy")
     if sizes_um is None:
-        sizes_um = np.linspace(0.0, 0.5 * size * pixel * 1e3, 41)
+        sizes_um = np.linspace(0.0, 0.5 * m.data.shape[-1] * pixel * 1e3, 41)
     sz = np.atleast_1d(np.asarray(sizes_um, dtype=float))
     out = energy_from_psf_map(m, sz, kind, wt, reference)
     if scalar:
@@ -722,18 +750,19 @@ def _shift_patch(a, sx, sy):
 
 
 def encircled_energy(lens, field_deg=0.0, wavelength_um=0.55, weights=None, radii_um=None, model: str = "ray-wave",
-                     reference: str = "centroid", size: int = 128, pixel_mm=None, device: str = "cpu",
+                     reference: str = "centroid", size="auto", pixel_mm=None, device: str = "cpu",
                      **psf_kwargs) -> EnergyCurve:
     """Encircled energy: fraction of the power reaching the sensor inside circles of ``radii_um`` (um,
     default 41 radii up to half the patch) about the PSF centroid (``reference="centroid"``) or the
     chief ray (``"chief"``). Polychromatic with ``weights``; batched over fields. ``pixel_mm``: PSF
-    sampling pitch (mm), default :func:`default_sampling_mm` (the sensor pixel for ``model="ray"``)."""
+    sampling pitch (mm), default :func:`default_sampling_mm` (the sensor pixel for ``model="ray"``);
+    ``size``: samples per side or ``"auto"`` (:func:`patch_size_for`)."""
     return _energy("encircled", lens, field_deg, wavelength_um, weights, radii_um, model, reference, size,
                    pixel_mm, device, psf_kwargs)
 
 
 def ensquared_energy(lens, field_deg=0.0, wavelength_um=0.55, weights=None, half_widths_um=None,
-                     model: str = "ray-wave", reference: str = "centroid", size: int = 128, pixel_mm=None,
+                     model: str = "ray-wave", reference: str = "centroid", size="auto", pixel_mm=None,
                      device: str = "cpu", **psf_kwargs) -> EnergyCurve:
     """Ensquared energy: fraction of the power reaching the sensor inside axis-aligned squares of half
     width ``half_widths_um`` (um); otherwise as :func:`encircled_energy`."""

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics as M
+from .metrics import patch_size_for
 from .plots import field_label
 
 __all__ = ["write_report", "clear_semi_diameters", "layout_figure", "patch_size_for"]
@@ -251,29 +252,6 @@ def _doe_figure(lens, path):
 
 
 # ---------------------------------------------------------------------------------------------- report
-def patch_size_for(lens, fields, wavelengths_um, pixel_mm, cap: int = 256, device: str = "cpu") -> int:
-    """PSF patch size (samples of ``pixel_mm`` mm, a multiple of 8 in 32..``cap``) that holds every
-    (field, wavelength) PSF: twice the farthest ray of a 31 x 31 pupil grid from the chief ray, plus
-    4 Airy radii of diffraction, plus 10 %."""
-    from .trace import Tracer, pupil_grid
-    shape = lens.surfaces[lens.stop_index].shape
-    u, v, _ = pupil_grid(31, shape, layout="edges")
-    u, v = np.concatenate([[0.0], u]), np.concatenate([[0.0], v])
-    need = 0.0  # half width of the patch, mm
-    for w in wavelengths_um:
-        r = Tracer(lens, [w], device=device).trace(list(fields), pupil=(u, v, 1.0)).numpy()
-        for k, f in enumerate(fields):
-            ok = r["valid"][k]
-            if ok.sum() < 2:
-                continue
-            ref = r["pos"][k, 0, :2] if ok[0] else r["pos"][k, ok, :2].mean(0)
-            geo = float(np.max(np.hypot(*(r["pos"][k, ok, :2] - ref).T)))
-            airy = 0.61 * w * 1e-3 / max(M.image_space_na(lens, f, w, device=device), 1e-6)
-            need = max(need, geo + 4.0 * airy)
-    n = int(math.ceil(1.1 * 2.0 * need / pixel_mm))
-    return int(min(max(32, 8 * math.ceil(n / 8)), cap))
-
-
 def _default_fields(lens, wl):
     if lens.fields_deg:
         return list(lens.fields_deg)

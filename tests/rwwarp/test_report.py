@@ -64,12 +64,12 @@ def test_report_cli_a489(tmp_path, capsys):
 
 
 def test_patch_size_for_ideal_lens():
-    """An ideal lens has no geometric spread: the patch is 2 x 1.1 x 4 Airy radii (0.61 lambda / NA)."""
+    """An ideal lens has no geometric spread: the patch is 2 x 1.1 x 10 Airy radii (0.61 lambda / NA)."""
     from rwwarp.report import patch_size_for
     s = [Surface(type="thin_lens", focal_length=50.0, thickness=50.0, stop=True)]
     lens = Lens(s, entrance_pupil_diameter=4.0)
     na = math.sin(math.atan(2.0 / 50.0))
-    n = 1.1 * 2 * 4 * 0.61 * 0.55e-3 / na / 0.001
+    n = 1.1 * 2 * 10 * 0.61 * 0.55e-3 / na / 0.001
     assert patch_size_for(lens, [0.0], [0.55], 0.001) == 8 * math.ceil(n / 8)
 
 
