@@ -298,3 +298,62 @@ def test_roundtrip_third_party(fmt, tmp_path):
         exact += 1
     # measured: zmx 28 exact + 5 warned (DeepLens-only glasses); deeplens 20 exact + 2 warned + 3 refused
     assert exact >= (28 if fmt == "zmx" else 20), (exact, warned, refused)
+
+
+# ------------------------------------------------------------------------------------------ optiland (optional)
+_OPTILAND_SCRIPT = r"""
+import json, sys, warnings
+import numpy as np
+warnings.simplefilter("ignore")
+from optiland.fileio import load_zemax_file
+job = json.loads(sys.stdin.read())
+out = {}
+for name, r in job.items():
+    lens = load_zemax_file(r["path"])
+    ys = []
+    for hy, py in r["rays"]:
+        lens.trace_generic(0.0, hy, 0.0, py, r["w"])
+        ys.append(float(np.asarray(lens.surfaces.y[-1]).ravel()[0]))
+    out[name] = ys
+print(json.dumps(out))
+"""
+
+
+def test_optiland_opens_the_zmx_and_traces_the_same_rays(tmp_path):
+    """optiland (an independent program) reads the written .zmx and traces the same real rays to the
+    sensor. Runs when RWWARP_OPTILAND_PYTHON names a Python with optiland installed (not a dependency).
+    optiland has no BINARY_2 reader, so the lenses here carry no DOE. Measured with optiland 0.6.3:
+    Cooke triplet 1.4e-14 mm; a singlet with an EVENASPH r^2 term and a PARAXIAL lens 2.8e-10 mm."""
+    import os
+    import subprocess
+    py = os.environ.get("RWWARP_OPTILAND_PYTHON")
+    if not py:
+        pytest.skip("set RWWARP_OPTILAND_PYTHON to a Python with optiland to run this cross-check")
+    s = [Surface(type="standard", radius=40.0, a2=1e-3, aspheric=[2e-6, -1e-8], conic=-0.5, material="N-SF5",
+                 semi_diameter=5.0, thickness=3.0, stop=True),
+         Surface(type="thin_lens", focal_length=80.0, thickness=2.0, semi_diameter=5.0),
+         Surface(type="standard", radius=-60.0, material="N-BK7", semi_diameter=5.0, thickness=2.5),
+         Surface(type="standard", radius=None, semi_diameter=5.0, thickness=30.0)]
+    lenses = {"cooke": rw.load_lens("cooke_triplet"),
+              "singlet": Lens(s, wavelengths_um=[0.5, 0.6], entrance_pupil_diameter=6.0, fields_deg=[0.0, 5.0])}
+    job, expect = {}, {}
+    for name, lens in lenses.items():
+        path = tmp_path / f"{name}.zmx"
+        lens.save(path)
+        w = lens.wavelengths_um[len(lens.wavelengths_um) // 2]
+        fmax = max(abs(float(f)) for f in lens.fields_deg)
+        rays = [(hy, py) for hy in (0.0, 0.7, 1.0) for py in (-0.9, -0.5, 0.0, 0.5, 0.9)]
+        tr = rw.trace.Tracer(lens, [w])
+        ys = []
+        for hy, p in rays:
+            r = tr.trace([hy * fmax], pupil=(np.array([0.0]), np.array([p]), 1.0)).numpy()
+            assert r["valid"][0, 0]
+            ys.append(float(r["pos"][0, 0, 1]))
+        job[name] = {"path": str(path), "w": w, "rays": rays}
+        expect[name] = ys
+    res = subprocess.run([py, "-c", _OPTILAND_SCRIPT], input=json.dumps(job), capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    for name in lenses:
+        assert np.max(np.abs(np.array(got[name]) - expect[name])) < 1e-9, name
