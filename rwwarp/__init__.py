@@ -15,7 +15,7 @@ Units: lengths in mm, wavelengths in um, field angles in degrees.
 from .errors import LensError, LensFileError, GlassError, GeometryError, ArgumentError, SamplingWarning
 from .lens import Lens, Surface, Sensor, load_lens
 from .analysis import spot_rms, spot_diagram
-from .psf import psf, psf_map, PSF, PSFMap
+from .psf import psf, psf_map, plan_psf, PSF, PSFMap
 from .plan import Plan
 from .metrics import (mtf, through_focus_mtf, strehl, encircled_energy, ensquared_energy,
                       chromatic_focal_shift, field_curves)
@@ -23,6 +23,6 @@ from .metrics import (mtf, through_focus_mtf, strehl, encircled_energy, ensquare
 __version__ = "0.1.0"
 
 __all__ = ["LensError", "ArgumentError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
-           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "PSF", "PSFMap", "Plan",
+           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "plan_psf", "PSF", "PSFMap", "Plan",
            "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy", "chromatic_focal_shift",
            "field_curves"]

@@ -102,7 +102,15 @@ def cmd_psf(a):
     if len(a.field) not in (1, 2):
         raise ValueError(f"--field takes one angle (y) or two (x y) in degrees, got {len(a.field)} values")
     field = tuple(a.field) if len(a.field) == 2 else a.field[0]
-    p = psf(lens, field, a.wavelength, model=a.model, size=a.size, device=a.device, dtype=a.dtype)
+    if a.dry_run:
+        if a.model != "ray-wave":
+            raise ValueError("--dry-run plans the ray-wave model only (--model ray-wave)")
+        from .psf import plan_psf
+        pl = plan_psf(lens, field, a.wavelength, size=a.size, device=a.device, method=a.method)
+        print(pl.explain())
+        return
+    p = psf(lens, field, a.wavelength, model=a.model, size=a.size, device=a.device, dtype=a.dtype,
+            method=a.method, memory_budget_gb=a.memory_budget_gb)
     if a.explain and p.plan:
         from .plan import Plan
         print(Plan(**p.plan).explain())
@@ -234,6 +242,12 @@ def main(argv=None):
     p.add_argument("--device", default="cpu")
     p.add_argument("--dtype", default="float64", choices=["float64", "float32"])
     p.add_argument("--explain", action="store_true", help="print the sampling plan and why")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the plan and its memory/work estimate, compute nothing")
+    p.add_argument("--method", default="auto", choices=["auto", "focal", "asm"],
+                   help="wave propagation: focal (follows the patch), asm (whole beam), auto")
+    p.add_argument("--memory-budget-gb", type=_finite, default=None,
+                   help="refuse plans estimated above this (default: half the available memory)")
     p.add_argument("--out", default=None, help=".npy path")
     p.set_defaults(func=cmd_psf)
 

@@ -136,6 +136,24 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     return p
 
 
+def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, device: str = "cpu",
+             method: str = "auto", rays_per_sample: float = 1.0, nyquist_safety: float = 2.0, pixel_mm=None,
+             object_distance_mm=None, center_mm=None) -> Plan:
+    """The sampling plan and its cost estimate for a ray-wave PSF, without computing it (only the pilot
+    trace runs). ``plan.explain()`` prints it; ``plan.estimate`` holds ``memory_bytes`` and ``flops``.
+    Arguments as :func:`psf` (lengths mm, wavelengths um, field deg)."""
+    from . import checks
+    checks.check_choice(method, "method", ("auto", "focal", "asm"))
+    fields = checks.check_fields([field_deg])
+    wls = checks.check_wavelengths([wavelength_um], lens)
+    size = checks.check_size(size)
+    pixel = float(pixel_mm or lens.sensor.pixel_pitch)
+    rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
+                  object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
+                  nyquist_safety=nyquist_safety, method=method)
+    return rwm.plan
+
+
 def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 64, device: str = "cpu",
             plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,

@@ -1,0 +1,168 @@
+"""Focal propagation (rwwarp.focal) and the planner that sizes it: checked against independent truth.
+
+References, none of which shares code with the propagation:
+* ``rs_lens_psf``: traced rays, ray-tube amplitudes, exact Rayleigh-Sommerfeld kernel summed directly
+  to the sensor pixels, on a polar pupil rule (converged to ~1e-11: 32x128 and 48x256 nodes agree to
+  4e-12 on the Cooke triplet on axis and 6e-12 at 14 deg);
+* ``rs_thin_lens_psf``: the thin lens + DOE ground truth (exact aperture quadrature);
+* numpy: the Fourier series of a DOE's transmission by FFT.
+Tolerances are about twice the measured error (the figures are in each test).
+"""
+import math
+
+import numpy as np
+import pytest
+
+import rwwarp as rw
+from rwwarp.focal import doe_order_coefficients
+from rwwarp.ground_truth import rs_lens_psf, rs_thin_lens_psf
+from rwwarp.lens import Lens, Surface
+from rwwarp.plan import MemoryBudgetError
+from rwwarp.psf import RayWave
+
+
+def _rel(a, b):
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+# ------------------------------------------------------------------------------------- DOE orders
+@pytest.mark.parametrize("alpha,levels", [(1.0, None), (0.83, None), (1.21, None), (1.0, 8), (0.9, 16)])
+def test_order_coefficients_match_fft_of_transmission(alpha, levels):
+    """c_m against the FFT of t(phi) = exp(1j alpha q(phi)) sampled on a fine phi grid (numpy)."""
+    n = 2 ** 16
+    phi = (np.arange(n) + 0.5) * (2 * np.pi / n)
+    if levels is None:
+        q = phi
+    else:
+        step = 2 * np.pi / levels
+        q = np.mod(np.rint(phi / step), levels) * step
+    t = np.exp(1j * alpha * q)
+    m = np.arange(-6, 7)
+    ref = np.array([np.mean(t * np.exp(-1j * mm * phi)) for mm in m])
+    got = doe_order_coefficients(alpha, levels, m)
+    assert np.max(np.abs(got - ref)) < 1e-4   # midpoint sampling of the jumps: measured 2e-5
+    if alpha == 1.0 and levels is None:
+        assert abs(got[m == 1][0] - 1.0) < 1e-14
+    if alpha == 1.0 and levels:
+        assert abs(abs(got[m == 1][0]) ** 2 - np.sinc(1 / levels) ** 2) < 1e-14
+
+
+# ------------------------------------------------------------------------------------- against truth
+def _thin_lens_doe(focal, dist, half, coeffs, norm):
+    surfs = [Surface(type="aperture", semi_diameter=half, shape="square", stop=True),
+             Surface(type="thin_lens", focal_length=focal, semi_diameter=half, shape="square"),
+             Surface(type="doe", semi_diameter=half, shape="square", design_wavelength_um=0.55,
+                     material="fused_silica", profile={"kind": "even_poly", "norm_radius": norm,
+                                                       "coefficients": list(coeffs)})]
+    surfs[-1].thickness = dist
+    return Lens(surfs, rw.Sensor(0.002, (4000, 4000)), math.inf, [0.55], name="thin lens + DOE")
+
+
+@pytest.mark.slow
+def test_thin_lens_even_poly_doe_20mm_before_sensor():
+    """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor, at the design
+    wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the same phi0.
+    Measured 3.6e-4 (focal, default plan) against 3.4e-4 for the band-limited ASM reference path on the
+    same case; tolerance 7e-4 (twice). The issue's 1e-4 target is not reached here (see perf/README)."""
+    coeffs, norm, half = [-40.0, 6.0], 1.0, 1.0
+    lens = _thin_lens_doe(21.0, 20.0, half, coeffs, norm)
+    p = rw.psf(lens, 0.0, 0.55, size=24)
+    assert p.plan["method"] == "focal"
+    x, y = p.coords_mm()
+
+    def phi0(xx, yy):
+        r2 = (xx * xx + yy * yy) / norm ** 2
+        return coeffs[0] * r2 + coeffs[1] * r2 * r2
+    truth = rs_thin_lens_psf(21.0, "square", half, 0.55, 20.0, x, y, p.pixel_mm, doe_phase=phi0,
+                             gauss_nodes_sensor=8)
+    assert _rel(p.data, truth) < 7e-4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("field,tol", [(0.0, 3.5e-4), (14.0, 4e-4)])
+def test_cooke_triplet_against_rs_truth(field, tol):
+    """The bundled Cooke triplet (no DOE: the wave plane is the curved last surface's vertex plane).
+    Measured with the default plan (size 16): 1.5e-4 on axis, 1.9e-4 at 14 deg (before this work: the
+    ASM path took 149-412 s and was 15 % / 156 % off). Tolerance about twice that."""
+    lens = rw.load_lens("cooke_triplet")
+    p = rw.psf(lens, field, 0.5876, size=16)
+    assert p.plan["method"] == "focal"
+    truth = rs_lens_psf(lens, field, 0.5876, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128)
+    assert _rel(p.data, truth) < tol
+
+
+@pytest.mark.slow
+def test_achromatic_doublet_against_rs_truth():
+    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Tolerance twice
+    the measured error."""
+    lens = rw.load_lens("ac254_100_a")
+    p = rw.psf(lens, 0.0, 0.5876, size=16)
+    truth = rs_lens_psf(lens, 0.0, 0.5876, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128)
+    err = _rel(p.data, truth)
+    assert err < DOUBLET_TOL, err
+
+
+DOUBLET_TOL = 4e-4
+
+
+def test_truth_rejects_doe_lenses():
+    with pytest.raises(rw.LensError):
+        rs_lens_psf(rw.load_lens("a489_doe"), 0.0, 0.55, (0.0, 0.0), 4, 0.001)
+
+
+# ------------------------------------------------------------------------------------- cost follows the patch
+def test_focal_sampling_follows_the_patch_not_the_beam():
+    """The wave-plane grid of the focal plan grows with the patch; the ASM's with the beam (planning only:
+    nothing is traced beyond the pilot)."""
+    lens = rw.load_lens("cooke_triplet")
+    f32 = RayWave(lens, [0.0], [0.5876], 32, 0.005, method="focal")
+    f64 = RayWave(lens, [0.0], [0.5876], 64, 0.005, method="focal")
+    asm = RayWave(lens, [0.0], [0.5876], 64, 0.005, method="asm")
+    assert f64.plan.n_grid < asm.plan.n_grid / 5          # measured 616 against 6275
+    assert f64.plan.estimate["memory_bytes"] < 2 ** 30      # the issue's 1 GB figure, planned
+    assert asm.plan.estimate["memory_bytes"] > 4 * 2 ** 30  # the 11 GB case is recognised before it runs
+    assert f32.plan.n_grid < f64.plan.n_grid
+
+
+def test_memory_budget_refuses_with_the_knobs():
+    lens = rw.load_lens("cooke_triplet")
+    with pytest.raises(MemoryBudgetError) as e:
+        rw.psf(lens, 0.0, 0.5876, size=64, method="asm", memory_budget_gb=1.0)
+    msg = str(e.value)
+    assert "GiB" in msg and "memory_budget_gb" in msg and "size" in msg and "rays_per_sample" in msg
+
+
+def test_psf_map_splits_batches_under_a_budget():
+    """A budget that holds one source at a time splits the map; the PSFs equal the unsplit map's."""
+    lens = rw.load_lens("a489_doe")
+    kw = dict(fields=[0.0, 5.0], wavelengths_um=[0.55], size=16)
+    whole = rw.psf_map(lens, **kw)
+    one = RayWave(lens, [5.0], [0.55], 16, lens.sensor.pixel_pitch, method="focal")
+    budget = 1.3 * one.plan.estimate["memory_bytes"] / 2 ** 30
+    split = rw.psf_map(lens, **kw, memory_budget_gb=budget)
+    assert len(split.info["batches"]) == 2
+    np.testing.assert_allclose(split.data, whole.data, rtol=0, atol=1e-12)
+
+
+def test_plan_is_immutable_and_not_mutated_by_calls():
+    lens = rw.load_lens("a489_doe")
+    p0 = rw.psf(lens, 0.0, 0.55, size=8)
+    plan = rw.Plan(**p0.plan)
+    before = plan.to_dict()
+    for _ in range(3):
+        rw.psf(lens, 0.0, 0.55, size=8, plan=plan)
+    assert plan.to_dict() == before
+    with pytest.raises(Exception):
+        plan.pitch_mm = 1.0
+
+
+def test_splat_conserves_power_for_wide_ray_tubes():
+    """rays_per_sample 0.25 (tubes four samples wide): the field holds the traced power (was 36 %).
+    The remaining deficit is the box-filtered rim, ~h / (3 R): measured 0.5 %."""
+    lens = rw.load_lens("a489_doe")
+    for rps in (1.0, 0.25):
+        r = RayWave(lens, [0.0], [0.55], 16, lens.sensor.pixel_pitch, rays_per_sample=rps, method="focal")
+        u = r.field_array()
+        power = float(np.sum(np.abs(u) ** 2) * r.plan.pitch_mm ** 2)
+        assert abs(power / r.traced_power[0] - 1.0) < 0.01, (rps, power / r.traced_power[0])
+        assert int(r.dropped.numpy()[0]) == 0
