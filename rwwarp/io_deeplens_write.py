@@ -26,7 +26,7 @@ Not in the format (a ``UserWarning`` says so): the object distance (DeepLens: in
 wavelengths (DeepLens's RGB), a model glass's exact dispersion (DeepLens defines ``"nd/vd"`` at its
 own lines); a warning names each material DeepLens's lookup would read back differently. Refused
 (:class:`~rwwarp.errors.LensError` naming the surface): circular DOEs, pixel-map, Zernike and cubic
-DOE profiles, odd ``poly`` terms, obscurations, mirrors, thin lenses in glass, more than
+DOE profiles, odd ``poly`` terms, odd aspheric terms, obscurations, mirrors, thin lenses in glass, more than
 5 (unquantised) or 10 (quantised) DOE terms.
 """
 from __future__ import annotations
@@ -65,6 +65,9 @@ def deeplens_dict(lens) -> dict:
         where = dict(file=lens.source, surface=i)
         if s.obscuration:
             raise LensError("DeepLens surfaces have no obscuration", keyword="obscuration", **where)
+        if s.type == "standard" and any(getattr(s, "odd_aspheric", None) or []):
+            raise LensError("a DeepLens Aspheric surface has even terms only (no odd_aspheric)",
+                            keyword="odd_aspheric", **where)
         if s.type == "standard" and s.mirror:
             raise LensError("a DeepLens GeoLens has no mirrors (refracting surfaces only)", keyword="mirror", **where)
         base = {"d": float(z[i])}

@@ -12,6 +12,8 @@ object         ``SURF 0``, ``DISZ`` = object distance (``INFINITY``)
 standard       ``STANDARD`` (``CURV`` = 1/radius, ``CONI``), or ``EVENASPH`` when it has aspheric terms
                (``PARM 1`` = the r^2 term ``a2``, ``PARM 2..8`` = r^4 .. r^16; r^18 and r^20 terms have
                no EVENASPH slot: refused)
+               ``ODDASPHE`` (``PARM 1..8`` = r^1 .. r^8) when it has ``odd_aspheric`` terms (the r^2
+               and r^4..r^8 even terms fold in)
 thin_lens      ``PARAXIAL``, ``PARM 1`` = focal length
 aperture       flat ``STANDARD`` that keeps the medium (``GLAS`` of the medium it sits in)
 doe            flat ``BINARY_2`` that keeps the medium: ``PARM 0`` = 1 (diffraction order),
@@ -203,15 +205,29 @@ def zmx_text(lens) -> str:
             asph = [float(a) for a in s.aspheric]
             while asph and asph[-1] == 0.0:
                 asph.pop()
-            if len(asph) > 7:
+            odd = [float(b) for b in getattr(s, "odd_aspheric", None) or []]
+            while odd and odd[-1] == 0.0:
+                odd.pop()
+            if odd:
+                # ODDASPHE: PARM 1..8 on r^1..r^8; the r^2 term and r^4..r^8 even terms fold in
+                if len(asph) > 3:
+                    raise LensError("a surface with odd aspheric terms and even terms beyond r^8 has no .zmx form "
+                                    "(ODDASPHE stops at r^8)", file=lens.source, surface=i, keyword="aspheric")
+                odd = odd + [0.0] * (8 - len(odd))
+                odd[1] += float(s.a2)
+                for k, a in enumerate(asph):
+                    odd[3 + 2 * k] += a
+            elif len(asph) > 7:
                 raise LensError(f"aspheric terms beyond r^16 ({len(asph)} terms) have no EVENASPH slot in a .zmx",
                                 file=lens.source, surface=i, keyword="aspheric")
             even = bool(asph) or bool(s.a2)
-            lines.append("TYPE EVENASPH" if even else "TYPE STANDARD")
+            lines.append("TYPE ODDASPHE" if odd else "TYPE EVENASPH" if even else "TYPE STANDARD")
             lines.append(f"CURV {_num(s.curvature)} 0 0 0 0 \"\"")
             if s.conic:
                 lines.append(f"CONI {_num(s.conic)}")
-            if even:
+            if odd:
+                lines += [f"PARM {k + 1} {_num(b)}" for k, b in enumerate(odd)]
+            elif even:
                 lines.append(f"PARM 1 {_num(s.a2)}")
                 lines += [f"PARM {k + 2} {_num(a)}" for k, a in enumerate(asph)]
             if not s.mirror:  # a mirror keeps the medium (its material is the medium in front of it)
