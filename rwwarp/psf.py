@@ -218,9 +218,14 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                         device, "auto", dtype, amplitude, object_distance_mm, rays_per_sample, center_mm,
                         use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety, method=method)
         if probe.plan.method == "focal":
+            # one batch per field (its wavelengths need similar grids; an off-axis field's larger box is
+            # not imposed on the axis), split further to fit the budget
             per = probe.plan.estimate["memory_bytes"] / len(pairs)
             b = max(1, min(batch or len(pairs), int(budget // max(per, 1))))
-            chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
+            chunks = []
+            for i in range(len(fields)):
+                row = [pr for pr in pairs if pr[0] == i]
+                chunks += [row[k:k + b] for k in range(0, len(row), b)]
         else:
             chunks = [[pairs[k] for k in g] for g in group_sources(probe.source_needs, batch)]
         del probe
@@ -527,18 +532,20 @@ class RayWave:
             centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         out_width = size * pixel
         if method == "auto":
-            method = "asm" if (isinstance(plan, str) and plan == "paper") else "focal"
+            # both plans from the same pilot; the cheaper one (planned work) runs
+            method = "asm" if (isinstance(plan, str) and plan == "paper") else "compare"
             if isinstance(plan, Plan):
                 method = plan.method
             s_pl = lens.surfaces[plane]
             if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
                 method = "asm"  # discontinuous: no smooth diffraction orders to factor
-        self.method = method
         self.focal = None
-        if method == "focal":
+        if method in ("focal", "compare"):
             self._plan_focal(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
                              z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety)
-            carrier, centers = self.carrier, self.centers
+            focal_state = (self.plan, self.focal, self.carrier, self.centers)
+            if method == "focal":
+                carrier, centers = self.carrier, self.centers
         # ---- plan
         nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
         need_pitch = nyq_pitch / nyquist_safety
@@ -588,6 +595,18 @@ class RayWave:
         from .plan import estimate_cost, check_budget
         from dataclasses import replace as _replace
         pl = _replace(pl, estimate=estimate_cost(pl, nsrc, size, gauss_nodes))
+        if method == "compare":
+            fpl = focal_state[0]
+            fpl = _replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
+            why = (f"method auto: focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
+                   f"GiB against asm {pl.estimate['flops'] / 1e9:.3g} GFLOP / {pl.estimate['memory_bytes'] / 2 ** 30:.3g} GiB")
+            if fpl.estimate["flops"] <= pl.estimate["flops"]:
+                pl = fpl.with_reasons(why + " -> focal")
+                self.focal, carrier, centers = focal_state[1], focal_state[2], focal_state[3]
+            else:
+                pl = pl.with_reasons(why + " -> asm")
+                self.focal = None
+        self.method = pl.method
         if memory_budget_bytes is not None:
             check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
                          f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",

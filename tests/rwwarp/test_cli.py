@@ -18,8 +18,17 @@ def test_psf_explain_prints_the_plan(capsys, tmp_path):
     npy = tmp_path / "p.npy"
     main(["psf", "a489_doe", "--size", "16", "--explain", "--out", str(npy)])
     out = capsys.readouterr().out
-    assert "plan auto: pitch" in out and "Nyquist" in out
+    assert "plan auto (focal): pitch" in out and "estimate: peak memory" in out and "method auto" in out
     assert npy.exists()
+
+
+def test_psf_dry_run_prints_the_plan_and_computes_nothing(capsys, tmp_path):
+    npy = tmp_path / "p.npy"
+    main(["psf", "cooke_triplet", "--dry-run", "--method", "asm", "--out", str(npy)])
+    out = capsys.readouterr().out
+    # the ASM plan of the full-aperture Cooke triplet: ~13 GiB planned, refused by nothing, computed by nothing
+    assert "plan auto (asm)" in out and "GiB" in out and "Nyquist" in out
+    assert not npy.exists()
 
 
 def test_bad_lens_file_exits_with_the_place_named(tmp_path, capsys):
