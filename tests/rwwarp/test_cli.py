@@ -18,7 +18,7 @@ def test_psf_explain_prints_the_plan(capsys, tmp_path):
     npy = tmp_path / "p.npy"
     main(["psf", "a489_doe", "--size", "16", "--explain", "--out", str(npy)])
     out = capsys.readouterr().out
-    assert "plan auto (focal): pitch" in out and "estimate: peak memory" in out and "method auto" in out
+    assert "plan auto (asm): pitch" in out and "estimate: peak memory" in out and "method auto" in out
     assert npy.exists()
 
 
