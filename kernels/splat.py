@@ -32,8 +32,6 @@ import functools
 
 import warp as wp
 
-from .pupil import disc_cell_coverage
-
 
 @functools.cache
 def make_splat_kernels(scalar):
@@ -57,7 +55,6 @@ def make_splat_kernels(scalar):
         pos: wp.array(dtype=vec3),
         valid: wp.array(dtype=wp.int32),
         n_side: int,                          # pupil grid is n_side x n_side per source (row-major)
-        circle: int,                          # 1: circular pupil (rim cells cover part of their cell)
         # outputs
         area_out: wp.array(dtype=f64),        # footprint area of each ray's pupil cell on the plane, mm^2
         half_out: wp.array(dtype=wp.vec2d),   # half sizes (x, y) of the tube's box, mm
@@ -93,12 +90,6 @@ def make_splat_kernels(scalar):
             du = du / f64(nu)
             dv = dv / f64(nv)
             a = wp.abs(du[0] * dv[1] - du[1] * dv[0])
-            if circle == 1:
-                # a rim cell carries only its covered fraction: its tube shrinks by that fraction
-                side = f64(2.0) / f64(n_side)
-                cov = disc_cell_coverage(f64(-1.0) + (f64(2.0) * f64(c) + f64(1.0)) / f64(n_side),
-                                         f64(-1.0) + (f64(2.0) * f64(r) + f64(1.0)) / f64(n_side), side)
-                a = a * cov[0]
             area_out[i] = a
             # axis-aligned box of the same area, aspect from the Jacobian's diagonal
             wx = wp.max(wp.abs(du[0]), f64(1.0e-300))

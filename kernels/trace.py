@@ -32,8 +32,6 @@ import functools
 
 import warp as wp
 
-from .pupil import disc_cell_coverage
-
 # parameter layout of one surface
 P_Z = 0           # vertex z, mm
 P_C = 1           # curvature, 1/mm
@@ -195,15 +193,10 @@ def make_trace_kernels(scalar):
         else:
             pu = pupil_u[j]
             pv = pupil_v[j]
-        frac = scalar(1.0)
-        if grid_n > 0 and circle == 1:
-            # a cell cut by the rim carries the covered share of its power (the ray stays at the cell centre)
-            cov = disc_cell_coverage(wp.float64(pu), wp.float64(pv), wp.float64(2.0) / wp.float64(grid_n))
-            frac = scalar(cov[0])
         p = vec3(c[0] + half_x[s] * pu, c[1] + half_y[s] * pv, c[2])
         w = src_wl[s]
         n0 = n_obj[w]
-        area = cell * frac * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
+        area = cell * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
         if src_finite[s] == 1:
             dvec = p - src_pos[s]
             dist = wp.length(dvec)
@@ -226,11 +219,7 @@ def make_trace_kernels(scalar):
         dir_out[i] = d
         valid_out[i] = 1
         if circle == 1:
-            if grid_n > 0:
-                if frac <= scalar(0.0):
-                    valid_out[i] = 0
-                    weight_out[i] = scalar(0.0)
-            elif pu * pu + pv * pv > scalar(1.0) + scalar(edge):
+            if pu * pu + pv * pv > scalar(1.0) + scalar(edge):
                 valid_out[i] = 0
                 weight_out[i] = scalar(0.0)
         wl_out[i] = w

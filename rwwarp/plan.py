@@ -185,7 +185,7 @@ def landing_points(xy, f, inv_lam, distance_mm):
 
 
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
-               rays_per_sample, nyquist_safety, order_tol=1e-8):
+               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5):
     """Sampling of the focal propagation (:mod:`rwwarp.focal`) for one batch, from a pilot trace.
 
     Per source ``k``: ``xy[k]`` (N, 2) wave-plane points of the pilot rays (mm), ``freq[k]`` (N, 2) their
@@ -196,9 +196,10 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
 
     Rules (each recorded in the plan's reasons):
 
-    * an order is computed iff it carries ``|c_m|^2 >= order_tol`` and the bounding box of its pilot
-      rays' landing points comes within a diffraction margin of the patch; the others' power is
-      reported as leaving the patch;
+    * an order is computed iff it carries ``|c_m|^2 >= order_tol``, the bounding box of its pilot
+      rays' landing points comes within a diffraction margin of the patch, and the share of its power
+      that box puts on the patch (by area) is at least ``patch_tol``; the others' power is reported as
+      leaving the patch;
     * the sensor-side grid covers the patch widened by the remainder's displacement ``H_R`` and every
       kept ray's landing point under the quadratic transfer, plus a margin of ``6 / B`` (``B``: the
       beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and half the displacement;
@@ -239,6 +240,15 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             llo, lhi = L.min(0), L.max(0)
             if np.any(llo > T + half_w + margin) or np.any(lhi < T - half_w - margin):
                 lost[k] += abs(c) ** 2      # every ray of this order misses the patch
+                continue
+            # a strongly defocused order spreads its power over its landing box: estimate the share that
+            # reaches the patch by area; below patch_tol it is left out (a uniform background of that power
+            # over the patch changes a focused core by ~2 sqrt(patch_tol / pixels), < 1e-4 at 1e-5 and 64
+            # pixels), and its power is reported
+            reach = float(np.prod(np.minimum(lhi - llo, 2 * (half_w + margin)) + 1e-12))
+            share = reach / float(np.prod(lhi - llo + 1e-12))
+            if m != max(orders[k], key=lambda mc: abs(mc[1]))[0] and abs(c) ** 2 * share < patch_tol:
+                lost[k] += abs(c) ** 2
                 continue
             keep.append((int(m), complex(c)))
             lg = x - z * (g[k] + (f - carrier[k]) * q[k])       # landing under the quadratic transfer

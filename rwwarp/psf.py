@@ -765,7 +765,7 @@ class RayWave:
             half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
         if energy:
             wp.launch(K.tube_area_kernel, dim=nsrc * npup,
-                      inputs=[rays.pos, rays.valid, pl.ray_grid, int(self.src["shape"] == "circle")],
+                      inputs=[rays.pos, rays.valid, pl.ray_grid],
                       outputs=[area, half], device=dev)
         elif not g:  # not read by the splat in the paper convention
             area = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=g)

@@ -62,11 +62,12 @@ def _thin_lens_doe(focal, dist, half, coeffs, norm):
 def test_thin_lens_even_poly_doe_20mm_before_sensor():
     """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor, at the design
     wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the same phi0.
-    Measured 3.6e-4 (focal, default plan) against 3.4e-4 for the band-limited ASM reference path on the
-    same case; tolerance 7e-4 (twice). The issue's 1e-4 target is not reached here (see perf/README)."""
+    Measured 4.0e-4 (focal, default plan, 16 px) against 4.0e-4 for the band-limited ASM reference path
+    on the same case; tolerance 8e-4 (twice). The issue's 1e-4 target is not reached here
+    (docs/propagation.md)."""
     coeffs, norm, half = [-40.0, 6.0], 1.0, 1.0
     lens = _thin_lens_doe(21.0, 20.0, half, coeffs, norm)
-    p = rw.psf(lens, 0.0, 0.55, size=24, method="focal")
+    p = rw.psf(lens, 0.0, 0.55, size=16, method="focal")
     assert p.plan["method"] == "focal"
     x, y = p.coords_mm()
 
@@ -75,14 +76,14 @@ def test_thin_lens_even_poly_doe_20mm_before_sensor():
         return coeffs[0] * r2 + coeffs[1] * r2 * r2
     truth = rs_thin_lens_psf(21.0, "square", half, 0.55, 20.0, x, y, p.pixel_mm, doe_phase=phi0,
                              gauss_nodes_sensor=5)
-    assert _rel(p.data, truth) < 7e-4
+    assert _rel(p.data, truth) < 8e-4
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("field,tol", [(0.0, 3.5e-4), (14.0, 4e-4)])
+@pytest.mark.parametrize("field,tol", [(0.0, 3.5e-4), (14.0, 5e-4)])
 def test_cooke_triplet_against_rs_truth(field, tol):
     """The bundled Cooke triplet (no DOE: the wave plane is the curved last surface's vertex plane).
-    Measured with the default plan (size 16): 1.5e-4 on axis, 1.9e-4 at 14 deg (before this work: the
+    Measured with the default plan (size 16): 1.6e-4 on axis, 2.5e-4 at 14 deg (before this work: the
     ASM path took 149-412 s and was 15 % / 156 % off). Tolerance about twice that."""
     lens = rw.load_lens("cooke_triplet")
     p = rw.psf(lens, field, 0.5876, size=16)
@@ -93,8 +94,8 @@ def test_cooke_triplet_against_rs_truth(field, tol):
 
 @pytest.mark.slow
 def test_achromatic_doublet_against_rs_truth():
-    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Tolerance twice
-    the measured error."""
+    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Measured 1.9e-4
+    (truth converged to 2e-11); tolerance about twice."""
     lens = rw.load_lens("ac254_100_a")
     p = rw.psf(lens, 0.0, 0.5876, size=16)
     truth = rs_lens_psf(lens, 0.0, 0.5876, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128)
@@ -166,3 +167,19 @@ def test_splat_conserves_power_for_wide_ray_tubes():
         power = float(np.sum(np.abs(u) ** 2) * r.plan.pitch_mm ** 2)
         assert abs(power / r.traced_power[0] - 1.0) < 0.01, (rps, power / r.traced_power[0])
         assert int(r.dropped.numpy()[0]) == 0
+
+
+def test_quantised_doe_orders_that_spread_over_the_field_are_left_out():
+    """A 16-level Fresnel-zone DOE alone: its orders -15 and 17 spread over ~30 mm; the focal plan leaves
+    them out (power reported) instead of sampling 30 mm at 0.4 um (263 GiB before). The focused power
+    ratio stays the scalar efficiency sinc^2(1/16) (measured 0.98757 against 0.98721)."""
+    def fz(levels):
+        s = [Surface(type="aperture", semi_diameter=1.0, shape="circle", stop=True),
+             Surface(type="doe", semi_diameter=1.0, shape="circle", thickness=100.0,
+                     profile={"kind": "fresnel", "focal_length": 100.0}, material="1.5/1e9", levels=levels)]
+        return Lens(s, rw.Sensor(0.0055, (4000, 4000)), wavelengths_um=[0.55])
+    a = rw.psf(fz(None), 0.0, 0.55, size=32, method="focal")
+    b = rw.psf(fz(16), 0.0, 0.55, size=32, method="focal")
+    assert b.plan["n_grid"] < 200 and "[1]" in b.plan["reasons"][1]
+    core = slice(12, 20)
+    assert b.data[core, core].sum() / a.data[core, core].sum() == pytest.approx(np.sinc(1 / 16) ** 2, abs=2e-3)
