@@ -629,7 +629,11 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     wl = float(wavelength_um)
     plane = len(lens.surfaces) - 1
     if lens.doe_index is not None:
-        raise LensError("rs_lens_psf handles refractive lenses only", file=lens.source)
+        from .psf import _is_flat_profile
+        doe_s = lens.surfaces[lens.doe_index]
+        if lens.doe_index != plane or not _is_flat_profile(doe_s.profile):
+            raise LensError("rs_lens_psf handles refractive lenses only (a blank DOE as the last surface is a "
+                            "plane)", file=lens.source)
     tr = Tracer(lens, [wl])
     src = tr.sources([field_deg], 0)
     t, wr = np.polynomial.legendre.leggauss(int(radial_nodes))
