@@ -151,13 +151,11 @@ def make_splat_kernels(scalar):
                 gx = wavenumber[s] * (wp.abs(index[s]) * f64(dr[0]) - index[s] * ut[0])
                 gy = wavenumber[s] * (wp.abs(index[s]) * f64(dr[1]) - index[s] * ut[1])
             pre = amp / (f64(4.0) * hb[0] * hb[1])
-            bx = p[0]                         # box centre
-            by = p[1]
             # every sample cell the tube's box overlaps (a tube may span many cells: no power is lost)
-            cx0 = int(wp.floor((bx - hb[0] - o[0]) / h + f64(0.5)))
-            cy0 = int(wp.floor((by - hb[1] - o[1]) / h + f64(0.5)))
-            cx1 = int(wp.floor((bx + hb[0] - o[0]) / h + f64(0.5)))
-            cy1 = int(wp.floor((by + hb[1] - o[1]) / h + f64(0.5)))
+            cx0 = int(wp.floor((p[0] - hb[0] - o[0]) / h + f64(0.5)))
+            cy0 = int(wp.floor((p[1] - hb[1] - o[1]) / h + f64(0.5)))
+            cx1 = int(wp.floor((p[0] + hb[0] - o[0]) / h + f64(0.5)))
+            cy1 = int(wp.floor((p[1] + hb[1] - o[1]) / h + f64(0.5)))
             if cx0 < 0 or cy0 < 0 or cx1 >= n_grid or cy1 >= n_grid:
                 wp.atomic_add(dropped_out, s, 1)
                 return
@@ -175,22 +173,6 @@ def make_splat_kernels(scalar):
                         w = ox * oy * pre * sinc_half(gx * ox) * sinc_half(gy * oy)
                         wp.atomic_add(s_re_out, k, w * wp.cos(ph))
                         wp.atomic_add(s_im_out, k, w * wp.sin(ph))
-            return
-            for c in range(9):
-                ix = cx0 + c % 3
-                iy = cy0 + c // 3
-                xc = o[0] + f64(ix) * h
-                yc = o[1] + f64(iy) * h
-                ox = wp.min(p[0] + hb[0], xc + f64(0.5) * h) - wp.max(p[0] - hb[0], xc - f64(0.5) * h)
-                oy = wp.min(p[1] + hb[1], yc + f64(0.5) * h) - wp.max(p[1] - hb[1], yc - f64(0.5) * h)
-                if ox > f64(0.0) and oy > f64(0.0):
-                    k = (s * n_grid + iy) * n_grid + ix
-                    mx = wp.max(p[0] - hb[0], xc - f64(0.5) * h) + f64(0.5) * ox - p[0]
-                    my = wp.max(p[1] - hb[1], yc - f64(0.5) * h) + f64(0.5) * oy - p[1]
-                    ph = psi + gx * mx + gy * my
-                    w = ox * oy * pre * sinc_half(gx * ox) * sinc_half(gy * oy)
-                    wp.atomic_add(s_re_out, k, w * wp.cos(ph))
-                    wp.atomic_add(s_im_out, k, w * wp.sin(ph))
             return
         # paper convention: unit amplitude with obliquity, inverse bilinear interpolation
         fx = (p[0] - o[0]) / h
