@@ -198,3 +198,20 @@ def test_a489_keeps_the_asm_and_matches_truth():
     assert p.plan["method"] == "asm"
     truth = rs_lens_psf(lens, 0.0, 0.55, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128)
     assert _rel(p.data, truth) < 1e-4
+
+
+def test_focal_operator_adjoint_is_the_conjugate_transpose():
+    """<A x, y> = <x, A^H y> for random complex x, y (the operator's adjoint, used for gradients)."""
+    from rwwarp.focal import FocalPropagator
+    rng = np.random.default_rng(1)
+    S, n, ns, nf, m = 2, 24, 20, 32, 9
+    op = FocalPropagator(origin_mm=[[-0.5, -0.5], [-0.4, -0.6]], pitch_mm=0.04, n_grid=n,
+                         wavelength_mm=[5.5e-4, 6.0e-4], distance_mm=20.0, target_mm=[[0.0, 0.0], [0.01, 0.3]],
+                         carrier_cpmm=[[0.0, 0.0], [0.0, 25.0]], sensor_origin_mm=[[-0.02, -0.02], [-0.01, 0.28]],
+                         sensor_pitch_mm=0.002, n_sensor=ns, n_fft=nf,
+                         nodes_x_mm=rng.uniform(-0.01, 0.01, (S, m)), nodes_y_mm=rng.uniform(-0.01, 0.01, (S, m)))
+    x = rng.normal(size=(S, n, n)) + 1j * rng.normal(size=(S, n, n))
+    y = rng.normal(size=(S, m, m)) + 1j * rng.normal(size=(S, m, m))
+    lhs = np.vdot(op.forward(x), y)
+    rhs = np.vdot(x, op.adjoint(y))
+    assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
