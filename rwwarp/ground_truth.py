@@ -1,6 +1,6 @@
 """Direct Rayleigh-Sommerfeld ground truth: an ideal thin lens with a DOE, no FFT, no paraxial step.
 
-System (DESIGN.md, validation case): an ideal thin lens of focal length ``f`` and a DOE, both at
+System (the paper's validation case): an ideal thin lens of focal length ``f`` and a DOE, both at
 ``z = 0``, behind a circular or square aperture, lit by an on-axis plane wave of wavelength
 ``lambda`` carrying unit power through the aperture. Just after the lens + DOE the field is
 
@@ -45,7 +45,7 @@ Numerics.
   0.3-rad cells at 1e-9), which is why 2 pi is the default. The ``tolerance`` option checks the
   result empirically by halving every cell until the PSF changes by less than ``tolerance``.
 * Sensor. ``|U|^2`` is integrated over each pixel's area with ``g x g`` Gauss-Legendre nodes
-  (DESIGN "Sensor": box integration, fraction of the entering power per pixel). ``|U|^2`` is
+  (box integration, fraction of the entering power per pixel, as ``rw.psf``). ``|U|^2`` is
   band-limited to ``2 NA/lambda``; 3 nodes per axis are exact to < 1e-9 relative for pixels
   below ``lambda/(8 NA)``.
 * Summation. Sensor points x aperture nodes in blocks of ``chunk_elements`` pairs (float64
@@ -61,7 +61,7 @@ element ``[row, col]`` covers ``x in [(col - Nx/2) pitch, (col + 1 - Nx/2) pitch
 ``y in [(Ny/2 - row - 1) pitch, (Ny/2 - row) pitch]``. Outside the map the DOE phase is 0. An
 object with ``kind == "pixel_map"``, ``data`` and ``pitch`` (a PixelMapProfile) is accepted as
 the pair ``(data, pitch)``. Callable DOEs are ``phi(x_mm, y_mm) -> rad`` on arrays. Phases are
-used as given: apply DESIGN's wavelength remap before calling for another wavelength.
+used as given: apply the DOE's wavelength remap (:func:`rwwarp.doe.wavelength_scale`) before calling for another wavelength.
 """
 
 import math

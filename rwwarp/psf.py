@@ -100,7 +100,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     dtype : "float64" | "float32"
         Ray-tracing precision (the field is accumulated in float64).
     amplitude : "energy" | "paper"
-        Ray amplitude convention of the splat (DESIGN section 3).
+        Ray amplitude convention of the splat (:mod:`rwwarp.kernels.splat`; README "Physics notes").
     object_distance_mm : float, optional
         Overrides the lens's object distance (mm from the first vertex; inf allowed).
     rays_per_sample : float

@@ -40,7 +40,7 @@ def test_bundled_by_name():
 
 
 def test_cooke_triplet_paraxial_data():
-    # Zemax tutorial Cooke triplet at the d line: EFL 50.021351 mm, BFL 42.436440 mm (DESIGN.md 5)
+    # Zemax tutorial Cooke triplet at the d line: EFL 50.021351 mm, BFL 42.436440 mm (Zemax's values for this file)
     lens = load_lens("cooke_triplet")
     assert lens.stop_index == 3 and lens.entrance_pupil_diameter == 10.0
     assert lens.efl(0.5875618) == pytest.approx(50.021351, abs=1e-6)
