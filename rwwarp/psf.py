@@ -200,7 +200,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
     out = np.zeros((len(fields), len(wavelengths_um), size, size))
     centers = np.zeros((len(fields), len(wavelengths_um), 2))
-    info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": []}
+    info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": [],
+            "dropped_rays": np.zeros(len(pairs), dtype=np.int64)}
     t0 = time.perf_counter()
     checks.check_choice(method, "method", ("auto", "focal", "asm"))
     from .plan import default_memory_budget_bytes, MemoryBudgetError
@@ -267,6 +268,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             out[i, j] = res["data"][k]
             centers[i, j] = res["centers"][k]
             info["valid_fraction"][index[(i, j)]] = res["valid_fraction"][k]
+            if "dropped_rays" in res:
+                info["dropped_rays"][index[(i, j)]] = int(res["dropped_rays"][k])
         info["plan"] = res.get("plan")
         info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan")})
         if bar is not None:
@@ -274,6 +277,11 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     if bar is not None:
         bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
+    if np.any(info["dropped_rays"]):
+        import warnings
+        from .errors import SamplingWarning
+        warnings.warn(f"{int(info['dropped_rays'].sum())} rays fell outside the wave-plane window and were not "
+                      "splatted (their power is missing from the PSF): report this lens", SamplingWarning, stacklevel=2)
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
 
@@ -475,6 +483,10 @@ class RayWave:
         n_after = np.array([lens.indices(w)[plane] for w in wls])
         z_plane = lens.vertex_z[plane]
         z_sensor = lens.sensor_z
+        if not z_sensor > lens.vertex_z[plane]:
+            raise LensError(f"the wave models need the sensor behind the wave plane (surface {plane}); here it is "
+                            f"{lens.vertex_z[plane] - z_sensor:.6g} mm before it (a mirror or a negative last "
+                            "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
         lam_mm = np.array(wls) * 1e-3
 
         # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor

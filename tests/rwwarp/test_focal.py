@@ -169,6 +169,8 @@ def test_splat_conserves_power_for_wide_ray_tubes():
         power = float(np.sum(np.abs(u) ** 2) * r.plan.pitch_mm ** 2)
         assert abs(power / r.traced_power[0] - 1.0) < 0.01, (rps, power / r.traced_power[0])
         assert int(r.dropped.numpy()[0]) == 0
+    m = rw.psf_map(lens, [0.0], [0.55], size=16, rays_per_sample=0.25)
+    assert list(m.info["dropped_rays"]) == [0]     # reported per PSF, not discarded
 
 
 def test_quantised_doe_orders_that_spread_over_the_field_are_left_out():
