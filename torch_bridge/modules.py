@@ -242,6 +242,18 @@ class HybridLens(nn.Module):
         """All quantities, ``{name: tensor}``."""
         return {q: self.value(q) for q in QUANTITIES}
 
+    def check_finite(self) -> None:
+        """Raise ``ValueError`` naming the quantity and the entries when a lens value is NaN or inf (a
+        diverged optimiser step), before any ray is traced: otherwise it surfaces only as "no rays reach
+        the sensor" or as a NaN PSF."""
+        for q in QUANTITIES:
+            v = self.value(q).detach()
+            bad = ~torch.isfinite(v)
+            if bool(bad.any()):
+                where = torch.nonzero(bad.reshape(-1)).reshape(-1)[:8].tolist()
+                raise ValueError(f"HybridLens: {q} has non-finite values (NaN or inf) at flat entries {where}: the "
+                                 "lens parameters diverged (lower the learning rate or clip the gradients)")
+
     @property
     def rw_device(self) -> str:
         """rwwarp device string of the module's tensors ("cpu" or "cuda:N")."""
@@ -320,6 +332,7 @@ class HybridLens(nn.Module):
         ``replan``). ``requires_grad=False``: the tracer keeps no gradient buffers and ping-pongs two
         ray-state buffers (a frozen refractive part, e.g. :class:`~torch_bridge.design.CachedProvider`)."""
         from rwwarp.psf import RayWave
+        self.check_finite()
         fields = _field_list(fields)
         wls = [float(w) for w in wavelengths_um]
         plan = self.plan_policy if plan is None else plan
