@@ -1319,6 +1319,25 @@ def write_table(results: dict, out: Path, title: str = "", preset=None):
 
 
 # ============================================================================================== experiment
+def _preflight(arms, out: Path) -> None:
+    """Check what each arm needs before anything is written: its data folder (a directory, when set),
+    its device (CUDA present when asked for) and the output path (not a file). Raises ConfigError."""
+    for a in arms:
+        cfg = a["config"]
+        root = (cfg.get("data") or {}).get("root")
+        if root is not None and not Path(root).is_dir():
+            raise ConfigError(f"arm {a['name']!r}: data.root {root!r} is not a directory")
+        dev = str(cfg.get("device", "cpu"))
+        if dev.startswith("cuda"):
+            idx = int(dev.split(":")[1]) if ":" in dev else 0
+            if not torch.cuda.is_available() or idx >= torch.cuda.device_count():
+                raise ConfigError(f"arm {a['name']!r}: device {dev!r} is not available on this machine "
+                                  f"({torch.cuda.device_count() if torch.cuda.is_available() else 0} CUDA devices); "
+                                  "use --preset cpu or device: cpu")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output {str(out)!r} exists and is not a folder")
+
+
 def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bool = True,
           progress: bool | None = None) -> dict:
     """Run an experiment: validate the config (``config``: path or dict, ``preset``: a key of its
@@ -1328,11 +1347,12 @@ def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bo
     exp = load_config(config, preset)
     base = exp["base"]
     out = Path(out_dir or base["out_dir"] or f"out/design/{exp['experiment']}" + (f"_{preset}" if preset else ""))
-    out.mkdir(parents=True, exist_ok=True)
     chosen = exp["arms"] if arms is None else [a for a in exp["arms"] if a["name"] in set(arms)]
     if arms is not None and len(chosen) != len(set(arms)):
         known = [a["name"] for a in exp["arms"]]
         raise ConfigError(f"unknown arm(s) {sorted(set(arms) - set(known))}; the config has {known}")
+    _preflight(chosen, out)  # nothing is written before the data, the device and the output folder check out
+    out.mkdir(parents=True, exist_ok=True)
     (out / "config_resolved.json").write_text(json.dumps(exp, indent=1, default=_json_default))
     results = {}
     for a in chosen:

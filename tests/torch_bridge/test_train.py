@@ -414,3 +414,28 @@ def test_resume_rewrites_an_older_metrics_csv_with_the_current_columns(tmp_path)
     rows = _rows(p)
     assert [int(r["step"]) for r in rows] == [0, 1, 2]
     assert list(rows[0].keys()) == _CSV_FIELDS and rows[0]["memory_gb"] == ""
+
+
+def test_design_checks_data_device_and_output_before_writing(tmp_path):
+    """A missing data folder, an absent CUDA device or an output path that is a file stop the run
+    before anything is written (no folder, no config_resolved.json)."""
+    import copy
+    from torch_bridge.train import ConfigError, _preflight, load_config, train as run
+    exp = load_config("a489_aberration", "cpu")
+    out = tmp_path / "run"
+    bad = copy.deepcopy(exp)
+    for a in bad["arms"]:
+        a["config"]["data"]["root"] = str(tmp_path / "missing")
+    with pytest.raises(ConfigError, match="data.root"):
+        _preflight(bad["arms"], out)
+    if not torch.cuda.is_available():
+        bad = copy.deepcopy(exp)
+        for a in bad["arms"]:
+            a["config"]["device"] = "cuda"
+        with pytest.raises(ConfigError, match="not available"):
+            _preflight(bad["arms"], out)
+    f = tmp_path / "afile"
+    f.write_text("x")
+    with pytest.raises(ConfigError, match="not a folder"):
+        run("a489_aberration", "cpu", out_dir=f)
+    assert f.read_text() == "x" and not out.exists()
