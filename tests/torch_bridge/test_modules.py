@@ -237,5 +237,5 @@ def test_partly_vignetted_field_has_finite_gradients():
     h = tb.HybridLens(rw.load_lens("a489_doe"), learn={"curvature": [1]}, replan=False)
     p = h.psf(16.5, 0.55, size=16)
     (p * p).sum().backward()
-    assert 0.0 < float(p.sum()) < 0.1
+    assert 0.0 < float(p.detach().sum()) < 0.1
     assert torch.isfinite(h.curvature.grad).all() and float(h.curvature.grad.abs().sum()) > 0
