@@ -47,18 +47,9 @@ input field.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 __all__ = ["doe_order_coefficients", "FocalPropagator", "transfer_curvature"]
-
-
-def _xp(a):
-    if type(a).__module__.startswith("cupy"):
-        import cupy
-        return cupy
-    return np
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -97,13 +88,14 @@ def transfer_curvature(f_c, inv_lam):
 class FocalPropagator:
     """The planned focal propagation of one batch of sources (set up once, applied to many fields).
 
-    Parameters (per source ``S``; lengths mm)
+    Parameters (per source ``S``; lengths mm). The operator itself does not depend on the patch centre
+    ``T``: it enters through the caller's choice of the sensor-side grid and of the wave-plane pitch, which
+    are only accurate near ``T`` (see the module docstring).
     ----------
     origin_mm : (S, 2)  centre of wave-plane sample (0, 0); samples at ``origin + (i, j) * pitch_mm``.
     pitch_mm : float    wave-plane pitch.  ``n_grid``: samples per side.
     wavelength_mm : (S,) wavelength in the image medium (``lambda / n``), mm.
     distance_mm : float  wave plane to sensor.
-    target_mm : (S, 2)  reference point ``T`` on the sensor (patch centre).
     carrier_cpmm : (S, 2) chief frequency ``f_c`` (cycles/mm) removed from the field handed in: the
         field passed to :meth:`forward` is ``U0(x) exp(-2 pi i f_c . (x - x_ref))`` (any constant
         ``x_ref``: constants drop out of intensities).
@@ -113,7 +105,7 @@ class FocalPropagator:
     xp : numpy or cupy.
     """
 
-    def __init__(self, origin_mm, pitch_mm, n_grid, wavelength_mm, distance_mm, target_mm, carrier_cpmm,
+    def __init__(self, origin_mm, pitch_mm, n_grid, wavelength_mm, distance_mm, carrier_cpmm,
                  sensor_origin_mm, sensor_pitch_mm, n_sensor, n_fft, nodes_x_mm, nodes_y_mm, xp=np):
         self.xp = xp
         origin = np.asarray(origin_mm, dtype=np.float64)
@@ -122,7 +114,6 @@ class FocalPropagator:
         z = float(distance_mm)
         if not z > 0:
             raise ValueError(f"distance_mm must be > 0 (wave plane before the sensor), got {z}")
-        T = np.asarray(target_mm, dtype=np.float64).reshape(S, 2)
         f_c = np.asarray(carrier_cpmm, dtype=np.float64).reshape(S, 2)
         s0 = np.asarray(sensor_origin_mm, dtype=np.float64).reshape(S, 2)
         inv_lam = 1.0 / lam

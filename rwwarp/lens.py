@@ -183,6 +183,19 @@ class Lens:
         idx = [i for i, s in enumerate(self.surfaces) if s.type == "doe"]
         return idx[0] if idx else None
 
+    def wave_plane_index(self) -> int:
+        """Surface index of the plane where the wave models form the field: the DOE, else the last
+        surface. Rays go straight from it to the sensor, so a LensError names any refracting surface
+        behind the DOE."""
+        d = self.doe_index
+        if d is None:
+            return len(self.surfaces) - 1
+        for k in range(d + 1, len(self.surfaces)):
+            if self.surfaces[k].type in ("standard", "thin_lens"):
+                raise LensError("the wave models need the DOE behind every refracting surface (surface "
+                                f"{k} follows the DOE)", file=self.source, surface=k)
+        return d
+
     def media(self):
         """Material name of the medium after each surface (a DOE and an aperture keep the medium)."""
         out, cur = [], "air"

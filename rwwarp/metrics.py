@@ -201,19 +201,6 @@ def peak_intensity_from_psf(data, pixel_mm, upsample: int = 4):
 
 
 # ============================================================================== lens helpers
-def _wave_plane(lens):
-    """Index of the plane where the wave models start: the DOE, else the last surface. Rays go
-    straight from it to the sensor, so nothing may refract behind the DOE."""
-    d = lens.doe_index
-    if d is None:
-        return len(lens.surfaces) - 1
-    for k in range(d + 1, len(lens.surfaces)):
-        if lens.surfaces[k].type in ("standard", "thin_lens"):
-            raise LensError("the DOE must follow every refracting surface (surface "
-                            f"{k} follows it)", file=lens.source, surface=k)
-    return d
-
-
 def _image_space_rays(lens, fields, wavelength_um, u, v, object_distance_mm=None, device="cpu",
                       doe_bending: str = "full"):
     """Rays after the last surface (the DOE's first order applied as a local grating).
@@ -224,7 +211,7 @@ def _image_space_rays(lens, fields, wavelength_um, u, v, object_distance_mm=None
     ``"none"``."""
     from .trace import Tracer
     from . import doe
-    plane = _wave_plane(lens)
+    plane = lens.wave_plane_index()
     tr = Tracer(lens, [wavelength_um], device=device)
     src = tr.sources(fields, 0, object_distance=object_distance_mm)
     rays = tr._run(src, np.asarray(u, float), np.asarray(v, float), 1.0, upto=plane + 1)
@@ -574,8 +561,7 @@ def ideal_peak_intensity(lens, field_deg, wavelength_um, image_point_mm, grid: i
     counted; multiply by a model's own passing fraction to compare with its PSF)."""
     if per not in ("entering", "passing"):
         raise ValueError(f"per must be 'entering' or 'passing', got {per!r}")
-    from .trace import pupil_grid
-    plane = _wave_plane(lens)
+    plane = lens.wave_plane_index()
     shape = lens.surfaces[lens.stop_index].shape
     g = -1.0 + (2.0 * np.arange(grid) + 1.0) / grid
     uu, vv = np.meshgrid(g, g, indexing="xy")

@@ -67,8 +67,7 @@ def paraxial_equivalent(lens, fields, wls, object_distance_mm=None):
     height).
     """
     from .lens import Lens, Surface
-    from .psf import _wave_plane_index
-    plane = _wave_plane_index(lens)
+    plane = lens.wave_plane_index()
     if plane == 0:
         raise LensError("paraxial-wave model needs refracting surfaces before the DOE", file=lens.source)
     od = lens.object_distance if object_distance_mm is None else float(object_distance_mm)

@@ -318,18 +318,6 @@ def _fmt_field(f):
     return f"{float(f):g} deg" if np.ndim(f) == 0 else f"({float(f[0]):g}, {float(f[1]):g}) deg"
 
 
-def _wave_plane_index(lens) -> int:
-    """Surface index of the plane where rays become a field: the DOE, else the last surface."""
-    d = lens.doe_index
-    if d is None:
-        return len(lens.surfaces) - 1
-    for k in range(d + 1, len(lens.surfaces)):
-        if lens.surfaces[k].type in ("standard", "thin_lens"):
-            raise LensError("the ray-wave model needs the DOE behind every refracting surface (surface "
-                            f"{k} follows the DOE)", file=lens.source, surface=k)
-    return d
-
-
 def _snap_center(x, pixel, n_pixels):
     """Centre of the sensor pixel containing x (mm); sensor pixel centres at (i + 0.5 - n/2) * pixel."""
     i = np.floor(np.asarray(x) / pixel + n_pixels / 2.0)
@@ -473,7 +461,7 @@ class RayWave:
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
 
-        plane = _wave_plane_index(lens)
+        plane = lens.wave_plane_index()
         uniq = sorted(set(wls))
         tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad)
         wl_idx = [uniq.index(w) for w in wls]
@@ -901,7 +889,7 @@ class RayWave:
             ny = (py[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
             pl = self.plan
             self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
-                                             self.z_sensor - self.z_plane, self.centers, self.carrier,
+                                             self.z_sensor - self.z_plane, self.carrier,
                                              self.focal["sensor_origin"], pl.sensor_pitch_mm, pl.n_sensor,
                                              pl.n_sensor_fft, nx, ny, xp=xp)
         return self._focal_op

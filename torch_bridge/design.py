@@ -87,10 +87,9 @@ def paraxial_object_distance(lens, eq_lens, object_distance_mm: float, wavelengt
     the real lens images an object at ``object_distance_mm`` (from the first vertex) -- so the
     paraxial-wave model sees the same defocus as the ray-wave model at each depth."""
     from rwwarp import paraxial
-    from rwwarp.psf import _wave_plane_index
     if not math.isfinite(object_distance_mm):
         return math.inf
-    plane = _wave_plane_index(lens)
+    plane = lens.wave_plane_index()
     slope = 1e-3
     ys, nus = paraxial.ynu_trace(lens, wavelength_um, object_distance_mm * slope, slope)
     n_pl = lens.indices(wavelength_um)[plane]
@@ -669,10 +668,9 @@ class RaySpot:
         self.object_distance_mm = object_distance_mm
 
     def _hits(self):
-        from rwwarp.psf import _wave_plane_index
         from rwwarp.trace import Tracer, pupil_grid
         lens = self.module.to_lens()
-        plane = _wave_plane_index(lens)
+        plane = lens.wave_plane_index()
         tr = Tracer(lens, self.wls, device="cpu", dtype="float64", requires_grad=True)
         nf, nw = len(self.fields), len(self.wls)
         fl = [f for f in self.fields for _ in range(nw)]
@@ -768,8 +766,7 @@ def paraxial_achromat(lens, wavelengths_um, doe_kind: str = "even_poly"):
     (rad) of ``rho^2`` (``even_poly`` index 0, ``poly`` index 1) and the DOE-to-sensor distance.
     """
     from rwwarp import paraxial
-    from rwwarp.psf import _wave_plane_index
-    plane = _wave_plane_index(lens)
+    plane = lens.wave_plane_index()
     s = lens.surfaces[plane]
     if s.type != "doe":
         raise ValueError("the lens has no DOE")

@@ -213,7 +213,7 @@ def test_focal_operator_adjoint_is_the_conjugate_transpose():
     rng = np.random.default_rng(1)
     S, n, ns, nf, m = 2, 24, 20, 32, 9
     op = FocalPropagator(origin_mm=[[-0.5, -0.5], [-0.4, -0.6]], pitch_mm=0.04, n_grid=n,
-                         wavelength_mm=[5.5e-4, 6.0e-4], distance_mm=20.0, target_mm=[[0.0, 0.0], [0.01, 0.3]],
+                         wavelength_mm=[5.5e-4, 6.0e-4], distance_mm=20.0,
                          carrier_cpmm=[[0.0, 0.0], [0.0, 25.0]], sensor_origin_mm=[[-0.02, -0.02], [-0.01, 0.28]],
                          sensor_pitch_mm=0.002, n_sensor=ns, n_fft=nf,
                          nodes_x_mm=rng.uniform(-0.01, 0.01, (S, m)), nodes_y_mm=rng.uniform(-0.01, 0.01, (S, m)))

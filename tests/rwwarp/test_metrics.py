@@ -285,7 +285,7 @@ def test_refracting_surface_behind_doe_refused():
                  profile={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [1.0]}),
          Surface(type="thin_lens", focal_length=20.0, thickness=20.0)]
     lens = Lens(s, wavelengths_um=[WL])
-    with pytest.raises(rw.LensError, match="DOE must follow"):
+    with pytest.raises(rw.LensError, match="DOE behind every refracting surface"):
         rw.field_curves(lens, [0.0, 1.0], WL)
     with pytest.raises(ValueError, match="eps"):
         rw.field_curves(thin(), [0.0], WL, eps=0.7)
