@@ -12,7 +12,7 @@ import time
 
 import warp as wp
 
-from rwwarp.lens import load_lens
+from rwwarp.io import load_lens
 from rwwarp.trace import Tracer, pupil_grid  # noqa: F401
 
 from _common import device_name, save, timed

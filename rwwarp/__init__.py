@@ -13,7 +13,8 @@ Units: lengths in mm, wavelengths in um, field angles in degrees.
     p = rw.psf(lens, field_deg=0.0, wavelength_um=0.55, model="ray-wave", size=64, device="cpu")
 """
 from .errors import LensError, LensFileError, GlassError, GeometryError, ArgumentError, SamplingWarning
-from .lens import Lens, Surface, Sensor, load_lens
+from .lens import Lens, Surface, Sensor
+from .io import load_lens
 from .analysis import spot_rms, spot_diagram
 from .psf import psf, psf_map, plan_psf, PSF, PSFMap
 from .plan import Plan

@@ -42,6 +42,7 @@ __all__ = [
     "get_backend",
     "kernel_source",
     "real_dtype",
+    "release_warp_pool",
 ]
 
 _COMPLEX_TO_REAL = {
@@ -622,7 +623,6 @@ class CudaBackend(Backend):
         Warp's memory pool on the same device (the ray buffers of the trace stage)."""
         with self.cuda_device:
             self.cp.get_default_memory_pool().free_all_blocks()
-        from .trace import release_warp_pool
         release_warp_pool(f"cuda:{self.index}")
 
     def _module(self, source: str, dtype, defines=()):
@@ -710,6 +710,26 @@ def _make_backend(device: str) -> Backend:
             raise RuntimeError(f"device {device!r}: platform {p} has only {len(devs)} device(s)")
         return OpenCLBackend(devs[d], device)
     return CudaBackend(int(m.group(4) or 0), device)
+
+
+def release_warp_pool(device) -> None:
+    """Hand the unused blocks of Warp's CUDA memory pool on ``device`` back to the driver (so torch,
+    CuPy and the next Warp allocations can use them): the pool's release threshold is set to 0 for
+    one device synchronisation, then restored. No-op on the CPU or without a memory pool."""
+    import warp as wp  # the trace stage's library; only its pool is touched here
+
+    dev = wp.get_device(str(device))
+    if not dev.is_cuda:
+        return
+    if not getattr(dev, "is_mempool_enabled", False):
+        wp.synchronize_device(dev)
+        return
+    keep = wp.get_mempool_release_threshold(dev)
+    try:
+        wp.set_mempool_release_threshold(dev, 0)
+        wp.synchronize_device(dev)
+    finally:
+        wp.set_mempool_release_threshold(dev, keep)
 
 
 def get_backend(device: str = "cpu") -> Backend:

@@ -259,10 +259,12 @@ def check_device(device, name: str = "device") -> str:
 
 
 def check_lens(lens, name: str = "lens"):
-    """A :class:`~rwwarp.lens.Lens`."""
-    from .lens import Lens
+    """A :class:`~rwwarp.lens.Lens`.
 
-    if not isinstance(lens, Lens):
+    The class is recognised by its qualified name, not imported: this module sits below
+    :mod:`rwwarp.lens` (``Lens.efl`` -> :mod:`rwwarp.paraxial` -> here), so importing it would close a
+    circle. Subclasses pass too."""
+    if not any(c.__module__ == "rwwarp.lens" and c.__qualname__ == "Lens" for c in type(lens).__mro__):
         raise ArgumentError(f"{name} must be a rwwarp Lens (rw.load_lens(...)), got {type(lens).__name__}")
     return lens
 

@@ -70,7 +70,7 @@ def _atomic(path, write):
 
 
 def _lens(path):
-    from .lens import load_lens
+    from .io import load_lens
     return load_lens(path)
 
 
@@ -158,7 +158,7 @@ def cmd_map(a):
 
 def cmd_demo(a):
     """The main job on a bundled lens: paraxial data, layout, an RGB multi-field ray-wave PSF map."""
-    from .lens import load_lens
+    from .io import load_lens
     from . import paraxial
     from .plots import layout
     lens = load_lens(a.lens)

@@ -402,18 +402,25 @@ class Lens:
         """Write the lens to ``path``: native JSON, a Zemax sequential ``.zmx``
         (:mod:`rwwarp.io_zemax_write`) or a DeepLens JSON (:mod:`rwwarp.io_deeplens_write`).
         ``format``: ``"json"``, ``"zmx"`` or ``"deeplens"``; default from the suffix (``.zmx`` ->
-        zmx, anything else -> json)."""
+        zmx, anything else -> json). Same as :func:`rwwarp.io.save_lens`."""
         fmt = format or ("zmx" if Path(path).suffix.lower() == ".zmx" else "json")
-        if fmt == "zmx":
-            from .io_zemax_write import write_zmx
-            write_zmx(self, path)
-        elif fmt == "deeplens":
-            from .io_deeplens_write import write_deeplens
-            write_deeplens(self, path)
-        elif fmt == "json":
+        if fmt == "json":
             Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        elif fmt in _WRITERS:
+            _WRITERS[fmt](self, path)
         else:
-            raise ValueError(f"format must be 'json', 'zmx' or 'deeplens', got {format!r}")
+            raise ValueError(f"format must be {', '.join(repr(f) for f in ['json', *_WRITERS])}, got {format!r}")
+
+
+# The other file formats live in rwwarp.io, a layer above this model (its readers build Lens objects, so
+# this module cannot import them). rwwarp.io registers its writers here when it is imported, and
+# ``import rwwarp`` (run before any rwwarp submodule) imports it: Lens.save knows no format by name.
+_WRITERS: dict = {}  # format name -> write(lens, path)
+
+
+def register_writer(fmt: str, write) -> None:
+    """Make ``Lens.save(path, format=fmt)`` call ``write(lens, path)``."""
+    _WRITERS[fmt] = write
 
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
@@ -514,52 +521,3 @@ def _no_unknown(d, allowed, source, surface, prefix=""):
     if bad:
         raise LensFileError(f"unknown key(s) {', '.join(prefix + b for b in bad)}; allowed: {sorted(allowed)}",
                             file=source, surface=surface, keyword=prefix + bad[0])
-
-
-def load_lens(path) -> Lens:
-    """Load a lens from a native JSON, DeepLens JSON, or Zemax ``.zmx`` file.
-
-    Bundled lenses can be named without a path (e.g. ``"a489_doe"``, ``"cooke_triplet"``).
-    Raises :class:`LensError` (subclasses :class:`LensFileError`, :class:`GlassError`,
-    :class:`GeometryError`) naming the file and the surface at fault.
-    """
-    from . import validate_input as vi
-
-    vi.check_path_string(path)
-    p = Path(path)
-    try:
-        exists = p.exists()
-    except (OSError, ValueError):  # over-long or odd paths
-        exists = False
-    if not exists:
-        bundled = Path(__file__).parent / "lenses"
-        for cand in (bundled / p.name, bundled / (p.name + ".json"), bundled / (p.name + ".zmx")):
-            try:
-                if p.name and cand.is_file():
-                    p = cand
-                    break
-            except (OSError, ValueError):
-                continue
-        else:
-            raise LensFileError("no such file (and no bundled lens of that name)", file=vi._short(str(path)))
-    try:
-        if p.suffix.lower() == ".zmx":
-            from .io_zemax import read_zmx
-            lens = read_zmx(p)
-        else:
-            d = vi.parse_json(vi.read_lens_bytes(p), p)
-            if isinstance(d, dict) and isinstance(d.get("surfaces"), list) and len(d["surfaces"]) > vi.MAX_SURFACES:
-                raise LensFileError(f"{len(d['surfaces'])} surfaces; at most {vi.MAX_SURFACES} are supported",
-                                    file=str(p), keyword="surfaces")
-            if isinstance(d, dict) and d.get("format") == FORMAT:
-                lens = Lens.from_dict(d, source=str(p))
-            else:
-                from .io_deeplens import lens_from_deeplens
-                lens = lens_from_deeplens(d, source=str(p))
-        vi.check_loaded(lens)
-    except LensError:
-        raise
-    except (TypeError, ValueError, OverflowError, KeyError, IndexError, AttributeError, ZeroDivisionError,
-            RecursionError, MemoryError, UnicodeError, OSError) as e:  # last line of defence: a LensError
-        raise LensFileError(f"cannot interpret the file ({type(e).__name__}: {str(e)[:200]})", file=str(p)) from None
-    return lens

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .backend import get_backend, release_warp_pool  # noqa: F401  (release_warp_pool: public here too)
 from .errors import GeometryError, LensError
 from .kernels import trace as ktrace
 from . import paraxial
@@ -158,31 +159,12 @@ def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0
     return u, v, cell * cell
 
 
-def release_warp_pool(device) -> None:
-    """Hand the unused blocks of Warp's CUDA memory pool on ``device`` back to the driver (so torch,
-    CuPy and the next Warp allocations can use them): the pool's release threshold is set to 0 for
-    one device synchronisation, then restored. No-op on the CPU or without a memory pool."""
-    dev = wp.get_device(str(device))
-    if not dev.is_cuda:
-        return
-    if not getattr(dev, "is_mempool_enabled", False):
-        wp.synchronize_device(dev)
-        return
-    keep = wp.get_mempool_release_threshold(dev)
-    try:
-        wp.set_mempool_release_threshold(dev, 0)
-        wp.synchronize_device(dev)
-    finally:
-        wp.set_mempool_release_threshold(dev, keep)
-
-
 def _with_release(device, alloc):
     """``alloc()`` (Warp arrays on ``device``); on CUDA, when Warp cannot allocate, the device's rwwarp
     backend frees its caches and calls its release hooks (torch's caching allocator, where
     torch_bridge registered it), then ``alloc()`` runs once more."""
     if not str(device).startswith("cuda"):
         return alloc()
-    from .backend import get_backend
     return get_backend(str(device))._allocate(alloc)
 
 

@@ -12,7 +12,8 @@ from rwwarp import doe
 from rwwarp.errors import GeometryError, GlassError, LensError, LensFileError
 from rwwarp.io_deeplens import lens_from_deeplens
 from rwwarp.io_zemax import read_zmx
-from rwwarp.lens import Lens, load_lens
+from rwwarp.io import load_lens
+from rwwarp.lens import Lens
 
 BUNDLED = Path(lensmod.__file__).parent / "lenses"
 BUNDLED_JSON = sorted(p.name for p in BUNDLED.glob("*.json"))
