@@ -611,6 +611,15 @@ def surface_is_continuous(surface, source=None) -> bool:
     return surface.levels is None and get_profile(surface, source).is_continuous
 
 
+def is_flat_profile(profile: dict) -> bool:
+    """True for a polynomial-type DOE profile dictionary whose coefficients are all zero (no phase to apply)."""
+    if profile.get("kind") in ("even_poly", "poly", "zernike"):
+        return not any(float(c) for c in profile.get("coefficients", []))
+    if profile.get("kind") == "cubic":
+        return float(profile.get("alpha", 0.0)) == 0.0
+    return False
+
+
 # ====================================================================== phase operations
 def wrap_phase(phi):
     """Phase wrapped to [0, 2 pi) (radians, float64)."""

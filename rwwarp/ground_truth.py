@@ -629,7 +629,7 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     wl = float(wavelength_um)
     plane = len(lens.surfaces) - 1
     if lens.doe_index is not None:
-        from .psf import _is_flat_profile
+        from .doe import is_flat_profile as _is_flat_profile
         doe_s = lens.surfaces[lens.doe_index]
         if lens.doe_index != plane or not _is_flat_profile(doe_s.profile):
             raise LensError("rs_lens_psf handles refractive lenses only (a blank DOE as the last surface is a "

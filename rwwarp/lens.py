@@ -123,6 +123,13 @@ class Sensor:
         return (0.5 * self.pixel_pitch * self.resolution[0], 0.5 * self.pixel_pitch * self.resolution[1])
 
 
+def snap_to_pixel(x, pixel, n_pixels):
+    """Centre of the sensor pixel containing x (mm), along an axis of ``n_pixels`` pixels of pitch ``pixel``
+    (mm): the pixel centres sit at (i + 0.5 - n/2) * pixel."""
+    i = np.floor(np.asarray(x) / pixel + n_pixels / 2.0)
+    return (i + 0.5 - n_pixels / 2.0) * pixel
+
+
 @dataclass
 class Lens:
     """An optical system: surfaces, sensor, object distance (mm from the first vertex, inf allowed).

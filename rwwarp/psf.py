@@ -22,6 +22,9 @@ import numpy as np
 from .errors import LensError
 from .plan import Plan, nice_fft_length, check_explicit
 from .trace import Tracer, as_field_list, pupil_grid, upload_packed
+from .doe import is_flat_profile as _is_flat_profile
+from .lens import snap_to_pixel as _snap_center
+from .trace import field_label as _fmt_field
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 _LAST = {}  # last ray-wave field, for inspection
@@ -314,16 +317,6 @@ def _auto_gauss_nodes(dir_s, ok, n_img, lam_mm, pixel, tol=1e-7):
     return 16
 
 
-def _fmt_field(f):
-    return f"{float(f):g} deg" if np.ndim(f) == 0 else f"({float(f[0]):g}, {float(f[1]):g}) deg"
-
-
-def _snap_center(x, pixel, n_pixels):
-    """Centre of the sensor pixel containing x (mm); sensor pixel centres at (i + 0.5 - n/2) * pixel."""
-    i = np.floor(np.asarray(x) / pixel + n_pixels / 2.0)
-    return (i + 0.5 - n_pixels / 2.0) * pixel
-
-
 def _snap_centers(center_mm, pixel, resolution, nsrc):
     """(nsrc, 2) patch centres: ``center_mm`` ((x, y) mm, one pair or one per source) snapped to the
     sensor's pixel centres."""
@@ -347,15 +340,6 @@ def _is_curved(surface) -> bool:
     if surface.type != "standard":
         return False
     return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
-
-
-def _is_flat_profile(profile: dict) -> bool:
-    """True for a polynomial-type DOE profile whose coefficients are all zero (no phase to apply)."""
-    if profile.get("kind") in ("even_poly", "poly", "zernike"):
-        return not any(float(c) for c in profile.get("coefficients", []))
-    if profile.get("kind") == "cubic":
-        return float(profile.get("alpha", 0.0)) == 0.0
-    return False
 
 
 def _doe_phase_grid(lens, plane, origin, pitch, n):

@@ -15,7 +15,8 @@ from .trace import Tracer, pupil_grid
 def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm):
     """Geometric PSF with the DOE as a local grating (ray bending by the phase gradient)."""
     from . import doe
-    from .psf import _fmt_field, _snap_center
+    from .lens import snap_to_pixel as _snap_center
+    from .trace import field_label as _fmt_field
     plane = lens.wave_plane_index()
     s = lens.surfaces[plane]
     prof = None

@@ -207,6 +207,11 @@ def as_field_list(fields_deg) -> list:
     return list(fields_deg)
 
 
+def field_label(f) -> str:
+    """A field for messages: ``"14 deg"`` or ``"(0, 2) deg"``."""
+    return f"{float(f):g} deg" if np.ndim(f) == 0 else f"({float(f[0]):g}, {float(f[1]):g}) deg"
+
+
 def _field_pair(field_deg):
     if np.ndim(field_deg) == 0:
         return 0.0, float(field_deg)
