@@ -41,3 +41,9 @@ class ArgumentError(LensError):
 
 class SamplingWarning(UserWarning):
     """A requested simulation setting violates a sampling criterion (aliasing is likely)."""
+
+
+class PatchWarning(UserWarning):
+    """A PSF does not fit its patch: less than 95 % of the power reaching the sensor lies inside it
+    (:func:`rwwarp.psf_map` names the field, the wavelength and the fraction; pass a larger ``size``).
+    Not a :class:`SamplingWarning`: the PSF inside the patch is right, the patch is too small."""

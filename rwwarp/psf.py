@@ -285,6 +285,17 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         from .errors import SamplingWarning
         warnings.warn(f"{int(info['dropped_rays'].sum())} rays fell outside the wave-plane window and were not "
                       "splatted (their power is missing from the PSF): report this lens", SamplingWarning, stacklevel=2)
+    # a PSF that does not fit its patch is said, not silently cut (issue 13): fraction of the traced power inside
+    vf = np.asarray(info["valid_fraction"], float).reshape(out.shape[:2])
+    info["power_in_patch"] = inside = out.sum(axis=(2, 3)) / np.where(vf > 0, vf, np.inf)
+    cut = [f"{_fmt_field(fields[i])} at {wavelengths_um[j]:g} um: {inside[i, j]:.3f}"
+           for i, j in zip(*np.nonzero((inside < 0.95) & (vf > 0)))]
+    if cut:
+        import warnings
+        from .errors import PatchWarning
+        warnings.warn(f"{len(cut)} PSF(s) keep less than 95 % of their traced power in the {size}x{size} px patch "
+                      f"({'; '.join(cut[:6])}{'; ...' if len(cut) > 6 else ''}); pass a larger size", PatchWarning,
+                      stacklevel=2)
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
 
