@@ -186,10 +186,24 @@ def cmd_validate(a):
     print(rep)
 
 
+def _plugin_command(name: str):
+    """The callable registered as ``name`` in the ``rwwarp.commands`` entry point group (``pip install -e .``
+    writes the group from pyproject.toml; ImportError when nothing registers it or it cannot be imported)."""
+    from importlib.metadata import entry_points
+
+    found = entry_points(group="rwwarp.commands", name=name)
+    if not found:
+        raise ImportError(f"no {name!r} command in the entry point group 'rwwarp.commands' (is rwwarp installed "
+                          "with pip install -e '.[torch]'?)")
+    return next(iter(found)).load()
+
+
 def cmd_design(a):
-    """End-to-end design from a YAML/TOML config (torch_bridge; needs torch)."""
+    """End-to-end design from a YAML/TOML config (torch_bridge; needs torch). torch_bridge is a layer above
+    rwwarp: the command is found through the ``rwwarp.commands`` entry point group (pyproject.toml), not
+    imported here."""
     try:
-        from torch_bridge.train import main as train_main
+        train_main = _plugin_command("design")
     except ImportError as e:
         sys.exit(f"rwwarp design needs torch and torch_bridge ({e}); install with: pip install 'rwwarp[torch]'")
     try:
