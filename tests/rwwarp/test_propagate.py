@@ -661,7 +661,7 @@ def test_x_fft_plans_shared_across_window_heights(cl_backend):
     """Windows a few rows apart share one x-FFT plan (row count on a coarse ladder, plans cost
     ~0.5 s each), and the shared plan's extra rows do not leak into the result: every window still
     conserves energy to 1e-8 (Parseval, as in test_energy_conservation)."""
-    from rwwarp.propagate import _fft_rows
+    from rwwarp.propagate_stages import _fft_rows
 
     be = cl_backend
     assert [_fft_rows(n) for n in (1, 7, 8, 9, 15, 16, 17)] == [1, 7, 8, 9, 15, 16, 18]
