@@ -49,7 +49,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["doe_order_coefficients", "FocalPropagator", "transfer_curvature"]
+__all__ = ["doe_order_coefficients", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
+           "pixel_weights"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -134,6 +135,8 @@ class FocalPropagator:
             # removed, the output exp(2 pi i f_c.p) is removed: nothing left but constants
             e = np.sqrt(np.abs(A[:, None, None, ax])) * h * np.exp(1j * ph)
             self._E.append(xp.asarray(e))
+        self._geo = (xs, ps, g, A, z)
+        self._dE = None
         # step 2: remainder transfer on the padded sensor grid (true frequency f_c + nu)
         nu = np.fft.fftfreq(self.nf, d=hs)                                     # (nf,)
         fx = f_c[:, 0:1, None] + nu[None, None, :]                             # (S, 1, nf)
@@ -151,9 +154,12 @@ class FocalPropagator:
         dy = z * (fy / ws + g[:, None, None, 1] + q[:, None, None, 1] * nuy)
         room = (self.nf - self.ns) * hs
         keep = (arg > 0) & (np.abs(dx) <= room) & (np.abs(dy) <= room)
-        hr = np.where(keep, np.exp(2j * np.pi * z * (w - wg)), 0.0)
+        rem = np.where(keep, w - wg, 0.0)
+        hr = np.where(keep, np.exp(2j * np.pi * z * rem), 0.0)
         self.kept_band_fraction = float(np.mean(keep))
         self._HR = xp.asarray(hr)
+        self._rem = rem           # d(phase of H_R)/dz / (2 pi), kept band (for the distance derivative)
+        self._dHR = None
         # output factors: U(p) = 1/nf^2 sum_m B_m exp(2 pi i nu_m (p - s0))
         nx, ny = np.asarray(nodes_x_mm, float), np.asarray(nodes_y_mm, float)
         self._Fx = xp.asarray(np.exp(2j * np.pi * nu[None, None, :] * (nx - s0[:, 0:1])[:, :, None]) / self.nf)
@@ -176,6 +182,38 @@ class FocalPropagator:
         t = xp.matmul(b, xp.swapaxes(self._Fx, 1, 2))      # (S, nf, Mx)
         return xp.matmul(self._Fy, t)                      # (S, My, Mx)
 
+    def _distance_factors(self):
+        """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier (built once).
+
+        ``E = sqrt|A| h exp(-i pi A d^2)`` with ``A = 1 / (z Q)`` and ``d = p + z g - x``, so
+        ``dE/dz = E (-1 / (2 z) + i pi (A / z) d^2 - 2 i pi A d g)``; ``dH_R/dz = 2 pi i (w - w_G) H_R``."""
+        if self._dE is None:
+            xp = self.xp
+            xs, ps, g, A, z = self._geo
+            self._dE = []
+            for ax in range(2):
+                d = ps[:, :, None, ax] + z * g[:, None, None, ax] - xs[:, None, :, ax]
+                a = A[:, None, None, ax]
+                fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g[:, None, None, ax]
+                e = self._E[ax] if xp is np else xp.asnumpy(self._E[ax])
+                self._dE.append(xp.asarray(e * fac))
+            self._dHR = self._HR * xp.asarray(2j * np.pi * self._rem)
+        return self._dE, self._dHR
+
+    def distance_derivative(self, field):
+        """``dU/dz`` (S, My, Mx) at the output nodes: the exact derivative of :meth:`forward` with respect
+        to the propagation distance ``distance_mm`` (grids, band mask and carrier held fixed; the constant
+        phase per source that :meth:`forward` drops does not change intensities)."""
+        xp = self.xp
+        (dex, dey), dhr = self._distance_factors()
+        ex, ey = self._E
+        t = xp.matmul(field, xp.swapaxes(ex, 1, 2))
+        v = xp.matmul(ey, t)
+        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
+        b = xp.fft.fft2(dv, s=(self.nf, self.nf)) * self._HR + xp.fft.fft2(v, s=(self.nf, self.nf)) * dhr
+        t = xp.matmul(b, xp.swapaxes(self._Fx, 1, 2))
+        return xp.matmul(self._Fy, t)
+
     def adjoint(self, grad):
         """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, My, Mx) -> (S, n, n)."""
         xp = self.xp
@@ -188,11 +226,27 @@ class FocalPropagator:
         return xp.matmul(t, xp.conj(ex))                                    # (S, n, n)
 
 
+def pixel_weights(gauss_nodes: int, pixel_mm: float) -> np.ndarray:
+    """Gauss-Legendre quadrature weights (g, g) of one pixel's area (mm^2), node order as the output nodes."""
+    _, wts = np.polynomial.legendre.leggauss(int(gauss_nodes))
+    return np.outer(wts, wts) * (0.5 * pixel_mm) ** 2
+
+
 def pixel_power(u_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):
     """Power per pixel from the field at ``g x g`` Gauss-Legendre nodes per pixel: ``u_nodes`` (S, size*g,
     size*g) ordered pixel-major (pixel i, node a at column ``i*g + a``). Returns (S, size, size)."""
     g = int(gauss_nodes)
-    _, wts = np.polynomial.legendre.leggauss(g)
-    w2 = xp.asarray(np.outer(wts, wts) * (0.5 * pixel_mm) ** 2)
+    w2 = xp.asarray(pixel_weights(g, pixel_mm))
     inten = (u_nodes.real ** 2 + u_nodes.imag ** 2).reshape(u_nodes.shape[0], size, g, size, g)
     return xp.einsum("siajb,ab->sij", inten, w2)
+
+
+def pixel_power_adjoint(u_nodes, grad_power, gauss_nodes: int, pixel_mm: float, xp=np):
+    """Gradient of ``sum(grad_power * pixel_power(u_nodes))`` with respect to the node field, in torch's
+    convention for complex inputs (``2 dL/d conj(u)``): ``2 w_ab grad_power[i, j] u`` at node (i a, j b).
+    ``u_nodes`` (S, size g, size g), ``grad_power`` (S, size, size)."""
+    g = int(gauss_nodes)
+    S, size = grad_power.shape[0], grad_power.shape[1]
+    w2 = xp.asarray(pixel_weights(g, pixel_mm))
+    wg = grad_power[:, :, None, :, None] * w2[None, None, :, None, :]
+    return 2.0 * wg.reshape(S, size * g, size * g) * u_nodes

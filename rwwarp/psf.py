@@ -869,9 +869,12 @@ class RayWave:
                                            gauss_nodes=self.gauss_nodes)
         return be.to_host(power)
 
-    def focal_operator(self):
-        """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once."""
-        if getattr(self, "_focal_op", None) is None:
+    def focal_operator(self, distance_mm=None):
+        """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once per
+        wave-plane-to-sensor distance (mm; default the lens's): a learning sensor distance rebuilds it on the
+        same grids."""
+        z = float(self.z_sensor - self.z_plane) if distance_mm is None else float(distance_mm)
+        if getattr(self, "_focal_op", None) is None or self._focal_op.z != z:
             from .focal import FocalPropagator
             from .propagate import gauss_legendre
             xp = np
@@ -884,7 +887,7 @@ class RayWave:
             ny = (py[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
             pl = self.plan
             self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
-                                             self.z_sensor - self.z_plane, self.carrier,
+                                             z, self.carrier,
                                              self.focal["sensor_origin"], pl.sensor_pitch_mm, pl.n_sensor,
                                              pl.n_sensor_fft, nx, ny, xp=xp)
         return self._focal_op

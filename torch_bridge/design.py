@@ -141,9 +141,16 @@ class LiveProvider:
             sl = slice(k, min(k + tile, n))
             rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
                            center_mm=src_c[sl])
+            rws = [rw]
+            if rw.plan.method == "focal" and rw.nsrc > 1:
+                # focal grids follow each source's patch and DOE orders: one plan per source
+                rws = [m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
+                                 pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
+                       for j in range(sl.start, sl.stop)]
 
-            def run(*ts, rw=rw, record=True):
-                return m._psf_rw(rw, dict(zip(names, ts)), record=record)
+            def run(*ts, rws=rws, record=True):
+                vals = dict(zip(names, ts))
+                return torch.cat([m._psf_rw(r, vals, record=record) for r in rws], 0)
             if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                 outs.append(_Recompute.apply(run, *tensors))
             else:
@@ -213,6 +220,7 @@ class CachedProvider:
         self.learn_distance = self.plane == len(lens.surfaces) - 1 and \
             int(self.plane) in set(module.thickness_index.tolist())
         self._cache = {}
+        self._focal = {}    # entry key -> (nodes [(RayWave, field, entering)], distance, geo): method "focal"
         self.plans = {}
         self.replans = 0
         self.replan_log = []
@@ -355,6 +363,8 @@ class CachedProvider:
         in batches of :meth:`build_batch` sources (no gradient buffers), each batch a RayWave of its
         nodes with the entry's plan and patch centres (the field of a source does not depend on the
         others in its batch)."""
+        if self._uses_focal(key):
+            return self._build_focal(key, centres)
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
         if plan is None:
@@ -411,10 +421,90 @@ class CachedProvider:
 
     def _entry(self, wavelength_um: float, depth_mm):
         key = self._key(wavelength_um, depth_mm)
-        e = self._cache.get(key)
+        e = self._cache.get(key) or self._focal.get(key)
         if e is None:
             e = self._build(key, self._recorded_plan(key))
         return e
+
+    def _uses_focal(self, key) -> bool:
+        """Whether entry ``key`` propagates by the focal method: the module's ``method``, or for "auto"
+        the choice :class:`rwwarp.psf.RayWave` makes for the entry's nodes (the band-limited ASM while its
+        plan is small, else focal), recorded in :attr:`plans`."""
+        m = self.module.method
+        if m != "auto":
+            return m == "focal"
+        rec = self.plans.get(key) or {}
+        if rec.get("method") in ("focal", "asm"):
+            return rec["method"] == "focal"
+        from rwwarp.psf import RayWave
+        geo, fields, depth = self._geometry(key[1])
+        probe = RayWave(geo.to_lens(), fields, [float(key[0])] * len(fields), self.size, self.pixel_mm,
+                        device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
+                        rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
+                        gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto")
+        return probe.plan.method == "focal"
+
+    def _build_focal(self, key, centres=None):
+        """Cache one entry for the focal method: each node its own RayWave (its own focal plan: grids follow
+        that node's patch and the DOE orders reaching it) and wave-plane field, traced without gradients."""
+        wavelength_um, depth_mm = key
+        geo, fields, depth = self._geometry(depth_mm)
+        rec = self.plans.get(key) or {}
+        if centres is None and rec.get("centers") is not None:
+            centres = np.asarray(rec["centers"], dtype=np.float64)
+        if centres is None:
+            centres = common_centres(geo, fields, self.wl_ref, depth)
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        dev = self.module.thickness_base.device
+        budget = self.budget_bytes()
+        nodes, log = [], []
+        for k, f in enumerate(fields):
+            rw = geo.raywave([f], [float(wavelength_um)], self.size, object_distance_mm=depth, pixel_mm=self.pixel_mm,
+                             center_mm=centres[k:k + 1], requires_grad=False, method="focal",
+                             memory_budget_bytes=budget)
+            u = self._to_torch(rw.field_array(), dev)
+            nodes.append((rw, u, torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)))
+            log.append({"n_grid": rw.plan.n_grid, "n_sensor": rw.plan.n_sensor, "ray_grid": rw.plan.ray_grid,
+                        "orders": [m for m, _ in rw.focal["orders"][0]],
+                        "estimate_bytes": rw.plan.estimate["memory_bytes"]})
+        if str(geo.rw_device).startswith("cuda"):
+            from rwwarp.trace import release_warp_pool
+            release_warp_pool(geo.rw_device)
+        rw0 = nodes[0][0]
+        dist = float(rw0.z_sensor - rw0.z_plane)
+        self.build_log.append({"key": list(key), "method": "focal", "nsrc": len(nodes), "nodes": log})
+        self._focal[key] = (nodes, dist, geo)
+        self.plans[key] = {"method": "focal", "centers": centres.tolist(), "safety": float(geo.nyquist_safety),
+                           "n_grid": [e["n_grid"] for e in log]}
+        return self._focal[key]
+
+    def _focal_psfs(self, key, entry, doe, thick):
+        """(n_nodes, size, size) for a focal entry: DOE orders of the current DOE applied to each node's
+        cached field, focal propagation (each node a checkpoint when a gradient is wanted and there is
+        more than one node)."""
+        from torch_bridge.functions import doe_orders_factor, focal_propagate
+        from torch_bridge.modules import _Recompute
+        nodes, dist, geo = entry
+        outs = []
+        ts = [doe] if thick is None else [doe, thick]
+        wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
+        for rw, u, entering in nodes:
+            def run(doe_t, thick_t=None, record=True, rw=rw, u=u, entering=entering):
+                ctx = torch.enable_grad() if record else torch.no_grad()
+                with ctx:
+                    d = torch.full((1,), dist, dtype=torch.float64, device=u.device) if thick_t is None \
+                        else thick_t.reshape(1)
+                    v = u
+                    if rw.focal["profile"] is not None:
+                        v = u * doe_orders_factor(geo.doe_phase(rw, {"doe": doe_t}, wrap=False), rw.focal["orders"])
+                    return focal_propagate(v, d, rw) / entering[:, None, None]
+            if len(nodes) > 1 and wants:
+                outs.append(_Recompute.apply(run, *ts))
+            else:
+                outs.append(run(*ts, record=torch.is_grad_enabled()))
+        self.step_log.append({"key": list(key), "method": "focal", "chunk": 1, "chunks": len(nodes)})
+        del self.step_log[:-64]
+        return torch.cat(outs, 0)
 
     def prepare(self, wavelengths_um, depths_mm, progress: bool = False):
         """Compute and cache the DOE-plane fields for every (depth, wavelength) now; entries without a
@@ -422,7 +512,7 @@ class CachedProvider:
         work = []
         for d in depths_mm:
             keys = [self._key(w, d) for w in wavelengths_um]
-            todo = [k for k in keys if k not in self._cache]
+            todo = [k for k in keys if k not in self._cache and k not in self._focal]
             if not todo:
                 continue
             fresh = [k for k in todo if self._recorded_plan(k) is None]
@@ -442,12 +532,14 @@ class CachedProvider:
     def load_plans(self, plans: dict):
         """Use recorded plans (:attr:`plans` of an earlier run) for the entries built from now on."""
         self._cache.clear()
+        self._focal.clear()
         self._chunks.clear()
         self.plans = {k: dict(v) for k, v in plans.items()}
 
     def cache_bytes(self) -> int:
         """Bytes held by the cached fields."""
-        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values())
+        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values()) + \
+            sum(u.numel() * u.element_size() for nodes, _, _ in self._focal.values() for _, u, _ in nodes)
 
     def check_sampling(self) -> int:
         """Replan the entries whose pitch no longer samples field + DOE (``2 pitch (f_field + f_DOE) <= 1``
@@ -492,7 +584,47 @@ class CachedProvider:
                     chunks[c] = [(sl, moved if sub is rw else _recentred(sub, moved.centers[sl])) for sl, sub in parts]
                 self.plans[key]["centers"] = np.asarray(moved.centers).tolist()
                 rebuilt += 1
+        rebuilt += self._check_focal(current)
         self.replans += rebuilt
+        return rebuilt
+
+    def _check_focal(self, current) -> int:
+        """:meth:`check_sampling` for focal entries: each node is planned again from the current lens (a
+        pilot trace); the entry is rebuilt when a node now needs a finer wave-plane pitch, a wider
+        wave-plane window or sensor-side box (by more than 2 %), or DOE orders it did not compute, or when
+        its patch centre moved by more than ``size / 8`` pixels."""
+        from rwwarp.psf import RayWave
+        rebuilt = 0
+        for key in list(self._focal):
+            nodes, _, geo = self._focal[key]
+            geo_now, cen = current(key[1])
+            _, fields, depth = self._geometry(key[1])
+            lens = geo_now.to_lens()
+            why = None
+            for k, (rw, _, _) in enumerate(nodes):
+                if np.max(np.abs(cen[k] - rw.centers[0])) > self.size * self.pixel_mm / 8.0:
+                    why = {"reason": "re-centre", "shift_um": float(np.max(np.abs(cen[k] - rw.centers[0]))) * 1e3}
+                    break
+                new = RayWave(lens, [fields[k]], [float(key[0])], self.size, self.pixel_mm, device=geo_now.rw_device,
+                              plan=geo_now.plan_policy, amplitude=geo_now.amplitude, object_distance_mm=depth,
+                              rays_per_sample=geo_now.rays_per_sample, center_mm=rw.centers,
+                              use_reference=geo_now.use_reference, gauss_nodes=rw.gauss_nodes,
+                              nyquist_safety=geo_now.nyquist_safety, method="focal")
+                a, b = rw.plan, new.plan
+                orders_old = {m for m, _ in rw.focal["orders"][0]}
+                orders_new = {m for m, _ in new.focal["orders"][0]}
+                if (b.pitch_mm < 0.98 * a.pitch_mm or b.n_grid * b.pitch_mm > 1.02 * a.n_grid * a.pitch_mm
+                        or b.n_sensor * b.sensor_pitch_mm > 1.02 * a.n_sensor * a.sensor_pitch_mm
+                        or not orders_new <= orders_old):
+                    why = {"reason": "sampling", "node": k, "pitch_um": [a.pitch_mm * 1e3, b.pitch_mm * 1e3],
+                           "orders": sorted(orders_new - orders_old)}
+                    break
+            if why is not None:
+                self.replan_log.append({"key": list(key), "method": "focal", **why})
+                self._focal.pop(key)
+                self.plans.pop(key, None)
+                self._build_focal(key, cen if why["reason"] == "re-centre" else None)
+                rebuilt += 1
         return rebuilt
 
     def step_bytes_per_source(self, rw) -> int:
@@ -558,7 +690,11 @@ class CachedProvider:
         out = []
         for w in wavelengths_um:
             key = self._key(w, depth_mm)
-            rw, u, dist, entering, geo = self._entry(w, depth_mm)
+            entry = self._entry(w, depth_mm)
+            if key in self._focal:
+                out.append(self._focal_psfs(key, entry, doe, thick))
+                continue
+            rw, u, dist, entering, geo = entry
             c = self.step_chunk(rw) if chunk is None else max(1, int(chunk))
             parts = self._chunk_raywaves(key, rw, geo, c)
             self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),

@@ -8,6 +8,9 @@ fixed sampling plan) and runs in float64 unless said otherwise:
 * :class:`Propagate`: field (+ DOE phase phi0, + DOE-to-sensor distance) -> power per sensor pixel
   (band-limited ASM + pixel integration, OpenCL/CUDA kernels; backward is the analytic adjoint
   :func:`rwwarp.propagate.sensor_intensity_adjoint` on the same cached plans).
+* :class:`FocalPropagate`: field on a focal plan's wave-plane grid (+ distance) -> power per sensor
+  pixel (:class:`rwwarp.focal.FocalPropagator`: the converging wave handled analytically; backward is
+  the operator's adjoint and its exact distance derivative).
 * :class:`MixedPrecision`: float64 forward -> float32, float32 gradient -> float64 (the paper's
   mixed precision: the optics in double, the network in single).
 * :class:`QuantizeSTE`: DOE phase wrapped to [0, 2 pi) and quantised to N levels with a
@@ -50,12 +53,15 @@ import torch
 from rwwarp.kernels import trace as ktrace
 
 __all__ = [
+    "FocalPropagate",
     "MixedPrecision",
     "Propagate",
     "QuantizeSTE",
     "TraceSplat",
     "distance_from_table",
+    "doe_orders_factor",
     "doe_scale",
+    "focal_propagate",
     "load_table",
     "mixed_precision",
     "propagate",
@@ -419,6 +425,88 @@ def propagate(field, phi0, distance, rw, tile_px=None):
     n_col = len({(t[2], t[3]) for t in tiles})
     rows = [torch.cat(parts[k:k + n_col], dim=2) for k in range(0, len(parts), n_col)]
     return torch.cat(rows, dim=1)
+
+
+# ---------------------------------------------------------------------------------------------- focal propagation
+def _xp_of(t):
+    """(array module, zero-copy view) of a tensor: numpy on the CPU, CuPy (DLPack) on CUDA."""
+    t = t.detach().contiguous()
+    if t.is_cuda:
+        import cupy
+        return cupy, cupy.from_dlpack(t)
+    return np, t.numpy()
+
+
+def _from_xp(a, device):
+    if isinstance(a, np.ndarray):
+        return torch.from_numpy(a).to(device)
+    return torch.from_dlpack(a)
+
+
+class FocalPropagate(torch.autograd.Function):
+    """Wave-plane field -> power per sensor pixel by the focal propagation of a RayWave planned with
+    ``method="focal"`` (:class:`rwwarp.focal.FocalPropagator`).
+
+    ``FocalPropagate.apply(field, distance, rw)``: ``field`` complex128 (S, n, n) on the focal plan's
+    wave-plane grid, carrier removed and any DOE orders already applied (``sum_m c_m exp(i m phi0)``,
+    :func:`doe_orders_factor`); ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; all
+    entries equal: one lens). Returns float64 (S, size, size), ``|U|^2`` integrated over each pixel.
+
+    Backward: the operator's adjoint for ``field`` (exact conjugate transpose) and, for ``distance``,
+    its exact derivative :meth:`~rwwarp.focal.FocalPropagator.distance_derivative` at the fixed plan
+    (grids, band mask, carrier): finite differences on the same RayWave agree to rounding.
+    """
+
+    @staticmethod
+    def forward(ctx, field, distance, rw):
+        from rwwarp.focal import pixel_power
+        z = float(distance.detach().reshape(-1)[0]) if distance is not None else None
+        op = rw.focal_operator(z)
+        xp, f = _xp_of(field.to(torch.complex128))
+        with _streams(rw):
+            u = op.forward(f)
+            power = pixel_power(u, rw.gauss_nodes, rw.pixel, rw.size, xp=xp)
+            out = _from_xp(power, field.device)
+        ctx.rw, ctx.op, ctx.xp, ctx.f, ctx.u = rw, op, xp, f, u
+        ctx.devices = (field.device, None if distance is None else distance.device)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        from rwwarp.focal import pixel_power_adjoint
+        rw, op, xp = ctx.rw, ctx.op, ctx.xp
+        need_f, need_d = ctx.needs_input_grad[:2]
+        _, g = _xp_of(grad_out.to(torch.float64))
+        gf = gd = None
+        with _streams(rw):
+            gu = pixel_power_adjoint(ctx.u, g, rw.gauss_nodes, rw.pixel, xp=xp)
+            if need_f:
+                gf = _from_xp(op.adjoint(gu), ctx.devices[0])
+            if need_d:
+                du = op.distance_derivative(ctx.f)
+                gd = _from_xp(xp.real(xp.sum(xp.conj(gu) * du, axis=(1, 2))), ctx.devices[1])
+        ctx.f = ctx.u = None
+        return gf, gd, None
+
+
+def doe_orders_factor(phi0, orders):
+    """``sum_m c_m exp(1j m phi0)`` per source (S, n, n) complex128 from the unwrapped DOE phase ``phi0``
+    (rad, float64 (S, n, n)) and the orders a focal plan kept (``rw.focal["orders"]``: per source a list
+    of ``(m, c_m)``; :func:`rwwarp.focal.doe_order_coefficients`). Differentiable in ``phi0``."""
+    out = []
+    for k, ol in enumerate(orders):
+        p = phi0[k]
+        acc = None
+        for m, c in ol:
+            term = complex(c) * torch.exp(1j * float(m) * p) if m != 0 else torch.full_like(p, 1.0) * complex(c)
+            acc = term if acc is None else acc + term
+        out.append(acc)
+    return torch.stack(out)
+
+
+def focal_propagate(field, distance, rw):
+    """:class:`FocalPropagate` (a plain forward when no gradient is wanted)."""
+    return FocalPropagate.apply(field, distance, rw)
 
 
 # ---------------------------------------------------------------------------------------------- precision, quantisation

@@ -56,7 +56,7 @@ from rwwarp.errors import SamplingWarning
 from rwwarp.lens import MAX_ASPHERIC, Lens
 from rwwarp.plan import Plan
 
-from .functions import backend_for, propagate, quantize_ste, trace_splat
+from .functions import backend_for, doe_orders_factor, focal_propagate, propagate, quantize_ste, trace_splat
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -117,6 +117,10 @@ class HybridLens(nn.Module):
     replan : bool
         True (default): a new plan per forward call; False: plans cached per request (see the
         module docstring).
+    method : "auto" | "focal" | "asm"
+        Wave propagation, as :func:`rwwarp.psf`: ``"focal"`` handles the wave converging to the patch
+        analytically (cost follows the patch: the Cooke triplet at F/4), ``"asm"`` is the band-limited
+        angular spectrum (pixel-map DOEs), ``"auto"`` the ASM while its plan is small, else focal.
 
     Methods return tensors: :meth:`psf` (size, size), :meth:`psf_map` (n_fields, n_wavelengths,
     size, size), fractions of the entering power per sensor pixel; :meth:`to_lens` exports the
@@ -125,8 +129,11 @@ class HybridLens(nn.Module):
 
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
-                 use_reference: bool = True, replan: bool = True):
+                 use_reference: bool = True, replan: bool = True, method: str = "auto"):
         super().__init__()
+        if method not in ("auto", "focal", "asm"):
+            raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+        self.method = method
         self.lens_template = copy.deepcopy(lens)
         self.plan_policy = plan
         self.rays_per_sample = float(rays_per_sample)
@@ -326,11 +333,14 @@ class HybridLens(nn.Module):
         self._plans.clear()
 
     def raywave(self, fields, wavelengths_um, size, *, object_distance_mm=None, pixel_mm=None, center_mm=None,
-                plan=None, requires_grad: bool = True):
+                plan=None, requires_grad: bool = True, method: str | None = None, memory_budget_bytes=None):
         """The :class:`rwwarp.psf.RayWave` (plan and discrete decisions) for sources ``fields`` x
         ``wavelengths_um`` (paired element-wise), built from the current values (or cached, see
         ``replan``). ``requires_grad=False``: the tracer keeps no gradient buffers and ping-pongs two
-        ray-state buffers (a frozen refractive part, e.g. :class:`~torch_bridge.design.CachedProvider`)."""
+        ray-state buffers (a frozen refractive part, e.g. :class:`~torch_bridge.design.CachedProvider`).
+        ``method``: override of the module's propagation method; ``memory_budget_bytes``: the planner's
+        estimate of the batch is checked against it before anything is traced
+        (:class:`rwwarp.plan.MemoryBudgetError` names the estimate and the knobs)."""
         from rwwarp.psf import RayWave
         self.check_finite()
         fields = _field_list(fields)
@@ -339,7 +349,7 @@ class HybridLens(nn.Module):
         key = (tuple(fields), tuple(wls), int(size),
                object_distance_mm, pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)),
                plan if isinstance(plan, str) else (plan.pitch_mm, plan.n_grid, plan.n_pad, plan.ray_grid),
-               self.rw_device, bool(requires_grad))
+               self.rw_device, bool(requires_grad), method or self.method)
         if not self.replan and key in self._plans:
             return self._plans[key]
         lens = self.to_lens()
@@ -348,7 +358,8 @@ class HybridLens(nn.Module):
                      amplitude=self.amplitude, object_distance_mm=object_distance_mm,
                      rays_per_sample=self.rays_per_sample, center_mm=center_mm, use_reference=self.use_reference,
                      gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
-                     requires_grad=bool(requires_grad))
+                     requires_grad=bool(requires_grad), method=method or self.method,
+                     memory_budget_bytes=memory_budget_bytes)
         rw._bridge_base_table = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw
@@ -454,11 +465,12 @@ class HybridLens(nn.Module):
                 self.doe.mul_(c)
         return c
 
-    def doe_phase(self, rw, values=None):
+    def doe_phase(self, rw, values=None, wrap: bool = True):
         """DOE relief phase phi0 (rad) on each window of ``rw``, (S, n, n) float64, built in torch from
         the DOE values (wrapped to [0, 2 pi), quantised with a straight-through gradient when the
         surface has ``levels``; not masked at the DOE's edge): the same samples as
-        :meth:`rwwarp.psf.RayWave.doe_phase`. None without a DOE."""
+        :meth:`rwwarp.psf.RayWave.doe_phase`. None without a DOE. ``wrap=False``: the smooth unwrapped
+        phase (the focal path's diffraction orders, :func:`~torch_bridge.functions.doe_orders_factor`)."""
         s = rw.lens.surfaces[rw.plane]
         if s.type != "doe":
             return None
@@ -490,7 +502,7 @@ class HybridLens(nn.Module):
         else:
             raise ValueError(f"unsupported DOE kind {kind!r}")
         # no mask at the DOE's edge (as rwwarp.psf): rays are clipped there by the tracer
-        return quantize_ste(phi, s.levels)
+        return quantize_ste(phi, s.levels) if wrap else phi
 
     def _doe_geometry(self, rw, s, dev):
         """Per-plan DOE sampling helpers, built on ``dev`` (no window-sized host-to-device copies, except
@@ -540,14 +552,19 @@ class HybridLens(nn.Module):
         ctx = contextlib.nullcontext() if record else torch.no_grad()
         with ctx:
             table = self.param_table(rw, values)
-            phi0 = self.doe_phase(rw, values)
+            phi0 = self.doe_phase(rw, values) if rw.plan.method != "focal" else None
             dist = (table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]).expand(rw.nsrc)
             u = trace_splat(table, rw)
             if rw.amplitude != "energy":
                 q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
                 pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
                 u = u * torch.sqrt(torch.where(pw > 0, q / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
-            power = propagate(u, phi0, dist, rw, spatial_tile)
+            if rw.plan.method == "focal":
+                if rw.focal["profile"] is not None:
+                    u = u * doe_orders_factor(self.doe_phase(rw, values, wrap=False), rw.focal["orders"])
+                power = focal_propagate(u, dist, rw)
+            else:
+                power = propagate(u, phi0, dist, rw, spatial_tile)
             entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
             return power / entering[:, None, None]
 
@@ -613,8 +630,11 @@ class HybridLens(nn.Module):
         src_f = [fields[i] for i, _ in pairs]
         src_w = [wls[j] for _, j in pairs]
         full = self.raywave(src_f, src_w, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
-        explicit = Plan(full.plan.pitch_mm, full.plan.n_grid, full.plan.n_pad, full.plan.ray_grid, "map",
-                        False, list(full.plan.reasons))
+        if full.plan.method == "focal":
+            explicit = full.plan   # its grids; each tile's sensor boxes are centred by the planner
+        else:
+            explicit = Plan(full.plan.pitch_mm, full.plan.n_grid, full.plan.n_pad, full.plan.ray_grid, "map",
+                            False, list(full.plan.reasons))
         if tile is None:
             if memory_budget_bytes is None:
                 tile = len(pairs)
