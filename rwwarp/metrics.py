@@ -432,8 +432,9 @@ def mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm
     normalize : "patch" | "sensor"
         Divide the OTF by the power inside the patch (MTF(0) = 1, as Zemax's FFT MTF) or by all the power
         reaching the sensor (MTF(0) = the fraction inside the patch; PSF tails cut by a small patch then
-        bias only the lowest frequencies: an F/10 Airy pattern on 256 x 2 um samples is within 7e-4 of
-        the diffraction formula above f = 0 with "sensor", 5e-3 with "patch").
+        bias only the lowest frequencies: an F/10 Airy pattern on 256 x 2 um samples is within 3.2e-4 of
+        the diffraction formula above f = 0 with "sensor" (the F/10 beam's own non-paraxial pupil
+        apodisation; 6.8e-5 at F/40 on 256 x 10 um samples), 8e-3 with "patch").
     psf_kwargs
         Passed to :func:`rwwarp.psf_map` (``plan``, ``object_distance_mm``, ...).
     """
