@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import LensError, SamplingWarning
+from .errors import LensError, PatchWarning, SamplingWarning
 
 __all__ = ["MTF", "ThroughFocusMTF", "Strehl", "EnergyCurve", "FieldCurves", "ChromaticFocalShift",
            "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy",
@@ -517,8 +517,8 @@ def through_focus_mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, fre
             warnings.simplefilter("always")
             r = mtf(moved, fields, wls, wt, frequencies_lp_mm, model, include_pixel, size, pixel_mm, device,
                     normalize, **psf_kwargs)
-        for w in rec:
-            if not issubclass(w.category, SamplingWarning):
+        for w in rec:  # patch and sampling warnings are summed up once below
+            if not issubclass(w.category, (SamplingWarning, PatchWarning)):
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         tan.append(r.tangential)
         sag.append(r.sagittal)
