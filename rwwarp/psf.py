@@ -447,12 +447,19 @@ class RayWave:
     :meth:`doe_phase` samples phi0 on the windows; :meth:`intensity` propagates to the sensor and
     integrates over pixels (OpenCL); :meth:`run` chains them and normalises by the entering power.
     Lengths in mm, wavelengths in um.
+
+    ``focal_patch_tol`` (focal method): a DOE order other than the main one is computed only if the
+    share of the source's power it puts on the patch (estimated from its pilot rays' landing box) is at
+    least this (default 1e-5). Strongly defocused orders off the design wavelength spread a few percent
+    of the power over millimetres; keeping them makes the sensor-side box, and with it the wave-plane
+    grid, as wide as their spread. A larger value (1e-3) leaves them out; their power is reported in the
+    plan's reasons.
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
-                 memory_budget_bytes=None):
+                 memory_budget_bytes=None, focal_patch_tol=1e-5):
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
 
@@ -537,7 +544,8 @@ class RayWave:
         self.focal = None
         if method in ("focal", "compare"):
             self._plan_focal(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
-                             z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety)
+                             z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety,
+                             focal_patch_tol)
             focal_state = (self.plan, self.focal, self.carrier, self.centers)
             if method == "focal":
                 carrier, centers = self.carrier, self.centers
@@ -631,7 +639,7 @@ class RayWave:
         self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
 
     def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
-                    center_mm, size, pixel, width, rays_per_sample, nyquist_safety):
+                    center_mm, size, pixel, width, rays_per_sample, nyquist_safety, patch_tol=1e-5):
         """Plan the focal propagation: DOE orders, carrier and patch centre after the main order, grids
         (:func:`rwwarp.plan.plan_focal`). Sets ``plan``, ``focal``, ``carrier`` and ``centers``."""
         from . import doe
@@ -673,7 +681,7 @@ class RayWave:
         else:
             centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         self.plan, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, width, size, pixel,
-                                    rays_per_sample, nyquist_safety)
+                                    rays_per_sample, nyquist_safety, patch_tol=patch_tol)
         if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
             if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:
                 raise ValueError("an explicit Plan with method='focal' needs sensor_pitch_mm, n_sensor and n_sensor_fft")

@@ -243,7 +243,8 @@ class CachedProvider:
         d = lens.object_distance if depth_mm is None else float(depth_mm)
         eq = eq.replace(object_distance=paraxial_object_distance(lens, eq, d, self.wl_ref))
         geo = HybridLens(eq, plan=m.plan_policy, rays_per_sample=m.rays_per_sample, nyquist_safety=m.nyquist_safety,
-                         amplitude=m.amplitude, gauss_nodes=m.gauss_nodes, use_reference=m.use_reference)
+                         amplitude=m.amplitude, gauss_nodes=m.gauss_nodes, use_reference=m.use_reference,
+                         method=m.method, focal_patch_tol=m.focal_patch_tol)
         return geo, eq_fields, None
 
     @staticmethod
@@ -441,7 +442,8 @@ class CachedProvider:
         probe = RayWave(geo.to_lens(), fields, [float(key[0])] * len(fields), self.size, self.pixel_mm,
                         device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
                         rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
-                        gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto")
+                        gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto",
+                        focal_patch_tol=geo.focal_patch_tol)
         return probe.plan.method == "focal"
 
     def _build_focal(self, key, centres=None):
@@ -609,7 +611,8 @@ class CachedProvider:
                               plan=geo_now.plan_policy, amplitude=geo_now.amplitude, object_distance_mm=depth,
                               rays_per_sample=geo_now.rays_per_sample, center_mm=rw.centers,
                               use_reference=geo_now.use_reference, gauss_nodes=rw.gauss_nodes,
-                              nyquist_safety=geo_now.nyquist_safety, method="focal")
+                              nyquist_safety=geo_now.nyquist_safety, method="focal",
+                              focal_patch_tol=geo_now.focal_patch_tol)
                 a, b = rw.plan, new.plan
                 orders_old = {m for m, _ in rw.focal["orders"][0]}
                 orders_new = {m for m, _ in new.focal["orders"][0]}

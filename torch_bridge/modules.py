@@ -121,6 +121,9 @@ class HybridLens(nn.Module):
         Wave propagation, as :func:`rwwarp.psf`: ``"focal"`` handles the wave converging to the patch
         analytically (cost follows the patch: the Cooke triplet at F/4), ``"asm"`` is the band-limited
         angular spectrum (pixel-map DOEs), ``"auto"`` the ASM while its plan is small, else focal.
+    focal_patch_tol : float
+        Focal method: least share of a source's power a DOE order other than the main one must put on
+        the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
 
     Methods return tensors: :meth:`psf` (size, size), :meth:`psf_map` (n_fields, n_wavelengths,
     size, size), fractions of the entering power per sensor pixel; :meth:`to_lens` exports the
@@ -129,11 +132,15 @@ class HybridLens(nn.Module):
 
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
-                 use_reference: bool = True, replan: bool = True, method: str = "auto"):
+                 use_reference: bool = True, replan: bool = True, method: str = "auto",
+                 focal_patch_tol: float = 1e-5):
         super().__init__()
         if method not in ("auto", "focal", "asm"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
         self.method = method
+        if not (np.isfinite(focal_patch_tol) and 0 <= focal_patch_tol < 1):
+            raise ValueError(f"focal_patch_tol must be in [0, 1), got {focal_patch_tol!r}")
+        self.focal_patch_tol = float(focal_patch_tol)
         self.lens_template = copy.deepcopy(lens)
         self.plan_policy = plan
         self.rays_per_sample = float(rays_per_sample)
@@ -359,7 +366,7 @@ class HybridLens(nn.Module):
                      rays_per_sample=self.rays_per_sample, center_mm=center_mm, use_reference=self.use_reference,
                      gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
                      requires_grad=bool(requires_grad), method=method or self.method,
-                     memory_budget_bytes=memory_budget_bytes)
+                     memory_budget_bytes=memory_budget_bytes, focal_patch_tol=self.focal_patch_tol)
         rw._bridge_base_table = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw
