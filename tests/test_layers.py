@@ -148,6 +148,7 @@ def test_design_command_is_an_entry_point():
     """``rwwarp design`` reaches torch_bridge through the ``rwwarp.commands`` entry point group (written to the
     installed metadata by ``pip install -e .``, which ``.ci/setup`` runs whenever pyproject.toml changes)."""
     from importlib.metadata import entry_points
+
     import tomllib
 
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["rwwarp.commands"]
