@@ -1,0 +1,170 @@
+"""Evaluation of a trained arm (:func:`evaluate`: ray-wave PSFs, PSNR / SSIM / 1-LPIPS per depth and
+node, RMS spot radius; :func:`objective`: the training objective on the fixed evaluation crops) and
+the rendering helpers the training loop shares with it (sensor noise, per-patch blur, kernels)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from torch_bridge.config import _budget_bytes, _depth_tag, _depth_value, _feature_mm
+
+if TYPE_CHECKING:
+    from torch_bridge.train import Arm
+
+__all__ = ["evaluate", "objective"]
+
+
+def _noise(image, noise: dict, gen):
+    """Sensor noise drawn from the CPU generator ``gen`` (reproducible on any device)."""
+    from torch_bridge.imaging import sensor_noise
+    if image.device.type == "cpu":
+        return sensor_noise(image, read_std=noise["read_std"], photons=noise["photons"], generator=gen)
+    return sensor_noise(image.cpu(), read_std=noise["read_std"], photons=noise["photons"],
+                        generator=gen).to(image.device)
+
+
+def _blur_patch(images, kernels, boundary):
+    """Blur each image (B, C, H, W) with its own kernel (B, C, k, k) (image orientation), FFT."""
+    from torch_bridge.imaging import spatially_varying_blur
+    out = [spatially_varying_blur(images[b:b + 1], kernels[b][None, None], boundary=boundary)
+           for b in range(images.shape[0])]
+    return torch.cat(out, 0)
+
+
+def _psf_kernels(psfs):
+    """Sensor-orientation PSFs (..., k, k) -> image-orientation convolution kernels (row 0 at +y)."""
+    return psfs.flip(-2)
+
+
+def _eval_provider(arm: Arm):
+    """A ray-wave provider for the current lens: the training one when it caches ray-wave fields of
+    this lens (checked for sampling and centring first), else a new one."""
+    from torch_bridge import design as dz
+    p = arm.provider
+    if isinstance(p, dz.CachedProvider) and p.model == "ray-wave":
+        p.check_sampling()
+        return p
+    prov = dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
+                             wavelength_ref_um=arm.wl_ref, memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
+                             min_feature_mm=_feature_mm(arm.cfg["optics"]))
+    ev = arm.cfg["eval"]["depths_mm"] or arm.cfg["optics"]["depths_mm"]
+    prov.prepare(sorted({w for c in arm.wls for w in c}), [_depth_value(d) for d in ev], progress=False)
+    return prov
+
+
+@torch.no_grad()
+def objective(arm: Arm, prov=None) -> dict:
+    """The training objective (``MSE + alpha * perceptual``) on the fixed evaluation crops: ray-wave PSFs
+    of the current lens (the wavelengths of each channel averaged) at the first evaluation depth, every
+    node, seeded noise, the current network. Used to compare a design with its own starting point."""
+    from torch_bridge.imaging import spatially_varying_blur
+    cfg = arm.cfg
+    ev = cfg["eval"]
+    depth = _depth_value((ev["depths_mm"] or cfg["optics"]["depths_mm"])[0])
+    prov = prov or _eval_provider(arm)
+    psf = torch.stack([prov.psfs([c[j] for c in arm.wls], depth) for j in range(len(arm.wls[0]))], 0).mean(0)
+    kern = _psf_kernels(psf.float()).to(arm.device)
+    gt = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
+    g = torch.Generator().manual_seed(int(ev["seed"]) + 1)
+    arm.net.eval()
+    tot, mse, n = 0.0, 0.0, 0
+    views = range(len(arm.fields)) if cfg["render"]["mode"] == "patch" else [None]
+    for v in views:
+        if v is None:
+            gy, gx = arm.grid
+            raw = spatially_varying_blur(gt, kern.reshape(gy, gx, 3, arm.size, arm.size),
+                                         boundary=cfg["render"]["boundary"])
+        else:
+            raw = _blur_patch(gt, kern[[v] * gt.shape[0]], cfg["render"]["boundary"])
+        raw = _noise(raw, ev["noise"], g)
+        rec = arm.net(raw)
+        loss, parts = arm.criterion(rec, gt)
+        tot += float(loss)
+        mse += parts["mse"]
+        n += 1
+    arm.net.train()
+    return {"loss": tot / n, "mse": mse / n}
+
+
+@torch.no_grad()
+def evaluate(arm: Arm, prov=None) -> dict:
+    """Evaluation of a trained arm with the ray-wave model (see the module docstring)."""
+    from torch_bridge.imaging import spatially_varying_blur
+    from torch_bridge.losses import image_metrics
+    cfg = arm.cfg
+    ev = cfg["eval"]
+    depths = [_depth_value(d) for d in (ev["depths_mm"] or cfg["optics"]["depths_mm"])]
+    # ray-wave provider on the designed lens (its refractive part is frozen now: fields may be cached)
+    from torch_bridge import design as dz
+    prov = prov or _eval_provider(arm)
+    gt_all = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
+    g = torch.Generator().manual_seed(int(ev["seed"]))
+    arm.net.eval()
+    rows = []
+    psf_store = {}
+    for depth in depths:
+        per_wl = []
+        for j in range(len(arm.wls[0])):
+            per_wl.append(prov.psfs([c[j] for c in arm.wls], depth))
+        psf = torch.stack(per_wl, 0).mean(0)                              # (nodes, 3, k, k): mean per channel
+        psf_store[str(depth)] = psf.cpu().numpy()
+        kern = _psf_kernels(psf.float()).to(arm.device)
+        node_rows = []
+        if cfg["render"]["mode"] == "patch":
+            for n in range(len(arm.fields)):
+                raw = _blur_patch(gt_all, kern[[n] * gt_all.shape[0]], cfg["render"]["boundary"])
+                raw = _noise(raw, ev["noise"], g)
+                rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0],
+                                                                                      ev["batch_size"])])
+                m_raw = image_metrics(raw, gt_all, arm.lpips)
+                m_rec = image_metrics(rec, gt_all, arm.lpips)
+                node_rows.append({"node": n, "position_mm": arm.positions[n], "field_deg": arm.fields[n],
+                                  "raw": m_raw, "rec": m_rec})
+                if n == len(arm.fields) - 1:
+                    sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
+        else:
+            gy, gx = arm.grid
+            raw = spatially_varying_blur(gt_all, kern.reshape(gy, gx, 3, arm.size, arm.size),
+                                         boundary=cfg["render"]["boundary"])
+            raw = _noise(raw, ev["noise"], g)
+            rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0], ev["batch_size"])])
+            node_rows.append({"node": "all", "raw": image_metrics(raw, gt_all, arm.lpips),
+                              "rec": image_metrics(rec, gt_all, arm.lpips)})
+            sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
+
+        def avg(part, key, node_rows=node_rows):
+            return float(np.mean([r[part][key] for r in node_rows]))
+        rows.append({"depth_mm": depth, "nodes": node_rows,
+                     "raw": {k: avg("raw", k) for k in ("psnr", "ssim", "one_minus_lpips")},
+                     "rec": {k: avg("rec", k) for k in ("psnr", "ssim", "one_minus_lpips")},
+                     "psf_energy": psf.sum((-1, -2)).mean().item()})
+        np.savez(arm.out / f"eval_sample_{_depth_tag(depth)}.npz", gt=sample[0].numpy(), raw=sample[1].numpy(),
+                 rec=sample[2].numpy())
+    np.savez(arm.out / "eval_psfs.npz", **psf_store)
+    arm.net.train()
+    res = {"depths": rows}
+    # ray-model RMS spot radius (um): on axis, outermost, average over the diagonal fractions
+    lens = arm.module.to_lens()
+    kind = lens.surfaces[lens.doe_index].profile.get("kind")
+    if kind in ("even_poly", "poly"):
+        nd = cfg["optics"]["nodes"]
+        half = nd["half_size_mm"] or [0.5 * lens.sensor.resolution[0] * lens.sensor.pixel_pitch,
+                                      0.5 * lens.sensor.resolution[1] * lens.sensor.pixel_pitch]
+        hx, hy = (half, half) if np.ndim(half) == 0 else half
+        fr = ev["rms_fractions"]
+        pos = [(f * hx, f * hy) for f in fr]
+        fl = dz.field_angles(lens, pos, arm.wl_ref)
+        wls = cfg["design"]["rms"]["wavelengths_um"] or [c[len(c) // 2] for c in arm.wls]
+        try:
+            with torch.enable_grad():
+                r = dz.RaySpot(arm.module, fl, wls, grid=ev["rms_grid"]).rms().detach().cpu().numpy() * 1e3
+            res["rms_um"] = {"fractions": list(fr), "per_field": r.tolist(), "on_axis": float(r[0]),
+                             "off_axis": float(r[-1]), "avg": float(np.mean(r))}
+        except Exception as e:  # noqa: BLE001 - a vignetted field must not lose the evaluation
+            res["rms_um"] = {"error": str(e)}
+    res["efl_mm"] = float(lens.efl(arm.wl_ref))
+    res["doe_coefficients"] = arm.module.value("doe").detach().cpu().tolist()
+    res["sensor_distance_mm"] = float(lens.surfaces[-1].thickness)
+    return res

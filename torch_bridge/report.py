@@ -1,0 +1,152 @@
+"""Figures and tables of a design experiment: the step snapshots (PSFs, DOE phase, crops), the
+comparison figure ``designs.png`` and ``table.md`` / ``table.csv`` (numbers as measured)."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from torch_bridge.config import _depth_tag
+
+__all__ = ["write_table"]
+
+
+def _doe_phase_image(lens, n: int = 256):
+    from rwwarp import doe as rdoe
+    s = lens.surfaces[lens.doe_index]
+    prof = rdoe.profile_from_dict(s.profile)
+    h = s.semi_diameter or 1.0
+    g = np.linspace(-h, h, n)
+    x, y = np.meshgrid(g, g[::-1])
+    return rdoe.design_phase(prof, x, y, s.design_wavelength_um, s.levels), h
+
+
+def _rgb_psf(p):
+    """(3, k, k) -> (k, k, 3) display image (sqrt, per-image max), image orientation."""
+    a = np.clip(p, 0, None)
+    a = np.sqrt(a / max(a.max(), 1e-30))
+    return a.transpose(1, 2, 0)[::-1]
+
+
+def _snapshot(arm, path, psf, gt, raw, rec, step, phase):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    p = psf.detach().float().cpu().numpy()
+    nn_ = p.shape[0]
+    ncol = max(nn_, 4)
+    fig, ax = plt.subplots(2, ncol, figsize=(2.2 * ncol, 4.6))
+    for j in range(ncol):
+        for r in range(2):
+            ax[r, j].axis("off")
+    for j in range(nn_):
+        ax[0, j].imshow(_rgb_psf(p[j]))
+        f = arm.fields[j]
+        ax[0, j].set_title(f"PSF ({f[0]:.1f}, {f[1]:.1f}) deg", fontsize=7)
+    ph, h = _doe_phase_image(arm.module.to_lens())
+    ax[1, 0].imshow(ph, cmap="twilight", extent=(-h, h, -h, h))
+    ax[1, 0].set_title("DOE phase (rad, wrapped)", fontsize=7)
+    ax[1, 0].axis("on")
+    ax[1, 0].tick_params(labelsize=6)
+    for j, (img, t) in enumerate(((gt, "ground truth"), (raw, "raw"), (rec, "reconstructed"))):
+        ax[1, j + 1].imshow(img[0].detach().float().clamp(0, 1).cpu().numpy().transpose(1, 2, 0))
+        ax[1, j + 1].set_title(t, fontsize=7)
+    fig.suptitle(f"{arm.name}: step {step} ({phase})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _designs_figure(results: dict, out: Path):
+    """One row per arm: DOE phase, evaluation PSFs (RGB, sqrt scale) of the nodes, raw / rec crop."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import rwwarp as rw
+    arms = [a for a in results if (out / a / "lens.json").exists()]
+    if not arms:
+        return
+    psfs = {a: np.load(out / a / "eval_psfs.npz") for a in arms}
+    first = psfs[arms[0]]
+    key0 = next(iter(first.keys()))
+    nn_ = first[key0].shape[0]
+    ncol = 1 + nn_ + 2
+    fig, ax = plt.subplots(len(arms), ncol, figsize=(2.0 * ncol, 2.1 * len(arms)), squeeze=False)
+    for i, a in enumerate(arms):
+        for j in range(ncol):
+            ax[i, j].axis("off")
+        lens = rw.load_lens(out / a / "lens.json")
+        ph, h = _doe_phase_image(lens)
+        ax[i, 0].imshow(ph, cmap="twilight", extent=(-h, h, -h, h))
+        ax[i, 0].set_title(f"{a}: DOE phase", fontsize=7)
+        p = psfs[a][key0]
+        for j in range(nn_):
+            ax[i, 1 + j].imshow(_rgb_psf(p[j]))
+            ax[i, 1 + j].set_title(f"PSF node {j} ({key0})", fontsize=6)
+        smp = sorted((out / a).glob("eval_sample_*.npz"))
+        if smp:
+            s = np.load(smp[0])
+            ax[i, ncol - 2].imshow(np.clip(s["raw"][0].transpose(1, 2, 0), 0, 1))
+            ax[i, ncol - 2].set_title("raw (outer node)", fontsize=7)
+            ax[i, ncol - 1].imshow(np.clip(s["rec"][0].transpose(1, 2, 0), 0, 1))
+            ax[i, ncol - 1].set_title("reconstructed", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "designs.png", dpi=100)
+    plt.close(fig)
+
+
+def _fmt(m):
+    lp = m.get("one_minus_lpips")
+    lp_s = "-" if lp is None or (isinstance(lp, float) and not math.isfinite(lp)) else f"{lp:.3f}"
+    return f"{m['psnr']:.2f}/{m['ssim']:.3f}/{lp_s}"
+
+
+def write_table(results: dict, out: Path, title: str = "", preset=None):
+    """``table.md`` and ``table.csv`` of an experiment from its arms' results (numbers as measured)."""
+    lines = [f"# {title}" + (f" (preset {preset})" if preset else ""), "",
+             ("| design | depth | RMS radius um (on/off-axis/avg) | PSNR/SSIM/1-LPIPS raw | PSNR/SSIM/1-LPIPS rec | "
+              "EFL mm |"), "|---|---|---|---|---|---|"]
+    rows = []
+    for a, r in results.items():
+        if "eval" not in r:
+            continue
+        e = r["eval"]
+        rms = e.get("rms_um", {})
+        rms_s = f"{rms['on_axis']:.1f}/{rms['off_axis']:.1f}/{rms['avg']:.1f}" if "on_axis" in rms else "-"
+        for d in e["depths"]:
+            dep = _depth_tag(d["depth_mm"])
+            lines.append(f"| {a} | {dep} | {rms_s} | {_fmt(d['raw'])} | {_fmt(d['rec'])} | {e['efl_mm']:.2f} |")
+            rows.append({"design": a, "depth": dep, "rms_on_um": rms.get("on_axis"), "rms_off_um": rms.get("off_axis"),
+                         "rms_avg_um": rms.get("avg"), "psnr_raw": d["raw"]["psnr"], "ssim_raw": d["raw"]["ssim"],
+                         "one_minus_lpips_raw": d["raw"]["one_minus_lpips"], "psnr_rec": d["rec"]["psnr"],
+                         "ssim_rec": d["rec"]["ssim"], "one_minus_lpips_rec": d["rec"]["one_minus_lpips"],
+                         "efl_mm": e["efl_mm"], "train_wall_s": r.get("train_wall_s")})
+    lines.append("")
+    lines.append("Per node (PSNR raw / rec, dB; node positions on the sensor in mm):")
+    lines.append("")
+    for a, r in results.items():
+        if "eval" in r:
+            for d in r["eval"]["depths"]:
+                lines.append(f"- {a}, depth {_depth_tag(d['depth_mm'])}: " + ", ".join(
+                    f"node {n['node']}" + (f" {tuple(round(v, 2) for v in n['position_mm'])}" if 'position_mm' in n
+                                           else "") + f": {n['raw']['psnr']:.2f} / {n['rec']['psnr']:.2f}"
+                    for n in d["nodes"]))
+    lines.append("")
+    lines.append("Objective (MSE + alpha * perceptual on the evaluation crops, first evaluation depth; initial = "
+                 "the arm's starting lens with the untrained network) and wall time:")
+    lines.append("")
+    for a, r in results.items():
+        if "eval" in r:
+            oi, of = r.get("objective_initial") or {}, r.get("objective_final") or {}
+            obj = f"{oi['loss']:.5f} -> {of['loss']:.5f}" if "loss" in oi and "loss" in of else "-"
+            lines.append(f"- {a}: objective {obj}; training {r.get('train_wall_s', float('nan')):.0f} s, "
+                         f"evaluation {r.get('eval_wall_s', float('nan')):.0f} s")
+    (out / "table.md").write_text("\n".join(lines) + "\n")
+    if rows:
+        with open(out / "table.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
