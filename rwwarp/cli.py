@@ -128,11 +128,17 @@ def cmd_psf(a):
 
 def _map(lens, fields, wls, a, out: Path, title):
     from .psf import psf_map
-    from .plots import psf_map_figure, rgb_psf_map
     t = time.perf_counter()
     m = psf_map(lens, fields, wls, model=a.model, size=a.size, device=a.device, progress=True,
                 batch=getattr(a, "batch", None) or len(wls))
     dt = time.perf_counter() - t
+    _save_map(m, fields, wls, out, title)
+    return m, dt
+
+
+def _save_map(m, fields, wls, out: Path, title):
+    """``title.npz``, ``title_log.png`` and (three wavelengths) ``title_rgb.png`` of a map in ``out``."""
+    from .plots import psf_map_figure, rgb_psf_map
     if not np.all(np.isfinite(m.data)):
         raise FloatingPointError("the PSF map has non-finite values; nothing written")
 
@@ -144,16 +150,53 @@ def _map(lens, fields, wls, a, out: Path, title):
     _atomic(out / f"{title}_log.png", lambda tmp: psf_map_figure(m, tmp))
     if len(wls) == 3:
         _atomic(out / f"{title}_rgb.png", lambda tmp: rgb_psf_map(m, tmp))
-    return m, dt
 
 
 def cmd_map(a):
+    import os
     lens = _lens(a.lens)
     fields = [(0.0, f) for f in np.linspace(0, a.max_field, a.fields)]
     wls = a.wavelengths or lens.wavelengths_um
+    procs = getattr(a, "procs", 1)
+    if procs > 1 or int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
+        # several processes (rwwarp.distributed): started here through torch's launcher, or already
+        # started by an external torchrun (WORLD_SIZE set: this process is one rank)
+        from .distributed import DistributedError, launch
+        spec = {"lens": a.lens, "fields": fields, "wls": list(wls), "model": a.model, "size": a.size,
+                "device": a.device, "batch": a.batch, "out": str(a.out)}
+        if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
+            if procs > 1:
+                raise ValueError("--procs with an external launcher (WORLD_SIZE is set): use one or the other")
+            res = _map_worker(spec)
+            if res is None:
+                return
+        else:
+            try:
+                res = launch(_map_worker, procs, spec)[0]
+            except DistributedError as e:
+                sys.stderr.write(f"rwwarp map: error: {_one_line(e)}\n")
+                sys.exit(1)
+        n, dt, ranks = res
+        print(f"{n} PSFs on {len(ranks)} processes in {dt:.2f} s ({n / dt:.2f} PSF/s; per rank: "
+              + ", ".join(f"{r['psfs']} PSFs in {r['work_s']:.1f} s" for r in ranks) + f"); written to {a.out}/")
+        return
     m, dt = _map(lens, fields, wls, a, Path(a.out), "psf_map")
     print(f"{m.data.shape[0]} fields x {m.data.shape[1]} wavelengths in {dt:.2f} s "
           f"({m.data.shape[0] * m.data.shape[1] / dt:.2f} PSF/s); written to {a.out}/")
+
+
+def _map_worker(spec):
+    """One rank of ``rwwarp map --procs N``: the sharded map (rwwarp.distributed.psf_map), written by
+    rank 0, which returns (PSFs, seconds, per-rank info); None on the other ranks."""
+    from .distributed import psf_map
+    t = time.perf_counter()
+    m = psf_map(_lens(spec["lens"]), spec["fields"], spec["wls"], model=spec["model"], size=spec["size"],
+                device=spec["device"], batch=spec["batch"] or len(spec["wls"]), progress=True)
+    if m is None:
+        return None
+    dt = time.perf_counter() - t
+    _save_map(m, spec["fields"], spec["wls"], Path(spec["out"]), "psf_map")
+    return m.data.shape[0] * m.data.shape[1], dt, m.info["ranks"]
 
 
 def cmd_demo(a):
@@ -281,6 +324,10 @@ def main(argv=None):
         p.add_argument("--size", type=_positive_int, default=64)
         p.add_argument("--device", default="cpu")
         p.add_argument("--batch", type=_positive_int, default=None, help="sources per launch")
+        if name == "map":
+            p.add_argument("--procs", type=_positive_int, default=1,
+                           help="processes (torch.distributed ranks, started through torch's launcher; each on "
+                                "its own device: cuda:LOCAL_RANK or the CPU); sources balanced by estimated work")
         p.add_argument("--out", default="out/" + name)
         p.set_defaults(func=fn)
 
