@@ -606,7 +606,7 @@ class _Nodes:
 
 
 def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, radial_nodes=64, angular_nodes=256,
-                pixel_nodes=10, fd_step=1e-5, workers=None):
+                pixel_nodes=10, fd_step=1e-5, workers=None, include_doe=False):
     """Independent scalar-diffraction PSF of a real lens: traced rays, ray-tube amplitudes, exact
     Rayleigh-Sommerfeld kernel, summed directly to the sensor pixels (no FFT, no sampled field).
 
@@ -620,7 +620,10 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     step ``fd_step`` (the ray-wave model's amplitude convention: ``|U|^2`` is power per plane area). It is
     propagated to the sensor with the first Rayleigh-Sommerfeld kernel (:func:`_rs_sum`), and ``|U|^2``
     is integrated over each pixel with ``pixel_nodes^2`` Gauss-Legendre nodes. Lenses with a DOE are not
-    handled here (use :func:`rs_thin_lens_psf`).
+    handled here (use :func:`rs_thin_lens_psf`), unless ``include_doe``: a DOE that is the last surface (the
+    wave plane) then multiplies the plane field by ``exp(1j * modulation_phase)`` at the nodes, which is
+    accurate only while that phase is smooth over the footprint (LensError when the wrapped relief or its
+    quantisation puts a phase step inside it: the polar rule is spectral only for a smooth integrand).
 
     Returns the (size, size) fraction of the entering power per pixel, rows +y, on the patch centred
     at ``center_mm`` (sensor x, y in mm, a pixel centre).
@@ -628,12 +631,13 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     from .trace import Tracer
     wl = float(wavelength_um)
     plane = len(lens.surfaces) - 1
+    doe_s = None
     if lens.doe_index is not None:
         from .doe import is_flat_profile as _is_flat_profile
         doe_s = lens.surfaces[lens.doe_index]
-        if lens.doe_index != plane or not _is_flat_profile(doe_s.profile):
+        if lens.doe_index != plane or not (include_doe or _is_flat_profile(doe_s.profile)):
             raise LensError("rs_lens_psf handles refractive lenses only (a blank DOE as the last surface is a "
-                            "plane)", file=lens.source)
+                            "plane; include_doe=True takes a smooth DOE there)", file=lens.source)
     tr = Tracer(lens, [wl])
     src = tr.sources([field_deg], 0)
     t, wr = np.polynomial.legendre.leggauss(int(radial_nodes))
@@ -669,6 +673,8 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     big_r = np.sqrt(xy[:, 0] ** 2 + xy[:, 1] ** 2 + z * z)
     ref = opl[good] + big_r[good]
     phase = k * (ref - np.median(ref))
+    if doe_s is not None and include_doe:
+        phase = phase + _doe_node_phase(lens, doe_s, wl, xy[good, 0], xy[good, 1])
     amp = np.sqrt(q[good] * jac[good]) * w[good]
     nodes = _Nodes(xy[good, 0], xy[good, 1], amp, phase)
     g, gw = np.polynomial.legendre.leggauss(int(pixel_nodes))
@@ -682,3 +688,19 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     inten = (u.real ** 2 + u.imag ** 2).reshape(size, pixel_nodes, size, pixel_nodes)
     ww = np.outer(gw, gw) * (0.5 * pixel_mm) ** 2
     return np.einsum("iajb,ab->ij", inten, ww) / entering
+
+
+def _doe_node_phase(lens, s, wavelength_um, x, y):
+    """The DOE's modulation phase (rad) at wave-plane nodes; LensError where a step of the relief (a 2 pi wrap
+    seen at another wavelength than the design one, or quantisation) falls among them."""
+    from pathlib import Path
+
+    from . import doe
+    prof = doe.profile_from_dict(s.profile, base=Path(lens.source).parent if lens.source else None)
+    scale = float(doe.wavelength_scale(s.material, s.design_wavelength_um, wavelength_um))
+    zones = np.floor(np.asarray(prof.phase(x, y, s.design_wavelength_um)) / _TWO_PI)
+    if s.levels is not None or (abs(scale - 1.0) > 1e-12 and np.ptp(zones) > 0):
+        raise LensError("rs_lens_psf(include_doe=True): the DOE relief has a phase step inside the footprint "
+                        "at this wavelength (wrapped or quantised); the smooth quadrature cannot take it",
+                        file=lens.source)
+    return doe.modulation_phase(prof, x, y, s.design_wavelength_um, wavelength_um, s.material, s.levels)

@@ -1,6 +1,9 @@
-"""Adaptive sampling plans: error estimates against finer references, growth with the scene, warnings
-for undersampled explicit plans, and the cheapest plan for a target error (small thin-lens systems)."""
+"""Adaptive sampling plans: errors against the Rayleigh-Sommerfeld ground truth (``rwwarp.ground_truth``: no
+FFT, no sampled field; it converges to < 1e-5 at the node counts used here), the error estimates bounding
+them, growth with the scene, warnings for undersampled explicit plans, and the cheapest plan for a target error
+(small thin-lens systems)."""
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -8,6 +11,7 @@ import pytest
 import rwwarp as rw
 from rwwarp import convergence as cv
 from rwwarp.errors import SamplingWarning
+from rwwarp.ground_truth import rs_lens_psf, rs_thin_lens_psf
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.plan import Plan
 
@@ -36,12 +40,28 @@ def pixel_map(n, pitch_mm, seed=0):
     return {"kind": "pixel_map", "pitch": pitch_mm, "data": rng.uniform(0, 2 * np.pi, (n, n)).tolist()}
 
 
+def pixel_centres(p):
+    off = (np.arange(SIZE) - SIZE // 2) * p.pixel_mm
+    return p.center_mm[0] + off, p.center_mm[1] + off
+
+
+def rs_truth(lens, psf):
+    """The Rayleigh-Sommerfeld PSF on ``psf``'s pixels: the analytic thin lens (``rs_thin_lens_psf``) without a
+    DOE, else traced rays + RS from the DOE plane (``rs_lens_psf``; the DOE at its design wavelength)."""
+    if lens.doe_index is None:
+        cx, cy = pixel_centres(psf)
+        return rs_thin_lens_psf(lens.surfaces[1].focal_length, lens.surfaces[0].shape, lens.surfaces[0].semi_diameter,
+                                WL, lens.surfaces[1].thickness, cx, cy, psf.pixel_mm)
+    return rs_lens_psf(lens, 0.0, WL, psf.center_mm, SIZE, psf.pixel_mm, radial_nodes=24, angular_nodes=96,
+                       pixel_nodes=3, include_doe=True)
+
+
 @pytest.fixture(scope="module")
 def circle():
     lens = thin_lens()
     ref, hist = cv.converged_reference(lens, 0.0, WL, SIZE, tol=1e-4, start=cv.Settings(4.0, 3.0, 2.0, 6),
                                        max_rays=2048 ** 2, max_fft=4096)
-    return lens, ref, hist
+    return lens, ref, hist, rs_truth(lens, ref)
 
 
 def window_mm(plan):
@@ -49,16 +69,20 @@ def window_mm(plan):
 
 
 # ---------------------------------------------------------------------------------------------- error estimates
-def test_adaptive_psf_agrees_with_finer_reference_within_its_estimate(circle):
-    lens, ref, hist = circle
+def test_adaptive_psf_and_converged_reference_against_rs_ground_truth(circle):
+    """Airy case (aperture + ideal thin lens, f/50): the default adaptive PSF is 1.24e-3 from the RS ground
+    truth (tolerance 2e-3) and inside its own estimate (2.2e-3 here); the converged reference (tol 1e-4) is
+    2.0e-5 from it (tolerance 5e-5)."""
+    lens, ref, hist, truth = circle
     est = cv.estimate_error(lens, 0.0, WL, SIZE, center_mm=ref.center_mm)
-    err = cv.rel_l2(est["psf"].data, ref.data)
+    err = cv.rel_l2(est["psf"].data, truth)
     conv = ref.info["convergence"]
+    assert 0 < err <= min(est["estimated_error"], 2e-3)
+    assert cv.rel_l2(ref.data, truth) < 5e-5
     # the reference is finer than the default plan in every knob, and its own error estimate is smaller
     assert all(conv["settings"][k] >= v for k, v in cv.Settings().to_dict().items()
                if v is not None and conv["settings"][k] is not None)
     assert conv["estimated_error"] < est["estimated_error"]
-    assert 0 < err <= est["estimated_error"]
     # the refinement only ever doubles: each trial differs from its round's state in exactly one knob
     states = {e["round"]: e["settings"] for e in hist if e["role"] == "state"}
     for e in hist:
@@ -68,18 +92,16 @@ def test_adaptive_psf_agrees_with_finer_reference_within_its_estimate(circle):
             assert diff == [e["knob"]] and e["settings"] == cv.Settings(**base).doubled(e["knob"]).to_dict()
 
 
-def test_estimate_covers_error_with_a_doe():
-    lens = thin_lens(doe=even_poly(20.0, -5.0), doe_to_sensor_mm=10.0)
-    ref, _ = cv.converged_reference(lens, 0.0, WL, SIZE, tol=1e-4, start=cv.Settings(4.0, 3.0, 2.0, 6),
-                                    max_rays=2048 ** 2, max_fft=4096)
-    est = cv.estimate_error(lens, 0.0, WL, SIZE, center_mm=ref.center_mm)
-    assert cv.rel_l2(est["psf"].data, ref.data) <= est["estimated_error"]
+# measured distances to the RS ground truth (CPU, PoCL) of the default adaptive PSF and of the paper's fixed grid,
+# with the adaptive plan's own estimate: weak DOE 8.7e-3 / 5.1e-3 (estimate 3.0e-2), strong 4.0e-2 / 1.3e-2
+# (estimate 9.3e-2). Tolerances: 1.5x the measured distance.
+DOE_TOL = {"weak": (1.3e-2, 8e-3), "strong": (6e-2, 2e-2)}
 
 
 @pytest.mark.parametrize("doe", [even_poly(20.0, -5.0), even_poly(200.0)], ids=["weak", "strong"])
-def test_adaptive_psf_agrees_with_paper_grid_within_its_estimate(doe):
-    # the paper's fixed grid (whole DOE, padded 2x, 10^6 rays) is a different discretisation of the same
-    # PSF: the default adaptive plan must agree with it to the error it reports for itself
+def test_adaptive_psf_and_paper_grid_against_rs_ground_truth(doe, request):
+    # the paper's fixed grid (whole DOE, padded 2x, 10^6 rays) and the adaptive plan are two discretisations of
+    # the same PSF: both are checked against the RS ground truth, the adaptive one also against its estimate
     lens = thin_lens(doe=doe, doe_to_sensor_mm=10.0)
     est = cv.estimate_error(lens, 0.0, WL, SIZE)
     adaptive = est["psf"]
@@ -92,11 +114,17 @@ def test_adaptive_psf_agrees_with_paper_grid_within_its_estimate(doe):
     assert paper.plan["n_grid"] * paper.plan["pitch_mm"] == pytest.approx(2.0, abs=paper.plan["pitch_mm"])
     assert paper.plan["n_pad"] == 2 * paper.plan["n_grid"]
     assert adaptive.plan["n_grid"] * adaptive.plan["pitch_mm"] < 0.5
-    assert 0 < cv.rel_l2(adaptive.data, paper.data) <= est["estimated_error"]
+    truth = rs_truth(lens, adaptive)
+    tol_adaptive, tol_paper = DOE_TOL[request.node.callspec.id]
+    err = cv.rel_l2(adaptive.data, truth)
+    assert 0 < err <= min(est["estimated_error"], tol_adaptive)
+    assert cv.rel_l2(paper.data, truth) <= tol_paper
 
 
 def test_plan_for_error_returns_cheapest_rung_meeting_target(circle):
-    lens, ref, _ = circle
+    lens, conv_ref, _, truth = circle
+    # measured against the RS ground truth, not the code's own converged reference
+    ref = SimpleNamespace(data=truth, center_mm=conv_ref.center_mm, info={})
     target = 2e-3
     choice = cv.plan_for_error(lens, 0.0, WL, SIZE, target_error=target, reference=ref)
     plan, err, t = choice
@@ -177,4 +205,5 @@ def test_adaptive_and_equivalent_explicit_plans_do_not_warn():
         warnings.simplefilter("error", SamplingWarning)
         a = rw.psf(lens, 0.0, WL, size=SIZE)
         b, _ = cv.psf_at(lens, 0.0, WL, SIZE, settings=cv.Settings(pad_factor=2.0), center_mm=a.center_mm)
-    assert cv.rel_l2(b.data, a.data) < 1e-2
+    # doubling the padding moves the PSF by 4.0e-4 (measured): the default padding is already band-limit safe
+    assert cv.rel_l2(b.data, a.data) < 8e-4

@@ -1,11 +1,14 @@
-"""PSF maps: per-source plans (batches of sources with similar needs), accuracy against single-PSF calls,
-and the backend's memory bookkeeping staying bounded over many plan shapes (small thin-lens + DOE system)."""
+"""PSF maps: per-source plans (batches of sources with similar needs), accuracy against the Rayleigh-Sommerfeld
+ground truth (``rwwarp.ground_truth.rs_lens_psf``: traced rays summed directly to the pixels, no FFT and no
+sampled field), equality with single-PSF calls on the same plan, and the backend's memory bookkeeping staying
+bounded over many plan shapes (small thin-lens + DOE system)."""
 import numpy as np
 import pytest
 
 import rwwarp as rw
 from rwwarp import backend as bk
 from rwwarp import convergence as cv
+from rwwarp.ground_truth import rs_lens_psf
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.psf import RayWave, group_sources
 
@@ -42,7 +45,15 @@ def test_grouping_bounds_each_sources_fft_area_and_respects_the_batch_limit():
     assert group_sources(needs, max_batch=None, waste=100.0) == [[0, 1, 2, 3, 4]]
 
 
-def test_map_batches_follow_per_source_plans_and_match_single_psfs_within_their_error():
+# Distance of the map's on-axis PSFs to the RS ground truth, measured on the CPU (PoCL): 5.4e-3 at 0.45 um,
+# 1.6e-2 at 0.65 um (the single-PSF calls: 8.3e-3 and 1.6e-2; the ground truth itself converges to < 1e-5 at
+# 24 x 96 pupil nodes). Tolerances 1.5x. Off-axis the DOE's relief wraps inside the footprint at these
+# wavelengths, which the ground truth's smooth quadrature refuses: those entries are checked by equality with
+# the single PSF wherever the plans agree.
+MAP_TOL = {0.45: 8e-3, 0.65: 2.5e-2}
+
+
+def test_map_batches_follow_per_source_plans_and_match_the_rs_ground_truth():
     lens = doe_lens()
     fields = [0.0, 0.8]
     m = rw.psf_map(lens, fields, WLS, size=SIZE)
@@ -58,18 +69,22 @@ def test_map_batches_follow_per_source_plans_and_match_single_psfs_within_their_
             assert b["plan"]["pitch_mm"] <= o.pitch_mm * (1 + 1e-12)
             assert b["plan"]["n_pad"] ** 2 <= 2.0 * o.n_pad ** 2
     assert seen == set(own)
+    for j, w in enumerate(WLS):
+        truth = rs_lens_psf(lens, 0.0, w, m.centers_mm[0, j], SIZE, m.pixel_mm, radial_nodes=24, angular_nodes=96,
+                            pixel_nodes=3, include_doe=True)
+        assert cv.rel_l2(m.data[0, j], truth) <= MAP_TOL[w]
+    same = 0
     for i, f in enumerate(fields):
         for j, w in enumerate(WLS):
-            est = cv.estimate_error(lens, f, w, SIZE)
-            single = est["psf"]
+            single = rw.psf(lens, f, w, size=SIZE)
             np.testing.assert_allclose(m.centers_mm[i, j], single.center_mm, rtol=0, atol=1e-12)
-            # both discretise the same PSF; the map's plan is at least as fine in pitch, window and rays
-            assert cv.rel_l2(m.data[i, j], single.data) <= est["estimated_error"]
             batch = next(b for b in batches if (i, j) in [tuple(p) for p in b["pairs"]])
             if batch["plan"]["pitch_mm"] == own[(i, j)].pitch_mm and batch["plan"]["n_grid"] == own[(i, j)].n_grid \
                     and batch["plan"]["n_pad"] == own[(i, j)].n_pad and batch["plan"]["ray_grid"] == own[(i, j)].ray_grid:
                 # same plan as alone: the same numbers
                 assert cv.rel_l2(m.data[i, j], single.data) <= 1e-12
+                same += 1
+    assert same >= 1
 
 
 def test_backend_memory_stays_bounded_over_a_map_and_results_do_not_depend_on_it():
