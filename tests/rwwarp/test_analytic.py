@@ -198,7 +198,7 @@ def test_rs_square_matches_fraunhofer(side, bound):
     err = rel_l2(psf, ref)
     na2 = (side / 2 / F_MM) ** 2
     assert err < bound
-    assert 0.3 * na2 < err < 2.0 * na2                 # the deviation is the O(NA^2) physics
+    assert 0.8 * na2 < err < 1.2 * na2                 # the O(NA^2) physics: measured err / NA^2 = 0.97, 0.94
 
 
 def test_rs_circle_matches_airy():
@@ -209,7 +209,7 @@ def test_rs_circle_matches_airy():
         ref = analytic.circular_aperture_pixel_psf(c, c, 0.002, diameter, F_MM, WL_UM)
         errs.append(rel_l2(psf, ref))
     assert errs[0] < 1.2e-4 and errs[1] < 3e-5
-    assert 3.5 < errs[0] / errs[1] < 4.5                # scales as NA^2
+    assert 3.8 < errs[0] / errs[1] < 4.2                # scales as NA^2 (measured 4.00)
 
 
 def test_rs_tilted_wave_focuses_off_axis():

@@ -35,10 +35,10 @@ def test_paraxial_wave_uses_object_distance_analytic_conjugate():
     ref = analytic.square_aperture_pixel_psf(x, y, p.pixel_mm, 2.0, 150.0, 0.55)
     # measured 1.06e-3 (the ray-wave model of the same lens at 300 mm: the same to 1e-8; the residual is
     # the sampling of the energy splat on the aperture edge plus the Fresnel/Fraunhofer difference)
-    assert rel_l2(p.data, ref) < 3e-3
+    assert rel_l2(p.data, ref) < 2e-3
     # the lens's own object distance is used when none is passed
     p2 = rw.psf(lens.replace(object_distance=300.0), 0.0, 0.55, model="paraxial-wave", size=32)
-    assert rel_l2(p2.data, ref) < 3e-3
+    assert rel_l2(p2.data, ref) < 2e-3
 
 
 def test_paraxial_wave_field_at_finite_object_lands_at_analytic_image_height():
@@ -149,7 +149,7 @@ def test_blank_doe_with_levels_is_a_plain_window(model):
         return
     x, y = p.coords_mm()
     ref = analytic.square_aperture_pixel_psf(x, y, p.pixel_mm, 2.0, 100.0, 0.55)
-    assert rel_l2(p.data, ref) < 3e-3
+    assert rel_l2(p.data, ref) < 1.2e-3  # measured 5.4e-4 (ray-wave and paraxial-wave alike)
 
 
 # ------------------------------------------------------------------ defect 7: stop apertures in Zemax files
@@ -261,7 +261,7 @@ def test_paraxial_collimator_with_object_at_its_front_focal_plane(tmp_path):
     p = rw.psf(lens, 0.0, 0.55, size=32)
     x, y = p.coords_mm()
     ref = analytic.circular_aperture_pixel_psf(x, y, p.pixel_mm, 4.0, 100.0, 0.55)
-    assert rel_l2(p.data, ref) < 1e-3
+    assert rel_l2(p.data, ref) < 6e-4  # measured 3.1e-4
 
 
 def test_thin_lens_follows_an_object_distance_override():

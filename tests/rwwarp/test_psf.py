@@ -42,14 +42,14 @@ def test_circular_aperture_matches_airy():
     p = rw.psf(lens, 0.0, 0.55, size=64)
     x, y = p.coords_mm()
     ref = analytic.circular_aperture_pixel_psf(x, y, lens.sensor.pixel_pitch, 2.0, 100.0, 0.55)
-    assert rel_l2(p.data, ref) < 3e-3
+    assert rel_l2(p.data, ref) < 8e-4  # measured 3.8e-4 (CPU, PoCL)
 
 
 def test_paper_and_energy_conventions_agree_for_uniform_rays():
     lens = thin_lens(2.0)
     a = rw.psf(lens, 0.0, 0.55, size=32, amplitude="energy").data
     b = rw.psf(lens, 0.0, 0.55, size=32, amplitude="paper").data
-    assert rel_l2(b, a) < 2e-2  # paper mode smears aperture edges over a sample (bilinear splat)
+    assert rel_l2(b, a) < 6e-3  # paper mode smears aperture edges over a sample (bilinear splat); measured 3.1e-3
 
 
 def test_energy_large_patch_collects_almost_all_power():
@@ -67,7 +67,13 @@ def test_half_vignetted_field_is_finite_and_normalised():
     p = rw.psf(lens, 1.0, 0.55, size=48)
     assert np.all(np.isfinite(p.data))
     vf = p.info["valid_fraction"]
-    assert 0.3 < vf < 0.95
+    # the beam (radius 0.95 mm at the second aperture, centred 5 tan(1 deg) = 0.0873 mm off the axis) keeps the
+    # overlap of two discs with the 0.9 mm aperture: 0.88219 of its power; measured 0.88292 (the ray grid)
+    d, r1, r2 = 5.0 * np.tan(np.radians(1.0)), 0.95, 0.9
+    overlap = (r1 * r1 * np.arccos((d * d + r1 * r1 - r2 * r2) / (2 * d * r1))
+               + r2 * r2 * np.arccos((d * d + r2 * r2 - r1 * r1) / (2 * d * r2))
+               - 0.5 * np.sqrt((-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2)))
+    assert abs(vf - overlap / (np.pi * r1 * r1)) < 2e-3
     assert p.data.sum() <= vf + 1e-6
 
 
@@ -87,7 +93,7 @@ def test_float32_trace_needs_the_reference_phase():
     good = rw.psf(lens, 0.0, 0.55, size=32, dtype="float32").data
     bad = rw.psf(lens, 0.0, 0.55, size=32, dtype="float32", use_reference=False).data
     # measured: 0.055 with the reference (float32 ray positions and tube areas), 0.99 without
-    assert rel_l2(good, ref) < 0.1
+    assert rel_l2(good, ref) < 0.07
     assert rel_l2(bad, ref) > 0.5
 
 
@@ -112,7 +118,8 @@ def test_fresnel_zone_doe_focal_length_scales_with_wavelength():
         assert lens.efl(wl) == pytest.approx(100.0 * 0.55 / wl, rel=1e-6)
 
 
-@pytest.mark.parametrize("kind,tol", [("a", 1e-3), ("b", 1e-3), pytest.param("c", 1e-3, marks=pytest.mark.slow)])
+# tolerances ~2x the measured distances to the RS summation: a 1.3e-5, b 1.8e-4, c 4.0e-4
+@pytest.mark.parametrize("kind,tol", [("a", 3e-5), ("b", 4e-4), pytest.param("c", 1e-3, marks=pytest.mark.slow)])
 def test_validation_doe_cases_against_rayleigh_sommerfeld(kind, tol):
     # the paper's accuracy study: thin lens + DOE vs a direct RS summation (independent of the ASM code)
     from rwwarp.validate import _case_lens
