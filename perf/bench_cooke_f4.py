@@ -101,6 +101,17 @@ def main():
     lens, m, fields = build(a.device, a.rays_per_sample, a.nyquist_safety, a.patch_tol)
     fields = fields[:a.nodes]
     prov = dz.LiveProvider(m, fields, a.size, 0.004, wavelength_ref_um=0.55, tile=1)
+    # time spent planning (HybridLens.raywave: pilot trace, plan, RayWave set-up) inside the step
+    plan_time = [0.0]
+    raw = m.raywave
+
+    def timed_raywave(*args, **kw):
+        t = time.perf_counter()
+        try:
+            return raw(*args, **kw)
+        finally:
+            plan_time[0] += time.perf_counter() - t
+    m.raywave = timed_raywave
     net = build_network("paper").to(dev)
     opt = torch.optim.Adam([{"params": net.parameters(), "lr": 1e-4},
                             {"params": [p for p in m.parameters() if p.requires_grad], "lr": 1e-6}])
@@ -110,6 +121,7 @@ def main():
     g = int(round(len(fields) ** 0.5))
 
     def step():
+        plan_time[0] = 0.0
         t0 = time.perf_counter()
         psfs = prov.psfs(allw)                                   # (nodes, 9, k, k), graph kept
         grid = psfs.reshape(g, len(fields) // g, len(allw), a.size, a.size).float()
@@ -124,7 +136,9 @@ def main():
         opt.step()
         sync()
         t2 = time.perf_counter()
-        return t1 - t0, t2 - t1, float(loss)
+        print(f"step: psfs {t1 - t0:.2f} s (planning {plan_time[0]:.2f} s), render + network + backward "
+              f"{t2 - t1:.2f} s", flush=True)
+        return t1 - t0, t2 - t1, float(loss.detach()), plan_time[0]
 
     res = {"device": torch.cuda.get_device_name(0) if cuda else "cpu", "commit": a.commit, "lens": str(LENS.name),
            "f_number": lens.efl(0.55) / lens.entrance_pupil_diameter if callable(getattr(lens, "efl", None)) else None,
@@ -135,13 +149,14 @@ def main():
         t = time.perf_counter()
         first = step()
         res["first_step_s"] = time.perf_counter() - t
-        res["first_split_s"] = {"optics_forward": first[0], "render_network_backward": first[1]}
+        res["first_split_s"] = {"optics_forward": first[0], "render_network_backward": first[1],
+                                "planning_in_forward": first[3]}
         times = []
         for _ in range(a.steps):
             t = time.perf_counter()
-            o, n, loss = step()
-            times.append({"step_s": time.perf_counter() - t, "psf_forward_s": o, "render_network_backward_s": n,
-                          "loss": loss})
+            o, n, loss, pt = step()
+            times.append({"step_s": time.perf_counter() - t, "psf_forward_s": o, "planning_in_forward_s": pt,
+                          "render_network_backward_s": n, "loss": loss})
     res["steps"] = times
     res["step_s_median"] = float(np.median([x["step_s"] for x in times])) if times else None
     if cuda:
@@ -152,6 +167,7 @@ def main():
         except ImportError:
             pass
         res["device_used_peak_GB_nvidia_smi"] = mem.peak * 1.048576e-3
+    m.raywave = raw
     plans = []
     for f in fields:
         for w in allw:
