@@ -200,27 +200,51 @@ def _map_worker(spec):
 
 
 def cmd_demo(a):
-    """The main job on a bundled lens: paraxial data, layout, an RGB multi-field ray-wave PSF map."""
-    from .io import load_lens
+    """The main job on a bundled lens: paraxial data, layout, the A489 with a modest achromatising DOE (what it
+    changes on axis, against the DOE as bundled) and an RGB multi-field ray-wave PSF map on patches that fit."""
     from . import paraxial
+    from .demo import doe_effect_figure, run
+    from .io import load_lens
     from .plots import layout
     lens = load_lens(a.lens)
     out = Path(a.out)
     wl = 0.55
+    t0 = time.perf_counter()
     print(f"rwwarp demo: {lens.name} ({a.lens}) on device {a.device}")
     print(f"  EFL {lens.efl(wl):.4f} mm, BFL {lens.bfl(wl):.4f} mm, F/# {paraxial.f_number(lens, wl):.3f} at {wl} um")
     fields = [(0.0, f) for f in np.linspace(0.0, a.max_field, a.fields)]
-    a.model = "ray-wave"
-    m, dt = _map(lens, fields, lens.wavelengths_um, a, out, "psf_map")
+    r = run(lens, fields, size=a.size, device=a.device, batch=a.batch, doe_strength=a.doe_strength)
+    lens, m, d = r["lens"], r["map"], r["doe"]
+    wls = list(lens.wavelengths_um)
+    if d is not None:
+        print(f"  DOE (surface {d['doe_surface']}): {a.doe_strength:g} x the paraxial achromat's phase, a1 = "
+              f"{d['a1_rad']:.2f} rad rho^2 (f = {d['doe_focal_length_mm']:.1f} mm at its design wavelength); "
+              f"sensor moved {d['sensor_shift_mm'] * 1e3:+.1f} um with the {wl} um focus")
+        print("  axial colour (paraxial focus - at 0.55 um), um: "
+              + ", ".join(f"{w:g}: {b:+.1f} -> {c:+.1f}" for w, b, c in
+                          zip(d["wavelengths_um"], d["focal_shift_before_um"], d["focal_shift_after_um"])))
+    _save_map(m, fields, wls, out, "psf_map")
     _atomic(out / "layout.png", lambda tmp: layout(lens, tmp, fields_deg=[0.0, a.max_field / 2, a.max_field]))
-    print(f"  ray-wave PSF map: {len(fields)} fields x {len(lens.wavelengths_um)} wavelengths, {a.size}^2 px, "
-          f"{dt:.1f} s ({len(fields) * len(lens.wavelengths_um) / dt:.2f} PSF/s)")
-    print(f"  plan of the last batch: {m.info['plan']['pitch_mm'] * 1e3:.3g} um pitch, "
-          f"{m.info['plan']['n_grid']}^2 grid, FFT {m.info['plan']['n_pad']}^2, {m.info['plan']['ray_grid']}^2 rays")
-    ee = m.data.sum(axis=(2, 3))
+    written = ["layout.png", "psf_map_log.png"] + (["psf_map_rgb.png"] if len(wls) == 3 else []) + ["psf_map.npz"]
+    how = "--size" if a.size else "fits every PSF: farthest ray of each DOE order carrying >= 2 % + 10 Airy radii"
+    print(f"  ray-wave PSF map: {len(fields)} fields x {len(wls)} wavelengths, {r['size']}^2 px of "
+          f"{m.pixel_mm * 1e3:g} um ({how}), {r['time_s']:.1f} s ({m.data.shape[0] * m.data.shape[1] / r['time_s']:.2f} PSF/s)")
+    inside = m.info["power_in_patch"]
+    print("    power inside the patch (of the traced power), " + " / ".join(f"{w:g}" for w in wls) + " um:")
     for i, f in enumerate(fields):
-        print(f"    field {f[1]:5.2f} deg: power in patch " + " ".join(f"{v:.3f}" for v in ee[i]))
-    print(f"  wrote {out}/layout.png, psf_map_log.png, psf_map_rgb.png, psf_map.npz")
+        print(f"    field {f[1]:5.2f} deg: " + " ".join(f"{v:.3f}" for v in inside[i])
+              + f"   centre y {m.centers_mm[i, 0, 1]:.4f} mm")
+    if r["reference"] is not None:
+        ref = r["reference"]
+        from .demo import crop
+        n = ref.data.shape[-1]
+        pk_ref = ref.data[0].max(axis=(1, 2))
+        pk = crop(m.data[0], n).max(axis=(1, 2))
+        print(f"  on axis, peak per pixel with the demo DOE / the DOE as bundled (flat; {r['reference_time_s']:.1f} s): "
+              + ", ".join(f"{w:g} um {p / q:.2f}x" for w, p, q in zip(wls, pk, pk_ref)))
+        _atomic(out / "doe_effect.png", lambda tmp: doe_effect_figure(r, tmp))
+        written.insert(1, "doe_effect.png")
+    print(f"  wrote {out}/" + ", ".join(written) + f" ({time.perf_counter() - t0:.1f} s in all)")
 
 
 def cmd_validate(a):
@@ -321,7 +345,10 @@ def main(argv=None):
             p.add_argument("--lens", default="a489_doe")
             p.add_argument("--max-field", type=_finite, default=14.0, help="deg (A489: 14 deg is the sensor corner)")
             p.add_argument("--fields", type=_positive_int, default=3)
-        p.add_argument("--size", type=_positive_int, default=64)
+            p.add_argument("--doe-strength", type=_finite, default=0.25,
+                           help="DOE phase as a fraction of the paraxial achromat's (0: the lens's DOE as it is)")
+        p.add_argument("--size", type=_positive_int, default=64 if name == "map" else None,
+                       help="patch, sensor pixels" + ("" if name == "map" else " (default: one that fits every PSF)"))
         p.add_argument("--device", default="cpu")
         p.add_argument("--batch", type=_positive_int, default=None, help="sources per launch")
         if name == "map":
