@@ -20,51 +20,12 @@ def _plt():
 
 
 def layout(lens, path, fields_deg=None, wavelength_um=None, rays: int = 7):
-    """Save a 2D (y-z) layout of ``lens`` with a meridional fan of ``rays`` rays per field to ``path`` (PNG)."""
-    from .trace import Tracer
-    plt = _plt()
+    """Save a 2D (y-z) layout of ``lens`` with a meridional fan of ``rays`` rays per field to ``path`` (PNG):
+    surfaces drawn to their clear apertures, glass filled, mm axes (:func:`rwwarp.report.layout_figure`)."""
+    from .report import layout_figure
     wl = wavelength_um or lens.wavelengths_um[len(lens.wavelengths_um) // 2]
-    fields = fields_deg if fields_deg is not None else (lens.fields_deg or [0.0])
-    tr = Tracer(lens, [wl])
-    z = lens.vertex_z
-    fig, ax = plt.subplots(figsize=(9, 4))
-    colors = plt.cm.viridis(np.linspace(0, 0.85, len(fields)))
-    u = np.zeros(rays)
-    v = np.linspace(-1, 1, rays)
-    ymax = 0.0
-    for k, f in enumerate(fields):
-        src = tr.sources([f])
-        r = tr._run(src, u, v, 1.0, keep=True)
-        start = np.stack([src["aim"][0][None, :] + np.stack([u, v * src["half_y"][0], 0 * u], 1)])[0]
-        pts = [start] + [h.numpy() for h in r.history]
-        ok = r.valid.numpy().astype(bool)
-        pts = np.stack(pts)  # (n_planes, rays, 3)
-        # start the drawing at the first surface
-        pts[0] = pts[1] - (pts[1] - pts[0]) * np.clip((pts[1, :, 2:3] - min(z[0], 0) + 0.2 * lens.sensor_z * 0.05)
-                                                      / np.maximum(pts[1, :, 2:3] - pts[0, :, 2:3], 1e-9), 0, 1)
-        for j in range(rays):
-            if ok[j]:
-                ax.plot(pts[:, j, 2], pts[:, j, 1], color=colors[k], lw=0.7)
-        ymax = max(ymax, np.max(np.abs(pts[:, ok, 1])) if ok.any() else 0)
-    for i, s in enumerate(lens.surfaces):
-        h = s.semi_diameter or ymax * 1.05 or 1.0
-        r = np.linspace(-h, h, 101)
-        sag = s.sag(np.abs(r)) if s.type == "standard" else np.zeros_like(r)
-        style = {"standard": ("k", "-"), "thin_lens": ("tab:blue", "-"), "aperture": ("tab:red", "-"),
-                 "doe": ("tab:purple", "--")}[s.type]
-        if s.type == "aperture":
-            ax.plot([z[i], z[i]], [h, h * 1.3], color=style[0], lw=2)
-            ax.plot([z[i], z[i]], [-h, -h * 1.3], color=style[0], lw=2)
-        else:
-            ax.plot(z[i] + sag, r, color=style[0], ls=style[1], lw=1.2)
-    ax.axvline(lens.sensor_z, color="gray", lw=1.5)
-    ax.set_xlabel("z (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(lens.name or "lens layout")
-    ax.set_aspect("equal", adjustable="datalim")
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    fields = list(fields_deg) if fields_deg is not None else list(lens.fields_deg or [0.0])
+    layout_figure(lens, path, fields, wl, rays=rays)
 
 
 def _tile_extent_um(m):
