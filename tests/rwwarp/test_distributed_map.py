@@ -9,11 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_map import doe_lens  # the small thin-lens + DOE system whose fields need different plans
 
 import rwwarp as rw
 from rwwarp import distributed as D
-
-from test_map import doe_lens  # the small thin-lens + DOE system whose fields need different plans
 
 FIELDS = [0.0, 0.8]
 WLS = [0.45, 0.65]
