@@ -248,12 +248,17 @@ def _run_unit(lens, fields, wls, unit, od, kw, budget):
 
 # ---------------------------------------------------------------------------------------------- progress
 class _Progress:
-    """Rank 0: one tqdm bar over every rank's finished PSFs, read from the job's key-value store by a
-    polling thread (other ranks only add to the counter)."""
+    """Rank 0: one tqdm bar over every rank's finished PSFs. The other ranks add to a counter in the
+    job's key-value store (a key of its own per map); on rank 0 a thread polls it and adds rank 0's own
+    count (so only that thread uses the store on rank 0)."""
+
+    _calls = 0   # maps made in this process: the same sequence on every rank (psf_map is collective)
 
     def __init__(self, store, total: int, rank: int, enabled: bool, desc: str):
+        _Progress._calls += 1
+        self.key = f"{_PROGRESS_KEY}/{_Progress._calls}"
         self.store, self.rank, self.total = store, rank, total
-        self.bar, self._stop, self._thread = None, threading.Event(), None
+        self.own, self.bar, self._stop, self._thread = 0, None, threading.Event(), None
         if enabled and rank == 0:
             from tqdm.auto import tqdm
             self.bar = tqdm(total=total, desc=desc, unit="PSF")
@@ -261,33 +266,36 @@ class _Progress:
                 self._thread = threading.Thread(target=self._poll, daemon=True)
                 self._thread.start()
 
-    def _count(self):
-        return int(self.store.add(_PROGRESS_KEY, 0))
+    def _show(self):
+        n = self.own + int(self.store.add(self.key, 0))
+        self.bar.update(max(0, min(n, self.total) - self.bar.n))
 
     def _poll(self):
         while not self._stop.wait(0.25):
             try:
-                n = self._count()
+                self._show()
             except Exception:  # noqa: BLE001 - the store went away (job ending): stop polling
                 return
-            self.bar.update(max(0, min(n, self.total) - self.bar.n))
 
     def add(self, n: int):
-        if self.store is not None:
-            self.store.add(_PROGRESS_KEY, int(n))
-        elif self.bar is not None:
-            self.bar.update(n)
+        if self.rank == 0:
+            self.own += int(n)
+            if self._thread is None and self.bar is not None:
+                self.bar.update(n)
+        elif self.store is not None and n:
+            self.store.add(self.key, int(n))
 
     def close(self):
+        """Rank 0, after every rank has finished (the gather): the final count, then the bar closes."""
         if self.bar is None:
             return
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
             try:
-                self.bar.update(max(0, min(self._count(), self.total) - self.bar.n))
-            except Exception:  # noqa: BLE001
-                pass
+                self._show()
+            except Exception:  # noqa: BLE001 - a missing store only leaves the bar short
+                self.bar.update(max(0, self.total - self.bar.n))
         self.bar.close()
 
 

@@ -78,8 +78,7 @@ class Group:
         if self._ddp is None or self._ddp.module is not net:
             from torch.nn.parallel import DistributedDataParallel
             dev = next(net.parameters()).device
-            self._ddp = DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None,
-                                                broadcast_buffers=False)
+            self._ddp = DistributedDataParallel(net, device_ids=[dev.index] if dev.type == "cuda" else None)
         return self._ddp
 
     def batch_slice(self, batch: int) -> slice:
