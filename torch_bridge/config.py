@@ -135,6 +135,8 @@ SCHEMA = {
         "min_feature_um": _num(0, lo_open=True, none=True),
         "check_sampling_every": _num(0, integer=True),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
+        "propagation": _choice("auto", "focal", "asm"),
+        "focal_patch_tol": _num(0, 1),
     },
     "render": {
         "mode": _choice("patch", "full"),
@@ -214,7 +216,8 @@ DEFAULTS = {
                "wavelengths_um": [[0.60, 0.63, 0.66], [0.52, 0.55, 0.58], [0.45, 0.47, 0.49]],
                "depths_mm": [None], "nyquist_safety": 1.0, "rays_per_sample": 1.2, "doe_budget_cpmm": 0.0,
                "min_feature_um": None,
-               "check_sampling_every": 10, "memory_budget_gb": None},
+               "check_sampling_every": 10, "memory_budget_gb": None, "propagation": "auto",
+               "focal_patch_tol": 1e-5},
     "render": {"mode": "patch", "boundary": "reflect"},
     "data": {"root": None, "crop": 64, "scale": 1.0, "batch_size": 4, "eval_images": 8, "max_images": None,
              "linearize": False},

@@ -490,6 +490,11 @@ class CachedProvider:
         outs = []
         ts = [doe] if thick is None else [doe, thick]
         wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
+        # a node's graph holds a few wave-plane arrays and its output nodes (the fields are cached, nothing
+        # is traced): checkpoint (recompute in backward) only when all nodes' graphs would not fit a quarter
+        # of the budget
+        graph = sum(16 * 8 * rw.plan.n_grid ** 2 + 16 * 4 * (rw.size * rw.gauss_nodes) ** 2 for rw, _, _ in nodes)
+        checkpoint = len(nodes) > 1 and wants and graph > self.budget_bytes() // 4
         for rw, u, entering in nodes:
             def run(doe_t, thick_t=None, record=True, rw=rw, u=u, entering=entering):
                 ctx = torch.enable_grad() if record else torch.no_grad()
@@ -500,11 +505,12 @@ class CachedProvider:
                     if rw.focal["profile"] is not None:
                         v = u * doe_orders_factor(geo.doe_phase(rw, {"doe": doe_t}, wrap=False), rw.focal["orders"])
                     return focal_propagate(v, d, rw) / entering[:, None, None]
-            if len(nodes) > 1 and wants:
+            if checkpoint:
                 outs.append(_Recompute.apply(run, *ts))
             else:
                 outs.append(run(*ts, record=torch.is_grad_enabled()))
-        self.step_log.append({"key": list(key), "method": "focal", "chunk": 1, "chunks": len(nodes)})
+        self.step_log.append({"key": list(key), "method": "focal", "chunk": 1, "chunks": len(nodes),
+                              "checkpoint": bool(checkpoint), "graph_bytes_estimate": int(graph)})
         del self.step_log[:-64]
         return torch.cat(outs, 0)
 

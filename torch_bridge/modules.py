@@ -138,8 +138,8 @@ class HybridLens(nn.Module):
         if method not in ("auto", "focal", "asm"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
         self.method = method
-        if not (np.isfinite(focal_patch_tol) and 0 <= focal_patch_tol < 1):
-            raise ValueError(f"focal_patch_tol must be in [0, 1), got {focal_patch_tol!r}")
+        if not (np.isfinite(focal_patch_tol) and 0 <= focal_patch_tol <= 1):
+            raise ValueError(f"focal_patch_tol must be in [0, 1], got {focal_patch_tol!r}")
         self.focal_patch_tol = float(focal_patch_tol)
         self.lens_template = copy.deepcopy(lens)
         self.plan_policy = plan

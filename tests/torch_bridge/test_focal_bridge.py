@@ -113,3 +113,15 @@ def test_cached_provider_auto_takes_focal_where_the_asm_plan_is_large(method):
     assert prov._focal and not prov._cache
     out.pow(2).sum().backward()
     assert torch.isfinite(m.doe.grad).all() and (m.doe.grad != 0).any()
+
+
+@pytest.mark.parametrize("preset", ["cpu", "cpu_long", "cpu_lens", "gpu"])
+def test_cooke_hybrid_presets_are_at_the_papers_aperture(preset):
+    """Every cooke_hybrid preset keeps the lens's own F/4 (EPD 11.75 mm, the file's) and plans the
+    wave stage with the focal method where the ASM would sample the converging beam."""
+    from torch_bridge.config import build_lens, load_config
+    exp = load_config("cooke_hybrid", preset)
+    for arm in exp["arms"]:
+        lens = build_lens(arm["config"], exp["source"])
+        assert lens.entrance_pupil_diameter == pytest.approx(11.75, abs=1e-12)
+        assert arm["config"]["optics"]["propagation"] == "auto"
