@@ -666,7 +666,12 @@ def main(argv=None) -> int:
         rest = [x for x in (argv if argv is not None else sys.argv[1:])]
         rest = _drop_option(rest, "--procs")
         try:
-            load_config(a.config, a.preset)       # a bad config fails here, before any worker starts
+            exp = load_config(a.config, a.preset)     # a bad config fails here, before any worker starts
+            for arm in exp["arms"]:
+                b = arm["config"]["data"]["batch_size"]
+                if b % a.procs:
+                    raise ConfigError(f"arm {arm['name']!r}: 'data.batch_size' {b} is not a multiple of --procs "
+                                      f"{a.procs} (each rank trains on an equal slice of the batch)")
             codes = launch(_design_worker, a.procs, rest)
         except ConfigError as e:
             print(f"rwwarp design: error: {e}", file=sys.stderr)
