@@ -78,23 +78,32 @@ def run_validation(out: Path, device: str = "cpu", quick: bool = False, side_mm:
         rows.append((names[kind], err, ray_txt, t_rw, t_gt, p.plan["n_grid"], p.plan["n_pad"]))
         panels.append((names[kind], p.data, gt, ray_img))
     plt = _plt()
-    fig, axes = plt.subplots(3, 3, figsize=(9, 9))
+    fig, axes = plt.subplots(3, 3, figsize=(9.6, 9), layout="constrained")
+    half = size * pixel * 1e3 / 2  # um
+    ext = [-half, half, -half, half]
+    im = None
     for i, (name, a, b, c) in enumerate(panels):
         vmax = b.max()
         for j, (img, title) in enumerate(((a, "ray-wave"), (b, "ground truth (RS)"), (c, "ray model"))):
             ax = axes[i, j]
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.tick_params(labelsize=7)
             if img is None:
+                ax.set_xticks([])
+                ax.set_yticks([])
                 ax.text(0.5, 0.5, "cannot model a\ndiscontinuous phase", ha="center", va="center")
             else:
-                ax.imshow(np.log10(np.maximum(img / vmax, 1e-5)), origin="lower", cmap="inferno", vmin=-5, vmax=0)
+                im = ax.imshow(np.log10(np.maximum(img / vmax, 1e-5)), origin="lower", cmap="inferno", vmin=-5,
+                               vmax=0, extent=ext)
             if i == 0:
                 ax.set_title(title)
+            if i == 2:
+                ax.set_xlabel("x (um)", fontsize=8)
             if j == 0:
-                ax.set_ylabel(name, fontsize=8)
-    fig.suptitle(f"thin lens f = {f_mm:g} mm + DOE, {side_mm:g} mm square aperture, 0.55 um (log10 PSF)")
-    fig.tight_layout()
+                ax.set_ylabel(f"{name}\ny (um)", fontsize=8)
+    cb = fig.colorbar(im, ax=axes, shrink=0.8, pad=0.02)
+    cb.set_label("log10(power per pixel / ground-truth peak of the row)")
+    fig.suptitle(f"thin lens f = {f_mm:g} mm + DOE, {side_mm:g} mm square aperture, 0.55 um (log10 PSF, {size} px of "
+                 f"{pixel * 1e3:.3g} um; each row over its ground truth's peak)", fontsize=9)
     fig.savefig(out / "validation.png", dpi=110)
     plt.close(fig)
     md = ["# Ray-wave validation against scalar diffraction", "",
