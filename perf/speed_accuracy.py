@@ -7,7 +7,9 @@ is written next to it and drawn as the floor of the chart). Then every method co
 reference's sensor patch (same ``center_mm``) and is timed (median of ``--repeat`` runs after one
 untimed run, which gives the error):
 
-* ``adaptive``: rwwarp's default ray-wave plan over a ladder of ``nyquist_safety x rays_per_sample``;
+* ``adaptive``: rwwarp's band-limited ASM plan (``method="asm"``) over a ladder of
+  ``nyquist_safety x rays_per_sample``;
+* ``focal``: the focal propagation (``method="focal"``, :mod:`rwwarp.focal`) over ``nyquist_safety``;
 * ``paper``: rwwarp with ``plan="paper"`` (the paper's fixed grid over the whole DOE, 10^6 rays);
   skipped (and said so in the JSON) where its predicted time or memory is out of reach;
 * ``float32``: the adaptive plan with a float32 ray trace;
@@ -152,7 +154,13 @@ def run_rwwarp_methods(case, ref, device, quick, repeat, log):
     g_ref = ref.info["convergence"]["settings"]["gauss_nodes"]   # None: rw.psf's automatic choice
     g_lab = "auto" if g_ref is None else g_ref
     ladder = [(1.0, 1.0), (1.5, 1.0), (2.0, 1.0), (2.0, 1.5), (3.0, 1.5)] if quick else list(cv.LADDER)
-    methods["adaptive"] = [run(f"adaptive s={s:g} r={r:g}", nyquist_safety=s, rays_per_sample=r) for s, r in ladder]
+    methods["adaptive"] = [run(f"adaptive s={s:g} r={r:g}", nyquist_safety=s, rays_per_sample=r, method="asm")
+                           for s, r in ladder]
+    # the focal propagation (rwwarp.focal: the converging wave handled analytically, grids follow the patch)
+    # over its own ladder of wave-plane / sensor-side safety
+    flad = [(1.0, 1.0), (2.0, 1.0), (3.0, 1.0)] if quick else [(1.0, 1.0), (1.5, 1.0), (2.0, 1.0), (3.0, 1.0), (4.0, 1.5)]
+    methods["focal"] = [run(f"focal s={s:g} r={r:g}", nyquist_safety=s, rays_per_sample=r, method="focal")
+                        for s, r in flad]
     if g_ref is not None and g_ref != cv.Settings().gauss_nodes:
         lad = ladder[1:] if quick else ladder
         methods["adaptive_gauss"] = [run(f"adaptive s={s:g} r={r:g} g={g_lab}", nyquist_safety=s, rays_per_sample=r,
@@ -341,7 +349,8 @@ def deeplens_importable():
 STYLE = {"adaptive": ("C0", "o", "rwwarp adaptive (defaults)"),
          "adaptive_gauss": ("C9", "o", "rwwarp adaptive, reference's pixel quadrature"), "paper": ("C1", "s", "rwwarp paper grid"),
          "float32": ("C2", "^", "rwwarp float32 trace"), "ray": ("C3", "x", "ray model"),
-         "paraxial-wave": ("C4", "D", "paraxial-wave model"), "deeplens": ("C5", "P", "DeepLens 2.5.6")}
+         "paraxial-wave": ("C4", "D", "paraxial-wave model"), "deeplens": ("C5", "P", "DeepLens 2.5.6"),
+         "focal": ("C6", "v", "rwwarp focal (rwwarp.focal)")}
 
 
 def chart_deeplens(ax, pts, color, marker, label, handles):

@@ -575,6 +575,30 @@ class HybridLens(nn.Module):
             entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
             return power / entering[:, None, None]
 
+    def memory_budget(self, memory_budget_bytes=None) -> int:
+        """``memory_budget_bytes``, or the device default: half the available memory
+        (:func:`rwwarp.plan.default_memory_budget_bytes`), bytes."""
+        if memory_budget_bytes is not None:
+            if not memory_budget_bytes > 0:
+                raise ValueError(f"memory_budget_bytes must be > 0, got {memory_budget_bytes!r}")
+            return int(memory_budget_bytes)
+        from rwwarp.plan import default_memory_budget_bytes as rw_default
+        return int(rw_default(self.rw_device))
+
+    def check_budget(self, rw, budget_bytes: int, spatial_tile=None, sources: int = 1) -> int:
+        """Estimated peak bytes of ``sources`` recorded sources of ``rw`` (forward + backward: the trace with
+        gradients, :meth:`bytes_per_source`, plus the output side of the propagation at ``spatial_tile``);
+        raises :class:`rwwarp.plan.MemoryBudgetError` naming the estimate and the knobs when it exceeds
+        ``budget_bytes``, before anything is traced. Returns the estimate."""
+        from rwwarp.plan import check_budget
+        est = sources * (self.bytes_per_source(rw) + self.output_bytes_per_source(rw, spatial_tile))
+        check_budget({"memory_bytes": est}, int(budget_bytes),
+                     f"a differentiable ray-wave PSF ({sources} source(s), {rw.plan.method}: {rw.plan.ray_grid}^2 rays "
+                     f"with gradients, wave-plane grid {rw.plan.n_grid}^2)",
+                     "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
+                     "nyquist_safety; psf_map tiles sources (tile=) and checkpoints them")
+        return est
+
     def output_bytes_per_source(self, rw, tile_px=None) -> int:
         """Estimated bytes of the propagation's output side for one source and a spatial tile of
         ``tile_px`` x ``tile_px`` sensor pixels (default the whole patch): the node field, its gradient
@@ -604,11 +628,15 @@ class HybridLens(nn.Module):
         ``wavelength_um`` (um), ``object_distance_mm`` (mm, default the lens's), ``pixel_mm`` (mm,
         default the sensor's). ``return_centers``: also the sensor (x, y) of the centre pixel (mm).
         ``spatial_tile``: propagate in tiles of that many sensor pixels a side (each recomputed in
-        backward; same result), or chosen from ``memory_budget_bytes`` (:meth:`spatial_tile_for`)."""
+        backward; same result), or chosen from ``memory_budget_bytes`` (:meth:`spatial_tile_for`). The source's
+        estimated peak (:meth:`check_budget`) is checked against ``memory_budget_bytes`` (default: half the
+        available memory of the device, :func:`rwwarp.plan.default_memory_budget_bytes`) before tracing."""
         rw = self.raywave([field_deg], [wavelength_um], size, object_distance_mm=object_distance_mm,
                           pixel_mm=pixel_mm, center_mm=center_mm)
-        if spatial_tile is None and memory_budget_bytes is not None:
-            spatial_tile = self.spatial_tile_for(rw, memory_budget_bytes)
+        budget = self.memory_budget(memory_budget_bytes)
+        if spatial_tile is None:
+            spatial_tile = self.spatial_tile_for(rw, budget)
+        self.check_budget(rw, budget, spatial_tile)
         out = self._psf_rw(rw, self.values(), spatial_tile=spatial_tile)[0]
         return (out, rw.centers[0].copy()) if return_centers else out
 
@@ -661,6 +689,8 @@ class HybridLens(nn.Module):
         tile = max(1, min(int(tile), len(pairs)))
         if spatial_tile is None and memory_budget_bytes is not None:
             spatial_tile = self.spatial_tile_for(full, memory_budget_bytes, tile)
+        # one source of the map's plan must fit the budget (checkpointed tiles keep one tile's graph at a time)
+        self.check_budget(full, self.memory_budget(memory_budget_bytes), spatial_tile)
         chunks = [list(range(k, min(k + tile, len(pairs)))) for k in range(0, len(pairs), tile)]
         if checkpoint is None:
             checkpoint = len(chunks) > 1

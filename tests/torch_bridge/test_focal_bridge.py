@@ -125,3 +125,19 @@ def test_cooke_hybrid_presets_are_at_the_papers_aperture(preset):
         lens = build_lens(arm["config"], exp["source"])
         assert lens.entrance_pupil_diameter == pytest.approx(11.75, abs=1e-12)
         assert arm["config"]["optics"]["propagation"] == "auto"
+
+
+def test_hybridlens_refuses_a_psf_over_the_memory_budget_before_tracing():
+    """HybridLens.psf / psf_map check the estimated peak of a recorded source against the budget (issue:
+    hostile input, memory) and name the estimate and the knobs; within the budget they run."""
+    from rwwarp.plan import MemoryBudgetError
+    lens = _thin_lens_doe([-40.0, 6.0])
+    m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", rays_per_sample=0.5)
+    with pytest.raises(MemoryBudgetError, match="rays_per_sample") as e:
+        m.psf(0.0, 0.55, 12, memory_budget_bytes=2 ** 20)
+    assert "GiB" in str(e.value)
+    with pytest.raises(MemoryBudgetError):
+        m.psf_map([0.0], [0.55], 12, memory_budget_bytes=2 ** 20)
+    r = m.raywave([0.0], [0.55], 12)
+    need = m.check_budget(r, 2 ** 40)
+    assert torch.isfinite(m.psf(0.0, 0.55, 12, memory_budget_bytes=2 * need)).all()
