@@ -125,45 +125,49 @@ class FocalPropagator:
         h, hs = self.pitch, self.spitch
         xs = origin[:, None, :] + np.arange(self.n)[None, :, None] * h          # (S, n, 2) plane coords
         ps = s0[:, None, :] + np.arange(self.ns)[None, :, None] * hs            # (S, ns, 2) sensor grid
+        # the window-sized factors are formed on the operator's device (xp), from small host vectors
+        X = {k: xp.asarray(v) for k, v in (("xs", xs), ("ps", ps), ("g", g), ("A", A), ("q", q), ("w_c", w_c),
+                                          ("f_c", f_c), ("inv_lam", inv_lam))}
         # step 1 factors: E[a][s, j, i] = exp(-i pi A (p_j + z g - x_i)^2) per axis (the carrier of h_G
         # and the field's removed carrier cancel up to a constant; the sensor field is demodulated by f_c)
         self._E = []
         for ax in range(2):
-            d = ps[:, :, None, ax] + z * g[:, None, None, ax] - xs[:, None, :, ax]   # (S, ns, n)
-            ph = -np.pi * A[:, None, None, ax] * d * d
+            d = X["ps"][:, :, None, ax] + z * X["g"][:, None, None, ax] - X["xs"][:, None, :, ax]   # (S, ns, n)
+            ph = -np.pi * X["A"][:, None, None, ax] * d * d
             # demodulating by f_c: h_G carries exp(2 pi i f_c.(p - x)); the field carries exp(-2 pi i f_c.x)
             # removed, the output exp(2 pi i f_c.p) is removed: nothing left but constants
-            e = np.sqrt(np.abs(A[:, None, None, ax])) * h * np.exp(1j * ph)
-            self._E.append(xp.asarray(e))
-        self._geo = (xs, ps, g, A, z)
+            self._E.append((xp.sqrt(xp.abs(X["A"][:, None, None, ax])) * h) * xp.exp(1j * ph))
+        self._geo = X
         self._dE = None
         # step 2: remainder transfer on the padded sensor grid (true frequency f_c + nu)
-        nu = np.fft.fftfreq(self.nf, d=hs)                                     # (nf,)
-        fx = f_c[:, 0:1, None] + nu[None, None, :]                             # (S, 1, nf)
-        fy = f_c[:, 1:2, None] + nu[None, :, None]                             # (S, nf, 1)
-        arg = inv_lam[:, None, None] ** 2 - fx ** 2 - fy ** 2
-        w = np.sqrt(np.maximum(arg, 0.0))
+        nu_h = np.fft.fftfreq(self.nf, d=hs)                                   # (nf,)
+        nu = xp.asarray(nu_h)
+        fx = X["f_c"][:, 0:1, None] + nu[None, None, :]                        # (S, 1, nf)
+        fy = X["f_c"][:, 1:2, None] + nu[None, :, None]                        # (S, nf, 1)
+        arg = X["inv_lam"][:, None, None] ** 2 - fx ** 2 - fy ** 2
+        w = xp.sqrt(xp.maximum(arg, 0.0))
         nux, nuy = nu[None, None, :], nu[None, :, None]
-        wg = (w_c[:, None, None] + g[:, None, None, 0] * nux + g[:, None, None, 1] * nuy
-              + 0.5 * (q[:, None, None, 0] * nux ** 2 + q[:, None, None, 1] * nuy ** 2))
+        gx, gy = X["g"][:, None, None, 0], X["g"][:, None, None, 1]
+        qx, qy = X["q"][:, None, None, 0], X["q"][:, None, None, 1]
+        wg = X["w_c"][:, None, None] + gx * nux + gy * nuy + 0.5 * (qx * nux ** 2 + qy * nuy ** 2)
         # band limit of the remainder: a component moved by H_R further than the padding would wrap
         # around the periodic sensor grid; it lands far outside the patch, so it is dropped (the same
         # criterion as Matsushima's band-limited ASM, applied to the remainder's displacement)
-        ws = np.where(arg > 0, w, 1.0)
-        dx = z * (fx / ws + g[:, None, None, 0] + q[:, None, None, 0] * nux)
-        dy = z * (fy / ws + g[:, None, None, 1] + q[:, None, None, 1] * nuy)
+        ws = xp.where(arg > 0, w, 1.0)
+        dx = z * (fx / ws + gx + qx * nux)
+        dy = z * (fy / ws + gy + qy * nuy)
         room = (self.nf - self.ns) * hs
-        keep = (arg > 0) & (np.abs(dx) <= room) & (np.abs(dy) <= room)
-        rem = np.where(keep, w - wg, 0.0)
-        hr = np.where(keep, np.exp(2j * np.pi * z * rem), 0.0)
-        self.kept_band_fraction = float(np.mean(keep))
-        self._HR = xp.asarray(hr)
+        keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room)
+        rem = xp.where(keep, w - wg, 0.0)
+        self._HR = xp.where(keep, xp.exp(2j * np.pi * z * rem), 0.0)
+        self.kept_band_fraction = float(xp.mean(keep))
         self._rem = rem           # d(phase of H_R)/dz / (2 pi), kept band (for the distance derivative)
         self._dHR = None
         # output factors: U(p) = 1/nf^2 sum_m B_m exp(2 pi i nu_m (p - s0))
-        nx, ny = np.asarray(nodes_x_mm, float), np.asarray(nodes_y_mm, float)
-        self._Fx = xp.asarray(np.exp(2j * np.pi * nu[None, None, :] * (nx - s0[:, 0:1])[:, :, None]) / self.nf)
-        self._Fy = xp.asarray(np.exp(2j * np.pi * nu[None, None, :] * (ny - s0[:, 1:2])[:, :, None]) / self.nf)
+        nx = xp.asarray(np.asarray(nodes_x_mm, float) - s0[:, 0:1])
+        ny = xp.asarray(np.asarray(nodes_y_mm, float) - s0[:, 1:2])
+        self._Fx = xp.exp(2j * np.pi * nu[None, None, :] * nx[:, :, None]) / self.nf
+        self._Fy = xp.exp(2j * np.pi * nu[None, None, :] * ny[:, :, None]) / self.nf
 
     # ------------------------------------------------------------------ operator
     def sensor_grid_field(self, field):
@@ -188,16 +192,15 @@ class FocalPropagator:
         ``E = sqrt|A| h exp(-i pi A d^2)`` with ``A = 1 / (z Q)`` and ``d = p + z g - x``, so
         ``dE/dz = E (-1 / (2 z) + i pi (A / z) d^2 - 2 i pi A d g)``; ``dH_R/dz = 2 pi i (w - w_G) H_R``."""
         if self._dE is None:
-            xp = self.xp
-            xs, ps, g, A, z = self._geo
+            X, z = self._geo, self.z
             self._dE = []
             for ax in range(2):
-                d = ps[:, :, None, ax] + z * g[:, None, None, ax] - xs[:, None, :, ax]
-                a = A[:, None, None, ax]
-                fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g[:, None, None, ax]
-                e = self._E[ax] if xp is np else xp.asnumpy(self._E[ax])
-                self._dE.append(xp.asarray(e * fac))
-            self._dHR = self._HR * xp.asarray(2j * np.pi * self._rem)
+                g = X["g"][:, None, None, ax]
+                d = X["ps"][:, :, None, ax] + z * g - X["xs"][:, None, :, ax]
+                a = X["A"][:, None, None, ax]
+                fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g
+                self._dE.append(self._E[ax] * fac)
+            self._dHR = self._HR * (2j * np.pi * self._rem)
         return self._dE, self._dHR
 
     def distance_derivative(self, field):
