@@ -21,11 +21,109 @@ def _plt():
 
 def layout(lens, path, fields_deg=None, wavelength_um=None, rays: int = 7):
     """Save a 2D (y-z) layout of ``lens`` with a meridional fan of ``rays`` rays per field to ``path`` (PNG):
-    surfaces drawn to their clear apertures, glass filled, mm axes (:func:`rwwarp.report.layout_figure`)."""
-    from .report import layout_figure
+    surfaces drawn to their clear apertures, glass filled, mm axes (:func:`layout_figure`)."""
     wl = wavelength_um or lens.wavelengths_um[len(lens.wavelengths_um) // 2]
     fields = list(fields_deg) if fields_deg is not None else list(lens.fields_deg or [0.0])
     layout_figure(lens, path, fields, wl, rays=rays)
+
+
+def _fan(lens, field, wl, u, v, device="cpu"):
+    """Positions after every surface ((n_surfaces + 1, n, 3), the start included) and validity of rays."""
+    from .trace import Tracer
+    tr = Tracer(lens, [wl], device=device)
+    src = tr.sources([field])
+    r = tr._run(src, np.asarray(u, float), np.asarray(v, float), 1.0, keep=True)
+    hist = np.stack([h.numpy().reshape(-1, 3) for h in r.history])
+    return hist, r.valid.numpy().astype(bool).ravel(), src
+
+
+def clear_semi_diameters(lens, fields_deg, wavelengths_um, grid: int = 21, device: str = "cpu") -> np.ndarray:
+    """Clear semi-diameter of each surface, mm: its ``semi_diameter`` where set, else the largest
+    radial height at that surface of the rays (``grid`` x ``grid`` pupil, every field and wavelength)
+    that reach the sensor (as Zemax's automatic semi-diameters)."""
+    from .trace import pupil_grid
+    shape = lens.surfaces[lens.stop_index].shape
+    u, v, _ = pupil_grid(grid, shape, layout="edges")
+    h = np.zeros(len(lens.surfaces))
+    for wl in wavelengths_um:
+        for f in fields_deg:
+            hist, ok, _ = _fan(lens, f, wl, u, v, device)
+            if not ok.any():
+                continue
+            r = np.hypot(hist[:len(lens.surfaces), ok, 0], hist[:len(lens.surfaces), ok, 1])
+            h = np.maximum(h, np.nanmax(r, axis=1))
+    for i, s in enumerate(lens.surfaces):
+        if s.semi_diameter is not None:
+            h[i] = s.semi_diameter  # (a square's half side: its extent in the y-z section)
+    return h
+
+
+def layout_figure(lens, path, fields_deg, wavelength_um, device: str = "cpu", rays: int = 9):
+    """Save the y-z layout: surfaces to their clear apertures (:func:`clear_semi_diameters`), lens
+    elements filled between surfaces in glass, a meridional fan of ``rays`` rays per field. mm axes."""
+    plt = _plt()
+    z = lens.vertex_z
+    sd = clear_semi_diameters(lens, fields_deg, [wavelength_um], device=device)
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    colors = plt.cm.viridis(np.linspace(0, 0.85, max(len(fields_deg), 1)))
+    v = np.linspace(-1, 1, rays)
+    for k, f in enumerate(fields_deg):
+        hist, ok, src = _fan(lens, f, wavelength_um, np.zeros(rays), v, device)
+        # start every ray on the plane 10 % of the track in front of the first vertex, along its direction
+        p1, p2 = hist[0], hist[1] if len(hist) > 1 else hist[0]
+        d = p2 - p1
+        z0 = -0.1 * max(lens.sensor_z, 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = np.where(np.abs(d[:, 2]) > 1e-12, (z0 - p1[:, 2]) / np.where(d[:, 2] != 0, d[:, 2], 1), 0)
+        start = p1 + t[:, None] * d
+        for j in range(rays):
+            if ok[j]:
+                pts = np.vstack([start[j], hist[:, j]])
+                ax.plot(pts[:, 2], pts[:, 1], color=colors[k], lw=0.7,
+                        label=field_label(f) if j == next(i for i in range(rays) if ok[i]) else None)
+    media = lens.media()
+    edge = []
+    for i, s in enumerate(lens.surfaces):
+        h = sd[i] if sd[i] > 0 else 1.0
+        r = np.linspace(-h, h, 121)
+        sag = s.sag(np.abs(r)) if s.type == "standard" else np.zeros_like(r)
+        edge.append((z[i] + (s.sag(h) if s.type == "standard" else 0.0), h))
+        if s.type == "aperture":
+            ax.plot([z[i], z[i]], [h, h * 1.25], color="tab:red", lw=2)
+            ax.plot([z[i], z[i]], [-h, -h * 1.25], color="tab:red", lw=2)
+        else:
+            style = {"standard": ("k", "-"), "thin_lens": ("tab:blue", "-"), "doe": ("tab:purple", "--")}[s.type]
+            ax.plot(z[i] + sag, r, color=style[0], ls=style[1], lw=1.2)
+    # glass elements: between a surface whose medium after it is not air and the next surface
+    for i in range(len(lens.surfaces) - 1):
+        if media[i].lower() == "air" or lens.surfaces[i].type not in ("standard",):
+            continue
+        j = i + 1
+        (za, ha), (zb, hb) = edge[i], edge[j]
+        H = max(ha, hb)
+        for sgn in (1, -1):
+            ax.plot([za, za], [sgn * ha, sgn * H], color="k", lw=1.0)
+            ax.plot([zb, zb], [sgn * hb, sgn * H], color="k", lw=1.0)
+            ax.plot([za, zb], [sgn * H, sgn * H], color="k", lw=1.0)
+        sa, sb = lens.surfaces[i], lens.surfaces[j]
+        ra = np.linspace(-ha, ha, 121)
+        rb = np.linspace(hb, -hb, 121)
+        za_c = z[i] + (sa.sag(np.abs(ra)) if sa.type == "standard" else 0 * ra)
+        zb_c = z[j] + (sb.sag(np.abs(rb)) if sb.type == "standard" else 0 * rb)
+        poly_z = np.concatenate([[za], za_c, [za, zb], zb_c, [zb]])
+        poly_y = np.concatenate([[-H], ra, [H, H], rb, [-H]])
+        ax.fill(poly_z, poly_y, color="tab:cyan", alpha=0.15, lw=0)
+    ax.axvline(lens.sensor_z, color="gray", lw=1.5)
+    ax.set_xlabel("z (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"{lens.name or 'lens'}: layout at {wavelength_um:g} um (surfaces to their clear apertures)")
+    ax.set_aspect("equal", adjustable="datalim")
+    if fields_deg:
+        ax.legend(fontsize=7, loc="upper left", title="field", title_fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return sd
 
 
 def _tile_extent_um(m):
