@@ -484,7 +484,7 @@ class CachedProvider:
         """(n_nodes, size, size) for a focal entry: DOE orders of the current DOE applied to each node's
         cached field, focal propagation (each node a checkpoint when a gradient is wanted and there is
         more than one node)."""
-        from torch_bridge.functions import doe_orders_factor, focal_propagate
+        from torch_bridge.functions import focal_doe_factor, focal_propagate
         from torch_bridge.modules import _Recompute
         nodes, dist, geo = entry
         outs = []
@@ -502,8 +502,9 @@ class CachedProvider:
                     d = torch.full((1,), dist, dtype=torch.float64, device=u.device) if thick_t is None \
                         else thick_t.reshape(1)
                     v = u
-                    if rw.focal["profile"] is not None:
-                        v = u * doe_orders_factor(geo.doe_phase(rw, {"doe": doe_t}, wrap=False), rw.focal["orders"])
+                    fac = focal_doe_factor(rw, geo.doe_phase(rw, {"doe": doe_t}, wrap=False))
+                    if fac is not None:
+                        v = u * fac
                     return focal_propagate(v, d, rw) / entering[:, None, None]
             if checkpoint:
                 outs.append(_Recompute.apply(run, *ts))

@@ -61,6 +61,7 @@ __all__ = [
     "distance_from_table",
     "doe_orders_factor",
     "doe_scale",
+    "focal_doe_factor",
     "focal_propagate",
     "load_table",
     "mixed_precision",
@@ -502,6 +503,21 @@ def doe_orders_factor(phi0, orders):
             acc = term if acc is None else acc + term
         out.append(acc)
     return torch.stack(out)
+
+
+def focal_doe_factor(rw, phi0):
+    """The DOE's transmission on a focal plan's wave-plane grid, (S, n, n) complex128, or None when the wave
+    plane is no DOE. ``phi0``: the unwrapped DOE phase (rad, (S, n, n)), differentiable. With a DOE
+    profile in the plan: the kept diffraction orders (:func:`doe_orders_factor`). A DOE that was flat when
+    planned (no orders were planned, e.g. a blank DOE about to learn): ``exp(1j alpha phi0)``, the
+    continuous transmission, exact at the planned (zero) phase with its exact derivative ``1j alpha``
+    (``alpha``: the wavelength remap, :func:`doe_scale`); the design loop replans once it grows."""
+    if phi0 is None:
+        return None
+    if rw.focal["profile"] is not None:
+        return doe_orders_factor(phi0, rw.focal["orders"])
+    alpha = torch.as_tensor(doe_scale(rw), dtype=torch.float64, device=phi0.device)
+    return torch.exp(1j * alpha[:, None, None] * phi0)
 
 
 def focal_propagate(field, distance, rw):

@@ -56,7 +56,7 @@ from rwwarp.errors import SamplingWarning
 from rwwarp.lens import MAX_ASPHERIC, Lens
 from rwwarp.plan import Plan
 
-from .functions import backend_for, doe_orders_factor, focal_propagate, propagate, quantize_ste, trace_splat
+from .functions import backend_for, focal_doe_factor, focal_propagate, propagate, quantize_ste, trace_splat
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -567,8 +567,9 @@ class HybridLens(nn.Module):
                 pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
                 u = u * torch.sqrt(torch.where(pw > 0, q / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
             if rw.plan.method == "focal":
-                if rw.focal["profile"] is not None:
-                    u = u * doe_orders_factor(self.doe_phase(rw, values, wrap=False), rw.focal["orders"])
+                fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
+                if fac is not None:
+                    u = u * fac
                 power = focal_propagate(u, dist, rw)
             else:
                 power = propagate(u, phi0, dist, rw, spatial_tile)
