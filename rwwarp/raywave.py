@@ -1,0 +1,672 @@
+"""The ray-wave model of one batch of point sources, in stages (:class:`RayWave`).
+
+Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (the
+band-limited ASM's or the focal method's, :mod:`rwwarp.plan`), the wave-plane windows and the sensor
+patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
+field (Warp, :mod:`rwwarp.kernels.splat`), apply the DOE, propagate to the sensor and integrate over the
+pixels (:mod:`rwwarp.propagate` or :mod:`rwwarp.focal`). :func:`rwwarp.psf.psf` and
+:func:`rwwarp.psf.psf_map` are the public calls around it; :mod:`torch_bridge` differentiates its stages.
+Lengths in mm, wavelengths in um.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .doe import is_flat_profile as _is_flat_profile
+from .errors import LensError
+from .lens import snap_to_pixel as _snap_center
+from .plan import Plan, check_explicit, nice_fft_length
+from .trace import Tracer, pupil_grid, upload_packed
+from .trace import field_label as _fmt_field
+
+_LAST = {}  # last ray-wave field, for inspection
+
+def n_img_all(lens, wls):
+    """Refractive index of the image space at each wavelength."""
+    return np.array([lens.indices(w)[-1] for w in wls])
+
+
+def _auto_gauss_nodes(dir_s, ok, n_img, lam_mm, pixel, tol=1e-7):
+    """Fewest Gauss-Legendre nodes (3..16) per axis integrating |U|^2 over a pixel to ``tol``.
+
+    |U|^2 at the sensor holds spatial frequencies up to 2 n NA / lambda (NA: the largest direction-sine
+    spread of the beam about its mean); across a pixel the phase of that component changes by
+    ``Phi = 2 pi pixel 2 n NA / lambda``, and the node count follows the Gauss-Legendre error bound for
+    ``exp(i Phi t / 2)`` on [-1, 1].
+    """
+    from .analytic import gauss_legendre_exp_error
+    worst = 0.0
+    for k in range(dir_s.shape[0]):
+        d = dir_s[k, ok[k], :2]
+        if len(d) == 0:
+            continue
+        na = float(np.max(np.abs(d - d.mean(0))))
+        worst = max(worst, 2.0 * np.pi * pixel * 2.0 * n_img[k] * na / lam_mm[k])
+    for g in range(3, 17):
+        if gauss_legendre_exp_error(g, worst / 2.0) < tol:
+            return g
+    return 16
+
+
+def _snap_centers(center_mm, pixel, resolution, nsrc):
+    """(nsrc, 2) patch centres: ``center_mm`` ((x, y) mm, one pair or one per source) snapped to the
+    sensor's pixel centres."""
+    c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
+    return np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, resolution[0]),
+                                     _snap_center(c[:, 1], pixel, resolution[1])], 1), (nsrc, 2)).copy()
+
+
+def _pixel_centres(centers, size, pixel):
+    off = (np.arange(size) - size // 2) * pixel
+    return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
+
+
+def _lens_dir(lens):
+    from pathlib import Path
+    return None if lens.source is None else Path(lens.source).parent
+
+
+def _is_curved(surface) -> bool:
+    """True for a refracting surface with sag (curvature or aspheric terms): not a plane."""
+    if surface.type != "standard":
+        return False
+    return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
+
+
+def _doe_phase_grid(lens, plane, origin, pitch, n):
+    """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
+    s = lens.surfaces[plane]
+    if s.type != "doe" or _is_flat_profile(s.profile):
+        return None
+    from . import doe
+    prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
+    g = np.arange(n) * pitch
+    out = np.empty((origin.shape[0], n, n))
+    for k in range(origin.shape[0]):
+        x, y = np.meshgrid(origin[k, 0] + g, origin[k, 1] + g, indexing="xy")
+        # the physical relief: phi0 wrapped to [0, 2 pi) (and quantised), then remapped per wavelength
+        ph = doe.design_phase(prof, x, y, s.design_wavelength_um, s.levels)
+        # no mask at the DOE's edge: the tracer already clipped rays there, and samples straddling the
+        # edge (partly covered) need the phase the profile has at the edge, not 0
+        out[k] = ph
+    return out
+
+
+def _doe_max_frequency(lens, plane, xy, wavelengths):
+    """Largest local spatial frequency (cycles/mm) the DOE adds at the points ``xy`` (per source)."""
+    s = lens.surfaces[plane]
+    if s.type != "doe":
+        return np.zeros(len(wavelengths)), None
+    from . import doe
+    prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
+    feat = None
+    if doe.surface_has_steps(s, lens.source):  # (a quantised flat phase has none: issue 11 defect 6)
+        feat = doe.surface_feature_size_mm(s, lens.source)
+        return np.zeros(len(wavelengths)), feat
+    out = np.zeros(len(wavelengths))
+    for k, w in enumerate(wavelengths):
+        gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
+        sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+        out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
+    return out, feat
+
+
+def _auto_sizes(need_pitch, width, feature, out_width, rays_per_sample):
+    """Adaptive plan sizes for a beam footprint ``width`` (mm) that needs a pitch <= ``need_pitch`` (mm):
+    ``(pitch_mm, n_grid, n_pad, ray_grid)``. ``feature``: DOE pixel size (mm) or None; ``out_width``:
+    sensor patch width (mm)."""
+    pitch = need_pitch
+    if feature is not None:
+        # align the grid with DOE pixels: an integer number of samples per feature
+        pitch = feature / math.ceil(feature / pitch)
+    window = width + 2.0 * width / 31.0  # footprint + 2 pilot cells (31-ray pilot grid)
+    n_grid = int(math.ceil(window / pitch)) + 3
+    # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
+    # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
+    n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
+    ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
+    return pitch, n_grid, n_pad, ray_grid
+
+
+def group_sources(needs: dict, max_batch: int | None = None, waste: float = 2.0) -> list:
+    """Batches of source indices whose shared plan stays close to what each source needs alone.
+
+    ``needs``: :attr:`RayWave.source_needs` (per-source pitch and footprint width, mm). Sources are
+    sorted by their own FFT size (largest first) and added greedily to the current batch while it has
+    fewer than ``max_batch`` members and the shared plan's (finest pitch, widest footprint) FFT area is at
+    most ``waste`` times the candidate's own (the smallest in the batch so far, so this holds for every
+    member). Returns a list of index lists (each sorted)."""
+    pitch, width = np.asarray(needs["pitch_mm"], float), np.asarray(needs["width_mm"], float)
+    args = (needs["feature_mm"], needs["out_width_mm"], needs["rays_per_sample"])
+    own = [_auto_sizes(pitch[k], width[k], *args)[2] for k in range(len(pitch))]
+    order = sorted(range(len(pitch)), key=lambda k: (-own[k], pitch[k], k))
+    groups, cur, cur_pitch, cur_width = [], [], math.inf, 0.0
+    for k in order:
+        if cur:
+            p2, w2 = min(cur_pitch, pitch[k]), max(cur_width, width[k])
+            pad2 = _auto_sizes(p2, w2, *args)[2]
+            # sorted by own FFT size: the candidate's is the group's smallest, so this bounds every member
+            if (max_batch is None or len(cur) < max_batch) and pad2 * pad2 <= waste * own[k] * own[k]:
+                cur.append(k)
+                cur_pitch, cur_width = p2, w2
+                continue
+            groups.append(sorted(cur))
+        cur, cur_pitch, cur_width = [k], pitch[k], width[k]
+    if cur:
+        groups.append(sorted(cur))
+    return groups
+
+
+# ---------------------------------------------------------------------------------------------- ray-wave
+class RayWave:
+    """The ray-wave model for one batch of point sources, in stages.
+
+    ``__init__`` makes every discrete decision (pilot trace, chief rays, sampling plan, windows,
+    sensor patches); :meth:`field` runs the differentiable part on the Warp device (trace to the DOE
+    plane, ray-tube areas, splat, reference sphere and carrier) and returns the complex field;
+    :meth:`doe_phase` samples phi0 on the windows; :meth:`intensity` propagates to the sensor and
+    integrates over pixels (OpenCL); :meth:`run` chains them and normalises by the entering power.
+    Lengths in mm, wavelengths in um.
+
+    ``focal_patch_tol`` (focal method): a DOE order other than the main one is computed only if the
+    share of the source's power it puts on the patch (estimated from its pilot rays' landing box) is at
+    least this (default 1e-5). Strongly defocused orders off the design wavelength spread a few percent
+    of the power over millimetres; keeping them makes the sensor-side box, and with it the wave-plane
+    grid, as wide as their spread. A larger value (1e-3) leaves them out; their power is reported in the
+    plan's reasons.
+    """
+
+    def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
+                 amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
+                 use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
+                 memory_budget_bytes=None, focal_patch_tol=1e-5):
+        if method not in ("asm", "focal", "auto"):
+            raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+
+        plane = lens.wave_plane_index()
+        uniq = sorted(set(wls))
+        tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad)
+        wl_idx = [uniq.index(w) for w in wls]
+        nsrc = len(fields)
+        src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+        src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
+        n_after = np.array([lens.indices(w)[plane] for w in wls])
+        z_plane = lens.vertex_z[plane]
+        z_sensor = lens.sensor_z
+        if not z_sensor > lens.vertex_z[plane]:
+            raise LensError(f"the wave models need the sensor behind the wave plane (surface {plane}); here it is "
+                            f"{lens.vertex_z[plane] - z_sensor:.6g} mm before it (a mirror or a negative last "
+                            "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
+        lam_mm = np.array(wls) * 1e-3
+
+        # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
+        pu, pv, _ = pupil_grid(31, src["shape"])
+        pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
+        pilot = tr._run(src, pu, pv, 1.0, keep=(plane,))
+        at_plane, opl_plane, valid_plane = pilot.kept[plane]
+        pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
+        pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
+        dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
+        opl_p = opl_plane.numpy().reshape(nsrc, -1).astype(np.float64)
+        # a curved last surface: carry the rays on to its vertex plane (straight, in the image medium,
+        # OPL included) so the field is formed on a true plane
+        self.curved_plane = _is_curved(lens.surfaces[plane])
+        if self.curved_plane:
+            t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
+            pos_p = pos_p + t[..., None] * dir_s
+            opl_p = opl_p + n_after[:, None] * t
+        ok = pilot.valid.numpy().reshape(nsrc, -1).astype(bool)
+        for k in range(nsrc):
+            if ok[k].sum() < 3:
+                raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
+                                file=lens.source, field=_fmt_field(fields[k]))
+        # chief ray: pupil centre if valid, else the centroid of valid rays
+        chief_plane = np.zeros((nsrc, 3))
+        chief_sensor = np.zeros((nsrc, 3))
+        chief_dir = np.zeros((nsrc, 3))
+        for k in range(nsrc):
+            if ok[k, 0]:
+                chief_plane[k], chief_sensor[k], chief_dir[k] = pos_p[k, 0], pos_s[k, 0], dir_s[k, 0]
+            else:
+                chief_plane[k] = pos_p[k, ok[k]].mean(0)
+                chief_sensor[k] = pos_s[k, ok[k]].mean(0)
+                d = dir_s[k, ok[k]].mean(0)
+                chief_dir[k] = d / np.linalg.norm(d)
+        carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
+        # local frequencies of the field relative to the carrier, and the footprint
+        fmax = np.zeros(nsrc)
+        lo = np.zeros((nsrc, 2))
+        hi = np.zeros((nsrc, 2))
+        xy_plane = []
+        for k in range(nsrc):
+            f = n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] - carrier[k]
+            fmax[k] = np.max(np.abs(f))
+            xy = pos_p[k, ok[k], :2]
+            xy_plane.append(xy)
+            lo[k], hi[k] = xy.min(0), xy.max(0)
+        f_doe, feature = _doe_max_frequency(lens, plane, xy_plane, wls)
+        width = float(np.max(hi - lo))
+        pilot_cell = width / 31.0
+        if center_mm is None:
+            centers = np.stack([_snap_center(chief_sensor[:, 0], pixel, lens.sensor.resolution[0]),
+                                _snap_center(chief_sensor[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
+        else:
+            centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
+        out_width = size * pixel
+        if method == "auto":
+            # both plans from the same pilot; the cheaper one (planned work) runs
+            method = "asm" if (isinstance(plan, str) and plan == "paper") else "compare"
+            if isinstance(plan, Plan):
+                method = plan.method
+            s_pl = lens.surfaces[plane]
+            if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
+                method = "asm"  # discontinuous: no smooth diffraction orders to factor
+        self.focal = None
+        if method in ("focal", "compare"):
+            self._plan_focal(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
+                             z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety,
+                             focal_patch_tol)
+            focal_state = (self.plan, self.focal, self.carrier, self.centers)
+            if method == "focal":
+                carrier, centers = self.carrier, self.centers
+        # ---- plan
+        nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
+        need_pitch = nyq_pitch / nyquist_safety
+        reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
+                   f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {nyq_pitch * 1e3:.4g} um, / safety "
+                   f"{nyquist_safety} for edge diffraction -> {need_pitch * 1e3:.4g} um"]
+        if feature is not None:
+            if feature / 2.0 < need_pitch:
+                reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
+            need_pitch = min(need_pitch, feature / 2.0)
+        window = width + 2.0 * pilot_cell
+        if method == "focal":
+            pl = self.plan
+        elif isinstance(plan, Plan):
+            pl = plan
+            check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
+        elif plan == "auto":
+            pitch, n_grid, n_pad, ray_grid = _auto_sizes(need_pitch, width, feature, out_width, rays_per_sample)
+            reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
+                        f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
+                        f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
+            pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
+        elif plan == "paper":
+            s = lens.surfaces[plane]
+            half = s.semi_diameter or float(np.max(np.abs(np.concatenate([lo, hi]))))
+            pitch = (feature or 2 * need_pitch) / 2.0
+            n_grid = int(round(2 * half / pitch))
+            pl = Plan(pitch, n_grid, 2 * n_grid, 1000, "paper", False,
+                      ["paper: whole DOE aperture at half the DOE feature size, padded 2x, 1000x1000 pupil rays "
+                       "(10^6)"])
+            lo[:] = -half
+            hi[:] = half
+        else:
+            raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
+
+        # what each source alone would need (psf_map groups sources with similar needs into batches)
+        src_need = 1.0 / (2.0 * (fmax + f_doe + 1e-9)) / nyquist_safety
+        if feature is not None:
+            src_need = np.minimum(src_need, feature / 2.0)
+        self.source_needs = {"pitch_mm": src_need, "width_mm": np.max(hi - lo, axis=1), "feature_mm": feature,
+                             "out_width_mm": out_width, "rays_per_sample": rays_per_sample}
+        self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
+        if gauss_nodes is None:
+            gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)
+            pl = pl.with_reasons(f"pixel integration: {gauss_nodes} x {gauss_nodes} Gauss-Legendre nodes per pixel "
+                                 f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
+        from .plan import estimate_cost, check_budget
+        from dataclasses import replace as _replace
+        pl = _replace(pl, estimate=estimate_cost(pl, nsrc, size, gauss_nodes))
+        if method == "compare":
+            fpl = focal_state[0]
+            fpl = _replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
+            why = (f"method auto (asm while its plan is under 1 GiB and 20 GFLOP): focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
+                   f"GiB against asm {pl.estimate['flops'] / 1e9:.3g} GFLOP / {pl.estimate['memory_bytes'] / 2 ** 30:.3g} GiB")
+            # the ASM is the validated reference path (5e-5 on the A489) and, measured on an H100, faster
+            # than the focal path while its plan is small (A489: 6.5 against 15 ms); the focal path takes
+            # over where the ASM's plan grows with the beam (Cooke triplet: 11.8 GiB planned)
+            small_asm = pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
+            if not small_asm and fpl.estimate["flops"] <= pl.estimate["flops"]:
+                pl = fpl.with_reasons(why + " -> focal")
+                self.focal, carrier, centers = focal_state[1], focal_state[2], focal_state[3]
+            else:
+                pl = pl.with_reasons(why + " -> asm")
+                self.focal = None
+        self.method = pl.method
+        if memory_budget_bytes is not None:
+            check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
+                         f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
+                         "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
+                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else ""))
+        self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
+        self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
+        self.nsrc, self.n_after, self.lam_mm = nsrc, n_after, lam_mm
+        self.z_plane, self.z_sensor = z_plane, z_sensor
+        self.chief_plane, self.chief_sensor, self.carrier, self.centers = chief_plane, chief_sensor, carrier, centers
+        self.lo, self.hi = lo, hi
+        n = pl.n_grid
+        mid = 0.5 * (lo + hi)
+        self.origin = lo.copy() if pl.kind == "paper" else mid - 0.5 * (n - 1) * pl.pitch_mm
+        self._align_to_doe_pixels()
+        # chief ray OPL on the plane (a per-source constant phase: not differentiated); the pilot's pupil
+        # sample 0 is the chief ray (u = v = 0), traced alone before as the same independent ray
+        self.opl_chief = opl_p[:, 0].copy()
+        self.chief_ok = valid_plane.numpy().reshape(nsrc, -1)[:, 0].astype(bool)
+        self.chief_plane = np.where(self.chief_ok[:, None], pos_p[:, 0], chief_plane)
+        self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
+        # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
+        self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
+
+    def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
+                    center_mm, size, pixel, width, rays_per_sample, nyquist_safety, patch_tol=1e-5):
+        """Plan the focal propagation: DOE orders, carrier and patch centre after the main order, grids
+        (:func:`rwwarp.plan.plan_focal`). Sets ``plan``, ``focal``, ``carrier`` and ``centers``."""
+        from . import doe
+        from .focal import doe_order_coefficients
+        from .plan import plan_focal, landing_points
+        nsrc = len(n_after)
+        inv_lam = n_after / lam_mm
+        s = lens.surfaces[plane]
+        prof = None
+        if s.type == "doe" and not _is_flat_profile(s.profile):
+            prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
+        orders, doe_freq = [], []
+        xy = [pos_p[k, ok[k], :2] for k in range(nsrc)]
+        freq = [n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] for k in range(nsrc)]
+        f_c = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]
+        for k in range(nsrc):
+            if prof is None:
+                orders.append([(0, 1.0 + 0j)])
+                doe_freq.append(None)
+                continue
+            alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
+            ms = set(range(-8, 9))
+            if s.levels:
+                ms |= {1 + j * int(s.levels) for j in (-2, -1, 1, 2)}
+            ms = np.array(sorted(ms))
+            cm = doe_order_coefficients(alpha, s.levels, ms)
+            orders.append(list(zip(ms.tolist(), cm.tolist())))
+            gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
+            doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
+            m0 = int(ms[np.argmax(np.abs(cm))])
+            cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)
+            f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
+        if center_mm is None:
+            land = np.array([landing_points(chief_plane[k, :2], f_c[k], inv_lam[k], dist) for k in range(nsrc)])
+            if not np.all(np.isfinite(land)):
+                raise LensError("the chief ray's main diffraction order is evanescent behind the DOE", file=lens.source)
+            centers = np.stack([_snap_center(land[:, 0], pixel, lens.sensor.resolution[0]),
+                                _snap_center(land[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
+        else:
+            centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
+        self.plan, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, width, size, pixel,
+                                    rays_per_sample, nyquist_safety, patch_tol=patch_tol)
+        if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
+            if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:
+                raise ValueError("an explicit Plan with method='focal' needs sensor_pitch_mm, n_sensor and n_sensor_fft")
+            geo["sensor_origin"] = geo["sensor_center"] - 0.5 * (plan.n_sensor - 1) * plan.sensor_pitch_mm
+            self.plan = plan
+        geo["profile"] = prof
+        self.focal, self.carrier, self.centers = geo, f_c, centers
+
+    def _align_to_doe_pixels(self):
+        """For a pixel-map DOE, shift the window origins so sample cells tile the DOE pixels exactly (the
+        pitch already divides the DOE pitch): no sample cell straddles a phase step."""
+        s = self.lens.surfaces[self.plane]
+        if s.type != "doe" or s.profile.get("kind") != "pixel_map":
+            return
+        from . import doe
+        prof = doe.profile_from_dict(s.profile, base=_lens_dir(self.lens))
+        rows, cols = prof.data.shape
+        h = self.plan.pitch_mm
+        for axis, count in ((0, cols), (1, rows)):
+            first = -0.5 * count * prof.pitch + 0.5 * h  # centre of the first sample cell inside the map
+            self.origin[:, axis] = first + np.round((self.origin[:, axis] - first) / h) * h
+
+    def _ray_focus(self, pos_p, dir_s, ok, chief_sensor):
+        """Reference-sphere centres: where each source's rays converge (least-squares focus along z).
+
+        Rays are straight behind the wave plane, x_i(t) = p_i + t m_i with slopes m_i = d_xy / d_z; the
+        transverse variance is smallest at ``t* = -cov(p, m) / var(m)``. The centre is the chief ray's point
+        at that depth, so the residual phase splatted is only the aberration (not defocus). Collimated
+        beams (var(m) ~ 0) get a centre 1 m along the chief ray (a nearly plane reference).
+        """
+        out = np.zeros((self.nsrc, 3))
+        for k in range(self.nsrc):
+            p = pos_p[k, ok[k], :2]
+            m = dir_s[k, ok[k], :2] / dir_s[k, ok[k], 2:3]
+            pc, mc = p - p.mean(0), m - m.mean(0)
+            var = float(np.sum(mc * mc))
+            t = -float(np.sum(pc * mc)) / var if var > 1e-18 else np.inf
+            if not np.isfinite(t) or abs(t) > 1e6:
+                t = 1e6  # collimated: a nearly plane reference (residual curvature < 1e-2 rad over 1 mm)
+            c0 = self.chief_plane[k]
+            dc = dir_s[k, 0] if ok[k, 0] else dir_s[k, ok[k]].mean(0)
+            out[k] = [c0[0] + t * dc[0] / dc[2], c0[1] + t * dc[1] / dc[2], c0[2] + t]
+        return out
+
+    def field(self):
+        """Trace to the DOE plane, splat, apply the reference sphere and carrier.
+
+        Returns ``(field, rays)``: a Warp ``vec2d`` array (n_sources * n * n) of the complex field on
+        the windows (carrier removed), and the traced rays. Record inside a ``wp.Tape`` (with
+        ``requires_grad=True``) to differentiate w.r.t. ``self.tracer.params``.
+        """
+        tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
+        import warp as wp
+        from .kernels.splat import make_splat_kernels
+        u, v, cell = self.pupil
+        npup = pl.ray_grid * pl.ray_grid
+        rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid)
+        if self.curved_plane:
+            rays = tr.to_plane(rays, self.z_plane, plane)
+        K = make_splat_kernels(tr.scalar)
+        sums = wp.zeros((nsrc, 2), dtype=wp.float64, device=tr.device)
+        wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight, npup],
+                  outputs=[sums], device=tr.device)
+        self._sums_dev, self._sums = sums, None  # read (one device sync) when first asked for
+        chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
+        if not self.chief_ok.all():
+            valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
+            # vignetted chief ray: the valid ray nearest the footprint centre is the reference
+            all_opl = rays.opl.numpy().reshape(nsrc, npup)
+            all_pos = rays.pos.numpy().reshape(nsrc, npup, 3)
+            for k in np.where(~self.chief_ok)[0]:
+                d2 = np.sum((all_pos[k, :, :2] - chief_plane[k, :2]) ** 2, axis=1) + np.where(valid[k], 0, np.inf)
+                j = int(np.argmin(d2))
+                chief_plane[k] = all_pos[k, j]
+                opl_p[k] = all_opl[k, j]
+        n = pl.n_grid
+        K = make_splat_kernels(tr.scalar)
+        dev = tr.device
+        g = tr.requires_grad
+        total = nsrc * n * n
+        energy = int(self.amplitude == "energy")
+        if energy or g:
+            area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
+            half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
+        if energy:
+            wp.launch(K.tube_area_kernel, dim=nsrc * npup,
+                      inputs=[rays.pos, rays.valid, pl.ray_grid],
+                      outputs=[area, half], device=dev)
+        elif not g:  # not read by the splat in the paper convention
+            area = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=g)
+            half = wp.zeros(1, dtype=wp.vec2d, device=dev, requires_grad=g)
+        s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        self.dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
+        # per-source constants in one upload
+        origin, pitch, chief, target, index, opl_c, k_wave, carrier = upload_packed(
+            [(self.origin, np.float64, wp.vec2d), (np.full(nsrc, pl.pitch_mm), np.float64, wp.float64),
+             (chief_plane, np.float64, wp.vec3d), (self.target, np.float64, wp.vec3d),
+             # the reference-sphere index carries the sign: + converging to T, - diverging from T
+             (self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), np.float64, wp.float64),
+             (opl_p, np.float64, wp.float64), (2.0 * np.pi / self.lam_mm, np.float64, wp.float64),
+             (self.carrier, np.float64, wp.vec2d)], dev)
+        geo = [origin, pitch, chief, target, index]
+        wp.launch(K.splat_kernel, dim=nsrc * npup,
+                  inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
+                         [opl_c, k_wave, int(self.use_reference), energy, n, npup],
+                  outputs=[s_re, s_im, self.dropped], device=dev)
+        # the finalize kernel writes every sample
+        field = (wp.zeros if g else wp.empty)(total, dtype=wp.vec2d, device=dev, requires_grad=g)
+        wp.launch(K.finalize_kernel, dim=total,
+                  inputs=[s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n],
+                  outputs=[field], device=dev)
+        return field, rays
+
+    def _power_sums(self):
+        if self._sums is None:
+            self._sums = self._sums_dev.numpy()
+        return self._sums
+
+    @property
+    def entering(self):
+        """Power entering the pupil per source (unit source radiance), from the last :meth:`field` call."""
+        return self._power_sums()[:, 0]
+
+    @property
+    def traced_power(self):
+        """Power of the rays that reach the wave plane per source, from the last :meth:`field` call."""
+        return self._power_sums()[:, 1]
+
+    @property
+    def valid_fraction(self):
+        """``traced_power / entering`` per source."""
+        s = self._power_sums()
+        return s[:, 1] / s[:, 0]
+
+    def field_array(self):
+        """:meth:`field` as a complex128 array (n_sources, n, n), paper convention rescaled: numpy on the
+        CPU, a zero-copy CuPy view of the Warp array on CUDA (the field never visits the host)."""
+        field, rays = self.field()
+        n = self.plan.n_grid
+        if self.tracer.device.startswith("cuda"):
+            import cupy
+            u_field = cupy.asarray(field).view(cupy.complex128).reshape(self.nsrc, n, n)
+        else:
+            u_field = field.numpy().view(np.complex128).reshape(self.nsrc, n, n)
+        if self.amplitude != "energy":
+            # paper convention: unit ray amplitude, one global scale so the field carries the traced power
+            q = self.traced_power
+            xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
+            pw = xp.asnumpy(xp.sum(xp.abs(u_field) ** 2, axis=(1, 2))) if xp is not np else \
+                np.sum(np.abs(u_field) ** 2, axis=(1, 2))
+            pw = pw * self.plan.pitch_mm ** 2
+            u_field = u_field * xp.asarray(np.sqrt(np.where(pw > 0, q / np.maximum(pw, 1e-300), 0.0)))[:, None, None]
+        return u_field
+
+    def doe_phase(self):
+        """phi0 (rad) on each window, (n_sources, n, n), and the per-source wavelength scale; or (None, None)."""
+        phi0 = _doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
+        if phi0 is None:
+            return None, None
+        from . import doe
+        s = self.lens.surfaces[self.plane]
+        scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in self.wls])
+        return phi0, scale
+
+    def recentre(self, center_mm):
+        """Move the sensor patches to new centres ((x, y) mm, one pair or one per source; snapped to
+        the sensor's pixel centres as in the constructor). Only the output positions change: the
+        DOE-plane windows, the traced field and the plan do not depend on them, so a field computed
+        before stays valid (the propagation evaluates any sensor positions)."""
+        self.centers = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
+
+    def pixel_centres(self):
+        """Sensor pixel centres (x (S, size), y (S, size)) of each patch, mm."""
+        return _pixel_centres(self.centers, self.size, self.pixel)
+
+    def propagation_args(self):
+        """Positional arguments of :func:`rwwarp.propagate.sensor_intensity` after ``(backend, field)``."""
+        px, py = self.pixel_centres()
+        return (self.plan.pitch_mm, self.origin, np.array(self.wls) / self.n_after, self.z_sensor - self.z_plane,
+                px, py, self.pixel)
+
+    def intensity(self, u_field, phi0=None, scale=None):
+        """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n))."""
+        from . import propagate, backend as bk
+        be = bk.get_backend(self.device)
+        if isinstance(u_field, np.ndarray) and hasattr(be, "wrap_host"):
+            # PoCL: the OpenCL buffers use the numpy memory (zero-copy host pointers)
+            u_field = be.wrap_host(u_field)
+            phi0 = None if phi0 is None else be.wrap_host(phi0)
+        power = propagate.sensor_intensity(be, u_field, *self.propagation_args(), doe_phase=phi0, doe_scale=scale,
+                                           carrier_cpmm=self.carrier, pad_to=self.plan.n_pad,
+                                           gauss_nodes=self.gauss_nodes)
+        return be.to_host(power)
+
+    def focal_operator(self, distance_mm=None):
+        """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once per
+        wave-plane-to-sensor distance (mm; default the lens's): a learning sensor distance rebuilds it on the
+        same grids."""
+        z = float(self.z_sensor - self.z_plane) if distance_mm is None else float(distance_mm)
+        if getattr(self, "_focal_op", None) is None or self._focal_op.z != z:
+            from .focal import FocalPropagator
+            from .propagate import gauss_legendre
+            xp = np
+            if self.tracer.device.startswith("cuda"):
+                import cupy as xp
+            px, py = self.pixel_centres()
+            t, _ = gauss_legendre(self.gauss_nodes)
+            off = 0.5 * self.pixel * t
+            nx = (px[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
+            ny = (py[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
+            pl = self.plan
+            self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
+                                             z, self.carrier,
+                                             self.focal["sensor_origin"], pl.sensor_pitch_mm, pl.n_sensor,
+                                             pl.n_sensor_fft, nx, ny, xp=xp)
+        return self._focal_op
+
+    def doe_orders_factor(self):
+        """``sum_m c_m exp(1j m phi0)`` on each window (S, n, n) for the DOE orders the focal plan kept, or
+        None (no DOE, blank DOE, or only the zeroth order with c_0 = 1)."""
+        geo, prof = self.focal, self.focal["profile"]
+        if prof is None:
+            return None
+        s = self.lens.surfaces[self.plane]
+        g = np.arange(self.plan.n_grid) * self.plan.pitch_mm
+        out = np.zeros((self.nsrc, self.plan.n_grid, self.plan.n_grid), dtype=np.complex128)
+        for k in range(self.nsrc):
+            x, y = np.meshgrid(self.origin[k, 0] + g, self.origin[k, 1] + g, indexing="xy")
+            phi0 = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
+            for m, c in geo["orders"][k]:
+                out[k] += c * np.exp(1j * m * phi0)
+        return out
+
+    def focal_intensity(self, u_field):
+        """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``)."""
+        from .focal import pixel_power
+        op = self.focal_operator()
+        fac = self.doe_orders_factor()
+        if fac is not None:
+            u_field = u_field * op.xp.asarray(fac)
+        u = op.forward(u_field)
+        power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
+        return power if op.xp is np else op.xp.asnumpy(power)
+
+    def run(self) -> dict:
+        """The whole model: PSFs as fractions of the entering power per pixel."""
+        u_field = self.field_array()
+        _LAST.update(field=u_field, origin=self.origin, pitch=self.plan.pitch_mm)
+        if self.plan.method == "focal":
+            data = self.focal_intensity(u_field) / self.entering[:, None, None]
+        else:
+            phi0, scale = self.doe_phase()
+            data = self.intensity(u_field, phi0, scale) / self.entering[:, None, None]
+        if not np.all(np.isfinite(data)):
+            raise FloatingPointError("non-finite PSF values (please report this lens and field)")
+        return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
+                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+
+
+def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
+             rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0, method="auto",
+             memory_budget_bytes=None):
+    return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
+                   rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method=method,
+                   memory_budget_bytes=memory_budget_bytes).run()
