@@ -113,13 +113,15 @@ class LiveProvider:
     learning quantities get gradients). Patches are centred per field on :func:`common_centres`
     (the green reference wavelength ``wavelength_ref_um``). ``tile``: sources per chunk; chunks are
     checkpointed (no tape kept in the forward pass, recomputed in the backward pass) so the peak
-    memory is one chunk's."""
+    memory is one chunk's; each chunk's estimated peak is checked against ``memory_budget_bytes`` (default
+    half the available memory) before it is traced."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
-                 tile: int | None = None):
+                 tile: int | None = None, memory_budget_bytes: int | None = None):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
+        self.memory_budget_bytes = memory_budget_bytes
 
     def psfs(self, wavelengths_um, depth_mm=None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
@@ -142,6 +144,9 @@ class LiveProvider:
             rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
                            center_mm=src_c[sl])
             rws = [rw]
+            # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
+            m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if rw.plan.method == "focal"
+                           else rw.nsrc)
             if rw.plan.method == "focal" and rw.nsrc > 1:
                 # focal grids follow each source's patch and DOE orders: one plan per source
                 rws = [m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,

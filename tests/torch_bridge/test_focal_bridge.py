@@ -167,3 +167,14 @@ def test_blank_doe_learns_through_the_focal_path_and_is_replanned_once_it_grows(
         m.doe[0] = -40.0
     assert prov.check_sampling() == 1
     assert prov.replan_log[-1]["reason"] == "sampling"
+
+
+def test_live_provider_refuses_a_chunk_over_the_budget():
+    """LiveProvider checks each chunk's estimated recorded peak before tracing it."""
+    from rwwarp.plan import MemoryBudgetError
+    lens = _thin_lens_doe([-40.0, 6.0])
+    m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", rays_per_sample=0.5)
+    with pytest.raises(MemoryBudgetError, match="rays_per_sample"):
+        dz.LiveProvider(m, [0.0], 12, lens.sensor.pixel_pitch, memory_budget_bytes=2 ** 20).psfs([0.55])
+    out = dz.LiveProvider(m, [0.0], 12, lens.sensor.pixel_pitch).psfs([0.55])
+    assert out.shape == (1, 1, 12, 12) and torch.isfinite(out).all()
