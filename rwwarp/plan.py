@@ -184,6 +184,12 @@ def landing_points(xy, f, inv_lam, distance_mm):
     return xy + distance_mm * f / w[..., None]
 
 
+def _order_index(m):
+    """A diffraction order's index: an int for the integer orders of a wrapped relief, the float ``alpha``
+    for the single exact term of a relief that does not wrap inside the beam."""
+    return int(m) if float(m) == int(m) else float(m)
+
+
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
                rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5):
     """Sampling of the focal propagation (:mod:`rwwarp.focal`) for one batch, from a pilot trace.
@@ -250,7 +256,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             if m != max(orders[k], key=lambda mc: abs(mc[1]))[0] and abs(c) ** 2 * share < patch_tol:
                 lost[k] += abs(c) ** 2
                 continue
-            keep.append((int(m), complex(c)))
+            keep.append((_order_index(m), complex(c)))
             lg = x - z * (g[k] + (f - carrier[k]) * q[k])       # landing under the quadratic transfer
             d = float(np.max(np.abs(L - lg)))
             shifts[k] = max(shifts[k], d)
@@ -258,7 +264,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             hi = np.maximum(hi, lg.max(0))
         if not keep:  # nothing reaches the patch: keep the main order so the (dark) patch is computed
             m, c = max(orders[k], key=lambda mc: abs(mc[1]))
-            keep.append((int(m), complex(c)))
+            keep.append((_order_index(m), complex(c)))
             lost[k] -= abs(c) ** 2
         # the quadratic model's field has tails as wide as the remainder's displacement: the margin grows
         # with it (measured on the Cooke triplet at 14 deg, 159 um shift: 6 / B alone leaves 1.8e-3,

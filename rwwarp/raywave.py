@@ -75,6 +75,20 @@ def _is_curved(surface) -> bool:
     return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
 
 
+def _one_branch(phi, tol=1e-9):
+    """``k`` when every phase in ``phi`` (rad, a DOE's unwrapped phase at the traced beam's points) lies in
+    one branch ``[2 pi k, 2 pi (k + 1)]`` of the wrap (ends included: a phase at a branch end, such as an
+    even polynomial's 0 on the axis, is a set of measure zero), else None."""
+    phi = np.asarray(phi, dtype=np.float64)
+    if phi.size == 0 or not np.all(np.isfinite(phi)):
+        return None
+    k = math.floor(float(phi.min()) / (2 * math.pi) + tol)
+    lo, hi = 2 * math.pi * k, 2 * math.pi * (k + 1)
+    if phi.min() >= lo - tol and phi.max() <= hi + tol:
+        return k
+    return None
+
+
 def _doe_phase_grid(lens, plane, origin, pitch, n):
     """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
     s = lens.surfaces[plane]
@@ -383,16 +397,24 @@ class RayWave:
                 doe_freq.append(None)
                 continue
             alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
+            gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
+            doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
+            cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)
+            branch = None if s.levels else _one_branch(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um))
+            if branch is not None:
+                # the relief does not wrap inside the beam: the transmission is exactly exp(1j alpha (phi0 -
+                # 2 pi k)), one smooth "order" of non-integer index alpha (its Fourier series over integer
+                # orders would converge slowly next to the wrap: Gibbs)
+                orders.append([(float(alpha), complex(np.exp(-2j * np.pi * alpha * branch)))])
+                f_c[k] += alpha * np.array([cx[0], cy[0]]) / (2 * np.pi)
+                continue
             ms = set(range(-8, 9))
             if s.levels:
                 ms |= {1 + j * int(s.levels) for j in (-2, -1, 1, 2)}
             ms = np.array(sorted(ms))
             cm = doe_order_coefficients(alpha, s.levels, ms)
             orders.append(list(zip(ms.tolist(), cm.tolist())))
-            gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
-            doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
             m0 = int(ms[np.argmax(np.abs(cm))])
-            cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)
             f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
         if center_mm is None:
             land = np.array([landing_points(chief_plane[k, :2], f_c[k], inv_lam[k], dist) for k in range(nsrc)])
