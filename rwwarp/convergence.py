@@ -106,13 +106,14 @@ def psf_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings
            plan=None) -> tuple[PSF, float]:
     """Ray-wave PSF at ``settings``; returns ``(psf, seconds)``.
 
-    With ``pad_factor == 1`` this is exactly ``rw.psf(..., plan="auto", nyquist_safety=...,
+    With ``pad_factor == 1`` this is exactly ``rw.psf(..., plan="auto", method="asm", nyquist_safety=...,
     rays_per_sample=...)``; otherwise the adaptive plan with the FFT length scaled is passed explicitly
     (``plan`` may hand in that plan when the caller already has it).
     """
     kw = dict(size=size, device=device, dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
               pixel_mm=pixel_mm, center_mm=center_mm, gauss_nodes=None if settings.gauss_nodes is None else int(settings.gauss_nodes),
-              nyquist_safety=settings.nyquist_safety, rays_per_sample=settings.rays_per_sample)
+              nyquist_safety=settings.nyquist_safety, rays_per_sample=settings.rays_per_sample,
+              method="asm")   # the study converges the band-limited ASM's knobs (its plan, as plan_at)
     if settings.pad_factor == 1.0:
         t0 = time.perf_counter()
         p = _psf(lens, field_deg, wavelength_um, plan="auto", **kw)

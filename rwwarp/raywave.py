@@ -22,6 +22,9 @@ from .trace import Tracer, pupil_grid, upload_packed
 from .trace import field_label as _fmt_field
 
 _LAST = {}  # last ray-wave field, for inspection
+#: candidate DOE orders of the focal method: -FOCAL_MAX_ORDER .. FOCAL_MAX_ORDER (the planner keeps those
+#: that reach the patch)
+FOCAL_MAX_ORDER = 8
 
 def n_img_all(lens, wls):
     """Refractive index of the image space at each wavelength."""
@@ -408,7 +411,7 @@ class RayWave:
                 orders.append([(float(alpha), complex(np.exp(-2j * np.pi * alpha * branch)))])
                 f_c[k] += alpha * np.array([cx[0], cy[0]]) / (2 * np.pi)
                 continue
-            ms = set(range(-8, 9))
+            ms = set(range(-FOCAL_MAX_ORDER, FOCAL_MAX_ORDER + 1))
             if s.levels:
                 ms |= {1 + j * int(s.levels) for j in (-2, -1, 1, 2)}
             ms = np.array(sorted(ms))
