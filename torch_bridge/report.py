@@ -13,11 +13,19 @@ from torch_bridge.config import _depth_tag
 __all__ = ["write_table"]
 
 
-def _doe_phase_image(lens, n: int = 256):
+def _doe_phase_image(lens, n: int | None = None):
+    """The DOE's wrapped design phase (rad) on an n x n grid over its aperture, and its half width (mm).
+    Default ``n``: 4 samples per 2 pi zone at the steepest point (256 to 4096), so the zones are resolved
+    and not drawn as moire."""
     from rwwarp import doe as rdoe
     s = lens.surfaces[lens.doe_index]
     prof = rdoe.profile_from_dict(s.profile)
     h = s.semi_diameter or 1.0
+    if n is None:
+        e = np.linspace(-h, h, 65)
+        gx, gy = prof.gradient(*np.meshgrid(e, e), s.design_wavelength_um)
+        zones_per_mm = float(np.max(np.hypot(gx, gy))) / (2 * np.pi)
+        n = int(np.clip(4 * 2 * h * zones_per_mm, 256, 4096))
     g = np.linspace(-h, h, n)
     x, y = np.meshgrid(g, g[::-1])
     return rdoe.design_phase(prof, x, y, s.design_wavelength_um, s.levels), h
@@ -44,12 +52,14 @@ def _snapshot(arm, path, psf, gt, raw, rec, step, phase):
     for j in range(nn_):
         ax[0, j].imshow(_rgb_psf(p[j]))
         f = arm.fields[j]
-        ax[0, j].set_title(f"PSF ({f[0]:.1f}, {f[1]:.1f}) deg", fontsize=7)
+        ax[0, j].set_title(f"PSF ({f[0]:.1f}, {f[1]:.1f}) deg\nRGB, sqrt, tile / its max", fontsize=7)
     ph, h = _doe_phase_image(arm.module.to_lens())
-    ax[1, 0].imshow(ph, cmap="twilight", extent=(-h, h, -h, h))
+    im = ax[1, 0].imshow(ph, cmap="twilight", extent=(-h, h, -h, h), vmin=0.0, vmax=2 * np.pi)
     ax[1, 0].set_title("DOE phase (rad, wrapped)", fontsize=7)
     ax[1, 0].axis("on")
     ax[1, 0].tick_params(labelsize=6)
+    ax[1, 0].set_xlabel("x (mm)", fontsize=6)
+    fig.colorbar(im, ax=ax[1, 0], fraction=0.046, pad=0.04).ax.tick_params(labelsize=5)
     for j, (img, t) in enumerate(((gt, "ground truth"), (raw, "raw"), (rec, "reconstructed"))):
         ax[1, j + 1].imshow(img[0].detach().float().clamp(0, 1).cpu().numpy().transpose(1, 2, 0))
         ax[1, j + 1].set_title(t, fontsize=7)
@@ -80,12 +90,19 @@ def _designs_figure(results: dict, out: Path):
             ax[i, j].axis("off")
         lens = rw.load_lens(out / a / "lens.json")
         ph, h = _doe_phase_image(lens)
-        ax[i, 0].imshow(ph, cmap="twilight", extent=(-h, h, -h, h))
-        ax[i, 0].set_title(f"{a}: DOE phase", fontsize=7)
+        im = ax[i, 0].imshow(ph, cmap="twilight", extent=(-h, h, -h, h), vmin=0.0, vmax=2 * np.pi)
+        ax[i, 0].set_title(f"{a}: DOE phase (rad, wrapped)", fontsize=7)
+        ax[i, 0].axis("on")
+        ax[i, 0].tick_params(labelsize=5)
+        ax[i, 0].set_xlabel("x (mm)", fontsize=6)
+        ax[i, 0].set_ylabel("y (mm)", fontsize=6)
+        cb = fig.colorbar(im, ax=ax[i, 0], fraction=0.046, pad=0.04)
+        cb.set_label("rad", fontsize=6)
+        cb.ax.tick_params(labelsize=5)
         p = psfs[a][key0]
         for j in range(nn_):
             ax[i, 1 + j].imshow(_rgb_psf(p[j]))
-            ax[i, 1 + j].set_title(f"PSF node {j} ({key0})", fontsize=6)
+            ax[i, 1 + j].set_title(f"PSF node {j} ({key0})\nRGB, sqrt, tile / its max", fontsize=6)
         smp = sorted((out / a).glob("eval_sample_*.npz"))
         if smp:
             s = np.load(smp[0])
