@@ -346,7 +346,7 @@ def deeplens_importable():
 
 
 # ------------------------------------------------------------------------------------------- chart
-STYLE = {"adaptive": ("C0", "o", "rwwarp adaptive (defaults)"),
+STYLE = {"adaptive": ("C0", "o", "rwwarp band-limited ASM (adaptive plan)"),
          "adaptive_gauss": ("C9", "o", "rwwarp adaptive, reference's pixel quadrature"), "paper": ("C1", "s", "rwwarp paper grid"),
          "float32": ("C2", "^", "rwwarp float32 trace"), "ray": ("C3", "x", "ray model"),
          "paraxial-wave": ("C4", "D", "paraxial-wave model"), "deeplens": ("C5", "P", "DeepLens 2.5.6"),
