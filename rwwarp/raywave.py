@@ -92,6 +92,19 @@ def _one_branch(phi, tol=1e-9):
     return None
 
 
+def _chief_zone(phi, xy, chief_xy):
+    """The wrap zone ``k = floor(phi0 / 2 pi)`` the chief ray crosses, from the pilot rays' phases ``phi``
+    (rad) at their wave-plane points ``xy`` (N, 2): the zone of the pilot point nearest the chief ray whose
+    phase is not on a zone boundary (an even polynomial is 0, a boundary, exactly on the axis)."""
+    phi = np.asarray(phi, dtype=np.float64)
+    order = np.argsort(np.sum((np.asarray(xy) - np.asarray(chief_xy)[None, :]) ** 2, axis=1))
+    for j in order:
+        q = phi[j] / (2 * math.pi)
+        if np.isfinite(q) and abs(q - round(q)) > 1e-9:
+            return int(math.floor(q))
+    return int(math.floor(float(phi[order[0]]) / (2 * math.pi)))
+
+
 def _doe_phase_grid(lens, plane, origin, pitch, n):
     """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
     s = lens.surfaces[plane]
@@ -390,11 +403,12 @@ class RayWave:
         prof = None
         if s.type == "doe" and not _is_flat_profile(s.profile):
             prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
-        orders, doe_freq = [], []
+        orders, doe_freq, central = [], [], []
         xy = [pos_p[k, ok[k], :2] for k in range(nsrc)]
         freq = [n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] for k in range(nsrc)]
         f_c = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]
         for k in range(nsrc):
+            central.append(None)
             if prof is None:
                 orders.append([(0, 1.0 + 0j)])
                 doe_freq.append(None)
@@ -417,6 +431,12 @@ class RayWave:
             ms = np.array(sorted(ms))
             cm = doe_order_coefficients(alpha, s.levels, ms)
             orders.append(list(zip(ms.tolist(), cm.tolist())))
+            if not s.levels:
+                # the zone the chief ray crosses is computed exactly, exp(1j alpha (phi0 - 2 pi k_c)): the order
+                # series converges slowly next to a wrap boundary the relief touches without crossing (an even
+                # polynomial's 0 on the axis), where every order's light reaches the patch
+                central[-1] = (_chief_zone(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um),
+                                           xy[k], chief_plane[k, :2]), float(alpha))
             m0 = int(ms[np.argmax(np.abs(cm))])
             f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
         if center_mm is None:
@@ -435,6 +455,7 @@ class RayWave:
             geo["sensor_origin"] = geo["sensor_center"] - 0.5 * (plan.n_sensor - 1) * plan.sensor_pitch_mm
             self.plan = plan
         geo["profile"] = prof
+        geo["central_zone"] = central
         self.focal, self.carrier, self.centers = geo, f_c, centers
 
     def _align_to_doe_pixels(self):
@@ -661,6 +682,11 @@ class RayWave:
             phi0 = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
             for m, c in geo["orders"][k]:
                 out[k] += c * np.exp(1j * m * phi0)
+            cz = geo.get("central_zone", [None] * self.nsrc)[k]
+            if cz is not None:
+                kc, alpha = cz
+                out[k] = np.where(np.floor(phi0 / (2 * np.pi)) == kc,
+                                  np.exp(1j * alpha * (phi0 - 2 * np.pi * kc)), out[k])
         return out
 
     def focal_intensity(self, u_field):

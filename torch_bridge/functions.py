@@ -515,7 +515,21 @@ def focal_doe_factor(rw, phi0):
     if phi0 is None:
         return None
     if rw.focal["profile"] is not None:
-        return doe_orders_factor(phi0, rw.focal["orders"])
+        out = doe_orders_factor(phi0, rw.focal["orders"])
+        zones = rw.focal.get("central_zone") or [None] * len(rw.focal["orders"])
+        if any(z is not None for z in zones):
+            # the chief ray's wrap zone exactly (rwwarp.raywave: the order series converges slowly next to a
+            # boundary the relief touches without crossing); the zone mask is a plan decision (no gradient)
+            rows = []
+            for k, z in enumerate(zones):
+                if z is None:
+                    rows.append(out[k])
+                    continue
+                kc, alpha = z
+                inside = torch.floor(phi0[k].detach() / (2 * math.pi)) == kc
+                rows.append(torch.where(inside, torch.exp(1j * alpha * (phi0[k] - 2 * math.pi * kc)), out[k]))
+            out = torch.stack(rows)
+        return out
     alpha = torch.as_tensor(doe_scale(rw), dtype=torch.float64, device=phi0.device)
     return torch.exp(1j * alpha[:, None, None] * phi0)
 
