@@ -189,7 +189,7 @@ class CachedProvider:
         the DOE, so a DOE that grows up to the limit needs no replanning.
     memory_budget_bytes : int, optional
         Peak bytes one entry's field build may use (default
-        :func:`~torch_bridge.modules.default_memory_budget_bytes`: half the free memory of a CUDA
+        :func:`~torch_bridge.budget.default_memory_budget_bytes`: half the free memory of a CUDA
         device, 4 GiB on the CPU). The nodes of an entry are traced in batches of :meth:`build_batch`
         sources (rays without gradient buffers: the refractive part is frozen), so the peak does
         not grow with the node count; :attr:`build_log` records each entry's batches and estimates.
@@ -334,8 +334,8 @@ class CachedProvider:
 
     def budget_bytes(self) -> int:
         """The memory budget (bytes) of one entry's field build: ``memory_budget_bytes`` or the
-        device default (:func:`~torch_bridge.modules.default_memory_budget_bytes`, read now)."""
-        from torch_bridge.modules import default_memory_budget_bytes
+        device default (:func:`~torch_bridge.budget.default_memory_budget_bytes`, read now)."""
+        from torch_bridge.budget import default_memory_budget_bytes
         if self.memory_budget_bytes is not None:
             return self.memory_budget_bytes
         return default_memory_budget_bytes(self.module.rw_device)

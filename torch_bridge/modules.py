@@ -56,6 +56,8 @@ from rwwarp.errors import SamplingWarning
 from rwwarp.lens import MAX_ASPHERIC, Lens
 from rwwarp.plan import Plan
 
+from . import budget as _budget
+from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
 from .functions import backend_for, focal_doe_factor, focal_propagate, propagate, quantize_ste, trace_splat
 
 __all__ = ["QUANTITIES", "HybridLens"]
@@ -79,22 +81,6 @@ def _field_list(fields) -> list:
             x, y = (float(v) for v in f)
             out.append((x, y))
     return out
-
-
-def default_memory_budget_bytes(device) -> int:
-    """Default memory budget (bytes) of a frozen field build (:class:`~torch_bridge.design.CachedProvider`)
-    on ``device`` (a torch device or Warp device string): half the free memory of a CUDA device
-    (``torch.cuda.mem_get_info`` plus the blocks torch's allocator caches unused; what torch, Warp and
-    CuPy hold in use is left out), 4 GiB on the CPU."""
-    dev = str(device)
-    if dev.startswith("cuda") and torch.cuda.is_available():
-        d = torch.device(dev)
-        free, _ = torch.cuda.mem_get_info(d)
-        # blocks torch's caching allocator holds but does not use are free for the next allocation
-        # (rwwarp's release hook hands them back when another allocator needs them)
-        free += torch.cuda.memory_reserved(d) - torch.cuda.memory_allocated(d)
-        return int(free) // 2
-    return 4 * 2 ** 30
 
 
 def _rw_device(t: torch.Tensor) -> str:
@@ -601,12 +587,8 @@ class HybridLens(nn.Module):
         return est
 
     def output_bytes_per_source(self, rw, tile_px=None) -> int:
-        """Estimated bytes of the propagation's output side for one source and a spatial tile of
-        ``tile_px`` x ``tile_px`` sensor pixels (default the whole patch): the node field, its gradient
-        and a GEMM temporary ((tile_px G)^2 complex each, G Gauss nodes per pixel axis), and the two
-        matrix-DFT factors (tile_px G x band width, bounded by the padded FFT size), times 2."""
-        m = (rw.size if tile_px is None else min(int(tile_px), rw.size)) * rw.gauss_nodes
-        return 2 * 16 * (3 * m * m + 2 * m * 2 * rw.plan.n_pad)
+        """:func:`torch_bridge.budget.output_bytes_per_source` (bytes)."""
+        return _budget.output_bytes_per_source(rw, tile_px)
 
     def spatial_tile_for(self, rw, budget_bytes, sources: int = 1):
         """Pixels per side of the propagation's spatial tiles so that ``sources`` sources' output
@@ -730,41 +712,12 @@ class HybridLens(nn.Module):
         return out
 
     def bytes_per_source(self, rw, record: bool = True) -> int:
-        """Estimated peak bytes one source adds in a recorded forward + backward (CPU and CUDA): rays
-        with gradients for each launch up to the DOE plane (pos, dir, opl, valid), tube boxes, the
-        splat and field grids with gradients, the DOE phase, the padded FFT work space and the sensor
-        nodes, times a safety factor of 2 for allocator slack and transient copies. Measured: on CPU a
-        recorded trace + splat of 41k rays x 5 launches takes 25 MB per source, a whole tile with
-        backward up to 48 MB (estimate 59 MB); on an H100 the A489 at 1.5 rays per sample takes
-        1.1-1.5 GB per source (estimate 1.6 GB).
-
-        ``record=False``: the bytes of one source of a frozen field build (``rw.field_array()`` of a
-        RayWave made with ``requires_grad=False``, no tape, no propagation), the same factor 2: two
-        ray states (ping-pong: pos, dir, opl, valid, 60 bytes a ray in float64), wavelength index,
-        weight, the shared intersection parameter and the tube boxes (164 bytes a ray); the splat
-        sums, the field and its copy into the cache (48 bytes a DOE-plane sample). Measured on CPU (A489
-        F/4, 1425^2 rays, 1015^2 samples): 268 MB a source (RSS), estimate 765 MB."""
-        pl = rw.plan
-        rays = pl.ray_grid ** 2
-        if not record:
-            return 2 * int(rays * 164 + pl.n_grid ** 2 * 48)
-        per_ray = 128 * (rw.plane + 2) + 64           # 5 arrays (+ grads) per launch; tube boxes
-        per_sample = 16 * 2 * 2 + 16 * 4 + 8 * 6      # s_re/s_im (+grad), field (+grad, torch views), phi0 etc.
-        per_pad = 16 * 3                              # padded FFT work space, band, transfer function
-        nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
-        return 2 * int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes)
+        """:func:`torch_bridge.budget.bytes_per_source` (bytes)."""
+        return _budget.bytes_per_source(rw, record)
 
     def bytes_fixed(self, rw) -> int:
-        """Estimated peak bytes of a PSF map that do not depend on the tile size: the pilot trace that
-        plans the whole map (31 x 31 + 1 rays per source, position, direction, path and validity kept
-        at every surface, with gradient buffers: 128 bytes per ray and surface) and the map itself with
-        its gradient and weights (x 2). ``rw``: the whole map's RayWave. Measured on CPU (A489 stopped
-        down, 300 sources, 5 surfaces): about 160 MiB peak for the planning, estimate 176 MiB. This part
-        grows with the map: the planning pilot is not tiled."""
-        n_surf = len(rw.lens.surfaces) + 1
-        pilot = rw.nsrc * (31 * 31 + 1) * n_surf * 128
-        maps = rw.nsrc * rw.size ** 2 * 8 * 3
-        return int(pilot + 2 * maps)
+        """:func:`torch_bridge.budget.bytes_fixed` (bytes)."""
+        return _budget.bytes_fixed(rw)
 
     @contextlib.contextmanager
     def _cache_limit(self, budget):
