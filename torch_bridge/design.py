@@ -735,6 +735,10 @@ class CachedProvider:
 def _recentred(rw, center_mm):
     """A shallow copy of RayWave ``rw`` with its sensor patches moved to ``center_mm`` (mm)."""
     import copy
+    from .functions import bridge_state
     out = copy.copy(rw)
     out.recentre(center_mm)
+    st = bridge_state(out)
+    st.update(bridge_state(rw))
+    st.pop("window_center", None)   # follows the centres
     return out

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import weakref
 
 import numpy as np
 import torch
@@ -69,10 +70,24 @@ __all__ = [
     "quantize_ste",
     "raywave_psf",
     "trace_splat",
+    "bridge_state",
 ]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+_STATE = weakref.WeakKeyDictionary()
+
+
+def bridge_state(obj) -> dict:
+    """torch_bridge's own cache for a rwwarp object (a RayWave or a Tracer): the parameter table it was
+    built with, the DOE sampling geometry, paraxial constants, wavelength scales. Kept here, keyed weakly
+    by the object (freed with it), instead of as attributes set on rwwarp's objects."""
+    st = _STATE.get(obj)
+    if st is None:
+        st = _STATE[obj] = {}
+    return st
+
+
 def _is_cuda(rw) -> bool:
     return str(rw.tracer.device).startswith("cuda")
 
@@ -122,11 +137,12 @@ def doe_scale(rw):
     s = rw.lens.surfaces[rw.plane]
     if s.type != "doe":
         return None
-    cached = getattr(rw, "_bridge_doe_scale", None)
+    st = bridge_state(rw)
+    cached = st.get("doe_scale")
     if cached is None:
         from rwwarp import doe
         cached = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in rw.wls])
-        rw._bridge_doe_scale = cached
+        st["doe_scale"] = cached
     return cached
 
 
@@ -261,12 +277,13 @@ def _tile_kw(rw, tile):
     whole patch's band limits and equals its pixels), cached per RayWave and its centres; {} without a tile."""
     if tile is None:
         return {}
-    cached = getattr(rw, "_bridge_window_center", None)
+    st = bridge_state(rw)
+    cached = st.get("window_center")
     if cached is None or cached[0] is not rw.centers:      # RayWave.recentre assigns new centres
         from rwwarp import propagate
         args = rw.propagation_args()
         c = propagate.sensor_window_center(np.atleast_2d(args[4]), np.atleast_2d(args[5]), args[6], rw.gauss_nodes)
-        cached = rw._bridge_window_center = (rw.centers, c)
+        cached = st["window_center"] = (rw.centers, c)
     return {"window_center_mm": cached[1]}
 
 

@@ -58,7 +58,7 @@ from rwwarp.plan import Plan
 
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
-from .functions import backend_for, focal_doe_factor, focal_propagate, propagate, quantize_ste, trace_splat
+from .functions import backend_for, bridge_state, focal_doe_factor, focal_propagate, propagate, quantize_ste, trace_splat
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -353,7 +353,7 @@ class HybridLens(nn.Module):
                      gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
                      requires_grad=bool(requires_grad), method=method or self.method,
                      memory_budget_bytes=memory_budget_bytes, focal_patch_tol=self.focal_patch_tol)
-        rw._bridge_base_table = rw.tracer.params_np.copy()
+        bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw
         return rw
@@ -362,11 +362,12 @@ class HybridLens(nn.Module):
     def param_table(self, rw, values=None) -> torch.Tensor:
         """The tracer's parameter table (n_surfaces + 1, N_PARAMS) as a float64 tensor built from
         the current values (vertex z = cumulative thickness, curvature, conic, aspheric; thin lens
-        power and conjugates, see the module docstring). ``rw``: a RayWave (or any object with a
-        ``_bridge_base_table``; without a ``tracer`` thin-lens conjugates stay at the table's)."""
+        power and conjugates, see the module docstring). ``rw``: a RayWave made by :meth:`raywave`, or a
+        Tracer whose ``bridge_state`` holds a ``base_table`` (no ``tracer``: thin-lens conjugates stay at the
+        table's)."""
         v = values or self.values()
         dev = v["thickness"].device
-        base = torch.as_tensor(rw._bridge_base_table, dtype=torch.float64, device=dev)
+        base = torch.as_tensor(bridge_state(rw)["base_table"], dtype=torch.float64, device=dev)
         t = v["thickness"]
         zero = torch.zeros(1, dtype=t.dtype, device=dev)
         z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
@@ -385,7 +386,7 @@ class HybridLens(nn.Module):
                 cols[ktrace.P_UINV] = torch.where(thin, torch.cat([uinv, zero]), cols[ktrace.P_UINV])
                 cols[ktrace.P_V] = torch.where(thin, torch.cat([vdist, zero]), cols[ktrace.P_V])
             else:
-                # no tracer to take indices from (an object with only ``_bridge_base_table``): the power
+                # no tracer to take indices from (a Tracer with only a base table): the power
                 # follows the focal length, the conjugates (path length only, not ray geometry) stay
                 f = torch.where(self.thin_mask.to(dev), v["focal_length"], torch.ones_like(v["focal_length"]))
                 power = 1.0 / f
@@ -400,13 +401,14 @@ class HybridLens(nn.Module):
         from rwwarp import paraxial
         lens = rw.tracer.lens
         wl0 = rw.tracer.wavelengths_um[0]
-        const = getattr(rw, "_bridge_paraxial", None)
+        st = bridge_state(rw)
+        const = st.get("paraxial")
         if const is None:
             n = lens.indices(wl0)
             n_before = np.concatenate([[paraxial._object_index(lens, wl0)], n[:-1]])
             doe_p = np.array([paraxial.doe_power(s, wl0) if s.type == "doe" else 0.0 for s in lens.surfaces])
             const = {"n": n, "n_before": n_before, "doe_power": doe_p, "object_distance": lens.object_distance}
-            rw._bridge_paraxial = const
+            st["paraxial"] = const
         dev, dt = v["thickness"].device, torch.float64
         n = torch.as_tensor(const["n"], dtype=dt, device=dev)
         n_before = torch.as_tensor(const["n_before"], dtype=dt, device=dev)
@@ -469,10 +471,11 @@ class HybridLens(nn.Module):
             return None
         v = (values or self.values())["doe"]
         dev = v.device
-        geo = getattr(rw, "_bridge_doe_geometry", None)
+        st = bridge_state(rw)
+        geo = st.get("doe_geometry")
         if geo is None or geo["device"] != dev:
             geo = self._doe_geometry(rw, s, dev)
-            rw._bridge_doe_geometry = geo
+            st["doe_geometry"] = geo
         kind = self.doe_kind
         if kind in ("even_poly", "poly"):
             # the window-sized radius is formed per call from the separable x^2 (S, 1, n), y^2 (S, n, 1):

@@ -105,10 +105,10 @@ class RaySpot:
         src = tr.sources(fl, wi, object_distance=self.object_distance_mm)
         u, v, _ = pupil_grid(self.grid, src["shape"])
 
-        class _Shim:
-            _bridge_base_table = tr.params_np.copy()
+        from .functions import bridge_state
+        bridge_state(tr)["base_table"] = tr.params_np.copy()
         values = self.module.values()
-        table = self.module.param_table(_Shim, values).cpu()
+        table = self.module.param_table(tr, values).cpu()
         pos, dr, valid = _TraceToPlane.apply(table, tr, src, u, v, plane + 1)  # validity: not differentiated
         lam = torch.tensor([w * 1e-3 for w in self.wls] * nf, dtype=torch.float64)[:, None]
         n_after = torch.tensor([lens.indices(w)[plane] for w in self.wls] * nf, dtype=torch.float64)[:, None]
