@@ -18,7 +18,7 @@ from .errors import GeometryError
 def surface_powers(lens, wavelength_um: float) -> np.ndarray:
     """Optical power of each surface at ``wavelength_um`` (um), 1/mm."""
     n = signed_indices(lens, wavelength_um)
-    n_before = np.concatenate([[_object_index(lens, wavelength_um)], n[:-1]])
+    n_before = np.concatenate([[object_index(lens, wavelength_um)], n[:-1]])
     out = np.zeros(len(lens.surfaces))
     for i, s in enumerate(lens.surfaces):
         if s.type == "standard":
@@ -42,7 +42,9 @@ def doe_power(surface, wavelength_um: float) -> float:
     return -lam_mm * a2 / np.pi
 
 
-def _object_index(lens, wavelength_um):
+def object_index(lens, wavelength_um) -> float:
+    """Refractive index of object space (the medium before the first surface): air, 1.0, at any
+    wavelength (um)."""
     return 1.0
 
 

@@ -460,6 +460,14 @@ class Tracer:
             u, v, cell = pupil
         return self._run(src, u, v, cell, upto=upto)
 
+    def run(self, src, u, v, cell: float = 1.0, upto: int | None = None):
+        """Trace the sources ``src`` (from :meth:`sources`) over explicit normalised pupil samples ``u``, ``v``
+        (in [-1, 1]; ``cell``: the area of one sample's pupil cell in those units) up to surface ``upto``
+        (exclusive; default the sensor). Returns the rays (positions in mm, directions, optical paths in mm,
+        validity, power weights); recorded on a ``wp.Tape`` when the tracer was made with
+        ``requires_grad=True``."""
+        return self._run(src, u, v, cell, upto=upto)
+
     def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0, params=None):
         """Generate and trace. ``grid_n > 0``: the pupil is the full ``grid_n x grid_n`` cell-centre grid,
         generated on the device (``u``, ``v`` ignored; no upload). ``keep=True``: also return

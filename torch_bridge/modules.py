@@ -405,7 +405,7 @@ class HybridLens(nn.Module):
         const = st.get("paraxial")
         if const is None:
             n = lens.indices(wl0)
-            n_before = np.concatenate([[paraxial._object_index(lens, wl0)], n[:-1]])
+            n_before = np.concatenate([[paraxial.object_index(lens, wl0)], n[:-1]])
             doe_p = np.array([paraxial.doe_power(s, wl0) if s.type == "doe" else 0.0 for s in lens.surfaces])
             const = {"n": n, "n_before": n_before, "doe_power": doe_p, "object_distance": lens.object_distance}
             st["paraxial"] = const

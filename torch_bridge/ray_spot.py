@@ -31,7 +31,7 @@ class _TraceToPlane(torch.autograd.Function):
             arr.assign(np.ascontiguousarray(row, dtype=tracer.np_dtype))
         tape = wp.Tape()
         with tape:
-            rays = tracer._run(src, u, v, 1.0, upto=upto)
+            rays = tracer.run(src, u, v, 1.0, upto=upto)
         S, N = rays.n_sources, rays.n_pupil
         pos = torch.from_numpy(rays.pos.numpy().astype(np.float64).reshape(S, N, 3))
         dr = torch.from_numpy(rays.dir.numpy().astype(np.float64).reshape(S, N, 3))
