@@ -224,6 +224,19 @@ def test_focal_operator_adjoint_is_the_conjugate_transpose():
     assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
 
 
+def _cooke_with_doe(a1, a2):
+    """The Cooke triplet with a flat even-polynomial DOE (``a1 rho^2 + a2 rho^4`` rad, rho = r / 15 mm, design
+    0.55 um, fused silica) 5 mm before the sensor."""
+    from rwwarp.lens import Surface
+    lens = rw.load_lens("cooke_triplet")
+    surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
+    surfs[-1].thickness = lens.surfaces[-1].thickness - 5.0
+    surfs.append(Surface(type="doe", semi_diameter=15.0, shape="circle", thickness=5.0, design_wavelength_um=0.55,
+                         material="fused_silica", profile={"kind": "even_poly", "norm_radius": 15.0,
+                                                           "coefficients": [float(a1), float(a2)]}))
+    return lens.replace(surfaces=surfs)
+
+
 @pytest.mark.slow
 def test_weak_doe_off_its_design_wavelength_against_rs_truth():
     """A weak even-polynomial DOE 5 mm before the Cooke triplet's sensor (its relief does not wrap inside
@@ -231,14 +244,7 @@ def test_weak_doe_off_its_design_wavelength_against_rs_truth():
     m = -8..8 converges slowly next to the wrap (Gibbs) and was 1.9e-2 off; the exact single term
     exp(i alpha (phi0 - 2 pi k)) gives 2.0e-4 (the band-limited ASM: 4.1e-5). Truth: rs_lens_psf with
     the DOE phase (include_doe). Tolerance twice the measured."""
-    from rwwarp.lens import Surface
-    lens = rw.load_lens("cooke_triplet")
-    surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
-    surfs[-1].thickness = lens.surfaces[-1].thickness - 5.0
-    surfs.append(Surface(type="doe", semi_diameter=15.0, shape="circle", thickness=5.0, design_wavelength_um=0.55,
-                         material="fused_silica", profile={"kind": "even_poly", "norm_radius": 15.0,
-                                                           "coefficients": [-1000.0, 50.0]}))
-    lens = lens.replace(surfaces=surfs)
+    lens = _cooke_with_doe(-1000.0, 50.0)
     p = rw.psf(lens, 0.0, 0.5876, size=16, method="focal")
     orders = p.plan["reasons"] if isinstance(p.plan, dict) else []
     assert any("0.933" in str(r) for r in orders)
@@ -257,15 +263,8 @@ def test_wrapped_doe_off_design_wavelength_against_the_converged_asm():
     2.87e-3. Tolerance 6e-3 (about twice): the rest is the order series at the real zone edges (open,
     docs/propagation.md)."""
     import warnings
-    from rwwarp.lens import Surface
     from rwwarp.plan import Plan, nice_fft_length
-    lens = rw.load_lens("cooke_triplet")
-    surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
-    surfs[-1].thickness = lens.surfaces[-1].thickness - 5.0
-    surfs.append(Surface(type="doe", semi_diameter=15.0, shape="circle", thickness=5.0, design_wavelength_um=0.55,
-                         material="fused_silica", profile={"kind": "even_poly", "norm_radius": 15.0,
-                                                           "coefficients": [-30000.0, 0.0]}))
-    lens = lens.replace(surfaces=surfs)
+    lens = _cooke_with_doe(-30000.0, 0.0)
     fo = rw.psf(lens, 0.0, 0.5876, size=32, method="focal")
     c = tuple(fo.center_mm)
     a = rw.psf(lens, 0.0, 0.5876, size=32, method="asm", center_mm=c).plan
