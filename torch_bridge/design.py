@@ -121,15 +121,25 @@ class LiveProvider:
         self.tile = tile
         self.memory_budget_bytes = memory_budget_bytes
 
-    def psfs(self, wavelengths_um, depth_mm=None) -> torch.Tensor:
+    def psfs(self, wavelengths_um, depth_mm=None, nodes: slice | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
-        distance ``depth_mm`` (mm, None: the lens's own)."""
+        distance ``depth_mm`` (mm, None: the lens's own). ``nodes``: a slice of the nodes to compute
+        (a rank's share in a distributed step; default all). The patch centres are those of all
+        nodes, and a focal source is planned on its own, so a share's PSFs are the rows of the
+        whole map (band-limited ASM sources are planned per chunk of ``tile`` sources within the
+        share)."""
         from torch_bridge.modules import _Recompute
         m = self.module
         cen = common_centres(m, self.fields, self.wl_ref, depth_mm)
+        sel = range(len(self.fields))[nodes if nodes is not None else slice(None)]
+        fields = [self.fields[i] for i in sel]
+        cen = [cen[i] for i in sel]
         wls = [float(w) for w in wavelengths_um]
-        src_f = [f for f in self.fields for _ in wls]
-        src_w = [w for _ in self.fields for w in wls]
+        if not fields:
+            return torch.zeros((0, len(wls), self.size, self.size), dtype=torch.float64,
+                               device=next(iter(m.values().values())).device)
+        src_f = [f for f in fields for _ in wls]
+        src_w = [w for _ in fields for w in wls]
         src_c = np.array([c for c in cen for _ in wls])
         n = len(src_f)
         tile = n if not self.tile else max(1, min(int(self.tile), n))
@@ -158,7 +168,7 @@ class LiveProvider:
                 outs.append(_Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
-        return torch.cat(outs, 0).reshape(len(self.fields), len(wls), self.size, self.size)
+        return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
 
 
 class CachedProvider:

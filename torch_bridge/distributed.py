@@ -13,8 +13,9 @@ What is split, and how one step stays the single-process step (same seed, any nu
   into the full PSF tensor ``P`` (a leaf), every rank renders and reconstructs its crops, the
   gradients ``dL/dP`` are all-reduced (mean over ranks, as DDP averages the network's), each rank
   back-propagates its own nodes' share into the optics, and the optics gradients are all-reduced
-  (sum). A design whose refractive part learns (:class:`~torch_bridge.design.LiveProvider`, whose
-  sources share one plan) computes all nodes on rank 0, which then holds the whole optics gradient.
+  (sum). A design whose refractive part learns (:class:`~torch_bridge.design.LiveProvider`) shares
+  its nodes the same way: focal sources are planned one by one, so a share's PSFs and gradients are
+  those of the one-process step (band-limited ASM sources are planned per chunk of the share).
 * **Network.** :class:`torch.nn.parallel.DistributedDataParallel` (gradients averaged over ranks).
 * **Outputs.** Rank 0 alone writes the CSV, snapshots, checkpoints (the full state: a run resumes
   on any number of ranks), the evaluation, the table and the figures.
@@ -90,9 +91,10 @@ class Group:
 
     def node_share(self, n_nodes: int, provider) -> tuple:
         """(first node, node count per rank) of this rank's share: contiguous shares of
-        ``ceil(n / ranks)`` nodes for a cached provider; all nodes on rank 0 otherwise."""
-        from torch_bridge.design import CachedProvider
-        if isinstance(provider, CachedProvider):
+        ``ceil(n / ranks)`` nodes for the ray-wave providers (cached and live); all nodes on rank 0
+        otherwise."""
+        from torch_bridge.design import CachedProvider, LiveProvider
+        if isinstance(provider, (CachedProvider, LiveProvider)):
             c = max(1, math.ceil(n_nodes / self.size))
             return min(self.rank * c, n_nodes), c
         return (0 if self.rank == 0 else n_nodes), n_nodes
@@ -100,13 +102,15 @@ class Group:
     # ------------------------------------------------------------------ PSFs
     def own_psfs(self, arm, wls, depth):
         """(my nodes, len(wls), k, k) float64 PSFs of this rank's nodes, with gradients."""
-        from torch_bridge.design import CachedProvider
+        from torch_bridge.design import CachedProvider, LiveProvider
         p = arm.provider
         n = len(arm.fields)
         lo, c = self.node_share(n, p)
         hi = min(lo + c, n)
         if hi <= lo:
             return torch.zeros((0, len(wls), arm.size, arm.size), dtype=torch.float64, device=arm.device)
+        if isinstance(p, LiveProvider):
+            return p.psfs(wls, depth, nodes=slice(lo, hi))
         if not isinstance(p, CachedProvider):
             return p.psfs(wls, depth)
         return _cached_share(p, wls, depth, lo // c, c)
