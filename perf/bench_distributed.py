@@ -14,6 +14,14 @@ starts one worker (WORLD_SIZE 1: the single-process paths). On the CPU the ranks
 (torch's launcher gives each worker one OpenMP thread when there are several).
 
     python perf/bench_distributed.py [--ranks 1 2] [--device cpu] [--out perf/results/distributed_cpu.json]
+
+``--problem paper`` (multi-GPU run, issue 15): the maps are 10 x 10 fields x 3 wavelengths x 3 depths of
+the A489 + DOE and of the Cooke hybrid at F/4 (its paraxial achromatic DOE, ``focal_patch_tol`` 1e-3
+as its design configuration), 64 px; the design step is ``cooke_hybrid``'s ``gpu`` preset (e2e arm: 16
+nodes, live ray-wave PSFs of curvatures + DOE + distance, NAFNet ``paper``, batch 8 x 256^2), with the
+loss and the optics and network gradients of the first step compared between 1 and N ranks, and each
+rank's peak memory (torch's allocator, CuPy's pool, ``nvidia-smi`` per GPU). ``--only map|design``
+runs one half (the whole does not fit one 10-minute device call).
 """
 from __future__ import annotations
 
@@ -41,6 +49,232 @@ DESIGN = {
     "train": {"joint_steps": 100, "finetune_steps": 0, "lr_network": 1e-3, "lr_optics": {"doe": 0.5}},
     "arms": [{"name": "e2e", "design": {"method": "e2e"}}],
 }
+
+
+COOKE = "torch_bridge/configs/lenses/cooke_hybrid.json"
+PAPER_MAPS = [
+    {"lens": "a489_doe", "half_field_mm": 1.35, "depths_mm": [None, 2000.0, 1000.0], "size": 64,
+     "wavelengths_um": [0.47, 0.55, 0.63], "grid": 10, "focal_patch_tol": 1e-5},
+    {"lens": "cooke_hybrid (F/4, paraxial achromatic DOE)", "half_field_mm": 3.6, "depths_mm": [None, 20000.0, 10000.0],
+     "size": 64, "wavelengths_um": [0.47, 0.55, 0.63], "grid": 10, "focal_patch_tol": 1e-3},
+]
+
+
+def _paper_lens(name: str):
+    """The lens of a PAPER_MAPS entry: a bundled lens, or the Cooke hybrid with its paraxial achromatic
+    DOE at the distance that focuses it (as the design's paraxial arm starts)."""
+    import rwwarp as rw
+    if not name.startswith("cooke_hybrid"):
+        return rw.load_lens(name)
+    from torch_bridge import design as dz
+    root = Path(__file__).resolve().parent.parent
+    lens = rw.load_lens(str(root / COOKE))
+    a, dist = dz.paraxial_achromat(lens, [w for c in ([0.60, 0.63, 0.66], [0.52, 0.55, 0.58], [0.45, 0.47, 0.49])
+                                          for w in c])
+    d = len(lens.surfaces) - 1
+    s = lens.surfaces[d]
+    coeffs = [0.0] * len(s.profile["coefficients"])
+    coeffs[0] = a
+    return lens.with_surface(d, profile={**s.profile, "coefficients": coeffs}, thickness=dist)
+
+
+def _paper_fields(lens, half_mm: float, n: int):
+    """n x n field angles (x, y) (deg) whose paraxial images form a grid of +-half_mm on the sensor."""
+    import math
+
+    import numpy as np
+    f = lens.efl(0.55)
+    v = np.linspace(-half_mm, half_mm, n)
+    return [(math.degrees(math.atan(x / f)), math.degrees(math.atan(y / f))) for y in v for x in v]
+
+
+def _paper_map_worker(device: str, repeat: int):
+    import numpy as np
+
+    from rwwarp import distributed as D
+    res = []
+    # RWWARP_BENCH_MAPS=K: the first K problems only (a CPU smoke run; the Cooke hybrid's maps are GPU-sized)
+    for prob in PAPER_MAPS[:int(os.environ.get("RWWARP_BENCH_MAPS", len(PAPER_MAPS)))]:
+        lens = _paper_lens(prob["lens"])
+        # RWWARP_BENCH_GRID: a smaller field grid for a smoke run of this script on a CPU
+        fields = _paper_fields(lens, prob["half_field_mm"], int(os.environ.get("RWWARP_BENCH_GRID", prob["grid"])))
+        kw = dict(size=prob["size"], device=device, focal_patch_tol=prob["focal_patch_tol"])
+        D.psf_map(lens, fields[:2], prob["wavelengths_um"], **kw)   # warm-up: kernels built, planner warm
+        times, maps = [], None
+        for _ in range(repeat):
+            _barrier()
+            t = time.perf_counter()
+            maps = D.psf_map(lens, fields, prob["wavelengths_um"], depths_mm=prob["depths_mm"], **kw)
+            times.append(time.perf_counter() - t)
+        if maps is None:
+            res.append(None)
+            continue
+        data = np.stack([m.data for m in maps])
+        res.append({"map_s": times, "psfs": int(data.shape[0] * data.shape[1] * data.shape[2]),
+                    "ranks": maps[0].info["ranks"], "units": len(maps[0].info["units"]),
+                    "plan_s": maps[0].info["plan_s"], "data": data, "finite": bool(np.isfinite(data).all())})
+    return None if res[0] is None else res
+
+
+def _paper_design_worker(device: str, steps: int):
+    import numpy as np
+    import torch
+
+    from torch_bridge.distributed import current_group
+    from torch_bridge.train import Arm, _seed_all, load_config, train_step
+    root = Path(__file__).resolve().parent.parent
+    exp = load_config(str(root / "torch_bridge/configs/cooke_hybrid.yaml"), preset="gpu")
+    arm_cfg = next(a for a in exp["arms"] if a["name"] == "e2e")
+    cfg = copy.deepcopy(arm_cfg["config"])
+    cfg["device"] = device
+    cfg["progress"] = False
+    g = current_group(device)
+    if g is not None:
+        cfg = dict(cfg, device=g.device(device))
+    dev = torch.device(cfg["device"])
+    if dev.type == "cuda":
+        torch.cuda.set_device(dev)
+    _seed_all(int(cfg["seed"]))
+    arm = Arm("e2e", cfg, exp["source"], Path("unused"), progress=False)
+    times, losses, first = [], [], None
+    for step in range(steps + 1):
+        _barrier()
+        t = time.perf_counter()
+        s = train_step(arm, step, {}, g)
+        if step == 0:
+            first = {"optics": {q["name"]: q["params"][0].grad.detach().double().cpu().numpy()
+                                for q in arm.opt_optics.param_groups if q["params"][0].grad is not None},
+                     "network": np.concatenate([p.grad.detach().double().cpu().numpy().ravel()
+                                                for p in arm.net.parameters() if p.grad is not None])}
+        arm.opt_net.step()
+        arm.opt_optics.step()
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        _barrier()
+        (times.append(time.perf_counter() - t) if step else None)
+        losses.append(s["loss"])
+    mem = {"rank": 0 if g is None else g.rank, "device": str(dev)}
+    if dev.type == "cuda":
+        mem["torch_max_allocated_GB"] = torch.cuda.max_memory_allocated(dev) / 1e9
+        try:
+            import cupy
+            with cupy.cuda.Device(dev.index or 0):
+                mem["cupy_pool_total_GB"] = cupy.get_default_memory_pool().total_bytes() / 1e9
+        except ImportError:
+            pass
+    mems = [mem]
+    if g is not None:
+        mems = [None] * g.size
+        g.dist.all_gather_object(mems, mem)
+        if g.rank != 0:
+            return None
+    return {"step_s": times, "losses": losses, "first_step": first, "memory_per_rank": mems,
+            "nodes": len(arm.fields), "batch": cfg["data"]["batch_size"], "psf_size": arm.size,
+            "provider": type(arm.provider).__name__}
+
+
+class _GpuPeaks:
+    """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread."""
+
+    def __init__(self, period=0.1):
+        import threading
+        self.period, self.peak, self._stop = period, {}, threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        import subprocess
+        while not self._stop.is_set():
+            try:
+                out = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.used", "--format=csv,noheader,nounits"],
+                                     capture_output=True, text=True, timeout=5).stdout
+            except Exception:  # noqa: BLE001 (no nvidia-smi: nothing sampled)
+                return
+            for line in out.strip().splitlines():
+                i, used = (int(x) for x in line.split(","))
+                self.peak[i] = max(self.peak.get(i, 0), used)
+            time.sleep(self.period)
+
+    def __enter__(self):
+        self._t.start()
+        return self
+
+    def __exit__(self, *a):
+        self._stop.set()
+        self._t.join()
+
+
+def _rel(a, b):
+    import numpy as np
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300))
+
+
+def main_paper(a):
+    """The multi-GPU run of issue 15 (see the module docstring)."""
+    import json
+
+    import numpy as np
+
+    from rwwarp.distributed import launch
+    out = {"benchmark": "bench_distributed --problem paper", "device": a.device, "machine": device_name(a.device),
+           "cpu_count": os.cpu_count(), "commit": git_commit(), "backend": "nccl" if a.device.startswith("cuda")
+           else "gloo", "nvlink_multicast": os.environ.get("NCCL_NVLS_ENABLE", "unset"),
+           "map_problems": PAPER_MAPS, "map": [], "design": []}
+    if a.only in (None, "map"):
+        ref = None
+        for n in a.ranks:
+            with _GpuPeaks() as mem:
+                t = time.perf_counter()
+                rs = launch(_paper_map_worker, n, a.device, a.repeat)[0]
+                wall = time.perf_counter() - t
+            ref = ref or [x["data"] for x in rs]
+            for k, (r, r1) in enumerate(zip(rs, ref)):
+                best = min(r["map_s"])
+                row = {"problem": PAPER_MAPS[k]["lens"], "ranks": n, "psfs": r["psfs"], "units": r["units"],
+                       "map_s": r["map_s"], "best_map_s": best, "psfs_per_s": r["psfs"] / best,
+                       "plan_s": r["plan_s"], "all_finite": r["finite"],
+                       "max_abs_diff_vs_first": float(np.max(np.abs(r["data"] - r1))),
+                       "max_psf_value": float(np.max(r1)), "per_rank": r["ranks"],
+                       "command_wall_s": wall, "gpu_used_peak_MiB": dict(mem.peak)}
+                base = next((x for x in out["map"] if x["problem"] == row["problem"] and x["ranks"] == a.ranks[0]), None)
+                if base is not None:
+                    row["speedup"] = row["psfs_per_s"] / base["psfs_per_s"]
+                    row["parallel_efficiency"] = row["speedup"] * a.ranks[0] / n
+                out["map"].append(row)
+                print(f"map {row['problem']}, {n} rank(s): {r['psfs']} PSFs in {best:.2f} s "
+                      f"({row['psfs_per_s']:.1f} PSF/s, plan {r['plan_s']:.1f} s), efficiency "
+                      f"{row.get('parallel_efficiency', 1.0):.3f}; max |diff| vs {a.ranks[0]} rank(s) "
+                      f"{row['max_abs_diff_vs_first']:.3g} (max {row['max_psf_value']:.3g})", flush=True)
+            for x in rs:
+                x.pop("data", None)
+    if a.only in (None, "design"):
+        ref = None
+        for n in a.ranks:
+            with _GpuPeaks() as mem:
+                t = time.perf_counter()
+                r = launch(_paper_design_worker, n, a.device, a.steps)[0]
+                wall = time.perf_counter() - t
+            first = r.pop("first_step")
+            ref = ref or first
+            row = dict(r, ranks=n, median_step_s=statistics.median(r["step_s"]), command_wall_s=wall,
+                       gpu_used_peak_MiB=dict(mem.peak),
+                       loss0_rel_diff_vs_first=None if ref is first else abs(r["losses"][0] - out["design"][0]["losses"][0])
+                       / abs(out["design"][0]["losses"][0]),
+                       optics_grad_rel_diff_vs_first={q: _rel(first["optics"][q], ref["optics"][q]) for q in ref["optics"]},
+                       network_grad_rel_diff_vs_first=_rel(first["network"], ref["network"]))
+            base = out["design"][0] if out["design"] else None
+            if base is not None:
+                row["speedup"] = base["median_step_s"] / row["median_step_s"]
+                row["parallel_efficiency"] = row["speedup"] * base["ranks"] / n
+            out["design"].append(row)
+            print(f"design step, {n} rank(s): median {row['median_step_s']:.2f} s over {len(r['step_s'])} steps, "
+                  f"losses {[f'{x:.7g}' for x in r['losses']]}, grads vs first: optics "
+                  f"{row['optics_grad_rel_diff_vs_first']}, network {row['network_grad_rel_diff_vs_first']:.3g}; "
+                  f"memory {r['memory_per_rank']}, nvidia-smi {dict(mem.peak)} MiB", flush=True)
+    p = Path(a.out) if a.out else Path(__file__).resolve().parent / "results" / f"distributed_paper_{a.only or 'all'}.json"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(out, indent=1, default=float) + "\n")
+    print(f"written to {p}")
 
 
 def _map_worker(device: str, repeat: int):
@@ -113,7 +347,12 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3, help="timed maps per configuration")
     ap.add_argument("--steps", type=int, default=5, help="timed design steps per configuration")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--problem", choices=["small", "paper"], default="small",
+                    help="small: the CPU-sized problems; paper: issue 15's maps and the cooke_hybrid gpu preset")
+    ap.add_argument("--only", choices=["map", "design"], default=None, help="with --problem paper: one half")
     a = ap.parse_args(argv)
+    if a.problem == "paper":
+        return main_paper(a)
     import numpy as np
 
     from rwwarp.distributed import launch

@@ -130,6 +130,7 @@ def _check_args(lens, fields, wavelengths_um, depths_mm, kw):
     checks.check_center(kw["center_mm"])
     checks.check_batch(kw["batch"])
     checks.check_nyquist_safety(kw["nyquist_safety"])
+    kw["focal_patch_tol"] = checks.check_number(kw["focal_patch_tol"], "focal_patch_tol", lo=0.0, hi=1.0)
     if kw["gauss_nodes"] is not None:
         checks.check_int(kw["gauss_nodes"], "gauss_nodes", lo=1, hi=64)
     depths = [None] if depths_mm is None else list(depths_mm)
@@ -152,14 +153,16 @@ def _budget(kw):
     return default_memory_budget_bytes(kw["device"])
 
 
-def plan_work(lens, fields, wavelengths_um, depths=(None,), **kw) -> list:
+def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1), **kw) -> list:
     """The work units of a map: ``[{"depth": k, "pairs": [(i, j), ...], "cost": flops}, ...]``.
 
     Per depth, the batches :func:`rwwarp.psf_map` makes for these arguments (the same pilot and the
     same rules), so each PSF gets the plan it gets there. ``cost``: the planner's estimated flops of
     the batch (:func:`rwwarp.plan.estimate_cost` of the ASM plan the batch will share; on the focal
     path, or for a single source, the sum of its sources' :func:`rwwarp.plan_psf` estimates; for the
-    ray model, the number of sources)."""
+    ray model, the number of sources). ``part`` ``(r, n)``: where a cost needs a pilot of its own (the
+    focal path), only units ``k`` with ``k % n == r`` get theirs (the others ``cost`` None), so that the
+    ranks share the planning (:func:`psf_map` all-gathers them)."""
     from .plan import Plan, estimate_cost
     from .psf import RayWave, _auto_sizes, group_sources, plan_psf
     model, size, device, plan, batch = kw["model"], kw["size"], kw["device"], kw["plan"], kw["batch"]
@@ -173,7 +176,8 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), **kw) -> list:
             return 1.0
         p = plan_psf(lens, fields[i], wavelengths_um[j], size=size, device=device, method=kw["method"],
                      rays_per_sample=kw["rays_per_sample"], nyquist_safety=kw["nyquist_safety"],
-                     pixel_mm=kw["pixel_mm"], object_distance_mm=od, center_mm=kw["center_mm"])
+                     pixel_mm=kw["pixel_mm"], object_distance_mm=od, center_mm=kw["center_mm"],
+                     focal_patch_tol=kw["focal_patch_tol"])
         return float(p.estimate["flops"]) if p.estimate else 1.0
 
     for k, od in enumerate(depths):
@@ -182,12 +186,15 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), **kw) -> list:
             probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
                             device, "auto", kw["dtype"], kw["amplitude"], od, kw["rays_per_sample"],
                             kw["center_mm"], kw["use_reference"], gauss_nodes=kw["gauss_nodes"] or 3,
-                            nyquist_safety=kw["nyquist_safety"], method=kw["method"])
+                            nyquist_safety=kw["nyquist_safety"], method=kw["method"],
+                            focal_patch_tol=kw["focal_patch_tol"])
             if probe.plan.method == "focal":
                 per = probe.plan.estimate["memory_bytes"] / len(pairs)
                 b = max(1, min(batch or 1, int(budget // max(per, 1))))
                 chunks = [pairs[s:s + b] for s in range(0, len(pairs), b)]
-                costs = [sum(own_cost(i, j, od) for i, j in c) for c in chunks]
+                first = len(units)
+                costs = [sum(own_cost(i, j, od) for i, j in c) if (first + q) % part[1] == part[0] else None
+                         for q, c in enumerate(chunks)]
             else:
                 groups = group_sources(probe.source_needs, batch)
                 chunks = [[pairs[s] for s in g] for g in groups]
@@ -202,8 +209,11 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), **kw) -> list:
         else:
             b = batch or len(pairs)
             chunks = [pairs[s:s + b] for s in range(0, len(pairs), b)]
-            costs = [sum(own_cost(i, j, od) for i, j in c) for c in chunks]
-        units += [{"depth": k, "pairs": [tuple(p) for p in c], "cost": float(cst)} for c, cst in zip(chunks, costs)]
+            first = len(units)
+            costs = [sum(own_cost(i, j, od) for i, j in c) if (first + q) % part[1] == part[0] else None
+                     for q, c in enumerate(chunks)]
+        units += [{"depth": k, "pairs": [tuple(p) for p in c], "cost": None if cst is None else float(cst)}
+                  for c, cst in zip(chunks, costs)]
     return units
 
 
@@ -225,11 +235,13 @@ def _run_unit(lens, fields, wls, unit, od, kw, budget):
         try:
             if model == "ray-wave":
                 res = _raywave(lens, f_list, w_list, *args, od, kw["rays_per_sample"], kw["center_mm"],
-                               kw["use_reference"], kw["gauss_nodes"], kw["nyquist_safety"], kw["method"], budget)
+                               kw["use_reference"], kw["gauss_nodes"], kw["nyquist_safety"], kw["method"], budget,
+                               kw["focal_patch_tol"])
             elif model == "paraxial-wave":
                 eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, od)
                 res = _raywave(eq, eq_fields, w_list, *args, None, kw["rays_per_sample"], kw["center_mm"],
-                               kw["use_reference"], kw["gauss_nodes"], kw["nyquist_safety"], kw["method"], budget)
+                               kw["use_reference"], kw["gauss_nodes"], kw["nyquist_safety"], kw["method"], budget,
+                               kw["focal_patch_tol"])
             else:
                 res = _ray_model(lens, f_list, w_list, size, pixel, device, kw["dtype"], od, kw["rays_per_sample"],
                                  kw["center_mm"])
@@ -313,7 +325,7 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int | None = None, batch: int | None = None, nyquist_safety: float = 2.0,
             method: str = "auto", memory_budget_gb: float | None = None, progress: bool = False,
-            out=None, timeout_s: float = DEFAULT_TIMEOUT_S, object_distance_mm=None):
+            out=None, timeout_s: float = DEFAULT_TIMEOUT_S, object_distance_mm=None, focal_patch_tol: float = 1e-5):
     """The map of :func:`rwwarp.psf_map` computed by every rank of the current job (see the module
     docstring). Arguments as :func:`rwwarp.psf_map`; ``depths_mm``: a list of object distances (mm,
     None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
@@ -327,7 +339,7 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
     kw = dict(model=model, size=size, device=device, plan=plan, dtype=dtype, amplitude=amplitude,
               rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference,
               gauss_nodes=gauss_nodes, batch=batch, nyquist_safety=nyquist_safety, method=method,
-              memory_budget_gb=memory_budget_gb)
+              memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol)
     single_depth = depths_mm is None
     fields, wls, depths = _check_args(lens, fields, wavelengths_um, [object_distance_mm] if single_depth else
                                       depths_mm, kw)
@@ -338,12 +350,19 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
         rank, ws = dist.get_rank(), dist.get_world_size()
     kw["device"] = rank_device(device, local) if ws > 1 else device
     t0 = time.perf_counter()
-    # ---- plan on rank 0, share the units and their assignment
-    units = plan_work(lens, fields, wls, depths, **kw) if rank == 0 else None
+    # ---- plan: every rank the same pilot and units, each the costs of its share (focal: a pilot a
+    # source), all-gathered so that every rank assigns the same units
+    units = plan_work(lens, fields, wls, depths, part=(rank, ws), **kw)
     if dist is not None:
-        box = [units]
-        dist.broadcast_object_list(box, src=0)
-        units = box[0]
+        every = [None] * ws
+        dist.all_gather_object(every, units)
+        for r, theirs in enumerate(every):
+            if [u["pairs"] for u in theirs] != [u["pairs"] for u in units]:
+                raise DistributedError(r, "planned other work units than rank "
+                                       f"{rank} for the same map (a non-deterministic pilot?)")
+            for u, t in zip(units, theirs):
+                if u["cost"] is None and t["cost"] is not None:
+                    u["cost"] = t["cost"]
     owners = assign([u["cost"] for u in units], ws)
     mine = owners[rank]
     t_plan = time.perf_counter() - t0

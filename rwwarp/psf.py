@@ -82,7 +82,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         device: str = "cpu", plan="auto", dtype: str = "float64", amplitude: str = "energy",
         object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
-        method: str = "auto", memory_budget_gb: float | None = None) -> PSF:
+        method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -126,12 +126,16 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.
+    focal_patch_tol : float
+        Focal method with a DOE off its design wavelength: a diffraction order other than the main one
+        is computed only if it puts at least this fraction of the power on the patch (default 1e-5;
+        the orders left out are reported in ``info``). Larger values keep fewer, defocused orders.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
                 rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm,
                 use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
-                method=method, memory_budget_gb=memory_budget_gb)
+                method=method, memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -140,7 +144,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
 
 def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, device: str = "cpu",
              method: str = "auto", rays_per_sample: float = 1.0, nyquist_safety: float = 2.0, pixel_mm=None,
-             object_distance_mm=None, center_mm=None) -> Plan:
+             object_distance_mm=None, center_mm=None, focal_patch_tol: float = 1e-5) -> Plan:
     """The sampling plan and its cost estimate for a ray-wave PSF, without computing it (only the pilot
     trace runs). ``plan.explain()`` prints it; ``plan.estimate`` holds ``memory_bytes`` and ``flops``.
     Arguments as :func:`psf` (lengths mm, wavelengths um, field deg)."""
@@ -152,7 +156,7 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     pixel = float(pixel_mm or lens.sensor.pixel_pitch)
     rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
-                  nyquist_safety=nyquist_safety, method=method)
+                  nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol)
     return rwm.plan
 
 
@@ -160,7 +164,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             plan="auto", dtype: str = "float64", amplitude: str = "energy", object_distance_mm=None,
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
-            nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None) -> PSFMap:
+            nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
+            focal_patch_tol: float = 1e-5) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -170,7 +175,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     ``batch`` limits the number of sources per launch (memory; default no limit); ``progress`` shows a
     tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields, n_wavelengths, size, size);
     ``info["batches"]`` lists each batch's (field, wavelength) index pairs and plan, ``info["plan"]``
-    is the last batch's plan.
+    is the last batch's plan. Other arguments as :func:`psf`.
     """
     from . import checks  # arguments at the public edge (issue 12): names the argument and its range
     checks.check_lens(lens)
@@ -206,6 +211,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             "dropped_rays": np.zeros(len(pairs), dtype=np.int64)}
     t0 = time.perf_counter()
     checks.check_choice(method, "method", ("auto", "focal", "asm"))
+    focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     from .plan import default_memory_budget_bytes, MemoryBudgetError
     if memory_budget_gb is not None:
         if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
@@ -219,7 +225,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         # pairs as the memory budget holds (its grids follow the patch, so they differ little)
         probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
                         device, "auto", dtype, amplitude, object_distance_mm, rays_per_sample, center_mm,
-                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety, method=method)
+                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety, method=method,
+                        focal_patch_tol=focal_patch_tol)
         if probe.plan.method == "focal":
             # one source per batch unless batch= asks for more: the focal grids scale with the patch over
             # the wavelength and with each field's spot, so a shared (finest, widest) plan costs more than
@@ -247,12 +254,12 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             if model == "ray-wave":
                 res = _raywave(lens, f_list, w_list, size, pixel, device, plan, dtype, amplitude,
                                object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
-                               nyquist_safety, method, budget)
+                               nyquist_safety, method, budget, focal_patch_tol)
             elif model == "paraxial-wave":
                 eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
                 res = _raywave(eq, eq_fields, w_list, size, pixel, device, plan, dtype, amplitude,
                                None, rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety,
-                               method, budget)
+                               method, budget, focal_patch_tol)
             else:
                 res = None
         except MemoryBudgetError:

@@ -717,7 +717,7 @@ class RayWave:
 
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
              rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0, method="auto",
-             memory_budget_bytes=None):
+             memory_budget_bytes=None, focal_patch_tol=1e-5):
     return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
                    rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method=method,
-                   memory_budget_bytes=memory_budget_bytes).run()
+                   memory_budget_bytes=memory_budget_bytes, focal_patch_tol=focal_patch_tol).run()
