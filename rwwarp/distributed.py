@@ -484,10 +484,13 @@ def launch(fn, nprocs: int, *args, timeout_s: float = DEFAULT_TIMEOUT_S, start_m
 
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.launcher.api import LaunchConfig, elastic_launch
+    import dataclasses
+    extra = {}
+    if "shutdown_timeout" in {f.name for f in dataclasses.fields(LaunchConfig)}:
+        extra["shutdown_timeout"] = 10   # torch >= 2.12; older launchers have a fixed one
     cfg = LaunchConfig(min_nodes=1, max_nodes=1, nproc_per_node=int(nprocs), run_id=str(uuid.uuid4()),
                        rdzv_backend="c10d", rdzv_endpoint="localhost:0", max_restarts=0, monitor_interval=0.1,
-                       start_method=start_method, rdzv_configs={"timeout": int(timeout_s)},
-                       shutdown_timeout=10)
+                       start_method=start_method, rdzv_configs={"timeout": int(timeout_s)}, **extra)
     # as torchrun does: one OpenMP thread a worker unless the caller chose (N workers share the cores)
     omp = os.environ.get("OMP_NUM_THREADS")
     if omp is None and nprocs > 1:
