@@ -106,6 +106,10 @@ def _paper_map_worker(device: str, repeat: int):
             t = time.perf_counter()
             maps = D.psf_map(lens, fields, prob["wavelengths_um"], depths_mm=prob["depths_mm"], **kw)
             times.append(time.perf_counter() - t)
+            if maps is not None:
+                print(f"  {prob['lens']}: {len(fields) * len(prob['wavelengths_um']) * len(prob['depths_mm'])} PSFs "
+                      f"in {times[-1]:.2f} s (plan {maps[0].info['plan_s']:.2f} s); per rank "
+                      f"{[(r['psfs'], round(r['work_s'], 2)) for r in maps[0].info['ranks']]}", flush=True)
         if maps is None:
             res.append(None)
             continue
