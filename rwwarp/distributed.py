@@ -193,8 +193,8 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
                 per = probe.plan.estimate["memory_bytes"] / len(pairs)
                 b = max(1, min(batch or 1, int(budget // max(per, 1))))
                 chunks = [pairs[s:s + b] for s in range(0, len(pairs), b)]
-                # focal units are balanced by their source count: a pilot a source to cost each one
-                # took longer than the PSFs themselves on a GPU (measured on 2 H200s: over 2700 pilots)
+                # focal units are balanced by their source count: costing each with a pilot of its own
+                # repeats, serially before any work, the pilot its unit runs anyway
                 costs = [float(len(c)) for c in chunks]
             else:
                 groups = group_sources(probe.source_needs, batch)
