@@ -155,7 +155,9 @@ class Group:
     # ------------------------------------------------------------------ logging
     def mean(self, *values: float) -> list:
         """Means over the ranks of per-rank floats (float64)."""
-        t = torch.tensor(values, dtype=torch.float64)
+        # NCCL reduces device tensors only
+        dev = torch.device("cuda", self.local_rank) if self.dist.get_backend() == "nccl" else torch.device("cpu")
+        t = torch.tensor(values, dtype=torch.float64, device=dev)
         self.dist.all_reduce(t)
         return (t / self.size).tolist()
 
