@@ -24,8 +24,9 @@ Equal slices make the mean of the ranks' losses the full batch's loss (MSE and t
 are batch means), so the loss and gradients equal the single-process step's up to the order of
 floating-point reductions (measured in ``tests/torch_bridge/test_distributed_design.py``).
 
-NCCL: written (``cuda:LOCAL_RANK``, NCCL backend) but only run on gloo here: no multi-GPU machine
-was available.
+NCCL (``cuda:LOCAL_RANK``): run on 2 H200s (``perf/results/distributed_gpu_h200x2.json``): the
+``cooke_hybrid`` gpu preset's joint step took 24.1 s on one GPU and 12.0 s on two, with the same losses
+over three steps (float32 network: 1.2e-6 relative at the third).
 """
 from __future__ import annotations
 
