@@ -622,6 +622,24 @@ class RayWave:
         before stays valid (the propagation evaluates any sensor positions)."""
         self.centers = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
 
+    def load_params(self, table):
+        """Load a surface parameter table ((n_surfaces + 1, N_PARAMS) float64, last row the sensor, layout
+        ``rwwarp.kernels.trace.P_*``; lengths mm) into the tracer's device arrays, in place, and move the
+        z of the wave-plane grid's reference point to the plane's vertex in it (the grid lies on the
+        plane). Returns the table as a float64 array. Plans, windows and patch centres are unchanged."""
+        from .kernels import trace as ktrace
+        tab = np.asarray(table, dtype=np.float64)
+        tr = self.tracer
+        if tab.shape != (len(tr.params), ktrace.N_PARAMS):
+            raise ValueError(f"parameter table must be {(len(tr.params), ktrace.N_PARAMS)}, got {tab.shape}")
+        if not np.all(np.isfinite(tab)):
+            raise ValueError("parameter table has non-finite entries")
+        for row, arr in zip(tab, tr.params):
+            arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
+        tr.params_np = tab.copy()
+        self.chief_plane[:, 2] = tab[self.plane, ktrace.P_Z]
+        return tab
+
     def pixel_centres(self):
         """Sensor pixel centres (x (S, size), y (S, size)) of each patch, mm."""
         return _pixel_centres(self.centers, self.size, self.pixel)

@@ -115,15 +115,8 @@ def load_table(rw, table) -> np.ndarray:
     ``rwwarp.kernels.trace.P_*``) into ``rw``'s tracer (its Warp arrays, in place) and move the
     reference point of the DOE-plane grid to the plane's current vertex z. Returns the numpy table."""
     tab = table.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(table) else np.asarray(table, np.float64)
-    tr = rw.tracer
-    if tab.shape != (len(tr.params), ktrace.N_PARAMS):
-        raise ValueError(f"parameter table must be {(len(tr.params), ktrace.N_PARAMS)}, got {tab.shape}")
-    for row, arr in zip(tab, tr.params):
-        arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
-    tr.params_np = tab.copy()
     # the field grid lies on the DOE plane: its z follows the plane (see TraceSplat.backward)
-    rw.chief_plane[:, 2] = tab[rw.plane, ktrace.P_Z]
-    return tab
+    return rw.load_params(tab)
 
 
 def distance_from_table(rw, table):
