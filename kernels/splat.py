@@ -243,20 +243,22 @@ def make_splat_kernels(scalar):
         sph = wp.sin(ph)
         field_out[k] = wp.vec2d(re * cph - im * sph, re * sph + im * cph)
 
+    vec4d = wp.types.vector(4, f64)
+
     @wp.kernel(module="unique")
     def power_sums_kernel(
         valid: wp.array(dtype=wp.int32),
         weight: wp.array(dtype=scalar),
-        n_pupil: int,
         # outputs
-        sums_out: wp.array(dtype=f64, ndim=2),   # (n_src, 2): launched power, power of valid rays
+        terms_out: wp.array(dtype=vec4d),   # per ray: (launched power, power if valid, 0, 0)
     ):
+        # summed per source by rwwarp.reduce.source_sums (a fixed tree: deterministic, no atomics)
         i = wp.tid()
-        s = i // n_pupil
         q = f64(weight[i])
-        wp.atomic_add(sums_out, s, 0, q)
+        v = f64(0.0)
         if valid[i] == 1:
-            wp.atomic_add(sums_out, s, 1, q)
+            v = q
+        terms_out[i] = vec4d(q, v, f64(0.0), f64(0.0))
 
     class K:
         pass

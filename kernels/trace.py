@@ -389,36 +389,41 @@ def make_trace_kernels(scalar):
 def make_analysis_kernels(scalar):
     """Reductions for spot analysis, differentiable under ``wp.Tape``.
 
-    ``moments_kernel`` accumulates per source: count, sum x, sum y, sum x^2 + y^2 of valid rays at the
-    current plane (mm), about the middle ray of the source's pupil grid (a shift that keeps the
+    ``moments_kernel`` writes per ray the terms of count, sum x, sum y, sum x^2 + y^2 of valid rays at
+    the current plane (mm; summed per source by :func:`rwwarp.reduce.source_sums`), about the middle ray
+    of the source's pupil grid (a shift that keeps the
     variance well conditioned when the image height is large compared with the spot). ``rms_kernel`` turns them into the RMS radius about the centroid (mm):
     ``sqrt(<x^2 + y^2> - <x>^2 - <y>^2)``. ``slope_efl_kernel``: ``-h / tan(u')`` of ray 0.
     """
     vec3 = wp.types.vector(3, scalar)
 
+    vec4 = wp.types.vector(4, scalar)
+
     @wp.kernel(module="unique")
     def moments_kernel(pos: wp.array(dtype=vec3), valid: wp.array(dtype=wp.int32), n_pupil: int,
                        # outputs
-                       moments_out: wp.array(dtype=scalar, ndim=2)):
+                       terms_out: wp.array(dtype=vec4)):
+        # per ray (1, x, y, x^2 + y^2) if valid, else 0; summed per source by rwwarp.reduce.source_sums
+        # (a fixed tree: deterministic, no atomics)
         i = wp.tid()
+        t = vec4()
         if valid[i] == 1:
             s = i // n_pupil
             p = pos[i] - pos[s * n_pupil + n_pupil // 2]
-            wp.atomic_add(moments_out, s, 0, scalar(1.0))
-            wp.atomic_add(moments_out, s, 1, p[0])
-            wp.atomic_add(moments_out, s, 2, p[1])
-            wp.atomic_add(moments_out, s, 3, p[0] * p[0] + p[1] * p[1])
+            t = vec4(scalar(1.0), p[0], p[1], p[0] * p[0] + p[1] * p[1])
+        terms_out[i] = t
 
     @wp.kernel(module="unique")
-    def rms_kernel(moments: wp.array(dtype=scalar, ndim=2),
+    def rms_kernel(moments: wp.array(dtype=vec4, ndim=2),
                    # outputs
                    rms_out: wp.array(dtype=scalar)):
         s = wp.tid()
-        n = moments[s, 0]
+        m = moments[s, 0]
+        n = m[0]
         if n > scalar(0.0):
-            mx = moments[s, 1] / n
-            my = moments[s, 2] / n
-            var = moments[s, 3] / n - mx * mx - my * my
+            mx = m[1] / n
+            my = m[2] / n
+            var = m[3] / n - mx * mx - my * my
             rms_out[s] = wp.sqrt(wp.max(var, scalar(1.0e-30)))
 
     @wp.kernel(module="unique")

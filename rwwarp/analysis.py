@@ -80,10 +80,12 @@ def spot_rms_tape(tracer: Tracer, fields, grid: int = 101, layout: str = "edges"
     src = tracer.sources(fields)
     u, v, cell = pupil_grid(grid, src["shape"], layout=layout)
     rays = tracer._run(src, u, v, cell)
+    from .reduce import source_sums
     n = len(src["wl"])
-    mom = wp.zeros((n, 4), dtype=tracer.scalar, device=tracer.device, requires_grad=True)
-    wp.launch(K.moments_kernel, dim=n * len(u), inputs=[rays.pos, rays.valid, len(u)], outputs=[mom],
+    terms = wp.zeros(n * len(u), dtype=wp.types.vector(4, tracer.scalar), device=tracer.device, requires_grad=True)
+    wp.launch(K.moments_kernel, dim=n * len(u), inputs=[rays.pos, rays.valid, len(u)], outputs=[terms],
               device=tracer.device)
+    mom = source_sums(terms, n, tracer.scalar, tracer.device, requires_grad=True)   # deterministic tree
     rms = wp.zeros(n, dtype=tracer.scalar, device=tracer.device, requires_grad=True)
     wp.launch(K.rms_kernel, dim=n, inputs=[mom], outputs=[rms], device=tracer.device)
     return rms

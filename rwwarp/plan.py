@@ -136,7 +136,8 @@ def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> di
     """Peak memory (bytes, the planned arrays of one batch) and work (flops) of a ray-wave batch.
 
     Counted: the traced rays (two ping-pong ray states of position, direction, OPL and validity, plus
-    tube areas, weights and wavelengths: ~200 bytes a ray), the splat accumulators and the field
+    tube areas, weights and wavelengths: ~200 bytes a ray, and the 32-byte power terms summed per
+    source by :func:`rwwarp.reduce.source_sums`), the splat accumulators and the field
     (~64 bytes a wave-plane sample), and the propagation's arrays: for ``asm`` the padded FFT
     (``n_pad^2``, two complex buffers) and the output matrix DFT; for ``focal`` the two separable
     kernel matrices (``n_sensor x n_grid``), the sensor-side FFT (``n_sensor_fft^2``, three complex
@@ -147,7 +148,7 @@ def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> di
     m = int(size) * int(gauss_nodes)
     rays = S * plan.ray_grid ** 2
     n2 = plan.n_grid ** 2
-    mem = rays * 200 + S * n2 * 64
+    mem = rays * 232 + S * n2 * 64
     flops = rays * 4000.0
     if plan.method == "asm":
         npd = plan.n_pad

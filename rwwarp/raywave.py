@@ -510,10 +510,12 @@ class RayWave:
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
         K = make_splat_kernels(tr.scalar)
-        sums = wp.zeros((nsrc, 2), dtype=wp.float64, device=tr.device)
-        wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight, npup],
-                  outputs=[sums], device=tr.device)
-        self._sums_dev, self._sums = sums, None  # read (one device sync) when first asked for
+        from .reduce import source_sums
+        terms = wp.empty(nsrc * npup, dtype=wp.types.vector(4, wp.float64), device=tr.device)
+        wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
+                  device=tr.device)
+        # per source (entering, valid) power: a fixed summation tree, the same bits on every run
+        self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device), None  # read when asked
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
         if not self.chief_ok.all():
             valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
@@ -566,7 +568,7 @@ class RayWave:
 
     def _power_sums(self):
         if self._sums is None:
-            self._sums = self._sums_dev.numpy()
+            self._sums = self._sums_dev.numpy().reshape(-1, 4)[:, :2]
         return self._sums
 
     @property

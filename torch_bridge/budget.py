@@ -57,7 +57,7 @@ def bytes_per_source(rw, record: bool = True) -> int:
     rays = pl.ray_grid ** 2
     if not record:
         return 2 * int(rays * 164 + pl.n_grid ** 2 * 48)
-    per_ray = 128 * (rw.plane + 2) + 64           # 5 arrays (+ grads) per launch; tube boxes
+    per_ray = 128 * (rw.plane + 2) + 96           # 5 arrays (+ grads) per launch; tube boxes, power terms
     per_sample = 16 * 2 * 2 + 16 * 4 + 8 * 6      # s_re/s_im (+grad), field (+grad, torch views), phi0 etc.
     per_pad = 16 * 3                              # padded FFT work space, band, transfer function
     nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
