@@ -49,9 +49,11 @@ def test_batched_cache_build_equals_one_batch_and_respects_budget():
     p1 = one.psfs(wls).detach().numpy()
     p2 = split.psfs(wls).detach().numpy()
     np.testing.assert_allclose(p2, p1, rtol=0, atol=1e-12 * p1.max())
-    # gradients still reach the DOE through the batched cache
-    split.psfs([0.63]).sum().backward()
-    assert torch.all(torch.isfinite(m.doe.grad)) and m.doe.grad.abs().sum() > 0
+    # the DOE gradient through the batched cache (design wavelength, weighted PSFs, random direction)
+    # against a 4-point central difference: measured 2.2e-11 (h = 0.01 rad), tolerance 2e-10
+    from _gradcheck import directional_error
+    w = torch.from_numpy(np.random.default_rng(4).random((len(fields), 1, 21, 21)))
+    assert directional_error(lambda: (split.psfs([0.55]) * w).sum(), m.doe, 0.01) < 2e-10
 
 
 def test_budget_too_small_warns_and_traces_one_source_at_a_time():

@@ -102,7 +102,8 @@ def test_hybridlens_and_cached_provider_equal_rwwarp_focal_psf():
 @pytest.mark.parametrize("method", ["auto", "focal"])
 def test_cached_provider_auto_takes_focal_where_the_asm_plan_is_large(method):
     """The F/4 Cooke hybrid 7 deg off axis: the ASM plan is over the auto limit, so "auto" propagates by
-    the focal method (the cached entry is per node) and the DOE gradient is finite and nonzero."""
+    the focal method (the cached entry is per node), and the DOE gradient of a weighted PSF along a random
+    direction matches a 4-point central difference (measured 5.5e-10 at h = 0.01 rad; tolerance 5e-9)."""
     lens = rw.load_lens(str(__import__("pathlib").Path(tb.__file__).parent / "configs/lenses/cooke_hybrid.json"))
     d = len(lens.surfaces) - 1
     lens = lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [-664.9, 0, 0, 0]},
@@ -111,8 +112,9 @@ def test_cached_provider_auto_takes_focal_where_the_asm_plan_is_large(method):
     prov = dz.CachedProvider(m, [(0, 7.0)], 16, 0.004)
     out = prov.psfs([0.55])
     assert prov._focal and not prov._cache
-    out.pow(2).sum().backward()
-    assert torch.isfinite(m.doe.grad).all() and (m.doe.grad != 0).any()
+    from _gradcheck import directional_error
+    w = torch.from_numpy(np.random.default_rng(5).random((1, 1, 16, 16)))
+    assert directional_error(lambda: (prov.psfs([0.55]) * w).sum(), m.doe, 0.01) < 5e-9
 
 
 @pytest.mark.parametrize("preset", ["cpu", "cpu_long", "cpu_lens", "gpu"])

@@ -169,8 +169,14 @@ def test_psf_map_gradient_flows_to_each_wavelength():
     assert m.shape == (2, 2, 8, 8)
     ref = rw.psf_map(singlet(EVEN), [(0.0, 0.0), FIELD], [0.45, 0.55], size=8)
     np.testing.assert_allclose(m.detach().numpy(), ref.data, rtol=0, atol=1e-12 * ref.data.max())
-    m.sum().backward()
-    assert torch.all(torch.isfinite(hl.doe.grad)) and torch.any(hl.doe.grad != 0)
+    # the gradient of a weighted map (both wavelengths) along a random DOE direction against a 4-point
+    # central difference, on a frozen plan (replanning moves the grids: 1.5 % with it); measured 1.6e-11
+    # (h = 0.01 rad), tolerance 1e-10
+    from _gradcheck import directional_error
+    fixed = tb.HybridLens(singlet(EVEN), learn={"doe": "all"}, replan=False)
+    w = torch.from_numpy(np.random.default_rng(2).random((2, 2, 8, 8)))
+    assert directional_error(lambda: (fixed.psf_map([(0.0, 0.0), FIELD], [0.45, 0.55], 8) * w).sum(),
+                             fixed.doe, 0.01) < 1e-10
 
 
 def test_state_dict_round_trip_and_export():

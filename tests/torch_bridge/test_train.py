@@ -306,9 +306,12 @@ def test_cached_psfs_equal_rwwarp_raywave_psfs():
             ref = rw.psf(lens, f, w, size=21, pixel_mm=0.003, plan=plan, center_mm=rec["centers"][i],
                          rays_per_sample=1.2, nyquist_safety=1.0, gauss_nodes=m.gauss_nodes)
             np.testing.assert_allclose(psf[i, j], ref.data, rtol=0, atol=1e-9 * ref.data.max())
-    # gradients reach the DOE
-    prov.psfs([0.55]).sum().backward()
-    assert torch.all(torch.isfinite(m.doe.grad)) and m.doe.grad.abs().sum() > 0
+    # the DOE gradient of a weighted PSF sum at the design wavelength along a random direction against a
+    # 4-point central difference; measured 1.4e-10 (h = 0.01 rad), tolerance 1e-9. (Off the design wavelength
+    # the wrapped phase sampled on the grid jumps as its zone edges cross samples: no derivative to compare.)
+    from _gradcheck import directional_error
+    w = torch.from_numpy(np.random.default_rng(3).random((2, 1, 21, 21)))
+    assert directional_error(lambda: (prov.psfs([0.55]) * w).sum(), m.doe, 0.01) < 1e-9
 
 
 def test_paraxial_wave_provider_is_aberration_free_off_axis():
