@@ -160,7 +160,9 @@ def field_grid(n, lens, scale=None):
 # ------------------------------------------------------------------------------------------- bytes model
 def _band_widths(rwm):
     """Band columns / rows (kx, ky) of each source, as rwwarp.propagate sets them up."""
-    pitch, origin, wl_um, z, px, py, _ = rwm.propagation_args()
+    g = rwm.sensor_geometry()
+    pitch, origin, wl_um, z, px, py = (g.pitch_mm, g.origin_mm, g.wavelength_um, g.distance_mm,
+                                       g.pixel_centers_x_mm, g.pixel_centers_y_mm)
     n = rwm.plan.n_grid
     npad = rwm.plan.n_pad
     lam = np.asarray(wl_um) * 1e-3

@@ -62,7 +62,8 @@ import numpy as np
 
 from .backend import get_backend
 from .propagate_sensor import (
-    sensor_intensity, sensor_intensity_adjoint, sensor_intensity_distance_adjoint, sensor_window_center,
+    SensorGeometry, SensorPropagator, sensor_intensity, sensor_intensity_adjoint, sensor_intensity_distance_adjoint,
+    sensor_window_center,
 )
 from .propagate_setup import (
     band_limits, gauss_legendre, next_fft_size, _P_LPX, _batch_of, _center_extent, _check_window, _coords,
@@ -81,6 +82,8 @@ __all__ = [
     "propagate_adjoint",
     "propagate_grid",
     "propagate_grid_adjoint",
+    "SensorGeometry",
+    "SensorPropagator",
     "sensor_intensity",
     "sensor_intensity_adjoint",
     "sensor_intensity_distance_adjoint",

@@ -646,23 +646,29 @@ class RayWave:
         """Sensor pixel centres (x (S, size), y (S, size)) of each patch, mm."""
         return _pixel_centres(self.centers, self.size, self.pixel)
 
-    def propagation_args(self):
-        """Positional arguments of :func:`rwwarp.propagate.sensor_intensity` after ``(backend, field)``."""
+    def sensor_geometry(self, doe_scale=None):
+        """The :class:`rwwarp.propagate.SensorGeometry` of this batch's band-limited propagation: its
+        windows (pitch, origins), wavelengths in the medium after the plane (um), plane-to-sensor
+        distance (mm), the patches' pixel centres, FFT size and carrier; ``doe_scale`` (per-source DOE
+        wavelength remap) when a DOE phase goes with the field."""
+        from .propagate import SensorGeometry
         px, py = self.pixel_centres()
-        return (self.plan.pitch_mm, self.origin, np.array(self.wls) / self.n_after, self.z_sensor - self.z_plane,
-                px, py, self.pixel)
+        return SensorGeometry(self.plan.pitch_mm, self.origin, np.array(self.wls) / self.n_after,
+                              np.full(self.nsrc, float(self.z_sensor - self.z_plane)), px, py, self.pixel,
+                              gauss_nodes=self.gauss_nodes, doe_scale=doe_scale, carrier_cpmm=self.carrier,
+                              pad_to=self.plan.n_pad)
 
     def intensity(self, u_field, phi0=None, scale=None):
-        """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n))."""
-        from . import propagate, backend as bk
+        """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n)), by the
+        band-limited ASM (:class:`rwwarp.propagate.SensorPropagator`)."""
+        from . import backend as bk
+        from .propagate import SensorPropagator
         be = bk.get_backend(self.device)
         if isinstance(u_field, np.ndarray) and hasattr(be, "wrap_host"):
             # PoCL: the OpenCL buffers use the numpy memory (zero-copy host pointers)
             u_field = be.wrap_host(u_field)
             phi0 = None if phi0 is None else be.wrap_host(phi0)
-        power = propagate.sensor_intensity(be, u_field, *self.propagation_args(), doe_phase=phi0, doe_scale=scale,
-                                           carrier_cpmm=self.carrier, pad_to=self.plan.n_pad,
-                                           gauss_nodes=self.gauss_nodes)
+        power = SensorPropagator(be, self.sensor_geometry(scale)).forward(u_field, phi0)
         return be.to_host(power)
 
     def focal_operator(self, distance_mm=None):

@@ -6,8 +6,8 @@ fixed sampling plan) and runs in float64 unless said otherwise:
 * :class:`TraceSplat`: surface-parameter table -> complex field on the DOE-plane windows
   (Warp coherent trace + splat, recorded on a ``wp.Tape``; backward replays the tape).
 * :class:`Propagate`: field (+ DOE phase phi0, + DOE-to-sensor distance) -> power per sensor pixel
-  (band-limited ASM + pixel integration, OpenCL/CUDA kernels; backward is the analytic adjoint
-  :func:`rwwarp.propagate.sensor_intensity_adjoint` on the same cached plans).
+  (band-limited ASM + pixel integration, OpenCL/CUDA kernels: a
+  :class:`rwwarp.propagate.SensorPropagator`; backward is its analytic adjoint on the same cached plans).
 * :class:`FocalPropagate`: field on a focal plan's wave-plane grid (+ distance) -> power per sensor
   pixel (:class:`rwwarp.focal.FocalPropagator`: the converging wave handled analytically; backward is
   the operator's adjoint and its exact distance derivative).
@@ -251,33 +251,28 @@ def trace_splat(table, rw):
 
 
 # ---------------------------------------------------------------------------------------------- propagation
-def _prop_args(rw, distance, tile=None):
-    """Positional arguments of the sensor functions after ``(backend, field)``; with ``tile =
-    (r0, r1, c0, c1)`` only those sensor pixel rows / columns (the window centre of the whole patch
-    then goes in ``_tile_kw``)."""
-    args = list(rw.propagation_args())
+def sensor_operator(rw, distance=None, tile=None, with_doe=False):
+    """The :class:`rwwarp.propagate.SensorPropagator` of a RayWave's patches: ``distance`` (mm, (S,) or
+    None for the RayWave's own) replaces the plane-to-sensor distance; with ``tile = (r0, r1, c0, c1)``
+    only those sensor pixel rows / columns, evaluated with the whole patch's window centre (so that
+    the tile has the whole patch's band limits and equals its pixels; cached per RayWave and its
+    centres); ``with_doe``: the DOE wavelength remap goes with a DOE phase."""
+    from rwwarp.propagate import SensorPropagator, sensor_window_center
+    g = rw.sensor_geometry(doe_scale(rw) if with_doe else None)
     if distance is not None:
-        args[3] = np.broadcast_to(np.asarray(distance, dtype=np.float64), (rw.nsrc,)).copy()
+        g = g.with_(distance_mm=np.broadcast_to(np.asarray(distance, dtype=np.float64), (rw.nsrc,)).copy())
     if tile is not None:
+        st = bridge_state(rw)
+        cached = st.get("window_center")
+        if cached is None or cached[0] is not rw.centers:      # RayWave.recentre assigns new centres
+            c = sensor_window_center(np.atleast_2d(g.pixel_centers_x_mm), np.atleast_2d(g.pixel_centers_y_mm),
+                                     g.pixel_pitch_mm, rw.gauss_nodes)
+            cached = st["window_center"] = (rw.centers, c)
         r0, r1, c0, c1 = tile
-        args[4] = np.ascontiguousarray(np.atleast_2d(args[4])[:, c0:c1])
-        args[5] = np.ascontiguousarray(np.atleast_2d(args[5])[:, r0:r1])
-    return args
-
-
-def _tile_kw(rw, tile):
-    """``window_center_mm`` of the whole sensor patch for a spatial tile (so that the tile has the
-    whole patch's band limits and equals its pixels), cached per RayWave and its centres; {} without a tile."""
-    if tile is None:
-        return {}
-    st = bridge_state(rw)
-    cached = st.get("window_center")
-    if cached is None or cached[0] is not rw.centers:      # RayWave.recentre assigns new centres
-        from rwwarp import propagate
-        args = rw.propagation_args()
-        c = propagate.sensor_window_center(np.atleast_2d(args[4]), np.atleast_2d(args[5]), args[6], rw.gauss_nodes)
-        cached = st["window_center"] = (rw.centers, c)
-    return {"window_center_mm": cached[1]}
+        g = g.with_(pixel_centers_x_mm=np.ascontiguousarray(np.atleast_2d(g.pixel_centers_x_mm)[:, c0:c1]),
+                    pixel_centers_y_mm=np.ascontiguousarray(np.atleast_2d(g.pixel_centers_y_mm)[:, r0:r1]),
+                    window_center_mm=cached[1])
+    return SensorPropagator(backend_for(rw.device), g)
 
 
 def spatial_tiles(size: int, tile_px: int | None):
@@ -331,11 +326,8 @@ def backend_for(device: str):
 def sensor_power(rw, field, phi0=None, distance=None, tile=None):
     """Power per sensor pixel (S, size, size) without gradients (numpy in, backend array out); with
     ``tile = (r0, r1, c0, c1)`` those pixels only (S, r1 - r0, c1 - c0)."""
-    from rwwarp import propagate
-    be = backend_for(rw.device)
-    return be, propagate.sensor_intensity(
-        be, field, *_prop_args(rw, distance, tile), doe_phase=phi0, doe_scale=None if phi0 is None else doe_scale(rw),
-        carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, **_tile_kw(rw, tile))
+    op = sensor_operator(rw, distance, tile, with_doe=phi0 is not None)
+    return op.backend, op.forward(field, phi0)
 
 
 class Propagate(torch.autograd.Function):
@@ -352,10 +344,11 @@ class Propagate(torch.autograd.Function):
     with the whole patch's window centre, so equal to those pixels of the whole patch), and
     ``keep_nodes=False`` to keep no node field for backward (recomputed there: a checkpoint).
 
-    Backward: :func:`rwwarp.propagate.sensor_intensity_adjoint` (conjugate transfer function on the
-    same cached FFT plans, reusing the node field of the forward pass) for ``field`` and ``phi0``;
-    when the distance needs a gradient, :func:`rwwarp.propagate.sensor_intensity_distance_adjoint`
-    instead, which also returns the analytic d/d(distance): ``dH/dz = 2 pi i w H``
+    The operator (:func:`sensor_operator`, a :class:`rwwarp.propagate.SensorPropagator`) is made once in
+    the forward pass and kept for the backward pass: its :meth:`~rwwarp.propagate.SensorPropagator.adjoint`
+    (conjugate transfer function on the same cached FFT plans, reusing the node field of the forward
+    pass) for ``field`` and ``phi0``; when the distance needs a gradient, its
+    :meth:`~rwwarp.propagate.SensorPropagator.distance_adjoint` instead, which also returns the analytic d/d(distance): ``dH/dz = 2 pi i w H``
     (``w = sqrt(1/lambda^2 - fx^2 - fy^2)``), contracted with the band spectrum and its gradient on
     the device (one extra pruned FFT of the field; the band limits, which move with z in jumps, are
     held fixed).
@@ -363,44 +356,36 @@ class Propagate(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, field, phi0, distance, rw, tile=None, keep_nodes=True):
-        from rwwarp import propagate
-        be = backend_for(rw.device)
         f_h = _as_backend_array(field.to(torch.complex128), rw)
         p_h = _as_backend_array(phi0.to(torch.float64), rw) if phi0 is not None else None
         d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()
-        scale = None if phi0 is None else doe_scale(rw)
+        op = sensor_operator(rw, d_h, tile, with_doe=phi0 is not None)
+        be = op.backend
         with _streams(rw):
-            res = propagate.sensor_intensity(
-                be, f_h, *_prop_args(rw, d_h, tile), doe_phase=p_h, doe_scale=scale, carrier_cpmm=rw.carrier,
-                pad_to=rw.plan.n_pad, gauss_nodes=rw.gauss_nodes, return_nodes=keep_nodes, **_tile_kw(rw, tile))
+            res = op.forward(f_h, p_h, return_nodes=keep_nodes)
             inten, nodes = res if keep_nodes else (res, None)
             out = _to_torch(be, inten, field.device)
-        ctx.rw, ctx.be, ctx.nodes, ctx.tile = rw, be, nodes, tile
-        ctx.host = (f_h, p_h, d_h)
+        ctx.rw, ctx.op, ctx.nodes = rw, op, nodes
+        ctx.host = (f_h, p_h)
         ctx.devices = (field.device, None if phi0 is None else phi0.device,
                        None if distance is None else distance.device)
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        from rwwarp import propagate
-        rw, be = ctx.rw, ctx.be
-        f_h, p_h, d_h = ctx.host
+        rw, op = ctx.rw, ctx.op
+        be = op.backend
+        f_h, p_h = ctx.host
         need_f, need_p, need_d = ctx.needs_input_grad[:3]
         g_h = _as_backend_array(grad_out.to(torch.float64), rw)
-        scale = None if p_h is None else doe_scale(rw)
-        common = {"doe_phase": p_h, "doe_scale": scale, "carrier_cpmm": rw.carrier, "pad_to": rw.plan.n_pad,
-                  "gauss_nodes": rw.gauss_nodes, **_tile_kw(rw, ctx.tile)}
-        args = _prop_args(rw, d_h, ctx.tile)
         gf = gp = gd = None
         with _streams(rw):
             gf_d = gp_d = None
             if need_d:
-                gf_d, gp_d, gd_h = propagate.sensor_intensity_distance_adjoint(
-                    be, g_h, f_h, *args, nodes=ctx.nodes, need_field=need_f or need_p, **common)
+                gf_d, gp_d, gd_h = op.distance_adjoint(g_h, f_h, p_h, nodes=ctx.nodes, need_field=need_f or need_p)
                 gd = torch.from_numpy(gd_h).to(ctx.devices[2])
             elif need_f or need_p:
-                gf_d, gp_d = propagate.sensor_intensity_adjoint(be, g_h, f_h, *args, nodes=ctx.nodes, **common)
+                gf_d, gp_d = op.adjoint(g_h, f_h, p_h, nodes=ctx.nodes)
             if need_f:
                 gf = _to_torch(be, gf_d, ctx.devices[0])
             if need_p and gp_d is not None:
