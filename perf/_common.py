@@ -81,3 +81,37 @@ def sync_fn(device: str):
         if "torch" in sys.modules:
             sys.modules["torch"].cuda.synchronize()
     return sync
+
+
+class GpuMemory:
+    """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread:
+    ``peaks`` {index: MiB}, ``peak`` that of GPU 0. Without nvidia-smi nothing is sampled."""
+
+    def __init__(self, period=0.05):
+        import threading
+        self.period, self.peaks, self._stop = period, {}, threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    @property
+    def peak(self) -> int:
+        return self.peaks.get(0, 0)
+
+    def _run(self):
+        while not self._stop.is_set():
+            try:
+                out = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.used", "--format=csv,noheader,nounits"],
+                                     capture_output=True, text=True, timeout=5).stdout
+            except Exception:  # noqa: BLE001 (no nvidia-smi: nothing sampled)
+                return
+            for line in out.strip().splitlines():
+                i, used = (int(x) for x in line.split(","))
+                self.peaks[i] = max(self.peaks.get(i, 0), used)
+            time.sleep(self.period)
+
+    def __enter__(self):
+        self._t.start()
+        return self
+
+    def __exit__(self, *a):
+        self._stop.set()
+        self._t.join()

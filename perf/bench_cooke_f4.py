@@ -20,8 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import threading
+import sys
 import time
 from pathlib import Path
 
@@ -34,34 +33,11 @@ from torch_bridge import design as dz
 from torch_bridge.imaging import render_rgb
 from torch_bridge.network import build_network
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import GpuMemory
+
 LENS = Path(tb.__file__).parent / "configs" / "lenses" / "cooke_hybrid.json"
 WAVELENGTHS = [[0.60, 0.63, 0.66], [0.52, 0.55, 0.58], [0.45, 0.47, 0.49]]
-
-
-class GpuMemory:
-    """The device's used memory (MiB) sampled every ``period`` s in a thread (``nvidia-smi``)."""
-
-    def __init__(self, period=0.05):
-        self.period, self.peak, self._stop = period, 0, threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self):
-        while not self._stop.is_set():
-            try:
-                out = subprocess.run(["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits", "-i", "0"],
-                                     capture_output=True, text=True, timeout=5).stdout
-                self.peak = max(self.peak, int(out.split()[0]))
-            except Exception:  # noqa: BLE001 (no nvidia-smi: no sampling)
-                return
-            time.sleep(self.period)
-
-    def __enter__(self):
-        self._t.start()
-        return self
-
-    def __exit__(self, *a):
-        self._stop.set()
-        self._t.join()
 
 
 def build(device, rays_per_sample, nyquist_safety, patch_tol):

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import device_name, git_commit
+from _common import GpuMemory, device_name, git_commit
 
 MAP = {"lens": "a489_doe", "max_field_deg": 14.0, "fields": 6, "wavelengths_um": [0.47, 0.55, 0.63], "size": 32}
 DESIGN = {
@@ -181,34 +181,14 @@ def _paper_design_worker(device: str, steps: int):
             "provider": type(arm.provider).__name__}
 
 
-class _GpuPeaks:
-    """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread."""
-
-    def __init__(self, period=0.1):
-        import threading
-        self.period, self.peak, self._stop = period, {}, threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self):
-        import subprocess
-        while not self._stop.is_set():
-            try:
-                out = subprocess.run(["nvidia-smi", "--query-gpu=index,memory.used", "--format=csv,noheader,nounits"],
-                                     capture_output=True, text=True, timeout=5).stdout
-            except Exception:  # noqa: BLE001 (no nvidia-smi: nothing sampled)
-                return
-            for line in out.strip().splitlines():
-                i, used = (int(x) for x in line.split(","))
-                self.peak[i] = max(self.peak.get(i, 0), used)
-            time.sleep(self.period)
-
-    def __enter__(self):
-        self._t.start()
-        return self
-
-    def __exit__(self, *a):
-        self._stop.set()
-        self._t.join()
+def _launched(fn, n: int, *args):
+    """``fn(*args)`` on ``n`` ranks (rwwarp.distributed.launch): (rank 0's result, wall s of the whole
+    launch, {GPU index: peak used MiB} sampled meanwhile)."""
+    from rwwarp.distributed import launch
+    with GpuMemory(0.1) as mem:
+        t = time.perf_counter()
+        r = launch(fn, n, *args)[0]
+        return r, time.perf_counter() - t, dict(mem.peaks)
 
 
 def _rel(a, b):
@@ -223,18 +203,19 @@ def main_paper(a):
 
     import numpy as np
 
-    from rwwarp.distributed import launch
     out = {"benchmark": "bench_distributed --problem paper", "device": a.device, "machine": device_name(a.device),
            "cpu_count": os.cpu_count(), "commit": git_commit(), "backend": "nccl" if a.device.startswith("cuda")
            else "gloo", "nvlink_multicast": os.environ.get("NCCL_NVLS_ENABLE", "unset"),
            "map_problems": PAPER_MAPS, "map": [], "design": []}
+    p = Path(a.out) if a.out else Path(__file__).resolve().parent / "results" / f"distributed_paper_{a.only or 'all'}.json"
+    p.parent.mkdir(parents=True, exist_ok=True)
+
+    def save():   # after every configuration: a later one that fails or times out keeps the earlier rows
+        p.write_text(json.dumps(out, indent=1, default=float) + "\n")
     if a.only in (None, "map"):
         ref = None
         for n in a.ranks:
-            with _GpuPeaks() as mem:
-                t = time.perf_counter()
-                rs = launch(_paper_map_worker, n, a.device, a.repeat)[0]
-                wall = time.perf_counter() - t
+            rs, wall, peaks = _launched(_paper_map_worker, n, a.device, a.repeat)
             ref = ref or [x["data"] for x in rs]
             for k, (r, r1) in enumerate(zip(rs, ref)):
                 best = min(r["map_s"])
@@ -243,12 +224,13 @@ def main_paper(a):
                        "plan_s": r["plan_s"], "all_finite": r["finite"],
                        "max_abs_diff_vs_first": float(np.max(np.abs(r["data"] - r1))),
                        "max_psf_value": float(np.max(r1)), "per_rank": r["ranks"],
-                       "command_wall_s": wall, "gpu_used_peak_MiB": dict(mem.peak)}
+                       "command_wall_s": wall, "gpu_used_peak_MiB": peaks}
                 base = next((x for x in out["map"] if x["problem"] == row["problem"] and x["ranks"] == a.ranks[0]), None)
                 if base is not None:
                     row["speedup"] = row["psfs_per_s"] / base["psfs_per_s"]
                     row["parallel_efficiency"] = row["speedup"] * a.ranks[0] / n
                 out["map"].append(row)
+                save()
                 print(f"map {row['problem']}, {n} rank(s): {r['psfs']} PSFs in {best:.2f} s "
                       f"({row['psfs_per_s']:.1f} PSF/s, plan {r['plan_s']:.1f} s), efficiency "
                       f"{row.get('parallel_efficiency', 1.0):.3f}; max |diff| vs {a.ranks[0]} rank(s) "
@@ -258,14 +240,11 @@ def main_paper(a):
     if a.only in (None, "design"):
         ref = None
         for n in a.ranks:
-            with _GpuPeaks() as mem:
-                t = time.perf_counter()
-                r = launch(_paper_design_worker, n, a.device, a.steps)[0]
-                wall = time.perf_counter() - t
+            r, wall, peaks = _launched(_paper_design_worker, n, a.device, a.steps)
             first = r.pop("first_step")
             ref = ref or first
             row = dict(r, ranks=n, median_step_s=statistics.median(r["step_s"]), command_wall_s=wall,
-                       gpu_used_peak_MiB=dict(mem.peak),
+                       gpu_used_peak_MiB=peaks,
                        loss0_rel_diff_vs_first=None if ref is first else abs(r["losses"][0] - out["design"][0]["losses"][0])
                        / abs(out["design"][0]["losses"][0]),
                        optics_grad_rel_diff_vs_first={q: _rel(first["optics"][q], ref["optics"][q]) for q in ref["optics"]},
@@ -275,13 +254,15 @@ def main_paper(a):
                 row["speedup"] = base["median_step_s"] / row["median_step_s"]
                 row["parallel_efficiency"] = row["speedup"] * base["ranks"] / n
             out["design"].append(row)
+            save()
+            # the first step's gradients, to compare with a run made in another command
+            np.savez(p.with_name(f"{p.stem}_grads_{n}ranks.npz"), network=first["network"],
+                     **{f"optics_{q}": v for q, v in first["optics"].items()})
             print(f"design step, {n} rank(s): median {row['median_step_s']:.2f} s over {len(r['step_s'])} steps, "
                   f"losses {[f'{x:.7g}' for x in r['losses']]}, grads vs first: optics "
                   f"{row['optics_grad_rel_diff_vs_first']}, network {row['network_grad_rel_diff_vs_first']:.3g}; "
-                  f"memory {r['memory_per_rank']}, nvidia-smi {dict(mem.peak)} MiB", flush=True)
-    p = Path(a.out) if a.out else Path(__file__).resolve().parent / "results" / f"distributed_paper_{a.only or 'all'}.json"
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(out, indent=1, default=float) + "\n")
+                  f"memory {r['memory_per_rank']}, nvidia-smi {peaks} MiB", flush=True)
+    save()
     print(f"written to {p}")
 
 
