@@ -359,7 +359,11 @@ class RayWave:
             # than the focal path while its plan is small (A489: 6.5 against 15 ms); the focal path takes
             # over where the ASM's plan grows with the beam (Cooke triplet: 11.8 GiB planned)
             small_asm = pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
-            if not small_asm and fpl.estimate["flops"] <= pl.estimate["flops"]:
+            # a plan over the memory budget cannot run: the one that fits wins whatever its work
+            fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes
+                    for e in (pl.estimate, fpl.estimate)]
+            if fits == [False, True] or (fits != [True, False] and not small_asm
+                                         and fpl.estimate["flops"] <= pl.estimate["flops"]):
                 pl = fpl.with_reasons(why + " -> focal")
                 self.focal, carrier, centers = focal_state[1], focal_state[2], focal_state[3]
             else:
