@@ -602,13 +602,8 @@ class RayWave:
         else:
             u_field = field.numpy().view(np.complex128).reshape(self.nsrc, n, n)
         if self.amplitude != "energy":
-            # paper convention: unit ray amplitude, one global scale so the field carries the traced power
-            q = self.traced_power
             xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
-            pw = xp.asnumpy(xp.sum(xp.abs(u_field) ** 2, axis=(1, 2))) if xp is not np else \
-                np.sum(np.abs(u_field) ** 2, axis=(1, 2))
-            pw = pw * self.plan.pitch_mm ** 2
-            u_field = u_field * xp.asarray(np.sqrt(np.where(pw > 0, q / np.maximum(pw, 1e-300), 0.0)))[:, None, None]
+            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), self.plan.pitch_mm, xp)
         return u_field
 
     def doe_phase(self):
@@ -743,6 +738,16 @@ class RayWave:
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
                 "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+
+
+def paper_rescale(u, traced_power, pitch_mm: float, xp):
+    """The paper's amplitude convention: rays of unit amplitude, then one scale per source so that the
+    field's power ``sum |u|^2 pitch^2`` (pitch in mm) equals the traced power (the power of the valid
+    rays). ``u`` (S, n, n) complex and ``traced_power`` (S,) in one array namespace ``xp`` (numpy,
+    CuPy or torch: the same formula differentiates in torch); a source with no field power stays zero."""
+    pw = (u.real ** 2 + u.imag ** 2).sum((1, 2)) * pitch_mm ** 2
+    ok = pw > 0
+    return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
 
 
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,

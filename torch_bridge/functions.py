@@ -250,6 +250,14 @@ def trace_splat(table, rw):
     return trace_splat_forward(rw, table, record=False)[0]
 
 
+def paper_amplitude(u, rw):
+    """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
+    so that the field carries the traced power (:func:`rwwarp.raywave.paper_rescale`, in torch)."""
+    from rwwarp.raywave import paper_rescale
+    q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
+    return paper_rescale(u, q, rw.plan.pitch_mm, torch)
+
+
 # ---------------------------------------------------------------------------------------------- propagation
 def sensor_operator(rw, distance=None, tile=None, with_doe=False):
     """The :class:`rwwarp.propagate.SensorPropagator` of a RayWave's patches: ``distance`` (mm, (S,) or
@@ -596,9 +604,7 @@ def raywave_psf(rw, table, phi0=None, distance=None):
     """
     u = trace_splat(table, rw)
     if rw.amplitude != "energy":
-        valid_power = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
-        pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
-        u = u * torch.sqrt(torch.where(pw > 0, valid_power / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
+        u = paper_amplitude(u, rw)
     if distance is None:
         distance = distance_from_table(rw, table)
     power = propagate(u, phi0, distance, rw)

@@ -58,7 +58,8 @@ from rwwarp.plan import Plan
 
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
-from .functions import backend_for, bridge_state, focal_doe_factor, focal_propagate, propagate, quantize_ste, trace_splat
+from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude, propagate,
+                        quantize_ste, trace_splat)
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -552,9 +553,7 @@ class HybridLens(nn.Module):
             dist = (table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]).expand(rw.nsrc)
             u = trace_splat(table, rw)
             if rw.amplitude != "energy":
-                q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
-                pw = (u.real ** 2 + u.imag ** 2).sum(dim=(1, 2)) * rw.plan.pitch_mm ** 2
-                u = u * torch.sqrt(torch.where(pw > 0, q / pw.clamp_min(1e-300), torch.zeros_like(pw)))[:, None, None]
+                u = paper_amplitude(u, rw)
             if rw.plan.method == "focal":
                 fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
                 if fac is not None:
