@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["doe_order_coefficients", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
+__all__ = ["doe_order_coefficients", "doe_order_series", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
            "pixel_weights"]
 
 
@@ -74,6 +74,31 @@ def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
     k = np.arange(n)
     ph = np.exp(2j * np.pi * np.outer(a - m, k) / n).sum(axis=1)
     return np.sinc(m / n) / n * ph
+
+
+def doe_order_series(phi0, orders, central_zones=None, xp=np):
+    """A DOE's transmission as its kept diffraction orders, ``sum_m c_m exp(1j m phi0)``, per source.
+
+    ``phi0``: the unwrapped DOE phase at the design wavelength (rad, (S, n, n), array namespace ``xp``:
+    numpy, CuPy or torch, differentiable in torch); ``orders``: per source a list of ``(m, c_m)``
+    (:func:`doe_order_coefficients`, as a focal plan keeps them); ``central_zones``: per source None or
+    ``(k_c, alpha)``, the wrap zone the chief ray crosses, computed exactly as
+    ``exp(1j alpha (phi0 - 2 pi k_c))`` where ``floor(phi0 / 2 pi) == k_c`` (the series converges slowly
+    next to a zone boundary the relief touches without crossing; the zone mask is a plan decision and
+    carries no gradient). Returns (S, n, n) complex."""
+    out = []
+    for k, ol in enumerate(orders):
+        p = phi0[k]
+        acc = xp.zeros_like(p) * 0j
+        for m, c in ol:
+            acc = acc + (complex(c) * xp.exp(1j * float(m) * p) if m != 0 else complex(c) * xp.ones_like(p))
+        z = None if central_zones is None else central_zones[k]
+        if z is not None:
+            kc, alpha = z
+            inside = xp.floor(p / (2.0 * np.pi)) == kc
+            acc = xp.where(inside, xp.exp(1j * float(alpha) * (p - 2.0 * np.pi * kc)), acc)
+        out.append(acc)
+    return xp.stack(out)
 
 
 def transfer_curvature(f_c, inv_lam):

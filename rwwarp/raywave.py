@@ -693,34 +693,30 @@ class RayWave:
                                              pl.n_sensor_fft, nx, ny, xp=xp)
         return self._focal_op
 
-    def doe_orders_factor(self):
-        """``sum_m c_m exp(1j m phi0)`` on each window (S, n, n) for the DOE orders the focal plan kept, or
-        None (no DOE, blank DOE, or only the zeroth order with c_0 = 1)."""
+    def doe_orders_factor(self, xp=np):
+        """``sum_m c_m exp(1j m phi0)`` on each window (S, n, n) for the DOE orders the focal plan kept
+        (:func:`rwwarp.focal.doe_order_series`, the chief ray's wrap zone exact), in the array namespace
+        ``xp`` (the focal operator's: CuPy on CUDA); None without a DOE, for a blank DOE, or with only
+        the zeroth order and c_0 = 1."""
+        from .focal import doe_order_series
         geo, prof = self.focal, self.focal["profile"]
         if prof is None:
             return None
         s = self.lens.surfaces[self.plane]
         g = np.arange(self.plan.n_grid) * self.plan.pitch_mm
-        out = np.zeros((self.nsrc, self.plan.n_grid, self.plan.n_grid), dtype=np.complex128)
+        phi0 = np.empty((self.nsrc, self.plan.n_grid, self.plan.n_grid))
         for k in range(self.nsrc):
             x, y = np.meshgrid(self.origin[k, 0] + g, self.origin[k, 1] + g, indexing="xy")
-            phi0 = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
-            for m, c in geo["orders"][k]:
-                out[k] += c * np.exp(1j * m * phi0)
-            cz = geo.get("central_zone", [None] * self.nsrc)[k]
-            if cz is not None:
-                kc, alpha = cz
-                out[k] = np.where(np.floor(phi0 / (2 * np.pi)) == kc,
-                                  np.exp(1j * alpha * (phi0 - 2 * np.pi * kc)), out[k])
-        return out
+            phi0[k] = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
+        return doe_order_series(xp.asarray(phi0), geo["orders"], geo.get("central_zone"), xp)
 
     def focal_intensity(self, u_field):
         """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``)."""
         from .focal import pixel_power
         op = self.focal_operator()
-        fac = self.doe_orders_factor()
+        fac = self.doe_orders_factor(op.xp)
         if fac is not None:
-            u_field = u_field * op.xp.asarray(fac)
+            u_field = u_field * fac
         u = op.forward(u_field)
         power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
         return power if op.xp is np else op.xp.asnumpy(power)

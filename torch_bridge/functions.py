@@ -496,16 +496,9 @@ class FocalPropagate(torch.autograd.Function):
 def doe_orders_factor(phi0, orders):
     """``sum_m c_m exp(1j m phi0)`` per source (S, n, n) complex128 from the unwrapped DOE phase ``phi0``
     (rad, float64 (S, n, n)) and the orders a focal plan kept (``rw.focal["orders"]``: per source a list
-    of ``(m, c_m)``; :func:`rwwarp.focal.doe_order_coefficients`). Differentiable in ``phi0``."""
-    out = []
-    for k, ol in enumerate(orders):
-        p = phi0[k]
-        acc = None
-        for m, c in ol:
-            term = complex(c) * torch.exp(1j * float(m) * p) if m != 0 else torch.full_like(p, 1.0) * complex(c)
-            acc = term if acc is None else acc + term
-        out.append(acc)
-    return torch.stack(out)
+    of ``(m, c_m)``); differentiable in ``phi0`` (:func:`rwwarp.focal.doe_order_series` in torch)."""
+    from rwwarp.focal import doe_order_series
+    return doe_order_series(phi0, orders, None, torch)
 
 
 def focal_doe_factor(rw, phi0):
@@ -518,21 +511,9 @@ def focal_doe_factor(rw, phi0):
     if phi0 is None:
         return None
     if rw.focal["profile"] is not None:
-        out = doe_orders_factor(phi0, rw.focal["orders"])
-        zones = rw.focal.get("central_zone") or [None] * len(rw.focal["orders"])
-        if any(z is not None for z in zones):
-            # the chief ray's wrap zone exactly (rwwarp.raywave: the order series converges slowly next to a
-            # boundary the relief touches without crossing); the zone mask is a plan decision (no gradient)
-            rows = []
-            for k, z in enumerate(zones):
-                if z is None:
-                    rows.append(out[k])
-                    continue
-                kc, alpha = z
-                inside = torch.floor(phi0[k].detach() / (2 * math.pi)) == kc
-                rows.append(torch.where(inside, torch.exp(1j * alpha * (phi0[k] - 2 * math.pi * kc)), out[k]))
-            out = torch.stack(rows)
-        return out
+        # the kept orders, the chief ray's wrap zone exact: the same function as rwwarp's, in torch
+        from rwwarp.focal import doe_order_series
+        return doe_order_series(phi0, rw.focal["orders"], rw.focal.get("central_zone"), torch)
     alpha = torch.as_tensor(doe_scale(rw), dtype=torch.float64, device=phi0.device)
     return torch.exp(1j * alpha[:, None, None] * phi0)
 
