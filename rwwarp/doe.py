@@ -106,6 +106,37 @@ def _polyval_ascending(coeffs, u):
     return out
 
 
+def radial_gradient_over_r(kind: str, coefficients, norm_radius: float, r2, xp=np):
+    """``(1 / r) d phi0 / dr`` (rad/mm^2) of an ``even_poly`` or ``poly`` DOE at ``r2 = x^2 + y^2`` (mm^2),
+    so that ``grad phi0 = g (x, y)``. ``coefficients``: a sequence or a 1-D array of the array namespace
+    ``xp`` (numpy or torch: differentiable in torch), ``norm_radius`` in mm. The one home of this
+    derivative: :class:`EvenPolyProfile`, :class:`PolyProfile` and the ray model's DOE grating in
+    ``torch_bridge`` use it.
+
+    * even_poly ``phi0 = sum_i a_i u^(i+1)``, ``u = r^2 / R^2``: ``g = (2 / R^2) sum_i (i + 1) a_i u^i``;
+    * poly ``phi0 = sum_k c_k rho^k``, ``rho = r / R``: ``g = sum_(k>=2) k c_k rho^(k-2) / R^2 + c_1 / (R r)``
+      (the cone term's gradient is undefined on the axis and taken as 0 there)."""
+    R = float(norm_radius)
+    n = len(coefficients)
+    if kind == "even_poly":
+        u = r2 / (R * R)
+        d = u * 0.0
+        for i in range(n - 1, -1, -1):                # Horner
+            d = d * u + (i + 1) * coefficients[i]
+        return (2.0 / (R * R)) * d
+    if kind == "poly":
+        r = xp.sqrt(r2)
+        rho = r / R
+        d = rho * 0.0
+        for k in range(n, 1, -1):                     # Horner over k >= 2
+            d = d * rho + k * coefficients[k - 1]
+        g = d / (R * R)
+        if n:
+            g = g + xp.where(r > 0, coefficients[0] / (R * xp.where(r > 0, r, 1.0)), 0.0)
+        return g
+    raise ValueError(f"radial_gradient_over_r handles 'even_poly' and 'poly' DOEs, got {kind!r}")
+
+
 def _aperture_samples(semi_diameter, shape, n):
     """Sample points (x, y) in mm covering the aperture (n x n grid, clipped to a circle if circular)."""
     t = np.linspace(-semi_diameter, semi_diameter, n)
@@ -207,11 +238,7 @@ class EvenPolyProfile(_RadialProfile):
         return u * _polyval_ascending(self.coefficients, u) if self.coefficients else np.zeros_like(u)
 
     def _dg_over_r(self, r2):
-        # d/dr sum a_i u^i = sum a_i i u^(i-1) * 2 r / R^2
-        R2 = self.norm_radius ** 2
-        u = r2 / R2
-        d = [a * (i + 1) for i, a in enumerate(self.coefficients)]
-        return (2.0 / R2) * _polyval_ascending(d, u) if d else np.zeros_like(u)
+        return radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, np.asarray(r2, float))
 
     def quadratic_coefficient(self, design_wavelength_um=0.55):
         return self.coefficients[0] / self.norm_radius ** 2 if self.coefficients else 0.0
@@ -237,22 +264,7 @@ class PolyProfile(_RadialProfile):
         return rho * _polyval_ascending(self.coefficients, rho) if self.coefficients else np.zeros_like(rho)
 
     def _dg_over_r(self, r2):
-        R = self.norm_radius
-        r = np.sqrt(r2)
-        rho = r / R
-        out = np.zeros_like(r)
-        if not self.coefficients:
-            return out
-        # terms k >= 2: k c_k rho^(k-1) / R / r = k c_k rho^(k-2) / R^2 (finite at r = 0)
-        d = [c * k for k, c in enumerate(self.coefficients, start=1)][1:]
-        if d:
-            out = _polyval_ascending(d, rho) / (R * R)
-        c1 = self.coefficients[0]
-        if c1 != 0.0:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cone = np.where(r > 0, c1 / (R * np.where(r > 0, r, 1.0)), 0.0)
-            out = out + cone
-        return out
+        return radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, np.asarray(r2, float))
 
     def quadratic_coefficient(self, design_wavelength_um=0.55):
         return self.coefficients[1] / self.norm_radius ** 2 if len(self.coefficients) > 1 else 0.0

@@ -57,26 +57,11 @@ class _TraceToPlane(torch.autograd.Function):
 
 
 def _doe_gradient(kind: str, coeffs: torch.Tensor, norm_radius: float, x, y):
-    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of an ``even_poly`` or ``poly`` DOE at (x, y) mm."""
-    R = float(norm_radius)
-    if kind == "even_poly":
-        uu = (x * x + y * y) / (R * R)
-        d = torch.zeros_like(x)
-        for i in range(coeffs.numel() - 1, -1, -1):   # sum (i+1) a_i u^i, Horner
-            d = d * uu + (i + 1) * coeffs[i]
-        g = 2.0 * d / (R * R)
-        return g * x, g * y
-    if kind == "poly":
-        r = torch.sqrt(x * x + y * y)
-        rho = r / R
-        d = torch.zeros_like(x)
-        for k in range(coeffs.numel(), 1, -1):      # sum_k>=2 k c_k rho^(k-2), Horner
-            d = d * rho + k * coeffs[k - 1]
-        g = d / (R * R)
-        if coeffs.numel():
-            g = g + torch.where(r > 0, coeffs[0] / (R * torch.where(r > 0, r, torch.ones_like(r))), torch.zeros_like(r))
-        return g * x, g * y
-    raise ValueError(f"the ray model handles 'even_poly' and 'poly' DOEs, got {kind!r}")
+    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of an ``even_poly`` or ``poly`` DOE at (x, y) mm
+    (:func:`rwwarp.doe.radial_gradient_over_r` in torch: differentiable in the coefficients)."""
+    from rwwarp.doe import radial_gradient_over_r
+    g = radial_gradient_over_r(kind, coeffs, norm_radius, x * x + y * y, torch)
+    return g * x, g * y
 
 
 class RaySpot:
