@@ -54,20 +54,32 @@ def signed_indices(lens, wavelength_um) -> np.ndarray:
     return lens.indices(wavelength_um) * lens.directions()
 
 
+def ynu_steps(powers, thicknesses, indices, y0, nu0):
+    """The paraxial y-nu trace (its one home): at surface ``i`` the reduced slope changes by refraction,
+    ``nu -= y P_i`` (power 1/mm), then the ray moves on, ``y += t_i nu / n_i`` (thickness mm, index after
+    the surface, signed by the travel direction). Elementwise arithmetic only, so the entries may be
+    floats or torch scalars (differentiable: ``torch_bridge`` traces its learning lens with it).
+    Returns three lists: the height at each surface (mm), the reduced slope arriving at it and the one
+    leaving it."""
+    ys, nus_in, nus = [], [], []
+    y, nu = y0, nu0
+    for P, t, n in zip(powers, thicknesses, indices):
+        nus_in.append(nu)
+        nu = nu - y * P
+        ys.append(y)
+        nus.append(nu)
+        y = y + t * nu / n
+    return ys, nus_in, nus
+
+
 def ynu_trace(lens, wavelength_um: float, y0: float, nu0: float):
     """Trace a paraxial ray starting at the first vertex with height ``y0`` (mm) and reduced slope ``nu0``.
 
     Returns ``(y, nu)``: heights at each surface (mm) and reduced slopes after each surface.
     """
-    powers = surface_powers(lens, wavelength_um)
-    n = signed_indices(lens, wavelength_um)
-    ys, nus = np.zeros(len(powers)), np.zeros(len(powers))
-    y, nu = y0, nu0
-    for i, s in enumerate(lens.surfaces):
-        nu = nu - y * powers[i]
-        ys[i], nus[i] = y, nu
-        y = y + s.thickness * nu / n[i]
-    return ys, nus
+    ys, _, nus = ynu_steps(surface_powers(lens, wavelength_um), [s.thickness for s in lens.surfaces],
+                           signed_indices(lens, wavelength_um), y0, nu0)
+    return np.array(ys, dtype=np.float64), np.array(nus, dtype=np.float64)
 
 
 def _checked(lens, wavelength_um) -> float:

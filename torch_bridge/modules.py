@@ -420,19 +420,17 @@ class HybridLens(nn.Module):
                             torch.where(thin, 1.0 / f, torch.as_tensor(const["doe_power"], dtype=dt, device=dev)))
         od = const["object_distance"]
         one = torch.ones((), dtype=dt, device=dev)
-        y, nu = (one, 0.0 * one) if math.isinf(od) else (od * one, one)
+        y0, nu0 = (one, 0.0 * one) if math.isinf(od) else (od * one, one)
+        ys, nus_in, _ = paraxial.ynu_steps(power, v["thickness"], n, y0, nu0)   # rwwarp's trace, in torch
         uinv, vdist = [], []
         for i in range(len(lens.surfaces)):
-            nu_in = nu  # reduced slope arriving at surface i
-            nu = nu - y * power[i]
             if self._thin_surfaces[i]:
-                ui = torch.where(nu_in.abs() < 1e-300, 0.0 * one, nu_in / (n_before[i] * y))
+                ui = torch.where(nus_in[i].abs() < 1e-300, 0.0 * one, nus_in[i] / (n_before[i] * ys[i]))
                 uinv.append(ui)
                 vdist.append(n[i] / (power[i] - n_before[i] * ui))
             else:
                 uinv.append(0.0 * one)
                 vdist.append(0.0 * one)
-            y = y + v["thickness"][i] * nu / n[i]
         return torch.where(thin, power, torch.zeros_like(power)), torch.stack(uinv), torch.stack(vdist)
 
     def limit_doe_feature(self, min_feature_mm: float) -> float:

@@ -144,12 +144,12 @@ class RaySpot:
 def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
     """Paraxial EFL (mm) of a :class:`~torch_bridge.HybridLens` as a differentiable tensor (y-nu trace
     with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi``)."""
+    from rwwarp import paraxial
     lens = module.lens_template
     v = module.values()
-    n = lens.indices(wavelength_um)
-    n_before = np.concatenate([[1.0], n[:-1]])
-    y = torch.ones((), dtype=torch.float64)
-    nu = torch.zeros((), dtype=torch.float64)
+    n = paraxial.signed_indices(lens, wavelength_um)
+    n_before = np.concatenate([[paraxial.object_index(lens, wavelength_um)], n[:-1]])
+    powers = []
     for i, s in enumerate(lens.surfaces):
         if s.type == "standard":
             P = (n[i] - n_before[i]) * v["curvature"][i]
@@ -159,12 +159,13 @@ def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
             idx = 0 if module.doe_kind == "even_poly" else 1
             R = float(s.profile["norm_radius"])
             a2 = v["doe"][idx] / R ** 2 if v["doe"].numel() > idx else torch.zeros((), dtype=torch.float64)
-            P = -wavelength_um * 1e-3 * a2 / math.pi
+            P = -wavelength_um * 1e-3 * a2 / math.pi       # rwwarp.paraxial.doe_power's first order
         else:
             P = torch.zeros((), dtype=torch.float64)
-        nu = nu - y * P
-        y = y + v["thickness"][i] * nu / n[i]
-    return -1.0 / nu
+        powers.append(P)
+    one = torch.ones((), dtype=torch.float64)
+    _, _, nus = paraxial.ynu_steps(powers, v["thickness"], n, one, 0.0 * one)
+    return -1.0 / nus[-1]
 
 
 def paraxial_achromat(lens, wavelengths_um, doe_kind: str = "even_poly"):
