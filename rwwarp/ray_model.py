@@ -12,6 +12,26 @@ from .errors import GeometryError, LensError
 from .trace import Tracer, pupil_grid
 
 
+def grating_to_sensor(pos, dirs, n_after, lam_mm, grad, z_sensor, xp=np):
+    """The ray model's last step (its one home): rays at the wave-plane surface (positions ``pos`` and
+    unit directions ``dirs``, (..., 3), mm) cross the DOE as a local grating, first order,
+    ``n' d'_xy = n d_xy + lambda / (2 pi) grad(phi0)`` (``grad``: ``(gx, gy)`` in rad/mm at the rays, or
+    None without a DOE; ``lam_mm`` in mm and ``n_after`` broadcast against the rays), and go straight on
+    to the sensor plane ``z = z_sensor`` (mm). Returns ``(hx, hy, ok)``: the landing points (mm) and
+    where the bent ray exists (no evanescent order). Array namespace ``xp``: numpy, or torch (then
+    differentiable in everything but ``ok``)."""
+    tx = n_after * dirs[..., 0]
+    ty = n_after * dirs[..., 1]
+    if grad is not None:
+        tx = tx + lam_mm / (2.0 * np.pi) * grad[0]
+        ty = ty + lam_mm / (2.0 * np.pi) * grad[1]
+    tz2 = n_after * n_after - tx * tx - ty * ty
+    ok = tz2 > 0
+    tz = xp.sqrt(xp.where(ok, tz2, 1.0))
+    run = z_sensor - pos[..., 2]
+    return pos[..., 0] + run * tx / tz, pos[..., 1] + run * ty / tz, ok
+
+
 def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm):
     """Geometric PSF with the DOE as a local grating (ray bending by the phase gradient)."""
     from . import doe
@@ -39,22 +59,12 @@ def _ray_model(lens, fields, wls, size, pixel, device, dtype, object_distance_mm
     valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
     weight = rays.weight.numpy().reshape(nsrc, npup)
     entering = weight.sum(1)
-    n_pl = np.array([lens.indices(w)[plane] for w in wls])
-    if prof is not None:
-        for k, w in enumerate(wls):
-            gx, gy = prof.gradient(pos[k, :, 0], pos[k, :, 1], s.design_wavelength_um)
-            lam = w * 1e-3
-            # local grating, first order: n' d'_xy = n d_xy + lambda / (2 pi) grad(phi0)
-            tx = n_pl[k] * dr[k, :, 0] + lam * gx / (2 * np.pi)
-            ty = n_pl[k] * dr[k, :, 1] + lam * gy / (2 * np.pi)
-            tz2 = n_pl[k] ** 2 - tx ** 2 - ty ** 2
-            valid[k] &= tz2 > 0
-            tz = np.sqrt(np.maximum(tz2, 1e-30))
-            d = np.stack([tx, ty, tz], -1)
-            dr[k] = d / np.linalg.norm(d, axis=1, keepdims=True)
-    # straight to the sensor
-    t = (lens.sensor_z - pos[..., 2]) / dr[..., 2]
-    hit = pos + t[..., None] * dr
+    n_pl = np.array([lens.indices(w)[plane] for w in wls])[:, None]
+    lam = np.array(wls, dtype=np.float64)[:, None] * 1e-3
+    grad = None if prof is None else prof.gradient(pos[..., 0], pos[..., 1], s.design_wavelength_um)
+    hx, hy, ok = grating_to_sensor(pos, dr, n_pl, lam, grad, lens.sensor_z)
+    valid &= ok
+    hit = np.stack([hx, hy], -1)
     for k in range(nsrc):
         if not np.any(valid[k] & (weight[k] > 0)):
             raise GeometryError("no rays reach the sensor (the field is fully vignetted or misses a surface)",

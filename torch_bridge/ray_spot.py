@@ -95,22 +95,18 @@ class RaySpot:
         values = self.module.values()
         table = self.module.param_table(tr, values).cpu()
         pos, dr, valid = _TraceToPlane.apply(table, tr, src, u, v, plane + 1)  # validity: not differentiated
+        from rwwarp.ray_model import grating_to_sensor
         lam = torch.tensor([w * 1e-3 for w in self.wls] * nf, dtype=torch.float64)[:, None]
         n_after = torch.tensor([lens.indices(w)[plane] for w in self.wls] * nf, dtype=torch.float64)[:, None]
-        tx, ty = n_after * dr[..., 0], n_after * dr[..., 1]
         s = lens.surfaces[plane]
+        grad = None
         if s.type == "doe":
             from rwwarp import doe as rdoe
             prof = rdoe.profile_from_dict(s.profile)
-            gx, gy = _doe_gradient(prof.kind, values["doe"].cpu(), prof.norm_radius, pos[..., 0], pos[..., 1])
-            tx = tx + lam / (2 * math.pi) * gx
-            ty = ty + lam / (2 * math.pi) * gy
-        tz2 = n_after ** 2 - tx ** 2 - ty ** 2
-        ok = valid & (tz2 > 0)
-        tz = torch.sqrt(torch.where(ok, tz2, torch.ones_like(tz2)))
-        dz = table[-1, ktrace.P_Z] - table[plane, ktrace.P_Z]
-        hx = pos[..., 0] + dz * tx / tz
-        hy = pos[..., 1] + dz * ty / tz
+            grad = _doe_gradient(prof.kind, values["doe"].cpu(), prof.norm_radius, pos[..., 0], pos[..., 1])
+        # rwwarp's grating step and transfer, in torch (the sensor z learns with the table)
+        hx, hy, ok = grating_to_sensor(pos, dr, n_after, lam, grad, table[-1, ktrace.P_Z], torch)
+        ok = valid & ok
         return hx.reshape(nf, nw, -1), hy.reshape(nf, nw, -1), ok.reshape(nf, nw, -1)
 
     def rms(self) -> torch.Tensor:
