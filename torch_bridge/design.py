@@ -372,6 +372,16 @@ class CachedProvider:
                           stacklevel=3)
         return {"batch": batch, "per_source": per, "fixed": fixed, "budget": budget, "peak": fixed + batch * per}
 
+    def _entry_centres(self, key, centres, geo, fields, depth):
+        """Patch centres (mm, (n_nodes, 2)) of entry ``key``: those given, else the recorded ones, else
+        :func:`common_centres` at the reference wavelength."""
+        rec = self.plans.get(key) or {}
+        if centres is None and rec.get("centers") is not None:
+            centres = rec["centers"]
+        if centres is None:
+            centres = common_centres(geo, fields, self.wl_ref, depth)
+        return np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+
     def _build(self, key, plan=None, centres=None):
         """Compute and cache the DOE-plane fields of one (wavelength, depth) entry: the nodes are traced
         in batches of :meth:`build_batch` sources (no gradient buffers), each batch a RayWave of its
@@ -383,12 +393,7 @@ class CachedProvider:
         geo, fields, depth = self._geometry(depth_mm)
         if plan is None:
             plan = self._auto_plan(key)
-        rec = self.plans.get(key) or {}
-        if centres is None and rec.get("centers") is not None:
-            centres = np.asarray(rec["centers"], dtype=np.float64)
-        if centres is None:
-            centres = common_centres(geo, fields, self.wl_ref, depth)
-        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        centres = self._entry_centres(key, centres, geo, fields, depth)
         kw = dict(object_distance_mm=depth, pixel_mm=self.pixel_mm, plan=plan, requires_grad=False)
         wl = float(wavelength_um)
         rw = geo.raywave(fields, [wl] * len(fields), self.size, center_mm=centres, **kw)
@@ -416,7 +421,7 @@ class CachedProvider:
         self.build_log.append({"key": list(key), "nsrc": rw.nsrc, "batches": -(-rw.nsrc // b),
                                "ray_grid": rw.plan.ray_grid, "n_grid": n, "n_pad": rw.plan.n_pad, **est})
         dist = torch.full((rw.nsrc,), float(rw.z_sensor - rw.z_plane), dtype=torch.float64, device=dev)
-        f_doe = rec.get("f_doe_cpmm")
+        f_doe = (self.plans.get(key) or {}).get("f_doe_cpmm")
         if f_doe is None:
             f_doe = self._doe_frequency(geo, rw.origin, plan.pitch_mm, plan.n_grid, wavelength_um)[0]
         self._cache[key] = (rw, u, dist, entering, geo)
@@ -464,12 +469,7 @@ class CachedProvider:
         that node's patch and the DOE orders reaching it) and wave-plane field, traced without gradients."""
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
-        rec = self.plans.get(key) or {}
-        if centres is None and rec.get("centers") is not None:
-            centres = np.asarray(rec["centers"], dtype=np.float64)
-        if centres is None:
-            centres = common_centres(geo, fields, self.wl_ref, depth)
-        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        centres = self._entry_centres(key, centres, geo, fields, depth)
         dev = self.module.thickness_base.device
         budget = self.budget_bytes()
         nodes, log = [], []
@@ -697,7 +697,7 @@ class CachedProvider:
         store[chunk] = out
         return out
 
-    def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None) -> torch.Tensor:
+    def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None, part: int | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and
         propagated to the sensor (gradients reach the DOE coefficients and a learning DOE-to-sensor
         distance).
@@ -705,7 +705,11 @@ class CachedProvider:
         The nodes of a wavelength are propagated in chunks of ``chunk`` nodes (default
         :meth:`step_chunk` under the memory budget, recorded in :attr:`step_log`); with more than one
         chunk and a gradient wanted each chunk is a checkpoint (forward without graph, recomputed in
-        backward), so a step's peak memory is one chunk's whatever the node count."""
+        backward), so a step's peak memory is one chunk's whatever the node count. ``part`` (with
+        ``chunk``): only the ``part``-th chunk of nodes, (its nodes, ...) -- a rank's share in a
+        distributed step, the same values the whole call gives those nodes."""
+        if part is not None and chunk is None:
+            raise ValueError("CachedProvider.psfs: part needs chunk (the share's size in nodes)")
         from torch_bridge.functions import propagate
         from torch_bridge.modules import _Recompute
         doe = self.module.value("doe")
@@ -715,11 +719,17 @@ class CachedProvider:
             key = self._key(w, depth_mm)
             entry = self._entry(w, depth_mm)
             if key in self._focal:
+                if part is not None:   # one plan a node: the share is a slice of the nodes
+                    nodes, dist_f, geo_f = entry
+                    entry = (nodes[part * chunk:(part + 1) * chunk], dist_f, geo_f)
                 out.append(self._focal_psfs(key, entry, doe, thick))
                 continue
             rw, u, dist, entering, geo = entry
             c = self.step_chunk(rw) if chunk is None else max(1, int(chunk))
             parts = self._chunk_raywaves(key, rw, geo, c)
+            if part is not None:
+                parts = [parts[part]]
+                entering = entering[parts[0][0]]
             self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),
                                   "bytes_per_source": self.step_bytes_per_source(rw)})
             del self.step_log[:-64]

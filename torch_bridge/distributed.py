@@ -164,27 +164,6 @@ class Group:
 
 
 def _cached_share(p, wls, depth, part: int, c: int):
-    """PSFs of one share of the nodes of a :class:`~torch_bridge.design.CachedProvider`: its entries'
-    cached fields, plans and propagation chunks of ``c`` nodes (``part``-th chunk), exactly what
-    ``CachedProvider.psfs(..., chunk=c)`` computes for those nodes (ASM entries: one plan for all
-    nodes, chunked; focal entries: one plan a node). (A ``nodes=`` argument of
-    ``CachedProvider.psfs`` would make this a one-line call; see the issue 14 report.)"""
-    from torch_bridge.functions import propagate
-    doe = p.module.value("doe")
-    thick = p.module.value("thickness")[p.plane] if p.learn_distance else None
-    out = []
-    for w in wls:
-        key = p._key(w, depth)
-        entry = p._entry(w, depth)
-        if key in getattr(p, "_focal", {}):
-            # focal entries: each node its own plan and cached field: the share is a slice of the nodes
-            nodes, dist, geo = entry
-            out.append(p._focal_psfs(key, (nodes[part * c:(part + 1) * c], dist, geo), doe, thick))
-            continue
-        rw, u, dist, entering, geo = entry
-        sl, sub = p._chunk_raywaves(key, rw, geo, c)[part]
-        d = dist[sl] if thick is None else thick.expand(sl.stop - sl.start)
-        phi0 = geo.doe_phase(sub, {"doe": doe})
-        power = propagate(u[sl], phi0, d, sub)
-        out.append(power / entering[sl, None, None])
-    return torch.stack(out, 1)
+    """PSFs of one share of the nodes of a :class:`~torch_bridge.design.CachedProvider` (the ``part``-th
+    chunk of ``c`` nodes): exactly what ``CachedProvider.psfs(..., chunk=c)`` computes for those nodes."""
+    return p.psfs(wls, depth, chunk=c, part=part)
