@@ -233,12 +233,16 @@ class TraceSplat(torch.autograd.Function):
             load_table(rw, table)
             g_wp = wp.from_torch(g_real.detach(), dtype=wp.vec2d)  # zero-copy view (CPU or CUDA)
             tape.backward(grads={field_wp: g_wp})
-            grads = np.stack([p.grad.numpy().astype(np.float64) for p in rw.tracer.params])
+            # the parameter gradients stay on the device: zero-copy views of Warp's arrays, copied (to
+            # float64) before the tape is zeroed
+            grads = torch.stack([wp.to_torch(p.grad).to(torch.float64, copy=True) for p in rw.tracer.params])
             tape.zero()  # the tape (and its arrays) is freed with the graph; zeroed it can be replayed
+        grads = grads.to(ctx.table_device)
         if rw.use_reference:
             fac = _reference_z_factor(rw, u.device)
-            grads[rw.plane, ktrace.P_Z] += float(-(torch.imag(torch.conj(g) * u) * fac).sum())
-        return torch.from_numpy(grads).to(ctx.table_device), None
+            dz = -(torch.imag(torch.conj(g) * u) * fac).sum()
+            grads[rw.plane, ktrace.P_Z] = grads[rw.plane, ktrace.P_Z] + dz.to(grads.device)
+        return grads, None
 
 
 def trace_splat(table, rw):
