@@ -58,6 +58,8 @@ Where the code lives
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .backend import get_backend
@@ -84,6 +86,8 @@ __all__ = [
     "propagate_grid_adjoint",
     "SensorGeometry",
     "SensorPropagator",
+    "PointGeometry",
+    "PointPropagator",
     "sensor_intensity",
     "sensor_intensity_adjoint",
     "sensor_intensity_distance_adjoint",
@@ -91,22 +95,71 @@ __all__ = [
 ]
 
 
-def propagate(
-    backend,
-    field,
-    pitch_mm,
-    origin_mm,
-    wavelength_um,
-    distance_mm,
-    out_x_mm,
-    out_y_mm,
-    *,
-    doe_phase=None,
-    doe_scale=None,
-    carrier_cpmm=None,
-    pad_to=None,
-    dtype=None,
-):
+@dataclass(frozen=True)
+class PointGeometry:
+    """What :func:`propagate` and its adjoint share: the sampled field's grid (``pitch_mm``, ``origin_mm``
+    (x, y) of sample (0, 0)), ``wavelength_um``, ``distance_mm``, the output points ``out_x_mm`` /
+    ``out_y_mm`` ((M,) or (B, M), absolute mm), and ``doe_scale``, ``carrier_cpmm``, ``pad_to``, ``dtype``
+    (as :func:`propagate` documents them)."""
+    pitch_mm: object
+    origin_mm: object
+    wavelength_um: object
+    distance_mm: object
+    out_x_mm: object
+    out_y_mm: object
+    doe_scale: object = None
+    carrier_cpmm: object = None
+    pad_to: object = None
+    dtype: object = None
+
+
+class PointPropagator:
+    """Band-limited angular spectrum of a sampled field to arbitrary output points (matrix DFT), with
+    its adjoint: :meth:`forward` and :meth:`adjoint` on one :class:`PointGeometry`."""
+
+    def __init__(self, backend, geometry: PointGeometry):
+        self.backend = get_backend(backend)
+        self.geometry = geometry
+
+    def _prepare(self, field, doe_phase):
+        g = self.geometry
+        batch = _batch_of(field)
+        xs = _coords(g.out_x_mm, batch, "out_x_mm")
+        ys = _coords(g.out_y_mm, batch, "out_y_mm")
+        center, ex, ey = _center_extent(xs, ys)
+        st = _setup(self.backend, field, g.pitch_mm, g.origin_mm, g.wavelength_um, g.distance_mm,
+                    doe_phase=doe_phase, doe_scale=g.doe_scale, carrier_cpmm=g.carrier_cpmm, pad_to=g.pad_to,
+                    dtype=g.dtype, out_center_mm=center)
+        return st, xs, ys, ex, ey
+
+    def forward(self, field, doe_phase=None):
+        """The propagated field at the output points, (B, My, Mx) complex device array (carrier
+        restored; see :func:`propagate`)."""
+        st, xs, ys, ex, ey = self._prepare(field, doe_phase)
+        _check_window(st, ex, ey, "propagate")
+        coords = _upload_coords(st, xs, ys)
+        band, _ = _band_spectrum(st)
+        ext, eyf = _dft_factors(st, coords)
+        out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+        return _band_to_points(st, band, ext, eyf, out)
+
+    def adjoint(self, grad_out, field, doe_phase=None):
+        """``(grad_field, grad_doe_phase or None)`` for a real loss's gradient ``grad_out`` at the output
+        points (see :func:`propagate_adjoint`)."""
+        st, xs, ys, _, _ = self._prepare(field, doe_phase)
+        g = st.backend.to_device(grad_out, st.dtype)
+        if tuple(g.shape) != (st.batch, ys.shape[1], xs.shape[1]):
+            raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+        coords = _upload_coords(st, xs, ys)
+        h = _transfer(st, 1.0 / (st.npx * st.npy))
+        ex, eyf = _dft_factors(st, coords, adjoint=True)
+        band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
+        _points_to_band(st, g, ex, eyf, band_grad)
+        return _band_adjoint_to_field(st, band_grad, h)
+
+
+def propagate(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm, out_y_mm, *,
+              doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None):
     """Propagate a sampled field by ``distance_mm`` and evaluate it at arbitrary output points.
 
     Band-limited (shifted) angular spectrum method with a matrix-DFT output; see the module
@@ -134,50 +187,13 @@ def propagate(
         (B, My, Mx) complex device array: the true field U(x_n, y_m) (carrier restored), same
         field units as the input (so that ``sum |U|^2 * pitch_out^2`` is the power).
     """
-    probe = get_backend(backend)
-    batch = _batch_of(field)
-    xs = _coords(out_x_mm, batch, "out_x_mm")
-    ys = _coords(out_y_mm, batch, "out_y_mm")
-    center, ex, ey = _center_extent(xs, ys)
-    st = _setup(
-        probe,
-        field,
-        pitch_mm,
-        origin_mm,
-        wavelength_um,
-        distance_mm,
-        doe_phase=doe_phase,
-        doe_scale=doe_scale,
-        carrier_cpmm=carrier_cpmm,
-        pad_to=pad_to,
-        dtype=dtype,
-        out_center_mm=center,
-    )
-    _check_window(st, ex, ey, "propagate")
-    coords = _upload_coords(st, xs, ys)
-    band, _ = _band_spectrum(st)
-    ext, eyf = _dft_factors(st, coords)
-    out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-    return _band_to_points(st, band, ext, eyf, out)
+    geo = PointGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm, out_y_mm, doe_scale,
+                        carrier_cpmm, pad_to, dtype)
+    return PointPropagator(backend, geo).forward(field, doe_phase)
 
 
-def propagate_adjoint(
-    backend,
-    grad_out,
-    field,
-    pitch_mm,
-    origin_mm,
-    wavelength_um,
-    distance_mm,
-    out_x_mm,
-    out_y_mm,
-    *,
-    doe_phase=None,
-    doe_scale=None,
-    carrier_cpmm=None,
-    pad_to=None,
-    dtype=None,
-):
+def propagate_adjoint(backend, grad_out, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm,
+                      out_y_mm, *, doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None):
     """Adjoint (vector-Jacobian product) of :func:`propagate`.
 
     Args:
@@ -192,34 +208,9 @@ def propagate_adjoint(
         units of the loss; summed over the batch for a shared phase), else None. ``grad_field`` is
         ``A^H grad_out`` for the linear map A: field -> U.
     """
-    probe = get_backend(backend)
-    batch = _batch_of(field)
-    xs = _coords(out_x_mm, batch, "out_x_mm")
-    ys = _coords(out_y_mm, batch, "out_y_mm")
-    center, _, _ = _center_extent(xs, ys)
-    st = _setup(
-        probe,
-        field,
-        pitch_mm,
-        origin_mm,
-        wavelength_um,
-        distance_mm,
-        doe_phase=doe_phase,
-        doe_scale=doe_scale,
-        carrier_cpmm=carrier_cpmm,
-        pad_to=pad_to,
-        dtype=dtype,
-        out_center_mm=center,
-    )
-    g = st.backend.to_device(grad_out, st.dtype)
-    if tuple(g.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-        raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
-    coords = _upload_coords(st, xs, ys)
-    h = _transfer(st, 1.0 / (st.npx * st.npy))
-    ex, eyf = _dft_factors(st, coords, adjoint=True)
-    band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-    _points_to_band(st, g, ex, eyf, band_grad)
-    return _band_adjoint_to_field(st, band_grad, h)
+    geo = PointGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm, out_y_mm, doe_scale,
+                        carrier_cpmm, pad_to, dtype)
+    return PointPropagator(backend, geo).adjoint(grad_out, field, doe_phase)
 
 
 def _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm, doe_phase,
