@@ -273,23 +273,7 @@ def propagate_grid(
                      doe_phase, doe_scale, carrier_cpmm, pad_to, dtype)
     pitch = st.params[:, _P_LPX] / st.npx
     _check_window(st, st.nx * pitch, st.ny * pitch, "propagate_grid")
-    padded = _pad_fft(st, st.field, st.has_phase)
-    h = _transfer(st, 1.0)
-    _launch(
-        st,
-        "spectrum_multiply_kernel",
-        (st.npx, st.npy, st.batch),
-        h,
-        st.params_dev,
-        st.npx,
-        st.npy,
-        st.kx_max,
-        st.ky_max,
-        st.batch,
-        0,
-        padded,
-    )
-    st.backend.fft2(padded, inverse=True)
+    padded = _grid_transfer(st, st.field, st.has_phase, conjugate=0)
     out = st.backend.empty((st.batch, st.ny, st.nx), st.dtype)
     _launch(st, "crop_kernel", (st.nx, st.ny, st.batch), padded, st.nx, st.ny, st.npx, st.npy, st.batch, out)
     return out
@@ -319,21 +303,17 @@ def propagate_grid_adjoint(
     g = st.backend.to_device(grad_out, st.dtype)
     if tuple(g.shape) != (st.batch, st.ny, st.nx):
         raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, st.ny, st.nx)}")
-    padded = _pad_fft(st, g, False)
-    h = _transfer(st, 1.0)
-    _launch(
-        st,
-        "spectrum_multiply_kernel",
-        (st.npx, st.npy, st.batch),
-        h,
-        st.params_dev,
-        st.npx,
-        st.npy,
-        st.kx_max,
-        st.ky_max,
-        st.batch,
-        1,
-        padded,
-    )
-    st.backend.fft2(padded, inverse=True)
+    padded = _grid_transfer(st, g, False, conjugate=1)
     return _crop_demodulate_adjoint(st, padded)
+
+
+def _grid_transfer(st, src, has_phase: bool, conjugate: int):
+    """The fixed-grid ASM's core, shared by :func:`propagate_grid` and its adjoint: zero-pad and FFT
+    ``src``, multiply by the band-limited transfer function (its conjugate with ``conjugate=1``: the
+    adjoint), inverse FFT. Returns the padded (B, npy, npx) array."""
+    padded = _pad_fft(st, src, has_phase)
+    h = _transfer(st, 1.0)
+    _launch(st, "spectrum_multiply_kernel", (st.npx, st.npy, st.batch), h, st.params_dev, st.npx, st.npy,
+            st.kx_max, st.ky_max, st.batch, conjugate, padded)
+    st.backend.fft2(padded, inverse=True)
+    return padded
