@@ -157,13 +157,13 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
     """The work units of a map: ``[{"depth": k, "pairs": [(i, j), ...], "cost": flops}, ...]``.
 
     Per depth, the batches :func:`rwwarp.psf_map` makes for these arguments (the same pilot and the
-    same rules), so each PSF gets the plan it gets there. ``cost``: the planner's estimated flops of
-    the batch (:func:`rwwarp.plan.estimate_cost` of the ASM plan the batch will share; on the focal
-    path, or for a single source, the sum of its sources' :func:`rwwarp.plan_psf` estimates; for the
-    ray model, the number of sources; on the focal path, the number of sources, since a pilot a source
-    costs about as much as its PSF). ``part`` ``(r, n)``: where a cost needs a pilot of its own (an
-    explicit plan), only units ``k`` with ``k % n == r`` get theirs (the others ``cost`` None), so that
-    the ranks share the planning (:func:`psf_map` all-gathers them)."""
+    same rules), so each PSF gets the plan it gets there. ``cost``: for batches sharing an automatic
+    ASM plan, its estimated flops (:func:`rwwarp.plan.estimate_cost`); on the focal path and for the
+    ray model, the number of sources (a pilot a source to cost them would repeat the pilot the unit
+    runs anyway); without the automatic batching (an explicit plan, one source), the sum of its
+    sources' :func:`rwwarp.plan_psf` estimates. ``part`` ``(r, n)``: those last costs, which need a
+    pilot each, only for units ``k`` with ``k % n == r`` (the others ``cost`` None), so that the ranks
+    share the planning (:func:`psf_map` all-gathers them)."""
     from .plan import Plan, estimate_cost
     from .psf import RayWave, _auto_sizes, group_sources, plan_psf
     model, size, device, plan, batch = kw["model"], kw["size"], kw["device"], kw["plan"], kw["batch"]

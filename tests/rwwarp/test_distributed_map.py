@@ -56,7 +56,7 @@ def test_sharded_map_on_two_ranks_equals_the_single_process_map_and_a_failing_ra
         assert np.max(np.abs(g["data"][k] - ref.data)) <= 1e-12
         assert np.max(np.abs(streamed[k].data - ref.data)) <= 1e-12
         assert np.array_equal(g["centers"][k], ref.centers_mm)
-    # both ranks worked; every unit's cost is the planner's estimate (flops > 0)
+    # both ranks worked; every unit has a positive cost (planned flops of an ASM batch, the source count of a focal one)
     assert set(g["unit_ranks"].tolist()) == {0, 1}
     assert np.all(g["unit_costs"] > 0) and int(g["psfs"]) == 8
 
