@@ -360,7 +360,8 @@ class Propagate(torch.autograd.Function):
     the forward pass and kept for the backward pass: its :meth:`~rwwarp.propagate.SensorPropagator.adjoint`
     (conjugate transfer function on the same cached FFT plans, reusing the node field of the forward
     pass) for ``field`` and ``phi0``; when the distance needs a gradient, its
-    :meth:`~rwwarp.propagate.SensorPropagator.distance_adjoint` instead, which also returns the analytic d/d(distance): ``dH/dz = 2 pi i w H``
+    :meth:`~rwwarp.propagate.SensorPropagator.distance_adjoint` instead, which also returns the
+    analytic d/d(distance): ``dH/dz = 2 pi i w H``
     (``w = sqrt(1/lambda^2 - fx^2 - fy^2)``), contracted with the band spectrum and its gradient on
     the device (one extra pruned FFT of the field; the band limits, which move with z in jumps, are
     held fixed).
