@@ -50,11 +50,22 @@ def make_splat_kernels(scalar):
     def ref_opl(p: wp.vec3d, ctr: wp.vec3d, tpt: wp.vec3d, n: f64, oplc: f64):
         return oplc + n * (wp.length(tpt - ctr) - wp.length(tpt - p))
 
+    @wp.func
+    def cell_offset(cells: wp.array(dtype=wp.vec3d), rim: int, j: int, n_side: int):
+        # offset of pupil cell j's ray from the cell centre, in cells (0 without rim weighting)
+        if rim == 0:
+            return wp.vec2d()
+        g = cells[j]
+        h = f64(2.0) / f64(n_side)
+        return wp.vec2d(g[1] / h, g[2] / h)
+
     @wp.kernel(module="unique")
     def tube_area_kernel(
         pos: wp.array(dtype=vec3),
         valid: wp.array(dtype=wp.int32),
         n_side: int,                          # pupil grid is n_side x n_side per source (row-major)
+        cells: wp.array(dtype=wp.vec3d),      # with rim: (fraction, du, dv) per pupil cell (rays at centroids)
+        rim: int,
         # outputs
         area_out: wp.array(dtype=f64),        # footprint area of each ray's pupil cell on the plane, mm^2
         half_out: wp.array(dtype=wp.vec2d),   # half sizes (x, y) of the tube's box, mm
@@ -69,31 +80,50 @@ def make_splat_kernels(scalar):
         half_out[i] = wp.vec2d()
         if valid[i] == 0:
             return
-        # central differences where both neighbours are valid, one-sided otherwise
+        # central differences where both neighbours are valid, one-sided otherwise: plane steps du, dv and
+        # the pupil steps pu, pv they span (in cells: (1, 0) and (0, 1) on the regular grid; rim rays start
+        # at their part-cell's centroid, so there the steps are the actual ones)
         du = wp.vec3d()
+        pu = wp.vec2d()
         nu = 0
         if c + 1 < n_side and valid[i + 1] == 1:
             du = du + wp.vec3d(pos[i + 1] - pos[i])
+            pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, j + 1, n_side)
+            pu = pu - cell_offset(cells, rim, j, n_side)
             nu = nu + 1
         if c > 0 and valid[i - 1] == 1:
             du = du + wp.vec3d(pos[i] - pos[i - 1])
+            pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, j, n_side)
+            pu = pu - cell_offset(cells, rim, j - 1, n_side)
             nu = nu + 1
         dv = wp.vec3d()
+        pv = wp.vec2d()
         nv = 0
         if r + 1 < n_side and valid[i + n_side] == 1:
             dv = dv + wp.vec3d(pos[i + n_side] - pos[i])
+            pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, j + n_side, n_side)
+            pv = pv - cell_offset(cells, rim, j, n_side)
             nv = nv + 1
         if r > 0 and valid[i - n_side] == 1:
             dv = dv + wp.vec3d(pos[i] - pos[i - n_side])
+            pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, j, n_side)
+            pv = pv - cell_offset(cells, rim, j - n_side, n_side)
             nv = nv + 1
         if nu > 0 and nv > 0:
             du = du / f64(nu)
             dv = dv / f64(nv)
-            a = wp.abs(du[0] * dv[1] - du[1] * dv[0])
+            pu = pu / f64(nu)
+            pv = pv / f64(nv)
+            # Jacobian J = X P^-1 (X = [du dv] on the plane, P = [pu pv] in the pupil, in cells): the plane
+            # area of one pupil cell is |det X| / |det P|, and J's columns are the images of a cell's sides
+            det_p = pu[0] * pv[1] - pv[0] * pu[1]
+            a = wp.abs(du[0] * dv[1] - du[1] * dv[0]) / wp.max(wp.abs(det_p), f64(1.0e-300))
             area_out[i] = a
             # axis-aligned box of the same area, aspect from the Jacobian's diagonal
-            wx = wp.max(wp.abs(du[0]), f64(1.0e-300))
-            wy = wp.max(wp.abs(dv[1]), f64(1.0e-300))
+            j1x = (du[0] * pv[1] - dv[0] * pu[1]) / det_p
+            j2y = (dv[1] * pu[0] - du[1] * pv[0]) / det_p
+            wx = wp.max(wp.abs(j1x), f64(1.0e-300))
+            wy = wp.max(wp.abs(j2y), f64(1.0e-300))
             sc = wp.sqrt(a / (wx * wy))
             half_out[i] = wp.vec2d(f64(0.5) * wx * sc, f64(0.5) * wy * sc)
 
@@ -117,6 +147,8 @@ def make_splat_kernels(scalar):
         energy: int,
         n_grid: int,
         n_pupil: int,
+        frac: wp.array(dtype=wp.vec3d),       # (n_pupil,) (fraction in the aperture, du, dv) per cell, or (1,)
+        rim: int,                             # 1: the fraction applies (energy convention; the weight carries it)
         # outputs
         s_re_out: wp.array(dtype=f64),
         s_im_out: wp.array(dtype=f64),
@@ -142,6 +174,12 @@ def make_splat_kernels(scalar):
             # integral of exp(1j (psi + g.(x - p))): its area times exp(1j g.(centre - p)) times sinc per axis.
             amp = wp.sqrt(f64(weight[i]) * area[i])
             hb = half[i]
+            if rim == 1:
+                # a rim cell the aperture covers in part (fraction f, already in the weight; the ray starts
+                # at the part's centroid): the tube's irradiance on f of its area, a box of f A about the ray
+                f = frac[i - s * n_pupil][0]
+                amp = amp * wp.sqrt(f)
+                hb = hb * wp.sqrt(f)
             gx = f64(0.0)
             gy = f64(0.0)
             if use_reference == 1:

@@ -166,7 +166,11 @@ def make_trace_kernels(scalar):
         src_wl: wp.array(dtype=wp.int32),       # (n_src,) wavelength index
         n_obj: wp.array(dtype=scalar),          # (n_wl,) object-space index
         cell: scalar,                           # area of one pupil cell in normalised (u, v) units
-        circle: int,                            # 1: samples outside the unit circle start invalid
+        circle: int,                            # 1: samples outside the unit circle start invalid;
+                                                # 2 (with grid_n): each cell weighted by the fraction of it
+                                                #    in the unit circle (frac), valid where that is > 0
+        frac: wp.array(dtype=wp.vec3d),         # (grid_n^2,) with circle 2: (fraction, du, dv) of each cell
+                                                #    (rwwarp.trace.disc_cells): the ray starts at the centroid
         relative: int,                          # 1: OPL relative to the chief ray (point sources)
         grid_n: int,                            # > 0: pupil is the full grid_n x grid_n cell-centre grid,
                                                 #      computed here (pupil_u / pupil_v unused)
@@ -193,6 +197,10 @@ def make_trace_kernels(scalar):
         else:
             pu = pupil_u[j]
             pv = pupil_v[j]
+        if circle == 2:
+            cell_j = frac[j]
+            pu = pu + scalar(cell_j[1])
+            pv = pv + scalar(cell_j[2])
         p = vec3(c[0] + half_x[s] * pu, c[1] + half_y[s] * pv, c[2])
         w = src_wl[s]
         n0 = n_obj[w]
@@ -222,6 +230,11 @@ def make_trace_kernels(scalar):
             if pu * pu + pv * pv > scalar(1.0) + scalar(edge):
                 valid_out[i] = 0
                 weight_out[i] = scalar(0.0)
+        if circle == 2:
+            f = scalar(frac[j][0])
+            weight_out[i] = weight_out[i] * f
+            if f <= scalar(0.0):
+                valid_out[i] = 0
         wl_out[i] = w
 
     @wp.func

@@ -19,6 +19,8 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import functools
+
 import numpy as np
 import warp as wp
 
@@ -126,6 +128,87 @@ def warp_device(device: str) -> str:
     if device.startswith("cuda"):
         return device
     raise ValueError(f"unknown device {device!r}: use 'cpu', 'cuda', 'cuda:N' or 'opencl:P:D'")
+
+
+def disc_cell_fractions(n: int) -> np.ndarray:
+    """Fraction of each cell of the ``n x n`` cell grid over [-1, 1]^2 (row-major, rows +v) that lies in
+    the unit disc, exactly: 1 inside, 0 outside, and for a cell the circle crosses the integral over x of
+    the chord ``min(y1, s) - max(y0, -s)`` (``s = sqrt(1 - x^2)``), split where it changes form and
+    integrated with ``int s dx = (x s + asin x) / 2``. The ray-wave field weights its rim rays by it
+    (:func:`disc_cells`): a staircase aperture errs by O(cell) at the rim."""
+    return _disc_cell_fractions(int(n)).copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _disc_cell_fractions(n: int) -> np.ndarray:
+    h = 2.0 / n
+    g = -1.0 + h * np.arange(n)                      # lower cell edges
+    x0, y0 = np.meshgrid(g, g, indexing="xy")
+    x0, y0 = x0.ravel(), y0.ravel()
+    x1, y1 = x0 + h, y0 + h
+    near = np.minimum(np.abs(x0), np.abs(x1)) * (x0 * x1 > 0)   # nearest |x| in the cell (0 if it spans 0)
+    neary = np.minimum(np.abs(y0), np.abs(y1)) * (y0 * y1 > 0)
+    far = np.maximum(np.abs(x0), np.abs(x1)) ** 2 + np.maximum(np.abs(y0), np.abs(y1)) ** 2
+    out = np.where(far <= 1.0, 1.0, 0.0)
+    cut = (near ** 2 + neary ** 2 < 1.0) & (far > 1.0)
+    k = np.flatnonzero(cut)
+    if k.size:
+        a, b, c, d = x0[k], x1[k], y0[k], y1[k]
+
+        def F(x):   # int sqrt(1 - x^2) dx
+            x = np.clip(x, -1.0, 1.0)
+            return 0.5 * (x * np.sqrt(1.0 - x * x) + np.arcsin(x))
+
+        rc = np.sqrt(np.clip(1.0 - c * c, 0.0, None))
+        rd = np.sqrt(np.clip(1.0 - d * d, 0.0, None))
+        knots = np.stack([a, b, -rc, rc, -rd, rd, -np.ones_like(a), np.ones_like(a)], 1)
+        knots = np.sort(np.clip(knots, a[:, None], b[:, None]), axis=1)
+        lo, hi = knots[:, :-1], knots[:, 1:]
+        xm = 0.5 * (lo + hi)
+        sm = np.sqrt(np.clip(1.0 - xm * xm, 0.0, None))
+        cc, dd = c[:, None], d[:, None]
+        # on each piece the chord is (s or d) - (-s or c), or nothing: integrate each term exactly
+        live = (hi > lo) & (np.abs(xm) < 1.0) & (np.minimum(dd, sm) > np.maximum(cc, -sm))
+        si = F(hi) - F(lo)
+        width = hi - lo
+        area = np.where(sm < dd, si, dd * width) + np.where(-sm > cc, si, -cc * width)
+        out[k] = np.sum(np.where(live, area, 0.0), axis=1) / (h * h)
+    return np.clip(out, 0.0, 1.0)
+
+
+_RIM_CELLS: dict = {}   # (device, n) -> the device array of disc_cells(n) (Tracer.rim_cells)
+
+
+@functools.lru_cache(maxsize=16)
+def disc_cells(n: int) -> np.ndarray:
+    """Per cell of the ``n x n`` grid over [-1, 1]^2 (row-major, rows +v): ``(f, du, dv)``, the fraction
+    of the cell inside the unit disc (:func:`disc_cell_fractions`, exact) and the offset (normalised pupil
+    units) from the cell's centre to the centroid of that part (0 for whole cells; from a 24 x 24
+    sub-grid of each cell the circle crosses). A rim ray starts at that centroid, inside the disc, so
+    that a clear aperture which is the disc's image does not clip it. Read-only."""
+    f = disc_cell_fractions(n)
+    out = np.zeros((n * n, 3))
+    out[:, 0] = f
+    part = np.flatnonzero((f > 0.0) & (f < 1.0))
+    if part.size:
+        h = 2.0 / n
+        m = 24
+        t = ((np.arange(m) + 0.5) / m - 0.5) * h
+        su, sv = np.meshgrid(t, t, indexing="xy")
+        su, sv = su.ravel(), sv.ravel()
+        row, col = np.divmod(part, n)
+        cu = -1.0 + (2.0 * col + 1.0) / n
+        cv = -1.0 + (2.0 * row + 1.0) / n
+        for a in range(0, part.size, 512):
+            b = slice(a, a + 512)
+            uu = cu[b, None] + su[None, :]
+            vv = cv[b, None] + sv[None, :]
+            ins = (uu * uu + vv * vv <= 1.0)
+            cnt = np.maximum(ins.sum(1), 1)
+            out[part[b], 1] = (su[None, :] * ins).sum(1) / cnt
+            out[part[b], 2] = (sv[None, :] * ins).sum(1) / cnt
+    out.setflags(write=False)
+    return out
 
 
 def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0, layout: str = "centers",
@@ -468,7 +551,26 @@ class Tracer:
         ``requires_grad=True``."""
         return self._run(src, u, v, cell, upto=upto)
 
-    def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0, params=None):
+    def rim_cells(self, grid_n: int):
+        """:func:`disc_cells` of a ``grid_n`` pupil grid as a device array of ``wp.vec3d`` (made once per
+        grid size and device, shared by the tracers of the process; read-only)."""
+        key = (str(self.device), int(grid_n))
+        a = _RIM_CELLS.get(key)
+        if a is None:
+            if len(_RIM_CELLS) >= 16:                       # a few grids' worth (n^2 x 24 bytes each)
+                _RIM_CELLS.pop(next(iter(_RIM_CELLS)))
+            a = _RIM_CELLS[key] = wp.array(np.ascontiguousarray(disc_cells(grid_n)), dtype=wp.vec3d,
+                                           device=self.device)
+        return a
+
+    def no_rim_cells(self):
+        """The placeholder ``(1,)`` cell array of a launch without rim weighting."""
+        a = self.__dict__.get("_no_rim")
+        if a is None:
+            a = self._no_rim = wp.array(np.array([[1.0, 0.0, 0.0]]), dtype=wp.vec3d, device=self.device)
+        return a
+
+    def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0, params=None, rim: bool = False):
         """Generate and trace. ``grid_n > 0``: the pupil is the full ``grid_n x grid_n`` cell-centre grid,
         generated on the device (``u``, ``v`` ignored; no upload). ``keep=True``: also return
         ``rays.history`` (positions after each surface); ``keep`` (True or surface indices): ``rays.kept``,
@@ -479,7 +581,10 @@ class Tracer:
         surface's state only when it records), and on the CPU the surfaces are traced for
         :attr:`threads` ray chunks in parallel (Warp's CPU launches release the GIL; every ray is
         independent, so the result is the same bit for bit). ``params``: per-surface parameter views to
-        trace with instead of :attr:`params` (ray aiming traces without clear apertures)."""
+        trace with instead of :attr:`params` (ray aiming traces without clear apertures). ``rim`` (with
+        ``grid_n`` and a circular pupil): every cell the unit circle touches is traced, weighted by the
+        fraction of it inside, its ray starting at the centroid of that part (:meth:`rim_cells`), instead of
+        the cells whose centre is inside."""
         dev, sc, K = self.device, self.scalar, self.K
         if params is None:
             params = self._params_for(src.get("object_distance"))
@@ -503,8 +608,12 @@ class Tracer:
         gen = new()
         wl = wp.empty(n, dtype=wp.int32, device=dev)
         weight = wp.empty(n, dtype=sc, device=dev)
-        inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell),
-                  int(src["shape"] == "circle"), int(src.get("relative_opl", False)), int(grid_n), npup]
+        circle = int(src["shape"] == "circle")
+        frac = self.no_rim_cells()
+        if rim and circle and grid_n > 0:
+            circle, frac = 2, self.rim_cells(grid_n)
+        inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
+                  int(src.get("relative_opl", False)), int(grid_n), npup]
         wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev)
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto

@@ -41,7 +41,7 @@ def _splat(device, rays, src, n_grid, energy, use_reference):
                       _a(rays["valid"].astype(np.int32), wp.int32, device), _a(rays["weight"], F64, device),
                       _a(rays["area"], F64, device), _a(rays["half"], wp.vec2d, device), *per_src,
                       _a(src["opl_chief"], F64, device), _a(src["k"], F64, device), use_reference, energy,
-                      n_grid, npup],
+                      n_grid, npup, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0],
               outputs=[s_re, s_im, dropped], device=device)
     field = wp.zeros(nsrc * n_grid * n_grid, dtype=wp.vec2d, device=device)
     wp.launch(ks.make_splat_kernels(F64).finalize_kernel, dim=nsrc * n_grid * n_grid,
@@ -189,7 +189,8 @@ def test_tube_area_of_an_affine_map(device, rng):
     valid = (rng.random(nsrc * m * m) < 0.85).astype(np.int32)
     area = wp.zeros(nsrc * m * m, dtype=F64, device=device)
     half = wp.zeros(nsrc * m * m, dtype=wp.vec2d, device=device)
-    wp.launch(K.tube_area_kernel, dim=nsrc * m * m, inputs=[_a(pos, V3, device), _a(valid, wp.int32, device), m],
+    wp.launch(K.tube_area_kernel, dim=nsrc * m * m, inputs=[_a(pos, V3, device), _a(valid, wp.int32, device), m,
+                                                        _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0],
               outputs=[area, half], device=device)
     a, hb = area.numpy(), half.numpy()
     # a ray has a tube when it has a valid neighbour along the row and one along the column
@@ -229,12 +230,13 @@ def test_energy_conservation_with_traced_rays(device, rays_per_cell, circle):
     wp.launch(T.generate_kernel, dim=npup,
               inputs=[_a(np.zeros(1), F64, device), _a(np.zeros(1), F64, device), one([0.0, 0, 0], V3),
                       one([0.0, 0, 1], V3), one(0, wp.int32), one([0.0, 0, 0], V3), one(a), one(a), one(0, wp.int32),
-                      one(1.0), (2.0 / g) ** 2, circle, 1, g, npup],
+                      one(1.0), (2.0 / g) ** 2, circle, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 1, g, npup],
               outputs=outs, device=device)
     pos, d, opl, valid, _, weight = outs
     area = wp.zeros(npup, dtype=F64, device=device)
     half = wp.zeros(npup, dtype=wp.vec2d, device=device)
-    wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g], outputs=[area, half], device=device)
+    no_rim = _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device)
+    wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g, no_rim, 0], outputs=[area, half], device=device)
     from rwwarp.reduce import source_sums
     terms = wp.zeros(npup, dtype=wp.types.vector(4, F64), device=device)
     wp.launch(K.power_sums_kernel, dim=npup, inputs=[valid, weight], outputs=[terms], device=device)
