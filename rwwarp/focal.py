@@ -50,7 +50,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["doe_order_coefficients", "doe_order_series", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
-           "pixel_weights"]
+           "pixel_weights", "sensor_taper"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -129,10 +129,18 @@ class FocalPropagator:
     n_fft : int  FFT length (>= n_sensor) of step 2.
     nodes_x_mm, nodes_y_mm : (S, M)  output coordinates (e.g. Gauss nodes of the pixels).
     xp : numpy or cupy.
+    transfer : None or ``(g, q)``, (S, 2) each: the quadratic part's gradient (dimensionless) and diagonal
+        curvature (mm) in place of the Taylor values at ``f_c`` (any choice keeps the operator exact; a fit
+        to the beam narrows the sensor-side box, :func:`rwwarp.plan.fit_quadratic_transfer`).
+    taper_guard_mm : None or float  ``V`` is kept whole within this distance of the output nodes' extent
+        (the remainder's largest displacement over the beam's band plus its kernel's spread) and tapered
+        smoothly (C-infinity) to zero between there and the sensor-side grid's edge. The remainder cannot
+        carry what lies farther to the nodes, and a cut ``V`` would ring through the trigonometric
+        interpolation of step 2 (Gibbs): a square aperture's tails, decaying as ``1 / r``, showed it.
     """
 
     def __init__(self, origin_mm, pitch_mm, n_grid, wavelength_mm, distance_mm, carrier_cpmm,
-                 sensor_origin_mm, sensor_pitch_mm, n_sensor, n_fft, nodes_x_mm, nodes_y_mm, xp=np):
+                 sensor_origin_mm, sensor_pitch_mm, n_sensor, n_fft, nodes_x_mm, nodes_y_mm, xp=np, transfer=None, taper_guard_mm=None):
         self.xp = xp
         origin = np.asarray(origin_mm, dtype=np.float64)
         S = origin.shape[0]
@@ -144,6 +152,11 @@ class FocalPropagator:
         s0 = np.asarray(sensor_origin_mm, dtype=np.float64).reshape(S, 2)
         inv_lam = 1.0 / lam
         w_c, g, q = transfer_curvature(f_c, inv_lam)
+        if transfer is not None:   # a fitted quadratic (rwwarp.plan.fit_quadratic_transfer): the split stays exact
+            g = np.asarray(transfer[0], dtype=np.float64).reshape(S, 2)
+            q = np.asarray(transfer[1], dtype=np.float64).reshape(S, 2)
+            if not np.all(q < 0):
+                raise ValueError("transfer: the quadratic coefficients q must be negative (a converging split)")
         A = 1.0 / (z * q)                                 # (S, 2), negative
         self.S, self.n, self.ns, self.nf = S, int(n_grid), int(n_sensor), int(n_fft)
         self.pitch, self.spitch, self.z = float(pitch_mm), float(sensor_pitch_mm), z
@@ -162,6 +175,11 @@ class FocalPropagator:
             # demodulating by f_c: h_G carries exp(2 pi i f_c.(p - x)); the field carries exp(-2 pi i f_c.x)
             # removed, the output exp(2 pi i f_c.p) is removed: nothing left but constants
             self._E.append((xp.sqrt(xp.abs(X["A"][:, None, None, ax])) * h) * xp.exp(1j * ph))
+        if taper_guard_mm is not None:
+            for ax, nodes in ((0, nodes_x_mm), (1, nodes_y_mm)):
+                nd = np.asarray(nodes, dtype=np.float64).reshape(S, -1)
+                w = sensor_taper(ps[:, :, ax], nd.min(1) - float(taper_guard_mm), nd.max(1) + float(taper_guard_mm))
+                self._E[ax] = self._E[ax] * xp.asarray(w)[:, :, None]
         self._geo = X
         self._dE = None
         # step 2: remainder transfer on the padded sensor grid (true frequency f_c + nu)
@@ -252,6 +270,25 @@ class FocalPropagator:
         ex, ey = self._E
         t = xp.matmul(xp.conj(xp.swapaxes(ey, 1, 2)), v)                     # (S, n, ns)
         return xp.matmul(t, xp.conj(ex))                                    # (S, n, n)
+
+
+def sensor_taper(p, lo, hi):
+    """A C-infinity window over sensor-grid points ``p`` (S, ns) mm: 1 on ``[lo, hi]`` ((S,) mm each), falling
+    to 0 at the grid's ends as ``1 - s(t)``, ``s(t) = e(t) / (e(t) + e(1 - t))``, ``e(t) = exp(-1 / t)``
+    (``t``: 0 at ``lo`` or ``hi``, 1 at the grid's end). Returns (S, ns) floats in [0, 1]."""
+    p = np.asarray(p, dtype=np.float64)
+    lo = np.asarray(lo, dtype=np.float64)[:, None]
+    hi = np.asarray(hi, dtype=np.float64)[:, None]
+    first, last = p[:, :1], p[:, -1:]
+    t = np.zeros_like(p)
+    below, above = p < lo, p > hi
+    np.divide(lo - p, np.broadcast_to(lo - first, p.shape), out=t, where=below)
+    np.divide(p - hi, np.broadcast_to(last - hi, p.shape), out=t, where=above)
+    t = np.clip(t, 0.0, 1.0)
+
+    def e(u):
+        return np.where(u > 0, np.exp(-1.0 / np.where(u > 0, u, 1.0)), 0.0)
+    return 1.0 - e(t) / (e(t) + e(1.0 - t))
 
 
 def pixel_weights(gauss_nodes: int, pixel_mm: float) -> np.ndarray:

@@ -185,14 +185,44 @@ def landing_points(xy, f, inv_lam, distance_mm):
     return xy + distance_mm * f / w[..., None]
 
 
+def fit_quadratic_transfer(freqs, landings, points, f_c, g, q, distance_mm):
+    """The separable quadratic transfer that best matches a beam's straight-ray landings (least squares).
+
+    The focal method (:mod:`rwwarp.focal`) splits the angular-spectrum transfer ``exp(2 pi i z w(f))`` into
+    a separable quadratic part ``w_G(f) = w_c + g.(f - f_c) + sum_a q_a (f_a - f_c,a)^2 / 2`` and an exact
+    remainder. Any ``g`` and (negative) ``q`` keep the split exact; they only decide how far the remainder
+    moves light, ``z |grad w(f) - g - q (f - f_c)|``, and so how wide the sensor-side box must be. The Taylor
+    choice at ``f_c`` leaves the cubic term of ``w`` (159 um on the Cooke triplet at 14 deg); fitting
+    ``-grad w = (L - x) / z`` over the beam's rays per axis (``L``: exact landings, ``x``: wave-plane points,
+    ``f``: frequencies, lists over the kept orders) halves it or better. Falls back to the Taylor values
+    ``g, q`` ((2,) each) where the fit is degenerate or would not focus (``q >= 0``). Returns ``(g, q)``."""
+    f = np.concatenate(freqs) - f_c
+    t = np.concatenate([(x - L) / distance_mm for L, x in zip(landings, points)])      # = grad w(f)
+    g_out, q_out = np.array(g, float), np.array(q, float)
+    for a in range(2):
+        u = f[:, a]
+        if len(u) < 3 or np.ptp(u) <= 0:
+            continue
+        M = np.stack([np.ones_like(u), u], 1)
+        (c0, c1), *_ = np.linalg.lstsq(M, t[:, a], rcond=None)
+        if np.isfinite(c0) and np.isfinite(c1) and c1 < 0:
+            g_out[a], q_out[a] = c0, c1
+    return g_out, q_out
+
+
 def _order_index(m):
     """A diffraction order's index: an int for the integer orders of a wrapped relief, the float ``alpha``
     for the single exact term of a relief that does not wrap inside the beam."""
     return int(m) if float(m) == int(m) else float(m)
 
 
+FOCAL_SHIFT_MARGIN = 1.5   # sensor-side margin in units of the remainder's largest displacement
+FOCAL_PITCH_FACTOR = 3.0   # wave-plane period of the focal sum, in nyquist_safety x sensor-side boxes
+FOCAL_RIM_RAYS = 400       # least rays across the pupil (where the wave-plane grid has that many samples)
+
+
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
-               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5):
+               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5, straight_edges=False):
     """Sampling of the focal propagation (:mod:`rwwarp.focal`) for one batch, from a pilot trace.
 
     Per source ``k``: ``xy[k]`` (N, 2) wave-plane points of the pilot rays (mm), ``freq[k]`` (N, 2) their
@@ -207,25 +237,33 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       rays' landing points comes within a diffraction margin of the patch, and the share of its power
       that box puts on the patch (by area) is at least ``patch_tol``; the others' power is reported as
       leaving the patch;
+    * the quadratic part of the transfer is fitted to the kept rays (:func:`fit_quadratic_transfer`),
+      which halves the remainder's displacement off axis;
     * the sensor-side grid covers the patch widened by the remainder's displacement ``H_R`` and every
       kept ray's landing point under the quadratic transfer, plus a margin of ``6 / B`` (``B``: the
-      beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and half the displacement;
-      its pitch samples ``B`` ``nyquist_safety`` times above Nyquist;
-    * the wave-plane pitch makes the generalised-Fresnel sum periodic over ``2 nyquist_safety`` times
-      that sensor-side box (``pitch = 1 / (|A| 2 safety box)``, ``|A| ~ n / (lambda z)``): the patch's
-      space-bandwidth product, not the beam's;
-    * rays: ``rays_per_sample`` per wave-plane sample across the footprint.
+      beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and ``FOCAL_SHIFT_MARGIN`` times
+      the displacement; its pitch samples ``B`` ``nyquist_safety`` times above Nyquist;
+    * the wave-plane pitch makes the generalised-Fresnel sum periodic over ``FOCAL_PITCH_FACTOR x
+      nyquist_safety`` times that sensor-side box (``pitch = 1 / (|A| 3 safety box)``, ``|A| ~ n / (lambda
+      z)``; twice that with ``straight_edges``, a square aperture in the lens): the patch's space-bandwidth
+      product, not the beam's;
+    * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 2)`` across the footprint
+      (``samples``: wave-plane samples across it).
+
+    * ``V`` is tapered to zero between the patch widened by the displacement plus ``3 / B`` and the box's
+      edge (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`).
 
     Returns ``(plan, geometry)``; ``geometry`` has ``sensor_origin`` (S, 2), ``orders`` (the kept
-    ``(m, c_m)`` per source) and ``lost_power`` (S,), the fraction in dropped orders.
+    ``(m, c_m)`` per source), ``lost_power`` (S,), the fraction in dropped orders, ``transfer``, the
+    fitted ``(g, q)`` (S, 2) each, and ``taper_guard_mm``, for :class:`rwwarp.focal.FocalPropagator`.
     """
     from .focal import transfer_curvature
     S = len(xy)
     z = float(distance_mm)
     half_w = 0.5 * size * pixel_mm
     w_c, g, q = transfer_curvature(carrier, inv_lam)
-    A = np.abs(1.0 / (z * q))
     boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
+    g_fit, q_fit = g.copy(), q.copy()
     for k in range(S):
         T = centers[k]
         cand = []
@@ -239,7 +277,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             cand.append((m, c, f[ok], L[ok], xy[k][ok]))
         band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
         margin = 6.0 / band
-        keep, lo, hi = [], T - half_w, T + half_w
+        keep, used, lo, hi = [], [], T - half_w, T + half_w
         for m, c, f, L, x in cand:
             if len(L) == 0:
                 lost[k] += abs(c) ** 2
@@ -258,7 +296,12 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
                 lost[k] += abs(c) ** 2
                 continue
             keep.append((_order_index(m), complex(c)))
-            lg = x - z * (g[k] + (f - carrier[k]) * q[k])       # landing under the quadratic transfer
+            used.append((f, L, x))
+        if used:
+            g_fit[k], q_fit[k] = fit_quadratic_transfer([u[0] for u in used], [u[1] for u in used],
+                                                        [u[2] for u in used], carrier[k], g[k], q[k], z)
+        for f, L, x in used:
+            lg = x - z * (g_fit[k] + (f - carrier[k]) * q_fit[k])       # landing under the quadratic transfer
             d = float(np.max(np.abs(L - lg)))
             shifts[k] = max(shifts[k], d)
             lo = np.minimum(lo, lg.min(0))
@@ -267,41 +310,54 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             m, c = max(orders[k], key=lambda mc: abs(mc[1]))
             keep.append((_order_index(m), complex(c)))
             lost[k] -= abs(c) ** 2
-        # the quadratic model's field has tails as wide as the remainder's displacement: the margin grows
-        # with it (measured on the Cooke triplet at 14 deg, 159 um shift: 6 / B alone leaves 1.8e-3,
-        # 6 / B + shift / 2 leaves ~1e-4 against rs_lens_psf)
-        margin_k = margin + 0.5 * shifts[k]
+        # the quadratic model's field has tails as wide as the remainder's displacement, and H_R carries the
+        # box's cut edge that far: the margin grows with it (measured on the Cooke triplet at 14 deg against
+        # rs_lens_psf, fitted transfer, 95 um shift, 16 px: 1.25e-4, 8.7e-5, 6.6e-5 at 1, 1.5, 2 shifts)
+        margin_k = margin + FOCAL_SHIFT_MARGIN * shifts[k]
         lo = np.minimum(lo, T - half_w - shifts[k]) - margin_k
         hi = np.maximum(hi, T + half_w + shifts[k]) + margin_k
         boxes.append((lo, hi))
         kept.append(keep)
         bands[k] = band
+    A = np.abs(1.0 / (z * q_fit))
     box = max(float(np.max(hi - lo)) for lo, hi in boxes)
+
     hs = 1.0 / (2.0 * nyquist_safety * float(np.max(bands)))
     ns = int(math.ceil(box / hs)) + 2
     room = 2.0 * float(np.max(shifts)) + 6.0 / float(np.min(bands))
     nf = nice_fft_length(ns + int(math.ceil(room / hs)))
     sensor_origin = np.array([0.5 * (lo + hi) - 0.5 * (ns - 1) * hs for lo, hi in boxes])
-    # the wave-plane pitch: the sum is periodic over 1 / (|A| pitch); 3 x nyquist_safety times the box.
-    # The rim cells of the splatted field are cell averages whose content sits off their centres, an
-    # error first order in the pitch (measured on the Cooke triplet against rs_lens_psf: 6.8e-4, 1.9e-4,
-    # 1.0e-4 at 2, 4, 6 times the box), so the pitch is finer than the sensor side's
-    pitch = 1.0 / (float(np.max(A)) * 2.0 * nyquist_safety * box)
+    # the wave-plane pitch: the sum is periodic over 1 / (|A| pitch), FOCAL_PITCH_FACTOR x nyquist_safety times
+    # the box. The splatted field is a cell average multiplied by the kernel at the cell centre, an error
+    # that falls with the pitch (Cooke triplet, 16 px, against rs_lens_psf: 14 deg 1.3e-4 / 6.5e-5 and on
+    # axis 1.5e-4 / 6.6e-5 at 2 x 2 / 3 x 2 times the box), so the pitch is finer than the sensor side's
+    # A straight aperture edge's diffraction falls off as 1 / r (a round one's as r^-3/2), so the periodic
+    # copies of V reach the patch with more: the period doubles (a thin lens + square DOE 20 mm before the
+    # sensor, 16 px, against rs_thin_lens_psf: 1.5e-3 / 1.9e-4 / 8.5e-5 at 3 / 6 / 9 times the box)
+    period = FOCAL_PITCH_FACTOR * nyquist_safety * box * (2.0 if straight_edges else 1.0)
+    pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3
-    ray_pitch = pitch
-    ray_grid = int(math.ceil(rays_per_sample * width_mm / ray_pitch)) + 1
+    # rays: the splat is first order across a tube (its phase slope), so a tube may span two samples
+    # where the grid is fine (14 deg: 6.5e-5 at 1 and at 0.5 rays per sample); the pupil rim's error is
+    # first order in the ray pitch (on axis 1.5e-4 / 6.6e-5 at 179 / 357 rays across), so at least
+    # FOCAL_RIM_RAYS rays cross the pupil where the grid has that many samples
+    samples = width_mm / pitch
+    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), 0.5 * samples))) + 1
     reasons = (
         f"focal propagation: reference wave to the patch centre handled analytically (rwwarp.focal)",
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
-        f"margin 6/B + shift/2 = {6e3 / np.min(bands) + 500 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
+        f"margin 6/B + {FOCAL_SHIFT_MARGIN:g} shift = {6e3 / np.min(bands) + FOCAL_SHIFT_MARGIN * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
-        f"wave-plane pitch 1 / (|A| 2 x {nyquist_safety} box) = {pitch * 1e3:.4g} um over the footprint {width_mm:.4g} mm "
-        f"-> {n_grid}^2 samples",
-        f"rays: {rays_per_sample} per wave-plane sample per axis -> {ray_grid} across the pupil",
+        f"wave-plane pitch 1 / (|A| {period / box:g} box){' (straight aperture edges: period doubled)' if straight_edges else ''} = {pitch * 1e3:.4g} um over the footprint "
+        f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
+        f"{np.max(shifts) * 1e3:.3g} um)",
+        f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 2) -> {ray_grid} across the pupil",
     )
     plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
-    return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost}
+    return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost,
+                  "transfer": (g_fit, q_fit),
+                  "taper_guard_mm": float(np.max(shifts)) + 3.0 / float(np.min(bands))}

@@ -458,7 +458,8 @@ class RayWave:
         else:
             centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         self.plan, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, width, size, pixel,
-                                    rays_per_sample, nyquist_safety, patch_tol=patch_tol)
+                                    rays_per_sample, nyquist_safety, patch_tol=patch_tol,
+                                    straight_edges=any(sf.shape == "square" for sf in lens.surfaces))
         if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
             if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:
                 raise ValueError("an explicit Plan with method='focal' needs sensor_pitch_mm, n_sensor and n_sensor_fft")
@@ -704,7 +705,9 @@ class RayWave:
             self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
                                              z, self.carrier,
                                              self.focal["sensor_origin"], pl.sensor_pitch_mm, pl.n_sensor,
-                                             pl.n_sensor_fft, nx, ny, xp=xp)
+                                             pl.n_sensor_fft, nx, ny, xp=xp,
+                                             transfer=self.focal.get("transfer"),
+                                             taper_guard_mm=self.focal.get("taper_guard_mm"))
         return self._focal_op
 
     def doe_orders_factor(self, xp=np):

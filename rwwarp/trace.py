@@ -184,7 +184,8 @@ def disc_cells(n: int) -> np.ndarray:
     """Per cell of the ``n x n`` grid over [-1, 1]^2 (row-major, rows +v): ``(f, du, dv)``, the fraction
     of the cell inside the unit disc (:func:`disc_cell_fractions`, exact) and the offset (normalised pupil
     units) from the cell's centre to the centroid of that part (0 for whole cells; from a 24 x 24
-    sub-grid of each cell the circle crosses). A rim ray starts at that centroid, inside the disc, so
+    sub-grid of each cell the circle crosses; for a sliver no sub-sample falls in, the cell's point nearest
+    the disc's centre). A rim ray starts at that centroid, inside the disc, so
     that a clear aperture which is the disc's image does not clip it. Read-only."""
     f = disc_cell_fractions(n)
     out = np.zeros((n * n, 3))
@@ -205,8 +206,15 @@ def disc_cells(n: int) -> np.ndarray:
             vv = cv[b, None] + sv[None, :]
             ins = (uu * uu + vv * vv <= 1.0)
             cnt = np.maximum(ins.sum(1), 1)
-            out[part[b], 1] = (su[None, :] * ins).sum(1) / cnt
-            out[part[b], 2] = (sv[None, :] * ins).sum(1) / cnt
+            du = (su[None, :] * ins).sum(1) / cnt
+            dv = (sv[None, :] * ins).sum(1) / cnt
+            # a sliver no sub-sample falls in: the cell's point nearest the disc's centre (inside the disc,
+            # since the disc meets the cell)
+            none = ins.sum(1) == 0
+            du = np.where(none, np.clip(-cu[b], -0.5 * h, 0.5 * h), du)
+            dv = np.where(none, np.clip(-cv[b], -0.5 * h, 0.5 * h), dv)
+            out[part[b], 1] = du
+            out[part[b], 2] = dv
     out.setflags(write=False)
     return out
 

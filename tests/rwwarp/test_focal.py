@@ -62,8 +62,9 @@ def _thin_lens_doe(focal, dist, half, coeffs, norm):
 def test_thin_lens_even_poly_doe_20mm_before_sensor():
     """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor, at the design
     wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the same phi0.
-    Measured 4.0e-4 (focal, default plan, 16 px) against 4.0e-4 for the band-limited ASM reference path
-    on the same case; tolerance 8e-4 (twice). The issue's 1e-4 target is not reached here
+    Measured 3.6e-4 (focal, default plan, 16 px; the square aperture's 1 / r tails alias into the patch:
+    1.5e-3 at half the default wave-plane period) against 4.0e-4 for the band-limited ASM reference path
+    on the same case; tolerance 7.5e-4 (about twice). The issue's 1e-4 target is not reached here
     (docs/propagation.md)."""
     coeffs, norm, half = [-40.0, 6.0], 1.0, 1.0
     lens = _thin_lens_doe(21.0, 20.0, half, coeffs, norm)
@@ -76,16 +77,16 @@ def test_thin_lens_even_poly_doe_20mm_before_sensor():
         return coeffs[0] * r2 + coeffs[1] * r2 * r2
     truth = rs_thin_lens_psf(21.0, "square", half, 0.55, 20.0, x, y, p.pixel_mm, doe_phase=phi0,
                              gauss_nodes_sensor=5)
-    assert _rel(p.data, truth) < 8e-4
+    assert _rel(p.data, truth) < 7.5e-4
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("field,tol", [(0.0, 2e-4), (14.0, 3.7e-4)])
+@pytest.mark.parametrize("field,tol", [(0.0, 1.3e-4), (14.0, 8e-5)])
 def test_cooke_triplet_against_rs_truth(field, tol):
     """The bundled Cooke triplet (no DOE: the wave plane is the curved last surface's vertex plane).
-    Measured with the default plan (size 16): 9.2e-5 on axis, 1.84e-4 at 14 deg (1.6e-4 / 2.5e-4 before
-    the rim cells were weighted; the ASM path took 149-412 s and was 15 % / 156 % off). Tolerance about
-    twice that."""
+    Measured with the default plan (size 16): 6.5e-5 on axis, 4.0e-5 at 14 deg (9.2e-5 / 1.84e-4 before the
+    quadratic transfer was fitted and V tapered, 1.6e-4 / 2.5e-4 before the rim cells were weighted; the
+    ASM path took 149-412 s and was 15 % / 156 % off). Tolerance about twice that."""
     lens = rw.load_lens("cooke_triplet")
     p = rw.psf(lens, field, 0.5876, size=16)
     assert p.plan["method"] == "focal"
@@ -95,8 +96,9 @@ def test_cooke_triplet_against_rs_truth(field, tol):
 
 @pytest.mark.slow
 def test_achromatic_doublet_against_rs_truth():
-    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Measured 1.41e-4
-    (1.9e-4 before the rim cells were weighted; truth converged to 2e-11); tolerance about twice."""
+    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Measured 7.7e-5
+    (1.41e-4 before the taper and fitted transfer, 1.9e-4 before the rim cells were weighted; truth converged
+    to 2e-11); tolerance about twice."""
     lens = rw.load_lens("ac254_100_a")
     p = rw.psf(lens, 0.0, 0.5876, size=16)
     truth = rs_lens_psf(lens, 0.0, 0.5876, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128)
@@ -104,7 +106,7 @@ def test_achromatic_doublet_against_rs_truth():
     assert err < DOUBLET_TOL, err
 
 
-DOUBLET_TOL = 3e-4
+DOUBLET_TOL = 1.5e-4
 
 
 def test_truth_rejects_doe_lenses():
@@ -199,31 +201,76 @@ def test_quantised_doe_orders_that_spread_over_the_field_are_left_out():
 @pytest.mark.slow
 def test_a489_keeps_the_asm_and_matches_truth():
     """The A489 (F/2.2, blank DOE as a plane): method auto keeps the band-limited ASM, whose plan is small.
-    Against rs_lens_psf on axis (16 px): ASM 4.9e-5, tolerance 1e-4; the focal path measures 6.4e-5 here
-    with its rim cells weighted (8.0e-4 with whole cells), so auto keeps the ASM, the validated path, which
-    is also the faster one on a GPU while its plan is small."""
+    Against rs_lens_psf on axis (16 px): ASM 4.9e-5, tolerance 1e-4. The focal path measures 8.1e-6 here
+    (6.4e-5 before the taper and fitted transfer, 8.0e-4 with whole rim cells), tolerance 2e-5; auto keeps
+    the ASM while its plan is small, the faster one on a GPU (measured on an H100)."""
     lens = rw.load_lens("a489_doe")
     p = rw.psf(lens, 0.0, 0.55, size=16)
     assert p.plan["method"] == "asm"
     truth = rs_lens_psf(lens, 0.0, 0.55, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128)
     assert _rel(p.data, truth) < 1e-4
+    f = rw.psf(lens, 0.0, 0.55, size=16, method="focal", center_mm=p.center_mm)
+    assert _rel(f.data, truth) < 2e-5
 
 
-def test_focal_operator_adjoint_is_the_conjugate_transpose():
-    """<A x, y> = <x, A^H y> for random complex x, y (the operator's adjoint, used for gradients)."""
+@pytest.mark.parametrize("fitted", [False, True])
+def test_focal_operator_adjoint_is_the_conjugate_transpose(fitted):
+    """<A x, y> = <x, A^H y> for random complex x, y (the operator's adjoint, used for gradients), with the
+    Taylor quadratic transfer and with a fitted one plus the sensor-side taper."""
     from rwwarp.focal import FocalPropagator
     rng = np.random.default_rng(1)
     S, n, ns, nf, m = 2, 24, 20, 32, 9
+    extra = {"transfer": ([[0.0, 0.0], [0.0, -0.0155]], [[-6.0e-4, -6.1e-4], [-5.9e-4, -6.2e-4]]),
+             "taper_guard_mm": 0.005} if fitted else {}
     op = FocalPropagator(origin_mm=[[-0.5, -0.5], [-0.4, -0.6]], pitch_mm=0.04, n_grid=n,
                          wavelength_mm=[5.5e-4, 6.0e-4], distance_mm=20.0,
                          carrier_cpmm=[[0.0, 0.0], [0.0, 25.0]], sensor_origin_mm=[[-0.02, -0.02], [-0.01, 0.28]],
                          sensor_pitch_mm=0.002, n_sensor=ns, n_fft=nf,
-                         nodes_x_mm=rng.uniform(-0.01, 0.01, (S, m)), nodes_y_mm=rng.uniform(-0.01, 0.01, (S, m)))
+                         nodes_x_mm=rng.uniform(-0.01, 0.01, (S, m)), nodes_y_mm=rng.uniform(-0.01, 0.01, (S, m)),
+                         **extra)
     x = rng.normal(size=(S, n, n)) + 1j * rng.normal(size=(S, n, n))
     y = rng.normal(size=(S, m, m)) + 1j * rng.normal(size=(S, m, m))
     lhs = np.vdot(op.forward(x), y)
     rhs = np.vdot(x, op.adjoint(y))
     assert abs(lhs - rhs) <= 1e-12 * abs(lhs)
+
+
+def test_sensor_taper_is_one_inside_zero_at_the_ends_and_smooth():
+    """The taper against its definition: 1 on [lo, hi], 0 at the grid's ends, 1/2 halfway (symmetry of
+    s(t) = e(t) / (e(t) + e(1 - t))), and monotone in between."""
+    from rwwarp.focal import sensor_taper
+    p = np.linspace(-1.0, 1.0, 401)[None]
+    w = sensor_taper(p, np.array([-0.2]), np.array([0.4]))[0]
+    inside = (p[0] >= -0.2) & (p[0] <= 0.4)
+    assert np.all(w[inside] == 1.0) and w[0] == 0.0 and w[-1] == 0.0
+    assert w[np.argmin(abs(p[0] - 0.7))] == pytest.approx(0.5, abs=1e-12)
+    assert np.all(np.diff(w[p[0] > 0.4]) <= 0) and np.all(np.diff(w[p[0] < -0.2]) >= 0)
+
+
+def test_fitted_transfer_narrows_the_remainder_off_axis():
+    """fit_quadratic_transfer on an exact beam (straight rays converging at 14 deg through NA 0.1): the
+    largest remainder displacement z |grad w - g - q (f - f_c)| falls below the Taylor expansion's
+    (computed here from w(f) = sqrt(k^2 - |f|^2) directly)."""
+    from rwwarp.plan import fit_quadratic_transfer
+    from rwwarp.focal import transfer_curvature
+    lam, z = 5.876e-4, 42.0
+    k = 1.0 / lam
+    rng = np.random.default_rng(0)
+    th = np.deg2rad(14.0)
+    fc = np.array([0.0, np.sin(th) * k])
+    r = 0.1 * k * np.sqrt(rng.uniform(0, 1, 4000))
+    a = rng.uniform(0, 2 * np.pi, 4000)
+    f = fc + np.stack([r * np.cos(a), r * np.sin(a)], 1)
+    w = np.sqrt(k * k - np.sum(f * f, 1))
+    x = rng.uniform(-4, 4, (4000, 2))
+    L = x + z * f / w[:, None]
+    _, g, q = transfer_curvature(fc[None], np.array([k]))
+    gf, qf = fit_quadratic_transfer([f], [L], [x], fc, g[0], q[0], z)
+
+    def worst(gg, qq):
+        return np.max(np.abs(L - (x - z * (gg + (f - fc) * qq))))
+    assert worst(gf, qf) < 0.7 * worst(g[0], q[0])
+    assert np.all(qf < 0)
 
 
 def _cooke_with_doe(a1, a2):
@@ -244,8 +291,8 @@ def test_weak_doe_off_its_design_wavelength_against_rs_truth():
     """A weak even-polynomial DOE 5 mm before the Cooke triplet's sensor (its relief does not wrap inside
     the 1 mm beam) at 0.5876 um (alpha = 0.933). The integer-order series sum_m c_m exp(i m phi0) over
     m = -8..8 converges slowly next to the wrap (Gibbs) and was 1.9e-2 off; the exact single term
-    exp(i alpha (phi0 - 2 pi k)) gives 1.39e-4 (2.0e-4 before the rim cells were weighted; the
-    band-limited ASM: 4.1e-5). Truth: rs_lens_psf with the DOE phase (include_doe). Tolerance about twice
+    exp(i alpha (phi0 - 2 pi k)) gives 7.1e-5 (1.39e-4 before the taper and fitted transfer, 2.0e-4 before
+    the rim cells were weighted; the band-limited ASM: 4.1e-5). Truth: rs_lens_psf with the DOE phase (include_doe). Tolerance about twice
     the measured."""
     lens = _cooke_with_doe(-1000.0, 50.0)
     p = rw.psf(lens, 0.0, 0.5876, size=16, method="focal")
@@ -253,7 +300,7 @@ def test_weak_doe_off_its_design_wavelength_against_rs_truth():
     assert any("0.933" in str(r) for r in orders)
     truth = rs_lens_psf(lens, 0.0, 0.5876, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128,
                         include_doe=True)
-    assert _rel(p.data, truth) < 3e-4
+    assert _rel(p.data, truth) < 1.5e-4
 
 
 @pytest.mark.slow
