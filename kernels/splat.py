@@ -149,12 +149,13 @@ def make_splat_kernels(scalar):
         n_pupil: int,
         frac: wp.array(dtype=wp.vec3d),       # (n_pupil,) (fraction in the aperture, du, dv) per cell, or (1,)
         rim: int,                             # 1: the fraction applies (energy convention; the weight carries it)
+        offset: int,                          # first ray of this launch (CPU threads splat ray ranges)
         # outputs
         s_re_out: wp.array(dtype=f64),
         s_im_out: wp.array(dtype=f64),
         dropped_out: wp.array(dtype=wp.int32),
     ):
-        i = wp.tid()
+        i = wp.tid() + offset
         if valid[i] == 0:
             return
         s = i // n_pupil
@@ -254,10 +255,11 @@ def make_splat_kernels(scalar):
         use_reference: int,
         energy: int,
         n_grid: int,
+        offset: int,                          # first sample of this launch (CPU threads finalize ranges)
         # outputs
         field_out: wp.array(dtype=wp.vec2d),  # (re, im)
     ):
-        k = wp.tid()
+        k = wp.tid() + offset
         per = n_grid * n_grid
         s = k // per
         rem = k - s * per

@@ -81,6 +81,7 @@ def make_trace_kernels(scalar):
     """
     vec3 = wp.types.vector(3, scalar)
     tol = 1.0e-10 if scalar == wp.float64 else 1.0e-4
+    conv = 1.0e-15 if scalar == wp.float64 else 1.0e-7   # Newton: relative step below which t has converged
     edge = edge_rtol(scalar)
 
     @wp.func
@@ -286,7 +287,13 @@ def make_trace_kernels(scalar):
         q = vec3(p0[0], p0[1], p0[2] - params[P_Z])
         t = stable_start(q, d, params)
         for it in range(NEWTON_STEPS):
-            t = newton_step(q, d, t, params)
+            tn = newton_step(q, d, t, params)
+            done = wp.abs(tn - t) <= scalar(conv) * (scalar(1.0) + wp.abs(tn))
+            t = tn
+            if done:
+                # converged (a conic's start is its exact root: one step): the surface kernel's own
+                # step from here restores full precision either way
+                break
         t_out[i] = t
 
     @wp.kernel(module="unique")

@@ -18,7 +18,7 @@ from .doe import is_flat_profile as _is_flat_profile
 from .errors import LensError
 from .lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
-from .trace import Tracer, pupil_grid, upload_packed
+from .trace import Tracer, pupil_grid, run_chunks, upload_packed
 from .trace import field_label as _fmt_field
 
 _LAST = {}  # last ray-wave field, for inspection
@@ -568,15 +568,30 @@ class RayWave:
              (opl_p, np.float64, wp.float64), (2.0 * np.pi / self.lam_mm, np.float64, wp.float64),
              (self.carrier, np.float64, wp.vec2d)], dev)
         geo = [origin, pitch, chief, target, index]
-        wp.launch(K.splat_kernel, dim=nsrc * npup,
-                  inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo +
-                         [opl_c, k_wave, int(self.use_reference), energy, n, npup, *self._rim_args(rim)],
-                  outputs=[s_re, s_im, self.dropped], device=dev)
+        splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
+                   [opl_c, k_wave, int(self.use_reference), energy, n, npup, *self._rim_args(rim)]
+        chunks = tr._chunks(nsrc * npup)
+        if len(chunks) == 1:
+            wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0], outputs=[s_re, s_im, self.dropped],
+                      device=dev)
+        else:
+            # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
+            parts = [(s_re, s_im, self.dropped)] + [
+                (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
+                 wp.zeros(nsrc, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
+            run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0]],
+                                                outputs=list(out), device=dev), chunks, parts)
+            for a, b, d in parts[1:]:
+                s_re.numpy()[:] += a.numpy()
+                s_im.numpy()[:] += b.numpy()
+                self.dropped.numpy()[:] += d.numpy()
         # the finalize kernel writes every sample
         field = (wp.zeros if g else wp.empty)(total, dtype=wp.vec2d, device=dev, requires_grad=g)
-        wp.launch(K.finalize_kernel, dim=total,
-                  inputs=[s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n],
-                  outputs=[field], device=dev)
+        fin_in = [s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n]
+        chunks = tr._chunks(total)
+        run_chunks(lambda c, _: wp.launch(K.finalize_kernel, dim=total if c is None else c[1] - c[0],
+                                          inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),
+                   chunks, [None] * len(chunks))
         return field, rays
 
     def _rim_args(self, rim: bool):

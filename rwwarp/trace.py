@@ -57,6 +57,17 @@ def _pool(workers: int):
         return _POOL
 
 
+def run_chunks(fn, chunks, outs):
+    """Call ``fn(chunk, out)`` for each ``(lo, hi)`` chunk (or None: everything) with its ``out``, in the
+    module's thread pool when there are several (Warp's CPU kernels release the GIL)."""
+    if len(chunks) == 1:
+        fn(chunks[0], outs[0])
+        return
+    futures = [_pool(len(chunks)).submit(fn, c, o) for c, o in zip(chunks, outs)]
+    for f in futures:
+        f.result()
+
+
 def cpu_threads() -> int:
     """CPU cores this process may run on (the default number of trace threads on the CPU)."""
     try:

@@ -41,12 +41,12 @@ def _splat(device, rays, src, n_grid, energy, use_reference):
                       _a(rays["valid"].astype(np.int32), wp.int32, device), _a(rays["weight"], F64, device),
                       _a(rays["area"], F64, device), _a(rays["half"], wp.vec2d, device), *per_src,
                       _a(src["opl_chief"], F64, device), _a(src["k"], F64, device), use_reference, energy,
-                      n_grid, npup, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0],
+                      n_grid, npup, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0, 0],
               outputs=[s_re, s_im, dropped], device=device)
     field = wp.zeros(nsrc * n_grid * n_grid, dtype=wp.vec2d, device=device)
     wp.launch(ks.make_splat_kernels(F64).finalize_kernel, dim=nsrc * n_grid * n_grid,
               inputs=[s_re, s_im, *per_src, _a(src["k"], F64, device), _a(src["carrier"], wp.vec2d, device),
-                      use_reference, energy, n_grid],
+                      use_reference, energy, n_grid, 0],
               outputs=[field], device=device)
     S = (s_re.numpy() + 1j * s_im.numpy()).reshape(nsrc, n_grid, n_grid)
     f = field.numpy()
