@@ -169,12 +169,31 @@ class FocalPropagator:
         # step 1 factors: E[a][s, j, i] = exp(-i pi A (p_j + z g - x_i)^2) per axis (the carrier of h_G
         # and the field's removed carrier cancel up to a constant; the sensor field is demodulated by f_c)
         self._E = []
+        # formed from chirps and one Toeplitz factor (no (ns, n) transcendental per entry): with u_j = u0 + j hs
+        # (u0 = p_0 + z g), x_i = x0 + i h, a = pi A and b = a h hs, -a (u_j - x_i)^2 is the phase of
+        # P_j Q_i K(j - i): P_j = exp(-i a u_j^2 + 2 i a x0 hs j + i b j^2 + 2 i a u0 x0),
+        # Q_i = exp(-i a x_i^2 + 2 i a u0 h i + i b i^2), K(m) = exp(-i b m^2)
+        jj = np.arange(self.ns, dtype=np.float64)
+        ii = np.arange(self.n, dtype=np.float64)
+        mm = np.arange(-(self.n - 1), self.ns, dtype=np.float64)
+        toe = xp.asarray((np.arange(self.ns)[:, None] - np.arange(self.n)[None, :]) + (self.n - 1))   # (ns, n)
         for ax in range(2):
-            d = X["ps"][:, :, None, ax] + z * X["g"][:, None, None, ax] - X["xs"][:, None, :, ax]   # (S, ns, n)
-            ph = -np.pi * X["A"][:, None, None, ax] * d * d
+            a = np.pi * A[:, ax:ax + 1]                                   # (S, 1)
+            u0 = s0[:, ax:ax + 1] + z * g[:, ax:ax + 1]
+            x0 = origin[:, ax:ax + 1]
+            b = a * h * hs
+            u = u0 + jj[None, :] * hs
+            x = x0 + ii[None, :] * h
+            P = -a * u * u + 2.0 * a * x0 * hs * jj[None, :] + b * jj[None, :] ** 2 + 2.0 * a * u0 * x0
+            Q = -a * x * x + 2.0 * a * u0 * h * ii[None, :] + b * ii[None, :] ** 2
+            K = -b * mm[None, :] ** 2
+            amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * h
+            Pd = xp.asarray(amp * np.exp(1j * P))
+            Qd = xp.asarray(np.exp(1j * Q))
+            Kd = xp.asarray(np.exp(1j * K))
             # demodulating by f_c: h_G carries exp(2 pi i f_c.(p - x)); the field carries exp(-2 pi i f_c.x)
             # removed, the output exp(2 pi i f_c.p) is removed: nothing left but constants
-            self._E.append((xp.sqrt(xp.abs(X["A"][:, None, None, ax])) * h) * xp.exp(1j * ph))
+            self._E.append(Kd[:, toe] * Pd[:, :, None] * Qd[:, None, :])
         if taper_guard_mm is not None:
             for ax, nodes in ((0, nodes_x_mm), (1, nodes_y_mm)):
                 nd = np.asarray(nodes, dtype=np.float64).reshape(S, -1)

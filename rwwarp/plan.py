@@ -239,19 +239,19 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       leaving the patch;
     * the quadratic part of the transfer is fitted to the kept rays (:func:`fit_quadratic_transfer`),
       which halves the remainder's displacement off axis;
-    * the sensor-side grid covers the patch widened by the remainder's displacement ``H_R`` and every
-      kept ray's landing point under the quadratic transfer, plus a margin of ``6 / B`` (``B``: the
-      beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and ``FOCAL_SHIFT_MARGIN`` times
-      the displacement; its pitch samples ``B`` ``nyquist_safety`` times above Nyquist;
-    * the wave-plane pitch makes the generalised-Fresnel sum periodic over ``FOCAL_PITCH_FACTOR x
-      nyquist_safety`` times that sensor-side box (``pitch = 1 / (|A| 3 safety box)``, ``|A| ~ n / (lambda
-      z)``; twice that with ``straight_edges``, a square aperture in the lens): the patch's space-bandwidth
-      product, not the beam's;
+    * the sensor-side grid covers the patch widened by the remainder's largest displacement (``H_R`` moves
+      light no farther, so only this part of ``V`` can reach the patch), plus a margin of ``6 / B`` (``B``:
+      the beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and ``FOCAL_SHIFT_MARGIN`` times
+      the displacement; its pitch samples ``B`` ``nyquist_safety`` times above Nyquist; ``V`` is tapered to
+      zero between the patch widened by the displacement plus ``3 / B`` and the grid's edge
+      (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`);
+    * the wave-plane pitch sets the period of the generalised-Fresnel sum, ``1 / (|A| pitch)`` (``|A| ~ n /
+      (lambda z)``): ``nyquist_safety`` times the larger of ``FOCAL_PITCH_FACTOR`` sensor-side grids (the
+      cell-phase error near the patch) and twice the spread of every kept ray's landing point under the
+      quadratic transfer (aliasing); with ``straight_edges`` (a square pupil) ``2 FOCAL_PITCH_FACTOR`` times
+      that spread: the patch's space-bandwidth product, not the beam's;
     * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 2)`` across the footprint
       (``samples``: wave-plane samples across it).
-
-    * ``V`` is tapered to zero between the patch widened by the displacement plus ``3 / B`` and the box's
-      edge (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`).
 
     Returns ``(plan, geometry)``; ``geometry`` has ``sensor_origin`` (S, 2), ``orders`` (the kept
     ``(m, c_m)`` per source), ``lost_power`` (S,), the fraction in dropped orders, ``transfer``, the
@@ -264,6 +264,8 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     w_c, g, q = transfer_curvature(carrier, inv_lam)
     boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
     g_fit, q_fit = g.copy(), q.copy()
+    near = 0.0   # the part of the sensor-side box around the patch (patch, displacement, margins)
+    spread = 0.0
     for k in range(S):
         T = centers[k]
         cand = []
@@ -316,7 +318,13 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         margin_k = margin + FOCAL_SHIFT_MARGIN * shifts[k]
         lo = np.minimum(lo, T - half_w - shifts[k]) - margin_k
         hi = np.maximum(hi, T + half_w + shifts[k]) + margin_k
+        # V is computed only near the patch: the remainder moves light at most shifts[k], so what lies farther
+        # (defocused DOE orders, the aberrated quadratic-model spot) cannot reach it, and the taper keeps its
+        # cut edge from ringing. Its whole spread still sets the period (aliasing), below.
+        spread = max(spread, float(np.max(hi - lo)))
+        lo, hi = T - half_w - shifts[k] - margin_k, T + half_w + shifts[k] + margin_k
         boxes.append((lo, hi))
+        near = max(near, 2.0 * (half_w + shifts[k] + margin_k))
         kept.append(keep)
         bands[k] = band
     A = np.abs(1.0 / (z * q_fit))
@@ -327,14 +335,18 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     room = 2.0 * float(np.max(shifts)) + 6.0 / float(np.min(bands))
     nf = nice_fft_length(ns + int(math.ceil(room / hs)))
     sensor_origin = np.array([0.5 * (lo + hi) - 0.5 * (ns - 1) * hs for lo, hi in boxes])
-    # the wave-plane pitch: the sum is periodic over 1 / (|A| pitch), FOCAL_PITCH_FACTOR x nyquist_safety times
-    # the box. The splatted field is a cell average multiplied by the kernel at the cell centre, an error
-    # that falls with the pitch (Cooke triplet, 16 px, against rs_lens_psf: 14 deg 1.3e-4 / 6.5e-5 and on
-    # axis 1.5e-4 / 6.6e-5 at 2 x 2 / 3 x 2 times the box), so the pitch is finer than the sensor side's
-    # A straight aperture edge's diffraction falls off as 1 / r (a round one's as r^-3/2), so the periodic
-    # copies of V reach the patch with more: the period doubles (a thin lens + square DOE 20 mm before the
-    # sensor, 16 px, against rs_thin_lens_psf: 1.5e-3 / 1.9e-4 / 8.5e-5 at 3 / 6 / 9 times the box)
-    period = FOCAL_PITCH_FACTOR * nyquist_safety * box * (2.0 if straight_edges else 1.0)
+    # the wave-plane pitch: the sum is periodic over 1 / (|A| pitch). Near the patch the splatted field, a cell
+    # average weighted by the kernel at the cell centre, errs with the kernel's phase slope across a cell, so
+    # the period is FOCAL_PITCH_FACTOR x nyquist_safety sensor-side grids (Cooke triplet, 16 px, against
+    # rs_lens_psf: 14 deg 1.3e-4 / 6.5e-5 and on axis 1.5e-4 / 6.6e-5 at 2 x 2 / 3 x 2 grids); and it clears
+    # twice the spread of the light (its periodic copies must miss the patch). A straight pupil edge's
+    # diffraction falls off as 1 / r (a round one's as r^-3/2), so its copies reach the patch with more: the
+    # period is 2 x FOCAL_PITCH_FACTOR spreads (a thin lens + square DOE 20 mm before the sensor, 16 px,
+    # against rs_thin_lens_psf: 1.5e-3 / 1.9e-4 / 8.5e-5 at 3 / 6 / 9 times the spread).
+    if straight_edges:
+        period = 2.0 * FOCAL_PITCH_FACTOR * spread * nyquist_safety
+    else:
+        period = max(FOCAL_PITCH_FACTOR * near, 2.0 * spread) * nyquist_safety
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3
@@ -351,7 +363,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
         f"margin 6/B + {FOCAL_SHIFT_MARGIN:g} shift = {6e3 / np.min(bands) + FOCAL_SHIFT_MARGIN * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
-        f"wave-plane pitch 1 / (|A| {period / box:g} box){' (straight aperture edges: period doubled)' if straight_edges else ''} = {pitch * 1e3:.4g} um over the footprint "
+        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
         f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 2) -> {ray_grid} across the pupil",

@@ -294,6 +294,8 @@ class RayWave:
             if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
                 method = "asm"  # discontinuous: no smooth diffraction orders to factor
         self.focal = None
+        # a square pupil (stop) bounds the beam with straight edges: their 1 / r diffraction tails alias more
+        self._square_pupil = src["shape"] != "circle"
         if method in ("focal", "compare"):
             self._plan_focal(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
                              z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety,
@@ -459,7 +461,7 @@ class RayWave:
             centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         self.plan, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, width, size, pixel,
                                     rays_per_sample, nyquist_safety, patch_tol=patch_tol,
-                                    straight_edges=any(sf.shape == "square" for sf in lens.surfaces))
+                                    straight_edges=self._square_pupil)
         if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
             if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:
                 raise ValueError("an explicit Plan with method='focal' needs sensor_pitch_mm, n_sensor and n_sensor_fft")
