@@ -218,6 +218,7 @@ def _order_index(m):
 
 FOCAL_SHIFT_MARGIN = 1.5   # sensor-side margin in units of the remainder's largest displacement
 FOCAL_PITCH_FACTOR = 3.0   # wave-plane period of the focal sum, in nyquist_safety x sensor-side boxes
+FOCAL_TAPER_GUARD = 1.5    # V kept whole within this many remainder displacements (+ 3 / B) of the patch
 FOCAL_RIM_RAYS = 400       # least rays across the pupil (where the wave-plane grid has that many samples)
 
 
@@ -243,7 +244,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       light no farther, so only this part of ``V`` can reach the patch), plus a margin of ``6 / B`` (``B``:
       the beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and ``FOCAL_SHIFT_MARGIN`` times
       the displacement; its pitch samples ``B`` ``nyquist_safety`` times above Nyquist; ``V`` is tapered to
-      zero between the patch widened by the displacement plus ``3 / B`` and the grid's edge
+      zero between the patch widened by ``FOCAL_TAPER_GUARD`` displacements plus ``3 / B`` and the grid's edge
       (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`);
     * the wave-plane pitch sets the period of the generalised-Fresnel sum, ``1 / (|A| pitch)`` (``|A| ~ n /
       (lambda z)``): ``nyquist_safety`` times the larger of ``FOCAL_PITCH_FACTOR`` sensor-side grids (the
@@ -372,4 +373,6 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
     return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost,
                   "transfer": (g_fit, q_fit),
-                  "taper_guard_mm": float(np.max(shifts)) + 3.0 / float(np.min(bands))}
+                  # V whole within 1.5 shifts + 3 / B of the nodes (AC254, 16 px, against rs_lens_psf: 7.7e-5 at 1
+                  # shift, 3.0e-5 at 1.5), tapered over the rest of the margin
+                  "taper_guard_mm": FOCAL_TAPER_GUARD * float(np.max(shifts)) + 3.0 / float(np.min(bands))}

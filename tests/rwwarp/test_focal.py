@@ -62,7 +62,7 @@ def _thin_lens_doe(focal, dist, half, coeffs, norm):
 def test_thin_lens_even_poly_doe_20mm_before_sensor():
     """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor, at the design
     wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the same phi0.
-    Measured 3.6e-4 (focal, default plan, 16 px; the square aperture's 1 / r tails alias into the patch:
+    Measured 3.7e-4 (focal, default plan, 16 px; the square aperture's 1 / r tails alias into the patch:
     1.5e-3 at half the default wave-plane period) against 4.0e-4 for the band-limited ASM reference path
     on the same case; tolerance 7.5e-4 (about twice). The issue's 1e-4 target is not reached here
     (docs/propagation.md)."""
@@ -81,10 +81,10 @@ def test_thin_lens_even_poly_doe_20mm_before_sensor():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("field,tol", [(0.0, 1.3e-4), (14.0, 8e-5)])
+@pytest.mark.parametrize("field,tol", [(0.0, 1.2e-4), (14.0, 8e-5)])
 def test_cooke_triplet_against_rs_truth(field, tol):
     """The bundled Cooke triplet (no DOE: the wave plane is the curved last surface's vertex plane).
-    Measured with the default plan (size 16): 6.5e-5 on axis, 4.0e-5 at 14 deg (9.2e-5 / 1.84e-4 before the
+    Measured with the default plan (size 16): 5.9e-5 on axis, 3.9e-5 at 14 deg (9.2e-5 / 1.84e-4 before the
     quadratic transfer was fitted and V tapered, 1.6e-4 / 2.5e-4 before the rim cells were weighted; the
     ASM path took 149-412 s and was 15 % / 156 % off). Tolerance about twice that."""
     lens = rw.load_lens("cooke_triplet")
@@ -96,7 +96,7 @@ def test_cooke_triplet_against_rs_truth(field, tol):
 
 @pytest.mark.slow
 def test_achromatic_doublet_against_rs_truth():
-    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Measured 7.7e-5
+    """AC254-100-A at 25 mm EPD on axis (the case that exhausted Warp's allocator before). Measured 3.0e-5
     (1.41e-4 before the taper and fitted transfer, 1.9e-4 before the rim cells were weighted; truth converged
     to 2e-11); tolerance about twice."""
     lens = rw.load_lens("ac254_100_a")
@@ -106,7 +106,7 @@ def test_achromatic_doublet_against_rs_truth():
     assert err < DOUBLET_TOL, err
 
 
-DOUBLET_TOL = 1.5e-4
+DOUBLET_TOL = 6e-5
 
 
 def test_truth_rejects_doe_lenses():
