@@ -4,6 +4,7 @@
 #   bash perf/gpu_suite.sh b   # torch bridge: CPU/CUDA gradient check, DeepLens psf+backward, tile study
 #   bash perf/gpu_suite.sh c   # speed/accuracy chart, GPU tests
 #   bash perf/gpu_suite.sh d   # design smoke run: a489_aberration's gpu preset cut to 40 + 40 steps
+#   bash perf/gpu_suite.sh e   # focal PSFs (Cooke, AC254, A489), the Cooke F/4 joint step, the paper maps on 1 and 2 GPUs
 # Results JSON under $OUT (device tool) or perf/results.
 set -u
 part=${1:-a}
@@ -61,5 +62,12 @@ for f in sorted(glob.glob(os.path.join(os.environ["RWWARP_RESULTS"], S, "*", "re
     print("replans:", [(e["key"], e["reason"]) for e in r.get("replan_log", [])][:12])
 PY
   nvidia-smi --query-gpu=memory.used,memory.total --format=csv,noheader
+  ;;
+e)
+  echo "== focal";  timeout 150 python3 bench_focal_gpu.py "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -12
+  echo "== cooke f4"; timeout 240 python3 bench_cooke_f4.py --device cuda --out "$RWWARP_RESULTS" --steps 3 2>&1 \
+                        | grep -v "use_ai2\|SamplingWarning" | tail -12
+  echo "== paper maps"; timeout ${MAP_TIMEOUT:-300} python3 bench_distributed.py --problem paper --only map --device cuda \
+                        --ranks ${MAP_RANKS:-1 2} --repeat 2 --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -20
   ;;
 esac
