@@ -89,16 +89,43 @@ def doe_order_series(phi0, orders, central_zones=None, xp=np):
     out = []
     for k, ol in enumerate(orders):
         p = phi0[k]
-        acc = xp.zeros_like(p) * 0j
-        for m, c in ol:
-            acc = acc + (complex(c) * xp.exp(1j * float(m) * p) if m != 0 else complex(c) * xp.ones_like(p))
+        ints = all(float(m) == int(m) for m, _ in ol)
+        if ints and len(ol) > 1:
+            # integer orders: one exp, then Horner in e = exp(1j phi0) from the highest order down (|e| = 1, so
+            # the recursion is stable), times e^m_min (conj(e) = 1 / e for negative orders)
+            coef = {int(m): complex(c) for m, c in ol}
+            lo, hi = min(coef), max(coef)
+            e = _cis(p, xp)
+            acc = xp.zeros_like(e) + coef[hi]
+            for m in range(hi - 1, lo - 1, -1):
+                acc = acc * e + coef.get(m, 0j)
+            if lo != 0:
+                f = e if lo > 0 else xp.conj(e)
+                for _ in range(abs(lo)):
+                    acc = acc * f
+        else:
+            acc = xp.zeros_like(p) * 0j
+            for m, c in ol:
+                acc = acc + (complex(c) * xp.exp(1j * float(m) * p) if m != 0 else complex(c) * xp.ones_like(p))
         z = None if central_zones is None else central_zones[k]
         if z is not None:
             kc, alpha = z
             inside = xp.floor(p / (2.0 * np.pi)) == kc
-            acc = xp.where(inside, xp.exp(1j * float(alpha) * (p - 2.0 * np.pi * kc)), acc)
+            if xp is np:   # the zone is a small part of the window: its exact term only there
+                acc = acc.copy()
+                acc[inside] = _cis(float(alpha) * (p[inside] - 2.0 * np.pi * kc), np)
+            else:
+                acc = xp.where(inside, xp.exp(1j * float(alpha) * (p - 2.0 * np.pi * kc)), acc)
         out.append(acc)
     return xp.stack(out)
+
+
+def _cis(p, xp):
+    """``exp(1j p)`` for real ``p``: on numpy as ``cos + 1j sin`` (numpy's complex exp is several times slower),
+    elsewhere (CuPy, torch with autograd) ``xp.exp``."""
+    if xp is np:
+        return np.cos(p) + 1j * np.sin(p)
+    return xp.exp(1j * p)
 
 
 def transfer_curvature(f_c, inv_lam):
