@@ -219,6 +219,8 @@ def _order_index(m):
 FOCAL_SHIFT_MARGIN = 1.5   # sensor-side margin in units of the remainder's largest displacement
 FOCAL_PITCH_FACTOR = 3.0   # wave-plane period of the focal sum, in nyquist_safety x sensor-side boxes
 FOCAL_TAPER_GUARD = 1.5    # V kept whole within this many remainder displacements (+ 3 / B) of the patch
+FOCAL_SPREAD = 2.0         # wave-plane period over the spread of all kept orders' light, per nyquist_safety
+FOCAL_MAIN_SPREAD = 3.0    # ... over the main order's (most of the power: its copies alias more)
 FOCAL_RIM_RAYS = 400       # least rays across the pupil (where the wave-plane grid has that many samples)
 
 
@@ -266,7 +268,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
     g_fit, q_fit = g.copy(), q.copy()
     near = 0.0   # the part of the sensor-side box around the patch (patch, displacement, margins)
-    spread = 0.0
+    spread = spread_main = 0.0   # the light's extent at the sensor under the quadratic transfer (all, main order)
     for k in range(S):
         T = centers[k]
         cand = []
@@ -299,16 +301,19 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
                 lost[k] += abs(c) ** 2
                 continue
             keep.append((_order_index(m), complex(c)))
-            used.append((f, L, x))
+            used.append((f, L, x, m == max(orders[k], key=lambda mc: abs(mc[1]))[0]))
         if used:
             g_fit[k], q_fit[k] = fit_quadratic_transfer([u[0] for u in used], [u[1] for u in used],
                                                         [u[2] for u in used], carrier[k], g[k], q[k], z)
-        for f, L, x in used:
+        mlo, mhi = lo.copy(), hi.copy()
+        for f, L, x, main in used:
             lg = x - z * (g_fit[k] + (f - carrier[k]) * q_fit[k])       # landing under the quadratic transfer
             d = float(np.max(np.abs(L - lg)))
             shifts[k] = max(shifts[k], d)
             lo = np.minimum(lo, lg.min(0))
             hi = np.maximum(hi, lg.max(0))
+            if main:
+                mlo, mhi = np.minimum(mlo, lg.min(0)), np.maximum(mhi, lg.max(0))
         if not keep:  # nothing reaches the patch: keep the main order so the (dark) patch is computed
             m, c = max(orders[k], key=lambda mc: abs(mc[1]))
             keep.append((_order_index(m), complex(c)))
@@ -323,6 +328,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         # (defocused DOE orders, the aberrated quadratic-model spot) cannot reach it, and the taper keeps its
         # cut edge from ringing. Its whole spread still sets the period (aliasing), below.
         spread = max(spread, float(np.max(hi - lo)))
+        spread_main = max(spread_main, float(np.max(mhi - mlo)) + 2.0 * margin_k)
         lo, hi = T - half_w - shifts[k] - margin_k, T + half_w + shifts[k] + margin_k
         boxes.append((lo, hi))
         near = max(near, 2.0 * (half_w + shifts[k] + margin_k))
@@ -347,7 +353,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     if straight_edges:
         period = 2.0 * FOCAL_PITCH_FACTOR * spread * nyquist_safety
     else:
-        period = max(FOCAL_PITCH_FACTOR * near, 2.0 * spread) * nyquist_safety
+        period = max(FOCAL_PITCH_FACTOR * near, FOCAL_MAIN_SPREAD * spread_main, FOCAL_SPREAD * spread) * nyquist_safety
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3

@@ -702,12 +702,14 @@ class RayWave:
         power = SensorPropagator(be, self.sensor_geometry(scale)).forward(u_field, phi0)
         return be.to_host(power)
 
-    def focal_operator(self, distance_mm=None):
+    def focal_operator(self, distance_mm=None, precision="double"):
         """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once per
-        wave-plane-to-sensor distance (mm; default the lens's): a learning sensor distance rebuilds it on the
-        same grids."""
+        wave-plane-to-sensor distance (mm; default the lens's) and ``precision`` of its first step ("double"
+        for gradients; the forward PSFs of :meth:`run` use "single"): a learning sensor distance rebuilds it on
+        the same grids."""
         z = float(self.z_sensor - self.z_plane) if distance_mm is None else float(distance_mm)
-        if getattr(self, "_focal_op", None) is None or self._focal_op.z != z:
+        op = getattr(self, "_focal_op", None)
+        if op is None or op.z != z or op.precision != precision:
             from .focal import FocalPropagator
             from .propagate import gauss_legendre
             xp = np
@@ -724,7 +726,7 @@ class RayWave:
                                              self.focal["sensor_origin"], pl.sensor_pitch_mm, pl.n_sensor,
                                              pl.n_sensor_fft, nx, ny, xp=xp,
                                              transfer=self.focal.get("transfer"),
-                                             taper_guard_mm=self.focal.get("taper_guard_mm"))
+                                             taper_guard_mm=self.focal.get("taper_guard_mm"), precision=precision)
         return self._focal_op
 
     def doe_orders_factor(self, xp=np):
@@ -744,10 +746,11 @@ class RayWave:
             phi0[k] = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
         return doe_order_series(xp.asarray(phi0), geo["orders"], geo.get("central_zone"), xp)
 
-    def focal_intensity(self, u_field):
-        """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``)."""
+    def focal_intensity(self, u_field, precision="single"):
+        """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``; ``precision`` of
+        its matrix products, :class:`rwwarp.focal.FocalPropagator`)."""
         from .focal import pixel_power
-        op = self.focal_operator()
+        op = self.focal_operator(precision=precision)
         fac = self.doe_orders_factor(op.xp)
         if fac is not None:
             u_field = u_field * fac
@@ -755,12 +758,12 @@ class RayWave:
         power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
         return power if op.xp is np else op.xp.asnumpy(power)
 
-    def run(self) -> dict:
+    def run(self, focal_precision: str = "single") -> dict:
         """The whole model: PSFs as fractions of the entering power per pixel."""
         u_field = self.field_array()
         _LAST.update(field=u_field, origin=self.origin, pitch=self.plan.pitch_mm)
         if self.plan.method == "focal":
-            data = self.focal_intensity(u_field) / self.entering[:, None, None]
+            data = self.focal_intensity(u_field, focal_precision) / self.entering[:, None, None]
         else:
             phi0, scale = self.doe_phase()
             data = self.intensity(u_field, phi0, scale) / self.entering[:, None, None]
@@ -782,7 +785,7 @@ def paper_rescale(u, traced_power, pitch_mm: float, xp):
 
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
              rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0, method="auto",
-             memory_budget_bytes=None, focal_patch_tol=1e-5):
+             memory_budget_bytes=None, focal_patch_tol=1e-5, focal_precision="single"):
     return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
                    rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method=method,
-                   memory_budget_bytes=memory_budget_bytes, focal_patch_tol=focal_patch_tol).run()
+                   memory_budget_bytes=memory_budget_bytes, focal_patch_tol=focal_patch_tol).run(focal_precision)

@@ -50,10 +50,13 @@ def test_batched_cache_build_equals_one_batch_and_respects_budget():
     p2 = split.psfs(wls).detach().numpy()
     np.testing.assert_allclose(p2, p1, rtol=0, atol=1e-12 * p1.max())
     # the DOE gradient through the batched cache (design wavelength, weighted PSFs, random direction)
-    # against a 4-point central difference: measured 2.2e-11 (h = 0.01 rad), tolerance 2e-10
+    # against a 4-point central difference. With the current focal planner the difference does not follow
+    # the O(h^4) truncation: 4.9e-11, 1.4e-10, 4.9e-11, 1.7e-11 at h = 0.005, 0.01, 0.02, 0.04 rad (one
+    # batch) and 2.35e-10 at 0.01 (split build): the finite difference's own floor (2.2e-11 with the
+    # previous planner). Tolerance 5e-10, about twice the largest; a wrong gradient term is off by > 1e-4
     from _gradcheck import directional_error
     w = torch.from_numpy(np.random.default_rng(4).random((len(fields), 1, 21, 21)))
-    assert directional_error(lambda: (split.psfs([0.55]) * w).sum(), m.doe, 0.01) < 2e-10
+    assert directional_error(lambda: (split.psfs([0.55]) * w).sum(), m.doe, 0.01) < 5e-10
 
 
 def test_budget_too_small_warns_and_traces_one_source_at_a_time():
