@@ -253,7 +253,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       cell-phase error near the patch) and twice the spread of every kept ray's landing point under the
       quadratic transfer (aliasing); with ``straight_edges`` (a square pupil) ``2 FOCAL_PITCH_FACTOR`` times
       that spread: the patch's space-bandwidth product, not the beam's;
-    * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 2)`` across the footprint
+    * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 4)`` across the footprint
       (``samples``: wave-plane samples across it).
 
     Returns ``(plan, geometry)``; ``geometry`` has ``sensor_origin`` (S, 2), ``orders`` (the kept
@@ -357,12 +357,12 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3
-    # rays: the splat is first order across a tube (its phase slope), so a tube may span two samples
-    # where the grid is fine (14 deg: 6.5e-5 at 1 and at 0.5 rays per sample); the pupil rim's error is
-    # first order in the ray pitch (on axis 1.5e-4 / 6.6e-5 at 179 / 357 rays across), so at least
-    # FOCAL_RIM_RAYS rays cross the pupil where the grid has that many samples
+    # rays: the splat is first order across a tube (its phase slope), so a tube may span several samples
+    # (Cooke triplet, 14 deg, 64 px, against the stored truth: 2.14e-5 / 2.22e-5 / 2.37e-5 at samples / 2, 3,
+    # 4 rays across); the pupil rim's error is first order in the ray pitch (on axis, 16 px: 1.5e-4 / 6.6e-5
+    # at 179 / 357 rays across), so at least FOCAL_RIM_RAYS rays cross the pupil where the grid has that many
     samples = width_mm / pitch
-    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), 0.5 * samples))) + 1
+    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), samples / 4))) + 1
     reasons = (
         f"focal propagation: reference wave to the patch centre handled analytically (rwwarp.focal)",
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
@@ -373,7 +373,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
-        f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 2) -> {ray_grid} across the pupil",
+        f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 4) -> {ray_grid} across the pupil",
     )
     plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
