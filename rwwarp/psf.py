@@ -83,7 +83,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
-        focal_precision: str = "single") -> PSF:
+        focal_precision: str = "auto") -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -131,11 +131,12 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Focal method with a DOE off its design wavelength: a diffraction order other than the main one
         is computed only if it puts at least this fraction of the power on the patch (default 1e-5;
         the orders left out are reported in ``info``). Larger values keep fewer, defocused orders.
-    focal_precision : "single" | "double"
+    focal_precision : "auto" | "single" | "double"
         Arithmetic of the focal method's matrix products (its phases are formed in float64; the rest is
-        complex128). "single" (default) halves their time and memory and moved the Cooke triplet, AC254 and
+        complex128). "single" halves their time and memory on the CPU and moved the Cooke triplet, AC254 and
         A489 errors against the independent truth in the third digit; "double" matches the torch bridge's
-        gradients' arithmetic.
+        gradients' arithmetic. "auto" (default): single on the CPU, double on CUDA (on an H200 the complex128
+        products, on FP64 tensor cores, were faster: Cooke 14 deg 12.2 against 17.0 ms).
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
@@ -172,7 +173,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
-            focal_patch_tol: float = 1e-5, focal_precision: str = "single") -> PSFMap:
+            focal_patch_tol: float = 1e-5, focal_precision: str = "auto") -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -219,8 +220,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     t0 = time.perf_counter()
     checks.check_choice(method, "method", ("auto", "focal", "asm"))
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
-    if focal_precision not in ("single", "double"):
-        raise ValueError(f"focal_precision must be 'single' or 'double', got {focal_precision!r}")
+    if focal_precision not in ("auto", "single", "double"):
+        raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
     from .plan import default_memory_budget_bytes, MemoryBudgetError
     if memory_budget_gb is not None:
         if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):

@@ -758,8 +758,11 @@ class RayWave:
         power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
         return power if op.xp is np else op.xp.asnumpy(power)
 
-    def run(self, focal_precision: str = "single") -> dict:
-        """The whole model: PSFs as fractions of the entering power per pixel."""
+    def run(self, focal_precision: str = "auto") -> dict:
+        """The whole model: PSFs as fractions of the entering power per pixel (``focal_precision``: the focal
+        method's matrix products, "auto" = single on the CPU, double on CUDA; see :func:`rwwarp.psf`)."""
+        if focal_precision == "auto":
+            focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         u_field = self.field_array()
         _LAST.update(field=u_field, origin=self.origin, pitch=self.plan.pitch_mm)
         if self.plan.method == "focal":
@@ -785,7 +788,7 @@ def paper_rescale(u, traced_power, pitch_mm: float, xp):
 
 def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
              rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0, method="auto",
-             memory_budget_bytes=None, focal_patch_tol=1e-5, focal_precision="single"):
+             memory_budget_bytes=None, focal_patch_tol=1e-5, focal_precision="auto"):
     return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
                    rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method=method,
                    memory_budget_bytes=memory_budget_bytes, focal_patch_tol=focal_patch_tol).run(focal_precision)
