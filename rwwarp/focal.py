@@ -220,9 +220,9 @@ class FocalPropagator:
             Q = -a * x * x + 2.0 * a * u0 * h * ii[None, :] + b * ii[None, :] ** 2
             K = -b * mm[None, :] ** 2
             amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * h
-            Pd = xp.asarray(amp * np.exp(1j * P))
-            Qd = xp.asarray(np.exp(1j * Q))
-            Kd = xp.asarray(np.exp(1j * K))
+            Pd = xp.asarray(amp * _cis(P, np))
+            Qd = xp.asarray(_cis(Q, np))
+            Kd = xp.asarray(_cis(K, np))
             # demodulating by f_c: h_G carries exp(2 pi i f_c.(p - x)); the field carries exp(-2 pi i f_c.x)
             # removed, the output exp(2 pi i f_c.p) is removed: nothing left but constants
             self._E.append(Kd[:, toe] * Pd[:, :, None] * Qd[:, None, :])
@@ -258,15 +258,15 @@ class FocalPropagator:
         room = (self.nf - self.ns) * hs
         keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room)
         rem = xp.where(keep, w - wg, 0.0)
-        self._HR = xp.where(keep, xp.exp(2j * np.pi * z * rem), 0.0)
+        self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
         self.kept_band_fraction = float(xp.mean(keep))
         self._rem = rem           # d(phase of H_R)/dz / (2 pi), kept band (for the distance derivative)
         self._dHR = None
         # output factors: U(p) = 1/nf^2 sum_m B_m exp(2 pi i nu_m (p - s0))
         nx = xp.asarray(np.asarray(nodes_x_mm, float) - s0[:, 0:1])
         ny = xp.asarray(np.asarray(nodes_y_mm, float) - s0[:, 1:2])
-        self._Fx = xp.exp(2j * np.pi * nu[None, None, :] * nx[:, :, None]) / self.nf
-        self._Fy = xp.exp(2j * np.pi * nu[None, None, :] * ny[:, :, None]) / self.nf
+        self._Fx = _cis(2.0 * np.pi * nu[None, None, :] * nx[:, :, None], xp) / self.nf
+        self._Fy = _cis(2.0 * np.pi * nu[None, None, :] * ny[:, :, None], xp) / self.nf
 
     # ------------------------------------------------------------------ operator
     def sensor_grid_field(self, field):
