@@ -205,6 +205,10 @@ class FocalPropagator:
         # (u0 = p_0 + z g), x_i = x0 + i h, a = pi A and b = a h hs, -a (u_j - x_i)^2 is the phase of
         # P_j Q_i K(j - i): P_j = exp(-i a u_j^2 + 2 i a x0 hs j + i b j^2 + 2 i a u0 x0),
         # Q_i = exp(-i a x_i^2 + 2 i a u0 h i + i b i^2), K(m) = exp(-i b m^2)
+        if precision not in ("double", "single"):
+            raise ValueError(f"precision must be 'double' or 'single', got {precision!r}")
+        self.precision = precision
+        cdt = np.complex64 if precision == "single" else np.complex128   # the factors are formed in it directly
         jj = np.arange(self.ns, dtype=np.float64)
         ii = np.arange(self.n, dtype=np.float64)
         mm = np.arange(-(self.n - 1), self.ns, dtype=np.float64)
@@ -220,22 +224,16 @@ class FocalPropagator:
             Q = -a * x * x + 2.0 * a * u0 * h * ii[None, :] + b * ii[None, :] ** 2
             K = -b * mm[None, :] ** 2
             amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * h
-            Pd = xp.asarray(amp * _cis(P, np))
-            Qd = xp.asarray(_cis(Q, np))
-            Kd = xp.asarray(_cis(K, np))
+            Pd = amp * _cis(P, np)
+            if taper_guard_mm is not None:   # the taper weights the sensor-side points p (rows of E)
+                nd = np.asarray((nodes_x_mm, nodes_y_mm)[ax], dtype=np.float64).reshape(S, -1)
+                Pd = Pd * sensor_taper(ps[:, :, ax], nd.min(1) - float(taper_guard_mm), nd.max(1) + float(taper_guard_mm))
+            Pd = xp.asarray(Pd.astype(cdt))
+            Qd = xp.asarray(_cis(Q, np).astype(cdt))
+            Kd = xp.asarray(_cis(K, np).astype(cdt))
             # demodulating by f_c: h_G carries exp(2 pi i f_c.(p - x)); the field carries exp(-2 pi i f_c.x)
             # removed, the output exp(2 pi i f_c.p) is removed: nothing left but constants
             self._E.append(Kd[:, toe] * Pd[:, :, None] * Qd[:, None, :])
-        if taper_guard_mm is not None:
-            for ax, nodes in ((0, nodes_x_mm), (1, nodes_y_mm)):
-                nd = np.asarray(nodes, dtype=np.float64).reshape(S, -1)
-                w = sensor_taper(ps[:, :, ax], nd.min(1) - float(taper_guard_mm), nd.max(1) + float(taper_guard_mm))
-                self._E[ax] = self._E[ax] * xp.asarray(w)[:, :, None]
-        if precision not in ("double", "single"):
-            raise ValueError(f"precision must be 'double' or 'single', got {precision!r}")
-        self.precision = precision
-        if precision == "single":
-            self._E = [e.astype(np.complex64) for e in self._E]
         self._geo = X
         self._dE = None
         # step 2: remainder transfer on the padded sensor grid (true frequency f_c + nu)
