@@ -159,9 +159,9 @@ class FocalPropagator:
     transfer : None or ``(g, q)``, (S, 2) each: the quadratic part's gradient (dimensionless) and diagonal
         curvature (mm) in place of the Taylor values at ``f_c`` (any choice keeps the operator exact; a fit
         to the beam narrows the sensor-side box, :func:`rwwarp.plan.fit_quadratic_transfer`).
-    precision : "double" | "single"  arithmetic of step 1's matrix products (the chirps themselves are formed
-        in float64 and rounded once; step 2 and the output are complex128). ``"single"`` halves step 1's time
-        and memory; against rs_lens_psf the Cooke triplet (0 / 14 deg), the AC254 and the A489 read the same
+    precision : "double" | "single"  arithmetic of step 1's matrix products (the phases of its chirp factors
+        are formed in float64, the factors rounded to the working precision before their product; step 2 and
+        the output are complex128). ``"single"`` halves step 1's time and memory on the CPU; against rs_lens_psf the Cooke triplet (0 / 14 deg), the AC254 and the A489 read the same
         to 3 digits (5.91e-5 / 3.91e-5 / 2.96e-5 / 2.91e-5). Gradients use ``"double"``.
     taper_guard_mm : None or float  ``V`` is kept whole within this distance of the output nodes' extent
         (the remainder's largest displacement over the beam's band plus its kernel's spread) and tapered

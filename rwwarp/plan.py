@@ -249,10 +249,11 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       zero between the patch widened by ``FOCAL_TAPER_GUARD`` displacements plus ``3 / B`` and the grid's edge
       (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`);
     * the wave-plane pitch sets the period of the generalised-Fresnel sum, ``1 / (|A| pitch)`` (``|A| ~ n /
-      (lambda z)``): ``nyquist_safety`` times the larger of ``FOCAL_PITCH_FACTOR`` sensor-side grids (the
-      cell-phase error near the patch) and twice the spread of every kept ray's landing point under the
-      quadratic transfer (aliasing); with ``straight_edges`` (a square pupil) ``2 FOCAL_PITCH_FACTOR`` times
-      that spread: the patch's space-bandwidth product, not the beam's;
+      (lambda z)``): ``nyquist_safety`` times the largest of ``FOCAL_PITCH_FACTOR`` sensor-side grids (the
+      cell-phase error near the patch), ``FOCAL_MAIN_SPREAD`` times the spread of the main order's landing
+      points under the quadratic transfer and ``FOCAL_SPREAD`` times that of every kept order's (aliasing);
+      with ``straight_edges`` (a square pupil) ``2 FOCAL_PITCH_FACTOR`` times the whole spread: the patch's
+      space-bandwidth product, not the beam's;
     * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 4)`` across the footprint
       (``samples``: wave-plane samples across it).
 
@@ -267,10 +268,10 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     w_c, g, q = transfer_curvature(carrier, inv_lam)
     boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
     g_fit, q_fit = g.copy(), q.copy()
-    near = 0.0   # the part of the sensor-side box around the patch (patch, displacement, margins)
     spread = spread_main = 0.0   # the light's extent at the sensor under the quadratic transfer (all, main order)
     for k in range(S):
         T = centers[k]
+        main_m, main_c = max(orders[k], key=lambda mc: abs(mc[1]))
         cand = []
         for m, c in orders[k]:
             if abs(c) ** 2 < order_tol:
@@ -297,11 +298,11 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             # pixels), and its power is reported
             reach = float(np.prod(np.minimum(lhi - llo, 2 * (half_w + margin)) + 1e-12))
             share = reach / float(np.prod(lhi - llo + 1e-12))
-            if m != max(orders[k], key=lambda mc: abs(mc[1]))[0] and abs(c) ** 2 * share < patch_tol:
+            if m != main_m and abs(c) ** 2 * share < patch_tol:
                 lost[k] += abs(c) ** 2
                 continue
             keep.append((_order_index(m), complex(c)))
-            used.append((f, L, x, m == max(orders[k], key=lambda mc: abs(mc[1]))[0]))
+            used.append((f, L, x, m == main_m))
         if used:
             g_fit[k], q_fit[k] = fit_quadratic_transfer([u[0] for u in used], [u[1] for u in used],
                                                         [u[2] for u in used], carrier[k], g[k], q[k], z)
@@ -315,9 +316,8 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             if main:
                 mlo, mhi = np.minimum(mlo, lg.min(0)), np.maximum(mhi, lg.max(0))
         if not keep:  # nothing reaches the patch: keep the main order so the (dark) patch is computed
-            m, c = max(orders[k], key=lambda mc: abs(mc[1]))
-            keep.append((_order_index(m), complex(c)))
-            lost[k] -= abs(c) ** 2
+            keep.append((_order_index(main_m), complex(main_c)))
+            lost[k] -= abs(main_c) ** 2
         # the quadratic model's field has tails as wide as the remainder's displacement, and H_R carries the
         # box's cut edge that far: the margin grows with it (measured on the Cooke triplet at 14 deg against
         # rs_lens_psf, fitted transfer, 95 um shift, 16 px: 1.25e-4, 8.7e-5, 6.6e-5 at 1, 1.5, 2 shifts)
@@ -331,7 +331,6 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         spread_main = max(spread_main, float(np.max(mhi - mlo)) + 2.0 * margin_k)
         lo, hi = T - half_w - shifts[k] - margin_k, T + half_w + shifts[k] + margin_k
         boxes.append((lo, hi))
-        near = max(near, 2.0 * (half_w + shifts[k] + margin_k))
         kept.append(keep)
         bands[k] = band
     A = np.abs(1.0 / (z * q_fit))
@@ -346,14 +345,15 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     # average weighted by the kernel at the cell centre, errs with the kernel's phase slope across a cell, so
     # the period is FOCAL_PITCH_FACTOR x nyquist_safety sensor-side grids (Cooke triplet, 16 px, against
     # rs_lens_psf: 14 deg 1.3e-4 / 6.5e-5 and on axis 1.5e-4 / 6.6e-5 at 2 x 2 / 3 x 2 grids); and it clears
-    # twice the spread of the light (its periodic copies must miss the patch). A straight pupil edge's
+    # the spread of the light, its periodic copies must miss the patch: 3 x safety spreads of the main order
+    # (A489 at 10 deg: 1.1e-3 / 5.8e-4 at 2 / 3), 2 x of the weaker ones. A straight pupil edge's
     # diffraction falls off as 1 / r (a round one's as r^-3/2), so its copies reach the patch with more: the
     # period is 2 x FOCAL_PITCH_FACTOR spreads (a thin lens + square DOE 20 mm before the sensor, 16 px,
     # against rs_thin_lens_psf: 1.5e-3 / 1.9e-4 / 8.5e-5 at 3 / 6 / 9 times the spread).
     if straight_edges:
         period = 2.0 * FOCAL_PITCH_FACTOR * spread * nyquist_safety
     else:
-        period = max(FOCAL_PITCH_FACTOR * near, FOCAL_MAIN_SPREAD * spread_main, FOCAL_SPREAD * spread) * nyquist_safety
+        period = max(FOCAL_PITCH_FACTOR * box, FOCAL_MAIN_SPREAD * spread_main, FOCAL_SPREAD * spread) * nyquist_safety
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3

@@ -705,8 +705,8 @@ class RayWave:
     def focal_operator(self, distance_mm=None, precision="double"):
         """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once per
         wave-plane-to-sensor distance (mm; default the lens's) and ``precision`` of its first step ("double"
-        for gradients; the forward PSFs of :meth:`run` use "single"): a learning sensor distance rebuilds it on
-        the same grids."""
+        for gradients; the forward PSFs of :meth:`run`: single on the CPU, double on CUDA): a learning sensor
+        distance rebuilds it on the same grids."""
         z = float(self.z_sensor - self.z_plane) if distance_mm is None else float(distance_mm)
         op = getattr(self, "_focal_op", None)
         if op is None or op.z != z or op.precision != precision:

@@ -667,12 +667,7 @@ class Tracer:
                 t_buf = t_dummy
             steps.append((kind, (self.params if params is None else params)[i], n_in, n_out, t_buf))
         chunks = self._chunks(n)
-        if len(chunks) == 1:
-            self._trace_range(steps, gen, outs, wl, None)
-        else:
-            futures = [_pool(len(chunks)).submit(self._trace_range, steps, gen, outs, wl, c) for c in chunks]
-            for f in futures:
-                f.result()
+        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c), chunks, [None] * len(chunks))
         pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
         if keep is True:
