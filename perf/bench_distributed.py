@@ -104,7 +104,10 @@ def _paper_map_worker(device: str, repeat: int):
         kw = dict(size=prob["size"], device=device, focal_patch_tol=prob["focal_patch_tol"])
         D.psf_map(lens, fields[:2], prob["wavelengths_um"], **kw)   # warm-up: kernels built, planner warm
         times, maps = [], None
-        for _ in range(repeat):
+        # RWWARP_BENCH_REPEATS="2,1": timed maps of each problem (the Cooke hybrid's 900 PSFs take
+        # two minutes on one GPU, and its first map shows no warm-up effect)
+        reps = os.environ.get("RWWARP_BENCH_REPEATS")
+        for _ in range(int(reps.split(",")[PAPER_MAPS.index(prob)]) if reps else repeat):
             _barrier()
             t = time.perf_counter()
             maps = D.psf_map(lens, fields, prob["wavelengths_um"], depths_mm=prob["depths_mm"], **kw)
