@@ -1,0 +1,92 @@
+"""Where one joint design step of a config's ``e2e`` arm spends its time on a device.
+
+    python perf/profile_step.py --config cooke_hybrid --preset gpu --device cuda [--out DIR]
+
+Runs the arm's joint step as ``torch_bridge.train`` does (one wavelength per colour channel, live PSFs,
+render, network, backward, both optimisers): one warm-up step, ``--steps`` timed steps (synchronised),
+then one step under cProfile (host time by function, own and cumulative) and one under
+``torch.profiler`` with CUDA activity (every kernel launched in the process: torch's, Warp's and CuPy's),
+which gives the device-busy time against the step's wall time: a step far longer than its kernels is
+bound by the host (launches, synchronisations, planning), not by arithmetic. Prints the tables and
+writes them to ``DIR/profile_step_<config>_<device>.txt``.
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import pstats
+import time
+from pathlib import Path
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--config", default="cooke_hybrid")
+    ap.add_argument("--preset", default="gpu")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--arm", default=None, help="the arm to step (default: the first whose design method is e2e)")
+    ap.add_argument("--steps", type=int, default=2)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args()
+
+    import torch
+
+    from torch_bridge.train import Arm, _seed_all, load_config, train_step
+    root = Path(__file__).resolve().parent.parent
+    exp = load_config(str(root / "torch_bridge" / "configs" / f"{a.config}.yaml"), preset=a.preset)
+    arm_cfg = next(x for x in exp["arms"] if (x["name"] == a.arm if a.arm else x["config"]["design"]["method"] == "e2e"))
+    cfg = dict(arm_cfg["config"], device=a.device, progress=False)
+    _seed_all(int(cfg["seed"]))
+    arm = Arm(arm_cfg["name"], cfg, exp["source"], Path("unused"), progress=False)
+    cuda = a.device.startswith("cuda")
+
+    def step(k):
+        train_step(arm, k, {}, None)
+        arm.opt_net.step()
+        arm.opt_optics.step()
+        if cuda:
+            torch.cuda.synchronize()
+
+    lines = []
+
+    def say(s):
+        print(s, flush=True)
+        lines.append(s)
+    t = time.perf_counter()
+    step(0)
+    say(f"first step (plans, kernel builds) {time.perf_counter() - t:.2f} s")
+    times = []
+    for k in range(1, a.steps + 1):
+        t = time.perf_counter()
+        step(k)
+        times.append(time.perf_counter() - t)
+    say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
+    pr = cProfile.Profile()
+    t = time.perf_counter()
+    pr.enable()
+    step(a.steps + 1)
+    pr.disable()
+    say(f"profiled step {time.perf_counter() - t:.2f} s (cProfile adds overhead)")
+    for key, n in (("tottime", 40), ("cumtime", 40)):
+        s = io.StringIO()
+        pstats.Stats(pr, stream=s).sort_stats(key).print_stats(n)
+        say(f"== cProfile by {key}\n" + "\n".join(x[:160] for x in s.getvalue().splitlines()[4:]))
+    if cuda:
+        from torch.profiler import ProfilerActivity, profile
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            t = time.perf_counter()
+            step(a.steps + 2)
+            wall = time.perf_counter() - t
+        ev = [e for e in prof.events() if e.device_type.name == "CUDA"]
+        busy = sum(e.device_time for e in ev) / 1e6
+        say(f"torch.profiler step: wall {wall:.2f} s, {len(ev)} device kernels/copies, their summed device time {busy:.3f} s")
+        say(prof.key_averages().table(sort_by="device_time_total", row_limit=30, max_name_column_width=70))
+    if a.out:
+        p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}.txt"
+        p.write_text("\n".join(lines) + "\n")
+        print("written to", p)
+
+
+if __name__ == "__main__":
+    main()
