@@ -5,6 +5,7 @@
 #   bash perf/gpu_suite.sh c   # speed/accuracy chart, GPU tests
 #   bash perf/gpu_suite.sh d   # design smoke run: a489_aberration's gpu preset cut to 40 + 40 steps
 #   bash perf/gpu_suite.sh e   # focal PSFs (Cooke, AC254, A489), the Cooke F/4 joint step, the paper maps on 1 and 2 GPUs
+#   bash perf/gpu_suite.sh f   # the cooke_hybrid gpu preset's design step profiled, the Warp kernel tests on CUDA, GPU tests
 # Results JSON under $OUT (device tool) or perf/results.
 set -u
 part=${1:-a}
@@ -69,5 +70,13 @@ e)
                         | grep -v "use_ai2\|SamplingWarning" | tail -12
   echo "== paper maps"; timeout ${MAP_TIMEOUT:-300} python3 bench_distributed.py --problem paper --only map --device cuda \
                         --ranks ${MAP_RANKS:-1 2} --repeat 2 --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2 | tail -20
+  ;;
+f)
+  echo "== design step profile"; timeout 300 python3 profile_step.py --config cooke_hybrid --preset gpu --device cuda \
+                        --steps 3 --out "$RWWARP_RESULTS" 2>&1 | grep -v "use_ai2\|UserWarning\|arm = Arm" | head -${PROFILE_LINES:-60}
+  echo "== kernel tests";  (cd ../tests && timeout 150 python3 -m pytest -q kernels 2>&1 | tail -3)
+  echo "== GPU tests";     (cd ../tests && timeout 200 python3 -m pytest -q -m gpu 2>&1 | tail -3)
+  echo "== cooke f4";      timeout 240 python3 bench_cooke_f4.py --device cuda --out "$RWWARP_RESULTS" --steps 3 2>&1 \
+                           | grep -v "use_ai2\|SamplingWarning" | tail -8
   ;;
 esac

@@ -57,11 +57,22 @@ def main():
     step(0)
     say(f"first step (plans, kernel builds) {time.perf_counter() - t:.2f} s")
     times = []
-    for k in range(1, a.steps + 1):
-        t = time.perf_counter()
-        step(k)
-        times.append(time.perf_counter() - t)
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _common import GpuMemory
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    with GpuMemory(0.05) as mem:
+        for k in range(1, a.steps + 1):
+            t = time.perf_counter()
+            step(k)
+            times.append(time.perf_counter() - t)
     say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
+    if cuda:
+        import cupy
+        say(f"peak memory over the timed steps: torch allocator {torch.cuda.max_memory_allocated() / 1e9:.2f} GB, "
+            f"CuPy pool {cupy.get_default_memory_pool().total_bytes() / 1e9:.2f} GB, device used (nvidia-smi) "
+            f"{mem.peak / 1024:.2f} GiB; device {torch.cuda.get_device_name()}")
     pr = cProfile.Profile()
     t = time.perf_counter()
     pr.enable()

@@ -715,6 +715,9 @@ class RayWave:
             xp = np
             if self.tracer.device.startswith("cuda"):
                 import cupy as xp
+
+                from .backend import ensure_cufft_plan_cache
+                ensure_cufft_plan_cache()       # on the current device, where the operator's FFTs run
             px, py = self.pixel_centres()
             t, _ = gauss_legendre(self.gauss_nodes)
             off = 0.5 * self.pixel * t

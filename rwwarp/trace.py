@@ -44,6 +44,11 @@ def init_warp():
 
 #: fewest rays per CPU thread worth a parallel chunk (below it the launch overhead dominates)
 PARALLEL_MIN_RAYS = 32768
+#: Copies of a surface's parameter row the rays read while recording (:class:`Tracer` ``grad_replicas``):
+#: on a GPU the adjoint's float64 atomic additions of ~10^6 rays into one row serialise; over 1024 copies
+#: each address takes ~10^3 of them. On the CPU (one thread) a few copies keep the path exercised.
+GRAD_REPLICAS_GPU = 1024
+GRAD_REPLICAS_CPU = 4
 _POOL = None
 _POOL_LOCK = threading.Lock()
 
@@ -187,18 +192,62 @@ def _disc_cell_fractions(n: int) -> np.ndarray:
     return np.clip(out, 0.0, 1.0)
 
 
-_RIM_CELLS: dict = {}   # (device, n) -> the device array of disc_cells(n) (Tracer.rim_cells)
+def _nbytes(a) -> int:
+    """Bytes of a numpy array or a Warp array (``capacity``)."""
+    return int(a.nbytes) if hasattr(a, "nbytes") else int(a.capacity)
 
 
-@functools.lru_cache(maxsize=16)
+class _BytesLRU:
+    """A least-recently-used cache bounded by the bytes of its values (``nbytes``), thread-safe. The rim
+    cells of a pupil grid cost tens of ms to make; a design step plans each source's own grid (dozens of
+    sizes), which a cache of a fixed number of entries cycles through without a hit."""
+
+    def __init__(self, max_bytes: int):
+        import collections
+        import threading
+        self.max_bytes = int(max_bytes)
+        self._d = collections.OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, key, make):
+        with self._lock:
+            v = self._d.get(key)
+            if v is not None:
+                self._d.move_to_end(key)
+                return v
+        v = make()
+        with self._lock:
+            if key not in self._d:
+                self._d[key] = v
+                self._bytes += _nbytes(v)
+                while len(self._d) > 1 and self._bytes > self.max_bytes:
+                    _, old = self._d.popitem(last=False)
+                    self._bytes -= _nbytes(old)
+        return v
+
+
+#: Host bytes kept of :func:`disc_cells` results, and device bytes of their copies (per process; a
+#: 1400^2 pupil grid's cells take 47 MB; a miss on the device costs an upload, one on the host tens of ms).
+RIM_CACHE_HOST_BYTES = 1 << 30
+RIM_CACHE_DEVICE_BYTES = 1 << 28
+_DISC_CELLS = _BytesLRU(RIM_CACHE_HOST_BYTES)
+_RIM_CELLS = _BytesLRU(RIM_CACHE_DEVICE_BYTES)   # (device, n) -> the device array of disc_cells(n) (Tracer.rim_cells)
+
+
 def disc_cells(n: int) -> np.ndarray:
     """Per cell of the ``n x n`` grid over [-1, 1]^2 (row-major, rows +v): ``(f, du, dv)``, the fraction
     of the cell inside the unit disc (:func:`disc_cell_fractions`, exact) and the offset (normalised pupil
     units) from the cell's centre to the centroid of that part (0 for whole cells; from a 24 x 24
     sub-grid of each cell the circle crosses; for a sliver no sub-sample falls in, the cell's point nearest
     the disc's centre). A rim ray starts at that centroid, inside the disc, so
-    that a clear aperture which is the disc's image does not clip it. Read-only."""
-    f = disc_cell_fractions(n)
+    that a clear aperture which is the disc's image does not clip it. Read-only (cached, see
+    :data:`RIM_CACHE_HOST_BYTES`)."""
+    return _DISC_CELLS.get(int(n), lambda: _make_disc_cells(int(n)))
+
+
+def _make_disc_cells(n: int) -> np.ndarray:
+    f = _disc_cell_fractions(n)
     out = np.zeros((n * n, 3))
     out[:, 0] = f
     part = np.flatnonzero((f > 0.0) & (f < 1.0))
@@ -340,10 +389,16 @@ class Tracer:
     threads : int, optional
         CPU only, without gradients: trace this many ray chunks in parallel (default: the cores this
         process may use, :func:`cpu_threads`). 1 traces in the calling thread.
+    grad_replicas : int, optional
+        With ``requires_grad``: copies of each surface's parameter row the rays read (a power of two;
+        ray ``i`` reads copy ``i mod R``), so the adjoint's atomic additions into the parameters'
+        gradients spread over ``R`` addresses (see ``rwwarp.kernels.trace``). Default
+        :data:`GRAD_REPLICAS_GPU` on a GPU, :data:`GRAD_REPLICAS_CPU` on the CPU (one thread: no
+        contention, the copies only cost their sum).
     """
 
     def __init__(self, lens, wavelengths_um, device: str = "cpu", dtype: str = "float64",
-                 requires_grad: bool = False, threads: int | None = None):
+                 requires_grad: bool = False, threads: int | None = None, grad_replicas: int | None = None):
         init_warp()
         self.threads = cpu_threads() if threads is None else max(1, int(threads))
         self.lens = lens
@@ -353,6 +408,12 @@ class Tracer:
         self.np_dtype = np.float64 if self.scalar == wp.float64 else np.float32
         self.K = ktrace.make_trace_kernels(self.scalar)
         self.requires_grad = requires_grad
+        if grad_replicas is None:
+            grad_replicas = GRAD_REPLICAS_CPU if self.device == "cpu" else GRAD_REPLICAS_GPU
+        r = int(grad_replicas)
+        if r < 1 or r & (r - 1):
+            raise ValueError(f"Tracer: grad_replicas must be a power of two >= 1, got {grad_replicas!r}")
+        self.grad_replicas = r
         wl0 = self.wavelengths_um[0]
         self.pupils = paraxial.pupils(lens, wl0)
         nw = len(self.wavelengths_um)
@@ -572,15 +633,11 @@ class Tracer:
 
     def rim_cells(self, grid_n: int):
         """:func:`disc_cells` of a ``grid_n`` pupil grid as a device array of ``wp.vec3d`` (made once per
-        grid size and device, shared by the tracers of the process; read-only)."""
-        key = (str(self.device), int(grid_n))
-        a = _RIM_CELLS.get(key)
-        if a is None:
-            if len(_RIM_CELLS) >= 16:                       # a few grids' worth (n^2 x 24 bytes each)
-                _RIM_CELLS.pop(next(iter(_RIM_CELLS)))
-            a = _RIM_CELLS[key] = wp.array(np.ascontiguousarray(disc_cells(grid_n)), dtype=wp.vec3d,
-                                           device=self.device)
-        return a
+        grid size and device, shared by the tracers of the process, up to :data:`RIM_CACHE_DEVICE_BYTES`;
+        read-only)."""
+        return _RIM_CELLS.get((str(self.device), int(grid_n)),
+                              lambda: wp.array(np.ascontiguousarray(disc_cells(grid_n)), dtype=wp.vec3d,
+                                               device=self.device))
 
     def no_rim_cells(self):
         """The placeholder ``(1,)`` cell array of a launch without rim weighting."""
@@ -665,7 +722,7 @@ class Tracer:
                 if t_dummy is None:
                     t_dummy = wp.zeros(1, dtype=sc, device=dev)  # placeholder for non-refracting surfaces
                 t_buf = t_dummy
-            steps.append((kind, (self.params if params is None else params)[i], n_in, n_out, t_buf))
+            steps.append((kind, *self._param_rows((self.params if params is None else params)[i]), n_in, n_out, t_buf))
         chunks = self._chunks(n)
         run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c), chunks, [None] * len(chunks))
         pos, dr, opl, valid = outs[-1] if last else gen
@@ -685,16 +742,27 @@ class Tracer:
         row = np.zeros(ktrace.N_PARAMS)
         row[ktrace.P_Z] = z_mm
         row[ktrace.P_SD] = -1.0
-        params = wp.array(row.astype(self.np_dtype), dtype=sc, device=dev)
+        params = wp.array(row.astype(self.np_dtype)[None], dtype=sc, device=dev)
         out = _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                           wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                           wp.empty(n, dtype=sc, device=dev, requires_grad=g),
                                           wp.empty(n, dtype=wp.int32, device=dev)))
         idx = self.n_tables[surface_index]
         dummy = wp.zeros(1, dtype=sc, device=dev)
-        wp.launch(K.surface_kernel, dim=n, inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.wl, params, idx,
+        wp.launch(K.surface_kernel, dim=n, inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.wl, params, 0, idx,
                                                    idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
         return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
+
+    def _param_rows(self, p):
+        """``(rows, rmask)`` the kernels read a surface's parameters from: without gradients the row
+        itself as a (1, N_PARAMS) view; with them :attr:`grad_replicas` copies made by
+        ``replicate_kernel`` (recorded on an active tape, whose adjoint sums them back into ``p.grad``)."""
+        if not self.requires_grad or not p.requires_grad:
+            return p.reshape((1, ktrace.N_PARAMS)), 0
+        r = self.grad_replicas
+        rows = wp.zeros((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
+        wp.launch(self.K.replicate_kernel, dim=ktrace.N_PARAMS, inputs=[p, r], outputs=[rows], device=self.device)
+        return rows, r - 1
 
     def _chunks(self, n: int):
         """Ray index ranges traced in parallel: one per thread on the CPU without a tape and with at least
@@ -716,13 +784,13 @@ class Tracer:
         n = gen[0].shape[0] if rng is None else rng[1] - rng[0]
         state = tuple(cut(a) for a in gen)
         wlc = cut(wl)
-        for (kind, params, n_in, n_out, t_buf), out in zip(steps, outs):
+        for (kind, rows, rmask, n_in, n_out, t_buf), out in zip(steps, outs):
             nxt = tuple(cut(a) for a in out)
             tc = cut(t_buf) if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT) else t_buf
             if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT):
-                wp.launch(K.intersect_kernel, dim=n, inputs=[state[0], state[1], state[3], params], outputs=[tc],
+                wp.launch(K.intersect_kernel, dim=n, inputs=[state[0], state[1], state[3], rows, rmask], outputs=[tc],
                           device=dev, record_tape=False)
-            wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, params, n_in, n_out, kind, tc],
+            wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, kind, tc],
                       outputs=list(nxt), device=dev)
             state = nxt
 
