@@ -203,10 +203,8 @@ class _BytesLRU:
     sizes), which a cache of a fixed number of entries cycles through without a hit."""
 
     def __init__(self, max_bytes: int):
-        import collections
-        import threading
         self.max_bytes = int(max_bytes)
-        self._d = collections.OrderedDict()
+        self._d = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
