@@ -68,6 +68,9 @@ def main():
             step(k)
             times.append(time.perf_counter() - t)
     say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
+    prov = arm.provider
+    if hasattr(prov, "plans_made"):
+        say(f"live plans made {prov.plans_made}, reused {prov.plans_reused} (replan_every {prov.replan_every})")
     if cuda:
         import cupy
         say(f"peak memory over the timed steps: torch allocator {torch.cuda.max_memory_allocated() / 1e9:.2f} GB, "

@@ -648,6 +648,17 @@ class RayWave:
         scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in self.wls])
         return phi0, scale
 
+    def release_operators(self):
+        """Drop the cached focal operator (:meth:`focal_operator`; its factors take tens of MB on a
+        large grid); the next use builds it again. Plans, windows and patches are kept."""
+        self._focal_op = None
+
+    def snapped_centres(self, center_mm) -> np.ndarray:
+        """The patch centres ((nsrc, 2) mm) this batch would have for ``center_mm`` ((x, y) mm, one pair or
+        one per source): snapped to the sensor's pixel centres as in the constructor. Changes nothing; a
+        plan made for other centres (equal after snapping) computes the same patches."""
+        return _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
+
     def recentre(self, center_mm):
         """Move the sensor patches to new centres ((x, y) mm, one pair or one per source; snapped to
         the sensor's pixel centres as in the constructor). Only the output positions change: the

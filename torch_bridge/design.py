@@ -112,14 +112,45 @@ class LiveProvider:
     (the green reference wavelength ``wavelength_ref_um``). ``tile``: sources per chunk; chunks are
     checkpointed (no tape kept in the forward pass, recomputed in the backward pass) so the peak
     memory is one chunk's; each chunk's estimated peak is checked against ``memory_budget_bytes`` (default
-    half the available memory) before it is traced."""
+    half the available memory) before it is traced.
+
+    ``replan_every``: a focal source's plan (its :class:`rwwarp.psf.RayWave`: pilot trace, grids, kept
+    DOE orders, fitted transfer, patch) is made again at most every this many calls; in between the
+    source is traced and propagated on its last plan with the current values. A plan is made again
+    sooner when the source's patch centre has moved to another pixel, or when rays fell
+    outside its wave-plane window in the last call. 1 (default): every call plans afresh. The
+    focal operator is exact for any fitted transfer and the grids carry margins (``nyquist_safety``,
+    the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few small optimiser steps
+    old samples the source as well; gradients are exact at the plan used. Counts: :attr:`plans_made`,
+    :attr:`plans_reused`."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
-                 tile: int | None = None, memory_budget_bytes: int | None = None):
+                 tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
         self.memory_budget_bytes = memory_budget_bytes
+        if int(replan_every) != replan_every or replan_every < 1:
+            raise ValueError(f"LiveProvider: replan_every must be an integer >= 1, got {replan_every!r}")
+        self.replan_every = int(replan_every)
+        # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays fell outside its window]
+        self._focal_rws = {}
+        self.plans_made = 0
+        self.plans_reused = 0
+
+    def _reused(self, keys, centres):
+        """The kept focal RayWaves of ``keys`` (one source each) when every one is still usable (see the
+        class docstring), else None."""
+        if self.replan_every <= 1:
+            return None
+        out = []
+        for key, c in zip(keys, centres):
+            e = self._focal_rws.get(key)
+            if (e is None or e[1] >= self.replan_every or e[2]
+                    or not np.array_equal(e[0].snapped_centres(c), e[0].centers)):
+                return None
+            out.append(e[0])
+        return out
 
     def psfs(self, wavelengths_um, depth_mm=None, nodes: slice | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
@@ -147,19 +178,31 @@ class LiveProvider:
         names = list(values)
         tensors = [values[q] for q in names]
         outs = []
+        for e in self._focal_rws.values():
+            e[1] += 1
+            e[0].release_operators()   # the last call's operators (a learning distance rebuilds them anyway)
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
-            rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
-                           center_mm=src_c[sl])
-            rws = [rw]
-            # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
-            m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if rw.plan.method == "focal"
-                           else rw.nsrc)
-            if rw.plan.method == "focal" and rw.nsrc > 1:
-                # focal grids follow each source's patch and DOE orders: one plan per source
-                rws = [m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
-                                 pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
-                       for j in range(sl.start, sl.stop)]
+            keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
+            rws = self._reused(keys, src_c[sl])
+            if rws is not None:
+                self.plans_reused += len(rws)
+            else:
+                rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
+                               center_mm=src_c[sl])
+                rws = [rw]
+                # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
+                m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if rw.plan.method == "focal"
+                               else rw.nsrc)
+                if rw.plan.method == "focal" and rw.nsrc > 1:
+                    # focal grids follow each source's patch and DOE orders: one plan per source
+                    rws = [m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
+                                     pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
+                           for j in range(sl.start, sl.stop)]
+                self.plans_made += len(rws)
+                if rw.plan.method == "focal" and self.replan_every > 1:
+                    for key, r in zip(keys, rws):
+                        self._focal_rws[key] = [r, 0, False]
 
             def run(*ts, rws=rws, record=True):
                 vals = dict(zip(names, ts))
@@ -168,6 +211,10 @@ class LiveProvider:
                 outs.append(_Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
+            for key, r in zip(keys, rws):   # rays outside a kept plan's window: plan that source again next call
+                e = self._focal_rws.get(key)
+                if e is not None and e[0] is r:
+                    e[2] = bool(np.any(r.dropped.numpy()))
         return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
 
 
