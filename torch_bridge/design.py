@@ -117,12 +117,13 @@ class LiveProvider:
     ``replan_every``: a focal source's plan (its :class:`rwwarp.psf.RayWave`: pilot trace, grids, kept
     DOE orders, fitted transfer, patch) is made again at most every this many calls; in between the
     source is traced and propagated on its last plan with the current values. A plan is made again
-    sooner when the source's patch centre has moved to another pixel, or when rays fell
-    outside its wave-plane window in the last call. 1 (default): every call plans afresh. The
-    focal operator is exact for any fitted transfer and the grids carry margins (``nyquist_safety``,
-    the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few small optimiser steps
-    old samples the source as well; gradients are exact at the plan used. Counts: :attr:`plans_made`,
-    :attr:`plans_reused`."""
+    sooner when the source's patch centre has moved to another pixel, or when more rays fell outside
+    its wave-plane window in the last call than at the plan's first use. 1 (default): every call plans
+    afresh. The focal operator is exact for any fitted transfer and the grids carry margins
+    (``nyquist_safety``, the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few
+    small optimiser steps old samples the source as well (a 5e-5 change of a curvature: 4.7e-6 from a
+    fresh plan, ``tests/torch_bridge/test_live_replan.py``); gradients are exact at the plan used.
+    Counts: :attr:`plans_made`, :attr:`plans_reused`."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1):
@@ -133,24 +134,22 @@ class LiveProvider:
         if int(replan_every) != replan_every or replan_every < 1:
             raise ValueError(f"LiveProvider: replan_every must be an integer >= 1, got {replan_every!r}")
         self.replan_every = int(replan_every)
-        # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays fell outside its window]
+        # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays outside its window
+        # at its first use, more rays outside it since]
         self._focal_rws = {}
         self.plans_made = 0
         self.plans_reused = 0
 
-    def _reused(self, keys, centres):
-        """The kept focal RayWaves of ``keys`` (one source each) when every one is still usable (see the
-        class docstring), else None."""
-        if self.replan_every <= 1:
-            return None
-        out = []
-        for key, c in zip(keys, centres):
-            e = self._focal_rws.get(key)
-            if (e is None or e[1] >= self.replan_every or e[2]
-                    or not np.array_equal(e[0].snapped_centres(c), e[0].centers)):
-                return None
-            out.append(e[0])
-        return out
+    def _usable(self, e, centre) -> bool:
+        """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again for a patch at ``centre``."""
+        return (e[1] < self.replan_every and not e[3]
+                and np.array_equal(e[0].snapped_centres(centre), e[0].centers))
+
+    def _plan_source(self, j, src_f, src_w, src_c, depth_mm):
+        r = self.module.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
+                                pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
+        self.plans_made += 1
+        return r
 
     def psfs(self, wavelengths_um, depth_mm=None, nodes: slice | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
@@ -184,9 +183,17 @@ class LiveProvider:
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
             keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
-            rws = self._reused(keys, src_c[sl])
-            if rws is not None:
-                self.plans_reused += len(rws)
+            kept = [self._focal_rws.get(key) for key in keys]
+            if self.replan_every > 1 and all(e is not None for e in kept):
+                # every source of the chunk was planned focal before: keep the usable plans, plan the others
+                rws = []
+                for j, key, e in zip(range(sl.start, sl.stop), keys, kept):
+                    if self._usable(e, src_c[j]):
+                        rws.append(e[0])
+                        self.plans_reused += 1
+                    else:
+                        rws.append(self._plan_source(j, src_f, src_w, src_c, depth_mm))
+                        self._focal_rws[key] = [rws[-1], 0, None, False]
             else:
                 rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
                                center_mm=src_c[sl])
@@ -196,13 +203,12 @@ class LiveProvider:
                                else rw.nsrc)
                 if rw.plan.method == "focal" and rw.nsrc > 1:
                     # focal grids follow each source's patch and DOE orders: one plan per source
-                    rws = [m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
-                                     pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
-                           for j in range(sl.start, sl.stop)]
-                self.plans_made += len(rws)
+                    rws = [self._plan_source(j, src_f, src_w, src_c, depth_mm) for j in range(sl.start, sl.stop)]
+                else:
+                    self.plans_made += 1
                 if rw.plan.method == "focal" and self.replan_every > 1:
                     for key, r in zip(keys, rws):
-                        self._focal_rws[key] = [r, 0, False]
+                        self._focal_rws[key] = [r, 0, None, False]
 
             def run(*ts, rws=rws, record=True):
                 vals = dict(zip(names, ts))
@@ -211,10 +217,15 @@ class LiveProvider:
                 outs.append(_Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
-            for key, r in zip(keys, rws):   # rays outside a kept plan's window: plan that source again next call
+            for key, r in zip(keys, rws):
                 e = self._focal_rws.get(key)
                 if e is not None and e[0] is r:
-                    e[2] = bool(np.any(r.dropped.numpy()))
+                    # more rays outside the window than at the plan's first use: plan that source again
+                    d = int(np.sum(r.dropped.numpy()))
+                    if e[2] is None:
+                        e[2] = d
+                    elif d > e[2]:
+                        e[3] = True
         return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
 
 
