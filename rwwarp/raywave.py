@@ -663,8 +663,15 @@ class RayWave:
         """Move the sensor patches to new centres ((x, y) mm, one pair or one per source; snapped to
         the sensor's pixel centres as in the constructor). Only the output positions change: the
         DOE-plane windows, the traced field and the plan do not depend on them, so a field computed
-        before stays valid (the propagation evaluates any sensor positions)."""
-        self.centers = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
+        before stays valid (the propagation evaluates any sensor positions). A focal plan's sensor-side
+        grid (patch plus the remainder's displacement and margins) moves with its patch, by the same
+        whole number of pixels, and its operator is built again on next use."""
+        new = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
+        if self.focal is not None:
+            self.focal = dict(self.focal, sensor_origin=np.asarray(self.focal["sensor_origin"]) + (new - self.centers),
+                              sensor_center=np.asarray(self.focal["sensor_center"]) + (new - self.centers))
+            self._focal_op = None
+        self.centers = new
 
     def load_params(self, table):
         """Load a surface parameter table ((n_surfaces + 1, N_PARAMS) float64, last row the sensor, layout

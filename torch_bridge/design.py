@@ -116,9 +116,10 @@ class LiveProvider:
 
     ``replan_every``: a focal source's plan (its :class:`rwwarp.psf.RayWave`: pilot trace, grids, kept
     DOE orders, fitted transfer, patch) is made again at most every this many calls; in between the
-    source is traced and propagated on its last plan with the current values. A plan is made again
-    sooner when the source's patch centre has moved to another pixel, or when more rays fell outside
-    its wave-plane window in the last call than at the plan's first use. 1 (default): every call plans
+    source is traced and propagated on its last plan with the current values (a patch centre that moved
+    to another pixel moves the plan's sensor-side grid along, :meth:`rwwarp.psf.RayWave.recentre`). A
+    plan is made again sooner when more rays fell outside its wave-plane window in the last call than
+    at the plan's first use. 1 (default): every call plans
     afresh. The focal operator is exact for any fitted transfer and the grids carry margins
     (``nyquist_safety``, the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few
     small optimiser steps old samples the source as well (a 5e-5 change of a curvature: 4.7e-6 from a
@@ -140,10 +141,9 @@ class LiveProvider:
         self.plans_made = 0
         self.plans_reused = 0
 
-    def _usable(self, e, centre) -> bool:
-        """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again for a patch at ``centre``."""
-        return (e[1] < self.replan_every and not e[3]
-                and np.array_equal(e[0].snapped_centres(centre), e[0].centers))
+    def _usable(self, e) -> bool:
+        """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again."""
+        return e[1] < self.replan_every and not e[3]
 
     def _plan_source(self, j, src_f, src_w, src_c, depth_mm):
         r = self.module.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
@@ -188,7 +188,9 @@ class LiveProvider:
                 # every source of the chunk was planned focal before: keep the usable plans, plan the others
                 rws = []
                 for j, key, e in zip(range(sl.start, sl.stop), keys, kept):
-                    if self._usable(e, src_c[j]):
+                    if self._usable(e):
+                        if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
+                            e[0].recentre(src_c[j])   # the patch moved to another pixel: its grids move along
                         rws.append(e[0])
                         self.plans_reused += 1
                     else:
