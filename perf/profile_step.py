@@ -6,8 +6,9 @@ Runs the arm's joint step as ``torch_bridge.train`` does (one wavelength per col
 render, network, backward, both optimisers): one warm-up step, ``--steps`` timed steps (synchronised),
 then one step under cProfile (host time by function, own and cumulative) and one under
 ``torch.profiler`` with CUDA activity (every kernel launched in the process: torch's, Warp's and CuPy's),
-which gives the device-busy time against the step's wall time: a step far longer than its kernels is
-bound by the host (launches, synchronisations, planning), not by arithmetic. Prints the tables and
+which gives the device-busy time against the step's wall time (a step far longer than its kernels is
+bound by the host: launches, synchronisations, planning, not arithmetic) and the number of host <->
+device copies. Prints the tables and
 writes them to ``DIR/profile_step_<config>_<device>.txt``.
 """
 from __future__ import annotations
@@ -95,6 +96,10 @@ def main():
         ev = [e for e in prof.events() if e.device_type.name == "CUDA"]
         busy = sum(e.device_time for e in ev) / 1e6
         say(f"torch.profiler step: wall {wall:.2f} s, {len(ev)} device kernels/copies, their summed device time {busy:.3f} s")
+        # host <-> device traffic of the step (every copy CUPTI saw: torch's, Warp's, CuPy's)
+        for kind in ("HtoD", "DtoH"):
+            cp = [e for e in ev if e.name.startswith(f"Memcpy {kind}")]
+            say(f"Memcpy {kind}: {len(cp)} copies, {sum(e.device_time for e in cp) / 1e3:.2f} ms of device time")
         say(prof.key_averages().table(sort_by="device_time_total", row_limit=30, max_name_column_width=70))
     if a.out:
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}.txt"
