@@ -212,7 +212,8 @@ class FocalPropagator:
         jj = np.arange(self.ns, dtype=np.float64)
         ii = np.arange(self.n, dtype=np.float64)
         mm = np.arange(-(self.n - 1), self.ns, dtype=np.float64)
-        toe = xp.asarray((np.arange(self.ns)[:, None] - np.arange(self.n)[None, :]) + (self.n - 1))   # (ns, n)
+        # (ns, n) Toeplitz index, formed on the operator's device (no host matrix, no copy)
+        toe = xp.arange(self.ns)[:, None] - xp.arange(self.n)[None, :] + (self.n - 1)
         for ax in range(2):
             a = np.pi * A[:, ax:ax + 1]                                   # (S, 1)
             u0 = s0[:, ax:ax + 1] + z * g[:, ax:ax + 1]
