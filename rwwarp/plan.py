@@ -222,6 +222,10 @@ FOCAL_TAPER_GUARD = 1.5    # V kept whole within this many remainder displacemen
 FOCAL_SPREAD = 2.0         # wave-plane period over the spread of all kept orders' light, per nyquist_safety
 FOCAL_MAIN_SPREAD = 3.0    # ... over the main order's (most of the power: its copies alias more)
 FOCAL_RIM_RAYS = 400       # least rays across the pupil (where the wave-plane grid has that many samples)
+FOCAL_EDGE_SPREAD = 12.0   # wave-plane period over the main order's spread with straight pupil edges, per safety
+FOCAL_EDGE_ALL_SPREAD = 6.0  # ... over the spread of every kept order's light (weaker: fewer of their tails alias)
+FOCAL_MARGIN_B = 6.0       # sensor-side margin beyond the patch and the remainder's displacement, in 1 / B
+FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ring from a nearer cut)
 
 
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
@@ -243,8 +247,9 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     * the quadratic part of the transfer is fitted to the kept rays (:func:`fit_quadratic_transfer`),
       which halves the remainder's displacement off axis;
     * the sensor-side grid covers the patch widened by the remainder's largest displacement (``H_R`` moves
-      light no farther, so only this part of ``V`` can reach the patch), plus a margin of ``6 / B`` (``B``:
-      the beam's largest frequency offset from ``f_c``, so ~12 Airy radii) and ``FOCAL_SHIFT_MARGIN`` times
+      light no farther, so only this part of ``V`` can reach the patch), plus a margin of ``FOCAL_MARGIN_B / B``
+      (``B``: the beam's largest frequency offset from ``f_c``, so ~12 Airy radii; ``FOCAL_EDGE_MARGIN_B / B``
+      with ``straight_edges``) and ``FOCAL_SHIFT_MARGIN`` times
       the displacement; its pitch samples ``B`` ``nyquist_safety`` times above Nyquist; ``V`` is tapered to
       zero between the patch widened by ``FOCAL_TAPER_GUARD`` displacements plus ``3 / B`` and the grid's edge
       (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`);
@@ -252,7 +257,8 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       (lambda z)``): ``nyquist_safety`` times the largest of ``FOCAL_PITCH_FACTOR`` sensor-side grids (the
       cell-phase error near the patch), ``FOCAL_MAIN_SPREAD`` times the spread of the main order's landing
       points under the quadratic transfer and ``FOCAL_SPREAD`` times that of every kept order's (aliasing);
-      with ``straight_edges`` (a square pupil) ``2 FOCAL_PITCH_FACTOR`` times the whole spread: the patch's
+      with ``straight_edges`` (a square pupil) ``FOCAL_EDGE_SPREAD`` times the main order's spread and
+      ``FOCAL_EDGE_ALL_SPREAD`` times every kept order's: the patch's
       space-bandwidth product, not the beam's;
     * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 4)`` across the footprint
       (``samples``: wave-plane samples across it).
@@ -282,7 +288,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             ok = np.all(np.isfinite(L), axis=1)
             cand.append((m, c, f[ok], L[ok], xy[k][ok]))
         band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
-        margin = 6.0 / band
+        margin = (FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B) / band
         keep, used, lo, hi = [], [], T - half_w, T + half_w
         for m, c, f, L, x in cand:
             if len(L) == 0:
@@ -338,20 +344,25 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
 
     hs = 1.0 / (2.0 * nyquist_safety * float(np.max(bands)))
     ns = int(math.ceil(box / hs)) + 2
-    room = 2.0 * float(np.max(shifts)) + 6.0 / float(np.min(bands))
+    room = 2.0 * float(np.max(shifts)) + (FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B) / float(np.min(bands))
     nf = nice_fft_length(ns + int(math.ceil(room / hs)))
     sensor_origin = np.array([0.5 * (lo + hi) - 0.5 * (ns - 1) * hs for lo, hi in boxes])
+    mb = FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B
     # the wave-plane pitch: the sum is periodic over 1 / (|A| pitch). Near the patch the splatted field, a cell
     # average weighted by the kernel at the cell centre, errs with the kernel's phase slope across a cell, so
     # the period is FOCAL_PITCH_FACTOR x nyquist_safety sensor-side grids (Cooke triplet, 16 px, against
     # rs_lens_psf: 14 deg 1.3e-4 / 6.5e-5 and on axis 1.5e-4 / 6.6e-5 at 2 x 2 / 3 x 2 grids); and it clears
     # the spread of the light, its periodic copies must miss the patch: 3 x safety spreads of the main order
     # (A489 at 10 deg: 1.1e-3 / 5.8e-4 at 2 / 3), 2 x of the weaker ones. A straight pupil edge's
-    # diffraction falls off as 1 / r (a round one's as r^-3/2), so its copies reach the patch with more: the
-    # period is 2 x FOCAL_PITCH_FACTOR spreads (a thin lens + square DOE 20 mm before the sensor, 16 px,
-    # against rs_thin_lens_psf: 1.5e-3 / 1.9e-4 / 8.5e-5 at 3 / 6 / 9 times the spread).
+    # diffraction falls off as 1 / r (a round one's as r^-3/2), so its copies reach the patch with more (the
+    # aliased share falls as 1 / period^2): the period is FOCAL_EDGE_SPREAD spreads of the main order and
+    # FOCAL_EDGE_ALL_SPREAD of all kept orders per nyquist_safety (a thin
+    # lens + square DOE 20 mm before the sensor, 16 px, against rs_thin_lens_psf: 3.7e-4 / 1.5e-4 / 7.5e-5
+    # at 12 / 18 / 24 spreads with a 6 / B sensor-side margin; with 12 / B, the default, 5.1e-5 / 1.5e-5 at 12 /
+    # 24 spreads, and at 24 spreads 1.2e-5 / 1.0e-5 at 24 / 32 px, 1.5e-6 / 2.4e-5 for a weaker / stronger DOE,
+    # where 12 spreads gave 3.0e-4 for the stronger one).
     if straight_edges:
-        period = 2.0 * FOCAL_PITCH_FACTOR * spread * nyquist_safety
+        period = max(FOCAL_EDGE_SPREAD * spread_main, FOCAL_EDGE_ALL_SPREAD * spread) * nyquist_safety
     else:
         period = max(FOCAL_PITCH_FACTOR * box, FOCAL_MAIN_SPREAD * spread_main, FOCAL_SPREAD * spread) * nyquist_safety
     pitch = 1.0 / (float(np.max(A)) * period)
@@ -368,7 +379,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
-        f"margin 6/B + {FOCAL_SHIFT_MARGIN:g} shift = {6e3 / np.min(bands) + FOCAL_SHIFT_MARGIN * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
+        f"margin {mb:g}/B + {FOCAL_SHIFT_MARGIN:g} shift = {mb * 1e3 / np.min(bands) + FOCAL_SHIFT_MARGIN * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
         f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "

@@ -59,14 +59,15 @@ def _thin_lens_doe(focal, dist, half, coeffs, norm):
 
 
 @pytest.mark.slow
-def test_thin_lens_even_poly_doe_20mm_before_sensor():
-    """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor, at the design
-    wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the same phi0.
-    Measured 3.7e-4 (focal, default plan, 16 px; the square aperture's 1 / r tails alias into the patch:
-    1.5e-3 at half the default wave-plane period) against 4.0e-4 for the band-limited ASM reference path
-    on the same case; tolerance 7.5e-4 (about twice). The issue's 1e-4 target is not reached here
-    (docs/propagation.md)."""
-    coeffs, norm, half = [-40.0, 6.0], 1.0, 1.0
+@pytest.mark.parametrize("coeffs,tol", [([-40.0, 6.0], 3e-5), ([-60.0, 10.0], 5e-5)])
+def test_thin_lens_even_poly_doe_20mm_before_sensor(coeffs, tol):
+    """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor behind a square
+    aperture, at the design wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the
+    same phi0. Measured 1.5e-5 and, for a stronger DOE, 2.4e-5 (focal, default plan, 16 px). The square
+    aperture's 1 / r diffraction tails need a longer wave-plane period and a wider sensor-side margin than a
+    round one's (FOCAL_EDGE_SPREAD, FOCAL_EDGE_MARGIN_B): with the round pupil's rules 3.7e-4 and 3.8e-4; the
+    band-limited ASM reference path gives 4.0e-4 on the first case. Tolerance about twice."""
+    norm, half = 1.0, 1.0
     lens = _thin_lens_doe(21.0, 20.0, half, coeffs, norm)
     p = rw.psf(lens, 0.0, 0.55, size=16, method="focal")
     assert p.plan["method"] == "focal"
@@ -77,7 +78,7 @@ def test_thin_lens_even_poly_doe_20mm_before_sensor():
         return coeffs[0] * r2 + coeffs[1] * r2 * r2
     truth = rs_thin_lens_psf(21.0, "square", half, 0.55, 20.0, x, y, p.pixel_mm, doe_phase=phi0,
                              gauss_nodes_sensor=5)
-    assert _rel(p.data, truth) < 7.5e-4
+    assert _rel(p.data, truth) < tol
 
 
 @pytest.mark.slow
