@@ -141,3 +141,11 @@ def test_thin_lens_is_stigmatic_with_equal_optical_path():
     assert np.ptp(rays["opl"][0, ok]) < 1e-10
     # image height = -m * object height, m = v/u
     assert xy[0, 1] == pytest.approx(-(v / u) * (-math.tan(math.radians(3.0)) * u), rel=1e-12)
+
+
+def test_grad_replicas_must_be_a_power_of_two():
+    lens = cooke()
+    for bad in (0, 3, 12):
+        with pytest.raises(ValueError, match="grad_replicas"):
+            Tracer(lens, [0.55], requires_grad=True, grad_replicas=bad)
+    assert Tracer(lens, [0.55], requires_grad=True, grad_replicas=8).grad_replicas == 8
