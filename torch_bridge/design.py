@@ -190,7 +190,9 @@ class LiveProvider:
                 for j, key, e in zip(range(sl.start, sl.stop), keys, kept):
                     if self._usable(e):
                         if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
-                            e[0].recentre(src_c[j])   # the patch moved to another pixel: its grids move along
+                            # the patch moved to another pixel: its grids move along (a copy: a graph of an
+                            # earlier call that still holds the plan keeps its own patch)
+                            e[0] = _recentred(e[0], src_c[j])
                         rws.append(e[0])
                         self.plans_reused += 1
                     else:

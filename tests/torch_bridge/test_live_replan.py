@@ -106,8 +106,11 @@ def test_a_kept_focal_plan_follows_its_patch_to_another_pixel():
         m.curvature[0] *= 1.0 + 5e-4
         b = prov.psfs([0.55])
         fresh = dz.LiveProvider(m, [10.0], 12, pix).psfs([0.55])
+    moved = next(iter(prov._focal_rws.values()))[0]
     assert (prov.plans_made, prov.plans_reused) == (1, 1)
-    assert np.max(np.abs(np.array(kept.centers) - c0)) >= 0.99 * pix
+    assert moved.plan is kept.plan                                   # the same plan, re-centred (a copy)
+    assert np.max(np.abs(np.array(moved.centers) - c0)) >= 0.99 * pix
+    assert np.array_equal(np.array(kept.centers), c0)               # the earlier call's plan keeps its patch
     assert _rel(b, a) > 0.3
     assert _rel(b, fresh) < 2e-4
 
