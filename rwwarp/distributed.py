@@ -165,7 +165,8 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
     pilot each, only for units ``k`` with ``k % n == r`` (the others ``cost`` None), so that the ranks
     share the planning (:func:`psf_map` all-gathers them)."""
     from .plan import Plan, estimate_cost
-    from .psf import RayWave, _auto_sizes, group_sources, plan_psf
+    from .plan import auto_sizes, group_sources
+    from .psf import RayWave, plan_psf
     model, size, device, plan, batch = kw["model"], kw["size"], kw["device"], kw["plan"], kw["batch"]
     pixel = float(kw["pixel_mm"] or lens.sensor.pixel_pitch)
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
@@ -202,7 +203,7 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
                 nd = probe.source_needs
                 costs = []
                 for g in groups:
-                    p, n, npad, rg = _auto_sizes(float(np.min(nd["pitch_mm"][g])), float(np.max(nd["width_mm"][g])),
+                    p, n, npad, rg = auto_sizes(float(np.min(nd["pitch_mm"][g])), float(np.max(nd["width_mm"][g])),
                                                  nd["feature_mm"], nd["out_width_mm"], nd["rays_per_sample"])
                     pl = Plan(p, n, npad, rg, "auto", False, ())
                     costs.append(estimate_cost(pl, len(g), size, probe.gauss_nodes)["flops"])

@@ -22,7 +22,7 @@ import numpy as np
 from .plan import Plan
 from .trace import as_field_list
 from .trace import field_label as _fmt_field
-from .raywave import _LAST, RayWave, _auto_sizes, _raywave, group_sources  # noqa: F401 (RayWave lived here)
+from .raywave import _LAST, RayWave, _raywave, group_sources  # noqa: F401 (RayWave lived here)
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 

@@ -18,6 +18,7 @@ from .doe import is_flat_profile as _is_flat_profile
 from .errors import LensError
 from .lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
+from .plan import auto_sizes, group_sources  # noqa: F401  (group_sources re-exported by rwwarp.psf)
 from .trace import Tracer, pupil_grid, run_chunks, upload_packed
 from .trace import field_label as _fmt_field
 
@@ -141,52 +142,6 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
         sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
         out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
     return out, feat
-
-
-def _auto_sizes(need_pitch, width, feature, out_width, rays_per_sample):
-    """Adaptive plan sizes for a beam footprint ``width`` (mm) that needs a pitch <= ``need_pitch`` (mm):
-    ``(pitch_mm, n_grid, n_pad, ray_grid)``. ``feature``: DOE pixel size (mm) or None; ``out_width``:
-    sensor patch width (mm)."""
-    pitch = need_pitch
-    if feature is not None:
-        # align the grid with DOE pixels: an integer number of samples per feature
-        pitch = feature / math.ceil(feature / pitch)
-    window = width + 2.0 * width / 31.0  # footprint + 2 pilot cells (31-ray pilot grid)
-    n_grid = int(math.ceil(window / pitch)) + 3
-    # the shifted band limit needs L >= window + patch; measured (perf/README): tight padding leaves
-    # 1e-3..5e-3 errors from the band-limit edges, 2x padding brings them to ~2e-4
-    n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
-    ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
-    return pitch, n_grid, n_pad, ray_grid
-
-
-def group_sources(needs: dict, max_batch: int | None = None, waste: float = 2.0) -> list:
-    """Batches of source indices whose shared plan stays close to what each source needs alone.
-
-    ``needs``: :attr:`RayWave.source_needs` (per-source pitch and footprint width, mm). Sources are
-    sorted by their own FFT size (largest first) and added greedily to the current batch while it has
-    fewer than ``max_batch`` members and the shared plan's (finest pitch, widest footprint) FFT area is at
-    most ``waste`` times the candidate's own (the smallest in the batch so far, so this holds for every
-    member). Returns a list of index lists (each sorted)."""
-    pitch, width = np.asarray(needs["pitch_mm"], float), np.asarray(needs["width_mm"], float)
-    args = (needs["feature_mm"], needs["out_width_mm"], needs["rays_per_sample"])
-    own = [_auto_sizes(pitch[k], width[k], *args)[2] for k in range(len(pitch))]
-    order = sorted(range(len(pitch)), key=lambda k: (-own[k], pitch[k], k))
-    groups, cur, cur_pitch, cur_width = [], [], math.inf, 0.0
-    for k in order:
-        if cur:
-            p2, w2 = min(cur_pitch, pitch[k]), max(cur_width, width[k])
-            pad2 = _auto_sizes(p2, w2, *args)[2]
-            # sorted by own FFT size: the candidate's is the group's smallest, so this bounds every member
-            if (max_batch is None or len(cur) < max_batch) and pad2 * pad2 <= waste * own[k] * own[k]:
-                cur.append(k)
-                cur_pitch, cur_width = p2, w2
-                continue
-            groups.append(sorted(cur))
-        cur, cur_pitch, cur_width = [k], pitch[k], width[k]
-    if cur:
-        groups.append(sorted(cur))
-    return groups
 
 
 # ---------------------------------------------------------------------------------------------- ray-wave
@@ -320,7 +275,7 @@ class RayWave:
             pl = plan
             check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
         elif plan == "auto":
-            pitch, n_grid, n_pad, ray_grid = _auto_sizes(need_pitch, width, feature, out_width, rays_per_sample)
+            pitch, n_grid, n_pad, ray_grid = auto_sizes(need_pitch, width, feature, out_width, rays_per_sample)
             reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
                         f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
                         f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]

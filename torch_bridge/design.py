@@ -4,8 +4,8 @@ comparison designs (paraxial achromatic DOE, RMS-spot optimisation with the ray 
 PSF providers (all return ``(n_nodes, n_channels, size, size)`` float64 tensors: the fraction of the
 power entering the pupil per sensor pixel, rows along +y, for one wavelength per colour channel):
 
-* :class:`LiveProvider`: :meth:`HybridLens.psf_map` every call, so every learning quantity of the
-  lens (curvatures, thicknesses, aspherics, DOE) gets gradients (ray-wave model).
+* :class:`LiveProvider` (in :mod:`torch_bridge.live`, re-exported here): ray-wave PSFs every call, so
+  every learning quantity of the lens (curvatures, thicknesses, aspherics, DOE) gets gradients.
 * :class:`CachedProvider`: the refractive part is frozen; the aberrated DOE-plane fields
   (:meth:`rwwarp.psf.RayWave.field_array`) are computed once per (depth, wavelength) for all nodes
   and kept, so a step only applies the DOE phase and propagates to the sensor (the paper's remark
@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from .functions import Propagate, mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
+from .live import LiveProvider, _recentred, common_centres  # noqa: F401  (their home: live)
 from .ray_spot import RaySpot, paraxial_achromat, paraxial_efl  # noqa: F401  (their home: ray_spot)
 
 __all__ = [
@@ -98,141 +99,6 @@ def paraxial_object_distance(lens, eq_lens, object_distance_mm: float, wavelengt
 
 
 # ---------------------------------------------------------------------------------------------- providers
-def common_centres(module, fields_deg, wavelength_um: float, depth_mm=None, grid: int = 15) -> np.ndarray:
-    """Sensor positions (mm, (n_fields, 2)) the PSF patches are centred on: the ray-model centroid at
-    ``wavelength_um`` with the DOE's first-order deflection included (the tracer alone would miss it).
-    One centre per field for every wavelength, so lateral colour stays in the RGB PSFs."""
-    with torch.no_grad():
-        return RaySpot(module, fields_deg, [wavelength_um], grid=grid, object_distance_mm=depth_mm).centroids()
-
-
-class LiveProvider:
-    """Ray-wave PSFs of a :class:`~torch_bridge.HybridLens` recomputed at every call (all its
-    learning quantities get gradients). Patches are centred per field on :func:`common_centres`
-    (the green reference wavelength ``wavelength_ref_um``). ``tile``: sources per chunk; chunks are
-    checkpointed (no tape kept in the forward pass, recomputed in the backward pass) so the peak
-    memory is one chunk's; each chunk's estimated peak is checked against ``memory_budget_bytes`` (default
-    half the available memory) before it is traced.
-
-    ``replan_every``: a focal source's plan (its :class:`rwwarp.psf.RayWave`: pilot trace, grids, kept
-    DOE orders, fitted transfer, patch) is made again at most every this many calls; in between the
-    source is traced and propagated on its last plan with the current values (a patch centre that moved
-    to another pixel moves the plan's sensor-side grid along, :meth:`rwwarp.psf.RayWave.recentre`). A
-    plan is made again sooner when more rays fell outside its wave-plane window in the last call than
-    at the plan's first use. 1 (default): every call plans
-    afresh. The focal operator is exact for any fitted transfer and the grids carry margins
-    (``nyquist_safety``, the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few
-    small optimiser steps old samples the source as well (a 5e-5 change of a curvature: 4.7e-6 from a
-    fresh plan, ``tests/torch_bridge/test_live_replan.py``); gradients are exact at the plan used.
-    Counts: :attr:`plans_made`, :attr:`plans_reused`."""
-
-    def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
-                 tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1):
-        self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
-        self.wl_ref = float(wavelength_ref_um)
-        self.tile = tile
-        self.memory_budget_bytes = memory_budget_bytes
-        if int(replan_every) != replan_every or replan_every < 1:
-            raise ValueError(f"LiveProvider: replan_every must be an integer >= 1, got {replan_every!r}")
-        self.replan_every = int(replan_every)
-        # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays outside its window
-        # at its first use, more rays outside it since]
-        self._focal_rws = {}
-        self.plans_made = 0
-        self.plans_reused = 0
-
-    def _usable(self, e) -> bool:
-        """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again."""
-        return e[1] < self.replan_every and not e[3]
-
-    def _plan_source(self, j, src_f, src_w, src_c, depth_mm):
-        r = self.module.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
-                                pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
-        self.plans_made += 1
-        return r
-
-    def psfs(self, wavelengths_um, depth_mm=None, nodes: slice | None = None) -> torch.Tensor:
-        """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
-        distance ``depth_mm`` (mm, None: the lens's own). ``nodes``: a slice of the nodes to compute
-        (a rank's share in a distributed step; default all). The patch centres are those of all
-        nodes, and a focal source is planned on its own, so a share's PSFs are the rows of the
-        whole map (band-limited ASM sources are planned per chunk of ``tile`` sources within the
-        share)."""
-        from torch_bridge.modules import _Recompute
-        m = self.module
-        cen = common_centres(m, self.fields, self.wl_ref, depth_mm)
-        sel = range(len(self.fields))[nodes if nodes is not None else slice(None)]
-        fields = [self.fields[i] for i in sel]
-        cen = [cen[i] for i in sel]
-        wls = [float(w) for w in wavelengths_um]
-        if not fields:
-            return torch.zeros((0, len(wls), self.size, self.size), dtype=torch.float64,
-                               device=next(iter(m.values().values())).device)
-        src_f = [f for f in fields for _ in wls]
-        src_w = [w for _ in fields for w in wls]
-        src_c = np.array([c for c in cen for _ in wls])
-        n = len(src_f)
-        tile = n if not self.tile else max(1, min(int(self.tile), n))
-        values = m.values()
-        names = list(values)
-        tensors = [values[q] for q in names]
-        outs = []
-        for e in self._focal_rws.values():
-            e[1] += 1
-            e[0].release_operators()   # the last call's operators (a learning distance rebuilds them anyway)
-        for k in range(0, n, tile):
-            sl = slice(k, min(k + tile, n))
-            keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
-            kept = [self._focal_rws.get(key) for key in keys]
-            if self.replan_every > 1 and all(e is not None for e in kept):
-                # every source of the chunk was planned focal before: keep the usable plans, plan the others
-                rws = []
-                for j, key, e in zip(range(sl.start, sl.stop), keys, kept):
-                    if self._usable(e):
-                        if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
-                            # the patch moved to another pixel: its grids move along (a copy: a graph of an
-                            # earlier call that still holds the plan keeps its own patch)
-                            e[0] = _recentred(e[0], src_c[j])
-                        rws.append(e[0])
-                        self.plans_reused += 1
-                    else:
-                        rws.append(self._plan_source(j, src_f, src_w, src_c, depth_mm))
-                        self._focal_rws[key] = [rws[-1], 0, None, False]
-            else:
-                rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
-                               center_mm=src_c[sl])
-                rws = [rw]
-                # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
-                m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if rw.plan.method == "focal"
-                               else rw.nsrc)
-                if rw.plan.method == "focal" and rw.nsrc > 1:
-                    # focal grids follow each source's patch and DOE orders: one plan per source
-                    rws = [self._plan_source(j, src_f, src_w, src_c, depth_mm) for j in range(sl.start, sl.stop)]
-                else:
-                    self.plans_made += 1
-                if rw.plan.method == "focal" and self.replan_every > 1:
-                    for key, r in zip(keys, rws):
-                        self._focal_rws[key] = [r, 0, None, False]
-
-            def run(*ts, rws=rws, record=True):
-                vals = dict(zip(names, ts))
-                return torch.cat([m._psf_rw(r, vals, record=record) for r in rws], 0)
-            if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-                outs.append(_Recompute.apply(run, *tensors))
-            else:
-                outs.append(run(*tensors))
-            for key, r in zip(keys, rws):
-                e = self._focal_rws.get(key)
-                if e is not None and e[0] is r:
-                    # more rays outside the window than at the plan's first use: plan that source again
-                    d = int(np.sum(r.dropped.numpy()))
-                    if e[2] is None:
-                        e[2] = d
-                    elif d > e[2]:
-                        e[3] = True
-        return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
-
-
 class CachedProvider:
     """PSFs with a frozen refractive part: DOE-plane fields cached per (depth, wavelength).
 
@@ -812,15 +678,3 @@ class CachedProvider:
             power = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
             out.append(power / entering[:, None, None])
         return torch.stack(out, 1)
-
-
-def _recentred(rw, center_mm):
-    """A shallow copy of RayWave ``rw`` with its sensor patches moved to ``center_mm`` (mm)."""
-    import copy
-    from .functions import bridge_state
-    out = copy.copy(rw)
-    out.recentre(center_mm)
-    st = bridge_state(out)
-    st.update(bridge_state(rw))
-    st.pop("window_center", None)   # follows the centres
-    return out
