@@ -58,9 +58,14 @@ class LiveProvider:
         """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again."""
         return e[1] < self.replan_every and not e[3]
 
-    def _plan_source(self, j, src_f, src_w, src_c, depth_mm):
-        r = self.module.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
-                                pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
+    def _plan_source(self, j, src_f, src_w, src_c, depth_mm, check: bool = False):
+        """Plan source ``j`` on its own (focal); ``check``: its recorded peak is checked against the budget
+        first (a source planned again alone, without its chunk's check)."""
+        m = self.module
+        r = m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
+                      pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
+        if check:
+            m.check_budget(r, m.memory_budget(self.memory_budget_bytes), sources=1)
         self.plans_made += 1
         return r
 
@@ -109,7 +114,7 @@ class LiveProvider:
                         rws.append(e[0])
                         self.plans_reused += 1
                     else:
-                        rws.append(self._plan_source(j, src_f, src_w, src_c, depth_mm))
+                        rws.append(self._plan_source(j, src_f, src_w, src_c, depth_mm, check=True))
                         self._focal_rws[key] = [rws[-1], 0, None, False]
             else:
                 rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
