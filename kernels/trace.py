@@ -9,8 +9,8 @@ them); the layout is the ``P_*`` constants below. The kernels read a surface's r
 (``params_rows``, ray ``i`` reads copy ``i & (R - 1)``): while recording, ``replicate_kernel`` makes the
 copies on the tape, so the adjoint's atomic additions into a parameter spread over ``R`` addresses
 instead of all rays contending for one (on an H100 the trace adjoint of the Cooke hybrid's design step
-took 1.7 s of its 2.2 s of device time with a single copy), and its own adjoint sums the copies in a
-fixed order. Without a tape ``R = 1``. Geometry of a standard surface, local
+took 1.7 s of its 2.2 s of device time with a single copy), and its own adjoint sums the copies back
+(per thread over a group of rows, then one atomic addition per group). Without a tape ``R = 1``. Geometry of a standard surface, local
 coordinates q = pos - (0, 0, z_vertex), r2 = qx^2 + qy^2:
 
     sag(r2) = c r2 / (1 + sqrt(1 - (1 + k) c^2 r2)) + a2 r2 + sum_i a_i r2^(i+2)     (a_0 is the r^4 term)
@@ -404,12 +404,16 @@ def make_trace_kernels(scalar):
             valid_out[i] = 0
 
     @wp.kernel(module="unique")
-    def replicate_kernel(params: wp.array(dtype=scalar), rows: int, out: wp.array2d(dtype=scalar)):
-        """``out[r, j] = params[j]`` for every row r: one thread per parameter, looping over the rows, so
-        the adjoint sums the rows' gradients into ``params`` in a fixed order without contention."""
-        j = wp.tid()
-        for r in range(rows):
-            out[r, j] = params[j]
+    def replicate_kernel(params: wp.array(dtype=scalar), rows_per_thread: int, out: wp.array2d(dtype=scalar)):
+        """``out[r, j] = params[j]`` for every row r. Launched over ``(N_PARAMS, R / rows_per_thread)``: thread
+        (j, g) reads ``params[j]`` once and writes rows ``g rows_per_thread ..``, so the adjoint sums those
+        rows' gradients in the thread and adds them to ``params``' gradient with one atomic addition (R /
+        rows_per_thread of them per parameter). One thread looping over all 1024 rows took 0.46 ms a
+        surface on an H100, a quarter of the design step's device time."""
+        j, g = wp.tid()
+        v = params[j]
+        for r in range(rows_per_thread):
+            out[g * rows_per_thread + r, j] = v
 
     class K:
         pass

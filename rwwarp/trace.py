@@ -49,6 +49,9 @@ PARALLEL_MIN_RAYS = 32768
 #: each address takes ~10^3 of them. On the CPU (one thread) a few copies keep the path exercised.
 GRAD_REPLICAS_GPU = 1024
 GRAD_REPLICAS_CPU = 4
+#: Rows of the replicated parameter table one thread of ``replicate_kernel`` writes (and whose gradients its
+#: adjoint sums before one atomic addition)
+REPLICATE_ROWS_PER_THREAD = 32
 _POOL = None
 _POOL_LOCK = threading.Lock()
 
@@ -759,7 +762,9 @@ class Tracer:
             return p.reshape((1, ktrace.N_PARAMS)), 0
         r = self.grad_replicas
         rows = wp.zeros((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
-        wp.launch(self.K.replicate_kernel, dim=ktrace.N_PARAMS, inputs=[p, r], outputs=[rows], device=self.device)
+        per = min(r, REPLICATE_ROWS_PER_THREAD)
+        wp.launch(self.K.replicate_kernel, dim=(ktrace.N_PARAMS, r // per), inputs=[p, per], outputs=[rows],
+                  device=self.device)
         return rows, r - 1
 
     def _chunks(self, n: int):

@@ -351,7 +351,8 @@ def test_parameter_gradient_through_replicated_rows(device, rng, replicas):
     OPL and exit directions' x) / d(curvature, conic, r^4 term) of 300 rays refracted at an asphere, against
     central differences of the numpy refraction of this file (step 1e-4 relative). Measured 3.9e-11 (curvature),
     3.4e-9 (conic), 2.2e-9 (r^4) relative, the same for 1 and 8 copies (the differences' own truncation and
-    rounding: 8.6e-8 for the conic at step 1e-6); tolerance 1e-8, 3x the largest."""
+    rounding: 8.6e-8 for the conic at step 1e-6); tolerance 1e-8, 3x the largest. With 8 copies the replicate
+    kernel runs two groups of 4 rows, so its adjoint's per-thread sum and its atomic addition are both used."""
     s = dict(SURFACES["asphere"])
     pos, d, opl = _rays(rng, 300)
     n1, n2 = 1.0, 1.5168
@@ -378,7 +379,9 @@ def test_parameter_gradient_through_replicated_rows(device, rng, replicas):
            wp.zeros(n, dtype=F64, device=device, requires_grad=True), wp.zeros(n, dtype=wp.int32, device=device)]
     tape = wp.Tape()
     with tape:
-        wp.launch(K.replicate_kernel, dim=kt.N_PARAMS, inputs=[par, replicas], outputs=[rows], device=device)
+        per = min(replicas, 4)      # groups of 4 rows a thread: 2 groups with 8 copies
+        wp.launch(K.replicate_kernel, dim=(kt.N_PARAMS, replicas // per), inputs=[par, per], outputs=[rows],
+                  device=device)
         wp.launch(K.intersect_kernel, dim=n, inputs=[a_pos, a_dir, a_valid, rows, replicas - 1], outputs=[t],
                   device=device, record_tape=False)
         wp.launch(K.surface_kernel, dim=n, inputs=[a_pos, a_dir, a_opl, a_valid, a_wl, rows, replicas - 1, a_n1, a_n2,
