@@ -37,7 +37,9 @@ class LiveProvider:
     (``nyquist_safety``, the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few
     small optimiser steps old samples the source as well (a 5e-5 change of a curvature: 4.7e-6 from a
     fresh plan, ``tests/torch_bridge/test_live_replan.py``); gradients are exact at the plan used.
-    Counts: :attr:`plans_made`, :attr:`plans_reused`."""
+    Kept plans are not part of a training checkpoint: a resumed run plans afresh, so with N > 1 its next
+    steps differ from an uninterrupted run's by the plans' age. Counts: :attr:`plans_made`,
+    :attr:`plans_reused`."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1):
