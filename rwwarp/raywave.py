@@ -630,7 +630,7 @@ class RayWave:
 
     def load_params(self, table):
         """Load a surface parameter table ((n_surfaces + 1, N_PARAMS) float64, last row the sensor, layout
-        ``rwwarp.kernels.trace.P_*``; lengths mm) into the tracer's device arrays, in place, and move the
+        :data:`rwwarp.trace.COLUMNS`; lengths mm) into the tracer's device arrays, in place, and move the
         z of the wave-plane grid's reference point to the plane's vertex in it (the grid lies on the
         plane). Returns the table as a float64 array. Plans, windows and patch centres are unchanged."""
         from .kernels import trace as ktrace

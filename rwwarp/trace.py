@@ -44,6 +44,28 @@ def init_warp():
 
 #: fewest rays per CPU thread worth a parallel chunk (below it the launch overhead dominates)
 PARALLEL_MIN_RAYS = 32768
+@dataclass(frozen=True)
+class SurfaceColumns:
+    """Columns of the surface parameter table (:attr:`Tracer.params_np`, ``(n_surfaces + 1, n_params)``
+    float64, last row the sensor; :meth:`rwwarp.psf.RayWave.load_params` takes it): the public names of
+    the layout ``rwwarp.kernels.trace`` defines for the device. ``z`` vertex z (mm), ``curvature`` (1/mm),
+    ``conic``, ``asph0`` the first of ``n_asph`` even aspheric terms (r^4 .. , mm^-3 ..), ``power`` thin
+    lens power (1/mm), ``uinv`` thin lens 1 / object distance (1/mm, 0 at infinity), ``v`` thin lens image
+    distance (mm, 0 at infinity)."""
+    z: int = ktrace.P_Z
+    curvature: int = ktrace.P_C
+    conic: int = ktrace.P_K
+    asph0: int = ktrace.P_A0
+    n_asph: int = ktrace.N_ASPH
+    power: int = ktrace.P_POWER
+    uinv: int = ktrace.P_UINV
+    v: int = ktrace.P_V
+    n_params: int = ktrace.N_PARAMS
+
+
+#: The surface parameter table's columns (:class:`SurfaceColumns`)
+COLUMNS = SurfaceColumns()
+
 #: Copies of a surface's parameter row the rays read while recording (:class:`Tracer` ``grad_replicas``):
 #: on a GPU the adjoint's float64 atomic additions of ~10^6 rays into one row serialise; over 1024 copies
 #: each address takes ~10^3 of them. On the CPU (one thread) a few copies keep the path exercised.

@@ -155,3 +155,22 @@ def test_design_command_is_an_entry_point():
     installed = {ep.name: ep.value for ep in entry_points(group="rwwarp.commands")}
     assert declared == {"design": "torch_bridge.train:main"}
     assert installed.get("design") == declared["design"], "reinstall: pip install -e '.[torch]' (bash .ci/setup)"
+
+
+def test_torch_bridge_reaches_rwwarp_through_its_host_modules():
+    """torch_bridge imports rwwarp's host modules, never the device code (``rwwarp.kernels``) or a private
+    name of another package (``from rwwarp.x import _y``): the surface table's columns come from
+    ``rwwarp.trace.COLUMNS``."""
+    bad = []
+    for f in sorted((ROOT / "torch_bridge").glob("*.py")):
+        tree = ast.parse(f.read_text(), filename=str(f))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").startswith("rwwarp"):
+                if node.module.startswith("rwwarp.kernels") or "kernels" in {a.name for a in node.names}:
+                    bad.append(f"{f.name}:{node.lineno} imports {node.module}")
+                bad += [f"{f.name}:{node.lineno} imports {node.module}.{a.name}" for a in node.names
+                        if a.name.startswith("_")]
+            elif isinstance(node, ast.Import):
+                bad += [f"{f.name}:{node.lineno} imports {a.name}" for a in node.names
+                        if a.name.startswith("rwwarp.kernels")]
+    assert not bad, "torch_bridge reaches past rwwarp's public host modules:\n" + "\n".join(bad)

@@ -51,7 +51,7 @@ import weakref
 
 import numpy as np
 import torch
-from rwwarp.kernels import trace as ktrace
+from rwwarp.trace import COLUMNS as COL
 
 __all__ = [
     "FocalPropagate",
@@ -112,7 +112,7 @@ def _streams(rw):
 
 def load_table(rw, table) -> np.ndarray:
     """Copy a parameter table ((n_surfaces + 1, N_PARAMS) float64, last row = sensor; layout
-    ``rwwarp.kernels.trace.P_*``) into ``rw``'s tracer (its Warp arrays, in place) and move the
+    ``rwwarp.trace.COLUMNS``) into ``rw``'s tracer (its Warp arrays, in place) and move the
     reference point of the DOE-plane grid to the plane's current vertex z. Returns the numpy table."""
     tab = table.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(table) else np.asarray(table, np.float64)
     # the field grid lies on the DOE plane: its z follows the plane (see TraceSplat.backward)
@@ -121,7 +121,7 @@ def load_table(rw, table) -> np.ndarray:
 
 def distance_from_table(rw, table):
     """DOE-plane-to-sensor distance (mm) from a parameter table tensor, (n_sources,)."""
-    d = table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]
+    d = table[-1, COL.z] - table[rw.plane, COL.z]
     return d.expand(rw.nsrc)
 
 
@@ -197,7 +197,7 @@ class TraceSplat(torch.autograd.Function):
     """Surface parameters -> complex field on the DOE-plane windows of a RayWave.
 
     ``TraceSplat.apply(table, rw)``: ``table`` a float64 tensor (n_surfaces + 1, N_PARAMS) (last row
-    the sensor; columns ``rwwarp.kernels.trace.P_*``: vertex z in mm, curvature in 1/mm, conic,
+    the sensor; columns ``rwwarp.trace.COLUMNS``: vertex z in mm, curvature in 1/mm, conic,
     aspheric coefficients in mm^(1-2i), ...), ``rw`` a :class:`rwwarp.psf.RayWave` built with
     ``requires_grad=True``. Returns the complex128 field (S, n, n) on the windows, carrier and
     reference removed as in :meth:`RayWave.field` (energy convention: ``sum |u|^2 pitch^2`` is the
@@ -241,7 +241,7 @@ class TraceSplat(torch.autograd.Function):
         if rw.use_reference:
             fac = _reference_z_factor(rw, u.device)
             dz = -(torch.imag(torch.conj(g) * u) * fac).sum()
-            grads[rw.plane, ktrace.P_Z] = grads[rw.plane, ktrace.P_Z] + dz.to(grads.device)
+            grads[rw.plane, COL.z] = grads[rw.plane, COL.z] + dz.to(grads.device)
         return grads, None
 
 

@@ -49,7 +49,7 @@ import warnings
 
 import numpy as np
 import torch
-from rwwarp.kernels import trace as ktrace
+from rwwarp.trace import COLUMNS as COL
 from torch import nn
 
 from rwwarp.errors import SamplingWarning
@@ -373,25 +373,25 @@ class HybridLens(nn.Module):
         zero = torch.zeros(1, dtype=t.dtype, device=dev)
         z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
         std = torch.cat([self.standard_mask.to(dev), torch.zeros(1, dtype=torch.bool, device=dev)])
-        cols = [base[:, j] for j in range(ktrace.N_PARAMS)]
-        cols[ktrace.P_Z] = z
-        cols[ktrace.P_C] = torch.where(std, torch.cat([v["curvature"], zero]), cols[ktrace.P_C])
-        cols[ktrace.P_K] = torch.where(std, torch.cat([v["conic"], zero]), cols[ktrace.P_K])
+        cols = [base[:, j] for j in range(COL.n_params)]
+        cols[COL.z] = z
+        cols[COL.curvature] = torch.where(std, torch.cat([v["curvature"], zero]), cols[COL.curvature])
+        cols[COL.conic] = torch.where(std, torch.cat([v["conic"], zero]), cols[COL.conic])
         asph = torch.cat([v["aspheric"], torch.zeros(1, MAX_ASPHERIC, dtype=t.dtype, device=dev)])
-        for k in range(ktrace.N_ASPH):
-            cols[ktrace.P_A0 + k] = torch.where(std, asph[:, k], cols[ktrace.P_A0 + k])
+        for k in range(COL.n_asph):
+            cols[COL.asph0 + k] = torch.where(std, asph[:, k], cols[COL.asph0 + k])
         if any(self._thin_surfaces):
             thin = torch.cat([self.thin_mask.to(dev), torch.zeros(1, dtype=torch.bool, device=dev)])
             if hasattr(rw, "tracer"):
                 power, uinv, vdist = self._thin_lens_columns(rw, v)
-                cols[ktrace.P_UINV] = torch.where(thin, torch.cat([uinv, zero]), cols[ktrace.P_UINV])
-                cols[ktrace.P_V] = torch.where(thin, torch.cat([vdist, zero]), cols[ktrace.P_V])
+                cols[COL.uinv] = torch.where(thin, torch.cat([uinv, zero]), cols[COL.uinv])
+                cols[COL.v] = torch.where(thin, torch.cat([vdist, zero]), cols[COL.v])
             else:
                 # no tracer to take indices from (a Tracer with only a base table): the power
                 # follows the focal length, the conjugates (path length only, not ray geometry) stay
                 f = torch.where(self.thin_mask.to(dev), v["focal_length"], torch.ones_like(v["focal_length"]))
                 power = 1.0 / f
-            cols[ktrace.P_POWER] = torch.where(thin, torch.cat([power, zero]), cols[ktrace.P_POWER])
+            cols[COL.power] = torch.where(thin, torch.cat([power, zero]), cols[COL.power])
         return torch.stack(cols, dim=1)
 
     def _thin_lens_columns(self, rw, v):
@@ -548,7 +548,7 @@ class HybridLens(nn.Module):
         with ctx:
             table = self.param_table(rw, values)
             phi0 = self.doe_phase(rw, values) if rw.plan.method != "focal" else None
-            dist = (table[-1, ktrace.P_Z] - table[rw.plane, ktrace.P_Z]).expand(rw.nsrc)
+            dist = (table[-1, COL.z] - table[rw.plane, COL.z]).expand(rw.nsrc)
             u = trace_splat(table, rw)
             if rw.amplitude != "energy":
                 u = paper_amplitude(u, rw)

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 import torch
-from rwwarp.kernels import trace as ktrace
+from rwwarp.trace import COLUMNS as COL
 
 __all__ = ["RaySpot", "paraxial_achromat", "paraxial_efl"]
 
@@ -105,7 +105,7 @@ class RaySpot:
             prof = rdoe.profile_from_dict(s.profile)
             grad = _doe_gradient(prof.kind, values["doe"].cpu(), prof.norm_radius, pos[..., 0], pos[..., 1])
         # rwwarp's grating step and transfer, in torch (the sensor z learns with the table)
-        hx, hy, ok = grating_to_sensor(pos, dr, n_after, lam, grad, table[-1, ktrace.P_Z], torch)
+        hx, hy, ok = grating_to_sensor(pos, dr, n_after, lam, grad, table[-1, COL.z], torch)
         ok = valid & ok
         return hx.reshape(nf, nw, -1), hy.reshape(nf, nw, -1), ok.reshape(nf, nw, -1)
 
