@@ -68,7 +68,7 @@ NEWTON_STEPS = 8
 #: radius R while r^2 <= R^2 (1 + EDGE_RTOL) (a square: |x| <= R (1 + EDGE_RTOL)). Grid points that lie
 #: on the pupil circle exactly (0.6, 0.8) carry r^2 = 1 + 2e-16 after rounding; without a tolerance they
 #: are lost. float32 kernels use EDGE_RTOL_F32 (a few float32 roundings). The host's pupil grids
-#: (:func:`rwwarp.trace.pupil_grid`) use :func:`edge_rtol` too.
+#: (:func:`rwwarp.pupil.pupil_grid`) use :func:`edge_rtol` too.
 EDGE_RTOL = 1.0e-9
 EDGE_RTOL_F32 = 1.0e-6
 
@@ -176,7 +176,7 @@ def make_trace_kernels(scalar):
                                                 # 2 (with grid_n): each cell weighted by the fraction of it
                                                 #    in the unit circle (frac), valid where that is > 0
         frac: wp.array(dtype=wp.vec3d),         # (grid_n^2,) with circle 2: (fraction, du, dv) of each cell
-                                                #    (rwwarp.trace.disc_cells): the ray starts at the centroid
+                                                #    (rwwarp.pupil.disc_cells): the ray starts at the centroid
         relative: int,                          # 1: OPL relative to the chief ray (point sources)
         grid_n: int,                            # > 0: pupil is the full grid_n x grid_n cell-centre grid,
                                                 #      computed here (pupil_u / pupil_v unused)

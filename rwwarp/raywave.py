@@ -553,7 +553,7 @@ class RayWave:
 
     def _rim_args(self, rim: bool):
         """The ``(cells, rim)`` inputs of the tube-area and splat kernels: this plan's pupil cells
-        (:func:`rwwarp.trace.disc_cells`) when the rim is weighted, else a placeholder."""
+        (:func:`rwwarp.pupil.disc_cells`) when the rim is weighted, else a placeholder."""
         tr = self.tracer
         return (tr.rim_cells(self.plan.ray_grid), 1) if rim else (tr.no_rim_cells(), 0)
 

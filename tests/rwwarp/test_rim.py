@@ -1,5 +1,5 @@
 """Rim weighting of the traced pupil (focal plans): the exact part of each pupil cell inside the unit disc
-and the centroid of that part (rwwarp.trace.disc_cells), against brute-force sampling and the disc's
+and the centroid of that part (rwwarp.pupil.disc_cells), against brute-force sampling and the disc's
 area; and on a lens whose stop and DOE clear apertures are the pupil's image, no rim ray is clipped."""
 import math
 
