@@ -272,6 +272,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     z = float(distance_mm)
     half_w = 0.5 * size * pixel_mm
     w_c, g, q = transfer_curvature(carrier, inv_lam)
+    mb = FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B   # sensor-side margin, in 1 / B
     boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
     g_fit, q_fit = g.copy(), q.copy()
     spread = spread_main = 0.0   # the light's extent at the sensor under the quadratic transfer (all, main order)
@@ -288,7 +289,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
             ok = np.all(np.isfinite(L), axis=1)
             cand.append((m, c, f[ok], L[ok], xy[k][ok]))
         band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
-        margin = (FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B) / band
+        margin = mb / band
         keep, used, lo, hi = [], [], T - half_w, T + half_w
         for m, c, f, L, x in cand:
             if len(L) == 0:
@@ -344,10 +345,9 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
 
     hs = 1.0 / (2.0 * nyquist_safety * float(np.max(bands)))
     ns = int(math.ceil(box / hs)) + 2
-    room = 2.0 * float(np.max(shifts)) + (FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B) / float(np.min(bands))
+    room = 2.0 * float(np.max(shifts)) + mb / float(np.min(bands))
     nf = nice_fft_length(ns + int(math.ceil(room / hs)))
     sensor_origin = np.array([0.5 * (lo + hi) - 0.5 * (ns - 1) * hs for lo, hi in boxes])
-    mb = FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B
     # the wave-plane pitch: the sum is periodic over 1 / (|A| pitch). Near the patch the splatted field, a cell
     # average weighted by the kernel at the cell centre, errs with the kernel's phase slope across a cell, so
     # the period is FOCAL_PITCH_FACTOR x nyquist_safety sensor-side grids (Cooke triplet, 16 px, against

@@ -97,7 +97,7 @@ class _BytesLRU:
 RIM_CACHE_HOST_BYTES = 1 << 30
 RIM_CACHE_DEVICE_BYTES = 1 << 28
 _DISC_CELLS = _BytesLRU(RIM_CACHE_HOST_BYTES)
-_RIM_CELLS = _BytesLRU(RIM_CACHE_DEVICE_BYTES)   # (device, n) -> the device array of disc_cells(n) (Tracer.rim_cells)
+_RIM_CELLS = _BytesLRU(RIM_CACHE_DEVICE_BYTES)   # (device, n) -> the device array of disc_cells(n)
 
 
 def disc_cells(n: int) -> np.ndarray:
@@ -173,3 +173,11 @@ def pupil_grid(n: int, shape: str = "circle", jitter: float = 0.0, seed: int = 0
         keep = u * u + v * v <= 1.0 + ktrace.EDGE_RTOL  # the kernels' tolerance (kernels.trace.EDGE_RTOL)
         u, v = u[keep], v[keep]
     return u, v, cell * cell
+
+
+def device_disc_cells(n: int, device: str):
+    """:func:`disc_cells` of an ``n x n`` pupil grid as a Warp array of ``wp.vec3d`` on ``device`` (made once
+    per grid size and device, shared by the process, up to :data:`RIM_CACHE_DEVICE_BYTES`; read-only)."""
+    import warp as wp
+    return _RIM_CELLS.get((str(device), int(n)),
+                          lambda: wp.array(np.ascontiguousarray(disc_cells(n)), dtype=wp.vec3d, device=device))

@@ -623,8 +623,9 @@ class RayWave:
         whole number of pixels, and its operator is built again on next use."""
         new = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
         if self.focal is not None:
-            self.focal = dict(self.focal, sensor_origin=np.asarray(self.focal["sensor_origin"]) + (new - self.centers),
-                              sensor_center=np.asarray(self.focal["sensor_center"]) + (new - self.centers))
+            d = new - self.centers
+            self.focal = dict(self.focal, sensor_origin=np.asarray(self.focal["sensor_origin"]) + d,
+                              sensor_center=np.asarray(self.focal["sensor_center"]) + d)
             self._focal_op = None
         self.centers = new
 

@@ -26,7 +26,7 @@ from .backend import get_backend, release_warp_pool  # noqa: F401  (release_warp
 from .errors import GeometryError, LensError
 from .kernels import trace as ktrace
 from . import paraxial
-from .pupil import _RIM_CELLS, disc_cell_fractions, disc_cells, pupil_grid  # noqa: F401  (re-exported)
+from .pupil import device_disc_cells, disc_cell_fractions, disc_cells, pupil_grid  # noqa: F401  (re-exported)
 
 wp.config.quiet = True
 wp.config.log_level = wp.LOG_WARNING  # no per-module load messages (compile time is reported by perf/)
@@ -495,9 +495,7 @@ class Tracer:
         """:func:`disc_cells` of a ``grid_n`` pupil grid as a device array of ``wp.vec3d`` (made once per
         grid size and device, shared by the tracers of the process, up to :data:`rwwarp.pupil.RIM_CACHE_DEVICE_BYTES`;
         read-only)."""
-        return _RIM_CELLS.get((str(self.device), int(grid_n)),
-                              lambda: wp.array(np.ascontiguousarray(disc_cells(grid_n)), dtype=wp.vec3d,
-                                               device=self.device))
+        return device_disc_cells(grid_n, self.device)
 
     def no_rim_cells(self):
         """The placeholder ``(1,)`` cell array of a launch without rim weighting."""
