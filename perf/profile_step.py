@@ -29,6 +29,8 @@ def main():
     ap.add_argument("--arm", default=None, help="the arm to step (default: the first whose design method is e2e)")
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--budget-gb", type=float, default=None,
+                    help="override the config's optics.memory_budget_gb (sets the live PSF tile)")
     a = ap.parse_args()
 
     import torch
@@ -38,6 +40,8 @@ def main():
     exp = load_config(str(root / "torch_bridge" / "configs" / f"{a.config}.yaml"), preset=a.preset)
     arm_cfg = next(x for x in exp["arms"] if (x["name"] == a.arm if a.arm else x["config"]["design"]["method"] == "e2e"))
     cfg = dict(arm_cfg["config"], device=a.device, progress=False)
+    if a.budget_gb is not None:
+        cfg["optics"] = dict(cfg["optics"], memory_budget_gb=a.budget_gb)
     _seed_all(int(cfg["seed"]))
     arm = Arm(arm_cfg["name"], cfg, exp["source"], Path("unused"), progress=False)
     cuda = a.device.startswith("cuda")
@@ -72,11 +76,20 @@ def main():
     prov = arm.provider
     if hasattr(prov, "plans_made"):
         say(f"live plans made {prov.plans_made}, reused {prov.plans_reused} (replan_every {prov.replan_every})")
+    if hasattr(prov, "tile"):
+        say(f"live PSF tile {prov.tile} sources (memory_budget_gb {cfg['optics'].get('memory_budget_gb')})")
     if cuda:
         import cupy
-        say(f"peak memory over the timed steps: torch allocator {torch.cuda.max_memory_allocated() / 1e9:.2f} GB, "
-            f"CuPy pool {cupy.get_default_memory_pool().total_bytes() / 1e9:.2f} GB, device used (nvidia-smi) "
-            f"{mem.peak / 1024:.2f} GiB; device {torch.cuda.get_device_name()}")
+        import warp as wp
+        # inside bridge calls Warp and CuPy draw on torch's allocator (torch_bridge.functions.TorchAllocator);
+        # what they allocate outside (plans, pilot traces, operator set-up) is in their own pools
+        t_peak = torch.cuda.max_memory_allocated() / 1e9
+        w_peak = wp.get_mempool_used_mem_high("cuda:0") / 1e9
+        c_pool = cupy.get_default_memory_pool().total_bytes() / 1e9
+        say(f"peak memory over the timed steps: torch allocator (with Warp and CuPy inside bridge calls) "
+            f"{t_peak:.2f} GB, Warp's own pool high-water {w_peak:.2f} GB, CuPy's own pool {c_pool:.2f} GB, "
+            f"sum {t_peak + w_peak + c_pool:.2f} GB (an upper bound of the concurrent peak); device used "
+            f"(nvidia-smi) {mem.peak / 1024:.2f} GiB; device {torch.cuda.get_device_name()}")
     pr = cProfile.Profile()
     t = time.perf_counter()
     pr.enable()

@@ -258,7 +258,7 @@ class FocalPropagator:
         keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room)
         rem = xp.where(keep, w - wg, 0.0)
         self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
-        self.kept_band_fraction = float(xp.mean(keep))
+        self._keep_mean = xp.mean(keep)   # read on demand (kept_band_fraction): no device sync at set-up
         self._rem = rem           # d(phase of H_R)/dz / (2 pi), kept band (for the distance derivative)
         self._dHR = None
         # output factors: U(p) = 1/nf^2 sum_m B_m exp(2 pi i nu_m (p - s0))
@@ -266,6 +266,11 @@ class FocalPropagator:
         ny = xp.asarray(np.asarray(nodes_y_mm, float) - s0[:, 1:2])
         self._Fx = _cis(2.0 * np.pi * nu[None, None, :] * nx[:, :, None], xp) / self.nf
         self._Fy = _cis(2.0 * np.pi * nu[None, None, :] * ny[:, :, None], xp) / self.nf
+
+    @property
+    def kept_band_fraction(self) -> float:
+        """Fraction of the padded sensor grid's frequencies the remainder's band limit keeps (0..1)."""
+        return float(self._keep_mean)
 
     # ------------------------------------------------------------------ operator
     def sensor_grid_field(self, field):

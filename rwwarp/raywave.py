@@ -557,6 +557,13 @@ class RayWave:
         tr = self.tracer
         return (tr.rim_cells(self.plan.ray_grid), 1) if rim else (tr.no_rim_cells(), 0)
 
+    def power_sums_array(self):
+        """Per-source power sums of the last :meth:`field` call as the device array itself (a Warp array
+        of ``(n_sources, 1)`` vec4 float64: entering power, traced power, then two unused slots; unit source
+        radiance), with no host copy: a caller on the device reads it without synchronising. A new array
+        each :meth:`field` call."""
+        return self._sums_dev
+
     def _power_sums(self):
         if self._sums is None:
             self._sums = self._sums_dev.numpy().reshape(-1, 4)[:, :2]

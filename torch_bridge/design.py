@@ -436,6 +436,8 @@ class CachedProvider:
         # of the budget
         graph = sum(16 * 8 * rw.plan.n_grid ** 2 + 16 * 4 * (rw.size * rw.gauss_nodes) ** 2 for rw, _, _ in nodes)
         checkpoint = len(nodes) > 1 and wants and graph > self.budget_bytes() // 4
+        # the distance's value on the host once per call (a read waits for the device), not once per node
+        d_host = float(dist) if thick is None else float(thick.detach())
         for rw, u, entering in nodes:
             def run(doe_t, thick_t=None, record=True, rw=rw, u=u, entering=entering):
                 ctx = torch.enable_grad() if record else torch.no_grad()
@@ -446,7 +448,7 @@ class CachedProvider:
                     fac = focal_doe_factor(rw, geo.doe_phase(rw, {"doe": doe_t}, wrap=False))
                     if fac is not None:
                         v = u * fac
-                    return focal_propagate(v, d, rw) / entering[:, None, None]
+                    return focal_propagate(v, d, rw, d_host) / entering[:, None, None]
             if checkpoint:
                 outs.append(_Recompute.apply(run, *ts))
             else:

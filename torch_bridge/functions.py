@@ -92,21 +92,57 @@ def _is_cuda(rw) -> bool:
     return str(rw.tracer.device).startswith("cuda")
 
 
+class TorchAllocator:
+    """Device memory from torch's caching allocator for Warp (:func:`warp.ScopedAllocator`) and CuPy
+    (:func:`cupy.cuda.using_allocator`) on CUDA device ``index``: inside a bridge call all three libraries
+    draw on one pool, so ``torch.cuda.max_memory_allocated`` is the step's whole peak and no library keeps
+    a cache of its own beside torch's. Blocks belong to the stream current when allocated (the bridge runs
+    everything on torch's current stream)."""
+
+    def __init__(self, index: int):
+        self.index = int(index)
+
+    # Warp's Allocator protocol (bytes)
+    def allocate(self, size_in_bytes: int) -> int:
+        return int(torch.cuda.caching_allocator_alloc(max(int(size_in_bytes), 1), self.index,
+                                                      torch.cuda.current_stream(self.index)))
+
+    def deallocate(self, ptr: int, size_in_bytes: int) -> None:
+        torch.cuda.caching_allocator_delete(int(ptr))
+
+    @property
+    def cupy_malloc(self):
+        """CuPy's allocator function (size -> MemoryPointer) over the same pool."""
+        if getattr(self, "_cupy", None) is None:
+            import cupy as cp
+            self._cupy = cp.cuda.memory.PythonFunctionAllocator(
+                lambda size, device_id: self.allocate(size), lambda ptr, device_id: self.deallocate(ptr, 0))
+        return self._cupy.malloc
+
+
+_ALLOCATORS: dict = {}
+
+
 @contextlib.contextmanager
 def _streams(rw):
-    """Run Warp (and CuPy) on torch's current CUDA stream; a no-op on CPU."""
+    """Run Warp (and CuPy) on torch's current CUDA stream, drawing memory from torch's caching allocator
+    (:class:`TorchAllocator`); a no-op on CPU."""
     if not _is_cuda(rw):
         yield
         return
     import warp as wp
     dev = wp.get_device(rw.tracer.device)
     tstream = torch.cuda.current_stream(torch.device(str(dev)))
-    with wp.ScopedStream(wp.stream_from_torch(tstream)):
+    alloc = _ALLOCATORS.get(dev.ordinal)
+    if alloc is None:
+        alloc = _ALLOCATORS[dev.ordinal] = TorchAllocator(dev.ordinal)
+    with wp.ScopedStream(wp.stream_from_torch(tstream)), wp.ScopedAllocator(dev, alloc):
         try:
             import cupy as cp
-            with cp.cuda.ExternalStream(tstream.cuda_stream):
-                yield
         except ImportError:
+            yield
+            return
+        with cp.cuda.ExternalStream(tstream.cuda_stream), cp.cuda.using_allocator(alloc.cupy_malloc):
             yield
 
 
@@ -167,15 +203,17 @@ def _reference_z_factor(rw, device):
 
 
 # ---------------------------------------------------------------------------------------------- trace + splat
-def trace_splat_forward(rw, table, record: bool):
+def trace_splat_forward(rw, table, record: bool, table_host=None):
     """Run ``rw.field()`` for the parameter ``table``; returns ``(field tensor (S, n, n) complex128,
-    field Warp array, tape or None)``. Without ``record`` no tape and no gradient buffers are kept."""
+    field Warp array, tape or None)``. Without ``record`` no tape and no gradient buffers are kept.
+    ``table_host``: the same table as a numpy array, when the caller has it (no device-to-host copy,
+    which would wait for the device)."""
     import warp as wp
     tr = rw.tracer
     n = rw.plan.n_grid
     shape = (rw.nsrc, n, n)
     with _streams(rw):
-        load_table(rw, table)
+        load_table(rw, table if table_host is None else table_host)
         if record:
             if not tr.requires_grad:
                 raise ValueError("the RayWave was built without requires_grad=True: no gradients can be recorded")
@@ -196,12 +234,13 @@ def trace_splat_forward(rw, table, record: bool):
 class TraceSplat(torch.autograd.Function):
     """Surface parameters -> complex field on the DOE-plane windows of a RayWave.
 
-    ``TraceSplat.apply(table, rw)``: ``table`` a float64 tensor (n_surfaces + 1, N_PARAMS) (last row
+    ``TraceSplat.apply(table, rw, table_host)``: ``table`` a float64 tensor (n_surfaces + 1, N_PARAMS) (last row
     the sensor; columns ``rwwarp.trace.COLUMNS``: vertex z in mm, curvature in 1/mm, conic,
     aspheric coefficients in mm^(1-2i), ...), ``rw`` a :class:`rwwarp.psf.RayWave` built with
     ``requires_grad=True``. Returns the complex128 field (S, n, n) on the windows, carrier and
     reference removed as in :meth:`RayWave.field` (energy convention: ``sum |u|^2 pitch^2`` is the
-    traced power).
+    traced power). ``table_host``: the same values as a numpy array, or None (then copied from
+    ``table``, a copy that waits for the device).
 
     Forward copies the table into the tracer's Warp arrays and records ``rw.field()`` on a
     ``wp.Tape``; backward hands the incoming gradient to the field array, replays the tape, clones the
@@ -210,10 +249,10 @@ class TraceSplat(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, table, rw):
+    def forward(ctx, table, rw, table_host=None):
         record = bool(ctx.needs_input_grad[0])
-        u, field_wp, tape = trace_splat_forward(rw, table, record)
-        ctx.rw, ctx.tape, ctx.field_wp = rw, tape, field_wp
+        u, field_wp, tape = trace_splat_forward(rw, table, record, table_host)
+        ctx.rw, ctx.tape, ctx.field_wp, ctx.table_host = rw, tape, field_wp, table_host
         ctx.table_device = table.device
         ctx.save_for_backward(u, table.detach())
         return u
@@ -223,14 +262,14 @@ class TraceSplat(torch.autograd.Function):
         import warp as wp
         rw, tape, field_wp = ctx.rw, ctx.tape, ctx.field_wp
         if tape is None:
-            return None, None
+            return None, None, None
         u, table = ctx.saved_tensors
         g = grad_field.to(torch.complex128).contiguous()
         g_real = torch.view_as_real(g).reshape(-1, 2)
         with _streams(rw):
             # the adjoint kernels read the parameter arrays: restore this call's values (another forward
             # on the same RayWave may have loaded different ones since)
-            load_table(rw, table)
+            load_table(rw, table if ctx.table_host is None else ctx.table_host)
             g_wp = wp.from_torch(g_real.detach(), dtype=wp.vec2d)  # zero-copy view (CPU or CUDA)
             tape.backward(grads={field_wp: g_wp})
             # the parameter gradients stay on the device: zero-copy views of Warp's arrays, copied (to
@@ -242,24 +281,34 @@ class TraceSplat(torch.autograd.Function):
             fac = _reference_z_factor(rw, u.device)
             dz = -(torch.imag(torch.conj(g) * u) * fac).sum()
             grads[rw.plane, COL.z] = grads[rw.plane, COL.z] + dz.to(grads.device)
-        return grads, None
+        ctx.table_host = None
+        return grads, None, None
 
 
-def trace_splat(table, rw):
+def trace_splat(table, rw, table_host=None):
     """:class:`TraceSplat` where a gradient is wanted (grad mode on and ``table`` requiring grad),
     else a plain forward with no tape and no gradient buffers (``torch.no_grad()`` is honoured: a
-    Function's ``needs_input_grad`` is not)."""
+    Function's ``needs_input_grad`` is not). ``table_host``: see :class:`TraceSplat`."""
     if torch.is_grad_enabled() and table.requires_grad:
-        return TraceSplat.apply(table, rw)
-    return trace_splat_forward(rw, table, record=False)[0]
+        return TraceSplat.apply(table, rw, table_host)
+    return trace_splat_forward(rw, table, record=False, table_host=table_host)[0]
+
+
+def power_sums(rw, device):
+    """``(entering, traced)`` power per source of ``rw``'s last :meth:`~rwwarp.psf.RayWave.field` call as
+    float64 tensors (S,) on ``device`` (unit source radiance), copied on the device from
+    :meth:`~rwwarp.psf.RayWave.power_sums_array`: no host round trip, so the device queue is not drained."""
+    import warp as wp
+    t = wp.to_torch(rw.power_sums_array()).reshape(rw.nsrc, 4)[:, :2]
+    t = t.to(device=device, dtype=torch.float64, copy=True)
+    return t[:, 0], t[:, 1]
 
 
 def paper_amplitude(u, rw):
     """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
     so that the field carries the traced power (:func:`rwwarp.raywave.paper_rescale`, in torch)."""
     from rwwarp.raywave import paper_rescale
-    q = torch.as_tensor(rw.valid_fraction * rw.entering, dtype=torch.float64, device=u.device)
-    return paper_rescale(u, q, rw.plan.pitch_mm, torch)
+    return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch)
 
 
 # ---------------------------------------------------------------------------------------------- propagation
@@ -456,7 +505,7 @@ class FocalPropagate(torch.autograd.Function):
     """Wave-plane field -> power per sensor pixel by the focal propagation of a RayWave planned with
     ``method="focal"`` (:class:`rwwarp.focal.FocalPropagator`).
 
-    ``FocalPropagate.apply(field, distance, rw)``: ``field`` complex128 (S, n, n) on the focal plan's
+    ``FocalPropagate.apply(field, distance, rw, distance_host=None)``: ``field`` complex128 (S, n, n) on the focal plan's
     wave-plane grid, carrier removed and any DOE orders already applied (``sum_m c_m exp(i m phi0)``,
     :func:`doe_orders_factor`); ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; all
     entries equal: one lens). Returns float64 (S, size, size), ``|U|^2`` integrated over each pixel.
@@ -467,12 +516,15 @@ class FocalPropagate(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, field, distance, rw):
+    def forward(ctx, field, distance, rw, distance_host=None):
         from rwwarp.focal import pixel_power
-        z = float(distance.detach().reshape(-1)[0]) if distance is not None else None
-        op = rw.focal_operator(z)
+        if distance_host is not None:
+            z = float(distance_host)
+        else:
+            z = float(distance.detach().reshape(-1)[0]) if distance is not None else None
         xp, f = _xp_of(field.to(torch.complex128))
         with _streams(rw):
+            op = rw.focal_operator(z)
             u = op.forward(f)
             power = pixel_power(u, rw.gauss_nodes, rw.pixel, rw.size, xp=xp)
             out = _from_xp(power, field.device)
@@ -495,7 +547,7 @@ class FocalPropagate(torch.autograd.Function):
                 du = op.distance_derivative(ctx.f)
                 gd = _from_xp(xp.real(xp.sum(xp.conj(gu) * du, axis=(1, 2))), ctx.devices[1])
         ctx.f = ctx.u = None
-        return gf, gd, None
+        return gf, gd, None, None
 
 
 def doe_orders_factor(phi0, orders):
@@ -523,9 +575,11 @@ def focal_doe_factor(rw, phi0):
     return torch.exp(1j * alpha[:, None, None] * phi0)
 
 
-def focal_propagate(field, distance, rw):
-    """:class:`FocalPropagate` (a plain forward when no gradient is wanted)."""
-    return FocalPropagate.apply(field, distance, rw)
+def focal_propagate(field, distance, rw, distance_host=None):
+    """:class:`FocalPropagate` (a plain forward when no gradient is wanted). ``distance_host``: the
+    distance's value (mm, a float) when the caller has it on the host, so the operator's set-up does not
+    wait for the device to read it."""
+    return FocalPropagate.apply(field, distance, rw, distance_host)
 
 
 # ---------------------------------------------------------------------------------------------- precision, quantisation
@@ -594,5 +648,4 @@ def raywave_psf(rw, table, phi0=None, distance=None):
     if distance is None:
         distance = distance_from_table(rw, table)
     power = propagate(u, phi0, distance, rw)
-    entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
-    return power / entering[:, None, None]
+    return power / power_sums(rw, power.device)[0][:, None, None]

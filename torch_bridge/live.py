@@ -97,6 +97,8 @@ class LiveProvider:
         names = list(values)
         tensors = [values[q] for q in names]
         outs = []
+        tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
+        dropped = []  # (key, RayWave, its rays outside the window): read once all sources are queued
         for e in self._focal_rws.values():
             e[1] += 1
             e[0].release_operators()   # the last call's operators (a learning distance rebuilds them anyway)
@@ -136,20 +138,22 @@ class LiveProvider:
 
             def run(*ts, rws=rws, record=True):
                 vals = dict(zip(names, ts))
-                return torch.cat([m._psf_rw(r, vals, record=record) for r in rws], 0)
+                return torch.cat([m._psf_rw(r, vals, record=record, tables=tables) for r in rws], 0)
             if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                 outs.append(_Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
-            for key, r in zip(keys, rws):
-                e = self._focal_rws.get(key)
-                if e is not None and e[0] is r:
-                    # more rays outside the window than at the plan's first use: plan that source again
-                    d = int(np.sum(r.dropped.numpy()))
-                    if e[2] is None:
-                        e[2] = d
-                    elif d > e[2]:
-                        e[3] = True
+            dropped += [(key, r, r.dropped) for key, r in zip(keys, rws)]
+        # read after every source was queued (a read waits for the device: once, not once per source)
+        for key, r, arr in dropped:
+            e = self._focal_rws.get(key)
+            if e is not None and e[0] is r:
+                # more rays outside the window than at the plan's first use: plan that source again
+                d = int(np.sum(arr.numpy()))
+                if e[2] is None:
+                    e[2] = d
+                elif d > e[2]:
+                    e[3] = True
         return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
 
 

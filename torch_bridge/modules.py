@@ -540,27 +540,44 @@ class HybridLens(nn.Module):
             geo["in_map"] = in_map
         return geo
 
-    def _psf_rw(self, rw, values, record: bool = True, spatial_tile=None):
+    def host_table(self, rw, table, tables: dict | None = None) -> np.ndarray:
+        """``table`` (:meth:`param_table` of ``rw``) as a float64 numpy array. ``tables``: a dict the caller
+        keeps for one set of values (one :meth:`psf_map` or provider call, its recomputation included):
+        sources with the same base table share one device-to-host copy (each copy waits for the device
+        to finish its queue, so one per source would serialise host and device)."""
+        if tables is None:
+            return table.detach().to("cpu", torch.float64).numpy()
+        # without thin lenses the table is the base table with the values written in; with them its thin-lens
+        # columns also depend on the RayWave (wavelength, conjugates)
+        key = id(rw) if any(self._thin_surfaces) else bridge_state(rw)["base_table"].tobytes()
+        out = tables.get(key)
+        if out is None:
+            out = tables[key] = table.detach().to("cpu", torch.float64).numpy()
+        return out
+
+    def _psf_rw(self, rw, values, record: bool = True, spatial_tile=None, tables: dict | None = None):
         """PSFs (S, size, size) of one RayWave batch from the given values. ``record=False``: plain
         forward, no tape, no graph (used by the tiled checkpointing); also when no gradient is wanted.
-        ``spatial_tile``: sensor pixels per side of the propagation's spatial tiles (None: untiled)."""
+        ``spatial_tile``: sensor pixels per side of the propagation's spatial tiles (None: untiled).
+        ``tables``: the caller's cache of host tables for these values (:meth:`host_table`)."""
+        from .functions import power_sums
         ctx = contextlib.nullcontext() if record else torch.no_grad()
         with ctx:
             table = self.param_table(rw, values)
+            host = self.host_table(rw, table, tables)
             phi0 = self.doe_phase(rw, values) if rw.plan.method != "focal" else None
             dist = (table[-1, COL.z] - table[rw.plane, COL.z]).expand(rw.nsrc)
-            u = trace_splat(table, rw)
+            u = trace_splat(table, rw, host)
             if rw.amplitude != "energy":
                 u = paper_amplitude(u, rw)
             if rw.plan.method == "focal":
                 fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
                 if fac is not None:
                     u = u * fac
-                power = focal_propagate(u, dist, rw)
+                power = focal_propagate(u, dist, rw, float(host[-1, COL.z] - host[rw.plane, COL.z]))
             else:
                 power = propagate(u, phi0, dist, rw, spatial_tile)
-            entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=power.device)
-            return power / entering[:, None, None]
+            return power / power_sums(rw, power.device)[0][:, None, None]
 
     def memory_budget(self, memory_budget_bytes=None) -> int:
         """``memory_budget_bytes``, or the device default: half the available memory
@@ -620,7 +637,7 @@ class HybridLens(nn.Module):
         if spatial_tile is None:
             spatial_tile = self.spatial_tile_for(rw, budget)
         self.check_budget(rw, budget, spatial_tile)
-        out = self._psf_rw(rw, self.values(), spatial_tile=spatial_tile)[0]
+        out = self._psf_rw(rw, self.values(), spatial_tile=spatial_tile, tables={})[0]
         return (out, rw.centers[0].copy()) if return_centers else out
 
     def psf_map(self, fields, wavelengths_um, size: int = 64, *, object_distance_mm=None, pixel_mm=None,
@@ -685,6 +702,7 @@ class HybridLens(nn.Module):
             from tqdm.auto import tqdm
             it = tqdm(chunks, desc="PSF tiles", unit="tile")
         outs, centers = [], np.zeros((len(pairs), 2))
+        tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
         with self._cache_limit(memory_budget_bytes):
             for ch in it:
                 f_t = [src_f[k] for k in ch]
@@ -701,7 +719,8 @@ class HybridLens(nn.Module):
                 centers[ch] = rw.centers
 
                 def run(*ts, rw=rw, record=True):
-                    return self._psf_rw(rw, dict(zip(names, ts)), record=record, spatial_tile=spatial_tile)
+                    return self._psf_rw(rw, dict(zip(names, ts)), record=record, spatial_tile=spatial_tile,
+                                        tables=tables)
                 if checkpoint and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                     outs.append(_Recompute.apply(run, *tensors))
                 else:
