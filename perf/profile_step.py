@@ -29,6 +29,8 @@ def main():
     ap.add_argument("--arm", default=None, help="the arm to step (default: the first whose design method is e2e)")
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--find-syncs", action="store_true",
+                    help="one more step counting the host reads of device data (each waits for the device) by call site")
     ap.add_argument("--budget-gb", type=float, default=None,
                     help="override the config's optics.memory_budget_gb (sets the live PSF tile)")
     a = ap.parse_args()
@@ -114,10 +116,66 @@ def main():
             cp = [e for e in ev if e.name.startswith(f"Memcpy {kind}")]
             say(f"Memcpy {kind}: {len(cp)} copies, {sum(e.device_time for e in cp) / 1e3:.2f} ms of device time")
         say(prof.key_averages().table(sort_by="device_time_total", row_limit=30, max_name_column_width=70))
+    if cuda and a.find_syncs:
+        say("== host reads of device data in one step, by call site (project frames)")
+        for site, n in _count_syncs(lambda: step(a.steps + 3))[:25]:
+            say(f"{n:6d}  {site}")
     if a.out:
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}.txt"
         p.write_text("\n".join(lines) + "\n")
         print("written to", p)
+
+
+def _count_syncs(fn):
+    """Run ``fn()`` counting the calls that read device data on the host (Warp ``array.numpy``, CuPy
+    ``get`` / scalar conversions, torch's synchronising operations via its sync debug mode), by the innermost
+    call site in rwwarp / torch_bridge. Returns ``[(site, count)]``, most frequent first."""
+    import collections
+    import traceback
+    import warnings
+
+    import cupy
+    import torch
+    import warp as wp
+    counts = collections.Counter()
+
+    def site():
+        for fr in reversed(traceback.extract_stack()[:-2]):
+            if "/rwwarp/" in fr.filename or "/torch_bridge/" in fr.filename:
+                return f"{fr.filename.split('/')[-2]}/{fr.filename.split('/')[-1]}:{fr.lineno} {fr.name}"
+        return "other"
+
+    patched = []
+
+    def wrap(owner, name, test=None):
+        orig = getattr(owner, name)
+
+        def f(self, *a, **k):
+            if test is None or test(self):
+                counts[site()] += 1
+            return orig(self, *a, **k)
+        try:
+            setattr(owner, name, f)
+        except TypeError:   # an extension type (CuPy's ndarray): its reads are not counted
+            counts[f"(not counted: {owner.__name__}.{name})"] = 0
+            return
+        patched.append((owner, name, orig))
+    wrap(wp.array, "numpy", lambda x: x.device.is_cuda)
+    for n in ("get", "item", "__float__", "__int__", "__bool__", "tolist"):
+        wrap(cupy.ndarray, n)
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            fn()
+        for w in rec:
+            if "synchroniz" in str(w.message):
+                counts[f"torch {w.filename.split('/')[-1]}:{w.lineno}"] += 1
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+        for owner, name, orig in patched:
+            setattr(owner, name, orig)
+    return counts.most_common()
 
 
 if __name__ == "__main__":

@@ -189,17 +189,34 @@ def _grid_points(rw, device, dtype=torch.float64):
     return (o[:, 0, None, None] + g[None, None, :]), (o[:, 1, None, None] + g[None, :, None])
 
 
+def _on_device(rw, name: str, host: np.ndarray, device) -> torch.Tensor:
+    """``host`` (a small float64 array of ``rw``'s constants) on ``device``, uploaded once per value: kept in
+    ``bridge_state(rw)`` under ``name`` with its bytes (an upload from pageable memory waits for the
+    device)."""
+    st = bridge_state(rw)
+    key = (str(device), host.tobytes())
+    hit = st.get(name)
+    if hit is None or hit[0] != key:
+        hit = st[name] = (key, torch.as_tensor(host, dtype=torch.float64, device=device))
+    return hit[1]
+
+
 def _reference_z_factor(rw, device):
     """``+-k n (T_z - c_z) / |T - p|`` on the grid (S, n, n), on ``device``: d(phase of the field)/d(plane z)
     through the grid's z (the reference sphere put back at the grid points, see kernels/splat.py; the
     sign is the splat's: + for a sphere converging to T, - diverging)."""
-    x, y = _grid_points(rw, device)
-    T = torch.as_tensor(rw.target, dtype=torch.float64, device=device)
-    dz = torch.as_tensor(rw.target[:, 2] - rw.chief_plane[:, 2], dtype=torch.float64, device=device)[:, None, None]
-    dist = torch.sqrt((T[:, 0, None, None] - x) ** 2 + (T[:, 1, None, None] - y) ** 2 + dz ** 2)
     sign = np.where(rw.target[:, 2] >= rw.z_plane, 1.0, -1.0)
-    k = torch.as_tensor(2.0 * np.pi / rw.lam_mm * rw.n_after * sign, dtype=torch.float64, device=device)
-    return k[:, None, None] * dz / dist
+    # per source: window origin x, y; target T x, y; T_z - c_z; k n (signed), in one upload
+    c = _on_device(rw, "reference_z_consts", np.column_stack(
+        [rw.origin[:, 0], rw.origin[:, 1], rw.target[:, 0], rw.target[:, 1], rw.target[:, 2] - rw.chief_plane[:, 2],
+         2.0 * np.pi / rw.lam_mm * rw.n_after * sign]).astype(np.float64), device)
+    n, h = rw.plan.n_grid, rw.plan.pitch_mm
+    g = torch.arange(n, dtype=torch.float64, device=device) * h
+    x = c[:, 0, None, None] + g[None, None, :]
+    y = c[:, 1, None, None] + g[None, :, None]
+    dz = c[:, 4, None, None]
+    dist = torch.sqrt((c[:, 2, None, None] - x) ** 2 + (c[:, 3, None, None] - y) ** 2 + dz ** 2)
+    return c[:, 5, None, None] * dz / dist
 
 
 # ---------------------------------------------------------------------------------------------- trace + splat

@@ -78,6 +78,10 @@ class LiveProvider:
         nodes, and a focal source is planned on its own, so a share's PSFs are the rows of the
         whole map (band-limited ASM sources are planned per chunk of ``tile`` sources within the
         share)."""
+        with self.module.same_values():   # no optimiser step inside: the lens export is made once
+            return self._psfs(wavelengths_um, depth_mm, nodes)
+
+    def _psfs(self, wavelengths_um, depth_mm, nodes):
         from torch_bridge.modules import _Recompute
         m = self.module
         cen = common_centres(m, self.fields, self.wl_ref, depth_mm)

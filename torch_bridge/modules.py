@@ -137,6 +137,7 @@ class HybridLens(nn.Module):
         self.use_reference = bool(use_reference)
         self.replan = bool(replan)
         self._plans: dict = {}
+        self._same_values = None   # see same_values()
         surfs = lens.surfaces
         ns = len(surfs)
         std = [s.type == "standard" for s in surfs]
@@ -322,6 +323,31 @@ class HybridLens(nn.Module):
         finally:
             self.replan = keep
 
+    @contextlib.contextmanager
+    def same_values(self):
+        """Within the block the caller promises the values do not change (one provider call, which plans
+        many sources): the finiteness check and the :meth:`to_lens` export that every :meth:`raywave`
+        plan starts from are done once, not once per source (each reads the values on the host, a read
+        that waits for the device). Nested blocks share the outer one's snapshot."""
+        keep = self._same_values
+        if keep is None:
+            self._same_values = {}
+        try:
+            yield self
+        finally:
+            self._same_values = keep
+
+    def _checked_lens(self) -> Lens:
+        """:meth:`check_finite`, then :meth:`to_lens`; once per :meth:`same_values` block."""
+        snap = self._same_values
+        if snap is not None and "lens" in snap:
+            return snap["lens"]
+        self.check_finite()
+        lens = self.to_lens()
+        if snap is not None:
+            snap["lens"] = lens
+        return lens
+
     def clear_plans(self):
         """Forget cached plans."""
         self._plans.clear()
@@ -336,7 +362,7 @@ class HybridLens(nn.Module):
         estimate of the batch is checked against it before anything is traced
         (:class:`rwwarp.plan.MemoryBudgetError` names the estimate and the knobs)."""
         from rwwarp.psf import RayWave
-        self.check_finite()
+        lens = self._checked_lens()
         fields = _field_list(fields)
         wls = [float(w) for w in wavelengths_um]
         plan = self.plan_policy if plan is None else plan
@@ -346,7 +372,6 @@ class HybridLens(nn.Module):
                self.rw_device, bool(requires_grad), method or self.method)
         if not self.replan and key in self._plans:
             return self._plans[key]
-        lens = self.to_lens()
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
         rw = RayWave(lens, fields, wls, int(size), pixel, device=self.rw_device, plan=plan, dtype="float64",
                      amplitude=self.amplitude, object_distance_mm=object_distance_mm,
@@ -368,7 +393,11 @@ class HybridLens(nn.Module):
         table's)."""
         v = values or self.values()
         dev = v["thickness"].device
-        base = torch.as_tensor(bridge_state(rw)["base_table"], dtype=torch.float64, device=dev)
+        st = bridge_state(rw)
+        on_dev = st.setdefault("base_table_on", {})   # one upload per device, not one per call
+        base = on_dev.get(dev)
+        if base is None:
+            base = on_dev[dev] = torch.as_tensor(st["base_table"], dtype=torch.float64, device=dev)
         t = v["thickness"]
         zero = torch.zeros(1, dtype=t.dtype, device=dev)
         z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
