@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import warp as wp
 
-from .kernels.reduce import WIDTH, make_reduce_kernels
+from .kernels.reduce import WIDE, WIDTH, make_reduce_kernels
 
 
 def source_sums(values, n_src: int, scalar, device: str, requires_grad: bool = False):
     """Per-source sums of ``values`` (a Warp array of ``n_src * n`` vec4 of ``scalar``, source-major).
 
     Returns a Warp array (n_src, 1) of vec4 (the four sums of each source) on ``device``. With
-    ``requires_grad`` the intermediate levels keep gradients (call inside a ``wp.Tape``)."""
+    ``requires_grad`` the intermediate levels keep gradients (call inside a ``wp.Tape``; 16 entries a
+    thread), else :data:`~rwwarp.kernels.reduce.WIDE` entries a thread. Either way a fixed order: the same
+    bits on every run."""
     K = make_reduce_kernels(scalar)
     total = int(values.shape[0])
     if n_src <= 0 or total % n_src:
@@ -25,9 +27,14 @@ def source_sums(values, n_src: int, scalar, device: str, requires_grad: bool = F
         return wp.zeros((n_src, 1), dtype=K.vec4, device=device, requires_grad=requires_grad)
     level = values.reshape((n_src, total // n_src))
     while True:
-        width = -(-int(level.shape[1]) // WIDTH)
-        out = wp.zeros((n_src, width), dtype=K.vec4, device=device, requires_grad=requires_grad)
-        wp.launch(K.sum16_kernel, dim=(n_src, width), inputs=[level], outputs=[out], device=device)
+        if requires_grad:
+            width = -(-int(level.shape[1]) // WIDTH)
+            out = wp.zeros((n_src, width), dtype=K.vec4, device=device, requires_grad=True)
+            wp.launch(K.sum16_kernel, dim=(n_src, width), inputs=[level], outputs=[out], device=device)
+        else:   # fewer, wider passes (every entry of out is written)
+            width = -(-int(level.shape[1]) // WIDE)
+            out = wp.empty((n_src, width), dtype=K.vec4, device=device)
+            wp.launch(K.sum_wide_kernel, dim=(n_src, width), inputs=[level, WIDE], outputs=[out], device=device)
         level = out
         if width == 1:
             return level

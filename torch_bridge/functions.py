@@ -101,11 +101,12 @@ class TorchAllocator:
 
     def __init__(self, index: int):
         self.index = int(index)
+        self.stream = None   # the CUDA stream handle (int) blocks are allocated on; set by the bridge's calls
 
     # Warp's Allocator protocol (bytes)
     def allocate(self, size_in_bytes: int) -> int:
-        return int(torch.cuda.caching_allocator_alloc(max(int(size_in_bytes), 1), self.index,
-                                                      torch.cuda.current_stream(self.index)))
+        stream = self.stream if self.stream is not None else torch.cuda.current_stream(self.index).cuda_stream
+        return int(torch.cuda.caching_allocator_alloc(max(int(size_in_bytes), 1), self.index, stream))
 
     def deallocate(self, ptr: int, size_in_bytes: int) -> None:
         torch.cuda.caching_allocator_delete(int(ptr))
@@ -136,6 +137,7 @@ def _streams(rw):
     alloc = _ALLOCATORS.get(dev.ordinal)
     if alloc is None:
         alloc = _ALLOCATORS[dev.ordinal] = TorchAllocator(dev.ordinal)
+    alloc.stream = tstream.cuda_stream   # looked up once per call, not per allocation
     with wp.ScopedStream(wp.stream_from_torch(tstream)), wp.ScopedAllocator(dev, alloc):
         try:
             import cupy as cp
