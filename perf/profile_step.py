@@ -77,7 +77,8 @@ def main():
     say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
     prov = arm.provider
     if hasattr(prov, "plans_made"):
-        say(f"live plans made {prov.plans_made}, reused {prov.plans_reused} (replan_every {prov.replan_every})")
+        say(f"live plans made {prov.plans_made}, reused {prov.plans_reused} (replan_every {prov.replan_every}; "
+            f"kept plans given up: {prov.replans})")
     if hasattr(prov, "tile"):
         say(f"live PSF tile {prov.tile} sources (memory_budget_gb {cfg['optics'].get('memory_budget_gb')})")
     if cuda:

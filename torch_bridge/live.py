@@ -32,17 +32,20 @@ class LiveProvider:
     source is traced and propagated on its last plan with the current values (a patch centre that moved
     to another pixel moves the plan's sensor-side grid along, :meth:`rwwarp.psf.RayWave.recentre`). A
     plan is made again sooner when more rays fell outside its wave-plane window in the last call than
-    at the plan's first use. 1 (default): every call plans
-    afresh. The focal operator is exact for any fitted transfer and the grids carry margins
+    at the plan's first use by more than ``window_tol`` of the source's ray grid (``ray_grid^2``; default
+    1e-5: the power those rays carried is lost from the field, a PSF error of that order, below a kept
+    plan's own, see below). 1 (default): every call plans afresh. The focal operator is exact for any fitted transfer and the grids carry margins
     (``nyquist_safety``, the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few
     small optimiser steps old samples the source as well (a 5e-5 change of a curvature: 4.7e-6 from a
     fresh plan, ``tests/torch_bridge/test_live_replan.py``); gradients are exact at the plan used.
     Kept plans are not part of a training checkpoint: a resumed run plans afresh, so with N > 1 its next
     steps differ from an uninterrupted run's by the plans' age. Counts: :attr:`plans_made`,
-    :attr:`plans_reused`."""
+    :attr:`plans_reused`, and why kept plans were given up, :attr:`replans` (``"age"``: ``replan_every``
+    calls old; ``"window"``: rays left the window)."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
-                 tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1):
+                 tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
+                 window_tol: float = 1e-5):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
@@ -50,6 +53,10 @@ class LiveProvider:
         if int(replan_every) != replan_every or replan_every < 1:
             raise ValueError(f"LiveProvider: replan_every must be an integer >= 1, got {replan_every!r}")
         self.replan_every = int(replan_every)
+        if not (np.isfinite(window_tol) and 0 <= window_tol < 1):
+            raise ValueError(f"LiveProvider: window_tol must be in [0, 1), got {window_tol!r}")
+        self.window_tol = float(window_tol)
+        self.replans = {"age": 0, "window": 0}
         # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays outside its window
         # at its first use, more rays outside it since]
         self._focal_rws = {}
@@ -57,8 +64,15 @@ class LiveProvider:
         self.plans_reused = 0
 
     def _usable(self, e) -> bool:
-        """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again."""
-        return e[1] < self.replan_every and not e[3]
+        """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again (else counted in
+        :attr:`replans` by the reason)."""
+        if e[3]:
+            self.replans["window"] += 1
+            return False
+        if e[1] >= self.replan_every:
+            self.replans["age"] += 1
+            return False
+        return True
 
     def _plan_source(self, j, src_f, src_w, src_c, depth_mm, check: bool = False):
         """Plan source ``j`` on its own (focal); ``check``: its recorded peak is checked against the budget
@@ -156,7 +170,7 @@ class LiveProvider:
                 d = int(np.sum(arr.numpy()))
                 if e[2] is None:
                     e[2] = d
-                elif d > e[2]:
+                elif d - e[2] > self.window_tol * r.nsrc * r.plan.ray_grid ** 2:
                     e[3] = True
         return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
 

@@ -120,3 +120,22 @@ def test_replan_every_is_checked():
     m = tb.HybridLens(lens, learn={"curvature": [0]}, method="focal")
     with pytest.raises(ValueError, match="replan_every"):
         dz.LiveProvider(m, [0.0], 12, lens.sensor.pixel_pitch, replan_every=0)
+    with pytest.raises(ValueError, match="window_tol"):
+        dz.LiveProvider(m, [0.0], 12, lens.sensor.pixel_pitch, replan_every=3, window_tol=float("nan"))
+
+
+def test_rays_leaving_the_window_make_the_plan_again():
+    """Cooke triplet, on axis and at 10 deg: the front curvature weakened by 10 % defocuses the beam past the
+    kept plans' wave-plane windows (measured: 256 and 478 rays outside, none at the plans' first use), so
+    the next call plans both sources again (reason "window"), before their age would."""
+    lens = rw.load_lens("cooke_triplet")
+    m = tb.HybridLens(lens, learn={"curvature": [0]}, method="focal", rays_per_sample=0.5)
+    prov = dz.LiveProvider(m, [0.0, 10.0], 12, lens.sensor.pixel_pitch, replan_every=3)
+    with torch.no_grad():
+        prov.psfs([0.55])
+        m.curvature[0] *= 1.0 - 0.1
+        prov.psfs([0.55])
+        assert (prov.plans_made, prov.plans_reused) == (2, 2)
+        prov.psfs([0.55])
+    assert (prov.plans_made, prov.plans_reused) == (4, 2)
+    assert prov.replans == {"age": 0, "window": 2}
