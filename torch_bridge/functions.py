@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import sys
 import weakref
 
 import numpy as np
@@ -108,8 +109,13 @@ class TorchAllocator:
         stream = self.stream if self.stream is not None else torch.cuda.current_stream(self.index).cuda_stream
         return int(torch.cuda.caching_allocator_alloc(max(int(size_in_bytes), 1), self.index, stream))
 
-    def deallocate(self, ptr: int, size_in_bytes: int) -> None:
-        torch.cuda.caching_allocator_delete(int(ptr))
+    def deallocate(self, ptr: int, size_in_bytes: int, _finalizing=sys.is_finalizing,
+                   _delete=torch.cuda.caching_allocator_delete) -> None:
+        # (the functions are bound at definition: arrays may be collected at interpreter exit, after the
+        # modules' globals are gone; the driver frees the memory then)
+        if _finalizing():
+            return
+        _delete(int(ptr))
 
     @property
     def cupy_malloc(self):

@@ -57,6 +57,9 @@ class LiveProvider:
             raise ValueError(f"LiveProvider: window_tol must be in [0, 1), got {window_tol!r}")
         self.window_tol = float(window_tol)
         self.replans = {"age": 0, "window": 0}
+        # sources whose first plan came out focal: planned on their own from then on (a joint plan of their
+        # chunk would only decide the method again)
+        self._focal_keys = set()
         # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays outside its window
         # at its first use, more rays outside it since]
         self._focal_rws = {}
@@ -123,45 +126,59 @@ class LiveProvider:
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
             keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
-            kept = [self._focal_rws.get(key) for key in keys]
-            if self.replan_every > 1 and all(e is not None for e in kept):
-                # every source of the chunk was planned focal before: keep the usable plans, plan the others
-                rws = []
-                for j, key, e in zip(range(sl.start, sl.stop), keys, kept):
-                    if self._usable(e):
-                        if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
-                            # the patch moved to another pixel: its grids move along (a copy: a graph of an
-                            # earlier call that still holds the plan keeps its own patch)
-                            e[0] = _recentred(e[0], src_c[j])
-                        rws.append(e[0])
-                        self.plans_reused += 1
-                    else:
-                        rws.append(self._plan_source(j, src_f, src_w, src_c, depth_mm, check=True))
-                        self._focal_rws[key] = [rws[-1], 0, None, False]
-            else:
-                rw = m.raywave(src_f[sl], src_w[sl], self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
-                               center_mm=src_c[sl])
-                rws = [rw]
+            rws, fresh = {}, []
+            for j, key in zip(range(sl.start, sl.stop), keys):
+                e = self._focal_rws.get(key)
+                if e is not None and self._usable(e):
+                    if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
+                        # the patch moved to another pixel: its grids move along (a copy: a graph of an
+                        # earlier call that still holds the plan keeps its own patch)
+                        e[0] = _recentred(e[0], src_c[j])
+                    rws[j] = e[0]
+                    self.plans_reused += 1
+                elif key in self._focal_keys:
+                    # planned focal before: planned again on its own (no joint plan of the chunk first)
+                    rws[j] = self._plan_source(j, src_f, src_w, src_c, depth_mm, check=True)
+                    if self.replan_every > 1:
+                        self._focal_rws[key] = [rws[j], 0, None, False]
+                else:
+                    fresh.append(j)
+            if fresh:
+                # sources not seen before: one joint plan decides the method and checks the budget
+                rw = m.raywave([src_f[j] for j in fresh], [src_w[j] for j in fresh], self.size,
+                               object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, center_mm=src_c[fresh])
                 # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
                 m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if rw.plan.method == "focal"
                                else rw.nsrc)
-                if rw.plan.method == "focal" and rw.nsrc > 1:
+                if rw.plan.method == "focal":
                     # focal grids follow each source's patch and DOE orders: one plan per source
-                    rws = [self._plan_source(j, src_f, src_w, src_c, depth_mm) for j in range(sl.start, sl.stop)]
+                    for j in fresh:
+                        key = (tuple(np.ravel(src_f[j])), src_w[j], depth_mm)
+                        self._focal_keys.add(key)
+                        rws[j] = rw if len(fresh) == 1 else self._plan_source(j, src_f, src_w, src_c, depth_mm)
+                        if self.replan_every > 1:
+                            self._focal_rws[key] = [rws[j], 0, None, False]
+                    if len(fresh) == 1:
+                        self.plans_made += 1
                 else:
+                    rws[fresh[0]] = rw   # one band-limited batch for the new sources
                     self.plans_made += 1
-                if rw.plan.method == "focal" and self.replan_every > 1:
-                    for key, r in zip(keys, rws):
-                        self._focal_rws[key] = [r, 0, None, False]
+            # the chunk's RayWaves in source order; a band-limited batch of new sources gives their rows together
+            order = sorted(rws)
+            rows = [fresh if (fresh and j == fresh[0] and rws[j].nsrc > 1) else [j] for j in order]
+            rws = [rws[j] for j in order]
+            flat = [j for row in rows for j in row]
+            perm = None if flat == sorted(flat) else torch.as_tensor(np.argsort(flat))
 
-            def run(*ts, rws=rws, record=True):
+            def run(*ts, rws=rws, perm=perm, record=True):
                 vals = dict(zip(names, ts))
-                return torch.cat([m._psf_rw(r, vals, record=record, tables=tables) for r in rws], 0)
+                out = torch.cat([m._psf_rw(r, vals, record=record, tables=tables) for r in rws], 0)
+                return out if perm is None else out[perm.to(out.device)]
             if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                 outs.append(_Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
-            dropped += [(key, r, r.dropped) for key, r in zip(keys, rws)]
+            dropped += [(keys[j - sl.start], r, r.dropped) for j, r in zip(order, rws)]
         # read after every source was queued (a read waits for the device: once, not once per source)
         for key, r, arr in dropped:
             e = self._focal_rws.get(key)
