@@ -13,7 +13,7 @@ off the input window, and brought back either
 * on the input grid, possibly shifted (:func:`propagate_grid`): inverse FFT and crop, the
   classic fixed-grid method.
 
-All device work runs in the OpenCL C kernels of ``kernels/opencl/propagate.cl`` (also built for
+All device work runs in the OpenCL C kernels of ``kernels/opencl/angular_spectrum.cl`` (also built for
 CUDA, see :mod:`rwwarp.backend`); this module only computes per-batch parameters on the host and
 queues launches. Nothing returns to the host within a call.
 

@@ -5,7 +5,7 @@ Where each piece lives here:
 * :func:`next_fft_size` (VkFFT's fast lengths) and :func:`gauss_legendre` (the pixel-integration nodes);
 * :func:`band_limits`: Matsushima's band limit on one axis (2009; its shifted form, 2010, for an output
   window off the input window);
-* the per-batch parameter row mirrored from ``kernels/opencl/propagate.cl`` (``_P_*``), the padded
+* the per-batch parameter row mirrored from ``kernels/opencl/angular_spectrum.cl`` (``_P_*``), the padded
   sizes and band extents of a call (:class:`_Setup`, :func:`_setup`), the alias check
   (:func:`_check_window`) and the coordinate helpers of the output windows.
 
@@ -21,7 +21,7 @@ import numpy as np
 from .backend import Backend, complex_dtype, get_backend, real_dtype
 from .errors import SamplingWarning
 
-# Per-batch parameter row, mirrored from kernels/opencl/propagate.cl (P_* macros).
+# Per-batch parameter row, mirrored from kernels/opencl/angular_spectrum.cl (P_* macros).
 _P_LAMBDA, _P_Z, _P_ZFRAC, _P_LPX, _P_LPY, _P_X0, _P_Y0, _P_XS, _P_YS = range(9)
 _P_CX, _P_CY, _P_ULO, _P_UHI, _P_VLO, _P_VHI, _P_QX0, _P_QY0, _P_KXB, _P_KYB = range(9, 19)
 _P_DOE_SCALE = 19

@@ -1,5 +1,5 @@
 """Device stages of the band-limited angular spectrum path (:mod:`rwwarp.propagate`): the launches of
-the OpenCL C kernels of ``kernels/opencl/propagate.cl``, on the state a :class:`~rwwarp.propagate_setup._Setup`
+the OpenCL C kernels of ``kernels/opencl/angular_spectrum.cl``, on the state a :class:`~rwwarp.propagate_setup._Setup`
 holds. Nothing returns to the host.
 
 Forward, in the order a call runs them:
@@ -20,7 +20,7 @@ import numpy as np
 
 from .propagate_setup import _H_COLS, _round_up
 
-_SRC = "propagate.cl"
+_SRC = "angular_spectrum.cl"
 # Launch shapes: work-group of the element-wise kernels, GEMM tile (GPUs), rows per work-item (CPU GEMM).
 _LOCAL = (32, 8, 1)
 _GEMM_TS = 32
@@ -36,7 +36,7 @@ def _launch(st, name, gsize, *args, local=_LOCAL, defines=()):
 
 def _gemm(st, a, b, c, m, n, k, *, lda, ldb, ldc, sa, sb, sc, ta=0, ca=0, tb=0, cb=0):
     """c[b] = op(a[b]) @ op(b[b]) over the batch: the explicitly vectorised kernel on CPU OpenCL
-    devices, the local-memory tiled one on GPUs (same arguments, see propagate.cl). GPU tiles:
+    devices, the local-memory tiled one on GPUs (same arguments, see angular_spectrum.cl). GPU tiles:
     32 x 32 outputs per work-group, 2 x 2 per work-item (k-step 32) when the problem has few
     tiles, 4 x 4 per work-item (k-step 16) when it fills the device several times over
     (measured on an H100: 1.3-1.5x faster there, slower on small problems)."""

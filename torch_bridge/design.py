@@ -426,7 +426,7 @@ class CachedProvider:
         cached field, focal propagation (each node a checkpoint when a gradient is wanted and there is
         more than one node)."""
         from torch_bridge.functions import focal_doe_factor, focal_propagate
-        from torch_bridge.modules import _Recompute
+        from torch_bridge.functions import Recompute
         nodes, dist, geo = entry
         outs = []
         ts = [doe] if thick is None else [doe, thick]
@@ -450,7 +450,7 @@ class CachedProvider:
                         v = u * fac
                     return focal_propagate(v, d, rw, d_host) / entering[:, None, None]
             if checkpoint:
-                outs.append(_Recompute.apply(run, *ts))
+                outs.append(Recompute.apply(run, *ts))
             else:
                 outs.append(run(*ts, record=torch.is_grad_enabled()))
         self.step_log.append({"key": list(key), "method": "focal", "chunk": 1, "chunks": len(nodes),
@@ -641,7 +641,7 @@ class CachedProvider:
         if part is not None and chunk is None:
             raise ValueError("CachedProvider.psfs: part needs chunk (the share's size in nodes)")
         from torch_bridge.functions import propagate
-        from torch_bridge.modules import _Recompute
+        from torch_bridge.functions import Recompute
         doe = self.module.value("doe")
         thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
         out = []
@@ -674,7 +674,7 @@ class CachedProvider:
                 ts = [doe] if thick is None else [doe, thick]
                 wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
                 if len(parts) > 1 and wants:
-                    outs.append(_Recompute.apply(run, *ts))
+                    outs.append(Recompute.apply(run, *ts))
                 else:
                     outs.append(run(*ts, record=torch.is_grad_enabled()))
             power = outs[0] if len(outs) == 1 else torch.cat(outs, 0)

@@ -1,17 +1,14 @@
 """Evaluation of a trained arm (:func:`evaluate`: ray-wave PSFs, PSNR / SSIM / 1-LPIPS per depth and
 node, RMS spot radius; :func:`objective`: the training objective on the fixed evaluation crops) and
-the rendering helpers the training loop shares with it (sensor noise, per-patch blur, kernels)."""
-from __future__ import annotations
+the rendering helpers the training loop shares with it (sensor noise, per-patch blur, kernels).
 
-from typing import TYPE_CHECKING
+``arm`` arguments are :class:`torch_bridge.train.Arm` objects (not imported here: train imports this module)."""
+from __future__ import annotations
 
 import numpy as np
 import torch
 
 from torch_bridge.config import _budget_bytes, _depth_tag, _depth_value, _feature_mm
-
-if TYPE_CHECKING:
-    from torch_bridge.train import Arm
 
 __all__ = ["evaluate", "objective"]
 
@@ -38,7 +35,7 @@ def _psf_kernels(psfs):
     return psfs.flip(-2)
 
 
-def _eval_provider(arm: Arm):
+def _eval_provider(arm):
     """A ray-wave provider for the current lens: the training one when it caches ray-wave fields of
     this lens (checked for sampling and centring first), else a new one."""
     from torch_bridge import design as dz
@@ -55,7 +52,7 @@ def _eval_provider(arm: Arm):
 
 
 @torch.no_grad()
-def objective(arm: Arm, prov=None) -> dict:
+def objective(arm, prov=None) -> dict:
     """The training objective (``MSE + alpha * perceptual``) on the fixed evaluation crops: ray-wave PSFs
     of the current lens (the wavelengths of each channel averaged) at the first evaluation depth, every
     node, seeded noise, the current network. Used to compare a design with its own starting point."""
@@ -89,7 +86,7 @@ def objective(arm: Arm, prov=None) -> dict:
 
 
 @torch.no_grad()
-def evaluate(arm: Arm, prov=None) -> dict:
+def evaluate(arm, prov=None) -> dict:
     """Evaluation of a trained arm with the ray-wave model (see the module docstring)."""
     from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import image_metrics

@@ -607,6 +607,32 @@ def focal_propagate(field, distance, rw, distance_host=None):
     return FocalPropagate.apply(field, distance, rw, distance_host)
 
 
+# ---------------------------------------------------------------------------------------------- checkpointing
+class Recompute(torch.autograd.Function):
+    """Checkpoint of one tile of sources: ``Recompute.apply(run, *tensors)`` with ``run(*tensors, record=...)``
+    returning the tile's output. Forward without tape or graph, backward recomputes under a fresh tape
+    (the template of warp's examples/optim/example_fluid_checkpoint.py), so a tile's tape lives
+    only while its own gradient is formed."""
+
+    @staticmethod
+    def forward(ctx, run, *tensors):
+        ctx.run = run
+        ctx.save_for_backward(*tensors)
+        return run(*tensors, record=False)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        ts = [t.detach().requires_grad_(t.requires_grad) for t in ctx.saved_tensors]
+        with torch.enable_grad():
+            out = ctx.run(*ts, record=True)
+        need = [t for t in ts if t.requires_grad]
+        got = torch.autograd.grad(out, need, grad_out, allow_unused=True)
+        it = iter(got)
+        grads = [next(it) if t.requires_grad else None for t in ts]
+        ctx.run = None
+        return (None, *grads)
+
+
 # ---------------------------------------------------------------------------------------------- precision, quantisation
 class MixedPrecision(torch.autograd.Function):
     """float64 -> float32 on the way forward, the float32 gradient -> float64 on the way back.

@@ -99,7 +99,7 @@ class LiveProvider:
             return self._psfs(wavelengths_um, depth_mm, nodes)
 
     def _psfs(self, wavelengths_um, depth_mm, nodes):
-        from torch_bridge.modules import _Recompute
+        from torch_bridge.functions import Recompute
         m = self.module
         cen = common_centres(m, self.fields, self.wl_ref, depth_mm)
         sel = range(len(self.fields))[nodes if nodes is not None else slice(None)]
@@ -175,7 +175,7 @@ class LiveProvider:
                 out = torch.cat([m._psf_rw(r, vals, record=record, tables=tables) for r in rws], 0)
                 return out if perm is None else out[perm.to(out.device)]
             if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-                outs.append(_Recompute.apply(run, *tensors))
+                outs.append(Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
             dropped += [(keys[j - sl.start], r, r.dropped) for j, r in zip(order, rws)]

@@ -58,8 +58,8 @@ from rwwarp.plan import Plan
 
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
-from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude, propagate,
-                        quantize_ste, trace_splat)
+from .functions import (Recompute, backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
+                        propagate, quantize_ste, trace_splat)
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -751,7 +751,7 @@ class HybridLens(nn.Module):
                     return self._psf_rw(rw, dict(zip(names, ts)), record=record, spatial_tile=spatial_tile,
                                         tables=tables)
                 if checkpoint and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-                    outs.append(_Recompute.apply(run, *tensors))
+                    outs.append(Recompute.apply(run, *tensors))
                 else:
                     outs.append(run(*tensors))
         out = torch.cat(outs, 0).reshape(len(fields), len(wls), size, size)
@@ -793,27 +793,3 @@ class HybridLens(nn.Module):
     def forward(self, fields, wavelengths_um, size: int = 64, **kw):
         """Same as :meth:`psf_map`."""
         return self.psf_map(fields, wavelengths_um, size, **kw)
-
-
-class _Recompute(torch.autograd.Function):
-    """Checkpoint of one tile: forward without tape or graph, backward recomputes under a fresh tape
-    (the template of warp's examples/optim/example_fluid_checkpoint.py), so a tile's tape lives
-    only while its own gradient is formed."""
-
-    @staticmethod
-    def forward(ctx, run, *tensors):
-        ctx.run = run
-        ctx.save_for_backward(*tensors)
-        return run(*tensors, record=False)
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        ts = [t.detach().requires_grad_(t.requires_grad) for t in ctx.saved_tensors]
-        with torch.enable_grad():
-            out = ctx.run(*ts, record=True)
-        need = [t for t in ts if t.requires_grad]
-        got = torch.autograd.grad(out, need, grad_out, allow_unused=True)
-        it = iter(got)
-        grads = [next(it) if t.requires_grad else None for t in ts]
-        ctx.run = None
-        return (None, *grads)

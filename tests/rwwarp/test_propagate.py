@@ -215,7 +215,7 @@ def test_gemm_kernels_match_numpy(backend, dtype, flags):
         variants.append(("cgemm_cpu_kernel", (-(-n // 4), -(-m // 8), bsz), (16, 1, 1), ()))
     for name, gsize, lsize, defines in variants:
         c = backend.empty((bsz, m, n), dtype)
-        backend.launch("propagate.cl", name, dtype, gsize, lsize, *args, c, defines=defines)
+        backend.launch("angular_spectrum.cl", name, dtype, gsize, lsize, *args, c, defines=defines)
         assert rel_l2(backend.to_host(c), ref) < tol, name
 
 

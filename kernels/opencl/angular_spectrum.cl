@@ -1,4 +1,4 @@
-/* propagate.cl: band-limited angular spectrum propagation (Matsushima & Shimobaba 2009; shifted
+/* angular_spectrum.cl: band-limited angular spectrum propagation (Matsushima & Shimobaba 2009; shifted
  * form, Matsushima 2010) with the output evaluated at arbitrary sensor coordinates by a separable
  * matrix DFT, sensor-pixel box integration, and the adjoints of all of these.
  * Host side: rwwarp/propagate.py (launch sequencing), rwwarp/backend.py (build, FFTs).
@@ -55,7 +55,7 @@
 #define P_QY0 16
 #define P_KXB 17      /* number of band columns used by this batch element (<= kx_max) */
 #define P_KYB 18
-#define P_DOE_SCALE 19 /* DOE phase multiplier (n(lambda)-1)/(n0-1) * lambda0/lambda */
+#define P_DOE_SCALE 19 /* DOE phase multiplier (n_lambda - 1)/(n0 - 1) * lambda0/lambda */
 #define NPAR 20
 
 RW_FUNC int rw_wrap(const int i, const int n)
@@ -65,7 +65,7 @@ RW_FUNC int rw_wrap(const int i, const int n)
 }
 
 /* Field times exp(i doe_scale[b] phi) into the top-left (ny, nx) corner of a zeroed (npy, npx)
- * array. Global size (npx, npy, batch). */
+ * array. Global work size: (npx, npy, batch). */
 __kernel void pad_modulate_kernel(__global const cplx_t* restrict field,
                                   __global const real_t* restrict doe_phase,
                                   __global const phase_t* restrict params,
@@ -223,7 +223,7 @@ __kernel void band_distance_grad_kernel(__global const cplx_t* restrict band,
 }
 
 /* Adjoint of band_gather: cols_out = scale * conj(H) * band on the band rows, 0 on the other
- * rows, layout (batch, npy, kx_max). Global (kx_max, npy, batch). */
+ * rows, laid out as (batch, npy, kx_max). Global (kx_max, npy, batch). */
 __kernel void band_scatter_adjoint_kernel(__global const cplx_t* restrict band,
                                           __global const cplx_t* restrict h,
                                           __global const phase_t* restrict params,
@@ -479,7 +479,7 @@ __kernel void crop_kernel(__global const cplx_t* restrict padded,
     field_out[((idx_t)b * ny + iy) * nx + ix] = padded[((idx_t)b * npy + iy) * npx + ix];
 }
 
-/* Adjoint of pad_modulate: g = crop(padded_grad); grad_field = conj(m) g with m = exp(i s phi);
+/* Adjoint of pad_modulate: g = the crop of padded_grad; grad_field = conj(m) g with m = exp(i s phi);
  * grad_phase = s Im(grad_field conj(field)), summed over the batch when the phase is shared.
  * Global (nx, ny, 1): each work-item loops over the batch. */
 __kernel void crop_demodulate_adjoint_kernel(__global const cplx_t* restrict padded_grad,
