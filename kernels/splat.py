@@ -27,10 +27,27 @@ with the reference sphere ``OPL_ref(p) = OPL_c + n (|T - p_c| - |T - p|)`` conve
 multiplied by the reference sphere and divided by the carrier of the chief ray,
 ``exp(1j * (k (OPL_ref(p) - OPL_c) - 2 pi f_c . (p - p_c)))``, ``f_c`` in cycles/mm, so the result is
 the physical field with the chief ray's tilt removed (baseband).
+
+Float64 atomic additions on a GPU add in the order threads arrive, so the last bits of a sample's sum
+change from run to run. The deterministic splat (``fixed``) adds fixed-point integers instead (see
+:data:`FIXED_ONE`): a first launch (``fixed == 2``) writes each ray's amplitude, summed per source by the
+fixed tree of :mod:`rwwarp.kernels.reduce` into the bound; the second (``fixed == 1``) adds the
+contributions as int64 in units of ``bound / FIXED_ONE``; :func:`fixed_to_float_kernel` converts back.
+Under a tape the float splat (``fixed == 0``) is recorded beside it for the adjoint, which only reads the
+samples' gradients and is deterministic either way.
 """
 import functools
 
 import warp as wp
+
+
+#: The deterministic splat's fixed point: a source's sums are integers in units of ``bound / FIXED_ONE``,
+#: ``bound`` the sum of its rays' amplitudes, which no sample's sum can exceed (each ray deposits at most
+#: its amplitude in all), so no int64 sum overflows (2^61 < 2^63). Resolution: ``bound`` x 4.3e-19 (each
+#: contribution rounded to it). Against the float splat's field, measured: 2.3e-13 relative with 401^2 rays
+#: (Cooke triplet, focal plan), 1e-11 with 5824^2 rays. Integer additions commute: the sums do not depend
+#: on the order the GPU's threads arrive in.
+FIXED_ONE = wp.constant(wp.float64(2.0 ** 61))
 
 
 @functools.cache
@@ -38,6 +55,7 @@ def make_splat_kernels(scalar):
     """Splat kernels for ray scalar type ``scalar`` (fields are always accumulated in float64)."""
     vec3 = wp.types.vector(3, scalar)
     f64 = wp.float64
+    vec4d = wp.types.vector(4, f64)
 
     @wp.func
     def sinc_half(a: f64):
@@ -150,15 +168,25 @@ def make_splat_kernels(scalar):
         frac: wp.array(dtype=wp.vec3d),       # (n_pupil,) (fraction in the aperture, du, dv) per cell, or (1,)
         rim: int,                             # 1: the fraction applies (energy convention; the weight carries it)
         offset: int,                          # first ray of this launch (CPU threads splat ray ranges)
+        fixed: int,                           # 0: float sums; 1: fixed-point sums (deterministic); 2: bounds only
+        bound: wp.array2d(dtype=vec4d),       # (n_src, 1): per source the sum of the rays' amplitudes (fixed == 1)
         # outputs
         s_re_out: wp.array(dtype=f64),
         s_im_out: wp.array(dtype=f64),
         dropped_out: wp.array(dtype=wp.int32),
+        acc_re_out: wp.array(dtype=wp.int64),  # fixed-point sums (fixed == 1), FIXED_ONE / bound per unit
+        acc_im_out: wp.array(dtype=wp.int64),
+        amp_out: wp.array(dtype=vec4d),       # per ray (amplitude, 0, 0, 0) (fixed == 2)
     ):
         i = wp.tid() + offset
         if valid[i] == 0:
+            if fixed == 2:
+                amp_out[i] = vec4d()
             return
         s = i // n_pupil
+        unit = f64(1.0)
+        if fixed == 1:
+            unit = FIXED_ONE / wp.max(bound[s, 0][0], f64(1.0e-300))
         pr = pos[i]
         p = wp.vec3d(f64(pr[0]), f64(pr[1]), f64(pr[2]))
         o = origin[s]
@@ -181,6 +209,9 @@ def make_splat_kernels(scalar):
                 f = frac[i - s * n_pupil][0]
                 amp = amp * wp.sqrt(f)
                 hb = hb * wp.sqrt(f)
+            if fixed == 2:
+                amp_out[i] = vec4d(amp, f64(0.0), f64(0.0), f64(0.0))
+                return
             gx = f64(0.0)
             gy = f64(0.0)
             if use_reference == 1:
@@ -210,8 +241,12 @@ def make_splat_kernels(scalar):
                         my = wp.max(p[1] - hb[1], yc - f64(0.5) * h) + f64(0.5) * oy - p[1]
                         ph = psi + gx * mx + gy * my
                         w = ox * oy * pre * sinc_half(gx * ox) * sinc_half(gy * oy)
-                        wp.atomic_add(s_re_out, k, w * wp.cos(ph))
-                        wp.atomic_add(s_im_out, k, w * wp.sin(ph))
+                        if fixed == 1:
+                            wp.atomic_add(acc_re_out, k, wp.int64(wp.round(w * wp.cos(ph) * unit)))
+                            wp.atomic_add(acc_im_out, k, wp.int64(wp.round(w * wp.sin(ph) * unit)))
+                        else:
+                            wp.atomic_add(s_re_out, k, w * wp.cos(ph))
+                            wp.atomic_add(s_im_out, k, w * wp.sin(ph))
             return
         # paper convention: unit amplitude with obliquity, inverse bilinear interpolation
         fx = (p[0] - o[0]) / h
@@ -224,6 +259,9 @@ def make_splat_kernels(scalar):
         ax = fx - f64(ix)
         ay = fy - f64(iy)
         amp = wp.abs(f64(dir[i][2]))
+        if fixed == 2:
+            amp_out[i] = vec4d(amp, f64(0.0), f64(0.0), f64(0.0))
+            return
         pre = amp * wp.cos(psi)
         pim = amp * wp.sin(psi)
         base = (s * n_grid + iy) * n_grid + ix
@@ -238,8 +276,12 @@ def make_splat_kernels(scalar):
                 by = f64(1.0) - ay
             b = bx * by
             k = base + cy * n_grid + cx
-            wp.atomic_add(s_re_out, k, b * pre)
-            wp.atomic_add(s_im_out, k, b * pim)
+            if fixed == 1:
+                wp.atomic_add(acc_re_out, k, wp.int64(wp.round(b * pre * unit)))
+                wp.atomic_add(acc_im_out, k, wp.int64(wp.round(b * pim * unit)))
+            else:
+                wp.atomic_add(s_re_out, k, b * pre)
+                wp.atomic_add(s_im_out, k, b * pim)
 
     @wp.kernel(module="unique")
     def finalize_kernel(
@@ -283,7 +325,22 @@ def make_splat_kernels(scalar):
         sph = wp.sin(ph)
         field_out[k] = wp.vec2d(re * cph - im * sph, re * sph + im * cph)
 
-    vec4d = wp.types.vector(4, f64)
+    @wp.kernel(module="unique")
+    def fixed_to_float_kernel(
+        acc_re: wp.array(dtype=wp.int64),
+        acc_im: wp.array(dtype=wp.int64),
+        bound: wp.array2d(dtype=vec4d),
+        per_source: int,                      # samples per source (n_grid^2)
+        # outputs
+        s_re_out: wp.array(dtype=f64),
+        s_im_out: wp.array(dtype=f64),
+    ):
+        # the fixed-point sums of the deterministic splat back to float64 (off the tape: the float splat
+        # recorded beside it carries the adjoint)
+        k = wp.tid()
+        unit = FIXED_ONE / wp.max(bound[k // per_source, 0][0], f64(1.0e-300))
+        s_re_out[k] = f64(acc_re[k]) / unit
+        s_im_out[k] = f64(acc_im[k]) / unit
 
     @wp.kernel(module="unique")
     def power_sums_kernel(
@@ -304,6 +361,8 @@ def make_splat_kernels(scalar):
         pass
 
     K.splat_kernel = splat_kernel
+    K.fixed_to_float_kernel = fixed_to_float_kernel
+    K.vec4d = vec4d
     K.tube_area_kernel = tube_area_kernel
     K.power_sums_kernel = power_sums_kernel
     K.finalize_kernel = finalize_kernel

@@ -161,18 +161,26 @@ class RayWave:
     of the power over millimetres; keeping them makes the sensor-side box, and with it the wave-plane
     grid, as wide as their spread. A larger value (1e-3) leaves them out; their power is reported in the
     plan's reasons.
+
+    ``deterministic``: the same inputs give the same bits on every run on a GPU too. The splat adds
+    fixed-point integers (:mod:`rwwarp.kernels.splat`, resolution ~1e-12 of a sample) and the tracer
+    gives every ray its own copy of each surface's parameters when recording
+    (:class:`~rwwarp.trace.Tracer` ``deterministic``: 480 bytes a ray and surface more). On the CPU the
+    results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
-                 memory_budget_bytes=None, focal_patch_tol=1e-5):
+                 memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False):
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+        self.deterministic = bool(deterministic)
 
         plane = lens.wave_plane_index()
         uniq = sorted(set(wls))
-        tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad)
+        tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad,
+                    deterministic=self.deterministic)
         wl_idx = [uniq.index(w) for w in wls]
         nsrc = len(fields)
         src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
@@ -528,16 +536,20 @@ class RayWave:
         splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
                    [opl_c, k_wave, int(self.use_reference), energy, n, npup, *self._rim_args(rim)]
         chunks = tr._chunks(nsrc * npup)
-        if len(chunks) == 1:
-            wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0], outputs=[s_re, s_im, self.dropped],
-                      device=dev)
+        if self.deterministic:
+            self._splat_fixed(K, splat_in, s_re, s_im, total, n)
+        elif len(chunks) == 1:
+            nb, na, nv = self._splat_placeholders(K)
+            wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 0, nb],
+                      outputs=[s_re, s_im, self.dropped, na, na, nv], device=dev)
         else:
             # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
             parts = [(s_re, s_im, self.dropped)] + [
                 (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
                  wp.zeros(nsrc, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
-            run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0]],
-                                                outputs=list(out), device=dev), chunks, parts)
+            nb, na, nv = self._splat_placeholders(K)
+            run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0], 0, nb],
+                                                outputs=list(out) + [na, na, nv], device=dev), chunks, parts)
             for a, b, d in parts[1:]:
                 s_re.numpy()[:] += a.numpy()
                 s_im.numpy()[:] += b.numpy()
@@ -550,6 +562,40 @@ class RayWave:
                                           inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),
                    chunks, [None] * len(chunks))
         return field, rays
+
+    def _splat_placeholders(self, K):
+        """The splat kernel's fixed-point arguments when they are not used: (bound, int64 sums, amplitudes)."""
+        import warp as wp
+        ph = getattr(self, "_splat_ph", None)
+        if ph is None:
+            dev = self.tracer.device
+            ph = self._splat_ph = (wp.zeros((1, 1), dtype=K.vec4d, device=dev), wp.zeros(1, dtype=wp.int64, device=dev),
+                                   wp.zeros(1, dtype=K.vec4d, device=dev))
+        return ph
+
+    def _splat_fixed(self, K, splat_in, s_re, s_im, total: int, n: int):
+        """The deterministic splat (``deterministic=True``, see :mod:`rwwarp.kernels.splat`): the rays' amplitudes
+        summed per source by the fixed tree give each source's bound; the contributions are added as int64 in
+        units of ``bound / FIXED_ONE`` and converted back into ``s_re``, ``s_im``. Under a tape the float splat
+        is recorded first (its adjoint only reads the samples' gradients); its sums are overwritten."""
+        import warp as wp
+        from .reduce import source_sums
+        dev, nsrc, npup = self.tracer.device, self.nsrc, self.plan.ray_grid ** 2
+        nb, na, nv = self._splat_placeholders(K)
+        scratch = wp.zeros(nsrc, dtype=wp.int32, device=dev)   # the passes other than the counted one
+        if self.tracer.requires_grad:
+            wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 0, nb],
+                      outputs=[s_re, s_im, scratch, na, na, nv], device=dev)
+        amps = wp.zeros(nsrc * npup, dtype=K.vec4d, device=dev)
+        wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 2, nb],
+                  outputs=[s_re, s_im, scratch, na, na, amps], device=dev, record_tape=False)
+        bound = source_sums(amps, nsrc, wp.float64, dev)
+        acc_re = wp.zeros(total, dtype=wp.int64, device=dev)
+        acc_im = wp.zeros(total, dtype=wp.int64, device=dev)
+        wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 1, bound],
+                  outputs=[s_re, s_im, self.dropped, acc_re, acc_im, nv], device=dev, record_tape=False)
+        wp.launch(K.fixed_to_float_kernel, dim=total, inputs=[acc_re, acc_im, bound, n * n], outputs=[s_re, s_im],
+                  device=dev, record_tape=False)
 
     def _rim_args(self, rim: bool):
         """The ``(cells, rim)`` inputs of the tube-area and splat kernels: this plan's pupil cells

@@ -255,10 +255,16 @@ class Tracer:
         gradients spread over ``R`` addresses (see ``rwwarp.kernels.trace``). Default
         :data:`GRAD_REPLICAS_GPU` on a GPU, :data:`GRAD_REPLICAS_CPU` on the CPU (one thread: no
         contention, the copies only cost their sum).
+    deterministic : bool
+        With ``requires_grad`` on a GPU: the parameter gradients come out the same bits on every run. Every
+        ray gets its own copy of each surface's row (``R`` = the ray count rounded up to a power of two:
+        ``2 x 8 x N_PARAMS = 480`` bytes a ray and traced surface, gradient included) and one thread per
+        parameter sums the copies in order. The CPU is deterministic either way.
     """
 
     def __init__(self, lens, wavelengths_um, device: str = "cpu", dtype: str = "float64",
-                 requires_grad: bool = False, threads: int | None = None, grad_replicas: int | None = None):
+                 requires_grad: bool = False, threads: int | None = None, grad_replicas: int | None = None,
+                 deterministic: bool = False):
         init_warp()
         self.threads = cpu_threads() if threads is None else max(1, int(threads))
         self.lens = lens
@@ -274,6 +280,7 @@ class Tracer:
         if r < 1 or r & (r - 1):
             raise ValueError(f"Tracer: grad_replicas must be a power of two >= 1, got {grad_replicas!r}")
         self.grad_replicas = r
+        self.deterministic = bool(deterministic)
         wl0 = self.wavelengths_um[0]
         self.pupils = paraxial.pupils(lens, wl0)
         nw = len(self.wavelengths_um)
@@ -580,7 +587,8 @@ class Tracer:
                 if t_dummy is None:
                     t_dummy = wp.zeros(1, dtype=sc, device=dev)  # placeholder for non-refracting surfaces
                 t_buf = t_dummy
-            steps.append((kind, *self._param_rows((self.params if params is None else params)[i]), n_in, n_out, t_buf))
+            steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n), n_in, n_out,
+                          t_buf))
         chunks = self._chunks(n)
         run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c), chunks, [None] * len(chunks))
         pos, dr, opl, valid = outs[-1] if last else gen
@@ -611,15 +619,19 @@ class Tracer:
                                                    idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
         return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
 
-    def _param_rows(self, p):
+    def _param_rows(self, p, n_rays: int = 0):
         """``(rows, rmask)`` the kernels read a surface's parameters from: without gradients the row
         itself as a (1, N_PARAMS) view; with them :attr:`grad_replicas` copies made by
-        ``replicate_kernel`` (recorded on an active tape, whose adjoint sums them back into ``p.grad``)."""
+        ``replicate_kernel`` (recorded on an active tape, whose adjoint sums them back into ``p.grad``).
+        :attr:`deterministic`: a copy for each of the ``n_rays`` rays (the next power of two), so no two rays
+        add into one address, and one thread per parameter sums the copies in order."""
         if not self.requires_grad or not p.requires_grad:
             return p.reshape((1, ktrace.N_PARAMS)), 0
         r = self.grad_replicas
+        if self.deterministic:
+            r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())
         rows = wp.zeros((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
-        per = min(r, REPLICATE_ROWS_PER_THREAD)
+        per = r if self.deterministic else min(r, REPLICATE_ROWS_PER_THREAD)
         wp.launch(self.K.replicate_kernel, dim=(ktrace.N_PARAMS, r // per), inputs=[p, per], outputs=[rows],
                   device=self.device)
         return rows, r - 1

@@ -52,7 +52,8 @@ def bytes_per_source(rw, record: bool = True) -> int:
     ray states (ping-pong: pos, dir, opl, valid, 60 bytes a ray in float64), wavelength index,
     weight, the shared intersection parameter and the tube boxes (164 bytes a ray); the splat
     sums, the field and its copy into the cache (48 bytes a DOE-plane sample). Measured on CPU (A489
-    F/4, 1425^2 rays, 1015^2 samples): 268 MB a source (RSS), estimate 765 MB."""
+    F/4, 1425^2 rays, 1015^2 samples): 268 MB a source (RSS), estimate 765 MB. A ``deterministic``
+    RayWave adds its per-ray parameter copies (480 bytes a ray and surface) and fixed-point sums."""
     pl = rw.plan
     rays = pl.ray_grid ** 2
     if not record:
@@ -61,7 +62,12 @@ def bytes_per_source(rw, record: bool = True) -> int:
     per_sample = 16 * 2 * 2 + 16 * 4 + 8 * 6      # s_re/s_im (+grad), field (+grad, torch views), phi0 etc.
     per_pad = 16 * 3                              # padded FFT work space, band, transfer function
     nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
-    return 2 * int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes)
+    extra = 0
+    if getattr(rw, "deterministic", False):
+        # a parameter-row copy per ray (the count rounded up to a power of two) and surface, with its
+        # gradient (480 bytes); the fixed-point splat's int64 sums and the rays' amplitudes
+        extra = (1 << max(rays - 1, 0).bit_length()) * 480 * (rw.plane + 2) + pl.n_grid ** 2 * 16 + rays * 32
+    return 2 * int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes + extra)
 
 def bytes_fixed(rw) -> int:
     """Estimated peak bytes of a PSF map that do not depend on the tile size: the pilot trace that

@@ -111,6 +111,12 @@ class HybridLens(nn.Module):
     focal_patch_tol : float
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
+    deterministic : bool
+        The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
+        (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray
+        while recording: 480 bytes a ray and surface more, counted by :meth:`bytes_per_source`). On the
+        CPU the results are deterministic either way. torch's own operations follow
+        ``torch.use_deterministic_algorithms``.
 
     Methods return tensors: :meth:`psf` (size, size), :meth:`psf_map` (n_fields, n_wavelengths,
     size, size), fractions of the entering power per sensor pixel; :meth:`to_lens` exports the
@@ -120,8 +126,9 @@ class HybridLens(nn.Module):
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
                  use_reference: bool = True, replan: bool = True, method: str = "auto",
-                 focal_patch_tol: float = 1e-5):
+                 focal_patch_tol: float = 1e-5, deterministic: bool = False):
         super().__init__()
+        self.deterministic = bool(deterministic)
         if method not in ("auto", "focal", "asm"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
         self.method = method
@@ -369,7 +376,7 @@ class HybridLens(nn.Module):
         key = (tuple(fields), tuple(wls), int(size),
                object_distance_mm, pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)),
                plan if isinstance(plan, str) else (plan.pitch_mm, plan.n_grid, plan.n_pad, plan.ray_grid),
-               self.rw_device, bool(requires_grad), method or self.method)
+               self.rw_device, bool(requires_grad), method or self.method, self.deterministic)
         if not self.replan and key in self._plans:
             return self._plans[key]
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
@@ -378,7 +385,8 @@ class HybridLens(nn.Module):
                      rays_per_sample=self.rays_per_sample, center_mm=center_mm, use_reference=self.use_reference,
                      gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
                      requires_grad=bool(requires_grad), method=method or self.method,
-                     memory_budget_bytes=memory_budget_bytes, focal_patch_tol=self.focal_patch_tol)
+                     memory_budget_bytes=memory_budget_bytes, focal_patch_tol=self.focal_patch_tol,
+                     deterministic=self.deterministic)
         bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw
