@@ -34,7 +34,10 @@ change from run to run. The deterministic splat (``fixed``) adds fixed-point int
 fixed tree of :mod:`rwwarp.kernels.reduce` into the bound; the second (``fixed == 1``) adds the
 contributions as int64 in units of ``bound / FIXED_ONE``; :func:`fixed_to_float_kernel` converts back.
 Under a tape the float splat (``fixed == 0``) is recorded beside it for the adjoint, which only reads the
-samples' gradients and is deterministic either way.
+samples' gradients and is deterministic either way. The tube areas read the neighbours' positions, so their
+adjoint adds into a position from several threads; in deterministic mode :func:`stencil_kernel` first copies
+each ray's position into the slots of the rays that read it, and the tube-area kernel reads only its own
+slots.
 """
 import functools
 
@@ -78,12 +81,46 @@ def make_splat_kernels(scalar):
         return wp.vec2d(g[1] / h, g[2] / h)
 
     @wp.kernel(module="unique")
+    def stencil_kernel(
+        pos: wp.array(dtype=vec3),
+        n_side: int,
+        # outputs
+        nbr_out: wp.array2d(dtype=vec3),      # (n, 5): +u, -u, +v, -v neighbour and own position of each ray
+    ):
+        # ray j hands its position to the rays that read it (deterministic mode): each thread reads only its
+        # own position and writes slots no other thread writes, so the adjoint adds without atomics contending
+        j = wp.tid()
+        per = n_side * n_side
+        jj = j - (j // per) * per
+        r = jj // n_side
+        c = jj - r * n_side
+        p = pos[j]
+        nbr_out[j, 4] = p
+        if c > 0:
+            nbr_out[j - 1, 0] = p
+        if c + 1 < n_side:
+            nbr_out[j + 1, 1] = p
+        if r > 0:
+            nbr_out[j - n_side, 2] = p
+        if r + 1 < n_side:
+            nbr_out[j + n_side, 3] = p
+
+    @wp.func
+    def tube_pos(pos: wp.array(dtype=vec3), nbr: wp.array2d(dtype=vec3), stencil: int, i: int, k: int, off: int):
+        # position of ray i + off: from the stencil's slot k (deterministic mode) or read directly
+        if stencil == 1:
+            return wp.vec3d(nbr[i, k])
+        return wp.vec3d(pos[i + off])
+
+    @wp.kernel(module="unique")
     def tube_area_kernel(
         pos: wp.array(dtype=vec3),
         valid: wp.array(dtype=wp.int32),
         n_side: int,                          # pupil grid is n_side x n_side per source (row-major)
         cells: wp.array(dtype=wp.vec3d),      # with rim: (fraction, du, dv) per pupil cell (rays at centroids)
         rim: int,
+        stencil: int,                         # 1: neighbours' positions from nbr (stencil_kernel), deterministic
+        nbr: wp.array2d(dtype=vec3),          # (n, 5) with stencil, else (1, 5)
         # outputs
         area_out: wp.array(dtype=f64),        # footprint area of each ray's pupil cell on the plane, mm^2
         half_out: wp.array(dtype=wp.vec2d),   # half sizes (x, y) of the tube's box, mm
@@ -105,12 +142,12 @@ def make_splat_kernels(scalar):
         pu = wp.vec2d()
         nu = 0
         if c + 1 < n_side and valid[i + 1] == 1:
-            du = du + wp.vec3d(pos[i + 1] - pos[i])
+            du = du + tube_pos(pos, nbr, stencil, i, 0, 1) - tube_pos(pos, nbr, stencil, i, 4, 0)
             pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, j + 1, n_side)
             pu = pu - cell_offset(cells, rim, j, n_side)
             nu = nu + 1
         if c > 0 and valid[i - 1] == 1:
-            du = du + wp.vec3d(pos[i] - pos[i - 1])
+            du = du + tube_pos(pos, nbr, stencil, i, 4, 0) - tube_pos(pos, nbr, stencil, i, 1, -1)
             pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, j, n_side)
             pu = pu - cell_offset(cells, rim, j - 1, n_side)
             nu = nu + 1
@@ -118,12 +155,12 @@ def make_splat_kernels(scalar):
         pv = wp.vec2d()
         nv = 0
         if r + 1 < n_side and valid[i + n_side] == 1:
-            dv = dv + wp.vec3d(pos[i + n_side] - pos[i])
+            dv = dv + tube_pos(pos, nbr, stencil, i, 2, n_side) - tube_pos(pos, nbr, stencil, i, 4, 0)
             pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, j + n_side, n_side)
             pv = pv - cell_offset(cells, rim, j, n_side)
             nv = nv + 1
         if r > 0 and valid[i - n_side] == 1:
-            dv = dv + wp.vec3d(pos[i] - pos[i - n_side])
+            dv = dv + tube_pos(pos, nbr, stencil, i, 4, 0) - tube_pos(pos, nbr, stencil, i, 3, -n_side)
             pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, j, n_side)
             pv = pv - cell_offset(cells, rim, j - n_side, n_side)
             nv = nv + 1
@@ -364,6 +401,7 @@ def make_splat_kernels(scalar):
     K.fixed_to_float_kernel = fixed_to_float_kernel
     K.vec4d = vec4d
     K.tube_area_kernel = tube_area_kernel
+    K.stencil_kernel = stencil_kernel
     K.power_sums_kernel = power_sums_kernel
     K.finalize_kernel = finalize_kernel
     return K

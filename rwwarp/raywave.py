@@ -515,8 +515,13 @@ class RayWave:
             area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
             half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
         if energy:
+            if self.deterministic:   # neighbours' positions handed over by each ray (an adjoint without contention)
+                nbr = wp.zeros((nsrc * npup, 5), dtype=rays.pos.dtype, device=dev, requires_grad=g)
+                wp.launch(K.stencil_kernel, dim=nsrc * npup, inputs=[rays.pos, pl.ray_grid], outputs=[nbr], device=dev)
+            else:
+                nbr = self._splat_placeholders(K)[3]
             wp.launch(K.tube_area_kernel, dim=nsrc * npup,
-                      inputs=[rays.pos, rays.valid, pl.ray_grid, *self._rim_args(rim)],
+                      inputs=[rays.pos, rays.valid, pl.ray_grid, *self._rim_args(rim), int(self.deterministic), nbr],
                       outputs=[area, half], device=dev)
         elif not g:  # not read by the splat in the paper convention
             area = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=g)
@@ -539,7 +544,7 @@ class RayWave:
         if self.deterministic:
             self._splat_fixed(K, splat_in, s_re, s_im, total, n)
         elif len(chunks) == 1:
-            nb, na, nv = self._splat_placeholders(K)
+            nb, na, nv, _ = self._splat_placeholders(K)
             wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 0, nb],
                       outputs=[s_re, s_im, self.dropped, na, na, nv], device=dev)
         else:
@@ -547,7 +552,7 @@ class RayWave:
             parts = [(s_re, s_im, self.dropped)] + [
                 (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
                  wp.zeros(nsrc, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
-            nb, na, nv = self._splat_placeholders(K)
+            nb, na, nv, _ = self._splat_placeholders(K)
             run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0], 0, nb],
                                                 outputs=list(out) + [na, na, nv], device=dev), chunks, parts)
             for a, b, d in parts[1:]:
@@ -564,13 +569,15 @@ class RayWave:
         return field, rays
 
     def _splat_placeholders(self, K):
-        """The splat kernel's fixed-point arguments when they are not used: (bound, int64 sums, amplitudes)."""
+        """The splat kernels' deterministic-mode arguments when they are not used: (bound, int64 sums,
+        amplitudes, tube-area stencil)."""
         import warp as wp
         ph = getattr(self, "_splat_ph", None)
         if ph is None:
             dev = self.tracer.device
             ph = self._splat_ph = (wp.zeros((1, 1), dtype=K.vec4d, device=dev), wp.zeros(1, dtype=wp.int64, device=dev),
-                                   wp.zeros(1, dtype=K.vec4d, device=dev))
+                                   wp.zeros(1, dtype=K.vec4d, device=dev),
+                                   wp.zeros((1, 5), dtype=self.tracer.K.vec3, device=dev))
         return ph
 
     def _splat_fixed(self, K, splat_in, s_re, s_im, total: int, n: int):
@@ -581,7 +588,7 @@ class RayWave:
         import warp as wp
         from .reduce import source_sums
         dev, nsrc, npup = self.tracer.device, self.nsrc, self.plan.ray_grid ** 2
-        nb, na, nv = self._splat_placeholders(K)
+        nb, na, nv, _ = self._splat_placeholders(K)
         scratch = wp.zeros(nsrc, dtype=wp.int32, device=dev)   # the passes other than the counted one
         if self.tracer.requires_grad:
             wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 0, nb],

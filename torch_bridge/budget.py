@@ -65,8 +65,9 @@ def bytes_per_source(rw, record: bool = True) -> int:
     extra = 0
     if getattr(rw, "deterministic", False):
         # a parameter-row copy per ray (the count rounded up to a power of two) and surface, with its
-        # gradient (480 bytes); the fixed-point splat's int64 sums and the rays' amplitudes
-        extra = (1 << max(rays - 1, 0).bit_length()) * 480 * (rw.plane + 2) + pl.n_grid ** 2 * 16 + rays * 32
+        # gradient (480 bytes); the fixed-point splat's int64 sums, the rays' amplitudes and the tube-area
+        # stencil (5 positions a ray, with gradients)
+        extra = (1 << max(rays - 1, 0).bit_length()) * 480 * (rw.plane + 2) + pl.n_grid ** 2 * 16 + rays * (32 + 240)
     return 2 * int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes + extra)
 
 def bytes_fixed(rw) -> int:

@@ -195,11 +195,13 @@ def test_rays_off_the_window_are_dropped_and_counted(device, rng):
     assert np.abs(S - S_np).max() < 2e-14 * np.abs(S_np).max()
 
 
-def test_tube_area_of_an_affine_map(device, rng):
+@pytest.mark.parametrize("stencil", [0, 1], ids=["direct", "stencil"])
+def test_tube_area_of_an_affine_map(device, rng, stencil):
     """tube_area_kernel: for positions that are an affine image of the pupil grid (some rays invalid, so
     one-sided differences too) every tube's area is |det J| (J the map's Jacobian per grid step) and its box
     has that area with the Jacobian diagonal's aspect; exact up to rounding (measured 1.6e-14 relative: the
-    differences of positions ~1 mm apart by ~0.01 mm; tolerance 1e-13)."""
+    differences of positions ~1 mm apart by ~0.01 mm; tolerance 1e-13). ``stencil``: the neighbours'
+    positions handed over by stencil_kernel first (deterministic mode), the same numbers."""
     K = ks.make_splat_kernels(F64)
     m, nsrc = 7, 2
     J = np.array([[0.012, 0.003], [-0.002, 0.009]])
@@ -209,8 +211,13 @@ def test_tube_area_of_an_affine_map(device, rng):
     valid = (rng.random(nsrc * m * m) < 0.85).astype(np.int32)
     area = wp.zeros(nsrc * m * m, dtype=F64, device=device)
     half = wp.zeros(nsrc * m * m, dtype=wp.vec2d, device=device)
-    wp.launch(K.tube_area_kernel, dim=nsrc * m * m, inputs=[_a(pos, V3, device), _a(valid, wp.int32, device), m,
-                                                        _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0],
+    a_pos = _a(pos, V3, device)
+    nbr = wp.zeros((nsrc * m * m if stencil else 1, 5), dtype=V3, device=device)
+    if stencil:
+        wp.launch(K.stencil_kernel, dim=nsrc * m * m, inputs=[a_pos, m], outputs=[nbr], device=device)
+    wp.launch(K.tube_area_kernel, dim=nsrc * m * m, inputs=[a_pos, _a(valid, wp.int32, device), m,
+                                                        _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0,
+                                                        stencil, nbr],
               outputs=[area, half], device=device)
     a, hb = area.numpy(), half.numpy()
     # a ray has a tube when it has a valid neighbour along the row and one along the column
@@ -256,7 +263,8 @@ def test_energy_conservation_with_traced_rays(device, rays_per_cell, circle):
     area = wp.zeros(npup, dtype=F64, device=device)
     half = wp.zeros(npup, dtype=wp.vec2d, device=device)
     no_rim = _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device)
-    wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g, no_rim, 0], outputs=[area, half], device=device)
+    wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g, no_rim, 0, 0, wp.zeros((1, 5), dtype=V3, device=device)],
+              outputs=[area, half], device=device)
     from rwwarp.reduce import source_sums
     terms = wp.zeros(npup, dtype=wp.types.vector(4, F64), device=device)
     wp.launch(K.power_sums_kernel, dim=npup, inputs=[valid, weight], outputs=[terms], device=device)
