@@ -415,11 +415,22 @@ def make_trace_kernels(scalar):
         for r in range(rows_per_thread):
             out[g * rows_per_thread + r, j] = v
 
+    @wp.kernel(module="unique")
+    def replicate_rows_kernel(src: wp.array2d(dtype=scalar), rows_per_thread: int, out: wp.array2d(dtype=scalar)):
+        """``out[g rows_per_thread + r, j] = src[g, j]``: the second level of the deterministic replication
+        (``params`` -> G rows by ``replicate_kernel`` -> R rows here). Thread (j, g) alone adds into
+        ``src``'s gradient at (g, j), after summing its rows in order, so no addition contends."""
+        j, g = wp.tid()
+        v = src[g, j]
+        for r in range(rows_per_thread):
+            out[g * rows_per_thread + r, j] = v
+
     class K:
         pass
 
     K.vec3 = vec3
     K.replicate_kernel = replicate_kernel
+    K.replicate_rows_kernel = replicate_rows_kernel
     K.scalar = scalar
     K.generate_kernel = generate_kernel
     K.surface_kernel = surface_kernel

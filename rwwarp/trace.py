@@ -258,8 +258,8 @@ class Tracer:
     deterministic : bool
         With ``requires_grad`` on a GPU: the parameter gradients come out the same bits on every run. Every
         ray gets its own copy of each surface's row (``R`` = the ray count rounded up to a power of two:
-        ``2 x 8 x N_PARAMS = 480`` bytes a ray and traced surface, gradient included) and one thread per
-        parameter sums the copies in order. The CPU is deterministic either way.
+        ``2 x 8 x N_PARAMS = 480`` bytes a ray and traced surface, gradient included), made in two levels
+        (512 rows, then the rest) whose adjoints sum in a fixed order. The CPU is deterministic either way.
     """
 
     def __init__(self, lens, wavelengths_um, device: str = "cpu", dtype: str = "float64",
@@ -624,14 +624,24 @@ class Tracer:
         itself as a (1, N_PARAMS) view; with them :attr:`grad_replicas` copies made by
         ``replicate_kernel`` (recorded on an active tape, whose adjoint sums them back into ``p.grad``).
         :attr:`deterministic`: a copy for each of the ``n_rays`` rays (the next power of two), so no two rays
-        add into one address, and one thread per parameter sums the copies in order."""
+        add into one address, made in two levels whose adjoints sum in a fixed order."""
         if not self.requires_grad or not p.requires_grad:
             return p.reshape((1, ktrace.N_PARAMS)), 0
         r = self.grad_replicas
         if self.deterministic:
             r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())
         rows = wp.zeros((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
-        per = r if self.deterministic else min(r, REPLICATE_ROWS_PER_THREAD)
+        if self.deterministic:
+            # two levels, each adjoint summing in order and adding where no other thread adds: params -> G rows
+            # (one thread a parameter) -> R rows (thread (j, g) owns row g of the first level)
+            grp = min(r, 512)
+            mid = wp.zeros((grp, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
+            wp.launch(self.K.replicate_kernel, dim=(ktrace.N_PARAMS, 1), inputs=[p, grp], outputs=[mid],
+                      device=self.device)
+            wp.launch(self.K.replicate_rows_kernel, dim=(ktrace.N_PARAMS, grp), inputs=[mid, r // grp], outputs=[rows],
+                      device=self.device)
+            return rows, r - 1
+        per = min(r, REPLICATE_ROWS_PER_THREAD)
         wp.launch(self.K.replicate_kernel, dim=(ktrace.N_PARAMS, r // per), inputs=[p, per], outputs=[rows],
                   device=self.device)
         return rows, r - 1
