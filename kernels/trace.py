@@ -5,7 +5,9 @@ Rays are structure-of-arrays, index ``i = source * n_pupil + pupil_sample``:
 ``wl`` (int32 index into the per-wavelength index tables). Light travels +z.
 
 Surface parameters live in one float array per surface (so ``wp.Tape`` accumulates gradients for
-them); the layout is the ``P_*`` constants below. The kernels read a surface's row from ``R`` copies
+them, and torch builds the table as one tensor); its columns are the ``P_*`` constants below. Kernel code
+never indexes them: ``load_surface`` reads a row once into the ``Surface`` struct and the geometry uses
+its named fields (``sf.c``, ``sf.asph``, ``sf.sd``, ...). The kernels read a surface's row from ``R`` copies
 (``params_rows``, ray ``i`` reads copy ``i & (R - 1)``): while recording, ``replicate_kernel`` makes the
 copies on the tape, so the adjoint's atomic additions into a parameter spread over ``R`` addresses
 instead of all rays contending for one (on an H100 the trace adjoint of the Cooke hybrid's design step
@@ -88,12 +90,57 @@ def make_trace_kernels(scalar):
     tol = 1.0e-10 if scalar == wp.float64 else 1.0e-4
     conv = 1.0e-15 if scalar == wp.float64 else 1.0e-7   # Newton: relative step below which t has converged
     edge = edge_rtol(scalar)
+    asph_t = wp.types.vector(length=N_ASPH, dtype=scalar)
+    odd_t = wp.types.vector(length=N_ODD, dtype=scalar)
+
+    @wp.struct
+    class Surface:
+        """One surface's parameters by name (lengths mm; the table's columns ``P_*`` are only the storage)."""
+        z: scalar          # vertex z
+        c: scalar          # curvature, 1/mm
+        k: scalar          # conic
+        a2: scalar         # r^2 coefficient of the even asphere, 1/mm
+        asph: asph_t       # r^4 .. r^20 coefficients
+        odd_on: scalar     # 1: the power series in r below applies (ODDASPHE)
+        odd: odd_t         # b_1 .. b_8 of sum_i b_i r^i
+        sd: scalar         # semi-diameter (<= 0: unlimited)
+        square: scalar     # 1: square aperture
+        ob_kind: scalar    # central obscuration: 0 none, 1 circle, 2 rectangle
+        ob_x: scalar       # its radius or half width
+        ob_y: scalar       # its half height (rectangle)
+        power: scalar      # thin lens power 1/f, 1/mm
+        uinv: scalar       # thin lens 1/u (0: object at infinity)
+        v: scalar          # thin lens image distance (0: at infinity)
 
     @wp.func
-    def sag_and_slope(r2: scalar, params: wp.array(dtype=scalar)):
+    def load_surface(row: wp.array(dtype=scalar)):
+        # the one place that knows the table's layout; each column is read once (its adjoint adds once)
+        sf = Surface()
+        sf.z = row[P_Z]
+        sf.c = row[P_C]
+        sf.k = row[P_K]
+        sf.a2 = row[P_A2]
+        sf.asph = asph_t(row[P_A0], row[P_A0 + 1], row[P_A0 + 2], row[P_A0 + 3], row[P_A0 + 4], row[P_A0 + 5],
+                         row[P_A0 + 6], row[P_A0 + 7], row[P_A0 + 8])
+        sf.odd_on = row[P_ODD_ON]
+        if sf.odd_on > scalar(0.5):
+            sf.odd = odd_t(row[P_ODD0], row[P_ODD0 + 1], row[P_ODD0 + 2], row[P_ODD0 + 3], row[P_ODD0 + 4],
+                           row[P_ODD0 + 5], row[P_ODD0 + 6], row[P_ODD0 + 7])
+        sf.sd = row[P_SD]
+        sf.square = row[P_SQUARE]
+        sf.ob_kind = row[P_OB_KIND]
+        sf.ob_x = row[P_OB_X]
+        sf.ob_y = row[P_OB_Y]
+        sf.power = row[P_POWER]
+        sf.uinv = row[P_UINV]
+        sf.v = row[P_V]
+        return sf
+
+    @wp.func
+    def sag_and_slope(r2: scalar, sf: Surface):
         # returns (sag, dsag/dr2, ok)
-        c = params[P_C]
-        k = params[P_K]
+        c = sf.c
+        k = sf.k
         arg = scalar(1.0) - (scalar(1.0) + k) * c * c * r2
         ok = 1
         if arg < scalar(0.0):
@@ -106,10 +153,10 @@ def make_trace_kernels(scalar):
             ds = c / (scalar(2.0) * q)
         elif c != scalar(0.0):
             ok = 0
-        a2 = params[P_A2]
+        a2 = sf.a2
         s = s + a2 * r2
         ds = ds + a2
-        if params[P_ODD_ON] > scalar(0.5):
+        if sf.odd_on > scalar(0.5):
             # sum_i b_i r^i (i = 1..8): d(r^i)/d(r2) = i r^(i-2) / 2; the r^1 term is a cone at the axis
             # (its slope is taken as 0 there). Inside this branch only, so r = sqrt(r2) never enters the
             # adjoint of an ordinary surface (its derivative is infinite at r = 0).
@@ -117,7 +164,7 @@ def make_trace_kernels(scalar):
             p = scalar(1.0)  # r^(i-1) for the term of power i = 1 + loop index
             q = scalar(1.0)  # r^(i-2), from i = 2
             for j in range(N_ODD):
-                b = params[P_ODD0 + j]
+                b = sf.odd[j]
                 s = s + b * p * r
                 if j == 0:
                     if r > scalar(0.0):
@@ -128,34 +175,34 @@ def make_trace_kernels(scalar):
                 p = p * r
         rp = r2
         for i in range(N_ASPH):
-            a = params[P_A0 + i]
+            a = sf.asph[i]
             ds = ds + scalar(i + 2) * a * rp
             rp = rp * r2
             s = s + a * rp
         return s, ds, ok
 
     @wp.func
-    def outside_aperture(x: scalar, y: scalar, params: wp.array(dtype=scalar)):
-        sd = params[P_SD]
+    def outside_aperture(x: scalar, y: scalar, sf: Surface):
+        sd = sf.sd
         out = 0
         if sd > scalar(0.0):
-            if params[P_SQUARE] > scalar(0.5):
+            if sf.square > scalar(0.5):
                 lim = sd * (scalar(1.0) + scalar(edge))
                 if wp.abs(x) > lim or wp.abs(y) > lim:
                     out = 1
             else:
                 if x * x + y * y > sd * sd * (scalar(1.0) + scalar(edge)):
                     out = 1
-        kind = params[P_OB_KIND]
+        kind = sf.ob_kind
         if kind > scalar(0.5):
             # an obscuration blocks rays strictly inside it (its edge, within the same tolerance, passes)
-            ox = params[P_OB_X]
+            ox = sf.ob_x
             if kind < scalar(1.5):
                 if x * x + y * y < ox * ox * (scalar(1.0) - scalar(edge)):
                     out = 1
             else:
                 lim = scalar(1.0) - scalar(edge)
-                if wp.abs(x) < ox * lim and wp.abs(y) < params[P_OB_Y] * lim:
+                if wp.abs(x) < ox * lim and wp.abs(y) < sf.ob_y * lim:
                     out = 1
         return out
 
@@ -244,10 +291,10 @@ def make_trace_kernels(scalar):
         wl_out[i] = w
 
     @wp.func
-    def stable_start(q: vec3, d: vec3, params: wp.array(dtype=scalar)):
+    def stable_start(q: vec3, d: vec3, sf: Surface):
         # root of the base sphere nearest the vertex plane (no special case for c = 0); the r^2 term is
         # part of the vertex curvature c + 2 a2
-        c = params[P_C] + scalar(2.0) * params[P_A2]
+        c = sf.c + scalar(2.0) * sf.a2
         bq = d[2] - c * wp.dot(q, d)
         fq = c * wp.dot(q, q) - scalar(2.0) * q[2]
         disc = bq * bq - c * fq
@@ -261,10 +308,10 @@ def make_trace_kernels(scalar):
         return t
 
     @wp.func
-    def newton_step(q: vec3, d: vec3, t: scalar, params: wp.array(dtype=scalar)):
+    def newton_step(q: vec3, d: vec3, t: scalar, sf: Surface):
         x = q + t * d
         r2 = x[0] * x[0] + x[1] * x[1]
-        sg, ds, sok = sag_and_slope(r2, params)
+        sg, ds, sok = sag_and_slope(r2, sf)
         g = x[2] - sg
         dg = d[2] - ds * scalar(2.0) * (x[0] * d[0] + x[1] * d[1])
         tn = t
@@ -288,13 +335,13 @@ def make_trace_kernels(scalar):
         t_out[i] = scalar(0.0)
         if valid[i] == 0:
             return
-        params = params_rows[i & rmask]
+        sf = load_surface(params_rows[i & rmask])
         d = dir[i]
         p0 = pos[i]
-        q = vec3(p0[0], p0[1], p0[2] - params[P_Z])
-        t = stable_start(q, d, params)
+        q = vec3(p0[0], p0[1], p0[2] - sf.z)
+        t = stable_start(q, d, sf)
         for it in range(NEWTON_STEPS):
-            tn = newton_step(q, d, t, params)
+            tn = newton_step(q, d, t, sf)
             done = wp.abs(tn - t) <= scalar(conv) * (scalar(1.0) + wp.abs(tn))
             t = tn
             if done:
@@ -323,14 +370,14 @@ def make_trace_kernels(scalar):
         valid_out: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        params = params_rows[i & rmask]
+        sf = load_surface(params_rows[i & rmask])
         p0 = pos[i]
         d = dir[i]
         ok = valid[i]
         w = wl[i]
         n1 = n_in[w]
         n2 = n_out[w]
-        zv = params[P_Z]
+        zv = sf.z
         q = vec3(p0[0], p0[1], p0[2] - zv)
         t = scalar(0.0)
         newd = d
@@ -339,15 +386,15 @@ def make_trace_kernels(scalar):
             if kind == KIND_REFRACT or kind == KIND_REFLECT:
                 # one Newton step from the converged root: exact value, exact (implicit) derivative,
                 # and a short adjoint (the iterations themselves are not on the tape)
-                t = newton_step(q, d, t_start[i], params)
+                t = newton_step(q, d, t_start[i], sf)
                 ds = scalar(0.0)
                 sok = 1
                 g = scalar(0.0)
                 x = q + t * d
                 r2 = x[0] * x[0] + x[1] * x[1]
-                sg, ds, sok = sag_and_slope(r2, params)
+                sg, ds, sok = sag_and_slope(r2, sf)
                 g = x[2] - sg
-                if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], params) == 1:
+                if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], sf) == 1:
                     ok = 0
                 else:
                     nrm = wp.normalize(vec3(-scalar(2.0) * x[0] * ds, -scalar(2.0) * x[1] * ds, scalar(1.0)))
@@ -368,23 +415,23 @@ def make_trace_kernels(scalar):
                 # plane at the vertex: aperture, DOE plane, sensor, thin lens
                 t = -q[2] / d[2]
                 x = q + t * d
-                if outside_aperture(x[0], x[1], params) == 1:
+                if outside_aperture(x[0], x[1], sf) == 1:
                     ok = 0
                 elif kind == KIND_THIN:
-                    pw = params[P_POWER]
+                    pw = sf.power
                     tx = (n1 * d[0] / d[2] - x[0] * pw) / n2
                     ty = (n1 * d[1] / d[2] - x[1] * pw) / n2
                     newd = wp.normalize(vec3(tx, ty, scalar(1.0)))
                     # ideal-lens path: equal optical path from the object point to its image point
                     ctr = vec3(scalar(0.0), scalar(0.0), x[2])
-                    uinv = params[P_UINV]
+                    uinv = sf.uinv
                     inrel = scalar(0.0)
                     if uinv == scalar(0.0):
                         inrel = n1 * wp.dot(x - ctr, d)
                     else:
                         src = x - d * (scalar(1.0) / (uinv * d[2]))
                         inrel = n1 * (wp.length(x - src) - wp.length(ctr - src))
-                    vdist = params[P_V]
+                    vdist = sf.v
                     if vdist == scalar(0.0):
                         # image at infinity (object at the front focal plane): a plane wave leaves, equal
                         # path up to the plane through the centre normal to the (common) direction
@@ -429,6 +476,7 @@ def make_trace_kernels(scalar):
         pass
 
     K.vec3 = vec3
+    K.Surface = Surface
     K.replicate_kernel = replicate_kernel
     K.replicate_rows_kernel = replicate_rows_kernel
     K.scalar = scalar
