@@ -224,7 +224,7 @@ def _run_unit(lens, fields, wls, unit, od, kw, budget):
     budget is split in halves the same way). Returns ``[(i, j, psf, centre, valid_fraction, dropped)]``."""
     from .paraxial_wave import paraxial_equivalent
     from .plan import MemoryBudgetError
-    from .psf import _raywave
+    from .psf import RAYWAVE_OPTIONS, RayWave
     from .ray_model import _ray_model
     size, device, model = kw["size"], kw["device"], kw["model"]
     pixel = float(kw["pixel_mm"] or lens.sensor.pixel_pitch)
@@ -233,17 +233,13 @@ def _run_unit(lens, fields, wls, unit, od, kw, budget):
         chunk = todo.pop(0)
         f_list = [fields[i] for i, _ in chunk]
         w_list = [wls[j] for _, j in chunk]
-        args = (size, pixel, device, kw["plan"], kw["dtype"], kw["amplitude"])
+        opts = dict({k: kw[k] for k in RAYWAVE_OPTIONS}, memory_budget_bytes=budget)
         try:
             if model == "ray-wave":
-                res = _raywave(lens, f_list, w_list, *args, od, kw["rays_per_sample"], kw["center_mm"],
-                               kw["use_reference"], kw["gauss_nodes"], kw["nyquist_safety"], kw["method"], budget,
-                               kw["focal_patch_tol"])
+                res = RayWave(lens, f_list, w_list, size, pixel, object_distance_mm=od, **opts).run("auto")
             elif model == "paraxial-wave":
                 eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, od)
-                res = _raywave(eq, eq_fields, w_list, *args, None, kw["rays_per_sample"], kw["center_mm"],
-                               kw["use_reference"], kw["gauss_nodes"], kw["nyquist_safety"], kw["method"], budget,
-                               kw["focal_patch_tol"])
+                res = RayWave(eq, eq_fields, w_list, size, pixel, **opts).run("auto")
             else:
                 res = _ray_model(lens, f_list, w_list, size, pixel, device, kw["dtype"], od, kw["rays_per_sample"],
                                  kw["center_mm"])
@@ -327,7 +323,8 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int | None = None, batch: int | None = None, nyquist_safety: float = 2.0,
             method: str = "auto", memory_budget_gb: float | None = None, progress: bool = False,
-            out=None, timeout_s: float = DEFAULT_TIMEOUT_S, object_distance_mm=None, focal_patch_tol: float = 1e-5):
+            out=None, timeout_s: float = DEFAULT_TIMEOUT_S, object_distance_mm=None, focal_patch_tol: float = 1e-5,
+            deterministic: bool = False):
     """The map of :func:`rwwarp.psf_map` computed by every rank of the current job (see the module
     docstring). Arguments as :func:`rwwarp.psf_map`; ``depths_mm``: a list of object distances (mm,
     None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
@@ -341,7 +338,7 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
     kw = dict(model=model, size=size, device=device, plan=plan, dtype=dtype, amplitude=amplitude,
               rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference,
               gauss_nodes=gauss_nodes, batch=batch, nyquist_safety=nyquist_safety, method=method,
-              memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol)
+              memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol, deterministic=deterministic)
     single_depth = depths_mm is None
     fields, wls, depths = _check_args(lens, fields, wavelengths_um, [object_distance_mm] if single_depth else
                                       depths_mm, kw)

@@ -823,9 +823,7 @@ def paper_rescale(u, traced_power, pitch_mm: float, xp):
     return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
 
 
-def _raywave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
-             rays_per_sample, center_mm, use_reference, gauss_nodes=None, nyquist_safety=2.0, method="auto",
-             memory_budget_bytes=None, focal_patch_tol=1e-5, focal_precision="auto"):
-    return RayWave(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
-                   rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method=method,
-                   memory_budget_bytes=memory_budget_bytes, focal_patch_tol=focal_patch_tol).run(focal_precision)
+#: The keyword options of :class:`RayWave` that :func:`rwwarp.psf_map` (and its distributed form) hand to
+#: every batch unchanged, under the same names (with ``memory_budget_bytes`` from their budget).
+RAYWAVE_OPTIONS = ("device", "plan", "dtype", "amplitude", "rays_per_sample", "center_mm", "use_reference",
+                   "gauss_nodes", "nyquist_safety", "method", "focal_patch_tol", "deterministic")
