@@ -689,11 +689,15 @@ class RayWave:
             self._focal_op = None
         self.centers = new
 
-    def load_params(self, table):
+    def load_params(self, table, device_table=None):
         """Load a surface parameter table ((n_surfaces + 1, N_PARAMS) float64, last row the sensor, layout
         :data:`rwwarp.trace.COLUMNS`; lengths mm) into the tracer's device arrays, in place, and move the
         z of the wave-plane grid's reference point to the plane's vertex in it (the grid lies on the
-        plane). Returns the table as a float64 array. Plans, windows and patch centres are unchanged."""
+        plane). Returns the table as a float64 array. Plans, windows and patch centres are unchanged.
+        ``device_table``: the same values already on the tracer's device (a Warp array of the table's shape
+        and the tracer's scalar type, e.g. a zero-copy view of a torch tensor): its rows are copied device to
+        device and ``table`` (host) only moves the reference point."""
+        import warp as wp
         from .kernels import trace as ktrace
         tab = np.asarray(table, dtype=np.float64)
         tr = self.tracer
@@ -701,8 +705,15 @@ class RayWave:
             raise ValueError(f"parameter table must be {(len(tr.params), ktrace.N_PARAMS)}, got {tab.shape}")
         if not np.all(np.isfinite(tab)):
             raise ValueError("parameter table has non-finite entries")
-        for row, arr in zip(tab, tr.params):
-            arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
+        if device_table is not None:
+            if tuple(device_table.shape) != tab.shape or device_table.dtype != tr.scalar:
+                raise ValueError(f"device_table must be {tab.shape} of {tr.scalar.__name__}, got "
+                                 f"{tuple(device_table.shape)} of {getattr(device_table.dtype, '__name__', device_table.dtype)}")
+            for k, arr in enumerate(tr.params):
+                wp.copy(arr, device_table[k])
+        else:
+            for row, arr in zip(tab, tr.params):
+                arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
         tr.params_np = tab.copy()
         self.chief_plane[:, 2] = tab[self.plane, ktrace.P_Z]
         return tab

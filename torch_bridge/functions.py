@@ -154,13 +154,27 @@ def _streams(rw):
             yield
 
 
-def load_table(rw, table) -> np.ndarray:
+def load_table(rw, table, table_host=None) -> np.ndarray:
     """Copy a parameter table ((n_surfaces + 1, N_PARAMS) float64, last row = sensor; layout
     ``rwwarp.trace.COLUMNS``) into ``rw``'s tracer (its Warp arrays, in place) and move the
-    reference point of the DOE-plane grid to the plane's current vertex z. Returns the numpy table."""
-    tab = table.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(table) else np.asarray(table, np.float64)
+    reference point of the DOE-plane grid to the plane's current vertex z. Returns the numpy table.
+    A float64 tensor on the tracer's device with ``table_host`` (its values on the host) is copied device
+    to device (``RayWave.load_params(device_table=)``): no host round trip of the parameters."""
     # the field grid lies on the DOE plane: its z follows the plane (see TraceSplat.backward)
+    if torch.is_tensor(table) and table_host is not None and table.dtype == torch.float64 \
+            and rw.tracer.np_dtype == np.float64 and str(table.device) == _torch_device_of(rw):
+        import warp as wp
+        return rw.load_params(table_host, device_table=wp.from_torch(table.detach().contiguous()))
+    if table_host is not None:
+        return rw.load_params(table_host)
+    tab = table.detach().to("cpu", torch.float64).numpy() if torch.is_tensor(table) else np.asarray(table, np.float64)
     return rw.load_params(tab)
+
+
+def _torch_device_of(rw) -> str:
+    """The torch device string of ``rw``'s tracer ("cpu" or "cuda:N")."""
+    d = str(rw.tracer.device)
+    return "cuda:0" if d == "cuda" else d
 
 
 def distance_from_table(rw, table):
@@ -238,7 +252,7 @@ def trace_splat_forward(rw, table, record: bool, table_host=None):
     n = rw.plan.n_grid
     shape = (rw.nsrc, n, n)
     with _streams(rw):
-        load_table(rw, table if table_host is None else table_host)
+        load_table(rw, table, table_host)
         if record:
             if not tr.requires_grad:
                 raise ValueError("the RayWave was built without requires_grad=True: no gradients can be recorded")
@@ -294,7 +308,7 @@ class TraceSplat(torch.autograd.Function):
         with _streams(rw):
             # the adjoint kernels read the parameter arrays: restore this call's values (another forward
             # on the same RayWave may have loaded different ones since)
-            load_table(rw, table if ctx.table_host is None else ctx.table_host)
+            load_table(rw, table, ctx.table_host)
             g_wp = wp.from_torch(g_real.detach(), dtype=wp.vec2d)  # zero-copy view (CPU or CUDA)
             tape.backward(grads={field_wp: g_wp})
             # the parameter gradients stay on the device: zero-copy views of Warp's arrays, copied (to

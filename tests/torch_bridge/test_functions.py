@@ -114,3 +114,27 @@ def test_quantize_ste_matches_rwwarp_and_passes_gradients(levels):
     w = torch.randn(1001, dtype=torch.float64)
     (q * w).sum().backward()
     np.testing.assert_array_equal(phi.grad.numpy(), w.numpy())
+
+
+def test_parameter_table_loads_device_to_device():
+    """load_table with the table's host values beside the tensor copies the tensor's rows into the tracer
+    device to device (RayWave.load_params(device_table=)): the tracer's rows equal the table bit for bit, and
+    equal what the host path loads; a device table of the wrong shape is refused by name."""
+    import warp as wp
+
+    import rwwarp as rw
+    from rwwarp.raywave import RayWave
+    from torch_bridge.functions import load_table
+    lens = rw.load_lens("cooke_triplet")
+    r = RayWave(lens, [0.0], [0.55], 8, lens.sensor.pixel_pitch, method="focal", requires_grad=True)
+    base = r.tracer.params_np.copy()
+    t = torch.as_tensor(base) * (1.0 + 1e-3 * torch.arange(base.size, dtype=torch.float64).reshape(base.shape))
+    t[:, 12] = torch.as_tensor(base[:, 12])   # keep the semi-diameters (limits) as they are
+    load_table(r, t, t.numpy())
+    dev = np.stack([p.numpy() for p in r.tracer.params])
+    assert np.array_equal(dev, t.numpy())
+    load_table(r, torch.as_tensor(base))
+    load_table(r, t)                          # the host path
+    assert np.array_equal(np.stack([p.numpy() for p in r.tracer.params]), dev)
+    with pytest.raises(ValueError, match="device_table"):
+        r.load_params(t.numpy(), device_table=wp.from_torch(t[:-1].contiguous()))
