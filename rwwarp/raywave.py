@@ -19,7 +19,7 @@ from .errors import LensError
 from .lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes, group_sources  # noqa: F401  (group_sources re-exported by rwwarp.psf)
-from .trace import Tracer, pupil_grid, run_chunks, upload_packed
+from .trace import Tracer, pupil_grid, upload_packed
 from .trace import field_label as _fmt_field
 
 _LAST = {}  # last ray-wave field, for inspection
@@ -480,6 +480,7 @@ class RayWave:
         tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
         import warp as wp
         from .kernels.splat import make_splat_kernels
+        from .reduce import source_sums
         u, v, cell = self.pupil
         npup = pl.ray_grid * pl.ray_grid
         # rim cells weighted by the part of them the pupil disc covers (energy convention)
@@ -488,7 +489,6 @@ class RayWave:
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
         K = make_splat_kernels(tr.scalar)
-        from .reduce import source_sums
         terms = wp.empty(nsrc * npup, dtype=wp.types.vector(4, wp.float64), device=tr.device)
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
                   device=tr.device)
@@ -506,29 +506,9 @@ class RayWave:
                 chief_plane[k] = all_pos[k, j]
                 opl_p[k] = all_opl[k, j]
         n = pl.n_grid
-        K = make_splat_kernels(tr.scalar)
-        dev = tr.device
-        g = tr.requires_grad
-        total = nsrc * n * n
+        sp = self.splatter
         energy = int(self.amplitude == "energy")
-        if energy or g:
-            area = wp.zeros(nsrc * npup, dtype=wp.float64, device=dev, requires_grad=g)
-            half = wp.zeros(nsrc * npup, dtype=wp.vec2d, device=dev, requires_grad=g)
-        if energy:
-            if self.deterministic:   # neighbours' positions handed over by each ray (an adjoint without contention)
-                nbr = wp.zeros((nsrc * npup, 5), dtype=rays.pos.dtype, device=dev, requires_grad=g)
-                wp.launch(K.stencil_kernel, dim=nsrc * npup, inputs=[rays.pos, pl.ray_grid], outputs=[nbr], device=dev)
-            else:
-                nbr = self._splat_placeholders(K)[3]
-            wp.launch(K.tube_area_kernel, dim=nsrc * npup,
-                      inputs=[rays.pos, rays.valid, pl.ray_grid, *self._rim_args(rim), int(self.deterministic), nbr],
-                      outputs=[area, half], device=dev)
-        elif not g:  # not read by the splat in the paper convention
-            area = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=g)
-            half = wp.zeros(1, dtype=wp.vec2d, device=dev, requires_grad=g)
-        s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
-        s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
-        self.dropped = wp.zeros(nsrc, dtype=wp.int32, device=dev)
+        area, half = sp.tube_areas(rays, pl.ray_grid, self._rim_args(rim), bool(energy))
         # per-source constants in one upload
         origin, pitch, chief, target, index, opl_c, k_wave, carrier = upload_packed(
             [(self.origin, np.float64, wp.vec2d), (np.full(nsrc, pl.pitch_mm), np.float64, wp.float64),
@@ -536,73 +516,22 @@ class RayWave:
              # the reference-sphere index carries the sign: + converging to T, - diverging from T
              (self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), np.float64, wp.float64),
              (opl_p, np.float64, wp.float64), (2.0 * np.pi / self.lam_mm, np.float64, wp.float64),
-             (self.carrier, np.float64, wp.vec2d)], dev)
+             (self.carrier, np.float64, wp.vec2d)], tr.device)
         geo = [origin, pitch, chief, target, index]
         splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
                    [opl_c, k_wave, int(self.use_reference), energy, n, npup, *self._rim_args(rim)]
-        chunks = tr._chunks(nsrc * npup)
-        if self.deterministic:
-            self._splat_fixed(K, splat_in, s_re, s_im, total, n)
-        elif len(chunks) == 1:
-            nb, na, nv, _ = self._splat_placeholders(K)
-            wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 0, nb],
-                      outputs=[s_re, s_im, self.dropped, na, na, nv], device=dev)
-        else:
-            # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
-            parts = [(s_re, s_im, self.dropped)] + [
-                (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
-                 wp.zeros(nsrc, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
-            nb, na, nv, _ = self._splat_placeholders(K)
-            run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0], 0, nb],
-                                                outputs=list(out) + [na, na, nv], device=dev), chunks, parts)
-            for a, b, d in parts[1:]:
-                s_re.numpy()[:] += a.numpy()
-                s_im.numpy()[:] += b.numpy()
-                self.dropped.numpy()[:] += d.numpy()
-        # the finalize kernel writes every sample
-        field = (wp.zeros if g else wp.empty)(total, dtype=wp.vec2d, device=dev, requires_grad=g)
-        fin_in = [s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n]
-        chunks = tr._chunks(total)
-        run_chunks(lambda c, _: wp.launch(K.finalize_kernel, dim=total if c is None else c[1] - c[0],
-                                          inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),
-                   chunks, [None] * len(chunks))
+        s_re, s_im, self.dropped = sp.sums(splat_in, nsrc, n)
+        field = sp.finalize([s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n], nsrc * n * n)
         return field, rays
 
-    def _splat_placeholders(self, K):
-        """The splat kernels' deterministic-mode arguments when they are not used: (bound, int64 sums,
-        amplitudes, tube-area stencil)."""
-        import warp as wp
-        ph = getattr(self, "_splat_ph", None)
-        if ph is None:
-            dev = self.tracer.device
-            ph = self._splat_ph = (wp.zeros((1, 1), dtype=K.vec4d, device=dev), wp.zeros(1, dtype=wp.int64, device=dev),
-                                   wp.zeros(1, dtype=K.vec4d, device=dev),
-                                   wp.zeros((1, 5), dtype=self.tracer.K.vec3, device=dev))
-        return ph
-
-    def _splat_fixed(self, K, splat_in, s_re, s_im, total: int, n: int):
-        """The deterministic splat (``deterministic=True``, see :mod:`rwwarp.kernels.splat`): the rays' amplitudes
-        summed per source by the fixed tree give each source's bound; the contributions are added as int64 in
-        units of ``bound / FIXED_ONE`` and converted back into ``s_re``, ``s_im``. Under a tape the float splat
-        is recorded first (its adjoint only reads the samples' gradients); its sums are overwritten."""
-        import warp as wp
-        from .reduce import source_sums
-        dev, nsrc, npup = self.tracer.device, self.nsrc, self.plan.ray_grid ** 2
-        nb, na, nv, _ = self._splat_placeholders(K)
-        scratch = wp.zeros(nsrc, dtype=wp.int32, device=dev)   # the passes other than the counted one
-        if self.tracer.requires_grad:
-            wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 0, nb],
-                      outputs=[s_re, s_im, scratch, na, na, nv], device=dev)
-        amps = wp.zeros(nsrc * npup, dtype=K.vec4d, device=dev)
-        wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 2, nb],
-                  outputs=[s_re, s_im, scratch, na, na, amps], device=dev, record_tape=False)
-        bound = source_sums(amps, nsrc, wp.float64, dev)
-        acc_re = wp.zeros(total, dtype=wp.int64, device=dev)
-        acc_im = wp.zeros(total, dtype=wp.int64, device=dev)
-        wp.launch(K.splat_kernel, dim=nsrc * npup, inputs=splat_in + [0, 1, bound],
-                  outputs=[s_re, s_im, self.dropped, acc_re, acc_im, nv], device=dev, record_tape=False)
-        wp.launch(K.fixed_to_float_kernel, dim=total, inputs=[acc_re, acc_im, bound, n * n], outputs=[s_re, s_im],
-                  device=dev, record_tape=False)
+    @property
+    def splatter(self):
+        """The :class:`rwwarp.splat.Splatter` of this batch's tracer (made on first use)."""
+        sp = getattr(self, "_splatter", None)
+        if sp is None:
+            from .splat import Splatter
+            sp = self._splatter = Splatter(self.tracer, self.deterministic)
+        return sp
 
     def _rim_args(self, rim: bool):
         """The ``(cells, rim)`` inputs of the tube-area and splat kernels: this plan's pupil cells

@@ -213,9 +213,15 @@ def field_direction(field_deg) -> np.ndarray:
 
 def as_field_list(fields_deg) -> list:
     """Normalise a field spec: a number (y angle), an (x, y) tuple, or a list of either -> list."""
-    if np.ndim(fields_deg) == 0 or isinstance(fields_deg, tuple):
+    if isinstance(fields_deg, tuple) or (not isinstance(fields_deg, list) and np.ndim(fields_deg) == 0):
         return [fields_deg]
     return list(fields_deg)
+
+
+def field_pairs(fields_deg) -> list:
+    """A field spec (a number: the y angle; an (x, y) pair; or a list of either, mixed allowed; degrees) as a
+    list of (x, y) float pairs in degrees."""
+    return [_field_pair(f) for f in as_field_list(fields_deg)]
 
 
 def field_label(f) -> str:

@@ -50,6 +50,7 @@ import warnings
 import numpy as np
 import torch
 from rwwarp.trace import COLUMNS as COL
+from rwwarp.trace import field_pairs
 from torch import nn
 
 from rwwarp.errors import SamplingWarning
@@ -64,24 +65,6 @@ from .functions import (Recompute, backend_for, bridge_state, focal_doe_factor, 
 __all__ = ["QUANTITIES", "HybridLens"]
 
 QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe", "focal_length")
-
-
-def _field_list(fields) -> list:
-    """Fields as a list of (x, y) pairs in degrees: a number (y angle), an (x, y) tuple, or a list of
-    either (mixed allowed)."""
-    def number(v):
-        return isinstance(v, (int, float, np.number)) or (torch.is_tensor(v) and v.ndim == 0) or \
-            (isinstance(v, np.ndarray) and v.ndim == 0)
-    if number(fields) or (isinstance(fields, tuple) and len(fields) == 2 and all(number(v) for v in fields)):
-        fields = [fields]
-    out = []
-    for f in fields:
-        if number(f):
-            out.append((0.0, float(f)))
-        else:
-            x, y = (float(v) for v in f)
-            out.append((x, y))
-    return out
 
 
 def _rw_device(t: torch.Tensor) -> str:
@@ -370,7 +353,7 @@ class HybridLens(nn.Module):
         (:class:`rwwarp.plan.MemoryBudgetError` names the estimate and the knobs)."""
         from rwwarp.psf import RayWave
         lens = self._checked_lens()
-        fields = _field_list(fields)
+        fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
         plan = self.plan_policy if plan is None else plan
         key = (tuple(fields), tuple(wls), int(size),
@@ -696,7 +679,7 @@ class HybridLens(nn.Module):
         in backward); with a budget and no ``spatial_tile``, chosen by :meth:`spatial_tile_for` when a
         large patch's output side would not fit.
         """
-        fields = _field_list(fields)
+        fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
         pairs = [(i, j) for i in range(len(fields)) for j in range(len(wls))]
         src_f = [fields[i] for i, _ in pairs]

@@ -1,0 +1,128 @@
+"""The splat stage of the ray-wave model (host side of :mod:`rwwarp.kernels.splat`): traced rays to the
+complex field sampled on each source's wave-plane window.
+
+:class:`Splatter` owns the launches of one tracer's device: ray-tube areas, the splat into per-sample
+sums (float atomics; parallel private sums on CPU threads; or the deterministic fixed-point passes), and
+the finalize step (reference sphere and carrier). :meth:`rwwarp.raywave.RayWave.field` calls it. Lengths
+in mm.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+from .kernels.splat import make_splat_kernels
+from .reduce import source_sums
+from .trace import run_chunks
+
+
+class Splatter:
+    """Splat launches on ``tracer``'s device, with gradients when the tracer records them.
+
+    ``deterministic``: the same bits on every run on a GPU too: fixed-point sums (the rays' summed
+    amplitudes as each source's bound, :data:`rwwarp.kernels.splat.FIXED_ONE`), the float splat recorded
+    beside them for the adjoint, and tube areas from a stencil (:func:`~rwwarp.kernels.splat.stencil_kernel`)
+    so their adjoint adds without contention."""
+
+    def __init__(self, tracer, deterministic: bool = False):
+        self.tracer = tracer
+        self.K = make_splat_kernels(tracer.scalar)
+        self.deterministic = bool(deterministic)
+        self._ph = None
+
+    def placeholders(self):
+        """The kernels' deterministic-mode arguments when they are not used: (bound, int64 sums,
+        amplitudes, tube-area stencil), made once."""
+        if self._ph is None:
+            dev, K = self.tracer.device, self.K
+            self._ph = (wp.zeros((1, 1), dtype=K.vec4d, device=dev), wp.zeros(1, dtype=wp.int64, device=dev),
+                        wp.zeros(1, dtype=K.vec4d, device=dev), wp.zeros((1, 5), dtype=self.tracer.K.vec3, device=dev))
+        return self._ph
+
+    def tube_areas(self, rays, n_side: int, rim_args, energy: bool):
+        """``(area, half)``: each ray's tube footprint on the plane (mm^2) and its box's half sizes (mm); in the
+        paper convention (``energy`` False) placeholders the splat does not read."""
+        dev, K, g = self.tracer.device, self.K, self.tracer.requires_grad
+        n = rays.pos.shape[0]
+        if not energy and not g:
+            return (wp.zeros(1, dtype=wp.float64, device=dev), wp.zeros(1, dtype=wp.vec2d, device=dev))
+        area = wp.zeros(n, dtype=wp.float64, device=dev, requires_grad=g)
+        half = wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=g)
+        if energy:
+            if self.deterministic:   # neighbours' positions handed over by each ray (an adjoint without contention)
+                nbr = wp.zeros((n, 5), dtype=rays.pos.dtype, device=dev, requires_grad=g)
+                wp.launch(K.stencil_kernel, dim=n, inputs=[rays.pos, n_side], outputs=[nbr], device=dev)
+            else:
+                nbr = self.placeholders()[3]
+            wp.launch(K.tube_area_kernel, dim=n,
+                      inputs=[rays.pos, rays.valid, n_side, *rim_args, int(self.deterministic), nbr],
+                      outputs=[area, half], device=dev)
+        return area, half
+
+    def sums(self, splat_in, n_src: int, n_grid: int):
+        """``(s_re, s_im, dropped)``: the splat's per-sample sums (n_src * n_grid^2 float64 each) and the rays
+        per source that fell outside the window. ``splat_in``: the splat kernel's inputs up to its ``rim``
+        argument (:meth:`rwwarp.raywave.RayWave.field` forms them)."""
+        tr, K = self.tracer, self.K
+        dev, g = tr.device, tr.requires_grad
+        n_rays = splat_in[0].shape[0]
+        total = n_src * n_grid * n_grid
+        s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        dropped = wp.zeros(n_src, dtype=wp.int32, device=dev)
+        nb, na, nv, _ = self.placeholders()
+        if self.deterministic:
+            self._fixed(splat_in, s_re, s_im, dropped, n_src, n_grid)
+            return s_re, s_im, dropped
+        chunks = tr._chunks(n_rays)
+        if len(chunks) == 1:
+            wp.launch(K.splat_kernel, dim=n_rays, inputs=splat_in + [0, 0, nb],
+                      outputs=[s_re, s_im, dropped, na, na, nv], device=dev)
+            return s_re, s_im, dropped
+        # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
+        parts = [(s_re, s_im, dropped)] + [
+            (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
+             wp.zeros(n_src, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
+        run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0], 0, nb],
+                                            outputs=list(out) + [na, na, nv], device=dev), chunks, parts)
+        for a, b, d in parts[1:]:
+            s_re.numpy()[:] += a.numpy()
+            s_im.numpy()[:] += b.numpy()
+            dropped.numpy()[:] += d.numpy()
+        return s_re, s_im, dropped
+
+    def _fixed(self, splat_in, s_re, s_im, dropped, n_src: int, n_grid: int):
+        """The deterministic passes (see :mod:`rwwarp.kernels.splat`): the rays' amplitudes summed per source by
+        the fixed tree give each source's bound; the contributions are added as int64 in units of
+        ``bound / FIXED_ONE`` and converted back into ``s_re``, ``s_im``. Under a tape the float splat is
+        recorded first (its adjoint only reads the samples' gradients); its sums are overwritten."""
+        K, dev = self.K, self.tracer.device
+        n_rays = splat_in[0].shape[0]
+        total = n_src * n_grid * n_grid
+        nb, na, nv, _ = self.placeholders()
+        scratch = wp.zeros(n_src, dtype=wp.int32, device=dev)   # the passes other than the counted one
+        if self.tracer.requires_grad:
+            wp.launch(K.splat_kernel, dim=n_rays, inputs=splat_in + [0, 0, nb],
+                      outputs=[s_re, s_im, scratch, na, na, nv], device=dev)
+        amps = wp.zeros(n_rays, dtype=K.vec4d, device=dev)
+        wp.launch(K.splat_kernel, dim=n_rays, inputs=splat_in + [0, 2, nb],
+                  outputs=[s_re, s_im, scratch, na, na, amps], device=dev, record_tape=False)
+        bound = source_sums(amps, n_src, wp.float64, dev)
+        acc_re = wp.zeros(total, dtype=wp.int64, device=dev)
+        acc_im = wp.zeros(total, dtype=wp.int64, device=dev)
+        wp.launch(K.splat_kernel, dim=n_rays, inputs=splat_in + [0, 1, bound],
+                  outputs=[s_re, s_im, dropped, acc_re, acc_im, nv], device=dev, record_tape=False)
+        wp.launch(K.fixed_to_float_kernel, dim=total, inputs=[acc_re, acc_im, bound, n_grid * n_grid],
+                  outputs=[s_re, s_im], device=dev, record_tape=False)
+
+    def finalize(self, fin_in, total: int):
+        """The field (``total`` vec2d samples) from the sums: ``fin_in`` the finalize kernel's inputs up to its
+        ``offset`` argument (reference sphere and carrier applied; CPU threads take sample ranges)."""
+        tr, K = self.tracer, self.K
+        dev, g = tr.device, tr.requires_grad
+        # the finalize kernel writes every sample
+        field = (wp.zeros if g else wp.empty)(total, dtype=wp.vec2d, device=dev, requires_grad=g)
+        chunks = tr._chunks(total)
+        run_chunks(lambda c, _: wp.launch(K.finalize_kernel, dim=total if c is None else c[1] - c[0],
+                                          inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),
+                   chunks, [None] * len(chunks))
+        return field
