@@ -327,16 +327,14 @@ class HybridLens(nn.Module):
         finally:
             self._same_values = keep
 
-    def _checked_lens(self) -> Lens:
-        """:meth:`check_finite`, then :meth:`to_lens`; once per :meth:`same_values` block."""
+    def _once(self, name: str, make):
+        """``make()``, once per :meth:`same_values` block (every time outside one)."""
         snap = self._same_values
-        if snap is not None and "lens" in snap:
-            return snap["lens"]
-        self.check_finite()
-        lens = self.to_lens()
-        if snap is not None:
-            snap["lens"] = lens
-        return lens
+        if snap is None:
+            return make()
+        if name not in snap:
+            snap[name] = make()
+        return snap[name]
 
     def clear_plans(self):
         """Forget cached plans."""
@@ -352,7 +350,7 @@ class HybridLens(nn.Module):
         estimate of the batch is checked against it before anything is traced
         (:class:`rwwarp.plan.MemoryBudgetError` names the estimate and the knobs)."""
         from rwwarp.psf import RayWave
-        lens = self._checked_lens()
+        self._once("finite", self.check_finite)
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
         plan = self.plan_policy if plan is None else plan
@@ -362,6 +360,7 @@ class HybridLens(nn.Module):
                self.rw_device, bool(requires_grad), method or self.method, self.deterministic)
         if not self.replan and key in self._plans:
             return self._plans[key]
+        lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
         rw = RayWave(lens, fields, wls, int(size), pixel, device=self.rw_device, plan=plan, dtype="float64",
                      amplitude=self.amplitude, object_distance_mm=object_distance_mm,
