@@ -197,7 +197,8 @@ class RayWave:
         # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
         pu, pv, _ = pupil_grid(31, src["shape"])
         pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
-        pilot = tr._run(src, pu, pv, 1.0, keep=(plane,))
+        with tr.without_gradients():   # the plan reads these rays on the host; nothing differentiates them
+            pilot = tr._run(src, pu, pv, 1.0, keep=(plane,))
         at_plane, opl_plane, valid_plane = pilot.kept[plane]
         pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
         pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)

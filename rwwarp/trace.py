@@ -13,6 +13,7 @@ Typical use::
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import math
 import os
 import threading
@@ -364,6 +365,18 @@ class Tracer:
         self._upload()
 
     # -------------------------------------------------------------- sources
+    @contextlib.contextmanager
+    def without_gradients(self):
+        """Within the block the tracer traces as if built without ``requires_grad``: no gradient buffers, no
+        parameter-row copies, ray states reused between surfaces (a pilot trace, a forward-only pass). The
+        rays are the same as with gradients."""
+        keep = self.requires_grad
+        self.requires_grad = False
+        try:
+            yield self
+        finally:
+            self.requires_grad = keep
+
     def sources(self, fields_deg, wavelength_index=0, ray_aiming: bool = False, object_distance=None):
         """Per-source arrays for the generation kernel.
 

@@ -261,12 +261,8 @@ def trace_splat_forward(rw, table, record: bool, table_host=None):
                 field_wp, _ = rw.field()
         else:
             tape = None
-            keep = tr.requires_grad
-            tr.requires_grad = False
-            try:
+            with tr.without_gradients():
                 field_wp, _ = rw.field()
-            finally:
-                tr.requires_grad = keep
     return _field_to_torch(field_wp, shape), field_wp, tape
 
 
