@@ -492,7 +492,7 @@ class RayWave:
         K = make_splat_kernels(tr.scalar)
         terms = wp.empty(nsrc * npup, dtype=wp.types.vector(4, wp.float64), device=tr.device)
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
-                  device=tr.device)
+                  device=tr.device, record_tape=False)   # not differentiated: off any active tape
         # per source (entering, valid) power: a fixed summation tree, the same bits on every run
         self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device), None  # read when asked
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()

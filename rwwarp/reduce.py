@@ -34,7 +34,8 @@ def source_sums(values, n_src: int, scalar, device: str, requires_grad: bool = F
         else:   # fewer, wider passes (every entry of out is written)
             width = -(-int(level.shape[1]) // WIDE)
             out = wp.empty((n_src, width), dtype=K.vec4, device=device)
-            wp.launch(K.sum_wide_kernel, dim=(n_src, width), inputs=[level, WIDE], outputs=[out], device=device)
+            wp.launch(K.sum_wide_kernel, dim=(n_src, width), inputs=[level, WIDE], outputs=[out], device=device,
+                      record_tape=False)   # not differentiated: off any active tape
         level = out
         if width == 1:
             return level

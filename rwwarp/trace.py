@@ -574,7 +574,9 @@ class Tracer:
             circle, frac = 2, self.rim_cells(grid_n)
         inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
                   int(src.get("relative_opl", False)), int(grid_n), npup]
-        wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev)
+        # off the tape: its inputs (pupil, sources) carry no gradients, so its adjoint would do nothing
+        wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev,
+                  record_tape=False)
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto
         kept = set(range(last)) if keep is True else set(keep or ())
@@ -649,12 +651,13 @@ class Tracer:
         r = self.grad_replicas
         if self.deterministic:
             r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())
-        rows = wp.zeros((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
+        # every row is written by the replicate kernels (the gradient buffer starts at zero all the same)
+        rows = wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
         if self.deterministic:
             # two levels, each adjoint summing in order and adding where no other thread adds: params -> G rows
             # (one thread a parameter) -> R rows (thread (j, g) owns row g of the first level)
             grp = min(r, 512)
-            mid = wp.zeros((grp, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
+            mid = wp.empty((grp, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
             wp.launch(self.K.replicate_kernel, dim=(ktrace.N_PARAMS, 1), inputs=[p, grp], outputs=[mid],
                       device=self.device)
             wp.launch(self.K.replicate_rows_kernel, dim=(ktrace.N_PARAMS, grp), inputs=[mid, r // grp], outputs=[rows],
