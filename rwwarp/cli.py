@@ -110,7 +110,7 @@ def cmd_psf(a):
         print(pl.explain())
         return
     p = psf(lens, field, a.wavelength, model=a.model, size=a.size, device=a.device, dtype=a.dtype,
-            method=a.method, memory_budget_gb=a.memory_budget_gb)
+            method=a.method, memory_budget_gb=a.memory_budget_gb, deterministic=a.deterministic)
     if a.explain and p.plan:
         from .plan import Plan
         print(Plan(**p.plan).explain())
@@ -329,6 +329,8 @@ def main(argv=None):
                    help="wave propagation: focal (follows the patch), asm (whole beam), auto")
     p.add_argument("--memory-budget-gb", type=_finite, default=None,
                    help="refuse plans estimated above this (default: half the available memory)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="the same bits on every run on a GPU too (fixed-point splat sums)")
     p.add_argument("--out", default=None, help=".npy path")
     p.set_defaults(func=cmd_psf)
 
