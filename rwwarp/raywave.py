@@ -480,7 +480,6 @@ class RayWave:
         """
         tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
         import warp as wp
-        from .kernels.splat import make_splat_kernels
         from .reduce import source_sums
         u, v, cell = self.pupil
         npup = pl.ray_grid * pl.ray_grid
@@ -489,8 +488,8 @@ class RayWave:
         rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid, rim=rim)
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
-        K = make_splat_kernels(tr.scalar)
-        terms = wp.empty(nsrc * npup, dtype=wp.types.vector(4, wp.float64), device=tr.device)
+        K = self.splatter.K
+        terms = wp.empty(nsrc * npup, dtype=K.vec4d, device=tr.device)
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
                   device=tr.device, record_tape=False)   # not differentiated: off any active tape
         # per source (entering, valid) power: a fixed summation tree, the same bits on every run
