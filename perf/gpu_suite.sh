@@ -6,6 +6,11 @@
 #   bash perf/gpu_suite.sh d   # design smoke run: a489_aberration's gpu preset cut to 40 + 40 steps
 #   bash perf/gpu_suite.sh e   # focal PSFs (Cooke, AC254, A489), the Cooke F/4 joint step, the paper maps on 1 and 2 GPUs
 #   bash perf/gpu_suite.sh f   # the cooke_hybrid gpu preset's design step profiled, the Warp kernel tests on CUDA, GPU tests
+#   bash perf/gpu_suite.sh smoke [PARTS]  # the GPU smoke command: every arm of each gpu preset 3 steps inside the
+#                              # preset's memory_budget_gb (perf/smoke_presets.py), then pytest -m gpu. PARTS (default
+#                              # all): any of cooke_hybrid a489_aberration a489_edof tests; each part fits one
+#                              # 10-minute device command, e.g. `smoke cooke_hybrid a489_aberration` then
+#                              # `smoke a489_edof tests`. Exits non-zero when anything fails.
 # Results JSON under $OUT (device tool) or perf/results.
 set -u
 part=${1:-a}
@@ -13,6 +18,21 @@ export RWWARP_RESULTS=${OUT:-$(cd "$(dirname "$0")" && pwd)/results}
 cd "$(dirname "$0")"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 case $part in
+smoke)
+  shift
+  parts=${*:-cooke_hybrid a489_aberration a489_edof tests}
+  rc=0
+  configs=$(echo $parts | tr ' ' '\n' | grep -v '^tests$' | tr '\n' ' ')
+  if [ -n "$configs" ]; then
+    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2
+    rc=${PIPESTATUS[0]}
+  fi
+  if echo " $parts " | grep -q " tests "; then
+    echo "== GPU tests"; (cd ../tests && timeout 300 python3 -m pytest -q -p no:cacheprovider -m gpu 2>&1 | tail -5; exit ${PIPESTATUS[0]}) || rc=1
+  fi
+  echo "smoke: $([ $rc = 0 ] && echo passed || echo FAILED) (parts: $parts)"
+  exit $rc
+  ;;
 a)
   echo "== trace";   timeout 90 python3 bench_trace.py --device cuda --sizes 1000000 16000000 2>&1 | tail -4
   echo "== psf";     timeout 150 python3 bench_psf.py --device cuda --deeplens --repeat 5 2>&1 | grep -v use_ai2 | tail -4

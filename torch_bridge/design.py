@@ -186,6 +186,9 @@ class CachedProvider:
         geo = HybridLens(eq, plan=m.plan_policy, rays_per_sample=m.rays_per_sample, nyquist_safety=m.nyquist_safety,
                          amplitude=m.amplitude, gauss_nodes=m.gauss_nodes, use_reference=m.use_reference,
                          method=m.method, focal_patch_tol=m.focal_patch_tol)
+        # on the module's device: the fields it traces are cached there, and the focal operator it plans
+        # works in that device's array namespace (numpy on the CPU, CuPy on CUDA)
+        geo = geo.to(m.thickness_base.device)
         return geo, eq_fields, None
 
     @staticmethod
@@ -278,17 +281,29 @@ class CachedProvider:
             return self.memory_budget_bytes
         return default_memory_budget_bytes(self.module.rw_device)
 
+    def step_budget_bytes(self) -> int:
+        """Bytes a training step's propagation graphs (every entry of one :meth:`psfs` call, held until the
+        backward) may take: half of what the memory budget leaves beside the cached fields (the other half
+        is the network's activations and the allocator's slack); without a budget, half the device default
+        (:func:`~torch_bridge.budget.default_memory_budget_bytes`: half the free memory, read now)."""
+        if self.memory_budget_bytes is None:
+            return self.budget_bytes() // 2
+        return max(0, self.memory_budget_bytes - self.cache_bytes()) // 2
+
     def build_batch(self, rw, budget_bytes: int | None = None) -> dict:
         """Sources per trace batch of a field build under the budget (bytes, default
         :meth:`budget_bytes`), from the library's own estimates: ``fixed`` = the planning pilot and
         maps (:meth:`HybridLens.bytes_fixed`) plus the entry's cached field (``nsrc n_grid^2``
         complex128), ``per_source`` = one source of a frozen build
-        (:meth:`HybridLens.bytes_per_source` with ``record=False``). Returns a dict with ``batch``,
-        ``per_source``, ``fixed``, ``budget`` and ``peak`` (``fixed + batch per_source``, bytes);
-        warns when even one source exceeds the budget (the build then runs one source at a time)."""
+        (:meth:`HybridLens.bytes_per_source` with ``record=False``). The default budget is what the memory
+        budget leaves beside the fields already cached (``held``; the device default reads the free memory,
+        which leaves them out already). Returns a dict with ``batch``, ``per_source``, ``fixed``, ``budget``,
+        ``held`` and ``peak`` (``fixed + batch per_source``, bytes); warns when even one source exceeds the
+        budget (the build then runs one source at a time)."""
         import warnings
         from rwwarp.errors import SamplingWarning
-        budget = self.budget_bytes() if budget_bytes is None else int(budget_bytes)
+        held = self.cache_bytes() if (budget_bytes is None and self.memory_budget_bytes is not None) else 0
+        budget = self.budget_bytes() - held if budget_bytes is None else int(budget_bytes)
         m = self.module
         per = int(m.bytes_per_source(rw, record=False))
         fixed = int(m.bytes_fixed(rw)) + rw.nsrc * rw.plan.n_grid ** 2 * 16
@@ -298,7 +313,8 @@ class CachedProvider:
                           f"{rw.plan.ray_grid}^2, DOE-plane grid {rw.plan.n_grid}^2, {rw.nsrc} cached fields) "
                           f"> memory budget {budget / 1e9:.3g} GB; tracing one source at a time", SamplingWarning,
                           stacklevel=3)
-        return {"batch": batch, "per_source": per, "fixed": fixed, "budget": budget, "peak": fixed + batch * per}
+        return {"batch": batch, "per_source": per, "fixed": fixed, "budget": budget, "held": held,
+                "peak": fixed + batch * per}
 
     def _entry_centres(self, key, centres, geo, fields, depth):
         """Patch centres (mm, (n_nodes, 2)) of entry ``key``: those given, else the recorded ones, else
@@ -421,21 +437,36 @@ class CachedProvider:
                            "n_grid": [e["n_grid"] for e in log]}
         return self._focal[key]
 
-    def _focal_psfs(self, key, entry, doe, thick):
+    @staticmethod
+    def focal_graph_bytes(rw) -> int:
+        """Estimated bytes one focal node's autograd graph holds from its forward to its backward: the DOE
+        phase and its polynomial intermediates (8 real wave-plane arrays), the order series (one complex
+        array per Horner step: the span of the kept orders plus the shift to the lowest, and the stack),
+        the modulated field and the operator's saved input (complex), and its output nodes (4 complex
+        arrays of ``(size G)^2``)."""
+        n2 = rw.plan.n_grid ** 2
+        orders = [int(round(float(m))) for m, _ in (rw.focal["orders"][0] if rw.focal["orders"] else [])]
+        steps = (max(orders) - min(orders) + abs(min(orders)) + 2) if len(orders) > 1 else 1
+        return int(n2 * (8 * 8 + 16 * (steps + 3)) + 16 * 4 * (rw.size * rw.gauss_nodes) ** 2)
+
+    def _focal_psfs(self, key, entry, doe, thick, budget_bytes: int | None = None):
         """(n_nodes, size, size) for a focal entry: DOE orders of the current DOE applied to each node's
-        cached field, focal propagation (each node a checkpoint when a gradient is wanted and there is
-        more than one node)."""
+        cached field, focal propagation (each node a checkpoint when a gradient is wanted, there is more
+        than one node and their graphs together exceed ``budget_bytes``, this entry's share of the step's
+        memory budget; default :meth:`budget_bytes`)."""
         from torch_bridge.functions import focal_doe_factor, focal_propagate
         from torch_bridge.functions import Recompute
         nodes, dist, geo = entry
         outs = []
         ts = [doe] if thick is None else [doe, thick]
         wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
-        # a node's graph holds a few wave-plane arrays and its output nodes (the fields are cached, nothing
-        # is traced): checkpoint (recompute in backward) only when all nodes' graphs would not fit a quarter
-        # of the budget
-        graph = sum(16 * 8 * rw.plan.n_grid ** 2 + 16 * 4 * (rw.size * rw.gauss_nodes) ** 2 for rw, _, _ in nodes)
-        checkpoint = len(nodes) > 1 and wants and graph > self.budget_bytes() // 4
+        # a node's graph holds a few wave-plane arrays per kept DOE order and its output nodes (the fields
+        # are cached, nothing is traced): checkpoint (recompute in backward) when all nodes' graphs together
+        # would not fit this entry's share of the budget (the graphs of every entry of a call live at once,
+        # beside the network's activations)
+        share = self.step_budget_bytes() if budget_bytes is None else int(budget_bytes)
+        graph = sum(self.focal_graph_bytes(rw) for rw, _, _ in nodes)
+        checkpoint = len(nodes) > 1 and wants and graph > share
         # the distance's value on the host once per call (a read waits for the device), not once per node
         d_host = float(dist) if thick is None else float(thick.detach())
         for rw, u, entering in nodes:
@@ -454,7 +485,8 @@ class CachedProvider:
             else:
                 outs.append(run(*ts, record=torch.is_grad_enabled()))
         self.step_log.append({"key": list(key), "method": "focal", "chunk": 1, "chunks": len(nodes),
-                              "checkpoint": bool(checkpoint), "graph_bytes_estimate": int(graph)})
+                              "checkpoint": bool(checkpoint), "graph_bytes_estimate": int(graph),
+                              "budget_share_bytes": int(share)})
         del self.step_log[:-64]
         return torch.cat(outs, 0)
 
@@ -593,9 +625,9 @@ class CachedProvider:
         return 2 * int(n * n * per_sample + n_pad * n_pad * 16 * 3 + nodes)
 
     def step_chunk(self, rw, budget_bytes: int | None = None) -> int:
-        """Nodes per propagation chunk of a step under the budget (bytes, default :meth:`budget_bytes`):
+        """Nodes per propagation chunk of a step under the budget (bytes, default :meth:`step_budget_bytes`):
         ``budget // step_bytes_per_source`` (at least 1, at most all nodes)."""
-        budget = self.budget_bytes() if budget_bytes is None else int(budget_bytes)
+        budget = self.step_budget_bytes() if budget_bytes is None else int(budget_bytes)
         return int(max(1, min(rw.nsrc, budget // max(self.step_bytes_per_source(rw), 1))))
 
     def _chunk_raywaves(self, key, rw, geo, chunk: int):
@@ -644,6 +676,8 @@ class CachedProvider:
         from torch_bridge.functions import Recompute
         doe = self.module.value("doe")
         thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
+        # every wavelength's graph lives until the step's backward: each gets an equal share of the budget
+        share = self.step_budget_bytes() // max(1, len(wavelengths_um))
         out = []
         for w in wavelengths_um:
             key = self._key(w, depth_mm)
@@ -652,10 +686,10 @@ class CachedProvider:
                 if part is not None:   # one plan a node: the share is a slice of the nodes
                     nodes, dist_f, geo_f = entry
                     entry = (nodes[part * chunk:(part + 1) * chunk], dist_f, geo_f)
-                out.append(self._focal_psfs(key, entry, doe, thick))
+                out.append(self._focal_psfs(key, entry, doe, thick, share))
                 continue
             rw, u, dist, entering, geo = entry
-            c = self.step_chunk(rw) if chunk is None else max(1, int(chunk))
+            c = self.step_chunk(rw, share) if chunk is None else max(1, int(chunk))
             parts = self._chunk_raywaves(key, rw, geo, c)
             if part is not None:
                 parts = [parts[part]]

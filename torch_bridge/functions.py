@@ -553,6 +553,10 @@ class FocalPropagate(torch.autograd.Function):
     @staticmethod
     def forward(ctx, field, distance, rw, distance_host=None):
         from rwwarp.focal import pixel_power
+        if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
+            # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
+            raise ValueError(f"focal_propagate: the field is on {field.device} but its RayWave was planned on "
+                             f"{rw.tracer.device}; plan on the field's device (HybridLens.to(device))")
         if distance_host is not None:
             z = float(distance_host)
         else:

@@ -36,8 +36,8 @@ def test_batched_cache_build_equals_one_batch_and_respects_budget():
     split.load_plans(one.plans)                       # the same plans and centres
     split.prepare(wls, [None])
     for e in split.build_log:
-        assert e["budget"] == budget
-        assert e["peak"] <= budget                    # the library's own estimate of the build's peak
+        assert e["budget"] + e["held"] == budget       # the fields cached before count against the budget
+        assert e["peak"] + e["held"] <= budget        # the library's own estimate of the build's peak
         assert e["fixed"] + e["batch"] * e["per_source"] == e["peak"]
     assert max(e["batches"] for e in split.build_log) >= 2
     for w in wls:
@@ -106,11 +106,16 @@ def test_step_chunks_equal_one_chunk_values_and_gradients():
         np.testing.assert_allclose(gc, g1, rtol=1e-10, atol=1e-12 * np.abs(g1).max())
         np.testing.assert_allclose(tc, t1, rtol=1e-10, atol=1e-12 * np.abs(t1).max())
     assert np.abs(g1).max() > 0 and np.abs(t1).max() > 0
-    # the default chunk under a budget of 2.5 nodes' estimate: 2 nodes, 2 chunks
+    # the default chunk: a step's graphs get half of what the budget leaves beside the cached fields,
+    # shared equally by the wavelengths of the call. A share of 2.5 nodes' estimate: 2 nodes, 2 chunks
     e = prov._entry(0.63, None)[0]
-    prov.memory_budget_bytes = int(2.5 * prov.step_bytes_per_source(e))
+    per = prov.step_bytes_per_source(e)
+    prov.memory_budget_bytes = prov.cache_bytes() + 2 * int(2.5 * per)
     prov.psfs([0.63])
     assert prov.step_log[-1]["chunk"] == 2 and prov.step_log[-1]["chunks"] == 2
+    # the same budget over two wavelengths of a call (the entry twice): 1.25 nodes each, 1 node a chunk
+    prov.psfs([0.63, 0.63])
+    assert [r["chunk"] for r in prov.step_log[-2:]] == [1, 1]
 
 
 def test_recentre_keeps_the_cached_field_and_matches_an_independent_psf():

@@ -1,0 +1,118 @@
+"""GPU smoke run of the design presets: every arm of every experiment's ``gpu`` preset for a few steps,
+each in its own process, with the device's used memory sampled (nvidia-smi, every 50 ms: torch's, Warp's
+and CuPy's pools all count) against the preset's ``optics.memory_budget_gb``.
+
+    python perf/smoke_presets.py [--configs cooke_hybrid a489_aberration a489_edof] [--steps 3]
+                                 [--out DIR] [--timeout 240]
+
+Each arm runs ``steps - 1`` joint steps and one fine-tune step (both phases and the optics update are
+reached), then its evaluation on ``--eval-images`` images, from a fresh folder. An arm passes when its
+process exits 0, every step was logged and the sampled peak stays inside the preset's memory budget
+(GB = 1e9 bytes; a preset without a budget fails: every gpu preset must state one). Writes
+``smoke_presets.json`` (card, commit, per arm: exit code, wall time, steps, step times, peak memory,
+budget) under ``--out`` ($RWWARP_RESULTS or perf/results) and exits 1 when any arm fails.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import GpuMemory, git_commit, save  # noqa: E402
+
+CONFIGS = ("cooke_hybrid", "a489_aberration", "a489_edof")
+
+
+def smoke_config(name: str, steps: int, eval_images: int) -> dict:
+    """The bundled config ``name`` with its gpu preset cut to ``steps`` steps (``steps - 1`` joint, 1
+    fine-tune), a log line per step, no images or checkpoints, and a lens path made absolute."""
+    from torch_bridge.train import CONFIG_DIR
+    c = yaml.safe_load((CONFIG_DIR / f"{name}.yaml").read_text())
+    lens_file = c.get("lens", {}).get("file")
+    if lens_file and (CONFIG_DIR / lens_file).exists():
+        c["lens"]["file"] = str(CONFIG_DIR / lens_file)
+    g = c["presets"]["gpu"]
+    g.setdefault("train", {}).update(joint_steps=max(1, steps - 1), finetune_steps=1, log_every=1, image_every=0,
+                                     checkpoint_every=0)
+    g.setdefault("data", {})["eval_images"] = int(eval_images)
+    return c
+
+
+def run_arm(cfg_path: Path, arm: str, out: Path, timeout: float) -> dict:
+    """One arm in its own process; returns exit code, wall time, peak used memory (MiB) and the log tail."""
+    cmd = [sys.executable, "-m", "torch_bridge.train", str(cfg_path), "--preset", "gpu", "--arm", arm,
+           "--out", str(out), "--fresh", "--no-progress"]
+    t0 = time.perf_counter()
+    with GpuMemory() as mem:
+        try:
+            p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+            rc, log = p.returncode, p.stdout + p.stderr
+        except subprocess.TimeoutExpired as e:
+            rc, log = 124, (e.stdout or b"").decode(errors="replace") + (e.stderr or b"").decode(errors="replace")
+    return {"rc": rc, "wall_s": round(time.perf_counter() - t0, 2), "peak_mib": mem.peak,
+            "log_tail": [ln for ln in log.splitlines() if "Warning" not in ln][-12:]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--configs", nargs="+", default=list(CONFIGS))
+    ap.add_argument("--steps", type=int, default=3)
+    ap.add_argument("--eval-images", type=int, default=2)
+    ap.add_argument("--timeout", type=float, default=240.0, help="seconds per arm")
+    ap.add_argument("--out", default=os.environ.get("RWWARP_RESULTS"))
+    a = ap.parse_args(argv)
+    if a.steps < 2:
+        ap.error("--steps must be >= 2 (a joint and a fine-tune step)")
+    from torch_bridge.train import load_config
+    out = Path(a.out or Path(__file__).resolve().parent / "results")
+    work = out / "smoke_runs"
+    work.mkdir(parents=True, exist_ok=True)
+    card = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv,noheader"],
+                          capture_output=True, text=True).stdout.strip().splitlines()
+    report = {"card": card[0] if card else "none", "steps": a.steps, "arms": []}
+    ok_all = True
+    for name in a.configs:
+        c = smoke_config(name, a.steps, a.eval_images)
+        cfg_path = work / f"{name}_smoke.yaml"
+        cfg_path.write_text(yaml.safe_dump(c))
+        exp = load_config(copy.deepcopy(c), "gpu")
+        budget = exp["base"]["optics"].get("memory_budget_gb")
+        for arm in exp["arms"]:
+            r = run_arm(cfg_path, arm["name"], work / name, a.timeout)
+            rows = []
+            mf = work / name / arm["name"] / "metrics.csv"
+            if mf.exists():
+                rows = list(csv.DictReader(open(mf)))
+            steps = [int(x["step"]) for x in rows]
+            within = budget is not None and r["peak_mib"] * 2 ** 20 <= budget * 1e9
+            ok = r["rc"] == 0 and len(steps) >= a.steps and within
+            ok_all &= ok
+            entry = {"config": name, "arm": arm["name"], "ok": ok, "budget_gb": budget,
+                     "peak_gb": round(r["peak_mib"] * 2 ** 20 / 1e9, 2), "within_budget": within,
+                     "steps_logged": len(steps), "step_wall_s": [float(x["wall_s"]) for x in rows],
+                     "step_memory_gb": [float(x["memory_gb"]) for x in rows if x.get("memory_gb")],
+                     **{k: r[k] for k in ("rc", "wall_s")}}
+            if not ok:
+                entry["log_tail"] = r["log_tail"]
+            report["arms"].append(entry)
+            print(f"{'PASS' if ok else 'FAIL'} {name}/{arm['name']}: rc {r['rc']}, {len(steps)} steps, "
+                  f"{r['wall_s']:.0f} s, peak {entry['peak_gb']:.1f} GB / budget {budget} GB", flush=True)
+            if not ok:
+                print("\n".join("    " + ln for ln in r["log_tail"]), flush=True)
+    report["passed"] = bool(ok_all)
+    p = save("smoke_presets", report, out)
+    print(f"{'passed' if ok_all else 'FAILED'}; {p}")
+    return 0 if ok_all else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""What broke the gpu design presets, tested where it broke.
+
+* ``a489_edof``'s paraxial-wave arm stopped at its first step on CUDA: the paraxial system the cached
+  provider builds was a new ``HybridLens`` on the CPU, so its focal plans took numpy while the cached fields
+  were CuPy views (a TypeError in the focal operator's matrix product). The CUDA test runs that path and
+  compares it with the CPU (the same model and plans; both in double precision).
+* ``a489_aberration`` ran out of memory on an H100: the propagation graphs of a step's wavelengths each took
+  the whole budget (default half the free memory), none checkpointed. A step's graphs now share half of what
+  the budget leaves beside the cached fields. CPU: checkpointed focal nodes give the same PSFs and gradients;
+  CUDA: the measured peak of a step's propagation stays inside that share.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import rwwarp as rw
+import torch_bridge as tb
+from torch_bridge import design as dz
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+WLS = [0.47, 0.63]
+
+
+def _a489(f_number=None):
+    """The bundled A489 + DOE with a modest DOE; ``f_number``: stopped as a config's ``lens.f_number`` does."""
+    from torch_bridge.config import build_lens
+    lens = rw.load_lens("a489_doe") if f_number is None else build_lens({"lens": {"file": "a489_doe", "f_number": f_number}})
+    d = lens.doe_index
+    return lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [-20.0, 8.0, 3.0, -1.0]})
+
+
+def _paraxial_provider(device, **kw):
+    lens = _a489()
+    m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", nyquist_safety=1.0, rays_per_sample=1.2)
+    m = m.to(device)
+    fields = dz.field_angles(lens, dz.node_positions_mm("grid", 1.0, (2, 2), region="quadrant"), 0.55)
+    return m, dz.CachedProvider(m, fields, 15, 0.003, model="paraxial-wave", wavelength_ref_um=0.55, **kw)
+
+
+def _step(m, prov, wls=WLS):
+    """PSFs and the DOE gradient of a non-uniform weighted sum (a stand-in for a loss)."""
+    m.zero_grad()
+    p = prov.psfs(wls)
+    w = torch.linspace(0.5, 1.5, p.shape[-1], dtype=torch.float64, device=p.device)
+    (p * w).sum().backward()
+    return p.detach().cpu().numpy(), m.doe.grad.detach().cpu().numpy().copy()
+
+
+def test_focal_nodes_checkpointed_under_a_small_budget_give_the_same_psfs_and_gradients():
+    """Paraxial-wave cached provider, focal method, 4 nodes x 2 wavelengths (CPU): a budget that leaves no
+    room beside the cached fields checkpoints every entry's nodes; PSFs and DOE gradients equal the
+    unbounded step's (the same operators recomputed: measured 0 / 1e-16 relative, tolerance 1e-13)."""
+    m, prov = _paraxial_provider("cpu", memory_budget_bytes=10 ** 12)
+    p1, g1 = _step(m, prov)
+    assert not any(r["checkpoint"] for r in prov.step_log[-2:])
+    prov.memory_budget_bytes = prov.cache_bytes() + 2      # a share of one byte per wavelength
+    p2, g2 = _step(m, prov)
+    assert all(r["checkpoint"] and r["budget_share_bytes"] == 0 for r in prov.step_log[-2:])
+    np.testing.assert_allclose(p2, p1, rtol=0, atol=1e-13 * p1.max())
+    np.testing.assert_allclose(g2, g1, rtol=1e-13, atol=1e-13 * np.abs(g1).max())
+    assert np.abs(g1).max() > 0
+
+
+@pytest.mark.gpu
+@cuda
+def test_paraxial_wave_cached_focal_path_on_cuda_equals_the_cpu():
+    """The a489_edof paraxial-wave arm's path (cached provider, paraxial system, focal method) on CUDA: it
+    runs, its paraxial system lives on the module's device, and its PSFs and DOE gradients equal the CPU's
+    (both double precision; tolerance from the measured CUDA-CPU difference, see the assertions)."""
+    m_c, prov_c = _paraxial_provider("cpu")
+    p_c, g_c = _step(m_c, prov_c)
+    m_g, prov_g = _paraxial_provider("cuda")
+    p_g, g_g = _step(m_g, prov_g)
+    geo = prov_g._focal[prov_g._key(WLS[0], None)][2]
+    assert geo.thickness_base.device.type == "cuda"
+    err_p = np.abs(p_g - p_c).max() / p_c.max()
+    err_g = np.abs(g_g - g_c).max() / np.abs(g_c).max()
+    print(f"CUDA vs CPU: PSFs {err_p:.2e}, DOE gradient {err_g:.2e} (relative to the largest)")
+    assert err_p < 1e-9 and err_g < 1e-8
+
+
+@pytest.mark.gpu
+@cuda
+def test_a489_step_propagation_stays_inside_its_share_of_the_budget():
+    """The A489 + DOE at the gpu preset's F/2.2, 2 x 2 nodes, three wavelengths (one per colour) through the
+    cached provider on CUDA with gradients: with a budget that leaves a small share for the step's graphs,
+    the peak torch-pool memory the step adds (forward and backward; Warp and CuPy allocate from that pool
+    inside bridge calls) stays inside the share, and the PSFs and DOE gradients equal the unbounded step's
+    (checkpointed nodes recompute the same operators: tolerance 1e-12)."""
+    lens = _a489(2.2)
+    m = tb.HybridLens(lens, learn={"doe": "all"}, nyquist_safety=1.5, rays_per_sample=1.2).to("cuda")
+    fields = dz.field_angles(lens, dz.node_positions_mm("grid", 1.5, (2, 2), region="quadrant"), 0.55)
+    wls = [0.63, 0.55, 0.47]
+    prov = dz.CachedProvider(m, fields, 31, 0.003, wavelength_ref_um=0.55, memory_budget_bytes=10 ** 12,
+                             doe_budget_cpmm=100, min_feature_mm=1e-3)
+    prov.prepare(wls, [None])
+    p1, g1 = _step(m, prov, wls)
+    torch.cuda.synchronize()
+    # the largest one-node estimate of the step's entries (focal: graph per node; ASM: per chunk member)
+    node = max(r["graph_bytes_estimate"] // r["chunks"] if "graph_bytes_estimate" in r else r["bytes_per_source"]
+               for r in prov.step_log[-3:])
+    # a share of 1.5 nodes per wavelength: every entry is split into one-node checkpoints
+    prov.memory_budget_bytes = prov.cache_bytes() + 2 * 3 * (3 * node // 2)
+    share = prov.step_budget_bytes()
+    base = torch.cuda.memory_allocated()
+    torch.cuda.reset_peak_memory_stats()
+    p2, g2 = _step(m, prov, wls)
+    torch.cuda.synchronize()
+    added = torch.cuda.max_memory_allocated() - base
+    print(f"step share {share / 1e6:.1f} MB, peak added {added / 1e6:.1f} MB, cache {prov.cache_bytes() / 1e6:.1f} MB,"
+          f" graphs {[r.get('graph_bytes_estimate') for r in prov.step_log[-3:]]}")
+    assert all(r.get("checkpoint", r.get("chunks", 1) > 1) for r in prov.step_log[-3:])
+    assert added <= share
+    np.testing.assert_allclose(p2, p1, rtol=0, atol=1e-12 * p1.max())
+    np.testing.assert_allclose(g2, g1, rtol=1e-12, atol=1e-12 * np.abs(g1).max())
