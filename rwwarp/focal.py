@@ -268,6 +268,15 @@ class FocalPropagator:
         self._Fy = _cis(2.0 * np.pi * nu[None, None, :] * ny[:, :, None], xp) / self.nf
 
     @property
+    def nbytes(self) -> int:
+        """Bytes the operator holds on its device: the step-1 factors, the remainder transfer and its phase,
+        the output factors and, once formed, the distance-derivative factors."""
+        arrays = [*self._E, self._HR, self._rem, self._Fx, self._Fy]
+        if self._dE is not None:
+            arrays += [*self._dE, self._dHR]
+        return int(sum(a.nbytes for a in arrays))
+
+    @property
     def kept_band_fraction(self) -> float:
         """Fraction of the padded sensor grid's frequencies the remainder's band limit keeps (0..1)."""
         return float(self._keep_mean)

@@ -520,9 +520,28 @@ class CachedProvider:
         self._chunks.clear()
         self.plans = {k: dict(v) for k, v in plans.items()}
 
+    def release(self):
+        """Drop the cached fields, their RayWaves (with their focal operators) and the propagation chunks,
+        and hand the freed device memory back (torch's cache, Warp's pool). The recorded :attr:`plans`
+        stay: an entry needed again is rebuilt on the same plan and patch centres."""
+        self._cache.clear()
+        self._focal.clear()
+        self._chunks.clear()
+        dev = str(self.module.rw_device)
+        if dev.startswith("cuda"):
+            import gc
+
+            from rwwarp.trace import release_warp_pool
+            gc.collect()
+            torch.cuda.empty_cache()
+            release_warp_pool(dev)
+
     def cache_bytes(self) -> int:
-        """Bytes held by the cached fields."""
-        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values()) + \
+        """Bytes held by the cached fields and, for focal entries, the nodes' focal operators once built
+        (their factors are of the order of the field: :attr:`rwwarp.focal.FocalPropagator.nbytes`)."""
+        ops = sum(op.nbytes for nodes, _, _ in self._focal.values() for rw, _, _ in nodes
+                  if (op := getattr(rw, "_focal_op", None)) is not None)
+        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values()) + ops + \
             sum(u.numel() * u.element_size() for nodes, _, _ in self._focal.values() for _, u, _ in nodes)
 
     def check_sampling(self) -> int:

@@ -37,12 +37,16 @@ def _psf_kernels(psfs):
 
 def _eval_provider(arm):
     """A ray-wave provider for the current lens: the training one when it caches ray-wave fields of
-    this lens (checked for sampling and centring first), else a new one."""
+    this lens (checked for sampling and centring first), else a new one, built after the training
+    provider's caches are released (the two sets of fields are never held at once; the training one
+    rebuilds its entries on their recorded plans when it needs them again)."""
     from torch_bridge import design as dz
     p = arm.provider
     if isinstance(p, dz.CachedProvider) and p.model == "ray-wave":
         p.check_sampling()
         return p
+    if hasattr(p, "release"):
+        p.release()
     prov = dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
                              wavelength_ref_um=arm.wl_ref, memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
                              min_feature_mm=_feature_mm(arm.cfg["optics"]))

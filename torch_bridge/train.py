@@ -235,7 +235,9 @@ class Arm:
                                      memory_budget_bytes=_budget_bytes(o), min_feature_mm=_feature_mm(o))
         tile = None
         if o["memory_budget_gb"]:
-            tile = max(1, int(o["memory_budget_gb"] * 1e9 // max(1, module.bytes_per_source(
+            # a tile's recorded sources take half the budget; the network's activations and the allocator's
+            # slack the other half (as a cached provider's step: CachedProvider.step_budget_bytes)
+            tile = max(1, int(o["memory_budget_gb"] * 1e9 / 2 // max(1, module.bytes_per_source(
                 module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm)))))
         return dz.LiveProvider(module, self.fields, self.size, self.pixel_mm, wavelength_ref_um=self.wl_ref,
                                tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"])
@@ -466,9 +468,11 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     t0 = time.perf_counter()
     if not arm.design_done:
         arm.run_design()
-        if isinstance(arm.provider, CachedProvider):
+        if isinstance(arm.provider, CachedProvider) and arm.provider.model == "ray-wave":
+            # the training provider is the evaluation's too: its fields serve both
             arm.provider.prepare(sorted({w for c in arm.wls for w in c}), arm.depths, progress=arm.progress)
         if lead:
+            # another model's provider is released while the evaluation's fields are held, and filled after
             arm.objective_initial = objective(arm, _eval_provider(arm))
             arm.save(ck)
     if isinstance(arm.provider, CachedProvider):
