@@ -157,7 +157,7 @@ def lens_from_deeplens(d: dict, source=None, strict: bool = True):
                                   or [float(a) for a in v] != neutral):
                 raise err(f"decentred or tilted surfaces are not supported ({key} = {v!r:.80})", i, key)
         semi = num(sd, "r", i, positive=True) if sd.get("r") is not None else None
-        shape = "square" if sd.get("is_square") else "circle"
+        shape = "square" if sd.get("is_square") and semi is not None else "circle"  # no r: no aperture, no shape
         if typ in ("Aperture", "Stop"):
             s = Surface(type="aperture", semi_diameter=semi, shape=shape, stop=not stop_done)
             stop_done = True

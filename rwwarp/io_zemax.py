@@ -416,9 +416,11 @@ def read_zmx(path, strict: bool = True):
             d_val = rd.num(diam[0], 0, "semi-diameter", surf=k, key="DIAM", line=diam[1]) * scale
             if is_stop and floa:
                 floa_sd = d_val  # float by stop size: the stop's size sets the pupil (it does not clip)
-            # DIAM (fixed or automatic) does not clip in OpticStudio or optiland: only a stop whose size is the
-            # system aperture keeps it (recorded; under FLOA the stop floats like under ENPD)
-            if d_val > 0 and is_stop and (floa or not pupil_set):
+            # DIAM (fixed or automatic) does not clip in OpticStudio or optiland: only the stop keeps a fixed
+            # one (or, under FLOA, any), recorded as its semi_diameter; the stop floats under ENPD / FNUM / FLOA
+            # / OBNA, so that clips nothing either
+            fixed = len(diam[0]) > 1 and diam[0][1] == "1"
+            if d_val > 0 and is_stop and (fixed or floa or not pupil_set):
                 sd = d_val
         for bad in ("ELOB", "ELAP", "UDAP", "OBDC"):
             if b.has(bad):

@@ -328,7 +328,11 @@ def check_doe_steepness(s, i, lens, prof) -> None:
     wavelength anywhere on the aperture (the first order would be evanescent; no plan can sample it)."""
     import numpy as np
 
-    if not prof.is_continuous or s.semi_diameter is None:
+    h = s.semi_diameter
+    ext = getattr(lens, "surface_extents", None)
+    if h is None and ext is not None and i < len(ext) and ext[i] is not None and ext[i] > 0:
+        h = float(ext[i])  # a .zmx DIAM: not an aperture, but the height the file gives the surface
+    if not prof.is_continuous or h is None:
         if not prof.is_continuous:
             data = prof.data if getattr(prof, "_data", None) is not None else None
             if data is not None and data.size > MAX_PIXELS:
@@ -340,7 +344,7 @@ def check_doe_steepness(s, i, lens, prof) -> None:
                             f"({s.design_wavelength_um:g} um): sub-wavelength pixels cannot be simulated by the "
                             "scalar model and no sampling plan can resolve them", lens, i, "profile")
         return
-    h = float(s.semi_diameter)
+    h = float(h)
     with np.errstate(all="ignore"):
         gmax = float(prof.max_gradient(h, s.design_wavelength_um, s.shape))
     lam_mm = float(s.design_wavelength_um) * 1e-3

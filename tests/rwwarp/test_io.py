@@ -131,8 +131,8 @@ def test_zmx_surface_types(tmp_path):
     s = lens.surfaces
     assert [x.type for x in s] == ["standard", "standard", "standard", "thin_lens", "doe"]
     # a DIAM, fixed or automatic, does not clip (OpticStudio and optiland clip only at CLAP / SQAP / FLAP);
-    # under ENPD the stop floats, so its fixed DIAM 2.5 sets nothing either
-    assert s[0].stop and s[0].semi_diameter is None and s[0].radius is None
+    # the stop keeps its fixed DIAM (2.5), but floats under ENPD
+    assert s[0].stop and s[0].semi_diameter == 2.5 and s[0].radius is None
     assert lens.surface_extents[:2] == [2.5, 3.0]  # kept for the crossing check only
     assert s[1].radius == pytest.approx(20.0) and s[1].conic == -0.5 and s[1].aspheric == [1e-4, -2e-6]
     assert s[1].material == "1.5/60.0" and s[1].semi_diameter is None  # automatic DIAM is ignored

@@ -413,3 +413,86 @@ def test_oddasphe_even_terms_equal_evenasph(tmp_path):
     for f in (0.0, 4.0):
         assert rw.spot_rms(odd, f, 0.5876, grid=101) == pytest.approx(rw.spot_rms(even, f, 0.5876, grid=101),
                                                                        rel=1e-9)
+
+
+# ------------------------------------------------------------------ issue 28: lens files that real users have
+CROSSING = [
+    # file, the crossing the warning names (surfaces as the file numbers them, height mm, gap mm)
+    ("../synthetic/ef35mm_f2.0_stop_diam.zmx", r"surfaces SURF 8 and SURF 9 cross at height 10.44 mm \(gap -0.4037 mm\)"),
+    ("DeepLens/cellphone__cellphone68deg.json", r"surfaces 5 and 6 cross at height 2.095 mm \(gap -0.007309 mm\)"),
+    ("DeepLens/camera__rf16mm_f2.8.json", r"surfaces 1 and 2 cross at height 8.425 mm \(gap -0.0005553 mm\)"),
+    ("DeepLens/camera__yongnuo_50mm_f1.8.json", r"surfaces 3 and 4 cross at height 12.2 mm \(gap -0.0005464 mm\)"),
+    ("cots-objective-design/COTS-0002-12-1.zmx", r"surfaces SURF 1 and SURF 2 cross at height 0 mm \(gap -1.091e-08 mm\)"),
+]
+
+
+@pytest.mark.parametrize("name, match", CROSSING, ids=[c[0] for c in CROSSING])
+def test_crossing_surfaces_load_with_a_warning_strict_refuses(name, match):
+    """Files whose surfaces cross (DeepLens exports and lenses: 0.40 mm to 0.5 um at the rim; an optimiser's
+    -1.09e-8 mm thickness between two flats) load, as in the programs that wrote them, with a GeometryWarning
+    naming the two surfaces, the height and the gap; strict=True refuses them with a GeometryError naming
+    the same. Their traces against optiland: test_third_party_file_loads_and_matches_optiland."""
+    p = DATA / "files" / name
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", materials.GlassSubstitutionWarning)
+        with pytest.warns(GeometryWarning, match=match):
+            rw.load_lens(p)
+        with pytest.raises(GeometryError, match=match.replace(r" \(gap", r" \(gap")) as e:
+            rw.load_lens(p, strict=True)
+    assert e.value.keyword in ("thickness", "DISZ") and "strict=True" in str(e.value)
+
+
+def test_deeplens_ef35mm_export_refused_naming_its_floa_stop():
+    """DeepLens's ef35mm_f2.0.zmx asks for FLOA (float by stop size) but its stop, SURF 6, has no DIAM: no
+    pupil can be derived (optiland 0.6.3 refuses it too). The refusal names SURF 6 and DIAM; the crossing of
+    SURF 8 / SURF 9 before it is only a warning."""
+    with pytest.warns(GeometryWarning, match="SURF 8 and SURF 9"):
+        with pytest.raises(LensError, match="FLOA") as e:
+            rw.load_lens(DATA / "files" / "DeepLens" / "camera__ef35mm_f2.0.zmx")
+    assert e.value.surface == "SURF 6" and e.value.keyword == "DIAM" and "surface SURF 6" in str(e.value)
+
+
+def test_zmx_diam_does_not_clip_as_in_opticstudio_and_optiland():
+    """A .zmx DIAM (fixed or automatic) is a drawn size, not an aperture: OpticStudio and optiland clip only at
+    CLAP / SQAP / FLAP. The DeepLens ef35mm export (every surface a fixed DIAM) then traces like optiland: its
+    30.9 deg RMS spot 140.86 um with all 7841 rays (optiland: the same rays, 140.86 um; measured 6e-15
+    relative, bound 1e-6), where clipping at the DIAMs, as rwwarp did before, loses 15 of them."""
+    from rwwarp.trace import Tracer
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        lens = rw.load_lens(DATA / "synthetic" / "ef35mm_f2.0_stop_diam.zmx")
+        assert all(s.semi_diameter is None for s in lens.surfaces if not s.stop)
+        clipped = lens
+        for i, h in enumerate(lens.surface_extents):
+            if h and not lens.surfaces[i].stop:
+                clipped = clipped.with_surface(i, semi_diameter=h)
+    ref = next(e["reference"] for e in MANIFEST["files"] if e["file"].endswith("ef35mm_f2.0_stop_diam.zmx"))
+    g = np.linspace(-1.0, 1.0, 101)
+    U, V = np.meshgrid(g, g)
+    inside = U ** 2 + V ** 2 <= 1.0
+    f = ref["fields"][2]
+    spots = []
+    for L in (lens, clipped):
+        rays = Tracer(L, [ref["wavelength_um"]]).trace([tuple(f)], pupil=(U[inside], V[inside], 1.0)).numpy()
+        ok = rays["valid"][0]
+        xy = rays["pos"][0, ok, :2]
+        spots.append((int(ok.sum()), 1e3 * np.sqrt(np.mean(np.sum((xy - xy.mean(0)) ** 2, axis=1)))))
+    assert spots[0][0] == ref["n_rays"][2] and spots[0][1] == pytest.approx(ref["rms_um"][2], rel=1e-6)
+    assert spots[1][0] == 7826  # clipped at the DIAMs: 15 of the 7841 rays lost (optiland keeps them all)
+
+
+def test_efl_in_air_and_in_image_space():
+    """The COTS objective images into a medium of n' = 1.3275 (0.92 um): efl() is 1 / phi (OpticStudio's EFL
+    "in air"), efl_image_space() n' / phi ("in image space"; optiland's f2, 11.101116 mm: agreement 4e-16,
+    bound 1e-9 as for every manifest file); in air the two are one number."""
+    ref = next(e["reference"] for e in MANIFEST["files"] if e["file"].startswith("cots-objective-design/"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lens = _with_reference_indices(rw.load_lens(DATA / "files" / "cots-objective-design" / "COTS-0002-12-1.zmx"),
+                                       ref)
+    wl, n_img = ref["wavelength_um"], ref["index_after_surf"][-1]
+    assert n_img == pytest.approx(1.3275, abs=1e-4)
+    assert lens.efl_image_space(wl) == pytest.approx(ref["efl_mm"], rel=1e-9)
+    assert lens.efl(wl) == pytest.approx(ref["efl_mm"] / n_img, rel=1e-9)
+    air = rw.load_lens("cooke_triplet")
+    assert air.efl_image_space(0.5876) == air.efl(0.5876)
