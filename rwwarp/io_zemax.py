@@ -26,10 +26,15 @@ plane and the thickness of the surface before it is the distance to the sensor; 
 becomes rwwarp surface k-1 (a BINARY_2 surface between two different media becomes two rwwarp
 surfaces: a flat refracting ``standard`` surface and the DOE, at the same z).
 
-Semi-diameters: Zemax does not clip rays at a semi-diameter, only at surface apertures. rwwarp
-clips at ``semi_diameter``, so it is taken from ``CLAP``/``SQAP``/``FLAP`` apertures and from
-*fixed* ``DIAM`` values (solve flag 1); automatic ``DIAM`` values (flag 0, computed by OpticStudio
-from the rays) are ignored (no clipping). Under ``FLOA`` the stop's ``DIAM`` sets the entrance pupil
+Semi-diameters: OpticStudio (and optiland) do not clip rays at a ``DIAM`` semi-diameter, fixed (solve
+flag 1) or automatic (flag 0), only at surface apertures. rwwarp clips at ``semi_diameter``, so it is
+taken from ``CLAP``/``SQAP``/``FLAP`` apertures only; every ``DIAM`` is kept as
+``Lens.surface_extents`` (the heights the crossing check looks at; nothing clips there). The stop keeps
+a fixed ``DIAM`` as its ``semi_diameter`` (it floats under a system aperture, so that clips nothing
+either). Surfaces that cross inside their ``DIAM`` heights raise a :class:`~rwwarp.errors.GeometryError`
+with ``strict=True``, else (what :func:`rwwarp.load_lens` does by default) a
+:class:`~rwwarp.errors.GeometryWarning` naming ``SURF j`` and ``SURF k``, the height and the gap, and the
+lens is traced sequentially as OpticStudio traces it. Under ``FLOA`` the stop's ``DIAM`` sets the entrance pupil
 (its paraxial image at the primary wavelength, stored as ``entrance_pupil_diameter``) and, as under
 ``ENPD`` and ``FNUM``, the stop floats: real rays are not clipped at its size. An explicit aperture
 (``CLAP``/``SQAP``/``FLAP``) on the stop still clips: the stop becomes a floating aperture plane at
