@@ -344,8 +344,9 @@ class Lens:
             i, h, g = gaps[0]
             if not self.allow_crossing:
                 raise GeometryError(
-                    f"{where(i, h, g)}; check the thickness {self.surfaces[i].thickness} mm (a lens file loads "
-                    "with a warning unless strict=True)", file=self.source, surface=i, keyword="thickness")
+                    f"{where(i, h, g)}; check the thickness {self.surfaces[i].thickness} mm (load_lens loads such "
+                    "a file with a warning unless strict=True; Lens(..., allow_crossing=True) does the same)",
+                    file=self.source, surface=i, keyword="thickness")
             import warnings
             from .errors import GeometryWarning
             warnings.warn(f"{self.source or 'lens'}: " + "; ".join(where(*x) for x in gaps) + ": traced "
