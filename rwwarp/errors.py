@@ -39,6 +39,14 @@ class ArgumentError(LensError):
     argument, the value and the accepted range (see :mod:`rwwarp.checks`). A ``ValueError``."""
 
 
+class GeometryWarning(UserWarning):
+    """A lens file was loaded although its surfaces cross (or a thickness is negative) inside the heights
+    the file gives them: OpticStudio, optiland and DeepLens load such files and trace them sequentially
+    (each ray meets the surfaces in order, travelling back where two surfaces cross), and rwwarp does
+    the same. The message names the two surfaces, the height and the gap. ``rwwarp.load_lens(path,
+    strict=True)`` refuses such a file with a :class:`GeometryError` instead."""
+
+
 class SamplingWarning(UserWarning):
     """A requested simulation setting violates a sampling criterion (aliasing is likely)."""
 

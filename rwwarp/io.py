@@ -29,8 +29,13 @@ _lens.register_writer("zmx", write_zmx)
 _lens.register_writer("deeplens", write_deeplens)
 
 
-def load_lens(path) -> Lens:
+def load_lens(path, strict: bool = False) -> Lens:
     """Load a lens from a native JSON, DeepLens JSON, or Zemax ``.zmx`` file.
+
+    Surfaces that cross inside the heights the file gives them (or a negative gap, such as an
+    optimiser's -1e-8 mm between two flats) load with a :class:`~rwwarp.errors.GeometryWarning` naming
+    the two surfaces, the height and the gap, and are traced sequentially, as OpticStudio, optiland and
+    DeepLens trace them; ``strict=True`` refuses them with a :class:`GeometryError`.
 
     Bundled lenses can be named without a path (e.g. ``"a489_doe"``, ``"cooke_triplet"``).
     Raises :class:`LensError` (subclasses :class:`LensFileError`, :class:`GlassError`,
@@ -55,16 +60,16 @@ def load_lens(path) -> Lens:
             raise LensFileError("no such file (and no bundled lens of that name)", file=vi._short(str(path)))
     try:
         if p.suffix.lower() == ".zmx":
-            lens = read_zmx(p)
+            lens = read_zmx(p, strict=strict)
         else:
             d = vi.parse_json(vi.read_lens_bytes(p), p)
             if isinstance(d, dict) and isinstance(d.get("surfaces"), list) and len(d["surfaces"]) > vi.MAX_SURFACES:
                 raise LensFileError(f"{len(d['surfaces'])} surfaces; at most {vi.MAX_SURFACES} are supported",
                                     file=str(p), keyword="surfaces")
             if isinstance(d, dict) and d.get("format") == FORMAT:
-                lens = Lens.from_dict(d, source=str(p))
+                lens = Lens.from_dict(d, source=str(p), strict=strict)
             else:
-                lens = lens_from_deeplens(d, source=str(p))
+                lens = lens_from_deeplens(d, source=str(p), strict=strict)
         vi.check_loaded(lens)
     except LensError:
         raise

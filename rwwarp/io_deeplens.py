@@ -65,13 +65,14 @@ def _derived(key: str) -> bool:
     return key.startswith("(") and key.endswith(")")
 
 
-def lens_from_deeplens(d: dict, source=None):
+def lens_from_deeplens(d: dict, source=None, strict: bool = True):
     """Build a :class:`~rwwarp.lens.Lens` from a parsed DeepLens GeoLens/HybridLens JSON dictionary.
 
     ``source`` is the file it came from (for messages, and to resolve a pixel map's relative path).
     Raises :class:`~rwwarp.errors.LensFileError` for unknown surface types and bad or missing keys,
     :class:`~rwwarp.errors.GlassError` for unknown materials, :class:`~rwwarp.errors.GeometryError`
-    for crossing surfaces; nothing is half-built.
+    for crossing surfaces (with ``strict=False``, what :func:`rwwarp.load_lens` passes by default, a
+    :class:`~rwwarp.errors.GeometryWarning` instead); nothing is half-built.
     """
     from . import materials
     from .lens import Lens, Sensor, Surface
@@ -156,7 +157,7 @@ def lens_from_deeplens(d: dict, source=None):
                                   or [float(a) for a in v] != neutral):
                 raise err(f"decentred or tilted surfaces are not supported ({key} = {v!r:.80})", i, key)
         semi = num(sd, "r", i, positive=True) if sd.get("r") is not None else None
-        shape = "square" if sd.get("is_square") else "circle"
+        shape = "square" if sd.get("is_square") and semi is not None else "circle"  # no r: no aperture, no shape
         if typ in ("Aperture", "Stop"):
             s = Surface(type="aperture", semi_diameter=semi, shape=shape, stop=not stop_done)
             stop_done = True
@@ -251,7 +252,8 @@ def lens_from_deeplens(d: dict, source=None):
         lens = Lens(surfaces=surfaces, sensor=Sensor(pixel_pitch=pitch, resolution=tuple(res)),
                     object_distance=math.inf, wavelengths_um=list(DEFAULT_WAVELENGTHS_UM),
                     name=str(d.get("info", "") or ""),
-                    entrance_pupil_diameter=None if epd is None else float(epd), source=src)
+                    entrance_pupil_diameter=None if epd is None else float(epd), source=src,
+                    surface_labels=list(labels), allow_crossing=not strict)
     except LensError as e:
         from .io_zemax import _core
         surf = e.surface if not isinstance(e.surface, int) else labels[e.surface]

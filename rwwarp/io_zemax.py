@@ -26,10 +26,15 @@ plane and the thickness of the surface before it is the distance to the sensor; 
 becomes rwwarp surface k-1 (a BINARY_2 surface between two different media becomes two rwwarp
 surfaces: a flat refracting ``standard`` surface and the DOE, at the same z).
 
-Semi-diameters: Zemax does not clip rays at a semi-diameter, only at surface apertures. rwwarp
-clips at ``semi_diameter``, so it is taken from ``CLAP``/``SQAP``/``FLAP`` apertures and from
-*fixed* ``DIAM`` values (solve flag 1); automatic ``DIAM`` values (flag 0, computed by OpticStudio
-from the rays) are ignored (no clipping). Under ``FLOA`` the stop's ``DIAM`` sets the entrance pupil
+Semi-diameters: OpticStudio (and optiland) do not clip rays at a ``DIAM`` semi-diameter, fixed (solve
+flag 1) or automatic (flag 0), only at surface apertures. rwwarp clips at ``semi_diameter``, so it is
+taken from ``CLAP``/``SQAP``/``FLAP`` apertures only; every ``DIAM`` is kept as
+``Lens.surface_extents`` (the heights the crossing check looks at; nothing clips there). The stop keeps
+a fixed ``DIAM`` as its ``semi_diameter`` (it floats under a system aperture, so that clips nothing
+either). Surfaces that cross inside their ``DIAM`` heights raise a :class:`~rwwarp.errors.GeometryError`
+with ``strict=True``, else (what :func:`rwwarp.load_lens` does by default) a
+:class:`~rwwarp.errors.GeometryWarning` naming ``SURF j`` and ``SURF k``, the height and the gap, and the
+lens is traced sequentially as OpticStudio traces it. Under ``FLOA`` the stop's ``DIAM`` sets the entrance pupil
 (its paraxial image at the primary wavelength, stored as ``entrance_pupil_diameter``) and, as under
 ``ENPD`` and ``FNUM``, the stop floats: real rays are not clipped at its size. An explicit aperture
 (``CLAP``/``SQAP``/``FLAP``) on the stop still clips: the stop becomes a floating aperture plane at
@@ -139,8 +144,23 @@ class _Reader:
             else:
                 self.header.append((key, rest, ln))
         if len(self.blocks) < 3:
+            # a file cut short after a malformed value: name the value first (it is the likelier cause)
+            self.check_numbers()
             raise self.err(f"a sequential .zmx needs an object, at least one lens surface and an image "
                            f"surface; found {len(self.blocks)} SURF block(s)")
+
+    # keyword -> token positions that must be numbers (INFINITY allowed for DISZ), checked on a file
+    # that ends too early, so that a malformed value is named with its line rather than the missing surfaces
+    _NUMERIC = {"CURV": (0,), "DISZ": (0,), "CONI": (0,), "DIAM": (0,), "PARM": (0, 1), "XDAT": (0, 1),
+                "ENPD": (0,), "FNUM": (0,), "WAVM": (0, 1), "PWAV": (0,)}
+
+    def check_numbers(self):
+        entries = [(None, k, t, ln) for k, t, ln in self.header] + \
+            [(b.number, k, t, ln) for b in self.blocks for k, t, ln in b.entries]
+        for surf, key, toks, ln in sorted(entries, key=lambda e: e[3]):
+            for i in self._NUMERIC.get(key, ()):
+                if i < len(toks) and not (key == "DISZ" and toks[i].upper() in ("INFINITY", "INF")):
+                    self.num(toks, i, key if i == 0 else f"{key} {toks[0]}", surf=surf, key=key, line=ln)
 
     def hget(self, key):
         for k, toks, ln in self.header:
@@ -167,8 +187,12 @@ class _Reader:
         return v
 
 
-def read_zmx(path):
+def read_zmx(path, strict: bool = True):
     """Read a Zemax sequential ``.zmx`` file into a :class:`~rwwarp.lens.Lens` (lengths in mm).
+
+    Surfaces that cross inside their ``DIAM`` heights raise a :class:`~rwwarp.errors.GeometryError`;
+    with ``strict=False`` (what :func:`rwwarp.load_lens` passes by default) they load with a
+    :class:`~rwwarp.errors.GeometryWarning` and are traced sequentially, as OpticStudio traces them.
 
     See the module docstring for what is supported and how it maps. Raises
     :class:`~rwwarp.errors.LensFileError`, :class:`~rwwarp.errors.GlassError` or
@@ -322,6 +346,7 @@ def read_zmx(path):
 
     from . import materials
     surfaces, zsurf = [], []  # rwwarp surfaces and their Zemax numbers
+    extents = []  # per rwwarp surface: the DIAM height (for the crossing check only; DIAM does not clip)
     medium = "air"
     for b in blocks[1:-1]:
         k = b.number
@@ -391,13 +416,17 @@ def read_zmx(path):
         sd, shape = None, "circle"
         diam = b.get("DIAM")
         is_stop = b.has("STOP")
+        d_val = None
         if diam:
             d_val = rd.num(diam[0], 0, "semi-diameter", surf=k, key="DIAM", line=diam[1]) * scale
-            fixed = len(diam[0]) > 1 and diam[0][1] == "1"
             if is_stop and floa:
                 floa_sd = d_val  # float by stop size: the stop's size sets the pupil (it does not clip)
-            if d_val > 0 and (fixed or (is_stop and floa)):
-                sd = d_val  # (on a stop under ENPD/FNUM/FLOA: recorded, but the stop floats)
+            # DIAM (fixed or automatic) does not clip in OpticStudio or optiland: only the stop keeps a fixed
+            # one (or, under FLOA, any), recorded as its semi_diameter; the stop floats under ENPD / FNUM / FLOA
+            # / OBNA, so that clips nothing either
+            fixed = len(diam[0]) > 1 and diam[0][1] == "1"
+            if d_val > 0 and is_stop and (fixed or floa or not pupil_set):
+                sd = d_val
         for bad in ("ELOB", "ELAP", "UDAP", "OBDC"):
             if b.has(bad):
                 raise rd.err(f"unsupported surface aperture {bad} (only CLAP, SQAP, FLAP, OBSC and SQOB)",
@@ -459,6 +488,7 @@ def read_zmx(path):
             # the surface itself with its hard aperture (issue 11 defect 7)
             surfaces.append(Surface(type="aperture", thickness=0.0, semi_diameter=None, stop=True))
             zsurf.append(k)
+            extents.append(d_val)
             stop = False
 
         if typ in ("STANDARD", "EVENASPH", "ODDASPHE"):
@@ -484,6 +514,7 @@ def read_zmx(path):
                                     obscuration=obscuration, mirror=mirror, odd_aspheric=odd,
                                     stop=stop))
             zsurf.append(k)
+            extents.append(d_val)
         elif typ == "PARAXIAL":
             if curv != 0:
                 raise rd.err("a PARAXIAL surface must be flat (CURV 0)", surf=k, key="CURV")
@@ -495,6 +526,7 @@ def read_zmx(path):
             surfaces.append(Surface(type="thin_lens", thickness=thick, focal_length=f, material=material,
                                     semi_diameter=sd, shape=shape, stop=stop, obscuration=obscuration))
             zsurf.append(k)
+            extents.append(d_val)
         else:  # BINARY_2
             if curv != 0:
                 raise rd.err("only flat BINARY_2 surfaces are supported (the rwwarp DOE is a plane)", surf=k,
@@ -524,10 +556,12 @@ def read_zmx(path):
                 surfaces.append(Surface(type="standard", thickness=0.0, radius=None, material=material,
                                         semi_diameter=sd, shape=shape))
                 zsurf.append(k)
+                extents.append(d_val)
             surfaces.append(Surface(type="doe", thickness=thick, semi_diameter=sd, shape=shape,
                                     design_wavelength_um=primary_um, material="fused_silica", profile=profile,
                                     stop=stop, obscuration=obscuration))
             zsurf.append(k)
+            extents.append(d_val)
         medium = material
 
     # ------------------------------------------------ build (validation errors map back to SURF k)
@@ -535,11 +569,11 @@ def read_zmx(path):
         lens = Lens(surfaces=surfaces, sensor=Sensor(), object_distance=object_distance,
                     wavelengths_um=wavelengths, name=name, entrance_pupil_diameter=epd,
                     fields_deg=fields_deg, source=str(path), surface_labels=[f"SURF {k}" for k in zsurf],
-                    primary_wavelength_um=primary_um)
+                    primary_wavelength_um=primary_um, surface_extents=extents, allow_crossing=not strict)
         if fnum is not None:
             from .paraxial import efl
             lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum
-            lens.validate()
+            _revalidate(lens)
         elif obna is not None:
             # object-space NA: the marginal ray from the axial object point to the paraxial entrance pupil's
             # edge makes the angle asin(NA) (object space in air), as Zemax and optiland size it
@@ -547,7 +581,7 @@ def read_zmx(path):
                 raise rd.err("OBNA needs a finite object distance (SURF 0 DISZ)", key="OBNA")
             lens.entrance_pupil_diameter = 2.0 * abs(object_distance + _ep_z(lens, primary_um)) * \
                 math.tan(math.asin(obna))
-            lens.validate()
+            _revalidate(lens)
         elif floa:
             # float by stop size: the entrance pupil is the paraxial image of the stop at its DIAM size
             # (primary wavelength); the stop then floats like under ENPD: real rays are not clipped there
@@ -561,7 +595,7 @@ def read_zmx(path):
             if m == 0:
                 raise rd.err("FLOA: the stop is at a focus (no entrance pupil)", surf=stop_k, key="FLOA")
             lens.entrance_pupil_diameter = 2.0 * floa_sd / m
-            lens.validate()
+            _revalidate(lens)
         if field_heights is not None:
             # FTYP 1 (object heights): each field as the angle of its chief ray to the paraxial entrance
             # pupil centre, atan(h / (object distance + EP z)) (a rotationally symmetric lens images +-h alike)
@@ -572,11 +606,24 @@ def read_zmx(path):
             ang = [tuple(math.degrees(math.atan(v / dist)) for v in h) for h in field_heights]
             lens.fields_deg = [a[1] if a[0] == 0 else [a[0], a[1]] for a in ang]
     except LensError as e:
-        surf = None if e.surface is None or not isinstance(e.surface, int) else zsurf[e.surface]
+        if isinstance(e.surface, str):  # already a Zemax "SURF k" (raised by this reader)
+            surf = e.surface
+        elif isinstance(e.surface, int) and 0 <= e.surface < len(zsurf):
+            surf = f"SURF {zsurf[e.surface]}"
+        else:
+            surf = None
         key = _KEYWORD_MAP.get(e.keyword, e.keyword)
-        raise type(e)(_core(e), file=str(path), surface=None if surf is None else f"SURF {surf}",
-                      keyword=key) from None
+        raise type(e)(_core(e), file=str(path), surface=surf, keyword=key) from None
     return lens
+
+
+def _revalidate(lens) -> None:
+    """Validate again after the pupil is set (its crossing warning was already given once)."""
+    import warnings
+    from .errors import GeometryWarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        lens.validate()
 
 
 def _ep_z(lens, wavelength_um) -> float:

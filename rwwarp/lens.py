@@ -149,6 +149,13 @@ class Lens:
     source: str | None = None  # file it came from (for messages); not serialised
     #: how the source file numbers each surface (``"SURF 3"`` in a Zemax file), for messages; not serialised
     surface_labels: list | None = field(default=None, compare=False, repr=False)
+    #: per surface, the height (mm) up to which the source file draws it where it does not clip there (a
+    #: Zemax ``DIAM``): only the crossing check looks at it (``semi_diameter`` clips); not serialised
+    surface_extents: list | None = field(default=None, compare=False, repr=False)
+    #: surfaces that cross (or a negative gap) are a :class:`~rwwarp.errors.GeometryWarning` instead of a
+    #: :class:`~rwwarp.errors.GeometryError`: lens files load so unless ``strict=True`` (see
+    #: :func:`rwwarp.load_lens`); the tracer traces them sequentially, as OpticStudio and optiland do
+    allow_crossing: bool = field(default=False, compare=False, repr=False)
 
     def __post_init__(self):
         self.validate()
@@ -299,24 +306,54 @@ class Lens:
             raise LensError("at most one DOE surface is supported", file=f)
         self._check_crossing()
 
-    def _check_crossing(self):
+    def crossings(self) -> list:
+        """Where consecutive surfaces cross: ``[(i, height_mm, gap_mm), ...]``, one entry (the most negative
+        gap) per pair ``(i, i + 1)`` whose sag difference along the travel direction is below -1e-9 mm at
+        some height up to the smaller of their extents (``semi_diameter``, else ``surface_extents``, else
+        the vertex only). A floating stop plane without an aperture is a reference plane and never crosses."""
         z = self.vertex_z
         sense = self.directions()  # the gap after surface i is crossed in the sense sense[i] along z
+        ext = self.surface_extents
+        out = []
         for i in range(len(self.surfaces) - 1):
             a, b = self.surfaces[i], self.surfaces[i + 1]
             if any(s.type == "aperture" and s.semi_diameter is None for s in (a, b)):
                 continue  # a floating stop plane (no aperture) is a reference plane, not a physical surface
-            sds = [s for s in (a.semi_diameter, b.semi_diameter) if s is not None]
+            sds = []
+            for j, s in ((i, a), (i + 1, b)):
+                h = s.semi_diameter
+                if h is None and ext is not None and j < len(ext) and ext[j] is not None and ext[j] > 0:
+                    h = float(ext[j])
+                if h is not None:
+                    sds.append(h)
             h = min(sds) if sds else 0.0
             r = np.linspace(0.0, h, 33)
             za, zb = z[i] + a.sag(r), z[i + 1] + b.sag(r)
             ok = np.isfinite(za) & np.isfinite(zb)
             if np.any(sense[i] * (zb[ok] - za[ok]) < -1e-9):
                 j = int(np.argmax(sense[i] * (za[ok] - zb[ok])))
+                out.append((i, float(r[ok][j]), float(zb[ok][j] - za[ok][j])))
+        return out
+
+    def _check_crossing(self):
+        gaps = self.crossings()
+        if gaps:
+            def where(i, h, g):
+                return (f"surfaces {self.surface_label(i)} and {self.surface_label(i + 1)} cross at height {h:.4g} mm "
+                        f"(gap {g:.4g} mm)")
+            i, h, g = gaps[0]
+            if not self.allow_crossing:
                 raise GeometryError(
-                    f"surfaces {i} and {i + 1} cross at height {r[ok][j]:.4g} mm "
-                    f"(gap {zb[ok][j] - za[ok][j]:.4g} mm); check the thickness {a.thickness} mm",
+                    f"{where(i, h, g)}; check the thickness {self.surfaces[i].thickness} mm (load_lens loads such "
+                    "a file with a warning unless strict=True; Lens(..., allow_crossing=True) does the same)",
                     file=self.source, surface=i, keyword="thickness")
+            import warnings
+            from .errors import GeometryWarning
+            warnings.warn(f"{self.source or 'lens'}: " + "; ".join(where(*x) for x in gaps) + ": traced "
+                          "sequentially (each ray meets the surfaces in order, travelling back where they cross), as "
+                          "OpticStudio, optiland and DeepLens trace it; load with strict=True to refuse",
+                          GeometryWarning, stacklevel=3)
+        sense = self.directions()
         if sense[-1] * self.surfaces[-1].thickness <= 0:
             raise GeometryError(f"the sensor must lie behind the last surface (thickness "
                                 f"{self.surfaces[-1].thickness} mm)", file=self.source,
@@ -324,9 +361,16 @@ class Lens:
 
     # ------------------------------------------------------------------ paraxial (see analysis.py)
     def efl(self, wavelength_um: float = 0.5876) -> float:
-        """Paraxial effective focal length, mm, at ``wavelength_um`` (um)."""
+        """Paraxial effective focal length in air, ``1 / phi`` (mm), at ``wavelength_um`` (um); see
+        :meth:`efl_image_space` for ``n' / phi`` where the image space is not air."""
         from .paraxial import efl
         return efl(self, wavelength_um)
+
+    def efl_image_space(self, wavelength_um: float = 0.5876) -> float:
+        """Paraxial effective focal length in image space, ``n' / phi`` (mm; n' the image-space index):
+        the rear principal plane to focus distance; equal to :meth:`efl` when the image space is air."""
+        from .paraxial import efl_image_space
+        return efl_image_space(self, wavelength_um)
 
     def bfl(self, wavelength_um: float = 0.5876) -> float:
         """Paraxial back focal length from the last surface, mm, at ``wavelength_um`` (um)."""
@@ -367,8 +411,10 @@ class Lens:
         return out
 
     @classmethod
-    def from_dict(cls, d: dict, source: str | None = None) -> "Lens":
-        """Build from a native ``rwwarp-lens/1`` dictionary; raises :class:`LensFileError`."""
+    def from_dict(cls, d: dict, source: str | None = None, strict: bool = True) -> "Lens":
+        """Build from a native ``rwwarp-lens/1`` dictionary; raises :class:`LensFileError`. ``strict=False``
+        (what :func:`rwwarp.load_lens` passes unless told ``strict=True``) loads crossing surfaces with a
+        :class:`~rwwarp.errors.GeometryWarning` instead of a :class:`GeometryError`."""
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise LensFileError(f"not a {FORMAT} file (format = {d.get('format') if isinstance(d, dict) else d!r})",
                                 file=source)
@@ -403,7 +449,8 @@ class Lens:
                    _num(epd, source, None, "entrance_pupil_diameter"),
                    fields_deg=copy.deepcopy(d.get("fields_deg")), source=source,
                    primary_wavelength_um=None if d.get("primary_wavelength_um") is None else
-                   _num(d["primary_wavelength_um"], source, None, "primary_wavelength_um"))
+                   _num(d["primary_wavelength_um"], source, None, "primary_wavelength_um"),
+                   allow_crossing=not strict)
 
     def save(self, path, format: str | None = None) -> None:
         """Write the lens to ``path``: native JSON, a Zemax sequential ``.zmx``

@@ -550,6 +550,13 @@ def _index() -> dict:
         if m.catalog and ":" not in key:
             index[f"{m.catalog}:{key}".lower()] = m
     index.update({alias.lower(): shipped[key] for alias, key in aliases.items()})
+    # an extra entry stored as "CATALOG:NAME" because its name clashes with a shipped glass is the maker's
+    # other data set (e.g. CDGM's Zemax-catalogue D-ZK3, valid 0.302-2.325 um, beside its spreadsheet's
+    # 0.365-1.014 um): the shipped entry keeps "CATALOG:NAME", this one is "CATALOG-AGF:NAME"
+    for key, m in extra.items():
+        if ":" in key:
+            cat, plain = key.split(":", 1)
+            index[f"{cat}-agf:{plain}".lower()] = m
     for layer in [shipped] + list(_REGISTERED):
         for key, m in layer.items():
             if m.catalog:
@@ -629,12 +636,28 @@ def _plausible(nd, vd) -> bool:
         and 0.0 < vd < 200.0 and (nd, vd) != (1.5, 40.0)
 
 
+def _moulding_base(name: str):
+    """The base glass name of a maker's moulding-grade variant, or None: OHARA ``<base>_MOLD``
+    ("L-TIM28_MOLD"), CDGM ``D-<base>M`` ("D-ZK3M": CDGM's D- glasses are its low-Tg moulding glasses, the
+    trailing M the moulded grade), optionally catalogue-qualified."""
+    n = name.strip()
+    base = re.sub(r"_MOLD$", "", n, flags=re.IGNORECASE)
+    if base != n:
+        return base
+    plain = n.split(":", 1)[-1]
+    if re.match(r"^D-[A-Z0-9]+[0-9A-Z]M$", plain, flags=re.IGNORECASE) and len(plain) > 4:
+        return n[:-1]
+    return None
+
+
 def resolve_glass(name: str, nd=None, vd=None, lines_um=None):
     """The material a lens file's glass name stands for: ``(material name, note)``.
 
     ``note`` is None when ``name`` is in the tables. Otherwise a substitute is chosen and ``note`` says
     which (the caller warns with :class:`GlassSubstitutionWarning`, naming the surface):
 
+    * a maker's moulding-grade variant (OHARA ``..._MOLD``, CDGM ``D-...M``) whose base glass is in the
+      tables: the base glass, whatever nd / vd the file lists;
     * a legacy SCHOTT name whose lead-free successor ``N-<name>`` is in the SCHOTT catalogue
       ("BK7", "SK16", "LAK9"), when the file's nd / vd (if any) agree with it (1e-3 / 0.5);
     * else, where the file lists a plausible nd and vd (not Zemax's 0 placeholders), a model glass
@@ -650,16 +673,26 @@ def resolve_glass(name: str, nd=None, vd=None, lines_um=None):
         err = e
     nd = None if nd is None else float(nd)
     vd = None if vd is None else float(vd)
-    base = re.sub(r"_MOLD$", "", name.strip(), flags=re.IGNORECASE)
-    if base != name.strip():
-        # a maker's moulding-grade variant (OHARA "L-TIM28_MOLD"): the base glass's data (the moulded index
-        # differs by the annealing shift, ~1e-3)
+    base = _moulding_base(name)
+    if base is not None:
+        # a maker's moulding-grade variant (OHARA "L-TIM28_MOLD", CDGM "D-ZK3M"): the base glass's data (the
+        # moulded index differs by the annealing shift, ~1e-3), before the file's nd / vd, which for these
+        # names are often stale (Thorlabs' D-ZK3M: nd 1.601, vd 50.3 against D-ZK3's 1.589, 61.2)
         try:
             m = get_material(base)
-            return m.name, (f"glass {name.strip()!r} is not in the tables: the base glass {m.name!r} stands in "
-                            "(moulded glasses differ by their annealing shift)")
         except GlassError:
-            pass
+            m = None
+        if m is not None:
+            use = m.name
+            # the maker's other data set for the same glass where it covers more wavelengths (CDGM's Zemax
+            # catalogue D-ZK3 reaches 2.325 um, its spreadsheet's 1.014 um; they agree to 2e-5 in between)
+            other = _extra()[0].get(f"{m.catalog}:{_plain_name(m)}") if m.catalog else None
+            if other is not None and m.wavelength_range_um is not None and other.wavelength_range_um is not None \
+                    and other.wavelength_range_um[1] - other.wavelength_range_um[0] > \
+                    m.wavelength_range_um[1] - m.wavelength_range_um[0]:
+                use = f"{m.catalog}-AGF:{_plain_name(m)}"
+            return use, (f"glass {name.strip()!r} is not in the tables: the base glass {use!r} stands in "
+                         "(a moulding variant; moulded glasses differ by their annealing shift)")
     succ = _successor(name)
     if succ is not None and (not _plausible(nd, vd) or (abs(succ.nd - nd) < 1e-3 and abs(succ.vd - vd) < 0.5)):
         return succ.name, (f"glass {name.strip()!r} is not in the tables: SCHOTT's lead-free successor "

@@ -96,12 +96,24 @@ def _finite(v, what, lens) -> float:
 
 
 def efl(lens, wavelength_um: float = 0.5876) -> float:
-    """Effective focal length, mm (image space in air), at ``wavelength_um`` (um)."""
+    """Effective focal length in air, ``1 / phi`` (mm), at ``wavelength_um`` (um): the inverse of the
+    system power, whatever the image-space medium (OpticStudio's "Effective Focal Length (in air)"). Where
+    the image space is not air, :func:`efl_image_space` gives ``n' / phi``, the distance from the rear
+    principal plane to the focus (optiland's ``f2``, OpticStudio's "(in image space)"); in air they are equal."""
     wavelength_um = _checked(lens, wavelength_um)
     _, nu = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     if nu[-1] == 0:
         raise GeometryError("afocal system: the effective focal length is infinite", file=lens.source)
     return _finite(-1.0 / nu[-1], "effective focal length", lens)
+
+
+def efl_image_space(lens, wavelength_um: float = 0.5876) -> float:
+    """Effective focal length in image space, ``n' / phi`` (mm), at ``wavelength_um`` (um), n' the refractive
+    index of the image-space medium: the rear principal plane to focus distance. Equals :func:`efl` (``1 /
+    phi``, "in air") when the image space is air; differs by n' otherwise (an immersion or a cover medium)."""
+    f = efl(lens, wavelength_um)
+    n = abs(float(signed_indices(lens, float(wavelength_um))[-1]))
+    return _finite(n * f, "image-space effective focal length", lens)
 
 
 def bfl(lens, wavelength_um: float = 0.5876) -> float:

@@ -328,7 +328,11 @@ def check_doe_steepness(s, i, lens, prof) -> None:
     wavelength anywhere on the aperture (the first order would be evanescent; no plan can sample it)."""
     import numpy as np
 
-    if not prof.is_continuous or s.semi_diameter is None:
+    h = s.semi_diameter
+    ext = getattr(lens, "surface_extents", None)
+    if h is None and ext is not None and i < len(ext) and ext[i] is not None and ext[i] > 0:
+        h = float(ext[i])  # a .zmx DIAM: not an aperture, but the height the file gives the surface
+    if not prof.is_continuous or h is None:
         if not prof.is_continuous:
             data = prof.data if getattr(prof, "_data", None) is not None else None
             if data is not None and data.size > MAX_PIXELS:
@@ -340,7 +344,7 @@ def check_doe_steepness(s, i, lens, prof) -> None:
                             f"({s.design_wavelength_um:g} um): sub-wavelength pixels cannot be simulated by the "
                             "scalar model and no sampling plan can resolve them", lens, i, "profile")
         return
-    h = float(s.semi_diameter)
+    h = float(h)
     with np.errstate(all="ignore"):
         gmax = float(prof.max_gradient(h, s.design_wavelength_um, s.shape))
     lam_mm = float(s.design_wavelength_um) * 1e-3
@@ -371,9 +375,36 @@ def check_paraxial_finite(lens) -> None:
                                     "float64)", file=lens.source, surface=int(bad[0]))
 
 
+def check_object_at_pupil(lens) -> None:
+    """A finite object must not sit on the paraxial entrance pupil: from a point there the pupil subtends
+    180 degrees and no ray can be aimed through it (an object distance of 1e-300 mm in front of a stop at
+    the first vertex). Refused, naming ``object_distance``, when the pupil's half-angle seen from the object
+    exceeds 89.99 degrees (|object to pupil| < 1.75e-4 pupil radii)."""
+    import math
+
+    from . import paraxial
+
+    d = lens.object_distance
+    if not math.isfinite(d):
+        return
+    w = lens.primary_wavelength_um or lens.wavelengths_um[0]
+    try:
+        pp = paraxial.pupils(lens, w)
+    except LensError:
+        return  # no pupil defined: reported where it is needed
+    dist = d + pp.entrance_z
+    if math.isfinite(pp.entrance_radius) and abs(dist) < math.tan(math.radians(0.01)) * pp.entrance_radius:
+        raise GeometryError(f"object_distance = {d:g} mm puts the object {dist:.3g} mm from the entrance pupil "
+                            f"(radius {pp.entrance_radius:.4g} mm, {pp.entrance_z:.4g} mm behind the first "
+                            "vertex): seen from the object the pupil subtends 180 degrees and no ray can be aimed "
+                            "through it; give a larger object distance (or inf)", file=lens.source,
+                            keyword="object_distance")
+
+
 def check_loaded(lens) -> None:
     """Checks that need the built lens as a whole (run by :func:`rwwarp.load_lens`)."""
     check_paraxial_finite(lens)
+    check_object_at_pupil(lens)
 
 
 def check_path_string(path) -> None:

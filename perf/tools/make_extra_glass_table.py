@@ -51,6 +51,17 @@ MISC = {
     "POLYSTYR": [2.44598, 2.21429e-5, 2.72989e-2, 3.01211e-4, 8.88934e-5, -1.75708e-6],
 }
 MISC_ALIASES = {"POLYSTYR": ["PS", "POLYSTYRENE"], "COC": ["TOPAS"]}
+#: the maker's own dispersion formula where the database holds only tabulated points over a narrower range:
+#: name -> (formula, coefficients, range_um, source); replaces the entry the database gives (issue 28)
+MAKER_FORMULAS = {
+    # SCHOTT's Zemax catalogue "schott glasses preferred and special" (June 2025 B.AGF): "NM B270 1 1 1.523080
+    # 58.571369" (formula 1 = Schott power series A0..A5), "CD 2.286575 -8.7334582E-3 1.1742884E-2 2.9041756E-4
+    # -1.2506695E-5 9.2646253E-7"; they give its nd 1.523080 and vd 58.571369 to all printed digits. Range
+    # 0.334-2.5 um: the validity issue 28 gives for the maker's formula (the database's points: 0.436-0.656 um).
+    "B270": ("Schott", [2.286575, -8.7334582e-3, 1.1742884e-2, 2.9041756e-4, -1.2506695e-5, 9.2646253e-7],
+             [0.334, 2.5], "SCHOTT Zemax catalogue (schott glasses preferred and special, June 2025 B.AGF), "
+             "NM B270 formula 1 (Schott), nd 1.523080, vd 58.571369"),
+}
 #: plastics whose published fits are poor (2-term, vd off by 4): the maker's data-sheet nd / vd as a model glass
 MODEL = {"E48R": (1.5310, 56.0, ["ZEONEX", "ZEONEX-E48R", "ZEONEX_E48R", "ZEONEXE48R", "COP"],
                   "ZEON ZEONEX E48R data sheet: nd 1.531, vd 56.0 (model glass)")}
@@ -98,6 +109,9 @@ def main(root, out):
         key = name if name.lower() not in taken and catalog not in QUALIFIED_ONLY else f"{catalog}:{name}"
         if key.lower() in taken:
             return
+        if name in MAKER_FORMULAS:
+            formula, coeffs, rng, source = MAKER_FORMULAS[name]
+            entry = {"formula": formula, "coefficients": coeffs, "range_um": rng}
         entry = dict(entry, catalog=catalog, nd=None, vd=None, source=source)
         if aliases:
             entry["aliases"] = [a for a in aliases if a.lower() not in taken]

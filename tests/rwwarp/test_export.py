@@ -293,6 +293,13 @@ def test_roundtrip_third_party(fmt, tmp_path):
         glass = [str(w.message) for w in rec if "has no exact" in str(w.message)]
         wl = a.wavelengths_um[len(a.wavelengths_um) // 2]
         if glass:
+            # the read-back glass may also cover fewer wavelengths (a moulding variant's base glass written by
+            # its plain name, CDGM-AGF:D-ZK3 -> D-ZK3, issue 28): compare where both have data
+            from rwwarp.errors import ArgumentError
+            try:
+                b.efl(wl)
+            except ArgumentError:
+                wl = 0.5876
             assert b.efl(wl) == pytest.approx(a.efl(wl), rel=1e-2), name
             warned += 1
             continue

@@ -156,7 +156,7 @@ def test_nan_and_inf_in_numeric_fields(tmp_path, text, where):
     (lambda d: d["surfaces"][3].update(levels=10 ** 12), "levels"),
     (lambda d: d["sensor"].update(resolution=[10 ** 9, 10 ** 9]), "resolution"),
     (lambda d: d["sensor"].update(pixel_pitch=1e-300), "pixel_pitch"),
-    (lambda d: d.update(object_distance=1e-300), None),
+    (lambda d: d.update(object_distance=1e-300), "object_distance"),  # the object on the pupil (issue 28)
     (lambda d: d.update(object_distance=-5.0), "object_distance"),
     (lambda d: d.update(wavelengths_um=[550]), "wavelength"),
     (lambda d: d["surfaces"][3]["profile"].update(coefficients=[0.0] * 100_000), "profile"),

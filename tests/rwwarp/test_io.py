@@ -9,7 +9,7 @@ import pytest
 
 import rwwarp.lens as lensmod
 from rwwarp import doe
-from rwwarp.errors import GeometryError, GlassError, LensError, LensFileError
+from rwwarp.errors import GeometryError, GeometryWarning, GlassError, LensError, LensFileError
 from rwwarp.io_deeplens import lens_from_deeplens
 from rwwarp.io_zemax import read_zmx
 from rwwarp.io import load_lens
@@ -130,7 +130,10 @@ def test_zmx_surface_types(tmp_path):
     lens = read_zmx(_write(tmp_path, text))
     s = lens.surfaces
     assert [x.type for x in s] == ["standard", "standard", "standard", "thin_lens", "doe"]
-    assert s[0].stop and s[0].semi_diameter == 2.5 and s[0].radius is None  # fixed DIAM -> clipping
+    # a DIAM, fixed or automatic, does not clip (OpticStudio and optiland clip only at CLAP / SQAP / FLAP);
+    # the stop keeps its fixed DIAM (2.5), but floats under ENPD
+    assert s[0].stop and s[0].semi_diameter == 2.5 and s[0].radius is None
+    assert lens.surface_extents[:2] == [2.5, 3.0]  # kept for the crossing check only
     assert s[1].radius == pytest.approx(20.0) and s[1].conic == -0.5 and s[1].aspheric == [1e-4, -2e-6]
     assert s[1].material == "1.5/60.0" and s[1].semi_diameter is None  # automatic DIAM is ignored
     assert s[2].semi_diameter == 3.2 and s[2].material == "air"
@@ -245,12 +248,17 @@ def test_native_unknown_glass(tmp_path):
 
 
 def test_native_negative_thickness_crossing(tmp_path):
+    """Crossing surfaces load with a GeometryWarning naming them and the gap (as OpticStudio, optiland and
+    DeepLens load such files); strict=True refuses them with a GeometryError (issue 28)."""
     d = _native()
     d["surfaces"][1]["thickness"] = -1.0
     p = _save(tmp_path, d)
     with pytest.raises(GeometryError, match="cross") as ei:
-        load_lens(p)
+        load_lens(p, strict=True)
     assert ei.value.surface == 1 and ei.value.keyword == "thickness" and str(p) in str(ei.value)
+    with pytest.warns(GeometryWarning, match=r"surfaces 1 and 2 cross at height .* \(gap -"):
+        lens = load_lens(p)
+    assert lens.surfaces[1].thickness == -1.0
 
 
 def test_native_pixel_map_relative_to_lens_file(tmp_path):
@@ -366,7 +374,6 @@ def test_deeplens_new_doe_models(tmp_path):
 @pytest.mark.parametrize("change, cls, surf, key, match", [
     (lambda d: d["surfaces"][2].update(type="Cylindric"), LensFileError, 2, "type", "Cylindric"),
     (lambda d: d["surfaces"][1].update(mat2="unobtainium"), GlassError, 1, "mat2", "unobtainium"),
-    (lambda d: d["surfaces"][1].update(d_next=-7.0), GeometryError, 1, "thickness", "cross"),
     (lambda d: d["surfaces"][1].pop("d_next"), LensFileError, 1, "d_next", "d_next"),
     (lambda d: d["DOE"].update(param_model="nurbs"), LensFileError, "DOE", "param_model", "nurbs"),
 ])
@@ -377,6 +384,43 @@ def test_deeplens_errors(tmp_path, change, cls, surf, key, match):
     with pytest.raises(cls, match=match) as ei:
         load_lens(p)
     assert ei.value.surface == surf and ei.value.keyword == key and str(p) in str(ei.value)
+
+
+def test_deeplens_crossing_warns_or_strict_refuses(tmp_path):
+    d = copy.deepcopy(DL_RELATIVE)
+    d.pop("DOE")
+    d["surfaces"][1].update(d_next=0.5)  # a biconvex lens 0.5 mm thick at the centre: its rims cross
+    p = _save(tmp_path, d)
+    with pytest.raises(GeometryError, match="cross") as ei:
+        load_lens(p, strict=True)
+    assert ei.value.surface == 1 and ei.value.keyword == "thickness" and str(p) in str(ei.value)
+    with pytest.warns(GeometryWarning, match=r"surfaces 1 and 2 cross"):
+        load_lens(p)
+
+
+def test_zmx_cut_short_after_a_bad_value_names_it(tmp_path):
+    """A file that ends after a malformed value names the value and its line, not the missing surfaces."""
+    p = _write(tmp_path, "MODE SEQ\nENPD 4\nSURF 0\n  DISZ INFINITY\nSURF 1\n  STOP\n  CURV abc\n")
+    with pytest.raises(LensFileError, match=r"bad number 'abc' for CURV \(line 7\)") as ei:
+        read_zmx(p)
+    assert ei.value.surface == "SURF 1" and ei.value.keyword == "CURV"
+
+
+def test_zmx_floa_stop_without_diam_names_the_stop(tmp_path):
+    p = _write(tmp_path, _zmx([["CURV 0.02", "DISZ 3", "GLAS N-BK7"], ["CURV 0", "DISZ 2"],
+                               ["STOP", "CURV 0", "DISZ 50"]], aperture="FLOA"))
+    with pytest.raises(LensFileError, match="FLOA") as ei:
+        read_zmx(p)
+    assert ei.value.surface == "SURF 3" and ei.value.keyword == "DIAM" and "surface SURF 3" in str(ei.value)
+
+
+def test_object_at_the_entrance_pupil_names_object_distance(tmp_path):
+    d = _native()
+    d["object_distance"] = 1e-300  # the stop is the first surface: the object sits on the pupil
+    p = _save(tmp_path, d)
+    with pytest.raises(GeometryError, match="object_distance = 1e-300 mm") as ei:
+        load_lens(p)
+    assert ei.value.keyword == "object_distance" and str(p) in str(ei.value)
 
 
 def test_deeplens_use_ai2_false():

@@ -11,7 +11,7 @@ import pytest
 
 import rwwarp as rw
 from rwwarp import materials, paraxial
-from rwwarp.errors import GlassError, LensError
+from rwwarp.errors import GeometryError, GeometryWarning, GlassError, LensError
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "third_party"
 
@@ -43,8 +43,12 @@ def test_legacy_schott_name_and_model_glass_substitution_warn():
     name, note = materials.resolve_glass("SK14", 1.61, 57.0)
     assert name == "1.61/57.0" and "model glass" in note
     # an unknown glass whose file lists nd / vd: a model glass through them
-    name, note = materials.resolve_glass("D-ZK3M", 1.58913, 61.25)
+    name, note = materials.resolve_glass("XY-ZK3Q", 1.58913, 61.25)
     assert materials.get_material(name).nd == 1.58913 and "model glass" in note
+    # a maker's moulding variant: its base glass, not the file's (often stale) nd / vd (issue 28)
+    for mould, base in (("D-ZK3M", "D-ZK3"), ("L-TIM28_MOLD", "L-TIM28")):
+        name, note = materials.resolve_glass(mould, 1.601, 50.28)
+        assert name.split(":")[-1] == base and f"{mould!r}" in note and "moulding variant" in note
     # Zemax's 0 / 0 placeholders are no data: the lookup error, naming the glass once
     with pytest.raises(GlassError) as e:
         materials.resolve_glass("NOSUCH-GLASS", 0.0, 0.0)
@@ -61,13 +65,56 @@ def _zmx_one(tmp_path, glas):
 
 
 def test_zemax_unknown_glass_becomes_a_model_glass_with_a_warning(tmp_path):
-    with pytest.warns(materials.GlassSubstitutionWarning, match=r"SURF 1 .*D-ZK3M.*model glass"):
-        lens = rw.load_lens(_zmx_one(tmp_path, "D-ZK3M 0 0 1.58913 61.25 0 0 0 0 0 0"))
+    with pytest.warns(materials.GlassSubstitutionWarning, match=r"SURF 1 .*XY-ZK3Q.*model glass"):
+        lens = rw.load_lens(_zmx_one(tmp_path, "XY-ZK3Q 0 0 1.58913 61.25 0 0 0 0 0 0"))
     assert lens.surfaces[0].material == "1.58913/61.25"
     with pytest.raises(GlassError) as e:
-        rw.load_lens(_zmx_one(tmp_path, "D-ZK3M 0 0 0 0 0 0"))
+        rw.load_lens(_zmx_one(tmp_path, "XY-ZK3Q 0 0 0 0 0 0"))
     msg = str(e.value)
-    assert msg.count("'D-ZK3M'") == 1 and "SURF 1" in msg and "nd 0" not in msg
+    assert msg.count("'XY-ZK3Q'") == 1 and "SURF 1" in msg and "nd 0" not in msg
+
+
+def test_cdgm_moulding_glass_maps_to_its_base_glass():
+    """Thorlabs' 354710-C (D-ZK3M, f = 1.49 mm at 1.55 um by its NAME line) lists a stale nd 1.601 / vd 50.3:
+    the base glass D-ZK3 stands in, with a warning naming both, from CDGM's Zemax-catalogue formula valid to
+    2.325 um. Its index at 1.55 um agrees with CDGM's other published formula (the spreadsheet's, fitted
+    to 1.014 um) to 1.2e-5 (bound 5e-5); the EFL at 1.55 um is 1.4833 mm against the maker's 1.49 (two
+    decimals; bound 0.01 mm) where the stale model glass gave 1.4448, and equals optiland's with D-ZK3."""
+    p = DATA / "files" / "ray-optics" / "354710-C-Zemax(ZMX).zmx"
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        lens = rw.load_lens(p)
+    notes = [str(x.message) for x in w if issubclass(x.category, materials.GlassSubstitutionWarning)]
+    assert any("SURF 1" in n and "'D-ZK3M'" in n and "D-ZK3" in n and "moulding" in n for n in notes)
+    m = materials.get_material(lens.surfaces[0].material)
+    assert m.n(1.55) == pytest.approx(materials.get_material("D-ZK3").n(1.55), abs=5e-5)
+    assert m.wavelength_range_um[1] >= 1.55
+    assert lens.efl(1.55) == pytest.approx(1.49, abs=0.01)
+    # optiland 0.6.3 with the file's glass named D-ZK3 (reference_354710_d-zk3.json): the same index (the same
+    # CDGM data; measured 0) and EFL (1.4832814 mm; measured 0, bound 1e-9 as for the manifest); the RMS spot
+    # on axis at optiland's indices and pupil samples 2.3735 um (measured 2e-8; bound 0.1 %, as for the manifest)
+    ref = json.loads((DATA / "reference_354710_d-zk3.json").read_text())["reference"]
+    assert m.n(1.55) == pytest.approx(ref["index_after_surf"][1], abs=1e-12)
+    assert lens.efl(1.55) == pytest.approx(ref["efl_mm"], rel=1e-9)
+    from rwwarp.trace import Tracer
+    lens = _with_reference_indices(lens, ref)
+    g = np.linspace(-1.0, 1.0, 101)
+    U, V = np.meshgrid(g, g)
+    inside = U ** 2 + V ** 2 <= 1.0
+    rays = Tracer(lens, [1.55]).trace([(0.0, 0.0)], pupil=(U[inside], V[inside], 1.0)).numpy()
+    xy = rays["pos"][0, rays["valid"][0], :2]
+    rms = 1e3 * np.sqrt(np.mean(np.sum((xy - xy.mean(0)) ** 2, axis=1)))
+    assert rms == pytest.approx(ref["rms_um"][0], rel=1e-3)
+
+
+def test_b270_uses_schotts_formula_over_its_whole_range():
+    """B 270: SCHOTT's own formula (its Zemax catalogue: Schott power series; its NM record nd 1.523080,
+    vd 58.571369, reproduced to 2e-8 / 1e-6) replaces a fit to the data sheet's 0.436-0.656 um points,
+    so 0.92 um (the COTS objective's cover glass) is inside the data: n = 1.51441 there."""
+    m = materials.get_material("B270")
+    assert m.nd == pytest.approx(1.523080, abs=5e-7) and m.vd == pytest.approx(58.571369, abs=5e-6)
+    assert m.wavelength_range_um[0] <= 0.334 and m.wavelength_range_um[1] >= 2.5
+    assert 1.48 < m.n(2.5) < m.n(0.92) < m.nd < m.n(0.334) < 1.56  # normal dispersion over the range
 
 
 # ------------------------------------------------------------------ DeepLens material names
@@ -211,13 +258,9 @@ REFUSED = {
     "DeepLens/hybridlens__a489_doe.json": "alpha2",            # Binary2 DOE without coefficients
     "DeepLens/hybridlens__a489_grating.json": "type",          # grating DOE model
     # surfaces that cross inside their semi-diameters (rwwarp checks; DeepLens and Zemax do not)
-    "DeepLens/camera__ef35mm_f2.0.zmx": "DISZ",                # air gap -0.40 mm at the 10.44 mm rim
-    "DeepLens/camera__rf16mm_f2.8.json": "thickness",          # -0.6 um at the rim
-    "DeepLens/camera__yongnuo_50mm_f1.8.json": "thickness",    # -0.5 um at the rim
-    "DeepLens/cellphone__cellphone68deg.json": "thickness",    # -7 um
-    "DeepLens/pancake__pancake.json": "thickness",             # -0.18 mm
-    "DeepLens/pancake__pancake_starting_aspheric.json": "thickness",
-    "DeepLens/pancake__pancake_starting_spheric.json": "thickness",
+    # FLOA (float by stop size) with no DIAM on the stop, SURF 6: no pupil (optiland 0.6.3 refuses it too);
+    # its crossing surfaces (SURF 8 / 9, -0.40 mm at 10.44 mm) only warn (see ../synthetic/ef35mm_f2.0_stop_diam.zmx)
+    "DeepLens/camera__ef35mm_f2.0.zmx": "DIAM",
     "optiland/complicated_fold_mirrors_setup_v2.zmx": "TYPE",  # COORDBRK
     "optiland/curved_reflective_grating.zmx": "TYPE",          # DGRATING
     "optiland/curved_transmission_grating.zmx": "TYPE",
@@ -265,6 +308,7 @@ def test_third_party_file_loads_and_matches_optiland(entry):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", materials.GlassSubstitutionWarning)
         warnings.filterwarnings("ignore", message=".*vignetting factors", category=UserWarning)
+        warnings.simplefilter("ignore", GeometryWarning)  # crossing surfaces load (tested on their own)
         if entry["file"] in REFUSED:
             with pytest.raises(LensError) as e:
                 rw.load_lens(path)
@@ -278,8 +322,10 @@ def test_third_party_file_loads_and_matches_optiland(entry):
         return
     sc = UNIT_MM[ref["lens_unit"].upper()]
     wl = ref["wavelength_um"]
-    lens0, lens = lens, _with_reference_indices(lens, ref)
-    efl, bfl = lens.efl(wl), lens.bfl(wl)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        lens0, lens = lens, _with_reference_indices(lens, ref)
+    efl, bfl = lens.efl_image_space(wl), lens.bfl(wl)  # optiland's f2 is n' / phi (n' the image-space index)
     if not ref.get("paraxial_ignores_r2_term"):
         assert efl == pytest.approx(ref["efl_mm"] * sc, rel=1e-9)
         assert bfl == pytest.approx(ref["bfl_mm"] * sc, rel=1e-9)
@@ -382,3 +428,131 @@ def test_oddasphe_even_terms_equal_evenasph(tmp_path):
     for f in (0.0, 4.0):
         assert rw.spot_rms(odd, f, 0.5876, grid=101) == pytest.approx(rw.spot_rms(even, f, 0.5876, grid=101),
                                                                        rel=1e-9)
+
+
+# ------------------------------------------------------------------ issue 28: lens files that real users have
+CROSSING = [
+    # file, the crossing the warning names (surfaces as the file numbers them, height mm, gap mm)
+    ("../synthetic/ef35mm_f2.0_stop_diam.zmx", r"surfaces SURF 8 and SURF 9 cross at height 10.44 mm \(gap -0.4037 mm\)"),
+    ("DeepLens/cellphone__cellphone68deg.json", r"surfaces 5 and 6 cross at height 2.095 mm \(gap -0.007309 mm\)"),
+    ("DeepLens/camera__rf16mm_f2.8.json", r"surfaces 1 and 2 cross at height 8.425 mm \(gap -0.0005553 mm\)"),
+    ("DeepLens/camera__yongnuo_50mm_f1.8.json", r"surfaces 3 and 4 cross at height 12.2 mm \(gap -0.0005464 mm\)"),
+    ("cots-objective-design/COTS-0002-12-1.zmx", r"surfaces SURF 1 and SURF 2 cross at height 0 mm \(gap -1.091e-08 mm\)"),
+]
+
+
+@pytest.mark.parametrize("name, match", CROSSING, ids=[c[0] for c in CROSSING])
+def test_crossing_surfaces_load_with_a_warning_strict_refuses(name, match):
+    """Files whose surfaces cross (DeepLens exports and lenses: 0.40 mm to 0.5 um at the rim; an optimiser's
+    -1.09e-8 mm thickness between two flats) load, as in the programs that wrote them, with a GeometryWarning
+    naming the two surfaces, the height and the gap; strict=True refuses them with a GeometryError naming
+    the same. Their traces against optiland: test_third_party_file_loads_and_matches_optiland."""
+    p = DATA / "files" / name
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", materials.GlassSubstitutionWarning)
+        with pytest.warns(GeometryWarning, match=match):
+            rw.load_lens(p)
+        with pytest.raises(GeometryError, match=match.replace(r" \(gap", r" \(gap")) as e:
+            rw.load_lens(p, strict=True)
+    assert e.value.keyword in ("thickness", "DISZ") and "strict=True" in str(e.value)
+
+
+def test_deeplens_ef35mm_export_refused_naming_its_floa_stop():
+    """DeepLens's ef35mm_f2.0.zmx asks for FLOA (float by stop size) but its stop, SURF 6, has no DIAM: no
+    pupil can be derived (optiland 0.6.3 refuses it too). The refusal names SURF 6 and DIAM; the crossing of
+    SURF 8 / SURF 9 before it is only a warning."""
+    with pytest.warns(GeometryWarning, match="SURF 8 and SURF 9"):
+        with pytest.raises(LensError, match="FLOA") as e:
+            rw.load_lens(DATA / "files" / "DeepLens" / "camera__ef35mm_f2.0.zmx")
+    assert e.value.surface == "SURF 6" and e.value.keyword == "DIAM" and "surface SURF 6" in str(e.value)
+
+
+def test_zmx_diam_does_not_clip_as_in_opticstudio_and_optiland():
+    """A .zmx DIAM (fixed or automatic) is a drawn size, not an aperture: OpticStudio and optiland clip only at
+    CLAP / SQAP / FLAP. The DeepLens ef35mm export (every surface a fixed DIAM) then traces like optiland: its
+    30.9 deg RMS spot 140.86 um with all 7841 rays (optiland: the same rays, 140.86 um; measured 6e-15
+    relative, bound 1e-6), where clipping at the DIAMs, as rwwarp did before, loses 15 of them."""
+    from rwwarp.trace import Tracer
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeometryWarning)
+        lens = rw.load_lens(DATA / "synthetic" / "ef35mm_f2.0_stop_diam.zmx")
+        assert all(s.semi_diameter is None for s in lens.surfaces if not s.stop)
+        clipped = lens
+        for i, h in enumerate(lens.surface_extents):
+            if h and not lens.surfaces[i].stop:
+                clipped = clipped.with_surface(i, semi_diameter=h)
+    ref = next(e["reference"] for e in MANIFEST["files"] if e["file"].endswith("ef35mm_f2.0_stop_diam.zmx"))
+    g = np.linspace(-1.0, 1.0, 101)
+    U, V = np.meshgrid(g, g)
+    inside = U ** 2 + V ** 2 <= 1.0
+    f = ref["fields"][2]
+    spots = []
+    for L in (lens, clipped):
+        rays = Tracer(L, [ref["wavelength_um"]]).trace([tuple(f)], pupil=(U[inside], V[inside], 1.0)).numpy()
+        ok = rays["valid"][0]
+        xy = rays["pos"][0, ok, :2]
+        spots.append((int(ok.sum()), 1e3 * np.sqrt(np.mean(np.sum((xy - xy.mean(0)) ** 2, axis=1)))))
+    assert spots[0][0] == ref["n_rays"][2] and spots[0][1] == pytest.approx(ref["rms_um"][2], rel=1e-6)
+    assert spots[1][0] == 7826  # clipped at the DIAMs: 15 of the 7841 rays lost (optiland keeps them all)
+
+
+def test_efl_in_air_and_in_image_space():
+    """The COTS objective images into a medium of n' = 1.3275 (0.92 um): efl() is 1 / phi (OpticStudio's EFL
+    "in air"), efl_image_space() n' / phi ("in image space"; optiland's f2, 11.101116 mm: agreement 4e-16,
+    bound 1e-9 as for every manifest file); in air the two are one number."""
+    ref = next(e["reference"] for e in MANIFEST["files"] if e["file"].startswith("cots-objective-design/"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lens = _with_reference_indices(rw.load_lens(DATA / "files" / "cots-objective-design" / "COTS-0002-12-1.zmx"),
+                                       ref)
+    wl, n_img = ref["wavelength_um"], ref["index_after_surf"][-1]
+    assert n_img == pytest.approx(1.3275, abs=1e-4)
+    assert lens.efl_image_space(wl) == pytest.approx(ref["efl_mm"], rel=1e-9)
+    assert lens.efl(wl) == pytest.approx(ref["efl_mm"] / n_img, rel=1e-9)
+    air = rw.load_lens("cooke_triplet")
+    assert air.efl_image_space(0.5876) == air.efl(0.5876)
+
+
+def test_crossing_surfaces_are_traced_sequentially(tmp_path):
+    """A biconvex lens 0.5 mm thick whose spheres (R = +-20 mm) cross at 3.1 mm height, filled by an 8 mm
+    entrance pupil: loaded with a warning, its rays beyond 3.1 mm meet the second sphere before the first
+    (they travel back inside the glass), as a sequential tracer traces them. Against an independent numpy
+    trace of the same sequence (sphere 1, Snell, sphere 2 with the signed root, Snell, image plane): all rays
+    valid (1100 of the 1313 go back), positions equal to 1e-9 mm (rounding: measured 1.1e-14 mm)."""
+    from rwwarp.trace import Tracer, pupil_grid
+    text = ("VERS 190513 80 123457 L123457\nMODE SEQ\nUNIT MM X W X CM MR CPMM\nENPD 16\nFTYP 0 0 1 1 0 0 0\n"
+            "WAVM 1 0.55 1\nPWAV 1\nSURF 0\n  DISZ INFINITY\nSURF 1\n  STOP\n  CURV 0.05\n  DISZ 0.5\n"
+            "  GLAS ___BLANK 1 0 1.5 1e300\n  DIAM 8 1 0 0 1 \"\"\nSURF 2\n  CURV -0.05\n  DISZ 20\n"
+            "  DIAM 8 1 0 0 1 \"\"\nSURF 3\n  DISZ 0\n")
+    p = tmp_path / "thin.zmx"
+    p.write_text(text)
+    with pytest.warns(GeometryWarning, match=r"SURF 1 and SURF 2 cross at height"):
+        lens = rw.load_lens(p)
+    n = lens.indices(0.55)[0]
+    rays = Tracer(lens, [0.55]).trace([0.0], grid=41).numpy()
+    u, v, _ = pupil_grid(41, "circle")
+    pos = np.stack([8.0 * u, 8.0 * v, np.zeros_like(u)], 1)
+    d = np.tile([0.0, 0.0, 1.0], (len(u), 1))
+
+    def sphere(pos, d, z0, c):  # signed root of |q + t d|^2 c - 2 (q_z + t d_z) = 0 nearest the vertex
+        q = pos - [0.0, 0.0, z0]
+        b = d[:, 2] - c * np.sum(q * d, 1)
+        f = c * np.sum(q * q, 1) - 2 * q[:, 2]
+        t = f / (b + np.sign(b) * np.sqrt(b * b - c * f))
+        hit = pos + t[:, None] * d
+        nrm = np.stack([-c * (hit[:, 0]), -c * (hit[:, 1]), 1 - c * (hit[:, 2] - z0)], 1)
+        return hit, t, nrm / np.linalg.norm(nrm, axis=1)[:, None]
+
+    def snell(d, nrm, mu):
+        cos_i = np.sum(d * nrm, 1)
+        k = 1 - mu * mu * (1 - cos_i ** 2)
+        return mu * d + (np.sqrt(k) - mu * cos_i)[:, None] * nrm
+
+    h1, _, n1 = sphere(pos, d, 0.0, 0.05)
+    d1 = snell(d, n1, 1 / n)
+    h2, t2, n2 = sphere(h1, d1, 0.5, -0.05)
+    d2 = snell(d1, n2, n)
+    img = h2 + ((20.5 - h2[:, 2]) / d2[:, 2])[:, None] * d2
+    assert (t2 < 0).sum() == 1100  # these rays go back inside the glass: the surfaces cross where they pass
+    assert rays["valid"][0].all()
+    assert np.max(np.abs(rays["pos"][0, :, :2] - img[:, :2])) < 1e-9

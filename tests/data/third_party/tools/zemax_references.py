@@ -9,6 +9,11 @@ N = 101  # optiland 'uniform' distribution: linspace(-1, 1, N)^2 masked to r^2 <
 
 def refs(path):
     op = load_zemax_file(path)
+    if op.aperture.ap_type == "float_by_stop_size":
+        # optiland 0.6.3's reader (fileio/zemax/reader/converter.py) passes the stop's DIAM, which a Zemax
+        # file holds as a semi-diameter, as the stop's diameter: give it the diameter (the pupil then agrees
+        # with the same lens built from DeepLens's JSON with float_by_stop_size 2 r)
+        op.set_aperture("float_by_stop_size", 2.0 * float(np.ravel(op.aperture.value)[0]))
     op.set_ray_aiming("paraxial")
     # no vignetting factors (rwwarp ignores them): the whole paraxial pupil, as rwwarp traces it
     for f in op.fields.fields:
@@ -19,8 +24,10 @@ def refs(path):
     px = op.paraxial
     zs = [float(s.geometry.cs.z) for s in op.surfaces.surfaces]
     idx = [float(np.real(np.asarray(sf.material_post.n(wl)).reshape(-1)[0])) for sf in op.surfaces.surfaces]
-    out = {"index_after_surf": idx, "wavelength_um": wl, "efl_mm": float(px.f2()), "epd_mm": float(px.EPD()),
-           "bfl_mm": float(zs[-1] + px.F2() - zs[-2]), "fields": [], "rms_um": []}
+    def scalar(v):  # optiland returns 0-d or 1-element arrays depending on the aperture type (FLOA: arrays)
+        return float(np.ravel(v)[0])
+    out = {"index_after_surf": idx, "wavelength_um": wl, "efl_mm": scalar(px.f2()), "epd_mm": scalar(px.EPD()),
+           "bfl_mm": scalar(zs[-1] + px.F2() - zs[-2]), "fields": [], "rms_um": []}
     ys = [float(f.y) for f in op.fields.fields]
     xs = [float(f.x) for f in op.fields.fields]
     mx = float(op.fields.max_field) or 1.0
@@ -45,4 +52,5 @@ if __name__ == "__main__":
             res[p] = {"error": f"{type(e).__name__}: {e}"[:300]}
     res["_versions"] = {"optiland": md.version("optiland"), "rayoptics": md.version("rayoptics"),
                         "numpy": md.version("numpy")}
-    open("/tmp/refs_out.json", "w").write(json.dumps(res, indent=1))
+    import os
+    open(os.environ.get("REFS_OUT", "/tmp/refs_out.json"), "w").write(json.dumps(res, indent=1))
