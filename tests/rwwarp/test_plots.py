@@ -172,3 +172,21 @@ def test_spot_diagrams_common_scale_airy_circle_and_order(monkeypatch, tmp_path)
         drawn = [c.get_label() for c in ax.collections]
         assert drawn[-1] == f"{wls[int(np.argmin(rms[i]))]:g} um"  # the tightest on top
         assert sorted(drawn) == sorted(f"{w:g} um" for w in wls)  # every wavelength drawn
+
+
+def test_demo_layout_title_fits_the_figure(monkeypatch, tmp_path):
+    """The demo's lens has an 86-character name (A489 + achromatising DOE): the layout's title (drawn on two
+    lines now) lies inside the saved figure, measured with the renderer (it ran off both sides before)."""
+    from rwwarp.demo import achromat_doe
+    lens, _ = achromat_doe(rw.load_lens("a489_doe"), 0.25)
+    assert len(lens.name) > 80
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    plt.close("all")
+    monkeypatch.setattr(plt, "close", lambda *a, **k: None)
+    layout_figure(lens, tmp_path / "layout.png", [0.0, 7.0, 14.0], 0.55)
+    fig = plt.figure(plt.get_fignums()[0])
+    box, page = fig.axes[0].title.get_window_extent(fig.canvas.get_renderer()), fig.bbox
+    monkeypatch.undo()
+    plt.close("all")
+    assert box.x0 >= page.x0 and box.x1 <= page.x1 and box.y1 <= page.y1
