@@ -237,7 +237,9 @@ def mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm
         (1.4e-2 with "patch", 1.4e-3 above f = 0 with "sensor"; 3e-4 of it is the F/10 beam's own non-paraxial
         pupil apodisation, the rest the default PSF plan's sampling). ``"sensor"``: the same without the tail
         (MTF(0) = the fraction inside the patch). ``"patch"``: divide by the power inside the patch (MTF(0) = 1,
-        but a patch that cuts 1 % of the power lowers every frequency by about 1 %).
+        but a patch that cuts 1 % of the power lowers every frequency by about 1 %). With the ``"ray"`` model
+        the cut power is geometric (rays outside the patch), not a diffraction tail: the tail then only
+        approximates it; a :class:`SamplingWarning` says when a patch keeps < 98 % of the power.
     psf_kwargs
         Passed to :func:`rwwarp.psf_map` (``plan``, ``object_distance_mm``, ...).
     """

@@ -190,3 +190,19 @@ def test_demo_layout_title_fits_the_figure(monkeypatch, tmp_path):
     monkeypatch.undo()
     plt.close("all")
     assert box.x0 >= page.x0 and box.x1 <= page.x1 and box.y1 <= page.y1
+
+
+def test_layout_rays_of_a_near_object_start_at_the_object_point():
+    """Object 100 mm in front of an ideal thin lens (stop at the lens, EPD 4 mm): every drawn ray of a field
+    starts at that field's object point, (0, -100 tan(theta), -100) mm for the pupil at z = 0, and its first
+    segment reaches the lens at y = 2 v (the pupil height), the traced first-surface point."""
+    from rwwarp.lens import Lens, Surface
+    s = [Surface(type="thin_lens", focal_length=50.0, thickness=100.0, stop=True)]
+    lens = Lens(s, entrance_pupil_diameter=4.0, object_distance=100.0)
+    for field in (0.0, 3.0):
+        paths, ok = layout_rays(lens, field, 0.55, 5)
+        assert ok.all()
+        obj = np.array([0.0, -100.0 * math.tan(math.radians(field)), -100.0])
+        assert np.max(np.abs(paths[:, 0] - obj)) < 1e-12
+        assert paths[:, 1, 1] == pytest.approx(2.0 * np.linspace(-1, 1, 5), abs=1e-9)
+        assert paths[:, 1, 2] == pytest.approx(np.zeros(5), abs=1e-12)
