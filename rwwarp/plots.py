@@ -27,14 +27,45 @@ def layout(lens, path, fields_deg=None, wavelength_um=None, rays: int = 7):
     layout_figure(lens, path, fields, wl, rays=rays)
 
 
-def _fan(lens, field, wl, u, v, device="cpu"):
-    """Positions after every surface ((n_surfaces + 1, n, 3), the start included) and validity of rays."""
+def _fan(lens, field, wl, u, v, device="cpu", start: bool = False):
+    """Positions after every surface ((n_surfaces + 1, n, 3): ``history[0]`` is ON THE FIRST SURFACE, the
+    last entry on the sensor) and validity of rays. ``start=True`` also returns the generated rays (the
+    source rays: position on the entrance-pupil plane and object-space direction, each (n, 3))."""
     from .trace import Tracer
     tr = Tracer(lens, [wl], device=device)
     src = tr.sources([field])
     r = tr._run(src, np.asarray(u, float), np.asarray(v, float), 1.0, keep=True)
     hist = np.stack([h.numpy().reshape(-1, 3) for h in r.history])
-    return hist, r.valid.numpy().astype(bool).ravel(), src
+    ok = r.valid.numpy().astype(bool).ravel()
+    if not start:
+        return hist, ok, src
+    g = tr._run(src, np.asarray(u, float), np.asarray(v, float), 1.0, upto=0)  # the generated rays only
+    return hist, ok, src, g.pos.numpy().reshape(-1, 3), g.dir.numpy().reshape(-1, 3)
+
+
+def layout_rays(lens, field_deg, wavelength_um, rays: int = 9, device: str = "cpu"):
+    """The polylines :func:`layout_figure` draws for one field (deg) at ``wavelength_um`` (um): a meridional
+    fan of ``rays`` rays across the entrance pupil. Returns ``(paths, valid)``: ``paths`` (rays, n_surfaces + 2,
+    3) in mm, ``valid`` (rays,) the rays that reach the sensor.
+
+    Each path starts on its source ray in object space: at the object point for an object closer than twice
+    the lens's track, else on the plane 10 % of the track (at least 1 mm) in front of the first vertex,
+    along the ray's object-space direction (parallel for an object at infinity); it then visits every
+    surface and ends on the sensor. (The drawing used to extend the rays back from the first surface along
+    their in-glass direction.)"""
+    v = np.linspace(-1, 1, int(rays))
+    hist, ok, src, p0, d0 = _fan(lens, field_deg, wavelength_um, np.zeros(len(v)), v, device, start=True)
+    z_first = float(lens.vertex_z[0])
+    track = max(float(lens.sensor_z) - z_first, 1.0)
+    od = float(src["object_distance"])
+    if np.isfinite(od) and od <= 2.0 * track:
+        start = np.broadcast_to(np.asarray(src["pos"][0], float), p0.shape).copy()
+    else:
+        z0 = z_first - 0.1 * track
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = np.where(np.abs(d0[:, 2]) > 1e-12, (z0 - p0[:, 2]) / np.where(d0[:, 2] != 0, d0[:, 2], 1.0), 0.0)
+        start = p0 + t[:, None] * d0
+    return np.concatenate([start[None], hist], axis=0).transpose(1, 0, 2), ok
 
 
 def clear_semi_diameters(lens, fields_deg, wavelengths_um, grid: int = 21, device: str = "cpu") -> np.ndarray:
@@ -66,21 +97,13 @@ def layout_figure(lens, path, fields_deg, wavelength_um, device: str = "cpu", ra
     sd = clear_semi_diameters(lens, fields_deg, [wavelength_um], device=device)
     fig, ax = plt.subplots(figsize=(9, 4.2))
     colors = plt.cm.viridis(np.linspace(0, 0.85, max(len(fields_deg), 1)))
-    v = np.linspace(-1, 1, rays)
     for k, f in enumerate(fields_deg):
-        hist, ok, src = _fan(lens, f, wavelength_um, np.zeros(rays), v, device)
-        # start every ray on the plane 10 % of the track in front of the first vertex, along its direction
-        p1, p2 = hist[0], hist[1] if len(hist) > 1 else hist[0]
-        d = p2 - p1
-        z0 = -0.1 * max(lens.sensor_z, 1.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = np.where(np.abs(d[:, 2]) > 1e-12, (z0 - p1[:, 2]) / np.where(d[:, 2] != 0, d[:, 2], 1), 0)
-        start = p1 + t[:, None] * d
+        paths, ok = layout_rays(lens, f, wavelength_um, rays, device)
+        first = True
         for j in range(rays):
             if ok[j]:
-                pts = np.vstack([start[j], hist[:, j]])
-                ax.plot(pts[:, 2], pts[:, 1], color=colors[k], lw=0.7,
-                        label=field_label(f) if j == next(i for i in range(rays) if ok[i]) else None)
+                ax.plot(paths[j, :, 2], paths[j, :, 1], color=colors[k], lw=0.7, label=field_label(f) if first else None)
+                first = False
     media = lens.media()
     edge = []
     for i, s in enumerate(lens.surfaces):
@@ -116,10 +139,14 @@ def layout_figure(lens, path, fields_deg, wavelength_um, device: str = "cpu", ra
     ax.axvline(lens.sensor_z, color="gray", lw=1.5)
     ax.set_xlabel("z (mm)")
     ax.set_ylabel("y (mm)")
-    ax.set_title(f"{lens.name or 'lens'}: layout at {wavelength_um:g} um (surfaces to their clear apertures)")
+    # two lines, wrapped: a long lens name (the demo's) no longer runs off the figure
+    import textwrap
+    name = textwrap.fill(lens.name or "lens", 95)
+    ax.set_title(f"{name}\nlayout at {wavelength_um:g} um: surfaces to their clear apertures, rays from the object side",
+                 fontsize=9)
     ax.set_aspect("equal", adjustable="datalim")
     if fields_deg:
-        ax.legend(fontsize=7, loc="upper left", title="field", title_fontsize=7)
+        ax.legend(fontsize=7, loc="best", title="field", title_fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)

@@ -69,6 +69,32 @@ def _snapshot(arm, path, psf, gt, raw, rec, step, phase):
     plt.close(fig)
 
 
+def _object_label(key, lens_distance_mm=None) -> str:
+    """Title text for the object distance an ``eval_psfs.npz`` key names (``str(depth_mm)``: "None" = the lens's
+    own object distance ``lens_distance_mm``, mm, "inf", or mm)."""
+    if key in (None, "None", "default"):
+        if lens_distance_mm is None:
+            return "object: the lens's distance"
+        key = str(lens_distance_mm)
+    try:
+        d = float(key)
+    except ValueError:
+        return f"object {key}"
+    return "object at infinity" if math.isinf(d) else f"object at {d:g} mm"
+
+
+def _node_fields(result, key) -> list:
+    """The (x, y) field angles (deg) of the evaluation nodes at the depth ``key`` from an arm's result.json
+    dict (``eval.depths[k].nodes[n].field_deg``); [] where the result does not hold them (image mode)."""
+    try:
+        for d in result["eval"]["depths"]:
+            if str(d.get("depth_mm")) == str(key) or len(result["eval"]["depths"]) == 1:
+                return [n.get("field_deg") if isinstance(n.get("node"), int) else None for n in d["nodes"]]
+    except (KeyError, TypeError):
+        pass
+    return []
+
+
 def _designs_figure(results: dict, out: Path):
     """One row per arm: DOE phase, evaluation PSFs (RGB, sqrt scale) of the nodes, raw / rec crop."""
     import matplotlib
@@ -100,9 +126,12 @@ def _designs_figure(results: dict, out: Path):
         cb.set_label("rad", fontsize=6)
         cb.ax.tick_params(labelsize=5)
         p = psfs[a][key0]
+        nodes = _node_fields(results.get(a), key0)
         for j in range(nn_):
             ax[i, 1 + j].imshow(_rgb_psf(p[j]))
-            ax[i, 1 + j].set_title(f"PSF node {j} ({key0})\nRGB, sqrt, tile / its max", fontsize=6)
+            where = f"node {j}" if j >= len(nodes) or nodes[j] is None else \
+                f"node {j}: ({nodes[j][0]:.1f}, {nodes[j][1]:.1f}) deg"
+            ax[i, 1 + j].set_title(f"PSF {where}\n{_object_label(key0, lens.object_distance)}; RGB, sqrt, / tile max", fontsize=6)
         smp = sorted((out / a).glob("eval_sample_*.npz"))
         if smp:
             s = np.load(smp[0])

@@ -18,6 +18,24 @@ def test_info_prints_paraxial_data_and_writes_layout(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
 
+def test_info_shows_conic_aspheres_and_the_doe_medium(capsys):
+    """info's surface table against the lens file itself (json): the A489's conic and its five even-asphere
+    coefficients are printed, and the 2.9472 mm behind the DOE lie in air (the DOE's fused silica is its
+    relief, named on the note line), not in glass."""
+    from pathlib import Path
+    import rwwarp
+    spec = json.loads((Path(rwwarp.__file__).parent / "lenses" / "a489_doe.json").read_text())["surfaces"]
+    main(["info", "a489_doe"])
+    out = capsys.readouterr().out.splitlines()
+    rows = {int(ln.split()[0]): ln.split() for ln in out if ln.strip()[:1].isdigit() and len(ln.split()) >= 6}
+    assert float(rows[1][3]) == pytest.approx(spec[1]["conic"], rel=1e-6)
+    asph = next(ln for ln in out if "even asphere" in ln)
+    got = [float(t.rstrip(",")) for t in asph.split()[3::2]]  # "even asphere r^4 c4, r^6 c6, ..."
+    assert got == pytest.approx(spec[1]["aspheric"], rel=1e-6)
+    assert rows[3][1] == "doe" and rows[3][4] == f"{spec[3]['thickness']:.5f}" and rows[3][5] == "air"
+    assert any("relief in fused_silica" in ln for ln in out)
+
+
 def test_psf_explain_prints_the_plan(capsys, tmp_path):
     npy = tmp_path / "p.npy"
     main(["psf", "a489_doe", "--size", "16", "--explain", "--out", str(npy)])

@@ -102,7 +102,7 @@ def circ():
 
 
 def test_mtf_raywave_circular_pupil(circ):
-    r = rw.mtf(circ, 0.0, WL, size=256, **FINE)
+    r = rw.mtf(circ, 0.0, WL, size=256, normalize="patch", **FINE)
     # cutoff 2 NA / lambda, NA = sin(atan(R / f))
     fc = 2 * math.sin(math.atan(R_AP / F)) / (WL * 1e-3)
     assert r.cutoff_lp_mm == pytest.approx(fc, rel=2e-3)
@@ -120,6 +120,42 @@ def test_mtf_raywave_circular_pupil(circ):
     s = rw.mtf(circ, 0.0, WL, size=256, pixel_mm=0.002, normalize="sensor", **FINE)
     ref = M.diffraction_mtf_circular(s.frequencies_lp_mm, fc)
     assert np.max(np.abs(s.tangential - ref)[1:]) < 6e-4
+
+
+def test_mtf_defaults_match_the_circular_pupil_formula(circ):
+    """rw.mtf with every default (normalize="tail", patch size "auto" = 152, 1 um samples, the default PSF
+    plan) against (2/pi)(acos v - v sqrt(1 - v^2)) at all 51 default frequencies, f = 0 and the cutoff
+    included (issue 28's bar, 1e-3). Measured 5.5e-4 (at v = 0.02; -4.4e-4 around v = 0.1): 3e-4 is the F/10
+    beam's own pupil apodisation (above), about 2e-4 the default plan's sampling (3.3e-4 in all with FINE).
+    Before, the default ("patch") was 1.4e-2 off and "sensor" 1.4e-3 above f = 0 (1.4e-2 at f = 0)."""
+    r = rw.mtf(circ, 0.0, WL)
+    fc = 2 * math.sin(math.atan(R_AP / F)) / (WL * 1e-3)
+    ref = M.diffraction_mtf_circular(r.frequencies_lp_mm, fc)
+    assert r.frequencies_lp_mm[0] == 0 and r.frequencies_lp_mm[-1] == pytest.approx(fc, rel=2e-3)
+    assert r.info["power_in_patch"].ravel()[0] < 0.99  # the patch does cut the tails: the case at issue
+    assert np.max(np.abs(r.tangential - ref)) < 1e-3
+    assert np.max(np.abs(r.sagittal - ref)) < 1e-3
+    # the tail restores only what the patch cut: with "sensor" the low frequencies ripple by 1.4e-3
+    s = M.mtf_from_psf_map(r.info["psf_map"], r.frequencies_lp_mm, normalize="sensor")[0][0]
+    assert np.max(np.abs(s - ref)[1:]) > 1e-3
+
+
+def test_tail_otf_against_a_numpy_sum():
+    """tail_otf (polar integral with the sine integral) against a direct numpy sum of the r^-3 density outside
+    the square |x|, |y| <= 1 on a 0.02-step grid out to 64 half-widths; the power beyond the grid (its
+    integral, 2 pi mean(max|cos|, |sin|) / 64) joins the normalisation only (at f >= 0.1 its transform is
+    negligible). Measured 1.0e-4 (1.2e-4 at step 0.01, 1.7e-4 out to 128 with step 0.04)."""
+    a, R, h = 1.0, 64.0, 0.02
+    x = (np.arange(-R / h, R / h) + 0.5) * h
+    X, Y = np.meshgrid(x, x, sparse=True)
+    w = np.where((np.abs(X) > a) | (np.abs(Y) > a), (X * X + Y * Y) ** -1.5, 0.0)
+    f = np.array([0.1, 0.3, 0.7, 1.5])
+    wy = w.sum(axis=1) * h * h  # integrated over x; the frequency is along y
+    th = np.linspace(0, 2 * np.pi, 100001)[:-1]
+    far = 2 * np.pi * np.mean(np.maximum(np.abs(np.cos(th)), np.abs(np.sin(th)))) / R
+    num = np.array([np.sum(wy * np.cos(2 * np.pi * ff * x)) for ff in f]) / (wy.sum() + far)
+    assert M.tail_otf([0.0], a)[0] == pytest.approx(1.0, abs=1e-12)
+    assert np.max(np.abs(M.tail_otf(f, a) - num)) < 3e-4
 
 
 def test_mtf_circular_pupil_diffraction_formula_to_1e4():
@@ -150,7 +186,8 @@ def test_mtf_equals_numpy_fft_of_same_samples(circ):
     pix = 0.001
     k = np.arange(0, 40)
     f = k / (size * pix)
-    r = rw.mtf(circ, 2.0, WL, frequencies_lp_mm=f, size=size, pixel_mm=pix)
+    r = rw.mtf(circ, 2.0, WL, frequencies_lp_mm=f, size=size, pixel_mm=pix,
+               normalize="patch")  # the Fourier sum itself, normalised by the patch as the FFT
     data = r.info["psf_map"].data[0, 0]
     F = np.abs(np.fft.fft2(data))
     tan_np = F[k, 0] / F[0, 0] / np.abs(np.sinc(f * pix))  # rows = y: tangential for a y field
@@ -179,7 +216,8 @@ def test_mtf_with_pixel_and_polychromatic(circ):
     n, pix = 128, 0.001
     k = np.arange(0, 30, 3)
     fb = k / (n * pix)
-    p = rw.mtf(circ, 0.0, [0.5, 0.6], weights=[1.0, 3.0], frequencies_lp_mm=fb, size=n, pixel_mm=pix)
+    p = rw.mtf(circ, 0.0, [0.5, 0.6], weights=[1.0, 3.0], frequencies_lp_mm=fb, size=n, pixel_mm=pix,
+               normalize="patch")  # the Fourier sum itself, normalised by the patch as the FFT
     m = p.info["psf_map"]
     assert np.allclose(m.centers_mm[0, 0], m.centers_mm[0, 1])
     F = [np.fft.fft2(m.data[0, j]) for j in range(2)]

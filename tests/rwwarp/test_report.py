@@ -47,6 +47,13 @@ def test_report_cooke_ray_model(tmp_path):
     assert float(row.split("|")[3]) == pytest.approx(15.2156, rel=2e-2)
     # clear apertures come from rays (the Cooke file has none): first lens 8.5 mm, not the 18 mm image height
     assert "8.5576 (rays)" in text
+    # best focus inside the (extended) through-focus scan, at least half a plane step from either end
+    import re
+    m = re.search(r"Best focus at \d+ lp/mm: ([+-][\d.]+) um from the sensor plane, inside the scan "
+                  r"\(([+-][\d.]+) \.\. ([+-][\d.]+) um, \d+ planes ([\d.]+) um apart", text)
+    assert m, "best focus not reported inside its scan"
+    best, lo, hi, step = map(float, m.groups())
+    assert lo + 0.5 * step <= best <= hi - 0.5 * step
 
 
 def test_report_cli_a489(tmp_path, capsys):
