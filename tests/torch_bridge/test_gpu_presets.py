@@ -68,7 +68,7 @@ def test_focal_nodes_checkpointed_under_a_small_budget_give_the_same_psfs_and_gr
 def test_paraxial_wave_cached_focal_path_on_cuda_equals_the_cpu():
     """The a489_edof paraxial-wave arm's path (cached provider, paraxial system, focal method) on CUDA: it
     runs, its paraxial system lives on the module's device, and its PSFs and DOE gradients equal the CPU's
-    (both double precision; tolerance from the measured CUDA-CPU difference, see the assertions)."""
+    (both double precision; measured on an H100 2.6e-11 and 1.1e-10, tolerances about 4x above)."""
     m_c, prov_c = _paraxial_provider("cpu")
     p_c, g_c = _step(m_c, prov_c)
     m_g, prov_g = _paraxial_provider("cuda")
@@ -78,7 +78,7 @@ def test_paraxial_wave_cached_focal_path_on_cuda_equals_the_cpu():
     err_p = np.abs(p_g - p_c).max() / p_c.max()
     err_g = np.abs(g_g - g_c).max() / np.abs(g_c).max()
     print(f"CUDA vs CPU: PSFs {err_p:.2e}, DOE gradient {err_g:.2e} (relative to the largest)")
-    assert err_p < 1e-9 and err_g < 1e-8
+    assert err_p < 1e-10 and err_g < 5e-10   # H100: measured 2.6e-11 and 1.1e-10
 
 
 @pytest.mark.gpu
