@@ -110,7 +110,7 @@ def test_cdgm_moulding_glass_maps_to_its_base_glass():
 def test_b270_uses_schotts_formula_over_its_whole_range():
     """B 270: SCHOTT's own formula (its Zemax catalogue: Schott power series; its NM record nd 1.523080,
     vd 58.571369, reproduced to 2e-8 / 1e-6) replaces a fit to the data sheet's 0.436-0.656 um points,
-    so 0.92 um (the COTS objective's cover glass) is inside the data: n = 1.51441 there."""
+    so 0.92 um (near infrared) is inside the data: n = 1.51441 there."""
     m = materials.get_material("B270")
     assert m.nd == pytest.approx(1.523080, abs=5e-7) and m.vd == pytest.approx(58.571369, abs=5e-6)
     assert m.wavelength_range_um[0] <= 0.334 and m.wavelength_range_um[1] >= 2.5
@@ -437,16 +437,17 @@ CROSSING = [
     ("DeepLens/cellphone__cellphone68deg.json", r"surfaces 5 and 6 cross at height 2.095 mm \(gap -0.007309 mm\)"),
     ("DeepLens/camera__rf16mm_f2.8.json", r"surfaces 1 and 2 cross at height 8.425 mm \(gap -0.0005553 mm\)"),
     ("DeepLens/camera__yongnuo_50mm_f1.8.json", r"surfaces 3 and 4 cross at height 12.2 mm \(gap -0.0005464 mm\)"),
-    ("cots-objective-design/COTS-0002-12-1.zmx", r"surfaces SURF 1 and SURF 2 cross at height 0 mm \(gap -1.091e-08 mm\)"),
+    ("../synthetic/water_image_space.zmx",
+     r"surfaces SURF 7 and SURF 8 cross at height 0 mm \(gap -1e-08 mm\)"),
 ]
 
 
 @pytest.mark.parametrize("name, match", CROSSING, ids=[c[0] for c in CROSSING])
 def test_crossing_surfaces_load_with_a_warning_strict_refuses(name, match):
     """Files whose surfaces cross (DeepLens exports and lenses: 0.40 mm to 0.5 um at the rim; an optimiser's
-    -1.09e-8 mm thickness between two flats) load, as in the programs that wrote them, with a GeometryWarning
-    naming the two surfaces, the height and the gap; strict=True refuses them with a GeometryError naming
-    the same. Their traces against optiland: test_third_party_file_loads_and_matches_optiland."""
+    -1e-8 mm thickness between two flats, synthetic/water_image_space.zmx) load, as in the programs that
+    wrote them, with a GeometryWarning naming the two surfaces, the height and the gap; strict=True refuses
+    them with a GeometryError naming the same. Their traces against optiland: test_third_party_file_loads_and_matches_optiland."""
     p = DATA / "files" / name
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", materials.GlassSubstitutionWarning)
@@ -497,18 +498,22 @@ def test_zmx_diam_does_not_clip_as_in_opticstudio_and_optiland():
 
 
 def test_efl_in_air_and_in_image_space():
-    """The COTS objective images into a medium of n' = 1.3275 (0.92 um): efl() is 1 / phi (OpticStudio's EFL
-    "in air"), efl_image_space() n' / phi ("in image space"; optiland's f2, 11.101116 mm: agreement 4e-16,
-    bound 1e-9 as for every manifest file); in air the two are one number."""
-    ref = next(e["reference"] for e in MANIFEST["files"] if e["file"].startswith("cots-objective-design/"))
+    """A lens that images into water (synthetic/water_image_space.zmx, written for rwwarp: a model glass
+    nd 1.333 / Vd 55.8 after its last surface; optiland's index there 1.3329988 at 0.5876 um): efl() is
+    1 / phi (OpticStudio's EFL "in air", 20.5306 mm), efl_image_space() n' / phi ("in image space";
+    optiland 0.6.3's f2, 27.367291 mm). At optiland's indices both agree with optiland to one rounding (measured 2.2e-16 and 0
+    relative; bound 2e-15, about ten roundings); in air the two are one number."""
+    e = next(e for e in MANIFEST["files"] if e["file"].endswith("/water_image_space.zmx"))
+    ref = e["reference"]
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        lens = _with_reference_indices(rw.load_lens(DATA / "files" / "cots-objective-design" / "COTS-0002-12-1.zmx"),
-                                       ref)
+        warnings.simplefilter("ignore", GeometryWarning)  # its -1e-8 mm gap: test_crossing_surfaces_load_...
+        lens = _with_reference_indices(rw.load_lens(DATA / "files" / e["file"]), ref)
     wl, n_img = ref["wavelength_um"], ref["index_after_surf"][-1]
-    assert n_img == pytest.approx(1.3275, abs=1e-4)
-    assert lens.efl_image_space(wl) == pytest.approx(ref["efl_mm"], rel=1e-9)
-    assert lens.efl(wl) == pytest.approx(ref["efl_mm"] / n_img, rel=1e-9)
+    # optiland's Buchdahl model glass at 0.5876 um against the file's nd (at 0.58756 um): measured 1.2e-6
+    assert n_img == pytest.approx(1.333, abs=5e-6)
+    assert lens.efl_image_space(wl) == pytest.approx(ref["efl_mm"], rel=2e-15)
+    assert lens.efl(wl) == pytest.approx(ref["efl_mm"] / n_img, rel=2e-15)
+    assert lens.efl_image_space(wl) / lens.efl(wl) == pytest.approx(n_img, rel=2e-15)  # measured 0
     air = rw.load_lens("cooke_triplet")
     assert air.efl_image_space(0.5876) == air.efl(0.5876)
 

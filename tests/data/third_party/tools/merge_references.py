@@ -10,9 +10,10 @@ import hashlib, json, re, sys
 
 T = "tests/data/third_party/"
 NEW = {
-    "files/cots-objective-design/COTS-0002-12-1.zmx": {
-        "repo": "m-d-young/cots-objective-design", "path": "COTS-0002-12-1.zmx",
-        "commit": "0829210a1c250cfaca2398941df0d1dfc115f579", "licence": "GPL-3.0 (files/cots-objective-design/LICENSE)"},
+    "synthetic/water_image_space.zmx": {
+        "repo": "this repository (written for the project)",
+        "path": "tests/data/third_party/synthetic/water_image_space.zmx",
+        "commit": "n/a", "licence": "MIT (this project's; written from scratch for rwwarp)"},
     "synthetic/ef35mm_f2.0_stop_diam.zmx": {
         "repo": "singer-yang/DeepLens (modified here, issue 28)", "path": "datasets/lenses/camera/ef35mm_f2.0.zmx",
         "commit": "e15add06f42c145c4be02331a573459b34541dd0",
@@ -35,7 +36,8 @@ def r2_term(p):
 man = json.load(open(T + "manifest.json"))
 by_file = {e["file"]: e for e in man["files"]}
 for out in sys.argv[1:]:
-    for p, ref in json.load(open(out)).items():
+    res = json.load(open(out))
+    for p, ref in res.items():
         if p.startswith("_") or "error" in ref:
             continue
         rel = p.split(T, 1)[1]
@@ -54,5 +56,7 @@ for out in sys.argv[1:]:
             by_file[key] = e
         e["sha256"] = hashlib.sha256(open(p, "rb").read()).hexdigest()
         e["reference"] = ref
+        if "_versions" in res:  # this entry's tool versions (the manifest's "versions": the first run's)
+            e["reference_versions"] = res["_versions"]
 json.dump(man, open(T + "manifest.json", "w"), indent=1)
 print(len(man["files"]), sum("reference" in e for e in man["files"]))

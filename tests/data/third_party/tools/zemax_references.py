@@ -50,7 +50,11 @@ if __name__ == "__main__":
             res[p] = refs(p)
         except Exception as e:
             res[p] = {"error": f"{type(e).__name__}: {e}"[:300]}
-    res["_versions"] = {"optiland": md.version("optiland"), "rayoptics": md.version("rayoptics"),
-                        "numpy": md.version("numpy")}
+    res["_versions"] = {}
+    for pkg in ("optiland", "rayoptics", "numpy"):  # rayoptics: installed beside optiland in the first run
+        try:
+            res["_versions"][pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            pass
     import os
     open(os.environ.get("REFS_OUT", "/tmp/refs_out.json"), "w").write(json.dumps(res, indent=1))
