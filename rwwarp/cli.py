@@ -74,40 +74,7 @@ def _lens(path):
     return load_lens(path)
 
 
-def surface_table(lens) -> list:
-    """Lines of ``rwwarp info``'s surface table: radius (mm), conic, thickness (mm) and the medium it lies in
-    (the medium after the surface: a DOE or an aperture keeps the one before it), semi-diameter (mm); below a
-    surface its aspheric terms (sag coefficients of r^2, r^4 ... in mm^(1-i)), a thin lens's focal length, a
-    DOE's relief material and profile, a mirror, an obscuration."""
-    media = lens.media()
-    out = [f"{'#':>3} {'type':<9} {'radius':>11} {'conic':>9} {'thickness':>10} {'medium after':<13} {'semi-diam':>9}"]
-    for i, s in enumerate(lens.surfaces):
-        rad = "inf" if s.radius is None else f"{s.radius:.5f}"
-        sd = "-" if s.semi_diameter is None else f"{s.semi_diameter:.4f}"
-        conic = f"{s.conic:.6g}" if s.type == "standard" else "-"
-        out.append(f"{i:>3} {s.type:<9} {rad:>11} {conic:>9} {s.thickness:>10.5f} {media[i]:<13} {sd:>9}"
-                   f"{'  STOP' if i == lens.stop_index else ''}")
-        notes = []
-        if s.type == "standard":
-            if s.a2:
-                notes.append(f"r^2 {s.a2:.6e}")
-            if s.aspheric:
-                notes.append("even asphere " + ", ".join(f"r^{2 * k + 4} {c:.6e}" for k, c in enumerate(s.aspheric)))
-            if s.odd_aspheric:
-                notes.append("odd asphere " + ", ".join(f"r^{k + 1} {c:.6e}" for k, c in enumerate(s.odd_aspheric)
-                                                        if c))
-            if s.mirror:
-                notes.append("mirror")
-        elif s.type == "thin_lens":
-            notes.append(f"ideal thin lens, f = {s.focal_length:g} mm")
-        elif s.type == "doe":
-            kind = (s.profile or {}).get("kind", "blank")
-            notes.append(f"DOE: relief in {s.material} (no thickness: the medium stays {media[i]}), profile {kind}, "
-                         f"design {s.design_wavelength_um:g} um" + (f", {s.levels} levels" if s.levels else ""))
-        if s.obscuration:
-            notes.append(f"obscuration {s.obscuration}")
-        out += [f"{'':>9}{n}" for n in notes]
-    return out
+from .lens import surface_table  # noqa: E402  (rwwarp info's table; its home: lens)
 
 
 def cmd_info(a):

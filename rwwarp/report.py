@@ -304,7 +304,7 @@ def _section(key, lens, fields, y_fields, wls, wl0, model, psf_size, mtf_size, t
         rows = ["![layout](layout.png)", "",
                 "| surface | type | radius (mm) | conic | thickness (mm) | medium after | clear semi-diameter (mm) | notes |",
                 "|---|---|---|---|---|---|---|---|"]
-        from .cli import surface_table
+        from .lens import surface_table
         notes = {}  # the note lines of `rwwarp info` (aspheric terms, thin lens, DOE relief) under each surface
         k = -1
         for line in surface_table(lens)[1:]:
