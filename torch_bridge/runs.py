@@ -231,8 +231,8 @@ def status(run_dir) -> dict:
                 "%Y-%m-%dT%H:%M:%SZ")
         arms[d.name] = a
     state = (prog or {}).get("state", "unknown")
-    if not alive and state == "running":
-        state = "dead"
+    if not alive and state not in ("done", "failed", "stopped", "unknown"):
+        state = "dead"             # killed (SIGKILL, machine taken back) while running or evaluating
     log_tail = []
     if (run_dir / "run.log").exists():
         with open(run_dir / "run.log", "rb") as f:
