@@ -59,6 +59,7 @@ import numpy as np
 import torch
 
 from torch_bridge.config import (  # noqa: F401
+    parse_overrides,
     CONFIG_DIR,
     DEFAULTS,
     SCHEMA,
@@ -671,15 +672,16 @@ def _truncate_csv(path: Path, step: int, fields=None):
 
 # ============================================================================================== experiment
 def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bool = True,
-          progress: bool | None = None, group=None) -> dict:
+          progress: bool | None = None, group=None, overrides: dict | None = None) -> dict:
     """Run an experiment: validate the config (``config``: path or dict, ``preset``: a key of its
     ``presets``), then every arm (or those named in ``arms``) in order, then write the table and the
     comparison figure. Returns ``{arm: result}``. ``out_dir`` overrides the config's; default
-    ``out/design/<experiment>[_<preset>]``.
+    ``out/design/<experiment>[_<preset>]``. ``overrides``: keys set in every arm after the preset
+    (:func:`torch_bridge.config.parse_overrides`, the command line's ``--set``).
 
     Under ``torchrun`` (``WORLD_SIZE`` > 1) or with ``group``, each arm runs on all ranks
     (:mod:`torch_bridge.distributed`); rank 0 writes the outputs, the other ranks return ``{}``."""
-    exp = load_config(config, preset)
+    exp = load_config(config, preset, overrides)
     if group is None:
         from torch_bridge.distributed import current_group
         group = current_group(str(exp["base"]["device"]))
@@ -782,6 +784,9 @@ def main(argv=None) -> int:
                     help="train nothing: rewrite table.md/table.csv/designs.png/summary.json from the arms "
                          "finished in the output folder (e.g. after running arms in separate processes)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="set a config key in every arm after the preset (repeatable), e.g. --set "
+                         "train.joint_steps=2000 --set data.root=data/debian-photos")
     ap.add_argument("--detach", action="store_true",
                     help="start the run in the background in its own process session and return: output in "
                          "RUN_DIR/run.log, process id in RUN_DIR/run.pid, progress in RUN_DIR/progress.json "
@@ -800,6 +805,11 @@ def main(argv=None) -> int:
     if a.resume and a.fresh:
         print("rwwarp design: error: --resume and --fresh contradict each other", file=sys.stderr)
         return 2
+    try:
+        a.overrides = parse_overrides(a.set)
+    except ConfigError as e:
+        print(f"rwwarp design: error: {e}", file=sys.stderr)
+        return 2
     if (a.detach or a.resume) and not a.check and not a.table:
         return _detach_or_unpack(a, argv)
     if a.procs > 1 and not a.check and not a.table:
@@ -812,7 +822,7 @@ def main(argv=None) -> int:
         rest = [x for x in (argv if argv is not None else sys.argv[1:])]
         rest = _drop_option(rest, "--procs")
         try:
-            exp = load_config(a.config, a.preset)     # a bad config fails here, before any worker starts
+            exp = load_config(a.config, a.preset, a.overrides)   # a bad config fails here, before any worker
             for arm in exp["arms"]:
                 b = arm["config"]["data"]["batch_size"]
                 if b % a.procs:
@@ -828,10 +838,10 @@ def main(argv=None) -> int:
         return max(codes)
     try:
         if a.check:
-            return _check(a.config, a.preset, a.out)
+            return _check(a.config, a.preset, a.out, a.overrides)
         _stop_on_sigterm()
         res = train(a.config, a.preset, [] if a.table else a.arm, a.out, resume=not a.fresh,
-                    progress=not a.no_progress)
+                    progress=not a.no_progress, overrides=a.overrides)
     except ConfigError as e:
         print(f"rwwarp design: error: {e}", file=sys.stderr)
         return 2
@@ -847,7 +857,7 @@ def _detach_or_unpack(a, argv: list) -> int:
     the run in the background); without ``--detach`` the run then goes on in this process."""
     from torch_bridge.runs import detach, process_alive, unpack
     try:
-        exp = load_config(a.config, a.preset)
+        exp = load_config(a.config, a.preset, a.overrides)
         out = run_folder(exp, a.preset, a.out)
         chosen = exp["arms"] if a.arm is None else [x for x in exp["arms"] if x["name"] in set(a.arm)]
         if a.arm is not None and len(chosen) != len(set(a.arm)):
@@ -885,12 +895,12 @@ def _detach_or_unpack(a, argv: list) -> int:
     return 0
 
 
-def _check(config, preset, out_dir) -> int:
+def _check(config, preset, out_dir, overrides=None) -> int:
     """``--check``: validate the config (every arm after its preset) on this machine without a GPU:
     build each arm's lens and network (parameter count), and print the schedule, the data and the device
     of each arm; a difference of schedule between the arms of the experiment is reported."""
     from torch_bridge.network import build_network
-    exp = load_config(config, preset)
+    exp = load_config(config, preset, overrides)
     print(f"{exp['source'] or config}: valid; arms: {', '.join(x['name'] for x in exp['arms'])}")
     nets, sched = {}, set()
     for arm in exp["arms"]:
@@ -912,7 +922,7 @@ def _check(config, preset, out_dir) -> int:
         root = d["root"]
         data = "scikit-image samples" if root is None else f"{root}" + ("" if Path(root).is_dir() else " (missing here)")
         print(f"  {arm['name']}: {cfg['design']['method']}, lens {len(lens.surfaces)} surfaces, "
-              f"{len(cfg['optics']['nodes'].get('fractions') or []) or 'grid'} nodes, network {n['preset']} "
+              f"{_n_nodes(cfg)} PSF nodes, network {n['preset']} "
               f"{nets[key] / 1e6:.2f} M parameters, {t['joint_steps']} joint + {t['finetune_steps']} fine-tune steps, "
               f"batch {d['batch_size']} x {d['crop']} px, data {data}, device {dev}{here}")
     if len(sched) > 1:
@@ -921,6 +931,14 @@ def _check(config, preset, out_dir) -> int:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output {str(out)!r} exists and is not a folder")
     return 0
+
+
+def _n_nodes(cfg) -> str:
+    """Number of PSF nodes of a config (a grid: gy x gx; a diagonal: its fractions)."""
+    nd = cfg["optics"]["nodes"]
+    if cfg["render"]["mode"] == "full" or nd["layout"] == "grid":
+        return f"{nd['grid'][0]} x {nd['grid'][1]}"
+    return str(len(nd["fractions"]))
 
 
 def _cmd_status(argv: list) -> int:

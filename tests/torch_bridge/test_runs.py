@@ -132,6 +132,12 @@ def test_gpu_presets_check_on_the_cpu(name, capsys):
     assert main([name, "--preset", "gpu", "--check"]) == 0
     out = capsys.readouterr().out
     assert "valid" in out and "17.1" in out and "differ in schedule" not in out, out
+    # --set reaches every arm after the preset; a misspelt key is refused, naming it
+    assert main([name, "--preset", "gpu", "--check", "--set", "train.joint_steps=2000"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("2000 joint") == out.count("\n  ") and "2000 joint" in out, out
+    assert main([name, "--preset", "gpu", "--check", "--set", "train.joint_stesp=2000"]) == 2
+    assert "'train.joint_stesp'" in capsys.readouterr().err
 
 
 def _deb(path: Path, files: dict, links: dict = ()):
