@@ -32,8 +32,8 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["PACK_MANIFEST", "ProgressFile", "detach", "git_commit", "pack", "process_alive", "status",
-           "unpack", "write_json_atomic"]
+__all__ = ["PACK_MANIFEST", "ProgressFile", "cli_status", "detach", "git_commit", "pack", "process_alive",
+           "status", "unpack", "write_json_atomic"]
 
 PACK_MANIFEST = "pack.json"
 PACK_FORMAT = "rwwarp-design-pack-1"
@@ -253,7 +253,8 @@ def format_status(st: dict) -> str:
         lines.append(f"  arm {p.get('arm')} ({p.get('arm_index', 0) + 1}/{p.get('arms_total')}), phase "
                      f"{p.get('phase')}, step {p.get('step')}/{p.get('steps_total')}, {f('steps_per_s', '.3f')} "
                      f"steps/s, ETA {f('eta_s', '.0f')} s, loss {f('loss', '.5f')}, PSNR {f('psnr_train', '.2f')} "
-                     f"dB, peak GPU {f('peak_gpu_gb', '.2f')} GB; updated {p.get('updated_utc')}")
+                     f"dB, peak GPU {f('peak_gpu_gb', '.2f')} GB; last checkpoint at step {p.get('checkpoint_step', '-')}; "
+                     f"updated {p.get('updated_utc')}")
         if p.get("error"):
             lines.append(f"  error: {p['error']}")
     for name, a in st["arms"].items():
@@ -261,6 +262,24 @@ def format_status(st: dict) -> str:
                      + (f", checkpoint {a['checkpoint_mib']} MiB at {a['checkpoint_utc']}" if a["checkpoint"]
                         else ""))
     return "\n".join(lines)
+
+
+def cli_status(argv: list) -> int:
+    """``rwwarp design status RUN_DIR [--json]``: print :func:`status` (lines, or JSON) and return 0 while
+    the run's process is alive, 1 when it is not, 2 for a folder that is not a run. Needs only the
+    standard library (``rwwarp design status`` loads this file without torch: ~0.1 s)."""
+    import argparse
+    ap = argparse.ArgumentParser(prog="rwwarp design status", description="state of a design run (any process)")
+    ap.add_argument("run_dir")
+    ap.add_argument("--json", action="store_true", help="print the status record as JSON")
+    a = ap.parse_args(argv)
+    try:
+        st = status(a.run_dir)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"rwwarp design status: error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(st, indent=1) if a.json else format_status(st))
+    return 0 if st["alive"] else 1
 
 
 # ============================================================================================== pack / unpack

@@ -525,6 +525,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     t0 = time.perf_counter()
     if pf is not None:
         pf.start_arm(arm.step)
+        pf.rec["checkpoint_step"] = arm.step if resume_now else None
     if not arm.design_done:
         report("running", "design")
         arm.run_design()
@@ -533,6 +534,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         if lead:
             arm.objective_initial = objective(arm, _eval_provider(arm))
             arm.save(ck)
+            if pf is not None:
+                pf.update(checkpoint_step=arm.step)
     if isinstance(arm.provider, CachedProvider):
         allw = sorted({w for c in arm.wls for w in c})
         arm.provider.prepare(allw, arm.depths, progress=arm.progress)
@@ -586,9 +589,13 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             boundary = arm.step == t_cfg["joint_steps"] or arm.step == total
             if lead and ((t_cfg["checkpoint_every"] and arm.step % t_cfg["checkpoint_every"] == 0) or boundary):
                 arm.save(ck)
+                if pf is not None:
+                    pf.update(checkpoint_step=arm.step)
             if stop_after is not None and arm.step >= stop_after:
                 if lead:
                     arm.save(ck)
+                    if pf is not None:
+                        pf.update(checkpoint_step=arm.step)
                 break
     finally:
         if fcsv is not None:
@@ -722,7 +729,8 @@ def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bo
     except BaseException as e:
         if pf is not None:
             stopped = isinstance(e, (KeyboardInterrupt, SystemExit))
-            pf.update(state="stopped" if stopped else "failed", error=f"{type(e).__name__}: {e}")
+            pf.update(state="stopped" if stopped else "failed",
+                      error=(f"stopped ({type(e).__name__} {e})" if stopped else f"{type(e).__name__}: {e}"))
         raise
     if not lead:
         return {}
@@ -924,7 +932,7 @@ def _check(config, preset, out_dir, overrides=None) -> int:
         print(f"  {arm['name']}: {cfg['design']['method']}, lens {len(lens.surfaces)} surfaces, "
               f"{_n_nodes(cfg)} PSF nodes, network {n['preset']} "
               f"{nets[key] / 1e6:.2f} M parameters, {t['joint_steps']} joint + {t['finetune_steps']} fine-tune steps, "
-              f"batch {d['batch_size']} x {d['crop']} px, data {data}, device {dev}{here}")
+              f"batch {d['batch_size']} x {d['crop']} px, seed {cfg['seed']}, data {data}, device {dev}{here}")
     if len(sched) > 1:
         print("  note: the arms differ in schedule (joint, fine-tune, batch, crop): " + ", ".join(map(str, sorted(sched))))
     out = run_folder(exp, preset, out_dir)
@@ -942,19 +950,9 @@ def _n_nodes(cfg) -> str:
 
 
 def _cmd_status(argv: list) -> int:
-    """``rwwarp design status RUN_DIR [--json]``: exit 0 while the run's process is alive, 1 otherwise."""
-    from torch_bridge.runs import format_status, status
-    ap = argparse.ArgumentParser(prog="rwwarp design status", description="state of a design run (any process)")
-    ap.add_argument("run_dir")
-    ap.add_argument("--json", action="store_true", help="print the status record as JSON")
-    a = ap.parse_args(argv)
-    try:
-        st = status(a.run_dir)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"rwwarp design status: error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps(st, indent=1) if a.json else format_status(st))
-    return 0 if st["alive"] else 1
+    """``rwwarp design status RUN_DIR [--json]`` (:func:`torch_bridge.runs.cli_status`)."""
+    from torch_bridge.runs import cli_status
+    return cli_status(argv)
 
 
 def _cmd_pack(argv: list) -> int:
