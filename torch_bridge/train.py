@@ -535,7 +535,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             arm.objective_initial = objective(arm, _eval_provider(arm))
             arm.save(ck)
             if pf is not None:
-                pf.update(checkpoint_step=arm.step)
+                pf.update(checkpoint_step=arm.step, step=arm.step)
     if isinstance(arm.provider, CachedProvider):
         allw = sorted({w for c in arm.wls for w in c})
         arm.provider.prepare(allw, arm.depths, progress=arm.progress)
@@ -590,12 +590,12 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             if lead and ((t_cfg["checkpoint_every"] and arm.step % t_cfg["checkpoint_every"] == 0) or boundary):
                 arm.save(ck)
                 if pf is not None:
-                    pf.update(checkpoint_step=arm.step)
+                    pf.update(checkpoint_step=arm.step, step=arm.step)
             if stop_after is not None and arm.step >= stop_after:
                 if lead:
                     arm.save(ck)
                     if pf is not None:
-                        pf.update(checkpoint_step=arm.step)
+                        pf.update(checkpoint_step=arm.step, step=arm.step)
                 break
     finally:
         if fcsv is not None:
