@@ -203,6 +203,8 @@ SCHEMA = {
         "rms_fractions": _list(_num(0, 1), 1),
         "rms_grid": _num(3, integer=True),
         "batch_size": _num(1, integer=True),
+        "grid": _list(_num(1, integer=True), 2, 2, none=True),
+        "node_chunk": _num(1, integer=True),
     },
     "progress": _bool(),
 }
@@ -234,7 +236,8 @@ DEFAULTS = {
     "design": {"method": "e2e", "init": None, "efl_mm": None, "efl_weight": 0.0,
                "rms": {"steps": 100, "grid": 31, "lr": {"doe": 1.0}, "wavelengths_um": None}},
     "eval": {"depths_mm": None, "noise": {"read_std": 0.01, "photons": None}, "seed": 1234,
-             "rms_fractions": [0.0, 0.25, 0.5, 0.75, 0.9], "rms_grid": 41, "batch_size": 8},
+             "rms_fractions": [0.0, 0.25, 0.5, 0.75, 0.9], "rms_grid": 41, "batch_size": 8, "grid": None,
+             "node_chunk": 16},
     "progress": True,
 }
 
@@ -426,6 +429,9 @@ def _semantic(cfg: dict, where: str, source):
         kind = lens.surfaces[lens.doe_index].profile.get("kind")
         if kind not in ("even_poly", "poly"):
             raise ConfigError(f"{where}: 'design.method' paraxial_achromat needs an even_poly or poly DOE")
+    if cfg["eval"]["grid"] is not None and cfg["render"]["mode"] != "patch":
+        raise ConfigError(f"{where}: 'eval.grid' needs render.mode 'patch' (the full-image rendering evaluates on "
+                          "the training node grid)")
     if cfg["render"]["mode"] == "patch" and cfg["data"]["crop"] < cfg["optics"]["psf_size"] // 2:
         raise ConfigError(f"{where}: 'data.crop' {cfg['data']['crop']} is smaller than half of "
                           f"'optics.psf_size' {cfg['optics']['psf_size']}")
