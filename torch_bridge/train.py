@@ -22,7 +22,9 @@ Per arm:
    images with sensor noise (``train.noise``).
 4. **Evaluation**: ray-wave PSFs with the three wavelengths of each channel averaged, fixed
    validation crops with seeded noise, PSNR / SSIM / 1-LPIPS of the raw and reconstructed images
-   per depth and node; the ray-model RMS spot radius on axis, at the outer node and averaged.
+   per depth and node (the training nodes, or the denser ``eval.grid`` of ``gy x gx`` nodes over the
+   same region, whose fields are cached ``eval.node_chunk`` nodes at a time); the ray-model RMS spot
+   radius on axis, at the outer node and averaged.
 
 Fabrication limit (``optics.min_feature_um``, default none): after every optics update the DOE is
 scaled onto its smallest allowed feature (the narrowest quantisation step over the aperture,
@@ -41,6 +43,11 @@ step, optics and network weights, optimiser states, every RNG state, the cached 
 ``table.csv``, ``summary.json`` and ``designs.png``.
 Resuming (the default when a checkpoint exists) continues exactly where the run stopped: the next
 step is the same as in an uninterrupted run.
+Runs that survive interruption (:mod:`torch_bridge.runs`): ``--detach`` (background, own session,
+``run.log``, ``run.pid``), ``progress.json`` (replaced atomically), ``rwwarp design status RUN_DIR``,
+``rwwarp design pack RUN_DIR`` (a portable checkpoint in parts of <= 15 MiB) and ``--resume PACK``; each
+process adds a segment (commit, card, steps, wall time) to ``result["run"]``. An arm whose
+``result.json`` is complete is kept when the experiment runs again (``--fresh`` trains it again).
 """
 from __future__ import annotations
 
