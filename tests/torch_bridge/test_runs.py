@@ -228,3 +228,29 @@ def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path)
     from torch_bridge.train import ConfigError
     with pytest.raises(ConfigError, match="eval.grid"):
         train(bad, out_dir=tmp_path / "bad")
+
+
+def test_rwwarp_design_status_reads_a_run_without_importing_torch(tmp_path):
+    """``rwwarp design status`` from another process: alive while the recorded process runs (here: this
+    test's process, same host), not alive for a finished run; torch is never imported for it."""
+    import socket
+    from torch_bridge.runs import write_json_atomic
+    run = tmp_path / "run"
+    run.mkdir()
+    code = ("import sys, rwwarp.cli as c\n"
+            "try:\n    c.main(['design', 'status', sys.argv[1]])\n"
+            "except SystemExit as e:\n    print('torch' in sys.modules, e.code)\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+    def status_rc():
+        r = subprocess.run([sys.executable, "-c", code, str(run)], capture_output=True, text=True, env=env,
+                           timeout=60)
+        return r.stdout.strip().splitlines()
+    write_json_atomic(run / "progress.json", {"pid": os.getpid(), "host": socket.gethostname(), "state": "running",
+                                              "arm": "e2e", "step": 3, "steps_total": 10})
+    out = status_rc()
+    assert "ALIVE" in out[0] and out[-1] == "False 0", out
+    write_json_atomic(run / "progress.json", {"pid": os.getpid(), "host": socket.gethostname(), "state": "done"})
+    out = status_rc()
+    assert "not running" in out[0] and out[-1] == "False 1", out
+    assert status(run)["state"] == "done"
