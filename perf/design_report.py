@@ -128,7 +128,9 @@ def main(argv=None) -> int:
               ("One arm at a time: `--arm NAME` (the table then includes arms finished earlier in the same "
                "folder); `--fresh` ignores checkpoints; `--check` only validates the config; `--table` "
                "rewrites the table and figure from the finished arms. Then "
-               "`.venv/bin/python perf/design_report.py` rewrites this file."), ""]
+               "`.venv/bin/python perf/design_report.py` rewrites this file."), "",
+              ("The GPU runs of the three experiments follow `PROTOCOL.md` (written before them: images, "
+               "schedule, seeds, GPU-hours, how a run moves between machines)."), ""]
     if keep:
         lines += [keep, ""]
     for d in sorted(p for p in root.iterdir() if p.is_dir() and (p / "summary.json").exists()):

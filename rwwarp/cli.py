@@ -264,10 +264,31 @@ def _plugin_command(name: str):
     return next(iter(found)).load()
 
 
+def _design_status_fast():
+    """``torch_bridge.runs.cli_status`` loaded from its file alone (standard library only, no torch, no
+    package import), or None when torch_bridge is not found."""
+    import importlib.util
+    spec = importlib.util.find_spec("torch_bridge")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    path = Path(list(spec.submodule_search_locations)[0]) / "runs.py"
+    if not path.exists():
+        return None
+    mspec = importlib.util.spec_from_file_location("_rwwarp_design_runs", path)
+    mod = importlib.util.module_from_spec(mspec)
+    mspec.loader.exec_module(mod)
+    return mod.cli_status
+
+
 def cmd_design(a):
     """End-to-end design from a YAML/TOML config (torch_bridge; needs torch). torch_bridge is a layer above
     rwwarp: the command is found through the ``rwwarp.commands`` entry point group (pyproject.toml), not
     imported here."""
+    if a.config == "status":
+        # read from another process while a run goes on: without importing torch (seconds) when possible
+        fast = _design_status_fast()
+        if fast is not None:
+            sys.exit(fast(a.rest))
     try:
         train_main = _plugin_command("design")
     except ImportError as e:

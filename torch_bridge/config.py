@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CONFIG_DIR", "DEFAULTS", "SCHEMA", "ConfigError", "build_lens", "load_config", "resolve_config",
+__all__ = ["CONFIG_DIR", "parse_overrides", "DEFAULTS", "SCHEMA", "ConfigError", "build_lens", "load_config", "resolve_config",
            "validate_config"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -203,6 +203,8 @@ SCHEMA = {
         "rms_fractions": _list(_num(0, 1), 1),
         "rms_grid": _num(3, integer=True),
         "batch_size": _num(1, integer=True),
+        "grid": _list(_num(1, integer=True), 2, 2, none=True),
+        "node_chunk": _num(1, integer=True),
     },
     "progress": _bool(),
 }
@@ -234,7 +236,8 @@ DEFAULTS = {
     "design": {"method": "e2e", "init": None, "efl_mm": None, "efl_weight": 0.0,
                "rms": {"steps": 100, "grid": 31, "lr": {"doe": 1.0}, "wavelengths_um": None}},
     "eval": {"depths_mm": None, "noise": {"read_std": 0.01, "photons": None}, "seed": 1234,
-             "rms_fractions": [0.0, 0.25, 0.5, 0.75, 0.9], "rms_grid": 41, "batch_size": 8},
+             "rms_fractions": [0.0, 0.25, 0.5, 0.75, 0.9], "rms_grid": 41, "batch_size": 8, "grid": None,
+             "node_chunk": 16},
     "progress": True,
 }
 
@@ -286,7 +289,7 @@ def _read(path: Path) -> dict:
     return data
 
 
-def load_config(source, preset: str | None = None) -> dict:
+def load_config(source, preset: str | None = None, overrides: dict | None = None) -> dict:
     """Read (YAML ``.yaml``/``.yml`` or TOML ``.toml``) or take a dict, apply ``preset`` (a key of its
     ``presets`` section), validate every arm and return the resolved experiment::
 
@@ -296,6 +299,9 @@ def load_config(source, preset: str | None = None) -> dict:
     Raises :class:`ConfigError` naming the key and the file for unknown keys, wrong types,
     impossible values, a missing preset, a lens file that cannot be read, or learning quantities
     that the lens or the chosen model cannot learn. Nothing is trained before this passes.
+
+    ``overrides`` (a nested mapping, e.g. from ``--set train.joint_steps=2000``): merged last, after the
+    preset and each arm's own keys, into every arm (the same budget for every arm); checked like the file.
     """
     if isinstance(source, dict):
         raw, where, path = copy.deepcopy(source), "config", None
@@ -324,6 +330,11 @@ def load_config(source, preset: str | None = None) -> dict:
         base = _merge(base, over)
     else:
         arm_over = None
+    if overrides:
+        if not isinstance(overrides, dict):
+            raise ConfigError("--set: overrides must be a mapping")
+        _check(overrides, SCHEMA, f"{where} [--set]")
+        base = _merge(base, overrides)
     if arms is None:
         arms = [{"name": base["design"]["method"]}]
     if not isinstance(arms, list) or not arms:
@@ -343,6 +354,8 @@ def load_config(source, preset: str | None = None) -> dict:
         if arm_over and name in arm_over:
             _check(arm_over[name], SCHEMA, f"{where} [presets.{preset}.arms.{name}]")
             cfg = _merge(cfg, arm_over[name])
+        if overrides:
+            cfg = _merge(cfg, overrides)
         _semantic(cfg, f"{where} [arms[{i}] {name}]", path)
         out_arms.append({"name": name, "config": cfg})
     if arm_over:
@@ -416,6 +429,9 @@ def _semantic(cfg: dict, where: str, source):
         kind = lens.surfaces[lens.doe_index].profile.get("kind")
         if kind not in ("even_poly", "poly"):
             raise ConfigError(f"{where}: 'design.method' paraxial_achromat needs an even_poly or poly DOE")
+    if cfg["eval"]["grid"] is not None and cfg["render"]["mode"] != "patch":
+        raise ConfigError(f"{where}: 'eval.grid' needs render.mode 'patch' (the full-image rendering evaluates on "
+                          "the training node grid)")
     if cfg["render"]["mode"] == "patch" and cfg["data"]["crop"] < cfg["optics"]["psf_size"] // 2:
         raise ConfigError(f"{where}: 'data.crop' {cfg['data']['crop']} is smaller than half of "
                           f"'optics.psf_size' {cfg['optics']['psf_size']}")
@@ -565,3 +581,29 @@ def _preflight(arms, out: Path) -> None:
                                   "use --preset cpu or device: cpu")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output {str(out)!r} exists and is not a folder")
+
+
+def parse_overrides(items) -> dict:
+    """``["train.joint_steps=2000", "data.root=data/debian-photos"]`` -> a nested mapping for
+    :func:`load_config`; each VALUE is read as YAML (numbers, ``null``, ``true``, lists ``[1, 2]``).
+    Raises :class:`ConfigError` for an item without ``=`` or with an empty key."""
+    import yaml
+    out = {}
+    for it in items or []:
+        if "=" not in it:
+            raise ConfigError(f"--set {it!r}: expected KEY=VALUE (e.g. train.joint_steps=2000)")
+        key, val = it.split("=", 1)
+        keys = key.strip().split(".")
+        if not all(keys):
+            raise ConfigError(f"--set {it!r}: empty key")
+        try:
+            v = yaml.safe_load(val)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {it!r}: the value is not YAML ({e})") from None
+        d = out
+        for k in keys[:-1]:
+            d = d.setdefault(k, {})
+            if not isinstance(d, dict):
+                raise ConfigError(f"--set {it!r}: {k!r} is set both as a value and as a section")
+        d[keys[-1]] = v
+    return out

@@ -10,7 +10,7 @@ import torch
 
 from torch_bridge.config import _budget_bytes, _depth_tag, _depth_value, _feature_mm
 
-__all__ = ["evaluate", "objective"]
+__all__ = ["eval_nodes", "evaluate", "objective"]
 
 
 def _noise(image, noise: dict, gen):
@@ -89,41 +89,94 @@ def objective(arm, prov=None) -> dict:
     return {"loss": tot / n, "mse": mse / n}
 
 
+def eval_nodes(arm):
+    """The evaluation nodes of ``arm``: ``(positions_mm, fields)`` of ``eval.grid`` (``gy x gx`` cell
+    centres over the training nodes' region and half size, row-major from the top row), or None when
+    ``eval.grid`` is not set (the training nodes are evaluated)."""
+    from torch_bridge import design as dz
+    cfg = arm.cfg
+    grid = cfg["eval"]["grid"]
+    if grid is None:
+        return None
+    nd = cfg["optics"]["nodes"]
+    lens = arm.module.to_lens()
+    half = nd["half_size_mm"] or [0.5 * lens.sensor.resolution[0] * lens.sensor.pixel_pitch,
+                                  0.5 * lens.sensor.resolution[1] * lens.sensor.pixel_pitch]
+    pos = dz.node_positions_mm("grid", half, grid, nd["fractions"], nd["region"])
+    return pos, dz.field_angles(lens, pos, arm.wl_ref)
+
+
+def _eval_psfs(arm, depths, prov=None) -> tuple:
+    """Per evaluation depth the (nodes, 3, k, k) ray-wave PSFs with the wavelengths of each channel
+    averaged, the node positions (mm) and field angles (deg). On the training nodes (``prov`` or :func:`_eval_provider`), or,
+    with ``eval.grid``, on that grid in chunks of ``eval.node_chunk`` nodes, each chunk's DOE-plane
+    fields cached only while its PSFs are made (memory follows the chunk, not the grid)."""
+    from torch_bridge import design as dz
+    dense = eval_nodes(arm)
+
+    def mean_psf(p, depth):
+        per_wl = [p.psfs([c[j] for c in arm.wls], depth) for j in range(len(arm.wls[0]))]
+        return torch.stack(per_wl, 0).mean(0)                              # (nodes, 3, k, k): mean per channel
+
+    if dense is None:
+        prov = prov or _eval_provider(arm)
+        return {d: mean_psf(prov, d) for d in depths}, list(arm.positions), list(arm.fields)
+    pos, fields = dense
+    k = int(arm.cfg["eval"]["node_chunk"])
+    out = {d: [] for d in depths}
+    allw = sorted({w for c in arm.wls for w in c})
+    chunks = range(0, len(fields), k)
+    if arm.progress:
+        from tqdm.auto import tqdm
+        chunks = tqdm(chunks, desc=f"{arm.name}: eval grid {arm.cfg['eval']['grid']}", unit="chunk", leave=False)
+    for i in chunks:
+        p = dz.CachedProvider(arm.module, fields[i:i + k], arm.size, arm.pixel_mm, model="ray-wave",
+                              wavelength_ref_um=arm.wl_ref, doe_budget_cpmm=arm.cfg["optics"]["doe_budget_cpmm"],
+                              memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
+                              min_feature_mm=_feature_mm(arm.cfg["optics"]))
+        p.prepare(allw, depths, progress=False)
+        with torch.no_grad():
+            for d in depths:
+                out[d].append(mean_psf(p, d))
+        del p
+    return {d: torch.cat(v, 0) for d, v in out.items()}, list(pos), list(fields)
+
+
 @torch.no_grad()
 def evaluate(arm, prov=None) -> dict:
-    """Evaluation of a trained arm with the ray-wave model (see the module docstring)."""
+    """Evaluation of a trained arm with the ray-wave model (see the module docstring): per evaluation
+    depth and node (the training nodes, or ``eval.grid``), PSNR (dB) / SSIM / 1-LPIPS of the raw and the
+    reconstructed fixed crops; the ray-model RMS spot radius (um); EFL (mm); DOE coefficients (rad)."""
     from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import image_metrics
     cfg = arm.cfg
     ev = cfg["eval"]
     depths = [_depth_value(d) for d in (ev["depths_mm"] or cfg["optics"]["depths_mm"])]
-    # ray-wave provider on the designed lens (its refractive part is frozen now: fields may be cached)
+    # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
     from torch_bridge import design as dz
-    prov = prov or _eval_provider(arm)
+    psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov)
+    n_nodes = len(positions)
     gt_all = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
     g = torch.Generator().manual_seed(int(ev["seed"]))
     arm.net.eval()
     rows = []
     psf_store = {}
     for depth in depths:
-        per_wl = []
-        for j in range(len(arm.wls[0])):
-            per_wl.append(prov.psfs([c[j] for c in arm.wls], depth))
-        psf = torch.stack(per_wl, 0).mean(0)                              # (nodes, 3, k, k): mean per channel
+        psf = psf_by_depth[depth]
         psf_store[str(depth)] = psf.cpu().numpy()
         kern = _psf_kernels(psf.float()).to(arm.device)
         node_rows = []
         if cfg["render"]["mode"] == "patch":
-            for n in range(len(arm.fields)):
+            for n in range(n_nodes):
                 raw = _blur_patch(gt_all, kern[[n] * gt_all.shape[0]], cfg["render"]["boundary"])
                 raw = _noise(raw, ev["noise"], g)
                 rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0],
                                                                                       ev["batch_size"])])
                 m_raw = image_metrics(raw, gt_all, arm.lpips)
                 m_rec = image_metrics(rec, gt_all, arm.lpips)
-                node_rows.append({"node": n, "position_mm": arm.positions[n], "field_deg": arm.fields[n],
+                node_rows.append({"node": n, "position_mm": positions[n], "field_deg": fields[n],
                                   "raw": m_raw, "rec": m_rec})
-                if n == len(arm.fields) - 1:
+                if n == n_nodes - 1:
                     sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
         else:
             gy, gx = arm.grid

@@ -22,7 +22,9 @@ Per arm:
    images with sensor noise (``train.noise``).
 4. **Evaluation**: ray-wave PSFs with the three wavelengths of each channel averaged, fixed
    validation crops with seeded noise, PSNR / SSIM / 1-LPIPS of the raw and reconstructed images
-   per depth and node; the ray-model RMS spot radius on axis, at the outer node and averaged.
+   per depth and node (the training nodes, or the denser ``eval.grid`` of ``gy x gx`` nodes over the
+   same region, whose fields are cached ``eval.node_chunk`` nodes at a time); the ray-model RMS spot
+   radius on axis, at the outer node and averaged.
 
 Fabrication limit (``optics.min_feature_um``, default none): after every optics update the DOE is
 scaled onto its smallest allowed feature (the narrowest quantisation step over the aperture,
@@ -41,6 +43,11 @@ step, optics and network weights, optimiser states, every RNG state, the cached 
 ``table.csv``, ``summary.json`` and ``designs.png``.
 Resuming (the default when a checkpoint exists) continues exactly where the run stopped: the next
 step is the same as in an uninterrupted run.
+Runs that survive interruption (:mod:`torch_bridge.runs`): ``--detach`` (background, own session,
+``run.log``, ``run.pid``), ``progress.json`` (replaced atomically), ``rwwarp design status RUN_DIR``,
+``rwwarp design pack RUN_DIR`` (a portable checkpoint in parts of <= 15 MiB) and ``--resume PACK``; each
+process adds a segment (commit, card, steps, wall time) to ``result["run"]``. An arm whose
+``result.json`` is complete is kept when the experiment runs again (``--fresh`` trains it again).
 """
 from __future__ import annotations
 
@@ -59,6 +66,7 @@ import numpy as np
 import torch
 
 from torch_bridge.config import (  # noqa: F401
+    parse_overrides,
     CONFIG_DIR,
     DEFAULTS,
     SCHEMA,
@@ -206,6 +214,12 @@ class Arm:
         self.feature_projections = 0
         self.objective_initial = None
         self.last_psf = None
+        # wall time and machine segments across resumes (checkpointed; :meth:`begin_segment`)
+        self.wall_prev = 0.0
+        self.segments_prev = []
+        self._seg = None
+        self._seg_t0 = None
+        self.resumed_without_optimizer = False
 
     # ------------------------------------------------------------------ optics
     def _achromat(self, lens):
@@ -298,28 +312,60 @@ class Arm:
         self.provider = self._provider(self.cfg["optics"]["model"])
         self.design_done = True
 
+    # ------------------------------------------------------------------ run segments
+    def begin_segment(self, info: dict):
+        """Start a segment of this arm's run in this process (after a resume, if any): ``info`` (commit,
+        card, host) is recorded with the first step and, at each checkpoint, the last step and the wall
+        time (s) of the segment."""
+        from torch_bridge.runs import _utc
+        self._seg = {**info, "start_step": self.step, "started_utc": _utc()}
+        self._seg_t0 = time.perf_counter()
+
+    def segments(self) -> list:
+        """Every segment of this arm so far (earlier processes from the checkpoint, then this one)."""
+        if self._seg is None:
+            return list(self.segments_prev)
+        return list(self.segments_prev) + [dict(self._seg, end_step=self.step,
+                                                wall_s=round(time.perf_counter() - self._seg_t0, 3))]
+
+    def wall_total(self) -> float:
+        """Wall time (s) of this arm over all its segments (design stage, training, checkpoints)."""
+        return self.wall_prev + (time.perf_counter() - self._seg_t0 if self._seg_t0 is not None else 0.0)
+
     # ------------------------------------------------------------------ checkpoint
     def state(self) -> dict:
+        """Everything needed to resume (a dict for :func:`torch.save`)."""
         return {"step": self.step, "design_done": self.design_done, "module": self.module.state_dict(),
                 "net": self.net.state_dict(), "opt_net": self.opt_net.state_dict(),
                 "opt_optics": None if self.opt_optics is None else self.opt_optics.state_dict(),
                 "rng": _rng_state(self.gen), "rms_log": self.rms_log,
                 "feature_projections": self.feature_projections, "objective_initial": self.objective_initial,
-                "last_psf": self.last_psf,
+                "last_psf": self.last_psf, "wall_s": self.wall_total(), "segments": self.segments(),
                 "plans": {f"{k[0]}|{k[1]}": v for k, v in getattr(self.provider, "plans", {}).items()}}
 
     def save(self, path: Path):
+        """Write :meth:`state` to ``path`` atomically (a temporary file, then a rename)."""
         tmp = path.with_suffix(".tmp")
         torch.save(self.state(), tmp)
         tmp.replace(path)
 
     def load(self, path: Path):
+        """Restore the state saved by :meth:`save` (or a portable checkpoint written back by
+        :func:`torch_bridge.runs.unpack`: without the network's Adam state, Adam restarts from zero
+        moments and :attr:`resumed_without_optimizer` is set)."""
         st = torch.load(path, map_location="cpu", weights_only=False)
         self.step = int(st["step"])
         self.design_done = bool(st["design_done"])
         self.module.load_state_dict(st["module"])
         self.net.load_state_dict(st["net"])
-        self.opt_net.load_state_dict(st["opt_net"])
+        if st.get("opt_net") is not None:
+            self.opt_net.load_state_dict(st["opt_net"])
+        else:
+            self.resumed_without_optimizer = True
+            self.notes.append(f"resumed at step {self.step} without the network's Adam state (portable checkpoint): "
+                              "Adam restarted from zero moments")
+        self.wall_prev = float(st.get("wall_s", 0.0))
+        self.segments_prev = list(st.get("segments", []))
         if self.opt_optics is not None and st["opt_optics"] is not None:
             self.opt_optics.load_state_dict(st["opt_optics"])
         self.rms_log = st.get("rms_log", [])
@@ -431,9 +477,14 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
 
 
 def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = True, progress: bool = True,
-              group=None) -> dict:
+              group=None, progress_file=None, run_info=None) -> dict:
     """Run one arm (design stage, joint phase, fine-tune phase, evaluation); returns its result dict
     (also written to ``out_dir/result.json``). ``resume``: continue from ``out_dir/checkpoint.pt``.
+
+    ``progress_file`` (:class:`torch_bridge.runs.ProgressFile`, optional): updated every
+    ``train.log_every`` steps and at each phase change (step, phase, steps/s, ETA in s, last loss and
+    PSNR, peak GPU memory in GB). ``run_info`` (dict: commit, card, host): recorded with each segment of
+    the run (a segment: the steps done by one process; a resumed run adds one) in ``result["run"]``.
 
     ``group`` (:class:`torch_bridge.distributed.Group`): one rank of a distributed run (see
     :mod:`torch_bridge.distributed`); rank 0 alone writes files and evaluates, the other ranks
@@ -465,8 +516,27 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             f.unlink()
         if csv_path.exists():
             csv_path.unlink()
+    if run_info is None:
+        from torch_bridge.runs import device_info, git_commit
+        run_info = {**git_commit(), **device_info(arm.device)}
+    arm.begin_segment(run_info)
+    pf = progress_file if lead else None
+    joint = t_cfg["joint_steps"]
+
+    def report(state, phase, **kw):
+        if pf is None:
+            return
+        peak = None
+        if arm.device.type == "cuda":
+            peak = round(torch.cuda.max_memory_allocated(arm.device) / 1e9, 3)
+        pf.update(state=state, arm=name, phase=phase, step=arm.step, steps_total=total, joint_steps=joint,
+                  arm_wall_s=round(arm.wall_total(), 1), peak_gpu_gb=peak, **pf.rate(arm.step, total), **kw)
     t0 = time.perf_counter()
+    if pf is not None:
+        pf.start_arm(arm.step)
+        pf.rec["checkpoint_step"] = arm.step if resume_now else None
     if not arm.design_done:
+        report("running", "design")
         arm.run_design()
         if isinstance(arm.provider, CachedProvider) and arm.provider.model == "ray-wave":
             # the training provider is the evaluation's too: its fields serve both
@@ -475,6 +545,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             # another model's provider is released while the evaluation's fields are held, and filled after
             arm.objective_initial = objective(arm, _eval_provider(arm))
             arm.save(ck)
+            if pf is not None:
+                pf.update(checkpoint_step=arm.step, step=arm.step)
     if isinstance(arm.provider, CachedProvider):
         allw = sorted({w for c in arm.wls for w in c})
         arm.provider.prepare(allw, arm.depths, progress=arm.progress)
@@ -518,21 +590,33 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                 writer.writerow(last)
                 fcsv.flush()
             if arm.progress:
-                it.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr_train']:.2f}", phase=phase)
+                it.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr_train']:.2f}", phase=phase,
+                                refresh=False)
+            if pf is not None and (step % t_cfg["log_every"] == 0 or arm.step in (joint, total)):
+                report("running", "joint" if arm.step < joint else "finetune",
+                       loss=last["loss"], psnr_train=last["psnr_train"], memory_gb=last["memory_gb"])
             if lead and t_cfg["image_every"] and (step % t_cfg["image_every"] == 0 or arm.step == total):
                 _snapshot(arm, out / f"step_{step:06d}.png", s["psf"], s["gt"], s["raw"], s["rec"], step, phase)
             boundary = arm.step == t_cfg["joint_steps"] or arm.step == total
             if lead and ((t_cfg["checkpoint_every"] and arm.step % t_cfg["checkpoint_every"] == 0) or boundary):
                 arm.save(ck)
+                if pf is not None:
+                    pf.update(checkpoint_step=arm.step, step=arm.step)
             if stop_after is not None and arm.step >= stop_after:
                 if lead:
                     arm.save(ck)
+                    if pf is not None:
+                        pf.update(checkpoint_step=arm.step, step=arm.step)
                 break
     finally:
         if fcsv is not None:
             fcsv.close()
     result = {"arm": name, "method": arm.method, "steps_done": arm.step, "steps_total": total,
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
+              "run": {**run_info, "steps_done": arm.step, "steps_total": total, "joint_steps": joint,
+                      "finetune_steps": t_cfg["finetune_steps"], "seed": int(cfg["seed"]),
+                      "wall_s_total": round(arm.wall_total(), 3), "segments": arm.segments(),
+                      "resumed_without_optimizer": arm.resumed_without_optimizer},
               "replans": getattr(arm.provider, "replans", 0),
               "feature_projections": arm.feature_projections,
               "replan_log": getattr(arm.provider, "replan_log", []),
@@ -544,6 +628,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         if arm.step < total:
             result["stopped_early"] = True
         return result
+    report("evaluating", "eval")
     arm.module.save_lens(out / "lens.json")
     torch.save(arm.net.state_dict(), out / "network.pt")
     t1 = time.perf_counter()
@@ -553,8 +638,19 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     result["objective_final"] = objective(arm, prov)
     result["eval_wall_s"] = time.perf_counter() - t1
     result["rms_design_log"] = arm.rms_log[-1:] if arm.rms_log else []
-    (out / "result.json").write_text(json.dumps(result, indent=1, default=_json_default))
+    result["run"]["wall_s_total"] = round(arm.wall_total(), 3)
+    result["run"]["segments"] = arm.segments()
+    result["run"]["finished_utc"] = _utc_now()
+    tmp = out / ".result.json.tmp"
+    tmp.write_text(json.dumps(result, indent=1, default=_json_default))
+    tmp.replace(out / "result.json")
+    report("running", "done")
     return result
+
+
+def _utc_now() -> str:
+    from torch_bridge.runs import _utc
+    return _utc()
 
 
 def _memory_gb(device) -> float:
@@ -594,20 +690,21 @@ def _truncate_csv(path: Path, step: int, fields=None):
 
 # ============================================================================================== experiment
 def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bool = True,
-          progress: bool | None = None, group=None) -> dict:
+          progress: bool | None = None, group=None, overrides: dict | None = None) -> dict:
     """Run an experiment: validate the config (``config``: path or dict, ``preset``: a key of its
     ``presets``), then every arm (or those named in ``arms``) in order, then write the table and the
     comparison figure. Returns ``{arm: result}``. ``out_dir`` overrides the config's; default
-    ``out/design/<experiment>[_<preset>]``.
+    ``out/design/<experiment>[_<preset>]``. ``overrides``: keys set in every arm after the preset
+    (:func:`torch_bridge.config.parse_overrides`, the command line's ``--set``).
 
     Under ``torchrun`` (``WORLD_SIZE`` > 1) or with ``group``, each arm runs on all ranks
     (:mod:`torch_bridge.distributed`); rank 0 writes the outputs, the other ranks return ``{}``."""
-    exp = load_config(config, preset)
+    exp = load_config(config, preset, overrides)
     if group is None:
         from torch_bridge.distributed import current_group
         group = current_group(str(exp["base"]["device"]))
     base = exp["base"]
-    out = Path(out_dir or base["out_dir"] or f"out/design/{exp['experiment']}" + (f"_{preset}" if preset else ""))
+    out = run_folder(exp, preset, out_dir)
     chosen = exp["arms"] if arms is None else [a for a in exp["arms"] if a["name"] in set(arms)]
     if arms is not None and len(chosen) != len(set(arms)):
         known = [a["name"] for a in exp["arms"]]
@@ -618,12 +715,34 @@ def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bo
         out.mkdir(parents=True, exist_ok=True)
         (out / "config_resolved.json").write_text(json.dumps(exp, indent=1, default=_json_default))
     results = {}
-    for a in chosen:
-        cfg = copy.deepcopy(a["config"])
-        if progress is not None:
-            cfg["progress"] = bool(progress)
-        results[a["name"]] = train_arm(a["name"], cfg, exp["source"], out / a["name"], resume=resume,
-                                       progress=cfg["progress"], group=group)
+    pf = None
+    if lead:
+        from torch_bridge.runs import ProgressFile, device_info, git_commit
+        pf = ProgressFile(out / "progress.json", experiment=exp["experiment"], preset=preset,
+                          arms=[a["name"] for a in chosen], arms_total=len(chosen))
+        info = {**git_commit(), **device_info(base["device"] if group is None else group.device(base["device"]))}
+    try:
+        for i, a in enumerate(chosen):
+            cfg = copy.deepcopy(a["config"])
+            if progress is not None:
+                cfg["progress"] = bool(progress)
+            total = cfg["train"]["joint_steps"] + cfg["train"]["finetune_steps"]
+            done = _finished_result(out / a["name"], total) if resume else None
+            if done is not None:
+                # finished in an earlier process (possibly on another machine): kept, not evaluated again
+                results[a["name"]] = done
+                continue
+            if pf is not None:
+                pf.rec.update(arm_index=i)
+            results[a["name"]] = train_arm(a["name"], cfg, exp["source"], out / a["name"], resume=resume,
+                                           progress=cfg["progress"], group=group, progress_file=pf,
+                                           run_info=info if lead else None)
+    except BaseException as e:
+        if pf is not None:
+            stopped = isinstance(e, (KeyboardInterrupt, SystemExit))
+            pf.update(state="stopped" if stopped else "failed",
+                      error=(f"stopped ({type(e).__name__} {e})" if stopped else f"{type(e).__name__}: {e}"))
+        raise
     if not lead:
         return {}
     # include arms finished earlier (other invocations) in the table
@@ -635,12 +754,43 @@ def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bo
     if any("eval" in r for r in results.values()):
         write_table(results, out, base["description"] or exp["experiment"], preset)
         _designs_figure(results, out)
-    (out / "summary.json").write_text(json.dumps(results, indent=1, default=_json_default))
+    tmp = out / ".summary.json.tmp"
+    tmp.write_text(json.dumps(results, indent=1, default=_json_default))
+    tmp.replace(out / "summary.json")
+    if pf is not None and chosen:
+        unfinished = [k for k in (a["name"] for a in chosen) if "eval" not in results.get(k, {})]
+        pf.update(state="stopped" if unfinished else "done", phase="done" if not unfinished else pf.rec.get("phase"),
+                  unfinished_arms=unfinished, eta_s=None if unfinished else 0.0)
     return results
 
 
+def run_folder(exp: dict, preset=None, out_dir=None) -> Path:
+    """The run folder of a loaded experiment ``exp`` (:func:`load_config`): ``out_dir``, else the
+    config's ``out_dir``, else ``out/design/<experiment>[_<preset>]``."""
+    base = exp["base"]
+    return Path(out_dir or base["out_dir"] or f"out/design/{exp['experiment']}" + (f"_{preset}" if preset else ""))
+
+
+def _finished_result(arm_dir: Path, total: int):
+    """The ``result.json`` of a finished arm (evaluated, ``steps_total`` equal to ``total``), else None."""
+    f = arm_dir / "result.json"
+    if not f.exists():
+        return None
+    try:
+        r = json.loads(f.read_text())
+    except ValueError:
+        return None
+    return r if "eval" in r and r.get("steps_done") == r.get("steps_total") == total else None
+
+
 def main(argv=None) -> int:
-    """``rwwarp design CONFIG [--preset P] [--arm NAME ...] [--out DIR] [--fresh] [--check] [--table]``."""
+    """``rwwarp design CONFIG [--preset P] [--arm NAME ...] [--out DIR] [--fresh] [--check] [--table]
+    [--detach] [--resume PACK] [--procs N]``, ``rwwarp design status RUN_DIR [--json]``,
+    ``rwwarp design pack RUN_DIR [...]`` and ``rwwarp design fetch-data NAME [--out DIR]`` (docs/cli/design.md).
+    Returns the exit status (0 success, 1 failure or a run that is not alive for ``status``, 2 bad input)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in _SUBCOMMANDS:
+        return _SUBCOMMANDS[argv[0]](argv[1:])
     ap = argparse.ArgumentParser(prog="rwwarp design", description="end-to-end hybrid lens design")
     ap.add_argument("config", help="YAML/TOML config (a path, or the name of a bundled config: "
                                    + ", ".join(sorted(p.stem for p in CONFIG_DIR.glob('*.yaml'))) + ")")
@@ -653,6 +803,16 @@ def main(argv=None) -> int:
                     help="train nothing: rewrite table.md/table.csv/designs.png/summary.json from the arms "
                          "finished in the output folder (e.g. after running arms in separate processes)")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="set a config key in every arm after the preset (repeatable), e.g. --set "
+                         "train.joint_steps=2000 --set data.root=data/debian-photos")
+    ap.add_argument("--detach", action="store_true",
+                    help="start the run in the background in its own process session and return: output in "
+                         "RUN_DIR/run.log, process id in RUN_DIR/run.pid, progress in RUN_DIR/progress.json "
+                         "(see: rwwarp design status RUN_DIR)")
+    ap.add_argument("--resume", default=None, metavar="PACK",
+                    help="first write the portable checkpoint PACK (a folder with pack.json, from rwwarp design "
+                         "pack) into the run folder, then resume from it")
     ap.add_argument("--procs", type=int, default=1,
                     help="processes (ranks of torch.distributed, started through torch's launcher; gloo on the "
                          "CPU, NCCL with one GPU a rank): PSF nodes and the batch are split across them. "
@@ -661,6 +821,16 @@ def main(argv=None) -> int:
     if a.procs < 1:
         print("rwwarp design: error: --procs must be >= 1", file=sys.stderr)
         return 2
+    if a.resume and a.fresh:
+        print("rwwarp design: error: --resume and --fresh contradict each other", file=sys.stderr)
+        return 2
+    try:
+        a.overrides = parse_overrides(a.set)
+    except ConfigError as e:
+        print(f"rwwarp design: error: {e}", file=sys.stderr)
+        return 2
+    if (a.detach or a.resume) and not a.check and not a.table:
+        return _detach_or_unpack(a, argv)
     if a.procs > 1 and not a.check and not a.table:
         import os
         if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
@@ -671,7 +841,7 @@ def main(argv=None) -> int:
         rest = [x for x in (argv if argv is not None else sys.argv[1:])]
         rest = _drop_option(rest, "--procs")
         try:
-            exp = load_config(a.config, a.preset)     # a bad config fails here, before any worker starts
+            exp = load_config(a.config, a.preset, a.overrides)   # a bad config fails here, before any worker
             for arm in exp["arms"]:
                 b = arm["config"]["data"]["batch_size"]
                 if b % a.procs:
@@ -687,11 +857,10 @@ def main(argv=None) -> int:
         return max(codes)
     try:
         if a.check:
-            exp = load_config(a.config, a.preset)
-            print(f"{exp['source'] or a.config}: valid; arms: {', '.join(x['name'] for x in exp['arms'])}")
-            return 0
+            return _check(a.config, a.preset, a.out, a.overrides)
+        _stop_on_sigterm()
         res = train(a.config, a.preset, [] if a.table else a.arm, a.out, resume=not a.fresh,
-                    progress=not a.no_progress)
+                    progress=not a.no_progress, overrides=a.overrides)
     except ConfigError as e:
         print(f"rwwarp design: error: {e}", file=sys.stderr)
         return 2
@@ -700,6 +869,163 @@ def main(argv=None) -> int:
             d = r["eval"]["depths"][0]
             print(f"{name}: raw {_fmt(d['raw'])}  rec {_fmt(d['rec'])}")
     return 0
+
+
+def _detach_or_unpack(a, argv: list) -> int:
+    """``--resume PACK`` (write the portable checkpoint into the run folder) and/or ``--detach`` (start
+    the run in the background); without ``--detach`` the run then goes on in this process."""
+    from torch_bridge.runs import detach, process_alive, unpack
+    try:
+        exp = load_config(a.config, a.preset, a.overrides)
+        out = run_folder(exp, a.preset, a.out)
+        chosen = exp["arms"] if a.arm is None else [x for x in exp["arms"] if x["name"] in set(a.arm)]
+        if a.arm is not None and len(chosen) != len(set(a.arm)):
+            raise ConfigError(f"unknown arm(s) {sorted(set(a.arm) - {x['name'] for x in exp['arms']})}; the config "
+                              f"has {[x['name'] for x in exp['arms']]}")
+        _preflight(chosen, out)
+        pidf = out / "run.pid"
+        if pidf.exists():
+            old = json.loads(pidf.read_text())
+            if process_alive(old["pid"], old.get("start_ticks")):
+                raise ConfigError(f"{out}: a run is already going on there (pid {old['pid']}); see: rwwarp design "
+                                  f"status {out}")
+        if a.resume:
+            man = unpack(a.resume, out)
+            print(f"resume: wrote the pack {a.resume} ({man['bytes'] / 2 ** 20:.1f} MiB, weights {man['weights']}, "
+                  f"optimizer {man['optimizer']}) into {out}: "
+                  + ", ".join(f"{k} step {v['step']}{' (finished)' if v['finished'] else ''}"
+                              for k, v in man["arms"].items()))
+    except (ConfigError, FileNotFoundError, ValueError) as e:
+        print(f"rwwarp design: error: {e}", file=sys.stderr)
+        return 2
+    rest = _drop_option([x for x in argv if x != "--detach"], "--resume")
+    rest = _drop_option(rest, "--out") + ["--out", str(out)]
+    if not a.detach:
+        return main(rest)
+    env = dict(__import__("os").environ, RWWARP_DESIGN_DETACHED="1")
+    env.setdefault("TQDM_MININTERVAL", "30")       # progress bars in run.log: a line every 30 s
+    try:
+        rec = detach(rest, out, env=env)
+    except RuntimeError as e:
+        print(f"rwwarp design: error: {e}", file=sys.stderr)
+        return 2
+    print(f"started pid {rec['pid']} in its own session; log {out / 'run.log'}; progress {out / 'progress.json'}\n"
+          f"  rwwarp design status {out}")
+    return 0
+
+
+def _check(config, preset, out_dir, overrides=None) -> int:
+    """``--check``: validate the config (every arm after its preset) on this machine without a GPU:
+    build each arm's lens and network (parameter count), and print the schedule, the data and the device
+    of each arm; a difference of schedule between the arms of the experiment is reported."""
+    from torch_bridge.network import build_network
+    exp = load_config(config, preset, overrides)
+    print(f"{exp['source'] or config}: valid; arms: {', '.join(x['name'] for x in exp['arms'])}")
+    nets, sched = {}, set()
+    for arm in exp["arms"]:
+        cfg = arm["config"]
+        try:
+            lens = build_lens(cfg, exp["source"])
+        except (ValueError, OSError) as e:
+            raise ConfigError(f"arm {arm['name']!r}: the lens cannot be built: {e}") from None
+        n = cfg["network"]
+        key = json.dumps(n, sort_keys=True)
+        if key not in nets:
+            net = build_network(n["preset"], 3, width=n["width"], enc_blocks=n["enc_blocks"],
+                                middle_blocks=n["middle_blocks"], dec_blocks=n["dec_blocks"], zero_init=n["zero_init"])
+            nets[key] = sum(p.numel() for p in net.parameters())
+        t, d = cfg["train"], cfg["data"]
+        sched.add((t["joint_steps"], t["finetune_steps"], d["batch_size"], d["crop"]))
+        dev = str(cfg["device"])
+        here = "" if not dev.startswith("cuda") or torch.cuda.is_available() else " (no CUDA here: not run)"
+        root = d["root"]
+        data = "scikit-image samples" if root is None else f"{root}" + ("" if Path(root).is_dir() else " (missing here)")
+        print(f"  {arm['name']}: {cfg['design']['method']}, lens {len(lens.surfaces)} surfaces, "
+              f"{_n_nodes(cfg)} PSF nodes, network {n['preset']} "
+              f"{nets[key] / 1e6:.2f} M parameters, {t['joint_steps']} joint + {t['finetune_steps']} fine-tune steps, "
+              f"batch {d['batch_size']} x {d['crop']} px, seed {cfg['seed']}, data {data}, device {dev}{here}")
+    if len(sched) > 1:
+        print("  note: the arms differ in schedule (joint, fine-tune, batch, crop): " + ", ".join(map(str, sorted(sched))))
+    out = run_folder(exp, preset, out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output {str(out)!r} exists and is not a folder")
+    return 0
+
+
+def _n_nodes(cfg) -> str:
+    """Number of PSF nodes of a config (a grid: gy x gx; a diagonal: its fractions)."""
+    nd = cfg["optics"]["nodes"]
+    if cfg["render"]["mode"] == "full" or nd["layout"] == "grid":
+        return f"{nd['grid'][0]} x {nd['grid'][1]}"
+    return str(len(nd["fractions"]))
+
+
+def _cmd_status(argv: list) -> int:
+    """``rwwarp design status RUN_DIR [--json]`` (:func:`torch_bridge.runs.cli_status`)."""
+    from torch_bridge.runs import cli_status
+    return cli_status(argv)
+
+
+def _cmd_pack(argv: list) -> int:
+    """``rwwarp design pack RUN_DIR [--out DIR] [--weights float32|bfloat16] [--optimizer full|bfloat16|none]
+    [--part-mib M] [--arm NAME]``."""
+    from torch_bridge.runs import pack
+    ap = argparse.ArgumentParser(prog="rwwarp design pack",
+                                 description="a portable checkpoint of a stopped run, in parts of <= --part-mib MiB")
+    ap.add_argument("run_dir")
+    ap.add_argument("--out", default=None, help="folder (default RUN_DIR/pack)")
+    ap.add_argument("--weights", default="float32", choices=["float32", "bfloat16"],
+                    help="network weights: float32 (exact) or bfloat16 (half the bytes, rounded)")
+    ap.add_argument("--optimizer", default="full", choices=["full", "bfloat16", "none"],
+                    help="the network's Adam moments: full (exact resume), bfloat16, or none (Adam restarts)")
+    ap.add_argument("--part-mib", type=float, default=15.0, help="largest part, MiB (<= 16)")
+    ap.add_argument("--arm", action="append", default=None, help="only this arm (repeatable)")
+    a = ap.parse_args(argv)
+    try:
+        man = pack(a.run_dir, a.out, a.weights, a.optimizer, a.part_mib, a.arm)
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        print(f"rwwarp design pack: error: {e}", file=sys.stderr)
+        return 2
+    out = Path(a.out or Path(a.run_dir) / "pack")
+    print(f"{out}: {len(man['parts'])} parts + pack.json, {man['bytes'] / 2 ** 20:.2f} MiB (weights {man['weights']}, "
+          f"optimizer {man['optimizer']}); arms: "
+          + ", ".join(f"{k} step {v['step']}{' finished' if v['finished'] else ''}" for k, v in man["arms"].items()))
+    return 0
+
+
+def _cmd_fetch_data(argv: list) -> int:
+    """``rwwarp design fetch-data NAME [--out DIR] [--debs FILE ...]``: a named image set into a folder."""
+    from torch_bridge.data import IMAGE_SETS, fetch_image_set
+    ap = argparse.ArgumentParser(prog="rwwarp design fetch-data",
+                                 description="write a named image set (train/ and valid/ folders) for data.root")
+    ap.add_argument("name", choices=sorted(IMAGE_SETS))
+    ap.add_argument("--out", default=None, help="folder (default data/NAME)")
+    ap.add_argument("--debs", nargs="+", default=None,
+                    help="the Debian packages (.deb) already downloaded (default: apt-get download them)")
+    a = ap.parse_args(argv)
+    try:
+        man = fetch_image_set(a.name, a.out or f"data/{a.name}", debs=a.debs)
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        print(f"rwwarp design fetch-data: error: {e}", file=sys.stderr)
+        return 2
+    print(f"{man['root']}: {len(man['train'])} train + {len(man['valid'])} valid images, "
+          f"{man['bytes'] / 2 ** 20:.1f} MiB")
+    return 0
+
+
+def _stop_on_sigterm():
+    """In a detached run (``RWWARP_DESIGN_DETACHED``), SIGTERM ends the run through SystemExit(143), so that
+    ``progress.json`` records ``stopped`` (the checkpoint on disk is the last one written, never a partial one)."""
+    import os
+    import signal
+    import threading
+    if os.environ.get("RWWARP_DESIGN_DETACHED") and threading.current_thread() is threading.main_thread():
+        def stop(signum, frame):
+            raise SystemExit(143)
+        signal.signal(signal.SIGTERM, stop)
+
+
+_SUBCOMMANDS = {"status": _cmd_status, "pack": _cmd_pack, "fetch-data": _cmd_fetch_data}
 
 
 def _drop_option(argv: list, name: str) -> list:

@@ -1,0 +1,256 @@
+"""Runs that survive interruption (torch_bridge.runs, rwwarp design --detach / status / pack / --resume):
+a tiny design started in the background is killed after its first checkpoint and resumed from the
+portable checkpoint on a "fresh machine" (another folder); the resumed run must equal an uninterrupted
+one bit for bit with the full state. Also: pack parts and their checks, resuming without the Adam state,
+--check of the bundled GPU presets, and the named image set read from Debian packages."""
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+
+torch = pytest.importorskip("torch")
+yaml = pytest.importorskip("yaml")
+
+from test_train import _rows, tiny  # noqa: E402  (the tiny design of test_train.py)
+from torch_bridge.runs import pack, process_alive, status, unpack  # noqa: E402
+from torch_bridge.train import main, train  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+# 4 joint steps (the optics update at every one) + 1 fine-tune step, a checkpoint after every step
+TOTAL = 5
+OVER = {"train.joint_steps": 4, "train.finetune_steps": 1, "train.checkpoint_every": 1, "train.image_every": 0,
+        "train.optics_every": 1}
+KEYS = ("loss", "mse", "perceptual", "psnr_train", "optics_step")
+
+
+def _design(*args, **kw):
+    """``python -m torch_bridge.train ARGS`` in another process."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "torch_bridge.train", *map(str, args)], capture_output=True,
+                          text=True, env=env, timeout=120, **kw)
+
+
+def test_detached_run_killed_and_resumed_from_the_pack_equals_an_uninterrupted_run(tmp_path):
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(tiny(**OVER)))
+    run = tmp_path / "run"
+    r = _design(cfg, "--out", run, "--detach")
+    assert r.returncode == 0, r.stderr
+    pid = json.loads((run / "run.pid").read_text())
+    ck = run / "e2e" / "checkpoint.pt"
+    deadline = time.time() + 90
+    while time.time() < deadline:            # a checkpoint after a training step (step 0 is the design stage)
+        if ck.exists() and torch.load(ck, weights_only=False)["step"] >= 1:
+            break
+        time.sleep(0.1)
+    st = _design("status", run)                # from another process
+    assert st.returncode == 0 and "ALIVE" in st.stdout, st.stdout + st.stderr
+    assert json.loads((run / "progress.json").read_text())["arm"] == "e2e"
+    os.kill(pid["pid"], signal.SIGKILL)        # a machine taken back: no handler runs
+    for _ in range(100):
+        if not process_alive(pid["pid"], pid["start_ticks"]):
+            break
+        time.sleep(0.05)
+    st = _design("status", run, "--json")
+    rec = json.loads(st.stdout)
+    assert st.returncode == 1 and not rec["alive"] and rec["state"] == "dead", st.stdout
+    step = torch.load(ck, weights_only=False)["step"]
+    assert 1 <= step < TOTAL, "the detached run finished before it was killed"
+    # the uninterrupted reference, in this process
+    straight = train(tiny(**OVER), out_dir=tmp_path / "straight")["e2e"]
+    # pack: parts of <= 0.25 MiB (several parts), each checked on the way back
+    man = pack(run, tmp_path / "pack", part_mib=0.25)
+    assert len(man["parts"]) >= 2
+    assert all((tmp_path / "pack" / p["file"]).stat().st_size <= 0.25 * 2 ** 20 for p in man["parts"])
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for f in (tmp_path / "pack").iterdir():
+        (bad / f.name).write_bytes(f.read_bytes())
+    b = bytearray((bad / "pack.part001").read_bytes())
+    b[10] ^= 1
+    (bad / "pack.part001").write_bytes(bytes(b))
+    with pytest.raises(ValueError, match="pack.part001"):
+        unpack(bad, tmp_path / "nowhere")
+    (bad / "pack.part001").unlink()
+    with pytest.raises(FileNotFoundError, match="pack.part001 is missing"):
+        unpack(bad, tmp_path / "nowhere")
+    # a fresh machine: only the pack travels; --resume writes it into a new run folder and goes on
+    assert main([str(cfg), "--out", str(tmp_path / "fresh"), "--resume", str(tmp_path / "pack"), "--no-progress"]) == 0
+    resumed = _rows(tmp_path / "fresh" / "e2e" / "metrics.csv")
+    ref = _rows(tmp_path / "straight" / "e2e" / "metrics.csv")
+    assert [int(x["step"]) for x in resumed] == list(range(TOTAL))
+    for k in range(TOTAL):                         # bit-equal: before the kill (carried over) and after it
+        for key in KEYS:
+            assert float(resumed[k][key]) == float(ref[k][key]), (k, key)
+    res = json.loads((tmp_path / "fresh" / "e2e" / "result.json").read_text())
+    for part in ("raw", "rec"):
+        for m in ("psnr", "ssim"):
+            assert res["eval"]["depths"][0][part][m] == straight["eval"]["depths"][0][part][m], (part, m)
+    segs = res["run"]["segments"]
+    assert [s["start_step"] for s in segs] == [0, step] and segs[-1]["end_step"] == TOTAL
+    assert res["run"]["steps_done"] == TOTAL and res["run"]["wall_s_total"] > 0
+    s = json.loads((tmp_path / "fresh" / "progress.json").read_text())
+    assert s["state"] == "done" and s["step"] == TOTAL
+    # a second run of the finished experiment keeps the arm (no training, no new evaluation)
+    mtime = (tmp_path / "fresh" / "e2e" / "result.json").stat().st_mtime_ns
+    assert main([str(cfg), "--out", str(tmp_path / "fresh"), "--no-progress"]) == 0
+    assert (tmp_path / "fresh" / "e2e" / "result.json").stat().st_mtime_ns == mtime
+
+
+def test_resume_without_adam_state_and_bf16_weights(tmp_path):
+    """The small portable form (bfloat16 weights, no Adam moments) resumes and finishes; it is not the
+    uninterrupted run (Adam restarts, weights rounded to 8 bits of mantissa), and says so."""
+    over = dict(OVER, **{"train.checkpoint_every": 0})
+    train(tiny(**over, **{"train.stop_after": 3}), out_dir=tmp_path / "run")
+    full = pack(tmp_path / "run", tmp_path / "p_full")
+    small = pack(tmp_path / "run", tmp_path / "p_small", weights="bfloat16", optimizer="none")
+    assert small["bytes"] < full["bytes"]
+    unpack(tmp_path / "p_small", tmp_path / "res")
+    ck = torch.load(tmp_path / "res" / "e2e" / "checkpoint.pt", weights_only=False)
+    ref = torch.load(tmp_path / "run" / "e2e" / "checkpoint.pt", weights_only=False)
+    assert ck["opt_net"] is None and ck["step"] == ref["step"] == 3
+    for k, v in ref["net"].items():            # bfloat16 round trip: relative error <= 2^-8
+        assert ck["net"][k].dtype == torch.float32
+        assert torch.allclose(ck["net"][k], v, rtol=2 ** -8, atol=0), k
+    assert torch.equal(ck["module"]["doe"], ref["module"]["doe"])     # the optics state is exact
+    res = train(tiny(**over), out_dir=tmp_path / "res")["e2e"]
+    assert res["steps_done"] == TOTAL and res["run"]["resumed_without_optimizer"]
+    assert any("without the network's Adam state" in n for n in res["notes"])
+
+
+@pytest.mark.parametrize("name", ["cooke_hybrid", "a489_aberration", "a489_edof"])
+def test_gpu_presets_check_on_the_cpu(name, capsys):
+    """``rwwarp design NAME --preset gpu --check``: every arm's lens and the paper-size network build on
+    the CPU; the same schedule for every arm."""
+    assert main([name, "--preset", "gpu", "--check"]) == 0
+    out = capsys.readouterr().out
+    assert "valid" in out and "17.1" in out and "differ in schedule" not in out, out
+    # --set reaches every arm after the preset; a misspelt key is refused, naming it
+    assert main([name, "--preset", "gpu", "--check", "--set", "train.joint_steps=2000"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("2000 joint") == out.count("\n  ") and "2000 joint" in out, out
+    assert main([name, "--preset", "gpu", "--check", "--set", "train.joint_stesp=2000"]) == 2
+    assert "'train.joint_stesp'" in capsys.readouterr().err
+
+
+def _deb(path: Path, files: dict, links: dict = ()):
+    """A minimal Debian package (ar archive with data.tar.gz) holding ``files`` and symbolic ``links``."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tf:
+        for name, b in files.items():
+            ti = tarfile.TarInfo("./" + name)
+            ti.size = len(b)
+            tf.addfile(ti, io.BytesIO(b))
+        for name, target in dict(links).items():
+            ti = tarfile.TarInfo("./" + name)
+            ti.type, ti.linkname = tarfile.SYMTYPE, target
+            tf.addfile(ti)
+    members = [("debian-binary", b"2.0\n"), ("control.tar.gz", b""), ("data.tar.gz", buf.getvalue())]
+    out = b"!<arch>\n"
+    for n, b in members:
+        out += f"{n:<16}{0:<12}{0:<6}{0:<6}{100644:<8}{len(b):<10}`\n".encode() + b + (b"\n" if len(b) % 2 else b"")
+    path.write_bytes(out)
+
+
+def test_named_image_set_from_debian_packages(tmp_path):
+    import hashlib
+
+    import numpy as np
+    from skimage import io as skio
+
+    from torch_bridge.data import IMAGE_SETS, ImageSet, fetch_image_set
+    spec = IMAGE_SETS["debian-photos"]
+    assert len(spec["images"]) == 22 and sum(r[7] == "valid" for r in spec["images"]) == 4
+    assert len({r[0] for r in spec["images"]}) == 22
+    rng = np.random.default_rng(0)
+    blobs = {}
+    for k in range(4):
+        p = tmp_path / f"im{k}.png"
+        skio.imsave(p, rng.integers(0, 255, (40 + k, 50, 3), dtype=np.uint8), check_contrast=False)
+        blobs[k] = p.read_bytes()
+    sha = {k: hashlib.sha256(b).hexdigest() for k, b in blobs.items()}
+    table = {"packages": {"pkga": "1", "pkgb": "2"}, "images": [
+        ("a0", "pkga", "usr/share/a/0.png", sha[0], len(blobs[0]), "GPL-2+", "x", "train"),
+        ("a1", "pkga", "usr/share/a/link.png", sha[1], len(blobs[1]), "GPL-2+", "x", "valid"),
+        ("b2", "pkgb", "usr/share/b/2.png", sha[2], len(blobs[2]), "LGPL-3", "y", "train"),
+        ("b3", "pkgb", "usr/share/b/3.png", sha[3], len(blobs[3]), "LGPL-3", "y", "train")]}
+    _deb(tmp_path / "pkga_1_all.deb", {"usr/share/a/0.png": blobs[0], "usr/share/a/1.png": blobs[1]},
+         {"usr/share/a/link.png": "1.png"})
+    _deb(tmp_path / "pkgb_2_all.deb", {"usr/share/b/2.png": blobs[2], "usr/share/b/3.png": blobs[3]})
+    debs = [tmp_path / "pkga_1_all.deb", tmp_path / "pkgb_2_all.deb"]
+    man = fetch_image_set("toy", tmp_path / "set", debs=debs, table=table)
+    assert man["train"] == ["train/a0.png", "train/b2.png", "train/b3.png"] and man["valid"] == ["valid/a1.png"]
+    assert (tmp_path / "set" / "valid" / "a1.png").read_bytes() == blobs[1]            # through the link
+    tr, va = ImageSet(tmp_path / "set", "train", 16), ImageSet(tmp_path / "set", "valid", 16)
+    assert len(tr) == 3 and len(va) == 1 and tuple(va[0].shape) == (3, 41, 50)
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    assert torch.equal(tr.sample(3, g1), tr.sample(3, g2))
+    (tmp_path / "set" / "train" / "b3.png").unlink()
+    with pytest.raises(FileNotFoundError, match="train/b3.png"):
+        ImageSet(tmp_path / "set", "train", 16)
+    bad = dict(table, images=[table["images"][0][:3] + ("0" * 64,) + table["images"][0][4:]])
+    with pytest.raises(ValueError, match="'a0'.*differs"):
+        fetch_image_set("toy", tmp_path / "set2", debs=debs, table=bad)
+    assert not (tmp_path / "set2").exists()            # nothing written on failure
+    with pytest.raises(FileNotFoundError, match="pkgb"):
+        fetch_image_set("toy", tmp_path / "set3", debs=debs[:1], table=table)
+
+
+def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path):
+    """``eval.grid`` evaluates on its own node grid, in chunks of ``eval.node_chunk`` nodes: the training
+    grid in one chunk gives the default evaluation's numbers; one node a chunk plans each node's sampling
+    alone, which moves the metrics by the sampling error only (here <= 0.05 dB at nyquist_safety 1)."""
+    import numpy as np
+
+    from torch_bridge.design import node_positions_mm
+    base = {"optics.nodes": {"layout": "grid", "grid": [2, 2], "region": "quadrant", "half_size_mm": 1.5},
+            "train.joint_steps": 1, "train.finetune_steps": 1, "train.image_every": 0,
+            "arms": [{"name": "fixed", "design": {"method": "fixed"}}], "data.eval_images": 2}
+    ref = train(tiny(**base), out_dir=tmp_path / "ref")["fixed"]["eval"]["depths"][0]
+    for chunk, tol_db in ((4, 1e-9), (1, 0.05)):
+        ev = train(tiny(**base, **{"eval.grid": [2, 2], "eval.node_chunk": chunk}),
+                   out_dir=tmp_path / f"g{chunk}")["fixed"]["eval"]["depths"][0]
+        assert len(ev["nodes"]) == 4
+        for a, b in zip(ev["nodes"], ref["nodes"]):
+            assert np.allclose(a["position_mm"], b["position_mm"], rtol=0, atol=1e-12)
+            for part in ("raw", "rec"):
+                assert abs(a[part]["psnr"] - b[part]["psnr"]) <= tol_db, (chunk, part, a[part], b[part])
+        want = node_positions_mm("grid", 1.5, [2, 2], None, "quadrant")
+        assert [tuple(n["position_mm"]) for n in ev["nodes"]] == [tuple(p) for p in want]
+    bad = tiny(**base, **{"eval.grid": [2, 2], "render.mode": "full"})
+    from torch_bridge.train import ConfigError
+    with pytest.raises(ConfigError, match="eval.grid"):
+        train(bad, out_dir=tmp_path / "bad")
+
+
+def test_rwwarp_design_status_reads_a_run_without_importing_torch(tmp_path):
+    """``rwwarp design status`` from another process: alive while the recorded process runs (here: this
+    test's process, same host), not alive for a finished run; torch is never imported for it."""
+    import socket
+    from torch_bridge.runs import write_json_atomic
+    run = tmp_path / "run"
+    run.mkdir()
+    code = ("import sys, rwwarp.cli as c\n"
+            "try:\n    c.main(['design', 'status', sys.argv[1]])\n"
+            "except SystemExit as e:\n    print('torch' in sys.modules, e.code)\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+    def status_rc():
+        r = subprocess.run([sys.executable, "-c", code, str(run)], capture_output=True, text=True, env=env,
+                           timeout=60)
+        return r.stdout.strip().splitlines()
+    write_json_atomic(run / "progress.json", {"pid": os.getpid(), "host": socket.gethostname(), "state": "running",
+                                              "arm": "e2e", "step": 3, "steps_total": 10})
+    out = status_rc()
+    assert "ALIVE" in out[0] and out[-1] == "False 0", out
+    write_json_atomic(run / "progress.json", {"pid": os.getpid(), "host": socket.gethostname(), "state": "done"})
+    out = status_rc()
+    assert "not running" in out[0] and out[-1] == "False 1", out
+    assert status(run)["state"] == "done"
