@@ -5,7 +5,7 @@ same run when ``deeplens-core`` is importable.
 Fields follow DeepLens's ``point_source_grid(grid=(N, N), center=True)``: normalised sensor positions
 ``u = linspace(-1 + h, 1 - h, N)``, ``h = 1 / (2 (N - 1))``, turned into field angles with the pinhole
 scale (``tan(theta) = u * sensor_half / f``, DeepLens's ``calc_scale`` when it is importable, else the
-paraxial EFL), object at 10 m, wavelengths 0.45 / 0.55 / 0.65 um, 64 x 64 px patches.
+paraxial EFL), object at 10 m, wavelengths 0.45 / 0.55 / 0.65 um, 64 x 64 px patches (``--size``).
 
 Memory: a sampler thread polls every 5 ms during each measured block (rwwarp: the cold and the timed
 map at one batch size; DeepLens: its loop): host RSS (psutil) and, on CUDA, the device's used memory
@@ -32,6 +32,7 @@ plane), its 3000^2 field splat, the 6000^2 padded complex128 field through a for
 2-D FFT (one read + write each), the transfer-function multiply, |U|^2 and the crop.
 
     python perf/bench_map.py --quick                  # CPU, 3x3 fields x 3 wavelengths
+    python perf/bench_map.py --grid 10 --size 32      # CPU, 10x10 x 3 at 32 px
     python perf/bench_map.py --device cuda            # GPU, 10x10 x 3 at batches 6, 15, 30; DeepLens when importable
 """
 import argparse
@@ -170,7 +171,9 @@ def _band_widths(rwm):
     in_center = origin + 0.5 * (n - 1) * pitch
     out_center = np.stack([0.5 * (px[:, 0] + px[:, -1]), 0.5 * (py[:, 0] + py[:, -1])], axis=1)
     shift = out_center - in_center
-    lo, hi = prop.band_limits(lam[:, None], np.full((len(lam), 1), z), np.full((len(lam), 2), lp), shift)
+    # the distance is per source ((S,) since the map's sources each carry their own): a column for the two axes
+    zc = np.broadcast_to(np.asarray(z, dtype=float).reshape(-1, 1), (len(lam), 1))
+    lo, hi = prop.band_limits(lam[:, None], zc, np.full((len(lam), 2), lp), shift)
     carrier = rwm.carrier
     qmin, qmax = -(npad // 2), (npad - 1) // 2
     with np.errstate(invalid="ignore", over="ignore"):
@@ -188,12 +191,21 @@ def rwwarp_bytes(rwm, gauss_nodes=3):
     rays = pl.ray_grid ** 2
     launches = rwm.plane + 1
     n, npad = pl.n_grid, pl.n_pad
-    kx, ky = _band_widths(rwm)
     m = SIZE * gauss_nodes
-    has_phase = rwm.doe_phase()[0] is not None
     c = 16  # complex128
     trace = rays * (124 * launches + 60)
     to_field = rays * (68 * 2 + 24 + 64) + n * n * 48
+    if pl.method == "focal":
+        # rwwarp.focal: field (and the DOE orders' factor) read, the two separable kernel matrices
+        # (n_sensor x n_grid) read, the intermediate (n_sensor x n_grid) written and read, the sensor-side
+        # field (n_sensor^2) written, its padded FFT (n_sensor_fft^2, read + write, forward and inverse),
+        # the output DFT's factors and result, the PSF written
+        ns, nf = pl.n_sensor, pl.n_sensor_fft
+        propagation = (2 * n * n * c + 2 * ns * n * c + 2 * ns * n * c + ns * ns * c
+                       + 2 * 2 * nf * nf * c + (2 * nf * m + m * m) * c + SIZE * SIZE * 8)
+        return {"trace": S * trace, "rays_to_field": S * to_field, "propagation": S * propagation}
+    kx, ky = _band_widths(rwm)
+    has_phase = rwm.doe_phase()[0] is not None
     propagation = (n * n * (c + (8 if has_phase else 0)) + n * npad * c  # pad + modulate
                    + 2 * n * npad * c                                     # x-FFT
                    + n * kx * c + npad * kx * c                           # column gather
@@ -323,15 +335,18 @@ def deeplens_importable():
 
 
 def main():
+    global SIZE
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--grid", type=int, default=None, help="fields per axis (default 10; --quick: 3)")
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="3x3 fields (unless --grid) x 3 wavelengths")
+    ap.add_argument("--size", type=int, default=SIZE, help=f"patch size, px (default {SIZE})")
     ap.add_argument("--batch", type=int, nargs="+", default=None,
                     help="sources per launch, one run each (default CPU 9, GPU 3 6 15 30)")
     ap.add_argument("--no-deeplens", action="store_true")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
+    SIZE = a.size
     gpu = a.device.startswith("cuda")
     n = a.grid or (3 if a.quick else 10)
     batch_list = a.batch or ([3, 6, 15, 30] if gpu else [9])
