@@ -23,6 +23,7 @@ from .plan import Plan
 from .trace import as_field_list
 from .trace import field_label as _fmt_field
 from .raywave import _LAST, RAYWAVE_OPTIONS, RayWave, group_sources  # noqa: F401 (RayWave lived here)
+from .raywave import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -234,59 +235,17 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         budget = int(memory_budget_gb * 2 ** 30)
     else:
         budget = default_memory_budget_bytes(device)
-    if model == "ray-wave" and isinstance(plan, str) and plan == "auto" and len(pairs) > 1:
-        # plan per source: a pilot of every pair, then batches: for the ASM, pairs with similar needs (so an
-        # on-axis field is not sampled on the grid a corner field needs); for the focal method, as many
-        # pairs as the memory budget holds (its grids follow the patch, so they differ little)
-        probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
-                        device, "auto", dtype, amplitude, object_distance_mm, rays_per_sample, center_mm,
-                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety, method=method,
-                        focal_patch_tol=focal_patch_tol)
-        if probe.plan.method == "focal":
-            # one source per batch unless batch= asks for more: the focal grids scale with the patch over
-            # the wavelength and with each field's spot, so a shared (finest, widest) plan costs more than
-            # it saves (README 3x3 Cooke map: 25.3 s batched per field, 15.6 s one by one)
-            per = probe.plan.estimate["memory_bytes"] / len(pairs)
-            b = max(1, min(batch or 1, int(budget // max(per, 1))))
-            chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
-        else:
-            chunks = [[pairs[k] for k in g] for g in group_sources(probe.source_needs, batch)]
-        del probe
-    else:
-        b = batch or len(pairs)
-        chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
     index = {pr: k for k, pr in enumerate(pairs)}
     bar = None
     if progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=len(pairs), desc=f"{model} PSFs", unit="PSF")
-    chunks = list(chunks)
     opts = dict(device=device, plan=plan, dtype=dtype, amplitude=amplitude, rays_per_sample=rays_per_sample,
                 center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                 nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                 deterministic=deterministic, memory_budget_bytes=budget)
-    while chunks:
-        chunk = chunks.pop(0)
-        f_list = [fields[i] for i, _ in chunk]
-        w_list = [wavelengths_um[j] for _, j in chunk]
-        try:
-            if model == "ray-wave":
-                res = RayWave(lens, f_list, w_list, size, pixel, object_distance_mm=object_distance_mm,
-                              **opts).run(focal_precision)
-            elif model == "paraxial-wave":
-                eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
-                res = RayWave(eq, eq_fields, w_list, size, pixel, **opts).run(focal_precision)
-            else:
-                res = None
-        except MemoryBudgetError:
-            if len(chunk) == 1:
-                raise
-            half = len(chunk) // 2   # split the batch and try again
-            chunks[:0] = [chunk[:half], chunk[half:]]
-            continue
-        if res is None:
-            res = _ray_model(lens, f_list, w_list, size, pixel, device, dtype, object_distance_mm,
-                             rays_per_sample, center_mm)
+
+    def store(chunk, res):
         for k, (i, j) in enumerate(chunk):
             out[i, j] = res["data"][k]
             centers[i, j] = res["centers"][k]
@@ -294,9 +253,37 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             if "dropped_rays" in res:
                 info["dropped_rays"][index[(i, j)]] = int(res["dropped_rays"][k])
         info["plan"] = res.get("plan")
-        info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan")})
+        info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan"),
+                                "plans": res.get("plans", [res.get("plan")] * len(chunk))})
         if bar is not None:
             bar.update(len(chunk))
+
+    if model in ("ray-wave", "paraxial-wave"):
+        # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
+        # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
+        # (arrays sized to the batch's largest member; rwwarp.raywave.PackedRayWave), each propagated alone
+        systems = []   # (lens, fields, wavelengths, pairs): the paraxial-wave model's system per wavelength
+        if model == "ray-wave":
+            systems.append((lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], pairs))
+        else:
+            for j, w in enumerate(wavelengths_um):
+                eq, eq_fields = paraxial_equivalent(lens, fields, [w], object_distance_mm)
+                systems.append((eq, list(eq_fields), [w] * len(fields), [(i, j) for i in range(len(fields))]))
+        for sys_lens, f_list, w_list, sys_pairs in systems:
+            od = object_distance_mm if model == "ray-wave" else None
+            members = source_plans(sys_lens, f_list, w_list, size, pixel, object_distance_mm=od, **opts)
+            for chunk_idx in pack_sources(members, size, batch, budget):
+                res = PackedRayWave([members[k] for k in chunk_idx]).run(focal_precision)
+                store([sys_pairs[k] for k in chunk_idx], res)
+                for k in chunk_idx:
+                    members[k] = None   # done: its operators and tracer can go
+    else:
+        b = batch or len(pairs)
+        for k in range(0, len(pairs), b):
+            chunk = pairs[k:k + b]
+            res = _ray_model(lens, [fields[i] for i, _ in chunk], [wavelengths_um[j] for _, j in chunk], size,
+                             pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm)
+            store(chunk, res)
     if bar is not None:
         bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
@@ -321,6 +308,30 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> list:
+    """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
+    :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's
+    arrays are sized to its largest member, so similar members share one), at most ``batch`` a batch (None:
+    no limit) and within ``budget_bytes`` (:func:`rwwarp.raywave.packed_bytes`). A member over the budget on
+    its own has already been refused by its plan's check."""
+    order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
+                                                       -members[k].plan.ray_grid, -members[k].plan.n_grid, k))
+    out, cur = [], []
+    for k in order:
+        if cur:
+            m0 = members[cur[0]]
+            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim)
+            fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
+            if same and fits and (batch is None or len(cur) < batch):
+                cur.append(k)
+                continue
+            out.append(cur)
+        cur = [k]
+    if cur:
+        out.append(cur)
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- comparison models
 from .paraxial_wave import paraxial_equivalent  # noqa: E402,F401  (public here for compatibility)
 
