@@ -50,7 +50,6 @@ from _common import RESULTS, device_name, git_commit, save, sync_fn
 
 import rwwarp as rw
 from rwwarp import propagate as prop
-from rwwarp.psf import RayWave
 from rwwarp.trace import as_field_list
 
 WLS = [0.45, 0.55, 0.65]
@@ -241,22 +240,28 @@ def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
         m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch)
         s()
         warm = time.perf_counter() - t0
-    # bytes model from the batches psf_map ran (m.info["batches"]: its grouping of sources with similar
-    # plans), each rebuilt up to its plan (pilot traces only)
+    # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.raywave.source_plans, pilot
+    # traces only; packed batches pad the trace and splat to their largest member, not counted here)
+    from rwwarp.plan import default_memory_budget_bytes
+    from rwwarp.raywave import source_plans
     tot = {"trace": 0, "rays_to_field": 0, "propagation": 0}
-    plans = []
-    for b in m.info["batches"]:
-        idx = b["pairs"]
-        f_list = [fields[i] for i, _ in idx]
-        w_list = [WLS[j] for _, j in idx]
-        rwm = RayWave(lens, as_field_list(f_list), w_list, SIZE, lens.sensor.pixel_pitch, device, "auto")
+    order = [pr for b in m.info["batches"] for pr in b["pairs"]]
+    members = source_plans(lens, as_field_list([fields[i] for i, _ in order]), [WLS[j] for _, j in order], SIZE,
+                           lens.sensor.pixel_pitch, device, method="auto",
+                           memory_budget_bytes=default_memory_budget_bytes(device))
+    for rwm in members:
         for k, v in rwwarp_bytes(rwm).items():
             tot[k] += v
-        plans.append({"pitch_um": rwm.plan.pitch_mm * 1e3, "n_grid": rwm.plan.n_grid, "n_pad": rwm.plan.n_pad,
-                      "ray_grid": rwm.plan.ray_grid, "sources": len(idx)})
+    plans, at = [], 0
+    for b in m.info["batches"]:
+        mem = members[at:at + len(b["pairs"])]
+        at += len(b["pairs"])
+        plans.append({"sources": len(mem), "method": [r.plan.method for r in mem],
+                      "pitch_um": [r.plan.pitch_mm * 1e3 for r in mem], "n_grid": [r.plan.n_grid for r in mem],
+                      "n_pad": [r.plan.n_pad for r in mem], "ray_grid": [r.plan.ray_grid for r in mem]})
     nb = sum(tot.values())
     floor = nb / bandwidth
-    out = {"batch": batch, "n_psfs": len(pairs), "cold_s": cold, "time_s": warm, "psfs_per_s": len(pairs) / warm,
+    out = {"batch": batch, "n_batches": len(m.info["batches"]), "n_psfs": len(pairs), "cold_s": cold, "time_s": warm, "psfs_per_s": len(pairs) / warm,
            "ms_per_psf": 1e3 * warm / len(pairs), **mem.report(), "bytes_model": tot, "bytes_total": nb,
            "floor_s": floor, "fraction_of_floor": floor / warm,
            "floor_by_stage_s": {k: v / bandwidth for k, v in tot.items()}, "plans": plans,
@@ -342,14 +347,15 @@ def main():
     ap.add_argument("--quick", action="store_true", help="3x3 fields (unless --grid) x 3 wavelengths")
     ap.add_argument("--size", type=int, default=SIZE, help=f"patch size, px (default {SIZE})")
     ap.add_argument("--batch", type=int, nargs="+", default=None,
-                    help="sources per launch, one run each (default CPU 9, GPU 3 6 15 30)")
+                    help="sources per launch, one run each, 0: psf_map's default (no limit but the memory "
+                         "budget) (default CPU 9 0, GPU 3 6 15 30 0)")
     ap.add_argument("--no-deeplens", action="store_true")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     SIZE = a.size
     gpu = a.device.startswith("cuda")
     n = a.grid or (3 if a.quick else 10)
-    batch_list = a.batch or ([3, 6, 15, 30] if gpu else [9])
+    batch_list = [b or None for b in (a.batch or ([3, 6, 15, 30, 0] if gpu else [9, 0]))]
 
     def log(msg):
         print(msg, flush=True)

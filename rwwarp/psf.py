@@ -228,7 +228,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):
         raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
-    from .plan import default_memory_budget_bytes, MemoryBudgetError
+    from .plan import default_memory_budget_bytes
     if memory_budget_gb is not None:
         if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
             raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
@@ -262,16 +262,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
         # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
         # (arrays sized to the batch's largest member; rwwarp.raywave.PackedRayWave), each propagated alone
-        systems = []   # (lens, fields, wavelengths, pairs): the paraxial-wave model's system per wavelength
-        if model == "ray-wave":
-            systems.append((lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], pairs))
-        else:
-            for j, w in enumerate(wavelengths_um):
-                eq, eq_fields = paraxial_equivalent(lens, fields, [w], object_distance_mm)
-                systems.append((eq, list(eq_fields), [w] * len(fields), [(i, j) for i in range(len(fields))]))
-        for sys_lens, f_list, w_list, sys_pairs in systems:
-            od = object_distance_mm if model == "ray-wave" else None
-            members = source_plans(sys_lens, f_list, w_list, size, pixel, object_distance_mm=od, **opts)
+        for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel,
+                                               object_distance_mm, opts):
             for chunk_idx in pack_sources(members, size, batch, budget):
                 res = PackedRayWave([members[k] for k in chunk_idx]).run(focal_precision)
                 store([sys_pairs[k] for k in chunk_idx], res)
@@ -308,6 +300,26 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, opts) -> list:
+    """Every (field, wavelength) pair of ``pairs`` (indices into ``fields`` (deg) and ``wavelengths_um``)
+    planned on its own (:func:`rwwarp.raywave.source_plans`) for the wave models: ``[(members, pairs), ...]``,
+    one entry per system (ray-wave: the lens; paraxial-wave: its equivalent at each wavelength), ``members``
+    in the order of that entry's ``pairs``. ``opts``: the :class:`RayWave` options (``device``, ``plan``, ...,
+    ``memory_budget_bytes``); ``size`` px of ``pixel`` mm; ``object_distance_mm`` (mm, None: the lens's)."""
+    out = []
+    if model == "ray-wave":
+        out.append((source_plans(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size,
+                                 pixel, object_distance_mm=object_distance_mm, **opts), list(pairs)))
+        return out
+    for j, w in enumerate(wavelengths_um):
+        sub = [(i, jj) for i, jj in pairs if jj == j]
+        if not sub:
+            continue
+        eq, eq_fields = paraxial_equivalent(lens, [fields[i] for i, _ in sub], [w], object_distance_mm)
+        out.append((source_plans(eq, list(eq_fields), [w] * len(sub), size, pixel, **opts), sub))
+    return out
+
+
 def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> list:
     """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
     :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's

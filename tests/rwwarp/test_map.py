@@ -45,12 +45,13 @@ def test_grouping_bounds_each_sources_fft_area_and_respects_the_batch_limit():
     assert group_sources(needs, max_batch=None, waste=100.0) == [[0, 1, 2, 3, 4]]
 
 
-# Distance of the map's on-axis PSFs to the RS ground truth, measured on the CPU (PoCL): 5.4e-3 at 0.45 um,
-# 1.6e-2 at 0.65 um (the single-PSF calls: 8.3e-3 and 1.6e-2; the ground truth itself converges to < 1e-5 at
-# 24 x 96 pupil nodes). Tolerances 1.5x. Off-axis the DOE's relief wraps inside the footprint at these
-# wavelengths, which the ground truth's smooth quadrature refuses: those entries are checked by equality with
-# the single PSF wherever the plans agree.
-MAP_TOL = {0.45: 8e-3, 0.65: 2.5e-2}
+# Distance of the map's on-axis PSFs to the RS ground truth, measured on the CPU (PoCL): 8.3e-3 at 0.45 um,
+# 1.6e-2 at 0.65 um, those of the single-PSF calls (each source on its own plan; when a batch shared its finest
+# member's plan the 0.45 um entry was 5.4e-3: a finer grid than the source's own; the ground truth itself
+# converges to < 1e-5 at 24 x 96 pupil nodes). Tolerances 1.5x. Off-axis the DOE's relief wraps inside the
+# footprint at these wavelengths, which the ground truth's smooth quadrature refuses: those entries are
+# checked by equality with the single PSF.
+MAP_TOL = {0.45: 1.25e-2, 0.65: 2.5e-2}
 
 
 def test_map_sources_keep_their_own_plans_and_match_the_rs_ground_truth():
