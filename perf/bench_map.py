@@ -348,14 +348,15 @@ def main():
     ap.add_argument("--size", type=int, default=SIZE, help=f"patch size, px (default {SIZE})")
     ap.add_argument("--batch", type=int, nargs="+", default=None,
                     help="sources per launch, one run each, 0: psf_map's default (no limit but the memory "
-                         "budget) (default CPU 9 0, GPU 3 6 15 30 0)")
+                         "budget) (default CPU 9 30, GPU 3 6 15 30 0)")
     ap.add_argument("--no-deeplens", action="store_true")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     SIZE = a.size
     gpu = a.device.startswith("cuda")
     n = a.grid or (3 if a.quick else 10)
-    batch_list = [b or None for b in (a.batch or ([3, 6, 15, 30, 0] if gpu else [9, 0]))]
+    # CPU: no default-budget run (half the available memory, shared with whatever else runs there)
+    batch_list = [b or None for b in (a.batch or ([3, 6, 15, 30, 0] if gpu else [9, 30]))]
 
     def log(msg):
         print(msg, flush=True)

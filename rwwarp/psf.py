@@ -179,15 +179,19 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
             focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
-    batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
+    batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
-    With ``plan="auto"`` (ray-wave model) every (field, wavelength) pair is planned on its own first
-    (a pilot trace) and pairs with similar plans share a batch (:func:`group_sources`): a batch's plan
-    is the finest any member needs, and no member's FFT area is more than twice its own plan's.
-    ``batch`` limits the number of sources per launch (memory; default no limit); ``progress`` shows a
-    tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields, n_wavelengths, size, size);
-    ``info["batches"]`` lists each batch's (field, wavelength) index pairs and plan, ``info["plan"]``
-    is the last batch's plan. Other arguments as :func:`psf`.
+    Wave models: every (field, wavelength) pair is planned on its own (one pilot trace of all of them) and
+    computed on that plan whatever its batch, so each PSF is the one :func:`psf` gives (to ~1e-16 of the
+    peak: the splat's float sums on CPU threads may add in another order). A batch
+    (:class:`rwwarp.raywave.PackedRayWave`) traces and splats its members in one set of launches, in arrays
+    sized to its largest member (the extra rays invalid, the extra samples zero), then propagates each by
+    its own plan; batches take members of one propagation method, largest first, within the memory budget
+    (:func:`pack_sources`). ``batch`` limits the number of sources per batch (default no limit but the
+    budget); ``progress`` shows a tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields,
+    n_wavelengths, size, size); ``info["batches"]`` lists each batch's (field, wavelength) index pairs,
+    ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
+    ``plan``. Other arguments as :func:`psf`.
     """
     from . import checks  # arguments at the public edge (issue 12): names the argument and its range
     checks.check_lens(lens)
