@@ -228,16 +228,16 @@ def deeplens_bytes(spp, n_doe=3000, launches=4):
 
 
 # ------------------------------------------------------------------------------------------- runs
-def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
+def bench_rwwarp(lens, fields, device, batch, bandwidth, log, method="auto"):
     s = sync_fn(device)
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(WLS))]
     with PeakSampler(device) as mem:   # over the cold run (FFT plans, transfer functions) and the timed one
         t0 = time.perf_counter()
-        rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch)
+        rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch, method=method)
         s()
         cold = time.perf_counter() - t0
         t0 = time.perf_counter()
-        m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch)
+        m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch, method=method)
         s()
         warm = time.perf_counter() - t0
     # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.raywave.source_plans, pilot
@@ -247,26 +247,26 @@ def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
     tot = {"trace": 0, "rays_to_field": 0, "propagation": 0}
     order = [pr for b in m.info["batches"] for pr in b["pairs"]]
     members = source_plans(lens, as_field_list([fields[i] for i, _ in order]), [WLS[j] for _, j in order], SIZE,
-                           lens.sensor.pixel_pitch, device, method="auto",
+                           lens.sensor.pixel_pitch, device, method=method,
                            memory_budget_bytes=default_memory_budget_bytes(device))
     for rwm in members:
         for k, v in rwwarp_bytes(rwm).items():
             tot[k] += v
     plans, at = [], 0
     for b in m.info["batches"]:
-        mem = members[at:at + len(b["pairs"])]
+        grp = members[at:at + len(b["pairs"])]
         at += len(b["pairs"])
-        plans.append({"sources": len(mem), "method": [r.plan.method for r in mem],
-                      "pitch_um": [r.plan.pitch_mm * 1e3 for r in mem], "n_grid": [r.plan.n_grid for r in mem],
-                      "n_pad": [r.plan.n_pad for r in mem], "ray_grid": [r.plan.ray_grid for r in mem]})
+        plans.append({"sources": len(grp), "method": [r.plan.method for r in grp],
+                      "pitch_um": [r.plan.pitch_mm * 1e3 for r in grp], "n_grid": [r.plan.n_grid for r in grp],
+                      "n_pad": [r.plan.n_pad for r in grp], "ray_grid": [r.plan.ray_grid for r in grp]})
     nb = sum(tot.values())
     floor = nb / bandwidth
-    out = {"batch": batch, "n_batches": len(m.info["batches"]), "n_psfs": len(pairs), "cold_s": cold, "time_s": warm, "psfs_per_s": len(pairs) / warm,
+    out = {"batch": batch, "method": method, "n_batches": len(m.info["batches"]), "n_psfs": len(pairs), "cold_s": cold, "time_s": warm, "psfs_per_s": len(pairs) / warm,
            "ms_per_psf": 1e3 * warm / len(pairs), **mem.report(), "bytes_model": tot, "bytes_total": nb,
            "floor_s": floor, "fraction_of_floor": floor / warm,
            "floor_by_stage_s": {k: v / bandwidth for k, v in tot.items()}, "plans": plans,
            "patch_power_mean": float(m.data.sum(axis=(2, 3)).mean())}
-    log(f"rwwarp batch {batch}: {warm:.2f} s for {len(pairs)} PSFs = {out['psfs_per_s']:.2f} PSF/s, "
+    log(f"rwwarp batch {batch}, method {method}: {warm:.2f} s (cold {cold:.2f} s) for {len(pairs)} PSFs = {out['psfs_per_s']:.2f} PSF/s, "
         f"floor {floor:.3f} s ({100 * out['fraction_of_floor']:.1f}% of the floor), "
         f"peak +{out.get('device_used_increase_bytes', out['host_rss_increase_bytes']) / 2 ** 30:.2f} GiB")
     return out, m
@@ -349,6 +349,8 @@ def main():
     ap.add_argument("--batch", type=int, nargs="+", default=None,
                     help="sources per launch, one run each, 0: psf_map's default (no limit but the memory "
                          "budget) (default CPU 9 30, GPU 3 6 15 30 0)")
+    ap.add_argument("--method", default="auto", choices=("auto", "focal", "asm"),
+                    help="rw.psf_map's method (default auto: each source's own choice, as rw.psf makes it)")
     ap.add_argument("--no-deeplens", action="store_true")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
@@ -390,7 +392,7 @@ def main():
            "rwwarp": []}
     log(f"{n}x{n} fields x {len(WLS)} wavelengths on {res['device_name']}; copy bandwidth {bw / 1e9:.1f} GB/s")
     for b in batch_list:
-        r, _ = bench_rwwarp(lens, fields, a.device, b, bw, log)
+        r, _ = bench_rwwarp(lens, fields, a.device, b, bw, log, a.method)
         res["rwwarp"].append(r)
     if have_dl:
         try:
@@ -413,6 +415,8 @@ def main():
         res["deeplens"] = "not importable on this machine (deeplens-core); timed on the GPU run"
     res["load_average_end"] = os.getloadavg()
     tag = "gpu" if gpu else "cpu"
+    if a.method != "auto":
+        tag += f"_{a.method}"
     log(f"-> {save(f'bench_map_{tag}', res, a.out or os.environ.get('RWWARP_RESULTS', str(RESULTS)))}")
 
 
