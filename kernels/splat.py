@@ -73,7 +73,8 @@ def make_splat_kernels(scalar):
 
     @wp.func
     def cell_offset(cells: wp.array(dtype=wp.vec3d), rim: int, j: int, n_side: int):
-        # offset of pupil cell j's ray from the cell centre, in cells (0 without rim weighting)
+        # offset of pupil cell j's ray from the cell centre, in cells (0 without rim weighting); j indexes
+        # cells (the source's table offset included)
         if rim == 0:
             return wp.vec2d()
         g = cells[j]
@@ -83,27 +84,35 @@ def make_splat_kernels(scalar):
     @wp.kernel(module="unique")
     def stencil_kernel(
         pos: wp.array(dtype=vec3),
-        n_side: int,
+        n_side: int,                          # > 0: every source's grid; < 0: side_src[s] (packed batch)
+        side_src: wp.array(dtype=wp.int32),   # (n_src,) each source's grid side with n_side < 0, else (1,)
+        n_pupil: int,                         # ray slots per source with n_side < 0 (padding past side^2)
         # outputs
         nbr_out: wp.array2d(dtype=vec3),      # (n, 5): +u, -u, +v, -v neighbour and own position of each ray
     ):
         # ray j hands its position to the rays that read it (deterministic mode): each thread reads only its
         # own position and writes slots no other thread writes, so the adjoint adds without atomics contending
         j = wp.tid()
+        side = n_side
         per = n_side * n_side
+        if n_side < 0:
+            per = n_pupil
+            side = side_src[j // per]
         jj = j - (j // per) * per
-        r = jj // n_side
-        c = jj - r * n_side
+        if jj >= side * side:
+            return
+        r = jj // side
+        c = jj - r * side
         p = pos[j]
         nbr_out[j, 4] = p
         if c > 0:
             nbr_out[j - 1, 0] = p
-        if c + 1 < n_side:
+        if c + 1 < side:
             nbr_out[j + 1, 1] = p
         if r > 0:
-            nbr_out[j - n_side, 2] = p
-        if r + 1 < n_side:
-            nbr_out[j + n_side, 3] = p
+            nbr_out[j - side, 2] = p
+        if r + 1 < side:
+            nbr_out[j + side, 3] = p
 
     @wp.func
     def tube_pos(pos: wp.array(dtype=vec3), nbr: wp.array2d(dtype=vec3), stencil: int, i: int, k: int, off: int):
@@ -116,53 +125,63 @@ def make_splat_kernels(scalar):
     def tube_area_kernel(
         pos: wp.array(dtype=vec3),
         valid: wp.array(dtype=wp.int32),
-        n_side: int,                          # pupil grid is n_side x n_side per source (row-major)
+        n_side: int,                          # pupil grid is n_side x n_side per source (row-major); < 0:
+                                              # each source's own side_src[s] in n_pupil slots (packed batch)
         cells: wp.array(dtype=wp.vec3d),      # with rim: (fraction, du, dv) per pupil cell (rays at centroids)
         rim: int,
         stencil: int,                         # 1: neighbours' positions from nbr (stencil_kernel), deterministic
         nbr: wp.array2d(dtype=vec3),          # (n, 5) with stencil, else (1, 5)
+        side_src: wp.array(dtype=wp.int32),   # (n_src,) with n_side < 0, else (1,)
+        n_pupil: int,                         # ray slots per source with n_side < 0 (padding invalid)
+        cell_stride: int,                     # cells of source s start at s * cell_stride (0: one table)
         # outputs
         area_out: wp.array(dtype=f64),        # footprint area of each ray's pupil cell on the plane, mm^2
         half_out: wp.array(dtype=wp.vec2d),   # half sizes (x, y) of the tube's box, mm
     ):
         i = wp.tid()
         per = n_side * n_side
+        if n_side < 0:
+            per = n_pupil
         s = i // per
         j = i - s * per
-        r = j // n_side
-        c = j - r * n_side
         area_out[i] = f64(0.0)
         half_out[i] = wp.vec2d()
         if valid[i] == 0:
             return
+        side = n_side
+        if n_side < 0:
+            side = side_src[s]
+        r = j // side
+        c = j - r * side
+        cb = s * cell_stride
         # central differences where both neighbours are valid, one-sided otherwise: plane steps du, dv and
         # the pupil steps pu, pv they span (in cells: (1, 0) and (0, 1) on the regular grid; rim rays start
         # at their part-cell's centroid, so there the steps are the actual ones)
         du = wp.vec3d()
         pu = wp.vec2d()
         nu = 0
-        if c + 1 < n_side and valid[i + 1] == 1:
+        if c + 1 < side and valid[i + 1] == 1:
             du = du + tube_pos(pos, nbr, stencil, i, 0, 1) - tube_pos(pos, nbr, stencil, i, 4, 0)
-            pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, j + 1, n_side)
-            pu = pu - cell_offset(cells, rim, j, n_side)
+            pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, cb + j + 1, side)
+            pu = pu - cell_offset(cells, rim, cb + j, side)
             nu = nu + 1
         if c > 0 and valid[i - 1] == 1:
             du = du + tube_pos(pos, nbr, stencil, i, 4, 0) - tube_pos(pos, nbr, stencil, i, 1, -1)
-            pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, j, n_side)
-            pu = pu - cell_offset(cells, rim, j - 1, n_side)
+            pu = pu + wp.vec2d(f64(1.0), f64(0.0)) + cell_offset(cells, rim, cb + j, side)
+            pu = pu - cell_offset(cells, rim, cb + j - 1, side)
             nu = nu + 1
         dv = wp.vec3d()
         pv = wp.vec2d()
         nv = 0
-        if r + 1 < n_side and valid[i + n_side] == 1:
-            dv = dv + tube_pos(pos, nbr, stencil, i, 2, n_side) - tube_pos(pos, nbr, stencil, i, 4, 0)
-            pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, j + n_side, n_side)
-            pv = pv - cell_offset(cells, rim, j, n_side)
+        if r + 1 < side and valid[i + side] == 1:
+            dv = dv + tube_pos(pos, nbr, stencil, i, 2, side) - tube_pos(pos, nbr, stencil, i, 4, 0)
+            pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, cb + j + side, side)
+            pv = pv - cell_offset(cells, rim, cb + j, side)
             nv = nv + 1
-        if r > 0 and valid[i - n_side] == 1:
-            dv = dv + tube_pos(pos, nbr, stencil, i, 4, 0) - tube_pos(pos, nbr, stencil, i, 3, -n_side)
-            pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, j, n_side)
-            pv = pv - cell_offset(cells, rim, j - n_side, n_side)
+        if r > 0 and valid[i - side] == 1:
+            dv = dv + tube_pos(pos, nbr, stencil, i, 4, 0) - tube_pos(pos, nbr, stencil, i, 3, -side)
+            pv = pv + wp.vec2d(f64(0.0), f64(1.0)) + cell_offset(cells, rim, cb + j, side)
+            pv = pv - cell_offset(cells, rim, cb + j - side, side)
             nv = nv + 1
         if nu > 0 and nv > 0:
             du = du / f64(nu)
@@ -200,10 +219,13 @@ def make_splat_kernels(scalar):
         wavenumber: wp.array(dtype=f64),      # (n_src,) 2 pi / lambda, 1/mm
         use_reference: int,
         energy: int,
-        n_grid: int,
+        n_grid: int,                          # > 0: every window n_grid^2; < 0: windows of grid_src[s]^2 in
+                                              # slots of -n_grid x -n_grid (packed batch)
         n_pupil: int,
         frac: wp.array(dtype=wp.vec3d),       # (n_pupil,) (fraction in the aperture, du, dv) per cell, or (1,)
         rim: int,                             # 1: the fraction applies (energy convention; the weight carries it)
+        grid_src: wp.array(dtype=wp.int32),   # (n_src,) each window's side with n_grid < 0, else (1,)
+        frac_stride: int,                     # frac of source s, cell j at s * frac_stride + j (0: one table)
         offset: int,                          # first ray of this launch (CPU threads splat ray ranges)
         fixed: int,                           # 0: float sums; 1: fixed-point sums (deterministic); 2: bounds only
         bound: wp.array2d(dtype=vec4d),       # (n_src, 1): per source the sum of the rays' amplitudes (fixed == 1)
@@ -221,6 +243,11 @@ def make_splat_kernels(scalar):
                 amp_out[i] = vec4d()
             return
         s = i // n_pupil
+        ng = n_grid                           # this source's window side
+        stride = n_grid                       # the slot's side
+        if n_grid < 0:
+            stride = -n_grid
+            ng = grid_src[s]
         unit = f64(1.0)
         if fixed == 1:
             unit = FIXED_ONE / wp.max(bound[s, 0][0], f64(1.0e-300))
@@ -243,7 +270,7 @@ def make_splat_kernels(scalar):
             if rim == 1:
                 # a rim cell the aperture covers in part (fraction f, already in the weight; the ray starts
                 # at the part's centroid): the tube's irradiance on f of its area, a box of f A about the ray
-                f = frac[i - s * n_pupil][0]
+                f = frac[s * frac_stride + i - s * n_pupil][0]
                 amp = amp * wp.sqrt(f)
                 hb = hb * wp.sqrt(f)
             if fixed == 2:
@@ -263,7 +290,7 @@ def make_splat_kernels(scalar):
             cy0 = int(wp.floor((p[1] - hb[1] - o[1]) / h + f64(0.5)))
             cx1 = int(wp.floor((p[0] + hb[0] - o[0]) / h + f64(0.5)))
             cy1 = int(wp.floor((p[1] + hb[1] - o[1]) / h + f64(0.5)))
-            if cx0 < 0 or cy0 < 0 or cx1 >= n_grid or cy1 >= n_grid:
+            if cx0 < 0 or cy0 < 0 or cx1 >= ng or cy1 >= ng:
                 wp.atomic_add(dropped_out, s, 1)
                 return
             for iy in range(cy0, cy1 + 1):
@@ -273,7 +300,7 @@ def make_splat_kernels(scalar):
                     ox = wp.min(p[0] + hb[0], xc + f64(0.5) * h) - wp.max(p[0] - hb[0], xc - f64(0.5) * h)
                     oy = wp.min(p[1] + hb[1], yc + f64(0.5) * h) - wp.max(p[1] - hb[1], yc - f64(0.5) * h)
                     if ox > f64(0.0) and oy > f64(0.0):
-                        k = (s * n_grid + iy) * n_grid + ix
+                        k = (s * stride + iy) * stride + ix
                         mx = wp.max(p[0] - hb[0], xc - f64(0.5) * h) + f64(0.5) * ox - p[0]
                         my = wp.max(p[1] - hb[1], yc - f64(0.5) * h) + f64(0.5) * oy - p[1]
                         ph = psi + gx * mx + gy * my
@@ -290,7 +317,7 @@ def make_splat_kernels(scalar):
         fy = (p[1] - o[1]) / h
         ix = int(wp.floor(fx))
         iy = int(wp.floor(fy))
-        if ix < 0 or iy < 0 or ix >= n_grid - 1 or iy >= n_grid - 1:
+        if ix < 0 or iy < 0 or ix >= ng - 1 or iy >= ng - 1:
             wp.atomic_add(dropped_out, s, 1)
             return
         ax = fx - f64(ix)
@@ -301,7 +328,7 @@ def make_splat_kernels(scalar):
             return
         pre = amp * wp.cos(psi)
         pim = amp * wp.sin(psi)
-        base = (s * n_grid + iy) * n_grid + ix
+        base = (s * stride + iy) * stride + ix
         for c in range(4):
             cx = c % 2
             cy = c // 2
@@ -312,7 +339,7 @@ def make_splat_kernels(scalar):
             if cy == 0:
                 by = f64(1.0) - ay
             b = bx * by
-            k = base + cy * n_grid + cx
+            k = base + cy * stride + cx
             if fixed == 1:
                 wp.atomic_add(acc_re_out, k, wp.int64(wp.round(b * pre * unit)))
                 wp.atomic_add(acc_im_out, k, wp.int64(wp.round(b * pim * unit)))
@@ -333,17 +360,26 @@ def make_splat_kernels(scalar):
         carrier: wp.array(dtype=wp.vec2d),    # (n_src,) chief-ray spatial frequency, cycles/mm
         use_reference: int,
         energy: int,
-        n_grid: int,
+        n_grid: int,                          # > 0: every window n_grid^2; < 0: windows of grid_src[s]^2 in
+                                              # slots of -n_grid x -n_grid (packed batch; the rest is zero)
+        grid_src: wp.array(dtype=wp.int32),   # (n_src,) with n_grid < 0, else (1,)
         offset: int,                          # first sample of this launch (CPU threads finalize ranges)
         # outputs
         field_out: wp.array(dtype=wp.vec2d),  # (re, im)
     ):
         k = wp.tid() + offset
-        per = n_grid * n_grid
+        stride = n_grid
+        if n_grid < 0:
+            stride = -n_grid
+        per = stride * stride
         s = k // per
         rem = k - s * per
-        j = rem // n_grid
-        i = rem - j * n_grid
+        j = rem // stride
+        i = rem - j * stride
+        if n_grid < 0:
+            if i >= grid_src[s] or j >= grid_src[s]:
+                field_out[k] = wp.vec2d()   # outside this source's own window
+                return
         h = pitch[s]
         o = origin[s]
         re = s_re[k]

@@ -226,8 +226,16 @@ def make_trace_kernels(scalar):
                                                 #    (rwwarp.pupil.disc_cells): the ray starts at the centroid
         relative: int,                          # 1: OPL relative to the chief ray (point sources)
         grid_n: int,                            # > 0: pupil is the full grid_n x grid_n cell-centre grid,
-                                                #      computed here (pupil_u / pupil_v unused)
-        n_pupil: int,
+                                                #      computed here (pupil_u / pupil_v unused);
+                                                # < 0: each source's own grid, grid_src[s] x grid_src[s], and
+                                                #      cell area cell_src[s] (a packed batch of sources with
+                                                #      their own plans, rwwarp.raywave.PackedRayWave)
+        n_pupil: int,                           # ray slots per source (with grid_n < 0, >= every grid_src^2;
+                                                #      the slots past a source's own grid are padding: invalid,
+                                                #      zero weight, at the pupil centre)
+        grid_src: wp.array(dtype=wp.int32),     # (n_src,) with grid_n < 0, else unused ((1,))
+        cell_src: wp.array(dtype=scalar),       # (n_src,) with grid_n < 0, else unused ((1,))
+        frac_stride: int,                       # frac of source s, cell j at s * frac_stride + j (0: one table)
         # outputs
         pos_out: wp.array(dtype=vec3),
         dir_out: wp.array(dtype=vec3),
@@ -242,22 +250,37 @@ def make_trace_kernels(scalar):
         c = aim[s]
         pu = scalar(0.0)
         pv = scalar(0.0)
-        if grid_n > 0:
-            row = j // grid_n
-            col = j - row * grid_n
-            pu = scalar(-1.0) + (scalar(2.0) * scalar(col) + scalar(1.0)) / scalar(grid_n)
-            pv = scalar(-1.0) + (scalar(2.0) * scalar(row) + scalar(1.0)) / scalar(grid_n)
+        g = grid_n
+        cl = cell
+        if grid_n < 0:
+            g = grid_src[s]
+            cl = cell_src[s]
+            if j >= g * g:
+                # padding past this source's own grid: no ray
+                pos_out[i] = vec3(c[0], c[1], c[2])
+                dir_out[i] = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+                opl_out[i] = scalar(0.0)
+                valid_out[i] = 0
+                weight_out[i] = scalar(0.0)
+                wl_out[i] = src_wl[s]
+                return
+        if g > 0:
+            row = j // g
+            col = j - row * g
+            pu = scalar(-1.0) + (scalar(2.0) * scalar(col) + scalar(1.0)) / scalar(g)
+            pv = scalar(-1.0) + (scalar(2.0) * scalar(row) + scalar(1.0)) / scalar(g)
         else:
             pu = pupil_u[j]
             pv = pupil_v[j]
+        fj = s * frac_stride + j
         if circle == 2:
-            cell_j = frac[j]
+            cell_j = frac[fj]
             pu = pu + scalar(cell_j[1])
             pv = pv + scalar(cell_j[2])
         p = vec3(c[0] + half_x[s] * pu, c[1] + half_y[s] * pv, c[2])
         w = src_wl[s]
         n0 = n_obj[w]
-        area = cell * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
+        area = cl * half_x[s] * half_y[s]  # pupil area of this sample, mm^2
         if src_finite[s] == 1:
             dvec = p - src_pos[s]
             dist = wp.length(dvec)
@@ -284,7 +307,7 @@ def make_trace_kernels(scalar):
                 valid_out[i] = 0
                 weight_out[i] = scalar(0.0)
         if circle == 2:
-            f = scalar(frac[j][0])
+            f = scalar(frac[fj][0])
             weight_out[i] = weight_out[i] * f
             if f <= scalar(0.0):
                 valid_out[i] = 0

@@ -5,7 +5,7 @@ same run when ``deeplens-core`` is importable.
 Fields follow DeepLens's ``point_source_grid(grid=(N, N), center=True)``: normalised sensor positions
 ``u = linspace(-1 + h, 1 - h, N)``, ``h = 1 / (2 (N - 1))``, turned into field angles with the pinhole
 scale (``tan(theta) = u * sensor_half / f``, DeepLens's ``calc_scale`` when it is importable, else the
-paraxial EFL), object at 10 m, wavelengths 0.45 / 0.55 / 0.65 um, 64 x 64 px patches.
+paraxial EFL), object at 10 m, wavelengths 0.45 / 0.55 / 0.65 um, 64 x 64 px patches (``--size``).
 
 Memory: a sampler thread polls every 5 ms during each measured block (rwwarp: the cold and the timed
 map at one batch size; DeepLens: its loop): host RSS (psutil) and, on CUDA, the device's used memory
@@ -32,6 +32,7 @@ plane), its 3000^2 field splat, the 6000^2 padded complex128 field through a for
 2-D FFT (one read + write each), the transfer-function multiply, |U|^2 and the crop.
 
     python perf/bench_map.py --quick                  # CPU, 3x3 fields x 3 wavelengths
+    python perf/bench_map.py --grid 10 --size 32      # CPU, 10x10 x 3 at 32 px
     python perf/bench_map.py --device cuda            # GPU, 10x10 x 3 at batches 6, 15, 30; DeepLens when importable
 """
 import argparse
@@ -49,7 +50,6 @@ from _common import RESULTS, device_name, git_commit, save, sync_fn
 
 import rwwarp as rw
 from rwwarp import propagate as prop
-from rwwarp.psf import RayWave
 from rwwarp.trace import as_field_list
 
 WLS = [0.45, 0.55, 0.65]
@@ -170,7 +170,9 @@ def _band_widths(rwm):
     in_center = origin + 0.5 * (n - 1) * pitch
     out_center = np.stack([0.5 * (px[:, 0] + px[:, -1]), 0.5 * (py[:, 0] + py[:, -1])], axis=1)
     shift = out_center - in_center
-    lo, hi = prop.band_limits(lam[:, None], np.full((len(lam), 1), z), np.full((len(lam), 2), lp), shift)
+    # the distance is per source ((S,) since the map's sources each carry their own): a column for the two axes
+    zc = np.broadcast_to(np.asarray(z, dtype=float).reshape(-1, 1), (len(lam), 1))
+    lo, hi = prop.band_limits(lam[:, None], zc, np.full((len(lam), 2), lp), shift)
     carrier = rwm.carrier
     qmin, qmax = -(npad // 2), (npad - 1) // 2
     with np.errstate(invalid="ignore", over="ignore"):
@@ -188,12 +190,21 @@ def rwwarp_bytes(rwm, gauss_nodes=3):
     rays = pl.ray_grid ** 2
     launches = rwm.plane + 1
     n, npad = pl.n_grid, pl.n_pad
-    kx, ky = _band_widths(rwm)
     m = SIZE * gauss_nodes
-    has_phase = rwm.doe_phase()[0] is not None
     c = 16  # complex128
     trace = rays * (124 * launches + 60)
     to_field = rays * (68 * 2 + 24 + 64) + n * n * 48
+    if pl.method == "focal":
+        # rwwarp.focal: field (and the DOE orders' factor) read, the two separable kernel matrices
+        # (n_sensor x n_grid) read, the intermediate (n_sensor x n_grid) written and read, the sensor-side
+        # field (n_sensor^2) written, its padded FFT (n_sensor_fft^2, read + write, forward and inverse),
+        # the output DFT's factors and result, the PSF written
+        ns, nf = pl.n_sensor, pl.n_sensor_fft
+        propagation = (2 * n * n * c + 2 * ns * n * c + 2 * ns * n * c + ns * ns * c
+                       + 2 * 2 * nf * nf * c + (2 * nf * m + m * m) * c + SIZE * SIZE * 8)
+        return {"trace": S * trace, "rays_to_field": S * to_field, "propagation": S * propagation}
+    kx, ky = _band_widths(rwm)
+    has_phase = rwm.doe_phase()[0] is not None
     propagation = (n * n * (c + (8 if has_phase else 0)) + n * npad * c  # pad + modulate
                    + 2 * n * npad * c                                     # x-FFT
                    + n * kx * c + npad * kx * c                           # column gather
@@ -217,39 +228,45 @@ def deeplens_bytes(spp, n_doe=3000, launches=4):
 
 
 # ------------------------------------------------------------------------------------------- runs
-def bench_rwwarp(lens, fields, device, batch, bandwidth, log):
+def bench_rwwarp(lens, fields, device, batch, bandwidth, log, method="auto"):
     s = sync_fn(device)
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(WLS))]
     with PeakSampler(device) as mem:   # over the cold run (FFT plans, transfer functions) and the timed one
         t0 = time.perf_counter()
-        rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch)
+        rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch, method=method)
         s()
         cold = time.perf_counter() - t0
         t0 = time.perf_counter()
-        m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch)
+        m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch, method=method)
         s()
         warm = time.perf_counter() - t0
-    # bytes model from the batches psf_map ran (m.info["batches"]: its grouping of sources with similar
-    # plans), each rebuilt up to its plan (pilot traces only)
+    # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.raywave.source_plans, pilot
+    # traces only; packed batches pad the trace and splat to their largest member, not counted here)
+    from rwwarp.plan import default_memory_budget_bytes
+    from rwwarp.raywave import source_plans
     tot = {"trace": 0, "rays_to_field": 0, "propagation": 0}
-    plans = []
-    for b in m.info["batches"]:
-        idx = b["pairs"]
-        f_list = [fields[i] for i, _ in idx]
-        w_list = [WLS[j] for _, j in idx]
-        rwm = RayWave(lens, as_field_list(f_list), w_list, SIZE, lens.sensor.pixel_pitch, device, "auto")
+    order = [pr for b in m.info["batches"] for pr in b["pairs"]]
+    members = source_plans(lens, as_field_list([fields[i] for i, _ in order]), [WLS[j] for _, j in order], SIZE,
+                           lens.sensor.pixel_pitch, device, method=method,
+                           memory_budget_bytes=default_memory_budget_bytes(device))
+    for rwm in members:
         for k, v in rwwarp_bytes(rwm).items():
             tot[k] += v
-        plans.append({"pitch_um": rwm.plan.pitch_mm * 1e3, "n_grid": rwm.plan.n_grid, "n_pad": rwm.plan.n_pad,
-                      "ray_grid": rwm.plan.ray_grid, "sources": len(idx)})
+    plans, at = [], 0
+    for b in m.info["batches"]:
+        grp = members[at:at + len(b["pairs"])]
+        at += len(b["pairs"])
+        plans.append({"sources": len(grp), "method": [r.plan.method for r in grp],
+                      "pitch_um": [r.plan.pitch_mm * 1e3 for r in grp], "n_grid": [r.plan.n_grid for r in grp],
+                      "n_pad": [r.plan.n_pad for r in grp], "ray_grid": [r.plan.ray_grid for r in grp]})
     nb = sum(tot.values())
     floor = nb / bandwidth
-    out = {"batch": batch, "n_psfs": len(pairs), "cold_s": cold, "time_s": warm, "psfs_per_s": len(pairs) / warm,
+    out = {"batch": batch, "method": method, "n_batches": len(m.info["batches"]), "n_psfs": len(pairs), "cold_s": cold, "time_s": warm, "psfs_per_s": len(pairs) / warm,
            "ms_per_psf": 1e3 * warm / len(pairs), **mem.report(), "bytes_model": tot, "bytes_total": nb,
            "floor_s": floor, "fraction_of_floor": floor / warm,
            "floor_by_stage_s": {k: v / bandwidth for k, v in tot.items()}, "plans": plans,
            "patch_power_mean": float(m.data.sum(axis=(2, 3)).mean())}
-    log(f"rwwarp batch {batch}: {warm:.2f} s for {len(pairs)} PSFs = {out['psfs_per_s']:.2f} PSF/s, "
+    log(f"rwwarp batch {batch}, method {method}: {warm:.2f} s (cold {cold:.2f} s) for {len(pairs)} PSFs = {out['psfs_per_s']:.2f} PSF/s, "
         f"floor {floor:.3f} s ({100 * out['fraction_of_floor']:.1f}% of the floor), "
         f"peak +{out.get('device_used_increase_bytes', out['host_rss_increase_bytes']) / 2 ** 30:.2f} GiB")
     return out, m
@@ -323,18 +340,25 @@ def deeplens_importable():
 
 
 def main():
+    global SIZE
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--grid", type=int, default=None, help="fields per axis (default 10; --quick: 3)")
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="3x3 fields (unless --grid) x 3 wavelengths")
+    ap.add_argument("--size", type=int, default=SIZE, help=f"patch size, px (default {SIZE})")
     ap.add_argument("--batch", type=int, nargs="+", default=None,
-                    help="sources per launch, one run each (default CPU 9, GPU 3 6 15 30)")
+                    help="sources per launch, one run each, 0: psf_map's default (no limit but the memory "
+                         "budget) (default CPU 9 30, GPU 3 6 15 30 0)")
+    ap.add_argument("--method", default="auto", choices=("auto", "focal", "asm"),
+                    help="rw.psf_map's method (default auto: each source's own choice, as rw.psf makes it)")
     ap.add_argument("--no-deeplens", action="store_true")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
+    SIZE = a.size
     gpu = a.device.startswith("cuda")
     n = a.grid or (3 if a.quick else 10)
-    batch_list = a.batch or ([3, 6, 15, 30] if gpu else [9])
+    # CPU: no default-budget run (half the available memory, shared with whatever else runs there)
+    batch_list = [b or None for b in (a.batch or ([3, 6, 15, 30, 0] if gpu else [9, 30]))]
 
     def log(msg):
         print(msg, flush=True)
@@ -368,7 +392,7 @@ def main():
            "rwwarp": []}
     log(f"{n}x{n} fields x {len(WLS)} wavelengths on {res['device_name']}; copy bandwidth {bw / 1e9:.1f} GB/s")
     for b in batch_list:
-        r, _ = bench_rwwarp(lens, fields, a.device, b, bw, log)
+        r, _ = bench_rwwarp(lens, fields, a.device, b, bw, log, a.method)
         res["rwwarp"].append(r)
     if have_dl:
         try:
@@ -391,6 +415,8 @@ def main():
         res["deeplens"] = "not importable on this machine (deeplens-core); timed on the GPU run"
     res["load_average_end"] = os.getloadavg()
     tag = "gpu" if gpu else "cpu"
+    if a.method != "auto":
+        tag += f"_{a.method}"
     log(f"-> {save(f'bench_map_{tag}', res, a.out or os.environ.get('RWWARP_RESULTS', str(RESULTS)))}")
 
 

@@ -4,12 +4,12 @@
 optionally every depth) with its sources split across the ranks of a ``torch.distributed`` job:
 
 * **Work units.** The sources are cut into the same batches :func:`rwwarp.psf_map` makes (one
-  planning pilot per depth: batches of sources with similar ASM plans, or one source per batch on the
-  focal path), so every PSF is computed with exactly the plan the single-process map gives it: the
-  sharded map equals ``rw.psf_map`` (measured: bit for bit on the CPU, test tolerance 1e-12).
-* **Balance by estimated work, not by count.** Each batch's cost is the planner's estimate
-  (:func:`rwwarp.plan.estimate_cost` of the plan the batch will get; on the focal path the per-source
-  plan of :func:`rwwarp.plan_psf`): off-axis and large-aperture sources cost more. Batches are
+  planning pilot per depth; every source on its own plan, packed batches), so every PSF is computed
+  with exactly the plan the single-process map gives it (its own: a PSF does not depend on its batch):
+  the sharded map equals ``rw.psf_map`` (measured: bit for bit on the CPU, test tolerance 1e-12).
+* **Balance by estimated work, not by count.** Each batch's cost is the planner's estimate, the sum
+  of its sources' (:func:`rwwarp.plan.estimate_cost` of each source's own plan): off-axis and
+  large-aperture sources cost more. Batches are
   assigned largest first to the least-loaded rank (LPT; within 4/3 of the best split).
 * **Devices.** Each rank runs on its own device: ``device="cuda"`` becomes ``cuda:LOCAL_RANK``;
   ``cpu`` stays ``cpu``.
@@ -156,17 +156,14 @@ def _budget(kw):
 def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1), **kw) -> list:
     """The work units of a map: ``[{"depth": k, "pairs": [(i, j), ...], "cost": flops}, ...]``.
 
-    Per depth, the batches :func:`rwwarp.psf_map` makes for these arguments (the same pilot and the
-    same rules), so each PSF gets the plan it gets there. ``cost``: for batches sharing an automatic
-    ASM plan, its estimated flops (:func:`rwwarp.plan.estimate_cost`); on the focal path and for the
-    ray model, the number of sources (a pilot a source to cost them would repeat the pilot the unit
-    runs anyway); without the automatic batching (an explicit plan, one source), the sum of its
-    sources' :func:`rwwarp.plan_psf` estimates. ``part`` ``(r, n)``: those last costs, which need a
-    pilot each, only for units ``k`` with ``k % n == r`` (the others ``cost`` None), so that the ranks
-    share the planning (:func:`psf_map` all-gathers them)."""
-    from .plan import Plan, estimate_cost
-    from .plan import auto_sizes, group_sources
-    from .psf import RayWave, plan_psf
+    Per depth, the batches :func:`rwwarp.psf_map` makes for these arguments (every source on its own plan,
+    from one pilot of all, packed by :func:`rwwarp.psf.pack_sources`), so each PSF is the one it is there.
+    ``cost``: for the wave models, the sum of the sources' estimated flops
+    (:func:`rwwarp.plan.estimate_cost`); for the ray model, the sum of its sources' :func:`rwwarp.plan_psf`
+    estimates. ``part`` ``(r, n)``: those last costs, which need a pilot each, only for units ``k`` with
+    ``k % n == r`` (the others ``cost`` None), so that the ranks share the planning (:func:`psf_map`
+    all-gathers them)."""
+    from .psf import plan_psf
     model, size, device, plan, batch = kw["model"], kw["size"], kw["device"], kw["plan"], kw["batch"]
     pixel = float(kw["pixel_mm"] or lens.sensor.pixel_pitch)
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
@@ -183,31 +180,15 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
         return float(p.estimate["flops"]) if p.estimate else 1.0
 
     for k, od in enumerate(depths):
-        if model == "ray-wave" and isinstance(plan, str) and plan == "auto" and len(pairs) > 1:
-            # the pilot of rwwarp.psf_map (same arguments), and its batching rules
-            probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
-                            device, "auto", kw["dtype"], kw["amplitude"], od, kw["rays_per_sample"],
-                            kw["center_mm"], kw["use_reference"], gauss_nodes=kw["gauss_nodes"] or 3,
-                            nyquist_safety=kw["nyquist_safety"], method=kw["method"],
-                            focal_patch_tol=kw["focal_patch_tol"])
-            if probe.plan.method == "focal":
-                per = probe.plan.estimate["memory_bytes"] / len(pairs)
-                b = max(1, min(batch or 1, int(budget // max(per, 1))))
-                chunks = [pairs[s:s + b] for s in range(0, len(pairs), b)]
-                # focal units are balanced by their source count: costing each with a pilot of its own
-                # repeats, serially before any work, the pilot its unit runs anyway
-                costs = [float(len(c)) for c in chunks]
-            else:
-                groups = group_sources(probe.source_needs, batch)
-                chunks = [[pairs[s] for s in g] for g in groups]
-                nd = probe.source_needs
-                costs = []
-                for g in groups:
-                    p, n, npad, rg = auto_sizes(float(np.min(nd["pitch_mm"][g])), float(np.max(nd["width_mm"][g])),
-                                                 nd["feature_mm"], nd["out_width_mm"], nd["rays_per_sample"])
-                    pl = Plan(p, n, npad, rg, "auto", False, ())
-                    costs.append(estimate_cost(pl, len(g), size, probe.gauss_nodes)["flops"])
-            del probe
+        if model in ("ray-wave", "paraxial-wave"):
+            # the batches of rwwarp.psf_map: every source on its own plan (one pilot of all), packed
+            from .psf import RAYWAVE_OPTIONS, pack_sources, wave_members
+            opts = dict({q: kw[q] for q in RAYWAVE_OPTIONS}, memory_budget_bytes=budget)
+            chunks, costs = [], []
+            for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, od, opts):
+                for idx in pack_sources(members, size, batch, budget):
+                    chunks.append([sys_pairs[q] for q in idx])
+                    costs.append(sum(float(members[q].plan.estimate["flops"]) for q in idx))
         else:
             b = batch or len(pairs)
             chunks = [pairs[s:s + b] for s in range(0, len(pairs), b)]
@@ -220,29 +201,32 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
 
 
 def _run_unit(lens, fields, wls, unit, od, kw, budget):
-    """One batch exactly as :func:`rwwarp.psf_map` computes it (its loop body; a batch over the memory
-    budget is split in halves the same way). Returns ``[(i, j, psf, centre, valid_fraction, dropped)]``."""
-    from .paraxial_wave import paraxial_equivalent
+    """One batch exactly as :func:`rwwarp.psf_map` computes it (wave models: its sources each on its own plan,
+    packed; ray model: its loop body, a batch over the memory budget split in halves the same way). Returns
+    ``[(i, j, psf, centre, valid_fraction, dropped)]``."""
     from .plan import MemoryBudgetError
-    from .psf import RAYWAVE_OPTIONS, RayWave
+    from .psf import RAYWAVE_OPTIONS
     from .ray_model import _ray_model
     size, device, model = kw["size"], kw["device"], kw["model"]
     pixel = float(kw["pixel_mm"] or lens.sensor.pixel_pitch)
     todo, out = [list(unit)], []
+    if model in ("ray-wave", "paraxial-wave"):
+        # as rwwarp.psf_map: the unit's sources each on its own plan, computed as one packed batch per system
+        from .psf import PackedRayWave, wave_members
+        opts = dict({k: kw[k] for k in RAYWAVE_OPTIONS}, memory_budget_bytes=budget)
+        for members, sys_pairs in wave_members(lens, fields, wls, list(unit), model, size, pixel, od, opts):
+            res = PackedRayWave(members).run("auto")
+            for k, (i, j) in enumerate(sys_pairs):
+                out.append((i, j, np.asarray(res["data"][k]), np.asarray(res["centers"][k]),
+                            float(res["valid_fraction"][k]), int(res["dropped_rays"][k])))
+        return out
     while todo:
         chunk = todo.pop(0)
         f_list = [fields[i] for i, _ in chunk]
         w_list = [wls[j] for _, j in chunk]
-        opts = dict({k: kw[k] for k in RAYWAVE_OPTIONS}, memory_budget_bytes=budget)
         try:
-            if model == "ray-wave":
-                res = RayWave(lens, f_list, w_list, size, pixel, object_distance_mm=od, **opts).run("auto")
-            elif model == "paraxial-wave":
-                eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, od)
-                res = RayWave(eq, eq_fields, w_list, size, pixel, **opts).run("auto")
-            else:
-                res = _ray_model(lens, f_list, w_list, size, pixel, device, kw["dtype"], od, kw["rays_per_sample"],
-                                 kw["center_mm"])
+            res = _ray_model(lens, f_list, w_list, size, pixel, device, kw["dtype"], od, kw["rays_per_sample"],
+                             kw["center_mm"])
         except MemoryBudgetError:
             if len(chunk) == 1:
                 raise

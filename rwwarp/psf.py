@@ -23,6 +23,7 @@ from .plan import Plan
 from .trace import as_field_list
 from .trace import field_label as _fmt_field
 from .raywave import _LAST, RAYWAVE_OPTIONS, RayWave, group_sources  # noqa: F401 (RayWave lived here)
+from .raywave import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -178,15 +179,19 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
             focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
-    batch and batched FFTs. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
+    batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
-    With ``plan="auto"`` (ray-wave model) every (field, wavelength) pair is planned on its own first
-    (a pilot trace) and pairs with similar plans share a batch (:func:`group_sources`): a batch's plan
-    is the finest any member needs, and no member's FFT area is more than twice its own plan's.
-    ``batch`` limits the number of sources per launch (memory; default no limit); ``progress`` shows a
-    tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields, n_wavelengths, size, size);
-    ``info["batches"]`` lists each batch's (field, wavelength) index pairs and plan, ``info["plan"]``
-    is the last batch's plan. Other arguments as :func:`psf`.
+    Wave models: every (field, wavelength) pair is planned on its own (one pilot trace of all of them) and
+    computed on that plan whatever its batch, so each PSF is the one :func:`psf` gives (to ~1e-16 of the
+    peak: the splat's float sums on CPU threads may add in another order). A batch
+    (:class:`rwwarp.raywave.PackedRayWave`) traces and splats its members in one set of launches, in arrays
+    sized to its largest member (the extra rays invalid, the extra samples zero), then propagates each by
+    its own plan; batches take members of one propagation method, largest first, within the memory budget
+    (:func:`pack_sources`). ``batch`` limits the number of sources per batch (default no limit but the
+    budget); ``progress`` shows a tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields,
+    n_wavelengths, size, size); ``info["batches"]`` lists each batch's (field, wavelength) index pairs,
+    ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
+    ``plan``. Other arguments as :func:`psf`.
     """
     from . import checks  # arguments at the public edge (issue 12): names the argument and its range
     checks.check_lens(lens)
@@ -227,66 +232,24 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):
         raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
-    from .plan import default_memory_budget_bytes, MemoryBudgetError
+    from .plan import default_memory_budget_bytes
     if memory_budget_gb is not None:
         if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
             raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
         budget = int(memory_budget_gb * 2 ** 30)
     else:
         budget = default_memory_budget_bytes(device)
-    if model == "ray-wave" and isinstance(plan, str) and plan == "auto" and len(pairs) > 1:
-        # plan per source: a pilot of every pair, then batches: for the ASM, pairs with similar needs (so an
-        # on-axis field is not sampled on the grid a corner field needs); for the focal method, as many
-        # pairs as the memory budget holds (its grids follow the patch, so they differ little)
-        probe = RayWave(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size, pixel,
-                        device, "auto", dtype, amplitude, object_distance_mm, rays_per_sample, center_mm,
-                        use_reference, gauss_nodes=gauss_nodes or 3, nyquist_safety=nyquist_safety, method=method,
-                        focal_patch_tol=focal_patch_tol)
-        if probe.plan.method == "focal":
-            # one source per batch unless batch= asks for more: the focal grids scale with the patch over
-            # the wavelength and with each field's spot, so a shared (finest, widest) plan costs more than
-            # it saves (README 3x3 Cooke map: 25.3 s batched per field, 15.6 s one by one)
-            per = probe.plan.estimate["memory_bytes"] / len(pairs)
-            b = max(1, min(batch or 1, int(budget // max(per, 1))))
-            chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
-        else:
-            chunks = [[pairs[k] for k in g] for g in group_sources(probe.source_needs, batch)]
-        del probe
-    else:
-        b = batch or len(pairs)
-        chunks = [pairs[k:k + b] for k in range(0, len(pairs), b)]
     index = {pr: k for k, pr in enumerate(pairs)}
     bar = None
     if progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=len(pairs), desc=f"{model} PSFs", unit="PSF")
-    chunks = list(chunks)
     opts = dict(device=device, plan=plan, dtype=dtype, amplitude=amplitude, rays_per_sample=rays_per_sample,
                 center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                 nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                 deterministic=deterministic, memory_budget_bytes=budget)
-    while chunks:
-        chunk = chunks.pop(0)
-        f_list = [fields[i] for i, _ in chunk]
-        w_list = [wavelengths_um[j] for _, j in chunk]
-        try:
-            if model == "ray-wave":
-                res = RayWave(lens, f_list, w_list, size, pixel, object_distance_mm=object_distance_mm,
-                              **opts).run(focal_precision)
-            elif model == "paraxial-wave":
-                eq, eq_fields = paraxial_equivalent(lens, f_list, w_list, object_distance_mm)
-                res = RayWave(eq, eq_fields, w_list, size, pixel, **opts).run(focal_precision)
-            else:
-                res = None
-        except MemoryBudgetError:
-            if len(chunk) == 1:
-                raise
-            half = len(chunk) // 2   # split the batch and try again
-            chunks[:0] = [chunk[:half], chunk[half:]]
-            continue
-        if res is None:
-            res = _ray_model(lens, f_list, w_list, size, pixel, device, dtype, object_distance_mm,
-                             rays_per_sample, center_mm)
+
+    def store(chunk, res):
         for k, (i, j) in enumerate(chunk):
             out[i, j] = res["data"][k]
             centers[i, j] = res["centers"][k]
@@ -294,9 +257,29 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             if "dropped_rays" in res:
                 info["dropped_rays"][index[(i, j)]] = int(res["dropped_rays"][k])
         info["plan"] = res.get("plan")
-        info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan")})
+        info["batches"].append({"pairs": [tuple(pr) for pr in chunk], "plan": res.get("plan"),
+                                "plans": res.get("plans", [res.get("plan")] * len(chunk))})
         if bar is not None:
             bar.update(len(chunk))
+
+    if model in ("ray-wave", "paraxial-wave"):
+        # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
+        # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
+        # (arrays sized to the batch's largest member; rwwarp.raywave.PackedRayWave), each propagated alone
+        for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel,
+                                               object_distance_mm, opts):
+            for chunk_idx in pack_sources(members, size, batch, budget):
+                res = PackedRayWave([members[k] for k in chunk_idx]).run(focal_precision)
+                store([sys_pairs[k] for k in chunk_idx], res)
+                for k in chunk_idx:
+                    members[k] = None   # done: its operators and tracer can go
+    else:
+        b = batch or len(pairs)
+        for k in range(0, len(pairs), b):
+            chunk = pairs[k:k + b]
+            res = _ray_model(lens, [fields[i] for i, _ in chunk], [wavelengths_um[j] for _, j in chunk], size,
+                             pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm)
+            store(chunk, res)
     if bar is not None:
         bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
@@ -321,6 +304,50 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, opts) -> list:
+    """Every (field, wavelength) pair of ``pairs`` (indices into ``fields`` (deg) and ``wavelengths_um``)
+    planned on its own (:func:`rwwarp.raywave.source_plans`) for the wave models: ``[(members, pairs), ...]``,
+    one entry per system (ray-wave: the lens; paraxial-wave: its equivalent at each wavelength), ``members``
+    in the order of that entry's ``pairs``. ``opts``: the :class:`RayWave` options (``device``, ``plan``, ...,
+    ``memory_budget_bytes``); ``size`` px of ``pixel`` mm; ``object_distance_mm`` (mm, None: the lens's)."""
+    out = []
+    if model == "ray-wave":
+        out.append((source_plans(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size,
+                                 pixel, object_distance_mm=object_distance_mm, **opts), list(pairs)))
+        return out
+    for j, w in enumerate(wavelengths_um):
+        sub = [(i, jj) for i, jj in pairs if jj == j]
+        if not sub:
+            continue
+        eq, eq_fields = paraxial_equivalent(lens, [fields[i] for i, _ in sub], [w], object_distance_mm)
+        out.append((source_plans(eq, list(eq_fields), [w] * len(sub), size, pixel, **opts), sub))
+    return out
+
+
+def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> list:
+    """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
+    :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's
+    arrays are sized to its largest member, so similar members share one), at most ``batch`` a batch (None:
+    no limit) and within ``budget_bytes`` (:func:`rwwarp.raywave.packed_bytes`). A member over the budget on
+    its own has already been refused by its plan's check."""
+    order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
+                                                       -members[k].plan.ray_grid, -members[k].plan.n_grid, k))
+    out, cur = [], []
+    for k in order:
+        if cur:
+            m0 = members[cur[0]]
+            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim)
+            fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
+            if same and fits and (batch is None or len(cur) < batch):
+                cur.append(k)
+                continue
+            out.append(cur)
+        cur = [k]
+    if cur:
+        out.append(cur)
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- comparison models
 from .paraxial_wave import paraxial_equivalent  # noqa: E402,F401  (public here for compatibility)
 

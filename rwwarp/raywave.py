@@ -106,6 +106,31 @@ def _chief_zone(phi, xy, chief_xy):
     return int(math.floor(float(phi[order[0]]) / (2 * math.pi)))
 
 
+def _tracer_sources(tr, fields, wls, uniq, object_distance_mm):
+    """The tracer's sources (:meth:`rwwarp.trace.Tracer.sources`): every pupil at the tracer's first
+    wavelength."""
+    return tr.sources(fields, [uniq.index(w) for w in wls], object_distance=object_distance_mm)
+
+
+def own_pupil_sources(tr, fields, wls, uniq, object_distance_mm):
+    """:meth:`rwwarp.trace.Tracer.sources` with each source's entrance pupil at its own wavelength (um), as a
+    tracer of that wavelength alone lays it: a source's rays do not depend on the others in its batch.
+    ``uniq``: the tracer's wavelengths (sorted), ``wls`` one per field."""
+    from . import paraxial
+    src = tr.sources(fields, [uniq.index(w) for w in wls], object_distance=object_distance_mm)
+    saved = tr.pupils
+    try:
+        for w in uniq:
+            ks = [k for k, wk in enumerate(wls) if wk == w]
+            tr.pupils = paraxial.pupils(tr.lens, w)
+            sub = tr.sources([fields[k] for k in ks], uniq.index(w), object_distance=object_distance_mm)
+            for key in ("pos", "dir", "finite", "aim", "half_x", "half_y"):
+                src[key][ks] = sub[key]
+    finally:
+        tr.pupils = saved
+    return src
+
+
 def _doe_phase_grid(lens, plane, origin, pitch, n):
     """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
     s = lens.surfaces[plane]
@@ -172,7 +197,8 @@ class RayWave:
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
-                 memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False):
+                 memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
+                 own_pupils: bool = False, pilot: dict | None = None):
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
         self.deterministic = bool(deterministic)
@@ -183,8 +209,9 @@ class RayWave:
                     deterministic=self.deterministic)
         wl_idx = [uniq.index(w) for w in wls]
         nsrc = len(fields)
-        src = tr.sources(fields, wl_idx, object_distance=object_distance_mm)
+        src = (own_pupil_sources if own_pupils else _tracer_sources)(tr, fields, wls, uniq, object_distance_mm)
         src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
+        self.own_pupils = bool(own_pupils)
         n_after = np.array([lens.indices(w)[plane] for w in wls])
         z_plane = lens.vertex_z[plane]
         z_sensor = lens.sensor_z
@@ -195,15 +222,21 @@ class RayWave:
         lam_mm = np.array(wls) * 1e-3
 
         # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
-        pu, pv, _ = pupil_grid(31, src["shape"])
-        pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
-        with tr.without_gradients():   # the plan reads these rays on the host; nothing differentiates them
-            pilot = tr._run(src, pu, pv, 1.0, keep=(plane,))
-        at_plane, opl_plane, valid_plane = pilot.kept[plane]
-        pos_p = at_plane.numpy().reshape(nsrc, -1, 3)
-        pos_s = pilot.pos.numpy().reshape(nsrc, -1, 3)
-        dir_s = pilot.dir.numpy().reshape(nsrc, -1, 3)
-        opl_p = opl_plane.numpy().reshape(nsrc, -1).astype(np.float64)
+        if pilot is None:
+            pu, pv, _ = pupil_grid(31, src["shape"])
+            pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
+            with tr.without_gradients():   # the plan reads these rays on the host; nothing differentiates them
+                rays_p = tr._run(src, pu, pv, 1.0, keep=(plane,))
+            at_plane, opl_plane, valid_plane = rays_p.kept[plane]
+            pilot = {"pos_p": at_plane.numpy().reshape(nsrc, -1, 3), "pos_s": rays_p.pos.numpy().reshape(nsrc, -1, 3),
+                     "dir_s": rays_p.dir.numpy().reshape(nsrc, -1, 3),
+                     "opl_p": opl_plane.numpy().reshape(nsrc, -1).astype(np.float64),
+                     "ok": rays_p.valid.numpy().reshape(nsrc, -1).astype(bool),
+                     "valid_plane": valid_plane.numpy().reshape(nsrc, -1).astype(bool)}
+        #: the pilot rays on the host (each source's alone: rays are independent), for :meth:`source_plans`
+        self.pilot = pilot
+        pos_p, pos_s, dir_s = pilot["pos_p"].copy(), pilot["pos_s"], pilot["dir_s"]
+        opl_p = pilot["opl_p"].copy()
         # a curved last surface: carry the rays on to its vertex plane (straight, in the image medium,
         # OPL included) so the field is formed on a true plane
         self.curved_plane = _is_curved(lens.surfaces[plane])
@@ -211,7 +244,7 @@ class RayWave:
             t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
             pos_p = pos_p + t[..., None] * dir_s
             opl_p = opl_p + n_after[:, None] * t
-        ok = pilot.valid.numpy().reshape(nsrc, -1).astype(bool)
+        ok = pilot["ok"]
         for k in range(nsrc):
             if ok[k].sum() < 3:
                 raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
@@ -354,7 +387,7 @@ class RayWave:
         # chief ray OPL on the plane (a per-source constant phase: not differentiated); the pilot's pupil
         # sample 0 is the chief ray (u = v = 0), traced alone before as the same independent ray
         self.opl_chief = opl_p[:, 0].copy()
-        self.chief_ok = valid_plane.numpy().reshape(nsrc, -1)[:, 0].astype(bool)
+        self.chief_ok = pilot["valid_plane"][:, 0].copy()
         self.chief_plane = np.where(self.chief_ok[:, None], pos_p[:, 0], chief_plane)
         self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
         # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
@@ -482,10 +515,11 @@ class RayWave:
         import warp as wp
         from .reduce import source_sums
         u, v, cell = self.pupil
-        npup = pl.ray_grid * pl.ray_grid
         # rim cells weighted by the part of them the pupil disc covers (energy convention)
         rim = self.rim
-        rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid, rim=rim)
+        lay = self._layout()
+        npup = lay["slots"]
+        rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid, rim=rim, grids=lay["ray_grids"])
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
         K = self.splatter.K
@@ -505,13 +539,22 @@ class RayWave:
                 j = int(np.argmin(d2))
                 chief_plane[k] = all_pos[k, j]
                 opl_p[k] = all_opl[k, j]
-        n = pl.n_grid
+        n = lay["n_stride"]
         sp = self.splatter
         energy = int(self.amplitude == "energy")
-        area, half = sp.tube_areas(rays, pl.ray_grid, self._rim_args(rim), bool(energy))
+        rim_args = self._rim_args(rim)
+        if lay["ray_grids"] is None:
+            area, half = sp.tube_areas(rays, pl.ray_grid, rim_args, bool(energy))
+            grid_src, frac_stride, n_arg = sp.grid_placeholder(), 0, n
+        else:   # a packed batch: each source's own pupil grid and window in slots of the largest
+            ray_src, grid_src = upload_packed([(lay["ray_grids"], np.int32, wp.int32),
+                                               (lay["grids"], np.int32, wp.int32)], tr.device)
+            frac_stride = npup if rim else 0
+            area, half = sp.tube_areas(rays, -1, rim_args, bool(energy), packed=(ray_src, npup, frac_stride))
+            n_arg = -n
         # per-source constants in one upload
         origin, pitch, chief, target, index, opl_c, k_wave, carrier = upload_packed(
-            [(self.origin, np.float64, wp.vec2d), (np.full(nsrc, pl.pitch_mm), np.float64, wp.float64),
+            [(self.origin, np.float64, wp.vec2d), (lay["pitches"], np.float64, wp.float64),
              (chief_plane, np.float64, wp.vec3d), (self.target, np.float64, wp.vec3d),
              # the reference-sphere index carries the sign: + converging to T, - diverging from T
              (self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), np.float64, wp.float64),
@@ -519,10 +562,19 @@ class RayWave:
              (self.carrier, np.float64, wp.vec2d)], tr.device)
         geo = [origin, pitch, chief, target, index]
         splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
-                   [opl_c, k_wave, int(self.use_reference), energy, n, npup, *self._rim_args(rim)]
+                   [opl_c, k_wave, int(self.use_reference), energy, n_arg, npup, *rim_args, grid_src, frac_stride]
         s_re, s_im, self.dropped = sp.sums(splat_in, nsrc, n)
-        field = sp.finalize([s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n], nsrc * n * n)
+        field = sp.finalize([s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n_arg, grid_src],
+                            nsrc * n * n)
         return field, rays
+
+    def _layout(self) -> dict:
+        """How this batch's rays and windows are laid out: ``ray_grids`` (None: every source on the plan's pupil
+        grid), ``slots`` (ray slots per source), ``grids`` and ``n_stride`` (window sides and the side of each
+        source's slot of the field), ``pitches`` (mm, per source)."""
+        pl = self.plan
+        return {"ray_grids": None, "slots": pl.ray_grid ** 2, "grids": np.full(self.nsrc, pl.n_grid),
+                "n_stride": pl.n_grid, "pitches": np.full(self.nsrc, pl.pitch_mm)}
 
     @property
     def splatter(self):
@@ -571,7 +623,8 @@ class RayWave:
         """:meth:`field` as a complex128 array (n_sources, n, n), paper convention rescaled: numpy on the
         CPU, a zero-copy CuPy view of the Warp array on CUDA (the field never visits the host)."""
         field, rays = self.field()
-        n = self.plan.n_grid
+        lay = self._layout()
+        n = lay["n_stride"]
         if self.tracer.device.startswith("cuda"):
             import cupy
             u_field = cupy.asarray(field).view(cupy.complex128).reshape(self.nsrc, n, n)
@@ -579,7 +632,8 @@ class RayWave:
             u_field = field.numpy().view(np.complex128).reshape(self.nsrc, n, n)
         if self.amplitude != "energy":
             xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
-            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), self.plan.pitch_mm, xp)
+            pitch = self.plan.pitch_mm if lay["ray_grids"] is None else xp.asarray(lay["pitches"])
+            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), pitch, xp)
         return u_field
 
     def doe_phase(self):
@@ -753,12 +807,135 @@ class RayWave:
                 "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
 
 
+def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
+                 object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
+                 gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
+                 focal_patch_tol=1e-5, deterministic: bool = False) -> list:
+    """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
+    wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
+    (entrance pupil at its own wavelength), from one pilot trace of all of them (the pilot rays are
+    independent, so each source's are what a pilot of it alone gives). Arguments as :class:`RayWave`;
+    :class:`PackedRayWave` computes them together."""
+    probe = RayWave(lens, fields, wls, size, pixel, device, "auto", dtype, amplitude, object_distance_mm,
+                    rays_per_sample, center_mm, use_reference, gauss_nodes=3, nyquist_safety=nyquist_safety,
+                    method="asm", own_pupils=True)
+    members = []
+    for k in range(len(fields)):
+        pk = {key: v[k:k + 1] for key, v in probe.pilot.items()}
+        members.append(RayWave(lens, [fields[k]], [wls[k]], size, pixel, device, plan, dtype, amplitude,
+                               object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
+                               nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
+                               deterministic, own_pupils=True, pilot=pk))
+    return members
+
+
+def packed_bytes(members, size: int) -> int:
+    """Planned peak memory (bytes) of computing ``members`` (single-source :class:`RayWave` s, ``size`` px
+    patches) as one :class:`PackedRayWave`: every source's rays and window in slots of the largest (the
+    traced-ray and field parts of :func:`rwwarp.plan.estimate_cost`), plus the largest member's propagation
+    (the members propagate one after the other)."""
+    rays = max(m.plan.ray_grid for m in members) ** 2
+    n = max(m.plan.n_grid for m in members)
+    fixed = [m.plan.ray_grid ** 2 * 232 + m.plan.n_grid ** 2 * 64 for m in members]
+    prop = max(m.plan.estimate["memory_bytes"] - f for m, f in zip(members, fixed))
+    return len(members) * (rays * 232 + n * n * 64) + prop
+
+
+class PackedRayWave(RayWave):
+    """Several sources computed together, each on its own plan (:func:`source_plans`): one trace, tube-area,
+    splat and finalize launch for all of them, in arrays sized to the largest member (its pupil grid's rays
+    and its window per source); a smaller member's extra ray slots are invalid with zero weight and its extra
+    samples zero, so they contribute nothing, and its rays land, are splatted and dropped by its own window.
+    Each member is then propagated by its own plan (:meth:`RayWave.focal_intensity` / :meth:`RayWave.intensity`
+    on its window). A source's PSF is therefore what it is alone, whatever the batch (the float sums of the
+    splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
+    one lens, device, precision, amplitude convention and propagation method. Lengths in mm."""
+
+    def __init__(self, members):
+        if not members or any(m.nsrc != 1 for m in members):
+            raise ValueError("PackedRayWave takes single-source RayWave members")
+        m0 = members[0]
+        for m in members:
+            if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
+                    m.tracer.scalar) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference, m0.deterministic,
+                                         m0.device, m0.tracer.scalar):
+                raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
+                                 "reference, determinism, device and precision")
+        self.members = list(members)
+        lens = m0.lens
+        self.lens, self.plane, self.curved_plane = lens, m0.plane, m0.curved_plane
+        self.device, self.amplitude, self.use_reference = m0.device, m0.amplitude, m0.use_reference
+        self.deterministic, self.rim = m0.deterministic, m0.rim
+        self.size, self.pixel = m0.size, m0.pixel
+        self.fields = [m.fields[0] for m in members]
+        self.wls = [m.wls[0] for m in members]
+        self.nsrc = len(members)
+        uniq = sorted(set(self.wls))
+        dtype = "float64" if m0.tracer.np_dtype == np.float64 else "float32"
+        self.tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, deterministic=self.deterministic)
+        self.src = own_pupil_sources(self.tracer, self.fields, self.wls, uniq, m0.src.get("object_distance"))
+        self.src["relative_opl"] = bool(self.use_reference)
+        cat = lambda name: np.concatenate([np.asarray(getattr(m, name)) for m in members])
+        for name in ("n_after", "lam_mm", "origin", "chief_plane", "chief_sensor", "carrier", "centers", "target",
+                     "opl_chief", "chief_ok"):
+            setattr(self, name, cat(name))
+        self.z_plane, self.z_sensor = m0.z_plane, m0.z_sensor
+        self.gauss_nodes = m0.gauss_nodes
+        self.pupil = (None, None, 1.0)
+        self.plan = m0.plan   # only its method is read; each member keeps its own plan
+        self.method = m0.method
+        self.focal = None
+        self._grids = np.array([m.plan.n_grid for m in members])
+        self._ray_grids = np.array([m.plan.ray_grid for m in members])
+        self._pitches = np.array([m.plan.pitch_mm for m in members])
+
+    def _layout(self) -> dict:
+        return {"ray_grids": self._ray_grids, "slots": int(self._ray_grids.max()) ** 2, "grids": self._grids,
+                "n_stride": int(self._grids.max()), "pitches": self._pitches}
+
+    def _rim_args(self, rim: bool):
+        tr = self.tracer
+        if not rim:
+            return tr.no_rim_cells(), 0
+        return tr.packed_rim_cells(self._ray_grids, int(self._ray_grids.max()) ** 2), 1
+
+    def plans(self) -> list:
+        """Each member's plan (:class:`rwwarp.plan.Plan`)."""
+        return [m.plan for m in self.members]
+
+    def run(self, focal_precision: str = "auto") -> dict:
+        """PSFs of every member as fractions of its entering power per pixel, each propagated by its own plan
+        (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts."""
+        if focal_precision == "auto":
+            focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
+        u_all = self.field_array()
+        entering = self.entering
+        data = []
+        for k, m in enumerate(self.members):
+            n = m.plan.n_grid
+            u = u_all[k:k + 1, :n, :n].copy()
+            if m.plan.method == "focal":
+                d = m.focal_intensity(u, focal_precision)
+            else:
+                phi0, scale = m.doe_phase()
+                d = m.intensity(u, phi0, scale)
+            m.release_operators()
+            data.append(np.asarray(d)[0] / entering[k])
+        _LAST.update(field=u, origin=self.members[-1].origin, pitch=self.members[-1].plan.pitch_mm)
+        data = np.stack(data)
+        if not np.all(np.isfinite(data)):
+            raise FloatingPointError("non-finite PSF values (please report this lens and field)")
+        plans = [m.plan.to_dict() for m in self.members]
+        return {"data": data, "centers": self.centers, "plan": plans[-1], "plans": plans,
+                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+
+
 def paper_rescale(u, traced_power, pitch_mm: float, xp):
     """The paper's amplitude convention: rays of unit amplitude, then one scale per source so that the
     field's power ``sum |u|^2 pitch^2`` (pitch in mm) equals the traced power (the power of the valid
     rays). ``u`` (S, n, n) complex and ``traced_power`` (S,) in one array namespace ``xp`` (numpy,
     CuPy or torch: the same formula differentiates in torch); a source with no field power stays zero."""
-    pw = (u.real ** 2 + u.imag ** 2).sum((1, 2)) * pitch_mm ** 2
+    pw = (u.real ** 2 + u.imag ** 2).sum((1, 2)) * pitch_mm ** 2   # pitch_mm: a number or one per source
     ok = pw > 0
     return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
 

@@ -38,30 +38,43 @@ class Splatter:
                         wp.zeros(1, dtype=K.vec4d, device=dev), wp.zeros((1, 5), dtype=self.tracer.K.vec3, device=dev))
         return self._ph
 
-    def tube_areas(self, rays, n_side: int, rim_args, energy: bool):
+    def grid_placeholder(self):
+        """The ``(1,)`` int32 per-source grid array of a launch that is not a packed batch."""
+        a = self.__dict__.get("_ph_grid")
+        if a is None:
+            a = self._ph_grid = wp.zeros(1, dtype=wp.int32, device=self.tracer.device)
+        return a
+
+    def tube_areas(self, rays, n_side: int, rim_args, energy: bool, packed=None):
         """``(area, half)``: each ray's tube footprint on the plane (mm^2) and its box's half sizes (mm); in the
-        paper convention (``energy`` False) placeholders the splat does not read."""
+        paper convention (``energy`` False) placeholders the splat does not read. ``packed`` (a packed batch,
+        ``n_side`` < 0): ``(sides, n_pupil, cell_stride)``, each source's pupil grid side (a Warp int32 array),
+        its ray slots and the stride of its rim cells in ``rim_args``' table (0: one table)."""
         dev, K, g = self.tracer.device, self.K, self.tracer.requires_grad
         n = rays.pos.shape[0]
         if not energy and not g:
             return (wp.zeros(1, dtype=wp.float64, device=dev), wp.zeros(1, dtype=wp.vec2d, device=dev))
         area = wp.zeros(n, dtype=wp.float64, device=dev, requires_grad=g)
         half = wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=g)
+        if packed is None:
+            packed = (self.grid_placeholder(), 0, 0)
         if energy:
             if self.deterministic:   # neighbours' positions handed over by each ray (an adjoint without contention)
                 nbr = wp.zeros((n, 5), dtype=rays.pos.dtype, device=dev, requires_grad=g)
-                wp.launch(K.stencil_kernel, dim=n, inputs=[rays.pos, n_side], outputs=[nbr], device=dev)
+                wp.launch(K.stencil_kernel, dim=n, inputs=[rays.pos, n_side, packed[0], packed[1]], outputs=[nbr],
+                          device=dev)
             else:
                 nbr = self.placeholders()[3]
             wp.launch(K.tube_area_kernel, dim=n,
-                      inputs=[rays.pos, rays.valid, n_side, *rim_args, int(self.deterministic), nbr],
+                      inputs=[rays.pos, rays.valid, n_side, *rim_args, int(self.deterministic), nbr, *packed],
                       outputs=[area, half], device=dev)
         return area, half
 
     def sums(self, splat_in, n_src: int, n_grid: int):
         """``(s_re, s_im, dropped)``: the splat's per-sample sums (n_src * n_grid^2 float64 each) and the rays
-        per source that fell outside the window. ``splat_in``: the splat kernel's inputs up to its ``rim``
-        argument (:meth:`rwwarp.raywave.RayWave.field` forms them)."""
+        per source that fell outside the window. ``splat_in``: the splat kernel's inputs up to its
+        ``frac_stride`` argument (:meth:`rwwarp.raywave.RayWave.field` forms them). ``n_grid``: the windows'
+        side (a packed batch: the slots' side; its own sides are in ``splat_in``)."""
         tr, K = self.tracer, self.K
         dev, g = tr.device, tr.requires_grad
         n_rays = splat_in[0].shape[0]

@@ -523,6 +523,14 @@ class Tracer:
         read-only)."""
         return device_disc_cells(grid_n, self.device)
 
+    def _placeholders(self):
+        """The generate kernel's unused per-source grid and cell arrays ((1,) each)."""
+        a = self.__dict__.get("_ph_grid")
+        if a is None:
+            a = self._ph_grid = (wp.zeros(1, dtype=wp.int32, device=self.device),
+                                 wp.zeros(1, dtype=self.scalar, device=self.device))
+        return a
+
     def no_rim_cells(self):
         """The placeholder ``(1,)`` cell array of a launch without rim weighting."""
         a = self.__dict__.get("_no_rim")
@@ -530,7 +538,24 @@ class Tracer:
             a = self._no_rim = wp.array(np.array([[1.0, 0.0, 0.0]]), dtype=wp.vec3d, device=self.device)
         return a
 
-    def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0, params=None, rim: bool = False):
+    def packed_rim_cells(self, grids, slots: int):
+        """The rim cells (:meth:`rim_cells`) of a packed batch whose source ``k`` has its own ``grids[k]`` pupil
+        grid in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s
+        table from ``k * slots`` (zeros past its own cells). Made once per grid list (cached on the tracer)."""
+        key = (tuple(int(g) for g in grids), int(slots))
+        cache = self.__dict__.setdefault("_packed_rim", {})
+        a = cache.get(key)
+        if a is None:
+            from .pupil import disc_cells
+            tab = np.zeros((len(grids), int(slots), 3))
+            for k, g in enumerate(key[0]):
+                tab[k, :g * g] = disc_cells(g)
+            cache.clear()   # one packed batch at a time
+            a = cache[key] = wp.array(tab.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        return a
+
+    def _run(self, src, u, v, cell=1.0, upto=None, keep=False, grid_n: int = 0, params=None, rim: bool = False,
+             grids=None):
         """Generate and trace. ``grid_n > 0``: the pupil is the full ``grid_n x grid_n`` cell-centre grid,
         generated on the device (``u``, ``v`` ignored; no upload). ``keep=True``: also return
         ``rays.history`` (positions after each surface); ``keep`` (True or surface indices): ``rays.kept``,
@@ -544,13 +569,22 @@ class Tracer:
         trace with instead of :attr:`params` (ray aiming traces without clear apertures). ``rim`` (with
         ``grid_n`` and a circular pupil): every cell the unit circle touches is traced, weighted by the
         fraction of it inside, its ray starting at the centroid of that part (:meth:`rim_cells`), instead of
-        the cells whose centre is inside."""
+        the cells whose centre is inside. ``grids`` (a packed batch, :class:`rwwarp.raywave.PackedRayWave`):
+        each source's own pupil grid side (``grid_n`` and ``cell`` ignored): source ``k``'s cell-centre grid
+        of ``grids[k]^2`` rays, cell area ``(2 / grids[k])^2``, fills the first of its ``max(grids)^2`` ray
+        slots, the rest are padding (invalid, zero weight)."""
         dev, sc, K = self.device, self.scalar, self.K
         if params is None:
             params = self._params_for(src.get("object_distance"))
         nsrc = len(src["wl"])
-        npup = grid_n * grid_n if grid_n > 0 else len(u)
-        if grid_n > 0:
+        if grids is not None:
+            grids = np.asarray(grids, dtype=np.int64).reshape(nsrc)
+            grid_n = -1
+            npup = int(grids.max()) ** 2
+            cells = (2.0 / grids.astype(np.float64)) ** 2
+        else:
+            npup = grid_n * grid_n if grid_n > 0 else len(u)
+        if grid_n != 0:
             u = v = np.zeros(1)
         n = nsrc * npup
         g = self.requires_grad
@@ -569,11 +603,17 @@ class Tracer:
         wl = wp.empty(n, dtype=wp.int32, device=dev)
         weight = wp.empty(n, dtype=sc, device=dev)
         circle = int(src["shape"] == "circle")
-        frac = self.no_rim_cells()
+        frac, stride = self.no_rim_cells(), 0
         if rim and circle and grid_n > 0:
             circle, frac = 2, self.rim_cells(grid_n)
+        if grids is not None:
+            if rim and circle:
+                circle, frac, stride = 2, self.packed_rim_cells(grids, npup), npup
+            g_src, c_src = upload_packed([(grids, np.int32, wp.int32), (cells, fdt, sc)], dev)
+        else:
+            g_src, c_src = self._placeholders()
         inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
-                  int(src.get("relative_opl", False)), int(grid_n), npup]
+                  int(src.get("relative_opl", False)), int(grid_n), npup, g_src, c_src, stride]
         # off the tape: its inputs (pupil, sources) carry no gradients, so its adjoint would do nothing
         wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev,
                   record_tape=False)

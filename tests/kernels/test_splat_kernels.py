@@ -25,6 +25,11 @@ def _a(x, dtype, device):
     return wp.array(np.ascontiguousarray(x), dtype=dtype, device=device)
 
 
+def _ph(device):
+    """The (1,) int32 per-source grid placeholder of a launch that is not a packed batch."""
+    return wp.zeros(1, dtype=wp.int32, device=device)
+
+
 def _splat(device, rays, src, n_grid, energy, use_reference, fixed=False):
     """Launch splat_kernel + finalize_kernel; returns (S, U, dropped) as complex (n_src, N, N) arrays.
     ``fixed``: the deterministic splat's passes (amplitudes, their per-source sum as the bound, int64 sums,
@@ -42,7 +47,7 @@ def _splat(device, rays, src, n_grid, energy, use_reference, fixed=False):
            _a(rays["valid"].astype(np.int32), wp.int32, device), _a(rays["weight"], F64, device),
            _a(rays["area"], F64, device), _a(rays["half"], wp.vec2d, device), *per_src,
            _a(src["opl_chief"], F64, device), _a(src["k"], F64, device), use_reference, energy,
-           n_grid, npup, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0, 0]
+           n_grid, npup, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0, _ph(device), 0, 0]
     nb = wp.zeros((1, 1), dtype=K.vec4d, device=device)
     na = wp.zeros(1, dtype=wp.int64, device=device)
     nv = wp.zeros(1, dtype=K.vec4d, device=device)
@@ -62,7 +67,7 @@ def _splat(device, rays, src, n_grid, energy, use_reference, fixed=False):
     field = wp.zeros(nsrc * n_grid * n_grid, dtype=wp.vec2d, device=device)
     wp.launch(ks.make_splat_kernels(F64).finalize_kernel, dim=nsrc * n_grid * n_grid,
               inputs=[s_re, s_im, *per_src, _a(src["k"], F64, device), _a(src["carrier"], wp.vec2d, device),
-                      use_reference, energy, n_grid, 0],
+                      use_reference, energy, n_grid, _ph(device), 0],
               outputs=[field], device=device)
     S = (s_re.numpy() + 1j * s_im.numpy()).reshape(nsrc, n_grid, n_grid)
     f = field.numpy()
@@ -214,10 +219,10 @@ def test_tube_area_of_an_affine_map(device, rng, stencil):
     a_pos = _a(pos, V3, device)
     nbr = wp.zeros((nsrc * m * m if stencil else 1, 5), dtype=V3, device=device)
     if stencil:
-        wp.launch(K.stencil_kernel, dim=nsrc * m * m, inputs=[a_pos, m], outputs=[nbr], device=device)
+        wp.launch(K.stencil_kernel, dim=nsrc * m * m, inputs=[a_pos, m, _ph(device), 0], outputs=[nbr], device=device)
     wp.launch(K.tube_area_kernel, dim=nsrc * m * m, inputs=[a_pos, _a(valid, wp.int32, device), m,
                                                         _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0,
-                                                        stencil, nbr],
+                                                        stencil, nbr, _ph(device), 0, 0],
               outputs=[area, half], device=device)
     a, hb = area.numpy(), half.numpy()
     # a ray has a tube when it has a valid neighbour along the row and one along the column
@@ -257,13 +262,15 @@ def test_energy_conservation_with_traced_rays(device, rays_per_cell, circle):
     wp.launch(T.generate_kernel, dim=npup,
               inputs=[_a(np.zeros(1), F64, device), _a(np.zeros(1), F64, device), one([0.0, 0, 0], V3),
                       one([0.0, 0, 1], V3), one(0, wp.int32), one([0.0, 0, 0], V3), one(a), one(a), one(0, wp.int32),
-                      one(1.0), (2.0 / g) ** 2, circle, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 1, g, npup],
+                      one(1.0), (2.0 / g) ** 2, circle, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 1, g, npup,
+                      _ph(device), _a(np.zeros(1), F64, device), 0],
               outputs=outs, device=device)
     pos, d, opl, valid, _, weight = outs
     area = wp.zeros(npup, dtype=F64, device=device)
     half = wp.zeros(npup, dtype=wp.vec2d, device=device)
     no_rim = _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device)
-    wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g, no_rim, 0, 0, wp.zeros((1, 5), dtype=V3, device=device)],
+    wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g, no_rim, 0, 0, wp.zeros((1, 5), dtype=V3, device=device),
+                                                    _ph(device), 0, 0],
               outputs=[area, half], device=device)
     from rwwarp.reduce import source_sums
     terms = wp.zeros(npup, dtype=wp.types.vector(4, F64), device=device)

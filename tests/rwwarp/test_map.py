@@ -1,4 +1,4 @@
-"""PSF maps: per-source plans (batches of sources with similar needs), accuracy against the Rayleigh-Sommerfeld
+"""PSF maps: per-source plans (each source on its own plan, whatever its batch), accuracy against the Rayleigh-Sommerfeld
 ground truth (``rwwarp.ground_truth.rs_lens_psf``: traced rays summed directly to the pixels, no FFT and no
 sampled field), equality with single-PSF calls on the same plan, and the backend's memory bookkeeping staying
 bounded over many plan shapes (small thin-lens + DOE system)."""
@@ -45,46 +45,79 @@ def test_grouping_bounds_each_sources_fft_area_and_respects_the_batch_limit():
     assert group_sources(needs, max_batch=None, waste=100.0) == [[0, 1, 2, 3, 4]]
 
 
-# Distance of the map's on-axis PSFs to the RS ground truth, measured on the CPU (PoCL): 5.4e-3 at 0.45 um,
-# 1.6e-2 at 0.65 um (the single-PSF calls: 8.3e-3 and 1.6e-2; the ground truth itself converges to < 1e-5 at
-# 24 x 96 pupil nodes). Tolerances 1.5x. Off-axis the DOE's relief wraps inside the footprint at these
-# wavelengths, which the ground truth's smooth quadrature refuses: those entries are checked by equality with
-# the single PSF wherever the plans agree.
-MAP_TOL = {0.45: 8e-3, 0.65: 2.5e-2}
+# Distance of the map's on-axis PSFs to the RS ground truth, measured on the CPU (PoCL): 8.3e-3 at 0.45 um,
+# 1.6e-2 at 0.65 um, those of the single-PSF calls (each source on its own plan; when a batch shared its finest
+# member's plan the 0.45 um entry was 5.4e-3: a finer grid than the source's own; the ground truth itself
+# converges to < 1e-5 at 24 x 96 pupil nodes). Tolerances 1.5x. Off-axis the DOE's relief wraps inside the
+# footprint at these wavelengths, which the ground truth's smooth quadrature refuses: those entries are
+# checked by equality with the single PSF.
+MAP_TOL = {0.45: 1.25e-2, 0.65: 2.5e-2}
 
 
-def test_map_batches_follow_per_source_plans_and_match_the_rs_ground_truth():
+def test_map_sources_keep_their_own_plans_and_match_the_rs_ground_truth():
     lens = doe_lens()
     fields = [0.0, 0.8]
     m = rw.psf_map(lens, fields, WLS, size=SIZE)
     own = own_plans(lens, fields, WLS)
     batches = m.info["batches"]
-    assert len(batches) >= 2  # not every source on the finest source's grid
     seen = set()
     for b in batches:
-        for pr in b["pairs"]:
+        assert len(b["plans"]) == len(b["pairs"])
+        for pr, pl in zip(b["pairs"], b["plans"]):
             seen.add(tuple(pr))
             o = own[tuple(pr)]
-            # the shared plan is at least as fine as the source's own, and its FFT area at most 2x the own
-            assert b["plan"]["pitch_mm"] <= o.pitch_mm * (1 + 1e-12)
-            assert b["plan"]["n_pad"] ** 2 <= 2.0 * o.n_pad ** 2
+            # each source on the plan it has alone, whatever its batch
+            assert (pl["pitch_mm"], pl["n_grid"], pl["n_pad"], pl["ray_grid"]) == (o.pitch_mm, o.n_grid, o.n_pad,
+                                                                                 o.ray_grid)
     assert seen == set(own)
     for j, w in enumerate(WLS):
         truth = rs_lens_psf(lens, 0.0, w, m.centers_mm[0, j], SIZE, m.pixel_mm, radial_nodes=24, angular_nodes=96,
                             pixel_nodes=3, include_doe=True)
         assert cv.rel_l2(m.data[0, j], truth) <= MAP_TOL[w]
-    same = 0
     for i, f in enumerate(fields):
         for j, w in enumerate(WLS):
             single = rw.psf(lens, f, w, size=SIZE)
             np.testing.assert_allclose(m.centers_mm[i, j], single.center_mm, rtol=0, atol=1e-12)
-            batch = next(b for b in batches if (i, j) in [tuple(p) for p in b["pairs"]])
-            if batch["plan"]["pitch_mm"] == own[(i, j)].pitch_mm and batch["plan"]["n_grid"] == own[(i, j)].n_grid \
-                    and batch["plan"]["n_pad"] == own[(i, j)].n_pad and batch["plan"]["ray_grid"] == own[(i, j)].ray_grid:
-                # same plan as alone: the same numbers
-                assert cv.rel_l2(m.data[i, j], single.data) <= 1e-12
-                same += 1
-    assert same >= 1
+            # the same plan as alone: the same numbers (the splat's float sums on CPU threads may add in another
+            # order: measured 1e-16 of the peak)
+            assert np.abs(m.data[i, j] - single.data).max() <= 1e-12 * single.data.max()
+
+
+@pytest.mark.parametrize("name,fields,wls,size", [
+    ("cooke_triplet", [14.0, 0.0], [0.55, 0.65], 16),
+    ("a489_doe", [0.0, 7.0], [0.45, 0.65], 16),
+], ids=["cooke-14deg", "a489-doe"])
+@pytest.mark.parametrize("deterministic", [False, True], ids=["float", "deterministic"])
+def test_a_psf_does_not_depend_on_its_batch(name, fields, wls, size, deterministic):
+    """Issue 25 item 5: a source's PSF is the same in a batch of 1, of 2 and of all its map's sources (each on
+    its own plan; a packed batch only pads with zeros). Here the Cooke triplet runs the focal method, the
+    A489 + DOE the ASM. When a batch shared its members' finest plan, batch 2 against batch 1 differed by
+    1.4e-3 (Cooke) and 1.1e-3 (A489 + DOE) of the PSF's peak, float and deterministic alike. Measured now:
+    0 and 3.6e-16 (the splat's float sums on CPU threads add in another order; deterministic: 0);
+    tolerance 1e-12."""
+    lens = rw.load_lens(name)
+    kw = dict(size=size, deterministic=deterministic)
+    ones = rw.psf_map(lens, fields, wls, batch=1, **kw)
+    assert all(len(b["pairs"]) == 1 for b in ones.info["batches"])
+    peak = ones.data.max(axis=(2, 3), keepdims=True)
+    for batch in (2, None):
+        m = rw.psf_map(lens, fields, wls, batch=batch, **kw)
+        assert max(len(b["pairs"]) for b in m.info["batches"]) > 1   # packed batches ran
+        assert np.max(np.abs(m.data - ones.data) / peak) <= 1e-12
+        np.testing.assert_array_equal(m.centers_mm, ones.centers_mm)
+
+
+def test_paper_amplitude_psf_does_not_depend_on_its_batch():
+    """The same for the paper's amplitude convention (bilinear splat, one power scale per source at its own
+    pitch), A489 + DOE, 2 fields x 2 wavelengths: batch 2 against batch 1 differed by 9.9e-4 of the peak with a
+    shared plan; now 4.1e-16 (all four in one batch); tolerance 1e-12 as above."""
+    lens = rw.load_lens("a489_doe")
+    kw = dict(size=16, amplitude="paper")
+    ones = rw.psf_map(lens, [0.0, 7.0], [0.45, 0.65], batch=1, **kw)
+    for batch in (2, None):
+        m = rw.psf_map(lens, [0.0, 7.0], [0.45, 0.65], batch=batch, **kw)
+        assert max(len(b["pairs"]) for b in m.info["batches"]) > 1
+        assert np.max(np.abs(m.data - ones.data) / ones.data.max(axis=(2, 3), keepdims=True)) <= 1e-12
 
 
 def test_backend_memory_stays_bounded_over_a_map_and_results_do_not_depend_on_it():
