@@ -477,13 +477,6 @@ class ZernikeProfile(Profile):
     def __init__(self, norm_radius: float, coefficients):
         self.norm_radius = float(norm_radius)
         self.coefficients = [float(a) for a in coefficients]
-        self._terms = []
-        for j, c in enumerate(self.coefficients, start=1):
-            if c == 0.0:
-                continue
-            n, m = noll_to_nm(j)
-            norm = math.sqrt(n + 1) if m == 0 else math.sqrt(2 * (n + 1))
-            self._terms.append((c * norm, m, _zernike_radial_q(n, m)))
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
         return zernike_phase(self.coefficients, self.norm_radius, x_mm, y_mm, np)
@@ -493,10 +486,12 @@ class ZernikeProfile(Profile):
         return gx, gy
 
     def quadratic_coefficient(self, design_wavelength_um=0.55):
-        total = 0.0
-        for c, m, q in self._terms:
+        total = 0.0                                     # the r^2 terms of the rotationally symmetric Z_j
+        for j, c in enumerate(self.coefficients, start=1):
+            n, m = noll_to_nm(j)
+            q = _zernike_radial_q(n, m)
             if m == 0 and len(q) > 1:
-                total += c * q[1]
+                total += c * math.sqrt(n + 1) * q[1]
         return total / self.norm_radius ** 2
 
     def to_dict(self):

@@ -419,3 +419,18 @@ def test_pixel_map_functions_in_torch_sample_and_scatter_by_hand():
     np.testing.assert_array_equal(dt.grad.numpy(), counts)
     prof = doe.profile_from_dict({"kind": "pixel_map", "pitch": p, "data": data.tolist()})
     np.testing.assert_array_equal(prof.phase(x, y), ref)
+
+
+def test_zernike_quadratic_coefficient_by_hand():
+    """The paraxial r^2 coefficient of a Zernike DOE from the hand formulas of the rotationally symmetric
+    terms up to j = 37 (Z4 = sqrt(3) (2 rho^2 - 1), Z11 = sqrt(5) (6 rho^4 - 6 rho^2 + 1),
+    Z22 = sqrt(7) (20 rho^6 - 30 rho^4 + 12 rho^2 - 1), Z37 = 3 (70 rho^8 - ... - 20 rho^2 + 1)): their
+    rho^2 coefficients over R^2; the others (tilt, astigmatism, coma, ...) have no rotationally symmetric
+    r^2 part. Relative tolerance: a few ulp of the sum."""
+    R = 1.7
+    c = list(np.linspace(-1.0, 1.0, 37))
+    p = doe.ZernikeProfile(R, c)
+    z = dict(enumerate(c, start=1))
+    q_hand = (2 * math.sqrt(3) * z[4] - 6 * math.sqrt(5) * z[11] + 12 * math.sqrt(7) * z[22]
+              - 20 * 3 * z[37]) / R ** 2
+    assert p.quadratic_coefficient() == pytest.approx(q_hand, rel=1e-14)
