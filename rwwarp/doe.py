@@ -1,6 +1,11 @@
 """Diffractive optical element (DOE) phase profiles, quantisation, wavelength remap, height export.
 
-numpy only (the torch side lives in ``torch_bridge``).
+The phase arithmetic -- :func:`wrap_phase`, :func:`quantize`, :func:`relief_phase` and the profile
+evaluations :func:`radial_phase`, :func:`fresnel_phase`, :func:`zernike_phase`, :func:`cubic_phase`,
+:func:`pixel_map_indices` / :func:`pixel_map_phase` -- is written once against an array namespace ``xp``
+(numpy, CuPy or torch; default: the namespace of the input, :func:`array_namespace`), so the numpy
+profile classes below and the torch design loop (``torch_bridge``, which passes ``torch`` and tensors of
+learnable values) evaluate the same code. This module never imports torch or CuPy itself.
 
 Units: lengths (x, y, radii, pitches, focal lengths) in mm, wavelengths in micrometres (um), phase
 in radians, heights in micrometres.
@@ -38,9 +43,11 @@ pixel_map   a phase map (radians) sampled piecewise-constant (nearest pixel), ce
 
 Functions: :func:`profile_from_dict` (validate and build), :func:`get_profile` (a DOE surface's
 profile), :func:`surface_is_continuous`, :func:`surface_feature_size_mm` (sampling plans),
-:func:`wrap_phase`, :func:`quantize`, :func:`wavelength_scale`, :func:`design_phase` (wrapped and
-quantised phi0), :func:`modulation_phase` (the phase applied at a wavelength), :func:`height_map_um`,
-:func:`export_height_map`.
+:func:`wrap_phase`, :func:`quantize`, :func:`relief_phase`, :func:`wavelength_scale`, :func:`design_phase`
+(wrapped and quantised phi0), :func:`modulation_phase` (the phase applied at a wavelength),
+:func:`height_map_um`, :func:`export_height_map`; in any namespace: :func:`array_namespace`,
+:func:`radial_phase`, :func:`radial_gradient_over_r`, :func:`fresnel_phase`, :func:`zernike_phase`,
+:func:`cubic_phase`, :func:`pixel_map_indices`, :func:`pixel_map_phase`.
 """
 from __future__ import annotations
 
@@ -48,6 +55,7 @@ import functools
 import math
 import os
 import stat
+import sys
 from collections import namedtuple
 from pathlib import Path
 
@@ -98,12 +106,85 @@ def _coefficients(d, key="coefficients"):
     return out
 
 
-def _polyval_ascending(coeffs, u):
+def array_namespace(*arrays):
+    """The array module of the arguments: ``torch`` or ``cupy`` for the first torch tensor or CuPy array
+    among them (looked up in ``sys.modules``: rwwarp never imports either), else numpy (numpy arrays,
+    lists, Python numbers)."""
+    for a in arrays:
+        mod = type(a).__module__.split(".", 1)[0]
+        if mod in ("torch", "cupy"):
+            return sys.modules[mod]
+    return np
+
+
+def _real(a, xp):
+    """``a`` as an array of ``xp``: numpy inputs become float64 (as every numpy entry point always did);
+    torch / CuPy arrays keep their dtype and device."""
+    if xp is np:
+        return np.asarray(a, dtype=np.float64)
+    return a if type(a).__module__.split(".", 1)[0] == xp.__name__ else xp.asarray(a)
+
+
+def _as_index(a, xp):
+    """Integer index array of ``a`` (whole-valued floats) in ``xp``."""
+    return a.long() if xp.__name__ == "torch" else a.astype(xp.intp)
+
+
+def _polyval_ascending(coeffs, u, xp=np):
     """sum_k coeffs[k] * u**k by Horner's rule (coeffs ascending)."""
-    out = np.zeros_like(u)
+    out = xp.zeros_like(u)
     for c in reversed(coeffs):
         out = out * u + c
     return out
+
+
+def radial_phase(kind: str, coefficients, norm_radius: float, r2, xp=None):
+    """Phase phi0 (rad) of an ``even_poly`` or ``poly`` DOE at ``r2 = x^2 + y^2`` (mm^2).
+
+    * even_poly ``phi0 = sum_i a_i u^i`` (i = 1, 2, ...), ``u = r^2 / R^2``;
+    * poly ``phi0 = sum_k c_k rho^k`` (k = 1, 2, ...), ``rho = r / R``.
+
+    ``coefficients`` (rad): a sequence of numbers or a 1-D array of ``xp`` (a torch tensor of learnable
+    values: differentiable); ``norm_radius`` R in mm; ``r2`` an array of ``xp`` (any shape; the result has
+    its shape). Horner's rule ``phi = (... ((a_n) v + a_(n-1)) v ... + a_1) v`` in ``v = u`` or ``rho``. The
+    one home of this evaluation: :class:`EvenPolyProfile`, :class:`PolyProfile` and
+    ``torch_bridge.HybridLens.doe_phase`` call it."""
+    xp = array_namespace(r2, coefficients) if xp is None else xp
+    r2 = _real(r2, xp)
+    R = float(norm_radius)
+    if kind == "even_poly":
+        v = r2 / (R * R)
+    elif kind == "poly":
+        v = xp.sqrt(r2) / R
+    else:
+        raise ValueError(f"radial_phase handles 'even_poly' and 'poly' DOEs, got {kind!r}")
+    phi = xp.zeros_like(v)
+    for i in range(len(coefficients) - 1, -1, -1):     # Horner, ascending coefficients times v
+        phi = (phi + coefficients[i]) * v
+    return phi
+
+
+def fresnel_quadratic(focal_length, design_wavelength_um: float):
+    """``q = -pi / (lambda0 f)`` (rad/mm^2) of an ideal diffractive lens of focal length ``focal_length`` (mm;
+    a number or a 0-d array: differentiable) at ``design_wavelength_um`` (um): ``phi0 = q r^2``."""
+    return -math.pi / (float(design_wavelength_um) * 1e-3 * focal_length)
+
+
+def fresnel_phase(focal_length, design_wavelength_um: float, r2, xp=None):
+    """Phase phi0 (rad) of a ``fresnel`` DOE at ``r2 = x^2 + y^2`` (mm^2): ``(-pi / (lambda0 f)) r^2``
+    (:func:`fresnel_quadratic`; ``f`` in mm, possibly a 0-d torch tensor, lambda0 in um)."""
+    xp = array_namespace(r2, focal_length) if xp is None else xp
+    return fresnel_quadratic(focal_length, design_wavelength_um) * _real(r2, xp)
+
+
+def cubic_phase(alpha, norm_radius: float, x_mm, y_mm, xp=None):
+    """Phase phi0 (rad) of a ``cubic`` DOE: ``alpha ((x/R)^3 + (y/R)^3)``; ``alpha`` in rad (a number or a
+    0-d array: differentiable), R = ``norm_radius`` in mm, ``x_mm``, ``y_mm`` broadcastable arrays (mm).
+    The cubes are products (``t t t``), so every namespace gives the same floating-point result."""
+    xp = array_namespace(x_mm, y_mm, alpha) if xp is None else xp
+    R = float(norm_radius)
+    x, y = _real(x_mm, xp) / R, _real(y_mm, xp) / R
+    return alpha * (x * x * x + y * y * y)
 
 
 def radial_gradient_over_r(kind: str, coefficients, norm_radius: float, r2, xp=np):
@@ -234,8 +315,7 @@ class EvenPolyProfile(_RadialProfile):
         self.coefficients = [float(a) for a in coefficients]
 
     def _g(self, r2):
-        u = r2 / self.norm_radius ** 2
-        return u * _polyval_ascending(self.coefficients, u) if self.coefficients else np.zeros_like(u)
+        return radial_phase(self.kind, self.coefficients, self.norm_radius, r2, np)
 
     def _dg_over_r(self, r2):
         return radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, np.asarray(r2, float))
@@ -260,8 +340,7 @@ class PolyProfile(_RadialProfile):
         self.coefficients = [float(a) for a in coefficients]
 
     def _g(self, r2):
-        rho = np.sqrt(r2) / self.norm_radius
-        return rho * _polyval_ascending(self.coefficients, rho) if self.coefficients else np.zeros_like(rho)
+        return radial_phase(self.kind, self.coefficients, self.norm_radius, r2, np)
 
     def _dg_over_r(self, r2):
         return radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, np.asarray(r2, float))
@@ -283,11 +362,11 @@ class FresnelProfile(_RadialProfile):
         self.focal_length = float(focal_length)
 
     def _q(self, design_wavelength_um):
-        return -math.pi / (design_wavelength_um * 1e-3 * self.focal_length)
+        return fresnel_quadratic(self.focal_length, design_wavelength_um)
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
         x, y = _f64(x_mm), _f64(y_mm)
-        return self._q(design_wavelength_um) * (x * x + y * y)
+        return fresnel_phase(self.focal_length, design_wavelength_um, x * x + y * y, np)
 
     def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
         x, y = _f64(x_mm), _f64(y_mm)
@@ -331,12 +410,66 @@ def _zernike_radial_q(n: int, m: int):
     return tuple(q)
 
 
+def zernike_phase(coefficients, norm_radius: float, x_mm, y_mm, xp=None, gradient: bool = False):
+    """Phase phi0 (rad) of a ``zernike`` DOE, ``sum_j z_j Z_j`` (Noll-ordered, Noll-normalised, see
+    :class:`ZernikeProfile`), at broadcastable ``x_mm``, ``y_mm`` (mm); with ``gradient`` also
+    ``(dphi0/dx, dphi0/dy)`` in rad/mm: returns ``(phi0, gx, gy)``.
+
+    ``coefficients`` (rad): a sequence of numbers (terms equal to 0 are skipped) or of 0-d arrays / a 1-D
+    array of ``xp`` (a torch tensor: every term is kept, differentiable). Evaluated in Cartesian form with
+    real arithmetic only (``rho^m cos(m theta) = Re((x + i y)^m) / R^m``, the powers by repeated
+    multiplication), so values and gradients have no singularity and every namespace gives the same
+    floating-point result."""
+    xp = array_namespace(x_mm, y_mm, coefficients) if xp is None else xp
+    R = float(norm_radius)
+    x, y = _real(x_mm, xp) / R, _real(y_mm, xp) / R
+    u = x * x + y * y
+    val = xp.zeros_like(u)
+    gx, gy = xp.zeros_like(u), xp.zeros_like(u)
+    powers = [None, (x, y)]                             # (Re, Im) of (x + i y)^k, k >= 1
+
+    def power(k):
+        while len(powers) <= k:
+            a, b = powers[-1]
+            powers.append((a * x - b * y, a * y + b * x))
+        return powers[k]
+
+    for j in range(1, len(coefficients) + 1):
+        c = coefficients[j - 1]
+        if isinstance(c, (int, float)) and c == 0.0:
+            continue
+        n, m = noll_to_nm(j)
+        cn = c * (math.sqrt(n + 1) if m == 0 else math.sqrt(2 * (n + 1)))
+        q = _zernike_radial_q(n, m)
+        am = abs(m)
+        Q = _polyval_ascending(q, u, xp)
+        ang = None if am == 0 else power(am)[0 if m > 0 else 1]
+        val = val + (cn * Q if ang is None else cn * Q * ang)
+        if gradient:
+            dq = [k * a for k, a in enumerate(q)][1:]
+            dQ = _polyval_ascending(dq, u, xp) if dq else xp.zeros_like(u)
+            if am == 0:
+                gx = gx + cn * (2.0 * x * dQ)
+                gy = gy + cn * (2.0 * y * dQ)
+                continue
+            # d/dx (x + i y)^m = m (x + i y)^(m-1), d/dy = i m (x + i y)^(m-1)
+            if am == 1:
+                pr, pi_ = 1.0, 0.0
+            else:
+                pr, pi_ = power(am - 1)
+            pr, pi_ = am * pr, am * pi_
+            dax, day = (pr, -pi_) if m > 0 else (pi_, pr)
+            gx = gx + cn * (2.0 * x * dQ * ang + Q * dax)
+            gy = gy + cn * (2.0 * y * dQ * ang + Q * day)
+    return (val, gx / R, gy / R) if gradient else val
+
+
 class ZernikeProfile(Profile):
     """``phi0 = sum_j z_j Z_j``: Noll-ordered, Noll-normalised Zernike polynomials in rho = r/norm_radius.
 
     ``Z_j = N_n^m R_n^|m|(rho) {cos(m theta) for m > 0, sin(|m| theta) for m < 0, 1 for m = 0}`` with
-    ``N = sqrt(n + 1)`` (m = 0) or ``sqrt(2 (n + 1))``. Evaluated in Cartesian form
-    (``rho^m cos(m theta) = Re((x + i y)^m) / R^m``), so values and gradients have no singularity.
+    ``N = sqrt(n + 1)`` (m = 0) or ``sqrt(2 (n + 1))``. Evaluated by :func:`zernike_phase` (Cartesian form,
+    ``rho^m cos(m theta) = Re((x + i y)^m) / R^m``), so values and gradients have no singularity.
     """
 
     kind = "zernike"
@@ -344,51 +477,21 @@ class ZernikeProfile(Profile):
     def __init__(self, norm_radius: float, coefficients):
         self.norm_radius = float(norm_radius)
         self.coefficients = [float(a) for a in coefficients]
-        self._terms = []
-        for j, c in enumerate(self.coefficients, start=1):
-            if c == 0.0:
-                continue
-            n, m = noll_to_nm(j)
-            norm = math.sqrt(n + 1) if m == 0 else math.sqrt(2 * (n + 1))
-            self._terms.append((c * norm, m, _zernike_radial_q(n, m)))
-
-    def _eval(self, x_mm, y_mm, want_grad):
-        R = self.norm_radius
-        x, y = _f64(x_mm) / R, _f64(y_mm) / R
-        u = x * x + y * y
-        z = x + 1j * y
-        val = np.zeros(np.broadcast(x, y).shape)
-        gx, gy = np.zeros_like(val), np.zeros_like(val)
-        for c, m, q in self._terms:
-            am = abs(m)
-            Q = _polyval_ascending(list(q), u)
-            zm = z ** am if am else np.ones_like(z)
-            ang = zm.real if m >= 0 else zm.imag
-            val += c * Q * ang
-            if want_grad:
-                dq = [k * a for k, a in enumerate(q)][1:]
-                dQ = _polyval_ascending(dq, u) if dq else np.zeros_like(u)
-                if am:
-                    zm1 = am * z ** (am - 1)
-                    dax, day = (zm1.real, -zm1.imag) if m > 0 else (zm1.imag, zm1.real)
-                else:
-                    dax = day = 0.0
-                gx += c * (2.0 * x * dQ * ang + Q * dax)
-                gy += c * (2.0 * y * dQ * ang + Q * day)
-        return val, gx / R, gy / R
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        return self._eval(x_mm, y_mm, False)[0]
+        return zernike_phase(self.coefficients, self.norm_radius, x_mm, y_mm, np)
 
     def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
-        _, gx, gy = self._eval(x_mm, y_mm, True)
+        _, gx, gy = zernike_phase(self.coefficients, self.norm_radius, x_mm, y_mm, np, gradient=True)
         return gx, gy
 
     def quadratic_coefficient(self, design_wavelength_um=0.55):
-        total = 0.0
-        for c, m, q in self._terms:
+        total = 0.0                                     # the r^2 terms of the rotationally symmetric Z_j
+        for j, c in enumerate(self.coefficients, start=1):
+            n, m = noll_to_nm(j)
+            q = _zernike_radial_q(n, m)
             if m == 0 and len(q) > 1:
-                total += c * q[1]
+                total += c * math.sqrt(n + 1) * q[1]
         return total / self.norm_radius ** 2
 
     def to_dict(self):
@@ -405,9 +508,7 @@ class CubicProfile(Profile):
         self.alpha = float(alpha)
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        R = self.norm_radius
-        x, y = _f64(x_mm) / R, _f64(y_mm) / R
-        return self.alpha * (x ** 3 + y ** 3)
+        return cubic_phase(self.alpha, self.norm_radius, x_mm, y_mm, np)
 
     def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
         R = self.norm_radius
@@ -431,6 +532,27 @@ def _load_npy(path: str, mtime_ns: int, size: int):
     arr = np.array(arr, dtype=np.float64)
     arr.setflags(write=False)
     return arr
+
+
+def pixel_map_indices(pitch: float, shape, x_mm, y_mm, xp=None):
+    """Nearest-pixel ``(row, col, inside)`` of a pixel map of ``shape`` (ny, nx) and ``pitch`` mm, centred on
+    the axis, row 0 at +y and column 0 at -x: ``col = floor(x / pitch + nx / 2)``,
+    ``row = floor(ny / 2 - y / pitch)``. ``x_mm``, ``y_mm``: broadcastable arrays of ``xp`` (mm). Indices are
+    integer arrays of ``xp`` (0 outside the map), ``inside`` a boolean mask."""
+    xp = array_namespace(x_mm, y_mm) if xp is None else xp
+    ny, nx = shape
+    pitch = float(pitch)
+    col = xp.floor(_real(x_mm, xp) / pitch + nx / 2.0)
+    row = xp.floor(ny / 2.0 - _real(y_mm, xp) / pitch)
+    inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+    return _as_index(xp.where(inside, row, 0.0), xp), _as_index(xp.where(inside, col, 0.0), xp), inside
+
+
+def pixel_map_phase(data, row, col, inside, xp=None):
+    """Phase phi0 (rad) of a pixel map ``data`` (ny, nx; an array of ``xp``, differentiable in torch) at the
+    indices of :func:`pixel_map_indices`: ``data[row, col]`` inside the map, 0 outside."""
+    xp = array_namespace(data) if xp is None else xp
+    return xp.where(inside, data[row, col], 0.0)
 
 
 class PixelMapProfile(Profile):
@@ -497,17 +619,12 @@ class PixelMapProfile(Profile):
         return self._data
 
     def indices(self, x_mm, y_mm):
-        """Nearest-pixel (row, col) indices for (x, y) in mm and a mask of points inside the map."""
-        d = self.data
-        ny, nx = d.shape
-        col = np.floor(_f64(x_mm) / self.pitch + nx / 2.0)
-        row = np.floor(ny / 2.0 - _f64(y_mm) / self.pitch)
-        inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
-        return np.where(inside, row, 0).astype(np.intp), np.where(inside, col, 0).astype(np.intp), inside
+        """Nearest-pixel (row, col) indices for (x, y) in mm and a mask of points inside the map
+        (:func:`pixel_map_indices`)."""
+        return pixel_map_indices(self.pitch, self.data.shape, x_mm, y_mm, np)
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        row, col, inside = self.indices(x_mm, y_mm)
-        return np.where(inside, self.data[row, col], 0.0)
+        return pixel_map_phase(self.data, *self.indices(x_mm, y_mm), np)
 
     def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
         raise LensError("discontinuous phase: no gradient (a pixel map has steps; the ray model cannot "
@@ -633,29 +750,39 @@ def is_flat_profile(profile: dict) -> bool:
 
 
 # ====================================================================== phase operations
-def wrap_phase(phi):
-    """Phase wrapped to [0, 2 pi) (radians, float64)."""
-    phi = _f64(phi)
-    w = phi - TWO_PI * np.floor(phi * (1.0 / TWO_PI))  # 4x faster than np.mod on large grids
-    w[w >= TWO_PI] = 0.0  # rounding can give exactly 2 pi
-    w[w < 0.0] = 0.0
-    return w
+def wrap_phase(phi, xp=None):
+    """Phase ``phi`` (rad) wrapped to [0, 2 pi): ``phi - 2 pi floor(phi / 2 pi)``, a value that rounds to
+    exactly 2 pi (or below 0) becoming 0. ``xp``: the array namespace (default that of ``phi``); numpy
+    results are float64, torch / CuPy keep the input's dtype and device."""
+    xp = array_namespace(phi) if xp is None else xp
+    phi = _real(phi, xp)
+    w = phi - TWO_PI * xp.floor(phi * (1.0 / TWO_PI))  # 4x faster than np.mod on large grids
+    return xp.where((w >= TWO_PI) | (w < 0.0), 0.0, w)  # rounding can give exactly 2 pi
 
 
-def quantize(phi, levels: int):
+def quantize(phi, levels: int, xp=None):
     """Wrap ``phi`` (radians) to [0, 2 pi) and round to the nearest of ``levels`` equally spaced levels
-    ``k 2 pi / levels`` (k = 0 .. levels-1; a value that rounds to 2 pi becomes 0).
+    ``k 2 pi / levels`` (k = 0 .. levels-1; a value that rounds to 2 pi becomes 0; ties to the even k).
+    ``xp``: the array namespace (default that of ``phi``).
 
-    Gradient convention (implemented on the torch side): straight-through, i.e. the backward pass
-    treats quantisation as the identity, ``d quantize(phi) / d phi = 1``; the wrap is also passed
-    straight through (its derivative is 1 almost everywhere).
+    Gradient convention (the autograd glue is ``torch_bridge.QuantizeSTE``, whose forward is this
+    function): straight-through, i.e. the backward pass treats quantisation as the identity,
+    ``d quantize(phi) / d phi = 1``; the wrap is also passed straight through (its derivative is 1
+    almost everywhere).
     """
     levels = int(levels)
     if levels < 2:
         raise LensError(f"levels must be >= 2, got {levels}")
+    xp = array_namespace(phi) if xp is None else xp
     step = TWO_PI / levels
-    k = np.rint(wrap_phase(phi) / step)
-    return np.where(k >= levels, 0.0, k * step)
+    k = xp.round(wrap_phase(phi, xp) / step)
+    return xp.where(k >= levels, 0.0, k * step)
+
+
+def relief_phase(phi, levels=None, xp=None):
+    """The relief phase of an unwrapped DOE phase ``phi`` (rad): :func:`wrap_phase` when ``levels`` is
+    None, else :func:`quantize` to ``levels`` levels. The forward of ``torch_bridge.QuantizeSTE``."""
+    return wrap_phase(phi, xp) if levels is None else quantize(phi, levels, xp)
 
 
 def _indices(substrate, wavelengths_um):
@@ -680,8 +807,7 @@ def wavelength_scale(substrate: str, design_wavelength_um: float, wavelength_um)
 def design_phase(profile: Profile, x_mm, y_mm, design_wavelength_um: float, levels=None):
     """The relief phase at the design wavelength: ``phi0`` wrapped to [0, 2 pi), quantised to ``levels``
     when given. Radians, float64."""
-    phi = profile.phase(x_mm, y_mm, design_wavelength_um)
-    return wrap_phase(phi) if levels is None else quantize(phi, levels)
+    return relief_phase(profile.phase(x_mm, y_mm, design_wavelength_um), levels, np)
 
 
 def modulation_phase(profile: Profile, x_mm, y_mm, design_wavelength_um: float, wavelength_um: float,

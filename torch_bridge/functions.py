@@ -46,12 +46,12 @@ parameter gradients) while one DOE-plane field is 7.9 MB.
 from __future__ import annotations
 
 import contextlib
-import math
 import sys
 import weakref
 
 import numpy as np
 import torch
+from rwwarp.doe import relief_phase
 from rwwarp.trace import COLUMNS as COL
 
 __all__ = [
@@ -672,20 +672,13 @@ def mixed_precision(x):
 
 class QuantizeSTE(torch.autograd.Function):
     """DOE relief phase: ``phi`` (rad) wrapped to [0, 2 pi) and quantised to ``levels`` levels
-    (``k 2 pi / levels``, the top level folding to 0, as :func:`rwwarp.doe.quantize`), with a
-    straight-through gradient (identity). ``levels=None``: wrap only (its derivative is 1 a.e.)."""
+    (``k 2 pi / levels``, the top level folding to 0), with a straight-through gradient (identity).
+    ``levels=None``: wrap only (its derivative is 1 a.e.). The forward is :func:`rwwarp.doe.relief_phase`
+    in torch (the one implementation numpy uses too); this class adds only the backward."""
 
     @staticmethod
     def forward(ctx, phi, levels):
-        two_pi = 2.0 * math.pi
-        # the same arithmetic as rwwarp.doe.wrap_phase (so the samples agree bit for bit)
-        w = phi - two_pi * torch.floor(phi * (1.0 / two_pi))
-        w = torch.where((w >= two_pi) | (w < 0.0), torch.zeros_like(w), w)
-        if levels is None:
-            return w
-        step = two_pi / int(levels)
-        k = torch.round(w / step)
-        return torch.where(k >= int(levels), torch.zeros_like(w), k * step)
+        return relief_phase(phi, levels, torch)
 
     @staticmethod
     def backward(ctx, g):

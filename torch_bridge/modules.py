@@ -53,6 +53,7 @@ from rwwarp.trace import COLUMNS as COL
 from rwwarp.trace import field_pairs
 from torch import nn
 
+from rwwarp import doe
 from rwwarp.errors import SamplingWarning
 from rwwarp.lens import MAX_ASPHERIC, Lens
 from rwwarp.plan import Plan
@@ -165,7 +166,6 @@ class HybridLens(nn.Module):
         if d is None:
             return np.zeros(0)
         s = lens.surfaces[d]
-        from rwwarp import doe
         prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else
                                      __import__("pathlib").Path(lens.source).parent)
         self.doe_kind = prof.kind
@@ -495,68 +495,50 @@ class HybridLens(nn.Module):
             geo = self._doe_geometry(rw, s, dev)
             st["doe_geometry"] = geo
         kind = self.doe_kind
+        # the forward is rwwarp.doe's (the numpy profiles evaluate the same functions), in torch
         if kind in ("even_poly", "poly"):
             # the window-sized radius is formed per call from the separable x^2 (S, 1, n), y^2 (S, n, 1):
             # a cached (S, n, n) copy per plan would cost more memory than the whole training step
-            var = geo["x2"] + geo["y2"]
-            if kind == "poly":
-                var = torch.sqrt(var)
-            var = var / geo["scale"]
-            phi = torch.zeros_like(var)
-            for a in reversed(list(v.unbind(0))):  # Horner, ascending coefficients times var
-                phi = (phi + a) * var
-        elif kind in ("zernike", "cubic"):
+            phi = doe.radial_phase(kind, v, float(s.profile["norm_radius"]), geo["x2"] + geo["y2"], torch)
+        elif kind == "fresnel":
+            phi = doe.fresnel_phase(v[0], s.design_wavelength_um, geo["x2"] + geo["y2"], torch)
+        elif kind == "cubic":
+            phi = doe.cubic_phase(v[0], float(s.profile["norm_radius"]), geo["x"], geo["y"], torch)
+        elif kind == "zernike":
             basis = geo["basis"]
             phi = torch.tensordot(v, basis, dims=1) if v.numel() else torch.zeros(basis.shape[1:], dtype=v.dtype,
                                                                                    device=dev)
-        elif kind == "fresnel":
-            phi = -math.pi * (geo["x2"] + geo["y2"]) / (s.design_wavelength_um * 1e-3 * v[0])
         elif kind == "pixel_map":
-            phi = torch.where(geo["in_map"], v[geo["row"], geo["col"]], torch.zeros((), dtype=v.dtype, device=dev))
+            phi = doe.pixel_map_phase(v, geo["row"], geo["col"], geo["in_map"], torch)
         else:
             raise ValueError(f"unsupported DOE kind {kind!r}")
         # no mask at the DOE's edge (as rwwarp.psf): rays are clipped there by the tracer
         return quantize_ste(phi, s.levels) if wrap else phi
 
     def _doe_geometry(self, rw, s, dev):
-        """Per-plan DOE sampling helpers, built on ``dev`` (no window-sized host-to-device copies, except
-        the Zernike / cubic basis, evaluated by rwwarp.doe on the host once per plan)."""
+        """Per-plan DOE sampling helpers, built on ``dev`` by rwwarp.doe's functions in torch (no
+        window-sized host-to-device copies): the separable coordinates or their squares, the Zernike
+        basis ``Z_j`` (one (S, n, n) map per coefficient: the phase is linear in them), a pixel map's
+        nearest-pixel indices."""
         from .functions import _grid_points
         x, y = _grid_points(rw, dev)
         geo = {"device": dev}
-        prof = s.profile
         kind = self.doe_kind
         if kind in ("even_poly", "poly", "fresnel"):
             geo["x2"], geo["y2"] = x * x, y * y          # (S, 1, n), (S, n, 1)
-            if kind != "fresnel":
-                r = float(prof["norm_radius"])
-                geo["scale"] = r * r if kind == "even_poly" else r
-            return geo
-        x, y = torch.broadcast_tensors(x, y)
-        if kind in ("zernike", "cubic"):
-            from rwwarp import doe
-            xh, yh = x.cpu().numpy(), y.cpu().numpy()
+        elif kind == "cubic":
+            geo["x"], geo["y"] = x, y
+        elif kind == "zernike":
             m = self.doe_base.numel()
-            basis = np.empty((m,) + xh.shape)
+            basis = x.new_empty((m,) + torch.broadcast_shapes(x.shape, y.shape))
             for j in range(m):
-                p = dict(prof)
-                if kind == "cubic":
-                    p["alpha"] = 1.0
-                else:
-                    e = [0.0] * m
-                    e[j] = 1.0
-                    p["coefficients"] = e
-                basis[j] = doe.profile_from_dict(p).phase(xh, yh, s.design_wavelength_um)
-            geo["basis"] = torch.as_tensor(basis, device=dev)
+                e = [0.0] * m
+                e[j] = 1.0
+                basis[j] = doe.zernike_phase(e, float(s.profile["norm_radius"]), x, y, torch)
+            geo["basis"] = basis
         elif kind == "pixel_map":
-            ny, nx = self.doe_base.shape
-            p = self._pixel_pitch
-            col = torch.floor(x / p + nx / 2.0)
-            row = torch.floor(ny / 2.0 - y / p)
-            in_map = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
-            geo["row"] = torch.where(in_map, row, torch.zeros_like(row)).long()
-            geo["col"] = torch.where(in_map, col, torch.zeros_like(col)).long()
-            geo["in_map"] = in_map
+            ind = doe.pixel_map_indices(self._pixel_pitch, self.doe_base.shape, x, y, torch)
+            geo["row"], geo["col"], geo["in_map"] = ind
         return geo
 
     def host_table(self, rw, table, tables: dict | None = None) -> np.ndarray:

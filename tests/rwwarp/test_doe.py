@@ -263,3 +263,174 @@ def test_radial_gradient_is_one_function_for_numpy_and_torch(kind, coeffs):
                                  torch.from_numpy(x * x + y * y), torch).numpy()
     g_n = radial_gradient_over_r(kind, coeffs, 1.3, x * x + y * y)
     np.testing.assert_allclose(g_t, g_n, rtol=1e-15, atol=0)
+
+
+# ---------------------------------------------------------------- one implementation for every namespace
+def test_rwwarp_doe_imports_no_torch_and_infers_the_namespace():
+    """rwwarp.doe runs the shared phase code without torch (a fresh interpreter); the namespace of lists,
+    numbers and numpy arrays is numpy (float64 results), of a torch tensor torch."""
+    import subprocess
+    import sys
+    code = ("import sys, numpy as np\nfrom rwwarp import doe\n"
+            "p = doe.profile_from_dict({'kind': 'zernike', 'norm_radius': 1.0,\n"
+            "                           'coefficients': [0, 1, 2, 3]})\n"
+            "doe.design_phase(p, np.zeros(3), np.ones(3), 0.55, 8)\n"
+            "assert 'torch' not in sys.modules, 'torch was imported'\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert doe.array_namespace([1.0], 2.0, np.ones(2)) is np
+    w = doe.wrap_phase([-1.0, 7.0])
+    assert w.dtype == np.float64 and w.tolist() == [2 * math.pi - 1.0, 7.0 - 2 * math.pi]
+    assert float(doe.wrap_phase(-1.0)) == 2 * math.pi - 1.0      # scalars too
+    torch = pytest.importorskip("torch")
+    assert doe.array_namespace(np.ones(2), torch.ones(2)) is torch
+
+
+@pytest.mark.parametrize("levels", [None, 2, 8])
+def test_wrap_and_quantize_in_torch_follow_the_equations(levels):
+    """rwwarp.doe.relief_phase on torch tensors (float64 and float32) against the definition written with
+    other arithmetic: ``np.mod`` for the wrap (circular distance: np.mod rounds a tiny negative phase up to
+    2 pi), the level index ``round(w L / 2 pi) mod L`` for the quantisation."""
+    torch = pytest.importorskip("torch")
+    phi = np.concatenate([RNG.uniform(-50.0, 50.0, 5000), [0.0, -1e-20, 2 * math.pi, -2 * math.pi]])
+    w_ref = np.mod(phi, 2 * math.pi)
+    # tolerances (wrap, level): float64 measured 0 and 0, allowed a few ulp of 50 rad and of 2 pi;
+    # float32 measured 4.6e-6 (the input's rounding, ulp(50) = 3.8e-6) and 3.3e-7 (ulp(2 pi) = 4.8e-7)
+    for dt, tol, tol_q in ((torch.float64, 1e-13, 4e-15), (torch.float32, 2e-5, 1e-6)):
+        got = doe.relief_phase(torch.tensor(phi, dtype=dt), levels)
+        assert got.dtype == dt
+        g = got.double().numpy()
+        assert g.min() >= 0.0 and g.max() < 2 * math.pi
+        if levels is None:
+            d = np.abs(g - w_ref)
+            assert np.max(np.minimum(d, 2 * math.pi - d)) < tol
+        else:
+            step = 2 * math.pi / levels
+            k = np.rint(w_ref / step) % levels
+            near_tie = np.abs(np.mod(w_ref / step, 1.0) - 0.5) < 1e-4   # float32 may round either way there
+            np.testing.assert_allclose(g[~near_tie], (k * step)[~near_tie], rtol=0, atol=tol_q)
+            assert set(np.round(g / step).astype(int)) <= set(range(levels))
+    # numpy and torch evaluate the same arithmetic: equal bit for bit on the CPU (measured)
+    ref = doe.relief_phase(phi, levels)
+    np.testing.assert_array_equal(doe.relief_phase(torch.from_numpy(phi), levels, torch).numpy(), ref)
+
+
+def _hand_profiles(R):
+    """Hand formulas (numpy) of every smooth kind: {name: (profile dict, values, phi(x, y, values))}."""
+    def zern(x, y, c):
+        r, t = np.hypot(x, y) / R, np.arctan2(y, x)
+        z = [np.ones_like(r), 2 * r * np.cos(t), 2 * r * np.sin(t), math.sqrt(3) * (2 * r ** 2 - 1),
+             math.sqrt(6) * r ** 2 * np.sin(2 * t), math.sqrt(6) * r ** 2 * np.cos(2 * t),
+             math.sqrt(8) * (3 * r ** 3 - 2 * r) * np.sin(t), math.sqrt(8) * (3 * r ** 3 - 2 * r) * np.cos(t),
+             math.sqrt(8) * r ** 3 * np.sin(3 * t), math.sqrt(8) * r ** 3 * np.cos(3 * t),
+             math.sqrt(5) * (6 * r ** 4 - 6 * r ** 2 + 1)]
+        return sum(ci * zi for ci, zi in zip(c, z))
+    return {
+        "even_poly": ([3.0, -2.0, 0.5], lambda x, y, c: sum(
+            a * ((x * x + y * y) / R ** 2) ** (i + 1) for i, a in enumerate(c))),
+        "poly": ([1.0, -2.0, 3.0, 0.25], lambda x, y, c: sum(
+            a * (np.hypot(x, y) / R) ** (k + 1) for k, a in enumerate(c))),
+        "fresnel": ([-40.0], lambda x, y, c: -math.pi * (x * x + y * y) / (0.55e-3 * c[0])),
+        "cubic": ([7.0], lambda x, y, c: c[0] * ((x / R) ** 3 + (y / R) ** 3)),
+        "zernike": (list(np.linspace(-1.0, 1.0, 11)), zern),
+    }
+
+
+def _torch_phase(kind, v, R, x, y, torch):
+    if kind in ("even_poly", "poly"):
+        return doe.radial_phase(kind, v, R, x * x + y * y, torch)
+    if kind == "fresnel":
+        return doe.fresnel_phase(v[0], 0.55, x * x + y * y, torch)
+    if kind == "cubic":
+        return doe.cubic_phase(v[0], R, x, y, torch)
+    return doe.zernike_phase(v, R, x, y, torch)
+
+
+@pytest.mark.parametrize("kind", ["even_poly", "poly", "fresnel", "cubic", "zernike"])
+def test_profile_functions_in_torch_follow_the_hand_formulas(kind):
+    """The shared profile evaluations on torch tensors (as the design loop calls them, with learnable
+    values) against hand formulas in numpy: the phase; its gradient in the values (autograd) against
+    central differences of the hand formula; its gradient in x, y (autograd) against central differences
+    of the hand formula and against Profile.gradient (numpy)."""
+    torch = pytest.importorskip("torch")
+    R = 1.3
+    vals, hand = _hand_profiles(R)[kind]
+    x, y = X[np.hypot(X, Y) > 1e-2], Y[np.hypot(X, Y) > 1e-2]   # away from the cone's apex (poly rho^1)
+    v = torch.tensor(vals, dtype=torch.float64, requires_grad=True)
+    xt = torch.tensor(x, requires_grad=True)
+    yt = torch.tensor(y, requires_grad=True)
+    phi = _torch_phase(kind, v, R, xt, yt, torch)
+    ref = hand(x, y, vals)
+    scale = np.max(np.abs(ref))
+    # measured <= 6.3e-16 relative to the largest |phi| (zernike)
+    np.testing.assert_allclose(phi.detach().numpy(), ref, rtol=0, atol=1e-14 * scale)
+    # the numpy profile class: the same function (bit for bit, except poly: torch's CPU sqrt differs from
+    # numpy's by an ulp, measured 1.3e-16 of the largest |phi|)
+    d = {"kind": kind, "norm_radius": R, "coefficients": vals}
+    if kind == "cubic":
+        d = {"kind": "cubic", "norm_radius": R, "alpha": vals[0]}
+    elif kind == "fresnel":
+        d = {"kind": "fresnel", "focal_length": vals[0]}
+    prof = doe.profile_from_dict(d)
+    np.testing.assert_allclose(prof.phase(x, y, 0.55), phi.detach().numpy(), rtol=0, atol=4e-16 * scale)
+    wgt = np.cos(np.arange(x.size))                               # a generic weighted sum of the samples
+    (phi * torch.from_numpy(wgt)).sum().backward()
+    # d/d values: central differences (h = 1e-6 relative) of the hand formula; measured <= 7.3e-9 relative
+    # (zernike: cancellation in the weighted sum)
+    for i in range(len(vals)):
+        h = 1e-6 * max(1.0, abs(vals[i]))
+        vp, vm = list(vals), list(vals)
+        vp[i] += h
+        vm[i] -= h
+        fd = np.sum(wgt * (hand(x, y, vp) - hand(x, y, vm))) / (2 * h)
+        assert v.grad[i].item() == pytest.approx(fd, rel=1e-7, abs=1e-7 * scale)
+    # d/dx, d/dy: central differences (h = 1e-6 mm) of the hand formula; measured <= 2.6e-10 of the largest
+    h = 1e-6
+    fx = (hand(x + h, y, vals) - hand(x - h, y, vals)) / (2 * h)
+    fy = (hand(x, y + h, vals) - hand(x, y - h, vals)) / (2 * h)
+    gs = max(np.max(np.abs(fx)), np.max(np.abs(fy)))
+    np.testing.assert_allclose(xt.grad.numpy(), wgt * fx, rtol=0, atol=2e-9 * gs)
+    np.testing.assert_allclose(yt.grad.numpy(), wgt * fy, rtol=0, atol=2e-9 * gs)
+    gx, gy = prof.gradient(x, y, 0.55)                            # measured <= 3.7e-16 of the largest
+    np.testing.assert_allclose(wgt * gx, xt.grad.numpy(), rtol=0, atol=4e-15 * gs)
+    np.testing.assert_allclose(wgt * gy, yt.grad.numpy(), rtol=0, atol=4e-15 * gs)
+
+
+def test_pixel_map_functions_in_torch_sample_and_scatter_by_hand():
+    """pixel_map_indices / pixel_map_phase on torch tensors: each sample takes the value of the pixel whose
+    square contains it (centres at x = (col - (nx-1)/2) p, y = ((ny-1)/2 - row) p), 0 outside; the
+    gradient in the map counts the samples per pixel (np.add.at of the hand indices)."""
+    torch = pytest.importorskip("torch")
+    ny, nx, p = 5, 7, 0.3
+    data = RNG.uniform(0.5, 6.0, (ny, nx))
+    x, y = RNG.uniform(-1.4, 1.4, 3000), RNG.uniform(-1.0, 1.0, 3000)
+    col_h = np.floor((x + nx * p / 2) / p).astype(int)             # pixel edges from -nx p / 2 to +nx p / 2
+    row_h = np.floor((ny * p / 2 - y) / p).astype(int)
+    inside_h = (col_h >= 0) & (col_h < nx) & (row_h >= 0) & (row_h < ny)
+    assert 0 < inside_h.sum() < x.size                           # both inside and outside samples
+    ref = np.where(inside_h, data[np.clip(row_h, 0, ny - 1), np.clip(col_h, 0, nx - 1)], 0.0)
+    dt = torch.tensor(data, requires_grad=True)
+    row, col, inside = doe.pixel_map_indices(p, (ny, nx), torch.from_numpy(x), torch.from_numpy(y), torch)
+    phi = doe.pixel_map_phase(dt, row, col, inside, torch)
+    np.testing.assert_array_equal(phi.detach().numpy(), ref)
+    phi.sum().backward()
+    counts = np.zeros((ny, nx))
+    np.add.at(counts, (row_h[inside_h], col_h[inside_h]), 1.0)
+    np.testing.assert_array_equal(dt.grad.numpy(), counts)
+    prof = doe.profile_from_dict({"kind": "pixel_map", "pitch": p, "data": data.tolist()})
+    np.testing.assert_array_equal(prof.phase(x, y), ref)
+
+
+def test_zernike_quadratic_coefficient_by_hand():
+    """The paraxial r^2 coefficient of a Zernike DOE from the hand formulas of the rotationally symmetric
+    terms up to j = 37 (Z4 = sqrt(3) (2 rho^2 - 1), Z11 = sqrt(5) (6 rho^4 - 6 rho^2 + 1),
+    Z22 = sqrt(7) (20 rho^6 - 30 rho^4 + 12 rho^2 - 1), Z37 = 3 (70 rho^8 - ... - 20 rho^2 + 1)): their
+    rho^2 coefficients over R^2; the others (tilt, astigmatism, coma, ...) have no rotationally symmetric
+    r^2 part. Relative tolerance: a few ulp of the sum."""
+    R = 1.7
+    c = list(np.linspace(-1.0, 1.0, 37))
+    p = doe.ZernikeProfile(R, c)
+    z = dict(enumerate(c, start=1))
+    q_hand = (2 * math.sqrt(3) * z[4] - 6 * math.sqrt(5) * z[11] + 12 * math.sqrt(7) * z[22]
+              - 20 * 3 * z[37]) / R ** 2
+    assert p.quadratic_coefficient() == pytest.approx(q_hand, rel=1e-14)

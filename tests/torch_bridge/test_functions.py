@@ -11,7 +11,6 @@ torch = pytest.importorskip("torch")
 from rwwarp.kernels import trace as ktrace
 
 import torch_bridge as tb
-from rwwarp import doe
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.plan import Plan
 from rwwarp.psf import RayWave
@@ -106,11 +105,36 @@ def test_mixed_precision_round_trip():
 
 
 @pytest.mark.parametrize("levels", [None, 4, 16])
-def test_quantize_ste_matches_rwwarp_and_passes_gradients(levels):
+def test_quantize_ste_matches_the_equations_and_passes_gradients(levels):
+    """Forward (rwwarp.doe.relief_phase in torch, the code numpy runs too) against a reference written
+    from the definition with other arithmetic: ``np.mod(phi, 2 pi)`` in [0, 2 pi) and, quantised, the
+    level index ``k = round(w / (2 pi / L)) mod L`` (the top level folds to 0), value ``k 2 pi / L``.
+    Backward: the identity (straight through)."""
     phi = torch.linspace(-20.0, 20.0, 1001, dtype=torch.float64, requires_grad=True)
     q = tb.quantize_ste(phi, levels)
-    ref = doe.wrap_phase(phi.detach().numpy()) if levels is None else doe.quantize(phi.detach().numpy(), levels)
-    np.testing.assert_allclose(q.detach().numpy(), ref, atol=1e-12)
+    qn = q.detach().numpy()
+    w_ref = np.mod(phi.detach().numpy(), 2 * math.pi)
+    assert qn.min() >= 0.0 and qn.max() < 2 * math.pi
+    if levels is None:
+        # floor-based vs fmod-based wrap: the same angle (np.mod rounds a tiny negative phase up to
+        # 2 pi itself, hence the circular distance); measured 0 here, tolerance a few ulp of 20 rad
+        d = np.abs(qn - w_ref)
+        assert np.max(np.minimum(d, 2 * math.pi - d)) < 1e-14
+    else:
+        step = 2 * math.pi / levels
+        k = np.rint(w_ref / step)
+        assert np.all(np.abs(w_ref / step - np.floor(w_ref / step) - 0.5) > 1e-9)  # no sample at a tie
+        k_ref = np.where(k == levels, 0, k)
+        # the values are the levels k 2 pi / L exactly (one multiplication), the right level each
+        np.testing.assert_array_equal(qn, k_ref * step)
+        assert set(np.unique(k_ref)) == set(range(levels))
+    # fold to 0: just below 2 pi (to the top level when quantised), a tiny negative phase that rounds to 2 pi
+    edge = tb.quantize_ste(torch.tensor([2 * math.pi - 1e-9, -1e-20, 2 * math.pi], dtype=torch.float64),
+                           levels)
+    assert edge[1].item() == 0.0 and edge[2].item() == 0.0
+    assert edge[0].item() == (0.0 if levels else pytest.approx(2 * math.pi - 1e-9, abs=1e-15))
+    # float32 stays float32
+    assert tb.quantize_ste(phi.detach().float(), levels).dtype == torch.float32
     w = torch.randn(1001, dtype=torch.float64)
     (q * w).sum().backward()
     np.testing.assert_array_equal(phi.grad.numpy(), w.numpy())
