@@ -54,9 +54,7 @@ from rwwarp.trace import field_pairs
 from torch import nn
 
 from rwwarp import doe
-from rwwarp.errors import SamplingWarning
 from rwwarp.lens import MAX_ASPHERIC, Lens
-from rwwarp.plan import Plan
 
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
@@ -646,7 +644,8 @@ class HybridLens(nn.Module):
                 progress: bool = False, return_centers: bool = False, spatial_tile: int | None = None):
         """Differentiable PSF map (n_fields, n_wavelengths, size, size), float64.
 
-        One sampling plan covers the whole map (made from all sources' pilot traces). Sources are
+        Every (field, wavelength) source is computed on its own plan, as :func:`rwwarp.psf` plans it alone
+        (so a PSF does not depend on the map it is in, nor on the tiling). Sources are
         computed in tiles of ``tile`` (field, wavelength) pairs; ``memory_budget_bytes`` (bytes)
         caps the transfer-function cache at a quarter of the budget and chooses the tile from what
         is left after the map's fixed needs (:meth:`bytes_fixed`) and an estimate of the bytes one
@@ -665,12 +664,10 @@ class HybridLens(nn.Module):
         pairs = [(i, j) for i in range(len(fields)) for j in range(len(wls))]
         src_f = [fields[i] for i, _ in pairs]
         src_w = [wls[j] for _, j in pairs]
-        full = self.raywave(src_f, src_w, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
-        if full.plan.method == "focal":
-            explicit = full.plan   # its grids; each tile's sensor boxes are centred by the planner
-        else:
-            explicit = Plan(full.plan.pitch_mm, full.plan.n_grid, full.plan.n_pad, full.plan.ray_grid, "map",
-                            False, list(full.plan.reasons))
+        # each source planned alone (its own pilot, window, pitch, rays and method)
+        rws = [self.raywave([f], [w], size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
+               for f, w in zip(src_f, src_w)]
+        full = max(rws, key=self.bytes_per_source)    # the largest source sizes the tiles and the budget check
         if tile is None:
             if memory_budget_bytes is None:
                 tile = len(pairs)
@@ -706,22 +703,13 @@ class HybridLens(nn.Module):
         tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
         with self._cache_limit(memory_budget_bytes):
             for ch in it:
-                f_t = [src_f[k] for k in ch]
-                w_t = [src_w[k] for k in ch]
-                if len(chunks) == 1:
-                    rw = full
-                else:
-                    with warnings.catch_warnings():
-                        # the map's plan was made for all its sources; its rays cover each tile's footprint
-                        # (rwwarp.plan.check_explicit measures ray spacing over the window with margins)
-                        warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
-                        rw = self.raywave(f_t, w_t, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
-                                          plan=explicit)
-                centers[ch] = rw.centers
+                tile_rws = [rws[k] for k in ch]
+                centers[ch] = np.concatenate([rw.centers for rw in tile_rws], 0)
 
-                def run(*ts, rw=rw, record=True):
-                    return self._psf_rw(rw, dict(zip(names, ts)), record=record, spatial_tile=spatial_tile,
-                                        tables=tables)
+                def run(*ts, tile_rws=tile_rws, record=True):
+                    vals = dict(zip(names, ts))
+                    return torch.cat([self._psf_rw(rw, vals, record=record, spatial_tile=spatial_tile, tables=tables)
+                                      for rw in tile_rws], 0)
                 if checkpoint and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                     outs.append(Recompute.apply(run, *tensors))
                 else:
