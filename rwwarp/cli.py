@@ -231,6 +231,7 @@ def cmd_psf(a):
         raise ValueError(f"--out {a.out}: use a .npz path (the PSF with its pixel pitch and centre) or .png (a picture)")
     from . import checks
     checks.check_wavelengths([wl], lens)
+    checks.check_device(a.device)
     for note in check_field_inside(lens, [field], wl, pixel_mm, a.allow_outside, label=a.lens):
         _warn(note)
     note = _sensor_note(lens, a.pixel)
@@ -296,8 +297,11 @@ def _save_map(m, fields, wls, out: Path, title):
 
 def cmd_map(a):
     import os
+    from . import checks
     lens = _lens(a.lens)
     wls = a.wavelengths or lens.wavelengths_um
+    checks.check_wavelengths(list(wls), lens)
+    checks.check_device(a.device)
     fields = _map_fields(lens, a, _default_wavelength(lens))
     for note in check_field_inside(lens, fields, _default_wavelength(lens), _pixel_mm(a), a.allow_outside,
                                    label=a.lens):
@@ -642,7 +646,6 @@ def _benchmarks() -> list:
 
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
-    _setup_warnings()
     cmd_at = next((i for i, v in enumerate(argv) if not v.startswith("-")), None)
     if cmd_at is not None and argv[cmd_at] == "design" and (len(argv) == cmd_at + 1
                                                               or argv[cmd_at + 1] in ("-h", "--help")):
@@ -652,8 +655,14 @@ def main(argv=None):
         except ImportError as e:
             sys.exit(f"rwwarp design needs torch and torch_bridge ({e}); install with: pip install 'rwwarp[torch]'")
         sys.exit(train_main(["--help"]))
-    a = _build_parser().parse_args(argv)
-    return _run(a, debug=a.debug)
+    import warnings
+    shown = warnings.showwarning
+    _setup_warnings()
+    try:
+        a = _build_parser().parse_args(argv)
+        return _run(a, debug=a.debug)
+    finally:
+        warnings.showwarning = shown
 
 
 _SEEN_WARNINGS: set = set()
