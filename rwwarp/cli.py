@@ -237,7 +237,8 @@ def cmd_psf(a):
     note = _sensor_note(lens, a.pixel)
     if note:
         _say("note: " + note)
-    kw = dict(size=a.size, device=a.device, method=a.method, pixel_mm=pixel_mm, rays_per_sample=a.rays_per_sample)
+    kw = dict(size=a.size, device=a.device, method=a.method, pixel_mm=pixel_mm, rays_per_sample=a.rays_per_sample,
+              nyquist_safety=a.nyquist_safety)
     if a.dry_run:
         if a.model != "ray-wave":
             raise ValueError("--dry-run plans the ray-wave model only (--model ray-wave)")
@@ -268,7 +269,8 @@ def _map(lens, fields, wls, a, out: Path, title):
     t = time.perf_counter()
     m = psf_map(lens, fields, wls, model=a.model, size=a.size, device=a.device, progress=True,
                 batch=getattr(a, "batch", None) or len(wls), pixel_mm=_pixel_mm(a),
-                rays_per_sample=getattr(a, "rays_per_sample", 1.0), memory_budget_gb=getattr(a, "memory_budget_gb", None))
+                rays_per_sample=getattr(a, "rays_per_sample", 1.0), memory_budget_gb=getattr(a, "memory_budget_gb", None),
+                nyquist_safety=getattr(a, "nyquist_safety", 2.0))
     dt = time.perf_counter() - t
     _save_map(m, fields, wls, out, title)
     return m, dt
@@ -518,6 +520,8 @@ def _add_knobs(p, batch=True):
                    help="rays per wave-plane sample along each axis (fewer: less memory and time, coarser)")
     p.add_argument("--memory-budget-gb", type=_finite, default=None,
                    help="refuse plans estimated above this many GiB (default: half the available memory)")
+    p.add_argument("--nyquist-safety", type=_finite, default=2.0,
+                   help="wave-plane samples per Nyquist limit of the highest local frequency (lower: coarser, cheaper)")
     if batch:
         p.add_argument("--batch", type=_positive_int, default=None,
                        help="(field, wavelength) sources per launch (default: the wavelengths of one field)")
@@ -683,11 +687,26 @@ def _setup_warnings():
     warnings.showwarning = _show_warning
 
 
+def _cuda_driver_present() -> bool:
+    """Whether the NVIDIA driver library loads (then Warp has no CUDA warning to print)."""
+    import ctypes
+    for name in ("libcuda.so.1", "libcuda.so", "nvcuda.dll"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
 def _quiet_warp(device):
     """Initialise Warp with its native 'Warp CUDA warning: Could not find or load the NVIDIA CUDA driver' kept
-    off stderr when no GPU is asked for (``device`` not cuda)."""
+    off stderr when no GPU is asked for (``device`` not cuda), or, for a command without a device option
+    (``rwwarp design``: the config names it), when there is no NVIDIA driver at all."""
     import os
-    if device is None or str(device).startswith("cuda"):
+    if device is not None and str(device).startswith("cuda"):
+        return
+    if device is None and _cuda_driver_present():  # rwwarp design: its config may ask for a GPU
         return
     try:
         from .trace import init_warp
@@ -714,7 +733,8 @@ def _run(a, debug=False):
     from .errors import LensError
     prog = f"rwwarp {a.cmd}"
     try:
-        _quiet_warp(getattr(a, "device", None))
+        if a.cmd not in ("bench", "info") and getattr(a, "config", None) != "status":  # status: no imports
+            _quiet_warp(getattr(a, "device", None))
         return a.func(a)
     except KeyboardInterrupt:
         sys.stderr.write(f"{prog}: interrupted\n")
@@ -729,12 +749,36 @@ def _run(a, debug=False):
             sys.exit(EXIT_NO_OPENCL)
         if isinstance(e, (LensError, ValueError, TypeError, OSError, FloatingPointError, MemoryError, ImportError)):
             what = "" if isinstance(e, (LensError, ValueError)) else f"{type(e).__name__}: "
-            sys.stderr.write(f"{prog}: error: {what}{_one_line(e)}\n")
+            text = _one_line(e)
+            if isinstance(e, MemoryError) or "rays_per_sample" in text:
+                text = cli_knob_names(text, a)
+            sys.stderr.write(f"{prog}: error: {what}{text}\n")
             sys.exit(EXIT_BAD_INPUT)
         # a bug, not bad input: still one line without --debug
         sys.stderr.write(f"{prog}: internal error: {type(e).__name__}: {_one_line(e)} "
                          "(run with --debug for the traceback and please report it)\n")
         sys.exit(1)
+
+
+#: the API knobs that error messages name -> the command-line option that sets each
+_KNOBS = (("batch=...", "--batch N"), ("memory_budget_gb", "--memory-budget-gb"),
+          ("rays_per_sample", "--rays-per-sample"), ("nyquist_safety", "--nyquist-safety"),
+          ("size (patch pixels)", "--size (patch pixels)"))
+
+
+def cli_knob_names(text: str, a=None) -> str:
+    """An API error message with each knob it names followed by the option of this command that sets it
+    (``rays_per_sample`` -> ``rays_per_sample (--rays-per-sample)``); knobs the command lacks stay as they are."""
+    import re
+    for api, flag in _KNOBS:
+        opt = flag.split()[0]
+        if a is not None and not hasattr(a, opt[2:].replace("-", "_")):
+            continue
+        if api.startswith(("size", "batch")):
+            text = text.replace(api, flag)
+        else:
+            text = re.sub(rf"(?<![\w-]){re.escape(api)}(?![\w(])", f"{api} ({flag})", text)
+    return text
 
 
 #: what a machine without an OpenCL platform lacks (README, Install)

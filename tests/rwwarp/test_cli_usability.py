@@ -172,6 +172,17 @@ def test_memory_budget_and_batch_are_accepted_by_map(tmp_path, capsys):
     code, err = _fails(["map", "a489_doe", "--size", "8", "--fields", "0", "--memory-budget-gb", "1e-6",
                         "--batch", "1", "--out", str(tmp_path / "m")], capsys)
     assert code == 2 and "memory budget" in err and not (tmp_path / "m").exists(), err
+    # the message names the options of this command that set the knobs it names
+    assert "--batch N" in err and "--rays-per-sample" in err and "--memory-budget-gb" in err, err
+
+
+def test_cli_knob_names_only_for_options_the_command_has():
+    import argparse
+    text = "split the batch (batch=...), rays_per_sample, or raise memory_budget_gb"
+    psf_args = argparse.Namespace(rays_per_sample=1.0, memory_budget_gb=None)  # rwwarp psf: no --batch
+    out = cli.cli_knob_names(text, psf_args)
+    assert "batch=..." in out and "--batch" not in out
+    assert "rays_per_sample (--rays-per-sample)" in out and "memory_budget_gb (--memory-budget-gb)" in out
 
 
 # ------------------------------------------------------------------------------------------- item 6: OpenCL
@@ -243,3 +254,18 @@ def test_examples_run(script, files, tmp_path):
         assert (tmp_path / f).stat().st_size > 500, f
     if script.startswith("build"):
         assert rw.load_lens(tmp_path / "cooke_with_doe.json").doe_index is not None
+
+
+def test_design_on_a_machine_without_the_nvidia_driver_is_quiet_too(monkeypatch, capfd):
+    """rwwarp design has no --device (its config names it): Warp is initialised quietly when no NVIDIA driver
+    loads at all, loudly (as Warp does) otherwise."""
+    calls = []
+    monkeypatch.setattr(cli, "_cuda_driver_present", lambda: False)
+    import rwwarp.trace as tr
+    monkeypatch.setattr(tr, "init_warp", lambda: (os.write(2, b"Warp CUDA warning: test\n"), calls.append(1)))
+    cli._quiet_warp(None)
+    assert calls and "Warp CUDA warning" not in capfd.readouterr().err
+    monkeypatch.setattr(cli, "_cuda_driver_present", lambda: True)
+    cli._quiet_warp(None)  # a driver: nothing silenced (and nothing initialised here)
+    cli._quiet_warp("cuda")
+    assert len(calls) == 1
