@@ -792,7 +792,8 @@ EXIT_NO_OPENCL = 3
 def _no_opencl(e) -> bool:
     """True for pyopencl's 'no platform' error (clGetPlatformIDs failed / PLATFORM_NOT_FOUND_KHR)."""
     text = f"{type(e).__name__} {e}"
-    return "clGetPlatformIDs" in text or "PLATFORM_NOT_FOUND" in text
+    return ("clGetPlatformIDs" in text or "PLATFORM_NOT_FOUND" in text or "no OpenCL platform" in text
+            or "no OpenCL CPU device" in text)
 
 
 if __name__ == "__main__":

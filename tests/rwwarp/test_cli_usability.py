@@ -269,3 +269,17 @@ def test_design_on_a_machine_without_the_nvidia_driver_is_quiet_too(monkeypatch,
     cli._quiet_warp(None)  # a driver: nothing silenced (and nothing initialised here)
     cli._quiet_warp("cuda")
     assert len(calls) == 1
+
+
+def test_no_opencl_platform_end_to_end(tmp_path):
+    """A machine without an OpenCL platform (the ICD loader pointed at an empty folder): rwwarp psf stops with
+    one line that says what to install, exit status 3, not 'internal error ... please report it'."""
+    empty = tmp_path / "vendors"
+    empty.mkdir()
+    r = subprocess.run([sys.executable, "-m", "rwwarp.cli", "psf", "a489_doe", "--size", "8"],
+                       capture_output=True, text=True, timeout=300, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT), "OCL_ICD_VENDORS": str(empty)})
+    errs = [ln for ln in r.stderr.splitlines() if "error" in ln]
+    assert r.returncode == cli.EXIT_NO_OPENCL, r.stderr
+    assert len(errs) == 1 and "no OpenCL platform" in errs[0] and "pocl" in errs[0].lower(), r.stderr
+    assert "internal error" not in r.stderr and "Traceback" not in r.stderr
