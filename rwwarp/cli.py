@@ -529,6 +529,10 @@ def _add_knobs(p, batch=True):
                    help="compute fields beyond the lens's largest field (refused by default)")
 
 
+_MODEL_HELP = ("ray-wave (the paper's model), ray (geometric; the DOE as a local grating) or paraxial-wave (an ideal "
+               "thin lens + the wave path)")
+
+
 def _build_parser():
     lens_help = _lens_help()
     ap = _Parser(prog="rwwarp", description=__doc__.splitlines()[0] + " Bundled lenses: "
@@ -553,10 +557,10 @@ def _build_parser():
     p.add_argument("--field", type=_finite, nargs="+", default=[0.0], help="deg: y, or x y")
     p.add_argument("--wavelength", type=_finite, default=None,
                    help="um (default: the lens's primary wavelength, else the middle of its wavelengths)")
-    p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
+    p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"], help=_MODEL_HELP)
     p.add_argument("--size", type=_positive_int, default=64, help="patch side, sensor pixels")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or opencl:P:D")
-    p.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    p.add_argument("--dtype", default="float64", choices=["float64", "float32"], help="ray-tracing precision")
     p.add_argument("--explain", action="store_true", help="print the sampling plan and why")
     p.add_argument("--dry-run", action="store_true",
                    help="print the plan and its memory/work estimate, compute nothing")
@@ -577,7 +581,7 @@ def _build_parser():
             p.add_argument("lens", help=lens_help)
             p.add_argument("--wavelengths", type=_finite, nargs="+", default=None,
                            help="um (default: the lens's wavelengths)")
-            p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
+            p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"], help=_MODEL_HELP)
         else:
             p.add_argument("--lens", default="a489_doe", help=lens_help)
             p.add_argument("--doe-strength", type=_finite, default=0.25,
@@ -621,7 +625,7 @@ def _build_parser():
     p.add_argument("--out", default=None, help="folder (default out/report/<lens>)")
     p.add_argument("--fields", type=_finite, nargs="+", default=None,
                    help="y field angles, deg (default: the lens's own fields, else 0, 0.7 and 1 x the sensor half height)")
-    p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"])
+    p.add_argument("--model", default="ray-wave", choices=["ray-wave", "ray", "paraxial-wave"], help=_MODEL_HELP)
     p.add_argument("--psf-size", type=_positive_int, default=None, help="PSF tile, sensor pixels (default: fits)")
     p.add_argument("--mtf-size", type=_positive_int, default=None,
                    help="finely sampled PSF for MTF/EE, samples (default: fits, at most 256)")
