@@ -37,10 +37,7 @@ def layout(lens, path, fields_deg=None, wavelength_um=None, rays: int = 7):
     return _layout(lens, path, fields_deg=fields_deg, wavelength_um=wavelength_um, rays=rays)
 
 
-def bundled_lenses() -> list:
-    """Names of the lenses bundled with rwwarp (``rw.load_lens(name)``)."""
-    from .cli import bundled_lenses as _names
-    return _names()
+from .lenses import bundled_lenses
 
 __all__ = ["LensError", "ArgumentError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
            "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "plan_psf", "PSF", "PSFMap", "Plan",

@@ -74,15 +74,7 @@ def _lens(path):
     return load_lens(path)
 
 
-def bundled_lenses() -> list:
-    """Names of the lenses bundled with rwwarp (``rwwarp psf NAME``, ``rw.load_lens(NAME)``)."""
-    from importlib.resources import files
-    try:
-        names = {p.name.rsplit(".", 1)[0] for p in files("rwwarp.lenses").iterdir()
-                 if p.name.endswith((".json", ".zmx"))}
-    except (ModuleNotFoundError, OSError):  # pragma: no cover - a broken install
-        names = set()
-    return sorted(names)
+from .lenses import bundled_lenses  # noqa: E402  (re-exported: the names the lens argument takes)
 
 
 def _lens_help() -> str:
