@@ -193,7 +193,7 @@ from .lens import surface_table  # noqa: E402  (rwwarp info's table; its home: l
 def cmd_info(a):
     from . import paraxial
     lens = _lens(a.lens)
-    wl = a.wavelength if a.wavelength is not None else lens.wavelengths_um[len(lens.wavelengths_um) // 2]
+    wl = a.wavelength if a.wavelength is not None else _default_wavelength(lens)
     p = paraxial.pupils(lens, wl)
     print(f"{lens.name or a.lens}: {len(lens.surfaces)} surfaces, sensor {lens.sensor.resolution[0]}x"
           f"{lens.sensor.resolution[1]} px of {lens.sensor.pixel_pitch * 1e3:.4g} um")
@@ -311,7 +311,9 @@ def cmd_map(a):
         # started by an external torchrun (WORLD_SIZE set: this process is one rank)
         from .distributed import DistributedError, launch
         spec = {"lens": a.lens, "fields": fields, "wls": list(wls), "model": a.model, "size": a.size,
-                "device": a.device, "batch": a.batch, "out": str(a.out)}
+                "device": a.device, "batch": a.batch, "out": str(a.out), "pixel_mm": _pixel_mm(a),
+                "rays_per_sample": a.rays_per_sample, "memory_budget_gb": a.memory_budget_gb,
+                "nyquist_safety": a.nyquist_safety}
         if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             if procs > 1:
                 raise ValueError("--procs with an external launcher (WORLD_SIZE is set): use one or the other")
@@ -353,9 +355,12 @@ def _map_worker(spec):
     """One rank of ``rwwarp map --procs N``: the sharded map (rwwarp.distributed.psf_map), written by
     rank 0, which returns (PSFs, seconds, per-rank info); None on the other ranks."""
     from .distributed import psf_map
+    _quiet_warp(spec["device"])  # each rank is its own process
     t = time.perf_counter()
     m = psf_map(_lens(spec["lens"]), spec["fields"], spec["wls"], model=spec["model"], size=spec["size"],
-                device=spec["device"], batch=spec["batch"] or len(spec["wls"]), progress=True)
+                device=spec["device"], batch=spec["batch"] or len(spec["wls"]), progress=True,
+                pixel_mm=spec.get("pixel_mm"), rays_per_sample=spec.get("rays_per_sample", 1.0),
+                memory_budget_gb=spec.get("memory_budget_gb"), nyquist_safety=spec.get("nyquist_safety", 2.0))
     if m is None:
         return None
     dt = time.perf_counter() - t
