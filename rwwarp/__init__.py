@@ -21,9 +21,31 @@ from .plan import Plan
 from .metrics import (mtf, through_focus_mtf, strehl, encircled_energy, ensquared_energy,
                       chromatic_focal_shift, field_curves)
 
+from .metrics_curves import ChromaticFocalShift, FieldCurves
+from .metrics import MTF, ThroughFocusMTF
+from .metrics_energy import EnergyCurve
+from .metrics_strehl import Strehl
+
 __version__ = "0.1.0"
+
+
+def layout(lens, path, fields_deg=None, wavelength_um=None, rays: int = 7):
+    """Save a 2D (y-z) layout picture of ``lens`` to ``path`` (PNG): surfaces to their clear apertures, glass
+    filled, a meridional fan of ``rays`` rays per field (deg; default the lens's fields) at ``wavelength_um``
+    (um; default the lens's middle wavelength); axes in mm."""
+    from .plots import layout as _layout
+    return _layout(lens, path, fields_deg=fields_deg, wavelength_um=wavelength_um, rays=rays)
+
+
+from .lenses import bundled_lenses
 
 __all__ = ["LensError", "ArgumentError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
            "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "plan_psf", "PSF", "PSFMap", "Plan",
            "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy", "chromatic_focal_shift",
-           "field_curves"]
+           "field_curves", "layout", "bundled_lenses", "MTF", "ThroughFocusMTF", "EnergyCurve", "Strehl",
+           "ChromaticFocalShift", "FieldCurves", "__version__"]
+
+
+def __dir__():
+    """The public names only (``dir(rw)``), not the submodules that importing the package binds."""
+    return sorted(__all__)

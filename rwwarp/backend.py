@@ -699,7 +699,13 @@ _DEVICE_RE = re.compile(r"^(cpu|opencl(?::(\d+):(\d+))?|cuda(?::(\d+))?)$")
 def _find_cpu_device():
     import pyopencl as cl
 
-    for platform in cl.get_platforms():
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:  # no ICD / no platform: say what to install (README, Install)
+        raise RuntimeError(f"no OpenCL platform found ({e}): rwwarp's wave propagation runs on OpenCL; install "
+                           "PoCL for the CPU (Debian/Ubuntu: apt-get install pocl-opencl-icd; conda: conda install "
+                           "-c conda-forge pocl) or a GPU vendor's OpenCL driver") from e
+    for platform in platforms:
         try:
             devices = platform.get_devices(device_type=cl.device_type.CPU)
         except cl.Error:

@@ -465,6 +465,35 @@ class Lens:
         else:
             raise ValueError(f"format must be {', '.join(repr(f) for f in ['json', *_WRITERS])}, got {format!r}")
 
+    def __repr__(self) -> str:
+        """One line: name, surfaces, EFL and sensor (``str(lens)`` / ``print(lens)`` give the surface table)."""
+        try:
+            efl = f", EFL {self.efl(self._wl()):.4f} mm at {self._wl():g} um"
+        except Exception:  # noqa: BLE001 - an afocal or odd lens still has a repr
+            efl = ""
+        return (f"Lens({self.name or self.source or 'unnamed'!r}: {len(self.surfaces)} surfaces{efl}, sensor "
+                f"{self.sensor.resolution[0]}x{self.sensor.resolution[1]} px of {self.sensor.pixel_pitch * 1e3:g} um)")
+
+    def __str__(self) -> str:
+        """The lens as ``rwwarp info`` prints it: a heading (EFL, BFL, fields, wavelengths, sensor) and the surface
+        table (lengths in mm, wavelengths in um, fields in deg)."""
+        wl = self._wl()
+        try:
+            par = f"EFL {self.efl(wl):.6f} mm, BFL {self.bfl(wl):.6f} mm at {wl:g} um"
+        except Exception:  # noqa: BLE001
+            par = "no paraxial focus"
+        fields = "-" if not self.fields_deg else ", ".join(
+            f"{f:g}" if not isinstance(f, (list, tuple)) else f"({f[0]:g}, {f[1]:g})" for f in self.fields_deg)
+        head = [f"{self.name or self.source or 'lens'}: {len(self.surfaces)} surfaces; {par}",
+                f"wavelengths {', '.join(f'{w:g}' for w in self.wavelengths_um)} um; fields {fields} deg; sensor "
+                f"{self.sensor.resolution[0]}x{self.sensor.resolution[1]} px of {self.sensor.pixel_pitch * 1e3:g} um"]
+        return "\n".join(head + surface_table(self))
+
+    def _wl(self) -> float:
+        if self.primary_wavelength_um is not None:
+            return float(self.primary_wavelength_um)
+        return float(self.wavelengths_um[len(self.wavelengths_um) // 2])
+
 
 # The other file formats live in rwwarp.io, a layer above this model (its readers build Lens objects, so
 # this module cannot import them). rwwarp.io registers its writers here when it is imported, and

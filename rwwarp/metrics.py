@@ -128,6 +128,15 @@ class MTF:
     cutoff_lp_mm: float
     info: dict = field(default_factory=dict)
 
+    def __repr__(self):
+        from .results import mtf_repr
+        return mtf_repr(self)
+
+    def plot(self, path=None, ax=None):
+        """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_mtf
+        return plot_mtf(self, path=path, ax=ax)
+
 
 def tail_otf(frequencies_lp_mm, half_width_mm, n_angles: int = 2048):
     """Transfer function of the power a square patch cuts off, modelled as a diffraction tail.
@@ -284,6 +293,15 @@ class ThroughFocusMTF:
     wavelengths_um: list
     model: str
     info: dict = field(default_factory=dict)
+
+    def __repr__(self):
+        from .results import through_focus_repr
+        return through_focus_repr(self)
+
+    def plot(self, path=None, ax=None):
+        """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_through_focus
+        return plot_through_focus(self, path=path, ax=ax)
 
 
 def through_focus_mtf(lens, field_deg=0.0, wavelength_um=0.55, weights=None, frequencies_lp_mm=None,

@@ -23,6 +23,15 @@ class ChromaticFocalShift:
     shift_um: np.ndarray
     reference_um: float
 
+    def __repr__(self):
+        from .results import focal_shift_repr
+        return focal_shift_repr(self)
+
+    def plot(self, path=None, ax=None):
+        """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_focal_shift
+        return plot_focal_shift(self, path=path, ax=ax)
+
 
 def paraxial_image_distance(lens, wavelength_um: float, object_distance_mm=None) -> float:
     """Paraxial image distance behind the last surface (mm) of an axial object at the lens's object
@@ -70,6 +79,15 @@ class FieldCurves:
     paraxial_height_mm: np.ndarray
     distortion_percent: np.ndarray
     wavelength_um: float
+
+    def __repr__(self):
+        from .results import field_curves_repr
+        return field_curves_repr(self)
+
+    def plot(self, path=None, ax=None):
+        """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_field_curves
+        return plot_field_curves(self, path=path, ax=ax)
 
 
 def field_curves(lens, fields_deg=None, wavelength_um=None, eps: float = 1e-3, device: str = "cpu") -> FieldCurves:

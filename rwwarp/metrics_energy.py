@@ -83,6 +83,15 @@ class EnergyCurve:
     model: str
     info: dict = field(default_factory=dict)
 
+    def __repr__(self):
+        from .results import energy_repr
+        return energy_repr(self)
+
+    def plot(self, path=None, ax=None):
+        """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_energy
+        return plot_energy(self, path=path, ax=ax)
+
 
 def _energy(kind, lens, field_deg, wavelength_um, weights, sizes_um, model, reference, size, pixel_mm, device,
             psf_kwargs):

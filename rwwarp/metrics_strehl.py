@@ -63,6 +63,15 @@ class Strehl:
     model: str
     info: dict = field(default_factory=dict)
 
+    def __repr__(self):
+        from .results import strehl_repr
+        return strehl_repr(self)
+
+    def plot(self, path=None, ax=None):
+        """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_strehl
+        return plot_strehl(self, path=path, ax=ax)
+
 
 def ideal_peak_intensity(lens, field_deg, wavelength_um, image_point_mm, grid: int = 401, device: str = "cpu",
                          object_distance_mm=None, paraxial_doe: bool = False, per: str = "entering") -> float:

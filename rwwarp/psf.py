@@ -58,6 +58,15 @@ class PSF:
         off = (np.arange(n) - n // 2) * self.pixel_mm
         return self.center_mm[0] + off, self.center_mm[1] + off
 
+    def __repr__(self):
+        from .results import psf_repr
+        return psf_repr(self)
+
+    def plot(self, path=None, ax=None, log: bool = True):
+        """The patch normalised to its peak, log10 by default, axes in um from its centre (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_psf
+        return plot_psf(self, path=path, ax=ax, log=log)
+
 
 @dataclass
 class PSFMap:
@@ -76,6 +85,15 @@ class PSFMap:
         i, j = idx
         return PSF(self.data[i, j], self.pixel_mm, tuple(self.centers_mm[i, j]), self.fields_deg[i],
                    self.wavelengths_um[j], self.model)
+
+    def __repr__(self):
+        from .results import psf_map_repr
+        return psf_map_repr(self)
+
+    def plot(self, path=None, log: bool = True):
+        """Fields across, wavelengths down, each tile normalised to its own peak (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
+        from .results import plot_psf_map
+        return plot_psf_map(self, path=path, log=log)
 
 
 # ---------------------------------------------------------------------------------------------- API

@@ -44,8 +44,12 @@ def _case_lens(kind, side_mm, f_mm, f0_mm, pixel_mm, doe_pitch_mm):
     return lens, dist, gt_phase
 
 
-def run_validation(out: Path, device: str = "cpu", quick: bool = False, side_mm: float = 2.0) -> str:
-    """Run the three cases, write ``report.md`` and ``validation.png`` into ``out``; return the Markdown."""
+def run_validation(out: Path, device: str = "cpu", quick: bool = False, side_mm: float = 2.0, progress=None) -> str:
+    """Run the three cases, write ``report.md`` and ``validation.png`` into ``out``; return the Markdown.
+    ``progress``: a callable given one line of text as each step starts and ends (``rwwarp validate``
+    prints them on stderr), or None."""
+    say = progress or (lambda msg: None)
+    t_all = time.perf_counter()
     from .psf import psf
     from .ground_truth import rs_thin_lens_psf
     from .plots import _plt
@@ -59,10 +63,12 @@ def run_validation(out: Path, device: str = "cpu", quick: bool = False, side_mm:
              "c": "(c) 16-level discontinuous (10 um pixels)"}
     for kind in ("a", "b", "c"):
         lens, dist, gt_phase = _case_lens(kind, side_mm, f_mm, f0_mm, pixel, 0.01)
+        say(f"[{'abc'.index(kind) + 1}/3] {names[kind]}: ray-wave PSF, {size} px ...")
         t = time.perf_counter()
         p = psf(lens, 0.0, 0.55, size=size, device=device, nyquist_safety=3.0)
         t_rw = time.perf_counter() - t
         x, y = p.coords_mm()
+        say(f"      ray-wave {t_rw:.1f} s; Rayleigh-Sommerfeld ground truth ...")
         t = time.perf_counter()
         gt = rs_thin_lens_psf(f_mm, "square", side_mm / 2, 0.55, dist, x, y, pixel, doe_phase=gt_phase)
         t_gt = time.perf_counter() - t
@@ -75,6 +81,7 @@ def run_validation(out: Path, device: str = "cpu", quick: bool = False, side_mm:
             ray_img, ray_txt = r.data, f"{ray_err:.3g}"
         except LensError as e:
             ray_img, ray_txt = None, "refused: " + str(e).split(": ", 1)[-1].split(".")[0]
+        say(f"      ground truth {t_gt:.1f} s; rel. L2 error {err:.3g} ({time.perf_counter() - t_all:.0f} s so far)")
         rows.append((names[kind], err, ray_txt, t_rw, t_gt, p.plan["n_grid"], p.plan["n_pad"]))
         panels.append((names[kind], p.data, gt, ray_img))
     plt = _plt()

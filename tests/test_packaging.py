@@ -25,3 +25,27 @@ def test_package_data_covers_data_files():
             if not any(fnmatch.fnmatch(rel, g) for g in data.get(owner, [])):
                 missing.append(f"{f.relative_to(ROOT)} (package {owner})")
     assert not missing, "not in [tool.setuptools.package-data]: " + ", ".join(missing)
+
+
+def test_ci_pins_lie_inside_the_declared_ranges_and_setup_uses_them():
+    """pyproject.toml declares ranges (a research environment's numpy/torch/warp need not match CI's); the
+    exact tested versions live in .ci/constraints.txt, which .ci/setup installs with, and each pin must be
+    one that the declared range accepts."""
+    from packaging.requirements import Requirement
+
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    reqs = [Requirement(r) for r in cfg["dependencies"] + sum(cfg["optional-dependencies"].values(), [])]
+    pins = {}
+    for line in (ROOT / ".ci" / "constraints.txt").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            name, ver = line.split("==")
+            pins[name.lower()] = ver
+    for r in reqs:
+        if r.name == "cupy-cuda12x":
+            continue
+        assert r.name.lower() in pins, f"{r.name} has no tested pin in .ci/constraints.txt"
+        assert r.specifier.contains(pins[r.name.lower()]), f"{r.name}=={pins[r.name.lower()]} outside {r.specifier}"
+        assert not any(s.operator == "==" for s in r.specifier), f"{r.name}: pinned in pyproject ({r.specifier})"
+    setup = (ROOT / ".ci" / "setup").read_text()
+    assert "constraints.txt" in setup and setup.count('-c "$cons"') >= 3

@@ -37,7 +37,7 @@ def test_info_shows_conic_aspheres_and_the_doe_medium(capsys):
 
 
 def test_psf_explain_prints_the_plan(capsys, tmp_path):
-    npy = tmp_path / "p.npy"
+    npy = tmp_path / "p.npz"
     main(["psf", "a489_doe", "--size", "16", "--explain", "--out", str(npy)])
     out = capsys.readouterr().out
     assert "plan auto (asm): pitch" in out and "estimate: peak memory" in out and "method auto" in out
@@ -45,7 +45,7 @@ def test_psf_explain_prints_the_plan(capsys, tmp_path):
 
 
 def test_psf_dry_run_prints_the_plan_and_computes_nothing(capsys, tmp_path):
-    npy = tmp_path / "p.npy"
+    npy = tmp_path / "p.npz"
     main(["psf", "cooke_triplet", "--dry-run", "--method", "asm", "--out", str(npy)])
     out = capsys.readouterr().out
     # the ASM plan of the full-aperture Cooke triplet: ~13 GiB planned, refused by nothing, computed by nothing
@@ -149,7 +149,7 @@ def test_demo_cli_writes_its_pictures(tmp_path, capsys):
     from rwwarp.errors import PatchWarning
     with warnings.catch_warnings():
         warnings.simplefilter("error", PatchWarning)
-        main(["demo", "--lens", "thin_lens_doe", "--fields", "2", "--max-field", "1", "--out", str(tmp_path)])
+        main(["demo", "--lens", "thin_lens_doe", "--n-fields", "2", "--max-field", "1", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert "power inside the patch" in out and "fits every PSF" in out
     for f in ("layout.png", "psf_map_log.png", "psf_map.npz"):
@@ -185,9 +185,9 @@ def test_psf_deterministic_flag_matches_the_default(tmp_path):
     """`rwwarp psf --deterministic` reaches the fixed-point splat: Cooke triplet at 14 deg, 16 px, the PSF
     differs from the default path's by the fixed point's resolution seen through the CPU's single-precision
     focal products (measured 6.6e-11 relative: not zero, so the flag took effect); tolerance 1e-9."""
-    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
     main(["psf", "cooke_triplet", "--field", "14", "--size", "16", "--out", str(a)])
     main(["psf", "cooke_triplet", "--field", "14", "--size", "16", "--deterministic", "--out", str(b)])
-    pa, pb = np.load(a), np.load(b)
+    pa, pb = np.load(a)["psf"], np.load(b)["psf"]
     d = np.linalg.norm(pa - pb) / np.linalg.norm(pa)
     assert 0.0 < d <= 1e-9

@@ -33,9 +33,10 @@ def _fails(argv, capsys):
     (["info", "/nonexistent/lens.json"], "/nonexistent/lens.json"),
     (["info", "/"], "directory"),
     (["info", "/dev/null"], "regular file"),
-    (["map", A489, "--fields", "0"], "--fields"),
+    (["map", A489, "--n-fields", "0"], "--n-fields"),
+    (["map", A489, "--fields", "1", "--n-fields", "2"], "one or the other"),
     (["map", A489, "--batch", "-1"], "--batch"),
-    (["map", A489, "--max-field", "95", "--fields", "2", "--size", "8", "--model", "ray"], "89.9"),
+    (["map", A489, "--max-field", "95", "--n-fields", "2", "--size", "8", "--model", "ray"], "89.9"),
     (["bench", "../../etc/passwd"], "no benchmark"),
     (["demo", "--fields", "x"], "--fields"),
     (["nosuchcommand"], "invalid choice"),
@@ -74,14 +75,20 @@ def test_failed_psf_leaves_no_output(tmp_path, capsys):
 
 
 def test_psf_output_written_atomically(tmp_path, capsys):
-    out = tmp_path / "p.npy"
+    out = tmp_path / "p.npz"
     main(["psf", A489, "--model", "ray", "--size", "8", "--field", "1", "--out", str(out)])
-    assert out.exists() and [p.name for p in tmp_path.iterdir()] == ["p.npy"]  # no temporary left
+    assert out.exists() and [p.name for p in tmp_path.iterdir()] == ["p.npz"]  # no temporary left
+
+
+def test_psf_out_other_than_npz_or_png_is_refused_before_computing(tmp_path, capsys):
+    code, err = _fails(["psf", A489, "--model", "ray", "--size", "8", "--out", str(tmp_path / "p.npy")], capsys)
+    assert code == 2 and ".npz" in err and "p.npy" in err and len(err.strip().splitlines()) == 1, err
+    assert "PSF" not in capsys.readouterr().out and list(tmp_path.iterdir()) == []
 
 
 def test_failed_map_writes_no_folder(tmp_path, capsys):
     out = tmp_path / "map"
-    code, err = _fails(["map", A489, "--model", "ray", "--size", "8", "--fields", "2", "--max-field", "60",
+    code, err = _fails(["map", A489, "--model", "ray", "--size", "8", "--n-fields", "2", "--max-field", "60",
                         "--out", str(out)], capsys)
     assert code == 2 and not out.exists(), err
 
