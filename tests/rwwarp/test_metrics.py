@@ -124,17 +124,18 @@ def test_mtf_raywave_circular_pupil(circ):
 
 def test_mtf_defaults_match_the_circular_pupil_formula(circ):
     """rw.mtf with every default (normalize="tail", patch size "auto" = 152, 1 um samples, the default PSF
-    plan) against (2/pi)(acos v - v sqrt(1 - v^2)) at all 51 default frequencies, f = 0 and the cutoff
-    included (issue 28's bar, 1e-3). Measured 5.5e-4 (at v = 0.02; -4.4e-4 around v = 0.1): 3e-4 is the F/10
-    beam's own pupil apodisation (above), about 2e-4 the default plan's sampling (3.3e-4 in all with FINE).
+    plan, rays_per_sample 1.5 for the MTF) against (2/pi)(acos v - v sqrt(1 - v^2)) at all 51 default
+    frequencies, f = 0 and the cutoff included: within the issue's target, 5e-4 (Zemax's FFT MTF of a perfect
+    lens is the diffraction limit). Measured 4.2e-4 (5.5e-4 with the PSF's 1.0 rays per sample): 3e-4 is the
+    F/10 beam's own pupil apodisation (above), the rest the plan's sampling (3.3e-4 in all with FINE).
     Before, the default ("patch") was 1.4e-2 off and "sensor" 1.4e-3 above f = 0 (1.4e-2 at f = 0)."""
     r = rw.mtf(circ, 0.0, WL)
     fc = 2 * math.sin(math.atan(R_AP / F)) / (WL * 1e-3)
     ref = M.diffraction_mtf_circular(r.frequencies_lp_mm, fc)
     assert r.frequencies_lp_mm[0] == 0 and r.frequencies_lp_mm[-1] == pytest.approx(fc, rel=2e-3)
     assert r.info["power_in_patch"].ravel()[0] < 0.99  # the patch does cut the tails: the case at issue
-    assert np.max(np.abs(r.tangential - ref)) < 1e-3
-    assert np.max(np.abs(r.sagittal - ref)) < 1e-3
+    assert np.max(np.abs(r.tangential - ref)) < 5e-4
+    assert np.max(np.abs(r.sagittal - ref)) < 5e-4
     # the tail restores only what the patch cut: with "sensor" the low frequencies ripple by 1.4e-3
     s = M.mtf_from_psf_map(r.info["psf_map"], r.frequencies_lp_mm, normalize="sensor")[0][0]
     assert np.max(np.abs(s - ref)[1:]) > 1e-3
