@@ -22,7 +22,6 @@ from .plan import auto_sizes, group_sources  # noqa: F401  (group_sources re-exp
 from .trace import Tracer, pupil_grid, upload_packed
 from .trace import field_label as _fmt_field
 
-_LAST = {}  # last ray-wave field, for inspection
 #: candidate DOE orders of the focal method: -FOCAL_MAX_ORDER .. FOCAL_MAX_ORDER (the planner keeps those
 #: that reach the patch)
 FOCAL_MAX_ORDER = 8
@@ -795,7 +794,6 @@ class RayWave:
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         u_field = self.field_array()
-        _LAST.update(field=u_field, origin=self.origin, pitch=self.plan.pitch_mm)
         if self.plan.method == "focal":
             data = self.focal_intensity(u_field, focal_precision) / self.entering[:, None, None]
         else:
@@ -921,7 +919,6 @@ class PackedRayWave(RayWave):
                 d = m.intensity(u, phi0, scale)
             m.release_operators()
             data.append(np.asarray(d)[0] / entering[k])
-        _LAST.update(field=u, origin=self.members[-1].origin, pitch=self.members[-1].plan.pitch_mm)
         data = np.stack(data)
         if not np.all(np.isfinite(data)):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
