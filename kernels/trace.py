@@ -229,7 +229,7 @@ def make_trace_kernels(scalar):
                                                 #      computed here (pupil_u / pupil_v unused);
                                                 # < 0: each source's own grid, grid_src[s] x grid_src[s], and
                                                 #      cell area cell_src[s] (a packed batch of sources with
-                                                #      their own plans, rwwarp.raywave.PackedRayWave)
+                                                #      their own plans, rwwarp.packed.PackedRayWave)
         n_pupil: int,                           # ray slots per source (with grid_n < 0, >= every grid_src^2;
                                                 #      the slots past a source's own grid are padding: invalid,
                                                 #      zero weight, at the pupil centre)

@@ -240,10 +240,10 @@ def bench_rwwarp(lens, fields, device, batch, bandwidth, log, method="auto"):
         m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch, method=method)
         s()
         warm = time.perf_counter() - t0
-    # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.raywave.source_plans, pilot
+    # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.packed.source_plans, pilot
     # traces only; packed batches pad the trace and splat to their largest member, not counted here)
     from rwwarp.plan import default_memory_budget_bytes
-    from rwwarp.raywave import source_plans
+    from rwwarp.packed import source_plans
     tot = {"trace": 0, "rays_to_field": 0, "propagation": 0}
     order = [pr for b in m.info["batches"] for pr in b["pairs"]]
     members = source_plans(lens, as_field_list([fields[i] for i, _ in order]), [WLS[j] for _, j in order], SIZE,

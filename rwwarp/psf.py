@@ -23,7 +23,7 @@ from .plan import Plan
 from .trace import as_field_list
 from .trace import field_label as _fmt_field
 from .raywave import RAYWAVE_OPTIONS, RayWave, group_sources  # noqa: F401 (RayWave lived here)
-from .raywave import PackedRayWave, packed_bytes, source_plans
+from .packed import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -202,7 +202,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     Wave models: every (field, wavelength) pair is planned on its own (one pilot trace of all of them) and
     computed on that plan whatever its batch, so each PSF is the one :func:`psf` gives (to ~1e-16 of the
     peak: the splat's float sums on CPU threads may add in another order). A batch
-    (:class:`rwwarp.raywave.PackedRayWave`) traces and splats its members in one set of launches, in arrays
+    (:class:`rwwarp.packed.PackedRayWave`) traces and splats its members in one set of launches, in arrays
     sized to its largest member (the extra rays invalid, the extra samples zero), then propagates each by
     its own plan; batches take members of one propagation method, largest first, within the memory budget
     (:func:`pack_sources`). ``batch`` limits the number of sources per batch (default no limit but the
@@ -283,7 +283,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     if model in ("ray-wave", "paraxial-wave"):
         # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
         # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
-        # (arrays sized to the batch's largest member; rwwarp.raywave.PackedRayWave), each propagated alone
+        # (arrays sized to the batch's largest member; rwwarp.packed.PackedRayWave), each propagated alone
         for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel,
                                                object_distance_mm, opts):
             for chunk_idx in pack_sources(members, size, batch, budget):
@@ -324,7 +324,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 # ---------------------------------------------------------------------------------------------- helpers
 def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, opts) -> list:
     """Every (field, wavelength) pair of ``pairs`` (indices into ``fields`` (deg) and ``wavelengths_um``)
-    planned on its own (:func:`rwwarp.raywave.source_plans`) for the wave models: ``[(members, pairs), ...]``,
+    planned on its own (:func:`rwwarp.packed.source_plans`) for the wave models: ``[(members, pairs), ...]``,
     one entry per system (ray-wave: the lens; paraxial-wave: its equivalent at each wavelength), ``members``
     in the order of that entry's ``pairs``. ``opts``: the :class:`RayWave` options (``device``, ``plan``, ...,
     ``memory_budget_bytes``); ``size`` px of ``pixel`` mm; ``object_distance_mm`` (mm, None: the lens's)."""
@@ -346,7 +346,7 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
     """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
     :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's
     arrays are sized to its largest member, so similar members share one), at most ``batch`` a batch (None:
-    no limit) and within ``budget_bytes`` (:func:`rwwarp.raywave.packed_bytes`). A member over the budget on
+    no limit) and within ``budget_bytes`` (:func:`rwwarp.packed.packed_bytes`). A member over the budget on
     its own has already been refused by its plan's check."""
     order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
                                                        -members[k].plan.ray_grid, -members[k].plan.n_grid, k))

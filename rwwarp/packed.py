@@ -1,0 +1,135 @@
+"""Sources computed together, each on its own plan: :func:`source_plans` plans every (field, wavelength)
+source alone from one pilot trace of all of them; :class:`PackedRayWave` traces and splats its members in one
+set of launches, in arrays sized to the largest member (padding invalid, zero weight, zero field), and
+propagates each member by its own plan; :func:`packed_bytes` is a batch's planned peak memory. A PSF is
+therefore the same whatever the batch it is computed in (:func:`rwwarp.psf_map`)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .raywave import RayWave, own_pupil_sources
+from .trace import Tracer
+
+__all__ = ["PackedRayWave", "packed_bytes", "source_plans"]
+
+
+def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
+                 object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
+                 gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
+                 focal_patch_tol=1e-5, deterministic: bool = False) -> list:
+    """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
+    wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
+    (entrance pupil at its own wavelength), from one pilot trace of all of them (the pilot rays are
+    independent, so each source's are what a pilot of it alone gives). Arguments as :class:`RayWave`;
+    :class:`PackedRayWave` computes them together."""
+    probe = RayWave(lens, fields, wls, size, pixel, device, "auto", dtype, amplitude, object_distance_mm,
+                    rays_per_sample, center_mm, use_reference, gauss_nodes=3, nyquist_safety=nyquist_safety,
+                    method="asm", own_pupils=True)
+    members = []
+    for k in range(len(fields)):
+        pk = {key: v[k:k + 1] for key, v in probe.pilot.items()}
+        members.append(RayWave(lens, [fields[k]], [wls[k]], size, pixel, device, plan, dtype, amplitude,
+                               object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
+                               nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
+                               deterministic, own_pupils=True, pilot=pk))
+    return members
+
+
+def packed_bytes(members, size: int) -> int:
+    """Planned peak memory (bytes) of computing ``members`` (single-source :class:`RayWave` s, ``size`` px
+    patches) as one :class:`PackedRayWave`: every source's rays and window in slots of the largest (the
+    traced-ray and field parts of :func:`rwwarp.plan.estimate_cost`), plus the largest member's propagation
+    (the members propagate one after the other)."""
+    rays = max(m.plan.ray_grid for m in members) ** 2
+    n = max(m.plan.n_grid for m in members)
+    fixed = [m.plan.ray_grid ** 2 * 232 + m.plan.n_grid ** 2 * 64 for m in members]
+    prop = max(m.plan.estimate["memory_bytes"] - f for m, f in zip(members, fixed))
+    return len(members) * (rays * 232 + n * n * 64) + prop
+
+
+class PackedRayWave(RayWave):
+    """Several sources computed together, each on its own plan (:func:`source_plans`): one trace, tube-area,
+    splat and finalize launch for all of them, in arrays sized to the largest member (its pupil grid's rays
+    and its window per source); a smaller member's extra ray slots are invalid with zero weight and its extra
+    samples zero, so they contribute nothing, and its rays land, are splatted and dropped by its own window.
+    Each member is then propagated by its own plan (:meth:`RayWave.focal_intensity` / :meth:`RayWave.intensity`
+    on its window). A source's PSF is therefore what it is alone, whatever the batch (the float sums of the
+    splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
+    one lens, device, precision, amplitude convention and propagation method. Lengths in mm."""
+
+    def __init__(self, members):
+        if not members or any(m.nsrc != 1 for m in members):
+            raise ValueError("PackedRayWave takes single-source RayWave members")
+        m0 = members[0]
+        for m in members:
+            if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
+                    m.tracer.scalar) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference, m0.deterministic,
+                                         m0.device, m0.tracer.scalar):
+                raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
+                                 "reference, determinism, device and precision")
+        self.members = list(members)
+        lens = m0.lens
+        self.lens, self.plane, self.curved_plane = lens, m0.plane, m0.curved_plane
+        self.device, self.amplitude, self.use_reference = m0.device, m0.amplitude, m0.use_reference
+        self.deterministic, self.rim = m0.deterministic, m0.rim
+        self.size, self.pixel = m0.size, m0.pixel
+        self.fields = [m.fields[0] for m in members]
+        self.wls = [m.wls[0] for m in members]
+        self.nsrc = len(members)
+        uniq = sorted(set(self.wls))
+        dtype = "float64" if m0.tracer.np_dtype == np.float64 else "float32"
+        self.tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, deterministic=self.deterministic)
+        self.src = own_pupil_sources(self.tracer, self.fields, self.wls, uniq, m0.src.get("object_distance"))
+        self.src["relative_opl"] = bool(self.use_reference)
+        cat = lambda name: np.concatenate([np.asarray(getattr(m, name)) for m in members])
+        for name in ("n_after", "lam_mm", "origin", "chief_plane", "chief_sensor", "carrier", "centers", "target",
+                     "opl_chief", "chief_ok"):
+            setattr(self, name, cat(name))
+        self.z_plane, self.z_sensor = m0.z_plane, m0.z_sensor
+        self.gauss_nodes = m0.gauss_nodes
+        self.pupil = (None, None, 1.0)
+        self.plan = m0.plan   # only its method is read; each member keeps its own plan
+        self.method = m0.method
+        self.focal = None
+        self._grids = np.array([m.plan.n_grid for m in members])
+        self._ray_grids = np.array([m.plan.ray_grid for m in members])
+        self._pitches = np.array([m.plan.pitch_mm for m in members])
+
+    def _layout(self) -> dict:
+        return {"ray_grids": self._ray_grids, "slots": int(self._ray_grids.max()) ** 2, "grids": self._grids,
+                "n_stride": int(self._grids.max()), "pitches": self._pitches}
+
+    def _rim_args(self, rim: bool):
+        tr = self.tracer
+        if not rim:
+            return tr.no_rim_cells(), 0
+        return tr.packed_rim_cells(self._ray_grids, int(self._ray_grids.max()) ** 2), 1
+
+    def plans(self) -> list:
+        """Each member's plan (:class:`rwwarp.plan.Plan`)."""
+        return [m.plan for m in self.members]
+
+    def run(self, focal_precision: str = "auto") -> dict:
+        """PSFs of every member as fractions of its entering power per pixel, each propagated by its own plan
+        (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts."""
+        if focal_precision == "auto":
+            focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
+        u_all = self.field_array()
+        entering = self.entering
+        data = []
+        for k, m in enumerate(self.members):
+            n = m.plan.n_grid
+            u = u_all[k:k + 1, :n, :n].copy()
+            if m.plan.method == "focal":
+                d = m.focal_intensity(u, focal_precision)
+            else:
+                phi0, scale = m.doe_phase()
+                d = m.intensity(u, phi0, scale)
+            m.release_operators()
+            data.append(np.asarray(d)[0] / entering[k])
+        data = np.stack(data)
+        if not np.all(np.isfinite(data)):
+            raise FloatingPointError("non-finite PSF values (please report this lens and field)")
+        plans = [m.plan.to_dict() for m in self.members]
+        return {"data": data, "centers": self.centers, "plan": plans[-1], "plans": plans,
+                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
