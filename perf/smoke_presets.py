@@ -32,10 +32,11 @@ from _common import GpuMemory, git_commit, save  # noqa: E402
 CONFIGS = ("cooke_hybrid", "a489_aberration", "a489_edof")
 
 
-def smoke_config(name: str, steps: int, eval_images: int, budget_gb: float | None = None) -> dict:
+def smoke_config(name: str, steps: int, eval_images: int, budget_gb: float | None = None, sets=()) -> dict:
     """The bundled config ``name`` with its gpu preset cut to ``steps`` steps (``steps - 1`` joint, 1
     fine-tune), a log line per step, no images or checkpoints, and a lens path made absolute;
-    ``budget_gb``: the preset's ``optics.memory_budget_gb`` replaced (GB, a trial of a smaller budget)."""
+    ``budget_gb``: the preset's ``optics.memory_budget_gb`` replaced (GB, a trial of a smaller budget);
+    ``sets``: ``KEY=VALUE`` strings (dotted keys, YAML values) set in the gpu preset."""
     from torch_bridge.train import CONFIG_DIR
     c = yaml.safe_load((CONFIG_DIR / f"{name}.yaml").read_text())
     lens_file = c.get("lens", {}).get("file")
@@ -47,6 +48,13 @@ def smoke_config(name: str, steps: int, eval_images: int, budget_gb: float | Non
     g.setdefault("data", {})["eval_images"] = int(eval_images)
     if budget_gb is not None:
         g.setdefault("optics", {})["memory_budget_gb"] = float(budget_gb)
+    for kv in sets:
+        key, _, value = kv.partition("=")
+        *path, last = key.split(".")
+        d = g
+        for k in path:
+            d = d.setdefault(k, {})
+        d[last] = yaml.safe_load(value)
     return c
 
 
@@ -73,6 +81,8 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-images", type=int, default=2)
     ap.add_argument("--budget-gb", type=float, default=None,
                     help="replace each preset's optics.memory_budget_gb (GB) for this run")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="set a key of the gpu preset for this run (dotted, YAML value), e.g. optics.cache_precision=single")
     ap.add_argument("--timeout", type=float, default=280.0, help="seconds per arm")
     ap.add_argument("--out", default=os.environ.get("RWWARP_RESULTS"))
     a = ap.parse_args(argv)
@@ -90,7 +100,7 @@ def main(argv=None) -> int:
     report = {"card": card[0] if card else "none", "steps": a.steps, "arms": []}
     ok_all = True
     for name in a.configs:
-        c = smoke_config(name, a.steps, a.eval_images, a.budget_gb)
+        c = smoke_config(name, a.steps, a.eval_images, a.budget_gb, a.set)
         cfg_path = work / f"{name}_smoke.yaml"
         cfg_path.write_text(yaml.safe_dump(c))
         exp = load_config(copy.deepcopy(c), "gpu")

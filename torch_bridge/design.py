@@ -125,6 +125,12 @@ class CachedProvider:
         within the limit: pitch at most half the feature, and at least ``1 / (levels feature)``
         cycles/mm (``1 / (2 feature)`` unquantised, times the wavelength's DOE scale) reserved for
         the DOE, so a DOE that grows up to the limit needs no replanning.
+    cache_precision : "double" | "single"
+        Storage of the cached DOE-plane fields: complex128, or complex64 (half the memory; each use is
+        computed in complex128 from the stored values: the PSFs and gradients move by the fields' rounding,
+        on the A489 + DOE (4 nodes, 2 wavelengths) PSFs by 2.6e-10 / 5.1e-10 of the peak and DOE gradients by
+        1.3e-8 / 1.2e-10 (focal / ASM), far under the plans' 1e-4 sampling error; a focal entry's operators
+        stay complex128, so it saves less there).
     memory_budget_bytes : int, optional
         Peak bytes one entry's field build may use (default
         :func:`~torch_bridge.budget.default_memory_budget_bytes`: half the free memory of a CUDA
@@ -144,11 +150,15 @@ class CachedProvider:
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, model: str = "ray-wave",
                  wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0, memory_budget_bytes: int | None = None,
-                 min_feature_mm: float | None = None):
+                 min_feature_mm: float | None = None, cache_precision: str = "double"):
         if model not in ("ray-wave", "paraxial-wave"):
             raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
         if memory_budget_bytes is not None and not memory_budget_bytes > 0:
             raise ValueError(f"memory_budget_bytes must be > 0 or None, got {memory_budget_bytes!r}")
+        if cache_precision not in ("double", "single"):
+            raise ValueError(f"cache_precision must be 'double' or 'single', got {cache_precision!r}")
+        #: dtype of the cached DOE-plane fields (they are propagated in complex128 whatever it is)
+        self.cache_dtype = torch.complex128 if cache_precision == "double" else torch.complex64
         if min_feature_mm is not None and not min_feature_mm > 0:
             raise ValueError(f"min_feature_mm must be > 0 or None, got {min_feature_mm!r}")
         self.min_feature_mm = None if min_feature_mm is None else float(min_feature_mm)
@@ -346,15 +356,15 @@ class CachedProvider:
         dev = self.module.thickness_base.device
         n = rw.plan.n_grid
         if b >= rw.nsrc:
-            u = self._to_torch(rw.field_array(), dev)
+            u = self._to_torch(rw.field_array(), dev, self.cache_dtype)
             entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
         else:
-            u = torch.empty((rw.nsrc, n, n), dtype=torch.complex128, device=dev)
+            u = torch.empty((rw.nsrc, n, n), dtype=self.cache_dtype, device=dev)
             entering = torch.empty(rw.nsrc, dtype=torch.float64, device=dev)
             for k in range(0, rw.nsrc, b):
                 sl = slice(k, min(k + b, rw.nsrc))
                 sub = geo.raywave(fields[sl], [wl] * (sl.stop - sl.start), self.size, center_mm=centres[sl], **kw)
-                u[sl] = self._to_torch(sub.field_array(), dev)
+                u[sl] = self._to_torch(sub.field_array(), dev, self.cache_dtype)
                 entering[sl] = torch.as_tensor(sub.entering, dtype=torch.float64, device=dev)
                 del sub
         if str(rw.tracer.device).startswith("cuda"):
@@ -375,12 +385,13 @@ class CachedProvider:
         return self._cache[key]
 
     @staticmethod
-    def _to_torch(u, dev) -> torch.Tensor:
-        """A field from :meth:`RayWave.field_array` (numpy, or a CuPy view of a Warp array) as a complex128
-        tensor on ``dev`` that owns its memory."""
+    def _to_torch(u, dev, dtype=torch.complex128) -> torch.Tensor:
+        """A field from :meth:`RayWave.field_array` (numpy, or a CuPy view of a Warp array) as a tensor of
+        ``dtype`` (complex128 or complex64) on ``dev`` that owns its memory."""
         if isinstance(u, np.ndarray):
-            return torch.from_numpy(np.array(u, copy=True)).to(dev)
-        return torch.as_tensor(u, device=dev).clone()
+            return torch.from_numpy(np.array(u, copy=True)).to(dev, dtype)
+        t = torch.as_tensor(u, device=dev)
+        return t.to(dtype) if t.dtype != dtype else t.clone()
 
     def _entry(self, wavelength_um: float, depth_mm):
         key = self._key(wavelength_um, depth_mm)
@@ -421,7 +432,7 @@ class CachedProvider:
             rw = geo.raywave([f], [float(wavelength_um)], self.size, object_distance_mm=depth, pixel_mm=self.pixel_mm,
                              center_mm=centres[k:k + 1], requires_grad=False, method="focal",
                              memory_budget_bytes=budget)
-            u = self._to_torch(rw.field_array(), dev)
+            u = self._to_torch(rw.field_array(), dev, self.cache_dtype)
             nodes.append((rw, u, torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)))
             log.append({"n_grid": rw.plan.n_grid, "n_sensor": rw.plan.n_sensor, "ray_grid": rw.plan.ray_grid,
                         "orders": [m for m, _ in rw.focal["orders"][0]],
@@ -465,7 +476,9 @@ class CachedProvider:
         # would not fit this entry's share of the budget (the graphs of every entry of a call live at once,
         # beside the network's activations)
         share = self.step_budget_bytes() if budget_bytes is None else int(budget_bytes)
-        graph = sum(self.focal_graph_bytes(rw) for rw, _, _ in nodes)
+        # a complex64 cache adds the complex128 copy of each node's field the graph holds
+        upcast = 16 if self.cache_dtype != torch.complex128 else 0
+        graph = sum(self.focal_graph_bytes(rw) + upcast * rw.plan.n_grid ** 2 for rw, _, _ in nodes)
         checkpoint = len(nodes) > 1 and wants and graph > share
         # the distance's value on the host once per call (a read waits for the device), not once per node
         d_host = float(dist) if thick is None else float(thick.detach())
@@ -475,10 +488,10 @@ class CachedProvider:
                 with ctx:
                     d = torch.full((1,), dist, dtype=torch.float64, device=u.device) if thick_t is None \
                         else thick_t.reshape(1)
-                    v = u
+                    v = u.to(torch.complex128)
                     fac = focal_doe_factor(rw, geo.doe_phase(rw, {"doe": doe_t}, wrap=False))
                     if fac is not None:
-                        v = u * fac
+                        v = v * fac
                     return focal_propagate(v, d, rw, d_host) / entering[:, None, None]
             if checkpoint:
                 outs.append(Recompute.apply(run, *ts))
@@ -634,12 +647,12 @@ class CachedProvider:
     def step_bytes_per_source(self, rw) -> int:
         """Estimated peak bytes one node adds to a training step (DOE phase applied to its cached field,
         propagated, and back): the DOE phase and its autograd intermediates (about ``2 k + 8`` real
-        arrays of the DOE-plane grid for a ``k``-term polynomial), the field and phase gradients, the
-        padded FFT work space (3 complex arrays of ``n_pad^2``) and the sensor nodes, times a safety
+        arrays of the DOE-plane grid for a ``k``-term polynomial), the field and phase gradients (and the
+        complex128 copy of a complex64 cache), the padded FFT work space (3 complex arrays of ``n_pad^2``) and the sensor nodes, times a safety
         factor of 2 (allocator slack, transient copies)."""
         n, n_pad = rw.plan.n_grid, rw.plan.n_pad
         k = int(self.module.doe_base.numel()) if hasattr(self.module, "doe_base") else 8
-        per_sample = 8 * (2 * min(k, 16) + 8) + 16 * 2
+        per_sample = 8 * (2 * min(k, 16) + 8) + 16 * 2 + (16 if self.cache_dtype != torch.complex128 else 0)
         nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
         return 2 * int(n * n * per_sample + n_pad * n_pad * 16 * 3 + nodes)
 
@@ -723,7 +736,7 @@ class CachedProvider:
                     with ctx:
                         d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
                         phi0 = geo.doe_phase(sub, {"doe": doe_t})
-                        return propagate(u[sl], phi0, d, sub)
+                        return propagate(u[sl].to(torch.complex128), phi0, d, sub)
                 ts = [doe] if thick is None else [doe, thick]
                 wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
                 if len(parts) > 1 and wants:

@@ -245,7 +245,8 @@ class Arm:
         if model == "paraxial-wave" or cache:
             return dz.CachedProvider(module, self.fields, self.size, self.pixel_mm, model=model,
                                      wavelength_ref_um=self.wl_ref, doe_budget_cpmm=o["doe_budget_cpmm"],
-                                     memory_budget_bytes=_budget_bytes(o), min_feature_mm=_feature_mm(o))
+                                     memory_budget_bytes=_budget_bytes(o), min_feature_mm=_feature_mm(o),
+                                     cache_precision=o["cache_precision"])
         tile = None
         if o["memory_budget_gb"]:
             # a tile's recorded sources take half the budget; the network's activations and the allocator's
