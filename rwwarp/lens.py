@@ -606,19 +606,13 @@ def _no_unknown(d, allowed, source, surface, prefix=""):
                             file=source, surface=surface, keyword=prefix + bad[0])
 
 
-def surface_table(lens) -> list:
-    """Lines of ``rwwarp info``'s surface table: radius (mm), conic, thickness (mm) and the medium it lies in
-    (the medium after the surface: a DOE or an aperture keeps the one before it), semi-diameter (mm); below a
-    surface its aspheric terms (sag coefficients of r^2, r^4 ... in mm^(1-i)), a thin lens's focal length, a
-    DOE's relief material and profile, a mirror, an obscuration."""
+def surface_notes(lens) -> list:
+    """Per surface, the lines that describe it beyond radius, conic, thickness, medium and semi-diameter: its
+    aspheric terms (sag coefficients of r^2, r^4 ... in mm^(1-i)), a thin lens's focal length (mm), a DOE's
+    relief material, profile and design wavelength (um), a mirror, an obscuration. A list of lists of strings."""
     media = lens.media()
-    out = [f"{'#':>3} {'type':<9} {'radius':>11} {'conic':>9} {'thickness':>10} {'medium after':<13} {'semi-diam':>9}"]
+    out = []
     for i, s in enumerate(lens.surfaces):
-        rad = "inf" if s.radius is None else f"{s.radius:.5f}"
-        sd = "-" if s.semi_diameter is None else f"{s.semi_diameter:.4f}"
-        conic = f"{s.conic:.6g}" if s.type == "standard" else "-"
-        out.append(f"{i:>3} {s.type:<9} {rad:>11} {conic:>9} {s.thickness:>10.5f} {media[i]:<13} {sd:>9}"
-                   f"{'  STOP' if i == lens.stop_index else ''}")
         notes = []
         if s.type == "standard":
             if s.a2:
@@ -638,5 +632,21 @@ def surface_table(lens) -> list:
                          f"design {s.design_wavelength_um:g} um" + (f", {s.levels} levels" if s.levels else ""))
         if s.obscuration:
             notes.append(f"obscuration {s.obscuration}")
+        out.append(notes)
+    return out
+
+
+def surface_table(lens) -> list:
+    """Lines of ``rwwarp info``'s surface table: radius (mm), conic, thickness (mm) and the medium it lies in
+    (the medium after the surface: a DOE or an aperture keeps the one before it), semi-diameter (mm); below a
+    surface its :func:`surface_notes`."""
+    media = lens.media()
+    out = [f"{'#':>3} {'type':<9} {'radius':>11} {'conic':>9} {'thickness':>10} {'medium after':<13} {'semi-diam':>9}"]
+    for i, (s, notes) in enumerate(zip(lens.surfaces, surface_notes(lens))):
+        rad = "inf" if s.radius is None else f"{s.radius:.5f}"
+        sd = "-" if s.semi_diameter is None else f"{s.semi_diameter:.4f}"
+        conic = f"{s.conic:.6g}" if s.type == "standard" else "-"
+        out.append(f"{i:>3} {s.type:<9} {rad:>11} {conic:>9} {s.thickness:>10.5f} {media[i]:<13} {sd:>9}"
+                   f"{'  STOP' if i == lens.stop_index else ''}")
         out += [f"{'':>9}{n}" for n in notes]
     return out

@@ -304,14 +304,8 @@ def _section(key, lens, fields, y_fields, wls, wl0, model, psf_size, mtf_size, t
         rows = ["![layout](layout.png)", "",
                 "| surface | type | radius (mm) | conic | thickness (mm) | medium after | clear semi-diameter (mm) | notes |",
                 "|---|---|---|---|---|---|---|---|"]
-        from .lens import surface_table
-        notes = {}  # the note lines of `rwwarp info` (aspheric terms, thin lens, DOE relief) under each surface
-        k = -1
-        for line in surface_table(lens)[1:]:
-            if line[:3].strip().isdigit():
-                k = int(line[:3])
-            else:
-                notes.setdefault(k, []).append(line.strip())
+        from .lens import surface_notes
+        notes = dict(enumerate(surface_notes(lens)))  # as `rwwarp info` prints them (aspheres, thin lens, DOE)
         media = lens.media()
         for i, s in enumerate(lens.surfaces):
             rad = "inf" if s.radius is None else f"{s.radius:.5g}"
