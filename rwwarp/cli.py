@@ -12,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .lens import surface_table  # rwwarp info's table (its home: lens)
+from .lenses import bundled_lenses  # re-exported: the names the lens argument takes
+
 # ---------------------------------------------------------------- bad input: one line, exit 2 (issue 12)
 EXIT_BAD_INPUT = 2
 
@@ -73,8 +76,6 @@ def _lens(path):
     from .io import load_lens
     return load_lens(path)
 
-
-from .lenses import bundled_lenses  # noqa: E402  (re-exported: the names the lens argument takes)
 
 
 def _lens_help() -> str:
@@ -186,8 +187,6 @@ def _save_psf(p, out):
     _atomic(out, _npz)
     return out
 
-
-from .lens import surface_table  # noqa: E402  (rwwarp info's table; its home: lens)
 
 
 def cmd_info(a):
