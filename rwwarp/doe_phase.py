@@ -1,0 +1,249 @@
+"""A DOE's phase written once for every array namespace (numpy, CuPy or torch, chosen from the arrays or
+passed as ``xp``; rwwarp never imports torch): the profiles' phase and gradient at the design wavelength
+(radial polynomials, Fresnel lens, cubic, Zernike, pixel map; rad and rad/mm), and the relief it becomes:
+the phase wrapped to [0, 2 pi) and quantised to ``levels`` levels. :mod:`rwwarp.doe`'s profile classes and
+torch_bridge's DOE (with its straight-through gradient) both call these."""
+from __future__ import annotations
+
+import functools
+import math
+import sys
+
+import numpy as np
+
+from .errors import LensError
+
+TWO_PI = 2.0 * math.pi
+
+
+def array_namespace(*arrays):
+    """The array module of the arguments: ``torch`` or ``cupy`` for the first torch tensor or CuPy array
+    among them (looked up in ``sys.modules``: rwwarp never imports either), else numpy (numpy arrays,
+    lists, Python numbers)."""
+    for a in arrays:
+        mod = type(a).__module__.split(".", 1)[0]
+        if mod in ("torch", "cupy"):
+            return sys.modules[mod]
+    return np
+
+def _real(a, xp):
+    """``a`` as an array of ``xp``: numpy inputs become float64 (as every numpy entry point always did);
+    torch / CuPy arrays keep their dtype and device."""
+    if xp is np:
+        return np.asarray(a, dtype=np.float64)
+    return a if type(a).__module__.split(".", 1)[0] == xp.__name__ else xp.asarray(a)
+
+def _as_index(a, xp):
+    """Integer index array of ``a`` (whole-valued floats) in ``xp``."""
+    return a.long() if xp.__name__ == "torch" else a.astype(xp.intp)
+
+def _polyval_ascending(coeffs, u, xp=np):
+    """sum_k coeffs[k] * u**k by Horner's rule (coeffs ascending)."""
+    out = xp.zeros_like(u)
+    for c in reversed(coeffs):
+        out = out * u + c
+    return out
+
+def radial_phase(kind: str, coefficients, norm_radius: float, r2, xp=None):
+    """Phase phi0 (rad) of an ``even_poly`` or ``poly`` DOE at ``r2 = x^2 + y^2`` (mm^2).
+
+    * even_poly ``phi0 = sum_i a_i u^i`` (i = 1, 2, ...), ``u = r^2 / R^2``;
+    * poly ``phi0 = sum_k c_k rho^k`` (k = 1, 2, ...), ``rho = r / R``.
+
+    ``coefficients`` (rad): a sequence of numbers or a 1-D array of ``xp`` (a torch tensor of learnable
+    values: differentiable); ``norm_radius`` R in mm; ``r2`` an array of ``xp`` (any shape; the result has
+    its shape). Horner's rule ``phi = (... ((a_n) v + a_(n-1)) v ... + a_1) v`` in ``v = u`` or ``rho``. The
+    one home of this evaluation: :class:`EvenPolyProfile`, :class:`PolyProfile` and
+    ``torch_bridge.HybridLens.doe_phase`` call it."""
+    xp = array_namespace(r2, coefficients) if xp is None else xp
+    r2 = _real(r2, xp)
+    R = float(norm_radius)
+    if kind == "even_poly":
+        v = r2 / (R * R)
+    elif kind == "poly":
+        v = xp.sqrt(r2) / R
+    else:
+        raise ValueError(f"radial_phase handles 'even_poly' and 'poly' DOEs, got {kind!r}")
+    phi = xp.zeros_like(v)
+    for i in range(len(coefficients) - 1, -1, -1):     # Horner, ascending coefficients times v
+        phi = (phi + coefficients[i]) * v
+    return phi
+
+def fresnel_quadratic(focal_length, design_wavelength_um: float):
+    """``q = -pi / (lambda0 f)`` (rad/mm^2) of an ideal diffractive lens of focal length ``focal_length`` (mm;
+    a number or a 0-d array: differentiable) at ``design_wavelength_um`` (um): ``phi0 = q r^2``."""
+    return -math.pi / (float(design_wavelength_um) * 1e-3 * focal_length)
+
+def fresnel_phase(focal_length, design_wavelength_um: float, r2, xp=None):
+    """Phase phi0 (rad) of a ``fresnel`` DOE at ``r2 = x^2 + y^2`` (mm^2): ``(-pi / (lambda0 f)) r^2``
+    (:func:`fresnel_quadratic`; ``f`` in mm, possibly a 0-d torch tensor, lambda0 in um)."""
+    xp = array_namespace(r2, focal_length) if xp is None else xp
+    return fresnel_quadratic(focal_length, design_wavelength_um) * _real(r2, xp)
+
+def cubic_phase(alpha, norm_radius: float, x_mm, y_mm, xp=None):
+    """Phase phi0 (rad) of a ``cubic`` DOE: ``alpha ((x/R)^3 + (y/R)^3)``; ``alpha`` in rad (a number or a
+    0-d array: differentiable), R = ``norm_radius`` in mm, ``x_mm``, ``y_mm`` broadcastable arrays (mm).
+    The cubes are products (``t t t``), so every namespace gives the same floating-point result."""
+    xp = array_namespace(x_mm, y_mm, alpha) if xp is None else xp
+    R = float(norm_radius)
+    x, y = _real(x_mm, xp) / R, _real(y_mm, xp) / R
+    return alpha * (x * x * x + y * y * y)
+
+def radial_gradient_over_r(kind: str, coefficients, norm_radius: float, r2, xp=np):
+    """``(1 / r) d phi0 / dr`` (rad/mm^2) of an ``even_poly`` or ``poly`` DOE at ``r2 = x^2 + y^2`` (mm^2),
+    so that ``grad phi0 = g (x, y)``. ``coefficients``: a sequence or a 1-D array of the array namespace
+    ``xp`` (numpy or torch: differentiable in torch), ``norm_radius`` in mm. The one home of this
+    derivative: :class:`EvenPolyProfile`, :class:`PolyProfile` and the ray model's DOE grating in
+    ``torch_bridge`` use it.
+
+    * even_poly ``phi0 = sum_i a_i u^(i+1)``, ``u = r^2 / R^2``: ``g = (2 / R^2) sum_i (i + 1) a_i u^i``;
+    * poly ``phi0 = sum_k c_k rho^k``, ``rho = r / R``: ``g = sum_(k>=2) k c_k rho^(k-2) / R^2 + c_1 / (R r)``
+      (the cone term's gradient is undefined on the axis and taken as 0 there)."""
+    R = float(norm_radius)
+    n = len(coefficients)
+    if kind == "even_poly":
+        u = r2 / (R * R)
+        d = u * 0.0
+        for i in range(n - 1, -1, -1):                # Horner
+            d = d * u + (i + 1) * coefficients[i]
+        return (2.0 / (R * R)) * d
+    if kind == "poly":
+        r = xp.sqrt(r2)
+        rho = r / R
+        d = rho * 0.0
+        for k in range(n, 1, -1):                     # Horner over k >= 2
+            d = d * rho + k * coefficients[k - 1]
+        g = d / (R * R)
+        if n:
+            g = g + xp.where(r > 0, coefficients[0] / (R * xp.where(r > 0, r, 1.0)), 0.0)
+        return g
+    raise ValueError(f"radial_gradient_over_r handles 'even_poly' and 'poly' DOEs, got {kind!r}")
+
+def noll_to_nm(j: int):
+    """Noll index j (1-based) -> (n, m); m > 0 cosine, m < 0 sine, m = 0 rotationally symmetric."""
+    if j < 1:
+        raise ValueError(f"Noll index must be >= 1, got {j}")
+    n = 0
+    while (n + 1) * (n + 2) // 2 < j:
+        n += 1
+    p = j - n * (n + 1) // 2 - 1  # position within the row, 0..n
+    abs_m = [m for m in range(n % 2, n + 1, 2) for _ in ((0,) if m == 0 else (0, 1))][p]
+    if abs_m == 0:
+        return n, 0
+    return n, (abs_m if j % 2 == 0 else -abs_m)
+
+@functools.lru_cache(maxsize=None)
+def _zernike_radial_q(n: int, m: int):
+    """Coefficients (ascending in u = rho^2) of Q with R_n^m(rho) = rho^m Q(rho^2)."""
+    m = abs(m)
+    q = [0.0] * ((n - m) // 2 + 1)
+    for s in range((n - m) // 2 + 1):
+        c = (-1) ** s * math.factorial(n - s) / (
+            math.factorial(s) * math.factorial((n + m) // 2 - s) * math.factorial((n - m) // 2 - s))
+        q[(n - m) // 2 - s] += c
+    return tuple(q)
+
+def zernike_phase(coefficients, norm_radius: float, x_mm, y_mm, xp=None, gradient: bool = False):
+    """Phase phi0 (rad) of a ``zernike`` DOE, ``sum_j z_j Z_j`` (Noll-ordered, Noll-normalised, see
+    :class:`ZernikeProfile`), at broadcastable ``x_mm``, ``y_mm`` (mm); with ``gradient`` also
+    ``(dphi0/dx, dphi0/dy)`` in rad/mm: returns ``(phi0, gx, gy)``.
+
+    ``coefficients`` (rad): a sequence of numbers (terms equal to 0 are skipped) or of 0-d arrays / a 1-D
+    array of ``xp`` (a torch tensor: every term is kept, differentiable). Evaluated in Cartesian form with
+    real arithmetic only (``rho^m cos(m theta) = Re((x + i y)^m) / R^m``, the powers by repeated
+    multiplication), so values and gradients have no singularity and every namespace gives the same
+    floating-point result."""
+    xp = array_namespace(x_mm, y_mm, coefficients) if xp is None else xp
+    R = float(norm_radius)
+    x, y = _real(x_mm, xp) / R, _real(y_mm, xp) / R
+    u = x * x + y * y
+    val = xp.zeros_like(u)
+    gx, gy = xp.zeros_like(u), xp.zeros_like(u)
+    powers = [None, (x, y)]                             # (Re, Im) of (x + i y)^k, k >= 1
+
+    def power(k):
+        while len(powers) <= k:
+            a, b = powers[-1]
+            powers.append((a * x - b * y, a * y + b * x))
+        return powers[k]
+
+    for j in range(1, len(coefficients) + 1):
+        c = coefficients[j - 1]
+        if isinstance(c, (int, float)) and c == 0.0:
+            continue
+        n, m = noll_to_nm(j)
+        cn = c * (math.sqrt(n + 1) if m == 0 else math.sqrt(2 * (n + 1)))
+        q = _zernike_radial_q(n, m)
+        am = abs(m)
+        Q = _polyval_ascending(q, u, xp)
+        ang = None if am == 0 else power(am)[0 if m > 0 else 1]
+        val = val + (cn * Q if ang is None else cn * Q * ang)
+        if gradient:
+            dq = [k * a for k, a in enumerate(q)][1:]
+            dQ = _polyval_ascending(dq, u, xp) if dq else xp.zeros_like(u)
+            if am == 0:
+                gx = gx + cn * (2.0 * x * dQ)
+                gy = gy + cn * (2.0 * y * dQ)
+                continue
+            # d/dx (x + i y)^m = m (x + i y)^(m-1), d/dy = i m (x + i y)^(m-1)
+            if am == 1:
+                pr, pi_ = 1.0, 0.0
+            else:
+                pr, pi_ = power(am - 1)
+            pr, pi_ = am * pr, am * pi_
+            dax, day = (pr, -pi_) if m > 0 else (pi_, pr)
+            gx = gx + cn * (2.0 * x * dQ * ang + Q * dax)
+            gy = gy + cn * (2.0 * y * dQ * ang + Q * day)
+    return (val, gx / R, gy / R) if gradient else val
+
+def pixel_map_indices(pitch: float, shape, x_mm, y_mm, xp=None):
+    """Nearest-pixel ``(row, col, inside)`` of a pixel map of ``shape`` (ny, nx) and ``pitch`` mm, centred on
+    the axis, row 0 at +y and column 0 at -x: ``col = floor(x / pitch + nx / 2)``,
+    ``row = floor(ny / 2 - y / pitch)``. ``x_mm``, ``y_mm``: broadcastable arrays of ``xp`` (mm). Indices are
+    integer arrays of ``xp`` (0 outside the map), ``inside`` a boolean mask."""
+    xp = array_namespace(x_mm, y_mm) if xp is None else xp
+    ny, nx = shape
+    pitch = float(pitch)
+    col = xp.floor(_real(x_mm, xp) / pitch + nx / 2.0)
+    row = xp.floor(ny / 2.0 - _real(y_mm, xp) / pitch)
+    inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+    return _as_index(xp.where(inside, row, 0.0), xp), _as_index(xp.where(inside, col, 0.0), xp), inside
+
+def pixel_map_phase(data, row, col, inside, xp=None):
+    """Phase phi0 (rad) of a pixel map ``data`` (ny, nx; an array of ``xp``, differentiable in torch) at the
+    indices of :func:`pixel_map_indices`: ``data[row, col]`` inside the map, 0 outside."""
+    xp = array_namespace(data) if xp is None else xp
+    return xp.where(inside, data[row, col], 0.0)
+
+# ====================================================================== phase operations
+def wrap_phase(phi, xp=None):
+    """Phase ``phi`` (rad) wrapped to [0, 2 pi): ``phi - 2 pi floor(phi / 2 pi)``, a value that rounds to
+    exactly 2 pi (or below 0) becoming 0. ``xp``: the array namespace (default that of ``phi``); numpy
+    results are float64, torch / CuPy keep the input's dtype and device."""
+    xp = array_namespace(phi) if xp is None else xp
+    phi = _real(phi, xp)
+    w = phi - TWO_PI * xp.floor(phi * (1.0 / TWO_PI))  # 4x faster than np.mod on large grids
+    return xp.where((w >= TWO_PI) | (w < 0.0), 0.0, w)  # rounding can give exactly 2 pi
+
+def quantize(phi, levels: int, xp=None):
+    """Wrap ``phi`` (radians) to [0, 2 pi) and round to the nearest of ``levels`` equally spaced levels
+    ``k 2 pi / levels`` (k = 0 .. levels-1; a value that rounds to 2 pi becomes 0; ties to the even k).
+    ``xp``: the array namespace (default that of ``phi``).
+
+    Gradient convention (the autograd glue is ``torch_bridge.QuantizeSTE``, whose forward is this
+    function): straight-through, i.e. the backward pass treats quantisation as the identity,
+    ``d quantize(phi) / d phi = 1``; the wrap is also passed straight through (its derivative is 1
+    almost everywhere).
+    """
+    levels = int(levels)
+    if levels < 2:
+        raise LensError(f"levels must be >= 2, got {levels}")
+    xp = array_namespace(phi) if xp is None else xp
+    step = TWO_PI / levels
+    k = xp.round(wrap_phase(phi, xp) / step)
+    return xp.where(k >= levels, 0.0, k * step)
+
+def relief_phase(phi, levels=None, xp=None):
+    """The relief phase of an unwrapped DOE phase ``phi`` (rad): :func:`wrap_phase` when ``levels`` is
+    None, else :func:`quantize` to ``levels`` levels. The forward of ``torch_bridge.QuantizeSTE``."""
+    return wrap_phase(phi, xp) if levels is None else quantize(phi, levels, xp)
