@@ -411,32 +411,3 @@ def auto_sizes(need_pitch, width, feature, out_width, rays_per_sample):
     n_pad = nice_fft_length(max(2 * n_grid, math.ceil(1.05 * (n_grid * pitch + out_width) / pitch) + 4))
     ray_grid = int(math.ceil(rays_per_sample * width / pitch)) + 1
     return pitch, n_grid, n_pad, ray_grid
-
-
-def group_sources(needs: dict, max_batch: int | None = None, waste: float = 2.0) -> list:
-    """Batches of source indices whose shared plan stays close to what each source needs alone.
-
-    ``needs``: :attr:`RayWave.source_needs` (per-source pitch and footprint width, mm). Sources are
-    sorted by their own FFT size (largest first) and added greedily to the current batch while it has
-    fewer than ``max_batch`` members and the shared plan's (finest pitch, widest footprint) FFT area is at
-    most ``waste`` times the candidate's own (the smallest in the batch so far, so this holds for every
-    member). Returns a list of index lists (each sorted)."""
-    pitch, width = np.asarray(needs["pitch_mm"], float), np.asarray(needs["width_mm"], float)
-    args = (needs["feature_mm"], needs["out_width_mm"], needs["rays_per_sample"])
-    own = [auto_sizes(pitch[k], width[k], *args)[2] for k in range(len(pitch))]
-    order = sorted(range(len(pitch)), key=lambda k: (-own[k], pitch[k], k))
-    groups, cur, cur_pitch, cur_width = [], [], math.inf, 0.0
-    for k in order:
-        if cur:
-            p2, w2 = min(cur_pitch, pitch[k]), max(cur_width, width[k])
-            pad2 = auto_sizes(p2, w2, *args)[2]
-            # sorted by own FFT size: the candidate's is the group's smallest, so this bounds every member
-            if (max_batch is None or len(cur) < max_batch) and pad2 * pad2 <= waste * own[k] * own[k]:
-                cur.append(k)
-                cur_pitch, cur_width = p2, w2
-                continue
-            groups.append(sorted(cur))
-        cur, cur_pitch, cur_width = [k], pitch[k], width[k]
-    if cur:
-        groups.append(sorted(cur))
-    return groups

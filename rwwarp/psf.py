@@ -22,7 +22,7 @@ import numpy as np
 from .plan import Plan
 from .trace import as_field_list
 from .trace import field_label as _fmt_field
-from .raywave import RAYWAVE_OPTIONS, RayWave, group_sources  # noqa: F401 (RayWave lived here)
+from .raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .packed import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")

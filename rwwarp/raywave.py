@@ -18,7 +18,7 @@ from .doe import is_flat_profile as _is_flat_profile
 from .errors import LensError
 from .lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
-from .plan import auto_sizes, group_sources  # noqa: F401  (group_sources re-exported by rwwarp.psf)
+from .plan import auto_sizes
 from .trace import Tracer, pupil_grid, upload_packed
 from .trace import field_label as _fmt_field
 
@@ -334,12 +334,6 @@ class RayWave:
         else:
             raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
 
-        # what each source alone would need (psf_map groups sources with similar needs into batches)
-        src_need = 1.0 / (2.0 * (fmax + f_doe + 1e-9)) / nyquist_safety
-        if feature is not None:
-            src_need = np.minimum(src_need, feature / 2.0)
-        self.source_needs = {"pitch_mm": src_need, "width_mm": np.max(hi - lo, axis=1), "feature_mm": feature,
-                             "out_width_mm": out_width, "rays_per_sample": rays_per_sample}
         self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
         if gauss_nodes is None:
             gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)

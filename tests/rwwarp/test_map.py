@@ -10,7 +10,7 @@ from rwwarp import backend as bk
 from rwwarp import convergence as cv
 from rwwarp.ground_truth import rs_lens_psf
 from rwwarp.lens import Lens, Sensor, Surface
-from rwwarp.psf import RayWave, group_sources
+from rwwarp.psf import RayWave
 
 WLS = [0.45, 0.65]
 SIZE = 32
@@ -31,18 +31,6 @@ def own_plans(lens, fields, wls):
     """The plan each (field, wavelength) pair gets alone (rw.psf), by pair."""
     return {(i, j): RayWave(lens, [f], [w], SIZE, lens.sensor.pixel_pitch).plan
             for i, f in enumerate(fields) for j, w in enumerate(wls)}
-
-
-def test_grouping_bounds_each_sources_fft_area_and_respects_the_batch_limit():
-    needs = {"pitch_mm": np.array([1e-3, 1e-3, 2e-3, 2e-3, 4e-3]), "width_mm": np.full(5, 0.5),
-             "feature_mm": None, "out_width_mm": 0.1, "rays_per_sample": 1.0}
-    groups = group_sources(needs, max_batch=None)
-    assert sorted(k for g in groups for k in g) == list(range(5))
-    # a 2x coarser pitch is a 4x smaller FFT area: never in one batch with the fine ones
-    assert [0, 1] in groups and [4] in groups and [2, 3] in groups
-    assert all(len(g) <= 1 for g in group_sources(needs, max_batch=1))
-    # with a large allowed waste everything shares one plan
-    assert group_sources(needs, max_batch=None, waste=100.0) == [[0, 1, 2, 3, 4]]
 
 
 # Distance of the map's on-axis PSFs to the RS ground truth, measured on the CPU (PoCL): 8.3e-3 at 0.45 um,
