@@ -464,7 +464,7 @@ class CachedProvider:
         """(n_nodes, size, size) for a focal entry: DOE orders of the current DOE applied to each node's
         cached field, focal propagation (each node a checkpoint when a gradient is wanted, there is more
         than one node and their graphs together exceed ``budget_bytes``, this entry's share of the step's
-        memory budget; default :meth:`budget_bytes`)."""
+        memory budget; default :meth:`step_budget_bytes`)."""
         from torch_bridge.functions import focal_doe_factor, focal_propagate
         from torch_bridge.functions import Recompute
         nodes, dist, geo = entry
