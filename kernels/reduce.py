@@ -17,7 +17,7 @@ not differentiable): the same fixed order, in fewer passes (``WIDE`` entries eac
 million rays instead of five).
 
 Values are ``wp.vec4`` of the ray scalar type (up to four quantities summed in one tree). Host code:
-:func:`rwwarp.reduce.source_sums`.
+:func:`rwwarp.wave.reduce.source_sums`.
 """
 import functools
 

@@ -422,7 +422,7 @@ def make_splat_kernels(scalar):
         # outputs
         terms_out: wp.array(dtype=vec4d),   # per ray: (launched power, power if valid, 0, 0)
     ):
-        # summed per source by rwwarp.reduce.source_sums (a fixed tree: deterministic, no atomics)
+        # summed per source by rwwarp.wave.reduce.source_sums (a fixed tree: deterministic, no atomics)
         i = wp.tid()
         q = f64(weight[i])
         v = f64(0.0)

@@ -229,7 +229,7 @@ def make_trace_kernels(scalar):
                                                 #      computed here (pupil_u / pupil_v unused);
                                                 # < 0: each source's own grid, grid_src[s] x grid_src[s], and
                                                 #      cell area cell_src[s] (a packed batch of sources with
-                                                #      their own plans, rwwarp.packed.PackedRayWave)
+                                                #      their own plans, rwwarp.wave.packed.PackedRayWave)
         n_pupil: int,                           # ray slots per source (with grid_n < 0, >= every grid_src^2;
                                                 #      the slots past a source's own grid are padding: invalid,
                                                 #      zero weight, at the pupil centre)
@@ -514,7 +514,7 @@ def make_analysis_kernels(scalar):
     """Reductions for spot analysis, differentiable under ``wp.Tape``.
 
     ``moments_kernel`` writes per ray the terms of count, sum x, sum y, sum x^2 + y^2 of valid rays at
-    the current plane (mm; summed per source by :func:`rwwarp.reduce.source_sums`), about the middle ray
+    the current plane (mm; summed per source by :func:`rwwarp.wave.reduce.source_sums`), about the middle ray
     of the source's pupil grid (a shift that keeps the
     variance well conditioned when the image height is large compared with the spot). ``rms_kernel`` turns them into the RMS radius about the centroid (mm):
     ``sqrt(<x^2 + y^2> - <x>^2 - <y>^2)``. ``slope_efl_kernel``: ``-h / tan(u')`` of ray 0.
@@ -527,7 +527,7 @@ def make_analysis_kernels(scalar):
     def moments_kernel(pos: wp.array(dtype=vec3), valid: wp.array(dtype=wp.int32), n_pupil: int,
                        # outputs
                        terms_out: wp.array(dtype=vec4)):
-        # per ray (1, x, y, x^2 + y^2) if valid, else 0; summed per source by rwwarp.reduce.source_sums
+        # per ray (1, x, y, x^2 + y^2) if valid, else 0; summed per source by rwwarp.wave.reduce.source_sums
         # (a fixed tree: deterministic, no atomics)
         i = wp.tid()
         t = vec4()

@@ -230,7 +230,7 @@ def run_timed_peak(hl, fn, weights, device, repeat, warmup):
 
 def run_study(device, a):
     """The 10 x 10 fields x 3 wavelengths map with backward at several tile sizes and under a budget."""
-    from rwwarp import backend as bk
+    from rwwarp.wave import backend as bk
     hl = make_module(device, a.rays_per_sample, a.stop_scale)
     tdev = hl.thickness_base.device
     g = np.linspace(0.0, 9.0, a.study_grid) if a.study_grid > 1 else np.array([5.0])

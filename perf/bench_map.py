@@ -22,7 +22,7 @@ copy bandwidth measured on the device (``wp.copy``, read + write):
 * rays to field: the ray record (pos, dir, opl, valid, weight: 68 B) read by the tube-area and
   splat kernels, the tube area written and read (24 B), 4 complex atomic adds per ray (64 B); the
   field accumulators zeroed, read and written as one complex field (48 B per sample);
-* propagation (the pruned band-limited ASM of ``rwwarp.propagate``): field and DOE phase read
+* propagation (the pruned band-limited ASM of ``rwwarp.wave.propagate``): field and DOE phase read
   (24 B per sample), padded rows written, x-FFT read + write (one pass), band columns gathered, y-FFT
   read + write, transfer function and band read, band written, the two GEMMs' operands and
   results, the node field read by the pixel reduction, the PSF written.
@@ -49,7 +49,7 @@ import numpy as np
 from _common import RESULTS, device_name, git_commit, save, sync_fn
 
 import rwwarp as rw
-from rwwarp import propagate as prop
+from rwwarp.wave import propagate as prop
 from rwwarp.trace import as_field_list
 
 WLS = [0.45, 0.55, 0.65]
@@ -80,7 +80,7 @@ class PeakSampler:
         peak above the start counts what the measured block allocates."""
         gc.collect()
         try:
-            from rwwarp import backend as bk
+            from rwwarp.wave import backend as bk
             bk.get_backend(self.device).clear_caches()
         except Exception:
             pass
@@ -159,7 +159,7 @@ def field_grid(n, lens, scale=None):
 
 # ------------------------------------------------------------------------------------------- bytes model
 def _band_widths(rwm):
-    """Band columns / rows (kx, ky) of each source, as rwwarp.propagate sets them up."""
+    """Band columns / rows (kx, ky) of each source, as rwwarp.wave.propagate sets them up."""
     g = rwm.sensor_geometry()
     pitch, origin, wl_um, z, px, py = (g.pitch_mm, g.origin_mm, g.wavelength_um, g.distance_mm,
                                        g.pixel_centers_x_mm, g.pixel_centers_y_mm)
@@ -195,7 +195,7 @@ def rwwarp_bytes(rwm, gauss_nodes=3):
     trace = rays * (124 * launches + 60)
     to_field = rays * (68 * 2 + 24 + 64) + n * n * 48
     if pl.method == "focal":
-        # rwwarp.focal: field (and the DOE orders' factor) read, the two separable kernel matrices
+        # rwwarp.wave.focal: field (and the DOE orders' factor) read, the two separable kernel matrices
         # (n_sensor x n_grid) read, the intermediate (n_sensor x n_grid) written and read, the sensor-side
         # field (n_sensor^2) written, its padded FFT (n_sensor_fft^2, read + write, forward and inverse),
         # the output DFT's factors and result, the PSF written
@@ -240,10 +240,10 @@ def bench_rwwarp(lens, fields, device, batch, bandwidth, log, method="auto"):
         m = rw.psf_map(lens, fields, WLS, size=SIZE, device=device, batch=batch, method=method)
         s()
         warm = time.perf_counter() - t0
-    # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.packed.source_plans, pilot
+    # bytes model of the plans psf_map ran: every source on its own plan (rwwarp.wave.packed.source_plans, pilot
     # traces only; packed batches pad the trace and splat to their largest member, not counted here)
-    from rwwarp.plan import default_memory_budget_bytes
-    from rwwarp.packed import source_plans
+    from rwwarp.wave.plan import default_memory_budget_bytes
+    from rwwarp.wave.packed import source_plans
     tot = {"trace": 0, "rays_to_field": 0, "propagation": 0}
     order = [pr for b in m.info["batches"] for pr in b["pairs"]]
     members = source_plans(lens, as_field_list([fields[i] for i, _ in order]), [WLS[j] for _, j in order], SIZE,

@@ -9,7 +9,7 @@ untimed run, which gives the error):
 
 * ``adaptive``: rwwarp's band-limited ASM plan (``method="asm"``) over a ladder of
   ``nyquist_safety x rays_per_sample``;
-* ``focal``: the focal propagation (``method="focal"``, :mod:`rwwarp.focal`) over ``nyquist_safety``;
+* ``focal``: the focal propagation (``method="focal"``, :mod:`rwwarp.wave.focal`) over ``nyquist_safety``;
 * ``paper``: rwwarp with ``plan="paper"`` (the paper's fixed grid over the whole DOE, 10^6 rays);
   skipped (and said so in the JSON) where its predicted time or memory is out of reach;
 * ``float32``: the adaptive plan with a float32 ray trace;
@@ -46,7 +46,7 @@ from _common import RESULTS, device_name, git_commit, save
 import rwwarp as rw
 from rwwarp import convergence as cv
 from rwwarp.lens import Surface
-from rwwarp.plan import nice_fft_length
+from rwwarp.wave.plan import nice_fft_length
 from rwwarp.psf import RayWave
 from rwwarp.trace import as_field_list
 
@@ -156,7 +156,7 @@ def run_rwwarp_methods(case, ref, device, quick, repeat, log):
     ladder = [(1.0, 1.0), (1.5, 1.0), (2.0, 1.0), (2.0, 1.5), (3.0, 1.5)] if quick else list(cv.LADDER)
     methods["adaptive"] = [run(f"adaptive s={s:g} r={r:g}", nyquist_safety=s, rays_per_sample=r, method="asm")
                            for s, r in ladder]
-    # the focal propagation (rwwarp.focal: the converging wave handled analytically, grids follow the patch)
+    # the focal propagation (rwwarp.wave.focal: the converging wave handled analytically, grids follow the patch)
     # over its own ladder of wave-plane / sensor-side safety
     flad = [(1.0, 1.0), (2.0, 1.0), (3.0, 1.0)] if quick else [(1.0, 1.0), (1.5, 1.0), (2.0, 1.0), (3.0, 1.0), (4.0, 1.5)]
     methods["focal"] = [run(f"focal s={s:g} r={r:g}", nyquist_safety=s, rays_per_sample=r, method="focal")
@@ -350,7 +350,7 @@ STYLE = {"adaptive": ("C0", "o", "rwwarp band-limited ASM (adaptive plan)"),
          "adaptive_gauss": ("C9", "o", "rwwarp adaptive, reference's pixel quadrature"), "paper": ("C1", "s", "rwwarp paper grid"),
          "float32": ("C2", "^", "rwwarp float32 trace"), "ray": ("C3", "x", "ray model"),
          "paraxial-wave": ("C4", "D", "paraxial-wave model"), "deeplens": ("C5", "P", "DeepLens 2.5.6"),
-         "focal": ("C6", "v", "rwwarp focal (rwwarp.focal)")}
+         "focal": ("C6", "v", "rwwarp focal (rwwarp.wave.focal)")}
 
 
 def chart_deeplens(ax, pts, color, marker, label, handles):

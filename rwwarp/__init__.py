@@ -15,16 +15,16 @@ Units: lengths in mm, wavelengths in um, field angles in degrees.
 from .errors import LensError, LensFileError, GlassError, GeometryError, ArgumentError, SamplingWarning
 from .lens import Lens, Surface, Sensor
 from .io import load_lens
-from .analysis import spot_rms, spot_diagram
+from .metrics.analysis import spot_rms, spot_diagram
 from .psf import psf, psf_map, plan_psf, PSF, PSFMap
-from .plan import Plan
+from .wave.plan import Plan
 from .metrics import (mtf, through_focus_mtf, strehl, encircled_energy, ensquared_energy,
                       chromatic_focal_shift, field_curves)
 
-from .metrics_curves import ChromaticFocalShift, FieldCurves
+from .metrics.curves import ChromaticFocalShift, FieldCurves
 from .metrics import MTF, ThroughFocusMTF
-from .metrics_energy import EnergyCurve
-from .metrics_strehl import Strehl
+from .metrics.energy import EnergyCurve
+from .metrics.strehl import Strehl
 
 __version__ = "0.1.0"
 

@@ -241,7 +241,7 @@ def cmd_psf(a):
     p = psf(lens, field, wl, model=a.model, dtype=a.dtype, memory_budget_gb=a.memory_budget_gb,
             deterministic=a.deterministic, **kw)
     if a.explain and p.plan:
-        from .plan import Plan
+        from .wave.plan import Plan
         print(Plan(**p.plan).explain())
     print(f"PSF {a.model} field {field} deg, {wl:g} um: {a.size} px of {p.pixel_mm * 1e3:g} um, sum "
           f"{p.data.sum():.6f}, peak {p.data.max():.4g}, centre ({p.center_mm[0]:.5f}, {p.center_mm[1]:.5f}) mm, "

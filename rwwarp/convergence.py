@@ -1,6 +1,6 @@
 """Converged reference PSFs, error estimates of cheaper plans, and the cheapest plan for a target error.
 
-The ray-wave PSF has four discretisation knobs (see :mod:`rwwarp.plan`):
+The ray-wave PSF has four discretisation knobs (see :mod:`rwwarp.wave.plan`):
 
 * ``nyquist_safety``: how far below the Nyquist pitch of the local wavefront the DOE-plane grid
   goes (halves the pitch when doubled: twice the samples, and twice the rays across the pupil);
@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from .errors import SamplingWarning
-from .plan import Plan, nice_fft_length
+from .wave.plan import Plan, nice_fft_length
 from .psf import PSF, RayWave
 from .psf import psf as _psf
 from .trace import as_field_list
@@ -84,7 +84,7 @@ def rel_l2(a, b) -> float:
 
 def plan_at(lens, field_deg, wavelength_um, size, device="cpu", settings=Settings(), *, center_mm=None,
             pixel_mm=None, object_distance_mm=None, dtype="float64") -> Plan:
-    """The adaptive plan (:class:`~rwwarp.plan.Plan`) for one field point at ``settings``.
+    """The adaptive plan (:class:`~rwwarp.wave.plan.Plan`) for one field point at ``settings``.
 
     Runs only the pilot trace (cheap). ``pad_factor`` scales the adaptive FFT length (rounded up to a
     VkFFT-friendly length); the other arguments as :func:`rwwarp.psf`.
@@ -297,7 +297,7 @@ def estimate_error(lens, field_deg, wavelength_um, size, device="cpu", settings=
 class PlanChoice:
     """Result of :func:`plan_for_error`. Unpacks as ``plan, error, time_s = choice``.
 
-    ``plan``: the explicit :class:`~rwwarp.plan.Plan` for this field point (pass it as ``plan=``);
+    ``plan``: the explicit :class:`~rwwarp.wave.plan.Plan` for this field point (pass it as ``plan=``);
     ``settings``: the knobs that produced it (they carry over to other fields: pass
     ``nyquist_safety`` / ``rays_per_sample`` to :func:`rwwarp.psf`); ``error``: measured relative L2
     error against the reference; ``time_s``: median wall time of ``rw.psf`` with these settings;

@@ -124,7 +124,7 @@ def fitting_patch(lens, fields, wavelengths_um, pixel_mm=None, airy_radii: float
     theory, ``sinc^2(m - s(lambda))``: at 0.45 um a DOE blazed for 0.55 um sends 8 % into order 2 and 3 %
     into order 0), plus ``airy_radii`` Airy radii (0.61 lambda / NA) for diffraction, plus 10 %, rounded up
     to a multiple of 8 (at most ``cap``). Returns ``(centres (n_fields, 2) mm, size)``."""
-    from .metrics_sampling import _image_space_rays, image_space_na
+    from .metrics.sampling import _image_space_rays, image_space_na
     from .trace import as_field_list, pupil_grid
     fields = as_field_list(fields)
     pixel = float(pixel_mm or lens.sensor.pixel_pitch)

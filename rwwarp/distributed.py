@@ -8,7 +8,7 @@ optionally every depth) with its sources split across the ranks of a ``torch.dis
   with exactly the plan the single-process map gives it (its own: a PSF does not depend on its batch):
   the sharded map equals ``rw.psf_map`` (measured: bit for bit on the CPU, test tolerance 1e-12).
 * **Balance by estimated work, not by count.** Each batch's cost is the planner's estimate, the sum
-  of its sources' (:func:`rwwarp.plan.estimate_cost` of each source's own plan): off-axis and
+  of its sources' (:func:`rwwarp.wave.plan.estimate_cost` of each source's own plan): off-axis and
   large-aperture sources cost more. Batches are
   assigned largest first to the least-loaded rank (LPT; within 4/3 of the best split).
 * **Devices.** Each rank runs on its own device: ``device="cuda"`` becomes ``cuda:LOCAL_RANK``;
@@ -144,7 +144,7 @@ def _check_args(lens, fields, wavelengths_um, depths_mm, kw):
 
 
 def _budget(kw):
-    from .plan import default_memory_budget_bytes
+    from .wave.plan import default_memory_budget_bytes
     gb = kw.get("memory_budget_gb")
     if gb is not None:
         if not (isinstance(gb, (int, float)) and math.isfinite(gb) and gb > 0):
@@ -159,7 +159,7 @@ def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1)
     Per depth, the batches :func:`rwwarp.psf_map` makes for these arguments (every source on its own plan,
     from one pilot of all, packed by :func:`rwwarp.psf.pack_sources`), so each PSF is the one it is there.
     ``cost``: for the wave models, the sum of the sources' estimated flops
-    (:func:`rwwarp.plan.estimate_cost`); for the ray model, the sum of its sources' :func:`rwwarp.plan_psf`
+    (:func:`rwwarp.wave.plan.estimate_cost`); for the ray model, the sum of its sources' :func:`rwwarp.plan_psf`
     estimates. ``part`` ``(r, n)``: those last costs, which need a pilot each, only for units ``k`` with
     ``k % n == r`` (the others ``cost`` None), so that the ranks share the planning (:func:`psf_map`
     all-gathers them)."""
@@ -204,7 +204,7 @@ def _run_unit(lens, fields, wls, unit, od, kw, budget):
     """One batch exactly as :func:`rwwarp.psf_map` computes it (wave models: its sources each on its own plan,
     packed; ray model: its loop body, a batch over the memory budget split in halves the same way). Returns
     ``[(i, j, psf, centre, valid_fraction, dropped)]``."""
-    from .plan import MemoryBudgetError
+    from .wave.plan import MemoryBudgetError
     from .psf import RAYWAVE_OPTIONS
     from .ray_model import _ray_model
     size, device, model = kw["size"], kw["device"], kw["model"]

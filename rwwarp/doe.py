@@ -46,7 +46,7 @@ profile), :func:`surface_is_continuous`, :func:`surface_feature_size_mm` (sampli
 :func:`wrap_phase`, :func:`quantize`, :func:`relief_phase`, :func:`wavelength_scale`, :func:`design_phase`
 (wrapped and quantised phi0), :func:`modulation_phase` (the phase applied at a wavelength),
 :func:`height_map_um`, :func:`export_height_map`. The phase itself in any array namespace (numpy, CuPy,
-torch) lives in :mod:`rwwarp.doe_phase` and is re-exported here: :func:`array_namespace`,
+torch) lives in :mod:`rwwarp.wave.doe_phase` and is re-exported here: :func:`array_namespace`,
 :func:`radial_phase`, :func:`radial_gradient_over_r`, :func:`fresnel_phase`, :func:`zernike_phase`,
 :func:`cubic_phase`, :func:`pixel_map_indices`, :func:`pixel_map_phase`, :func:`wrap_phase`,
 :func:`quantize`, :func:`relief_phase`.
@@ -62,8 +62,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .doe_phase import TWO_PI
-from .doe_phase import (  # noqa: F401  (the phase over an array namespace; re-exported here)
+from .wave.doe_phase import TWO_PI
+from .wave.doe_phase import (  # noqa: F401  (the phase over an array namespace; re-exported here)
     _zernike_radial_q,
     array_namespace,
     cubic_phase,

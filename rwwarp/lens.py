@@ -237,7 +237,7 @@ class Lens:
         f = self.source
         if not self.surfaces:
             raise LensError("a lens needs at least one surface", file=f)
-        from .validate_input import check_doe_steepness, check_lens_values
+        from .io.validate_input import check_doe_steepness, check_lens_values
         check_lens_values(self)  # types, finiteness and ranges of every value (issue 12)
         if not (self.object_distance > 0):
             raise LensError(f"object_distance must be > 0 mm or inf, got {self.object_distance}", file=f)
@@ -454,7 +454,7 @@ class Lens:
 
     def save(self, path, format: str | None = None) -> None:
         """Write the lens to ``path``: native JSON, a Zemax sequential ``.zmx``
-        (:mod:`rwwarp.io_zemax_write`) or a DeepLens JSON (:mod:`rwwarp.io_deeplens_write`).
+        (:mod:`rwwarp.io.zemax_write`) or a DeepLens JSON (:mod:`rwwarp.io.deeplens_write`).
         ``format``: ``"json"``, ``"zmx"`` or ``"deeplens"``; default from the suffix (``.zmx`` ->
         zmx, anything else -> json). Same as :func:`rwwarp.io.save_lens`."""
         fmt = format or ("zmx" if Path(path).suffix.lower() == ".zmx" else "json")
@@ -579,7 +579,7 @@ def _brief(v, n=60) -> str:
 def _num(v, source, surface, key) -> float:
     """A JSON number (not a bool, string, list or object); NaN and inf pass here and are refused by
     :meth:`Lens.validate`, which names them."""
-    from .validate_input import is_real
+    from .io.validate_input import is_real
     if not is_real(v):
         raise LensFileError(f"{key} must be a number, got {type(v).__name__} {_brief(v)}", file=source,
                             surface=surface, keyword=key)
@@ -591,7 +591,7 @@ def _num(v, source, surface, key) -> float:
 
 
 def _integer(v, source, surface, key) -> int:
-    from .validate_input import is_real
+    from .io.validate_input import is_real
     if not is_real(v) or not math.isfinite(_num(v, source, surface, key)) or float(v) != int(v):
         raise LensFileError(f"{key} must be an integer, got {_brief(v)}", file=source, surface=surface, keyword=key)
     return int(v)

@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .plan import Plan
+from .wave.plan import Plan
 from .trace import as_field_list
 from .trace import field_label as _fmt_field
-from .raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
-from .packed import PackedRayWave, packed_bytes, source_plans
+from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
+from .wave.packed import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 
@@ -116,7 +116,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Patch size in sensor pixels (square).
     device : "cpu" | "cuda" | "cuda:N" | "opencl:P:D"
     plan : "auto" | "paper" | Plan
-        Sampling plan (see :mod:`rwwarp.plan`).
+        Sampling plan (see :mod:`rwwarp.wave.plan`).
     dtype : "float64" | "float32"
         Ray-tracing precision (the field is accumulated in float64).
     amplitude : "energy" | "paper"
@@ -138,13 +138,13 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         the aliased part near 1e-4).
     method : "auto" | "focal" | "asm"
         Wave propagation (ray-wave model). ``"focal"`` handles the wave converging to the patch
-        analytically and samples only what reaches the patch (:mod:`rwwarp.focal`); ``"asm"`` is the
+        analytically and samples only what reaches the patch (:mod:`rwwarp.wave.focal`); ``"asm"`` is the
         band-limited angular spectrum over the whole converging beam (the reference path; its cost grows
         with footprint x NA / lambda). ``"auto"``: both are planned from one pilot trace; the ASM runs while
         its plan is under 1 GiB and 20 GFLOP (it is the more accurate on fast lenses such as the A489),
         the focal method beyond; pixel-map DOEs and ``plan="paper"`` always use the ASM.
     memory_budget_gb : float, optional
-        Refuse (:class:`rwwarp.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
+        Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.
     focal_patch_tol : float
         Focal method with a DOE off its design wavelength: a diffraction order other than the main one
@@ -202,7 +202,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     Wave models: every (field, wavelength) pair is planned on its own (one pilot trace of all of them) and
     computed on that plan whatever its batch, so each PSF is the one :func:`psf` gives (to ~1e-16 of the
     peak: the splat's float sums on CPU threads may add in another order). A batch
-    (:class:`rwwarp.packed.PackedRayWave`) traces and splats its members in one set of launches, in arrays
+    (:class:`rwwarp.wave.packed.PackedRayWave`) traces and splats its members in one set of launches, in arrays
     sized to its largest member (the extra rays invalid, the extra samples zero), then propagates each by
     its own plan; batches take members of one propagation method, largest first, within the memory budget
     (:func:`pack_sources`). ``batch`` limits the number of sources per batch (default no limit but the
@@ -250,7 +250,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):
         raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
-    from .plan import default_memory_budget_bytes
+    from .wave.plan import default_memory_budget_bytes
     if memory_budget_gb is not None:
         if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
             raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
@@ -283,7 +283,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     if model in ("ray-wave", "paraxial-wave"):
         # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
         # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
-        # (arrays sized to the batch's largest member; rwwarp.packed.PackedRayWave), each propagated alone
+        # (arrays sized to the batch's largest member; rwwarp.wave.packed.PackedRayWave), each propagated alone
         for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel,
                                                object_distance_mm, opts):
             for chunk_idx in pack_sources(members, size, batch, budget):
@@ -324,7 +324,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
 # ---------------------------------------------------------------------------------------------- helpers
 def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, opts) -> list:
     """Every (field, wavelength) pair of ``pairs`` (indices into ``fields`` (deg) and ``wavelengths_um``)
-    planned on its own (:func:`rwwarp.packed.source_plans`) for the wave models: ``[(members, pairs), ...]``,
+    planned on its own (:func:`rwwarp.wave.packed.source_plans`) for the wave models: ``[(members, pairs), ...]``,
     one entry per system (ray-wave: the lens; paraxial-wave: its equivalent at each wavelength), ``members``
     in the order of that entry's ``pairs``. ``opts``: the :class:`RayWave` options (``device``, ``plan``, ...,
     ``memory_budget_bytes``); ``size`` px of ``pixel`` mm; ``object_distance_mm`` (mm, None: the lens's)."""
@@ -346,7 +346,7 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
     """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
     :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's
     arrays are sized to its largest member, so similar members share one), at most ``batch`` a batch (None:
-    no limit) and within ``budget_bytes`` (:func:`rwwarp.packed.packed_bytes`). A member over the budget on
+    no limit) and within ``budget_bytes`` (:func:`rwwarp.wave.packed.packed_bytes`). A member over the budget on
     its own has already been refused by its plan's check."""
     order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
                                                        -members[k].plan.ray_grid, -members[k].plan.n_grid, k))
@@ -367,7 +367,7 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
 
 
 # ---------------------------------------------------------------------------------------------- comparison models
-from .paraxial_wave import paraxial_equivalent  # noqa: E402,F401  (public here for compatibility)
+from .wave.paraxial_wave import paraxial_equivalent  # noqa: E402,F401  (public here for compatibility)
 
 
 from .ray_model import _ray_model  # noqa: E402,F401

@@ -1,7 +1,7 @@
 """Short reprs and ``.plot()`` for the result classes (:class:`~rwwarp.psf.PSF`, :class:`~rwwarp.psf.PSFMap`,
-:class:`~rwwarp.metrics.MTF`, :class:`~rwwarp.metrics.ThroughFocusMTF`, :class:`~rwwarp.metrics_energy.EnergyCurve`,
-:class:`~rwwarp.metrics_strehl.Strehl`, :class:`~rwwarp.metrics_curves.ChromaticFocalShift`,
-:class:`~rwwarp.metrics_curves.FieldCurves`).
+:class:`~rwwarp.metrics.MTF`, :class:`~rwwarp.metrics.ThroughFocusMTF`, :class:`~rwwarp.metrics.energy.EnergyCurve`,
+:class:`~rwwarp.metrics.strehl.Strehl`, :class:`~rwwarp.metrics.curves.ChromaticFocalShift`,
+:class:`~rwwarp.metrics.curves.FieldCurves`).
 
 A repr names the shape, the sampling and a few numbers, never the arrays themselves (``repr(strehl)`` used to
 embed a whole PSF map). Every ``plot(path=None, ax=None)``: draws into ``ax`` (a matplotlib Axes) or a new

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .backend import get_backend, release_warp_pool  # noqa: F401  (release_warp_pool: public here too)
+from .wave.backend import get_backend, release_warp_pool  # noqa: F401  (release_warp_pool: public here too)
 from .errors import GeometryError, LensError
 from .kernels import trace as ktrace
 from . import paraxial
@@ -569,7 +569,7 @@ class Tracer:
         trace with instead of :attr:`params` (ray aiming traces without clear apertures). ``rim`` (with
         ``grid_n`` and a circular pupil): every cell the unit circle touches is traced, weighted by the
         fraction of it inside, its ray starting at the centroid of that part (:meth:`rim_cells`), instead of
-        the cells whose centre is inside. ``grids`` (a packed batch, :class:`rwwarp.packed.PackedRayWave`):
+        the cells whose centre is inside. ``grids`` (a packed batch, :class:`rwwarp.wave.packed.PackedRayWave`):
         each source's own pupil grid side (``grid_n`` and ``cell`` ignored): source ``k``'s cell-centre grid
         of ``grids[k]^2`` rays, cell area ``(2 / grids[k])^2``, fills the first of its ``max(grids)^2`` ray
         slots, the rest are padding (invalid, zero weight)."""

@@ -46,7 +46,7 @@ def _select_opencl_device(spec: str) -> str:
 def cl_backend():
     """rwwarp OpenCL backend for the tests (PoCL unless PYOPENCL_TEST says otherwise)."""
     pytest.importorskip("pyopencl")
-    from rwwarp.backend import get_backend
+    from rwwarp.wave.backend import get_backend
 
     spec = os.environ.get("PYOPENCL_TEST", "").strip()
     try:

@@ -235,7 +235,7 @@ class CachedProvider:
     def _auto_plan(self, key):
         """The automatic plan of one entry (the DOE unquantised: rwwarp's auto plan cannot align a grid
         to the steps of a flat quantised DOE) refined by the DOE budget and the step rule."""
-        from rwwarp.plan import Plan, nice_fft_length
+        from rwwarp.wave.plan import Plan, nice_fft_length
         from rwwarp.psf import RayWave
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
@@ -268,7 +268,7 @@ class CachedProvider:
     @staticmethod
     def _unify(plans):
         """One plan covering several: the finest pitch, the widest window, padding and ray density."""
-        from rwwarp.plan import Plan, nice_fft_length
+        from rwwarp.wave.plan import Plan, nice_fft_length
         pitch = min(p.pitch_mm for p in plans)
         n_grid = max(math.ceil(p.n_grid * p.pitch_mm / pitch) for p in plans)
         n_pad = nice_fft_length(max([2 * n_grid] + [math.ceil(p.n_pad * p.pitch_mm / pitch) for p in plans]))
@@ -276,7 +276,7 @@ class CachedProvider:
         return Plan(pitch, n_grid, n_pad, rays, "explicit", False, ["shared by the wavelengths of one depth"])
 
     def _recorded_plan(self, key):
-        from rwwarp.plan import Plan
+        from rwwarp.wave.plan import Plan
         rec = self.plans.get(key)
         if rec is None or rec.get("pitch_mm") is None:
             return None
@@ -551,7 +551,7 @@ class CachedProvider:
 
     def cache_bytes(self) -> int:
         """Bytes held by the cached fields and, for focal entries, the nodes' focal operators once built
-        (their factors are of the order of the field: :attr:`rwwarp.focal.FocalPropagator.nbytes`)."""
+        (their factors are of the order of the field: :attr:`rwwarp.wave.focal.FocalPropagator.nbytes`)."""
         ops = sum(op.nbytes for nodes, _, _ in self._focal.values() for rw, _, _ in nodes
                   if (op := getattr(rw, "_focal_op", None)) is not None)
         return sum(e[1].numel() * e[1].element_size() for e in self._cache.values()) + ops + \
@@ -668,7 +668,7 @@ class CachedProvider:
         per entry and chunk size (no trace runs: only their propagation arguments are used)."""
         import warnings
         from rwwarp.errors import SamplingWarning
-        from rwwarp.plan import Plan
+        from rwwarp.wave.plan import Plan
         if chunk >= rw.nsrc:
             return [(slice(0, rw.nsrc), rw)]
         store = self._chunks.setdefault(key, {})

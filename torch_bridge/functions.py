@@ -7,19 +7,19 @@ fixed sampling plan) and runs in float64 unless said otherwise:
   (Warp coherent trace + splat, recorded on a ``wp.Tape``; backward replays the tape).
 * :class:`Propagate`: field (+ DOE phase phi0, + DOE-to-sensor distance) -> power per sensor pixel
   (band-limited ASM + pixel integration, OpenCL/CUDA kernels: a
-  :class:`rwwarp.propagate.SensorPropagator`; backward is its analytic adjoint on the same cached plans).
+  :class:`rwwarp.wave.propagate.SensorPropagator`; backward is its analytic adjoint on the same cached plans).
 * :class:`FocalPropagate`: field on a focal plan's wave-plane grid (+ distance) -> power per sensor
-  pixel (:class:`rwwarp.focal.FocalPropagator`: the converging wave handled analytically; backward is
+  pixel (:class:`rwwarp.wave.focal.FocalPropagator`: the converging wave handled analytically; backward is
   the operator's adjoint and its exact distance derivative).
 * :class:`MixedPrecision`: float64 forward -> float32, float32 gradient -> float64 (the paper's
   mixed precision: the optics in double, the network in single).
 * :class:`QuantizeSTE`: DOE phase wrapped to [0, 2 pi) and quantised to N levels with a
   straight-through gradient.
 
-Units: lengths in mm, wavelengths in um, phases in radians, powers as in :mod:`rwwarp.propagate`
+Units: lengths in mm, wavelengths in um, phases in radians, powers as in :mod:`rwwarp.wave.propagate`
 (field units^2 mm^2 per pixel; :func:`raywave_psf` divides by the entering power).
 
-Gradient convention for complex tensors (torch's, and :mod:`rwwarp.propagate`'s): for a real loss L
+Gradient convention for complex tensors (torch's, and :mod:`rwwarp.wave.propagate`'s): for a real loss L
 of a complex tensor z the gradient is ``dL/dRe z + 1j dL/dIm z``. Warp ``vec2d`` fields hold
 ``(Re, Im)``, so the incoming torch gradient maps to the Warp adjoint component-wise, without a
 conjugation (checked with ``torch.autograd.gradcheck``).
@@ -341,19 +341,19 @@ def power_sums(rw, device):
 
 def paper_amplitude(u, rw):
     """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
-    so that the field carries the traced power (:func:`rwwarp.raywave.paper_rescale`, in torch)."""
-    from rwwarp.raywave import paper_rescale
+    so that the field carries the traced power (:func:`rwwarp.wave.raywave.paper_rescale`, in torch)."""
+    from rwwarp.wave.raywave import paper_rescale
     return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch)
 
 
 # ---------------------------------------------------------------------------------------------- propagation
 def sensor_operator(rw, distance=None, tile=None, with_doe=False):
-    """The :class:`rwwarp.propagate.SensorPropagator` of a RayWave's patches: ``distance`` (mm, (S,) or
+    """The :class:`rwwarp.wave.propagate.SensorPropagator` of a RayWave's patches: ``distance`` (mm, (S,) or
     None for the RayWave's own) replaces the plane-to-sensor distance; with ``tile = (r0, r1, c0, c1)``
     only those sensor pixel rows / columns, evaluated with the whole patch's window centre (so that
     the tile has the whole patch's band limits and equals its pixels; cached per RayWave and its
     centres); ``with_doe``: the DOE wavelength remap goes with a DOE phase."""
-    from rwwarp.propagate import SensorPropagator, sensor_window_center
+    from rwwarp.wave.propagate import SensorPropagator, sensor_window_center
     g = rw.sensor_geometry(doe_scale(rw) if with_doe else None)
     if distance is not None:
         g = g.with_(distance_mm=np.broadcast_to(np.asarray(distance, dtype=np.float64), (rw.nsrc,)).copy())
@@ -412,7 +412,7 @@ def backend_for(device: str):
     """rwwarp's backend for ``device``; on CUDA it gets a release hook that empties torch's caching
     allocator when a propagation allocation fails, so torch's cached blocks and rwwarp's buffers
     share the GPU instead of one allocator starving the other."""
-    from rwwarp import backend as bk
+    from rwwarp.wave import backend as bk
     be = bk.get_backend(device)
     if be.kind == "cuda":
         be.add_release_hook(_torch_release)
@@ -440,11 +440,11 @@ class Propagate(torch.autograd.Function):
     with the whole patch's window centre, so equal to those pixels of the whole patch), and
     ``keep_nodes=False`` to keep no node field for backward (recomputed there: a checkpoint).
 
-    The operator (:func:`sensor_operator`, a :class:`rwwarp.propagate.SensorPropagator`) is made once in
-    the forward pass and kept for the backward pass: its :meth:`~rwwarp.propagate.SensorPropagator.adjoint`
+    The operator (:func:`sensor_operator`, a :class:`rwwarp.wave.propagate.SensorPropagator`) is made once in
+    the forward pass and kept for the backward pass: its :meth:`~rwwarp.wave.propagate.SensorPropagator.adjoint`
     (conjugate transfer function on the same cached FFT plans, reusing the node field of the forward
     pass) for ``field`` and ``phi0``; when the distance needs a gradient, its
-    :meth:`~rwwarp.propagate.SensorPropagator.distance_adjoint` instead, which also returns the
+    :meth:`~rwwarp.wave.propagate.SensorPropagator.distance_adjoint` instead, which also returns the
     analytic d/d(distance): ``dH/dz = 2 pi i w H``
     (``w = sqrt(1/lambda^2 - fx^2 - fy^2)``), contracted with the band spectrum and its gradient on
     the device (one extra pruned FFT of the field; the band limits, which move with z in jumps, are
@@ -538,7 +538,7 @@ def _from_xp(a, device):
 
 class FocalPropagate(torch.autograd.Function):
     """Wave-plane field -> power per sensor pixel by the focal propagation of a RayWave planned with
-    ``method="focal"`` (:class:`rwwarp.focal.FocalPropagator`).
+    ``method="focal"`` (:class:`rwwarp.wave.focal.FocalPropagator`).
 
     ``FocalPropagate.apply(field, distance, rw, distance_host=None)``: ``field`` complex128 (S, n, n) on the focal plan's
     wave-plane grid, carrier removed and any DOE orders already applied (``sum_m c_m exp(i m phi0)``,
@@ -546,13 +546,13 @@ class FocalPropagate(torch.autograd.Function):
     entries equal: one lens). Returns float64 (S, size, size), ``|U|^2`` integrated over each pixel.
 
     Backward: the operator's adjoint for ``field`` (exact conjugate transpose) and, for ``distance``,
-    its exact derivative :meth:`~rwwarp.focal.FocalPropagator.distance_derivative` at the fixed plan
+    its exact derivative :meth:`~rwwarp.wave.focal.FocalPropagator.distance_derivative` at the fixed plan
     (grids, band mask, carrier): finite differences on the same RayWave agree to rounding.
     """
 
     @staticmethod
     def forward(ctx, field, distance, rw, distance_host=None):
-        from rwwarp.focal import pixel_power
+        from rwwarp.wave.focal import pixel_power
         if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
             # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
             raise ValueError(f"focal_propagate: the field is on {field.device} but its RayWave was planned on "
@@ -573,7 +573,7 @@ class FocalPropagate(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        from rwwarp.focal import pixel_power_adjoint
+        from rwwarp.wave.focal import pixel_power_adjoint
         rw, op, xp = ctx.rw, ctx.op, ctx.xp
         need_f, need_d = ctx.needs_input_grad[:2]
         _, g = _xp_of(grad_out.to(torch.float64))
@@ -592,8 +592,8 @@ class FocalPropagate(torch.autograd.Function):
 def doe_orders_factor(phi0, orders):
     """``sum_m c_m exp(1j m phi0)`` per source (S, n, n) complex128 from the unwrapped DOE phase ``phi0``
     (rad, float64 (S, n, n)) and the orders a focal plan kept (``rw.focal["orders"]``: per source a list
-    of ``(m, c_m)``); differentiable in ``phi0`` (:func:`rwwarp.focal.doe_order_series` in torch)."""
-    from rwwarp.focal import doe_order_series
+    of ``(m, c_m)``); differentiable in ``phi0`` (:func:`rwwarp.wave.focal.doe_order_series` in torch)."""
+    from rwwarp.wave.focal import doe_order_series
     return doe_order_series(phi0, orders, None, torch)
 
 
@@ -608,7 +608,7 @@ def focal_doe_factor(rw, phi0):
         return None
     if rw.focal["profile"] is not None:
         # the kept orders, the chief ray's wrap zone exact: the same function as rwwarp's, in torch
-        from rwwarp.focal import doe_order_series
+        from rwwarp.wave.focal import doe_order_series
         return doe_order_series(phi0, rw.focal["orders"], rw.focal.get("central_zone"), torch)
     alpha = torch.as_tensor(doe_scale(rw), dtype=torch.float64, device=phi0.device)
     return torch.exp(1j * alpha[:, None, None] * phi0)

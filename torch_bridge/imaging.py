@@ -70,7 +70,7 @@ def _supports(w: torch.Tensor):
 
 
 def _fast_len(n: int) -> int:
-    from rwwarp.propagate import next_fft_size
+    from rwwarp.wave.propagate import next_fft_size
     return next_fft_size(n)
 
 

@@ -35,7 +35,7 @@ class LiveProvider:
     at the plan's first use by more than ``window_tol`` of the source's ray grid (``ray_grid^2``; default
     1e-5: the power those rays carried is lost from the field, a PSF error of that order, below a kept
     plan's own, see below). 1 (default): every call plans afresh. The focal operator is exact for any fitted transfer and the grids carry margins
-    (``nyquist_safety``, the displacement margins of :func:`rwwarp.plan.plan_focal`), so a plan a few
+    (``nyquist_safety``, the displacement margins of :func:`rwwarp.wave.plan.plan_focal`), so a plan a few
     small optimiser steps old samples the source as well (a 5e-5 change of a curvature: 4.7e-6 from a
     fresh plan, ``tests/torch_bridge/test_live_replan.py``); gradients are exact at the plan used.
     Kept plans are not part of a training checkpoint: a resumed run plans afresh, so with N > 1 its next

@@ -79,7 +79,7 @@ class HybridLens(nn.Module):
         The lens (copied). The ray-wave model needs the DOE (if any) behind every refracting surface.
     learn : dict, optional
         ``{quantity: "all" | [entries]}`` (see the module docstring); everything else is a buffer.
-    plan : "auto" | "paper" | rwwarp.plan.Plan
+    plan : "auto" | "paper" | rwwarp.wave.plan.Plan
         Sampling plan policy of each forward call.
     rays_per_sample, nyquist_safety, amplitude, gauss_nodes, use_reference :
         As :func:`rwwarp.psf` (``amplitude`` "energy" or "paper").
@@ -346,7 +346,7 @@ class HybridLens(nn.Module):
         ray-state buffers (a frozen refractive part, e.g. :class:`~torch_bridge.design.CachedProvider`).
         ``method``: override of the module's propagation method; ``memory_budget_bytes``: the planner's
         estimate of the batch is checked against it before anything is traced
-        (:class:`rwwarp.plan.MemoryBudgetError` names the estimate and the knobs)."""
+        (:class:`rwwarp.wave.plan.MemoryBudgetError` names the estimate and the knobs)."""
         from rwwarp.psf import RayWave
         self._once("finite", self.check_finite)
         fields = field_pairs(fields)
@@ -580,20 +580,20 @@ class HybridLens(nn.Module):
 
     def memory_budget(self, memory_budget_bytes=None) -> int:
         """``memory_budget_bytes``, or the device default: half the available memory
-        (:func:`rwwarp.plan.default_memory_budget_bytes`), bytes."""
+        (:func:`rwwarp.wave.plan.default_memory_budget_bytes`), bytes."""
         if memory_budget_bytes is not None:
             if not memory_budget_bytes > 0:
                 raise ValueError(f"memory_budget_bytes must be > 0, got {memory_budget_bytes!r}")
             return int(memory_budget_bytes)
-        from rwwarp.plan import default_memory_budget_bytes as rw_default
+        from rwwarp.wave.plan import default_memory_budget_bytes as rw_default
         return int(rw_default(self.rw_device))
 
     def check_budget(self, rw, budget_bytes: int, spatial_tile=None, sources: int = 1) -> int:
         """Estimated peak bytes of ``sources`` recorded sources of ``rw`` (forward + backward: the trace with
         gradients, :meth:`bytes_per_source`, plus the output side of the propagation at ``spatial_tile``);
-        raises :class:`rwwarp.plan.MemoryBudgetError` naming the estimate and the knobs when it exceeds
+        raises :class:`rwwarp.wave.plan.MemoryBudgetError` naming the estimate and the knobs when it exceeds
         ``budget_bytes``, before anything is traced. Returns the estimate."""
-        from rwwarp.plan import check_budget
+        from rwwarp.wave.plan import check_budget
         est = sources * (self.bytes_per_source(rw) + self.output_bytes_per_source(rw, spatial_tile))
         check_budget({"memory_bytes": est}, int(budget_bytes),
                      f"a differentiable ray-wave PSF ({sources} source(s), {rw.plan.method}: {rw.plan.ray_grid}^2 rays "
@@ -629,7 +629,7 @@ class HybridLens(nn.Module):
         ``spatial_tile``: propagate in tiles of that many sensor pixels a side (each recomputed in
         backward; same result), or chosen from ``memory_budget_bytes`` (:meth:`spatial_tile_for`). The source's
         estimated peak (:meth:`check_budget`) is checked against ``memory_budget_bytes`` (default: half the
-        available memory of the device, :func:`rwwarp.plan.default_memory_budget_bytes`) before tracing."""
+        available memory of the device, :func:`rwwarp.wave.plan.default_memory_budget_bytes`) before tracing."""
         rw = self.raywave([field_deg], [wavelength_um], size, object_distance_mm=object_distance_mm,
                           pixel_mm=pixel_mm, center_mm=center_mm)
         budget = self.memory_budget(memory_budget_bytes)

@@ -1,4 +1,4 @@
-"""The deterministic per-source sums (kernels/reduce.py, rwwarp.reduce.source_sums) against numpy's
+"""The deterministic per-source sums (kernels/reduce.py, rwwarp.wave.reduce.source_sums) against numpy's
 math.fsum (exactly rounded), their run-to-run bits, and their gradient under wp.Tape (the adjoint of a sum
 hands every term the sum's gradient)."""
 import math
@@ -8,7 +8,7 @@ import pytest
 
 wp = pytest.importorskip("warp")
 
-from rwwarp.reduce import source_sums
+from rwwarp.wave.reduce import source_sums
 
 V4 = wp.types.vector(4, wp.float64)
 

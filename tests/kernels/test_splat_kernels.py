@@ -55,7 +55,7 @@ def _splat(device, rays, src, n_grid, energy, use_reference, fixed=False):
         wp.launch(K.splat_kernel, dim=n, inputs=ins + [0, nb], outputs=[s_re, s_im, dropped, na, na, nv],
                   device=device)
     else:
-        from rwwarp.reduce import source_sums
+        from rwwarp.wave.reduce import source_sums
         amps = wp.zeros(n, dtype=K.vec4d, device=device)
         wp.launch(K.splat_kernel, dim=n, inputs=ins + [2, nb], outputs=[s_re, s_im, wp.zeros_like(dropped), na, na, amps],
                   device=device)
@@ -272,7 +272,7 @@ def test_energy_conservation_with_traced_rays(device, rays_per_cell, circle):
     wp.launch(K.tube_area_kernel, dim=npup, inputs=[pos, valid, g, no_rim, 0, 0, wp.zeros((1, 5), dtype=V3, device=device),
                                                     _ph(device), 0, 0],
               outputs=[area, half], device=device)
-    from rwwarp.reduce import source_sums
+    from rwwarp.wave.reduce import source_sums
     terms = wp.zeros(npup, dtype=wp.types.vector(4, F64), device=device)
     wp.launch(K.power_sums_kernel, dim=npup, inputs=[valid, weight], outputs=[terms], device=device)
     sums = source_sums(terms, 1, F64, device).numpy().reshape(1, 4)
@@ -300,7 +300,7 @@ def test_deterministic_splat_is_the_same_bits_every_run_and_agrees_with_the_floa
     relative (1e-11 with the 5824^2 rays of an ASM plan: the resolution is the bound, the sum of the rays'
     amplitudes, over 2^61); tolerance 1e-12. The dropped-ray count is the float splat's."""
     import rwwarp as rw
-    from rwwarp.raywave import RayWave
+    from rwwarp.wave.raywave import RayWave
     lens = rw.load_lens("cooke_triplet")
 
     def field(det):

@@ -289,7 +289,7 @@ def test_spot_moments_and_rms(device, rng):
     pos = np.column_stack([rng.normal(5.0, 0.01, (nsrc * npup, 2)), np.zeros(nsrc * npup)])
     valid = (rng.random(nsrc * npup) < 0.8).astype(np.int32)
     valid[np.arange(nsrc) * npup + npup // 2] = 1
-    from rwwarp.reduce import source_sums
+    from rwwarp.wave.reduce import source_sums
     terms = wp.zeros(nsrc * npup, dtype=wp.types.vector(4, F64), device=device)
     rms = wp.zeros(nsrc, dtype=F64, device=device)
     wp.launch(K.moments_kernel, dim=nsrc * npup,

@@ -6,8 +6,8 @@ from pathlib import Path
 import pytest
 
 import rwwarp as rw
-from rwwarp.plan import MemoryBudgetError
-from rwwarp.raywave import RayWave
+from rwwarp.wave.plan import MemoryBudgetError
+from rwwarp.wave.raywave import RayWave
 
 COOKE = Path(__file__).resolve().parents[2] / "torch_bridge" / "configs" / "lenses" / "cooke_hybrid.json"
 

@@ -13,7 +13,7 @@ from rwwarp import convergence as cv
 from rwwarp.errors import SamplingWarning
 from rwwarp.ground_truth import rs_lens_psf, rs_thin_lens_psf
 from rwwarp.lens import Lens, Sensor, Surface
-from rwwarp.plan import Plan
+from rwwarp.wave.plan import Plan
 
 WL = 0.55
 SIZE = 32

@@ -155,7 +155,7 @@ def test_blank_doe_with_levels_is_a_plain_window(model):
 # ------------------------------------------------------------------ defect 7: stop apertures in Zemax files
 def _cooke_zmx_text():
     from importlib import resources
-    from rwwarp.io_zemax import _decode
+    from rwwarp.io.zemax import _decode
     raw = (resources.files("rwwarp") / "lenses" / "cooke_triplet.zmx").read_bytes()
     return _decode(raw).replace("\r\n", "\n")
 

@@ -1,10 +1,10 @@
-"""The DOE transmission as kept diffraction orders (rwwarp.focal.doe_order_series), written once for
+"""The DOE transmission as kept diffraction orders (rwwarp.wave.focal.doe_order_series), written once for
 numpy, CuPy and torch: against the wrapped transmission exp(1j alpha wrap(phi0)) it expands, and the
 same in numpy and torch."""
 import numpy as np
 import pytest
 
-from rwwarp.focal import doe_order_coefficients, doe_order_series
+from rwwarp.wave.focal import doe_order_coefficients, doe_order_series
 
 
 def _case(alpha=0.93, M=64):

@@ -1,4 +1,4 @@
-"""Zemax .zmx export (rwwarp.io_zemax_write, Lens.save): round trips through the reader, the text
+"""Zemax .zmx export (rwwarp.io.zemax_write, Lens.save): round trips through the reader, the text
 itself, and refusals of what a .zmx cannot hold."""
 import json
 import math
@@ -10,7 +10,7 @@ import pytest
 
 import rwwarp as rw
 from rwwarp.errors import LensError
-from rwwarp.io_zemax_write import zmx_text
+from rwwarp.io.zemax_write import zmx_text
 from rwwarp.lens import Lens, Sensor, Surface
 
 BUNDLED = ["cooke_triplet", "cooke_triplet.zmx", "a489_doe", "thin_lens_doe"]
@@ -103,7 +103,7 @@ def test_reference_file_written_by_opticstudio_reads_back_identically(tmp_path):
     a = rw.load_lens("cooke_triplet.zmx")
     for enc in ("utf-8", "utf-16"):
         p = tmp_path / f"c_{enc}.zmx"
-        from rwwarp.io_zemax_write import write_zmx
+        from rwwarp.io.zemax_write import write_zmx
         write_zmx(a, p, encoding=enc)
         b = rw.load_lens(p)
         da, db = a.to_dict(), b.to_dict()

@@ -1,4 +1,4 @@
-"""Focal propagation (rwwarp.focal) and the planner that sizes it: checked against independent truth.
+"""Focal propagation (rwwarp.wave.focal) and the planner that sizes it: checked against independent truth.
 
 References, none of which shares code with the propagation:
 * ``rs_lens_psf``: traced rays, ray-tube amplitudes, exact Rayleigh-Sommerfeld kernel summed directly
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import rwwarp as rw
-from rwwarp.focal import doe_order_coefficients
+from rwwarp.wave.focal import doe_order_coefficients
 from rwwarp.ground_truth import rs_lens_psf, rs_thin_lens_psf
 from rwwarp.lens import Lens, Surface
-from rwwarp.plan import MemoryBudgetError
+from rwwarp.wave.plan import MemoryBudgetError
 from rwwarp.psf import RayWave
 
 
@@ -230,7 +230,7 @@ def test_a489_off_axis_focal_against_truth():
 def test_focal_operator_adjoint_is_the_conjugate_transpose(fitted):
     """<A x, y> = <x, A^H y> for random complex x, y (the operator's adjoint, used for gradients), with the
     Taylor quadratic transfer and with a fitted one plus the sensor-side taper."""
-    from rwwarp.focal import FocalPropagator
+    from rwwarp.wave.focal import FocalPropagator
     rng = np.random.default_rng(1)
     S, n, ns, nf, m = 2, 24, 20, 32, 9
     extra = {"transfer": ([[0.0, 0.0], [0.0, -0.0155]], [[-6.0e-4, -6.1e-4], [-5.9e-4, -6.2e-4]]),
@@ -251,7 +251,7 @@ def test_focal_operator_adjoint_is_the_conjugate_transpose(fitted):
 def test_sensor_taper_is_one_inside_zero_at_the_ends_and_smooth():
     """The taper against its definition: 1 on [lo, hi], 0 at the grid's ends, 1/2 halfway (symmetry of
     s(t) = e(t) / (e(t) + e(1 - t))), and monotone in between."""
-    from rwwarp.focal import sensor_taper
+    from rwwarp.wave.focal import sensor_taper
     p = np.linspace(-1.0, 1.0, 401)[None]
     w = sensor_taper(p, np.array([-0.2]), np.array([0.4]))[0]
     inside = (p[0] >= -0.2) & (p[0] <= 0.4)
@@ -264,8 +264,8 @@ def test_fitted_transfer_narrows_the_remainder_off_axis():
     """fit_quadratic_transfer on an exact beam (straight rays converging at 14 deg through NA 0.1): the
     largest remainder displacement z |grad w - g - q (f - f_c)| falls below the Taylor expansion's
     (computed here from w(f) = sqrt(k^2 - |f|^2) directly)."""
-    from rwwarp.plan import fit_quadratic_transfer
-    from rwwarp.focal import transfer_curvature
+    from rwwarp.wave.plan import fit_quadratic_transfer
+    from rwwarp.wave.focal import transfer_curvature
     lam, z = 5.876e-4, 42.0
     k = 1.0 / lam
     rng = np.random.default_rng(0)
@@ -326,7 +326,7 @@ def test_wrapped_doe_off_design_wavelength_against_the_converged_asm():
     2.87e-3. Tolerance 6e-3 (about twice): the rest is the order series at the real zone edges (open,
     docs/propagation.md)."""
     import warnings
-    from rwwarp.plan import Plan, nice_fft_length
+    from rwwarp.wave.plan import Plan, nice_fft_length
     lens = _cooke_with_doe(-30000.0, 0.0)
     fo = rw.psf(lens, 0.0, 0.5876, size=32, method="focal")
     c = tuple(fo.center_mm)

@@ -92,7 +92,7 @@ def test_directories_fifos_devices_and_long_paths(tmp_path):
 
 
 def test_byte_cap(tmp_path, monkeypatch):
-    import rwwarp.validate_input as vi
+    import rwwarp.io.validate_input as vi
     monkeypatch.setattr(vi, "MAX_FILE_BYTES", 1000)
     monkeypatch.setattr(vi.read_lens_bytes, "__defaults__", (1000,))
     p = tmp_path / "big.json"

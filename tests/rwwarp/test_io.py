@@ -10,8 +10,8 @@ import pytest
 import rwwarp.lens as lensmod
 from rwwarp import doe
 from rwwarp.errors import GeometryError, GeometryWarning, GlassError, LensError, LensFileError
-from rwwarp.io_deeplens import lens_from_deeplens
-from rwwarp.io_zemax import read_zmx
+from rwwarp.io.deeplens import lens_from_deeplens
+from rwwarp.io.zemax import read_zmx
 from rwwarp.io import load_lens
 from rwwarp.lens import Lens
 

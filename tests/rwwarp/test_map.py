@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import rwwarp as rw
-from rwwarp import backend as bk
+from rwwarp.wave import backend as bk
 from rwwarp import convergence as cv
 from rwwarp.ground_truth import rs_lens_psf
 from rwwarp.lens import Lens, Sensor, Surface

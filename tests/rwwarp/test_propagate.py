@@ -1,4 +1,4 @@
-"""Band-limited angular spectrum propagation (rwwarp.propagate) on OpenCL (PoCL by default).
+"""Band-limited angular spectrum propagation (rwwarp.wave.propagate) on OpenCL (PoCL by default).
 
 Oracles: numpy.fft; an independent numpy implementation of the (shifted) BL-ASM written here
 from Matsushima's papers; the analytic paraxial Gaussian beam; the exact angular-spectrum integral
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.special import erf
 
-from rwwarp import propagate as prop
+from rwwarp.wave import propagate as prop
 from rwwarp.errors import SamplingWarning
 
 # ----------------------------------------------------------------------------------------------
@@ -143,7 +143,7 @@ def test_fft2_matches_numpy(backend, dtype, shape):
 
 
 def test_backend_arrays_and_selection(backend):
-    from rwwarp.backend import get_backend
+    from rwwarp.wave.backend import get_backend
 
     assert get_backend(backend.device) is backend  # memoised
     host = np.arange(12, dtype=np.complex64).reshape(3, 4) * (1 - 2j)
@@ -162,7 +162,7 @@ def test_cuda_without_cupy_is_a_clear_error():
         pytest.skip("CuPy is installed")
     except ImportError:
         pass
-    from rwwarp.backend import get_backend
+    from rwwarp.wave.backend import get_backend
 
     with pytest.raises(RuntimeError, match="CuPy"):
         get_backend("cuda:0")
@@ -623,7 +623,7 @@ def _cuda_backend():
             pytest.skip("no CUDA device")
     except RuntimeError:  # cupy.cuda.runtime.CUDARuntimeError: no driver / device
         pytest.skip("no CUDA device")
-    from rwwarp.backend import get_backend
+    from rwwarp.wave.backend import get_backend
 
     return get_backend("cuda")
 
@@ -661,7 +661,7 @@ def test_x_fft_plans_shared_across_window_heights(cl_backend):
     """Windows a few rows apart share one x-FFT plan (row count on a coarse ladder, plans cost
     ~0.5 s each), and the shared plan's extra rows do not leak into the result: every window still
     conserves energy to 1e-8 (Parseval, as in test_energy_conservation)."""
-    from rwwarp.propagate_stages import _fft_rows
+    from rwwarp.wave.propagate_stages import _fft_rows
 
     be = cl_backend
     assert [_fft_rows(n) for n in (1, 7, 8, 9, 15, 16, 17)] == [1, 7, 8, 9, 15, 16, 18]

@@ -6,7 +6,7 @@ import pytest
 import rwwarp as rw
 from rwwarp.lens import Lens, Surface, Sensor
 from rwwarp import analytic
-from rwwarp.plan import Plan
+from rwwarp.wave.plan import Plan
 from rwwarp.errors import SamplingWarning, LensError
 
 

@@ -8,7 +8,7 @@ import warp as wp
 
 from rwwarp.lens import Lens, Surface, Sensor
 from rwwarp.trace import Tracer, pupil_grid
-from rwwarp.analysis import spot_rms, spot_rms_tape, efl_tape
+from rwwarp.metrics.analysis import spot_rms, spot_rms_tape, efl_tape
 from rwwarp.kernels import trace as ktrace
 from rwwarp import paraxial
 

@@ -134,7 +134,7 @@ def test_cooke_hybrid_presets_are_at_the_papers_aperture(preset):
 def test_hybridlens_refuses_a_psf_over_the_memory_budget_before_tracing():
     """HybridLens.psf / psf_map check the estimated peak of a recorded source against the budget (issue:
     hostile input, memory) and name the estimate and the knobs; within the budget they run."""
-    from rwwarp.plan import MemoryBudgetError
+    from rwwarp.wave.plan import MemoryBudgetError
     lens = _thin_lens_doe([-40.0, 6.0])
     m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", rays_per_sample=0.5)
     with pytest.raises(MemoryBudgetError, match="rays_per_sample") as e:
@@ -175,7 +175,7 @@ def test_blank_doe_learns_through_the_focal_path_and_is_replanned_once_it_grows(
 
 def test_live_provider_refuses_a_chunk_over_the_budget():
     """LiveProvider checks each chunk's estimated recorded peak before tracing it."""
-    from rwwarp.plan import MemoryBudgetError
+    from rwwarp.wave.plan import MemoryBudgetError
     lens = _thin_lens_doe([-40.0, 6.0])
     m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", rays_per_sample=0.5)
     with pytest.raises(MemoryBudgetError, match="rays_per_sample"):

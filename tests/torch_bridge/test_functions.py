@@ -12,7 +12,7 @@ from rwwarp.kernels import trace as ktrace
 
 import torch_bridge as tb
 from rwwarp.lens import Lens, Sensor, Surface
-from rwwarp.plan import Plan
+from rwwarp.wave.plan import Plan
 from rwwarp.psf import RayWave
 from torch_bridge.functions import Propagate, TraceSplat
 
@@ -147,7 +147,7 @@ def test_parameter_table_loads_device_to_device():
     import warp as wp
 
     import rwwarp as rw
-    from rwwarp.raywave import RayWave
+    from rwwarp.wave.raywave import RayWave
     from torch_bridge.functions import load_table
     lens = rw.load_lens("cooke_triplet")
     r = RayWave(lens, [0.0], [0.55], 8, lens.sensor.pixel_pitch, method="focal", requires_grad=True)

@@ -1,6 +1,6 @@
 import json, glob, math, warnings, rwwarp as rw
 from rwwarp import materials
-from rwwarp.io_deeplens import _material
+from rwwarp.io.deeplens import _material
 out = {}
 for p in sorted(glob.glob('tests/data/third_party/files/DeepLens/*.json')):
     try:

@@ -1,7 +1,7 @@
 """Deterministic per-source sums of per-ray values on the device (the tree of :mod:`rwwarp.kernels.reduce`).
 
 Used where a sum over a source's rays feeds a result: the traced and valid power of each source
-(:class:`rwwarp.raywave.RayWave`) and the spot moments (:func:`rwwarp.analysis.spot_rms_tape`). The same
+(:class:`rwwarp.wave.raywave.RayWave`) and the spot moments (:func:`rwwarp.metrics.analysis.spot_rms_tape`). The same
 inputs give the same bits on every run and device (no atomics), and the sums differentiate under
 ``wp.Tape``.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .kernels.reduce import WIDE, WIDTH, make_reduce_kernels
+from ..kernels.reduce import WIDE, WIDTH, make_reduce_kernels
 
 
 def source_sums(values, n_src: int, scalar, device: str, requires_grad: bool = False):

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import LensError
-from .metrics_sampling import (
+from ..errors import LensError
+from .sampling import (
     default_sampling_mm, _as_fields, _as_wavelengths, _check_model, _check_positive, _check_psf_array,
     _image_space_rays, _patch_check, _psfs,
 )
@@ -64,12 +64,12 @@ class Strehl:
     info: dict = field(default_factory=dict)
 
     def __repr__(self):
-        from .results import strehl_repr
+        from ..results import strehl_repr
         return strehl_repr(self)
 
     def plot(self, path=None, ax=None):
         """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
-        from .results import plot_strehl
+        from ..results import plot_strehl
         return plot_strehl(self, path=path, ax=ax)
 
 
@@ -164,7 +164,7 @@ def strehl_from_psf_map(lens, m, grid: int = 401, device: str = "cpu", object_di
             pk, (dx, dy) = peak_intensity_from_psf(m.data[i, j], m.pixel_mm)
             pt = (m.centers_mm[i, j, 0] + dx, m.centers_mm[i, j, 1] + dy)
             if m.model == "paraxial-wave":
-                from .psf import paraxial_equivalent
+                from ..psf import paraxial_equivalent
                 eq, eqf = paraxial_equivalent(lens, [f], [w], object_distance_mm)
                 ideal[i, j] = vf[i, j] * ideal_peak_intensity(eq, eqf[0], w, pt, grid, device, per="passing")
             else:

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from .errors import LensError
+from ..errors import LensError
 
 TWO_PI = 2.0 * math.pi
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, asdict, replace
 import numpy as np
 
 
-from .errors import SamplingWarning
+from ..errors import SamplingWarning
 
 
 def nice_fft_length(n: int) -> int:
@@ -39,7 +39,7 @@ class Plan:
     ``pitch_mm`` of the wave-plane grid, ``n_grid`` samples per side, ``n_pad`` FFT length of the
     band-limited ASM (``method="asm"``), ``ray_grid`` pupil samples across the diameter, ``reasons``
     (text, a tuple). ``method``: ``"asm"`` (band-limited angular spectrum over the whole beam) or
-    ``"focal"`` (reference wave handled analytically, :mod:`rwwarp.focal`), which also uses the sensor-side
+    ``"focal"`` (reference wave handled analytically, :mod:`rwwarp.wave.focal`), which also uses the sensor-side
     grid ``sensor_pitch_mm`` x ``n_sensor`` and its FFT length ``n_sensor_fft``. ``estimate``: the
     planner's cost estimate (``memory_bytes``, ``flops``) for the whole batch, or None.
     """
@@ -137,7 +137,7 @@ def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> di
 
     Counted: the traced rays (two ping-pong ray states of position, direction, OPL and validity, plus
     tube areas, weights and wavelengths: ~200 bytes a ray, and the 32-byte power terms summed per
-    source by :func:`rwwarp.reduce.source_sums`), the splat accumulators and the field
+    source by :func:`rwwarp.wave.reduce.source_sums`), the splat accumulators and the field
     (~64 bytes a wave-plane sample), and the propagation's arrays: for ``asm`` the padded FFT
     (``n_pad^2``, two complex buffers) and the output matrix DFT; for ``focal`` the two separable
     kernel matrices (``n_sensor x n_grid``), the sensor-side FFT (``n_sensor_fft^2``, three complex
@@ -188,7 +188,7 @@ def landing_points(xy, f, inv_lam, distance_mm):
 def fit_quadratic_transfer(freqs, landings, points, f_c, g, q, distance_mm):
     """The separable quadratic transfer that best matches a beam's straight-ray landings (least squares).
 
-    The focal method (:mod:`rwwarp.focal`) splits the angular-spectrum transfer ``exp(2 pi i z w(f))`` into
+    The focal method (:mod:`rwwarp.wave.focal`) splits the angular-spectrum transfer ``exp(2 pi i z w(f))`` into
     a separable quadratic part ``w_G(f) = w_c + g.(f - f_c) + sum_a q_a (f_a - f_c,a)^2 / 2`` and an exact
     remainder. Any ``g`` and (negative) ``q`` keep the split exact; they only decide how far the remainder
     moves light, ``z |grad w(f) - g - q (f - f_c)|``, and so how wide the sensor-side box must be. The Taylor
@@ -230,7 +230,7 @@ FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ri
 
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
                rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5, straight_edges=False):
-    """Sampling of the focal propagation (:mod:`rwwarp.focal`) for one batch, from a pilot trace.
+    """Sampling of the focal propagation (:mod:`rwwarp.wave.focal`) for one batch, from a pilot trace.
 
     Per source ``k``: ``xy[k]`` (N, 2) wave-plane points of the pilot rays (mm), ``freq[k]`` (N, 2) their
     transverse frequencies before the DOE (cycles/mm), ``doe_freq[k]`` (N, 2) the DOE's
@@ -252,7 +252,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       with ``straight_edges``) and ``FOCAL_SHIFT_MARGIN`` times
       the displacement; its pitch samples ``B`` ``nyquist_safety`` times above Nyquist; ``V`` is tapered to
       zero between the patch widened by ``FOCAL_TAPER_GUARD`` displacements plus ``3 / B`` and the grid's edge
-      (``taper_guard_mm``, :func:`rwwarp.focal.sensor_taper`);
+      (``taper_guard_mm``, :func:`rwwarp.wave.focal.sensor_taper`);
     * the wave-plane pitch sets the period of the generalised-Fresnel sum, ``1 / (|A| pitch)`` (``|A| ~ n /
       (lambda z)``): ``nyquist_safety`` times the largest of ``FOCAL_PITCH_FACTOR`` sensor-side grids (the
       cell-phase error near the patch), ``FOCAL_MAIN_SPREAD`` times the spread of the main order's landing
@@ -265,7 +265,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
 
     Returns ``(plan, geometry)``; ``geometry`` has ``sensor_origin`` (S, 2), ``orders`` (the kept
     ``(m, c_m)`` per source), ``lost_power`` (S,), the fraction in dropped orders, ``transfer``, the
-    fitted ``(g, q)`` (S, 2) each, and ``taper_guard_mm``, for :class:`rwwarp.focal.FocalPropagator`.
+    fitted ``(g, q)`` (S, 2) each, and ``taper_guard_mm``, for :class:`rwwarp.wave.focal.FocalPropagator`.
     """
     from .focal import transfer_curvature
     S = len(xy)
@@ -375,7 +375,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     samples = width_mm / pitch
     ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), samples / 4))) + 1
     reasons = (
-        f"focal propagation: reference wave to the patch centre handled analytically (rwwarp.focal)",
+        f"focal propagation: reference wave to the patch centre handled analytically (rwwarp.wave.focal)",
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "

@@ -9,7 +9,7 @@ when it is installed, else through ``cupy.fft`` (cuFFT). Both builds take the pr
 ``-D REAL=double|float`` (complex128 / complex64) and form phases in double whenever the device has
 it (``-D RW_HAVE_FP64=1``).
 
-Every backend offers the same small interface, used by :mod:`rwwarp.propagate`:
+Every backend offers the same small interface, used by :mod:`rwwarp.wave.propagate`:
 ``to_device``, ``to_host``, ``empty``, ``zeros``, ``fft2`` / ``fft1`` (in place, batched over the
 other axes),
 ``launch`` (a named kernel of a named source, built once per (context, dtype)), ``workspace``
@@ -81,7 +81,7 @@ def _kernel_dir() -> Path:
             cand = Path(loc) / "opencl"
             if cand.is_dir():
                 return cand
-    cand = Path(__file__).resolve().parent.parent / "kernels" / "opencl"
+    cand = Path(__file__).resolve().parents[2] / "kernels" / "opencl"
     if cand.is_dir():
         return cand
     raise FileNotFoundError("cannot find the OpenCL kernel sources (kernels/opencl)")

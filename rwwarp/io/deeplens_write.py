@@ -1,5 +1,5 @@
 """Writer of DeepLens lens files (GeoLens / HybridLens JSON, the paper's own format) from a
-:class:`rwwarp.lens.Lens`; the inverse of :mod:`rwwarp.io_deeplens`. Lengths in mm, wavelengths in um.
+:class:`rwwarp.lens.Lens`; the inverse of :mod:`rwwarp.io.deeplens`. Lengths in mm, wavelengths in um.
 
 Mapping:
 
@@ -36,21 +36,21 @@ import math
 import warnings
 from pathlib import Path
 
-from .errors import LensError
+from ..errors import LensError
 
 __all__ = ["deeplens_dict", "write_deeplens"]
 
 
 def _even_poly(s, i, lens):
     """(norm_radius, coefficients) of a DOE as even powers of r / norm_radius, or raise."""
-    from .io_zemax_write import _binary2
+    from .zemax_write import _binary2
     return _binary2(s, i, lens)  # even_poly, fresnel (one term), even-only poly; refuses the rest
 
 
 def deeplens_dict(lens) -> dict:
     """The DeepLens JSON dictionary of ``lens`` (see the module docstring; raises
     :class:`~rwwarp.errors.LensError` for what DeepLens cannot hold)."""
-    from . import materials, paraxial
+    from .. import materials, paraxial
     if not math.isinf(lens.object_distance):
         warnings.warn(f"a DeepLens file has no object distance: the object at {lens.object_distance} mm reads back "
                       "at infinity", UserWarning, stacklevel=3)
@@ -125,8 +125,8 @@ def deeplens_dict(lens) -> dict:
 
 def _material(name, i, lens, materials):
     """The ``mat2`` text for a material, warning when DeepLens's lookup would read back another one."""
-    from .io_deeplens import _material as read_material
-    from .io_zemax_write import _check_dispersion
+    from .deeplens import _material as read_material
+    from .zemax_write import _check_dispersion
     if name.lower() == "air":
         return "air"
     m = materials.get_material(name)

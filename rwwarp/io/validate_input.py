@@ -31,7 +31,7 @@ import os
 import stat
 from pathlib import Path
 
-from .errors import GeometryError, LensError, LensFileError
+from ..errors import GeometryError, LensError, LensFileError
 
 MAX_FILE_BYTES = 16 * 2 ** 20
 MAX_JSON_DEPTH = 64
@@ -362,7 +362,7 @@ def check_paraxial_finite(lens) -> None:
     """Paraxial marginal and chief rays stay finite at every lens wavelength; else GeometryError."""
     import numpy as np
 
-    from . import paraxial
+    from .. import paraxial
 
     for w in lens.wavelengths_um:
         with np.errstate(all="ignore"):
@@ -382,7 +382,7 @@ def check_object_at_pupil(lens) -> None:
     exceeds 89.99 degrees (|object to pupil| < 1.75e-4 pupil radii)."""
     import math
 
-    from . import paraxial
+    from .. import paraxial
 
     d = lens.object_distance
     if not math.isfinite(d):

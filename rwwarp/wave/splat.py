@@ -3,16 +3,16 @@ complex field sampled on each source's wave-plane window.
 
 :class:`Splatter` owns the launches of one tracer's device: ray-tube areas, the splat into per-sample
 sums (float atomics; parallel private sums on CPU threads; or the deterministic fixed-point passes), and
-the finalize step (reference sphere and carrier). :meth:`rwwarp.raywave.RayWave.field` calls it. Lengths
+the finalize step (reference sphere and carrier). :meth:`rwwarp.wave.raywave.RayWave.field` calls it. Lengths
 in mm.
 """
 from __future__ import annotations
 
 import warp as wp
 
-from .kernels.splat import make_splat_kernels
+from ..kernels.splat import make_splat_kernels
 from .reduce import source_sums
-from .trace import run_chunks
+from ..trace import run_chunks
 
 
 class Splatter:
@@ -73,7 +73,7 @@ class Splatter:
     def sums(self, splat_in, n_src: int, n_grid: int):
         """``(s_re, s_im, dropped)``: the splat's per-sample sums (n_src * n_grid^2 float64 each) and the rays
         per source that fell outside the window. ``splat_in``: the splat kernel's inputs up to its
-        ``frac_stride`` argument (:meth:`rwwarp.raywave.RayWave.field` forms them). ``n_grid``: the windows'
+        ``frac_stride`` argument (:meth:`rwwarp.wave.raywave.RayWave.field` forms them). ``n_grid``: the windows'
         side (a packed batch: the slots' side; its own sides are in ``splat_in``)."""
         tr, K = self.tracer, self.K
         dev, g = tr.device, tr.requires_grad

@@ -21,9 +21,9 @@ The wave figures (MTF, Strehl, encircled and ensquared energy) are computed from
 * Encircled / ensquared energy is the fraction of the power reaching the sensor (all of it, not just
   the patch) inside a circle / square about the PSF centroid (or the chief ray).
 
-Where each figure lives: the MTF and through-focus MTF here; :mod:`rwwarp.metrics_energy` (encircled / ensquared
-energy), :mod:`rwwarp.metrics_strehl` (Strehl ratio, ideal peak), :mod:`rwwarp.metrics_curves` (chromatic focal
-shift, field curves), :mod:`rwwarp.metrics_sampling` (PSF sampling and patch size, image-space NA). Every public
+Where each figure lives: the MTF and through-focus MTF here; :mod:`rwwarp.metrics.energy` (encircled / ensquared
+energy), :mod:`rwwarp.metrics.strehl` (Strehl ratio, ideal peak), :mod:`rwwarp.metrics.curves` (chromatic focal
+shift, field curves), :mod:`rwwarp.metrics.sampling` (PSF sampling and patch size, image-space NA). Every public
 name is importable from this module.
 """
 
@@ -34,21 +34,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import PatchWarning, SamplingWarning
-from .metrics_curves import (
+from ..errors import PatchWarning, SamplingWarning
+from .curves import (
     ChromaticFocalShift, FieldCurves, chromatic_focal_shift, field_curves, paraxial_image_distance,
 )
-from .metrics_energy import (
+from .energy import (
     EnergyCurve, encircled_energy, encircled_energy_from_psf, energy_from_psf_map, ensquared_energy,
     ensquared_energy_from_psf,
 )
-from .metrics_sampling import MODELS, _image_space_rays  # noqa: F401  (here before the split; still imported)
-from .metrics_sampling import (
+from .sampling import MODELS, _image_space_rays  # noqa: F401  (here before the split; still imported)
+from .sampling import (
     default_sampling_mm, image_space_na, patch_size_for, _as_fields,
     _as_wavelengths, _check_model, _check_positive, _check_psf_array, _field_direction_on_sensor,
     _patch_check, _patch_coords, _psfs,
 )
-from .metrics_strehl import Strehl, ideal_peak_intensity, peak_intensity_from_psf, strehl, strehl_from_psf_map
+from .strehl import Strehl, ideal_peak_intensity, peak_intensity_from_psf, strehl, strehl_from_psf_map
 
 __all__ = ["MTF", "ThroughFocusMTF", "Strehl", "EnergyCurve", "FieldCurves", "ChromaticFocalShift",
            "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy",
@@ -129,12 +129,12 @@ class MTF:
     info: dict = field(default_factory=dict)
 
     def __repr__(self):
-        from .results import mtf_repr
+        from ..results import mtf_repr
         return mtf_repr(self)
 
     def plot(self, path=None, ax=None):
         """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
-        from .results import plot_mtf
+        from ..results import plot_mtf
         return plot_mtf(self, path=path, ax=ax)
 
 
@@ -300,12 +300,12 @@ class ThroughFocusMTF:
     info: dict = field(default_factory=dict)
 
     def __repr__(self):
-        from .results import through_focus_repr
+        from ..results import through_focus_repr
         return through_focus_repr(self)
 
     def plot(self, path=None, ax=None):
         """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
-        from .results import plot_through_focus
+        from ..results import plot_through_focus
         return plot_through_focus(self, path=path, ax=ax)
 
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .metrics_sampling import (
+from .sampling import (
     default_sampling_mm, _as_fields, _as_wavelengths, _check_model, _check_positive, _check_psf_array,
     _patch_check, _psfs,
 )
@@ -84,12 +84,12 @@ class EnergyCurve:
     info: dict = field(default_factory=dict)
 
     def __repr__(self):
-        from .results import energy_repr
+        from ..results import energy_repr
         return energy_repr(self)
 
     def plot(self, path=None, ax=None):
         """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
-        from .results import plot_energy
+        from ..results import plot_energy
         return plot_energy(self, path=path, ax=ax)
 
 

@@ -14,7 +14,7 @@ off the input window, and brought back either
   classic fixed-grid method.
 
 All device work runs in the OpenCL C kernels of ``kernels/opencl/angular_spectrum.cl`` (also built for
-CUDA, see :mod:`rwwarp.backend`); this module only computes per-batch parameters on the host and
+CUDA, see :mod:`rwwarp.wave.backend`); this module only computes per-batch parameters on the host and
 queues launches. Nothing returns to the host within a call.
 
 Conventions
@@ -49,11 +49,11 @@ Where the code lives
 --------------------
 * this module: the public calls :func:`propagate`, :func:`propagate_adjoint`, :func:`propagate_grid`,
   :func:`propagate_grid_adjoint`, and re-exports of the others (import them from here);
-* :mod:`rwwarp.propagate_setup`: FFT sizes, Gauss-Legendre nodes, Matsushima's band limit
+* :mod:`rwwarp.wave.propagate_setup`: FFT sizes, Gauss-Legendre nodes, Matsushima's band limit
   (:func:`band_limits`), the per-batch parameter rows;
-* :mod:`rwwarp.propagate_stages`: the device stages (pad + FFT, transfer function on the band,
+* :mod:`rwwarp.wave.propagate_stages`: the device stages (pad + FFT, transfer function on the band,
   matrix DFT to points, and their adjoints);
-* :mod:`rwwarp.propagate_sensor`: pixel-integrated :func:`sensor_intensity` and its gradients.
+* :mod:`rwwarp.wave.propagate_sensor`: pixel-integrated :func:`sensor_intensity` and its gradients.
 """
 
 from __future__ import annotations
@@ -166,7 +166,7 @@ def propagate(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, o
     docstring for the conventions.
 
     Args:
-        backend: a :class:`~rwwarp.backend.Backend` or a device string ("cpu", "cuda:0", ...).
+        backend: a :class:`~rwwarp.wave.backend.Backend` or a device string ("cpu", "cuda:0", ...).
         field: (B, Ny, Nx) or (Ny, Nx) complex field, numpy or device array (field units).
         pitch_mm: sample pitch (mm), scalar or (B,).
         origin_mm: (x, y) of sample (row 0, column 0) (mm), shape (2,) or (B, 2).

@@ -15,7 +15,7 @@ import warnings
 
 import numpy as np
 
-from .errors import LensError, SamplingWarning
+from ..errors import LensError, SamplingWarning
 
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
@@ -52,8 +52,8 @@ def _image_space_rays(lens, fields, wavelength_um, u, v, object_distance_mm=None
     ``weight`` (S, N), image index ``n``. ``doe_bending``: ``"full"`` (phase gradient; continuous
     profiles only), ``"paraxial"`` (the profile's quadratic term: discontinuous profiles) or
     ``"none"``."""
-    from .trace import Tracer
-    from . import doe
+    from ..trace import Tracer
+    from .. import doe
     plane = lens.wave_plane_index()
     tr = Tracer(lens, [wavelength_um], device=device)
     src = tr.sources(fields, 0, object_distance=object_distance_mm)
@@ -88,7 +88,7 @@ def _image_space_rays(lens, fields, wavelength_um, u, v, object_distance_mm=None
 def image_space_na(lens, field_deg=0.0, wavelength_um: float = 0.55, grid: int = 33, device: str = "cpu") -> float:
     """Image-space numerical aperture ``n sin(theta)`` of the converging beam (half the spread of its
     direction sines about their mean, largest over x and y) for one field, from a ray trace."""
-    from .trace import pupil_grid
+    from ..trace import pupil_grid
     shape = lens.surfaces[lens.stop_index].shape
     u, v, _ = pupil_grid(grid, shape, layout="edges")
     _, d, ok, _, n = _image_space_rays(lens, [field_deg], wavelength_um, u, v, device=device)
@@ -110,7 +110,7 @@ def patch_size_for(lens, fields, wavelengths_um, pixel_mm, cap: int = 256, devic
     """PSF patch size (samples of ``pixel_mm`` mm, a multiple of 8 in 32..``cap``) that holds every
     (field, wavelength) PSF: twice the farthest ray of a 31 x 31 pupil grid from the chief ray, plus
     10 Airy radii of diffraction (an aberration-free PSF keeps ~98.5 % of its power), plus 10 %."""
-    from .trace import Tracer, pupil_grid
+    from ..trace import Tracer, pupil_grid
     shape = lens.surfaces[lens.stop_index].shape
     u, v, _ = pupil_grid(31, shape, layout="edges")
     u, v = np.concatenate([[0.0], u]), np.concatenate([[0.0], v])
@@ -147,7 +147,7 @@ def _as_wavelengths(wavelength_um, weights):
 
 
 def _as_fields(field_deg):
-    from .trace import as_field_list
+    from ..trace import as_field_list
     fields = as_field_list(field_deg)
     if not fields:
         raise ValueError("field_deg must hold at least one field (deg)")
@@ -168,7 +168,7 @@ def _field_direction_on_sensor(f):
 
 
 def _psfs(lens, fields, wls, model, size, pixel_mm, device, psf_kwargs):
-    from .psf import psf_map
+    from ..psf import psf_map
     if isinstance(size, str):
         if size != "auto":
             raise ValueError(f"size must be a number of samples or 'auto', got {size!r}")

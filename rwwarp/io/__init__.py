@@ -3,8 +3,8 @@
 The formats, one module each:
 
 * native ``rwwarp-lens/1`` JSON: :meth:`rwwarp.lens.Lens.from_dict` / :meth:`~rwwarp.lens.Lens.to_dict`;
-* Zemax sequential ``.zmx``: :mod:`rwwarp.io_zemax` (read), :mod:`rwwarp.io_zemax_write` (write);
-* DeepLens JSON: :mod:`rwwarp.io_deeplens` (read), :mod:`rwwarp.io_deeplens_write` (write).
+* Zemax sequential ``.zmx``: :mod:`rwwarp.io.zemax` (read), :mod:`rwwarp.io.zemax_write` (write);
+* DeepLens JSON: :mod:`rwwarp.io.deeplens` (read), :mod:`rwwarp.io.deeplens_write` (write).
 
 This module sits above :mod:`rwwarp.lens` (the readers build :class:`~rwwarp.lens.Lens` objects): it
 registers the writers with :func:`rwwarp.lens.register_writer` so that ``lens.save(path)`` reaches them
@@ -14,14 +14,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import lens as _lens
+from .. import lens as _lens
 from . import validate_input as vi
-from .errors import LensError, LensFileError
-from .io_deeplens import lens_from_deeplens
-from .io_deeplens_write import write_deeplens
-from .io_zemax import read_zmx
-from .io_zemax_write import write_zmx
-from .lens import FORMAT, Lens
+from ..errors import LensError, LensFileError
+from .deeplens import lens_from_deeplens
+from .deeplens_write import write_deeplens
+from .zemax import read_zmx
+from .zemax_write import write_zmx
+from ..lens import FORMAT, Lens
 
 __all__ = ["load_lens", "save_lens"]
 
@@ -48,7 +48,7 @@ def load_lens(path, strict: bool = False) -> Lens:
     except (OSError, ValueError):  # over-long or odd paths
         exists = False
     if not exists:
-        bundled = Path(__file__).parent / "lenses"
+        bundled = Path(__file__).resolve().parents[1] / "lenses"
         for cand in (bundled / p.name, bundled / (p.name + ".json"), bundled / (p.name + ".zmx")):
             try:
                 if p.name and cand.is_file():

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .errors import GeometryError
-from .kernels.trace import make_analysis_kernels
-from .trace import Tracer, pupil_grid
+from ..errors import GeometryError
+from ..kernels.trace import make_analysis_kernels
+from ..trace import Tracer, pupil_grid
 
 
 def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401, reference: str = "centroid",
@@ -20,7 +20,7 @@ def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401
     convention, grid points include the pupil edge). ``reference``: ``"centroid"`` or ``"chief"``
     (the ray through the pupil centre). ``field_deg``: one field (deg) or a list (returns an array).
     """
-    from . import checks
+    from .. import checks
     checks.check_lens(lens)
     fields = checks.check_fields(field_deg, "field_deg")
     single = isinstance(field_deg, tuple) or not isinstance(field_deg, (list, np.ndarray))
@@ -62,7 +62,7 @@ def spot_rms(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 401
 
 def spot_diagram(lens, field_deg=0.0, wavelength_um: float = 0.5876, grid: int = 41, device: str = "cpu"):
     """Spot-diagram data: (x, y) sensor hits (mm) of valid rays, per field. Returns a list of (n, 2) arrays."""
-    from . import checks
+    from .. import checks
     checks.check_lens(lens)
     fields = checks.check_fields(field_deg, "field_deg")
     wavelength_um = checks.check_wavelength(wavelength_um, lens)
@@ -80,7 +80,7 @@ def spot_rms_tape(tracer: Tracer, fields, grid: int = 101, layout: str = "edges"
     src = tracer.sources(fields)
     u, v, cell = pupil_grid(grid, src["shape"], layout=layout)
     rays = tracer._run(src, u, v, cell)
-    from .reduce import source_sums
+    from ..wave.reduce import source_sums
     n = len(src["wl"])
     terms = wp.zeros(n * len(u), dtype=wp.types.vector(4, tracer.scalar), device=tracer.device, requires_grad=True)
     wp.launch(K.moments_kernel, dim=n * len(u), inputs=[rays.pos, rays.valid, len(u)], outputs=[terms],

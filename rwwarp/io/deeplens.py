@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import math
 
-from .errors import LensError, LensFileError
+from ..errors import LensError, LensFileError
 
 DEFAULT_WAVELENGTHS_UM = [0.486, 0.587, 0.656]
 _SURFACE_TYPES = ("Aperture", "Stop", "Spheric", "Aspheric", "Plane", "ThinLens")
@@ -74,8 +74,8 @@ def lens_from_deeplens(d: dict, source=None, strict: bool = True):
     for crossing surfaces (with ``strict=False``, what :func:`rwwarp.load_lens` passes by default, a
     :class:`~rwwarp.errors.GeometryWarning` instead); nothing is half-built.
     """
-    from . import materials
-    from .lens import Lens, Sensor, Surface
+    from .. import materials
+    from ..lens import Lens, Sensor, Surface
 
     src = None if source is None else str(source)
 
@@ -255,7 +255,7 @@ def lens_from_deeplens(d: dict, source=None, strict: bool = True):
                     entrance_pupil_diameter=None if epd is None else float(epd), source=src,
                     surface_labels=list(labels), allow_crossing=not strict)
     except LensError as e:
-        from .io_zemax import _core
+        from .zemax import _core
         surf = e.surface if not isinstance(e.surface, int) else labels[e.surface]
         raise type(e)(_core(e), file=src, surface=surf, keyword=e.keyword) from None
     return lens
@@ -293,7 +293,7 @@ def _material(sd, i, src, err, materials):
         try:
             materials.get_material(out)
         except LensError as e:
-            from .io_zemax import _core
+            from .zemax import _core
             raise type(e)(_core(e), file=src, surface=i, keyword="mat2") from None
         return out
     try:
@@ -303,7 +303,7 @@ def _material(sd, i, src, err, materials):
     try:
         out, note = materials.resolve_glass(name)
     except LensError as e:
-        from .io_zemax import _core
+        from .zemax import _core
         raise type(e)(f"{_core(e)} (DeepLens material names are looked up in DeepLens's own table, then the "
                       "rwwarp glass tables)", file=src, surface=i, keyword="mat2") from None
     if note is not None:
@@ -314,7 +314,7 @@ def _material(sd, i, src, err, materials):
 
 def _doe(dd, err):
     """(doe Surface, z) from a DeepLens DOE block."""
-    from .lens import Surface
+    from ..lens import Surface
 
     if not isinstance(dd, dict):
         raise err(f"'DOE' must be an object, got {type(dd).__name__}", "DOE")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .raywave import RayWave, own_pupil_sources
-from .trace import Tracer
+from ..trace import Tracer
 
 __all__ = ["PackedRayWave", "packed_bytes", "source_plans"]
 
@@ -38,7 +38,7 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
 def packed_bytes(members, size: int) -> int:
     """Planned peak memory (bytes) of computing ``members`` (single-source :class:`RayWave` s, ``size`` px
     patches) as one :class:`PackedRayWave`: every source's rays and window in slots of the largest (the
-    traced-ray and field parts of :func:`rwwarp.plan.estimate_cost`), plus the largest member's propagation
+    traced-ray and field parts of :func:`rwwarp.wave.plan.estimate_cost`), plus the largest member's propagation
     (the members propagate one after the other)."""
     rays = max(m.plan.ray_grid for m in members) ** 2
     n = max(m.plan.n_grid for m in members)
@@ -106,7 +106,7 @@ class PackedRayWave(RayWave):
         return tr.packed_rim_cells(self._ray_grids, int(self._ray_grids.max()) ** 2), 1
 
     def plans(self) -> list:
-        """Each member's plan (:class:`rwwarp.plan.Plan`)."""
+        """Each member's plan (:class:`rwwarp.wave.plan.Plan`)."""
         return [m.plan for m in self.members]
 
     def run(self, focal_precision: str = "auto") -> dict:

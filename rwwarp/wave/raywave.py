@@ -1,10 +1,10 @@
 """The ray-wave model of one batch of point sources, in stages (:class:`RayWave`).
 
 Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (the
-band-limited ASM's or the focal method's, :mod:`rwwarp.plan`), the wave-plane windows and the sensor
+band-limited ASM's or the focal method's, :mod:`rwwarp.wave.plan`), the wave-plane windows and the sensor
 patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
 field (Warp, :mod:`rwwarp.kernels.splat`), apply the DOE, propagate to the sensor and integrate over the
-pixels (:mod:`rwwarp.propagate` or :mod:`rwwarp.focal`). :func:`rwwarp.psf.psf` and
+pixels (:mod:`rwwarp.wave.propagate` or :mod:`rwwarp.wave.focal`). :func:`rwwarp.psf.psf` and
 :func:`rwwarp.psf.psf_map` are the public calls around it; :mod:`torch_bridge` differentiates its stages.
 Lengths in mm, wavelengths in um.
 """
@@ -14,13 +14,13 @@ import math
 
 import numpy as np
 
-from .doe import is_flat_profile as _is_flat_profile
-from .errors import LensError
-from .lens import snap_to_pixel as _snap_center
+from ..doe import is_flat_profile as _is_flat_profile
+from ..errors import LensError
+from ..lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
-from .trace import Tracer, pupil_grid, upload_packed
-from .trace import field_label as _fmt_field
+from ..trace import Tracer, pupil_grid, upload_packed
+from ..trace import field_label as _fmt_field
 
 #: candidate DOE orders of the focal method: -FOCAL_MAX_ORDER .. FOCAL_MAX_ORDER (the planner keeps those
 #: that reach the patch)
@@ -39,7 +39,7 @@ def _auto_gauss_nodes(dir_s, ok, n_img, lam_mm, pixel, tol=1e-7):
     ``Phi = 2 pi pixel 2 n NA / lambda``, and the node count follows the Gauss-Legendre error bound for
     ``exp(i Phi t / 2)`` on [-1, 1].
     """
-    from .analytic import gauss_legendre_exp_error
+    from ..analytic import gauss_legendre_exp_error
     worst = 0.0
     for k in range(dir_s.shape[0]):
         d = dir_s[k, ok[k], :2]
@@ -115,7 +115,7 @@ def own_pupil_sources(tr, fields, wls, uniq, object_distance_mm):
     """:meth:`rwwarp.trace.Tracer.sources` with each source's entrance pupil at its own wavelength (um), as a
     tracer of that wavelength alone lays it: a source's rays do not depend on the others in its batch.
     ``uniq``: the tracer's wavelengths (sorted), ``wls`` one per field."""
-    from . import paraxial
+    from .. import paraxial
     src = tr.sources(fields, [uniq.index(w) for w in wls], object_distance=object_distance_mm)
     saved = tr.pupils
     try:
@@ -135,7 +135,7 @@ def _doe_phase_grid(lens, plane, origin, pitch, n):
     s = lens.surfaces[plane]
     if s.type != "doe" or _is_flat_profile(s.profile):
         return None
-    from . import doe
+    from .. import doe
     prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
     g = np.arange(n) * pitch
     out = np.empty((origin.shape[0], n, n))
@@ -154,7 +154,7 @@ def _doe_max_frequency(lens, plane, xy, wavelengths):
     s = lens.surfaces[plane]
     if s.type != "doe":
         return np.zeros(len(wavelengths)), None
-    from . import doe
+    from .. import doe
     prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
     feat = None
     if doe.surface_has_steps(s, lens.source):  # (a quantised flat phase has none: issue 11 defect 6)
@@ -395,8 +395,8 @@ class RayWave:
     def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
                     center_mm, size, pixel, width, rays_per_sample, nyquist_safety, patch_tol=1e-5):
         """Plan the focal propagation: DOE orders, carrier and patch centre after the main order, grids
-        (:func:`rwwarp.plan.plan_focal`). Sets ``plan``, ``focal``, ``carrier`` and ``centers``."""
-        from . import doe
+        (:func:`rwwarp.wave.plan.plan_focal`). Sets ``plan``, ``focal``, ``carrier`` and ``centers``."""
+        from .. import doe
         from .focal import doe_order_coefficients
         from .plan import plan_focal, landing_points
         nsrc = len(n_after)
@@ -467,7 +467,7 @@ class RayWave:
         s = self.lens.surfaces[self.plane]
         if s.type != "doe" or s.profile.get("kind") != "pixel_map":
             return
-        from . import doe
+        from .. import doe
         prof = doe.profile_from_dict(s.profile, base=_lens_dir(self.lens))
         rows, cols = prof.data.shape
         h = self.plan.pitch_mm
@@ -571,7 +571,7 @@ class RayWave:
 
     @property
     def splatter(self):
-        """The :class:`rwwarp.splat.Splatter` of this batch's tracer (made on first use)."""
+        """The :class:`rwwarp.wave.splat.Splatter` of this batch's tracer (made on first use)."""
         sp = getattr(self, "_splatter", None)
         if sp is None:
             from .splat import Splatter
@@ -634,7 +634,7 @@ class RayWave:
         phi0 = _doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
         if phi0 is None:
             return None, None
-        from . import doe
+        from .. import doe
         s = self.lens.surfaces[self.plane]
         scale = np.array([doe.wavelength_scale(s.material, s.design_wavelength_um, w) for w in self.wls])
         return phi0, scale
@@ -674,7 +674,7 @@ class RayWave:
         and the tracer's scalar type, e.g. a zero-copy view of a torch tensor): its rows are copied device to
         device and ``table`` (host) only moves the reference point."""
         import warp as wp
-        from .kernels import trace as ktrace
+        from ..kernels import trace as ktrace
         tab = np.asarray(table, dtype=np.float64)
         tr = self.tracer
         if tab.shape != (len(tr.params), ktrace.N_PARAMS):
@@ -699,7 +699,7 @@ class RayWave:
         return _pixel_centres(self.centers, self.size, self.pixel)
 
     def sensor_geometry(self, doe_scale=None):
-        """The :class:`rwwarp.propagate.SensorGeometry` of this batch's band-limited propagation: its
+        """The :class:`rwwarp.wave.propagate.SensorGeometry` of this batch's band-limited propagation: its
         windows (pitch, origins), wavelengths in the medium after the plane (um), plane-to-sensor
         distance (mm), the patches' pixel centres, FFT size and carrier; ``doe_scale`` (per-source DOE
         wavelength remap) when a DOE phase goes with the field."""
@@ -712,7 +712,7 @@ class RayWave:
 
     def intensity(self, u_field, phi0=None, scale=None):
         """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n)), by the
-        band-limited ASM (:class:`rwwarp.propagate.SensorPropagator`)."""
+        band-limited ASM (:class:`rwwarp.wave.propagate.SensorPropagator`)."""
         from . import backend as bk
         from .propagate import SensorPropagator
         be = bk.get_backend(self.device)
@@ -724,7 +724,7 @@ class RayWave:
         return be.to_host(power)
 
     def focal_operator(self, distance_mm=None, precision="double"):
-        """The planned :class:`rwwarp.focal.FocalPropagator` of this batch (``method="focal"``), built once per
+        """The planned :class:`rwwarp.wave.focal.FocalPropagator` of this batch (``method="focal"``), built once per
         wave-plane-to-sensor distance (mm; default the lens's) and ``precision`` of its first step ("double"
         for gradients; the forward PSFs of :meth:`run`: single on the CPU, double on CUDA): a learning sensor
         distance rebuilds it on the same grids."""
@@ -755,7 +755,7 @@ class RayWave:
 
     def doe_orders_factor(self, xp=np):
         """``sum_m c_m exp(1j m phi0)`` on each window (S, n, n) for the DOE orders the focal plan kept
-        (:func:`rwwarp.focal.doe_order_series`, the chief ray's wrap zone exact), in the array namespace
+        (:func:`rwwarp.wave.focal.doe_order_series`, the chief ray's wrap zone exact), in the array namespace
         ``xp`` (the focal operator's: CuPy on CUDA); None without a DOE, for a blank DOE, or with only
         the zeroth order and c_0 = 1."""
         from .focal import doe_order_series
@@ -772,7 +772,7 @@ class RayWave:
 
     def focal_intensity(self, u_field, precision="single"):
         """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``; ``precision`` of
-        its matrix products, :class:`rwwarp.focal.FocalPropagator`)."""
+        its matrix products, :class:`rwwarp.wave.focal.FocalPropagator`)."""
         from .focal import pixel_power
         op = self.focal_operator(precision=precision)
         fac = self.doe_orders_factor(op.xp)

@@ -3,7 +3,7 @@
 Units: ``UNIT MM`` (rwwarp's mm), wavelengths in um, field angles in degrees. Numbers are written
 with Python's shortest round-trip ``repr``, so :func:`rwwarp.load_lens` reads back the same floats.
 
-Mapping (the inverse of :mod:`rwwarp.io_zemax`):
+Mapping (the inverse of :mod:`rwwarp.io.zemax`):
 
 ============== =====================================================================================
 rwwarp         .zmx
@@ -55,7 +55,7 @@ import math
 import warnings
 from pathlib import Path
 
-from .errors import LensError
+from ..errors import LensError
 
 __all__ = ["write_zmx", "zmx_text"]
 
@@ -72,7 +72,7 @@ def _num(v) -> str:
 
 def _glass(name: str, surface: int, lens):
     """(GLAS line tokens, catalogue or None) for a material name."""
-    from . import materials
+    from .. import materials
     if name.lower() == "air":
         return None, None
     try:
@@ -117,7 +117,7 @@ def _glass(name: str, surface: int, lens):
 def _check_dispersion(original: str, read_back: str, surface: int, lens, fmt: str):
     """Warn when the material a file will read back as differs from the lens's own (indices at the
     lens's wavelengths and 0.4-0.8 um)."""
-    from . import materials
+    from .. import materials
     try:
         a, b = materials.get_material(original), materials.get_material(read_back)
     except LensError:
@@ -164,7 +164,7 @@ def _binary2(s, i, lens):
 def zmx_text(lens) -> str:
     """The .zmx file of ``lens`` as text (see the module docstring for the mapping; raises
     :class:`~rwwarp.errors.LensError` naming the surface for what a .zmx cannot hold)."""
-    from . import paraxial
+    from .. import paraxial
     wls = [float(w) for w in lens.wavelengths_um]
     doe_i = lens.doe_index
     primary = len(wls) // 2

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import LensError
-from .metrics_sampling import _image_space_rays
+from ..errors import LensError
+from .sampling import _image_space_rays
 
 
 # ============================================================================== ray-based curves
@@ -24,19 +24,19 @@ class ChromaticFocalShift:
     reference_um: float
 
     def __repr__(self):
-        from .results import focal_shift_repr
+        from ..results import focal_shift_repr
         return focal_shift_repr(self)
 
     def plot(self, path=None, ax=None):
         """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
-        from .results import plot_focal_shift
+        from ..results import plot_focal_shift
         return plot_focal_shift(self, path=path, ax=ax)
 
 
 def paraxial_image_distance(lens, wavelength_um: float, object_distance_mm=None) -> float:
     """Paraxial image distance behind the last surface (mm) of an axial object at the lens's object
     distance (or ``object_distance_mm``, mm from the first vertex; inf allowed), at ``wavelength_um``."""
-    from .paraxial import ynu_trace
+    from ..paraxial import ynu_trace
     od = lens.object_distance if object_distance_mm is None else float(object_distance_mm)
     y0, nu0 = (1.0, 0.0) if math.isinf(od) else (od, 1.0)  # ray from the axial object point, slope 1
     y, nu = ynu_trace(lens, wavelength_um, y0, nu0)
@@ -81,12 +81,12 @@ class FieldCurves:
     wavelength_um: float
 
     def __repr__(self):
-        from .results import field_curves_repr
+        from ..results import field_curves_repr
         return field_curves_repr(self)
 
     def plot(self, path=None, ax=None):
         """A picture (rwwarp.results); returns the Axes, or the Figure saved to ``path`` (PNG)."""
-        from .results import plot_field_curves
+        from ..results import plot_field_curves
         return plot_field_curves(self, path=path, ax=ax)
 
 
@@ -99,7 +99,7 @@ def field_curves(lens, fields_deg=None, wavelength_um=None, eps: float = 1e-3, d
     in y (tangential) and x (sagittal): where their separation along that axis vanishes. The DOE's
     first order is applied as a local grating. Distortion compares the real chief ray's height on the
     sensor with the paraxial chief ray's (y-nu trace through the entrance-pupil centre)."""
-    from .paraxial import pupils, ynu_trace
+    from ..paraxial import pupils, ynu_trace
     wl = float(wavelength_um) if wavelength_um is not None else lens.wavelengths_um[len(lens.wavelengths_um) // 2]
     if fields_deg is None:
         fmax = 10.0

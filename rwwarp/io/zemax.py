@@ -55,7 +55,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from .errors import GlassError, LensError, LensFileError
+from ..errors import GlassError, LensError, LensFileError
 
 # keywords that belong to a SURF block (others are system data or ignored)
 _SURF_KEYS = {"TYPE", "CURV", "DISZ", "GLAS", "CONI", "PARM", "XDAT", "STOP", "DIAM", "CLAP", "SQAP", "FLAP",
@@ -199,7 +199,7 @@ def read_zmx(path, strict: bool = True):
     :class:`~rwwarp.errors.GeometryError` (all :class:`~rwwarp.errors.LensError`) naming the file, the
     Zemax surface (``SURF k``) and the keyword; no lens is returned half-built.
     """
-    from .lens import Lens, Sensor, Surface
+    from ..lens import Lens, Sensor, Surface
 
     path = Path(path)
     rd = _Reader(path)
@@ -344,7 +344,7 @@ def read_zmx(path, strict: bool = True):
     if img_type and img_type[0].upper() not in ("STANDARD",):
         raise rd.err(f"image surface type {img_type[0]} not supported", surf=img.number, key="TYPE")
 
-    from . import materials
+    from .. import materials
     surfaces, zsurf = [], []  # rwwarp surfaces and their Zemax numbers
     extents = []  # per rwwarp surface: the DIAM height (for the crossing check only; DIAM does not clip)
     medium = "air"
@@ -571,7 +571,7 @@ def read_zmx(path, strict: bool = True):
                     fields_deg=fields_deg, source=str(path), surface_labels=[f"SURF {k}" for k in zsurf],
                     primary_wavelength_um=primary_um, surface_extents=extents, allow_crossing=not strict)
         if fnum is not None:
-            from .paraxial import efl
+            from ..paraxial import efl
             lens.entrance_pupil_diameter = abs(efl(lens, primary_um)) / fnum
             _revalidate(lens)
         elif obna is not None:
@@ -589,7 +589,7 @@ def read_zmx(path, strict: bool = True):
             if floa_sd is None or not floa_sd > 0:
                 raise rd.err("FLOA (float by stop size) needs the stop's semi-diameter (DIAM)", surf=stop_k,
                              key="DIAM")
-            from .paraxial import ynu_trace
+            from ..paraxial import ynu_trace
             ya, _ = ynu_trace(lens, primary_um, 1.0, 0.0)
             m = abs(ya[lens.stop_index])
             if m == 0:
@@ -620,7 +620,7 @@ def read_zmx(path, strict: bool = True):
 def _revalidate(lens) -> None:
     """Validate again after the pupil is set (its crossing warning was already given once)."""
     import warnings
-    from .errors import GeometryWarning
+    from ..errors import GeometryWarning
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GeometryWarning)
         lens.validate()
@@ -629,7 +629,7 @@ def _revalidate(lens) -> None:
 def _ep_z(lens, wavelength_um) -> float:
     """Paraxial entrance-pupil position (mm from the first vertex): the stop imaged back through the
     surfaces before it (independent of the pupil's size)."""
-    from .paraxial import ynu_trace
+    from ..paraxial import ynu_trace
     i = lens.stop_index
     ya, _ = ynu_trace(lens, wavelength_um, 1.0, 0.0)
     yb, _ = ynu_trace(lens, wavelength_um, 0.0, 1.0)

@@ -20,8 +20,8 @@ import math
 
 import numpy as np
 
-from . import paraxial
-from .errors import LensError
+from .. import paraxial
+from ..errors import LensError
 
 
 def _field_pair(f):
@@ -66,7 +66,7 @@ def paraxial_equivalent(lens, fields, wls, object_distance_mm=None):
     where the refractive part's paraxial image lies) and equivalent field angles (same paraxial image
     height).
     """
-    from .lens import Lens, Surface
+    from ..lens import Lens, Surface
     plane = lens.wave_plane_index()
     if plane == 0:
         raise LensError("paraxial-wave model needs refracting surfaces before the DOE", file=lens.source)

@@ -1,7 +1,7 @@
-"""Pixel-integrated sensor intensity by the band-limited angular spectrum (:mod:`rwwarp.propagate`).
+"""Pixel-integrated sensor intensity by the band-limited angular spectrum (:mod:`rwwarp.wave.propagate`).
 
 :func:`sensor_intensity` evaluates ``|U|^2`` at Gauss-Legendre nodes inside each sensor pixel (the
-matrix DFT of :mod:`rwwarp.propagate_stages` to those nodes) and sums them with the nodes' weights:
+matrix DFT of :mod:`rwwarp.wave.propagate_stages` to those nodes) and sums them with the nodes' weights:
 power per pixel. :func:`sensor_intensity_adjoint` and :func:`sensor_intensity_distance_adjoint` give the
 gradients with respect to the field, the DOE phase and the propagation distance. They are the methods of
 one operator, :class:`SensorPropagator` (its :class:`SensorGeometry` holds the arguments the three share;

@@ -1,5 +1,5 @@
-"""Device stages of the band-limited angular spectrum path (:mod:`rwwarp.propagate`): the launches of
-the OpenCL C kernels of ``kernels/opencl/angular_spectrum.cl``, on the state a :class:`~rwwarp.propagate_setup._Setup`
+"""Device stages of the band-limited angular spectrum path (:mod:`rwwarp.wave.propagate`): the launches of
+the OpenCL C kernels of ``kernels/opencl/angular_spectrum.cl``, on the state a :class:`~rwwarp.wave.propagate_setup._Setup`
 holds. Nothing returns to the host.
 
 Forward, in the order a call runs them:
@@ -10,7 +10,7 @@ Forward, in the order a call runs them:
 * :func:`_dft_factors`, :func:`_band_to_points`: the separable matrix DFT ``U = Ey C Ex^T`` from the band
   to arbitrary output points (two batched GEMMs, :func:`_gemm`).
 
-Adjoint (gradients, torch's convention, see :mod:`rwwarp.propagate`): :func:`_points_to_band`,
+Adjoint (gradients, torch's convention, see :mod:`rwwarp.wave.propagate`): :func:`_points_to_band`,
 :func:`_band_adjoint_to_field`, :func:`_crop_demodulate_adjoint`.
 """
 

@@ -3,7 +3,7 @@ analytically, so the sampling follows the patch and not the converging beam.
 
 The problem. Behind the last lens (or the DOE) the field ``U0(x)`` on the wave plane converges to
 the sensor: its phase carries ``NA / lambda`` cycles/mm across a footprint of several mm, and a
-grid that samples it (the band-limited angular spectrum path, :mod:`rwwarp.propagate`) grows as
+grid that samples it (the band-limited angular spectrum path, :mod:`rwwarp.wave.propagate`) grows as
 ``(footprint NA / lambda)^2``. But only a patch of width ``W`` is asked for: the information that
 reaches it is ``footprint W / (lambda z)`` samples per axis.
 
@@ -158,7 +158,7 @@ class FocalPropagator:
     xp : numpy or cupy.
     transfer : None or ``(g, q)``, (S, 2) each: the quadratic part's gradient (dimensionless) and diagonal
         curvature (mm) in place of the Taylor values at ``f_c`` (any choice keeps the operator exact; a fit
-        to the beam narrows the sensor-side box, :func:`rwwarp.plan.fit_quadratic_transfer`).
+        to the beam narrows the sensor-side box, :func:`rwwarp.wave.plan.fit_quadratic_transfer`).
     precision : "double" | "single"  arithmetic of step 1's matrix products (the phases of its chirp factors
         are formed in float64, the factors rounded to the working precision before their product; step 2 and
         the output are complex128). ``"single"`` halves step 1's time and memory on the CPU; against rs_lens_psf the Cooke triplet (0 / 14 deg), the AC254 and the A489 read the same
@@ -184,7 +184,7 @@ class FocalPropagator:
         s0 = np.asarray(sensor_origin_mm, dtype=np.float64).reshape(S, 2)
         inv_lam = 1.0 / lam
         w_c, g, q = transfer_curvature(f_c, inv_lam)
-        if transfer is not None:   # a fitted quadratic (rwwarp.plan.fit_quadratic_transfer): the split stays exact
+        if transfer is not None:   # a fitted quadratic (rwwarp.wave.plan.fit_quadratic_transfer): the split stays exact
             g = np.asarray(transfer[0], dtype=np.float64).reshape(S, 2)
             q = np.asarray(transfer[1], dtype=np.float64).reshape(S, 2)
             if not np.all(q < 0):

@@ -1,4 +1,4 @@
-"""Host-side set-up of the band-limited angular spectrum path (:mod:`rwwarp.propagate`).
+"""Host-side set-up of the band-limited angular spectrum path (:mod:`rwwarp.wave.propagate`).
 
 Where each piece lives here:
 
@@ -9,7 +9,7 @@ Where each piece lives here:
   sizes and band extents of a call (:class:`_Setup`, :func:`_setup`), the alias check
   (:func:`_check_window`) and the coordinate helpers of the output windows.
 
-Conventions (units, pixel centres, carrier, normalisation): :mod:`rwwarp.propagate`.
+Conventions (units, pixel centres, carrier, normalisation): :mod:`rwwarp.wave.propagate`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from .backend import Backend, complex_dtype, get_backend, real_dtype
-from .errors import SamplingWarning
+from ..errors import SamplingWarning
 
 # Per-batch parameter row, mirrored from kernels/opencl/angular_spectrum.cl (P_* macros).
 _P_LAMBDA, _P_Z, _P_ZFRAC, _P_LPX, _P_LPY, _P_X0, _P_Y0, _P_XS, _P_YS = range(9)

@@ -1,0 +1,1 @@
+"""The wave stage of the ray-wave model."""
