@@ -140,9 +140,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Wave propagation (ray-wave model). ``"focal"`` handles the wave converging to the patch
         analytically and samples only what reaches the patch (:mod:`rwwarp.wave.focal`); ``"asm"`` is the
         band-limited angular spectrum over the whole converging beam (the reference path; its cost grows
-        with footprint x NA / lambda). ``"auto"``: both are planned from one pilot trace; the ASM runs while
-        its plan is under 1 GiB and 20 GFLOP (it is the more accurate on fast lenses such as the A489),
-        the focal method beyond; pixel-map DOEs and ``plan="paper"`` always use the ASM.
+        with footprint x NA / lambda). ``"auto"``: both are planned from one pilot trace; on the CPU the plan
+        of fewer flops runs; on a GPU the ASM runs while its plan is under 1 GiB and 20 GFLOP (fewer,
+        larger launches), the focal method beyond; pixel-map DOEs and ``plan="paper"`` always use the ASM.
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.

@@ -345,12 +345,18 @@ class RayWave:
         if method == "compare":
             fpl = focal_state[0]
             fpl = _replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
-            why = (f"method auto (asm while its plan is under 1 GiB and 20 GFLOP): focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
+            on_gpu = str(device).startswith("cuda")
+            rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if on_gpu else
+                    "the plan of fewer flops (CPU)")
+            why = (f"method auto ({rule}): focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
                    f"GiB against asm {pl.estimate['flops'] / 1e9:.3g} GFLOP / {pl.estimate['memory_bytes'] / 2 ** 30:.3g} GiB")
-            # the ASM is the validated reference path (5e-5 on the A489) and, measured on an H100, faster
-            # than the focal path while its plan is small (A489: 6.5 against 15 ms); the focal path takes
-            # over where the ASM's plan grows with the beam (Cooke triplet: 11.8 GiB planned)
-            small_asm = pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
+            # On a GPU a small ASM plan runs faster than the focal path's matrix products (measured on an
+            # H100, A489: 6.5 against 15 ms: launches, not arithmetic, bound both), so it is kept there
+            # while small; the focal path takes over where the ASM's plan grows with the beam (Cooke
+            # triplet: 11.8 GiB planned). On the CPU the arithmetic is the cost: the plan of fewer flops runs
+            # (A489 map at 32 px: focal 0.4-1.3 GFLOP and 255-401^2 rays against asm 3.2-7.8 GFLOP and
+            # 533-790^2 rays a source). Both meet the refractive truths alike (docs/propagation.md).
+            small_asm = on_gpu and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
             # a plan over the memory budget cannot run: the one that fits wins whatever its work
             fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes
                     for e in (pl.estimate, fpl.estimate)]
