@@ -56,6 +56,7 @@ def main():
             torch.cuda.synchronize()
 
     lines = []
+    summary = {"config": a.config, "preset": a.preset, "device": a.device, "arm": arm_cfg["name"]}
 
     def say(s):
         print(s, flush=True)
@@ -74,6 +75,7 @@ def main():
             t = time.perf_counter()
             step(k)
             times.append(time.perf_counter() - t)
+    summary.update(step_wall_s=times, step_median_s=float(sorted(times)[len(times) // 2]), nodes=len(arm.fields))
     say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
     prov = arm.provider
     if hasattr(prov, "plans_made"):
@@ -89,6 +91,8 @@ def main():
         t_peak = torch.cuda.max_memory_allocated() / 1e9
         w_peak = wp.get_mempool_used_mem_high("cuda:0") / 1e9
         c_pool = cupy.get_default_memory_pool().total_bytes() / 1e9
+        summary.update(card=torch.cuda.get_device_name(), device_used_peak_gib=mem.peak / 1024,
+                       torch_peak_gb=t_peak, warp_pool_peak_gb=w_peak, cupy_pool_gb=c_pool)
         say(f"peak memory over the timed steps: torch allocator (with Warp and CuPy inside bridge calls) "
             f"{t_peak:.2f} GB, Warp's own pool high-water {w_peak:.2f} GB, CuPy's own pool {c_pool:.2f} GB, "
             f"sum {t_peak + w_peak + c_pool:.2f} GB (an upper bound of the concurrent peak); device used "
@@ -99,6 +103,8 @@ def main():
     step(a.steps + 1)
     pr.disable()
     say(f"profiled step {time.perf_counter() - t:.2f} s (cProfile adds overhead)")
+    summary["warp_launches"] = _count_warp_launches(lambda: step(a.steps + 1))
+    say(f"Warp launches in one step (every thread): {summary['warp_launches']}")
     for key, n in (("tottime", 40), ("cumtime", 40)):
         s = io.StringIO()
         pstats.Stats(pr, stream=s).sort_stats(key).print_stats(n)
@@ -111,6 +117,8 @@ def main():
             wall = time.perf_counter() - t
         ev = [e for e in prof.events() if e.device_type.name == "CUDA"]
         busy = sum(e.device_time for e in ev) / 1e6
+        summary.update(profiled_wall_s=wall, device_kernels_and_copies=len(ev), device_busy_s=busy,
+                       device_busy_fraction=busy / wall)
         say(f"torch.profiler step: wall {wall:.2f} s, {len(ev)} device kernels/copies, their summed device time {busy:.3f} s")
         # host <-> device traffic of the step (every copy CUPTI saw: torch's, Warp's, CuPy's)
         for kind in ("HtoD", "DtoH"):
@@ -124,7 +132,38 @@ def main():
     if a.out:
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}.txt"
         p.write_text("\n".join(lines) + "\n")
-        print("written to", p)
+        import json
+        import os
+        summary["commit"] = os.environ.get("RWWARP_COMMIT") or _git_commit()
+        p.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
+        print("written to", p, "and", p.with_suffix(".json"))
+
+
+def _count_warp_launches(fn) -> int:
+    """Calls of ``warp.launch`` (every thread, backward included) while ``fn()`` runs."""
+    import threading
+    import warp as wp
+    orig, n, lock = wp.launch, [0], threading.Lock()
+
+    def counted(*args, **kw):
+        with lock:
+            n[0] += 1
+        return orig(*args, **kw)
+    wp.launch = counted
+    try:
+        fn()
+    finally:
+        wp.launch = orig
+    return n[0]
+
+
+def _git_commit():
+    import subprocess
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parent).stdout.strip() or None
+    except OSError:
+        return None
 
 
 def _count_syncs(fn):
