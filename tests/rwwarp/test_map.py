@@ -232,3 +232,31 @@ def test_allocation_retries_after_release_hooks(cl_backend):
         assert calls == ["hook"]
     finally:
         be._release_hooks.remove(hook)
+
+
+def test_map_launches_do_not_grow_with_its_sources():
+    """The second ``psf_map`` call of a plan-stable map makes one set of Warp launches per batch, whatever the
+    number of sources in it (issue 25: a 30-source A489 + DOE map at 32 px made 908 launches, 30 a source;
+    packed per-source plans make 30 for the whole map). Counted by wrapping ``warp.launch`` (every thread).
+    Here 2 and 6 sources of the small DOE system, 16 px: the counts must be equal (the launches are per
+    surface and stage, not per source; measured 15 and 15) and stay at most 20 (one source a batch, as
+    before the packing, would make 15 a source: 90 for the 6)."""
+    import warp as wp
+    lens = doe_lens()
+    counts = {}
+    orig = wp.launch
+    for fields in ([(0.0, 0.0)], [(0.0, 0.0), (0.0, 0.2), (0.0, 0.4)]):
+        rw.psf_map(lens, fields, WLS, size=16, device="cpu")   # first call: kernels built
+        n = [0]
+
+        def counted(*a, _n=n, **k):
+            _n[0] += 1
+            return orig(*a, **k)
+        wp.launch = counted
+        try:
+            rw.psf_map(lens, fields, WLS, size=16, device="cpu")
+        finally:
+            wp.launch = orig
+        counts[len(fields) * len(WLS)] = n[0]
+    assert counts[2] == counts[6], counts
+    assert 0 < counts[6] <= 20, counts
