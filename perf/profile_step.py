@@ -38,8 +38,10 @@ def main():
     import torch
 
     from torch_bridge.train import Arm, _seed_all, load_config, train_step
-    root = Path(__file__).resolve().parent.parent
-    exp = load_config(str(root / "torch_bridge" / "configs" / f"{a.config}.yaml"), preset=a.preset)
+    import torch_bridge
+    # the configs of the torch_bridge imported (an older install on PYTHONPATH brings its own)
+    exp = load_config(str(Path(torch_bridge.__file__).resolve().parent / "configs" / f"{a.config}.yaml"),
+                      preset=a.preset)
     arm_cfg = next(x for x in exp["arms"] if (x["name"] == a.arm if a.arm else x["config"]["design"]["method"] == "e2e"))
     cfg = dict(arm_cfg["config"], device=a.device, progress=False)
     if a.budget_gb is not None:
