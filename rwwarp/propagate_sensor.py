@@ -17,11 +17,11 @@ import numpy as np
 
 from .backend import get_backend
 from .propagate_setup import (
-    gauss_legendre, _batch_of, _center_extent, _check_window, _coords, _setup, _window_center,
+    check_pixel_values, gauss_legendre, _batch_of, _center_extent, _check_window, _coords, _setup, _window_center,
 )
 from .propagate_stages import (
-    _band_adjoint_to_field, _band_spectrum, _band_to_points, _dft_factors, _launch, _points_to_band,
-    _transfer, _upload_coords,
+    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _dft_factors, _launch,
+    _points_to_band, _transfer, _upload_coords,
 )
 
 
@@ -62,7 +62,9 @@ class SensorGeometry:
     ``doe_scale`` (per-source DOE wavelength remap, with a DOE phase), ``carrier_cpmm`` ((B, 2) tilt
     removed from the field, cycles/mm), ``pad_to`` (FFT size), ``dtype`` (complex dtype) and
     ``window_center_mm`` (the output-window centre that sets the shifted band limits; default the
-    middle of these pixels' nodes). Lengths in mm."""
+    middle of these pixels' nodes), ``pixel_values`` (what a pixel records: ``"intensity"``, ``|U|^2``
+    integrated over it, the default of this low-level operator, or ``"flux"``, the power through it, see
+    :mod:`rwwarp.propagate` "Pixel values"). Lengths in mm."""
     pitch_mm: object
     origin_mm: object
     wavelength_um: object
@@ -76,6 +78,7 @@ class SensorGeometry:
     pad_to: object = None
     dtype: object = None
     window_center_mm: object = None
+    pixel_values: str = "intensity"
 
     def with_(self, **changes) -> "SensorGeometry":
         """A copy with some fields replaced (e.g. ``distance_mm``, the pixel centres of a tile)."""
@@ -95,6 +98,7 @@ class SensorPropagator:
     def __init__(self, backend, geometry: SensorGeometry):
         self.backend = get_backend(backend)
         self.geometry = geometry
+        self.flux = check_pixel_values(geometry.pixel_values, "SensorGeometry") == "flux"
 
     def _prepare(self, field, doe_phase):
         """The setup of one call: (setup, (npx, npy, xs, ys, weights, area), window extent)."""
@@ -110,19 +114,22 @@ class SensorPropagator:
         return st, (npx_, npy_, xs, ys, w, area), (ex, ey)
 
     def forward(self, field, doe_phase=None, return_nodes=False):
-        """Power landing in each sensor pixel: ``|U|^2`` integrated over the pixel's area.
+        """Power landing in each sensor pixel: ``|U|^2`` (``pixel_values="intensity"``) or the z-flux
+        ``Re(conj(U_-) U_+)`` (``"flux"``) integrated over the pixel's area.
 
         The propagated field (:func:`propagate`) is evaluated at ``gauss_nodes`` x ``gauss_nodes``
         Gauss-Legendre nodes inside every pixel (matrix DFT) and the weighted ``|U|^2`` summed in one
         kernel: ``I[b, py, px] = (ppx ppy / 4) sum_{gy, gx} w_gy w_gx |U(x_gx, y_gy)|^2`` with nodes
         ``x_gx = x_px + ppx t_gx / 2``, ``y_gy = y_py + ppy t_gy / 2``. Box integration, exact for
-        intensities that are polynomials of degree ``2 gauss_nodes - 1`` across a pixel.
+        intensities that are polynomials of degree ``2 gauss_nodes - 1`` across a pixel. With ``"flux"``
+        the band spectrum is weighted by ``c^(-1/2)`` and ``c^(1/2)`` (``c = lambda w``, the direction
+        cosine) before two matrix DFTs to the same nodes, and ``Re(conj(U_-) U_+)`` is summed instead.
 
         Args:
             field, doe_phase: as :func:`propagate` (the rest is the :class:`SensorGeometry`; pixels are
                 boxes of ``pixel_pitch_mm`` centred on the given centres).
             return_nodes: also return the node field (B, Py*G, Px*G) (row py*G+gy, column px*G+gx),
-                which :meth:`adjoint` can reuse.
+                which :meth:`adjoint` can reuse (with ``"flux"`` the pair ``(U_-, U_+)``).
 
         Returns:
             (B, Py, Px) real device array (field units^2 * mm^2, i.e. power per pixel), or
@@ -136,21 +143,40 @@ class SensorPropagator:
         band, _ = _band_spectrum(st)
         ext, eyf = _dft_factors(st, coords)
         g = len(w)
-        if return_nodes:
-            nodes = be.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        else:
-            nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _band_to_points(st, band, ext, eyf, nodes)
+        shape = (st.batch, ys.shape[1], xs.shape[1])
+        new = (lambda tag: be.empty(shape, st.dtype)) if return_nodes else (lambda tag: be.workspace(tag, shape, st.dtype))
         inten = be.empty((st.batch, npy_, npx_), st.rdtype)
-        _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area, inten)
+        if self.flux:
+            nodes = self._flux_nodes(st, band, ext, eyf, new)
+            _launch(st, "sensor_flux_reduce_kernel", (npx_, npy_, st.batch), nodes[0], nodes[1], w_dev, npx_, npy_,
+                    g, st.batch, area, inten)
+        else:
+            nodes = new("nodes")
+            _band_to_points(st, band, ext, eyf, nodes)
+            _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area,
+                    inten)
         if return_nodes:
             return inten, nodes
         return inten
 
+    @staticmethod
+    def _flux_nodes(st, band, ext, eyf, new):
+        """``(U_-, U_+)``: the node fields of ``c^(-1/2) C`` and ``c^(1/2) C`` (``new(tag)`` gives the arrays)."""
+        be = st.backend
+        pair = []
+        for sign, tag in ((-1, "nodes"), (1, "nodes_p")):
+            wb = _band_obliquity(st, band, sign, be.workspace("band_w", band.shape, st.dtype))
+            pair.append(_band_to_points(st, wb, ext, eyf, new(tag)))
+        return tuple(pair)
+
     def _band_gradient(self, grad_intensity, field, doe_phase, nodes, need_band):
         """The part the adjoints share: the setup of the forward call, its node field (given or
         recomputed), and dL/dC, the gradient of the band spectrum C (workspace 'band_grad'). Returns
-        ``(st, band_grad, h, band)``; ``band`` (C itself) only with ``need_band``."""
+        ``(st, band_grad, h, band)``; ``band`` (C itself) only with ``need_band``.
+
+        ``"flux"``: the pixel value is ``sum w Re(conj(U_-) U_+)``, so the node gradients are ``w U_+`` for
+        ``U_-`` and ``w U_-`` for ``U_+`` (torch's convention), and ``dL/dC = c^(-1/2) A^H(w U_+) + c^(1/2)
+        A^H(w U_-)`` (``A``: the matrix DFT; the weights are real)."""
         st, (npx_, npy_, xs, ys, w, area), _ = self._prepare(field, doe_phase)
         be = st.backend
         g = len(w)
@@ -159,10 +185,18 @@ class SensorPropagator:
             raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
         coords = _upload_coords(st, xs, ys)
         w_dev = be.to_device(w.astype(st.rdtype))
+        shape = (st.batch, ys.shape[1], xs.shape[1])
         if nodes is not None:
-            nodes = be.to_device(nodes, st.dtype)
-            if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-                raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+            if self.flux:
+                if not (isinstance(nodes, tuple) and len(nodes) == 2):
+                    raise ValueError("nodes: pixel_values='flux' takes the pair (U_-, U_+) its forward call returned")
+                nodes = tuple(be.to_device(n, st.dtype) for n in nodes)
+                bad = [tuple(n.shape) for n in nodes if tuple(n.shape) != shape]
+            else:
+                nodes = be.to_device(nodes, st.dtype)
+                bad = [tuple(nodes.shape)] if tuple(nodes.shape) != shape else []
+            if bad:
+                raise ValueError(f"nodes shape {bad[0]} != {shape}")
         if need_band:  # the band spectrum C itself is needed (the distance gradient)
             band, h = _band_spectrum(st)
         else:
@@ -171,14 +205,26 @@ class SensorPropagator:
             if band is None:
                 band, _ = _band_spectrum(st)
             ext, eyf = _dft_factors(st, coords)
-            nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-            _band_to_points(st, band, ext, eyf, nodes)
-        g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _launch(st, "sensor_reduce_adjoint_kernel", (xs.shape[1], ys.shape[1], st.batch), nodes, w_dev, gi, npx_,
-                npy_, g, st.batch, area, g_nodes)
+            if self.flux:
+                nodes = self._flux_nodes(st, band, ext, eyf, lambda tag: be.workspace(tag, shape, st.dtype))
+            else:
+                nodes = be.workspace("nodes", shape, st.dtype)
+                _band_to_points(st, band, ext, eyf, nodes)
         ex, eyf = _dft_factors(st, coords, adjoint=True)
         band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-        _points_to_band(st, g_nodes, ex, eyf, band_grad)
+        grid = (xs.shape[1], ys.shape[1], st.batch)
+        if self.flux:
+            part = be.workspace("band_grad_part", band_grad.shape, st.dtype)
+            for k, (sign, other) in enumerate(((-1, nodes[1]), (1, nodes[0]))):
+                g_nodes = be.workspace("nodes_grad", shape, st.dtype)
+                _launch(st, "sensor_reduce_adjoint_kernel", grid, other, w_dev, gi, npx_, npy_, g, st.batch,
+                        0.5 * area, g_nodes)
+                _points_to_band(st, g_nodes, ex, eyf, part)
+                _band_obliquity(st, part, sign, band_grad, accumulate=k > 0)
+        else:
+            g_nodes = be.workspace("nodes_grad", shape, st.dtype)
+            _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes, w_dev, gi, npx_, npy_, g, st.batch, area, g_nodes)
+            _points_to_band(st, g_nodes, ex, eyf, band_grad)
         return st, band_grad, h, band if need_band else None
 
     def adjoint(self, grad_intensity, field, doe_phase=None, nodes=None):
@@ -233,30 +279,36 @@ class SensorPropagator:
 
 def sensor_intensity(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm,
                      pixel_centers_y_mm, pixel_pitch_mm, *, gauss_nodes=3, doe_phase=None, doe_scale=None,
-                     carrier_cpmm=None, pad_to=None, dtype=None, return_nodes=False, window_center_mm=None):
+                     carrier_cpmm=None, pad_to=None, dtype=None, return_nodes=False, window_center_mm=None,
+                     pixel_values="intensity"):
     """Power landing in each sensor pixel (:meth:`SensorPropagator.forward`; the arguments other than
-    ``backend``, ``field``, ``doe_phase`` and ``return_nodes`` form its :class:`SensorGeometry`)."""
+    ``backend``, ``field``, ``doe_phase`` and ``return_nodes`` form its :class:`SensorGeometry`;
+    ``pixel_values`` "intensity" (default here) or "flux", see :mod:`rwwarp.propagate` "Pixel values")."""
     geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm)
+                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
+                         pixel_values)
     return SensorPropagator(backend, geo).forward(field, doe_phase, return_nodes)
 
 
 def sensor_intensity_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um, distance_mm,
                              pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, *, gauss_nodes=3, doe_phase=None,
                              doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None, nodes=None,
-                             window_center_mm=None):
+                             window_center_mm=None, pixel_values="intensity"):
     """Gradient of a real loss through :func:`sensor_intensity` (:meth:`SensorPropagator.adjoint`)."""
     geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm)
+                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
+                         pixel_values)
     return SensorPropagator(backend, geo).adjoint(grad_intensity, field, doe_phase, nodes)
 
 
 def sensor_intensity_distance_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um,
                                       distance_mm, pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, *,
                                       gauss_nodes=3, doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None,
-                                      dtype=None, nodes=None, need_field=True, window_center_mm=None):
+                                      dtype=None, nodes=None, need_field=True, window_center_mm=None,
+                                      pixel_values="intensity"):
     """Gradient through :func:`sensor_intensity`, the distance included
     (:meth:`SensorPropagator.distance_adjoint`)."""
     geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm)
+                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
+                         pixel_values)
     return SensorPropagator(backend, geo).distance_adjoint(grad_intensity, field, doe_phase, nodes, need_field)

@@ -191,15 +191,24 @@ class RayWave:
     gives every ray its own copy of each surface's parameters when recording
     (:class:`~rwwarp.trace.Tracer` ``deterministic``: 480 bytes a ray and surface more). On the CPU the
     results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
+
+    ``pixel_values``: what a sensor pixel records, ``"flux"`` (default: the power through it, the z-component of
+    the Poynting vector of the field whose flux density through the wave plane is the splat's ``|u|^2``) or
+    ``"intensity"`` (``|U|^2`` integrated over it, the convention before issue 27); :mod:`rwwarp.propagate`
+    "Pixel values".
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
-                 own_pupils: bool = False, pilot: dict | None = None):
+                 own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux"):
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+        from .propagate_setup import check_pixel_values
+        #: what a sensor pixel records: "flux" (the power through it) or "intensity" (|U|^2 over it), see
+        #: :mod:`rwwarp.propagate` "Pixel values"
+        self.pixel_values = check_pixel_values(pixel_values, "RayWave")
         self.deterministic = bool(deterministic)
 
         plane = lens.wave_plane_index()
@@ -708,7 +717,7 @@ class RayWave:
         return SensorGeometry(self.plan.pitch_mm, self.origin, np.array(self.wls) / self.n_after,
                               np.full(self.nsrc, float(self.z_sensor - self.z_plane)), px, py, self.pixel,
                               gauss_nodes=self.gauss_nodes, doe_scale=doe_scale, carrier_cpmm=self.carrier,
-                              pad_to=self.plan.n_pad)
+                              pad_to=self.plan.n_pad, pixel_values=self.pixel_values)
 
     def intensity(self, u_field, phi0=None, scale=None):
         """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n)), by the
@@ -772,14 +781,16 @@ class RayWave:
 
     def focal_intensity(self, u_field, precision="single"):
         """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``; ``precision`` of
-        its matrix products, :class:`rwwarp.focal.FocalPropagator`)."""
-        from .focal import pixel_power
+        its matrix products, :class:`rwwarp.focal.FocalPropagator`; :attr:`pixel_values` as the ASM's)."""
+        from .focal import pixel_flux, pixel_power
         op = self.focal_operator(precision=precision)
         fac = self.doe_orders_factor(op.xp)
         if fac is not None:
             u_field = u_field * fac
-        u = op.forward(u_field)
-        power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
+        if self.pixel_values == "flux":
+            power = pixel_flux(*op.forward_pair(u_field), self.gauss_nodes, self.pixel, self.size, xp=op.xp)
+        else:
+            power = pixel_power(op.forward(u_field), self.gauss_nodes, self.pixel, self.size, xp=op.xp)
         return power if op.xp is np else op.xp.asnumpy(power)
 
     def run(self, focal_precision: str = "auto") -> dict:
@@ -812,4 +823,4 @@ def paper_rescale(u, traced_power, pitch_mm: float, xp):
 #: The keyword options of :class:`RayWave` that :func:`rwwarp.psf_map` (and its distributed form) hand to
 #: every batch unchanged, under the same names (with ``memory_budget_bytes`` from their budget).
 RAYWAVE_OPTIONS = ("device", "plan", "dtype", "amplitude", "rays_per_sample", "center_mm", "use_reference",
-                   "gauss_nodes", "nyquist_safety", "method", "focal_patch_tol", "deterministic")
+                   "gauss_nodes", "nyquist_safety", "method", "focal_patch_tol", "deterministic", "pixel_values")
