@@ -40,14 +40,16 @@ the chief ray, exact). So
 ``V`` is only band-limited to the beam's angular spread ``NA / lambda`` and compact (the focused
 spot plus the patch), so both sensor-side grids are of patch size.
 
-Pixel values (:mod:`rwwarp.propagate`, "Pixel values"). The z-flux needs the field weighted by powers of the
-direction cosine ``c(f) = lambda' w(f)`` in the frequency domain. Step 2 holds the sensor-plane spectrum itself:
-``B`` at the true frequencies ``f_c + nu`` (the operator is shift invariant, ``H = H_G H_R``, so weighting the
-output spectrum is weighting the input's), so :meth:`FocalPropagator.forward_pair` applies ``c^(-1/2)`` and
-``c^(1/2)`` to ``B`` before two output DFTs. No approximation is added: the weights are exact on the same
-periodic sensor-side grid that ``H_R`` is applied on, and being real, smooth and non-oscillating they move no
-light (their kernel spans a few wavelengths, far inside the padding that ``H_R``'s displacement needs);
-frequencies the remainder's band limit drops are dropped from both. Where a DOE's orders other
+Pixel values (:mod:`rwwarp.propagate`, "Pixel values"). The z-flux ``Re(conj(U) dU/dz / (i k))`` needs
+``U_w = F^-1[c(f) F U]``, the field weighted by the direction cosine ``c(f) = lambda' w(f) = k_z / k`` in the
+frequency domain. Step 2 holds the sensor-plane spectrum itself: ``B`` at the true frequencies ``f_c + nu``
+(the operator is shift invariant, ``H = H_G H_R``, so weighting the output spectrum is weighting the input's),
+so :meth:`FocalPropagator.forward_pair` applies ``c`` to ``B`` before a second output DFT. No approximation is
+added: the weight is exact on the same periodic sensor-side grid that ``H_R`` is applied on, and being real,
+smooth and non-oscillating it moves no light (its kernel spans a few wavelengths, far inside the padding that
+``H_R``'s displacement needs); frequencies the remainder's band limit drops are dropped from both ``U`` and
+``U_w``. The demodulation by ``f_c`` and the constant phase per source are common to both and cancel in
+``conj(U) U_w``. Where a DOE's orders other
 than the main one miss the patch, they are not computed (their power is reported); orders that do
 reach it are summed coherently on the same grid (:func:`doe_order_coefficients`).
 
@@ -267,8 +269,8 @@ class FocalPropagator:
         keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room)
         rem = xp.where(keep, w - wg, 0.0)
         self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
-        # c^(1/2), c = lambda' w the direction cosine (pixel_values "flux"; 1 off the kept band, where H_R is 0)
-        self._cw = xp.where(keep, xp.sqrt(xp.maximum(w, 1e-300) / X["inv_lam"][:, None, None]), 1.0)
+        # c = lambda' w = k_z / k, the direction cosine (pixel_values "flux"; 0 off the kept band, where H_R is 0)
+        self._c = xp.where(keep, w / X["inv_lam"][:, None, None], 0.0)
         self._keep_mean = xp.mean(keep)   # read on demand (kept_band_fraction): no device sync at set-up
         self._rem = rem           # d(phase of H_R)/dz / (2 pi), kept band (for the distance derivative)
         self._dHR = None
@@ -282,7 +284,7 @@ class FocalPropagator:
     def nbytes(self) -> int:
         """Bytes the operator holds on its device: the step-1 factors, the remainder transfer and its phase,
         the output factors and, once formed, the distance-derivative factors."""
-        arrays = [*self._E, self._HR, self._rem, self._cw, self._Fx, self._Fy]
+        arrays = [*self._E, self._HR, self._rem, self._c, self._Fx, self._Fy]
         if self._dE is not None:
             arrays += [*self._dE, self._dHR]
         return int(sum(a.nbytes for a in arrays))
@@ -306,11 +308,11 @@ class FocalPropagator:
         return self._to_nodes(self._spectrum(field))
 
     def forward_pair(self, field):
-        """``(U_-, U_+)`` at the output nodes, each (S, My, Mx): the fields of the sensor-plane spectrum weighted by
-        ``c^(-1/2)`` and ``c^(1/2)`` (``c``: the direction cosine), whose ``Re(conj(U_-) U_+)`` is the z-flux
-        (:func:`pixel_flux`; the same constant phase per source in both)."""
+        """``(U, U_w)`` at the output nodes, each (S, My, Mx): the field (:meth:`forward`) and the field of its
+        sensor-plane spectrum weighted by the direction cosine ``c = k_z / k``; ``Re(conj(U) U_w)`` is the
+        z-flux (:func:`pixel_flux`; the same constant phase per source in both)."""
         b = self._spectrum(field)
-        return self._to_nodes(b / self._cw), self._to_nodes(b * self._cw)
+        return self._to_nodes(b), self._to_nodes(b * self._c)
 
     def _spectrum(self, field):
         """``B = FFT(V) H_R`` on the padded sensor-side grid, (S, nf, nf) (true frequency ``f_c + nu``)."""
@@ -353,10 +355,10 @@ class FocalPropagator:
         return self._to_nodes(self._distance_spectrum(field))
 
     def distance_derivative_pair(self, field):
-        """``(dU_-/dz, dU_+/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weights do not
+        """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight does not
         depend on the distance)."""
         db = self._distance_spectrum(field)
-        return self._to_nodes(db / self._cw), self._to_nodes(db * self._cw)
+        return self._to_nodes(db), self._to_nodes(db * self._c)
 
     def _distance_spectrum(self, field):
         """``dB/dz`` (S, nf, nf) at fixed grids, band mask and carrier."""
@@ -372,10 +374,10 @@ class FocalPropagator:
         """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, My, Mx) -> (S, n, n)."""
         return self._spectrum_adjoint(self._from_nodes(grad))
 
-    def adjoint_pair(self, grad_minus, grad_plus):
-        """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U_-`` and ``U_+`` (S, My, Mx)
-        each (torch's convention), (S, n, n)."""
-        return self._spectrum_adjoint(self._from_nodes(grad_minus) / self._cw + self._from_nodes(grad_plus) * self._cw)
+    def adjoint_pair(self, grad_u, grad_w):
+        """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U`` and ``U_w`` (S, My, Mx) each
+        (torch's convention), (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad_u) + self._from_nodes(grad_w) * self._c)
 
     def _spectrum_adjoint(self, b):
         """Adjoint of :meth:`_spectrum`: (S, nf, nf) -> (S, n, n)."""
@@ -433,22 +435,22 @@ def pixel_power_adjoint(u_nodes, grad_power, gauss_nodes: int, pixel_mm: float, 
     return 2.0 * wg.reshape(S, size * g, size * g) * u_nodes
 
 
-def pixel_flux(u_minus, u_plus, gauss_nodes: int, pixel_mm: float, size: int, xp=np):
-    """Power through each pixel (pixel_values "flux") from the node fields ``(U_-, U_+)`` of
-    :meth:`FocalPropagator.forward_pair`: ``Re(conj(U_-) U_+)`` summed with the Gauss-Legendre weights of the
-    pixel's area (node order as :func:`pixel_power`). Returns (S, size, size)."""
+def pixel_flux(u_nodes, u_w_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):
+    """Power through each pixel (pixel_values "flux") from the node fields ``(U, U_w)`` of
+    :meth:`FocalPropagator.forward_pair`: the z-flux ``Re(conj(U) U_w)`` summed with the Gauss-Legendre weights of
+    the pixel's area (node order as :func:`pixel_power`). Returns (S, size, size)."""
     g = int(gauss_nodes)
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
-    flux = (u_minus.real * u_plus.real + u_minus.imag * u_plus.imag).reshape(u_minus.shape[0], size, g, size, g)
+    flux = (u_nodes.real * u_w_nodes.real + u_nodes.imag * u_w_nodes.imag).reshape(u_nodes.shape[0], size, g, size, g)
     return xp.einsum("siajb,ab->sij", flux, w2)
 
 
-def pixel_flux_adjoint(u_minus, u_plus, grad_power, gauss_nodes: int, pixel_mm: float, xp=np):
-    """Gradients of ``sum(grad_power * pixel_flux(u_minus, u_plus))`` with respect to ``u_minus`` and ``u_plus``
-    in torch's convention (``2 dL/d conj(u)``): ``(w_ab grad_power[i, j] u_plus, w_ab grad_power[i, j] u_minus)``
+def pixel_flux_adjoint(u_nodes, u_w_nodes, grad_power, gauss_nodes: int, pixel_mm: float, xp=np):
+    """Gradients of ``sum(grad_power * pixel_flux(u_nodes, u_w_nodes))`` with respect to ``u_nodes`` and
+    ``u_w_nodes`` in torch's convention (``2 dL/d conj(u)``): ``(w_ab grad_power[i, j] U_w, w_ab grad_power[i, j] U)``
     at node (i a, j b) (``Re(conj(a) b) = (conj(a) b + a conj(b)) / 2``)."""
     g = int(gauss_nodes)
     S, size = grad_power.shape[0], grad_power.shape[1]
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     wg = (grad_power[:, :, None, :, None] * w2[None, None, :, None, :]).reshape(S, size * g, size * g)
-    return wg * u_plus, wg * u_minus
+    return wg * u_w_nodes, wg * u_nodes

@@ -424,7 +424,25 @@ def _rs_block(xs, ys, cs, m2px, m2py, r2, r, amp, doe, k):
     return b_re.sum(axis=1) + 1j * b_im.sum(axis=1)
 
 
-def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_elements):
+def _rs_block_dz(xs, ys, cs, m2px, m2py, r2, r, amp, doe, k, z):
+    """sum_p dB/dz(x', p) C_p for a block of sensor points (the z-derivative of the kernel, factor 1/(2 pi) left
+    out): with h = (z / (2 pi)) g(rho), g = exp(jk rho) (1/rho^3 - jk/rho^2) and d rho/dz = z / rho,
+    dh/dz = (1/(2 pi)) exp(jk rho) [1/rho^3 - jk/rho^2 + (z^2/rho) (k^2/rho^2 + 3jk/rho^3 - 3/rho^4)]
+    (the reference phase exp(-jkR) does not depend on the sensor plane)."""
+    d2 = np.multiply.outer(xs, m2px) + np.multiply.outer(ys, m2py) + cs[:, None]
+    rho = np.sqrt(d2 + r2)
+    phase = k * d2 / (rho + r) + doe
+    inv = 1.0 / rho
+    inv2 = inv * inv
+    t = inv * inv2 - 1j * k * inv2 + (z * z) * inv * (k * k * inv2 + 3j * k * inv * inv2 - 3.0 * inv2 * inv2)
+    t *= np.cos(phase) + 1j * np.sin(phase)
+    t *= amp
+    return t.sum(axis=1)
+
+
+def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_elements, dz=False):
+    """The Rayleigh-Sommerfeld field at the sensor points (or, with ``dz``, its derivative with respect to the
+    sensor plane's distance, 1/mm units more)."""
     f, z = float(focal_mm), float(distance_mm)
     px, py = quad.x_mm, quad.y_mm
     r2 = px * px + py * py + f * f
@@ -449,7 +467,10 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
         s = slice(s0, min(s0 + bs, ns))
         acc = np.zeros(s.stop - s.start, dtype=np.complex128)
         for block in a_data:
-            acc += _rs_block(xs[s], ys[s], cs[s], *block, k)
+            if dz:
+                acc += _rs_block_dz(xs[s], ys[s], cs[s], *block, k, z)
+            else:
+                acc += _rs_block(xs[s], ys[s], cs[s], *block, k)
         out[s] = acc
 
     starts = range(0, ns, bs)
@@ -459,7 +480,15 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
     else:
         with ThreadPoolExecutor(max_workers=int(workers)) as pool:
             list(pool.map(work, starts))
-    return out * (z / _TWO_PI)
+    return out * ((1.0 if dz else z) / _TWO_PI)
+
+
+def _sensor_values(u, du, k, pixel_values):
+    """Pixel-value density at sensor nodes from the field ``u`` and its z-derivative ``du`` (1/mm more):
+    ``|U|^2`` ("intensity") or the z-flux ``Re(conj(U) dU/dz / (i k)) = Im(conj(U) dU/dz) / k`` ("flux")."""
+    if pixel_values == "flux":
+        return (np.conj(u) * du).imag / k
+    return u.real ** 2 + u.imag ** 2
 
 
 def _setup(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, distance_mm, doe_phase,
@@ -606,7 +635,7 @@ class _Nodes:
 
 
 def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, radial_nodes=64, angular_nodes=256,
-                pixel_nodes=10, fd_step=1e-5, workers=None, include_doe=False):
+                pixel_nodes=10, fd_step=1e-5, workers=None, include_doe=False, pixel_values="flux"):
     """Independent scalar-diffraction PSF of a real lens: traced rays, ray-tube amplitudes, exact
     Rayleigh-Sommerfeld kernel, summed directly to the sensor pixels (no FFT, no sampled field).
 
@@ -624,6 +653,13 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     wave plane) then multiplies the plane field by ``exp(1j * modulation_phase)`` at the nodes, which is
     accurate only while that phase is smooth over the footprint (LensError when the wrapped relief or its
     quantisation puts a phase step inside it: the polar rule is spectral only for a smooth integrand).
+
+    ``pixel_values`` (:mod:`rwwarp.propagate` "Pixel values"): ``"flux"`` (default) integrates the z-flux
+    ``S_z = Re(conj(U) dU/dz / (i k))`` over each pixel, ``dU/dz`` by the exact z-derivative of the same kernel;
+    the plane field is then the scalar field whose z-flux through the plane is the ray-tube irradiance
+    ``q / J``, ``sqrt(q / (J cos theta)) exp(i k OPL)`` (``cos theta``: the ray's direction cosine to the plane's
+    normal, in the image medium; the ray-local form of the model's ``c^(-1/2)``). ``"intensity"``: ``|U|^2``
+    of the field ``sqrt(q / J) exp(i k OPL)`` (the convention before issue 27).
 
     Returns the (size, size) fraction of the entering power per pixel, rows +y, on the patch centred
     at ``center_mm`` (sensor x, y in mm, a pixel centre).
@@ -651,11 +687,16 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     z_plane = lens.vertex_z[plane]
     h = float(fd_step)
 
+    if pixel_values not in ("flux", "intensity"):
+        raise ValueError(f"rs_lens_psf: pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
+    cosines = []
+
     def trace(u, v):
         rays = tr._run(src, u, v, 1.0, upto=plane + 1)
         d = rays.numpy()
         p, dr, opl = d["pos"][0], d["dir"][0], d["opl"][0]
         s = (z_plane - p[:, 2]) / dr[:, 2]             # straight on to the vertex plane
+        cosines.append(np.abs(dr[:, 2]) / np.linalg.norm(dr, axis=1))
         return p[:, :2] + s[:, None] * dr[:, :2], opl + n_img * s, d["valid"][0], d["weight"][0]
 
     xy, opl, ok, q = trace(u0, v0)
@@ -676,6 +717,8 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     if doe_s is not None and include_doe:
         phase = phase + _doe_node_phase(lens, doe_s, wl, xy[good, 0], xy[good, 1])
     amp = np.sqrt(q[good] * jac[good]) * w[good]
+    if pixel_values == "flux":
+        amp = amp / np.sqrt(cosines[0][good])
     nodes = _Nodes(xy[good, 0], xy[good, 1], amp, phase)
     g, gw = np.polynomial.legendre.leggauss(int(pixel_nodes))
     off = (np.arange(size) - size // 2) * pixel_mm
@@ -684,8 +727,9 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     nx = (cx[:, None] + 0.5 * pixel_mm * g[None, :]).ravel()
     ny = (cy[:, None] + 0.5 * pixel_mm * g[None, :]).ravel()
     X, Y = np.meshgrid(nx, ny, indexing="xy")
-    u = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None).reshape(ny.size, nx.size)
-    inten = (u.real ** 2 + u.imag ** 2).reshape(size, pixel_nodes, size, pixel_nodes)
+    u = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None)
+    du = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None, dz=True) if pixel_values == "flux" else None
+    inten = _sensor_values(u, du, k, pixel_values).reshape(size, pixel_nodes, size, pixel_nodes)
     ww = np.outer(gw, gw) * (0.5 * pixel_mm) ** 2
     return np.einsum("iajb,ab->ij", inten, ww) / entering
 

@@ -115,21 +115,21 @@ class SensorPropagator:
 
     def forward(self, field, doe_phase=None, return_nodes=False):
         """Power landing in each sensor pixel: ``|U|^2`` (``pixel_values="intensity"``) or the z-flux
-        ``Re(conj(U_-) U_+)`` (``"flux"``) integrated over the pixel's area.
+        ``Re(conj(U) U_w)`` (``"flux"``) integrated over the pixel's area.
 
         The propagated field (:func:`propagate`) is evaluated at ``gauss_nodes`` x ``gauss_nodes``
         Gauss-Legendre nodes inside every pixel (matrix DFT) and the weighted ``|U|^2`` summed in one
         kernel: ``I[b, py, px] = (ppx ppy / 4) sum_{gy, gx} w_gy w_gx |U(x_gx, y_gy)|^2`` with nodes
         ``x_gx = x_px + ppx t_gx / 2``, ``y_gy = y_py + ppy t_gy / 2``. Box integration, exact for
         intensities that are polynomials of degree ``2 gauss_nodes - 1`` across a pixel. With ``"flux"``
-        the band spectrum is weighted by ``c^(-1/2)`` and ``c^(1/2)`` (``c = lambda w``, the direction
-        cosine) before two matrix DFTs to the same nodes, and ``Re(conj(U_-) U_+)`` is summed instead.
+        the band spectrum ``C`` and ``c C`` (``c = lambda w = k_z / k``, the direction cosine) go through two
+        matrix DFTs to the same nodes, ``U`` and ``U_w``, and ``Re(conj(U) U_w)`` is summed instead.
 
         Args:
             field, doe_phase: as :func:`propagate` (the rest is the :class:`SensorGeometry`; pixels are
                 boxes of ``pixel_pitch_mm`` centred on the given centres).
             return_nodes: also return the node field (B, Py*G, Px*G) (row py*G+gy, column px*G+gx),
-                which :meth:`adjoint` can reuse (with ``"flux"`` the pair ``(U_-, U_+)``).
+                which :meth:`adjoint` can reuse (with ``"flux"`` the pair ``(U, U_w)``).
 
         Returns:
             (B, Py, Px) real device array (field units^2 * mm^2, i.e. power per pixel), or
@@ -161,22 +161,19 @@ class SensorPropagator:
 
     @staticmethod
     def _flux_nodes(st, band, ext, eyf, new):
-        """``(U_-, U_+)``: the node fields of ``c^(-1/2) C`` and ``c^(1/2) C`` (``new(tag)`` gives the arrays)."""
-        be = st.backend
-        pair = []
-        for sign, tag in ((-1, "nodes"), (1, "nodes_p")):
-            wb = _band_obliquity(st, band, sign, be.workspace("band_w", band.shape, st.dtype))
-            pair.append(_band_to_points(st, wb, ext, eyf, new(tag)))
-        return tuple(pair)
+        """``(U, U_w)``: the node fields of ``C`` and ``c C`` (``new(tag)`` gives the arrays)."""
+        u = _band_to_points(st, band, ext, eyf, new("nodes"))
+        wb = _band_obliquity(st, band, 1, st.backend.workspace("band_w", band.shape, st.dtype))
+        return u, _band_to_points(st, wb, ext, eyf, new("nodes_w"))
 
     def _band_gradient(self, grad_intensity, field, doe_phase, nodes, need_band):
         """The part the adjoints share: the setup of the forward call, its node field (given or
         recomputed), and dL/dC, the gradient of the band spectrum C (workspace 'band_grad'). Returns
         ``(st, band_grad, h, band)``; ``band`` (C itself) only with ``need_band``.
 
-        ``"flux"``: the pixel value is ``sum w Re(conj(U_-) U_+)``, so the node gradients are ``w U_+`` for
-        ``U_-`` and ``w U_-`` for ``U_+`` (torch's convention), and ``dL/dC = c^(-1/2) A^H(w U_+) + c^(1/2)
-        A^H(w U_-)`` (``A``: the matrix DFT; the weights are real)."""
+        ``"flux"``: the pixel value is ``sum w Re(conj(U) U_w)``, so the node gradients are ``w U_w`` for
+        ``U`` and ``w U`` for ``U_w`` (torch's convention), and ``dL/dC = A^H(w U_w) + c A^H(w U)`` (``A``: the
+        matrix DFT; ``c`` is real)."""
         st, (npx_, npy_, xs, ys, w, area), _ = self._prepare(field, doe_phase)
         be = st.backend
         g = len(w)
@@ -189,7 +186,7 @@ class SensorPropagator:
         if nodes is not None:
             if self.flux:
                 if not (isinstance(nodes, tuple) and len(nodes) == 2):
-                    raise ValueError("nodes: pixel_values='flux' takes the pair (U_-, U_+) its forward call returned")
+                    raise ValueError("nodes: pixel_values='flux' takes the pair (U, U_w) its forward call returned")
                 nodes = tuple(be.to_device(n, st.dtype) for n in nodes)
                 bad = [tuple(n.shape) for n in nodes if tuple(n.shape) != shape]
             else:
@@ -214,13 +211,14 @@ class SensorPropagator:
         band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
         grid = (xs.shape[1], ys.shape[1], st.batch)
         if self.flux:
-            part = be.workspace("band_grad_part", band_grad.shape, st.dtype)
-            for k, (sign, other) in enumerate(((-1, nodes[1]), (1, nodes[0]))):
-                g_nodes = be.workspace("nodes_grad", shape, st.dtype)
-                _launch(st, "sensor_reduce_adjoint_kernel", grid, other, w_dev, gi, npx_, npy_, g, st.batch,
-                        0.5 * area, g_nodes)
-                _points_to_band(st, g_nodes, ex, eyf, part)
-                _band_obliquity(st, part, sign, band_grad, accumulate=k > 0)
+            g_nodes = be.workspace("nodes_grad", shape, st.dtype)
+            _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes[1], w_dev, gi, npx_, npy_, g, st.batch,
+                    0.5 * area, g_nodes)
+            _points_to_band(st, g_nodes, ex, eyf, band_grad)
+            _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes[0], w_dev, gi, npx_, npy_, g, st.batch,
+                    0.5 * area, g_nodes)
+            part = _points_to_band(st, g_nodes, ex, eyf, be.workspace("band_grad_w", band_grad.shape, st.dtype))
+            _band_obliquity(st, part, 1, band_grad, accumulate=True)
         else:
             g_nodes = be.workspace("nodes_grad", shape, st.dtype)
             _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes, w_dev, gi, npx_, npy_, g, st.batch, area, g_nodes)

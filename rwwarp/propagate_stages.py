@@ -190,11 +190,11 @@ def _band_spectrum(st):
     return band, h
 
 
-def _band_obliquity(st, src, sign, out, accumulate=False):
-    """``out = c^(sign/2) src`` on the band (``+ out`` with ``accumulate``), ``c = lambda w`` the direction
+def _band_obliquity(st, src, power, out, accumulate=False):
+    """``out = c^power src`` on the band (``+ out`` with ``accumulate``), ``c = lambda w = k_z / k`` the direction
     cosine of each plane wave (pixel_values "flux"; real, so it is its own adjoint). Returns ``out``."""
     _launch(st, "band_obliquity_kernel", (st.kx_max, st.ky_max, st.batch), src, st.params_dev, st.kx_max,
-            st.ky_max, st.batch, int(sign), int(bool(accumulate)), out)
+            st.ky_max, st.batch, int(power), int(bool(accumulate)), out)
     return out
 
 

@@ -543,7 +543,9 @@ class RayWave:
                 opl_p[k] = all_opl[k, j]
         n = lay["n_stride"]
         sp = self.splatter
-        energy = int(self.amplitude == "energy")
+        # 2: the energy convention's field made the one whose z-flux through the plane is the traced irradiance
+        # (pixel_values "flux": each ray's amplitude / sqrt(cos theta), kernels/splat.py)
+        energy = (2 if self.pixel_values == "flux" else 1) if self.amplitude == "energy" else 0
         rim_args = self._rim_args(rim)
         if lay["ray_grids"] is None:
             area, half = sp.tube_areas(rays, pl.ray_grid, rim_args, bool(energy))
