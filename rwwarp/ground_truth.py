@@ -44,8 +44,10 @@ Numerics.
   nodes reach the same error with far fewer nodes (2 pi-rad cells: 1.4 nodes/rad against 10 for
   0.3-rad cells at 1e-9), which is why 2 pi is the default. The ``tolerance`` option checks the
   result empirically by halving every cell until the PSF changes by less than ``tolerance``.
-* Sensor. ``|U|^2`` is integrated over each pixel's area with ``g x g`` Gauss-Legendre nodes
-  (box integration, fraction of the entering power per pixel, as ``rw.psf``). ``|U|^2`` is
+* Sensor. The pixel values (default the z-flux ``S_z = Re(conj(U) dU/dz / (i k))``, ``dU/dz`` from the
+  kernel's exact z-derivative :func:`_rs_block_dz`; ``pixel_values="intensity"``: ``|U|^2``) are integrated
+  over each pixel's area with ``g x g`` Gauss-Legendre nodes (box integration, fraction of the entering power
+  per pixel, as ``rw.psf``). ``|U|^2`` is
   band-limited to ``2 NA/lambda``; 3 nodes per axis are exact to < 1e-9 relative for pixels
   below ``lambda/(8 NA)``.
 * Summation. Sensor points x aperture nodes in blocks of ``chunk_elements`` pairs (float64
@@ -557,7 +559,7 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
                      gauss_nodes_sensor=3, *,
                      tolerance=None, max_refinements=3, doe_gradient_rad_per_mm=None,
                      max_cell_phase_rad=_TWO_PI, quad_rtol=1e-9, aperture_cells=None, workers=None,
-                     chunk_elements=None):
+                     chunk_elements=None, pixel_values="flux"):
     """Pixel-integrated Rayleigh-Sommerfeld PSF of the thin lens + DOE (ground truth).
 
     Args:
@@ -577,6 +579,12 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
             never is.
         doe_gradient_rad_per_mm, max_cell_phase_rad, quad_rtol, aperture_cells, workers,
         chunk_elements: see :func:`rs_thin_lens_field`.
+        pixel_values: ``"flux"`` (default) integrates the z-flux ``Im(conj(U) dU/dz) / k`` of the field whose
+            z-flux through the lens plane is the entering irradiance ``1 / area``: the spherical wave's amplitude
+            divided by ``sqrt(cos theta) = sqrt(f / R)`` (its direction cosine toward the focus; a DOE's own
+            deflection is left out of it, second order in the DOE's angle), ``dU/dz`` by the kernel's exact
+            z-derivative. ``"intensity"``: ``|U|^2`` of :func:`rs_thin_lens_field` (the convention before
+            issue 27).
 
     Returns:
         Array (Py, Px): fraction of the power entering the aperture that lands in each pixel.
@@ -599,15 +607,22 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
     xx = np.broadcast_to(xn[None, :], (yn.size, xn.size))
     yy = np.broadcast_to(yn[:, None], (yn.size, xn.size))
     wpix = (half * w)[:, None] * (half * w)[None, :]          # (g_y, g_x), mm^2
+    if pixel_values not in ("flux", "intensity"):
+        raise ValueError(f"rs_thin_lens_psf: pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
 
     def psf_at(level):
         quad = aperture_quadrature(shape, aperture_half_mm, doe_phase, gradient_rad_per_mm=grad,
                                    max_cell_phase_rad=max_cell_phase_rad, quad_rtol=quad_rtol,
                                    aperture_cells=aperture_cells, subdivide=2 ** level,
                                    smooth_scale_mm=min(float(focal_mm), float(distance_mm)))
-        field = _rs_sum(xx, yy, quad, 1.0 / math.sqrt(quad.area_mm2), focal_mm, distance_mm, k, workers,
-                        chunk_elements)
-        inten = (field.real ** 2 + field.imag ** 2).reshape(cy.size, g, cx.size, g)
+        amp = 1.0 / math.sqrt(quad.area_mm2)
+        du = None
+        if pixel_values == "flux":   # 1 / sqrt(cos theta), cos theta = f / R toward the focus
+            f = float(focal_mm)
+            amp = amp * np.sqrt(np.sqrt(quad.x_mm ** 2 + quad.y_mm ** 2 + f * f) / f)
+            du = _rs_sum(xx, yy, quad, amp, focal_mm, distance_mm, k, workers, chunk_elements, dz=True)
+        field = _rs_sum(xx, yy, quad, amp, focal_mm, distance_mm, k, workers, chunk_elements)
+        inten = _sensor_values(field, du, k, pixel_values).reshape(cy.size, g, cx.size, g)
         return np.einsum("iajb,ab->ij", inten, wpix)
 
     psf = psf_at(0)
