@@ -61,7 +61,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["doe_order_coefficients", "doe_order_series", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
-           "pixel_flux", "pixel_flux_adjoint", "pixel_weights", "sensor_taper"]
+           "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "sensor_taper"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -433,6 +433,17 @@ def pixel_power_adjoint(u_nodes, grad_power, gauss_nodes: int, pixel_mm: float, 
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     wg = grad_power[:, :, None, :, None] * w2[None, None, :, None, :]
     return 2.0 * wg.reshape(S, size * g, size * g) * u_nodes
+
+
+def focal_pixels(op, field, pixel_values: str, gauss_nodes: int, pixel_mm: float, size: int):
+    """The pixel values ``pixel_values`` names ("flux": :func:`pixel_flux` of :meth:`FocalPropagator.forward_pair`;
+    "intensity": :func:`pixel_power` of :meth:`FocalPropagator.forward`) of a wave-plane field (S, n, n) through
+    the operator ``op``: ``(values (S, size, size), node fields)`` (the pair ``(U, U_w)`` for the flux)."""
+    if pixel_values == "flux":
+        u = op.forward_pair(field)
+        return pixel_flux(*u, gauss_nodes, pixel_mm, size, xp=op.xp), u
+    u = op.forward(field)
+    return pixel_power(u, gauss_nodes, pixel_mm, size, xp=op.xp), u
 
 
 def pixel_flux(u_nodes, u_w_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):

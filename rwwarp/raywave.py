@@ -192,10 +192,8 @@ class RayWave:
     (:class:`~rwwarp.trace.Tracer` ``deterministic``: 480 bytes a ray and surface more). On the CPU the
     results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
 
-    ``pixel_values``: what a sensor pixel records, ``"flux"`` (default: the power through it, the z-component of
-    the Poynting vector of the field whose flux density through the wave plane is the splat's ``|u|^2``) or
-    ``"intensity"`` (``|U|^2`` integrated over it, the convention before issue 27); :mod:`rwwarp.propagate`
-    "Pixel values".
+    ``pixel_values``: what a pixel records, ``"flux"`` (default, the power through it) or ``"intensity"``
+    (``|U|^2`` over it, before issue 27); docs/propagation.md "Pixel values".
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
@@ -206,8 +204,6 @@ class RayWave:
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
         from .propagate_setup import check_pixel_values
-        #: what a sensor pixel records: "flux" (the power through it) or "intensity" (|U|^2 over it), see
-        #: :mod:`rwwarp.propagate` "Pixel values"
         self.pixel_values = check_pixel_values(pixel_values, "RayWave")
         self.deterministic = bool(deterministic)
 
@@ -543,8 +539,7 @@ class RayWave:
                 opl_p[k] = all_opl[k, j]
         n = lay["n_stride"]
         sp = self.splatter
-        # 2: the energy convention's field made the one whose z-flux through the plane is the traced irradiance
-        # (pixel_values "flux": each ray's amplitude / sqrt(cos theta), kernels/splat.py)
+        # 2: pixel_values "flux", the field whose z-flux is the tube irradiance (amplitude / sqrt(cos), splat.py)
         energy = (2 if self.pixel_values == "flux" else 1) if self.amplitude == "energy" else 0
         rim_args = self._rim_args(rim)
         if lay["ray_grids"] is None:
@@ -784,15 +779,12 @@ class RayWave:
     def focal_intensity(self, u_field, precision="single"):
         """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``; ``precision`` of
         its matrix products, :class:`rwwarp.focal.FocalPropagator`; :attr:`pixel_values` as the ASM's)."""
-        from .focal import pixel_flux, pixel_power
+        from .focal import focal_pixels
         op = self.focal_operator(precision=precision)
         fac = self.doe_orders_factor(op.xp)
         if fac is not None:
             u_field = u_field * fac
-        if self.pixel_values == "flux":
-            power = pixel_flux(*op.forward_pair(u_field), self.gauss_nodes, self.pixel, self.size, xp=op.xp)
-        else:
-            power = pixel_power(op.forward(u_field), self.gauss_nodes, self.pixel, self.size, xp=op.xp)
+        power, _ = focal_pixels(op, u_field, self.pixel_values, self.gauss_nodes, self.pixel, self.size)
         return power if op.xp is np else op.xp.asnumpy(power)
 
     def run(self, focal_precision: str = "auto") -> dict:

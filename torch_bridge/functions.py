@@ -554,7 +554,7 @@ class FocalPropagate(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, field, distance, rw, distance_host=None):
-        from rwwarp.focal import pixel_flux, pixel_power
+        from rwwarp.focal import focal_pixels
         if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
             # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
             raise ValueError(f"focal_propagate: the field is on {field.device} but its RayWave was planned on "
@@ -566,12 +566,7 @@ class FocalPropagate(torch.autograd.Function):
         xp, f = _xp_of(field.to(torch.complex128))
         with _streams(rw):
             op = rw.focal_operator(z)
-            if rw.pixel_values == "flux":
-                u = op.forward_pair(f)
-                power = pixel_flux(*u, rw.gauss_nodes, rw.pixel, rw.size, xp=xp)
-            else:
-                u = op.forward(f)
-                power = pixel_power(u, rw.gauss_nodes, rw.pixel, rw.size, xp=xp)
+            power, u = focal_pixels(op, f, rw.pixel_values, rw.gauss_nodes, rw.pixel, rw.size)
             out = _from_xp(power, field.device)
         ctx.rw, ctx.op, ctx.xp, ctx.f, ctx.u = rw, op, xp, f, u
         ctx.devices = (field.device, None if distance is None else distance.device)
