@@ -32,8 +32,8 @@ _H_COLS = [c for c in range(_NPAR) if c not in (_P_X0, _P_Y0, _P_DOE_SCALE)]
 _KX_ROUND = 64
 
 #: What a sensor pixel records (:mod:`rwwarp.propagate`, "Pixel values"): ``"flux"``, the power through the
-#: pixel (z-component of the Poynting vector of the field whose flux density through the wave plane is
-#: ``|u|^2``), or ``"intensity"``, ``|U|^2`` integrated over the pixel (the convention before issue 27).
+#: pixel (the z-component of the Poynting vector of the scalar field, ``Re(conj(U) dU/dz / (i k))``), or
+#: ``"intensity"``, ``|U|^2`` integrated over the pixel (the convention before issue 27).
 PIXEL_VALUES = ("flux", "intensity")
 
 
