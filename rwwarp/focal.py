@@ -61,7 +61,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["doe_order_coefficients", "doe_order_series", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
-           "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "sensor_taper"]
+           "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",
+           "sensor_taper"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -137,6 +138,22 @@ def _cis(p, xp):
     if xp is np:
         return np.cos(p) + 1j * np.sin(p)
     return xp.exp(1j * p)
+
+
+def plane_direction_cosines(n_fft: int, pitch_mm, carrier_cpmm, wavelength_mm) -> np.ndarray:
+    """``c = k_z / k = sqrt(1 - lambda^2 |f|^2)`` (0 for evanescent ``f``) on the (S, n_fft, n_fft) FFT grids of
+    wave-plane windows: true frequency ``f = fftfreq(n_fft, pitch) + carrier`` (rows y, columns x). ``pitch_mm``
+    scalar or (S,), ``carrier_cpmm`` (S, 2) cycles/mm, ``wavelength_mm`` (S,) in the medium."""
+    car = np.asarray(carrier_cpmm, dtype=np.float64).reshape(-1, 2)
+    S = car.shape[0]
+    pitch = np.broadcast_to(np.asarray(pitch_mm, dtype=np.float64), (S,))
+    lam = np.broadcast_to(np.asarray(wavelength_mm, dtype=np.float64), (S,))
+    out = np.empty((S, int(n_fft), int(n_fft)))
+    for k in range(S):
+        f = np.fft.fftfreq(int(n_fft), pitch[k])
+        arg = 1.0 - lam[k] ** 2 * ((f[None, :] + car[k, 0]) ** 2 + (f[:, None] + car[k, 1]) ** 2)
+        out[k] = np.sqrt(np.maximum(arg, 0.0))
+    return out
 
 
 def transfer_curvature(f_c, inv_lam):

@@ -19,6 +19,7 @@ from .errors import LensError
 from .lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
+from .splat import paper_rescale, plane_cosines  # noqa: F401 (paper_rescale lived here)
 from .trace import Tracer, pupil_grid, upload_packed
 from .trace import field_label as _fmt_field
 
@@ -632,7 +633,7 @@ class RayWave:
         if self.amplitude != "energy":
             xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
             pitch = self.plan.pitch_mm if lay["ray_grids"] is None else xp.asarray(lay["pitches"])
-            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), pitch, xp)
+            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), pitch, xp, plane_cosines(self, xp))
         return u_field
 
     def doe_phase(self):
@@ -802,16 +803,6 @@ class RayWave:
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
                 "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
-
-
-def paper_rescale(u, traced_power, pitch_mm: float, xp):
-    """The paper's amplitude convention: rays of unit amplitude, then one scale per source so that the
-    field's power ``sum |u|^2 pitch^2`` (pitch in mm) equals the traced power (the power of the valid
-    rays). ``u`` (S, n, n) complex and ``traced_power`` (S,) in one array namespace ``xp`` (numpy,
-    CuPy or torch: the same formula differentiates in torch); a source with no field power stays zero."""
-    pw = (u.real ** 2 + u.imag ** 2).sum((1, 2)) * pitch_mm ** 2   # pitch_mm: a number or one per source
-    ok = pw > 0
-    return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
 
 
 #: The keyword options of :class:`RayWave` that :func:`rwwarp.psf_map` (and its distributed form) hand to

@@ -341,9 +341,12 @@ def power_sums(rw, device):
 
 def paper_amplitude(u, rw):
     """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
-    so that the field carries the traced power (:func:`rwwarp.raywave.paper_rescale`, in torch)."""
-    from rwwarp.raywave import paper_rescale
-    return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch)
+    so that the field carries the traced power (:func:`rwwarp.raywave.paper_rescale`, in torch; with
+    ``rw.pixel_values == "flux"`` its z-flux through the plane)."""
+    from rwwarp.splat import paper_rescale, plane_cosines
+    c = plane_cosines(rw)
+    c = None if c is None else torch.from_numpy(c).to(u.device)
+    return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch, c)
 
 
 # ---------------------------------------------------------------------------------------------- propagation
