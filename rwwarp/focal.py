@@ -469,7 +469,8 @@ def pixel_flux(u_nodes, u_w_nodes, gauss_nodes: int, pixel_mm: float, size: int,
     the pixel's area (node order as :func:`pixel_power`). Returns (S, size, size)."""
     g = int(gauss_nodes)
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
-    flux = (u_nodes.real * u_w_nodes.real + u_nodes.imag * u_w_nodes.imag).reshape(u_nodes.shape[0], size, g, size, g)
+    flux = u_nodes.real * u_w_nodes.real + u_nodes.imag * u_w_nodes.imag
+    flux = flux.reshape(u_nodes.shape[0], size, g, size, g)
     return xp.einsum("siajb,ab->sij", flux, w2)
 
 

@@ -743,7 +743,7 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     ny = (cy[:, None] + 0.5 * pixel_mm * g[None, :]).ravel()
     X, Y = np.meshgrid(nx, ny, indexing="xy")
     u = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None)
-    du = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None, dz=True) if pixel_values == "flux" else None
+    du = None if pixel_values != "flux" else _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None, dz=True)
     inten = _sensor_values(u, du, k, pixel_values).reshape(size, pixel_nodes, size, pixel_nodes)
     ww = np.outer(gw, gw) * (0.5 * pixel_mm) ** 2
     return np.einsum("iajb,ab->ij", inten, ww) / entering
