@@ -292,6 +292,23 @@ def test_wave_plane_flux_equals_the_old_fields_power():
     assert np.median(ratio) == pytest.approx(1 / math.sqrt(math.cos(math.radians(20))), rel=0.02)
 
 
+def test_rs_kernel_z_derivative_against_finite_differences():
+    """The truth's ``dU/dz`` (:func:`rwwarp.ground_truth._rs_block_dz`, the exact derivative of the first
+    Rayleigh-Sommerfeld kernel) against a 4-point central difference of the RS field in the sensor distance
+    (200 random nodes on a 2 mm square, 10 mm away, 0.55 um). Measured 1.6e-9 at h = 1e-6 mm (the difference's
+    own rounding); tolerance 2e-8."""
+    from rwwarp.ground_truth import _Nodes, _rs_sum
+    rng = np.random.default_rng(1)
+    px, py = rng.uniform(-1, 1, 200), rng.uniform(-1, 1, 200)
+    nodes = _Nodes(px, py, rng.uniform(0.5, 1, 200) * 1e-2, rng.uniform(0, 6, 200))
+    k, f, z, h = 2 * np.pi / 0.55e-3, 10.0, 10.0, 1e-6
+    xs, ys = np.array([0.001, 0.003, -0.002]), np.array([0.0, 0.002, 0.001])
+    u = lambda dz: _rs_sum(xs, ys, nodes, 1.0, f, z + dz, k, 1, None)
+    fd = (8 * (u(h) - u(-h)) - (u(2 * h) - u(-2 * h))) / (12 * h)
+    d = _rs_sum(xs, ys, nodes, 1.0, f, z, k, 1, None, dz=True)
+    assert np.abs(d - fd).max() < 2e-8 * np.abs(d).max()
+
+
 @pytest.mark.slow
 def test_a489_off_axis_flux_against_rs_truth():
     """The A489 at 10 deg (16 px): both paths' flux PSFs against rs_lens_psf's flux (traced rays, amplitude
