@@ -16,6 +16,9 @@ the plane) adds, with bilinear weights b to its four neighbouring samples:
 In the energy convention ``U = S / pitch^2`` is the area average of a field whose irradiance is the
 ray-tube irradiance q / A: it follows ray density, partly covered edge samples get the covered
 fraction of the amplitude, and the field power ``sum |U|^2 pitch^2`` equals the traced power.
+``energy == 2`` (pixel_values "flux", :mod:`rwwarp.wave.propagate`) makes ``U`` the scalar field whose z-flux
+through the plane is that irradiance: each ray's amplitude is divided by ``sqrt(cos theta)`` (``|U|^2 =
+q / (A cos theta)``, so ``Re(conj(U) dU/dz / (i k)) = cos theta |U|^2 = q / A`` for the ray's local plane wave).
 
 with the reference sphere ``OPL_ref(p) = OPL_c + n (|T - p_c| - |T - p|)`` converging to the point T
 (``index`` negative: diverging from T)
@@ -218,7 +221,7 @@ def make_splat_kernels(scalar):
         opl_chief: wp.array(dtype=f64),       # (n_src,) chief ray OPL at the plane, mm
         wavenumber: wp.array(dtype=f64),      # (n_src,) 2 pi / lambda, 1/mm
         use_reference: int,
-        energy: int,
+        energy: int,                          # 0: paper, 1: energy, 2: energy, the flux-normalised field
         n_grid: int,                          # > 0: every window n_grid^2; < 0: windows of grid_src[s]^2 in
                                               # slots of -n_grid x -n_grid (packed batch)
         n_pupil: int,
@@ -259,13 +262,19 @@ def make_splat_kernels(scalar):
         if use_reference == 1:
             ref = ref_opl(p, chief[s], target[s], index[s], opl_chief[s])
         psi = wavenumber[s] * (f64(opl[i]) - ref)
-        if energy == 1:
+        if energy >= 1:
             # conservative box deposit: overlap of the tube's box with the sample cells (up to 3 x 3), with
             # the ray's local phase slope across its tube (first-order splat): the phase at x in the box is
             # psi + g.(x - p), g = k n (d_xy - u_T), u_T the unit vector to T (the gradient of the OPL on the
             # plane is n d_xy, that of the reference sphere n u_T). Each overlap rectangle gets the exact
             # integral of exp(1j (psi + g.(x - p))): its area times exp(1j g.(centre - p)) times sinc per axis.
             amp = wp.sqrt(f64(weight[i]) * area[i])
+            if energy == 2:
+                # the field whose z-flux is the tube's irradiance: amplitude / sqrt(cos theta) (theta: the ray's
+                # angle to the plane's normal, in the medium after it)
+                dc = dir[i]
+                dn = wp.sqrt(f64(dc[0]) * f64(dc[0]) + f64(dc[1]) * f64(dc[1]) + f64(dc[2]) * f64(dc[2]))
+                amp = amp / wp.sqrt(wp.max(wp.abs(f64(dc[2])) / dn, f64(1.0e-12)))
             hb = half[i]
             if rim == 1:
                 # a rim cell the aperture covers in part (fraction f, already in the weight; the ray starts
@@ -384,7 +393,7 @@ def make_splat_kernels(scalar):
         o = origin[s]
         re = s_re[k]
         im = s_im[k]
-        if energy == 1:
+        if energy >= 1:
             re = re / (h * h)
             im = im / (h * h)
         c = chief[s]

@@ -133,6 +133,7 @@ def _check_args(lens, fields, wavelengths_um, depths_mm, kw):
     kw["focal_patch_tol"] = checks.check_number(kw["focal_patch_tol"], "focal_patch_tol", lo=0.0, hi=1.0)
     if kw["gauss_nodes"] is not None:
         checks.check_int(kw["gauss_nodes"], "gauss_nodes", lo=1, hi=64)
+    kw["pixel_values"] = checks.check_choice(kw["pixel_values"], "pixel_values", ("flux", "intensity"))
     depths = [None] if depths_mm is None else list(depths_mm)
     if not depths:
         raise ValueError("depths_mm must hold at least one object distance (mm) or be None")
@@ -308,7 +309,7 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             gauss_nodes: int | None = None, batch: int | None = None, nyquist_safety: float = 2.0,
             method: str = "auto", memory_budget_gb: float | None = None, progress: bool = False,
             out=None, timeout_s: float = DEFAULT_TIMEOUT_S, object_distance_mm=None, focal_patch_tol: float = 1e-5,
-            deterministic: bool = False):
+            deterministic: bool = False, pixel_values: str = "flux"):
     """The map of :func:`rwwarp.psf_map` computed by every rank of the current job (see the module
     docstring). Arguments as :func:`rwwarp.psf_map`; ``depths_mm``: a list of object distances (mm,
     None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
@@ -322,7 +323,8 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
     kw = dict(model=model, size=size, device=device, plan=plan, dtype=dtype, amplitude=amplitude,
               rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference,
               gauss_nodes=gauss_nodes, batch=batch, nyquist_safety=nyquist_safety, method=method,
-              memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol, deterministic=deterministic)
+              memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol, deterministic=deterministic,
+              pixel_values=pixel_values)
     single_depth = depths_mm is None
     fields, wls, depths = _check_args(lens, fields, wavelengths_um, [object_distance_mm] if single_depth else
                                       depths_mm, kw)

@@ -44,8 +44,10 @@ Numerics.
   nodes reach the same error with far fewer nodes (2 pi-rad cells: 1.4 nodes/rad against 10 for
   0.3-rad cells at 1e-9), which is why 2 pi is the default. The ``tolerance`` option checks the
   result empirically by halving every cell until the PSF changes by less than ``tolerance``.
-* Sensor. ``|U|^2`` is integrated over each pixel's area with ``g x g`` Gauss-Legendre nodes
-  (box integration, fraction of the entering power per pixel, as ``rw.psf``). ``|U|^2`` is
+* Sensor. The pixel values (default the z-flux ``S_z = Re(conj(U) dU/dz / (i k))``, ``dU/dz`` from the
+  kernel's exact z-derivative :func:`_rs_block_dz`; ``pixel_values="intensity"``: ``|U|^2``) are integrated
+  over each pixel's area with ``g x g`` Gauss-Legendre nodes (box integration, fraction of the entering power
+  per pixel, as ``rw.psf``). ``|U|^2`` is
   band-limited to ``2 NA/lambda``; 3 nodes per axis are exact to < 1e-9 relative for pixels
   below ``lambda/(8 NA)``.
 * Summation. Sensor points x aperture nodes in blocks of ``chunk_elements`` pairs (float64
@@ -424,7 +426,25 @@ def _rs_block(xs, ys, cs, m2px, m2py, r2, r, amp, doe, k):
     return b_re.sum(axis=1) + 1j * b_im.sum(axis=1)
 
 
-def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_elements):
+def _rs_block_dz(xs, ys, cs, m2px, m2py, r2, r, amp, doe, k, z):
+    """sum_p dB/dz(x', p) C_p for a block of sensor points (the z-derivative of the kernel, factor 1/(2 pi) left
+    out): with h = (z / (2 pi)) g(rho), g = exp(jk rho) (1/rho^3 - jk/rho^2) and d rho/dz = z / rho,
+    dh/dz = (1/(2 pi)) exp(jk rho) [1/rho^3 - jk/rho^2 + (z^2/rho) (k^2/rho^2 + 3jk/rho^3 - 3/rho^4)]
+    (the reference phase exp(-jkR) does not depend on the sensor plane)."""
+    d2 = np.multiply.outer(xs, m2px) + np.multiply.outer(ys, m2py) + cs[:, None]
+    rho = np.sqrt(d2 + r2)
+    phase = k * d2 / (rho + r) + doe
+    inv = 1.0 / rho
+    inv2 = inv * inv
+    t = inv * inv2 - 1j * k * inv2 + (z * z) * inv * (k * k * inv2 + 3j * k * inv * inv2 - 3.0 * inv2 * inv2)
+    t *= np.cos(phase) + 1j * np.sin(phase)
+    t *= amp
+    return t.sum(axis=1)
+
+
+def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_elements, dz=False):
+    """The Rayleigh-Sommerfeld field at the sensor points (or, with ``dz``, its derivative with respect to the
+    sensor plane's distance, 1/mm units more)."""
     f, z = float(focal_mm), float(distance_mm)
     px, py = quad.x_mm, quad.y_mm
     r2 = px * px + py * py + f * f
@@ -449,7 +469,10 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
         s = slice(s0, min(s0 + bs, ns))
         acc = np.zeros(s.stop - s.start, dtype=np.complex128)
         for block in a_data:
-            acc += _rs_block(xs[s], ys[s], cs[s], *block, k)
+            if dz:
+                acc += _rs_block_dz(xs[s], ys[s], cs[s], *block, k, z)
+            else:
+                acc += _rs_block(xs[s], ys[s], cs[s], *block, k)
         out[s] = acc
 
     starts = range(0, ns, bs)
@@ -459,7 +482,15 @@ def _rs_sum(xs, ys, quad, amplitude, focal_mm, distance_mm, k, workers, chunk_el
     else:
         with ThreadPoolExecutor(max_workers=int(workers)) as pool:
             list(pool.map(work, starts))
-    return out * (z / _TWO_PI)
+    return out * ((1.0 if dz else z) / _TWO_PI)
+
+
+def _sensor_values(u, du, k, pixel_values):
+    """Pixel-value density at sensor nodes from the field ``u`` and its z-derivative ``du`` (1/mm more):
+    ``|U|^2`` ("intensity") or the z-flux ``Re(conj(U) dU/dz / (i k)) = Im(conj(U) dU/dz) / k`` ("flux")."""
+    if pixel_values == "flux":
+        return (np.conj(u) * du).imag / k
+    return u.real ** 2 + u.imag ** 2
 
 
 def _setup(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, distance_mm, doe_phase,
@@ -528,7 +559,7 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
                      gauss_nodes_sensor=3, *,
                      tolerance=None, max_refinements=3, doe_gradient_rad_per_mm=None,
                      max_cell_phase_rad=_TWO_PI, quad_rtol=1e-9, aperture_cells=None, workers=None,
-                     chunk_elements=None):
+                     chunk_elements=None, pixel_values="flux"):
     """Pixel-integrated Rayleigh-Sommerfeld PSF of the thin lens + DOE (ground truth).
 
     Args:
@@ -548,6 +579,12 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
             never is.
         doe_gradient_rad_per_mm, max_cell_phase_rad, quad_rtol, aperture_cells, workers,
         chunk_elements: see :func:`rs_thin_lens_field`.
+        pixel_values: ``"flux"`` (default) integrates the z-flux ``Im(conj(U) dU/dz) / k`` of the field whose
+            z-flux through the lens plane is the entering irradiance ``1 / area``: the spherical wave's amplitude
+            divided by ``sqrt(cos theta) = sqrt(f / R)`` (its direction cosine toward the focus; a DOE's own
+            deflection is left out of it, second order in the DOE's angle), ``dU/dz`` by the kernel's exact
+            z-derivative. ``"intensity"``: ``|U|^2`` of :func:`rs_thin_lens_field` (the convention before
+            issue 27).
 
     Returns:
         Array (Py, Px): fraction of the power entering the aperture that lands in each pixel.
@@ -570,15 +607,22 @@ def rs_thin_lens_psf(focal_mm, aperture_shape, aperture_half_mm, wavelength_um, 
     xx = np.broadcast_to(xn[None, :], (yn.size, xn.size))
     yy = np.broadcast_to(yn[:, None], (yn.size, xn.size))
     wpix = (half * w)[:, None] * (half * w)[None, :]          # (g_y, g_x), mm^2
+    if pixel_values not in ("flux", "intensity"):
+        raise ValueError(f"rs_thin_lens_psf: pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
 
     def psf_at(level):
         quad = aperture_quadrature(shape, aperture_half_mm, doe_phase, gradient_rad_per_mm=grad,
                                    max_cell_phase_rad=max_cell_phase_rad, quad_rtol=quad_rtol,
                                    aperture_cells=aperture_cells, subdivide=2 ** level,
                                    smooth_scale_mm=min(float(focal_mm), float(distance_mm)))
-        field = _rs_sum(xx, yy, quad, 1.0 / math.sqrt(quad.area_mm2), focal_mm, distance_mm, k, workers,
-                        chunk_elements)
-        inten = (field.real ** 2 + field.imag ** 2).reshape(cy.size, g, cx.size, g)
+        amp = 1.0 / math.sqrt(quad.area_mm2)
+        du = None
+        if pixel_values == "flux":   # 1 / sqrt(cos theta), cos theta = f / R toward the focus
+            f = float(focal_mm)
+            amp = amp * np.sqrt(np.sqrt(quad.x_mm ** 2 + quad.y_mm ** 2 + f * f) / f)
+            du = _rs_sum(xx, yy, quad, amp, focal_mm, distance_mm, k, workers, chunk_elements, dz=True)
+        field = _rs_sum(xx, yy, quad, amp, focal_mm, distance_mm, k, workers, chunk_elements)
+        inten = _sensor_values(field, du, k, pixel_values).reshape(cy.size, g, cx.size, g)
         return np.einsum("iajb,ab->ij", inten, wpix)
 
     psf = psf_at(0)
@@ -606,7 +650,7 @@ class _Nodes:
 
 
 def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, radial_nodes=64, angular_nodes=256,
-                pixel_nodes=10, fd_step=1e-5, workers=None, include_doe=False):
+                pixel_nodes=10, fd_step=1e-5, workers=None, include_doe=False, pixel_values="flux"):
     """Independent scalar-diffraction PSF of a real lens: traced rays, ray-tube amplitudes, exact
     Rayleigh-Sommerfeld kernel, summed directly to the sensor pixels (no FFT, no sampled field).
 
@@ -624,6 +668,13 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     wave plane) then multiplies the plane field by ``exp(1j * modulation_phase)`` at the nodes, which is
     accurate only while that phase is smooth over the footprint (LensError when the wrapped relief or its
     quantisation puts a phase step inside it: the polar rule is spectral only for a smooth integrand).
+
+    ``pixel_values`` (:mod:`rwwarp.wave.propagate` "Pixel values"): ``"flux"`` (default) integrates the z-flux
+    ``S_z = Re(conj(U) dU/dz / (i k))`` over each pixel, ``dU/dz`` by the exact z-derivative of the same kernel;
+    the plane field is then the scalar field whose z-flux through the plane is the ray-tube irradiance
+    ``q / J``, ``sqrt(q / (J cos theta)) exp(i k OPL)`` (``cos theta``: the ray's direction cosine to the plane's
+    normal, in the image medium; the ray-local form of the model's ``c^(-1/2)``). ``"intensity"``: ``|U|^2``
+    of the field ``sqrt(q / J) exp(i k OPL)`` (the convention before issue 27).
 
     Returns the (size, size) fraction of the entering power per pixel, rows +y, on the patch centred
     at ``center_mm`` (sensor x, y in mm, a pixel centre).
@@ -651,11 +702,16 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     z_plane = lens.vertex_z[plane]
     h = float(fd_step)
 
+    if pixel_values not in ("flux", "intensity"):
+        raise ValueError(f"rs_lens_psf: pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
+    cosines = []
+
     def trace(u, v):
         rays = tr._run(src, u, v, 1.0, upto=plane + 1)
         d = rays.numpy()
         p, dr, opl = d["pos"][0], d["dir"][0], d["opl"][0]
         s = (z_plane - p[:, 2]) / dr[:, 2]             # straight on to the vertex plane
+        cosines.append(np.abs(dr[:, 2]) / np.linalg.norm(dr, axis=1))
         return p[:, :2] + s[:, None] * dr[:, :2], opl + n_img * s, d["valid"][0], d["weight"][0]
 
     xy, opl, ok, q = trace(u0, v0)
@@ -676,6 +732,8 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     if doe_s is not None and include_doe:
         phase = phase + _doe_node_phase(lens, doe_s, wl, xy[good, 0], xy[good, 1])
     amp = np.sqrt(q[good] * jac[good]) * w[good]
+    if pixel_values == "flux":
+        amp = amp / np.sqrt(cosines[0][good])
     nodes = _Nodes(xy[good, 0], xy[good, 1], amp, phase)
     g, gw = np.polynomial.legendre.leggauss(int(pixel_nodes))
     off = (np.arange(size) - size // 2) * pixel_mm
@@ -684,8 +742,9 @@ def rs_lens_psf(lens, field_deg, wavelength_um, center_mm, size, pixel_mm, *, ra
     nx = (cx[:, None] + 0.5 * pixel_mm * g[None, :]).ravel()
     ny = (cy[:, None] + 0.5 * pixel_mm * g[None, :]).ravel()
     X, Y = np.meshgrid(nx, ny, indexing="xy")
-    u = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None).reshape(ny.size, nx.size)
-    inten = (u.real ** 2 + u.imag ** 2).reshape(size, pixel_nodes, size, pixel_nodes)
+    u = _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None)
+    du = None if pixel_values != "flux" else _rs_sum(X.ravel(), Y.ravel(), nodes, 1.0, z, z, k, workers, None, dz=True)
+    inten = _sensor_values(u, du, k, pixel_values).reshape(size, pixel_nodes, size, pixel_nodes)
     ww = np.outer(gw, gw) * (0.5 * pixel_mm) ** 2
     return np.einsum("iajb,ab->ij", inten, ww) / entering
 

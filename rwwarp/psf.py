@@ -102,7 +102,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
-        focal_precision: str = "auto", deterministic: bool = False) -> PSF:
+        focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux") -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -130,7 +130,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     center_mm : (x, y), optional
         Sensor position of the patch centre (snapped to a pixel centre); default where the chief ray lands.
     gauss_nodes : int, optional
-        Gauss-Legendre nodes per axis for the pixel (box) integration of |U|^2; default: the fewest
+        Gauss-Legendre nodes per axis for the pixel (box) integration of the pixel values; default: the fewest
         whose error bound for the highest intensity frequency across a pixel is below 1e-7.
     nyquist_safety : float
         Adaptive plan: the DOE-plane pitch samples the highest local frequency this many times above
@@ -159,13 +159,19 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     deterministic : bool
         The same bits on every run on a GPU too (:class:`RayWave` ``deterministic``: fixed-point splat
         sums, resolution ~1e-13 of the field). The CPU is deterministic either way.
+    pixel_values : "flux" | "intensity"
+        What a sensor pixel records (wave models). ``"flux"`` (default): the power through it, the
+        z-component of the Poynting vector (obliquity included) of the field whose flux through the wave
+        plane is the traced power, so a PSF that catches all the light sums to the traced fraction.
+        ``"intensity"``: ``|U|^2`` integrated over it, the convention before issue 27 (it differs from the
+        flux by ~1e-4 of the peak at 35-40 deg; docs/propagation.md "Pixel values").
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
                 rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm,
                 use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
                 method=method, memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol,
-                focal_precision=focal_precision, deterministic=deterministic)
+                focal_precision=focal_precision, deterministic=deterministic, pixel_values=pixel_values)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -195,7 +201,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None, use_reference: bool = True,
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
-            focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False) -> PSFMap:
+            focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False,
+            pixel_values: str = "flux") -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -229,6 +236,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         raise TypeError(f"deterministic must be True or False, got {deterministic!r}")
     if gauss_nodes is not None:
         checks.check_int(gauss_nodes, "gauss_nodes", lo=1, hi=64)
+    checks.check_choice(pixel_values, "pixel_values", ("flux", "intensity"))
     checks.check_int(len(fields) * len(wavelengths_um), "number of (field, wavelength) pairs", lo=1,
                      hi=checks.MAX_SOURCES)
     if model not in MODELS:
@@ -265,7 +273,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     opts = dict(device=device, plan=plan, dtype=dtype, amplitude=amplitude, rays_per_sample=rays_per_sample,
                 center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                 nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
-                deterministic=deterministic, memory_budget_bytes=budget)
+                deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values)
 
     def store(chunk, res):
         for k, (i, j) in enumerate(chunk):

@@ -140,6 +140,7 @@ SCHEMA = {
         "propagation": _choice("auto", "focal", "asm"),
         "focal_patch_tol": _num(0, 1),
         "deterministic": _bool(),
+        "pixel_values": _choice("flux", "intensity"),
     },
     "render": {
         "mode": _choice("patch", "full"),
@@ -222,7 +223,7 @@ DEFAULTS = {
                "depths_mm": [None], "nyquist_safety": 1.0, "rays_per_sample": 1.2, "doe_budget_cpmm": 0.0,
                "min_feature_um": None,
                "check_sampling_every": 10, "live_replan_every": 1, "memory_budget_gb": None, "cache_precision": "double", "propagation": "auto",
-               "focal_patch_tol": 1e-5, "deterministic": False},
+               "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux"},
     "render": {"mode": "patch", "boundary": "reflect"},
     "data": {"root": None, "crop": 64, "scale": 1.0, "batch_size": 4, "eval_images": 8, "max_images": None,
              "linearize": False},

@@ -195,7 +195,7 @@ class CachedProvider:
         eq = eq.replace(object_distance=paraxial_object_distance(lens, eq, d, self.wl_ref))
         geo = HybridLens(eq, plan=m.plan_policy, rays_per_sample=m.rays_per_sample, nyquist_safety=m.nyquist_safety,
                          amplitude=m.amplitude, gauss_nodes=m.gauss_nodes, use_reference=m.use_reference,
-                         method=m.method, focal_patch_tol=m.focal_patch_tol)
+                         method=m.method, focal_patch_tol=m.focal_patch_tol, pixel_values=m.pixel_values)
         # on the module's device: the fields it traces are cached there, and the focal operator it plans
         # works in that device's array namespace (numpy on the CPU, CuPy on CUDA)
         geo = geo.to(m.thickness_base.device)
@@ -246,7 +246,7 @@ class CachedProvider:
         rw0 = RayWave(lens_p, fields, [float(wavelength_um)] * len(fields), self.size, self.pixel_mm,
                       device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
                       rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
-                      gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety)
+                      gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, pixel_values=geo.pixel_values)
         pl = rw0.plan
         safety = geo.nyquist_safety
         budget = self.doe_budget
@@ -416,7 +416,7 @@ class CachedProvider:
                         device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
                         rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
                         gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto",
-                        focal_patch_tol=geo.focal_patch_tol)
+                        focal_patch_tol=geo.focal_patch_tol, pixel_values=geo.pixel_values)
         return probe.plan.method == "focal"
 
     def _build_focal(self, key, centres=None):
@@ -626,7 +626,7 @@ class CachedProvider:
                               rays_per_sample=geo_now.rays_per_sample, center_mm=rw.centers,
                               use_reference=geo_now.use_reference, gauss_nodes=rw.gauss_nodes,
                               nyquist_safety=geo_now.nyquist_safety, method="focal",
-                              focal_patch_tol=geo_now.focal_patch_tol)
+                              focal_patch_tol=geo_now.focal_patch_tol, pixel_values=geo_now.pixel_values)
                 a, b = rw.plan, new.plan
                 orders_old = {m for m, _ in rw.focal["orders"][0]}
                 orders_new = {m for m, _ in new.focal["orders"][0]}

@@ -341,9 +341,12 @@ def power_sums(rw, device):
 
 def paper_amplitude(u, rw):
     """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
-    so that the field carries the traced power (:func:`rwwarp.wave.raywave.paper_rescale`, in torch)."""
-    from rwwarp.wave.raywave import paper_rescale
-    return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch)
+    so that the field carries the traced power (:func:`rwwarp.wave.raywave.paper_rescale`, in torch; with
+    ``rw.pixel_values == "flux"`` its z-flux through the plane)."""
+    from rwwarp.wave.splat import paper_rescale, plane_cosines
+    c = plane_cosines(rw)
+    c = None if c is None else torch.from_numpy(c).to(u.device)
+    return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch, c)
 
 
 # ---------------------------------------------------------------------------------------------- propagation
@@ -432,8 +435,8 @@ class Propagate(torch.autograd.Function):
     ``Propagate.apply(field, phi0, distance, rw)``: ``field`` complex128 (S, n, n) on the windows,
     ``phi0`` the DOE phase (rad) float64 (S, n, n) or None (no DOE), ``distance`` the DOE-plane to
     sensor distance in mm, float64 (S,) or None (the RayWave's own). Returns float64 (S, size, size):
-    ``|U|^2`` integrated over each pixel (field units^2 mm^2; divide by ``rw.entering`` for the
-    fraction of entering power).
+    the pixel values ``rw.pixel_values`` names (the z-flux or ``|U|^2``) integrated over each pixel (field
+    units^2 mm^2; divide by ``rw.entering`` for the fraction of entering power).
 
     ``Propagate.apply(field, phi0, distance, rw, tile, keep_nodes)``: optional spatial tile
     ``(r0, r1, c0, c1)`` of sensor pixel rows / columns (output (S, r1 - r0, c1 - c0), evaluated
@@ -543,7 +546,9 @@ class FocalPropagate(torch.autograd.Function):
     ``FocalPropagate.apply(field, distance, rw, distance_host=None)``: ``field`` complex128 (S, n, n) on the focal plan's
     wave-plane grid, carrier removed and any DOE orders already applied (``sum_m c_m exp(i m phi0)``,
     :func:`doe_orders_factor`); ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; all
-    entries equal: one lens). Returns float64 (S, size, size), ``|U|^2`` integrated over each pixel.
+    entries equal: one lens). Returns float64 (S, size, size), the pixel values ``rw.pixel_values`` names integrated
+    over each pixel: the z-flux ``Re(conj(U) U_w)`` (``"flux"``, :meth:`~rwwarp.wave.focal.FocalPropagator.forward_pair`)
+    or ``|U|^2`` (``"intensity"``).
 
     Backward: the operator's adjoint for ``field`` (exact conjugate transpose) and, for ``distance``,
     its exact derivative :meth:`~rwwarp.wave.focal.FocalPropagator.distance_derivative` at the fixed plan
@@ -552,7 +557,7 @@ class FocalPropagate(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, field, distance, rw, distance_host=None):
-        from rwwarp.wave.focal import pixel_power
+        from rwwarp.wave.focal import focal_pixels
         if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
             # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
             raise ValueError(f"focal_propagate: the field is on {field.device} but its RayWave was planned on "
@@ -564,8 +569,7 @@ class FocalPropagate(torch.autograd.Function):
         xp, f = _xp_of(field.to(torch.complex128))
         with _streams(rw):
             op = rw.focal_operator(z)
-            u = op.forward(f)
-            power = pixel_power(u, rw.gauss_nodes, rw.pixel, rw.size, xp=xp)
+            power, u = focal_pixels(op, f, rw.pixel_values, rw.gauss_nodes, rw.pixel, rw.size)
             out = _from_xp(power, field.device)
         ctx.rw, ctx.op, ctx.xp, ctx.f, ctx.u = rw, op, xp, f, u
         ctx.devices = (field.device, None if distance is None else distance.device)
@@ -573,18 +577,27 @@ class FocalPropagate(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        from rwwarp.wave.focal import pixel_power_adjoint
+        from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
         rw, op, xp = ctx.rw, ctx.op, ctx.xp
         need_f, need_d = ctx.needs_input_grad[:2]
         _, g = _xp_of(grad_out.to(torch.float64))
         gf = gd = None
         with _streams(rw):
-            gu = pixel_power_adjoint(ctx.u, g, rw.gauss_nodes, rw.pixel, xp=xp)
-            if need_f:
-                gf = _from_xp(op.adjoint(gu), ctx.devices[0])
-            if need_d:
-                du = op.distance_derivative(ctx.f)
-                gd = _from_xp(xp.real(xp.sum(xp.conj(gu) * du, axis=(1, 2))), ctx.devices[1])
+            if isinstance(ctx.u, tuple):   # "flux": the gradients of (U, U_w)
+                gu = pixel_flux_adjoint(*ctx.u, g, rw.gauss_nodes, rw.pixel, xp=xp)
+                if need_f:
+                    gf = _from_xp(op.adjoint_pair(*gu), ctx.devices[0])
+                if need_d:
+                    du = op.distance_derivative_pair(ctx.f)
+                    dl = sum(xp.real(xp.sum(xp.conj(a) * b, axis=(1, 2))) for a, b in zip(gu, du))
+                    gd = _from_xp(dl, ctx.devices[1])
+            else:
+                gu = pixel_power_adjoint(ctx.u, g, rw.gauss_nodes, rw.pixel, xp=xp)
+                if need_f:
+                    gf = _from_xp(op.adjoint(gu), ctx.devices[0])
+                if need_d:
+                    du = op.distance_derivative(ctx.f)
+                    gd = _from_xp(xp.real(xp.sum(xp.conj(gu) * du, axis=(1, 2))), ctx.devices[1])
         ctx.f = ctx.u = None
         return gf, gd, None, None
 

@@ -93,6 +93,10 @@ class HybridLens(nn.Module):
     focal_patch_tol : float
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
+    pixel_values : "flux" | "intensity"
+        What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` (default) the power through it (the
+        z-component of the Poynting vector, obliquity included), ``"intensity"`` ``|U|^2`` over it (the
+        convention before issue 27).
     deterministic : bool
         The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
         (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray
@@ -108,9 +112,12 @@ class HybridLens(nn.Module):
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
                  use_reference: bool = True, replan: bool = True, method: str = "auto",
-                 focal_patch_tol: float = 1e-5, deterministic: bool = False):
+                 focal_patch_tol: float = 1e-5, deterministic: bool = False, pixel_values: str = "flux"):
         super().__init__()
         self.deterministic = bool(deterministic)
+        if pixel_values not in ("flux", "intensity"):
+            raise ValueError(f"pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
+        self.pixel_values = pixel_values
         if method not in ("auto", "focal", "asm"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
         self.method = method
@@ -355,7 +362,7 @@ class HybridLens(nn.Module):
         key = (tuple(fields), tuple(wls), int(size),
                object_distance_mm, pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)),
                plan if isinstance(plan, str) else (plan.pitch_mm, plan.n_grid, plan.n_pad, plan.ray_grid),
-               self.rw_device, bool(requires_grad), method or self.method, self.deterministic)
+               self.rw_device, bool(requires_grad), method or self.method, self.deterministic, self.pixel_values)
         if not self.replan and key in self._plans:
             return self._plans[key]
         lens = self._once("lens", self.to_lens)
@@ -366,7 +373,7 @@ class HybridLens(nn.Module):
                      gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
                      requires_grad=bool(requires_grad), method=method or self.method,
                      memory_budget_bytes=memory_budget_bytes, focal_patch_tol=self.focal_patch_tol,
-                     deterministic=self.deterministic)
+                     deterministic=self.deterministic, pixel_values=self.pixel_values)
         bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw

@@ -28,7 +28,10 @@
  *       U(x, y) = sum_{ky, kx} Ey[y, ky] C[ky, kx] Ex[x, kx]
  *       Ex[x, kx] = exp(2 pi i (fx (x - x0 - xs) + cx x)),  Ey likewise,
  *       C = H * FFT(padded field) restricted to the band (H carries 1 / (npx npy)).
- *   Sensor: I[py, px] = (pitch_x pitch_y / 4) sum_{gy, gx} w_gy w_gx |U(node)|^2 (Gauss-Legendre).
+ *   Sensor: I[py, px] = (pitch_x pitch_y / 4) sum_{gy, gx} w_gy w_gx |U(node)|^2 (Gauss-Legendre),
+ *   or the z-flux (pixel_values "flux"): the same sum of Re(conj(U) U_w), U_w the matrix DFT of c C with the
+ *   direction cosine c = lambda w = k_z / k = sqrt(1 - lambda^2 (u^2 + v^2)) (band_obliquity), so that
+ *   Re(conj(U) U_w) = Re(conj(U) dU/dz / (i k)), the z-component of the Poynting vector (scalar field).
  *
  * Units: mm for lengths, cycles/mm for frequencies, radians for DOE phases.
  * Kernel arguments run inputs, scalars, then outputs (named *_out).
@@ -220,6 +223,40 @@ __kernel void band_distance_grad_kernel(__global const cplx_t* restrict band,
         }
     }
     out[(idx_t)b * ky_max + ky] = RW_TWO_PI * acc;
+}
+
+/* Direction-cosine weight on the band (pixel_values "flux"): out = c^power src (+ out when accumulate),
+ * c = lambda w = sqrt(1 - lambda^2 (u^2 + v^2)) = k_z / k, the cosine of the plane wave's angle to z (lambda in
+ * the medium); 0 outside the band and for evanescent (u, v), where C is 0 too. The weight is real, so the same
+ * launch is its own adjoint. Global (kx_max, ky_max, batch). */
+__kernel void band_obliquity_kernel(__global const cplx_t* restrict src,
+                                    __global const phase_t* restrict params,
+                                    const int kx_max, const int ky_max, const int batch,
+                                    const int power, const int accumulate,
+                                    __global cplx_t* restrict band_out)
+{
+    const int kx = get_global_id(0);
+    const int ky = get_global_id(1);
+    const int b = get_global_id(2);
+    if (kx >= kx_max || ky >= ky_max || b >= batch) return;
+    __global const phase_t* p = params + (idx_t)b * NPAR;
+    const idx_t ib = ((idx_t)b * ky_max + ky) * kx_max + kx;
+    phase_t wgt = (phase_t)0;
+    if (kx < (int)p[P_KXB] && ky < (int)p[P_KYB]) {
+        const phase_t u = (p[P_QX0] + (phase_t)kx) / p[P_LPX] + p[P_CX];
+        const phase_t v = (p[P_QY0] + (phase_t)ky) / p[P_LPY] + p[P_CY];
+        const phase_t lam = p[P_LAMBDA];
+        const phase_t s2 = lam * lam * (u * u + v * v);
+        if (s2 < (phase_t)1) {
+            const phase_t c = sqrt((phase_t)1 - s2);
+            wgt = (phase_t)1;
+            for (int k = 0; k < (power < 0 ? -power : power); ++k) wgt *= c;
+            if (power < 0) wgt = (phase_t)1 / wgt;
+        }
+    }
+    cplx_t v = c_scale(src[ib], (real_t)wgt);
+    if (accumulate) v = c_add(v, band_out[ib]);
+    band_out[ib] = v;
 }
 
 /* Adjoint of band_gather: cols_out = scale * conj(H) * band on the band rows, 0 on the other
@@ -535,6 +572,35 @@ __kernel void sensor_reduce_kernel(__global const cplx_t* restrict nodes,
         acc += weights[gy] * acc_row;
     }
     intensity_out[((idx_t)b * n_py + py) * n_px + px] = area_scale * acc;
+}
+
+/* Pixel z-flux (pixel_values "flux"): like sensor_reduce with Re(conj(U) U_w) for |U|^2, nodes / nodes_w the
+ * node fields of C and c C. Its adjoint is sensor_reduce_adjoint with area_scale / 2 on the other node field
+ * (d/dU = w U_w, d/dU_w = w U in the dL/dRe + i dL/dIm convention). Global (n_px, n_py, batch). */
+__kernel void sensor_flux_reduce_kernel(__global const cplx_t* restrict nodes,
+                                        __global const cplx_t* restrict nodes_w,
+                                        __global const real_t* restrict weights,
+                                        const int n_px, const int n_py, const int g, const int batch,
+                                        const real_t area_scale,
+                                        __global real_t* restrict flux_out)
+{
+    const int px = get_global_id(0);
+    const int py = get_global_id(1);
+    const int b = get_global_id(2);
+    if (px >= n_px || py >= n_py || b >= batch) return;
+    const int row_len = n_px * g;
+    real_t acc = (real_t)0;
+    for (int gy = 0; gy < g; ++gy) {
+        const idx_t row = ((idx_t)b * n_py * g + (idx_t)py * g + gy) * row_len + (idx_t)px * g;
+        real_t acc_row = (real_t)0;
+        for (int gx = 0; gx < g; ++gx) {
+            const cplx_t a = nodes[row + gx];
+            const cplx_t c = nodes_w[row + gx];
+            acc_row += weights[gx] * (a.x * c.x + a.y * c.y);
+        }
+        acc += weights[gy] * acc_row;
+    }
+    flux_out[((idx_t)b * n_py + py) * n_px + px] = area_scale * acc;
 }
 
 /* Adjoint of sensor_reduce for grad = dL/dRe + i dL/dIm:

@@ -38,7 +38,18 @@ the chief ray, exact). So
    by at most ``max |z grad(w - w_G)|`` (a few tens of um): the padding covers it.
 
 ``V`` is only band-limited to the beam's angular spread ``NA / lambda`` and compact (the focused
-spot plus the patch), so both sensor-side grids are of patch size. Where a DOE's orders other
+spot plus the patch), so both sensor-side grids are of patch size.
+
+Pixel values (:mod:`rwwarp.wave.propagate`, "Pixel values"). The z-flux ``Re(conj(U) dU/dz / (i k))`` needs
+``U_w = F^-1[c(f) F U]``, the field weighted by the direction cosine ``c(f) = lambda' w(f) = k_z / k`` in the
+frequency domain. Step 2 holds the sensor-plane spectrum itself: ``B`` at the true frequencies ``f_c + nu``
+(the operator is shift invariant, ``H = H_G H_R``, so weighting the output spectrum is weighting the input's),
+so :meth:`FocalPropagator.forward_pair` applies ``c`` to ``B`` before a second output DFT. No approximation is
+added: the weight is exact on the same periodic sensor-side grid that ``H_R`` is applied on, and being real,
+smooth and non-oscillating it moves no light (its kernel spans a few wavelengths, far inside the padding that
+``H_R``'s displacement needs); frequencies the remainder's band limit drops are dropped from both ``U`` and
+``U_w``. The demodulation by ``f_c`` and the constant phase per source are common to both and cancel in
+``conj(U) U_w``. Where a DOE's orders other
 than the main one miss the patch, they are not computed (their power is reported); orders that do
 reach it are summed coherently on the same grid (:func:`doe_order_coefficients`).
 
@@ -50,7 +61,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["doe_order_coefficients", "doe_order_series", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
-           "pixel_weights", "sensor_taper"]
+           "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",
+           "sensor_taper"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -126,6 +138,22 @@ def _cis(p, xp):
     if xp is np:
         return np.cos(p) + 1j * np.sin(p)
     return xp.exp(1j * p)
+
+
+def plane_direction_cosines(n_fft: int, pitch_mm, carrier_cpmm, wavelength_mm) -> np.ndarray:
+    """``c = k_z / k = sqrt(1 - lambda^2 |f|^2)`` (0 for evanescent ``f``) on the (S, n_fft, n_fft) FFT grids of
+    wave-plane windows: true frequency ``f = fftfreq(n_fft, pitch) + carrier`` (rows y, columns x). ``pitch_mm``
+    scalar or (S,), ``carrier_cpmm`` (S, 2) cycles/mm, ``wavelength_mm`` (S,) in the medium."""
+    car = np.asarray(carrier_cpmm, dtype=np.float64).reshape(-1, 2)
+    S = car.shape[0]
+    pitch = np.broadcast_to(np.asarray(pitch_mm, dtype=np.float64), (S,))
+    lam = np.broadcast_to(np.asarray(wavelength_mm, dtype=np.float64), (S,))
+    out = np.empty((S, int(n_fft), int(n_fft)))
+    for k in range(S):
+        f = np.fft.fftfreq(int(n_fft), pitch[k])
+        arg = 1.0 - lam[k] ** 2 * ((f[None, :] + car[k, 0]) ** 2 + (f[:, None] + car[k, 1]) ** 2)
+        out[k] = np.sqrt(np.maximum(arg, 0.0))
+    return out
 
 
 def transfer_curvature(f_c, inv_lam):
@@ -258,6 +286,8 @@ class FocalPropagator:
         keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room)
         rem = xp.where(keep, w - wg, 0.0)
         self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
+        # c = lambda' w = k_z / k, the direction cosine (pixel_values "flux"; 0 off the kept band, where H_R is 0)
+        self._c = xp.where(keep, w / X["inv_lam"][:, None, None], 0.0)
         self._keep_mean = xp.mean(keep)   # read on demand (kept_band_fraction): no device sync at set-up
         self._rem = rem           # d(phase of H_R)/dz / (2 pi), kept band (for the distance derivative)
         self._dHR = None
@@ -271,7 +301,7 @@ class FocalPropagator:
     def nbytes(self) -> int:
         """Bytes the operator holds on its device: the step-1 factors, the remainder transfer and its phase,
         the output factors and, once formed, the distance-derivative factors."""
-        arrays = [*self._E, self._HR, self._rem, self._Fx, self._Fy]
+        arrays = [*self._E, self._HR, self._rem, self._c, self._Fx, self._Fy]
         if self._dE is not None:
             arrays += [*self._dE, self._dHR]
         return int(sum(a.nbytes for a in arrays))
@@ -292,11 +322,31 @@ class FocalPropagator:
 
     def forward(self, field):
         """Complex field at the output nodes, (S, My, Mx) (up to a constant phase per source)."""
-        xp = self.xp
+        return self._to_nodes(self._spectrum(field))
+
+    def forward_pair(self, field):
+        """``(U, U_w)`` at the output nodes, each (S, My, Mx): the field (:meth:`forward`) and the field of its
+        sensor-plane spectrum weighted by the direction cosine ``c = k_z / k``; ``Re(conj(U) U_w)`` is the
+        z-flux (:func:`pixel_flux`; the same constant phase per source in both)."""
+        b = self._spectrum(field)
+        return self._to_nodes(b), self._to_nodes(b * self._c)
+
+    def _spectrum(self, field):
+        """``B = FFT(V) H_R`` on the padded sensor-side grid, (S, nf, nf) (true frequency ``f_c + nu``)."""
         v = self.sensor_grid_field(field)
-        b = xp.fft.fft2(v, s=(self.nf, self.nf)) * self._HR
+        return self.xp.fft.fft2(v, s=(self.nf, self.nf)) * self._HR
+
+    def _to_nodes(self, b):
+        """The output DFT of a padded spectrum (S, nf, nf) to the nodes, (S, My, Mx)."""
+        xp = self.xp
         t = xp.matmul(b, xp.swapaxes(self._Fx, 1, 2))      # (S, nf, Mx)
         return xp.matmul(self._Fy, t)                      # (S, My, Mx)
+
+    def _from_nodes(self, grad):
+        """Adjoint of :meth:`_to_nodes`: (S, My, Mx) -> (S, nf, nf)."""
+        xp = self.xp
+        t = xp.matmul(xp.conj(xp.swapaxes(self._Fy, 1, 2)), grad)            # (S, nf, Mx)
+        return xp.matmul(t, xp.conj(self._Fx))                               # (S, nf, nf)
 
     def _distance_factors(self):
         """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier (built once).
@@ -319,21 +369,37 @@ class FocalPropagator:
         """``dU/dz`` (S, My, Mx) at the output nodes: the exact derivative of :meth:`forward` with respect
         to the propagation distance ``distance_mm`` (grids, band mask and carrier held fixed; the constant
         phase per source that :meth:`forward` drops does not change intensities)."""
+        return self._to_nodes(self._distance_spectrum(field))
+
+    def distance_derivative_pair(self, field):
+        """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight does not
+        depend on the distance)."""
+        db = self._distance_spectrum(field)
+        return self._to_nodes(db), self._to_nodes(db * self._c)
+
+    def _distance_spectrum(self, field):
+        """``dB/dz`` (S, nf, nf) at fixed grids, band mask and carrier."""
         xp = self.xp
         (dex, dey), dhr = self._distance_factors()
         ex, ey = self._E
         t = xp.matmul(field, xp.swapaxes(ex, 1, 2))
         v = xp.matmul(ey, t)
         dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
-        b = xp.fft.fft2(dv, s=(self.nf, self.nf)) * self._HR + xp.fft.fft2(v, s=(self.nf, self.nf)) * dhr
-        t = xp.matmul(b, xp.swapaxes(self._Fx, 1, 2))
-        return xp.matmul(self._Fy, t)
+        return xp.fft.fft2(dv, s=(self.nf, self.nf)) * self._HR + xp.fft.fft2(v, s=(self.nf, self.nf)) * dhr
 
     def adjoint(self, grad):
         """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, My, Mx) -> (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad))
+
+    def adjoint_pair(self, grad_u, grad_w):
+        """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U`` and ``U_w`` (S, My, Mx) each
+        (torch's convention), (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad_u) + self._from_nodes(grad_w) * self._c)
+
+    def _spectrum_adjoint(self, b):
+        """Adjoint of :meth:`_spectrum`: (S, nf, nf) -> (S, n, n)."""
         xp = self.xp
-        t = xp.matmul(xp.conj(xp.swapaxes(self._Fy, 1, 2)), grad)            # (S, nf, Mx)
-        b = xp.matmul(t, xp.conj(self._Fx)) * xp.conj(self._HR)              # (S, nf, nf)
+        b = b * xp.conj(self._HR)
         v = xp.fft.ifft2(b) * (self.nf * self.nf)
         v = v[:, :self.ns, :self.ns]
         ex, ey = self._E
@@ -384,3 +450,36 @@ def pixel_power_adjoint(u_nodes, grad_power, gauss_nodes: int, pixel_mm: float, 
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     wg = grad_power[:, :, None, :, None] * w2[None, None, :, None, :]
     return 2.0 * wg.reshape(S, size * g, size * g) * u_nodes
+
+
+def focal_pixels(op, field, pixel_values: str, gauss_nodes: int, pixel_mm: float, size: int):
+    """The pixel values ``pixel_values`` names ("flux": :func:`pixel_flux` of :meth:`FocalPropagator.forward_pair`;
+    "intensity": :func:`pixel_power` of :meth:`FocalPropagator.forward`) of a wave-plane field (S, n, n) through
+    the operator ``op``: ``(values (S, size, size), node fields)`` (the pair ``(U, U_w)`` for the flux)."""
+    if pixel_values == "flux":
+        u = op.forward_pair(field)
+        return pixel_flux(*u, gauss_nodes, pixel_mm, size, xp=op.xp), u
+    u = op.forward(field)
+    return pixel_power(u, gauss_nodes, pixel_mm, size, xp=op.xp), u
+
+
+def pixel_flux(u_nodes, u_w_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):
+    """Power through each pixel (pixel_values "flux") from the node fields ``(U, U_w)`` of
+    :meth:`FocalPropagator.forward_pair`: the z-flux ``Re(conj(U) U_w)`` summed with the Gauss-Legendre weights of
+    the pixel's area (node order as :func:`pixel_power`). Returns (S, size, size)."""
+    g = int(gauss_nodes)
+    w2 = xp.asarray(pixel_weights(g, pixel_mm))
+    flux = u_nodes.real * u_w_nodes.real + u_nodes.imag * u_w_nodes.imag
+    flux = flux.reshape(u_nodes.shape[0], size, g, size, g)
+    return xp.einsum("siajb,ab->sij", flux, w2)
+
+
+def pixel_flux_adjoint(u_nodes, u_w_nodes, grad_power, gauss_nodes: int, pixel_mm: float, xp=np):
+    """Gradients of ``sum(grad_power * pixel_flux(u_nodes, u_w_nodes))`` with respect to ``u_nodes`` and
+    ``u_w_nodes`` in torch's convention (``2 dL/d conj(u)``): ``(w_ab grad_power[i, j] U_w, w_ab grad_power[i, j] U)``
+    at node (i a, j b) (``Re(conj(a) b) = (conj(a) b + a conj(b)) / 2``)."""
+    g = int(gauss_nodes)
+    S, size = grad_power.shape[0], grad_power.shape[1]
+    w2 = xp.asarray(pixel_weights(g, pixel_mm))
+    wg = (grad_power[:, :, None, :, None] * w2[None, None, :, None, :]).reshape(S, size * g, size * g)
+    return wg * u_w_nodes, wg * u_nodes

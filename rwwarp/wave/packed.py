@@ -16,7 +16,7 @@ __all__ = ["PackedRayWave", "packed_bytes", "source_plans"]
 def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
                  object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
                  gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
-                 focal_patch_tol=1e-5, deterministic: bool = False) -> list:
+                 focal_patch_tol=1e-5, deterministic: bool = False, pixel_values: str = "flux") -> list:
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them (the pilot rays are
@@ -31,7 +31,7 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
         members.append(RayWave(lens, [fields[k]], [wls[k]], size, pixel, device, plan, dtype, amplitude,
                                object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
                                nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
-                               deterministic, own_pupils=True, pilot=pk))
+                               deterministic, own_pupils=True, pilot=pk, pixel_values=pixel_values))
     return members
 
 
@@ -63,10 +63,10 @@ class PackedRayWave(RayWave):
         m0 = members[0]
         for m in members:
             if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
-                    m.tracer.scalar) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference, m0.deterministic,
-                                         m0.device, m0.tracer.scalar):
+                    m.tracer.scalar, m.pixel_values) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference,
+                                                         m0.deterministic, m0.device, m0.tracer.scalar, m0.pixel_values):
                 raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
-                                 "reference, determinism, device and precision")
+                                 "reference, determinism, device, precision and pixel values")
         self.members = list(members)
         lens = m0.lens
         self.lens, self.plane, self.curved_plane = lens, m0.plane, m0.curved_plane
@@ -86,7 +86,7 @@ class PackedRayWave(RayWave):
                      "opl_chief", "chief_ok"):
             setattr(self, name, cat(name))
         self.z_plane, self.z_sensor = m0.z_plane, m0.z_sensor
-        self.gauss_nodes = m0.gauss_nodes
+        self.gauss_nodes, self.pixel_values = m0.gauss_nodes, m0.pixel_values
         self.pupil = (None, None, 1.0)
         self.plan = m0.plan   # only its method is read; each member keeps its own plan
         self.method = m0.method

@@ -27,6 +27,12 @@ Conventions
   coordinates are absolute in the same frame.
 * **Field normalisation.** ``sum |u|^2 * pitch^2`` is the power; sensor intensities are
   ``|U|^2`` integrated over each pixel (field units^2 * mm^2), i.e. power per pixel.
+* **Pixel values.** ``pixel_values="intensity"`` (the default of these low-level calls) integrates ``|U|^2``;
+  ``"flux"`` integrates the z-flux ``S_z = Re(conj(U) dU/dz / (i k)) = Re(conj(U) U_w)``,
+  ``U_w = F^-1[(k_z / k) F U]`` (the Poynting vector's z-component, obliquity included: ``cos theta |U|^2``
+  for a plane wave at ``theta``), for ``U`` the scalar field itself. The ray-wave model (:class:`RayWave`,
+  :func:`rwwarp.psf`) defaults to ``"flux"`` and hands in the field whose flux through the wave plane is the
+  traced power (docs/propagation.md "Pixel values").
 * **Carrier.** With ``carrier_cpmm = (fx0, fy0)`` the field handed in is the true field times
   ``exp(-2 pi i (fx0 x + fy0 y))``; the transfer function is evaluated at the true frequencies.
   :func:`propagate` returns the true field (carrier restored) at the requested points;

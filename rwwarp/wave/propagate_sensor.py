@@ -17,11 +17,11 @@ import numpy as np
 
 from .backend import get_backend
 from .propagate_setup import (
-    gauss_legendre, _batch_of, _center_extent, _check_window, _coords, _setup, _window_center,
+    check_pixel_values, gauss_legendre, _batch_of, _center_extent, _check_window, _coords, _setup, _window_center,
 )
 from .propagate_stages import (
-    _band_adjoint_to_field, _band_spectrum, _band_to_points, _dft_factors, _launch, _points_to_band,
-    _transfer, _upload_coords,
+    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _dft_factors, _launch,
+    _points_to_band, _transfer, _upload_coords,
 )
 
 
@@ -62,7 +62,9 @@ class SensorGeometry:
     ``doe_scale`` (per-source DOE wavelength remap, with a DOE phase), ``carrier_cpmm`` ((B, 2) tilt
     removed from the field, cycles/mm), ``pad_to`` (FFT size), ``dtype`` (complex dtype) and
     ``window_center_mm`` (the output-window centre that sets the shifted band limits; default the
-    middle of these pixels' nodes). Lengths in mm."""
+    middle of these pixels' nodes), ``pixel_values`` (what a pixel records: ``"intensity"``, ``|U|^2``
+    integrated over it, the default of this low-level operator, or ``"flux"``, the power through it, see
+    :mod:`rwwarp.wave.propagate` "Pixel values"). Lengths in mm."""
     pitch_mm: object
     origin_mm: object
     wavelength_um: object
@@ -76,6 +78,7 @@ class SensorGeometry:
     pad_to: object = None
     dtype: object = None
     window_center_mm: object = None
+    pixel_values: str = "intensity"
 
     def with_(self, **changes) -> "SensorGeometry":
         """A copy with some fields replaced (e.g. ``distance_mm``, the pixel centres of a tile)."""
@@ -95,6 +98,7 @@ class SensorPropagator:
     def __init__(self, backend, geometry: SensorGeometry):
         self.backend = get_backend(backend)
         self.geometry = geometry
+        self.flux = check_pixel_values(geometry.pixel_values, "SensorGeometry") == "flux"
 
     def _prepare(self, field, doe_phase):
         """The setup of one call: (setup, (npx, npy, xs, ys, weights, area), window extent)."""
@@ -110,19 +114,22 @@ class SensorPropagator:
         return st, (npx_, npy_, xs, ys, w, area), (ex, ey)
 
     def forward(self, field, doe_phase=None, return_nodes=False):
-        """Power landing in each sensor pixel: ``|U|^2`` integrated over the pixel's area.
+        """Power landing in each sensor pixel: ``|U|^2`` (``pixel_values="intensity"``) or the z-flux
+        ``Re(conj(U) U_w)`` (``"flux"``) integrated over the pixel's area.
 
         The propagated field (:func:`propagate`) is evaluated at ``gauss_nodes`` x ``gauss_nodes``
         Gauss-Legendre nodes inside every pixel (matrix DFT) and the weighted ``|U|^2`` summed in one
         kernel: ``I[b, py, px] = (ppx ppy / 4) sum_{gy, gx} w_gy w_gx |U(x_gx, y_gy)|^2`` with nodes
         ``x_gx = x_px + ppx t_gx / 2``, ``y_gy = y_py + ppy t_gy / 2``. Box integration, exact for
-        intensities that are polynomials of degree ``2 gauss_nodes - 1`` across a pixel.
+        intensities that are polynomials of degree ``2 gauss_nodes - 1`` across a pixel. With ``"flux"``
+        the band spectrum ``C`` and ``c C`` (``c = lambda w = k_z / k``, the direction cosine) go through two
+        matrix DFTs to the same nodes, ``U`` and ``U_w``, and ``Re(conj(U) U_w)`` is summed instead.
 
         Args:
             field, doe_phase: as :func:`propagate` (the rest is the :class:`SensorGeometry`; pixels are
                 boxes of ``pixel_pitch_mm`` centred on the given centres).
             return_nodes: also return the node field (B, Py*G, Px*G) (row py*G+gy, column px*G+gx),
-                which :meth:`adjoint` can reuse.
+                which :meth:`adjoint` can reuse (with ``"flux"`` the pair ``(U, U_w)``).
 
         Returns:
             (B, Py, Px) real device array (field units^2 * mm^2, i.e. power per pixel), or
@@ -136,21 +143,37 @@ class SensorPropagator:
         band, _ = _band_spectrum(st)
         ext, eyf = _dft_factors(st, coords)
         g = len(w)
-        if return_nodes:
-            nodes = be.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        else:
-            nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _band_to_points(st, band, ext, eyf, nodes)
+        shape = (st.batch, ys.shape[1], xs.shape[1])
+        new = (lambda tag: be.empty(shape, st.dtype)) if return_nodes else (lambda tag: be.workspace(tag, shape, st.dtype))
         inten = be.empty((st.batch, npy_, npx_), st.rdtype)
-        _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area, inten)
+        if self.flux:
+            nodes = self._flux_nodes(st, band, ext, eyf, new)
+            _launch(st, "sensor_flux_reduce_kernel", (npx_, npy_, st.batch), nodes[0], nodes[1], w_dev, npx_, npy_,
+                    g, st.batch, area, inten)
+        else:
+            nodes = new("nodes")
+            _band_to_points(st, band, ext, eyf, nodes)
+            _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area,
+                    inten)
         if return_nodes:
             return inten, nodes
         return inten
 
+    @staticmethod
+    def _flux_nodes(st, band, ext, eyf, new):
+        """``(U, U_w)``: the node fields of ``C`` and ``c C`` (``new(tag)`` gives the arrays)."""
+        u = _band_to_points(st, band, ext, eyf, new("nodes"))
+        wb = _band_obliquity(st, band, 1, st.backend.workspace("band_w", band.shape, st.dtype))
+        return u, _band_to_points(st, wb, ext, eyf, new("nodes_w"))
+
     def _band_gradient(self, grad_intensity, field, doe_phase, nodes, need_band):
         """The part the adjoints share: the setup of the forward call, its node field (given or
         recomputed), and dL/dC, the gradient of the band spectrum C (workspace 'band_grad'). Returns
-        ``(st, band_grad, h, band)``; ``band`` (C itself) only with ``need_band``."""
+        ``(st, band_grad, h, band)``; ``band`` (C itself) only with ``need_band``.
+
+        ``"flux"``: the pixel value is ``sum w Re(conj(U) U_w)``, so the node gradients are ``w U_w`` for
+        ``U`` and ``w U`` for ``U_w`` (torch's convention), and ``dL/dC = A^H(w U_w) + c A^H(w U)`` (``A``: the
+        matrix DFT; ``c`` is real)."""
         st, (npx_, npy_, xs, ys, w, area), _ = self._prepare(field, doe_phase)
         be = st.backend
         g = len(w)
@@ -159,10 +182,18 @@ class SensorPropagator:
             raise ValueError(f"grad_intensity shape {tuple(gi.shape)} != {(st.batch, npy_, npx_)}")
         coords = _upload_coords(st, xs, ys)
         w_dev = be.to_device(w.astype(st.rdtype))
+        shape = (st.batch, ys.shape[1], xs.shape[1])
         if nodes is not None:
-            nodes = be.to_device(nodes, st.dtype)
-            if tuple(nodes.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-                raise ValueError(f"nodes shape {tuple(nodes.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+            if self.flux:
+                if not (isinstance(nodes, tuple) and len(nodes) == 2):
+                    raise ValueError("nodes: pixel_values='flux' takes the pair (U, U_w) its forward call returned")
+                nodes = tuple(be.to_device(n, st.dtype) for n in nodes)
+                bad = [tuple(n.shape) for n in nodes if tuple(n.shape) != shape]
+            else:
+                nodes = be.to_device(nodes, st.dtype)
+                bad = [tuple(nodes.shape)] if tuple(nodes.shape) != shape else []
+            if bad:
+                raise ValueError(f"nodes shape {bad[0]} != {shape}")
         if need_band:  # the band spectrum C itself is needed (the distance gradient)
             band, h = _band_spectrum(st)
         else:
@@ -171,14 +202,27 @@ class SensorPropagator:
             if band is None:
                 band, _ = _band_spectrum(st)
             ext, eyf = _dft_factors(st, coords)
-            nodes = be.workspace("nodes", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-            _band_to_points(st, band, ext, eyf, nodes)
-        g_nodes = be.workspace("nodes_grad", (st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        _launch(st, "sensor_reduce_adjoint_kernel", (xs.shape[1], ys.shape[1], st.batch), nodes, w_dev, gi, npx_,
-                npy_, g, st.batch, area, g_nodes)
+            if self.flux:
+                nodes = self._flux_nodes(st, band, ext, eyf, lambda tag: be.workspace(tag, shape, st.dtype))
+            else:
+                nodes = be.workspace("nodes", shape, st.dtype)
+                _band_to_points(st, band, ext, eyf, nodes)
         ex, eyf = _dft_factors(st, coords, adjoint=True)
         band_grad = be.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-        _points_to_band(st, g_nodes, ex, eyf, band_grad)
+        grid = (xs.shape[1], ys.shape[1], st.batch)
+        if self.flux:
+            g_nodes = be.workspace("nodes_grad", shape, st.dtype)
+            _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes[1], w_dev, gi, npx_, npy_, g, st.batch,
+                    0.5 * area, g_nodes)
+            _points_to_band(st, g_nodes, ex, eyf, band_grad)
+            _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes[0], w_dev, gi, npx_, npy_, g, st.batch,
+                    0.5 * area, g_nodes)
+            part = _points_to_band(st, g_nodes, ex, eyf, be.workspace("band_grad_w", band_grad.shape, st.dtype))
+            _band_obliquity(st, part, 1, band_grad, accumulate=True)
+        else:
+            g_nodes = be.workspace("nodes_grad", shape, st.dtype)
+            _launch(st, "sensor_reduce_adjoint_kernel", grid, nodes, w_dev, gi, npx_, npy_, g, st.batch, area, g_nodes)
+            _points_to_band(st, g_nodes, ex, eyf, band_grad)
         return st, band_grad, h, band if need_band else None
 
     def adjoint(self, grad_intensity, field, doe_phase=None, nodes=None):
@@ -233,30 +277,36 @@ class SensorPropagator:
 
 def sensor_intensity(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm,
                      pixel_centers_y_mm, pixel_pitch_mm, *, gauss_nodes=3, doe_phase=None, doe_scale=None,
-                     carrier_cpmm=None, pad_to=None, dtype=None, return_nodes=False, window_center_mm=None):
+                     carrier_cpmm=None, pad_to=None, dtype=None, return_nodes=False, window_center_mm=None,
+                     pixel_values="intensity"):
     """Power landing in each sensor pixel (:meth:`SensorPropagator.forward`; the arguments other than
-    ``backend``, ``field``, ``doe_phase`` and ``return_nodes`` form its :class:`SensorGeometry`)."""
+    ``backend``, ``field``, ``doe_phase`` and ``return_nodes`` form its :class:`SensorGeometry`;
+    ``pixel_values`` "intensity" (default here) or "flux", see :mod:`rwwarp.wave.propagate` "Pixel values")."""
     geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm)
+                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
+                         pixel_values)
     return SensorPropagator(backend, geo).forward(field, doe_phase, return_nodes)
 
 
 def sensor_intensity_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um, distance_mm,
                              pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, *, gauss_nodes=3, doe_phase=None,
                              doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None, nodes=None,
-                             window_center_mm=None):
+                             window_center_mm=None, pixel_values="intensity"):
     """Gradient of a real loss through :func:`sensor_intensity` (:meth:`SensorPropagator.adjoint`)."""
     geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm)
+                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
+                         pixel_values)
     return SensorPropagator(backend, geo).adjoint(grad_intensity, field, doe_phase, nodes)
 
 
 def sensor_intensity_distance_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um,
                                       distance_mm, pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, *,
                                       gauss_nodes=3, doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None,
-                                      dtype=None, nodes=None, need_field=True, window_center_mm=None):
+                                      dtype=None, nodes=None, need_field=True, window_center_mm=None,
+                                      pixel_values="intensity"):
     """Gradient through :func:`sensor_intensity`, the distance included
     (:meth:`SensorPropagator.distance_adjoint`)."""
     geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm)
+                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
+                         pixel_values)
     return SensorPropagator(backend, geo).distance_adjoint(grad_intensity, field, doe_phase, nodes, need_field)

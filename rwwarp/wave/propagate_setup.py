@@ -31,6 +31,18 @@ _H_COLS = [c for c in range(_NPAR) if c not in (_P_X0, _P_Y0, _P_DOE_SCALE)]
 
 _KX_ROUND = 64
 
+#: What a sensor pixel records (:mod:`rwwarp.wave.propagate`, "Pixel values"): ``"flux"``, the power through the
+#: pixel (the z-component of the Poynting vector of the scalar field, ``Re(conj(U) dU/dz / (i k))``), or
+#: ``"intensity"``, ``|U|^2`` integrated over the pixel (the convention before issue 27).
+PIXEL_VALUES = ("flux", "intensity")
+
+
+def check_pixel_values(pixel_values, where: str) -> str:
+    """``pixel_values`` if it is one of :data:`PIXEL_VALUES`, else a ValueError naming ``where``."""
+    if not isinstance(pixel_values, str) or pixel_values not in PIXEL_VALUES:
+        raise ValueError(f"{where}: pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
+    return pixel_values
+
 
 def _round_up(n, m):
     return -(-int(n) // int(m)) * int(m)

@@ -190,6 +190,14 @@ def _band_spectrum(st):
     return band, h
 
 
+def _band_obliquity(st, src, power, out, accumulate=False):
+    """``out = c^power src`` on the band (``+ out`` with ``accumulate``), ``c = lambda w = k_z / k`` the direction
+    cosine of each plane wave (pixel_values "flux"; real, so it is its own adjoint). Returns ``out``."""
+    _launch(st, "band_obliquity_kernel", (st.kx_max, st.ky_max, st.batch), src, st.params_dev, st.kx_max,
+            st.ky_max, st.batch, int(power), int(bool(accumulate)), out)
+    return out
+
+
 def _upload_coords(st, xs, ys):
     """Output coordinates (B, M) to the device, before any launch of the call (uploads block)."""
     be = st.backend

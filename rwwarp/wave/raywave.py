@@ -19,6 +19,7 @@ from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
+from .splat import paper_rescale, plane_cosines  # noqa: F401 (paper_rescale lived here)
 from ..trace import Tracer, pupil_grid, upload_packed
 from ..trace import field_label as _fmt_field
 
@@ -191,15 +192,20 @@ class RayWave:
     gives every ray its own copy of each surface's parameters when recording
     (:class:`~rwwarp.trace.Tracer` ``deterministic``: 480 bytes a ray and surface more). On the CPU the
     results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
+
+    ``pixel_values``: what a pixel records, ``"flux"`` (default, the power through it) or ``"intensity"``
+    (``|U|^2`` over it, before issue 27); docs/propagation.md "Pixel values".
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
-                 own_pupils: bool = False, pilot: dict | None = None):
+                 own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux"):
         if method not in ("asm", "focal", "auto"):
             raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+        from .propagate_setup import check_pixel_values
+        self.pixel_values = check_pixel_values(pixel_values, "RayWave")
         self.deterministic = bool(deterministic)
 
         plane = lens.wave_plane_index()
@@ -540,7 +546,8 @@ class RayWave:
                 opl_p[k] = all_opl[k, j]
         n = lay["n_stride"]
         sp = self.splatter
-        energy = int(self.amplitude == "energy")
+        # 2: pixel_values "flux", the field whose z-flux is the tube irradiance (amplitude / sqrt(cos), splat.py)
+        energy = (2 if self.pixel_values == "flux" else 1) if self.amplitude == "energy" else 0
         rim_args = self._rim_args(rim)
         if lay["ray_grids"] is None:
             area, half = sp.tube_areas(rays, pl.ray_grid, rim_args, bool(energy))
@@ -632,7 +639,7 @@ class RayWave:
         if self.amplitude != "energy":
             xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
             pitch = self.plan.pitch_mm if lay["ray_grids"] is None else xp.asarray(lay["pitches"])
-            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), pitch, xp)
+            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), pitch, xp, plane_cosines(self, xp))
         return u_field
 
     def doe_phase(self):
@@ -714,7 +721,7 @@ class RayWave:
         return SensorGeometry(self.plan.pitch_mm, self.origin, np.array(self.wls) / self.n_after,
                               np.full(self.nsrc, float(self.z_sensor - self.z_plane)), px, py, self.pixel,
                               gauss_nodes=self.gauss_nodes, doe_scale=doe_scale, carrier_cpmm=self.carrier,
-                              pad_to=self.plan.n_pad)
+                              pad_to=self.plan.n_pad, pixel_values=self.pixel_values)
 
     def intensity(self, u_field, phi0=None, scale=None):
         """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n)), by the
@@ -778,14 +785,13 @@ class RayWave:
 
     def focal_intensity(self, u_field, precision="single"):
         """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``; ``precision`` of
-        its matrix products, :class:`rwwarp.wave.focal.FocalPropagator`)."""
-        from .focal import pixel_power
+        its matrix products, :class:`rwwarp.wave.focal.FocalPropagator`; :attr:`pixel_values` as the ASM's)."""
+        from .focal import focal_pixels
         op = self.focal_operator(precision=precision)
         fac = self.doe_orders_factor(op.xp)
         if fac is not None:
             u_field = u_field * fac
-        u = op.forward(u_field)
-        power = pixel_power(u, self.gauss_nodes, self.pixel, self.size, xp=op.xp)
+        power, _ = focal_pixels(op, u_field, self.pixel_values, self.gauss_nodes, self.pixel, self.size)
         return power if op.xp is np else op.xp.asnumpy(power)
 
     def run(self, focal_precision: str = "auto") -> dict:
@@ -805,17 +811,7 @@ class RayWave:
                 "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
 
 
-def paper_rescale(u, traced_power, pitch_mm: float, xp):
-    """The paper's amplitude convention: rays of unit amplitude, then one scale per source so that the
-    field's power ``sum |u|^2 pitch^2`` (pitch in mm) equals the traced power (the power of the valid
-    rays). ``u`` (S, n, n) complex and ``traced_power`` (S,) in one array namespace ``xp`` (numpy,
-    CuPy or torch: the same formula differentiates in torch); a source with no field power stays zero."""
-    pw = (u.real ** 2 + u.imag ** 2).sum((1, 2)) * pitch_mm ** 2   # pitch_mm: a number or one per source
-    ok = pw > 0
-    return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
-
-
 #: The keyword options of :class:`RayWave` that :func:`rwwarp.psf_map` (and its distributed form) hand to
 #: every batch unchanged, under the same names (with ``memory_budget_bytes`` from their budget).
 RAYWAVE_OPTIONS = ("device", "plan", "dtype", "amplitude", "rays_per_sample", "center_mm", "use_reference",
-                   "gauss_nodes", "nyquist_safety", "method", "focal_patch_tol", "deterministic")
+                   "gauss_nodes", "nyquist_safety", "method", "focal_patch_tol", "deterministic", "pixel_values")

@@ -8,6 +8,7 @@ in mm.
 """
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from ..kernels.splat import make_splat_kernels
@@ -139,3 +140,32 @@ class Splatter:
                                           inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),
                    chunks, [None] * len(chunks))
         return field
+
+
+def paper_rescale(u, traced_power, pitch_mm: float, xp, cosines=None):
+    """The paper's amplitude convention: rays of unit amplitude, then one scale per source so that the
+    field's power ``sum |u|^2 pitch^2`` (pitch in mm) equals the traced power (the power of the valid
+    rays). ``u`` (S, n, n) complex and ``traced_power`` (S,) in one array namespace ``xp`` (numpy,
+    CuPy or torch: the same formula differentiates in torch); a source with no field power stays zero.
+    ``cosines`` (pixel_values "flux"): the direction cosines ``k_z / k`` on an (S, N, N) FFT grid of the windows
+    (:func:`rwwarp.wave.focal.plane_direction_cosines`, in ``xp``): the field's z-flux through the plane,
+    ``sum c |F u|^2 pitch^2 / N^2``, is made the traced power instead."""
+    if cosines is not None:
+        N = cosines.shape[-1]
+        s = xp.fft.fft2(u, s=(N, N))
+        pw = (cosines * (s.real ** 2 + s.imag ** 2)).sum((1, 2)) * pitch_mm ** 2 / (N * N)
+    else:
+        pw = (u.real ** 2 + u.imag ** 2).sum((1, 2)) * pitch_mm ** 2   # pitch_mm: a number or one per source
+    ok = pw > 0
+    return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
+
+
+def plane_cosines(rw, xp=np):
+    """pixel_values "flux": the direction cosines ``k_z / k`` (S, 2n, 2n) on the FFT grid of a RayWave's windows
+    (``n`` the window slot), in ``xp`` (numpy, CuPy or torch), for the paper convention's flux normalisation
+    (:func:`paper_rescale`); None with "intensity"."""
+    if rw.pixel_values != "flux":
+        return None
+    from .focal import plane_direction_cosines
+    lay = rw._layout()
+    return xp.asarray(plane_direction_cosines(2 * lay["n_stride"], lay["pitches"], rw.carrier, rw.lam_mm / rw.n_after))
