@@ -25,7 +25,7 @@ import numpy as np
 
 #: the window is widened on each side by this many edge widths sqrt(lambda d) (the edge's ringing falls
 #: off as 1 / distance: what leaves the window is the edge's light at the widest angles)
-EDGE_MARGIN = 12.0
+EDGE_MARGIN = 2.0
 #: the window's pitch must resolve the edge: at most sqrt(lambda d) / EDGE_SAMPLES
 EDGE_SAMPLES = 4.0
 
@@ -81,7 +81,7 @@ def apply_wave_step(rw, u, xp=np):
     be = bk.get_backend(rw.device)
     src = be.wrap_host(np.ascontiguousarray(g)) if (xp is np and hasattr(be, "wrap_host")) else g
     wl_med = np.asarray(rw.lam_mm, float) * 1e3 / np.asarray(rw.n_after, float)
-    pad = _wave_step_pad(n)
+    pad = rw.wave_step_pad
     out = propagate_grid(be, src, pl.pitch_mm, np.asarray(rw.origin, float), wl_med, np.where(d != 0, d, 1e-12),
                          pad_to=pad)
     out = be.to_host(out) if xp is np else xp.asarray(out)
@@ -112,18 +112,22 @@ def apply_wave_step_adjoint(rw, grad_out, xp=np):
     dummy = xp.zeros_like(grad_out)
     dummy = be.wrap_host(np.ascontiguousarray(dummy)) if (xp is np and hasattr(be, "wrap_host")) else dummy
     gf, _ = propagate_grid_adjoint(be, src, dummy, pl.pitch_mm, np.asarray(rw.origin, float), wl_med,
-                                   np.where(d != 0, d, 1e-12), pad_to=_wave_step_pad(n))
+                                   np.where(d != 0, d, 1e-12), pad_to=rw.wave_step_pad)
     gf = be.to_host(gf) if xp is np else xp.asarray(gf)
     gf = gf.reshape(grad_out.shape)
     gf = xp.where(xp.asarray(d != 0)[:, None, None], gf, g)
     return gf * rot                        # adjoint of "* conj(rot)"
 
 
-def _wave_step_pad(n: int) -> int:
-    """FFT length of the wave step: twice the window (the edge's light stays inside the widened window;
-    the padding keeps the band-limited ASM's wrap-around off it)."""
+#: FFT length of the wave step: the window plus this many margins (EDGE_MARGIN edge widths) a side
+PAD_MARGINS = 1.0
+
+
+def _wave_step_pad(n: int, extra: int) -> int:
+    """FFT length of the wave step for a window of ``n`` samples with ``extra`` samples of margin a side: the
+    periodic copies of the field stay ``PAD_MARGINS`` margins off it (the band-limited ASM's wrap-around)."""
     from .propagate import next_fft_size
-    return next_fft_size(2 * n)
+    return next_fft_size(int(n + 2 * PAD_MARGINS * extra))
 
 
 def plan_wave_step(rw, tolerance, method_requested: str) -> None:
@@ -169,6 +173,7 @@ def plan_wave_step(rw, tolerance, method_requested: str) -> None:
                          wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
             pl = replace(pl, estimate=estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
             rw.wave_step = d
+            rw.wave_step_pad = _wave_step_pad(n_grid, extra)
             mid = 0.5 * (rw.lo + rw.hi)
             rw.origin = mid - 0.5 * (n_grid - 1) * pitch
             rw.plan = pl
