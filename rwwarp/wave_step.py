@@ -174,15 +174,22 @@ def plan_wave_step(rw, tolerance, method_requested: str) -> None:
             extra = int(math.ceil(EDGE_MARGIN * edge / pitch))
             span = pl.n_grid * pl.pitch_mm
             n_grid = int(math.ceil(span / pitch)) + 2 * extra
-            ray_grid = max(pl.ray_grid, int(math.ceil(pl.ray_grid * pl.pitch_mm / pitch)))
+            if pl.method == "focal":   # the focal rule (rwwarp.plan.plan_focal): >= samples / 4 rays across
+                ray_grid = max(pl.ray_grid, int(math.ceil(float(np.max(rw.hi - rw.lo)) / pitch / 4.0)) + 1)
+            else:                      # the ASM's: rays per sample kept
+                ray_grid = max(pl.ray_grid, int(math.ceil(pl.ray_grid * pl.pitch_mm / pitch)))
             n_pad = pl.n_pad if pl.method == "focal" else nice_fft_length(max(pl.n_pad, int(math.ceil(
                 pl.n_pad * pl.pitch_mm / pitch)) + 2 * extra))
             why.append(f"wave step: window widened by {EDGE_MARGIN:g} edge widths a side -> {n_grid}^2 samples")
             pl = replace(pl, pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
                          wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
-            pl = replace(pl, estimate=estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
             rw.wave_step = d
-            rw.wave_step_pad = _wave_step_pad(n_grid, extra)
+            rw.wave_step_pad = pad = _wave_step_pad(n_grid, extra)
+            cost = dict(estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
+            # the step's padded field and spectrum (complex128) and its FFT pair, per source
+            cost["memory_bytes"] = int(cost["memory_bytes"] + 2 * 16 * pad * pad)
+            cost["flops"] = float(cost["flops"] + rw.nsrc * 2 * 5 * pad * pad * math.log2(pad * pad))
+            pl = replace(pl, estimate=cost)
             mid = 0.5 * (rw.lo + rw.hi)
             rw.origin = mid - 0.5 * (n_grid - 1) * pitch
             rw.plan = pl
