@@ -165,7 +165,8 @@ def estimate_for_raywave(rw) -> list:
     before the DOE (``rw.target``), the stop's image (:func:`stop_to_plane_mm`), and the rim slope of the
     wavefront after the DOE's main order relative to the sphere converging to the patch centre on the
     sensor: ``S = 2 pi max_rim |(x - x_c) . (f - f_sphere)|`` over the pilot rays within ``RIM_SHARE`` of the
-    footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm)."""
+    footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm; ``f - f_sphere``
+    less its mean over the beam: a tilt moves the PSF and changes nothing else)."""
     from . import doe
     from .doe import is_flat_profile
     lens, plane = rw.lens, rw.plane
@@ -203,7 +204,11 @@ def estimate_for_raywave(rw) -> list:
         f_sph = inv_lam * to_T[:, :2] / np.linalg.norm(to_T, axis=1, keepdims=True)
         rr = np.linalg.norm(xy - xc, axis=1)
         rim = rr >= RIM_SHARE * rr.max()
-        slope = 2 * math.pi * float(np.max(np.abs(np.sum((xy[rim] - xc) * (f[rim] - f_sph[rim]), axis=1))))
+        # a tilt (a constant frequency offset: the PSF off the patch centre) commutes with the diffraction
+        # and changes no intensity: W is taken against the sphere to the patch less its mean tilt
+        df = f - f_sph
+        df = df - df.mean(0)
+        slope = 2 * math.pi * float(np.max(np.abs(np.sum((xy[rim] - xc) * df[rim], axis=1))))
         if not math.isfinite(z1):
             out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w))
             continue
