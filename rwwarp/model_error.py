@@ -115,9 +115,10 @@ class ModelError:
     beam_radius_mm: float
     rim_slope_rad: float
     wavelength_um: float
+    note: str = ""
 
     def to_dict(self) -> dict:
-        return {k: float(v) for k, v in asdict(self).items()}
+        return {k: (v if isinstance(v, str) else float(v)) for k, v in asdict(self).items()}
 
     def text(self) -> str:
         """One line for the plan's reasons and ``--explain``."""
@@ -125,7 +126,8 @@ class ModelError:
                 f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
-                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.model_error)")
+                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.model_error)"
+                + (f"; {self.note}" if self.note else ""))
 
 
 def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
@@ -175,6 +177,9 @@ def estimate_for_raywave(rw) -> list:
     if s.type == "doe" and not is_flat_profile(s.profile):
         from pathlib import Path
         prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else Path(lens.source).parent)
+    note = ""
+    if prof is not None and s.profile.get("kind") == "pixel_map":   # no gradient (quantised smooth reliefs keep theirs)
+        prof, note = None, "a DOE with steps (pixel map): its phase slope is not counted"
     out = []
     pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
     for k in range(rw.nsrc):
@@ -188,7 +193,7 @@ def estimate_for_raywave(rw) -> list:
         if abs(R) > 1e5 or R == 0:
             R = math.inf
         if len(xy) < 3:
-            out.append(ModelError(0.0, math.inf, z1, R, 0.0, 0.0, 0.0, w))
+            out.append(ModelError(0.0, math.inf, z1, R, 0.0, 0.0, 0.0, w, note))
             continue
         xc = xy.mean(0)
         # the pilot's 31 x 31 cell-centre grid: its outermost points lie half a cell (1 / 30 of their
@@ -210,11 +215,11 @@ def estimate_for_raywave(rw) -> list:
         df = df - df.mean(0)
         slope = 2 * math.pi * float(np.max(np.abs(np.sum((xy[rim] - xc) * df[rim], axis=1))))
         if not math.isfinite(z1):
-            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w))
+            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w, note))
             continue
         d = reduced_distance_mm(z1, R)
         nf = fresnel_number(beam_r, z1, R, w, n)
-        out.append(ModelError(model_error(nf, slope), nf, z1, R, d, beam_r, slope, w))
+        out.append(ModelError(model_error(nf, slope), nf, z1, R, d, beam_r, slope, w, note))
     return out
 
 
