@@ -128,6 +128,23 @@ def apply_wave_step_adjoint(rw, grad_out, xp=np):
     return gf * rot                        # adjoint of "* conj(rot)"
 
 
+def double_transport_shift_mm(rw, d) -> float:
+    """Largest transverse shift (mm) the wave step gives the beam's aberration a second time: the rays already
+    carry it to the wave plane, and ``P_d`` moves it again by ``d`` times the rays' angle to the sphere of
+    ``rw.target`` (pilot rays before the DOE; ``d`` (S,) mm)."""
+    out = 0.0
+    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    for k in range(rw.nsrc):
+        p, m = pos[k, ok[k]], dirs[k, ok[k]]
+        if len(p) == 0 or d[k] == 0:
+            continue
+        to_t = np.asarray(rw.target[k])[None, :] - p
+        to_t = to_t / np.linalg.norm(to_t, axis=1, keepdims=True) * (1.0 if rw.target[k, 2] >= rw.z_plane else -1.0)
+        ang = np.linalg.norm(m[:, :2] - to_t[:, :2], axis=1)
+        out = max(out, float(abs(d[k]) * np.max(ang)))
+    return out
+
+
 #: FFT length of the wave step: the window plus this many margins (EDGE_MARGIN edge widths) a side
 PAD_MARGINS = 1.0
 
@@ -181,6 +198,9 @@ def plan_wave_step(rw, tolerance, method_requested: str) -> None:
             n_pad = pl.n_pad if pl.method == "focal" else nice_fft_length(max(pl.n_pad, int(math.ceil(
                 pl.n_pad * pl.pitch_mm / pitch)) + 2 * extra))
             why.append(f"wave step: window widened by {EDGE_MARGIN:g} edge widths a side -> {n_grid}^2 samples")
+            shift = double_transport_shift_mm(rw, d)
+            why.append(f"wave step: the beam's own aberration before the DOE is carried by its rays and diffracted "
+                       f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um)")
             pl = replace(pl, pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
                          wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
             rw.wave_step = d
