@@ -138,14 +138,17 @@ def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
     stop = lens.stop_index
     if stop >= plane:
         return 0.0
-    P = paraxial.surface_powers(lens, wavelength_um)
+    P = np.array(paraxial.surface_powers(lens, wavelength_um), float)
+    if lens.surfaces[plane].type == "doe":
+        P[plane] = 0.0      # the DOE acts after the field is formed: the image space is the one in front of it
     n = paraxial.signed_indices(lens, wavelength_um)
     t = [s.thickness for s in lens.surfaces]
-    ys, _, nus = paraxial.ynu_steps(P[stop:plane], t[stop:plane], n[stop:plane], 0.0, 1.0)
-    y_plane = ys[-1] + t[plane - 1] * nus[-1] / n[plane - 1]
+    # a paraxial ray through the stop's centre; its height on the plane over its slope after the plane's own
+    # refraction (a curved last surface: the field is formed on its vertex plane, in the medium after it)
+    ys, _, nus = paraxial.ynu_steps(P[stop:plane + 1], t[stop:plane + 1], n[stop:plane + 1], 0.0, 1.0)
     if nus[-1] == 0:
         return math.inf   # the stop's image at infinity: no finite distance (telecentric in front of the plane)
-    z1 = float(y_plane * n[plane - 1] / nus[-1])
+    z1 = float(ys[-1] * n[plane] / nus[-1])
     return max(z1, 0.0)
 
 
