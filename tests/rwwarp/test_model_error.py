@@ -225,3 +225,17 @@ def test_wave_step_matches_the_two_step_truth(d2_mm, method):
     e_two = np.max(np.abs(two.data - T)) / peak
     print(f"d2 {d2_mm} {method}: one-step vs model {e_one_model:.2e}, vs truth {e_one:.2e}; two-step vs truth {e_two:.2e}")
     assert e_two < 1e-3
+
+
+@pytest.mark.parametrize("name", ["cooke_triplet", "a489_doe"])
+def test_the_stops_image_is_the_paraxial_exit_pupil(name):
+    # without a DOE (the Cooke triplet) the stop's image in front of the wave plane is the exit pupil; the A489's
+    # DOE has paraxial power only after the field is formed, so its exit pupil (through the DOE) differs and
+    # the image through the refracting surfaces alone is checked against a lens without the DOE's power
+    from rwwarp import io, paraxial
+    lens = io.load_lens(name)
+    plane = lens.wave_plane_index()
+    if lens.surfaces[plane].type == "doe":
+        lens = lens.with_surface(plane, profile={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [0.0]})
+    want = lens.vertex_z[plane] - paraxial.pupils(lens, 0.55).exit_z
+    assert me.stop_to_plane_mm(lens, plane, 0.55) == pytest.approx(want, rel=1e-9)
