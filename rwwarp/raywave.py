@@ -393,7 +393,7 @@ class RayWave:
         # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
         self.rim = amplitude == "energy" and src["shape"] == "circle" and pl.method == "focal"
         from .wave_step import plan_wave_step
-        plan_wave_step(self, model_tolerance, requested)   # the model error, and the wave step where needed
+        plan_wave_step(self, model_tolerance, requested, memory_budget_bytes)   # model error; wave step if needed
 
     def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
                     center_mm, size, pixel, width, rays_per_sample, nyquist_safety, patch_tol=1e-5):

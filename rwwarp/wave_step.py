@@ -156,17 +156,19 @@ def _wave_step_pad(n: int, extra: int) -> int:
     return next_fft_size(int(n + 2 * PAD_MARGINS * extra))
 
 
-def plan_wave_step(rw, tolerance, method_requested: str) -> None:
+def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None) -> None:
     """Estimate the model error of a :class:`rwwarp.raywave.RayWave` (:func:`rwwarp.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
     ``method_requested`` is ``"two-step"``, or ``"auto"`` with the estimate above ``tolerance`` (relative to
     the PSF's peak; None: never automatically). With the step the window is widened by ``EDGE_MARGIN`` edge
     widths ``sqrt(lambda d)`` a side and, where the plan's pitch does not resolve the edge, refined to
     ``sqrt(lambda d) / EDGE_SAMPLES``. Sets ``rw.model_errors`` (a list, per source), ``rw.wave_step`` ((S,) mm,
-    zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``."""
+    zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``. A step whose plan exceeds
+    ``memory_budget_bytes`` is refused (:class:`rwwarp.plan.MemoryBudgetError`) under ``"two-step"`` and left
+    out, with a reason, under ``"auto"``."""
     from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
-    from .plan import estimate_cost, nice_fft_length
+    from .plan import check_budget, estimate_cost, nice_fft_length
     est = estimate_for_raywave(rw)
     rw.model_errors = est
     rw.wave_step = np.zeros(rw.nsrc)
@@ -181,6 +183,7 @@ def plan_wave_step(rw, tolerance, method_requested: str) -> None:
         d = np.array([e.reduced_distance_mm if math.isfinite(e.reduced_distance_mm) else 0.0 for e in est])
         edge = float(np.sqrt(np.max(rw.lam_mm / rw.n_after * np.abs(d)))) if np.any(d) else 0.0
         if edge > 0:
+            one_step = pl
             pitch = pl.pitch_mm
             why = [f"wave step ({'method two-step' if method_requested == 'two-step' else f'model error {w.estimate:.2g} > tolerance {tolerance:.2g}'}): "
                    f"the geometric field's edge diffracted over the reduced distance {np.max(np.abs(d)):.4g} mm "
@@ -203,13 +206,21 @@ def plan_wave_step(rw, tolerance, method_requested: str) -> None:
                        f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um)")
             pl = replace(pl, pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
                          wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
-            rw.wave_step = d
-            rw.wave_step_pad = pad = _wave_step_pad(n_grid, extra)
+            pad = _wave_step_pad(n_grid, extra)
             cost = dict(estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
             # the step's padded field and spectrum (complex128) and its FFT pair, per source
             cost["memory_bytes"] = int(cost["memory_bytes"] + 2 * 16 * pad * pad)
             cost["flops"] = float(cost["flops"] + rw.nsrc * 2 * 5 * pad * pad * math.log2(pad * pad))
             pl = replace(pl, estimate=cost)
+            if memory_budget_bytes is not None and cost["memory_bytes"] > memory_budget_bytes:
+                if method_requested == "two-step":
+                    check_budget(cost, int(memory_budget_bytes), f"the wave step's plan ({n_grid}^2 samples, FFT "
+                                 f"{pad}^2)", "the reduced distance (edge width sqrt(lambda d)), the beam footprint")
+                rw.plan = one_step.with_reasons(f"wave step left out: its plan needs {cost['memory_bytes'] / 2 ** 30:.3g} "
+                                                f"GiB, over the memory budget")
+                return
+            rw.wave_step = d
+            rw.wave_step_pad = pad
             mid = 0.5 * (rw.lo + rw.hi)
             rw.origin = mid - 0.5 * (n_grid - 1) * pitch
             rw.plan = pl
