@@ -239,3 +239,18 @@ def test_the_stops_image_is_the_paraxial_exit_pupil(name):
         lens = lens.with_surface(plane, profile={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [0.0]})
     want = lens.vertex_z[plane] - paraxial.pupils(lens, 0.55).exit_z
     assert me.stop_to_plane_mm(lens, plane, 0.55) == pytest.approx(want, rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore::rwwarp.errors.PatchWarning")
+def test_the_wave_step_respects_the_memory_budget():
+    from rwwarp.plan import MemoryBudgetError
+    lens = thin_lens_doe(10.0)
+    one = rw.plan_psf(lens, 0.0, 0.55, size=16, method="asm").estimate["memory_bytes"]
+    two = rw.plan_psf(lens, 0.0, 0.55, size=16, method="two-step").estimate["memory_bytes"]
+    assert two > one
+    gb = 0.5 * (one + two) / 2 ** 30            # room for the one-step plan only
+    with pytest.raises(MemoryBudgetError, match="wave step"):
+        rw.psf(lens, 0.0, 0.55, size=16, method="two-step", memory_budget_gb=gb)
+    with pytest.warns(me.ModelErrorWarning):     # auto leaves the step out, says why, and warns
+        p = rw.psf(lens, 0.0, 0.55, size=16, method="auto", memory_budget_gb=gb, tolerance=1e-3)
+    assert p.plan["wave_step_mm"] is None and any("left out" in r for r in p.plan["reasons"])
