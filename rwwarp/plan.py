@@ -45,7 +45,7 @@ class Plan:
     ray-wave model's own error estimated from the scene (:mod:`rwwarp.model_error`; the worst source's
     :meth:`~rwwarp.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm) of
     the wave step that replaces the geometric field's edge by the diffracted one before the DOE
-    (:func:`rwwarp.model_error.wave_step`), or None (the one-step model).
+    (:func:`rwwarp.wave_step.apply_wave_step`), or None (the one-step model).
     """
 
     pitch_mm: float
