@@ -194,7 +194,10 @@ def estimate_for_raywave(rw) -> list:
         n = float(rw.n_after[k])
         inv_lam = n / float(rw.lam_mm[k])
         sel = ok[k]
-        xy = pos[k, sel, :2]
+        # the pilot points lie on the wave-plane surface (curved for a last refracting surface): carried along
+        # their rays to its vertex plane, where the field is formed
+        p3, d3 = pos[k, sel], dirs[k, sel]
+        xy = p3[:, :2] + ((rw.z_plane - p3[:, 2]) / d3[:, 2])[:, None] * d3[:, :2]
         z1 = stop_to_plane_mm(lens, plane, w)
         R = float(rw.target[k, 2] - rw.z_plane)
         if abs(R) > 1e5 or R == 0:
