@@ -308,3 +308,17 @@ def test_off_axis_the_wave_step_and_the_estimate_against_a_2d_truth():
     # the estimate (RMS rim slope 12.4 rad): 7.1e-2, 1.09x the measured (at 0.5 deg it reads 4.4x high:
     # a decentred DOE's aberrated PSF; the estimate errs towards taking the step)
     assert 0.5 <= one.plan["model_error"]["estimate"] / e_one <= 2.0
+
+
+def test_a_perfect_singlet_reads_no_rim_slope():
+    # a flat-convex singlet whose last surface is the hyperboloid (conic -n^2) that focuses a plane wave from the
+    # glass perfectly: the wavefront after it is the sphere to the focus, so S ~ 0 (the field is formed on the
+    # curved surface's vertex plane; reading the pilot points on the surface itself gave 1.37 rad here)
+    n, R = 1.5, -25.0
+    surfs = [Surface(type="aperture", semi_diameter=2.0, shape="circle", stop=True),
+             Surface(type="standard", thickness=3.0, material="1.5/1e9", semi_diameter=3.0),
+             Surface(type="standard", radius=R, conic=-n * n, thickness=abs(R) / (n - 1), semi_diameter=3.0)]
+    lens = Lens(surfs, Sensor(2e-3, (2000, 2000)), wavelengths_um=[0.55])
+    got = rw.plan_psf(lens, 0.0, 0.55, size=16, method="focal").model_error
+    assert got["rim_slope_rad"] < 0.2, got
+    assert got["estimate"] < 1e-4
