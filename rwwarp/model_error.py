@@ -1,4 +1,4 @@
-"""The ray-wave model's own error, estimated from the scene (issue 27), and the wave step that removes it.
+"""The ray-wave model's own error, estimated from the scene (issue 27); :mod:`rwwarp.wave_step` removes it.
 
 The ray-wave model forms the field on the wave plane (the DOE, else the last surface) geometrically: each
 ray tube carries its power and optical path there, so the beam ends at the plane with a hard edge, the
@@ -15,7 +15,8 @@ distance*
 
     d = z1 R / (z1 + R)            (1 / d = 1 / z1 + 1 / R; d = z1 for a collimated beam, R -> inf)
 
-and multiplied by the sphere again: ``U_true = S_R P_d[G]`` (:func:`wave_step`). Its Fresnel number is
+and multiplied by the sphere again: ``U_true = S_R P_d[G]`` (:func:`rwwarp.wave_step.apply_wave_step`). Its
+Fresnel number is
 
     N_F = n r_w^2 / (lambda d) = n a^2 (f - z1) / (lambda f z1)     (thin lens: f, aperture radius a),
 
@@ -32,7 +33,9 @@ Calibration (``tests/rwwarp/test_model_error.py``: an independent radially symme
 quadrature of the exact angular spectrum: thin lens f = 50 mm, a = 2.5 mm, 0.55 um, sensor at the lens
 focus, DOE pupil phase ``A rho^4``, DOE 10 and 35 mm before the sensor, N_F = 57 and 530): ``E N_F / S`` =
 0.25 / 0.26 (A = 1), 0.20 / 0.25 (A = 3), 0.79 / 0.49 (A = 8), so ``C = 0.25``; the growth at large ``S``
-(the peak normalising ``E`` falls as the PSF spreads) is ``S0 = 25`` rad. Held out (checked within a
+is ``S0 = 25`` rad (the blurred edge's ring has zero mean and first moment across the edge, so the light it
+sends towards the core grows with the square of the phase slope across it; and the peak normalising ``E``
+falls as the PSF spreads). Held out (checked within a
 factor 2 by the test): a = 1.5 mm, defocus ``A2 rho^2``, ``rho^6``, mixed ``rho^2 + rho^4``, 20 and 45 mm.
 Below N_F ~ 50 with S > 10 the error grows slower than 1 / N_F (it saturates towards 1 / sqrt(N_F)): there
 the estimate is an upper bound (a factor 2.3 high at N_F = 20, S = 12).
