@@ -229,7 +229,7 @@ def cmd_psf(a):
     if note:
         _say("note: " + note)
     kw = dict(size=a.size, device=a.device, method=a.method, pixel_mm=pixel_mm, rays_per_sample=a.rays_per_sample,
-              nyquist_safety=a.nyquist_safety)
+              nyquist_safety=a.nyquist_safety, tolerance=a.tolerance)
     if a.dry_run:
         if a.model != "ray-wave":
             raise ValueError("--dry-run plans the ray-wave model only (--model ray-wave)")
@@ -560,8 +560,9 @@ def _build_parser():
     p.add_argument("--explain", action="store_true", help="print the sampling plan and why")
     p.add_argument("--dry-run", action="store_true",
                    help="print the plan and its memory/work estimate, compute nothing")
-    p.add_argument("--method", default="auto", choices=["auto", "focal", "asm"],
-                   help="wave propagation: focal (follows the patch), asm (whole beam), auto")
+    p.add_argument("--method", default="auto", choices=["auto", "focal", "asm", "two-step"],
+                   help="wave propagation: focal (follows the patch), asm (whole beam), auto, two-step (auto + wave step)")
+    p.add_argument("--tolerance", type=_finite, default=None, help="model error accepted (of the peak): auto adds the wave step above it")
     p.add_argument("--deterministic", action="store_true",
                    help="the same bits on every run on a GPU too (fixed-point splat sums)")
     _add_knobs(p, batch=False)

@@ -122,7 +122,7 @@ def _check_args(lens, fields, wavelengths_um, depths_mm, kw):
     kw["size"] = checks.check_size(kw["size"])
     checks.check_device(kw["device"])
     checks.check_choice(kw["dtype"], "dtype", ("float64", "float32"))
-    checks.check_choice(kw["method"], "method", ("auto", "focal", "asm"))
+    checks.check_choice(kw["method"], "method", ("auto", "focal", "asm", "two-step"))
     if kw["amplitude"] not in ("energy", "paper"):
         raise ValueError(f"amplitude must be 'energy' or 'paper', got {kw['amplitude']!r}")
     checks.check_rays_per_sample(kw["rays_per_sample"])

@@ -26,6 +26,17 @@ from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived 
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
+METHODS = ("auto", "focal", "asm", "two-step")
+
+
+def _check_tolerance(tolerance):
+    """``tolerance`` (a model error relative to the PSF's peak) as a float in (0, 1], or None."""
+    if tolerance is None:
+        return None
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not (0 < tolerance <= 1):
+        raise ValueError(f"tolerance must be a number in (0, 1] (the model error accepted, relative to the PSF's "
+                         f"peak) or None, got {tolerance!r}")
+    return float(tolerance)
 
 
 @dataclass
@@ -102,7 +113,8 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         object_distance_mm=None, rays_per_sample: float = 1.0, pixel_mm=None, center_mm=None,
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
-        focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux") -> PSF:
+        focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux",
+        tolerance: float | None = None) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -143,6 +155,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         with footprint x NA / lambda). ``"auto"``: both are planned from one pilot trace; on the CPU the plan
         of fewer flops runs; on a GPU the ASM runs while its plan is under 1 GiB and 20 GFLOP (fewer,
         larger launches), the focal method beyond; pixel-map DOEs and ``plan="paper"`` always use the ASM.
+        With ``tolerance`` "auto" adds the wave step (:mod:`rwwarp.wave_step`) where the model's own error
+        estimate exceeds it. ``"two-step"``: the method "auto" picks, always with the wave step: the
+        geometric field's edge is diffracted as a wave from the stop's image to the DOE plane before the DOE.
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.
@@ -165,13 +180,20 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         plane is the traced power, so a PSF that catches all the light sums to the traced fraction.
         ``"intensity"``: ``|U|^2`` integrated over it, the convention before issue 27 (it differs from the
         flux by ~1e-4 of the peak at 35-40 deg; docs/propagation.md "Pixel values").
+    tolerance : float, optional
+        The model error (max |error| over the PSF's peak) the caller accepts. The ray-wave model's own
+        error (the geometric field at the DOE plane leaves out the rim's diffraction on the way there) is
+        estimated from the scene (:mod:`rwwarp.model_error`; in the plan and ``--explain``); above
+        ``tolerance``, ``method="auto"`` adds the wave step, and an explicit ``"asm"`` / ``"focal"`` warns
+        (:class:`rwwarp.model_error.ModelErrorWarning`). None (default): estimate and report only.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
                 rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm,
                 use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
                 method=method, memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol,
-                focal_precision=focal_precision, deterministic=deterministic, pixel_values=pixel_values)
+                focal_precision=focal_precision, deterministic=deterministic, pixel_values=pixel_values,
+                tolerance=tolerance)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -180,19 +202,22 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
 
 def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, device: str = "cpu",
              method: str = "auto", rays_per_sample: float = 1.0, nyquist_safety: float = 2.0, pixel_mm=None,
-             object_distance_mm=None, center_mm=None, focal_patch_tol: float = 1e-5) -> Plan:
+             object_distance_mm=None, center_mm=None, focal_patch_tol: float = 1e-5,
+             tolerance: float | None = None) -> Plan:
     """The sampling plan and its cost estimate for a ray-wave PSF, without computing it (only the pilot
     trace runs). ``plan.explain()`` prints it; ``plan.estimate`` holds ``memory_bytes`` and ``flops``.
     Arguments as :func:`psf` (lengths mm, wavelengths um, field deg)."""
     from . import checks
-    checks.check_choice(method, "method", ("auto", "focal", "asm"))
+    checks.check_choice(method, "method", METHODS)
+    tolerance = _check_tolerance(tolerance)
     fields = checks.check_fields([field_deg])
     wls = checks.check_wavelengths([wavelength_um], lens)
     size = checks.check_size(size)
     pixel = float(pixel_mm or lens.sensor.pixel_pitch)
     rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
-                  nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol)
+                  nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
+                  model_tolerance=tolerance)
     return rwm.plan
 
 
@@ -202,7 +227,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
             focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False,
-            pixel_values: str = "flux") -> PSFMap:
+            pixel_values: str = "flux", tolerance: float | None = None) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -254,7 +279,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": [],
             "dropped_rays": np.zeros(len(pairs), dtype=np.int64)}
     t0 = time.perf_counter()
-    checks.check_choice(method, "method", ("auto", "focal", "asm"))
+    checks.check_choice(method, "method", METHODS)
+    tolerance = _check_tolerance(tolerance)
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):
         raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
@@ -273,7 +299,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     opts = dict(device=device, plan=plan, dtype=dtype, amplitude=amplitude, rays_per_sample=rays_per_sample,
                 center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                 nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
-                deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values)
+                deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values,
+                model_tolerance=tolerance)
 
     def store(chunk, res):
         for k, (i, j) in enumerate(chunk):
@@ -309,6 +336,9 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     if bar is not None:
         bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
+    if tolerance is not None and model in ("ray-wave", "paraxial-wave"):
+        from .model_error import warn_over_tolerance
+        warn_over_tolerance([p for b in info["batches"] for p in b["plans"]], tolerance, stacklevel=3)
     if np.any(info["dropped_rays"]):
         import warnings
         from .errors import SamplingWarning

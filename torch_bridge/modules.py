@@ -56,6 +56,7 @@ from torch import nn
 from rwwarp import doe
 from rwwarp.lens import MAX_ASPHERIC, Lens
 
+from .wave_step import wave_step
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
 from .functions import (Recompute, backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
@@ -86,10 +87,11 @@ class HybridLens(nn.Module):
     replan : bool
         True (default): a new plan per forward call; False: plans cached per request (see the
         module docstring).
-    method : "auto" | "focal" | "asm"
+    method : "auto" | "focal" | "asm" | "two-step"
         Wave propagation, as :func:`rwwarp.psf`: ``"focal"`` handles the wave converging to the patch
         analytically (cost follows the patch: the Cooke triplet at F/4), ``"asm"`` is the band-limited
-        angular spectrum (pixel-map DOEs), ``"auto"`` the ASM while its plan is small, else focal.
+        angular spectrum (pixel-map DOEs), ``"auto"`` the ASM while its plan is small, else focal;
+        ``"two-step"``: auto's choice with the wave step before the DOE (:mod:`rwwarp.wave_step`, issue 27).
     focal_patch_tol : float
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
@@ -118,8 +120,8 @@ class HybridLens(nn.Module):
         if pixel_values not in ("flux", "intensity"):
             raise ValueError(f"pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
         self.pixel_values = pixel_values
-        if method not in ("auto", "focal", "asm"):
-            raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+        if method not in ("auto", "focal", "asm", "two-step"):
+            raise ValueError(f"method must be 'auto', 'focal' or 'asm', or 'two-step' (rwwarp.wave_step), got {method!r}")
         self.method = method
         if not (np.isfinite(focal_patch_tol) and 0 <= focal_patch_tol <= 1):
             raise ValueError(f"focal_patch_tol must be in [0, 1], got {focal_patch_tol!r}")
@@ -576,6 +578,7 @@ class HybridLens(nn.Module):
             u = trace_splat(table, rw, host)
             if rw.amplitude != "energy":
                 u = paper_amplitude(u, rw)
+            u = wave_step(u, rw)   # the rim's diffraction before the DOE, where the plan has it (issue 27)
             if rw.plan.method == "focal":
                 fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
                 if fac is not None:

@@ -16,7 +16,8 @@ __all__ = ["PackedRayWave", "packed_bytes", "source_plans"]
 def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
                  object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
                  gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
-                 focal_patch_tol=1e-5, deterministic: bool = False, pixel_values: str = "flux") -> list:
+                 focal_patch_tol=1e-5, deterministic: bool = False, pixel_values: str = "flux",
+                 model_tolerance: float | None = None) -> list:
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them (the pilot rays are
@@ -31,7 +32,8 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
         members.append(RayWave(lens, [fields[k]], [wls[k]], size, pixel, device, plan, dtype, amplitude,
                                object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
                                nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
-                               deterministic, own_pupils=True, pilot=pk, pixel_values=pixel_values))
+                               deterministic, own_pupils=True, pilot=pk, pixel_values=pixel_values,
+                               model_tolerance=model_tolerance))
     return members
 
 

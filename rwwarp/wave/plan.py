@@ -41,7 +41,11 @@ class Plan:
     (text, a tuple). ``method``: ``"asm"`` (band-limited angular spectrum over the whole beam) or
     ``"focal"`` (reference wave handled analytically, :mod:`rwwarp.wave.focal`), which also uses the sensor-side
     grid ``sensor_pitch_mm`` x ``n_sensor`` and its FFT length ``n_sensor_fft``. ``estimate``: the
-    planner's cost estimate (``memory_bytes``, ``flops``) for the whole batch, or None.
+    planner's cost estimate (``memory_bytes``, ``flops``) for the whole batch, or None. ``model_error``: the
+    ray-wave model's own error estimated from the scene (:mod:`rwwarp.model_error`; the worst source's
+    :meth:`~rwwarp.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm) of
+    the wave step that replaces the geometric field's edge by the diffracted one before the DOE
+    (:func:`rwwarp.wave_step.apply_wave_step`), or None (the one-step model).
     """
 
     pitch_mm: float
@@ -56,6 +60,8 @@ class Plan:
     n_sensor: int | None = None
     n_sensor_fft: int | None = None
     estimate: dict | None = None
+    model_error: dict | None = None
+    wave_step_mm: float | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "reasons", tuple(self.reasons))
@@ -78,6 +84,10 @@ class Plan:
                    f"sensor grid {self.n_sensor}^2 at {self.sensor_pitch_mm * 1e3:.4g} um, FFT {self.n_sensor_fft}^2, ")
                 + f"pupil rays {self.ray_grid} across")
         lines = [head]
+        if self.model_error:
+            lines.append(f"  model error: ~{self.model_error['estimate']:.2g} of the peak (N_F "
+                         f"{self.model_error['fresnel_number']:.4g}, rim slope {self.model_error['rim_slope_rad']:.3g} rad)"
+                         + (f"; wave step over {self.wave_step_mm:.4g} mm before the DOE" if self.wave_step_mm else ""))
         if self.estimate:
             lines.append(f"  estimate: peak memory {self.estimate['memory_bytes'] / 2 ** 30:.3g} GiB, "
                          f"{self.estimate['flops'] / 1e9:.3g} GFLOP")

@@ -201,9 +201,11 @@ class RayWave:
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
-                 own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux"):
-        if method not in ("asm", "focal", "auto"):
-            raise ValueError(f"method must be 'auto', 'focal' or 'asm', got {method!r}")
+                 own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux",
+                 model_tolerance: float | None = None):
+        if method not in ("asm", "focal", "auto", "two-step"):
+            raise ValueError(f"method must be 'auto', 'focal', 'asm' or 'two-step', got {method!r}")
+        requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave_step
         from .propagate_setup import check_pixel_values
         self.pixel_values = check_pixel_values(pixel_values, "RayWave")
         self.deterministic = bool(deterministic)
@@ -403,6 +405,8 @@ class RayWave:
         # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
         # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
         self.rim = amplitude == "energy" and src["shape"] == "circle" and pl.method == "focal"
+        from .wave_step import plan_wave_step
+        plan_wave_step(self, model_tolerance, requested, memory_budget_bytes)   # model error; wave step if needed
 
     def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
                     center_mm, size, pixel, width, rays_per_sample, nyquist_safety, patch_tol=1e-5):
@@ -729,12 +733,20 @@ class RayWave:
         from . import backend as bk
         from .propagate import SensorPropagator
         be = bk.get_backend(self.device)
+        u_field = self.wave_stepped(u_field)
         if isinstance(u_field, np.ndarray) and hasattr(be, "wrap_host"):
             # PoCL: the OpenCL buffers use the numpy memory (zero-copy host pointers)
             u_field = be.wrap_host(u_field)
             phi0 = None if phi0 is None else be.wrap_host(phi0)
         power = SensorPropagator(be, self.sensor_geometry(scale)).forward(u_field, phi0)
         return be.to_host(power)
+
+    def wave_stepped(self, u_field):
+        """``u_field`` after the planned wave step (:func:`rwwarp.wave_step.apply_wave_step`), or as it is."""
+        if not np.any(getattr(self, "wave_step", 0.0)):
+            return u_field
+        from .wave_step import apply_wave_step
+        return apply_wave_step(self, u_field, np if isinstance(u_field, np.ndarray) else __import__("cupy"))
 
     def focal_operator(self, distance_mm=None, precision="double"):
         """The planned :class:`rwwarp.wave.focal.FocalPropagator` of this batch (``method="focal"``), built once per
@@ -788,6 +800,7 @@ class RayWave:
         its matrix products, :class:`rwwarp.wave.focal.FocalPropagator`; :attr:`pixel_values` as the ASM's)."""
         from .focal import focal_pixels
         op = self.focal_operator(precision=precision)
+        u_field = self.wave_stepped(u_field)
         fac = self.doe_orders_factor(op.xp)
         if fac is not None:
             u_field = u_field * fac

@@ -1,0 +1,276 @@
+"""The ray-wave model's own error, estimated from the scene (issue 27); :mod:`rwwarp.wave_step` removes it.
+
+The ray-wave model forms the field on the wave plane (the DOE, else the last surface) geometrically: each
+ray tube carries its power and optical path there, so the beam ends at the plane with a hard edge, the
+limiting aperture's shadow. Physically that edge has diffracted on the way from the aperture to the plane:
+it is blurred over about ``sqrt(lambda d)`` and rings. The model leaves that out.
+
+Derivation (scalar, Fresnel order, about the beam's convergence). A field ``V(xi) S_R(xi)`` on the aperture
+(``S_R``: a spherical wave converging to a point a distance ``R_A`` behind it) propagated a distance
+``z1`` is, by the Fresnel scaling theorem, ``(1 / s) [P_{z1 / s} V]((x - T) / s + T) S_{R}(x)`` with ``s = 1 -
+z1 / R_A`` and ``R = R_A - z1`` the plane's distance to the focus ``T``; the geometric model keeps
+``(1 / s) V((x - T) / s + T) S_R(x)``. Written on the wave plane's own coordinates, the truth is the geometric
+field with its converging sphere removed, ``G = U_geo / S_R``, propagated as a wave over the *reduced
+distance*
+
+    d = z1 R / (z1 + R)            (1 / d = 1 / z1 + 1 / R; d = z1 for a collimated beam, R -> inf)
+
+and multiplied by the sphere again: ``U_true = S_R P_d[G]`` (:func:`rwwarp.wave_step.apply_wave_step`). Its
+Fresnel number is
+
+    N_F = n r_w^2 / (lambda d) = n a^2 (f - z1) / (lambda f z1)     (thin lens: f, aperture radius a),
+
+``r_w`` the beam's radius on the plane. Without a DOE the two fields give the same intensity at the focus
+(the extra Fresnel propagation is a pure phase in the Fourier plane): the model's error needs a phase
+that varies across the blurred edge. A DOE (or any wavefront error relative to the sphere converging to the
+sensor patch) of rim slope ``S = rho dW / d rho`` (rad, at the beam's rim, ``W`` relative to that sphere)
+changes its phase by ``S delta / r_w`` across the edge of width ``delta ~ r_w / sqrt(N_F)``, over an area
+share ``~ 1 / sqrt(N_F)``: the PSF changes by
+
+    E = C S / N_F (1 + (S / S0)^2)         (max |I_model - I_true| / max I_true)
+
+Calibration (``tests/rwwarp/test_model_error.py``: an independent radially symmetric truth, Gauss-Hankel
+quadrature of the exact angular spectrum: thin lens f = 50 mm, a = 2.5 mm, 0.55 um, sensor at the lens
+focus, DOE pupil phase ``A rho^4``, DOE 10 and 35 mm before the sensor, N_F = 57 and 530): ``E N_F / S`` =
+0.25 / 0.26 (A = 1), 0.20 / 0.25 (A = 3), 0.79 / 0.49 (A = 8), so ``C = 0.25``; the growth at large ``S``
+is ``S0 = 25`` rad (the blurred edge's ring has zero mean and first moment across the edge, so the light it
+sends towards the core grows with the square of the phase slope across it; and the peak normalising ``E``
+falls as the PSF spreads). Held out (checked within a
+factor 2 by the test): a = 1.5 mm, defocus ``A2 rho^2``, ``rho^6``, mixed ``rho^2 + rho^4``, 20 and 45 mm.
+Below N_F ~ 50 with S > 10 the error grows slower than 1 / N_F (it saturates towards 1 / sqrt(N_F)): there
+the estimate is an upper bound (a factor 2.3 high at N_F = 20, S = 12).
+
+Off axis (a 2-D truth in the same test file: a = 1.5 mm, 20 mm, N_F 54.5) the slope is read as the RMS around
+the rim: at 0.2 deg the estimate is 1.09x the measured error; at 0.5 deg, where the beam sits 0.44 of its
+radius off the DOE's centre, 4.4x (an upper bound there: the step is taken early, not late).
+
+Scope of the scene reading (:func:`estimate_for_raywave`): the limiting aperture is the stop, imaged into
+the space in front of the wave plane (paraxially, through the refracting surfaces between them); apertures
+that vignette the beam elsewhere are not counted. Distances are axial; an off-axis beam's edge sees its
+Fresnel number change by O(theta^2). Lengths in mm, wavelengths in um, phases in rad.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, asdict
+
+import numpy as np
+
+#: calibration of :func:`model_error` (module docstring): E = C S / N_F (1 + (S / S0)^2)
+MODEL_ERROR_C = 0.25
+MODEL_ERROR_S0 = 25.0
+#: rim rays: pilot points at least this share of the footprint's largest radius from its centre
+RIM_SHARE = 0.9
+
+
+def reduced_distance_mm(aperture_to_plane_mm: float, plane_to_focus_mm: float) -> float:
+    """The reduced distance ``d = z1 R / (z1 + R)`` (mm) over which the geometric field of a beam converging
+    to a focus ``R`` (mm, signed: > 0 behind the plane, inf collimated, < 0 diverging from a point in front)
+    behind the plane has to diffract as a wave, ``z1`` (mm, >= 0) behind its limiting aperture."""
+    z1, R = float(aperture_to_plane_mm), float(plane_to_focus_mm)
+    if not math.isfinite(z1) or z1 < 0:
+        raise ValueError(f"aperture_to_plane_mm must be a finite distance >= 0, got {aperture_to_plane_mm!r}")
+    if math.isnan(R) or R == 0:
+        raise ValueError(f"plane_to_focus_mm must be nonzero (inf: collimated), got {plane_to_focus_mm!r}")
+    if z1 == 0:
+        return 0.0
+    if math.isinf(R):
+        return z1
+    return z1 * R / (z1 + R)
+
+
+def fresnel_number(beam_radius_mm: float, aperture_to_plane_mm: float, plane_to_focus_mm: float,
+                   wavelength_um: float, n: float = 1.0) -> float:
+    """Fresnel number ``N_F = n r_w^2 / (lambda |d|)`` of the limiting aperture seen from the wave plane:
+    ``r_w`` the beam's radius on the plane (mm), ``d`` the :func:`reduced_distance_mm`, ``lambda`` the vacuum
+    wavelength (um), ``n`` the medium's index. inf where the plane is at the aperture (``z1 = 0``). For a
+    thin lens of focal length f and aperture radius a with the plane z1 behind it: ``a^2 (f - z1) / (lambda f
+    z1)``."""
+    d = reduced_distance_mm(aperture_to_plane_mm, plane_to_focus_mm)
+    if not (wavelength_um > 0 and beam_radius_mm >= 0 and n > 0):
+        raise ValueError(f"need wavelength_um > 0, beam_radius_mm >= 0, n > 0; got {wavelength_um!r}, "
+                         f"{beam_radius_mm!r}, {n!r}")
+    if d == 0:
+        return math.inf
+    return n * beam_radius_mm ** 2 / (wavelength_um * 1e-3 * abs(d))
+
+
+def model_error(fresnel_number_: float, rim_slope_rad: float) -> float:
+    """The estimated model error ``E = C S / N_F (1 + (S / S0)^2)`` (max |I_model - I_true| over the PSF's
+    peak, dimensionless) for the Fresnel number ``N_F`` of :func:`fresnel_number` and the rim slope
+    ``S = rho dW/drho`` (rad) of the wavefront after the DOE relative to the sphere converging to the sensor
+    patch (module docstring: derivation and calibration)."""
+    nf, s = float(fresnel_number_), abs(float(rim_slope_rad))
+    if not nf > 0 or not math.isfinite(s):
+        raise ValueError(f"need a Fresnel number > 0 and a finite rim slope, got {fresnel_number_!r}, {rim_slope_rad!r}")
+    if math.isinf(nf):
+        return 0.0
+    return MODEL_ERROR_C * s / nf * (1.0 + (s / MODEL_ERROR_S0) ** 2)
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """A source's estimated model error and what it is made of: ``estimate`` (dimensionless, relative to
+    the PSF's peak), ``fresnel_number``, ``aperture_to_plane_mm`` (z1), ``plane_to_focus_mm`` (R),
+    ``reduced_distance_mm`` (d), ``beam_radius_mm`` (r_w), ``rim_slope_rad`` (S), ``wavelength_um``."""
+
+    estimate: float
+    fresnel_number: float
+    aperture_to_plane_mm: float
+    plane_to_focus_mm: float
+    reduced_distance_mm: float
+    beam_radius_mm: float
+    rim_slope_rad: float
+    wavelength_um: float
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {k: (v if isinstance(v, str) else float(v)) for k, v in asdict(self).items()}
+
+    def text(self) -> str:
+        """One line for the plan's reasons and ``--explain``."""
+        return (f"model error (geometric field at the wave plane, issue 27): ~{self.estimate:.2g} of the peak "
+                f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
+                f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
+                f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
+                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.model_error)"
+                + (f"; {self.note}" if self.note else ""))
+
+
+def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
+    """Distance (mm, >= 0) from the image of the aperture stop, formed by the refracting surfaces between
+    the stop and surface ``plane``, to that surface's vertex plane: the diffraction distance of the
+    geometric field's edge. 0 where the stop is at or behind the plane, or its image lies behind it."""
+    from . import paraxial
+    stop = lens.stop_index
+    if stop >= plane:
+        return 0.0
+    P = np.array(paraxial.surface_powers(lens, wavelength_um), float)
+    if lens.surfaces[plane].type == "doe":
+        P[plane] = 0.0      # the DOE acts after the field is formed: the image space is the one in front of it
+    n = paraxial.signed_indices(lens, wavelength_um)
+    t = [s.thickness for s in lens.surfaces]
+    # a paraxial ray through the stop's centre; its height on the plane over its slope after the plane's own
+    # refraction (a curved last surface: the field is formed on its vertex plane, in the medium after it)
+    ys, _, nus = paraxial.ynu_steps(P[stop:plane + 1], t[stop:plane + 1], n[stop:plane + 1], 0.0, 1.0)
+    if nus[-1] == 0:
+        return math.inf   # the stop's image at infinity: no finite distance (telecentric in front of the plane)
+    z1 = float(ys[-1] * n[plane] / nus[-1])
+    return max(z1, 0.0)
+
+
+def _main_order(surface, prof, xy, wavelength_um):
+    """The DOE's main-order factor m (its phase is ``m phi0``): ``alpha`` where the relief does not wrap over
+    the beam, else the integer order nearest ``alpha`` (at least 1)."""
+    from . import doe
+    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    span = float(np.ptp(phi)) if phi.size else 0.0
+    if not surface.levels and span <= 2 * math.pi:
+        return float(alpha)
+    return float(max(1, round(alpha)))
+
+
+def estimate_for_raywave(rw) -> list:
+    """:class:`ModelError` per source of a :class:`rwwarp.raywave.RayWave`, from its pilot trace (host arrays
+    only, no launch): the beam's radius on the wave plane (half the footprint's smaller extent), its focus
+    before the DOE (``rw.target``), the stop's image (:func:`stop_to_plane_mm`), and the rim slope of the
+    wavefront after the DOE's main order relative to the sphere converging to the patch centre on the
+    sensor: ``S = 2 pi RMS_rim[(x - x_c) . (f - f_sphere) (r_w / |x - x_c|)^3]`` over the pilot rays within
+    ``RIM_SHARE`` of the footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm; ``f - f_sphere``
+    less its mean over the beam: a tilt moves the PSF and changes nothing else)."""
+    from . import doe
+    from .doe import is_flat_profile
+    lens, plane = rw.lens, rw.plane
+    s = lens.surfaces[plane]
+    prof = None
+    if s.type == "doe" and not is_flat_profile(s.profile):
+        from pathlib import Path
+        prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else Path(lens.source).parent)
+    note = ""
+    if prof is not None and s.profile.get("kind") == "pixel_map":   # no gradient (quantised smooth reliefs keep theirs)
+        prof, note = None, "a DOE with steps (pixel map): its phase slope is not counted"
+    out = []
+    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    for k in range(rw.nsrc):
+        w = float(rw.wls[k])
+        n = float(rw.n_after[k])
+        inv_lam = n / float(rw.lam_mm[k])
+        sel = ok[k]
+        # the pilot points lie on the wave-plane surface (curved for a last refracting surface): carried along
+        # their rays to its vertex plane, where the field is formed
+        p3, d3 = pos[k, sel], dirs[k, sel]
+        xy = p3[:, :2] + ((rw.z_plane - p3[:, 2]) / d3[:, 2])[:, None] * d3[:, :2]
+        z1 = stop_to_plane_mm(lens, plane, w)
+        R = float(rw.target[k, 2] - rw.z_plane)
+        if abs(R) > 1e5 or R == 0:
+            R = math.inf
+        if len(xy) < 3:
+            out.append(ModelError(0.0, math.inf, z1, R, 0.0, 0.0, 0.0, w, note))
+            continue
+        xc = xy.mean(0)
+        # the pilot's 31 x 31 cell-centre grid: its outermost points lie half a cell (1 / 30 of their
+        # span) inside the beam's edge
+        beam_r = 0.5 * float(np.min(xy.max(0) - xy.min(0))) * 31.0 / 30.0
+        f = inv_lam * dirs[k, sel, :2]
+        if prof is not None:
+            gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
+            f = f + _main_order(s, prof, xy, w) * np.stack([gx, gy], 1) / (2 * math.pi)
+        T = np.array([rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor])
+        P = np.concatenate([xy, np.full((len(xy), 1), rw.z_plane)], 1)
+        to_T = T[None, :] - P
+        f_sph = inv_lam * to_T[:, :2] / np.linalg.norm(to_T, axis=1, keepdims=True)
+        rr = np.linalg.norm(xy - xc, axis=1)
+        rim = rr >= RIM_SHARE * rr.max()
+        # a tilt (a constant frequency offset: the PSF off the patch centre) commutes with the diffraction
+        # and changes no intensity: W is taken against the sphere to the patch less its mean tilt
+        df = f - f_sph
+        df = df - df.mean(0)
+        # each rim ray's rho dW/drho, carried to the beam's edge as rho^3 (its pilot point lies 3-10 % inside; a
+        # defocus's slope grows as rho^2, a spherical aberration's as rho^4),
+        # then the RMS around the rim: the edge's whole ring diffracts, so a slope on one side only (a decentred
+        # DOE off axis) counts by its share (the max read 1.65x / 10x the measured error at 0.2 / 0.5 deg, the
+        # RMS 1.03x / 4x: tests/rwwarp/test_model_error.py)
+        sl = np.sum((xy[rim] - xc) * df[rim], axis=1) * (beam_r / np.maximum(rr[rim], 1e-300)) ** 3
+        slope = 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
+        if not math.isfinite(z1):
+            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w, note))
+            continue
+        d = reduced_distance_mm(z1, R)
+        nf = fresnel_number(beam_r, z1, R, w, n)
+        out.append(ModelError(model_error(nf, slope), nf, z1, R, d, beam_r, slope, w, note))
+    return out
+
+
+def worst(estimates) -> ModelError | None:
+    """The source with the largest estimate (None for an empty list)."""
+    return max(estimates, key=lambda e: e.estimate) if estimates else None
+
+
+class ModelErrorWarning(UserWarning):
+    """The ray-wave model's estimated own error exceeds the tolerance asked for (:func:`warn_over_tolerance`)."""
+
+
+def warn_over_tolerance(plans, tolerance: float, stacklevel: int = 2) -> list:
+    """Warn (:class:`ModelErrorWarning`) where a plan (a :class:`rwwarp.plan.Plan` or its dict) computed without
+    the wave step has a model-error estimate above ``tolerance`` (relative to the PSF's peak). Returns the
+    offending estimates (dicts)."""
+    import warnings
+    bad = []
+    for p in plans:
+        if p is None:
+            continue
+        d = p if isinstance(p, dict) else p.to_dict()
+        me = d.get("model_error")
+        if me and me["estimate"] > tolerance and not d.get("wave_step_mm"):
+            bad.append(me)
+    if bad:
+        w = max(bad, key=lambda e: e["estimate"])
+        warnings.warn(f"the ray-wave model's own error is estimated at {w['estimate']:.2g} of the PSF's peak, above "
+                      f"the tolerance {tolerance:.2g} ({len(bad)} PSF(s); Fresnel number {w['fresnel_number']:.4g} of "
+                      f"the stop seen from the DOE plane {w['aperture_to_plane_mm']:.4g} mm behind its image, rim slope "
+                      f"{w['rim_slope_rad']:.3g} rad): the geometric field at the DOE plane leaves out the rim's "
+                      "diffraction on the way there. Use method='auto' with this tolerance or method='two-step' (the "
+                      "wave step, rwwarp.wave_step), or move the DOE nearer the stop", ModelErrorWarning,
+                      stacklevel=stacklevel)
+    return bad

@@ -1,0 +1,229 @@
+"""The wave step (issue 27): the diffraction of the limiting aperture's edge between the aperture and the
+wave plane, which the geometric field on the wave plane leaves out, put back before the DOE.
+
+By the Fresnel scaling theorem (:mod:`rwwarp.model_error`, its docstring derives it) the field a beam
+converging to ``T`` (a distance ``R`` behind the wave plane) has on the plane, ``z1`` behind its limiting
+aperture, is the geometric field with the converging sphere removed, ``G = U_geo / S_T``, propagated as a
+wave over the reduced distance ``d = z1 R / (z1 + R)`` and multiplied by the sphere again:
+
+    U = S_T P_d[U_geo / S_T]
+
+``P_d`` is the band-limited angular spectrum on the wave plane's own grid (:func:`rwwarp.propagate.propagate_grid`,
+its adjoint :func:`rwwarp.propagate.propagate_grid_adjoint`): one padded FFT pair of the window, the
+patch-following cost of the plan (the sphere removed, ``G`` holds only the beam's aberration and its
+diffracted edge, so the plan's pitch samples it). The field's geometry is formed exactly where the rays
+are exact, and only the edge's diffraction over ``d`` (``sqrt(lambda d)`` wide) is computed as a wave.
+Exact for an unaberrated beam to Fresnel order about the sphere; a beam with aberration ``W`` is moved by its
+rays over ``z1`` and diffracted over ``d`` (a transverse shift ``d lambda |grad W| / 2 pi`` counted twice in
+the scaled frame): the planner reports it. Lengths in mm, wavelengths in um.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from .errors import SamplingWarning
+
+#: the window is widened on each side by this many edge widths sqrt(lambda d) (the edge's ringing falls
+#: off as 1 / distance: what leaves the window is the edge's light at the widest angles)
+EDGE_MARGIN = 3.0
+#: the window's pitch must resolve the edge: at most sqrt(lambda d) / EDGE_SAMPLES
+EDGE_SAMPLES = 4.0
+
+
+def reference_phase(origin_mm, pitch_mm, n_grid, chief_mm, target_mm, n_medium, lam_mm, carrier_cpmm, xp=np):
+    """The phase (rad, (S, n, n)) of the converging sphere to ``target_mm`` ((S, 3)) relative to the chief
+    point ``chief_mm`` ((S, 3)) minus the chief carrier ``carrier_cpmm`` ((S, 2) cycles/mm), on each window
+    (sample (0, 0) at ``origin_mm`` (S, 2), ``pitch_mm`` a number or (S,)): the phase
+    :mod:`rwwarp.kernels.splat` multiplies the residual by, ``k n (|T - c| - |T - p|) - 2 pi f_c . (p - c)``
+    (``n`` negative for a beam diverging from ``T``). ``lam_mm`` (S,) vacuum wavelengths."""
+    S = origin_mm.shape[0]
+    pitch = np.broadcast_to(np.asarray(pitch_mm, float), (S,))
+    out = xp.empty((S, n_grid, n_grid))
+    g = np.arange(n_grid, dtype=np.float64)
+    for k in range(S):
+        x = xp.asarray(origin_mm[k, 0] + g * pitch[k])[None, :]
+        y = xp.asarray(origin_mm[k, 1] + g * pitch[k])[:, None]
+        T, c = target_mm[k], chief_mm[k]
+        dz = T[2] - c[2]
+        r = xp.sqrt((T[0] - x) ** 2 + (T[1] - y) ** 2 + dz * dz)
+        rc = math.sqrt((T[0] - c[0]) ** 2 + (T[1] - c[1]) ** 2 + dz * dz)
+        kk = 2 * math.pi / lam_mm[k] * n_medium[k]
+        out[k] = kk * (rc - r) - 2 * math.pi * (carrier_cpmm[k, 0] * (x - c[0]) + carrier_cpmm[k, 1] * (y - c[1]))
+    return out
+
+
+def wave_step_geometry(rw):
+    """What :func:`apply_wave_step` needs of a :class:`rwwarp.raywave.RayWave` (``rw.wave_step``: per-source
+    reduced distances, mm): ``(phase, distances, wavelengths_um_in_medium)``."""
+    sign = np.where(rw.target[:, 2] >= rw.z_plane, 1.0, -1.0)
+    chief = np.array(rw.chief_plane, float).copy()
+    chief[:, 2] = rw.z_plane
+    return chief, sign
+
+
+def apply_wave_step(rw, u, xp=np):
+    """The wave step on a batch's wave-plane field ``u`` ((S, n, n) complex, baseband: the chief carrier
+    removed, as :meth:`rwwarp.raywave.RayWave.field_array` gives it; numpy or CuPy, ``xp``): ``S_T P_d[u /
+    S_T]`` per source with ``d = rw.wave_step[k]`` (mm; 0 leaves a source as it is). Returns a new array."""
+    from . import backend as bk
+    from .propagate import propagate_grid
+    d = np.asarray(rw.wave_step, float)
+    if not np.any(d != 0):
+        return u
+    pl = rw.plan
+    n = u.shape[-1]
+    chief, sign = wave_step_geometry(rw)
+    ph = reference_phase(np.asarray(rw.origin, float), pl.pitch_mm, n, chief, np.asarray(rw.target, float),
+                         np.asarray(rw.n_after, float) * sign, np.asarray(rw.lam_mm, float),
+                         np.asarray(rw.carrier, float), xp)
+    rot = xp.exp(1j * ph)
+    g = u * xp.conj(rot)
+    be = bk.get_backend(rw.device)
+    src = be.wrap_host(np.ascontiguousarray(g)) if (xp is np and hasattr(be, "wrap_host")) else g
+    wl_med = np.asarray(rw.lam_mm, float) * 1e3 / np.asarray(rw.n_after, float)
+    pad = rw.wave_step_pad
+    with warnings.catch_warnings():
+        # propagate_grid's padding check counts the whole window; the field is zero in its EDGE_MARGIN margins
+        # and spreads about one margin over d, which the FFT length (window + PAD_MARGINS margins) holds
+        warnings.simplefilter("ignore", SamplingWarning)
+        out = propagate_grid(be, src, pl.pitch_mm, np.asarray(rw.origin, float), wl_med,
+                             np.where(d != 0, d, 1e-12), pad_to=pad)
+    out = be.to_host(out) if xp is np else xp.asarray(out)
+    out = out.reshape(u.shape)
+    out = xp.where(xp.asarray(d != 0)[:, None, None], out, g)
+    return out * rot
+
+
+def apply_wave_step_adjoint(rw, grad_out, xp=np):
+    """Adjoint of :func:`apply_wave_step` (linear in ``u``): ``grad_out`` (S, n, n) in the convention ``dL/dRe +
+    1j dL/dIm`` -> the gradient of ``u`` in the same convention."""
+    from . import backend as bk
+    from .propagate import propagate_grid_adjoint
+    d = np.asarray(rw.wave_step, float)
+    if not np.any(d != 0):
+        return grad_out
+    pl = rw.plan
+    n = grad_out.shape[-1]
+    chief, sign = wave_step_geometry(rw)
+    ph = reference_phase(np.asarray(rw.origin, float), pl.pitch_mm, n, chief, np.asarray(rw.target, float),
+                         np.asarray(rw.n_after, float) * sign, np.asarray(rw.lam_mm, float),
+                         np.asarray(rw.carrier, float), xp)
+    rot = xp.exp(1j * ph)
+    g = grad_out * xp.conj(rot)          # adjoint of "* rot"
+    be = bk.get_backend(rw.device)
+    wl_med = np.asarray(rw.lam_mm, float) * 1e3 / np.asarray(rw.n_after, float)
+    src = be.wrap_host(np.ascontiguousarray(g)) if (xp is np and hasattr(be, "wrap_host")) else g
+    dummy = xp.zeros_like(grad_out)
+    dummy = be.wrap_host(np.ascontiguousarray(dummy)) if (xp is np and hasattr(be, "wrap_host")) else dummy
+    with warnings.catch_warnings():   # as in apply_wave_step
+        warnings.simplefilter("ignore", SamplingWarning)
+        gf, _ = propagate_grid_adjoint(be, src, dummy, pl.pitch_mm, np.asarray(rw.origin, float), wl_med,
+                                       np.where(d != 0, d, 1e-12), pad_to=rw.wave_step_pad)
+    gf = be.to_host(gf) if xp is np else xp.asarray(gf)
+    gf = gf.reshape(grad_out.shape)
+    gf = xp.where(xp.asarray(d != 0)[:, None, None], gf, g)
+    return gf * rot                        # adjoint of "* conj(rot)"
+
+
+def double_transport_shift_mm(rw, d) -> float:
+    """Largest transverse shift (mm) the wave step gives the beam's aberration a second time: the rays already
+    carry it to the wave plane, and ``P_d`` moves it again by ``d`` times the rays' angle to the sphere of
+    ``rw.target`` (pilot rays before the DOE; ``d`` (S,) mm)."""
+    out = 0.0
+    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    for k in range(rw.nsrc):
+        p, m = pos[k, ok[k]], dirs[k, ok[k]]
+        if len(p) == 0 or d[k] == 0:
+            continue
+        to_t = np.asarray(rw.target[k])[None, :] - p
+        to_t = to_t / np.linalg.norm(to_t, axis=1, keepdims=True) * (1.0 if rw.target[k, 2] >= rw.z_plane else -1.0)
+        ang = np.linalg.norm(m[:, :2] - to_t[:, :2], axis=1)
+        out = max(out, float(abs(d[k]) * np.max(ang)))
+    return out
+
+
+#: FFT length of the wave step: the window plus this many margins (EDGE_MARGIN edge widths) a side
+PAD_MARGINS = 1.0
+
+
+def _wave_step_pad(n: int, extra: int) -> int:
+    """FFT length of the wave step for a window of ``n`` samples with ``extra`` samples of margin a side: the
+    periodic copies of the field stay ``PAD_MARGINS`` margins off it (the band-limited ASM's wrap-around)."""
+    from .propagate import next_fft_size
+    return next_fft_size(int(n + 2 * PAD_MARGINS * extra))
+
+
+def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None) -> None:
+    """Estimate the model error of a :class:`rwwarp.raywave.RayWave` (:func:`rwwarp.model_error.estimate_for_raywave`),
+    record it in its plan (``model_error``, a reason), and decide the wave step: on where
+    ``method_requested`` is ``"two-step"``, or ``"auto"`` with the estimate above ``tolerance`` (relative to
+    the PSF's peak; None: never automatically). With the step the window is widened by ``EDGE_MARGIN`` edge
+    widths ``sqrt(lambda d)`` a side and, where the plan's pitch does not resolve the edge, refined to
+    ``sqrt(lambda d) / EDGE_SAMPLES``. Sets ``rw.model_errors`` (a list, per source), ``rw.wave_step`` ((S,) mm,
+    zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``. A step whose plan exceeds
+    ``memory_budget_bytes`` is refused (:class:`rwwarp.plan.MemoryBudgetError`) under ``"two-step"`` and left
+    out, with a reason, under ``"auto"``."""
+    from dataclasses import replace
+    from .model_error import estimate_for_raywave, worst
+    from .plan import check_budget, estimate_cost, nice_fft_length
+    est = estimate_for_raywave(rw)
+    rw.model_errors = est
+    rw.wave_step = np.zeros(rw.nsrc)
+    w = worst(est)
+    pl = rw.plan
+    if w is None:
+        return
+    pl = replace(pl, model_error=w.to_dict()).with_reasons(w.text())
+    want = method_requested == "two-step" or (method_requested == "auto" and tolerance is not None
+                                              and w.estimate > tolerance)
+    if want:
+        d = np.array([e.reduced_distance_mm if math.isfinite(e.reduced_distance_mm) else 0.0 for e in est])
+        edge = float(np.sqrt(np.max(rw.lam_mm / rw.n_after * np.abs(d)))) if np.any(d) else 0.0
+        if edge > 0:
+            one_step = pl
+            pitch = pl.pitch_mm
+            why = [f"wave step ({'method two-step' if method_requested == 'two-step' else f'model error {w.estimate:.2g} > tolerance {tolerance:.2g}'}): "
+                   f"the geometric field's edge diffracted over the reduced distance {np.max(np.abs(d)):.4g} mm "
+                   f"(edge width {edge * 1e3:.3g} um) by the band-limited ASM before the DOE (rwwarp.wave_step)"]
+            if pitch > edge / EDGE_SAMPLES:
+                why.append(f"wave step: pitch {pitch * 1e3:.4g} -> {edge / EDGE_SAMPLES * 1e3:.4g} um (edge width / {EDGE_SAMPLES:g})")
+                pitch = edge / EDGE_SAMPLES
+            extra = int(math.ceil(EDGE_MARGIN * edge / pitch))
+            span = pl.n_grid * pl.pitch_mm
+            n_grid = int(math.ceil(span / pitch)) + 2 * extra
+            if pl.method == "focal":   # the focal rule (rwwarp.plan.plan_focal): >= samples / 4 rays across
+                ray_grid = max(pl.ray_grid, int(math.ceil(float(np.max(rw.hi - rw.lo)) / pitch / 4.0)) + 1)
+            else:                      # the ASM's: rays per sample kept
+                ray_grid = max(pl.ray_grid, int(math.ceil(pl.ray_grid * pl.pitch_mm / pitch)))
+            n_pad = pl.n_pad if pl.method == "focal" else nice_fft_length(max(pl.n_pad, int(math.ceil(
+                pl.n_pad * pl.pitch_mm / pitch)) + 2 * extra))
+            why.append(f"wave step: window widened by {EDGE_MARGIN:g} edge widths a side -> {n_grid}^2 samples")
+            shift = double_transport_shift_mm(rw, d)
+            why.append(f"wave step: the beam's own aberration before the DOE is carried by its rays and diffracted "
+                       f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um)")
+            pl = replace(pl, pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
+                         wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
+            pad = _wave_step_pad(n_grid, extra)
+            cost = dict(estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
+            # the step's padded field and spectrum (complex128) and its FFT pair, per source
+            cost["memory_bytes"] = int(cost["memory_bytes"] + 2 * 16 * pad * pad)
+            cost["flops"] = float(cost["flops"] + rw.nsrc * 2 * 5 * pad * pad * math.log2(pad * pad))
+            pl = replace(pl, estimate=cost)
+            if memory_budget_bytes is not None and cost["memory_bytes"] > memory_budget_bytes:
+                if method_requested == "two-step":
+                    check_budget(cost, int(memory_budget_bytes), f"the wave step's plan ({n_grid}^2 samples, FFT "
+                                 f"{pad}^2)", "the reduced distance (edge width sqrt(lambda d)), the beam footprint")
+                rw.plan = one_step.with_reasons(f"wave step left out: its plan needs {cost['memory_bytes'] / 2 ** 30:.3g} "
+                                                f"GiB, over the memory budget")
+                return
+            rw.wave_step = d
+            rw.wave_step_pad = pad
+            mid = 0.5 * (rw.lo + rw.hi)
+            rw.origin = mid - 0.5 * (n_grid - 1) * pitch
+            rw.plan = pl
+            rw._align_to_doe_pixels()
+            rw.pupil = (None, None, (2.0 / ray_grid) ** 2)
+    rw.plan = pl
