@@ -155,7 +155,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         with footprint x NA / lambda). ``"auto"``: both are planned from one pilot trace; on the CPU the plan
         of fewer flops runs; on a GPU the ASM runs while its plan is under 1 GiB and 20 GFLOP (fewer,
         larger launches), the focal method beyond; pixel-map DOEs and ``plan="paper"`` always use the ASM.
-        With ``tolerance`` "auto" adds the wave step (:mod:`rwwarp.wave_step`) where the model's own error
+        With ``tolerance`` "auto" adds the wave step (:mod:`rwwarp.wave.wave_step`) where the model's own error
         estimate exceeds it. ``"two-step"``: the method "auto" picks, always with the wave step: the
         geometric field's edge is diffracted as a wave from the stop's image to the DOE plane before the DOE.
     memory_budget_gb : float, optional
@@ -183,9 +183,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     tolerance : float, optional
         The model error (max |error| over the PSF's peak) the caller accepts. The ray-wave model's own
         error (the geometric field at the DOE plane leaves out the rim's diffraction on the way there) is
-        estimated from the scene (:mod:`rwwarp.model_error`; in the plan and ``--explain``); above
+        estimated from the scene (:mod:`rwwarp.wave.model_error`; in the plan and ``--explain``); above
         ``tolerance``, ``method="auto"`` adds the wave step, and an explicit ``"asm"`` / ``"focal"`` warns
-        (:class:`rwwarp.model_error.ModelErrorWarning`). None (default): estimate and report only.
+        (:class:`rwwarp.wave.model_error.ModelErrorWarning`). None (default): estimate and report only.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
@@ -337,7 +337,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
     if tolerance is not None and model in ("ray-wave", "paraxial-wave"):
-        from .model_error import warn_over_tolerance
+        from .wave.model_error import warn_over_tolerance
         warn_over_tolerance([p for b in info["batches"] for p in b["plans"]], tolerance, stacklevel=3)
     if np.any(info["dropped_rays"]):
         import warnings

@@ -91,7 +91,7 @@ class HybridLens(nn.Module):
         Wave propagation, as :func:`rwwarp.psf`: ``"focal"`` handles the wave converging to the patch
         analytically (cost follows the patch: the Cooke triplet at F/4), ``"asm"`` is the band-limited
         angular spectrum (pixel-map DOEs), ``"auto"`` the ASM while its plan is small, else focal;
-        ``"two-step"``: auto's choice with the wave step before the DOE (:mod:`rwwarp.wave_step`, issue 27).
+        ``"two-step"``: auto's choice with the wave step before the DOE (:mod:`rwwarp.wave.wave_step`, issue 27).
     focal_patch_tol : float
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
@@ -121,7 +121,7 @@ class HybridLens(nn.Module):
             raise ValueError(f"pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
         self.pixel_values = pixel_values
         if method not in ("auto", "focal", "asm", "two-step"):
-            raise ValueError(f"method must be 'auto', 'focal' or 'asm', or 'two-step' (rwwarp.wave_step), got {method!r}")
+            raise ValueError(f"method must be 'auto', 'focal' or 'asm', or 'two-step' (rwwarp.wave.wave_step), got {method!r}")
         self.method = method
         if not (np.isfinite(focal_patch_tol) and 0 <= focal_patch_tol <= 1):
             raise ValueError(f"focal_patch_tol must be in [0, 1], got {focal_patch_tol!r}")

@@ -1,4 +1,4 @@
-"""The wave step (:mod:`rwwarp.wave_step`, issue 27) as a torch autograd Function: the geometric wave-plane field's
+"""The wave step (:mod:`rwwarp.wave.wave_step`, issue 27) as a torch autograd Function: the geometric wave-plane field's
 edge diffracted over the planned reduced distance before the DOE, ``U = S_T P_d[U_geo / S_T]``, and its
 adjoint (the map is linear in the field: ``S_T P_d^H[g / S_T]``, the band-limited ASM's conjugate transfer
 function on the same grid). The distance is the plan's (held, like the band limits, while the lens learns).
@@ -31,14 +31,14 @@ class WaveStep(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, field, rw):
-        from rwwarp.wave_step import apply_wave_step
+        from rwwarp.wave.wave_step import apply_wave_step
         xp, u = _xp_view(field.to(torch.complex128))
         ctx.rw, ctx.device = rw, field.device
         return _back(apply_wave_step(rw, u, xp), field.device)
 
     @staticmethod
     def backward(ctx, grad_out):
-        from rwwarp.wave_step import apply_wave_step_adjoint
+        from rwwarp.wave.wave_step import apply_wave_step_adjoint
         xp, g = _xp_view(grad_out.to(torch.complex128))
         return _back(apply_wave_step_adjoint(ctx.rw, g, xp), ctx.device), None
 

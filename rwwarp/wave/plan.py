@@ -42,10 +42,10 @@ class Plan:
     ``"focal"`` (reference wave handled analytically, :mod:`rwwarp.wave.focal`), which also uses the sensor-side
     grid ``sensor_pitch_mm`` x ``n_sensor`` and its FFT length ``n_sensor_fft``. ``estimate``: the
     planner's cost estimate (``memory_bytes``, ``flops``) for the whole batch, or None. ``model_error``: the
-    ray-wave model's own error estimated from the scene (:mod:`rwwarp.model_error`; the worst source's
-    :meth:`~rwwarp.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm) of
+    ray-wave model's own error estimated from the scene (:mod:`rwwarp.wave.model_error`; the worst source's
+    :meth:`~rwwarp.wave.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm) of
     the wave step that replaces the geometric field's edge by the diffracted one before the DOE
-    (:func:`rwwarp.wave_step.apply_wave_step`), or None (the one-step model).
+    (:func:`rwwarp.wave.wave_step.apply_wave_step`), or None (the one-step model).
     """
 
     pitch_mm: float

@@ -205,7 +205,7 @@ class RayWave:
                  model_tolerance: float | None = None):
         if method not in ("asm", "focal", "auto", "two-step"):
             raise ValueError(f"method must be 'auto', 'focal', 'asm' or 'two-step', got {method!r}")
-        requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave_step
+        requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
         from .propagate_setup import check_pixel_values
         self.pixel_values = check_pixel_values(pixel_values, "RayWave")
         self.deterministic = bool(deterministic)
@@ -742,7 +742,7 @@ class RayWave:
         return be.to_host(power)
 
     def wave_stepped(self, u_field):
-        """``u_field`` after the planned wave step (:func:`rwwarp.wave_step.apply_wave_step`), or as it is."""
+        """``u_field`` after the planned wave step (:func:`rwwarp.wave.wave_step.apply_wave_step`), or as it is."""
         if not np.any(getattr(self, "wave_step", 0.0)):
             return u_field
         from .wave_step import apply_wave_step

@@ -1,5 +1,5 @@
-"""The ray-wave model's own error (issue 27): its estimate (rwwarp.model_error) against the error measured on an
-independent wave-exact truth, and the wave step (rwwarp.wave_step) that removes it.
+"""The ray-wave model's own error (issue 27): its estimate (rwwarp.wave.model_error) against the error measured on an
+independent wave-exact truth, and the wave step (rwwarp.wave.wave_step) that removes it.
 
 The truth is written here from the equations, rotationally symmetric (a round stop, an ideal thin lens, a
 radial DOE), so the 2-D problem is 1-D: the field's angular spectrum is its Hankel transform
@@ -23,7 +23,7 @@ import pytest
 from scipy.special import j0
 
 import rwwarp as rw
-from rwwarp import model_error as me
+from rwwarp.wave import model_error as me
 from rwwarp.lens import Lens, Sensor, Surface
 
 F_MM, LAM_MM = 50.0, 0.55e-3
@@ -81,7 +81,7 @@ def analytic_inputs(a_mm, d2_mm, coeffs):
     return nf, sum(2 * (i + 1) * c for i, c in enumerate(coeffs))
 
 
-# Calibration (rwwarp.model_error's docstring): a = 2.5 mm, coeffs (0, A) with A = 1, 3, 8, d2 = 10 and 35 mm.
+# Calibration (rwwarp.wave.model_error's docstring): a = 2.5 mm, coeffs (0, A) with A = 1, 3, 8, d2 = 10 and 35 mm.
 # Held out, below: other apertures, distances and DOE shapes. Measured (estimate / measured): 1.38 (a 2.5,
 # rho^4 3 rad, 20 mm, N_F 152), 1.47 (defocus 2 rad, 45 mm, N_F 2045), 0.99 (a 1.5, rho^2 + rho^4, 35 mm, N_F
 # 191), 1.32 (a 1.5, rho^6 3 rad, 35 mm, N_F 191).
@@ -161,7 +161,7 @@ def test_the_wave_step_conserves_the_field_power_off_axis():
     # the ASM is unitary on the band; what leaves the widened window is the edge's light at the widest angles
     from rwwarp.psf import RayWave
     from rwwarp.trace import as_field_list
-    from rwwarp.wave_step import apply_wave_step
+    from rwwarp.wave.wave_step import apply_wave_step
     r = RayWave(thin_lens_doe(10.0), as_field_list([0.3]), [0.55], 32, 0.5e-3, method="two-step")
     u = r.field_array()
     v = apply_wave_step(r, u)
@@ -197,7 +197,7 @@ def _pixel_truth(I_r, rho, x, y, pixel, nodes=4):
 
 @pytest.mark.parametrize("d2_mm,method", [(10.0, "asm"), (10.0, "focal"), (5.0, "focal")])
 def test_wave_step_matches_the_two_step_truth(d2_mm, method):
-    import rwwarp.wave_step as ws
+    import rwwarp.wave.wave_step as ws
     lens = thin_lens_doe(d2_mm)
     rho = np.linspace(0.0, 0.04, 2001)
     truth, model = radial_truth(2.5, d2_mm, (0.0, 3.0), rho)
@@ -243,7 +243,7 @@ def test_the_stops_image_is_the_paraxial_exit_pupil(name):
 
 @pytest.mark.filterwarnings("ignore::rwwarp.errors.PatchWarning")
 def test_the_wave_step_respects_the_memory_budget():
-    from rwwarp.plan import MemoryBudgetError
+    from rwwarp.wave.plan import MemoryBudgetError
     lens = thin_lens_doe(10.0)
     one = rw.plan_psf(lens, 0.0, 0.55, size=16, method="asm").estimate["memory_bytes"]
     two = rw.plan_psf(lens, 0.0, 0.55, size=16, method="two-step").estimate["memory_bytes"]

@@ -1,4 +1,4 @@
-"""The wave step (rwwarp.wave_step, issue 27) in torch: gradients through it and the DOE behind it against
+"""The wave step (rwwarp.wave.wave_step, issue 27) in torch: gradients through it and the DOE behind it against
 central finite differences of the same float64 pipeline, and the HybridLens path against rwwarp.psf."""
 import numpy as np
 import pytest

@@ -1,15 +1,15 @@
 """The wave step (issue 27): the diffraction of the limiting aperture's edge between the aperture and the
 wave plane, which the geometric field on the wave plane leaves out, put back before the DOE.
 
-By the Fresnel scaling theorem (:mod:`rwwarp.model_error`, its docstring derives it) the field a beam
+By the Fresnel scaling theorem (:mod:`rwwarp.wave.model_error`, its docstring derives it) the field a beam
 converging to ``T`` (a distance ``R`` behind the wave plane) has on the plane, ``z1`` behind its limiting
 aperture, is the geometric field with the converging sphere removed, ``G = U_geo / S_T``, propagated as a
 wave over the reduced distance ``d = z1 R / (z1 + R)`` and multiplied by the sphere again:
 
     U = S_T P_d[U_geo / S_T]
 
-``P_d`` is the band-limited angular spectrum on the wave plane's own grid (:func:`rwwarp.propagate.propagate_grid`,
-its adjoint :func:`rwwarp.propagate.propagate_grid_adjoint`): one padded FFT pair of the window, the
+``P_d`` is the band-limited angular spectrum on the wave plane's own grid (:func:`rwwarp.wave.propagate.propagate_grid`,
+its adjoint :func:`rwwarp.wave.propagate.propagate_grid_adjoint`): one padded FFT pair of the window, the
 patch-following cost of the plan (the sphere removed, ``G`` holds only the beam's aberration and its
 diffracted edge, so the plan's pitch samples it). The field's geometry is formed exactly where the rays
 are exact, and only the edge's diffraction over ``d`` (``sqrt(lambda d)`` wide) is computed as a wave.
@@ -24,7 +24,7 @@ import warnings
 
 import numpy as np
 
-from .errors import SamplingWarning
+from ..errors import SamplingWarning
 
 #: the window is widened on each side by this many edge widths sqrt(lambda d) (the edge's ringing falls
 #: off as 1 / distance: what leaves the window is the edge's light at the widest angles)
@@ -56,7 +56,7 @@ def reference_phase(origin_mm, pitch_mm, n_grid, chief_mm, target_mm, n_medium, 
 
 
 def wave_step_geometry(rw):
-    """What :func:`apply_wave_step` needs of a :class:`rwwarp.raywave.RayWave` (``rw.wave_step``: per-source
+    """What :func:`apply_wave_step` needs of a :class:`rwwarp.wave.raywave.RayWave` (``rw.wave_step``: per-source
     reduced distances, mm): ``(phase, distances, wavelengths_um_in_medium)``."""
     sign = np.where(rw.target[:, 2] >= rw.z_plane, 1.0, -1.0)
     chief = np.array(rw.chief_plane, float).copy()
@@ -66,7 +66,7 @@ def wave_step_geometry(rw):
 
 def apply_wave_step(rw, u, xp=np):
     """The wave step on a batch's wave-plane field ``u`` ((S, n, n) complex, baseband: the chief carrier
-    removed, as :meth:`rwwarp.raywave.RayWave.field_array` gives it; numpy or CuPy, ``xp``): ``S_T P_d[u /
+    removed, as :meth:`rwwarp.wave.raywave.RayWave.field_array` gives it; numpy or CuPy, ``xp``): ``S_T P_d[u /
     S_T]`` per source with ``d = rw.wave_step[k]`` (mm; 0 leaves a source as it is). Returns a new array."""
     from . import backend as bk
     from .propagate import propagate_grid
@@ -157,14 +157,14 @@ def _wave_step_pad(n: int, extra: int) -> int:
 
 
 def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None) -> None:
-    """Estimate the model error of a :class:`rwwarp.raywave.RayWave` (:func:`rwwarp.model_error.estimate_for_raywave`),
+    """Estimate the model error of a :class:`rwwarp.wave.raywave.RayWave` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
     ``method_requested`` is ``"two-step"``, or ``"auto"`` with the estimate above ``tolerance`` (relative to
     the PSF's peak; None: never automatically). With the step the window is widened by ``EDGE_MARGIN`` edge
     widths ``sqrt(lambda d)`` a side and, where the plan's pitch does not resolve the edge, refined to
     ``sqrt(lambda d) / EDGE_SAMPLES``. Sets ``rw.model_errors`` (a list, per source), ``rw.wave_step`` ((S,) mm,
     zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``. A step whose plan exceeds
-    ``memory_budget_bytes`` is refused (:class:`rwwarp.plan.MemoryBudgetError`) under ``"two-step"`` and left
+    ``memory_budget_bytes`` is refused (:class:`rwwarp.wave.plan.MemoryBudgetError`) under ``"two-step"`` and left
     out, with a reason, under ``"auto"``."""
     from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
@@ -187,14 +187,14 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
             pitch = pl.pitch_mm
             why = [f"wave step ({'method two-step' if method_requested == 'two-step' else f'model error {w.estimate:.2g} > tolerance {tolerance:.2g}'}): "
                    f"the geometric field's edge diffracted over the reduced distance {np.max(np.abs(d)):.4g} mm "
-                   f"(edge width {edge * 1e3:.3g} um) by the band-limited ASM before the DOE (rwwarp.wave_step)"]
+                   f"(edge width {edge * 1e3:.3g} um) by the band-limited ASM before the DOE (rwwarp.wave.wave_step)"]
             if pitch > edge / EDGE_SAMPLES:
                 why.append(f"wave step: pitch {pitch * 1e3:.4g} -> {edge / EDGE_SAMPLES * 1e3:.4g} um (edge width / {EDGE_SAMPLES:g})")
                 pitch = edge / EDGE_SAMPLES
             extra = int(math.ceil(EDGE_MARGIN * edge / pitch))
             span = pl.n_grid * pl.pitch_mm
             n_grid = int(math.ceil(span / pitch)) + 2 * extra
-            if pl.method == "focal":   # the focal rule (rwwarp.plan.plan_focal): >= samples / 4 rays across
+            if pl.method == "focal":   # the focal rule (rwwarp.wave.plan.plan_focal): >= samples / 4 rays across
                 ray_grid = max(pl.ray_grid, int(math.ceil(float(np.max(rw.hi - rw.lo)) / pitch / 4.0)) + 1)
             else:                      # the ASM's: rays per sample kept
                 ray_grid = max(pl.ray_grid, int(math.ceil(pl.ray_grid * pl.pitch_mm / pitch)))

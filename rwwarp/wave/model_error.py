@@ -1,4 +1,4 @@
-"""The ray-wave model's own error, estimated from the scene (issue 27); :mod:`rwwarp.wave_step` removes it.
+"""The ray-wave model's own error, estimated from the scene (issue 27); :mod:`rwwarp.wave.wave_step` removes it.
 
 The ray-wave model forms the field on the wave plane (the DOE, else the last surface) geometrically: each
 ray tube carries its power and optical path there, so the beam ends at the plane with a hard edge, the
@@ -15,7 +15,7 @@ distance*
 
     d = z1 R / (z1 + R)            (1 / d = 1 / z1 + 1 / R; d = z1 for a collimated beam, R -> inf)
 
-and multiplied by the sphere again: ``U_true = S_R P_d[G]`` (:func:`rwwarp.wave_step.apply_wave_step`). Its
+and multiplied by the sphere again: ``U_true = S_R P_d[G]`` (:func:`rwwarp.wave.wave_step.apply_wave_step`). Its
 Fresnel number is
 
     N_F = n r_w^2 / (lambda d) = n a^2 (f - z1) / (lambda f z1)     (thin lens: f, aperture radius a),
@@ -133,7 +133,7 @@ class ModelError:
                 f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
-                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.model_error)"
+                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
 
 
@@ -141,7 +141,7 @@ def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
     """Distance (mm, >= 0) from the image of the aperture stop, formed by the refracting surfaces between
     the stop and surface ``plane``, to that surface's vertex plane: the diffraction distance of the
     geometric field's edge. 0 where the stop is at or behind the plane, or its image lies behind it."""
-    from . import paraxial
+    from .. import paraxial
     stop = lens.stop_index
     if stop >= plane:
         return 0.0
@@ -162,7 +162,7 @@ def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
 def _main_order(surface, prof, xy, wavelength_um):
     """The DOE's main-order factor m (its phase is ``m phi0``): ``alpha`` where the relief does not wrap over
     the beam, else the integer order nearest ``alpha`` (at least 1)."""
-    from . import doe
+    from .. import doe
     alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
     phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
     span = float(np.ptp(phi)) if phi.size else 0.0
@@ -172,15 +172,15 @@ def _main_order(surface, prof, xy, wavelength_um):
 
 
 def estimate_for_raywave(rw) -> list:
-    """:class:`ModelError` per source of a :class:`rwwarp.raywave.RayWave`, from its pilot trace (host arrays
+    """:class:`ModelError` per source of a :class:`rwwarp.wave.raywave.RayWave`, from its pilot trace (host arrays
     only, no launch): the beam's radius on the wave plane (half the footprint's smaller extent), its focus
     before the DOE (``rw.target``), the stop's image (:func:`stop_to_plane_mm`), and the rim slope of the
     wavefront after the DOE's main order relative to the sphere converging to the patch centre on the
     sensor: ``S = 2 pi RMS_rim[(x - x_c) . (f - f_sphere) (r_w / |x - x_c|)^3]`` over the pilot rays within
     ``RIM_SHARE`` of the footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm; ``f - f_sphere``
     less its mean over the beam: a tilt moves the PSF and changes nothing else)."""
-    from . import doe
-    from .doe import is_flat_profile
+    from .. import doe
+    from ..doe import is_flat_profile
     lens, plane = rw.lens, rw.plane
     s = lens.surfaces[plane]
     prof = None
@@ -252,7 +252,7 @@ class ModelErrorWarning(UserWarning):
 
 
 def warn_over_tolerance(plans, tolerance: float, stacklevel: int = 2) -> list:
-    """Warn (:class:`ModelErrorWarning`) where a plan (a :class:`rwwarp.plan.Plan` or its dict) computed without
+    """Warn (:class:`ModelErrorWarning`) where a plan (a :class:`rwwarp.wave.plan.Plan` or its dict) computed without
     the wave step has a model-error estimate above ``tolerance`` (relative to the PSF's peak). Returns the
     offending estimates (dicts)."""
     import warnings
@@ -271,6 +271,6 @@ def warn_over_tolerance(plans, tolerance: float, stacklevel: int = 2) -> list:
                       f"the stop seen from the DOE plane {w['aperture_to_plane_mm']:.4g} mm behind its image, rim slope "
                       f"{w['rim_slope_rad']:.3g} rad): the geometric field at the DOE plane leaves out the rim's "
                       "diffraction on the way there. Use method='auto' with this tolerance or method='two-step' (the "
-                      "wave step, rwwarp.wave_step), or move the DOE nearer the stop", ModelErrorWarning,
+                      "wave step, rwwarp.wave.wave_step), or move the DOE nearer the stop", ModelErrorWarning,
                       stacklevel=stacklevel)
     return bad
