@@ -129,7 +129,7 @@ class ModelError:
 
     def text(self) -> str:
         """One line for the plan's reasons and ``--explain``."""
-        return (f"model error (geometric field at the wave plane, issue 27): ~{self.estimate:.2g} of the peak "
+        return (f"model error (geometric field at the wave plane): ~{self.estimate:.2g} of the peak "
                 f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
