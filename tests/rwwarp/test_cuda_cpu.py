@@ -2,14 +2,16 @@
 target <= 1e-10 of the peak). Both devices run the same float64 trace (Warp), the same splat and the same
 propagation (OpenCL C through PoCL on the CPU, through NVRTC/CuPy on CUDA); with the focal products in
 double on both, what remains is the order of float sums (atomic splat additions, FFT and GEMM
-blocking): ~1e-15 a sum. ``method`` is pinned: ``"auto"`` may pick another propagation on each device."""
+blocking): ~1e-15 a sum. The default pixel values (the power flux) and the wave step ("two-step") are
+covered too. ``method`` is pinned: ``"auto"`` may pick another propagation on each device."""
 import numpy as np
 import pytest
 
 import rwwarp as rw
 
 CASES = [("cooke_triplet", 0.0, "focal"), ("cooke_triplet", 14.0, "focal"), ("ac254_100_a", 0.0, "focal"),
-         ("a489_doe", 0.0, "focal"), ("a489_doe", 10.0, "focal"), ("a489_doe", 0.0, "asm"), ("a489_doe", 10.0, "asm")]
+         ("a489_doe", 0.0, "focal"), ("a489_doe", 10.0, "focal"), ("a489_doe", 0.0, "asm"), ("a489_doe", 10.0, "asm"),
+         ("cooke_triplet", 0.0, "two-step"), ("a489_doe", 0.0, "two-step")]
 
 
 def _cuda_or_skip():
