@@ -416,7 +416,7 @@ class CachedProvider:
                         device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
                         rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
                         gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto",
-                        focal_patch_tol=geo.focal_patch_tol, pixel_values=geo.pixel_values)
+                        focal_patch_tol=geo.focal_patch_tol, pixel_values=geo.pixel_values, auto_rule="small-asm")
         return probe.plan.method == "focal"
 
     def _build_focal(self, key, centres=None):

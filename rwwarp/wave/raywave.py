@@ -19,7 +19,7 @@ from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
-from .splat import paper_rescale, plane_cosines  # noqa: F401 (paper_rescale lived here)
+from .splat import paper_rescale, paper_rescale_layout, plane_cosines  # noqa: F401 (paper_rescale lived here)
 from ..trace import Tracer, pupil_grid, upload_packed
 from ..trace import field_label as _fmt_field
 
@@ -194,7 +194,12 @@ class RayWave:
     results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
 
     ``pixel_values``: what a pixel records, ``"flux"`` (default, the power through it) or ``"intensity"``
-    (``|U|^2`` over it, before issue 27); docs/propagation.md "Pixel values".
+    (``|U|^2`` over it, the earlier convention); docs/propagation.md "Pixel values".
+
+    ``auto_rule`` (``method="auto"``): how the two planned propagations are chosen. ``"small-asm"``: the
+    band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
+    GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
+    the CPU); ``"device"`` (default): ``"small-asm"`` on CUDA, ``"flops"`` on the CPU.
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
@@ -202,7 +207,9 @@ class RayWave:
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
                  own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux",
-                 model_tolerance: float | None = None):
+                 model_tolerance: float | None = None, auto_rule: str = "device"):
+        if auto_rule not in ("device", "small-asm", "flops"):
+            raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
         if method not in ("asm", "focal", "auto", "two-step"):
             raise ValueError(f"method must be 'auto', 'focal', 'asm' or 'two-step', got {method!r}")
         requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
@@ -353,9 +360,9 @@ class RayWave:
         if method == "compare":
             fpl = focal_state[0]
             fpl = _replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
-            on_gpu = str(device).startswith("cuda")
-            rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if on_gpu else
-                    "the plan of fewer flops (CPU)")
+            small_first = auto_rule == "small-asm" or (auto_rule == "device" and str(device).startswith("cuda"))
+            rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if small_first else
+                    "the plan of fewer flops")
             why = (f"method auto ({rule}): focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
                    f"GiB against asm {pl.estimate['flops'] / 1e9:.3g} GFLOP / {pl.estimate['memory_bytes'] / 2 ** 30:.3g} GiB")
             # On a GPU a small ASM plan runs faster than the focal path's matrix products (measured on an
@@ -364,7 +371,7 @@ class RayWave:
             # triplet: 11.8 GiB planned). On the CPU the arithmetic is the cost: the plan of fewer flops runs
             # (A489 map at 32 px: focal 0.4-1.3 GFLOP and 255-401^2 rays against asm 3.2-7.8 GFLOP and
             # 533-790^2 rays a source). Both meet the refractive truths alike (docs/propagation.md).
-            small_asm = on_gpu and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
+            small_asm = small_first and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
             # a plan over the memory budget cannot run: the one that fits wins whatever its work
             fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes
                     for e in (pl.estimate, fpl.estimate)]
@@ -642,8 +649,7 @@ class RayWave:
             u_field = field.numpy().view(np.complex128).reshape(self.nsrc, n, n)
         if self.amplitude != "energy":
             xp = np if isinstance(u_field, np.ndarray) else __import__("cupy")
-            pitch = self.plan.pitch_mm if lay["ray_grids"] is None else xp.asarray(lay["pitches"])
-            u_field = paper_rescale(u_field, xp.asarray(self.traced_power), pitch, xp, plane_cosines(self, xp))
+            u_field = paper_rescale_layout(self, u_field, xp.asarray(self.traced_power), xp)
         return u_field
 
     def doe_phase(self):

@@ -169,3 +169,29 @@ def plane_cosines(rw, xp=np):
     from .focal import plane_direction_cosines
     lay = rw._layout()
     return xp.asarray(plane_direction_cosines(2 * lay["n_stride"], lay["pitches"], rw.carrier, rw.lam_mm / rw.n_after))
+
+
+def paper_rescale_layout(rw, u, traced_power, xp):
+    """:func:`paper_rescale` for the sources of RayWave ``rw`` (a batch on one plan, or a packed batch of members on
+    their own plans): one scale per source at its own pitch; with pixel_values "flux" each source's z-flux on the
+    FFT grid of its own window (``2 n_k``), as the source alone has it (the cosine-weighted sum over a larger
+    slot's grid is another quadrature of the same spectrum: ~1e-6 apart). ``u`` (S, n, n) and ``traced_power``
+    (S,) in ``xp`` (numpy, CuPy or torch)."""
+    lay = rw._layout()
+    if lay["ray_grids"] is None:
+        return paper_rescale(u, traced_power, rw.plan.pitch_mm, xp, plane_cosines(rw, xp))
+    pitches = np.asarray(lay["pitches"], dtype=np.float64)
+    if rw.pixel_values != "flux":
+        p = pitches if xp is np else (xp.asarray(pitches) if not hasattr(u, "device") or xp.__name__ != "torch"
+                                      else xp.as_tensor(pitches, device=u.device))
+        return paper_rescale(u, traced_power, p, xp)
+    from .focal import plane_direction_cosines
+    lam = np.asarray(rw.lam_mm, dtype=np.float64) / np.asarray(rw.n_after, dtype=np.float64)
+    carrier = np.asarray(rw.carrier, dtype=np.float64)
+    out = xp.zeros_like(u)
+    for k in range(u.shape[0]):
+        n = int(lay["grids"][k])
+        c = plane_direction_cosines(2 * n, pitches[k:k + 1], carrier[k:k + 1], lam[k:k + 1])
+        c = xp.as_tensor(c, device=u.device) if xp.__name__ == "torch" else xp.asarray(c)
+        out[k:k + 1, :n, :n] = paper_rescale(u[k:k + 1, :n, :n], traced_power[k:k + 1], float(pitches[k]), xp, c)
+    return out
