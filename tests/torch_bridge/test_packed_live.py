@@ -1,0 +1,154 @@
+"""Focal sources computed together (torch_bridge.packed, LiveProvider(pack=True)) against the same sources one
+at a time (LiveProvider(pack=False): HybridLens._psf_rw per source, the reference path whose gradients
+tests/torch_bridge/test_focal_bridge.py checks against finite differences), and the launch count of a step.
+
+The packed tile traces all members in one launch set (slots of the largest member, padding invalid and
+zero), forms the DOE transmission of all members in one Horner recursion over the union of their orders, and
+propagates the members by batched matrix products (the FFT of step 2 as an equal matrix DFT, factors
+zero-padded): per member the same sums in another order, so the results agree to rounding."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import rwwarp as rw
+import torch_bridge as tb
+from rwwarp.focal_packed import PackedFocalPropagator, focal_groups
+from rwwarp.packed import source_plans
+from torch_bridge import design as dz
+
+
+def _doe_lens(levels):
+    """The A489 + DOE with a DOE that wraps in the beam (-30 rad at the 1.5 mm norm radius, r^2): on axis the
+    relief stays in one zone at 0.5 and 0.6 um (one non-integer order: computed alone), at 5 deg it wraps
+    (integer orders, different sets per wavelength, the chief ray's zone exact: the batched recursion)."""
+    lens = rw.load_lens("a489_doe")
+    s = lens.surfaces[lens.doe_index]
+    s.profile = dict(s.profile, coefficients=[-30.0])
+    s.levels = levels
+    return lens
+
+
+def _run(lens, pack, learn, fields, wls, size=12, seed=3):
+    m = tb.HybridLens(lens, learn=learn, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
+    prov = dz.LiveProvider(m, fields, size, lens.sensor.pixel_pitch, pack=pack)
+    out = prov.psfs(wls)
+    g = torch.as_tensor(np.random.default_rng(seed).standard_normal(tuple(out.shape)))
+    (out * g).sum().backward()
+    grads = {q: getattr(m, q).grad.clone() for q in learn}
+    return out.detach(), grads, prov
+
+
+@pytest.mark.parametrize("levels", [None, 8], ids=["continuous", "8-levels"])
+def test_packed_psfs_and_gradients_equal_the_per_source_path(levels):
+    """A489 + wrapping DOE, 0 and 5 deg x 0.5 and 0.6 um (4 focal sources, each on its own plan: windows of
+    201-459 samples, different DOE orders), curvatures, DOE coefficient and every thickness learning. PSFs:
+    measured 8.4e-16 (continuous) and 4.9e-16 (8 levels) of each PSF's peak; gradients 2.5e-14 (curvature)
+    and 3.5e-15 (DOE) of the largest; tolerance 1e-12. The thicknesses before the DOE move the wave plane,
+    whose z gradient holds the reference-sphere term: a sum over the windows of terms up to 1.3e4 times the
+    field's (the factor k n dz / r) that cancels to order 1, so the order of its sums shows, 7.2e-13 of the
+    largest thickness gradient (the sensor distance alone: 1.1e-15); tolerance 5e-12 there."""
+    lens = _doe_lens(levels)
+    learn = {"curvature": "all", "doe": "all", "thickness": "all"}
+    a, ga, pa = _run(lens, False, learn, [0.0, 5.0], [0.5, 0.6])
+    b, gb, pb = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6])
+    assert pb.packs_made == 1 and pa.packs_made == 0
+    peak = a.abs().amax((2, 3), keepdim=True)
+    assert float(((a - b).abs() / peak).max()) <= 1e-12
+    for q in learn:
+        scale = float(ga[q].abs().max())
+        assert scale > 0
+        assert float((ga[q] - gb[q]).abs().max()) <= (5e-12 if q == "thickness" else 1e-12) * scale, q
+    # the packed output is not the same numbers by construction: the sources differ from each other
+    assert float((a[0, 0] - a[1, 0]).abs().max()) > 1e-3 * float(peak[0, 0])
+
+
+def test_packed_thin_lens_tiles_split_by_wavelength():
+    """With an ideal thin lens (its table columns follow the tracer's first wavelength) members are packed per
+    wavelength: 2 tiles for 2 fields x 2 wavelengths; PSFs (measured 1.1e-15 of the peak) and the DOE and
+    distance gradients (1.8e-15, 3.9e-15 relative) as one at a time; tolerance 1e-12."""
+    import math
+
+    from rwwarp.lens import Lens, Surface
+    half = 1.0
+    surfs = [Surface(type="aperture", semi_diameter=half, shape="square", stop=True),
+             Surface(type="thin_lens", focal_length=21.0, semi_diameter=half, shape="square"),
+             Surface(type="doe", semi_diameter=half, shape="square", design_wavelength_um=0.55,
+                     material="fused_silica", profile={"kind": "even_poly", "norm_radius": 1.0,
+                                                       "coefficients": [-40.0, 6.0]})]
+    surfs[-1].thickness = 20.0
+    lens = Lens(surfs, rw.Sensor(0.002, (4000, 4000)), math.inf, [0.55], name="thin lens + DOE")
+    learn = {"doe": "all", "thickness": [2]}
+    a, ga, _ = _run(lens, False, learn, [0.0, 1.0], [0.5, 0.6], size=10)
+    b, gb, pb = _run(lens, True, learn, [0.0, 1.0], [0.5, 0.6], size=10)
+    assert pb.packs_made == 2
+    assert float(((a - b).abs() / a.abs().amax((2, 3), keepdim=True)).max()) <= 1e-12
+    for q in learn:
+        assert float((ga[q] - gb[q]).abs().max()) <= 1e-12 * float(ga[q].abs().max()), q
+
+
+def test_packed_focal_operator_equals_each_members_operator():
+    """PackedFocalPropagator of 4 Cooke triplet sources (wave-plane grids 349-1199, sensor grids 111-376, FFT
+    lengths 144-512, 9 and 10 Gauss nodes: all padded into one group) against each member's own
+    FocalPropagator: forward, adjoint and distance derivative on random fields, measured <= 1.4e-15 relative
+    to each result's largest entry; tolerance 1e-12. Outputs past a member's nodes and adjoints past its
+    grid are exactly zero."""
+    lens = rw.load_lens("cooke_triplet")
+    ms = source_plans(lens, [0.0, 0.0, 10.0, 10.0], [0.5, 0.6, 0.5, 0.6], 12, lens.sensor.pixel_pitch,
+                      method="focal", rays_per_sample=0.5)
+    assert len(focal_groups(ms)) > 1                    # the default waste splits these sizes
+    z = float(ms[0].z_sensor - ms[0].z_plane)
+    op = PackedFocalPropagator.from_members(ms, z)
+    rng = np.random.default_rng(0)
+    f = np.zeros((4, op.n, op.n), complex)
+    for k, m in enumerate(ms):
+        n = m.plan.n_grid
+        f[k, :n, :n] = rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n))
+    g = rng.standard_normal((4, op.m, op.m)) + 1j * rng.standard_normal((4, op.m, op.m))
+    out, dd, adj = op.forward(f), op.distance_derivative(f), op.adjoint(g)
+    for k, m in enumerate(ms):
+        n, mm = m.plan.n_grid, m.size * m.gauss_nodes
+        own = m.focal_operator(z)
+        for x, y in ((out[k, :mm, :mm], own.forward(f[k:k + 1, :n, :n])[0]),
+                     (dd[k, :mm, :mm], own.distance_derivative(f[k:k + 1, :n, :n])[0]),
+                     (adj[k, :n, :n], own.adjoint(g[k:k + 1, :mm, :mm])[0])):
+            assert np.abs(x - y).max() <= 1e-12 * np.abs(y).max()
+        assert not np.any(out[k, mm:]) and not np.any(adj[k, n:]) and not np.any(adj[k, :, n:])
+
+
+def _count_launches(monkeypatch):
+    import warp as wp
+    count = [0]
+    real = wp.launch
+
+    def counting(*a, **k):
+        count[0] += 1
+        return real(*a, **k)
+    monkeypatch.setattr(wp, "launch", counting)
+    return count
+
+
+def test_a_packed_step_makes_a_bounded_number_of_launches(monkeypatch):
+    """One design step on kept plans (LiveProvider(replan_every=...): the steady state of the gpu preset) of the
+    A489 + DOE (4 surfaces): forward + backward of 2, then 4 focal sources. One at a time the Warp launches
+    grow with the sources (measured 67 and 123: 28 a source); packed they do not (measured 39 and 39: the
+    patch centres' ray trace, one trace of all members to the DOE plane with its parameter-row copies, tube
+    areas, splat, finalize, power sums, and the adjoints of the recorded ones). Bound: 8 launches per surface
+    (7 measured: trace, copies and their adjoints, the centres' trace) plus 12 for the stages (11 measured),
+    independent of the number of sources."""
+    lens = _doe_lens(None)
+    count = _count_launches(monkeypatch)
+    got = {}
+    for pack in (False, True):
+        for fields in ([0.0], [0.0, 5.0]):
+            m = tb.HybridLens(lens, learn={"curvature": "all", "doe": "all"}, method="focal", rays_per_sample=0.5,
+                              focal_patch_tol=1e-3)
+            prov = dz.LiveProvider(m, fields, 12, lens.sensor.pixel_pitch, pack=pack, replan_every=100)
+            prov.psfs([0.5, 0.6])                          # plans (not counted)
+            count[0] = 0
+            prov.psfs([0.5, 0.6]).sum().backward()
+            got[pack, len(fields)] = count[0]
+    bound = 8 * len(lens.surfaces) + 12
+    assert got[True, 1] == got[True, 2] <= bound
+    assert got[False, 2] >= 2 * got[False, 1] - bound    # one at a time: per source
