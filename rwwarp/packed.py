@@ -69,6 +69,10 @@ class PackedRayWave(RayWave):
                                          m0.device, m0.tracer.scalar):
                 raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
                                  "reference, determinism, device and precision")
+            if (m.src["shape"], m.src.get("object_distance"), m.plane, len(m.lens.surfaces)) != \
+                    (m0.src["shape"], m0.src.get("object_distance"), m0.plane, len(m0.lens.surfaces)):
+                raise ValueError("PackedRayWave members must be of one lens (pupil shape, object distance, wave "
+                                 "plane and surfaces)")
         self.members = list(members)
         lens = m0.lens
         self.lens, self.plane, self.curved_plane = lens, m0.plane, m0.curved_plane

@@ -96,29 +96,80 @@ def packed_doe_factor(tile, phi0):
     """The DOE's transmission on each member's wave-plane window, (S, n, n) complex128 (``n`` the tile's slot
     side), or None without a DOE: per member what :func:`torch_bridge.functions.focal_doe_factor` gives it
     alone. ``phi0``: the unwrapped DOE phase on the tile's windows (rad, (S, n, n)), differentiable. Members
-    whose plan keeps integer DOE orders (the common case) are evaluated together: one Horner recursion in
-    ``exp(1j phi0)`` over the union of their orders (a member's missing orders have zero coefficients) and
-    each member's exact chief-ray wrap zone; the others (a blank DOE, a relief that does not wrap in the beam)
-    one by one."""
+    are evaluated in two batches: those whose plan keeps several integer DOE orders, in one Horner recursion
+    in ``exp(1j phi0)`` over the union of their orders (a member's missing orders have zero coefficients)
+    with each member's exact chief-ray wrap zone; those with one order ``c exp(1j m phi0)`` (a relief that
+    does not wrap in the beam: ``m`` the wavelength remap) or a blank DOE (``exp(1j alpha phi0)``), in one
+    product. Any other member (none the planner makes) is evaluated alone."""
     if phi0 is None:
         return None
     members = tile.members
     S = len(members)
-    series = [k for k, m in enumerate(members) if m.focal["profile"] is not None and len(m.focal["orders"][0]) > 1
-              and all(float(o) == int(o) for o, _ in m.focal["orders"][0])]
-    rest = [k for k in range(S) if k not in series]
+    kinds = [_factor_kind(m) for m in members]
     parts, seq = [], []
-    if series:
-        p = phi0 if len(series) == S else phi0[torch.as_tensor(series, device=phi0.device)]
-        parts.append(_series_factor(tile, series, p))
-        seq += series
-    for k in rest:
-        parts.append(focal_doe_factor(members[k], phi0[k:k + 1]))
-        seq.append(k)
+    for kind, make in (("series", _series_factor), ("single", _single_factor)):
+        idx = [k for k in range(S) if kinds[k] == kind]
+        if idx:
+            p = phi0 if len(idx) == S else phi0[torch.as_tensor(idx, device=phi0.device)]
+            parts.append(make(tile, idx, p))
+            seq += idx
+    for k in range(S):
+        if kinds[k] is None:
+            parts.append(focal_doe_factor(members[k], phi0[k:k + 1]))
+            seq.append(k)
     out = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
     if seq != list(range(S)):
         out = out[torch.as_tensor(np.argsort(seq), device=out.device)]
     return out
+
+
+def _factor_kind(m):
+    """How a member's DOE transmission is batched: "series" (several integer orders), "single" (one order, or a
+    blank DOE), None (alone)."""
+    if m.focal["profile"] is None:
+        return "single"
+    orders = m.focal["orders"][0]
+    if len(orders) == 1:
+        return "single"
+    if all(float(o) == int(o) for o, _ in orders):
+        return "series"
+    return None
+
+
+def _single_factor(tile, idx, p):
+    """``c exp(1j m p)`` for the members ``idx`` with one kept order ``(m, c)`` (as
+    :func:`rwwarp.focal.doe_order_series`), or ``exp(1j alpha p)`` for a blank DOE (``alpha``: the wavelength
+    remap, :func:`torch_bridge.functions.doe_scale`), each member's chief-ray zone exact where it has one."""
+    from .functions import doe_scale
+    rows = []
+    for k in idx:
+        mb = tile.members[k]
+        if mb.focal["profile"] is None:
+            rows.append((float(doe_scale(mb)[0]), 1.0, 0.0))
+        else:
+            (o, c), = mb.focal["orders"][0]
+            rows.append((float(o), complex(c).real, complex(c).imag))
+    key = f"packed_single_{tuple(idx)}"
+    t = _on_device(tile.raywave, key, np.array(rows, dtype=np.float64), p.device)
+    m = t[:, 0, None, None]
+    c = torch.complex(t[:, 1], t[:, 2])[:, None, None]
+    acc = c * torch.exp(1j * m * p)
+    zones = [tile.members[k].focal.get("central_zone") if tile.members[k].focal["profile"] is not None else None
+             for k in idx]
+    return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
+
+
+def _zones(tile, key, zones, p, acc):
+    """``acc`` with each member's chief-ray wrap zone ``(k_c, alpha)`` (or None) computed exactly as
+    ``exp(1j alpha (p - 2 pi k_c))`` where ``floor(p / 2 pi) == k_c`` (:func:`rwwarp.focal.doe_order_series`)."""
+    if all(z is None for z in zones):
+        return acc
+    # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
+    zt = np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones])
+    zd = _on_device(tile.raywave, key + "_zones", zt, p.device)
+    kc, alpha = zd[:, 0, None, None], zd[:, 1, None, None]
+    inside = torch.floor(p / (2.0 * np.pi)) == kc
+    return torch.where(inside, torch.exp(1j * alpha * (p - 2.0 * np.pi * kc)), acc)
 
 
 def _series_factor(tile, idx, p):
@@ -132,10 +183,6 @@ def _series_factor(tile, idx, p):
     for k, c in enumerate(coefs):
         for m, v in c.items():
             table[k, m - lo] = (v.real, v.imag)
-    zones = [mb.focal.get("central_zone") for mb in members]
-    zones = [None if z is None else z[0] for z in zones]
-    # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
-    zt = np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones])
     key = f"packed_series_{tuple(idx)}"
     c = torch.view_as_complex(_on_device(tile.raywave, key, table, p.device))
     e = torch.exp(1j * p)
@@ -146,12 +193,8 @@ def _series_factor(tile, idx, p):
         f = e if lo > 0 else torch.conj(e)
         for _ in range(abs(lo)):
             acc = acc * f
-    if any(z is not None for z in zones):
-        zd = _on_device(tile.raywave, key + "_zones", zt, p.device)
-        kc, alpha = zd[:, 0, None, None], zd[:, 1, None, None]
-        inside = torch.floor(p / (2.0 * np.pi)) == kc
-        acc = torch.where(inside, torch.exp(1j * alpha * (p - 2.0 * np.pi * kc)), acc)
-    return acc
+    zones = [mb.focal.get("central_zone") for mb in members]
+    return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
 
 
 class PackedFocalPropagate(torch.autograd.Function):

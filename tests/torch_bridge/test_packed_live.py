@@ -19,13 +19,13 @@ from rwwarp.packed import source_plans
 from torch_bridge import design as dz
 
 
-def _doe_lens(levels):
+def _doe_lens(levels, coefficients=(-30.0,)):
     """The A489 + DOE with a DOE that wraps in the beam (-30 rad at the 1.5 mm norm radius, r^2): on axis the
     relief stays in one zone at 0.5 and 0.6 um (one non-integer order: computed alone), at 5 deg it wraps
     (integer orders, different sets per wavelength, the chief ray's zone exact: the batched recursion)."""
     lens = rw.load_lens("a489_doe")
     s = lens.surfaces[lens.doe_index]
-    s.profile = dict(s.profile, coefficients=[-30.0])
+    s.profile = dict(s.profile, coefficients=list(coefficients))
     s.levels = levels
     return lens
 
@@ -40,16 +40,18 @@ def _run(lens, pack, learn, fields, wls, size=12, seed=3):
     return out.detach(), grads, prov
 
 
-@pytest.mark.parametrize("levels", [None, 8], ids=["continuous", "8-levels"])
-def test_packed_psfs_and_gradients_equal_the_per_source_path(levels):
+@pytest.mark.parametrize("levels,coefficients", [(None, (-30.0,)), (8, (-30.0,)), (None, (0.0,))],
+                         ids=["continuous", "8-levels", "blank"])
+def test_packed_psfs_and_gradients_equal_the_per_source_path(levels, coefficients):
     """A489 + wrapping DOE, 0 and 5 deg x 0.5 and 0.6 um (4 focal sources, each on its own plan: windows of
-    201-459 samples, different DOE orders), curvatures, DOE coefficient and every thickness learning. PSFs:
-    measured 8.4e-16 (continuous) and 4.9e-16 (8 levels) of each PSF's peak; gradients 2.5e-14 (curvature)
-    and 3.5e-15 (DOE) of the largest; tolerance 1e-12. The thicknesses before the DOE move the wave plane,
+    201-459 samples, different DOE orders; "blank": a flat DOE about to learn, exp(1j alpha phi0)), curvatures,
+    DOE coefficient and every thickness learning. PSFs: measured 8.4e-16 (continuous), 4.9e-16 (8 levels)
+    and 6.6e-16 (blank) of each PSF's peak; gradients up to 2.5e-14 (curvature) and 2.1e-14 (DOE) of the
+    largest; tolerance 1e-12. The thicknesses before the DOE move the wave plane,
     whose z gradient holds the reference-sphere term: a sum over the windows of terms up to 1.3e4 times the
     field's (the factor k n dz / r) that cancels to order 1, so the order of its sums shows, 7.2e-13 of the
     largest thickness gradient (the sensor distance alone: 1.1e-15); tolerance 5e-12 there."""
-    lens = _doe_lens(levels)
+    lens = _doe_lens(levels, coefficients)
     learn = {"curvature": "all", "doe": "all", "thickness": "all"}
     a, ga, pa = _run(lens, False, learn, [0.0, 5.0], [0.5, 0.6])
     b, gb, pb = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6])
