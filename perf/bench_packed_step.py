@@ -8,7 +8,8 @@ wavelength per colour channel (0.63, 0.55, 0.47 um), ``--fields`` field angles o
 (``replan_every=3`` as the gpu preset). A step: the provider's PSFs, a loss, its backward (the network's
 part is the same either way and left out). Counted per step: Warp launches (every ``warp.launch``, the
 tape's adjoint launches included), torch (aten) operations (a ``TorchDispatchMode``, backward included), and
-the step's wall time; the first call (planning) is reported apart from the steady steps on kept plans.
+the step's wall time and CPU time of the process (all its threads: on a shared machine the wall time also
+holds the waits for a core); the first call (planning) is reported apart from the steady steps on kept plans.
 """
 from __future__ import annotations
 
@@ -73,7 +74,7 @@ def main():
         for step in range(1 + a.steps):
             launches[0] = 0
             ops = Ops()
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             with ops:
                 out = prov.psfs(wls)
                 if g is None:
@@ -83,7 +84,8 @@ def main():
                 loss.backward()
             if a.device.startswith("cuda"):
                 torch.cuda.synchronize()
-            rows.append({"step": step, "wall_s": time.perf_counter() - t, "warp_launches": launches[0],
+            rows.append({"step": step, "wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c,
+                         "warp_launches": launches[0],
                          "torch_ops": ops.n, "plans_made": prov.plans_made, "packs_made": prov.packs_made})
             print(("packed" if pack else "one at a time"), rows[-1], flush=True)
         grads = {q: getattr(m, q).grad.detach().cpu().numpy() for q in ("curvature", "doe", "thickness")}

@@ -154,3 +154,31 @@ def test_a_packed_step_makes_a_bounded_number_of_launches(monkeypatch):
     bound = 8 * len(lens.surfaces) + 12
     assert got[True, 1] == got[True, 2] <= bound
     assert got[False, 2] >= 2 * got[False, 1] - bound    # one at a time: per source
+
+
+def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():
+    """The A489 + DOE (8 levels), 4 focal sources: in chunks of 2 (checkpointed: forward without tape, each chunk
+    traced again under the tape in backward), and in one chunk under a budget that holds 2 packed members but
+    not 3 (packed_recorded_bytes: each member at the largest member's rays and window), which splits it into
+    tiles of at most 2. PSFs and gradients as one at a time: measured as the first test (<= 5e-16 of the peak,
+    <= 4.4e-13 of the largest thickness gradient); tolerances as there."""
+    from torch_bridge.packed import packed_recorded_bytes
+    lens = _doe_lens(8)
+    learn = {"curvature": "all", "doe": "all", "thickness": "all"}
+    fields, wls = [0.0, 5.0], [0.5, 0.6]
+    a, ga, _ = _run(lens, False, learn, fields, wls)
+    m = tb.HybridLens(lens, learn=learn, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
+    members = [m.raywave([f], [w], 12, pixel_mm=lens.sensor.pixel_pitch, method="focal") for f in fields for w in wls]
+    budget = max(packed_recorded_bytes(m, [p, q]) for p in members for q in members) + 1
+    assert packed_recorded_bytes(m, members[:3]) > budget
+    for kw, tiles in (({"tile": 2}, 2), ({"memory_budget_bytes": budget}, None)):
+        m = tb.HybridLens(lens, learn=learn, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
+        prov = dz.LiveProvider(m, fields, 12, lens.sensor.pixel_pitch, **kw)
+        out = prov.psfs(wls)
+        g = torch.as_tensor(np.random.default_rng(3).standard_normal(tuple(out.shape)))
+        (out * g).sum().backward()
+        assert prov.packs_made >= 2 if tiles is None else prov.packs_made == tiles
+        assert float(((a - out.detach()).abs() / a.abs().amax((2, 3), keepdim=True)).max()) <= 1e-12
+        for q in learn:
+            d = float((ga[q] - getattr(m, q).grad).abs().max())
+            assert d <= (5e-12 if q == "thickness" else 1e-12) * float(ga[q].abs().max()), (kw, q)
