@@ -228,7 +228,7 @@ class PackedFocalPropagate(torch.autograd.Function):
                     m = size * gn
                     out[xp.asarray([g[i] for i in sub])] = pixel_power(u[xp.asarray(sub), :m, :m], gn, prw.pixel,
                                                                        size, xp=xp)
-                saved.append((fg, u))
+                saved.append((fg if ctx.needs_input_grad[1] else None, u))   # the field: for d/d(distance) only
             res = _from_xp(out, field.device)
         ctx.tile, ctx.xp, ctx.saved, ctx.ops = tile, xp, saved, ops
         ctx.shape = tuple(f.shape)
@@ -242,9 +242,9 @@ class PackedFocalPropagate(torch.autograd.Function):
         prw = tile.raywave
         need_f, need_d = ctx.needs_input_grad[:2]
         _, g_all = _xp_of(grad_out.to(torch.float64))
-        gf = xp.zeros(ctx.shape, dtype=np.complex128) if need_f else None
-        gd = xp.zeros(ctx.shape[0], dtype=np.float64) if need_d else None
         with _streams(prw):
+            gf = xp.zeros(ctx.shape, dtype=np.complex128) if need_f else None
+            gd = xp.zeros(ctx.shape[0], dtype=np.float64) if need_d else None
             for g, op, (fg, u) in zip(tile.groups, ctx.ops, ctx.saved):
                 gu = xp.zeros(u.shape, dtype=np.complex128)
                 for sub, gn in _by_nodes(tile, g):

@@ -30,14 +30,14 @@ def _doe_lens(levels, coefficients=(-30.0,)):
     return lens
 
 
-def _run(lens, pack, learn, fields, wls, size=12, seed=3):
-    m = tb.HybridLens(lens, learn=learn, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
+def _run(lens, pack, learn, fields, wls, size=12, seed=3, device="cpu"):
+    m = tb.HybridLens(lens, learn=learn, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3).to(device)
     prov = dz.LiveProvider(m, fields, size, lens.sensor.pixel_pitch, pack=pack)
     out = prov.psfs(wls)
-    g = torch.as_tensor(np.random.default_rng(seed).standard_normal(tuple(out.shape)))
+    g = torch.as_tensor(np.random.default_rng(seed).standard_normal(tuple(out.shape)), device=out.device)
     (out * g).sum().backward()
-    grads = {q: getattr(m, q).grad.clone() for q in learn}
-    return out.detach(), grads, prov
+    grads = {q: getattr(m, q).grad.detach().cpu().clone() for q in learn}
+    return out.detach().cpu(), grads, prov
 
 
 @pytest.mark.parametrize("levels,coefficients", [(None, (-30.0,)), (8, (-30.0,)), (None, (0.0,))],
@@ -66,6 +66,7 @@ def test_packed_psfs_and_gradients_equal_the_per_source_path(levels, coefficient
     assert float((a[0, 0] - a[1, 0]).abs().max()) > 1e-3 * float(peak[0, 0])
 
 
+@pytest.mark.slow
 def test_packed_thin_lens_tiles_split_by_wavelength():
     """With an ideal thin lens (its table columns follow the tracer's first wavelength) members are packed per
     wavelength: 2 tiles for 2 fields x 2 wavelengths; PSFs (measured 1.1e-15 of the peak) and the DOE and
@@ -156,6 +157,7 @@ def test_a_packed_step_makes_a_bounded_number_of_launches(monkeypatch):
     assert got[False, 2] >= 2 * got[False, 1] - bound    # one at a time: per source
 
 
+@pytest.mark.slow
 def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():
     """The A489 + DOE (8 levels), 4 focal sources: in chunks of 2 (checkpointed: forward without tape, each chunk
     traced again under the tape in backward), and in one chunk under a budget that holds 2 packed members but
@@ -182,3 +184,24 @@ def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():
         for q in learn:
             d = float((ga[q] - getattr(m, q).grad).abs().max())
             assert d <= (5e-12 if q == "thickness" else 1e-12) * float(ga[q].abs().max()), (kw, q)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_packed_on_cuda_equals_the_per_source_path_and_the_cpu():
+    """The first test's continuous case on CUDA (Warp on torch's stream, CuPy views of the same memory, torch's
+    allocator): packed against one at a time on the GPU (tolerances as on the CPU), and against the CPU's
+    packed PSFs (1e-10 of the peak: the splat's atomic float sums on the GPU add in another order; not run
+    here: no GPU was available when this was written)."""
+    lens = _doe_lens(None)
+    learn = {"curvature": "all", "doe": "all", "thickness": "all"}
+    a, ga, _ = _run(lens, False, learn, [0.0, 5.0], [0.5, 0.6], device="cuda")
+    b, gb, pb = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6], device="cuda")
+    c, _, _ = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6])
+    assert pb.packs_made == 1
+    peak = a.abs().amax((2, 3), keepdim=True)
+    assert float(((a - b).abs() / peak).max()) <= 1e-12
+    assert float(((c - b).abs() / peak).max()) <= 1e-10
+    for q in learn:
+        scale = float(ga[q].abs().max())
+        assert float((ga[q] - gb[q]).abs().max()) <= (5e-12 if q == "thickness" else 1e-12) * scale, q
