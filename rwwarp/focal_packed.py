@@ -173,10 +173,11 @@ class PackedFocalPropagator:
             nu_h[k, :nf_k[k]] = np.fft.fftfreq(int(nf_k[k]), d=float(hs[k]))
         f_in = np.arange(NF)[None, :] < nf_k[:, None]                      # (S, NF): a member's own frequencies
         # the zero-padded FFT as a matrix: W[m, j] = exp(-2 pi i (m j mod nf) / nf) (exact integer phase index)
-        mj = (np.arange(NF)[:, None] * np.arange(NS)[None, :])[None] % nf_k[:, None, None]
-        W = _cis(-2.0 * np.pi * mj / nf_k[:, None, None], np)
-        W = np.where(f_in[:, :, None] & row_in[:, None, :], W, 0.0)
-        self._W = xp.asarray(W)
+        # (formed on the operator's device from index vectors: no (S, nf, ns) host array or copy)
+        nfd = xp.asarray(nf_k)[:, None, None]
+        mj = (xp.arange(NF)[:, None] * xp.arange(NS)[None, :])[None] % nfd
+        W = _cis(-2.0 * np.pi * mj / nfd, xp)
+        self._W = xp.where(xp.asarray(f_in)[:, :, None] & xp.asarray(row_in)[:, None, :], W, 0.0)
         nu = xp.asarray(nu_h)
         fx = xp.asarray(f_c[:, 0:1, None]) + nu[:, None, :]
         fy = xp.asarray(f_c[:, 1:2, None]) + nu[:, :, None]
