@@ -221,7 +221,6 @@ class LiveProvider:
                     e[3] = True
         return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
 
-
     def _units(self, order, rws, fresh, packs) -> list:
         """The work of one chunk: ``[(kind, object, rows)]`` with ``kind`` "packed" (a
         :class:`~torch_bridge.packed.PackedTile` of single-source focal plans, rows in its members' order) or
