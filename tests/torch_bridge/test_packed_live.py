@@ -247,3 +247,24 @@ def test_packed_on_cuda_equals_the_per_source_path_and_the_cpu():
     for q in learn:
         scale = float(ga[q].abs().max())
         assert float((ga[q] - gb[q]).abs().max()) <= (5e-12 if q == "thickness" else 1e-12) * scale, q
+
+
+def test_one_source_planned_again_rebuilds_its_tile_not_the_others_plans():
+    """Cooke triplet, 0 and 10 deg, kept plans (replan_every=3): one packed tile. One source's plan given up
+    (its rays marked as having left its window) is planned again alone: the other keeps its plan, the tile
+    is built again from the new member set (no planning), and the next call reuses that tile as it is (same
+    members: the same PSFs bit for bit)."""
+    lens = rw.load_lens("cooke_triplet")
+    m = tb.HybridLens(lens, learn={"curvature": [0]}, method="focal", rays_per_sample=0.5)
+    prov = dz.LiveProvider(m, [0.0, 10.0], 12, lens.sensor.pixel_pitch, replan_every=3)
+    with torch.no_grad():
+        prov.psfs([0.55])
+        assert (prov.plans_made, prov.plans_reused, prov.packs_made) == (2, 0, 1)
+        first = next(iter(prov._focal_rws.values()))
+        first[3] = True
+        b = prov.psfs([0.55])
+        assert (prov.plans_made, prov.plans_reused, prov.packs_made) == (3, 1, 2)
+        assert prov.replans == {"age": 0, "window": 1}
+        c = prov.psfs([0.55])
+        assert (prov.plans_made, prov.plans_reused, prov.packs_made) == (3, 3, 2)
+    assert torch.equal(b, c)
