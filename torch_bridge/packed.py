@@ -204,14 +204,16 @@ class PackedFocalPropagate(torch.autograd.Function):
     ``PackedFocalPropagate.apply(field, distance, tile, distance_host)``: ``field`` complex128 (S, n, n) on the
     tile's windows (each member's samples in the top-left ``n_k x n_k`` of its slot, zero elsewhere; DOE
     orders applied), ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; one lens: all equal),
-    ``distance_host`` its value as a float (mm). Returns float64 (S, size, size), ``|U|^2`` integrated over
-    each pixel (each member with its own Gauss nodes). Backward: the operators' adjoints for ``field`` and
+    ``distance_host`` its value as a float (mm). Returns float64 (S, size, size), the pixel values the tile's
+    ``pixel_values`` names integrated over each pixel (each member with its own Gauss nodes): the z-flux
+    ``Re(conj(U) U_w)`` ("flux") or ``|U|^2`` ("intensity"), as :class:`torch_bridge.functions.FocalPropagate`. Backward: the operators' adjoints for ``field`` and
     their exact distance derivatives for ``distance``, as :class:`torch_bridge.functions.FocalPropagate`."""
 
     @staticmethod
     def forward(ctx, field, distance, tile, distance_host):
-        from rwwarp.wave.focal import pixel_power
+        from rwwarp.wave.focal import pixel_flux, pixel_power
         prw = tile.raywave
+        flux = prw.pixel_values == "flux"
         if (field.device.type == "cuda") != str(prw.tracer.device).startswith("cuda"):
             raise ValueError(f"packed focal propagation: the field is on {field.device} but its RayWaves were "
                              f"planned on {prw.tracer.device}; plan on the field's device (HybridLens.to(device))")
@@ -223,11 +225,13 @@ class PackedFocalPropagate(torch.autograd.Function):
             out = xp.empty((S, size, size), dtype=np.float64)
             for g, op in zip(tile.groups, ops):
                 fg = f[xp.asarray(g), :op.n, :op.n]
-                u = op.forward(fg)
+                u = op.forward_pair(fg) if flux else op.forward(fg)
                 for sub, gn in _by_nodes(tile, g):
                     m = size * gn
-                    out[xp.asarray([g[i] for i in sub])] = pixel_power(u[xp.asarray(sub), :m, :m], gn, prw.pixel,
-                                                                       size, xp=xp)
+                    sa = xp.asarray(sub)
+                    out[xp.asarray([g[i] for i in sub])] = (
+                        pixel_flux(u[0][sa, :m, :m], u[1][sa, :m, :m], gn, prw.pixel, size, xp=xp) if flux else
+                        pixel_power(u[sa, :m, :m], gn, prw.pixel, size, xp=xp))
                 saved.append((fg if ctx.needs_input_grad[1] else None, u))   # the field: for d/d(distance) only
             res = _from_xp(out, field.device)
         ctx.tile, ctx.xp, ctx.saved, ctx.ops = tile, xp, saved, ops
@@ -237,7 +241,7 @@ class PackedFocalPropagate(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_out):
-        from rwwarp.wave.focal import pixel_power_adjoint
+        from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
         tile, xp = ctx.tile, ctx.xp
         prw = tile.raywave
         need_f, need_d = ctx.needs_input_grad[:2]
@@ -246,17 +250,23 @@ class PackedFocalPropagate(torch.autograd.Function):
             gf = xp.zeros(ctx.shape, dtype=np.complex128) if need_f else None
             gd = xp.zeros(ctx.shape[0], dtype=np.float64) if need_d else None
             for g, op, (fg, u) in zip(tile.groups, ctx.ops, ctx.saved):
-                gu = xp.zeros(u.shape, dtype=np.complex128)
+                flux = isinstance(u, tuple)    # "flux": the gradients of (U, U_w)
+                us = u if flux else (u,)
+                gus = tuple(xp.zeros(a.shape, dtype=np.complex128) for a in us)
                 for sub, gn in _by_nodes(tile, g):
                     m = prw.size * gn
                     sub_a = xp.asarray(sub)
-                    gu[sub_a, :m, :m] = pixel_power_adjoint(u[sub_a, :m, :m], g_all[xp.asarray([g[i] for i in sub])],
-                                                            gn, prw.pixel, xp=xp)
+                    gp = g_all[xp.asarray([g[i] for i in sub])]
+                    if flux:
+                        ga, gb = pixel_flux_adjoint(us[0][sub_a, :m, :m], us[1][sub_a, :m, :m], gp, gn, prw.pixel, xp=xp)
+                        gus[0][sub_a, :m, :m], gus[1][sub_a, :m, :m] = ga, gb
+                    else:
+                        gus[0][sub_a, :m, :m] = pixel_power_adjoint(us[0][sub_a, :m, :m], gp, gn, prw.pixel, xp=xp)
                 if need_f:
-                    gf[xp.asarray(g), :op.n, :op.n] = op.adjoint(gu)
+                    gf[xp.asarray(g), :op.n, :op.n] = op.adjoint_pair(*gus) if flux else op.adjoint(gus[0])
                 if need_d:
-                    du = op.distance_derivative(fg)
-                    gd[xp.asarray(g)] = xp.real(xp.sum(xp.conj(gu) * du, axis=(1, 2)))
+                    dus = op.distance_derivative_pair(fg) if flux else (op.distance_derivative(fg),)
+                    gd[xp.asarray(g)] = sum(xp.real(xp.sum(xp.conj(a) * b, axis=(1, 2))) for a, b in zip(gus, dus))
             gf_t = None if gf is None else _from_xp(gf, ctx.devices[0])
             gd_t = None if gd is None else _from_xp(gd, ctx.devices[1])
         ctx.saved = ctx.ops = None

@@ -196,6 +196,8 @@ class PackedFocalPropagator:
         keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room) & fin[:, None, :] & fin[:, :, None]
         rem = xp.where(keep, w - wg, 0.0)
         self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
+        # c = lambda' w = k_z / k, the direction cosine (pixel_values "flux"; 0 off a member's kept band)
+        self._c = xp.where(keep, w / xp.asarray(inv_lam)[:, None, None], 0.0)
         self._rem = rem
         self._dHR = None
         # output factors: U(p) = 1/nf sum_m B_m exp(2 pi i nu_m (p - s0)) per axis, zero past a member's nodes
@@ -235,7 +237,7 @@ class PackedFocalPropagator:
     def nbytes(self) -> int:
         """Bytes the operator holds on its device (factors of both steps; the distance-derivative factors once
         formed)."""
-        arrays = [*self._E, self._W, self._HR, self._rem, self._Fx, self._Fy]
+        arrays = [*self._E, self._W, self._HR, self._c, self._rem, self._Fx, self._Fy]
         if self._dE is not None:
             arrays += [*self._dE, self._dHR]
         return int(sum(a.nbytes for a in arrays))
@@ -264,6 +266,13 @@ class PackedFocalPropagator:
         member's own nodes)."""
         return self._out(self._dft2(self.sensor_grid_field(field)) * self._HR)
 
+    def forward_pair(self, field):
+        """``(U, U_w)`` at the output nodes, (S, M, M) each: :meth:`forward` and the field of the sensor-plane
+        spectrum weighted by the direction cosine ``c = k_z / k`` (pixel_values "flux", as
+        :meth:`rwwarp.wave.focal.FocalPropagator.forward_pair`)."""
+        b = self._dft2(self.sensor_grid_field(field)) * self._HR
+        return self._out(b), self._out(b * self._c)
+
     def _distance_factors(self):
         """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier, as
         :meth:`rwwarp.wave.focal.FocalPropagator._distance_factors` (built once)."""
@@ -290,11 +299,37 @@ class PackedFocalPropagator:
         dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
         return self._out(self._dft2(dv) * self._HR + self._dft2(v) * dhr)
 
+    def distance_derivative_pair(self, field):
+        """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight ``c`` does not
+        depend on the distance)."""
+        xp = self.xp
+        (dex, dey), dhr = self._distance_factors()
+        ex, ey = self._E
+        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
+                           ey.astype(np.complex128, copy=False))
+        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
+        db = self._dft2(dv) * self._HR + self._dft2(v) * dhr
+        return self._out(db), self._out(db * self._c)
+
     def adjoint(self, grad):
         """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, M, M) -> (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad))
+
+    def adjoint_pair(self, grad_u, grad_w):
+        """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U`` and ``U_w`` (S, M, M) each
+        (torch's convention), (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad_u) + self._from_nodes(grad_w) * self._c)
+
+    def _from_nodes(self, grad):
+        """Adjoint of the output DFT: (S, M, M) -> (S, nf, nf)."""
         xp = self.xp
         t = xp.matmul(xp.conj(xp.swapaxes(self._Fy, 1, 2)), grad)
-        b = xp.matmul(t, xp.conj(self._Fx)) * xp.conj(self._HR)
+        return xp.matmul(t, xp.conj(self._Fx))
+
+    def _spectrum_adjoint(self, b):
+        """Adjoint of the remainder transfer, the matrix DFT and step 1: (S, nf, nf) -> (S, n, n)."""
+        xp = self.xp
+        b = b * xp.conj(self._HR)
         v = xp.matmul(xp.matmul(xp.conj(xp.swapaxes(self._W, 1, 2)), b), xp.conj(self._W))
         ex, ey = self._E
         t = xp.matmul(xp.conj(xp.swapaxes(ey, 1, 2)), v.astype(ey.dtype, copy=False))
