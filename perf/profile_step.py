@@ -31,6 +31,8 @@ def main():
     ap.add_argument("--out", default=None)
     ap.add_argument("--find-syncs", action="store_true",
                     help="one more step counting the host reads of device data (each waits for the device) by call site")
+    ap.add_argument("--no-pack", action="store_true",
+                    help="live focal sources one at a time (optics.live_pack false), for an A/B against packed tiles")
     ap.add_argument("--budget-gb", type=float, default=None,
                     help="override the config's optics.memory_budget_gb (sets the live PSF tile)")
     a = ap.parse_args()
@@ -44,6 +46,8 @@ def main():
                       preset=a.preset)
     arm_cfg = next(x for x in exp["arms"] if (x["name"] == a.arm if a.arm else x["config"]["design"]["method"] == "e2e"))
     cfg = dict(arm_cfg["config"], device=a.device, progress=False)
+    if a.no_pack:
+        cfg["optics"] = dict(cfg["optics"], live_pack=False)
     if a.budget_gb is not None:
         cfg["optics"] = dict(cfg["optics"], memory_budget_gb=a.budget_gb)
     _seed_all(int(cfg["seed"]))
@@ -82,7 +86,8 @@ def main():
     prov = arm.provider
     if hasattr(prov, "plans_made"):
         say(f"live plans made {prov.plans_made}, reused {prov.plans_reused} (replan_every {prov.replan_every}; "
-            f"kept plans given up: {prov.replans})")
+            f"kept plans given up: {prov.replans}); packed tiles {'on' if getattr(prov, 'pack', False) else 'off'}, "
+            f"built {getattr(prov, 'packs_made', 0)}")
     if hasattr(prov, "tile"):
         say(f"live PSF tile {prov.tile} sources (memory_budget_gb {cfg['optics'].get('memory_budget_gb')})")
     if cuda:

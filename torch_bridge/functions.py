@@ -203,12 +203,24 @@ def _field_to_torch(field_wp, shape):
     return torch.view_as_complex(t).reshape(shape)
 
 
+def _window_steps(rw, device, dtype=torch.float64):
+    """``(n, g)``: the side of ``rw``'s field windows and the sample offsets from each window's origin (mm) on
+    ``device``, (1, n) for one plan, (S, n) for a packed batch (:class:`rwwarp.wave.packed.PackedRayWave`: each
+    source at its own pitch, in slots of the largest window; samples past a member's own window carry no
+    field)."""
+    lay = rw._layout()
+    n = int(lay["n_stride"])
+    if lay["ray_grids"] is None:
+        return n, (torch.arange(n, dtype=dtype, device=device) * rw.plan.pitch_mm)[None, :]
+    h = _on_device(rw, "packed_pitches", np.asarray(lay["pitches"], dtype=np.float64), device).to(dtype)
+    return n, torch.arange(n, dtype=dtype, device=device)[None, :] * h[:, None]
+
+
 def _grid_points(rw, device, dtype=torch.float64):
     """DOE-plane sample coordinates x (S, 1, n), y (S, n, 1) in mm, computed on ``device``."""
-    n, h = rw.plan.n_grid, rw.plan.pitch_mm
-    g = torch.arange(n, dtype=dtype, device=device) * h
+    _, g = _window_steps(rw, device, dtype)
     o = torch.as_tensor(rw.origin, dtype=dtype, device=device)
-    return (o[:, 0, None, None] + g[None, None, :]), (o[:, 1, None, None] + g[None, :, None])
+    return (o[:, 0, None, None] + g[:, None, :]), (o[:, 1, None, None] + g[:, :, None])
 
 
 def _on_device(rw, name: str, host: np.ndarray, device) -> torch.Tensor:
@@ -232,10 +244,9 @@ def _reference_z_factor(rw, device):
     c = _on_device(rw, "reference_z_consts", np.column_stack(
         [rw.origin[:, 0], rw.origin[:, 1], rw.target[:, 0], rw.target[:, 1], rw.target[:, 2] - rw.chief_plane[:, 2],
          2.0 * np.pi / rw.lam_mm * rw.n_after * sign]).astype(np.float64), device)
-    n, h = rw.plan.n_grid, rw.plan.pitch_mm
-    g = torch.arange(n, dtype=torch.float64, device=device) * h
-    x = c[:, 0, None, None] + g[None, None, :]
-    y = c[:, 1, None, None] + g[None, :, None]
+    _, g = _window_steps(rw, device)
+    x = c[:, 0, None, None] + g[:, None, :]
+    y = c[:, 1, None, None] + g[:, :, None]
     dz = c[:, 4, None, None]
     dist = torch.sqrt((c[:, 2, None, None] - x) ** 2 + (c[:, 3, None, None] - y) ** 2 + dz ** 2)
     return c[:, 5, None, None] * dz / dist
@@ -249,7 +260,7 @@ def trace_splat_forward(rw, table, record: bool, table_host=None):
     which would wait for the device)."""
     import warp as wp
     tr = rw.tracer
-    n = rw.plan.n_grid
+    n = int(rw._layout()["n_stride"])   # a packed batch: the slots of its largest window
     shape = (rw.nsrc, n, n)
     with _streams(rw):
         load_table(rw, table, table_host)
@@ -341,12 +352,29 @@ def power_sums(rw, device):
 
 def paper_amplitude(u, rw):
     """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
-    so that the field carries the traced power (:func:`rwwarp.wave.raywave.paper_rescale`, in torch; with
-    ``rw.pixel_values == "flux"`` its z-flux through the plane)."""
+    so that the field carries the traced power (:func:`rwwarp.wave.splat.paper_rescale`, in torch; with
+    ``rw.pixel_values == "flux"`` its z-flux through the plane; a packed tile: each member's own pitch)."""
     from rwwarp.wave.splat import paper_rescale, plane_cosines
+    lay = rw._layout()
+    pitch = rw.plan.pitch_mm if lay["ray_grids"] is None else \
+        _on_device(rw, "packed_pitches", np.asarray(lay["pitches"], dtype=np.float64), u.device)
+    traced = power_sums(rw, u.device)[1]
+    if lay["ray_grids"] is not None and rw.pixel_values == "flux":
+        # each member's flux on its own window's FFT grid (2 n_k), as the member alone has it: the cosine-weighted
+        # sum on the slot's grid is another quadrature of the same spectrum (they differ by ~1e-6)
+        from rwwarp.wave.focal import plane_direction_cosines
+        lam = np.asarray(rw.lam_mm, dtype=np.float64) / np.asarray(rw.n_after, dtype=np.float64)
+        out = []
+        for k in range(u.shape[0]):
+            n = int(lay["grids"][k])
+            ck = plane_direction_cosines(2 * n, lay["pitches"][k:k + 1], np.asarray(rw.carrier)[k:k + 1], lam[k:k + 1])
+            uk = paper_rescale(u[k:k + 1, :n, :n], traced[k:k + 1], pitch[k:k + 1], torch,
+                               torch.from_numpy(np.asarray(ck)).to(u.device))
+            out.append(torch.nn.functional.pad(uk, (0, u.shape[-1] - n, 0, u.shape[-2] - n)))
+        return torch.cat(out, 0)
     c = plane_cosines(rw)
     c = None if c is None else torch.from_numpy(c).to(u.device)
-    return paper_rescale(u, power_sums(rw, u.device)[1], rw.plan.pitch_mm, torch, c)
+    return paper_rescale(u, traced, pitch, torch, c)
 
 
 # ---------------------------------------------------------------------------------------------- propagation

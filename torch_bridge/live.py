@@ -41,11 +41,21 @@ class LiveProvider:
     Kept plans are not part of a training checkpoint: a resumed run plans afresh, so with N > 1 its next
     steps differ from an uninterrupted run's by the plans' age. Counts: :attr:`plans_made`,
     :attr:`plans_reused`, and why kept plans were given up, :attr:`replans` (``"age"``: ``replan_every``
-    calls old; ``"window"``: rays left the window)."""
+    calls old; ``"window"``: rays left the window).
+
+    ``pack`` (default True): the focal sources of a chunk, each on its own plan, are computed together
+    (:class:`torch_bridge.packed.PackedTile`: one parameter table, one trace + splat launch set and its one
+    recorded adjoint, one DOE transmission, the focal propagations as batched matrix products; per source
+    the same PSF and gradients as alone, to ~1e-15). A tile is kept while its members are (kept plans), and
+    built again, cheaply (no planning), when one of them changes; members whose propagations would pad
+    to more than ``pack_waste`` times their own work are stacked apart (:func:`rwwarp.wave.focal_packed.focal_groups`).
+    A tile's recorded peak (:func:`torch_bridge.packed.packed_recorded_bytes`: every member in the slots of
+    the largest) is checked against the budget; a chunk over it is split into tiles that fit. False: one
+    source at a time (:meth:`~torch_bridge.HybridLens._psf_rw`)."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
-                 window_tol: float = 1e-5):
+                 window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
@@ -65,6 +75,13 @@ class LiveProvider:
         self._focal_rws = {}
         self.plans_made = 0
         self.plans_reused = 0
+        if not (np.isfinite(pack_waste) and pack_waste >= 1):
+            raise ValueError(f"LiveProvider: pack_waste must be >= 1, got {pack_waste!r}")
+        self.pack, self.pack_waste = bool(pack), float(pack_waste)
+        # (id of each member, ...) -> (members, PackedTile) of the last call (see _units)
+        self._packed = {}
+        #: packed tiles built (a tile is built again only when its members change)
+        self.packs_made = 0
 
     def _usable(self, e) -> bool:
         """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again (else counted in
@@ -123,6 +140,9 @@ class LiveProvider:
         for e in self._focal_rws.values():
             e[1] += 1
             e[0].release_operators()   # the last call's operators (a learning distance rebuilds them anyway)
+        for t in self._packed.values():
+            t[1].release_operators()
+        packs = {}    # this call's packed tiles, keyed by their members' identities
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
             keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
@@ -163,33 +183,86 @@ class LiveProvider:
                 else:
                     rws[fresh[0]] = rw   # one band-limited batch for the new sources
                     self.plans_made += 1
-            # the chunk's RayWaves in source order; a band-limited batch of new sources gives their rows together
+            # the chunk's RayWaves in source order; a band-limited batch of new sources gives their rows together;
+            # single-source focal plans are computed together in packed tiles (torch_bridge.packed)
             order = sorted(rws)
-            rows = [fresh if (fresh and j == fresh[0] and rws[j].nsrc > 1) else [j] for j in order]
-            rws = [rws[j] for j in order]
-            flat = [j for row in rows for j in row]
+            units = self._units(order, rws, fresh, packs)
+            flat = [j for _, _, row in units for j in row]
             perm = None if flat == sorted(flat) else torch.as_tensor(np.argsort(flat))
 
-            def run(*ts, rws=rws, perm=perm, record=True):
+            def run(*ts, units=units, perm=perm, record=True):
                 vals = dict(zip(names, ts))
-                out = torch.cat([m._psf_rw(r, vals, record=record, tables=tables) for r in rws], 0)
+                out = torch.cat([m._psf_packed(u, vals, record=record, tables=tables) if kind == "packed" else
+                                 m._psf_rw(u, vals, record=record, tables=tables) for kind, u, _ in units], 0)
                 return out if perm is None else out[perm.to(out.device)]
             if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                 outs.append(Recompute.apply(run, *tensors))
             else:
                 outs.append(run(*tensors))
-            dropped += [(keys[j - sl.start], r, r.dropped) for j, r in zip(order, rws)]
+            for kind, u, row in units:
+                if kind == "packed":
+                    dropped += [(keys[j - sl.start], r, u.dropped(), i) for i, (j, r) in enumerate(zip(row, u.members))]
+                else:
+                    dropped += [(keys[row[0] - sl.start], u, u.dropped, None)]
+        self._packed = packs   # the tiles of this call (a tile of the last call not used again is freed)
         # read after every source was queued (a read waits for the device: once, not once per source)
-        for key, r, arr in dropped:
+        host = {}
+        for key, r, arr, i in dropped:
             e = self._focal_rws.get(key)
             if e is not None and e[0] is r:
                 # more rays outside the window than at the plan's first use: plan that source again
-                d = int(np.sum(arr.numpy()))
+                a = host.get(id(arr))
+                if a is None:
+                    a = host[id(arr)] = (arr, arr.numpy())
+                d = int(np.sum(a[1] if i is None else a[1][i]))
                 if e[2] is None:
                     e[2] = d
                 elif d - e[2] > self.window_tol * r.nsrc * r.plan.ray_grid ** 2:
                     e[3] = True
         return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
+
+    def _units(self, order, rws, fresh, packs) -> list:
+        """The work of one chunk: ``[(kind, object, rows)]`` with ``kind`` "packed" (a
+        :class:`~torch_bridge.packed.PackedTile` of single-source focal plans, rows in its members' order) or
+        "rw" (one RayWave: a band-limited batch of the new sources ``fresh``, or a source not packed). Tiles
+        come from the last call's when their members are the same objects (``packs``: this call's, filled)."""
+        from .packed import PackedTile, packed_recorded_bytes
+        m = self.module
+        units, focal = [], []
+        for j in order:
+            r = rws[j]
+            if r.nsrc > 1:
+                units.append(("rw", r, list(fresh)))
+            elif self.pack and r.plan.method == "focal":
+                focal.append(j)
+            else:
+                units.append(("rw", r, [j]))
+        # members of one tile share the wave plane's z (one lens state) and, with thin lenses (whose table
+        # columns follow the tracer's first wavelength), the wavelength
+        sets = {}
+        for j in focal:
+            r = rws[j]
+            sets.setdefault((float(r.z_plane), r.wls[0] if any(m._thin_surfaces) else None), []).append(j)
+        budget = m.memory_budget(self.memory_budget_bytes)
+        for js in sets.values():
+            cur = []
+            for j in js + [None]:
+                if j is not None and (not cur or packed_recorded_bytes(m, [rws[i] for i in cur + [j]]) <= budget):
+                    cur.append(j)
+                    continue
+                if len(cur) == 1:
+                    units.append(("rw", rws[cur[0]], cur))
+                else:
+                    members = [rws[i] for i in cur]
+                    key = tuple(id(r) for r in members)
+                    hit = self._packed.get(key) or packs.get(key)
+                    if hit is None or any(a is not b for a, b in zip(hit[0], members)):
+                        hit = (members, PackedTile(members, self.pack_waste))
+                        self.packs_made += 1
+                    packs[key] = hit
+                    units.append(("packed", hit[1], cur))
+                cur = [j] if j is not None else []
+        return units
 
 
 def _recentred(rw, center_mm):

@@ -591,6 +591,13 @@ class HybridLens(nn.Module):
                 power = propagate(u, phi0, dist, rw, spatial_tile)
             return power / power_sums(rw, power.device)[0][:, None, None]
 
+    def _psf_packed(self, tile, values, record: bool = True, tables: dict | None = None):
+        """PSFs (S, size, size) of a :class:`torch_bridge.packed.PackedTile` of focal sources from the given
+        values, computed together (one trace + splat, batched DOE and propagation); per source the same as
+        :meth:`_psf_rw` of it alone (:func:`torch_bridge.packed.packed_psfs`)."""
+        from .packed import packed_psfs
+        return packed_psfs(self, tile, values, record=record, tables=tables)
+
     def memory_budget(self, memory_budget_bytes=None) -> int:
         """``memory_budget_bytes``, or the device default: half the available memory
         (:func:`rwwarp.wave.plan.default_memory_budget_bytes`), bytes."""

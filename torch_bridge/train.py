@@ -254,7 +254,8 @@ class Arm:
             tile = max(1, int(o["memory_budget_gb"] * 1e9 / 2 // max(1, module.bytes_per_source(
                 module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm)))))
         return dz.LiveProvider(module, self.fields, self.size, self.pixel_mm, wavelength_ref_um=self.wl_ref,
-                               tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"])
+                               tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"],
+                               pack=o["live_pack"])
 
     def limit_feature(self) -> float:
         """After an optics update: project the DOE onto ``optics.min_feature_um`` (a learning DOE only;

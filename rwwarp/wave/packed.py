@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .raywave import RayWave, own_pupil_sources
+from .raywave import RayWave
 from ..trace import Tracer
 
 __all__ = ["PackedRayWave", "packed_bytes", "source_plans"]
@@ -57,9 +57,11 @@ class PackedRayWave(RayWave):
     Each member is then propagated by its own plan (:meth:`RayWave.focal_intensity` / :meth:`RayWave.intensity`
     on its window). A source's PSF is therefore what it is alone, whatever the batch (the float sums of the
     splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
-    one lens, device, precision, amplitude convention and propagation method. Lengths in mm."""
+    one lens, device, precision, amplitude convention and propagation method. Lengths in mm.
+    ``requires_grad``: the batch's tracer keeps gradient buffers, so its :meth:`field` can be recorded on a
+    ``wp.Tape`` and differentiated with respect to ``tracer.params`` (:mod:`torch_bridge`)."""
 
-    def __init__(self, members):
+    def __init__(self, members, requires_grad: bool = False):
         if not members or any(m.nsrc != 1 for m in members):
             raise ValueError("PackedRayWave takes single-source RayWave members")
         m0 = members[0]
@@ -69,6 +71,10 @@ class PackedRayWave(RayWave):
                                                          m0.deterministic, m0.device, m0.tracer.scalar, m0.pixel_values):
                 raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
                                  "reference, determinism, device, precision and pixel values")
+            if (m.src["shape"], m.src.get("object_distance"), m.plane, len(m.lens.surfaces)) != \
+                    (m0.src["shape"], m0.src.get("object_distance"), m0.plane, len(m0.lens.surfaces)):
+                raise ValueError("PackedRayWave members must be of one lens (pupil shape, object distance, wave "
+                                 "plane and surfaces)")
         self.members = list(members)
         lens = m0.lens
         self.lens, self.plane, self.curved_plane = lens, m0.plane, m0.curved_plane
@@ -80,8 +86,15 @@ class PackedRayWave(RayWave):
         self.nsrc = len(members)
         uniq = sorted(set(self.wls))
         dtype = "float64" if m0.tracer.np_dtype == np.float64 else "float32"
-        self.tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, deterministic=self.deterministic)
-        self.src = own_pupil_sources(self.tracer, self.fields, self.wls, uniq, m0.src.get("object_distance"))
+        self.tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, requires_grad=bool(requires_grad),
+                             deterministic=self.deterministic)
+        # each member's own launch (its entrance pupil as it was planned: a kept plan of earlier values keeps
+        # its pupil, as it does alone), its wavelength index moved to this batch's tracer
+        self.src = dict(m0.src)
+        for key in ("pos", "dir", "finite", "aim", "half_x", "half_y"):
+            self.src[key] = np.concatenate([np.asarray(m.src[key]) for m in members])
+        self.src["wl"] = np.array([uniq.index(w) for w in self.wls], dtype=np.int32)
+        self.src["fields"] = [f for m in members for f in m.src["fields"]]
         self.src["relative_opl"] = bool(self.use_reference)
         cat = lambda name: np.concatenate([np.asarray(getattr(m, name)) for m in members])
         for name in ("n_after", "lam_mm", "origin", "chief_plane", "chief_sensor", "carrier", "centers", "target",

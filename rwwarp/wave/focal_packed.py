@@ -1,0 +1,336 @@
+"""The focal propagation of several single-source plans at once (:class:`PackedFocalPropagator`).
+
+Each source keeps its own plan (wave-plane pitch and grid, sensor-side pitch, grid and FFT length, fitted
+transfer, taper, output nodes: :class:`rwwarp.wave.focal.FocalPropagator`); the sources are stacked on the leading
+(source) axis of the operator's matrices, so their products and adjoints run as batched matrix products
+(``xp.matmul`` over the source axis), whatever their shapes: every factor is padded to the group's largest
+grids with zeros. Step 1 is the focal operator's own separable sum (zero rows past a member's sensor-side
+grid, zero columns past its wave-plane grid). Step 2's zero-padded FFT of the sensor-side field is written as
+the equal matrix DFT ``W v W^T`` (``W[m, j] = exp(-2 pi i m j / n_fft)``, the member's own ``n_fft``; zero
+rows past it), so members of different FFT lengths stack too; the remainder transfer, band limit and output
+factors are each member's own (zero past its FFT length and its output nodes). The padding adds exact zeros
+to each sum, so a member's result is its operator's up to the order of the floating-point sums (the DFT
+against the FFT: ~1e-15 relative). :func:`focal_groups` splits a set of members where padding would waste
+too much work. Units: mm, cycles/mm, radians; arrays numpy (CPU) or CuPy (CUDA).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .focal import _cis, sensor_taper, transfer_curvature
+
+__all__ = ["PackedFocalPropagator", "focal_groups", "member_nodes"]
+
+
+def member_nodes(rw):
+    """Output node coordinates ``(nx, ny)`` (mm, (1, size * g) each) of a single-source focal RayWave: the
+    Gauss-Legendre nodes of its patch's pixels (as :meth:`rwwarp.wave.raywave.RayWave.focal_operator` forms them)."""
+    from .propagate import gauss_legendre
+    px, py = rw.pixel_centres()
+    t, _ = gauss_legendre(rw.gauss_nodes)
+    off = 0.5 * rw.pixel * t
+    nx = (px[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
+    ny = (py[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
+    return nx, ny
+
+
+def _work(n: int, ns: int, nf: int, m: int) -> int:
+    """Complex multiply-adds of one source's forward: step 1 (two products), the matrix DFT, the output DFT."""
+    return n * n * ns + n * ns * ns + nf * ns * (ns + nf) + nf * m * (nf + m)
+
+
+def _shape(rw):
+    pl = rw.plan
+    return int(pl.n_grid), int(pl.n_sensor), int(pl.n_sensor_fft), int(rw.size) * int(rw.gauss_nodes)
+
+
+def focal_groups(members, waste: float = 1.5) -> list:
+    """Indices of ``members`` (single-source focal RayWaves) stacked into one :class:`PackedFocalPropagator`
+    each: largest first, a member joins the open group while padding it to the group's largest grids
+    (wave plane, sensor side, FFT length, output nodes) grows its work (:func:`_work`: the matrix products of
+    one forward) by at most ``waste`` times. Returns a list of index lists (each sorted) covering every
+    member once, in the order of their first member."""
+    if not waste >= 1.0:
+        raise ValueError(f"focal_groups: waste must be >= 1, got {waste!r}")
+    for k, m in enumerate(members):
+        if m.nsrc != 1 or m.plan.method != "focal":
+            raise ValueError(f"focal_groups: member {k} is not a single-source focal RayWave")
+    shapes = [_shape(m) for m in members]
+    order = sorted(range(len(members)), key=lambda k: (-_work(*shapes[k]), k))
+    groups, cur, top = [], [], None
+    for k in order:
+        if cur:
+            pad = tuple(max(a, b) for a, b in zip(top, shapes[k]))
+            if _work(*pad) <= waste * _work(*shapes[k]):
+                cur.append(k)
+                top = pad
+                continue
+            groups.append(sorted(cur))
+        cur, top = [k], shapes[k]
+    if cur:
+        groups.append(sorted(cur))
+    return sorted(groups, key=lambda g: g[0])
+
+
+class PackedFocalPropagator:
+    """The focal propagation (:class:`~rwwarp.wave.focal.FocalPropagator`) of several sources at one distance, each
+    with its own wave-plane pitch and grid, sensor-side pitch, grid and FFT length, transfer, taper and output
+    nodes, stacked and zero-padded as the module docstring says. Fields in and gradients out are (S, n, n),
+    ``n`` the largest wave-plane grid (a member's samples past its own grid must be zero on the way in; they
+    come out zero); outputs (S, M, M), ``M`` the most output nodes per side (zero past a member's own).
+
+    Parameters (per source ``S``; lengths mm): ``origin_mm`` (S, 2); ``pitch_mm`` (S,); ``n_grid`` (S,) ints;
+    ``wavelength_mm`` (S,) in the image medium; ``distance_mm`` float; ``carrier_cpmm`` (S, 2);
+    ``sensor_origin_mm`` (S, 2); ``sensor_pitch_mm`` (S,); ``n_sensor`` (S,) ints; ``n_fft`` (S,) ints;
+    ``nodes_x_mm``, ``nodes_y_mm``: per source (M_k,) arrays; ``transfer``: per source None or ``(g, q)``
+    ((2,) each); ``taper_guard_mm``: per source None or float; ``precision`` of step 1's products as
+    :class:`~rwwarp.wave.focal.FocalPropagator` (step 2 in complex128). :meth:`from_members` reads them from
+    single-source focal RayWaves."""
+
+    def __init__(self, origin_mm, pitch_mm, n_grid, wavelength_mm, distance_mm, carrier_cpmm, sensor_origin_mm,
+                 sensor_pitch_mm, n_sensor, n_fft, nodes_x_mm, nodes_y_mm, xp=np, transfer=None,
+                 taper_guard_mm=None, precision="double"):
+        self.xp = xp
+        origin = np.asarray(origin_mm, dtype=np.float64).reshape(-1, 2)
+        S = origin.shape[0]
+        per = lambda v, dt: np.broadcast_to(np.asarray(v, dtype=dt), (S,)).copy()
+        h, hs = per(pitch_mm, np.float64), per(sensor_pitch_mm, np.float64)
+        n_k, ns_k, nf_k = per(n_grid, np.int64), per(n_sensor, np.int64), per(n_fft, np.int64)
+        nodes_x = [np.asarray(v, dtype=np.float64).reshape(-1) for v in nodes_x_mm]
+        nodes_y = [np.asarray(v, dtype=np.float64).reshape(-1) for v in nodes_y_mm]
+        if len(nodes_x) != S or len(nodes_y) != S:
+            raise ValueError(f"PackedFocalPropagator: nodes_x_mm and nodes_y_mm need one array per source ({S})")
+        if np.any(ns_k > nf_k) or np.any(ns_k < 1) or np.any(n_k < 1):
+            raise ValueError(f"PackedFocalPropagator: grids must be >= 1 and n_sensor <= n_fft; got n_grid "
+                             f"{n_k.tolist()}, n_sensor {ns_k.tolist()}, n_fft {nf_k.tolist()}")
+        lam = per(wavelength_mm, np.float64)
+        z = float(distance_mm)
+        if not z > 0:
+            raise ValueError(f"distance_mm must be > 0 (wave plane before the sensor), got {z}")
+        f_c = np.asarray(carrier_cpmm, dtype=np.float64).reshape(S, 2)
+        s0 = np.asarray(sensor_origin_mm, dtype=np.float64).reshape(S, 2)
+        inv_lam = 1.0 / lam
+        w_c, g, q = transfer_curvature(f_c, inv_lam)
+        transfer = [None] * S if transfer is None else list(transfer)
+        guards = [None] * S if taper_guard_mm is None else list(taper_guard_mm)
+        if len(transfer) != S or len(guards) != S:
+            raise ValueError(f"PackedFocalPropagator: transfer and taper_guard_mm need one entry per source ({S})")
+        for k, tk in enumerate(transfer):
+            if tk is not None:   # a fitted quadratic (rwwarp.wave.plan.fit_quadratic_transfer), per source
+                g[k] = np.asarray(tk[0], dtype=np.float64).reshape(2)
+                q[k] = np.asarray(tk[1], dtype=np.float64).reshape(2)
+                if not np.all(q[k] < 0):
+                    raise ValueError(f"transfer of source {k}: the quadratic coefficients q must be negative")
+        A = 1.0 / (z * q)
+        N, NS, NF = int(n_k.max()), int(ns_k.max()), int(nf_k.max())
+        M = max(max(len(v) for v in nodes_x), max(len(v) for v in nodes_y))
+        self.S, self.n, self.ns, self.nf, self.m = S, N, NS, NF, M
+        self.pitch, self.spitch, self.z = h, hs, z
+        self.n_grids, self.n_sensors, self.n_ffts = n_k, ns_k, nf_k
+        self.n_nodes = [(len(a), len(b)) for a, b in zip(nodes_x, nodes_y)]
+        xs = origin[:, None, :] + np.arange(N)[None, :, None] * h[:, None, None]
+        ps = s0[:, None, :] + np.arange(NS)[None, :, None] * hs[:, None, None]
+        X = {k: xp.asarray(v) for k, v in (("xs", xs), ("ps", ps), ("g", g), ("A", A))}
+        if precision not in ("double", "single"):
+            raise ValueError(f"precision must be 'double' or 'single', got {precision!r}")
+        self.precision = precision
+        cdt = np.complex64 if precision == "single" else np.complex128
+        # ---- step 1: FocalPropagator's factors, each source with its own pitches (focal.py gives the split)
+        jj = np.arange(NS, dtype=np.float64)
+        ii = np.arange(N, dtype=np.float64)
+        mm = np.arange(-(N - 1), NS, dtype=np.float64)
+        toe = xp.arange(NS)[:, None] - xp.arange(N)[None, :] + (N - 1)
+        row_in = jj[None, :] < ns_k[:, None]          # (S, NS): a member's own sensor-side rows
+        col_in = ii[None, :] < n_k[:, None]           # (S, N): its own wave-plane samples
+        hc, hsc = h[:, None], hs[:, None]
+        self._E = []
+        for ax in range(2):
+            a = np.pi * A[:, ax:ax + 1]
+            u0 = s0[:, ax:ax + 1] + z * g[:, ax:ax + 1]
+            x0 = origin[:, ax:ax + 1]
+            b = a * hc * hsc
+            u = u0 + jj[None, :] * hsc
+            x = x0 + ii[None, :] * hc
+            P = -a * u * u + 2.0 * a * x0 * hsc * jj[None, :] + b * jj[None, :] ** 2 + 2.0 * a * u0 * x0
+            Q = -a * x * x + 2.0 * a * u0 * hc * ii[None, :] + b * ii[None, :] ** 2
+            K = -b * mm[None, :] ** 2
+            amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * hc
+            Pd = amp * _cis(P, np)
+            for k, gk in enumerate(guards):
+                if gk is not None:   # the taper over the member's own sensor-side grid (its ends set it)
+                    m, nd = int(ns_k[k]), (nodes_x, nodes_y)[ax][k]
+                    Pd[k, :m] = Pd[k, :m] * sensor_taper(ps[k:k + 1, :m, ax], np.array([nd.min() - float(gk)]),
+                                                         np.array([nd.max() + float(gk)]))[0]
+            Pd = xp.asarray(np.where(row_in, Pd, 0.0).astype(cdt))
+            Qd = xp.asarray(np.where(col_in, _cis(Q, np), 0.0).astype(cdt))
+            Kd = xp.asarray(_cis(K, np).astype(cdt))
+            self._E.append(Kd[:, toe] * Pd[:, :, None] * Qd[:, None, :])
+        self._geo = X
+        self._dE = None
+        # ---- step 2 per source: its own FFT length and sensor pitch set its frequencies and padding room
+        nu_h = np.zeros((S, NF))
+        for k in range(S):
+            nu_h[k, :nf_k[k]] = np.fft.fftfreq(int(nf_k[k]), d=float(hs[k]))
+        f_in = np.arange(NF)[None, :] < nf_k[:, None]                      # (S, NF): a member's own frequencies
+        # the zero-padded FFT as a matrix: W[m, j] = exp(-2 pi i (m j mod nf) / nf) (exact integer phase index)
+        # (formed on the operator's device from index vectors: no (S, nf, ns) host array or copy)
+        nfd = xp.asarray(nf_k)[:, None, None]
+        mj = (xp.arange(NF)[:, None] * xp.arange(NS)[None, :])[None] % nfd
+        W = _cis(-2.0 * np.pi * mj / nfd, xp)
+        self._W = xp.where(xp.asarray(f_in)[:, :, None] & xp.asarray(row_in)[:, None, :], W, 0.0)
+        nu = xp.asarray(nu_h)
+        fx = xp.asarray(f_c[:, 0:1, None]) + nu[:, None, :]
+        fy = xp.asarray(f_c[:, 1:2, None]) + nu[:, :, None]
+        arg = xp.asarray(inv_lam[:, None, None]) ** 2 - fx ** 2 - fy ** 2
+        w = xp.sqrt(xp.maximum(arg, 0.0))
+        nux, nuy = nu[:, None, :], nu[:, :, None]
+        gx, gy = X["g"][:, None, None, 0], X["g"][:, None, None, 1]
+        qd = xp.asarray(q)
+        qx, qy = qd[:, None, None, 0], qd[:, None, None, 1]
+        wg = xp.asarray(w_c)[:, None, None] + gx * nux + gy * nuy + 0.5 * (qx * nux ** 2 + qy * nuy ** 2)
+        ws = xp.where(arg > 0, w, 1.0)
+        dx = z * (fx / ws + gx + qx * nux)
+        dy = z * (fy / ws + gy + qy * nuy)
+        room = xp.asarray((nf_k - ns_k) * hs)[:, None, None]
+        fin = xp.asarray(f_in)
+        keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room) & fin[:, None, :] & fin[:, :, None]
+        rem = xp.where(keep, w - wg, 0.0)
+        self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
+        # c = lambda' w = k_z / k, the direction cosine (pixel_values "flux"; 0 off a member's kept band)
+        self._c = xp.where(keep, w / xp.asarray(inv_lam)[:, None, None], 0.0)
+        self._rem = rem
+        self._dHR = None
+        # output factors: U(p) = 1/nf sum_m B_m exp(2 pi i nu_m (p - s0)) per axis, zero past a member's nodes
+        def out_factor(nodes, ax):
+            d = np.zeros((S, M))
+            ok = np.zeros((S, M), dtype=bool)
+            for k, v in enumerate(nodes):
+                d[k, :len(v)] = v - s0[k, ax]
+                ok[k, :len(v)] = True
+            F = _cis(2.0 * np.pi * nu[:, None, :] * xp.asarray(d)[:, :, None], xp) / xp.asarray(nf_k)[:, None, None]
+            return xp.where(xp.asarray(ok)[:, :, None], F, 0.0)
+        self._Fx = out_factor(nodes_x, 0)
+        self._Fy = out_factor(nodes_y, 1)
+
+    @classmethod
+    def from_members(cls, members, distance_mm, precision="double", xp=None):
+        """The stacked operator of single-source focal RayWaves ``members`` (one group of
+        :func:`focal_groups`) at the wave-plane-to-sensor distance ``distance_mm`` (mm), in the array
+        namespace of their device (``xp``: numpy on the CPU, CuPy on CUDA, unless given)."""
+        if xp is None:
+            xp = np
+            if members[0].tracer.device.startswith("cuda"):
+                import cupy as xp
+        nodes = [member_nodes(m) for m in members]
+        pl = [m.plan for m in members]
+        cat = lambda name: np.concatenate([np.asarray(getattr(m, name), dtype=np.float64) for m in members])
+        return cls(cat("origin"), [p.pitch_mm for p in pl], [p.n_grid for p in pl],
+                   cat("lam_mm") / cat("n_after"), distance_mm, cat("carrier"),
+                   np.concatenate([np.asarray(m.focal["sensor_origin"], dtype=np.float64).reshape(-1, 2)
+                                   for m in members]),
+                   [p.sensor_pitch_mm for p in pl], [p.n_sensor for p in pl], [p.n_sensor_fft for p in pl],
+                   [nd[0][0] for nd in nodes], [nd[1][0] for nd in nodes], xp=xp,
+                   transfer=[m.focal.get("transfer") for m in members],
+                   taper_guard_mm=[m.focal.get("taper_guard_mm") for m in members], precision=precision)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the operator holds on its device (factors of both steps; the distance-derivative factors once
+        formed)."""
+        arrays = [*self._E, self._W, self._HR, self._c, self._rem, self._Fx, self._Fy]
+        if self._dE is not None:
+            arrays += [*self._dE, self._dHR]
+        return int(sum(a.nbytes for a in arrays))
+
+    # ------------------------------------------------------------------ operator
+    def _step1(self, field, ex, ey):
+        xp = self.xp
+        t = xp.matmul(field.astype(ex.dtype, copy=False), xp.swapaxes(ex, 1, 2))
+        return xp.matmul(ey, t).astype(np.complex128, copy=False), t
+
+    def _dft2(self, v):
+        """The zero-padded 2-D FFT of the sensor-side field as ``W v W^T`` (S, nf, nf)."""
+        xp = self.xp
+        return xp.matmul(xp.matmul(self._W, v), xp.swapaxes(self._W, 1, 2))
+
+    def _out(self, b):
+        xp = self.xp
+        return xp.matmul(self._Fy, xp.matmul(b, xp.swapaxes(self._Fx, 1, 2)))
+
+    def sensor_grid_field(self, field):
+        """Step 1: ``V`` (S, ns, ns) on the sensor-side grids from the wave-plane fields (S, n, n)."""
+        return self._step1(field, *self._E)[0]
+
+    def forward(self, field):
+        """Complex field at the output nodes, (S, M, M) (up to a constant phase per source; zero past a
+        member's own nodes)."""
+        return self._out(self._dft2(self.sensor_grid_field(field)) * self._HR)
+
+    def forward_pair(self, field):
+        """``(U, U_w)`` at the output nodes, (S, M, M) each: :meth:`forward` and the field of the sensor-plane
+        spectrum weighted by the direction cosine ``c = k_z / k`` (pixel_values "flux", as
+        :meth:`rwwarp.wave.focal.FocalPropagator.forward_pair`)."""
+        b = self._dft2(self.sensor_grid_field(field)) * self._HR
+        return self._out(b), self._out(b * self._c)
+
+    def _distance_factors(self):
+        """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier, as
+        :meth:`rwwarp.wave.focal.FocalPropagator._distance_factors` (built once)."""
+        if self._dE is None:
+            X, z = self._geo, self.z
+            self._dE = []
+            for ax in range(2):
+                g = X["g"][:, None, None, ax]
+                d = X["ps"][:, :, None, ax] + z * g - X["xs"][:, None, :, ax]
+                a = X["A"][:, None, None, ax]
+                fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g
+                self._dE.append(self._E[ax] * fac)
+            self._dHR = self._HR * (2j * np.pi * self._rem)
+        return self._dE, self._dHR
+
+    def distance_derivative(self, field):
+        """``dU/dz`` (S, M, M): the exact derivative of :meth:`forward` with respect to the distance (grids,
+        band masks and carriers held fixed)."""
+        xp = self.xp
+        (dex, dey), dhr = self._distance_factors()
+        ex, ey = self._E
+        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
+                           ey.astype(np.complex128, copy=False))
+        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
+        return self._out(self._dft2(dv) * self._HR + self._dft2(v) * dhr)
+
+    def distance_derivative_pair(self, field):
+        """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight ``c`` does not
+        depend on the distance)."""
+        xp = self.xp
+        (dex, dey), dhr = self._distance_factors()
+        ex, ey = self._E
+        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
+                           ey.astype(np.complex128, copy=False))
+        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
+        db = self._dft2(dv) * self._HR + self._dft2(v) * dhr
+        return self._out(db), self._out(db * self._c)
+
+    def adjoint(self, grad):
+        """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, M, M) -> (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad))
+
+    def adjoint_pair(self, grad_u, grad_w):
+        """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U`` and ``U_w`` (S, M, M) each
+        (torch's convention), (S, n, n)."""
+        return self._spectrum_adjoint(self._from_nodes(grad_u) + self._from_nodes(grad_w) * self._c)
+
+    def _from_nodes(self, grad):
+        """Adjoint of the output DFT: (S, M, M) -> (S, nf, nf)."""
+        xp = self.xp
+        t = xp.matmul(xp.conj(xp.swapaxes(self._Fy, 1, 2)), grad)
+        return xp.matmul(t, xp.conj(self._Fx))
+
+    def _spectrum_adjoint(self, b):
+        """Adjoint of the remainder transfer, the matrix DFT and step 1: (S, nf, nf) -> (S, n, n)."""
+        xp = self.xp
+        b = b * xp.conj(self._HR)
+        v = xp.matmul(xp.matmul(xp.conj(xp.swapaxes(self._W, 1, 2)), b), xp.conj(self._W))
+        ex, ey = self._E
+        t = xp.matmul(xp.conj(xp.swapaxes(ey, 1, 2)), v.astype(ey.dtype, copy=False))
+        return xp.matmul(t, xp.conj(ex)).astype(np.complex128, copy=False)

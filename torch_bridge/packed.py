@@ -1,0 +1,302 @@
+"""Differentiable PSFs of a tile of focal sources computed together, each on its own plan.
+
+A :class:`PackedTile` holds single-source focal :class:`rwwarp.psf.RayWave` s (each its own plan: pilot,
+windows, DOE orders, sensor-side grids) and one :class:`rwwarp.wave.packed.PackedRayWave` over them (built with
+gradient buffers). :func:`packed_psfs` then runs the ray-wave model for the whole tile with one parameter
+table, one trace + splat launch set recorded on one ``wp.Tape`` (:class:`~torch_bridge.functions.TraceSplat`,
+whose backward replays it for all members at once), one batched DOE transmission
+(:func:`packed_doe_factor`) and the focal propagation of all members as a few batched matrix products
+(:class:`PackedFocalPropagate`, :class:`rwwarp.wave.focal_packed.PackedFocalPropagator`). Every member's PSF and
+gradients are those of :meth:`torch_bridge.HybridLens._psf_rw` on the member alone up to the order of
+floating-point sums (tests/torch_bridge/test_packed_live.py measures it).
+
+Devices: the Warp device is the members' (their tracer's), the torch tensors are the module's, the
+propagation's arrays numpy on the CPU and CuPy views of the same device memory on CUDA (DLPack), run on
+torch's current stream with torch's allocator (``torch_bridge.functions._streams``), as the single-source
+path. Units: mm, um for wavelengths, rad for phases.
+"""
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import torch
+from rwwarp.trace import COLUMNS as COL
+
+from .functions import _from_xp, _on_device, _streams, _xp_of, bridge_state, focal_doe_factor, paper_amplitude
+from .functions import power_sums, trace_splat
+
+__all__ = ["PackedFocalPropagate", "PackedTile", "packed_doe_factor", "packed_psfs", "packed_recorded_bytes"]
+
+
+class PackedTile:
+    """Single-source focal RayWaves ``members`` (of one lens, device and precision, made with
+    ``requires_grad=True``; :meth:`torch_bridge.HybridLens.raywave`) computed together: :attr:`raywave`, their
+    :class:`rwwarp.wave.packed.PackedRayWave` (one trace and splat for all; the members keep their own plans and
+    patches), and :attr:`groups`, the members' indices stacked into one focal operator each
+    (:func:`rwwarp.wave.focal_packed.focal_groups`, ``waste``: the padding allowed). Operators are built on first
+    use per distance (:meth:`operators`) and dropped by :meth:`release_operators`."""
+
+    def __init__(self, members, waste: float = 1.5):
+        from rwwarp.wave.focal_packed import focal_groups
+        from rwwarp.wave.packed import PackedRayWave
+        self.members = list(members)
+        if len({float(m.z_plane) for m in self.members}) != 1:
+            raise ValueError("PackedTile: members must share the wave plane's z (plan them from one lens state)")
+        self.raywave = PackedRayWave(self.members, requires_grad=True)
+        bridge_state(self.raywave)["base_table"] = self.raywave.tracer.params_np.copy()
+        self.groups = focal_groups(self.members, waste)
+        self._ops = None
+
+    def operators(self, distance_mm: float, precision: str = "double") -> list:
+        """One :class:`rwwarp.wave.focal_packed.PackedFocalPropagator` per group at ``distance_mm`` (mm), built once
+        per distance and precision."""
+        from rwwarp.wave.focal_packed import PackedFocalPropagator
+        key = (float(distance_mm), precision)
+        if self._ops is None or self._ops[0] != key:
+            self._ops = (key, [PackedFocalPropagator.from_members([self.members[k] for k in g], key[0], precision)
+                               for g in self.groups])
+        return self._ops[1]
+
+    def release_operators(self):
+        """Drop the built operators (the next use builds them again)."""
+        self._ops = None
+
+    def dropped(self):
+        """Rays per member that fell outside its window in the last trace (Warp int32 array (S,))."""
+        return self.raywave.dropped
+
+
+def packed_recorded_bytes(module, members, spatial_tile=None) -> int:
+    """Estimated peak bytes (forward + backward) of ``members`` recorded as one :class:`PackedTile`: every member
+    in the slots of the largest (its rays with gradients at the largest member's ray grid, its window at the
+    largest window: :func:`torch_bridge.budget.bytes_per_source` of the largest sizes) plus each member's own
+    propagation and output side."""
+    from dataclasses import replace
+    rg = max(m.plan.ray_grid for m in members)
+    ng = max(m.plan.n_grid for m in members)
+    total = 0
+    for m in members:
+        big = _Sized(m, replace(m.plan, ray_grid=rg, n_grid=ng))
+        total += module.bytes_per_source(big) + module.output_bytes_per_source(m, spatial_tile)
+    return int(total)
+
+
+class _Sized:
+    """A RayWave's attributes with another plan (for the byte estimates)."""
+
+    def __init__(self, rw, plan):
+        self._rw, self.plan = rw, plan
+
+    def __getattr__(self, name):
+        return getattr(self._rw, name)
+
+
+def packed_doe_factor(tile, phi0):
+    """The DOE's transmission on each member's wave-plane window, (S, n, n) complex128 (``n`` the tile's slot
+    side), or None without a DOE: per member what :func:`torch_bridge.functions.focal_doe_factor` gives it
+    alone. ``phi0``: the unwrapped DOE phase on the tile's windows (rad, (S, n, n)), differentiable. Members
+    are evaluated in two batches: those whose plan keeps several integer DOE orders, in one Horner recursion
+    in ``exp(1j phi0)`` over the union of their orders (a member's missing orders have zero coefficients)
+    with each member's exact chief-ray wrap zone; those with one order ``c exp(1j m phi0)`` (a relief that
+    does not wrap in the beam: ``m`` the wavelength remap) or a blank DOE (``exp(1j alpha phi0)``), in one
+    product. Any other member (none the planner makes) is evaluated alone."""
+    if phi0 is None:
+        return None
+    members = tile.members
+    S = len(members)
+    kinds = [_factor_kind(m) for m in members]
+    parts, seq = [], []
+    for kind, make in (("series", _series_factor), ("single", _single_factor)):
+        idx = [k for k in range(S) if kinds[k] == kind]
+        if idx:
+            p = phi0 if len(idx) == S else phi0[torch.as_tensor(idx, device=phi0.device)]
+            parts.append(make(tile, idx, p))
+            seq += idx
+    for k in range(S):
+        if kinds[k] is None:
+            parts.append(focal_doe_factor(members[k], phi0[k:k + 1]))
+            seq.append(k)
+    out = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+    if seq != list(range(S)):
+        out = out[torch.as_tensor(np.argsort(seq), device=out.device)]
+    return out
+
+
+def _factor_kind(m):
+    """How a member's DOE transmission is batched: "series" (several integer orders), "single" (one order, or a
+    blank DOE), None (alone)."""
+    if m.focal["profile"] is None:
+        return "single"
+    orders = m.focal["orders"][0]
+    if len(orders) == 1:
+        return "single"
+    if all(float(o) == int(o) for o, _ in orders):
+        return "series"
+    return None
+
+
+def _single_factor(tile, idx, p):
+    """``c exp(1j m p)`` for the members ``idx`` with one kept order ``(m, c)`` (as
+    :func:`rwwarp.wave.focal.doe_order_series`), or ``exp(1j alpha p)`` for a blank DOE (``alpha``: the wavelength
+    remap, :func:`torch_bridge.functions.doe_scale`), each member's chief-ray zone exact where it has one."""
+    from .functions import doe_scale
+    rows = []
+    for k in idx:
+        mb = tile.members[k]
+        if mb.focal["profile"] is None:
+            rows.append((float(doe_scale(mb)[0]), 1.0, 0.0))
+        else:
+            (o, c), = mb.focal["orders"][0]
+            rows.append((float(o), complex(c).real, complex(c).imag))
+    key = f"packed_single_{tuple(idx)}"
+    t = _on_device(tile.raywave, key, np.array(rows, dtype=np.float64), p.device)
+    m = t[:, 0, None, None]
+    c = torch.complex(t[:, 1], t[:, 2])[:, None, None]
+    acc = c * torch.exp(1j * m * p)
+    zones = [tile.members[k].focal.get("central_zone") if tile.members[k].focal["profile"] is not None else None
+             for k in idx]
+    return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
+
+
+def _zones(tile, key, zones, p, acc):
+    """``acc`` with each member's chief-ray wrap zone ``(k_c, alpha)`` (or None) computed exactly as
+    ``exp(1j alpha (p - 2 pi k_c))`` where ``floor(p / 2 pi) == k_c`` (:func:`rwwarp.wave.focal.doe_order_series`)."""
+    if all(z is None for z in zones):
+        return acc
+    # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
+    zt = np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones])
+    zd = _on_device(tile.raywave, key + "_zones", zt, p.device)
+    kc, alpha = zd[:, 0, None, None], zd[:, 1, None, None]
+    inside = torch.floor(p / (2.0 * np.pi)) == kc
+    return torch.where(inside, torch.exp(1j * alpha * (p - 2.0 * np.pi * kc)), acc)
+
+
+def _series_factor(tile, idx, p):
+    """``sum_m c_m exp(1j m p)`` for the members ``idx`` (integer orders), with each member's chief-ray wrap
+    zone exact (:func:`rwwarp.wave.focal.doe_order_series`, batched over the members)."""
+    members = [tile.members[k] for k in idx]
+    coefs = [{int(m): complex(c) for m, c in mb.focal["orders"][0]} for mb in members]
+    lo = min(min(c) for c in coefs)
+    hi = max(max(c) for c in coefs)
+    table = np.zeros((len(members), hi - lo + 1, 2))
+    for k, c in enumerate(coefs):
+        for m, v in c.items():
+            table[k, m - lo] = (v.real, v.imag)
+    key = f"packed_series_{tuple(idx)}"
+    c = torch.view_as_complex(_on_device(tile.raywave, key, table, p.device))
+    e = torch.exp(1j * p)
+    acc = torch.zeros_like(e) + c[:, -1, None, None]
+    for j in range(hi - lo - 1, -1, -1):
+        acc = acc * e + c[:, j, None, None]
+    if lo != 0:
+        f = e if lo > 0 else torch.conj(e)
+        for _ in range(abs(lo)):
+            acc = acc * f
+    zones = [mb.focal.get("central_zone") for mb in members]
+    return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
+
+
+class PackedFocalPropagate(torch.autograd.Function):
+    """Wave-plane fields of a :class:`PackedTile` -> power per sensor pixel of every member, by the members'
+    focal propagations stacked per group (:class:`rwwarp.wave.focal_packed.PackedFocalPropagator`).
+
+    ``PackedFocalPropagate.apply(field, distance, tile, distance_host)``: ``field`` complex128 (S, n, n) on the
+    tile's windows (each member's samples in the top-left ``n_k x n_k`` of its slot, zero elsewhere; DOE
+    orders applied), ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; one lens: all equal),
+    ``distance_host`` its value as a float (mm). Returns float64 (S, size, size), the pixel values the tile's
+    ``pixel_values`` names integrated over each pixel (each member with its own Gauss nodes): the z-flux
+    ``Re(conj(U) U_w)`` ("flux") or ``|U|^2`` ("intensity"), as :class:`torch_bridge.functions.FocalPropagate`. Backward: the operators' adjoints for ``field`` and
+    their exact distance derivatives for ``distance``, as :class:`torch_bridge.functions.FocalPropagate`."""
+
+    @staticmethod
+    def forward(ctx, field, distance, tile, distance_host):
+        from rwwarp.wave.focal import pixel_flux, pixel_power
+        prw = tile.raywave
+        flux = prw.pixel_values == "flux"
+        if (field.device.type == "cuda") != str(prw.tracer.device).startswith("cuda"):
+            raise ValueError(f"packed focal propagation: the field is on {field.device} but its RayWaves were "
+                             f"planned on {prw.tracer.device}; plan on the field's device (HybridLens.to(device))")
+        xp, f = _xp_of(field.to(torch.complex128))
+        S, size = f.shape[0], prw.size
+        saved = []
+        with _streams(prw):
+            ops = tile.operators(float(distance_host), "double")
+            out = xp.empty((S, size, size), dtype=np.float64)
+            for g, op in zip(tile.groups, ops):
+                fg = f[xp.asarray(g), :op.n, :op.n]
+                u = op.forward_pair(fg) if flux else op.forward(fg)
+                for sub, gn in _by_nodes(tile, g):
+                    m = size * gn
+                    sa = xp.asarray(sub)
+                    out[xp.asarray([g[i] for i in sub])] = (
+                        pixel_flux(u[0][sa, :m, :m], u[1][sa, :m, :m], gn, prw.pixel, size, xp=xp) if flux else
+                        pixel_power(u[sa, :m, :m], gn, prw.pixel, size, xp=xp))
+                saved.append((fg if ctx.needs_input_grad[1] else None, u))   # the field: for d/d(distance) only
+            res = _from_xp(out, field.device)
+        ctx.tile, ctx.xp, ctx.saved, ctx.ops = tile, xp, saved, ops
+        ctx.shape = tuple(f.shape)
+        ctx.devices = (field.device, None if distance is None else distance.device)
+        return res
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
+        tile, xp = ctx.tile, ctx.xp
+        prw = tile.raywave
+        need_f, need_d = ctx.needs_input_grad[:2]
+        _, g_all = _xp_of(grad_out.to(torch.float64))
+        with _streams(prw):
+            gf = xp.zeros(ctx.shape, dtype=np.complex128) if need_f else None
+            gd = xp.zeros(ctx.shape[0], dtype=np.float64) if need_d else None
+            for g, op, (fg, u) in zip(tile.groups, ctx.ops, ctx.saved):
+                flux = isinstance(u, tuple)    # "flux": the gradients of (U, U_w)
+                us = u if flux else (u,)
+                gus = tuple(xp.zeros(a.shape, dtype=np.complex128) for a in us)
+                for sub, gn in _by_nodes(tile, g):
+                    m = prw.size * gn
+                    sub_a = xp.asarray(sub)
+                    gp = g_all[xp.asarray([g[i] for i in sub])]
+                    if flux:
+                        ga, gb = pixel_flux_adjoint(us[0][sub_a, :m, :m], us[1][sub_a, :m, :m], gp, gn, prw.pixel, xp=xp)
+                        gus[0][sub_a, :m, :m], gus[1][sub_a, :m, :m] = ga, gb
+                    else:
+                        gus[0][sub_a, :m, :m] = pixel_power_adjoint(us[0][sub_a, :m, :m], gp, gn, prw.pixel, xp=xp)
+                if need_f:
+                    gf[xp.asarray(g), :op.n, :op.n] = op.adjoint_pair(*gus) if flux else op.adjoint(gus[0])
+                if need_d:
+                    dus = op.distance_derivative_pair(fg) if flux else (op.distance_derivative(fg),)
+                    gd[xp.asarray(g)] = sum(xp.real(xp.sum(xp.conj(a) * b, axis=(1, 2))) for a, b in zip(gus, dus))
+            gf_t = None if gf is None else _from_xp(gf, ctx.devices[0])
+            gd_t = None if gd is None else _from_xp(gd, ctx.devices[1])
+        ctx.saved = ctx.ops = None
+        return gf_t, gd_t, None, None
+
+
+def _by_nodes(tile, group):
+    """The members of ``group`` (positions in it) by their Gauss node count: ``[(positions, nodes), ...]``."""
+    by = {}
+    for i, k in enumerate(group):
+        by.setdefault(int(tile.members[k].gauss_nodes), []).append(i)
+    return [(v, gn) for gn, v in by.items()]
+
+
+def packed_psfs(module, tile, values, record: bool = True, tables: dict | None = None):
+    """PSFs (S, size, size) of every member of ``tile`` (a :class:`PackedTile`) for the values ``values`` of
+    ``module`` (a :class:`~torch_bridge.HybridLens`), fractions of each member's entering power per pixel:
+    per member :meth:`~torch_bridge.HybridLens._psf_rw` of it alone. ``record=False``: a plain forward (no
+    tape, no graph); ``tables``: the caller's cache of host tables (:meth:`~torch_bridge.HybridLens.host_table`)."""
+    prw = tile.raywave
+    ctx = contextlib.nullcontext() if record else torch.no_grad()
+    with ctx:
+        table = module.param_table(prw, values)
+        host = module.host_table(prw, table, tables)
+        dist = (table[-1, COL.z] - table[prw.plane, COL.z]).expand(prw.nsrc)
+        u = trace_splat(table, prw, host)
+        if prw.amplitude != "energy":
+            u = paper_amplitude(u, prw)
+        fac = packed_doe_factor(tile, module.doe_phase(prw, values, wrap=False))
+        if fac is not None:
+            u = u * fac
+        power = PackedFocalPropagate.apply(u, dist, tile, float(host[-1, COL.z] - host[prw.plane, COL.z]))
+        return power / power_sums(prw, power.device)[0][:, None, None]
