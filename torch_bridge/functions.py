@@ -354,27 +354,8 @@ def paper_amplitude(u, rw):
     """The paper's amplitude convention on a traced field (S, n, n): one differentiable scale per source
     so that the field carries the traced power (:func:`rwwarp.wave.splat.paper_rescale`, in torch; with
     ``rw.pixel_values == "flux"`` its z-flux through the plane; a packed tile: each member's own pitch)."""
-    from rwwarp.wave.splat import paper_rescale, plane_cosines
-    lay = rw._layout()
-    pitch = rw.plan.pitch_mm if lay["ray_grids"] is None else \
-        _on_device(rw, "packed_pitches", np.asarray(lay["pitches"], dtype=np.float64), u.device)
-    traced = power_sums(rw, u.device)[1]
-    if lay["ray_grids"] is not None and rw.pixel_values == "flux":
-        # each member's flux on its own window's FFT grid (2 n_k), as the member alone has it: the cosine-weighted
-        # sum on the slot's grid is another quadrature of the same spectrum (they differ by ~1e-6)
-        from rwwarp.wave.focal import plane_direction_cosines
-        lam = np.asarray(rw.lam_mm, dtype=np.float64) / np.asarray(rw.n_after, dtype=np.float64)
-        out = []
-        for k in range(u.shape[0]):
-            n = int(lay["grids"][k])
-            ck = plane_direction_cosines(2 * n, lay["pitches"][k:k + 1], np.asarray(rw.carrier)[k:k + 1], lam[k:k + 1])
-            uk = paper_rescale(u[k:k + 1, :n, :n], traced[k:k + 1], pitch[k:k + 1], torch,
-                               torch.from_numpy(np.asarray(ck)).to(u.device))
-            out.append(torch.nn.functional.pad(uk, (0, u.shape[-1] - n, 0, u.shape[-2] - n)))
-        return torch.cat(out, 0)
-    c = plane_cosines(rw)
-    c = None if c is None else torch.from_numpy(c).to(u.device)
-    return paper_rescale(u, traced, pitch, torch, c)
+    from rwwarp.wave.splat import paper_rescale_layout
+    return paper_rescale_layout(rw, u, power_sums(rw, u.device)[1], torch)
 
 
 # ---------------------------------------------------------------------------------------------- propagation

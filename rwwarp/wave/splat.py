@@ -160,7 +160,7 @@ def paper_rescale(u, traced_power, pitch_mm: float, xp, cosines=None):
     return u * xp.where(ok, xp.sqrt(traced_power / xp.where(ok, pw, 1.0)), 0.0)[:, None, None]
 
 
-def plane_cosines(rw, xp=np):
+def plane_cosines(rw, xp=np, like=None):
     """pixel_values "flux": the direction cosines ``k_z / k`` (S, 2n, 2n) on the FFT grid of a RayWave's windows
     (``n`` the window slot), in ``xp`` (numpy, CuPy or torch), for the paper convention's flux normalisation
     (:func:`paper_rescale`); None with "intensity"."""
@@ -168,7 +168,14 @@ def plane_cosines(rw, xp=np):
         return None
     from .focal import plane_direction_cosines
     lay = rw._layout()
-    return xp.asarray(plane_direction_cosines(2 * lay["n_stride"], lay["pitches"], rw.carrier, rw.lam_mm / rw.n_after))
+    return _in(xp, plane_direction_cosines(2 * lay["n_stride"], lay["pitches"], rw.carrier, rw.lam_mm / rw.n_after), like)
+
+
+def _in(xp, a, like=None):
+    """Host array ``a`` in namespace ``xp`` (numpy, CuPy, or torch on the device of the tensor ``like``)."""
+    if getattr(xp, "__name__", "") == "torch":
+        return xp.as_tensor(a, device=None if like is None else like.device)
+    return xp.asarray(a)
 
 
 def paper_rescale_layout(rw, u, traced_power, xp):
@@ -179,19 +186,16 @@ def paper_rescale_layout(rw, u, traced_power, xp):
     (S,) in ``xp`` (numpy, CuPy or torch)."""
     lay = rw._layout()
     if lay["ray_grids"] is None:
-        return paper_rescale(u, traced_power, rw.plan.pitch_mm, xp, plane_cosines(rw, xp))
+        return paper_rescale(u, traced_power, rw.plan.pitch_mm, xp, plane_cosines(rw, xp, u))
     pitches = np.asarray(lay["pitches"], dtype=np.float64)
     if rw.pixel_values != "flux":
-        p = pitches if xp is np else (xp.asarray(pitches) if not hasattr(u, "device") or xp.__name__ != "torch"
-                                      else xp.as_tensor(pitches, device=u.device))
-        return paper_rescale(u, traced_power, p, xp)
+        return paper_rescale(u, traced_power, _in(xp, pitches, u), xp)
     from .focal import plane_direction_cosines
     lam = np.asarray(rw.lam_mm, dtype=np.float64) / np.asarray(rw.n_after, dtype=np.float64)
     carrier = np.asarray(rw.carrier, dtype=np.float64)
     out = xp.zeros_like(u)
     for k in range(u.shape[0]):
         n = int(lay["grids"][k])
-        c = plane_direction_cosines(2 * n, pitches[k:k + 1], carrier[k:k + 1], lam[k:k + 1])
-        c = xp.as_tensor(c, device=u.device) if xp.__name__ == "torch" else xp.asarray(c)
+        c = _in(xp, plane_direction_cosines(2 * n, pitches[k:k + 1], carrier[k:k + 1], lam[k:k + 1]), u)
         out[k:k + 1, :n, :n] = paper_rescale(u[k:k + 1, :n, :n], traced_power[k:k + 1], float(pitches[k]), xp, c)
     return out
