@@ -45,9 +45,10 @@ PNG = ROOT / "docs" / "model_error_vs_fresnel.png"
 def versions() -> dict:
     import importlib.metadata
     out = {"python": sys.version.split()[0], "rwwarp": rw.__version__}
-    for m in ("numpy", "scipy", "warp", "pyopencl", "pyvkfft", "matplotlib"):
+    for m, dist in (("numpy", "numpy"), ("scipy", "scipy"), ("warp", "warp-lang"), ("pyopencl", "pyopencl"),
+                    ("pyvkfft", "pyvkfft"), ("matplotlib", "matplotlib")):
         try:
-            out[m] = importlib.metadata.version(m)
+            out[m] = importlib.metadata.version(dist)
         except Exception:   # optional: absent
             out[m] = None
     return out
