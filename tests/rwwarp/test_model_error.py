@@ -1,84 +1,21 @@
 """The ray-wave model's own error (issue 27): its estimate (rwwarp.wave.model_error) against the error measured on an
 independent wave-exact truth, and the wave step (rwwarp.wave.wave_step) that removes it.
 
-The truth is written here from the equations, rotationally symmetric (a round stop, an ideal thin lens, a
-radial DOE), so the 2-D problem is 1-D: the field's angular spectrum is its Hankel transform
-``F(nu) = 2 pi int f(r) J0(2 pi nu r) r dr``, free space multiplies it by ``exp(2 pi i z sqrt(1 / lambda^2 -
-nu^2))`` (exact, no Fresnel approximation), and ``f(r) = 2 pi int F(nu) J0(2 pi nu r) nu dnu`` brings it back.
-Both integrals are composite Gauss-Legendre sums over the hard edges (no staircase of samples at the rim).
-
-* truth ("two-step"): ``exp(-i k sqrt(r^2 + f^2))`` on ``r < a`` at the lens, propagated z1 to the DOE plane,
-  the DOE phase applied, propagated d2 = f - z1 to the sensor (at the lens focus);
-* model ("one-step", the ray-wave model's geometric field): the lens's converging wave truncated
-  geometrically at the DOE plane, ``exp(-i k sqrt(r^2 + d2^2)) / s`` on ``r < s a`` (s = d2 / f: rays go straight
-  to the focus, the tube's power conserved), the same DOE and propagation to the sensor.
-
-Their difference is the model's error alone, free of rwwarp's sampling. The band of the sums is 2 NA / lambda
-(3 NA / lambda moved the measured errors by 3 %, 1.5 NA / lambda by 10 %).
+The truth (a radially symmetric Gauss-Hankel angular spectrum, thin lens -> DOE -> sensor, and the geometric
+"one-step" model on the same quadrature) is in ``_wave_truth.py`` beside this file, shared with
+``perf/model_error_chart.py``; its docstring states the equations.
 """
 import warnings
 
 import numpy as np
 import pytest
-from scipy.special import j0
 
 import rwwarp as rw
 from rwwarp.wave import model_error as me
 from rwwarp.lens import Lens, Sensor, Surface
 
-F_MM, LAM_MM = 50.0, 0.55e-3
-
-
-def _gl(a, b, per_mm, per_panel=16):
-    """Composite Gauss-Legendre nodes and weights on [a, b], ``per_mm`` nodes per unit length."""
-    npan = max(1, int(np.ceil((b - a) * per_mm / per_panel)))
-    t, w = np.polynomial.legendre.leggauss(per_panel)
-    e = np.linspace(a, b, npan + 1)
-    h = 0.5 * (e[1:] - e[:-1])
-    return ((0.5 * (e[1:] + e[:-1]))[:, None] + h[:, None] * t[None]).ravel(), (h[:, None] * w[None]).ravel()
-
-
-def _hankel(f, r, wr, nu):
-    return 2 * np.pi * (j0(2 * np.pi * np.outer(nu, r)) @ (f * r * wr))
-
-
-def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0):
-    """(truth, model) sensor irradiance at the radii ``rho_mm`` (power per mm^2 over the power entering the
-    stop of radius ``a_mm``): thin lens F_MM, DOE ``sum_i c_i (r / r_b)^(2 i)`` (rad, ``r_b = s a`` the beam's
-    radius on the DOE plane) ``d2_mm`` before the sensor at the lens focus."""
-    k = 2 * np.pi / LAM_MM
-    z1, s = F_MM - d2_mm, d2_mm / F_MM
-    na = a_mm / np.hypot(a_mm, F_MM)
-    V = 2.0 * na / LAM_MM                          # the angular spectrum's band (cycles/mm)
-    rb, d = s * a_mm, z1 * d2_mm / F_MM
-    dens = q * (na / LAM_MM + V)                   # nodes per mm on the planes: the phase's and J0's oscillations
-    nu, wnu = _gl(0.0, V, q * (a_mm + F_MM * V * LAM_MM))   # spectrum nodes: the field's extent after propagation
-    H = lambda z: np.exp(2j * np.pi * z * np.sqrt(1 / LAM_MM ** 2 - nu ** 2))
-    W = lambda r: sum(c * (r / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
-    r0, w0 = _gl(0.0, a_mm, dens)
-    F0 = _hankel(np.exp(-1j * k * np.hypot(r0, F_MM)), r0, w0, nu)
-    r1, w1 = _gl(0.0, rb + 0.15 * rb + 30 * np.sqrt(LAM_MM * d), dens)   # the beam and its edge's ringing
-    f1 = 2 * np.pi * (j0(2 * np.pi * np.outer(r1, nu)) @ (F0 * H(z1) * nu * wnu))
-
-    def to_sensor(u, r, w):
-        F1 = _hankel(u * np.exp(1j * W(r)), r, w, nu)
-        return np.abs(2 * np.pi * (j0(2 * np.pi * np.outer(rho_mm, nu)) @ (F1 * H(d2_mm) * nu * wnu))) ** 2 / (np.pi * a_mm ** 2)
-
-    rg, wg = _gl(0.0, rb, dens)
-    return to_sensor(f1, r1, w1), to_sensor(np.exp(-1j * k * np.hypot(rg, d2_mm)) / s, rg, wg)
-
-
-def measured_error(a_mm, d2_mm, coeffs):
-    rho = np.linspace(0.0, 0.04, 161)
-    truth, model = radial_truth(a_mm, d2_mm, coeffs, rho)
-    return float(np.max(np.abs(model - truth)) / truth.max())
-
-
-def analytic_inputs(a_mm, d2_mm, coeffs):
-    """N_F = a^2 (f - z1) / (lambda f z1) and the rim slope S = rho dW/drho at rho = 1 (rad)."""
-    z1 = F_MM - d2_mm
-    nf = a_mm ** 2 * (F_MM - z1) / (LAM_MM * F_MM * z1)
-    return nf, sum(2 * (i + 1) * c for i, c in enumerate(coeffs))
+from _wave_truth import F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, thin_lens_doe
+from _wave_truth import pixel_truth as _pixel_truth
 
 
 # Calibration (rwwarp.wave.model_error's docstring): a = 2.5 mm, coeffs (0, A) with A = 1, 3, 8, d2 = 10 and 35 mm.
@@ -121,17 +58,6 @@ def test_formulas_follow_their_definitions_and_refuse_bad_input():
         me.reduced_distance_mm(1.0, 0.0)
     with pytest.raises(ValueError, match="Fresnel number"):
         me.model_error(0.0, 1.0)
-
-
-def thin_lens_doe(d2_mm, a_mm=2.5, coeffs=(0.0, 3.0), pixel=0.5e-3):
-    """The scene of the truth in rwwarp: round stop, ideal thin lens F_MM, radial DOE (a dispersion-free
-    substrate) d2_mm before the sensor at the lens focus."""
-    rb = a_mm * d2_mm / F_MM
-    surfs = [Surface(type="aperture", semi_diameter=a_mm, shape="circle", stop=True),
-             Surface(type="thin_lens", focal_length=F_MM, semi_diameter=1.2 * a_mm, thickness=F_MM - d2_mm),
-             Surface(type="doe", semi_diameter=1.5 * rb, thickness=d2_mm, material="1.5/1e9",
-                     profile={"kind": "even_poly", "coefficients": list(coeffs), "norm_radius": rb})]
-    return Lens(surfs, Sensor(pixel, (4000, 4000)), wavelengths_um=[0.55])
 
 
 def test_the_planner_reads_the_scene_and_prints_the_estimate():
@@ -183,16 +109,6 @@ def test_psf_warns_when_the_estimate_exceeds_the_tolerance():
     assert any("wave step" in r and "tolerance" in r for r in p.plan["reasons"])
     with pytest.raises(ValueError, match="tolerance"):
         rw.psf(lens, 0.0, 0.55, size=16, tolerance=0.0)
-
-
-def _pixel_truth(I_r, rho, x, y, pixel, nodes=4):
-    """Radial irradiance integrated over square pixels centred at (x, y) (Gauss-Legendre, interpolated)."""
-    t, w = np.polynomial.legendre.leggauss(nodes)
-    off = 0.5 * pixel * t
-    X = x[None, :, None, None] + off[None, None, None, :]
-    Y = y[:, None, None, None] + off[None, None, :, None]
-    v = np.interp(np.hypot(X, Y), rho, I_r)
-    return (v * (w[None, None, :, None] * w[None, None, None, :])).sum((2, 3)) * (0.5 * pixel) ** 2
 
 
 @pytest.mark.parametrize("d2_mm,method", [(10.0, "asm"), (10.0, "focal"), (5.0, "focal")])
