@@ -13,8 +13,10 @@ tar -xzf "$tgz" -C /tmp/base_src && python3 -m pip install -q --no-deps --no-bui
   || { echo "could not install $base"; exit 1; }
 cd /tmp
 echo "== $config at $base (base)"
-RWWARP_COMMIT=$base PYTHONPATH=/tmp/inst_base timeout 280 python3 "$here/perf/profile_step.py" --config "$config" --preset gpu \
+RWWARP_COMMIT=$base PYTHONPATH=/tmp/inst_base${PYTHONPATH:+:$PYTHONPATH} timeout 280 python3 "$here/perf/profile_step.py" --config "$config" --preset gpu \
   --device cuda --steps "$steps" --out "$out/base" 2>&1 | grep -v "use_ai2\|Warning\|arm = Arm\|warnings.warn" | head -14
-echo "== $config at ${RWWARP_COMMIT:-the working tree} (new)"
-(cd "$here" && timeout 280 python3 perf/profile_step.py --config "$config" --preset gpu --device cuda --steps "$steps" \
-  --out "$out/new" 2>&1 | grep -v "use_ai2\|Warning\|arm = Arm\|warnings.warn" | head -14)
+for flag in "" --pack; do
+  echo "== $config at ${RWWARP_COMMIT:-the working tree} (new $flag)"
+  (cd "$here" && timeout 240 python3 perf/profile_step.py --config "$config" --preset gpu --device cuda --steps "$steps" \
+    $flag --out "$out/new" 2>&1 | grep -v "use_ai2\|Warning\|arm = Arm\|warnings.warn" | head -14)
+done

@@ -31,6 +31,7 @@ def main():
     ap.add_argument("--out", default=None)
     ap.add_argument("--find-syncs", action="store_true",
                     help="one more step counting the host reads of device data (each waits for the device) by call site")
+    ap.add_argument("--pack", action="store_true", help="packed live tiles on (optics.live_pack = true)")
     ap.add_argument("--no-pack", action="store_true",
                     help="live focal sources one at a time (optics.live_pack false), for an A/B against packed tiles")
     ap.add_argument("--budget-gb", type=float, default=None,
@@ -48,6 +49,8 @@ def main():
     cfg = dict(arm_cfg["config"], device=a.device, progress=False)
     if a.no_pack:
         cfg["optics"] = dict(cfg["optics"], live_pack=False)
+    if a.pack:
+        cfg["optics"] = dict(cfg["optics"], live_pack=True)
     if a.budget_gb is not None:
         cfg["optics"] = dict(cfg["optics"], memory_budget_gb=a.budget_gb)
     _seed_all(int(cfg["seed"]))
@@ -62,7 +65,8 @@ def main():
             torch.cuda.synchronize()
 
     lines = []
-    summary = {"config": a.config, "preset": a.preset, "device": a.device, "arm": arm_cfg["name"]}
+    summary = {"config": a.config, "preset": a.preset, "device": a.device, "arm": arm_cfg["name"],
+               "live_pack": cfg["optics"].get("live_pack"), "pixel_values": cfg["optics"].get("pixel_values")}
 
     def say(s):
         print(s, flush=True)
@@ -137,7 +141,7 @@ def main():
         for site, n in _count_syncs(lambda: step(a.steps + 3))[:25]:
             say(f"{n:6d}  {site}")
     if a.out:
-        p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}.txt"
+        p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{'_pack' if a.pack else ''}.txt"
         p.write_text("\n".join(lines) + "\n")
         import json
         import os
