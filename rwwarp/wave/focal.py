@@ -166,6 +166,23 @@ def transfer_curvature(f_c, inv_lam):
     return w_c, g, q
 
 
+def distance_factors(E, geo, z, HR, rem):
+    """d/dz of a focal operator's step-1 factors ``E`` (two (S, ns, n) arrays) and of its remainder transfer
+    ``HR`` at fixed grids, band mask and carrier, the geometry ``geo`` (``xs``, ``ps``, ``g``, ``A``) and
+    ``rem`` (the remainder's phase over 2 pi z) of :class:`FocalPropagator` or
+    :class:`rwwarp.wave.focal_packed.PackedFocalPropagator`: ``E = sqrt|A| h exp(-i pi A d^2)`` with
+    ``A = 1 / (z Q)`` and ``d = p + z g - x``, so ``dE/dz = E (-1 / (2 z) + i pi (A / z) d^2 - 2 i pi A d g)``;
+    ``dH_R/dz = 2 pi i (w - w_G) H_R``. Returns ``([dE_x, dE_y], dH_R)``; z in mm."""
+    dE = []
+    for ax in range(2):
+        g = geo["g"][:, None, None, ax]
+        d = geo["ps"][:, :, None, ax] + z * g - geo["xs"][:, None, :, ax]
+        a = geo["A"][:, None, None, ax]
+        fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g
+        dE.append(E[ax] * fac)
+    return dE, HR * (2j * np.pi * rem)
+
+
 class FocalPropagator:
     """The planned focal propagation of one batch of sources (set up once, applied to many fields).
 
@@ -349,20 +366,10 @@ class FocalPropagator:
         return xp.matmul(t, xp.conj(self._Fx))                               # (S, nf, nf)
 
     def _distance_factors(self):
-        """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier (built once).
-
-        ``E = sqrt|A| h exp(-i pi A d^2)`` with ``A = 1 / (z Q)`` and ``d = p + z g - x``, so
-        ``dE/dz = E (-1 / (2 z) + i pi (A / z) d^2 - 2 i pi A d g)``; ``dH_R/dz = 2 pi i (w - w_G) H_R``."""
+        """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier (built once,
+        :func:`distance_factors`)."""
         if self._dE is None:
-            X, z = self._geo, self.z
-            self._dE = []
-            for ax in range(2):
-                g = X["g"][:, None, None, ax]
-                d = X["ps"][:, :, None, ax] + z * g - X["xs"][:, None, :, ax]
-                a = X["A"][:, None, None, ax]
-                fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g
-                self._dE.append(self._E[ax] * fac)
-            self._dHR = self._HR * (2j * np.pi * self._rem)
+            self._dE, self._dHR = distance_factors(self._E, self._geo, self.z, self._HR, self._rem)
         return self._dE, self._dHR
 
     def distance_derivative(self, field):

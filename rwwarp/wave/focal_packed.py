@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .focal import _cis, sensor_taper, transfer_curvature
+from .focal import _cis, distance_factors, sensor_taper, transfer_curvature
 
 __all__ = ["PackedFocalPropagator", "focal_groups", "member_nodes"]
 
@@ -274,41 +274,31 @@ class PackedFocalPropagator:
         return self._out(b), self._out(b * self._c)
 
     def _distance_factors(self):
-        """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier, as
-        :meth:`rwwarp.wave.focal.FocalPropagator._distance_factors` (built once)."""
+        """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band masks and carriers
+        (:func:`rwwarp.wave.focal.distance_factors`, built once)."""
         if self._dE is None:
-            X, z = self._geo, self.z
-            self._dE = []
-            for ax in range(2):
-                g = X["g"][:, None, None, ax]
-                d = X["ps"][:, :, None, ax] + z * g - X["xs"][:, None, :, ax]
-                a = X["A"][:, None, None, ax]
-                fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g
-                self._dE.append(self._E[ax] * fac)
-            self._dHR = self._HR * (2j * np.pi * self._rem)
+            self._dE, self._dHR = distance_factors(self._E, self._geo, self.z, self._HR, self._rem)
         return self._dE, self._dHR
+
+    def _distance_spectrum(self, field):
+        """``dB/dz`` (S, nf, nf) at fixed grids, band masks and carriers."""
+        xp = self.xp
+        (dex, dey), dhr = self._distance_factors()
+        ex, ey = self._E
+        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
+                           ey.astype(np.complex128, copy=False))
+        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
+        return self._dft2(dv) * self._HR + self._dft2(v) * dhr
 
     def distance_derivative(self, field):
         """``dU/dz`` (S, M, M): the exact derivative of :meth:`forward` with respect to the distance (grids,
         band masks and carriers held fixed)."""
-        xp = self.xp
-        (dex, dey), dhr = self._distance_factors()
-        ex, ey = self._E
-        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
-                           ey.astype(np.complex128, copy=False))
-        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
-        return self._out(self._dft2(dv) * self._HR + self._dft2(v) * dhr)
+        return self._out(self._distance_spectrum(field))
 
     def distance_derivative_pair(self, field):
         """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight ``c`` does not
         depend on the distance)."""
-        xp = self.xp
-        (dex, dey), dhr = self._distance_factors()
-        ex, ey = self._E
-        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
-                           ey.astype(np.complex128, copy=False))
-        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
-        db = self._dft2(dv) * self._HR + self._dft2(v) * dhr
+        db = self._distance_spectrum(field)
         return self._out(db), self._out(db * self._c)
 
     def adjoint(self, grad):
