@@ -96,10 +96,10 @@ class HybridLens(nn.Module):
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
     pixel_values : "flux" | "intensity"
-        What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` the power through it (the z-component of
-        the Poynting vector, obliquity included), ``"intensity"`` (default here) ``|U|^2`` over it. The design
-        loop keeps "intensity" for now: with "flux" the live curvature gradients of the cooke_hybrid gpu preset
-        came out NaN (the splat's adjoint, docs/propagation.md "Pixel values"); rwwarp's PSFs default to "flux".
+        What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` (default) the power through it (the
+        z-component of the Poynting vector, obliquity included), ``"intensity"`` ``|U|^2`` over it. Known defect:
+        with "flux" the curvature gradients of the cooke_hybrid gpu preset's live step came out NaN (the splat's
+        adjoint, docs/propagation.md "Pixel values"); the design configs therefore default to "intensity".
     deterministic : bool
         The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
         (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray
@@ -115,7 +115,7 @@ class HybridLens(nn.Module):
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
                  use_reference: bool = True, replan: bool = True, method: str = "auto",
-                 focal_patch_tol: float = 1e-5, deterministic: bool = False, pixel_values: str = "intensity"):
+                 focal_patch_tol: float = 1e-5, deterministic: bool = False, pixel_values: str = "flux"):
         super().__init__()
         self.deterministic = bool(deterministic)
         if pixel_values not in ("flux", "intensity"):
