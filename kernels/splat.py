@@ -19,6 +19,9 @@ fraction of the amplitude, and the field power ``sum |U|^2 pitch^2`` equals the 
 ``energy == 2`` (pixel_values "flux", :mod:`rwwarp.wave.propagate`) makes ``U`` the scalar field whose z-flux
 through the plane is that irradiance: each ray's amplitude is divided by ``sqrt(cos theta)`` (``|U|^2 =
 q / (A cos theta)``, so ``Re(conj(U) dU/dz / (i k)) = cos theta |U|^2 = q / A`` for the ray's local plane wave).
+A valid ray whose tube has no area (no valid neighbour along u or along v: :func:`tube_area_kernel` gives it
+``A = 0`` and a point box) or no power deposits nothing and leaves before ``sqrt(q A)`` and the division by its
+box area, whose adjoints at 0 are 0/0 = NaN even for a zero incoming gradient.
 
 with the reference sphere ``OPL_ref(p) = OPL_c + n (|T - p_c| - |T - p|)`` converging to the point T
 (``index`` negative: diverging from T)

@@ -99,7 +99,8 @@ class HybridLens(nn.Module):
         What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` the power through it (the z-component of
         the Poynting vector, obliquity included), ``"intensity"`` (default here) ``|U|^2`` over it. The design
         loop keeps "intensity" for now: with "flux" the live curvature gradients of the cooke_hybrid gpu preset
-        came out NaN (the splat's adjoint, docs/propagation.md "Pixel values"); rwwarp's PSFs default to "flux".
+        came out NaN (the splat's adjoint at zero-area ray tubes, since fixed: docs/propagation.md "Pixel
+        values"); rwwarp's PSFs default to "flux".
     deterministic : bool
         The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
         (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray
