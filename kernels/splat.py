@@ -19,6 +19,9 @@ fraction of the amplitude, and the field power ``sum |U|^2 pitch^2`` equals the 
 ``energy == 2`` (pixel_values "flux", :mod:`rwwarp.wave.propagate`) makes ``U`` the scalar field whose z-flux
 through the plane is that irradiance: each ray's amplitude is divided by ``sqrt(cos theta)`` (``|U|^2 =
 q / (A cos theta)``, so ``Re(conj(U) dU/dz / (i k)) = cos theta |U|^2 = q / A`` for the ray's local plane wave).
+A valid ray whose tube has no area (no valid neighbour along u or along v: :func:`tube_area_kernel` gives it
+``A = 0`` and a point box) or no power deposits nothing and leaves before ``sqrt(q A)`` and the division by its
+box area, whose adjoints at 0 are 0/0 = NaN even for a zero incoming gradient.
 
 with the reference sphere ``OPL_ref(p) = OPL_c + n (|T - p_c| - |T - p|)`` converging to the point T
 (``index`` negative: diverging from T)
@@ -196,13 +199,15 @@ def make_splat_kernels(scalar):
             det_p = pu[0] * pv[1] - pv[0] * pu[1]
             a = wp.abs(du[0] * dv[1] - du[1] * dv[0]) / wp.max(wp.abs(det_p), f64(1.0e-300))
             area_out[i] = a
-            # axis-aligned box of the same area, aspect from the Jacobian's diagonal
-            j1x = (du[0] * pv[1] - dv[0] * pu[1]) / det_p
-            j2y = (dv[1] * pu[0] - du[1] * pv[0]) / det_p
-            wx = wp.max(wp.abs(j1x), f64(1.0e-300))
-            wy = wp.max(wp.abs(j2y), f64(1.0e-300))
-            sc = wp.sqrt(a / (wx * wy))
-            half_out[i] = wp.vec2d(f64(0.5) * wx * sc, f64(0.5) * wy * sc)
+            if a > f64(0.0):
+                # axis-aligned box of the same area, aspect from the Jacobian's diagonal (a degenerate Jacobian,
+                # a = 0, keeps the point box written above: the square root's adjoint at 0 is 0/0 = NaN)
+                j1x = (du[0] * pv[1] - dv[0] * pu[1]) / det_p
+                j2y = (dv[1] * pu[0] - du[1] * pv[0]) / det_p
+                wx = wp.max(wp.abs(j1x), f64(1.0e-300))
+                wy = wp.max(wp.abs(j2y), f64(1.0e-300))
+                sc = wp.sqrt(a / (wx * wy))
+                half_out[i] = wp.vec2d(f64(0.5) * wx * sc, f64(0.5) * wy * sc)
 
     @wp.kernel(module="unique")
     def splat_kernel(
@@ -268,20 +273,40 @@ def make_splat_kernels(scalar):
             # psi + g.(x - p), g = k n (d_xy - u_T), u_T the unit vector to T (the gradient of the OPL on the
             # plane is n d_xy, that of the reference sphere n u_T). Each overlap rectangle gets the exact
             # integral of exp(1j (psi + g.(x - p))): its area times exp(1j g.(centre - p)) times sinc per axis.
-            amp = wp.sqrt(f64(weight[i]) * area[i])
+            hb = half[i]
+            f = f64(1.0)
+            if rim == 1:
+                # a rim cell the aperture covers in part (fraction f, already in the weight; the ray starts
+                # at the part's centroid): the tube's irradiance on f of its area, a box of f A about the ray
+                f = frac[s * frac_stride + i - s * n_pupil][0]
+                hb = hb * wp.sqrt(f)
+            amp2 = f64(weight[i]) * area[i]
+            # every sample cell the tube's box overlaps (a tube may span many cells: no power is lost)
+            cx0 = int(wp.floor((p[0] - hb[0] - o[0]) / h + f64(0.5)))
+            cy0 = int(wp.floor((p[1] - hb[1] - o[1]) / h + f64(0.5)))
+            cx1 = int(wp.floor((p[0] + hb[0] - o[0]) / h + f64(0.5)))
+            cy1 = int(wp.floor((p[1] + hb[1] - o[1]) / h + f64(0.5)))
+            if fixed != 2:
+                if cx0 < 0 or cy0 < 0 or cx1 >= ng or cy1 >= ng:
+                    wp.atomic_add(dropped_out, s, 1)
+                    return
+                if amp2 == f64(0.0):
+                    # nothing to deposit: a zero-area tube (a valid ray with no valid neighbour along u or v, e.g.
+                    # a lone rim ray; tube_area_kernel gives it area 0 and a point box) or zero power. Leave before
+                    # the square root and the division by the box area: in the forward they give 0 and 0/0 that no
+                    # cell reads (a point overlaps no cell), but their adjoints are 0/0 = NaN even with a zero
+                    # incoming gradient, and that NaN reached area, half and (energy == 2) dir, so the tracer's
+                    # refraction adjoints carried it to the surface parameters
+                    return
+            amp = wp.sqrt(amp2)
             if energy == 2:
                 # the field whose z-flux is the tube's irradiance: amplitude / sqrt(cos theta) (theta: the ray's
                 # angle to the plane's normal, in the medium after it)
                 dc = dir[i]
                 dn = wp.sqrt(f64(dc[0]) * f64(dc[0]) + f64(dc[1]) * f64(dc[1]) + f64(dc[2]) * f64(dc[2]))
                 amp = amp / wp.sqrt(wp.max(wp.abs(f64(dc[2])) / dn, f64(1.0e-12)))
-            hb = half[i]
             if rim == 1:
-                # a rim cell the aperture covers in part (fraction f, already in the weight; the ray starts
-                # at the part's centroid): the tube's irradiance on f of its area, a box of f A about the ray
-                f = frac[s * frac_stride + i - s * n_pupil][0]
                 amp = amp * wp.sqrt(f)
-                hb = hb * wp.sqrt(f)
             if fixed == 2:
                 amp_out[i] = vec4d(amp, f64(0.0), f64(0.0), f64(0.0))
                 return
@@ -294,14 +319,6 @@ def make_splat_kernels(scalar):
                 gx = wavenumber[s] * (wp.abs(index[s]) * f64(dr[0]) - index[s] * ut[0])
                 gy = wavenumber[s] * (wp.abs(index[s]) * f64(dr[1]) - index[s] * ut[1])
             pre = amp / (f64(4.0) * hb[0] * hb[1])
-            # every sample cell the tube's box overlaps (a tube may span many cells: no power is lost)
-            cx0 = int(wp.floor((p[0] - hb[0] - o[0]) / h + f64(0.5)))
-            cy0 = int(wp.floor((p[1] - hb[1] - o[1]) / h + f64(0.5)))
-            cx1 = int(wp.floor((p[0] + hb[0] - o[0]) / h + f64(0.5)))
-            cy1 = int(wp.floor((p[1] + hb[1] - o[1]) / h + f64(0.5)))
-            if cx0 < 0 or cy0 < 0 or cx1 >= ng or cy1 >= ng:
-                wp.atomic_add(dropped_out, s, 1)
-                return
             for iy in range(cy0, cy1 + 1):
                 for ix in range(cx0, cx1 + 1):
                     xc = o[0] + f64(ix) * h

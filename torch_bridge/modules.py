@@ -97,9 +97,10 @@ class HybridLens(nn.Module):
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
     pixel_values : "flux" | "intensity"
         What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` (default) the power through it (the
-        z-component of the Poynting vector, obliquity included), ``"intensity"`` ``|U|^2`` over it. Known defect:
-        with "flux" the curvature gradients of the cooke_hybrid gpu preset's live step came out NaN (the splat's
-        adjoint, docs/propagation.md "Pixel values"); the design configs therefore default to "intensity".
+        z-component of the Poynting vector, obliquity included), ``"intensity"`` ``|U|^2`` over it. The design
+        configs default to "intensity" for now: with "flux" the curvature gradients of the cooke_hybrid gpu
+        preset's live step came out NaN (the splat's adjoint at zero-area ray tubes, since fixed on the CPU and
+        not yet rerun on a GPU: docs/propagation.md "Pixel values").
     deterministic : bool
         The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
         (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray

@@ -313,3 +313,69 @@ def test_deterministic_splat_is_the_same_bits_every_run_and_agrees_with_the_floa
     ref, ref_dropped = field(False)
     assert np.linalg.norm(first - ref) <= 1e-12 * np.linalg.norm(ref)
     assert np.array_equal(dropped, ref_dropped)
+
+
+@pytest.mark.parametrize("energy", [1, 2], ids=["intensity", "flux"])
+def test_zero_area_tubes_have_finite_adjoints(device, rng, energy):
+    """A valid ray whose tube has no area (a point box: no valid neighbour along u or v, or a degenerate
+    Jacobian) deposits nothing, and the splat's and the tube areas' adjoints stay finite (their sqrt(q A) and
+    division by the box area at 0 were 0/0 = NaN, with a zero incoming gradient too; with ``energy == 2`` the
+    NaN reached the ray directions and the surface parameters, issue: flux NaN curvature gradients). The
+    reference: the gradients with such a ray equal those with it marked invalid, and its own are zero."""
+    K = ks.make_splat_kernels(F64)
+    rays, src, n = _random_case(rng, nsrc=1, npup=20)
+    rays["valid"][:] = True
+    lone = [3, 11]
+    rays["area"][lone] = 0.0
+    rays["half"][lone] = 0.0
+    g_re, g_im = rng.normal(size=n * n), rng.normal(size=n * n)
+
+    def grads(valid):
+        arr = {k: wp.array(np.ascontiguousarray(rays[k]), dtype=t, device=device, requires_grad=True)
+               for k, t in (("pos", V3), ("dir", V3), ("opl", F64), ("weight", F64), ("area", F64), ("half", wp.vec2d))}
+        s_re = wp.zeros(n * n, dtype=F64, device=device, requires_grad=True)
+        s_im = wp.zeros(n * n, dtype=F64, device=device, requires_grad=True)
+        per_src = [_a(src[k], t, device) for k, t in (("origin", wp.vec2d), ("pitch", F64), ("chief", wp.vec3d),
+                                                      ("target", wp.vec3d), ("index", F64))]
+        ins = [arr["pos"], arr["dir"], arr["opl"], _a(valid.astype(np.int32), wp.int32, device), arr["weight"],
+               arr["area"], arr["half"], *per_src, _a(src["opl_chief"], F64, device), _a(src["k"], F64, device), 1,
+               energy, n, len(valid), _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0, _ph(device), 0, 0, 0,
+               wp.zeros((1, 1), dtype=K.vec4d, device=device)]
+        tape = wp.Tape()
+        with tape:
+            wp.launch(K.splat_kernel, dim=len(valid), inputs=ins,
+                      outputs=[s_re, s_im, wp.zeros(1, dtype=wp.int32, device=device),
+                               wp.zeros(1, dtype=wp.int64, device=device), wp.zeros(1, dtype=wp.int64, device=device),
+                               wp.zeros(1, dtype=K.vec4d, device=device)], device=device)
+        tape.backward(grads={s_re: _a(g_re, F64, device), s_im: _a(g_im, F64, device)})
+        return s_re.numpy(), {k: a.grad.numpy() for k, a in arr.items()}
+
+    s_with, with_lone = grads(rays["valid"])
+    off = rays["valid"].copy()
+    off[lone] = False
+    s_without, without = grads(off)
+    assert np.array_equal(s_with, s_without)   # the forward: a point box deposits nothing
+    for k in with_lone:
+        assert np.isfinite(with_lone[k]).all(), k
+        assert np.array_equal(with_lone[k], without[k]), k
+        assert not with_lone[k][lone].any(), k
+
+    # tube areas with a degenerate (rank-1) Jacobian: area 0, a point box, and finite position gradients
+    m = 5
+    J = np.array([[0.01, 0.02], [0.005, 0.01]])      # det 0: the grid folds onto a line
+    jj, ii = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+    pos = wp.array(np.column_stack([np.column_stack([ii.ravel(), jj.ravel()]) @ J.T, np.full(m * m, 3.0)]),
+                   dtype=V3, device=device, requires_grad=True)
+    area = wp.zeros(m * m, dtype=F64, device=device, requires_grad=True)
+    half = wp.zeros(m * m, dtype=wp.vec2d, device=device, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(K.tube_area_kernel, dim=m * m,
+                  inputs=[pos, _a(np.ones(m * m, np.int32), wp.int32, device), m,
+                          _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 0, 0,
+                          wp.zeros((1, 5), dtype=V3, device=device), _ph(device), 0, 0],
+                  outputs=[area, half], device=device)
+    assert not area.numpy().any() and not half.numpy().any()
+    tape.backward(grads={area: _a(rng.normal(size=m * m), F64, device),
+                         half: _a(rng.normal(size=(m * m, 2)), wp.vec2d, device)})
+    assert np.isfinite(pos.grad.numpy()).all()
