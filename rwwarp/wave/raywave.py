@@ -17,6 +17,7 @@ import numpy as np
 from ..doe import is_flat_profile as _is_flat_profile
 from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
+from .doe_sampling import chief_zone, doe_max_frequency, doe_phase_grid, lens_dir, one_branch
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
 from .splat import paper_rescale, paper_rescale_layout, plane_cosines  # noqa: F401 (paper_rescale lived here)
@@ -67,43 +68,11 @@ def _pixel_centres(centers, size, pixel):
     return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
 
 
-def _lens_dir(lens):
-    from pathlib import Path
-    return None if lens.source is None else Path(lens.source).parent
-
-
 def _is_curved(surface) -> bool:
     """True for a refracting surface with sag (curvature or aspheric terms): not a plane."""
     if surface.type != "standard":
         return False
     return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
-
-
-def _one_branch(phi, tol=1e-9):
-    """``k`` when every phase in ``phi`` (rad, a DOE's unwrapped phase at the traced beam's points) lies in
-    one branch ``[2 pi k, 2 pi (k + 1)]`` of the wrap (ends included: a phase at a branch end, such as an
-    even polynomial's 0 on the axis, is a set of measure zero), else None."""
-    phi = np.asarray(phi, dtype=np.float64)
-    if phi.size == 0 or not np.all(np.isfinite(phi)):
-        return None
-    k = math.floor(float(phi.min()) / (2 * math.pi) + tol)
-    lo, hi = 2 * math.pi * k, 2 * math.pi * (k + 1)
-    if phi.min() >= lo - tol and phi.max() <= hi + tol:
-        return k
-    return None
-
-
-def _chief_zone(phi, xy, chief_xy):
-    """The wrap zone ``k = floor(phi0 / 2 pi)`` the chief ray crosses, from the pilot rays' phases ``phi``
-    (rad) at their wave-plane points ``xy`` (N, 2): the zone of the pilot point nearest the chief ray whose
-    phase is not on a zone boundary (an even polynomial is 0, a boundary, exactly on the axis)."""
-    phi = np.asarray(phi, dtype=np.float64)
-    order = np.argsort(np.sum((np.asarray(xy) - np.asarray(chief_xy)[None, :]) ** 2, axis=1))
-    for j in order:
-        q = phi[j] / (2 * math.pi)
-        if np.isfinite(q) and abs(q - round(q)) > 1e-9:
-            return int(math.floor(q))
-    return int(math.floor(float(phi[order[0]]) / (2 * math.pi)))
 
 
 def _tracer_sources(tr, fields, wls, uniq, object_distance_mm):
@@ -129,44 +98,6 @@ def own_pupil_sources(tr, fields, wls, uniq, object_distance_mm):
     finally:
         tr.pupils = saved
     return src
-
-
-def _doe_phase_grid(lens, plane, origin, pitch, n):
-    """phi0 (rad) of the DOE sampled on each source's grid, (S, n, n), or None."""
-    s = lens.surfaces[plane]
-    if s.type != "doe" or _is_flat_profile(s.profile):
-        return None
-    from .. import doe
-    prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
-    g = np.arange(n) * pitch
-    out = np.empty((origin.shape[0], n, n))
-    for k in range(origin.shape[0]):
-        x, y = np.meshgrid(origin[k, 0] + g, origin[k, 1] + g, indexing="xy")
-        # the physical relief: phi0 wrapped to [0, 2 pi) (and quantised), then remapped per wavelength
-        ph = doe.design_phase(prof, x, y, s.design_wavelength_um, s.levels)
-        # no mask at the DOE's edge: the tracer already clipped rays there, and samples straddling the
-        # edge (partly covered) need the phase the profile has at the edge, not 0
-        out[k] = ph
-    return out
-
-
-def _doe_max_frequency(lens, plane, xy, wavelengths):
-    """Largest local spatial frequency (cycles/mm) the DOE adds at the points ``xy`` (per source)."""
-    s = lens.surfaces[plane]
-    if s.type != "doe":
-        return np.zeros(len(wavelengths)), None
-    from .. import doe
-    prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
-    feat = None
-    if doe.surface_has_steps(s, lens.source):  # (a quantised flat phase has none: issue 11 defect 6)
-        feat = doe.surface_feature_size_mm(s, lens.source)
-        return np.zeros(len(wavelengths)), feat
-    out = np.zeros(len(wavelengths))
-    for k, w in enumerate(wavelengths):
-        gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
-        sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
-        out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
-    return out, feat
 
 
 # ---------------------------------------------------------------------------------------------- ray-wave
@@ -287,7 +218,7 @@ class RayWave:
             xy = pos_p[k, ok[k], :2]
             xy_plane.append(xy)
             lo[k], hi[k] = xy.min(0), xy.max(0)
-        f_doe, feature = _doe_max_frequency(lens, plane, xy_plane, wls)
+        f_doe, feature = doe_max_frequency(lens, plane, xy_plane, wls)
         width = float(np.max(hi - lo))
         pilot_cell = width / 31.0
         if center_mm is None:
@@ -427,7 +358,7 @@ class RayWave:
         s = lens.surfaces[plane]
         prof = None
         if s.type == "doe" and not _is_flat_profile(s.profile):
-            prof = doe.profile_from_dict(s.profile, base=_lens_dir(lens))
+            prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
         orders, doe_freq, central = [], [], []
         xy = [pos_p[k, ok[k], :2] for k in range(nsrc)]
         freq = [n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] for k in range(nsrc)]
@@ -442,7 +373,7 @@ class RayWave:
             gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
             doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
             cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)
-            branch = None if s.levels else _one_branch(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um))
+            branch = None if s.levels else one_branch(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um))
             if branch is not None:
                 # the relief does not wrap inside the beam: the transmission is exactly exp(1j alpha (phi0 -
                 # 2 pi k)), one smooth "order" of non-integer index alpha (its Fourier series over integer
@@ -460,7 +391,7 @@ class RayWave:
                 # the zone the chief ray crosses is computed exactly, exp(1j alpha (phi0 - 2 pi k_c)): the order
                 # series converges slowly next to a wrap boundary the relief touches without crossing (an even
                 # polynomial's 0 on the axis), where every order's light reaches the patch
-                central[-1] = (_chief_zone(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um),
+                central[-1] = (chief_zone(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um),
                                            xy[k], chief_plane[k, :2]), float(alpha))
             m0 = int(ms[np.argmax(np.abs(cm))])
             f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
@@ -491,7 +422,7 @@ class RayWave:
         if s.type != "doe" or s.profile.get("kind") != "pixel_map":
             return
         from .. import doe
-        prof = doe.profile_from_dict(s.profile, base=_lens_dir(self.lens))
+        prof = doe.profile_from_dict(s.profile, base=lens_dir(self.lens))
         rows, cols = prof.data.shape
         h = self.plan.pitch_mm
         for axis, count in ((0, cols), (1, rows)):
@@ -654,7 +585,7 @@ class RayWave:
 
     def doe_phase(self):
         """phi0 (rad) on each window, (n_sources, n, n), and the per-source wavelength scale; or (None, None)."""
-        phi0 = _doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
+        phi0 = doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
         if phi0 is None:
             return None, None
         from .. import doe
