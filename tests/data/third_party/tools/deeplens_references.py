@@ -1,6 +1,7 @@
 """optiland references for DeepLens lens files (run in /tmp/refvenv): the prescription is read here
 independently of rwwarp (d_next / d, roc / c, k, ai with use_ai2, r); indices come from the sidecar."""
 import json, math, sys, warnings
+from pathlib import Path
 import numpy as np
 warnings.filterwarnings("ignore")
 from optiland.optic import Optic
@@ -11,7 +12,7 @@ side = json.load(open('/tmp/dl_sidecar.json'))
 N = 101
 res = {}
 for p, sc in side.items():
-    d = json.load(open('/work/main/' + p))
+    d = json.load(open(Path(__file__).resolve().parents[4] / p))   # p: relative to the repository root
     S = [{k: v for k, v in s.items() if not k.startswith('(')} for s in d["surfaces"]]
     if all("d_next" in s for s in S):
         z, acc = [], 0.0
