@@ -20,7 +20,7 @@ from ..lens import snap_to_pixel as _snap_center
 from .doe_sampling import chief_zone, doe_max_frequency, doe_phase_grid, lens_dir, one_branch
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
-from .splat import paper_rescale, paper_rescale_layout, plane_cosines  # noqa: F401 (paper_rescale lived here)
+from .splat import paper_rescale_layout
 from ..trace import Tracer, pupil_grid, upload_packed
 from ..trace import field_label as _fmt_field
 
@@ -152,7 +152,6 @@ class RayWave:
         uniq = sorted(set(wls))
         tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad,
                     deterministic=self.deterministic)
-        wl_idx = [uniq.index(w) for w in wls]
         nsrc = len(fields)
         src = (own_pupil_sources if own_pupils else _tracer_sources)(tr, fields, wls, uniq, object_distance_mm)
         src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)

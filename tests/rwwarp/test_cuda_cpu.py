@@ -1,5 +1,5 @@
 """The same PSF on CUDA and on the CPU (issue 25: "CUDA vs CPU, both with focal_precision='double'",
-target <= 1e-10 of the peak). Both devices run the same float64 trace (Warp), the same splat and the same
+target <= 1e-10 of the peak; tolerance 2e-11 from the measured 4.5e-12). Both devices run the same float64 trace (Warp), the same splat and the same
 propagation (OpenCL C through PoCL on the CPU, through NVRTC/CuPy on CUDA); with the focal products in
 double on both, what remains is the order of float sums (atomic splat additions, FFT and GEMM
 blocking): ~1e-15 a sum. The default pixel values (the power flux) and the wave step ("two-step") are
@@ -38,4 +38,6 @@ def test_cuda_psf_equals_cpu_psf_in_double(name, field, method):
     err = float(np.max(np.abs(gpu - cpu)) / np.max(cpu))
     print(f"{name} {field} deg {method}: CUDA vs CPU {err:.2e} of the peak")
     assert np.all(np.isfinite(gpu))
-    assert err <= 1e-10, err
+    # measured on an H100 (deterministic splat): 5.7e-14 .. 4.5e-12 over these cases (perf/results/session11_h100);
+    # tolerance 2e-11, under the issue's target of 1e-10
+    assert err <= 2e-11, err

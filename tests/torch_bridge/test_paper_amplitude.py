@@ -1,5 +1,5 @@
 """The paper's amplitude convention (unit ray amplitude, one scale per source so that the field carries
-the traced power) is one function, rwwarp.wave.raywave.paper_rescale, used by rwwarp (numpy) and torch_bridge
+the traced power) is one function, rwwarp.wave.splat.paper_rescale, used by rwwarp (numpy) and torch_bridge
 (torch): the two give the same PSF, the scale is checked against its definition, and its gradient
 against central differences."""
 import numpy as np
@@ -9,7 +9,7 @@ torch = pytest.importorskip("torch")
 
 import rwwarp as rw
 import torch_bridge as tb
-from rwwarp.wave.raywave import paper_rescale
+from rwwarp.wave.splat import paper_rescale
 
 from test_modules import EVEN, FIELD, singlet
 from _gradcheck import directional_error
