@@ -50,16 +50,22 @@ class LiveProvider:
     built again, cheaply (no planning), when one of them changes; members whose propagations would pad
     to more than ``pack_waste`` times their own work are stacked apart (:func:`rwwarp.wave.focal_packed.focal_groups`).
     A tile's recorded peak (:func:`torch_bridge.packed.packed_recorded_bytes`: every member in the slots of
-    the largest) is checked against the budget; a chunk over it is split into tiles that fit. False: one
-    source at a time (:meth:`~torch_bridge.HybridLens._psf_rw`)."""
+    the largest) is checked against ``record_budget_bytes`` (bytes one chunk's recorded sources may take;
+    default the whole ``memory_budget_bytes``: a training step passes its share, the rest being the network's
+    and the allocator's); a chunk over it is split into tiles that fit. False: one source at a time
+    (:meth:`~torch_bridge.HybridLens._psf_rw`)."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
-                 window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5):
+                 window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5,
+                 record_budget_bytes: int | None = None):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
         self.memory_budget_bytes = memory_budget_bytes
+        if record_budget_bytes is not None and not record_budget_bytes > 0:
+            raise ValueError(f"LiveProvider: record_budget_bytes must be > 0 bytes, got {record_budget_bytes!r}")
+        self.record_budget_bytes = None if record_budget_bytes is None else int(record_budget_bytes)
         if int(replan_every) != replan_every or replan_every < 1:
             raise ValueError(f"LiveProvider: replan_every must be an integer >= 1, got {replan_every!r}")
         self.replan_every = int(replan_every)
@@ -243,7 +249,7 @@ class LiveProvider:
         for j in focal:
             r = rws[j]
             sets.setdefault((float(r.z_plane), r.wls[0] if any(m._thin_surfaces) else None), []).append(j)
-        budget = m.memory_budget(self.memory_budget_bytes)
+        budget = self.record_budget_bytes or m.memory_budget(self.memory_budget_bytes)
         for js in sets.values():
             cur = []
             for j in js + [None]:

@@ -247,15 +247,17 @@ class Arm:
                                      wavelength_ref_um=self.wl_ref, doe_budget_cpmm=o["doe_budget_cpmm"],
                                      memory_budget_bytes=_budget_bytes(o), min_feature_mm=_feature_mm(o),
                                      cache_precision=o["cache_precision"])
-        tile = None
+        tile = record = None
         if o["memory_budget_gb"]:
             # a tile's recorded sources take half the budget; the network's activations and the allocator's
-            # slack the other half (as a cached provider's step: CachedProvider.step_budget_bytes)
-            tile = max(1, int(o["memory_budget_gb"] * 1e9 / 2 // max(1, module.bytes_per_source(
-                module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm)))))
+            # slack the other half (as a cached provider's step: CachedProvider.step_budget_bytes). A packed
+            # tile (every member in the slots of the largest) is held to the same half.
+            record = int(o["memory_budget_gb"] * 1e9 / 2)
+            tile = max(1, record // max(1, module.bytes_per_source(
+                module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm))))
         return dz.LiveProvider(module, self.fields, self.size, self.pixel_mm, wavelength_ref_um=self.wl_ref,
                                tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"],
-                               pack=o["live_pack"])
+                               pack=o["live_pack"], record_budget_bytes=record)
 
     def limit_feature(self) -> float:
         """After an optics update: project the DOE onto ``optics.min_feature_um`` (a learning DOE only;

@@ -204,7 +204,8 @@ def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():
     """The A489 + DOE (8 levels), 4 focal sources: in chunks of 2 (checkpointed: forward without tape, each chunk
     traced again under the tape in backward), and in one chunk under a budget that holds 2 packed members but
     not 3 (packed_recorded_bytes: each member at the largest member's rays and window), which splits it into
-    tiles of at most 2. PSFs and gradients as one at a time: measured as the first test (<= 5e-16 of the peak,
+    tiles of at most 2; the same budget as ``record_budget_bytes`` beside a memory budget that holds everything
+    (a training step's share of its budget) splits it alike. PSFs and gradients as one at a time: measured as the first test (<= 5e-16 of the peak,
     <= 4.4e-13 of the largest thickness gradient); tolerances as there."""
     from torch_bridge.packed import packed_recorded_bytes
     lens = _doe_lens(8)
@@ -215,7 +216,8 @@ def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():
     members = [m.raywave([f], [w], 12, pixel_mm=lens.sensor.pixel_pitch, method="focal") for f in fields for w in wls]
     budget = max(packed_recorded_bytes(m, [p, q]) for p in members for q in members) + 1
     assert packed_recorded_bytes(m, members[:3]) > budget
-    for kw, tiles in (({"tile": 2}, 2), ({"memory_budget_bytes": budget}, None)):
+    for kw, tiles in (({"tile": 2}, 2), ({"memory_budget_bytes": budget}, None),
+                      ({"memory_budget_bytes": 1000 * budget, "record_budget_bytes": budget}, None)):
         m = tb.HybridLens(lens, learn=learn, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
         prov = dz.LiveProvider(m, fields, 12, lens.sensor.pixel_pitch, **kw)
         out = prov.psfs(wls)
