@@ -219,8 +219,19 @@ def _window_steps(rw, device, dtype=torch.float64):
 def _grid_points(rw, device, dtype=torch.float64):
     """DOE-plane sample coordinates x (S, 1, n), y (S, n, 1) in mm, computed on ``device``."""
     _, g = _window_steps(rw, device, dtype)
-    o = torch.as_tensor(rw.origin, dtype=dtype, device=device)
+    o = _on_device(rw, "origin_on", np.asarray(rw.origin, dtype=np.float64), device).to(dtype)
     return (o[:, 0, None, None] + g[:, None, :]), (o[:, 1, None, None] + g[:, :, None])
+
+
+def upload(host, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Host data (a numpy array or a list) as a tensor of ``dtype`` on ``device`` without waiting for the
+    device: copied with ``non_blocking=True``, which from pageable memory stages the bytes at once and does not
+    drain the device's queue (a blocking upload waits for every queued kernel first: the host and the device
+    then take turns instead of overlapping)."""
+    t = torch.as_tensor(np.asarray(host), dtype=dtype)
+    if device is None or torch.device(device).type == "cpu":
+        return t
+    return t.to(device, non_blocking=True)
 
 
 def _on_device(rw, name: str, host: np.ndarray, device) -> torch.Tensor:
@@ -231,7 +242,7 @@ def _on_device(rw, name: str, host: np.ndarray, device) -> torch.Tensor:
     key = (str(device), host.tobytes())
     hit = st.get(name)
     if hit is None or hit[0] != key:
-        hit = st[name] = (key, torch.as_tensor(host, dtype=torch.float64, device=device))
+        hit = st[name] = (key, upload(host, torch.float64, device))
     return hit[1]
 
 
@@ -632,7 +643,7 @@ def focal_doe_factor(rw, phi0):
         # the kept orders, the chief ray's wrap zone exact: the same function as rwwarp's, in torch
         from rwwarp.wave.focal import doe_order_series
         return doe_order_series(phi0, rw.focal["orders"], rw.focal.get("central_zone"), torch)
-    alpha = torch.as_tensor(doe_scale(rw), dtype=torch.float64, device=phi0.device)
+    alpha = upload(doe_scale(rw), torch.float64, phi0.device)
     return torch.exp(1j * alpha[:, None, None] * phi0)
 
 

@@ -28,6 +28,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .functions import upload
+
 __all__ = [
     "blend_weights",
     "channel_psfs",
@@ -50,12 +52,21 @@ def blend_weights(n_nodes: int, length: int, dtype=torch.float64, device=None) -
     y = torch.arange(length, dtype=dtype, device=device)
     if n_nodes == 1:
         return torch.ones(1, length, dtype=dtype, device=device)
-    pos = torch.as_tensor(node_positions(n_nodes, length), dtype=dtype, device=device)
+    pos = upload(node_positions(n_nodes, length), dtype, device)
     spacing = float(length) / n_nodes
     d = (y[None, :] - pos[:, None]) / spacing
     w = torch.where(d.abs() < 1.0, torch.cos(0.5 * math.pi * d) ** 2, torch.zeros_like(d))
     w[0] = torch.where(y <= pos[0], torch.ones_like(y), w[0])
     w[-1] = torch.where(y >= pos[-1], torch.ones_like(y), w[-1])
+    return w
+
+
+def _extended_weights(n_nodes: int, length: int, dtype, device, offset: int, extended: int) -> torch.Tensor:
+    """:func:`blend_weights` over ``length`` px, continued by the outer nodes' weights to ``extended`` px with
+    the frame starting at ``offset`` px."""
+    w = blend_weights(n_nodes, length, dtype, device)
+    if offset or extended != length:
+        w = F.pad(w[None], (offset, extended - length - offset), mode="replicate")[0]
     return w
 
 
@@ -110,12 +121,11 @@ def spatially_varying_blur(image: torch.Tensor, psfs: torch.Tensor, *, boundary:
         raise ValueError(f"boundary must be 'zero', 'reflect' or 'replicate', got {boundary!r}")
     He, We = ext.shape[-2:]
     # node positions refer to the frame; the extension continues the outer nodes' weights
-    wy = blend_weights(gy, H, dtype, image.device)
-    wx = blend_weights(gx, W, dtype, image.device)
-    if oy or ox:
-        wy = F.pad(wy[None], (oy, He - H - oy), mode="replicate")[0]
-        wx = F.pad(wx[None], (ox, We - W - ox), mode="replicate")[0]
-    sy, sx = _supports(wy), _supports(wx)
+    # the weights' supports are read on the host from a CPU copy of the same weights (a read of device data
+    # would wait for the device's queue to drain)
+    sy, sx = _supports(_extended_weights(gy, H, dtype, "cpu", oy, He)), _supports(_extended_weights(gx, W, dtype, "cpu", ox, We))
+    wy = _extended_weights(gy, H, dtype, image.device, oy, He)
+    wx = _extended_weights(gx, W, dtype, image.device, ox, We)
     ph = max(b - a for a, b in sy)
     pw = max(b - a for a, b in sx)
     fy, fx = _fast_len(ph + kh - 1), _fast_len(pw + kw - 1)
@@ -163,7 +173,7 @@ def channel_psfs(psfs: torch.Tensor, channels, mode: str = "mean", weights=None,
             out.append(psfs[:, :, idx[k]])
         elif mode == "mean":
             w = torch.ones(len(idx), dtype=psfs.dtype, device=psfs.device) if weights is None else \
-                torch.as_tensor(weights[ci], dtype=psfs.dtype, device=psfs.device)
+                upload(weights[ci], psfs.dtype, psfs.device)
             w = w / w.sum()
             out.append(torch.tensordot(psfs[:, :, idx], w, dims=([2], [0])))
         else:

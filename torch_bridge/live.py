@@ -200,7 +200,7 @@ class LiveProvider:
                 vals = dict(zip(names, ts))
                 out = torch.cat([m._psf_packed(u, vals, record=record, tables=tables) if kind == "packed" else
                                  m._psf_rw(u, vals, record=record, tables=tables) for kind, u, _ in units], 0)
-                return out if perm is None else out[perm.to(out.device)]
+                return out if perm is None else out[perm.to(out.device, non_blocking=True)]
             if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
                 outs.append(Recompute.apply(run, *tensors))
             else:

@@ -60,7 +60,7 @@ from .wave_step import wave_step
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
 from .functions import (Recompute, backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
-                        propagate, quantize_ste, trace_splat)
+                        propagate, quantize_ste, trace_splat, upload)
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -247,8 +247,11 @@ class HybridLens(nn.Module):
         """Raise ``ValueError`` naming the quantity and the entries when a lens value is NaN or inf (a
         diverged optimiser step), before any ray is traced: otherwise it surfaces only as "no rays reach
         the sensor" or as a NaN PSF."""
-        for q in QUANTITIES:
-            v = self.value(q).detach()
+        vals = {q: self.value(q).detach() for q in QUANTITIES}
+        # one read of the device for all quantities (each read waits for the device's queue)
+        if bool(torch.stack([torch.isfinite(v).all() for v in vals.values()]).all()):
+            return
+        for q, v in vals.items():
             bad = ~torch.isfinite(v)
             if bool(bad.any()):
                 where = torch.nonzero(bad.reshape(-1)).reshape(-1)[:8].tolist()
@@ -264,7 +267,11 @@ class HybridLens(nn.Module):
     def to_lens(self) -> Lens:
         """The current values as a new :class:`~rwwarp.lens.Lens` (validated). A pixel-map DOE is
         written inline (``profile.data``); :meth:`save_lens` can write it to a .npy file."""
-        v = {q: self.value(q).detach().cpu().numpy() for q in QUANTITIES}
+        # one read of the device for every quantity (each read waits for the device's queue)
+        ts = [self.value(q).detach() for q in QUANTITIES]
+        flat = torch.cat([t.reshape(-1).to(torch.float64) for t in ts]).cpu().numpy()
+        cuts = np.cumsum([t.numel() for t in ts])[:-1]
+        v = {q: part.reshape(tuple(t.shape)) for q, t, part in zip(QUANTITIES, ts, np.split(flat, cuts))}
         lens = copy.deepcopy(self.lens_template)
         for i, s in enumerate(lens.surfaces):
             s.thickness = float(v["thickness"][i])
@@ -399,7 +406,7 @@ class HybridLens(nn.Module):
         on_dev = st.setdefault("base_table_on", {})   # one upload per device, not one per call
         base = on_dev.get(dev)
         if base is None:
-            base = on_dev[dev] = torch.as_tensor(st["base_table"], dtype=torch.float64, device=dev)
+            base = on_dev[dev] = upload(st["base_table"], torch.float64, dev)
         t = v["thickness"]
         zero = torch.zeros(1, dtype=t.dtype, device=dev)
         z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
@@ -442,13 +449,13 @@ class HybridLens(nn.Module):
             const = {"n": n, "n_before": n_before, "doe_power": doe_p, "object_distance": lens.object_distance}
             st["paraxial"] = const
         dev, dt = v["thickness"].device, torch.float64
-        n = torch.as_tensor(const["n"], dtype=dt, device=dev)
-        n_before = torch.as_tensor(const["n_before"], dtype=dt, device=dev)
+        n = upload(const["n"], dt, dev)
+        n_before = upload(const["n_before"], dt, dev)
         std = self.standard_mask.to(dev)
         thin = self.thin_mask.to(dev)
         f = torch.where(thin, v["focal_length"], torch.ones_like(v["focal_length"]))
         power = torch.where(std, (n - n_before) * v["curvature"],
-                            torch.where(thin, 1.0 / f, torch.as_tensor(const["doe_power"], dtype=dt, device=dev)))
+                            torch.where(thin, 1.0 / f, upload(const["doe_power"], dt, dev)))
         od = const["object_distance"]
         one = torch.ones((), dtype=dt, device=dev)
         y0, nu0 = (one, 0.0 * one) if math.isinf(od) else (od * one, one)

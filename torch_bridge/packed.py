@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from rwwarp.trace import COLUMNS as COL
 
-from .functions import _from_xp, _on_device, _streams, _xp_of, bridge_state, focal_doe_factor, paper_amplitude
+from .functions import _from_xp, _on_device, _streams, _xp_of, bridge_state, focal_doe_factor, paper_amplitude, upload
 from .functions import power_sums, trace_splat
 
 __all__ = ["PackedFocalPropagate", "PackedTile", "packed_doe_factor", "packed_psfs", "packed_recorded_bytes"]
@@ -110,7 +110,7 @@ def packed_doe_factor(tile, phi0):
     for kind, make in (("series", _series_factor), ("single", _single_factor)):
         idx = [k for k in range(S) if kinds[k] == kind]
         if idx:
-            p = phi0 if len(idx) == S else phi0[torch.as_tensor(idx, device=phi0.device)]
+            p = phi0 if len(idx) == S else phi0[upload(idx, torch.long, phi0.device)]
             parts.append(make(tile, idx, p))
             seq += idx
     for k in range(S):
@@ -119,7 +119,7 @@ def packed_doe_factor(tile, phi0):
             seq.append(k)
     out = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
     if seq != list(range(S)):
-        out = out[torch.as_tensor(np.argsort(seq), device=out.device)]
+        out = out[upload(np.argsort(seq), torch.long, out.device)]
     return out
 
 
