@@ -100,16 +100,18 @@ class LiveProvider:
             return False
         return True
 
-    def _plan_source(self, j, src_f, src_w, src_c, depth_mm, check: bool = False):
-        """Plan source ``j`` on its own (focal); ``check``: its recorded peak is checked against the budget
-        first (a source planned again alone, without its chunk's check)."""
+    def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check: bool = False) -> list:
+        """Plan sources ``js`` each on its own (focal), from one pilot trace of all of them
+        (:meth:`~torch_bridge.HybridLens.raywaves_alone`); ``check``: each one's recorded peak is checked
+        against the budget first (sources planned again alone, without their chunk's check)."""
         m = self.module
-        r = m.raywave([src_f[j]], [src_w[j]], self.size, object_distance_mm=depth_mm,
-                      pixel_mm=self.pixel_mm, center_mm=src_c[j:j + 1], method="focal")
-        if check:
-            m.check_budget(r, m.memory_budget(self.memory_budget_bytes), sources=1)
-        self.plans_made += 1
-        return r
+        rs = m.raywaves_alone([src_f[j] for j in js], [src_w[j] for j in js], self.size, centers_mm=src_c[js],
+                              object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, method="focal")
+        for r in rs:
+            if check:
+                m.check_budget(r, m.memory_budget(self.memory_budget_bytes), sources=1)
+            self.plans_made += 1
+        return rs
 
     def psfs(self, wavelengths_um, depth_mm=None, nodes: slice | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
@@ -152,7 +154,7 @@ class LiveProvider:
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
             keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
-            rws, fresh = {}, []
+            rws, fresh, again = {}, [], []
             for j, key in zip(range(sl.start, sl.stop), keys):
                 e = self._focal_rws.get(key)
                 if e is not None and self._usable(e):
@@ -164,11 +166,15 @@ class LiveProvider:
                     self.plans_reused += 1
                 elif key in self._focal_keys:
                     # planned focal before: planned again on its own (no joint plan of the chunk first)
-                    rws[j] = self._plan_source(j, src_f, src_w, src_c, depth_mm, check=True)
-                    if self.replan_every > 1:
-                        self._focal_rws[key] = [rws[j], 0, None, False]
+                    again.append(j)
                 else:
                     fresh.append(j)
+            if again:
+                # every source planned again in this chunk from one pilot trace, each on its own plan
+                for j, r in zip(again, self._plan_sources(again, src_f, src_w, src_c, depth_mm, check=True)):
+                    rws[j] = r
+                    if self.replan_every > 1:
+                        self._focal_rws[(tuple(np.ravel(src_f[j])), src_w[j], depth_mm)] = [r, 0, None, False]
             if fresh:
                 # sources not seen before: one joint plan decides the method and checks the budget
                 rw = m.raywave([src_f[j] for j in fresh], [src_w[j] for j in fresh], self.size,
@@ -178,10 +184,11 @@ class LiveProvider:
                                else rw.nsrc)
                 if rw.plan.method == "focal":
                     # focal grids follow each source's patch and DOE orders: one plan per source
-                    for j in fresh:
+                    alone = [rw] if len(fresh) == 1 else self._plan_sources(fresh, src_f, src_w, src_c, depth_mm)
+                    for j, r in zip(fresh, alone):
                         key = (tuple(np.ravel(src_f[j])), src_w[j], depth_mm)
                         self._focal_keys.add(key)
-                        rws[j] = rw if len(fresh) == 1 else self._plan_source(j, src_f, src_w, src_c, depth_mm)
+                        rws[j] = r
                         if self.replan_every > 1:
                             self._focal_rws[key] = [rws[j], 0, None, False]
                     if len(fresh) == 1:

@@ -393,6 +393,40 @@ class HybridLens(nn.Module):
             self._plans[key] = rw
         return rw
 
+    def raywaves_alone(self, fields, wavelengths_um, size, *, centers_mm, object_distance_mm=None, pixel_mm=None,
+                       method: str | None = None, requires_grad: bool = True) -> list:
+        """One :class:`rwwarp.psf.RayWave` per source (``fields`` x ``wavelengths_um`` paired element-wise; deg,
+        um), each with the plan :meth:`raywave` gives that source alone (``centers_mm`` (S, 2): its patch
+        centre, mm), from one pilot trace of all of them: a source's pilot rays (its entrance pupil at its own
+        wavelength) do not depend on the others, so each member is what planning it alone makes, for one set
+        of trace launches and host reads instead of one per source. Without ``replan`` (kept plans) each is
+        :meth:`raywave` of that source."""
+        fields = field_pairs(fields)
+        wls = [float(w) for w in wavelengths_um]
+        centers = np.asarray(centers_mm, dtype=np.float64).reshape(len(fields), 2)
+        if len(fields) < 2 or not self.replan:
+            return [self.raywave([f], [w], size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
+                                 center_mm=centers[k:k + 1], method=method, requires_grad=requires_grad)
+                    for k, (f, w) in enumerate(zip(fields, wls))]
+        from rwwarp.psf import RayWave
+        self._once("finite", self.check_finite)
+        lens = self._once("lens", self.to_lens)
+        pixel = float(pixel_mm or lens.sensor.pixel_pitch)
+        common = dict(device=self.rw_device, dtype="float64", amplitude=self.amplitude,
+                      object_distance_mm=object_distance_mm, rays_per_sample=self.rays_per_sample,
+                      use_reference=self.use_reference, nyquist_safety=self.nyquist_safety, own_pupils=True,
+                      pixel_values=self.pixel_values)
+        probe = RayWave(lens, fields, wls, int(size), pixel, plan="auto", gauss_nodes=3, method="asm", **common)
+        out = []
+        for k, (f, w) in enumerate(zip(fields, wls)):
+            rw = RayWave(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
+                         gauss_nodes=self.gauss_nodes, requires_grad=bool(requires_grad), method=method or self.method,
+                         focal_patch_tol=self.focal_patch_tol, deterministic=self.deterministic,
+                         pilot={key: v[k:k + 1] for key, v in probe.pilot.items()}, auto_rule="small-asm", **common)
+            bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
+            out.append(rw)
+        return out
+
     # ------------------------------------------------------------------ differentiable pieces
     def param_table(self, rw, values=None) -> torch.Tensor:
         """The tracer's parameter table (n_surfaces + 1, N_PARAMS) as a float64 tensor built from
