@@ -519,7 +519,7 @@ def make_trace_kernels(scalar):
         rmask: int,
         n_in: wp.array(dtype=scalar),       # (n_wl,) index before the surface
         n_out: wp.array(dtype=scalar),      # (n_wl,) index after the surface
-        lam: wp.array(dtype=scalar),        # (n_wl,) vacuum wavelength, mm
+        lam_bar: wp.array(dtype=scalar),    # (n_wl,) vacuum wavelength / (2 pi), mm (formed on the host in float64)
         t_start: wp.array(dtype=scalar),    # converged intersection parameter (intersect_kernel)
         # outputs
         pos_out: wp.array(dtype=vec3),
@@ -557,7 +557,7 @@ def make_trace_kernels(scalar):
                     nrm = -nrm
                     cosi = -cosi
                 ph, gx, gy = phase_and_gradient(row, x[0], x[1])
-                scale = row[P_PH_M] * lam[w] / scalar(2.0 * 3.141592653589793)
+                scale = row[P_PH_M] * lam_bar[w]
                 gv = vec3(scale * gx, scale * gy, scalar(0.0))
                 tang = n1 * (d - cosi * nrm) + gv - wp.dot(gv, nrm) * nrm
                 kk = n2 * n2 - wp.dot(tang, tang)

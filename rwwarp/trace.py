@@ -356,8 +356,9 @@ class Tracer:
         dev, sc, g = self.device, self.scalar, self.requires_grad
         fdt = self.np_dtype
         tables = [(self.n_obj_np, fdt, sc)] + [(self.index_np[i], fdt, sc) for i in range(self.index_np.shape[0])]
-        # vacuum wavelengths in mm (the phase surfaces' grating equation and path)
-        tables.append((np.array(self.wavelengths_um, dtype=np.float64) * 1e-3, fdt, sc))
+        # vacuum wavelengths / (2 pi) in mm (the phase surfaces' grating equation and path; a literal 2 pi in a
+        # kernel would be a float32 constant)
+        tables.append((np.array(self.wavelengths_um, dtype=np.float64) * 1e-3 / (2.0 * math.pi), fdt, sc))
         if g:
             self.params = [wp.array(p, dtype=sc, device=dev, requires_grad=True) for p in self.params_np]
             views = upload_packed(tables, dev, cache=True)
@@ -367,7 +368,7 @@ class Tracer:
             views = views[len(self.params_np):]
         nw = len(self.wavelengths_um)
         self.n_obj = views[0]
-        self.lam_mm = views[-1]
+        self.lam_bar = views[-1]
         self.n_tables = views[1:-1]
         self.n_before = [self.n_obj] + self.n_tables[:-1]
         self._n_wl = nw
@@ -748,7 +749,7 @@ class Tracer:
                 wp.launch(K.intersect_kernel, dim=n, inputs=[state[0], state[1], state[3], rows, rmask], outputs=[tc],
                           device=dev, record_tape=False)
             if kind == ktrace.KIND_PHASE:
-                wp.launch(K.phase_surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, self.lam_mm,
+                wp.launch(K.phase_surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, self.lam_bar,
                                                                  tc], outputs=list(nxt), device=dev)
             else:
                 wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, kind, tc],

@@ -1,0 +1,250 @@
+"""Phase surfaces (a DOE anywhere, rwwarp.phase_surface): the Warp trace of refracting surfaces carrying a
+diffractive phase, ray by ray against an independent numpy trace written from the equations
+(tests/rwwarp/_phase_truth.py), first-order data against ray-transfer matrices written here, a stigmatic
+diffractive singlet's PSF against the Airy pattern, gradients against finite differences, and the errors."""
+import math
+
+import numpy as np
+import pytest
+from scipy import special
+
+from rwwarp.errors import LensError
+from rwwarp.kernels import trace as ktrace
+from rwwarp.lens import Lens, Sensor, Surface
+from rwwarp.phase_surface import MAX_PHASE_TERMS
+from rwwarp.trace import Tracer
+
+import _phase_truth as truth
+
+WLS = [0.4861327, 0.5875618, 0.6562725]
+
+
+def singlet(order=1):
+    """A diffractive-asphere singlet: front even asphere (conic, r^4, r^6) in N-BK7 carrying a BINARY_2 phase
+    (two terms), spherical rear surface (made up; f ~ 49 mm, EPD 10 mm)."""
+    front = Surface(radius=30.0, conic=-0.6, aspheric=[-2.0e-6, 1.5e-9], thickness=5.0, material="N-BK7",
+                    semi_diameter=6.0, stop=True,
+                    phase={"kind": "even_poly", "norm_radius": 5.0, "coefficients": [-120.0, 8.0]},
+                    diffraction_order=order)
+    back = Surface(radius=-150.0, thickness=45.0, semi_diameter=6.0)
+    return Lens([front, back], Sensor(0.004, (1000, 1000)), wavelengths_um=WLS)
+
+
+def doe_before_lens():
+    """A flat BINARY_2 phase in air 10 mm in front of a biconvex N-BK7 lens (the stop at the phase)."""
+    return Lens([Surface(radius=None, thickness=10.0, semi_diameter=5.0, stop=True,
+                         phase={"kind": "even_poly", "norm_radius": 5.0, "coefficients": [-200.0, 15.0, -2.0]}),
+                 Surface(radius=60.0, thickness=4.0, material="N-BK7", semi_diameter=7.0),
+                 Surface(radius=-60.0, thickness=40.0, semi_diameter=7.0)],
+                Sensor(0.004, (1000, 1000)), wavelengths_um=WLS)
+
+
+def two_does():
+    """Two phases: one on the curved front of a lens (order 1), one flat in air between two lenses (order 2,
+    a fresnel phase of f = 400 mm at 0.55 um)."""
+    return Lens([Surface(radius=40.0, thickness=4.0, material="N-BK7", semi_diameter=6.0, stop=True,
+                         phase={"kind": "even_poly", "norm_radius": 5.0, "coefficients": [-80.0, 5.0]}),
+                 Surface(radius=-90.0, thickness=6.0, semi_diameter=6.0),
+                 Surface(radius=None, thickness=6.0, semi_diameter=6.0, diffraction_order=2,
+                         design_wavelength_um=0.55, phase={"kind": "fresnel", "focal_length": 400.0}),
+                 Surface(radius=70.0, conic=-1.2, thickness=3.0, material="F2", semi_diameter=6.0),
+                 Surface(radius=None, thickness=30.0, semi_diameter=6.0)],
+                Sensor(0.004, (1000, 1000)), wavelengths_um=WLS)
+
+
+def truth_surfaces(lens, wl):
+    """The lens as _phase_truth dicts (the phase of a fresnel surface written from its definition)."""
+    out, n = [], lens.indices(wl)
+    for s, z, ni in zip(lens.surfaces, lens.vertex_z, n):
+        d = {"z": z, "c": s.curvature, "k": s.conic, "a": {4 + 2 * j: a for j, a in enumerate(s.aspheric)}, "n": ni}
+        if s.phase is not None:
+            if s.phase["kind"] == "fresnel":
+                ph = (1.0, [-math.pi / (s.design_wavelength_um * 1e-3 * s.phase["focal_length"])])
+            else:
+                ph = (s.phase["norm_radius"], s.phase["coefficients"])
+            d["phase"] = (s.diffraction_order, *ph)
+        out.append(d)
+    return out
+
+
+def compare(lens, field, wi, grid=9):
+    """rwwarp's rays at the sensor against the numpy trace: max |dpos| (mm), |ddir|, |dOPL| (mm)."""
+    tr = Tracer(lens, WLS)
+    src = tr.sources([field], wi)
+    t = np.linspace(-0.98, 0.98, grid)
+    u, v = [a.ravel() for a in np.meshgrid(t, t)]
+    keep = u * u + v * v <= 1.0
+    u, v = u[keep], v[keep]
+    r = tr.run(src, u, v).numpy()
+    assert r["valid"][0].all()
+    c, hx, d0 = src["aim"][0], src["half_x"][0], src["dir"][0]
+    p0 = np.stack([c[0] + hx * u, c[1] + hx * v, np.full_like(u, c[2])], 1)
+    d = np.tile(d0, (len(u), 1))
+    opl0 = (p0 - c) @ d0
+    wl = WLS[wi]
+    p, dd, opl = truth.trace(truth_surfaces(lens, wl), p0, d, opl0, 1.0, wl * 1e-3)
+    p, dd, opl = truth.to_plane(p, dd, opl, lens.indices(wl)[-1], lens.sensor_z)
+    return (np.max(np.abs(r["pos"][0] - p)), np.max(np.abs(r["dir"][0] - dd)), np.max(np.abs(r["opl"][0] - opl)))
+
+
+@pytest.mark.parametrize("make,field,wi,order", [(singlet, 0.0, 1, 1), (singlet, 7.0, 0, 1), (singlet, 5.0, 2, 2),
+                                                  (doe_before_lens, 0.0, 1, 1), (doe_before_lens, 6.0, 2, 1),
+                                                  (two_does, 0.0, 0, 1), (two_does, 4.0, 1, 1)])
+def test_rays_against_numpy_trace(make, field, wi, order):
+    """Ray by ray against the independent trace: positions, directions and optical paths agree to ~1e-12
+    (measured <= 4e-13 mm, 2e-15, 5e-13 mm; bounds 1e-10 -- the issue's 1e-3 is far looser)."""
+    lens = make(order) if make is singlet else make()
+    dp, dd, do = compare(lens, field, wi)
+    assert dp < 1e-10 and dd < 1e-12 and do < 1e-10, (dp, dd, do)
+
+
+def matrix_efl(surfaces, wl):
+    """EFL (mm) from 2x2 reduced ray-transfer matrices written here: refraction [[1, 0], [-P, 1]] with
+    P = (n' - n) c_paraxial - m lambda A_1 / (pi R^2), translation [[1, t / n'], [0, 1]]."""
+    M, n = np.eye(2), 1.0
+    for s in surfaces:
+        P = (s["n"] - n) * s["c"]
+        if s.get("phase") is not None:
+            m, R, A = s["phase"]
+            P += -m * wl * 1e-3 * A[0] / (math.pi * R * R)
+        M = np.array([[1.0, 0.0], [-P, 1.0]]) @ M
+        if "t" in s:
+            M = np.array([[1.0, s["t"] / s["n"]], [0.0, 1.0]]) @ M
+        n = s["n"]
+    return -1.0 / M[1, 0]
+
+
+@pytest.mark.parametrize("make", [singlet, doe_before_lens, two_does])
+def test_first_order_against_matrices(make):
+    """Paraxial EFL (rwwarp.paraxial with the phase powers) against the matrices at three wavelengths (rel
+    1e-12, measured 1e-15), and a real ray at 1e-4 mm height through the Warp trace: -h / tan(u') within 1e-7
+    relative (measured ~2e-10: the (h / f)^2 aperture terms and rounding) -- the diffractive power is
+    proportional to lambda, so the three EFLs differ by percents."""
+    lens = make()
+    efls = []
+    for wi, wl in enumerate(WLS):
+        ts = truth_surfaces(lens, wl)
+        for s, src in zip(ts, lens.surfaces):
+            s["t"] = src.thickness
+        f = matrix_efl(ts[:-1] + [dict(ts[-1], t=0.0)], wl)
+        efls.append(f)
+        assert lens.efl(wl) == pytest.approx(f, rel=1e-12)
+        tr = Tracer(lens.replace(entrance_pupil_diameter=None), WLS)
+        src = tr.sources([0.0], wi)
+        h = 1e-4
+        r = tr.run(src, np.array([0.0]), np.array([h / src["half_x"][0]])).numpy()
+        d = r["dir"][0, 0]
+        assert -h * d[2] / d[1] == pytest.approx(f, rel=1e-7)
+    assert abs(efls[0] - efls[2]) > 1e-3 * abs(efls[1])
+
+
+def test_zero_phase_is_the_refracting_surface():
+    """A phase surface with zero coefficients traces as the plain refracting surface (a different kernel:
+    agreement to rounding, measured 1e-14 mm; bound 1e-12)."""
+    lens = singlet()
+    plain = lens.with_surface(0, phase=None)
+    zero = lens.with_surface(0, phase={"kind": "even_poly", "norm_radius": 5.0, "coefficients": [0.0]})
+    a = Tracer(plain, WLS).trace([0.0, 5.0], grid=15).numpy()
+    b = Tracer(zero, WLS).trace([0.0, 5.0], grid=15).numpy()
+    assert np.array_equal(a["valid"], b["valid"])
+    for k in ("pos", "dir", "opl"):
+        assert np.max(np.abs(a[k] - b[k])) < 1e-12
+
+
+def stigmatic(n_glass, L=100.0, t=5.0, a=2.0, wl=0.55):
+    """A diffractive singlet whose first order focuses on axis without aberration: a flat N-BK7 front carrying
+    phi(r) = -(2 pi n / lambda)(sqrt(r^2 + L^2) - L) (each ray inside heads to the point F at L), and a rear
+    sphere centred on F (rays cross it along its normals). phi as its binomial series in (r / a)^2, 8 terms:
+    truncation (a / L)^18 ~ 1e-31."""
+    k0 = 2.0 * math.pi * n_glass / (wl * 1e-3)
+    A = [-k0 * L * special.binom(0.5, i) * (a * a / (L * L)) ** i for i in range(1, MAX_PHASE_TERMS + 1)]
+    return Lens([Surface(radius=None, thickness=t, material="N-BK7", semi_diameter=a, stop=True,
+                         phase={"kind": "even_poly", "norm_radius": a, "coefficients": A}),
+                 Surface(radius=L - t, thickness=L - t, semi_diameter=a + 0.5)],
+                Sensor(0.001, (256, 256)), wavelengths_um=[wl])
+
+
+def test_stigmatic_singlet_rays_and_psf_against_airy():
+    """The stigmatic diffractive singlet: every ray meets F (measured 9e-16 mm) with equal optical path
+    (spread 3e-14 mm), and its ray-wave PSF (32 px of 4 um, about four Airy rings) against the Airy pattern of
+    its NA, ``I = [2 J1(v) / v]^2``, v = k NA rho, integrated over each pixel (16 x 16 points) and normalised to
+    the whole pattern's power (``int I dA = 4 pi / (k NA)^2``), as the PSF is to the traced power: relative L2
+    error measured 1.3e-4 (with 8 x 8 points 4.5e-4: the reference's own quadrature); bound 1e-3 (the issue's)."""
+    import warnings
+
+    import rwwarp as rw
+    from rwwarp import materials
+    n = float(materials.get_material("N-BK7").n(0.55))
+    lens = stigmatic(n)
+    lens.sensor = Sensor(0.004, (256, 256))
+    r = Tracer(lens, [0.55]).trace(0.0, grid=41).numpy()
+    ok = r["valid"][0]
+    assert ok.sum() > 1000
+    assert np.max(np.abs(r["pos"][0, ok, :2])) < 1e-10
+    assert np.ptp(r["opl"][0, ok]) < 1e-10
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the 32 px patch keeps 96 % of the power (PatchWarning): the reference too
+        p = rw.psf(lens, 0.0, 0.55, size=32)
+    x, y = p.coords_mm()
+    na = 2.0 / math.hypot(2.0, 100.0)
+    k = 2 * math.pi / 0.55e-3
+    sub = (np.arange(16) + 0.5) / 16 - 0.5
+    X = x[None, :, None, None] + p.pixel_mm * sub[None, None, None, :]
+    Y = y[:, None, None, None] + p.pixel_mm * sub[None, None, :, None]
+    v = k * na * np.hypot(X, Y)
+    v = np.where(v == 0, 1e-12, v)
+    ref = ((2 * special.j1(v) / v) ** 2).mean(axis=(2, 3)) * p.pixel_mm ** 2 * (k * na) ** 2 / (4 * math.pi)
+    err = np.linalg.norm(p.data - ref) / np.linalg.norm(ref)
+    assert err < 1e-3, err
+
+
+def test_phase_coefficient_gradient_against_finite_differences():
+    """d(sum of ray heights at the sensor)/dA_1 by the Warp tape against a central difference of the trace
+    (h = 1e-3 rad): agree to 1e-7 relative (measured ~1e-10)."""
+    import warp as wp
+    lens = singlet()
+
+    def heights(a1):
+        ls = lens.with_surface(0, phase={"kind": "even_poly", "norm_radius": 5.0, "coefficients": [a1, 8.0]})
+        return Tracer(ls, WLS).trace(3.0, grid=7, wavelength_index=1).numpy()["pos"][0, :, 1]
+
+    tr = Tracer(lens, WLS, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        rays = tr.trace(3.0, grid=7, wavelength_index=1)
+    ok = rays.valid.numpy().astype(bool)
+    seed = np.zeros((rays.pos.shape[0], 3))
+    seed[ok, 1] = 1.0
+    tape.backward(grads={rays.pos: wp.array(seed, dtype=rays.pos.dtype)})
+    g = tr.params[0].grad.numpy()[ktrace.P_PH0]
+    h = 1e-3
+    fd = (heights(-120.0 + h)[ok[:]].sum() - heights(-120.0 - h)[ok[:]].sum()) / (2 * h)
+    assert g == pytest.approx(fd, rel=1e-7)
+
+
+def test_json_round_trip(tmp_path):
+    lens = two_does()
+    path = tmp_path / "two.json"
+    lens.save(path)
+    import rwwarp as rw
+    back = rw.load_lens(path)
+    assert back.surfaces == lens.surfaces
+
+
+@pytest.mark.parametrize("change,msg", [
+    (dict(type="thin_lens", focal_length=50.0), "standard"),
+    (dict(phase={"kind": "zernike", "norm_radius": 1.0, "coefficients": [1.0]}), "zernike"),
+    (dict(phase={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [1.0] * 9}), "at most 8"),
+    (dict(phase={"kind": "even_poly", "norm_radius": -1.0, "coefficients": [1.0]}), "norm_radius"),
+    (dict(levels=8), "levels"),
+    (dict(diffraction_order=1.5), "diffraction_order"),
+    (dict(mirror=True), "mirror"),
+])
+def test_bad_phase_surfaces_are_refused(change, msg):
+    with pytest.raises(LensError, match=msg) as e:
+        singlet().with_surface(0, **change)
+    assert "surface 0" in str(e.value) or "surface=0" in repr(e.value) or e.value.surface in (0, "0")
+
+
+def test_max_terms_matches_the_kernel():
+    assert MAX_PHASE_TERMS == ktrace.N_PHASE
