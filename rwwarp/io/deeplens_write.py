@@ -70,6 +70,9 @@ def deeplens_dict(lens) -> dict:
                             keyword="odd_aspheric", **where)
         if s.type == "standard" and s.mirror:
             raise LensError("a DeepLens GeoLens has no mirrors (refracting surfaces only)", keyword="mirror", **where)
+        if s.type == "standard" and s.phase is not None:
+            raise LensError("a diffractive phase on a refracting surface (rwwarp.phase_surface) has no DeepLens form "
+                            "here; keep the native JSON or write a .zmx (BINARY_2)", keyword="phase", **where)
         base = {"d": float(z[i])}
         if s.semi_diameter is not None:
             base["r"] = float(s.semi_diameter)
