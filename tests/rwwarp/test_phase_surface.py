@@ -334,3 +334,38 @@ def test_zmx_binary2_reading_rules(tmp_path):
     for P, tt, nn in [(P1, 4.0, n), (P2, 10.0, 1.0), (P3, 0.0, 1.0)]:
         M = np.array([[1.0, tt / nn], [0.0, 1.0]]) @ np.array([[1.0, 0.0], [-P, 1.0]]) @ M
     assert all_phase.efl(0.55) == pytest.approx(-1.0 / M[1, 0], rel=1e-12)
+
+
+def test_deeplens_phase_surface_read_and_round_trip(tmp_path):
+    """A DeepLens ``Phase`` entry (flat, binary2 ``order2..`` on r / norm_radii) reads as a flat phase surface; the
+    flat phase in front of a lens is written as one and reads back tracing the same rays (bound 1e-12 mm); a
+    curved phase surface is refused naming the surface."""
+    import json
+
+    import rwwarp as rw
+    from rwwarp.io.deeplens_write import write_deeplens
+    doc = {"info": "phase in front of a singlet", "d_sensor": 60.0, "sensor_res": [100, 100], "sensor_size": [1, 1],
+           "surfaces": [
+               {"type": "Aperture", "r": 4.0, "d": 0.0, "d_next": 2.0},
+               {"type": "Phase", "r": 5.0, "d": 2.0, "d_next": 8.0, "param_model": "binary2", "norm_radii": 4.0,
+                "order2": -150.0, "order4": 6.0, "mat2": "air"},
+               {"type": "Spheric", "r": 6.0, "roc": 50.0, "d": 10.0, "d_next": 4.0, "mat2": "N-BK7"},
+               {"type": "Spheric", "r": 6.0, "roc": -50.0, "d": 14.0, "d_next": 46.0, "mat2": "air"}]}
+    p = tmp_path / "phase.json"
+    p.write_text(json.dumps(doc))
+    lens = rw.load_lens(p)
+    s = lens.surfaces[1]
+    assert s.type == "standard" and s.radius is None and s.material == "air" and s.diffraction_order == 1
+    assert s.phase == {"kind": "even_poly", "norm_radius": 4.0, "coefficients": [-150.0, 6.0]}
+    ref = doe_before_lens().replace(entrance_pupil_diameter=8.0)  # DeepLens's stop plane floats (no size)
+    out = tmp_path / "dl.json"
+    write_deeplens(ref, out)
+    back = rw.load_lens(out)
+    a = Tracer(ref, WLS).trace([0.0, 4.0], grid=11, wavelength_index=1).numpy()
+    b = Tracer(back, WLS).trace([0.0, 4.0], grid=11, wavelength_index=1).numpy()
+    assert np.array_equal(a["valid"], b["valid"])
+    for k in ("pos", "dir", "opl"):
+        assert np.max(np.abs(a[k] - b[k])) < 1e-12
+    with pytest.raises(LensError, match="curved") as e:
+        write_deeplens(singlet(), tmp_path / "x.json")
+    assert e.value.surface == 0
