@@ -104,7 +104,7 @@ class HybridLens(nn.Module):
     deterministic : bool
         The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
         (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray
-        while recording: 480 bytes a ray and surface more, counted by :meth:`bytes_per_source`). On the
+        while recording: 2 x 8 x N_PARAMS = 640 bytes a ray and surface more, counted by :meth:`bytes_per_source`). On the
         CPU the results are deterministic either way. torch's own operations follow
         ``torch.use_deterministic_algorithms``.
 
