@@ -391,3 +391,59 @@ def test_psf_against_rayleigh_sommerfeld(make):
     ref = rs_lens_psf(lens, 2.0, wl, p.center_mm, 16, p.pixel_mm, radial_nodes=32, angular_nodes=128, pixel_nodes=4)
     err = np.linalg.norm(p.data - ref) / np.linalg.norm(ref)
     assert err < 1e-4, err
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("make", [singlet, two_does])
+def test_cuda_trace_and_gradient_equal_cpu(make):
+    """The phase-surface kernel on CUDA (not run where this was written: no GPU): the same rays as on the CPU
+    (float64; bound 1e-12 mm: FMA contraction and the order of float operations, ~1e-15 relative) and the same
+    tape gradient of the ray heights with respect to the phase terms (1024 parameter-row copies on the GPU, 4 on
+    the CPU; bound 1e-10 relative)."""
+    import warp as wp
+    from rwwarp.trace import init_warp
+    init_warp()
+    if wp.get_cuda_device_count() < 1:
+        pytest.skip("no CUDA device")
+    lens = make()
+    rays = {dev: Tracer(lens, WLS, device=dev).trace([0.0, 4.0], grid=21, wavelength_index=1).numpy()
+            for dev in ("cpu", "cuda")}
+    assert np.array_equal(rays["cpu"]["valid"], rays["cuda"]["valid"])
+    for k in ("pos", "dir", "opl"):
+        assert np.max(np.abs(rays["cpu"][k] - rays["cuda"][k])) < 1e-12, k
+    grads = {}
+    for dev in ("cpu", "cuda"):
+        tr = Tracer(lens, WLS, device=dev, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            r = tr.trace(3.0, grid=9, wavelength_index=1)
+        seed = np.zeros((r.pos.shape[0], 3))
+        seed[r.valid.numpy().astype(bool), 1] = 1.0
+        tape.backward(grads={r.pos: wp.array(seed, dtype=r.pos.dtype, device=tr.device)})
+        grads[dev] = tr.params[0].grad.numpy()[ktrace.P_PH0:ktrace.P_PH0 + 2]
+    np.testing.assert_allclose(grads["cuda"], grads["cpu"], rtol=1e-10)
+
+
+def test_unsupported_file_phases_are_refused(tmp_path):
+    """A curved BINARY_2 with 9 phase terms (a phase surface carries 8) and a DeepLens Phase of an unsupported
+    param_model are refused naming the surface and the keyword."""
+    import json
+
+    import rwwarp as rw
+    from rwwarp.errors import LensFileError
+    xdat = [f"  XDAT {k + 3} {(-1.0) ** k} 0 0" for k in range(9)]
+    text = "\n".join(["MODE SEQ", "ENPD 4", "WAVM 1 0.55 1", "SURF 0", "  DISZ INFINITY", "SURF 1", "  STOP",
+                      "  TYPE BINARY_2", "  CURV 0.02", "  DISZ 3", "  GLAS N-BK7", "  XDAT 1 9 0 0", "  XDAT 2 2 0 0",
+                      *xdat, "SURF 2", "  CURV 0", "  DISZ 40", "SURF 3", "  DISZ 0", ""])
+    p = tmp_path / "nine.zmx"
+    p.write_text(text)
+    with pytest.raises(LensFileError, match="at most 8") as e:
+        rw.load_lens(p)
+    assert e.value.surface == "SURF 1" and e.value.keyword == "XDAT 1"
+    doc = {"d_sensor": 50.0, "surfaces": [{"type": "Aperture", "r": 2.0, "d": 0.0},
+                                          {"type": "Phase", "r": 2.0, "d": 1.0, "param_model": "zernike"}]}
+    q = tmp_path / "dl.json"
+    q.write_text(json.dumps(doc))
+    with pytest.raises(LensFileError, match="param_model") as e:
+        rw.load_lens(q)
+    assert e.value.surface == 1 and e.value.keyword == "param_model"
