@@ -53,7 +53,8 @@ class SurfaceColumns:
     the layout ``rwwarp.kernels.trace`` defines for the device. ``z`` vertex z (mm), ``curvature`` (1/mm),
     ``conic``, ``asph0`` the first of ``n_asph`` even aspheric terms (r^4 .. , mm^-3 ..), ``power`` thin
     lens power (1/mm), ``uinv`` thin lens 1 / object distance (1/mm, 0 at infinity), ``v`` thin lens image
-    distance (mm, 0 at infinity)."""
+    distance (mm, 0 at infinity); a phase surface's (:mod:`rwwarp.phase_surface`) diffraction order
+    ``phase_order``, normalisation radius ``phase_norm`` (mm) and ``n_phase`` terms from ``phase0`` (rad)."""
     z: int = ktrace.P_Z
     curvature: int = ktrace.P_C
     conic: int = ktrace.P_K
@@ -62,6 +63,10 @@ class SurfaceColumns:
     power: int = ktrace.P_POWER
     uinv: int = ktrace.P_UINV
     v: int = ktrace.P_V
+    phase_order: int = ktrace.P_PH_M
+    phase_norm: int = ktrace.P_PH_R
+    phase0: int = ktrace.P_PH0
+    n_phase: int = ktrace.N_PHASE
     n_params: int = ktrace.N_PARAMS
 
 
