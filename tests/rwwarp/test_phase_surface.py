@@ -272,7 +272,7 @@ def test_max_terms_matches_the_kernel():
 @pytest.mark.parametrize("make", [singlet, doe_before_lens, two_does])
 def test_zmx_round_trip(tmp_path, make):
     """Written as BINARY_2 (sag as EVENASPH, PARM 0 the order, XDAT the phase) and read back: the same surfaces
-    (a fresnel phase comes back as its one-term even_poly) and the same rays (5e-15 mm; bound 1e-12)."""
+    (a fresnel phase comes back as its one-term even_poly) and the same rays (measured: bit for bit; bound 1e-12 mm)."""
     import rwwarp as rw
     lens = make(2) if make is singlet else make()
     path = tmp_path / "lens.zmx"
