@@ -34,6 +34,20 @@ The ideal thin lens (kind THIN) maps direction tangents ``t' = (n_in t - p P) / 
 optical path (a perfect spherical wave behind it; a plane wave when the object sits at its front
 focal plane). The object-side conjugate distance ``u`` and image-side ``v`` (mm, 1/u = 0 for an
 object at infinity, v = 0 for an image at infinity) come from the host.
+
+A phase surface (kind PHASE, ``phase_surface_kernel``) is a refracting surface of any sag above that
+also carries a diffractive phase ``phi(x, y) = sum_i A_i rho^(2 i)``, ``rho = r / R`` (radians; Zemax
+``BINARY_2``), of which one diffraction order ``m`` is traced. At the intersection (the same Newton
+root as a refracting surface) the local grating equation bends the ray:
+
+    n' d'_t = n d_t + (m lambda / 2 pi) grad_t(phi),    n' d'_N = sqrt(n'^2 - |n' d'_t|^2)
+
+(``_t``: the components in the tangent plane, ``N`` the unit normal oriented along the ray, ``grad_t`` the
+tangential part of ``(dphi/dx, dphi/dy, 0)``, lambda the ray's vacuum wavelength in mm), and the optical
+path gains ``m lambda phi / (2 pi)``, so the eikonal keeps the phase (the rays stay normal to the wavefront
+and the coherent sum sees ``exp(i m phi)``). ``m lambda / 2 pi`` is Zemax's wavelength scaling: in order m
+the zones of a relief of any depth add the phase ``m phi`` at every wavelength (only the efficiency
+depends on it). An evanescent order (``|n' d'_t| >= n'``) makes the ray invalid.
 """
 import functools
 
@@ -57,12 +71,17 @@ P_OB_Y = 20
 P_ODD_ON = 21     # 1: the surface has power-series terms in r (Zemax ODDASPHE), coefficients below
 P_ODD0 = 22       # b_1 .. b_8: sag += sum_i b_i r^i (r^1 .. r^8), mm^(1-i)
 N_ODD = 8
-N_PARAMS = 30
+P_PH_M = 30       # phase surface (KIND_PHASE): diffraction order m traced
+P_PH_R = 31       # its normalisation radius R, mm
+P_PH0 = 32        # A_1 .. A_8: phi = sum_i A_i (r / R)^(2 i), radians (Zemax BINARY_2 per unit order)
+N_PHASE = 8
+N_PARAMS = 40
 
 KIND_REFRACT = 0
 KIND_THIN = 1
 KIND_PLANE = 2     # aperture / DOE plane / sensor: intersect and clip, no bending
 KIND_REFLECT = 3   # mirror: intersect like KIND_REFRACT, then reflect (the medium is unchanged)
+KIND_PHASE = 4     # refracting surface carrying a diffractive phase, one order traced (phase_surface_kernel)
 
 NEWTON_STEPS = 8
 
@@ -473,6 +492,91 @@ def make_trace_kernels(scalar):
             opl_out[i] = opl[i]
             valid_out[i] = 0
 
+    @wp.func
+    def phase_and_gradient(row: wp.array(dtype=scalar), x: scalar, y: scalar):
+        # phi = sum_i A_i u^i, u = r^2 / R^2 (Horner), and grad phi = (2 / R^2) dphi/du (x, y)
+        rn = row[P_PH_R]
+        inv = scalar(1.0) / (rn * rn)
+        u = (x * x + y * y) * inv
+        ph = scalar(0.0)
+        dp = scalar(0.0)
+        for jj in range(N_PHASE):
+            j = N_PHASE - 1 - jj
+            a = row[P_PH0 + j]
+            ph = (ph + a) * u
+            dp = dp * u + scalar(j + 1) * a
+        g = scalar(2.0) * inv * dp
+        return ph, g * x, g * y
+
+    @wp.kernel(module="unique")
+    def phase_surface_kernel(
+        pos: wp.array(dtype=vec3),
+        dir: wp.array(dtype=vec3),
+        opl: wp.array(dtype=scalar),
+        valid: wp.array(dtype=wp.int32),
+        wl: wp.array(dtype=wp.int32),
+        params_rows: wp.array2d(dtype=scalar),  # (R, N_PARAMS) copies of this surface's row
+        rmask: int,
+        n_in: wp.array(dtype=scalar),       # (n_wl,) index before the surface
+        n_out: wp.array(dtype=scalar),      # (n_wl,) index after the surface
+        lam_bar: wp.array(dtype=scalar),    # (n_wl,) vacuum wavelength / (2 pi), mm (formed on the host in float64)
+        t_start: wp.array(dtype=scalar),    # converged intersection parameter (intersect_kernel)
+        # outputs
+        pos_out: wp.array(dtype=vec3),
+        dir_out: wp.array(dtype=vec3),
+        opl_out: wp.array(dtype=scalar),
+        valid_out: wp.array(dtype=wp.int32),
+    ):
+        """A refracting surface with a diffractive phase, order ``m = row[P_PH_M]`` (module docstring)."""
+        i = wp.tid()
+        row = params_rows[i & rmask]
+        sf = load_surface(row)
+        p0 = pos[i]
+        d = dir[i]
+        ok = valid[i]
+        w = wl[i]
+        n1 = n_in[w]
+        n2 = n_out[w]
+        zv = sf.z
+        q = vec3(p0[0], p0[1], p0[2] - zv)
+        t = scalar(0.0)
+        newd = d
+        extra = scalar(0.0)
+        if ok == 1:
+            t = newton_step(q, d, t_start[i], sf)
+            x = q + t * d
+            r2 = x[0] * x[0] + x[1] * x[1]
+            sg, ds, sok = sag_and_slope(r2, sf)
+            g = x[2] - sg
+            if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], sf) == 1:
+                ok = 0
+            else:
+                nrm = wp.normalize(vec3(-scalar(2.0) * x[0] * ds, -scalar(2.0) * x[1] * ds, scalar(1.0)))
+                cosi = wp.dot(d, nrm)
+                if cosi < scalar(0.0):
+                    nrm = -nrm
+                    cosi = -cosi
+                ph, gx, gy = phase_and_gradient(row, x[0], x[1])
+                scale = row[P_PH_M] * lam_bar[w]
+                gv = vec3(scale * gx, scale * gy, scalar(0.0))
+                tang = n1 * (d - cosi * nrm) + gv - wp.dot(gv, nrm) * nrm
+                kk = n2 * n2 - wp.dot(tang, tang)
+                if kk <= scalar(0.0):
+                    ok = 0  # evanescent order (or total internal reflection)
+                else:
+                    newd = wp.normalize(tang + wp.sqrt(kk) * nrm)
+                    extra = scale * ph
+        if ok == 1:
+            pos_out[i] = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + zv)
+            dir_out[i] = newd
+            opl_out[i] = opl[i] + n1 * t + extra
+            valid_out[i] = 1
+        else:
+            pos_out[i] = p0
+            dir_out[i] = d
+            opl_out[i] = opl[i]
+            valid_out[i] = 0
+
     @wp.kernel(module="unique")
     def replicate_kernel(params: wp.array(dtype=scalar), rows_per_thread: int, out: wp.array2d(dtype=scalar)):
         """``out[r, j] = params[j]`` for every row r. Launched over ``(N_PARAMS, R / rows_per_thread)``: thread
@@ -506,6 +610,7 @@ def make_trace_kernels(scalar):
     K.generate_kernel = generate_kernel
     K.surface_kernel = surface_kernel
     K.intersect_kernel = intersect_kernel
+    K.phase_surface_kernel = phase_surface_kernel
     return K
 
 

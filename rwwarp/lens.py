@@ -16,6 +16,9 @@ doe        a plane that carries a diffractive phase ``profile`` (see :mod:`rwwar
            ``material`` is its substrate (for the wavelength remap), the medium is unchanged
 ========== ======================================================================
 
+A ``standard`` surface may also carry a diffractive ``phase`` traced in one ``diffraction_order``
+(:mod:`rwwarp.phase_surface`): a DOE on a curved surface, in front of or between lenses, several of them.
+
 Native file (``format: "rwwarp-lens/1"``) holds inputs only; :meth:`Lens.to_dict` and
 :meth:`Lens.from_dict` round-trip it exactly.
 """
@@ -68,6 +71,12 @@ class Surface:
     mirror: bool = False
     #: power series in r (Zemax ODDASPHE): sag += sum_i odd_aspheric[i-1] r^i, i = 1..8 (mm^(1-i))
     odd_aspheric: list = field(default_factory=list)
+    #: a diffractive phase on a standard surface (:mod:`rwwarp.phase_surface`): {"kind": "even_poly",
+    #: "norm_radius": R, "coefficients": [A1, ...]} (radians on rho^2, rho^4, ...) or {"kind": "fresnel",
+    #: "focal_length": f}; traced in order ``diffraction_order``. None: none
+    phase: dict | None = None
+    #: the diffraction order m a ``phase`` is traced in (Zemax BINARY_2 PARM 0)
+    diffraction_order: int = 1
 
     def __post_init__(self):
         if self.type == "doe" and self.material == "air":
@@ -285,6 +294,9 @@ class Lens:
                                           or not math.isfinite(s.focal_length)):
                 raise LensError("thin_lens needs a finite non-zero focal_length", file=f, surface=i,
                                 keyword="focal_length")
+            if s.phase is not None or s.diffraction_order != 1:
+                from .phase_surface import check_phase_surface
+                check_phase_surface(s, i, self)
             if s.type == "doe":
                 if s.profile is None:
                     raise LensError("doe needs a profile", file=f, surface=i, keyword="profile")
@@ -508,7 +520,7 @@ def register_writer(fmt: str, write) -> None:
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
                  "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2", "obscuration",
-                 "mirror", "odd_aspheric"}
+                 "mirror", "odd_aspheric", "phase", "diffraction_order"}
 _DEFAULTS = Surface()
 
 
@@ -527,6 +539,8 @@ def _surface_to_dict(s: Surface) -> dict:
         keys = keys + ["mirror"]
     if s.type == "standard" and s.odd_aspheric:
         keys = keys + ["odd_aspheric"]
+    if s.type == "standard" and s.phase is not None:
+        keys = keys + ["phase", "diffraction_order", "design_wavelength_um"]
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
@@ -550,14 +564,14 @@ def _surface_from_dict(sd, i, source) -> Surface:
                 raise LensFileError(f"{k} must be a list of numbers, got {_brief(v)}", file=source, surface=i,
                                     keyword=k)
             kw[k] = [_num(a, source, i, k) for a in v]
-        elif k == "levels":
-            kw[k] = None if v is None else _integer(v, source, i, k)
+        elif k in ("levels", "diffraction_order"):
+            kw[k] = None if v is None and k == "levels" else _integer(v, source, i, k)
         elif k in ("stop", "mirror"):
             if not isinstance(v, bool):
                 raise LensFileError(f"{k} must be true or false, got {_brief(v)}", file=source, surface=i,
                                     keyword=k)
             kw[k] = v
-        elif k in ("profile", "obscuration"):
+        elif k in ("profile", "obscuration", "phase"):
             kw[k] = copy.deepcopy(v)
         else:
             if not isinstance(v, str):
@@ -624,6 +638,8 @@ def surface_notes(lens) -> list:
                                                         if c))
             if s.mirror:
                 notes.append("mirror")
+            if s.phase is not None:
+                notes.append(f"diffractive phase {s.phase.get('kind')}, order {s.diffraction_order} (traced as rays)")
         elif s.type == "thin_lens":
             notes.append(f"ideal thin lens, f = {s.focal_length:g} mm")
         elif s.type == "doe":

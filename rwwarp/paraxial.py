@@ -2,7 +2,8 @@
 
 Reduced slopes ``nu = n * u``; refraction ``nu' = nu - y * P`` with surface power
 ``P = (n' - n) * c`` (standard), ``1/f`` (thin lens), ``-lambda * a1 / (pi R^2)`` for a DOE
-(a1 the rho^2 phase coefficient in radians: first diffraction order, power proportional to lambda);
+(a1 the rho^2 phase coefficient in radians: first diffraction order, power proportional to lambda),
+plus ``-m lambda A_1 / (pi R^2)`` for a standard surface's phase in order m (:mod:`rwwarp.phase_surface`);
 transfer ``y' = y + t * nu' / n'``. Lengths in mm, wavelengths in um.
 """
 from __future__ import annotations
@@ -23,6 +24,9 @@ def surface_powers(lens, wavelength_um: float) -> np.ndarray:
     for i, s in enumerate(lens.surfaces):
         if s.type == "standard":
             out[i] = (n[i] - n_before[i]) * s.paraxial_curvature  # c + 2 a2 (r^2 asphere term)
+            if s.phase is not None:
+                from .phase_surface import phase_power
+                out[i] += phase_power(s, wavelength_um)
         elif s.type == "thin_lens":
             out[i] = 1.0 / s.focal_length
         elif s.type == "doe":

@@ -42,6 +42,8 @@ def init_warp():
         _WP_INIT = True
 
 
+#: surface kinds intersected by Newton iterations (``intersect_kernel``) before their surface kernel
+_CURVED = (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT, ktrace.KIND_PHASE)
 #: fewest rays per CPU thread worth a parallel chunk (below it the launch overhead dominates)
 PARALLEL_MIN_RAYS = 32768
 @dataclass(frozen=True)
@@ -51,7 +53,8 @@ class SurfaceColumns:
     the layout ``rwwarp.kernels.trace`` defines for the device. ``z`` vertex z (mm), ``curvature`` (1/mm),
     ``conic``, ``asph0`` the first of ``n_asph`` even aspheric terms (r^4 .. , mm^-3 ..), ``power`` thin
     lens power (1/mm), ``uinv`` thin lens 1 / object distance (1/mm, 0 at infinity), ``v`` thin lens image
-    distance (mm, 0 at infinity)."""
+    distance (mm, 0 at infinity); a phase surface's (:mod:`rwwarp.phase_surface`) diffraction order
+    ``phase_order``, normalisation radius ``phase_norm`` (mm) and ``n_phase`` terms from ``phase0`` (rad)."""
     z: int = ktrace.P_Z
     curvature: int = ktrace.P_C
     conic: int = ktrace.P_K
@@ -60,6 +63,10 @@ class SurfaceColumns:
     power: int = ktrace.P_POWER
     uinv: int = ktrace.P_UINV
     v: int = ktrace.P_V
+    phase_order: int = ktrace.P_PH_M
+    phase_norm: int = ktrace.P_PH_R
+    phase0: int = ktrace.P_PH0
+    n_phase: int = ktrace.N_PHASE
     n_params: int = ktrace.N_PARAMS
 
 
@@ -265,7 +272,7 @@ class Tracer:
     deterministic : bool
         With ``requires_grad`` on a GPU: the parameter gradients come out the same bits on every run. Every
         ray gets its own copy of each surface's row (``R`` = the ray count rounded up to a power of two:
-        ``2 x 8 x N_PARAMS = 480`` bytes a ray and traced surface, gradient included), made in two levels
+        ``2 x 8 x N_PARAMS = 640`` bytes a ray and traced surface, gradient included), made in two levels
         (512 rows, then the rest) whose adjoints sum in a fixed order. The CPU is deterministic either way.
     """
 
@@ -302,6 +309,8 @@ class Tracer:
     def _kind(self, s):
         if s.type == "standard" and s.mirror:
             return ktrace.KIND_REFLECT
+        if s.type == "standard" and s.phase is not None:
+            return ktrace.KIND_PHASE
         return {"standard": ktrace.KIND_REFRACT, "thin_lens": ktrace.KIND_THIN}.get(s.type, ktrace.KIND_PLANE)
 
     def _surface_params(self, object_distance=None) -> np.ndarray:
@@ -320,6 +329,12 @@ class Tracer:
                 if any(s.odd_aspheric):
                     p[ktrace.P_ODD_ON] = 1.0
                     p[ktrace.P_ODD0:ktrace.P_ODD0 + len(s.odd_aspheric)] = s.odd_aspheric
+                if s.phase is not None:
+                    from .phase_surface import phase_columns
+                    order, rnorm, coeffs = phase_columns(s)
+                    p[ktrace.P_PH_M] = order
+                    p[ktrace.P_PH_R] = rnorm
+                    p[ktrace.P_PH0:ktrace.P_PH0 + len(coeffs)] = coeffs
             sd = s.semi_diameter
             if i == stop and lens.entrance_pupil_diameter is not None:
                 sd = None  # floating stop: the entrance pupil sets the beam
@@ -346,6 +361,9 @@ class Tracer:
         dev, sc, g = self.device, self.scalar, self.requires_grad
         fdt = self.np_dtype
         tables = [(self.n_obj_np, fdt, sc)] + [(self.index_np[i], fdt, sc) for i in range(self.index_np.shape[0])]
+        # vacuum wavelengths / (2 pi) in mm (the phase surfaces' grating equation and path; a literal 2 pi in a
+        # kernel would be a float32 constant)
+        tables.append((np.array(self.wavelengths_um, dtype=np.float64) * 1e-3 / (2.0 * math.pi), fdt, sc))
         if g:
             self.params = [wp.array(p, dtype=sc, device=dev, requires_grad=True) for p in self.params_np]
             views = upload_packed(tables, dev, cache=True)
@@ -355,7 +373,8 @@ class Tracer:
             views = views[len(self.params_np):]
         nw = len(self.wavelengths_um)
         self.n_obj = views[0]
-        self.n_tables = views[1:]
+        self.lam_bar = views[-1]
+        self.n_tables = views[1:-1]
         self.n_before = [self.n_obj] + self.n_tables[:-1]
         self._n_wl = nw
 
@@ -635,7 +654,7 @@ class Tracer:
             kind = self.kinds[i] if i < nsurf else ktrace.KIND_PLANE
             n_in = self.n_before[i] if i < nsurf else self.n_tables[-1]
             n_out = self.n_tables[i] if i < nsurf else self.n_tables[-1]
-            if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT):
+            if kind in _CURVED:
                 # converge the intersection off the tape; the surface kernel differentiates one step. A
                 # buffer per surface when recording (the adjoint reads it again during tape.backward())
                 if g:
@@ -730,11 +749,15 @@ class Tracer:
         wlc = cut(wl)
         for (kind, rows, rmask, n_in, n_out, t_buf), out in zip(steps, outs):
             nxt = tuple(cut(a) for a in out)
-            tc = cut(t_buf) if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT) else t_buf
-            if kind in (ktrace.KIND_REFRACT, ktrace.KIND_REFLECT):
+            tc = cut(t_buf) if kind in _CURVED else t_buf
+            if kind in _CURVED:
                 wp.launch(K.intersect_kernel, dim=n, inputs=[state[0], state[1], state[3], rows, rmask], outputs=[tc],
                           device=dev, record_tape=False)
-            wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, kind, tc],
-                      outputs=list(nxt), device=dev)
+            if kind == ktrace.KIND_PHASE:
+                wp.launch(K.phase_surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, self.lam_bar,
+                                                                 tc], outputs=list(nxt), device=dev)
+            else:
+                wp.launch(K.surface_kernel, dim=n, inputs=[*state, wlc, rows, rmask, n_in, n_out, kind, tc],
+                          outputs=list(nxt), device=dev)
             state = nxt
 

@@ -9,6 +9,7 @@ these; each docstring gives the measurement the estimate was checked against.
 from __future__ import annotations
 
 import torch
+from rwwarp.trace import COLUMNS as _COL
 
 __all__ = ["bytes_fixed", "bytes_per_source", "default_memory_budget_bytes", "output_bytes_per_source"]
 
@@ -53,7 +54,7 @@ def bytes_per_source(rw, record: bool = True) -> int:
     weight, the shared intersection parameter and the tube boxes (164 bytes a ray); the splat
     sums, the field and its copy into the cache (48 bytes a DOE-plane sample). Measured on CPU (A489
     F/4, 1425^2 rays, 1015^2 samples): 268 MB a source (RSS), estimate 765 MB. A ``deterministic``
-    RayWave adds its per-ray parameter copies (480 bytes a ray and surface) and fixed-point sums."""
+    RayWave adds its per-ray parameter copies (2 x 8 x N_PARAMS = 640 bytes a ray and surface) and fixed-point sums."""
     pl = rw.plan
     rays = pl.ray_grid ** 2
     if not record:
@@ -65,9 +66,9 @@ def bytes_per_source(rw, record: bool = True) -> int:
     extra = 0
     if getattr(rw, "deterministic", False):
         # a parameter-row copy per ray (the count rounded up to a power of two) and surface, with its
-        # gradient (480 bytes); the fixed-point splat's int64 sums, the rays' amplitudes and the tube-area
+        # gradient (2 x 8 x N_PARAMS bytes, 640); the fixed-point splat's int64 sums, the rays' amplitudes and the tube-area
         # stencil (5 positions a ray, with gradients)
-        extra = (1 << max(rays - 1, 0).bit_length()) * 480 * (rw.plane + 2) + pl.n_grid ** 2 * 16 + rays * (32 + 240)
+        extra = (1 << max(rays - 1, 0).bit_length()) * 16 * _COL.n_params * (rw.plane + 2) + pl.n_grid ** 2 * 16 + rays * (32 + 240)
     return 2 * int(rays * per_ray + pl.n_grid ** 2 * per_sample + pl.n_pad ** 2 * per_pad + nodes + extra)
 
 def bytes_fixed(rw) -> int:

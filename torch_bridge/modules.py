@@ -104,7 +104,7 @@ class HybridLens(nn.Module):
     deterministic : bool
         The same values give the same PSFs and gradients bit for bit on every run, on a GPU too
         (:class:`rwwarp.psf.RayWave` ``deterministic``: fixed-point splat, a parameter-row copy per ray
-        while recording: 480 bytes a ray and surface more, counted by :meth:`bytes_per_source`). On the
+        while recording: 2 x 8 x N_PARAMS = 640 bytes a ray and surface more, counted by :meth:`bytes_per_source`). On the
         CPU the results are deterministic either way. torch's own operations follow
         ``torch.use_deterministic_algorithms``.
 
@@ -139,6 +139,12 @@ class HybridLens(nn.Module):
         self._plans: dict = {}
         self._same_values = None   # see same_values()
         surfs = lens.surfaces
+        if any(getattr(s, "phase", None) is not None for s in surfs):
+            from rwwarp.errors import LensError
+            k = next(i for i, s in enumerate(surfs) if s.phase is not None)
+            raise LensError("HybridLens does not take phase surfaces (a diffractive phase on a standard surface, "
+                            "rwwarp.phase_surface) yet: its thin-lens conjugates and ray model leave their power out; "
+                            "rwwarp.psf traces them", file=lens.source, surface=k, keyword="phase")
         ns = len(surfs)
         std = [s.type == "standard" for s in surfs]
         thin = [s.type == "thin_lens" for s in surfs]

@@ -20,6 +20,14 @@ Aspheric         ``standard`` with ``k`` (conic) and ``ai``: ``use_ai2`` true or
                  ``use_ai2`` false means ``ai`` starts at r^4.
 Plane            flat ``standard`` into ``mat2``
 ThinLens         ``thin_lens`` of focal length ``f`` (``foclen`` in newer files)
+Phase            a flat ``standard`` surface into ``mat2`` carrying a diffractive ``phase`` traced in order
+                 ``diffraction_order`` (default 1; :mod:`rwwarp.phase_surface`): ``param_model`` ``binary2``
+                 (``order2 .. order12`` on (r / R)^2 .. (r / R)^12, R = ``norm_radii``, default ``r``) ->
+                 ``even_poly``; ``fresnel`` (``f0`` at 0.55 um) -> ``fresnel``. DeepLens bends the ray by
+                 renormalising ``(d_x + lambda/2pi dphi/dx, d_y + ..., d_z)`` after refracting at the plane, and
+                 adds the wrapped phase to the path; rwwarp solves the grating equation in the medium after
+                 (they agree to first order in the bending) and adds the unwrapped phase (the same
+                 ``exp(i k OPL)`` at every wavelength's own traced path)
 ================ =====================================================================================
 
 The HybridLens ``DOE`` block becomes a ``doe`` surface inserted at its absolute ``d``; its aperture
@@ -58,7 +66,7 @@ import math
 from ..errors import LensError, LensFileError
 
 DEFAULT_WAVELENGTHS_UM = [0.486, 0.587, 0.656]
-_SURFACE_TYPES = ("Aperture", "Stop", "Spheric", "Aspheric", "Plane", "ThinLens")
+_SURFACE_TYPES = ("Aperture", "Stop", "Spheric", "Aspheric", "Plane", "ThinLens", "Phase")
 
 
 def _derived(key: str) -> bool:
@@ -168,6 +176,8 @@ def lens_from_deeplens(d: dict, source=None, strict: bool = True):
             material = _material(sd, i, src, err, materials)
             if typ == "Plane":
                 s = Surface(type="standard", radius=None, material=material, semi_diameter=semi, shape=shape)
+            elif typ == "Phase":
+                s = _phase_surface(sd, i, semi, shape, material, num, err, Surface)
             else:
                 if sd.get("roc") not in (None, 0, 0.0):
                     radius = num(sd, "roc", i)
@@ -270,6 +280,30 @@ def _int(v) -> int:
 
 #: DeepLens defines a "nd/Vd" material as a Cauchy glass through nd at 587.6 nm and Vd from 486.1 / 656.3 nm
 DEEPLENS_MODEL_LINES_UM = (0.5876, 0.4861, 0.6563)
+
+
+def _phase_surface(sd, i, semi, shape, material, num, err, Surface):
+    """A DeepLens ``Phase`` entry (a flat diffractive surface) as a flat standard surface with a ``phase``."""
+    model = sd.get("param_model", "binary2")
+    order = sd.get("diffraction_order", 1)
+    if isinstance(order, bool) or not isinstance(order, (int, float)) or order != int(order):
+        raise err(f"'diffraction_order' must be an integer, got {order!r}", i, "diffraction_order")
+    if model == "binary2":
+        rn = sd.get("norm_radii")
+        rn = semi if rn is None else num(sd, "norm_radii", i, positive=True)
+        if rn is None:
+            raise err("a binary2 Phase surface needs 'norm_radii' or 'r' (mm)", i, "norm_radii")
+        coeffs = [num(sd, f"order{2 * k}", i, default=0.0) for k in range(1, 7)]
+        while coeffs and coeffs[-1] == 0.0:
+            coeffs.pop()
+        phase = {"kind": "even_poly", "norm_radius": rn, "coefficients": coeffs}
+        return Surface(type="standard", radius=None, material=material, semi_diameter=semi, shape=shape,
+                       phase=phase, diffraction_order=int(order))
+    if model == "fresnel":
+        return Surface(type="standard", radius=None, material=material, semi_diameter=semi, shape=shape,
+                       phase={"kind": "fresnel", "focal_length": num(sd, "f0", i)}, design_wavelength_um=0.55,
+                       diffraction_order=int(order))
+    raise err(f"Phase param_model {model!r} is not supported (binary2 and fresnel are)", i, "param_model")
 
 
 def _material(sd, i, src, err, materials):

@@ -9,6 +9,8 @@ rwwarp           DeepLens
 standard         ``Spheric`` (``roc``, ``c``), ``Aspheric`` when it has ``conic``, ``a2`` or aspheric
                  terms (``k``, ``ai`` = [r^2, r^4, ...] with ``use_ai2`` true), ``Plane`` when flat
 thin_lens        ``ThinLens`` (``f``; only in air)
+phase            a flat standard surface with a ``phase``: ``Phase`` (``param_model`` ``binary2``, ``norm_radii``,
+                 ``order2 .. order12``; a fresnel phase as its one-term equivalent); curved ones are refused
 aperture         ``Aperture`` (``r``, ``is_square``); the stop must be the first aperture, and a stop on a
                  refracting surface gets an ``Aperture`` at its vertex (DeepLens has no stop flag)
 doe              the ``DOE`` block at its ``d``: square only. Unquantised (``levels`` None): the older
@@ -70,6 +72,11 @@ def deeplens_dict(lens) -> dict:
                             keyword="odd_aspheric", **where)
         if s.type == "standard" and s.mirror:
             raise LensError("a DeepLens GeoLens has no mirrors (refracting surfaces only)", keyword="mirror", **where)
+        if s.type == "standard" and s.phase is not None and (s.radius is not None or s.conic or s.a2
+                                                               or any(s.aspheric)):
+            raise LensError("a diffractive phase on a curved or aspheric surface has no DeepLens form (its Phase "
+                            "surface is flat); keep the native JSON or write a .zmx (BINARY_2)", keyword="phase",
+                            **where)
         base = {"d": float(z[i])}
         if s.semi_diameter is not None:
             base["r"] = float(s.semi_diameter)
@@ -89,6 +96,18 @@ def deeplens_dict(lens) -> dict:
             if s.material.lower() != "air":
                 raise LensError("a DeepLens ThinLens sits in air", keyword="material", **where)
             surfs.append({"type": "ThinLens", "f": float(s.focal_length), **base})
+        elif s.type == "standard" and s.phase is not None:
+            from ..phase_surface import phase_profile
+            rn, coeffs = phase_profile(s)
+            if len(coeffs) > 6:
+                raise LensError(f"a DeepLens Phase surface holds 6 terms (order2 .. order12), the phase has "
+                                f"{len(coeffs)}", keyword="phase", **where)
+            entry = {"type": "Phase", "param_model": "binary2", "norm_radii": rn,
+                     "mat2": _material(s.material, i, lens, materials), **base}
+            entry.update({f"order{2 * (k + 1)}": float(c) for k, c in enumerate(coeffs)})
+            if s.diffraction_order != 1:
+                entry["diffraction_order"] = int(s.diffraction_order)
+            surfs.append(entry)
         elif s.type == "standard":
             mat = _material(s.material, i, lens, materials)
             asph = [float(a) for a in s.aspheric]

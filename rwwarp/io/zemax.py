@@ -10,9 +10,13 @@ Supported:
 * surface types ``STANDARD`` (sphere/plane + conic), ``ODDASPHE`` (``PARM 1..8`` = the r^1..r^8 terms,
   ``Surface.odd_aspheric``), ``EVENASPH`` (conic + ``PARM 1`` = the r^2 term
   ``Surface.a2``, ``PARM 2..8`` = r^4..r^16), ``PARAXIAL`` (ideal thin lens, focal length
-  ``PARM 1``) and ``BINARY_2`` on a flat surface (a DOE with an ``even_poly`` profile:
-  ``XDAT 1`` = number of terms N, ``XDAT 2`` = normalisation radius, ``XDAT 3..N+2`` = A1..AN in
-  radians on rho^2..rho^(2N), each multiplied by the diffraction order ``PARM 0``);
+  ``PARM 1``) and ``BINARY_2`` (sag as ``EVENASPH``: ``CURV``, ``CONI``, ``PARM 1..8`` = r^2..r^16;
+  diffraction order ``PARM 0``; phase ``XDAT 1`` = number of terms N, ``XDAT 2`` = normalisation
+  radius, ``XDAT 3..N+2`` = A1..AN in radians on rho^2..rho^(2N), at most 8 terms on a phase surface).
+  A flat, aspheric-free ``BINARY_2`` with no surface behind it but the image becomes the wave-plane DOE (surface type ``doe``, an ``even_poly`` profile with the terms times
+  the order: the wave models keep all its orders); every other ``BINARY_2`` (curved, aspheric, in front
+  of or between lenses, several) becomes a ``standard`` surface carrying a ``phase`` traced in its order
+  (:mod:`rwwarp.phase_surface`). ``read_zmx(..., binary2="phase")`` makes every one a phase surface;
 * per surface ``CURV``, ``DISZ`` (``INFINITY``), ``GLAS`` (a catalogue name, or a model glass
   ``GLAS ___BLANK 1 0 nd vd ...`` -> material ``"nd/vd"``), ``CONI``, ``PARM``, ``XDAT``, ``STOP``,
   ``DIAM``, ``CLAP`` (circular aperture; annular with a minimum radius), ``SQAP`` (square aperture),
@@ -46,8 +50,7 @@ other field types (object/image heights) leave ``fields_deg`` None. The sensor i
 
 Errors: everything is checked before a :class:`Lens` is built (nothing half-loaded). Messages name
 the file, the surface as its Zemax number (``SURF k``) and the keyword. Unsupported surface types,
-multi-config-only features, mirrors, annular/elliptical/rectangular apertures, curved or glass-coated
-diffractive surfaces raise :class:`~rwwarp.errors.LensFileError`; unknown glasses
+multi-config-only features, annular/elliptical/rectangular apertures, BINARY_2 mirrors raise :class:`~rwwarp.errors.LensFileError`; unknown glasses
 :class:`~rwwarp.errors.GlassError`; impossible geometry :class:`~rwwarp.errors.GeometryError`.
 """
 from __future__ import annotations
@@ -66,7 +69,8 @@ _SUPPORTED_TYPES = ("STANDARD", "EVENASPH", "ODDASPHE", "PARAXIAL", "BINARY_2")
 # rwwarp keyword -> Zemax keyword, for errors raised while validating the built lens
 _KEYWORD_MAP = {"thickness": "DISZ", "material": "GLAS", "semi_diameter": "DIAM", "focal_length": "PARM 1",
                 "profile": "XDAT", "aspheric": "PARM", "type": "TYPE", "shape": "SQAP", "conic": "CONI",
-                "radius": "CURV", "levels": "XDAT"}
+                "radius": "CURV", "levels": "XDAT", "phase": "XDAT",
+                "diffraction_order": "PARM 0"}
 
 
 # ---------------------------------------------------------------------------------------------- text
@@ -187,12 +191,15 @@ class _Reader:
         return v
 
 
-def read_zmx(path, strict: bool = True):
+def read_zmx(path, strict: bool = True, binary2: str = "auto"):
     """Read a Zemax sequential ``.zmx`` file into a :class:`~rwwarp.lens.Lens` (lengths in mm).
 
     Surfaces that cross inside their ``DIAM`` heights raise a :class:`~rwwarp.errors.GeometryError`;
     with ``strict=False`` (what :func:`rwwarp.load_lens` passes by default) they load with a
     :class:`~rwwarp.errors.GeometryWarning` and are traced sequentially, as OpticStudio traces them.
+
+    ``binary2``: ``"auto"`` (the module docstring's rule: a flat BINARY_2 behind everything is the wave-plane
+    DOE, any other a phase surface) or ``"phase"`` (every BINARY_2 a phase surface traced in its order).
 
     See the module docstring for what is supported and how it maps. Raises
     :class:`~rwwarp.errors.LensFileError`, :class:`~rwwarp.errors.GlassError` or
@@ -201,6 +208,8 @@ def read_zmx(path, strict: bool = True):
     """
     from ..lens import Lens, Sensor, Surface
 
+    if binary2 not in ("auto", "phase"):
+        raise ValueError(f"binary2 must be 'auto' or 'phase', got {binary2!r}")
     path = Path(path)
     rd = _Reader(path)
     from .validate_input import read_lens_bytes
@@ -348,7 +357,7 @@ def read_zmx(path, strict: bool = True):
     surfaces, zsurf = [], []  # rwwarp surfaces and their Zemax numbers
     extents = []  # per rwwarp surface: the DIAM height (for the crossing check only; DIAM does not clip)
     medium = "air"
-    for b in blocks[1:-1]:
+    for bi, b in enumerate(blocks[1:-1]):
         k = b.number
 
         def num(key, i=0, what=None, default=None, allow_inf=False, b=b, k=k):
@@ -527,16 +536,10 @@ def read_zmx(path, strict: bool = True):
                                     semi_diameter=sd, shape=shape, stop=stop, obscuration=obscuration))
             zsurf.append(k)
             extents.append(d_val)
-        else:  # BINARY_2
-            if curv != 0:
-                raise rd.err("only flat BINARY_2 surfaces are supported (the rwwarp DOE is a plane)", surf=k,
-                             key="CURV")
-            for i in range(1, 9):
-                if parms.get(i, 0.0) != 0:
-                    raise rd.err(f"BINARY_2 aspheric sag PARM {i} must be 0 (the rwwarp DOE is a plane)",
-                                 surf=k, key=f"PARM {i}")
-            if conic != 0:
-                raise rd.err("BINARY_2 conic must be 0 on a flat DOE", surf=k, key="CONI")
+        else:  # BINARY_2: an even asphere's sag (PARM 1..8) carrying the phase sum_i A_i rho^(2 i) in order PARM 0
+            for i in sorted(parms):
+                if i > 8 and parms[i] != 0:
+                    raise rd.err(f"PARM {i} is not a BINARY_2 parameter", surf=k, key=f"PARM {i}")
             order = parms.get(0, 1.0)
             nterms = int(xdat.get(1, 0))
             if nterms < 0:
@@ -545,21 +548,43 @@ def read_zmx(path, strict: bool = True):
             if nterms > MAX_TERMS or xdat.get(1, 0) != nterms:
                 raise rd.err(f"BINARY_2 number of terms XDAT 1 = {xdat.get(1)} must be an integer 0..{MAX_TERMS}",
                              surf=k, key="XDAT 1")
-            coeffs = [order * xdat.get(2 + i, 0.0) for i in range(1, nterms + 1)]
+            terms = [xdat.get(2 + i, 0.0) for i in range(1, nterms + 1)]
             rnorm = xdat.get(2, 0.0) * scale
             if nterms and not rnorm > 0:
                 raise rd.err(f"BINARY_2 normalisation radius XDAT 2 = {rnorm} must be > 0",
                              surf=k, key="XDAT 2")
-            profile = {"kind": "even_poly", "norm_radius": rnorm if rnorm > 0 else 1.0,
-                       "coefficients": coeffs}
-            if material != medium:  # refraction at the flat DOE: a plane interface, then the phase
-                surfaces.append(Surface(type="standard", thickness=0.0, radius=None, material=material,
-                                        semi_diameter=sd, shape=shape))
-                zsurf.append(k)
-                extents.append(d_val)
-            surfaces.append(Surface(type="doe", thickness=thick, semi_diameter=sd, shape=shape,
-                                    design_wavelength_um=primary_um, material="fused_silica", profile=profile,
-                                    stop=stop, obscuration=obscuration))
+            a2 = parms.get(1, 0.0) / scale
+            asph = [parms.get(i, 0.0) * scale ** (1 - 2 * i) for i in range(2, 9)]
+            while asph and asph[-1] == 0.0:
+                asph.pop()
+            flat = curv == 0 and conic == 0 and a2 == 0 and not asph
+            wave_plane = binary2 == "auto" and flat and bi == len(blocks) - 3
+            if wave_plane:
+                profile = {"kind": "even_poly", "norm_radius": rnorm if rnorm > 0 else 1.0,
+                           "coefficients": [order * a for a in terms]}
+                if material != medium:  # refraction at the flat DOE: a plane interface, then the phase
+                    surfaces.append(Surface(type="standard", thickness=0.0, radius=None, material=material,
+                                            semi_diameter=sd, shape=shape))
+                    zsurf.append(k)
+                    extents.append(d_val)
+                surfaces.append(Surface(type="doe", thickness=thick, semi_diameter=sd, shape=shape,
+                                        design_wavelength_um=primary_um, material="fused_silica", profile=profile,
+                                        stop=stop, obscuration=obscuration))
+            else:
+                from ..phase_surface import MAX_PHASE_TERMS
+                if order != int(order):
+                    raise rd.err(f"BINARY_2 diffraction order PARM 0 = {order} must be an integer", surf=k,
+                                 key="PARM 0")
+                while terms and terms[-1] == 0.0:
+                    terms.pop()
+                if len(terms) > MAX_PHASE_TERMS:
+                    raise rd.err(f"BINARY_2 with {len(terms)} phase terms: a phase surface (curved, or not the last "
+                                 f"surface) carries at most {MAX_PHASE_TERMS}", surf=k, key="XDAT 1")
+                phase = {"kind": "even_poly", "norm_radius": rnorm if rnorm > 0 else 1.0, "coefficients": terms}
+                surfaces.append(Surface(type="standard", thickness=thick, radius=None if curv == 0 else 1.0 / curv,
+                                        conic=conic, a2=a2, aspheric=asph, material=material, semi_diameter=sd,
+                                        shape=shape, obscuration=obscuration, stop=stop, phase=phase,
+                                        diffraction_order=int(order), design_wavelength_um=primary_um))
             zsurf.append(k)
             extents.append(d_val)
         medium = material

@@ -14,6 +14,10 @@ standard       ``STANDARD`` (``CURV`` = 1/radius, ``CONI``), or ``EVENASPH`` whe
                no EVENASPH slot: refused)
                ``ODDASPHE`` (``PARM 1..8`` = r^1 .. r^8) when it has ``odd_aspheric`` terms (the r^2
                and r^4..r^8 even terms fold in)
+phase          a standard surface with a ``phase`` (:mod:`rwwarp.phase_surface`): ``BINARY_2`` with its sag
+               as ``EVENASPH`` (``CURV``, ``CONI``, ``PARM 1`` = a2, ``PARM 2..8`` = r^4 .. r^16),
+               ``PARM 0`` = its diffraction order, ``XDAT 1..`` its phase terms (a ``fresnel`` phase as its
+               one-term ``even_poly`` equivalent, R = 1 mm); odd aspheric terms are refused
 thin_lens      ``PARAXIAL``, ``PARM 1`` = focal length
 aperture       flat ``STANDARD`` that keeps the medium (``GLAS`` of the medium it sits in)
 doe            flat ``BINARY_2`` that keeps the medium: ``PARM 0`` = 1 (diffraction order),
@@ -161,6 +165,33 @@ def _binary2(s, i, lens):
                     "'poly' profiles are exported)", **where)
 
 
+def _phase_lines(s, i, lens) -> list:
+    """The ``BINARY_2`` lines of a standard surface carrying a phase (sag, order, phase terms), or raise."""
+    from ..phase_surface import phase_profile
+    if s.odd_aspheric and any(s.odd_aspheric):
+        raise LensError("a phase surface with odd aspheric terms has no .zmx form (BINARY_2 takes the even asphere "
+                        "sag)", file=lens.source, surface=i, keyword="odd_aspheric")
+    if s.mirror:
+        raise LensError("a BINARY_2 mirror is not written", file=lens.source, surface=i, keyword="mirror")
+    asph = [float(a) for a in s.aspheric]
+    while asph and asph[-1] == 0.0:
+        asph.pop()
+    if len(asph) > 7:
+        raise LensError(f"aspheric terms beyond r^16 ({len(asph)} terms) have no BINARY_2 slot in a .zmx",
+                        file=lens.source, surface=i, keyword="aspheric")
+    r0, coeffs = phase_profile(s)
+    lines = ["TYPE BINARY_2", f"CURV {_num(s.curvature)} 0 0 0 0 \"\""]
+    if s.conic:
+        lines.append(f"CONI {_num(s.conic)}")
+    lines.append(f"PARM 0 {int(s.diffraction_order)}")
+    lines.append(f"PARM 1 {_num(s.a2)}")
+    lines += [f"PARM {k + 2} {_num(a)}" for k, a in enumerate(asph)]
+    lines.append(f"XDAT 1 {len(coeffs)} 0 0 0 0 0 \"\"")
+    lines.append(f"XDAT 2 {_num(r0)} 0 0 0 0 0 \"\"")
+    lines += [f"XDAT {k + 3} {_num(c)} 0 0 0 0 0 \"\"" for k, c in enumerate(coeffs)]
+    return lines
+
+
 def zmx_text(lens) -> str:
     """The .zmx file of ``lens`` as text (see the module docstring for the mapping; raises
     :class:`~rwwarp.errors.LensError` naming the surface for what a .zmx cannot hold)."""
@@ -201,7 +232,10 @@ def zmx_text(lens) -> str:
         lines = []
         if i == stop:
             lines.append("STOP")
-        if s.type == "standard":
+        if s.type == "standard" and s.phase is not None:
+            lines += _phase_lines(s, i, lens)
+            medium = s.material
+        elif s.type == "standard":
             asph = [float(a) for a in s.aspheric]
             while asph and asph[-1] == 0.0:
                 asph.pop()

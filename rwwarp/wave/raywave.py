@@ -121,8 +121,8 @@ class RayWave:
     ``deterministic``: the same inputs give the same bits on every run on a GPU too. The splat adds
     fixed-point integers (:mod:`rwwarp.kernels.splat`, resolution ~1e-12 of a sample) and the tracer
     gives every ray its own copy of each surface's parameters when recording
-    (:class:`~rwwarp.trace.Tracer` ``deterministic``: 480 bytes a ray and surface more). On the CPU the
-    results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
+    (:class:`~rwwarp.trace.Tracer` ``deterministic``: 2 x 8 x N_PARAMS = 640 bytes a ray and surface more). On the
+    CPU the results are deterministic either way (Warp's CPU kernels run in order; CPU threads sum privately).
 
     ``pixel_values``: what a pixel records, ``"flux"`` (default, the power through it) or ``"intensity"``
     (``|U|^2`` over it, the earlier convention); docs/propagation.md "Pixel values".

@@ -178,7 +178,9 @@ def test_zmx_binary2_between_media_splits(tmp_path):
     # (EVENASPH PARM 1, the r^2 term, is supported since issue 11: Surface.a2)
     ([["STOP", "CURV", "DISZ 5"]], LensFileError, "SURF 1", "CURV", "missing value"),
     ([["STOP", "CURV abc", "DISZ 5"]], LensFileError, "SURF 1", "CURV", "bad number"),
-    ([["STOP", "TYPE BINARY_2", "CURV 0.01", "DISZ 5"]], LensFileError, "SURF 1", "CURV", "flat"),
+    # a curved BINARY_2 is a phase surface since issue 27 (rwwarp.phase_surface); its order must be an integer
+    ([["STOP", "TYPE BINARY_2", "CURV 0.01", "DISZ 5", "PARM 0 1.5"]], LensFileError, "SURF 1", "PARM 0",
+     "integer"),
     ([["STOP", "CURV 0", "DISZ 5", "SQAP 1 2 0"]], LensFileError, "SURF 1", "SQAP", "rectangular"),
 ])
 def test_zmx_errors_name_file_surface_keyword(tmp_path, body, cls, surf, key, match):

@@ -7,6 +7,7 @@ import torch
 
 import rwwarp as rw
 import torch_bridge as tb
+from rwwarp.trace import COLUMNS
 
 
 def _run(det, device="cpu"):
@@ -36,7 +37,8 @@ def test_deterministic_psf_and_gradient_repeat_bit_for_bit_and_match_the_default
 
 
 def test_deterministic_memory_estimate_counts_the_per_ray_copies():
-    """bytes_per_source grows by the per-ray parameter copies: at least 480 bytes a ray and traced surface."""
+    """bytes_per_source grows by the per-ray parameter copies: at least 2 x 8 x N_PARAMS (640) bytes a ray and traced
+    surface."""
     lens = rw.load_lens("cooke_triplet")
     est = {}
     for det in (False, True):
@@ -44,4 +46,4 @@ def test_deterministic_memory_estimate_counts_the_per_ray_copies():
         rw_ = m.raywave([10.0], [0.55], 12)
         est[det] = m.bytes_per_source(rw_)
     rays = rw_.plan.ray_grid ** 2
-    assert est[True] - est[False] >= 2 * 480 * rays * (rw_.plane + 2)
+    assert est[True] - est[False] >= 2 * 16 * COLUMNS.n_params * rays * (rw_.plane + 2)
