@@ -47,6 +47,7 @@ class PackedTile:
         bridge_state(self.raywave)["base_table"] = self.raywave.tracer.params_np.copy()
         self.groups = focal_groups(self.members, waste)
         self._ops = None
+        self._base = {}   # precision -> the first operators built (their distance-free factors are shared)
 
     def operators(self, distance_mm: float, precision: str = "double") -> list:
         """One :class:`rwwarp.wave.focal_packed.PackedFocalPropagator` per group at ``distance_mm`` (mm), built once
@@ -54,12 +55,19 @@ class PackedTile:
         from rwwarp.wave.focal_packed import PackedFocalPropagator
         key = (float(distance_mm), precision)
         if self._ops is None or self._ops[0] != key:
-            self._ops = (key, [PackedFocalPropagator.from_members([self.members[k] for k in g], key[0], precision)
-                               for g in self.groups])
+            base = self._base.get(precision)
+            if base is None:
+                ops = [PackedFocalPropagator.from_members([self.members[k] for k in g], key[0], precision)
+                       for g in self.groups]
+                self._base[precision] = ops
+            else:   # a learning distance: only the factors that depend on it are built again
+                ops = [op.at_distance(key[0]) for op in base]
+            self._ops = (key, ops)
         return self._ops[1]
 
     def release_operators(self):
-        """Drop the built operators (the next use builds them again)."""
+        """Drop the operators built at the last distance (the next use builds the distance's factors again;
+        the distance-free ones are kept while the tile is)."""
         self._ops = None
 
     def dropped(self):

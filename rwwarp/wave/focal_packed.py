@@ -121,53 +121,32 @@ class PackedFocalPropagator:
                 q[k] = np.asarray(tk[1], dtype=np.float64).reshape(2)
                 if not np.all(q[k] < 0):
                     raise ValueError(f"transfer of source {k}: the quadratic coefficients q must be negative")
-        A = 1.0 / (z * q)
         N, NS, NF = int(n_k.max()), int(ns_k.max()), int(nf_k.max())
         M = max(max(len(v) for v in nodes_x), max(len(v) for v in nodes_y))
         self.S, self.n, self.ns, self.nf, self.m = S, N, NS, NF, M
-        self.pitch, self.spitch, self.z = h, hs, z
+        self.pitch, self.spitch = h, hs
         self.n_grids, self.n_sensors, self.n_ffts = n_k, ns_k, nf_k
         self.n_nodes = [(len(a), len(b)) for a, b in zip(nodes_x, nodes_y)]
         xs = origin[:, None, :] + np.arange(N)[None, :, None] * h[:, None, None]
         ps = s0[:, None, :] + np.arange(NS)[None, :, None] * hs[:, None, None]
-        X = {k: xp.asarray(v) for k, v in (("xs", xs), ("ps", ps), ("g", g), ("A", A))}
         if precision not in ("double", "single"):
             raise ValueError(f"precision must be 'double' or 'single', got {precision!r}")
         self.precision = precision
-        cdt = np.complex64 if precision == "single" else np.complex128
-        # ---- step 1: FocalPropagator's factors, each source with its own pitches (focal.py gives the split)
-        jj = np.arange(NS, dtype=np.float64)
-        ii = np.arange(N, dtype=np.float64)
-        mm = np.arange(-(N - 1), NS, dtype=np.float64)
-        toe = xp.arange(NS)[:, None] - xp.arange(N)[None, :] + (N - 1)
-        row_in = jj[None, :] < ns_k[:, None]          # (S, NS): a member's own sensor-side rows
-        col_in = ii[None, :] < n_k[:, None]           # (S, N): its own wave-plane samples
-        hc, hsc = h[:, None], hs[:, None]
-        self._E = []
-        for ax in range(2):
-            a = np.pi * A[:, ax:ax + 1]
-            u0 = s0[:, ax:ax + 1] + z * g[:, ax:ax + 1]
-            x0 = origin[:, ax:ax + 1]
-            b = a * hc * hsc
-            u = u0 + jj[None, :] * hsc
-            x = x0 + ii[None, :] * hc
-            P = -a * u * u + 2.0 * a * x0 * hsc * jj[None, :] + b * jj[None, :] ** 2 + 2.0 * a * u0 * x0
-            Q = -a * x * x + 2.0 * a * u0 * hc * ii[None, :] + b * ii[None, :] ** 2
-            K = -b * mm[None, :] ** 2
-            amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * hc
-            Pd = amp * _cis(P, np)
-            for k, gk in enumerate(guards):
-                if gk is not None:   # the taper over the member's own sensor-side grid (its ends set it)
-                    m, nd = int(ns_k[k]), (nodes_x, nodes_y)[ax][k]
-                    Pd[k, :m] = Pd[k, :m] * sensor_taper(ps[k:k + 1, :m, ax], np.array([nd.min() - float(gk)]),
-                                                         np.array([nd.max() + float(gk)]))[0]
-            Pd = xp.asarray(np.where(row_in, Pd, 0.0).astype(cdt))
-            Qd = xp.asarray(np.where(col_in, _cis(Q, np), 0.0).astype(cdt))
-            Kd = xp.asarray(_cis(K, np).astype(cdt))
-            self._E.append(Kd[:, toe] * Pd[:, :, None] * Qd[:, None, :])
-        self._geo = X
-        self._dE = None
-        # ---- step 2 per source: its own FFT length and sensor pitch set its frequencies and padding room
+        # ---- the factors that do not depend on the distance, built once (at_distance shares them)
+        row_in = np.arange(NS)[None, :] < ns_k[:, None]          # (S, NS): a member's own sensor-side rows
+        col_in = np.arange(N)[None, :] < n_k[:, None]            # (S, N): its own wave-plane samples
+        taper = np.ones((2, S, NS))
+        for k, gk in enumerate(guards):
+            if gk is not None:   # the taper over the member's own sensor-side grid (its ends set it)
+                m = int(ns_k[k])
+                for ax, nodes in enumerate((nodes_x, nodes_y)):
+                    nd = nodes[k]
+                    taper[ax, k, :m] = sensor_taper(ps[k:k + 1, :m, ax], np.array([nd.min() - float(gk)]),
+                                                    np.array([nd.max() + float(gk)]))[0]
+        self._host = {"origin": origin, "s0": s0, "g": g, "q": q, "row_in": row_in, "col_in": col_in,
+                      "taper": np.where(row_in[None], taper, 0.0), "xs": xs, "ps": ps}
+        self._toe = xp.arange(NS)[:, None] - xp.arange(N)[None, :] + (N - 1)
+        # step 2 per source: its own FFT length and sensor pitch set its frequencies and padding room
         nu_h = np.zeros((S, NF))
         for k in range(S):
             nu_h[k, :nf_k[k]] = np.fft.fftfreq(int(nf_k[k]), d=float(hs[k]))
@@ -184,22 +163,18 @@ class PackedFocalPropagator:
         arg = xp.asarray(inv_lam[:, None, None]) ** 2 - fx ** 2 - fy ** 2
         w = xp.sqrt(xp.maximum(arg, 0.0))
         nux, nuy = nu[:, None, :], nu[:, :, None]
-        gx, gy = X["g"][:, None, None, 0], X["g"][:, None, None, 1]
-        qd = xp.asarray(q)
+        gd, qd = xp.asarray(g), xp.asarray(q)
+        gx, gy = gd[:, None, None, 0], gd[:, None, None, 1]
         qx, qy = qd[:, None, None, 0], qd[:, None, None, 1]
         wg = xp.asarray(w_c)[:, None, None] + gx * nux + gy * nuy + 0.5 * (qx * nux ** 2 + qy * nuy ** 2)
         ws = xp.where(arg > 0, w, 1.0)
-        dx = z * (fx / ws + gx + qx * nux)
-        dy = z * (fy / ws + gy + qy * nuy)
-        room = xp.asarray((nf_k - ns_k) * hs)[:, None, None]
         fin = xp.asarray(f_in)
-        keep = (arg > 0) & (xp.abs(dx) <= room) & (xp.abs(dy) <= room) & fin[:, None, :] & fin[:, :, None]
-        rem = xp.where(keep, w - wg, 0.0)
-        self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
-        # c = lambda' w = k_z / k, the direction cosine (pixel_values "flux"; 0 off a member's kept band)
-        self._c = xp.where(keep, w / xp.asarray(inv_lam)[:, None, None], 0.0)
-        self._rem = rem
-        self._dHR = None
+        room = xp.asarray((nf_k - ns_k) * hs)[:, None, None]
+        # the band: propagating and (at distance z) displaced by at most the padding room,
+        # |z (fx / w + g + q nu)| <= room on both axes: kept where z <= room / |slope|
+        slope = xp.maximum(xp.abs(fx / ws + gx + qx * nux), xp.abs(fy / ws + gy + qy * nuy))
+        self._band = {"ok": (arg > 0) & fin[:, None, :] & fin[:, :, None], "slope": slope, "room": room,
+                      "rem": w - wg, "c": w / xp.asarray(inv_lam)[:, None, None]}
         # output factors: U(p) = 1/nf sum_m B_m exp(2 pi i nu_m (p - s0)) per axis, zero past a member's nodes
         def out_factor(nodes, ax):
             d = np.zeros((S, M))
@@ -211,6 +186,61 @@ class PackedFocalPropagator:
             return xp.where(xp.asarray(ok)[:, :, None], F, 0.0)
         self._Fx = out_factor(nodes_x, 0)
         self._Fy = out_factor(nodes_y, 1)
+        self._set_distance(z)
+
+    def _set_distance(self, z: float):
+        """Build the factors that depend on the wave-plane-to-sensor distance ``z`` (mm): step 1's (its
+        quadratic phases ``A = 1 / (z q)`` and displaced grid ``u0 = s0 + z g``), the band kept within the
+        padding room, the remainder transfer and the direction cosine on that band."""
+        xp, H = self.xp, self._host
+        S, N, NS = self.S, self.n, self.ns
+        h, hs = self.pitch, self.spitch
+        self.z = z
+        A = 1.0 / (z * H["q"])
+        self._geo = {k: xp.asarray(v) for k, v in (("xs", H["xs"]), ("ps", H["ps"]), ("g", H["g"]), ("A", A))}
+        cdt = np.complex64 if self.precision == "single" else np.complex128
+        # ---- step 1: FocalPropagator's factors, each source with its own pitches (focal.py gives the split)
+        jj = np.arange(NS, dtype=np.float64)
+        ii = np.arange(N, dtype=np.float64)
+        mm = np.arange(-(N - 1), NS, dtype=np.float64)
+        hc, hsc = h[:, None], hs[:, None]
+        self._E = []
+        for ax in range(2):
+            a = np.pi * A[:, ax:ax + 1]
+            u0 = H["s0"][:, ax:ax + 1] + z * H["g"][:, ax:ax + 1]
+            x0 = H["origin"][:, ax:ax + 1]
+            b = a * hc * hsc
+            u = u0 + jj[None, :] * hsc
+            x = x0 + ii[None, :] * hc
+            P = -a * u * u + 2.0 * a * x0 * hsc * jj[None, :] + b * jj[None, :] ** 2 + 2.0 * a * u0 * x0
+            Q = -a * x * x + 2.0 * a * u0 * hc * ii[None, :] + b * ii[None, :] ** 2
+            K = -b * mm[None, :] ** 2
+            amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * hc
+            Pd = xp.asarray((amp * _cis(P, np) * H["taper"][ax]).astype(cdt))
+            Qd = xp.asarray(np.where(H["col_in"], _cis(Q, np), 0.0).astype(cdt))
+            Kd = xp.asarray(_cis(K, np).astype(cdt))
+            self._E.append(Kd[:, self._toe] * Pd[:, :, None] * Qd[:, None, :])
+        self._dE = None
+        bd = self._band
+        keep = bd["ok"] & (z * bd["slope"] <= bd["room"])
+        rem = xp.where(keep, bd["rem"], 0.0)
+        self._HR = xp.where(keep, _cis(2.0 * np.pi * z * rem, xp), 0.0)
+        # c = lambda' w = k_z / k, the direction cosine (pixel_values "flux"; 0 off a member's kept band)
+        self._c = xp.where(keep, bd["c"], 0.0)
+        self._rem = rem
+        self._dHR = None
+
+    def at_distance(self, distance_mm: float) -> "PackedFocalPropagator":
+        """The same operator at another wave-plane-to-sensor distance (mm; a learning thickness moves it): a new
+        operator sharing this one's distance-free factors (the matrix DFT, the output factors, the frequencies
+        and band slopes), with the distance's own built (:meth:`_set_distance`)."""
+        import copy
+        z = float(distance_mm)
+        if not z > 0:
+            raise ValueError(f"distance_mm must be > 0 (wave plane before the sensor), got {z}")
+        out = copy.copy(self)
+        out._set_distance(z)
+        return out
 
     @classmethod
     def from_members(cls, members, distance_mm, precision="double", xp=None):
@@ -235,9 +265,9 @@ class PackedFocalPropagator:
 
     @property
     def nbytes(self) -> int:
-        """Bytes the operator holds on its device (factors of both steps; the distance-derivative factors once
-        formed)."""
-        arrays = [*self._E, self._W, self._HR, self._c, self._rem, self._Fx, self._Fy]
+        """Bytes the operator holds on its device (factors of both steps, the distance-free band data
+        :meth:`at_distance` shares; the distance-derivative factors once formed)."""
+        arrays = [*self._E, self._W, self._HR, self._c, self._rem, self._Fx, self._Fy, *self._band.values()]
         if self._dE is not None:
             arrays += [*self._dE, self._dHR]
         return int(sum(a.nbytes for a in arrays))
