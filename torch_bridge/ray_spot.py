@@ -56,12 +56,13 @@ class _TraceToPlane(torch.autograd.Function):
         return torch.from_numpy(grads).to(g_pos.device), None, None, None, None, None
 
 
-def _doe_gradient(kind: str, coeffs: torch.Tensor, norm_radius: float, x, y):
-    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of an ``even_poly`` or ``poly`` DOE at (x, y) mm
-    (:func:`rwwarp.doe.radial_gradient_over_r` in torch: differentiable in the coefficients)."""
-    from rwwarp.doe import radial_gradient_over_r
-    g = radial_gradient_over_r(kind, coeffs, norm_radius, x * x + y * y, torch)
-    return g * x, g * y
+def _doe_gradient(prof, values: torch.Tensor, design_wavelength_um: float, x, y):
+    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of a smooth DOE (any kind of ``rwwarp.doe.SMOOTH_KINDS``) at
+    (x, y) mm from its learnable ``values`` (:func:`rwwarp.doe.profile_gradient` in torch, the function
+    :meth:`rwwarp.doe.Profile.gradient` evaluates: differentiable in the values and the coordinates)."""
+    from rwwarp.doe import profile_gradient
+    return profile_gradient(prof.kind, values, x, y, norm_radius=prof.norm_radius,
+                            design_wavelength_um=design_wavelength_um, xp=torch)
 
 
 class RaySpot:
@@ -103,7 +104,7 @@ class RaySpot:
         if s.type == "doe":
             from rwwarp import doe as rdoe
             prof = rdoe.profile_from_dict(s.profile)
-            grad = _doe_gradient(prof.kind, values["doe"].cpu(), prof.norm_radius, pos[..., 0], pos[..., 1])
+            grad = _doe_gradient(prof, values["doe"].cpu(), s.design_wavelength_um, pos[..., 0], pos[..., 1])
         # rwwarp's grating step and transfer, in torch (the sensor z learns with the table)
         hx, hy, ok = grating_to_sensor(pos, dr, n_after, lam, grad, table[-1, COL.z], torch)
         ok = valid & ok
