@@ -146,6 +146,8 @@ def exact_zone(acc, phi0, zone, alpha, xp=np):
     inside = wrap_zone(phi0, xp) == zone
     if xp is np:
         acc = acc.copy()
+        if np.ndim(zone) or np.ndim(alpha):      # one per member: their values at the zone's samples
+            zone, alpha = (np.broadcast_to(a, inside.shape)[inside] for a in (zone, alpha))
         acc[inside] = _cis(zone_relief_phase(phi0[inside], zone, alpha), np)
         return acc
     return xp.where(inside, xp.exp(1j * zone_relief_phase(phi0, zone, alpha)), acc)
