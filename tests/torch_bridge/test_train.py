@@ -271,6 +271,33 @@ def test_ray_model_gradients_match_finite_differences():
         assert g == pytest.approx((fp - fm) / (2 * h), rel=1e-5), q
 
 
+@pytest.mark.parametrize("profile,k,h", [
+    ({"kind": "fresnel", "focal_length": 2000.0}, 0, 0.1),
+    ({"kind": "zernike", "norm_radius": 4.0, "coefficients": [0.0, 0.0, 0.0, -40.0, 5.0, 0.0, 3.0]}, 3, 1e-3),
+    ({"kind": "cubic", "norm_radius": 4.0, "alpha": 20.0}, 0, 1e-3)], ids=["fresnel", "zernike", "cubic"])
+def test_ray_model_takes_every_smooth_doe_kind(profile, k, h):
+    """RaySpot's grating is rwwarp.doe.profile_gradient in torch for every smooth kind (it took only the radial
+    polynomials before): the RMS radius's gradient in one DOE value against central differences. Measured
+    3.3e-11 relative (Zernike, cubic) and 2.5e-9 (the Fresnel focal length: the truncation (h / f)^2 at
+    h = 0.1 mm); tolerance 1e-8."""
+    lens = _cooke()
+    lens = lens.with_surface(lens.doe_index, profile=profile)
+    m = tb.HybridLens(lens, learn={"doe": [k]})
+    fields = [(0.0, 0.0), (3.0, 3.0)]
+
+    def f():
+        return dz.RaySpot(m, fields, [0.47, 0.63], grid=15).rms().sum()
+    f().backward()
+    g = float(m.doe.grad[0])
+    with torch.no_grad():
+        m.doe[0] += h
+        fp = float(f())
+        m.doe[0] -= 2 * h
+        fm = float(f())
+        m.doe[0] += h
+    assert g != 0.0 and g == pytest.approx((fp - fm) / (2 * h), rel=1e-8)
+
+
 def test_paraxial_achromat_cancels_the_focal_shift():
     lens = _cooke()
     d = lens.doe_index
