@@ -80,6 +80,7 @@ from .wave.doe_phase import (  # noqa: F401  (the phase over an array namespace;
     pixel_map_phase,
     profile_gradient,
     profile_phase,
+    profile_quadratic,
     quantize,
     radial_gradient_over_r,
     radial_phase,
@@ -215,6 +216,10 @@ class _SmoothProfile(Profile):
         return profile_gradient(self.kind, self.values, x_mm, y_mm, norm_radius=self.norm_radius,
                                 design_wavelength_um=design_wavelength_um, xp=np)
 
+    def quadratic_coefficient(self, design_wavelength_um=0.55):
+        return profile_quadratic(self.kind, self.values, norm_radius=self.norm_radius,
+                                 design_wavelength_um=design_wavelength_um)
+
     def to_dict(self):
         return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
 
@@ -238,9 +243,6 @@ class EvenPolyProfile(_RadialProfile):
 
     kind = "even_poly"
 
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        return self.coefficients[0] / self.norm_radius ** 2 if self.coefficients else 0.0
-
 
 class PolyProfile(_RadialProfile):
     """``phi0 = sum_k c_k rho^k`` (k = 1, 2, ...), rho = r / norm_radius: odd and even radial terms.
@@ -249,9 +251,6 @@ class PolyProfile(_RadialProfile):
     """
 
     kind = "poly"
-
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        return self.coefficients[1] / self.norm_radius ** 2 if len(self.coefficients) > 1 else 0.0
 
 
 class FresnelProfile(_SmoothProfile):
@@ -271,9 +270,6 @@ class FresnelProfile(_SmoothProfile):
         rmax = float(semi_diameter) * (math.sqrt(2.0) if shape == "square" else 1.0)
         return abs(2.0 * self.quadratic_coefficient(design_wavelength_um)) * rmax
 
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        return fresnel_quadratic(self.focal_length, design_wavelength_um)
-
     def to_dict(self):
         return {"kind": self.kind, "focal_length": self.focal_length}
 
@@ -292,14 +288,6 @@ class ZernikeProfile(_SmoothProfile):
         self.norm_radius = float(norm_radius)
         self.coefficients = [float(a) for a in coefficients]
 
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        total = 0.0                                     # the r^2 terms of the rotationally symmetric Z_j
-        for j, c in enumerate(self.coefficients, start=1):
-            n, m = noll_to_nm(j)
-            q = _zernike_radial_q(n, m)
-            if m == 0 and len(q) > 1:
-                total += c * math.sqrt(n + 1) * q[1]
-        return total / self.norm_radius ** 2
 
 
 class CubicProfile(_SmoothProfile):

@@ -140,8 +140,10 @@ class RaySpot:
 # ---------------------------------------------------------------------------------------------- paraxial
 def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
     """Paraxial EFL (mm) of a :class:`~torch_bridge.HybridLens` as a differentiable tensor (y-nu trace
-    with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi``)."""
+    with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi`` of any smooth kind:
+    :func:`rwwarp.paraxial.diffractive_power` of :func:`rwwarp.doe.profile_quadratic`; a pixel map adds none)."""
     from rwwarp import paraxial
+    from rwwarp.doe import SMOOTH_KINDS, profile_quadratic
     lens = module.lens_template
     v = module.values()
     n = paraxial.signed_indices(lens, wavelength_um)
@@ -152,11 +154,11 @@ def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
             P = (n[i] - n_before[i]) * v["curvature"][i]
         elif s.type == "thin_lens":
             P = torch.tensor(1.0 / s.focal_length, dtype=torch.float64)
-        elif s.type == "doe" and module.doe_kind in ("even_poly", "poly"):
-            idx = 0 if module.doe_kind == "even_poly" else 1
-            R = float(s.profile["norm_radius"])
-            a2 = v["doe"][idx] / R ** 2 if v["doe"].numel() > idx else torch.zeros((), dtype=torch.float64)
-            P = -wavelength_um * 1e-3 * a2 / math.pi       # rwwarp.paraxial.doe_power's first order
+        elif s.type == "doe" and module.doe_kind in SMOOTH_KINDS:
+            # rwwarp.paraxial.doe_power in torch: the phase's r^2 term, the first order's power
+            a2 = profile_quadratic(module.doe_kind, v["doe"], norm_radius=s.profile.get("norm_radius"),
+                                   design_wavelength_um=s.design_wavelength_um)
+            P = torch.as_tensor(paraxial.diffractive_power(a2, wavelength_um), dtype=torch.float64)
         else:
             P = torch.zeros((), dtype=torch.float64)
         powers.append(P)

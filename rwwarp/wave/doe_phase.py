@@ -282,6 +282,29 @@ def profile_gradient(kind: str, values, x_mm, y_mm, *, norm_radius=None, design_
     _, gx, gy = zernike_phase(values, norm_radius, x_mm, y_mm, xp, gradient=True)
     return gx, gy
 
+def profile_quadratic(kind: str, values, *, norm_radius=None, design_wavelength_um: float = 0.55):
+    """The rotationally symmetric ``r^2`` coefficient ``q`` (rad/mm^2) of a smooth DOE's phase near the axis
+    (``phi0 ~ q r^2``: the paraxial power hook, :func:`rwwarp.paraxial.diffractive_power`), from its learnable
+    ``values`` as :func:`profile_phase` takes them (numbers, or a 1-D torch tensor: differentiable):
+    ``a_1 / R^2`` (even_poly), ``c_2 / R^2`` (poly), ``-pi / (lambda0 f)`` (fresnel), the ``rho^2`` terms of
+    the rotationally symmetric Zernike polynomials over ``R^2`` (zernike), 0 (cubic)."""
+    _check_kind(kind)
+    n = len(values)
+    if kind == "fresnel":
+        return fresnel_quadratic(values[0], design_wavelength_um)
+    if kind == "cubic" or (kind == "even_poly" and n < 1) or (kind == "poly" and n < 2):
+        return 0.0
+    R = float(norm_radius)
+    if kind in ("even_poly", "poly"):
+        return values[0 if kind == "even_poly" else 1] / R ** 2
+    total = 0.0                                         # the r^2 terms of the rotationally symmetric Z_j
+    for j in range(1, n + 1):
+        nn, m = noll_to_nm(j)
+        q = _zernike_radial_q(nn, m)
+        if m == 0 and len(q) > 1:
+            total += values[j - 1] * math.sqrt(nn + 1) * q[1]
+    return total / R ** 2
+
 # ====================================================================== phase operations
 def wrap_phase(phi, xp=None):
     """Phase ``phi`` (rad) wrapped to [0, 2 pi): ``phi - 2 pi floor(phi / 2 pi)``, a value that rounds to
