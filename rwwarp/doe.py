@@ -45,7 +45,8 @@ Functions: :func:`profile_from_dict` (validate and build), :func:`get_profile` (
 profile), :func:`surface_is_continuous`, :func:`surface_feature_size_mm` (sampling plans),
 :func:`wrap_phase`, :func:`quantize`, :func:`relief_phase`, :func:`wavelength_scale`, :func:`design_phase`
 (wrapped and quantised phi0), :func:`modulation_phase` (the phase applied at a wavelength),
-:func:`height_map_um`, :func:`export_height_map`. The phase itself in any array namespace (numpy, CuPy,
+:func:`height_map_um`, :func:`export_height_map`, :func:`profile_with_values` (the inverse of
+:attr:`Profile.values`, the learnable numbers). The phase itself in any array namespace (numpy, CuPy,
 torch) lives in :mod:`rwwarp.wave.doe_phase` and is re-exported here: :func:`array_namespace`,
 :func:`profile_phase` / :func:`profile_gradient` (any smooth kind by name, from its learnable values: the
 profile classes' :meth:`~Profile.phase` / :meth:`~Profile.gradient` and torch_bridge call them),
@@ -151,6 +152,13 @@ class Profile:
     kind = ""
     is_continuous = True  # False where the phase has steps (pixel maps); quantisation is per surface
 
+    @property
+    def values(self):
+        """The profile's learnable numbers, in the order torch_bridge's ``HybridLens`` learns them and
+        :func:`profile_phase` takes them: coefficients (rad), ``[focal_length]`` (mm, fresnel), ``[alpha]``
+        (rad, cubic), the phase map (rad, pixel_map); :func:`profile_with_values` writes them back."""
+        raise NotImplementedError
+
     def phase(self, x_mm, y_mm, design_wavelength_um: float = 0.55) -> np.ndarray:
         """Unwrapped phase phi0 (radians, float64) at (``x_mm``, ``y_mm``) for the design wavelength (um)."""
         raise NotImplementedError
@@ -204,8 +212,6 @@ class _SmoothProfile(Profile):
 
     @property
     def values(self) -> list:
-        """The profile's learnable numbers, in the order torch_bridge's ``HybridLens`` learns them:
-        coefficients (rad), ``[focal_length]`` (mm, fresnel) or ``[alpha]`` (rad, cubic)."""
         return list(self.coefficients)
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
@@ -374,6 +380,11 @@ class PixelMapProfile(Profile):
         return self._check(arr)
 
     @property
+    def values(self) -> np.ndarray:
+        """The learnable values: the phase map :attr:`data` (rad, (ny, nx))."""
+        return self.data
+
+    @property
     def data(self) -> np.ndarray:
         """The phase map (radians), float64, read-only; shape (ny, nx)."""
         if self._data is None:
@@ -463,6 +474,25 @@ def profile_from_dict(d: dict, base=None) -> Profile:
     except (TypeError, ValueError) as e:
         raise LensFileError(f"profile.data must be a rectangular 2-D list of numbers ({e})") from None
     return PixelMapProfile(pitch, data=arr)
+
+
+def profile_with_values(profile: dict, values) -> dict:
+    """A copy of the native ``profile`` dictionary with its learnable values replaced: the inverse of
+    :attr:`Profile.values` (torch_bridge's ``HybridLens.to_lens`` writes its learnt values back with it).
+    ``values``: numbers in the order of ``values`` (coefficients in rad; ``[focal_length]`` in mm;
+    ``[alpha]`` in rad); a pixel map's (ny, nx) phase map (rad), written inline (``data``, no ``file``)."""
+    p = dict(profile)
+    kind = p.get("kind")
+    if kind in ("even_poly", "poly", "zernike"):
+        p["coefficients"] = [float(x) for x in values]
+    elif kind in ("cubic", "fresnel"):
+        p["alpha" if kind == "cubic" else "focal_length"] = float(values[0])
+    elif kind == "pixel_map":
+        p.pop("file", None)
+        p["data"] = np.asarray(values, dtype=np.float64).tolist()
+    else:
+        raise LensFileError(f"profile.kind {kind!r} unknown (expected one of {KINDS})")
+    return p
 
 
 def get_profile(surface, source=None) -> Profile:

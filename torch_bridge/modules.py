@@ -178,12 +178,9 @@ class HybridLens(nn.Module):
         prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else
                                      __import__("pathlib").Path(lens.source).parent)
         self.doe_kind = prof.kind
-        if prof.kind in doe.SMOOTH_KINDS:
-            return np.array(prof.values, dtype=np.float64)      # the layout rwwarp.doe.profile_phase takes
         if prof.kind == "pixel_map":
             self._pixel_pitch = prof.pitch
-            return np.array(prof.data, dtype=np.float64)
-        raise ValueError(f"unsupported DOE profile kind {prof.kind!r}")
+        return np.array(prof.values, dtype=np.float64)          # the layout rwwarp.doe.profile_phase takes
 
     def _flat_indices(self, q, spec, shape, std):
         """Flat indices of the learning entries of ``q``; ``std`` marks the surfaces that may learn it
@@ -277,17 +274,7 @@ class HybridLens(nn.Module):
         d = lens.doe_index
         if d is not None:
             s = lens.surfaces[d]
-            p = dict(s.profile)
-            if self.doe_kind in ("even_poly", "poly", "zernike"):
-                p["coefficients"] = [float(x) for x in v["doe"]]
-            elif self.doe_kind == "cubic":
-                p["alpha"] = float(v["doe"][0])
-            elif self.doe_kind == "fresnel":
-                p["focal_length"] = float(v["doe"][0])
-            elif self.doe_kind == "pixel_map":
-                p.pop("file", None)
-                p["data"] = v["doe"].tolist()
-            s.profile = p
+            s.profile = doe.profile_with_values(s.profile, v["doe"])
         lens.validate()
         return lens
 

@@ -370,6 +370,34 @@ def test_profile_classes_follow_the_hand_formulas(kind):
     np.testing.assert_allclose(gy, fy, rtol=0, atol=2e-9 * gs)
 
 
+@pytest.mark.parametrize("kind", ["even_poly", "poly", "fresnel", "cubic", "zernike", "pixel_map"])
+def test_profile_with_values_writes_the_learnable_values_back(kind, tmp_path):
+    """profile_with_values (HybridLens.to_lens) is the inverse of Profile.values: the profile rebuilt from the
+    dictionary with new values has those values and the hand formula's phase with them (a pixel map written
+    inline, its file dropped); the input dictionary is not changed."""
+    R = 1.3
+    if kind == "pixel_map":
+        np.save(tmp_path / "m.npy", np.zeros((3, 4)))
+        d = {"kind": "pixel_map", "pitch": 0.5, "file": str(tmp_path / "m.npy")}
+        new = RNG.uniform(0.0, 6.0, (3, 4))
+    else:
+        vals, hand = _hand_profiles(R)[kind]
+        d = _profile_dict(kind, R, [0.0] * len(vals) if kind not in ("fresnel",) else [10.0])
+        new = vals
+    before = dict(d)
+    out = doe.profile_with_values(d, new)
+    assert d == before
+    prof = doe.profile_from_dict(out)
+    np.testing.assert_array_equal(np.asarray(prof.values), np.asarray(new))
+    if kind == "pixel_map":
+        assert "file" not in out and prof.phase(np.array([-0.9]), np.array([0.6]))[0] == new[0, 0]
+    else:
+        np.testing.assert_allclose(prof.phase(X, Y, 0.55), hand(X, Y, new), rtol=0,
+                                   atol=4e-15 * np.max(np.abs(hand(X, Y, new))))
+    with pytest.raises(LensFileError, match="kind"):
+        doe.profile_with_values({"kind": "spline"}, [1.0])
+
+
 def test_profile_dispatch_names_the_kinds():
     """profile_phase / profile_gradient refuse a kind that is not smooth, naming the smooth kinds."""
     for f in (doe.profile_phase, doe.profile_gradient):
