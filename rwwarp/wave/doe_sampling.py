@@ -36,9 +36,10 @@ def one_branch(phi, tol=1e-9):
 
 
 def chief_zone(phi, xy, chief_xy):
-    """The wrap zone ``k = floor(phi0 / 2 pi)`` (:func:`~rwwarp.wave.doe_phase.wrap_zone`) the chief ray crosses, from the pilot rays' phases ``phi``
-    (rad) at their wave-plane points ``xy`` (N, 2): the zone of the pilot point nearest the chief ray whose
-    phase is not on a zone boundary (an even polynomial is 0, a boundary, exactly on the axis)."""
+    """The wrap zone ``k = floor(phi0 / 2 pi)`` (:func:`~rwwarp.wave.doe_phase.wrap_zone`) the chief ray
+    crosses, from the pilot rays' phases ``phi`` (rad) at their wave-plane points ``xy`` (N, 2): the zone of the
+    pilot point nearest the chief ray whose phase is not on a zone boundary (an even polynomial is 0, a
+    boundary, exactly on the axis)."""
     phi = np.asarray(phi, dtype=np.float64)
     order = np.argsort(np.sum((np.asarray(xy) - np.asarray(chief_xy)[None, :]) ** 2, axis=1))
     for j in order:

@@ -62,7 +62,8 @@ import numpy as np
 
 from .doe_phase import wrap_zone, zone_relief_phase
 
-__all__ = ["doe_order_coefficients", "doe_order_series", "exact_zone", "order_series_horner", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
+__all__ = ["doe_order_coefficients", "doe_order_series", "exact_zone", "order_series_horner", "FocalPropagator",
+           "transfer_curvature", "pixel_power", "pixel_power_adjoint",
            "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",
            "sensor_taper"]
 
