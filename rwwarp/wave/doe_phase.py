@@ -238,10 +238,12 @@ def pixel_map_phase(data, row, col, inside, xp=None):
 # ====================================================================== any smooth kind by name
 SMOOTH_KINDS = ("even_poly", "poly", "fresnel", "zernike", "cubic")
 
-def _check_kind(kind):
+def _check_kind(kind, norm_radius):
     if kind not in SMOOTH_KINDS:
         raise ValueError(f"a smooth DOE profile kind is one of {SMOOTH_KINDS}, got {kind!r} (a pixel map: "
                          "pixel_map_indices / pixel_map_phase)")
+    if kind != "fresnel" and (norm_radius is None or not float(norm_radius) > 0):
+        raise ValueError(f"a {kind!r} DOE profile needs norm_radius > 0 (mm), got {norm_radius!r}")
 
 def profile_phase(kind: str, values, x_mm, y_mm, *, norm_radius=None, design_wavelength_um: float = 0.55,
                   xp=None):
@@ -251,7 +253,7 @@ def profile_phase(kind: str, values, x_mm, y_mm, *, norm_radius=None, design_wav
     differentiable): the coefficients (rad) of ``even_poly`` / ``poly`` / ``zernike``, ``[focal_length]`` (mm)
     of ``fresnel``, ``[alpha]`` (rad) of ``cubic``. ``norm_radius`` (mm): all kinds but ``fresnel``;
     ``design_wavelength_um`` (um): ``fresnel``'s lambda0."""
-    _check_kind(kind)
+    _check_kind(kind, norm_radius)
     xp = array_namespace(x_mm, y_mm, values) if xp is None else xp
     if kind in ("even_poly", "poly"):
         x, y = _real(x_mm, xp), _real(y_mm, xp)
@@ -269,7 +271,7 @@ def profile_gradient(kind: str, values, x_mm, y_mm, *, norm_radius=None, design_
     arguments as :func:`profile_phase` (differentiable in torch ``values`` and coordinates). The one home of
     the gradient: :meth:`rwwarp.doe.Profile.gradient` (plans, the ray model) and torch_bridge's ray model
     (``RaySpot``) call it."""
-    _check_kind(kind)
+    _check_kind(kind, norm_radius)
     xp = array_namespace(x_mm, y_mm, values) if xp is None else xp
     if kind in ("even_poly", "poly"):
         x, y = _real(x_mm, xp), _real(y_mm, xp)
@@ -288,7 +290,7 @@ def profile_quadratic(kind: str, values, *, norm_radius=None, design_wavelength_
     ``values`` as :func:`profile_phase` takes them (numbers, or a 1-D torch tensor: differentiable):
     ``a_1 / R^2`` (even_poly), ``c_2 / R^2`` (poly), ``-pi / (lambda0 f)`` (fresnel), the ``rho^2`` terms of
     the rotationally symmetric Zernike polynomials over ``R^2`` (zernike), 0 (cubic)."""
-    _check_kind(kind)
+    _check_kind(kind, norm_radius)
     n = len(values)
     if kind == "fresnel":
         return fresnel_quadratic(values[0], design_wavelength_um)

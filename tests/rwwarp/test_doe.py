@@ -399,10 +399,16 @@ def test_profile_with_values_writes_the_learnable_values_back(kind, tmp_path):
 
 
 def test_profile_dispatch_names_the_kinds():
-    """profile_phase / profile_gradient refuse a kind that is not smooth, naming the smooth kinds."""
-    for f in (doe.profile_phase, doe.profile_gradient):
-        with pytest.raises(ValueError, match="pixel_map.*pixel_map_phase|even_poly"):
-            f("pixel_map", [1.0], X, Y, norm_radius=1.0)
+    """profile_phase / profile_gradient / profile_quadratic refuse a kind that is not smooth, naming the smooth
+    kinds, and a missing or bad norm_radius, naming it (Fresnel needs none)."""
+    for f in (doe.profile_phase, doe.profile_gradient, doe.profile_quadratic):
+        args = (X, Y) if f is not doe.profile_quadratic else ()
+        with pytest.raises(ValueError, match="even_poly.*pixel_map_phase"):
+            f("pixel_map", [1.0], *args, norm_radius=1.0)
+        for R in (None, 0.0, -1.0):
+            with pytest.raises(ValueError, match="'zernike' DOE profile needs norm_radius"):
+                f("zernike", [1.0], *args, norm_radius=R)
+        f("fresnel", [50.0], *args)
 
 
 @pytest.mark.parametrize("kind", ["even_poly", "poly", "fresnel", "cubic", "zernike"])
