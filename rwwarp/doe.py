@@ -45,11 +45,15 @@ Functions: :func:`profile_from_dict` (validate and build), :func:`get_profile` (
 profile), :func:`surface_is_continuous`, :func:`surface_feature_size_mm` (sampling plans),
 :func:`wrap_phase`, :func:`quantize`, :func:`relief_phase`, :func:`wavelength_scale`, :func:`design_phase`
 (wrapped and quantised phi0), :func:`modulation_phase` (the phase applied at a wavelength),
-:func:`height_map_um`, :func:`export_height_map`. The phase itself in any array namespace (numpy, CuPy,
+:func:`height_map_um`, :func:`export_height_map`, :func:`profile_with_values` (the inverse of
+:attr:`Profile.values`, the learnable numbers). The phase itself in any array namespace (numpy, CuPy,
 torch) lives in :mod:`rwwarp.wave.doe_phase` and is re-exported here: :func:`array_namespace`,
-:func:`radial_phase`, :func:`radial_gradient_over_r`, :func:`fresnel_phase`, :func:`zernike_phase`,
-:func:`cubic_phase`, :func:`pixel_map_indices`, :func:`pixel_map_phase`, :func:`wrap_phase`,
-:func:`quantize`, :func:`relief_phase`.
+:func:`profile_phase` / :func:`profile_gradient` (any smooth kind by name, from its learnable values: the
+profile classes' :meth:`~Profile.phase` / :meth:`~Profile.gradient` and torch_bridge call them),
+:func:`radial_phase`, :func:`radial_gradient_over_r`, :func:`fresnel_phase`, :func:`fresnel_gradient`,
+:func:`zernike_phase`, :func:`cubic_phase`, :func:`cubic_gradient`, :func:`pixel_map_indices`,
+:func:`pixel_map_phase`, :func:`wrap_phase`, :func:`quantize`, :func:`relief_phase`, :func:`wrap_zone`,
+:func:`zone_relief_phase`.
 """
 from __future__ import annotations
 
@@ -64,20 +68,28 @@ import numpy as np
 
 from .wave.doe_phase import TWO_PI
 from .wave.doe_phase import (  # noqa: F401  (the phase over an array namespace; re-exported here)
+    SMOOTH_KINDS,
     _zernike_radial_q,
     array_namespace,
+    cubic_gradient,
     cubic_phase,
+    fresnel_gradient,
     fresnel_phase,
     fresnel_quadratic,
     noll_to_nm,
     pixel_map_indices,
     pixel_map_phase,
+    profile_gradient,
+    profile_phase,
+    profile_quadratic,
     quantize,
     radial_gradient_over_r,
     radial_phase,
     relief_phase,
     wrap_phase,
+    wrap_zone,
     zernike_phase,
+    zone_relief_phase,
 )
 from .errors import LensError, LensFileError
 
@@ -140,6 +152,13 @@ class Profile:
     kind = ""
     is_continuous = True  # False where the phase has steps (pixel maps); quantisation is per surface
 
+    @property
+    def values(self):
+        """The profile's learnable numbers, in the order torch_bridge's ``HybridLens`` learns them and
+        :func:`profile_phase` takes them: coefficients (rad), ``[focal_length]`` (mm, fresnel), ``[alpha]``
+        (rad, cubic), the phase map (rad, pixel_map); :func:`profile_with_values` writes them back."""
+        raise NotImplementedError
+
     def phase(self, x_mm, y_mm, design_wavelength_um: float = 0.55) -> np.ndarray:
         """Unwrapped phase phi0 (radians, float64) at (``x_mm``, ``y_mm``) for the design wavelength (um)."""
         raise NotImplementedError
@@ -185,51 +204,50 @@ class Profile:
         return type(self) is type(other) and self.to_dict() == other.to_dict()
 
 
-class _RadialProfile(Profile):
-    """phi0 = g(r) for rotationally symmetric kinds; subclasses give g and dg/dr / r."""
+class _SmoothProfile(Profile):
+    """A smooth kind: phase and gradient by the shared dispatch over its learnable ``values``
+    (:func:`profile_phase`, :func:`profile_gradient`, numpy float64)."""
 
-    def _g(self, r2):
-        raise NotImplementedError
+    norm_radius = None
 
-    def _dg_over_r(self, r2):
-        """(dg/dr) / r as a function of r^2, rad/mm^2 (finite at r = 0)."""
-        raise NotImplementedError
+    @property
+    def values(self) -> list:
+        return list(self.coefficients)
 
     def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        x, y = _f64(x_mm), _f64(y_mm)
-        return self._g(x * x + y * y)
+        return profile_phase(self.kind, self.values, x_mm, y_mm, norm_radius=self.norm_radius,
+                             design_wavelength_um=design_wavelength_um, xp=np)
 
     def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
-        x, y = _f64(x_mm), _f64(y_mm)
-        k = self._dg_over_r(x * x + y * y)
-        return k * x, k * y
+        return profile_gradient(self.kind, self.values, x_mm, y_mm, norm_radius=self.norm_radius,
+                                design_wavelength_um=design_wavelength_um, xp=np)
+
+    def quadratic_coefficient(self, design_wavelength_um=0.55):
+        return profile_quadratic(self.kind, self.values, norm_radius=self.norm_radius,
+                                 design_wavelength_um=design_wavelength_um)
+
+    def to_dict(self):
+        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
+
+
+class _RadialProfile(_SmoothProfile):
+    """phi0 = g(r) for the rotationally symmetric polynomial kinds (even_poly, poly)."""
+
+    def __init__(self, norm_radius: float, coefficients):
+        self.norm_radius = float(norm_radius)
+        self.coefficients = [float(a) for a in coefficients]
 
     def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
         rmax = float(semi_diameter) * (math.sqrt(2.0) if shape == "square" else 1.0)
         r = np.linspace(0.0, rmax, 4097)
-        return float(np.max(np.abs(self._dg_over_r(r * r) * r)))
+        g = radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, r * r)
+        return float(np.max(np.abs(g * r)))
 
 
 class EvenPolyProfile(_RadialProfile):
     """``phi0 = sum_i a_i rho^(2i)``, rho = r / norm_radius (Zemax Binary 2, order 1). Radians."""
 
     kind = "even_poly"
-
-    def __init__(self, norm_radius: float, coefficients):
-        self.norm_radius = float(norm_radius)
-        self.coefficients = [float(a) for a in coefficients]
-
-    def _g(self, r2):
-        return radial_phase(self.kind, self.coefficients, self.norm_radius, r2, np)
-
-    def _dg_over_r(self, r2):
-        return radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, np.asarray(r2, float))
-
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        return self.coefficients[0] / self.norm_radius ** 2 if self.coefficients else 0.0
-
-    def to_dict(self):
-        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
 
 
 class PolyProfile(_RadialProfile):
@@ -240,24 +258,8 @@ class PolyProfile(_RadialProfile):
 
     kind = "poly"
 
-    def __init__(self, norm_radius: float, coefficients):
-        self.norm_radius = float(norm_radius)
-        self.coefficients = [float(a) for a in coefficients]
 
-    def _g(self, r2):
-        return radial_phase(self.kind, self.coefficients, self.norm_radius, r2, np)
-
-    def _dg_over_r(self, r2):
-        return radial_gradient_over_r(self.kind, self.coefficients, self.norm_radius, np.asarray(r2, float))
-
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        return self.coefficients[1] / self.norm_radius ** 2 if len(self.coefficients) > 1 else 0.0
-
-    def to_dict(self):
-        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
-
-
-class FresnelProfile(_RadialProfile):
+class FresnelProfile(_SmoothProfile):
     """``phi0 = -pi r^2 / (lambda0 f)``: ideal diffractive lens of focal length ``focal_length`` (mm)
     at the design wavelength lambda0 (passed to :meth:`phase` in um)."""
 
@@ -266,30 +268,19 @@ class FresnelProfile(_RadialProfile):
     def __init__(self, focal_length: float):
         self.focal_length = float(focal_length)
 
-    def _q(self, design_wavelength_um):
-        return fresnel_quadratic(self.focal_length, design_wavelength_um)
-
-    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        x, y = _f64(x_mm), _f64(y_mm)
-        return fresnel_phase(self.focal_length, design_wavelength_um, x * x + y * y, np)
-
-    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
-        x, y = _f64(x_mm), _f64(y_mm)
-        q2 = 2.0 * self._q(design_wavelength_um)
-        return q2 * x, q2 * y
+    @property
+    def values(self):
+        return [self.focal_length]
 
     def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
         rmax = float(semi_diameter) * (math.sqrt(2.0) if shape == "square" else 1.0)
-        return abs(2.0 * self._q(design_wavelength_um)) * rmax
-
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        return self._q(design_wavelength_um)
+        return abs(2.0 * self.quadratic_coefficient(design_wavelength_um)) * rmax
 
     def to_dict(self):
         return {"kind": self.kind, "focal_length": self.focal_length}
 
 
-class ZernikeProfile(Profile):
+class ZernikeProfile(_SmoothProfile):
     """``phi0 = sum_j z_j Z_j``: Noll-ordered, Noll-normalised Zernike polynomials in rho = r/norm_radius.
 
     ``Z_j = N_n^m R_n^|m|(rho) {cos(m theta) for m > 0, sin(|m| theta) for m < 0, 1 for m = 0}`` with
@@ -303,27 +294,9 @@ class ZernikeProfile(Profile):
         self.norm_radius = float(norm_radius)
         self.coefficients = [float(a) for a in coefficients]
 
-    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        return zernike_phase(self.coefficients, self.norm_radius, x_mm, y_mm, np)
-
-    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
-        _, gx, gy = zernike_phase(self.coefficients, self.norm_radius, x_mm, y_mm, np, gradient=True)
-        return gx, gy
-
-    def quadratic_coefficient(self, design_wavelength_um=0.55):
-        total = 0.0                                     # the r^2 terms of the rotationally symmetric Z_j
-        for j, c in enumerate(self.coefficients, start=1):
-            n, m = noll_to_nm(j)
-            q = _zernike_radial_q(n, m)
-            if m == 0 and len(q) > 1:
-                total += c * math.sqrt(n + 1) * q[1]
-        return total / self.norm_radius ** 2
-
-    def to_dict(self):
-        return {"kind": self.kind, "norm_radius": self.norm_radius, "coefficients": list(self.coefficients)}
 
 
-class CubicProfile(Profile):
+class CubicProfile(_SmoothProfile):
     """``phi0 = alpha ((x/R)^3 + (y/R)^3)`` (cubic phase plate, EDoF), R = norm_radius (mm), alpha in rad."""
 
     kind = "cubic"
@@ -332,14 +305,9 @@ class CubicProfile(Profile):
         self.norm_radius = float(norm_radius)
         self.alpha = float(alpha)
 
-    def phase(self, x_mm, y_mm, design_wavelength_um=0.55):
-        return cubic_phase(self.alpha, self.norm_radius, x_mm, y_mm, np)
-
-    def gradient(self, x_mm, y_mm, design_wavelength_um=0.55):
-        R = self.norm_radius
-        x, y = _f64(x_mm), _f64(y_mm)
-        k = 3.0 * self.alpha / R ** 3
-        return k * x * x, k * y * y
+    @property
+    def values(self):
+        return [self.alpha]
 
     def max_gradient(self, semi_diameter, design_wavelength_um=0.55, shape="circle"):
         k = 3.0 * abs(self.alpha) / self.norm_radius ** 3
@@ -410,6 +378,11 @@ class PixelMapProfile(Profile):
         except (OSError, ValueError, EOFError, TypeError) as e:
             raise LensFileError(f"profile.file: cannot read pixel map {str(path)!r} ({e})") from None
         return self._check(arr)
+
+    @property
+    def values(self) -> np.ndarray:
+        """The learnable values: the phase map :attr:`data` (rad, (ny, nx))."""
+        return self.data
 
     @property
     def data(self) -> np.ndarray:
@@ -501,6 +474,25 @@ def profile_from_dict(d: dict, base=None) -> Profile:
     except (TypeError, ValueError) as e:
         raise LensFileError(f"profile.data must be a rectangular 2-D list of numbers ({e})") from None
     return PixelMapProfile(pitch, data=arr)
+
+
+def profile_with_values(profile: dict, values) -> dict:
+    """A copy of the native ``profile`` dictionary with its learnable values replaced: the inverse of
+    :attr:`Profile.values` (torch_bridge's ``HybridLens.to_lens`` writes its learnt values back with it).
+    ``values``: numbers in the order of ``values`` (coefficients in rad; ``[focal_length]`` in mm;
+    ``[alpha]`` in rad); a pixel map's (ny, nx) phase map (rad), written inline (``data``, no ``file``)."""
+    p = dict(profile)
+    kind = p.get("kind")
+    if kind in ("even_poly", "poly", "zernike"):
+        p["coefficients"] = [float(x) for x in values]
+    elif kind in ("cubic", "fresnel"):
+        p["alpha" if kind == "cubic" else "focal_length"] = float(values[0])
+    elif kind == "pixel_map":
+        p.pop("file", None)
+        p["data"] = np.asarray(values, dtype=np.float64).tolist()
+    else:
+        raise LensFileError(f"profile.kind {kind!r} unknown (expected one of {KINDS})")
+    return p
 
 
 def get_profile(surface, source=None) -> Profile:

@@ -39,10 +39,16 @@ def doe_power(surface, wavelength_um: float) -> float:
     from . import doe
     prof = doe.profile_from_dict(surface.profile)
     a2 = prof.quadratic_coefficient(surface.design_wavelength_um)  # phase = a2 * r^2 (rad/mm^2)
+    return diffractive_power(a2, wavelength_um)
+
+
+def diffractive_power(a2, wavelength_um: float):
+    """Paraxial power (1/mm) ``P = -lambda a2 / pi`` of a DOE whose phase is ``a2 r^2`` near the axis (``a2`` in
+    rad/mm^2: a number, or a torch tensor in ``torch_bridge``'s differentiable EFL; ``wavelength_um`` in um).
+    The first diffraction order of the zone structure (grating equation): ``d(nu) = (lambda / 2 pi) d(phi0)/dr
+    = lambda a2 r / pi``, proportional to the wavelength (Zemax Binary 2 convention); the substrate's remap
+    ``(n(l)-1)/(n0-1) l0/l`` only changes the diffraction efficiency."""
     lam_mm = wavelength_um * 1e-3
-    # first diffraction order of the zone structure (grating equation): d(nu) = (lambda / 2 pi) d(phi0)/dr
-    # = lambda a2 r / pi  ->  P = -lambda a2 / pi, proportional to the wavelength (Zemax Binary 2 convention);
-    # the substrate's remap (n(l)-1)/(n0-1) l0/l only changes the diffraction efficiency
     return -lam_mm * a2 / np.pi
 
 

@@ -51,7 +51,7 @@ import weakref
 
 import numpy as np
 import torch
-from rwwarp.doe import relief_phase
+from rwwarp.doe import relief_phase, zone_relief_phase
 from rwwarp.trace import COLUMNS as COL
 
 __all__ = [
@@ -644,7 +644,8 @@ def focal_doe_factor(rw, phi0):
         from rwwarp.wave.focal import doe_order_series
         return doe_order_series(phi0, rw.focal["orders"], rw.focal.get("central_zone"), torch)
     alpha = upload(doe_scale(rw), torch.float64, phi0.device)
-    return torch.exp(1j * alpha[:, None, None] * phi0)
+    # the blank relief's zone 0, remapped to the wavelength (rwwarp.doe.zone_relief_phase)
+    return torch.exp(1j * zone_relief_phase(phi0, 0.0, alpha[:, None, None]))
 
 
 def focal_propagate(field, distance, rw, distance_host=None):

@@ -184,16 +184,9 @@ class HybridLens(nn.Module):
         prof = doe.profile_from_dict(s.profile, base=None if lens.source is None else
                                      __import__("pathlib").Path(lens.source).parent)
         self.doe_kind = prof.kind
-        if prof.kind in ("even_poly", "poly", "zernike"):
-            return np.array(prof.coefficients, dtype=np.float64)
-        if prof.kind == "cubic":
-            return np.array([prof.alpha], dtype=np.float64)
-        if prof.kind == "fresnel":
-            return np.array([prof.focal_length], dtype=np.float64)
         if prof.kind == "pixel_map":
             self._pixel_pitch = prof.pitch
-            return np.array(prof.data, dtype=np.float64)
-        raise ValueError(f"unsupported DOE profile kind {prof.kind!r}")
+        return np.array(prof.values, dtype=np.float64)          # the layout rwwarp.doe.profile_phase takes
 
     def _flat_indices(self, q, spec, shape, std):
         """Flat indices of the learning entries of ``q``; ``std`` marks the surfaces that may learn it
@@ -294,17 +287,7 @@ class HybridLens(nn.Module):
         d = lens.doe_index
         if d is not None:
             s = lens.surfaces[d]
-            p = dict(s.profile)
-            if self.doe_kind in ("even_poly", "poly", "zernike"):
-                p["coefficients"] = [float(x) for x in v["doe"]]
-            elif self.doe_kind == "cubic":
-                p["alpha"] = float(v["doe"][0])
-            elif self.doe_kind == "fresnel":
-                p["focal_length"] = float(v["doe"][0])
-            elif self.doe_kind == "pixel_map":
-                p.pop("file", None)
-                p["data"] = v["doe"].tolist()
-            s.profile = p
+            s.profile = doe.profile_with_values(s.profile, v["doe"])
         lens.validate()
         return lens
 
@@ -555,39 +538,30 @@ class HybridLens(nn.Module):
             st["doe_geometry"] = geo
         kind = self.doe_kind
         # the forward is rwwarp.doe's (the numpy profiles evaluate the same functions), in torch
-        if kind in ("even_poly", "poly"):
-            # the window-sized radius is formed per call from the separable x^2 (S, 1, n), y^2 (S, n, 1):
-            # a cached (S, n, n) copy per plan would cost more memory than the whole training step
-            phi = doe.radial_phase(kind, v, float(s.profile["norm_radius"]), geo["x2"] + geo["y2"], torch)
-        elif kind == "fresnel":
-            phi = doe.fresnel_phase(v[0], s.design_wavelength_um, geo["x2"] + geo["y2"], torch)
-        elif kind == "cubic":
-            phi = doe.cubic_phase(v[0], float(s.profile["norm_radius"]), geo["x"], geo["y"], torch)
-        elif kind == "zernike":
+        if kind == "zernike":
             basis = geo["basis"]
             phi = torch.tensordot(v, basis, dims=1) if v.numel() else torch.zeros(basis.shape[1:], dtype=v.dtype,
                                                                                    device=dev)
         elif kind == "pixel_map":
             phi = doe.pixel_map_phase(v, geo["row"], geo["col"], geo["in_map"], torch)
         else:
-            raise ValueError(f"unsupported DOE kind {kind!r}")
+            # from the separable x (S, 1, n), y (S, n, 1): a cached (S, n, n) radius per plan would cost more
+            # memory than the whole training step
+            phi = doe.profile_phase(kind, v, geo["x"], geo["y"], norm_radius=s.profile.get("norm_radius"),
+                                    design_wavelength_um=s.design_wavelength_um, xp=torch)
         # no mask at the DOE's edge (as rwwarp.psf): rays are clipped there by the tracer
         return quantize_ste(phi, s.levels) if wrap else phi
 
     def _doe_geometry(self, rw, s, dev):
         """Per-plan DOE sampling helpers, built on ``dev`` by rwwarp.doe's functions in torch (no
-        window-sized host-to-device copies): the separable coordinates or their squares, the Zernike
+        window-sized host-to-device copies): the separable coordinates, the Zernike
         basis ``Z_j`` (one (S, n, n) map per coefficient: the phase is linear in them), a pixel map's
         nearest-pixel indices."""
         from .functions import _grid_points
         x, y = _grid_points(rw, dev)
         geo = {"device": dev}
         kind = self.doe_kind
-        if kind in ("even_poly", "poly", "fresnel"):
-            geo["x2"], geo["y2"] = x * x, y * y          # (S, 1, n), (S, n, 1)
-        elif kind == "cubic":
-            geo["x"], geo["y"] = x, y
-        elif kind == "zernike":
+        if kind == "zernike":
             m = self.doe_base.numel()
             basis = x.new_empty((m,) + torch.broadcast_shapes(x.shape, y.shape))
             for j in range(m):
@@ -598,6 +572,8 @@ class HybridLens(nn.Module):
         elif kind == "pixel_map":
             ind = doe.pixel_map_indices(self._pixel_pitch, self.doe_base.shape, x, y, torch)
             geo["row"], geo["col"], geo["in_map"] = ind
+        else:
+            geo["x"], geo["y"] = x, y                    # (S, 1, n), (S, n, 1)
         return geo
 
     def host_table(self, rw, table, tables: dict | None = None) -> np.ndarray:

@@ -22,6 +22,7 @@ import contextlib
 import numpy as np
 import torch
 from rwwarp.trace import COLUMNS as COL
+from rwwarp.wave.focal import exact_zone, order_series_horner
 
 from .functions import _from_xp, _on_device, _streams, _xp_of, bridge_state, focal_doe_factor, paper_amplitude, upload
 from .functions import power_sums, trace_splat
@@ -169,20 +170,20 @@ def _single_factor(tile, idx, p):
 
 def _zones(tile, key, zones, p, acc):
     """``acc`` with each member's chief-ray wrap zone ``(k_c, alpha)`` (or None) computed exactly as
-    ``exp(1j alpha (p - 2 pi k_c))`` where ``floor(p / 2 pi) == k_c`` (:func:`rwwarp.wave.focal.doe_order_series`)."""
+    ``exp(1j alpha (p - 2 pi k_c))`` where ``floor(p / 2 pi) == k_c`` (:func:`rwwarp.wave.focal.exact_zone`, the
+    function :func:`rwwarp.wave.focal.doe_order_series` uses, with a zone and remap per member)."""
     if all(z is None for z in zones):
         return acc
     # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
     zt = np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones])
     zd = _on_device(tile.raywave, key + "_zones", zt, p.device)
-    kc, alpha = zd[:, 0, None, None], zd[:, 1, None, None]
-    inside = torch.floor(p / (2.0 * np.pi)) == kc
-    return torch.where(inside, torch.exp(1j * alpha * (p - 2.0 * np.pi * kc)), acc)
+    return exact_zone(acc, p, zd[:, 0, None, None], zd[:, 1, None, None], torch)
 
 
 def _series_factor(tile, idx, p):
     """``sum_m c_m exp(1j m p)`` for the members ``idx`` (integer orders), with each member's chief-ray wrap
-    zone exact (:func:`rwwarp.wave.focal.doe_order_series`, batched over the members)."""
+    zone exact (:func:`rwwarp.wave.focal.order_series_horner` and :func:`~rwwarp.wave.focal.exact_zone`, as
+    :func:`rwwarp.wave.focal.doe_order_series`, batched over the members)."""
     members = [tile.members[k] for k in idx]
     coefs = [{int(m): complex(c) for m, c in mb.focal["orders"][0]} for mb in members]
     lo = min(min(c) for c in coefs)
@@ -193,14 +194,7 @@ def _series_factor(tile, idx, p):
             table[k, m - lo] = (v.real, v.imag)
     key = f"packed_series_{tuple(idx)}"
     c = torch.view_as_complex(_on_device(tile.raywave, key, table, p.device))
-    e = torch.exp(1j * p)
-    acc = torch.zeros_like(e) + c[:, -1, None, None]
-    for j in range(hi - lo - 1, -1, -1):
-        acc = acc * e + c[:, j, None, None]
-    if lo != 0:
-        f = e if lo > 0 else torch.conj(e)
-        for _ in range(abs(lo)):
-            acc = acc * f
+    acc = order_series_horner(torch.exp(1j * p), [c[:, j, None, None] for j in range(hi - lo + 1)], lo, torch)
     zones = [mb.focal.get("central_zone") for mb in members]
     return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
 

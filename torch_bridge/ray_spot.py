@@ -56,12 +56,13 @@ class _TraceToPlane(torch.autograd.Function):
         return torch.from_numpy(grads).to(g_pos.device), None, None, None, None, None
 
 
-def _doe_gradient(kind: str, coeffs: torch.Tensor, norm_radius: float, x, y):
-    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of an ``even_poly`` or ``poly`` DOE at (x, y) mm
-    (:func:`rwwarp.doe.radial_gradient_over_r` in torch: differentiable in the coefficients)."""
-    from rwwarp.doe import radial_gradient_over_r
-    g = radial_gradient_over_r(kind, coeffs, norm_radius, x * x + y * y, torch)
-    return g * x, g * y
+def _doe_gradient(prof, values: torch.Tensor, design_wavelength_um: float, x, y):
+    """Gradient (d phi0/dx, d phi0/dy) in rad/mm of a smooth DOE (any kind of ``rwwarp.doe.SMOOTH_KINDS``) at
+    (x, y) mm from its learnable ``values`` (:func:`rwwarp.doe.profile_gradient` in torch, the function
+    :meth:`rwwarp.doe.Profile.gradient` evaluates: differentiable in the values and the coordinates)."""
+    from rwwarp.doe import profile_gradient
+    return profile_gradient(prof.kind, values, x, y, norm_radius=prof.norm_radius,
+                            design_wavelength_um=design_wavelength_um, xp=torch)
 
 
 class RaySpot:
@@ -103,7 +104,7 @@ class RaySpot:
         if s.type == "doe":
             from rwwarp import doe as rdoe
             prof = rdoe.profile_from_dict(s.profile)
-            grad = _doe_gradient(prof.kind, values["doe"].cpu(), prof.norm_radius, pos[..., 0], pos[..., 1])
+            grad = _doe_gradient(prof, values["doe"].cpu(), s.design_wavelength_um, pos[..., 0], pos[..., 1])
         # rwwarp's grating step and transfer, in torch (the sensor z learns with the table)
         hx, hy, ok = grating_to_sensor(pos, dr, n_after, lam, grad, table[-1, COL.z], torch)
         ok = valid & ok
@@ -139,8 +140,10 @@ class RaySpot:
 # ---------------------------------------------------------------------------------------------- paraxial
 def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
     """Paraxial EFL (mm) of a :class:`~torch_bridge.HybridLens` as a differentiable tensor (y-nu trace
-    with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi``)."""
+    with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi`` of any smooth kind:
+    :func:`rwwarp.paraxial.diffractive_power` of :func:`rwwarp.doe.profile_quadratic`; a pixel map adds none)."""
     from rwwarp import paraxial
+    from rwwarp.doe import SMOOTH_KINDS, profile_quadratic
     lens = module.lens_template
     v = module.values()
     n = paraxial.signed_indices(lens, wavelength_um)
@@ -151,11 +154,11 @@ def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
             P = (n[i] - n_before[i]) * v["curvature"][i]
         elif s.type == "thin_lens":
             P = torch.tensor(1.0 / s.focal_length, dtype=torch.float64)
-        elif s.type == "doe" and module.doe_kind in ("even_poly", "poly"):
-            idx = 0 if module.doe_kind == "even_poly" else 1
-            R = float(s.profile["norm_radius"])
-            a2 = v["doe"][idx] / R ** 2 if v["doe"].numel() > idx else torch.zeros((), dtype=torch.float64)
-            P = -wavelength_um * 1e-3 * a2 / math.pi       # rwwarp.paraxial.doe_power's first order
+        elif s.type == "doe" and module.doe_kind in SMOOTH_KINDS:
+            # rwwarp.paraxial.doe_power in torch: the phase's r^2 term, the first order's power
+            a2 = profile_quadratic(module.doe_kind, v["doe"], norm_radius=s.profile.get("norm_radius"),
+                                   design_wavelength_um=s.design_wavelength_um)
+            P = torch.as_tensor(paraxial.diffractive_power(a2, wavelength_um), dtype=torch.float64)
         else:
             P = torch.zeros((), dtype=torch.float64)
         powers.append(P)

@@ -1,8 +1,11 @@
 """A DOE's phase written once for every array namespace (numpy, CuPy or torch, chosen from the arrays or
 passed as ``xp``; rwwarp never imports torch): the profiles' phase and gradient at the design wavelength
-(radial polynomials, Fresnel lens, cubic, Zernike, pixel map; rad and rad/mm), and the relief it becomes:
-the phase wrapped to [0, 2 pi) and quantised to ``levels`` levels. :mod:`rwwarp.doe`'s profile classes and
-torch_bridge's DOE (with its straight-through gradient) both call these."""
+(radial polynomials, Fresnel lens, cubic, Zernike, pixel map; rad and rad/mm; :func:`profile_phase` and
+:func:`profile_gradient` dispatch on the kind), and the relief it becomes: the phase wrapped to [0, 2 pi)
+and quantised to ``levels`` levels (:func:`wrap_phase`, :func:`quantize`, :func:`relief_phase`), its wrap
+zones and a zone's relief remapped to another wavelength (:func:`wrap_zone`, :func:`zone_relief_phase`).
+:mod:`rwwarp.doe`'s profile classes, the wave stage (numpy / CuPy) and torch_bridge's DOE (learnable values,
+the straight-through gradient of the quantiser, the ray model's grating, the focal orders) all call these."""
 from __future__ import annotations
 
 import functools
@@ -88,6 +91,23 @@ def cubic_phase(alpha, norm_radius: float, x_mm, y_mm, xp=None):
     R = float(norm_radius)
     x, y = _real(x_mm, xp) / R, _real(y_mm, xp) / R
     return alpha * (x * x * x + y * y * y)
+
+def fresnel_gradient(focal_length, design_wavelength_um: float, x_mm, y_mm, xp=None):
+    """``(dphi0/dx, dphi0/dy) = 2 q (x, y)`` (rad/mm) of a ``fresnel`` DOE, ``q`` of
+    :func:`fresnel_quadratic` (``f`` in mm, a number or a 0-d array: differentiable; lambda0 in um), at
+    broadcastable ``x_mm``, ``y_mm`` (mm)."""
+    xp = array_namespace(x_mm, y_mm, focal_length) if xp is None else xp
+    q2 = 2.0 * fresnel_quadratic(focal_length, design_wavelength_um)
+    return q2 * _real(x_mm, xp), q2 * _real(y_mm, xp)
+
+def cubic_gradient(alpha, norm_radius: float, x_mm, y_mm, xp=None):
+    """``(dphi0/dx, dphi0/dy) = (3 alpha / R^3) (x^2, y^2)`` (rad/mm) of a ``cubic`` DOE (``alpha`` in rad, a
+    number or a 0-d array: differentiable; R = ``norm_radius`` in mm) at broadcastable ``x_mm``, ``y_mm``."""
+    xp = array_namespace(x_mm, y_mm, alpha) if xp is None else xp
+    R = float(norm_radius)
+    x, y = _real(x_mm, xp), _real(y_mm, xp)
+    k = 3.0 * alpha / R ** 3
+    return k * x * x, k * y * y
 
 def radial_gradient_over_r(kind: str, coefficients, norm_radius: float, r2, xp=np):
     """``(1 / r) d phi0 / dr`` (rad/mm^2) of an ``even_poly`` or ``poly`` DOE at ``r2 = x^2 + y^2`` (mm^2),
@@ -215,6 +235,78 @@ def pixel_map_phase(data, row, col, inside, xp=None):
     xp = array_namespace(data) if xp is None else xp
     return xp.where(inside, data[row, col], 0.0)
 
+# ====================================================================== any smooth kind by name
+SMOOTH_KINDS = ("even_poly", "poly", "fresnel", "zernike", "cubic")
+
+def _check_kind(kind, norm_radius):
+    if kind not in SMOOTH_KINDS:
+        raise ValueError(f"a smooth DOE profile kind is one of {SMOOTH_KINDS}, got {kind!r} (a pixel map: "
+                         "pixel_map_indices / pixel_map_phase)")
+    if kind != "fresnel" and (norm_radius is None or not float(norm_radius) > 0):
+        raise ValueError(f"a {kind!r} DOE profile needs norm_radius > 0 (mm), got {norm_radius!r}")
+
+def profile_phase(kind: str, values, x_mm, y_mm, *, norm_radius=None, design_wavelength_um: float = 0.55,
+                  xp=None):
+    """Phase phi0 (rad) of a smooth DOE profile of ``kind`` at broadcastable ``x_mm``, ``y_mm`` (mm): the one
+    dispatch over the kinds that :mod:`rwwarp.doe`'s profile classes and ``torch_bridge`` (learnable values)
+    share. ``values``: the profile's learnable numbers, a sequence or a 1-D array of ``xp`` (a torch tensor:
+    differentiable): the coefficients (rad) of ``even_poly`` / ``poly`` / ``zernike``, ``[focal_length]`` (mm)
+    of ``fresnel``, ``[alpha]`` (rad) of ``cubic``. ``norm_radius`` (mm): all kinds but ``fresnel``;
+    ``design_wavelength_um`` (um): ``fresnel``'s lambda0."""
+    _check_kind(kind, norm_radius)
+    xp = array_namespace(x_mm, y_mm, values) if xp is None else xp
+    if kind in ("even_poly", "poly"):
+        x, y = _real(x_mm, xp), _real(y_mm, xp)
+        return radial_phase(kind, values, norm_radius, x * x + y * y, xp)
+    if kind == "fresnel":
+        x, y = _real(x_mm, xp), _real(y_mm, xp)
+        return fresnel_phase(values[0], design_wavelength_um, x * x + y * y, xp)
+    if kind == "cubic":
+        return cubic_phase(values[0], norm_radius, x_mm, y_mm, xp)
+    return zernike_phase(values, norm_radius, x_mm, y_mm, xp)
+
+def profile_gradient(kind: str, values, x_mm, y_mm, *, norm_radius=None, design_wavelength_um: float = 0.55,
+                     xp=None):
+    """``(dphi0/dx, dphi0/dy)`` (rad/mm) of a smooth DOE profile of ``kind`` at ``x_mm``, ``y_mm`` (mm); the
+    arguments as :func:`profile_phase` (differentiable in torch ``values`` and coordinates). The one home of
+    the gradient: :meth:`rwwarp.doe.Profile.gradient` (plans, the ray model) and torch_bridge's ray model
+    (``RaySpot``) call it."""
+    _check_kind(kind, norm_radius)
+    xp = array_namespace(x_mm, y_mm, values) if xp is None else xp
+    if kind in ("even_poly", "poly"):
+        x, y = _real(x_mm, xp), _real(y_mm, xp)
+        k = radial_gradient_over_r(kind, values, norm_radius, x * x + y * y, xp)
+        return k * x, k * y
+    if kind == "fresnel":
+        return fresnel_gradient(values[0], design_wavelength_um, x_mm, y_mm, xp)
+    if kind == "cubic":
+        return cubic_gradient(values[0], norm_radius, x_mm, y_mm, xp)
+    _, gx, gy = zernike_phase(values, norm_radius, x_mm, y_mm, xp, gradient=True)
+    return gx, gy
+
+def profile_quadratic(kind: str, values, *, norm_radius=None, design_wavelength_um: float = 0.55):
+    """The rotationally symmetric ``r^2`` coefficient ``q`` (rad/mm^2) of a smooth DOE's phase near the axis
+    (``phi0 ~ q r^2``: the paraxial power hook, :func:`rwwarp.paraxial.diffractive_power`), from its learnable
+    ``values`` as :func:`profile_phase` takes them (numbers, or a 1-D torch tensor: differentiable):
+    ``a_1 / R^2`` (even_poly), ``c_2 / R^2`` (poly), ``-pi / (lambda0 f)`` (fresnel), the ``rho^2`` terms of
+    the rotationally symmetric Zernike polynomials over ``R^2`` (zernike), 0 (cubic)."""
+    _check_kind(kind, norm_radius)
+    n = len(values)
+    if kind == "fresnel":
+        return fresnel_quadratic(values[0], design_wavelength_um)
+    if kind == "cubic" or (kind == "even_poly" and n < 1) or (kind == "poly" and n < 2):
+        return 0.0
+    R = float(norm_radius)
+    if kind in ("even_poly", "poly"):
+        return values[0 if kind == "even_poly" else 1] / R ** 2
+    total = 0.0                                         # the r^2 terms of the rotationally symmetric Z_j
+    for j in range(1, n + 1):
+        nn, m = noll_to_nm(j)
+        q = _zernike_radial_q(nn, m)
+        if m == 0 and len(q) > 1:
+            total += values[j - 1] * math.sqrt(nn + 1) * q[1]
+    return total / R ** 2
+
 # ====================================================================== phase operations
 def wrap_phase(phi, xp=None):
     """Phase ``phi`` (rad) wrapped to [0, 2 pi): ``phi - 2 pi floor(phi / 2 pi)``, a value that rounds to
@@ -247,3 +339,18 @@ def relief_phase(phi, levels=None, xp=None):
     """The relief phase of an unwrapped DOE phase ``phi`` (rad): :func:`wrap_phase` when ``levels`` is
     None, else :func:`quantize` to ``levels`` levels. The forward of ``torch_bridge.QuantizeSTE``."""
     return wrap_phase(phi, xp) if levels is None else quantize(phi, levels, xp)
+
+def wrap_zone(phi, xp=None):
+    """The wrap zone ``k = floor(phi / 2 pi)`` of an unwrapped DOE phase ``phi`` (rad), a float array of ``xp``
+    (default that of ``phi``): inside zone ``k`` the relief phase is ``phi - 2 pi k``. The one zone index of the
+    focal method's exact chief-ray zone (:func:`rwwarp.wave.focal.doe_order_series`, torch_bridge's packed
+    tiles) and of the plan's chief-ray zone (:func:`rwwarp.wave.doe_sampling.chief_zone`)."""
+    xp = array_namespace(phi) if xp is None else xp
+    return xp.floor(phi / TWO_PI)
+
+def zone_relief_phase(phi, zone, scale):
+    """The relief phase of zone ``zone`` (:func:`wrap_zone`) at another wavelength: ``scale (phi - 2 pi zone)``
+    (rad), ``scale`` the wavelength remap ``s(lambda)`` of :func:`rwwarp.doe.wavelength_scale` (a number or an
+    array broadcasting with ``phi``, e.g. one per source). Equal to ``scale * wrap_phase(phi)`` where
+    ``wrap_zone(phi) == zone`` (without the wrap's discontinuity: smooth in ``phi``)."""
+    return scale * (phi - TWO_PI * zone)

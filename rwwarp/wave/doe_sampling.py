@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from ..doe import is_flat_profile as _is_flat_profile
+from .doe_phase import wrap_zone
 
 __all__ = ["chief_zone", "doe_max_frequency", "doe_phase_grid", "lens_dir", "one_branch"]
 
@@ -35,16 +36,17 @@ def one_branch(phi, tol=1e-9):
 
 
 def chief_zone(phi, xy, chief_xy):
-    """The wrap zone ``k = floor(phi0 / 2 pi)`` the chief ray crosses, from the pilot rays' phases ``phi``
-    (rad) at their wave-plane points ``xy`` (N, 2): the zone of the pilot point nearest the chief ray whose
-    phase is not on a zone boundary (an even polynomial is 0, a boundary, exactly on the axis)."""
+    """The wrap zone ``k = floor(phi0 / 2 pi)`` (:func:`~rwwarp.wave.doe_phase.wrap_zone`) the chief ray
+    crosses, from the pilot rays' phases ``phi`` (rad) at their wave-plane points ``xy`` (N, 2): the zone of the
+    pilot point nearest the chief ray whose phase is not on a zone boundary (an even polynomial is 0, a
+    boundary, exactly on the axis)."""
     phi = np.asarray(phi, dtype=np.float64)
     order = np.argsort(np.sum((np.asarray(xy) - np.asarray(chief_xy)[None, :]) ** 2, axis=1))
     for j in order:
         q = phi[j] / (2 * math.pi)
         if np.isfinite(q) and abs(q - round(q)) > 1e-9:
-            return int(math.floor(q))
-    return int(math.floor(float(phi[order[0]]) / (2 * math.pi)))
+            return int(wrap_zone(phi[j], np))
+    return int(wrap_zone(phi[order[0]], np))
 
 
 def doe_phase_grid(lens, plane, origin, pitch, n):

@@ -60,7 +60,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["doe_order_coefficients", "doe_order_series", "FocalPropagator", "transfer_curvature", "pixel_power", "pixel_power_adjoint",
+from .doe_phase import wrap_zone, zone_relief_phase
+
+__all__ = ["doe_order_coefficients", "doe_order_series", "exact_zone", "order_series_horner", "FocalPropagator",
+           "transfer_curvature", "pixel_power", "pixel_power_adjoint",
            "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",
            "sensor_taper"]
 
@@ -103,33 +106,52 @@ def doe_order_series(phi0, orders, central_zones=None, xp=np):
         p = phi0[k]
         ints = all(float(m) == int(m) for m, _ in ol)
         if ints and len(ol) > 1:
-            # integer orders: one exp, then Horner in e = exp(1j phi0) from the highest order down (|e| = 1, so
-            # the recursion is stable), times e^m_min (conj(e) = 1 / e for negative orders)
             coef = {int(m): complex(c) for m, c in ol}
             lo, hi = min(coef), max(coef)
-            e = _cis(p, xp)
-            acc = xp.zeros_like(e) + coef[hi]
-            for m in range(hi - 1, lo - 1, -1):
-                acc = acc * e + coef.get(m, 0j)
-            if lo != 0:
-                f = e if lo > 0 else xp.conj(e)
-                for _ in range(abs(lo)):
-                    acc = acc * f
+            acc = order_series_horner(_cis(p, xp), [coef.get(m, 0j) for m in range(lo, hi + 1)], lo, xp)
         else:
             acc = xp.zeros_like(p) * 0j
             for m, c in ol:
                 acc = acc + (complex(c) * xp.exp(1j * float(m) * p) if m != 0 else complex(c) * xp.ones_like(p))
         z = None if central_zones is None else central_zones[k]
         if z is not None:
-            kc, alpha = z
-            inside = xp.floor(p / (2.0 * np.pi)) == kc
-            if xp is np:   # the zone is a small part of the window: its exact term only there
-                acc = acc.copy()
-                acc[inside] = _cis(float(alpha) * (p[inside] - 2.0 * np.pi * kc), np)
-            else:
-                acc = xp.where(inside, xp.exp(1j * float(alpha) * (p - 2.0 * np.pi * kc)), acc)
+            acc = exact_zone(acc, p, z[0], float(z[1]), xp)
         out.append(acc)
     return xp.stack(out)
+
+
+def order_series_horner(e, coefs, lo: int, xp=np):
+    """``sum_j coefs[j] e^(lo + j)`` for ``e = exp(1j phi0)`` (an array of ``xp``): the integer orders
+    ``lo .. lo + len(coefs) - 1`` of a DOE's transmission. ``coefs``: complex numbers, or arrays broadcasting
+    with ``e`` (one per member of a batch, as torch_bridge's packed tiles). Horner's rule from the highest
+    order down (``|e| = 1``, so the recursion is stable), times ``e^lo`` (``conj(e) = 1 / e`` for negative
+    ``lo``). The one evaluation of the series: :func:`doe_order_series` and torch_bridge.packed call it."""
+    acc = xp.zeros_like(e) + coefs[-1]
+    for j in range(len(coefs) - 2, -1, -1):
+        acc = acc * e + coefs[j]
+    if lo != 0:
+        f = e if lo > 0 else xp.conj(e)
+        for _ in range(abs(lo)):
+            acc = acc * f
+    return acc
+
+
+def exact_zone(acc, phi0, zone, alpha, xp=np):
+    """``acc`` (a DOE transmission, complex array of ``xp``) with its value replaced where the unwrapped phase
+    ``phi0`` (rad) lies in wrap zone ``zone`` (:func:`~rwwarp.wave.doe_phase.wrap_zone`) by the exact
+    continuous-relief transmission ``exp(1j alpha (phi0 - 2 pi zone))``
+    (:func:`~rwwarp.wave.doe_phase.zone_relief_phase`; ``alpha`` the wavelength remap). ``zone``, ``alpha``:
+    numbers, or arrays broadcasting with ``phi0`` (one per member of a batch). The zone mask is a plan
+    decision and carries no gradient; the exact term is differentiable in ``phi0`` (torch). numpy: computed
+    only inside the zone (a small part of the window), on a copy."""
+    inside = wrap_zone(phi0, xp) == zone
+    if xp is np:
+        acc = acc.copy()
+        if np.ndim(zone) or np.ndim(alpha):      # one per member: their values at the zone's samples
+            zone, alpha = (np.broadcast_to(a, inside.shape)[inside] for a in (zone, alpha))
+        acc[inside] = _cis(zone_relief_phase(phi0[inside], zone, alpha), np)
+        return acc
+    return xp.where(inside, xp.exp(1j * zone_relief_phase(phi0, zone, alpha)), acc)
 
 
 def _cis(p, xp):

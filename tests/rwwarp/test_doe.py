@@ -244,11 +244,11 @@ def test_modulation_phase_at_design_wavelength_is_wrapped_phase():
 
 
 @pytest.mark.parametrize("kind,coeffs", [("even_poly", [-20.0, 8.0, 3.0, -1.0]), ("poly", [1.5, -20.0, 4.0, 2.0])])
-def test_radial_gradient_is_one_function_for_numpy_and_torch(kind, coeffs):
-    """rwwarp.doe.radial_gradient_over_r (the one home of the DOE phase gradient: Profile.gradient and the
-    ray model's grating) against central differences of Profile.phase (h = 1e-6 mm; measured 1.7e-10
-    relative, tolerance 1e-9), and in torch equal to numpy (measured bit for bit)."""
-    from rwwarp.doe import profile_from_dict, radial_gradient_over_r
+def test_radial_gradient_against_finite_differences(kind, coeffs):
+    """rwwarp.doe.radial_gradient_over_r (through Profile.gradient) against central differences of
+    Profile.phase (h = 1e-6 mm; measured 1.7e-10 relative, tolerance 1e-9). Torch: see
+    test_profile_functions_in_torch_follow_the_hand_formulas."""
+    from rwwarp.doe import profile_from_dict
     prof = profile_from_dict({"kind": kind, "norm_radius": 1.3, "coefficients": coeffs})
     rng = np.random.default_rng(7)
     x, y = rng.uniform(-1.2, 1.2, 50), rng.uniform(-1.2, 1.2, 50)
@@ -258,11 +258,6 @@ def test_radial_gradient_is_one_function_for_numpy_and_torch(kind, coeffs):
     fy = (prof.phase(x, y + h) - prof.phase(x, y - h)) / (2 * h)
     scale = np.max(np.hypot(fx, fy))
     assert np.max(np.abs(gx - fx)) < 1e-9 * scale and np.max(np.abs(gy - fy)) < 1e-9 * scale
-    torch = pytest.importorskip("torch")
-    g_t = radial_gradient_over_r(kind, torch.tensor(coeffs, dtype=torch.float64), 1.3,
-                                 torch.from_numpy(x * x + y * y), torch).numpy()
-    g_n = radial_gradient_over_r(kind, coeffs, 1.3, x * x + y * y)
-    np.testing.assert_allclose(g_t, g_n, rtol=1e-15, atol=0)
 
 
 # ---------------------------------------------------------------- one implementation for every namespace
@@ -287,19 +282,26 @@ def test_rwwarp_doe_imports_no_torch_and_infers_the_namespace():
 
 
 @pytest.mark.parametrize("levels", [None, 2, 8])
-def test_wrap_and_quantize_in_torch_follow_the_equations(levels):
-    """rwwarp.doe.relief_phase on torch tensors (float64 and float32) against the definition written with
-    other arithmetic: ``np.mod`` for the wrap (circular distance: np.mod rounds a tiny negative phase up to
-    2 pi), the level index ``round(w L / 2 pi) mod L`` for the quantisation."""
-    torch = pytest.importorskip("torch")
+@pytest.mark.parametrize("ns", ["numpy", "torch"])
+def test_wrap_and_quantize_follow_the_equations(ns, levels):
+    """rwwarp.doe.relief_phase (the forward of torch_bridge.QuantizeSTE too) on numpy arrays (float64) and
+    torch tensors (float64 and float32) against the definition written with other arithmetic: ``np.mod`` for
+    the wrap (circular distance: np.mod rounds a tiny negative phase up to 2 pi), the level index
+    ``round(w L / 2 pi) mod L`` for the staircase, the value ``k 2 pi / L``."""
     phi = np.concatenate([RNG.uniform(-50.0, 50.0, 5000), [0.0, -1e-20, 2 * math.pi, -2 * math.pi]])
     w_ref = np.mod(phi, 2 * math.pi)
     # tolerances (wrap, level): float64 measured 0 and 0, allowed a few ulp of 50 rad and of 2 pi;
     # float32 measured 4.6e-6 (the input's rounding, ulp(50) = 3.8e-6) and 3.3e-7 (ulp(2 pi) = 4.8e-7)
-    for dt, tol, tol_q in ((torch.float64, 1e-13, 4e-15), (torch.float32, 2e-5, 1e-6)):
-        got = doe.relief_phase(torch.tensor(phi, dtype=dt), levels)
+    if ns == "numpy":
+        cases = [(lambda a: a, np.float64, 1e-13, 4e-15)]
+    else:
+        torch = pytest.importorskip("torch")
+        cases = [(lambda a, dt=dt: torch.tensor(a, dtype=dt), dt, tol, tol_q)
+                 for dt, tol, tol_q in ((torch.float64, 1e-13, 4e-15), (torch.float32, 2e-5, 1e-6))]
+    for make, dt, tol, tol_q in cases:
+        got = doe.relief_phase(make(phi), levels)
         assert got.dtype == dt
-        g = got.double().numpy()
+        g = np.asarray(got, dtype=np.float64) if ns == "numpy" else got.double().numpy()
         assert g.min() >= 0.0 and g.max() < 2 * math.pi
         if levels is None:
             d = np.abs(g - w_ref)
@@ -310,9 +312,7 @@ def test_wrap_and_quantize_in_torch_follow_the_equations(levels):
             near_tie = np.abs(np.mod(w_ref / step, 1.0) - 0.5) < 1e-4   # float32 may round either way there
             np.testing.assert_allclose(g[~near_tie], (k * step)[~near_tie], rtol=0, atol=tol_q)
             assert set(np.round(g / step).astype(int)) <= set(range(levels))
-    # numpy and torch evaluate the same arithmetic: equal bit for bit on the CPU (measured)
-    ref = doe.relief_phase(phi, levels)
-    np.testing.assert_array_equal(doe.relief_phase(torch.from_numpy(phi), levels, torch).numpy(), ref)
+        assert g[-4] == 0.0 and g[-3] == 0.0 and g[-2] == 0.0 and g[-1] == 0.0   # 0, -0, +-2 pi: level 0
 
 
 def _hand_profiles(R):
@@ -336,43 +336,101 @@ def _hand_profiles(R):
     }
 
 
-def _torch_phase(kind, v, R, x, y, torch):
-    if kind in ("even_poly", "poly"):
-        return doe.radial_phase(kind, v, R, x * x + y * y, torch)
-    if kind == "fresnel":
-        return doe.fresnel_phase(v[0], 0.55, x * x + y * y, torch)
+def _profile_dict(kind, R, vals):
     if kind == "cubic":
-        return doe.cubic_phase(v[0], R, x, y, torch)
-    return doe.zernike_phase(v, R, x, y, torch)
+        return {"kind": "cubic", "norm_radius": R, "alpha": vals[0]}
+    if kind == "fresnel":
+        return {"kind": "fresnel", "focal_length": vals[0]}
+    return {"kind": kind, "norm_radius": R, "coefficients": vals}
+
+
+def _hand_gradient(hand, x, y, vals, h=1e-6):
+    """Central differences (h mm) of a hand formula: (dphi/dx, dphi/dy)."""
+    return ((hand(x + h, y, vals) - hand(x - h, y, vals)) / (2 * h),
+            (hand(x, y + h, vals) - hand(x, y - h, vals)) / (2 * h))
+
+
+@pytest.mark.parametrize("kind", ["even_poly", "poly", "fresnel", "cubic", "zernike"])
+def test_profile_classes_follow_the_hand_formulas(kind):
+    """The numpy profile classes (Profile.phase / gradient: rwwarp.doe.profile_phase / profile_gradient) against
+    the hand formulas: the phase (measured <= 6.4e-16 of the largest |phi|) and the gradient against central
+    differences of the hand formula (h = 1e-6 mm; measured <= 3.0e-10 of the largest)."""
+    R = 1.3
+    vals, hand = _hand_profiles(R)[kind]
+    x, y = X[np.hypot(X, Y) > 1e-2], Y[np.hypot(X, Y) > 1e-2]   # away from the cone's apex (poly rho^1)
+    prof = doe.profile_from_dict(_profile_dict(kind, R, vals))
+    assert prof.values == vals
+    ref = hand(x, y, vals)
+    scale = np.max(np.abs(ref))
+    np.testing.assert_allclose(prof.phase(x, y, 0.55), ref, rtol=0, atol=4e-15 * scale)
+    fx, fy = _hand_gradient(hand, x, y, vals)
+    gs = max(np.max(np.abs(fx)), np.max(np.abs(fy)))
+    gx, gy = prof.gradient(x, y, 0.55)
+    np.testing.assert_allclose(gx, fx, rtol=0, atol=2e-9 * gs)
+    np.testing.assert_allclose(gy, fy, rtol=0, atol=2e-9 * gs)
+
+
+@pytest.mark.parametrize("kind", ["even_poly", "poly", "fresnel", "cubic", "zernike", "pixel_map"])
+def test_profile_with_values_writes_the_learnable_values_back(kind, tmp_path):
+    """profile_with_values (HybridLens.to_lens) is the inverse of Profile.values: the profile rebuilt from the
+    dictionary with new values has those values and the hand formula's phase with them (a pixel map written
+    inline, its file dropped); the input dictionary is not changed."""
+    R = 1.3
+    if kind == "pixel_map":
+        np.save(tmp_path / "m.npy", np.zeros((3, 4)))
+        d = {"kind": "pixel_map", "pitch": 0.5, "file": str(tmp_path / "m.npy")}
+        new = RNG.uniform(0.0, 6.0, (3, 4))
+    else:
+        vals, hand = _hand_profiles(R)[kind]
+        d = _profile_dict(kind, R, [0.0] * len(vals) if kind not in ("fresnel",) else [10.0])
+        new = vals
+    before = dict(d)
+    out = doe.profile_with_values(d, new)
+    assert d == before
+    prof = doe.profile_from_dict(out)
+    np.testing.assert_array_equal(np.asarray(prof.values), np.asarray(new))
+    if kind == "pixel_map":
+        assert "file" not in out and prof.phase(np.array([-0.9]), np.array([0.6]))[0] == new[0, 0]
+    else:
+        np.testing.assert_allclose(prof.phase(X, Y, 0.55), hand(X, Y, new), rtol=0,
+                                   atol=4e-15 * np.max(np.abs(hand(X, Y, new))))
+    with pytest.raises(LensFileError, match="kind"):
+        doe.profile_with_values({"kind": "spline"}, [1.0])
+
+
+def test_profile_dispatch_names_the_kinds():
+    """profile_phase / profile_gradient / profile_quadratic refuse a kind that is not smooth, naming the smooth
+    kinds, and a missing or bad norm_radius, naming it (Fresnel needs none)."""
+    for f in (doe.profile_phase, doe.profile_gradient, doe.profile_quadratic):
+        args = (X, Y) if f is not doe.profile_quadratic else ()
+        with pytest.raises(ValueError, match="even_poly.*pixel_map_phase"):
+            f("pixel_map", [1.0], *args, norm_radius=1.0)
+        for R in (None, 0.0, -1.0):
+            with pytest.raises(ValueError, match="'zernike' DOE profile needs norm_radius"):
+                f("zernike", [1.0], *args, norm_radius=R)
+        f("fresnel", [50.0], *args)
 
 
 @pytest.mark.parametrize("kind", ["even_poly", "poly", "fresnel", "cubic", "zernike"])
 def test_profile_functions_in_torch_follow_the_hand_formulas(kind):
-    """The shared profile evaluations on torch tensors (as the design loop calls them, with learnable
-    values) against hand formulas in numpy: the phase; its gradient in the values (autograd) against
-    central differences of the hand formula; its gradient in x, y (autograd) against central differences
-    of the hand formula and against Profile.gradient (numpy)."""
+    """rwwarp.doe.profile_phase / profile_gradient on torch tensors, as the design loop calls them (learnable
+    values; HybridLens.doe_phase, RaySpot's grating), against hand formulas in numpy: the phase; its gradient
+    in the values (autograd) and in x, y (autograd) against central differences of the hand formula;
+    profile_gradient against central differences of the hand formula, and its own derivatives in the values
+    and in x (autograd: the ray model differentiates its grating) against central differences of it."""
     torch = pytest.importorskip("torch")
     R = 1.3
     vals, hand = _hand_profiles(R)[kind]
     x, y = X[np.hypot(X, Y) > 1e-2], Y[np.hypot(X, Y) > 1e-2]   # away from the cone's apex (poly rho^1)
+    kw = {"norm_radius": None if kind == "fresnel" else R, "design_wavelength_um": 0.55}
     v = torch.tensor(vals, dtype=torch.float64, requires_grad=True)
     xt = torch.tensor(x, requires_grad=True)
     yt = torch.tensor(y, requires_grad=True)
-    phi = _torch_phase(kind, v, R, xt, yt, torch)
+    phi = doe.profile_phase(kind, v, xt, yt, **kw)               # the namespace from the tensors
     ref = hand(x, y, vals)
     scale = np.max(np.abs(ref))
-    # measured <= 6.3e-16 relative to the largest |phi| (zernike)
-    np.testing.assert_allclose(phi.detach().numpy(), ref, rtol=0, atol=1e-14 * scale)
-    # the numpy profile class: the same function (bit for bit, except poly: torch's CPU sqrt differs from
-    # numpy's by an ulp, measured 1.3e-16 of the largest |phi|)
-    d = {"kind": kind, "norm_radius": R, "coefficients": vals}
-    if kind == "cubic":
-        d = {"kind": "cubic", "norm_radius": R, "alpha": vals[0]}
-    elif kind == "fresnel":
-        d = {"kind": "fresnel", "focal_length": vals[0]}
-    prof = doe.profile_from_dict(d)
-    np.testing.assert_allclose(prof.phase(x, y, 0.55), phi.detach().numpy(), rtol=0, atol=4e-16 * scale)
+    # measured <= 6.4e-16 relative to the largest |phi| (zernike)
+    np.testing.assert_allclose(phi.detach().numpy(), ref, rtol=0, atol=4e-15 * scale)
     wgt = np.cos(np.arange(x.size))                               # a generic weighted sum of the samples
     (phi * torch.from_numpy(wgt)).sum().backward()
     # d/d values: central differences (h = 1e-6 relative) of the hand formula; measured <= 7.3e-9 relative
@@ -385,15 +443,38 @@ def test_profile_functions_in_torch_follow_the_hand_formulas(kind):
         fd = np.sum(wgt * (hand(x, y, vp) - hand(x, y, vm))) / (2 * h)
         assert v.grad[i].item() == pytest.approx(fd, rel=1e-7, abs=1e-7 * scale)
     # d/dx, d/dy: central differences (h = 1e-6 mm) of the hand formula; measured <= 2.6e-10 of the largest
-    h = 1e-6
-    fx = (hand(x + h, y, vals) - hand(x - h, y, vals)) / (2 * h)
-    fy = (hand(x, y + h, vals) - hand(x, y - h, vals)) / (2 * h)
+    fx, fy = _hand_gradient(hand, x, y, vals)
     gs = max(np.max(np.abs(fx)), np.max(np.abs(fy)))
     np.testing.assert_allclose(xt.grad.numpy(), wgt * fx, rtol=0, atol=2e-9 * gs)
     np.testing.assert_allclose(yt.grad.numpy(), wgt * fy, rtol=0, atol=2e-9 * gs)
-    gx, gy = prof.gradient(x, y, 0.55)                            # measured <= 3.7e-16 of the largest
-    np.testing.assert_allclose(wgt * gx, xt.grad.numpy(), rtol=0, atol=4e-15 * gs)
-    np.testing.assert_allclose(wgt * gy, yt.grad.numpy(), rtol=0, atol=4e-15 * gs)
+    # profile_gradient: the same hand differences (measured <= 3.0e-10 of the largest)
+    v.grad = xt.grad = None
+    gx, gy = doe.profile_gradient(kind, v, xt, yt, **kw)
+    np.testing.assert_allclose(gx.detach().numpy(), fx, rtol=0, atol=2e-9 * gs)
+    np.testing.assert_allclose(gy.detach().numpy(), fy, rtol=0, atol=2e-9 * gs)
+    # its derivatives: autograd against central differences of profile_gradient itself (values: h = 1e-5
+    # relative, x: h = 1e-6 mm; measured <= 3.5e-12 and 1.5e-11 of sum |weight * gradient|; tolerance 1e-10)
+    w2 = np.sin(np.arange(x.size))
+
+    def loss(vv, xx):
+        gxy = doe.profile_gradient(kind, torch.tensor(vv, dtype=torch.float64), torch.from_numpy(xx),
+                                   torch.from_numpy(y), **kw)
+        return float(np.sum(gxy[0].numpy() * wgt + gxy[1].numpy() * w2))
+    ((gx * torch.from_numpy(wgt)).sum() + (gy * torch.from_numpy(w2)).sum()).backward()
+    lscale = np.sum(np.abs(wgt * fx) + np.abs(w2 * fy))
+    for i in range(len(vals)):
+        h = 1e-5 * max(1.0, abs(vals[i]))
+        vp, vm = list(vals), list(vals)
+        vp[i] += h
+        vm[i] -= h
+        assert v.grad[i].item() == pytest.approx((loss(vp, x) - loss(vm, x)) / (2 * h), abs=1e-10 * lscale)
+    h = 1e-6
+    for j in range(0, x.size, 37):                                  # a few samples: one loss each
+        xp_, xm_ = x.copy(), x.copy()
+        xp_[j] += h
+        xm_[j] -= h
+        assert xt.grad[j].item() == pytest.approx((loss(vals, xp_) - loss(vals, xm_)) / (2 * h),
+                                                  abs=1e-10 * lscale)
 
 
 def test_pixel_map_functions_in_torch_sample_and_scatter_by_hand():
