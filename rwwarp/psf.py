@@ -222,7 +222,7 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
                   nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
-                  model_tolerance=tolerance)
+                  model_tolerance=tolerance, allow_pixel=True)
     return rwm.plan
 
 
@@ -305,7 +305,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                 center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                 nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                 deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values,
-                model_tolerance=tolerance)
+                model_tolerance=tolerance, allow_pixel=True)
 
     def store(chunk, res):
         for k, (i, j) in enumerate(chunk):

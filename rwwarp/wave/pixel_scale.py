@@ -32,16 +32,18 @@ reach from ``T``, ``Q = 1.25 rays_per_sample``: the quadrature's aliases, at ``1
 fall beyond the grid), the sensor grid ``(w / h)^2`` and its twice-oversampled FFT. EF50 f/1.8 at 15.3 um,
 64 px: docs/propagation.md "Large pixels".
 
-Error against the full computation (the same rays' field splatted on the wave plane and propagated exactly):
+Error against the full computation (the same rays' field splatted on the wave plane and propagated exactly),
+max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
 
-* the Debye step (stationary phase) leaves out the diffraction of the wave-plane field's hard edge over the
-  distance to the focus: the same mechanism, and the same scaling, as the ray-wave model's own error
-  (:mod:`rwwarp.wave.model_error`), ``E_fine = C S / N_F (1 + (S / S0)^2)`` of the fine PSF's peak, with
-  ``N_F = n r_w^2 / (lambda R)`` the Fresnel number of the beam seen from its focus and ``S`` the rim slope;
-  a pixel of width ``p`` averages that edge ring structure (period ~ the Airy radius) and divides the peak
-  by the pixel's share of it: :func:`pixel_error_estimate` (calibration there);
-* the quadrature: the pupil rim as whole cells (first order in the ray pitch) and the aliases (beyond the
-  grid by construction); the NUFFT (1e-6) and the box weights (exact for the band-limited samples) are below.
+* the Debye step (stationary phase of the wave-plane field's Fourier transform) leaves out the boundary wave
+  of that field's hard edge. Without aberrations it cancels at the patch (the ideal lens gives the pixel-
+  integrated Airy pattern to 5.7e-5); with a rim slope ``S`` (rad) it does not, ~``S / sqrt(N_F)`` (``N_F``: the
+  beam's Fresnel number seen from the patch), and a pixel of ``p`` averages it as ``(r_A / p)^1.6``. Measured
+  1e-4 to 2.5e-2 (A489, Cooke triplet, DeepLens camera lenses; docs/propagation.md "Large pixels"); it does not
+  fall with more rays;
+* the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
+  ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
+  samples) are below that.
 
 Not handled: DOEs (their diffraction orders); ``method="auto"`` does not pick it for a lens with a DOE that
 is not blank. Units: mm, um for wavelengths at the public interface, cycles/mm. Arrays: numpy or CuPy
@@ -56,18 +58,23 @@ import numpy as np
 #: oversampling and half-width (grid cells) of the Gaussian gridding of :func:`nufft_type1` (~1e-6 relative)
 NUFFT_OVERSAMPLE = 2
 NUFFT_SPREAD = 6
-#: largest side (samples) of one NUFFT tile of the sensor grid (its oversampled FFT: 2x that, ~100 MB complex128)
-TILE = 1024
+#: largest side (samples) of one NUFFT tile of the sensor grid (its oversampled FFT: 2x that, ~230 MB with its
+#: accumulators at 1536)
+TILE = 1536
 #: the sensor grid samples |U|^2 (band 2 B) this much above its Nyquist rate
 GRID_MARGIN = 1.1
 #: rays: the quadrature's aliases fall this far beyond the grid (times rays_per_sample)
 RAY_SAFETY = 1.25
+#: ... and at least this many across the pupil: the aliases of a bright core lie 1 / delta_f from it, and an
+#: aberrated core's skirt reaches the grid from there (EF35 f/2 at 2 deg, 5 px, against the full computation:
+#: 2.0e-3 / 1.3e-3 / 8.6e-4 / 9.5e-4 at 149 / 297 / 593 / 1185 rays across: the Debye floor from ~600)
+RAY_MIN = 600
 #: auto picks the method only for pixels at least this many Airy radii wide
 MIN_PIXEL_AIRY = 4.0
 #: default tolerance (of the PSF's peak) for method="auto"
 DEFAULT_TOLERANCE = 1e-3
 #: calibration of :func:`pixel_error_estimate` (docstring there)
-PIXEL_ERROR_C = 0.036
+PIXEL_ERROR_C = 0.06
 PIXEL_ERROR_POWER = 1.6
 PIXEL_ERROR_FLOOR = 2e-4
 
@@ -110,20 +117,18 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVER
     step = 2.0 * math.pi / M
     lx0 = xp.floor(tx / step).astype(xp.int64)
     ly0 = xp.floor(ty / step).astype(xp.int64)
-    ks = np.arange(-spread + 1, spread + 1)
-    gx = [xp.exp(-((lx0 + k) * step - tx) ** 2 / (4.0 * tau)) for k in ks]
-    gy = [xp.exp(-((ly0 + k) * step - ty) ** 2 / (4.0 * tau)) for k in ks]
-    ix = [(lx0 + k) % M for k in ks]
+    ks = xp.asarray(np.arange(-spread + 1, spread + 1))[:, None]
+    gx = xp.exp(-((lx0[None] + ks) * step - tx[None]) ** 2 / (4.0 * tau))      # (2 spread, J)
+    gy = xp.exp(-((ly0[None] + ks) * step - ty[None]) ** 2 / (4.0 * tau))
+    ix = (lx0[None] + ks) % M
     grid_re = xp.zeros(M * M)
     grid_im = xp.zeros(M * M)
-    for a, ky in enumerate(ks):
-        row = ((ly0 + ky) % M) * M
-        idx = xp.concatenate([row + ix[b] for b in range(len(ks))])
-        w = xp.concatenate([gx[b] * gy[a] for b in range(len(ks))])
-        cw = xp.concatenate([c] * len(ks)) * w
-        grid_re += xp.bincount(idx, weights=cw.real, minlength=M * M)
-        grid_im += xp.bincount(idx, weights=cw.imag, minlength=M * M)
-        del idx, w, cw
+    for a in range(2 * spread):
+        idx = (((ly0 + int(ks[a, 0])) % M) * M)[None] + ix
+        idx = idx.ravel()
+        grid_re += xp.bincount(idx, weights=(gx * (c.real * gy[a])[None]).ravel(), minlength=M * M)
+        grid_im += xp.bincount(idx, weights=(gx * (c.imag * gy[a])[None]).ravel(), minlength=M * M)
+        del idx
     grid = (grid_re + 1j * grid_im).reshape(M, M)
     del grid_re, grid_im
     spec = xp.fft.ifft2(grid) * (M * M)     # sum_l F_l exp(+2 pi i m l / M)
@@ -135,29 +140,32 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVER
     return spec * dec[:, None] * dec[None, :]
 
 
+def _grid_diff(a, valid, axis, xp):
+    """Differences of ``a`` (S, N, N, k) along the pupil grid's ``axis`` (2: columns, 1: rows), per cell: central
+    where both neighbours are valid; at the pupil's edge (one neighbour) second order one-sided from two
+    neighbours where both are valid (``(-3 a0 + 4 a1 - a2) / 2``), first order from one; 0 where none is."""
+    n = a.shape[axis]
+    shape = [1, 1, 1]
+    shape[axis] = n
+    idx = xp.arange(n).reshape(shape)
+    av = xp.where(valid[..., None], a, 0.0)
+
+    def nb(s):       # the neighbour s cells on, and whether it is a valid ray of the grid
+        inside = (idx + s >= 0) & (idx + s < n)
+        return xp.roll(av, -s, axis=axis), xp.roll(valid, -s, axis=axis) & inside
+    (f1, v1), (f2, v2), (b1, w1), (b2, w2) = nb(1), nb(2), nb(-1), nb(-2)
+    one_f = xp.where((v1 & v2)[..., None], 0.5 * (-3.0 * av + 4.0 * f1 - f2), f1 - av)
+    one_b = xp.where((w1 & w2)[..., None], 0.5 * (3.0 * av - 4.0 * b1 + b2), av - b1)
+    return xp.where((v1 & w1)[..., None], 0.5 * (f1 - b1),
+                    xp.where(v1[..., None], one_f, xp.where(w1[..., None], one_b, 0.0)))
+
+
 def tube_areas(f, valid, xp=np):
-    """Area (in (cycles/mm)^2) of each ray tube in frequency: ``|det d f / d(i, j)|`` on the pupil grid
-    (``f`` (S, N, N, 2) transverse frequencies, ``valid`` (S, N, N) bool), central differences where both
-    neighbours are valid, one-sided where one is, 0 for a ray with no valid neighbour along an axis."""
-    out = []
-    for axis in (2, 1):      # d/di (columns, u) then d/dj (rows, v)
-        fv = xp.where(valid[..., None], f, 0.0)
-        fwd = xp.roll(fv, -1, axis=axis)
-        bwd = xp.roll(fv, 1, axis=axis)
-        vf = xp.roll(valid, -1, axis=axis)
-        vb = xp.roll(valid, 1, axis=axis)
-        n = f.shape[axis]
-        edge_hi = xp.arange(n) == n - 1
-        edge_lo = xp.arange(n) == 0
-        shape = [1, 1, 1]
-        shape[axis] = n
-        vf = vf & ~edge_hi.reshape(shape)
-        vb = vb & ~edge_lo.reshape(shape)
-        both = (vf & vb)[..., None]
-        d = xp.where(both, 0.5 * (fwd - bwd), xp.where(vf[..., None], fwd - fv,
-                                                        xp.where(vb[..., None], fv - bwd, 0.0)))
-        out.append(d)
-    du, dv = out
+    """Area (in (cycles/mm)^2) of each ray tube in frequency: ``|det d f / d(i, j)|`` on the pupil grid (``f``
+    (S, N, N, 2) transverse frequencies, ``valid`` (S, N, N) bool; differences as :func:`_grid_diff`: second
+    order at the rim too, where an aberration's mapping bends fastest), 0 for a ray with no valid neighbour
+    along an axis."""
+    du, dv = (_grid_diff(f, valid, ax, xp) for ax in (2, 1))
     return xp.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]) * valid
 
 
@@ -179,9 +187,11 @@ def pixel_error_estimate(fresnel_number_focus: float, rim_slope_rad: float, pixe
       back), ``PIXEL_ERROR_FLOOR``.
 
     Calibration against the full computation box-summed from a fine pixel (docs/propagation.md "Large
-    pixels"): A489 at 0 / 5 / 10 deg, 16 um (5.8-6 r_A), and 10 deg at 8 / 32 um (3 / 12 r_A); Cooke triplet
-    at 0 / 14 deg, 10 um (2.9 r_A): ``C`` = 0.033-0.036 on every aberrated case (S 11-36 rad, N_F 77-780);
-    held out, EF50 f/1.8 on axis at 15.3 um (S 96 rad, N_F 5430, 11.9 r_A): estimate 1.1e-3, measured 4.1e-4."""
+    pixels"; 600 rays across or more): ``C`` = (measured - floor) sqrt(N_F) (p / r_A)^1.6 / S is 0.026-0.035 on
+    the A489 (0 / 5 / 10 deg at 16 um, 10 deg at 8 / 32 um: 3-12 r_A, N_F 77-84, S 11-37 rad), 0.012 on the Cooke
+    triplet at 14 deg (2.8 r_A, N_F 774), 0.010-0.053 on DeepLens camera lenses at 15.3 um (EF50 f/1.8 and EF35
+    f/2 on axis, EF35 at 2 deg, RF50 f/1.8 at 2 deg: 11-12 r_A, N_F 3400-5400, S 25-96 rad). The form does not
+    capture that 5x spread; ``C = 0.06`` is its upper envelope, so the estimate is 1.1-6x the measured error."""
     nf, s = float(fresnel_number_focus), abs(float(rim_slope_rad))
     debye = PIXEL_ERROR_C * s / math.sqrt(max(nf, 1e-30)) * min(1.0, airy_mm / pixel_mm) ** PIXEL_ERROR_POWER
     return {"estimate": float(debye + PIXEL_ERROR_FLOOR), "debye": float(debye), "floor": PIXEL_ERROR_FLOOR,
@@ -199,7 +209,7 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     * band ``B = max |f - f_c|`` (cycles/mm), one component; the Airy radius ``0.61 / B``;
     * sensor grid: the patch plus a pixel and ``32 h`` a side, pitch ``h = 1 / (2 GRID_MARGIN 2 B)``, ``n``
       samples (even) per axis, FFT ``NUFFT_OVERSAMPLE n``;
-    * rays ``N_r = RAY_SAFETY rays_per_sample 2 B (w / 2 + s)`` across the pupil (``w``: the grid's width, ``s``:
+    * rays ``N_r = rays_per_sample max(RAY_MIN, RAY_SAFETY 2 B (w / 2 + s))`` across the pupil (``w``: the grid's width, ``s``:
       the pilot landings' largest distance from the patch centre, plus ``12 / B``): the quadrature's aliases
       lie ``1 / delta_f`` from the light, beyond the grid.
 
@@ -218,7 +228,7 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     half = 0.5 * size * pixel_mm + pixel_mm + 32.0 * h
     n = 2 * int(math.ceil(half / h))
     reach += 12.0 / band
-    ray_grid = int(math.ceil(RAY_SAFETY * rays_per_sample * 2.0 * band * (0.5 * n * h + reach))) + 1
+    ray_grid = int(math.ceil(rays_per_sample * max(RAY_MIN, RAY_SAFETY * 2.0 * band * (0.5 * n * h + reach)))) + 1
     airy = 0.61 / band
     reasons = (
         f"pixel method (pixels of {pixel_mm / airy:.3g} Airy radii): the sensor field as the rays' plane waves (Debye), "
@@ -226,8 +236,8 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
         f"sensor grid: patch {size * pixel_mm * 1e3:.4g} um + {pixel_mm * 1e3:.4g} um + 32 samples a side at "
         f"{h * 1e3:.4g} um (band B = {band:.4g} cycles/mm, |U|^2 to 2 B x {GRID_MARGIN:g}) -> {n}^2, FFT "
         f"{NUFFT_OVERSAMPLE * n}^2",
-        f"rays: {RAY_SAFETY:g} x {rays_per_sample} x 2 B x (half grid {0.5 * n * h * 1e3:.4g} um + spot reach "
-        f"{reach * 1e3:.4g} um) -> {ray_grid} across the pupil (the quadrature's aliases beyond the grid)",
+        f"rays: {rays_per_sample} x max({RAY_MIN}, {RAY_SAFETY:g} x 2 B x (half grid {0.5 * n * h * 1e3:.4g} um + spot "
+        f"reach {reach * 1e3:.4g} um)) -> {ray_grid} across the pupil (the quadrature's aliases beyond the grid)",
     )
     nt, t = tiles(n)
     reasons = reasons + (f"sensor grid in {t} x {t} tiles of {nt}^2 (their oversampled FFT {NUFFT_OVERSAMPLE * nt}^2: "
@@ -248,13 +258,13 @@ def pixel_cost(plan, n_sources: int, size: int) -> dict:
     :func:`rwwarp.wave.plan.estimate_cost`) and their host arrays (~40 doubles: frequencies, tube areas,
     phases, spreading weights), the oversampled grid (two real accumulators, the complex grid and its FFT)
     and the sensor grid's ``U``, ``U_w`` and ``I`` (one source at a time); flops: ~4000 a ray (trace), 12 a
-    ray and spread cell, the FFT, the box products."""
+    ray, spread cell and NUFFT (two: ``U`` and ``U_w``) in every tile, the FFTs, the box products."""
     rays = int(n_sources) * plan.ray_grid ** 2
     n, M = plan.n_sensor, plan.n_sensor_fft
     nt, t = tiles(n)
     spread = (2 * NUFFT_SPREAD) ** 2
     mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + (2 * 8 + 2 * 16) * M * M + 8 * n * n + 3 * 16 * nt * nt
-    flops = rays * 4000.0 + t * t * rays * (spread * 12.0 + 20.0) + n_sources * (
+    flops = rays * 4000.0 + t * t * 2 * rays * (spread * 12.0 + 20.0) + n_sources * (
         t * t * 2 * 5.0 * M * M * math.log2(M * M) + 4.0 * (n * n * size + n * size * size))
     return {"memory_bytes": int(mem), "flops": float(flops)}
 
@@ -397,6 +407,10 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
             why.append(f"not fewer flops than {pl.method} ({pl.estimate['flops'] / 1e9:.3g} GFLOP)")
         if why:
             rw.plan = pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})")
+            if ratio >= MIN_PIXEL_AIRY:   # named where the chosen plan is over the memory budget
+                rw.pixel_alternative = (f"; or the pixel method ({cost['memory_bytes'] / 2 ** 30:.3g} GiB, error "
+                                        f"~{err['estimate']:.2g} of the peak): method='pixel' or tolerance >= "
+                                        f"{err['estimate']:.2g}")
             return False
         ppl = ppl.with_reasons(f"method auto: pixel ({ratio:.3g} Airy radii, error ~{err['estimate']:.2g} <= tolerance "
                                f"{tol:.2g}, {cost['flops'] / 1e9:.3g} GFLOP against {pl.method} "

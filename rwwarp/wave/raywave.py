@@ -131,6 +131,11 @@ class RayWave:
     band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
     GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
     the CPU); ``"device"`` (default): ``"small-asm"`` on CUDA, ``"flops"`` on the CPU.
+    
+    ``allow_pixel``: ``method="auto"`` may choose ``"pixel"`` (pixels many Airy radii wide,
+    :mod:`rwwarp.wave.pixel_scale`; no wave-plane field, so nothing to differentiate): on for the public calls
+    (:func:`rwwarp.psf`, :func:`rwwarp.psf_map`, :func:`rwwarp.plan_psf`), off by default so that a differentiable
+    caller's "auto" never gets it. ``method="pixel"`` asks for it either way.
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
@@ -138,7 +143,7 @@ class RayWave:
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
                  own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux",
-                 model_tolerance: float | None = None, auto_rule: str = "device"):
+                 model_tolerance: float | None = None, auto_rule: str = "device", allow_pixel: bool = False):
         if auto_rule not in ("device", "small-asm", "flops"):
             raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
         if method not in ("asm", "focal", "auto", "two-step", "pixel"):
@@ -316,11 +321,12 @@ class RayWave:
         if requested == "pixel" and not (isinstance(plan, str) and plan == "auto"):
             raise ValueError("method='pixel' plans its own sampling: use plan='auto'")
         self.method = pl.method
-        may_pixel = requested in ("pixel", "auto") and isinstance(plan, str) and plan == "auto"
-        budget_check = lambda pl: check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
+        may_pixel = (requested == "pixel" or (requested == "auto" and allow_pixel)) and isinstance(plan, str) \
+            and plan == "auto"
+        budget_check = lambda pl, alt="": check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
                          f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
                          "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
-                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else ""))
+                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else "") + alt)
         if memory_budget_bytes is not None and not may_pixel:
             budget_check(pl)
         self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
@@ -354,7 +360,7 @@ class RayWave:
                               float(np.min(hi - lo)), rays_per_sample, model_tolerance, memory_budget_bytes):
                 requested = "pixel"     # no wave step: the pixel method forms no wave-plane field
             elif memory_budget_bytes is not None:
-                budget_check(pl)
+                budget_check(pl, getattr(self, "pixel_alternative", ""))
         from .wave_step import plan_wave_step
         plan_wave_step(self, model_tolerance, requested, memory_budget_bytes)   # model error; wave step if needed
 

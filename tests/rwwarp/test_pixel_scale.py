@@ -153,3 +153,12 @@ def test_cli_explain_names_the_pixel_method(capsys):
     main(["psf", "a489_doe", "--dry-run", "--size", "15", "--pixel", "16"])
     out = capsys.readouterr().out
     assert "plan auto (pixel)" in out and "method auto: pixel" in out and "GFLOP" in out
+
+
+def test_a_plan_over_the_budget_names_the_pixel_method():
+    from rwwarp.wave.plan import MemoryBudgetError
+    lens = load_lens("a489_doe")
+    # 10 deg: the pixel method's estimate (1.4e-2) is over the default tolerance, the focal plan (~0.1 GiB) over
+    # the budget: the refusal says what the pixel method would cost and which tolerance lets auto take it
+    with pytest.raises(MemoryBudgetError, match="method='pixel' or tolerance >="):
+        rw.psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, memory_budget_gb=0.01)
