@@ -159,8 +159,7 @@ def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> di
     8 per complex multiply-add. Checked against measured peak RSS in ``perf/bench_focal.py``.
     """
     if plan.method == "pixel":
-        from .pixel_scale import pixel_cost
-        return pixel_cost(plan, n_sources, size)
+        raise ValueError("a method='pixel' plan's cost is rwwarp.wave.pixel_scale.pixel_cost")
     S = int(n_sources)
     m = int(size) * int(gauss_nodes)
     rays = S * plan.ray_grid ** 2
