@@ -302,6 +302,9 @@ def pixel_psf(rw):
     opl = as64(rays.opl).reshape(S, N, N)
     valid = _device_array(rays.valid, xp).reshape(S, N, N).astype(bool)
     q = as64(rays.weight).reshape(S, N, N)
+    # rays that did not arrive carry whatever their last state was: zeros, so no NaN enters the arithmetic
+    pos, opl, q = xp.where(valid[..., None], pos, 0.0), xp.where(valid, opl, 0.0), xp.where(valid, q, 0.0)
+    d = xp.where(valid[..., None], d, xp.asarray([0.0, 0.0, 1.0]))
     del rays
     h, n = pl.sensor_pitch_mm, pl.n_sensor
     out = np.zeros((S, rw.size, rw.size))

@@ -770,6 +770,8 @@ class RayWave:
         if self.plan.method == "pixel":
             from .pixel_scale import pixel_psf
             data = pixel_psf(self) / self.entering[:, None, None]
+            if not np.all(np.isfinite(data)):
+                raise FloatingPointError("non-finite PSF values (please report this lens and field)")
             return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
                     "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
         u_field = self.field_array()
