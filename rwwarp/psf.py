@@ -162,7 +162,8 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         plane waves on a grid at the field's Nyquist rate over the patch, each pixel's box integrated exactly;
         its cost follows the patch and the aberrations, not the beam's diffraction-scale sampling. "auto" picks
         it for a lens without a DOE where the pixel spans >= 4 Airy radii, its error estimate against the full
-        computation is within ``tolerance`` (default 1e-3 of the peak) and it plans fewer flops.
+        computation is within ``tolerance`` (default 1e-3 of the peak; a given ``tolerance`` below the model's own
+        error keeps the wave step instead) and it plans fewer flops.
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.

@@ -361,7 +361,8 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     planning) chose, and switch ``rw`` to it where it should run. ``explicit``: ``method="pixel"`` was asked for
     (it runs; a DOE that is not blank is refused with ``ValueError``). Otherwise (``"auto"``) it runs where the
     lens has no DOE (or a blank one), the pixel spans at least ``MIN_PIXEL_AIRY`` Airy radii, its error
-    estimate (:func:`pixel_error_estimate`) is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``), it fits
+    estimate (:func:`pixel_error_estimate`) is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``), the model's own
+    error (:mod:`rwwarp.wave.model_error`) does not ask for the wave step (a given ``tolerance`` below it), it fits
     ``memory_budget_bytes`` and it plans fewer flops than ``rw.plan``. Pilot arrays as ``RayWave`` holds them
     (mm, (S, N, 3)); ``carrier`` (S, 2) the chief rays' frequencies (cycles/mm), ``centers`` (S, 2) their patch
     centres (mm); ``beam_width_mm``: the footprint's smaller extent on the wave plane. When chosen, sets
@@ -388,8 +389,10 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     nf = float(np.min(n_after * r_w ** 2 / (lam_mm * abs(rw.z_sensor - rw.z_plane))))
     saved = rw.centers
     rw.centers = centers           # the rim slope against the sphere to the chief ray's patch
-    slope = max(e.rim_slope_rad for e in estimate_for_raywave(rw))
+    model = estimate_for_raywave(rw)
     rw.centers = saved
+    slope = max(e.rim_slope_rad for e in model)
+    model_err = max(e.estimate for e in model)
     err = pixel_error_estimate(nf, slope, rw.pixel, info["airy_mm"])
     cost = pixel_cost(ppl, rw.nsrc, rw.size)
     tol = DEFAULT_TOLERANCE if tolerance is None else float(tolerance)
@@ -404,6 +407,9 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
             why.append(f"pixel {ratio:.3g} < {MIN_PIXEL_AIRY:g} Airy radii")
         if err["estimate"] > tol:
             why.append(f"error estimate {err['estimate']:.2g} > tolerance {tol:.2g}")
+        if tolerance is not None and model_err > tolerance:
+            # the model's own error over the tolerance asks for the wave step, which needs a wave-plane field
+            why.append(f"the wave step is wanted (model error ~{model_err:.2g} > tolerance {tol:.2g})")
         if memory_budget_bytes is not None and cost["memory_bytes"] > memory_budget_bytes:
             why.append("over the memory budget")
         if pl.estimate and cost["flops"] >= pl.estimate["flops"]:

@@ -173,3 +173,12 @@ def test_psf_map_computes_each_pixel_source_as_psf_does():
         # each source alone in its batch, on its own plan: the same arithmetic
         assert np.array_equal(m.data[i, 0], one.data)
     assert np.all(np.isfinite(m.data)) and np.all(m.data >= -1e-12)
+
+
+def test_auto_keeps_the_wave_step_where_the_model_error_asks_for_it():
+    lens = load_lens("a489_doe")
+    # 10 deg: the model's own error ~0.25 of the peak, the pixel method's ~0.014: with tolerance 0.02 the wave
+    # step is wanted (it needs a wave-plane field), so auto does not take the pixel method
+    pl = rw.plan_psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, tolerance=0.02)
+    assert pl.method != "pixel" and pl.wave_step_mm
+    assert any("the wave step is wanted" in r for r in pl.reasons)
