@@ -131,7 +131,7 @@ class RayWave:
     band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
     GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
     the CPU); ``"device"`` (default): ``"small-asm"`` on CUDA, ``"flops"`` on the CPU.
-    
+
     ``allow_pixel``: ``method="auto"`` may choose ``"pixel"`` (pixels many Airy radii wide,
     :mod:`rwwarp.wave.pixel_scale`; no wave-plane field, so nothing to differentiate): on for the public calls
     (:func:`rwwarp.psf`, :func:`rwwarp.psf_map`, :func:`rwwarp.plan_psf`), off by default so that a differentiable
