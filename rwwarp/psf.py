@@ -26,7 +26,7 @@ from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived 
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
-METHODS = ("auto", "focal", "asm", "two-step")
+METHODS = ("auto", "focal", "asm", "two-step", "pixel")
 
 
 def _check_tolerance(tolerance):
@@ -158,6 +158,12 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         With ``tolerance`` "auto" adds the wave step (:mod:`rwwarp.wave.wave_step`) where the model's own error
         estimate exceeds it. ``"two-step"``: the method "auto" picks, always with the wave step: the
         geometric field's edge is diffracted as a wave from the stop's image to the DOE plane before the DOE.
+        ``"pixel"``: pixels many Airy radii wide (:mod:`rwwarp.wave.pixel_scale`): the sensor field as the rays'
+        plane waves on a grid at the field's Nyquist rate over the patch, each pixel's box integrated exactly;
+        its cost follows the patch and the aberrations, not the beam's diffraction-scale sampling. "auto" picks
+        it for a lens without a DOE where the pixel spans >= 4 Airy radii, its error estimate against the full
+        computation is within ``tolerance`` (default 1e-3 of the peak; a given ``tolerance`` below the model's own
+        error keeps the wave step instead) and it plans fewer flops.
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.
@@ -217,7 +223,7 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
                   nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
-                  model_tolerance=tolerance)
+                  model_tolerance=tolerance, allow_pixel=True)
     return rwm.plan
 
 
@@ -300,7 +306,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                 center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                 nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                 deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values,
-                model_tolerance=tolerance)
+                model_tolerance=tolerance, allow_pixel=True)
 
     def store(chunk, res):
         for k, (i, j) in enumerate(chunk):
@@ -322,7 +328,10 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel,
                                                object_distance_mm, opts):
             for chunk_idx in pack_sources(members, size, batch, budget):
-                res = PackedRayWave([members[k] for k in chunk_idx]).run(focal_precision)
+                if members[chunk_idx[0]].plan.method == "pixel":   # no wave-plane field to pack: alone
+                    res = members[chunk_idx[0]].run(focal_precision)
+                else:
+                    res = PackedRayWave([members[k] for k in chunk_idx]).run(focal_precision)
                 store([sys_pairs[k] for k in chunk_idx], res)
                 for k in chunk_idx:
                     members[k] = None   # done: its operators and tracer can go
@@ -392,7 +401,7 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
     for k in order:
         if cur:
             m0 = members[cur[0]]
-            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim)
+            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and m0.plan.method != "pixel"
             fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
             if same and fits and (batch is None or len(cur) < batch):
                 cur.append(k)

@@ -17,11 +17,12 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                  object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
                  gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
                  focal_patch_tol=1e-5, deterministic: bool = False, pixel_values: str = "flux",
-                 model_tolerance: float | None = None) -> list:
+                 model_tolerance: float | None = None, allow_pixel: bool = False) -> list:
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them (the pilot rays are
-    independent, so each source's are what a pilot of it alone gives). Arguments as :class:`RayWave`;
+    independent, so each source's are what a pilot of it alone gives). Arguments as :class:`RayWave`
+    (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take);
     :class:`PackedRayWave` computes them together."""
     probe = RayWave(lens, fields, wls, size, pixel, device, "auto", dtype, amplitude, object_distance_mm,
                     rays_per_sample, center_mm, use_reference, gauss_nodes=3, nyquist_safety=nyquist_safety,
@@ -33,7 +34,7 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                                object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
                                nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
                                deterministic, own_pupils=True, pilot=pk, pixel_values=pixel_values,
-                               model_tolerance=model_tolerance))
+                               model_tolerance=model_tolerance, allow_pixel=allow_pixel))
     return members
 
 
@@ -64,6 +65,9 @@ class PackedRayWave(RayWave):
     def __init__(self, members, requires_grad: bool = False):
         if not members or any(m.nsrc != 1 for m in members):
             raise ValueError("PackedRayWave takes single-source RayWave members")
+        if any(m.plan.method == "pixel" for m in members):
+            raise ValueError("PackedRayWave takes no method='pixel' member (it forms no wave-plane field): run it on "
+                             "its own (RayWave.run)")
         m0 = members[0]
         for m in members:
             if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,

@@ -65,8 +65,8 @@ class Plan:
 
     def __post_init__(self):
         object.__setattr__(self, "reasons", tuple(self.reasons))
-        if self.method not in ("asm", "focal"):
-            raise ValueError(f"Plan.method must be 'asm' or 'focal', got {self.method!r}")
+        if self.method not in ("asm", "focal", "pixel"):
+            raise ValueError(f"Plan.method must be 'asm', 'focal' or 'pixel', got {self.method!r}")
 
     def with_reasons(self, *more) -> "Plan":
         """A copy with ``more`` reasons appended."""
@@ -79,7 +79,11 @@ class Plan:
 
     def explain(self) -> str:
         """Human-readable summary of the plan, its cost estimate and why."""
-        head = (f"plan {self.kind} ({self.method}): pitch {self.pitch_mm * 1e3:.4g} um, grid {self.n_grid}^2, "
+        if self.method == "pixel":
+            head = (f"plan {self.kind} (pixel): sensor grid {self.n_sensor}^2 at {self.sensor_pitch_mm * 1e3:.4g} um, "
+                    f"FFT {self.n_sensor_fft}^2, pupil rays {self.ray_grid} across")
+        else:
+            head = (f"plan {self.kind} ({self.method}): pitch {self.pitch_mm * 1e3:.4g} um, grid {self.n_grid}^2, "
                 + (f"FFT {self.n_pad}^2, " if self.method == "asm" else
                    f"sensor grid {self.n_sensor}^2 at {self.sensor_pitch_mm * 1e3:.4g} um, FFT {self.n_sensor_fft}^2, ")
                 + f"pupil rays {self.ray_grid} across")
@@ -154,6 +158,8 @@ def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> di
     buffers) and its output DFT. Flops: ~400 a ray and surface-free step, 5 N log2 N per FFT,
     8 per complex multiply-add. Checked against measured peak RSS in ``perf/bench_focal.py``.
     """
+    if plan.method == "pixel":
+        raise ValueError("a method='pixel' plan's cost is rwwarp.wave.pixel_scale.pixel_cost")
     S = int(n_sources)
     m = int(size) * int(gauss_nodes)
     rays = S * plan.ray_grid ** 2

@@ -131,6 +131,11 @@ class RayWave:
     band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
     GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
     the CPU); ``"device"`` (default): ``"small-asm"`` on CUDA, ``"flops"`` on the CPU.
+
+    ``allow_pixel``: ``method="auto"`` may choose ``"pixel"`` (pixels many Airy radii wide,
+    :mod:`rwwarp.wave.pixel_scale`; no wave-plane field, so nothing to differentiate): on for the public calls
+    (:func:`rwwarp.psf`, :func:`rwwarp.psf_map`, :func:`rwwarp.plan_psf`), off by default so that a differentiable
+    caller's "auto" never gets it. ``method="pixel"`` asks for it either way.
     """
 
     def __init__(self, lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64",
@@ -138,11 +143,11 @@ class RayWave:
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
                  own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux",
-                 model_tolerance: float | None = None, auto_rule: str = "device"):
+                 model_tolerance: float | None = None, auto_rule: str = "device", allow_pixel: bool = False):
         if auto_rule not in ("device", "small-asm", "flops"):
             raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
-        if method not in ("asm", "focal", "auto", "two-step"):
-            raise ValueError(f"method must be 'auto', 'focal', 'asm' or 'two-step', got {method!r}")
+        if method not in ("asm", "focal", "auto", "two-step", "pixel"):
+            raise ValueError(f"method must be 'auto', 'focal', 'asm', 'two-step' or 'pixel', got {method!r}")
         requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
         from .propagate_setup import check_pixel_values
         self.pixel_values = check_pixel_values(pixel_values, "RayWave")
@@ -226,6 +231,7 @@ class RayWave:
         else:
             centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
         out_width = size * pixel
+        chief_carrier, chief_centers = carrier.copy(), centers.copy()
         if method == "auto":
             # both plans from the same pilot; the cheaper one (planned work) runs
             method = "asm" if (isinstance(plan, str) and plan == "paper") else "compare"
@@ -312,12 +318,17 @@ class RayWave:
             else:
                 pl = pl.with_reasons(why + " -> asm")
                 self.focal = None
+        if requested == "pixel" and not (isinstance(plan, str) and plan == "auto"):
+            raise ValueError("method='pixel' plans its own sampling: use plan='auto'")
         self.method = pl.method
-        if memory_budget_bytes is not None:
-            check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
+        may_pixel = (requested == "pixel" or (requested == "auto" and allow_pixel)) and isinstance(plan, str) \
+            and plan == "auto"
+        budget_check = lambda pl, alt="": check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
                          f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
                          "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
-                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else ""))
+                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else "") + alt)
+        if memory_budget_bytes is not None and not may_pixel:
+            budget_check(pl)
         self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
         self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
         self.nsrc, self.n_after, self.lam_mm = nsrc, n_after, lam_mm
@@ -342,6 +353,14 @@ class RayWave:
         # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
         # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
         self.rim = amplitude == "energy" and src["shape"] == "circle" and pl.method == "focal"
+        if may_pixel:
+            # pixels many Airy radii wide: rwwarp.wave.pixel_scale (the pixel box applied analytically)
+            from .pixel_scale import consider_pixel
+            if consider_pixel(self, requested == "pixel", pos_s, dir_s, ok, chief_carrier, chief_centers,
+                              float(np.min(hi - lo)), rays_per_sample, model_tolerance, memory_budget_bytes):
+                requested = "pixel"     # no wave step: the pixel method forms no wave-plane field
+            elif memory_budget_bytes is not None:
+                budget_check(pl, getattr(self, "pixel_alternative", ""))
         from .wave_step import plan_wave_step
         plan_wave_step(self, model_tolerance, requested, memory_budget_bytes)   # model error; wave step if needed
 
@@ -748,6 +767,13 @@ class RayWave:
         method's matrix products, "auto" = single on the CPU, double on CUDA; see :func:`rwwarp.psf`)."""
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
+        if self.plan.method == "pixel":
+            from .pixel_scale import pixel_psf
+            data = pixel_psf(self) / self.entering[:, None, None]
+            if not np.all(np.isfinite(data)):
+                raise FloatingPointError("non-finite PSF values (please report this lens and field)")
+            return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
+                    "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
         u_field = self.field_array()
         if self.plan.method == "focal":
             data = self.focal_intensity(u_field, focal_precision) / self.entering[:, None, None]

@@ -1,0 +1,437 @@
+"""Pixels much larger than the diffraction scale (issue 27 item 5): ``method="pixel"``.
+
+When a sensor pixel spans many Airy radii (``r_A = 0.61 / B``, ``B`` the beam's largest transverse frequency
+offset from the chief ray's, cycles/mm), the focal and ASM methods still sample the wave at the diffraction
+scale over the whole beam and then integrate each pixel with Gauss-Legendre nodes; their cost grows with the
+patch's and the beam's space-bandwidth products together (EF50 f/1.8, 15.3 um pixels, 64 px: 0.4-16 TFLOP).
+This method's cost follows the patch at the field's own Nyquist rate and the rays the aberrations need.
+
+The method (scalar, the same ray picture as the other methods, propagation in the image medium):
+
+1. **The sensor field as a sum of plane waves, one per ray tube (Debye).** Behind the last surface every
+   ray is a local plane wave of transverse frequency ``f = n d_xy / lambda`` (cycles/mm). The sensor-plane
+   field near the patch centre ``T`` is ``U(x) = int B(f) exp(2 pi i f.(x - T)) d^2 f``; by stationary phase
+   of the wave-plane field's Fourier transform, ``B`` at a ray's frequency has the ray's phase continued to
+   the foot of ``T`` on it, ``Phi = k0 (L + n d.(T - p))`` (``L``: optical path to the ray's point ``p`` on
+   the last surface, ``k0 = 2 pi / lambda``), and ``|B|^2 c(f) dA_f = q`` (the ray's power ``q`` over its
+   tube's area ``dA_f`` in frequency; ``c = d_z``, the obliquity, for ``pixel_values="flux"``; 1 for
+   ``"intensity"``). The integral is the quadrature over the pupil grid's tubes,
+   ``U(x) = sum_j sqrt(q_j dA_f,j / c_j) exp(i Phi_j) exp(2 pi i f_j.(x - T))`` (``U_w``: each term times
+   ``c_j``), a type-1 non-uniform DFT from the rays' frequencies to a uniform sensor grid of pitch
+   ``h <= 1 / (4.4 B)`` (``|U|^2`` has band ``2 B``: the grid samples it above Nyquist). It is evaluated by
+   Gaussian gridding on a twice-oversampled grid, one FFT and a deconvolution (:func:`nufft_type1`, relative
+   error ~1e-6).
+2. **The pixel box applied analytically.** ``I = |U|^2`` (or ``Re(conj(U) U_w)``) is band-limited below the
+   grid's Nyquist, so it is its samples' sinc interpolant, and the integral of that over a pixel is exact:
+   per axis ``W[p, m] = (h / pi) [Si(pi (b_p - x_m) / h) - Si(pi (a_p - x_m) / h)]``, and the pixel values
+   are ``W_y I W_x^T`` (:func:`box_weights`). No Gauss-Legendre nodes: their count is capped at 16 per axis,
+   too few where a pixel spans ~50 intensity periods (15.3 um at f/1.8).
+
+Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
+grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
+fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
+EF50 f/1.8 at 15.3 um, 64 px: 0.56-0.59 GiB, 14.5-15.8 GFLOP, 10 s on 2 CPU cores (docs/propagation.md
+"Large pixels"). The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
+cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
+
+Error against the full computation (the same rays' field splatted on the wave plane and propagated exactly),
+max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
+
+* the Debye step (stationary phase of the wave-plane field's Fourier transform) leaves out the boundary wave
+  of that field's hard edge. Without aberrations it cancels at the patch (the ideal lens gives the pixel-
+  integrated Airy pattern to 5.7e-5); with a rim slope ``S`` (rad) it does not, ~``S / sqrt(N_F)`` (``N_F``: the
+  beam's Fresnel number seen from the patch), and a pixel of ``p`` averages it as ``(r_A / p)^1.6``. Measured
+  1e-4 to 2.5e-2 (A489, Cooke triplet, DeepLens camera lenses; docs/propagation.md "Large pixels"); it does not
+  fall with more rays;
+* the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
+  ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
+  samples) are below that.
+
+Not handled: DOEs (their diffraction orders); ``method="auto"`` does not pick it for a lens with a DOE that
+is not blank. Units: mm, um for wavelengths at the public interface, cycles/mm. Arrays: numpy or CuPy
+(``xp``), as the tracer's device.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: oversampling and half-width (grid cells) of the Gaussian gridding of :func:`nufft_type1` (~1e-6 relative)
+NUFFT_OVERSAMPLE = 2
+NUFFT_SPREAD = 6
+#: largest side (samples) of one NUFFT tile of the sensor grid (its oversampled FFT: 2x that, ~230 MB with its
+#: accumulators at 1536)
+TILE = 1536
+#: the sensor grid samples |U|^2 (band 2 B) this much above its Nyquist rate
+GRID_MARGIN = 1.1
+#: rays: the quadrature's aliases fall this far beyond the grid (times rays_per_sample)
+RAY_SAFETY = 1.25
+#: ... and at least this many across the pupil: the aliases of a bright core lie 1 / delta_f from it, and an
+#: aberrated core's skirt reaches the grid from there (EF35 f/2 at 2 deg, 5 px, against the full computation:
+#: 2.0e-3 / 1.3e-3 / 8.6e-4 / 9.5e-4 at 149 / 297 / 593 / 1185 rays across: the Debye floor from ~600)
+RAY_MIN = 600
+#: auto picks the method only for pixels at least this many Airy radii wide
+MIN_PIXEL_AIRY = 4.0
+#: default tolerance (of the PSF's peak) for method="auto"
+DEFAULT_TOLERANCE = 1e-3
+#: calibration of :func:`pixel_error_estimate` (docstring there)
+PIXEL_ERROR_C = 0.06
+PIXEL_ERROR_POWER = 1.6
+PIXEL_ERROR_FLOOR = 2e-4
+
+
+# ---------------------------------------------------------------------------------------------- numerics
+def box_weights(edges_lo_mm, pixel_mm, x0_mm, h_mm, n):
+    """Per-axis weights (npix, n) of the exact pixel integral of a band-limited function from its samples.
+
+    A function whose spectrum lies inside ``|nu| < 1 / (2 h)`` is ``sum_m I_m sinc((x - x_m) / h)`` with
+    ``x_m = x0 + m h`` (mm); its integral over ``[a_p, a_p + pixel]`` (``edges_lo_mm``: the pixels' lower
+    edges) is ``sum_m W[p, m] I_m`` with ``W[p, m] = (h / pi) (Si(pi (b_p - x_m) / h) - Si(pi (a_p - x_m) /
+    h))`` (mm). Samples beyond the grid count as zero. Returns a float64 numpy array."""
+    from scipy.special import sici
+    a = np.asarray(edges_lo_mm, float)[:, None]
+    xm = float(x0_mm) + float(h_mm) * np.arange(int(n))[None, :]
+    s_hi = sici(np.pi * (a + float(pixel_mm) - xm) / h_mm)[0]
+    s_lo = sici(np.pi * (a - xm) / h_mm)[0]
+    return (h_mm / np.pi) * (s_hi - s_lo)
+
+
+def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVERSAMPLE,
+                spread: int = NUFFT_SPREAD):
+    """``U[my, mx] = sum_j c_j exp(i (mx theta_x,j + my theta_y,j))`` for ``mx, my = -n/2 .. n/2 - 1`` (array
+    index ``m + n/2``), the points' phases ``theta`` (rad) in ``[-pi, pi)`` (1-D arrays, ``c`` complex).
+
+    Gaussian gridding (the Greengard-Lee form of the type-1 non-uniform DFT): each point is spread with
+    ``g(t) = exp(-t^2 / (4 tau))`` onto the ``M = oversample n`` periodic grid ``t_l = 2 pi l / M`` over
+    ``2 spread`` cells per axis, ``tau = pi spread / (n^2 R (R - 1/2))`` (``R = oversample``); the grid's
+    inverse FFT is ``sum_j c_j ghat(m) exp(i m theta_j) / (2 pi) M``-scaled, and dividing by the Gaussian's
+    transform ``sqrt(4 pi tau) exp(-m^2 tau)`` gives ``U``. Relative error ~1e-6 with the defaults (the
+    spread Gaussian's tail at its cut, ``exp(-spread pi / 4)`` per axis at R = 2, and its aliases). Returns a
+    complex128 ``(n, n)`` array in ``xp``."""
+    n = int(n)
+    R = int(oversample)
+    M = R * n
+    tau = math.pi * spread / (n * n * R * (R - 0.5))
+    tx = xp.asarray(theta_x, dtype=xp.float64)
+    ty = xp.asarray(theta_y, dtype=xp.float64)
+    c = xp.asarray(c, dtype=xp.complex128)
+    step = 2.0 * math.pi / M
+    lx0 = xp.floor(tx / step).astype(xp.int64)
+    ly0 = xp.floor(ty / step).astype(xp.int64)
+    ks = xp.asarray(np.arange(-spread + 1, spread + 1))[:, None]
+    gx = xp.exp(-((lx0[None] + ks) * step - tx[None]) ** 2 / (4.0 * tau))      # (2 spread, J)
+    gy = xp.exp(-((ly0[None] + ks) * step - ty[None]) ** 2 / (4.0 * tau))
+    ix = (lx0[None] + ks) % M
+    grid_re = xp.zeros(M * M)
+    grid_im = xp.zeros(M * M)
+    for a in range(2 * spread):
+        idx = (((ly0 + int(ks[a, 0])) % M) * M)[None] + ix
+        idx = idx.ravel()
+        grid_re += xp.bincount(idx, weights=(gx * (c.real * gy[a])[None]).ravel(), minlength=M * M)
+        grid_im += xp.bincount(idx, weights=(gx * (c.imag * gy[a])[None]).ravel(), minlength=M * M)
+        del idx
+    grid = (grid_re + 1j * grid_im).reshape(M, M)
+    del grid_re, grid_im
+    spec = xp.fft.ifft2(grid) * (M * M)     # sum_l F_l exp(+2 pi i m l / M)
+    del grid
+    m = np.arange(-n // 2, n // 2)
+    sel = xp.asarray(m % M)
+    spec = spec[sel][:, sel]
+    dec = xp.asarray(np.exp(m.astype(float) ** 2 * tau) * (step / math.sqrt(4.0 * math.pi * tau)))
+    return spec * dec[:, None] * dec[None, :]
+
+
+def _grid_diff(a, valid, axis, xp):
+    """Differences of ``a`` (S, N, N, k) along the pupil grid's ``axis`` (2: columns, 1: rows), per cell: central
+    where both neighbours are valid; at the pupil's edge (one neighbour) second order one-sided from two
+    neighbours where both are valid (``(-3 a0 + 4 a1 - a2) / 2``), first order from one; 0 where none is."""
+    n = a.shape[axis]
+    shape = [1, 1, 1]
+    shape[axis] = n
+    idx = xp.arange(n).reshape(shape)
+    av = xp.where(valid[..., None], a, 0.0)
+
+    def nb(s):       # the neighbour s cells on, and whether it is a valid ray of the grid
+        inside = (idx + s >= 0) & (idx + s < n)
+        return xp.roll(av, -s, axis=axis), xp.roll(valid, -s, axis=axis) & inside
+    (f1, v1), (f2, v2), (b1, w1), (b2, w2) = nb(1), nb(2), nb(-1), nb(-2)
+    one_f = xp.where((v1 & v2)[..., None], 0.5 * (-3.0 * av + 4.0 * f1 - f2), f1 - av)
+    one_b = xp.where((w1 & w2)[..., None], 0.5 * (3.0 * av - 4.0 * b1 + b2), av - b1)
+    return xp.where((v1 & w1)[..., None], 0.5 * (f1 - b1),
+                    xp.where(v1[..., None], one_f, xp.where(w1[..., None], one_b, 0.0)))
+
+
+def tube_areas(f, valid, xp=np):
+    """Area (in (cycles/mm)^2) of each ray tube in frequency: ``|det d f / d(i, j)|`` on the pupil grid (``f``
+    (S, N, N, 2) transverse frequencies, ``valid`` (S, N, N) bool; differences as :func:`_grid_diff`: second
+    order at the rim too, where an aberration's mapping bends fastest), 0 for a ray with no valid neighbour
+    along an axis."""
+    du, dv = (_grid_diff(f, valid, ax, xp) for ax in (2, 1))
+    return xp.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]) * valid
+
+
+# ---------------------------------------------------------------------------------------------- error
+def pixel_error_estimate(fresnel_number_focus: float, rim_slope_rad: float, pixel_mm: float,
+                         airy_mm: float) -> dict:
+    """The estimated error of ``method="pixel"`` against the full computation, max |difference| over the
+    PSF's peak (dimensionless), and its parts.
+
+    * ``debye``: the stationary-phase (Debye) step leaves out the boundary wave of the wave-plane field's
+      hard edge. For an unaberrated beam and the sensor at the reference sphere's centre the two agree
+      (both are the pupil function's Fourier transform in the Fresnel approximation; the ideal lens's
+      pixel-integrated Airy pattern comes out 5.7e-5 off); an aberration of rim slope ``S`` (rad, against the
+      sphere to the patch, :func:`rwwarp.wave.model_error.estimate_for_raywave`) leaves the edge wave,
+      ``1 / sqrt(N_F)`` of the field at the edge (``N_F = n r_w^2 / (lambda R)``, the beam seen from the
+      patch), uncancelled. A pixel ``p`` wide averages its ring structure (the Airy radius ``r_A``'s scale):
+      ``PIXEL_ERROR_C S / sqrt(N_F) (r_A / p)^PIXEL_ERROR_POWER``;
+    * ``floor``: the quadrature (whole pupil cells at the rim; the tails beyond the aliases' distance folded
+      back), ``PIXEL_ERROR_FLOOR``.
+
+    Calibration against the full computation box-summed from a fine pixel (docs/propagation.md "Large
+    pixels"; 600 rays across or more): ``C`` = (measured - floor) sqrt(N_F) (p / r_A)^1.6 / S is 0.026-0.035 on
+    the A489 (0 / 5 / 10 deg at 16 um, 10 deg at 8 / 32 um: 3-12 r_A, N_F 77-84, S 11-37 rad), 0.012 on the Cooke
+    triplet at 14 deg (2.8 r_A, N_F 774), 0.010-0.053 on DeepLens camera lenses at 15.3 um (EF50 f/1.8 and EF35
+    f/2 on axis, EF35 at 2 deg, RF50 f/1.8 at 2 deg: 11-12 r_A, N_F 3400-5400, S 25-96 rad). The form does not
+    capture that 5x spread; ``C = 0.06`` is its upper envelope, so the estimate is 1.1-6x the measured error."""
+    nf, s = float(fresnel_number_focus), abs(float(rim_slope_rad))
+    debye = PIXEL_ERROR_C * s / math.sqrt(max(nf, 1e-30)) * min(1.0, airy_mm / pixel_mm) ** PIXEL_ERROR_POWER
+    return {"estimate": float(debye + PIXEL_ERROR_FLOOR), "debye": float(debye), "floor": PIXEL_ERROR_FLOOR,
+            "pixel_over_airy": float(pixel_mm / airy_mm)}
+
+
+# ---------------------------------------------------------------------------------------------- plan
+def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, rays_per_sample: float = 1.0):
+    """Sampling of ``method="pixel"`` for a batch, from its pilot trace.
+
+    ``pos_s`` (S, N, 3) the pilot rays' sensor landings (mm), ``ok`` (S, N) their validity, ``freq`` (S, N, 2)
+    their transverse frequencies ``n d_xy / lambda`` (cycles/mm), ``carrier`` (S, 2) the chief ray's,
+    ``centers`` (S, 2) the patch centres (mm), ``size`` px of ``pixel_mm``.
+
+    * band ``B = max |f - f_c|`` (cycles/mm), one component; the Airy radius ``0.61 / B``;
+    * sensor grid: the patch plus a pixel and ``32 h`` a side, pitch ``h = 1 / (2 GRID_MARGIN 2 B)``, ``n``
+      samples (even) per axis, FFT ``NUFFT_OVERSAMPLE n``;
+    * rays ``N_r = rays_per_sample max(RAY_MIN, RAY_SAFETY 2 B (w / 2 + s))`` across the pupil (``w``: the grid's width, ``s``:
+      the pilot landings' largest distance from the patch centre, plus ``12 / B``): the quadrature's aliases
+      lie ``1 / delta_f`` from the light, beyond the grid.
+
+    Returns ``(plan, info)``: a :class:`rwwarp.wave.plan.Plan` with ``method="pixel"`` (``pitch_mm`` = ``sensor_pitch_mm`` =
+    ``h``, ``n_grid`` = ``n_sensor`` = ``n``, ``n_pad`` = ``n_sensor_fft`` = the FFT length), and ``info`` with
+    ``band``, ``airy_mm``, ``reach_mm``."""
+    from .plan import Plan
+    S = len(centers)
+    band = 1e-9
+    reach = 0.0
+    for k in range(S):
+        sel = ok[k]
+        band = max(band, float(np.max(np.abs(freq[k][sel] - carrier[k]))))
+        reach = max(reach, float(np.max(np.abs(pos_s[k][sel, :2] - centers[k]))))
+    h = 1.0 / (4.0 * GRID_MARGIN * band)
+    half = 0.5 * size * pixel_mm + pixel_mm + 32.0 * h
+    n = 2 * int(math.ceil(half / h))
+    reach += 12.0 / band
+    ray_grid = int(math.ceil(rays_per_sample * max(RAY_MIN, RAY_SAFETY * 2.0 * band * (0.5 * n * h + reach)))) + 1
+    airy = 0.61 / band
+    reasons = (
+        f"pixel method (pixels of {pixel_mm / airy:.3g} Airy radii): the sensor field as the rays' plane waves (Debye), "
+        f"|U|^2 on a grid and each pixel's box integrated exactly (rwwarp.wave.pixel_scale)",
+        f"sensor grid: patch {size * pixel_mm * 1e3:.4g} um + {pixel_mm * 1e3:.4g} um + 32 samples a side at "
+        f"{h * 1e3:.4g} um (band B = {band:.4g} cycles/mm, |U|^2 to 2 B x {GRID_MARGIN:g}) -> {n}^2, FFT "
+        f"{NUFFT_OVERSAMPLE * n}^2",
+        f"rays: {rays_per_sample} x max({RAY_MIN}, {RAY_SAFETY:g} x 2 B x (half grid {0.5 * n * h * 1e3:.4g} um + spot "
+        f"reach {reach * 1e3:.4g} um)) -> {ray_grid} across the pupil (the quadrature's aliases beyond the grid)",
+    )
+    nt, t = tiles(n)
+    reasons = reasons + (f"sensor grid in {t} x {t} tiles of {nt}^2 (their oversampled FFT {NUFFT_OVERSAMPLE * nt}^2: "
+                         f"memory), each ray spread into every tile",)
+    plan = Plan(h, n, NUFFT_OVERSAMPLE * nt, ray_grid, "auto", False, reasons, "pixel", h, n, NUFFT_OVERSAMPLE * nt)
+    return plan, {"band": band, "airy_mm": airy, "reach_mm": reach}
+
+
+def tiles(n: int):
+    """``(n_t, t)``: the sensor grid of ``n`` samples a side in ``t x t`` tiles of ``n_t`` (even, ``<= TILE``)."""
+    t = max(1, int(math.ceil(n / TILE)))
+    nt = 2 * int(math.ceil(n / (2 * t)))
+    return nt, t
+
+
+def pixel_cost(plan, n_sources: int, size: int) -> dict:
+    """Peak memory (bytes) and work (flops) of ``method="pixel"``: the traced rays (~232 bytes each, as
+    :func:`rwwarp.wave.plan.estimate_cost`) and their host arrays (~40 doubles: frequencies, tube areas,
+    phases, spreading weights), the oversampled grid (two real accumulators, the complex grid and its FFT)
+    and the sensor grid's ``U``, ``U_w`` and ``I`` (one source at a time); flops: ~4000 a ray (trace), 12 a
+    ray, spread cell and NUFFT (two: ``U`` and ``U_w``) in every tile, the FFTs, the box products."""
+    rays = int(n_sources) * plan.ray_grid ** 2
+    n, M = plan.n_sensor, plan.n_sensor_fft
+    nt, t = tiles(n)
+    spread = (2 * NUFFT_SPREAD) ** 2
+    mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + (2 * 8 + 2 * 16) * M * M + 8 * n * n + 3 * 16 * nt * nt
+    flops = rays * 4000.0 + t * t * 2 * rays * (spread * 12.0 + 20.0) + n_sources * (
+        t * t * 2 * 5.0 * M * M * math.log2(M * M) + 4.0 * (n * n * size + n * size * size))
+    return {"memory_bytes": int(mem), "flops": float(flops)}
+
+
+# ---------------------------------------------------------------------------------------------- run
+def _device_array(a, xp):
+    """A Warp array as an ``xp`` array (a host copy for numpy, a zero-copy view for CuPy)."""
+    if xp is np:
+        return a.numpy()
+    return xp.asarray(a)
+
+
+def pixel_psf(rw):
+    """Power per pixel (S, size, size) of a :class:`rwwarp.wave.raywave.RayWave` whose plan has
+    ``method="pixel"`` (module docstring), not yet divided by the entering power; sets the batch's power
+    sums (``rw.entering``). Traces ``plan.ray_grid^2`` rays (whole pupil cells) to the last surface."""
+    import warp as wp
+    from .reduce import source_sums
+    tr, src, pl = rw.tracer, rw.src, rw.plan
+    xp = np
+    if tr.device.startswith("cuda"):
+        import cupy as xp
+    S, N = rw.nsrc, pl.ray_grid
+    with tr.without_gradients():
+        rays = tr._run(src, None, None, (2.0 / N) ** 2, upto=rw.plane + 1, grid_n=N)
+    K = rw.splatter.K
+    terms = wp.empty(S * N * N, dtype=K.vec4d, device=tr.device)
+    wp.launch(K.power_sums_kernel, dim=S * N * N, inputs=[rays.valid, rays.weight], outputs=[terms],
+              device=tr.device, record_tape=False)
+    rw._sums_dev, rw._sums = source_sums(terms, S, wp.float64, tr.device), None
+    rw.dropped = wp.zeros(S, dtype=wp.int32, device=tr.device)
+    as64 = lambda a: xp.asarray(_device_array(a, xp), dtype=xp.float64)    # no copy when already float64
+    pos = as64(rays.pos).reshape(S, N, N, 3)
+    d = as64(rays.dir).reshape(S, N, N, 3)
+    opl = as64(rays.opl).reshape(S, N, N)
+    valid = _device_array(rays.valid, xp).reshape(S, N, N).astype(bool)
+    q = as64(rays.weight).reshape(S, N, N)
+    # rays that did not arrive carry whatever their last state was: zeros, so no NaN enters the arithmetic
+    pos, opl, q = xp.where(valid[..., None], pos, 0.0), xp.where(valid, opl, 0.0), xp.where(valid, q, 0.0)
+    d = xp.where(valid[..., None], d, xp.asarray([0.0, 0.0, 1.0]))
+    del rays
+    h, n = pl.sensor_pitch_mm, pl.n_sensor
+    out = np.zeros((S, rw.size, rw.size))
+    flux = rw.pixel_values == "flux"
+    for k in range(S):
+        inv_lam = float(rw.n_after[k] / rw.lam_mm[k])
+        f = inv_lam * d[k, ..., :2]
+        area = tube_areas(f[None], valid[k][None], xp)[0]
+        use = valid[k] & (area > 0) & (q[k] > 0)
+        T = xp.asarray([rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor])
+        # the ray's phase at the foot of T on it: k0 (L + n d.(T - p)) (rad)
+        phase = (2.0 * math.pi / float(rw.lam_mm[k])) * (opl[k] + float(rw.n_after[k]) * xp.sum(d[k] * (T - pos[k]), -1))
+        cos = d[k, ..., 2] if flux else xp.ones_like(opl[k])
+        amp = xp.sqrt(xp.where(use, q[k] * area / cos, 0.0))
+        fc = xp.asarray(rw.carrier[k])
+        tx = 2.0 * math.pi * (f[..., 0] - fc[0]) * h
+        ty = 2.0 * math.pi * (f[..., 1] - fc[1]) * h
+        tx, ty = tx[use], ty[use]
+        if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
+            raise FloatingPointError("pixel method: a ray's frequency lies beyond the sensor grid's band (the "
+                                     "pilot trace missed the beam's edge): please report this lens and field")
+        c = (amp * xp.exp(1j * phase))[use]
+        cw = c * cos[use] if flux else None
+        del amp, phase, area
+        nt, t = tiles(n)
+        I = xp.zeros((n, n))
+        for ay in range(t):
+            for ax in range(t):
+                # the tile's samples m0 + m', |m'| <= nt / 2: the points' phases shifted by m0 . theta
+                m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
+                shift = xp.exp(1j * (m0x * tx + m0y * ty))
+                U = nufft_type1(tx, ty, c * shift, nt, xp)
+                if flux:
+                    Uw = nufft_type1(tx, ty, cw * shift, nt, xp)
+                    It = xp.real(xp.conj(U) * Uw)
+                    del Uw
+                else:
+                    It = xp.abs(U) ** 2
+                del U, shift
+                hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
+                I[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+        x0 = rw.centers[k] - 0.5 * n * h
+        lo = (np.arange(rw.size) - rw.size // 2) * rw.pixel - 0.5 * rw.pixel
+        wx = xp.asarray(box_weights(rw.centers[k, 0] + lo, rw.pixel, x0[0], h, n))
+        wy = xp.asarray(box_weights(rw.centers[k, 1] + lo, rw.pixel, x0[1], h, n))
+        P = wy @ I @ wx.T
+        out[k] = P if xp is np else xp.asnumpy(P)
+    return out
+
+
+def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_width_mm: float,
+                   rays_per_sample: float = 1.0, tolerance=None, memory_budget_bytes=None) -> bool:
+    """Plan ``method="pixel"`` beside the plan a :class:`rwwarp.wave.raywave.RayWave` (``rw``, at the end of its
+    planning) chose, and switch ``rw`` to it where it should run. ``explicit``: ``method="pixel"`` was asked for
+    (it runs; a DOE that is not blank is refused with ``ValueError``). Otherwise (``"auto"``) it runs where the
+    lens has no DOE (or a blank one), the pixel spans at least ``MIN_PIXEL_AIRY`` Airy radii, its error
+    estimate (:func:`pixel_error_estimate`) is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``), the model's own
+    error (:mod:`rwwarp.wave.model_error`) does not ask for the wave step (a given ``tolerance`` below it), it fits
+    ``memory_budget_bytes`` and it plans fewer flops than ``rw.plan``. Pilot arrays as ``RayWave`` holds them
+    (mm, (S, N, 3)); ``carrier`` (S, 2) the chief rays' frequencies (cycles/mm), ``centers`` (S, 2) their patch
+    centres (mm); ``beam_width_mm``: the footprint's smaller extent on the wave plane. When chosen, sets
+    ``rw.plan`` (its estimate, error estimate and reasons), ``rw.method``, ``rw.focal`` (None), ``rw.carrier``,
+    ``rw.centers`` and ``rw.rim`` (False) and returns True; otherwise adds a reason to ``rw.plan`` saying why
+    not (``"auto"``) and returns False."""
+    from dataclasses import replace
+    from ..doe import is_flat_profile
+    from .model_error import estimate_for_raywave
+    from .plan import check_budget
+    s = rw.lens.surfaces[rw.plane]
+    if s.type == "doe" and not is_flat_profile(s.profile):
+        if explicit:
+            raise ValueError("method='pixel' does not model a DOE (its diffraction orders): use method='auto', "
+                             "'focal' or 'asm' for a lens with a DOE that is not blank")
+        return False
+    pl = rw.plan
+    n_after, lam_mm = np.asarray(rw.n_after, float), np.asarray(rw.lam_mm, float)
+    freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
+    ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
+    ratio = rw.pixel / info["airy_mm"]
+    # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
+    r_w = 0.5 * beam_width_mm * 31.0 / 30.0
+    nf = float(np.min(n_after * r_w ** 2 / (lam_mm * abs(rw.z_sensor - rw.z_plane))))
+    saved = rw.centers
+    rw.centers = centers           # the rim slope against the sphere to the chief ray's patch
+    model = estimate_for_raywave(rw)
+    rw.centers = saved
+    slope = max(e.rim_slope_rad for e in model)
+    model_err = max(e.estimate for e in model)
+    err = pixel_error_estimate(nf, slope, rw.pixel, info["airy_mm"])
+    cost = pixel_cost(ppl, rw.nsrc, rw.size)
+    tol = DEFAULT_TOLERANCE if tolerance is None else float(tolerance)
+    line = (f"pixel method: error ~{err['estimate']:.2g} of the peak against the full computation ({PIXEL_ERROR_C:g} S "
+            f"/ sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S {slope:.3g} rad, N_F {nf:.4g} "
+            f"seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}), "
+            f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, {cost['flops'] / 1e9:.3g} GFLOP")
+    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line)
+    if not explicit:
+        why = []
+        if ratio < MIN_PIXEL_AIRY:
+            why.append(f"pixel {ratio:.3g} < {MIN_PIXEL_AIRY:g} Airy radii")
+        if err["estimate"] > tol:
+            why.append(f"error estimate {err['estimate']:.2g} > tolerance {tol:.2g}")
+        if tolerance is not None and model_err > tolerance:
+            # the model's own error over the tolerance asks for the wave step, which needs a wave-plane field
+            why.append(f"the wave step is wanted (model error ~{model_err:.2g} > tolerance {tol:.2g})")
+        if memory_budget_bytes is not None and cost["memory_bytes"] > memory_budget_bytes:
+            why.append("over the memory budget")
+        if pl.estimate and cost["flops"] >= pl.estimate["flops"]:
+            why.append(f"not fewer flops than {pl.method} ({pl.estimate['flops'] / 1e9:.3g} GFLOP)")
+        if why:
+            rw.plan = pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})")
+            if ratio >= MIN_PIXEL_AIRY:   # named where the chosen plan is over the memory budget
+                rw.pixel_alternative = (f"; or the pixel method ({cost['memory_bytes'] / 2 ** 30:.3g} GiB, error "
+                                        f"~{err['estimate']:.2g} of the peak): method='pixel' or tolerance >= "
+                                        f"{err['estimate']:.2g}")
+            return False
+        ppl = ppl.with_reasons(f"method auto: pixel ({ratio:.3g} Airy radii, error ~{err['estimate']:.2g} <= tolerance "
+                               f"{tol:.2g}, {cost['flops'] / 1e9:.3g} GFLOP against {pl.method} "
+                               f"{pl.estimate['flops'] / 1e9:.3g} GFLOP)")
+    else:
+        ppl = ppl.with_reasons("method pixel (asked for)")
+    if memory_budget_bytes is not None:
+        check_budget(cost, int(memory_budget_bytes), f"the pixel method ({ppl.ray_grid}^2 rays, sensor grid "
+                     f"{ppl.n_sensor}^2, FFT {ppl.n_sensor_fft}^2)", "size (patch pixels), the beam's NA (band B), "
+                     "rays_per_sample")
+    rw.plan, rw.method, rw.focal, rw.rim = ppl, "pixel", None, False
+    rw.carrier, rw.centers = np.array(carrier, float), np.array(centers, float)
+    return True

@@ -1,0 +1,184 @@
+"""``method="pixel"`` (rwwarp.wave.pixel_scale): pixels many Airy radii wide.
+
+References, all independent of the method's code:
+* the non-uniform DFT and the exact box integral against a direct sum and scipy quadrature;
+* an ideal thin lens against the Airy pattern integrated over square pixels (Bessel formula, Gauss-Legendre
+  quadrature written here);
+* the A489 against the full computation (the focal method) at a 9x finer pixel, box-summed 9 x 9 here.
+"""
+import math
+
+import numpy as np
+import pytest
+from scipy.special import j1
+
+import rwwarp as rw
+from rwwarp.io import load_lens
+from rwwarp.lens import Lens, Surface
+from rwwarp.wave.pixel_scale import box_weights, nufft_type1, tube_areas
+
+
+def test_nufft_type1_is_the_direct_sum():
+    rng = np.random.default_rng(0)
+    n, J = 32, 400
+    tx, ty = rng.uniform(-np.pi / 2, np.pi / 2, (2, J))
+    c = rng.normal(size=J) + 1j * rng.normal(size=J)
+    m = np.arange(-n // 2, n // 2)
+    direct = np.exp(1j * np.outer(m, ty)) @ (c[:, None] * np.exp(1j * np.outer(tx, m)))
+    got = nufft_type1(tx, ty, c, n)
+    # Gaussian gridding, 2x oversampled, 12 cells a side: measured 2.5e-6 of the largest value
+    assert np.max(np.abs(got - direct)) < 1e-5 * np.max(np.abs(direct))
+
+
+def test_box_weights_integrate_a_band_limited_function_exactly():
+    from scipy.integrate import quad
+    a = 0.5                                          # sinc^2(x / a): band 1 / a
+    g = lambda x: np.sinc(x / a) ** 2
+    h = 0.2                                          # Nyquist of band 1 / a: h < a / 2 = 0.25
+    x0, n = -400.0, 4001                             # samples over [-400, 400] (beyond: the tail, < 1e-6)
+    lo = np.array([-1.3, -0.35, 0.0, 2.05])
+    p = 0.7
+    W = box_weights(lo, p, x0, h, n)
+    ref = np.array([quad(g, s, s + p, limit=200)[0] for s in lo])
+    # exact for a band-limited function; what remains is the truncated tail (sinc^2 ~ 1 / x^2): measured 6e-8
+    assert np.max(np.abs(W @ g(x0 + h * np.arange(n)) - ref)) < 1e-6
+
+
+def test_tube_areas_of_a_linear_map_are_its_determinant():
+    i, j = np.meshgrid(np.arange(9.0), np.arange(9.0), indexing="xy")
+    A = np.array([[2.0, 0.3], [-0.4, 1.5]])
+    f = np.stack([A[0, 0] * i + A[0, 1] * j, A[1, 0] * i + A[1, 1] * j], -1)[None]
+    valid = (np.hypot(i - 4, j - 4) <= 4.2)[None]
+    area = tube_areas(f, valid)
+    # central or one-sided differences of a linear map are exact; rays outside the disc get 0
+    assert np.allclose(area[valid], abs(np.linalg.det(A)), rtol=0, atol=1e-12)
+    assert np.all(area[~valid] == 0)
+
+
+def _ideal_lens(a_mm, f_mm):
+    s = [Surface(type="aperture", semi_diameter=a_mm, shape="circle", stop=True),
+         Surface(type="thin_lens", focal_length=f_mm, semi_diameter=a_mm, shape="circle")]
+    s[-1].thickness = f_mm
+    return Lens(s, rw.Sensor(0.001, (20000, 20000)), math.inf, [0.55], name="ideal thin lens")
+
+
+def _airy_pixels(na, lam_mm, p_mm, size, cx, cy, nodes=64):
+    """The Airy pattern (focus at the origin, unit power) integrated over square pixels of ``p_mm`` centred at
+    ``cx + (j - size // 2) p``: Gauss-Legendre over each pixel, ``nodes`` a side."""
+    t, w = np.polynomial.legendre.leggauss(nodes)
+    out = np.zeros((size, size))
+    for i in range(size):
+        y = cy + (i - size // 2) * p_mm + 0.5 * p_mm * t
+        for k in range(size):
+            x = cx + (k - size // 2) * p_mm + 0.5 * p_mm * t
+            v = np.maximum(2 * np.pi * na * np.hypot(*np.meshgrid(x, y)) / lam_mm, 1e-12)
+            out[i, k] = np.sum(w[:, None] * w[None, :] * (2 * j1(v) / v) ** 2) * (0.5 * p_mm) ** 2
+    return out * np.pi * na ** 2 / lam_mm ** 2     # total power 1: int (2 J1(v) / v)^2 dA = lambda^2 / (pi NA^2)
+
+
+@pytest.mark.parametrize("ratio,values", [(10.0, "flux"), (20.0, "intensity")])
+def test_ideal_lens_gives_the_airy_pattern_integrated_over_pixels(ratio, values):
+    lens = _ideal_lens(2.5, 50.0)                   # f/10, N_F 227 seen from the focus
+    na = 2.5 / math.hypot(2.5, 50.0)
+    p = ratio * 0.61 * 0.55e-3 / na
+    psf = rw.psf(lens, 0.0, 0.55, size=15, pixel_mm=p, method="pixel", center_mm=(0.0, 0.0), pixel_values=values)
+    assert psf.plan["method"] == "pixel"
+    ref = _airy_pixels(na, 0.55e-3, p, 15, psf.center_mm[0], psf.center_mm[1])
+    # measured 5.7e-5 (10 r_A, flux) and 5.4e-5 (20 r_A): the light beyond the quadrature's alias distance
+    # folded back, and the paraxial Airy formula (NA^2 = 2.5e-3 terms): 3x margin
+    assert np.max(np.abs(psf.data - ref)) < 2e-4 * ref.max()
+
+
+def _boxsum_full(lens, field, p, size, k, center):
+    """The full computation (focal method) at pixels ``k`` times finer (``k`` and ``size`` odd: the fine
+    patch's centre pixel is the middle of the coarse centre pixel's ``k x k`` block), summed over each
+    coarse pixel."""
+    fine = rw.psf(lens, field, 0.55, size=size * k, pixel_mm=p / k, method="focal", center_mm=center)
+    assert np.allclose(fine.center_mm, center, atol=1e-12)
+    return fine.data.reshape(size, k, size, k).sum(axis=(1, 3))
+
+
+@pytest.mark.parametrize("field,tol", [(0.0, 4e-4), (10.0, 1.7e-2)])
+def test_a489_against_the_full_computation_box_summed(field, tol):
+    lens = load_lens("a489_doe")                    # its DOE is blank
+    p, size = 0.016, 15                             # 5.8-6 Airy radii
+    psf = rw.psf(lens, field, 0.55, size=size, pixel_mm=p, method="pixel")
+    ref = _boxsum_full(lens, field, p, size, 9, psf.center_mm)
+    err = np.max(np.abs(psf.data - ref)) / ref.max()
+    # measured 1.9e-4 on axis (the floor), 8.4e-3 at 10 deg (the Debye step: rim slope 36.6 rad, N_F 77 seen
+    # from the patch); 2x margin
+    assert err < tol
+    est = [r for r in psf.plan["reasons"] if r.startswith("pixel method: error ~")][0]
+    est = float(est.split("~")[1].split()[0])
+    # the estimate is calibrated on these cases: within a factor 2.5 of the measured error, never far below it
+    assert err / 2.5 < est < 2.5 * max(err, 2e-4)
+
+
+def test_auto_picks_pixel_for_large_pixels_within_the_tolerance():
+    lens = load_lens("a489_doe")
+    pl = rw.plan_psf(lens, 0.0, 0.55, size=15, pixel_mm=0.016)
+    assert pl.method == "pixel"
+    assert "(pixel)" in pl.explain() and "pixel method: error ~" in pl.explain()
+    # at 10 deg the estimate (8.6e-3) is over the default tolerance 1e-3, and over 1e-5 on axis
+    for fld, tol in ((10.0, None), (0.0, 1e-5)):
+        pl = rw.plan_psf(lens, fld, 0.55, size=15, pixel_mm=0.016, tolerance=tol)
+        assert pl.method != "pixel" and any(r.startswith("pixel method not chosen") for r in pl.reasons)
+    # small pixels (2 Airy radii): never
+    pl = rw.plan_psf(lens, 0.0, 0.55, size=15, pixel_mm=0.003)
+    assert pl.method != "pixel"
+
+
+def test_auto_leaves_the_other_methods_unchanged_where_pixel_is_not_chosen():
+    lens = load_lens("a489_doe")
+    auto = rw.psf(lens, 0.0, 0.55, size=8, pixel_mm=0.003)          # 2 Airy radii: not chosen
+    assert auto.plan["method"] in ("focal", "asm")
+    same = rw.psf(lens, 0.0, 0.55, size=8, pixel_mm=0.003, method=auto.plan["method"])
+    assert np.array_equal(auto.data, same.data)
+
+
+def test_pixel_refuses_a_doe():
+    s = [Surface(type="aperture", semi_diameter=2.0, shape="circle", stop=True),
+         Surface(type="thin_lens", focal_length=50.0, semi_diameter=2.0, shape="circle"),
+         Surface(type="doe", semi_diameter=2.0, shape="circle", design_wavelength_um=0.55, material="fused_silica",
+                 profile={"kind": "even_poly", "norm_radius": 2.0, "coefficients": [-40.0, 6.0]})]
+    s[-1].thickness = 20.0
+    lens = Lens(s, rw.Sensor(0.001, (20000, 20000)), math.inf, [0.55], name="thin lens + DOE")
+    with pytest.raises(ValueError, match="DOE"):
+        rw.plan_psf(lens, 0.0, 0.55, size=8, pixel_mm=0.05, method="pixel")
+    assert rw.plan_psf(lens, 0.0, 0.55, size=8, pixel_mm=0.05).method != "pixel"
+
+
+def test_cli_explain_names_the_pixel_method(capsys):
+    from rwwarp.cli import main
+    main(["psf", "a489_doe", "--dry-run", "--size", "15", "--pixel", "16"])
+    out = capsys.readouterr().out
+    assert "plan auto (pixel)" in out and "method auto: pixel" in out and "GFLOP" in out
+
+
+def test_a_plan_over_the_budget_names_the_pixel_method():
+    from rwwarp.wave.plan import MemoryBudgetError
+    lens = load_lens("a489_doe")
+    # 10 deg: the pixel method's estimate (1.4e-2) is over the default tolerance, the focal plan (~0.1 GiB) over
+    # the budget: the refusal says what the pixel method would cost and which tolerance lets auto take it
+    with pytest.raises(MemoryBudgetError, match="method='pixel' or tolerance >="):
+        rw.psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, memory_budget_gb=0.01)
+
+
+def test_psf_map_computes_each_pixel_source_as_psf_does():
+    lens = load_lens("a489_doe")
+    m = rw.psf_map(lens, [0.0, 3.0], [0.55], size=9, pixel_mm=0.016, method="pixel")
+    for i, fld in enumerate((0.0, 3.0)):
+        one = rw.psf(lens, fld, 0.55, size=9, pixel_mm=0.016, method="pixel")
+        assert m.info["batches"][i]["plan"]["method"] == "pixel"
+        # each source alone in its batch, on its own plan: the same arithmetic
+        assert np.array_equal(m.data[i, 0], one.data)
+    assert np.all(np.isfinite(m.data)) and np.all(m.data >= -1e-12)
+
+
+def test_auto_keeps_the_wave_step_where_the_model_error_asks_for_it():
+    lens = load_lens("a489_doe")
+    # 10 deg: the model's own error ~0.25 of the peak, the pixel method's ~0.014: with tolerance 0.02 the wave
+    # step is wanted (it needs a wave-plane field), so auto does not take the pixel method
+    pl = rw.plan_psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, tolerance=0.02)
+    assert pl.method != "pixel" and pl.wave_step_mm
+    assert any("the wave step is wanted" in r for r in pl.reasons)
