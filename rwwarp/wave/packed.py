@@ -59,9 +59,12 @@ class PackedRayWave(RayWave):
     splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
     one lens, device, precision, amplitude convention and propagation method. Lengths in mm.
     ``requires_grad``: the batch's tracer keeps gradient buffers, so its :meth:`field` can be recorded on a
-    ``wp.Tape`` and differentiated with respect to ``tracer.params`` (:mod:`torch_bridge`)."""
+    ``wp.Tape`` and differentiated with respect to ``tracer.params`` (:mod:`torch_bridge`). ``hold``: the batch
+    is kept for repeated runs (:class:`rwwarp.wave.plan_cache.PlanCache`): it and its members keep what their
+    runs derive from the plan alone (DOE phases and factors on the windows, the small per-source uploads), so a
+    kept batch must not be changed (its lens is the cache's private copy)."""
 
-    def __init__(self, members, requires_grad: bool = False):
+    def __init__(self, members, requires_grad: bool = False, hold: bool = False):
         if not members or any(m.nsrc != 1 for m in members):
             raise ValueError("PackedRayWave takes single-source RayWave members")
         m0 = members[0]
@@ -109,6 +112,9 @@ class PackedRayWave(RayWave):
         self._grids = np.array([m.plan.n_grid for m in members])
         self._ray_grids = np.array([m.plan.ray_grid for m in members])
         self._pitches = np.array([m.plan.pitch_mm for m in members])
+        if hold:
+            for m in [self] + self.members:
+                m._memo = {}
 
     def _layout(self) -> dict:
         return {"ray_grids": self._ray_grids, "slots": int(self._ray_grids.max()) ** 2, "grids": self._grids,
@@ -124,9 +130,10 @@ class PackedRayWave(RayWave):
         """Each member's plan (:class:`rwwarp.wave.plan.Plan`)."""
         return [m.plan for m in self.members]
 
-    def run(self, focal_precision: str = "auto") -> dict:
+    def run(self, focal_precision: str = "auto", keep_operators: bool = False) -> dict:
         """PSFs of every member as fractions of its entering power per pixel, each propagated by its own plan
-        (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts."""
+        (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts. ``keep_operators``:
+        the members keep their focal operators for the next run (a kept batch), else they are dropped."""
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         u_all = self.field_array()
@@ -140,7 +147,8 @@ class PackedRayWave(RayWave):
             else:
                 phi0, scale = m.doe_phase()
                 d = m.intensity(u, phi0, scale)
-            m.release_operators()
+            if not keep_operators:
+                m.release_operators()
             data.append(np.asarray(d)[0] / entering[k])
         data = np.stack(data)
         if not np.all(np.isfinite(data)):

@@ -582,8 +582,23 @@ class RayWave:
             u_field = paper_rescale_layout(self, u_field, xp.asarray(self.traced_power), xp)
         return u_field
 
+    def _memoised(self, name, make, *key):
+        """``make()``, kept for the next call with the same ``key`` when this RayWave is held for repeated runs
+        (:class:`rwwarp.wave.plan_cache.PlanCache`: its lens is a private copy; the windows are in the key)."""
+        memo = getattr(self, "_memo", None)
+        if memo is None:
+            return make()
+        key = (self.origin.tobytes(), self.plan.pitch_mm, self.plan.n_grid) + key
+        hit = memo.get(name)
+        if hit is None or hit[0] != key:
+            hit = memo[name] = (key, make())
+        return hit[1]
+
     def doe_phase(self):
         """phi0 (rad) on each window, (n_sources, n, n), and the per-source wavelength scale; or (None, None)."""
+        return self._memoised("doe_phase", self._doe_phase)
+
+    def _doe_phase(self):
         phi0 = doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
         if phi0 is None:
             return None, None
@@ -719,6 +734,9 @@ class RayWave:
         (:func:`rwwarp.wave.focal.doe_order_series`, the chief ray's wrap zone exact), in the array namespace
         ``xp`` (the focal operator's: CuPy on CUDA); None without a DOE, for a blank DOE, or with only
         the zeroth order and c_0 = 1."""
+        return self._memoised("doe_orders_factor", lambda: self._doe_orders_factor(xp), xp.__name__)
+
+    def _doe_orders_factor(self, xp):
         from .focal import doe_order_series
         geo, prof = self.focal, self.focal["profile"]
         if prof is None:
