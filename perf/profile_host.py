@@ -8,7 +8,7 @@ per enclosing phase (``trace launches < plan: ...`` is the pilot trace), so the 
 --rays-per-sample 0.1``: kernels of microseconds) the phases are the host overhead a GPU call pays.
 
     python perf/profile_host.py [--device cpu] [--lens a489_doe] [--field 0] [--size 8] [--rays-per-sample 0.1]
-        [--reps 30] [--cache] [--json perf/results/host_phases_cpu.json]
+        [--method auto] [--reps 30] [--cache] [--json perf/results/host_phases_cpu.json]
 
 ``--cache``: the calls go through one :class:`rwwarp.PlanCache` (the first call fills it; the measured ones hit).
 """
@@ -139,6 +139,18 @@ class Counters:
                 self.n[_name] += 1
                 return _orig(*a, **k)
             setattr(wp, name, counted)
+        from warp._src import context as wctx   # the kernel's own run on the CPU (a launch's host part excluded)
+        inv = wctx.invoke
+        self.saved["invoke"] = inv
+        self.kernel_s = 0.0
+
+        def invoke(*a, _orig=inv, **k):
+            t0 = time.perf_counter()
+            try:
+                return _orig(*a, **k)
+            finally:
+                self.kernel_s += time.perf_counter() - t0
+        wctx.invoke = invoke
         arr = wp.array
         self.saved["array.numpy"] = arr.numpy
 
@@ -152,6 +164,9 @@ class Counters:
         for name, orig in self.saved.items():
             if name == "array.numpy":
                 self.wp.array.numpy = orig
+            elif name == "invoke":
+                from warp._src import context as wctx
+                wctx.invoke = orig
             else:
                 setattr(self.wp, name, orig)
 
@@ -164,13 +179,14 @@ def main(argv=None):
     ap.add_argument("--wl", type=float, default=0.55)
     ap.add_argument("--size", type=int, default=8)
     ap.add_argument("--rays-per-sample", type=float, default=0.1)
+    ap.add_argument("--method", default="auto")
     ap.add_argument("--reps", type=int, default=30)
     ap.add_argument("--cache", action="store_true", help="call through one rwwarp.PlanCache")
     ap.add_argument("--json", default=None, help="write the figures here")
     a = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     lens = rw.load_lens(a.lens)
-    kw = dict(size=a.size, rays_per_sample=a.rays_per_sample, device=a.device)
+    kw = dict(size=a.size, rays_per_sample=a.rays_per_sample, device=a.device, method=a.method)
     if a.cache:
         kw["cache"] = rw.PlanCache(max_entries=4)
     timer = PhaseTimer(a.device)
@@ -184,8 +200,12 @@ def main(argv=None):
         rw.psf(lens, a.field, a.wl, **kw)
         timer.sync()
         wall.append(time.perf_counter() - t0)
-    with Counters() as cnt:
-        rw.psf(lens, a.field, a.wl, **kw)
+    kern = []
+    for _ in range(max(3, a.reps // 3)):
+        with Counters() as cnt:
+            rw.psf(lens, a.field, a.wl, **kw)
+        kern.append(cnt.kernel_s)
+    kernel_ms = 1e3 * float(np.median(kern))
     timer.install()
     timer.on = True
     tot = []
@@ -208,16 +228,16 @@ def main(argv=None):
           f"{a.device}, cache {a.cache}: plan {pl.get('method')} grid {pl.get('n_grid')}^2, rays {pl.get('ray_grid')}^2")
     print(f"warm rw.psf: median {1e3 * np.median(wall):.3f} ms, min {1e3 * np.min(wall):.3f} ms over {a.reps} "
           f"(unwrapped); with the phase timers {total_ms:.3f} ms a call")
-    print(f"per call: {dict(cnt.n)}")
+    print(f"per call: {dict(cnt.n)}; Warp kernels' own run (CPU: invoke, median) {kernel_ms:.3f} ms")
     for k, v in phases.items():
         print(f"  {v:8.3f} ms  {k}  ({timer.calls[k] // a.reps} call(s))")
     print(f"  {rest:8.3f} ms  rest of psf / psf_map (argument checks, batching, results, warnings)")
     if a.json:
         out = {"commit": commit, "lens": a.lens, "field_deg": a.field, "wavelength_um": a.wl, "size": a.size,
-               "rays_per_sample": a.rays_per_sample, "device": a.device, "cache": a.cache, "reps": a.reps,
+               "rays_per_sample": a.rays_per_sample, "method": a.method, "device": a.device, "cache": a.cache, "reps": a.reps,
                "plan": {k: pl.get(k) for k in ("method", "n_grid", "ray_grid", "n_pad", "n_sensor", "n_sensor_fft")},
                "warm_median_ms": 1e3 * float(np.median(wall)), "warm_min_ms": 1e3 * float(np.min(wall)),
-               "timed_total_ms": total_ms, "counts_per_call": dict(cnt.n),
+               "timed_total_ms": total_ms, "counts_per_call": dict(cnt.n), "warp_kernels_ms": kernel_ms,
                "phases_ms": dict(phases, **{"rest of psf / psf_map": rest}),
                "phase_calls_per_call": {k: timer.calls[k] / a.reps for k in phases}}
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)

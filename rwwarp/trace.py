@@ -609,7 +609,7 @@ class Tracer:
         if grids is not None:
             if rim and circle:
                 circle, frac, stride = 2, self.packed_rim_cells(grids, npup), npup
-            g_src, c_src = upload_packed([(grids, np.int32, wp.int32), (cells, fdt, sc)], dev)
+            g_src, c_src = upload_packed([(grids, np.int32, wp.int32), (cells, fdt, sc)], dev, cache=True)
         else:
             g_src, c_src = self._placeholders()
         inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
@@ -687,7 +687,10 @@ class Tracer:
         :attr:`deterministic`: a copy for each of the ``n_rays`` rays (the next power of two), so no two rays
         add into one address, made in two levels whose adjoints sum in a fixed order."""
         if not self.requires_grad or not p.requires_grad:
-            return p.reshape((1, ktrace.N_PARAMS)), 0
+            rows = getattr(p, "_rw_rows", None)   # the (1, N_PARAMS) view, made once per parameter array
+            if rows is None:
+                rows = p._rw_rows = p.reshape((1, ktrace.N_PARAMS))
+            return rows, 0
         r = self.grad_replicas
         if self.deterministic:
             r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())

@@ -137,7 +137,6 @@ class PackedRayWave(RayWave):
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         u_all = self.field_array()
-        entering = self.entering
         data = []
         for k, m in enumerate(self.members):
             n = m.plan.n_grid
@@ -149,8 +148,11 @@ class PackedRayWave(RayWave):
                 d = m.intensity(u, phi0, scale)
             if not keep_operators:
                 m.release_operators()
-            data.append(np.asarray(d)[0] / entering[k])
-        data = np.stack(data)
+            data.append(np.asarray(d)[0])
+        # the power sums are read after the propagations are queued: on a GPU the host does not wait for the
+        # trace and splat before it launches the rest
+        entering = self.entering
+        data = np.stack([d / entering[k] for k, d in enumerate(data)])
         if not np.all(np.isfinite(data)):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         plans = [m.plan.to_dict() for m in self.members]

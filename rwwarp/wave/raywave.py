@@ -487,6 +487,7 @@ class RayWave:
                 opl_p[k] = all_opl[k, j]
         n = lay["n_stride"]
         sp = self.splatter
+        held = getattr(self, "_memo", None) is not None   # a kept batch: its small uploads by content (LRU)
         # 2: pixel_values "flux", the field whose z-flux is the tube irradiance (amplitude / sqrt(cos), splat.py)
         energy = (2 if self.pixel_values == "flux" else 1) if self.amplitude == "energy" else 0
         rim_args = self._rim_args(rim)
@@ -495,7 +496,7 @@ class RayWave:
             grid_src, frac_stride, n_arg = sp.grid_placeholder(), 0, n
         else:   # a packed batch: each source's own pupil grid and window in slots of the largest
             ray_src, grid_src = upload_packed([(lay["ray_grids"], np.int32, wp.int32),
-                                               (lay["grids"], np.int32, wp.int32)], tr.device)
+                                               (lay["grids"], np.int32, wp.int32)], tr.device, cache=held)
             frac_stride = npup if rim else 0
             area, half = sp.tube_areas(rays, -1, rim_args, bool(energy), packed=(ray_src, npup, frac_stride))
             n_arg = -n
@@ -506,7 +507,7 @@ class RayWave:
              # the reference-sphere index carries the sign: + converging to T, - diverging from T
              (self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), np.float64, wp.float64),
              (opl_p, np.float64, wp.float64), (2.0 * np.pi / self.lam_mm, np.float64, wp.float64),
-             (self.carrier, np.float64, wp.vec2d)], tr.device)
+             (self.carrier, np.float64, wp.vec2d)], tr.device, cache=held)
         geo = [origin, pitch, chief, target, index]
         splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
                    [opl_c, k_wave, int(self.use_reference), energy, n_arg, npup, *rim_args, grid_src, frac_stride]
