@@ -690,6 +690,10 @@ class RayWave:
             # PoCL: the OpenCL buffers use the numpy memory (zero-copy host pointers)
             u_field = be.wrap_host(u_field)
             phi0 = None if phi0 is None else be.wrap_host(phi0)
+        elif isinstance(phi0, np.ndarray) and getattr(self, "_memo", None) is not None:
+            # a kept batch (PlanCache) on a GPU: its DOE phase (memoised on the host) is uploaded once
+            host = phi0
+            phi0 = self._memoised("doe_phase_device", lambda: be.to_device(host), id(host))
         power = SensorPropagator(be, self.sensor_geometry(scale)).forward(u_field, phi0)
         return be.to_host(power)
 
