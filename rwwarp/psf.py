@@ -13,6 +13,7 @@ each sensor pixel (box integration of |U|^2 over the pixel). Lengths in mm, wave
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import time
@@ -331,31 +332,9 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         # (arrays sized to the batch's largest member; rwwarp.wave.packed.PackedRayWave), each propagated alone
         if focal_precision == "auto":   # as RayWave.run resolves it
             focal_precision = "double" if str(device).startswith("cuda") else "single"
-        kept = key = None
-        if cache is not None:
-            args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
-                    memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))
-            key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
-            info["cache"] = "miss" if kept is None else "hit"
-        if kept is not None:
-            for chunk, packed in kept:   # the pilot, plans, batches and operators of an earlier call
-                store(chunk, packed.run(focal_precision, keep_operators=True))
-        else:
-            run_lens = lens if cache is None else copy.deepcopy(lens)   # kept batches see no later change
-            new, need = [], 0
-            for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
-                                                   object_distance_mm, opts):
-                for chunk_idx in pack_sources(members, size, batch, budget):
-                    packed = PackedRayWave([members[k] for k in chunk_idx], hold=cache is not None)
-                    res = packed.run(focal_precision, keep_operators=cache is not None)
-                    store([sys_pairs[k] for k in chunk_idx], res)
-                    if cache is not None:
-                        new.append(([sys_pairs[k] for k in chunk_idx], packed))
-                        need = max(need, packed_bytes(packed.members, size))
-                    for k in chunk_idx:
-                        members[k] = None   # done: its operators and tracer can go
-            if cache is not None:
-                cache.store(key, new, need)
+        with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
+            _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
+                      memory_budget_gb, focal_precision, opts, cache, info, store)
     else:
         b = batch or len(pairs)
         for k in range(0, len(pairs), b):
@@ -387,6 +366,42 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                       stacklevel=2)
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
+
+
+def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
+              memory_budget_gb, focal_precision, opts, cache, info, store):
+    """The wave models' part of :func:`psf_map`: plan (or take from ``cache``) and run every batch, handing each
+    batch's result to ``store(pairs, result)``. ``focal_precision`` resolved ("single" / "double")."""
+    kept = key = None
+    if cache is not None:
+        args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
+                memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))
+        key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
+        info["cache"] = "miss" if kept is None else "hit"
+    from .wave.plan_cache import held_bytes
+    if kept is not None:
+        for chunk, packed in kept:   # the pilot, plans, batches and operators of an earlier call
+            store(chunk, packed.run(focal_precision, keep_operators=True))
+    else:
+        keep = cache is not None
+        run_lens = copy.deepcopy(lens) if keep else lens   # kept batches see no later change of the caller's lens
+        new, need, held = [], 0, 0
+        for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
+                                               object_distance_mm, opts):
+            for chunk_idx in pack_sources(members, size, batch, budget):
+                packed = PackedRayWave([members[k] for k in chunk_idx], hold=keep)
+                res = packed.run(focal_precision, keep_operators=keep)
+                store([sys_pairs[k] for k in chunk_idx], res)
+                if keep:
+                    new.append(([sys_pairs[k] for k in chunk_idx], packed))
+                    need = max(need, packed_bytes(packed.members, size))
+                    held += held_bytes(new[-1:])
+                    if held > cache.max_bytes:   # over the cache's bound: nothing of this call is kept
+                        keep, new = False, []
+                for k in chunk_idx:
+                    members[k] = None   # done: its operators and tracer can go
+        if keep:
+            cache.store(key, new, need)
 
 
 # ---------------------------------------------------------------------------------------------- helpers

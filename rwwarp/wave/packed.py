@@ -115,6 +115,7 @@ class PackedRayWave(RayWave):
         if hold:
             for m in [self] + self.members:
                 m._memo = {}
+            self.tracer.pool = {}   # its rays, splat sums and field: the same arrays every run
 
     def _layout(self) -> dict:
         return {"ray_grids": self._ray_grids, "slots": int(self._ray_grids.max()) ** 2, "grids": self._grids,
@@ -157,4 +158,4 @@ class PackedRayWave(RayWave):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         plans = [m.plan.to_dict() for m in self.members]
         return {"data": data, "centers": self.centers, "plan": plans[-1], "plans": plans,
-                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy().copy()}

@@ -14,12 +14,12 @@ the call would have (half the available memory at the time of the call). The kep
 private copy of the lens (a later change of the caller's lens cannot reach it), so a hit gives the bits the
 uncached call gives (same plans, same launches, same order of sums).
 
-Bounds, explicit: ``max_entries`` (least recently used entries go first) and ``max_bytes``, the device memory
-the kept entries hold (the focal operators' factors, the kept DOE factors and phases, the batch tracers' tables:
-:meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its own is not kept. :meth:`PlanCache.clear` drops
-everything; ``cache=None`` (the default of the public calls) keeps nothing. A cache is not shared between
-threads (one caller at a time: a lock makes concurrent calls wait for each other). The ray model
-(``model="ray"``) has no plan and is not cached.
+Bounds, explicit: ``max_entries`` (least recently used entries go first) and ``max_bytes``, the memory the kept
+entries hold (the focal operators' factors, the kept DOE factors and phases, the batch tracers' tables and work
+arrays: rays, splat sums, field, reused by every run; :meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
+own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` (the default of the public calls) keeps
+nothing. Calls through one cache run one at a time (its lock is held for the whole wave computation: a kept
+batch's work arrays serve one run at a time). The ray model (``model="ray"``) has no plan and is not cached.
 """
 from __future__ import annotations
 
@@ -139,12 +139,15 @@ def _array_bytes(a) -> int:
         return sum(_array_bytes(x) for x in a)
     if isinstance(a, (bytes, str)):
         return 0
-    return int(getattr(a, "nbytes", 0) or 0)
+    n = getattr(a, "nbytes", None)
+    if n is None:
+        n = getattr(a, "capacity", 0)   # a Warp array
+    return int(n or 0)
 
 
-def _held_bytes(batches) -> int:
+def held_bytes(batches) -> int:
     """Device (and host) bytes the kept batches hold between calls: the members' focal operators and kept DOE
-    factors / phases, and each tracer's parameter and index tables."""
+    factors / phases, and each tracer's parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`)."""
     total = 0
     seen = set()
     for _, packed in batches:
@@ -160,6 +163,7 @@ def _held_bytes(batches) -> int:
             if tr is not None and id(tr) not in seen:
                 seen.add(id(tr))
                 total += int(tr.params_np.nbytes + tr.index_np.nbytes)
+                total += sum(_array_bytes(a) for a in (tr.pool or {}).values())   # rays, splat sums, field
     return total
 
 
@@ -194,7 +198,7 @@ class PlanCache:
                 f"{self.max_bytes / 2 ** 20:.4g} MiB; {self.hits} hits, {self.misses} misses, {self.evictions} evicted)")
 
     def nbytes(self) -> int:
-        """Bytes the kept entries hold (focal operators, DOE factors and phases, tracer tables)."""
+        """Bytes the kept entries hold (focal operators, DOE factors and phases, tracer tables and work arrays)."""
         return int(sum(e[1] for e in self._entries.values()))
 
     def clear(self):
@@ -231,7 +235,7 @@ class PlanCache:
         planned peak memory of its largest batch (checked against an implicit budget on a hit). Evicts the least
         recently used entries past ``max_entries`` / ``max_bytes``; an entry over ``max_bytes`` alone is not kept.
         Returns True when kept."""
-        held = _held_bytes(batches)
+        held = held_bytes(batches)
         with self.lock:
             self._entries.pop(key, None)
             if held > self.max_bytes:

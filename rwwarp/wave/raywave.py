@@ -469,11 +469,12 @@ class RayWave:
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
         K = self.splatter.K
-        terms = wp.empty(nsrc * npup, dtype=K.vec4d, device=tr.device)
+        terms = tr.work_array("power_terms", nsrc * npup, K.vec4d)   # pooled on a kept batch
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
                   device=tr.device, record_tape=False)   # not differentiated: off any active tape
         # per source (entering, valid) power: a fixed summation tree, the same bits on every run
-        self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device), None  # read when asked
+        self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device,   # read when asked
+                                                 work=tr.work_array if tr.pool is not None else None), None
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
         if not self.chief_ok.all():
             valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
@@ -543,7 +544,7 @@ class RayWave:
         """Per-source power sums of the last :meth:`field` call as the device array itself (a Warp array
         of ``(n_sources, 1)`` vec4 float64: entering power, traced power, then two unused slots; unit source
         radiance), with no host copy: a caller on the device reads it without synchronising. A new array
-        each :meth:`field` call."""
+        each :meth:`field` call (on a batch kept by a :class:`~rwwarp.wave.plan_cache.PlanCache`: the same one)."""
         return self._sums_dev
 
     def _power_sums(self):
