@@ -683,16 +683,26 @@ class Tracer:
         plane's position is not differentiated). Returns new :class:`Rays`."""
         K, dev, sc, g = self.K, self.device, self.scalar, self.requires_grad
         n = rays.pos.shape[0]
-        row = np.zeros(ktrace.N_PARAMS)
-        row[ktrace.P_Z] = z_mm
-        row[ktrace.P_SD] = -1.0
-        params = wp.array(row.astype(self.np_dtype)[None], dtype=sc, device=dev)
-        out = _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
-                                          wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
-                                          wp.empty(n, dtype=sc, device=dev, requires_grad=g),
-                                          wp.empty(n, dtype=wp.int32, device=dev)))
+        pooled = self.pool is not None and not g   # a kept batch's forward run: the same arrays every run
+        params = self.pool.get(("plane_row", float(z_mm))) if pooled else None
+        if params is None:
+            row = np.zeros(ktrace.N_PARAMS)
+            row[ktrace.P_Z] = z_mm
+            row[ktrace.P_SD] = -1.0
+            params = wp.array(row.astype(self.np_dtype)[None], dtype=sc, device=dev)
+            if pooled:
+                self.pool[("plane_row", float(z_mm))] = params
+        if pooled:
+            out = (self.work_array(("to_plane", 0), n, K.vec3), self.work_array(("to_plane", 1), n, K.vec3),
+                   self.work_array(("to_plane", 2), n, sc), self.work_array(("to_plane", 3), n, wp.int32))
+            dummy = self.work_array("t_dummy", 1, sc, zero=True)
+        else:
+            out = _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                              wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                              wp.empty(n, dtype=sc, device=dev, requires_grad=g),
+                                              wp.empty(n, dtype=wp.int32, device=dev)))
+            dummy = wp.zeros(1, dtype=sc, device=dev)
         idx = self.n_tables[surface_index]
-        dummy = wp.zeros(1, dtype=sc, device=dev)
         wp.launch(K.surface_kernel, dim=n, inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.wl, params, 0, idx,
                                                    idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
         return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
