@@ -188,3 +188,47 @@ def test_hit_bits_with_a_curved_last_surface():
         p = rw.psf(lens, 14.0, 0.55, cache=cache, **kw)
         assert p.info["cache"] == expect
         assert np.array_equal(p.data, ref.data)
+
+
+@pytest.mark.parametrize("kw", [{"deterministic": True}, {"amplitude": "paper"}, {"pixel_values": "intensity"},
+                                {"dtype": "float32"}])
+def test_hit_bits_on_the_other_paths(kw):
+    """The fixed-point splat (deterministic), the paper amplitude convention, intensity pixels and float32 rays: a
+    hit's PSF is the uncached call's, bit for bit."""
+    lens = doe_lens()
+    ref = rw.psf(lens, 0.3, 0.45, size=16, method="focal", **kw)
+    cache = rw.PlanCache()
+    for expect in ("miss", "hit"):
+        p = rw.psf(lens, 0.3, 0.45, size=16, method="focal", cache=cache, **kw)
+        assert p.info["cache"] == expect
+        assert np.array_equal(p.data, ref.data)
+
+
+def test_results_do_not_alias_the_kept_arrays():
+    """A kept batch reuses its work arrays (rays, splat sums, field) on every hit: what an earlier call returned (PSF
+    data, traced fraction, dropped-ray count) stays as it was after later hits of another field's entry and of its
+    own."""
+    lens = doe_lens()
+    cache = rw.PlanCache()
+    a = rw.psf(lens, 0.0, 0.55, size=16, method="focal", cache=cache)
+    a_data, a_vf = a.data.copy(), float(a.info["valid_fraction"])
+    for f in (0.3, 0.0, 0.3, 0.0):
+        rw.psf(lens, f, 0.55, size=16, method="focal", cache=cache)
+    assert np.array_equal(a.data, a_data) and float(a.info["valid_fraction"]) == a_vf
+
+
+def test_an_implicit_budget_is_checked_on_every_hit(monkeypatch):
+    """Without ``memory_budget_gb`` a call plans under half the available memory of the moment; a kept entry whose
+    batches no longer fit it is dropped and the call plans again, refusing as the uncached call does."""
+    from rwwarp.wave import plan as plan_mod
+    from rwwarp.wave.plan import MemoryBudgetError
+    lens = doe_lens()
+    cache = rw.PlanCache()
+    rw.psf(lens, 0.0, 0.55, size=16, method="asm", cache=cache)
+    assert rw.psf(lens, 0.0, 0.55, size=16, method="asm", cache=cache).info["cache"] == "hit"
+    monkeypatch.setattr(plan_mod, "default_memory_budget_bytes", lambda device="cpu": 1024)
+    with pytest.raises(MemoryBudgetError):
+        rw.psf(lens, 0.0, 0.55, size=16, method="asm")
+    with pytest.raises(MemoryBudgetError):
+        rw.psf(lens, 0.0, 0.55, size=16, method="asm", cache=cache)
+    assert len(cache) == 0
