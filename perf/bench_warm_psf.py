@@ -21,7 +21,19 @@ from pathlib import Path
 import numpy as np
 
 CONFIGS = [("a489_doe", 0.0, 8, 0.1), ("a489_doe", 10.0, 8, 0.1), ("ac254_100_a", 0.0, 8, 0.1),
-           ("cooke_triplet", 0.0, 8, 0.1), ("a489_doe", 0.0, 64, 1.0)]
+           ("cooke_triplet", 0.0, 8, 0.1), ("a489_doe", 0.0, 64, 1.0), ("thin_doe_asm", 0.0, 16, 1.0)]
+
+
+def thin_doe_lens(rw):
+    """tests/rwwarp/test_map.py's small system (aperture 1 mm, ideal f = 50 mm lens, even-polynomial DOE 10 mm before
+    the sensor): its 16 px ASM plan (20^2 samples, FFT 40^2, 17^2 rays) leaves the kernels nearly nothing, so its
+    time is the host's (launches, uploads, Python)."""
+    from rwwarp.lens import Lens, Sensor, Surface
+    doe = {"kind": "even_poly", "norm_radius": 0.5, "coefficients": [20.0, -5.0]}
+    surfs = [Surface(type="aperture", semi_diameter=0.5, shape="circle", stop=True),
+             Surface(type="thin_lens", focal_length=50.0, semi_diameter=1.0, thickness=40.0),
+             Surface(type="doe", semi_diameter=1.0, shape="square", thickness=10.0, profile=doe)]
+    return Lens(surfs, Sensor(0.55e-3 * 50.0 / 3, (1000, 1000)), wavelengths_um=[0.55])
 
 
 def counts(call):
@@ -57,12 +69,13 @@ def bench(reps):
     warnings.simplefilter("ignore")
     rows = []
     for name, field, size, rps in CONFIGS:
-        lens = rw.load_lens(name)
+        lens = thin_doe_lens(rw) if name == "thin_doe_asm" else rw.load_lens(name)
+        method = "asm" if name == "thin_doe_asm" else "auto"
         modes = [("uncached", {})]
         if hasattr(rw, "PlanCache"):
             modes.append(("cached", {"cache": rw.PlanCache()}))
         for mode, extra in modes:
-            kw = dict(size=size, rays_per_sample=rps, **extra)
+            kw = dict(size=size, rays_per_sample=rps, method=method, **extra)
             for _ in range(3):
                 rw.psf(lens, field, 0.55, **kw)
             n = max(5, reps if size <= 16 else reps // 4)
