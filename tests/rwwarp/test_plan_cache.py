@@ -232,3 +232,33 @@ def test_an_implicit_budget_is_checked_on_every_hit(monkeypatch):
     with pytest.raises(MemoryBudgetError):
         rw.psf(lens, 0.0, 0.55, size=16, method="asm", cache=cache)
     assert len(cache) == 0
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name,field,method", [("a489_doe", 0.0, "asm"), ("a489_doe", 10.0, "focal"),
+                                               ("cooke_triplet", 14.0, "focal")])
+def test_cuda_hit_gives_the_bits_of_the_uncached_call(name, field, method):
+    """On CUDA (not run on the CPU-only machine this was written on): a hit (the kept batch's pooled Warp arrays, its DOE
+    phase uploaded once, its CuPy focal operators and DOE factor) equals the uncached call to within what two uncached
+    calls differ by (nothing, when the device's sums are deterministic: the deterministic splat; exactly equal then),
+    and a changed sensor pitch is a miss that gives its own uncached call."""
+    try:
+        import cupy
+        if cupy.cuda.runtime.getDeviceCount() < 1:
+            raise RuntimeError
+    except Exception:
+        pytest.skip("no CUDA device")
+    lens = rw.load_lens(name)
+    kw = dict(size=32, method=method, device="cuda", deterministic=True)
+    ref = rw.psf(lens, field, 0.55, **kw).data
+    noise = float(np.max(np.abs(rw.psf(lens, field, 0.55, **kw).data - ref)))   # run to run, uncached
+    cache = rw.PlanCache()
+    for expect in ("miss", "hit", "hit"):
+        p = rw.psf(lens, field, 0.55, cache=cache, **kw)
+        assert p.info["cache"] == expect
+        assert float(np.max(np.abs(p.data - ref))) <= 2.0 * noise, (expect, noise)
+    lens.sensor.pixel_pitch *= 1.05
+    p = rw.psf(lens, field, 0.55, cache=cache, **kw)
+    assert p.info["cache"] == "miss"
+    assert float(np.max(np.abs(p.data - rw.psf(lens, field, 0.55, **kw).data))) <= 2.0 * noise
+    assert float(np.max(np.abs(p.data[:ref.shape[0], :ref.shape[1]] - ref))) > 2.0 * noise   # the change shows
