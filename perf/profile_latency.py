@@ -1,16 +1,30 @@
-"""Where one PSF's latency goes on a device: stage timings (synchronised) and a cProfile by own time.
+"""Where one PSF's latency goes on a device: the warm ``rw.psf`` call planned every time and through a
+:class:`rwwarp.PlanCache` (issue 25: <= 2 ms at 64 px on an H100), Warp launches a call, stage timings
+(synchronised) and a cProfile by own time.
 
-    python perf/profile_latency.py cuda [--lens a489_doe] [--field 0] [--reps 20]
+    python perf/profile_latency.py cuda [--lens a489_doe] [--field 0] [--size 64] [--reps 20]
+    python perf/profile_latency.py cuda --issue25 [--json perf/results/latency_gpu.json]   # the issue's five PSFs
+
+``--issue25``: Cooke triplet 0 / 14 deg, AC254 0 deg, A489 0 / 10 deg at 0.55 um, ``--size`` px: per PSF the
+uncached and cached warm medians and minima (ms) and the Warp launches of each call; no stages or profile.
 """
 import argparse
 import cProfile
+import json
 import pstats
+import subprocess
+import sys
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 
-import rwwarp as rw
-from rwwarp.psf import RayWave
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import rwwarp as rw  # noqa: E402
+from rwwarp.psf import RayWave  # noqa: E402
+
+ISSUE25 = [("cooke_triplet", 0.0), ("cooke_triplet", 14.0), ("ac254_100_a", 0.0), ("a489_doe", 0.0), ("a489_doe", 10.0)]
 
 
 def sync(device):
@@ -24,30 +38,94 @@ def sync(device):
             pass
 
 
+def launches(call):
+    """Warp launches made by ``call()`` (``warp.launch`` wrapped)."""
+    import warp as wp
+    orig, n = wp.launch, [0]
+
+    def counted(*a, **k):
+        n[0] += 1
+        return orig(*a, **k)
+    wp.launch = counted
+    try:
+        call()
+    finally:
+        wp.launch = orig
+    return n[0]
+
+
+def warm_times(lens, field, wl, device, size, reps, cache=None):
+    """(median ms, min ms, launches a call) of repeated ``rw.psf`` calls after 3 warm-up calls."""
+    kw = dict(device=device, size=size, cache=cache)
+    for _ in range(3):
+        rw.psf(lens, field, wl, **kw)
+    sync(device)
+    t = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        rw.psf(lens, field, wl, **kw)
+        sync(device)
+        t.append(time.perf_counter() - t0)
+    n = launches(lambda: rw.psf(lens, field, wl, **kw))
+    return 1e3 * float(np.median(t)), 1e3 * float(np.min(t)), n
+
+
+def issue25(a):
+    rows = []
+    for name, field in ISSUE25:
+        lens = rw.load_lens(name)
+        plain = warm_times(lens, field, a.wl, a.device, a.size, a.reps)
+        cache = rw.PlanCache()
+        cached = warm_times(lens, field, a.wl, a.device, a.size, a.reps, cache)
+        p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache)
+        rows.append({"lens": name, "field_deg": field, "method": p.plan["method"], "n_grid": p.plan["n_grid"],
+                     "ray_grid": p.plan["ray_grid"], "uncached_median_ms": plain[0], "uncached_min_ms": plain[1],
+                     "uncached_launches": plain[2], "cached_median_ms": cached[0], "cached_min_ms": cached[1],
+                     "cached_launches": cached[2], "cache_held_bytes": cache.nbytes()})
+        r = rows[-1]
+        print(f"{name:14s} {field:5.1f} deg {r['method']:5s} grid {r['n_grid']:5d} rays {r['ray_grid']:4d}: "
+              f"uncached {plain[0]:8.2f} ms (min {plain[1]:.2f}, {plain[2]} launches), cached {cached[0]:8.2f} ms "
+              f"(min {cached[1]:.2f}, {cached[2]} launches), cache holds {cache.nbytes() / 2 ** 20:.3g} MiB", flush=True)
+    if a.json:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+        out = {"commit": commit, "device": a.device, "size": a.size, "wavelength_um": a.wl, "reps": a.reps, "rows": rows}
+        try:
+            import warp as wp
+            out["device_name"] = wp.get_device(a.device if a.device.startswith("cuda") else "cpu").name
+        except Exception:  # noqa: BLE001
+            pass
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps(out, indent=1) + "\n")
+        print(f"wrote {a.json}")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("device", nargs="?", default="cpu")
     ap.add_argument("--lens", default="a489_doe")
     ap.add_argument("--field", type=float, default=0.0)
     ap.add_argument("--wl", type=float, default=0.55)
+    ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--reps", type=int, default=20)
+    ap.add_argument("--issue25", action="store_true", help="the issue's five PSFs, uncached and cached")
+    ap.add_argument("--json", default=None)
     a = ap.parse_args()
+    warnings.simplefilter("ignore")
+    if a.issue25:
+        return issue25(a)
     lens = rw.load_lens(a.lens)
-    for _ in range(3):
-        rw.psf(lens, a.field, a.wl, device=a.device)
-    sync(a.device)
-    t = []
-    for _ in range(a.reps):
-        t0 = time.perf_counter()
-        rw.psf(lens, a.field, a.wl, device=a.device)
-        sync(a.device)
-        t.append(time.perf_counter() - t0)
-    print(f"rw.psf median {1e3 * np.median(t):.2f} ms, min {1e3 * np.min(t):.2f} ms over {a.reps}")
+    med, mn, n = warm_times(lens, a.field, a.wl, a.device, a.size, a.reps)
+    print(f"rw.psf median {med:.2f} ms, min {mn:.2f} ms over {a.reps}, {n} Warp launches a call")
+    cache = rw.PlanCache()
+    med, mn, n = warm_times(lens, a.field, a.wl, a.device, a.size, a.reps, cache)
+    print(f"rw.psf with a PlanCache: median {med:.2f} ms, min {mn:.2f} ms over {a.reps}, {n} Warp launches a call "
+          f"({cache})")
     # stages
     stages = {"init": [], "field": [], "intensity": []}
     for _ in range(a.reps):
         t0 = time.perf_counter()
-        r = RayWave(lens, [(0.0, a.field)], [a.wl], 64, lens.sensor.pixel_pitch, device=a.device)
+        r = RayWave(lens, [(0.0, a.field)], [a.wl], a.size, lens.sensor.pixel_pitch, device=a.device)
         sync(a.device)
         t1 = time.perf_counter()
         u = r.field_array()
@@ -60,14 +138,16 @@ def main():
         stages["init"].append(t1 - t0)
         stages["field"].append(t2 - t1)
         stages["intensity"].append(t3 - t2)
-    print("stages (median ms): " + ", ".join(f"{k} {1e3 * np.median(v):.2f}" for k, v in stages.items()))
-    pr = cProfile.Profile()
-    pr.enable()
-    for _ in range(5):
-        rw.psf(lens, a.field, a.wl, device=a.device)
-    sync(a.device)
-    pr.disable()
-    pstats.Stats(pr).sort_stats("tottime").print_stats(30)
+    print("stages of an asm RayWave (median ms): " + ", ".join(f"{k} {1e3 * np.median(v):.2f}" for k, v in stages.items()))
+    for label, c in (("uncached", None), ("cached", cache)):
+        pr = cProfile.Profile()
+        pr.enable()
+        for _ in range(5):
+            rw.psf(lens, a.field, a.wl, device=a.device, size=a.size, cache=c)
+        sync(a.device)
+        pr.disable()
+        print(f"---- cProfile, 5 {label} calls")
+        pstats.Stats(pr).sort_stats("tottime").print_stats(25)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from .io import load_lens
 from .metrics.analysis import spot_rms, spot_diagram
 from .psf import psf, psf_map, plan_psf, PSF, PSFMap
 from .wave.plan import Plan
+from .wave.plan_cache import PlanCache
 from .metrics import (mtf, through_focus_mtf, strehl, encircled_energy, ensquared_energy,
                       chromatic_focal_shift, field_curves)
 
@@ -40,7 +41,7 @@ def layout(lens, path, fields_deg=None, wavelength_um=None, rays: int = 7):
 from .lenses import bundled_lenses
 
 __all__ = ["LensError", "ArgumentError", "LensFileError", "GlassError", "GeometryError", "SamplingWarning", "Lens", "Surface",
-           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "plan_psf", "PSF", "PSFMap", "Plan",
+           "Sensor", "load_lens", "spot_rms", "spot_diagram", "psf", "psf_map", "plan_psf", "PSF", "PSFMap", "Plan", "PlanCache",
            "mtf", "through_focus_mtf", "strehl", "encircled_energy", "ensquared_energy", "chromatic_focal_shift",
            "field_curves", "layout", "bundled_lenses", "MTF", "ThroughFocusMTF", "EnergyCurve", "Strehl",
            "ChromaticFocalShift", "FieldCurves", "__version__"]

@@ -13,6 +13,8 @@ each sensor pixel (box integration of |U|^2 over the pixel). Lengths in mm, wave
 """
 from __future__ import annotations
 
+import contextlib
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -114,7 +116,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
         focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux",
-        tolerance: float | None = None) -> PSF:
+        tolerance: float | None = None, cache=None) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -192,6 +194,10 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         estimated from the scene (:mod:`rwwarp.wave.model_error`; in the plan and ``--explain``); above
         ``tolerance``, ``method="auto"`` adds the wave step, and an explicit ``"asm"`` / ``"focal"`` warns
         (:class:`rwwarp.wave.model_error.ModelErrorWarning`). None (default): estimate and report only.
+    cache : rwwarp.PlanCache, optional
+        Keep this call's pilot trace, plan, batches and propagation operators in the given
+        :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens
+        values and arguments (wave models; the same bits as without it). None (default): plan every call.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
@@ -199,7 +205,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
                 use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
                 method=method, memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol,
                 focal_precision=focal_precision, deterministic=deterministic, pixel_values=pixel_values,
-                tolerance=tolerance)
+                tolerance=tolerance, cache=cache)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -233,7 +239,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
             focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False,
-            pixel_values: str = "flux", tolerance: float | None = None) -> PSFMap:
+            pixel_values: str = "flux", tolerance: float | None = None, cache=None) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -247,7 +253,9 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     budget); ``progress`` shows a tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields,
     n_wavelengths, size, size); ``info["batches"]`` lists each batch's (field, wavelength) index pairs,
     ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
-    ``plan``. Other arguments as :func:`psf`.
+    ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values
+    and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss").
+    Other arguments as :func:`psf`.
     """
     from . import checks  # arguments at the public edge (issue 12): names the argument and its range
     checks.check_lens(lens)
@@ -263,6 +271,9 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     checks.check_center(center_mm)
     checks.check_batch(batch)
     checks.check_nyquist_safety(nyquist_safety)
+    from .wave.plan_cache import PlanCache
+    if cache is not None and not isinstance(cache, PlanCache):
+        raise TypeError(f"cache must be a rwwarp.PlanCache or None, got {type(cache).__name__}")
     if not isinstance(deterministic, bool):
         raise TypeError(f"deterministic must be True or False, got {deterministic!r}")
     if gauss_nodes is not None:
@@ -325,16 +336,11 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
         # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
         # (arrays sized to the batch's largest member; rwwarp.wave.packed.PackedRayWave), each propagated alone
-        for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel,
-                                               object_distance_mm, opts):
-            for chunk_idx in pack_sources(members, size, batch, budget):
-                if members[chunk_idx[0]].plan.method == "pixel":   # no wave-plane field to pack: alone
-                    res = members[chunk_idx[0]].run(focal_precision)
-                else:
-                    res = PackedRayWave([members[k] for k in chunk_idx]).run(focal_precision)
-                store([sys_pairs[k] for k in chunk_idx], res)
-                for k in chunk_idx:
-                    members[k] = None   # done: its operators and tracer can go
+        if focal_precision == "auto":   # as RayWave.run resolves it
+            focal_precision = "double" if str(device).startswith("cuda") else "single"
+        with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
+            _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
+                      memory_budget_gb, focal_precision, opts, cache, info, store)
     else:
         b = batch or len(pairs)
         for k in range(0, len(pairs), b):
@@ -366,6 +372,48 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                       stacklevel=2)
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
+
+
+def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
+              memory_budget_gb, focal_precision, opts, cache, info, store):
+    """The wave models' part of :func:`psf_map`: plan (or take from ``cache``) and run every batch, handing each
+    batch's result to ``store(pairs, result)``. ``focal_precision`` resolved ("single" / "double")."""
+    kept = key = None
+    if cache is not None:
+        args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
+                memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))
+        key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
+        info["cache"] = "miss" if kept is None else "hit"
+    from .wave.plan_cache import held_bytes
+    if kept is not None:
+        for chunk, packed in kept:   # the pilot, plans, batches and operators of an earlier call
+            store(chunk, packed.run(focal_precision, keep_operators=True))
+    else:
+        keep = cache is not None
+        run_lens = copy.deepcopy(lens) if keep else lens   # kept batches see no later change of the caller's lens
+        new, need, held = [], 0, 0
+        for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
+                                               object_distance_mm, opts):
+            for chunk_idx in pack_sources(members, size, batch, budget):
+                if members[chunk_idx[0]].plan.method == "pixel":
+                    # no wave-plane field to pack: computed alone, and a call with such a member keeps nothing
+                    store([sys_pairs[k] for k in chunk_idx], members[chunk_idx[0]].run(focal_precision))
+                    keep, new = False, []
+                    members[chunk_idx[0]] = None
+                    continue
+                packed = PackedRayWave([members[k] for k in chunk_idx], hold=keep)
+                res = packed.run(focal_precision, keep_operators=keep)
+                store([sys_pairs[k] for k in chunk_idx], res)
+                if keep:
+                    new.append(([sys_pairs[k] for k in chunk_idx], packed))
+                    need = max(need, packed_bytes(packed.members, size))
+                    held += held_bytes(new[-1:])
+                    if held > cache.max_bytes:   # over the cache's bound: nothing of this call is kept
+                        keep, new = False, []
+                for k in chunk_idx:
+                    members[k] = None   # done: its operators and tracer can go
+        if keep:
+            cache.store(key, new, need)
 
 
 # ---------------------------------------------------------------------------------------------- helpers

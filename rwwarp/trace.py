@@ -295,6 +295,11 @@ class Tracer:
             raise ValueError(f"Tracer: grad_replicas must be a power of two >= 1, got {grad_replicas!r}")
         self.grad_replicas = r
         self.deterministic = bool(deterministic)
+        #: None, or a dict of work arrays reused by every forward-only launch sequence of this tracer (its traces,
+        #: and the splat's and reductions' arrays of :meth:`rwwarp.wave.raywave.RayWave.field`): set on a batch kept
+        #: for repeated runs (:class:`rwwarp.wave.plan_cache.PlanCache`), whose rays and sums are read before the
+        #: next run; the rays and arrays a run returns are then overwritten by the next
+        self.pool = None
         wl0 = self.wavelengths_um[0]
         self.pupils = paraxial.pupils(lens, wl0)
         nw = len(self.wavelengths_um)
@@ -613,14 +618,25 @@ class Tracer:
              (src["finite"], np.int32, wp.int32), (src["aim"], fdt, K.vec3), (src["half_x"], fdt, sc),
              (src["half_y"], fdt, sc), (src["wl"], np.int32, wp.int32)], dev, cache=True)
 
+        pooled = self.pool is not None and not g   # a kept batch's forward run: the same arrays every run
+        made = [0]
+
         def new():
+            if pooled:
+                made[0] += 1
+                tag = ("state", made[0])
+                return (self.work_array(tag + (0,), n, K.vec3), self.work_array(tag + (1,), n, K.vec3),
+                        self.work_array(tag + (2,), n, sc), self.work_array(tag + (3,), n, wp.int32))
             return _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=sc, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=wp.int32, device=dev)))
         gen = new()
-        wl = wp.empty(n, dtype=wp.int32, device=dev)
-        weight = wp.empty(n, dtype=sc, device=dev)
+        if pooled:
+            wl, weight = self.work_array("wl", n, wp.int32), self.work_array("weight", n, sc)
+        else:
+            wl = wp.empty(n, dtype=wp.int32, device=dev)
+            weight = wp.empty(n, dtype=sc, device=dev)
         circle = int(src["shape"] == "circle")
         frac, stride = self.no_rim_cells(), 0
         if rim and circle and grid_n > 0:
@@ -628,7 +644,7 @@ class Tracer:
         if grids is not None:
             if rim and circle:
                 circle, frac, stride = 2, self.packed_rim_cells(grids, npup), npup
-            g_src, c_src = upload_packed([(grids, np.int32, wp.int32), (cells, fdt, sc)], dev)
+            g_src, c_src = upload_packed([(grids, np.int32, wp.int32), (cells, fdt, sc)], dev, cache=True)
         else:
             g_src, c_src = self._placeholders()
         inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
@@ -661,11 +677,12 @@ class Tracer:
                     t_buf = wp.empty(n, dtype=sc, device=dev)
                 else:
                     if t_shared is None:
-                        t_shared = wp.empty(n, dtype=sc, device=dev)
+                        t_shared = self.work_array("t", n, sc) if pooled else wp.empty(n, dtype=sc, device=dev)
                     t_buf = t_shared
             else:
-                if t_dummy is None:
-                    t_dummy = wp.zeros(1, dtype=sc, device=dev)  # placeholder for non-refracting surfaces
+                if t_dummy is None:   # placeholder for non-refracting surfaces
+                    t_dummy = self.work_array("t_dummy", 1, sc, zero=True) if pooled else \
+                        wp.zeros(1, dtype=sc, device=dev)
                 t_buf = t_dummy
             steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n), n_in, n_out,
                           t_buf))
@@ -685,16 +702,26 @@ class Tracer:
         plane's position is not differentiated). Returns new :class:`Rays`."""
         K, dev, sc, g = self.K, self.device, self.scalar, self.requires_grad
         n = rays.pos.shape[0]
-        row = np.zeros(ktrace.N_PARAMS)
-        row[ktrace.P_Z] = z_mm
-        row[ktrace.P_SD] = -1.0
-        params = wp.array(row.astype(self.np_dtype)[None], dtype=sc, device=dev)
-        out = _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
-                                          wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
-                                          wp.empty(n, dtype=sc, device=dev, requires_grad=g),
-                                          wp.empty(n, dtype=wp.int32, device=dev)))
+        pooled = self.pool is not None and not g   # a kept batch's forward run: the same arrays every run
+        params = self.pool.get(("plane_row", float(z_mm))) if pooled else None
+        if params is None:
+            row = np.zeros(ktrace.N_PARAMS)
+            row[ktrace.P_Z] = z_mm
+            row[ktrace.P_SD] = -1.0
+            params = wp.array(row.astype(self.np_dtype)[None], dtype=sc, device=dev)
+            if pooled:
+                self.pool[("plane_row", float(z_mm))] = params
+        if pooled:
+            out = (self.work_array(("to_plane", 0), n, K.vec3), self.work_array(("to_plane", 1), n, K.vec3),
+                   self.work_array(("to_plane", 2), n, sc), self.work_array(("to_plane", 3), n, wp.int32))
+            dummy = self.work_array("t_dummy", 1, sc, zero=True)
+        else:
+            out = _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                              wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
+                                              wp.empty(n, dtype=sc, device=dev, requires_grad=g),
+                                              wp.empty(n, dtype=wp.int32, device=dev)))
+            dummy = wp.zeros(1, dtype=sc, device=dev)
         idx = self.n_tables[surface_index]
-        dummy = wp.zeros(1, dtype=sc, device=dev)
         wp.launch(K.surface_kernel, dim=n, inputs=[rays.pos, rays.dir, rays.opl, rays.valid, rays.wl, params, 0, idx,
                                                    idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
         return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
@@ -706,7 +733,10 @@ class Tracer:
         :attr:`deterministic`: a copy for each of the ``n_rays`` rays (the next power of two), so no two rays
         add into one address, made in two levels whose adjoints sum in a fixed order."""
         if not self.requires_grad or not p.requires_grad:
-            return p.reshape((1, ktrace.N_PARAMS)), 0
+            rows = getattr(p, "_rw_rows", None)   # the (1, N_PARAMS) view, made once per parameter array
+            if rows is None:
+                rows = p._rw_rows = p.reshape((1, ktrace.N_PARAMS))
+            return rows, 0
         r = self.grad_replicas
         if self.deterministic:
             r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())
@@ -726,6 +756,19 @@ class Tracer:
         wp.launch(self.K.replicate_kernel, dim=(ktrace.N_PARAMS, r // per), inputs=[p, per], outputs=[rows],
                   device=self.device)
         return rows, r - 1
+
+    def work_array(self, tag, shape, dtype, zero: bool = False):
+        """A forward-only work array (no gradient): from :attr:`pool` when set (made on first use under ``(tag, shape,
+        dtype)``, zeroed again when ``zero``), else a new ``wp.zeros`` / ``wp.empty`` on the tracer's device."""
+        if self.pool is None:
+            return (wp.zeros if zero else wp.empty)(shape, dtype=dtype, device=self.device)
+        key = (tag, shape, dtype)
+        a = self.pool.get(key)
+        if a is None:
+            a = self.pool[key] = _with_release(self.device, lambda: wp.zeros(shape, dtype=dtype, device=self.device))
+        elif zero:
+            a.zero_()
+        return a
 
     def _chunks(self, n: int):
         """Ray index ranges traced in parallel: one per thread on the CPU without a tape and with at least

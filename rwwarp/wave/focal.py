@@ -455,10 +455,20 @@ def sensor_taper(p, lo, hi):
     return 1.0 - e(t) / (e(t) + e(1.0 - t))
 
 
+_PIXEL_WEIGHTS: dict = {}   # (gauss_nodes, pixel_mm) -> weights, computed once (a few dozen entries at most)
+
+
 def pixel_weights(gauss_nodes: int, pixel_mm: float) -> np.ndarray:
-    """Gauss-Legendre quadrature weights (g, g) of one pixel's area (mm^2), node order as the output nodes."""
-    _, wts = np.polynomial.legendre.leggauss(int(gauss_nodes))
-    return np.outer(wts, wts) * (0.5 * pixel_mm) ** 2
+    """Gauss-Legendre quadrature weights (g, g) of one pixel's area (mm^2), node order as the output nodes
+    (a new array each call; the values are computed once per ``(gauss_nodes, pixel_mm)``)."""
+    key = (int(gauss_nodes), float(pixel_mm))
+    w = _PIXEL_WEIGHTS.get(key)
+    if w is None:
+        _, wts = np.polynomial.legendre.leggauss(key[0])
+        w = np.outer(wts, wts) * (0.5 * key[1]) ** 2
+        if len(_PIXEL_WEIGHTS) < 256:
+            _PIXEL_WEIGHTS[key] = w
+    return w.copy()
 
 
 def pixel_power(u_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):

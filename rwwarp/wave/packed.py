@@ -60,9 +60,12 @@ class PackedRayWave(RayWave):
     splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
     one lens, device, precision, amplitude convention and propagation method. Lengths in mm.
     ``requires_grad``: the batch's tracer keeps gradient buffers, so its :meth:`field` can be recorded on a
-    ``wp.Tape`` and differentiated with respect to ``tracer.params`` (:mod:`torch_bridge`)."""
+    ``wp.Tape`` and differentiated with respect to ``tracer.params`` (:mod:`torch_bridge`). ``hold``: the batch
+    is kept for repeated runs (:class:`rwwarp.wave.plan_cache.PlanCache`): it and its members keep what their
+    runs derive from the plan alone (DOE phases and factors on the windows, the small per-source uploads), so a
+    kept batch must not be changed (its lens is the cache's private copy)."""
 
-    def __init__(self, members, requires_grad: bool = False):
+    def __init__(self, members, requires_grad: bool = False, hold: bool = False):
         if not members or any(m.nsrc != 1 for m in members):
             raise ValueError("PackedRayWave takes single-source RayWave members")
         if any(m.plan.method == "pixel" for m in members):
@@ -113,6 +116,10 @@ class PackedRayWave(RayWave):
         self._grids = np.array([m.plan.n_grid for m in members])
         self._ray_grids = np.array([m.plan.ray_grid for m in members])
         self._pitches = np.array([m.plan.pitch_mm for m in members])
+        if hold:
+            for m in [self] + self.members:
+                m._memo = {}
+            self.tracer.pool = {}   # its rays, splat sums and field: the same arrays every run
 
     def _layout(self) -> dict:
         return {"ray_grids": self._ray_grids, "slots": int(self._ray_grids.max()) ** 2, "grids": self._grids,
@@ -128,13 +135,13 @@ class PackedRayWave(RayWave):
         """Each member's plan (:class:`rwwarp.wave.plan.Plan`)."""
         return [m.plan for m in self.members]
 
-    def run(self, focal_precision: str = "auto") -> dict:
+    def run(self, focal_precision: str = "auto", keep_operators: bool = False) -> dict:
         """PSFs of every member as fractions of its entering power per pixel, each propagated by its own plan
-        (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts."""
+        (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts. ``keep_operators``:
+        the members keep their focal operators for the next run (a kept batch), else they are dropped."""
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         u_all = self.field_array()
-        entering = self.entering
         data = []
         for k, m in enumerate(self.members):
             n = m.plan.n_grid
@@ -144,11 +151,15 @@ class PackedRayWave(RayWave):
             else:
                 phi0, scale = m.doe_phase()
                 d = m.intensity(u, phi0, scale)
-            m.release_operators()
-            data.append(np.asarray(d)[0] / entering[k])
-        data = np.stack(data)
+            if not keep_operators:
+                m.release_operators()
+            data.append(np.asarray(d)[0])
+        # the power sums are read after the propagations are queued: on a GPU the host does not wait for the
+        # trace and splat before it launches the rest
+        entering = self.entering
+        data = np.stack([d / entering[k] for k, d in enumerate(data)])
         if not np.all(np.isfinite(data)):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         plans = [m.plan.to_dict() for m in self.members]
         return {"data": data, "centers": self.centers, "plan": plans[-1], "plans": plans,
-                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+                "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy().copy()}

@@ -61,10 +61,19 @@ def next_fft_size(n: int) -> int:
         n += 1
 
 
+_LEGGAUSS: dict = {}   # order -> (nodes, weights), computed once
+
+
 def gauss_legendre(order: int):
-    """Gauss-Legendre nodes ``t`` and weights ``w`` on [-1, 1] (numpy float64 arrays of ``order``)."""
-    t, w = np.polynomial.legendre.leggauss(int(order))
-    return t, w
+    """Gauss-Legendre nodes ``t`` and weights ``w`` on [-1, 1] (numpy float64 arrays of ``order``; new arrays
+    each call, the values computed once per order)."""
+    key = int(order)
+    tw = _LEGGAUSS.get(key)
+    if tw is None:
+        tw = np.polynomial.legendre.leggauss(key)
+        if len(_LEGGAUSS) < 256:
+            _LEGGAUSS[key] = tw
+    return tw[0].copy(), tw[1].copy()
 
 
 def band_limits(wavelength_mm, distance_mm, window_mm, shift_mm):

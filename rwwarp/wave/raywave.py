@@ -488,11 +488,12 @@ class RayWave:
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
         K = self.splatter.K
-        terms = wp.empty(nsrc * npup, dtype=K.vec4d, device=tr.device)
+        terms = tr.work_array("power_terms", nsrc * npup, K.vec4d)   # pooled on a kept batch
         wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
                   device=tr.device, record_tape=False)   # not differentiated: off any active tape
         # per source (entering, valid) power: a fixed summation tree, the same bits on every run
-        self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device), None  # read when asked
+        self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device,   # read when asked
+                                                 work=tr.work_array if tr.pool is not None else None), None
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
         if not self.chief_ok.all():
             valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
@@ -506,6 +507,7 @@ class RayWave:
                 opl_p[k] = all_opl[k, j]
         n = lay["n_stride"]
         sp = self.splatter
+        held = getattr(self, "_memo", None) is not None   # a kept batch: its small uploads by content (LRU)
         # 2: pixel_values "flux", the field whose z-flux is the tube irradiance (amplitude / sqrt(cos), splat.py)
         energy = (2 if self.pixel_values == "flux" else 1) if self.amplitude == "energy" else 0
         rim_args = self._rim_args(rim)
@@ -514,7 +516,7 @@ class RayWave:
             grid_src, frac_stride, n_arg = sp.grid_placeholder(), 0, n
         else:   # a packed batch: each source's own pupil grid and window in slots of the largest
             ray_src, grid_src = upload_packed([(lay["ray_grids"], np.int32, wp.int32),
-                                               (lay["grids"], np.int32, wp.int32)], tr.device)
+                                               (lay["grids"], np.int32, wp.int32)], tr.device, cache=held)
             frac_stride = npup if rim else 0
             area, half = sp.tube_areas(rays, -1, rim_args, bool(energy), packed=(ray_src, npup, frac_stride))
             n_arg = -n
@@ -525,7 +527,7 @@ class RayWave:
              # the reference-sphere index carries the sign: + converging to T, - diverging from T
              (self.n_after * np.where(self.target[:, 2] >= self.z_plane, 1.0, -1.0), np.float64, wp.float64),
              (opl_p, np.float64, wp.float64), (2.0 * np.pi / self.lam_mm, np.float64, wp.float64),
-             (self.carrier, np.float64, wp.vec2d)], tr.device)
+             (self.carrier, np.float64, wp.vec2d)], tr.device, cache=held)
         geo = [origin, pitch, chief, target, index]
         splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
                    [opl_c, k_wave, int(self.use_reference), energy, n_arg, npup, *rim_args, grid_src, frac_stride]
@@ -561,7 +563,7 @@ class RayWave:
         """Per-source power sums of the last :meth:`field` call as the device array itself (a Warp array
         of ``(n_sources, 1)`` vec4 float64: entering power, traced power, then two unused slots; unit source
         radiance), with no host copy: a caller on the device reads it without synchronising. A new array
-        each :meth:`field` call."""
+        each :meth:`field` call (on a batch kept by a :class:`~rwwarp.wave.plan_cache.PlanCache`: the same one)."""
         return self._sums_dev
 
     def _power_sums(self):
@@ -601,8 +603,23 @@ class RayWave:
             u_field = paper_rescale_layout(self, u_field, xp.asarray(self.traced_power), xp)
         return u_field
 
+    def _memoised(self, name, make, *key):
+        """``make()``, kept for the next call with the same ``key`` when this RayWave is held for repeated runs
+        (:class:`rwwarp.wave.plan_cache.PlanCache`: its lens is a private copy; the windows are in the key)."""
+        memo = getattr(self, "_memo", None)
+        if memo is None:
+            return make()
+        key = (self.origin.tobytes(), self.plan.pitch_mm, self.plan.n_grid) + key
+        hit = memo.get(name)
+        if hit is None or hit[0] != key:
+            hit = memo[name] = (key, make())
+        return hit[1]
+
     def doe_phase(self):
         """phi0 (rad) on each window, (n_sources, n, n), and the per-source wavelength scale; or (None, None)."""
+        return self._memoised("doe_phase", self._doe_phase)
+
+    def _doe_phase(self):
         phi0 = doe_phase_grid(self.lens, self.plane, self.origin, self.plan.pitch_mm, self.plan.n_grid)
         if phi0 is None:
             return None, None
@@ -693,6 +710,10 @@ class RayWave:
             # PoCL: the OpenCL buffers use the numpy memory (zero-copy host pointers)
             u_field = be.wrap_host(u_field)
             phi0 = None if phi0 is None else be.wrap_host(phi0)
+        elif isinstance(phi0, np.ndarray) and getattr(self, "_memo", None) is not None:
+            # a kept batch (PlanCache) on a GPU: its DOE phase (memoised on the host) is uploaded once
+            host = phi0
+            phi0 = self._memoised("doe_phase_device", lambda: be.to_device(host), id(host))
         power = SensorPropagator(be, self.sensor_geometry(scale)).forward(u_field, phi0)
         return be.to_host(power)
 
@@ -738,6 +759,9 @@ class RayWave:
         (:func:`rwwarp.wave.focal.doe_order_series`, the chief ray's wrap zone exact), in the array namespace
         ``xp`` (the focal operator's: CuPy on CUDA); None without a DOE, for a blank DOE, or with only
         the zeroth order and c_0 = 1."""
+        return self._memoised("doe_orders_factor", lambda: self._doe_orders_factor(xp), xp.__name__)
+
+    def _doe_orders_factor(self, xp):
         from .focal import doe_order_series
         geo, prof = self.focal, self.focal["profile"]
         if prof is None:

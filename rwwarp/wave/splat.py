@@ -55,8 +55,12 @@ class Splatter:
         n = rays.pos.shape[0]
         if not energy and not g:
             return (wp.zeros(1, dtype=wp.float64, device=dev), wp.zeros(1, dtype=wp.vec2d, device=dev))
-        area = wp.zeros(n, dtype=wp.float64, device=dev, requires_grad=g)
-        half = wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=g)
+        if g:
+            area = wp.zeros(n, dtype=wp.float64, device=dev, requires_grad=g)
+            half = wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=g)
+        else:   # from the tracer's pool on a kept batch (Tracer.work_array)
+            area = self.tracer.work_array("tube_area", n, wp.float64, zero=True)
+            half = self.tracer.work_array("tube_half", n, wp.vec2d, zero=True)
         if packed is None:
             packed = (self.grid_placeholder(), 0, 0)
         if energy:
@@ -80,9 +84,13 @@ class Splatter:
         dev, g = tr.device, tr.requires_grad
         n_rays = splat_in[0].shape[0]
         total = n_src * n_grid * n_grid
-        s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
-        s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
-        dropped = wp.zeros(n_src, dtype=wp.int32, device=dev)
+        if g:
+            s_re = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+            s_im = wp.zeros(total, dtype=wp.float64, device=dev, requires_grad=g)
+        else:   # from the tracer's pool on a kept batch (Tracer.work_array)
+            s_re = tr.work_array("splat_re", total, wp.float64, zero=True)
+            s_im = tr.work_array("splat_im", total, wp.float64, zero=True)
+        dropped = wp.zeros(n_src, dtype=wp.int32, device=dev)   # new each run: RayWave.dropped outlives the run
         nb, na, nv, _ = self.placeholders()
         if self.deterministic:
             self._fixed(splat_in, s_re, s_im, dropped, n_src, n_grid)
@@ -134,7 +142,8 @@ class Splatter:
         tr, K = self.tracer, self.K
         dev, g = tr.device, tr.requires_grad
         # the finalize kernel writes every sample
-        field = (wp.zeros if g else wp.empty)(total, dtype=wp.vec2d, device=dev, requires_grad=g)
+        field = wp.zeros(total, dtype=wp.vec2d, device=dev, requires_grad=True) if g else \
+            tr.work_array("field", total, wp.vec2d)
         chunks = tr._chunks(total)
         run_chunks(lambda c, _: wp.launch(K.finalize_kernel, dim=total if c is None else c[1] - c[0],
                                           inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),

@@ -1,0 +1,247 @@
+"""A bounded cache of planned PSF computations for repeated calls (:class:`PlanCache`, issue 25).
+
+A wave-model call of :func:`rwwarp.psf` / :func:`rwwarp.psf_map` spends most of its host time before the
+first launch of the PSF itself: a pilot trace, the plan of every source, the tracers and the batches, and on
+the focal path the propagation operators (their factors are the largest arrays of a small PSF). A call with
+``cache=PlanCache(...)`` keeps all of that for the next call with the same lens values and the same arguments,
+and runs only the PSF's own launches then (trace, splat, propagation).
+
+What makes a hit: the lens's numbers (:func:`lens_fingerprint`: every surface field, the DOE profile and its
+arrays, the sensor, the object distance, pupil and the dispersion data of every material the lens names, so an
+in-place change of any of them is a miss), the call's arguments (fields, wavelengths, model, size, device,
+precision, plan, ...) and, where ``memory_budget_gb`` is not given, that the kept batches still fit the budget
+the call would have (half the available memory at the time of the call). The kept computation is planned on a
+private copy of the lens (a later change of the caller's lens cannot reach it), so a hit gives the bits the
+uncached call gives (same plans, same launches, same order of sums).
+
+Bounds, explicit: ``max_entries`` (least recently used entries go first) and ``max_bytes``, the memory the kept
+entries hold (the focal operators' factors, the kept DOE factors and phases, the batch tracers' tables and work
+arrays: rays, splat sums, field, reused by every run; :meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
+own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` (the default of the public calls) keeps
+nothing. Calls through one cache run one at a time (its lock is held for the whole wave computation: a kept
+batch's work arrays serve one run at a time). The ray model (``model="ray"``) has no plan and is not cached.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import pickle
+import struct
+import threading
+from collections import OrderedDict
+
+import numpy as np
+
+__all__ = ["PlanCache", "lens_fingerprint"]
+
+#: default bounds of a :class:`PlanCache`
+DEFAULT_MAX_ENTRIES = 8
+DEFAULT_MAX_BYTES = 1 << 30
+
+
+def _feed(h, v):
+    """Feed ``v`` (numbers, strings, None, lists, tuples, dicts, numpy arrays, dataclasses) into the hash ``h``
+    with its type, so that equal values and only those give equal bytes (1 and 1.0 differ: a cache is
+    exact)."""
+    if v is None:
+        h.update(b"N")
+    elif isinstance(v, bool) or isinstance(v, np.bool_):
+        h.update(b"B1" if v else b"B0")
+    elif isinstance(v, (int, np.integer)):
+        h.update(b"I" + str(int(v)).encode() + b";")
+    elif isinstance(v, (float, np.floating)):
+        h.update(b"F" + struct.pack("<d", float(v)))
+    elif isinstance(v, complex):
+        h.update(b"C" + struct.pack("<dd", v.real, v.imag))
+    elif isinstance(v, str):
+        b = v.encode()
+        h.update(b"S" + str(len(b)).encode() + b":" + b)
+    elif isinstance(v, bytes):
+        h.update(b"Y" + str(len(v)).encode() + b":" + v)
+    elif isinstance(v, np.ndarray):
+        a = np.ascontiguousarray(v)
+        h.update(b"A" + a.dtype.str.encode() + str(a.shape).encode())
+        if a.dtype == object:
+            for x in a.reshape(-1):
+                _feed(h, x)
+        else:
+            h.update(a.view(np.uint8).reshape(-1).data if a.size else b"")
+    elif isinstance(v, (list, tuple)):
+        h.update((b"L" if isinstance(v, list) else b"T") + str(len(v)).encode() + b"[")
+        for x in v:
+            _feed(h, x)
+        h.update(b"]")
+    elif isinstance(v, dict):
+        h.update(b"D" + str(len(v)).encode() + b"{")
+        for k in sorted(v, key=repr):
+            _feed(h, repr(k))
+            _feed(h, v[k])
+        h.update(b"}")
+    elif dataclasses.is_dataclass(v) and not isinstance(v, type):
+        h.update(b"O" + type(v).__qualname__.encode() + b"(")
+        for f in dataclasses.fields(v):
+            _feed(h, f.name)
+            _feed(h, getattr(v, f.name))
+        h.update(b")")
+    else:
+        raise TypeError(f"lens_fingerprint: cannot fingerprint a value of type {type(v).__name__} ({v!r:.60})")
+
+
+def _digest(v) -> bytes:
+    """16-byte digest of the value ``v``: of its pickle (exact: floats by their bits, arrays by their bytes,
+    dataclasses by their fields; ~20 us for a lens), or, for a value pickle refuses, of :func:`_feed`'s encoding.
+    Equal digests mean equal values; unequal ones may (rarely: the same value built another way, e.g. a list
+    shared by two surfaces) mean equal values too, which costs a miss, never a wrong hit."""
+    try:
+        return hashlib.blake2b(pickle.dumps(v, protocol=4), digest_size=16).digest()
+    except Exception:  # noqa: BLE001 - a value pickle refuses: the slower explicit encoding
+        h = hashlib.blake2b(digest_size=16)
+        _feed(h, v)
+        return h.digest()
+
+
+def lens_fingerprint(lens) -> bytes:
+    """A digest (16 bytes) of everything of ``lens`` a PSF depends on: every field of the :class:`~rwwarp.lens.Lens`
+    and of each :class:`~rwwarp.lens.Surface` (radii, thicknesses, aspheric terms, apertures, the DOE profile and
+    its arrays, ...), the :class:`~rwwarp.lens.Sensor`, and the dispersion data (formula, coefficients) of every
+    material the surfaces name, as the glass catalogues resolve it now. Computed afresh each call (a change made
+    in place to any of these gives another digest). A profile that reads its data from a file (a pixel map's
+    ``file``) adds the file's size and modification time (not its contents)."""
+    from .. import materials
+    files = []
+    for s in lens.surfaces:
+        prof = s.profile
+        if isinstance(prof, dict) and prof.get("file") is not None:
+            from pathlib import Path
+            p = Path(str(prof["file"])).expanduser()
+            if not p.is_absolute() and lens.source is not None:
+                p = Path(lens.source).parent / p
+            try:
+                st = p.stat()
+                files.append((str(p), st.st_size, st.st_mtime_ns))
+            except OSError:
+                files.append((str(p), None))
+    glass = []
+    for name in sorted({s.material for s in lens.surfaces}):
+        try:
+            m = materials.get_material(name)
+        except Exception as e:  # noqa: BLE001 - an unknown glass fails later, where the PSF needs it
+            glass.append(("unresolved", name, type(e).__name__))
+            continue
+        glass.append((name, m.formula, tuple(m.coefficients)))
+    return _digest((lens, glass, files))
+
+
+def _array_bytes(a) -> int:
+    """Bytes of the arrays in ``a`` (an array, or tuples / lists of them; other values count 0)."""
+    if isinstance(a, (tuple, list)):
+        return sum(_array_bytes(x) for x in a)
+    if isinstance(a, (bytes, str)):
+        return 0
+    n = getattr(a, "nbytes", None)
+    if n is None:
+        n = getattr(a, "capacity", 0)   # a Warp array
+    return int(n or 0)
+
+
+def held_bytes(batches) -> int:
+    """Device (and host) bytes the kept batches hold between calls: the members' focal operators and kept DOE
+    factors / phases, and each tracer's parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`)."""
+    total = 0
+    seen = set()
+    for _, packed in batches:
+        objs = [packed] + list(packed.members)
+        for m in objs:
+            op = getattr(m, "_focal_op", None)
+            if op is not None and id(op) not in seen:
+                seen.add(id(op))
+                total += int(op.nbytes)
+            for _, value in (getattr(m, "_memo", None) or {}).values():
+                total += _array_bytes(value)
+            tr = getattr(m, "tracer", None)
+            if tr is not None and id(tr) not in seen:
+                seen.add(id(tr))
+                total += int(tr.params_np.nbytes + tr.index_np.nbytes)
+                total += sum(_array_bytes(a) for a in (tr.pool or {}).values())   # rays, splat sums, field
+    return total
+
+
+class PlanCache:
+    """Planned PSF computations kept for repeated :func:`rwwarp.psf` / :func:`rwwarp.psf_map` calls (pass it as
+    ``cache=``): the pilot trace, the plans, the batches (:class:`rwwarp.wave.packed.PackedRayWave`, their tracers)
+    and the propagation operators of a call, reused by the next call with the same lens values and arguments
+    (module docstring: what makes a hit; a hit gives the same bits).
+
+    ``max_entries``: calls kept (least recently used first out; default 8). ``max_bytes``: device memory the kept
+    entries may hold together (bytes; default 1 GiB): an entry that would take the total over it evicts the
+    least recently used ones, and one over it on its own is not kept. :meth:`clear` drops everything.
+    ``hits``, ``misses`` and ``evictions`` count the look-ups."""
+
+    def __init__(self, max_entries: int = DEFAULT_MAX_ENTRIES, max_bytes: int = DEFAULT_MAX_BYTES):
+        if isinstance(max_entries, bool) or not isinstance(max_entries, (int, np.integer)) or max_entries < 1:
+            raise ValueError(f"PlanCache: max_entries must be an integer >= 1, got {max_entries!r}")
+        if isinstance(max_bytes, bool) or not isinstance(max_bytes, (int, float, np.integer)) or \
+                not (max_bytes >= 0 and math.isfinite(max_bytes)):
+            raise ValueError(f"PlanCache: max_bytes must be a number of bytes >= 0, got {max_bytes!r}")
+        self.max_entries = int(max_entries)
+        self.max_bytes = int(max_bytes)
+        self._entries: OrderedDict = OrderedDict()   # key -> (batches, held bytes, budget check)
+        self.hits = self.misses = self.evictions = 0
+        self.lock = threading.RLock()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __repr__(self) -> str:
+        return (f"PlanCache({len(self)}/{self.max_entries} entries, {self.nbytes() / 2 ** 20:.3g} of "
+                f"{self.max_bytes / 2 ** 20:.4g} MiB; {self.hits} hits, {self.misses} misses, {self.evictions} evicted)")
+
+    def nbytes(self) -> int:
+        """Bytes the kept entries hold (focal operators, DOE factors and phases, tracer tables and work arrays)."""
+        return int(sum(e[1] for e in self._entries.values()))
+
+    def clear(self):
+        """Drop every entry (their device arrays go with the last reference)."""
+        with self.lock:
+            self._entries.clear()
+
+    @staticmethod
+    def key(lens, args: tuple) -> tuple:
+        """The look-up key of a call: the lens's :func:`lens_fingerprint` and a digest of the call's arguments
+        ``args`` (a tuple of numbers, strings, None, arrays, plans, ...: every value that changes the result)."""
+        return (lens_fingerprint(lens), _digest(args))
+
+    def lookup(self, lens, args: tuple, budget_bytes: int | None = None):
+        """``(key, batches)``: the call's :meth:`key` and its kept batches (a list of ``(pairs, PackedRayWave)``), or
+        None for them. ``budget_bytes``: the memory budget the call would plan under when it was not given
+        explicitly; an entry is used only while every batch of it still fits that budget (else it is dropped and
+        the call plans again)."""
+        key = self.key(lens, args)
+        with self.lock:
+            e = self._entries.get(key)
+            if e is not None and budget_bytes is not None and e[2] > budget_bytes:
+                del self._entries[key]
+                e = None
+            if e is None:
+                self.misses += 1
+                return key, None
+            self._entries.move_to_end(key)
+            self.hits += 1
+            return key, e[0]
+
+    def store(self, key, batches, need_bytes: int):
+        """Keep ``batches`` (``(pairs, PackedRayWave)`` pairs, already run once) under ``key``; ``need_bytes``: the
+        planned peak memory of its largest batch (checked against an implicit budget on a hit). Evicts the least
+        recently used entries past ``max_entries`` / ``max_bytes``; an entry over ``max_bytes`` alone is not kept.
+        Returns True when kept."""
+        held = held_bytes(batches)
+        with self.lock:
+            self._entries.pop(key, None)
+            if held > self.max_bytes:
+                return False
+            self._entries[key] = (batches, held, int(need_bytes))
+            while len(self._entries) > self.max_entries or self.nbytes() > self.max_bytes:
+                self._entries.popitem(last=False)
+                self.evictions += 1
+            return True
