@@ -74,7 +74,6 @@ def main(argv=None) -> int:
     if (a.detach or a.resume) and not a.check and not a.table:
         return _detach_or_unpack(a, argv)
     if a.procs > 1 and not a.check and not a.table:
-        import os
         if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             print("rwwarp design: error: --procs with an external launcher (WORLD_SIZE is set): use one or the "
                   "other", file=sys.stderr)
