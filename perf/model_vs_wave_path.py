@@ -25,13 +25,15 @@ sharp image. Images: scikit-image's bundled validation samples (``torch_bridge.d
 cpu presets' images, offline), or ``--data-root`` (e.g. ``data/debian-photos``).
 
 Fields: the sensor positions of the experiment's nodes (``torch_bridge.design.node_positions_mm``), a 3 x 3
-grid over the sensor quadrant (the 10 x 10 evaluation grid, coarsened) for the Cooke and A489 starting lenses
+grid over the sensor quadrant (the 10 x 10 evaluation grid, coarsened; its 6 nodes on and above the diagonal,
+the lenses being rotationally symmetric) for the Cooke and A489 starting lenses
 and the config's diagonal (0, 0.5, 0.9 of the corner) for the EDoF start (at two depths) and the stored designs; wavelengths: the middle one of each
 colour channel (0.63, 0.55, 0.47 um); EDoF: the evaluation depths 200 mm and 10 m. ``--quick``: the starting
 lenses only, two diagonal nodes (0 and 0.9), 0.55 um, EDoF at 200 mm (1-2 minutes). CPU only (PoCL); lengths
 mm, wavelengths um, fields deg.
 
-Usage: python perf/model_vs_wave_path.py [--quick] [--out perf/results/model_vs_wave_path.json]
+Usage: python perf/model_vs_wave_path.py [--quick] [--out perf/results/model_vs_wave_path.json] [--plot docs/model_vs_wave_path.png]
+       python perf/model_vs_wave_path.py --replot perf/results/model_vs_wave_path.json [--plot ...]
 """
 from __future__ import annotations
 
@@ -56,6 +58,9 @@ TOLERANCE = 1e-2
 #: the middle wavelength of each colour channel of the configs (R, G, B), um
 WAVELENGTHS_UM = (0.63, 0.55, 0.47)
 DESIGNS = ROOT / "perf" / "results" / "design"
+#: the wave step's own phase error (rad, at the worst ray: ``one_psf``) below which its result is taken as the
+#: reference: a phase error phi at the rim moves the PSF by about phi^2 / 10 of its peak (below 1e-3 here)
+STEP_PHASE_MAX = 0.1
 #: encircled-energy fraction of the reported radius
 EE_FRACTION = 0.8
 
@@ -112,8 +117,11 @@ def cases(quick: bool) -> list:
         elif exp == "a489_edof":   # its flat starting DOE: the A489 refocused, at two depths: the diagonal
             pos, fl = node_fields(lens, cfg, "diagonal")
             wls = list(WAVELENGTHS_UM)
-        else:
+        else:   # the 3 x 3 grid's nodes on and above the diagonal (the lenses are rotationally symmetric: the
+            # three below mirror them; a first run gave them identical numbers)
             pos, fl = node_fields(lens, cfg, "grid", grid=(3, 3))
+            keep = [k for k, (x, y) in enumerate(pos) if y >= x - 1e-9]
+            pos, fl = [pos[k] for k in keep], [fl[k] for k in keep]
             wls = list(WAVELENGTHS_UM)
         start_note = ("paraxial achromat (the arms' start)" if exp == "cooke_hybrid"
                       else "the config's DOE (blank)" if exp == "a489_aberration" else "the config's DOE (flat)")
@@ -178,8 +186,12 @@ def shift_from_reasons(plan: dict) -> tuple:
     return float("nan"), float("nan")
 
 
-def one_psf(lens, field, wl, depth, kw) -> dict:
-    """Both PSFs of one source and the row of the table (``psf_one``, ``psf_two``: the arrays)."""
+def one_psf(lens, field, wl, depth, kw, moved=None, grid_check: bool = False) -> dict:
+    """Both PSFs of one source and the row of the table (``psf_one``, ``psf_two``: the arrays); with ``moved``
+    (:func:`without_flat_doe`) also the one-step PSF with the wave plane moved to the last refracting surface
+    (``moved_vs_one``, ``moved_vs_two``: max |difference| over the peak); with ``grid_check`` also the one-step
+    PSF on the wave path's own plan (its pitch and widened window, without the step): ``grid_vs_two`` is the step's
+    effect alone, ``grid_vs_one`` the sampling change."""
     row = {"field_deg": [float(field[0]), float(field[1])], "wavelength_um": wl, "depth_mm": depth}
     kw = dict(kw)
     with warnings.catch_warnings(record=True) as caught:
@@ -201,6 +213,11 @@ def one_psf(lens, field, wl, depth, kw) -> dict:
     diff = float(np.max(np.abs(a - b)) / b.max())
     pa, pb = peak_intensity_from_psf(a, one.pixel_mm)[0], peak_intensity_from_psf(b, two.pixel_mm)[0]
     shift, pitch = shift_from_reasons(two.plan)
+    d_mm = two.plan.get("wave_step_mm") or 0.0
+    # the step's own error: the rays carried the beam's aberration W (against the sphere of its focus before the
+    # DOE) to the plane; P_d moves it again, by s = d lambda |grad W| / 2 pi, and adds the Fresnel phase
+    # lambda d |grad W|^2 / 4 pi = pi s^2 / (lambda d) (rad, at the worst pilot ray; air after the DOE)
+    step_phase = math.pi * (shift * 1e-3) ** 2 / (wl * 1e-3 * d_mm) if d_mm > 0 and math.isfinite(shift) else float("nan")
     row.update({
         "auto_method": one.plan["method"], "two_step_method": two.plan["method"],
         "auto_tolerance_adds_step": bool(auto_tol.wave_step_mm),
@@ -213,12 +230,46 @@ def one_psf(lens, field, wl, depth, kw) -> dict:
         "ee80_radius_um": [ee_radius_um(a, one.pixel_mm), ee_radius_um(b, two.pixel_mm)],
         "power_in_patch": [float(a.sum()), float(b.sum())],
         "second_order_shift_um": shift, "wave_step_pitch_um": pitch,
-        "step_validated": bool(shift <= pitch) if math.isfinite(shift) else None,
+        "step_phase_rad": step_phase,
+        "step_validated": bool(step_phase <= STEP_PHASE_MAX) if math.isfinite(step_phase) else None,
     })
     row["rms_rel_change"] = row["rms_radius_um"][0] / row["rms_radius_um"][1] - 1.0
     row["ee80_rel_change"] = row["ee80_radius_um"][0] / row["ee80_radius_um"][1] - 1.0
+    if grid_check:
+        import dataclasses
+        from rwwarp.wave.plan import Plan
+        names = {f.name for f in dataclasses.fields(Plan)}
+        pl = Plan(**{**{k: v for k, v in two.plan.items() if k in names}, "wave_step_mm": None})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            g = rw.psf(lens, field, wl, method="auto", plan=pl, object_distance_mm=depth, **kw).data
+        row["grid_vs_two"] = float(np.max(np.abs(g - b)) / b.max())
+        row["grid_vs_one"] = float(np.max(np.abs(g - a)) / b.max())
+    if moved is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t = time.perf_counter()
+            m = rw.psf(moved, field, wl, method="auto", object_distance_mm=depth, **kw).data
+            row["time_moved_s"] = time.perf_counter() - t
+        row["moved_vs_one"] = float(np.max(np.abs(m - a)) / m.max())
+        row["moved_vs_two"] = float(np.max(np.abs(m - b)) / b.max())
     row["psf_one"], row["psf_two"] = a, b
     return row
+
+
+def without_flat_doe(lens):
+    """``lens`` with its flat (blank) DOE removed, the gap behind it added to the last refracting surface: the
+    wave plane moves to that surface's vertex plane, so the one-step model propagates the field as a wave over
+    the gap it leaves out at the DOE. None where the DOE is not flat or not the last surface."""
+    import copy
+    from rwwarp.doe import is_flat_profile
+    d = lens.doe_index
+    if d is None or d != len(lens.surfaces) - 1 or not is_flat_profile(lens.surfaces[d].profile):
+        return None
+    s = list(lens.surfaces)
+    rear = copy.deepcopy(s[d - 1])
+    rear.thickness = s[d - 1].thickness + s[d].thickness
+    return lens.replace(surfaces=s[:d - 1] + [rear])
 
 
 def applicability(lens) -> str:
@@ -278,7 +329,7 @@ def image_metrics(a: np.ndarray, b: np.ndarray) -> tuple:
 
 
 # ---------------------------------------------------------------------------------------------- run
-def run(quick: bool, data_root=None, crop: int = 128, log=print) -> dict:
+def run(quick: bool, data_root=None, crop: int = 128, log=print, grid_check: bool = False) -> dict:
     """Every case's rows and renderings (module docstring)."""
     t_all = time.perf_counter()
     crops, img_desc = test_crops(data_root, crop)
@@ -291,14 +342,15 @@ def run(quick: bool, data_root=None, crop: int = 128, log=print) -> dict:
             log(f"{c['experiment']} {c['variant']}: {c['note']}")
             continue
         lens = c["lens"]
-        entry.update({"applicability": applicability(lens), "positions_mm": [list(map(float, p)) for p in c["positions_mm"]],
+        moved = without_flat_doe(lens)
+        entry.update({"applicability": applicability(lens), "moved_plane": moved is not None, "positions_mm": [list(map(float, p)) for p in c["positions_mm"]],
                       "wavelengths_um": c["wavelengths_um"], "depths_mm": c["depths_mm"],
                       "psf_size": c["psf_kw"]["size"], "pixel_um": c["psf_kw"]["pixel_mm"] * 1e3, "rows": [], "images": []})
         for depth in c["depths_mm"]:
             for i, fl in enumerate(c["fields_deg"]):
                 one_rgb, two_rgb = [], []
                 for wl in c["wavelengths_um"]:
-                    row = one_psf(lens, fl, wl, depth, c["psf_kw"])
+                    row = one_psf(lens, fl, wl, depth, c["psf_kw"], moved, grid_check)
                     row["node"] = i
                     row["position_mm"] = [float(v) for v in c["positions_mm"][i]]
                     one_rgb.append(row.pop("psf_one"))
@@ -308,7 +360,9 @@ def run(quick: bool, data_root=None, crop: int = 128, log=print) -> dict:
                         f"{wl} um: auto {row['auto_method']}{'+step' if row['auto_tolerance_adds_step'] else ''}, "
                         f"diff {row['max_diff_over_peak']:.2e}, estimate {row['estimate']:.2e}, peak "
                         f"{row['peak_rel_change']:+.2e}, EE80 {row['ee80_rel_change']:+.2e}, "
-                        f"{row['time_one_s']:.2f} / {row['time_two_s']:.2f} s")
+                        f"{row['time_one_s']:.2f} / {row['time_two_s']:.2f} s, step phase {row['step_phase_rad']:.2g} rad"
+                        + (f", moved plane {row['moved_vs_one']:.2e}" if moved is not None else "")
+                        + (f", step alone {row['grid_vs_two']:.2e}, grid {row['grid_vs_one']:.1e}" if grid_check else ""))
                 if len(one_rgb) == 3:
                     r1, r2 = render(crops, np.stack(one_rgb)), render(crops, np.stack(two_rgb))
                     p12, s12 = image_metrics(r1, r2)
@@ -337,7 +391,18 @@ def summarize(rows: list, images: list) -> dict:
            "auto_methods": sorted({r["auto_method"] for r in rows}),
            "auto_tolerance_adds_step": int(sum(r["auto_tolerance_adds_step"] for r in rows)),
            "step_not_validated": int(sum(r["step_validated"] is False for r in rows)),
+           "step_phase_rad": [float(np.nanmin([r["step_phase_rad"] for r in rows])),
+                              float(np.nanmax([r["step_phase_rad"] for r in rows]))],
            "time_one_s": float(sum(r["time_one_s"] for r in rows)), "time_two_s": float(sum(r["time_two_s"] for r in rows))}
+    ok = [r for r in rows if r["step_validated"]]
+    if ok:
+        dv = np.array([r["max_diff_over_peak"] for r in ok])
+        ev = np.array([r["estimate"] for r in ok])
+        out["validated"] = {"n": len(ok), "max_diff_over_peak": [float(dv.min()), float(np.median(dv)), float(dv.max())],
+                            "estimate_over_measured": [float(np.min(ev / dv)), float(np.median(ev / dv)), float(np.max(ev / dv))]}
+    if "moved_vs_one" in rows[0]:
+        mv = np.array([r["moved_vs_one"] for r in rows])
+        out["moved_vs_one"] = [float(mv.min()), float(np.median(mv)), float(mv.max())]
     if images:
         out["psnr_one_vs_two_min"] = float(min(i["psnr_one_vs_two"] for i in images))
         out["ssim_one_vs_two_min"] = float(min(i["ssim_one_vs_two"] for i in images))
@@ -351,24 +416,69 @@ def summarize(rows: list, images: list) -> dict:
 
 def table(result: dict) -> str:
     """The markdown table of the cases' summaries."""
-    lines = ["| experiment | lens | PSFs | auto | max diff / peak (min / median / max) | estimate / measured (min / median / max) "
-             "| peak, EE80 change (max) | step not validated | PSNR one vs wave path (min) | PSNR vs sharp: one / wave path | time one / wave path |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    tol = result["tolerance"]
+    lines = ["| experiment | lens | PSFs | `auto` picks; adds the step at tolerance %g | max diff / peak (min / median / max) "
+             "| estimate / measured (min / median / max) | step's own phase (rad, max); PSFs where it is < %g rad: their max diff "
+             "| wave plane moved to the last lens surface: change (max) | peak, EE80 radius: largest relative change "
+             "| PSNR one-step vs wave path (worst node) | PSNR vs sharp (mean): one-step / wave path | time one-step / wave path |"
+             % (tol, STEP_PHASE_MAX),
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    g = lambda v: " / ".join(f"{x:.2g}" for x in v)
     for c in result["cases"]:
         s = c.get("summary")
         if not s:
-            lines.append(f"| {c['experiment']} | {c['variant']} | - | | {c['note']} | | | | | | |")
+            lines.append(f"| {c['experiment']} | {c['variant']} | - | {c['note']} | | | | | | | | |")
             continue
-        img = (f"{s['psnr_one_vs_two_min']:.1f} dB" if "psnr_one_vs_two_min" in s else "-")
-        sharp = (f"{s['psnr_sharp_one_mean']:.2f} / {s['psnr_sharp_two_mean']:.2f} dB" if "psnr_sharp_one_mean" in s else "-")
+        v = s.get("validated")
+        val = f"{s['step_phase_rad'][1]:.2g}; " + (f"{v['n']}: {v['max_diff_over_peak'][2]:.2g}" if v else "none")
         lines.append(
-            f"| {c['experiment']} | {c['variant']} | {s['n_psfs']} | {', '.join(s['auto_methods'])}; +step at tol "
-            f"{result['tolerance']:g}: {s['auto_tolerance_adds_step']}/{s['n_psfs']} | "
-            + " / ".join(f"{v:.2g}" for v in s["max_diff_over_peak"]) + " | "
-            + " / ".join(f"{v:.2g}" for v in s["estimate_over_measured"]) + " | "
-            f"{s['peak_rel_change_maxabs']:.2g}, {s['ee80_rel_change_maxabs']:.2g} | {s['step_not_validated']}/{s['n_psfs']} | "
-            f"{img} | {sharp} | {s['time_one_s']:.0f} / {s['time_two_s']:.0f} s |")
+            f"| {c['experiment']} | {c['variant']} | {s['n_psfs']} | {', '.join(s['auto_methods'])}; "
+            f"{s['auto_tolerance_adds_step']}/{s['n_psfs']} | {g(s['max_diff_over_peak'])} | {g(s['estimate_over_measured'])} "
+            f"| {val} | {s['moved_vs_one'][2]:.2g} |" if "moved_vs_one" in s else
+            f"| {c['experiment']} | {c['variant']} | {s['n_psfs']} | {', '.join(s['auto_methods'])}; "
+            f"{s['auto_tolerance_adds_step']}/{s['n_psfs']} | {g(s['max_diff_over_peak'])} | {g(s['estimate_over_measured'])} "
+            f"| {val} | - |")
+        lines[-1] += (f" {s['peak_rel_change_maxabs']:.2g}, {s['ee80_rel_change_maxabs']:.2g} | "
+                      + (f"{s['psnr_one_vs_two_min']:.1f} dB | {s['psnr_sharp_one_mean']:.2f} / {s['psnr_sharp_two_mean']:.2f} dB"
+                         if "psnr_one_vs_two_min" in s else "- | -")
+                      + f" | {s['time_one_s']:.0f} / {s['time_two_s']:.0f} s |")
     return "\n".join(lines)
+
+
+def plot(result: dict, path) -> None:
+    """Measured one-step vs wave-path difference against the planner's estimate, per PSF (log-log): filled
+    where the wave step's own phase error is below ``STEP_PHASE_MAX`` (its result a reference), open where not."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    colours = {"cooke_hybrid": "C0", "a489_aberration": "C1", "a489_edof": "C2"}
+    markers = {"start": "o", "designed": "s"}
+    for c in result["cases"]:
+        for r in c.get("rows", []):
+            col = colours[c["experiment"]]
+            ax.scatter(r["estimate"], r["max_diff_over_peak"], s=18, marker=markers[c["variant"]],
+                       facecolors=col if r["step_validated"] else "none", edgecolors=col, linewidths=0.8)
+    lo, hi = 1e-4, 30.0
+    x = np.array([lo, hi])
+    ax.plot(x, x, "k-", lw=0.8, label="measured = estimate")
+    ax.plot(x, x / 2, "k:", lw=0.8, label="factor 2 (calibration)")
+    ax.plot(x, x * 2, "k:", lw=0.8)
+    for name, col in colours.items():
+        ax.scatter([], [], color=col, marker="o", s=18, label=name)
+    ax.scatter([], [], facecolors="none", edgecolors="k", marker="o", s=18, label=f"step's own phase > {STEP_PHASE_MAX:g} rad")
+    ax.scatter([], [], color="k", marker="s", s=18, label="stored design (squares)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(1e-4, 2.0)
+    ax.set_xlabel("model-error estimate (Plan.model_error), of the peak")
+    ax.set_ylabel("max |one-step - wave path| / peak")
+    ax.set_title("The paper's experiments: one-step model against the wave path", fontsize=10)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -377,13 +487,25 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON path (default perf/results/model_vs_wave_path[_quick].json)")
     ap.add_argument("--data-root", default=None, help="image folder (default: scikit-image's bundled samples)")
     ap.add_argument("--crop", type=int, default=128, help="crop size, px")
+    ap.add_argument("--grid-check", action="store_true",
+                    help="also the one-step PSF on the wave path's plan: the step's effect apart from the sampling change")
+    ap.add_argument("--plot", default=None, help="PNG of measured against estimated differences (e.g. docs/model_vs_wave_path.png)")
+    ap.add_argument("--replot", default=None, help="a JSON written before: print its table (and --plot) without computing")
     a = ap.parse_args(argv)
     import json
-    res = run(a.quick, a.data_root, a.crop)
+    if a.replot:
+        res = json.loads(Path(a.replot).read_text())
+        print(table(res))
+        if a.plot:
+            plot(res, a.plot)
+        return 0
+    res = run(a.quick, a.data_root, a.crop, grid_check=a.grid_check)
     out = Path(a.out or ROOT / "perf" / "results" / f"model_vs_wave_path{'_quick' if a.quick else ''}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1, default=float))
     print(table(res))
+    if a.plot:
+        plot(res, a.plot)
     print(f"total {res['total_s']:.0f} s; written {out}")
     return 0
 

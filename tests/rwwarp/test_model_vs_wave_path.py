@@ -5,7 +5,8 @@ measurement, each against an independent reference.
   ``sqrt(2) sigma`` and ``sigma sqrt(-2 ln 0.2)``;
 * the rendering against ``scipy.ndimage`` (a delta PSF returns the crop; a Gaussian PSF equals
   ``gaussian_filter`` with mirror edges, where the kernel holds all but ~1e-9 of the Gaussian);
-* the script's one-step vs wave-path difference on the calibrated thin-lens scene (``_wave_truth.thin_lens_doe``,
+* the script's one-step vs wave-path difference (and, with ``grid_check``, that it is the step's and not the
+  wave path's grid's) on the calibrated thin-lens scene (``_wave_truth.thin_lens_doe``,
   DOE 20 mm before the sensor, where the independent Gauss-Hankel truth puts the one-step error at 5.0e-3 and the
   wave step within 2.4e-4 of it: docs/propagation.md) against the model-error estimate, within the documented
   factor 2.
@@ -73,7 +74,7 @@ def test_one_step_vs_wave_path_on_the_calibrated_scene():
     lens = thin_lens_doe(20.0, 5.0, (0.0, 3.0), pixel=0.5e-3)
     kw = dict(size=48, pixel_mm=0.5e-3, nyquist_safety=2.0, rays_per_sample=1.0, focal_patch_tol=1e-5,
               pixel_values="flux")
-    row = mvw.one_psf(lens, (0.0, 0.0), 0.55, None, kw)
+    row = mvw.one_psf(lens, (0.0, 0.0), 0.55, None, kw, grid_check=True)
     assert row["two_step_method"] == row["auto_method"]
     assert row["wave_step_mm"] > 0
     r = row["estimate"] / row["max_diff_over_peak"]
@@ -82,3 +83,7 @@ def test_one_step_vs_wave_path_on_the_calibrated_scene():
     # step's own error against the truth, 2.4e-4, so 2x that
     assert abs(row["max_diff_over_peak"] - 5.0e-3) < 5.0e-4, row
     assert row["auto_tolerance_adds_step"] == (row["estimate"] > mvw.TOLERANCE)
+    # the difference is the step's, not the wave path's finer grid: the one-step PSF on the wave path's plan moved
+    # by 2.3e-7 (measured), so 1e-6
+    assert row["grid_vs_one"] < 1e-6, row
+    assert abs(row["grid_vs_two"] - row["max_diff_over_peak"]) < 1e-6, row
