@@ -15,8 +15,11 @@ wave path's peak, the planner's model-error estimate (``Plan.model_error``) and 
 which method ``"auto"`` picks and whether ``"auto"`` with ``tolerance=TOLERANCE`` would add the step, the
 relative change of the peak intensity (Strehl-like: ``rwwarp.metrics.strehl.peak_intensity_from_psf``), of the
 RMS radius and of the 80 % encircled-energy radius, the power in the patch, the wave step's second-order
-shift of the lens's own aberration against its pitch (where it exceeds the pitch the step itself is not
-validated: docs/propagation.md) and both times.
+shift ``s`` of the lens's own aberration (the plan's reasons) and the phase error it brings, ``pi s^2 / (lambda
+d)`` (rad; the wave path is taken as a reference only where it is below ``STEP_PHASE_MAX``: docs/propagation.md),
+and both times. For a lens whose DOE is flat it also moves the wave plane to the last refracting surface (the DOE
+removed) and reports how much that changes the one-step PSF: a part of the model's error that needs no step.
+``--grid-check`` adds the one-step PSF on the wave path's own plan (the step apart from its finer grid).
 
 Then it renders test images with both PSF sets, as the experiments' evaluation does (patch rendering: each
 node's PSFs, one wavelength per colour channel, normalised to unit sum, blur the same fixed crops; raw
@@ -26,11 +29,11 @@ cpu presets' images, offline), or ``--data-root`` (e.g. ``data/debian-photos``).
 
 Fields: the sensor positions of the experiment's nodes (``torch_bridge.design.node_positions_mm``), a 3 x 3
 grid over the sensor quadrant (the 10 x 10 evaluation grid, coarsened; its 6 nodes on and above the diagonal,
-the lenses being rotationally symmetric) for the Cooke and A489 starting lenses
-and the config's diagonal (0, 0.5, 0.9 of the corner) for the EDoF start (at two depths) and the stored designs; wavelengths: the middle one of each
+the lenses being rotationally symmetric) for the Cooke and A489 starting lenses and the config's diagonal (0, 0.5,
+0.9 of the corner) for the EDoF start (at two depths) and the stored designs; wavelengths: the middle one of each
 colour channel (0.63, 0.55, 0.47 um); EDoF: the evaluation depths 200 mm and 10 m. ``--quick``: the starting
-lenses only, two diagonal nodes (0 and 0.9), 0.55 um, EDoF at 200 mm (1-2 minutes). CPU only (PoCL); lengths
-mm, wavelengths um, fields deg.
+lenses only, two diagonal nodes (0 and 0.9), 0.55 um, EDoF at 200 mm (under a minute). The whole run: about 9
+minutes on 2 shared CPU cores. CPU only (PoCL); lengths mm, wavelengths um, fields deg.
 
 Usage: python perf/model_vs_wave_path.py [--quick] [--out perf/results/model_vs_wave_path.json] [--plot docs/model_vs_wave_path.png]
        python perf/model_vs_wave_path.py --replot perf/results/model_vs_wave_path.json [--plot ...]
