@@ -26,8 +26,8 @@ def cooke():
 def test_starting_lens_is_the_47_mm_hybrid(cooke):
     lens, cfg = cooke
     # the config's description: with its paraxial achromatic DOE the hybrid has f = 47 mm at F/4 (EPD 11.75 mm);
-    # torch_bridge.design.paraxial_achromat solves for the DOE's power over the configs' nine wavelengths, so at
-    # 0.55 um the EFL is 47 mm to 3.8e-4 mm (measured): 1e-3 mm
+    # the lens file is scaled so that with the paraxial achromat (torch_bridge.design.paraxial_achromat over the
+    # configs' nine wavelengths, as the arms make it) the hybrid has 47 mm: measured 47.00038 mm at 0.55 um, so 1e-3 mm
     assert lens.efl(0.55) == pytest.approx(47.0, abs=1e-3)
     assert mvw.lens_epd(lens) == pytest.approx(11.75, rel=1e-9)
     assert "applicable" in mvw.applicability(lens)
