@@ -128,3 +128,25 @@ def test_config_accepts_two_step_and_refuses_an_unknown_propagation():
     assert load_config(tiny())["arms"][0]["config"]["optics"]["propagation"] == "auto"   # the default stays
     with pytest.raises(ConfigError, match=r"'optics.propagation'.*'two-step'.*'two_step'"):
         load_config(tiny(**{"optics.propagation": "two_step"}))
+
+
+def test_live_provider_gives_sources_planned_focal_alone_their_wave_step(focal_two_step):
+    """LiveProvider plans a source focal on its own once its joint plan came out focal: with method "two-step"
+    that plan gets the wave step (equal to rw.psf's two-step PSF), and such a source is not packed (a packed tile
+    has no wave step)."""
+    lens, ref, m, _ = focal_two_step
+    live = dz.LiveProvider(m, [(0.0, 0.0)], 16, lens.sensor.pixel_pitch, wavelength_ref_um=0.55)
+    cen = np.asarray([ref.center_mm])
+    r0, r1 = live._plan_sources([0, 1], [(0.0, 0.0)] * 2, [0.55] * 2, np.repeat(cen, 2, 0), None)
+    assert r0.plan.method == "focal" and r0.plan.wave_step_mm == pytest.approx(12.0)
+    with torch.no_grad():
+        got = m._psf_rw(r0, m.values(), tables={})[0].numpy()
+    # the same plan and operator: measured 5.3e-16 of the peak
+    assert np.max(np.abs(got - ref.data)) < 1e-11 * ref.data.max()
+    units = live._units([0, 1], {0: r0, 1: r1}, [], {})
+    assert [k for k, _, _ in units] == ["rw", "rw"]
+    # the same two sources without the step (method "focal") are packed: the check above can fail
+    one = dz.LiveProvider(tb.HybridLens(lens, method="focal", learn={"doe": "all"}), [(0.0, 0.0)], 16,
+                          lens.sensor.pixel_pitch)
+    a, b = one._plan_sources([0, 1], [(0.0, 0.0)] * 2, [0.55] * 2, np.repeat(cen, 2, 0), None)
+    assert a.plan.wave_step_mm is None and [k for k, _, _ in one._units([0, 1], {0: a, 1: b}, [], {})] == ["packed"]
