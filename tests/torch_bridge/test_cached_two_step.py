@@ -77,6 +77,20 @@ def test_cached_two_step_in_batches_and_chunks_equals_one_batch(asm_two_step):
     assert torch.max(torch.abs(got - out)) <= 1e-14 * out.max()
 
 
+def test_cached_two_step_resumes_from_its_recorded_plans(asm_two_step):
+    """The record keeps the entry's plan before the step; a provider loading it plans the same step on it (a
+    RayWave is a deterministic function of lens, sources, plan and centres) and gives the same PSFs."""
+    m, prov, out = asm_two_step
+    assert prov.check_sampling() == 0    # nothing changed: no replan
+    again = dz.CachedProvider(m, FIELDS, 16, 0.006)
+    again.load_plans(prov.plans)
+    with torch.no_grad():
+        got = again.psfs([0.55])
+    key = prov._key(0.55, None)
+    assert again._cache[key][0].plan.n_grid == prov._cache[key][0].plan.n_grid > prov.plans[key]["n_grid"]
+    # measured 0 (bit-identical); the tolerance allows for another summation order
+    assert torch.max(torch.abs(got - out)) <= 1e-14 * out.max()
+
 def test_cached_two_step_doe_gradient_matches_finite_differences(asm_two_step):
     m, prov, _ = asm_two_step
     w = torch.from_numpy(np.random.default_rng(1).random((len(FIELDS), 1, 16, 16)))
