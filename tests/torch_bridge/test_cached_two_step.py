@@ -164,3 +164,30 @@ def test_live_provider_gives_sources_planned_focal_alone_their_wave_step(focal_t
                           lens.sensor.pixel_pitch)
     a, b = one._plan_sources([0, 1], [(0.0, 0.0)] * 2, [0.55] * 2, np.repeat(cen, 2, 0), None)
     assert a.plan.wave_step_mm is None and [k for k, _, _ in one._units([0, 1], {0: a, 1: b}, [], {})] == ["packed"]
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cached_two_step_on_cuda_equals_the_cpu(asm_two_step, focal_two_step):
+    """The ASM and focal entries on CUDA (CuPy wave step on the Warp field's view, the cached field in torch's
+    allocator): PSFs and DOE gradients against the CPU's (1e-10 of the peak / of the largest gradient: the
+    splat's atomic float sums on the GPU add in another order, as in test_packed_live; not run here: no GPU
+    was available when this was written)."""
+    w = torch.from_numpy(np.random.default_rng(1).random((len(FIELDS), 1, 16, 16)))
+    cases = ((asm_two_step[0], asm_two_step[1], FIELDS), (focal_two_step[2], focal_two_step[3], [(0.0, 0.0)]))
+    for m, prov, fields in cases:
+        mc = tb.HybridLens(m.to_lens(), method="two-step", learn={"doe": "all"}).to("cuda")
+        pc = dz.CachedProvider(mc, fields, 16, prov.pixel_mm)
+        pc.load_plans(prov.plans)
+        res = []
+        for mm, pp in ((m, prov), (mc, pc)):
+            mm.zero_grad()
+            out = pp.psfs([0.55])
+            (out * w[:len(fields)].to(out.device)).sum().backward()
+            res.append((out.detach().cpu(), mm.doe.grad.detach().cpu()))
+        (a, ga), (b, gb) = res
+        assert float((a - b).abs().max()) <= 1e-10 * float(a.max())
+        assert float((ga - gb).abs().max()) <= 1e-10 * float(ga.abs().max())
+        key = pc._key(0.55, None)
+        e = pc._cache[key][0] if key in pc._cache else pc._focal[key][0][0][0]
+        assert np.any(e.wave_step > 0)
