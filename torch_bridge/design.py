@@ -310,8 +310,8 @@ class CachedProvider:
         maps (:meth:`HybridLens.bytes_fixed`) plus the entry's cached field (``nsrc n_grid^2``
         complex128), ``per_source`` = one source of a frozen build
         (:meth:`HybridLens.bytes_per_source` with ``record=False``; with a wave step, its arrays). The default
-        budget is what the memory budget leaves beside the fields already cached (``held``; the device default reads the free memory,
-        which leaves them out already). Returns a dict with ``batch``, ``per_source``, ``fixed``, ``budget``,
+        budget is what the memory budget leaves beside the fields already cached (``held``; the device default
+        reads the free memory, which leaves them out already). Returns a dict with ``batch``, ``per_source``, ``fixed``, ``budget``,
         ``held`` and ``peak`` (``fixed + batch per_source``, bytes); warns when even one source exceeds the
         budget (the build then runs one source at a time)."""
         import warnings
