@@ -311,9 +311,9 @@ class CachedProvider:
         complex128), ``per_source`` = one source of a frozen build
         (:meth:`HybridLens.bytes_per_source` with ``record=False``; with a wave step, its arrays). The default
         budget is what the memory budget leaves beside the fields already cached (``held``; the device default
-        reads the free memory, which leaves them out already). Returns a dict with ``batch``, ``per_source``, ``fixed``, ``budget``,
-        ``held`` and ``peak`` (``fixed + batch per_source``, bytes); warns when even one source exceeds the
-        budget (the build then runs one source at a time)."""
+        reads the free memory, which leaves them out already). Returns a dict with ``batch``, ``per_source``,
+        ``fixed``, ``budget``, ``held`` and ``peak`` (``fixed + batch per_source``, bytes); warns when even one
+        source exceeds the budget (the build then runs one source at a time)."""
         import warnings
         from rwwarp.errors import SamplingWarning
         held = self.cache_bytes() if (budget_bytes is None and self.memory_budget_bytes is not None) else 0
