@@ -138,7 +138,7 @@ SCHEMA = {
         "live_pack": _bool(),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
         "cache_precision": _choice("double", "single"),
-        "propagation": _choice("auto", "focal", "asm"),
+        "propagation": _choice("auto", "focal", "asm", "two-step"),
         "focal_patch_tol": _num(0, 1),
         "deterministic": _bool(),
         "pixel_values": _choice("flux", "intensity"),

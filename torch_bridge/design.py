@@ -13,6 +13,9 @@ power entering the pupil per sensor pixel, rows along +y, for one wavelength per
   With ``model="paraxial-wave"`` the fields are those of the paraxial equivalent system
   (:func:`rwwarp.psf.paraxial_equivalent`: an ideal thin lens at the DOE plane), which is how
   DOEs are designed when the refractive lens is idealised.
+  With the module's ``method="two-step"`` the wave step (:mod:`rwwarp.wave.wave_step`) is applied to the
+  geometric field once, when it is cached (it does not depend on the DOE behind it): docs/propagation.md
+  "In the design loop".
 
 Ray model (:class:`RaySpot`, :func:`paraxial_efl`, :func:`paraxial_achromat`): in
 :mod:`torch_bridge.ray_spot` (re-exported here).
@@ -29,6 +32,7 @@ import torch
 from .functions import Propagate, mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
 from .live import LiveProvider, _recentred, common_centres  # noqa: F401  (their home: live)
 from .ray_spot import RaySpot, paraxial_achromat, paraxial_efl  # noqa: F401  (their home: ray_spot)
+from .wave_step import add_wave_step
 
 __all__ = [
     "CachedProvider",
@@ -305,17 +309,22 @@ class CachedProvider:
         :meth:`budget_bytes`), from the library's own estimates: ``fixed`` = the planning pilot and
         maps (:meth:`HybridLens.bytes_fixed`) plus the entry's cached field (``nsrc n_grid^2``
         complex128), ``per_source`` = one source of a frozen build
-        (:meth:`HybridLens.bytes_per_source` with ``record=False``). The default budget is what the memory
-        budget leaves beside the fields already cached (``held``; the device default reads the free memory,
-        which leaves them out already). Returns a dict with ``batch``, ``per_source``, ``fixed``, ``budget``,
-        ``held`` and ``peak`` (``fixed + batch per_source``, bytes); warns when even one source exceeds the
-        budget (the build then runs one source at a time)."""
+        (:meth:`HybridLens.bytes_per_source` with ``record=False``; with a wave step, its arrays). The default
+        budget is what the memory budget leaves beside the fields already cached (``held``; the device default
+        reads the free memory, which leaves them out already). Returns a dict with ``batch``, ``per_source``,
+        ``fixed``, ``budget``, ``held`` and ``peak`` (``fixed + batch per_source``, bytes); warns when even one
+        source exceeds the budget (the build then runs one source at a time)."""
         import warnings
         from rwwarp.errors import SamplingWarning
         held = self.cache_bytes() if (budget_bytes is None and self.memory_budget_bytes is not None) else 0
         budget = self.budget_bytes() - held if budget_bytes is None else int(budget_bytes)
         m = self.module
         per = int(m.bytes_per_source(rw, record=False))
+        if np.any(getattr(rw, "wave_step", 0.0)):
+            # the wave step of a source (method "two-step"): its padded field, spectrum and transfer function
+            # (complex128, FFT length rw.wave_step_pad) and the reference sphere's phase, its rotation and the
+            # field without it (rwwarp.wave.wave_step.apply_wave_step: 8 + 16 + 16 bytes a wave-plane sample)
+            per += 3 * 16 * int(rw.wave_step_pad) ** 2 + 40 * rw.plan.n_grid ** 2
         fixed = int(m.bytes_fixed(rw)) + rw.nsrc * rw.plan.n_grid ** 2 * 16
         batch = int(max(1, min(rw.nsrc, (budget - fixed) // max(per, 1))))
         if fixed + per > budget:
@@ -356,15 +365,17 @@ class CachedProvider:
         dev = self.module.thickness_base.device
         n = rw.plan.n_grid
         if b >= rw.nsrc:
-            u = self._to_torch(rw.field_array(), dev, self.cache_dtype)
+            # the wave step (method "two-step", where the plan has one) does not depend on the DOE behind it:
+            # the field is cached after it (rwwarp.wave.wave_step)
+            u = self._to_torch(rw.wave_stepped(rw.field_array()), dev, self.cache_dtype)
             entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
         else:
             u = torch.empty((rw.nsrc, n, n), dtype=self.cache_dtype, device=dev)
             entering = torch.empty(rw.nsrc, dtype=torch.float64, device=dev)
             for k in range(0, rw.nsrc, b):
                 sl = slice(k, min(k + b, rw.nsrc))
-                sub = geo.raywave(fields[sl], [wl] * (sl.stop - sl.start), self.size, center_mm=centres[sl], **kw)
-                u[sl] = self._to_torch(sub.field_array(), dev, self.cache_dtype)
+                sub = self._sub_raywave(key, rw, geo, sl, centres[sl], depth)
+                u[sl] = self._to_torch(sub.wave_stepped(sub.field_array()), dev, self.cache_dtype)
                 entering[sl] = torch.as_tensor(sub.entering, dtype=torch.float64, device=dev)
                 del sub
         if str(rw.tracer.device).startswith("cuda"):
@@ -405,7 +416,7 @@ class CachedProvider:
         the choice :class:`rwwarp.psf.RayWave` makes for the entry's nodes (the band-limited ASM while its
         plan is small, else focal), recorded in :attr:`plans`."""
         m = self.module.method
-        if m != "auto":
+        if m not in ("auto", "two-step"):   # "two-step": auto's choice, with the wave step (_build, _build_focal)
             return m == "focal"
         rec = self.plans.get(key) or {}
         if rec.get("method") in ("focal", "asm"):
@@ -432,7 +443,10 @@ class CachedProvider:
             rw = geo.raywave([f], [float(wavelength_um)], self.size, object_distance_mm=depth, pixel_mm=self.pixel_mm,
                              center_mm=centres[k:k + 1], requires_grad=False, method="focal",
                              memory_budget_bytes=budget)
-            u = self._to_torch(rw.field_array(), dev, self.cache_dtype)
+            if self.module.method == "two-step":   # the node's focal plan with its wave step (the live path's)
+                add_wave_step(rw, budget)
+            # the wave step does not depend on the DOE behind it: the field is cached after it
+            u = self._to_torch(rw.wave_stepped(rw.field_array()), dev, self.cache_dtype)
             nodes.append((rw, u, torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)))
             log.append({"n_grid": rw.plan.n_grid, "n_sensor": rw.plan.n_sensor, "ray_grid": rw.plan.ray_grid,
                         "orders": [m for m, _ in rw.focal["orders"][0]],
@@ -627,6 +641,8 @@ class CachedProvider:
                               use_reference=geo_now.use_reference, gauss_nodes=rw.gauss_nodes,
                               nyquist_safety=geo_now.nyquist_safety, method="focal",
                               focal_patch_tol=geo_now.focal_patch_tol, pixel_values=geo_now.pixel_values)
+                if self.module.method == "two-step":   # compared with the cached node's plan, step included
+                    add_wave_step(new)
                 a, b = rw.plan, new.plan
                 orders_old = {m for m, _ in rw.focal["orders"][0]}
                 orders_new = {m for m, _ in new.focal["orders"][0]}
@@ -666,30 +682,43 @@ class CachedProvider:
         """[(slice, RayWave of those nodes)] for propagation chunks of ``chunk`` nodes: RayWaves made
         with the entry's plan and patch centres (their windows equal the entry's, checked), cached
         per entry and chunk size (no trace runs: only their propagation arguments are used)."""
-        import warnings
-        from rwwarp.errors import SamplingWarning
-        from rwwarp.wave.plan import Plan
         if chunk >= rw.nsrc:
             return [(slice(0, rw.nsrc), rw)]
         store = self._chunks.setdefault(key, {})
         if chunk in store:
             return store[chunk]
-        pl = rw.plan
-        plan = Plan(pl.pitch_mm, pl.n_grid, pl.n_pad, pl.ray_grid, "explicit", False, ["entry plan"])
         depth = key[1] if self.model == "ray-wave" else None
         out = []
         for k0 in range(0, rw.nsrc, chunk):
             sl = slice(k0, min(k0 + chunk, rw.nsrc))
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
-                sub = geo.raywave(list(rw.fields[sl]), list(rw.wls[sl]), self.size, object_distance_mm=depth,
-                                  pixel_mm=self.pixel_mm, plan=plan, center_mm=rw.centers[sl], requires_grad=False)
-            if not np.allclose(sub.origin, rw.origin[sl], rtol=0, atol=1e-9):
-                raise RuntimeError(f"propagation chunk {sl.start}:{sl.stop} of entry {key}: its DOE-plane windows "
-                                   "differ from the cached field's (internal error)")
-            out.append((sl, sub))
+            out.append((sl, self._sub_raywave(key, rw, geo, sl, rw.centers[sl], depth)))
         store[chunk] = out
         return out
+
+    def _sub_raywave(self, key, rw, geo, sl, centres, depth):
+        """A RayWave of the nodes ``sl`` of entry ``key`` on the entry's plan (``rw.plan``, explicit) and windows
+        (checked), for a build batch or a propagation chunk. With a wave step (method "two-step") the batch is
+        planned ``"asm"`` on the entry's widened plan and given the entry's reduced distances
+        (``rw.wave_step[sl]``, FFT length ``rw.wave_step_pad``): its own wave-step plan would follow its own
+        nodes' edge widths, not the entry's."""
+        import warnings
+        from rwwarp.errors import SamplingWarning
+        from rwwarp.wave.plan import Plan
+        pl = rw.plan
+        plan = Plan(pl.pitch_mm, pl.n_grid, pl.n_pad, pl.ray_grid, "explicit", False, ["entry plan"])
+        stepped = bool(np.any(getattr(rw, "wave_step", 0.0)))
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
+            sub = geo.raywave(list(rw.fields[sl]), list(rw.wls[sl]), self.size, object_distance_mm=depth,
+                              pixel_mm=self.pixel_mm, plan=plan, center_mm=centres, requires_grad=False,
+                              method="asm" if stepped else None)
+        if not np.allclose(sub.origin, rw.origin[sl], rtol=0, atol=1e-9):
+            raise RuntimeError(f"nodes {sl.start}:{sl.stop} of entry {key}: their DOE-plane windows differ from the "
+                               "entry's (internal error)")
+        if stepped:
+            sub.wave_step = np.asarray(rw.wave_step, float)[sl].copy()
+            sub.wave_step_pad = rw.wave_step_pad
+        return sub
 
     def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None, part: int | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from .ray_spot import RaySpot
+from .wave_step import add_wave_step
 
 
 def common_centres(module, fields_deg, wavelength_um: float, depth_mm=None, grid: int = 15) -> np.ndarray:
@@ -53,7 +54,11 @@ class LiveProvider:
     the largest) is checked against ``record_budget_bytes`` (bytes one chunk's recorded sources may take;
     default the whole ``memory_budget_bytes``: a training step passes its share, the rest being the network's
     and the allocator's); a chunk over it is split into tiles that fit. False: one source at a time
-    (:meth:`~torch_bridge.HybridLens._psf_rw`)."""
+    (:meth:`~torch_bridge.HybridLens._psf_rw`).
+
+    A module with ``method="two-step"`` gives every source its wave step (:mod:`rwwarp.wave.wave_step`): a source
+    planned focal on its own gets the step :func:`torch_bridge.wave_step.add_wave_step` plans, and a source with a
+    step is computed alone, not packed (a packed tile has no wave step)."""
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
@@ -108,6 +113,10 @@ class LiveProvider:
         rs = m.raywaves_alone([src_f[j] for j in js], [src_w[j] for j in js], self.size, centers_mm=src_c[js],
                               object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, method="focal")
         for r in rs:
+            if m.method == "two-step":
+                # each source's focal plan with the wave step "two-step" plans (a joint plan's RayWave has it
+                # already): torch_bridge.wave_step.add_wave_step
+                add_wave_step(r, m.memory_budget(self.memory_budget_bytes))
             if check:
                 m.check_budget(r, m.memory_budget(self.memory_budget_bytes), sources=1)
             self.plans_made += 1
@@ -246,7 +255,8 @@ class LiveProvider:
             r = rws[j]
             if r.nsrc > 1:
                 units.append(("rw", r, list(fresh)))
-            elif self.pack and r.plan.method == "focal":
+            elif self.pack and r.plan.method == "focal" and not np.any(getattr(r, "wave_step", 0.0)):
+                # (a packed tile has no wave step: a source with one runs alone, HybridLens._psf_rw)
                 focal.append(j)
             else:
                 units.append(("rw", r, [j]))
