@@ -108,6 +108,21 @@ def model_error(fresnel_number_: float, rim_slope_rad: float) -> float:
     return MODEL_ERROR_C * s / nf * (1.0 + (s / MODEL_ERROR_S0) ** 2)
 
 
+def other_orders_error(fresnel_number_: float, rim_slope_rad: float, efficiency_ratio: float) -> float:
+    """The error (over the PSF's peak, dimensionless) one of a wrapped DOE's other diffraction orders adds to
+    :func:`model_error`: ``E_m = 8 sqrt(eta_m / eta_0) |sin(S_m^2 / (8 pi N_F))| / S_m`` (module docstring,
+    "Other orders"), for the order's rim slope ``S_m`` (rad, against the sphere converging to the patch: its
+    defocus there), ``N_F`` of :func:`fresnel_number` and its efficiency over the main order's,
+    ``eta_m / eta_0`` (>= 0)."""
+    nf, sm, r = float(fresnel_number_), abs(float(rim_slope_rad)), float(efficiency_ratio)
+    if not nf > 0 or not math.isfinite(sm) or not (r >= 0 and math.isfinite(r)):
+        raise ValueError(f"need a Fresnel number > 0, a finite rim slope and an efficiency ratio >= 0, got "
+                         f"{fresnel_number_!r}, {rim_slope_rad!r}, {efficiency_ratio!r}")
+    if math.isinf(nf) or sm == 0 or r == 0:
+        return 0.0
+    return 8.0 * math.sqrt(r) * abs(math.sin(sm * sm / (8.0 * math.pi * nf))) / sm
+
+
 @dataclass(frozen=True)
 class ModelError:
     """A source's estimated model error and what it is made of: ``estimate`` (dimensionless, relative to
@@ -123,6 +138,10 @@ class ModelError:
     rim_slope_rad: float
     wavelength_um: float
     note: str = ""
+    #: the other kept DOE orders' share of ``estimate`` (:func:`other_orders_error`; 0 for one order)
+    orders_estimate: float = 0.0
+    #: the main order's share, ``E = C S / N_F (1 + (S / S0)^2)``
+    main_estimate: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: (v if isinstance(v, str) else float(v)) for k, v in asdict(self).items()}
@@ -133,7 +152,9 @@ class ModelError:
                 f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
-                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.wave.model_error)"
+                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2)"
+                + (f" + the DOE's other orders' halo {self.orders_estimate:.2g}" if self.orders_estimate > 0 else "")
+                + ", rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
 
 
@@ -157,6 +178,38 @@ def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
         return math.inf   # the stop's image at infinity: no finite distance (telecentric in front of the plane)
     z1 = float(ys[-1] * n[plane] / nus[-1])
     return max(z1, 0.0)
+
+
+def _rim_slope(xy, xc, rr, rim, beam_r, df):
+    """``S = 2 pi RMS_rim[(x - x_c) . df (r_w / |x - x_c|)^3]`` (rad) of the frequency offsets ``df`` (cycles/mm)
+    less their mean (:func:`estimate_for_raywave`)."""
+    df = df - df.mean(0)
+    sl = np.sum((xy[rim] - xc) * df[rim], axis=1) * (beam_r / np.maximum(rr[rim], 1e-300)) ** 3
+    return 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
+
+
+def _other_orders(surface, prof, xy, wavelength_um, m0):
+    """The wrapped DOE's orders other than ``m0`` and their efficiency over ``m0``'s, ``[(m, eta_m / eta_0)]``:
+    the orders a focal plan keeps (``m0 +- FOCAL_MAX_ORDER`` and, for ``N`` levels, ``1 +- N``, ``1 +- 2N``) from
+    the relief's order weights (:func:`rwwarp.wave.focal.doe_order_coefficients`); none where the relief does not
+    wrap over the beam (one smooth order)."""
+    from .. import doe
+    from .focal import doe_order_coefficients
+    from .raywave import FOCAL_MAX_ORDER
+    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    span = float(np.ptp(phi)) if phi.size else 0.0
+    if not surface.levels and span <= 2 * math.pi:
+        return []
+    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    ms = set(range(int(m0) - FOCAL_MAX_ORDER, int(m0) + FOCAL_MAX_ORDER + 1))
+    if surface.levels:
+        ms |= {1 + j * int(surface.levels) for j in (-2, -1, 1, 2)}
+    ms = sorted(ms - {int(m0)})
+    eta = np.abs(doe_order_coefficients(alpha, surface.levels, ms)) ** 2
+    eta0 = float(np.abs(doe_order_coefficients(alpha, surface.levels, [int(m0)])[0]) ** 2)
+    if eta0 <= 0:
+        return []
+    return [(m, float(e / eta0)) for m, e in zip(ms, eta) if e > 1e-8 * eta0]
 
 
 def _main_order(surface, prof, xy, wavelength_um):
@@ -213,9 +266,12 @@ def estimate_for_raywave(rw) -> list:
         # span) inside the beam's edge
         beam_r = 0.5 * float(np.min(xy.max(0) - xy.min(0))) * 31.0 / 30.0
         f = inv_lam * dirs[k, sel, :2]
+        grad = None
         if prof is not None:
             gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
-            f = f + _main_order(s, prof, xy, w) * np.stack([gx, gy], 1) / (2 * math.pi)
+            grad = np.stack([gx, gy], 1) / (2 * math.pi)
+            m0 = _main_order(s, prof, xy, w)
+            f = f + m0 * grad
         T = np.array([rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor])
         P = np.concatenate([xy, np.full((len(xy), 1), rw.z_plane)], 1)
         to_T = T[None, :] - P
@@ -223,23 +279,45 @@ def estimate_for_raywave(rw) -> list:
         rr = np.linalg.norm(xy - xc, axis=1)
         rim = rr >= RIM_SHARE * rr.max()
         # a tilt (a constant frequency offset: the PSF off the patch centre) commutes with the diffraction
-        # and changes no intensity: W is taken against the sphere to the patch less its mean tilt
-        df = f - f_sph
-        df = df - df.mean(0)
-        # each rim ray's rho dW/drho, carried to the beam's edge as rho^3 (its pilot point lies 3-10 % inside; a
+        # and changes no intensity: W is taken against the sphere to the patch less its mean tilt.
+        # Each rim ray's rho dW/drho, carried to the beam's edge as rho^3 (its pilot point lies 3-10 % inside; a
         # defocus's slope grows as rho^2, a spherical aberration's as rho^4),
         # then the RMS around the rim: the edge's whole ring diffracts, so a slope on one side only (a decentred
         # DOE off axis) counts by its share (the max read 1.65x / 10x the measured error at 0.2 / 0.5 deg, the
         # RMS 1.03x / 4x: tests/rwwarp/test_model_error.py)
-        sl = np.sum((xy[rim] - xc) * df[rim], axis=1) * (beam_r / np.maximum(rr[rim], 1e-300)) ** 3
-        slope = 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
+        slope = _rim_slope(xy, xc, rr, rim, beam_r, f - f_sph)
         if not math.isfinite(z1):
-            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w, note))
+            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w, note, 0.0, 0.0))
             continue
         d = reduced_distance_mm(z1, R)
         nf = fresnel_number(beam_r, z1, R, w, n)
-        out.append(ModelError(model_error(nf, slope), nf, z1, R, d, beam_r, slope, w, note))
+        main = model_error(nf, slope)
+        other = 0.0
+        if grad is not None and math.isfinite(nf):
+            dist = rw.z_sensor - rw.z_plane
+            for m, ratio in _other_orders(s, prof, xy, w, m0):
+                fm = f + (m - m0) * grad
+                if not _reaches_patch(xy, fm, inv_lam, dist, T[:2], rr, rim):
+                    continue
+                other += other_orders_error(nf, _rim_slope(xy, xc, rr, rim, beam_r, fm - f_sph), ratio)
+        out.append(ModelError(main + other, nf, z1, R, d, beam_r, slope, w, note, other, main))
     return out
+
+
+def _reaches_patch(xy, f, inv_lam, dist_mm, center_mm, rr, rim) -> bool:
+    """Whether an order (rays of transverse frequency ``f``, cycles/mm, from ``xy`` on the plane) lights the
+    patch centre ``center_mm`` on the sensor ``dist_mm`` behind: the centre inside its footprint there (the
+    rim rays' landing points, their mean distance from the footprint's centre as its radius). Evanescent rays
+    land nowhere."""
+    s = f / inv_lam                                   # direction sines
+    c2 = 1.0 - np.sum(s * s, axis=1)
+    ok = c2 > 0
+    if not np.any(ok & rim):
+        return False
+    land = xy[ok] + dist_mm * s[ok] / np.sqrt(c2[ok])[:, None]
+    lc = land.mean(0)
+    r_land = float(np.mean(np.linalg.norm(land[rim[ok]] - lc, axis=1)))
+    return bool(np.linalg.norm(np.asarray(center_mm) - lc) < r_land)
 
 
 def worst(estimates) -> ModelError | None:
@@ -270,7 +348,12 @@ def warn_over_tolerance(plans, tolerance: float, stacklevel: int = 2) -> list:
                       f"the tolerance {tolerance:.2g} ({len(bad)} PSF(s); Fresnel number {w['fresnel_number']:.4g} of "
                       f"the stop seen from the DOE plane {w['aperture_to_plane_mm']:.4g} mm behind its image, rim slope "
                       f"{w['rim_slope_rad']:.3g} rad): the geometric field at the DOE plane leaves out the rim's "
-                      "diffraction on the way there. Use method='auto' with this tolerance or method='two-step' (the "
-                      "wave step, rwwarp.wave.wave_step), or move the DOE nearer the stop", ModelErrorWarning,
+                      "diffraction on the way there. "
+                      + (f"The wave step was refused: its own error, ~{w['step_error']:.2g} (the beam's aberration "
+                         f"before the DOE transported twice, phase {w['step_phase_rad']:.3g} rad), is above the "
+                         "tolerance too (rwwarp.wave.wave_step); move the DOE nearer the stop"
+                         if w.get("step_error", 0.0) > tolerance else
+                         "Use method='auto' with this tolerance or method='two-step' (the wave step, "
+                         "rwwarp.wave.wave_step), or move the DOE nearer the stop"), ModelErrorWarning,
                       stacklevel=stacklevel)
     return bad
