@@ -189,7 +189,8 @@ def _rim_slope(xy, xc, rr, rim, beam_r, df):
 
 
 def _other_orders(surface, prof, xy, wavelength_um, m0):
-    """The wrapped DOE's orders other than ``m0`` and their efficiency over ``m0``'s, ``[(m, eta_m / eta_0)]``:
+    """The wrapped DOE's orders other than ``m0`` and their weight over ``m0``'s, ``[(m, c_m / c_0)]`` (complex;
+    ``|c_m / c_0|^2 = eta_m / eta_0``, the efficiencies):
     the orders a focal plan keeps (``m0 +- FOCAL_MAX_ORDER`` and, for ``N`` levels, ``1 +- N``, ``1 +- 2N``) from
     the relief's order weights (:func:`rwwarp.wave.focal.doe_order_coefficients`); none where the relief does not
     wrap over the beam (one smooth order)."""
@@ -209,7 +210,9 @@ def _other_orders(surface, prof, xy, wavelength_um, m0):
     eta0 = float(np.abs(doe_order_coefficients(alpha, surface.levels, [int(m0)])[0]) ** 2)
     if eta0 <= 0:
         return []
-    return [(m, float(e / eta0)) for m, e in zip(ms, eta) if e > 1e-8 * eta0]
+    c = doe_order_coefficients(alpha, surface.levels, ms)
+    c0 = doe_order_coefficients(alpha, surface.levels, [int(m0)])[0]
+    return [(m, complex(cm / c0)) for m, cm, e in zip(ms, c, eta) if e > 1e-8 * eta0]
 
 
 def _main_order(surface, prof, xy, wavelength_um):
@@ -295,13 +298,65 @@ def estimate_for_raywave(rw) -> list:
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane
-            for m, ratio in _other_orders(s, prof, xy, w, m0):
-                fm = f + (m - m0) * grad
-                if not _reaches_patch(xy, fm, inv_lam, dist, T[:2], rr, rim):
-                    continue
-                other += other_orders_error(nf, _rim_slope(xy, xc, rr, rim, beam_r, fm - f_sph), ratio)
+            orders = [(m, c) for m, c in _other_orders(s, prof, xy, w, m0)
+                      if _reaches_patch(xy, f + (m - m0) * grad, inv_lam, dist, T[:2], rr, rim)]
+            # a beam centred on the DOE's axis and focused on it: every rim point's edge wave reaches the patch
+            # centre in phase, and the orders' waves add coherently to the main order's peak
+            on_axis = (float(np.hypot(*xc)) < AXIS_SHARE * beam_r and float(np.hypot(*T[:2])) < AXIS_SHARE * beam_r)
+            if orders and on_axis:
+                other = other_orders_on_axis(nf, [(m0, 1.0 + 0j, f - f_sph)]
+                                             + [(m, c, f + (m - m0) * grad - f_sph) for m, c in orders],
+                                             xy, xc, beam_r)
+            else:
+                for m, c in orders:
+                    other += other_orders_error(nf, _rim_slope(xy, xc, rr, rim, beam_r, f + (m - m0) * grad - f_sph),
+                                                abs(c) ** 2)
         out.append(ModelError(main + other, nf, z1, R, d, beam_r, slope, w, note, other, main))
     return out
+
+
+#: a beam counts as on the DOE's axis (:func:`other_orders_on_axis`) where its centre and its patch's lie
+#: within this share of its radius from the axis
+AXIS_SHARE = 0.05
+#: radial polynomial of the orders' phases (:func:`radial_phase`): rho^2 .. rho^(2 RADIAL_TERMS)
+RADIAL_TERMS = 4
+
+
+def radial_phase(xy, xc, beam_r, df) -> np.ndarray:
+    """Coefficients ``a_j`` (rad) of a rotationally symmetric phase ``Phi(rho) = sum_j a_j rho^(2j)``, ``j = 1 ..
+    RADIAL_TERMS`` (``rho = |x - x_c| / r_w``), least-squares fitted to rays' frequencies ``df`` (cycles/mm,
+    against the sphere to the patch) through ``rho dPhi/drho = 2 pi (x - x_c) . df``."""
+    rho = np.linalg.norm(xy - xc, axis=1) / beam_r
+    y = 2 * math.pi * np.sum((xy - xc) * df, axis=1)
+    j = np.arange(1, RADIAL_TERMS + 1)
+    A = 2 * j[None, :] * rho[:, None] ** (2 * j[None, :])
+    return np.linalg.lstsq(A, y, rcond=None)[0]
+
+
+def other_orders_on_axis(fresnel_number_: float, orders, xy, xc, beam_r) -> float:
+    """The other orders' error for a beam on the DOE's axis (module docstring, "Other orders"): the change of the
+    on-axis intensity over the one-step model's, ``|2 Re(conj(U) dU) + |dU|^2| / |U|^2``, with ``U = sum_m c_m
+    int_0^1 exp(i Phi_m) 2 rho drho`` (all orders, ``c_m`` over the main order's) and ``dU = sum_(m != main)
+    c_m 2 exp(i Phi_m(1)) / (i S_m) (exp(-i S_m^2 / (4 pi N_F)) - 1)``: each order's edge wave turned by the
+    Fresnel phase of its rim frequency over the reduced distance. ``orders``: ``[(m, c_m / c_0, df)]``, the main
+    order first, ``df`` its rays' frequencies against the sphere to the patch (cycles/mm, at ``xy``, mm);
+    ``Phi_m`` their :func:`radial_phase`, ``S_m = rho dPhi_m/drho`` at the rim (rad)."""
+    t, wq = np.polynomial.legendre.leggauss(256)
+    rho = 0.5 * (t + 1.0)
+    j = np.arange(1, RADIAL_TERMS + 1)
+    U, dU = 0j, 0j
+    for i, (m, c, df) in enumerate(orders):
+        a = radial_phase(xy, xc, beam_r, df - df.mean(0))
+        phi = (rho[:, None] ** (2 * j[None, :])) @ a
+        U += c * np.sum(wq * 0.5 * 2 * rho * np.exp(1j * phi))
+        sm = float(np.sum(2 * j * a))
+        if i == 0 or sm == 0:
+            continue
+        psi = sm * sm / (4 * math.pi * fresnel_number_)
+        dU += c * 2 * np.exp(1j * float(np.sum(a))) / (1j * sm) * (np.exp(-1j * psi) - 1.0)
+    if abs(U) == 0:
+        return 0.0
+    return float(abs(2 * (np.conj(U) * dU).real + abs(dU) ** 2) / abs(U) ** 2)
 
 
 def _reaches_patch(xy, f, inv_lam, dist_mm, center_mm, rr, rim) -> bool:
