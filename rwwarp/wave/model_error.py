@@ -352,7 +352,13 @@ def other_orders_on_axis(fresnel_number_: float, orders, xy, xc, beam_r) -> floa
         sm = float(np.sum(2 * j * a))
         if i == 0 or sm == 0:
             continue
-        psi = sm * sm / (4 * math.pi * fresnel_number_)
+        # the edge wave's Fresnel phase over d: S^2 / (4 pi N_F) for a plane-wave edge, exactly S^2 / (4 pi N_F +
+        # 2 S) for a defocused order (module docstring, "Other orders"); an order focused at the plane (4 pi N_F
+        # + 2 S = 0) is a point there: its light is spread on the patch, its edge wave left out
+        den = 4 * math.pi * fresnel_number_ + 2 * sm
+        if den <= 0:
+            continue
+        psi = sm * sm / den
         dU += c * 2 * np.exp(1j * float(np.sum(a))) / (1j * sm) * (np.exp(-1j * psi) - 1.0)
     if abs(U) == 0:
         return 0.0
