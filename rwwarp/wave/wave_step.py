@@ -225,6 +225,17 @@ def _wave_step_pad(n: int, extra: int) -> int:
     return next_fft_size(int(n + 2 * PAD_MARGINS * extra))
 
 
+def _caller_stacklevel() -> int:
+    """The ``stacklevel`` of the first frame outside the rwwarp package (the user's call) for a warning raised here."""
+    import os
+    import sys
+    pkg = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    f, level = sys._getframe(1), 1
+    while f is not None and os.path.abspath(f.f_code.co_filename).startswith(pkg + os.sep):
+        f, level = f.f_back, level + 1
+    return level
+
+
 def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None) -> None:
     """Estimate the model error of a :class:`rwwarp.wave.raywave.RayWave` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
@@ -269,7 +280,8 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
                 f"aberration before the DOE is transported twice, a phase error up to {phi:.3g} rad"
                 + (f", above the tolerance {tolerance:.2g}" if tolerance is not None else
                    f", above {STEP_PHASE_MAX:g} rad") + f"; the one-step model's estimate is {w.estimate:.2g}): "
-                "the wave path is not a reference here (rwwarp.wave.wave_step)", WaveStepWarning, stacklevel=4)
+                "the wave path is not a reference here (rwwarp.wave.wave_step)", WaveStepWarning,
+                stacklevel=_caller_stacklevel())
         if edge > 0:
             one_step = pl
             pitch = pl.pitch_mm
