@@ -245,7 +245,11 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     ``sqrt(lambda d) / EDGE_SAMPLES``. Sets ``rw.model_errors`` (a list, per source), ``rw.wave_step`` ((S,) mm,
     zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``. A step whose plan exceeds
     ``memory_budget_bytes`` is refused (:class:`rwwarp.wave.plan.MemoryBudgetError`) under ``"two-step"`` and left
-    out, with a reason, under ``"auto"``."""
+    out, with a reason, under ``"auto"``. Where the step is wanted, its own error ``E_step`` (:func:`step_phase_rad`,
+    :func:`step_error`; recorded as ``model_error["step_phase_rad"]`` / ``["step_error"]``) is compared with
+    ``tolerance``: above it ``"auto"`` refuses the step (the one-step plan kept, a reason says why) and
+    ``"two-step"`` takes it and warns (:class:`WaveStepWarning`; without a tolerance where the phase error exceeds
+    ``STEP_PHASE_MAX`` rad)."""
     from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
     from .plan import check_budget, estimate_cost, nice_fft_length
