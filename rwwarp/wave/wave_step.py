@@ -38,7 +38,10 @@ defocus carried twice, ``p = 4``: coma-like, ``p = 6``: spherical) the variance 
     E_step = phi^2 / STEP_ERROR_DIV       (STEP_ERROR_DIV = 10; of the PSF's peak)
 
 valid while ``phi`` is small (``phi <= STEP_PHASE_MAX`` = 0.1 rad: E_step <= 1e-3; above ~1 rad the envelope's
-shift is a sizeable part of the edge width and the bound is no longer one). :func:`plan_wave_step` compares
+shift is a sizeable part of the edge width and the bound is no longer one). The phase is checked against an
+exact trace (tests/rwwarp/test_wave_step_validity.py); the bound ``E_step`` is Marechal's peak drop, not yet
+checked against a wave truth of an aberrated beam (none exists here), and a beam left aberrated after the DOE
+can change the PSF off its peak to first order in ``phi``. :func:`plan_wave_step` compares
 ``E_step`` with the tolerance: ``method="auto"`` refuses the step where it exceeds the tolerance (the one-step
 plan is kept, the plan's reasons say why), ``method="two-step"`` warns (:class:`WaveStepWarning`) where it
 exceeds the tolerance, or without one where ``phi > STEP_PHASE_MAX``. (The criterion it replaces, the shift
