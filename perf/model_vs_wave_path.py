@@ -226,6 +226,10 @@ def one_psf(lens, field, wl, depth, kw, moved=None, grid_check: bool = False) ->
         "auto_tolerance_adds_step": bool(auto_tol.wave_step_mm),
         "wave_step_mm": two.plan.get("wave_step_mm"),
         "estimate": me.get("estimate"), "fresnel_number": me.get("fresnel_number"), "rim_slope_rad": me.get("rim_slope_rad"),
+        # the estimate's parts (rwwarp.wave.model_error: the main order's and the wrapped DOE's other orders')
+        "main_estimate": me.get("main_estimate"), "orders_estimate": me.get("orders_estimate"),
+        # the planner's own reading of the step's phase error (rwwarp.wave.wave_step.step_phase_rad)
+        "plan_step_phase_rad": (two.plan.get("model_error") or {}).get("step_phase_rad"),
         "max_diff_over_peak": diff,
         "estimate_over_measured": (me.get("estimate") / diff) if (me.get("estimate") is not None and diff > 0) else None,
         "peak_rel_change": float(pa / pb - 1.0),

@@ -44,6 +44,32 @@ Off axis (a 2-D truth in the same test file: a = 1.5 mm, 20 mm, N_F 54.5) the sl
 the rim: at 0.2 deg the estimate is 1.09x the measured error; at 0.5 deg, where the beam sits 0.44 of its
 radius off the DOE's centre, 4.4x (an upper bound there: the step is taken early, not late).
 
+Other orders. A wrapped relief away from its design wavelength transmits ``sum_m c_m exp(i m phi0)``
+(:func:`rwwarp.wave.focal.doe_order_coefficients`, ``sum |c_m|^2 = 1``); the orders ``m`` other than the main
+one ``m0`` are defocused on the sensor (rim slope ``S_m`` against the sphere to the patch, tens of rad). On the
+sensor point ``T`` the field of order ``m`` is ``c_m int_0^1 exp(i Phi_m(rho)) 2 rho drho`` (over the focused
+main order's peak amplitude; ``Phi_m`` the order's phase against the sphere to ``T``), whose integration by
+parts leaves the centre's stationary point and the rim's *edge wave* ``2 exp(i Phi_m(1)) / (i S_m)`` (amplitude
+``2 / S_m``). The rim's diffraction over ``d`` (what the one-step model leaves out) multiplies each plane-wave
+component of the field before the DOE by ``exp(-i pi lambda d nu^2)``; the edge wave is the component at the
+rim's frequency ``S_m / (2 pi r_w)``, so it turns by ``psi_m = S_m^2 / (4 pi N_F)``. For a defocus
+``Phi_m = (S_m / 2) rho^2`` this is exact in Fresnel order after one correction: propagating the chirp turns its
+curvature, ``psi_m = S_m^2 / (4 pi N_F + 2 S_m)``. (The same reasoning for the main order, small ``S``, gives
+``E = S / (pi N_F)``: ``C = 1 / pi = 0.32`` against the calibrated 0.25.) The change of the peak,
+
+    E_orders = |2 Re(conj(U) dU) + |dU|^2| / |U|^2,   dU = sum_(m != m0) c_m / c_0 2 exp(i Phi_m(1)) / (i S_m) (exp(-i psi_m) - 1)
+
+with ``U`` the on-axis field of all orders, is :func:`other_orders_on_axis` (``Phi_m`` a radial polynomial fitted
+to the pilot rays' slopes, :func:`radial_phase`), used for a beam on the DOE's axis (its edge waves reach the
+patch centre in phase); elsewhere each order adds at most ``8 sqrt(eta_m / eta_0) |sin(psi_m / 2)| / S_m``
+(:func:`other_orders_error`, phases aligned: an upper bound). Orders whose footprint on the sensor misses the
+patch centre are not counted. The estimate is ``E + E_orders``. Checked, nothing fitted
+(``tests/rwwarp/test_model_error_orders.py``): the truth with the wrapped transmission (thin lens, DOE ``-40
+rho^2`` rad 20 mm before the lens focus, used at 0.909x / 1.127x its design phase): measured 4.65e-3 / 2.16e-3,
+estimate 4.46e-3 / 3.37e-3 (the main order's alone 3.4e-4); the stored Cooke design at 0.47 / 0.63 um on axis
+against its one-step vs wave-path difference 1.06e-2 / 1.11e-2: 1.77e-2 / 1.39e-2 (main order alone 2.9e-3 /
+5.5e-4).
+
 Scope of the scene reading (:func:`estimate_for_raywave`): the limiting aperture is the stop, imaged into
 the space in front of the wave plane (paraxially, through the refracting surfaces between them); apertures
 that vignette the beam elsewhere are not counted. Distances are axial; an off-axis beam's edge sees its
@@ -108,6 +134,21 @@ def model_error(fresnel_number_: float, rim_slope_rad: float) -> float:
     return MODEL_ERROR_C * s / nf * (1.0 + (s / MODEL_ERROR_S0) ** 2)
 
 
+def other_orders_error(fresnel_number_: float, rim_slope_rad: float, efficiency_ratio: float) -> float:
+    """The error (over the PSF's peak, dimensionless) one of a wrapped DOE's other diffraction orders adds to
+    :func:`model_error`: ``E_m = 8 sqrt(eta_m / eta_0) |sin(S_m^2 / (8 pi N_F))| / S_m`` (module docstring,
+    "Other orders"), for the order's rim slope ``S_m`` (rad, against the sphere converging to the patch: its
+    defocus there), ``N_F`` of :func:`fresnel_number` and its efficiency over the main order's,
+    ``eta_m / eta_0`` (>= 0)."""
+    nf, sm, r = float(fresnel_number_), abs(float(rim_slope_rad)), float(efficiency_ratio)
+    if not nf > 0 or not math.isfinite(sm) or not (r >= 0 and math.isfinite(r)):
+        raise ValueError(f"need a Fresnel number > 0, a finite rim slope and an efficiency ratio >= 0, got "
+                         f"{fresnel_number_!r}, {rim_slope_rad!r}, {efficiency_ratio!r}")
+    if math.isinf(nf) or sm == 0 or r == 0:
+        return 0.0
+    return 8.0 * math.sqrt(r) * abs(math.sin(sm * sm / (8.0 * math.pi * nf))) / sm
+
+
 @dataclass(frozen=True)
 class ModelError:
     """A source's estimated model error and what it is made of: ``estimate`` (dimensionless, relative to
@@ -123,6 +164,10 @@ class ModelError:
     rim_slope_rad: float
     wavelength_um: float
     note: str = ""
+    #: the other kept DOE orders' share of ``estimate`` (:func:`other_orders_error`; 0 for one order)
+    orders_estimate: float = 0.0
+    #: the main order's share, ``E = C S / N_F (1 + (S / S0)^2)``
+    main_estimate: float = 0.0
 
     def to_dict(self) -> dict:
         return {k: (v if isinstance(v, str) else float(v)) for k, v in asdict(self).items()}
@@ -133,7 +178,9 @@ class ModelError:
                 f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
-                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2), rwwarp.wave.model_error)"
+                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2)"
+                + (f" + the DOE's other orders' halo {self.orders_estimate:.2g}" if self.orders_estimate > 0 else "")
+                + ", rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
 
 
@@ -159,6 +206,41 @@ def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
     return max(z1, 0.0)
 
 
+def _rim_slope(xy, xc, rr, rim, beam_r, df):
+    """``S = 2 pi RMS_rim[(x - x_c) . df (r_w / |x - x_c|)^3]`` (rad) of the frequency offsets ``df`` (cycles/mm)
+    less their mean (:func:`estimate_for_raywave`)."""
+    df = df - df.mean(0)
+    sl = np.sum((xy[rim] - xc) * df[rim], axis=1) * (beam_r / np.maximum(rr[rim], 1e-300)) ** 3
+    return 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
+
+
+def _other_orders(surface, prof, xy, wavelength_um, m0):
+    """The wrapped DOE's orders other than ``m0`` and their weight over ``m0``'s, ``[(m, c_m / c_0)]`` (complex;
+    ``|c_m / c_0|^2 = eta_m / eta_0``, the efficiencies):
+    the orders a focal plan keeps (``m0 +- FOCAL_MAX_ORDER`` and, for ``N`` levels, ``1 +- N``, ``1 +- 2N``) from
+    the relief's order weights (:func:`rwwarp.wave.focal.doe_order_coefficients`); none where the relief does not
+    wrap over the beam (one smooth order)."""
+    from .. import doe
+    from .focal import doe_order_coefficients
+    from .raywave import FOCAL_MAX_ORDER
+    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    span = float(np.ptp(phi)) if phi.size else 0.0
+    if not surface.levels and span <= 2 * math.pi:
+        return []
+    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    ms = set(range(int(m0) - FOCAL_MAX_ORDER, int(m0) + FOCAL_MAX_ORDER + 1))
+    if surface.levels:
+        ms |= {1 + j * int(surface.levels) for j in (-2, -1, 1, 2)}
+    ms = sorted(ms - {int(m0)})
+    eta = np.abs(doe_order_coefficients(alpha, surface.levels, ms)) ** 2
+    eta0 = float(np.abs(doe_order_coefficients(alpha, surface.levels, [int(m0)])[0]) ** 2)
+    if eta0 <= 0:
+        return []
+    c = doe_order_coefficients(alpha, surface.levels, ms)
+    c0 = doe_order_coefficients(alpha, surface.levels, [int(m0)])[0]
+    return [(m, complex(cm / c0)) for m, cm, e in zip(ms, c, eta) if e > 1e-8 * eta0]
+
+
 def _main_order(surface, prof, xy, wavelength_um):
     """The DOE's main-order factor m (its phase is ``m phi0``): ``alpha`` where the relief does not wrap over
     the beam, else the integer order nearest ``alpha`` (at least 1)."""
@@ -178,7 +260,8 @@ def estimate_for_raywave(rw) -> list:
     wavefront after the DOE's main order relative to the sphere converging to the patch centre on the
     sensor: ``S = 2 pi RMS_rim[(x - x_c) . (f - f_sphere) (r_w / |x - x_c|)^3]`` over the pilot rays within
     ``RIM_SHARE`` of the footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm; ``f - f_sphere``
-    less its mean over the beam: a tilt moves the PSF and changes nothing else)."""
+    less its mean over the beam: a tilt moves the PSF and changes nothing else); plus, for a wrapped DOE, its other
+    kept orders' edge waves (module docstring, "Other orders": ``orders_estimate``; ``main_estimate`` the rest)."""
     from .. import doe
     from ..doe import is_flat_profile
     lens, plane = rw.lens, rw.plane
@@ -213,9 +296,12 @@ def estimate_for_raywave(rw) -> list:
         # span) inside the beam's edge
         beam_r = 0.5 * float(np.min(xy.max(0) - xy.min(0))) * 31.0 / 30.0
         f = inv_lam * dirs[k, sel, :2]
+        grad = None
         if prof is not None:
             gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
-            f = f + _main_order(s, prof, xy, w) * np.stack([gx, gy], 1) / (2 * math.pi)
+            grad = np.stack([gx, gy], 1) / (2 * math.pi)
+            m0 = _main_order(s, prof, xy, w)
+            f = f + m0 * grad
         T = np.array([rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor])
         P = np.concatenate([xy, np.full((len(xy), 1), rw.z_plane)], 1)
         to_T = T[None, :] - P
@@ -223,23 +309,103 @@ def estimate_for_raywave(rw) -> list:
         rr = np.linalg.norm(xy - xc, axis=1)
         rim = rr >= RIM_SHARE * rr.max()
         # a tilt (a constant frequency offset: the PSF off the patch centre) commutes with the diffraction
-        # and changes no intensity: W is taken against the sphere to the patch less its mean tilt
-        df = f - f_sph
-        df = df - df.mean(0)
-        # each rim ray's rho dW/drho, carried to the beam's edge as rho^3 (its pilot point lies 3-10 % inside; a
+        # and changes no intensity: W is taken against the sphere to the patch less its mean tilt.
+        # Each rim ray's rho dW/drho, carried to the beam's edge as rho^3 (its pilot point lies 3-10 % inside; a
         # defocus's slope grows as rho^2, a spherical aberration's as rho^4),
         # then the RMS around the rim: the edge's whole ring diffracts, so a slope on one side only (a decentred
         # DOE off axis) counts by its share (the max read 1.65x / 10x the measured error at 0.2 / 0.5 deg, the
         # RMS 1.03x / 4x: tests/rwwarp/test_model_error.py)
-        sl = np.sum((xy[rim] - xc) * df[rim], axis=1) * (beam_r / np.maximum(rr[rim], 1e-300)) ** 3
-        slope = 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
+        slope = _rim_slope(xy, xc, rr, rim, beam_r, f - f_sph)
         if not math.isfinite(z1):
-            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w, note))
+            out.append(ModelError(0.0, math.inf, z1, R, z1, beam_r, slope, w, note, 0.0, 0.0))
             continue
         d = reduced_distance_mm(z1, R)
         nf = fresnel_number(beam_r, z1, R, w, n)
-        out.append(ModelError(model_error(nf, slope), nf, z1, R, d, beam_r, slope, w, note))
+        main = model_error(nf, slope)
+        other = 0.0
+        if grad is not None and math.isfinite(nf):
+            dist = rw.z_sensor - rw.z_plane
+            orders = [(m, c) for m, c in _other_orders(s, prof, xy, w, m0)
+                      if _reaches_patch(xy, f + (m - m0) * grad, inv_lam, dist, T[:2], rr, rim)]
+            # a beam centred on the DOE's axis and focused on it: every rim point's edge wave reaches the patch
+            # centre in phase, and the orders' waves add coherently to the main order's peak
+            on_axis = (float(np.hypot(*xc)) < AXIS_SHARE * beam_r and float(np.hypot(*T[:2])) < AXIS_SHARE * beam_r)
+            if orders and on_axis:
+                other = other_orders_on_axis(nf, [(m0, 1.0 + 0j, f - f_sph)]
+                                             + [(m, c, f + (m - m0) * grad - f_sph) for m, c in orders],
+                                             xy, xc, beam_r)
+            else:
+                for m, c in orders:
+                    other += other_orders_error(nf, _rim_slope(xy, xc, rr, rim, beam_r, f + (m - m0) * grad - f_sph),
+                                                abs(c) ** 2)
+        out.append(ModelError(main + other, nf, z1, R, d, beam_r, slope, w, note, other, main))
     return out
+
+
+#: a beam counts as on the DOE's axis (:func:`other_orders_on_axis`) where its centre and its patch's lie
+#: within this share of its radius from the axis
+AXIS_SHARE = 0.05
+#: radial polynomial of the orders' phases (:func:`radial_phase`): rho^2 .. rho^(2 RADIAL_TERMS)
+RADIAL_TERMS = 4
+
+
+def radial_phase(xy, xc, beam_r, df) -> np.ndarray:
+    """Coefficients ``a_j`` (rad) of a rotationally symmetric phase ``Phi(rho) = sum_j a_j rho^(2j)``, ``j = 1 ..
+    RADIAL_TERMS`` (``rho = |x - x_c| / r_w``), least-squares fitted to rays' frequencies ``df`` (cycles/mm,
+    against the sphere to the patch) through ``rho dPhi/drho = 2 pi (x - x_c) . df``."""
+    rho = np.linalg.norm(xy - xc, axis=1) / beam_r
+    y = 2 * math.pi * np.sum((xy - xc) * df, axis=1)
+    j = np.arange(1, RADIAL_TERMS + 1)
+    A = 2 * j[None, :] * rho[:, None] ** (2 * j[None, :])
+    return np.linalg.lstsq(A, y, rcond=None)[0]
+
+
+def other_orders_on_axis(fresnel_number_: float, orders, xy, xc, beam_r) -> float:
+    """The other orders' error for a beam on the DOE's axis (module docstring, "Other orders"): the change of the
+    on-axis intensity over the one-step model's, ``|2 Re(conj(U) dU) + |dU|^2| / |U|^2``, with ``U = sum_m c_m
+    int_0^1 exp(i Phi_m) 2 rho drho`` (all orders, ``c_m`` over the main order's) and ``dU = sum_(m != main)
+    c_m 2 exp(i Phi_m(1)) / (i S_m) (exp(-i S_m^2 / (4 pi N_F)) - 1)``: each order's edge wave turned by the
+    Fresnel phase of its rim frequency over the reduced distance. ``orders``: ``[(m, c_m / c_0, df)]``, the main
+    order first, ``df`` its rays' frequencies against the sphere to the patch (cycles/mm, at ``xy``, mm);
+    ``Phi_m`` their :func:`radial_phase`, ``S_m = rho dPhi_m/drho`` at the rim (rad)."""
+    t, wq = np.polynomial.legendre.leggauss(256)
+    rho = 0.5 * (t + 1.0)
+    j = np.arange(1, RADIAL_TERMS + 1)
+    U, dU = 0j, 0j
+    for i, (m, c, df) in enumerate(orders):
+        a = radial_phase(xy, xc, beam_r, df - df.mean(0))
+        phi = (rho[:, None] ** (2 * j[None, :])) @ a
+        U += c * np.sum(wq * 0.5 * 2 * rho * np.exp(1j * phi))
+        sm = float(np.sum(2 * j * a))
+        if i == 0 or sm == 0:
+            continue
+        # the edge wave's Fresnel phase over d: S^2 / (4 pi N_F) for a plane-wave edge, exactly S^2 / (4 pi N_F +
+        # 2 S) for a defocused order (module docstring, "Other orders"); an order focused at the plane (4 pi N_F
+        # + 2 S = 0) is a point there: its light is spread on the patch, its edge wave left out
+        den = 4 * math.pi * fresnel_number_ + 2 * sm
+        if den <= 0:
+            continue
+        psi = sm * sm / den
+        dU += c * 2 * np.exp(1j * float(np.sum(a))) / (1j * sm) * (np.exp(-1j * psi) - 1.0)
+    if abs(U) == 0:
+        return 0.0
+    return float(abs(2 * (np.conj(U) * dU).real + abs(dU) ** 2) / abs(U) ** 2)
+
+
+def _reaches_patch(xy, f, inv_lam, dist_mm, center_mm, rr, rim) -> bool:
+    """Whether an order (rays of transverse frequency ``f``, cycles/mm, from ``xy`` on the plane) lights the
+    patch centre ``center_mm`` on the sensor ``dist_mm`` behind: the centre inside its footprint there (the
+    rim rays' landing points, their mean distance from the footprint's centre as its radius). Evanescent rays
+    land nowhere."""
+    s = f / inv_lam                                   # direction sines
+    c2 = 1.0 - np.sum(s * s, axis=1)
+    ok = c2 > 0
+    if not np.any(ok & rim):
+        return False
+    land = xy[ok] + dist_mm * s[ok] / np.sqrt(c2[ok])[:, None]
+    lc = land.mean(0)
+    r_land = float(np.mean(np.linalg.norm(land[rim[ok]] - lc, axis=1)))
+    return bool(np.linalg.norm(np.asarray(center_mm) - lc) < r_land)
 
 
 def worst(estimates) -> ModelError | None:
@@ -270,7 +436,12 @@ def warn_over_tolerance(plans, tolerance: float, stacklevel: int = 2) -> list:
                       f"the tolerance {tolerance:.2g} ({len(bad)} PSF(s); Fresnel number {w['fresnel_number']:.4g} of "
                       f"the stop seen from the DOE plane {w['aperture_to_plane_mm']:.4g} mm behind its image, rim slope "
                       f"{w['rim_slope_rad']:.3g} rad): the geometric field at the DOE plane leaves out the rim's "
-                      "diffraction on the way there. Use method='auto' with this tolerance or method='two-step' (the "
-                      "wave step, rwwarp.wave.wave_step), or move the DOE nearer the stop", ModelErrorWarning,
+                      "diffraction on the way there. "
+                      + (f"The wave step was refused: its own error, ~{w['step_error']:.2g} (the beam's aberration "
+                         f"before the DOE transported twice, phase {w['step_phase_rad']:.3g} rad), is above the "
+                         "tolerance too (rwwarp.wave.wave_step); move the DOE nearer the stop"
+                         if w.get("step_error", 0.0) > tolerance else
+                         "Use method='auto' with this tolerance or method='two-step' (the wave step, "
+                         "rwwarp.wave.wave_step), or move the DOE nearer the stop"), ModelErrorWarning,
                       stacklevel=stacklevel)
     return bad

@@ -13,9 +13,40 @@ its adjoint :func:`rwwarp.wave.propagate.propagate_grid_adjoint`): one padded FF
 patch-following cost of the plan (the sphere removed, ``G`` holds only the beam's aberration and its
 diffracted edge, so the plan's pitch samples it). The field's geometry is formed exactly where the rays
 are exact, and only the edge's diffraction over ``d`` (``sqrt(lambda d)`` wide) is computed as a wave.
-Exact for an unaberrated beam to Fresnel order about the sphere; a beam with aberration ``W`` is moved by its
-rays over ``z1`` and diffracted over ``d`` (a transverse shift ``d lambda |grad W| / 2 pi`` counted twice in
-the scaled frame): the planner reports it. Lengths in mm, wavelengths in um.
+Exact for an unaberrated beam to Fresnel order about the sphere.
+
+The step's own error (:func:`step_phase_rad`). A beam with aberration ``W`` before the DOE (against the sphere
+of its own focus ``T``) reaches the plane with it already carried by its rays: ``G(x) = A(x) exp(i k W(x))``,
+whose local transverse frequency ``f(x) = grad(k W) / 2 pi`` (cycles/mm) is the rays' direction against the
+sphere over the wavelength in the medium, ``f = n (m - m_T) / lambda`` (``m``: a ray's direction cosines,
+``m_T``: the sphere's at that point). ``P_d`` multiplies each plane-wave component of ``G`` by ``exp(-i pi
+lambda_m d |f|^2)`` (the Fresnel transfer function, ``lambda_m = lambda / n``); by stationary phase, the part
+of ``G`` around ``x`` is moved along its ray by ``s = lambda_m d f`` and its phase changes by ``- 2 pi f . s + pi
+lambda_m d |f|^2``, so at a fixed point ``x`` the stepped field is ``G`` with its envelope moved by ``s`` and its
+phase changed by
+
+    delta(x) = - pi lambda_m d |f(x)|^2 = - pi |s(x)|^2 / (lambda_m d)       (rad)
+
+where the truth has none (the rays moved it already: the transport is counted twice). With
+``phi = max |delta|`` over the pilot rays (``pi s^2 / (lambda_m d)`` at the largest shift the plan reports)
+the stepped field is the true one to within a phase ``0 <= -delta <= phi`` across the pupil (and its rim moved by
+``s = sqrt(phi lambda_m d / pi)``, a share ``sqrt(phi / pi)`` of the edge width). A smooth pupil phase error
+lowers the PSF's peak by its variance (Marechal); for ``delta = phi rho^p`` over a round pupil (``p = 2``: a
+defocus carried twice, ``p = 4``: coma-like, ``p = 6``: spherical) the variance is ``phi^2 (1 / (p + 1) - 4 /
+(p + 2)^2)`` = ``phi^2 / 12``, ``phi^2 / 11.3``, ``phi^2 / 12.4``, so the step's own error is bounded by
+
+    E_step = phi^2 / STEP_ERROR_DIV       (STEP_ERROR_DIV = 10; of the PSF's peak)
+
+valid while ``phi`` is small (``phi <= STEP_PHASE_MAX`` = 0.1 rad: E_step <= 1e-3; above ~1 rad the envelope's
+shift is a sizeable part of the edge width and the bound is no longer one). The phase is checked against an
+exact trace (tests/rwwarp/test_wave_step_validity.py); the bound ``E_step`` is Marechal's peak drop, not yet
+checked against a wave truth of an aberrated beam (none exists here), and a beam left aberrated after the DOE
+can change the PSF off its peak to first order in ``phi``. :func:`plan_wave_step` compares
+``E_step`` with the tolerance: ``method="auto"`` refuses the step where it exceeds the tolerance (the one-step
+plan is kept, the plan's reasons say why), ``method="two-step"`` warns (:class:`WaveStepWarning`) where it
+exceeds the tolerance, or without one where ``phi > STEP_PHASE_MAX``. (The criterion it replaces, the shift
+``s`` against the pitch, is still reported; the paper's Cooke experiment has ``s`` of the order of the pitch
+with ``phi < 0.04`` rad: perf/model_vs_wave_path.py.) Lengths in mm, wavelengths in um.
 """
 from __future__ import annotations
 
@@ -25,6 +56,17 @@ import warnings
 import numpy as np
 
 from ..errors import SamplingWarning
+
+#: the step's own phase error (rad, :func:`step_phase_rad`) below which it is taken as exact to E_step <= 1e-3
+STEP_PHASE_MAX = 0.1
+#: E_step = phi^2 / STEP_ERROR_DIV (module docstring: Marechal, the phase error's variance over the pupil)
+STEP_ERROR_DIV = 10.0
+
+
+class WaveStepWarning(UserWarning):
+    """The wave step's own error (the beam's aberration before the DOE transported twice: :func:`step_phase_rad`)
+    exceeds the tolerance, or ``STEP_PHASE_MAX`` without one: the wave path is not a reference there."""
+
 
 #: the window is widened on each side by this many edge widths sqrt(lambda d) (the edge's ringing falls
 #: off as 1 / distance: what leaves the window is the edge's light at the widest angles)
@@ -145,6 +187,36 @@ def double_transport_shift_mm(rw, d) -> float:
     return out
 
 
+def step_phase_rad(rw, d) -> np.ndarray:
+    """Per source (S,), the wave step's own phase error ``phi = max pi lambda_m |d| |f|^2`` (rad; module docstring):
+    ``f = n (m - m_T) / lambda`` the pilot rays' transverse frequency before the DOE against the sphere of
+    ``rw.target`` (their aberration, already carried to the plane by the rays), ``lambda_m = lambda / n`` and
+    ``d`` (S,) the step's reduced distances (mm; 0: no step, phase 0). Equals ``pi s^2 / (lambda_m d)`` for the
+    largest shift ``s`` of :func:`double_transport_shift_mm`."""
+    d = np.asarray(d, float)
+    out = np.zeros(rw.nsrc)
+    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    for k in range(rw.nsrc):
+        p, m = pos[k, ok[k]], dirs[k, ok[k]]
+        if len(p) == 0 or d[k] == 0:
+            continue
+        to_t = np.asarray(rw.target[k])[None, :] - p
+        to_t = to_t / np.linalg.norm(to_t, axis=1, keepdims=True) * (1.0 if rw.target[k, 2] >= rw.z_plane else -1.0)
+        ang2 = np.sum((m[:, :2] - to_t[:, :2]) ** 2, axis=1)          # |m - m_T|^2 = (lambda_m f)^2
+        lam_med = float(rw.lam_mm[k]) / float(rw.n_after[k])
+        out[k] = math.pi * abs(d[k]) * float(np.max(ang2)) / lam_med
+    return out
+
+
+def step_error(phase_rad) -> float:
+    """The wave step's own error bound ``E_step = phi^2 / STEP_ERROR_DIV`` (of the PSF's peak) for its phase
+    error ``phi`` (rad, :func:`step_phase_rad`; module docstring)."""
+    phi = float(phase_rad)
+    if not (phi >= 0 and math.isfinite(phi)):
+        raise ValueError(f"the step's phase error must be a finite angle >= 0 rad, got {phase_rad!r}")
+    return phi * phi / STEP_ERROR_DIV
+
+
 #: FFT length of the wave step: the window plus this many margins (EDGE_MARGIN edge widths) a side
 PAD_MARGINS = 1.0
 
@@ -156,6 +228,17 @@ def _wave_step_pad(n: int, extra: int) -> int:
     return next_fft_size(int(n + 2 * PAD_MARGINS * extra))
 
 
+def _caller_stacklevel() -> int:
+    """The ``stacklevel`` of the first frame outside the rwwarp package (the user's call) for a warning raised here."""
+    import os
+    import sys
+    pkg = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    f, level = sys._getframe(1), 1
+    while f is not None and os.path.abspath(f.f_code.co_filename).startswith(pkg + os.sep):
+        f, level = f.f_back, level + 1
+    return level
+
+
 def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None) -> None:
     """Estimate the model error of a :class:`rwwarp.wave.raywave.RayWave` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
@@ -165,7 +248,11 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     ``sqrt(lambda d) / EDGE_SAMPLES``. Sets ``rw.model_errors`` (a list, per source), ``rw.wave_step`` ((S,) mm,
     zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``. A step whose plan exceeds
     ``memory_budget_bytes`` is refused (:class:`rwwarp.wave.plan.MemoryBudgetError`) under ``"two-step"`` and left
-    out, with a reason, under ``"auto"``."""
+    out, with a reason, under ``"auto"``. Where the step is wanted, its own error ``E_step`` (:func:`step_phase_rad`,
+    :func:`step_error`; recorded as ``model_error["step_phase_rad"]`` / ``["step_error"]``) is compared with
+    ``tolerance``: above it ``"auto"`` refuses the step (the one-step plan kept, a reason says why) and
+    ``"two-step"`` takes it and warns (:class:`WaveStepWarning`; without a tolerance where the phase error exceeds
+    ``STEP_PHASE_MAX`` rad)."""
     from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
     from .plan import check_budget, estimate_cost, nice_fft_length
@@ -182,6 +269,26 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     if want:
         d = np.array([e.reduced_distance_mm if math.isfinite(e.reduced_distance_mm) else 0.0 for e in est])
         edge = float(np.sqrt(np.max(rw.lam_mm / rw.n_after * np.abs(d)))) if np.any(d) else 0.0
+        phases = step_phase_rad(rw, d)
+        phi = float(np.max(phases)) if phases.size else 0.0
+        e_step = step_error(phi)
+        pl = replace(pl, model_error={**pl.model_error, "step_phase_rad": phi, "step_error": e_step})
+        step_bad = (tolerance is not None and e_step > tolerance) or (tolerance is None and phi > STEP_PHASE_MAX)
+        if edge > 0 and step_bad and method_requested == "auto":
+            rw.plan = pl.with_reasons(
+                f"wave step refused: its own error ~{e_step:.2g} of the peak (the beam's aberration before the DOE "
+                f"transported twice: phase pi s^2 / (lambda d) up to {phi:.3g} rad, E_step = phi^2 / {STEP_ERROR_DIV:g}) "
+                f"exceeds the tolerance {tolerance:.2g}; the one-step model is kept (its estimate "
+                f"{w.estimate:.2g}; rwwarp.wave.wave_step)")
+            return
+        if edge > 0 and step_bad:
+            warnings.warn(
+                f"method='two-step': the wave step's own error is ~{e_step:.2g} of the PSF's peak (the beam's "
+                f"aberration before the DOE is transported twice, a phase error up to {phi:.3g} rad"
+                + (f", above the tolerance {tolerance:.2g}" if tolerance is not None else
+                   f", above {STEP_PHASE_MAX:g} rad") + f"; the one-step model's estimate is {w.estimate:.2g}): "
+                "the wave path is not a reference here (rwwarp.wave.wave_step)", WaveStepWarning,
+                stacklevel=_caller_stacklevel())
         if edge > 0:
             one_step = pl
             pitch = pl.pitch_mm
@@ -203,7 +310,9 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
             why.append(f"wave step: window widened by {EDGE_MARGIN:g} edge widths a side -> {n_grid}^2 samples")
             shift = double_transport_shift_mm(rw, d)
             why.append(f"wave step: the beam's own aberration before the DOE is carried by its rays and diffracted "
-                       f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um)")
+                       f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um), "
+                       f"a phase error pi s^2 / (lambda d) <= {phi:.3g} rad: the step's own error "
+                       f"~{e_step:.2g} of the peak (phi^2 / {STEP_ERROR_DIV:g}, rwwarp.wave.wave_step)")
             pl = replace(pl, pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
                          wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
             pad = _wave_step_pad(n_grid, extra)

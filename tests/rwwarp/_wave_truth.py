@@ -60,10 +60,12 @@ def _lens_spectrum(a_mm, q, nu, dens):
     return _LENS_SPECTRA[key]
 
 
-def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0):
+def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0, alpha=None, sensor_mm=None):
     """(truth, model) sensor irradiance at the radii ``rho_mm`` (power per mm^2 over the power entering the
     stop of radius ``a_mm``): thin lens F_MM, DOE ``sum_i c_i (r / r_b)^(2 i)`` (rad, ``r_b = s a`` the beam's
-    radius on the DOE plane) ``d2_mm`` before the sensor at the lens focus."""
+    radius on the DOE plane) ``d2_mm`` before the lens focus, the sensor ``sensor_mm`` behind the DOE (None:
+    at the lens focus). ``alpha`` (None: the phase as it is): a wrapped relief used at ``alpha`` times its
+    design wavelength's phase, the transmission ``exp(1j alpha (phi0 mod 2 pi))``, every diffraction order."""
     k = 2 * np.pi / LAM_MM
     z1, s = F_MM - d2_mm, d2_mm / F_MM
     na = a_mm / np.hypot(a_mm, F_MM)
@@ -72,14 +74,16 @@ def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0):
     dens = q * (na / LAM_MM + V)                   # nodes per mm on the planes: the phase's and J0's oscillations
     nu, wnu = _gl(0.0, V, q * (a_mm + F_MM * V * LAM_MM))   # spectrum nodes: the field's extent after propagation
     H = lambda z: np.exp(2j * np.pi * z * np.sqrt(1 / LAM_MM ** 2 - nu ** 2))
-    W = lambda r: sum(c * (r / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
+    W0 = lambda r: sum(c * (r / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
+    W = W0 if alpha is None else (lambda r: alpha * np.mod(W0(r), 2 * np.pi))
+    z2 = d2_mm if sensor_mm is None else float(sensor_mm)
     F0 = _lens_spectrum(a_mm, q, nu, dens)
     r1, w1 = _gl(0.0, rb + 0.15 * rb + 30 * np.sqrt(LAM_MM * d), dens)   # the beam and its edge's ringing
     f1 = _j0_sum(r1, nu, F0 * H(z1) * nu * wnu)
 
     def to_sensor(u, r, w):
         F1 = _hankel(u * np.exp(1j * W(r)), r, w, nu)
-        return np.abs(_j0_sum(np.asarray(rho_mm, float), nu, F1 * H(d2_mm) * nu * wnu)) ** 2 / (np.pi * a_mm ** 2)
+        return np.abs(_j0_sum(np.asarray(rho_mm, float), nu, F1 * H(z2) * nu * wnu)) ** 2 / (np.pi * a_mm ** 2)
 
     rg, wg = _gl(0.0, rb, dens)
     return to_sensor(f1, r1, w1), to_sensor(np.exp(-1j * k * np.hypot(rg, d2_mm)) / s, rg, wg)

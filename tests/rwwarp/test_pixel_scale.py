@@ -177,8 +177,13 @@ def test_psf_map_computes_each_pixel_source_as_psf_does():
 
 def test_auto_keeps_the_wave_step_where_the_model_error_asks_for_it():
     lens = load_lens("a489_doe")
-    # 10 deg: the model's own error ~0.25 of the peak, the pixel method's ~0.014: with tolerance 0.02 the wave
-    # step is wanted (it needs a wave-plane field), so auto does not take the pixel method
-    pl = rw.plan_psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, tolerance=0.02)
+    # 10 deg: the model's own error ~0.25 of the peak, the pixel method's ~0.014, the wave step's own error 0.036
+    # (its phase error 0.60 rad, rwwarp.wave.wave_step): with tolerance 0.05 the wave step is wanted (it needs a
+    # wave-plane field), so auto does not take the pixel method
+    pl = rw.plan_psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, tolerance=0.05)
     assert pl.method != "pixel" and pl.wave_step_mm
     assert any("the wave step is wanted" in r for r in pl.reasons)
+    # with 0.02 the step is wanted but its own error exceeds it: refused, the one-step plan kept, saying why
+    pl = rw.plan_psf(lens, 10.0, 0.55, size=15, pixel_mm=0.016, tolerance=0.02)
+    assert pl.method != "pixel" and not pl.wave_step_mm
+    assert any("wave step refused" in r for r in pl.reasons)
