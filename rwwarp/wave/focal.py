@@ -62,6 +62,10 @@ import numpy as np
 
 from .doe_phase import wrap_zone, zone_relief_phase
 
+#: candidate DOE orders of the focal method: -FOCAL_MAX_ORDER .. FOCAL_MAX_ORDER about the main order (the
+#: planner keeps those that reach the patch)
+FOCAL_MAX_ORDER = 8
+
 __all__ = ["doe_order_coefficients", "doe_order_series", "exact_zone", "order_series_horner", "FocalPropagator",
            "transfer_curvature", "pixel_power", "pixel_power_adjoint",
            "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",

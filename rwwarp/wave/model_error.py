@@ -221,8 +221,7 @@ def _other_orders(surface, prof, xy, wavelength_um, m0):
     the relief's order weights (:func:`rwwarp.wave.focal.doe_order_coefficients`); none where the relief does not
     wrap over the beam (one smooth order)."""
     from .. import doe
-    from .focal import doe_order_coefficients
-    from .raywave import FOCAL_MAX_ORDER
+    from .focal import FOCAL_MAX_ORDER, doe_order_coefficients
     phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
     span = float(np.ptp(phi)) if phi.size else 0.0
     if not surface.levels and span <= 2 * math.pi:

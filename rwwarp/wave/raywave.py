@@ -24,9 +24,7 @@ from .splat import paper_rescale_layout
 from ..trace import Tracer, pupil_grid, upload_packed
 from ..trace import field_label as _fmt_field
 
-#: candidate DOE orders of the focal method: -FOCAL_MAX_ORDER .. FOCAL_MAX_ORDER (the planner keeps those
-#: that reach the patch)
-FOCAL_MAX_ORDER = 8
+from .focal import FOCAL_MAX_ORDER  # noqa: F401  (its home: focal; read by the planner below)
 
 def n_img_all(lens, wls):
     """Refractive index of the image space at each wavelength."""
