@@ -17,13 +17,13 @@ import contextlib
 import math
 import os
 import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from .wave.backend import get_backend, release_warp_pool  # noqa: F401  (release_warp_pool: public here too)
+from .device_upload import upload_packed  # noqa: F401  (also read as rwwarp.trace.upload_packed)
 from .errors import GeometryError, LensError
 from .kernels import trace as ktrace
 from . import paraxial
@@ -111,51 +111,6 @@ def cpu_threads() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
-
-
-_UPLOADS: OrderedDict = OrderedDict()  # packed bytes -> views, for upload_packed(..., cache=True)
-_UPLOADS_MAX = 64
-_UPLOADS_MAX_BYTES = 1 << 16
-_UPLOADS_LOCK = threading.Lock()
-
-
-def upload_packed(parts, device: str, cache: bool = False):
-    """Several small host arrays to ``device`` in one copy.
-
-    ``parts``: ``(array, numpy dtype, warp dtype)`` triples (vector warp dtypes take ``(n, k)`` arrays).
-    The arrays are packed into one byte buffer (each part 16-byte aligned), uploaded once, and returned
-    as typed Warp views into it, in order (each view keeps the buffer alive). Read-only inputs only.
-    ``cache``: reuse the views of an earlier upload with the same bytes, types and device (a small LRU
-    of packs up to 64 KiB: surface tables of a lens, a source's inputs, the pilot pupil)."""
-    host = [np.ascontiguousarray(a, dtype=dt) for a, dt, _ in parts]
-    offsets, total = [], 0
-    for h in host:
-        offsets.append(total)
-        total += -(-max(h.nbytes, 1) // 16) * 16
-    buf = np.zeros(total, dtype=np.uint8)
-    for h, off in zip(host, offsets):
-        buf[off:off + h.nbytes] = h.reshape(-1).view(np.uint8)
-    key = None
-    if cache and total <= _UPLOADS_MAX_BYTES:
-        key = (str(device), buf.tobytes(), tuple((h.shape, wdt) for h, (_, _, wdt) in zip(host, parts)))
-        with _UPLOADS_LOCK:
-            hit = _UPLOADS.get(key)
-            if hit is not None:
-                _UPLOADS.move_to_end(key)
-                return list(hit)
-    base = wp.array(buf, dtype=wp.uint8, device=device)
-    out = []
-    for h, off, (_, _, wdt) in zip(host, offsets, parts):
-        length = h.shape[0] if h.ndim else 1
-        a = wp.array(ptr=base.ptr + off, dtype=wdt, shape=(length,), device=device)
-        a._rw_base = base  # the views do not own the memory
-        out.append(a)
-    if key is not None:
-        with _UPLOADS_LOCK:
-            _UPLOADS[key] = tuple(out)
-            while len(_UPLOADS) > _UPLOADS_MAX:
-                _UPLOADS.popitem(last=False)
-    return out
 
 
 def warp_scalar(dtype: str):

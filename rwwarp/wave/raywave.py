@@ -21,49 +21,13 @@ from .doe_sampling import chief_zone, doe_max_frequency, doe_phase_grid, lens_di
 from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
 from .splat import paper_rescale_layout
-from ..trace import Tracer, pupil_grid, upload_packed
+from ..device_upload import upload_packed
+from ..trace import Tracer, pupil_grid
 from ..trace import field_label as _fmt_field
 
 from .focal import FOCAL_MAX_ORDER  # noqa: F401  (its home: focal; read by the planner below)
-
-def n_img_all(lens, wls):
-    """Refractive index of the image space at each wavelength."""
-    return np.array([lens.indices(w)[-1] for w in wls])
-
-
-def _auto_gauss_nodes(dir_s, ok, n_img, lam_mm, pixel, tol=1e-7):
-    """Fewest Gauss-Legendre nodes (3..16) per axis integrating |U|^2 over a pixel to ``tol``.
-
-    |U|^2 at the sensor holds spatial frequencies up to 2 n NA / lambda (NA: the largest direction-sine
-    spread of the beam about its mean); across a pixel the phase of that component changes by
-    ``Phi = 2 pi pixel 2 n NA / lambda``, and the node count follows the Gauss-Legendre error bound for
-    ``exp(i Phi t / 2)`` on [-1, 1].
-    """
-    from ..analytic import gauss_legendre_exp_error
-    worst = 0.0
-    for k in range(dir_s.shape[0]):
-        d = dir_s[k, ok[k], :2]
-        if len(d) == 0:
-            continue
-        na = float(np.max(np.abs(d - d.mean(0))))
-        worst = max(worst, 2.0 * np.pi * pixel * 2.0 * n_img[k] * na / lam_mm[k])
-    for g in range(3, 17):
-        if gauss_legendre_exp_error(g, worst / 2.0) < tol:
-            return g
-    return 16
-
-
-def _snap_centers(center_mm, pixel, resolution, nsrc):
-    """(nsrc, 2) patch centres: ``center_mm`` ((x, y) mm, one pair or one per source) snapped to the
-    sensor's pixel centres."""
-    c = np.asarray(center_mm, dtype=float).reshape(-1, 2)
-    return np.broadcast_to(np.stack([_snap_center(c[:, 0], pixel, resolution[0]),
-                                     _snap_center(c[:, 1], pixel, resolution[1])], 1), (nsrc, 2)).copy()
-
-
-def _pixel_centres(centers, size, pixel):
-    off = (np.arange(size) - size // 2) * pixel
-    return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
+from .sensor_grid import auto_gauss_nodes as _auto_gauss_nodes, n_img_all, pixel_centres as _pixel_centres
+from .sensor_grid import snap_centers as _snap_centers
 
 
 def _is_curved(surface) -> bool:
