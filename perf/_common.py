@@ -11,6 +11,24 @@ from pathlib import Path
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
+def count_warp_launches(fn) -> int:
+    """Calls of ``warp.launch`` (every thread, backward included) while ``fn()`` runs."""
+    import threading
+    import warp as wp
+    orig, n, lock = wp.launch, [0], threading.Lock()
+
+    def counted(*args, **kw):
+        with lock:
+            n[0] += 1
+        return orig(*args, **kw)
+    wp.launch = counted
+    try:
+        fn()
+    finally:
+        wp.launch = orig
+    return n[0]
+
+
 def git_commit() -> str:
     """The commit measured: $RWWARP_COMMIT when set (a copied working tree may carry a stale .git),
     else git's HEAD."""

@@ -38,22 +38,6 @@ def sync(device):
             pass
 
 
-def launches(call):
-    """Warp launches made by ``call()`` (``warp.launch`` wrapped)."""
-    import warp as wp
-    orig, n = wp.launch, [0]
-
-    def counted(*a, **k):
-        n[0] += 1
-        return orig(*a, **k)
-    wp.launch = counted
-    try:
-        call()
-    finally:
-        wp.launch = orig
-    return n[0]
-
-
 def warm_times(lens, field, wl, device, size, reps, cache=None):
     """(median ms, min ms, launches a call) of repeated ``rw.psf`` calls after 3 warm-up calls."""
     kw = dict(device=device, size=size, cache=cache)
@@ -66,7 +50,8 @@ def warm_times(lens, field, wl, device, size, reps, cache=None):
         rw.psf(lens, field, wl, **kw)
         sync(device)
         t.append(time.perf_counter() - t0)
-    n = launches(lambda: rw.psf(lens, field, wl, **kw))
+    from _common import count_warp_launches
+    n = count_warp_launches(lambda: rw.psf(lens, field, wl, **kw))
     return 1e3 * float(np.median(t)), 1e3 * float(np.min(t)), n
 
 

@@ -114,7 +114,8 @@ def main():
     step(a.steps + 1)
     pr.disable()
     say(f"profiled step {time.perf_counter() - t:.2f} s (cProfile adds overhead)")
-    summary["warp_launches"] = _count_warp_launches(lambda: step(a.steps + 1))
+    from _common import count_warp_launches
+    summary["warp_launches"] = count_warp_launches(lambda: step(a.steps + 1))
     say(f"Warp launches in one step (every thread): {summary['warp_launches']}")
     for key, n in (("tottime", 40), ("cumtime", 40)):
         s = io.StringIO()
@@ -148,33 +149,6 @@ def main():
         summary["commit"] = os.environ.get("RWWARP_COMMIT") or _git_commit()
         p.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
         print("written to", p, "and", p.with_suffix(".json"))
-
-
-def _count_warp_launches(fn) -> int:
-    """Calls of ``warp.launch`` (every thread, backward included) while ``fn()`` runs."""
-    import threading
-    import warp as wp
-    orig, n, lock = wp.launch, [0], threading.Lock()
-
-    def counted(*args, **kw):
-        with lock:
-            n[0] += 1
-        return orig(*args, **kw)
-    wp.launch = counted
-    try:
-        fn()
-    finally:
-        wp.launch = orig
-    return n[0]
-
-
-def _git_commit():
-    import subprocess
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent).stdout.strip() or None
-    except OSError:
-        return None
 
 
 def _count_syncs(fn):
