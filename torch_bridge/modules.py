@@ -367,29 +367,31 @@ class HybridLens(nn.Module):
             return self._plans[key]
         lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
-        rw = RayWave(lens, fields, wls, int(size), pixel, device=self.rw_device, plan=plan, dtype="float64",
-                     amplitude=self.amplitude, object_distance_mm=object_distance_mm,
-                     rays_per_sample=self.rays_per_sample, center_mm=center_mm, use_reference=self.use_reference,
-                     gauss_nodes=self.gauss_nodes, nyquist_safety=self.nyquist_safety,
+        rw = RayWave(lens, fields, wls, int(size), pixel, plan=plan, center_mm=center_mm,
                      requires_grad=bool(requires_grad), method=method or self.method,
-                     memory_budget_bytes=memory_budget_bytes, focal_patch_tol=self.focal_patch_tol,
-                     deterministic=self.deterministic, pixel_values=self.pixel_values,
-                     # the design loop keeps the small-ASM rule on every device: its cached and kept focal plans
-                     # are not yet restored exactly on resume (the DOE orders a focal plan keeps follow the DOE)
-                     auto_rule="small-asm")
+                     memory_budget_bytes=memory_budget_bytes, **self._raywave_options(object_distance_mm))
         bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
         if not self.replan:
             self._plans[key] = rw
         return rw
 
+    def _raywave_options(self, object_distance_mm) -> dict:
+        """The :class:`rwwarp.psf.RayWave` options every plan of this module shares (``object_distance_mm`` in mm,
+        None: the lens's). The small-ASM rule on every device: cached and kept focal plans are not yet restored
+        exactly on resume (the DOE orders a focal plan keeps follow the DOE)."""
+        return dict(device=self.rw_device, dtype="float64", amplitude=self.amplitude,
+                    object_distance_mm=object_distance_mm, rays_per_sample=self.rays_per_sample,
+                    use_reference=self.use_reference, gauss_nodes=self.gauss_nodes,
+                    nyquist_safety=self.nyquist_safety, focal_patch_tol=self.focal_patch_tol,
+                    deterministic=self.deterministic, pixel_values=self.pixel_values, auto_rule="small-asm")
+
     def raywaves_alone(self, fields, wavelengths_um, size, *, centers_mm, object_distance_mm=None, pixel_mm=None,
                        method: str | None = None, requires_grad: bool = True) -> list:
         """One :class:`rwwarp.psf.RayWave` per source (``fields`` x ``wavelengths_um`` paired element-wise; deg,
         um), each with the plan :meth:`raywave` gives that source alone (``centers_mm`` (S, 2): its patch
-        centre, mm), from one pilot trace of all of them: a source's pilot rays (its entrance pupil at its own
-        wavelength) do not depend on the others, so each member is what planning it alone makes, for one set
-        of trace launches and host reads instead of one per source. Without ``replan`` (kept plans) each is
-        :meth:`raywave` of that source."""
+        centre, mm), from one pilot trace of all of them (a source's pilot rays, its pupil at its own wavelength,
+        do not depend on the others): one set of trace launches and host reads, not one per source. Without
+        ``replan`` (kept plans) each is :meth:`raywave` of that source."""
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
         centers = np.asarray(centers_mm, dtype=np.float64).reshape(len(fields), 2)
@@ -401,17 +403,15 @@ class HybridLens(nn.Module):
         self._once("finite", self.check_finite)
         lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
-        common = dict(device=self.rw_device, dtype="float64", amplitude=self.amplitude,
-                      object_distance_mm=object_distance_mm, rays_per_sample=self.rays_per_sample,
-                      use_reference=self.use_reference, nyquist_safety=self.nyquist_safety, own_pupils=True,
-                      pixel_values=self.pixel_values)
-        probe = RayWave(lens, fields, wls, int(size), pixel, plan="auto", gauss_nodes=3, method="asm", **common)
+        opts = self._raywave_options(object_distance_mm)
+        # the pilot of all sources, each entrance pupil at its own wavelength (its plan is not used)
+        probe = RayWave(lens, fields, wls, int(size), pixel, plan="auto", method="asm", own_pupils=True,
+                        **dict(opts, gauss_nodes=3, deterministic=False))
         out = []
         for k, (f, w) in enumerate(zip(fields, wls)):
             rw = RayWave(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
-                         gauss_nodes=self.gauss_nodes, requires_grad=bool(requires_grad), method=method or self.method,
-                         focal_patch_tol=self.focal_patch_tol, deterministic=self.deterministic,
-                         pilot={key: v[k:k + 1] for key, v in probe.pilot.items()}, auto_rule="small-asm", **common)
+                         requires_grad=bool(requires_grad), method=method or self.method, own_pupils=True,
+                         pilot={key: v[k:k + 1] for key, v in probe.pilot.items()}, **opts)
             bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
             out.append(rw)
         return out
