@@ -55,22 +55,42 @@ def warm_times(lens, field, wl, device, size, reps, cache=None):
     return 1e3 * float(np.median(t)), 1e3 * float(np.min(t)), n
 
 
+def _has_graphs() -> bool:
+    """True when the rwwarp imported replays cached batches as CUDA graphs (PlanCache(graphs=))."""
+    import inspect
+    return "graphs" in inspect.signature(rw.PlanCache).parameters
+
+
 def issue25(a):
     rows = []
     for name, field in ISSUE25:
         lens = rw.load_lens(name)
         plain = warm_times(lens, field, a.wl, a.device, a.size, a.reps)
-        cache = rw.PlanCache()
-        cached = warm_times(lens, field, a.wl, a.device, a.size, a.reps, cache)
-        p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache)
+        eager_cache = rw.PlanCache(graphs=False) if _has_graphs() else rw.PlanCache()
+        cached = warm_times(lens, field, a.wl, a.device, a.size, a.reps, eager_cache)
+        row = {}
+        if _has_graphs():   # the same, each hit replayed as a CUDA graph (rwwarp.wave.graph_replay)
+            cache = rw.PlanCache()
+            graph = warm_times(lens, field, a.wl, a.device, a.size, a.reps, cache)
+            p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache)
+            row = {"graph_median_ms": graph[0], "graph_min_ms": graph[1], "graph_launches": graph[2],
+                   "replay": p.info.get("replay")}
+            ref = rw.psf(lens, field, a.wl, device=a.device, size=a.size)
+            row["graph_vs_uncached_max_rel"] = float(np.max(np.abs(p.data - ref.data)) / np.max(ref.data))
+        else:
+            cache = eager_cache
+            p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache)
         rows.append({"lens": name, "field_deg": field, "method": p.plan["method"], "n_grid": p.plan["n_grid"],
                      "ray_grid": p.plan["ray_grid"], "uncached_median_ms": plain[0], "uncached_min_ms": plain[1],
                      "uncached_launches": plain[2], "cached_median_ms": cached[0], "cached_min_ms": cached[1],
-                     "cached_launches": cached[2], "cache_held_bytes": cache.nbytes()})
+                     "cached_launches": cached[2], "cache_held_bytes": cache.nbytes(), **row})
         r = rows[-1]
         print(f"{name:14s} {field:5.1f} deg {r['method']:5s} grid {r['n_grid']:5d} rays {r['ray_grid']:4d}: "
               f"uncached {plain[0]:8.2f} ms (min {plain[1]:.2f}, {plain[2]} launches), cached {cached[0]:8.2f} ms "
-              f"(min {cached[1]:.2f}, {cached[2]} launches), cache holds {cache.nbytes() / 2 ** 20:.3g} MiB", flush=True)
+              f"(min {cached[1]:.2f}, {cached[2]} launches), cache holds {cache.nbytes() / 2 ** 20:.3g} MiB"
+              + (f"; graph replay {row['graph_median_ms']:8.3f} ms (min {row['graph_min_ms']:.3f}, "
+                 f"{row['graph_launches']} launches, {row['replay']}, vs uncached {row['graph_vs_uncached_max_rel']:.2e})"
+                 if row else ""), flush=True)
     if a.json:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).resolve().parents[1]).stdout.strip()

@@ -254,7 +254,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     n_wavelengths, size, size); ``info["batches"]`` lists each batch's (field, wavelength) index pairs,
     ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
     ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values
-    and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss").
+    and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss"; on a hit
+    ``info["replay"]``: per batch "graph" (a replayed CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
     Other arguments as :func:`psf`.
     """
     from . import checks  # arguments at the public edge (issue 12): names the argument and its range
@@ -386,8 +387,12 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
         info["cache"] = "miss" if kept is None else "hit"
     from .wave.plan_cache import held_bytes
     if kept is not None:
+        from .wave.graph_replay import run_kept
+        info["replay"] = []
         for chunk, packed in kept:   # the pilot, plans, batches and operators of an earlier call
-            store(chunk, packed.run(focal_precision, keep_operators=True))
+            res, how = run_kept(packed, focal_precision, graphs=cache.graphs)   # a CUDA graph where it can be
+            info["replay"].append(how)
+            store(chunk, res)
     else:
         keep = cache is not None
         run_lens = copy.deepcopy(lens) if keep else lens   # kept batches see no later change of the caller's lens

@@ -139,6 +139,12 @@ class PackedRayWave(RayWave):
         """PSFs of every member as fractions of its entering power per pixel, each propagated by its own plan
         (``focal_precision`` as :meth:`RayWave.run`); ``plans``: the members' plans as dicts. ``keep_operators``:
         the members keep their focal operators for the next run (a kept batch), else they are dropped."""
+        return self.result(self.device_psfs(focal_precision, keep_operators))
+
+    def device_psfs(self, focal_precision: str = "auto", keep_operators: bool = False, to_host: bool = True) -> list:
+        """Each member's pixel powers (1, size, size), not yet normalised, in the order of :attr:`members`: trace,
+        splat and every member's propagation queued. ``to_host=False``: left on the device (CuPy arrays on CUDA;
+        nothing waits for the device, nothing is copied: what :mod:`rwwarp.wave.graph_replay` records)."""
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         u_all = self.field_array()
@@ -147,17 +153,21 @@ class PackedRayWave(RayWave):
             n = m.plan.n_grid
             u = u_all[k:k + 1, :n, :n].copy()
             if m.plan.method == "focal":
-                d = m.focal_intensity(u, focal_precision)
+                d = m.focal_intensity(u, focal_precision, to_host=to_host)
             else:
                 phi0, scale = m.doe_phase()
-                d = m.intensity(u, phi0, scale)
+                d = m.intensity(u, phi0, scale, to_host=to_host)
             if not keep_operators:
                 m.release_operators()
-            data.append(np.asarray(d)[0])
-        # the power sums are read after the propagations are queued: on a GPU the host does not wait for the
-        # trace and splat before it launches the rest
+            data.append(d)
+        return data
+
+    def result(self, data) -> dict:
+        """The result of :meth:`run` from the members' pixel powers (host arrays (1, size, size) each, or one
+        (n_members, size, size) array): divided by each member's entering power (read now, from the last trace:
+        on a GPU the host did not wait for the trace before it queued the propagations), checked finite."""
         entering = self.entering
-        data = np.stack([d / entering[k] for k, d in enumerate(data)])
+        data = np.stack([np.asarray(d).reshape(self.size, self.size) / entering[k] for k, d in enumerate(data)])
         if not np.all(np.isfinite(data)):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         plans = [m.plan.to_dict() for m in self.members]

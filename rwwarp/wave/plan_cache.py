@@ -176,9 +176,14 @@ class PlanCache:
     ``max_entries``: calls kept (least recently used first out; default 8). ``max_bytes``: device memory the kept
     entries may hold together (bytes; default 1 GiB): an entry that would take the total over it evicts the
     least recently used ones, and one over it on its own is not kept. :meth:`clear` drops everything.
-    ``hits``, ``misses`` and ``evictions`` count the look-ups."""
+    ``hits``, ``misses`` and ``evictions`` count the look-ups.
 
-    def __init__(self, max_entries: int = DEFAULT_MAX_ENTRIES, max_bytes: int = DEFAULT_MAX_BYTES):
+    ``graphs``: on a CUDA device a hit replays each kept batch's device work as a CUDA graph, recorded on its first
+    hit (:mod:`rwwarp.wave.graph_replay`: the same bits, one launch instead of tens; the call's ``info["replay"]``
+    says "graph" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU."""
+
+    def __init__(self, max_entries: int = DEFAULT_MAX_ENTRIES, max_bytes: int = DEFAULT_MAX_BYTES,
+                 graphs: bool = True):
         if isinstance(max_entries, bool) or not isinstance(max_entries, (int, np.integer)) or max_entries < 1:
             raise ValueError(f"PlanCache: max_entries must be an integer >= 1, got {max_entries!r}")
         if isinstance(max_bytes, bool) or not isinstance(max_bytes, (int, float, np.integer)) or \
@@ -186,6 +191,9 @@ class PlanCache:
             raise ValueError(f"PlanCache: max_bytes must be a number of bytes >= 0, got {max_bytes!r}")
         self.max_entries = int(max_entries)
         self.max_bytes = int(max_bytes)
+        if not isinstance(graphs, (bool, np.bool_)):
+            raise ValueError(f"PlanCache: graphs must be True or False, got {graphs!r}")
+        self.graphs = bool(graphs)
         self._entries: OrderedDict = OrderedDict()   # key -> (batches, held bytes, budget check)
         self.hits = self.misses = self.evictions = 0
         self.lock = threading.RLock()

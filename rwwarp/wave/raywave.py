@@ -661,9 +661,10 @@ class RayWave:
                               gauss_nodes=self.gauss_nodes, doe_scale=doe_scale, carrier_cpmm=self.carrier,
                               pad_to=self.plan.n_pad, pixel_values=self.pixel_values)
 
-    def intensity(self, u_field, phi0=None, scale=None):
+    def intensity(self, u_field, phi0=None, scale=None, to_host: bool = True):
         """Power per sensor pixel (S, size, size) for a DOE-plane field (complex, (S, n, n)), by the
-        band-limited ASM (:class:`rwwarp.wave.propagate.SensorPropagator`)."""
+        band-limited ASM (:class:`rwwarp.wave.propagate.SensorPropagator`). ``to_host=False``: the backend's
+        array as it is (a CuPy array on CUDA: no copy, no wait; :mod:`rwwarp.wave.graph_replay`)."""
         from . import backend as bk
         from .propagate import SensorPropagator
         be = bk.get_backend(self.device)
@@ -677,7 +678,7 @@ class RayWave:
             host = phi0
             phi0 = self._memoised("doe_phase_device", lambda: be.to_device(host), id(host))
         power = SensorPropagator(be, self.sensor_geometry(scale)).forward(u_field, phi0)
-        return be.to_host(power)
+        return be.to_host(power) if to_host else power
 
     def wave_stepped(self, u_field):
         """``u_field`` after the planned wave step (:func:`rwwarp.wave.wave_step.apply_wave_step`), or as it is."""
@@ -736,9 +737,10 @@ class RayWave:
             phi0[k] = prof.phase(x, y, s.design_wavelength_um)   # unwrapped: each order is smooth
         return doe_order_series(xp.asarray(phi0), geo["orders"], geo.get("central_zone"), xp)
 
-    def focal_intensity(self, u_field, precision="single"):
+    def focal_intensity(self, u_field, precision="single", to_host: bool = True):
         """Power per sensor pixel (S, size, size) by the focal propagation (``method="focal"``; ``precision`` of
-        its matrix products, :class:`rwwarp.wave.focal.FocalPropagator`; :attr:`pixel_values` as the ASM's)."""
+        its matrix products, :class:`rwwarp.wave.focal.FocalPropagator`; :attr:`pixel_values` as the ASM's).
+        ``to_host=False``: the operator's array as it is (CuPy on CUDA)."""
         from .focal import focal_pixels
         op = self.focal_operator(precision=precision)
         u_field = self.wave_stepped(u_field)
@@ -746,7 +748,7 @@ class RayWave:
         if fac is not None:
             u_field = u_field * fac
         power, _ = focal_pixels(op, u_field, self.pixel_values, self.gauss_nodes, self.pixel, self.size)
-        return power if op.xp is np else op.xp.asnumpy(power)
+        return power if (op.xp is np or not to_host) else op.xp.asnumpy(power)
 
     def run(self, focal_precision: str = "auto") -> dict:
         """The whole model: PSFs as fractions of the entering power per pixel (``focal_precision``: the focal
