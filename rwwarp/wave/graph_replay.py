@@ -13,7 +13,8 @@ gives the same bits as the eager run it replaces (tested on CUDA: ``tests/rwwarp
 What may be recorded: a batch on a CUDA device whose run needs no host decision: the energy amplitude convention
 (the paper's rescale reads the traced power on the host) and every chief ray valid (a vignetted chief ray picks
 its replacement on the host). Anything else, and any failure while recording, runs eagerly; :func:`run_kept`
-says which in its second return value.
+says which in its second return value. CuPy does not let cuBLAS run inside a capture, so a batch whose propagation
+calls it (the focal method's matrix products) records its trace and splat only and propagates eagerly.
 
 Memory: the recorded temporaries (CuPy arrays made during the recording) come from a memory pool private to the
 graph, kept with it and used by nothing else, so no other work reuses the addresses the graph writes.
@@ -38,7 +39,12 @@ def replay_blocker(packed) -> str | None:
 class ReplayedBatch:
     """The device work of one kept :class:`~rwwarp.wave.packed.PackedRayWave` run (``focal_precision`` "single" or
     "double"), recorded as a CUDA graph by :meth:`record` and replayed by :meth:`run`. Build it through
-    :func:`run_kept`."""
+    :func:`run_kept`.
+
+    :attr:`scope` is what the graph holds: ``"whole"`` (trace, splat and every member's propagation), or
+    ``"field"`` (trace and splat; the propagations then run eagerly on the same stream) where the propagation
+    cannot be recorded: CuPy refuses to call cuBLAS inside a stream capture, and the focal method's products
+    are cuBLAS calls. The ASM's FFTs and kernels record."""
 
     def __init__(self, packed, focal_precision: str):
         import cupy
@@ -47,8 +53,7 @@ class ReplayedBatch:
         self.device = wp.get_device(packed.tracer.device)
         self.stream = wp.get_stream(self.device)
         self.pool = cupy.cuda.MemoryPool()      # the graph's own temporaries: nothing else allocates from it
-        self.graph = None
-        self.out = None
+        self.graph = self.out = self.scope = None
 
     def _context(self):
         import contextlib
@@ -60,29 +65,43 @@ class ReplayedBatch:
         stack.enter_context(cupy.cuda.using_allocator(self.pool.malloc))
         return stack
 
-    def _queue(self):
+    def _queue(self, scope: str):
         import cupy
+        if scope == "field":
+            return self.packed.field_array()
         data = self.packed.device_psfs(self.focal_precision, keep_operators=True, to_host=False)
         return cupy.concatenate([cupy.asarray(d).reshape(1, *d.shape[-2:]) for d in data])
 
+    def _capture(self, scope: str):
+        import warp as wp
+        wp.capture_begin(self.device, stream=self.stream)
+        try:
+            out = self._queue(scope)
+        except BaseException:
+            try:
+                wp.capture_end(self.device, stream=self.stream)
+            except Exception:         # the capture was already invalidated; nothing to keep
+                pass
+            raise
+        return wp.capture_end(self.device, stream=self.stream), out
+
     def record(self):
         """Run the batch once eagerly on Warp's stream (kernels compiled, FFT plans and uploads made, every lazy
-        set-up done), then record the same run as a CUDA graph. Raises what the recording raised (the capture is
-        ended and dropped first)."""
-        import warp as wp
+        set-up done), then record it as a CUDA graph: the whole run, or where the propagation cannot be recorded
+        the trace and splat. Raises what the recording of the trace and splat raised."""
         with self._context():
-            self._queue()                 # warm-up on the recording stream: every lazy set-up happens here
-            wp.capture_begin(self.device, stream=self.stream)
+            self._queue("whole")          # warm-up on the recording stream: every lazy set-up happens here
             try:
-                out = self._queue()
-            except BaseException:
-                try:
-                    wp.capture_end(self.device, stream=self.stream)
-                except Exception:         # the capture was already invalidated; nothing to keep
-                    pass
-                raise
-            self.graph = wp.capture_end(self.device, stream=self.stream)
-            self.out = out
+                self.graph, self.out = self._capture("whole")
+                self.scope = "whole"
+            except NotImplementedError:   # cuBLAS inside a capture (CuPy): the trace and splat alone
+                self.graph, self.out = self._capture("field")
+                self.scope = "field"
+
+    @property
+    def how(self) -> str:
+        """``"graph"`` (the whole run replayed) or ``"graph: trace and splat"`` (its propagations eager)."""
+        return "graph" if self.scope == "whole" else "graph: trace and splat"
 
     def run(self) -> dict:
         """Replay the recorded graph and return :meth:`PackedRayWave.run`'s result dict."""
@@ -92,9 +111,12 @@ class ReplayedBatch:
             self.record()
         wp.capture_launch(self.graph, stream=self.stream)
         with self._context():
-            data = cupy.asnumpy(self.out, stream=cupy.cuda.get_current_stream())
+            if self.scope == "whole":
+                data = list(cupy.asnumpy(self.out, stream=cupy.cuda.get_current_stream()))
+            else:
+                data = self.packed.device_psfs(self.focal_precision, keep_operators=True, u_all=self.out)
         self.packed._sums = None          # the power sums the replay wrote: read again
-        return self.packed.result(list(data))
+        return self.packed.result(data)
 
 
 def run_kept(packed, focal_precision: str, graphs: bool = True):
@@ -116,4 +138,4 @@ def run_kept(packed, focal_precision: str, graphs: bool = True):
             packed._replay = rep
     if why is not None:
         return packed.run(focal_precision, keep_operators=True), why
-    return packed._replay.run(), "graph"
+    return packed._replay.run(), packed._replay.how

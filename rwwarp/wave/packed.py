@@ -141,13 +141,16 @@ class PackedRayWave(RayWave):
         the members keep their focal operators for the next run (a kept batch), else they are dropped."""
         return self.result(self.device_psfs(focal_precision, keep_operators))
 
-    def device_psfs(self, focal_precision: str = "auto", keep_operators: bool = False, to_host: bool = True) -> list:
+    def device_psfs(self, focal_precision: str = "auto", keep_operators: bool = False, to_host: bool = True,
+                    u_all=None) -> list:
         """Each member's pixel powers (1, size, size), not yet normalised, in the order of :attr:`members`: trace,
         splat and every member's propagation queued. ``to_host=False``: left on the device (CuPy arrays on CUDA;
-        nothing waits for the device, nothing is copied: what :mod:`rwwarp.wave.graph_replay` records)."""
+        nothing waits for the device, nothing is copied: what :mod:`rwwarp.wave.graph_replay` records).
+        ``u_all``: the batch's field (:meth:`field_array`) when already formed (no trace, no splat)."""
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
-        u_all = self.field_array()
+        if u_all is None:
+            u_all = self.field_array()
         data = []
         for k, m in enumerate(self.members):
             n = m.plan.n_grid

@@ -44,7 +44,7 @@ def test_cpu_hits_run_eagerly_and_say_why():
                                                 ("a489_doe", [0.0], "asm")])
 def test_replay_gives_the_bits_of_the_eager_call(name, fields, method):
     """Two hits (the first records, both replay) equal the uncached eager map bit for bit (deterministic splat), and
-    their info says "graph"; a changed lens is a miss whose result is the changed lens's eager map."""
+    their info says what was replayed; a changed lens is a miss whose result is the changed lens's eager map."""
     _cuda_or_skip()
     lens = rw.load_lens(name)
     kw = dict(size=64, method=method, device="cuda", deterministic=True, focal_precision="double")
@@ -55,7 +55,8 @@ def test_replay_gives_the_bits_of_the_eager_call(name, fields, method):
     assert first.info["cache"] == "miss" and np.array_equal(first.data, ref.data)
     for h in hits:
         assert h.info["cache"] == "hit"
-        assert set(h.info["replay"]) == {"graph"}, h.info["replay"]
+        # the focal products are cuBLAS calls, which CuPy will not record: the trace and splat replay
+        assert set(h.info["replay"]) == {"graph" if method == "asm" else "graph: trace and splat"}, h.info["replay"]
         assert np.array_equal(h.data, ref.data), float(np.max(np.abs(h.data - ref.data)))
         assert np.array_equal(np.asarray(h.info["valid_fraction"]), np.asarray(ref.info["valid_fraction"]))
     # the lens changes: a miss, planned and run eagerly, equal to the changed lens's uncached map
