@@ -255,7 +255,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
     ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values
     and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss"; on a hit
-    ``info["replay"]``: per batch "graph" (a replayed CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
+    ``info["replay"]``: per batch "graph: trace and splat" (replayed as a CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
     Other arguments as :func:`psf`.
     """
     from . import checks  # arguments at the public edge (issue 12): names the argument and its range

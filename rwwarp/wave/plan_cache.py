@@ -180,7 +180,7 @@ class PlanCache:
 
     ``graphs``: on a CUDA device a hit replays each kept batch's device work as a CUDA graph, recorded on its first
     hit (:mod:`rwwarp.wave.graph_replay`: the same bits, one launch instead of tens; the call's ``info["replay"]``
-    says "graph" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU."""
+    says "graph: trace and splat" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU."""
 
     def __init__(self, max_entries: int = DEFAULT_MAX_ENTRIES, max_bytes: int = DEFAULT_MAX_BYTES,
                  graphs: bool = True):
