@@ -151,13 +151,10 @@ class SensorPropagator:
         inten = be.empty((st.batch, npy_, npx_), st.rdtype)
         if self.flux:
             nodes = self._flux_nodes(st, band, ext, eyf, new)
-            _launch(st, "sensor_flux_reduce_kernel", (npx_, npy_, st.batch), nodes[0], nodes[1], w_dev, npx_, npy_,
-                    g, st.batch, area, inten)
+            u, u_w = nodes
         else:
-            nodes = new("nodes")
-            _band_to_points(st, band, ext, eyf, nodes)
-            _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area,
-                    inten)
+            nodes = u = u_w = _band_to_points(st, band, ext, eyf, new("nodes"))
+        _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), u, u_w, w_dev, npx_, npy_, g, st.batch, area, inten)
         if return_nodes:
             return inten, nodes
         return inten
