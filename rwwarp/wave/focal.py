@@ -69,7 +69,7 @@ FOCAL_MAX_ORDER = 8
 __all__ = ["doe_order_coefficients", "doe_order_series", "exact_zone", "order_series_horner", "FocalPropagator",
            "transfer_curvature", "pixel_power", "pixel_power_adjoint",
            "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",
-           "sensor_taper"]
+           "sensor_taper", "spectrum_to_nodes", "nodes_to_spectrum", "focal_adjoint", "focal_distance_derivative"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
