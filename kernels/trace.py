@@ -392,6 +392,62 @@ def make_trace_kernels(scalar):
                 break
         t_out[i] = t
 
+    @wp.func
+    def ray_in(i: int, sf: Surface, pos: wp.array(dtype=vec3), dir: wp.array(dtype=vec3),
+               valid: wp.array(dtype=wp.int32), wl: wp.array(dtype=wp.int32), n_in: wp.array(dtype=scalar),
+               n_out: wp.array(dtype=scalar)):
+        # what surface_kernel and phase_surface_kernel read of ray i: (p0, d, ok, w, n1, n2, q), q the position in
+        # the surface's vertex frame (z - sf.z), n1 / n2 the indices before / after at its wavelength w
+        p0 = pos[i]
+        d = dir[i]
+        ok = valid[i]
+        w = wl[i]
+        n1 = n_in[w]
+        n2 = n_out[w]
+        q = vec3(p0[0], p0[1], p0[2] - sf.z)
+        return p0, d, ok, w, n1, n2, q
+
+    @wp.func
+    def hit_and_normal(q: vec3, d: vec3, t0: scalar, sf: Surface):
+        # one Newton step from the converged root t0 (intersect_kernel): exact value, exact (implicit) derivative,
+        # and a short adjoint (the iterations themselves are not on the tape); then the ray is lost where the sag
+        # is undefined, the root is off the surface or outside the aperture. Returns (t, x, nrm, cos i, ok): the
+        # point x, the unit normal nrm turned to the ray's side (cos i = d.nrm >= 0)
+        t = newton_step(q, d, t0, sf)
+        x = q + t * d
+        r2 = x[0] * x[0] + x[1] * x[1]
+        sg, ds, sok = sag_and_slope(r2, sf)
+        g = x[2] - sg
+        ok = 1
+        nrm = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        cosi = scalar(0.0)
+        if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], sf) == 1:
+            ok = 0
+        else:
+            nrm = wp.normalize(vec3(-scalar(2.0) * x[0] * ds, -scalar(2.0) * x[1] * ds, scalar(1.0)))
+            cosi = wp.dot(d, nrm)
+            if cosi < scalar(0.0):
+                nrm = -nrm
+                cosi = -cosi
+        return t, x, nrm, cosi, ok
+
+    @wp.func
+    def ray_out(i: int, ok: int, p0: vec3, d: vec3, q: vec3, t: scalar, zv: scalar, newd: vec3, n1: scalar,
+                extra: scalar, opl: wp.array(dtype=scalar), pos_out: wp.array(dtype=vec3),
+                dir_out: wp.array(dtype=vec3), opl_out: wp.array(dtype=scalar), valid_out: wp.array(dtype=wp.int32)):
+        # ray i after the surface: at q + t d (back in the lens frame, z + zv), direction newd, optical path
+        # opl[i] + n1 t + extra (extra: a thin lens's or a phase's own path); a lost ray (ok = 0) keeps its input
+        if ok == 1:
+            pos_out[i] = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + zv)
+            dir_out[i] = newd
+            opl_out[i] = opl[i] + n1 * t + extra
+            valid_out[i] = 1
+        else:
+            pos_out[i] = p0
+            dir_out[i] = d
+            opl_out[i] = opl[i]
+            valid_out[i] = 0
+
     @wp.kernel(module="unique")
     def surface_kernel(
         pos: wp.array(dtype=vec3),
@@ -413,37 +469,14 @@ def make_trace_kernels(scalar):
     ):
         i = wp.tid()
         sf = load_surface(params_rows[i & rmask])
-        p0 = pos[i]
-        d = dir[i]
-        ok = valid[i]
-        w = wl[i]
-        n1 = n_in[w]
-        n2 = n_out[w]
-        zv = sf.z
-        q = vec3(p0[0], p0[1], p0[2] - zv)
+        p0, d, ok, w, n1, n2, q = ray_in(i, sf, pos, dir, valid, wl, n_in, n_out)
         t = scalar(0.0)
         newd = d
         extra = scalar(0.0)
         if ok == 1:
             if kind == KIND_REFRACT or kind == KIND_REFLECT:
-                # one Newton step from the converged root: exact value, exact (implicit) derivative,
-                # and a short adjoint (the iterations themselves are not on the tape)
-                t = newton_step(q, d, t_start[i], sf)
-                ds = scalar(0.0)
-                sok = 1
-                g = scalar(0.0)
-                x = q + t * d
-                r2 = x[0] * x[0] + x[1] * x[1]
-                sg, ds, sok = sag_and_slope(r2, sf)
-                g = x[2] - sg
-                if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], sf) == 1:
-                    ok = 0
-                else:
-                    nrm = wp.normalize(vec3(-scalar(2.0) * x[0] * ds, -scalar(2.0) * x[1] * ds, scalar(1.0)))
-                    cosi = wp.dot(d, nrm)
-                    if cosi < scalar(0.0):
-                        nrm = -nrm
-                        cosi = -cosi
+                t, x, nrm, cosi, ok = hit_and_normal(q, d, t_start[i], sf)
+                if ok == 1:
                     if kind == KIND_REFLECT:
                         newd = wp.normalize(d - scalar(2.0) * cosi * nrm)
                     else:
@@ -481,16 +514,7 @@ def make_trace_kernels(scalar):
                     else:
                         img = x + newd * (vdist / newd[2])
                         extra = -inrel - n2 * (wp.length(img - x) - wp.length(img - ctr))
-        if ok == 1:
-            pos_out[i] = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + zv)
-            dir_out[i] = newd
-            opl_out[i] = opl[i] + n1 * t + extra
-            valid_out[i] = 1
-        else:
-            pos_out[i] = p0
-            dir_out[i] = d
-            opl_out[i] = opl[i]
-            valid_out[i] = 0
+        ray_out(i, ok, p0, d, q, t, sf.z, newd, n1, extra, opl, pos_out, dir_out, opl_out, valid_out)
 
     @wp.func
     def phase_and_gradient(row: wp.array(dtype=scalar), x: scalar, y: scalar):
@@ -531,31 +555,13 @@ def make_trace_kernels(scalar):
         i = wp.tid()
         row = params_rows[i & rmask]
         sf = load_surface(row)
-        p0 = pos[i]
-        d = dir[i]
-        ok = valid[i]
-        w = wl[i]
-        n1 = n_in[w]
-        n2 = n_out[w]
-        zv = sf.z
-        q = vec3(p0[0], p0[1], p0[2] - zv)
+        p0, d, ok, w, n1, n2, q = ray_in(i, sf, pos, dir, valid, wl, n_in, n_out)
         t = scalar(0.0)
         newd = d
         extra = scalar(0.0)
         if ok == 1:
-            t = newton_step(q, d, t_start[i], sf)
-            x = q + t * d
-            r2 = x[0] * x[0] + x[1] * x[1]
-            sg, ds, sok = sag_and_slope(r2, sf)
-            g = x[2] - sg
-            if sok == 0 or wp.abs(g) > scalar(tol) or outside_aperture(x[0], x[1], sf) == 1:
-                ok = 0
-            else:
-                nrm = wp.normalize(vec3(-scalar(2.0) * x[0] * ds, -scalar(2.0) * x[1] * ds, scalar(1.0)))
-                cosi = wp.dot(d, nrm)
-                if cosi < scalar(0.0):
-                    nrm = -nrm
-                    cosi = -cosi
+            t, x, nrm, cosi, ok = hit_and_normal(q, d, t_start[i], sf)
+            if ok == 1:
                 ph, gx, gy = phase_and_gradient(row, x[0], x[1])
                 scale = row[P_PH_M] * lam_bar[w]
                 gv = vec3(scale * gx, scale * gy, scalar(0.0))
@@ -566,16 +572,7 @@ def make_trace_kernels(scalar):
                 else:
                     newd = wp.normalize(tang + wp.sqrt(kk) * nrm)
                     extra = scale * ph
-        if ok == 1:
-            pos_out[i] = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + zv)
-            dir_out[i] = newd
-            opl_out[i] = opl[i] + n1 * t + extra
-            valid_out[i] = 1
-        else:
-            pos_out[i] = p0
-            dir_out[i] = d
-            opl_out[i] = opl[i]
-            valid_out[i] = 0
+        ray_out(i, ok, p0, d, q, t, sf.z, newd, n1, extra, opl, pos_out, dir_out, opl_out, valid_out)
 
     @wp.kernel(module="unique")
     def replicate_kernel(params: wp.array(dtype=scalar), rows_per_thread: int, out: wp.array2d(dtype=scalar)):

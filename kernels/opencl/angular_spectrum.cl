@@ -550,39 +550,18 @@ __kernel void crop_demodulate_adjoint_kernel(__global const cplx_t* restrict pad
     if (has_phase && !phase_batched) grad_phase_out[(idx_t)iy * nx + ix] = (real_t)acc;
 }
 
-/* Box integration over sensor pixels: nodes (batch, n_py * g, n_px * g) hold U at the
+/* Box integration over sensor pixels: nodes and nodes_w (batch, n_py * g, n_px * g) hold node fields at the
  * Gauss-Legendre nodes (row py * g + gy, column px * g + gx);
- * intensity_out[b, py, px] = area_scale * sum w[gy] w[gx] |U|^2. Global (n_px, n_py, batch). */
-__kernel void sensor_reduce_kernel(__global const cplx_t* restrict nodes,
+ * out[b, py, px] = area_scale * sum w[gy] w[gx] Re(conj(U) U_w), U = nodes, U_w = nodes_w.
+ * Intensity (|U|^2): pass the same array as nodes and nodes_w. Flux (pixel_values "flux"): nodes / nodes_w the
+ * node fields of C and c C; its adjoint is sensor_reduce_adjoint with area_scale / 2 on the other node field
+ * (d/dU = w U_w, d/dU_w = w U in the dL/dRe + i dL/dIm convention). Global (n_px, n_py, batch). */
+__kernel void sensor_reduce_kernel(__global const cplx_t* nodes,
+                                   __global const cplx_t* nodes_w,
                                    __global const real_t* restrict weights,
                                    const int n_px, const int n_py, const int g, const int batch,
                                    const real_t area_scale,
-                                   __global real_t* restrict intensity_out)
-{
-    const int px = get_global_id(0);
-    const int py = get_global_id(1);
-    const int b = get_global_id(2);
-    if (px >= n_px || py >= n_py || b >= batch) return;
-    const int row_len = n_px * g;
-    real_t acc = (real_t)0;
-    for (int gy = 0; gy < g; ++gy) {
-        const idx_t row = ((idx_t)b * n_py * g + (idx_t)py * g + gy) * row_len + (idx_t)px * g;
-        real_t acc_row = (real_t)0;
-        for (int gx = 0; gx < g; ++gx) acc_row += weights[gx] * c_abs2(nodes[row + gx]);
-        acc += weights[gy] * acc_row;
-    }
-    intensity_out[((idx_t)b * n_py + py) * n_px + px] = area_scale * acc;
-}
-
-/* Pixel z-flux (pixel_values "flux"): like sensor_reduce with Re(conj(U) U_w) for |U|^2, nodes / nodes_w the
- * node fields of C and c C. Its adjoint is sensor_reduce_adjoint with area_scale / 2 on the other node field
- * (d/dU = w U_w, d/dU_w = w U in the dL/dRe + i dL/dIm convention). Global (n_px, n_py, batch). */
-__kernel void sensor_flux_reduce_kernel(__global const cplx_t* restrict nodes,
-                                        __global const cplx_t* restrict nodes_w,
-                                        __global const real_t* restrict weights,
-                                        const int n_px, const int n_py, const int g, const int batch,
-                                        const real_t area_scale,
-                                        __global real_t* restrict flux_out)
+                                   __global real_t* restrict out)
 {
     const int px = get_global_id(0);
     const int py = get_global_id(1);
@@ -600,7 +579,7 @@ __kernel void sensor_flux_reduce_kernel(__global const cplx_t* restrict nodes,
         }
         acc += weights[gy] * acc_row;
     }
-    flux_out[((idx_t)b * n_py + py) * n_px + px] = area_scale * acc;
+    out[((idx_t)b * n_py + py) * n_px + px] = area_scale * acc;
 }
 
 /* Adjoint of sensor_reduce for grad = dL/dRe + i dL/dIm:

@@ -69,7 +69,7 @@ FOCAL_MAX_ORDER = 8
 __all__ = ["doe_order_coefficients", "doe_order_series", "exact_zone", "order_series_horner", "FocalPropagator",
            "transfer_curvature", "pixel_power", "pixel_power_adjoint",
            "pixel_flux", "pixel_flux_adjoint", "focal_pixels", "pixel_weights", "plane_direction_cosines",
-           "sensor_taper"]
+           "sensor_taper", "spectrum_to_nodes", "nodes_to_spectrum", "focal_adjoint", "focal_distance_derivative"]
 
 
 def doe_order_coefficients(alpha: float, levels, orders) -> np.ndarray:
@@ -207,6 +207,53 @@ def distance_factors(E, geo, z, HR, rem):
         fac = -0.5 / z + 1j * np.pi * (a / z) * d * d - 2j * np.pi * a * d * g
         dE.append(E[ax] * fac)
     return dE, HR * (2j * np.pi * rem)
+
+
+def spectrum_to_nodes(b, Fx, Fy, xp=np):
+    """The output DFT of a focal operator, ``U = Fy B Fx^T``: a padded sensor-side spectrum ``B`` (S, nf, nf)
+    at the output nodes (S, My, Mx), ``Fx`` (S, Mx, nf) and ``Fy`` (S, My, nf) its factors."""
+    return xp.matmul(Fy, xp.matmul(b, xp.swapaxes(Fx, 1, 2)))
+
+
+def nodes_to_spectrum(grad, Fx, Fy, xp=np):
+    """Adjoint of :func:`spectrum_to_nodes`: (S, My, Mx) -> (S, nf, nf)."""
+    t = xp.matmul(xp.conj(xp.swapaxes(Fy, 1, 2)), grad)
+    return xp.matmul(t, xp.conj(Fx))
+
+
+def focal_adjoint(grad_u, grad_w, E, HR, c, Fx, Fy, dft_adjoint, xp=np):
+    """The adjoint of a focal operator (:class:`FocalPropagator`, :class:`rwwarp.wave.focal_packed.PackedFocalPropagator`:
+    the two share it), from its factors: the wave-plane field's gradient (S, n, n) from the gradients ``grad_u``
+    of ``U`` and ``grad_w`` of ``U_w`` (None: the adjoint of ``forward`` alone) at the output nodes (S, My, Mx),
+    torch's convention. In order: the output DFT's adjoint (:func:`nodes_to_spectrum`; ``U_w``'s weighted by the
+    direction cosine ``c``), the remainder transfer's (``conj(HR)``), step 2's padded DFT's (``dft_adjoint``:
+    (S, nf, nf) -> (S, ns, ns), the operator's own) and step 1's (``E = (E_x, E_y)``, (S, ns, n) each)."""
+    b = nodes_to_spectrum(grad_u, Fx, Fy, xp)
+    if grad_w is not None:
+        b = b + nodes_to_spectrum(grad_w, Fx, Fy, xp) * c
+    v = dft_adjoint(b * xp.conj(HR))
+    ex, ey = E
+    t = xp.matmul(xp.conj(xp.swapaxes(ey, 1, 2)), v.astype(ey.dtype, copy=False))   # (S, n, ns)
+    return xp.matmul(t, xp.conj(ex)).astype(np.complex128, copy=False)              # (S, n, n)
+
+
+def focal_distance_derivative(field, E, HR, c, Fx, Fy, dE, dHR, dft, pair, xp=np):
+    """``dU/dz`` at the output nodes (S, My, Mx), or with ``pair`` ``(dU/dz, dU_w/dz)``: the exact distance
+    derivative of a focal operator's forward (pair) from its factors (shared by :class:`FocalPropagator` and
+    :class:`rwwarp.wave.focal_packed.PackedFocalPropagator`), grids, band mask and carrier held fixed:
+    ``dB/dz = dft(dV/dz) HR + dft(V) dHR`` with ``V = E_y f E_x^T`` (step 1 in complex128), ``E``, ``dE`` the
+    step-1 factors and their derivatives (:func:`distance_factors`), ``dft`` step 2's padded DFT
+    ((S, ns, ns) -> (S, nf, nf), the operator's own); the weight ``c`` does not depend on z."""
+    ex, ey = E
+    dex, dey = dE
+    f = field.astype(np.complex128, copy=False)
+    t = xp.matmul(f, xp.swapaxes(ex.astype(np.complex128, copy=False), 1, 2))
+    v = xp.matmul(ey.astype(np.complex128, copy=False), t)
+    dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
+    db = dft(dv) * HR + dft(v) * dHR
+    if pair:
+        return spectrum_to_nodes(db, Fx, Fy, xp), spectrum_to_nodes(db * c, Fx, Fy, xp)
+    return spectrum_to_nodes(db, Fx, Fy, xp)
 
 
 class FocalPropagator:
@@ -376,20 +423,11 @@ class FocalPropagator:
 
     def _spectrum(self, field):
         """``B = FFT(V) H_R`` on the padded sensor-side grid, (S, nf, nf) (true frequency ``f_c + nu``)."""
-        v = self.sensor_grid_field(field)
-        return self.xp.fft.fft2(v, s=(self.nf, self.nf)) * self._HR
+        return self._fft(self.sensor_grid_field(field)) * self._HR
 
     def _to_nodes(self, b):
-        """The output DFT of a padded spectrum (S, nf, nf) to the nodes, (S, My, Mx)."""
-        xp = self.xp
-        t = xp.matmul(b, xp.swapaxes(self._Fx, 1, 2))      # (S, nf, Mx)
-        return xp.matmul(self._Fy, t)                      # (S, My, Mx)
-
-    def _from_nodes(self, grad):
-        """Adjoint of :meth:`_to_nodes`: (S, My, Mx) -> (S, nf, nf)."""
-        xp = self.xp
-        t = xp.matmul(xp.conj(xp.swapaxes(self._Fy, 1, 2)), grad)            # (S, nf, Mx)
-        return xp.matmul(t, xp.conj(self._Fx))                               # (S, nf, nf)
+        """The output DFT of a padded spectrum (S, nf, nf) to the nodes, (S, My, Mx) (:func:`spectrum_to_nodes`)."""
+        return spectrum_to_nodes(b, self._Fx, self._Fy, self.xp)
 
     def _distance_factors(self):
         """d/dz of the step-1 factors and of ``H_R`` at fixed grids, band mask and carrier (built once,
@@ -398,46 +436,37 @@ class FocalPropagator:
             self._dE, self._dHR = distance_factors(self._E, self._geo, self.z, self._HR, self._rem)
         return self._dE, self._dHR
 
+    def _fft(self, v):
+        """Step 2's zero-padded FFT of the sensor-side field: (S, ns, ns) -> (S, nf, nf)."""
+        return self.xp.fft.fft2(v, s=(self.nf, self.nf))
+
+    def _fft_adjoint(self, b):
+        """Adjoint of :meth:`_fft`: (S, nf, nf) -> (S, ns, ns)."""
+        return (self.xp.fft.ifft2(b) * (self.nf * self.nf))[:, :self.ns, :self.ns]
+
     def distance_derivative(self, field):
         """``dU/dz`` (S, My, Mx) at the output nodes: the exact derivative of :meth:`forward` with respect
         to the propagation distance ``distance_mm`` (grids, band mask and carrier held fixed; the constant
-        phase per source that :meth:`forward` drops does not change intensities)."""
-        return self._to_nodes(self._distance_spectrum(field))
+        phase per source that :meth:`forward` drops does not change intensities; :func:`focal_distance_derivative`)."""
+        return focal_distance_derivative(field, self._E, self._HR, self._c, self._Fx, self._Fy,
+                                         *self._distance_factors(), self._fft, False, self.xp)
 
     def distance_derivative_pair(self, field):
         """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight does not
         depend on the distance)."""
-        db = self._distance_spectrum(field)
-        return self._to_nodes(db), self._to_nodes(db * self._c)
-
-    def _distance_spectrum(self, field):
-        """``dB/dz`` (S, nf, nf) at fixed grids, band mask and carrier."""
-        xp = self.xp
-        (dex, dey), dhr = self._distance_factors()
-        ex, ey = self._E
-        t = xp.matmul(field, xp.swapaxes(ex, 1, 2))
-        v = xp.matmul(ey, t)
-        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
-        return xp.fft.fft2(dv, s=(self.nf, self.nf)) * self._HR + xp.fft.fft2(v, s=(self.nf, self.nf)) * dhr
+        return focal_distance_derivative(field, self._E, self._HR, self._c, self._Fx, self._Fy,
+                                         *self._distance_factors(), self._fft, True, self.xp)
 
     def adjoint(self, grad):
-        """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, My, Mx) -> (S, n, n)."""
-        return self._spectrum_adjoint(self._from_nodes(grad))
+        """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, My, Mx) -> (S, n, n)
+        (:func:`focal_adjoint`)."""
+        return focal_adjoint(grad, None, self._E, self._HR, self._c, self._Fx, self._Fy, self._fft_adjoint, self.xp)
 
     def adjoint_pair(self, grad_u, grad_w):
         """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U`` and ``U_w`` (S, My, Mx) each
         (torch's convention), (S, n, n)."""
-        return self._spectrum_adjoint(self._from_nodes(grad_u) + self._from_nodes(grad_w) * self._c)
-
-    def _spectrum_adjoint(self, b):
-        """Adjoint of :meth:`_spectrum`: (S, nf, nf) -> (S, n, n)."""
-        xp = self.xp
-        b = b * xp.conj(self._HR)
-        v = xp.fft.ifft2(b) * (self.nf * self.nf)
-        v = v[:, :self.ns, :self.ns]
-        ex, ey = self._E
-        t = xp.matmul(xp.conj(xp.swapaxes(ey, 1, 2)), v.astype(ey.dtype, copy=False))   # (S, n, ns)
-        return xp.matmul(t, xp.conj(ex)).astype(np.complex128, copy=False)              # (S, n, n)
+        return focal_adjoint(grad_u, grad_w, self._E, self._HR, self._c, self._Fx, self._Fy, self._fft_adjoint,
+                             self.xp)
 
 
 def sensor_taper(p, lo, hi):

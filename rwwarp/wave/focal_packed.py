@@ -17,7 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .focal import _cis, distance_factors, sensor_taper, transfer_curvature
+from .focal import (
+    _cis, distance_factors, focal_adjoint, focal_distance_derivative, sensor_taper, spectrum_to_nodes,
+    transfer_curvature,
+)
 
 __all__ = ["PackedFocalPropagator", "focal_groups", "member_nodes"]
 
@@ -276,20 +279,25 @@ class PackedFocalPropagator:
     def _step1(self, field, ex, ey):
         xp = self.xp
         t = xp.matmul(field.astype(ex.dtype, copy=False), xp.swapaxes(ex, 1, 2))
-        return xp.matmul(ey, t).astype(np.complex128, copy=False), t
+        return xp.matmul(ey, t).astype(np.complex128, copy=False)
 
     def _dft2(self, v):
         """The zero-padded 2-D FFT of the sensor-side field as ``W v W^T`` (S, nf, nf)."""
         xp = self.xp
         return xp.matmul(xp.matmul(self._W, v), xp.swapaxes(self._W, 1, 2))
 
-    def _out(self, b):
+    def _dft2_adjoint(self, b):
+        """Adjoint of :meth:`_dft2`: ``W^H b conj(W)``, (S, nf, nf) -> (S, ns, ns)."""
         xp = self.xp
-        return xp.matmul(self._Fy, xp.matmul(b, xp.swapaxes(self._Fx, 1, 2)))
+        return xp.matmul(xp.matmul(xp.conj(xp.swapaxes(self._W, 1, 2)), b), xp.conj(self._W))
+
+    def _out(self, b):
+        """The output DFT (:func:`rwwarp.wave.focal.spectrum_to_nodes`), (S, nf, nf) -> (S, M, M)."""
+        return spectrum_to_nodes(b, self._Fx, self._Fy, self.xp)
 
     def sensor_grid_field(self, field):
         """Step 1: ``V`` (S, ns, ns) on the sensor-side grids from the wave-plane fields (S, n, n)."""
-        return self._step1(field, *self._E)[0]
+        return self._step1(field, *self._E)
 
     def forward(self, field):
         """Complex field at the output nodes, (S, M, M) (up to a constant phase per source; zero past a
@@ -310,47 +318,25 @@ class PackedFocalPropagator:
             self._dE, self._dHR = distance_factors(self._E, self._geo, self.z, self._HR, self._rem)
         return self._dE, self._dHR
 
-    def _distance_spectrum(self, field):
-        """``dB/dz`` (S, nf, nf) at fixed grids, band masks and carriers."""
-        xp = self.xp
-        (dex, dey), dhr = self._distance_factors()
-        ex, ey = self._E
-        v, t = self._step1(field.astype(np.complex128, copy=False), ex.astype(np.complex128, copy=False),
-                           ey.astype(np.complex128, copy=False))
-        dv = xp.matmul(dey, t) + xp.matmul(ey, xp.matmul(field, xp.swapaxes(dex, 1, 2)))
-        return self._dft2(dv) * self._HR + self._dft2(v) * dhr
-
     def distance_derivative(self, field):
         """``dU/dz`` (S, M, M): the exact derivative of :meth:`forward` with respect to the distance (grids,
-        band masks and carriers held fixed)."""
-        return self._out(self._distance_spectrum(field))
+        band masks and carriers held fixed; :func:`rwwarp.wave.focal.focal_distance_derivative`)."""
+        return focal_distance_derivative(field, self._E, self._HR, self._c, self._Fx, self._Fy,
+                                         *self._distance_factors(), self._dft2, False, self.xp)
 
     def distance_derivative_pair(self, field):
         """``(dU/dz, dU_w/dz)``: the exact distance derivatives of :meth:`forward_pair` (the weight ``c`` does not
         depend on the distance)."""
-        db = self._distance_spectrum(field)
-        return self._out(db), self._out(db * self._c)
+        return focal_distance_derivative(field, self._E, self._HR, self._c, self._Fx, self._Fy,
+                                         *self._distance_factors(), self._dft2, True, self.xp)
 
     def adjoint(self, grad):
-        """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, M, M) -> (S, n, n)."""
-        return self._spectrum_adjoint(self._from_nodes(grad))
+        """Adjoint of :meth:`forward` (the conjugate-transpose linear map), (S, M, M) -> (S, n, n)
+        (:func:`rwwarp.wave.focal.focal_adjoint`)."""
+        return focal_adjoint(grad, None, self._E, self._HR, self._c, self._Fx, self._Fy, self._dft2_adjoint, self.xp)
 
     def adjoint_pair(self, grad_u, grad_w):
         """Adjoint of :meth:`forward_pair`: the field's gradient from those of ``U`` and ``U_w`` (S, M, M) each
         (torch's convention), (S, n, n)."""
-        return self._spectrum_adjoint(self._from_nodes(grad_u) + self._from_nodes(grad_w) * self._c)
-
-    def _from_nodes(self, grad):
-        """Adjoint of the output DFT: (S, M, M) -> (S, nf, nf)."""
-        xp = self.xp
-        t = xp.matmul(xp.conj(xp.swapaxes(self._Fy, 1, 2)), grad)
-        return xp.matmul(t, xp.conj(self._Fx))
-
-    def _spectrum_adjoint(self, b):
-        """Adjoint of the remainder transfer, the matrix DFT and step 1: (S, nf, nf) -> (S, n, n)."""
-        xp = self.xp
-        b = b * xp.conj(self._HR)
-        v = xp.matmul(xp.matmul(xp.conj(xp.swapaxes(self._W, 1, 2)), b), xp.conj(self._W))
-        ex, ey = self._E
-        t = xp.matmul(xp.conj(xp.swapaxes(ey, 1, 2)), v.astype(ey.dtype, copy=False))
-        return xp.matmul(t, xp.conj(ex)).astype(np.complex128, copy=False)
+        return focal_adjoint(grad_u, grad_w, self._E, self._HR, self._c, self._Fx, self._Fy, self._dft2_adjoint,
+                             self.xp)

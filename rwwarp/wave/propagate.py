@@ -6,12 +6,12 @@ transformed (pyvkfft), multiplied by the angular-spectrum transfer function
 Matsushima & Shimobaba (2009), in its shifted form (Matsushima 2010) when the output window is
 off the input window, and brought back either
 
-* at arbitrary output coordinates (:func:`propagate`, :func:`sensor_intensity`): a separable
-  matrix DFT ``U = Ey C Ex^T`` over the band (two tiled complex GEMM launches), which is the exact
-  trigonometric interpolation of the band-limited result, so the output pitch is free of the
-  input pitch; or
-* on the input grid, possibly shifted (:func:`propagate_grid`): inverse FFT and crop, the
-  classic fixed-grid method.
+* at arbitrary output coordinates (:class:`SensorPropagator`, the sensor path): a separable
+  matrix DFT ``U = Ey C Ex^T`` over the band (two tiled complex GEMM launches) to Gauss-Legendre nodes
+  inside each sensor pixel, which is the exact trigonometric interpolation of the band-limited result,
+  so the output pitch is free of the input pitch; or
+* on the input grid, possibly shifted (:func:`propagate_grid`, a plane-to-plane step such as
+  :mod:`rwwarp.wave.wave_step`): inverse FFT and crop, the classic fixed-grid method.
 
 All device work runs in the OpenCL C kernels of ``kernels/opencl/angular_spectrum.cl`` (also built for
 CUDA, see :mod:`rwwarp.wave.backend`); this module only computes per-batch parameters on the host and
@@ -35,7 +35,7 @@ Conventions
   traced power (docs/propagation.md "Pixel values").
 * **Carrier.** With ``carrier_cpmm = (fx0, fy0)`` the field handed in is the true field times
   ``exp(-2 pi i (fx0 x + fy0 y))``; the transfer function is evaluated at the true frequencies.
-  :func:`propagate` returns the true field (carrier restored) at the requested points;
+  :class:`SensorPropagator` evaluates the true field (carrier restored) at its nodes;
   :func:`propagate_grid` returns the output with the same carrier still factored out (a coarse
   grid cannot hold it). Intensities do not depend on it.
 * **Shift / band limit.** The representable offsets between a source point and an output point
@@ -53,170 +53,38 @@ Conventions
 
 Where the code lives
 --------------------
-* this module: the public calls :func:`propagate`, :func:`propagate_adjoint`, :func:`propagate_grid`,
-  :func:`propagate_grid_adjoint`, and re-exports of the others (import them from here);
+* this module: the fixed-grid calls :func:`propagate_grid`, :func:`propagate_grid_adjoint`, and re-exports
+  of the others (import them from here);
 * :mod:`rwwarp.wave.propagate_setup`: FFT sizes, Gauss-Legendre nodes, Matsushima's band limit
   (:func:`band_limits`), the per-batch parameter rows;
 * :mod:`rwwarp.wave.propagate_stages`: the device stages (pad + FFT, transfer function on the band,
   matrix DFT to points, and their adjoints);
-* :mod:`rwwarp.wave.propagate_sensor`: pixel-integrated :func:`sensor_intensity` and its gradients.
+* :mod:`rwwarp.wave.propagate_sensor`: :class:`SensorPropagator`, pixel-integrated powers and their gradients.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
 from .backend import get_backend
 from .propagate_sensor import (
-    SensorGeometry, SensorPropagator, sensor_intensity, sensor_intensity_adjoint, sensor_intensity_distance_adjoint,
-    sensor_window_center,
+    SensorGeometry, SensorPropagator, sensor_window_center,
 )
 from .propagate_setup import (
-    band_limits, gauss_legendre, next_fft_size, _P_LPX, _batch_of, _center_extent, _check_window, _coords,
-    _per_batch, _setup,
+    band_limits, gauss_legendre, next_fft_size, _P_LPX, _batch_of, _check_window, _per_batch, _setup,
 )
-from .propagate_stages import (
-    _band_adjoint_to_field, _band_spectrum, _band_to_points, _crop_demodulate_adjoint, _dft_factors, _launch,
-    _pad_fft, _points_to_band, _transfer, _upload_coords,
-)
+from .propagate_stages import _crop_demodulate_adjoint, _launch, _pad_fft, _transfer
 
 __all__ = [
     "band_limits",
     "gauss_legendre",
     "next_fft_size",
-    "propagate",
-    "propagate_adjoint",
     "propagate_grid",
     "propagate_grid_adjoint",
     "SensorGeometry",
     "SensorPropagator",
-    "PointGeometry",
-    "PointPropagator",
-    "sensor_intensity",
-    "sensor_intensity_adjoint",
-    "sensor_intensity_distance_adjoint",
     "sensor_window_center",
 ]
-
-
-@dataclass(frozen=True)
-class PointGeometry:
-    """What :func:`propagate` and its adjoint share: the sampled field's grid (``pitch_mm``, ``origin_mm``
-    (x, y) of sample (0, 0)), ``wavelength_um``, ``distance_mm``, the output points ``out_x_mm`` /
-    ``out_y_mm`` ((M,) or (B, M), absolute mm), and ``doe_scale``, ``carrier_cpmm``, ``pad_to``, ``dtype``
-    (as :func:`propagate` documents them)."""
-    pitch_mm: object
-    origin_mm: object
-    wavelength_um: object
-    distance_mm: object
-    out_x_mm: object
-    out_y_mm: object
-    doe_scale: object = None
-    carrier_cpmm: object = None
-    pad_to: object = None
-    dtype: object = None
-
-
-class PointPropagator:
-    """Band-limited angular spectrum of a sampled field to arbitrary output points (matrix DFT), with
-    its adjoint: :meth:`forward` and :meth:`adjoint` on one :class:`PointGeometry`."""
-
-    def __init__(self, backend, geometry: PointGeometry):
-        self.backend = get_backend(backend)
-        self.geometry = geometry
-
-    def _prepare(self, field, doe_phase):
-        g = self.geometry
-        batch = _batch_of(field)
-        xs = _coords(g.out_x_mm, batch, "out_x_mm")
-        ys = _coords(g.out_y_mm, batch, "out_y_mm")
-        center, ex, ey = _center_extent(xs, ys)
-        st = _setup(self.backend, field, g.pitch_mm, g.origin_mm, g.wavelength_um, g.distance_mm,
-                    doe_phase=doe_phase, doe_scale=g.doe_scale, carrier_cpmm=g.carrier_cpmm, pad_to=g.pad_to,
-                    dtype=g.dtype, out_center_mm=center)
-        return st, xs, ys, ex, ey
-
-    def forward(self, field, doe_phase=None):
-        """The propagated field at the output points, (B, My, Mx) complex device array (carrier
-        restored; see :func:`propagate`)."""
-        st, xs, ys, ex, ey = self._prepare(field, doe_phase)
-        _check_window(st, ex, ey, "propagate")
-        coords = _upload_coords(st, xs, ys)
-        band, _ = _band_spectrum(st)
-        ext, eyf = _dft_factors(st, coords)
-        out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        return _band_to_points(st, band, ext, eyf, out)
-
-    def adjoint(self, grad_out, field, doe_phase=None):
-        """``(grad_field, grad_doe_phase or None)`` for a real loss's gradient ``grad_out`` at the output
-        points (see :func:`propagate_adjoint`)."""
-        st, xs, ys, _, _ = self._prepare(field, doe_phase)
-        g = st.backend.to_device(grad_out, st.dtype)
-        if tuple(g.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-            raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
-        coords = _upload_coords(st, xs, ys)
-        h = _transfer(st, 1.0 / (st.npx * st.npy))
-        ex, eyf = _dft_factors(st, coords, adjoint=True)
-        band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-        _points_to_band(st, g, ex, eyf, band_grad)
-        return _band_adjoint_to_field(st, band_grad, h)
-
-
-def propagate(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm, out_y_mm, *,
-              doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None):
-    """Propagate a sampled field by ``distance_mm`` and evaluate it at arbitrary output points.
-
-    Band-limited (shifted) angular spectrum method with a matrix-DFT output; see the module
-    docstring for the conventions.
-
-    Args:
-        backend: a :class:`~rwwarp.wave.backend.Backend` or a device string ("cpu", "cuda:0", ...).
-        field: (B, Ny, Nx) or (Ny, Nx) complex field, numpy or device array (field units).
-        pitch_mm: sample pitch (mm), scalar or (B,).
-        origin_mm: (x, y) of sample (row 0, column 0) (mm), shape (2,) or (B, 2).
-        wavelength_um: wavelength (um), scalar or (B,).
-        distance_mm: propagation distance z (mm), scalar or (B,); negative back-propagates.
-        out_x_mm: output x coordinates (mm), (Mx,) or (B, Mx), absolute, any spacing.
-        out_y_mm: output y coordinates (mm), (My,) or (B, My).
-        doe_phase: optional DOE phase phi0 (rad), (Ny, Nx) shared or (B, Ny, Nx); the field is
-            multiplied by ``exp(1j * doe_scale[b] * phi0)`` first.
-        doe_scale: (B,) or scalar multiplier of ``doe_phase``,
-            ``(n(lambda)-1)/(n0-1) * lambda0/lambda`` (computed by the caller); default 1.
-        carrier_cpmm: optional (2,) or (B, 2) carrier (fx0, fy0) in cycles/mm factored out of the
-            field (true field = field * exp(2j pi (fx0 x + fy0 y))).
-        pad_to: padded FFT size, int or (npy, npx); default the next 2-3-5-7-smooth size >= 2N.
-        dtype: complex64 or complex128; default the field's complex dtype, else complex128.
-
-    Returns:
-        (B, My, Mx) complex device array: the true field U(x_n, y_m) (carrier restored), same
-        field units as the input (so that ``sum |U|^2 * pitch_out^2`` is the power).
-    """
-    geo = PointGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm, out_y_mm, doe_scale,
-                        carrier_cpmm, pad_to, dtype)
-    return PointPropagator(backend, geo).forward(field, doe_phase)
-
-
-def propagate_adjoint(backend, grad_out, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm,
-                      out_y_mm, *, doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None):
-    """Adjoint (vector-Jacobian product) of :func:`propagate`.
-
-    Args:
-        grad_out: (B, My, Mx) gradient of a real loss with respect to the output U, in the
-            convention ``dL/dRe U + 1j dL/dIm U``.
-        field, ...: exactly the arguments of the forward call (``field`` is needed for the DOE
-            phase gradient).
-
-    Returns:
-        ``(grad_field, grad_doe_phase)``: (B, Ny, Nx) complex device array (same convention) and,
-        when ``doe_phase`` was given, a real device array of the shape of ``doe_phase`` (1/rad
-        units of the loss; summed over the batch for a shared phase), else None. ``grad_field`` is
-        ``A^H grad_out`` for the linear map A: field -> U.
-    """
-    geo = PointGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, out_x_mm, out_y_mm, doe_scale,
-                        carrier_cpmm, pad_to, dtype)
-    return PointPropagator(backend, geo).adjoint(grad_out, field, doe_phase)
 
 
 def _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm, doe_phase,
@@ -269,7 +137,22 @@ def propagate_grid(
     ``out_origin_mm + (i, j) * pitch_mm`` (default: the input origin; any real shift is allowed,
     Matsushima's shifted ASM).
 
-    Args: as :func:`propagate`, plus ``out_origin_mm``: (2,) or (B, 2) (mm) or None.
+    Args:
+        backend: a :class:`~rwwarp.wave.backend.Backend` or a device string ("cpu", "cuda:0", ...).
+        field: (B, Ny, Nx) or (Ny, Nx) complex field, numpy or device array (field units).
+        pitch_mm: sample pitch (mm), scalar or (B,).
+        origin_mm: (x, y) of sample (row 0, column 0) (mm), shape (2,) or (B, 2).
+        wavelength_um: wavelength (um), scalar or (B,).
+        distance_mm: propagation distance z (mm), scalar or (B,); negative back-propagates.
+        out_origin_mm: (x, y) of output sample (0, 0) (mm), (2,) or (B, 2); None: ``origin_mm``.
+        doe_phase: optional DOE phase phi0 (rad), (Ny, Nx) shared or (B, Ny, Nx); the field is
+            multiplied by ``exp(1j * doe_scale[b] * phi0)`` first.
+        doe_scale: (B,) or scalar multiplier of ``doe_phase``,
+            ``(n(lambda)-1)/(n0-1) * lambda0/lambda`` (computed by the caller); default 1.
+        carrier_cpmm: optional (2,) or (B, 2) carrier (fx0, fy0) in cycles/mm factored out of the
+            field (true field = field * exp(2j pi (fx0 x + fy0 y))).
+        pad_to: padded FFT size, int or (npy, npx); default the next 2-3-5-7-smooth size >= 2N.
+        dtype: complex64 or complex128; default the field's complex dtype, else complex128.
 
     Returns:
         (B, Ny, Nx) complex device array, with the carrier (if any) still factored out:
@@ -302,8 +185,10 @@ def propagate_grid_adjoint(
     dtype=None,
 ):
     """Adjoint of :func:`propagate_grid`: ``grad_out`` (B, Ny, Nx) in the convention
-    ``dL/dRe + 1j dL/dIm`` -> ``(grad_field, grad_doe_phase or None)`` (device arrays; see
-    :func:`propagate_adjoint`)."""
+    ``dL/dRe + 1j dL/dIm`` -> ``(grad_field, grad_doe_phase or None)``: (B, Ny, Nx) complex device array
+    ``A^H grad_out`` (A: field -> output, the same convention) and, when ``doe_phase`` was given, a real device
+    array of its shape (loss units per rad; summed over the batch for a shared phase), else None. The other
+    arguments are exactly those of the forward call."""
     st = _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm,
                      doe_phase, doe_scale, carrier_cpmm, pad_to, dtype)
     g = st.backend.to_device(grad_out, st.dtype)

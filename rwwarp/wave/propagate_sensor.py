@@ -1,11 +1,11 @@
-"""Pixel-integrated sensor intensity by the band-limited angular spectrum (:mod:`rwwarp.wave.propagate`).
+"""Pixel-integrated sensor power by the band-limited angular spectrum (:mod:`rwwarp.wave.propagate`).
 
-:func:`sensor_intensity` evaluates ``|U|^2`` at Gauss-Legendre nodes inside each sensor pixel (the
-matrix DFT of :mod:`rwwarp.wave.propagate_stages` to those nodes) and sums them with the nodes' weights:
-power per pixel. :func:`sensor_intensity_adjoint` and :func:`sensor_intensity_distance_adjoint` give the
-gradients with respect to the field, the DOE phase and the propagation distance. They are the methods of
-one operator, :class:`SensorPropagator` (its :class:`SensorGeometry` holds the arguments the three share;
-``SensorPropagator._band_gradient`` the shared backward pass). :func:`sensor_window_center` is the output-window centre a patch's
+:meth:`SensorPropagator.forward` evaluates ``|U|^2`` (or the z-flux) at Gauss-Legendre nodes inside each
+sensor pixel (the matrix DFT of :mod:`rwwarp.wave.propagate_stages` to those nodes) and sums them with the
+nodes' weights: power per pixel. :meth:`SensorPropagator.adjoint` and :meth:`SensorPropagator.distance_adjoint`
+give the gradients with respect to the field, the DOE phase and the propagation distance (its
+:class:`SensorGeometry` holds the arguments the three share; ``SensorPropagator._band_gradient`` the shared
+backward pass). :func:`sensor_window_center` is the output-window centre a patch's
 pixels form (pass it as ``window_center_mm`` for a part of the patch).
 """
 
@@ -26,7 +26,7 @@ from .propagate_stages import (
 
 
 def sensor_window_center(pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, gauss_nodes=3):
-    """Centre (B, 2) in mm of the output window that :func:`sensor_intensity` forms for these pixels
+    """Centre (B, 2) in mm of the output window that :class:`SensorPropagator` forms for these pixels
     (the middle of its Gauss nodes' extent); pass it as ``window_center_mm`` when evaluating a part
     of the patch so that the part equals the same pixels of the whole patch."""
     cx = np.asarray(pixel_centers_x_mm, dtype=np.float64)
@@ -117,8 +117,9 @@ class SensorPropagator:
         """Power landing in each sensor pixel: ``|U|^2`` (``pixel_values="intensity"``) or the z-flux
         ``Re(conj(U) U_w)`` (``"flux"``) integrated over the pixel's area.
 
-        The propagated field (:func:`propagate`) is evaluated at ``gauss_nodes`` x ``gauss_nodes``
-        Gauss-Legendre nodes inside every pixel (matrix DFT) and the weighted ``|U|^2`` summed in one
+        The propagated field (band-limited ASM, :mod:`rwwarp.wave.propagate`) is evaluated at
+        ``gauss_nodes`` x ``gauss_nodes`` Gauss-Legendre nodes inside every pixel (matrix DFT; with one node, at
+        the pixel centre: the field at arbitrary points) and the weighted ``|U|^2`` summed in one
         kernel: ``I[b, py, px] = (ppx ppy / 4) sum_{gy, gx} w_gy w_gx |U(x_gx, y_gy)|^2`` with nodes
         ``x_gx = x_px + ppx t_gx / 2``, ``y_gy = y_py + ppy t_gy / 2``. Box integration, exact for
         intensities that are polynomials of degree ``2 gauss_nodes - 1`` across a pixel. With ``"flux"``
@@ -126,8 +127,10 @@ class SensorPropagator:
         matrix DFTs to the same nodes, ``U`` and ``U_w``, and ``Re(conj(U) U_w)`` is summed instead.
 
         Args:
-            field, doe_phase: as :func:`propagate` (the rest is the :class:`SensorGeometry`; pixels are
-                boxes of ``pixel_pitch_mm`` centred on the given centres).
+            field: (B, Ny, Nx) or (Ny, Nx) complex wave-plane field, numpy or device array (field units).
+            doe_phase: optional DOE phase phi0 (rad), (Ny, Nx) shared or (B, Ny, Nx); the field is multiplied
+                by ``exp(1j * doe_scale[b] * phi0)`` first (the rest is the :class:`SensorGeometry`; pixels
+                are boxes of ``pixel_pitch_mm`` centred on the given centres).
             return_nodes: also return the node field (B, Py*G, Px*G) (row py*G+gy, column px*G+gx),
                 which :meth:`adjoint` can reuse (with ``"flux"`` the pair ``(U, U_w)``).
 
@@ -136,7 +139,7 @@ class SensorPropagator:
             ``(intensity, nodes)`` when ``return_nodes``.
         """
         st, (npx_, npy_, xs, ys, w, area), (ex, ey) = self._prepare(field, doe_phase)
-        _check_window(st, ex, ey, "sensor_intensity")
+        _check_window(st, ex, ey, "SensorPropagator.forward")
         be = st.backend
         coords = _upload_coords(st, xs, ys)
         w_dev = be.to_device(w.astype(st.rdtype))
@@ -148,13 +151,10 @@ class SensorPropagator:
         inten = be.empty((st.batch, npy_, npx_), st.rdtype)
         if self.flux:
             nodes = self._flux_nodes(st, band, ext, eyf, new)
-            _launch(st, "sensor_flux_reduce_kernel", (npx_, npy_, st.batch), nodes[0], nodes[1], w_dev, npx_, npy_,
-                    g, st.batch, area, inten)
+            u, u_w = nodes
         else:
-            nodes = new("nodes")
-            _band_to_points(st, band, ext, eyf, nodes)
-            _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), nodes, w_dev, npx_, npy_, g, st.batch, area,
-                    inten)
+            nodes = u = u_w = _band_to_points(st, band, ext, eyf, new("nodes"))
+        _launch(st, "sensor_reduce_kernel", (npx_, npy_, st.batch), u, u_w, w_dev, npx_, npy_, g, st.batch, area, inten)
         if return_nodes:
             return inten, nodes
         return inten
@@ -226,23 +226,23 @@ class SensorPropagator:
         return st, band_grad, h, band if need_band else None
 
     def adjoint(self, grad_intensity, field, doe_phase=None, nodes=None):
-        """Gradient of a real loss through :func:`sensor_intensity`.
+        """Gradient of a real loss through :meth:`forward`.
 
         Args:
             grad_intensity: (B, Py, Px) real, dL/dI for each pixel.
             field, doe_phase: those of the forward call.
-            nodes: the node field returned by ``sensor_intensity(..., return_nodes=True)``; recomputed
-                when None.
+            nodes: the node field returned by ``forward(..., return_nodes=True)``; recomputed when None.
 
         Returns:
-            ``(grad_field, grad_doe_phase or None)`` as :func:`propagate_adjoint`
-            (``grad_field = dL/dRe field + 1j dL/dIm field``).
+            ``(grad_field, grad_doe_phase or None)``: (B, Ny, Nx) complex device array
+            ``dL/dRe field + 1j dL/dIm field`` and, with a DOE phase, a real device array of its shape (loss
+            units per rad; summed over the batch for a shared phase).
         """
         st, band_grad, h, _ = self._band_gradient(grad_intensity, field, doe_phase, nodes, need_band=False)
         return _band_adjoint_to_field(st, band_grad, h)
 
     def distance_adjoint(self, grad_intensity, field, doe_phase=None, nodes=None, need_field=True):
-        """Gradient of a real loss through :func:`sensor_intensity`, the propagation distance included.
+        """Gradient of a real loss through :meth:`forward`, the propagation distance included.
 
         The distance enters through the transfer function only: ``H = exp(2 pi i z w)``,
         ``w = sqrt(1/lambda^2 - u^2 - v^2)`` (cycles/mm), so ``dH/dz = 2 pi i w H`` and
@@ -254,13 +254,13 @@ class SensorPropagator:
 
         Args:
             grad_intensity, field, doe_phase, nodes: as :meth:`adjoint` (``nodes``
-                from ``sensor_intensity(..., return_nodes=True)``, recomputed when None).
+                from ``forward(..., return_nodes=True)``, recomputed when None).
             need_field: also form ``grad_field`` and ``grad_doe_phase`` (the transposed pruned FFT);
                 False returns None for both.
 
         Returns:
             ``(grad_field or None, grad_doe_phase or None, grad_distance)``: the first two as
-            :func:`sensor_intensity_adjoint`, ``grad_distance`` a numpy float64 (B,) array, dL/dz in
+            :meth:`adjoint`, ``grad_distance`` a numpy float64 (B,) array, dL/dz in
             loss units per mm (one small device-to-host copy of B x ky partial sums).
         """
         st, band_grad, h, band = self._band_gradient(grad_intensity, field, doe_phase, nodes, need_band=True)
@@ -274,39 +274,3 @@ class SensorPropagator:
         grad_field, grad_phase = _band_adjoint_to_field(st, band_grad, h)
         return grad_field, grad_phase, grad_distance
 
-
-def sensor_intensity(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm,
-                     pixel_centers_y_mm, pixel_pitch_mm, *, gauss_nodes=3, doe_phase=None, doe_scale=None,
-                     carrier_cpmm=None, pad_to=None, dtype=None, return_nodes=False, window_center_mm=None,
-                     pixel_values="intensity"):
-    """Power landing in each sensor pixel (:meth:`SensorPropagator.forward`; the arguments other than
-    ``backend``, ``field``, ``doe_phase`` and ``return_nodes`` form its :class:`SensorGeometry`;
-    ``pixel_values`` "intensity" (default here) or "flux", see :mod:`rwwarp.wave.propagate` "Pixel values")."""
-    geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
-                         pixel_values)
-    return SensorPropagator(backend, geo).forward(field, doe_phase, return_nodes)
-
-
-def sensor_intensity_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um, distance_mm,
-                             pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, *, gauss_nodes=3, doe_phase=None,
-                             doe_scale=None, carrier_cpmm=None, pad_to=None, dtype=None, nodes=None,
-                             window_center_mm=None, pixel_values="intensity"):
-    """Gradient of a real loss through :func:`sensor_intensity` (:meth:`SensorPropagator.adjoint`)."""
-    geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
-                         pixel_values)
-    return SensorPropagator(backend, geo).adjoint(grad_intensity, field, doe_phase, nodes)
-
-
-def sensor_intensity_distance_adjoint(backend, grad_intensity, field, pitch_mm, origin_mm, wavelength_um,
-                                      distance_mm, pixel_centers_x_mm, pixel_centers_y_mm, pixel_pitch_mm, *,
-                                      gauss_nodes=3, doe_phase=None, doe_scale=None, carrier_cpmm=None, pad_to=None,
-                                      dtype=None, nodes=None, need_field=True, window_center_mm=None,
-                                      pixel_values="intensity"):
-    """Gradient through :func:`sensor_intensity`, the distance included
-    (:meth:`SensorPropagator.distance_adjoint`)."""
-    geo = SensorGeometry(pitch_mm, origin_mm, wavelength_um, distance_mm, pixel_centers_x_mm, pixel_centers_y_mm,
-                         pixel_pitch_mm, gauss_nodes, doe_scale, carrier_cpmm, pad_to, dtype, window_center_mm,
-                         pixel_values)
-    return SensorPropagator(backend, geo).distance_adjoint(grad_intensity, field, doe_phase, nodes, need_field)

@@ -115,6 +115,19 @@ def backend(request):
     return request.getfixturevalue("cl_backend")
 
 
+def field_at(backend, field, pitch, origin, lam, z, out_x, out_y, doe_phase=None, **kw):
+    """The propagated field at the points out_x x out_y ((M,) or (B, M), mm): the node field of the production
+    operator, :class:`SensorPropagator`, with one Gauss node per pixel (the node is the pixel centre; the pixel
+    pitch then only scales the pixel power). ``kw``: the other :class:`SensorGeometry` fields."""
+    geo = prop.SensorGeometry(pitch, origin, lam, z, out_x, out_y, 1.0, gauss_nodes=1, **kw)
+    return prop.SensorPropagator(backend, geo).forward(field, doe_phase, return_nodes=True)[1]
+
+
+def sensor_op(backend, pitch, origin, lam, z, cx, cy, pp, **kw):
+    """The production operator for these sensor pixels (``kw``: the other :class:`SensorGeometry` fields)."""
+    return prop.SensorPropagator(backend, prop.SensorGeometry(pitch, origin, lam, z, cx, cy, pp, **kw))
+
+
 def rel_l2(a, b):
     return float(np.linalg.norm(np.ravel(a - b)) / np.linalg.norm(np.ravel(b)))
 
@@ -244,11 +257,12 @@ def _random_case(seed=0):
 
 
 @pytest.mark.parametrize("z", [0.8, 3.0])
-def test_propagate_matches_numpy_blasm(backend, z):
-    """Random field, DOE phase, carrier, per-batch wavelengths and off-grid, off-axis outputs; the
-    band limit is active (z = 3 mm cuts most of the spectrum)."""
+def test_point_field_matches_numpy_blasm(backend, z):
+    """The field at arbitrary points (the sensor operator's node field): random field, DOE phase, carrier,
+    per-batch wavelengths and off-grid, off-axis outputs; the band limit is active (z = 3 mm cuts most of
+    the spectrum)."""
     c = _random_case()
-    out = prop.propagate(
+    out = field_at(
         backend,
         c["field"],
         PITCH,
@@ -339,19 +353,19 @@ def _gaussian_input(n=G_N, pitch=G_PITCH, w0=G_W0):
 
 
 def test_round_trip(backend):
-    """propagate (DFT output on the input grid) by z, then propagate_grid by -z: identity for a
-    field whose spectrum lies inside the band."""
+    """The field at points (DFT output on the input grid) by z, then propagate_grid by -z: identity for
+    a field whose spectrum lies inside the band."""
     rng = np.random.default_rng(3)
     field, origin, x = _gaussian_input(w0=0.04)
     field = (
         field * np.exp(1j * rng.uniform(-0.2, 0.2) * (x[None, :] / 0.1) ** 2) * (1 + 0.3j * x[:, None] / 0.1)
     )
     z = 5.0
-    fwd = prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, x, x)
+    fwd = field_at(backend, field, G_PITCH, origin, G_LAM, z, x, x)
     back = backend.to_host(prop.propagate_grid(backend, fwd, G_PITCH, origin, G_LAM, -z))
     assert rel_l2(back, field) < 1e-11
     fwd2 = prop.propagate_grid(backend, field, G_PITCH, origin, G_LAM, -z)
-    back2 = backend.to_host(prop.propagate(backend, fwd2, G_PITCH, origin, G_LAM, z, x, x))
+    back2 = backend.to_host(field_at(backend, fwd2, G_PITCH, origin, G_LAM, z, x, x))
     assert rel_l2(back2, field) < 1e-11
 
 
@@ -364,11 +378,11 @@ def test_energy_conservation(backend):
     grid = backend.to_host(prop.propagate_grid(backend, field, G_PITCH, origin, G_LAM, z))
     assert abs(np.sum(np.abs(grid) ** 2) * G_PITCH**2 / p_in - 1) < 1e-12
     xo = np.arange(-0.3, 0.3, 0.0071)
-    pts = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, xo))
+    pts = backend.to_host(field_at(backend, field, G_PITCH, origin, G_LAM, z, xo, xo))
     assert abs(np.sum(np.abs(pts) ** 2) * 0.0071**2 / p_in - 1) < 1e-10
     centers = np.arange(-0.3, 0.3, 0.02) + 0.01
     inten = backend.to_host(
-        prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, z, centers, centers, 0.02)
+        sensor_op(backend, G_PITCH, origin, G_LAM, z, centers, centers, 0.02).forward(field)
     )
     assert abs(inten.sum() / p_in - 1) < 1e-8
 
@@ -379,7 +393,7 @@ def test_gaussian_beam_paraxial(backend):
     z = 20.0
     xo = np.linspace(-0.15, 0.2, 41)
     yo = np.linspace(-0.18, 0.12, 37)
-    out = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, yo))[0]
+    out = backend.to_host(field_at(backend, field, G_PITCH, origin, G_LAM, z, xo, yo))[0]
     ref = gaussian_paraxial(xo, yo, G_W0, G_LAM, z)
     assert rel_l2(out, ref) < 2e-5  # non-paraxial terms ~ k z (lambda f)^4 / 8
 
@@ -397,7 +411,7 @@ def test_tilted_gaussian_shifted_window(backend):
     xo = walk[0] + np.linspace(-0.2, 0.2, 33)
     yo = walk[1] + np.linspace(-0.2, 0.2, 29)
     out = backend.to_host(
-        prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xo, yo, carrier_cpmm=carrier)
+        field_at(backend, field, G_PITCH, origin, G_LAM, z, xo, yo, carrier_cpmm=carrier)
     )[0]
     ref = gaussian_angular_spectrum(xo, yo, G_W0, G_LAM, z, 0.0, 0.0, carrier)
     assert rel_l2(out, ref) < 1e-9
@@ -407,21 +421,19 @@ def test_tilted_gaussian_shifted_window(backend):
     assert abs(cx - walk[0]) < 1e-3 * abs(walk[0]) and abs(cy - walk[1]) < 1e-3 * abs(walk[1])
     # without the shift the same beam would wrap around: the library says so
     with pytest.warns(SamplingWarning):
-        prop.propagate(
-            backend, field, G_PITCH, origin, G_LAM, z, np.linspace(-0.2, walk[0], 9), yo, carrier_cpmm=carrier
-        )
+        field_at(backend, field, G_PITCH, origin, G_LAM, z, np.linspace(-0.2, walk[0], 9), yo, carrier_cpmm=carrier)
 
 
 def test_sensor_intensity_box_integration(backend):
     """Pixel powers: against the analytic (erf) integral of the paraxial Gaussian intensity, and
-    against direct 16-point Gauss-Legendre integration of |propagate|^2 per pixel."""
+    against direct 16-point Gauss-Legendre integration of |U|^2 per pixel (U: the field at those points)."""
     field, origin, _ = _gaussian_input()
     z = 20.0
     pp = 0.012
     cx = np.arange(-6, 7) * pp + 0.003
     cy = np.arange(-5, 6) * pp - 0.002
     inten = backend.to_host(
-        prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, z, cx, cy, pp, gauss_nodes=3)
+        sensor_op(backend, G_PITCH, origin, G_LAM, z, cx, cy, pp, gauss_nodes=3).forward(field)
     )[0]
     lam = G_LAM * 1e-3
     zr = np.pi * G_W0**2 / lam
@@ -431,7 +443,7 @@ def test_sensor_intensity_box_integration(backend):
     t, w = np.polynomial.legendre.leggauss(16)
     xs = (cx[:, None] + 0.5 * pp * t[None, :]).ravel()
     ys = (cy[:, None] + 0.5 * pp * t[None, :]).ravel()
-    u = backend.to_host(prop.propagate(backend, field, G_PITCH, origin, G_LAM, z, xs, ys))[0]
+    u = backend.to_host(field_at(backend, field, G_PITCH, origin, G_LAM, z, xs, ys))[0]
     direct = np.einsum("aibj,i,j->ab", (np.abs(u) ** 2).reshape(len(cy), 16, len(cx), 16), w, w) * pp * pp / 4
     assert rel_l2(inten, direct) < 1e-7
 
@@ -440,16 +452,14 @@ def test_complex64_close_to_complex128(backend):
     c = _random_case(2)
     args = (c["field"], PITCH, c["origin"], c["lam"], 0.8, c["ox"], c["oy"])
     kw = {"doe_phase": c["phase"], "doe_scale": c["scale"], "carrier_cpmm": c["carrier"], "pad_to": NP}
-    u64 = prop.propagate(backend, *args, dtype=np.complex64, **kw)
+    u64 = field_at(backend, *args, dtype=np.complex64, **kw)
     assert u64.dtype == np.complex64
-    u128 = prop.propagate(backend, *args, dtype=np.complex128, **kw)
+    u128 = field_at(backend, *args, dtype=np.complex128, **kw)
     assert rel_l2(backend.to_host(u64), backend.to_host(u128)) < 1e-4
     field, origin, _ = _gaussian_input()
     cx = np.arange(-8, 8) * 0.01
-    i64 = prop.sensor_intensity(
-        backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=np.complex64
-    )
-    i128 = prop.sensor_intensity(backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01)
+    i64 = sensor_op(backend, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=np.complex64).forward(field)
+    i128 = sensor_op(backend, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01).forward(field)
     assert i64.dtype == np.float32
     assert rel_l2(backend.to_host(i64), backend.to_host(i128)) < 1e-4
 
@@ -462,19 +472,27 @@ def _vdot(a, b):
 
 
 @pytest.mark.parametrize("phase_batched", [False, True])
-def test_propagate_adjoint_dot_product(backend, phase_batched):
-    """<A x, y> = <x, A^H y> for the linear map field -> U (DOE phase, carrier, shift included)."""
+def test_sensor_adjoint_is_the_adjoint_of_the_point_field(backend, phase_batched):
+    """<A x', y> = <x', A^H y> for the linear map A: field -> U at the nodes (DOE phase, carrier, shift
+    included). With one Gauss node per pixel (weight 2, area pp^2/4) the pixel power is I = pp^2 |U|^2, so
+    L = sum W I has the node gradient y = dL/dRe U + 1j dL/dIm U = 2 pp^2 W U(x), and the operator's
+    field gradient for (W, x) must be A^H y: checked against A applied to an independent field x'."""
     c = _random_case(4)
     rng = np.random.default_rng(5)
     phase = c["phase"] if not phase_batched else rng.uniform(-3, 3, (B, N, N))
-    kw = {"doe_phase": phase, "doe_scale": c["scale"], "carrier_cpmm": c["carrier"], "pad_to": NP}
-    args = (PITCH, c["origin"], c["lam"], 1.1, c["ox"], c["oy"])
+    pp = 0.7
+    op = sensor_op(backend, PITCH, c["origin"], c["lam"], 1.1, c["ox"], c["oy"], pp, gauss_nodes=1,
+                   doe_scale=c["scale"], carrier_cpmm=c["carrier"], pad_to=NP)
     x = c["field"]
-    y = _rand_complex(rng, (B, 13, 17))
-    ax = backend.to_host(prop.propagate(backend, x, *args, **kw))
-    ahy, gphi = prop.propagate_adjoint(backend, y, x, *args, **kw)
-    ahy = backend.to_host(ahy)
-    lhs, rhs = _vdot(ax, y), _vdot(x, ahy)
+    x2 = _rand_complex(rng, x.shape)
+    weight = rng.standard_normal((B, 13, 17))
+    inten, u = op.forward(x, phase, return_nodes=True)
+    u = backend.to_host(u)
+    assert np.allclose(backend.to_host(inten), pp**2 * np.abs(u) ** 2, rtol=1e-14, atol=0)
+    y = 2 * pp**2 * weight * u
+    ahy, gphi = op.adjoint(weight, x, phase)
+    ax2 = backend.to_host(op.forward(x2, phase, return_nodes=True)[1])
+    lhs, rhs = _vdot(ax2, y), _vdot(x2, backend.to_host(ahy))
     assert abs(lhs - rhs) < 1e-12 * abs(lhs)
     assert backend.to_host(gphi).shape == np.shape(phase)
 
@@ -511,80 +529,53 @@ def _fd_check(loss, grad_field, grad_phase, field, phase, rng, eps=1e-6):
     assert abs(fd - an) < 1e-6 * max(abs(an), 1e-300)
 
 
-def test_propagate_adjoint_finite_differences(backend):
-    """L = Re sum conj(y) U(field, phi): gradients w.r.t. field and the shared DOE phase."""
-    rng = np.random.default_rng(8)
-    n, b = 8, 2
-    field = _rand_complex(rng, (b, n, n))
-    phase = rng.uniform(-2, 2, (n, n))
-    args = (
-        0.003,
-        np.array([[0.0, 0.0], [0.004, -0.002]]),
-        np.array([0.5, 0.6]),
-        0.2,
-        np.linspace(-0.004, 0.016, 5),
-        np.linspace(0.0, 0.02, 4),
-    )
-    kw = {"doe_scale": np.array([1.0, 0.9]), "carrier_cpmm": np.array([3.0, -7.0]), "pad_to": 16}
-    y = _rand_complex(rng, (b, 4, 5))
-
-    def loss(f, p):
-        return float(np.real(_vdot(y, backend.to_host(prop.propagate(backend, f, *args, doe_phase=p, **kw)))))
-
-    gf, gp = prop.propagate_adjoint(backend, y, field, *args, doe_phase=phase, **kw)
-    _fd_check(loss, backend.to_host(gf), backend.to_host(gp), field, phase, rng)
-
-
-def test_sensor_intensity_adjoint_finite_differences(backend):
-    """L = sum W * I(field, phi) with per-batch DOE phases, reusing the forward node field."""
+@pytest.mark.parametrize("phase_batched", [False, True])
+def test_sensor_adjoint_finite_differences(backend, phase_batched):
+    """L = sum W * I(field, phi) with a shared or per-batch DOE phase and a carrier, reusing the forward
+    node field (a shared phase's gradient sums over the batch)."""
     rng = np.random.default_rng(9)
     n, b = 8, 2
     field = _rand_complex(rng, (b, n, n))
-    phase = rng.uniform(-2, 2, (b, n, n))
-    args = (0.003, np.array([0.0, 0.0]), np.array([0.5, 0.6]), 0.3)
-    sens = (
-        np.array([[0.002, 0.006, 0.01], [0.004, 0.008, 0.012]]),
-        np.array([0.003, 0.007, 0.011, 0.015]),
-        0.004,
-    )
-    kw = {"doe_scale": np.array([1.0, 0.9]), "pad_to": 16, "gauss_nodes": 2}
+    phase = rng.uniform(-2, 2, (b, n, n) if phase_batched else (n, n))
+    kw = {"doe_scale": np.array([1.0, 0.9]), "carrier_cpmm": np.array([3.0, -7.0]), "pad_to": 16, "gauss_nodes": 2}
+    op = sensor_op(backend, 0.003, np.array([0.0, 0.0]), np.array([0.5, 0.6]), 0.3,
+                   np.array([[0.002, 0.006, 0.01], [0.004, 0.008, 0.012]]), np.array([0.003, 0.007, 0.011, 0.015]),
+                   0.004, **kw)
     weight = rng.standard_normal((b, 4, 3))
 
     def loss(f, p):
-        inten = backend.to_host(prop.sensor_intensity(backend, f, *args, *sens, doe_phase=p, **kw))
-        return float(np.sum(weight * inten))
+        return float(np.sum(weight * backend.to_host(op.forward(f, p))))
 
-    _, nodes = prop.sensor_intensity(backend, field, *args, *sens, doe_phase=phase, return_nodes=True, **kw)
-    gf, gp = prop.sensor_intensity_adjoint(
-        backend, weight, field, *args, *sens, doe_phase=phase, nodes=nodes, **kw
-    )
+    _, nodes = op.forward(field, phase, return_nodes=True)
+    gf, gp = op.adjoint(weight, field, phase, nodes=nodes)
     gf, gp = backend.to_host(gf), backend.to_host(gp)
+    assert gp.shape == phase.shape
     _fd_check(loss, gf, gp, field, phase, rng)
-    gf2, _ = prop.sensor_intensity_adjoint(backend, weight, field, *args, *sens, doe_phase=phase, **kw)
+    gf2, _ = op.adjoint(weight, field, phase)
     assert np.allclose(backend.to_host(gf2), gf, rtol=0, atol=1e-13 * np.abs(gf).max())
 
 
 @pytest.mark.parametrize("z", [0.8, 3.0])
 def test_sensor_intensity_distance_gradient(backend, z):
     """dL/dz of L = sum W * I (I the pixel-integrated intensity) from
-    sensor_intensity_distance_adjoint against (a) an independent numpy derivative (ref_blasm with
+    SensorPropagator.distance_adjoint against (a) an independent numpy derivative (ref_blasm with
     dH/dz = 2 pi i w H, Gauss-Legendre nodes summed here) and (b) 4-point central differences of the
-    loss; its field / phase gradients equal sensor_intensity_adjoint's. z = 3 mm: band limit active."""
+    loss; its field / phase gradients equal SensorPropagator.adjoint's. z = 3 mm: band limit active."""
     c = _random_case(3)
     gauss = 3
     pp = 0.006
     cx = np.linspace(-0.04, 0.06, 6)[None, :] + np.array([[0.0], [0.02]])
     cy = np.linspace(-0.03, 0.04, 5)[None, :] + np.array([[0.01], [-0.01]])
-    kw = {"doe_phase": c["phase"], "doe_scale": c["scale"], "carrier_cpmm": c["carrier"], "pad_to": NP,
-          "gauss_nodes": gauss}
+    kw = {"doe_scale": c["scale"], "carrier_cpmm": c["carrier"], "pad_to": NP, "gauss_nodes": gauss}
     rng = np.random.default_rng(4)
     weight = rng.random((B, 5, 6))
     zs = np.array([z, 1.1 * z])
     args = (PITCH, c["origin"], c["lam"])
     sens = (cx, cy, pp)
-    gf, gp, gd = prop.sensor_intensity_distance_adjoint(backend, weight, c["field"], *args, zs, *sens, **kw)
+    op = sensor_op(backend, *args, zs, *sens, **kw)
+    gf, gp, gd = op.distance_adjoint(weight, c["field"], c["phase"])
     assert gd.shape == (B,) and gd.dtype == np.float64
-    gf0, gp0 = prop.sensor_intensity_adjoint(backend, weight, c["field"], *args, zs, *sens, **kw)
+    gf0, gp0 = op.adjoint(weight, c["field"], c["phase"])
     np.testing.assert_array_equal(backend.to_host(gf), backend.to_host(gf0))
     np.testing.assert_array_equal(backend.to_host(gp), backend.to_host(gp0))
     # (a) numpy: dI/dz = area sum w w 2 Re(conj(U) dU/dz) at the Gauss nodes
@@ -600,15 +591,14 @@ def test_sensor_intensity_distance_gradient(backend, z):
         assert abs(gd[b] - expect) <= 1e-9 * abs(expect), (b, gd[b], expect)
     # (b) central differences of the loss (step small enough that no band edge crosses a sample)
     def loss(zz):
-        inten = backend.to_host(prop.sensor_intensity(backend, c["field"], *args, zz, *sens, **kw))
+        inten = backend.to_host(sensor_op(backend, *args, zz, *sens, **kw).forward(c["field"], c["phase"]))
         return np.sum(weight * inten, axis=(1, 2))
 
     h = 1e-5 * z
     fd = (8.0 * (loss(zs + h) - loss(zs - h)) - (loss(zs + 2 * h) - loss(zs - 2 * h))) / (12.0 * h)
     np.testing.assert_allclose(gd, fd, rtol=1e-6, atol=0)
     # only the distance
-    none_f, none_p, gd2 = prop.sensor_intensity_distance_adjoint(backend, weight, c["field"], *args, zs, *sens,
-                                                                 need_field=False, **kw)
+    none_f, none_p, gd2 = op.distance_adjoint(weight, c["field"], c["phase"], need_field=False)
     assert none_f is None and none_p is None
     np.testing.assert_array_equal(gd2, gd)
 
@@ -634,22 +624,24 @@ def test_cuda_matches_opencl(cl_backend):
     c = _random_case(10)
     args = (c["field"], PITCH, c["origin"], c["lam"], 0.8, c["ox"], c["oy"])
     kw = {"doe_phase": c["phase"], "doe_scale": c["scale"], "carrier_cpmm": c["carrier"], "pad_to": NP}
-    ref = cl_backend.to_host(prop.propagate(cl_backend, *args, **kw))
-    got = cu.to_host(prop.propagate(cu, *args, **kw))
+    ref = cl_backend.to_host(field_at(cl_backend, *args, **kw))
+    got = cu.to_host(field_at(cu, *args, **kw))
     assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
-    y = _rand_complex(np.random.default_rng(11), ref.shape)
-    g_ref = [cl_backend.to_host(a) for a in prop.propagate_adjoint(cl_backend, y, *args, **kw)]
-    g_cu = [cu.to_host(a) for a in prop.propagate_adjoint(cu, y, *args, **kw)]
+    weight = np.random.default_rng(11).standard_normal(ref.shape)
+    field, phase = args[0], kw.pop("doe_phase")
+    g_ref = [cl_backend.to_host(a) for a in sensor_op(cl_backend, *args[1:], 0.01, gauss_nodes=1, **kw).adjoint(
+        weight, field, phase)]
+    g_cu = [cu.to_host(a) for a in sensor_op(cu, *args[1:], 0.01, gauss_nodes=1, **kw).adjoint(weight, field, phase)]
     for a, r in zip(g_cu, g_ref):
         assert np.abs(a - r).max() <= 1e-11 * np.abs(r).max()
     field, origin, _ = _gaussian_input()
     cx = np.arange(-8, 8) * 0.01
     for dt in (np.complex128, np.complex64):
         i_ref = cl_backend.to_host(
-            prop.sensor_intensity(cl_backend, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=dt)
+            sensor_op(cl_backend, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=dt).forward(field)
         )
         i_cu = cu.to_host(
-            prop.sensor_intensity(cu, field, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=dt)
+            sensor_op(cu, G_PITCH, origin, G_LAM, 20.0, cx, cx, 0.01, dtype=dt).forward(field)
         )
         assert rel_l2(i_cu, i_ref) < (1e-12 if dt == np.complex128 else 1e-5)
     grid_ref = cl_backend.to_host(prop.propagate_grid(cl_backend, field, G_PITCH, origin, G_LAM, 5.0))
@@ -674,7 +666,8 @@ def test_x_fft_plans_shared_across_window_heights(cl_backend):
         field = np.exp(-(y[:, None] ** 2 + x[None, :] ** 2) / 0.02**2).astype(np.complex128)
         p_in = np.sum(np.abs(field) ** 2) * pitch**2
         centers = np.arange(-0.08, 0.08, 0.01) + 0.005
-        inten = be.to_host(prop.sensor_intensity(be, field, pitch, (x[0], y[0]), lam, z, centers, centers, 0.01, gauss_nodes=8))
+        op = sensor_op(be, pitch, (x[0], y[0]), lam, z, centers, centers, 0.01, gauss_nodes=8)
+        inten = be.to_host(op.forward(field))
         assert abs(inten.sum() / p_in - 1) < 1e-8, ny
     new = {k for k in be._plans if k[2] == (-1,)} - before
     assert len(new) == 1, new
