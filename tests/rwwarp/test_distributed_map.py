@@ -106,3 +106,17 @@ def test_one_process_passes_focal_precision_and_tolerance_on_as_rw_psf_map():
     with pytest.warns(ModelErrorWarning) as got_w:
         D.psf_map(lens, [0.8], [0.45], size=SIZE, method="focal", tolerance=1e-9)
     assert [str(w.message) for w in got_w] == [str(w.message) for w in ref_w]
+
+
+def test_one_process_plans_as_rw_psf_map_where_auto_picks_the_pixel_method():
+    # pixels 16 um wide on the A489 (about 5 Airy radii): rw.psf_map's "auto" takes the pixel method
+    # (rwwarp.wave.pixel_scale); the distributed map plans with the same RayWave options (it used to leave out
+    # allow_pixel and model_tolerance, so "auto" planned another method there) and computes a pixel source alone
+    lens = rw.load_lens("a489_doe")
+    ref = rw.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016)
+    assert ref.info["batches"][0]["plan"]["method"] == "pixel"
+    m = D.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016)
+    assert np.array_equal(m.data, ref.data)
+    # method="pixel" is taken as rw.psf_map takes it (it was refused)
+    m = D.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016, method="pixel")
+    assert np.array_equal(m.data, ref.data)
