@@ -231,8 +231,8 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             tolerance: float | None = None):
     """The map of :func:`rwwarp.psf_map` computed by every rank of the current job (see the module
     docstring). Arguments as :func:`rwwarp.psf_map` (taken, checked, planned and run by the same code,
-    :mod:`rwwarp.map_run`; no ``cache``: kept plans do not cross processes); ``depths_mm``: a list of object distances (mm,
-    None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
+    :mod:`rwwarp.map_run`; no ``cache``: kept plans do not cross processes); ``depths_mm``: a list of object
+    distances (mm, None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
 
     Returns on rank 0 a :class:`~rwwarp.psf.PSFMap` (``depths_mm`` None) or a list of them (one per
     depth), with ``info["ranks"]`` (units, PSFs, estimated and measured seconds per rank) and

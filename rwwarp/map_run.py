@@ -94,7 +94,8 @@ def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device=
     if focal_precision not in ("auto", "single", "double"):
         raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
     if memory_budget_gb is not None:
-        if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
+        gb = memory_budget_gb
+        if not (isinstance(gb, (int, float)) and math.isfinite(gb) and gb > 0):
             raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
         budget = int(memory_budget_gb * 2 ** 30)
     else:

@@ -170,12 +170,13 @@ class LiveProvider:
             units, _, keys, sl = chunk
             for kind, u, row in units:
                 if kind == "packed":
-                    dropped.extend((keys[j - sl.start], r, u.dropped(), i) for i, (j, r) in enumerate(zip(row, u.members)))
+                    dropped.extend((keys[j - sl.start], r, u.dropped(), i)
+                                   for i, (j, r) in enumerate(zip(row, u.members)))
                 else:
                     dropped.append((keys[row[0] - sl.start], u, u.dropped, None))
         # the chunks, each a checkpoint when there are several (torch_bridge.tiles)
-        out = run_tiles(self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs), run, [values[q] for q in names], checkpoint=tile < n, total=-(-n // tile),
-                        after=after)
+        out = run_tiles(self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs), run, [values[q] for q in names],
+                        checkpoint=tile < n, total=-(-n // tile), after=after)
         self._packed = packs   # the tiles of this call (a tile of the last call not used again is freed)
         # read after every source was queued (a read waits for the device: once, not once per source)
         host = {}
