@@ -40,7 +40,6 @@ Lengths in mm, wavelengths in um, fields in degrees.
 from __future__ import annotations
 
 import json
-import math
 import os
 import threading
 import time
@@ -111,133 +110,52 @@ def assign(costs, n_ranks: int) -> list:
 
 
 def _check_args(lens, fields, wavelengths_um, depths_mm, kw):
-    """The argument checks of :func:`rwwarp.psf_map` (same messages), plus ``depths_mm``."""
+    """The argument checks of :func:`rwwarp.psf_map` (:func:`rwwarp.map_run.map_args`: the same checks and
+    messages, the same resolved budget, RayWave options and ``focal_precision``), plus ``depths_mm``. Returns
+    ``(MapArgs, depths)``."""
     from . import checks
-    from .psf import MODELS
-    from .trace import as_field_list
-    checks.check_lens(lens)
-    kw["model"] = checks.check_choice(kw["model"], "model", MODELS)
-    fields = as_field_list(checks.check_fields(fields))
-    wls = [float(w) for w in checks.check_wavelengths(wavelengths_um, lens)]
-    kw["size"] = checks.check_size(kw["size"])
-    checks.check_device(kw["device"])
-    checks.check_choice(kw["dtype"], "dtype", ("float64", "float32"))
-    checks.check_choice(kw["method"], "method", ("auto", "focal", "asm", "two-step"))
-    if kw["amplitude"] not in ("energy", "paper"):
-        raise ValueError(f"amplitude must be 'energy' or 'paper', got {kw['amplitude']!r}")
-    checks.check_rays_per_sample(kw["rays_per_sample"])
-    checks.check_pixel_mm(kw["pixel_mm"])
-    checks.check_center(kw["center_mm"])
-    checks.check_batch(kw["batch"])
-    checks.check_nyquist_safety(kw["nyquist_safety"])
-    kw["focal_patch_tol"] = checks.check_number(kw["focal_patch_tol"], "focal_patch_tol", lo=0.0, hi=1.0)
-    if kw["gauss_nodes"] is not None:
-        checks.check_int(kw["gauss_nodes"], "gauss_nodes", lo=1, hi=64)
-    kw["pixel_values"] = checks.check_choice(kw["pixel_values"], "pixel_values", ("flux", "intensity"))
+    from .map_run import map_args
     depths = [None] if depths_mm is None else list(depths_mm)
     if not depths:
         raise ValueError("depths_mm must hold at least one object distance (mm) or be None")
+    a = map_args(lens, fields, wavelengths_um, n_depths=len(depths), **kw)
     for d in depths:
         checks.check_object_distance(d, "depths_mm")
-    checks.check_int(len(fields) * len(wls) * len(depths), "number of (field, wavelength, depth) sources", lo=1,
-                     hi=checks.MAX_SOURCES)
-    return fields, wls, depths
+    return a, depths
 
 
-def _budget(kw):
-    from .wave.plan import default_memory_budget_bytes
-    gb = kw.get("memory_budget_gb")
-    if gb is not None:
-        if not (isinstance(gb, (int, float)) and math.isfinite(gb) and gb > 0):
-            raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {gb!r}")
-        return int(gb * 2 ** 30)
-    return default_memory_budget_bytes(kw["device"])
-
-
-def plan_work(lens, fields, wavelengths_um, depths=(None,), part: tuple = (0, 1), **kw) -> list:
+def plan_work(lens, a, depths=(None,)) -> list:
     """The work units of a map: ``[{"depth": k, "pairs": [(i, j), ...], "cost": flops}, ...]``.
 
-    Per depth, the batches :func:`rwwarp.psf_map` makes for these arguments (every source on its own plan,
-    from one pilot of all, packed by :func:`rwwarp.psf.pack_sources`), so each PSF is the one it is there.
+    ``a``: the map's checked arguments (:func:`rwwarp.map_run.map_args`). Per depth, the batches
+    :func:`rwwarp.psf_map` makes for these arguments (:func:`rwwarp.map_run.map_units`: every source on its own
+    plan, from one pilot of all, packed by :func:`rwwarp.psf.pack_sources`), so each PSF is the one it is there.
     ``cost``: for the wave models, the sum of the sources' estimated flops
-    (:func:`rwwarp.wave.plan.estimate_cost`); for the ray model, the sum of its sources' :func:`rwwarp.plan_psf`
-    estimates. ``part`` ``(r, n)``: those last costs, which need a pilot each, only for units ``k`` with
-    ``k % n == r`` (the others ``cost`` None), so that the ranks share the planning (:func:`psf_map`
-    all-gathers them)."""
-    from .psf import plan_psf
-    model, size, device, plan, batch = kw["model"], kw["size"], kw["device"], kw["plan"], kw["batch"]
-    pixel = float(kw["pixel_mm"] or lens.sensor.pixel_pitch)
-    pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
-    budget = _budget(kw)
+    (:func:`rwwarp.wave.plan.estimate_cost`); for the ray model (a fixed 401^2-ray pupil grid a source), the
+    number of its sources."""
+    from .map_run import map_units
+    pairs = [(i, j) for i in range(len(a.fields)) for j in range(len(a.wls))]
     units = []
-
-    def own_cost(i, j, od):
-        if model != "ray-wave":
-            return 1.0
-        p = plan_psf(lens, fields[i], wavelengths_um[j], size=size, device=device, method=kw["method"],
-                     rays_per_sample=kw["rays_per_sample"], nyquist_safety=kw["nyquist_safety"],
-                     pixel_mm=kw["pixel_mm"], object_distance_mm=od, center_mm=kw["center_mm"],
-                     focal_patch_tol=kw["focal_patch_tol"])
-        return float(p.estimate["flops"]) if p.estimate else 1.0
-
     for k, od in enumerate(depths):
-        if model in ("ray-wave", "paraxial-wave"):
-            # the batches of rwwarp.psf_map: every source on its own plan (one pilot of all), packed
-            from .psf import RAYWAVE_OPTIONS, pack_sources, wave_members
-            opts = dict({q: kw[q] for q in RAYWAVE_OPTIONS}, memory_budget_bytes=budget)
-            chunks, costs = [], []
-            for members, sys_pairs in wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, od, opts):
-                for idx in pack_sources(members, size, batch, budget):
-                    chunks.append([sys_pairs[q] for q in idx])
-                    costs.append(sum(float(members[q].plan.estimate["flops"]) for q in idx))
-        else:
-            b = batch or len(pairs)
-            chunks = [pairs[s:s + b] for s in range(0, len(pairs), b)]
-            first = len(units)
-            costs = [sum(own_cost(i, j, od) for i, j in c) if (first + q) % part[1] == part[0] else None
-                     for q, c in enumerate(chunks)]
-        units += [{"depth": k, "pairs": [tuple(p) for p in c], "cost": None if cst is None else float(cst)}
-                  for c, cst in zip(chunks, costs)]
+        units += [{"depth": k, "pairs": [tuple(p) for p in c], "cost": float(len(c) if cst is None else cst)}
+                  for c, cst in map_units(lens, a, pairs, od)]
     return units
 
 
-def _run_unit(lens, fields, wls, unit, od, kw, budget):
-    """One batch exactly as :func:`rwwarp.psf_map` computes it (wave models: its sources each on its own plan,
-    packed; ray model: its loop body, a batch over the memory budget split in halves the same way). Returns
-    ``[(i, j, psf, centre, valid_fraction, dropped)]``."""
-    from .wave.plan import MemoryBudgetError
-    from .psf import RAYWAVE_OPTIONS
-    from .ray_model import _ray_model
-    size, device, model = kw["size"], kw["device"], kw["model"]
-    pixel = float(kw["pixel_mm"] or lens.sensor.pixel_pitch)
-    todo, out = [list(unit)], []
-    if model in ("ray-wave", "paraxial-wave"):
-        # as rwwarp.psf_map: the unit's sources each on its own plan, computed as one packed batch per system
-        from .psf import PackedRayWave, wave_members
-        opts = dict({k: kw[k] for k in RAYWAVE_OPTIONS}, memory_budget_bytes=budget)
-        for members, sys_pairs in wave_members(lens, fields, wls, list(unit), model, size, pixel, od, opts):
-            res = PackedRayWave(members).run("auto")
-            for k, (i, j) in enumerate(sys_pairs):
-                out.append((i, j, np.asarray(res["data"][k]), np.asarray(res["centers"][k]),
-                            float(res["valid_fraction"][k]), int(res["dropped_rays"][k])))
-        return out
-    while todo:
-        chunk = todo.pop(0)
-        f_list = [fields[i] for i, _ in chunk]
-        w_list = [wls[j] for _, j in chunk]
-        try:
-            res = _ray_model(lens, f_list, w_list, size, pixel, device, kw["dtype"], od, kw["rays_per_sample"],
-                             kw["center_mm"])
-        except MemoryBudgetError:
-            if len(chunk) == 1:
-                raise
-            half = len(chunk) // 2
-            todo[:0] = [chunk[:half], chunk[half:]]
-            continue
+def _run_unit(lens, a, unit, od):
+    """One batch exactly as :func:`rwwarp.psf_map` computes it: :func:`rwwarp.map_run.run_sources` on the unit's
+    pairs (planned again, they make the same single batch, each source on its own plan). Returns
+    ``[(i, j, psf, centre, valid_fraction, dropped, plan)]``."""
+    from .map_run import run_sources
+    out = []
+
+    def store(chunk, res):
+        plans = res.get("plans", [res.get("plan")] * len(chunk))
         for k, (i, j) in enumerate(chunk):
             out.append((i, j, np.asarray(res["data"][k]), np.asarray(res["centers"][k]),
                         float(res["valid_fraction"][k]),
-                        int(res["dropped_rays"][k]) if "dropped_rays" in res else 0))
+                        int(res["dropped_rays"][k]) if "dropped_rays" in res else 0, plans[k]))
+    run_sources(lens, a, list(unit), od, store)
     return out
 
 
@@ -309,35 +227,42 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             gauss_nodes: int | None = None, batch: int | None = None, nyquist_safety: float = 2.0,
             method: str = "auto", memory_budget_gb: float | None = None, progress: bool = False,
             out=None, timeout_s: float = DEFAULT_TIMEOUT_S, object_distance_mm=None, focal_patch_tol: float = 1e-5,
-            deterministic: bool = False, pixel_values: str = "flux"):
+            deterministic: bool = False, pixel_values: str = "flux", focal_precision: str = "auto",
+            tolerance: float | None = None):
     """The map of :func:`rwwarp.psf_map` computed by every rank of the current job (see the module
-    docstring). Arguments as :func:`rwwarp.psf_map`; ``depths_mm``: a list of object distances (mm,
-    None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
+    docstring). Arguments as :func:`rwwarp.psf_map` (taken, checked, planned and run by the same code,
+    :mod:`rwwarp.map_run`; no ``cache``: kept plans do not cross processes); ``depths_mm``: a list of object
+    distances (mm, None: the lens's own) to map at each, or None for one map at ``object_distance_mm``.
 
     Returns on rank 0 a :class:`~rwwarp.psf.PSFMap` (``depths_mm`` None) or a list of them (one per
     depth), with ``info["ranks"]`` (units, PSFs, estimated and measured seconds per rank) and
     ``info["units"]``; None on the other ranks. With ``out`` (a folder) the PSFs are streamed to
     shards instead of gathered and every rank returns None but rank 0, which returns the index
-    (:func:`load_map` reads it back)."""
+    (:func:`load_map` reads it back). The warnings of :func:`rwwarp.psf_map` (model error over ``tolerance``, rays
+    outside the window, PSFs cut by their patch) come from rank 0 for the gathered map, from each rank for its
+    own batches when streaming."""
+    from .map_run import finish_map
     from .psf import PSFMap
     kw = dict(model=model, size=size, device=device, plan=plan, dtype=dtype, amplitude=amplitude,
               rays_per_sample=rays_per_sample, pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference,
               gauss_nodes=gauss_nodes, batch=batch, nyquist_safety=nyquist_safety, method=method,
               memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol, deterministic=deterministic,
-              pixel_values=pixel_values)
+              pixel_values=pixel_values, focal_precision=focal_precision, tolerance=tolerance)
     single_depth = depths_mm is None
-    fields, wls, depths = _check_args(lens, fields, wavelengths_um, [object_distance_mm] if single_depth else
-                                      depths_mm, kw)
+    depths_in = [object_distance_mm] if single_depth else depths_mm
+    a, depths = _check_args(lens, fields, wavelengths_um, depths_in, kw)
     rank, ws, local = world()
     dist = None
     if ws > 1:
         dist = init_group(device, timeout_s)
         rank, ws = dist.get_rank(), dist.get_world_size()
-    kw["device"] = rank_device(device, local) if ws > 1 else device
+        if rank_device(device, local) != device:   # this rank's device: its budget, RayWave options, precision
+            kw["device"] = rank_device(device, local)
+            a, depths = _check_args(lens, fields, wavelengths_um, depths_in, kw)
+    fields, wls = a.fields, a.wls
     t0 = time.perf_counter()
-    # ---- plan: every rank the same pilot and units, each the costs of its share (focal: a pilot a
-    # source), all-gathered so that every rank assigns the same units
-    units = plan_work(lens, fields, wls, depths, part=(rank, ws), **kw)
+    # ---- plan: every rank the same pilot and units, checked alike on every rank so that each assigns the same
+    units = plan_work(lens, a, depths)
     if dist is not None:
         every = [None] * ws
         dist.all_gather_object(every, units)
@@ -345,9 +270,6 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             if [u["pairs"] for u in theirs] != [u["pairs"] for u in units]:
                 raise DistributedError(r, "planned other work units than rank "
                                        f"{rank} for the same map (a non-deterministic pilot?)")
-            for u, t in zip(units, theirs):
-                if u["cost"] is None and t["cost"] is not None:
-                    u["cost"] = t["cost"]
     owners = assign([u["cost"] for u in units], ws)
     mine = owners[rank]
     t_plan = time.perf_counter() - t0
@@ -358,14 +280,14 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
     if out is not None:
         shards = Path(out) / "shards"
         shards.mkdir(parents=True, exist_ok=True)
-    budget = _budget(kw)
-    results, t1 = {}, time.perf_counter()
+    results, streamed, t1 = {}, [], time.perf_counter()
     try:
         for u in mine:
             unit = units[u]
-            rows = _run_unit(lens, fields, wls, unit["pairs"], depths[unit["depth"]], kw, budget)
+            rows = _run_unit(lens, a, unit["pairs"], depths[unit["depth"]])
             if shards is not None:
                 _write_shard(shards / f"d{unit['depth']}_b{u}.npz", rows)
+                streamed.append((unit["depth"], [(i, j, float(np.sum(d)), v, n, p) for i, j, d, _, v, n, p in rows]))
             else:
                 results[u] = rows
             bar.add(len(unit["pairs"]))
@@ -373,6 +295,14 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
         if dist is None:
             bar.close()
     t_work = time.perf_counter() - t1
+    # streaming: each rank's warnings for its own batches (the PSFs are on disk, not gathered)
+    for k in range(len(depths) if shards is not None else 0):
+        power, valid = np.zeros((len(fields), len(wls))), np.zeros((len(fields), len(wls)))
+        dropped, plans = np.zeros((len(fields), len(wls)), dtype=np.int64), []
+        for i, j, p, v, n, pl in (r for d, rows in streamed if d == k for r in rows):
+            power[i, j], valid[i, j], dropped[i, j] = p, v, n
+            plans.append(pl)
+        finish_map(a, power, valid.ravel(), dropped.ravel(), plans)
     me = {"rank": rank, "units": mine, "psfs": sum(len(units[u]["pairs"]) for u in mine),
           "estimated_flops": sum(units[u]["cost"] for u in mine), "work_s": t_work, "device": kw["device"]}
     # ---- gather (or collect the shard index) on rank 0
@@ -387,7 +317,7 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
             results.update(g[1])
     else:
         per_rank = [me]
-    pixel = float(pixel_mm or lens.sensor.pixel_pitch)
+    pixel = a.pixel
     info_common = {"ranks": per_rank, "world_size": ws, "plan_s": t_plan, "time_s": time.perf_counter() - t0,
                    "units": [{"depth": u["depth"], "pairs": u["pairs"], "cost": u["cost"],
                               "rank": next(r for r in range(ws) if k in owners[r])} for k, u in enumerate(units)]}
@@ -404,20 +334,19 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
         centers = np.zeros((len(fields), len(wls), 2))
         valid = np.zeros((len(fields), len(wls)))
         dropped = np.zeros((len(fields), len(wls)), dtype=np.int64)
+        plans = []
         for u, rows in results.items():
             if units[u]["depth"] != k:
                 continue
-            for i, j, d, c, v, n in rows:
+            for i, j, d, c, v, n, pl in rows:
                 data[i, j], centers[i, j], valid[i, j], dropped[i, j] = d, c, v, n
+                plans.append(pl)
         info = dict(info_common, object_distance_mm=od, valid_fraction=list(valid.ravel()),
                     dropped_rays=dropped.ravel())
+        # the warnings of rw.psf_map, from the same code (rwwarp.map_run.finish_map)
+        info["power_in_patch"] = finish_map(a, data.sum(axis=(2, 3)), info["valid_fraction"], info["dropped_rays"],
+                                            plans)
         maps.append(PSFMap(data, pixel, centers, fields, wls, model, info))
-    if dropped.any() if single_depth else any(np.any(m.info["dropped_rays"]) for m in maps):
-        import warnings
-
-        from .errors import SamplingWarning
-        warnings.warn("some rays fell outside the wave-plane window and were not splatted (their power is missing "
-                      "from the PSF): report this lens", SamplingWarning, stacklevel=2)
     return maps[0] if single_depth else maps
 
 

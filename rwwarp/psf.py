@@ -13,9 +13,7 @@ each sensor pixel (box integration of |U|^2 over the pixel). Lengths in mm, wave
 """
 from __future__ import annotations
 
-import contextlib
 import copy
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -23,7 +21,6 @@ import numpy as np
 
 from .wave.plan import Plan
 from .trace import as_field_list
-from .trace import field_label as _fmt_field
 from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
 
@@ -258,67 +255,29 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     ``info["replay"]``: per batch "graph: trace and splat" (replayed as a CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
     Other arguments as :func:`psf`.
     """
-    from . import checks  # arguments at the public edge (issue 12): names the argument and its range
-    checks.check_lens(lens)
-    checks.check_choice(model, "model", MODELS)
-    fields = checks.check_fields(fields)
-    wavelengths_um = checks.check_wavelengths(wavelengths_um, lens)
-    size = checks.check_size(size)
-    checks.check_device(device)
-    checks.check_choice(dtype, "dtype", ("float64", "float32"))
-    checks.check_object_distance(object_distance_mm)
-    checks.check_rays_per_sample(rays_per_sample)
-    checks.check_pixel_mm(pixel_mm)
-    checks.check_center(center_mm)
-    checks.check_batch(batch)
-    checks.check_nyquist_safety(nyquist_safety)
+    from .map_run import finish_map, map_args, run_sources
+    # arguments at the public edge (issue 12), checked and resolved where rwwarp.distributed.psf_map takes them too
+    a = map_args(lens, fields, wavelengths_um, model=model, size=size, device=device, plan=plan, dtype=dtype,
+                 amplitude=amplitude, object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample,
+                 pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
+                 batch=batch, nyquist_safety=nyquist_safety, method=method, memory_budget_gb=memory_budget_gb,
+                 focal_patch_tol=focal_patch_tol, focal_precision=focal_precision, deterministic=deterministic,
+                 pixel_values=pixel_values, tolerance=tolerance)
     from .wave.plan_cache import PlanCache
     if cache is not None and not isinstance(cache, PlanCache):
         raise TypeError(f"cache must be a rwwarp.PlanCache or None, got {type(cache).__name__}")
-    if not isinstance(deterministic, bool):
-        raise TypeError(f"deterministic must be True or False, got {deterministic!r}")
-    if gauss_nodes is not None:
-        checks.check_int(gauss_nodes, "gauss_nodes", lo=1, hi=64)
-    checks.check_choice(pixel_values, "pixel_values", ("flux", "intensity"))
-    checks.check_int(len(fields) * len(wavelengths_um), "number of (field, wavelength) pairs", lo=1,
-                     hi=checks.MAX_SOURCES)
-    if model not in MODELS:
-        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
-    if amplitude not in ("energy", "paper"):
-        raise ValueError(f"amplitude must be 'energy' or 'paper', got {amplitude!r}")
-    if size < 1:
-        raise ValueError(f"size must be >= 1, got {size}")
-    fields = as_field_list(fields)
-    wavelengths_um = [float(w) for w in wavelengths_um]
-    pixel = float(pixel_mm or lens.sensor.pixel_pitch)
+    fields, wavelengths_um, size = a.fields, a.wls, a.size
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
     out = np.zeros((len(fields), len(wavelengths_um), size, size))
     centers = np.zeros((len(fields), len(wavelengths_um), 2))
     info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": [],
             "dropped_rays": np.zeros(len(pairs), dtype=np.int64)}
     t0 = time.perf_counter()
-    checks.check_choice(method, "method", METHODS)
-    tolerance = _check_tolerance(tolerance)
-    focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
-    if focal_precision not in ("auto", "single", "double"):
-        raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
-    from .wave.plan import default_memory_budget_bytes
-    if memory_budget_gb is not None:
-        if not (isinstance(memory_budget_gb, (int, float)) and math.isfinite(memory_budget_gb) and memory_budget_gb > 0):
-            raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
-        budget = int(memory_budget_gb * 2 ** 30)
-    else:
-        budget = default_memory_budget_bytes(device)
     index = {pr: k for k, pr in enumerate(pairs)}
     bar = None
     if progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=len(pairs), desc=f"{model} PSFs", unit="PSF")
-    opts = dict(device=device, plan=plan, dtype=dtype, amplitude=amplitude, rays_per_sample=rays_per_sample,
-                center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
-                nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
-                deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values,
-                model_tolerance=tolerance, allow_pixel=True)
 
     def store(chunk, res):
         for k, (i, j) in enumerate(chunk):
@@ -333,46 +292,17 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
         if bar is not None:
             bar.update(len(chunk))
 
-    if model in ("ray-wave", "paraxial-wave"):
-        # every source on its own plan (a PSF does not depend on its batch): planned alone from one pilot trace,
-        # then packed into batches of at most ``batch`` sources that one set of launches traces and splats
-        # (arrays sized to the batch's largest member; rwwarp.wave.packed.PackedRayWave), each propagated alone
-        if focal_precision == "auto":   # as RayWave.run resolves it
-            focal_precision = "double" if str(device).startswith("cuda") else "single"
-        with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
-            _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
-                      memory_budget_gb, focal_precision, opts, cache, info, store)
-    else:
-        b = batch or len(pairs)
-        for k in range(0, len(pairs), b):
-            chunk = pairs[k:k + b]
-            res = _ray_model(lens, [fields[i] for i, _ in chunk], [wavelengths_um[j] for _, j in chunk], size,
-                             pixel, device, dtype, object_distance_mm, rays_per_sample, center_mm)
-            store(chunk, res)
+    # wave models: every source on its own plan (a PSF does not depend on its batch), planned alone from one pilot
+    # trace, then packed into batches of at most ``batch`` sources that one set of launches traces and splats
+    # (arrays sized to the batch's largest member; rwwarp.wave.packed.PackedRayWave), each propagated alone
+    run_sources(lens, a, pairs, object_distance_mm, store, cache=cache, info=info)
     if bar is not None:
         bar.close()
     info["valid_fraction"] = list(info["valid_fraction"])
-    if tolerance is not None and model in ("ray-wave", "paraxial-wave"):
-        from .wave.model_error import warn_over_tolerance
-        warn_over_tolerance([p for b in info["batches"] for p in b["plans"]], tolerance, stacklevel=3)
-    if np.any(info["dropped_rays"]):
-        import warnings
-        from .errors import SamplingWarning
-        warnings.warn(f"{int(info['dropped_rays'].sum())} rays fell outside the wave-plane window and were not "
-                      "splatted (their power is missing from the PSF): report this lens", SamplingWarning, stacklevel=2)
-    # a PSF that does not fit its patch is said, not silently cut (issue 13): fraction of the traced power inside
-    vf = np.asarray(info["valid_fraction"], float).reshape(out.shape[:2])
-    info["power_in_patch"] = inside = out.sum(axis=(2, 3)) / np.where(vf > 0, vf, np.inf)
-    cut = [f"{_fmt_field(fields[i])} at {wavelengths_um[j]:g} um: {inside[i, j]:.3f}"
-           for i, j in zip(*np.nonzero((inside < 0.95) & (vf > 0)))]
-    if cut:
-        import warnings
-        from .errors import PatchWarning
-        warnings.warn(f"{len(cut)} PSF(s) keep less than 95 % of their traced power in the {size}x{size} px patch "
-                      f"({'; '.join(cut[:6])}{'; ...' if len(cut) > 6 else ''}); pass a larger size", PatchWarning,
-                      stacklevel=2)
+    info["power_in_patch"] = finish_map(a, out.sum(axis=(2, 3)), info["valid_fraction"], info["dropped_rays"],
+                                        [p for b in info["batches"] for p in b["plans"]])
     info["time_s"] = time.perf_counter() - t0
-    return PSFMap(out, pixel, centers, fields, wavelengths_um, model, info)
+    return PSFMap(out, a.pixel, centers, fields, wavelengths_um, model, info)
 
 
 def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,

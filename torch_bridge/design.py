@@ -480,11 +480,10 @@ class CachedProvider:
         than one node and their graphs together exceed ``budget_bytes``, this entry's share of the step's
         memory budget; default :meth:`step_budget_bytes`)."""
         from torch_bridge.functions import focal_doe_factor, focal_propagate
-        from torch_bridge.functions import Recompute
+        from torch_bridge.tiles import run_tiles, wants_grad
         nodes, dist, geo = entry
-        outs = []
         ts = [doe] if thick is None else [doe, thick]
-        wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
+        wants = wants_grad(ts)
         # a node's graph holds a few wave-plane arrays per kept DOE order and its output nodes (the fields
         # are cached, nothing is traced): checkpoint (recompute in backward) when all nodes' graphs together
         # would not fit this entry's share of the budget (the graphs of every entry of a call live at once,
@@ -496,26 +495,23 @@ class CachedProvider:
         checkpoint = len(nodes) > 1 and wants and graph > share
         # the distance's value on the host once per call (a read waits for the device), not once per node
         d_host = float(dist) if thick is None else float(thick.detach())
-        for rw, u, entering in nodes:
-            def run(doe_t, thick_t=None, record=True, rw=rw, u=u, entering=entering):
-                ctx = torch.enable_grad() if record else torch.no_grad()
-                with ctx:
-                    d = torch.full((1,), dist, dtype=torch.float64, device=u.device) if thick_t is None \
-                        else thick_t.reshape(1)
-                    v = u.to(torch.complex128)
-                    fac = focal_doe_factor(rw, geo.doe_phase(rw, {"doe": doe_t}, wrap=False))
-                    if fac is not None:
-                        v = v * fac
-                    return focal_propagate(v, d, rw, d_host) / entering[:, None, None]
-            if checkpoint:
-                outs.append(Recompute.apply(run, *ts))
-            else:
-                outs.append(run(*ts, record=torch.is_grad_enabled()))
+        def run(node, doe_t, thick_t=None, record=True):
+            rw, u, entering = node
+            ctx = torch.enable_grad() if record else torch.no_grad()
+            with ctx:
+                d = torch.full((1,), dist, dtype=torch.float64, device=u.device) if thick_t is None \
+                    else thick_t.reshape(1)
+                v = u.to(torch.complex128)
+                fac = focal_doe_factor(rw, geo.doe_phase(rw, {"doe": doe_t}, wrap=False))
+                if fac is not None:
+                    v = v * fac
+                return focal_propagate(v, d, rw, d_host) / entering[:, None, None]
+        out = run_tiles(nodes, run, ts, checkpoint=checkpoint)   # one node a tile (torch_bridge.tiles)
         self.step_log.append({"key": list(key), "method": "focal", "chunk": 1, "chunks": len(nodes),
                               "checkpoint": bool(checkpoint), "graph_bytes_estimate": int(graph),
                               "budget_share_bytes": int(share)})
         del self.step_log[:-64]
-        return torch.cat(outs, 0)
+        return out
 
     def prepare(self, wavelengths_um, depths_mm, progress: bool = False):
         """Compute and cache the DOE-plane fields for every (depth, wavelength) now; entries without a
@@ -734,7 +730,7 @@ class CachedProvider:
         if part is not None and chunk is None:
             raise ValueError("CachedProvider.psfs: part needs chunk (the share's size in nodes)")
         from torch_bridge.functions import propagate
-        from torch_bridge.functions import Recompute
+        from torch_bridge.tiles import run_tiles
         doe = self.module.value("doe")
         thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
         # every wavelength's graph lives until the step's backward: each gets an equal share of the budget
@@ -758,20 +754,14 @@ class CachedProvider:
             self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),
                                   "bytes_per_source": self.step_bytes_per_source(rw)})
             del self.step_log[:-64]
-            outs = []
-            for sl, sub in parts:
-                def run(doe_t, thick_t=None, record=True, sl=sl, sub=sub, dist=dist, u=u, geo=geo):
-                    ctx = torch.enable_grad() if record else torch.no_grad()
-                    with ctx:
-                        d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
-                        phi0 = geo.doe_phase(sub, {"doe": doe_t})
-                        return propagate(u[sl].to(torch.complex128), phi0, d, sub)
-                ts = [doe] if thick is None else [doe, thick]
-                wants = torch.is_grad_enabled() and any(t.requires_grad for t in ts)
-                if len(parts) > 1 and wants:
-                    outs.append(Recompute.apply(run, *ts))
-                else:
-                    outs.append(run(*ts, record=torch.is_grad_enabled()))
-            power = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
+            def run(part_, doe_t, thick_t=None, record=True, dist=dist, u=u, geo=geo):
+                sl, sub = part_
+                ctx = torch.enable_grad() if record else torch.no_grad()
+                with ctx:
+                    d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
+                    phi0 = geo.doe_phase(sub, {"doe": doe_t})
+                    return propagate(u[sl].to(torch.complex128), phi0, d, sub)
+            # a chunk a tile, checkpointed when there are several (torch_bridge.tiles)
+            power = run_tiles(parts, run, [doe] if thick is None else [doe, thick])
             out.append(power / entering[:, None, None])
         return torch.stack(out, 1)

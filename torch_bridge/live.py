@@ -133,7 +133,7 @@ class LiveProvider:
             return self._psfs(wavelengths_um, depth_mm, nodes)
 
     def _psfs(self, wavelengths_um, depth_mm, nodes):
-        from torch_bridge.functions import Recompute
+        from torch_bridge.tiles import run_tiles
         m = self.module
         cen = common_centres(m, self.fields, self.wl_ref, depth_mm)
         sel = range(len(self.fields))[nodes if nodes is not None else slice(None)]
@@ -150,8 +150,6 @@ class LiveProvider:
         tile = n if not self.tile else max(1, min(int(self.tile), n))
         values = m.values()
         names = list(values)
-        tensors = [values[q] for q in names]
-        outs = []
         tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
         dropped = []  # (key, RayWave, its rays outside the window): read once all sources are queued
         for e in self._focal_rws.values():
@@ -160,6 +158,48 @@ class LiveProvider:
         for t in self._packed.values():
             t[1].release_operators()
         packs = {}    # this call's packed tiles, keyed by their members' identities
+
+        def run(chunk, *ts, record=True):
+            units, perm = chunk[0], chunk[1]
+            vals = dict(zip(names, ts))
+            out = torch.cat([m._psf_packed(u, vals, record=record, tables=tables) if kind == "packed" else
+                             m._psf_rw(u, vals, record=record, tables=tables) for kind, u, _ in units], 0)
+            return out if perm is None else out[perm.to(out.device, non_blocking=True)]
+
+        def after(chunk, out):
+            units, _, keys, sl = chunk
+            for kind, u, row in units:
+                if kind == "packed":
+                    dropped.extend((keys[j - sl.start], r, u.dropped(), i)
+                                   for i, (j, r) in enumerate(zip(row, u.members)))
+                else:
+                    dropped.append((keys[row[0] - sl.start], u, u.dropped, None))
+        # the chunks, each a checkpoint when there are several (torch_bridge.tiles)
+        out = run_tiles(self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs), run, [values[q] for q in names],
+                        checkpoint=tile < n, total=-(-n // tile), after=after)
+        self._packed = packs   # the tiles of this call (a tile of the last call not used again is freed)
+        # read after every source was queued (a read waits for the device: once, not once per source)
+        host = {}
+        for key, r, arr, i in dropped:
+            e = self._focal_rws.get(key)
+            if e is not None and e[0] is r:
+                # more rays outside the window than at the plan's first use: plan that source again
+                a = host.get(id(arr))
+                if a is None:
+                    a = host[id(arr)] = (arr, arr.numpy())
+                d = int(np.sum(a[1] if i is None else a[1][i]))
+                if e[2] is None:
+                    e[2] = d
+                elif d - e[2] > self.window_tol * r.nsrc * r.plan.ray_grid ** 2:
+                    e[3] = True
+        return out.reshape(len(fields), len(wls), self.size, self.size)
+
+    def _chunks(self, n, tile, src_f, src_w, src_c, depth_mm, packs):
+        """The ``n`` sources of a call in chunks of ``tile``, each planned (kept plans reused, new ones made) when
+        the tile loop reaches it and cut into its work (:meth:`_units`; ``packs``: this call's packed tiles,
+        filled): yields ``(units, perm, keys, sl)``, ``perm`` the order of the units' rows back to the sources'
+        (None: already in order), ``keys`` the sources' (field, wavelength, depth), ``sl`` their slice."""
+        m = self.module
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
             keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
@@ -211,37 +251,7 @@ class LiveProvider:
             units = self._units(order, rws, fresh, packs)
             flat = [j for _, _, row in units for j in row]
             perm = None if flat == sorted(flat) else torch.as_tensor(np.argsort(flat))
-
-            def run(*ts, units=units, perm=perm, record=True):
-                vals = dict(zip(names, ts))
-                out = torch.cat([m._psf_packed(u, vals, record=record, tables=tables) if kind == "packed" else
-                                 m._psf_rw(u, vals, record=record, tables=tables) for kind, u, _ in units], 0)
-                return out if perm is None else out[perm.to(out.device, non_blocking=True)]
-            if tile < n and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-                outs.append(Recompute.apply(run, *tensors))
-            else:
-                outs.append(run(*tensors))
-            for kind, u, row in units:
-                if kind == "packed":
-                    dropped += [(keys[j - sl.start], r, u.dropped(), i) for i, (j, r) in enumerate(zip(row, u.members))]
-                else:
-                    dropped += [(keys[row[0] - sl.start], u, u.dropped, None)]
-        self._packed = packs   # the tiles of this call (a tile of the last call not used again is freed)
-        # read after every source was queued (a read waits for the device: once, not once per source)
-        host = {}
-        for key, r, arr, i in dropped:
-            e = self._focal_rws.get(key)
-            if e is not None and e[0] is r:
-                # more rays outside the window than at the plan's first use: plan that source again
-                a = host.get(id(arr))
-                if a is None:
-                    a = host[id(arr)] = (arr, arr.numpy())
-                d = int(np.sum(a[1] if i is None else a[1][i]))
-                if e[2] is None:
-                    e[2] = d
-                elif d - e[2] > self.window_tol * r.nsrc * r.plan.ray_grid ** 2:
-                    e[3] = True
-        return torch.cat(outs, 0).reshape(len(fields), len(wls), self.size, self.size)
+            yield units, perm, keys, sl
 
     def _units(self, order, rws, fresh, packs) -> list:
         """The work of one chunk: ``[(kind, object, rows)]`` with ``kind`` "packed" (a

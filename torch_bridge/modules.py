@@ -59,8 +59,9 @@ from rwwarp.lens import MAX_ASPHERIC, Lens
 from .wave_step import wave_step
 from . import budget as _budget
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
-from .functions import (Recompute, backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
+from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
                         propagate, quantize_ste, trace_splat, upload)
+from .tiles import run_tiles
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
@@ -735,31 +736,19 @@ class HybridLens(nn.Module):
         # one source of the map's plan must fit the budget (checkpointed tiles keep one tile's graph at a time)
         self.check_budget(full, self.memory_budget(memory_budget_bytes), spatial_tile)
         chunks = [list(range(k, min(k + tile, len(pairs)))) for k in range(0, len(pairs), tile)]
-        if checkpoint is None:
-            checkpoint = len(chunks) > 1
         values = self.values()
         names = list(values)
-        tensors = [values[q] for q in names]
-        it = chunks
-        if progress:
-            from tqdm.auto import tqdm
-            it = tqdm(chunks, desc="PSF tiles", unit="tile")
-        outs, centers = [], np.zeros((len(pairs), 2))
+        centers = np.concatenate([rw.centers for rw in rws], 0)
         tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
-        with self._cache_limit(memory_budget_bytes):
-            for ch in it:
-                tile_rws = [rws[k] for k in ch]
-                centers[ch] = np.concatenate([rw.centers for rw in tile_rws], 0)
 
-                def run(*ts, tile_rws=tile_rws, record=True):
-                    vals = dict(zip(names, ts))
-                    return torch.cat([self._psf_rw(rw, vals, record=record, spatial_tile=spatial_tile, tables=tables)
-                                      for rw in tile_rws], 0)
-                if checkpoint and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-                    outs.append(Recompute.apply(run, *tensors))
-                else:
-                    outs.append(run(*tensors))
-        out = torch.cat(outs, 0).reshape(len(fields), len(wls), size, size)
+        def run(ch, *ts, record=True):
+            vals = dict(zip(names, ts))
+            return torch.cat([self._psf_rw(rws[k], vals, record=record, spatial_tile=spatial_tile, tables=tables)
+                              for k in ch], 0)
+        with self._cache_limit(memory_budget_bytes):   # the tiles, each a checkpoint (torch_bridge.tiles)
+            out = run_tiles(chunks, run, [values[q] for q in names], checkpoint=checkpoint,
+                            progress="PSF tiles" if progress else None)
+        out = out.reshape(len(fields), len(wls), size, size)
         if return_centers:
             return out, centers.reshape(len(fields), len(wls), 2)
         return out

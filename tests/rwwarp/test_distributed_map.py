@@ -82,3 +82,41 @@ def test_one_process_equals_rw_psf_map_and_needs_no_torch():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env,
                        check=False)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_one_process_passes_focal_precision_and_tolerance_on_as_rw_psf_map():
+    # the distributed map takes rw.psf_map's arguments from the same place (rwwarp.map_run): a non-default
+    # focal_precision reaches the focal propagation (it used to run "auto", single on the CPU, whatever the caller)
+    lens = doe_lens()
+    kw = dict(size=SIZE, method="focal")   # "auto" plans these sources ASM
+    single = rw.psf_map(lens, FIELDS, WLS, focal_precision="single", **kw)
+    double = rw.psf_map(lens, FIELDS, WLS, focal_precision="double", **kw)
+    assert any(p["method"] == "focal" for b in double.info["batches"] for p in b["plans"])
+    # the argument matters here: single against double precision products differ (measured 1.5e-7 of the peak),
+    # so a map that ignored it would fail the equality below
+    assert not np.array_equal(single.data, double.data)
+    m = D.psf_map(lens, FIELDS, WLS, focal_precision="double", **kw)
+    assert np.array_equal(m.data, double.data) and np.array_equal(m.centers_mm, double.centers_mm)
+    # the same argument checks (same messages) and the same over-tolerance warning as rw.psf_map
+    with pytest.raises(ValueError, match="focal_precision must be"):
+        D.psf_map(lens, FIELDS, WLS, size=SIZE, focal_precision="half")
+    from rwwarp.wave.model_error import ModelErrorWarning
+    with pytest.warns(ModelErrorWarning) as ref_w:
+        rw.psf_map(lens, [0.8], [0.45], size=SIZE, method="focal", tolerance=1e-9)
+    with pytest.warns(ModelErrorWarning) as got_w:
+        D.psf_map(lens, [0.8], [0.45], size=SIZE, method="focal", tolerance=1e-9)
+    assert [str(w.message) for w in got_w] == [str(w.message) for w in ref_w]
+
+
+def test_one_process_plans_as_rw_psf_map_where_auto_picks_the_pixel_method():
+    # pixels 16 um wide on the A489 (about 5 Airy radii): rw.psf_map's "auto" takes the pixel method
+    # (rwwarp.wave.pixel_scale); the distributed map plans with the same RayWave options (it used to leave out
+    # allow_pixel and model_tolerance, so "auto" planned another method there) and computes a pixel source alone
+    lens = rw.load_lens("a489_doe")
+    ref = rw.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016)
+    assert ref.info["batches"][0]["plan"]["method"] == "pixel"
+    m = D.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016)
+    assert np.array_equal(m.data, ref.data)
+    # method="pixel" is taken as rw.psf_map takes it (it was refused)
+    m = D.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016, method="pixel")
+    assert np.array_equal(m.data, ref.data)

@@ -1,0 +1,186 @@
+"""The one PSF-map orchestrator: what :func:`rwwarp.psf_map` and the sharded :func:`rwwarp.distributed.psf_map`
+share, so that both take the same arguments, plan the same batches, run them the same way and warn alike.
+
+* :func:`map_args` checks the arguments of a map (the messages of the public edge) and resolves what follows
+  from them once: the memory budget (bytes), the pixel pitch (mm), the :class:`rwwarp.wave.raywave.RayWave`
+  options (``model_tolerance``, ``allow_pixel`` included) and ``focal_precision`` ("auto" resolved per device).
+* :func:`map_units` cuts a map's (field, wavelength) pairs into its batches: for the wave models every source on
+  its own plan from one pilot, packed (:func:`rwwarp.psf.wave_members`, :func:`rwwarp.psf.pack_sources`), each
+  batch with its planned flops; for the ray model chunks of ``batch`` pairs.
+* :func:`run_sources` computes pairs (a whole map, or one batch of it on a rank) and hands each batch's result to
+  ``store(pairs, result)``: the wave models through :func:`rwwarp.psf._wave_map` (a ``pixel`` member alone, the
+  rest packed; the plan cache), the ray model in chunks of ``batch``.
+* :func:`finish_map` gives the map's warnings (model error over ``tolerance``, rays dropped outside the wave-plane
+  window, PSFs cut by their patch) and the fraction of each PSF's traced power inside its patch.
+
+Lengths in mm, wavelengths in um, fields in degrees. No torch here.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+WAVE_MODELS = ("ray-wave", "paraxial-wave")
+
+
+@dataclass(frozen=True)
+class MapArgs:
+    """Checked arguments of a map. ``fields`` (deg, the tracer's list form), ``wls`` (um), ``size`` (px),
+    ``pixel`` (mm), ``budget`` (bytes: ``memory_budget_gb`` or the device default), ``opts`` (the
+    :class:`~rwwarp.wave.raywave.RayWave` options with ``memory_budget_bytes``, ``model_tolerance`` and
+    ``allow_pixel``), ``focal_precision`` ("single" / "double", resolved), ``tolerance`` (None or in (0, 1])."""
+
+    model: str
+    fields: list
+    wls: list
+    size: int
+    pixel: float
+    device: str
+    dtype: str
+    rays_per_sample: float
+    center_mm: object
+    batch: int | None
+    budget: int
+    memory_budget_gb: float | None
+    focal_precision: str
+    tolerance: float | None
+    opts: dict
+
+
+def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device="cpu", plan="auto",
+             dtype="float64", amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, pixel_mm=None,
+             center_mm=None, use_reference=True, gauss_nodes=None, batch=None, nyquist_safety=2.0, method="auto",
+             memory_budget_gb=None, focal_patch_tol=1e-5, focal_precision="auto", deterministic=False,
+             pixel_values="flux", tolerance=None, n_depths: int = 1) -> MapArgs:
+    """The arguments of :func:`rwwarp.psf_map` checked (a clear error naming the argument and its range) and
+    resolved (:class:`MapArgs`); ``n_depths``: object distances mapped (the distributed map's ``depths_mm``),
+    for the bound on the number of sources. Arguments as :func:`rwwarp.psf`."""
+    from . import checks
+    from .psf import METHODS, MODELS, _check_tolerance
+    from .trace import as_field_list
+    from .wave.plan import default_memory_budget_bytes
+    checks.check_lens(lens)
+    checks.check_choice(model, "model", MODELS)
+    fields = checks.check_fields(fields)
+    wavelengths_um = checks.check_wavelengths(wavelengths_um, lens)
+    size = checks.check_size(size)
+    checks.check_device(device)
+    checks.check_choice(dtype, "dtype", ("float64", "float32"))
+    checks.check_object_distance(object_distance_mm)
+    checks.check_rays_per_sample(rays_per_sample)
+    checks.check_pixel_mm(pixel_mm)
+    checks.check_center(center_mm)
+    checks.check_batch(batch)
+    checks.check_nyquist_safety(nyquist_safety)
+    if not isinstance(deterministic, bool):
+        raise TypeError(f"deterministic must be True or False, got {deterministic!r}")
+    if gauss_nodes is not None:
+        checks.check_int(gauss_nodes, "gauss_nodes", lo=1, hi=64)
+    checks.check_choice(pixel_values, "pixel_values", ("flux", "intensity"))
+    if n_depths == 1:
+        checks.check_int(len(fields) * len(wavelengths_um), "number of (field, wavelength) pairs", lo=1,
+                         hi=checks.MAX_SOURCES)
+    else:
+        checks.check_int(len(fields) * len(wavelengths_um) * n_depths, "number of (field, wavelength, depth) sources",
+                         lo=1, hi=checks.MAX_SOURCES)
+    if amplitude not in ("energy", "paper"):
+        raise ValueError(f"amplitude must be 'energy' or 'paper', got {amplitude!r}")
+    checks.check_choice(method, "method", METHODS)
+    tolerance = _check_tolerance(tolerance)
+    focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
+    if focal_precision not in ("auto", "single", "double"):
+        raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
+    if memory_budget_gb is not None:
+        gb = memory_budget_gb
+        if not (isinstance(gb, (int, float)) and math.isfinite(gb) and gb > 0):
+            raise ValueError(f"memory_budget_gb must be a positive number of GiB, got {memory_budget_gb!r}")
+        budget = int(memory_budget_gb * 2 ** 30)
+    else:
+        budget = default_memory_budget_bytes(device)
+    if focal_precision == "auto":   # as RayWave.run resolves it
+        focal_precision = "double" if str(device).startswith("cuda") else "single"
+    opts = dict(device=device, plan=plan, dtype=dtype, amplitude=amplitude, rays_per_sample=rays_per_sample,
+                center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
+                nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
+                deterministic=deterministic, memory_budget_bytes=budget, pixel_values=pixel_values,
+                model_tolerance=tolerance, allow_pixel=True)
+    return MapArgs(model, as_field_list(fields), [float(w) for w in wavelengths_um], size,
+                   float(pixel_mm or lens.sensor.pixel_pitch), device, dtype, rays_per_sample, center_mm, batch,
+                   budget, memory_budget_gb, focal_precision, tolerance, opts)
+
+
+def map_units(lens, a: MapArgs, pairs, object_distance_mm=None) -> list:
+    """The batches :func:`run_sources` computes ``pairs`` (indices into ``a.fields`` and ``a.wls``) in, at the
+    object distance ``object_distance_mm`` (mm, None: the lens's): ``[(batch_pairs, flops), ...]``. Wave models:
+    every source planned on its own from one pilot of all, packed (``flops``: the sum of the members' planned
+    flops, :func:`rwwarp.wave.plan.estimate_cost`); ray model: chunks of ``a.batch`` pairs (``flops`` None)."""
+    pairs = [tuple(p) for p in pairs]
+    if a.model not in WAVE_MODELS:
+        b = a.batch or len(pairs)
+        return [(pairs[k:k + b], None) for k in range(0, len(pairs), b)]
+    from .psf import pack_sources, wave_members
+    out = []
+    for members, sys_pairs in wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel,
+                                           object_distance_mm, a.opts):
+        for idx in pack_sources(members, a.size, a.batch, a.budget):
+            out.append(([sys_pairs[q] for q in idx], sum(float(members[q].plan.estimate["flops"]) for q in idx)))
+    return out
+
+
+def run_sources(lens, a: MapArgs, pairs, object_distance_mm, store, cache=None, info: dict | None = None):
+    """Compute the PSFs of ``pairs`` (indices into ``a.fields`` and ``a.wls``; a whole map, or one batch of
+    :func:`map_units` on a rank, which plans it again as the same single batch) at ``object_distance_mm`` (mm,
+    None: the lens's), handing each batch's result dict (``data``, ``centers``, ``valid_fraction``,
+    ``dropped_rays``, ``plan``, ``plans``) to ``store(batch_pairs, result)``. Wave models:
+    :func:`rwwarp.psf._wave_map` (every source on its own plan, a ``pixel`` member alone, the rest packed;
+    ``cache``: a :class:`~rwwarp.wave.plan_cache.PlanCache`, its outcome in ``info["cache"]``); ray model: chunks
+    of ``a.batch`` pairs. Every batch with ``a.focal_precision``."""
+    pairs = [tuple(p) for p in pairs]
+    info = {} if info is None else info
+    if a.model in WAVE_MODELS:
+        from .psf import _wave_map
+        with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
+            _wave_map(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, object_distance_mm, a.batch, a.budget,
+                      a.memory_budget_gb, a.focal_precision, a.opts, cache, info, store)
+        return
+    from .ray_model import _ray_model
+    for chunk, _ in map_units(lens, a, pairs, object_distance_mm):
+        res = _ray_model(lens, [a.fields[i] for i, _ in chunk], [a.wls[j] for _, j in chunk], a.size, a.pixel,
+                         a.device, a.dtype, object_distance_mm, a.rays_per_sample, a.center_mm)
+        store(chunk, res)
+
+
+def finish_map(a: MapArgs, power, valid_fraction, dropped_rays, plans, stacklevel: int = 3) -> np.ndarray:
+    """The warnings of a finished map (``power``: each PSF's sum, (n_fields, n_wavelengths); ``valid_fraction`` and
+    ``dropped_rays`` per PSF, ``plans`` every PSF's plan dict or None): a plan without the wave step whose
+    model-error estimate is over ``a.tolerance`` (:class:`~rwwarp.wave.model_error.ModelErrorWarning`), rays
+    that fell outside the wave-plane window (:class:`~rwwarp.errors.SamplingWarning`), PSFs keeping less than
+    95 % of their traced power in their patch (:class:`~rwwarp.errors.PatchWarning`). ``stacklevel``: the
+    caller's frame seen from here. Returns the fraction of each PSF's traced power inside its patch
+    (n_fields, n_wavelengths)."""
+    import warnings
+    from .trace import field_label as _fmt_field
+    if a.tolerance is not None and a.model in WAVE_MODELS:
+        from .wave.model_error import warn_over_tolerance
+        warn_over_tolerance(plans, a.tolerance, stacklevel=stacklevel + 1)
+    dropped = np.asarray(dropped_rays)
+    if np.any(dropped):
+        from .errors import SamplingWarning
+        warnings.warn(f"{int(dropped.sum())} rays fell outside the wave-plane window and were not "
+                      "splatted (their power is missing from the PSF): report this lens", SamplingWarning,
+                      stacklevel=stacklevel)
+    # a PSF that does not fit its patch is said, not silently cut (issue 13): fraction of the traced power inside
+    power = np.asarray(power, float)
+    vf = np.asarray(valid_fraction, float).reshape(power.shape)
+    inside = power / np.where(vf > 0, vf, np.inf)
+    cut = [f"{_fmt_field(a.fields[i])} at {a.wls[j]:g} um: {inside[i, j]:.3f}"
+           for i, j in zip(*np.nonzero((inside < 0.95) & (vf > 0)))]
+    if cut:
+        from .errors import PatchWarning
+        warnings.warn(f"{len(cut)} PSF(s) keep less than 95 % of their traced power in the {a.size}x{a.size} px patch "
+                      f"({'; '.join(cut[:6])}{'; ...' if len(cut) > 6 else ''}); pass a larger size", PatchWarning,
+                      stacklevel=stacklevel)
+    return inside

@@ -1,0 +1,63 @@
+"""The one tiling and checkpoint loop of the torch bridge: :func:`run_tiles`.
+
+:meth:`torch_bridge.HybridLens.psf_map` (tiles of sources), :class:`torch_bridge.live.LiveProvider` (chunks of
+sources, planned as the loop reaches them) and :class:`torch_bridge.design.CachedProvider` (propagation chunks
+of a cached entry, and focal nodes) all compute a list of tiles whose outputs are stacked along the first axis,
+each tile a function of the same learning tensors. With more than one tile and a gradient wanted each tile is a
+checkpoint (:class:`torch_bridge.functions.Recompute`): its forward runs without a tape, and again under a fresh
+tape in the backward pass, so the peak memory is one tile's whatever the tile count (each tile's forward runs
+exactly twice). What the callers differ in (when to checkpoint, the host-table cache of one call, what they log
+per tile, the packed tiles) stays with them: the checkpoint decision is an argument, the rest lives in their
+``run`` closures and the ``after`` hook.
+"""
+from __future__ import annotations
+
+import functools
+
+import torch
+
+__all__ = ["run_tiles", "wants_grad"]
+
+
+def wants_grad(tensors) -> bool:
+    """True when autograd records and one of ``tensors`` requires a gradient."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
+def run_tiles(tiles, run, tensors, *, checkpoint: bool | None = None, progress: str | None = None,
+              total: int | None = None, after=None, unit: str = "tile") -> torch.Tensor:
+    """Outputs of ``run(tile, *tensors, record=...)`` for every tile of ``tiles``, concatenated along the first
+    axis (one tile: its output itself).
+
+    ``tiles``: a sequence or an iterable (a generator may plan each tile when the loop reaches it: tile ``k+1``
+    is asked for after tile ``k`` ran and its ``after`` hook returned). ``tensors``: the tensors the tiles
+    depend on and gradients flow to (a tile must read them only through its arguments). ``checkpoint``: each
+    tile a :class:`~torch_bridge.functions.Recompute` when a gradient is wanted (:func:`wants_grad`); None
+    (default): when there is more than one tile (a sequence's length, else ``total``). Without a checkpoint a
+    tile runs with ``record=torch.is_grad_enabled()``. ``progress``: a tqdm bar with this description (its
+    ``unit``; ``total`` for an iterable). ``after(tile, out)``: called after each tile's forward (the caller's
+    per-tile logging)."""
+    from .functions import Recompute
+    tensors = list(tensors)
+    n = len(tiles) if hasattr(tiles, "__len__") else total
+    if checkpoint is None:
+        if n is None:
+            raise ValueError("run_tiles: checkpoint=None needs the tile count (a sequence, or total=)")
+        checkpoint = n > 1
+    ckpt = bool(checkpoint) and wants_grad(tensors)
+    it = tiles
+    if progress:
+        from tqdm.auto import tqdm
+        it = tqdm(tiles, desc=progress, unit=unit, total=n)
+    outs = []
+    for tile in it:
+        if ckpt:
+            out = Recompute.apply(functools.partial(run, tile), *tensors)
+        else:
+            out = run(tile, *tensors, record=torch.is_grad_enabled())
+        outs.append(out)
+        if after is not None:
+            after(tile, out)
+    if not outs:
+        raise ValueError("run_tiles: no tiles")
+    return outs[0] if len(outs) == 1 else torch.cat(outs, 0)
