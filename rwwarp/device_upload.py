@@ -8,13 +8,40 @@ from collections import OrderedDict
 import numpy as np
 import warp as wp
 
-__all__ = ["upload_packed"]
+__all__ = ["upload_packed", "recording_uploads"]
 
 
 _UPLOADS: OrderedDict = OrderedDict()  # packed bytes -> views, for upload_packed(..., cache=True)
 _UPLOADS_MAX = 64
 _UPLOADS_MAX_BYTES = 1 << 16
 _UPLOADS_LOCK = threading.Lock()
+_RECORDERS: list = []   # lists that collect every upload returned while they are registered (recording_uploads)
+
+
+class recording_uploads:
+    """``with recording_uploads(keep):`` appends every array :func:`upload_packed` returns inside the block (cached
+    or new) to the list ``keep``: a CUDA graph recorded in the block reads them, so its owner holds them (an upload
+    cache entry may be evicted and freed; :mod:`rwwarp.wave.graph_replay`)."""
+
+    def __init__(self, keep: list):
+        self.keep = keep
+
+    def __enter__(self):
+        with _UPLOADS_LOCK:
+            _RECORDERS.append(self.keep)
+        return self.keep
+
+    def __exit__(self, *exc):
+        with _UPLOADS_LOCK:
+            _RECORDERS.remove(self.keep)
+        return False
+
+
+def _recorded(out):
+    with _UPLOADS_LOCK:
+        for keep in _RECORDERS:
+            keep.extend(out)
+    return out
 
 
 def upload_packed(parts, device: str, cache: bool = False):
@@ -40,7 +67,7 @@ def upload_packed(parts, device: str, cache: bool = False):
             hit = _UPLOADS.get(key)
             if hit is not None:
                 _UPLOADS.move_to_end(key)
-                return list(hit)
+                return _recorded(list(hit))
     base = wp.array(buf, dtype=wp.uint8, device=device)
     out = []
     for h, off, (_, _, wdt) in zip(host, offsets, parts):
@@ -53,4 +80,4 @@ def upload_packed(parts, device: str, cache: bool = False):
             _UPLOADS[key] = tuple(out)
             while len(_UPLOADS) > _UPLOADS_MAX:
                 _UPLOADS.popitem(last=False)
-    return out
+    return _recorded(out)

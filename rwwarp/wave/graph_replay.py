@@ -16,8 +16,10 @@ What may be recorded: a batch on a CUDA device whose run needs no host decision:
 its replacement on the host). Anything else, and any failure while recording, runs eagerly; :func:`run_kept`
 says which in its second return value.
 
-Memory: the recorded temporaries (CuPy arrays made during the recording) come from a memory pool private to the
-graph, kept with it and used by nothing else, so no other work reuses the addresses the graph writes.
+Memory: the graph reads and writes only arrays that outlive it: the kept batch's tracer tables and work arrays
+(``Tracer.pool``), and the small uploads of its per-source constants, which the :class:`ReplayedBatch` holds
+(:class:`rwwarp.device_upload.recording_uploads`: the upload cache may drop its entries). CuPy arrays made during
+the recording come from a memory pool private to the graph, kept with it and used by nothing else.
 """
 from __future__ import annotations
 
@@ -53,15 +55,17 @@ class ReplayedBatch:
         self.stream = wp.get_stream(self.device)
         self.pool = cupy.cuda.MemoryPool()      # the graph's own temporaries: nothing else allocates from it
         self.graph = self.field = None
+        self.inputs = []        # the uploads the graph reads (held here: the upload cache may drop them)
 
-    def _context(self):
+    def _context(self, private_pool: bool = False):
         import contextlib
 
         import cupy
         stack = contextlib.ExitStack()
         stack.enter_context(cupy.cuda.Device(self.device.ordinal))
         stack.enter_context(cupy.cuda.ExternalStream(self.stream.cuda_stream, self.device.ordinal))
-        stack.enter_context(cupy.cuda.using_allocator(self.pool.malloc))
+        if private_pool:
+            stack.enter_context(cupy.cuda.using_allocator(self.pool.malloc))
         return stack
 
     def record(self):
@@ -69,8 +73,11 @@ class ReplayedBatch:
         set-up done), then record its trace and splat as a CUDA graph. Raises what the recording raised (the
         capture is ended and dropped first)."""
         import warp as wp
+
+        from ..device_upload import recording_uploads
         with self._context():
             self.packed.device_psfs(self.focal_precision, keep_operators=True, to_host=False)   # warm-up
+        with self._context(private_pool=True), recording_uploads(self.inputs):
             wp.capture_begin(self.device, stream=self.stream)
             try:
                 field = self.packed.field_array()

@@ -63,3 +63,20 @@ def test_replay_gives_the_bits_of_the_eager_call(name, fields, method):
     changed = rw.psf_map(lens, fields, [0.55], cache=cache, **kw)
     assert changed.info["cache"] == "miss"
     assert np.array_equal(changed.data, rw.psf_map(lens, fields, [0.55], **kw).data)
+
+
+def test_uploads_read_by_a_recording_are_held():
+    """Every array upload_packed returns inside ``recording_uploads`` (a new upload or a cache hit) is appended to the
+    holder's list, and nothing outside the block: the graph's inputs stay alive whatever the upload cache drops."""
+    import numpy as np
+    import warp as wp
+
+    from rwwarp.device_upload import recording_uploads, upload_packed
+    parts = [(np.arange(3.0), np.float64, wp.float64)]
+    keep = []
+    with recording_uploads(keep):
+        a = upload_packed(parts, "cpu", cache=True)
+        b = upload_packed(parts, "cpu", cache=True)          # a hit: the same views
+    upload_packed([(np.arange(4.0), np.float64, wp.float64)], "cpu", cache=True)
+    assert len(keep) == 2 and keep[0] is a[0] and keep[1] is b[0] and b[0] is a[0]
+    assert np.array_equal(keep[0].numpy(), np.arange(3.0))
