@@ -389,8 +389,9 @@ class HybridLens(nn.Module):
                        method: str | None = None, requires_grad: bool = True) -> list:
         """One :class:`rwwarp.psf.RayWave` per source (``fields`` x ``wavelengths_um`` paired element-wise; deg,
         um), each with the plan :meth:`raywave` gives that source alone (``centers_mm`` (S, 2): its patch
-        centre, mm), from one pilot trace of all of them (a source's pilot rays, its pupil at its own wavelength,
-        do not depend on the others): one set of trace launches and host reads, not one per source. Without
+        centre, mm), from one pilot trace of all of them (:func:`rwwarp.wave.pilot.trace_pilot`; a source's pilot rays,
+        its pupil at its own wavelength, do not depend on the others, :meth:`~rwwarp.wave.pilot.Pilot.subset`): one
+        set of trace launches and host reads, not one per source, and no plan of them all. Without
         ``replan`` (kept plans) each is :meth:`raywave` of that source."""
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
@@ -400,18 +401,19 @@ class HybridLens(nn.Module):
                                  center_mm=centers[k:k + 1], method=method, requires_grad=requires_grad)
                     for k, (f, w) in enumerate(zip(fields, wls))]
         from rwwarp.psf import RayWave
+        from rwwarp.wave.pilot import trace_pilot
         self._once("finite", self.check_finite)
         lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
         opts = self._raywave_options(object_distance_mm)
-        # the pilot of all sources, each entrance pupil at its own wavelength (its plan is not used)
-        probe = RayWave(lens, fields, wls, int(size), pixel, plan="auto", method="asm", own_pupils=True,
-                        **dict(opts, gauss_nodes=3, deterministic=False))
+        # the pilot of all sources in one trace, each entrance pupil at its own wavelength
+        pilot = trace_pilot(lens, fields, wls, opts["device"], opts["dtype"], object_distance_mm, own_pupils=True,
+                            use_reference=opts["use_reference"])
         out = []
         for k, (f, w) in enumerate(zip(fields, wls)):
             rw = RayWave(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
                          requires_grad=bool(requires_grad), method=method or self.method, own_pupils=True,
-                         pilot={key: v[k:k + 1] for key, v in probe.pilot.items()}, **opts)
+                         pilot=pilot.subset([k]), **opts)
             bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
             out.append(rw)
         return out
