@@ -26,6 +26,7 @@ from .trace import as_field_list
 from .trace import field_label as _fmt_field
 from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
+from .wave.pilot import Pilot, trace_pilot  # noqa: F401 (the pilot trace of a batch, rwwarp.wave.pilot)
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 METHODS = ("auto", "focal", "asm", "two-step", "pixel")
