@@ -66,6 +66,11 @@ class RayWave:
     ``pixel_values``: what a pixel records, ``"flux"`` (default, the power through it) or ``"intensity"``
     (``|U|^2`` over it, the earlier convention); docs/propagation.md "Pixel values".
 
+    ``pilot``: the sources' :class:`rwwarp.wave.pilot.Pilot` (:func:`rwwarp.wave.pilot.trace_pilot` of these
+    sources, or a :meth:`~rwwarp.wave.pilot.Pilot.subset` of a batch's traced with ``own_pupils``), read and never
+    changed; checked to be of these fields, wavelengths, pupils, object distance, ``use_reference`` and ``dtype``
+    (``ValueError`` naming what differs); it must come from the same lens values. None (default): traced here.
+
     ``auto_rule`` (``method="auto"``): how the two planned propagations are chosen. ``"small-asm"``: the
     band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
     GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
