@@ -23,8 +23,8 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them
     (:func:`rwwarp.wave.pilot.trace_pilot`, one set of launches; the pilot rays are independent, so each
-    source's, :meth:`~rwwarp.wave.pilot.Pilot.subset`, are what a pilot of it alone gives). Arguments as :class:`RayWave`
-    (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take);
+    source's, :meth:`~rwwarp.wave.pilot.Pilot.subset`, are what a pilot of it alone gives). Arguments as
+    :class:`RayWave` (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take);
     :class:`PackedRayWave` computes them together."""
     pilot = trace_pilot(lens, fields, wls, device, dtype, object_distance_mm, own_pupils=True,
                         use_reference=use_reference)

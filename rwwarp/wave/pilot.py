@@ -43,7 +43,7 @@ def _dtype_name(dtype, where: str) -> str:
     return name
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class Pilot:
     """The pilot rays of a batch of ``S`` point sources on the host (numpy, read-only), ``N`` rays a source:
     pupil sample 0 is the chief ray (pupil centre), then the :data:`PILOT_GRID` cell-centre grid inside the
@@ -96,12 +96,13 @@ class Pilot:
         set_(self, "relative_opl", bool(self.relative_opl))
         set_(self, "plane", int(self.plane))
         set_(self, "dtype", _dtype_name(self.dtype, "Pilot"))
+        n_rays = np.shape(self.pos_p)[1] if np.ndim(self.pos_p) == 3 else -1
         for name in _ARRAYS:
             a = _frozen(getattr(self, name))
-            want = 3 if name in ("pos_p", "pos_s", "dir_s") else 2
-            if a.ndim != want or a.shape[0] != n or a.shape[1] != self.pos_p.shape[1] or (want == 3 and a.shape[2] != 3):
-                raise ValueError(f"Pilot: {name} has shape {a.shape}; expected ({n}, N{', 3' if want == 3 else ''}) "
-                                 f"with N = {np.shape(self.pos_p)[1] if np.ndim(self.pos_p) > 1 else '?'} rays a source")
+            want = (n, n_rays, 3) if name in ("pos_p", "pos_s", "dir_s") else (n, n_rays)
+            if a.shape != want or n_rays < 1:
+                raise ValueError(f"Pilot: {name} has shape {a.shape}; expected (S, N{', 3' if len(want) == 3 else ''}) "
+                                 f"= {want} for {n} source(s) of N rays (pos_p's second axis)")
             if name in ("ok", "valid_plane") and a.dtype != bool:
                 raise ValueError(f"Pilot: {name} must be bool, got {a.dtype}")
             set_(self, name, a)
@@ -110,11 +111,16 @@ class Pilot:
         """The number of sources."""
         return len(self.wls)
 
+    def __repr__(self) -> str:
+        return (f"Pilot({len(self)} source(s) x {self.pos_p.shape[1]} rays, wls {list(self.wls)} um, pupils at "
+                f"{list(self.pupil_wls)} um, {self.dtype}, wave plane {self.plane})")
+
     def subset(self, indices) -> "Pilot":
         """The pilot of sources ``indices`` (ints, in that order; a slice is taken too), as a trace of those
         sources alone gives it: rays are independent, so the rows are the same bits (the pupil wavelengths
         stay what they were: a source's rays follow its pupil, :attr:`pupil_wls`)."""
-        idx = np.arange(len(self))[indices] if isinstance(indices, slice) else np.asarray(indices, dtype=np.int64).ravel()
+        idx = np.arange(len(self))[indices] if isinstance(indices, slice) else \
+            np.asarray(indices, dtype=np.int64).ravel()
         if idx.size and (idx.min() < -len(self) or idx.max() >= len(self)):
             raise IndexError(f"Pilot.subset: indices {idx.tolist()} out of range for {len(self)} source(s)")
         kw = {f.name: getattr(self, f.name) for f in _dc_fields(self)}
