@@ -23,6 +23,7 @@ from .wave.plan import Plan
 from .trace import as_field_list
 from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
+from .wave.pilot import Pilot, trace_pilot  # noqa: F401 (the pilot trace of a batch, rwwarp.wave.pilot)
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
 METHODS = ("auto", "focal", "asm", "two-step", "pixel")

@@ -236,9 +236,10 @@ class CachedProvider:
         step = math.inf if (not s.levels or gmax == 0) else 2.0 * math.pi / gmax / int(s.levels)
         return scale * gmax / (2.0 * math.pi), step
 
-    def _auto_plan(self, key):
+    def _auto_plan(self, key, pilot=None):
         """The automatic plan of one entry (the DOE unquantised: rwwarp's auto plan cannot align a grid
-        to the steps of a flat quantised DOE) refined by the DOE budget and the step rule."""
+        to the steps of a flat quantised DOE) refined by the DOE budget and the step rule. ``pilot``: the entry's
+        (:meth:`_pilot`; the tracer reads no DOE levels: a DOE is a plane to it), None: traced here."""
         from rwwarp.wave.plan import Plan, nice_fft_length
         from rwwarp.psf import RayWave
         wavelength_um, depth_mm = key
@@ -250,7 +251,8 @@ class CachedProvider:
         rw0 = RayWave(lens_p, fields, [float(wavelength_um)] * len(fields), self.size, self.pixel_mm,
                       device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
                       rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
-                      gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, pixel_values=geo.pixel_values)
+                      gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, pixel_values=geo.pixel_values,
+                      pilot=pilot)
         pl = rw0.plan
         safety = geo.nyquist_safety
         budget = self.doe_budget
@@ -350,16 +352,17 @@ class CachedProvider:
         in batches of :meth:`build_batch` sources (no gradient buffers), each batch a RayWave of its
         nodes with the entry's plan and patch centres (the field of a source does not depend on the
         others in its batch)."""
-        if self._uses_focal(key):
-            return self._build_focal(key, centres)
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
+        pilot = self._pilot(geo, fields, wavelength_um, depth)   # one trace for every plan of the entry
+        if self._uses_focal(key, pilot):
+            return self._build_focal(key, centres, pilot)
         if plan is None:
-            plan = self._auto_plan(key)
+            plan = self._auto_plan(key, pilot)
         centres = self._entry_centres(key, centres, geo, fields, depth)
         kw = dict(object_distance_mm=depth, pixel_mm=self.pixel_mm, plan=plan, requires_grad=False)
         wl = float(wavelength_um)
-        rw = geo.raywave(fields, [wl] * len(fields), self.size, center_mm=centres, **kw)
+        rw = geo.raywave(fields, [wl] * len(fields), self.size, center_mm=centres, pilot=pilot, **kw)
         est = self.build_batch(rw)
         b = est["batch"]
         dev = self.module.thickness_base.device
@@ -374,7 +377,7 @@ class CachedProvider:
             entering = torch.empty(rw.nsrc, dtype=torch.float64, device=dev)
             for k in range(0, rw.nsrc, b):
                 sl = slice(k, min(k + b, rw.nsrc))
-                sub = self._sub_raywave(key, rw, geo, sl, centres[sl], depth)
+                sub = self._sub_raywave(key, rw, geo, sl, centres[sl], depth, pilot.subset(sl))
                 u[sl] = self._to_torch(sub.wave_stepped(sub.field_array()), dev, self.cache_dtype)
                 entering[sl] = torch.as_tensor(sub.entering, dtype=torch.float64, device=dev)
                 del sub
@@ -411,10 +414,10 @@ class CachedProvider:
             e = self._build(key, self._recorded_plan(key))
         return e
 
-    def _uses_focal(self, key) -> bool:
+    def _uses_focal(self, key, pilot=None) -> bool:
         """Whether entry ``key`` propagates by the focal method: the module's ``method``, or for "auto"
         the choice :class:`rwwarp.psf.RayWave` makes for the entry's nodes (the band-limited ASM while its
-        plan is small, else focal), recorded in :attr:`plans`."""
+        plan is small, else focal), recorded in :attr:`plans`. ``pilot``: the entry's (:meth:`_pilot`) or None."""
         m = self.module.method
         if m not in ("auto", "two-step"):   # "two-step": auto's choice, with the wave step (_build, _build_focal)
             return m == "focal"
@@ -427,14 +430,26 @@ class CachedProvider:
                         device=geo.rw_device, plan=geo.plan_policy, amplitude=geo.amplitude, object_distance_mm=depth,
                         rays_per_sample=geo.rays_per_sample, use_reference=geo.use_reference,
                         gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto",
-                        focal_patch_tol=geo.focal_patch_tol, pixel_values=geo.pixel_values, auto_rule="small-asm")
+                        focal_patch_tol=geo.focal_patch_tol, pixel_values=geo.pixel_values, auto_rule="small-asm",
+                        pilot=pilot)
         return probe.plan.method == "focal"
 
-    def _build_focal(self, key, centres=None):
+    def _pilot(self, geo, fields, wavelength_um, depth):
+        """The pilot of an entry's nodes ``fields`` (deg) at ``wavelength_um`` (um) from ``geo``'s current lens,
+        object at ``depth`` (mm, None: the lens's), in one trace (:func:`rwwarp.wave.pilot.trace_pilot`): every
+        RayWave of the entry is planned from its rows (:meth:`~rwwarp.wave.pilot.Pilot.subset`), the same bits
+        as the pilot each would trace itself (rays are independent; one wavelength: one entrance pupil)."""
+        from rwwarp.psf import trace_pilot
+        return trace_pilot(geo.to_lens(), fields, [float(wavelength_um)] * len(fields), geo.rw_device,
+                           object_distance_mm=depth, use_reference=geo.use_reference)
+
+    def _build_focal(self, key, centres=None, pilot=None):
         """Cache one entry for the focal method: each node its own RayWave (its own focal plan: grids follow
-        that node's patch and the DOE orders reaching it) and wave-plane field, traced without gradients."""
+        that node's patch and the DOE orders reaching it; from its rows of the entry's ``pilot``, traced here if
+        None) and wave-plane field, traced without gradients."""
         wavelength_um, depth_mm = key
         geo, fields, depth = self._geometry(depth_mm)
+        pilot = self._pilot(geo, fields, wavelength_um, depth) if pilot is None else pilot
         centres = self._entry_centres(key, centres, geo, fields, depth)
         dev = self.module.thickness_base.device
         budget = self.budget_bytes()
@@ -442,7 +457,7 @@ class CachedProvider:
         for k, f in enumerate(fields):
             rw = geo.raywave([f], [float(wavelength_um)], self.size, object_distance_mm=depth, pixel_mm=self.pixel_mm,
                              center_mm=centres[k:k + 1], requires_grad=False, method="focal",
-                             memory_budget_bytes=budget)
+                             memory_budget_bytes=budget, pilot=pilot.subset([k]))
             if self.module.method == "two-step":   # the node's focal plan with its wave step (the live path's)
                 add_wave_step(rw, budget)
             # the wave step does not depend on the DOE behind it: the field is cached after it
@@ -626,17 +641,19 @@ class CachedProvider:
             geo_now, cen = current(key[1])
             _, fields, depth = self._geometry(key[1])
             lens = geo_now.to_lens()
-            why = None
+            why = pilot = None
             for k, (rw, _, _) in enumerate(nodes):
                 if np.max(np.abs(cen[k] - rw.centers[0])) > self.size * self.pixel_mm / 8.0:
                     why = {"reason": "re-centre", "shift_um": float(np.max(np.abs(cen[k] - rw.centers[0]))) * 1e3}
                     break
+                pilot = self._pilot(geo_now, fields, key[0], depth) if pilot is None else pilot   # one for all nodes
                 new = RayWave(lens, [fields[k]], [float(key[0])], self.size, self.pixel_mm, device=geo_now.rw_device,
                               plan=geo_now.plan_policy, amplitude=geo_now.amplitude, object_distance_mm=depth,
                               rays_per_sample=geo_now.rays_per_sample, center_mm=rw.centers,
                               use_reference=geo_now.use_reference, gauss_nodes=rw.gauss_nodes,
                               nyquist_safety=geo_now.nyquist_safety, method="focal",
-                              focal_patch_tol=geo_now.focal_patch_tol, pixel_values=geo_now.pixel_values)
+                              focal_patch_tol=geo_now.focal_patch_tol, pixel_values=geo_now.pixel_values,
+                              pilot=pilot.subset([k]))
                 if self.module.method == "two-step":   # compared with the cached node's plan, step included
                     add_wave_step(new)
                 a, b = rw.plan, new.plan
@@ -677,26 +694,26 @@ class CachedProvider:
     def _chunk_raywaves(self, key, rw, geo, chunk: int):
         """[(slice, RayWave of those nodes)] for propagation chunks of ``chunk`` nodes: RayWaves made
         with the entry's plan and patch centres (their windows equal the entry's, checked), cached
-        per entry and chunk size (no trace runs: only their propagation arguments are used)."""
+        per entry and chunk size (only their propagation arguments are used; one pilot trace of all nodes)."""
         if chunk >= rw.nsrc:
             return [(slice(0, rw.nsrc), rw)]
         store = self._chunks.setdefault(key, {})
         if chunk in store:
             return store[chunk]
         depth = key[1] if self.model == "ray-wave" else None
-        out = []
+        out, pilot = [], self._pilot(geo, list(rw.fields), key[0], depth)
         for k0 in range(0, rw.nsrc, chunk):
             sl = slice(k0, min(k0 + chunk, rw.nsrc))
-            out.append((sl, self._sub_raywave(key, rw, geo, sl, rw.centers[sl], depth)))
+            out.append((sl, self._sub_raywave(key, rw, geo, sl, rw.centers[sl], depth, pilot.subset(sl))))
         store[chunk] = out
         return out
 
-    def _sub_raywave(self, key, rw, geo, sl, centres, depth):
+    def _sub_raywave(self, key, rw, geo, sl, centres, depth, pilot=None):
         """A RayWave of the nodes ``sl`` of entry ``key`` on the entry's plan (``rw.plan``, explicit) and windows
         (checked), for a build batch or a propagation chunk. With a wave step (method "two-step") the batch is
         planned ``"asm"`` on the entry's widened plan and given the entry's reduced distances
         (``rw.wave_step[sl]``, FFT length ``rw.wave_step_pad``): its own wave-step plan would follow its own
-        nodes' edge widths, not the entry's."""
+        nodes' edge widths, not the entry's. ``pilot``: the nodes' (:meth:`_pilot` subset) or None (traced)."""
         import warnings
         from rwwarp.errors import SamplingWarning
         from rwwarp.wave.plan import Plan
@@ -707,7 +724,7 @@ class CachedProvider:
             warnings.filterwarnings("ignore", message="ray density criterion", category=SamplingWarning)
             sub = geo.raywave(list(rw.fields[sl]), list(rw.wls[sl]), self.size, object_distance_mm=depth,
                               pixel_mm=self.pixel_mm, plan=plan, center_mm=centres, requires_grad=False,
-                              method="asm" if stepped else None)
+                              method="asm" if stepped else None, pilot=pilot)
         if not np.allclose(sub.origin, rw.origin[sl], rtol=0, atol=1e-9):
             raise RuntimeError(f"nodes {sl.start}:{sl.stop} of entry {key}: their DOE-plane windows differ from the "
                                "entry's (internal error)")

@@ -347,14 +347,14 @@ class HybridLens(nn.Module):
         self._plans.clear()
 
     def raywave(self, fields, wavelengths_um, size, *, object_distance_mm=None, pixel_mm=None, center_mm=None,
-                plan=None, requires_grad: bool = True, method: str | None = None, memory_budget_bytes=None):
+                plan=None, requires_grad: bool = True, method: str | None = None, memory_budget_bytes=None, pilot=None):
         """The :class:`rwwarp.psf.RayWave` (plan and discrete decisions) for sources ``fields`` x
         ``wavelengths_um`` (paired element-wise), built from the current values (or cached, see
         ``replan``). ``requires_grad=False``: the tracer keeps no gradient buffers and ping-pongs two
         ray-state buffers (a frozen refractive part, e.g. :class:`~torch_bridge.design.CachedProvider`).
-        ``method``: override of the module's propagation method; ``memory_budget_bytes``: the planner's
-        estimate of the batch is checked against it before anything is traced
-        (:class:`rwwarp.wave.plan.MemoryBudgetError` names the estimate and the knobs)."""
+        ``method``: override of the module's propagation method; ``memory_budget_bytes``: the planner's estimate
+        is checked against it before anything is traced (:class:`rwwarp.wave.plan.MemoryBudgetError`); ``pilot``:
+        the sources' :class:`rwwarp.wave.pilot.Pilot` of the current lens (None: traced here; not in the cache key)."""
         from rwwarp.psf import RayWave
         self._once("finite", self.check_finite)
         fields = field_pairs(fields)
@@ -369,7 +369,7 @@ class HybridLens(nn.Module):
         lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
         rw = RayWave(lens, fields, wls, int(size), pixel, plan=plan, center_mm=center_mm,
-                     requires_grad=bool(requires_grad), method=method or self.method,
+                     requires_grad=bool(requires_grad), method=method or self.method, pilot=pilot,
                      memory_budget_bytes=memory_budget_bytes, **self._raywave_options(object_distance_mm))
         bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
         if not self.replan:
@@ -390,9 +390,9 @@ class HybridLens(nn.Module):
                        method: str | None = None, requires_grad: bool = True) -> list:
         """One :class:`rwwarp.psf.RayWave` per source (``fields`` x ``wavelengths_um`` paired element-wise; deg,
         um), each with the plan :meth:`raywave` gives that source alone (``centers_mm`` (S, 2): its patch
-        centre, mm), from one pilot trace of all of them (a source's pilot rays, its pupil at its own wavelength,
-        do not depend on the others): one set of trace launches and host reads, not one per source. Without
-        ``replan`` (kept plans) each is :meth:`raywave` of that source."""
+        centre, mm), from one pilot trace of all of them (:func:`rwwarp.wave.pilot.trace_pilot`: a source's pilot rays,
+        its pupil at its own wavelength, do not depend on the others): one set of trace launches, no plan of them
+        all. Without ``replan`` (kept plans) each is :meth:`raywave` of that source."""
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
         centers = np.asarray(centers_mm, dtype=np.float64).reshape(len(fields), 2)
@@ -400,19 +400,19 @@ class HybridLens(nn.Module):
             return [self.raywave([f], [w], size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
                                  center_mm=centers[k:k + 1], method=method, requires_grad=requires_grad)
                     for k, (f, w) in enumerate(zip(fields, wls))]
-        from rwwarp.psf import RayWave
+        from rwwarp.psf import RayWave, trace_pilot
         self._once("finite", self.check_finite)
         lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
         opts = self._raywave_options(object_distance_mm)
-        # the pilot of all sources, each entrance pupil at its own wavelength (its plan is not used)
-        probe = RayWave(lens, fields, wls, int(size), pixel, plan="auto", method="asm", own_pupils=True,
-                        **dict(opts, gauss_nodes=3, deterministic=False))
+        # the pilot of all sources in one trace, each entrance pupil at its own wavelength
+        pilot = trace_pilot(lens, fields, wls, opts["device"], opts["dtype"], object_distance_mm, own_pupils=True,
+                            use_reference=opts["use_reference"])
         out = []
         for k, (f, w) in enumerate(zip(fields, wls)):
             rw = RayWave(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
                          requires_grad=bool(requires_grad), method=method or self.method, own_pupils=True,
-                         pilot={key: v[k:k + 1] for key, v in probe.pilot.items()}, **opts)
+                         pilot=pilot.subset([k]), **opts)
             bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
             out.append(rw)
         return out

@@ -273,7 +273,7 @@ def estimate_for_raywave(rw) -> list:
     if prof is not None and s.profile.get("kind") == "pixel_map":   # no gradient (quantised smooth reliefs keep theirs)
         prof, note = None, "a DOE with steps (pixel map): its phase slope is not counted"
     out = []
-    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
     for k in range(rw.nsrc):
         w = float(rw.wls[k])
         n = float(rw.n_after[k])

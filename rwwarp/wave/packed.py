@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .pilot import trace_pilot
 from .raywave import RayWave
 from ..trace import Tracer
 
@@ -20,20 +21,19 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                  model_tolerance: float | None = None, allow_pixel: bool = False) -> list:
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
-    (entrance pupil at its own wavelength), from one pilot trace of all of them (the pilot rays are
-    independent, so each source's are what a pilot of it alone gives). Arguments as :class:`RayWave`
-    (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take);
+    (entrance pupil at its own wavelength), from one pilot trace of all of them
+    (:func:`rwwarp.wave.pilot.trace_pilot`, one set of launches; the pilot rays are independent, so each
+    source's, :meth:`~rwwarp.wave.pilot.Pilot.subset`, are what a pilot of it alone gives). Arguments as
+    :class:`RayWave` (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take);
     :class:`PackedRayWave` computes them together."""
-    probe = RayWave(lens, fields, wls, size, pixel, device, "auto", dtype, amplitude, object_distance_mm,
-                    rays_per_sample, center_mm, use_reference, gauss_nodes=3, nyquist_safety=nyquist_safety,
-                    method="asm", own_pupils=True)
+    pilot = trace_pilot(lens, fields, wls, device, dtype, object_distance_mm, own_pupils=True,
+                        use_reference=use_reference)
     members = []
     for k in range(len(fields)):
-        pk = {key: v[k:k + 1] for key, v in probe.pilot.items()}
         members.append(RayWave(lens, [fields[k]], [wls[k]], size, pixel, device, plan, dtype, amplitude,
                                object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
                                nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
-                               deterministic, own_pupils=True, pilot=pk, pixel_values=pixel_values,
+                               deterministic, own_pupils=True, pilot=pilot.subset([k]), pixel_values=pixel_values,
                                model_tolerance=model_tolerance, allow_pixel=allow_pixel))
     return members
 

@@ -22,12 +22,14 @@ from .plan import Plan, check_explicit, nice_fft_length
 from .plan import auto_sizes
 from .splat import paper_rescale_layout
 from ..device_upload import upload_packed
-from ..trace import Tracer, pupil_grid
+from ..trace import Tracer
 from ..trace import field_label as _fmt_field
 
 from .focal import FOCAL_MAX_ORDER  # noqa: F401  (its home: focal; read by the planner below)
 from .sensor_grid import auto_gauss_nodes as _auto_gauss_nodes, n_img_all, pixel_centres as _pixel_centres
 from .sensor_grid import snap_centers as _snap_centers
+from .pilot import Pilot, batch_sources, pilot_from_tracer
+from .pilot import own_pupil_sources  # noqa: F401  (its home: rwwarp.wave.pilot; public here before)
 
 
 def _is_curved(surface) -> bool:
@@ -35,31 +37,6 @@ def _is_curved(surface) -> bool:
     if surface.type != "standard":
         return False
     return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
-
-
-def _tracer_sources(tr, fields, wls, uniq, object_distance_mm):
-    """The tracer's sources (:meth:`rwwarp.trace.Tracer.sources`): every pupil at the tracer's first
-    wavelength."""
-    return tr.sources(fields, [uniq.index(w) for w in wls], object_distance=object_distance_mm)
-
-
-def own_pupil_sources(tr, fields, wls, uniq, object_distance_mm):
-    """:meth:`rwwarp.trace.Tracer.sources` with each source's entrance pupil at its own wavelength (um), as a
-    tracer of that wavelength alone lays it: a source's rays do not depend on the others in its batch.
-    ``uniq``: the tracer's wavelengths (sorted), ``wls`` one per field."""
-    from .. import paraxial
-    src = tr.sources(fields, [uniq.index(w) for w in wls], object_distance=object_distance_mm)
-    saved = tr.pupils
-    try:
-        for w in uniq:
-            ks = [k for k, wk in enumerate(wls) if wk == w]
-            tr.pupils = paraxial.pupils(tr.lens, w)
-            sub = tr.sources([fields[k] for k in ks], uniq.index(w), object_distance=object_distance_mm)
-            for key in ("pos", "dir", "finite", "aim", "half_x", "half_y"):
-                src[key][ks] = sub[key]
-    finally:
-        tr.pupils = saved
-    return src
 
 
 # ---------------------------------------------------------------------------------------------- ray-wave
@@ -89,6 +66,11 @@ class RayWave:
     ``pixel_values``: what a pixel records, ``"flux"`` (default, the power through it) or ``"intensity"``
     (``|U|^2`` over it, the earlier convention); docs/propagation.md "Pixel values".
 
+    ``pilot``: the sources' :class:`rwwarp.wave.pilot.Pilot` (:func:`rwwarp.wave.pilot.trace_pilot` of these
+    sources, or a :meth:`~rwwarp.wave.pilot.Pilot.subset` of a batch's traced with ``own_pupils``), read and never
+    changed; checked to be of these fields, wavelengths, pupils, object distance, ``use_reference`` and ``dtype``
+    (``ValueError`` naming what differs); it must come from the same lens values. None (default): traced here.
+
     ``auto_rule`` (``method="auto"``): how the two planned propagations are chosen. ``"small-asm"``: the
     band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
     GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
@@ -104,7 +86,7 @@ class RayWave:
                  amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, center_mm=None,
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
-                 own_pupils: bool = False, pilot: dict | None = None, pixel_values: str = "flux",
+                 own_pupils: bool = False, pilot: Pilot | None = None, pixel_values: str = "flux",
                  model_tolerance: float | None = None, auto_rule: str = "device", allow_pixel: bool = False):
         if auto_rule not in ("device", "small-asm", "flops"):
             raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
@@ -120,7 +102,7 @@ class RayWave:
         tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad,
                     deterministic=self.deterministic)
         nsrc = len(fields)
-        src = (own_pupil_sources if own_pupils else _tracer_sources)(tr, fields, wls, uniq, object_distance_mm)
+        src, pupil_wls = batch_sources(tr, fields, wls, object_distance_mm, own_pupils)
         src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
         self.own_pupils = bool(own_pupils)
         n_after = np.array([lens.indices(w)[plane] for w in wls])
@@ -132,22 +114,19 @@ class RayWave:
                             "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
         lam_mm = np.array(wls) * 1e-3
 
-        # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor
+        # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor (rwwarp.wave.pilot)
         if pilot is None:
-            pu, pv, _ = pupil_grid(31, src["shape"])
-            pu, pv = np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])
-            with tr.without_gradients():   # the plan reads these rays on the host; nothing differentiates them
-                rays_p = tr._run(src, pu, pv, 1.0, keep=(plane,))
-            at_plane, opl_plane, valid_plane = rays_p.kept[plane]
-            pilot = {"pos_p": at_plane.numpy().reshape(nsrc, -1, 3), "pos_s": rays_p.pos.numpy().reshape(nsrc, -1, 3),
-                     "dir_s": rays_p.dir.numpy().reshape(nsrc, -1, 3),
-                     "opl_p": opl_plane.numpy().reshape(nsrc, -1).astype(np.float64),
-                     "ok": rays_p.valid.numpy().reshape(nsrc, -1).astype(bool),
-                     "valid_plane": valid_plane.numpy().reshape(nsrc, -1).astype(bool)}
-        #: the pilot rays on the host (each source's alone: rays are independent), for :meth:`source_plans`
+            pilot = pilot_from_tracer(tr, src, plane, wls, pupil_wls, dtype)
+        elif not isinstance(pilot, Pilot):
+            raise TypeError(f"RayWave: pilot must be a rwwarp.wave.pilot.Pilot (rwwarp.wave.pilot.trace_pilot, "
+                            f"Pilot.subset) or None, got {type(pilot).__name__}")
+        else:
+            pilot.check_for(fields, wls, pupil_wls, src["object_distance"], use_reference, dtype, plane)
+        #: the pilot rays on the host (:class:`rwwarp.wave.pilot.Pilot`, read-only; each source's alone: rays are
+        #: independent), for :func:`rwwarp.wave.packed.source_plans`, the model error and the wave step
         self.pilot = pilot
-        pos_p, pos_s, dir_s = pilot["pos_p"].copy(), pilot["pos_s"], pilot["dir_s"]
-        opl_p = pilot["opl_p"].copy()
+        pos_p, pos_s, dir_s = pilot.pos_p.copy(), pilot.pos_s, pilot.dir_s
+        opl_p = pilot.opl_p.copy()
         # a curved last surface: carry the rays on to its vertex plane (straight, in the image medium,
         # OPL included) so the field is formed on a true plane
         self.curved_plane = _is_curved(lens.surfaces[plane])
@@ -155,7 +134,7 @@ class RayWave:
             t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
             pos_p = pos_p + t[..., None] * dir_s
             opl_p = opl_p + n_after[:, None] * t
-        ok = pilot["ok"]
+        ok = pilot.ok
         for k in range(nsrc):
             if ok[k].sum() < 3:
                 raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
@@ -304,7 +283,7 @@ class RayWave:
         # chief ray OPL on the plane (a per-source constant phase: not differentiated); the pilot's pupil
         # sample 0 is the chief ray (u = v = 0), traced alone before as the same independent ray
         self.opl_chief = opl_p[:, 0].copy()
-        self.chief_ok = pilot["valid_plane"][:, 0].copy()
+        self.chief_ok = pilot.valid_plane[:, 0].copy()
         self.chief_plane = np.where(self.chief_ok[:, None], pos_p[:, 0], chief_plane)
         self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
         # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)

@@ -175,7 +175,7 @@ def double_transport_shift_mm(rw, d) -> float:
     carry it to the wave plane, and ``P_d`` moves it again by ``d`` times the rays' angle to the sphere of
     ``rw.target`` (pilot rays before the DOE; ``d`` (S,) mm)."""
     out = 0.0
-    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
     for k in range(rw.nsrc):
         p, m = pos[k, ok[k]], dirs[k, ok[k]]
         if len(p) == 0 or d[k] == 0:
@@ -195,7 +195,7 @@ def step_phase_rad(rw, d) -> np.ndarray:
     largest shift ``s`` of :func:`double_transport_shift_mm`."""
     d = np.asarray(d, float)
     out = np.zeros(rw.nsrc)
-    pos, dirs, ok = rw.pilot["pos_p"], rw.pilot["dir_s"], rw.pilot["ok"]
+    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
     for k in range(rw.nsrc):
         p, m = pos[k, ok[k]], dirs[k, ok[k]]
         if len(p) == 0 or d[k] == 0:

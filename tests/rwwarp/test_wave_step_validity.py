@@ -72,7 +72,7 @@ def test_the_steps_phase_against_an_independent_trace_of_a_singlet():
     to_t /= np.linalg.norm(to_t, axis=1, keepdims=True)
     phi = math.pi * d * (m[:, 0] - to_t[:, 0]) ** 2 / 0.55e-3       # pi lambda d |f|^2, f = (m - m_T) / lambda
     # the pilot's outermost point on the plane: the trace's rays inside it
-    pos, ok = r.pilot["pos_p"][0], r.pilot["ok"][0]
+    pos, ok = r.pilot.pos_p[0], r.pilot.ok[0]
     r_max = float(np.max(np.hypot(pos[ok, 0], pos[ok, 1])))
     want = float(np.max(phi[np.abs(p[:, 0]) <= r_max]))
     got = float(ws.step_phase_rad(r, r.wave_step)[0])
