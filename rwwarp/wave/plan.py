@@ -277,7 +277,11 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       points under the quadratic transfer and ``FOCAL_SPREAD`` times that of every kept order's (aliasing);
       with ``straight_edges`` (a square pupil) ``FOCAL_EDGE_SPREAD`` times the main order's spread and
       ``FOCAL_EDGE_ALL_SPREAD`` times every kept order's: the patch's
-      space-bandwidth product, not the beam's;
+      space-bandwidth product, not the beam's; and at least ``FOCAL_RAY_SPREAD x nyquist_safety`` times the
+      extent of the main order's straight-ray landings (an aberrated spot: the rim's phase slope per cell);
+    * where the main order's rays land beyond ``V``'s taper guard (a spot wider than the patch lights the
+      taper), the sensor-side margin takes ``FOCAL_LIT_SHIFT_MARGIN`` displacements instead of
+      ``FOCAL_SHIFT_MARGIN`` (``geometry["lit_taper"]`` per source; ``method="auto"`` then takes the focal path);
     * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 4)`` across the footprint
       (``samples``: wave-plane samples across it).
 
