@@ -243,6 +243,7 @@ FOCAL_EDGE_ALL_SPREAD = 6.0  # ... over the spread of every kept order's light (
 FOCAL_MARGIN_B = 6.0       # sensor-side margin beyond the patch and the remainder's displacement, in 1 / B
 FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ring from a nearer cut)
 FOCAL_RAY_SPREAD = 14.0    # wave-plane period over the main order's straight-ray landing extent, per nyquist_safety
+FOCAL_RAY_MAX_GRID = 2048  # ... while the wave-plane grid stays within this many samples a side
 FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays land beyond V's taper guard (lit taper)
 
 
@@ -410,7 +411,15 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     # doubling the rays leaves it, a smooth window that takes the rim away removes 97 % of it). The period is
     # therefore at least FOCAL_RAY_SPREAD x safety landing extents of the main order's rays: ~0.11 rad per cell
     # at the rim. A focused beam's landing extent is a few Airy radii, and the rules above already exceed it.
-    period = max(period, FOCAL_RAY_SPREAD * ray_spread * nyquist_safety)
+    # It may grow the wave-plane grid to FOCAL_RAY_MAX_GRID samples a side, no further: a strongly defocused beam
+    # (the Cooke triplet with its front curvature 10 % weaker, a design mid-optimisation: a 1.4 mm spot about a
+    # 60 um patch) would ask for 16026^2 samples (90 GiB with gradients) where the rules above plan 4509^2; its
+    # own error there, 3.4e-3 of the peak against 3 x the period (self-convergence), is stated in the reasons.
+    window_mm = width_mm + 2.0 * width_mm / 31.0
+    want = FOCAL_RAY_SPREAD * ray_spread * nyquist_safety
+    cap = max(period, (FOCAL_RAY_MAX_GRID - 3) / (window_mm * float(np.max(A))))
+    ray_capped = want > cap
+    period = max(period, min(want, cap))
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3
@@ -427,7 +436,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
         f"margin {mb:g}/B + {FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
-        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
+        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {FOCAL_RAY_MAX_GRID} samples: the rim may err by more than 2e-4 of the peak)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
         f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 4) -> {ray_grid} across the pupil",
