@@ -279,7 +279,8 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       with ``straight_edges`` (a square pupil) ``FOCAL_EDGE_SPREAD`` times the main order's spread and
       ``FOCAL_EDGE_ALL_SPREAD`` times every kept order's: the patch's
       space-bandwidth product, not the beam's; and at least ``FOCAL_RAY_SPREAD x nyquist_safety`` times the
-      extent of the main order's straight-ray landings (an aberrated spot: the rim's phase slope per cell);
+      extent of the main order's straight-ray landings (an aberrated spot: the rim's phase slope per cell),
+      as far as a wave-plane grid of ``FOCAL_RAY_MAX_GRID`` samples a side (the reasons say where it is capped);
     * where the main order's rays land beyond ``V``'s taper guard (a spot wider than the patch lights the
       taper), the sensor-side margin takes ``FOCAL_LIT_SHIFT_MARGIN`` displacements instead of
       ``FOCAL_SHIFT_MARGIN`` (``geometry["lit_taper"]`` per source; ``method="auto"`` then takes the focal path);
