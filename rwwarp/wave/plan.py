@@ -242,6 +242,9 @@ FOCAL_EDGE_SPREAD = 12.0   # wave-plane period over the main order's spread with
 FOCAL_EDGE_ALL_SPREAD = 6.0  # ... over the spread of every kept order's light (weaker: fewer of their tails alias)
 FOCAL_MARGIN_B = 6.0       # sensor-side margin beyond the patch and the remainder's displacement, in 1 / B
 FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ring from a nearer cut)
+FOCAL_RAY_SPREAD = 14.0    # wave-plane period over the main order's straight-ray landing extent, per nyquist_safety
+FOCAL_RAY_MAX_GRID = 2048  # ... while the wave-plane grid stays within this many samples a side
+FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays land beyond V's taper guard (lit taper)
 
 
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
@@ -275,7 +278,12 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
       points under the quadratic transfer and ``FOCAL_SPREAD`` times that of every kept order's (aliasing);
       with ``straight_edges`` (a square pupil) ``FOCAL_EDGE_SPREAD`` times the main order's spread and
       ``FOCAL_EDGE_ALL_SPREAD`` times every kept order's: the patch's
-      space-bandwidth product, not the beam's;
+      space-bandwidth product, not the beam's; and at least ``FOCAL_RAY_SPREAD x nyquist_safety`` times the
+      extent of the main order's straight-ray landings (an aberrated spot: the rim's phase slope per cell),
+      as far as a wave-plane grid of ``FOCAL_RAY_MAX_GRID`` samples a side (the reasons say where it is capped);
+    * where the main order's rays land beyond ``V``'s taper guard (a spot wider than the patch lights the
+      taper), the sensor-side margin takes ``FOCAL_LIT_SHIFT_MARGIN`` displacements instead of
+      ``FOCAL_SHIFT_MARGIN`` (``geometry["lit_taper"]`` per source; ``method="auto"`` then takes the focal path);
     * rays: ``rays_per_sample x max(min(samples, FOCAL_RIM_RAYS), samples / 4)`` across the footprint
       (``samples``: wave-plane samples across it).
 
@@ -292,6 +300,8 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     boxes, kept, lost, bands, shifts = [], [], np.zeros(S), np.zeros(S), np.zeros(S)
     g_fit, q_fit = g.copy(), q.copy()
     spread = spread_main = 0.0   # the light's extent at the sensor under the quadratic transfer (all, main order)
+    ray_spread = 0.0             # the main order's straight-ray landing extent (the geometric spot, no margins)
+    lit = np.zeros(S, dtype=bool)  # per source: the main order's rays land beyond the taper guard
     for k in range(S):
         T = centers[k]
         main_m, main_c = max(orders[k], key=lambda mc: abs(mc[1]))
@@ -307,6 +317,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
         margin = mb / band
         keep, used, lo, hi = [], [], T - half_w, T + half_w
+        main_box = None
         for m, c, f, L, x in cand:
             if len(L) == 0:
                 lost[k] += abs(c) ** 2
@@ -326,6 +337,9 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
                 continue
             keep.append((_order_index(m), complex(c)))
             used.append((f, L, x, m == main_m))
+            if m == main_m:
+                ray_spread = max(ray_spread, float(np.max(lhi - llo)))
+                main_box = (llo, lhi)
         if used:
             g_fit[k], q_fit[k] = fit_quadratic_transfer([u[0] for u in used], [u[1] for u in used],
                                                         [u[2] for u in used], carrier[k], g[k], q[k], z)
@@ -344,7 +358,15 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         # the quadratic model's field has tails as wide as the remainder's displacement, and H_R carries the
         # box's cut edge that far: the margin grows with it (measured on the Cooke triplet at 14 deg against
         # rs_lens_psf, fitted transfer, 95 um shift, 16 px: 1.25e-4, 8.7e-5, 6.6e-5 at 1, 1.5, 2 shifts)
-        margin_k = margin + FOCAL_SHIFT_MARGIN * shifts[k]
+        # an aberrated spot wider than the guard lights V where it is tapered: the taper's own spectrum (~ 1 /
+        # its width, beyond the beam's band, where H_R moves light farther than `shifts`) then reaches the
+        # patch. A BK7 singlet at 40 deg (16 px, the period of FOCAL_RAY_SPREAD), against rs_lens_psf: 2.7e-4 /
+        # 5.4e-5 of the peak with 1.5 / 3 displacements of margin (6 / B -> 9 / B instead: 5.1e-5); the A489 at
+        # 10 deg and the singlet at 35 deg moved by < 20 %. The wider margin is taken only where the rays light it.
+        guard = half_w + FOCAL_TAPER_GUARD * shifts[k] + 3.0 / band
+        if used and main_box is not None:
+            lit[k] = bool(np.any(main_box[0] < T - guard) or np.any(main_box[1] > T + guard))
+        margin_k = margin + (FOCAL_LIT_SHIFT_MARGIN if lit[k] else FOCAL_SHIFT_MARGIN) * shifts[k]
         lo = np.minimum(lo, T - half_w - shifts[k]) - margin_k
         hi = np.maximum(hi, T + half_w + shifts[k]) + margin_k
         # V is computed only near the patch: the remainder moves light at most shifts[k], so what lies farther
@@ -381,6 +403,24 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         period = max(FOCAL_EDGE_SPREAD * spread_main, FOCAL_EDGE_ALL_SPREAD * spread) * nyquist_safety
     else:
         period = max(FOCAL_PITCH_FACTOR * box, FOCAL_MAIN_SPREAD * spread_main, FOCAL_SPREAD * spread) * nyquist_safety
+    # an aberrated beam (a geometric spot many Airy radii wide, the patch inside it): near the pupil's rim the field's
+    # phase slope relative to the reference wave is 2 pi A (L - T) (L: where the rim's rays land), so a wave-plane
+    # cell spans pi |L - T| / period rad of it there. The rim cells' sum (the hard edge, partly covered cells, the
+    # kernel taken at the cell centre) errs as the square of that phase (measured against rs_lens_psf, 16 px, the
+    # error / peak falls as 1 / period^2: A489 at 10 deg 8.1e-4 / 3.1e-4 / 1.7e-4 and a BK7 singlet at 35 deg 6.9e-4 /
+    # 3.2e-4 / 1.9e-4 at 1 / 1.5 / 2 x the period of the rules above; shifting the grid by half a cell or
+    # doubling the rays leaves it, a smooth window that takes the rim away removes 97 % of it). The period is
+    # therefore at least FOCAL_RAY_SPREAD x safety landing extents of the main order's rays: ~0.11 rad per cell
+    # at the rim. A focused beam's landing extent is a few Airy radii, and the rules above already exceed it.
+    # It may grow the wave-plane grid to FOCAL_RAY_MAX_GRID samples a side, no further: a strongly defocused beam
+    # (the Cooke triplet with its front curvature 10 % weaker, a design mid-optimisation: a 1.4 mm spot about a
+    # 60 um patch) would ask for 16026^2 samples (90 GiB with gradients) where the rules above plan 4509^2; its
+    # own error there, 3.4e-3 of the peak against 3 x the period (self-convergence), is stated in the reasons.
+    window_mm = width_mm + 2.0 * width_mm / 31.0
+    want = FOCAL_RAY_SPREAD * ray_spread * nyquist_safety
+    cap = max(period, (FOCAL_RAY_MAX_GRID - 3) / (window_mm * float(np.max(A))))
+    ray_capped = want > cap
+    period = max(period, min(want, cap))
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3
@@ -395,9 +435,9 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
-        f"margin {mb:g}/B + {FOCAL_SHIFT_MARGIN:g} shift = {mb * 1e3 / np.min(bands) + FOCAL_SHIFT_MARGIN * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
+        f"margin {mb:g}/B + {FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
-        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
+        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {FOCAL_RAY_MAX_GRID} samples: the rim may err by more than 2e-4 of the peak)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
         f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 4) -> {ray_grid} across the pupil",
@@ -405,6 +445,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
     return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost,
+                  "lit_taper": lit,
                   "transfer": (g_fit, q_fit),
                   # V whole within 1.5 shifts + 3 / B of the nodes (AC254, 16 px, against rs_lens_psf: 7.7e-5 at 1
                   # shift, 3.0e-5 at 1.5), tapered over the rest of the margin
