@@ -1,5 +1,5 @@
 """A published hybrid diffractive-asphere singlet (issue 27, item 4): Edmund Optics' 65-988 plastic hybrid asphere,
-a 12 mm pupil, f = 15 mm Zeonex E48R singlet whose front surface (R 9.93 mm, conic -0.71, r^4 / r^6 / r^8 terms)
+a 12 mm pupil Zeonex E48R singlet (EFL 15.02 mm at d) whose front surface (R 9.93 mm, conic -0.71, r^4 / r^6 / r^8 terms)
 carries a diffractive r^2 phase in order 1. Source: the maker's CODE V sequence file as kept by mjhoptics/ray-optics
 (``src/rayoptics/codev/tests/CODV_65988.seq``, commit 0b1dc26c, BSD-3-Clause; "seq files from the Edmund website"),
 stored unchanged as tests/data/third_party/files/ray-optics/CODV_65988.seq.
