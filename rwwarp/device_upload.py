@@ -67,7 +67,8 @@ def upload_packed(parts, device: str, cache: bool = False):
             hit = _UPLOADS.get(key)
             if hit is not None:
                 _UPLOADS.move_to_end(key)
-                return _recorded(list(hit))
+        if hit is not None:  # _recorded takes the (non-reentrant) lock itself: call it outside
+            return _recorded(list(hit))
     base = wp.array(buf, dtype=wp.uint8, device=device)
     out = []
     for h, off, (_, _, wdt) in zip(host, offsets, parts):
