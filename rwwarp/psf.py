@@ -28,7 +28,7 @@ from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived 
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
-METHODS = ("auto", "focal", "asm", "two-step", "pixel")
+from .wave.methods import choices as method_choices, get as get_method  # noqa: E402  (the registered methods)
 
 
 def _check_tolerance(tolerance):
@@ -220,7 +220,7 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     trace runs). ``plan.explain()`` prints it; ``plan.estimate`` holds ``memory_bytes`` and ``flops``.
     Arguments as :func:`psf` (lengths mm, wavelengths um, field deg)."""
     from . import checks
-    checks.check_choice(method, "method", METHODS)
+    checks.check_choice(method, "method", method_choices())
     tolerance = _check_tolerance(tolerance)
     fields = checks.check_fields([field_deg])
     wls = checks.check_wavelengths([wavelength_um], lens)
@@ -296,7 +296,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     info = {"plan": None, "valid_fraction": np.zeros(len(pairs)), "time_s": 0.0, "batches": [],
             "dropped_rays": np.zeros(len(pairs), dtype=np.int64)}
     t0 = time.perf_counter()
-    checks.check_choice(method, "method", METHODS)
+    checks.check_choice(method, "method", method_choices())
     tolerance = _check_tolerance(tolerance)
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):
@@ -395,7 +395,7 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
         for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
                                                object_distance_mm, opts):
             for chunk_idx in pack_sources(members, size, batch, budget):
-                if members[chunk_idx[0]].plan.method == "pixel":
+                if not get_method(members[chunk_idx[0]].plan.method).packable:
                     # no wave-plane field to pack: computed alone, and a call with such a member keeps nothing
                     store([sys_pairs[k] for k in chunk_idx], members[chunk_idx[0]].run(focal_precision))
                     keep, new = False, []
@@ -449,7 +449,8 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
     for k in order:
         if cur:
             m0 = members[cur[0]]
-            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and m0.plan.method != "pixel"
+            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and \
+                get_method(m0.plan.method).packable
             fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
             if same and fits and (batch is None or len(cur) < batch):
                 cur.append(k)
