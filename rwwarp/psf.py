@@ -150,7 +150,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Adaptive plan: the DOE-plane pitch samples the highest local frequency this many times above
         its Nyquist limit of 2 samples per period (aperture-edge diffraction spreads past it; 2 keeps
         the aliased part near 1e-4).
-    method : "auto" | "focal" | "asm"
+    method : "auto" | "focal" | "asm" | "two-step" | "pixel" | "direct" | any registered method
         Wave propagation (ray-wave model). ``"focal"`` handles the wave converging to the patch
         analytically and samples only what reaches the patch (:mod:`rwwarp.wave.focal`); ``"asm"`` is the
         band-limited angular spectrum over the whole converging beam (the reference path; its cost grows
@@ -165,7 +165,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         its cost follows the patch and the aberrations, not the beam's diffraction-scale sampling. "auto" picks
         it for a lens without a DOE where the pixel spans >= 4 Airy radii, its error estimate against the full
         computation is within ``tolerance`` (default 1e-3 of the peak; a given ``tolerance`` below the model's own
-        error keeps the wave step instead) and it plans fewer flops.
+        error keeps the wave step instead) and it plans fewer flops. ``"direct"``: the brute-force
+        Rayleigh-Sommerfeld sum from every wave-plane sample to every pixel node (no FFT; O(N^2 M^2): a reference
+        for small cases). The methods are registered by name (:mod:`rwwarp.wave.methods`).
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.
