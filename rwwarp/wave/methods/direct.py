@@ -30,30 +30,36 @@ FLOPS_PER_ENTRY = 60.0
 
 
 class DirectOperator:
-    """The Rayleigh-Sommerfeld sum of a :class:`~rwwarp.wave.raywave.RayWave` batch (``rw``): its windows,
-    carrier, medium wavelengths and DOE phase, to its pixels' Gauss nodes, over ``distance_mm`` (mm; default the
-    lens's plane-to-sensor distance). In the array namespace ``xp`` (numpy or CuPy), float64 throughout."""
+    """The Rayleigh-Sommerfeld sum from the windows of a :class:`~rwwarp.wave.field.WaveField` (``wave``: its
+    origins, pitch, medium wavelengths, carrier and DOE phase; its samples are not read) to the nodes
+    ``nodes_x_mm`` / ``nodes_y_mm`` ((S, Mx) / (S, My), mm; the output grid of each source is their product)
+    ``distance_mm`` (mm) behind the plane, in the array namespace ``xp`` (numpy or CuPy), float64 throughout.
+    :meth:`of` builds it for a :class:`~rwwarp.wave.raywave.RayWave` batch and its pixels' Gauss nodes."""
 
-    def __init__(self, rw, distance_mm=None, xp=np):
-        self.xp, self.nsrc = xp, rw.nsrc
-        self.z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
+    def __init__(self, wave, nodes_x_mm, nodes_y_mm, distance_mm, xp=np):
+        self.xp, self.nsrc = xp, wave.n_sources
+        self.z = float(distance_mm)
         if not self.z > 0:
             raise ValueError(f"direct: the distance must be positive (mm), got {self.z!r}")
-        pl = rw.plan
-        n = pl.n_grid
-        g = np.arange(n) * pl.pitch_mm
-        self.h2 = float(pl.pitch_mm) ** 2
-        self.k = 2.0 * np.pi * np.asarray(rw.n_after, float) / np.asarray(rw.lam_mm, float)   # rad/mm
-        self.xs = rw.origin[:, 0:1] + g[None, :]          # (S, N) sample x
-        self.ys = rw.origin[:, 1:2] + g[None, :]          # (S, N) sample y
-        self.nx, self.ny = gauss_nodes_xy(rw)             # (S, M) node x, y
+        self.h2 = float(wave.pitch_mm) ** 2
+        self.k = 2.0 * np.pi / wave.wavelength_mm   # rad/mm in the medium
+        self.xs, self.ys = wave.coordinates()         # (S, N) sample x, y
+        self.nx, self.ny = np.asarray(nodes_x_mm, float), np.asarray(nodes_y_mm, float)   # (S, M) node x, y
         # the true field is samples * exp(2 pi i f_c . (x, y)) (absolute x, y), times the DOE transmission
-        car = np.asarray(rw.carrier, float)
+        car = wave.carrier_cpmm
         t = np.exp(2j * np.pi * (car[:, None, None, 0] * self.xs[:, None, :] + car[:, None, None, 1] * self.ys[:, :, None]))
-        phi0, scale = rw.doe_phase()
-        if phi0 is not None:
-            t = t * np.exp(1j * np.asarray(scale, float)[:, None, None] * np.asarray(phi0))
+        if wave.doe_phase is not None:
+            t = t * np.exp(1j * np.asarray(wave.doe_scale, float)[:, None, None] * np.asarray(wave.doe_phase))
         self.t = xp.asarray(t)
+
+    @classmethod
+    def of(cls, rw, distance_mm=None, xp=np):
+        """The operator of a RayWave batch ``rw`` (its :meth:`~rwwarp.wave.raywave.RayWave.wave_field` layout) to
+        its pixels' Gauss nodes over ``distance_mm`` (default the lens's plane-to-sensor distance)."""
+        n = rw.plan.n_grid
+        wave = rw.wave_field(np.zeros((rw.nsrc, n, n), np.complex128))   # the layout only: no trace
+        z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
+        return cls(wave, *gauss_nodes_xy(rw), z, xp)
 
     def _kernel(self, k, X, Y, derivative):
         """Kernel rows (m, N^2) for nodes ``X``, ``Y`` (m,) of source ``k``: G or dG/dz."""
@@ -73,7 +79,7 @@ class DirectOperator:
 
     def _apply(self, field, derivative):
         xp = self.xp
-        field = xp.asarray(field)
+        field = xp.asarray(getattr(field, "samples", field))
         S, My, Mx = self.nsrc, self.ny.shape[1], self.nx.shape[1]
         out = xp.empty((S, My, Mx), np.complex128)
         for k in range(S):
@@ -87,8 +93,8 @@ class DirectOperator:
         return out
 
     def forward(self, field):
-        """The field at the nodes (S, My, Mx) from the wave-plane field (S, n, n) (carrier removed, wave step
-        applied, before the DOE)."""
+        """The field at the nodes (S, My, Mx) from the wave-plane field (S, n, n) or a
+        :class:`~rwwarp.wave.field.WaveField` of this layout (carrier removed, wave step applied, before the DOE)."""
         return self._apply(field, False)
 
     def distance_derivative(self, field):
@@ -137,12 +143,12 @@ class Direct(Propagation):
         return super().explain_grids(plan) + "Rayleigh-Sommerfeld sum, "
 
     def operator(self, rw, distance_mm=None, precision="double"):
-        return DirectOperator(rw, distance_mm, _xp(rw))
+        return DirectOperator.of(rw, distance_mm, _xp(rw))
 
     def pixels(self, rw, field, precision="double"):
         from ..focal import pixel_flux, pixel_power
         xp = _xp(rw)
-        op = DirectOperator(rw, None, xp)
+        op = DirectOperator.of(rw, None, xp)
         field = rw.wave_stepped(xp.asarray(field))
         u = op.forward(field)
         if rw.pixel_values == "flux":
