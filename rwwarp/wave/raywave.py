@@ -1,8 +1,8 @@
 """The ray-wave model of one batch of point sources, in stages (:class:`RayWave`).
 
-Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (the
-band-limited ASM's or the focal method's, :mod:`rwwarp.wave.plan`), the wave-plane windows and the sensor
-patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
+Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (each
+registered propagation method plans its part, :mod:`rwwarp.wave.methods`; "auto" compares the band-limited
+ASM's and the focal method's, "two-step" adds the wave step), the wave-plane windows and the sensor patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
 field (Warp, :mod:`rwwarp.kernels.splat`), apply the DOE, propagate to the sensor and integrate over the
 pixels (:mod:`rwwarp.wave.propagate` or :mod:`rwwarp.wave.focal`). :func:`rwwarp.psf.psf` and
 :func:`rwwarp.psf.psf_map` are the public calls around it; :mod:`torch_bridge` differentiates its stages.
