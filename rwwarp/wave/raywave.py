@@ -205,10 +205,12 @@ class RayWave:
         # a square pupil (stop) bounds the beam with straight edges: their 1 / r diffraction tails alias more
         self._square_pupil = src["shape"] != "circle"
         # ---- plan: each registered method plans its part (rwwarp.wave.methods); "compare" plans both of auto's
-        ctx = PlanContext(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
-                          z_sensor - z_plane, center_mm, size, pixel, width, pilot_cell, lo, hi, fmax, f_doe, feature,
-                          out_width, carrier, centers, rays_per_sample, nyquist_safety, focal_patch_tol,
-                          self._square_pupil)
+        ctx = PlanContext(lens=lens, plane=plane, plan=plan, pos_p=pos_p, dir_s=dir_s, ok=ok, chief_plane=chief_plane,
+                          chief_dir=chief_dir, n_after=n_after, lam_mm=lam_mm, wls=wls, distance_mm=z_sensor - z_plane,
+                          center_mm=center_mm, size=size, pixel=pixel, width=width, pilot_cell=pilot_cell, lo=lo, hi=hi,
+                          fmax=fmax, f_doe=f_doe, feature=feature, out_width=out_width, carrier=carrier, centers=centers,
+                          rays_per_sample=rays_per_sample, nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol,
+                          straight_edges=self._square_pupil)
         planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
         main = planned["asm" if method == "compare" else method]
         pl, carrier, centers, lo, hi, self.focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
