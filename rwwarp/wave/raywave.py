@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
 from .doe_sampling import doe_max_frequency, doe_phase_grid, lens_dir
-from .methods import PlanContext, check_method, gauss_nodes_xy
+from .methods import PlanContext, check_method, gauss_nodes_xy, names
 from .methods import get as get_method
 from .plan import Plan
 from .splat import paper_rescale_layout
@@ -248,16 +248,18 @@ class RayWave:
                 self.focal, carrier, centers = f.geo, f.carrier, f.centers
             else:
                 pl = pl.with_reasons(why + " -> asm")
-        if requested == "pixel" and not (isinstance(plan, str) and plan == "auto"):
-            raise ValueError("method='pixel' plans its own sampling: use plan='auto'")
+        # methods planned beside the window plan at the end (pixel): the one asked for, or those "auto" may choose
+        late = [get_method(requested)] if requested in names() and get_method(requested).planned_beside else \
+            [get_method(m) for m in names() if get_method(m).planned_beside] if requested == "auto" and allow_pixel else []
+        if late and requested != "auto" and not (isinstance(plan, str) and plan == "auto"):
+            raise ValueError(f"method={requested!r} plans its own sampling: use plan='auto'")
         self.method = pl.method
-        may_pixel = (requested == "pixel" or (requested == "auto" and allow_pixel)) and isinstance(plan, str) \
-            and plan == "auto"
+        may_beside = bool(late) and isinstance(plan, str) and plan == "auto"
         budget_check = lambda pl, alt="": check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
                          f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
                          "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
                          "nyquist_safety" + (", the padded FFT n_pad" if get_method(pl.method).fft_padded else "") + alt)
-        if memory_budget_bytes is not None and not may_pixel:
+        if memory_budget_bytes is not None and not may_beside:
             budget_check(pl)
         self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
         self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
@@ -283,12 +285,14 @@ class RayWave:
         # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
         # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
         self.rim = amplitude == "energy" and src["shape"] == "circle" and get_method(pl.method).rim_weighted
-        if may_pixel:
-            # pixels many Airy radii wide: rwwarp.wave.pixel_scale (the pixel box applied analytically)
-            from .pixel_scale import consider_pixel
-            if consider_pixel(self, requested == "pixel", pos_s, dir_s, ok, chief_carrier, chief_centers,
-                              float(np.min(hi - lo)), rays_per_sample, model_tolerance, memory_budget_bytes):
-                requested = "pixel"     # no wave step: the pixel method forms no wave-plane field
+        if may_beside:
+            # e.g. pixels many Airy radii wide: rwwarp.wave.pixel_scale (the pixel box applied analytically)
+            pilot_s = {"pos_s": pos_s, "dir_s": dir_s, "ok": ok, "carrier": chief_carrier, "centers": chief_centers,
+                       "beam_width_mm": float(np.min(hi - lo)), "rays_per_sample": rays_per_sample}
+            chosen = next((m.name for m in late if m.consider(self, requested == m.name, pilot_s, model_tolerance,
+                                                               memory_budget_bytes)), None)
+            if chosen is not None:
+                requested = chosen      # no wave step: requested is neither "auto" nor "two-step"
             elif memory_budget_bytes is not None:
                 budget_check(pl, getattr(self, "pixel_alternative", ""))
         from .wave_step import plan_wave_step

@@ -15,11 +15,18 @@ class Pixel(Propagation):
     name = "pixel"
     forms_field = False
     packable = False
+    planned_beside = True
 
     def plan(self, ctx):
         # the window plan it is compared with and planned beside (consider_pixel switches the batch to it)
         from .asm import plan_window
         return plan_window(ctx)
+
+    def consider(self, rw, explicit, pilot, tolerance, memory_budget_bytes):
+        from ..pixel_scale import consider_pixel
+        return consider_pixel(rw, explicit, pilot["pos_s"], pilot["dir_s"], pilot["ok"], pilot["carrier"],
+                              pilot["centers"], pilot["beam_width_mm"], pilot["rays_per_sample"], tolerance,
+                              memory_budget_bytes)
 
     def estimate(self, plan, n_sources, size, gauss_nodes):
         from ..pixel_scale import pixel_cost

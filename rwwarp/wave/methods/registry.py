@@ -102,6 +102,8 @@ class Propagation:
     * ``fft_padded``: the plan's ``n_pad`` is a padded FFT the memory budget names.
     * ``rim_weighted``: the energy convention traces the circular pupil's rim cells by their part (``focal``).
     * ``per_source_plans``: its grids follow each source's patch: batches plan their sources alone (``focal``).
+    * ``planned_beside``: planned at the end of the batch's planning beside the window plan (:meth:`consider`),
+      where it is asked for or where "auto" may choose it (``allow_pixel``) (``pixel``).
 
     Methods: :meth:`plan` (its part of the batch's planning), :meth:`estimate` (peak memory and flops),
     :meth:`operator` (the linear map field -> complex field at the pixels' Gauss nodes, with ``forward``,
@@ -117,6 +119,7 @@ class Propagation:
     fft_padded = False
     rim_weighted = False
     per_source_plans = False
+    planned_beside = False
 
     @property
     def differentiable(self) -> bool:
@@ -126,6 +129,14 @@ class Propagation:
     def plan(self, ctx: PlanContext) -> Planned:
         """This method's :class:`Planned` for the batch described by ``ctx`` (:class:`PlanContext`)."""
         raise NotImplementedError(f"method {self.name!r} has no planner")
+
+    def consider(self, rw, explicit: bool, pilot: dict, tolerance, memory_budget_bytes) -> bool:
+        """(``planned_beside`` methods) Plan beside ``rw.plan`` and switch ``rw`` to this method where it should
+        run (always when ``explicit``, the method was asked for); True when switched. ``pilot``: ``pos_s``,
+        ``dir_s``, ``ok`` (the pilot rays at the sensor), ``carrier`` / ``centers`` (the chief rays'),
+        ``beam_width_mm`` (the footprint's smaller side), ``rays_per_sample``; ``tolerance``: the model error
+        accepted (of the PSF's peak) or None."""
+        raise NotImplementedError(f"method {self.name!r} is not planned beside another")
 
     def estimate(self, plan, n_sources: int, size: int, gauss_nodes: int) -> dict:
         """``{"memory_bytes": int, "flops": float}``: the batch's peak memory (bytes) and work."""
