@@ -26,9 +26,9 @@ from .trace import as_field_list
 from .trace import field_label as _fmt_field
 from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
+from .wave.methods import choices as method_choices, get as get_method   # the registered methods
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
-from .wave.methods import choices as method_choices, get as get_method  # noqa: E402  (the registered methods)
 
 
 def _check_tolerance(tolerance):

@@ -71,8 +71,8 @@ class PackedRayWave(RayWave):
             raise ValueError("PackedRayWave takes single-source RayWave members")
         for m in members:
             if not get(m.plan.method).packable:
-                raise ValueError(f"PackedRayWave takes no method={m.plan.method!r} member (it is not packable: "
-                                 "pixel forms no wave-plane field): run it on its own (RayWave.run)")
+                raise ValueError(f"PackedRayWave takes no method={m.plan.method!r} member (not packable, as pixel: "
+                                 "no wave-plane field): run it on its own (RayWave.run)")
         m0 = members[0]
         for m in members:
             if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
