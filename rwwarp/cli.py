@@ -559,8 +559,8 @@ def _build_parser():
     p.add_argument("--dtype", default="float64", choices=["float64", "float32"], help="ray-tracing precision")
     p.add_argument("--explain", action="store_true", help="print the sampling plan and why")
     p.add_argument("--dry-run", action="store_true", help="print the plan and its memory/work estimate, compute nothing")
-    p.add_argument("--method", default="auto", choices=["auto", "focal", "asm", "two-step", "pixel"],
-                   help="wave propagation: focal (follows the patch), asm (whole beam), auto, two-step (auto + wave step), pixel (pixels many Airy radii wide)")
+    from .wave.methods import choices as method_choices   # the registered methods (rwwarp.wave.methods)
+    p.add_argument("--method", default="auto", choices=list(method_choices()), help="wave propagation: focal (follows the patch), asm (whole beam), auto, two-step (auto + wave step), pixel (pixels many Airy radii wide), direct (Rayleigh-Sommerfeld sum, small cases)")
     p.add_argument("--tolerance", type=_finite, default=None, help="error accepted (of the peak): auto adds the wave step above it, picks pixel below it")
     p.add_argument("--deterministic", action="store_true",
                    help="the same bits on every run on a GPU too (fixed-point splat sums)")

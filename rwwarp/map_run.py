@@ -59,7 +59,8 @@ def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device=
     resolved (:class:`MapArgs`); ``n_depths``: object distances mapped (the distributed map's ``depths_mm``),
     for the bound on the number of sources. Arguments as :func:`rwwarp.psf`."""
     from . import checks
-    from .psf import METHODS, MODELS, _check_tolerance
+    from .psf import MODELS, _check_tolerance
+    from .wave.methods import choices as method_choices
     from .trace import as_field_list
     from .wave.plan import default_memory_budget_bytes
     checks.check_lens(lens)
@@ -88,7 +89,7 @@ def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device=
                          lo=1, hi=checks.MAX_SOURCES)
     if amplitude not in ("energy", "paper"):
         raise ValueError(f"amplitude must be 'energy' or 'paper', got {amplitude!r}")
-    checks.check_choice(method, "method", METHODS)
+    checks.check_choice(method, "method", method_choices())
     tolerance = _check_tolerance(tolerance)
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):

@@ -24,9 +24,9 @@ from .trace import as_field_list
 from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
 from .wave.pilot import Pilot, trace_pilot  # noqa: F401 (the pilot trace of a batch, rwwarp.wave.pilot)
+from .wave.methods import choices as method_choices, get as get_method   # the registered methods
 
 MODELS = ("ray-wave", "ray", "paraxial-wave")
-METHODS = ("auto", "focal", "asm", "two-step", "pixel")
 
 
 def _check_tolerance(tolerance):
@@ -148,7 +148,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Adaptive plan: the DOE-plane pitch samples the highest local frequency this many times above
         its Nyquist limit of 2 samples per period (aperture-edge diffraction spreads past it; 2 keeps
         the aliased part near 1e-4).
-    method : "auto" | "focal" | "asm"
+    method : "auto" | "focal" | "asm" | "two-step" | "pixel" | "direct" | any registered method
         Wave propagation (ray-wave model). ``"focal"`` handles the wave converging to the patch
         analytically and samples only what reaches the patch (:mod:`rwwarp.wave.focal`); ``"asm"`` is the
         band-limited angular spectrum over the whole converging beam (the reference path; its cost grows
@@ -163,7 +163,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         its cost follows the patch and the aberrations, not the beam's diffraction-scale sampling. "auto" picks
         it for a lens without a DOE where the pixel spans >= 4 Airy radii, its error estimate against the full
         computation is within ``tolerance`` (default 1e-3 of the peak; a given ``tolerance`` below the model's own
-        error keeps the wave step instead) and it plans fewer flops.
+        error keeps the wave step instead) and it plans fewer flops. ``"direct"``: the brute-force
+        Rayleigh-Sommerfeld sum from every wave-plane sample to every pixel node (no FFT; O(N^2 M^2): a reference
+        for small cases). The methods are registered by name (:mod:`rwwarp.wave.methods`).
     memory_budget_gb : float, optional
         Refuse (:class:`rwwarp.wave.plan.MemoryBudgetError`, naming the estimate and what drives it) or split a
         batch whose planned arrays would exceed this many GiB; default half the available memory.
@@ -218,7 +220,7 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     trace runs). ``plan.explain()`` prints it; ``plan.estimate`` holds ``memory_bytes`` and ``flops``.
     Arguments as :func:`psf` (lengths mm, wavelengths um, field deg)."""
     from . import checks
-    checks.check_choice(method, "method", METHODS)
+    checks.check_choice(method, "method", method_choices())
     tolerance = _check_tolerance(tolerance)
     fields = checks.check_fields([field_deg])
     wls = checks.check_wavelengths([wavelength_um], lens)
@@ -331,7 +333,7 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
         for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
                                                object_distance_mm, opts):
             for chunk_idx in pack_sources(members, size, batch, budget):
-                if members[chunk_idx[0]].plan.method == "pixel":
+                if not get_method(members[chunk_idx[0]].plan.method).packable:
                     # no wave-plane field to pack: computed alone, and a call with such a member keeps nothing
                     store([sys_pairs[k] for k in chunk_idx], members[chunk_idx[0]].run(focal_precision))
                     keep, new = False, []
@@ -385,7 +387,8 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
     for k in order:
         if cur:
             m0 = members[cur[0]]
-            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and m0.plan.method != "pixel"
+            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and \
+                get_method(m0.plan.method).packable
             fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
             if same and fits and (batch is None or len(cur) < batch):
                 cur.append(k)

@@ -13,6 +13,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from rwwarp.wave.methods import choices as method_choices
 
 __all__ = ["CONFIG_DIR", "parse_overrides", "DEFAULTS", "SCHEMA", "ConfigError", "build_lens", "load_config", "resolve_config",
            "validate_config"]
@@ -138,7 +139,7 @@ SCHEMA = {
         "live_pack": _bool(),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
         "cache_precision": _choice("double", "single"),
-        "propagation": _choice("auto", "focal", "asm", "two-step"),
+        "propagation": _choice(*method_choices(differentiable=True)),   # rwwarp.wave.methods
         "focal_patch_tol": _num(0, 1),
         "deterministic": _bool(),
         "pixel_values": _choice("flux", "intensity"),

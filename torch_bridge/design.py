@@ -29,6 +29,8 @@ import math
 import numpy as np
 import torch
 
+from rwwarp.wave.methods import PLANNER_CHOICES, get as get_method, names
+
 from .functions import Propagate, mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
 from .live import LiveProvider, _recentred, common_centres  # noqa: F401  (their home: live)
 from .ray_spot import RaySpot, paraxial_achromat, paraxial_efl  # noqa: F401  (their home: ray_spot)
@@ -419,11 +421,11 @@ class CachedProvider:
         the choice :class:`rwwarp.psf.RayWave` makes for the entry's nodes (the band-limited ASM while its
         plan is small, else focal), recorded in :attr:`plans`. ``pilot``: the entry's (:meth:`_pilot`) or None."""
         m = self.module.method
-        if m not in ("auto", "two-step"):   # "two-step": auto's choice, with the wave step (_build, _build_focal)
-            return m == "focal"
+        if m not in PLANNER_CHOICES:   # "two-step": auto's choice, with the wave step (_build, _build_focal)
+            return get_method(m).torch_path == "focal"
         rec = self.plans.get(key) or {}
-        if rec.get("method") in ("focal", "asm"):
-            return rec["method"] == "focal"
+        if rec.get("method") in names():
+            return get_method(rec["method"]).torch_path == "focal"
         from rwwarp.psf import RayWave
         geo, fields, depth = self._geometry(key[1])
         probe = RayWave(geo.to_lens(), fields, [float(key[0])] * len(fields), self.size, self.pixel_mm,
@@ -432,7 +434,7 @@ class CachedProvider:
                         gauss_nodes=geo.gauss_nodes, nyquist_safety=geo.nyquist_safety, method="auto",
                         focal_patch_tol=geo.focal_patch_tol, pixel_values=geo.pixel_values, auto_rule="small-asm",
                         pilot=pilot)
-        return probe.plan.method == "focal"
+        return get_method(probe.plan.method).torch_path == "focal"
 
     def _pilot(self, geo, fields, wavelength_um, depth):
         """The pilot of an entry's nodes ``fields`` (deg) at ``wavelength_um`` (um) from ``geo``'s current lens,

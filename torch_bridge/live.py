@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from rwwarp.wave.methods import get as get_method
+
 from .ray_spot import RaySpot
 from .wave_step import add_wave_step
 
@@ -229,9 +231,9 @@ class LiveProvider:
                 rw = m.raywave([src_f[j] for j in fresh], [src_w[j] for j in fresh], self.size,
                                object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, center_mm=src_c[fresh])
                 # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
-                m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if rw.plan.method == "focal"
-                               else rw.nsrc)
-                if rw.plan.method == "focal":
+                per_source = get_method(rw.plan.method).per_source_plans
+                m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if per_source else rw.nsrc)
+                if per_source:
                     # focal grids follow each source's patch and DOE orders: one plan per source
                     alone = [rw] if len(fresh) == 1 else self._plan_sources(fresh, src_f, src_w, src_c, depth_mm)
                     for j, r in zip(fresh, alone):
@@ -265,7 +267,7 @@ class LiveProvider:
             r = rws[j]
             if r.nsrc > 1:
                 units.append(("rw", r, list(fresh)))
-            elif self.pack and r.plan.method == "focal" and not np.any(getattr(r, "wave_step", 0.0)):
+            elif self.pack and get_method(r.plan.method).torch_path == "focal" and not np.any(getattr(r, "wave_step", 0.0)):
                 # (a packed tile has no wave step: a source with one runs alone, HybridLens._psf_rw)
                 focal.append(j)
             else:

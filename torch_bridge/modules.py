@@ -55,6 +55,7 @@ from torch import nn
 
 from rwwarp import doe
 from rwwarp.lens import MAX_ASPHERIC, Lens
+from rwwarp.wave.methods import check_method, get as get_method
 
 from .wave_step import wave_step
 from . import budget as _budget
@@ -123,8 +124,7 @@ class HybridLens(nn.Module):
         if pixel_values not in ("flux", "intensity"):
             raise ValueError(f"pixel_values must be 'flux' or 'intensity', got {pixel_values!r}")
         self.pixel_values = pixel_values
-        if method not in ("auto", "focal", "asm", "two-step"):
-            raise ValueError(f"method must be 'auto', 'focal' or 'asm', or 'two-step' (rwwarp.wave.wave_step), got {method!r}")
+        check_method(method, "HybridLens", differentiable=True)   # auto, two-step or a method torch_bridge differentiates
         self.method = method
         if not (np.isfinite(focal_patch_tol) and 0 <= focal_patch_tol <= 1):
             raise ValueError(f"focal_patch_tol must be in [0, 1], got {focal_patch_tol!r}")
@@ -602,13 +602,13 @@ class HybridLens(nn.Module):
         with ctx:
             table = self.param_table(rw, values)
             host = self.host_table(rw, table, tables)
-            phi0 = self.doe_phase(rw, values) if rw.plan.method != "focal" else None
+            phi0 = self.doe_phase(rw, values) if get_method(rw.plan.method).doe_in_propagator else None
             dist = (table[-1, COL.z] - table[rw.plane, COL.z]).expand(rw.nsrc)
             u = trace_splat(table, rw, host)
             if rw.amplitude != "energy":
                 u = paper_amplitude(u, rw)
             u = wave_step(u, rw)   # the rim's diffraction before the DOE, where the plan has it (issue 27)
-            if rw.plan.method == "focal":
+            if get_method(rw.plan.method).torch_path == "focal":
                 fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
                 if fac is not None:
                     u = u * fac

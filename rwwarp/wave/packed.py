@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .pilot import trace_pilot
+from .methods import get
 from .raywave import RayWave
 from ..trace import Tracer
 
@@ -68,9 +69,10 @@ class PackedRayWave(RayWave):
     def __init__(self, members, requires_grad: bool = False, hold: bool = False):
         if not members or any(m.nsrc != 1 for m in members):
             raise ValueError("PackedRayWave takes single-source RayWave members")
-        if any(m.plan.method == "pixel" for m in members):
-            raise ValueError("PackedRayWave takes no method='pixel' member (it forms no wave-plane field): run it on "
-                             "its own (RayWave.run)")
+        for m in members:
+            if not get(m.plan.method).packable:
+                raise ValueError(f"PackedRayWave takes no method={m.plan.method!r} member (not packable, as pixel: "
+                                 "no wave-plane field): run it on its own (RayWave.run)")
         m0 = members[0]
         for m in members:
             if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
@@ -155,11 +157,7 @@ class PackedRayWave(RayWave):
         for k, m in enumerate(self.members):
             n = m.plan.n_grid
             u = u_all[k:k + 1, :n, :n].copy()
-            if m.plan.method == "focal":
-                d = m.focal_intensity(u, focal_precision, to_host=to_host)
-            else:
-                phi0, scale = m.doe_phase()
-                d = m.intensity(u, phi0, scale, to_host=to_host)
+            d = get(m.plan.method).pixels(m, u, focal_precision, to_host=to_host)
             if not keep_operators:
                 m.release_operators()
             data.append(d)

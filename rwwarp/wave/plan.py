@@ -65,8 +65,10 @@ class Plan:
 
     def __post_init__(self):
         object.__setattr__(self, "reasons", tuple(self.reasons))
-        if self.method not in ("asm", "focal", "pixel"):
-            raise ValueError(f"Plan.method must be 'asm', 'focal' or 'pixel', got {self.method!r}")
+        from .methods import names
+        if self.method not in names():
+            raise ValueError(f"Plan.method must be a registered propagation method ({', '.join(map(repr, names()))}), "
+                             f"got {self.method!r}")
 
     def with_reasons(self, *more) -> "Plan":
         """A copy with ``more`` reasons appended."""
@@ -79,13 +81,8 @@ class Plan:
 
     def explain(self) -> str:
         """Human-readable summary of the plan, its cost estimate and why."""
-        if self.method == "pixel":
-            head = (f"plan {self.kind} (pixel): sensor grid {self.n_sensor}^2 at {self.sensor_pitch_mm * 1e3:.4g} um, "
-                    f"FFT {self.n_sensor_fft}^2, pupil rays {self.ray_grid} across")
-        else:
-            head = (f"plan {self.kind} ({self.method}): pitch {self.pitch_mm * 1e3:.4g} um, grid {self.n_grid}^2, "
-                + (f"FFT {self.n_pad}^2, " if self.method == "asm" else
-                   f"sensor grid {self.n_sensor}^2 at {self.sensor_pitch_mm * 1e3:.4g} um, FFT {self.n_sensor_fft}^2, ")
+        from .methods import get
+        head = (f"plan {self.kind} ({self.method}): " + get(self.method).explain_grids(self)
                 + f"pupil rays {self.ray_grid} across")
         lines = [head]
         if self.model_error:
@@ -156,26 +153,11 @@ def estimate_cost(plan: Plan, n_sources: int, size: int, gauss_nodes: int) -> di
     (``n_pad^2``, two complex buffers) and the output matrix DFT; for ``focal`` the two separable
     kernel matrices (``n_sensor x n_grid``), the sensor-side FFT (``n_sensor_fft^2``, three complex
     buffers) and its output DFT. Flops: ~400 a ray and surface-free step, 5 N log2 N per FFT,
-    8 per complex multiply-add. Checked against measured peak RSS in ``perf/bench_focal.py``.
+    8 per complex multiply-add. Checked against measured peak RSS in ``perf/bench_focal.py``. Each method's
+    own count: :meth:`rwwarp.wave.methods.Propagation.estimate` (``pixel``: :func:`rwwarp.wave.pixel_scale.pixel_cost`).
     """
-    if plan.method == "pixel":
-        raise ValueError("a method='pixel' plan's cost is rwwarp.wave.pixel_scale.pixel_cost")
-    S = int(n_sources)
-    m = int(size) * int(gauss_nodes)
-    rays = S * plan.ray_grid ** 2
-    n2 = plan.n_grid ** 2
-    mem = rays * 232 + S * n2 * 64
-    flops = rays * 4000.0
-    if plan.method == "asm":
-        npd = plan.n_pad
-        mem += S * (2 * npd * npd * 16 + 2 * npd * m * 16 + m * m * 16)
-        flops += S * (5.0 * npd * npd * math.log2(max(npd * npd, 2)) + 8.0 * (npd * npd * m + npd * m * m))
-    else:
-        ns, nf, n = plan.n_sensor, plan.n_sensor_fft, plan.n_grid
-        mem += S * (2 * ns * n * 16 + n * ns * 16 + 3 * nf * nf * 16 + 2 * nf * m * 16 + nf * m * 16 + m * m * 16)
-        flops += S * (8.0 * (n * n * ns + ns * ns * n) + 5.0 * nf * nf * math.log2(max(nf * nf, 2))
-                      + 8.0 * (nf * nf * m + nf * m * m))
-    return {"memory_bytes": int(mem), "flops": float(flops)}
+    from .methods import get
+    return get(plan.method).estimate(plan, n_sources, size, gauss_nodes)
 
 
 class MemoryBudgetError(MemoryError):

@@ -53,7 +53,9 @@ Conventions
 
 Where the code lives
 --------------------
-* this module: the fixed-grid calls :func:`propagate_grid`, :func:`propagate_grid_adjoint`, and re-exports
+* this module: the fixed-grid calls :func:`propagate_grid`, :func:`propagate_grid_adjoint` (the wave step's
+  plane-to-plane propagation), :class:`PointPropagator` (the field at any points: the ASM's registered operator),
+  and re-exports
   of the others (import them from here);
 * :mod:`rwwarp.wave.propagate_setup`: FFT sizes, Gauss-Legendre nodes, Matsushima's band limit
   (:func:`band_limits`), the per-batch parameter rows;
@@ -64,6 +66,8 @@ Where the code lives
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .backend import get_backend
@@ -71,20 +75,91 @@ from .propagate_sensor import (
     SensorGeometry, SensorPropagator, sensor_window_center,
 )
 from .propagate_setup import (
-    band_limits, gauss_legendre, next_fft_size, _P_LPX, _batch_of, _check_window, _per_batch, _setup,
+    band_limits, gauss_legendre, next_fft_size, _P_LPX, _batch_of, _center_extent, _check_window, _coords,
+    _per_batch, _setup,
 )
-from .propagate_stages import _crop_demodulate_adjoint, _launch, _pad_fft, _transfer
+from .propagate_stages import (
+    _band_adjoint_to_field, _band_spectrum, _band_to_points, _crop_demodulate_adjoint, _dft_factors, _launch,
+    _pad_fft, _points_to_band, _transfer, _upload_coords,
+)
 
 __all__ = [
     "band_limits",
     "gauss_legendre",
     "next_fft_size",
+    "PointGeometry",
+    "PointPropagator",
     "propagate_grid",
     "propagate_grid_adjoint",
     "SensorGeometry",
     "SensorPropagator",
     "sensor_window_center",
 ]
+
+
+@dataclass(frozen=True)
+class PointGeometry:
+    """What :class:`PointPropagator` needs: the sampled field's grid (``pitch_mm``, ``origin_mm``
+    (x, y) of sample (0, 0)), ``wavelength_um``, ``distance_mm``, the output points ``out_x_mm`` /
+    ``out_y_mm`` ((M,) or (B, M), absolute mm), and ``doe_scale``, ``carrier_cpmm``, ``pad_to``, ``dtype``
+    (as :class:`SensorGeometry` documents them)."""
+    pitch_mm: object
+    origin_mm: object
+    wavelength_um: object
+    distance_mm: object
+    out_x_mm: object
+    out_y_mm: object
+    doe_scale: object = None
+    carrier_cpmm: object = None
+    pad_to: object = None
+    dtype: object = None
+
+
+class PointPropagator:
+    """Band-limited angular spectrum of a sampled field to arbitrary output points (matrix DFT), with
+    its adjoint: :meth:`forward` and :meth:`adjoint` on one :class:`PointGeometry`. The field at any points
+    (lengths mm): what a wave plane handing its field to another method needs, and the ASM's operator in the
+    method registry (:class:`rwwarp.wave.methods.asm.AsmOperator`)."""
+
+    def __init__(self, backend, geometry: PointGeometry):
+        self.backend = get_backend(backend)
+        self.geometry = geometry
+
+    def _prepare(self, field, doe_phase):
+        g = self.geometry
+        batch = _batch_of(field)
+        xs = _coords(g.out_x_mm, batch, "out_x_mm")
+        ys = _coords(g.out_y_mm, batch, "out_y_mm")
+        center, ex, ey = _center_extent(xs, ys)
+        st = _setup(self.backend, field, g.pitch_mm, g.origin_mm, g.wavelength_um, g.distance_mm,
+                    doe_phase=doe_phase, doe_scale=g.doe_scale, carrier_cpmm=g.carrier_cpmm, pad_to=g.pad_to,
+                    dtype=g.dtype, out_center_mm=center)
+        return st, xs, ys, ex, ey
+
+    def forward(self, field, doe_phase=None):
+        """The propagated field at the output points, (B, My, Mx) complex device array (carrier
+        restored)."""
+        st, xs, ys, ex, ey = self._prepare(field, doe_phase)
+        _check_window(st, ex, ey, "propagate")
+        coords = _upload_coords(st, xs, ys)
+        band, _ = _band_spectrum(st)
+        ext, eyf = _dft_factors(st, coords)
+        out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+        return _band_to_points(st, band, ext, eyf, out)
+
+    def adjoint(self, grad_out, field, doe_phase=None):
+        """``(grad_field, grad_doe_phase or None)`` for a real loss's gradient ``grad_out`` at the output
+        points: torch's convention, ``dL/dRe U + 1j dL/dIm U``)."""
+        st, xs, ys, _, _ = self._prepare(field, doe_phase)
+        g = st.backend.to_device(grad_out, st.dtype)
+        if tuple(g.shape) != (st.batch, ys.shape[1], xs.shape[1]):
+            raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+        coords = _upload_coords(st, xs, ys)
+        h = _transfer(st, 1.0 / (st.npx * st.npy))
+        ex, eyf = _dft_factors(st, coords, adjoint=True)
+        band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
+        _points_to_band(st, g, ex, eyf, band_grad)
+        return _band_adjoint_to_field(st, band_grad, h)
 
 
 def _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm, doe_phase,

@@ -1,8 +1,8 @@
 """The ray-wave model of one batch of point sources, in stages (:class:`RayWave`).
 
-Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (the
-band-limited ASM's or the focal method's, :mod:`rwwarp.wave.plan`), the wave-plane windows and the sensor
-patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
+Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (each
+registered propagation method plans its part, :mod:`rwwarp.wave.methods`; "auto" compares the band-limited
+ASM's and the focal method's, "two-step" adds the wave step), the wave-plane windows and the sensor patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
 field (Warp, :mod:`rwwarp.kernels.splat`), apply the DOE, propagate to the sensor and integrate over the
 pixels (:mod:`rwwarp.wave.propagate` or :mod:`rwwarp.wave.focal`). :func:`rwwarp.psf.psf` and
 :func:`rwwarp.psf.psf_map` are the public calls around it; :mod:`torch_bridge` differentiates its stages.
@@ -10,22 +10,23 @@ Lengths in mm, wavelengths in um.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ..doe import is_flat_profile as _is_flat_profile
 from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
-from .doe_sampling import chief_zone, doe_max_frequency, doe_phase_grid, lens_dir, one_branch
-from .plan import Plan, check_explicit, nice_fft_length
-from .plan import auto_sizes
+from .doe_sampling import doe_max_frequency, doe_phase_grid, lens_dir
+from .methods import PlanContext, check_method, gauss_nodes_xy, names
+from .methods import get as get_method
+from .plan import Plan
 from .splat import paper_rescale_layout
 from ..device_upload import upload_packed
 from ..trace import Tracer
 from ..trace import field_label as _fmt_field
 
-from .focal import FOCAL_MAX_ORDER  # noqa: F401  (its home: focal; read by the planner below)
+from .focal import FOCAL_MAX_ORDER  # noqa: F401  (its home: focal; read by rwwarp.wave.methods.focal)
+
+#: the registered methods "auto" plans side by side and chooses between (the order they are planned in)
+AUTO_PAIR = ("focal", "asm")
 from .sensor_grid import auto_gauss_nodes as _auto_gauss_nodes, n_img_all, pixel_centres as _pixel_centres
 from .sensor_grid import snap_centers as _snap_centers
 from .pilot import Pilot, batch_sources, pilot_from_tracer
@@ -90,8 +91,7 @@ class RayWave:
                  model_tolerance: float | None = None, auto_rule: str = "device", allow_pixel: bool = False):
         if auto_rule not in ("device", "small-asm", "flops"):
             raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
-        if method not in ("asm", "focal", "auto", "two-step", "pixel"):
-            raise ValueError(f"method must be 'auto', 'focal', 'asm', 'two-step' or 'pixel', got {method!r}")
+        check_method(method, "RayWave")
         requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
         from .propagate_setup import check_pixel_values
         self.pixel_values = check_pixel_values(pixel_values, "RayWave")
@@ -181,50 +181,18 @@ class RayWave:
             s_pl = lens.surfaces[plane]
             if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
                 method = "asm"  # discontinuous: no smooth diffraction orders to factor
-        self.focal = None
         # a square pupil (stop) bounds the beam with straight edges: their 1 / r diffraction tails alias more
         self._square_pupil = src["shape"] != "circle"
-        if method in ("focal", "compare"):
-            self._plan_focal(lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls,
-                             z_sensor - z_plane, center_mm, size, pixel, width, rays_per_sample, nyquist_safety,
-                             focal_patch_tol)
-            focal_state = (self.plan, self.focal, self.carrier, self.centers)
-            if method == "focal":
-                carrier, centers = self.carrier, self.centers
-        # ---- plan
-        nyq_pitch = float(np.min(1.0 / (2.0 * (fmax + f_doe + 1e-9))))
-        need_pitch = nyq_pitch / nyquist_safety
-        reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
-                   f"{np.max(fmax + f_doe):.4g} cycles/mm -> pitch <= {nyq_pitch * 1e3:.4g} um, / safety "
-                   f"{nyquist_safety} for edge diffraction -> {need_pitch * 1e3:.4g} um"]
-        if feature is not None:
-            if feature / 2.0 < need_pitch:
-                reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
-            need_pitch = min(need_pitch, feature / 2.0)
-        window = width + 2.0 * pilot_cell
-        if method == "focal":
-            pl = self.plan
-        elif isinstance(plan, Plan):
-            pl = plan
-            check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + out_width) / pl.pitch_mm) + 4), window)
-        elif plan == "auto":
-            pitch, n_grid, n_pad, ray_grid = auto_sizes(need_pitch, width, feature, out_width, rays_per_sample)
-            reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
-                        f"padding: max(2 x window, window + sensor patch {out_width:.4g} mm) (band limit) -> FFT {n_pad}",
-                        f"rays: {rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
-            pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
-        elif plan == "paper":
-            s = lens.surfaces[plane]
-            half = s.semi_diameter or float(np.max(np.abs(np.concatenate([lo, hi]))))
-            pitch = (feature or 2 * need_pitch) / 2.0
-            n_grid = int(round(2 * half / pitch))
-            pl = Plan(pitch, n_grid, 2 * n_grid, 1000, "paper", False,
-                      ["paper: whole DOE aperture at half the DOE feature size, padded 2x, 1000x1000 pupil rays "
-                       "(10^6)"])
-            lo[:] = -half
-            hi[:] = half
-        else:
-            raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
+        # ---- plan: each registered method plans its part (rwwarp.wave.methods); "compare" plans both of auto's
+        ctx = PlanContext(lens=lens, plane=plane, plan=plan, pos_p=pos_p, dir_s=dir_s, ok=ok, chief_plane=chief_plane,
+                          chief_dir=chief_dir, n_after=n_after, lam_mm=lam_mm, wls=wls, distance_mm=z_sensor - z_plane,
+                          center_mm=center_mm, size=size, pixel=pixel, width=width, pilot_cell=pilot_cell, lo=lo, hi=hi,
+                          fmax=fmax, f_doe=f_doe, feature=feature, out_width=out_width, carrier=carrier, centers=centers,
+                          rays_per_sample=rays_per_sample, nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol,
+                          straight_edges=self._square_pupil)
+        planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
+        main = planned["asm" if method == "compare" else method]
+        pl, carrier, centers, lo, hi, self.focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
 
         self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
         if gauss_nodes is None:
@@ -235,7 +203,7 @@ class RayWave:
         from dataclasses import replace as _replace
         pl = _replace(pl, estimate=estimate_cost(pl, nsrc, size, gauss_nodes))
         if method == "compare":
-            fpl = focal_state[0]
+            fpl = planned["focal"].plan
             fpl = _replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
             small_first = auto_rule == "small-asm" or (auto_rule == "device" and str(device).startswith("cuda"))
             rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if small_first else
@@ -262,20 +230,22 @@ class RayWave:
             if fits == [False, True] or (fits != [True, False] and (aberrated or (not small_asm
                                          and fpl.estimate["flops"] <= pl.estimate["flops"]))):
                 pl = fpl.with_reasons(why + " -> focal")
-                self.focal, carrier, centers = focal_state[1], focal_state[2], focal_state[3]
+                f = planned["focal"]
+                self.focal, carrier, centers = f.geo, f.carrier, f.centers
             else:
                 pl = pl.with_reasons(why + " -> asm")
-                self.focal = None
-        if requested == "pixel" and not (isinstance(plan, str) and plan == "auto"):
-            raise ValueError("method='pixel' plans its own sampling: use plan='auto'")
+        # methods planned beside the window plan at the end (pixel): the one asked for, or those "auto" may choose
+        late = [get_method(requested)] if requested in names() and get_method(requested).planned_beside else \
+            [get_method(m) for m in names() if get_method(m).planned_beside] if requested == "auto" and allow_pixel else []
+        if late and requested != "auto" and not (isinstance(plan, str) and plan == "auto"):
+            raise ValueError(f"method={requested!r} plans its own sampling: use plan='auto'")
         self.method = pl.method
-        may_pixel = (requested == "pixel" or (requested == "auto" and allow_pixel)) and isinstance(plan, str) \
-            and plan == "auto"
+        may_beside = bool(late) and isinstance(plan, str) and plan == "auto"
         budget_check = lambda pl, alt="": check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
                          f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
                          "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
-                         "nyquist_safety" + (", the padded FFT n_pad" if pl.method == "asm" else "") + alt)
-        if memory_budget_bytes is not None and not may_pixel:
+                         "nyquist_safety" + (", the padded FFT n_pad" if get_method(pl.method).fft_padded else "") + alt)
+        if memory_budget_bytes is not None and not may_beside:
             budget_check(pl)
         self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
         self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
@@ -300,86 +270,19 @@ class RayWave:
         # that part of the tube; tube areas from the actual pupil steps), so the aperture edge is not a
         # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
         # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
-        self.rim = amplitude == "energy" and src["shape"] == "circle" and pl.method == "focal"
-        if may_pixel:
-            # pixels many Airy radii wide: rwwarp.wave.pixel_scale (the pixel box applied analytically)
-            from .pixel_scale import consider_pixel
-            if consider_pixel(self, requested == "pixel", pos_s, dir_s, ok, chief_carrier, chief_centers,
-                              float(np.min(hi - lo)), rays_per_sample, model_tolerance, memory_budget_bytes):
-                requested = "pixel"     # no wave step: the pixel method forms no wave-plane field
+        self.rim = amplitude == "energy" and src["shape"] == "circle" and get_method(pl.method).rim_weighted
+        if may_beside:
+            # e.g. pixels many Airy radii wide: rwwarp.wave.pixel_scale (the pixel box applied analytically)
+            pilot_s = {"pos_s": pos_s, "dir_s": dir_s, "ok": ok, "carrier": chief_carrier, "centers": chief_centers,
+                       "beam_width_mm": float(np.min(hi - lo)), "rays_per_sample": rays_per_sample}
+            chosen = next((m.name for m in late if m.consider(self, requested == m.name, pilot_s, model_tolerance,
+                                                               memory_budget_bytes)), None)
+            if chosen is not None:
+                requested = chosen      # no wave step: requested is neither "auto" nor "two-step"
             elif memory_budget_bytes is not None:
                 budget_check(pl, getattr(self, "pixel_alternative", ""))
         from .wave_step import plan_wave_step
         plan_wave_step(self, model_tolerance, requested, memory_budget_bytes)   # model error; wave step if needed
-
-    def _plan_focal(self, lens, plane, plan, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, dist,
-                    center_mm, size, pixel, width, rays_per_sample, nyquist_safety, patch_tol=1e-5):
-        """Plan the focal propagation: DOE orders, carrier and patch centre after the main order, grids
-        (:func:`rwwarp.wave.plan.plan_focal`). Sets ``plan``, ``focal``, ``carrier`` and ``centers``."""
-        from .. import doe
-        from .focal import doe_order_coefficients
-        from .plan import plan_focal, landing_points
-        nsrc = len(n_after)
-        inv_lam = n_after / lam_mm
-        s = lens.surfaces[plane]
-        prof = None
-        if s.type == "doe" and not _is_flat_profile(s.profile):
-            prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
-        orders, doe_freq, central = [], [], []
-        xy = [pos_p[k, ok[k], :2] for k in range(nsrc)]
-        freq = [n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] for k in range(nsrc)]
-        f_c = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]
-        for k in range(nsrc):
-            central.append(None)
-            if prof is None:
-                orders.append([(0, 1.0 + 0j)])
-                doe_freq.append(None)
-                continue
-            alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
-            gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
-            doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
-            cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)
-            branch = None if s.levels else one_branch(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um))
-            if branch is not None:
-                # the relief does not wrap inside the beam: the transmission is exactly exp(1j alpha (phi0 -
-                # 2 pi k)), one smooth "order" of non-integer index alpha (its Fourier series over integer
-                # orders would converge slowly next to the wrap: Gibbs)
-                orders.append([(float(alpha), complex(np.exp(-2j * np.pi * alpha * branch)))])
-                f_c[k] += alpha * np.array([cx[0], cy[0]]) / (2 * np.pi)
-                continue
-            ms = set(range(-FOCAL_MAX_ORDER, FOCAL_MAX_ORDER + 1))
-            if s.levels:
-                ms |= {1 + j * int(s.levels) for j in (-2, -1, 1, 2)}
-            ms = np.array(sorted(ms))
-            cm = doe_order_coefficients(alpha, s.levels, ms)
-            orders.append(list(zip(ms.tolist(), cm.tolist())))
-            if not s.levels:
-                # the zone the chief ray crosses is computed exactly, exp(1j alpha (phi0 - 2 pi k_c)): the order
-                # series converges slowly next to a wrap boundary the relief touches without crossing (an even
-                # polynomial's 0 on the axis), where every order's light reaches the patch
-                central[-1] = (chief_zone(prof.phase(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um),
-                                           xy[k], chief_plane[k, :2]), float(alpha))
-            m0 = int(ms[np.argmax(np.abs(cm))])
-            f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
-        if center_mm is None:
-            land = np.array([landing_points(chief_plane[k, :2], f_c[k], inv_lam[k], dist) for k in range(nsrc)])
-            if not np.all(np.isfinite(land)):
-                raise LensError("the chief ray's main diffraction order is evanescent behind the DOE", file=lens.source)
-            centers = np.stack([_snap_center(land[:, 0], pixel, lens.sensor.resolution[0]),
-                                _snap_center(land[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
-        else:
-            centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
-        self.plan, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, width, size, pixel,
-                                    rays_per_sample, nyquist_safety, patch_tol=patch_tol,
-                                    straight_edges=self._square_pupil)
-        if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
-            if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:
-                raise ValueError("an explicit Plan with method='focal' needs sensor_pitch_mm, n_sensor and n_sensor_fft")
-            geo["sensor_origin"] = geo["sensor_center"] - 0.5 * (plan.n_sensor - 1) * plan.sensor_pitch_mm
-            self.plan = plan
-        geo["profile"] = prof
-        geo["central_zone"] = central
-        self.focal, self.carrier, self.centers = geo, f_c, centers
 
     def _align_to_doe_pixels(self):
         """For a pixel-map DOE, shift the window origins so sample cells tile the DOE pixels exactly (the
@@ -682,18 +585,13 @@ class RayWave:
         op = getattr(self, "_focal_op", None)
         if op is None or op.z != z or op.precision != precision:
             from .focal import FocalPropagator
-            from .propagate import gauss_legendre
             xp = np
             if self.tracer.device.startswith("cuda"):
                 import cupy as xp
 
                 from .backend import ensure_cufft_plan_cache
                 ensure_cufft_plan_cache()       # on the current device, where the operator's FFTs run
-            px, py = self.pixel_centres()
-            t, _ = gauss_legendre(self.gauss_nodes)
-            off = 0.5 * self.pixel * t
-            nx = (px[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
-            ny = (py[:, :, None] + off[None, None, :]).reshape(self.nsrc, -1)
+            nx, ny = gauss_nodes_xy(self)
             pl = self.plan
             self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
                                              z, self.carrier,
@@ -741,23 +639,23 @@ class RayWave:
         method's matrix products, "auto" = single on the CPU, double on CUDA; see :func:`rwwarp.psf`)."""
         if focal_precision == "auto":
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
-        if self.plan.method == "pixel":
-            from .pixel_scale import pixel_psf
-            data = pixel_psf(self) / self.entering[:, None, None]
-            if not np.all(np.isfinite(data)):
-                raise FloatingPointError("non-finite PSF values (please report this lens and field)")
-            return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
-                    "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
-        u_field = self.field_array()
-        if self.plan.method == "focal":
-            data = self.focal_intensity(u_field, focal_precision) / self.entering[:, None, None]
-        else:
-            phi0, scale = self.doe_phase()
-            data = self.intensity(u_field, phi0, scale) / self.entering[:, None, None]
+        m = get_method(self.plan.method)
+        data = m.pixels(self, self.field_array() if m.forms_field else None, focal_precision) / self.entering[:, None, None]
         if not np.all(np.isfinite(data)):
             raise FloatingPointError("non-finite PSF values (please report this lens and field)")
         return {"data": data, "centers": self.centers, "plan": self.plan.to_dict(),
                 "valid_fraction": self.valid_fraction, "dropped_rays": self.dropped.numpy()}
+
+    def wave_field(self, samples=None):
+        """This batch's wave-plane field as a :class:`rwwarp.wave.field.WaveField` (samples of
+        :meth:`field_array`, traced now when ``samples`` is None; windows, pitch, medium wavelengths, carrier,
+        reference wave, DOE phase)."""
+        from .field import raywave_field
+        return raywave_field(self, samples)
+
+    def propagation(self):
+        """The registered propagation method of this batch's plan (:func:`rwwarp.wave.methods.get`)."""
+        return get_method(self.plan.method)
 
 
 #: The keyword options of :class:`RayWave` that :func:`rwwarp.psf_map` (and its distributed form) hand to

@@ -255,7 +255,7 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     ``STEP_PHASE_MAX`` rad)."""
     from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
-    from .plan import check_budget, estimate_cost, nice_fft_length
+    from .plan import check_budget, estimate_cost
     est = estimate_for_raywave(rw)
     rw.model_errors = est
     rw.wave_step = np.zeros(rw.nsrc)
@@ -301,12 +301,8 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
             extra = int(math.ceil(EDGE_MARGIN * edge / pitch))
             span = pl.n_grid * pl.pitch_mm
             n_grid = int(math.ceil(span / pitch)) + 2 * extra
-            if pl.method == "focal":   # the focal rule (rwwarp.wave.plan.plan_focal): >= samples / 4 rays across
-                ray_grid = max(pl.ray_grid, int(math.ceil(float(np.max(rw.hi - rw.lo)) / pitch / 4.0)) + 1)
-            else:                      # the ASM's: rays per sample kept
-                ray_grid = max(pl.ray_grid, int(math.ceil(pl.ray_grid * pl.pitch_mm / pitch)))
-            n_pad = pl.n_pad if pl.method == "focal" else nice_fft_length(max(pl.n_pad, int(math.ceil(
-                pl.n_pad * pl.pitch_mm / pitch)) + 2 * extra))
+            from .methods import get   # each method's rule (focal: >= samples / 4 rays across; asm: rays per sample)
+            ray_grid, n_pad = get(pl.method).wave_step_sizes(pl, rw, pitch, extra)
             why.append(f"wave step: window widened by {EDGE_MARGIN:g} edge widths a side -> {n_grid}^2 samples")
             shift = double_transport_shift_mm(rw, d)
             why.append(f"wave step: the beam's own aberration before the DOE is carried by its rays and diffracted "

@@ -1,0 +1,141 @@
+"""``asm``: the band-limited angular spectrum over the whole beam (:mod:`rwwarp.wave.propagate`,
+:class:`rwwarp.wave.propagate_sensor.SensorPropagator`): its planning (the wave-plane Nyquist pitch, window,
+padded FFT and ray grid; ``plan="auto"``, ``"paper"`` or an explicit :class:`~rwwarp.wave.plan.Plan`), its cost
+and its pixels. Lengths in mm."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .registry import Planned, Propagation, register
+
+
+def wave_plane_nyquist(ctx):
+    """``(nyq_pitch, need_pitch, reasons)``: the wave-plane pitch (mm) the field's local frequencies (carrier
+    removed) and the DOE's allow, the pitch after ``nyquist_safety`` and the DOE feature size, and why."""
+    nyq_pitch = float(np.min(1.0 / (2.0 * (ctx.fmax + ctx.f_doe + 1e-9))))
+    need_pitch = nyq_pitch / ctx.nyquist_safety
+    reasons = [f"Nyquist of the field (carrier removed) and DOE: max local frequency "
+               f"{np.max(ctx.fmax + ctx.f_doe):.4g} cycles/mm -> pitch <= {nyq_pitch * 1e3:.4g} um, / safety "
+               f"{ctx.nyquist_safety} for edge diffraction -> {need_pitch * 1e3:.4g} um"]
+    feature = ctx.feature
+    if feature is not None:
+        if feature / 2.0 < need_pitch:
+            reasons.append(f"DOE feature size {feature * 1e3:.4g} um -> pitch <= half of it")
+        need_pitch = min(need_pitch, feature / 2.0)
+    return nyq_pitch, need_pitch, reasons
+
+
+def plan_window(ctx) -> Planned:
+    """The wave-plane sampling of the whole beam (the ASM's plan): ``plan="auto"`` (Nyquist pitch, footprint
+    window, FFT padded for the band limit, rays per sample), ``"paper"`` (the whole DOE aperture at half its
+    feature size, padded 2x, 1000^2 rays) or an explicit :class:`~rwwarp.wave.plan.Plan` (checked, warnings)."""
+    from ..plan import Plan, auto_sizes, check_explicit, nice_fft_length
+    nyq_pitch, need_pitch, reasons = wave_plane_nyquist(ctx)
+    plan, width, lo, hi = ctx.plan, ctx.width, ctx.lo, ctx.hi
+    window = width + 2.0 * ctx.pilot_cell
+    if isinstance(plan, Plan):
+        pl = plan
+        check_explicit(pl, nyq_pitch, nice_fft_length(math.ceil((window + ctx.out_width) / pl.pitch_mm) + 4), window)
+    elif plan == "auto":
+        pitch, n_grid, n_pad, ray_grid = auto_sizes(need_pitch, width, ctx.feature, ctx.out_width, ctx.rays_per_sample)
+        reasons += [f"window = beam footprint {width:.4g} mm + 2 pilot cells -> {n_grid} samples",
+                    f"padding: max(2 x window, window + sensor patch {ctx.out_width:.4g} mm) (band limit) -> FFT {n_pad}",
+                    f"rays: {ctx.rays_per_sample} per sample per axis -> {ray_grid} across the pupil"]
+        pl = Plan(pitch, n_grid, n_pad, ray_grid, "auto", False, reasons)
+    elif plan == "paper":
+        s = ctx.lens.surfaces[ctx.plane]
+        half = s.semi_diameter or float(np.max(np.abs(np.concatenate([lo, hi]))))
+        pitch = (ctx.feature or 2 * need_pitch) / 2.0
+        n_grid = int(round(2 * half / pitch))
+        pl = Plan(pitch, n_grid, 2 * n_grid, 1000, "paper", False,
+                  ["paper: whole DOE aperture at half the DOE feature size, padded 2x, 1000x1000 pupil rays "
+                   "(10^6)"])
+        lo = np.full_like(lo, -half)
+        hi = np.full_like(hi, half)
+    else:
+        raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
+    return Planned(pl, ctx.carrier, ctx.centers, lo, hi)
+
+
+def wave_plane_cost(plan, n_sources: int):
+    """``(memory_bytes, flops)`` of a batch's trace, splat and field (shared by the methods that form one):
+    ~232 bytes and ~4000 flops a ray, ~64 bytes a wave-plane sample (:func:`rwwarp.wave.plan.estimate_cost`)."""
+    S = int(n_sources)
+    rays = S * plan.ray_grid ** 2
+    n2 = plan.n_grid ** 2
+    return rays * 232 + S * n2 * 64, rays * 4000.0
+
+
+@register
+class AngularSpectrum(Propagation):
+    """The band-limited (shifted, Matsushima) angular spectrum over the whole beam's padded FFT, a matrix DFT
+    to the pixels' Gauss nodes (:class:`rwwarp.wave.propagate_sensor.SensorPropagator`); the DOE phase goes in
+    with the field."""
+
+    name = "asm"
+    torch_path = "asm"
+    doe_in_propagator = True
+    fft_padded = True
+
+    def plan(self, ctx):
+        return plan_window(ctx)
+
+    def estimate(self, plan, n_sources, size, gauss_nodes):
+        S, m = int(n_sources), int(size) * int(gauss_nodes)
+        mem, flops = wave_plane_cost(plan, S)
+        npd = plan.n_pad
+        mem += S * (2 * npd * npd * 16 + 2 * npd * m * 16 + m * m * 16)
+        flops += S * (5.0 * npd * npd * math.log2(max(npd * npd, 2)) + 8.0 * (npd * npd * m + npd * m * m))
+        return {"memory_bytes": int(mem), "flops": float(flops)}
+
+    def explain_grids(self, plan):
+        return super().explain_grids(plan) + f"FFT {plan.n_pad}^2, "
+
+    def operator(self, rw, distance_mm=None, precision="double"):
+        return AsmOperator(rw, distance_mm)
+
+    def pixels(self, rw, field, precision="double", to_host=True):
+        phi0, scale = rw.doe_phase()
+        return rw.intensity(field, phi0, scale, to_host=to_host)
+
+
+class AsmOperator:
+    """The ASM's linear map, wave-plane field (S, n, n) (carrier removed, wave step applied; the DOE phase of
+    ``rw`` applied inside) -> the field at the pixels' Gauss nodes (S, size g, size g), carrier restored
+    (:class:`rwwarp.wave.propagate.PointPropagator`). ``distance_derivative`` is not formed: the ASM's distance
+    gradient is that of a loss (:meth:`SensorPropagator.distance_adjoint`)."""
+
+    def __init__(self, rw, distance_mm=None):
+        from .. import backend as bk
+        from ..propagate import PointGeometry, PointPropagator
+        from .registry import gauss_nodes_xy
+        self.rw = rw
+        self.be = bk.get_backend(rw.device)
+        self.z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
+        nx, ny = gauss_nodes_xy(rw)
+        phi0, scale = rw.doe_phase()
+        self.phi0 = phi0
+        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, np.array(rw.wls) / rw.n_after, np.full(rw.nsrc, self.z),
+                            nx, ny, doe_scale=scale, carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad)
+        self.prop = PointPropagator(self.be, geo)
+
+    def forward(self, field):
+        """The field at the nodes (S, My, Mx), numpy."""
+        return np.asarray(self.be.to_host(self.prop.forward(self._dev(field), self.phi0)))
+
+    def adjoint(self, grad):
+        """``A^H grad``: (S, My, Mx) -> (S, n, n), numpy (the map is linear in the field)."""
+        n = self.rw.plan.n_grid
+        zero = np.zeros((self.rw.nsrc, n, n), np.complex128)
+        g, _ = self.prop.adjoint(np.asarray(grad, np.complex128), self._dev(zero), self.phi0)
+        return np.asarray(self.be.to_host(g))
+
+    def distance_derivative(self, field):
+        raise NotImplementedError("asm: no linear distance derivative; the distance gradient of a loss is "
+                                  "rwwarp.wave.propagate_sensor.SensorPropagator.distance_adjoint")
+
+    def _dev(self, a):
+        a = np.asarray(a, np.complex128)
+        return self.be.wrap_host(a) if hasattr(self.be, "wrap_host") else self.be.to_device(a)
