@@ -18,10 +18,28 @@ Lengths in mm, wavelengths in um, fields in degrees. No torch here.
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from .wave.methods import get as get_method
+from .wave.packed import PackedRayWave, packed_bytes, source_plans
+from .wave.paraxial_wave import paraxial_equivalent
+
+MODELS = ("ray-wave", "ray", "paraxial-wave")
+
+
+def _check_tolerance(tolerance):
+    """``tolerance`` (a model error relative to the PSF's peak) as a float in (0, 1], or None."""
+    if tolerance is None:
+        return None
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not (0 < tolerance <= 1):
+        raise ValueError(f"tolerance must be a number in (0, 1] (the model error accepted, relative to the PSF's "
+                         f"peak) or None, got {tolerance!r}")
+    return float(tolerance)
+
 
 WAVE_MODELS = ("ray-wave", "paraxial-wave")
 
@@ -59,7 +77,6 @@ def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device=
     resolved (:class:`MapArgs`); ``n_depths``: object distances mapped (the distributed map's ``depths_mm``),
     for the bound on the number of sources. Arguments as :func:`rwwarp.psf`."""
     from . import checks
-    from .psf import MODELS, _check_tolerance
     from .wave.methods import choices as method_choices
     from .trace import as_field_list
     from .wave.plan import default_memory_budget_bytes
@@ -122,7 +139,6 @@ def map_units(lens, a: MapArgs, pairs, object_distance_mm=None) -> list:
     if a.model not in WAVE_MODELS:
         b = a.batch or len(pairs)
         return [(pairs[k:k + b], None) for k in range(0, len(pairs), b)]
-    from .psf import pack_sources, wave_members
     out = []
     for members, sys_pairs in wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel,
                                            object_distance_mm, a.opts):
@@ -142,7 +158,6 @@ def run_sources(lens, a: MapArgs, pairs, object_distance_mm, store, cache=None, 
     pairs = [tuple(p) for p in pairs]
     info = {} if info is None else info
     if a.model in WAVE_MODELS:
-        from .psf import _wave_map
         with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
             _wave_map(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, object_distance_mm, a.batch, a.budget,
                       a.memory_budget_gb, a.focal_precision, a.opts, cache, info, store)
@@ -185,3 +200,94 @@ def finish_map(a: MapArgs, power, valid_fraction, dropped_rays, plans, stackleve
                       f"({'; '.join(cut[:6])}{'; ...' if len(cut) > 6 else ''}); pass a larger size", PatchWarning,
                       stacklevel=stacklevel)
     return inside
+
+
+def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
+              memory_budget_gb, focal_precision, opts, cache, info, store):
+    """The wave models' part of :func:`psf_map`: plan (or take from ``cache``) and run every batch, handing each
+    batch's result to ``store(pairs, result)``. ``focal_precision`` resolved ("single" / "double")."""
+    kept = key = None
+    if cache is not None:
+        args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
+                memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))
+        key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
+        info["cache"] = "miss" if kept is None else "hit"
+    from .wave.plan_cache import held_bytes
+    if kept is not None:
+        from .wave.graph_replay import run_kept
+        info["replay"] = []
+        for chunk, packed in kept:   # the pilot, plans, batches and operators of an earlier call
+            res, how = run_kept(packed, focal_precision, graphs=cache.graphs)   # a CUDA graph where it can be
+            info["replay"].append(how)
+            store(chunk, res)
+    else:
+        keep = cache is not None
+        run_lens = copy.deepcopy(lens) if keep else lens   # kept batches see no later change of the caller's lens
+        new, need, held = [], 0, 0
+        for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
+                                               object_distance_mm, opts):
+            for chunk_idx in pack_sources(members, size, batch, budget):
+                if not get_method(members[chunk_idx[0]].plan.method).packable:
+                    # no wave-plane field to pack: computed alone, and a call with such a member keeps nothing
+                    store([sys_pairs[k] for k in chunk_idx], members[chunk_idx[0]].run(focal_precision))
+                    keep, new = False, []
+                    members[chunk_idx[0]] = None
+                    continue
+                packed = PackedRayWave([members[k] for k in chunk_idx], hold=keep)
+                res = packed.run(focal_precision, keep_operators=keep)
+                store([sys_pairs[k] for k in chunk_idx], res)
+                if keep:
+                    new.append(([sys_pairs[k] for k in chunk_idx], packed))
+                    need = max(need, packed_bytes(packed.members, size))
+                    held += held_bytes(new[-1:])
+                    if held > cache.max_bytes:   # over the cache's bound: nothing of this call is kept
+                        keep, new = False, []
+                for k in chunk_idx:
+                    members[k] = None   # done: its operators and tracer can go
+        if keep:
+            cache.store(key, new, need)
+
+
+def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, opts) -> list:
+    """Every (field, wavelength) pair of ``pairs`` (indices into ``fields`` (deg) and ``wavelengths_um``)
+    planned on its own (:func:`rwwarp.wave.packed.source_plans`) for the wave models: ``[(members, pairs), ...]``,
+    one entry per system (ray-wave: the lens; paraxial-wave: its equivalent at each wavelength), ``members``
+    in the order of that entry's ``pairs``. ``opts``: the :class:`RayWave` options (``device``, ``plan``, ...,
+    ``memory_budget_bytes``); ``size`` px of ``pixel`` mm; ``object_distance_mm`` (mm, None: the lens's)."""
+    out = []
+    if model == "ray-wave":
+        out.append((source_plans(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size,
+                                 pixel, object_distance_mm=object_distance_mm, **opts), list(pairs)))
+        return out
+    for j, w in enumerate(wavelengths_um):
+        sub = [(i, jj) for i, jj in pairs if jj == j]
+        if not sub:
+            continue
+        eq, eq_fields = paraxial_equivalent(lens, [fields[i] for i, _ in sub], [w], object_distance_mm)
+        out.append((source_plans(eq, list(eq_fields), [w] * len(sub), size, pixel, **opts), sub))
+    return out
+
+
+def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> list:
+    """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
+    :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's
+    arrays are sized to its largest member, so similar members share one), at most ``batch`` a batch (None:
+    no limit) and within ``budget_bytes`` (:func:`rwwarp.wave.packed.packed_bytes`). A member over the budget on
+    its own has already been refused by its plan's check."""
+    order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
+                                                       -members[k].plan.ray_grid, -members[k].plan.n_grid, k))
+    out, cur = [], []
+    for k in order:
+        if cur:
+            m0 = members[cur[0]]
+            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and \
+                get_method(m0.plan.method).packable
+            fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
+            if same and fits and (batch is None or len(cur) < batch):
+                cur.append(k)
+                continue
+            out.append(cur)
+        cur = [k]
+    if cur:
+        out.append(cur)
+    return out

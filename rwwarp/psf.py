@@ -13,7 +13,6 @@ each sensor pixel (box integration of |U|^2 over the pixel). Lengths in mm, wave
 """
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, field
 
@@ -24,20 +23,8 @@ from .trace import as_field_list
 from .wave.raywave import RAYWAVE_OPTIONS, RayWave  # noqa: F401 (RayWave lived here)
 from .wave.packed import PackedRayWave, packed_bytes, source_plans
 from .wave.pilot import Pilot, trace_pilot  # noqa: F401 (the pilot trace of a batch, rwwarp.wave.pilot)
-from .wave.methods import choices as method_choices, get as get_method   # the registered methods
-
-MODELS = ("ray-wave", "ray", "paraxial-wave")
-
-
-def _check_tolerance(tolerance):
-    """``tolerance`` (a model error relative to the PSF's peak) as a float in (0, 1], or None."""
-    if tolerance is None:
-        return None
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not (0 < tolerance <= 1):
-        raise ValueError(f"tolerance must be a number in (0, 1] (the model error accepted, relative to the PSF's "
-                         f"peak) or None, got {tolerance!r}")
-    return float(tolerance)
-
+from .wave.methods import choices as method_choices  # the registered methods
+from .map_run import MODELS, _check_tolerance, _wave_map, pack_sources, wave_members  # noqa: F401 (their home: map_run)
 
 @dataclass
 class PSF:
@@ -306,98 +293,6 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                                         [p for b in info["batches"] for p in b["plans"]])
     info["time_s"] = time.perf_counter() - t0
     return PSFMap(out, a.pixel, centers, fields, wavelengths_um, model, info)
-
-
-def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
-              memory_budget_gb, focal_precision, opts, cache, info, store):
-    """The wave models' part of :func:`psf_map`: plan (or take from ``cache``) and run every batch, handing each
-    batch's result to ``store(pairs, result)``. ``focal_precision`` resolved ("single" / "double")."""
-    kept = key = None
-    if cache is not None:
-        args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
-                memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))
-        key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
-        info["cache"] = "miss" if kept is None else "hit"
-    from .wave.plan_cache import held_bytes
-    if kept is not None:
-        from .wave.graph_replay import run_kept
-        info["replay"] = []
-        for chunk, packed in kept:   # the pilot, plans, batches and operators of an earlier call
-            res, how = run_kept(packed, focal_precision, graphs=cache.graphs)   # a CUDA graph where it can be
-            info["replay"].append(how)
-            store(chunk, res)
-    else:
-        keep = cache is not None
-        run_lens = copy.deepcopy(lens) if keep else lens   # kept batches see no later change of the caller's lens
-        new, need, held = [], 0, 0
-        for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
-                                               object_distance_mm, opts):
-            for chunk_idx in pack_sources(members, size, batch, budget):
-                if not get_method(members[chunk_idx[0]].plan.method).packable:
-                    # no wave-plane field to pack: computed alone, and a call with such a member keeps nothing
-                    store([sys_pairs[k] for k in chunk_idx], members[chunk_idx[0]].run(focal_precision))
-                    keep, new = False, []
-                    members[chunk_idx[0]] = None
-                    continue
-                packed = PackedRayWave([members[k] for k in chunk_idx], hold=keep)
-                res = packed.run(focal_precision, keep_operators=keep)
-                store([sys_pairs[k] for k in chunk_idx], res)
-                if keep:
-                    new.append(([sys_pairs[k] for k in chunk_idx], packed))
-                    need = max(need, packed_bytes(packed.members, size))
-                    held += held_bytes(new[-1:])
-                    if held > cache.max_bytes:   # over the cache's bound: nothing of this call is kept
-                        keep, new = False, []
-                for k in chunk_idx:
-                    members[k] = None   # done: its operators and tracer can go
-        if keep:
-            cache.store(key, new, need)
-
-
-# ---------------------------------------------------------------------------------------------- helpers
-def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, opts) -> list:
-    """Every (field, wavelength) pair of ``pairs`` (indices into ``fields`` (deg) and ``wavelengths_um``)
-    planned on its own (:func:`rwwarp.wave.packed.source_plans`) for the wave models: ``[(members, pairs), ...]``,
-    one entry per system (ray-wave: the lens; paraxial-wave: its equivalent at each wavelength), ``members``
-    in the order of that entry's ``pairs``. ``opts``: the :class:`RayWave` options (``device``, ``plan``, ...,
-    ``memory_budget_bytes``); ``size`` px of ``pixel`` mm; ``object_distance_mm`` (mm, None: the lens's)."""
-    out = []
-    if model == "ray-wave":
-        out.append((source_plans(lens, [fields[i] for i, _ in pairs], [wavelengths_um[j] for _, j in pairs], size,
-                                 pixel, object_distance_mm=object_distance_mm, **opts), list(pairs)))
-        return out
-    for j, w in enumerate(wavelengths_um):
-        sub = [(i, jj) for i, jj in pairs if jj == j]
-        if not sub:
-            continue
-        eq, eq_fields = paraxial_equivalent(lens, [fields[i] for i, _ in sub], [w], object_distance_mm)
-        out.append((source_plans(eq, list(eq_fields), [w] * len(sub), size, pixel, **opts), sub))
-    return out
-
-
-def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> list:
-    """Batches of indices into ``members`` (single-source :class:`RayWave` s, each on its own plan) for
-    :class:`PackedRayWave`: members of one propagation method (and rim weighting), largest first (a batch's
-    arrays are sized to its largest member, so similar members share one), at most ``batch`` a batch (None:
-    no limit) and within ``budget_bytes`` (:func:`rwwarp.wave.packed.packed_bytes`). A member over the budget on
-    its own has already been refused by its plan's check."""
-    order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
-                                                       -members[k].plan.ray_grid, -members[k].plan.n_grid, k))
-    out, cur = [], []
-    for k in order:
-        if cur:
-            m0 = members[cur[0]]
-            same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and \
-                get_method(m0.plan.method).packable
-            fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
-            if same and fits and (batch is None or len(cur) < batch):
-                cur.append(k)
-                continue
-            out.append(cur)
-        cur = [k]
-    if cur:
-        out.append(cur)
-    return out
 
 
 # ---------------------------------------------------------------------------------------------- comparison models

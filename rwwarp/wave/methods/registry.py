@@ -165,9 +165,9 @@ class Propagation:
         its window by ``extra`` samples a side: by default rays per sample are kept and a padded FFT grows
         with the window."""
         import math
-        from ..plan import nice_fft_length
+        from ..propagate_setup import next_fft_size   # = plan.nice_fft_length (the registry sits below plan)
         ray_grid = max(plan.ray_grid, int(math.ceil(plan.ray_grid * plan.pitch_mm / pitch)))
-        n_pad = plan.n_pad if not self.fft_padded else nice_fft_length(max(plan.n_pad, int(math.ceil(
+        n_pad = plan.n_pad if not self.fft_padded else next_fft_size(max(plan.n_pad, int(math.ceil(
             plan.n_pad * plan.pitch_mm / pitch)) + 2 * extra))
         return ray_grid, n_pad
 
