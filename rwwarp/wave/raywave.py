@@ -224,7 +224,7 @@ class RayWave:
             # radii wide): the ASM's plan (padding for the patch, whole rim cells) is not sized for it (a BK7 singlet
             # at 35 / 40 deg, 16 px: 1.5e-2 / 9.6e-2 off rs_lens_psf, still 1.5e-3 with 2 x the grid, rays and padding;
             # the focal path 1.1e-4 / 5.4e-5 of the peak), so the focal path runs wherever it fits
-            aberrated = bool(np.any(focal_state[1].get("lit_taper", False)))
+            aberrated = bool(np.any(planned["focal"].geo.get("lit_taper", False)))
             if aberrated:
                 why += "; the geometric spot outgrows the patch (rays land in the focal taper): focal"
             if fits == [False, True] or (fits != [True, False] and (aberrated or (not small_asm

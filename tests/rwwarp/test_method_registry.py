@@ -70,7 +70,7 @@ class _WavePlanePower(methods.Propagation):
     def estimate(self, plan, n_sources, size, gauss_nodes):
         return {"memory_bytes": int(n_sources * plan.n_grid ** 2 * 64), "flops": float(plan.n_grid ** 2)}
 
-    def pixels(self, rw_, field, precision="double"):
+    def pixels(self, rw_, field, precision="double", to_host=True):
         out = np.zeros((rw_.nsrc, rw_.size, rw_.size))
         out[:, rw_.size // 2, rw_.size // 2] = np.sum(np.abs(np.asarray(field)) ** 2, axis=(1, 2)) * rw_.plan.pitch_mm ** 2
         return out
