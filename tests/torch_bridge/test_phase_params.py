@@ -53,8 +53,8 @@ def _ref_psf(lens, size, **kw):
 
 @pytest.mark.parametrize("make", [rear_phase_singlet, small_two_does], ids=["rear", "two_does"])
 def test_psf_equals_rwwarp_psf(make):
-    """The module's PSF (focal method, float64) equals rw.psf of the same lens: measured 4e-16 (rear) of the peak;
-    tolerance 1e-13, as test_modules' DOE lens."""
+    """The module's PSF (focal method, float64) equals rw.psf of the same lens (focal, double precision): measured
+    0 (the same table and kernels); tolerance 1e-13 of the peak, as test_modules' DOE lens."""
     lens = make()
     ref = _ref_psf(lens, 12)
     hl = tb.HybridLens(lens, method="focal", learn={"phase": "all"})
@@ -109,7 +109,7 @@ def test_psf_gradient_in_phase_coefficients_against_finite_differences():
 def test_to_lens_round_trips_learned_coefficients():
     """Changed coefficients go to to_lens (even_poly with the surface's R; a changed fresnel phase as even_poly with
     R = 1 mm, an unchanged one kept as it was) and rw.psf of the exported lens equals the module's PSF (measured
-    3e-16 of the peak; tolerance 1e-13); state_dict round-trips exactly, and one written before ``phase`` existed
+    0; tolerance 1e-13 of the peak); state_dict round-trips exactly, and one written before ``phase`` existed
     loads with the lens's own coefficients."""
     lens = small_two_does()
     hl = tb.HybridLens(lens, method="focal", learn={"phase": [(0, 0), (0, 3), (2, 0)]})
@@ -182,9 +182,11 @@ def test_thin_lens_conjugates_and_efl_include_the_phase_power():
 
     def efl(a1):
         return paraxial.efl(lens.with_surface(1, phase={**REAR, "coefficients": [a1, 8.0]}), wl)
-    h = 0.5   # central difference of the numpy EFL (truncation O(h^2): measured agreement 1e-9; tolerance 1e-7)
+    # central difference of the numpy EFL, truncation O(h^2): measured 1.5e-10 (h = 0.05 rad; 1.6e-8 at
+    # h = 0.5); tolerance 1e-9
+    h = 0.05
     fd = (efl(-117.0 + h) - efl(-117.0 - h)) / (2 * h)
-    assert hl.phase.grad.item() == pytest.approx(fd, rel=1e-7)
+    assert hl.phase.grad.item() == pytest.approx(fd, rel=1e-9)
 
 
 def test_learn_phase_is_validated():
