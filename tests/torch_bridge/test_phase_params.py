@@ -203,3 +203,25 @@ def test_learn_phase_is_validated():
     # lenses without phase surfaces: nothing to learn, an all-zero table
     plain = tb.HybridLens(lens.with_surface(1, phase=None), learn={"phase": "all"})
     assert plain.phase.numel() == 0 and not plain.value("phase").any()
+
+
+def test_design_config_learns_phase(tmp_path):
+    """A design config may learn ``phase`` ([surface, k] pairs on a phase surface, with its learning rate); an entry
+    on a surface without a phase is refused before any training, naming the key."""
+    from torch_bridge.config import ConfigError, load_config
+    lens = rear_phase_singlet()
+    surfs = copy.deepcopy(lens.surfaces)
+    total = surfs[1].thickness
+    surfs[1].thickness = total - 2.0
+    surfs.append(Surface(type="doe", semi_diameter=1.5, shape="square", thickness=2.0,
+                         profile={"kind": "even_poly", "norm_radius": 1.0, "coefficients": [0.0, 0.0]}))
+    Lens(surfs, lens.sensor, wavelengths_um=lens.wavelengths_um).save(tmp_path / "phase_doe.json")
+    cfg = {"experiment": "phase", "lens": {"file": str(tmp_path / "phase_doe.json")},
+           "optics": {"learn": {"doe": "all", "phase": [[1, 0]]}, "psf_size": 15,
+                      "wavelengths_um": [[0.63], [0.55], [0.47]]},
+           "train": {"lr_optics": {"doe": 0.5, "phase": 0.1}}, "arms": [{"name": "e2e", "design": {"method": "e2e"}}]}
+    out = load_config(copy.deepcopy(cfg))
+    assert out["arms"][0]["config"]["optics"]["learn"]["phase"] == [[1, 0]]
+    cfg["optics"]["learn"]["phase"] = [[0, 0]]
+    with pytest.raises(ConfigError, match="'optics.learn.phase'"):
+        load_config(cfg)
