@@ -45,19 +45,20 @@ def small_two_does():
     return small(two_does())
 
 
-def _ref_psf(lens, size, **kw):
+def _ref_psf(lens, size, method="focal"):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")   # PatchWarning: small patches on purpose (fast tests)
-        return rw.psf(lens, FIELD, 0.55, size=size, method="focal", focal_precision="double", **kw)
+        return rw.psf(lens, FIELD, 0.55, size=size, method=method, focal_precision="double")
 
 
+@pytest.mark.parametrize("method", ["focal", "asm"])
 @pytest.mark.parametrize("make", [rear_phase_singlet, small_two_does], ids=["rear", "two_does"])
-def test_psf_equals_rwwarp_psf(make):
-    """The module's PSF (focal method, float64) equals rw.psf of the same lens (focal, double precision): measured
-    0 (the same table and kernels); tolerance 1e-13 of the peak, as test_modules' DOE lens."""
+def test_psf_equals_rwwarp_psf(make, method):
+    """The module's PSF (float64) equals rw.psf of the same lens (focal in double precision, or the ASM): measured
+    0 (focal: the same table and kernels) and 1e-16 (asm); tolerance 1e-13 of the peak, as test_modules' DOE lens."""
     lens = make()
-    ref = _ref_psf(lens, 12)
-    hl = tb.HybridLens(lens, method="focal", learn={"phase": "all"})
+    ref = _ref_psf(lens, 12, method=method)
+    hl = tb.HybridLens(lens, method=method, learn={"phase": "all"})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         p = hl.psf(FIELD, 0.55, 12)
