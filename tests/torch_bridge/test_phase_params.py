@@ -160,9 +160,10 @@ def test_psf_gradient_with_a_wave_plane_doe_behind_the_phase(method, gap, steps,
     coefficients) and (focal) d/d(curvature of the phase surface) against 4-point central differences.
     Measured: ASM 8.4e-9 (A_1), 1.1e-12, 2.2e-12 (DOE), tolerance 1e-7; focal 1.4e-7 (A_1), 4e-12, 3e-12 (DOE),
     4.6e-8 (curvature), tolerance 1e-6.
-    Open: the focal path with the DOE 2 mm before the sensor (a ~0.1 mm footprint) agrees only to 8e-4 (A_1 and
-    curvature, not converging with h from 1e-9 to 1e-7 / mm) while the same lens without the phase agrees to 3e-7
-    and the ASM above is exact; at 10 mm 7e-6, at 25 mm as measured here."""
+    Not the phase's doing, hence the 25 mm gap on the focal path: with the DOE 2 mm before a sharp focus (a ~0.1 mm
+    footprint) the focal path's refractive gradients agree only to ~1e-3 (A_1 and curvature here: 8e-4, not
+    converging with h from 1e-9 to 1e-7 / mm; the same singlet without any phase, in focus: 3e-3), at 10 mm to 7e-6;
+    the ASM is exact there (above)."""
     hl = tb.HybridLens(phase_and_doe(gap), method=method, replan=False,
                        learn={"phase": [(1, 0)], "doe": "all", "curvature": [1] if "curvature" in steps else None})
     weights = torch.from_numpy(np.random.default_rng(4).random((12, 12)))
