@@ -23,15 +23,15 @@ phase        (n_surfaces, 8)        A_1 .. A_8 (rad at the normalisation radius)
 A thin lens enters the trace through its power ``1/f`` and its conjugates (object-side ``1/u``,
 image distance ``v``, which make its path length that of a perfect lens); both conjugates are
 recomputed in torch from a paraxial y-nu trace of the current values (curvatures, thicknesses,
-focal lengths; refractive indices at the tracer's first wavelength, DOE powers fixed), as
+focal lengths, phase surfaces' A_1; indices at the tracer's first wavelength, DOE powers fixed), as
 :func:`rwwarp.paraxial.thin_lens_conjugates`, so their gradients reach every earlier surface too.
 
 Which entries learn is chosen per quantity and per entry with ``learn``: a dict from a name above
-to ``"all"`` or a list of entries (surface indices; ``(surface, k)`` pairs for ``aspheric``
-(k = 0 is r^4) and ``phase`` (k = 0 is A_1); coefficient indices or ``(row, col)`` pairs of a pixel map for ``doe``). Each
-quantity ``q`` is stored as a buffer ``q_base`` (all entries), a buffer ``q_index`` (flat indices
-of the learning entries) and an ``nn.Parameter`` ``q`` holding just those entries, so optimisers
-never touch frozen entries and ``state_dict`` round-trips exactly. ``.to(device)`` moves all of
+to ``"all"`` or a list of entries (surface indices; ``(surface, k)`` pairs for ``aspheric`` (k = 0 is r^4) and
+``phase`` (k = 0 is A_1); coefficient indices or ``(row, col)`` pairs of a pixel map for ``doe``). Each quantity
+``q`` is stored as a buffer ``q_base`` (all entries), a buffer ``q_index`` (flat indices of the learning entries)
+and an ``nn.Parameter`` ``q`` holding just those entries, so optimisers never touch frozen entries and
+``state_dict`` round-trips exactly. ``.to(device)`` moves all of
 them; the rwwarp device follows (``"cpu"`` or ``"cuda:N"``).
 
 **Sampling plans are not differentiated.** Every forward call makes the discrete decisions of the
