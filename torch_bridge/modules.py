@@ -514,8 +514,8 @@ class HybridLens(nn.Module):
         if not min_feature_mm > 0:
             raise ValueError(f"min_feature_mm must be > 0, got {min_feature_mm!r}")
         if self.doe_kind not in ("even_poly", "poly", "zernike", "cubic"):
-            raise ValueError(f"limit_doe_feature: DOE kind {self.doe_kind!r} is not linear in its values "
-                             "(supported: even_poly, poly, zernike, cubic)")
+            raise ValueError(f"limit_doe_feature: wave-plane DOE kind {self.doe_kind!r} is not linear in its values "
+                             "(supported: even_poly, poly, zernike, cubic; phase surfaces are not limited)")
         lens = self.to_lens()
         feat = surface_feature_size_mm(lens.surfaces[lens.doe_index])
         if feat >= min_feature_mm:

@@ -254,6 +254,8 @@ def test_learn_phase_is_validated():
     hl = tb.HybridLens(lens, learn={"phase": "all", "curvature": "all"})
     assert hl.phase_index.tolist() == list(range(8, 16)) and hl.curvature.numel() == 2
     assert dict(hl.named_parameters())["phase"].shape == (8,)
+    with pytest.raises(ValueError, match="phase surfaces are not limited"):   # the fabrication limit: wave-plane DOE only
+        hl.limit_doe_feature(0.01)
     # lenses without phase surfaces: nothing to learn, an all-zero table
     plain = tb.HybridLens(lens.with_surface(1, phase=None), learn={"phase": "all"})
     assert plain.phase.numel() == 0 and not plain.value("phase").any()
