@@ -37,8 +37,8 @@ kinoform, see :mod:`rwwarp.doe`) and the light in the other orders are ignored (
 them). A discontinuous profile (quantised levels, pixel maps, zones comparable to the wavelength) is not a
 smooth phase: its wraps diffract, and it needs a wave step (the wave-plane DOE), which is refused here. An
 evanescent order (``|n' d'_t| >= n'``) makes the ray invalid. Mirrors with a phase, and phases behind a mirror,
-are not supported; ``torch_bridge.HybridLens`` refuses phase surfaces for now (its thin-lens conjugates and ray
-model leave their power out); the tracer itself differentiates their terms (``wp.Tape``).
+are not supported. The tracer differentiates their terms (``wp.Tape``); ``torch_bridge.HybridLens`` learns their
+coefficients (quantity ``phase``, ``torch_bridge/phase_params.py``).
 
 Functions: :func:`phase_profile` (the surface's profile as even_poly terms), :func:`phase_columns` (the
 tracer's parameter row entries), :func:`phase_power` (paraxial power, 1/mm), :func:`check_phase_surface`

@@ -91,8 +91,8 @@ def _learn_entry(v):
 
 
 _LEARN = {q: _Spec(_learn_entry, "'all' or a list of indices") for q in
-          ("curvature", "thickness", "conic", "aspheric", "doe")}
-_LR = {q: _num(0, lo_open=False) for q in ("curvature", "thickness", "conic", "aspheric", "doe")}
+          ("curvature", "thickness", "conic", "aspheric", "doe", "phase")}
+_LR = {q: _num(0, lo_open=False) for q in ("curvature", "thickness", "conic", "aspheric", "doe", "phase")}
 _WLS = _Spec(lambda v: isinstance(v, list) and len(v) >= 1 and all(
     isinstance(c, list) and len(c) >= 1 and all(isinstance(w, (int, float)) and not isinstance(w, bool) and
                                                0.2 < w < 2.0 for w in c) for c in v),
@@ -406,6 +406,9 @@ def _semantic(cfg: dict, where: str, source):
                     raise ConfigError(f"{where}: 'optics.learn.{q}' index {i} is outside 0..{lim - 1}")
                 if q in ("curvature", "conic", "aspheric") and lens.surfaces[i].type != "standard":
                     raise ConfigError(f"{where}: 'optics.learn.{q}' index {i} is not a refracting ('standard') surface")
+                if q == "phase" and not (isinstance(e, list) and lens.surfaces[i].phase is not None):
+                    raise ConfigError(f"{where}: 'optics.learn.phase' entries are [surface, k] pairs on a surface "
+                                      f"with a diffractive phase (Surface.phase; k = 0 for A_1), got {e!r}")
     refr = [q for q in learn if q != "doe"]
     method = cfg["design"]["method"]
     live = method in ("e2e", "rms") and _refractive_learns(_learn_dict(learn), lens)

@@ -16,20 +16,22 @@ doe          (n_coefficients,)      DOE profile coefficients (rad): ``even_poly`
 doe          (ny, nx)               ``pixel_map`` DOE: the phase map (rad)
 focal_length (n_surfaces,)          focal length of ideal ``thin_lens`` surfaces (mm; 0 for
                                     other surfaces)
+phase        (n_surfaces, 8)        A_1 .. A_8 (rad at the normalisation radius) of phase surfaces
+                                    (:mod:`torch_bridge.phase_params`; 0 on other surfaces)
 ============ ====================== =========================================================
 
 A thin lens enters the trace through its power ``1/f`` and its conjugates (object-side ``1/u``,
 image distance ``v``, which make its path length that of a perfect lens); both conjugates are
 recomputed in torch from a paraxial y-nu trace of the current values (curvatures, thicknesses,
-focal lengths; refractive indices at the tracer's first wavelength, DOE powers fixed), as
+focal lengths, phase surfaces' A_1; indices at the tracer's first wavelength, DOE powers fixed), as
 :func:`rwwarp.paraxial.thin_lens_conjugates`, so their gradients reach every earlier surface too.
 
 Which entries learn is chosen per quantity and per entry with ``learn``: a dict from a name above
-to ``"all"`` or a list of entries (surface indices; ``(surface, k)`` pairs for ``aspheric``
-(k = 0 is r^4); coefficient indices or ``(row, col)`` pairs of a pixel map for ``doe``). Each
-quantity ``q`` is stored as a buffer ``q_base`` (all entries), a buffer ``q_index`` (flat indices
-of the learning entries) and an ``nn.Parameter`` ``q`` holding just those entries, so optimisers
-never touch frozen entries and ``state_dict`` round-trips exactly. ``.to(device)`` moves all of
+to ``"all"`` or a list of entries (surface indices; ``(surface, k)`` pairs for ``aspheric`` (k = 0 is r^4) and
+``phase`` (k = 0 is A_1); coefficient indices or ``(row, col)`` pairs of a pixel map for ``doe``). Each quantity
+``q`` is stored as a buffer ``q_base`` (all entries), a buffer ``q_index`` (flat indices of the learning entries)
+and an ``nn.Parameter`` ``q`` holding just those entries, so optimisers never touch frozen entries and
+``state_dict`` round-trips exactly. ``.to(device)`` moves all of
 them; the rwwarp device follows (``"cpu"`` or ``"cuda:N"``).
 
 **Sampling plans are not differentiated.** Every forward call makes the discrete decisions of the
@@ -59,6 +61,7 @@ from rwwarp.wave.methods import check_method, get as get_method
 
 from .wave_step import wave_step
 from . import budget as _budget
+from . import phase_params as _ph
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
 from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
                         propagate, quantize_ste, trace_splat, upload)
@@ -66,7 +69,7 @@ from .tiles import run_tiles
 
 __all__ = ["QUANTITIES", "HybridLens"]
 
-QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe", "focal_length")
+QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe", "focal_length", "phase")
 
 
 def _rw_device(t: torch.Tensor) -> str:
@@ -140,18 +143,14 @@ class HybridLens(nn.Module):
         self._plans: dict = {}
         self._same_values = None   # see same_values()
         surfs = lens.surfaces
-        if any(getattr(s, "phase", None) is not None for s in surfs):
-            from rwwarp.errors import LensError
-            k = next(i for i, s in enumerate(surfs) if s.phase is not None)
-            raise LensError("HybridLens does not take phase surfaces (a diffractive phase on a standard surface, "
-                            "rwwarp.phase_surface) yet: its thin-lens conjugates and ray model leave their power out; "
-                            "rwwarp.psf traces them", file=lens.source, surface=k, keyword="phase")
         ns = len(surfs)
         std = [s.type == "standard" for s in surfs]
         thin = [s.type == "thin_lens" for s in surfs]
         self._thin_surfaces = thin  # host copy: no device sync per call
         self.register_buffer("standard_mask", torch.tensor(std, dtype=torch.bool), persistent=False)
         self.register_buffer("thin_mask", torch.tensor(thin, dtype=torch.bool), persistent=False)
+        self._phase_surfaces = _ph.phase_mask(lens)   # host copy, as _thin_surfaces
+        self.register_buffer("phase_mask", torch.tensor(self._phase_surfaces, dtype=torch.bool), persistent=False)
         curv = [s.curvature if s.type == "standard" else 0.0 for s in surfs]
         asph = np.zeros((ns, MAX_ASPHERIC))
         for i, s in enumerate(surfs):
@@ -163,14 +162,15 @@ class HybridLens(nn.Module):
                 "aspheric": asph,
                 "doe": self._doe_base(lens),
                 "focal_length": np.array([s.focal_length if s.type == "thin_lens" else 0.0 for s in surfs],
-                                         dtype=np.float64)}
+                                         dtype=np.float64), "phase": _ph.phase_base(lens)}
         learn = dict(learn or {})
         unknown = set(learn) - set(QUANTITIES)
         if unknown:
             raise ValueError(f"unknown quantities in learn: {sorted(unknown)} (choose from {QUANTITIES})")
         for q in QUANTITIES:
             b = torch.from_numpy(np.ascontiguousarray(base[q], dtype=np.float64))
-            idx = self._flat_indices(q, learn.get(q), b.shape, thin if q == "focal_length" else std)
+            idx = (_ph.phase_indices(learn.get(q), b.shape, self._phase_surfaces) if q == "phase" else
+                   self._flat_indices(q, learn.get(q), b.shape, thin if q == "focal_length" else std))
             self.register_buffer(f"{q}_base", b)
             self.register_buffer(f"{q}_index", idx)
             setattr(self, q, nn.Parameter(b.reshape(-1)[idx].clone()))
@@ -285,6 +285,8 @@ class HybridLens(nn.Module):
                 nz = np.nonzero(a)[0]
                 keep = max(len(s.aspheric), int(nz[-1]) + 1 if nz.size else 0)
                 s.aspheric = [float(x) for x in a[:keep]]
+                if s.phase is not None:
+                    s.phase = _ph.exported_phase(s, v["phase"][i])
         d = lens.doe_index
         if d is not None:
             s = lens.surfaces[d]
@@ -442,6 +444,8 @@ class HybridLens(nn.Module):
         asph = torch.cat([v["aspheric"], torch.zeros(1, MAX_ASPHERIC, dtype=t.dtype, device=dev)])
         for k in range(COL.n_asph):
             cols[COL.asph0 + k] = torch.where(std, asph[:, k], cols[COL.asph0 + k])
+        if any(self._phase_surfaces):
+            _ph.write_phase_columns(cols, v["phase"], self.phase_mask)
         if any(self._thin_surfaces):
             thin = torch.cat([self.thin_mask.to(dev), torch.zeros(1, dtype=torch.bool, device=dev)])
             if hasattr(rw, "tracer"):
@@ -480,6 +484,8 @@ class HybridLens(nn.Module):
         f = torch.where(thin, v["focal_length"], torch.ones_like(v["focal_length"]))
         power = torch.where(std, (n - n_before) * v["curvature"],
                             torch.where(thin, 1.0 / f, upload(const["doe_power"], dt, dev)))
+        if any(self._phase_surfaces):   # rwwarp.paraxial.surface_powers: a standard surface's phase adds its power
+            power = power + _ph.phase_powers(lens, v["phase"], wl0)
         od = const["object_distance"]
         one = torch.ones((), dtype=dt, device=dev)
         y0, nu0 = (one, 0.0 * one) if math.isinf(od) else (od * one, one)
@@ -508,8 +514,8 @@ class HybridLens(nn.Module):
         if not min_feature_mm > 0:
             raise ValueError(f"min_feature_mm must be > 0, got {min_feature_mm!r}")
         if self.doe_kind not in ("even_poly", "poly", "zernike", "cubic"):
-            raise ValueError(f"limit_doe_feature: DOE kind {self.doe_kind!r} is not linear in its values "
-                             "(supported: even_poly, poly, zernike, cubic)")
+            raise ValueError(f"limit_doe_feature: wave-plane DOE kind {self.doe_kind!r} is not linear in its values "
+                             "(supported: even_poly, poly, zernike, cubic; phase surfaces are not limited)")
         lens = self.to_lens()
         feat = surface_feature_size_mm(lens.surfaces[lens.doe_index])
         if feat >= min_feature_mm:
@@ -777,10 +783,11 @@ class HybridLens(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
                               error_msgs):
-        # state dicts written before focal_length existed: keep the lens's own focal lengths, frozen
-        if f"{prefix}focal_length_base" not in state_dict:
-            for k in ("focal_length_base", "focal_length_index", "focal_length"):
-                state_dict[prefix + k] = getattr(self, k).detach().clone()
+        # state dicts written before focal_length / phase existed: keep the lens's own values, frozen
+        for q in ("focal_length", "phase"):
+            if f"{prefix}{q}_base" not in state_dict:
+                for k in (f"{q}_base", f"{q}_index", q):
+                    state_dict[prefix + k] = getattr(self, k).detach().clone()
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
                                       error_msgs)
 

@@ -141,9 +141,12 @@ class RaySpot:
 def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
     """Paraxial EFL (mm) of a :class:`~torch_bridge.HybridLens` as a differentiable tensor (y-nu trace
     with the current curvatures and thicknesses, DOE power ``-lambda a2 / pi`` of any smooth kind:
-    :func:`rwwarp.paraxial.diffractive_power` of :func:`rwwarp.doe.profile_quadratic`; a pixel map adds none)."""
+    :func:`rwwarp.paraxial.diffractive_power` of :func:`rwwarp.doe.profile_quadratic`; a pixel map adds none;
+    a phase surface's ``-m lambda A_1 / (pi R^2)`` from the current ``phase`` values)."""
     from rwwarp import paraxial
     from rwwarp.doe import SMOOTH_KINDS, profile_quadratic
+
+    from .phase_params import phase_mask, phase_powers
     lens = module.lens_template
     v = module.values()
     n = paraxial.signed_indices(lens, wavelength_um)
@@ -162,6 +165,9 @@ def paraxial_efl(module, wavelength_um: float) -> torch.Tensor:
         else:
             P = torch.zeros((), dtype=torch.float64)
         powers.append(P)
+    if any(phase_mask(lens)):   # a standard surface's diffractive phase adds -m lambda A_1 / (pi R^2)
+        ph = phase_powers(lens, v["phase"], wavelength_um)
+        powers = [P + ph[i] for i, P in enumerate(powers)]
     one = torch.ones((), dtype=torch.float64)
     _, _, nus = paraxial.ynu_steps(powers, v["thickness"], n, one, 0.0 * one)
     return -1.0 / nus[-1]
