@@ -67,7 +67,7 @@ def upload_packed(parts, device: str, cache: bool = False):
             hit = _UPLOADS.get(key)
             if hit is not None:
                 _UPLOADS.move_to_end(key)
-        if hit is not None:  # _recorded takes the (non-reentrant) lock itself: call it outside
+        if hit is not None:  # recorded outside the lock (it takes the lock itself)
             return _recorded(list(hit))
     base = wp.array(buf, dtype=wp.uint8, device=device)
     out = []
