@@ -14,7 +14,7 @@
 #   bash perf/gpu_suite.sh smoke-parallel [PARTS]  # the same parts at once, part k alone on GPU k
 #                              # (CUDA_VISIBLE_DEVICES; a machine with >= as many GPUs as parts, e.g. nvidia-h100-x4):
 #                              # each part keeps one whole card, so its peak is what it is on one H100; logs in
-#                              # $RWWARP_RESULTS/smoke_<part>.log
+#                              # $RWWARP_RESULTS/smoke_<part>.log, results in $RWWARP_RESULTS/smoke_<part>/
 # Results JSON under $OUT (device tool) or perf/results.
 set -u
 part=${1:-a}
@@ -45,7 +45,8 @@ smoke-parallel)
   k=0; pids=()
   for p in $parts; do
     [ $k -lt $ngpu ] || { echo "smoke-parallel: $ngpu GPU(s) for the parts $parts" >&2; exit 2; }
-    CUDA_VISIBLE_DEVICES=$k bash "$SELF" smoke $p > "$RWWARP_RESULTS/smoke_$p.log" 2>&1 &
+    mkdir -p "$RWWARP_RESULTS/smoke_$p"
+    OUT="$RWWARP_RESULTS/smoke_$p" CUDA_VISIBLE_DEVICES=$k bash "$SELF" smoke $p > "$RWWARP_RESULTS/smoke_$p.log" 2>&1 &
     pids+=($!); k=$((k + 1))
   done
   rc=0; k=0
