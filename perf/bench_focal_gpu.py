@@ -8,7 +8,6 @@ GPU's name.
 """
 import json
 import os
-import subprocess
 import sys
 import time
 

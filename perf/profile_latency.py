@@ -12,7 +12,6 @@ import argparse
 import cProfile
 import json
 import pstats
-import subprocess
 import sys
 import time
 import warnings
