@@ -14,7 +14,7 @@ __all__ = ["upload_packed", "recording_uploads"]
 _UPLOADS: OrderedDict = OrderedDict()  # packed bytes -> views, for upload_packed(..., cache=True)
 _UPLOADS_MAX = 64
 _UPLOADS_MAX_BYTES = 1 << 16
-_UPLOADS_LOCK = threading.Lock()
+_UPLOADS_LOCK = threading.RLock()   # reentrant: a cache hit calls _recorded with it held
 _RECORDERS: list = []   # lists that collect every upload returned while they are registered (recording_uploads)
 
 
