@@ -7,6 +7,10 @@ optionally every depth) with its sources split across the ranks of a ``torch.dis
   planning pilot per depth; every source on its own plan, packed batches), so every PSF is computed
   with exactly the plan the single-process map gives it (its own: a PSF does not depend on its batch):
   the sharded map equals ``rw.psf_map`` (measured: bit for bit on the CPU, test tolerance 1e-12).
+  Every rank plans every unit (one pilot trace of all sources a depth: the costs below need every unit's plans),
+  keeps its own units' planned members and runs them (:func:`rwwarp.map_run.run_planned`): each source's pilot is
+  traced and planned once on a rank, not again for its run. Until the assignment, a rank holds every depth's
+  planned members (their total is bounded as one ``rw.psf_map`` call's: ``checks.MAX_SOURCES`` sources).
 * **Balance by estimated work, not by count.** Each batch's cost is the planner's estimate, the sum
   of its sources' (:func:`rwwarp.wave.plan.estimate_cost` of each source's own plan): off-axis and
   large-aperture sources cost more. Batches are
