@@ -80,8 +80,9 @@ def test_thin_lens_even_poly_doe_20mm_before_sensor(coeffs, tol):
     def phi0(xx, yy):
         r2 = (xx * xx + yy * yy) / norm ** 2
         return coeffs[0] * r2 + coeffs[1] * r2 * r2
+    # 4 x 4 sensor nodes a pixel: within 2e-8 of the peak of 5 x 5 (measured on the second case), 40 % less time
     truth = rs_thin_lens_psf(21.0, "square", half, 0.55, 20.0, x, y, p.pixel_mm, doe_phase=phi0,
-                             gauss_nodes_sensor=5)
+                             gauss_nodes_sensor=4)
     assert _rel(p.data, truth) < tol
 
 
