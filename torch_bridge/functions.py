@@ -10,7 +10,8 @@ fixed sampling plan) and runs in float64 unless said otherwise:
   :class:`rwwarp.wave.propagate.SensorPropagator`; backward is its analytic adjoint on the same cached plans).
 * :class:`FocalPropagate`: field on a focal plan's wave-plane grid (+ distance) -> power per sensor
   pixel (:class:`rwwarp.wave.focal.FocalPropagator`: the converging wave handled analytically; backward is
-  the operator's adjoint and its exact distance derivative).
+  the operator's adjoint and its exact distance derivative), by the generic operator Functions of
+  :mod:`torch_bridge.operator_function`.
 * :class:`MixedPrecision`: float64 forward -> float32, float32 gradient -> float64 (the paper's
   mixed precision: the optics in double, the network in single).
 * :class:`QuantizeSTE`: DOE phase wrapped to [0, 2 pi) and quantised to N levels with a

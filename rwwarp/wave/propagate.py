@@ -79,9 +79,8 @@ from .propagate_setup import (
     _per_batch, _setup,
 )
 from .propagate_stages import (
-    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _crop_demodulate_adjoint, _dft_factors,
-    _launch,
-    _pad_fft, _points_to_band, _transfer, _upload_coords,
+    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _crop_demodulate_adjoint,
+    _dft_factors, _launch, _pad_fft, _points_to_band, _transfer, _upload_coords,
 )
 
 __all__ = [

@@ -11,8 +11,8 @@ Its operator has ``forward``, ``adjoint`` and the exact ``distance_derivative``;
 :class:`torch_bridge.HybridLens` differentiates it through the generic Functions of
 :mod:`torch_bridge.operator_function`. Checked: the gradients against central finite differences (the field,
 the lens's curvature and the sensor distance), the torch path against rwwarp's own ``rw.psf`` of the method, the
-toy against the Rayleigh-Sommerfeld sum on axis (where the paraxial kernel holds), the generic Functions on the ASM's operator against
-:class:`torch_bridge.functions.Propagate`, and the errors for what an operator lacks.
+toy against the Rayleigh-Sommerfeld sum on axis (where the paraxial kernel holds), the generic Functions on the
+ASM's operator against :class:`torch_bridge.functions.Propagate`, and the errors for what an operator lacks.
 """
 from __future__ import annotations
 
