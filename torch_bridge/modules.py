@@ -616,14 +616,14 @@ class HybridLens(nn.Module):
             if rw.amplitude != "energy":
                 u = paper_amplitude(u, rw)
             u = wave_step(u, rw)   # the rim's diffraction before the DOE, where the plan has it (issue 27)
+            d_host = float(host[-1, COL.z] - host[rw.plane, COL.z])
             if method.torch_path == "focal":
                 fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
                 if fac is not None:
                     u = u * fac
-                power = focal_propagate(u, dist, rw, float(host[-1, COL.z] - host[rw.plane, COL.z]))
+                power = focal_propagate(u, dist, rw, d_host)
             elif method.torch_path == "operator":   # any method's operator (torch_bridge.operator_function)
-                power = operator_propagate(u, dist, rw, float(host[-1, COL.z] - host[rw.plane, COL.z]),
-                                           phi0=self.doe_phase(rw, values))
+                power = operator_propagate(u, dist, rw, d_host, phi0=self.doe_phase(rw, values))
             else:
                 power = propagate(u, phi0, dist, rw, spatial_tile)
             return power / power_sums(rw, power.device)[0][:, None, None]
