@@ -1,3 +1,5 @@
+"""cProfile of warm rw.psf hits with a PlanCache on CUDA (Cooke 14 deg auto, A489 on axis focal; 64 px): where a
+replayed call's host time goes.  python perf/tools/prof_cached.py  (on a GPU machine)"""
 import cProfile, pstats, sys, time, warnings
 warnings.simplefilter("ignore")
 import numpy as np, rwwarp as rw, warp as wp, cupy
