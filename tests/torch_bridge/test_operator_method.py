@@ -115,14 +115,6 @@ def _singlet():
     return Lens(surfs, Sensor(0.002, (4000, 4000)), wavelengths_um=[0.55])
 
 
-def _fd(loss, p, i, h):
-    with torch.no_grad():
-        p[i] += h
-        lp = loss().item()
-        p[i] -= 2 * h
-        lm = loss().item()
-        p[i] += h
-    return (lp - lm) / (2 * h)
 
 
 def test_the_toy_operator_is_linear_adjoint_and_its_distance_derivative_is_the_difference(toy):
