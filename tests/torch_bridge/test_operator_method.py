@@ -28,6 +28,7 @@ import rwwarp as rw
 import torch_bridge as tb
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.wave import methods
+from _gradcheck import central_difference as _fd  # noqa: E402
 from rwwarp.wave.methods.asm import plan_window
 from rwwarp.wave.raywave import RayWave
 from torch_bridge.functions import Propagate
