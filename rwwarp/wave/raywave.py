@@ -1,8 +1,10 @@
 """The ray-wave model of one batch of point sources, in stages (:class:`RayWave`).
 
-Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (each
-registered propagation method plans its part, :mod:`rwwarp.wave.methods`; "auto" compares the band-limited
-ASM's and the focal method's, "two-step" adds the wave step), the wave-plane windows and the sensor patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
+Every discrete decision (chief rays, the sampling plan, windows, patches, wave step) is in its plan, a read-only
+:class:`rwwarp.wave.batch_plan.BatchPlan` (:func:`rwwarp.wave.batch_plan.plan_batch`, which its ``__init__`` calls;
+:meth:`RayWave.from_plan` runs an existing one); a RayWave holds the plan (``rw.batch_plan``, its names read through:
+``rw.plan``, ``rw.origin``, ``rw.centers``, ...) and the per-call state (tracer, splatter, power sums, focal operator,
+memoised DOE arrays). Its stages run the differentiable part: trace to the wave plane and splat into a complex
 field (Warp, :mod:`rwwarp.kernels.splat`), apply the DOE, propagate to the sensor and integrate over the
 pixels (:mod:`rwwarp.wave.propagate` or :mod:`rwwarp.wave.focal`). :func:`rwwarp.psf.psf` and
 :func:`rwwarp.psf.psf_map` are the public calls around it; :mod:`torch_bridge` differentiates its stages.
@@ -30,8 +32,9 @@ from .pilot import own_pupil_sources  # noqa: F401  (its home: rwwarp.wave.pilot
 class RayWave:
     """The ray-wave model for one batch of point sources, in stages.
 
-    ``__init__`` makes every discrete decision (pilot trace, chief rays, sampling plan, windows,
-    sensor patches); :meth:`field` runs the differentiable part on the Warp device (trace to the DOE
+    ``__init__`` plans (:func:`rwwarp.wave.batch_plan.plan_batch`: pilot trace, chief rays, sampling plan, windows,
+    sensor patches; kept read-only as :attr:`batch_plan`, whose names this object reads through) and makes the
+    tracer; :meth:`from_plan` runs a plan without planning again; :meth:`field` runs the differentiable part on the Warp device (trace to the DOE
     plane, ray-tube areas, splat, reference sphere and carrier) and returns the complex field;
     :meth:`doe_phase` samples phi0 on the windows; :meth:`intensity` propagates to the sensor and
     integrates over pixels (OpenCL); :meth:`run` chains them and normalises by the entering power.
