@@ -49,7 +49,7 @@ def test_raywaves_alone_traces_one_pilot_and_builds_one_raywave_a_source(monkeyp
     seen = _counters(monkeypatch)
     rs = m.raywaves_alone([0.0, 0.0, 3.0, 3.0], [0.5, 0.6, 0.5, 0.6], 12, centers_mm=np.zeros((4, 2)),
                           pixel_mm=lens.sensor.pixel_pitch, method="focal")
-    assert len(rs) == 4 and [r.wls for r in rs] == [[0.5], [0.6], [0.5], [0.6]]
+    assert len(rs) == 4 and [list(r.wls) for r in rs] == [[0.5], [0.6], [0.5], [0.6]]
     assert seen == {"pilots": [4], "raywaves": 4}
 
 
