@@ -8,7 +8,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-import rwwarp as rw
 from rwwarp.wave.batch_plan import BatchPlan, FrozenDict, _chief_rays, _footprints, plan_batch
 from rwwarp.wave.raywave import RayWave
 
@@ -166,3 +165,29 @@ def test_vectorised_planning_steps_follow_the_equations():
         f = n_after[k] * dir_s[k, v, :2] / lam_mm[k] - carrier[k]
         assert fmax[k] == np.max(np.abs(f))
         assert np.array_equal(lo[k], pos_p[k, v, :2].min(0)) and np.array_equal(hi[k], pos_p[k, v, :2].max(0))
+
+
+def test_the_model_errors_orders_at_once_are_the_orders_one_by_one():
+    """The model error's other orders (rwwarp.wave.model_error), all at once: whether each lights the patch and its
+    rim slope are the values of the per-order functions bit for bit (an order with an evanescent ray included)."""
+    from rwwarp.wave import model_error as me
+    rng = np.random.default_rng(2)
+    N, inv_lam, dist = 300, 2000.0, 20.0
+    xy = rng.normal(size=(N, 2))
+    f = rng.normal(size=(N, 2)) * 50.0
+    grad = rng.normal(size=(N, 2)) * 30.0 + [400.0, 0.0]   # each order off by 4 mm a unit of m on the sensor
+    xc = xy.mean(0)
+    rr = np.linalg.norm(xy - xc, axis=1)
+    rim = rr >= 0.9 * rr.max()
+    dm = [-3.0, -0.01, 0.0, 1.0, 4.5]           # the last: |f| > n / lambda for some of its rays (evanescent)
+    fm = me._order_frequencies(f, grad, dm)
+    centre = np.array([0.3, -0.2])
+    c2 = 1.0 - np.sum((fm / inv_lam) ** 2, axis=2)
+    assert np.any(c2[-1] <= 0) and np.any(c2[-1] > 0) and np.all(c2[:-1] > 0)
+    got = me._reaches_patch_orders(xy, fm, inv_lam, dist, centre, rr, rim)
+    want = [me._reaches_patch(xy, f + d * grad, inv_lam, dist, centre, rr, rim) for d in dm]
+    assert list(got) == want and any(want) and not all(want)
+    f_sph = rng.normal(size=(N, 2))
+    slopes = me._rim_slopes(xy, xc, rr, rim, 1.1, fm - f_sph)
+    for s, d in zip(slopes, dm):
+        assert s == me._rim_slope(xy, xc, rr, rim, 1.1, f + d * grad - f_sph)
