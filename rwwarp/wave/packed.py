@@ -104,8 +104,9 @@ class PackedRayWave(RayWave):
         m0 = members[0]
         for m in members:
             if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
-                    m.tracer.scalar, m.pixel_values) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference,
-                                                         m0.deterministic, m0.device, m0.tracer.scalar, m0.pixel_values):
+                    m.batch_plan.dtype, m.pixel_values) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference,
+                                                            m0.deterministic, m0.device, m0.batch_plan.dtype,
+                                                            m0.pixel_values):
                 raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
                                  "reference, determinism, device, precision and pixel values")
             if (m.src["shape"], m.src.get("object_distance"), m.plane, len(m.lens.surfaces)) != \
@@ -116,7 +117,7 @@ class PackedRayWave(RayWave):
         lens = m0.lens
         wls = [m.wls[0] for m in members]
         uniq = sorted(set(wls))
-        dtype = "float64" if m0.tracer.np_dtype == np.float64 else "float32"
+        dtype = m0.batch_plan.dtype     # the members' tracers' (made, or made on use, in the plan's precision)
         tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, requires_grad=bool(requires_grad),
                         deterministic=m0.deterministic)
         self._start(packed_plan(members), tracer, m0.device, m0.deterministic)

@@ -28,6 +28,18 @@ from .pilot import Pilot
 from .pilot import own_pupil_sources  # noqa: F401  (its home: rwwarp.wave.pilot; public here before)
 
 
+class _TracerOnUse:
+    """A RayWave's tracer made on first use (:meth:`RayWave.from_plan` ``tracer_on_use``): ``Tracer(*args, **kw)``."""
+
+    def __init__(self, args, kw):
+        self.args, self.kw, self.tracer = args, kw, None
+
+    def get(self) -> Tracer:
+        if self.tracer is None:
+            self.tracer = Tracer(*self.args, **self.kw)
+        return self.tracer
+
+
 # ---------------------------------------------------------------------------------------------- ray-wave
 class RayWave:
     """The ray-wave model for one batch of point sources, in stages.
@@ -94,27 +106,36 @@ class RayWave:
         through), ``tracer``, the device (as given), determinism (default the plan's)."""
         #: the :class:`rwwarp.wave.batch_plan.BatchPlan` this RayWave runs (read-only; a new plan replaces it)
         self.batch_plan = batch_plan
-        self.tracer = tracer
+        self._tracer = tracer
         self.device = device
         self.deterministic = batch_plan.deterministic if deterministic is None else bool(deterministic)
 
     @classmethod
     def from_plan(cls, batch_plan: BatchPlan, device: str | None = None, requires_grad: bool = False,
-                  deterministic: bool | None = None) -> "RayWave":
+                  deterministic: bool | None = None, tracer_on_use: bool = False) -> "RayWave":
         """A RayWave that runs ``batch_plan`` (:func:`rwwarp.wave.batch_plan.plan_batch`, or another RayWave's
         :attr:`batch_plan`) without planning again: its own tracer of the plan's lens (``requires_grad``: with
         gradient buffers) on ``device`` (default the plan's) in the plan's precision; ``deterministic`` default
-        the plan's. The same inputs give the same bits as the RayWave the plan came from."""
+        the plan's. The same inputs give the same bits as the RayWave the plan came from. ``tracer_on_use``: the
+        tracer is made when first used (:attr:`tracer`; shared by shallow copies), from the lens as it is then: a
+        plan computed only inside a :class:`~rwwarp.wave.packed.PackedRayWave` (which has its own) never makes it."""
         if not isinstance(batch_plan, BatchPlan):
             raise TypeError(f"RayWave.from_plan: batch_plan must be a rwwarp.wave.batch_plan.BatchPlan, got "
                             f"{type(batch_plan).__name__}")
         device = batch_plan.device if device is None else device
         det = batch_plan.deterministic if deterministic is None else bool(deterministic)
-        tr = Tracer(batch_plan.lens, sorted(set(batch_plan.wls)), device=device, dtype=batch_plan.dtype,
-                    requires_grad=requires_grad, deterministic=det)
+        args = (batch_plan.lens, sorted(set(batch_plan.wls)))
+        kw = dict(device=device, dtype=batch_plan.dtype, requires_grad=requires_grad, deterministic=det)
+        tr = _TracerOnUse(args, kw) if tracer_on_use else Tracer(*args, **kw)
         rw = cls.__new__(cls)
         rw._start(batch_plan, tr, device, det)
         return rw
+
+    @property
+    def tracer(self) -> Tracer:
+        """This batch's :class:`rwwarp.trace.Tracer` (its device arrays: surface parameters, index tables)."""
+        t = self._tracer
+        return t.get() if isinstance(t, _TracerOnUse) else t
 
     def use_plan(self, batch_plan: BatchPlan) -> None:
         """Run ``batch_plan`` from now on (a new plan of the same sources and lens: :meth:`recentre`,

@@ -191,3 +191,20 @@ def test_the_model_errors_orders_at_once_are_the_orders_one_by_one():
     slopes = me._rim_slopes(xy, xc, rr, rim, 1.1, fm - f_sph)
     for s, d in zip(slopes, dm):
         assert s == me._rim_slope(xy, xc, rr, rim, 1.1, f + d * grad - f_sph)
+
+
+def test_a_tracer_made_on_use_gives_the_same_bits(monkeypatch):
+    """RayWave.from_plan(..., tracer_on_use=True) makes its Tracer only when it traces (counted by wrapping
+    Tracer.__init__), one for it and its shallow copies, and gives the bits of the eager one."""
+    import copy
+    from rwwarp import trace
+    r = _rw("focal")
+    made = []
+    init = trace.Tracer.__init__
+    monkeypatch.setattr(trace.Tracer, "__init__", lambda self, *a, **k: (made.append(1), init(self, *a, **k))[1])
+    lazy = RayWave.from_plan(r.batch_plan, tracer_on_use=True)
+    twin = copy.copy(lazy)
+    assert made == [] and lazy.centers is r.centers
+    out = lazy.run()
+    assert made == [1] and twin.tracer is lazy.tracer
+    assert np.array_equal(out["data"], r.run()["data"])
