@@ -412,14 +412,10 @@ class HybridLens(nn.Module):
                             use_reference=opts["use_reference"])
         from rwwarp.trace import Tracer
         from rwwarp.wave.batch_plan import plan_batch
-        # each source's plan from its pilot rows and a tracer of its wavelength alone (what RayWave(...) of it would
-        # make: the same sources and base table), shared by the sources of a wavelength; each RayWave makes its
-        # own tracer when it traces alone (a packed tile traces with its own: torch_bridge.packed)
+        # sources laid by one tracer a wavelength (as each RayWave's own); a RayWave's is made when it traces alone
         layers, out = {}, []
         for k, (f, w) in enumerate(zip(fields, wls)):
-            tr = layers.get(w)
-            if tr is None:
-                tr = layers[w] = Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"])
+            tr = layers.get(w) or layers.setdefault(w, Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"]))
             bp = plan_batch(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
                             method=method or self.method, own_pupils=True, pilot=pilot.subset([k]), tracer=tr, **opts)
             rw = RayWave.from_plan(bp, requires_grad=bool(requires_grad), tracer_on_use=True)
