@@ -48,14 +48,19 @@ class FrozenDict(dict):
 
 def _read_only(value):
     """``value`` as a plan holds it: a writeable array copied and set read-only (an array already read-only is
-    kept), a dict frozen with its arrays read-only, a list as a tuple; anything else as it is."""
+    kept), a dict frozen with its arrays (and tuples of arrays) read-only, a list as a tuple; anything else as it
+    is (lists inside a dict stay lists)."""
     if isinstance(value, np.ndarray):
         if value.flags.writeable:
             value = value.copy()
             value.flags.writeable = False
         return value
     if isinstance(value, dict) and not isinstance(value, FrozenDict):
-        return FrozenDict({k: _read_only(v) if isinstance(v, np.ndarray) else v for k, v in value.items()})
+        def member(v):   # an array, or a tuple of arrays (a focal plan's fitted transfer), made read-only
+            if isinstance(v, tuple):
+                return tuple(_read_only(a) if isinstance(a, np.ndarray) else a for a in v)
+            return _read_only(v) if isinstance(v, np.ndarray) else v
+        return FrozenDict({k: member(v) for k, v in value.items()})
     if isinstance(value, list):
         return tuple(value)
     return value

@@ -72,6 +72,8 @@ def test_a_plan_refuses_changes(method):
             bp.focal["sensor_origin"] = None
         with pytest.raises(ValueError):
             bp.focal["sensor_origin"][0, 0] = 1.0
+        with pytest.raises(ValueError):
+            bp.focal["transfer"][0][0, 0] = 1.0       # the fitted (g, q)
     with pytest.raises(ValueError):
         bp.pilot.pos_p[0, 0, 0] = 1.0
     # the RayWave reads the plan through and cannot write it
