@@ -2,7 +2,7 @@
 start), its 16 field nodes (4 x 4 grid, quadrant) x 3 wavelengths (one per colour channel: 0.63, 0.55, 0.47 um),
 63 px of 4 um, every source planned on its own with ``method="focal"`` from one pilot trace, as
 :class:`torch_bridge.live.LiveProvider` plans them (:meth:`torch_bridge.HybridLens.raywaves_alone`). The first
-call (kernel builds) is reported apart; then ``--runs`` calls, wall time (ms) and their median; ``--profile``:
+call (kernel builds) is reported apart; then ``--runs`` calls, wall and process CPU time (ms) and their medians; ``--profile``:
 a cProfile of one more call (cumulative, top ``--top`` rows). Compare trees by alternating
 ``PYTHONPATH=TREE python perf/time_plan_cooke.py``.
 """
@@ -58,16 +58,18 @@ def main():
     t0 = time.perf_counter()
     rs = plan()
     first = time.perf_counter() - t0
-    times = []
+    times, cpu = [], []
     for _ in range(args.runs):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         rs = plan()
         times.append((time.perf_counter() - t0) * 1e3)
+        cpu.append((time.process_time() - c0) * 1e3)
     print(f"first call {first:.3f} s; {len(rs)} sources planned ({rs[0].plan.method}, n_grid "
           f"{min(r.plan.n_grid for r in rs)}..{max(r.plan.n_grid for r in rs)}, "
           f"ray_grid {min(r.plan.ray_grid for r in rs)}..{max(r.plan.ray_grid for r in rs)})")
     print(f"wall ms {[round(t, 1) for t in times]} median {statistics.median(times):.1f} ms "
-          f"({statistics.median(times) / len(rs):.2f} ms a source)")
+          f"({statistics.median(times) / len(rs):.2f} ms a source); process CPU ms {[round(t, 1) for t in cpu]} "
+          f"median {statistics.median(cpu):.1f} ms")
     if args.profile:
         pr = cProfile.Profile()
         pr.enable()
