@@ -731,8 +731,9 @@ class CachedProvider:
             raise RuntimeError(f"nodes {sl.start}:{sl.stop} of entry {key}: their DOE-plane windows differ from the "
                                "entry's (internal error)")
         if stepped:
-            sub.wave_step = np.asarray(rw.wave_step, float)[sl].copy()
-            sub.wave_step_pad = rw.wave_step_pad
+            from dataclasses import replace
+            sub.use_plan(replace(sub.batch_plan, wave_step=np.asarray(rw.wave_step, float)[sl].copy(),
+                                 wave_step_pad=rw.wave_step_pad))
         return sub
 
     def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None, part: int | None = None) -> torch.Tensor:

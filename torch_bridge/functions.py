@@ -229,7 +229,10 @@ def upload(host, dtype=torch.float64, device=None) -> torch.Tensor:
     device: copied with ``non_blocking=True``, which from pageable memory stages the bytes at once and does not
     drain the device's queue (a blocking upload waits for every queued kernel first: the host and the device
     then take turns instead of overlapping)."""
-    t = torch.as_tensor(np.asarray(host), dtype=dtype)
+    a = np.asarray(host)
+    if not a.flags.writeable:
+        a = a.copy()      # a plan's read-only array (rwwarp.wave.batch_plan): torch shares no read-only memory
+    t = torch.as_tensor(a, dtype=dtype)
     if device is None or torch.device(device).type == "cpu":
         return t
     return t.to(device, non_blocking=True)

@@ -411,12 +411,16 @@ class HybridLens(nn.Module):
         # the pilot of all sources in one trace, each entrance pupil at its own wavelength
         pilot = trace_pilot(lens, fields, wls, opts["device"], opts["dtype"], object_distance_mm, own_pupils=True,
                             use_reference=opts["use_reference"])
-        out = []
+        from rwwarp.trace import Tracer
+        from rwwarp.wave.batch_plan import plan_batch
+        # sources laid by one tracer a wavelength (as each RayWave's own); a RayWave's is made when it traces alone
+        layers, out = {}, []
         for k, (f, w) in enumerate(zip(fields, wls)):
-            rw = RayWave(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
-                         requires_grad=bool(requires_grad), method=method or self.method, own_pupils=True,
-                         pilot=pilot.subset([k]), **opts)
-            bridge_state(rw)["base_table"] = rw.tracer.params_np.copy()
+            tr = layers.get(w) or layers.setdefault(w, Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"]))
+            bp = plan_batch(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
+                            method=method or self.method, own_pupils=True, pilot=pilot.subset([k]), tracer=tr, **opts)
+            rw = RayWave.from_plan(bp, requires_grad=bool(requires_grad), tracer_on_use=True)
+            bridge_state(rw)["base_table"] = tr.params_np.copy()
             out.append(rw)
         return out
 

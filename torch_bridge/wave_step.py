@@ -56,11 +56,12 @@ def add_wave_step(rw, memory_budget_bytes=None):
     ``method="focal"``: the design loop's per-source focal plans, :class:`torch_bridge.design.CachedProvider`,
     :class:`torch_bridge.live.LiveProvider`) the step ``method="two-step"`` would have planned for it: the same
     :func:`rwwarp.wave.wave_step.plan_wave_step` call (model error, reduced distances, refined pitch, widened
-    window), on the batch in place. A batch that has its step already (``rw.plan.wave_step_mm`` set) is left as it
-    is, so a kept RayWave is never widened twice. ``memory_budget_bytes``: a step whose plan exceeds it is refused
-    (:class:`rwwarp.wave.plan.MemoryBudgetError`), as under ``"two-step"``. Returns ``rw``."""
+    window), as a new plan the batch runs from then on (:meth:`rwwarp.psf.RayWave.use_plan`). A batch that has its
+    step already (``rw.plan.wave_step_mm`` set) is left as it is, so a kept RayWave is never widened twice.
+    ``memory_budget_bytes``: a step whose plan exceeds it is refused (:class:`rwwarp.wave.plan.MemoryBudgetError`),
+    as under ``"two-step"``. Returns ``rw``."""
     if rw.plan.wave_step_mm is not None:
         return rw
     from rwwarp.wave.wave_step import plan_wave_step
-    plan_wave_step(rw, None, "two-step", memory_budget_bytes)
+    rw.use_plan(plan_wave_step(rw.batch_plan, None, "two-step", memory_budget_bytes))
     return rw

@@ -12,7 +12,7 @@ import numpy as np
 from ..doe import is_flat_profile as _is_flat_profile
 from .doe_phase import wrap_zone
 
-__all__ = ["chief_zone", "doe_max_frequency", "doe_phase_grid", "lens_dir", "one_branch"]
+__all__ = ["chief_zone", "doe_max_frequency", "doe_phase_grid", "doe_pixel_origin", "lens_dir", "one_branch"]
 
 
 def lens_dir(lens):
@@ -85,3 +85,21 @@ def doe_max_frequency(lens, plane, xy, wavelengths):
         sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
         out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
     return out, feat
+
+
+def doe_pixel_origin(lens, plane: int, origin, pitch_mm: float) -> np.ndarray:
+    """Window origins ((S, 2) mm) shifted so that, for a pixel-map DOE on surface ``plane``, sample cells of
+    ``pitch_mm`` (which divides the DOE pitch) tile the DOE pixels exactly (no cell straddles a phase step);
+    ``origin`` itself (a new array) for any other surface."""
+    origin = np.array(origin, dtype=np.float64)
+    s = lens.surfaces[plane]
+    if s.type != "doe" or s.profile.get("kind") != "pixel_map":
+        return origin
+    from .. import doe
+    prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
+    rows, cols = prof.data.shape
+    h = pitch_mm
+    for axis, count in ((0, cols), (1, rows)):
+        first = -0.5 * count * prof.pitch + 0.5 * h  # centre of the first sample cell inside the map
+        origin[:, axis] = first + np.round((origin[:, axis] - first) / h) * h
+    return origin

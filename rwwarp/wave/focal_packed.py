@@ -245,7 +245,7 @@ class PackedFocalPropagator:
         namespace of their device (``xp``: numpy on the CPU, CuPy on CUDA, unless given)."""
         if xp is None:
             xp = np
-            if members[0].tracer.device.startswith("cuda"):
+            if str(members[0].device).startswith("cuda"):
                 import cupy as xp
         nodes = [member_nodes(m) for m in members]
         pl = [m.plan for m in members]

@@ -324,8 +324,11 @@ def estimate_for_raywave(rw) -> list:
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane
-            orders = [(m, c) for m, c in _other_orders(s, prof, xy, w, m0)
-                      if _reaches_patch(xy, f + (m - m0) * grad, inv_lam, dist, T[:2], rr, rim)]
+            cand = _other_orders(s, prof, xy, w, m0)
+            # every candidate order's frequencies at once (M, N, 2): the same values as order by order
+            fm = _order_frequencies(f, grad, [m - m0 for m, _ in cand])
+            reach = _reaches_patch_orders(xy, fm, inv_lam, dist, T[:2], rr, rim)
+            orders = [(m, c) for (m, c), r in zip(cand, reach) if r]
             # a beam centred on the DOE's axis and focused on it: every rim point's edge wave reaches the patch
             # centre in phase, and the orders' waves add coherently to the main order's peak
             on_axis = (float(np.hypot(*xc)) < AXIS_SHARE * beam_r and float(np.hypot(*T[:2])) < AXIS_SHARE * beam_r)
@@ -333,10 +336,10 @@ def estimate_for_raywave(rw) -> list:
                 other = other_orders_on_axis(nf, [(m0, 1.0 + 0j, f - f_sph)]
                                              + [(m, c, f + (m - m0) * grad - f_sph) for m, c in orders],
                                              xy, xc, beam_r)
-            else:
-                for m, c in orders:
-                    other += other_orders_error(nf, _rim_slope(xy, xc, rr, rim, beam_r, f + (m - m0) * grad - f_sph),
-                                                abs(c) ** 2)
+            elif orders:
+                slopes = _rim_slopes(xy, xc, rr, rim, beam_r, fm[reach] - f_sph)
+                for (m, c), sl in zip(orders, slopes):
+                    other += other_orders_error(nf, sl, abs(c) ** 2)
         out.append(ModelError(main + other, nf, z1, R, d, beam_r, slope, w, note, other, main))
     return out
 
@@ -389,6 +392,42 @@ def other_orders_on_axis(fresnel_number_: float, orders, xy, xc, beam_r) -> floa
     if abs(U) == 0:
         return 0.0
     return float(abs(2 * (np.conj(U) * dU).real + abs(dU) ** 2) / abs(U) ** 2)
+
+
+def _order_frequencies(f, grad, dm) -> np.ndarray:
+    """``f + dm_j grad`` for each order offset ``dm_j`` (M,): (M, N, 2) cycles/mm (each row as ``f + dm * grad``)."""
+    if not len(dm):
+        return np.zeros((0,) + f.shape)
+    return f[None] + np.asarray(dm, dtype=np.float64)[:, None, None] * grad[None]
+
+
+def _rim_slopes(xy, xc, rr, rim, beam_r, df) -> np.ndarray:
+    """:func:`_rim_slope` of each order's frequency offsets ``df`` (M, N, 2) at once (rad, (M,)); the same sums in
+    the same order as one by one."""
+    df = df - df.mean(1, keepdims=True)
+    sl = np.sum((xy[rim] - xc)[None] * df[:, rim], axis=2) * ((beam_r / np.maximum(rr[rim], 1e-300)) ** 3)[None]
+    return 2 * math.pi * np.sqrt(np.mean(sl * sl, axis=1))
+
+
+def _reaches_patch_orders(xy, fm, inv_lam, dist_mm, center_mm, rr, rim) -> np.ndarray:
+    """:func:`_reaches_patch` of each order (frequencies ``fm`` (M, N, 2) cycles/mm) at once: (M,) bool. Orders
+    with an evanescent ray are taken one by one."""
+    out = np.zeros(len(fm), dtype=bool)
+    if not len(fm):
+        return out
+    s = fm / inv_lam
+    c2 = 1.0 - np.sum(s * s, axis=2)
+    whole = np.all(c2 > 0, axis=1)
+    if np.any(whole):
+        sw = s[whole]
+        land = xy[None] + dist_mm * sw / np.sqrt(c2[whole])[..., None]
+        lc = land.mean(1)
+        r_land = np.mean(np.linalg.norm(land[:, rim] - lc[:, None], axis=2), axis=1)
+        c = np.asarray(center_mm)
+        out[whole] = [bool(np.linalg.norm(c - lc[i]) < r_land[i]) for i in range(len(lc))]
+    for j in np.flatnonzero(~whole):
+        out[j] = _reaches_patch(xy, fm[j], inv_lam, dist_mm, center_mm, rr, rim)
+    return out
 
 
 def _reaches_patch(xy, f, inv_lam, dist_mm, center_mm, rr, rim) -> bool:

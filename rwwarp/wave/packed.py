@@ -9,10 +9,11 @@ import numpy as np
 
 from .pilot import trace_pilot
 from .methods import get
+from .batch_plan import BatchPlan
 from .raywave import RayWave
 from ..trace import Tracer
 
-__all__ = ["PackedRayWave", "packed_bytes", "source_plans"]
+__all__ = ["PackedRayWave", "packed_bytes", "packed_plan", "source_plans"]
 
 
 def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
@@ -51,6 +52,33 @@ def packed_bytes(members, size: int) -> int:
     return len(members) * (rays * 232 + n * n * 64) + prop
 
 
+def packed_plan(members) -> BatchPlan:
+    """The :class:`~rwwarp.wave.batch_plan.BatchPlan` of a :class:`PackedRayWave` of single-source ``members``: their
+    sources, per-source arrays and windows one after the other (each member keeps its own plan; this one's
+    ``plan`` is the first member's, of which only the method is read; no wave step at the batch's level: each
+    member's is applied with its propagation)."""
+    m0 = members[0]
+    uniq = sorted(set(m.wls[0] for m in members))
+    src = dict(m0.src)
+    for key in ("pos", "dir", "finite", "aim", "half_x", "half_y"):
+        src[key] = np.concatenate([np.asarray(m.src[key]) for m in members])
+    # each member's own launch (its entrance pupil as it was planned: a kept plan of earlier values keeps
+    # its pupil, as it does alone), its wavelength index moved to this batch's tracer
+    src["wl"] = np.array([uniq.index(m.wls[0]) for m in members], dtype=np.int32)
+    src["fields"] = [f for m in members for f in m.src["fields"]]
+    src["relative_opl"] = bool(m0.use_reference)
+    cat = lambda name: np.concatenate([np.asarray(getattr(m, name)) for m in members])
+    arrays = {name: cat(name) for name in ("n_after", "lam_mm", "origin", "chief_plane", "chief_sensor", "carrier",
+                                           "centers", "target", "opl_chief", "chief_ok", "lo", "hi")}
+    return BatchPlan(lens=m0.lens, fields=[m.fields[0] for m in members], wls=[m.wls[0] for m in members],
+                     size=m0.size, pixel=m0.pixel, device=m0.device, dtype=m0.batch_plan.dtype,
+                     amplitude=m0.amplitude, use_reference=m0.use_reference, gauss_nodes=m0.gauss_nodes,
+                     pixel_values=m0.pixel_values, deterministic=m0.deterministic, own_pupils=True, pilot=None,
+                     src=src, plane=m0.plane, curved_plane=m0.curved_plane, square_pupil=m0.square_pupil,
+                     nsrc=len(members), z_plane=m0.z_plane, z_sensor=m0.z_sensor, plan=m0.plan, method=m0.method,
+                     focal=None, pupil=(None, None, 1.0), rim=m0.rim, **arrays)
+
+
 class PackedRayWave(RayWave):
     """Several sources computed together, each on its own plan (:func:`source_plans`): one trace, tube-area,
     splat and finalize launch for all of them, in arrays sized to the largest member (its pupil grid's rays
@@ -76,8 +104,9 @@ class PackedRayWave(RayWave):
         m0 = members[0]
         for m in members:
             if (m.plan.method, m.rim, m.amplitude, m.use_reference, m.deterministic, m.device,
-                    m.tracer.scalar, m.pixel_values) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference,
-                                                         m0.deterministic, m0.device, m0.tracer.scalar, m0.pixel_values):
+                    m.batch_plan.dtype, m.pixel_values) != (m0.plan.method, m0.rim, m0.amplitude, m0.use_reference,
+                                                            m0.deterministic, m0.device, m0.batch_plan.dtype,
+                                                            m0.pixel_values):
                 raise ValueError("PackedRayWave members must share the method, rim weighting, amplitude, "
                                  "reference, determinism, device, precision and pixel values")
             if (m.src["shape"], m.src.get("object_distance"), m.plane, len(m.lens.surfaces)) != \
@@ -86,35 +115,12 @@ class PackedRayWave(RayWave):
                                  "plane and surfaces)")
         self.members = list(members)
         lens = m0.lens
-        self.lens, self.plane, self.curved_plane = lens, m0.plane, m0.curved_plane
-        self.device, self.amplitude, self.use_reference = m0.device, m0.amplitude, m0.use_reference
-        self.deterministic, self.rim = m0.deterministic, m0.rim
-        self.size, self.pixel = m0.size, m0.pixel
-        self.fields = [m.fields[0] for m in members]
-        self.wls = [m.wls[0] for m in members]
-        self.nsrc = len(members)
-        uniq = sorted(set(self.wls))
-        dtype = "float64" if m0.tracer.np_dtype == np.float64 else "float32"
-        self.tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, requires_grad=bool(requires_grad),
-                             deterministic=self.deterministic)
-        # each member's own launch (its entrance pupil as it was planned: a kept plan of earlier values keeps
-        # its pupil, as it does alone), its wavelength index moved to this batch's tracer
-        self.src = dict(m0.src)
-        for key in ("pos", "dir", "finite", "aim", "half_x", "half_y"):
-            self.src[key] = np.concatenate([np.asarray(m.src[key]) for m in members])
-        self.src["wl"] = np.array([uniq.index(w) for w in self.wls], dtype=np.int32)
-        self.src["fields"] = [f for m in members for f in m.src["fields"]]
-        self.src["relative_opl"] = bool(self.use_reference)
-        cat = lambda name: np.concatenate([np.asarray(getattr(m, name)) for m in members])
-        for name in ("n_after", "lam_mm", "origin", "chief_plane", "chief_sensor", "carrier", "centers", "target",
-                     "opl_chief", "chief_ok"):
-            setattr(self, name, cat(name))
-        self.z_plane, self.z_sensor = m0.z_plane, m0.z_sensor
-        self.gauss_nodes, self.pixel_values = m0.gauss_nodes, m0.pixel_values
-        self.pupil = (None, None, 1.0)
-        self.plan = m0.plan   # only its method is read; each member keeps its own plan
-        self.method = m0.method
-        self.focal = None
+        wls = [m.wls[0] for m in members]
+        uniq = sorted(set(wls))
+        dtype = m0.batch_plan.dtype     # the members' tracers' (made, or made on use, in the plan's precision)
+        tracer = Tracer(lens, uniq, device=m0.device, dtype=dtype, requires_grad=bool(requires_grad),
+                        deterministic=m0.deterministic)
+        self._start(packed_plan(members), tracer, m0.device, m0.deterministic)
         self._grids = np.array([m.plan.n_grid for m in members])
         self._ray_grids = np.array([m.plan.ray_grid for m in members])
         self._pitches = np.array([m.plan.pitch_mm for m in members])

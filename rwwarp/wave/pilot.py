@@ -165,7 +165,8 @@ def own_pupil_sources(tr, fields, wls, uniq, object_distance_mm):
     try:
         for w in uniq:
             ks = [k for k, wk in enumerate(wls) if wk == w]
-            tr.pupils = paraxial.pupils(tr.lens, w)
+            # the tracer's own pupils are at its first wavelength: the same call, not made again
+            tr.pupils = saved if float(w) == tr.wavelengths_um[0] else paraxial.pupils(tr.lens, w)
             sub = tr.sources([fields[k] for k in ks], uniq.index(w), object_distance=object_distance_mm)
             for key in ("pos", "dir", "finite", "aim", "half_x", "half_y"):
                 src[key][ks] = sub[key]

@@ -367,10 +367,12 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     error (:mod:`rwwarp.wave.model_error`) does not ask for the wave step (a given ``tolerance`` below it), it fits
     ``memory_budget_bytes`` and it plans fewer flops than ``rw.plan``. Pilot arrays as ``RayWave`` holds them
     (mm, (S, N, 3)); ``carrier`` (S, 2) the chief rays' frequencies (cycles/mm), ``centers`` (S, 2) their patch
-    centres (mm); ``beam_width_mm``: the footprint's smaller extent on the wave plane. When chosen, sets
-    ``rw.plan`` (its estimate, error estimate and reasons), ``rw.method``, ``rw.focal`` (None), ``rw.carrier``,
-    ``rw.centers`` and ``rw.rim`` (False) and returns True; otherwise adds a reason to ``rw.plan`` saying why
-    not (``"auto"``) and returns False."""
+    centres (mm); ``beam_width_mm``: the footprint's smaller extent on the wave plane. ``rw``: the
+    :class:`rwwarp.wave.batch_plan.BatchPlan` planned so far (not changed). Returns ``(plan, chosen)``: when
+    chosen, a new plan with the pixel method's ``plan`` (its estimate, error estimate and reasons), ``method``,
+    ``focal`` (None), ``carrier``, ``centers`` and ``rim`` (False), and True; otherwise (``"auto"``) a new plan
+    whose ``plan`` has a reason saying why not (and ``pixel_alternative`` where it names the pixel method beside
+    a plan over the memory budget), and False; ``rw`` itself and False for a lens with a DOE."""
     from dataclasses import replace
     from ..doe import is_flat_profile
     from .model_error import estimate_for_raywave
@@ -380,7 +382,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
         if explicit:
             raise ValueError("method='pixel' does not model a DOE (its diffraction orders): use method='auto', "
                              "'focal' or 'asm' for a lens with a DOE that is not blank")
-        return False
+        return rw, False
     pl = rw.plan
     n_after, lam_mm = np.asarray(rw.n_after, float), np.asarray(rw.lam_mm, float)
     freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
@@ -389,10 +391,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
     nf = float(np.min(n_after * r_w ** 2 / (lam_mm * abs(rw.z_sensor - rw.z_plane))))
-    saved = rw.centers
-    rw.centers = centers           # the rim slope against the sphere to the chief ray's patch
-    model = estimate_for_raywave(rw)
-    rw.centers = saved
+    model = estimate_for_raywave(replace(rw, centers=centers))   # the rim slope against the sphere to the chief ray's patch
     slope = max(e.rim_slope_rad for e in model)
     model_err = max(e.estimate for e in model)
     err = pixel_error_estimate(nf, slope, rw.pixel, info["airy_mm"])
@@ -417,12 +416,12 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
         if pl.estimate and cost["flops"] >= pl.estimate["flops"]:
             why.append(f"not fewer flops than {pl.method} ({pl.estimate['flops'] / 1e9:.3g} GFLOP)")
         if why:
-            rw.plan = pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})")
+            alt = rw.pixel_alternative
             if ratio >= MIN_PIXEL_AIRY:   # named where the chosen plan is over the memory budget
-                rw.pixel_alternative = (f"; or the pixel method ({cost['memory_bytes'] / 2 ** 30:.3g} GiB, error "
-                                        f"~{err['estimate']:.2g} of the peak): method='pixel' or tolerance >= "
-                                        f"{err['estimate']:.2g}")
-            return False
+                alt = (f"; or the pixel method ({cost['memory_bytes'] / 2 ** 30:.3g} GiB, error "
+                       f"~{err['estimate']:.2g} of the peak): method='pixel' or tolerance >= {err['estimate']:.2g}")
+            return replace(rw, plan=pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})"),
+                           pixel_alternative=alt), False
         ppl = ppl.with_reasons(f"method auto: pixel ({ratio:.3g} Airy radii, error ~{err['estimate']:.2g} <= tolerance "
                                f"{tol:.2g}, {cost['flops'] / 1e9:.3g} GFLOP against {pl.method} "
                                f"{pl.estimate['flops'] / 1e9:.3g} GFLOP)")
@@ -432,6 +431,5 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
         check_budget(cost, int(memory_budget_bytes), f"the pixel method ({ppl.ray_grid}^2 rays, sensor grid "
                      f"{ppl.n_sensor}^2, FFT {ppl.n_sensor_fft}^2)", "size (patch pixels), the beam's NA (band B), "
                      "rays_per_sample")
-    rw.plan, rw.method, rw.focal, rw.rim = ppl, "pixel", None, False
-    rw.carrier, rw.centers = np.array(carrier, float), np.array(centers, float)
-    return True
+    return replace(rw, plan=ppl, method="pixel", focal=None, rim=False, carrier=np.array(carrier, float),
+                   centers=np.array(centers, float)), True

@@ -287,15 +287,19 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     for k in range(S):
         T = centers[k]
         main_m, main_c = max(orders[k], key=lambda mc: abs(mc[1]))
-        cand = []
+        cand, fs = [], []
         for m, c in orders[k]:
             if abs(c) ** 2 < order_tol:
                 lost[k] += abs(c) ** 2
                 continue
-            f = freq[k] + (m * doe_freq[k] if doe_freq[k] is not None else 0.0)
-            L = landing_points(xy[k], f, inv_lam[k], z)
-            ok = np.all(np.isfinite(L), axis=1)
-            cand.append((m, c, f[ok], L[ok], xy[k][ok]))
+            fs.append((m, c, freq[k] + (m * doe_freq[k] if doe_freq[k] is not None else 0.0)))
+        if fs:
+            # every order's landings in one call (elementwise: the values of one call per order)
+            Ls = landing_points(xy[k], np.stack([f for _, _, f in fs]), inv_lam[k], z)
+            fin = np.isfinite(Ls).all(axis=2)
+            for (m, c, f), L, ok in zip(fs, Ls, fin):
+                # every ray lands (the usual case): the arrays themselves, else the landing rays'
+                cand.append((m, c, f, L, xy[k]) if ok.all() else (m, c, f[ok], L[ok], xy[k][ok]))
         band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
         margin = mb / band
         keep, used, lo, hi = [], [], T - half_w, T + half_w

@@ -1,8 +1,10 @@
 """The ray-wave model of one batch of point sources, in stages (:class:`RayWave`).
 
-Its ``__init__`` makes every discrete decision from a pilot trace: chief rays, the sampling plan (each
-registered propagation method plans its part, :mod:`rwwarp.wave.methods`; "auto" compares the band-limited
-ASM's and the focal method's, "two-step" adds the wave step), the wave-plane windows and the sensor patches. Its stages then run the differentiable part: trace to the wave plane and splat into a complex
+Every discrete decision (chief rays, the sampling plan, windows, patches, wave step) is in its plan, a read-only
+:class:`rwwarp.wave.batch_plan.BatchPlan` (:func:`rwwarp.wave.batch_plan.plan_batch`, which its ``__init__`` calls;
+:meth:`RayWave.from_plan` runs an existing one); a RayWave holds the plan (``rw.batch_plan``, its names read through:
+``rw.plan``, ``rw.origin``, ``rw.centers``, ...) and the per-call state (tracer, splatter, power sums, focal operator,
+memoised DOE arrays). Its stages run the differentiable part: trace to the wave plane and splat into a complex
 field (Warp, :mod:`rwwarp.kernels.splat`), apply the DOE, propagate to the sensor and integrate over the
 pixels (:mod:`rwwarp.wave.propagate` or :mod:`rwwarp.wave.focal`). :func:`rwwarp.psf.psf` and
 :func:`rwwarp.psf.psf_map` are the public calls around it; :mod:`torch_bridge` differentiates its stages.
@@ -12,40 +14,39 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import LensError
-from ..lens import snap_to_pixel as _snap_center
-from .doe_sampling import doe_max_frequency, doe_phase_grid, lens_dir
-from .methods import PlanContext, check_method, gauss_nodes_xy, names
+from .batch_plan import AUTO_PAIR, PLAN_FIELDS, BatchPlan, plan_batch  # noqa: F401  (AUTO_PAIR: its home batch_plan)
+from .doe_sampling import doe_phase_grid
+from .methods import check_method, gauss_nodes_xy
 from .methods import get as get_method
-from .plan import Plan
 from .splat import paper_rescale_layout
 from ..device_upload import upload_packed
 from ..trace import Tracer
-from ..trace import field_label as _fmt_field
 
 from .focal import FOCAL_MAX_ORDER  # noqa: F401  (its home: focal; read by rwwarp.wave.methods.focal)
-
-#: the registered methods "auto" plans side by side and chooses between (the order they are planned in)
-AUTO_PAIR = ("focal", "asm")
-from .sensor_grid import auto_gauss_nodes as _auto_gauss_nodes, n_img_all, pixel_centres as _pixel_centres
-from .sensor_grid import snap_centers as _snap_centers
-from .pilot import Pilot, batch_sources, pilot_from_tracer
+from .sensor_grid import pixel_centres as _pixel_centres
+from .pilot import Pilot
 from .pilot import own_pupil_sources  # noqa: F401  (its home: rwwarp.wave.pilot; public here before)
 
 
-def _is_curved(surface) -> bool:
-    """True for a refracting surface with sag (curvature or aspheric terms): not a plane."""
-    if surface.type != "standard":
-        return False
-    return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
+class _TracerOnUse:
+    """A RayWave's tracer made on first use (:meth:`RayWave.from_plan` ``tracer_on_use``): ``Tracer(*args, **kw)``."""
+
+    def __init__(self, args, kw):
+        self.args, self.kw, self.tracer = args, kw, None
+
+    def get(self) -> Tracer:
+        if self.tracer is None:
+            self.tracer = Tracer(*self.args, **self.kw)
+        return self.tracer
 
 
 # ---------------------------------------------------------------------------------------------- ray-wave
 class RayWave:
     """The ray-wave model for one batch of point sources, in stages.
 
-    ``__init__`` makes every discrete decision (pilot trace, chief rays, sampling plan, windows,
-    sensor patches); :meth:`field` runs the differentiable part on the Warp device (trace to the DOE
+    ``__init__`` plans (:func:`rwwarp.wave.batch_plan.plan_batch`: pilot trace, chief rays, sampling plan, windows,
+    sensor patches; kept read-only as :attr:`batch_plan`, whose names this object reads through) and makes the
+    tracer; :meth:`from_plan` runs a plan without planning again; :meth:`field` runs the differentiable part on the Warp device (trace to the DOE
     plane, ray-tube areas, splat, reference sphere and carrier) and returns the complex field;
     :meth:`doe_phase` samples phi0 on the windows; :meth:`intensity` propagates to the sensor and
     integrates over pixels (OpenCL); :meth:`run` chains them and normalises by the entering power.
@@ -92,233 +93,58 @@ class RayWave:
         if auto_rule not in ("device", "small-asm", "flops"):
             raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
         check_method(method, "RayWave")
-        requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
-        from .propagate_setup import check_pixel_values
-        self.pixel_values = check_pixel_values(pixel_values, "RayWave")
-        self.deterministic = bool(deterministic)
+        tr = Tracer(lens, sorted(set(wls)), device=device, dtype=dtype, requires_grad=requires_grad,
+                    deterministic=bool(deterministic))
+        bp = plan_batch(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
+                        rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method,
+                        memory_budget_bytes, focal_patch_tol, deterministic, own_pupils, pilot, pixel_values,
+                        model_tolerance, auto_rule, allow_pixel, tracer=tr)
+        self._start(bp, tr, device)
 
-        plane = lens.wave_plane_index()
-        uniq = sorted(set(wls))
-        tr = Tracer(lens, uniq, device=device, dtype=dtype, requires_grad=requires_grad,
-                    deterministic=self.deterministic)
-        nsrc = len(fields)
-        src, pupil_wls = batch_sources(tr, fields, wls, object_distance_mm, own_pupils)
-        src["relative_opl"] = bool(use_reference)  # OPL from the chief ray's source sphere (float32-safe)
-        self.own_pupils = bool(own_pupils)
-        n_after = np.array([lens.indices(w)[plane] for w in wls])
-        z_plane = lens.vertex_z[plane]
-        z_sensor = lens.sensor_z
-        if not z_sensor > lens.vertex_z[plane]:
-            raise LensError(f"the wave models need the sensor behind the wave plane (surface {plane}); here it is "
-                            f"{lens.vertex_z[plane] - z_sensor:.6g} mm before it (a mirror or a negative last "
-                            "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
-        lam_mm = np.array(wls) * 1e-3
+    def _start(self, batch_plan: BatchPlan, tracer: Tracer, device: str, deterministic: bool | None = None):
+        """The per-call state: ``batch_plan`` (its names, :data:`rwwarp.wave.batch_plan.PLAN_FIELDS`, read
+        through), ``tracer``, the device (as given), determinism (default the plan's)."""
+        #: the :class:`rwwarp.wave.batch_plan.BatchPlan` this RayWave runs (read-only; a new plan replaces it)
+        self.batch_plan = batch_plan
+        self._tracer = tracer
+        self.device = device
+        self.deterministic = batch_plan.deterministic if deterministic is None else bool(deterministic)
 
-        # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor (rwwarp.wave.pilot)
-        if pilot is None:
-            pilot = pilot_from_tracer(tr, src, plane, wls, pupil_wls, dtype)
-        elif not isinstance(pilot, Pilot):
-            raise TypeError(f"RayWave: pilot must be a rwwarp.wave.pilot.Pilot (rwwarp.wave.pilot.trace_pilot, "
-                            f"Pilot.subset) or None, got {type(pilot).__name__}")
-        else:
-            pilot.check_for(fields, wls, pupil_wls, src["object_distance"], use_reference, dtype, plane)
-        #: the pilot rays on the host (:class:`rwwarp.wave.pilot.Pilot`, read-only; each source's alone: rays are
-        #: independent), for :func:`rwwarp.wave.packed.source_plans`, the model error and the wave step
-        self.pilot = pilot
-        pos_p, pos_s, dir_s = pilot.pos_p.copy(), pilot.pos_s, pilot.dir_s
-        opl_p = pilot.opl_p.copy()
-        # a curved last surface: carry the rays on to its vertex plane (straight, in the image medium,
-        # OPL included) so the field is formed on a true plane
-        self.curved_plane = _is_curved(lens.surfaces[plane])
-        if self.curved_plane:
-            t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
-            pos_p = pos_p + t[..., None] * dir_s
-            opl_p = opl_p + n_after[:, None] * t
-        ok = pilot.ok
-        for k in range(nsrc):
-            if ok[k].sum() < 3:
-                raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
-                                file=lens.source, field=_fmt_field(fields[k]))
-        # chief ray: pupil centre if valid, else the centroid of valid rays
-        chief_plane = np.zeros((nsrc, 3))
-        chief_sensor = np.zeros((nsrc, 3))
-        chief_dir = np.zeros((nsrc, 3))
-        for k in range(nsrc):
-            if ok[k, 0]:
-                chief_plane[k], chief_sensor[k], chief_dir[k] = pos_p[k, 0], pos_s[k, 0], dir_s[k, 0]
-            else:
-                chief_plane[k] = pos_p[k, ok[k]].mean(0)
-                chief_sensor[k] = pos_s[k, ok[k]].mean(0)
-                d = dir_s[k, ok[k]].mean(0)
-                chief_dir[k] = d / np.linalg.norm(d)
-        carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
-        # local frequencies of the field relative to the carrier, and the footprint
-        fmax = np.zeros(nsrc)
-        lo = np.zeros((nsrc, 2))
-        hi = np.zeros((nsrc, 2))
-        xy_plane = []
-        for k in range(nsrc):
-            f = n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] - carrier[k]
-            fmax[k] = np.max(np.abs(f))
-            xy = pos_p[k, ok[k], :2]
-            xy_plane.append(xy)
-            lo[k], hi[k] = xy.min(0), xy.max(0)
-        f_doe, feature = doe_max_frequency(lens, plane, xy_plane, wls)
-        width = float(np.max(hi - lo))
-        pilot_cell = width / 31.0
-        if center_mm is None:
-            centers = np.stack([_snap_center(chief_sensor[:, 0], pixel, lens.sensor.resolution[0]),
-                                _snap_center(chief_sensor[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
-        else:
-            centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
-        out_width = size * pixel
-        chief_carrier, chief_centers = carrier.copy(), centers.copy()
-        if method == "auto":
-            # both plans from the same pilot; the cheaper one (planned work) runs
-            method = "asm" if (isinstance(plan, str) and plan == "paper") else "compare"
-            if isinstance(plan, Plan):
-                method = plan.method
-            s_pl = lens.surfaces[plane]
-            if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
-                method = "asm"  # discontinuous: no smooth diffraction orders to factor
-        # a square pupil (stop) bounds the beam with straight edges: their 1 / r diffraction tails alias more
-        self._square_pupil = src["shape"] != "circle"
-        # ---- plan: each registered method plans its part (rwwarp.wave.methods); "compare" plans both of auto's
-        ctx = PlanContext(lens=lens, plane=plane, plan=plan, pos_p=pos_p, dir_s=dir_s, ok=ok, chief_plane=chief_plane,
-                          chief_dir=chief_dir, n_after=n_after, lam_mm=lam_mm, wls=wls, distance_mm=z_sensor - z_plane,
-                          center_mm=center_mm, size=size, pixel=pixel, width=width, pilot_cell=pilot_cell, lo=lo, hi=hi,
-                          fmax=fmax, f_doe=f_doe, feature=feature, out_width=out_width, carrier=carrier, centers=centers,
-                          rays_per_sample=rays_per_sample, nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol,
-                          straight_edges=self._square_pupil)
-        planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
-        main = planned["asm" if method == "compare" else method]
-        pl, carrier, centers, lo, hi, self.focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
+    @classmethod
+    def from_plan(cls, batch_plan: BatchPlan, device: str | None = None, requires_grad: bool = False,
+                  deterministic: bool | None = None, tracer_on_use: bool = False) -> "RayWave":
+        """A RayWave that runs ``batch_plan`` (:func:`rwwarp.wave.batch_plan.plan_batch`, or another RayWave's
+        :attr:`batch_plan`) without planning again: its own tracer of the plan's lens (``requires_grad``: with
+        gradient buffers) on ``device`` (default the plan's) in the plan's precision; ``deterministic`` default
+        the plan's. The same inputs give the same bits as the RayWave the plan came from. ``tracer_on_use``: the
+        tracer is made when first used (:attr:`tracer`; shared by shallow copies), from the lens as it is then: a
+        plan computed only inside a :class:`~rwwarp.wave.packed.PackedRayWave` (which has its own) never makes it."""
+        if not isinstance(batch_plan, BatchPlan):
+            raise TypeError(f"RayWave.from_plan: batch_plan must be a rwwarp.wave.batch_plan.BatchPlan, got "
+                            f"{type(batch_plan).__name__}")
+        device = batch_plan.device if device is None else device
+        det = batch_plan.deterministic if deterministic is None else bool(deterministic)
+        args = (batch_plan.lens, sorted(set(batch_plan.wls)))
+        kw = dict(device=device, dtype=batch_plan.dtype, requires_grad=requires_grad, deterministic=det)
+        tr = _TracerOnUse(args, kw) if tracer_on_use else Tracer(*args, **kw)
+        rw = cls.__new__(cls)
+        rw._start(batch_plan, tr, device, det)
+        return rw
 
-        self.lens, self.fields, self.wls, self.size, self.pixel = lens, fields, list(wls), size, pixel
-        if gauss_nodes is None:
-            gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)
-            pl = pl.with_reasons(f"pixel integration: {gauss_nodes} x {gauss_nodes} Gauss-Legendre nodes per pixel "
-                                 f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
-        from .plan import estimate_cost, check_budget
-        from dataclasses import replace as _replace
-        pl = _replace(pl, estimate=estimate_cost(pl, nsrc, size, gauss_nodes))
-        if method == "compare":
-            fpl = planned["focal"].plan
-            fpl = _replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
-            small_first = auto_rule == "small-asm" or (auto_rule == "device" and str(device).startswith("cuda"))
-            rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if small_first else
-                    "the plan of fewer flops")
-            why = (f"method auto ({rule}): focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
-                   f"GiB against asm {pl.estimate['flops'] / 1e9:.3g} GFLOP / {pl.estimate['memory_bytes'] / 2 ** 30:.3g} GiB")
-            # On a GPU a small ASM plan runs faster than the focal path's matrix products (measured on an
-            # H100, A489: 6.5 against 15 ms: launches, not arithmetic, bound both), so it is kept there
-            # while small; the focal path takes over where the ASM's plan grows with the beam (Cooke
-            # triplet: 11.8 GiB planned). On the CPU the arithmetic is the cost: the plan of fewer flops runs
-            # (A489 map at 32 px: focal 0.4-1.3 GFLOP and 255-401^2 rays against asm 3.2-7.8 GFLOP and
-            # 533-790^2 rays a source). Both meet the refractive truths alike (docs/propagation.md).
-            small_asm = small_first and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
-            # a plan over the memory budget cannot run: the one that fits wins whatever its work
-            fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes
-                    for e in (pl.estimate, fpl.estimate)]
-            # an aberrated spot wider than the focal box's taper guard (the patch inside a geometric spot many Airy
-            # radii wide): the ASM's plan (padding for the patch, whole rim cells) is not sized for it (a BK7 singlet
-            # at 35 / 40 deg, 16 px: 1.5e-2 / 9.6e-2 off rs_lens_psf, still 1.5e-3 with 2 x the grid, rays and padding;
-            # the focal path 1.1e-4 / 5.4e-5 of the peak), so the focal path runs wherever it fits
-            aberrated = bool(np.any(planned["focal"].geo.get("lit_taper", False)))
-            if aberrated:
-                why += "; the geometric spot outgrows the patch (rays land in the focal taper): focal"
-            if fits == [False, True] or (fits != [True, False] and (aberrated or (not small_asm
-                                         and fpl.estimate["flops"] <= pl.estimate["flops"]))):
-                pl = fpl.with_reasons(why + " -> focal")
-                f = planned["focal"]
-                self.focal, carrier, centers = f.geo, f.carrier, f.centers
-            else:
-                pl = pl.with_reasons(why + " -> asm")
-        # methods planned beside the window plan at the end (pixel): the one asked for, or those "auto" may choose
-        late = [get_method(requested)] if requested in names() and get_method(requested).planned_beside else \
-            [get_method(m) for m in names() if get_method(m).planned_beside] if requested == "auto" and allow_pixel else []
-        if late and requested != "auto" and not (isinstance(plan, str) and plan == "auto"):
-            raise ValueError(f"method={requested!r} plans its own sampling: use plan='auto'")
-        self.method = pl.method
-        may_beside = bool(late) and isinstance(plan, str) and plan == "auto"
-        budget_check = lambda pl, alt="": check_budget(pl.estimate, int(memory_budget_bytes), f"a ray-wave batch of {nsrc} source(s) "
-                         f"({pl.method}: {pl.ray_grid}^2 rays, wave-plane grid {pl.n_grid}^2)",
-                         "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
-                         "nyquist_safety" + (", the padded FFT n_pad" if get_method(pl.method).fft_padded else "") + alt)
-        if memory_budget_bytes is not None and not may_beside:
-            budget_check(pl)
-        self.device, self.amplitude, self.use_reference, self.gauss_nodes = device, amplitude, use_reference, gauss_nodes
-        self.plane, self.tracer, self.src, self.plan = plane, tr, src, pl
-        self.nsrc, self.n_after, self.lam_mm = nsrc, n_after, lam_mm
-        self.z_plane, self.z_sensor = z_plane, z_sensor
-        self.chief_plane, self.chief_sensor, self.carrier, self.centers = chief_plane, chief_sensor, carrier, centers
-        self.lo, self.hi = lo, hi
-        n = pl.n_grid
-        mid = 0.5 * (lo + hi)
-        self.origin = lo.copy() if pl.kind == "paper" else mid - 0.5 * (n - 1) * pl.pitch_mm
-        self._align_to_doe_pixels()
-        # chief ray OPL on the plane (a per-source constant phase: not differentiated); the pilot's pupil
-        # sample 0 is the chief ray (u = v = 0), traced alone before as the same independent ray
-        self.opl_chief = opl_p[:, 0].copy()
-        self.chief_ok = pilot.valid_plane[:, 0].copy()
-        self.chief_plane = np.where(self.chief_ok[:, None], pos_p[:, 0], chief_plane)
-        self.target = self._ray_focus(pos_p, dir_s, ok, chief_sensor)
-        # full ray_grid x ray_grid cell-centre pupil grid, generated on the device (see Tracer._run)
-        self.pupil = (None, None, (2.0 / pl.ray_grid) ** 2)
-        # rim weighting (focal plans, energy convention, circular pupil): every pupil cell the disc touches
-        # is traced from the centroid of its part inside the disc, weighted by that part (the splat gives it
-        # that part of the tube; tube areas from the actual pupil steps), so the aperture edge is not a
-        # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
-        # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
-        self.rim = amplitude == "energy" and src["shape"] == "circle" and get_method(pl.method).rim_weighted
-        if may_beside:
-            # e.g. pixels many Airy radii wide: rwwarp.wave.pixel_scale (the pixel box applied analytically)
-            pilot_s = {"pos_s": pos_s, "dir_s": dir_s, "ok": ok, "carrier": chief_carrier, "centers": chief_centers,
-                       "beam_width_mm": float(np.min(hi - lo)), "rays_per_sample": rays_per_sample}
-            chosen = next((m.name for m in late if m.consider(self, requested == m.name, pilot_s, model_tolerance,
-                                                               memory_budget_bytes)), None)
-            if chosen is not None:
-                requested = chosen      # no wave step: requested is neither "auto" nor "two-step"
-            elif memory_budget_bytes is not None:
-                budget_check(pl, getattr(self, "pixel_alternative", ""))
-        from .wave_step import plan_wave_step
-        plan_wave_step(self, model_tolerance, requested, memory_budget_bytes)   # model error; wave step if needed
+    @property
+    def tracer(self) -> Tracer:
+        """This batch's :class:`rwwarp.trace.Tracer` (its device arrays: surface parameters, index tables)."""
+        t = self._tracer
+        return t.get() if isinstance(t, _TracerOnUse) else t
 
-    def _align_to_doe_pixels(self):
-        """For a pixel-map DOE, shift the window origins so sample cells tile the DOE pixels exactly (the
-        pitch already divides the DOE pitch): no sample cell straddles a phase step."""
-        s = self.lens.surfaces[self.plane]
-        if s.type != "doe" or s.profile.get("kind") != "pixel_map":
-            return
-        from .. import doe
-        prof = doe.profile_from_dict(s.profile, base=lens_dir(self.lens))
-        rows, cols = prof.data.shape
-        h = self.plan.pitch_mm
-        for axis, count in ((0, cols), (1, rows)):
-            first = -0.5 * count * prof.pitch + 0.5 * h  # centre of the first sample cell inside the map
-            self.origin[:, axis] = first + np.round((self.origin[:, axis] - first) / h) * h
-
-    def _ray_focus(self, pos_p, dir_s, ok, chief_sensor):
-        """Reference-sphere centres: where each source's rays converge (least-squares focus along z).
-
-        Rays are straight behind the wave plane, x_i(t) = p_i + t m_i with slopes m_i = d_xy / d_z; the
-        transverse variance is smallest at ``t* = -cov(p, m) / var(m)``. The centre is the chief ray's point
-        at that depth, so the residual phase splatted is only the aberration (not defocus). Collimated
-        beams (var(m) ~ 0) get a centre 1 m along the chief ray (a nearly plane reference).
-        """
-        out = np.zeros((self.nsrc, 3))
-        for k in range(self.nsrc):
-            p = pos_p[k, ok[k], :2]
-            m = dir_s[k, ok[k], :2] / dir_s[k, ok[k], 2:3]
-            pc, mc = p - p.mean(0), m - m.mean(0)
-            var = float(np.sum(mc * mc))
-            t = -float(np.sum(pc * mc)) / var if var > 1e-18 else np.inf
-            if not np.isfinite(t) or abs(t) > 1e6:
-                t = 1e6  # collimated: a nearly plane reference (residual curvature < 1e-2 rad over 1 mm)
-            c0 = self.chief_plane[k]
-            dc = dir_s[k, 0] if ok[k, 0] else dir_s[k, ok[k]].mean(0)
-            out[k] = [c0[0] + t * dc[0] / dc[2], c0[1] + t * dc[1] / dc[2], c0[2] + t]
-        return out
+    def use_plan(self, batch_plan: BatchPlan) -> None:
+        """Run ``batch_plan`` from now on (a new plan of the same sources and lens: :meth:`recentre`,
+        :func:`rwwarp.wave.wave_step.plan_wave_step`); what was derived from the old one (the focal operator)
+        is made again on next use (memoised DOE phases are keyed by the windows)."""
+        if not isinstance(batch_plan, BatchPlan) or batch_plan.nsrc != self.batch_plan.nsrc:
+            raise ValueError("RayWave.use_plan: a BatchPlan of the same number of sources is needed")
+        self.batch_plan = batch_plan
+        self._focal_op = None
 
     def field(self):
         """Trace to the DOE plane, splat, apply the reference sphere and carrier.
@@ -488,7 +314,7 @@ class RayWave:
         """The patch centres ((nsrc, 2) mm) this batch would have for ``center_mm`` ((x, y) mm, one pair or
         one per source): snapped to the sensor's pixel centres as in the constructor. Changes nothing; a
         plan made for other centres (equal after snapping) computes the same patches."""
-        return _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
+        return self.batch_plan.snapped_centres(center_mm)
 
     def recentre(self, center_mm):
         """Move the sensor patches to new centres ((x, y) mm, one pair or one per source; snapped to
@@ -496,14 +322,12 @@ class RayWave:
         DOE-plane windows, the traced field and the plan do not depend on them, so a field computed
         before stays valid (the propagation evaluates any sensor positions). A focal plan's sensor-side
         grid (patch plus the remainder's displacement and margins) moves with its patch, by the same
-        whole number of pixels, and its operator is built again on next use."""
-        new = _snap_centers(center_mm, self.pixel, self.lens.sensor.resolution, self.nsrc)
-        if self.focal is not None:
-            d = new - self.centers
-            self.focal = dict(self.focal, sensor_origin=np.asarray(self.focal["sensor_origin"]) + d,
-                              sensor_center=np.asarray(self.focal["sensor_center"]) + d)
-            self._focal_op = None
-        self.centers = new
+        whole number of pixels, and its operator is built again on next use. This RayWave runs the new plan
+        (:meth:`rwwarp.wave.batch_plan.BatchPlan.recentred`); the old plan is not changed."""
+        focal_op = getattr(self, "_focal_op", None)
+        self.use_plan(self.batch_plan.recentred(center_mm))
+        if self.focal is None:
+            self._focal_op = focal_op   # no sensor-side grid: the operator (if any) is the same
 
     def load_params(self, table, device_table=None):
         """Load a surface parameter table ((n_surfaces + 1, N_PARAMS) float64, last row the sensor, layout
@@ -531,7 +355,9 @@ class RayWave:
             for row, arr in zip(tab, tr.params):
                 arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))
         tr.params_np = tab.copy()
-        self.chief_plane[:, 2] = tab[self.plane, ktrace.P_Z]
+        # the plane's vertex moves the windows' reference point: a new plan (the windows, patches and
+        # operators are unchanged)
+        self.batch_plan = self.batch_plan.with_plane_z(tab[self.plane, ktrace.P_Z])
         return tab
 
     def pixel_centres(self):
@@ -656,6 +482,20 @@ class RayWave:
     def propagation(self):
         """The registered propagation method of this batch's plan (:func:`rwwarp.wave.methods.get`)."""
         return get_method(self.plan.method)
+
+
+def _plan_name(name):
+    def get(self):
+        return getattr(self.batch_plan, name)
+    get.__name__ = name
+    get.__doc__ = f"``batch_plan.{name}`` (:class:`rwwarp.wave.batch_plan.BatchPlan`; read-only: a new plan changes it)"
+    return property(get)
+
+
+for _name in PLAN_FIELDS:
+    if _name not in ("device", "deterministic"):    # the per-call executor's own (a plan may run elsewhere)
+        setattr(RayWave, _name, _plan_name(_name))
+del _name
 
 
 #: The keyword options of :class:`RayWave` that :func:`rwwarp.psf_map` (and its distributed form) hand to

@@ -237,14 +237,15 @@ def _caller_stacklevel() -> int:
     return level
 
 
-def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None) -> None:
-    """Estimate the model error of a :class:`rwwarp.wave.raywave.RayWave` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
+def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None):
+    """Estimate the model error of a :class:`rwwarp.wave.batch_plan.BatchPlan` ``rw`` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
     ``method_requested`` is ``"two-step"``, or ``"auto"`` with the estimate above ``tolerance`` (relative to
     the PSF's peak; None: never automatically). With the step the window is widened by ``EDGE_MARGIN`` edge
     widths ``sqrt(lambda d)`` a side and, where the plan's pitch does not resolve the edge, refined to
-    ``sqrt(lambda d) / EDGE_SAMPLES``. Sets ``rw.model_errors`` (a list, per source), ``rw.wave_step`` ((S,) mm,
-    zeros without the step) and, with the step, ``rw.plan`` and ``rw.origin``. A step whose plan exceeds
+    ``sqrt(lambda d) / EDGE_SAMPLES``. Returns a new :class:`~rwwarp.wave.batch_plan.BatchPlan` (``rw`` is not
+    changed) with ``model_errors`` (per source), ``wave_step`` ((S,) mm, zeros without the step), ``plan`` and,
+    with the step, ``wave_step_pad``, ``origin`` and ``pupil``. A step whose plan exceeds
     ``memory_budget_bytes`` is refused (:class:`rwwarp.wave.plan.MemoryBudgetError`) under ``"two-step"`` and left
     out, with a reason, under ``"auto"``. Where the step is wanted, its own error ``E_step`` (:func:`step_phase_rad`,
     :func:`step_error`; recorded as ``model_error["step_phase_rad"]`` / ``["step_error"]``) is compared with
@@ -255,12 +256,11 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     from .model_error import estimate_for_raywave, worst
     from .plan import check_budget, estimate_cost
     est = estimate_for_raywave(rw)
-    rw.model_errors = est
-    rw.wave_step = np.zeros(rw.nsrc)
+    bp = replace(rw, model_errors=tuple(est), wave_step=np.zeros(rw.nsrc))
     w = worst(est)
     pl = rw.plan
     if w is None:
-        return
+        return bp
     pl = replace(pl, model_error=w.to_dict()).with_reasons(w.text())
     want = method_requested == "two-step" or (method_requested == "auto" and tolerance is not None
                                               and w.estimate > tolerance)
@@ -273,12 +273,11 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
         pl = replace(pl, model_error={**pl.model_error, "step_phase_rad": phi, "step_error": e_step})
         step_bad = (tolerance is not None and e_step > tolerance) or (tolerance is None and phi > STEP_PHASE_MAX)
         if edge > 0 and step_bad and method_requested == "auto":
-            rw.plan = pl.with_reasons(
+            return replace(bp, plan=pl.with_reasons(
                 f"wave step refused: its own error ~{e_step:.2g} of the peak (the beam's aberration before the DOE "
                 f"transported twice: phase pi s^2 / (lambda d) up to {phi:.3g} rad, E_step = phi^2 / {STEP_ERROR_DIV:g}) "
                 f"exceeds the tolerance {tolerance:.2g}; the one-step model is kept (its estimate "
-                f"{w.estimate:.2g}; rwwarp.wave.wave_step)")
-            return
+                f"{w.estimate:.2g}; rwwarp.wave.wave_step)"))
         if edge > 0 and step_bad:
             warnings.warn(
                 f"method='two-step': the wave step's own error is ~{e_step:.2g} of the PSF's peak (the beam's "
@@ -319,14 +318,11 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
                 if method_requested == "two-step":
                     check_budget(cost, int(memory_budget_bytes), f"the wave step's plan ({n_grid}^2 samples, FFT "
                                  f"{pad}^2)", "the reduced distance (edge width sqrt(lambda d)), the beam footprint")
-                rw.plan = one_step.with_reasons(f"wave step left out: its plan needs {cost['memory_bytes'] / 2 ** 30:.3g} "
-                                                f"GiB, over the memory budget")
-                return
-            rw.wave_step = d
-            rw.wave_step_pad = pad
+                return replace(bp, plan=one_step.with_reasons(f"wave step left out: its plan needs "
+                                                              f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, over the memory budget"))
+            from .doe_sampling import doe_pixel_origin
             mid = 0.5 * (rw.lo + rw.hi)
-            rw.origin = mid - 0.5 * (n_grid - 1) * pitch
-            rw.plan = pl
-            rw._align_to_doe_pixels()
-            rw.pupil = (None, None, (2.0 / ray_grid) ** 2)
-    rw.plan = pl
+            origin = doe_pixel_origin(rw.lens, rw.plane, mid - 0.5 * (n_grid - 1) * pitch, pl.pitch_mm)
+            return replace(bp, plan=pl, wave_step=d, wave_step_pad=pad, origin=origin,
+                           pupil=(None, None, (2.0 / ray_grid) ** 2))
+    return replace(bp, plan=pl)

@@ -127,7 +127,7 @@ def test_one_process_traces_each_sources_pilot_once(monkeypatch):
     # once. Counted at the one place every pilot trace goes through (pilot_from_tracer: trace_pilot's and a
     # RayWave's own), per source; the map planned each unit again before (every source traced twice)
     import rwwarp.wave.pilot as P
-    import rwwarp.wave.raywave as RW
+    import rwwarp.wave.batch_plan as BP
     traced = {}
     real = P.pilot_from_tracer
 
@@ -137,7 +137,7 @@ def test_one_process_traces_each_sources_pilot_once(monkeypatch):
             traced[key] = traced.get(key, 0) + 1
         return real(tr, src, plane, wls, pupil_wls, dtype)
     monkeypatch.setattr(P, "pilot_from_tracer", counting)
-    monkeypatch.setattr(RW, "pilot_from_tracer", counting)
+    monkeypatch.setattr(BP, "pilot_from_tracer", counting)
     fields, wls = [0.0, 0.5, 0.8], [0.45, 0.65]
     m = D.psf_map(doe_lens(), fields, wls, size=SIZE, batch=2)
     assert traced == {(f, w): 1 for f in fields for w in wls}

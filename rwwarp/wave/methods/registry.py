@@ -136,8 +136,10 @@ class Propagation:
         raise NotImplementedError(f"method {self.name!r} has no planner")
 
     def consider(self, rw, explicit: bool, pilot: dict, tolerance, memory_budget_bytes) -> bool:
-        """(``planned_beside`` methods) Plan beside ``rw.plan`` and switch ``rw`` to this method where it should
-        run (always when ``explicit``, the method was asked for); True when switched. ``pilot``: ``pos_s``,
+        """(``planned_beside`` methods) Plan beside ``rw.plan`` (``rw``: the batch's
+        :class:`~rwwarp.wave.batch_plan.BatchPlan` so far, not changed) and return ``(plan, switched)``: a plan switched
+        to this method where it should run (always when ``explicit``, the method was asked for) and True, else a plan
+        with a reason why not and False. ``pilot``: ``pos_s``,
         ``dir_s``, ``ok`` (the pilot rays at the sensor), ``carrier`` / ``centers`` (the chief rays'),
         ``beam_width_mm`` (the footprint's smaller side), ``rays_per_sample``; ``tolerance``: the model error
         accepted (of the PSF's peak) or None."""
