@@ -97,8 +97,7 @@ def box_weights(edges_lo_mm, pixel_mm, x0_mm, h_mm, n):
     return (h_mm / np.pi) * (s_hi - s_lo)
 
 
-def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVERSAMPLE,
-                spread: int = NUFFT_SPREAD):
+def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = None, spread: int | None = None):
     """``U[my, mx] = sum_j c_j exp(i (mx theta_x,j + my theta_y,j))`` for ``mx, my = -n/2 .. n/2 - 1`` (array
     index ``m + n/2``), the points' phases ``theta`` (rad) in ``[-pi, pi)`` (1-D arrays, ``c`` complex).
 
@@ -108,9 +107,11 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVER
     inverse FFT is ``sum_j c_j ghat(m) exp(i m theta_j) / (2 pi) M``-scaled, and dividing by the Gaussian's
     transform ``sqrt(4 pi tau) exp(-m^2 tau)`` gives ``U``. Relative error ~1e-6 with the defaults (the
     spread Gaussian's tail at its cut, ``exp(-spread pi / 4)`` per axis at R = 2, and its aliases). Returns a
-    complex128 ``(n, n)`` array in ``xp``."""
+    complex128 ``(n, n)`` array in ``xp``. ``oversample`` / ``spread`` None: the module's ``NUFFT_OVERSAMPLE`` /
+    ``NUFFT_SPREAD`` at call time."""
     n = int(n)
-    R = int(oversample)
+    R = int(NUFFT_OVERSAMPLE if oversample is None else oversample)
+    spread = int(NUFFT_SPREAD if spread is None else spread)
     M = R * n
     tau = math.pi * spread / (n * n * R * (R - 0.5))
     tx = xp.asarray(theta_x, dtype=xp.float64)
