@@ -42,7 +42,8 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   integrated Airy pattern to 5.7e-5); with a rim slope ``S`` (rad) it does not, ~``S / sqrt(N_F)`` (``N_F``: the
   beam's Fresnel number seen from the patch), and a pixel of ``p`` averages it as ``(r_A / p)^1.6``. Measured
   1e-4 to 2.5e-2 (A489, Cooke triplet, DeepLens camera lenses; docs/propagation.md "Large pixels"); it does not
-  fall with more rays;
+  fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
+  reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows");
 * the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
   ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
   samples) are below that.
