@@ -80,6 +80,9 @@ DEFAULT_TOLERANCE = 1e-3
 PIXEL_ERROR_C = 0.06
 PIXEL_ERROR_POWER = 1.6
 PIXEL_ERROR_FLOOR = 2e-4
+#: the sensor field's form: "debye" (one plane wave per ray) or "kirchhoff" (the wave-plane field summed with the
+#: exact kernel, its rim's boundary wave included: :mod:`rwwarp.wave.pixel_kirchhoff`)
+FIELD_FORM = "debye"
 
 
 # ---------------------------------------------------------------------------------------------- numerics
@@ -108,7 +111,7 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
     inverse FFT is ``sum_j c_j ghat(m) exp(i m theta_j) / (2 pi) M``-scaled, and dividing by the Gaussian's
     transform ``sqrt(4 pi tau) exp(-m^2 tau)`` gives ``U``. Relative error ~1e-6 with the defaults (the
     spread Gaussian's tail at its cut, ``exp(-spread pi / 4)`` per axis at R = 2, and its aliases). Returns a
-    complex128 ``(n, n)`` array in ``xp``. ``oversample`` / ``spread`` None: the module's ``NUFFT_OVERSAMPLE`` /
+    complex128 ``(n, n)`` array in ``xp``; ``c`` (K, J): K weight vectors on the same points, ``(K, n, n)``. ``oversample`` / ``spread`` None: the module's ``NUFFT_OVERSAMPLE`` /
     ``NUFFT_SPREAD`` at call time."""
     n = int(n)
     R = int(NUFFT_OVERSAMPLE if oversample is None else oversample)
@@ -118,6 +121,9 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
     tx = xp.asarray(theta_x, dtype=xp.float64)
     ty = xp.asarray(theta_y, dtype=xp.float64)
     c = xp.asarray(c, dtype=xp.complex128)
+    one = c.ndim == 1          # c (K, J): K weight vectors on the same points, one (n, n) result each
+    c = c[None] if one else c
+    K = c.shape[0]
     step = 2.0 * math.pi / M
     lx0 = xp.floor(tx / step).astype(xp.int64)
     ly0 = xp.floor(ty / step).astype(xp.int64)
@@ -125,23 +131,25 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
     gx = xp.exp(-((lx0[None] + ks) * step - tx[None]) ** 2 / (4.0 * tau))      # (2 spread, J)
     gy = xp.exp(-((ly0[None] + ks) * step - ty[None]) ** 2 / (4.0 * tau))
     ix = (lx0[None] + ks) % M
-    grid_re = xp.zeros(M * M)
-    grid_im = xp.zeros(M * M)
+    grid_re = xp.zeros((K, M * M))
+    grid_im = xp.zeros((K, M * M))
     for a in range(2 * spread):
-        idx = (((ly0 + int(ks[a, 0])) % M) * M)[None] + ix
-        idx = idx.ravel()
-        grid_re += xp.bincount(idx, weights=(gx * (c.real * gy[a])[None]).ravel(), minlength=M * M)
-        grid_im += xp.bincount(idx, weights=(gx * (c.imag * gy[a])[None]).ravel(), minlength=M * M)
-        del idx
-    grid = (grid_re + 1j * grid_im).reshape(M, M)
+        idx = ((((ly0 + int(ks[a, 0])) % M) * M)[None] + ix).ravel()
+        ga = gx * gy[a][None]
+        for q in range(K):
+            grid_re[q] += xp.bincount(idx, weights=(ga * c[q].real[None]).ravel(), minlength=M * M)
+            grid_im[q] += xp.bincount(idx, weights=(ga * c[q].imag[None]).ravel(), minlength=M * M)
+        del idx, ga
+    grid = (grid_re + 1j * grid_im).reshape(K, M, M)
     del grid_re, grid_im
-    spec = xp.fft.ifft2(grid) * (M * M)     # sum_l F_l exp(+2 pi i m l / M)
+    spec = xp.fft.ifft2(grid, axes=(-2, -1)) * (M * M)     # sum_l F_l exp(+2 pi i m l / M)
     del grid
     m = np.arange(-n // 2, n // 2)
     sel = xp.asarray(m % M)
-    spec = spec[sel][:, sel]
+    spec = spec[:, sel][:, :, sel]
     dec = xp.asarray(np.exp(m.astype(float) ** 2 * tau) * (step / math.sqrt(4.0 * math.pi * tau)))
-    return spec * dec[:, None] * dec[None, :]
+    out = spec * dec[:, None] * dec[None, :]
+    return out[0] if one else out
 
 
 def _grid_diff(a, valid, axis, xp):
@@ -330,26 +338,22 @@ def pixel_psf(rw):
         if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
             raise FloatingPointError("pixel method: a ray's frequency lies beyond the sensor grid's band (the "
                                      "pilot trace missed the beam's edge): please report this lens and field")
-        c = (amp * xp.exp(1j * phase))[use]
-        cw = c * cos[use] if flux else None
-        del amp, phase, area
-        nt, t = tiles(n)
-        I = xp.zeros((n, n))
-        for ay in range(t):
-            for ax in range(t):
-                # the tile's samples m0 + m', |m'| <= nt / 2: the points' phases shifted by m0 . theta
-                m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
-                shift = xp.exp(1j * (m0x * tx + m0y * ty))
-                U = nufft_type1(tx, ty, c * shift, nt, xp)
-                if flux:
-                    Uw = nufft_type1(tx, ty, cw * shift, nt, xp)
-                    It = xp.real(xp.conj(U) * Uw)
-                    del Uw
-                else:
-                    It = xp.abs(U) ** 2
-                del U, shift
-                hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
-                I[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+        if FIELD_FORM == "kirchhoff":
+            # the wave-plane field summed with the exact kernel (rwwarp.wave.pixel_kirchhoff): its rim's boundary wave
+            from .pixel_kirchhoff import kirchhoff_samples
+            del amp, phase
+            tw = (rw.z_plane - pos[k, ..., 2]) / d[k, ..., 2]
+            Pw = pos[k] + tw[..., None] * d[k]
+            dA = tube_areas(Pw[None, ..., :2], valid[k][None], xp)[0]
+            ok = valid[k] & (dA > 0) & (q[k] > 0)
+            Lw = (opl[k] + float(rw.n_after[k]) * tw)[ok]
+            aw = xp.sqrt(xp.where(ok, q[k] * dA / d[k, ..., 2], 0.0))[ok]
+            I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
+                                  (rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor), rw.carrier[k], h, n, flux, xp,
+                                  TILE)
+            del Pw, dA, ok, Lw, aw, tw
+        else:
+            I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
         x0 = rw.centers[k] - 0.5 * n * h
         lo = (np.arange(rw.size) - rw.size // 2) * rw.pixel - 0.5 * rw.pixel
         wx = xp.asarray(box_weights(rw.centers[k, 0] + lo, rw.pixel, x0[0], h, n))
@@ -357,6 +361,30 @@ def pixel_psf(rw):
         P = wy @ I @ wx.T
         out[k] = P if xp is np else xp.asnumpy(P)
     return out
+
+
+def _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n):
+    """The Debye form's ``|U|^2`` / ``Re(conj(U) U_w)`` on the sensor grid (:func:`pixel_psf`)."""
+    c = (amp * xp.exp(1j * phase))[use]
+    cw = c * cos[use] if flux else None
+    nt, t = tiles(n)
+    I = xp.zeros((n, n))
+    for ay in range(t):
+        for ax in range(t):
+            # the tile's samples m0 + m', |m'| <= nt / 2: the points' phases shifted by m0 . theta
+            m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
+            shift = xp.exp(1j * (m0x * tx + m0y * ty))
+            U = nufft_type1(tx, ty, c * shift, nt, xp)
+            if flux:
+                Uw = nufft_type1(tx, ty, cw * shift, nt, xp)
+                It = xp.real(xp.conj(U) * Uw)
+                del Uw
+            else:
+                It = xp.abs(U) ** 2
+            del U, shift
+            hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
+            I[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+    return I
 
 
 def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_width_mm: float,
