@@ -42,12 +42,34 @@ def _coefficients(r, u, xp):
     return xp.stack([0.5 / r, 0.5 * u[:, 0] ** 2 / r, u[:, 0] * u[:, 1] / r, 0.5 * u[:, 1] ** 2 / r])
 
 
+def _cubic(r, u, xp=np):
+    """The six coefficients (1/mm^2) of the third-order phase ``-(u.D) (|D|^2 - (u.D)^2) / (2 r^2)`` on the basis
+    ``(-D_x |D|^2, -D_y |D|^2, D_x^3, D_x^2 D_y, D_x D_y^2, D_y^3)``."""
+    ux, uy, c = u[:, 0], u[:, 1], 0.5 / (r * r)
+    return (c * ux, c * uy, c * ux ** 3, 3.0 * c * ux ** 2 * uy, 3.0 * c * ux * uy ** 2, c * uy ** 3)
+
+
 def _rest_norm(g, xp):
     """The largest ``|sum_a (g_a - mid g_a) b_a(D)| / |D|^2`` over the rays and directions (1/mm): the spectral norm
     of the rest's 2 x 2 form ``[[d1 - d2, -d3 / 2], [-d3 / 2, d1 - d4]]``, ``mid``: the midrange over the rays."""
     d = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
     a, c, b = d[0] - d[1], d[0] - d[3], -0.5 * d[2]
     return float(xp.max(xp.abs(0.5 * (a + c)) + xp.sqrt(0.25 * (a - c) ** 2 + b * b)))
+
+
+def kirchhoff_tiles(P, T, lam_mm: float, n_med: float, h_mm: float, n: int, tile_max: int = 1536, xp=np):
+    """``(n_t, t)``: the sensor grid of ``n`` samples a side in ``t x t`` tiles of ``n_t`` (even) for
+    :func:`kirchhoff_samples`: the quadratic term's rest, spread over the wave-plane samples ``P`` (J, 3) (mm)
+    seen from the patch centre ``T`` (3,), below ``KIRCHHOFF_EPS`` rad at a tile's corner."""
+    k0 = 2.0 * math.pi / lam_mm
+    P = xp.asarray(P, dtype=xp.float64)
+    Tx = xp.asarray(np.asarray(T, float))
+    r0 = xp.sqrt(xp.sum((Tx - P) ** 2, -1))
+    norm = _rest_norm(_coefficients(r0, (Tx - P) / r0[:, None], xp), xp)
+    half = math.sqrt(KIRCHHOFF_EPS / (k0 * n_med * 2.0 * max(norm, 1e-30)))     # a: |D|^2 <= 2 a^2
+    nt = max(8, min(int(tile_max), 2 * int(half / h_mm)))
+    t = max(1, int(math.ceil(n / nt)))
+    return 2 * int(math.ceil(n / (2 * t))), t
 
 
 def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_mm: float, n: int, flux: bool,
@@ -64,18 +86,13 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     k0 = 2.0 * math.pi / lam_mm
     P = xp.asarray(P, dtype=xp.float64)
     T = np.asarray(T, float)
-    # the tile size: the quadratic form's spread over the rays, at the patch centre (it hardly changes over it)
-    r0 = xp.sqrt(xp.sum((xp.asarray(T) - P) ** 2, -1))
-    u0 = (xp.asarray(T) - P) / r0[:, None]
-    norm = _rest_norm(_coefficients(r0, u0, xp), xp)
-    half = math.sqrt(KIRCHHOFF_EPS / (k0 * n_med * 2.0 * max(norm, 1e-30)))     # a: |D|^2 <= 2 a^2
-    nt = max(8, min(int(tile_max), 2 * int(half / h_mm)))
-    t = max(1, int(math.ceil(n / nt)))
-    nt = 2 * int(math.ceil(n / (2 * t)))
+    nt, t = kirchhoff_tiles(P, T, lam_mm, n_med, h_mm, n, tile_max, xp)
     out = xp.zeros((n, n))
     m = xp.asarray(np.arange(-nt // 2, nt // 2) * h_mm)
     Dy, Dx = m[:, None], m[None, :]
     basis = (Dx ** 2 + Dy ** 2, -Dx ** 2, -Dx * Dy, -Dy ** 2)
+    s2 = Dx ** 2 + Dy ** 2
+    cubic = (-Dx * s2, -Dy * s2, Dx ** 3, Dx ** 2 * Dy, Dx * Dy ** 2, Dy ** 3)
     for ay in range(t):
         for ax in range(t):
             m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
@@ -93,13 +110,17 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
                                          "patch lies beyond the sensor grid's band: please report this lens and field")
             pairs = [(a, b) for a in range(4) for b in range(a, 4)]
             vecs = [w[None], w[None] * g, xp.stack([w * g[a] * g[b] for a, b in pairs]),
-                    xp.stack([w * u[:, 0] / r, w * u[:, 1] / r])]
+                    xp.stack([w * u[:, 0] / r, w * u[:, 1] / r]),
+                    xp.stack([w * cc for cc in _cubic(r, u)])]
             vecs += [(w * u[:, 2])[None]] if flux else []
             N = nufft_type1(tx, ty, xp.concatenate(vecs), nt, xp)
             kn = k0 * n_med
             # exp(i eps) to second order: 1 + i eps - eps^2 / 2, eps = kn sum_a g_a b_a
             corr = (1j * kn) * sum(basis[a] * N[1 + a] for a in range(4)) - 0.5 * kn * kn * sum(
                 (1.0 if a == b else 2.0) * basis[a] * basis[b] * N[5 + i] for i, (a, b) in enumerate(pairs))
+            # the third-order phase -(u.D) (|D|^2 - (u.D)^2) / (2 r^2), to first order (< 0.01 rad: a u-odd phase, a
+            # shift of the spot between tiles, measured 6e-3 of the peak on an f/10 lens with 0.33 mm tiles without it)
+            corr = corr + (1j * kn) * sum(b * N[17 + i] for i, b in enumerate(cubic))
             # the amplitude dz / r^2 at X + D: times 1 - 2 u.D / r to first order (the next terms ~ |D|^2 / r^2)
             amp1 = -2.0 * (Dx * N[15] + Dy * N[16])
             U = N[0] + corr + amp1

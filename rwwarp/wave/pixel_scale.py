@@ -80,9 +80,11 @@ DEFAULT_TOLERANCE = 1e-3
 PIXEL_ERROR_C = 0.06
 PIXEL_ERROR_POWER = 1.6
 PIXEL_ERROR_FLOOR = 2e-4
-#: the sensor field's form: "debye" (one plane wave per ray) or "kirchhoff" (the wave-plane field summed with the
-#: exact kernel, its rim's boundary wave included: :mod:`rwwarp.wave.pixel_kirchhoff`)
-FIELD_FORM = "debye"
+#: the sensor field's form: "debye" (one plane wave per ray), "kirchhoff" (the wave-plane field summed with the
+#: exact kernel, its rim's boundary wave included: :mod:`rwwarp.wave.pixel_kirchhoff`) or "auto": kirchhoff where its
+#: tiles (their size set by the kernel's curvature over the patch) number at most KIRCHHOFF_MAX_TILES, else debye
+FIELD_FORM = "auto"
+KIRCHHOFF_MAX_TILES = 16
 
 
 # ---------------------------------------------------------------------------------------------- numerics
@@ -338,20 +340,26 @@ def pixel_psf(rw):
         if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
             raise FloatingPointError("pixel method: a ray's frequency lies beyond the sensor grid's band (the "
                                      "pilot trace missed the beam's edge): please report this lens and field")
-        if FIELD_FORM == "kirchhoff":
+        from .pixel_kirchhoff import kirchhoff_samples, kirchhoff_tiles
+        Tk = (rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor)
+        tw = (rw.z_plane - pos[k, ..., 2]) / d[k, ..., 2]
+        Pw = pos[k] + tw[..., None] * d[k]
+        form = FIELD_FORM
+        if form == "auto":
+            nk, tk = kirchhoff_tiles(Pw[valid[k]], Tk, float(rw.lam_mm[k]), float(rw.n_after[k]), h, n, TILE, xp)
+            form = "kirchhoff" if tk * tk <= KIRCHHOFF_MAX_TILES else "debye"
+        rw.pixel_forms = getattr(rw, "pixel_forms", {})
+        rw.pixel_forms[k] = form
+        if form == "kirchhoff":
             # the wave-plane field summed with the exact kernel (rwwarp.wave.pixel_kirchhoff): its rim's boundary wave
-            from .pixel_kirchhoff import kirchhoff_samples
             del amp, phase
-            tw = (rw.z_plane - pos[k, ..., 2]) / d[k, ..., 2]
-            Pw = pos[k] + tw[..., None] * d[k]
             dA = tube_areas(Pw[None, ..., :2], valid[k][None], xp)[0]
             ok = valid[k] & (dA > 0) & (q[k] > 0)
             Lw = (opl[k] + float(rw.n_after[k]) * tw)[ok]
             aw = xp.sqrt(xp.where(ok, q[k] * dA / d[k, ..., 2], 0.0))[ok]
             I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
-                                  (rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor), rw.carrier[k], h, n, flux, xp,
-                                  TILE)
-            del Pw, dA, ok, Lw, aw, tw
+                                  Tk, rw.carrier[k], h, n, flux, xp, TILE)
+            del dA, ok, Lw, aw
         else:
             I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
         x0 = rw.centers[k] - 0.5 * n * h
