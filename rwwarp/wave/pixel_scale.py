@@ -84,7 +84,7 @@ PIXEL_ERROR_FLOOR = 2e-4
 #: exact kernel, its rim's boundary wave included: :mod:`rwwarp.wave.pixel_kirchhoff`) or "auto": kirchhoff where its
 #: tiles (their size set by the kernel's curvature over the patch) number at most KIRCHHOFF_MAX_TILES, else debye
 FIELD_FORM = "auto"
-KIRCHHOFF_MAX_TILES = 16
+KIRCHHOFF_MAX_TILES = 4
 
 
 # ---------------------------------------------------------------------------------------------- numerics
@@ -356,7 +356,9 @@ def pixel_psf(rw):
             dA = tube_areas(Pw[None, ..., :2], valid[k][None], xp)[0]
             ok = valid[k] & (dA > 0) & (q[k] > 0)
             Lw = (opl[k] + float(rw.n_after[k]) * tw)[ok]
-            aw = xp.sqrt(xp.where(ok, q[k] * dA / d[k, ..., 2], 0.0))[ok]
+            # |W|^2 d_z dA = q: the flux through the wave plane is the ray's power; "intensity" takes the power
+            # spectrum as q without the obliquity (as the Debye form's |B|^2 dA_f = q): W sqrt(d_z)
+            aw = xp.sqrt(xp.where(ok, q[k] * dA / (d[k, ..., 2] if flux else 1.0), 0.0))[ok]
             I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
                                   Tk, rw.carrier[k], h, n, flux, xp, TILE)
             del dA, ok, Lw, aw
