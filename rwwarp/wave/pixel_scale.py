@@ -43,7 +43,11 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   beam's Fresnel number seen from the patch), and a pixel of ``p`` averages it as ``(r_A / p)^1.6``. Measured
   1e-4 to 2.5e-2 (A489, Cooke triplet, DeepLens camera lenses; docs/propagation.md "Large pixels"); it does not
   fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
-  reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows");
+  reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
+  (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
+  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2; "auto" takes
+  it where the grid needs at most ``KIRCHHOFF_MAX_TILES`` tiles (the cost model and the estimate here are the
+  Debye form's);
 * the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
   ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
   samples) are below that.
@@ -255,7 +259,9 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     )
     nt, t = tiles(n)
     reasons = reasons + (f"sensor grid in {t} x {t} tiles of {nt}^2 (their oversampled FFT {NUFFT_OVERSAMPLE * nt}^2: "
-                         f"memory), each ray spread into every tile",)
+                         f"memory), each ray spread into every tile",
+                         f"sensor field form {FIELD_FORM!r} (auto: the Kirchhoff sum of the wave-plane field where it "
+                         f"takes <= {KIRCHHOFF_MAX_TILES} tiles, chosen at run time; else the Debye plane waves)")
     plan = Plan(h, n, NUFFT_OVERSAMPLE * nt, ray_grid, "auto", False, reasons, "pixel", h, n, NUFFT_OVERSAMPLE * nt)
     return plan, {"band": band, "airy_mm": airy, "reach_mm": reach}
 
