@@ -12,10 +12,12 @@ one knob changed at a time on either side:
 Each row prints the error against the reference and the change of the changed side against its base (how far
 that knob moves it), and the time.
 
-    python perf/pixel_study.py [--lens camera__ef35mm_f2.0] [--field 0] [--pixel-um 15.3] [--size 5]
+    python perf/pixel_study.py [--lens camera__ef35mm_f2.0] [--field 0] [--pixel-um 15.3] [--size 5] [--form debye]
     python perf/pixel_study.py --lens cooke_triplet --field 14 --pixel-um 10 --size 9
 
-Lengths in mm (um where named), times in s on this machine.
+``--form``: the pixel method's sensor-field form (``rwwarp.wave.pixel_scale.FIELD_FORM``: "debye", the form the
+study in docs/propagation.md "What the error follows" is of; "kirchhoff"; "auto"). Lengths in mm (um where named),
+times in s on this machine.
 """
 from __future__ import annotations
 
@@ -102,8 +104,11 @@ def main():
     ap.add_argument("--field", type=float, default=0.0)
     ap.add_argument("--pixel-um", type=float, default=15.3)
     ap.add_argument("--size", type=int, default=5)
+    ap.add_argument("--form", default="debye", choices=("debye", "kirchhoff", "auto"))
     a = ap.parse_args()
     warnings.simplefilter("ignore")
+    import rwwarp.wave.pixel_scale as ps
+    ps.FIELD_FORM = a.form
     study(a.lens, a.field, a.pixel_um * 1e-3, a.size)
 
 
