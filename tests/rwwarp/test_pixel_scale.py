@@ -76,7 +76,8 @@ def _airy_pixels(na, lam_mm, p_mm, size, cx, cy, nodes=64):
     return out * np.pi * na ** 2 / lam_mm ** 2     # total power 1: int (2 J1(v) / v)^2 dA = lambda^2 / (pi NA^2)
 
 
-@pytest.mark.parametrize("ratio,values", [(10.0, "flux"), (20.0, "intensity")])
+# 10 r_A: 2 x 2 tiles, the Kirchhoff form (~20 s: slow); 20 r_A: the Debye form
+@pytest.mark.parametrize("ratio,values", [pytest.param(10.0, "flux", marks=pytest.mark.slow), (20.0, "intensity")])
 def test_ideal_lens_gives_the_airy_pattern_integrated_over_pixels(ratio, values):
     lens = _ideal_lens(2.5, 50.0)                   # f/10, N_F 227 seen from the focus
     na = 2.5 / math.hypot(2.5, 50.0)
