@@ -103,7 +103,9 @@ def sync_fn(device: str):
 
 class GpuMemory:
     """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread:
-    ``peaks`` {index: MiB}, ``peak`` that of GPU 0. Without nvidia-smi nothing is sampled."""
+    ``peaks`` {index: MiB}, ``peak`` that of the process's first visible GPU (nvidia-smi numbers the physical
+    GPUs whatever ``CUDA_VISIBLE_DEVICES`` says: its first entry when it is set, else GPU 0). Without nvidia-smi
+    nothing is sampled."""
 
     def __init__(self, period=0.05):
         import threading
@@ -112,7 +114,9 @@ class GpuMemory:
 
     @property
     def peak(self) -> int:
-        return self.peaks.get(0, 0)
+        import os
+        first = (os.environ.get("CUDA_VISIBLE_DEVICES") or "0").split(",")[0].strip()
+        return self.peaks.get(int(first) if first.isdigit() else 0, 0)
 
     def _run(self):
         while not self._stop.is_set():

@@ -65,7 +65,7 @@ def main():
     ap.add_argument("--truth-size", type=int, default=24)
     ap.add_argument("--out", default=os.path.join(HERE, "results", "focal_cpu.json"))
     a = ap.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+    commit = __import__("_common").git_commit()   # $RWWARP_COMMIT on a copied tree
     res = {"commit": commit, "machine": f"{os.cpu_count()} CPU cores (Warp CPU + PoCL)", "cases": {}, "epd": []}
     cases = [("cooke_triplet", 0.0, 0.5876), ("cooke_triplet", 14.0, 0.5876), ("ac254_100_a", 0.0, 0.5876),
              ("a489_doe", 0.0, 0.55)]

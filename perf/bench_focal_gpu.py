@@ -8,7 +8,6 @@ GPU's name.
 """
 import json
 import os
-import subprocess
 import sys
 import time
 
@@ -20,7 +19,7 @@ import rwwarp as rw
 def main(out_dir):
     import cupy
     dev = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = __import__("_common").git_commit()   # $RWWARP_COMMIT on a copied tree
     res = {"device": dev, "commit": commit, "cases": {}}
     cases = [("cooke_triplet", 0.0, 0.5876, 64), ("cooke_triplet", 14.0, 0.5876, 64), ("ac254_100_a", 0.0, 0.5876, 64),
              ("a489_doe", 0.0, 0.55, 64), ("a489_doe", 10.0, 0.55, 64)]

@@ -11,10 +11,15 @@
 #                              # all): any of cooke_hybrid a489_aberration a489_edof tests; each part fits one
 #                              # 10-minute device command, e.g. `smoke cooke_hybrid a489_aberration` then
 #                              # `smoke a489_edof tests`. Exits non-zero when anything fails.
+#   bash perf/gpu_suite.sh smoke-parallel [PARTS]  # the same parts at once, part k alone on GPU k
+#                              # (CUDA_VISIBLE_DEVICES; a machine with >= as many GPUs as parts, e.g. nvidia-h100-x4):
+#                              # each part keeps one whole card, so its peak is what it is on one H100; logs in
+#                              # $RWWARP_RESULTS/smoke_<part>.log, results in $RWWARP_RESULTS/smoke_<part>/
 # Results JSON under $OUT (device tool) or perf/results.
 set -u
 part=${1:-a}
 export RWWARP_RESULTS=${OUT:-$(cd "$(dirname "$0")" && pwd)/results}
+SELF="$(cd "$(dirname "$0")" && pwd)/$(basename "$0")"
 cd "$(dirname "$0")"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 case $part in
@@ -31,6 +36,26 @@ smoke)
     echo "== GPU tests"; (cd ../tests && timeout 300 python3 -m pytest -q -p no:cacheprovider -m gpu 2>&1 | tail -5; exit ${PIPESTATUS[0]}) || rc=1
   fi
   echo "smoke: $([ $rc = 0 ] && echo passed || echo FAILED) (parts: $parts)"
+  exit $rc
+  ;;
+smoke-parallel)
+  shift
+  parts=${*:-cooke_hybrid a489_aberration a489_edof tests}
+  ngpu=$(nvidia-smi -L | wc -l)
+  k=0; pids=()
+  for p in $parts; do
+    [ $k -lt $ngpu ] || { echo "smoke-parallel: $ngpu GPU(s) for the parts $parts" >&2; exit 2; }
+    mkdir -p "$RWWARP_RESULTS/smoke_$p"
+    OUT="$RWWARP_RESULTS/smoke_$p" CUDA_VISIBLE_DEVICES=$k bash "$SELF" smoke $p > "$RWWARP_RESULTS/smoke_$p.log" 2>&1 &
+    pids+=($!); k=$((k + 1))
+  done
+  rc=0; k=0
+  for p in $parts; do
+    wait ${pids[$k]} || rc=1
+    echo "== $p (GPU $k)"; grep -v "^ *$" "$RWWARP_RESULTS/smoke_$p.log" | tail -12
+    k=$((k + 1))
+  done
+  echo "smoke-parallel: $([ $rc = 0 ] && echo passed || echo FAILED) (parts: $parts)"
   exit $rc
   ;;
 a)

@@ -82,15 +82,8 @@ def starting_lens(cfg: dict, src):
     from torch_bridge.config import build_lens
     lens = build_lens(cfg, src)
     if cfg["design"]["init"] in ("paraxial_achromat", "rms") or cfg["design"]["method"] == "paraxial_achromat":
-        from torch_bridge.design import paraxial_achromat
-        d = lens.doe_index
-        s = lens.surfaces[d]
-        a, dist = paraxial_achromat(lens, [w for c in cfg["optics"]["wavelengths_um"] for w in c])
-        coeffs = [0.0] * len(s.profile["coefficients"])
-        coeffs[0 if s.profile["kind"] == "even_poly" else 1] = a
-        lens = lens.with_surface(d, profile={**s.profile, "coefficients": coeffs})
-        if d == len(lens.surfaces) - 1:
-            lens = lens.with_surface(d, thickness=dist)
+        from torch_bridge.ray_spot import with_paraxial_achromat
+        lens = with_paraxial_achromat(lens, [w for c in cfg["optics"]["wavelengths_um"] for w in c])
     return lens
 
 

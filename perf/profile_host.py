@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import subprocess
 import sys
 import time
 import warnings
@@ -221,8 +220,8 @@ def main(argv=None):
     total_ms = 1e3 * sum(tot) / a.reps
     phases = {k: 1e3 * v / a.reps for k, v in sorted(timer.excl.items(), key=lambda kv: -kv[1])}
     rest = total_ms - sum(phases.values())
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    from _common import git_commit
+    commit = git_commit()   # $RWWARP_COMMIT on a copied tree
     pl = p.plan or {}
     print(f"{a.lens} {a.field:g} deg {a.wl:g} um, {a.size} px, rays_per_sample {a.rays_per_sample}, device "
           f"{a.device}, cache {a.cache}: plan {pl.get('method')} grid {pl.get('n_grid')}^2, rays {pl.get('ray_grid')}^2")

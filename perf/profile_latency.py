@@ -12,7 +12,6 @@ import argparse
 import cProfile
 import json
 import pstats
-import subprocess
 import sys
 import time
 import warnings
@@ -92,8 +91,8 @@ def issue25(a):
                  f"{row['graph_launches']} launches, {row['replay']}, vs uncached {row['graph_vs_uncached_max_rel']:.2e})"
                  if row else ""), flush=True)
     if a.json:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+        from _common import git_commit
+        commit = git_commit()   # $RWWARP_COMMIT on a copied tree
         out = {"commit": commit, "device": a.device, "size": a.size, "wavelength_um": a.wl, "reps": a.reps, "rows": rows}
         try:
             import warp as wp

@@ -7,6 +7,10 @@ optionally every depth) with its sources split across the ranks of a ``torch.dis
   planning pilot per depth; every source on its own plan, packed batches), so every PSF is computed
   with exactly the plan the single-process map gives it (its own: a PSF does not depend on its batch):
   the sharded map equals ``rw.psf_map`` (measured: bit for bit on the CPU, test tolerance 1e-12).
+  Every rank plans every unit (one pilot trace of all sources a depth: the costs below need every unit's plans),
+  keeps its own units' planned members and runs them (:func:`rwwarp.map_run.run_planned`): each source's pilot is
+  traced and planned once on a rank, not again for its run. Until the assignment, a rank holds every depth's
+  planned members (their total is bounded as one ``rw.psf_map`` call's: ``checks.MAX_SOURCES`` sources).
 * **Balance by estimated work, not by count.** Each batch's cost is the planner's estimate, the sum
   of its sources' (:func:`rwwarp.wave.plan.estimate_cost` of each source's own plan): off-axis and
   large-aperture sources cost more. Batches are
@@ -133,20 +137,29 @@ def plan_work(lens, a, depths=(None,)) -> list:
     ``cost``: for the wave models, the sum of the sources' estimated flops
     (:func:`rwwarp.wave.plan.estimate_cost`); for the ray model (a fixed 401^2-ray pupil grid a source), the
     number of its sources."""
-    from .map_run import map_units
+    return _plan_units(lens, a, depths)[0]
+
+
+def _plan_units(lens, a, depths) -> tuple:
+    """:func:`plan_work` and each unit's planned members (:func:`rwwarp.map_run.plan_units`; None for the ray
+    model): ``(units, members)``, ``members[u]`` for ``units[u]``. The members are what :func:`_run_unit` runs:
+    every source's pilot is traced and planned once."""
+    from .map_run import plan_units
     pairs = [(i, j) for i in range(len(a.fields)) for j in range(len(a.wls))]
-    units = []
+    units, members = [], []
     for k, od in enumerate(depths):
-        units += [{"depth": k, "pairs": [tuple(p) for p in c], "cost": float(len(c) if cst is None else cst)}
-                  for c, cst in map_units(lens, a, pairs, od)]
-    return units
+        for c, cst, m in plan_units(lens, a, pairs, od):
+            units.append({"depth": k, "pairs": [tuple(p) for p in c], "cost": float(len(c) if cst is None else cst)})
+            members.append(m)
+    return units, members
 
 
-def _run_unit(lens, a, unit, od):
-    """One batch exactly as :func:`rwwarp.psf_map` computes it: :func:`rwwarp.map_run.run_sources` on the unit's
-    pairs (planned again, they make the same single batch, each source on its own plan). Returns
+def _run_unit(lens, a, unit, od, members=None):
+    """One batch exactly as :func:`rwwarp.psf_map` computes it: its planned ``members`` (:func:`_plan_units`, the
+    plans ``rw.psf_map`` gives its sources) run by :func:`rwwarp.map_run.run_planned`; the ray model (``members``
+    None): :func:`rwwarp.map_run.run_sources` on the unit's pairs. Returns
     ``[(i, j, psf, centre, valid_fraction, dropped, plan)]``."""
-    from .map_run import run_sources
+    from .map_run import run_planned, run_sources
     out = []
 
     def store(chunk, res):
@@ -155,7 +168,10 @@ def _run_unit(lens, a, unit, od):
             out.append((i, j, np.asarray(res["data"][k]), np.asarray(res["centers"][k]),
                         float(res["valid_fraction"][k]),
                         int(res["dropped_rays"][k]) if "dropped_rays" in res else 0, plans[k]))
-    run_sources(lens, a, list(unit), od, store)
+    if members is None:
+        run_sources(lens, a, list(unit), od, store)
+    else:
+        store(list(unit), run_planned(a, members))
     return out
 
 
@@ -262,7 +278,9 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
     fields, wls = a.fields, a.wls
     t0 = time.perf_counter()
     # ---- plan: every rank the same pilot and units, checked alike on every rank so that each assigns the same
-    units = plan_work(lens, a, depths)
+    # (every rank plans every unit, for the costs the assignment needs; each keeps its own units' planned members
+    # and runs them: every source's pilot traced and planned once on its rank)
+    units, planned = _plan_units(lens, a, depths)
     if dist is not None:
         every = [None] * ws
         dist.all_gather_object(every, units)
@@ -272,6 +290,8 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
                                        f"{rank} for the same map (a non-deterministic pilot?)")
     owners = assign([u["cost"] for u in units], ws)
     mine = owners[rank]
+    for u in set(range(len(units))) - set(mine):
+        planned[u] = None   # another rank's: its tracer and plans can go
     t_plan = time.perf_counter() - t0
     store = _default_store(dist) if dist is not None else None
     total = sum(len(u["pairs"]) for u in units)
@@ -284,7 +304,8 @@ def psf_map(lens, fields, wavelengths_um, depths_mm=None, *, model: str = "ray-w
     try:
         for u in mine:
             unit = units[u]
-            rows = _run_unit(lens, a, unit["pairs"], depths[unit["depth"]])
+            rows = _run_unit(lens, a, unit["pairs"], depths[unit["depth"]], planned[u])
+            planned[u] = None   # done: its operators and tracer can go
             if shards is not None:
                 _write_shard(shards / f"d{unit['depth']}_b{u}.npz", rows)
                 streamed.append((unit["depth"], [(i, j, float(np.sum(d)), v, n, p) for i, j, d, _, v, n, p in rows]))

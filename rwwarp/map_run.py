@@ -6,7 +6,8 @@ share, so that both take the same arguments, plan the same batches, run them the
   options (``model_tolerance``, ``allow_pixel`` included) and ``focal_precision`` ("auto" resolved per device).
 * :func:`map_units` cuts a map's (field, wavelength) pairs into its batches: for the wave models every source on
   its own plan from one pilot, packed (:func:`rwwarp.psf.wave_members`, :func:`rwwarp.psf.pack_sources`), each
-  batch with its planned flops; for the ray model chunks of ``batch`` pairs.
+  batch with its planned flops; for the ray model chunks of ``batch`` pairs. :func:`plan_units` also keeps each
+  batch's planned members, which :func:`run_planned` runs without planning them again (the distributed map).
 * :func:`run_sources` computes pairs (a whole map, or one batch of it on a rank) and hands each batch's result to
   ``store(pairs, result)``: the wave models through :func:`rwwarp.psf._wave_map` (a ``pixel`` member alone, the
   rest packed; the plan cache), the ray model in chunks of ``batch``.
@@ -135,21 +136,40 @@ def map_units(lens, a: MapArgs, pairs, object_distance_mm=None) -> list:
     object distance ``object_distance_mm`` (mm, None: the lens's): ``[(batch_pairs, flops), ...]``. Wave models:
     every source planned on its own from one pilot of all, packed (``flops``: the sum of the members' planned
     flops, :func:`rwwarp.wave.plan.estimate_cost`); ray model: chunks of ``a.batch`` pairs (``flops`` None)."""
+    return [(c, cost) for c, cost, _ in plan_units(lens, a, pairs, object_distance_mm)]
+
+
+def plan_units(lens, a: MapArgs, pairs, object_distance_mm=None) -> list:
+    """:func:`map_units` with each batch's planned members: ``[(batch_pairs, flops, members), ...]``, ``members``
+    the batch's single-source :class:`~rwwarp.wave.raywave.RayWave` s in the order of ``batch_pairs`` (planned as
+    :func:`rwwarp.psf._wave_map` plans them: :func:`rwwarp.psf.wave_members`, one pilot trace of all ``pairs`` a
+    system) for :func:`run_planned`; None for the ray model (nothing to plan)."""
     pairs = [tuple(p) for p in pairs]
     if a.model not in WAVE_MODELS:
         b = a.batch or len(pairs)
-        return [(pairs[k:k + b], None) for k in range(0, len(pairs), b)]
+        return [(pairs[k:k + b], None, None) for k in range(0, len(pairs), b)]
     out = []
     for members, sys_pairs in wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel,
                                            object_distance_mm, a.opts):
         for idx in pack_sources(members, a.size, a.batch, a.budget):
-            out.append(([sys_pairs[q] for q in idx], sum(float(members[q].plan.estimate["flops"]) for q in idx)))
+            out.append(([sys_pairs[q] for q in idx], sum(float(members[q].plan.estimate["flops"]) for q in idx),
+                        [members[q] for q in idx]))
     return out
+
+
+def run_planned(a: MapArgs, members) -> dict:
+    """One batch of :func:`plan_units` (its ``members``) computed as :func:`rwwarp.psf._wave_map` computes it
+    uncached: a ``pixel`` member alone (:meth:`~rwwarp.wave.raywave.RayWave.run`), the others packed
+    (:class:`~rwwarp.wave.packed.PackedRayWave`), with ``a.focal_precision``. Returns the batch's result dict."""
+    if members[0].plan.method == "pixel":
+        return members[0].run(a.focal_precision)
+    from .wave.packed import PackedRayWave
+    return PackedRayWave(list(members)).run(a.focal_precision)
 
 
 def run_sources(lens, a: MapArgs, pairs, object_distance_mm, store, cache=None, info: dict | None = None):
     """Compute the PSFs of ``pairs`` (indices into ``a.fields`` and ``a.wls``; a whole map, or one batch of
-    :func:`map_units` on a rank, which plans it again as the same single batch) at ``object_distance_mm`` (mm,
+    :func:`map_units`) at ``object_distance_mm`` (mm,
     None: the lens's), handing each batch's result dict (``data``, ``centers``, ``valid_fraction``,
     ``dropped_rays``, ``plan``, ``plans``) to ``store(batch_pairs, result)``. Wave models:
     :func:`rwwarp.psf._wave_map` (every source on its own plan, a ``pixel`` member alone, the rest packed;

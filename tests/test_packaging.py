@@ -27,6 +27,22 @@ def test_package_data_covers_data_files():
     assert not missing, "not in [tool.setuptools.package-data]: " + ", ".join(missing)
 
 
+def test_every_package_folder_is_installed():
+    """Every folder of Python modules under rwwarp/ and torch_bridge/ is listed in ``packages`` (a new sub-package
+    missing from the list is absent from a non-editable install: rwwarp.wave.methods was, and the GPU machine's
+    install failed to import rwwarp while every CPU test, run from the source tree, passed)."""
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = {(ROOT / cfg.get("package-dir", {}).get(n, n.replace(".", "/"))).resolve() for n in cfg["packages"]}
+    missing = []
+    for top in ("rwwarp", "torch_bridge"):
+        for init in (ROOT / top).rglob("__init__.py"):
+            if "__pycache__" in init.parts:
+                continue
+            if init.parent.resolve() not in listed:
+                missing.append(init.parent.relative_to(ROOT).as_posix())
+    assert not missing, "packages missing from pyproject.toml [tool.setuptools] packages: " + ", ".join(missing)
+
+
 def test_ci_pins_lie_inside_the_declared_ranges_and_setup_uses_them():
     """pyproject.toml declares ranges (a research environment's numpy/torch/warp need not match CI's); the
     exact tested versions live in .ci/constraints.txt, which .ci/setup installs with, and each pin must be

@@ -201,3 +201,18 @@ def paraxial_achromat(lens, wavelengths_um, doe_kind: str = "even_poly"):
     R = float(s.profile["norm_radius"])
     a1 = -beta * math.pi * R * R
     return float(a1), 1.0 / V0
+
+
+def with_paraxial_achromat(lens, wavelengths_um):
+    """``lens`` with its DOE set to :func:`paraxial_achromat` over ``wavelengths_um`` (um): the quadratic
+    coefficient (rad; ``even_poly`` index 0, ``poly`` index 1), every other coefficient 0, and, when the DOE is
+    the last surface, its distance to the sensor (mm) at the achromat's focus. ``lens`` is not changed."""
+    d = lens.doe_index
+    s = lens.surfaces[d]
+    a, dist = paraxial_achromat(lens, list(wavelengths_um))
+    coeffs = [0.0] * len(s.profile["coefficients"])
+    coeffs[0 if s.profile["kind"] == "even_poly" else 1] = a
+    lens = lens.with_surface(d, profile={**s.profile, "coefficients": coeffs})
+    if d == len(lens.surfaces) - 1:
+        lens = lens.with_surface(d, thickness=dist)
+    return lens

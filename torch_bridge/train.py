@@ -222,17 +222,8 @@ class Arm:
 
     # ------------------------------------------------------------------ optics
     def _achromat(self, lens):
-        from torch_bridge.design import paraxial_achromat
-        d = lens.doe_index
-        s = lens.surfaces[d]
-        allw = [w for c in self.cfg["optics"]["wavelengths_um"] for w in c]
-        a, dist = paraxial_achromat(lens, allw)
-        coeffs = [0.0] * len(s.profile["coefficients"])
-        coeffs[0 if s.profile["kind"] == "even_poly" else 1] = a
-        lens = lens.with_surface(d, profile={**s.profile, "coefficients": coeffs})
-        if d == len(lens.surfaces) - 1:
-            lens = lens.with_surface(d, thickness=dist)
-        return lens
+        from torch_bridge.ray_spot import with_paraxial_achromat
+        return with_paraxial_achromat(lens, [w for c in self.cfg["optics"]["wavelengths_um"] for w in c])
 
     def _provider(self, model, module=None):
         from torch_bridge import design as dz

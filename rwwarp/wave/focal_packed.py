@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .sensor_grid import gauss_nodes_xy
+
 from .focal import (
     _cis, distance_factors, focal_adjoint, focal_distance_derivative, sensor_taper, spectrum_to_nodes,
     transfer_curvature,
@@ -24,17 +26,8 @@ from .focal import (
 
 __all__ = ["PackedFocalPropagator", "focal_groups", "member_nodes"]
 
-
-def member_nodes(rw):
-    """Output node coordinates ``(nx, ny)`` (mm, (1, size * g) each) of a single-source focal RayWave: the
-    Gauss-Legendre nodes of its patch's pixels (as :meth:`rwwarp.wave.raywave.RayWave.focal_operator` forms them)."""
-    from .propagate import gauss_legendre
-    px, py = rw.pixel_centres()
-    t, _ = gauss_legendre(rw.gauss_nodes)
-    off = 0.5 * rw.pixel * t
-    nx = (px[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
-    ny = (py[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
-    return nx, ny
+#: Output node coordinates ``(nx, ny)`` (mm) of a single-source focal RayWave (its patch's Gauss-Legendre nodes)
+member_nodes = gauss_nodes_xy
 
 
 def _work(n: int, ns: int, nf: int, m: int) -> int:

@@ -50,3 +50,15 @@ def pixel_centres(centers, size, pixel):
     ``(x (nsrc, size), y (nsrc, size))``."""
     off = (np.arange(size) - size // 2) * pixel
     return centers[:, 0:1] + off[None, :], centers[:, 1:2] + off[None, :]
+
+
+def gauss_nodes_xy(rw):
+    """The Gauss-Legendre nodes of a batch's pixels, ``(x (S, size g), y (S, size g))`` mm: pixel by pixel, the
+    ``g = rw.gauss_nodes`` nodes of each (the node order of :func:`rwwarp.wave.focal.pixel_power`)."""
+    from .propagate_setup import gauss_legendre
+    px, py = rw.pixel_centres()
+    t, _ = gauss_legendre(rw.gauss_nodes)
+    off = 0.5 * rw.pixel * t
+    nx = (px[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
+    ny = (py[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
+    return nx, ny

@@ -170,21 +170,29 @@ def apply_wave_step_adjoint(rw, grad_out, xp=np):
     return gf * rot                        # adjoint of "* conj(rot)"
 
 
+def _aberration_angle2(rw) -> np.ndarray:
+    """Per source (S,), the largest ``|m - m_T|^2`` over its valid pilot rays before the DOE: the squared transverse
+    angle of a ray direction ``m`` to the direction ``m_T`` towards the sphere of ``rw.target`` (converging or
+    diverging), i.e. the beam's aberration as an angle (rad^2); 0 for a source with no valid ray."""
+    out = np.zeros(rw.nsrc)
+    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
+    for k in range(rw.nsrc):
+        p, m = pos[k, ok[k]], dirs[k, ok[k]]
+        if len(p) == 0:
+            continue
+        to_t = np.asarray(rw.target[k])[None, :] - p
+        to_t = to_t / np.linalg.norm(to_t, axis=1, keepdims=True) * (1.0 if rw.target[k, 2] >= rw.z_plane else -1.0)
+        out[k] = float(np.max(np.sum((m[:, :2] - to_t[:, :2]) ** 2, axis=1)))
+    return out
+
+
 def double_transport_shift_mm(rw, d) -> float:
     """Largest transverse shift (mm) the wave step gives the beam's aberration a second time: the rays already
     carry it to the wave plane, and ``P_d`` moves it again by ``d`` times the rays' angle to the sphere of
     ``rw.target`` (pilot rays before the DOE; ``d`` (S,) mm)."""
-    out = 0.0
-    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
-    for k in range(rw.nsrc):
-        p, m = pos[k, ok[k]], dirs[k, ok[k]]
-        if len(p) == 0 or d[k] == 0:
-            continue
-        to_t = np.asarray(rw.target[k])[None, :] - p
-        to_t = to_t / np.linalg.norm(to_t, axis=1, keepdims=True) * (1.0 if rw.target[k, 2] >= rw.z_plane else -1.0)
-        ang = np.linalg.norm(m[:, :2] - to_t[:, :2], axis=1)
-        out = max(out, float(abs(d[k]) * np.max(ang)))
-    return out
+    d = np.asarray(d, float)
+    shift = np.abs(d) * np.sqrt(_aberration_angle2(rw))
+    return float(np.max(shift, initial=0.0))
 
 
 def step_phase_rad(rw, d) -> np.ndarray:
@@ -194,18 +202,8 @@ def step_phase_rad(rw, d) -> np.ndarray:
     ``d`` (S,) the step's reduced distances (mm; 0: no step, phase 0). Equals ``pi s^2 / (lambda_m d)`` for the
     largest shift ``s`` of :func:`double_transport_shift_mm`."""
     d = np.asarray(d, float)
-    out = np.zeros(rw.nsrc)
-    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
-    for k in range(rw.nsrc):
-        p, m = pos[k, ok[k]], dirs[k, ok[k]]
-        if len(p) == 0 or d[k] == 0:
-            continue
-        to_t = np.asarray(rw.target[k])[None, :] - p
-        to_t = to_t / np.linalg.norm(to_t, axis=1, keepdims=True) * (1.0 if rw.target[k, 2] >= rw.z_plane else -1.0)
-        ang2 = np.sum((m[:, :2] - to_t[:, :2]) ** 2, axis=1)          # |m - m_T|^2 = (lambda_m f)^2
-        lam_med = float(rw.lam_mm[k]) / float(rw.n_after[k])
-        out[k] = math.pi * abs(d[k]) * float(np.max(ang2)) / lam_med
-    return out
+    lam_med = np.asarray(rw.lam_mm, float) / np.asarray(rw.n_after, float)
+    return math.pi * np.abs(d) * _aberration_angle2(rw) / lam_med     # |m - m_T|^2 = (lambda_m f)^2
 
 
 def step_error(phase_rad) -> float:

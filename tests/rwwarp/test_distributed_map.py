@@ -120,3 +120,29 @@ def test_one_process_plans_as_rw_psf_map_where_auto_picks_the_pixel_method():
     # method="pixel" is taken as rw.psf_map takes it (it was refused)
     m = D.psf_map(lens, [0.0], [0.55], size=15, pixel_mm=0.016, method="pixel")
     assert np.array_equal(m.data, ref.data)
+
+
+def test_one_process_traces_each_sources_pilot_once(monkeypatch):
+    # the units are planned once (to cost and assign them) and those plans are run: every source's pilot is traced
+    # once. Counted at the one place every pilot trace goes through (pilot_from_tracer: trace_pilot's and a
+    # RayWave's own), per source; the map planned each unit again before (every source traced twice)
+    import rwwarp.wave.pilot as P
+    import rwwarp.wave.raywave as RW
+    traced = {}
+    real = P.pilot_from_tracer
+
+    def counting(tr, src, plane, wls, pupil_wls, dtype):
+        for f, w in zip(src["fields"], wls):
+            key = (float(np.ravel(f)[-1]), float(w))
+            traced[key] = traced.get(key, 0) + 1
+        return real(tr, src, plane, wls, pupil_wls, dtype)
+    monkeypatch.setattr(P, "pilot_from_tracer", counting)
+    monkeypatch.setattr(RW, "pilot_from_tracer", counting)
+    fields, wls = [0.0, 0.5, 0.8], [0.45, 0.65]
+    m = D.psf_map(doe_lens(), fields, wls, size=SIZE, batch=2)
+    assert traced == {(f, w): 1 for f in fields for w in wls}
+    assert len(m.info["units"]) == 3   # 2 sources a unit (batch=2): each unit was planned again, alone, before
+    traced.clear()
+    ref = rw.psf_map(doe_lens(), fields, wls, size=SIZE, batch=2)
+    assert traced == {(f, w): 1 for f in fields for w in wls}   # what rw.psf_map does
+    assert np.array_equal(m.data, ref.data) and np.array_equal(m.centers_mm, ref.centers_mm)

@@ -59,14 +59,18 @@ def _thin_lens_doe(focal, dist, half, coeffs, norm):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("coeffs,tol", [([-40.0, 6.0], 3e-5), ([-60.0, 10.0], 5e-5)])
+@pytest.mark.parametrize("coeffs,tol", [([-40.0, 6.0], 7e-5), ([-60.0, 10.0], 5e-5)])
 def test_thin_lens_even_poly_doe_20mm_before_sensor(coeffs, tol):
     """A thin lens (f = 21 mm) with a modest even-polynomial DOE 20 mm before the sensor behind a square
     aperture, at the design wavelength (continuous relief: only order 1). Truth: rs_thin_lens_psf with the
     same phi0. Measured 1.5e-5 and, for a stronger DOE, 2.4e-5 (focal, default plan, 16 px). The square
     aperture's 1 / r diffraction tails need a longer wave-plane period and a wider sensor-side margin than a
     round one's (FOCAL_EDGE_SPREAD, FOCAL_EDGE_MARGIN_B): with the round pupil's rules 3.7e-4 and 3.8e-4; the
-    band-limited ASM reference path gives 4.0e-4 on the first case. Tolerance about twice."""
+    band-limited ASM reference path gives 4.0e-4 on the first case. Tolerance about twice.
+    The first case's error moves with the exact grid (its sampling phase against the square edges): over
+    nyquist_safety 1.9 / 2.0 / 2.1 it measured 7.4e-6 / 1.5e-5 / 3.6e-5 with session 12's plan rules and 2.8e-6 /
+    3.3e-5 / 2.3e-5 with the wide-spot rules (rwwarp.wave.plan FOCAL_RAY_SPREAD, FOCAL_LIT_SHIFT_MARGIN: this spot's
+    rays land in the taper, so its margin and grid grew slightly): 7e-5 is twice the largest of them."""
     norm, half = 1.0, 1.0
     lens = _thin_lens_doe(21.0, 20.0, half, coeffs, norm)
     p = rw.psf(lens, 0.0, 0.55, size=16, method="focal")
@@ -76,8 +80,9 @@ def test_thin_lens_even_poly_doe_20mm_before_sensor(coeffs, tol):
     def phi0(xx, yy):
         r2 = (xx * xx + yy * yy) / norm ** 2
         return coeffs[0] * r2 + coeffs[1] * r2 * r2
+    # 4 x 4 sensor nodes a pixel: within 2e-8 of the peak of 5 x 5 (measured on the second case), 40 % less time
     truth = rs_thin_lens_psf(21.0, "square", half, 0.55, 20.0, x, y, p.pixel_mm, doe_phase=phi0,
-                             gauss_nodes_sensor=5)
+                             gauss_nodes_sensor=4)
     assert _rel(p.data, truth) < tol
 
 

@@ -9,14 +9,7 @@ import pytest
 
 import rwwarp as rw
 
-
-def _cuda_or_skip():
-    try:
-        import cupy
-        if cupy.cuda.runtime.getDeviceCount() < 1:
-            raise RuntimeError
-    except Exception:
-        pytest.skip("no CUDA device")
+from test_cuda_cpu import _cuda_or_skip
 
 
 def test_cpu_hits_run_eagerly_and_say_why():

@@ -27,6 +27,22 @@ def doe_lens(side_mm=1.0, f=50.0, doe_to_sensor_mm=10.0):
     return Lens(surfs, Sensor(pixel_mm, (1000, 1000)), wavelengths_um=[0.55])
 
 
+def warp_launches(call):
+    """``(n, result)``: the number of ``warp.launch`` calls ``call()`` makes (every thread) and its result."""
+    import warp as wp
+    orig, n = wp.launch, [0]
+
+    def counted(*a, **k):
+        n[0] += 1
+        return orig(*a, **k)
+    wp.launch = counted
+    try:
+        out = call()
+    finally:
+        wp.launch = orig
+    return n[0], out
+
+
 def own_plans(lens, fields, wls):
     """The plan each (field, wavelength) pair gets alone (rw.psf), by pair."""
     return {(i, j): RayWave(lens, [f], [w], SIZE, lens.sensor.pixel_pitch).plan
@@ -241,22 +257,10 @@ def test_map_launches_do_not_grow_with_its_sources():
     Here 2 and 6 sources of the small DOE system, 16 px: the counts must be equal (the launches are per
     surface and stage, not per source; measured 15 and 15) and stay at most 20 (one source a batch, as
     before the packing, would make 15 a source: 90 for the 6)."""
-    import warp as wp
     lens = doe_lens()
     counts = {}
-    orig = wp.launch
     for fields in ([(0.0, 0.0)], [(0.0, 0.0), (0.0, 0.2), (0.0, 0.4)]):
         rw.psf_map(lens, fields, WLS, size=16, device="cpu")   # first call: kernels built
-        n = [0]
-
-        def counted(*a, _n=n, **k):
-            _n[0] += 1
-            return orig(*a, **k)
-        wp.launch = counted
-        try:
-            rw.psf_map(lens, fields, WLS, size=16, device="cpu")
-        finally:
-            wp.launch = orig
-        counts[len(fields) * len(WLS)] = n[0]
+        counts[len(fields) * len(WLS)], _ = warp_launches(lambda: rw.psf_map(lens, fields, WLS, size=16, device="cpu"))
     assert counts[2] == counts[6], counts
     assert 0 < counts[6] <= 20, counts

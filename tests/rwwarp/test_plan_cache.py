@@ -10,7 +10,7 @@ import pytest
 import rwwarp as rw
 from rwwarp.wave.plan_cache import lens_fingerprint
 
-from test_map import doe_lens
+from test_map import doe_lens, warp_launches
 
 
 def _same(a, b):
@@ -26,25 +26,15 @@ def test_hit_gives_the_bits_of_the_uncached_call(method):
     """psf_map over 2 fields x 2 wavelengths (one batch of 4 sources, each on its own plan) and psf: the first cached
     call (a miss) and the next two (hits) equal the uncached call bit for bit, and a hit traces no pilot (fewer Warp
     launches: counted by wrapping ``warp.launch``)."""
-    import warp as wp
     lens = doe_lens()
     fields, wls = [0.0, 0.3], [0.45, 0.65]
     ref = rw.psf_map(lens, fields, wls, size=16, method=method)
     cache = rw.PlanCache()
     runs, launches = [], []
-    orig = wp.launch
     for _ in range(3):
-        n = [0]
-
-        def counted(*a, _n=n, **k):
-            _n[0] += 1
-            return orig(*a, **k)
-        wp.launch = counted
-        try:
-            runs.append(rw.psf_map(lens, fields, wls, size=16, method=method, cache=cache))
-        finally:
-            wp.launch = orig
-        launches.append(n[0])
+        n, r = warp_launches(lambda: rw.psf_map(lens, fields, wls, size=16, method=method, cache=cache))
+        runs.append(r)
+        launches.append(n)
     assert [r.info["cache"] for r in runs] == ["miss", "hit", "hit"]
     for r in runs:
         _same(r, ref)

@@ -132,17 +132,15 @@ def test_psf_equals_rwwarp_psf():
     np.testing.assert_allclose(center, ref.center_mm)
 
 
-def _check_fd(hl, loss, entries, rel=1e-3, tol=1e-6):
-    """Gradients of ``loss()`` w.r.t. parameter entries (name, k) against the 4-point central
-    difference (truncation O(h^4)) with h = rel * max(|x|, floor). Returns the relative errors."""
+def fd_errors(hl, loss, entries):
+    """Relative errors of autograd against the 4-point central difference (truncation O(h^4)) of ``loss()`` for
+    parameter entries ``(name, k, h)`` (``h`` the step, in the entry's units)."""
     hl.zero_grad()
     loss().backward()
     errs = {}
-    for name, k, floor in entries:
+    for name, k, h in entries:
         p = getattr(hl, name)
-        g = p.grad[k].item()
-        x0 = p.data[k].item()
-        h = rel * max(abs(x0), floor)
+        g, x0 = p.grad[k].item(), p.data[k].item()
         vals = {}
         with torch.no_grad():
             for m in (-2, -1, 1, 2):
@@ -151,6 +149,14 @@ def _check_fd(hl, loss, entries, rel=1e-3, tol=1e-6):
         p.data[k] = x0
         fd = (8.0 * (vals[1] - vals[-1]) - (vals[2] - vals[-2])) / (12.0 * h)
         errs[(name, k)] = abs(g - fd) / abs(fd)
+    return errs
+
+
+def _check_fd(hl, loss, entries, rel=1e-3, tol=1e-6):
+    """Gradients of ``loss()`` w.r.t. parameter entries (name, k, floor) against the 4-point central
+    difference with h = rel * max(|x|, floor) (:func:`fd_errors`). Returns the relative errors."""
+    steps = [(name, k, rel * max(abs(getattr(hl, name).data[k].item()), floor)) for name, k, floor in entries]
+    errs = fd_errors(hl, loss, steps)
     bad = {k: v for k, v in errs.items() if not v < tol}
     assert not bad, f"gradient vs central difference, relative errors {errs}"
     return errs

@@ -20,6 +20,7 @@ from rwwarp.lens import Lens, Sensor, Surface
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "rwwarp"))
 from test_phase_surface import singlet as front_phase_singlet  # noqa: E402  (the builders of the rwwarp tests)
 from test_phase_surface import two_does  # noqa: E402
+from test_modules import fd_errors as _fd_errors  # noqa: E402  (4-point central differences)
 
 FIELD = (0.05, 0.4)  # off-axis in x and y: no symmetry
 REAR = {"kind": "even_poly", "norm_radius": 5.0, "coefficients": [-120.0, 8.0]}
@@ -74,26 +75,6 @@ def test_psf_equals_rwwarp_psf(make, method):
         p = hl.psf(FIELD, 0.55, 12)
     assert p.requires_grad
     np.testing.assert_allclose(p.detach().numpy(), ref.data, rtol=0, atol=1e-13 * ref.data.max())
-
-
-def _fd_errors(hl, loss, entries):
-    """Relative errors of autograd against 4-point central differences (truncation O(h^4)) for parameter entries
-    ``(name, k, h)`` (``h`` in the entry's units)."""
-    hl.zero_grad()
-    loss().backward()
-    errs = {}
-    for name, k, h in entries:
-        p = getattr(hl, name)
-        g, x0 = p.grad[k].item(), p.data[k].item()
-        vals = {}
-        with torch.no_grad():
-            for m in (-2, -1, 1, 2):
-                p.data[k] = x0 + m * h
-                vals[m] = loss().item()
-        p.data[k] = x0
-        fd = (8.0 * (vals[1] - vals[-1]) - (vals[2] - vals[-2])) / (12.0 * h)
-        errs[(name, k)] = abs(g - fd) / abs(fd)
-    return errs
 
 
 def test_psf_gradient_in_phase_coefficients_against_finite_differences():

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field as _field
 
 import numpy as np
 
+from ..sensor_grid import gauss_nodes_xy  # noqa: F401 (its home: sensor_grid; re-exported for the methods)
+
 #: the modules (of this package) whose import registers the built-in methods; a new method adds its line
 METHOD_MODULES = ("asm", "focal", "pixel", "direct")
 
@@ -170,18 +172,6 @@ class Propagation:
         n_pad = plan.n_pad if not self.fft_padded else next_fft_size(max(plan.n_pad, int(math.ceil(
             plan.n_pad * plan.pitch_mm / pitch)) + 2 * extra))
         return ray_grid, n_pad
-
-
-def gauss_nodes_xy(rw):
-    """The Gauss-Legendre nodes of a batch's pixels, ``(x (S, size g), y (S, size g))`` mm: pixel by pixel, the
-    ``g = rw.gauss_nodes`` nodes of each (the node order of :func:`rwwarp.wave.focal.pixel_power`)."""
-    from ..propagate import gauss_legendre
-    px, py = rw.pixel_centres()
-    t, _ = gauss_legendre(rw.gauss_nodes)
-    off = 0.5 * rw.pixel * t
-    nx = (px[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
-    ny = (py[:, :, None] + off[None, None, :]).reshape(rw.nsrc, -1)
-    return nx, ny
 
 
 def register(cls):
