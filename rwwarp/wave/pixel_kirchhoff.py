@@ -23,8 +23,11 @@ form sums the wave-plane field itself, rim included, with the exact kernel
   rest with the rays' mean ``u_z``).
 
 The quadrature over the pupil grid's cells has its aliases ``lambda z / (n delta_p)`` away (0.65 mm on the EF35 at
-601 rays), beyond the grid as the Debye form's. Cost: 6 transforms of every ray per tile (5 for ``U``, 1 for ``U_w``),
-tiles ``2 a`` wide with ``k0 n 2 a^2 max|g - mean g| <= KIRCHHOFF_EPS``. Arrays: numpy or CuPy (``xp``).
+601 rays), beyond the grid as the Debye form's. Cost (:func:`rwwarp.wave.pixel_scale.pixel_cost`): per tile
+``N_TERMS`` (23; 24 for ``U_w``) NUFFTs of every wave-plane sample, tiles ``2 a`` wide with
+``k0 n 2 a^2 max|g - mid g| <= KIRCHHOFF_EPS`` (at most ``KIRCHHOFF_TILE_MAX``): the spreading, ``J (2 spread)^2``
+cells a vector, is most of it (EF35 f/2 at 15.3 um, 64 px: 9 x 9 tiles of 220, ~0.29 M samples). Memory: one tile at
+a time, its vectors in chunks whose grids fit ``KIRCHHOFF_GRID_BYTES``. Arrays: numpy or CuPy (``xp``).
 """
 from __future__ import annotations
 
@@ -34,6 +37,35 @@ import numpy as np
 
 #: the largest phase rest (rad) at a tile's corner, taken to second order (error eps^3 / 6): the tile's size
 KIRCHHOFF_EPS = 0.05
+#: largest tile side (samples): one weight vector's NUFFT grids ((2 x 1024)^2 cells, GRID_CELL_BYTES a cell) stay ~220 MiB
+KIRCHHOFF_TILE_MAX = 1024
+#: bytes the NUFFT grids of one tile may take at once: its weight vectors go through in chunks that fit
+KIRCHHOFF_GRID_BYTES = 256 * 2 ** 20
+#: bytes a NUFFT grid cell takes per weight vector at the peak of :func:`rwwarp.wave.pixel_scale.nufft_type1`
+#: (the complex accumulator, its FFT and the FFT's temporary: 51 measured with tracemalloc; tests/rwwarp/test_pixel_cost.py)
+GRID_CELL_BYTES = 56
+#: bytes a wave-plane sample takes in one tile beside its weight vectors: its kernel terms (distance, direction,
+#: weight, quadratic coefficients, NUFFT phases) and the NUFFT's spreading arrays (12 x 12 cells' Gaussians and
+#: indices; tracemalloc in tests/rwwarp/test_pixel_cost.py)
+POINT_BYTES = 760
+#: the terms of one tile, each a NUFFT weight vector: U's 1 (the plane waves), 4 + 10 (the quadratic rest to second
+#: order), 2 (the amplitude's first-order change), 6 (the cubic phase); U_w ("flux") one more
+N_TERMS = 23
+
+
+def n_vectors(flux: bool) -> int:
+    """Number of NUFFT weight vectors per tile (:data:`N_TERMS`, one more for ``pixel_values="flux"``)."""
+    return N_TERMS + (1 if flux else 0)
+
+
+def chunk_vectors(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -> int:
+    """How many of a tile's weight vectors go through the NUFFT at once: the most whose grids
+    (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` oversampled grid, ``nt`` the tile's side) and vectors (16 bytes
+    a point) fit ``grid_bytes`` (None: ``KIRCHHOFF_GRID_BYTES``), at least one."""
+    from .pixel_scale import NUFFT_OVERSAMPLE
+    M = NUFFT_OVERSAMPLE * int(nt)
+    b = KIRCHHOFF_GRID_BYTES if grid_bytes is None else int(grid_bytes)
+    return max(1, min(n_vectors(flux), b // (GRID_CELL_BYTES * M * M + 16 * int(points))))
 
 
 def _coefficients(r, u, xp):
@@ -57,10 +89,11 @@ def _rest_norm(g, xp):
     return float(xp.max(xp.abs(0.5 * (a + c)) + xp.sqrt(0.25 * (a - c) ** 2 + b * b)))
 
 
-def kirchhoff_tiles(P, T, lam_mm: float, n_med: float, h_mm: float, n: int, tile_max: int = 1536, xp=np):
+def kirchhoff_tiles(P, T, lam_mm: float, n_med: float, h_mm: float, n: int, tile_max: int = KIRCHHOFF_TILE_MAX,
+                    xp=np):
     """``(n_t, t)``: the sensor grid of ``n`` samples a side in ``t x t`` tiles of ``n_t`` (even) for
     :func:`kirchhoff_samples`: the quadratic term's rest, spread over the wave-plane samples ``P`` (J, 3) (mm)
-    seen from the patch centre ``T`` (3,), below ``KIRCHHOFF_EPS`` rad at a tile's corner."""
+    seen from the patch centre ``T`` (3,), below ``KIRCHHOFF_EPS`` rad at a tile's corner; ``n_t <= tile_max``."""
     k0 = 2.0 * math.pi / lam_mm
     P = xp.asarray(P, dtype=xp.float64)
     Tx = xp.asarray(np.asarray(T, float))
@@ -72,27 +105,65 @@ def kirchhoff_tiles(P, T, lam_mm: float, n_med: float, h_mm: float, n: int, tile
     return 2 * int(math.ceil(n / (2 * t))), t
 
 
+def _terms(w, r, u, flux, xp):
+    """The tile's weight vectors as ``(make, key)`` pairs, in the order of :func:`_coefficient`: ``make()`` the (J,)
+    complex vector (made when its chunk runs), ``key`` what it multiplies in ``U`` / ``U_w``."""
+    g = _coefficients(r, u, xp)
+    g = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
+    pairs = [(a, b) for a in range(4) for b in range(a, 4)]
+    cub = _cubic(r, u, xp)
+    out = [(lambda: w, ("one",))]
+    out += [(lambda a=a: w * g[a], ("lin", a)) for a in range(4)]
+    out += [(lambda a=a, b=b: w * g[a] * g[b], ("quad", a, b)) for a, b in pairs]
+    out += [(lambda i=i: w * u[:, i] / r, ("amp", i)) for i in range(2)]
+    out += [(lambda i=i: w * cub[i], ("cub", i)) for i in range(6)]
+    out += [(lambda: w * u[:, 2], ("flux",))] if flux else []
+    return out
+
+
+def _coefficient(key, Dx, Dy, kn):
+    """What the NUFFT of the term ``key`` (:func:`_terms`) multiplies in ``U`` at ``D = (Dx, Dy)`` (mm; arrays that
+    broadcast to the tile), and the factor its share of ``U_w`` takes beside the rays' mean ``u_z``."""
+    basis = lambda a: (Dx ** 2 + Dy ** 2, -Dx ** 2, -Dx * Dy, -Dy ** 2)[a]
+    if key[0] == "one":
+        return 1.0, 0.0
+    if key[0] == "lin":        # exp(i eps) to second order: 1 + i eps - eps^2 / 2, eps = kn sum_a g_a b_a
+        return (1j * kn) * basis(key[1]), 1.0
+    if key[0] == "quad":
+        a, b = key[1], key[2]
+        return (-0.5 * kn * kn * (1.0 if a == b else 2.0)) * basis(a) * basis(b), 1.0
+    if key[0] == "amp":        # the amplitude dz / r^2 at X + D: times 1 - 2 u.D / r to first order
+        return -2.0 * (Dx, Dy)[key[1]], 1.5
+    if key[0] == "cub":
+        # the third-order phase -(u.D) (|D|^2 - (u.D)^2) / (2 r^2), to first order (< 0.01 rad: a u-odd phase, a
+        # shift of the spot between tiles, measured 6e-3 of the peak on an f/10 lens with 0.33 mm tiles without it)
+        s2 = Dx ** 2 + Dy ** 2
+        return (1j * kn) * (-Dx * s2, -Dy * s2, Dx ** 3, Dx ** 2 * Dy, Dx * Dy ** 2, Dy ** 3)[key[1]], 1.0
+    return 0.0, None            # "flux": U_w's plane waves, times 1
+
+
 def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_mm: float, n: int, flux: bool,
-                      xp=np, tile_max: int = 1536):
+                      xp=np, tile_max: int = KIRCHHOFF_TILE_MAX, grid_bytes: int | None = None):
     """``|U|^2`` (``flux`` False) or ``Re(conj(U) U_w)`` on the sensor grid ``T + (m - n/2) h`` (mm; ``m = 0 ..
     n-1`` per axis, array ``[y, x]``), ``U`` the Rayleigh-Sommerfeld sum of the wave-plane samples.
 
     ``P`` (J, 3) the samples on the wave plane (mm), ``L`` (J,) their optical paths (mm), ``amp_dA`` (J,) complex
     ``W_j dA_j`` without the phase ``exp(i k0 L)`` (sqrt(power) x mm), ``T`` (3,) the patch centre on the sensor
     (mm), ``carrier`` (2,) the frequency the grid is centred on (cycles/mm), ``h_mm`` the grid's pitch (it must
-    sample the samples' frequencies ``n u_xy / lambda`` within +-1 / (2 h) of ``carrier``). Returns (n, n)
-    float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the grid's band."""
-    from .pixel_scale import nufft_type1
+    sample the samples' frequencies ``n u_xy / lambda`` within +-1 / (2 h) of ``carrier``). Tiles as
+    :func:`kirchhoff_tiles` (``tile_max``), one after the other; a tile's weight vectors go through the NUFFT in
+    chunks (:func:`chunk_vectors`, ``grid_bytes``), so memory is bounded whatever ``n``. Returns (n, n) float64 in
+    ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the grid's band."""
+    from . import pixel_scale
     k0 = 2.0 * math.pi / lam_mm
+    kn = k0 * n_med
     P = xp.asarray(P, dtype=xp.float64)
     T = np.asarray(T, float)
     nt, t = kirchhoff_tiles(P, T, lam_mm, n_med, h_mm, n, tile_max, xp)
+    kc = chunk_vectors(nt, len(P), flux, grid_bytes)
     out = xp.zeros((n, n))
     m = xp.asarray(np.arange(-nt // 2, nt // 2) * h_mm)
     Dy, Dx = m[:, None], m[None, :]
-    basis = (Dx ** 2 + Dy ** 2, -Dx ** 2, -Dx * Dy, -Dy ** 2)
-    s2 = Dx ** 2 + Dy ** 2
-    cubic = (-Dx * s2, -Dy * s2, Dx ** 3, Dx ** 2 * Dy, Dx * Dy ** 2, Dy ** 3)
     for ay in range(t):
         for ax in range(t):
             m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
@@ -100,38 +171,49 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
             d = X - P
             r = xp.sqrt(xp.sum(d * d, -1))
             u = d / r[:, None]
+            del d
             w = amp_dA * xp.exp(1j * k0 * (L + n_med * r)) * (n_med / (1j * lam_mm)) * u[:, 2] / r
-            g = _coefficients(r, u, xp)
-            g = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
             tx = 2.0 * math.pi * (n_med * u[:, 0] / lam_mm - carrier[0]) * h_mm
             ty = 2.0 * math.pi * (n_med * u[:, 1] / lam_mm - carrier[1]) * h_mm
             if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
                 raise FloatingPointError("pixel method (Kirchhoff form): a wave-plane sample's direction to the "
                                          "patch lies beyond the sensor grid's band: please report this lens and field")
-            pairs = [(a, b) for a in range(4) for b in range(a, 4)]
-            vecs = [w[None], w[None] * g, xp.stack([w * g[a] * g[b] for a, b in pairs]),
-                    xp.stack([w * u[:, 0] / r, w * u[:, 1] / r]),
-                    xp.stack([w * cc for cc in _cubic(r, u)])]
-            vecs += [(w * u[:, 2])[None]] if flux else []
-            N = nufft_type1(tx, ty, xp.concatenate(vecs), nt, xp)
-            kn = k0 * n_med
-            # exp(i eps) to second order: 1 + i eps - eps^2 / 2, eps = kn sum_a g_a b_a
-            corr = (1j * kn) * sum(basis[a] * N[1 + a] for a in range(4)) - 0.5 * kn * kn * sum(
-                (1.0 if a == b else 2.0) * basis[a] * basis[b] * N[5 + i] for i, (a, b) in enumerate(pairs))
-            # the third-order phase -(u.D) (|D|^2 - (u.D)^2) / (2 r^2), to first order (< 0.01 rad: a u-odd phase, a
-            # shift of the spot between tiles, measured 6e-3 of the peak on an f/10 lens with 0.33 mm tiles without it)
-            corr = corr + (1j * kn) * sum(b * N[17 + i] for i, b in enumerate(cubic))
-            # the amplitude dz / r^2 at X + D: times 1 - 2 u.D / r to first order (the next terms ~ |D|^2 / r^2)
-            amp1 = -2.0 * (Dx * N[15] + Dy * N[16])
-            U = N[0] + corr + amp1
-            if flux:
-                # U_w: each term times u_z (dz / r: its change 1 - u.D / r); the rests with the rays' mean u_z (u_z
-                # spreads by ~3% at f/2, the rests are < KIRCHHOFF_EPS of the field: ~1e-3 of a term ~1e-3 of it)
-                Uw = N[-1] + (corr + 1.5 * amp1) * float(xp.sum(xp.abs(w) * u[:, 2]) / xp.sum(xp.abs(w)))
-                It = xp.real(xp.conj(U) * Uw)
-            else:
-                It = xp.abs(U) ** 2
-            del N, corr
+            # U_w: each term times u_z (dz / r: its change 1 - u.D / r); the rests with the rays' mean u_z (u_z
+            # spreads by ~3% at f/2, the rests are < KIRCHHOFF_EPS of the field: ~1e-3 of a term ~1e-3 of it)
+            uz = float(xp.sum(xp.abs(w) * u[:, 2]) / xp.sum(xp.abs(w))) if flux else 0.0
+            terms = _terms(w, r, u, flux, xp)
+            U = xp.zeros((nt, nt), dtype=xp.complex128)
+            Uw = xp.zeros((nt, nt), dtype=xp.complex128) if flux else None
+            for c0 in range(0, len(terms), kc):
+                part = terms[c0:c0 + kc]
+                N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp)
+                for (_, key), Nq in zip(part, N):
+                    cu, cw = _coefficient(key, Dx, Dy, kn)
+                    if cw is None:
+                        Uw += Nq
+                        continue
+                    U += cu * Nq
+                    if flux and cw:
+                        Uw += (cw * uz) * cu * Nq
+                del N
+            It = xp.real(xp.conj(U) * Uw) if flux else xp.abs(U) ** 2
+            del U, Uw, terms, w, r, u, tx, ty
             hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
             out[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
     return out
+
+
+def tile_cost(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -> dict:
+    """Peak memory (bytes) and work (flops) of one tile of :func:`kirchhoff_samples`: ``nt`` samples a side,
+    ``points`` wave-plane samples. Memory: ``POINT_BYTES`` a sample, the chunk's vectors (16 bytes a sample) and grids
+    (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` grid), ~6 complex ``nt^2`` arrays (``U``, ``U_w``, a coefficient,
+    products). Flops of the NUFFTs (:func:`rwwarp.wave.pixel_scale.nufft_flops`, one call a chunk) and ~10 a term
+    and sample to form the vectors and combine them (``nt^2``)."""
+    from .pixel_scale import NUFFT_OVERSAMPLE, nufft_flops
+    K, kc = n_vectors(flux), chunk_vectors(nt, points, flux, grid_bytes)
+    M = NUFFT_OVERSAMPLE * int(nt)
+    full, last = divmod(K, kc)
+    nufft = full * nufft_flops(points, kc, nt) + (nufft_flops(points, last, nt) if last else 0.0)
+    mem = POINT_BYTES * points + kc * (GRID_CELL_BYTES * M * M + 16 * points) + 6 * 16 * nt * nt
+    return {"memory_bytes": int(mem), "flops": float(nufft + 10.0 * K * (points + nt * nt) + 200.0 * points),
+            "nufft_flops": float(nufft), "vectors": K, "chunk": kc}

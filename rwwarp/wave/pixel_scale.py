@@ -46,8 +46,9 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
   (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
   EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2; "auto" takes
-  it where the grid needs at most ``KIRCHHOFF_MAX_TILES`` tiles (the cost model and the estimate here are the
-  Debye form's);
+  it where the grid needs at most ``KIRCHHOFF_MAX_TILES`` tiles, decided at planning (:func:`plan_field`, in
+  ``Plan.pixel_field``); the cost model (:func:`pixel_cost`) is the planned form's, the error estimate here the
+  Debye form's (an upper bound for the Kirchhoff form);
 * the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
   ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
   samples) are below that.
@@ -137,25 +138,34 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
     gx = xp.exp(-((lx0[None] + ks) * step - tx[None]) ** 2 / (4.0 * tau))      # (2 spread, J)
     gy = xp.exp(-((ly0[None] + ks) * step - ty[None]) ** 2 / (4.0 * tau))
     ix = (lx0[None] + ks) % M
-    grid_re = xp.zeros((K, M * M))
-    grid_im = xp.zeros((K, M * M))
+    grid = xp.zeros((K, M * M), dtype=xp.complex128)
     for a in range(2 * spread):
         idx = ((((ly0 + int(ks[a, 0])) % M) * M)[None] + ix).ravel()
         ga = gx * gy[a][None]
         for q in range(K):
-            grid_re[q] += xp.bincount(idx, weights=(ga * c[q].real[None]).ravel(), minlength=M * M)
-            grid_im[q] += xp.bincount(idx, weights=(ga * c[q].imag[None]).ravel(), minlength=M * M)
+            grid[q].real += xp.bincount(idx, weights=(ga * c[q].real[None]).ravel(), minlength=M * M)
+            grid[q].imag += xp.bincount(idx, weights=(ga * c[q].imag[None]).ravel(), minlength=M * M)
         del idx, ga
-    grid = (grid_re + 1j * grid_im).reshape(K, M, M)
-    del grid_re, grid_im
-    spec = xp.fft.ifft2(grid, axes=(-2, -1)) * (M * M)     # sum_l F_l exp(+2 pi i m l / M)
+    spec = xp.fft.ifft2(grid.reshape(K, M, M), axes=(-2, -1))     # sum_l F_l exp(+2 pi i m l / M) / M^2
     del grid
+    spec *= M * M
     m = np.arange(-n // 2, n // 2)
     sel = xp.asarray(m % M)
     spec = spec[:, sel][:, :, sel]
     dec = xp.asarray(np.exp(m.astype(float) ** 2 * tau) * (step / math.sqrt(4.0 * math.pi * tau)))
     out = spec * dec[:, None] * dec[None, :]
     return out[0] if one else out
+
+
+def nufft_flops(points: int, vectors: int, n: int) -> float:
+    """Work (flops) of one :func:`nufft_type1` call: ``points`` points, ``vectors`` weight vectors, ``n^2`` outputs.
+    Per point and spread cell (``(2 NUFFT_SPREAD)^2``): the 2-D Gaussian's product (1) and, per vector, its two
+    products with the weight and two accumulations (4); per point the 2 x 2 NUFFT_SPREAD Gaussians (~20 each); per
+    vector the ``M^2`` FFT (``5 M^2 log2 M^2``, ``M = NUFFT_OVERSAMPLE n``) and the deconvolution (2 ``n^2``)."""
+    cells = (2 * NUFFT_SPREAD) ** 2
+    M = NUFFT_OVERSAMPLE * int(n)
+    return float(points * (cells * (1.0 + 4.0 * vectors) + 80.0 * NUFFT_SPREAD)
+                 + vectors * (5.0 * M * M * math.log2(M * M) + 2.0 * n * n))
 
 
 def _grid_diff(a, valid, axis, xp):
@@ -249,8 +259,8 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     ray_grid = int(math.ceil(rays_per_sample * max(RAY_MIN, RAY_SAFETY * 2.0 * band * (0.5 * n * h + reach)))) + 1
     airy = 0.61 / band
     reasons = (
-        f"pixel method (pixels of {pixel_mm / airy:.3g} Airy radii): the sensor field as the rays' plane waves (Debye), "
-        f"|U|^2 on a grid and each pixel's box integrated exactly (rwwarp.wave.pixel_scale)",
+        f"pixel method (pixels of {pixel_mm / airy:.3g} Airy radii): the sensor field on a grid at its own Nyquist rate, "
+        f"each pixel's box integrated exactly (rwwarp.wave.pixel_scale)",
         f"sensor grid: patch {size * pixel_mm * 1e3:.4g} um + {pixel_mm * 1e3:.4g} um + 32 samples a side at "
         f"{h * 1e3:.4g} um (band B = {band:.4g} cycles/mm, |U|^2 to 2 B x {GRID_MARGIN:g}) -> {n}^2, FFT "
         f"{NUFFT_OVERSAMPLE * n}^2",
@@ -258,10 +268,6 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
         f"reach {reach * 1e3:.4g} um)) -> {ray_grid} across the pupil (the quadrature's aliases beyond the grid)",
     )
     nt, t = tiles(n)
-    reasons = reasons + (f"sensor grid in {t} x {t} tiles of {nt}^2 (their oversampled FFT {NUFFT_OVERSAMPLE * nt}^2: "
-                         f"memory), each ray spread into every tile",
-                         f"sensor field form {FIELD_FORM!r} (auto: the Kirchhoff sum of the wave-plane field where it "
-                         f"takes <= {KIRCHHOFF_MAX_TILES} tiles, chosen at run time; else the Debye plane waves)")
     plan = Plan(h, n, NUFFT_OVERSAMPLE * nt, ray_grid, "auto", False, reasons, "pixel", h, n, NUFFT_OVERSAMPLE * nt)
     return plan, {"band": band, "airy_mm": airy, "reach_mm": reach}
 
@@ -273,20 +279,76 @@ def tiles(n: int):
     return nt, t
 
 
+def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sensor: float, h_mm: float, n: int,
+               ray_grid: int, flux: bool, form: str | None = None, pupil_fill: float = math.pi / 4) -> dict:
+    """The sensor field's form of a ``method="pixel"`` batch and its tiling, from the pilot trace.
+
+    The pilot rays (``pos_s`` (S, N, 3) their sensor landings, ``dir_s`` (S, N, 3) directions, ``ok`` (S, N)) are
+    continued back to the wave plane ``z_plane`` (mm); the Kirchhoff form's tiles as
+    :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_tiles` seen from each patch centre (``centers`` (S, 2) mm, on
+    ``z_sensor``), the worst source's; its points: the pilot's valid fraction of ``pupil_fill ray_grid^2``
+    (``pupil_fill``: the share of the square pupil grid inside the pupil, pi / 4 for a circle). ``form`` (None:
+    ``FIELD_FORM``): "kirchhoff", "debye" or "auto" (kirchhoff where it takes at most ``KIRCHHOFF_MAX_TILES`` tiles).
+    Returns ``{"form", "tile", "tiles", "points", "vectors"}`` (``tile`` samples a side, ``tiles`` a side of the
+    grid, ``vectors`` the NUFFT weight vectors a tile: the chosen form's)."""
+    from .pixel_kirchhoff import kirchhoff_tiles, n_vectors
+    form = FIELD_FORM if form is None else form
+    if form not in ("auto", "kirchhoff", "debye"):
+        raise ValueError(f"pixel method: the sensor field's form must be 'auto', 'kirchhoff' or 'debye', got {form!r}")
+    nt, t, pts = 8, 0, 0
+    for k in range(len(centers)):
+        sel = np.asarray(ok[k], bool)
+        p, dd = np.asarray(pos_s[k], float)[sel], np.asarray(dir_s[k], float)[sel]
+        P = p + ((float(z_plane) - p[:, 2]) / dd[:, 2])[:, None] * dd
+        T = (float(centers[k][0]), float(centers[k][1]), float(z_sensor))
+        nk, tk = kirchhoff_tiles(P, T, float(lam_mm[k]), float(n_after[k]), h_mm, n)
+        if tk > t:
+            nt, t = nk, tk
+        pts = max(pts, int(math.ceil(float(np.mean(sel)) * pupil_fill * ray_grid ** 2)))
+    if form == "auto":
+        form = "kirchhoff" if t * t <= KIRCHHOFF_MAX_TILES else "debye"
+    if form == "debye":
+        nt, t = tiles(n)
+    return {"form": form, "tile": int(nt), "tiles": int(t), "points": pts,
+            "vectors": n_vectors(flux) if form == "kirchhoff" else (2 if flux else 1)}
+
+
 def pixel_cost(plan, n_sources: int, size: int) -> dict:
-    """Peak memory (bytes) and work (flops) of ``method="pixel"``: the traced rays (~232 bytes each, as
-    :func:`rwwarp.wave.plan.estimate_cost`) and their host arrays (~40 doubles: frequencies, tube areas,
-    phases, spreading weights), the oversampled grid (two real accumulators, the complex grid and its FFT)
-    and the sensor grid's ``U``, ``U_w`` and ``I`` (one source at a time); flops: ~4000 a ray (trace), 12 a
-    ray, spread cell and NUFFT (two: ``U`` and ``U_w``) in every tile, the FFTs, the box products."""
+    """Peak memory (bytes) and work (flops) of ``method="pixel"`` for the form ``plan.pixel_field`` names (None, a
+    plan from before it: the Debye form with ``U`` and ``U_w``, all ``ray_grid^2`` rays).
+
+    Both: the traced rays (~232 bytes each, as :func:`rwwarp.wave.plan.estimate_cost`) and their host arrays (~40
+    doubles: directions, tube areas, phases, wave-plane points), the sensor grid's ``I`` (8 ``n^2``); flops ~4000 a
+    ray (trace), the box products ``W_y I W_x^T``. Per source and tile, one tile at a time:
+
+    * Debye: ``vectors`` (``U``, and ``U_w`` for "flux") NUFFTs (:func:`nufft_flops`) of the points, one a call; the
+      grid (``GRID_CELL_BYTES`` a cell of the ``NUFFT_OVERSAMPLE n_t`` FFT), ``U``, ``U_w``, ``I`` of the tile;
+    * Kirchhoff: :func:`rwwarp.wave.pixel_kirchhoff.tile_cost` (23-24 NUFFTs in chunks that fit
+      ``KIRCHHOFF_GRID_BYTES``).
+
+    Returns ``memory_bytes``, ``flops``, and ``nufft_flops`` (the NUFFTs' part), ``form``, ``tiles`` (``t x t``),
+    ``tile`` (``n_t``), ``points``, ``vectors``, ``chunk`` (vectors a NUFFT call)."""
+    from .pixel_kirchhoff import GRID_CELL_BYTES, N_TERMS, tile_cost
     rays = int(n_sources) * plan.ray_grid ** 2
-    n, M = plan.n_sensor, plan.n_sensor_fft
-    nt, t = tiles(n)
-    spread = (2 * NUFFT_SPREAD) ** 2
-    mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + (2 * 8 + 2 * 16) * M * M + 8 * n * n + 3 * 16 * nt * nt
-    flops = rays * 4000.0 + t * t * 2 * rays * (spread * 12.0 + 20.0) + n_sources * (
-        t * t * 2 * 5.0 * M * M * math.log2(M * M) + 4.0 * (n * n * size + n * size * size))
-    return {"memory_bytes": int(mem), "flops": float(flops)}
+    n = plan.n_sensor
+    f = plan.pixel_field
+    if f is None:
+        f = dict(zip(("tile", "tiles"), tiles(n)), form="debye", points=plan.ray_grid ** 2, vectors=2)
+    nt, t, J, K = int(f["tile"]), int(f["tiles"]), int(f["points"]), int(f["vectors"])
+    mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + 8 * n * n
+    flops = rays * 4000.0 + n_sources * 4.0 * (n * n * size + n * size * size)
+    if f["form"] == "kirchhoff":
+        tc = tile_cost(nt, J, K > N_TERMS)
+        nufft, kc = n_sources * t * t * tc["nufft_flops"], tc["chunk"]
+        mem += tc["memory_bytes"]
+        flops += n_sources * t * t * tc["flops"]
+    else:
+        M = NUFFT_OVERSAMPLE * nt
+        nufft, kc = n_sources * t * t * K * nufft_flops(J, 1, nt), 1
+        mem += GRID_CELL_BYTES * M * M + 3 * 16 * nt * nt
+        flops += nufft + n_sources * t * t * 10.0 * J
+    return {"memory_bytes": int(mem), "flops": float(flops), "nufft_flops": float(nufft), "form": f["form"],
+            "tiles": t, "tile": nt, "points": J, "vectors": K, "chunk": kc}
 
 
 # ---------------------------------------------------------------------------------------------- run
@@ -346,14 +408,11 @@ def pixel_psf(rw):
         if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
             raise FloatingPointError("pixel method: a ray's frequency lies beyond the sensor grid's band (the "
                                      "pilot trace missed the beam's edge): please report this lens and field")
-        from .pixel_kirchhoff import kirchhoff_samples, kirchhoff_tiles
+        from .pixel_kirchhoff import kirchhoff_samples
         Tk = (rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor)
         tw = (rw.z_plane - pos[k, ..., 2]) / d[k, ..., 2]
         Pw = pos[k] + tw[..., None] * d[k]
-        form = FIELD_FORM
-        if form == "auto":
-            nk, tk = kirchhoff_tiles(Pw[valid[k]], Tk, float(rw.lam_mm[k]), float(rw.n_after[k]), h, n, TILE, xp)
-            form = "kirchhoff" if tk * tk <= KIRCHHOFF_MAX_TILES else "debye"
+        form = (pl.pixel_field or {"form": "debye"})["form"]        # the planned form (plan_field); a plan from before it
         rw.pixel_forms = getattr(rw, "pixel_forms", {})
         rw.pixel_forms[k] = form
         if form == "kirchhoff":
@@ -366,7 +425,7 @@ def pixel_psf(rw):
             # spectrum as q without the obliquity (as the Debye form's |B|^2 dA_f = q): W sqrt(d_z)
             aw = xp.sqrt(xp.where(ok, q[k] * dA / (d[k, ..., 2] if flux else 1.0), 0.0))[ok]
             I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
-                                  Tk, rw.carrier[k], h, n, flux, xp, TILE)
+                                  Tk, rw.carrier[k], h, n, flux, xp)
             del dA, ok, Lw, aw
         else:
             I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
@@ -403,6 +462,20 @@ def _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n):
     return I
 
 
+def field_reason(field: dict, cost: dict) -> str:
+    """The plan's line saying which sensor-field form runs (:func:`plan_field`) and what it costs (:func:`pixel_cost`)."""
+    if field["form"] == "kirchhoff":
+        what = (f"the Kirchhoff (Rayleigh-Sommerfeld) sum of the wave-plane field (rwwarp.wave.pixel_kirchhoff): "
+                f"{field['tiles']} x {field['tiles']} tiles of {field['tile']}^2 (the kernel's curvature), {field['vectors']}"
+                f" NUFFTs of ~{field['points']} wave-plane samples a tile, {cost['chunk']} at a time")
+    else:
+        what = (f"the Debye plane waves of the rays: {field['tiles']} x {field['tiles']} tiles of {field['tile']}^2, "
+                f"{field['vectors']} NUFFT(s) of ~{field['points']} rays a tile")
+    return (f"sensor field form {field['form']} (FIELD_FORM {FIELD_FORM!r}: auto takes kirchhoff where it needs <= "
+            f"{KIRCHHOFF_MAX_TILES} tiles): {what}; NUFFTs {cost['nufft_flops'] / 1e9:.3g} of "
+            f"{cost['flops'] / 1e9:.3g} GFLOP")
+
+
 def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_width_mm: float,
                    rays_per_sample: float = 1.0, tolerance=None, memory_budget_bytes=None) -> bool:
     """Plan ``method="pixel"`` beside the plan a :class:`rwwarp.wave.raywave.RayWave` (``rw``, at the end of its
@@ -431,6 +504,10 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     n_after, lam_mm = np.asarray(rw.n_after, float), np.asarray(rw.lam_mm, float)
     freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
     ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
+    field = plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, rw.z_plane, rw.z_sensor, ppl.sensor_pitch_mm,
+                       ppl.n_sensor, ppl.ray_grid, rw.pixel_values == "flux",
+                       pupil_fill=math.pi / 4 if rw.src["shape"] == "circle" else 1.0)
+    ppl = replace(ppl, pixel_field=field)
     ratio = rw.pixel / info["airy_mm"]
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
@@ -448,7 +525,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
             f"/ sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S {slope:.3g} rad, N_F {nf:.4g} "
             f"seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}), "
             f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, {cost['flops'] / 1e9:.3g} GFLOP")
-    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line)
+    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line, field_reason(field, cost))
     if not explicit:
         why = []
         if ratio < MIN_PIXEL_AIRY:
