@@ -11,23 +11,24 @@ form sums the wave-plane field itself, rim included, with the exact kernel
   ``|W_j| = sqrt(q_j / (d_z,j dA_j))`` (the flux through the plane is the ray's power ``q_j``; ``dA_j`` its tube's
   area there, :func:`rwwarp.wave.pixel_scale.tube_areas`), the sum's weight ``W_j dA_j``;
 * for a tile of the sensor grid centred at ``X``, ``r_j = |X - p_j|``, ``u_j = (X - p_j) / r_j``; a sample
-  ``X + D`` (``D`` in the sensor plane) is at ``|X + D - p| = r + u.D + (|D|^2 - (u.D)^2) / (2 r)`` (the next
-  term, ``(u.D) |D|^2 / (2 r^2)``, is below 1e-3 rad for ``|D| < 50 um`` at ``r > 30 mm``). The linear term is a
-  plane wave of frequency ``n u_xy / lambda``: the type-1 non-uniform FFT onto the tile. The quadratic one,
-  ``eps_j(D) = k0 n sum_a g_a,j b_a(D)`` with ``g = (1 / (2 r), u_x^2 / (2 r), u_x u_y / r, u_y^2 / (2 r))`` and
-  ``b = (|D|^2, -D_x^2, -D_x D_y, -D_y^2)``, is split into its mean over the rays (a phase common to the tile's
-  samples, which ``|U|^2`` and ``Re(conj(U) U_w)`` do not see) and the rest, taken to first order:
-  ``exp(i eps) ~ 1 + i eps``, four more transforms. The tile is made small enough that the rest stays below
-  ``KIRCHHOFF_EPS`` rad at its corners (the first-order error ``eps^2 / 2`` of each term).
+  ``X + D`` (``D`` in the sensor plane) is at ``|X + D - p| = r + u.D + (|D|^2 - (u.D)^2) / (2 r) - (u.D) (|D|^2 -
+  (u.D)^2) / (2 r^2) + ...``. The linear term is a plane wave of frequency ``n u_xy / lambda``: the type-1
+  non-uniform FFT onto the tile. The quadratic one, ``eps_j(D) = k0 n sum_a g_a,j b_a(D)`` with
+  ``g = (1 / (2 r), u_x^2 / (2 r), u_x u_y / r, u_y^2 / (2 r))`` and ``b = (|D|^2, -D_x^2, -D_x D_y, -D_y^2)``, is
+  split into its midrange over the rays (a phase common to the tile's samples, which ``|U|^2`` and
+  ``Re(conj(U) U_w)`` do not see) and the rest, taken to second order (``exp(i eps) ~ 1 + i eps - eps^2 / 2``: 4 + 10
+  more transforms); the cubic term (6) and the amplitude's change ``dz / r^2`` (2) to first order. The tile is made
+  small enough that the rest stays below ``KIRCHHOFF_EPS`` rad at its corners.
 * ``U_w`` (for ``pixel_values="flux"``): each term times ``u_z``, the obliquity towards the tile (its first-order
   rest with the rays' mean ``u_z``).
 
 The quadrature over the pupil grid's cells has its aliases ``lambda z / (n delta_p)`` away (0.65 mm on the EF35 at
-601 rays), beyond the grid as the Debye form's. Cost (:func:`rwwarp.wave.pixel_scale.pixel_cost`): per tile
-``N_TERMS`` (23; 24 for ``U_w``) NUFFTs of every wave-plane sample, tiles ``2 a`` wide with
-``k0 n 2 a^2 max|g - mid g| <= KIRCHHOFF_EPS`` (at most ``KIRCHHOFF_TILE_MAX``): the spreading, ``J (2 spread)^2``
-cells a vector, is most of it (EF35 f/2 at 15.3 um, 64 px: 9 x 9 tiles of 220, ~0.29 M samples). Memory: one tile at
-a time, its vectors in chunks whose grids fit ``KIRCHHOFF_GRID_BYTES``. Arrays: numpy or CuPy (``xp``).
+601 rays), beyond the grid as the Debye form's. Cost (:func:`tile_cost`, :func:`rwwarp.wave.pixel_scale.pixel_cost`):
+per tile ``N_TERMS`` (23; 24 for ``U_w``) NUFFTs of every wave-plane sample, the plane waves at the NUFFT's full
+spread, the corrections at ``REST_SPREAD``; tiles ``2 a`` wide with ``k0 n 2 a^2 max|g - mid g| <= KIRCHHOFF_EPS`` (at
+most ``KIRCHHOFF_TILE_MAX``). The spreading is most of it (EF35 f/2 at 15.3 um, 64 px: 9 x 9 tiles of 220, ~0.29 M
+samples each). Memory: one tile at a time, its vectors in chunks whose grids fit ``KIRCHHOFF_GRID_BYTES``. Arrays:
+numpy or CuPy (``xp``).
 """
 from __future__ import annotations
 
@@ -43,11 +44,18 @@ KIRCHHOFF_TILE_MAX = 1024
 KIRCHHOFF_GRID_BYTES = 256 * 2 ** 20
 #: bytes a NUFFT grid cell takes per weight vector at the peak of :func:`rwwarp.wave.pixel_scale.nufft_type1`
 #: (the complex accumulator, its FFT and the FFT's temporary: 51 measured with tracemalloc; tests/rwwarp/test_pixel_cost.py)
-GRID_CELL_BYTES = 56
-#: bytes a wave-plane sample takes in one tile beside its weight vectors: its kernel terms (distance, direction,
-#: weight, quadratic coefficients, NUFFT phases) and the NUFFT's spreading arrays (12 x 12 cells' Gaussians and
-#: indices; tracemalloc in tests/rwwarp/test_pixel_cost.py)
-POINT_BYTES = 760
+GRID_CELL_BYTES = 52
+#: bytes a wave-plane sample takes in one tile beside its weight vectors and the NUFFT's spreading arrays: its kernel
+#: terms (distance, direction, weight, quadratic and cubic coefficients, NUFFT phases); and the spreading arrays'
+#: bytes a sample and cell row of the footprint (2 spread rows: Gaussians, indices, products). tracemalloc in
+#: tests/rwwarp/test_pixel_cost.py
+POINT_BYTES = 240
+SPREAD_ROW_BYTES = 44
+#: the NUFFT's spreading half-width (cells) for the tile's correction terms (all but U's and U_w's plane waves): each is
+#: below KIRCHHOFF_EPS (~5%) of the field, so the NUFFT's 1.7e-3 at 3 (against 3.5e-6 at NUFFT_SPREAD = 6, of the
+#: term's own size) is ~1e-4 of the field; the Rayleigh-Sommerfeld test's error stayed 2.4e-5 / 7.4e-6 (6: 2.5e-5 /
+#: 7.5e-6). 36 cells a point instead of 144: the spreading, most of the work, ~3x less
+REST_SPREAD = 3
 #: the terms of one tile, each a NUFFT weight vector: U's 1 (the plane waves), 4 + 10 (the quadratic rest to second
 #: order), 2 (the amplitude's first-order change), 6 (the cubic phase); U_w ("flux") one more
 N_TERMS = 23
@@ -184,9 +192,11 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
             terms = _terms(w, r, u, flux, xp)
             U = xp.zeros((nt, nt), dtype=xp.complex128)
             Uw = xp.zeros((nt, nt), dtype=xp.complex128) if flux else None
-            for c0 in range(0, len(terms), kc):
-                part = terms[c0:c0 + kc]
-                N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp)
+            main = [q for q in terms if q[1][0] in ("one", "flux")]
+            rest = [q for q in terms if q[1][0] not in ("one", "flux")]
+            parts = [(main, None)] + [(rest[c0:c0 + kc], REST_SPREAD) for c0 in range(0, len(rest), kc)]
+            for part, spread in parts:
+                N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
                 for (_, key), Nq in zip(part, N):
                     cu, cw = _coefficient(key, Dx, Dy, kn)
                     if cw is None:
@@ -205,15 +215,21 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
 
 def tile_cost(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -> dict:
     """Peak memory (bytes) and work (flops) of one tile of :func:`kirchhoff_samples`: ``nt`` samples a side,
-    ``points`` wave-plane samples. Memory: ``POINT_BYTES`` a sample, the chunk's vectors (16 bytes a sample) and grids
-    (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` grid), ~6 complex ``nt^2`` arrays (``U``, ``U_w``, a coefficient,
-    products). Flops of the NUFFTs (:func:`rwwarp.wave.pixel_scale.nufft_flops`, one call a chunk) and ~10 a term
-    and sample to form the vectors and combine them (``nt^2``)."""
+    ``points`` wave-plane samples. Memory: ``POINT_BYTES`` a sample, and the larger NUFFT call's vectors (16 bytes a
+    sample), grids (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` grid) and spreading arrays (``SPREAD_ROW_BYTES``
+    a sample and footprint row), ~3 complex ``nt^2`` arrays (``U``, ``U_w``, a coefficient,
+    products). Flops of the NUFFTs (:func:`rwwarp.wave.pixel_scale.nufft_flops`: one call for the plane waves of ``U``
+    and ``U_w``, one a chunk of the corrections at ``REST_SPREAD``) and ~10 a term and sample to form the vectors and
+    combine them (``nt^2``)."""
     from .pixel_scale import NUFFT_OVERSAMPLE, nufft_flops
     K, kc = n_vectors(flux), chunk_vectors(nt, points, flux, grid_bytes)
     M = NUFFT_OVERSAMPLE * int(nt)
-    full, last = divmod(K, kc)
-    nufft = full * nufft_flops(points, kc, nt) + (nufft_flops(points, last, nt) if last else 0.0)
-    mem = POINT_BYTES * points + kc * (GRID_CELL_BYTES * M * M + 16 * points) + 6 * 16 * nt * nt
+    main = 2 if flux else 1                      # the plane waves of U (and U_w): one call at NUFFT_SPREAD
+    full, last = divmod(K - main, kc)
+    nufft = (nufft_flops(points, main, nt) + full * nufft_flops(points, kc, nt, REST_SPREAD)
+             + (nufft_flops(points, last, nt, REST_SPREAD) if last else 0.0))
+    from .pixel_scale import NUFFT_SPREAD
+    call = lambda k, spread: k * (GRID_CELL_BYTES * M * M + 16 * points) + SPREAD_ROW_BYTES * 2 * spread * points
+    mem = POINT_BYTES * points + max(call(main, NUFFT_SPREAD), call(kc, REST_SPREAD)) + 3 * 16 * nt * nt
     return {"memory_bytes": int(mem), "flops": float(nufft + 10.0 * K * (points + nt * nt) + 200.0 * points),
             "nufft_flops": float(nufft), "vectors": K, "chunk": kc}

@@ -157,14 +157,15 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
     return out[0] if one else out
 
 
-def nufft_flops(points: int, vectors: int, n: int) -> float:
+def nufft_flops(points: int, vectors: int, n: int, spread: int | None = None) -> float:
     """Work (flops) of one :func:`nufft_type1` call: ``points`` points, ``vectors`` weight vectors, ``n^2`` outputs.
-    Per point and spread cell (``(2 NUFFT_SPREAD)^2``): the 2-D Gaussian's product (1) and, per vector, its two
-    products with the weight and two accumulations (4); per point the 2 x 2 NUFFT_SPREAD Gaussians (~20 each); per
-    vector the ``M^2`` FFT (``5 M^2 log2 M^2``, ``M = NUFFT_OVERSAMPLE n``) and the deconvolution (2 ``n^2``)."""
-    cells = (2 * NUFFT_SPREAD) ** 2
+    Per point and spread cell (``(2 spread)^2``, None: ``NUFFT_SPREAD``): the 2-D Gaussian's product (1) and, per
+    vector, its two products with the weight and two accumulations (4); per point the 2 x 2 spread Gaussians (~20
+    each); per vector the ``M^2`` FFT (``5 M^2 log2 M^2``, ``M = NUFFT_OVERSAMPLE n``) and the deconvolution (2 ``n^2``)."""
+    spread = NUFFT_SPREAD if spread is None else int(spread)
+    cells = (2 * spread) ** 2
     M = NUFFT_OVERSAMPLE * int(n)
-    return float(points * (cells * (1.0 + 4.0 * vectors) + 80.0 * NUFFT_SPREAD)
+    return float(points * (cells * (1.0 + 4.0 * vectors) + 80.0 * spread)
                  + vectors * (5.0 * M * M * math.log2(M * M) + 2.0 * n * n))
 
 

@@ -27,7 +27,7 @@ def nufft_calls(monkeypatch):
     orig = ps.nufft_type1
 
     def spy(tx, ty, c, n, xp=np, **kw):
-        calls.append((len(tx), 1 if np.ndim(c) == 1 else np.shape(c)[0], n))
+        calls.append((len(tx), 1 if np.ndim(c) == 1 else np.shape(c)[0], n, kw.get("spread") or ps.NUFFT_SPREAD))
         return orig(tx, ty, c, n, xp, **kw)
     monkeypatch.setattr(ps, "nufft_type1", spy)
     return calls
@@ -52,14 +52,17 @@ def test_kirchhoff_tile_cost_is_the_work_and_memory_of_its_loop(nufft_calls, J, 
     peak = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
     model = pk.tile_cost(nt, J, True, grid_bytes)
-    # every tile takes every point into 24 weight vectors (U's 23 terms and U_w), in chunks
-    assert sum(k for _, k, _ in nufft_calls) == t * t * 24 and all(c[0] == J and c[2] == nt for c in nufft_calls)
-    assert len(nufft_calls) == t * t * math.ceil(24 / model["chunk"])
+    # every tile takes every point into 24 weight vectors: the plane waves of U and U_w in one call at the full spread,
+    # the 22 corrections in chunks at the narrower one
+    assert sum(c[1] for c in nufft_calls) == t * t * 24 and all(c[0] == J and c[2] == nt for c in nufft_calls)
+    assert len(nufft_calls) == t * t * (1 + math.ceil(22 / model["chunk"]))
+    per_tile = [(2, ps.NUFFT_SPREAD)] + [(None, pk.REST_SPREAD)] * math.ceil(22 / model["chunk"])
+    assert [(c[1] if s is not None else None, c[3]) for c, (s, _) in zip(nufft_calls, per_tile * t * t)] == per_tile * t * t
     work = sum(_nufft_work(*c) for c in nufft_calls)
     assert t * t * model["nufft_flops"] == pytest.approx(work, rel=1e-9)
     # the rest (forming the vectors, combining them) is a small share: the model's total within 25% of the NUFFTs
     assert work < t * t * model["flops"] < 1.25 * work
-    # memory: the model covers the measured peak (one tile's arrays, its chunk's grids) within 25% (measured 1.0-1.19
+    # memory: the model covers the measured peak (one tile's arrays, its larger NUFFT call's) within 25% (measured 1.00-1.18
     # on points- and grid-dominated cases)
     assert peak <= model["memory_bytes"] <= 1.25 * peak
 
@@ -70,7 +73,7 @@ def test_plan_cost_is_the_run_debye(nufft_calls):
     assert pl.pixel_field["form"] == "debye" == pl.estimate["form"]
     rw.psf(lens, 0.0, 0.55, size=15, pixel_mm=0.016, method="pixel")
     # U and U_w ("flux"), one NUFFT each of the rays inside the pupil, per tile
-    assert [k for _, k, _ in nufft_calls] == [1, 1] * pl.estimate["tiles"] ** 2
+    assert [c[1] for c in nufft_calls] == [1, 1] * pl.estimate["tiles"] ** 2
     work = sum(_nufft_work(*c) for c in nufft_calls)
     # the points from the pilot's share of the pupil grid: measured 1e-4 off the traced rays' count
     assert pl.estimate["nufft_flops"] == pytest.approx(work, rel=0.01)
@@ -86,7 +89,7 @@ def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch):
     assert f["form"] == "kirchhoff" == pl.estimate["form"] and f["vectors"] == 24
     rw.psf(lens, 0.0, 0.55, **kw)
     # the tiling planned from the pilot is the run's (24 vectors of every wave-plane sample a tile)
-    assert sum(k for _, k, _ in nufft_calls) == 24 * f["tiles"] ** 2 and {c[2] for c in nufft_calls} == {f["tile"]}
+    assert sum(c[1] for c in nufft_calls) == 24 * f["tiles"] ** 2 and {c[2] for c in nufft_calls} == {f["tile"]}
     work = sum(_nufft_work(*c) for c in nufft_calls)
     assert pl.estimate["nufft_flops"] == pytest.approx(work, rel=0.01)
     ex = pl.explain()
