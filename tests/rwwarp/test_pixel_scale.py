@@ -160,6 +160,8 @@ def test_cli_explain_names_the_pixel_method(capsys):
     main(["psf", "a489_doe", "--dry-run", "--size", "15", "--pixel", "16"])
     out = capsys.readouterr().out
     assert "plan auto (pixel)" in out and "method auto: pixel" in out and "GFLOP" in out
+    # which sensor-field form runs, its tiling and its cost (the A489 on axis: the Debye form, 1 tile)
+    assert "debye sensor field in 1 x 1 tiles" in out and "sensor field form debye" in out and "NUFFTs" in out
 
 
 def test_a_plan_over_the_budget_names_the_pixel_method():
