@@ -150,8 +150,24 @@ def _coefficient(key, Dx, Dy, kn):
     return 0.0, None            # "flux": U_w's plane waves, times 1
 
 
+def near_tiles(n: int, nt: int, t: int, h_mm: float, reach_mm: float | None):
+    """The tiles ``(ay, ax)`` of the ``n``-sample grid (``t x t`` tiles of ``nt``, laid as :func:`kirchhoff_samples`
+    lays them, pitch ``h_mm``) that come within ``reach_mm`` of its centre (all where ``reach_mm`` is None)."""
+    out = []
+    for ay in range(t):
+        for ax in range(t):
+            gap = []
+            for a in (ay, ax):      # the tile's samples (m - n/2) h, m = a nt .. min(a nt + nt, n) - 1: distance from 0
+                lo, hi = (a * nt - n // 2) * h_mm, (min(a * nt + nt, n) - 1 - n // 2) * h_mm
+                gap.append(max(lo, -hi, 0.0))
+            if reach_mm is None or math.hypot(*gap) <= reach_mm:
+                out.append((ay, ax))
+    return out
+
+
 def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_mm: float, n: int, flux: bool,
-                      xp=np, tile_max: int = KIRCHHOFF_TILE_MAX, grid_bytes: int | None = None):
+                      xp=np, tile_max: int = KIRCHHOFF_TILE_MAX, grid_bytes: int | None = None, base=None,
+                      reach_mm: float | None = None):
     """``|U|^2`` (``flux`` False) or ``Re(conj(U) U_w)`` on the sensor grid ``T + (m - n/2) h`` (mm; ``m = 0 ..
     n-1`` per axis, array ``[y, x]``), ``U`` the Rayleigh-Sommerfeld sum of the wave-plane samples.
 
@@ -160,8 +176,10 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     (mm), ``carrier`` (2,) the frequency the grid is centred on (cycles/mm), ``h_mm`` the grid's pitch (it must
     sample the samples' frequencies ``n u_xy / lambda`` within +-1 / (2 h) of ``carrier``). Tiles as
     :func:`kirchhoff_tiles` (``tile_max``), one after the other; a tile's weight vectors go through the NUFFT in
-    chunks (:func:`chunk_vectors`, ``grid_bytes``), so memory is bounded whatever ``n``. Returns (n, n) float64 in
-    ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the grid's band."""
+    chunks (:func:`chunk_vectors`, ``grid_bytes``), so memory is bounded whatever ``n``. ``reach_mm``: only the tiles
+    within it of ``T`` (:func:`near_tiles`), the others taken from ``base`` ((n, n), e.g. the Debye form's samples;
+    not changed). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
+    grid's band."""
     from . import pixel_scale
     k0 = 2.0 * math.pi / lam_mm
     kn = k0 * n_med
@@ -169,47 +187,48 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     T = np.asarray(T, float)
     nt, t = kirchhoff_tiles(P, T, lam_mm, n_med, h_mm, n, tile_max, xp)
     kc = chunk_vectors(nt, len(P), flux, grid_bytes)
-    out = xp.zeros((n, n))
+    if reach_mm is not None and base is None:
+        raise ValueError("kirchhoff_samples: reach_mm needs base, the samples of the tiles beyond it")
+    out = xp.zeros((n, n)) if reach_mm is None else xp.array(base, dtype=xp.float64, copy=True)
     m = xp.asarray(np.arange(-nt // 2, nt // 2) * h_mm)
     Dy, Dx = m[:, None], m[None, :]
-    for ay in range(t):
-        for ax in range(t):
-            m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
-            X = xp.asarray([T[0] + m0x * h_mm, T[1] + m0y * h_mm, T[2]])
-            d = X - P
-            r = xp.sqrt(xp.sum(d * d, -1))
-            u = d / r[:, None]
-            del d
-            w = amp_dA * xp.exp(1j * k0 * (L + n_med * r)) * (n_med / (1j * lam_mm)) * u[:, 2] / r
-            tx = 2.0 * math.pi * (n_med * u[:, 0] / lam_mm - carrier[0]) * h_mm
-            ty = 2.0 * math.pi * (n_med * u[:, 1] / lam_mm - carrier[1]) * h_mm
-            if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
-                raise FloatingPointError("pixel method (Kirchhoff form): a wave-plane sample's direction to the "
-                                         "patch lies beyond the sensor grid's band: please report this lens and field")
-            # U_w: each term times u_z (dz / r: its change 1 - u.D / r); the rests with the rays' mean u_z (u_z
-            # spreads by ~3% at f/2, the rests are < KIRCHHOFF_EPS of the field: ~1e-3 of a term ~1e-3 of it)
-            uz = float(xp.sum(xp.abs(w) * u[:, 2]) / xp.sum(xp.abs(w))) if flux else 0.0
-            terms = _terms(w, r, u, flux, xp)
-            U = xp.zeros((nt, nt), dtype=xp.complex128)
-            Uw = xp.zeros((nt, nt), dtype=xp.complex128) if flux else None
-            main = [q for q in terms if q[1][0] in ("one", "flux")]
-            rest = [q for q in terms if q[1][0] not in ("one", "flux")]
-            parts = [(main, None)] + [(rest[c0:c0 + kc], REST_SPREAD) for c0 in range(0, len(rest), kc)]
-            for part, spread in parts:
-                N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
-                for (_, key), Nq in zip(part, N):
-                    cu, cw = _coefficient(key, Dx, Dy, kn)
-                    if cw is None:
-                        Uw += Nq
-                        continue
-                    U += cu * Nq
-                    if flux and cw:
-                        Uw += (cw * uz) * cu * Nq
-                del N
-            It = xp.real(xp.conj(U) * Uw) if flux else xp.abs(U) ** 2
-            del U, Uw, terms, w, r, u, tx, ty
-            hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
-            out[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+    for ay, ax in near_tiles(n, nt, t, h_mm, reach_mm):
+        m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
+        X = xp.asarray([T[0] + m0x * h_mm, T[1] + m0y * h_mm, T[2]])
+        d = X - P
+        r = xp.sqrt(xp.sum(d * d, -1))
+        u = d / r[:, None]
+        del d
+        w = amp_dA * xp.exp(1j * k0 * (L + n_med * r)) * (n_med / (1j * lam_mm)) * u[:, 2] / r
+        tx = 2.0 * math.pi * (n_med * u[:, 0] / lam_mm - carrier[0]) * h_mm
+        ty = 2.0 * math.pi * (n_med * u[:, 1] / lam_mm - carrier[1]) * h_mm
+        if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
+            raise FloatingPointError("pixel method (Kirchhoff form): a wave-plane sample's direction to the "
+                                     "patch lies beyond the sensor grid's band: please report this lens and field")
+        # U_w: each term times u_z (dz / r: its change 1 - u.D / r); the rests with the rays' mean u_z (u_z
+        # spreads by ~3% at f/2, the rests are < KIRCHHOFF_EPS of the field: ~1e-3 of a term ~1e-3 of it)
+        uz = float(xp.sum(xp.abs(w) * u[:, 2]) / xp.sum(xp.abs(w))) if flux else 0.0
+        terms = _terms(w, r, u, flux, xp)
+        U = xp.zeros((nt, nt), dtype=xp.complex128)
+        Uw = xp.zeros((nt, nt), dtype=xp.complex128) if flux else None
+        main = [q for q in terms if q[1][0] in ("one", "flux")]
+        rest = [q for q in terms if q[1][0] not in ("one", "flux")]
+        parts = [(main, None)] + [(rest[c0:c0 + kc], REST_SPREAD) for c0 in range(0, len(rest), kc)]
+        for part, spread in parts:
+            N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
+            for (_, key), Nq in zip(part, N):
+                cu, cw = _coefficient(key, Dx, Dy, kn)
+                if cw is None:
+                    Uw += Nq
+                    continue
+                U += cu * Nq
+                if flux and cw:
+                    Uw += (cw * uz) * cu * Nq
+            del N
+        It = xp.real(xp.conj(U) * Uw) if flux else xp.abs(U) ** 2
+        del U, Uw, terms, w, r, u, tx, ty
+        hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
+        out[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
     return out
 
 

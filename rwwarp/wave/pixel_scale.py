@@ -90,6 +90,9 @@ PIXEL_ERROR_FLOOR = 2e-4
 #: tiles (their size set by the kernel's curvature over the patch) number at most KIRCHHOFF_MAX_TILES, else debye
 FIELD_FORM = "auto"
 KIRCHHOFF_MAX_TILES = 4
+#: the Kirchhoff form only on the tiles within the spot's reach (the pilot landings' largest offset from the patch
+#: centre + 12 / B) of the patch centre, the Debye form's samples elsewhere (``KIRCHHOFF_MAX_TILES`` counts those tiles)
+KIRCHHOFF_NEAR = True
 
 
 # ---------------------------------------------------------------------------------------------- numerics
@@ -281,7 +284,8 @@ def tiles(n: int):
 
 
 def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sensor: float, h_mm: float, n: int,
-               ray_grid: int, flux: bool, form: str | None = None, pupil_fill: float = math.pi / 4) -> dict:
+               ray_grid: int, flux: bool, form: str | None = None, pupil_fill: float = math.pi / 4,
+               reach_mm: float | None = None) -> dict:
     """The sensor field's form of a ``method="pixel"`` batch and its tiling, from the pilot trace.
 
     The pilot rays (``pos_s`` (S, N, 3) their sensor landings, ``dir_s`` (S, N, 3) directions, ``ok`` (S, N)) are
@@ -290,9 +294,12 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
     ``z_sensor``), the worst source's; its points: the pilot's valid fraction of ``pupil_fill ray_grid^2``
     (``pupil_fill``: the share of the square pupil grid inside the pupil, pi / 4 for a circle). ``form`` (None:
     ``FIELD_FORM``): "kirchhoff", "debye" or "auto" (kirchhoff where it takes at most ``KIRCHHOFF_MAX_TILES`` tiles).
-    Returns ``{"form", "tile", "tiles", "points", "vectors"}`` (``tile`` samples a side, ``tiles`` a side of the
-    grid, ``vectors`` the NUFFT weight vectors a tile: the chosen form's)."""
-    from .pixel_kirchhoff import kirchhoff_tiles, n_vectors
+    ``reach_mm``: the spot's reach from the patch centre; with ``KIRCHHOFF_NEAR`` the Kirchhoff form covers only the
+    tiles within it (:func:`rwwarp.wave.pixel_kirchhoff.near_tiles`) over the Debye form's samples.
+    Returns ``{"form", "tile", "tiles", "points", "vectors", "near", "reach_mm"}`` (``tile`` samples a side,
+    ``tiles`` a side of the grid, ``vectors`` the NUFFT weight vectors a tile: the chosen form's; ``near`` the
+    Kirchhoff tiles, ``reach_mm`` None where all are)."""
+    from .pixel_kirchhoff import kirchhoff_tiles, n_vectors, near_tiles
     form = FIELD_FORM if form is None else form
     if form not in ("auto", "kirchhoff", "debye"):
         raise ValueError(f"pixel method: the sensor field's form must be 'auto', 'kirchhoff' or 'debye', got {form!r}")
@@ -306,12 +313,17 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
         if tk > t:
             nt, t = nk, tk
         pts = max(pts, int(math.ceil(float(np.mean(sel)) * pupil_fill * ray_grid ** 2)))
+    reach = float(reach_mm) if KIRCHHOFF_NEAR and reach_mm is not None else None
+    near = len(near_tiles(n, nt, t, h_mm, reach))
+    reach = None if near == t * t else reach          # every tile near: no Debye samples under them
     if form == "auto":
-        form = "kirchhoff" if t * t <= KIRCHHOFF_MAX_TILES else "debye"
+        form = "kirchhoff" if near <= KIRCHHOFF_MAX_TILES else "debye"
     if form == "debye":
         nt, t = tiles(n)
+        near, reach = 0, None
     return {"form": form, "tile": int(nt), "tiles": int(t), "points": pts,
-            "vectors": n_vectors(flux) if form == "kirchhoff" else (2 if flux else 1)}
+            "vectors": n_vectors(flux) if form == "kirchhoff" else (2 if flux else 1), "near": int(near),
+            "reach_mm": reach}
 
 
 def pixel_cost(plan, n_sources: int, size: int) -> dict:
@@ -325,7 +337,8 @@ def pixel_cost(plan, n_sources: int, size: int) -> dict:
     * Debye: ``vectors`` (``U``, and ``U_w`` for "flux") NUFFTs (:func:`nufft_flops`) of the points, one a call; the
       grid (``GRID_CELL_BYTES`` a cell of the ``NUFFT_OVERSAMPLE n_t`` FFT), ``U``, ``U_w``, ``I`` of the tile;
     * Kirchhoff: :func:`rwwarp.wave.pixel_kirchhoff.tile_cost` (23-24 NUFFTs in chunks that fit
-      ``KIRCHHOFF_GRID_BYTES``).
+      ``KIRCHHOFF_GRID_BYTES``) on its ``near`` tiles; where they are not all (``reach_mm``), the Debye form's work
+      on the whole grid first and its samples kept (8 ``n^2`` more).
 
     Returns ``memory_bytes``, ``flops``, and ``nufft_flops`` (the NUFFTs' part), ``form``, ``tiles`` (``t x t``),
     ``tile`` (``n_t``), ``points``, ``vectors``, ``chunk`` (vectors a NUFFT call)."""
@@ -338,18 +351,27 @@ def pixel_cost(plan, n_sources: int, size: int) -> dict:
     nt, t, J, K = int(f["tile"]), int(f["tiles"]), int(f["points"]), int(f["vectors"])
     mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + 8 * n * n
     flops = rays * 4000.0 + n_sources * 4.0 * (n * n * size + n * size * size)
+    def debye(K):         # memory, NUFFT flops, flops of the Debye form on the whole grid, its own tiles
+        nd, td = tiles(n)
+        M = NUFFT_OVERSAMPLE * nd
+        nu = n_sources * td * td * K * nufft_flops(J, 1, nd)
+        return GRID_CELL_BYTES * M * M + 3 * 16 * nd * nd, nu, nu + n_sources * td * td * 10.0 * J
     if f["form"] == "kirchhoff":
+        near = int(f.get("near", t * t))
         tc = tile_cost(nt, J, K > N_TERMS)
-        nufft, kc = n_sources * t * t * tc["nufft_flops"], tc["chunk"]
-        mem += tc["memory_bytes"]
-        flops += n_sources * t * t * tc["flops"]
+        nufft, kc = n_sources * near * tc["nufft_flops"], tc["chunk"]
+        flops += n_sources * near * tc["flops"]
+        tile_mem = tc["memory_bytes"]
+        if f.get("reach_mm") is not None:
+            dm, dn, df = debye(K - N_TERMS + 1)
+            tile_mem, nufft, flops = max(tile_mem, dm) + 8 * n * n, nufft + dn, flops + df
+        mem += tile_mem
     else:
-        M = NUFFT_OVERSAMPLE * nt
-        nufft, kc = n_sources * t * t * K * nufft_flops(J, 1, nt), 1
-        mem += GRID_CELL_BYTES * M * M + 3 * 16 * nt * nt
-        flops += nufft + n_sources * t * t * 10.0 * J
+        near, kc = 0, 1
+        dm, nufft, df = debye(K)
+        mem, flops = mem + dm, flops + df
     return {"memory_bytes": int(mem), "flops": float(flops), "nufft_flops": float(nufft), "form": f["form"],
-            "tiles": t, "tile": nt, "points": J, "vectors": K, "chunk": kc}
+            "tiles": t, "tile": nt, "points": J, "vectors": K, "chunk": kc, "near": near}
 
 
 # ---------------------------------------------------------------------------------------------- run
@@ -416,8 +438,11 @@ def pixel_psf(rw):
         form = (pl.pixel_field or {"form": "debye"})["form"]        # the planned form (plan_field); a plan from before it
         rw.pixel_forms = getattr(rw, "pixel_forms", {})
         rw.pixel_forms[k] = form
+        reach = (pl.pixel_field or {}).get("reach_mm")
         if form == "kirchhoff":
-            # the wave-plane field summed with the exact kernel (rwwarp.wave.pixel_kirchhoff): its rim's boundary wave
+            # the wave-plane field summed with the exact kernel (rwwarp.wave.pixel_kirchhoff): its rim's boundary wave;
+            # with reach, on the tiles near the spot only, the Debye form's samples elsewhere
+            I0 = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n) if reach is not None else None
             del amp, phase
             dA = tube_areas(Pw[None, ..., :2], valid[k][None], xp)[0]
             ok = valid[k] & (dA > 0) & (q[k] > 0)
@@ -426,8 +451,8 @@ def pixel_psf(rw):
             # spectrum as q without the obliquity (as the Debye form's |B|^2 dA_f = q): W sqrt(d_z)
             aw = xp.sqrt(xp.where(ok, q[k] * dA / (d[k, ..., 2] if flux else 1.0), 0.0))[ok]
             I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
-                                  Tk, rw.carrier[k], h, n, flux, xp)
-            del dA, ok, Lw, aw
+                                  Tk, rw.carrier[k], h, n, flux, xp, base=I0, reach_mm=reach)
+            del dA, ok, Lw, aw, I0
         else:
             I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
         x0 = rw.centers[k] - 0.5 * n * h
@@ -467,13 +492,15 @@ def field_reason(field: dict, cost: dict) -> str:
     """The plan's line saying which sensor-field form runs (:func:`plan_field`) and what it costs (:func:`pixel_cost`)."""
     if field["form"] == "kirchhoff":
         what = (f"the Kirchhoff (Rayleigh-Sommerfeld) sum of the wave-plane field (rwwarp.wave.pixel_kirchhoff): "
-                f"{field['tiles']} x {field['tiles']} tiles of {field['tile']}^2 (the kernel's curvature), {field['vectors']}"
-                f" NUFFTs of ~{field['points']} wave-plane samples a tile, {cost['chunk']} at a time")
+                f"{field['tiles']} x {field['tiles']} tiles of {field['tile']}^2 (the kernel's curvature)"
+                + (f", the {field['near']} within the spot's reach {field['reach_mm'] * 1e3:.4g} um of the centre over the "
+                   f"Debye form's samples" if field.get("reach_mm") is not None else "")
+                + f", {field['vectors']} NUFFTs of ~{field['points']} wave-plane samples a tile, {cost['chunk']} at a time")
     else:
         what = (f"the Debye plane waves of the rays: {field['tiles']} x {field['tiles']} tiles of {field['tile']}^2, "
                 f"{field['vectors']} NUFFT(s) of ~{field['points']} rays a tile")
     return (f"sensor field form {field['form']} (FIELD_FORM {FIELD_FORM!r}: auto takes kirchhoff where it needs <= "
-            f"{KIRCHHOFF_MAX_TILES} tiles): {what}; NUFFTs {cost['nufft_flops'] / 1e9:.3g} of "
+            f"{KIRCHHOFF_MAX_TILES} tiles{' near the spot' if KIRCHHOFF_NEAR else ''}): {what}; NUFFTs {cost['nufft_flops'] / 1e9:.3g} of "
             f"{cost['flops'] / 1e9:.3g} GFLOP")
 
 
@@ -507,7 +534,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
     field = plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, rw.z_plane, rw.z_sensor, ppl.sensor_pitch_mm,
                        ppl.n_sensor, ppl.ray_grid, rw.pixel_values == "flux",
-                       pupil_fill=math.pi / 4 if rw.src["shape"] == "circle" else 1.0)
+                       pupil_fill=math.pi / 4 if rw.src["shape"] == "circle" else 1.0, reach_mm=info["reach_mm"])
     ppl = replace(ppl, pixel_field=field)
     ratio = rw.pixel / info["airy_mm"]
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)

@@ -80,17 +80,24 @@ def test_plan_cost_is_the_run_debye(nufft_calls):
     assert "sensor field form debye" in pl.explain()
 
 
-def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch):
+@pytest.mark.parametrize("size", [5, 15])     # 5 px: every tile near the spot; 15 px: 12 of 6 x 6 over the Debye form
+def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch, size):
     monkeypatch.setattr(ps, "FIELD_FORM", "kirchhoff")
     lens = load_lens("a489_doe")
-    kw = dict(size=5, pixel_mm=0.016, method="pixel", rays_per_sample=0.2)     # 121 rays across: the count, not accuracy
+    kw = dict(size=size, pixel_mm=0.016, method="pixel", rays_per_sample=0.2)     # 121 rays across: the count only
     pl = rw.plan_psf(lens, 0.0, 0.55, **kw)
     f = pl.pixel_field
     assert f["form"] == "kirchhoff" == pl.estimate["form"] and f["vectors"] == 24
+    assert (f["reach_mm"] is None) == (size == 5) and f["near"] == (9 if size == 5 else 12)
     rw.psf(lens, 0.0, 0.55, **kw)
-    # the tiling planned from the pilot is the run's (24 vectors of every wave-plane sample a tile)
-    assert sum(c[1] for c in nufft_calls) == 24 * f["tiles"] ** 2 and {c[2] for c in nufft_calls} == {f["tile"]}
+    kirch = [c for c in nufft_calls if c[2] == f["tile"]]
+    debye = [c for c in nufft_calls if c[2] != f["tile"]]
+    # the tiling planned from the pilot is the run's: 24 vectors of every wave-plane sample on each near tile; where
+    # not every tile is near, the Debye form's U and U_w on the whole grid first (one tile of n_sensor)
+    assert sum(c[1] for c in kirch) == 24 * f["near"]
+    assert [(c[1], c[2]) for c in debye] == ([] if size == 5 else [(1, pl.n_sensor)] * 2)
     work = sum(_nufft_work(*c) for c in nufft_calls)
     assert pl.estimate["nufft_flops"] == pytest.approx(work, rel=0.01)
     ex = pl.explain()
     assert "kirchhoff sensor field" in ex and "sensor field form kirchhoff" in ex and "NUFFTs" in ex
+    assert ("near the spot, Debye elsewhere" in ex) == (size == 15)
