@@ -76,13 +76,15 @@ def _airy_pixels(na, lam_mm, p_mm, size, cx, cy, nodes=64):
     return out * np.pi * na ** 2 / lam_mm ** 2     # total power 1: int (2 J1(v) / v)^2 dA = lambda^2 / (pi NA^2)
 
 
-# 10 r_A: the Kirchhoff form ("auto"; 15 px: 2 x 2 tiles, ~20 s: slow; 5 px, 300 rays across: 1 tile, fast); 20 r_A: the
+# 10 r_A: the Kirchhoff form (15 px: 2 x 2 tiles, ~20 s: slow; 5 px, 300 rays across: 1 tile, fast); 20 r_A: the
 # Debye form
 @pytest.mark.parametrize("ratio,values,size,rps,form,tol", [
     pytest.param(10.0, "flux", 15, 1.0, "kirchhoff", 2e-4, marks=pytest.mark.slow),
     (10.0, "flux", 5, 0.5, "kirchhoff", 8e-5),
     (20.0, "intensity", 15, 1.0, "debye", 2e-4)])
-def test_ideal_lens_gives_the_airy_pattern_integrated_over_pixels(ratio, values, size, rps, form, tol):
+def test_ideal_lens_gives_the_airy_pattern_integrated_over_pixels(ratio, values, size, rps, form, tol, monkeypatch):
+    import rwwarp.wave.pixel_scale as ps
+    monkeypatch.setattr(ps, "FIELD_FORM", form)     # each form on its own ("auto" takes kirchhoff near the spot for all)
     lens = _ideal_lens(2.5, 50.0)                   # f/10, N_F 227 seen from the focus
     na = 2.5 / math.hypot(2.5, 50.0)
     p = ratio * 0.61 * 0.55e-3 / na
