@@ -37,9 +37,9 @@ def sync(device):
             pass
 
 
-def warm_times(lens, field, wl, device, size, reps, cache=None):
+def warm_times(lens, field, wl, device, size, reps, cache=None, method="auto"):
     """(median ms, min ms, launches a call) of repeated ``rw.psf`` calls after 3 warm-up calls."""
-    kw = dict(device=device, size=size, cache=cache)
+    kw = dict(device=device, size=size, cache=cache, method=method)
     for _ in range(3):
         rw.psf(lens, field, wl, **kw)
     sync(device)
@@ -62,29 +62,29 @@ def _has_graphs() -> bool:
 
 def issue25(a):
     rows = []
-    for name, field in ISSUE25:
+    for (name, field), method in ((c, m) for c in ISSUE25 for m in a.methods.split(",")):
         lens = rw.load_lens(name)
-        plain = warm_times(lens, field, a.wl, a.device, a.size, a.reps)
+        plain = warm_times(lens, field, a.wl, a.device, a.size, a.reps, method=method)
         eager_cache = rw.PlanCache(graphs=False) if _has_graphs() else rw.PlanCache()
-        cached = warm_times(lens, field, a.wl, a.device, a.size, a.reps, eager_cache)
+        cached = warm_times(lens, field, a.wl, a.device, a.size, a.reps, eager_cache, method=method)
         row = {}
         if _has_graphs():   # the same, each hit replayed as a CUDA graph (rwwarp.wave.graph_replay)
             cache = rw.PlanCache()
-            graph = warm_times(lens, field, a.wl, a.device, a.size, a.reps, cache)
-            p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache)
+            graph = warm_times(lens, field, a.wl, a.device, a.size, a.reps, cache, method=method)
+            p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache, method=method)
             row = {"graph_median_ms": graph[0], "graph_min_ms": graph[1], "graph_launches": graph[2],
                    "replay": p.info.get("replay")}
-            ref = rw.psf(lens, field, a.wl, device=a.device, size=a.size)
+            ref = rw.psf(lens, field, a.wl, device=a.device, size=a.size, method=method)
             row["graph_vs_uncached_max_rel"] = float(np.max(np.abs(p.data - ref.data)) / np.max(ref.data))
         else:
             cache = eager_cache
-            p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache)
-        rows.append({"lens": name, "field_deg": field, "method": p.plan["method"], "n_grid": p.plan["n_grid"],
+            p = rw.psf(lens, field, a.wl, device=a.device, size=a.size, cache=cache, method=method)
+        rows.append({"lens": name, "field_deg": field, "asked": method, "method": p.plan["method"], "n_grid": p.plan["n_grid"],
                      "ray_grid": p.plan["ray_grid"], "uncached_median_ms": plain[0], "uncached_min_ms": plain[1],
                      "uncached_launches": plain[2], "cached_median_ms": cached[0], "cached_min_ms": cached[1],
                      "cached_launches": cached[2], "cache_held_bytes": cache.nbytes(), **row})
         r = rows[-1]
-        print(f"{name:14s} {field:5.1f} deg {r['method']:5s} grid {r['n_grid']:5d} rays {r['ray_grid']:4d}: "
+        print(f"{name:14s} {field:5.1f} deg {method:5s}->{r['method']:5s} grid {r['n_grid']:5d} rays {r['ray_grid']:4d}: "
               f"uncached {plain[0]:8.2f} ms (min {plain[1]:.2f}, {plain[2]} launches), cached {cached[0]:8.2f} ms "
               f"(min {cached[1]:.2f}, {cached[2]} launches), cache holds {cache.nbytes() / 2 ** 20:.3g} MiB"
               + (f"; graph replay {row['graph_median_ms']:8.3f} ms (min {row['graph_min_ms']:.3f}, "
@@ -113,6 +113,8 @@ def main():
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--issue25", action="store_true", help="the issue's five PSFs, uncached and cached")
+    ap.add_argument("--methods", default="auto",
+                    help="--issue25: comma-separated propagation methods to time each PSF with (e.g. auto,focal)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     warnings.simplefilter("ignore")

@@ -10,7 +10,8 @@ fixed sampling plan) and runs in float64 unless said otherwise:
   :class:`rwwarp.wave.propagate.SensorPropagator`; backward is its analytic adjoint on the same cached plans).
 * :class:`FocalPropagate`: field on a focal plan's wave-plane grid (+ distance) -> power per sensor
   pixel (:class:`rwwarp.wave.focal.FocalPropagator`: the converging wave handled analytically; backward is
-  the operator's adjoint and its exact distance derivative).
+  the operator's adjoint and its exact distance derivative), by the generic operator Functions of
+  :mod:`torch_bridge.operator_function`.
 * :class:`MixedPrecision`: float64 forward -> float32, float32 gradient -> float64 (the paper's
   mixed precision: the optics in double, the network in single).
 * :class:`QuantizeSTE`: DOE phase wrapped to [0, 2 pi) and quantised to N levels with a
@@ -559,12 +560,14 @@ def _from_xp(a, device):
     return torch.from_dlpack(a)
 
 
-class FocalPropagate(torch.autograd.Function):
+class FocalPropagate:
     """Wave-plane field -> power per sensor pixel by the focal propagation of a RayWave planned with
-    ``method="focal"`` (:class:`rwwarp.wave.focal.FocalPropagator`).
+    ``method="focal"`` (:class:`rwwarp.wave.focal.FocalPropagator`): the generic operator path
+    (:func:`torch_bridge.operator_function.operator_propagate`: :class:`~torch_bridge.operator_function.OperatorApply`
+    of ``rw.focal_operator(distance)``, then :class:`~torch_bridge.operator_function.NodePixels`).
 
-    ``FocalPropagate.apply(field, distance, rw, distance_host=None)``: ``field`` complex128 (S, n, n) on the focal plan's
-    wave-plane grid, carrier removed and any DOE orders already applied (``sum_m c_m exp(i m phi0)``,
+    ``FocalPropagate.apply(field, distance, rw, distance_host=None)``: ``field`` complex128 (S, n, n) on the focal
+    plan's wave-plane grid, carrier removed and any DOE orders already applied (``sum_m c_m exp(i m phi0)``,
     :func:`doe_orders_factor`); ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; all
     entries equal: one lens). Returns float64 (S, size, size), the pixel values ``rw.pixel_values`` names integrated
     over each pixel: the z-flux ``Re(conj(U) U_w)`` (``"flux"``, :meth:`~rwwarp.wave.focal.FocalPropagator.forward_pair`)
@@ -576,50 +579,9 @@ class FocalPropagate(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, field, distance, rw, distance_host=None):
-        from rwwarp.wave.focal import focal_pixels
-        if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
-            # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
-            raise ValueError(f"focal_propagate: the field is on {field.device} but its RayWave was planned on "
-                             f"{rw.tracer.device}; plan on the field's device (HybridLens.to(device))")
-        if distance_host is not None:
-            z = float(distance_host)
-        else:
-            z = float(distance.detach().reshape(-1)[0]) if distance is not None else None
-        xp, f = _xp_of(field.to(torch.complex128))
-        with _streams(rw):
-            op = rw.focal_operator(z)
-            power, u = focal_pixels(op, f, rw.pixel_values, rw.gauss_nodes, rw.pixel, rw.size)
-            out = _from_xp(power, field.device)
-        ctx.rw, ctx.op, ctx.xp, ctx.f, ctx.u = rw, op, xp, f, u
-        ctx.devices = (field.device, None if distance is None else distance.device)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
-        rw, op, xp = ctx.rw, ctx.op, ctx.xp
-        need_f, need_d = ctx.needs_input_grad[:2]
-        _, g = _xp_of(grad_out.to(torch.float64))
-        gf = gd = None
-        with _streams(rw):
-            if isinstance(ctx.u, tuple):   # "flux": the gradients of (U, U_w)
-                gu = pixel_flux_adjoint(*ctx.u, g, rw.gauss_nodes, rw.pixel, xp=xp)
-                if need_f:
-                    gf = _from_xp(op.adjoint_pair(*gu), ctx.devices[0])
-                if need_d:
-                    du = op.distance_derivative_pair(ctx.f)
-                    dl = sum(xp.real(xp.sum(xp.conj(a) * b, axis=(1, 2))) for a, b in zip(gu, du))
-                    gd = _from_xp(dl, ctx.devices[1])
-            else:
-                gu = pixel_power_adjoint(ctx.u, g, rw.gauss_nodes, rw.pixel, xp=xp)
-                if need_f:
-                    gf = _from_xp(op.adjoint(gu), ctx.devices[0])
-                if need_d:
-                    du = op.distance_derivative(ctx.f)
-                    gd = _from_xp(xp.real(xp.sum(xp.conj(gu) * du, axis=(1, 2))), ctx.devices[1])
-        ctx.f = ctx.u = None
-        return gf, gd, None, None
+    def apply(field, distance, rw, distance_host=None):
+        from .operator_function import operator_propagate
+        return operator_propagate(field, distance, rw, distance_host, method="focal")
 
 
 def doe_orders_factor(phi0, orders):

@@ -65,6 +65,7 @@ from . import phase_params as _ph
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
 from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
                         propagate, quantize_ste, trace_splat, upload)
+from .operator_function import operator_propagate
 from .tiles import run_tiles
 
 __all__ = ["QUANTITIES", "HybridLens"]
@@ -608,17 +609,21 @@ class HybridLens(nn.Module):
         with ctx:
             table = self.param_table(rw, values)
             host = self.host_table(rw, table, tables)
-            phi0 = self.doe_phase(rw, values) if get_method(rw.plan.method).doe_in_propagator else None
+            method = get_method(rw.plan.method)
+            phi0 = self.doe_phase(rw, values) if method.doe_in_propagator else None
             dist = (table[-1, COL.z] - table[rw.plane, COL.z]).expand(rw.nsrc)
             u = trace_splat(table, rw, host)
             if rw.amplitude != "energy":
                 u = paper_amplitude(u, rw)
             u = wave_step(u, rw)   # the rim's diffraction before the DOE, where the plan has it (issue 27)
-            if get_method(rw.plan.method).torch_path == "focal":
+            d_host = float(host[-1, COL.z] - host[rw.plane, COL.z])
+            if method.torch_path == "focal":
                 fac = focal_doe_factor(rw, self.doe_phase(rw, values, wrap=False))
                 if fac is not None:
                     u = u * fac
-                power = focal_propagate(u, dist, rw, float(host[-1, COL.z] - host[rw.plane, COL.z]))
+                power = focal_propagate(u, dist, rw, d_host)
+            elif method.torch_path == "operator":   # any method's operator (torch_bridge.operator_function)
+                power = operator_propagate(u, dist, rw, d_host, phi0=self.doe_phase(rw, values))
             else:
                 power = propagate(u, phi0, dist, rw, spatial_tile)
             return power / power_sums(rw, power.device)[0][:, None, None]

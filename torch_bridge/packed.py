@@ -24,7 +24,7 @@ import torch
 from rwwarp.trace import COLUMNS as COL
 from rwwarp.wave.focal import exact_zone, order_series_horner
 
-from .functions import _from_xp, _on_device, _streams, _xp_of, bridge_state, focal_doe_factor, paper_amplitude, upload
+from .functions import _on_device, _streams, bridge_state, focal_doe_factor, paper_amplitude, upload
 from .functions import power_sums, trace_splat
 
 __all__ = ["PackedFocalPropagate", "PackedTile", "packed_doe_factor", "packed_psfs", "packed_recorded_bytes"]
@@ -199,80 +199,48 @@ def _series_factor(tile, idx, p):
     return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
 
 
-class PackedFocalPropagate(torch.autograd.Function):
+class PackedFocalPropagate:
     """Wave-plane fields of a :class:`PackedTile` -> power per sensor pixel of every member, by the members'
-    focal propagations stacked per group (:class:`rwwarp.wave.focal_packed.PackedFocalPropagator`).
+    focal propagations stacked per group (:class:`rwwarp.wave.focal_packed.PackedFocalPropagator`), each group
+    through the generic operator Functions (:class:`~torch_bridge.operator_function.OperatorApply`, then
+    :class:`~torch_bridge.operator_function.NodePixels` per Gauss-node count).
 
     ``PackedFocalPropagate.apply(field, distance, tile, distance_host)``: ``field`` complex128 (S, n, n) on the
     tile's windows (each member's samples in the top-left ``n_k x n_k`` of its slot, zero elsewhere; DOE
     orders applied), ``distance`` the wave-plane-to-sensor distance, float64 (S,) (mm; one lens: all equal),
     ``distance_host`` its value as a float (mm). Returns float64 (S, size, size), the pixel values the tile's
     ``pixel_values`` names integrated over each pixel (each member with its own Gauss nodes): the z-flux
-    ``Re(conj(U) U_w)`` ("flux") or ``|U|^2`` ("intensity"), as :class:`torch_bridge.functions.FocalPropagate`. Backward: the operators' adjoints for ``field`` and
-    their exact distance derivatives for ``distance``, as :class:`torch_bridge.functions.FocalPropagate`."""
+    ``Re(conj(U) U_w)`` ("flux") or ``|U|^2`` ("intensity"), as :class:`torch_bridge.functions.FocalPropagate`.
+    Backward: the operators' adjoints for ``field`` and their exact distance derivatives for ``distance``."""
 
     @staticmethod
-    def forward(ctx, field, distance, tile, distance_host):
-        from rwwarp.wave.focal import pixel_flux, pixel_power
+    def apply(field, distance, tile, distance_host):
+        from .operator_function import NodePixels, OperatorApply
         prw = tile.raywave
         flux = prw.pixel_values == "flux"
         if (field.device.type == "cuda") != str(prw.tracer.device).startswith("cuda"):
             raise ValueError(f"packed focal propagation: the field is on {field.device} but its RayWaves were "
                              f"planned on {prw.tracer.device}; plan on the field's device (HybridLens.to(device))")
-        xp, f = _xp_of(field.to(torch.complex128))
-        S, size = f.shape[0], prw.size
-        saved = []
+        dev = field.device
         with _streams(prw):
             ops = tile.operators(float(distance_host), "double")
-            out = xp.empty((S, size, size), dtype=np.float64)
-            for g, op in zip(tile.groups, ops):
-                fg = f[xp.asarray(g), :op.n, :op.n]
-                u = op.forward_pair(fg) if flux else op.forward(fg)
-                for sub, gn in _by_nodes(tile, g):
-                    m = size * gn
-                    sa = xp.asarray(sub)
-                    out[xp.asarray([g[i] for i in sub])] = (
-                        pixel_flux(u[0][sa, :m, :m], u[1][sa, :m, :m], gn, prw.pixel, size, xp=xp) if flux else
-                        pixel_power(u[sa, :m, :m], gn, prw.pixel, size, xp=xp))
-                saved.append((fg if ctx.needs_input_grad[1] else None, u))   # the field: for d/d(distance) only
-            res = _from_xp(out, field.device)
-        ctx.tile, ctx.xp, ctx.saved, ctx.ops = tile, xp, saved, ops
-        ctx.shape = tuple(f.shape)
-        ctx.devices = (field.device, None if distance is None else distance.device)
-        return res
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
-        tile, xp = ctx.tile, ctx.xp
-        prw = tile.raywave
-        need_f, need_d = ctx.needs_input_grad[:2]
-        _, g_all = _xp_of(grad_out.to(torch.float64))
-        with _streams(prw):
-            gf = xp.zeros(ctx.shape, dtype=np.complex128) if need_f else None
-            gd = xp.zeros(ctx.shape[0], dtype=np.float64) if need_d else None
-            for g, op, (fg, u) in zip(tile.groups, ctx.ops, ctx.saved):
-                flux = isinstance(u, tuple)    # "flux": the gradients of (U, U_w)
-                us = u if flux else (u,)
-                gus = tuple(xp.zeros(a.shape, dtype=np.complex128) for a in us)
-                for sub, gn in _by_nodes(tile, g):
-                    m = prw.size * gn
-                    sub_a = xp.asarray(sub)
-                    gp = g_all[xp.asarray([g[i] for i in sub])]
-                    if flux:
-                        ga, gb = pixel_flux_adjoint(us[0][sub_a, :m, :m], us[1][sub_a, :m, :m], gp, gn, prw.pixel, xp=xp)
-                        gus[0][sub_a, :m, :m], gus[1][sub_a, :m, :m] = ga, gb
-                    else:
-                        gus[0][sub_a, :m, :m] = pixel_power_adjoint(us[0][sub_a, :m, :m], gp, gn, prw.pixel, xp=xp)
-                if need_f:
-                    gf[xp.asarray(g), :op.n, :op.n] = op.adjoint_pair(*gus) if flux else op.adjoint(gus[0])
-                if need_d:
-                    dus = op.distance_derivative_pair(fg) if flux else (op.distance_derivative(fg),)
-                    gd[xp.asarray(g)] = sum(xp.real(xp.sum(xp.conj(a) * b, axis=(1, 2))) for a, b in zip(gus, dus))
-            gf_t = None if gf is None else _from_xp(gf, ctx.devices[0])
-            gd_t = None if gd is None else _from_xp(gd, ctx.devices[1])
-        ctx.saved = ctx.ops = None
-        return gf_t, gd_t, None, None
+        parts, seq = [], []
+        for g, op in zip(tile.groups, ops):
+            gi = upload(g, torch.long, dev)
+            fg = field[gi, :op.n, :op.n]
+            dg = None if distance is None else distance[gi.to(distance.device)]
+            u = OperatorApply.apply(fg, dg, op, flux, prw, "focal")
+            us = u if flux else (u, None)
+            for sub, gn in _by_nodes(tile, g):
+                m = prw.size * gn
+                si = upload(sub, torch.long, dev)
+                parts.append(NodePixels.apply(us[0][si, :m, :m], None if us[1] is None else us[1][si, :m, :m],
+                                              gn, prw.pixel, prw.size, prw))
+                seq += [g[i] for i in sub]
+        out = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+        if seq != list(range(len(seq))):
+            out = out[upload(np.argsort(seq), torch.long, dev)]
+        return out
 
 
 def _by_nodes(tile, group):

@@ -510,7 +510,7 @@ def pixel_power(u_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):
     g = int(gauss_nodes)
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     inten = (u_nodes.real ** 2 + u_nodes.imag ** 2).reshape(u_nodes.shape[0], size, g, size, g)
-    return xp.einsum("siajb,ab->sij", inten, w2)
+    return _node_sum(inten, w2)
 
 
 def pixel_power_adjoint(u_nodes, grad_power, gauss_nodes: int, pixel_mm: float, xp=np):
@@ -543,7 +543,14 @@ def pixel_flux(u_nodes, u_w_nodes, gauss_nodes: int, pixel_mm: float, size: int,
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     flux = u_nodes.real * u_w_nodes.real + u_nodes.imag * u_w_nodes.imag
     flux = flux.reshape(u_nodes.shape[0], size, g, size, g)
-    return xp.einsum("siajb,ab->sij", flux, w2)
+    return _node_sum(flux, w2)
+
+
+def _node_sum(v, w2):
+    """``sum_ab w2[a, b] v[s, i, a, j, b]``: (S, size, g, size, g) node values and (g, g) weights -> (S, size, size)
+    (a product and a reduction: on a GPU two launches and little host work, where ``einsum`` spends ~0.1 ms of
+    host time a call parsing and dispatching)."""
+    return (v * w2[None, None, :, None, :]).sum(axis=(2, 4))
 
 
 def pixel_flux_adjoint(u_nodes, u_w_nodes, grad_power, gauss_nodes: int, pixel_mm: float, xp=np):

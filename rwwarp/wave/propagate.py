@@ -79,8 +79,8 @@ from .propagate_setup import (
     _per_batch, _setup,
 )
 from .propagate_stages import (
-    _band_adjoint_to_field, _band_spectrum, _band_to_points, _crop_demodulate_adjoint, _dft_factors, _launch,
-    _pad_fft, _points_to_band, _transfer, _upload_coords,
+    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _crop_demodulate_adjoint,
+    _dft_factors, _launch, _pad_fft, _points_to_band, _transfer, _upload_coords,
 )
 
 __all__ = [
@@ -146,6 +146,21 @@ class PointPropagator:
         ext, eyf = _dft_factors(st, coords)
         out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
         return _band_to_points(st, band, ext, eyf, out)
+
+    def forward_weighted(self, field, doe_phase=None):
+        """``U_w`` at the output points, (B, My, Mx) complex device array: the field of the band spectrum
+        weighted by the direction cosine ``c = lambda w = k_z / k`` of each plane wave (``w = sqrt(1/lambda^2 -
+        u^2 - v^2)`` cycles/mm, lambda in the medium, mm). Since ``dH/dz = 2 pi i w H`` (the transfer function
+        carries the whole ``exp(2 pi i z w)``), ``d forward / d distance_mm = (2 pi i / lambda) U_w`` at fixed
+        band limits and points (:meth:`rwwarp.wave.methods.asm.AsmOperator.distance_derivative`)."""
+        st, xs, ys, ex, ey = self._prepare(field, doe_phase)
+        _check_window(st, ex, ey, "propagate")
+        coords = _upload_coords(st, xs, ys)
+        band, _ = _band_spectrum(st)
+        wb = _band_obliquity(st, band, 1, st.backend.workspace("band_w", band.shape, st.dtype))
+        ext, eyf = _dft_factors(st, coords)
+        out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+        return _band_to_points(st, wb, ext, eyf, out)
 
     def adjoint(self, grad_out, field, doe_phase=None):
         """``(grad_field, grad_doe_phase or None)`` for a real loss's gradient ``grad_out`` at the output

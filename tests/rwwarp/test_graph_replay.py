@@ -73,3 +73,33 @@ def test_uploads_read_by_a_recording_are_held():
     upload_packed([(np.arange(4.0), np.float64, wp.float64)], "cpu", cache=True)
     assert len(keep) == 2 and keep[0] is a[0] and keep[1] is b[0] and b[0] is a[0]
     assert np.array_equal(keep[0].numpy(), np.arange(3.0))
+
+
+def test_cached_auto_rule_only_for_replayed_cuda_hits():
+    """``method="auto"`` takes the plan of fewer flops for a call whose hits replay as CUDA graphs, and only there:
+    without a cache, with graphs off, on the CPU, with a method named, or with a rule already set, the options are
+    the same object."""
+    from rwwarp.map_run import cached_auto_rule
+    opts = {"device": "cuda", "method": "auto"}
+    assert cached_auto_rule(opts, rw.PlanCache()) == {"device": "cuda", "method": "auto", "auto_rule": "flops"}
+    assert opts == {"device": "cuda", "method": "auto"}       # the input is not changed
+    for o, c in [(opts, None), (opts, rw.PlanCache(graphs=False)), ({"device": "cpu", "method": "auto"}, rw.PlanCache()),
+                 ({"device": "cuda", "method": "asm"}, rw.PlanCache()),
+                 ({"device": "cuda", "method": "auto", "auto_rule": "small-asm"}, rw.PlanCache())]:
+        assert cached_auto_rule(o, c) is o
+
+
+@pytest.mark.gpu
+def test_cached_auto_on_cuda_plans_the_fewer_flops():
+    """A489 + DOE on axis, 64 px: uncached, "auto" keeps the small ASM plan on CUDA; with a graph-replaying cache it
+    plans focal (fewer flops) and gives the bits of the uncached ``method="focal"`` call (deterministic splat)."""
+    _cuda_or_skip()
+    lens = rw.load_lens("a489_doe")
+    kw = dict(size=64, device="cuda", deterministic=True, focal_precision="double")
+    assert rw.psf(lens, 0.0, 0.55, **kw).plan["method"] == "asm"
+    ref = rw.psf(lens, 0.0, 0.55, method="focal", **kw)
+    cache = rw.PlanCache()
+    for _ in range(3):
+        p = rw.psf(lens, 0.0, 0.55, cache=cache, **kw)
+        assert p.plan["method"] == "focal"
+        assert np.array_equal(p.data, ref.data), float(np.max(np.abs(p.data - ref.data)))

@@ -21,3 +21,15 @@ def directional_error(loss, param, h: float, seed: int = 0) -> float:
         param.copy_(x0)
     fd = (8.0 * (vals[1] - vals[-1]) - (vals[2] - vals[-2])) / (12.0 * h)
     return abs(g - fd) / abs(fd)
+
+
+def central_difference(loss, p, i, h: float) -> float:
+    """``(loss(p_i + h) - loss(p_i - h)) / 2h`` for entry ``i`` of the leaf tensor ``p`` (changed in place under
+    ``no_grad`` and restored); ``loss`` a closure returning a scalar tensor."""
+    with torch.no_grad():
+        p[i] += h
+        lp = loss().item()
+        p[i] -= 2 * h
+        lm = loss().item()
+        p[i] += h
+    return (lp - lm) / (2 * h)

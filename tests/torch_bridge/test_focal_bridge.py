@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import torch
 
+from _gradcheck import central_difference as _fd
+
 import rwwarp as rw
 import torch_bridge as tb
 from rwwarp.lens import Lens, Surface
@@ -32,14 +34,6 @@ def _thin_lens_doe(coeffs, dist=20.0, half=1.0):
     return Lens(surfs, rw.Sensor(0.002, (4000, 4000)), math.inf, [0.55], name="thin lens + DOE")
 
 
-def _fd(loss, p, i, h):
-    with torch.no_grad():
-        p[i] += h
-        lp = loss().item()
-        p[i] -= 2 * h
-        lm = loss().item()
-        p[i] += h
-    return (lp - lm) / (2 * h)
 
 
 def test_focal_gradients_match_finite_differences_refractive():

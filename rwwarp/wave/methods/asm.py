@@ -104,8 +104,10 @@ class AngularSpectrum(Propagation):
 class AsmOperator:
     """The ASM's linear map, wave-plane field (S, n, n) (carrier removed, wave step applied; the DOE phase of
     ``rw`` applied inside) -> the field at the pixels' Gauss nodes (S, size g, size g), carrier restored
-    (:class:`rwwarp.wave.propagate.PointPropagator`). ``distance_derivative`` is not formed: the ASM's distance
-    gradient is that of a loss (:meth:`SensorPropagator.distance_adjoint`)."""
+    (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm; default the lens's). Arrays in
+    and out are of the operator's namespace ``xp``: numpy on the CPU and OpenCL devices (the OpenCL result is
+    copied to the host), CuPy on CUDA (device memory, no copy). :meth:`distance_derivative` is the exact
+    d/dz at the fixed band limits (``dH/dz = 2 pi i w H``)."""
 
     def __init__(self, rw, distance_mm=None):
         from .. import backend as bk
@@ -113,29 +115,44 @@ class AsmOperator:
         from .registry import gauss_nodes_xy
         self.rw = rw
         self.be = bk.get_backend(rw.device)
+        if self.be.kind == "cuda":
+            import cupy
+            self.xp = cupy
+        else:
+            self.xp = np
         self.z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
         nx, ny = gauss_nodes_xy(rw)
         phi0, scale = rw.doe_phase()
         self.phi0 = phi0
-        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, np.array(rw.wls) / rw.n_after, np.full(rw.nsrc, self.z),
+        lam_um = np.array(rw.wls, dtype=np.float64) / rw.n_after       # in the medium after the plane
+        self._dz = 2j * np.pi / (lam_um * 1e-3)                          # 2 pi i / lambda (rad/mm), (S,)
+        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, lam_um, np.full(rw.nsrc, self.z),
                             nx, ny, doe_scale=scale, carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad)
         self.prop = PointPropagator(self.be, geo)
 
     def forward(self, field):
-        """The field at the nodes (S, My, Mx), numpy."""
-        return np.asarray(self.be.to_host(self.prop.forward(self._dev(field), self.phi0)))
+        """The field at the nodes (S, My, Mx) of ``xp``."""
+        return self._out(self.prop.forward(self._dev(field), self.phi0))
 
     def adjoint(self, grad):
-        """``A^H grad``: (S, My, Mx) -> (S, n, n), numpy (the map is linear in the field)."""
+        """``A^H grad``: (S, My, Mx) -> (S, n, n) of ``xp`` (the map is linear in the field)."""
         n = self.rw.plan.n_grid
-        zero = np.zeros((self.rw.nsrc, n, n), np.complex128)
-        g, _ = self.prop.adjoint(np.asarray(grad, np.complex128), self._dev(zero), self.phi0)
-        return np.asarray(self.be.to_host(g))
+        zero = self._dev(self.xp.zeros((self.rw.nsrc, n, n), np.complex128))
+        g, _ = self.prop.adjoint(self._dev(grad), zero, self.phi0)
+        return self._out(g)
 
     def distance_derivative(self, field):
-        raise NotImplementedError("asm: no linear distance derivative; the distance gradient of a loss is "
-                                  "rwwarp.wave.propagate_sensor.SensorPropagator.distance_adjoint")
+        """``d forward(field) / d distance_mm`` (S, My, Mx) of ``xp``: the transfer function's exact derivative
+        ``2 pi i w H`` (``w = c / lambda``, :meth:`~rwwarp.wave.propagate.PointPropagator.forward_weighted`), the
+        band limits and nodes held fixed (they move with z in jumps of zero derivative almost everywhere)."""
+        u_w = self._out(self.prop.forward_weighted(self._dev(field), self.phi0))
+        return u_w * self.xp.asarray(self._dz)[:, None, None]
+
+    def _out(self, a):
+        return a if self.xp is not np else np.asarray(self.be.to_host(a))
 
     def _dev(self, a):
-        a = np.asarray(a, np.complex128)
+        if self.xp is not np:
+            return self.be.to_device(a, np.complex128)
+        a = np.ascontiguousarray(a, np.complex128)
         return self.be.wrap_host(a) if hasattr(self.be, "wrap_host") else self.be.to_device(a)

@@ -9,7 +9,8 @@ flags instead of testing the name. ``"auto"`` (the cheaper of ``"focal"`` and ``
 methods, not methods (:data:`PLANNER_CHOICES`).
 
 Adding a method (docs/ARCHITECTURE.md "Adding a propagation method"): one module defining and registering a
-subclass, its module name in :data:`METHOD_MODULES`, one test file. Lengths in mm.
+subclass, its module name in :data:`METHOD_MODULES`, one test file; differentiable through :mod:`torch_bridge`
+with ``torch_path = "operator"`` and no other file. Lengths in mm.
 """
 from __future__ import annotations
 
@@ -95,9 +96,11 @@ class Propagation:
     Capability flags (class attributes; the callers read these, never the name):
 
     * ``forms_field``: the method propagates a splatted wave-plane field (False: it forms its own, ``pixel``).
-    * ``torch_path``: the :mod:`torch_bridge` autograd path that differentiates it, ``"asm"`` (the field and
-      the DOE phase through :func:`torch_bridge.functions.propagate`) or ``"focal"`` (the DOE-orders factor, then
-      :func:`torch_bridge.functions.focal_propagate`), or None; ``differentiable``: it has one.
+    * ``torch_path``: the :mod:`torch_bridge` autograd path that differentiates it, ``"operator"`` (the generic
+      one over :meth:`operator`: :func:`torch_bridge.operator_function.operator_propagate`, the DOE applied as
+      ``exp(1j alpha phi0)`` first where ``doe_in_propagator`` is False), ``"asm"`` (the field and the DOE phase
+      through :func:`torch_bridge.functions.propagate`) or ``"focal"`` (the DOE-orders factor, then the generic
+      path over the focal operator), or None; ``differentiable``: it has one.
     * ``packable``: :class:`~rwwarp.wave.packed.PackedRayWave` may batch its members (one trace and splat).
     * ``doe_in_propagator``: the DOE phase ``phi0`` goes into the propagation with the field (the ASM's
       ``doe_phase``); False: the caller multiplies the field by the DOE-orders factor first (``focal``).
@@ -148,7 +151,11 @@ class Propagation:
         """The linear operator of the planned propagation of ``rw`` over ``distance_mm`` (mm; default the
         lens's): an object with ``forward(field)`` (wave-plane field (S, n, n), carrier removed, DOE applied as
         the method does -> complex field (S, My, Mx) at the pixels' Gauss nodes, up to a constant phase per
-        source), ``adjoint(grad)`` (its conjugate transpose) and ``distance_derivative(field)`` (d forward / dz)."""
+        source), ``adjoint(grad)`` (its conjugate transpose) and ``distance_derivative(field)`` (d forward / dz,
+        per mm), in the array namespace of ``rw``'s device (numpy on the CPU and OpenCL, CuPy on CUDA); for
+        ``pixel_values="flux"`` also ``forward_pair`` / ``adjoint_pair`` / ``distance_derivative_pair`` (the field
+        and its direction-cosine-weighted field ``U_w``). :mod:`torch_bridge` differentiates any method through
+        it (``torch_path = "operator"``)."""
         raise NotImplementedError(f"method {self.name!r} has no linear operator")
 
     def pixels(self, rw, field, precision: str = "double", to_host: bool = True):
