@@ -6,6 +6,7 @@ References, all independent of the method's code:
   quadrature written here);
 * the A489 against the full computation (the focal method) at a 9x finer pixel, box-summed 9 x 9 here.
 """
+import functools
 import math
 
 import numpy as np
@@ -242,9 +243,9 @@ def test_kirchhoff_form_removes_the_debye_error_on_a_real_lens(monkeypatch):
     assert np.max(np.abs(psf.data - ref)) / ref.max() < 8e-4
 
 
-@pytest.mark.parametrize("tile_max", [1536, 16])     # tiles set by the curvature (2 x 2), or 4 x 4
-def test_kirchhoff_samples_are_the_rayleigh_sommerfeld_sum(tile_max):
-    from rwwarp.wave.pixel_kirchhoff import kirchhoff_samples
+@functools.lru_cache(maxsize=1)
+def _rs_case():
+    """The Rayleigh-Sommerfeld test's wave-plane samples and the sum written out at every sensor sample (once)."""
     rng = np.random.default_rng(1)
     lam, n_med, z = 0.55e-3, 1.0, 5.0          # NA ~0.3: the kernel's curvature over a tile matters
     J = 3000
@@ -255,29 +256,35 @@ def test_kirchhoff_samples_are_the_rayleigh_sommerfeld_sum(tile_max):
     L = -np.linalg.norm(T - P, axis=1) + 2e-5 * rr ** 4
     amp = rng.uniform(0.5, 1.5, J) + 0j
     h, n = 0.0008, 64
-    got = kirchhoff_samples(P, L, amp, lam, n_med, T, np.zeros(2), h, n, False, tile_max=tile_max)
     # the first Rayleigh-Sommerfeld sum written out at every sample: (n / (i lam)) (dz / r) exp(i k n r) / r
     m = (np.arange(n) - n // 2) * h
-    X = np.stack(np.meshgrid(T[0] + m, T[1] + m, indexing="xy"), -1).reshape(-1, 2)
-    d = np.concatenate([X[:, None, :] - P[None, :, :2], np.full((len(X), J, 1), z)], -1)
-    r = np.linalg.norm(d, axis=-1)
     k0 = 2 * np.pi / lam
-    U = np.sum(amp * np.exp(1j * k0 * (L + n_med * r)) * (n_med / (1j * lam)) * (z / r) / r, axis=1)
-    ref = (np.abs(U) ** 2).reshape(n, n)
+    U = np.zeros((n, n), complex)
+    for i in range(n):                          # row y = T_y + m_i
+        r = np.sqrt((T[0] + m[:, None] - P[None, :, 0]) ** 2 + (T[1] + m[i] - P[None, :, 1]) ** 2 + z * z)
+        U[i] = np.sum(amp * np.exp(1j * k0 * (L + n_med * r)) * (n_med / (1j * lam)) * (z / r) / r, axis=1)
+    return P, L, amp, T, h, n, np.abs(U) ** 2
+
+
+@pytest.mark.parametrize("tile_max", [1536, 16])     # tiles set by the curvature (2 x 2), or 4 x 4
+def test_kirchhoff_samples_are_the_rayleigh_sommerfeld_sum(tile_max):
+    from rwwarp.wave.pixel_kirchhoff import kirchhoff_samples
+    P, L, amp, T, h, n, ref = _rs_case()
+    got = kirchhoff_samples(P, L, amp, 0.55e-3, 1.0, T, np.zeros(2), h, n, False, tile_max=tile_max)
     # the expansion's rests (quadratic to second order below 0.1 rad, cubic and amplitude to first) and the NUFFT
-    # (~1e-6): measured 2.5e-5 / 7.5e-6 of the peak (2 x 2 tiles, the spot at their corner / 4 x 4 of 16 samples);
+    # (~1e-6; the corrections' at REST_SPREAD, < 1e-4 of each): measured 2.5e-5 / 7.5e-6 of the peak (2 x 2 tiles, the spot at their corner / 4 x 4 of 16 samples);
     # without the cubic term 5.8e-5
     assert np.max(np.abs(got - ref)) < 4e-5 * ref.max()
 
 
 def test_kirchhoff_near_the_spot_is_the_kirchhoff_form_on_every_tile(monkeypatch):
     """KIRCHHOFF_NEAR: the Kirchhoff form on the tiles within the spot's reach, the Debye form's samples elsewhere,
-    against the Kirchhoff form on every tile (the A489 on axis, 15 px of 16 um, 120 rays across: 12 of 6 x 6 tiles).
+    against the Kirchhoff form on every tile (the A489 on axis, 9 px of 16 um, 120 rays across: 8 of 4 x 4 tiles).
     The two forms differ only near the spot (EF35 / EF50 at 64 px: < 1e-5 of the peak from 6 px out,
     perf/pixel_64.py)."""
     import rwwarp.wave.pixel_scale as ps
     lens = load_lens("a489_doe")
-    kw = dict(size=15, pixel_mm=0.016, method="pixel", rays_per_sample=0.2)
+    kw = dict(size=9, pixel_mm=0.016, method="pixel", rays_per_sample=0.2)
     out = {}
     for form, near in (("kirchhoff", True), ("kirchhoff", False), ("debye", True)):
         monkeypatch.setattr(ps, "FIELD_FORM", form)
@@ -287,6 +294,6 @@ def test_kirchhoff_near_the_spot_is_the_kirchhoff_form_on_every_tile(monkeypatch
     assert psf.plan["pixel_field"]["form"] == "debye"
     every = out["kirchhoff", False]
     diff = lambda a: np.max(np.abs(a - every)) / every.max()
-    # measured 1.5e-6 (the Debye samples beyond the reach; 3x margin), where the Debye form alone is 4.8e-4 off: the
+    # measured 7.6e-7 (the Debye samples beyond the reach; 15 px: 1.5e-6), where the Debye form alone is 5.4e-4 off: the
     # near tiles carry the correction
-    assert diff(out["kirchhoff", True]) < 5e-6 < 1e-4 < diff(out["debye", True])
+    assert diff(out["kirchhoff", True]) < 3e-6 < 1e-4 < diff(out["debye", True])
