@@ -141,14 +141,17 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
     gx = xp.exp(-((lx0[None] + ks) * step - tx[None]) ** 2 / (4.0 * tau))      # (2 spread, J)
     gy = xp.exp(-((ly0[None] + ks) * step - ty[None]) ** 2 / (4.0 * tau))
     ix = (lx0[None] + ks) % M
-    grid = xp.zeros((K, M * M), dtype=xp.complex128)
+    grid_re = xp.zeros((K, M * M))           # contiguous accumulators (a complex array's .real is strided: slower)
+    grid_im = xp.zeros((K, M * M))
     for a in range(2 * spread):
         idx = ((((ly0 + int(ks[a, 0])) % M) * M)[None] + ix).ravel()
-        ga = gx * gy[a][None]
         for q in range(K):
-            grid[q].real += xp.bincount(idx, weights=(ga * c[q].real[None]).ravel(), minlength=M * M)
-            grid[q].imag += xp.bincount(idx, weights=(ga * c[q].imag[None]).ravel(), minlength=M * M)
-        del idx, ga
+            grid_re[q] += xp.bincount(idx, weights=(gx * (c[q].real * gy[a])[None]).ravel(), minlength=M * M)
+            grid_im[q] += xp.bincount(idx, weights=(gx * (c[q].imag * gy[a])[None]).ravel(), minlength=M * M)
+        del idx
+    grid = xp.empty((K, M * M), dtype=xp.complex128)
+    grid.real, grid.imag = grid_re, grid_im
+    del grid_re, grid_im
     spec = xp.fft.ifft2(grid.reshape(K, M, M), axes=(-2, -1))     # sum_l F_l exp(+2 pi i m l / M) / M^2
     del grid
     spec *= M * M
@@ -162,13 +165,14 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = Non
 
 def nufft_flops(points: int, vectors: int, n: int, spread: int | None = None) -> float:
     """Work (flops) of one :func:`nufft_type1` call: ``points`` points, ``vectors`` weight vectors, ``n^2`` outputs.
-    Per point and spread cell (``(2 spread)^2``, None: ``NUFFT_SPREAD``): the 2-D Gaussian's product (1) and, per
-    vector, its two products with the weight and two accumulations (4); per point the 2 x 2 spread Gaussians (~20
-    each); per vector the ``M^2`` FFT (``5 M^2 log2 M^2``, ``M = NUFFT_OVERSAMPLE n``) and the deconvolution (2 ``n^2``)."""
+    Per point, spread cell (``(2 spread)^2``, None: ``NUFFT_SPREAD``) and vector: the two products of the weight's
+    parts with the 2-D Gaussian and two accumulations (4); per point, cell row and vector the weight times the row's
+    Gaussian (2); per point the 2 x 2 spread Gaussians (~20 each); per vector the ``M^2`` FFT (``5 M^2 log2 M^2``,
+    ``M = NUFFT_OVERSAMPLE n``) and the deconvolution (2 ``n^2``)."""
     spread = NUFFT_SPREAD if spread is None else int(spread)
     cells = (2 * spread) ** 2
     M = NUFFT_OVERSAMPLE * int(n)
-    return float(points * (cells * (1.0 + 4.0 * vectors) + 80.0 * spread)
+    return float(points * (vectors * (4.0 * cells + 2.0 * 2 * spread) + 80.0 * spread)
                  + vectors * (5.0 * M * M * math.log2(M * M) + 2.0 * n * n))
 
 

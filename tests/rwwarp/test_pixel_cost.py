@@ -14,11 +14,13 @@ from rwwarp.wave import pixel_kirchhoff as pk
 
 
 def _nufft_work(J, K, n, spread=6, R=2):
-    """Flops of a Gaussian-gridding type-1 NUFFT of J points, K weight vectors, n^2 outputs: per point and cell of the
-    (2 spread)^2 footprint the 2-D Gaussian (1 multiply) and per vector 2 multiplies and 2 adds; per point 2 x 2 spread
-    1-D Gaussians (~20 flops each); per vector an (R n)^2 complex FFT (5 N log2 N) and the deconvolution (2 n^2)."""
+    """Flops of a Gaussian-gridding type-1 NUFFT of J points, K weight vectors, n^2 outputs: per point, cell of the
+    (2 spread)^2 footprint and vector 2 multiplies (the weight's real and imaginary parts by the Gaussian) and 2 adds;
+    per point, footprint row and vector 2 multiplies (the weight by the row's Gaussian); per point 2 x 2 spread 1-D
+    Gaussians (~20 flops each); per vector an (R n)^2 complex FFT (5 N log2 N) and the deconvolution (2 n^2)."""
     N = (R * n) ** 2
-    return J * (2 * spread) ** 2 * (1 + 4 * K) + J * 4 * spread * 20 + K * (5 * N * math.log2(N) + 2 * n * n)
+    return (J * K * ((2 * spread) ** 2 * 4 + 2 * spread * 2) + J * 4 * spread * 20
+            + K * (5 * N * math.log2(N) + 2 * n * n))
 
 
 @pytest.fixture
