@@ -30,7 +30,7 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 11.3 GFLOP (the Debye form), 0.76 GiB, 22.3 GFLOP (the Kirchhoff form on
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.76 GiB, 22.0 GFLOP (the Kirchhoff form on
 the 4 of 100 tiles near the spot; docs/propagation.md "Large pixels", "64 px patches"); :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
 
