@@ -30,8 +30,8 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.56-0.59 GiB, 14.5-15.8 GFLOP, 10 s on 2 CPU cores (docs/propagation.md
-"Large pixels"). The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.76 GiB, 22.0 GFLOP (the Kirchhoff form on
+the 4 of 100 tiles near the spot; docs/propagation.md "Large pixels", "64 px patches"); :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
 
 Error against the full computation (the same rays' field splatted on the wave plane and propagated exactly),
@@ -42,7 +42,13 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   integrated Airy pattern to 5.7e-5); with a rim slope ``S`` (rad) it does not, ~``S / sqrt(N_F)`` (``N_F``: the
   beam's Fresnel number seen from the patch), and a pixel of ``p`` averages it as ``(r_A / p)^1.6``. Measured
   1e-4 to 2.5e-2 (A489, Cooke triplet, DeepLens camera lenses; docs/propagation.md "Large pixels"); it does not
-  fall with more rays;
+  fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
+  reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
+  (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
+  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2; "auto" takes
+  it where the grid needs at most ``KIRCHHOFF_MAX_TILES`` tiles, decided at planning (:func:`plan_field`, in
+  ``Plan.pixel_field``); the cost model (:func:`pixel_cost`) is the planned form's, the error estimate here the
+  Debye form's (an upper bound for the Kirchhoff form);
 * the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
   ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
   samples) are below that.
@@ -79,6 +85,14 @@ DEFAULT_TOLERANCE = 1e-3
 PIXEL_ERROR_C = 0.06
 PIXEL_ERROR_POWER = 1.6
 PIXEL_ERROR_FLOOR = 2e-4
+#: the sensor field's form: "debye" (one plane wave per ray), "kirchhoff" (the wave-plane field summed with the
+#: exact kernel, its rim's boundary wave included: :mod:`rwwarp.wave.pixel_kirchhoff`) or "auto": kirchhoff where its
+#: tiles (their size set by the kernel's curvature over the patch) number at most KIRCHHOFF_MAX_TILES, else debye
+FIELD_FORM = "auto"
+KIRCHHOFF_MAX_TILES = 4
+#: the Kirchhoff form only on the tiles within the spot's reach (the pilot landings' largest offset from the patch
+#: centre + 12 / B) of the patch centre, the Debye form's samples elsewhere (``KIRCHHOFF_MAX_TILES`` counts those tiles)
+KIRCHHOFF_NEAR = True
 
 
 # ---------------------------------------------------------------------------------------------- numerics
@@ -97,8 +111,7 @@ def box_weights(edges_lo_mm, pixel_mm, x0_mm, h_mm, n):
     return (h_mm / np.pi) * (s_hi - s_lo)
 
 
-def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVERSAMPLE,
-                spread: int = NUFFT_SPREAD):
+def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int | None = None, spread: int | None = None):
     """``U[my, mx] = sum_j c_j exp(i (mx theta_x,j + my theta_y,j))`` for ``mx, my = -n/2 .. n/2 - 1`` (array
     index ``m + n/2``), the points' phases ``theta`` (rad) in ``[-pi, pi)`` (1-D arrays, ``c`` complex).
 
@@ -108,14 +121,19 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVER
     inverse FFT is ``sum_j c_j ghat(m) exp(i m theta_j) / (2 pi) M``-scaled, and dividing by the Gaussian's
     transform ``sqrt(4 pi tau) exp(-m^2 tau)`` gives ``U``. Relative error ~1e-6 with the defaults (the
     spread Gaussian's tail at its cut, ``exp(-spread pi / 4)`` per axis at R = 2, and its aliases). Returns a
-    complex128 ``(n, n)`` array in ``xp``."""
+    complex128 ``(n, n)`` array in ``xp``; ``c`` (K, J): K weight vectors on the same points, ``(K, n, n)``. ``oversample`` / ``spread`` None: the module's ``NUFFT_OVERSAMPLE`` /
+    ``NUFFT_SPREAD`` at call time."""
     n = int(n)
-    R = int(oversample)
+    R = int(NUFFT_OVERSAMPLE if oversample is None else oversample)
+    spread = int(NUFFT_SPREAD if spread is None else spread)
     M = R * n
     tau = math.pi * spread / (n * n * R * (R - 0.5))
     tx = xp.asarray(theta_x, dtype=xp.float64)
     ty = xp.asarray(theta_y, dtype=xp.float64)
     c = xp.asarray(c, dtype=xp.complex128)
+    one = c.ndim == 1          # c (K, J): K weight vectors on the same points, one (n, n) result each
+    c = c[None] if one else c
+    K = c.shape[0]
     step = 2.0 * math.pi / M
     lx0 = xp.floor(tx / step).astype(xp.int64)
     ly0 = xp.floor(ty / step).astype(xp.int64)
@@ -123,23 +141,39 @@ def nufft_type1(theta_x, theta_y, c, n: int, xp=np, oversample: int = NUFFT_OVER
     gx = xp.exp(-((lx0[None] + ks) * step - tx[None]) ** 2 / (4.0 * tau))      # (2 spread, J)
     gy = xp.exp(-((ly0[None] + ks) * step - ty[None]) ** 2 / (4.0 * tau))
     ix = (lx0[None] + ks) % M
-    grid_re = xp.zeros(M * M)
-    grid_im = xp.zeros(M * M)
+    grid_re = xp.zeros((K, M * M))           # contiguous accumulators (a complex array's .real is strided: slower)
+    grid_im = xp.zeros((K, M * M))
     for a in range(2 * spread):
-        idx = (((ly0 + int(ks[a, 0])) % M) * M)[None] + ix
-        idx = idx.ravel()
-        grid_re += xp.bincount(idx, weights=(gx * (c.real * gy[a])[None]).ravel(), minlength=M * M)
-        grid_im += xp.bincount(idx, weights=(gx * (c.imag * gy[a])[None]).ravel(), minlength=M * M)
+        idx = ((((ly0 + int(ks[a, 0])) % M) * M)[None] + ix).ravel()
+        for q in range(K):
+            grid_re[q] += xp.bincount(idx, weights=(gx * (c[q].real * gy[a])[None]).ravel(), minlength=M * M)
+            grid_im[q] += xp.bincount(idx, weights=(gx * (c[q].imag * gy[a])[None]).ravel(), minlength=M * M)
         del idx
-    grid = (grid_re + 1j * grid_im).reshape(M, M)
+    grid = xp.empty((K, M * M), dtype=xp.complex128)
+    grid.real, grid.imag = grid_re, grid_im
     del grid_re, grid_im
-    spec = xp.fft.ifft2(grid) * (M * M)     # sum_l F_l exp(+2 pi i m l / M)
+    spec = xp.fft.ifft2(grid.reshape(K, M, M), axes=(-2, -1))     # sum_l F_l exp(+2 pi i m l / M) / M^2
     del grid
+    spec *= M * M
     m = np.arange(-n // 2, n // 2)
     sel = xp.asarray(m % M)
-    spec = spec[sel][:, sel]
+    spec = spec[:, sel][:, :, sel]
     dec = xp.asarray(np.exp(m.astype(float) ** 2 * tau) * (step / math.sqrt(4.0 * math.pi * tau)))
-    return spec * dec[:, None] * dec[None, :]
+    out = spec * dec[:, None] * dec[None, :]
+    return out[0] if one else out
+
+
+def nufft_flops(points: int, vectors: int, n: int, spread: int | None = None) -> float:
+    """Work (flops) of one :func:`nufft_type1` call: ``points`` points, ``vectors`` weight vectors, ``n^2`` outputs.
+    Per point, spread cell (``(2 spread)^2``, None: ``NUFFT_SPREAD``) and vector: the two products of the weight's
+    parts with the 2-D Gaussian and two accumulations (4); per point, cell row and vector the weight times the row's
+    Gaussian (2); per point the 2 x 2 spread Gaussians (~20 each); per vector the ``M^2`` FFT (``5 M^2 log2 M^2``,
+    ``M = NUFFT_OVERSAMPLE n``) and the deconvolution (2 ``n^2``)."""
+    spread = NUFFT_SPREAD if spread is None else int(spread)
+    cells = (2 * spread) ** 2
+    M = NUFFT_OVERSAMPLE * int(n)
+    return float(points * (vectors * (4.0 * cells + 2.0 * 2 * spread) + 80.0 * spread)
+                 + vectors * (5.0 * M * M * math.log2(M * M) + 2.0 * n * n))
 
 
 def _grid_diff(a, valid, axis, xp):
@@ -233,8 +267,8 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     ray_grid = int(math.ceil(rays_per_sample * max(RAY_MIN, RAY_SAFETY * 2.0 * band * (0.5 * n * h + reach)))) + 1
     airy = 0.61 / band
     reasons = (
-        f"pixel method (pixels of {pixel_mm / airy:.3g} Airy radii): the sensor field as the rays' plane waves (Debye), "
-        f"|U|^2 on a grid and each pixel's box integrated exactly (rwwarp.wave.pixel_scale)",
+        f"pixel method (pixels of {pixel_mm / airy:.3g} Airy radii): the sensor field on a grid at its own Nyquist rate, "
+        f"each pixel's box integrated exactly (rwwarp.wave.pixel_scale)",
         f"sensor grid: patch {size * pixel_mm * 1e3:.4g} um + {pixel_mm * 1e3:.4g} um + 32 samples a side at "
         f"{h * 1e3:.4g} um (band B = {band:.4g} cycles/mm, |U|^2 to 2 B x {GRID_MARGIN:g}) -> {n}^2, FFT "
         f"{NUFFT_OVERSAMPLE * n}^2",
@@ -242,8 +276,6 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
         f"reach {reach * 1e3:.4g} um)) -> {ray_grid} across the pupil (the quadrature's aliases beyond the grid)",
     )
     nt, t = tiles(n)
-    reasons = reasons + (f"sensor grid in {t} x {t} tiles of {nt}^2 (their oversampled FFT {NUFFT_OVERSAMPLE * nt}^2: "
-                         f"memory), each ray spread into every tile",)
     plan = Plan(h, n, NUFFT_OVERSAMPLE * nt, ray_grid, "auto", False, reasons, "pixel", h, n, NUFFT_OVERSAMPLE * nt)
     return plan, {"band": band, "airy_mm": airy, "reach_mm": reach}
 
@@ -255,20 +287,95 @@ def tiles(n: int):
     return nt, t
 
 
+def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sensor: float, h_mm: float, n: int,
+               ray_grid: int, flux: bool, form: str | None = None, pupil_fill: float = math.pi / 4,
+               reach_mm: float | None = None) -> dict:
+    """The sensor field's form of a ``method="pixel"`` batch and its tiling, from the pilot trace.
+
+    The pilot rays (``pos_s`` (S, N, 3) their sensor landings, ``dir_s`` (S, N, 3) directions, ``ok`` (S, N)) are
+    continued back to the wave plane ``z_plane`` (mm); the Kirchhoff form's tiles as
+    :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_tiles` seen from each patch centre (``centers`` (S, 2) mm, on
+    ``z_sensor``), the worst source's; its points: the pilot's valid fraction of ``pupil_fill ray_grid^2``
+    (``pupil_fill``: the share of the square pupil grid inside the pupil, pi / 4 for a circle). ``form`` (None:
+    ``FIELD_FORM``): "kirchhoff", "debye" or "auto" (kirchhoff where it takes at most ``KIRCHHOFF_MAX_TILES`` tiles).
+    ``reach_mm``: the spot's reach from the patch centre; with ``KIRCHHOFF_NEAR`` the Kirchhoff form covers only the
+    tiles within it (:func:`rwwarp.wave.pixel_kirchhoff.near_tiles`) over the Debye form's samples.
+    Returns ``{"form", "tile", "tiles", "points", "vectors", "near", "reach_mm"}`` (``tile`` samples a side,
+    ``tiles`` a side of the grid, ``vectors`` the NUFFT weight vectors a tile: the chosen form's; ``near`` the
+    Kirchhoff tiles, ``reach_mm`` None where all are)."""
+    from .pixel_kirchhoff import kirchhoff_tiles, n_vectors, near_tiles
+    form = FIELD_FORM if form is None else form
+    if form not in ("auto", "kirchhoff", "debye"):
+        raise ValueError(f"pixel method: the sensor field's form must be 'auto', 'kirchhoff' or 'debye', got {form!r}")
+    nt, t, pts = 8, 0, 0
+    for k in range(len(centers)):
+        sel = np.asarray(ok[k], bool)
+        p, dd = np.asarray(pos_s[k], float)[sel], np.asarray(dir_s[k], float)[sel]
+        P = p + ((float(z_plane) - p[:, 2]) / dd[:, 2])[:, None] * dd
+        T = (float(centers[k][0]), float(centers[k][1]), float(z_sensor))
+        nk, tk = kirchhoff_tiles(P, T, float(lam_mm[k]), float(n_after[k]), h_mm, n)
+        if tk > t:
+            nt, t = nk, tk
+        pts = max(pts, int(math.ceil(float(np.mean(sel)) * pupil_fill * ray_grid ** 2)))
+    reach = float(reach_mm) if KIRCHHOFF_NEAR and reach_mm is not None else None
+    near = len(near_tiles(n, nt, t, h_mm, reach))
+    reach = None if near == t * t else reach          # every tile near: no Debye samples under them
+    if form == "auto":
+        form = "kirchhoff" if near <= KIRCHHOFF_MAX_TILES else "debye"
+    if form == "debye":
+        nt, t = tiles(n)
+        near, reach = 0, None
+    return {"form": form, "tile": int(nt), "tiles": int(t), "points": pts,
+            "vectors": n_vectors(flux) if form == "kirchhoff" else (2 if flux else 1), "near": int(near),
+            "reach_mm": reach}
+
+
 def pixel_cost(plan, n_sources: int, size: int) -> dict:
-    """Peak memory (bytes) and work (flops) of ``method="pixel"``: the traced rays (~232 bytes each, as
-    :func:`rwwarp.wave.plan.estimate_cost`) and their host arrays (~40 doubles: frequencies, tube areas,
-    phases, spreading weights), the oversampled grid (two real accumulators, the complex grid and its FFT)
-    and the sensor grid's ``U``, ``U_w`` and ``I`` (one source at a time); flops: ~4000 a ray (trace), 12 a
-    ray, spread cell and NUFFT (two: ``U`` and ``U_w``) in every tile, the FFTs, the box products."""
+    """Peak memory (bytes) and work (flops) of ``method="pixel"`` for the form ``plan.pixel_field`` names (None, a
+    plan from before it: the Debye form with ``U`` and ``U_w``, all ``ray_grid^2`` rays).
+
+    Both: the traced rays (~232 bytes each, as :func:`rwwarp.wave.plan.estimate_cost`) and their host arrays (~40
+    doubles: directions, tube areas, phases, wave-plane points), the sensor grid's ``I`` (8 ``n^2``); flops ~4000 a
+    ray (trace), the box products ``W_y I W_x^T``. Per source and tile, one tile at a time:
+
+    * Debye: ``vectors`` (``U``, and ``U_w`` for "flux") NUFFTs (:func:`nufft_flops`) of the points, one a call; the
+      grid (``GRID_CELL_BYTES`` a cell of the ``NUFFT_OVERSAMPLE n_t`` FFT), ``U``, ``U_w``, ``I`` of the tile;
+    * Kirchhoff: :func:`rwwarp.wave.pixel_kirchhoff.tile_cost` (23-24 NUFFTs in chunks that fit
+      ``KIRCHHOFF_GRID_BYTES``) on its ``near`` tiles; where they are not all (``reach_mm``), the Debye form's work
+      on the whole grid first and its samples kept (8 ``n^2`` more).
+
+    Returns ``memory_bytes``, ``flops``, and ``nufft_flops`` (the NUFFTs' part), ``form``, ``tiles`` (``t x t``),
+    ``tile`` (``n_t``), ``points``, ``vectors``, ``chunk`` (vectors a NUFFT call)."""
+    from .pixel_kirchhoff import GRID_CELL_BYTES, N_TERMS, tile_cost
     rays = int(n_sources) * plan.ray_grid ** 2
-    n, M = plan.n_sensor, plan.n_sensor_fft
-    nt, t = tiles(n)
-    spread = (2 * NUFFT_SPREAD) ** 2
-    mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + (2 * 8 + 2 * 16) * M * M + 8 * n * n + 3 * 16 * nt * nt
-    flops = rays * 4000.0 + t * t * 2 * rays * (spread * 12.0 + 20.0) + n_sources * (
-        t * t * 2 * 5.0 * M * M * math.log2(M * M) + 4.0 * (n * n * size + n * size * size))
-    return {"memory_bytes": int(mem), "flops": float(flops)}
+    n = plan.n_sensor
+    f = plan.pixel_field
+    if f is None:
+        f = dict(zip(("tile", "tiles"), tiles(n)), form="debye", points=plan.ray_grid ** 2, vectors=2)
+    nt, t, J, K = int(f["tile"]), int(f["tiles"]), int(f["points"]), int(f["vectors"])
+    mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + 8 * n * n
+    flops = rays * 4000.0 + n_sources * 4.0 * (n * n * size + n * size * size)
+    def debye(K):         # memory, NUFFT flops, flops of the Debye form on the whole grid, its own tiles
+        nd, td = tiles(n)
+        M = NUFFT_OVERSAMPLE * nd
+        nu = n_sources * td * td * K * nufft_flops(J, 1, nd)
+        return GRID_CELL_BYTES * M * M + 3 * 16 * nd * nd, nu, nu + n_sources * td * td * 10.0 * J
+    if f["form"] == "kirchhoff":
+        near = int(f.get("near", t * t))
+        tc = tile_cost(nt, J, K > N_TERMS)
+        nufft, kc = n_sources * near * tc["nufft_flops"], tc["chunk"]
+        flops += n_sources * near * tc["flops"]
+        tile_mem = tc["memory_bytes"]
+        if f.get("reach_mm") is not None:
+            dm, dn, df = debye(K - N_TERMS + 1)
+            tile_mem, nufft, flops = max(tile_mem, dm) + 8 * n * n, nufft + dn, flops + df
+        mem += tile_mem
+    else:
+        near, kc = 0, 1
+        dm, nufft, df = debye(K)
+        mem, flops = mem + dm, flops + df
+    return {"memory_bytes": int(mem), "flops": float(flops), "nufft_flops": float(nufft), "form": f["form"],
+            "tiles": t, "tile": nt, "points": J, "vectors": K, "chunk": kc, "near": near}
 
 
 # ---------------------------------------------------------------------------------------------- run
@@ -328,26 +435,30 @@ def pixel_psf(rw):
         if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
             raise FloatingPointError("pixel method: a ray's frequency lies beyond the sensor grid's band (the "
                                      "pilot trace missed the beam's edge): please report this lens and field")
-        c = (amp * xp.exp(1j * phase))[use]
-        cw = c * cos[use] if flux else None
-        del amp, phase, area
-        nt, t = tiles(n)
-        I = xp.zeros((n, n))
-        for ay in range(t):
-            for ax in range(t):
-                # the tile's samples m0 + m', |m'| <= nt / 2: the points' phases shifted by m0 . theta
-                m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
-                shift = xp.exp(1j * (m0x * tx + m0y * ty))
-                U = nufft_type1(tx, ty, c * shift, nt, xp)
-                if flux:
-                    Uw = nufft_type1(tx, ty, cw * shift, nt, xp)
-                    It = xp.real(xp.conj(U) * Uw)
-                    del Uw
-                else:
-                    It = xp.abs(U) ** 2
-                del U, shift
-                hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
-                I[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+        from .pixel_kirchhoff import kirchhoff_samples
+        Tk = (rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor)
+        tw = (rw.z_plane - pos[k, ..., 2]) / d[k, ..., 2]
+        Pw = pos[k] + tw[..., None] * d[k]
+        form = (pl.pixel_field or {"form": "debye"})["form"]        # the planned form (plan_field); a plan from before it
+        rw.pixel_forms = getattr(rw, "pixel_forms", {})
+        rw.pixel_forms[k] = form
+        reach = (pl.pixel_field or {}).get("reach_mm")
+        if form == "kirchhoff":
+            # the wave-plane field summed with the exact kernel (rwwarp.wave.pixel_kirchhoff): its rim's boundary wave;
+            # with reach, on the tiles near the spot only, the Debye form's samples elsewhere
+            I0 = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n) if reach is not None else None
+            del amp, phase
+            dA = tube_areas(Pw[None, ..., :2], valid[k][None], xp)[0]
+            ok = valid[k] & (dA > 0) & (q[k] > 0)
+            Lw = (opl[k] + float(rw.n_after[k]) * tw)[ok]
+            # |W|^2 d_z dA = q: the flux through the wave plane is the ray's power; "intensity" takes the power
+            # spectrum as q without the obliquity (as the Debye form's |B|^2 dA_f = q): W sqrt(d_z)
+            aw = xp.sqrt(xp.where(ok, q[k] * dA / (d[k, ..., 2] if flux else 1.0), 0.0))[ok]
+            I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
+                                  Tk, rw.carrier[k], h, n, flux, xp, base=I0, reach_mm=reach)
+            del dA, ok, Lw, aw, I0
+        else:
+            I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
         x0 = rw.centers[k] - 0.5 * n * h
         lo = (np.arange(rw.size) - rw.size // 2) * rw.pixel - 0.5 * rw.pixel
         wx = xp.asarray(box_weights(rw.centers[k, 0] + lo, rw.pixel, x0[0], h, n))
@@ -355,6 +466,46 @@ def pixel_psf(rw):
         P = wy @ I @ wx.T
         out[k] = P if xp is np else xp.asnumpy(P)
     return out
+
+
+def _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n):
+    """The Debye form's ``|U|^2`` / ``Re(conj(U) U_w)`` on the sensor grid (:func:`pixel_psf`)."""
+    c = (amp * xp.exp(1j * phase))[use]
+    cw = c * cos[use] if flux else None
+    nt, t = tiles(n)
+    I = xp.zeros((n, n))
+    for ay in range(t):
+        for ax in range(t):
+            # the tile's samples m0 + m', |m'| <= nt / 2: the points' phases shifted by m0 . theta
+            m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
+            shift = xp.exp(1j * (m0x * tx + m0y * ty))
+            U = nufft_type1(tx, ty, c * shift, nt, xp)
+            if flux:
+                Uw = nufft_type1(tx, ty, cw * shift, nt, xp)
+                It = xp.real(xp.conj(U) * Uw)
+                del Uw
+            else:
+                It = xp.abs(U) ** 2
+            del U, shift
+            hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
+            I[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+    return I
+
+
+def field_reason(field: dict, cost: dict) -> str:
+    """The plan's line saying which sensor-field form runs (:func:`plan_field`) and what it costs (:func:`pixel_cost`)."""
+    if field["form"] == "kirchhoff":
+        what = (f"the Kirchhoff (Rayleigh-Sommerfeld) sum of the wave-plane field (rwwarp.wave.pixel_kirchhoff): "
+                f"{field['tiles']} x {field['tiles']} tiles of {field['tile']}^2 (the kernel's curvature)"
+                + (f", the {field['near']} within the spot's reach {field['reach_mm'] * 1e3:.4g} um of the centre over the "
+                   f"Debye form's samples" if field.get("reach_mm") is not None else "")
+                + f", {field['vectors']} NUFFTs of ~{field['points']} wave-plane samples a tile, {cost['chunk']} at a time")
+    else:
+        what = (f"the Debye plane waves of the rays: {field['tiles']} x {field['tiles']} tiles of {field['tile']}^2, "
+                f"{field['vectors']} NUFFT(s) of ~{field['points']} rays a tile")
+    return (f"sensor field form {field['form']} (FIELD_FORM {FIELD_FORM!r}: auto takes kirchhoff where it needs <= "
+            f"{KIRCHHOFF_MAX_TILES} tiles{' near the spot' if KIRCHHOFF_NEAR else ''}): {what}; NUFFTs {cost['nufft_flops'] / 1e9:.3g} of "
+            f"{cost['flops'] / 1e9:.3g} GFLOP")
 
 
 def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_width_mm: float,
@@ -387,6 +538,10 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     n_after, lam_mm = np.asarray(rw.n_after, float), np.asarray(rw.lam_mm, float)
     freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
     ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
+    field = plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, rw.z_plane, rw.z_sensor, ppl.sensor_pitch_mm,
+                       ppl.n_sensor, ppl.ray_grid, rw.pixel_values == "flux",
+                       pupil_fill=math.pi / 4 if rw.src["shape"] == "circle" else 1.0, reach_mm=info["reach_mm"])
+    ppl = replace(ppl, pixel_field=field)
     ratio = rw.pixel / info["airy_mm"]
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
@@ -401,7 +556,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
             f"/ sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S {slope:.3g} rad, N_F {nf:.4g} "
             f"seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}), "
             f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, {cost['flops'] / 1e9:.3g} GFLOP")
-    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line)
+    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line, field_reason(field, cost))
     if not explicit:
         why = []
         if ratio < MIN_PIXEL_AIRY:

@@ -45,7 +45,8 @@ class Plan:
     ray-wave model's own error estimated from the scene (:mod:`rwwarp.wave.model_error`; the worst source's
     :meth:`~rwwarp.wave.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm) of
     the wave step that replaces the geometric field's edge by the diffracted one before the DOE
-    (:func:`rwwarp.wave.wave_step.apply_wave_step`), or None (the one-step model).
+    (:func:`rwwarp.wave.wave_step.apply_wave_step`), or None (the one-step model). ``pixel_field``: for
+    ``method="pixel"``, the sensor field's form and its tiling (:func:`rwwarp.wave.pixel_scale.plan_field`), else None.
     """
 
     pitch_mm: float
@@ -62,6 +63,7 @@ class Plan:
     estimate: dict | None = None
     model_error: dict | None = None
     wave_step_mm: float | None = None
+    pixel_field: dict | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "reasons", tuple(self.reasons))

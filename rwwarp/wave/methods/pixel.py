@@ -1,5 +1,6 @@
 """``pixel``: pixels many Airy radii wide (:mod:`rwwarp.wave.pixel_scale`): the sensor field as the rays' plane
-waves, the pixel box applied analytically; no wave-plane field. Planned beside the window plan the ASM makes
+waves (Debye) or the Kirchhoff sum of the rays' wave-plane samples (:mod:`rwwarp.wave.pixel_kirchhoff`), the pixel
+box applied analytically; no wave-plane field on a grid. Planned beside the window plan the ASM makes
 (:func:`rwwarp.wave.pixel_scale.consider_pixel`, called by the planner where ``"pixel"`` is asked for or
 ``"auto"`` may choose it)."""
 from __future__ import annotations
@@ -33,8 +34,16 @@ class Pixel(Propagation):
         return pixel_cost(plan, n_sources, size)
 
     def explain_grids(self, plan):
-        return (f"sensor grid {plan.n_sensor}^2 at {plan.sensor_pitch_mm * 1e3:.4g} um, "
-                f"FFT {plan.n_sensor_fft}^2, ")
+        f = plan.pixel_field
+        if not f:
+            return (f"sensor grid {plan.n_sensor}^2 at {plan.sensor_pitch_mm * 1e3:.4g} um, "
+                    f"FFT {plan.n_sensor_fft}^2, ")
+        from ..pixel_scale import NUFFT_OVERSAMPLE
+        return (f"sensor grid {plan.n_sensor}^2 at {plan.sensor_pitch_mm * 1e3:.4g} um, {f['form']} sensor field in "
+                f"{f['tiles']} x {f['tiles']} tiles of {f['tile']}^2"
+                + (f" ({f['near']} near the spot, Debye elsewhere)" if f.get("reach_mm") is not None else "")
+                + f", {f['vectors']} NUFFT(s) a tile (FFT "
+                f"{NUFFT_OVERSAMPLE * f['tile']}^2), ")
 
     def pixels(self, rw, field, precision="double", to_host=True):
         from ..pixel_scale import pixel_psf

@@ -1,0 +1,254 @@
+"""The sensor field of ``method="pixel"`` as the Kirchhoff (Rayleigh-Sommerfeld) sum of the wave-plane field, tile
+by tile through the non-uniform FFT (issue 27 item 5).
+
+The Debye form (:mod:`rwwarp.wave.pixel_scale`: one plane wave per ray) leaves out the boundary wave of the
+wave-plane field's hard edge: measured 1.2e-3 of the peak on the DeepLens EF35 f/2 on axis and 1.9e-3 on the
+Cooke triplet at 14 deg against the full computation, following no sampling knob (``perf/pixel_study.py``). This
+form sums the wave-plane field itself, rim included, with the exact kernel
+``G = (n / (i lambda)) (dz / r) exp(i k0 n r) / r`` (first Rayleigh-Sommerfeld; ``k0 = 2 pi / lambda``):
+
+* the rays continued straight to the wave plane ``z_w`` give its samples ``p_j``, optical path ``L_j``, field
+  ``|W_j| = sqrt(q_j / (d_z,j dA_j))`` (the flux through the plane is the ray's power ``q_j``; ``dA_j`` its tube's
+  area there, :func:`rwwarp.wave.pixel_scale.tube_areas`), the sum's weight ``W_j dA_j``;
+* for a tile of the sensor grid centred at ``X``, ``r_j = |X - p_j|``, ``u_j = (X - p_j) / r_j``; a sample
+  ``X + D`` (``D`` in the sensor plane) is at ``|X + D - p| = r + u.D + (|D|^2 - (u.D)^2) / (2 r) - (u.D) (|D|^2 -
+  (u.D)^2) / (2 r^2) + ...``. The linear term is a plane wave of frequency ``n u_xy / lambda``: the type-1
+  non-uniform FFT onto the tile. The quadratic one, ``eps_j(D) = k0 n sum_a g_a,j b_a(D)`` with
+  ``g = (1 / (2 r), u_x^2 / (2 r), u_x u_y / r, u_y^2 / (2 r))`` and ``b = (|D|^2, -D_x^2, -D_x D_y, -D_y^2)``, is
+  split into its midrange over the rays (a phase common to the tile's samples, which ``|U|^2`` and
+  ``Re(conj(U) U_w)`` do not see) and the rest, taken to second order (``exp(i eps) ~ 1 + i eps - eps^2 / 2``: 4 + 10
+  more transforms); the cubic term (6) and the amplitude's change ``dz / r^2`` (2) to first order. The tile is made
+  small enough that the rest stays below ``KIRCHHOFF_EPS`` rad at its corners.
+* ``U_w`` (for ``pixel_values="flux"``): each term times ``u_z``, the obliquity towards the tile (its first-order
+  rest with the rays' mean ``u_z``).
+
+The quadrature over the pupil grid's cells has its aliases ``lambda z / (n delta_p)`` away (0.65 mm on the EF35 at
+601 rays), beyond the grid as the Debye form's. Cost (:func:`tile_cost`, :func:`rwwarp.wave.pixel_scale.pixel_cost`):
+per tile ``N_TERMS`` (23; 24 for ``U_w``) NUFFTs of every wave-plane sample, the plane waves at the NUFFT's full
+spread, the corrections at ``REST_SPREAD``; tiles ``2 a`` wide with ``k0 n 2 a^2 max|g - mid g| <= KIRCHHOFF_EPS`` (at
+most ``KIRCHHOFF_TILE_MAX``). The spreading is most of it (EF35 f/2 at 15.3 um, 64 px: 9 x 9 tiles of 220, ~0.29 M
+samples each). Memory: one tile at a time, its vectors in chunks whose grids fit ``KIRCHHOFF_GRID_BYTES``. Arrays:
+numpy or CuPy (``xp``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: the largest phase rest (rad) at a tile's corner, taken to second order (error eps^3 / 6): the tile's size
+KIRCHHOFF_EPS = 0.05
+#: largest tile side (samples): one weight vector's NUFFT grids ((2 x 1024)^2 cells, GRID_CELL_BYTES a cell) stay ~220 MiB
+KIRCHHOFF_TILE_MAX = 1024
+#: bytes the NUFFT grids of one tile may take at once: its weight vectors go through in chunks that fit
+KIRCHHOFF_GRID_BYTES = 256 * 2 ** 20
+#: bytes a NUFFT grid cell takes per weight vector at the peak of :func:`rwwarp.wave.pixel_scale.nufft_type1`
+#: (the complex accumulator, its FFT and the FFT's temporary: 51 measured with tracemalloc; tests/rwwarp/test_pixel_cost.py)
+GRID_CELL_BYTES = 52
+#: bytes a wave-plane sample takes in one tile beside its weight vectors and the NUFFT's spreading arrays: its kernel
+#: terms (distance, direction, weight, quadratic and cubic coefficients, NUFFT phases); and the spreading arrays'
+#: bytes a sample and cell row of the footprint (2 spread rows: Gaussians, indices, products). tracemalloc in
+#: tests/rwwarp/test_pixel_cost.py
+POINT_BYTES = 240
+SPREAD_ROW_BYTES = 44
+#: the NUFFT's spreading half-width (cells) for the tile's correction terms (all but U's and U_w's plane waves): each is
+#: below KIRCHHOFF_EPS (~5%) of the field, so the NUFFT's 1.7e-3 at 3 (against 3.5e-6 at NUFFT_SPREAD = 6, of the
+#: term's own size) is ~1e-4 of the field; the Rayleigh-Sommerfeld test's error stayed 2.4e-5 / 7.4e-6 (6: 2.5e-5 /
+#: 7.5e-6). 36 cells a point instead of 144: the spreading, most of the work, ~3x less
+REST_SPREAD = 3
+#: the terms of one tile, each a NUFFT weight vector: U's 1 (the plane waves), 4 + 10 (the quadratic rest to second
+#: order), 2 (the amplitude's first-order change), 6 (the cubic phase); U_w ("flux") one more
+N_TERMS = 23
+
+
+def n_vectors(flux: bool) -> int:
+    """Number of NUFFT weight vectors per tile (:data:`N_TERMS`, one more for ``pixel_values="flux"``)."""
+    return N_TERMS + (1 if flux else 0)
+
+
+def chunk_vectors(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -> int:
+    """How many of a tile's weight vectors go through the NUFFT at once: the most whose grids
+    (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` oversampled grid, ``nt`` the tile's side) and vectors (16 bytes
+    a point) fit ``grid_bytes`` (None: ``KIRCHHOFF_GRID_BYTES``), at least one."""
+    from .pixel_scale import NUFFT_OVERSAMPLE
+    M = NUFFT_OVERSAMPLE * int(nt)
+    b = KIRCHHOFF_GRID_BYTES if grid_bytes is None else int(grid_bytes)
+    return max(1, min(n_vectors(flux), b // (GRID_CELL_BYTES * M * M + 16 * int(points))))
+
+
+def _coefficients(r, u, xp):
+    """(4, J): ``g = (1 / (2 r), u_x^2 / (2 r), u_x u_y / r, u_y^2 / (2 r))`` (1/mm) of the quadratic term
+    ``sum_a g_a b_a(D)``, ``b = (|D|^2, -D_x^2, -D_x D_y, -D_y^2)``."""
+    return xp.stack([0.5 / r, 0.5 * u[:, 0] ** 2 / r, u[:, 0] * u[:, 1] / r, 0.5 * u[:, 1] ** 2 / r])
+
+
+def _cubic(r, u, xp=np):
+    """The six coefficients (1/mm^2) of the third-order phase ``-(u.D) (|D|^2 - (u.D)^2) / (2 r^2)`` on the basis
+    ``(-D_x |D|^2, -D_y |D|^2, D_x^3, D_x^2 D_y, D_x D_y^2, D_y^3)``."""
+    ux, uy, c = u[:, 0], u[:, 1], 0.5 / (r * r)
+    return (c * ux, c * uy, c * ux ** 3, 3.0 * c * ux ** 2 * uy, 3.0 * c * ux * uy ** 2, c * uy ** 3)
+
+
+def _rest_norm(g, xp):
+    """The largest ``|sum_a (g_a - mid g_a) b_a(D)| / |D|^2`` over the rays and directions (1/mm): the spectral norm
+    of the rest's 2 x 2 form ``[[d1 - d2, -d3 / 2], [-d3 / 2, d1 - d4]]``, ``mid``: the midrange over the rays."""
+    d = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
+    a, c, b = d[0] - d[1], d[0] - d[3], -0.5 * d[2]
+    return float(xp.max(xp.abs(0.5 * (a + c)) + xp.sqrt(0.25 * (a - c) ** 2 + b * b)))
+
+
+def kirchhoff_tiles(P, T, lam_mm: float, n_med: float, h_mm: float, n: int, tile_max: int = KIRCHHOFF_TILE_MAX,
+                    xp=np):
+    """``(n_t, t)``: the sensor grid of ``n`` samples a side in ``t x t`` tiles of ``n_t`` (even) for
+    :func:`kirchhoff_samples`: the quadratic term's rest, spread over the wave-plane samples ``P`` (J, 3) (mm)
+    seen from the patch centre ``T`` (3,), below ``KIRCHHOFF_EPS`` rad at a tile's corner; ``n_t <= tile_max``."""
+    k0 = 2.0 * math.pi / lam_mm
+    P = xp.asarray(P, dtype=xp.float64)
+    Tx = xp.asarray(np.asarray(T, float))
+    r0 = xp.sqrt(xp.sum((Tx - P) ** 2, -1))
+    norm = _rest_norm(_coefficients(r0, (Tx - P) / r0[:, None], xp), xp)
+    half = math.sqrt(KIRCHHOFF_EPS / (k0 * n_med * 2.0 * max(norm, 1e-30)))     # a: |D|^2 <= 2 a^2
+    nt = max(8, min(int(tile_max), 2 * int(half / h_mm)))
+    t = max(1, int(math.ceil(n / nt)))
+    return 2 * int(math.ceil(n / (2 * t))), t
+
+
+def _terms(w, r, u, flux, xp):
+    """The tile's weight vectors as ``(make, key)`` pairs, in the order of :func:`_coefficient`: ``make()`` the (J,)
+    complex vector (made when its chunk runs), ``key`` what it multiplies in ``U`` / ``U_w``."""
+    g = _coefficients(r, u, xp)
+    g = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
+    pairs = [(a, b) for a in range(4) for b in range(a, 4)]
+    cub = _cubic(r, u, xp)
+    out = [(lambda: w, ("one",))]
+    out += [(lambda a=a: w * g[a], ("lin", a)) for a in range(4)]
+    out += [(lambda a=a, b=b: w * g[a] * g[b], ("quad", a, b)) for a, b in pairs]
+    out += [(lambda i=i: w * u[:, i] / r, ("amp", i)) for i in range(2)]
+    out += [(lambda i=i: w * cub[i], ("cub", i)) for i in range(6)]
+    out += [(lambda: w * u[:, 2], ("flux",))] if flux else []
+    return out
+
+
+def _coefficient(key, Dx, Dy, kn):
+    """What the NUFFT of the term ``key`` (:func:`_terms`) multiplies in ``U`` at ``D = (Dx, Dy)`` (mm; arrays that
+    broadcast to the tile), and the factor its share of ``U_w`` takes beside the rays' mean ``u_z``."""
+    basis = lambda a: (Dx ** 2 + Dy ** 2, -Dx ** 2, -Dx * Dy, -Dy ** 2)[a]
+    if key[0] == "one":
+        return 1.0, 0.0
+    if key[0] == "lin":        # exp(i eps) to second order: 1 + i eps - eps^2 / 2, eps = kn sum_a g_a b_a
+        return (1j * kn) * basis(key[1]), 1.0
+    if key[0] == "quad":
+        a, b = key[1], key[2]
+        return (-0.5 * kn * kn * (1.0 if a == b else 2.0)) * basis(a) * basis(b), 1.0
+    if key[0] == "amp":        # the amplitude dz / r^2 at X + D: times 1 - 2 u.D / r to first order
+        return -2.0 * (Dx, Dy)[key[1]], 1.5
+    if key[0] == "cub":
+        # the third-order phase -(u.D) (|D|^2 - (u.D)^2) / (2 r^2), to first order (< 0.01 rad: a u-odd phase, a
+        # shift of the spot between tiles, measured 6e-3 of the peak on an f/10 lens with 0.33 mm tiles without it)
+        s2 = Dx ** 2 + Dy ** 2
+        return (1j * kn) * (-Dx * s2, -Dy * s2, Dx ** 3, Dx ** 2 * Dy, Dx * Dy ** 2, Dy ** 3)[key[1]], 1.0
+    return 0.0, None            # "flux": U_w's plane waves, times 1
+
+
+def near_tiles(n: int, nt: int, t: int, h_mm: float, reach_mm: float | None):
+    """The tiles ``(ay, ax)`` of the ``n``-sample grid (``t x t`` tiles of ``nt``, laid as :func:`kirchhoff_samples`
+    lays them, pitch ``h_mm``) that come within ``reach_mm`` of its centre (all where ``reach_mm`` is None)."""
+    out = []
+    for ay in range(t):
+        for ax in range(t):
+            gap = []
+            for a in (ay, ax):      # the tile's samples (m - n/2) h, m = a nt .. min(a nt + nt, n) - 1: distance from 0
+                lo, hi = (a * nt - n // 2) * h_mm, (min(a * nt + nt, n) - 1 - n // 2) * h_mm
+                gap.append(max(lo, -hi, 0.0))
+            if reach_mm is None or math.hypot(*gap) <= reach_mm:
+                out.append((ay, ax))
+    return out
+
+
+def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_mm: float, n: int, flux: bool,
+                      xp=np, tile_max: int = KIRCHHOFF_TILE_MAX, grid_bytes: int | None = None, base=None,
+                      reach_mm: float | None = None):
+    """``|U|^2`` (``flux`` False) or ``Re(conj(U) U_w)`` on the sensor grid ``T + (m - n/2) h`` (mm; ``m = 0 ..
+    n-1`` per axis, array ``[y, x]``), ``U`` the Rayleigh-Sommerfeld sum of the wave-plane samples.
+
+    ``P`` (J, 3) the samples on the wave plane (mm), ``L`` (J,) their optical paths (mm), ``amp_dA`` (J,) complex
+    ``W_j dA_j`` without the phase ``exp(i k0 L)`` (sqrt(power) x mm), ``T`` (3,) the patch centre on the sensor
+    (mm), ``carrier`` (2,) the frequency the grid is centred on (cycles/mm), ``h_mm`` the grid's pitch (it must
+    sample the samples' frequencies ``n u_xy / lambda`` within +-1 / (2 h) of ``carrier``). Tiles as
+    :func:`kirchhoff_tiles` (``tile_max``), one after the other; a tile's weight vectors go through the NUFFT in
+    chunks (:func:`chunk_vectors`, ``grid_bytes``), so memory is bounded whatever ``n``. ``reach_mm``: only the tiles
+    within it of ``T`` (:func:`near_tiles`), the others taken from ``base`` ((n, n), e.g. the Debye form's samples;
+    not changed). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
+    grid's band."""
+    from . import pixel_scale
+    k0 = 2.0 * math.pi / lam_mm
+    kn = k0 * n_med
+    P = xp.asarray(P, dtype=xp.float64)
+    T = np.asarray(T, float)
+    nt, t = kirchhoff_tiles(P, T, lam_mm, n_med, h_mm, n, tile_max, xp)
+    kc = chunk_vectors(nt, len(P), flux, grid_bytes)
+    if reach_mm is not None and base is None:
+        raise ValueError("kirchhoff_samples: reach_mm needs base, the samples of the tiles beyond it")
+    out = xp.zeros((n, n)) if reach_mm is None else xp.array(base, dtype=xp.float64, copy=True)
+    m = xp.asarray(np.arange(-nt // 2, nt // 2) * h_mm)
+    Dy, Dx = m[:, None], m[None, :]
+    for ay, ax in near_tiles(n, nt, t, h_mm, reach_mm):
+        m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
+        X = xp.asarray([T[0] + m0x * h_mm, T[1] + m0y * h_mm, T[2]])
+        d = X - P
+        r = xp.sqrt(xp.sum(d * d, -1))
+        u = d / r[:, None]
+        del d
+        w = amp_dA * xp.exp(1j * k0 * (L + n_med * r)) * (n_med / (1j * lam_mm)) * u[:, 2] / r
+        tx = 2.0 * math.pi * (n_med * u[:, 0] / lam_mm - carrier[0]) * h_mm
+        ty = 2.0 * math.pi * (n_med * u[:, 1] / lam_mm - carrier[1]) * h_mm
+        if float(xp.max(xp.abs(tx))) >= math.pi or float(xp.max(xp.abs(ty))) >= math.pi:
+            raise FloatingPointError("pixel method (Kirchhoff form): a wave-plane sample's direction to the "
+                                     "patch lies beyond the sensor grid's band: please report this lens and field")
+        # U_w: each term times u_z (dz / r: its change 1 - u.D / r); the rests with the rays' mean u_z (u_z
+        # spreads by ~3% at f/2, the rests are < KIRCHHOFF_EPS of the field: ~1e-3 of a term ~1e-3 of it)
+        uz = float(xp.sum(xp.abs(w) * u[:, 2]) / xp.sum(xp.abs(w))) if flux else 0.0
+        terms = _terms(w, r, u, flux, xp)
+        U = xp.zeros((nt, nt), dtype=xp.complex128)
+        Uw = xp.zeros((nt, nt), dtype=xp.complex128) if flux else None
+        main = [q for q in terms if q[1][0] in ("one", "flux")]
+        rest = [q for q in terms if q[1][0] not in ("one", "flux")]
+        parts = [(main, None)] + [(rest[c0:c0 + kc], REST_SPREAD) for c0 in range(0, len(rest), kc)]
+        for part, spread in parts:
+            N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
+            for (_, key), Nq in zip(part, N):
+                cu, cw = _coefficient(key, Dx, Dy, kn)
+                if cw is None:
+                    Uw += Nq
+                    continue
+                U += cu * Nq
+                if flux and cw:
+                    Uw += (cw * uz) * cu * Nq
+            del N
+        It = xp.real(xp.conj(U) * Uw) if flux else xp.abs(U) ** 2
+        del U, Uw, terms, w, r, u, tx, ty
+        hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
+        out[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+    return out
+
+
+def tile_cost(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -> dict:
+    """Peak memory (bytes) and work (flops) of one tile of :func:`kirchhoff_samples`: ``nt`` samples a side,
+    ``points`` wave-plane samples. Memory: ``POINT_BYTES`` a sample, and the larger NUFFT call's vectors (16 bytes a
+    sample), grids (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` grid) and spreading arrays (``SPREAD_ROW_BYTES``
+    a sample and footprint row), ~3 complex ``nt^2`` arrays (``U``, ``U_w``, a coefficient,
+    products). Flops of the NUFFTs (:func:`rwwarp.wave.pixel_scale.nufft_flops`: one call for the plane waves of ``U``
+    and ``U_w``, one a chunk of the corrections at ``REST_SPREAD``) and ~10 a term and sample to form the vectors and
+    combine them (``nt^2``)."""
+    from .pixel_scale import NUFFT_OVERSAMPLE, nufft_flops
+    K, kc = n_vectors(flux), chunk_vectors(nt, points, flux, grid_bytes)
+    M = NUFFT_OVERSAMPLE * int(nt)
+    main = 2 if flux else 1                      # the plane waves of U (and U_w): one call at NUFFT_SPREAD
+    full, last = divmod(K - main, kc)
+    nufft = (nufft_flops(points, main, nt) + full * nufft_flops(points, kc, nt, REST_SPREAD)
+             + (nufft_flops(points, last, nt, REST_SPREAD) if last else 0.0))
+    from .pixel_scale import NUFFT_SPREAD
+    call = lambda k, spread: k * (GRID_CELL_BYTES * M * M + 16 * points) + SPREAD_ROW_BYTES * 2 * spread * points
+    mem = POINT_BYTES * points + max(call(main, NUFFT_SPREAD), call(kc, REST_SPREAD)) + 3 * 16 * nt * nt
+    return {"memory_bytes": int(mem), "flops": float(nufft + 10.0 * K * (points + nt * nt) + 200.0 * points),
+            "nufft_flops": float(nufft), "vectors": K, "chunk": kc}
