@@ -76,7 +76,10 @@ def test_training_keeps_the_doe_within_the_limit(tmp_path):
     import json
     from test_train import tiny
     from torch_bridge.train import train
-    res = train(tiny(**{"optics.min_feature_um": 200.0, "train.joint_steps": 4, "train.finetune_steps": 1}),
+    # 2 joint steps, no fine-tune: every optics step is projected (measured: 2 projections in 2 steps, 4 in
+    # 4 before; the smallest step 0.2000000002 mm either way) and the fine-tune phase freezes the optics,
+    # so more steps add nothing to what is checked
+    res = train(tiny(**{"optics.min_feature_um": 200.0, "train.joint_steps": 2, "train.finetune_steps": 0}),
                 out_dir=tmp_path)
     r = json.loads((tmp_path / "e2e" / "result.json").read_text())
     assert r["feature_projections"] >= 1

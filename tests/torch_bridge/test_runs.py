@@ -6,6 +6,7 @@ one bit for bit with the full state. Also: pack parts and their checks, resuming
 import io
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -37,6 +38,15 @@ def _design(*args, **kw):
                           text=True, env=env, timeout=120, **kw)
 
 
+def _rwwarp_status(*args):
+    """``rwwarp design status ARGS`` in another process (the command line's fast path: it reads the run's
+    files without importing torch, a few seconds less than ``python -m torch_bridge.train status``)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    code = "import sys, rwwarp.cli as c\nsys.exit(c.main(sys.argv[1:]))\n"
+    return subprocess.run([sys.executable, "-c", code, "design", "status", *map(str, args)], capture_output=True,
+                          text=True, env=env, timeout=120)
+
+
 def test_detached_run_killed_and_resumed_from_the_pack_equals_an_uninterrupted_run(tmp_path):
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(yaml.safe_dump(tiny(**OVER)))
@@ -50,7 +60,7 @@ def test_detached_run_killed_and_resumed_from_the_pack_equals_an_uninterrupted_r
         if ck.exists() and torch.load(ck, weights_only=False)["step"] >= 1:
             break
         time.sleep(0.1)
-    st = _design("status", run)                # from another process
+    st = _rwwarp_status(run)                   # from another process
     assert st.returncode == 0 and "ALIVE" in st.stdout, st.stdout + st.stderr
     assert json.loads((run / "progress.json").read_text())["arm"] == "e2e"
     os.kill(pid["pid"], signal.SIGKILL)        # a machine taken back: no handler runs
@@ -58,7 +68,7 @@ def test_detached_run_killed_and_resumed_from_the_pack_equals_an_uninterrupted_r
         if not process_alive(pid["pid"], pid["start_ticks"]):
             break
         time.sleep(0.05)
-    st = _design("status", run, "--json")
+    st = _rwwarp_status(run, "--json")
     rec = json.loads(st.stdout)
     assert st.returncode == 1 and not rec["alive"] and rec["state"] == "dead", st.stdout
     step = torch.load(ck, weights_only=False)["step"]
@@ -107,21 +117,26 @@ def test_detached_run_killed_and_resumed_from_the_pack_equals_an_uninterrupted_r
 def test_resume_without_adam_state_and_bf16_weights(tmp_path):
     """The small portable form (bfloat16 weights, no Adam moments) resumes and finishes; it is not the
     uninterrupted run (Adam restarts, weights rounded to 8 bits of mantissa), and says so."""
-    over = dict(OVER, **{"train.checkpoint_every": 0})
-    train(tiny(**over, **{"train.stop_after": 3}), out_dir=tmp_path / "run")
+    # 2 joint steps and 1 fine-tune step, stopped after the first: the network's Adam state exists from the
+    # first step on, and the resumed run goes on through an optics step and a fine-tune step (5 steps
+    # stopped after 3 before: the same paths, 2 steps more)
+    over = dict(OVER, **{"train.checkpoint_every": 0, "train.joint_steps": 2, "train.finetune_steps": 1})
+    total = 3
+    train(tiny(**over, **{"train.stop_after": 1}), out_dir=tmp_path / "run")
     full = pack(tmp_path / "run", tmp_path / "p_full")
     small = pack(tmp_path / "run", tmp_path / "p_small", weights="bfloat16", optimizer="none")
     assert small["bytes"] < full["bytes"]
     unpack(tmp_path / "p_small", tmp_path / "res")
     ck = torch.load(tmp_path / "res" / "e2e" / "checkpoint.pt", weights_only=False)
     ref = torch.load(tmp_path / "run" / "e2e" / "checkpoint.pt", weights_only=False)
-    assert ck["opt_net"] is None and ck["step"] == ref["step"] == 3
+    assert ck["opt_net"] is None and ck["step"] == ref["step"] == 1
+    assert ref["opt_net"]["state"]                  # there was an Adam state to leave out
     for k, v in ref["net"].items():            # bfloat16 round trip: relative error <= 2^-8
         assert ck["net"][k].dtype == torch.float32
         assert torch.allclose(ck["net"][k], v, rtol=2 ** -8, atol=0), k
     assert torch.equal(ck["module"]["doe"], ref["module"]["doe"])     # the optics state is exact
     res = train(tiny(**over), out_dir=tmp_path / "res")["e2e"]
-    assert res["steps_done"] == TOTAL and res["run"]["resumed_without_optimizer"]
+    assert res["steps_done"] == total and res["run"]["resumed_without_optimizer"]
     assert any("without the network's Adam state" in n for n in res["notes"])
 
 
@@ -215,8 +230,14 @@ def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path)
             "arms": [{"name": "fixed", "design": {"method": "fixed"}}], "data.eval_images": 2}
     ref = train(tiny(**base), out_dir=tmp_path / "ref")["fixed"]["eval"]["depths"][0]
     for chunk, tol_db in ((4, 1e-9), (1, 0.05)):
-        ev = train(tiny(**base, **{"eval.grid": [2, 2], "eval.node_chunk": chunk}),
-                   out_dir=tmp_path / f"g{chunk}")["fixed"]["eval"]["depths"][0]
+        # the same trained arm evaluated on the eval grid: the reference's final checkpoint (its network
+        # and optics bit for bit, as the resume tests show) resumes at its last step, so the run only
+        # evaluates: the property is the evaluation's, training it again would give the same state
+        (tmp_path / f"g{chunk}" / "fixed").mkdir(parents=True)
+        shutil.copy(tmp_path / "ref" / "fixed" / "checkpoint.pt", tmp_path / f"g{chunk}" / "fixed" / "checkpoint.pt")
+        res = train(tiny(**base, **{"eval.grid": [2, 2], "eval.node_chunk": chunk}), out_dir=tmp_path / f"g{chunk}")
+        ev = res["fixed"]["eval"]["depths"][0]
+        assert res["fixed"]["run"]["segments"][-1]["start_step"] == 2        # resumed finished: no training
         assert len(ev["nodes"]) == 4
         for a, b in zip(ev["nodes"], ref["nodes"]):
             assert np.allclose(a["position_mm"], b["position_mm"], rtol=0, atol=1e-12)
