@@ -82,6 +82,8 @@ from dataclasses import dataclass, asdict
 
 import numpy as np
 
+from .edge_wave import edge_wave_error, fit_pupil_phase
+
 #: calibration of :func:`model_error` (module docstring): E = C S / N_F (1 + (S / S0)^2)
 MODEL_ERROR_C = 0.25
 MODEL_ERROR_S0 = 25.0
@@ -321,6 +323,16 @@ def estimate_for_raywave(rw) -> list:
         d = reduced_distance_mm(z1, R)
         nf = fresnel_number(beam_r, z1, R, w, n)
         main = model_error(nf, slope)
+        if math.isfinite(nf) and len(xy) >= 6:
+            # the rim's edge waves summed on the beam's own pupil phase (rwwarp.wave.edge_wave): on and off the
+            # DOE's axis, no constant fitted; the scalar law above only where the phase is too steep to sample
+            dfm = (f - f_sph) - (f - f_sph).mean(0)
+            ph = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * dfm)
+            ew, _ = edge_wave_error(nf, ph)
+            if ew is None:
+                note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
+            else:
+                main = ew
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane

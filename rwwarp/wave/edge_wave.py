@@ -1,0 +1,205 @@
+"""The rim's edge wave: the model error of the main order from the beam's pupil phase (issue 27).
+
+:mod:`rwwarp.wave.model_error` derives the picture; this module evaluates it for any pupil phase, on or off the
+DOE's axis. Coordinates ``u`` on the wave plane are over the beam's radius (``|u| <= 1`` the beam, ``n(theta)``
+the rim's outward normal), ``Phi(u)`` (rad) the wavefront after the DOE against the sphere converging to the
+patch centre. On the sensor (the sphere's centre) the geometric model's field at the observation point of
+*tilt* ``t`` (rad per unit ``u``: a sensor offset ``lambda z t / (2 pi r_w)``) is, over the unaberrated peak's
+amplitude,
+
+    U(t) = (1 / pi) int_disc exp(i (Phi(u) - t . u)) d^2u .
+
+The truth has the aperture's edge diffracted over the reduced distance ``d`` first (``N_F = r_w^2 / (lambda d)``):
+across the rim the hard step becomes the Fresnel edge, and the difference ``h`` (edge minus step) lives within
+``~ sqrt(lambda d)`` of the rim. Locally at each rim point the phase across the edge is linear, of radial slope
+``s(theta) = n . grad Phi - t . n`` (rad per unit u, the tilt included), and the 1-D edge's Fourier pair gives
+``int h(x) exp(i s x) dx = (exp(-i psi) - 1) / (i s)``: each plane-wave component of the edge is turned by
+the Fresnel phase of its frequency, ``psi = s^2 / (4 pi N_F)``. A chirp across the edge (the radial curvature
+``c(theta) = n^T H_Phi n`` at the rim) turns its curvature as it propagates; for a defocus this is exact in Fresnel
+order as ``psi = s^2 / (4 pi N_F + 2 c)`` (:mod:`rwwarp.wave.model_error`, "Other orders"), used here for every
+phase. So the truth's field is ``U + dU`` with
+
+    dU(t) = (1 / 2 pi) int_0^(2 pi) 2 exp(i (Phi(n) - t . n)) (exp(-i psi) - 1) / (i s) dtheta
+
+and the error over the PSF's peak is ``E = max_t |2 Re(conj(U) dU) + |dU|^2| / max_t |U + dU|^2`` (the truth's
+peak: an edge wave that lowers the peak raises ``E``). Small ``psi`` and a
+radial phase give ``E = S / (pi N_F)`` on the axis (the old ``C S / N_F``); as ``psi`` grows, ``|exp(-i psi) - 1|
+<= 2`` saturates and the edge wave's phase turns against the core's: the error grows slower than ``1 / N_F``
+(module docstring of :mod:`rwwarp.wave.model_error`: the measured cases). Off the DOE's axis, the rim phase
+``Phi(n(theta))`` varies around the rim (a decentred DOE's coma and astigmatism): the rim's edge waves reach no
+sensor point in phase, and the max over ``t`` takes the best one; a tilt of the whole beam is a shift of ``t``
+and changes nothing. No constant is fitted.
+
+``U`` is one zero-padded FFT of ``exp(i Phi)`` sampled on the disc (the cells on the rim weighted by their
+share inside it); ``dU`` is summed on the rim for the tilts within :data:`SEARCH_RAD` of ``U``'s peak. Phases in
+rad, lengths over the beam's radius (dimensionless).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: degree of the 2-D pupil polynomial fitted to the pilot rays (:func:`fit_pupil_phase`): monomials u_x^i u_y^j,
+#: 1 <= i + j <= PUPIL_DEGREE
+PUPIL_DEGREE = 6
+#: the observation points searched for the largest error: tilts within this radius (rad per unit u) of the
+#: model PSF's peak (1.6 Airy radii: the first zero of the Airy pattern is at |t| = 3.83)
+SEARCH_RAD = 6.0
+#: the pupil samples across the beam's diameter are at most this many (a phase that needs more, a slope
+#: beyond ~180 rad, is outside what the estimate is built for: :func:`edge_wave_error` returns None)
+MAX_SAMPLES = 256
+
+
+@dataclass(frozen=True)
+class PupilPhase:
+    """A polynomial pupil phase ``Phi(u) = sum_k c_k u_x^(p_k) u_y^(q_k)`` (rad; ``u`` over the beam's radius).
+    ``powers`` (K, 2) int, ``coeffs`` (K,) rad."""
+
+    powers: np.ndarray
+    coeffs: np.ndarray
+
+    def _eval(self, ux, uy, dx=0, dy=0):
+        out = np.zeros(np.broadcast(ux, uy).shape)
+        for (p, q), c in zip(self.powers, self.coeffs):
+            if p < dx or q < dy or c == 0:
+                continue
+            fp = math.perm(int(p), dx) if dx else 1
+            fq = math.perm(int(q), dy) if dy else 1
+            out = out + c * fp * fq * ux ** (p - dx) * uy ** (q - dy)
+        return out
+
+    def value(self, ux, uy):
+        """Phi (rad) at ``(ux, uy)``."""
+        return self._eval(ux, uy)
+
+    def gradient(self, ux, uy):
+        """``(dPhi/dux, dPhi/duy)`` (rad per unit u)."""
+        return self._eval(ux, uy, 1, 0), self._eval(ux, uy, 0, 1)
+
+    def hessian(self, ux, uy):
+        """``(Phi_xx, Phi_xy, Phi_yy)`` (rad per unit u^2)."""
+        return self._eval(ux, uy, 2, 0), self._eval(ux, uy, 1, 1), self._eval(ux, uy, 0, 2)
+
+
+def _powers(degree):
+    return np.array([(i, n - i) for n in range(1, degree + 1) for i in range(n, -1, -1)], int)
+
+
+def fit_pupil_phase(u, grad, degree: int = PUPIL_DEGREE) -> PupilPhase:
+    """Least-squares :class:`PupilPhase` (monomials of degree 1 .. ``degree``, no constant) whose gradient matches
+    ``grad`` (N, 2) (rad per unit u) at the points ``u`` (N, 2) (over the beam's radius): the pilot rays'
+    transverse frequencies against the sphere to the patch, times ``2 pi r_w``. The degree drops until the
+    points outnumber the unknowns twice."""
+    u, g = np.asarray(u, float), np.asarray(grad, float)
+    if u.ndim != 2 or u.shape[1] != 2 or g.shape != u.shape or len(u) < 2:
+        raise ValueError(f"fit_pupil_phase: need u and grad of the same shape (N >= 2, 2), got {u.shape}, {g.shape}")
+    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(g))):
+        raise ValueError("fit_pupil_phase: u and grad must be finite")
+    while degree > 1 and len(_powers(degree)) > len(u):
+        degree -= 1
+    P = _powers(degree)
+    one = PupilPhase(P, np.zeros(len(P)))
+    cols = []
+    for k in range(len(P)):
+        c = np.zeros(len(P))
+        c[k] = 1.0
+        gx, gy = PupilPhase(P, c).gradient(u[:, 0], u[:, 1])
+        cols.append(np.concatenate([gx, gy]))
+    A = np.stack(cols, 1)
+    scale = np.maximum(np.sqrt(np.sum(A * A, 0)), 1e-300)
+    coef = np.linalg.lstsq(A / scale, np.concatenate([g[:, 0], g[:, 1]]), rcond=None)[0] / scale
+    return PupilPhase(one.powers, coef)
+
+
+def radial_pupil_phase(coeffs) -> PupilPhase:
+    """The :class:`PupilPhase` of ``sum_i c_i rho^(2 i)`` (rad, ``i = 1 ..``; ``rho = |u|``), expanded binomially."""
+    terms = {}
+    for i, c in enumerate(coeffs, start=1):
+        for j in range(i + 1):     # (ux^2 + uy^2)^i
+            key = (2 * j, 2 * (i - j))
+            terms[key] = terms.get(key, 0.0) + float(c) * math.comb(i, j)
+    keys = sorted(terms)
+    return PupilPhase(np.array(keys, int).reshape(-1, 2), np.array([terms[k] for k in keys], float))
+
+
+def _edge(s, den):
+    """``2 (exp(-i psi) - 1) / (i s)``, ``psi = s^2 / den``; its limit ``-2 s / den`` at small ``s``."""
+    psi = s * s / den
+    small = np.abs(psi) < 1e-6
+    safe = np.where(small, 1.0, s)
+    return np.where(small, -2.0 * s / den, 2.0 * (np.exp(-1j * psi) - 1.0) / (1j * safe))
+
+
+def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float = SEARCH_RAD):
+    """The main order's model error ``E = max_t |2 Re(conj(U) dU) + |dU|^2| / max_t |U + dU|^2`` (dimensionless,
+    over the truth PSF's peak) for the pupil ``phase`` (:class:`PupilPhase`, rad, against the sphere to the patch) and the
+    Fresnel number ``N_F`` of the rim over the reduced distance (module docstring). Returns ``(E, info)``,
+    ``info`` a dict: ``peak_tilt`` (rad per unit u, where ``|U|`` peaks), ``strehl`` / ``strehl_true`` (``max |U|^2`` /
+    ``max |U + dU|^2``, over the unaberrated peak), ``max_psi_rad`` (the largest Fresnel phase of the rim's edge wave at the peak), ``samples``;
+    ``(None, info)`` where the phase needs more than :data:`MAX_SAMPLES` samples across the beam. 0 for ``N_F =
+    inf``."""
+    nf = float(fresnel_number_)
+    if not nf > 0:
+        raise ValueError(f"edge_wave_error: need a Fresnel number > 0, got {fresnel_number_!r}")
+    if math.isinf(nf):
+        return 0.0, {"peak_tilt": (0.0, 0.0), "strehl": 1.0, "max_psi_rad": 0.0, "samples": 0}
+    # the phase's largest slope sets the sampling: at most pi / 2 per sample
+    th = np.linspace(0.0, 2 * math.pi, 257)[:-1]
+    rr = np.linspace(0.0, 1.0, 33)
+    gx, gy = phase.gradient(np.outer(rr, np.cos(th)), np.outer(rr, np.sin(th)))
+    gmax = float(np.sqrt(np.max(gx * gx + gy * gy)))
+    if not math.isfinite(gmax):
+        raise ValueError("edge_wave_error: the pupil phase is not finite on the beam")
+    n = 64
+    while n < 4 * gmax / math.pi + 32:
+        n *= 2
+    if n > MAX_SAMPLES:
+        return None, {"peak_tilt": (0.0, 0.0), "strehl": float("nan"), "max_psi_rad": float("nan"), "samples": n}
+    h = 2.0 / n
+    x = -1.0 + h * (np.arange(n) + 0.5)
+    X, Y = np.meshgrid(x, x, indexing="xy")
+    w = np.clip((1.0 - np.hypot(X, Y)) / h + 0.5, 0.0, 1.0)       # the cell's share inside the rim (linear edge)
+    m = 4 * n                                                      # tilt step pi n / m = pi / 4
+    F = np.fft.fft2(w * np.exp(1j * phase.value(X, Y)), s=(m, m)) * (h * h / math.pi)
+    t = 2 * math.pi * np.fft.fftfreq(m, h)
+    # the samples start at u = x[0], not 0: exp(-i t . u) = exp(-i t x[0]) exp(-2 pi i k j / m)
+    ph = np.exp(-1j * t * x[0])
+    U = F * ph[:, None] * ph[None, :]                              # rows: t_y, columns: t_x
+    I = np.abs(U) ** 2
+    iy, ix = np.unravel_index(int(np.argmax(I)), I.shape)
+    ipk = float(I[iy, ix])
+    # the tilts near the peak (indices wrap: the grid is periodic in t)
+    k = int(math.ceil(search_rad / (math.pi * n / m)))
+    jy = (iy + np.arange(-k, k + 1)) % m
+    jx = (ix + np.arange(-k, k + 1)) % m
+    TX, TY = np.meshgrid(t[jx], t[jy], indexing="xy")
+    keep = np.hypot(TX - t[ix], TY - t[iy]) <= search_rad + 1e-9
+    tx, ty = TX[keep], TY[keep]
+    Uk = U[np.ix_(jy, jx)][keep]
+    # the rim: nodes enough for its phase's turns around it
+    cx, cy = np.cos(th), np.sin(th)
+    dth = np.abs(phase.gradient(cx, cy)[1] * cx - phase.gradient(cx, cy)[0] * cy)     # |dPhi/dtheta| on the rim
+    nth = int(min(4096, max(256, 8 * (float(dth.max()) + abs(t[ix]) + abs(t[iy]) + search_rad))))
+    th = 2 * math.pi * np.arange(nth) / nth
+    cx, cy = np.cos(th), np.sin(th)
+    phi = phase.value(cx, cy)
+    gx, gy = phase.gradient(cx, cy)
+    hxx, hxy, hyy = phase.hessian(cx, cy)
+    s0 = gx * cx + gy * cy                                          # radial slope on the rim
+    c = hxx * cx * cx + 2 * hxy * cx * cy + hyy * cy * cy           # radial curvature on the rim
+    # a rim point whose chirp focuses within the reduced distance (4 pi N_F + 2 c <= 0) is outside the one-edge
+    # picture: its curvature is held at -pi N_F (the edge wave then turns by at most s^2 / (2 pi N_F))
+    den = 4 * math.pi * nf + 2 * np.maximum(c, -math.pi * nf)
+    dU = np.empty(len(tx), complex)
+    for a in range(0, len(tx), 256):
+        tn = tx[a:a + 256, None] * cx[None] + ty[a:a + 256, None] * cy[None]
+        dU[a:a + 256] = np.mean(np.exp(1j * (phi[None] - tn)) * _edge(s0[None] - tn, den[None]), axis=1)
+    dI = np.abs(2 * (np.conj(Uk) * dU).real + np.abs(dU) ** 2)
+    # E is over the *truth's* peak, |U + dU|^2 (near the model's: an edge wave that lowers the peak raises E)
+    itrue = float(np.max(np.abs(Uk + dU) ** 2))
+    psi = (s0 - t[ix] * cx - t[iy] * cy) ** 2 / den
+    info = {"peak_tilt": (float(t[ix]), float(t[iy])), "strehl": ipk, "strehl_true": itrue,
+            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n}
+    return (float(dI.max() / itrue) if itrue > 0 else 0.0), info
