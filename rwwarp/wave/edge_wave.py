@@ -31,7 +31,8 @@ sensor point in phase, and the max over ``t`` takes the best one; a tilt of the 
 and changes nothing. No constant is fitted.
 
 ``U`` is one zero-padded FFT of ``exp(i Phi)`` sampled on the disc (the cells on the rim weighted by their
-share inside it); ``dU`` is summed on the rim for the tilts within :data:`SEARCH_RAD` of ``U``'s peak. Phases in
+share inside it); ``dU`` is summed on the rim for the tilts within :data:`SEARCH_RAD` of ``U``'s peak and those where ``|U|^2`` is
+at least :data:`BRIGHT_SHARE` of it (an aberrated PSF's largest change may lie away from its peak). Phases in
 rad, lengths over the beam's radius (dimensionless).
 """
 from __future__ import annotations
@@ -50,6 +51,10 @@ SEARCH_RAD = 6.0
 #: the pupil samples across the beam's diameter are at most this many (a phase that needs more, a slope
 #: beyond ~180 rad, is outside what the estimate is built for: :func:`edge_wave_error` returns None)
 MAX_SAMPLES = 256
+#: ... and the PSF's bright part: the tilts where the model's intensity is at least this share of its peak
+BRIGHT_SHARE = 0.05
+#: at most this many observation points (the brightest)
+MAX_POINTS = 4096
 
 
 @dataclass(frozen=True)
@@ -170,18 +175,18 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     I = np.abs(U) ** 2
     iy, ix = np.unravel_index(int(np.argmax(I)), I.shape)
     ipk = float(I[iy, ix])
-    # the tilts near the peak (indices wrap: the grid is periodic in t)
-    k = int(math.ceil(search_rad / (math.pi * n / m)))
-    jy = (iy + np.arange(-k, k + 1)) % m
-    jx = (ix + np.arange(-k, k + 1)) % m
-    TX, TY = np.meshgrid(t[jx], t[jy], indexing="xy")
-    keep = np.hypot(TX - t[ix], TY - t[iy]) <= search_rad + 1e-9
-    tx, ty = TX[keep], TY[keep]
-    Uk = U[np.ix_(jy, jx)][keep]
+    # the observation points: the tilts near the peak and the PSF's bright part (an aberrated PSF's largest
+    # change may lie away from its peak), at most MAX_POINTS of them, the brightest
+    TX, TY = np.meshgrid(t, t, indexing="xy")
+    near = np.hypot(TX - t[ix], TY - t[iy]) <= search_rad + 1e-9
+    sel = np.flatnonzero((near | (I >= BRIGHT_SHARE * ipk)).ravel())
+    if len(sel) > MAX_POINTS:
+        sel = sel[np.argsort(I.ravel()[sel])[-MAX_POINTS:]]
+    tx, ty, Uk = TX.ravel()[sel], TY.ravel()[sel], U.ravel()[sel]
     # the rim: nodes enough for its phase's turns around it
     cx, cy = np.cos(th), np.sin(th)
     dth = np.abs(phase.gradient(cx, cy)[1] * cx - phase.gradient(cx, cy)[0] * cy)     # |dPhi/dtheta| on the rim
-    nth = int(min(4096, max(256, 8 * (float(dth.max()) + abs(t[ix]) + abs(t[iy]) + search_rad))))
+    nth = int(min(4096, max(256, 8 * (float(dth.max()) + float(np.max(np.hypot(tx, ty)))))))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     phi = phase.value(cx, cy)
