@@ -105,7 +105,6 @@ def fit_pupil_phase(u, grad, degree: int = PUPIL_DEGREE) -> PupilPhase:
     while degree > 1 and len(_powers(degree)) > len(u):
         degree -= 1
     P = _powers(degree)
-    one = PupilPhase(P, np.zeros(len(P)))
     cols = []
     for k in range(len(P)):
         c = np.zeros(len(P))
@@ -115,7 +114,7 @@ def fit_pupil_phase(u, grad, degree: int = PUPIL_DEGREE) -> PupilPhase:
     A = np.stack(cols, 1)
     scale = np.maximum(np.sqrt(np.sum(A * A, 0)), 1e-300)
     coef = np.linalg.lstsq(A / scale, np.concatenate([g[:, 0], g[:, 1]]), rcond=None)[0] / scale
-    return PupilPhase(one.powers, coef)
+    return PupilPhase(P, coef)
 
 
 def radial_pupil_phase(coeffs) -> PupilPhase:

