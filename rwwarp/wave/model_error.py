@@ -55,7 +55,9 @@ edge waves reach no sensor point in phase, and the radial slope's RMS (the law's
 mm, 20 mm (N_F 54.5), 0.5 deg (the beam 0.44 of its radius off the DOE's centre), the law 4.0x, the sum 1.00x (the
 beam's own tilt is a shift of ``t``: it moves the spot and changes nothing). The law remains the fallback for a
 phase too steep for the sum's sampling (slopes beyond ~180 rad: the estimate's note says so) and the ``S`` in
-the plan's line.
+the plan's line. The sum was checked up to rim slopes of 32 rad (below); beyond :data:`CHECKED_SLOPE_RAD` the
+note says so (the A489's beams 5-10 deg off axis reach 36-103 rad; there the sum reads 0.09-0.4x the one-step vs
+wave-path difference, which is no reference either: docs/propagation.md).
 
 Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact
 angular spectrum, thin lens f = 50 mm, 0.55 um, sensor at the lens focus, DOE pupil phase ``sum_i c_i rho^(2i)``;
@@ -127,6 +129,9 @@ from .edge_wave import edge_wave_error, fit_pupil_phase
 #: E = C S / N_F (1 + (S / S0)^2)
 MODEL_ERROR_C = 0.25
 MODEL_ERROR_S0 = 25.0
+#: the largest rim slope (rad) at which the edge-wave estimate was checked against a wave truth (module docstring);
+#: beyond it the plan's note says so
+CHECKED_SLOPE_RAD = 35.0
 #: rim rays: pilot points at least this share of the footprint's largest radius from its centre
 RIM_SHARE = 0.9
 
@@ -379,6 +384,9 @@ def estimate_for_raywave(rw) -> list:
                 note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
             else:
                 main = ew
+                if slope > CHECKED_SLOPE_RAD:
+                    note = "; ".join(x for x in (note, f"rim slope {slope:.3g} rad: beyond the {CHECKED_SLOPE_RAD:g} rad "
+                                                 "checked against a wave truth") if x)
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane

@@ -23,7 +23,7 @@ from _wave_truth import pixel_truth as _pixel_truth
 # every case is held out. Measured estimate / error: 0.96 / 0.97 / 0.94 (a 2.5, rho^4 3 / 3 / 8 rad, 10 / 35 / 10 mm:
 # the old law's calibration cases, not tested here), 0.99 (a 2.5, rho^4 3 rad, 20 mm, N_F 152), 1.17 (defocus 2 rad,
 # 45 mm, N_F 2045), 1.06 (a 1.5, rho^2 + rho^4, 35 mm, N_F 191), 0.99 (a 1.5, rho^6 3 rad, 35 mm, N_F 191). Below N_F ~ 50 (the old law
-# C S / N_F (1 + (S / S0)^2) read 2.3x / 4.3x / 1.2x high there): 0.92 (a 1.5, 3 rho^4, 10 mm, N_F 20.5, S 12), 0.90
+# C S / N_F (1 + (S / S0)^2) read 2.27x / 4.33x / 0.81x there): 0.92 (a 1.5, 3 rho^4, 10 mm, N_F 20.5, S 12), 0.90
 # (a 1.0, 10 mm, N_F 9.1, S 12), 0.97 (a 1.5, 4 rho^4, 14 mm, N_F 31.8, S 16).
 HELD_OUT = [(2.5, 20.0, (0.0, 3.0)), (2.5, 45.0, (2.0, 0.0)), (1.5, 35.0, (-3.0, 3.0)), (1.5, 35.0, (0.0, 0.0, 3.0)),
             (1.5, 10.0, (0.0, 3.0)), (1.0, 10.0, (0.0, 3.0)), (1.5, 14.0, (0.0, 4.0))]
