@@ -54,7 +54,7 @@ MAX_SAMPLES = 256
 #: ... and the PSF's bright part: the tilts where the model's intensity is at least this share of its peak
 BRIGHT_SHARE = 0.05
 #: at most this many observation points (the brightest)
-MAX_POINTS = 4096
+MAX_POINTS = 1024
 
 
 @dataclass(frozen=True)
