@@ -68,20 +68,33 @@ class PupilPhase:
     powers: np.ndarray
     coeffs: np.ndarray
 
-    def _eval(self, ux, uy, dx=0, dy=0, tables=None):
-        ux, uy = np.asarray(ux, float), np.asarray(uy, float)
-        X, Y = _power_tables(ux, uy, self.degree) if tables is None else tables
-        out = None
-        for (p, q), c in zip(self.powers, self.coeffs):
-            if p < dx or q < dy or c == 0:
-                continue
-            f = float(c) * (math.perm(int(p), dx) if dx else 1) * (math.perm(int(q), dy) if dy else 1)
-            term = f * X[p - dx] * Y[q - dy]
-            out = term if out is None else out + term
-        shape = np.broadcast(ux, uy).shape
-        if out is None:
-            return np.zeros(shape)
-        return out if out.shape == shape else out + np.zeros(shape)
+    def _coef_matrix(self, orders):
+        """``C`` (D, D) per derivative order ``(dx, dy)`` in ``orders``: the derivative is ``sum_pq C[p, q] ux^p uy^q``."""
+        d = max(self.degree, 0)
+        out = np.zeros((len(orders), d + 1, d + 1))
+        for k, (dx, dy) in enumerate(orders):
+            for (p, q), c in zip(self.powers, self.coeffs):
+                p, q = int(p), int(q)
+                if p >= dx and q >= dy and c != 0:
+                    out[k, p - dx, q - dy] += float(c) * math.perm(p, dx) * math.perm(q, dy)
+        return out
+
+    def _eval(self, ux, uy, orders=((0, 0),)):
+        """The derivatives ``orders`` ((dx, dy) each) of Phi at ``(ux, uy)`` (broadcast), one array each: the table of
+        powers ``ux^p``, ``uy^q`` once, then a product with the coefficients."""
+        ux, uy = np.broadcast_arrays(np.asarray(ux, float), np.asarray(uy, float))
+        C = self._coef_matrix(orders)
+        X, Y = _power_tables(ux.ravel(), uy.ravel(), C.shape[1] - 1)
+        X, Y = np.stack(X, 1), np.stack(Y, 1)                        # (N, D)
+        # sum_pq X[n, p] C[k, p, q] Y[n, q]
+        out = np.einsum("np,kpq,nq->kn", X, C, Y, optimize=True) if len(X) else np.zeros((len(C), 0))
+        return [o.reshape(ux.shape) for o in out]
+
+    def _grid(self, x):
+        """Phi on the grid ``ux = x[j]``, ``uy = x[i]`` ((len(x), len(x)), rows: uy): separable, two small products."""
+        C = self._coef_matrix(((0, 0),))[0]
+        X = np.stack(_power_tables(np.asarray(x, float), np.asarray(x, float), C.shape[0] - 1)[0], 1)
+        return X @ C.T @ X.T
 
     @property
     def degree(self) -> int:
@@ -90,19 +103,15 @@ class PupilPhase:
 
     def value(self, ux, uy):
         """Phi (rad) at ``(ux, uy)``."""
-        return self._eval(ux, uy)
+        return self._eval(ux, uy)[0]
 
     def gradient(self, ux, uy):
         """``(dPhi/dux, dPhi/duy)`` (rad per unit u)."""
-        ux, uy = np.asarray(ux, float), np.asarray(uy, float)
-        tab = _power_tables(ux, uy, self.degree)
-        return self._eval(ux, uy, 1, 0, tab), self._eval(ux, uy, 0, 1, tab)
+        return tuple(self._eval(ux, uy, ((1, 0), (0, 1))))
 
     def hessian(self, ux, uy):
         """``(Phi_xx, Phi_xy, Phi_yy)`` (rad per unit u^2)."""
-        ux, uy = np.asarray(ux, float), np.asarray(uy, float)
-        tab = _power_tables(ux, uy, self.degree)
-        return self._eval(ux, uy, 2, 0, tab), self._eval(ux, uy, 1, 1, tab), self._eval(ux, uy, 0, 2, tab)
+        return tuple(self._eval(ux, uy, ((2, 0), (1, 1), (0, 2))))
 
 
 def _power_tables(ux, uy, degree):
@@ -174,7 +183,6 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
         raise ValueError(f"edge_wave_error: need a Fresnel number > 0, got {fresnel_number_!r}")
     if math.isinf(nf):
         return 0.0, {"peak_tilt": (0.0, 0.0), "strehl": 1.0, "max_psi_rad": 0.0, "samples": 0}
-    deg = phase.degree
     # the phase's largest slope sets the sampling
     th = np.linspace(0.0, 2 * math.pi, 129)[:-1]
     rr = np.linspace(0.0, 1.0, 17)
@@ -190,8 +198,7 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     n = sfft.next_fast_len(max(MIN_SAMPLES, int(math.ceil((2.5 * gmax + 40.0) / math.pi))))
     h = 2.0 / n
     x = -1.0 + h * (np.arange(n) + 0.5)
-    tab = _power_tables(x[None, :], x[:, None], deg)
-    val = phase._eval(x[None, :], x[:, None], 0, 0, tab)
+    val = phase._grid(x)
     w = np.clip((1.0 - np.sqrt(x[None, :] ** 2 + x[:, None] ** 2)) / h + 0.5, 0.0, 1.0)   # the cell's share inside the rim
     m = 4 * n                                                      # tilt step 2 pi / (m h) = pi / 4
     F = sfft.fft(sfft.fft(w * np.exp(1j * val), n=m, axis=1), n=m, axis=0)   # rows: t_y, columns: t_x; U h^-2 pi
@@ -226,10 +233,7 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     nth = int(min(4096, 2 * (float(dth.max()) + float(np.max(np.hypot(tx, ty)))) + 64))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
-    tab = _power_tables(cx, cy, deg)
-    phi = phase._eval(cx, cy, 0, 0, tab)
-    gx, gy = phase._eval(cx, cy, 1, 0, tab), phase._eval(cx, cy, 0, 1, tab)
-    hxx, hxy, hyy = phase._eval(cx, cy, 2, 0, tab), phase._eval(cx, cy, 1, 1, tab), phase._eval(cx, cy, 0, 2, tab)
+    phi, gx, gy, hxx, hxy, hyy = phase._eval(cx, cy, ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)))
     s0 = gx * cx + gy * cy                                          # radial slope on the rim
     c = hxx * cx * cx + 2 * hxy * cx * cy + hyy * cy * cy           # radial curvature on the rim
     # a rim point whose chirp focuses within the reduced distance (4 pi N_F + 2 c <= 0) is outside the one-edge

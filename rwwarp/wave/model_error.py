@@ -313,7 +313,37 @@ def estimate_for_raywave(rw) -> list:
     frequencies (``(x - x_c) / r_w`` against ``2 pi r_w (f - f_sphere)``: :func:`rwwarp.wave.edge_wave.fit_pupil_phase`,
     :func:`rwwarp.wave.edge_wave.edge_wave_error`); the scalar law :func:`model_error` on ``S`` where that phase is
     too steep to sample (the note says so); plus, for a wrapped DOE, its other kept orders' edge waves (module
-    docstring, "Other orders": ``orders_estimate``)."""
+    docstring, "Other orders": ``orders_estimate``). The result is kept on ``rw`` (``rw._model_error_memo``) under a digest of
+    every input it reads (the pilot's arrays, the patch centres, the foci, the wavelengths, the planes, the lens and
+    the DOE's profile): the planner asks twice per batch (:func:`rwwarp.wave.pixel_scale.consider_pixel`,
+    :func:`rwwarp.wave.wave_step.plan_wave_step`) and the second ask is free; any changed input recomputes."""
+    key = _memo_key(rw)
+    memo = getattr(rw, "_model_error_memo", None)
+    if memo is not None and memo[0] == key:
+        return list(memo[1])
+    out = _estimate_for_raywave(rw)
+    rw._model_error_memo = (key, tuple(out))
+    return out
+
+
+def _memo_key(rw) -> bytes:
+    """A digest of what :func:`_estimate_for_raywave` reads from ``rw``."""
+    import hashlib
+    import json
+    h = hashlib.blake2b(digest_size=20)
+    for arr in (rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok, rw.centers, rw.target, rw.wls, rw.n_after, rw.lam_mm):
+        a = np.ascontiguousarray(arr)
+        h.update(repr((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    lens = rw.lens
+    h.update(repr((rw.plane, float(rw.z_plane), float(rw.z_sensor), int(rw.nsrc), id(lens), lens.source,
+                   [(x.type, x.thickness) for x in lens.surfaces], lens.stop_index)).encode())
+    h.update(json.dumps(getattr(lens.surfaces[rw.plane], "profile", None), sort_keys=True, default=repr).encode())
+    return h.digest()
+
+
+def _estimate_for_raywave(rw) -> list:
+    """:func:`estimate_for_raywave` without the memo."""
     from .. import doe
     from ..doe import is_flat_profile
     lens, plane = rw.lens, rw.plane
