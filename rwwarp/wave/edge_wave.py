@@ -56,8 +56,12 @@ MAX_SLOPE_RAD = 180.0
 MIN_SAMPLES = 48
 #: ... and the PSF's bright part: the tilts where the model's intensity is at least this share of its peak
 BRIGHT_SHARE = 0.05
-#: at most this many observation points (the brightest)
-MAX_POINTS = 256
+#: at most this many observation points on the coarse tilt grid (step pi / 2; the brightest)
+MAX_POINTS = 96
+#: the tilt step of the fine grid (rad per unit u): the coarse points of the largest change and of the largest truth
+#: intensity, REFINE of each, are refined on it
+FINE_STEP = math.pi / 4
+REFINE = 3
 
 
 @dataclass(frozen=True)
@@ -70,13 +74,19 @@ class PupilPhase:
 
     def _coef_matrix(self, orders):
         """``C`` (D, D) per derivative order ``(dx, dy)`` in ``orders``: the derivative is ``sum_pq C[p, q] ux^p uy^q``."""
+        P = np.asarray(self.powers, int).reshape(-1, 2)
+        c = np.asarray(self.coeffs, float)
         d = max(self.degree, 0)
         out = np.zeros((len(orders), d + 1, d + 1))
         for k, (dx, dy) in enumerate(orders):
-            for (p, q), c in zip(self.powers, self.coeffs):
-                p, q = int(p), int(q)
-                if p >= dx and q >= dy and c != 0:
-                    out[k, p - dx, q - dy] += float(c) * math.perm(p, dx) * math.perm(q, dy)
+            ok = (P[:, 0] >= dx) & (P[:, 1] >= dy)
+            p, q = P[ok, 0], P[ok, 1]
+            f = c[ok].copy()
+            for a in range(dx):                                      # falling factorials p (p - 1) ..
+                f = f * (p - a)
+            for a in range(dy):
+                f = f * (q - a)
+            np.add.at(out[k], (p - dx, q - dy), f)
         return out
 
     def _eval(self, ux, uy, orders=((0, 0),)):
@@ -86,9 +96,10 @@ class PupilPhase:
         C = self._coef_matrix(orders)
         X, Y = _power_tables(ux.ravel(), uy.ravel(), C.shape[1] - 1)
         X, Y = np.stack(X, 1), np.stack(Y, 1)                        # (N, D)
-        # sum_pq X[n, p] C[k, p, q] Y[n, q]
-        out = np.einsum("np,kpq,nq->kn", X, C, Y, optimize=True) if len(X) else np.zeros((len(C), 0))
-        return [o.reshape(ux.shape) for o in out]
+        # sum_pq X[n, p] C[k, p, q] Y[n, q]: the monomials (N, D^2) times the coefficients (D^2, K)
+        D = X.shape[1]
+        out = (X[:, :, None] * Y[:, None, :]).reshape(-1, D * D) @ C.reshape(len(C), D * D).T
+        return [out[:, k].reshape(ux.shape) for k in range(len(C))]
 
     def _grid(self, x):
         """Phi on the grid ``ux = x[j]``, ``uy = x[i]`` ((len(x), len(x)), rows: uy): separable, two small products."""
@@ -200,23 +211,25 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     x = -1.0 + h * (np.arange(n) + 0.5)
     val = phase._grid(x)
     w = np.clip((1.0 - np.sqrt(x[None, :] ** 2 + x[:, None] ** 2)) / h + 0.5, 0.0, 1.0)   # the cell's share inside the rim
-    m = 4 * n                                                      # tilt step 2 pi / (m h) = pi / 4
-    F = sfft.fft(sfft.fft(w * np.exp(1j * val), n=m, axis=1), n=m, axis=0)   # rows: t_y, columns: t_x; U h^-2 pi
+    g = w * np.exp(1j * val)
+    # coarse: the FFT on the tilt step pi / 2 (twice the samples' span)
+    m = 2 * n
+    F = sfft.fft(sfft.fft(g, n=m, axis=1), n=m, axis=0)           # rows: t_y, columns: t_x; U pi / h^2
     t = 2 * math.pi * sfft.fftfreq(m, h)
     # the samples start at u = x[0], not 0: exp(-i t . u) = exp(-i t x[0]) exp(-2 pi i k j / m)
     ph = np.exp(-1j * t * x[0])
-    I = (F.real ** 2 + F.imag ** 2).ravel()                       # |U|^2 (ph has modulus 1)
+    I = (F.real ** 2 + F.imag ** 2).ravel()                       # |U|^2 pi^2 / h^4 (ph has modulus 1)
     k = int(np.argmax(I))
     iy, ix = divmod(k, m)
-    norm = (h * h / math.pi) ** 2
-    ipk = float(I[k]) * norm
     # the observation points: the tilts near the peak and the PSF's bright part (an aberrated PSF's largest
     # change may lie away from its peak), at most MAX_POINTS of them, the brightest
-    r = int(math.ceil(search_rad / (math.pi / 4) + 1e-9))
+    r = int(math.ceil(search_rad / FINE_STEP + 1e-9))
     dy, dx = np.divmod(np.arange((2 * r + 1) ** 2), 2 * r + 1)
     dy, dx = dy - r, dx - r
-    close = (dx * dx + dy * dy) * (math.pi / 4) ** 2 <= (search_rad + 1e-9) ** 2
-    near = ((iy + dy[close]) % m) * m + (ix + dx[close]) % m
+    close = (dx * dx + dy * dy) * FINE_STEP ** 2 <= (search_rad + 1e-9) ** 2
+    dy, dx = dy[close], dx[close]
+    coarse = (dy % 2 == 0) & (dx % 2 == 0)
+    near = ((iy + dy[coarse] // 2) % m) * m + (ix + dx[coarse] // 2) % m
     mask = I >= BRIGHT_SHARE * float(I[k])
     mask[near] = True
     sel = np.flatnonzero(mask)
@@ -230,7 +243,7 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     cx, cy = np.cos(th), np.sin(th)
     g1x, g1y = phase.gradient(cx, cy)
     dth = np.abs(g1y * cx - g1x * cy)                              # |dPhi/dtheta| on the rim
-    nth = int(min(4096, 2 * (float(dth.max()) + float(np.max(np.hypot(tx, ty)))) + 64))
+    nth = int(min(4096, 2 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 2 * FINE_STEP) + 64))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     phi, gx, gy, hxx, hxy, hyy = phase._eval(cx, cy, ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)))
@@ -239,19 +252,43 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     # a rim point whose chirp focuses within the reduced distance (4 pi N_F + 2 c <= 0) is outside the one-edge
     # picture: its curvature is held at -pi N_F (the edge wave then turns by at most s^2 / (2 pi N_F))
     den = 4 * math.pi * nf + 2 * np.maximum(c, -math.pi * nf)
-    dU = np.empty(len(tx), complex)
-    step = max(1, 65536 // nth)
-    for a in range(0, len(tx), step):
-        tn = tx[a:a + step, None] * cx + ty[a:a + step, None] * cy
-        # the edge factor 2 (exp(-i psi) - 1) / (i s) = -(4 sin(psi / 2) / s) exp(-i psi / 2): one sine, one phase
-        sl = s0 - tn
-        half = 0.5 * sl * sl / den
-        amp = -4.0 * np.sin(half) / np.where(sl == 0.0, 1.0, sl)
-        dU[a:a + step] = np.mean(amp * np.exp(1j * (phi - tn - half)), axis=1)
+
+    def rim_sum(tx, ty):
+        out = np.empty(len(tx), complex)
+        step = max(1, 65536 // nth)
+        for a in range(0, len(tx), step):
+            tn = tx[a:a + step, None] * cx + ty[a:a + step, None] * cy
+            # the edge factor 2 (exp(-i psi) - 1) / (i s) = -(4 sin(psi / 2) / s) exp(-i psi / 2): one sine, one phase
+            sl = s0 - tn
+            half = 0.5 * sl * sl / den
+            amp = -4.0 * np.sin(half) / np.where(sl == 0.0, 1.0, sl)
+            out[a:a + step] = np.mean(amp * np.exp(1j * (phi - tn - half)), axis=1)
+        return out
+
+    dU = rim_sum(tx, ty)
     dI = np.abs(2 * (np.conj(Uk) * dU).real + np.abs(dU) ** 2)
+    J = np.abs(Uk + dU) ** 2
+    # fine: the tilt step pi / 4 around the REFINE coarse points of the largest change and of the largest truth (and
+    # the model's peak); U there summed directly on the samples (separable), dU on the rim
+    cand = np.unique(np.concatenate([np.argsort(dI)[-REFINE:], np.argsort(J)[-REFINE:]]))
+    ftx = (tx[cand, None] + FINE_STEP * np.array([-1, 0, 1, -1, 1, -1, 0, 1])[None]).ravel()
+    fty = (ty[cand, None] + FINE_STEP * np.array([-1, -1, -1, 0, 0, 1, 1, 1])[None]).ravel()
+    ftx = np.concatenate([ftx, t[ix] + FINE_STEP * np.array([-1, 0, 1, -1, 1, -1, 0, 1])])
+    fty = np.concatenate([fty, t[iy] + FINE_STEP * np.array([-1, -1, -1, 0, 0, 1, 1, 1])])
+    key = np.unique(np.round(ftx / FINE_STEP).astype(np.int64) * 1_000_003 + np.round(fty / FINE_STEP).astype(np.int64),
+                    return_index=True)[1]
+    ftx, fty = ftx[key], fty[key]
+    ux_, ix_ = np.unique(ftx, return_inverse=True)
+    uy_, iy_ = np.unique(fty, return_inverse=True)
+    Gx = g @ np.exp(-1j * np.outer(x, ux_))                         # (n_y, tilts x)
+    Ey = np.exp(-1j * np.outer(uy_, x))                             # (tilts y, n_y)
+    Uf = np.sum(Ey[iy_] * Gx.T[ix_], axis=1) * (h * h / math.pi)
+    dUf = rim_sum(ftx, fty)
+    dI = np.concatenate([dI, np.abs(2 * (np.conj(Uf) * dUf).real + np.abs(dUf) ** 2)])
     # E is over the *truth's* peak, |U + dU|^2 (near the model's: an edge wave that lowers the peak raises E)
-    itrue = float(np.max(np.abs(Uk + dU) ** 2))
+    itrue = float(max(np.max(J), np.max(np.abs(Uf + dUf) ** 2)))
+    ipk = float(max(float(I[k]) * (h * h / math.pi) ** 2, np.max(np.abs(Uf) ** 2)))
     psi = (s0 - t[ix] * cx - t[iy] * cy) ** 2 / den
     info = {"peak_tilt": (float(t[ix]), float(t[iy])), "strehl": ipk, "strehl_true": itrue,
-            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(tx)}
+            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(tx) + len(ftx)}
     return (float(dI.max() / itrue) if itrue > 0 else 0.0), info
