@@ -57,7 +57,7 @@ MIN_SAMPLES = 48
 #: ... and the PSF's bright part: the tilts where the model's intensity is at least this share of its peak
 BRIGHT_SHARE = 0.05
 #: at most this many observation points on the coarse tilt grid (step pi / 2; the brightest)
-MAX_POINTS = 96
+MAX_POINTS = 256
 #: the tilt step of the fine grid (rad per unit u): the coarse points of the largest change and of the largest truth
 #: intensity, REFINE of each, are refined on it
 FINE_STEP = math.pi / 4
@@ -239,11 +239,12 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     tx, ty = t[sx], t[sy]
     Uk = F.ravel()[sel] * (ph[sy] * ph[sx] * (h * h / math.pi))
     # the rim: nodes enough for the integrand's turns around it (|dPhi/dtheta| + |t|; the trapezoid rule on a
-    # periodic integrand is exact for harmonics below the node count), twice over
+    # periodic integrand is exact for harmonics below the node count), 1.25 times over (the estimates unchanged to 4
+    # digits against twice and against the 8 times over first used)
     cx, cy = np.cos(th), np.sin(th)
     g1x, g1y = phase.gradient(cx, cy)
     dth = np.abs(g1y * cx - g1x * cy)                              # |dPhi/dtheta| on the rim
-    nth = int(min(4096, 2 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 2 * FINE_STEP) + 64))
+    nth = int(min(4096, 1.25 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 2 * FINE_STEP) + 32))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     phi, gx, gy, hxx, hxy, hyy = phase._eval(cx, cy, ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)))
