@@ -57,7 +57,7 @@ MIN_SAMPLES = 48
 #: ... and the PSF's bright part: the tilts where the model's intensity is at least this share of its peak
 BRIGHT_SHARE = 0.05
 #: at most this many observation points on the coarse tilt grid (step pi / 2; the brightest)
-MAX_POINTS = 256
+MAX_POINTS = 128
 #: the tilt step of the fine grid (rad per unit u): the coarse points of the largest change and of the largest truth
 #: intensity, REFINE of each, are refined on it
 FINE_STEP = math.pi / 4
@@ -233,6 +233,13 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     mask = I >= BRIGHT_SHARE * float(I[k])
     mask[near] = True
     sel = np.flatnonzero(mask)
+    levels = [FINE_STEP]
+    if len(sel) > MAX_POINTS:
+        # a wide bright part: every other coarse point (step pi, aligned with the peak), the near ones kept; the
+        # refinement below then climbs pi / 2 -> pi / 4
+        sy, sx = np.divmod(sel, m)
+        sel = np.union1d(sel[((sy - iy) % 2 == 0) & ((sx - ix) % 2 == 0)], near)
+        levels = [2 * FINE_STEP, FINE_STEP]
     if len(sel) > MAX_POINTS:
         sel = sel[np.argpartition(I[sel], len(sel) - MAX_POINTS)[-MAX_POINTS:]]
     sy, sx = np.divmod(sel, m)
@@ -244,7 +251,7 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     cx, cy = np.cos(th), np.sin(th)
     g1x, g1y = phase.gradient(cx, cy)
     dth = np.abs(g1y * cx - g1x * cy)                              # |dPhi/dtheta| on the rim
-    nth = int(min(4096, 1.25 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 2 * FINE_STEP) + 32))
+    nth = int(min(4096, 1.25 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 4 * FINE_STEP) + 32))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     phi, gx, gy, hxx, hxy, hyy = phase._eval(cx, cy, ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)))
@@ -269,27 +276,42 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     dU = rim_sum(tx, ty)
     dI = np.abs(2 * (np.conj(Uk) * dU).real + np.abs(dU) ** 2)
     J = np.abs(Uk + dU) ** 2
-    # fine: the tilt step pi / 4 around the REFINE coarse points of the largest change and of the largest truth (and
-    # the model's peak); U there summed directly on the samples (separable), dU on the rim
-    cand = np.unique(np.concatenate([np.argsort(dI)[-REFINE:], np.argsort(J)[-REFINE:]]))
-    ftx = (tx[cand, None] + FINE_STEP * np.array([-1, 0, 1, -1, 1, -1, 0, 1])[None]).ravel()
-    fty = (ty[cand, None] + FINE_STEP * np.array([-1, -1, -1, 0, 0, 1, 1, 1])[None]).ravel()
-    ftx = np.concatenate([ftx, t[ix] + FINE_STEP * np.array([-1, 0, 1, -1, 1, -1, 0, 1])])
-    fty = np.concatenate([fty, t[iy] + FINE_STEP * np.array([-1, -1, -1, 0, 0, 1, 1, 1])])
-    key = np.unique(np.round(ftx / FINE_STEP).astype(np.int64) * 1_000_003 + np.round(fty / FINE_STEP).astype(np.int64),
-                    return_index=True)[1]
-    ftx, fty = ftx[key], fty[key]
-    ux_, ix_ = np.unique(ftx, return_inverse=True)
-    uy_, iy_ = np.unique(fty, return_inverse=True)
-    Gx = g @ np.exp(-1j * np.outer(x, ux_))                         # (n_y, tilts x)
-    Ey = np.exp(-1j * np.outer(uy_, x))                             # (tilts y, n_y)
-    Uf = np.sum(Ey[iy_] * Gx.T[ix_], axis=1) * (h * h / math.pi)
-    dUf = rim_sum(ftx, fty)
-    dI = np.concatenate([dI, np.abs(2 * (np.conj(Uf) * dUf).real + np.abs(dUf) ** 2)])
+    # refine: the tilt step pi / 2 (where the coarse points were thinned), then pi / 4, around the REFINE points of the
+    # largest change and of the largest truth found so far (and the model's peak); U there summed directly on the
+    # samples (separable), dU on the rim
+    ring_x, ring_y = np.array([-1, 0, 1, -1, 1, -1, 0, 1]), np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    seen = set(zip(np.round(tx / FINE_STEP).astype(int).tolist(), np.round(ty / FINE_STEP).astype(int).tolist()))
+    ptx, pty, pU, pdU = [tx], [ty], [Uk], [dU]
+    for level in levels:
+        dIall, Jall = np.concatenate([dI]), np.concatenate([J])
+        Tx, Ty = np.concatenate(ptx), np.concatenate(pty)
+        cand = np.unique(np.concatenate([np.argsort(dIall)[-REFINE:], np.argsort(Jall)[-REFINE:]]))
+        ftx = np.concatenate([(Tx[cand, None] + level * ring_x[None]).ravel(), t[ix] + level * ring_x])
+        fty = np.concatenate([(Ty[cand, None] + level * ring_y[None]).ravel(), t[iy] + level * ring_y])
+        keys = list(zip(np.round(ftx / FINE_STEP).astype(int).tolist(), np.round(fty / FINE_STEP).astype(int).tolist()))
+        new, kept = [], set()
+        for q, kk in enumerate(keys):
+            if kk not in seen and kk not in kept:
+                kept.add(kk)
+                new.append(q)
+        if not new:
+            continue
+        seen |= kept
+        ftx, fty = ftx[new], fty[new]
+        ux_, ix_ = np.unique(ftx, return_inverse=True)
+        uy_, iy_ = np.unique(fty, return_inverse=True)
+        Gx = g @ np.exp(-1j * np.outer(x, ux_))                     # (n_y, tilts x)
+        Ey = np.exp(-1j * np.outer(uy_, x))                         # (tilts y, n_y)
+        Uf = np.sum(Ey[iy_] * Gx.T[ix_], axis=1) * (h * h / math.pi)
+        dUf = rim_sum(ftx, fty)
+        ptx.append(ftx); pty.append(fty); pU.append(Uf); pdU.append(dUf)
+        dI = np.concatenate([dI, np.abs(2 * (np.conj(Uf) * dUf).real + np.abs(dUf) ** 2)])
+        J = np.concatenate([J, np.abs(Uf + dUf) ** 2])
+    Uall = np.concatenate(pU)
     # E is over the *truth's* peak, |U + dU|^2 (near the model's: an edge wave that lowers the peak raises E)
-    itrue = float(max(np.max(J), np.max(np.abs(Uf + dUf) ** 2)))
-    ipk = float(max(float(I[k]) * (h * h / math.pi) ** 2, np.max(np.abs(Uf) ** 2)))
+    itrue = float(np.max(J))
+    ipk = float(max(float(I[k]) * (h * h / math.pi) ** 2, np.max(np.abs(Uall) ** 2)))
     psi = (s0 - t[ix] * cx - t[iy] * cy) ** 2 / den
     info = {"peak_tilt": (float(t[ix]), float(t[iy])), "strehl": ipk, "strehl_true": itrue,
-            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(tx) + len(ftx)}
+            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(dI)}
     return (float(dI.max() / itrue) if itrue > 0 else 0.0), info
