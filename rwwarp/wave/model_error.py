@@ -120,6 +120,7 @@ Fresnel number change by O(theta^2). Lengths in mm, wavelengths in um, phases in
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, asdict
 
 import numpy as np
@@ -314,17 +315,26 @@ def estimate_for_raywave(rw) -> list:
     frequencies (``(x - x_c) / r_w`` against ``2 pi r_w (f - f_sphere)``: :func:`rwwarp.wave.edge_wave.fit_pupil_phase`,
     :func:`rwwarp.wave.edge_wave.edge_wave_error`); the scalar law :func:`model_error` on ``S`` where that phase is
     too steep to sample (the note says so); plus, for a wrapped DOE, its other kept orders' edge waves (module
-    docstring, "Other orders": ``orders_estimate``). The result is kept on ``rw`` (``rw._model_error_memo``) under a digest of
-    every input it reads (the pilot's arrays, the patch centres, the foci, the wavelengths, the planes, the lens and
-    the DOE's profile): the planner asks twice per batch (:func:`rwwarp.wave.pixel_scale.consider_pixel`,
-    :func:`rwwarp.wave.wave_step.plan_wave_step`) and the second ask is free; any changed input recomputes."""
+    docstring, "Other orders": ``orders_estimate``). The result is kept (the latest :data:`MEMO_SIZE`, in this module, not
+    on ``rw``: a frozen plan and its copies share it) under a digest of every input it reads (the pilot's arrays, the
+    patch centres, the foci, the wavelengths, the planes, the lens and the DOE's profile): the planner asks twice per
+    batch (:func:`rwwarp.wave.pixel_scale.consider_pixel`, :func:`rwwarp.wave.wave_step.plan_wave_step`) and the
+    second ask costs the digest (~0.1 ms); any changed input recomputes."""
     key = _memo_key(rw)
-    memo = getattr(rw, "_model_error_memo", None)
-    if memo is not None and memo[0] == key:
-        return list(memo[1])
+    hit = _MEMO.get(key)
+    if hit is not None:
+        _MEMO.move_to_end(key)
+        return list(hit)
     out = _estimate_for_raywave(rw)
-    rw._model_error_memo = (key, tuple(out))
+    _MEMO[key] = tuple(out)
+    while len(_MEMO) > MEMO_SIZE:
+        _MEMO.popitem(last=False)
     return out
+
+
+#: the estimates kept (:func:`estimate_for_raywave`), the latest MEMO_SIZE, under the digest of their inputs
+MEMO_SIZE = 512
+_MEMO: "OrderedDict[bytes, tuple]" = OrderedDict()
 
 
 def _memo_key(rw) -> bytes:
