@@ -170,9 +170,14 @@ def fit_pupil_phase(u, grad, degree: int = PUPIL_DEGREE) -> PupilPhase:
     # unit norm; the normal equations (K x K, K <= 27) and one step of iterative refinement: a tall least-squares
     # solve (LAPACK, threaded) cost ~100 ms a call on a loaded 2-core host, this ~0.6 ms
     X, Y = _power_tables(u[:, 0], u[:, 1], degree)
-    zero = np.zeros(len(u))
-    A = np.stack([np.concatenate([p * X[p - 1] * Y[q] if p else zero, q * X[p] * Y[q - 1] if q else zero])
-                  for p, q in P], 1)
+    D = degree + 1
+    M = (np.stack(X, 1)[:, :, None] * np.stack(Y, 1)[:, None, :]).reshape(len(u), D * D)   # ux^i uy^j at i D + j
+    Dx, Dy = np.zeros((D * D, len(P))), np.zeros((D * D, len(P)))
+    k = np.arange(len(P))
+    px, qx = P[:, 0], P[:, 1]
+    Dx[np.maximum(px - 1, 0) * D + qx, k] = px                      # p ux^(p-1) uy^q (0 where p = 0)
+    Dy[px * D + np.maximum(qx - 1, 0), k] = qx
+    A = np.concatenate([M @ Dx, M @ Dy], 0)
     scale = np.maximum(np.sqrt(np.sum(A * A, 0)), 1e-300)
     A = A / scale
     b = np.concatenate([g[:, 0], g[:, 1]])
@@ -209,8 +214,8 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     if math.isinf(nf):
         return 0.0, {"peak_tilt": (0.0, 0.0), "strehl": 1.0, "max_psi_rad": 0.0, "samples": 0}
     # the phase's largest slope sets the sampling
-    th = np.linspace(0.0, 2 * math.pi, 129)[:-1]
-    rr = np.linspace(0.0, 1.0, 17)
+    th = np.linspace(0.0, 2 * math.pi, 97)[:-1]
+    rr = np.linspace(0.0, 1.0, 9)
     gx, gy = phase.gradient(np.outer(rr, np.cos(th)), np.outer(rr, np.sin(th)))
     gmax = float(np.sqrt(np.max(gx * gx + gy * gy)))
     if not math.isfinite(gmax):
