@@ -6,7 +6,9 @@ a = 5 mm (EPD 10), a radial DOE ``3 rho^4`` (rad) on the beam, sensor at the len
 
 * ``fresnel_number``: the plan's (``Plan.model_error``, from rwwarp's pilot trace) and the thin lens's
   ``a^2 (f - z1) / (lambda f z1)``;
-* ``estimate``: the plan's ``E = 0.25 S / N_F (1 + (S / 25)^2)``;
+* ``estimate``: the plan's (the rim's edge waves summed on the pilot's pupil phase, :mod:`rwwarp.wave.edge_wave`);
+* ``estimate_scalar_law``: the old scalar law ``E = 0.25 S / N_F (1 + (S / 25)^2)`` on the plan's ``N_F`` and ``S``
+  (:func:`rwwarp.wave.model_error.model_error`, for comparison);
 * ``one_step``: rwwarp's one-step PSF (``method="auto"`` without a tolerance) against the wave-exact two-step
   truth (``tests/rwwarp/_wave_truth.py``: Gauss-Hankel angular spectrum, lens -> DOE -> sensor, integrated over
   the pixels), max |difference| over the truth's peak;
@@ -32,6 +34,7 @@ sys.path.insert(0, str(ROOT / "tests" / "rwwarp"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import rwwarp as rw                                            # noqa: E402
+from rwwarp.wave import model_error                           # noqa: E402
 from _common import device_name, git_commit, save             # noqa: E402
 from _wave_truth import F_MM, analytic_inputs, pixel_truth, radial_truth, thin_lens_doe   # noqa: E402
 
@@ -76,6 +79,7 @@ def one_distance(d2_mm: float) -> dict:
     nf_thin, slope = analytic_inputs(A_MM, d2_mm, COEFFS)
     return {"doe_to_sensor_mm": d2_mm, "fresnel_number": me["fresnel_number"], "fresnel_number_thin_lens": nf_thin,
             "rim_slope_rad": me["rim_slope_rad"], "rim_slope_rad_exact": slope, "estimate": me["estimate"],
+            "estimate_scalar_law": model_error.model_error(me["fresnel_number"], me["rim_slope_rad"]),
             "one_step": float(np.max(np.abs(one.data - T)) / peak),
             "one_step_radial": float(np.max(np.abs(M - T)) / peak),
             "wave_step": float(np.max(np.abs(two.data - T)) / peak),
@@ -94,7 +98,10 @@ def plot(rows, path: Path) -> None:
     ax.loglog(line, ORIGINAL_C / line, ":", color="0.5", label="13 / N_F (issue 27's original measurement)")
     ax.loglog(nf, [r["one_step"] for r in rows], "o-", color="C3", label="one-step PSF vs wave truth (measured)")
     ax.loglog(nf, [r["estimate"] for r in rows], "s--", color="C0", mfc="none",
-              label="estimate 0.25 S / N_F (1 + (S/25)^2) (Plan.model_error)")
+              label="estimate: the rim's edge waves (Plan.model_error)")
+    if all("estimate_scalar_law" in r for r in rows):
+        ax.loglog(nf, [r["estimate_scalar_law"] for r in rows], "x:", color="C0", alpha=0.6,
+                  label="old scalar law 0.25 S / N_F (1 + (S/25)^2)")
     ax.loglog(nf, [r["wave_step"] for r in rows], "^-", color="C2", label='with the wave step (method="two-step")')
     for r in rows:
         ax.annotate(f'{r["doe_to_sensor_mm"]:g} mm', (r["fresnel_number_thin_lens"], r["one_step"]),

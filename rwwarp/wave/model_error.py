@@ -22,27 +22,69 @@ Fresnel number is
 
 ``r_w`` the beam's radius on the plane. Without a DOE the two fields give the same intensity at the focus
 (the extra Fresnel propagation is a pure phase in the Fourier plane): the model's error needs a phase
-that varies across the blurred edge. A DOE (or any wavefront error relative to the sphere converging to the
-sensor patch) of rim slope ``S = rho dW / d rho`` (rad, at the beam's rim, ``W`` relative to that sphere)
-changes its phase by ``S delta / r_w`` across the edge of width ``delta ~ r_w / sqrt(N_F)``, over an area
-share ``~ 1 / sqrt(N_F)``: the PSF changes by
+that varies across the blurred edge, the wavefront ``Phi`` after the DOE relative to the sphere converging to the
+sensor patch.
 
-    E = C S / N_F (1 + (S / S0)^2)         (max |I_model - I_true| / max I_true)
+The main order: the rim's edge waves (:mod:`rwwarp.wave.edge_wave` evaluates this). Across the rim the hard step
+becomes the Fresnel edge; the difference lives within ``~ sqrt(lambda d)`` of the rim, and at each rim point it
+meets the phase's local radial slope ``s`` (rad per beam radius). The 1-D edge's Fourier pair turns each plane-wave
+component of the edge by its Fresnel phase, so the rim point's *edge wave* on the sensor, ``2 exp(i Phi) / (i s)``
+(the boundary term of the pupil integral), becomes ``2 exp(i Phi) (exp(-i psi) - 1) / (i s)`` with ``psi = s^2 /
+(4 pi N_F + 2 c)`` (``c`` the radial curvature of ``Phi`` at the rim: a chirp turns its curvature as it
+propagates; exact in Fresnel order for a defocus, "Other orders" below). Summed around the rim at each sensor
+point (a tilt ``t`` of the observation adds ``-t . n`` to the slope and the phase) it is the change ``dU`` of the
+field ``U`` there, and
 
-Calibration (``tests/rwwarp/test_model_error.py``: an independent radially symmetric truth, Gauss-Hankel
-quadrature of the exact angular spectrum: thin lens f = 50 mm, a = 2.5 mm, 0.55 um, sensor at the lens
-focus, DOE pupil phase ``A rho^4``, DOE 10 and 35 mm before the sensor, N_F = 57 and 530): ``E N_F / S`` =
-0.25 / 0.26 (A = 1), 0.20 / 0.25 (A = 3), 0.79 / 0.49 (A = 8), so ``C = 0.25``; the growth at large ``S``
-is ``S0 = 25`` rad (the blurred edge's ring has zero mean and first moment across the edge, so the light it
-sends towards the core grows with the square of the phase slope across it; and the peak normalising ``E``
-falls as the PSF spreads). Held out (checked within a
-factor 2 by the test): a = 1.5 mm, defocus ``A2 rho^2``, ``rho^6``, mixed ``rho^2 + rho^4``, 20 and 45 mm.
-Below N_F ~ 50 with S > 10 the error grows slower than 1 / N_F (it saturates towards 1 / sqrt(N_F)): there
-the estimate is an upper bound (a factor 2.3 high at N_F = 20, S = 12).
+    E = max_t |2 Re(conj(U) dU) + |dU|^2| / max_t |U + dU|^2      (max |I_model - I_true| / max I_true)
 
-Off axis (a 2-D truth in the same test file: a = 1.5 mm, 20 mm, N_F 54.5) the slope is read as the RMS around
-the rim: at 0.2 deg the estimate is 1.09x the measured error; at 0.5 deg, where the beam sits 0.44 of its
-radius off the DOE's centre, 4.4x (an upper bound there: the step is taken early, not late).
+over the PSF's peak and its bright part. ``Phi`` is a 2-D polynomial (degree 6) fitted to the pilot rays'
+frequencies after the DOE against the sphere to the patch (:func:`rwwarp.wave.edge_wave.fit_pupil_phase`), so a
+decentred DOE off axis (coma, astigmatism about the beam's own centre) is read as it is. Nothing is fitted.
+
+*Why the old scalar law failed, and its place now.* To first order in ``psi`` and for a radial phase on the axis,
+``dU = -S / (2 pi N_F) exp(i Phi(1))``: the error ``E = S / (pi N_F)`` of a rim slope ``S``, the law :func:`model_error`
+``E = C S / N_F (1 + (S / S0)^2)`` with ``C = 0.25``, ``S0 = 25`` rad calibrated on a = 2.5 mm, ``A rho^4`` (A = 1,
+3, 8), 10 and 35 mm (N_F 57, 530). It misses two things the sum keeps. (a) Below N_F ~ 50 with S > 10 the edge
+wave's Fresnel phase ``psi`` is no longer small: ``|exp(-i psi) - 1| = 2 |sin(psi / 2)|`` grows slower than
+``psi`` and the edge wave turns by ``psi / 2`` against the core's field, so the error grows slower than ``1 /
+N_F`` (the 1 / sqrt(N_F)-like saturation) and, at some ``S``, faster (interference: at N_F 20.5 the rim slopes 12 /
+15 / 24 rad give ``E N_F / S`` = 0.14 / 0.31 / 0.19, no smooth law in ``(S, N_F)`` follows that). The law read 2.3x
+high at N_F 20.5, S 12 and 4.3x at N_F 9.1; the sum 0.92x / 0.90x. (b) Off axis the DOE's phase about the
+beam's own centre has coma and astigmatism; the rim phase ``Phi(n(theta))`` then varies around the rim, the rim's
+edge waves reach no sensor point in phase, and the radial slope's RMS (the law's ``S``) overstates them: a = 1.5
+mm, 20 mm (N_F 54.5), 0.5 deg (the beam 0.44 of its radius off the DOE's centre), the law 4.0x, the sum 1.00x (the
+beam's own tilt is a shift of ``t``: it moves the spot and changes nothing). The law remains the fallback for a
+phase too steep for the sum's sampling (slopes beyond ~180 rad: the estimate's note says so) and the ``S`` in
+the plan's line. The sum was checked up to rim slopes of 32 rad (below); beyond :data:`CHECKED_SLOPE_RAD` the
+note says so (the A489's beams 5-10 deg off axis reach 36-103 rad; there the sum reads 0.09-0.4x the one-step vs
+wave-path difference, which is no reference either: docs/propagation.md; those figures are the first evaluation's,
+d8e73cb, and the present one reads 0.57-2.5x its values on such beams, :mod:`rwwarp.wave.edge_wave` says why).
+
+Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact
+angular spectrum, thin lens f = 50 mm, 0.55 um, sensor at the lens focus, DOE pupil phase ``sum_i c_i rho^(2i)``;
+off axis the 2-D angular-spectrum truth against the 2-D geometric model; estimate / measured):
+
+=======================================  =======  =====  ========  ===============  ==========  =====
+case (a mm, DOE-to-sensor mm, phase)     N_F      S      measured  law (before)     sum (now)   now/m
+=======================================  =======  =====  ========  ===============  ==========  =====
+2.5, 10, 3 rho^4 (law calibration)       56.8     12     4.13e-2   6.5e-2 (1.57)    3.98e-2     0.96
+2.5, 35, 3 rho^4 (law calibration)       530      12     5.56e-3   7.0e-3 (1.25)    5.37e-3     0.97
+2.5, 10, 8 rho^4 (law calibration)       56.8     32     0.446     0.37 (0.83)      0.417       0.94
+2.5, 20, 3 rho^4                         152      12     1.76e-2   2.4e-2 (1.38)    1.75e-2     0.99
+2.5, 45, 2 rho^2                         2045     4      3.41e-4   5.0e-4 (1.47)    4.00e-4     1.17
+1.5, 35, -3 rho^2 + 3 rho^4              191      6      8.37e-3   8.3e-3 (0.99)    8.87e-3     1.06
+1.5, 35, 3 rho^6                         191      18     2.71e-2   3.6e-2 (1.32)    2.67e-2     0.99
+1.5, 10, 3 rho^4                         20.5     12     7.94e-2   0.18 (2.27)      7.33e-2     0.92
+1.0, 10, 3 rho^4                         9.1      12     9.39e-2   0.41 (4.33)      8.46e-2     0.90
+1.5, 14, 4 rho^4                         31.8     16     0.218     0.18 (0.81)      0.211       0.97
+1.5, 20, 3 rho^4, 0.3 deg (2-D)          54.5     13.7   6.34e-2   8.2e-2 (1.29)    7.66e-2     1.21
+1.5, 20, 3 rho^4, 0.5 deg (2-D)          54.5     17.7   3.04e-2   0.122 (4.01)     3.05e-2     1.00
+1.5, 20, 3 rho^4, 0.7 deg (2-D)          54.5     23.3   3.56e-2   0.199 (5.6)      3.32e-2     0.93
+=======================================  =======  =====  ========  ===============  ==========  =====
+
+(``S``: the analytic rim slope on the axis, the pilot's RMS rim slope off axis. The 2-D truth's own error is
+~7e-4 of the peak. Other radial cases measured while deriving it, not in the tests: 0.82 .. 1.02, among them
+6 rho^4 at N_F 20.5 (S 24) 0.82 and 8 rho^4 at N_F 25 (S 32, error 1.15 of the peak) 0.86.)
 
 Other orders. A wrapped relief away from its design wavelength transmits ``sum_m c_m exp(i m phi0)``
 (:func:`rwwarp.wave.focal.doe_order_coefficients`, ``sum |c_m|^2 = 1``); the orders ``m`` other than the main
@@ -66,9 +108,9 @@ patch centre in phase); elsewhere each order adds at most ``8 sqrt(eta_m / eta_0
 patch centre are not counted. The estimate is ``E + E_orders``. Checked, nothing fitted
 (``tests/rwwarp/test_model_error_orders.py``): the truth with the wrapped transmission (thin lens, DOE ``-40
 rho^2`` rad 20 mm before the lens focus, used at 0.909x / 1.127x its design phase): measured 4.65e-3 / 2.16e-3,
-estimate 4.46e-3 / 3.37e-3 (the main order's alone 3.4e-4); the stored Cooke design at 0.47 / 0.63 um on axis
-against its one-step vs wave-path difference 1.06e-2 / 1.11e-2: 1.77e-2 / 1.39e-2 (main order alone 2.9e-3 /
-5.5e-4).
+estimate 4.61e-3 / 3.52e-3 (the main order's edge waves alone 4.9e-4; the one-order truth 6.9e-4); the stored
+Cooke design at 0.47 / 0.63 um on axis against its one-step vs wave-path difference 1.06e-2 / 1.11e-2: 1.84e-2 /
+1.42e-2 (main order alone 3.6e-3 / 8.1e-4).
 
 Scope of the scene reading (:func:`estimate_for_raywave`): the limiting aperture is the stop, imaged into
 the space in front of the wave plane (paraxially, through the refracting surfaces between them); apertures
@@ -78,13 +120,20 @@ Fresnel number change by O(theta^2). Lengths in mm, wavelengths in um, phases in
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, asdict
 
 import numpy as np
 
-#: calibration of :func:`model_error` (module docstring): E = C S / N_F (1 + (S / S0)^2)
+from .edge_wave import edge_wave_error, fit_pupil_phase
+
+#: calibration of the scalar law :func:`model_error` (module docstring; now the fallback and the small-psi limit):
+#: E = C S / N_F (1 + (S / S0)^2)
 MODEL_ERROR_C = 0.25
 MODEL_ERROR_S0 = 25.0
+#: the largest rim slope (rad) at which the edge-wave estimate was checked against a wave truth (module docstring);
+#: beyond it the plan's note says so
+CHECKED_SLOPE_RAD = 35.0
 #: rim rays: pilot points at least this share of the footprint's largest radius from its centre
 RIM_SHARE = 0.9
 
@@ -122,7 +171,9 @@ def fresnel_number(beam_radius_mm: float, aperture_to_plane_mm: float, plane_to_
 
 
 def model_error(fresnel_number_: float, rim_slope_rad: float) -> float:
-    """The estimated model error ``E = C S / N_F (1 + (S / S0)^2)`` (max |I_model - I_true| over the PSF's
+    """The scalar law of the model error (the fallback of :func:`estimate_for_raywave` where the pupil phase is
+    too steep for :func:`rwwarp.wave.edge_wave.edge_wave_error`; module docstring: where it fails) ``E = C S / N_F
+    (1 + (S / S0)^2)`` (max |I_model - I_true| over the PSF's
     peak, dimensionless) for the Fresnel number ``N_F`` of :func:`fresnel_number` and the rim slope
     ``S = rho dW/drho`` (rad) of the wavefront after the DOE relative to the sphere converging to the sensor
     patch (module docstring: derivation and calibration)."""
@@ -166,7 +217,7 @@ class ModelError:
     note: str = ""
     #: the other kept DOE orders' share of ``estimate`` (:func:`other_orders_error`; 0 for one order)
     orders_estimate: float = 0.0
-    #: the main order's share, ``E = C S / N_F (1 + (S / S0)^2)``
+    #: the main order's share: the rim's edge waves on the beam's pupil phase (:mod:`rwwarp.wave.edge_wave`)
     main_estimate: float = 0.0
 
     def to_dict(self) -> dict:
@@ -178,7 +229,7 @@ class ModelError:
                 f"(N_F {self.fresnel_number:.4g}: beam radius {self.beam_radius_mm:.4g} mm, {self.aperture_to_plane_mm:.4g} mm "
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
-                f"E = {MODEL_ERROR_C:g} S / N_F (1 + (S / {MODEL_ERROR_S0:g})^2)"
+                f"the rim's edge waves on the pupil phase {self.main_estimate:.2g}"
                 + (f" + the DOE's other orders' halo {self.orders_estimate:.2g}" if self.orders_estimate > 0 else "")
                 + ", rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
@@ -259,8 +310,51 @@ def estimate_for_raywave(rw) -> list:
     wavefront after the DOE's main order relative to the sphere converging to the patch centre on the
     sensor: ``S = 2 pi RMS_rim[(x - x_c) . (f - f_sphere) (r_w / |x - x_c|)^3]`` over the pilot rays within
     ``RIM_SHARE`` of the footprint's largest radius (``f``: the rays' transverse frequency after the DOE, cycles/mm; ``f - f_sphere``
-    less its mean over the beam: a tilt moves the PSF and changes nothing else); plus, for a wrapped DOE, its other
-    kept orders' edge waves (module docstring, "Other orders": ``orders_estimate``; ``main_estimate`` the rest)."""
+    less its mean over the beam: a tilt moves the PSF and changes nothing else), reported as ``rim_slope_rad``. The
+    main order's estimate (``main_estimate``) is the rim's edge waves summed on the pupil phase fitted to the same
+    frequencies (``(x - x_c) / r_w`` against ``2 pi r_w (f - f_sphere)``: :func:`rwwarp.wave.edge_wave.fit_pupil_phase`,
+    :func:`rwwarp.wave.edge_wave.edge_wave_error`); the scalar law :func:`model_error` on ``S`` where that phase is
+    too steep to sample (the note says so); plus, for a wrapped DOE, its other kept orders' edge waves (module
+    docstring, "Other orders": ``orders_estimate``). The result is kept (the latest :data:`MEMO_SIZE`, in this module, not
+    on ``rw``: a frozen plan and its copies share it) under a digest of every input it reads (the pilot's arrays, the
+    patch centres, the foci, the wavelengths, the planes, the lens and the DOE's profile): the planner asks twice per
+    batch (:func:`rwwarp.wave.pixel_scale.consider_pixel`, :func:`rwwarp.wave.wave_step.plan_wave_step`) and the
+    second ask costs the digest (~0.1 ms); any changed input recomputes."""
+    key = _memo_key(rw)
+    hit = _MEMO.get(key)
+    if hit is not None:
+        _MEMO.move_to_end(key)
+        return list(hit)
+    out = _estimate_for_raywave(rw)
+    _MEMO[key] = tuple(out)
+    while len(_MEMO) > MEMO_SIZE:
+        _MEMO.popitem(last=False)
+    return out
+
+
+#: the estimates kept (:func:`estimate_for_raywave`), the latest MEMO_SIZE, under the digest of their inputs
+MEMO_SIZE = 512
+_MEMO: "OrderedDict[bytes, tuple]" = OrderedDict()
+
+
+def _memo_key(rw) -> bytes:
+    """A digest of what :func:`_estimate_for_raywave` reads from ``rw``."""
+    import hashlib
+    import json
+    h = hashlib.blake2b(digest_size=20)
+    for arr in (rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok, rw.centers, rw.target, rw.wls, rw.n_after, rw.lam_mm):
+        a = np.ascontiguousarray(arr)
+        h.update(repr((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    lens = rw.lens
+    h.update(repr((rw.plane, float(rw.z_plane), float(rw.z_sensor), int(rw.nsrc), id(lens), lens.source,
+                   [(x.type, x.thickness) for x in lens.surfaces], lens.stop_index)).encode())
+    h.update(json.dumps(getattr(lens.surfaces[rw.plane], "profile", None), sort_keys=True, default=repr).encode())
+    return h.digest()
+
+
+def _estimate_for_raywave(rw) -> list:
+    """:func:`estimate_for_raywave` without the memo."""
     from .. import doe
     from ..doe import is_flat_profile
     lens, plane = rw.lens, rw.plane
@@ -321,6 +415,19 @@ def estimate_for_raywave(rw) -> list:
         d = reduced_distance_mm(z1, R)
         nf = fresnel_number(beam_r, z1, R, w, n)
         main = model_error(nf, slope)
+        if math.isfinite(nf) and len(xy) >= 6:
+            # the rim's edge waves summed on the beam's own pupil phase (rwwarp.wave.edge_wave): on and off the
+            # DOE's axis, no constant fitted; the scalar law above only where the phase is too steep to sample
+            dfm = (f - f_sph) - (f - f_sph).mean(0)
+            ph = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * dfm)
+            ew, _ = edge_wave_error(nf, ph)
+            if ew is None:
+                note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
+            else:
+                main = ew
+                if slope > CHECKED_SLOPE_RAD:
+                    note = "; ".join(x for x in (note, f"rim slope {slope:.3g} rad: beyond the {CHECKED_SLOPE_RAD:g} rad "
+                                                 "checked against a wave truth") if x)
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane

@@ -103,13 +103,14 @@ def analytic_inputs(a_mm, d2_mm, coeffs):
     return nf, sum(2 * (i + 1) * c for i, c in enumerate(coeffs))
 
 
-def thin_lens_doe(d2_mm, a_mm=2.5, coeffs=(0.0, 3.0), pixel=0.5e-3):
+def thin_lens_doe(d2_mm, a_mm=2.5, coeffs=(0.0, 3.0), pixel=0.5e-3, doe_share=1.5):
     """The scene of the truth in rwwarp: round stop, ideal thin lens F_MM, radial DOE (a dispersion-free
-    substrate) d2_mm before the sensor at the lens focus."""
+    substrate) d2_mm before the sensor at the lens focus; the DOE's semi-diameter ``doe_share`` times the
+    on-axis beam's radius."""
     rb = a_mm * d2_mm / F_MM
     surfs = [Surface(type="aperture", semi_diameter=a_mm, shape="circle", stop=True),
              Surface(type="thin_lens", focal_length=F_MM, semi_diameter=1.2 * a_mm, thickness=F_MM - d2_mm),
-             Surface(type="doe", semi_diameter=1.5 * rb, thickness=d2_mm, material="1.5/1e9",
+             Surface(type="doe", semi_diameter=doe_share * rb, thickness=d2_mm, material="1.5/1e9",
                      profile={"kind": "even_poly", "coefficients": list(coeffs), "norm_radius": rb})]
     return Lens(surfs, Sensor(pixel, (4000, 4000)), wavelengths_um=[0.55])
 

@@ -12,28 +12,61 @@ import pytest
 
 import rwwarp as rw
 from rwwarp.wave import model_error as me
+from rwwarp.wave.edge_wave import PupilPhase, edge_wave_error, fit_pupil_phase, radial_pupil_phase
 from rwwarp.lens import Lens, Sensor, Surface
 
 from _wave_truth import F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, thin_lens_doe
 from _wave_truth import pixel_truth as _pixel_truth
 
 
-# Calibration (rwwarp.wave.model_error's docstring): a = 2.5 mm, coeffs (0, A) with A = 1, 3, 8, d2 = 10 and 35 mm.
-# Held out, below: other apertures, distances and DOE shapes. Measured (estimate / measured): 1.38 (a 2.5,
-# rho^4 3 rad, 20 mm, N_F 152), 1.47 (defocus 2 rad, 45 mm, N_F 2045), 0.99 (a 1.5, rho^2 + rho^4, 35 mm, N_F
-# 191), 1.32 (a 1.5, rho^6 3 rad, 35 mm, N_F 191).
-HELD_OUT = [(2.5, 20.0, (0.0, 3.0)), (2.5, 45.0, (2.0, 0.0)), (1.5, 35.0, (-3.0, 3.0)), (1.5, 35.0, (0.0, 0.0, 3.0))]
+# The main order's estimate (rwwarp.wave.edge_wave: the rim's edge waves on the pupil phase) has no fitted constant:
+# every case is held out. Measured estimate / error: 0.96 / 0.97 / 0.94 (a 2.5, rho^4 3 / 3 / 8 rad, 10 / 35 / 10 mm:
+# the old law's calibration cases, not tested here), 0.99 (a 2.5, rho^4 3 rad, 20 mm, N_F 152), 1.17 (defocus 2 rad,
+# 45 mm, N_F 2045), 1.06 (a 1.5, rho^2 + rho^4, 35 mm, N_F 191), 0.99 (a 1.5, rho^6 3 rad, 35 mm, N_F 191). Below N_F ~ 50 (the old law
+# C S / N_F (1 + (S / S0)^2) read 2.27x / 4.33x / 0.81x there): 0.92 (a 1.5, 3 rho^4, 10 mm, N_F 20.5, S 12), 0.90
+# (a 1.0, 10 mm, N_F 9.1, S 12), 0.97 (a 1.5, 4 rho^4, 14 mm, N_F 31.8, S 16).
+HELD_OUT = [(2.5, 20.0, (0.0, 3.0)), (2.5, 45.0, (2.0, 0.0)), (1.5, 35.0, (-3.0, 3.0)), (1.5, 35.0, (0.0, 0.0, 3.0)),
+            (1.5, 10.0, (0.0, 3.0)), (1.0, 10.0, (0.0, 3.0)), (1.5, 14.0, (0.0, 4.0))]
 
 
 @pytest.mark.parametrize("a_mm,d2_mm,coeffs", HELD_OUT)
 def test_estimate_is_within_a_factor_2_of_the_measured_model_error(a_mm, d2_mm, coeffs):
     err = measured_error(a_mm, d2_mm, coeffs)
     nf, slope = analytic_inputs(a_mm, d2_mm, coeffs)
-    est = me.model_error(nf, slope)
-    print(f"a {a_mm} d2 {d2_mm} {coeffs}: N_F {nf:.0f} estimate {est:.3e} measured {err:.3e} ratio {est / err:.2f}")
+    est, info = edge_wave_error(nf, radial_pupil_phase(coeffs))
+    print(f"a {a_mm} d2 {d2_mm} {coeffs}: N_F {nf:.1f} S {slope:.0f} estimate {est:.3e} measured {err:.3e} "
+          f"ratio {est / err:.2f} (the old scalar law {me.model_error(nf, slope) / err:.2f})")
+    # the claim is a factor 2; measured 0.90 .. 1.17 over these cases (comment above)
     assert 0.5 <= est / err <= 2.0, (est, err)
+    assert 0.8 <= est / err <= 1.25, (est, err)
     # a model error well above the truth's own uncertainty (the band: 3 % of the error, module docstring)
     assert err > 1e-4
+
+
+def test_the_edge_wave_estimate_vanishes_without_a_phase_and_ignores_a_tilt():
+    # the derivation's premise, in the estimate: an unaberrated beam's rim diffraction is a phase at the focus
+    # (measured 5.6e-6 at N_F 50: the rim's one-edge picture), and a tilt moves the PSF only
+    nf = 50.0
+    assert edge_wave_error(nf, radial_pupil_phase((0.0, 0.0)))[0] < 1e-4
+    p4 = radial_pupil_phase((0.0, 3.0))
+    tilted = PupilPhase(np.vstack([p4.powers, [[1, 0], [0, 1]]]), np.concatenate([p4.coeffs, [5.0, -3.0]]))
+    e4, e4t = edge_wave_error(nf, p4)[0], edge_wave_error(nf, tilted)[0]
+    # the tilt falls between the FFT grid's tilts (pi / 4 apart): measured 2 % apart
+    assert e4t == pytest.approx(e4, rel=0.05) and e4 > 1e-2
+    # small phase, large N_F: the edge wave's first order, E = 2 |dU| / |U| = S / (pi N_F) for a defocus on the
+    # axis (U ~ 1, dU ~ -S / (2 pi N_F))
+    assert edge_wave_error(2000.0, radial_pupil_phase((0.5,)))[0] == pytest.approx(1.0 / (np.pi * 2000.0), rel=0.05)
+    # the fit of the pupil phase from gradients returns the phase (to rounding) from a grid inside the beam
+    g = np.linspace(-0.95, 0.95, 15)
+    u = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    u = u[np.hypot(*u.T) < 0.97]
+    q = radial_pupil_phase((1.0, -2.0, 0.5))
+    fit = fit_pupil_phase(u, np.stack(q.gradient(*u.T), 1))
+    assert np.max(np.abs(fit.value(*u.T) - q.value(*u.T))) < 1e-9
+    with pytest.raises(ValueError, match="Fresnel number"):
+        edge_wave_error(0.0, q)
+    with pytest.raises(ValueError, match="fit_pupil_phase"):
+        fit_pupil_phase(u, np.full_like(u, np.nan))
 
 
 def test_without_a_doe_the_geometric_field_focuses_exactly():
@@ -173,39 +206,56 @@ def test_the_wave_step_respects_the_memory_budget():
     assert p.plan["wave_step_mm"] is None and any("left out" in r for r in p.plan["reasons"])
 
 
-def truth_2d(a_mm, d2_mm, coeffs, field_deg, px, py, pixel, h=3e-3, npad=2560, nodes=4):
+def _disc_2d(X, Y, xc, yc, r, h):
+    """The disc of radius ``r`` centred at ``(xc, yc)`` on the grid, its rim samples weighted by the share of their
+    cell inside it (24 x 24 sub-samples)."""
+    R = np.hypot(X - xc, Y - yc)
+    ap = (R < r).astype(float)
+    rim = np.abs(R - r) < 1.5 * h
+    o = (np.arange(24) + 0.5) / 24 - 0.5
+    sub = np.hypot(X[rim][:, None, None] - xc + h * o[None, :, None], Y[rim][:, None, None] - yc + h * o[None, None, :]) < r
+    ap[rim] = sub.mean((1, 2))
+    return ap
+
+
+def truth_2d(a_mm, d2_mm, coeffs, field_deg, px, py, pixel, h=3e-3, npad=2560, nodes=4, model=False):
     """Off-axis two-step truth on a 2-D grid (pitch ``h`` mm, ``npad`` samples, periodic): the thin lens's
     sphere converging to (0, F tan(field)) on the stop's disc (rim samples weighted by the disc's share of their
     cell), the exact angular spectrum (FFT) over z1, the radial DOE (centred on the axis), the exact angular
     spectrum over d2 evaluated at the pixels' Gauss nodes (px, py (M,) pixel centres, mm) by a matrix DFT (the
     periodic field's trigonometric interpolation). Returns the power per pixel over the power entering the stop.
     Its own error on axis, against :func:`radial_truth`: 7.4e-4 of the peak at h = 3 um, 5.2e-4 at 2 um (the
-    sampled rim's aliasing)."""
+    sampled rim's aliasing). ``model=True``: ``(truth, model)``, the model the ray-wave model's geometric field
+    on the DOE plane (the same sphere, cut by the stop's shadow there: the disc of radius ``a d2 / F`` centred on
+    the chief ray, ``z1 tan(field)``; amplitude ``F / d2``: the tube's power kept), propagated the same way."""
     k = 2 * np.pi / LAM_MM
     z1, rb = F_MM - d2_mm, a_mm * d2_mm / F_MM
     x = (np.arange(npad) - npad // 2) * h
     X, Y = np.meshgrid(x, x, indexing="xy")
     R = np.hypot(X, Y)
-    ap = (R < a_mm).astype(float)
-    rim = np.abs(R - a_mm) < 1.5 * h
-    o = (np.arange(24) + 0.5) / 24 - 0.5
-    sub = np.hypot(X[rim][:, None, None] + h * o[None, :, None], Y[rim][:, None, None] + h * o[None, None, :]) < a_mm
-    ap[rim] = sub.mean((1, 2))
     yT = F_MM * np.tan(np.radians(field_deg))
-    u0 = ap * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + F_MM ** 2))
+    u0 = _disc_2d(X, Y, 0.0, 0.0, a_mm, h) * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + F_MM ** 2))
+    p_in = np.sum(np.abs(u0) ** 2) * h * h
     nu = np.fft.fftfreq(npad, h)
     NX, NY = np.meshgrid(nu, nu, indexing="xy")
     w = np.sqrt(np.maximum(1 / LAM_MM ** 2 - NX ** 2 - NY ** 2, 0.0))
-    u1 = np.fft.ifft2(np.fft.fft2(u0) * np.exp(2j * np.pi * z1 * w))
+    fields = [np.fft.ifft2(np.fft.fft2(u0) * np.exp(2j * np.pi * z1 * w))]
+    del u0
+    if model:
+        fields.append(_disc_2d(X, Y, 0.0, yT * z1 / F_MM, rb, h) * (F_MM / d2_mm)
+                      * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + d2_mm ** 2)))
     W = sum(c * (R / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
-    S = np.fft.fft2(u1 * np.exp(1j * W)) * np.exp(2j * np.pi * d2_mm * w) / npad ** 2
     t, wt = np.polynomial.legendre.leggauss(nodes)
     xs = (px[:, None] + 0.5 * pixel * t[None]).ravel()
     ys = (py[:, None] + 0.5 * pixel * t[None]).ravel()
-    U = np.exp(2j * np.pi * np.outer(ys - x[0], nu)) @ S @ np.exp(2j * np.pi * np.outer(xs - x[0], nu)).T
     m = len(px)
-    P = np.einsum("injm,n,m->ij", (np.abs(U) ** 2).reshape(m, nodes, m, nodes), wt, wt) * (0.5 * pixel) ** 2
-    return P / (np.sum(np.abs(u0) ** 2) * h * h)
+    out = []
+    for u1 in fields:
+        S = np.fft.fft2(u1 * np.exp(1j * W)) * np.exp(2j * np.pi * d2_mm * w) / npad ** 2
+        U = np.exp(2j * np.pi * np.outer(ys - x[0], nu)) @ S @ np.exp(2j * np.pi * np.outer(xs - x[0], nu)).T
+        P = np.einsum("injm,n,m->ij", (np.abs(U) ** 2).reshape(m, nodes, m, nodes), wt, wt) * (0.5 * pixel) ** 2
+        out.append(P / p_in)
+    return tuple(out) if model else out[0]
 
 
 def test_off_axis_the_wave_step_and_the_estimate_against_a_2d_truth():
@@ -222,9 +272,33 @@ def test_off_axis_the_wave_step_and_the_estimate_against_a_2d_truth():
     # measured: one-step 6.5e-2; two-step 1.4e-3, of which the truth's own is ~7e-4 (its docstring)
     assert e_one > 2e-2
     assert e_two < 2.5e-3
-    # the estimate (RMS rim slope 12.4 rad): 7.1e-2, 1.09x the measured (at 0.5 deg it reads 4.4x high:
-    # a decentred DOE's aberrated PSF; the estimate errs towards taking the step)
+    # the estimate (the edge waves on the fitted pupil phase): 6.7e-2, 1.03x the measured (the old scalar law on
+    # the RMS rim slope, 12.4 rad: 7.1e-2, 1.09x)
     assert 0.5 <= one.plan["model_error"]["estimate"] / e_one <= 2.0
+
+
+@pytest.mark.parametrize("field_deg", [pytest.param(0.3, marks=pytest.mark.slow), 0.5,
+                                       pytest.param(0.7, marks=pytest.mark.slow)])
+def test_off_axis_the_estimate_against_a_2d_truth(field_deg):
+    # a = 1.5 mm, DOE 3 rho^4 20 mm before the sensor (N_F 54.5): at 0.3 / 0.5 / 0.7 deg the beam sits 0.26 / 0.44 /
+    # 0.61 of its radius off the DOE's centre (the DOE's clear aperture widened to 2 beam radii: nothing clips it).
+    # The model error measured on the 2-D truth against the 2-D geometric model (both numpy, truth_2d): 6.34e-2 /
+    # 3.04e-2 / 3.56e-2. The estimate: 7.66e-2 / 3.05e-2 / 3.32e-2 (1.21x / 1.00x / 0.93x); the old scalar law on
+    # the RMS rim slope read 1.29x / 4.0x / 5.6x (its 0.5 deg is the case it was known to miss)
+    lens = thin_lens_doe(20.0, 1.5, (0.0, 3.0), pixel=4e-3, doe_share=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = rw.plan_psf(lens, field_deg, 0.55, size=32, method="asm").model_error
+    assert got["fresnel_number"] == pytest.approx(54.5, rel=0.03)
+    c = (np.arange(32) - 15.5) * 4e-3
+    # 2048 samples (a 6.1 mm window around the 3 mm stop): the measured error moved by 1e-5 of itself against 2560
+    T, M = truth_2d(1.5, 20.0, (0.0, 3.0), field_deg, c, c + F_MM * np.tan(np.radians(field_deg)), 4e-3, npad=2048,
+                    model=True)
+    err = float(np.max(np.abs(M - T)) / T.max())
+    print(f"{field_deg} deg: measured {err:.3e}, estimate {got['estimate']:.3e} ({got['estimate'] / err:.2f}x), "
+          f"old law {me.model_error(got['fresnel_number'], got['rim_slope_rad']) / err:.2f}x")
+    # the claim: a factor 2 (measured 0.93 .. 1.21x, above)
+    assert 0.5 <= got["estimate"] / err <= 2.0, (got["estimate"], err)
 
 
 def test_a_perfect_singlet_reads_no_rim_slope():

@@ -47,21 +47,21 @@ def test_the_other_orders_against_the_truth_of_a_wrapped_doe(design_um):
     e = p.model_error
     print(f"alpha {alpha:.4f}: truth {measured:.3g}, estimate {e['estimate']:.3g} (main {e['main_estimate']:.3g}, "
           f"orders {e['orders_estimate']:.3g})")
-    # measured: truth 4.65e-3 / 2.16e-3 (6.9e-4 at alpha = 1, one order), estimate 4.46e-3 / 3.37e-3: 0.96x /
-    # 1.56x; within the factor 2 the main-order estimate is held to
+    # measured: truth 4.65e-3 / 2.16e-3 (6.9e-4 at alpha = 1, one order), estimate 4.61e-3 / 3.52e-3: 0.99x /
+    # 1.63x; within the factor 2 the main-order estimate is held to
     assert 0.5 < e["estimate"] / measured < 2.0
-    # the main order's estimate alone (3.4e-4) misses it: the orders' term is what the test checks
-    assert e["main_estimate"] < 0.2 * measured
+    # the main order's estimate alone (4.9e-4: the rim's edge waves, rwwarp.wave.edge_wave; 0.71x the one-order
+    # truth's 6.9e-4) misses it, 0.10x / 0.23x: the orders' term is what the test checks
+    assert e["main_estimate"] < 0.3 * measured
     assert e["estimate"] == pytest.approx(e["main_estimate"] + e["orders_estimate"])
 
 
 def test_a_wrapped_doe_at_its_design_wavelength_has_no_other_orders():
     # a continuous relief at its design wavelength transmits its main order only (c_m = sinc(1 - m) = 0): the
-    # estimate is the main order's, as calibrated
+    # estimate is the main order's
     p = rw.plan_psf(wrapped_scene(0.55), 0.0, 0.55, size=48, pixel_mm=0.5e-3, method="auto")
     assert p.model_error["orders_estimate"] == 0.0
-    assert p.model_error["estimate"] == pytest.approx(me.model_error(p.model_error["fresnel_number"],
-                                                                     p.model_error["rim_slope_rad"]))
+    assert p.model_error["estimate"] == p.model_error["main_estimate"] > 0.0
 
 
 def test_formulas_refuse_bad_input_and_vanish_without_light():
@@ -101,7 +101,7 @@ def test_the_cooke_design_off_its_design_wavelength(wl):
     e = rw.plan_psf(lens, (0.0, 0.0), wl, size=kw["size"], pixel_mm=kw["pixel_mm"], method="auto",
                     rays_per_sample=kw["rays_per_sample"], nyquist_safety=kw["nyquist_safety"],
                     focal_patch_tol=kw["focal_patch_tol"]).model_error
-    # measured: estimate 1.77e-2 / 1.39e-2, 1.67x / 1.25x the difference; within the factor 2 (2.5 for the
-    # wave path's own error of ~2e-4 .. 5e-4 against the truth on top)
+    # measured: estimate 1.84e-2 / 1.42e-2, 1.74x / 1.28x the difference (main order 3.6e-3 / 8.1e-4: 0.34x /
+    # 0.07x); within the factor 2 (2.5 for the wave path's own error of ~2e-4 .. 5e-4 against the truth on top)
     assert 0.5 < e["estimate"] / measured < 2.5
-    assert e["main_estimate"] < 0.35 * measured
+    assert e["main_estimate"] < 0.5 * measured          # 0.34x / 0.07x measured (comment above)

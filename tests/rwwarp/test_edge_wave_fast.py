@@ -1,0 +1,98 @@
+"""The edge-wave estimate's fast evaluation (rwwarp.wave.edge_wave.edge_wave_error: the coarse tilt grid refined
+around its maxima, a few hundred observation points, rim nodes from the integrand's bandwidth) against a brute-force
+evaluation of the same equations written here (module docstring of rwwarp.wave.edge_wave): U on the whole pi / 4
+tilt grid by a dense zero-padded FFT on a finer pupil grid, dU on every near or bright point with 8x the rim nodes;
+and the planner's memo of the estimate (rwwarp.wave.model_error.estimate_for_raywave)."""
+from __future__ import annotations
+
+import math
+import types
+import warnings
+
+import numpy as np
+import pytest
+
+from rwwarp.wave import model_error as me
+from rwwarp.wave.edge_wave import PupilPhase, edge_wave_error, radial_pupil_phase
+from rwwarp.wave.raywave import RayWave
+
+from _wave_truth import thin_lens_doe
+
+
+def brute_force(nf, phase, n=128, search_rad=6.0, bright=0.05):
+    """E = max |2 Re(conj U dU) + |dU|^2| / max |U + dU|^2 over the tilts (pi / 4 grid) within search_rad of U's peak
+    or where |U|^2 >= bright of its peak: U = (1 / pi) int_disc exp(i (Phi - t.u)) d^2u (cells weighted by their share
+    inside the rim), dU = (1 / 2 pi) int 2 exp(i (Phi(n) - t.n)) (exp(-i psi) - 1) / (i s) dtheta, s the radial slope
+    less t.n, psi = s^2 / (4 pi N_F + 2 c), c the radial curvature held at >= -pi N_F."""
+    h = 2.0 / n
+    x = -1.0 + h * (np.arange(n) + 0.5)
+    X, Y = np.meshgrid(x, x)
+    w = np.clip((1.0 - np.hypot(X, Y)) / h + 0.5, 0.0, 1.0)
+    m = 4 * n
+    U = np.fft.fft2(w * np.exp(1j * phase.value(X, Y)), s=(m, m)) * (h * h / math.pi)
+    t = 2 * math.pi * np.fft.fftfreq(m, h)
+    ph = np.exp(-1j * t * x[0])
+    U = U * ph[:, None] * ph[None, :]
+    I = np.abs(U) ** 2
+    iy, ix = np.unravel_index(np.argmax(I), I.shape)
+    TX, TY = np.meshgrid(t, t)
+    sel = (np.hypot(TX - t[ix], TY - t[iy]) <= search_rad + 1e-9) | (I >= bright * I[iy, ix])
+    tx, ty, Uk = TX[sel], TY[sel], U[sel]
+    nth = 2048
+    th = 2 * math.pi * np.arange(nth) / nth
+    cx, cy = np.cos(th), np.sin(th)
+    gx, gy = phase.gradient(cx, cy)
+    hxx, hxy, hyy = phase.hessian(cx, cy)
+    s0 = gx * cx + gy * cy
+    c = hxx * cx * cx + 2 * hxy * cx * cy + hyy * cy * cy
+    den = 4 * math.pi * nf + 2 * np.maximum(c, -math.pi * nf)
+    phi = phase.value(cx, cy)
+    dU = np.empty(len(tx), complex)
+    for a in range(0, len(tx), 64):
+        tn = tx[a:a + 64, None] * cx + ty[a:a + 64, None] * cy
+        s = s0 - tn
+        psi = s * s / den
+        e = np.where(np.abs(s) < 1e-12, -2 * s / den, 2 * (np.exp(-1j * psi) - 1) / (1j * np.where(s == 0, 1, s)))
+        dU[a:a + 64] = np.mean(np.exp(1j * (phi - tn)) * e, axis=1)
+    dI = np.abs(2 * (np.conj(Uk) * dU).real + np.abs(dU) ** 2)
+    return float(dI.max() / np.max(np.abs(Uk + dU) ** 2))
+
+
+# a decentred DOE's phase about the beam's centre: defocus, coma, astigmatism, a tilt (rad; rim slopes ~10-20 rad)
+COMA = PupilPhase(np.array([(1, 0), (2, 0), (0, 2), (3, 0), (1, 2), (4, 0), (2, 2), (0, 4)]),
+                  np.array([2.0, 1.5, -2.5, 3.0, 3.0, 3.0, 6.0, 3.0]))
+
+
+@pytest.mark.parametrize("nf,phase", [(56.8, radial_pupil_phase((0.0, 3.0))), (20.5, radial_pupil_phase((0.0, 4.0))),
+                                      (54.5, COMA), (150.0, COMA)])
+def test_the_fast_evaluation_reads_the_brute_force_sum(nf, phase):
+    fast, info = edge_wave_error(nf, phase)
+    ref = brute_force(nf, phase)
+    print(f"N_F {nf}: fast {fast:.4e} brute force {ref:.4e} ({fast / ref:.4f}), {info['samples']} samples, "
+          f"{info['rim_nodes']} nodes, {info['points']} points")
+    # measured 0.9998-1.0032 (the fast path's coarser pupil sampling and the coarse-to-fine search); 3 % allowed
+    assert fast == pytest.approx(ref, rel=0.03)
+
+
+def test_the_planner_computes_the_estimate_once_and_again_when_its_inputs_change():
+    lens = thin_lens_doe(20.0, 1.5, (0.0, 3.0), pixel=4e-3, doe_share=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = RayWave(lens, [(0.0, 0.5)], [0.55], 32, 4e-3, method="asm")
+    first = list(r.model_errors)
+    # a copy of what the estimate reads (a frozen plan's dataclasses.replace makes such copies)
+    names = ("lens", "plane", "pilot", "centers", "target", "wls", "n_after", "lam_mm", "z_plane", "z_sensor", "nsrc")
+    view = types.SimpleNamespace(**{k: getattr(r, k) for k in names})
+    calls = []
+    orig = me._estimate_for_raywave
+    try:
+        me._estimate_for_raywave = lambda rw_: calls.append(1) or orig(rw_)
+        assert me.estimate_for_raywave(view) == first and not calls     # the memo: the same inputs, no work
+        view.centers = r.centers + np.array([[4e-3, 0.0]])                # another patch: another sphere
+        moved = me.estimate_for_raywave(view)
+        assert calls == [1]
+    finally:
+        me._estimate_for_raywave = orig
+    assert moved != first and moved == orig(view)
+    view.centers = r.centers
+    assert me.estimate_for_raywave(view) == orig(view) == first
