@@ -136,6 +136,10 @@ SCHEMA = {
         "min_feature_um": _num(0, lo_open=True, none=True),
         "check_sampling_every": _num(0, integer=True),
         "live_replan_every": _num(1, integer=True),
+        "live_replan_rule": _choice("calls", "drift"),
+        "live_replan_drift": _num(0, lo_open=True),
+        "live_replan_drift_hard": _num(0, lo_open=True, none=True),
+        "live_replan_spread": _num(1, integer=True),
         "live_pack": _bool(),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
         "cache_precision": _choice("double", "single"),
@@ -224,7 +228,8 @@ DEFAULTS = {
                "wavelengths_um": [[0.60, 0.63, 0.66], [0.52, 0.55, 0.58], [0.45, 0.47, 0.49]],
                "depths_mm": [None], "nyquist_safety": 1.0, "rays_per_sample": 1.2, "doe_budget_cpmm": 0.0,
                "min_feature_um": None,
-               "check_sampling_every": 10, "live_replan_every": 1, "live_pack": True,
+               "check_sampling_every": 10, "live_replan_every": 1, "live_replan_rule": "drift",
+               "live_replan_drift": 1.0, "live_replan_drift_hard": None, "live_replan_spread": 3, "live_pack": True,
                "memory_budget_gb": None, "cache_precision": "double", "propagation": "auto",
                "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux"},
     "render": {"mode": "patch", "boundary": "reflect"},
@@ -443,6 +448,10 @@ def _semantic(cfg: dict, where: str, source):
     if cfg["render"]["mode"] == "patch" and cfg["data"]["crop"] < cfg["optics"]["psf_size"] // 2:
         raise ConfigError(f"{where}: 'data.crop' {cfg['data']['crop']} is smaller than half of "
                           f"'optics.psf_size' {cfg['optics']['psf_size']}")
+    hard = cfg["optics"]["live_replan_drift_hard"]
+    if hard is not None and hard < cfg["optics"]["live_replan_drift"]:
+        raise ConfigError(f"{where}: 'optics.live_replan_drift_hard' {hard} is below 'optics.live_replan_drift' "
+                          f"{cfg['optics']['live_replan_drift']} (waves)")
     if cfg["optics"]["psf_size"] % 2 == 0:
         raise ConfigError(f"{where}: 'optics.psf_size' must be odd (the PSF centre is a pixel), got "
                           f"{cfg['optics']['psf_size']}")
