@@ -135,6 +135,12 @@ SCHEMA = {
         "doe_budget_cpmm": _num(0),
         "min_feature_um": _num(0, lo_open=True, none=True),
         "check_sampling_every": _num(0, integer=True),
+        # kept live focal plans (torch_bridge.live.LiveProvider): live_replan_every 1 (default) plans every source
+        # afresh every call. Above 1: rule "drift" (default) keeps a plan while the lens's wavefront drift since it
+        # (torch_bridge.replan, waves) is <= live_replan_drift (default 1.0), at most live_replan_every optimiser
+        # steps, spreading due re-plans (at most ceil(n_sources / live_replan_spread) a call, default 3; one more
+        # call past due, never past live_replan_drift_hard, default null = 2 x live_replan_drift); rule "calls"
+        # (the rule before) plans again every live_replan_every calls.
         "live_replan_every": _num(1, integer=True),
         "live_replan_rule": _choice("calls", "drift"),
         "live_replan_drift": _num(0, lo_open=True),
