@@ -129,7 +129,7 @@ class LiveProvider:
         self._focal_keys = set()
         # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays outside its window
         # at its first use, more rays outside it since, optimiser step planned at (rule "drift"), kept one call
-        # past due (rule "drift"), cached (h, u) beam extents of the source (torch_bridge.replan.beam_extents)]
+        # past due (rule "drift"), the source's geometry on the plan's lens (torch_bridge.replan.source_geometry)]
         self._focal_rws = {}
         self.plans_made = 0
         self.plans_reused = 0
@@ -163,7 +163,7 @@ class LiveProvider:
         call's, then decide which kept plans of this call's sources ``keys`` are made again
         (:attr:`_replan_now`: id of the entry -> reason), spreading the due ones
         (:func:`torch_bridge.replan.choose_replans`; see the class docstring)."""
-        from .replan import beam_extents, choose_replans, wavefront_drift_waves
+        from .replan import choose_replans, source_geometry, wavefront_drift_waves
         t0 = time.perf_counter()
         # one read of the values to the host (after common_centres' read: the device's queue is empty)
         v = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in values.values()]).cpu().numpy()
@@ -189,7 +189,7 @@ class LiveProvider:
                     if lens_now is None:
                         lens_now = self.module._once("lens", self.module.to_lens)
                     if e[6] is None:
-                        e[6] = beam_extents(r.lens, key[1], key[0])
+                        e[6] = source_geometry(r.lens, key[1], key[0])
                     d = wavefront_drift_waves(r.lens, lens_now, key[1], key[0], extents=e[6])
                 due = d > self.replan_drift
                 status[id(e)] = (due and (e[5] or d > self.replan_drift_hard), due, d / self.replan_drift, "drift")

@@ -41,9 +41,11 @@ import math
 
 import numpy as np
 
-#: radial samples (sags) and points across the disc (DOE and phase surfaces) the drift is evaluated on
-_N_R = 33
-_N_XY = 17
+#: radial samples (sags, phase surfaces) in [0, 1] and points of the unit disc (DOE) the drift is evaluated on,
+#: scaled by the beam's extent on each surface
+_R01 = np.linspace(0.0, 1.0, 33)
+_G = np.linspace(-1.0, 1.0, 17)
+_X01, _Y01 = (a[a ** 2 + b ** 2 <= 1.0 + 1e-12] for a, b in (np.meshgrid(_G, _G), np.meshgrid(_G, _G)[::-1]))
 
 
 def beam_extents(lens, wavelength_um: float, field_deg) -> tuple[np.ndarray, np.ndarray]:
@@ -60,12 +62,26 @@ def beam_extents(lens, wavelength_um: float, field_deg) -> tuple[np.ndarray, np.
     return np.abs(ym) + np.abs(yc), np.abs(num / n)
 
 
+def source_geometry(lens, wavelength_um: float, field_deg) -> tuple:
+    """What :func:`wavefront_drift_waves` needs of the plan's lens for one source, kept by a caller that judges
+    the same plan again: ``(h, u, n, n_before)``: :func:`beam_extents` and the indices after and before each
+    surface at ``wavelength_um`` (um)."""
+    h, u = beam_extents(lens, wavelength_um, field_deg)
+    n = lens.indices(wavelength_um)
+    return h, u, n, np.concatenate([[1.0], n[:-1]])
+
+
+def _same_shape(s, t) -> bool:
+    return (s.radius == t.radius and s.conic == t.conic and list(s.aspheric) == list(t.aspheric) and s.a2 == t.a2
+            and list(s.odd_aspheric) == list(t.odd_aspheric))
+
+
 def wavefront_drift_waves(lens_plan, lens_now, wavelength_um: float, field_deg=0.0, extents=None) -> float:
     """First-order bound on the change of the optical path across the beam of a source (``field_deg``
     deg, ``wavelength_um`` um) between the lens a plan was made from (``lens_plan``) and the lens now
     (``lens_now``: the same surfaces, other values), in waves of ``wavelength_um``: the sum over surfaces of
     the terms in the module docstring. 0 for equal lenses. Raises ValueError when the lenses do not have
-    the same surfaces (types, materials). ``extents``: :func:`beam_extents` of ``lens_plan`` for this source,
+    the same surfaces (types, materials). ``extents``: :func:`source_geometry` of ``lens_plan`` for this source,
     when the caller keeps it (it depends on the plan's lens only)."""
     from rwwarp import doe
     from rwwarp import phase_surface as ph
@@ -73,23 +89,21 @@ def wavefront_drift_waves(lens_plan, lens_now, wavelength_um: float, field_deg=0
     if len(a) != len(b) or any(s.type != t.type or s.material != t.material for s, t in zip(a, b)):
         raise ValueError("wavefront_drift_waves: the two lenses do not have the same surfaces (types, materials)")
     wl_mm = float(wavelength_um) * 1e-3
-    h, u = beam_extents(lens_plan, wavelength_um, field_deg) if extents is None else extents
-    n = lens_plan.indices(wavelength_um)
-    n_before = np.concatenate([[1.0], n[:-1]])
+    h, u, n, n_before = source_geometry(lens_plan, wavelength_um, field_deg) if extents is None else extents
     opl = 0.0     # mm
     phase = 0.0   # rad
     for i, (s, t) in enumerate(zip(a, b)):
         if s.thickness != t.thickness:
             opl += abs(n[i]) * abs(t.thickness - s.thickness) * 0.5 * u[i] ** 2
         if s.type == "standard":
-            r = np.linspace(0.0, h[i], _N_R)
-            ds = np.abs(t.sag(r) - s.sag(r))
-            d = float(np.max(ds)) if np.all(np.isfinite(ds)) else math.inf
-            opl += abs(n[i] - n_before[i]) * d
-            if s.phase is not None or t.phase is not None:
+            if not _same_shape(s, t):
+                ds = np.abs(t.sag(_R01 * h[i]) - s.sag(_R01 * h[i]))
+                d = float(np.max(ds)) if np.all(np.isfinite(ds)) else math.inf
+                opl += abs(n[i] - n_before[i]) * d
+            if (s.phase is not None or t.phase is not None) and s.phase != t.phase:
                 if (s.phase is None) != (t.phase is None):
                     return math.inf
-                rho = np.linspace(0.0, h[i], _N_R)
+                rho = _R01 * h[i]
                 d = 0.0
                 for q, sign in ((s, -1.0), (t, 1.0)):
                     rn, co = ph.phase_profile(q)
@@ -98,10 +112,7 @@ def wavefront_drift_waves(lens_plan, lens_now, wavelength_um: float, field_deg=0
         elif s.type == "thin_lens" and s.focal_length != t.focal_length:
             opl += 0.5 * h[i] ** 2 * abs(1.0 / t.focal_length - 1.0 / s.focal_length)
         elif s.type == "doe" and s.profile != t.profile:
-            g = np.linspace(-h[i], h[i], _N_XY)
-            x, y = np.meshgrid(g, g)
-            inside = x * x + y * y <= h[i] ** 2 + 1e-30
-            x, y = x[inside], y[inside]
+            x, y = _X01 * h[i], _Y01 * h[i]
             src = getattr(lens_plan, "source", None)
             d = doe.get_profile(t, src).phase(x, y, t.design_wavelength_um) - \
                 doe.get_profile(s, src).phase(x, y, s.design_wavelength_um)
