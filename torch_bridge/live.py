@@ -60,11 +60,12 @@ class LiveProvider:
     ``replan_drift`` (waves), when rays left its window (as above), or when it is ``replan_every`` optimiser
     steps old (calls with other values than the last call's; a call with the same values is not a step). Due
     plans are spread: at most ``ceil(n_sources / replan_spread)`` plans are made again in one call (the
-    forced ones first, then the due ones by drift, stalest first); a due plan left over is kept one more call
-    (its next use plans it again, forced), unless its drift is past ``replan_drift_hard`` (default
-    2 ``replan_drift``), rays left its window or it reached the age: forced at once. So no plan is used past
-    ``replan_drift_hard`` waves, ``replan_every`` steps, or more than once past ``replan_drift``; what the
-    spreading costs is the error of that one use (``perf/replan_study.py``). ``replan_spread`` 1: no spreading.
+    forced ones first, then the due ones, stalest first: the larger of drift / ``replan_drift`` and age /
+    ``replan_every``); a due plan left over is kept one more call (its next use plans it again, forced),
+    unless its drift is past ``replan_drift_hard`` (default 2 ``replan_drift``) or rays left its window:
+    forced at once. So no plan is used past ``replan_drift_hard`` waves, nor more than once past
+    ``replan_drift`` or ``replan_every`` steps; what the spreading costs is the error of that one use (up to
+    the error at ``replan_drift_hard``, ``perf/replan_study.py``). ``replan_spread`` 1: no spreading.
 
     ``pack`` (default True): the focal sources of a chunk, each on its own plan, are computed together
     (:class:`torch_bridge.packed.PackedTile`: one parameter table, one trace + splat launch set and its one
@@ -177,10 +178,9 @@ class LiveProvider:
             if e is None:
                 continue
             age = self.steps - e[4]
+            d = math.inf
             if e[3]:
                 status[id(e)] = (True, True, math.inf, "window")
-            elif age >= self.replan_every:
-                status[id(e)] = (True, True, math.inf, "age")
             else:
                 r = e[0]
                 if age == 0:
@@ -191,20 +191,24 @@ class LiveProvider:
                     if e[6] is None:
                         e[6] = source_geometry(r.lens, key[1], key[0])
                     d = wavefront_drift_waves(r.lens, lens_now, key[1], key[0], extents=e[6])
-                due = d > self.replan_drift
-                status[id(e)] = (due and (e[5] or d > self.replan_drift_hard), due, d / self.replan_drift, "drift")
-            entries[id(e)] = (key, e, age)
+                # due past the drift tolerance or at the age bound; spread like the others, forced once kept past
+                # due before or past the hard drift bound
+                due = d > self.replan_drift or age >= self.replan_every
+                status[id(e)] = (due and (e[5] or d > self.replan_drift_hard), due,
+                                 max(d / self.replan_drift, age / self.replan_every),
+                                 "drift" if d > self.replan_drift else "age")
+            entries[id(e)] = (key, e, age, d)
         quota = -(-len(keys) // self.replan_spread)
         now = choose_replans({k: st[:3] for k, st in status.items()}, quota)
         self._replan_now = {k: status[k][3] for k in now}
         for k, (forced, due, stale, _) in status.items():
-            key, e, age = entries[k]
+            key, e, age, d = entries[k]
             if due and k not in now:
                 e[5] = True   # kept one more call past due: its next use plans it again
                 self.replans_deferred += 1
-            # (key, drift in waves (inf: not judged, rays left the window or the age), optimiser steps old, made
-            # again in this call, forced)
-            self._drift_log.append((key, stale * self.replan_drift, age, k in now, forced))
+            # (key, drift in waves (inf: not judged, rays left the window), optimiser steps old, made again in this
+            # call, forced)
+            self._drift_log.append((key, d, age, k in now, forced))
         self.drift_seconds += time.perf_counter() - t0
 
     def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check: bool = False) -> list:

@@ -128,8 +128,8 @@ def test_spreading_keeps_due_plans_one_call_at_most_and_never_past_the_hard_boun
     """Cooke triplet, 4 sources of the same drift (10 deg along +x, +y, -x, -y, 0.55 um), replan_spread 2: at most
     ceil(n / 2) re-plans a call while none is forced. Every call the front curvature takes a step of 0.6 of the
     tolerance (the plans made together come due together) and asks for a random half or all of the nodes.
-    Checked on every kept plan judged: it served with a drift <= replan_drift_hard and an age < replan_every;
-    past replan_drift it served at most once (its next use made it again, forced); a plan made again is forced
+    Checked on every kept plan judged: it served with a drift <= replan_drift_hard; past replan_drift or
+    replan_every steps it served at most once (its next use made it again, forced); a plan made again is forced
     exactly then; re-plans per call never exceed the quota unless forced ones do."""
     lens, m = _triplet()
     fields, pix, tol = [(10.0, 0.0), (0.0, 10.0), (-10.0, 0.0), (0.0, -10.0)], lens.sensor.pixel_pitch, 0.5
@@ -151,19 +151,19 @@ def test_spreading_keeps_due_plans_one_call_at_most_and_never_past_the_hard_boun
             log = prov._drift_log[n_log:]
             for key, d, age, again, forced in log:
                 if not again:
-                    assert d <= prov.replan_drift_hard and age < prov.replan_every
-                    if d > tol:
+                    assert d <= prov.replan_drift_hard
+                    if d > tol or age >= prov.replan_every:
                         assert key not in past_due, "a plan served twice past due"
                         past_due.add(key)
                 else:
-                    # made again: forced exactly when it served past due before, is past the hard bound or the
-                    # age, or rays left its window (drift not judged: inf)
-                    assert forced == (key in past_due or d > prov.replan_drift_hard or age >= prov.replan_every)
+                    # made again: forced exactly when it served past due before, is past the hard bound, or rays left
+                    # its window (drift not judged: inf)
+                    assert forced == (key in past_due or d > prov.replan_drift_hard)
                     past_due.discard(key)
             n_forced = sum(e[4] for e in log)
             assert prov.plans_made - made <= max(-(-len(log) // 2), n_forced)
-    # measured with this seed: 1 plan kept one call past due, 2 made again by drift, 2 by age
-    assert prov.replans_deferred > 0 and prov.replans["drift"] > 0 and prov.replans["age"] > 0
+    # measured with this seed: 1 plan kept one call past due, 4 made again by drift (the age bound is exercised above)
+    assert prov.replans_deferred > 0 and prov.replans["drift"] > 0
 
 
 def test_drift_rule_keys_are_checked_and_the_gpu_preset_uses_them():
