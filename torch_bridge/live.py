@@ -123,8 +123,9 @@ class LiveProvider:
         self._replan_now = {}    # rule "drift": id of an entry -> reason, the kept plans made again in this call
         self.plan_seconds = 0.0
         self.drift_seconds = 0.0
-        #: rule "drift": (key, drift in waves, optimiser steps old, made again, forced) of every kept plan judged
-        self._drift_log = []
+        #: rule "drift": (key, drift in waves, optimiser steps old, made again, forced) of every kept plan judged in
+        #: the last call
+        self.judged = []
         # sources whose first plan came out focal: planned on their own from then on (a joint plan of their
         # chunk would only decide the method again)
         self._focal_keys = set()
@@ -173,6 +174,7 @@ class LiveProvider:
         self._last_values = v
         status, entries = {}, {}
         lens_now = None
+        self.judged = []
         for key in dict.fromkeys(keys):
             e = self._focal_rws.get(key)
             if e is None:
@@ -208,7 +210,7 @@ class LiveProvider:
                 self.replans_deferred += 1
             # (key, drift in waves (inf: not judged, rays left the window), optimiser steps old, made again in this
             # call, forced)
-            self._drift_log.append((key, d, age, k in now, forced))
+            self.judged.append((key, d, age, k in now, forced))
         self.drift_seconds += time.perf_counter() - t0
 
     def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check: bool = False) -> list:
