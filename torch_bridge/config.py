@@ -135,7 +135,17 @@ SCHEMA = {
         "doe_budget_cpmm": _num(0),
         "min_feature_um": _num(0, lo_open=True, none=True),
         "check_sampling_every": _num(0, integer=True),
+        # kept live focal plans (torch_bridge.live.LiveProvider): live_replan_every 1 (default) plans every source
+        # afresh every call. Above 1: rule "drift" (default) keeps a plan while the lens's wavefront drift since it
+        # (torch_bridge.replan, waves) is <= live_replan_drift (default 1.0), at most live_replan_every optimiser
+        # steps, spreading due re-plans (at most ceil(n_sources / live_replan_spread) a call, default 3; one more
+        # call past due, never past live_replan_drift_hard, default null = 2 x live_replan_drift); rule "calls"
+        # (the rule before) plans again every live_replan_every calls.
         "live_replan_every": _num(1, integer=True),
+        "live_replan_rule": _choice("calls", "drift"),
+        "live_replan_drift": _num(0, lo_open=True),
+        "live_replan_drift_hard": _num(0, lo_open=True, none=True),
+        "live_replan_spread": _num(1, integer=True),
         "live_pack": _bool(),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
         "cache_precision": _choice("double", "single"),
@@ -224,7 +234,8 @@ DEFAULTS = {
                "wavelengths_um": [[0.60, 0.63, 0.66], [0.52, 0.55, 0.58], [0.45, 0.47, 0.49]],
                "depths_mm": [None], "nyquist_safety": 1.0, "rays_per_sample": 1.2, "doe_budget_cpmm": 0.0,
                "min_feature_um": None,
-               "check_sampling_every": 10, "live_replan_every": 1, "live_pack": True,
+               "check_sampling_every": 10, "live_replan_every": 1, "live_replan_rule": "drift",
+               "live_replan_drift": 1.0, "live_replan_drift_hard": None, "live_replan_spread": 3, "live_pack": True,
                "memory_budget_gb": None, "cache_precision": "double", "propagation": "auto",
                "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux"},
     "render": {"mode": "patch", "boundary": "reflect"},
@@ -443,6 +454,10 @@ def _semantic(cfg: dict, where: str, source):
     if cfg["render"]["mode"] == "patch" and cfg["data"]["crop"] < cfg["optics"]["psf_size"] // 2:
         raise ConfigError(f"{where}: 'data.crop' {cfg['data']['crop']} is smaller than half of "
                           f"'optics.psf_size' {cfg['optics']['psf_size']}")
+    hard = cfg["optics"]["live_replan_drift_hard"]
+    if hard is not None and hard < cfg["optics"]["live_replan_drift"]:
+        raise ConfigError(f"{where}: 'optics.live_replan_drift_hard' {hard} is below 'optics.live_replan_drift' "
+                          f"{cfg['optics']['live_replan_drift']} (waves)")
     if cfg["optics"]["psf_size"] % 2 == 0:
         raise ConfigError(f"{where}: 'optics.psf_size' must be odd (the PSF centre is a pixel), got "
                           f"{cfg['optics']['psf_size']}")

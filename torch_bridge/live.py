@@ -5,6 +5,9 @@ Units: mm, um for wavelengths, degrees for fields.
 """
 from __future__ import annotations
 
+import math
+import time
+
 import numpy as np
 import torch
 
@@ -44,7 +47,25 @@ class LiveProvider:
     Kept plans are not part of a training checkpoint: a resumed run plans afresh, so with N > 1 its next
     steps differ from an uninterrupted run's by the plans' age. Counts: :attr:`plans_made`,
     :attr:`plans_reused`, and why kept plans were given up, :attr:`replans` (``"age"``: ``replan_every``
-    calls old; ``"window"``: rays left the window).
+    calls (or steps) old; ``"window"``: rays left the window; ``"drift"``, rule "drift" only: the lens moved
+    too far), :attr:`replans_deferred` (due plans kept one more call by the spreading); host seconds spent
+    planning, :attr:`plan_seconds`, and judging kept plans, :attr:`drift_seconds`.
+
+    ``replan_rule`` (with ``replan_every`` > 1): ``"calls"`` (default, the rule above): a plan's age counts
+    calls, whether or not its source was asked for (a source asked for every ~3rd call, as a colour channel's
+    random wavelength, is then nearly always past ``replan_every`` 3 when asked for again). ``"drift"``: a plan is
+    kept while the lens has not moved too far from the values it was planned at, measured physically by
+    :func:`torch_bridge.replan.wavefront_drift_waves` (the optical path change across the source's beam, waves;
+    see :mod:`torch_bridge.replan` for why and the error it makes): made again when the drift exceeds
+    ``replan_drift`` (waves), when rays left its window (as above), or when it is ``replan_every`` optimiser
+    steps old (calls with other values than the last call's; a call with the same values is not a step). Due
+    plans are spread: at most ``ceil(n_sources / replan_spread)`` plans are made again in one call (the
+    forced ones first, then the due ones, stalest first: the larger of drift / ``replan_drift`` and age /
+    ``replan_every``); a due plan left over is kept one more call (its next use plans it again, forced),
+    unless its drift is past ``replan_drift_hard`` (default 2 ``replan_drift``) or rays left its window:
+    forced at once. So no plan is used past ``replan_drift_hard`` waves, nor more than once past
+    ``replan_drift`` or ``replan_every`` steps; what the spreading costs is the error of that one use (up to
+    the error at ``replan_drift_hard``, ``perf/replan_study.py``). ``replan_spread`` 1: no spreading.
 
     ``pack`` (default True): the focal sources of a chunk, each on its own plan, are computed together
     (:class:`torch_bridge.packed.PackedTile`: one parameter table, one trace + splat launch set and its one
@@ -65,7 +86,8 @@ class LiveProvider:
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, wavelength_ref_um: float = 0.55,
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
                  window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5,
-                 record_budget_bytes: int | None = None):
+                 record_budget_bytes: int | None = None, replan_rule: str = "calls", replan_drift: float = 0.05,
+                 replan_drift_hard: float | None = None, replan_spread: int = 1):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
@@ -79,12 +101,37 @@ class LiveProvider:
         if not (np.isfinite(window_tol) and 0 <= window_tol < 1):
             raise ValueError(f"LiveProvider: window_tol must be in [0, 1), got {window_tol!r}")
         self.window_tol = float(window_tol)
-        self.replans = {"age": 0, "window": 0}
+        if replan_rule not in ("calls", "drift"):
+            raise ValueError(f"LiveProvider: replan_rule must be 'calls' or 'drift', got {replan_rule!r}")
+        self.replan_rule = replan_rule
+        if not (np.isfinite(replan_drift) and replan_drift > 0):
+            raise ValueError(f"LiveProvider: replan_drift must be > 0 waves, got {replan_drift!r}")
+        self.replan_drift = float(replan_drift)
+        hard = 2.0 * self.replan_drift if replan_drift_hard is None else replan_drift_hard
+        if not (np.isfinite(hard) and hard >= self.replan_drift):
+            raise ValueError(f"LiveProvider: replan_drift_hard must be >= replan_drift ({self.replan_drift} waves), "
+                             f"got {replan_drift_hard!r}")
+        self.replan_drift_hard = float(hard)
+        if int(replan_spread) != replan_spread or replan_spread < 1:
+            raise ValueError(f"LiveProvider: replan_spread must be an integer >= 1, got {replan_spread!r}")
+        self.replan_spread = int(replan_spread)
+        self.replans = {"age": 0, "window": 0} if replan_rule == "calls" else {"age": 0, "window": 0, "drift": 0}
+        self.replans_deferred = 0
+        #: optimiser steps seen (rule "drift"): calls whose values differ from the last call's
+        self.steps = 0
+        self._last_values = None
+        self._replan_now = {}    # rule "drift": id of an entry -> reason, the kept plans made again in this call
+        self.plan_seconds = 0.0
+        self.drift_seconds = 0.0
+        #: rule "drift": (key, drift in waves, optimiser steps old, made again, forced) of every kept plan judged in
+        #: the last call
+        self.judged = []
         # sources whose first plan came out focal: planned on their own from then on (a joint plan of their
         # chunk would only decide the method again)
         self._focal_keys = set()
         # (field, wavelength, depth) -> [RayWave of that source, calls since planned, rays outside its window
-        # at its first use, more rays outside it since]
+        # at its first use, more rays outside it since, optimiser step planned at (rule "drift"), kept one call
+        # past due (rule "drift"), the source's geometry on the plan's lens (torch_bridge.replan.source_geometry)]
         self._focal_rws = {}
         self.plans_made = 0
         self.plans_reused = 0
@@ -99,6 +146,12 @@ class LiveProvider:
     def _usable(self, e) -> bool:
         """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again (else counted in
         :attr:`replans` by the reason)."""
+        if self.replan_rule == "drift":
+            why = self._replan_now.get(id(e))
+            if why is not None:
+                self.replans[why] += 1
+                return False
+            return True
         if e[3]:
             self.replans["window"] += 1
             return False
@@ -107,11 +160,65 @@ class LiveProvider:
             return False
         return True
 
+    def _judge(self, keys, values) -> None:
+        """Rule "drift": count an optimiser step when ``values`` (the module's, this call) differ from the last
+        call's, then decide which kept plans of this call's sources ``keys`` are made again
+        (:attr:`_replan_now`: id of the entry -> reason), spreading the due ones
+        (:func:`torch_bridge.replan.choose_replans`; see the class docstring)."""
+        from .replan import choose_replans, source_geometry, wavefront_drift_waves
+        t0 = time.perf_counter()
+        # one read of the values to the host (after common_centres' read: the device's queue is empty)
+        v = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in values.values()]).cpu().numpy()
+        if self._last_values is not None and not np.array_equal(v, self._last_values):
+            self.steps += 1
+        self._last_values = v
+        status, entries = {}, {}
+        lens_now = None
+        self.judged = []
+        for key in dict.fromkeys(keys):
+            e = self._focal_rws.get(key)
+            if e is None:
+                continue
+            age = self.steps - e[4]
+            d = math.inf
+            if e[3]:
+                status[id(e)] = (True, True, math.inf, "window")
+            else:
+                r = e[0]
+                if age == 0:
+                    d = 0.0
+                else:
+                    if lens_now is None:
+                        lens_now = self.module._once("lens", self.module.to_lens)
+                    if e[6] is None:
+                        e[6] = source_geometry(r.lens, key[1], key[0])
+                    d = wavefront_drift_waves(r.lens, lens_now, key[1], key[0], extents=e[6])
+                # due past the drift tolerance or at the age bound; spread like the others, forced once kept past
+                # due before or past the hard drift bound
+                due = d > self.replan_drift or age >= self.replan_every
+                status[id(e)] = (due and (e[5] or d > self.replan_drift_hard), due,
+                                 max(d / self.replan_drift, age / self.replan_every),
+                                 "drift" if d > self.replan_drift else "age")
+            entries[id(e)] = (key, e, age, d)
+        quota = -(-len(keys) // self.replan_spread)
+        now = choose_replans({k: st[:3] for k, st in status.items()}, quota)
+        self._replan_now = {k: status[k][3] for k in now}
+        for k, (forced, due, stale, _) in status.items():
+            key, e, age, d = entries[k]
+            if due and k not in now:
+                e[5] = True   # kept one more call past due: its next use plans it again
+                self.replans_deferred += 1
+            # (key, drift in waves (inf: not judged, rays left the window), optimiser steps old, made again in this
+            # call, forced)
+            self.judged.append((key, d, age, k in now, forced))
+        self.drift_seconds += time.perf_counter() - t0
+
     def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check: bool = False) -> list:
         """Plan sources ``js`` each on its own (focal), from one pilot trace of all of them
         (:meth:`~torch_bridge.HybridLens.raywaves_alone`); ``check``: each one's recorded peak is checked
         against the budget first (sources planned again alone, without their chunk's check)."""
         m = self.module
+        t0 = time.perf_counter()
         rs = m.raywaves_alone([src_f[j] for j in js], [src_w[j] for j in js], self.size, centers_mm=src_c[js],
                               object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, method="focal")
         for r in rs:
@@ -122,7 +229,12 @@ class LiveProvider:
             if check:
                 m.check_budget(r, m.memory_budget(self.memory_budget_bytes), sources=1)
             self.plans_made += 1
+        self.plan_seconds += time.perf_counter() - t0
         return rs
+
+    def _entry(self, r) -> list:
+        """A new entry of :attr:`_focal_rws` for the plan ``r`` just made (see ``__init__``)."""
+        return [r, 0, None, False, self.steps, False, None]
 
     def psfs(self, wavelengths_um, depth_mm=None, nodes: slice | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size) for one wavelength per channel (um) at the object
@@ -157,6 +269,8 @@ class LiveProvider:
         for e in self._focal_rws.values():
             e[1] += 1
             e[0].release_operators()   # the last call's operators (a learning distance rebuilds them anyway)
+        if self.replan_rule == "drift" and self.replan_every > 1:
+            self._judge([(tuple(np.ravel(f)), w, depth_mm) for f, w in zip(src_f, src_w)], values)
         for t in self._packed.values():
             t[1].release_operators()
         packs = {}    # this call's packed tiles, keyed by their members' identities
@@ -225,11 +339,13 @@ class LiveProvider:
                 for j, r in zip(again, self._plan_sources(again, src_f, src_w, src_c, depth_mm, check=True)):
                     rws[j] = r
                     if self.replan_every > 1:
-                        self._focal_rws[(tuple(np.ravel(src_f[j])), src_w[j], depth_mm)] = [r, 0, None, False]
+                        self._focal_rws[(tuple(np.ravel(src_f[j])), src_w[j], depth_mm)] = self._entry(r)
             if fresh:
                 # sources not seen before: one joint plan decides the method and checks the budget
+                t0 = time.perf_counter()
                 rw = m.raywave([src_f[j] for j in fresh], [src_w[j] for j in fresh], self.size,
                                object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, center_mm=src_c[fresh])
+                self.plan_seconds += time.perf_counter() - t0
                 # a chunk's recorded trace must fit the budget (HybridLens.check_budget names the knobs)
                 per_source = get_method(rw.plan.method).per_source_plans
                 m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if per_source else rw.nsrc)
@@ -241,7 +357,7 @@ class LiveProvider:
                         self._focal_keys.add(key)
                         rws[j] = r
                         if self.replan_every > 1:
-                            self._focal_rws[key] = [rws[j], 0, None, False]
+                            self._focal_rws[key] = self._entry(rws[j])
                     if len(fresh) == 1:
                         self.plans_made += 1
                 else:

@@ -248,7 +248,9 @@ class Arm:
                 module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm))))
         return dz.LiveProvider(module, self.fields, self.size, self.pixel_mm, wavelength_ref_um=self.wl_ref,
                                tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"],
-                               pack=o["live_pack"], record_budget_bytes=record)
+                               pack=o["live_pack"], record_budget_bytes=record, replan_rule=o["live_replan_rule"],
+                               replan_drift=o["live_replan_drift"], replan_drift_hard=o["live_replan_drift_hard"],
+                               replan_spread=o["live_replan_spread"])
 
     def limit_feature(self) -> float:
         """After an optics update: project the DOE onto ``optics.min_feature_um`` (a learning DOE only;
