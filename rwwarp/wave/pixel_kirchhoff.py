@@ -42,7 +42,7 @@ KIRCHHOFF_EPS = 0.05
 KIRCHHOFF_TILE_MAX = 1024
 #: bytes the NUFFT grids of one tile may take at once: its weight vectors go through in chunks that fit
 KIRCHHOFF_GRID_BYTES = 256 * 2 ** 20
-#: bytes a NUFFT grid cell takes per weight vector at the peak of :func:`rwwarp.wave.pixel_scale.nufft_type1`
+#: bytes a NUFFT grid cell takes per weight vector at the peak of :func:`rwwarp.wave.nufft.nufft_type1`
 #: (the complex accumulator, its FFT and the FFT's temporary: 51 measured with tracemalloc; tests/rwwarp/test_pixel_cost.py)
 GRID_CELL_BYTES = 52
 #: bytes a wave-plane sample takes in one tile beside its weight vectors and the NUFFT's spreading arrays: its kernel
@@ -70,7 +70,7 @@ def chunk_vectors(nt: int, points: int, flux: bool, grid_bytes: int | None = Non
     """How many of a tile's weight vectors go through the NUFFT at once: the most whose grids
     (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` oversampled grid, ``nt`` the tile's side) and vectors (16 bytes
     a point) fit ``grid_bytes`` (None: ``KIRCHHOFF_GRID_BYTES``), at least one."""
-    from .pixel_scale import NUFFT_OVERSAMPLE
+    from .nufft import NUFFT_OVERSAMPLE
     M = NUFFT_OVERSAMPLE * int(nt)
     b = KIRCHHOFF_GRID_BYTES if grid_bytes is None else int(grid_bytes)
     return max(1, min(n_vectors(flux), b // (GRID_CELL_BYTES * M * M + 16 * int(points))))
@@ -180,7 +180,7 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     within it of ``T`` (:func:`near_tiles`), the others taken from ``base`` ((n, n), e.g. the Debye form's samples;
     not changed). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
     grid's band."""
-    from . import pixel_scale
+    from . import nufft
     k0 = 2.0 * math.pi / lam_mm
     kn = k0 * n_med
     P = xp.asarray(P, dtype=xp.float64)
@@ -215,7 +215,7 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
         rest = [q for q in terms if q[1][0] not in ("one", "flux")]
         parts = [(main, None)] + [(rest[c0:c0 + kc], REST_SPREAD) for c0 in range(0, len(rest), kc)]
         for part, spread in parts:
-            N = pixel_scale.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
+            N = nufft.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
             for (_, key), Nq in zip(part, N):
                 cu, cw = _coefficient(key, Dx, Dy, kn)
                 if cw is None:
@@ -237,17 +237,17 @@ def tile_cost(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -
     ``points`` wave-plane samples. Memory: ``POINT_BYTES`` a sample, and the larger NUFFT call's vectors (16 bytes a
     sample), grids (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` grid) and spreading arrays (``SPREAD_ROW_BYTES``
     a sample and footprint row), ~3 complex ``nt^2`` arrays (``U``, ``U_w``, a coefficient,
-    products). Flops of the NUFFTs (:func:`rwwarp.wave.pixel_scale.nufft_flops`: one call for the plane waves of ``U``
+    products). Flops of the NUFFTs (:func:`rwwarp.wave.nufft.nufft_flops`: one call for the plane waves of ``U``
     and ``U_w``, one a chunk of the corrections at ``REST_SPREAD``) and ~10 a term and sample to form the vectors and
     combine them (``nt^2``)."""
-    from .pixel_scale import NUFFT_OVERSAMPLE, nufft_flops
+    from .nufft import NUFFT_OVERSAMPLE, nufft_flops
     K, kc = n_vectors(flux), chunk_vectors(nt, points, flux, grid_bytes)
     M = NUFFT_OVERSAMPLE * int(nt)
     main = 2 if flux else 1                      # the plane waves of U (and U_w): one call at NUFFT_SPREAD
     full, last = divmod(K - main, kc)
     nufft = (nufft_flops(points, main, nt) + full * nufft_flops(points, kc, nt, REST_SPREAD)
              + (nufft_flops(points, last, nt, REST_SPREAD) if last else 0.0))
-    from .pixel_scale import NUFFT_SPREAD
+    from .nufft import NUFFT_SPREAD
     call = lambda k, spread: k * (GRID_CELL_BYTES * M * M + 16 * points) + SPREAD_ROW_BYTES * 2 * spread * points
     mem = POINT_BYTES * points + max(call(main, NUFFT_SPREAD), call(kc, REST_SPREAD)) + 3 * 16 * nt * nt
     return {"memory_bytes": int(mem), "flops": float(nufft + 10.0 * K * (points + nt * nt) + 200.0 * points),

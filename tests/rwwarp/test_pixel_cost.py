@@ -26,12 +26,13 @@ def _nufft_work(J, K, n, spread=6, R=2):
 @pytest.fixture
 def nufft_calls(monkeypatch):
     calls = []
-    orig = ps.nufft_type1
+    from rwwarp.wave import nufft
+    orig = nufft.nufft_type1
 
     def spy(tx, ty, c, n, xp=np, **kw):
         calls.append((len(tx), 1 if np.ndim(c) == 1 else np.shape(c)[0], n, kw.get("spread") or ps.NUFFT_SPREAD))
         return orig(tx, ty, c, n, xp, **kw)
-    monkeypatch.setattr(ps, "nufft_type1", spy)
+    monkeypatch.setattr(nufft, "nufft_type1", spy)
     return calls
 
 

@@ -16,7 +16,8 @@ from scipy.special import j1
 import rwwarp as rw
 from rwwarp.io import load_lens
 from rwwarp.lens import Lens, Surface
-from rwwarp.wave.pixel_scale import box_weights, nufft_type1, tube_areas
+from rwwarp.wave.nufft import nufft_type1
+from rwwarp.wave.pixel_scale import box_weights, tube_areas
 
 
 def test_nufft_type1_is_the_direct_sum():
