@@ -20,13 +20,14 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                  object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
                  gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
                  focal_patch_tol=1e-5, deterministic: bool = False, pixel_values: str = "flux",
-                 model_tolerance: float | None = None, allow_pixel: bool = False) -> list:
+                 model_tolerance: float | None = None, allow_pixel: bool = False, auto_rule: str = "device") -> list:
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them
     (:func:`rwwarp.wave.pilot.trace_pilot`, one set of launches; the pilot rays are independent, so each
     source's, :meth:`~rwwarp.wave.pilot.Pilot.subset`, are what a pilot of it alone gives). Arguments as
-    :class:`RayWave` (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take);
+    :class:`RayWave` (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take;
+    ``auto_rule``: how "auto" chooses, :class:`RayWave`);
     :class:`PackedRayWave` computes them together."""
     pilot = trace_pilot(lens, fields, wls, device, dtype, object_distance_mm, own_pupils=True,
                         use_reference=use_reference)
@@ -36,7 +37,7 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                                object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
                                nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
                                deterministic, own_pupils=True, pilot=pilot.subset([k]), pixel_values=pixel_values,
-                               model_tolerance=model_tolerance, allow_pixel=allow_pixel))
+                               model_tolerance=model_tolerance, allow_pixel=allow_pixel, auto_rule=auto_rule))
     return members
 
 

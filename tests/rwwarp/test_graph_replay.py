@@ -87,6 +87,15 @@ def test_cached_auto_rule_only_for_replayed_cuda_hits():
                  ({"device": "cuda", "method": "asm"}, rw.PlanCache()),
                  ({"device": "cuda", "method": "auto", "auto_rule": "small-asm"}, rw.PlanCache())]:
         assert cached_auto_rule(o, c) is o
+    # the rule reaches the planning of a map's members (on the CPU "device" is "flops" already: the same plans)
+    from rwwarp.map_run import map_args, wave_members
+    from test_map import doe_lens
+    lens = doe_lens()
+    a = map_args(lens, [0.0, 0.3], [0.55], size=16)
+    pairs = [(0, 0), (1, 0)]
+    ruled = wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, None, dict(a.opts, auto_rule="flops"))
+    plain = wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, None, a.opts)
+    assert [m.plan.method for m in ruled[0][0]] == [m.plan.method for m in plain[0][0]]
 
 
 @pytest.mark.gpu
