@@ -340,16 +340,16 @@ _MEMO: "OrderedDict[bytes, tuple]" = OrderedDict()
 def _memo_key(rw) -> bytes:
     """A digest of what :func:`_estimate_for_raywave` reads from ``rw``."""
     import hashlib
-    import json
     h = hashlib.blake2b(digest_size=20)
     for arr in (rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok, rw.centers, rw.target, rw.wls, rw.n_after, rw.lam_mm):
         a = np.ascontiguousarray(arr)
         h.update(repr((a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())
-    lens = rw.lens
-    h.update(repr((rw.plane, float(rw.z_plane), float(rw.z_sensor), int(rw.nsrc), id(lens), lens.source,
-                   [(x.type, x.thickness) for x in lens.surfaces], lens.stop_index)).encode())
-    h.update(json.dumps(getattr(lens.surfaces[rw.plane], "profile", None), sort_keys=True, default=repr).encode())
+    from .plan_cache import lens_fingerprint
+    # the whole lens by value (every surface field, the DOE profile, the glasses' data), never by identity: a new
+    # lens may reuse a collected one's id()
+    h.update(repr((rw.plane, float(rw.z_plane), float(rw.z_sensor), int(rw.nsrc))).encode())
+    h.update(lens_fingerprint(rw.lens))
     return h.digest()
 
 
