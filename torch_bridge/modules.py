@@ -73,10 +73,6 @@ __all__ = ["QUANTITIES", "HybridLens"]
 QUANTITIES = ("curvature", "thickness", "conic", "aspheric", "doe", "focal_length", "phase")
 
 
-def _rw_device(t: torch.Tensor) -> str:
-    return "cpu" if t.device.type == "cpu" else f"cuda:{t.device.index or 0}"
-
-
 class HybridLens(nn.Module):
     """A rwwarp lens as an ``nn.Module`` whose PSFs and PSF maps carry gradients to its parameters.
 
@@ -262,7 +258,8 @@ class HybridLens(nn.Module):
     @property
     def rw_device(self) -> str:
         """rwwarp device string of the module's tensors ("cpu" or "cuda:N")."""
-        return _rw_device(self.thickness_base)
+        d = self.thickness_base.device
+        return "cpu" if d.type == "cpu" else f"cuda:{d.index or 0}"
 
     # ------------------------------------------------------------------ export
     def to_lens(self) -> Lens:
@@ -416,7 +413,9 @@ class HybridLens(nn.Module):
         # sources laid by one tracer a wavelength (as each RayWave's own); a RayWave's is made when it traces alone
         layers, out = {}, []
         for k, (f, w) in enumerate(zip(fields, wls)):
-            tr = layers.get(w) or layers.setdefault(w, Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"]))
+            if w not in layers:
+                layers[w] = Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"])
+            tr = layers[w]
             bp = plan_batch(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
                             method=method or self.method, own_pupils=True, pilot=pilot.subset([k]), tracer=tr, **opts)
             rw = RayWave.from_plan(bp, requires_grad=bool(requires_grad), tracer_on_use=True)
