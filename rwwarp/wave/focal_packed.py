@@ -333,3 +333,124 @@ class PackedFocalPropagator:
         (torch's convention), (S, n, n)."""
         return focal_adjoint(grad_u, grad_w, self._E, self._HR, self._c, self._Fx, self._Fy, self._dft2_adjoint,
                              self.xp)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A batch of single-source focal plans run together (rwwarp.wave.packed.PackedRayWave: maps, kept batches)
+
+def _profile(m):
+    """The DOE profile a single-source focal member's plan applies (None: no DOE, or a blank one)."""
+    return m.focal["profile"]
+
+
+def packed_doe_phase(members, n: int, xp=np):
+    """The unwrapped DOE phase phi0 (rad, at the DOE's design wavelength) on each member's wave-plane window,
+    (S, n, n) in the array namespace ``xp`` (computed there: on CUDA no host grid is formed or copied), ``n`` the
+    batch's slot side (samples past a member's own grid are computed but multiply zeros). Rows are y, columns x,
+    as :meth:`rwwarp.wave.raywave.RayWave.doe_orders_factor`. None when no member has a DOE profile; a
+    :class:`TypeError` for a profile without a smooth kind (a pixel map): such members run alone."""
+    profs = [_profile(m) for m in members]
+    if all(p is None for p in profs):
+        return None
+    p0 = profs[0]
+    if any(p is None for p in profs) or not hasattr(p0, "kind") or not hasattr(p0, "values"):
+        raise TypeError("packed_doe_phase: the members need one smooth DOE profile")
+    from .doe_phase import profile_phase
+    s = members[0].lens.surfaces[members[0].plane]
+    origin = np.concatenate([np.asarray(m.origin, dtype=np.float64).reshape(-1, 2) for m in members])
+    pitch = np.array([m.plan.pitch_mm for m in members], dtype=np.float64)
+    g = xp.asarray(np.arange(n, dtype=np.float64)[None, :] * pitch[:, None])     # (S, n) mm
+    ox, oy = xp.asarray(origin[:, 0]), xp.asarray(origin[:, 1])
+    x = ox[:, None, None] + g[:, None, :]
+    y = oy[:, None, None] + g[:, :, None]
+    return profile_phase(p0.kind, p0.values, x, y, norm_radius=p0.norm_radius,
+                         design_wavelength_um=s.design_wavelength_um, xp=xp)
+
+
+def packed_orders_factor(members, phi0, xp=np):
+    """``sum_m c_m exp(1j m phi0)`` of each member's kept DOE orders with its chief-ray wrap zone exact, (S, n, n),
+    from ``phi0`` (:func:`packed_doe_phase`): what :func:`rwwarp.wave.focal.doe_order_series` gives each member alone,
+    evaluated for the batch at once. Members whose orders are all integers share one Horner recursion
+    (:func:`~rwwarp.wave.focal.order_series_horner`) over the union of their orders (a missing order's coefficient
+    is zero); the others (one order each, e.g. a wavelength remap ``m`` not an integer) are ``c exp(1j m phi0)``.
+    Zones by :func:`~rwwarp.wave.focal.exact_zone` with one zone and remap per member."""
+    from .focal import exact_zone, order_series_horner
+    orders = [m.focal["orders"][0] for m in members]
+    series = [k for k, ol in enumerate(orders) if len(ol) > 1 and all(float(o) == int(o) for o, _ in ol)]
+    parts, seq = [], []
+    if series:
+        coefs = [{int(o): complex(c) for o, c in orders[k]} for k in series]
+        lo, hi = min(min(c) for c in coefs), max(max(c) for c in coefs)
+        table = np.zeros((len(series), hi - lo + 1), dtype=np.complex128)
+        for i, c in enumerate(coefs):
+            for o, v in c.items():
+                table[i, o - lo] = v
+        t = xp.asarray(table)
+        p = phi0 if len(series) == len(members) else phi0[xp.asarray(np.array(series))]
+        parts.append(order_series_horner(xp.exp(1j * p), [t[:, j, None, None] for j in range(hi - lo + 1)], lo, xp))
+        seq += series
+    single = [k for k in range(len(members)) if k not in set(series)]
+    if single:
+        if any(len(orders[k]) != 1 for k in single):
+            raise ValueError("packed_orders_factor: a member keeps several orders, not all integers")
+        mc = np.array([[float(orders[k][0][0]), complex(orders[k][0][1]).real, complex(orders[k][0][1]).imag]
+                       for k in single])
+        t = xp.asarray(mc)
+        p = phi0 if len(single) == len(members) else phi0[xp.asarray(np.array(single))]
+        c = (t[:, 1] + 1j * t[:, 2])[:, None, None]
+        parts.append(c * xp.exp(1j * t[:, 0, None, None] * p))
+        seq += single
+    out = parts[0] if len(parts) == 1 else xp.concatenate(parts, 0)
+    if seq != list(range(len(members))):
+        out = out[xp.asarray(np.argsort(seq))]
+    zones = [m.focal.get("central_zone") for m in members]
+    zones = [None if z is None else z[0] for z in zones]
+    if all(z is None for z in zones):
+        return out
+    # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
+    zt = xp.asarray(np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones]))
+    return exact_zone(out, phi0, zt[:, 0, None, None], zt[:, 1, None, None], xp)
+
+
+def run_focal_members(members, u_all, precision: str, keep: dict | None = None, waste: float = 1.5) -> list:
+    """Pixel values (not normalised; each (1, size, size), in the order of ``members``) of single-source focal
+    RayWaves (one lens, patch size and pixel, no wave step) from their wave-plane fields ``u_all`` ((S, n, n),
+    member k's field in row k, zero past its own grid; numpy or CuPy), propagated as a few stacked operators
+    (:class:`PackedFocalPropagator`, members grouped by their Gauss node count and :func:`focal_groups`), each
+    group's DOE transmission in one batch (:func:`packed_doe_phase`, :func:`packed_orders_factor`). Each
+    member's values are its own :meth:`~rwwarp.wave.raywave.RayWave.focal_intensity` up to the order of the
+    floating-point sums. ``keep``: a dict in which the operators and DOE factors are kept for the next run with
+    the same members (a kept batch), else built for this run only. Arrays stay where ``u_all`` is."""
+    from .focal import pixel_flux, pixel_power
+    xp = np if isinstance(u_all, np.ndarray) else __import__("cupy")
+    m0 = members[0]
+    z = float(m0.z_sensor - m0.z_plane)
+    by_nodes = {}
+    for k, m in enumerate(members):
+        by_nodes.setdefault(int(m.gauss_nodes), []).append(k)
+    out = [None] * len(members)
+    for gn, idx in by_nodes.items():
+        for sub in focal_groups([members[k] for k in idx], waste):
+            g = [idx[i] for i in sub]
+            ms = [members[k] for k in g]
+            key = (tuple(g), precision, z)
+            hit = None if keep is None else keep.get(key)
+            n = max(int(m.plan.n_grid) for m in ms)
+            if hit is None:
+                op = PackedFocalPropagator.from_members(ms, z, precision, xp)
+                phi0 = packed_doe_phase(ms, n, xp)
+                fac = None if phi0 is None else packed_orders_factor(ms, phi0, xp)
+                hit = (op, fac, xp.asarray(np.array(g)))
+                if keep is not None:
+                    keep[key] = hit
+            op, fac, rows = hit
+            u = u_all[rows, :n, :n]
+            if fac is not None:
+                u = u * fac
+            if m0.pixel_values == "flux":
+                vals = pixel_flux(*op.forward_pair(u), gn, m0.pixel, m0.size, xp=xp)
+            else:
+                vals = pixel_power(op.forward(u), gn, m0.pixel, m0.size, xp=xp)
+            for i, k in enumerate(g):
+                out[k] = vals[i:i + 1]
+    return out

@@ -86,16 +86,19 @@ class PackedRayWave(RayWave):
     and its window per source); a smaller member's extra ray slots are invalid with zero weight and its extra
     samples zero, so they contribute nothing, and its rays land, are splatted and dropped by its own window.
     Each member is then propagated by its own plan (:meth:`RayWave.focal_intensity` / :meth:`RayWave.intensity`
-    on its window). A source's PSF is therefore what it is alone, whatever the batch (the float sums of the
-    splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
+    on its window), or, where :attr:`stacked` (default on CUDA), the focal members' propagations as a few stacked
+    operators (:func:`rwwarp.wave.focal_packed.run_focal_members`: the same sums in another order, 2.5e-16 of the
+    peak in double precision on the CPU). A source's PSF is therefore what it is alone, whatever the batch (the
+    float sums of the splat on CPU threads may add in another order: ~1e-16). ``members``: single-source :class:`RayWave` s of
     one lens, device, precision, amplitude convention and propagation method. Lengths in mm.
     ``requires_grad``: the batch's tracer keeps gradient buffers, so its :meth:`field` can be recorded on a
     ``wp.Tape`` and differentiated with respect to ``tracer.params`` (:mod:`torch_bridge`). ``hold``: the batch
     is kept for repeated runs (:class:`rwwarp.wave.plan_cache.PlanCache`): it and its members keep what their
     runs derive from the plan alone (DOE phases and factors on the windows, the small per-source uploads), so a
-    kept batch must not be changed (its lens is the cache's private copy)."""
+    kept batch must not be changed (its lens is the cache's private copy). ``stacked``: True / False, or None for
+    the device's default (:meth:`_runs_stacked`)."""
 
-    def __init__(self, members, requires_grad: bool = False, hold: bool = False):
+    def __init__(self, members, requires_grad: bool = False, hold: bool = False, stacked: bool | None = None):
         if not members or any(m.nsrc != 1 for m in members):
             raise ValueError("PackedRayWave takes single-source RayWave members")
         for m in members:
@@ -115,6 +118,7 @@ class PackedRayWave(RayWave):
                 raise ValueError("PackedRayWave members must be of one lens (pupil shape, object distance, wave "
                                  "plane and surfaces)")
         self.members = list(members)
+        self.stacked = str(m0.device).startswith("cuda") if stacked is None else bool(stacked)
         lens = m0.lens
         wls = [m.wls[0] for m in members]
         uniq = sorted(set(wls))
@@ -160,6 +164,20 @@ class PackedRayWave(RayWave):
             focal_precision = "double" if self.tracer.device.startswith("cuda") else "single"
         if u_all is None:
             u_all = self.field_array()
+        if self._runs_stacked():
+            # every member's focal propagation as a few stacked operators (rwwarp.wave.focal_packed)
+            from .focal_packed import run_focal_members
+            keep = None
+            if keep_operators:
+                keep = self.__dict__.setdefault("_stacked_ops", {})
+            else:
+                self.__dict__.pop("_stacked_ops", None)
+            data = run_focal_members(self.members, u_all, focal_precision, keep)
+            if to_host and not isinstance(data[0], np.ndarray):
+                import cupy
+                host = cupy.asnumpy(cupy.concatenate(data))   # one copy for the batch
+                data = [host[k:k + 1] for k in range(len(data))]
+            return data
         data = []
         for k, m in enumerate(self.members):
             n = m.plan.n_grid
@@ -169,6 +187,19 @@ class PackedRayWave(RayWave):
                 m.release_operators()
             data.append(d)
         return data
+
+    def _runs_stacked(self) -> bool:
+        """The members propagate as stacked focal operators (:func:`rwwarp.wave.focal_packed.run_focal_members`):
+        :attr:`stacked` (default: on CUDA, where a few batched launches replace each member's own; on the CPU the
+        members' own FFTs do less arithmetic than the stacked matrix DFT and padding), two or more focal members,
+        none with a wave step, their DOE (if any) a smooth profile."""
+        ms = self.members
+        if not self.stacked or len(ms) < 2 or ms[0].plan.method != "focal":
+            return False
+        if any(np.any(getattr(m, "wave_step", 0.0)) for m in ms):
+            return False
+        prof = ms[0].focal["profile"]
+        return prof is None or (hasattr(prof, "kind") and hasattr(prof, "values"))
 
     def result(self, data) -> dict:
         """The result of :meth:`run` from the members' pixel powers (host arrays (1, size, size) each, or one
