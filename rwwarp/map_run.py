@@ -222,27 +222,11 @@ def finish_map(a: MapArgs, power, valid_fraction, dropped_rays, plans, stackleve
     return inside
 
 
-def cached_auto_rule(opts: dict, cache) -> dict:
-    """The :class:`RayWave` options ``opts`` of a map, with the rule by which ``method="auto"`` chooses between its two
-    planned propagations set for a call whose kept batches replay as CUDA graphs (``cache`` a
-    :class:`~rwwarp.wave.plan_cache.PlanCache` with ``graphs``, on a CUDA device): there the plan of fewer flops
-    (``auto_rule="flops"``, as on the CPU). Uncached, a small band-limited ASM plan runs faster on a GPU than the focal
-    path's matrix products, because launches bound both ("small-asm"); a replayed hit has its trace and splat in one
-    graph, so what is left is the propagation's work (measured on an H100, A489 + DOE at 0 / 10 deg, 64 px: a hit
-    takes 2.48 / 2.36 ms on the focal plan against 3.91 / 4.01 ms on the ASM plan "small-asm" picks,
-    perf/results/session14_h100). Any other call: ``opts`` unchanged (the same object)."""
-    if (cache is None or not getattr(cache, "graphs", False) or opts.get("method") != "auto"
-            or not str(opts.get("device", "cpu")).startswith("cuda") or "auto_rule" in opts):
-        return opts
-    return dict(opts, auto_rule="flops")
-
-
 def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_distance_mm, batch, budget,
               memory_budget_gb, focal_precision, opts, cache, info, store):
     """The wave models' part of :func:`psf_map`: plan (or take from ``cache``) and run every batch, handing each
     batch's result to ``store(pairs, result)``. ``focal_precision`` resolved ("single" / "double")."""
     kept = key = None
-    opts = cached_auto_rule(opts, cache)
     if cache is not None:
         args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
                 memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))

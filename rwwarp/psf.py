@@ -185,9 +185,6 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Keep this call's pilot trace, plan, batches and propagation operators in the given
         :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens
         values and arguments (wave models; the same bits as without it). None (default): plan every call.
-        On a CUDA device with ``graphs`` on (the default), ``method="auto"`` picks the plan of fewer flops, as on
-        the CPU, since a hit replays its launches as one graph (:func:`rwwarp.map_run.cached_auto_rule`): a first
-        call with such a cache may choose another method than the same call without it.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,

@@ -330,17 +330,19 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
     from .plan import estimate_cost
     fpl = f.plan
     fpl = replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
-    small_first = auto_rule == "small-asm" or (auto_rule == "device" and str(device).startswith("cuda"))
+    small_first = auto_rule == "small-asm"
     rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if small_first else
             "the plan of fewer flops")
     why = (f"method auto ({rule}): focal {fpl.estimate['flops'] / 1e9:.3g} GFLOP / {fpl.estimate['memory_bytes'] / 2 ** 30:.3g} "
            f"GiB against asm {pl.estimate['flops'] / 1e9:.3g} GFLOP / {pl.estimate['memory_bytes'] / 2 ** 30:.3g} GiB")
-    # On a GPU a small ASM plan runs faster than the focal path's matrix products (measured on an
-    # H100, A489: 6.5 against 15 ms: launches, not arithmetic, bound both), so it is kept there
-    # while small; the focal path takes over where the ASM's plan grows with the beam (Cooke
-    # triplet: 11.8 GiB planned). On the CPU the arithmetic is the cost: the plan of fewer flops runs
-    # (A489 map at 32 px: focal 0.4-1.3 GFLOP and 255-401^2 rays against asm 3.2-7.8 GFLOP and
-    # 533-790^2 rays a source). Both meet the refractive truths alike (docs/propagation.md).
+    # The plan of fewer flops runs on every device ("device", "flops"). On the CPU the arithmetic is the cost
+    # (A489 map at 32 px: focal 0.4-1.3 GFLOP and 255-401^2 rays against asm 3.2-7.8 GFLOP and 533-790^2 rays a
+    # source; at 64 px, 5 x 5 fields x 3 wavelengths: all focal, 2.0 GFLOP a source on average against 7.7 with
+    # "small-asm"). On a GPU the ASM used to be kept while small, because launches bound both paths; since then
+    # an uncached focal PSF is as fast (H100, c3f59eb, A489 at 0 / 10 deg, 64 px: focal 13.5 / 14.6 ms median
+    # against the ASM's 15.7 / 15.7), a replayed one faster (2.2 / 1.9 against 3.9 / 4.0 ms), and a map's focal
+    # members propagate as stacked operators (rwwarp.wave.focal_packed.run_focal_members). "small-asm" keeps the
+    # old rule by name. Both meet the refractive truths alike (docs/propagation.md).
     small_asm = small_first and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
     # a plan over the memory budget cannot run: the one that fits wins whatever its work
     fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes

@@ -73,10 +73,11 @@ class RayWave:
     changed; checked to be of these fields, wavelengths, pupils, object distance, ``use_reference`` and ``dtype``
     (``ValueError`` naming what differs); it must come from the same lens values. None (default): traced here.
 
-    ``auto_rule`` (``method="auto"``): how the two planned propagations are chosen. ``"small-asm"``: the
-    band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops (measured on
-    GPUs, where launches bound both paths); ``"flops"``: the plan of fewer flops (the arithmetic is the cost on
-    the CPU); ``"device"`` (default): ``"small-asm"`` on CUDA, ``"flops"`` on the CPU.
+    ``auto_rule`` (``method="auto"``): how the two planned propagations are chosen. ``"flops"``: the plan of fewer
+    flops; ``"device"`` (default): the same, on every device (the rule for a device, should one need another);
+    ``"small-asm"``: the band-limited ASM while its plan is under 1 GiB and 20 GFLOP, else the plan of fewer flops
+    (the rule GPUs had while launches bound both paths; :func:`rwwarp.wave.batch_plan._choose_auto` says why it
+    changed).
 
     ``allow_pixel``: ``method="auto"`` may choose ``"pixel"`` (pixels many Airy radii wide,
     :mod:`rwwarp.wave.pixel_scale`; no wave-plane field, so nothing to differentiate): on for the public calls

@@ -206,8 +206,8 @@ def test_quantised_doe_orders_that_spread_over_the_field_are_left_out():
 
 @pytest.mark.slow
 def test_a489_auto_takes_the_cheaper_plan_and_both_paths_match_truth():
-    """The A489 (F/2.2, blank DOE as a plane). On the CPU method auto runs the plan of fewer flops: the focal
-    path here (on a GPU it keeps the small ASM plan, faster there: measured on an H100). Against rs_lens_psf on
+    """The A489 (F/2.2, blank DOE as a plane). Method auto runs the plan of fewer flops (on every device):
+    the focal path here. Against rs_lens_psf on
     axis (16 px): ASM 4.9e-5, tolerance 1e-4; focal 2.9e-5 (6.4e-5 before the taper and fitted transfer,
     8.0e-4 with whole rim cells), tolerance 6e-5."""
     lens = rw.load_lens("a489_doe")

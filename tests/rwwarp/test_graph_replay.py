@@ -75,38 +75,15 @@ def test_uploads_read_by_a_recording_are_held():
     assert np.array_equal(keep[0].numpy(), np.arange(3.0))
 
 
-def test_cached_auto_rule_only_for_replayed_cuda_hits():
-    """``method="auto"`` takes the plan of fewer flops for a call whose hits replay as CUDA graphs, and only there:
-    without a cache, with graphs off, on the CPU, with a method named, or with a rule already set, the options are
-    the same object."""
-    from rwwarp.map_run import cached_auto_rule
-    opts = {"device": "cuda", "method": "auto"}
-    assert cached_auto_rule(opts, rw.PlanCache()) == {"device": "cuda", "method": "auto", "auto_rule": "flops"}
-    assert opts == {"device": "cuda", "method": "auto"}       # the input is not changed
-    for o, c in [(opts, None), (opts, rw.PlanCache(graphs=False)), ({"device": "cpu", "method": "auto"}, rw.PlanCache()),
-                 ({"device": "cuda", "method": "asm"}, rw.PlanCache()),
-                 ({"device": "cuda", "method": "auto", "auto_rule": "small-asm"}, rw.PlanCache())]:
-        assert cached_auto_rule(o, c) is o
-    # the rule reaches the planning of a map's members (on the CPU "device" is "flops" already: the same plans)
-    from rwwarp.map_run import map_args, wave_members
-    from test_map import doe_lens
-    lens = doe_lens()
-    a = map_args(lens, [0.0, 0.3], [0.55], size=16)
-    pairs = [(0, 0), (1, 0)]
-    ruled = wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, None, dict(a.opts, auto_rule="flops"))
-    plain = wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, None, a.opts)
-    assert [m.plan.method for m in ruled[0][0]] == [m.plan.method for m in plain[0][0]]
-
-
 @pytest.mark.gpu
-def test_cached_auto_on_cuda_plans_the_fewer_flops():
-    """A489 + DOE on axis, 64 px: uncached, "auto" keeps the small ASM plan on CUDA; with a graph-replaying cache it
-    plans focal (fewer flops) and gives the bits of the uncached ``method="focal"`` call (deterministic splat)."""
+def test_auto_on_cuda_plans_the_fewer_flops_cached_or_not():
+    """A489 + DOE on axis, 64 px: "auto" plans focal (fewer flops) on CUDA as on the CPU, uncached and with a
+    graph-replaying cache, and gives the bits of the uncached ``method="focal"`` call (deterministic splat)."""
     _cuda_or_skip()
     lens = rw.load_lens("a489_doe")
     kw = dict(size=64, device="cuda", deterministic=True, focal_precision="double")
-    assert rw.psf(lens, 0.0, 0.55, **kw).plan["method"] == "asm"
     ref = rw.psf(lens, 0.0, 0.55, method="focal", **kw)
+    assert rw.psf(lens, 0.0, 0.55, **kw).plan["method"] == "focal"
     cache = rw.PlanCache()
     for _ in range(3):
         p = rw.psf(lens, 0.0, 0.55, cache=cache, **kw)
