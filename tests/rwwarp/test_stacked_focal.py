@@ -81,3 +81,28 @@ def test_stacked_only_where_it_applies():
     asm = source_plans(lens, [(0.0, 0.0), (0.0, 5.0)], [0.55, 0.55], 16, lens.sensor.pixel_pitch, method="asm")
     assert not PackedRayWave(asm, stacked=True)._runs_stacked()          # not focal
     assert not PackedRayWave(asm).stacked                                # the CPU's default
+
+
+@pytest.mark.gpu
+def test_cuda_map_stacks_its_focal_members_and_matches_each_alone():
+    """On CUDA a map's focal members stack by default; their PSFs are each member's own (deterministic splat,
+    double precision) to the same rounding as on the CPU, and a cached second call (kept operators) repeats them."""
+    from test_cuda_cpu import _cuda_or_skip
+    _cuda_or_skip()
+    lens = _cooke_with_doe(-6000.0, 0.0)
+    ms = source_plans(lens, [(0.0, 0.0), (0.0, 3.0), (0.0, 0.0)], [0.55, 0.5876, 0.47], 32, lens.sensor.pixel_pitch,
+                      method="focal", device="cuda", deterministic=True)
+    p = PackedRayWave(ms)
+    assert p.stacked and p._runs_stacked()
+    a = p.run("double")["data"]
+    b = PackedRayWave(ms, stacked=False).run("double")["data"]
+    assert _rel(a, b) < TOL
+    fields = [0.0, 5.0, 10.0]
+    m1 = rw.psf_map(rw.load_lens("a489_doe"), fields, [0.45, 0.65], size=32, device="cuda", deterministic=True,
+                    focal_precision="double")
+    assert {q["method"] for b in m1.info["batches"] for q in b["plans"]} == {"focal"}    # auto: fewer flops
+    cache = rw.PlanCache()
+    for _ in range(2):
+        m2 = rw.psf_map(rw.load_lens("a489_doe"), fields, [0.45, 0.65], size=32, device="cuda", deterministic=True,
+                        focal_precision="double", cache=cache)
+        assert np.array_equal(m1.data, m2.data)
