@@ -296,18 +296,24 @@ def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> li
     its own has already been refused by its plan's check."""
     order = sorted(range(len(members)), key=lambda k: (members[k].plan.method, members[k].rim,
                                                        -members[k].plan.ray_grid, -members[k].plan.n_grid, k))
+    # packed_bytes of the open batch with one more member, from running maxima (the same sum, in O(1) a member)
+    rays_k = {k: members[k].plan.ray_grid ** 2 for k in order}
+    n_k = {k: members[k].plan.n_grid for k in order}
+    prop_k = {k: members[k].plan.estimate["memory_bytes"] - (rays_k[k] * 232 + n_k[k] ** 2 * 64) for k in order}
     out, cur = [], []
     for k in order:
         if cur:
             m0 = members[cur[0]]
             same = (m0.plan.method, m0.rim) == (members[k].plan.method, members[k].rim) and \
                 get_method(m0.plan.method).packable
-            fits = packed_bytes([members[i] for i in cur + [k]], size) <= budget_bytes
+            rays, n, prop = max(top[0], rays_k[k]), max(top[1], n_k[k]), max(top[2], prop_k[k])
+            fits = (len(cur) + 1) * (rays * 232 + n * n * 64) + prop <= budget_bytes
             if same and fits and (batch is None or len(cur) < batch):
                 cur.append(k)
+                top = (rays, n, prop)
                 continue
             out.append(cur)
-        cur = [k]
+        cur, top = [k], (rays_k[k], n_k[k], prop_k[k])
     if cur:
         out.append(cur)
     return out

@@ -264,3 +264,37 @@ def test_map_launches_do_not_grow_with_its_sources():
         counts[len(fields) * len(WLS)], _ = warp_launches(lambda: rw.psf_map(lens, fields, WLS, size=16, device="cpu"))
     assert counts[2] == counts[6], counts
     assert 0 < counts[6] <= 20, counts
+
+
+def test_pack_sources_is_the_greedy_packing_under_the_budget():
+    """rwwarp.map_run.pack_sources (running maxima) against the greedy packing written from its definition with
+    rwwarp.wave.packed.packed_bytes over each candidate batch: the same batches, each within the budget, on random
+    plans of two methods."""
+    from types import SimpleNamespace as NS
+
+    from rwwarp.map_run import pack_sources
+    from rwwarp.wave.packed import packed_bytes
+    rng = np.random.default_rng(3)
+    members = []
+    for k in range(60):
+        rg, n = int(rng.integers(50, 400)), int(rng.integers(100, 900))
+        est = rg * rg * 232 + n * n * 64 + int(rng.integers(0, 5e7))
+        members.append(NS(plan=NS(method=("focal", "asm")[k % 5 == 0], ray_grid=rg, n_grid=n,
+                                  estimate={"memory_bytes": est}), rim=True))
+    for budget, batch in ((2 ** 31, None), (2 ** 29, 7), (2 ** 33, None)):
+        got = pack_sources(members, 32, batch, budget)
+        order = sorted(range(60), key=lambda k: (members[k].plan.method, members[k].rim, -members[k].plan.ray_grid,
+                                                 -members[k].plan.n_grid, k))
+        want, cur = [], []
+        for k in order:
+            if cur and members[cur[0]].plan.method == members[k].plan.method and \
+                    packed_bytes([members[i] for i in cur + [k]], 32) <= budget and (batch is None or len(cur) < batch):
+                cur.append(k)
+                continue
+            if cur:
+                want.append(cur)
+            cur = [k]
+        want.append(cur)
+        assert got == want
+        assert sorted(k for b in got for k in b) == list(range(60))
+        assert all(len(b) == 1 or packed_bytes([members[k] for k in b], 32) <= budget for b in got)
