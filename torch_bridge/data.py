@@ -210,21 +210,24 @@ class ImageSet:
     def sample(self, batch_size: int, generator: torch.Generator) -> torch.Tensor:
         """``batch_size`` random crops (B, 3, crop, crop), each from an image drawn in proportion to its
         area, at a uniform random position, flipped left-right and up-down with probability 1/2 each."""
-        out = torch.empty(batch_size, 3, self.crop, self.crop)
+        # the crops are cut and flipped as numpy views and copied once (torch's CPU flip of a strided view costs
+        # ~10-50 ms a 256 px crop, numpy's reversed slice ~1 ms: 0.23 s of an H100 design step went here); the
+        # generator's draws and the values are those of cutting and flipping with torch
+        out = np.empty((batch_size, 3, self.crop, self.crop), dtype=np.float32)
         idx = torch.multinomial(self.prob, batch_size, replacement=True, generator=generator)
         for b, i in enumerate(idx.tolist()):
-            im = self.images[i]
+            im = self.images[i].numpy()
             H, W = im.shape[1:]
             y = int(torch.randint(H - self.crop + 1, (1,), generator=generator))
             x = int(torch.randint(W - self.crop + 1, (1,), generator=generator))
             c = im[:, y:y + self.crop, x:x + self.crop]
             flips = torch.rand(2, generator=generator)
             if flips[0] < 0.5:
-                c = c.flip(-1)
+                c = c[:, :, ::-1]
             if flips[1] < 0.5:
-                c = c.flip(-2)
+                c = c[:, ::-1, :]
             out[b] = c
-        return out
+        return torch.from_numpy(out)
 
     def fixed_crops(self, n: int, seed: int = 1234) -> torch.Tensor:
         """``n`` crops that do not depend on any training state (evaluation set): a generator seeded with

@@ -433,6 +433,17 @@ def test_image_set_folder_layout_and_reproducible_crops(tmp_path):
     b = tr.sample(5, torch.Generator().manual_seed(1))
     assert a.shape == (5, 3, 16, 16) and torch.equal(a, b) and 0.0 <= float(a.min()) and float(a.max()) <= 1.0
     assert torch.equal(va.fixed_crops(2), va.fixed_crops(2))
+    # the crops are the images' pixels cut and flipped as the docstring says (the same draws, torch's flip)
+    g = torch.Generator().manual_seed(1)
+    idx = torch.multinomial(tr.prob, 5, replacement=True, generator=g)
+    for k, i in enumerate(idx.tolist()):
+        y = int(torch.randint(40 - 16 + 1, (1,), generator=g))
+        x = int(torch.randint(50 - 16 + 1, (1,), generator=g))
+        c = tr.images[i][:, y:y + 16, x:x + 16]
+        f = torch.rand(2, generator=g)
+        c = c.flip(-1) if f[0] < 0.5 else c
+        c = c.flip(-2) if f[1] < 0.5 else c
+        assert torch.equal(a[k], c)
     # offline default: scikit-image's bundled samples
     d = ImageSet(None, "valid", crop=32)
     assert len(d) >= 3
