@@ -56,6 +56,8 @@ MAX_PHASE_TERMS = 8
 PHASE_KINDS = ("even_poly", "fresnel")
 #: largest |diffraction order|
 MAX_ORDER = 1000
+#: most orders one surface's ``diffraction_orders`` may list (:mod:`rwwarp.phase_orders`)
+MAX_TRACED_ORDERS = 9
 
 
 def phase_profile(surface):
@@ -83,14 +85,77 @@ def phase_power(surface, wavelength_um: float) -> float:
     return -surface.diffraction_order * wavelength_um * 1e-3 * a1 / (math.pi * rnorm * rnorm)
 
 
+def relief_scale(lens, i: int, wavelength_um: float) -> float:
+    """``s(lambda)``: the phase depth of surface ``i``'s relief at ``wavelength_um`` (um) over its depth at the
+    design wavelength ``lambda0`` (the surface's ``design_wavelength_um``), dispersion included. The relief is the
+    interface itself (the thin-element picture), so its index step is that of the media on its two sides::
+
+        s(lambda) = (n'(lambda) - n(lambda)) / (n'(lambda0) - n(lambda0)) * lambda0 / lambda
+
+    (``n`` before, ``n'`` after; in air before a glass of index n' it is :func:`rwwarp.doe.wavelength_scale`'s
+    ``(n' - 1) / (n'0 - 1) lambda0 / lambda``). :class:`LensError` when the two sides have the same index at
+    ``lambda0`` (no relief to weigh the orders by)."""
+    from . import materials
+    media = lens.media()
+    before = "air" if i == 0 else media[i - 1]
+    after = media[i]
+    s = lens.surfaces[i]
+    lam0 = float(s.design_wavelength_um)
+
+    def step(w):
+        return float(materials.get_material(after).n(w)) - float(materials.get_material(before).n(w))
+
+    d0 = step(lam0)
+    if abs(d0) < 1e-9:
+        raise LensError(f"diffraction_orders: the phase surface has the same index on both sides ({before!r} / "
+                        f"{after!r}), so it has no relief whose depth weighs its orders; put the phase on an "
+                        "interface between two media", file=lens.source, surface=lens.surface_label(i),
+                        keyword="diffraction_orders")
+    return step(float(wavelength_um)) / d0 * lam0 / float(wavelength_um)
+
+
+def order_weights(lens, i: int, wavelength_um: float, orders=None):
+    """``[(m, c_m, eta_m), ...]``: the complex weight ``c_m`` and efficiency ``eta_m = |c_m|^2`` of each order m of
+    surface ``i``'s phase at ``wavelength_um`` (um), for ``orders`` (default the surface's ``diffraction_orders``,
+    else its ``diffraction_order``). The relief is the kinoform blazed for the design order ``m0 =
+    diffraction_order`` (depth ``|m0|`` waves at lambda0), ``exp(1j m0 s(lambda) wrap(phi))`` with ``phi`` the
+    phase per unit order (:func:`phase_profile`), so ``c_m`` is the Fourier coefficient of the flat DOE's
+    continuous relief with ``alpha = m0 s(lambda)`` (:func:`rwwarp.wave.focal.doe_order_coefficients`, the one
+    home of that series; ``eta_m = sinc^2(m0 s - m)``, ``sum over all m of eta_m = 1``)."""
+    from .wave.focal import doe_order_coefficients
+    s = lens.surfaces[i]
+    if orders is None:
+        orders = s.diffraction_orders if s.diffraction_orders is not None else (s.diffraction_order,)
+    alpha = float(s.diffraction_order) * relief_scale(lens, i, wavelength_um)
+    c = doe_order_coefficients(alpha, None, [int(m) for m in orders])
+    return [(int(m), complex(cm), float(abs(cm) ** 2)) for m, cm in zip(orders, c)]
+
+
 def check_phase_surface(s, i, lens) -> None:
-    """Validate surface ``i``'s ``phase`` and ``diffraction_order`` (raise :class:`LensError` naming them)."""
+    """Validate surface ``i``'s ``phase``, ``diffraction_order`` and ``diffraction_orders`` (raise
+    :class:`LensError` naming them)."""
     f = lens.source
     label = lens.surface_label(i)
     order = s.diffraction_order
     if isinstance(order, bool) or not isinstance(order, int) or abs(order) > MAX_ORDER:
         raise LensError(f"diffraction_order must be an integer within +-{MAX_ORDER}, got {order!r}", file=f,
                         surface=label, keyword="diffraction_order")
+    orders = s.diffraction_orders
+    if orders is not None:
+        if s.phase is None:
+            raise LensError("diffraction_orders needs a phase on the surface", file=f, surface=label,
+                            keyword="diffraction_orders")
+        if (not isinstance(orders, (tuple, list)) or not orders or
+                any(isinstance(m, bool) or not isinstance(m, int) or abs(m) > MAX_ORDER for m in orders)):
+            raise LensError(f"diffraction_orders must be a non-empty list of integers within +-{MAX_ORDER}, got "
+                            f"{orders!r}", file=f, surface=label, keyword="diffraction_orders")
+        if len(set(orders)) != len(orders) or len(orders) > MAX_TRACED_ORDERS:
+            raise LensError(f"diffraction_orders must be distinct, at most {MAX_TRACED_ORDERS}, got {orders!r}",
+                            file=f, surface=label, keyword="diffraction_orders")
+        if order not in orders:
+            raise LensError(f"diffraction_orders {list(orders)} must hold the design order diffraction_order = "
+                            f"{order} (the PSF patch is centred on it)", file=f, surface=label,
+                            keyword="diffraction_orders")
     if s.phase is None:
         return
     if s.type != "standard":

@@ -101,7 +101,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
         focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux",
-        tolerance: float | None = None, cache=None) -> PSF:
+        tolerance: float | None = None, cache=None, order_tol: float = 1e-4) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -188,6 +188,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         On a CUDA device with ``graphs`` on (the default), ``method="auto"`` picks the plan of fewer flops, as on
         the CPU, since a hit replays its launches as one graph (:func:`rwwarp.map_run.cached_auto_rule`): a first
         call with such a cache may choose another method than the same call without it.
+    order_tol : float
+        Multi-order phase surfaces (``Surface.diffraction_orders``, :mod:`rwwarp.phase_orders`): an order
+        combination whose efficiency is below this is skipped (named in the plan's reasons); default 1e-4.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
@@ -195,7 +198,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
                 use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
                 method=method, memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol,
                 focal_precision=focal_precision, deterministic=deterministic, pixel_values=pixel_values,
-                tolerance=tolerance, cache=cache)
+                tolerance=tolerance, cache=cache, order_tol=order_tol)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -229,7 +232,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
             focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False,
-            pixel_values: str = "flux", tolerance: float | None = None, cache=None) -> PSFMap:
+            pixel_values: str = "flux", tolerance: float | None = None, cache=None,
+            order_tol: float = 1e-4) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -246,6 +250,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values
     and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss"; on a hit
     ``info["replay"]``: per batch "graph: trace and splat" (replayed as a CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
+    A lens with multi-order phase surfaces (``Surface.diffraction_orders``) computes each PSF as the coherent sum of
+    its orders (:mod:`rwwarp.phase_orders`; ``info["orders"]``: per PSF the traced orders, weights, efficiencies).
     Other arguments as :func:`psf`.
     """
     from .map_run import finish_map, map_args, run_sources
@@ -255,7 +261,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                  pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                  batch=batch, nyquist_safety=nyquist_safety, method=method, memory_budget_gb=memory_budget_gb,
                  focal_patch_tol=focal_patch_tol, focal_precision=focal_precision, deterministic=deterministic,
-                 pixel_values=pixel_values, tolerance=tolerance)
+                 pixel_values=pixel_values, tolerance=tolerance, order_tol=order_tol)
     from .wave.plan_cache import PlanCache
     if cache is not None and not isinstance(cache, PlanCache):
         raise TypeError(f"cache must be a rwwarp.PlanCache or None, got {type(cache).__name__}")
