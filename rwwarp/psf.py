@@ -223,6 +223,10 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
                   nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                   model_tolerance=tolerance, allow_pixel=True)
+    from .phase_orders import ORDER_TOL, describe, multi_order_surfaces, order_combinations
+    if multi_order_surfaces(lens):   # the design order is planned here; the others are planned when computed
+        kept, skipped = order_combinations(lens, float(wls[0]), ORDER_TOL)
+        return rwm.plan.with_reasons(*describe(kept, skipped, float(wls[0]), ORDER_TOL))
     return rwm.plan
 
 
