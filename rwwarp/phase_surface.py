@@ -1,4 +1,4 @@
-"""Diffractive phase on a refracting surface (a DOE anywhere): one diffraction order traced as rays.
+"""Diffractive phase on a refracting surface (a DOE anywhere): diffraction orders traced as rays.
 
 A ``standard`` surface (plane, sphere, conic, even or odd asphere: any sag the tracer handles) may carry a
 diffractive phase ``Surface.phase`` (a profile dict) of which the diffraction order ``Surface.diffraction_order``
@@ -32,17 +32,33 @@ model's own. The order's phase ``m phi`` does not depend on the wavelength (only
 matrices, the Airy pattern of a stigmatic diffractive singlet (1.3e-4), the Rayleigh-Sommerfeld sum over the
 traced rays (3.7e-5) and optiland (``tests/rwwarp/test_phase_surface*.py``).
 
-Limits: only the traced order is kept: the relief's efficiency into that order (``sinc^2(s(lambda) - m)`` for a
-kinoform, see :mod:`rwwarp.doe`) and the light in the other orders are ignored (the flat wave-plane DOE keeps
-them). A discontinuous profile (quantised levels, pixel maps, zones comparable to the wavelength) is not a
+Several orders (``Surface.diffraction_orders``, e.g. ``(0, 1, 2)``, holding the design order): the relief is the
+kinoform blazed for ``m0 = diffraction_order`` (depth ``|m0|`` waves at the surface's ``design_wavelength_um``), so
+at ``lambda`` its transmission ``exp(1j m0 s(lambda) wrap(phi)) = sum_m c_m exp(1j m phi)``, ``c_m =
+exp(1j pi (alpha - m)) sinc(alpha - m)``, ``alpha = m0 s(lambda)``, ``eta_m = |c_m|^2 = sinc^2(m0 s - m)``, with
+``s(lambda) = (n'(lambda) - n(lambda)) / (n'(lambda0) - n(lambda0)) * lambda0 / lambda`` the relief's phase depth
+over its design depth (the index step of the two media, dispersion included; :func:`relief_scale`,
+:func:`order_weights`; the series is the flat DOE's, :func:`rwwarp.wave.focal.doe_order_coefficients`). The
+ray-wave PSF then traces each order (a combination per multi-order surface) on its own plan and sums ``c_m U_m``
+coherently at the sensor's pixel nodes before the pixel values (:mod:`rwwarp.phase_orders`); the plan's reasons
+list the orders and efficiencies, and skip those below ``order_tol`` (default 1e-4). Checked against a
+thin-element Fresnel-Hankel truth of the wrapped relief (5.8e-4 / 4.1e-4 of the peak, focal / ASM; the design
+order alone is 0.185 off; ``tests/rwwarp/test_phase_orders.py``).
+
+Limits: without ``diffraction_orders`` only the traced order is kept: the relief's efficiency into that order
+(``sinc^2(s(lambda) - m)`` for a kinoform, see :mod:`rwwarp.doe`) and the light in the other orders are ignored
+(the flat wave-plane DOE keeps them). ``diffraction_orders`` is read by the ray-wave PSF only (not the ray or
+paraxial-wave models, nor torch_bridge's gradients, which follow the design order); a relief needs different
+indices on its two sides. A discontinuous profile (quantised levels, pixel maps, zones comparable to the wavelength) is not a
 smooth phase: its wraps diffract, and it needs a wave step (the wave-plane DOE), which is refused here. An
 evanescent order (``|n' d'_t| >= n'``) makes the ray invalid. Mirrors with a phase, and phases behind a mirror,
 are not supported. The tracer differentiates their terms (``wp.Tape``); ``torch_bridge.HybridLens`` learns their
 coefficients (quantity ``phase``, ``torch_bridge/phase_params.py``).
 
 Functions: :func:`phase_profile` (the surface's profile as even_poly terms), :func:`phase_columns` (the
-tracer's parameter row entries), :func:`phase_power` (paraxial power, 1/mm), :func:`check_phase_surface`
-(validation with clear errors).
+tracer's parameter row entries), :func:`phase_power` (paraxial power, 1/mm), :func:`relief_scale` and
+:func:`order_weights` (the orders' weights off the design wavelength), :func:`check_phase_surface` (validation with
+clear errors).
 """
 from __future__ import annotations
 

@@ -219,12 +219,15 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     wls = checks.check_wavelengths([wavelength_um], lens)
     size = checks.check_size(size)
     pixel = float(pixel_mm or lens.sensor.pixel_pitch)
-    rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
+    from .phase_orders import ORDER_TOL, describe, multi_order_surfaces, order_combinations, order_lens
+    multi = multi_order_surfaces(lens)
+    # several orders: the design order is planned here, the others when computed (rwwarp.phase_orders)
+    planned = order_lens(lens, {i: lens.surfaces[i].diffraction_order for i in multi}) if multi else lens
+    rwm = RayWave(planned, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
                   nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                   model_tolerance=tolerance, allow_pixel=True)
-    from .phase_orders import ORDER_TOL, describe, multi_order_surfaces, order_combinations
-    if multi_order_surfaces(lens):   # the design order is planned here; the others are planned when computed
+    if multi:
         kept, skipped = order_combinations(lens, float(wls[0]), ORDER_TOL)
         return rwm.plan.with_reasons(*describe(kept, skipped, float(wls[0]), ORDER_TOL))
     return rwm.plan

@@ -185,3 +185,15 @@ def test_json_round_trip_and_default_unchanged():
     back = Lens.from_dict(d)
     assert back.surfaces[2].diffraction_orders == (0, 1, 2)
     assert "diffraction_orders" not in make(None).to_dict()["surfaces"][2]
+
+
+def test_plan_explains_orders_and_raywave_warns():
+    from rwwarp.wave.raywave import RayWave
+    lens = make((0, 1, 2), sensor=bfl())
+    text = rwwarp.plan_psf(lens, 0.0, WL, size=32).explain()
+    assert "3 traced and summed coherently" in text and "eta 0.8267" in text
+    # a tiny order_tol-free check of skipping: at the design wavelength orders 0 and 2 carry nothing
+    kept_text = rwwarp.plan_psf(lens.replace(wavelengths_um=[LAM0]), 0.0, LAM0, size=32).explain()
+    assert "1 traced" in kept_text and "orders skipped" in kept_text
+    with pytest.warns(UserWarning, match="diffraction_order only"):
+        RayWave(lens, [0.0], [WL], 16, PIXEL, method="focal")
