@@ -197,3 +197,25 @@ def test_plan_explains_orders_and_raywave_warns():
     assert "1 traced" in kept_text and "orders skipped" in kept_text
     with pytest.warns(UserWarning, match="diffraction_order only"):
         RayWave(lens, [0.0], [WL], 16, PIXEL, method="focal")
+
+
+def test_two_multi_order_surfaces_multiply_and_are_bounded():
+    from rwwarp.phase_orders import MAX_COMBINATIONS, order_combinations
+    from rwwarp.phase_surface import order_weights
+
+    def two(orders):
+        ph = {"kind": "even_poly", "norm_radius": 1.0, "coefficients": [A1]}
+        return Lens([Surface(type="thin_lens", focal_length=F, thickness=GAP, semi_diameter=R, stop=True),
+                     Surface(radius=None, thickness=T, material="N-BK7", semi_diameter=R + 0.5, phase=ph,
+                             design_wavelength_um=LAM0, diffraction_orders=orders),
+                     Surface(radius=None, thickness=40.0, semi_diameter=R + 0.5, phase=ph, design_wavelength_um=LAM0,
+                             diffraction_orders=orders)], Sensor(PIXEL, (600, 600)), wavelengths_um=[WL])
+    lens = two((0, 1, 2))
+    kept, skipped = order_combinations(lens, WL, 1e-4)
+    assert len(kept) + len(skipped) == 9 and kept[0]["orders"] == {1: 1, 2: 1}
+    w1 = {m: c for m, c, _ in order_weights(lens, 1, WL)}
+    w2 = {m: c for m, c, _ in order_weights(lens, 2, WL)}
+    for d in kept:
+        assert d["c"] == pytest.approx(w1[d["orders"][1]] * w2[d["orders"][2]], abs=1e-15)
+    with pytest.raises(ValueError, match=f"at most {MAX_COMBINATIONS}"):
+        order_combinations(two((-1, 0, 1, 2, 3)), WL, 1e-4)
