@@ -33,8 +33,10 @@ beyond: several multi-order surfaces multiply their orders). Cost: one more ray-
 
 Limits: the ray-wave model only (``"ray"`` and ``"paraxial-wave"`` refuse ``diffraction_orders``); the energy
 amplitude convention; no wave step; no ``cache``; the stop must be at or in front of every multi-order surface
-(all orders share the entrance pupil, hence the optical-path reference). ``torch_bridge`` differentiates the
-design order only. Lengths mm, wavelengths um.
+(all orders share the entrance pupil, hence the optical-path reference). Gradients:
+:class:`torch_bridge.phase_orders.OrderSet` (the same sum through the operators' adjoints; checked against finite
+differences); ``torch_bridge.HybridLens`` and the design loop follow the design order only. Lengths mm, wavelengths
+um.
 """
 from __future__ import annotations
 
@@ -119,18 +121,45 @@ def check_multi_order(lens, model: str, amplitude: str, cache) -> None:
                         keyword="diffraction_orders")
 
 
+def node_phase(rw, distance_mm=None):
+    """The constant phases the splat and the planned propagation of a :class:`~rwwarp.wave.raywave.RayWave` batch
+    drop, as the factor (S, size g, size g) (complex numpy) that makes its node field (the method's operator
+    output) the true field: ``exp(1j (k OPL_c - 2 pi f_c . x_c))`` (the splat removes the chief ray's path and the
+    carrier about the chief point, :mod:`rwwarp.kernels.splat`; :meth:`RayWave.field` must have run) and, for the
+    focal method, ``exp(2 pi i f_c . p - i pi / 2 + 2 pi i z w_c)`` (its output is demodulated, and its Gaussian
+    kernel's 2-D integral (``A < 0`` on both axes) and the transfer's constant term are left out,
+    :mod:`rwwarp.wave.focal`). ``distance_mm``: the plane-to-sensor distance of the operator (default the lens's)."""
+    from .wave.focal import transfer_curvature
+    from .wave.sensor_grid import gauss_nodes_xy
+    nx, ny = gauss_nodes_xy(rw)
+    chief, opl_c = rw._splat_reference
+    k = 2.0 * np.pi / np.asarray(rw.lam_mm, dtype=np.float64)          # vacuum wavenumber (OPL carries n)
+    fc = np.asarray(rw.carrier, dtype=np.float64)
+    theta = k * np.asarray(opl_c, dtype=np.float64) - 2.0 * np.pi * np.sum(fc * np.asarray(chief)[:, :2], axis=1)
+    ph = np.broadcast_to(np.exp(1j * theta)[:, None, None], (rw.nsrc, ny.shape[1], nx.shape[1]))
+    if rw.plan.method == "focal":
+        z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
+        lam = np.asarray(rw.lam_mm, dtype=np.float64) / np.asarray(rw.n_after, dtype=np.float64)
+        w_c = transfer_curvature(fc, 1.0 / lam)[0]
+        car = np.exp(2j * np.pi * (fc[:, None, None, 0] * nx[:, None, :] + fc[:, None, None, 1] * ny[:, :, None]))
+        ph = ph * car * np.exp(1j * (2.0 * np.pi * z * w_c - 0.5 * np.pi))[:, None, None]
+    elif rw.plan.method not in ("asm", "direct"):
+        raise ValueError(f"diffraction_orders: method {rw.plan.method!r} gives no complex field at the pixels; use "
+                         "'focal', 'asm' or 'direct'")
+    return np.ascontiguousarray(ph)
+
+
 def absolute_node_fields(rw, field, precision: str = "double"):
     """``(U, U_w)``: the true complex field of a :class:`~rwwarp.wave.raywave.RayWave` batch at its pixels' Gauss
     nodes ((S, size g, size g) complex numpy) from its wave-plane ``field`` (:meth:`RayWave.field_array`, after
-    :meth:`RayWave.field` ran), with every constant phase the splat and the propagation drop put back, and the
-    direction-cosine weighted field ``U_w`` (None for ``pixel_values="intensity"``). Methods ``focal``, ``asm`` and
-    ``direct``; ``precision``: the focal method's matrix products."""
-    from .wave.focal import transfer_curvature
-    from .wave.sensor_grid import gauss_nodes_xy
+    :meth:`RayWave.field` ran), with every constant phase the splat and the propagation drop put back
+    (:func:`node_phase`), and the direction-cosine weighted field ``U_w`` (None for ``pixel_values="intensity"``).
+    Methods ``focal``, ``asm`` and ``direct``; ``precision``: the focal method's matrix products."""
     name = rw.plan.method
     if np.any(getattr(rw, "wave_step", 0.0)):
         raise ValueError("diffraction_orders: the wave step is not supported (call without tolerance / "
                          "method='two-step')")
+    ph = node_phase(rw)
     pair = rw.pixel_values == "flux"
     if name == "focal":
         op = rw.focal_operator(precision=precision)
@@ -143,36 +172,17 @@ def absolute_node_fields(rw, field, precision: str = "double"):
     elif name == "asm":
         from .wave.methods.asm import AsmOperator
         op = AsmOperator(rw)
-        xp = op.xp
-        f = op._dev(field)
         U = op.forward(field)
-        Uw = op._out(op.prop.forward_weighted(f, op.phi0)) if pair else None
-    elif name == "direct":
+        Uw = op._out(op.prop.forward_weighted(op._dev(field), op.phi0)) if pair else None
+    else:   # direct (node_phase refused the others)
         from .wave.methods.direct import DirectOperator
         xp = np if isinstance(field, np.ndarray) else __import__("cupy")
         op = DirectOperator.of(rw, None, xp)
         f = xp.asarray(field)
         U = op.forward(f)
         Uw = op.distance_derivative(f) / (1j * xp.asarray(op.k)[:, None, None]) if pair else None
-    else:
-        raise ValueError(f"diffraction_orders: method {name!r} gives no complex field at the pixels; use 'focal', "
-                         "'asm' or 'direct'")
     U = np.asarray(U.get() if hasattr(U, "get") else U)
     Uw = None if Uw is None else np.asarray(Uw.get() if hasattr(Uw, "get") else Uw)
-    # the splat's reference: samples = U exp(-1j k OPL_c) exp(-2 pi i f_c . (x - x_c)) (kernels/splat.py)
-    chief, opl_c = rw._splat_reference
-    k = 2.0 * np.pi / np.asarray(rw.lam_mm, dtype=np.float64)          # vacuum wavenumber (OPL carries n)
-    theta = k * np.asarray(opl_c) - 2.0 * np.pi * np.sum(np.asarray(rw.carrier) * np.asarray(chief)[:, :2], axis=1)
-    ph = np.exp(1j * theta)[:, None, None] * np.ones_like(U)
-    if name == "focal":
-        # FocalPropagator drops exp(2 pi i f_c . p) (output demodulated), exp(-i pi / 2) (the 2-D Gaussian integral
-        # of its kernel, A < 0 on both axes) and exp(2 pi i z w_c) (the transfer's constant term): put them back
-        nx, ny = gauss_nodes_xy(rw)
-        lam = np.asarray(rw.lam_mm, dtype=np.float64) / np.asarray(rw.n_after, dtype=np.float64)
-        w_c = transfer_curvature(rw.carrier, 1.0 / lam)[0]
-        fc = np.asarray(rw.carrier, dtype=np.float64)
-        car = np.exp(2j * np.pi * (fc[:, None, None, 0] * nx[:, None, :] + fc[:, None, None, 1] * ny[:, :, None]))
-        ph = ph * car * np.exp(1j * (2.0 * np.pi * op.z * w_c - 0.5 * np.pi))[:, None, None]
     return U * ph, (None if Uw is None else Uw * ph)
 
 
