@@ -33,7 +33,9 @@ The ideal thin lens (kind THIN) maps direction tangents ``t' = (n_in t - p P) / 
 1/f) and adds the path that makes every ray from an object point reach its image point with equal
 optical path (a perfect spherical wave behind it; a plane wave when the object sits at its front
 focal plane). The object-side conjugate distance ``u`` and image-side ``v`` (mm, 1/u = 0 for an
-object at infinity, v = 0 for an image at infinity) come from the host.
+object at infinity, v = 0 for an image at infinity) come from the host; a negative u (a converging input, the
+virtual object behind the lens) or v (a diverging output, the virtual image in front) flips the sign of that
+side's path difference.
 
 A phase surface (kind PHASE, ``phase_surface_kernel``) is a refracting surface of any sag above that
 also carries a diffractive phase ``phi(x, y) = sum_i A_i rho^(2 i)``, ``rho = r / R`` (radians; Zemax
@@ -504,16 +506,25 @@ def make_trace_kernels(scalar):
                     if uinv == scalar(0.0):
                         inrel = n1 * wp.dot(x - ctr, d)
                     else:
+                        # u < 0: a virtual object behind the lens (a converging input): the path to x falls with
+                        # the distance to it, so the difference takes the sign of u
                         src = x - d * (scalar(1.0) / (uinv * d[2]))
-                        inrel = n1 * (wp.length(x - src) - wp.length(ctr - src))
+                        su = scalar(1.0)
+                        if uinv < scalar(0.0):
+                            su = scalar(-1.0)
+                        inrel = su * n1 * (wp.length(x - src) - wp.length(ctr - src))
                     vdist = sf.v
                     if vdist == scalar(0.0):
                         # image at infinity (object at the front focal plane): a plane wave leaves, equal
                         # path up to the plane through the centre normal to the (common) direction
                         extra = -inrel + n2 * wp.dot(x - ctr, newd)
                     else:
+                        # v < 0: a virtual image in front of the lens (a diverging output): the sign of v again
                         img = x + newd * (vdist / newd[2])
-                        extra = -inrel - n2 * (wp.length(img - x) - wp.length(img - ctr))
+                        sv = scalar(1.0)
+                        if vdist < scalar(0.0):
+                            sv = scalar(-1.0)
+                        extra = -inrel - sv * n2 * (wp.length(img - x) - wp.length(img - ctr))
         ray_out(i, ok, p0, d, q, t, sf.z, newd, n1, extra, opl, pos_out, dir_out, opl_out, valid_out)
 
     @wp.func

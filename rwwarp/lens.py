@@ -75,8 +75,12 @@ class Surface:
     #: "norm_radius": R, "coefficients": [A1, ...]} (radians on rho^2, rho^4, ...) or {"kind": "fresnel",
     #: "focal_length": f}; traced in order ``diffraction_order``. None: none
     phase: dict | None = None
-    #: the diffraction order m a ``phase`` is traced in (Zemax BINARY_2 PARM 0)
+    #: the diffraction order m a ``phase`` is traced in (Zemax BINARY_2 PARM 0); also the order the relief is
+    #: blazed for (its depth is |m| waves at ``design_wavelength_um``)
     diffraction_order: int = 1
+    #: several orders of a ``phase`` traced and summed coherently by the ray-wave PSF (:mod:`rwwarp.phase_orders`),
+    #: e.g. (0, 1, 2); None (default): only ``diffraction_order``, today's single-order path
+    diffraction_orders: tuple | None = None
 
     def __post_init__(self):
         if self.type == "doe" and self.material == "air":
@@ -294,7 +298,7 @@ class Lens:
                                           or not math.isfinite(s.focal_length)):
                 raise LensError("thin_lens needs a finite non-zero focal_length", file=f, surface=i,
                                 keyword="focal_length")
-            if s.phase is not None or s.diffraction_order != 1:
+            if s.phase is not None or s.diffraction_order != 1 or s.diffraction_orders is not None:
                 from .phase_surface import check_phase_surface
                 check_phase_surface(s, i, self)
             if s.type == "doe":
@@ -520,7 +524,7 @@ def register_writer(fmt: str, write) -> None:
 
 _SURFACE_KEYS = {"type", "thickness", "radius", "conic", "aspheric", "material", "semi_diameter", "shape",
                  "stop", "focal_length", "profile", "design_wavelength_um", "levels", "a2", "obscuration",
-                 "mirror", "odd_aspheric", "phase", "diffraction_order"}
+                 "mirror", "odd_aspheric", "phase", "diffraction_order", "diffraction_orders"}
 _DEFAULTS = Surface()
 
 
@@ -541,11 +545,13 @@ def _surface_to_dict(s: Surface) -> dict:
         keys = keys + ["odd_aspheric"]
     if s.type == "standard" and s.phase is not None:
         keys = keys + ["phase", "diffraction_order", "design_wavelength_um"]
+        if s.diffraction_orders is not None:
+            keys = keys + ["diffraction_orders"]
     for k in keys:
         v = getattr(s, k)
         if k == "stop" and not v:
             continue
-        d[k] = copy.deepcopy(list(v) if k in ("aspheric", "odd_aspheric") else v)
+        d[k] = copy.deepcopy(list(v) if k in ("aspheric", "odd_aspheric", "diffraction_orders") else v)
     return d
 
 
@@ -566,6 +572,11 @@ def _surface_from_dict(sd, i, source) -> Surface:
             kw[k] = [_num(a, source, i, k) for a in v]
         elif k in ("levels", "diffraction_order"):
             kw[k] = None if v is None and k == "levels" else _integer(v, source, i, k)
+        elif k == "diffraction_orders":
+            if v is not None and not isinstance(v, list):
+                raise LensFileError(f"{k} must be a list of integers or null, got {_brief(v)}", file=source,
+                                    surface=i, keyword=k)
+            kw[k] = None if v is None else tuple(_integer(a, source, i, k) for a in v)
         elif k in ("stop", "mirror"):
             if not isinstance(v, bool):
                 raise LensFileError(f"{k} must be true or false, got {_brief(v)}", file=source, surface=i,
@@ -639,7 +650,9 @@ def surface_notes(lens) -> list:
             if s.mirror:
                 notes.append("mirror")
             if s.phase is not None:
-                notes.append(f"diffractive phase {s.phase.get('kind')}, order {s.diffraction_order} (traced as rays)")
+                notes.append(f"diffractive phase {s.phase.get('kind')}, order {s.diffraction_order} (traced as rays)"
+                             + ("" if s.diffraction_orders is None else
+                                f"; orders {list(s.diffraction_orders)} summed coherently (ray-wave PSF)"))
         elif s.type == "thin_lens":
             notes.append(f"ideal thin lens, f = {s.focal_length:g} mm")
         elif s.type == "doe":

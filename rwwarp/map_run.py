@@ -67,13 +67,15 @@ class MapArgs:
     focal_precision: str
     tolerance: float | None
     opts: dict
+    #: multi-order phase surfaces (:mod:`rwwarp.phase_orders`): efficiency below which an order is skipped
+    order_tol: float = 1e-4
 
 
 def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device="cpu", plan="auto",
              dtype="float64", amplitude="energy", object_distance_mm=None, rays_per_sample=1.0, pixel_mm=None,
              center_mm=None, use_reference=True, gauss_nodes=None, batch=None, nyquist_safety=2.0, method="auto",
              memory_budget_gb=None, focal_patch_tol=1e-5, focal_precision="auto", deterministic=False,
-             pixel_values="flux", tolerance=None, n_depths: int = 1) -> MapArgs:
+             pixel_values="flux", tolerance=None, n_depths: int = 1, order_tol: float = 1e-4) -> MapArgs:
     """The arguments of :func:`rwwarp.psf_map` checked (a clear error naming the argument and its range) and
     resolved (:class:`MapArgs`); ``n_depths``: object distances mapped (the distributed map's ``depths_mm``),
     for the bound on the number of sources. Arguments as :func:`rwwarp.psf`."""
@@ -110,6 +112,7 @@ def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device=
     checks.check_choice(method, "method", method_choices())
     tolerance = _check_tolerance(tolerance)
     focal_patch_tol = checks.check_number(focal_patch_tol, "focal_patch_tol", lo=0.0, hi=1.0)
+    order_tol = checks.check_number(order_tol, "order_tol", lo=0.0, hi=1.0)
     if focal_precision not in ("auto", "single", "double"):
         raise ValueError(f"focal_precision must be 'auto', 'single' or 'double', got {focal_precision!r}")
     if memory_budget_gb is not None:
@@ -128,7 +131,7 @@ def map_args(lens, fields, wavelengths_um, *, model="ray-wave", size=64, device=
                 model_tolerance=tolerance, allow_pixel=True)
     return MapArgs(model, as_field_list(fields), [float(w) for w in wavelengths_um], size,
                    float(pixel_mm or lens.sensor.pixel_pitch), device, dtype, rays_per_sample, center_mm, batch,
-                   budget, memory_budget_gb, focal_precision, tolerance, opts)
+                   budget, memory_budget_gb, focal_precision, tolerance, opts, order_tol)
 
 
 def map_units(lens, a: MapArgs, pairs, object_distance_mm=None) -> list:
@@ -177,6 +180,15 @@ def run_sources(lens, a: MapArgs, pairs, object_distance_mm, store, cache=None, 
     of ``a.batch`` pairs. Every batch with ``a.focal_precision``."""
     pairs = [tuple(p) for p in pairs]
     info = {} if info is None else info
+    from .phase_orders import check_multi_order, multi_order_psf, multi_order_surfaces
+    if multi_order_surfaces(lens):   # several orders of a phase surface, summed coherently (rwwarp.phase_orders)
+        check_multi_order(lens, a.model, a.opts.get("amplitude", "energy"), cache)
+        for pr in pairs:
+            res = multi_order_psf(lens, [a.fields[pr[0]]], [a.wls[pr[1]]], a.size, a.pixel, a.opts,
+                                  object_distance_mm, a.focal_precision, a.order_tol)
+            info.setdefault("orders", []).append(res["orders"][0])
+            store([pr], res)
+        return
     if a.model in WAVE_MODELS:
         with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
             _wave_map(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, object_distance_mm, a.batch, a.budget,

@@ -101,7 +101,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
         focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux",
-        tolerance: float | None = None, cache=None) -> PSF:
+        tolerance: float | None = None, cache=None, order_tol: float = 1e-4) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -185,6 +185,9 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         Keep this call's pilot trace, plan, batches and propagation operators in the given
         :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens
         values and arguments (wave models; the same bits as without it). None (default): plan every call.
+    order_tol : float
+        Multi-order phase surfaces (``Surface.diffraction_orders``, :mod:`rwwarp.phase_orders`): an order
+        combination whose efficiency is below this is skipped (named in the plan's reasons); default 1e-4.
     """
     m = psf_map(lens, [field_deg], [wavelength_um], model=model, size=size, device=device, plan=plan,
                 dtype=dtype, amplitude=amplitude, object_distance_mm=object_distance_mm,
@@ -192,7 +195,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
                 use_reference=use_reference, gauss_nodes=gauss_nodes, nyquist_safety=nyquist_safety,
                 method=method, memory_budget_gb=memory_budget_gb, focal_patch_tol=focal_patch_tol,
                 focal_precision=focal_precision, deterministic=deterministic, pixel_values=pixel_values,
-                tolerance=tolerance, cache=cache)
+                tolerance=tolerance, cache=cache, order_tol=order_tol)
     p = m[0, 0]
     p.plan = m.info.get("plan")
     p.info = {k: (v[0] if isinstance(v, (list, np.ndarray)) and len(v) == 1 else v) for k, v in m.info.items()}
@@ -213,10 +216,17 @@ def plan_psf(lens, field_deg=0.0, wavelength_um: float = 0.55, size: int = 64, d
     wls = checks.check_wavelengths([wavelength_um], lens)
     size = checks.check_size(size)
     pixel = float(pixel_mm or lens.sensor.pixel_pitch)
-    rwm = RayWave(lens, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
+    from .phase_orders import ORDER_TOL, describe, multi_order_surfaces, order_combinations, order_lens
+    multi = multi_order_surfaces(lens)
+    # several orders: the design order is planned here, the others when computed (rwwarp.phase_orders)
+    planned = order_lens(lens, {i: lens.surfaces[i].diffraction_order for i in multi}) if multi else lens
+    rwm = RayWave(planned, as_field_list(fields), [float(w) for w in wls], size, pixel, device, "auto",
                   object_distance_mm=object_distance_mm, rays_per_sample=rays_per_sample, center_mm=center_mm,
                   nyquist_safety=nyquist_safety, method=method, focal_patch_tol=focal_patch_tol,
                   model_tolerance=tolerance, allow_pixel=True)
+    if multi:
+        kept, skipped = order_combinations(lens, float(wls[0]), ORDER_TOL)
+        return rwm.plan.with_reasons(*describe(kept, skipped, float(wls[0]), ORDER_TOL))
     return rwm.plan
 
 
@@ -226,7 +236,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
             gauss_nodes: int | None = None, batch: int | None = None, progress: bool = False,
             nyquist_safety: float = 2.0, method: str = "auto", memory_budget_gb: float | None = None,
             focal_patch_tol: float = 1e-5, focal_precision: str = "auto", deterministic: bool = False,
-            pixel_values: str = "flux", tolerance: float | None = None, cache=None) -> PSFMap:
+            pixel_values: str = "flux", tolerance: float | None = None, cache=None,
+            order_tol: float = 1e-4) -> PSFMap:
     """PSFs for every (field, wavelength) pair, batched: one trace launch per surface for the whole
     batch. ``fields``: list of field angles (deg), ``wavelengths_um``: list (um).
 
@@ -243,6 +254,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values
     and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss"; on a hit
     ``info["replay"]``: per batch "graph: trace and splat" (replayed as a CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
+    A lens with multi-order phase surfaces (``Surface.diffraction_orders``) computes each PSF as the coherent sum of
+    its orders (:mod:`rwwarp.phase_orders`; ``info["orders"]``: per PSF the traced orders, weights, efficiencies).
     Other arguments as :func:`psf`.
     """
     from .map_run import finish_map, map_args, run_sources
@@ -252,7 +265,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                  pixel_mm=pixel_mm, center_mm=center_mm, use_reference=use_reference, gauss_nodes=gauss_nodes,
                  batch=batch, nyquist_safety=nyquist_safety, method=method, memory_budget_gb=memory_budget_gb,
                  focal_patch_tol=focal_patch_tol, focal_precision=focal_precision, deterministic=deterministic,
-                 pixel_values=pixel_values, tolerance=tolerance)
+                 pixel_values=pixel_values, tolerance=tolerance, order_tol=order_tol)
     from .wave.plan_cache import PlanCache
     if cache is not None and not isinstance(cache, PlanCache):
         raise TypeError(f"cache must be a rwwarp.PlanCache or None, got {type(cache).__name__}")

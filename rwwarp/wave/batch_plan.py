@@ -176,6 +176,10 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
     this). ``pilot`` (:func:`rwwarp.wave.pilot.trace_pilot` of these sources, or a subset): planned from it, else
     traced here. ``tracer``: a :class:`rwwarp.trace.Tracer` of ``lens`` at ``sorted(set(wls))`` to lay the
     sources with (and trace the pilot with when none is given); None: one is made here (without gradients)."""
+    if any(getattr(s, "diffraction_orders", None) is not None for s in lens.surfaces):
+        import warnings
+        warnings.warn("a RayWave traces each phase surface in its diffraction_order only: Surface.diffraction_orders "
+                      "is summed by rwwarp.psf / rwwarp.psf_map (rwwarp.phase_orders)", UserWarning, stacklevel=3)
     if auto_rule not in ("device", "small-asm", "flops"):
         raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
     check_method(method, "RayWave")

@@ -183,6 +183,9 @@ class RayWave:
                 j = int(np.argmin(d2))
                 chief_plane[k] = all_pos[k, j]
                 opl_p[k] = all_opl[k, j]
+        #: the chief point and path the splat referenced (the vignetted chief's substitute where needed): the
+        #: constant phase it removed (rwwarp.phase_orders.absolute_node_fields)
+        self._splat_reference = (chief_plane, opl_p)
         n = lay["n_stride"]
         sp = self.splatter
         held = getattr(self, "_memo", None) is not None   # a kept batch: its small uploads by content (LRU)

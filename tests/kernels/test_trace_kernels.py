@@ -306,7 +306,7 @@ def test_spot_moments_and_rms(device, rng):
         assert mom[s, 0] == valid[sl].sum()
 
 
-@pytest.mark.parametrize("u", [150.0, 50.0], ids=["finite", "collimator"])
+@pytest.mark.parametrize("u", [150.0, 50.0, 30.0], ids=["finite", "collimator", "virtual-image"])
 def test_thin_lens_finite_conjugates(device, u):
     """Object point 150 mm in front of an f = 50 mm ideal lens: every ray meets the image point at
     v = 1 / (1/f - 1/u) = 75 mm, height -y_s v / u, with equal total optical path. At u = f the rays leave
@@ -332,6 +332,30 @@ def test_thin_lens_finite_conjugates(device, u):
     else:
         np.testing.assert_allclose(d_k, np.tile(d_k[n // 2], (n, 1)), rtol=0, atol=1e-14)
         assert np.ptp(o_k - p_k @ d_k[n // 2]) < 2e-13
+
+
+def test_thin_lens_virtual_object(device):
+    """A converging input (virtual object 100 mm behind an f = 50 mm ideal lens, height 1.5 mm): rays on a sphere
+    of radius 110 mm about the virtual point (equal path there), aimed at it. They must meet the image point at
+    v = 1 / (1/f - 1/u) = 33.3 mm (u = -100), height -y_s v / u, with equal total optical path (the path to the
+    lens falls with the distance to the virtual object: the kernel used to add it, a path error of about r^2 / |u|,
+    0.25 mm at r = 5 mm). Tolerances as the finite case (1e-14 landing, 2e-13 path). The "virtual-image" case of
+    test_thin_lens_finite_conjugates (u = 30 mm < f: image 75 mm in front) failed likewise."""
+    f, n, ys, u = 50.0, 33, 1.5, -100.0
+    vpt = np.array([0.0, ys, -u])
+    xy = np.column_stack([np.zeros(n), np.linspace(-5.0, 5.0, n)])
+    target = np.column_stack([xy, np.zeros(n)])
+    d = vpt - target
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pos = vpt - 110.0 * d
+    v = 1.0 / (1.0 / f - 1.0 / u)
+    par = _params(z=0.0, power=1.0 / f, uinv=1.0 / u, v=v)
+    p_k, d_k, o_k, v_k = _run_surface(device, pos, d, np.zeros(n), par, 1.0, 1.0, kt.KIND_THIN)
+    assert v_k.all()
+    t = v / d_k[:, 2]
+    land = p_k + t[:, None] * d_k
+    np.testing.assert_allclose(land[:, 1], -ys * v / u, rtol=0, atol=1e-14)
+    assert np.ptp(o_k + t) < 2e-13
 
 
 def test_slope_efl(device):
