@@ -1,0 +1,120 @@
+"""Planning time per source (ms) on the CPU, the per-source loop (``plan_batch`` once a source, as
+:func:`rwwarp.wave.packed.source_plans` and :meth:`torch_bridge.HybridLens.raywaves_alone` planned before issue 25)
+against :func:`rwwarp.wave.plan_sources.plan_sources` (what they call now), for two cases:
+
+* ``a489``: the A489+DOE map of :func:`rwwarp.psf_map` (its options: ``method="auto"``, ``allow_pixel``, the CPU's
+  memory budget), 10 fields 0..10 deg x 0.45 / 0.55 / 0.65 um = 30 sources, 64 px of 2 um;
+* ``cooke``: the ``cooke_hybrid`` design step's 48 sources (``perf/time_plan_cooke.py``'s setup: 16 nodes x 3
+  wavelengths, ``method="focal"``, common patch centres) through ``HybridLens.raywaves_alone``.
+
+"warm": the model-error memo (:mod:`rwwarp.wave.model_error`, keyed by the lens's values) holds the estimates
+(a psf_map of an unchanged lens); "miss": it is emptied before every call (the design loop, whose lens changes
+every optimiser step). The new path computes the estimate every call (it does not use the memo), so its warm and
+miss figures are the same work. Each figure: the median of ``--runs`` calls (wall time, ms per source), the pilot
+trace included. Alternate runs with other load on the machine for a fair comparison.
+"""
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def a489_case():
+    """(old, new, n): callables planning the A489 map's 30 sources the old way and the new."""
+    import numpy as np
+    import rwwarp as rw
+    from rwwarp.map_run import map_args
+    from rwwarp.wave.packed import source_plans
+    from rwwarp.wave.raywave import RayWave
+    from rwwarp.wave.pilot import trace_pilot
+    lens = rw.load_lens("a489_doe")
+    fields = [float(f) for f in np.linspace(0.0, 10.0, 10)]
+    wl = [0.45, 0.55, 0.65]
+    F = [f for f in fields for _ in wl]
+    W = [w for _ in fields for w in wl]
+    a = map_args(lens, fields, wl, size=64, pixel_mm=0.002)
+    opts = a.opts
+
+    def old():
+        # the per-source loop source_plans ran before: one RayWave (plan_batch) a source, one pilot of all
+        pilot = trace_pilot(lens, F, W, opts["device"], opts["dtype"], None, own_pupils=True,
+                            use_reference=opts["use_reference"])
+        kw = {k: v for k, v in opts.items()}
+        return [RayWave(lens, [F[k]], [W[k]], 64, 0.002, own_pupils=True, pilot=pilot.subset([k]), **kw)
+                for k in range(len(F))]
+
+    def new():
+        return source_plans(lens, F, W, 64, 0.002, **opts)
+    return old, new, len(F)
+
+
+def cooke_case():
+    """(old, new, n): the cooke_hybrid design step's 48 sources, the old per-source loop of raywaves_alone and
+    the new raywaves_alone."""
+    import numpy as np
+    from time_plan_cooke import setup
+    from rwwarp.psf import RayWave, trace_pilot
+    from rwwarp.trace import Tracer
+    from rwwarp.wave.batch_plan import plan_batch
+    from torch_bridge.modules import bridge_state
+    m, fields, ws, centres, size, pixel = setup()
+    centers = np.asarray(centres, dtype=np.float64).reshape(len(fields), 2)
+
+    def old():
+        lens = m._once("lens", m.to_lens)
+        opts = m._raywave_options(None)
+        pilot = trace_pilot(lens, fields, ws, opts["device"], opts["dtype"], None, own_pupils=True,
+                            use_reference=opts["use_reference"])
+        layers, out = {}, []
+        for k, (f, w) in enumerate(zip(fields, ws)):
+            if w not in layers:
+                layers[w] = Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"])
+            tr = layers[w]
+            bp = plan_batch(lens, [f], [w], int(size), pixel, plan=m.plan_policy, center_mm=centers[k:k + 1],
+                            method="focal", own_pupils=True, pilot=pilot.subset([k]), tracer=tr, **opts)
+            rw = RayWave.from_plan(bp, requires_grad=True, tracer_on_use=True)
+            bridge_state(rw)["base_table"] = tr.params_np.copy()
+            out.append(rw)
+        return out
+
+    def new():
+        return m.raywaves_alone(fields, ws, size, centers_mm=centres, pixel_mm=pixel, method="focal")
+    return old, new, len(fields)
+
+
+def timed(fn, runs, miss):
+    from rwwarp.wave import model_error
+    out = []
+    for _ in range(runs):
+        if miss:
+            model_error._MEMO.clear()
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return statistics.median(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--case", choices=("a489", "cooke", "both"), default="both")
+    args = ap.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    cases = [("a489", a489_case), ("cooke", cooke_case)]
+    for name, make in cases:
+        if args.case not in (name, "both"):
+            continue
+        old, new, n = make()
+        old(), new()   # kernel builds, imports
+        for miss in (False, True):
+            t_old = timed(old, args.runs, miss)
+            t_new = timed(new, args.runs, miss)
+            print(f"{name} ({n} sources) {'memo miss' if miss else 'warm     '}: old {t_old / n * 1e3:.3f} ms/source, "
+                  f"new {t_new / n * 1e3:.3f} ms/source ({t_old / t_new:.2f}x)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
