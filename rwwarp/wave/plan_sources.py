@@ -177,6 +177,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
 
     # the sources' launch arrays, one row each (wavelength index 0: each plan's tracer is of its own wavelength)
     wl0 = np.zeros(1, dtype=np.int32)
+    shared = {}   # the methods' per-call constants (the DOE profile, its scale per wavelength), PlanContext.shared
     shape, od = src_all["shape"], src_all["object_distance"]
     plans, beside = [], []
     for k in range(nsrc):
@@ -194,7 +195,8 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                           center_mm=centers_req[k], size=size, pixel=pixel, width=width, pilot_cell=width / 31.0,
                           lo=lo, hi=hi, fmax=fmax[sl], f_doe=f_doe[sl], feature=feature, out_width=out_width,
                           carrier=carrier, centers=centers, rays_per_sample=rays_per_sample,
-                          nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol, straight_edges=square_pupil)
+                          nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol, straight_edges=square_pupil,
+                          shared=shared)
         planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
         main = planned["asm" if method == "compare" else method]
         pl, carrier, centers, lo, hi, focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
