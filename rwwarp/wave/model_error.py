@@ -265,19 +265,22 @@ def _rim_slope(xy, xc, rr, rim, beam_r, df):
     return 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
 
 
-def _other_orders(surface, prof, xy, wavelength_um, m0):
+def _other_orders(surface, prof, xy, wavelength_um, m0, alpha=None, phi=None):
     """The wrapped DOE's orders other than ``m0`` and their weight over ``m0``'s, ``[(m, c_m / c_0)]`` (complex;
     ``|c_m / c_0|^2 = eta_m / eta_0``, the efficiencies):
     the orders a focal plan keeps (``m0 +- FOCAL_MAX_ORDER`` and, for ``N`` levels, ``1 +- N``, ``1 +- 2N``) from
     the relief's order weights (:func:`rwwarp.wave.focal.doe_order_coefficients`); none where the relief does not
-    wrap over the beam (one smooth order)."""
+    wrap over the beam (one smooth order). ``alpha`` (the relief's scale at ``wavelength_um``) and ``phi`` (its
+    design phase at ``xy``): when already computed."""
     from .. import doe
     from .focal import FOCAL_MAX_ORDER, doe_order_coefficients
-    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    if phi is None:
+        phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
     span = float(np.ptp(phi)) if phi.size else 0.0
     if not surface.levels and span <= 2 * math.pi:
         return []
-    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    if alpha is None:
+        alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
     ms = set(range(int(m0) - FOCAL_MAX_ORDER, int(m0) + FOCAL_MAX_ORDER + 1))
     if surface.levels:
         ms |= {1 + j * int(surface.levels) for j in (-2, -1, 1, 2)}
@@ -291,12 +294,14 @@ def _other_orders(surface, prof, xy, wavelength_um, m0):
     return [(m, complex(cm / c0)) for m, cm, e in zip(ms, c, eta) if e > 1e-8 * eta0]
 
 
-def _main_order(surface, prof, xy, wavelength_um):
+def _main_order(surface, prof, xy, wavelength_um, alpha=None, phi=None):
     """The DOE's main-order factor m (its phase is ``m phi0``): ``alpha`` where the relief does not wrap over
-    the beam, else the integer order nearest ``alpha`` (at least 1)."""
+    the beam, else the integer order nearest ``alpha`` (at least 1). ``alpha``, ``phi``: as :func:`_other_orders`."""
     from .. import doe
-    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
-    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    if alpha is None:
+        alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    if phi is None:
+        phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
     span = float(np.ptp(phi)) if phi.size else 0.0
     if not surface.levels and span <= 2 * math.pi:
         return float(alpha)
@@ -415,6 +420,7 @@ def _estimate_for_raywave(rw) -> list:
     out = []
     pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
     stop_image = {}   # per wavelength (um): the stop's image distance, one paraxial trace each
+    alphas = {}       # per wavelength (um): the DOE relief's phase scale
     lens_note = note
     for k in range(rw.nsrc):
         note = lens_note   # each source's own notes (a source's did run on into the next ones')
@@ -444,7 +450,11 @@ def _estimate_for_raywave(rw) -> list:
         if prof is not None:
             gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
             grad = np.stack([gx, gy], 1) / (2 * math.pi)
-            m0 = _main_order(s, prof, xy, w)
+            alpha = alphas.get(w)
+            if alpha is None:   # the relief's scale, once a wavelength
+                alpha = alphas[w] = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+            phi = prof.phase(xy[:, 0], xy[:, 1], s.design_wavelength_um)
+            m0 = _main_order(s, prof, xy, w, alpha, phi)
             f = f + m0 * grad
         T = np.array([rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor])
         P = np.concatenate([xy, np.full((len(xy), 1), rw.z_plane)], 1)
@@ -482,7 +492,7 @@ def _estimate_for_raywave(rw) -> list:
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane
-            cand = _other_orders(s, prof, xy, w, m0)
+            cand = _other_orders(s, prof, xy, w, m0, alpha, phi)
             # every candidate order's frequencies at once (M, N, 2): the same values as order by order
             fm = _order_frequencies(f, grad, [m - m0 for m, _ in cand])
             reach = _reaches_patch_orders(xy, fm, inv_lam, dist, T[:2], rr, rim)
