@@ -10,8 +10,10 @@ against :func:`rwwarp.wave.plan_sources.plan_sources` (what they call now), for 
 "warm": the model-error memo (:mod:`rwwarp.wave.model_error`, keyed by the lens's values) holds the estimates
 (a psf_map of an unchanged lens); "miss": it is emptied before every call (the design loop, whose lens changes
 every optimiser step). The new path reads and fills the same memo (under the same keys), so its warm and
-miss figures differ only by the memo's hits. Each figure: the median of ``--runs`` calls, wall time and process CPU time
-(less sensitive to other load on a shared machine), ms per source, the pilot trace included.
+miss figures differ only by the memo's hits. Old and new are called in turn ``--runs`` times; each figure is the
+least process CPU time (less sensitive than wall time to other load on a shared machine; the median in brackets)
+and the least wall time, ms per source, the pilot trace included. Run it with ``PYTHONPATH`` on another tree (a
+copy of this file in its perf/) to time that tree's source_plans / raywaves_alone as "new".
 """
 import argparse
 import statistics
@@ -85,18 +87,21 @@ def cooke_case():
     return old, new, len(fields)
 
 
-def timed(fn, runs, miss):
-    """Medians of ``runs`` calls of ``fn``: (wall s, process CPU s); ``miss``: the model-error memo emptied first."""
+def timed(fns, runs, miss):
+    """Per callable of ``fns``, called in turn (interleaved, so that other load on the machine falls on all alike)
+    ``runs`` times: (min wall s, min process CPU s, median process CPU s); ``miss``: the model-error memo emptied
+    before every call."""
     from rwwarp.wave import model_error
-    wall, cpu = [], []
+    wall, cpu = [[] for _ in fns], [[] for _ in fns]
     for _ in range(runs):
-        if miss:
-            model_error._MEMO.clear()
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return statistics.median(wall), statistics.median(cpu)
+        for i, fn in enumerate(fns):
+            if miss:
+                model_error._MEMO.clear()
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            wall[i].append(time.perf_counter() - t0)
+            cpu[i].append(time.process_time() - c0)
+    return [(min(w), min(c), statistics.median(c)) for w, c in zip(wall, cpu)]
 
 
 def main():
@@ -112,10 +117,11 @@ def main():
         old, new, n = make()
         old(), new()   # kernel builds, imports
         for miss in (False, True):
-            (w_old, c_old), (w_new, c_new) = timed(old, args.runs, miss), timed(new, args.runs, miss)
-            print(f"{name} ({n} sources) {'memo miss' if miss else 'warm     '}: wall old {w_old / n * 1e3:.3f} new "
-                  f"{w_new / n * 1e3:.3f} ms/source ({w_old / w_new:.2f}x); process CPU old {c_old / n * 1e3:.3f} new "
-                  f"{c_new / n * 1e3:.3f} ms/source ({c_old / c_new:.2f}x)", flush=True)
+            (w_old, c_old, m_old), (w_new, c_new, m_new) = timed((old, new), args.runs, miss)
+            print(f"{name} ({n} sources) {'memo miss' if miss else 'warm     '}: process CPU old {c_old / n * 1e3:.3f} "
+                  f"new {c_new / n * 1e3:.3f} ms/source ({c_old / c_new:.2f}x) [medians {m_old / n * 1e3:.3f} / "
+                  f"{m_new / n * 1e3:.3f}]; wall old {w_old / n * 1e3:.3f} new {w_new / n * 1e3:.3f} ms/source",
+                  flush=True)
 
 
 if __name__ == "__main__":
