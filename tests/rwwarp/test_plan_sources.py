@@ -222,3 +222,16 @@ def test_psf_map_bits_as_the_per_source_plans(monkeypatch):
     assert new.data.shape == old.data.shape == (2, 2, 16, 16)
     assert np.array_equal(new.data, old.data)
     assert not _diff([b["plans"] for b in new.info["batches"]], [b["plans"] for b in old.info["batches"]])
+
+
+def test_a_batch_estimates_each_source_on_its_own():
+    """A batch's model-error estimates are each source's own (its notes did run on into the next sources'): a plan
+    of two sources (pupils at their own wavelengths) has the estimate each has alone, notes included; the first
+    source (10 deg, 0.45 um) has a note, the second (on axis) none."""
+    lens = rw.load_lens("a489_doe")
+    model_error._MEMO.clear()
+    both = plan_batch(lens, [10.0, 0.0], [0.45, 0.55], 32, 0.002, method="focal", own_pupils=True)
+    alone = _alone(lens, [10.0, 0.0], [0.45, 0.55], 32, 0.002, method="focal")
+    assert both.model_errors[0].note and not both.model_errors[1].note
+    for k in range(2):
+        assert not _diff(both.model_errors[k], alone[k].model_errors[0]), k
