@@ -235,3 +235,11 @@ def test_a_batch_estimates_each_source_on_its_own():
     assert both.model_errors[0].note and not both.model_errors[1].note
     for k in range(2):
         assert not _diff(both.model_errors[k], alone[k].model_errors[0]), k
+
+
+def test_orders_partly_evanescent():
+    """A strong DOE (-8e4 rad at the 15 mm norm radius) at 0.45 um, 5 deg: two of its kept orders land only in
+    part (the rest evanescent), the focal plan's branch for them compared too."""
+    lens = _cooke_with_doe(-8e4)
+    got = _check(lens, [0.0, 5.0], [0.5876, 0.45], 32, lens.sensor.pixel_pitch, method="focal", focal_patch_tol=1e-9)
+    assert len(got[1].focal["orders"][0]) == 1 and got[1].focal["lost_power"][0] > 0.1
