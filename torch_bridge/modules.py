@@ -400,26 +400,25 @@ class HybridLens(nn.Module):
             return [self.raywave([f], [w], size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
                                  center_mm=centers[k:k + 1], method=method, requires_grad=requires_grad)
                     for k, (f, w) in enumerate(zip(fields, wls))]
-        from rwwarp.psf import RayWave, trace_pilot
+        from rwwarp.psf import RayWave
         self._once("finite", self.check_finite)
         lens = self._once("lens", self.to_lens)
         pixel = float(pixel_mm or lens.sensor.pixel_pitch)
         opts = self._raywave_options(object_distance_mm)
-        # the pilot of all sources in one trace, each entrance pupil at its own wavelength
-        pilot = trace_pilot(lens, fields, wls, opts["device"], opts["dtype"], object_distance_mm, own_pupils=True,
-                            use_reference=opts["use_reference"])
         from rwwarp.trace import Tracer
-        from rwwarp.wave.batch_plan import plan_batch
-        # sources laid by one tracer a wavelength (as each RayWave's own); a RayWave's is made when it traces alone
+        from rwwarp.wave.plan_sources import plan_sources
+        # every source planned on its own from one pilot trace of all of them (each entrance pupil at its own
+        # wavelength), the per-source arrays computed together: each plan is what plan_batch gives it alone
+        plans = plan_sources(lens, fields, wls, int(size), pixel, plan=self.plan_policy, center_mm=centers,
+                             per_source_centers=True, method=method or self.method, **opts)
+        # one tracer a wavelength for the parameter tables (as each RayWave's own); a RayWave's is made when it
+        # traces alone
         layers, out = {}, []
-        for k, (f, w) in enumerate(zip(fields, wls)):
+        for bp, w in zip(plans, wls):
             if w not in layers:
-                layers[w] = Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"])
-            tr = layers[w]
-            bp = plan_batch(lens, [f], [w], int(size), pixel, plan=self.plan_policy, center_mm=centers[k:k + 1],
-                            method=method or self.method, own_pupils=True, pilot=pilot.subset([k]), tracer=tr, **opts)
+                layers[w] = Tracer(lens, [w], device=opts["device"], dtype=opts["dtype"]).params_np
             rw = RayWave.from_plan(bp, requires_grad=bool(requires_grad), tracer_on_use=True)
-            bridge_state(rw)["base_table"] = tr.params_np.copy()
+            bridge_state(rw)["base_table"] = layers[w].copy()
             out.append(rw)
         return out
 

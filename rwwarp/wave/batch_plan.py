@@ -122,11 +122,15 @@ class BatchPlan:
     pixel_alternative: str = ""
 
     def __post_init__(self):
-        for f in _dc_fields(self):
-            v = getattr(self, f.name)
+        for name in PLAN_FIELDS:
+            v = getattr(self, name)
+            t = type(v)
+            # what _read_only keeps as it is, skipped without a call (a new plan of a plan: most of its values)
+            if v is None or t in _KEPT_TYPES or t is FrozenDict or (t is np.ndarray and not v.flags.writeable):
+                continue
             ro = _read_only(v)
             if ro is not v:
-                object.__setattr__(self, f.name, ro)
+                object.__setattr__(self, name, ro)
 
     def snapped_centres(self, center_mm) -> np.ndarray:
         """The patch centres ((nsrc, 2) mm) of ``center_mm`` ((x, y) mm, one pair or one per source) snapped to
@@ -156,6 +160,8 @@ class BatchPlan:
 
 #: the names a :class:`~rwwarp.wave.raywave.RayWave` reads through from its plan
 PLAN_FIELDS = tuple(f.name for f in _dc_fields(BatchPlan))
+#: value types :func:`_read_only` returns unchanged (immutable; a tuple's members are not looked into)
+_KEPT_TYPES = (str, int, float, bool, tuple, Plan, Pilot)
 
 
 def _is_curved(surface) -> bool:

@@ -87,7 +87,17 @@ class PupilPhase:
     coeffs: np.ndarray
 
     def _coef_matrix(self, orders):
-        """``C`` (D, D) per derivative order ``(dx, dy)`` in ``orders``: the derivative is ``sum_pq C[p, q] ux^p uy^q``."""
+        """``C`` (D, D) per derivative order ``(dx, dy)`` in ``orders``: the derivative is ``sum_pq C[p, q] ux^p uy^q``
+        (kept on the phase per ``orders``: a phase is evaluated several times; the caller must not change it)."""
+        memo = self.__dict__.setdefault("_coef_memo", {})
+        key = tuple(tuple(o) for o in orders)
+        got = memo.get(key)
+        if got is None:
+            got = memo[key] = self._coef_matrix_new(orders)
+            got.flags.writeable = False
+        return got
+
+    def _coef_matrix_new(self, orders):
         P = np.asarray(self.powers, int).reshape(-1, 2)
         c = np.asarray(self.coeffs, float)
         d = max(self.degree, 0)

@@ -265,19 +265,22 @@ def _rim_slope(xy, xc, rr, rim, beam_r, df):
     return 2 * math.pi * float(np.sqrt(np.mean(sl * sl)))
 
 
-def _other_orders(surface, prof, xy, wavelength_um, m0):
+def _other_orders(surface, prof, xy, wavelength_um, m0, alpha=None, phi=None):
     """The wrapped DOE's orders other than ``m0`` and their weight over ``m0``'s, ``[(m, c_m / c_0)]`` (complex;
     ``|c_m / c_0|^2 = eta_m / eta_0``, the efficiencies):
     the orders a focal plan keeps (``m0 +- FOCAL_MAX_ORDER`` and, for ``N`` levels, ``1 +- N``, ``1 +- 2N``) from
     the relief's order weights (:func:`rwwarp.wave.focal.doe_order_coefficients`); none where the relief does not
-    wrap over the beam (one smooth order)."""
+    wrap over the beam (one smooth order). ``alpha`` (the relief's scale at ``wavelength_um``) and ``phi`` (its
+    design phase at ``xy``): when already computed."""
     from .. import doe
     from .focal import FOCAL_MAX_ORDER, doe_order_coefficients
-    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    if phi is None:
+        phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
     span = float(np.ptp(phi)) if phi.size else 0.0
     if not surface.levels and span <= 2 * math.pi:
         return []
-    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    if alpha is None:
+        alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
     ms = set(range(int(m0) - FOCAL_MAX_ORDER, int(m0) + FOCAL_MAX_ORDER + 1))
     if surface.levels:
         ms |= {1 + j * int(surface.levels) for j in (-2, -1, 1, 2)}
@@ -291,12 +294,14 @@ def _other_orders(surface, prof, xy, wavelength_um, m0):
     return [(m, complex(cm / c0)) for m, cm, e in zip(ms, c, eta) if e > 1e-8 * eta0]
 
 
-def _main_order(surface, prof, xy, wavelength_um):
+def _main_order(surface, prof, xy, wavelength_um, alpha=None, phi=None):
     """The DOE's main-order factor m (its phase is ``m phi0``): ``alpha`` where the relief does not wrap over
-    the beam, else the integer order nearest ``alpha`` (at least 1)."""
+    the beam, else the integer order nearest ``alpha`` (at least 1). ``alpha``, ``phi``: as :func:`_other_orders`."""
     from .. import doe
-    alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
-    phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
+    if alpha is None:
+        alpha = doe.wavelength_scale(surface.material, surface.design_wavelength_um, wavelength_um)
+    if phi is None:
+        phi = prof.phase(xy[:, 0], xy[:, 1], surface.design_wavelength_um)
     span = float(np.ptp(phi)) if phi.size else 0.0
     if not surface.levels and span <= 2 * math.pi:
         return float(alpha)
@@ -337,8 +342,9 @@ MEMO_SIZE = 512
 _MEMO: "OrderedDict[bytes, tuple]" = OrderedDict()
 
 
-def _memo_key(rw) -> bytes:
-    """A digest of what :func:`_estimate_for_raywave` reads from ``rw``."""
+def _memo_key(rw, lens_fp: bytes | None = None) -> bytes:
+    """A digest of what :func:`_estimate_for_raywave` reads from ``rw``; ``lens_fp``: its lens's
+    :func:`rwwarp.wave.plan_cache.lens_fingerprint` when already computed."""
     import hashlib
     h = hashlib.blake2b(digest_size=20)
     for arr in (rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok, rw.centers, rw.target, rw.wls, rw.n_after, rw.lam_mm):
@@ -349,12 +355,57 @@ def _memo_key(rw) -> bytes:
     # the whole lens by value (every surface field, the DOE profile, the glasses' data), never by identity: a new
     # lens may reuse a collected one's id()
     h.update(repr((rw.plane, float(rw.z_plane), float(rw.z_sensor), int(rw.nsrc))).encode())
-    h.update(lens_fingerprint(rw.lens))
+    h.update(lens_fingerprint(rw.lens) if lens_fp is None else lens_fp)
     return h.digest()
 
 
+def estimate_sources(lens, plane: int, pilot, centers, target, wls, n_after, lam_mm, z_plane: float,
+                     z_sensor: float) -> list:
+    """:class:`ModelError` of each of ``S`` sources of one lens, each planned on its own, in one call: source ``k``'s
+    is what :func:`estimate_for_raywave` gives its single-source plan, and it is kept in (and read from) the same
+    memo under the same key. The sources the memo does not hold are estimated together (the lens's fingerprint
+    and DOE profile, and each wavelength's stop image, computed once; each source's estimate the same arithmetic
+    on its own rows). ``pilot``: the sources' :class:`rwwarp.wave.pilot.Pilot` (S rows), ``centers`` (S, 2) mm
+    patch centres (a sequence of (1, 2) or (2,) rows), ``target`` (S, 3) mm reference-sphere centres, ``wls`` um,
+    ``n_after`` (S,) the index behind the wave plane (surface ``plane``), ``lam_mm`` (S,) mm; ``z_plane``,
+    ``z_sensor`` mm."""
+    from types import SimpleNamespace
+    from .plan_cache import lens_fingerprint
+    S = len(wls)
+    wls = [float(w) for w in wls]
+    n_after, lam_mm = np.asarray(n_after), np.asarray(lam_mm)
+    centers = np.asarray(centers, dtype=np.float64).reshape(S, 2)
+    target = np.asarray(target)
+    fp = lens_fingerprint(lens)
+    out, keys = [None] * S, [None] * S
+    for k in range(S):
+        sl = slice(k, k + 1)
+        row = SimpleNamespace(pilot=SimpleNamespace(pos_p=pilot.pos_p[sl], dir_s=pilot.dir_s[sl], ok=pilot.ok[sl]),
+                              centers=centers[sl], target=target[sl], wls=(wls[k],), n_after=n_after[sl],
+                              lam_mm=lam_mm[sl], plane=plane, z_plane=z_plane, z_sensor=z_sensor, nsrc=1)
+        keys[k] = _memo_key(row, fp)
+        hit = _MEMO.get(keys[k])
+        if hit is not None:
+            _MEMO.move_to_end(keys[k])
+            out[k] = hit[0]
+    miss = [k for k in range(S) if out[k] is None]
+    if miss:
+        view = SimpleNamespace(lens=lens, plane=plane, nsrc=len(miss), wls=[wls[k] for k in miss],
+                               pilot=SimpleNamespace(pos_p=pilot.pos_p[miss], dir_s=pilot.dir_s[miss],
+                                                     ok=pilot.ok[miss]),
+                               n_after=n_after[miss], lam_mm=lam_mm[miss], centers=centers[miss], target=target[miss],
+                               z_plane=z_plane, z_sensor=z_sensor)
+        for k, e in zip(miss, _estimate_for_raywave(view)):
+            out[k] = e
+            _MEMO[keys[k]] = (e,)
+        while len(_MEMO) > MEMO_SIZE:
+            _MEMO.popitem(last=False)
+    return out
+
+
 def _estimate_for_raywave(rw) -> list:
-    """:func:`estimate_for_raywave` without the memo."""
+    """:func:`estimate_for_raywave` without the memo (every source of ``rw``; each source's estimate reads only its
+    own rows)."""
     from .. import doe
     from ..doe import is_flat_profile
     lens, plane = rw.lens, rw.plane
@@ -368,7 +419,11 @@ def _estimate_for_raywave(rw) -> list:
         prof, note = None, "a DOE with steps (pixel map): its phase slope is not counted"
     out = []
     pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
+    stop_image = {}   # per wavelength (um): the stop's image distance, one paraxial trace each
+    alphas = {}       # per wavelength (um): the DOE relief's phase scale
+    lens_note = note
     for k in range(rw.nsrc):
+        note = lens_note   # each source's own notes (a source's did run on into the next ones')
         w = float(rw.wls[k])
         n = float(rw.n_after[k])
         inv_lam = n / float(rw.lam_mm[k])
@@ -377,7 +432,9 @@ def _estimate_for_raywave(rw) -> list:
         # their rays to its vertex plane, where the field is formed
         p3, d3 = pos[k, sel], dirs[k, sel]
         xy = p3[:, :2] + ((rw.z_plane - p3[:, 2]) / d3[:, 2])[:, None] * d3[:, :2]
-        z1 = stop_to_plane_mm(lens, plane, w)
+        z1 = stop_image.get(w)
+        if z1 is None:
+            z1 = stop_image[w] = stop_to_plane_mm(lens, plane, w)
         R = float(rw.target[k, 2] - rw.z_plane)
         if abs(R) > 1e5 or R == 0:
             R = math.inf
@@ -393,7 +450,11 @@ def _estimate_for_raywave(rw) -> list:
         if prof is not None:
             gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
             grad = np.stack([gx, gy], 1) / (2 * math.pi)
-            m0 = _main_order(s, prof, xy, w)
+            alpha = alphas.get(w)
+            if alpha is None:   # the relief's scale, once a wavelength
+                alpha = alphas[w] = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+            phi = prof.phase(xy[:, 0], xy[:, 1], s.design_wavelength_um)
+            m0 = _main_order(s, prof, xy, w, alpha, phi)
             f = f + m0 * grad
         T = np.array([rw.centers[k, 0], rw.centers[k, 1], rw.z_sensor])
         P = np.concatenate([xy, np.full((len(xy), 1), rw.z_plane)], 1)
@@ -431,7 +492,7 @@ def _estimate_for_raywave(rw) -> list:
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane
-            cand = _other_orders(s, prof, xy, w, m0)
+            cand = _other_orders(s, prof, xy, w, m0, alpha, phi)
             # every candidate order's frequencies at once (M, N, 2): the same values as order by order
             fm = _order_frequencies(f, grad, [m - m0 for m, _ in cand])
             reach = _reaches_patch_orders(xy, fm, inv_lam, dist, T[:2], rr, rim)

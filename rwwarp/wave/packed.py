@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .pilot import trace_pilot
+from .plan_sources import plan_sources
 from .methods import get
 from .batch_plan import BatchPlan
 from .raywave import RayWave
@@ -24,21 +24,18 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them
-    (:func:`rwwarp.wave.pilot.trace_pilot`, one set of launches; the pilot rays are independent, so each
-    source's, :meth:`~rwwarp.wave.pilot.Pilot.subset`, are what a pilot of it alone gives). Arguments as
+    (:func:`rwwarp.wave.plan_sources.plan_sources`: one set of launches, the per-source arrays computed for all
+    sources at once; each plan is the one :func:`~rwwarp.wave.batch_plan.plan_batch` gives that source alone).
+    Arguments as
     :class:`RayWave` (``allow_pixel``: "auto" may choose ``method="pixel"``, whose members :class:`PackedRayWave` does not take;
     ``auto_rule``: how "auto" chooses, :class:`RayWave`);
     :class:`PackedRayWave` computes them together."""
-    pilot = trace_pilot(lens, fields, wls, device, dtype, object_distance_mm, own_pupils=True,
-                        use_reference=use_reference)
-    members = []
-    for k in range(len(fields)):
-        members.append(RayWave(lens, [fields[k]], [wls[k]], size, pixel, device, plan, dtype, amplitude,
-                               object_distance_mm, rays_per_sample, center_mm, use_reference, gauss_nodes,
-                               nyquist_safety, False, method, memory_budget_bytes, focal_patch_tol,
-                               deterministic, own_pupils=True, pilot=pilot.subset([k]), pixel_values=pixel_values,
-                               model_tolerance=model_tolerance, allow_pixel=allow_pixel, auto_rule=auto_rule))
-    return members
+    plans = plan_sources(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
+                         rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method,
+                         memory_budget_bytes, focal_patch_tol, deterministic, pixel_values, model_tolerance,
+                         auto_rule, allow_pixel)
+    # each member's tracer is made when it traces alone (a member computed in a PackedRayWave never does)
+    return [RayWave.from_plan(bp, tracer_on_use=True) for bp in plans]
 
 
 def packed_bytes(members, size: int) -> int:

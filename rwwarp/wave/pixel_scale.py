@@ -443,7 +443,7 @@ def field_reason(field: dict, cost: dict) -> str:
 
 
 def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_width_mm: float,
-                   rays_per_sample: float = 1.0, tolerance=None, memory_budget_bytes=None) -> bool:
+                   rays_per_sample: float = 1.0, tolerance=None, memory_budget_bytes=None, model=None) -> bool:
     """Plan ``method="pixel"`` beside the plan a :class:`rwwarp.wave.raywave.RayWave` (``rw``, at the end of its
     planning) chose, and switch ``rw`` to it where it should run. ``explicit``: ``method="pixel"`` was asked for
     (it runs; a DOE that is not blank is refused with ``ValueError``). Otherwise (``"auto"``) it runs where the
@@ -457,7 +457,9 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     chosen, a new plan with the pixel method's ``plan`` (its estimate, error estimate and reasons), ``method``,
     ``focal`` (None), ``carrier``, ``centers`` and ``rim`` (False), and True; otherwise (``"auto"``) a new plan
     whose ``plan`` has a reason saying why not (and ``pixel_alternative`` where it names the pixel method beside
-    a plan over the memory budget), and False; ``rw`` itself and False for a lens with a DOE."""
+    a plan over the memory budget), and False; ``rw`` itself and False for a lens with a DOE. ``model``: the
+    model error of ``rw`` with its patches at ``centers`` already computed (a list of
+    :class:`~rwwarp.wave.model_error.ModelError` per source), else computed here."""
     from dataclasses import replace
     from ..doe import is_flat_profile
     from .model_error import estimate_for_raywave
@@ -480,7 +482,8 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
     nf = float(np.min(n_after * r_w ** 2 / (lam_mm * abs(rw.z_sensor - rw.z_plane))))
-    model = estimate_for_raywave(replace(rw, centers=centers))   # the rim slope against the sphere to the chief ray's patch
+    if model is None:
+        model = estimate_for_raywave(replace(rw, centers=centers))   # the rim slope against the sphere to the chief ray's patch
     slope = max(e.rim_slope_rad for e in model)
     model_err = max(e.estimate for e in model)
     err = pixel_error_estimate(nf, slope, rw.pixel, info["airy_mm"])

@@ -289,50 +289,83 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     for k in range(S):
         T = centers[k]
         main_m, main_c = max(orders[k], key=lambda mc: abs(mc[1]))
-        cand, fs = [], []
+        live = []
         for m, c in orders[k]:
             if abs(c) ** 2 < order_tol:
                 lost[k] += abs(c) ** 2
                 continue
-            fs.append((m, c, freq[k] + (m * doe_freq[k] if doe_freq[k] is not None else 0.0)))
-        if fs:
-            # every order's landings in one call (elementwise: the values of one call per order)
-            Ls = landing_points(xy[k], np.stack([f for _, _, f in fs]), inv_lam[k], z)
-            fin = np.isfinite(Ls).all(axis=2)
-            for (m, c, f), L, ok in zip(fs, Ls, fin):
-                # every ray lands (the usual case): the arrays themselves, else the landing rays'
-                cand.append((m, c, f, L, xy[k]) if ok.all() else (m, c, f[ok], L[ok], xy[k][ok]))
-        band = max([float(np.max(np.abs(f - carrier[k]))) for _, _, f, _, _ in cand if len(f)] + [1e-9])
+            live.append((m, c))
+        # every live order at once ((M, N, 2) arrays; elementwise, max and min: the values of one order at a time):
+        # its frequencies, landings, landing box, band, whether it misses the patch and its share of the patch
+        band = 1e-9
+        if live:
+            if doe_freq[k] is not None:   # m * doe_freq in doe_freq's precision, as a Python number multiplies it
+                ms = np.array([m for m, _ in live], dtype=np.asarray(doe_freq[k]).dtype)[:, None, None]
+                F = freq[k][None] + ms * doe_freq[k][None]
+            else:
+                F = freq[k][None] + np.zeros((len(live), 1, 1), dtype=np.asarray(freq[k]).dtype)   # freq + 0.0
+            Ls = landing_points(xy[k], F, inv_lam[k], z)
+            full = np.isfinite(Ls).all(axis=2).all(axis=1)
+            LLO, LHI = Ls.min(axis=1), Ls.max(axis=1)
+            o_band = np.max(np.abs(F - carrier[k]), axis=(1, 2))
+            for j in np.flatnonzero(~full):
+                # an order some of whose rays do not land (evanescent): its landing rays' box and band
+                ok = np.isfinite(Ls[j]).all(axis=1)
+                if ok.any():
+                    LLO[j], LHI[j] = Ls[j][ok].min(0), Ls[j][ok].max(0)
+                    o_band[j] = np.max(np.abs(F[j][ok] - carrier[k]))
+            landed = full | np.isfinite(Ls).all(axis=2).any(axis=1)
+            if landed.any():
+                band = max(band, float(np.max(o_band[landed])))
         margin = mb / band
         keep, used, lo, hi = [], [], T - half_w, T + half_w
         main_box = None
-        for m, c, f, L, x in cand:
-            if len(L) == 0:
+        if live:
+            miss = np.any(LLO > T + half_w + margin, axis=1) | np.any(LHI < T - half_w - margin, axis=1)
+            reach = np.prod(np.minimum(LHI - LLO, 2 * (half_w + margin)) + 1e-12, axis=1)
+            area = np.prod(LHI - LLO + 1e-12, axis=1)
+        for j, (m, c) in enumerate(live):
+            if not landed[j]:
                 lost[k] += abs(c) ** 2
                 continue
-            llo, lhi = L.min(0), L.max(0)
-            if np.any(llo > T + half_w + margin) or np.any(lhi < T - half_w - margin):
+            if miss[j]:
                 lost[k] += abs(c) ** 2      # every ray of this order misses the patch
                 continue
             # a strongly defocused order spreads its power over its landing box: estimate the share that
             # reaches the patch by area; below patch_tol it is left out (a uniform background of that power
             # over the patch changes a focused core by ~2 sqrt(patch_tol / pixels), < 1e-4 at 1e-5 and 64
             # pixels), and its power is reported
-            reach = float(np.prod(np.minimum(lhi - llo, 2 * (half_w + margin)) + 1e-12))
-            share = reach / float(np.prod(lhi - llo + 1e-12))
+            share = float(reach[j]) / float(area[j])
             if m != main_m and abs(c) ** 2 * share < patch_tol:
                 lost[k] += abs(c) ** 2
                 continue
             keep.append((_order_index(m), complex(c)))
-            used.append((f, L, x, m == main_m))
+            if full[j]:   # every ray lands (the usual case): the arrays themselves, else the landing rays'
+                used.append((j, F[j], Ls[j], xy[k], m == main_m))
+            else:
+                ok = np.isfinite(Ls[j]).all(axis=1)
+                used.append((j, F[j][ok], Ls[j][ok], xy[k][ok], m == main_m))
             if m == main_m:
-                ray_spread = max(ray_spread, float(np.max(lhi - llo)))
-                main_box = (llo, lhi)
+                ray_spread = max(ray_spread, float(np.max(LHI[j] - LLO[j])))
+                main_box = (LLO[j], LHI[j])
         if used:
-            g_fit[k], q_fit[k] = fit_quadratic_transfer([u[0] for u in used], [u[1] for u in used],
-                                                        [u[2] for u in used], carrier[k], g[k], q[k], z)
+            g_fit[k], q_fit[k] = fit_quadratic_transfer([u[1] for u in used], [u[2] for u in used],
+                                                        [u[3] for u in used], carrier[k], g[k], q[k], z)
         mlo, mhi = lo.copy(), hi.copy()
-        for f, L, x, main in used:
+        whole = [u for u in used if full[u[0]]]
+        if whole:
+            # the kept orders whose every ray lands, at once: landings under the quadratic transfer
+            idx = [u[0] for u in whole]
+            LG = xy[k][None] - z * (g_fit[k] + (F[idx] - carrier[k]) * q_fit[k])
+            shifts[k] = max(shifts[k], float(np.max(np.abs(Ls[idx] - LG))))
+            lo = np.minimum(lo, LG.min(axis=(0, 1)))
+            hi = np.maximum(hi, LG.max(axis=(0, 1)))
+            for i, u in enumerate(whole):
+                if u[4]:
+                    mlo, mhi = np.minimum(mlo, LG[i].min(0)), np.maximum(mhi, LG[i].max(0))
+        for j, f, L, x, main in used:
+            if full[j]:
+                continue
             lg = x - z * (g_fit[k] + (f - carrier[k]) * q_fit[k])       # landing under the quadratic transfer
             d = float(np.max(np.abs(L - lg)))
             shifts[k] = max(shifts[k], d)

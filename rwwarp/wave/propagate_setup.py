@@ -48,9 +48,21 @@ def _round_up(n, m):
     return -(-int(n) // int(m)) * int(m)
 
 
+_FFT_SIZES: dict = {}   # n -> next_fft_size(n), computed once each
+
+
 def next_fft_size(n: int) -> int:
     """Smallest integer >= n whose prime factors are all in {2, 3, 5, 7} (VkFFT's fast radices)."""
     n = max(int(n), 1)
+    got = _FFT_SIZES.get(n)
+    if got is None:
+        if len(_FFT_SIZES) > 65536:   # bounded: a long run's sizes
+            _FFT_SIZES.clear()
+        got = _FFT_SIZES[n] = _next_fft_size(n)
+    return got
+
+
+def _next_fft_size(n: int) -> int:
     while True:
         m = n
         for p in (2, 3, 5, 7):

@@ -237,7 +237,7 @@ def _caller_stacklevel() -> int:
     return level
 
 
-def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None):
+def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None, estimate=None):
     """Estimate the model error of a :class:`rwwarp.wave.batch_plan.BatchPlan` ``rw`` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
     ``method_requested`` is ``"two-step"``, or ``"auto"`` with the estimate above ``tolerance`` (relative to
@@ -251,11 +251,13 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     :func:`step_error`; recorded as ``model_error["step_phase_rad"]`` / ``["step_error"]``) is compared with
     ``tolerance``: above it ``"auto"`` refuses the step (the one-step plan kept, a reason says why) and
     ``"two-step"`` takes it and warns (:class:`WaveStepWarning`; without a tolerance where the phase error exceeds
-    ``STEP_PHASE_MAX`` rad)."""
+    ``STEP_PHASE_MAX`` rad). ``estimate``: the model error of ``rw`` already computed (a list of
+    :class:`~rwwarp.wave.model_error.ModelError` per source, :func:`rwwarp.wave.model_error.estimate_sources`), else
+    computed here."""
     from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
     from .plan import check_budget, estimate_cost
-    est = estimate_for_raywave(rw)
+    est = estimate_for_raywave(rw) if estimate is None else list(estimate)
     bp = replace(rw, model_errors=tuple(est), wave_step=np.zeros(rw.nsrc))
     w = worst(est)
     pl = rw.plan

@@ -164,7 +164,7 @@ def test_wave_step_matches_the_two_step_truth(d2_mm, method):
     if two is None:   # the wave step on the focal plan: forced through the planner's decision
         orig = ws.plan_wave_step
         try:
-            ws.plan_wave_step = lambda r, tol, req, *rest: orig(r, tol, "two-step", *rest)
+            ws.plan_wave_step = lambda r, tol, req, *rest, **kw: orig(r, tol, "two-step", *rest, **kw)
             two = rw.psf(lens, 0.0, 0.55, size=32, method="focal")
         finally:
             ws.plan_wave_step = orig

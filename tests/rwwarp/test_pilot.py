@@ -10,7 +10,7 @@ import pytest
 
 import rwwarp as rw
 from rwwarp.trace import Tracer
-from rwwarp.wave import packed as packed_mod
+from rwwarp.wave import plan_sources as plan_sources_mod
 from rwwarp.wave.pilot import PILOT_GRID, Pilot, trace_pilot
 from rwwarp.wave.raywave import RayWave
 
@@ -140,9 +140,10 @@ def test_raywave_refuses_a_pilot_of_other_sources(lens):
 
 def _count_pilots(monkeypatch):
     """Count the pilot traces (Tracer._run with a kept surface and an explicit pupil: the pilot's signature;
-    the field traces generate their grid on the device) and the trace_pilot calls of source_plans."""
+    the field traces generate their grid on the device) and the pilot traces of source_plans (its
+    rwwarp.wave.plan_sources.plan_sources traces the pilot with pilot_from_tracer, as trace_pilot does)."""
     calls = {"launch_sets": [], "trace_pilot": 0}
-    run, tp = Tracer._run, packed_mod.trace_pilot
+    run, tp = Tracer._run, plan_sources_mod.pilot_from_tracer
 
     def counted_run(self, src, u, v, cell=1.0, upto=None, keep=False, **kw):
         if keep and keep is not True and kw.get("grid_n", 0) == 0 and kw.get("grids") is None:
@@ -153,7 +154,7 @@ def _count_pilots(monkeypatch):
         calls["trace_pilot"] += 1
         return tp(*a, **k)
     monkeypatch.setattr(Tracer, "_run", counted_run)
-    monkeypatch.setattr(packed_mod, "trace_pilot", counted_tp)
+    monkeypatch.setattr(plan_sources_mod, "pilot_from_tracer", counted_tp)
     return calls
 
 

@@ -30,9 +30,14 @@ def plan_focal_batch(ctx) -> Planned:
     nsrc = len(n_after)
     inv_lam = n_after / lam_mm
     s = lens.surfaces[plane]
-    prof = None
-    if s.type == "doe" and not is_flat_profile(s.profile):
-        prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
+    shared = ctx.shared if ctx.shared is not None else {}
+    prof = shared.get("focal_profile", False)
+    if prof is False:   # the DOE's profile (None: none or blank), once per call where the sources share it
+        prof = None
+        if s.type == "doe" and not is_flat_profile(s.profile):
+            prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
+        shared["focal_profile"] = prof
+    scales = shared.setdefault("focal_alpha", {})   # the relief's phase scale per wavelength (um)
     orders, doe_freq, central = [], [], []
     xy = [pos_p[k, ok[k], :2] for k in range(nsrc)]
     freq = [n_after[k] * dir_s[k, ok[k], :2] / lam_mm[k] for k in range(nsrc)]
@@ -43,7 +48,9 @@ def plan_focal_batch(ctx) -> Planned:
             orders.append([(0, 1.0 + 0j)])
             doe_freq.append(None)
             continue
-        alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
+        alpha = scales.get(wls[k])
+        if alpha is None:
+            alpha = scales[wls[k]] = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
         gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
         doe_freq.append(np.stack([gx, gy], 1) / (2 * np.pi))
         cx, cy = prof.gradient(np.array([chief_plane[k, 0]]), np.array([chief_plane[k, 1]]), s.design_wavelength_um)

@@ -27,7 +27,7 @@ class Pixel(Propagation):
         from ..pixel_scale import consider_pixel
         return consider_pixel(rw, explicit, pilot["pos_s"], pilot["dir_s"], pilot["ok"], pilot["carrier"],
                               pilot["centers"], pilot["beam_width_mm"], pilot["rays_per_sample"], tolerance,
-                              memory_budget_bytes)
+                              memory_budget_bytes, model=pilot.get("model_error"))
 
     def estimate(self, plan, n_sources, size, gauss_nodes):
         from ..pixel_scale import pixel_cost
