@@ -64,7 +64,7 @@ PUPIL_DEGREE = 6
 SEARCH_RAD = 6.0
 #: the largest phase slope (rad per unit u) the sum is evaluated for (beyond it :func:`edge_wave_error` returns None and
 #: the estimate falls back to the scalar law; the sum was checked against wave truths up to ~32 rad)
-MAX_SLOPE_RAD = 180.0
+MAX_SLOPE_RAD = 250.0
 #: the pupil samples across the beam's diameter are at least this many
 MIN_SAMPLES = 48
 #: ... and the PSF's bright part: the tilts where the model's intensity is at least this share of its peak
@@ -76,6 +76,15 @@ MAX_POINTS = 128
 #: intensity, REFINE of each, are refined on it
 FINE_STEP = math.pi / 4
 REFINE = 3
+#: the rays are traced to the rim (module docstring, "Steep rims") where the quadratic profile's error, the shift's
+#: higher-order phase, could exceed this (rad)
+QUAD_PHASE_RAD = 0.02
+#: Newton steps of the traced ray's shift (from the quadratic profile's; the phase is then second order in its error)
+NEWTON_STEPS = 1
+#: the traced shift is held within this share of the beam's radius (beyond: the untraced amplitude)
+MAX_SHIFT = 0.9
+#: the traced amplitude ratio is held at most this (a ray near a caustic)
+MAX_AMPLITUDE = 3.0
 
 
 @dataclass(frozen=True)
@@ -137,6 +146,41 @@ class PupilPhase:
     def hessian(self, ux, uy):
         """``(Phi_xx, Phi_xy, Phi_yy)`` (rad per unit u^2)."""
         return tuple(self._eval(ux, uy, ((2, 0), (1, 1), (0, 2))))
+
+
+_VARIANT = 1
+_NEWTON = 2
+
+
+def _radial_profiles(phase, cx, cy):
+    """``A`` (degree + 1, nth): ``Phi(r (cx, cy)) = sum_j A[j] r^j`` along each rim node's radius."""
+    P = np.asarray(phase.powers, int).reshape(-1, 2)
+    d = max(phase.degree, 0)
+    out = np.zeros((d + 1, len(cx)))
+    for (p, q), c in zip(P, np.asarray(phase.coeffs, float)):
+        out[p + q] += c * cx ** p * cy ** q
+    return out
+
+
+def _radial_profiles(phase, cx, cy):
+    """``prof`` (degree + 1, nth): ``Phi(r (cx, cy)) = sum_j prof[j] r^j`` along each rim node's radius."""
+    d = max(phase.degree, 0)
+    P = np.asarray(phase.powers, int).reshape(-1, 2)
+    out = np.zeros((d + 1, len(cx)))
+    if not len(P):
+        return out
+    X, Y = _power_tables(np.asarray(cx, float), np.asarray(cy, float), d)
+    X, Y = np.stack(X), np.stack(Y)                                   # (d + 1, nth)
+    np.add.at(out, P.sum(1), np.asarray(phase.coeffs, float)[:, None] * X[P[:, 0]] * Y[P[:, 1]])
+    return out
+
+
+def _horner(C, r):
+    """``sum_j C[j] r^j`` (``C`` (J, nth), ``r`` (..., nth))."""
+    out = C[-1] * np.ones_like(r)
+    for cj in C[-2::-1]:
+        out = out * r + cj
+    return out
 
 
 def _power_tables(ux, uy, degree):
@@ -273,23 +317,75 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     nth = int(min(4096, 1.25 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 4 * FINE_STEP) + 32))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
-    phi, gx, gy, hxx, hxy, hyy = phase._eval(cx, cy, ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)))
-    s0 = gx * cx + gy * cy                                          # radial slope on the rim
-    c = hxx * cx * cx + 2 * hxy * cx * cy + hyy * cy * cy           # radial curvature on the rim
+    # the phase along each rim node's radius, p(r) = Phi(r n) = sum_j prof[j] r^j (exact: Phi is a polynomial), and
+    # its derivatives: on the rim (r = 1) the phase, the radial slope and the radial curvature
+    prof = _radial_profiles(phase, cx, cy)
+    dprof = np.arange(1, len(prof))[:, None] * prof[1:]
+    ddprof = np.arange(1, len(dprof))[:, None] * dprof[1:]
+    phi, s0, c = prof.sum(0), dprof.sum(0), ddprof.sum(0)
     # a rim point whose chirp focuses within the reduced distance (4 pi N_F + 2 c <= 0) is outside the one-edge
     # picture: its curvature is held at -pi N_F (the edge wave then turns by at most s^2 / (2 pi N_F))
     den = 4 * math.pi * nf + 2 * np.maximum(c, -math.pi * nf)
+    kf = 2 * math.pi * nf
+    # the truth's edge wave at a rim point n is carried by the ray that reaches n after the reduced distance, from
+    # u = (1 - eps) n with eps = (p'(1 - eps) - t.n) / (2 pi N_F) (module docstring, "Steep rims"); the tangential
+    # curvature's part d^2/dtheta^2 Phi(r n) spectrally (the profiles are trigonometric polynomials of degree <= D)
+    harm = sfft.fftfreq(nth, 1.0 / nth)
+    tang = sfft.ifft(-(harm * harm) * sfft.fft(prof, axis=1), axis=1).real
+    ctt1 = s0 + tang.sum(0)                                          # tangential curvature on the rim (no tilt)
+    amp1 = np.sqrt(np.maximum(1 + c / kf, 0.5) / np.maximum(1 + ctt1 / kf, 0.5))
+    # the quadratic profile (the rim's slope and curvature) is exact to QUAD_PHASE_RAD where the shift's higher
+    # powers, sum_(j >= 3) |p^(j)(1)| eps^j / j!, stay below it: then no ray is traced
+    tmax = float(np.max(np.hypot(tx, ty))) + 4 * FINE_STEP
+    eps_max = (float(np.max(np.abs(s0))) + tmax) / (0.5 * float(np.min(den)))
+    hi, dj, fact = 0.0, ddprof, 2.0
+    for j in range(3, len(prof)):
+        dj = np.arange(1, len(dj))[:, None] * dj[1:]
+        fact *= j
+        hi += float(np.max(np.abs(dj.sum(0)))) * eps_max ** j / fact
+    traced = hi > QUAD_PHASE_RAD
+
+    inv_den2 = 2.0 / den
+    # the quadratic profile's amplitude ratio less 1, per node (untraced)
+    beta1 = amp1 - 1.0
 
     def rim_sum(tx, ty):
         out = np.empty(len(tx), complex)
         step = max(1, 65536 // nth)
         for a in range(0, len(tx), step):
             tn = tx[a:a + step, None] * cx + ty[a:a + step, None] * cy
-            # the edge factor 2 (exp(-i psi) - 1) / (i s) = -(4 sin(psi / 2) / s) exp(-i psi / 2): one sine, one phase
             sl = s0 - tn
-            half = 0.5 * sl * sl / den
-            amp = -4.0 * np.sin(half) / np.where(sl == 0.0, 1.0, sl)
-            out[a:a + step] = np.mean(amp * np.exp(1j * (phi - tn - half)), axis=1)
+            eps = sl * inv_den2                          # the quadratic profile's shift (exact for a defocus)
+            if traced:
+                # one Newton step on eps = (p'(1 - eps) - t.n) / k, then the phase from the stationary value of
+                # L(r) = p(r) - t.n r + k (1 - r)^2 / 2 at the step (second order in its error)
+                r = 1.0 - eps
+                fp = np.maximum(_horner(ddprof, r) * (1.0 / kf) + 1.0, 0.5)
+                eps -= (eps - (_horner(dprof, r) - tn) * (1.0 / kf)) / fp
+                np.clip(eps, -MAX_SHIFT, MAX_SHIFT, out=eps)
+                r = 1.0 - eps
+                pd1 = _horner(dprof, r)
+                fp = np.maximum(_horner(ddprof, r) * (1.0 / kf) + 1.0, 0.5)
+                half = 0.5 * (phi - tn * eps - _horner(prof, r) - (0.5 * kf) * eps * eps)
+                sd = pd1 - tn                                # the ray's radial slope (rad per unit u)
+                ctt = np.maximum((pd1 + _horner(tang, r) / r) / (r * kf) + 1.0, 0.5)
+                bad = (sd == 0.0) | (np.abs(eps) >= MAX_SHIFT)
+                beta = np.minimum(sl / np.where(bad, 1.0, sd) / np.sqrt(fp * ctt), MAX_AMPLITUDE) - 1.0
+                beta[bad] = 0.0
+            else:
+                half = 0.25 * sl * eps
+                beta = beta1
+            # the amplitude's change, blended in as the edge wave's Fresnel phase grows (module docstring)
+            ps = sl * sl * (0.5 / kf)
+            beta = beta * (ps / (1.0 + ps))
+            # 2 ((1 + beta) exp(-i psi) - 1) / (i s) exp(i (Phi - t.n))
+            #   = -(2 / s) ((2 + beta) sin(psi / 2) + i beta cos(psi / 2)) exp(i (Phi - t.n - psi / 2))
+            fac = np.empty(sl.shape, complex)
+            fac.real = (2.0 + beta) * np.sin(half)
+            fac.imag = beta * np.cos(half)
+            fac *= -2.0 / np.where(sl == 0.0, 1.0, sl)
+            fac *= np.exp(1j * (phi - tn - half))
+            out[a:a + step] = np.mean(fac, axis=1)
         return out
 
     dU = rim_sum(tx, ty)

@@ -133,7 +133,7 @@ MODEL_ERROR_C = 0.25
 MODEL_ERROR_S0 = 25.0
 #: the largest rim slope (rad) at which the edge-wave estimate was checked against a wave truth (module docstring);
 #: beyond it the plan's note says so
-CHECKED_SLOPE_RAD = 35.0
+CHECKED_SLOPE_RAD = 200.0
 #: rim rays: pilot points at least this share of the footprint's largest radius from its centre
 RIM_SHARE = 0.9
 
