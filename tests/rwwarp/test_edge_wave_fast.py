@@ -71,7 +71,7 @@ def brute_force(nf, phase, n=128, search_rad=6.0, bright=0.05):
     TX, TY = np.meshgrid(t, t)
     sel = (np.hypot(TX - t[ix], TY - t[iy]) <= search_rad + 1e-9) | (I >= bright * I[iy, ix])
     tx, ty, Uk = TX[sel], TY[sel], U[sel]
-    nth = 2048
+    nth = 1024
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     gx, gy = phase.gradient(cx, cy)
@@ -93,14 +93,19 @@ COMA = PupilPhase(np.array([(1, 0), (2, 0), (0, 2), (3, 0), (1, 2), (4, 0), (2, 
                   np.array([2.0, 1.5, -2.5, 3.0, 3.0, 3.0, 6.0, 3.0]))
 
 
+# the steep ones take the traced path (the rays carried back over the reduced distance: module docstring, "Steep
+# rims"); the others the quadratic profile
 @pytest.mark.parametrize("nf,phase", [(56.8, radial_pupil_phase((0.0, 3.0))), (20.5, radial_pupil_phase((0.0, 4.0))),
-                                      (54.5, COMA), (150.0, COMA)])
+                                      (54.5, COMA), (150.0, COMA),
+                                      pytest.param(56.8, radial_pupil_phase((0.0, 10.0)), marks=pytest.mark.slow),
+                                      (54.5, PupilPhase(COMA.powers, 3.0 * COMA.coeffs))])
 def test_the_fast_evaluation_reads_the_brute_force_sum(nf, phase):
     fast, info = edge_wave_error(nf, phase)
     ref = brute_force(nf, phase)
     print(f"N_F {nf}: fast {fast:.4e} brute force {ref:.4e} ({fast / ref:.4f}), {info['samples']} samples, "
           f"{info['rim_nodes']} nodes, {info['points']} points")
-    # measured 0.9998-1.0032 (the fast path's coarser pupil sampling and the coarse-to-fine search); 3 % allowed
+    # measured 0.9985-1.003, 1.023 on 10 rho^4 (S 40, the traced path: one Newton step against the converged ray, and
+    # the fast path's coarser pupil sampling and coarse-to-fine search); 3 % allowed
     assert fast == pytest.approx(ref, rel=0.03)
 
 

@@ -15,7 +15,7 @@ from rwwarp.wave import model_error as me
 from rwwarp.wave.edge_wave import PupilPhase, edge_wave_error, fit_pupil_phase, radial_pupil_phase
 from rwwarp.lens import Lens, Sensor, Surface
 
-from _wave_truth import F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, thin_lens_doe
+from _wave_truth import F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, steep_band, steep_radii, thin_lens_doe
 from _wave_truth import pixel_truth as _pixel_truth
 
 
@@ -41,6 +41,37 @@ def test_estimate_is_within_a_factor_2_of_the_measured_model_error(a_mm, d2_mm, 
     assert 0.8 <= est / err <= 1.25, (est, err)
     # a model error well above the truth's own uncertainty (the band: 3 % of the error, module docstring)
     assert err > 1e-4
+
+
+# Steep rims (S 40 .. 200 rad; rwwarp.wave.edge_wave, "Steep rims"): the truth's band widened by the DOE's largest
+# frequency 1.5 times over and rolled off (taper 0.3: a hard cut's end-point ringing is of the order of these weak,
+# wide PSFs' errors), 4 nodes per oscillation, radii over the whole geometric spot (steep_band / steep_radii): the
+# measured error moved by < 1 % against 2.5x the extra band, 5-6 nodes and half the radial step (a 2.5, 25 rho^4,
+# 10 mm). Held out (the only choice made on truths, the amplitude's blend, was taken on a 2.5, 10 mm, rho^4 of
+# 10 / 15 / 25 / 35 rad: 1.08 / 1.00 / 0.86 / 1.02). Measured estimate / error, now (before the traced rays):
+# a 1.5, 20 mm, 25 rho^4 (N_F 54.5, S 100): 0.93 (0.39); a 1.0, 10 mm, 10 rho^4 (N_F 9.1, S 40, the ray shifted 0.7
+# of the radius): 1.25 (1.03); a 1.5, 10 mm, 25 rho^4 (N_F 20.5, S 100): 0.76 (0.62); a 2.5, 10 mm, -50 rho^2 +
+# 50 rho^4 (N_F 56.8, S 100): 0.71 (1.49); 25 rho^6 (S 150): 1.34 (2.01); a 1.5, 20 mm, 40 / 50 rho^4 (S 160 / 200):
+# 1.02 / 1.02 (1.64 / 0.74, the latter beyond the old 180 rad sampling limit); a 2.5, 10 mm, 20 rho^8 (S 160): 1.26 (12.5)
+STEEP_HELD_OUT = [(1.5, 20.0, (0.0, 25.0)), (1.0, 10.0, (0.0, 10.0)), (1.5, 10.0, (0.0, 25.0)),
+                  pytest.param(2.5, 10.0, (-50.0, 50.0), marks=pytest.mark.slow),
+                  pytest.param(2.5, 10.0, (0.0, 0.0, 25.0), marks=pytest.mark.slow),
+                  pytest.param(1.5, 20.0, (0.0, 50.0), marks=pytest.mark.slow),
+                  pytest.param(2.5, 10.0, (0.0, 0.0, 0.0, 20.0), marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("a_mm,d2_mm,coeffs", STEEP_HELD_OUT)
+def test_steep_rims_the_estimate_is_within_a_factor_2_of_the_measured_model_error(a_mm, d2_mm, coeffs):
+    rho = steep_radii(a_mm, d2_mm, coeffs)
+    err = measured_error(a_mm, d2_mm, coeffs, rho_mm=rho, band=steep_band(a_mm, d2_mm, coeffs, 1.5), taper=0.3, q=4.0)
+    nf, slope = analytic_inputs(a_mm, d2_mm, coeffs)
+    est, info = edge_wave_error(nf, radial_pupil_phase(coeffs))
+    print(f"a {a_mm} d2 {d2_mm} {coeffs}: N_F {nf:.1f} S {slope:.0f} estimate {est:.3e} measured {err:.3e} "
+          f"ratio {est / err:.2f}")
+    assert slope >= 40
+    # the claim is a factor 2; measured 0.71 .. 1.34 over these cases (comment above)
+    assert 0.5 <= est / err <= 2.0, (est, err)
+    assert 0.6 <= est / err <= 1.6, (est, err)
 
 
 def test_the_edge_wave_estimate_vanishes_without_a_phase_and_ignores_a_tilt():
