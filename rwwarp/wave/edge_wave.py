@@ -30,6 +30,47 @@ radial phase give ``E = S / (pi N_F)`` on the axis (the old ``C S / N_F``); as `
 sensor point in phase, and the max over ``t`` takes the best one; a tilt of the whole beam is a shift of ``t``
 and changes nothing. No constant is fitted.
 
+*Steep rims.* The phase ``psi`` above takes the rim's profile as quadratic over the edge wave's reach. That reach
+is a shift: by Fresnel duality the truth is ``U_true(t) = (1 / pi) int_disc P_d[exp(i (Phi - t . u))](v) d^2v`` (the
+reduced propagation moved from the disc onto the DOE's phase, ``P_d`` its kernel ``(N_F / i) exp(i pi N_F |w|^2)``),
+and by stationary phase ``P_d[exp(i Phi_t)]`` at a rim point ``n`` is carried by the ray leaving ``u = n - grad
+Phi_t(u) / k`` (``k = 2 pi N_F``), with the phase ``L = Phi_t(u) + k |n - u|^2 / 2`` (the stationary value) and the
+amplitude ``det(I + H_Phi(u) / k)^(-1/2)``. The interior's stationary points are the same rays in both fields (``grad
+Phi_t = 0``: no shift), so the difference is the rim's boundary term, the truth's ``2 A exp(i L) / (i s_ray)`` less
+the model's ``2 exp(i Phi_t(n)) / (i s)``. The shift ``|u - n| ~ s / k`` is ``S / (2 pi N_F)`` of the beam's radius:
+0.03-0.1 on the cases first checked (where the quadratic profile was exact enough), 0.3-0.8 on steep rims (S 100-200
+rad at N_F 20-57), where the quadratic profile read 0.16-0.6x the measured error (25 / 35 rho^4 at N_F 56.8) and
+2-12x (rho^6, rho^8). Here the ray is traced along the rim point's radius (``u = (1 - eps) n``: the points that
+count are where ``grad Phi_t`` is normal to the rim), on the exact radial profile ``p(r) = Phi(r n)`` (a polynomial):
+one Newton step on ``eps = (p'(1 - eps) - t . n) / k`` from the quadratic profile's root (a second changed the
+estimates by < 4 %), the phase ``psi = Phi_t(n) - L`` from the stationary value at the step (second order in its
+error; none, the phase at the quadratic root, read 0.37-7x), so that the edge factor is
+
+    2 (a exp(-i psi) - 1) / (i s),   a = 1 + (a_ray - 1) q / (1 + q),   q = s^2 / (4 pi N_F),
+
+``a_ray = (s / s_ray) ((1 + p''(r) / k) (1 + c_tt(r) / k))^(-1/2)`` the ray's amplitude against the model's (``s_ray
+= p'(r) - t . n`` its slope, ``c_tt = (p'(r) + d^2 Phi(r n) / dtheta^2 / r) / r`` the tangential curvature; each
+factor held at >= 1 / 2, ``a_ray`` at most :data:`MAX_AMPLITUDE`, 1 where the shift reaches :data:`MAX_SHIFT`). For a
+defocus ``a_ray = 1`` and ``psi`` is the quadratic one exactly. The amplitude is *blended in* with the Fresnel phase
+``q``: where ``q`` is small the amplitude's change is of the order of the boundary expansion's next term (``c / s^2``
+relative), which neither field keeps, and the old form (``a = 1``) matched the truths there (0.88-1.0); taken in full
+it read 1.3-1.6x on them; phase only (``a = 1``) read 0.34 / 0.38 / 2.3x on steep cases (N_F 20.5 S 100, ``-50 rho^2
++ 50 rho^4``, ``20 rho^8``). The blend ``q / (1 + q)`` is the one choice made on truths (a = 2.5 mm, 10 mm, ``c
+rho^4``, c = 10 .. 35); every other case is held out. Where the quadratic profile is exact to :data:`QUAD_PHASE_RAD`
+(the shift's higher powers of the profile, bounded over the observed tilts) no ray is traced and ``a_ray`` is the
+rim's own (``r = 1``).
+
+Checked (radially symmetric wave-exact truths, thin lens f = 50 mm, 0.55 um, ``tests/rwwarp/_wave_truth.py`` with the
+band widened over the DOE's frequencies and rolled off, ``steep_band``; estimate / measured, before -> now): S 40-200
+rad over N_F 9.1-530: ``c rho^4`` 0.16-1.64 -> 0.76-1.25, ``-50 rho^2 + 50 rho^4`` (S 100) 1.49 -> 0.71, ``-25 rho^2 +
+25 rho^4`` (S 50) 0.71 -> 0.76, ``10 / 25 rho^6`` (S 60 / 150) 1.87 / 2.01 -> 1.68 / 1.34, ``-30 rho^2 + 30 rho^6`` (S
+120) 0.73 -> 1.54, ``20 rho^8`` (S 160) 12.5 -> 1.26, defocus 25 / 50 rho^2 0.99 / 0.98 (unchanged); below 35 rad
+(the first cases) 0.88-1.0 -> 0.96-1.32 (N_F >= 50: 0.96-1.03; N_F 20.5 / 9.1, where the ray shifts 0.09 / 0.21 of
+the radius: 1.12 / 1.32). Off the DOE's axis with steep rims it is checked only against the brute-force sum of the
+same equations (``tests/rwwarp/test_edge_wave_fast.py``); the A489's beams 5-10 deg off axis (36-135 rad, coma and
+astigmatism about the beam's centre) are not checked against a wave truth. The radial ray is exact for a radial
+phase; off axis the rays' tangential shift is left out.
+
 ``U`` is one zero-padded FFT of ``exp(i Phi)`` sampled on the disc (the cells on the rim weighted by their
 share inside it; the samples' period in tilt, ``pi n``, at least ``2.5 max|grad Phi| + 40`` rad, so the sampled
 pupil's aliases fall outside the observed tilts), read on the tilt step ``pi / 2``. ``dU`` is summed on the rim
@@ -41,12 +82,11 @@ points of the largest change and of the largest truth intensity (``U`` there sum
 the tests' cases this reads the same as the full ``pi / 4`` grid (to 1.3 %). Phases in rad, lengths over the beam's
 radius (dimensionless).
 
-Cost (numpy, a shared 2-core host): ~2 ms a phase of rim slopes up to ~30 rad, ~5-25 ms at 50-135 rad (the A489's
-beams off axis): the rim sum's points times nodes grows as the slope cubed. The fit, ~0.6 ms
-(:func:`fit_pupil_phase`: the normal equations, no tall LAPACK solve). Where the bright part is wide (slopes beyond
-the checked ~35 rad) the estimate depends on which of its points are observed: on the A489 beams 5-10 deg off axis,
-observing all of the bright part read up to 2-4.5x the values of the first version (d8e73cb: the 1024 brightest
-points on the pi / 4 grid), which this version reads 0.57-2.5x; the plan's note flags those slopes.
+Cost (numpy, a shared 2-core host; CPU time): COST_PLACEHOLDER The fit, ~0.6 ms (:func:`fit_pupil_phase`: the
+normal equations, no tall LAPACK solve). Where the bright part is wide the estimate depends on which of its points are
+observed: on the A489 beams 5-10 deg off axis, observing all of the bright part read up to 2-4.5x the values of the
+first version (d8e73cb: the 1024 brightest points on the pi / 4 grid), which the point selection used here reads
+0.57-2.5x (before the traced rays); the plan's note flags slopes beyond :data:`rwwarp.wave.model_error.CHECKED_SLOPE_RAD`.
 """
 from __future__ import annotations
 
@@ -63,7 +103,7 @@ PUPIL_DEGREE = 6
 #: model PSF's peak (1.6 Airy radii: the first zero of the Airy pattern is at |t| = 3.83)
 SEARCH_RAD = 6.0
 #: the largest phase slope (rad per unit u) the sum is evaluated for (beyond it :func:`edge_wave_error` returns None and
-#: the estimate falls back to the scalar law; the sum was checked against wave truths up to ~32 rad)
+#: the estimate falls back to the scalar law; the sum was checked against radial wave truths up to 200 rad)
 MAX_SLOPE_RAD = 250.0
 #: the pupil samples across the beam's diameter are at least this many
 MIN_SAMPLES = 48
@@ -78,9 +118,12 @@ FINE_STEP = math.pi / 4
 REFINE = 3
 #: the rays are traced to the rim (module docstring, "Steep rims") where the quadratic profile's error, the shift's
 #: higher-order phase, could exceed this (rad)
-QUAD_PHASE_RAD = 0.02
+QUAD_PHASE_RAD = 0.1
 #: Newton steps of the traced ray's shift (from the quadratic profile's; the phase is then second order in its error)
 NEWTON_STEPS = 1
+#: the traced terms are tabulated per rim node on the tilts' projections t . n this far apart (rad per unit u) and read
+#: linearly
+TAU_STEP = 4.0
 #: the traced shift is held within this share of the beam's radius (beyond: the untraced amplitude)
 MAX_SHIFT = 0.9
 #: the traced amplitude ratio is held at most this (a ray near a caustic)
@@ -349,42 +392,73 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     # the quadratic profile's amplitude ratio less 1, per node (untraced)
     beta1 = amp1 - 1.0
 
+    def traced_terms(tn):
+        """(psi - the quadratic profile's psi, the ray's amplitude ratio less 1) at the tilts' projections ``tn``
+        (..., nth): one Newton step on eps = (p'(1 - eps) - t.n) / k from the quadratic root, the phase from the
+        stationary value of L(r) = p(r) - t.n r + k (1 - r)^2 / 2 there (second order in the step's error)."""
+        sl = s0 - tn
+        eps0 = sl * inv_den2
+        r = 1.0 - eps0
+        fp = np.maximum(_horner(ddprof, r) * (1.0 / kf) + 1.0, 0.5)
+        eps = eps0 - (eps0 - (_horner(dprof, r) - tn) * (1.0 / kf)) / fp
+        np.clip(eps, -MAX_SHIFT, MAX_SHIFT, out=eps)
+        r = 1.0 - eps
+        pd1 = _horner(dprof, r)
+        fp = np.maximum(_horner(ddprof, r) * (1.0 / kf) + 1.0, 0.5)
+        dpsi = phi - tn * eps - _horner(prof, r) - (0.5 * kf) * eps * eps - 0.5 * sl * eps0
+        sd = pd1 - tn                                    # the ray's radial slope (rad per unit u)
+        ctt = np.maximum((pd1 + _horner(tang, r) / r) / (r * kf) + 1.0, 0.5)
+        bad = (sd == 0.0) | (np.abs(eps) >= MAX_SHIFT)
+        beta = np.minimum(sl / np.where(bad, 1.0, sd) / np.sqrt(fp * ctt), MAX_AMPLITUDE) - 1.0
+        beta[bad] = 0.0
+        return dpsi, beta
+
+    if traced:
+        # tabulated per node on the projections t.n of every tilt the search can reach (the coarse points' and
+        # the refinement's rings), TAU_STEP apart, and read linearly: both are smooth in t.n (no oscillation)
+        tau_max = tmax + 6 * FINE_STEP
+        ntau = max(9, int(math.ceil(2 * tau_max / TAU_STEP)) + 1)
+        dtau = 2 * tau_max / (ntau - 1)
+        taus = -tau_max + dtau * np.arange(ntau)
+        tab_psi, tab_beta = (np.ascontiguousarray(v.T).ravel() for v in traced_terms(taus[:, None] + 0.0 * s0))
+        base = np.arange(nth) * ntau
+
+    eiphi = np.exp(1j * phi)
+
     def rim_sum(tx, ty):
+        # exp(i (Phi(n) - t.n)) = exp(i Phi) exp(-i t_x n_x) exp(-i t_y n_y): the tilts lie on a lattice, so the
+        # factors are rows of two small tables (one complex exponential per element is saved)
+        ux, jx = np.unique(tx, return_inverse=True)
+        uy, jy = np.unique(ty, return_inverse=True)
+        ex = np.exp(-1j * ux[:, None] * cx) * eiphi
+        ey = np.exp(-1j * uy[:, None] * cy)
         out = np.empty(len(tx), complex)
         step = max(1, 65536 // nth)
         for a in range(0, len(tx), step):
             tn = tx[a:a + step, None] * cx + ty[a:a + step, None] * cy
             sl = s0 - tn
-            eps = sl * inv_den2                          # the quadratic profile's shift (exact for a defocus)
+            psi = (0.5 * inv_den2) * sl * sl             # the quadratic profile's psi (exact for a defocus)
             if traced:
-                # one Newton step on eps = (p'(1 - eps) - t.n) / k, then the phase from the stationary value of
-                # L(r) = p(r) - t.n r + k (1 - r)^2 / 2 at the step (second order in its error)
-                r = 1.0 - eps
-                fp = np.maximum(_horner(ddprof, r) * (1.0 / kf) + 1.0, 0.5)
-                eps -= (eps - (_horner(dprof, r) - tn) * (1.0 / kf)) / fp
-                np.clip(eps, -MAX_SHIFT, MAX_SHIFT, out=eps)
-                r = 1.0 - eps
-                pd1 = _horner(dprof, r)
-                fp = np.maximum(_horner(ddprof, r) * (1.0 / kf) + 1.0, 0.5)
-                half = 0.5 * (phi - tn * eps - _horner(prof, r) - (0.5 * kf) * eps * eps)
-                sd = pd1 - tn                                # the ray's radial slope (rad per unit u)
-                ctt = np.maximum((pd1 + _horner(tang, r) / r) / (r * kf) + 1.0, 0.5)
-                bad = (sd == 0.0) | (np.abs(eps) >= MAX_SHIFT)
-                beta = np.minimum(sl / np.where(bad, 1.0, sd) / np.sqrt(fp * ctt), MAX_AMPLITUDE) - 1.0
-                beta[bad] = 0.0
+                u = (tn + tau_max) * (1.0 / dtau)
+                i = np.minimum(u.astype(np.intp), ntau - 2)
+                f = u - i
+                i += base
+                p0, b0 = tab_psi[i], tab_beta[i]
+                i += 1
+                psi += p0 + f * (tab_psi[i] - p0)
+                beta = b0 + f * (tab_beta[i] - b0)
             else:
-                half = 0.25 * sl * eps
                 beta = beta1
             # the amplitude's change, blended in as the edge wave's Fresnel phase grows (module docstring)
             ps = sl * sl * (0.5 / kf)
-            beta = beta * (ps / (1.0 + ps))
+            beta = beta * (ps / (1.0 + ps)) + 1.0
             # 2 ((1 + beta) exp(-i psi) - 1) / (i s) exp(i (Phi - t.n))
-            #   = -(2 / s) ((2 + beta) sin(psi / 2) + i beta cos(psi / 2)) exp(i (Phi - t.n - psi / 2))
-            fac = np.empty(sl.shape, complex)
-            fac.real = (2.0 + beta) * np.sin(half)
-            fac.imag = beta * np.cos(half)
-            fac *= -2.0 / np.where(sl == 0.0, 1.0, sl)
-            fac *= np.exp(1j * (phi - tn - half))
+            fac = np.exp(-1j * psi)
+            fac *= beta
+            fac -= 1.0
+            fac *= -2j / np.where(sl == 0.0, 1.0, sl)
+            fac *= ex[jx[a:a + step]]
+            fac *= ey[jy[a:a + step]]
             out[a:a + step] = np.mean(fac, axis=1)
         return out
 
@@ -428,5 +502,5 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     ipk = float(max(float(I[k]) * (h * h / math.pi) ** 2, np.max(np.abs(Uall) ** 2)))
     psi = (s0 - t[ix] * cx - t[iy] * cy) ** 2 / den
     info = {"peak_tilt": (float(t[ix]), float(t[iy])), "strehl": ipk, "strehl_true": itrue,
-            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(dI)}
+            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(dI), "traced": bool(traced)}
     return (float(dI.max() / itrue) if itrue > 0 else 0.0), info
