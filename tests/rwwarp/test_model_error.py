@@ -335,6 +335,57 @@ def test_off_axis_the_estimate_against_a_2d_truth(field_deg):
     assert 0.5 <= got["estimate"] / err <= 2.0, (got["estimate"], err)
 
 
+def truth_2d_on_grid(a_mm, d2_mm, coeffs, field_deg, half_mm, h=3e-3, npad=2048):
+    """:func:`truth_2d`'s two fields (the same equations: the stop's disc, the exact angular spectrum over z1, the
+    radial DOE, over d2), read on the grid's own samples (one inverse FFT, no pixel integration) within ``half_mm`` of
+    the chief ray's landing point: ``(truth, model)`` irradiance (the same arbitrary unit)."""
+    k = 2 * np.pi / LAM_MM
+    z1, rb = F_MM - d2_mm, a_mm * d2_mm / F_MM
+    x = (np.arange(npad) - npad // 2) * h
+    X, Y = np.meshgrid(x, x, indexing="xy")
+    yT = F_MM * np.tan(np.radians(field_deg))
+    nu = np.fft.fftfreq(npad, h)
+    NX, NY = np.meshgrid(nu, nu, indexing="xy")
+    w = np.sqrt(np.maximum(1 / LAM_MM ** 2 - NX ** 2 - NY ** 2, 0.0))
+    u0 = _disc_2d(X, Y, 0.0, 0.0, a_mm, h) * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + F_MM ** 2))
+    fields = [np.fft.ifft2(np.fft.fft2(u0) * np.exp(2j * np.pi * z1 * w)),
+              _disc_2d(X, Y, 0.0, yT * z1 / F_MM, rb, h) * (F_MM / d2_mm)
+              * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + d2_mm ** 2))]
+    del u0
+    W = sum(c * (np.hypot(X, Y) / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
+    rows = np.abs(x - yT) <= half_mm
+    cols = np.abs(x) <= half_mm
+    out = []
+    for u1 in fields:
+        U = np.fft.ifft2(np.fft.fft2(u1 * np.exp(1j * W)) * np.exp(2j * np.pi * d2_mm * w))
+        out.append(np.abs(U[np.ix_(rows, cols)]) ** 2)
+    return tuple(out)
+
+
+@pytest.mark.parametrize("coeffs", [(0.0, 10.0), (0.0, 25.0)])
+def test_steep_rims_off_axis_the_estimate_against_a_2d_truth(coeffs):
+    # a = 1.5 mm, DOE c rho^4 20 mm before the sensor (N_F 54.5), 0.5 deg: the beam 0.44 of its radius off the DOE's
+    # centre, so its phase about its own centre has coma and astigmatism (the geometry of the A489's beams off axis),
+    # and steep: the pilot's RMS rim slope 59 / 147 rad (10 / 25 rho^4). The model error measured on the 2-D truth
+    # against the 2-D geometric model on the grid's 3 um samples over the whole spot: 4.27e-2 / 5.78e-2 (with
+    # truth_2d's 4 um pixels 3.86e-2 / 5.60e-2; 5.60e-2 again at h = 2 um, 3072 samples). The estimate: 4.12e-2 /
+    # 5.53e-2, 0.96x / 0.96x (1.07x / 0.99x of the pixel figures); before the traced rays 0.92x / the scalar law's
+    # ~420x (the phase was beyond the old 180 rad sampling limit)
+    lens = thin_lens_doe(20.0, 1.5, coeffs, pixel=4e-3, doe_share=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = rw.plan_psf(lens, 0.5, 0.55, size=32, method="asm").model_error
+    assert got["rim_slope_rad"] > 40
+    rb = 1.5 * 20.0 / F_MM
+    spot = 1.3 * LAM_MM * 20.0 * 4 * coeffs[1] / (2 * np.pi * rb) + 0.03
+    T, M = truth_2d_on_grid(1.5, 20.0, coeffs, 0.5, spot)
+    err = float(np.max(np.abs(M - T)) / T.max())
+    print(f"{coeffs}: measured {err:.3e}, estimate {got['estimate']:.3e} ({got['estimate'] / err:.2f}x), "
+          f"rim slope {got['rim_slope_rad']:.0f} rad")
+    # the claim: a factor 2 (measured 0.96x, 0.96x)
+    assert 0.5 <= got["estimate"] / err <= 2.0, (got["estimate"], err)
+
+
 def test_a_perfect_singlet_reads_no_rim_slope():
     # a flat-convex singlet whose last surface is the hyperboloid (conic -n^2) that focuses a plane wave from the
     # glass perfectly: the wavefront after it is the sphere to the focus, so S ~ 0 (the field is formed on the
