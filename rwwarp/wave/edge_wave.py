@@ -66,10 +66,12 @@ rad over N_F 9.1-530: ``c rho^4`` 0.16-1.64 -> 0.76-1.25, ``-50 rho^2 + 50 rho^4
 25 rho^4`` (S 50) 0.71 -> 0.76, ``10 / 25 rho^6`` (S 60 / 150) 1.87 / 2.01 -> 1.68 / 1.34, ``-30 rho^2 + 30 rho^6`` (S
 120) 0.73 -> 1.54, ``20 rho^8`` (S 160) 12.5 -> 1.26, defocus 25 / 50 rho^2 0.99 / 0.98 (unchanged); below 35 rad
 (the first cases) 0.88-1.0 -> 0.96-1.32 (N_F >= 50: 0.96-1.03; N_F 20.5 / 9.1, where the ray shifts 0.09 / 0.21 of
-the radius: 1.12 / 1.32). Off the DOE's axis with steep rims it is checked only against the brute-force sum of the
-same equations (``tests/rwwarp/test_edge_wave_fast.py``); the A489's beams 5-10 deg off axis (36-135 rad, coma and
-astigmatism about the beam's centre) are not checked against a wave truth. The radial ray is exact for a radial
-phase; off axis the rays' tangential shift is left out.
+the radius: 1.12 / 1.32). Off the DOE's axis (the 2-D truth, a = 1.5 mm, 20 mm, 0.5 deg: the beam 0.44 of its
+radius off the DOE's centre, so coma and astigmatism about its own; ``tests/rwwarp/test_model_error.py``): 10 / 25
+rho^4, the pilot's RMS rim slope 59 / 147 rad, 0.96 / 0.96 (before: 0.92 / the scalar law's ~420x, the phase beyond
+the old sampling limit). One off-axis geometry only: the A489's beams 5-10 deg off axis (S up to ~56 rad on the
+designed DOE, N_F 100-145, where the traced rays change nothing: the shift is < 0.1) are not themselves checked
+against a wave truth. The radial ray is exact for a radial phase; off axis the rays' tangential shift is left out.
 
 ``U`` is one zero-padded FFT of ``exp(i Phi)`` sampled on the disc (the cells on the rim weighted by their
 share inside it; the samples' period in tilt, ``pi n``, at least ``2.5 max|grad Phi| + 40`` rad, so the sampled
@@ -88,11 +90,12 @@ and 2.4-5.1 ms (2.5-5.4) at 140 rad (traced, 25 / 35 rho^4 at N_F 57), 6.3-6.8 m
 noise on this host ~ +-20 %); the planner's whole estimate per source on the A489 (21 sources, 0-10 deg, three
 wavelengths, all on the quadratic path) 3.5-3.7 ms (3.4-3.7). The traced terms cost a table per rim node (its
 projections t . n every :data:`TAU_STEP`, ~80 array operations an entry), read linearly per point and node; the rim
-sum runs in float32 real arithmetic (half the float64 complex sum's time), which pays for them. The fit, ~0.6 ms (:func:`fit_pupil_phase`: the
-normal equations, no tall LAPACK solve). Where the bright part is wide the estimate depends on which of its points are
+sum runs in float32 real arithmetic (half the float64 complex sum's time), which pays for them. The fit, ~0.6 ms
+(:func:`fit_pupil_phase`: the normal equations, no tall LAPACK solve). Where the bright part is wide the estimate depends on which of its points are
 observed: on the A489 beams 5-10 deg off axis, observing all of the bright part read up to 2-4.5x the values of the
 first version (d8e73cb: the 1024 brightest points on the pi / 4 grid), which the point selection used here reads
-0.57-2.5x (before the traced rays); the plan's note flags slopes beyond :data:`rwwarp.wave.model_error.CHECKED_SLOPE_RAD`.
+0.57-2.5x (before the traced rays); the plan's note flags slopes beyond
+:data:`rwwarp.wave.model_error.CHECKED_SLOPE_RAD` (off the axis :data:`~rwwarp.wave.model_error.CHECKED_OFF_AXIS_SLOPE_RAD`).
 """
 from __future__ import annotations
 
@@ -299,7 +302,8 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     Fresnel number ``N_F`` of the rim over the reduced distance (module docstring). Returns ``(E, info)``,
     ``info`` a dict: ``peak_tilt`` (rad per unit u, where ``|U|`` peaks), ``strehl`` / ``strehl_true`` (``max |U|^2`` /
     ``max |U + dU|^2``, over the unaberrated peak), ``max_psi_rad`` (the largest Fresnel phase of the rim's edge wave
-    at the peak), ``samples`` (across the beam), ``rim_nodes``, ``points`` (observation points); ``(None, info)``
+    at the peak, on the quadratic profile), ``samples`` (across the beam), ``rim_nodes``, ``points`` (observation
+    points), ``traced`` (whether the rays were traced back to the rim: module docstring, "Steep rims"); ``(None, info)``
     where the phase's largest slope exceeds :data:`MAX_SLOPE_RAD`. 0 for ``N_F = inf``. Cost: module docstring."""
     nf = float(fresnel_number_)
     if not nf > 0:
@@ -512,5 +516,6 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     ipk = float(max(float(I[k]) * (h * h / math.pi) ** 2, np.max(np.abs(Uall) ** 2)))
     psi = (s0 - t[ix] * cx - t[iy] * cy) ** 2 / den
     info = {"peak_tilt": (float(t[ix]), float(t[iy])), "strehl": ipk, "strehl_true": itrue,
-            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(dI), "traced": bool(traced)}
+            "max_psi_rad": float(np.max(np.abs(psi))), "samples": n, "rim_nodes": nth, "points": len(dI),
+            "traced": bool(traced)}
     return (float(dI.max() / itrue) if itrue > 0 else 0.0), info

@@ -68,7 +68,8 @@ def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0, alpha=None, sensor_mm=None,
     design wavelength's phase, the transmission ``exp(1j alpha (phi0 mod 2 pi))``, every diffraction order.
     ``band`` (cycles/mm, None: ``2 NA / lambda``): the angular spectrum's band, for a DOE whose slope takes the light
     beyond it (:func:`steep_band`); ``taper`` (0: a hard cut): the spectrum rolled off as ``cos^2`` over this share of
-    the band at its top (the cut's end-point ringing on a steep DOE's weak, wide PSF, else of the order of its error)."""
+    the band at its top (the cut's end-point ringing on a steep DOE's weak, wide PSF is else of the order of its
+    error)."""
     k = 2 * np.pi / LAM_MM
     z1, s = F_MM - d2_mm, d2_mm / F_MM
     na = a_mm / np.hypot(a_mm, F_MM)

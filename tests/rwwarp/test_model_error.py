@@ -15,7 +15,8 @@ from rwwarp.wave import model_error as me
 from rwwarp.wave.edge_wave import PupilPhase, edge_wave_error, fit_pupil_phase, radial_pupil_phase
 from rwwarp.lens import Lens, Sensor, Surface
 
-from _wave_truth import F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, steep_band, steep_radii, thin_lens_doe
+from _wave_truth import (F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, steep_band, steep_radii,
+                         thin_lens_doe)
 from _wave_truth import pixel_truth as _pixel_truth
 
 
@@ -55,7 +56,8 @@ def test_estimate_is_within_a_factor_2_of_the_measured_model_error(a_mm, d2_mm, 
 # a 1.5, 20 mm, 25 rho^4 (N_F 54.5, S 100): 0.93 (0.39); a 1.0, 10 mm, 10 rho^4 (N_F 9.1, S 40, the ray shifted 0.7
 # of the radius): 1.25 (1.03); a 1.5, 10 mm, 25 rho^4 (N_F 20.5, S 100): 0.76 (0.62); a 2.5, 10 mm, -50 rho^2 +
 # 50 rho^4 (N_F 56.8, S 100): 0.71 (1.49); 25 rho^6 (S 150): 1.34 (2.01); a 1.5, 20 mm, 40 / 50 rho^4 (S 160 / 200):
-# 1.02 / 1.02 (1.64 / 0.74, the latter beyond the old 180 rad sampling limit); a 2.5, 10 mm, 20 rho^8 (S 160): 1.26 (12.5)
+# 1.02 / 1.02 (1.64 / 0.74, the latter beyond the old 180 rad sampling limit); a 2.5, 10 mm, 20 rho^8 (S 160): 1.26
+# (12.5)
 STEEP_HELD_OUT = [(1.5, 20.0, (0.0, 25.0)), (1.0, 10.0, (0.0, 10.0)), (1.5, 10.0, (0.0, 25.0)),
                   pytest.param(2.5, 10.0, (-50.0, 50.0), marks=pytest.mark.slow),
                   pytest.param(2.5, 10.0, (0.0, 0.0, 25.0), marks=pytest.mark.slow),
