@@ -7,7 +7,7 @@ the radii of the whole geometric spot; the band widened over the DOE's frequenci
 top 30 %, 4 nodes per oscillation: ``steep_band``, ``steep_radii``), the estimate
 (:func:`rwwarp.wave.edge_wave.edge_wave_error` on the analytic pupil phase and N_F), their ratio, the rim slope S and
 the edge wave's shift ``S / (2 pi N_F)`` (of the beam's radius), whether the rays were traced, and the estimate's CPU
-time. Writes perf/results/model_error_steep.json. CPU; about 5 minutes on a shared 2-core host.
+time. Writes perf/results/model_error_steep.json. CPU; about 7 minutes on a shared 2-core host.
 Usage: python perf/model_error_steep.py [--quick]  (--quick: the a <= 1.5 mm cases only)
 """
 from __future__ import annotations
@@ -28,14 +28,15 @@ from rwwarp.wave.edge_wave import edge_wave_error, radial_pupil_phase   # noqa: 
 from _common import save                                                # noqa: E402
 from _wave_truth import analytic_inputs, measured_error, steep_band, steep_radii   # noqa: E402
 
-#: (a mm, d2 mm, DOE coefficients rad): rho^4 series over N_F 9-530, balanced, rho^6, rho^8, defocus
+#: (a mm, d2 mm, DOE coefficients rad): rho^4 series over N_F 9-530, balanced, rho^6, rho^8, defocus; S 300
 CASES = [(2.5, 10.0, (0.0, 10.0)), (2.5, 10.0, (0.0, 15.0)), (2.5, 10.0, (0.0, 25.0)), (2.5, 10.0, (0.0, 35.0)),
          (2.5, 10.0, (0.0, 50.0)), (1.5, 20.0, (0.0, 10.0)), (1.5, 20.0, (0.0, 25.0)), (1.5, 20.0, (0.0, 40.0)),
          (1.5, 20.0, (0.0, 50.0)), (2.5, 20.0, (0.0, 25.0)), (2.5, 20.0, (0.0, 50.0)), (2.5, 35.0, (0.0, 50.0)),
          (1.5, 10.0, (0.0, 10.0)), (1.5, 10.0, (0.0, 25.0)), (1.0, 10.0, (0.0, 10.0)), (2.5, 10.0, (-25.0, 25.0)),
          (2.5, 10.0, (-50.0, 50.0)), (2.5, 10.0, (0.0, 0.0, 10.0)), (2.5, 10.0, (0.0, 0.0, 25.0)),
          (2.5, 10.0, (-30.0, 0.0, 30.0)), (2.5, 10.0, (20.0, 10.0)), (2.5, 10.0, (50.0,)),
-         (2.5, 10.0, (0.0, 0.0, 0.0, 20.0))]
+         (2.5, 10.0, (0.0, 0.0, 0.0, 20.0)), (2.5, 35.0, (0.0, 75.0)), (2.5, 20.0, (0.0, 75.0)),
+         (1.5, 20.0, (0.0, 75.0)), (2.5, 10.0, (0.0, 0.0, 50.0))]
 
 
 def main():

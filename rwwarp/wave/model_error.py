@@ -54,13 +54,14 @@ beam's own centre has coma and astigmatism; the rim phase ``Phi(n(theta))`` then
 edge waves reach no sensor point in phase, and the radial slope's RMS (the law's ``S``) overstates them: a = 1.5
 mm, 20 mm (N_F 54.5), 0.5 deg (the beam 0.44 of its radius off the DOE's centre), the law 4.0x, the sum 1.00x (the
 beam's own tilt is a shift of ``t``: it moves the spot and changes nothing). (c) Steep rims: the edge wave's reach
-is a shift of ``S / (2 pi N_F)`` of the beam's radius (0.3-0.8 at S 100-200 rad, N_F 20-57), over which the rim's
+is a shift of ``S / (2 pi N_F)`` of the beam's radius (0.3-0.9 at S 100-300 rad, N_F 20-57), over which the rim's
 profile is no longer quadratic; the sum carries each rim point's edge wave by the ray traced back over the reduced
 distance (:mod:`rwwarp.wave.edge_wave`, "Steep rims"), which the first sum, on the quadratic profile, left out (it read
 0.16-0.6x on ``c rho^4`` at N_F 55-57, S 100-140 rad, and 2-12x on ``rho^6`` / ``rho^8``). The law remains the
-fallback for a phase too steep for the sum's sampling (slopes beyond :data:`rwwarp.wave.edge_wave.MAX_SLOPE_RAD`, 250
+fallback for a phase too steep for the sum's sampling (slopes beyond :data:`rwwarp.wave.edge_wave.MAX_SLOPE_RAD`, 400
 rad: the estimate's note says so) and the ``S`` in the plan's line. The sum was checked on radial wave truths up to
-rim slopes of 200 rad (:data:`CHECKED_SLOPE_RAD`; beyond it the note says so) and off the axis up to 23 rad (below).
+rim slopes of 300 rad (:data:`CHECKED_SLOPE_RAD`; beyond it the note says so) and off the axis up to the pilot's RMS
+rim slope of 206 rad at 0.5 deg (:data:`CHECKED_OFF_AXIS_SLOPE_RAD`; below).
 The A489's beams 5-10 deg off axis (36-135 rad, coma and astigmatism about the beam's centre) lie inside the checked
 slopes but not in a checked geometry (off axis, steep): there the sum is checked only against the brute-force
 evaluation of its own equations; docs/propagation.md's comparison with the one-step vs wave-path difference (0.09-0.4x,
@@ -95,6 +96,9 @@ steep (truth with the widened band):
 2.5, 10, 25 rho^6                        56.8     150    6.37e-2   -                2.01         1.34
 1.5, 20, 50 rho^4                        54.5     200    0.234     (2.5e2)          (the law)    1.02
 2.5, 10, 20 rho^8                        56.8     160    8.40e-3   -                12.5         1.26
+1.5, 20, 75 rho^4                        54.5     300    0.247     -                (the law)    1.07
+1.5, 20, 25 rho^4, 0.5 deg (2-D)         54.5     147    5.78e-2   -                (the law)    0.96
+1.5, 20, 35 rho^4, 0.5 deg (2-D)         54.5     206    6.85e-2   -                (the law)    0.96
 =======================================  =======  =====  ========  ===============  ===========  =========
 
 (``S``: the analytic rim slope on the axis, the pilot's RMS rim slope off axis. The 2-D truth's own error is
@@ -148,10 +152,10 @@ MODEL_ERROR_C = 0.25
 MODEL_ERROR_S0 = 25.0
 #: the largest rim slope (rad) at which the edge-wave estimate was checked against a wave truth (radial truths, module
 #: docstring and :mod:`rwwarp.wave.edge_wave`, "Steep rims"); beyond it the plan's note says so
-CHECKED_SLOPE_RAD = 200.0
+CHECKED_SLOPE_RAD = 300.0
 #: ... and off the DOE's axis (a decentred DOE's coma and astigmatism about the beam's centre: the 2-D truth at 0.5 deg,
-#: the pilot's RMS rim slope up to 147 rad); a beam off the axis beyond it gets the note too
-CHECKED_OFF_AXIS_SLOPE_RAD = 150.0
+#: the pilot's RMS rim slope up to 206 rad); a beam off the axis beyond it gets the note too
+CHECKED_OFF_AXIS_SLOPE_RAD = 200.0
 #: rim rays: pilot points at least this share of the footprint's largest radius from its centre
 RIM_SHARE = 0.9
 
