@@ -86,18 +86,20 @@ points of the largest change and of the largest truth intensity (``U`` there sum
 the tests' cases this reads the same as the full ``pi / 4`` grid (to 1.3 %). Phases in rad, lengths over the beam's
 radius (dimensionless).
 
-Cost (numpy, a shared 2-core host, CPU time, min of 7; the first sum on the quadratic profile in brackets): 1.0-1.7
-ms (1.1-1.8) a phase of rim slopes up to ~40 rad (radial, coma; the quadratic path), 2.2-3.1 ms (2.0-3.4) at 100 rad
-and 2.4-5.1 ms (2.5-5.4) at 140 rad (traced, 25 / 35 rho^4 at N_F 57), 6.3-6.8 ms (5.7-7.0) for a wide coma (timing
-noise on this host ~ +-20 %); the planner's whole estimate per source on the A489 (21 sources, 0-10 deg, three
-wavelengths, all on the quadratic path) 3.5-3.7 ms (3.4-3.7). The traced terms cost a table per rim node (its
-projections t . n every :data:`TAU_STEP`, ~80 array operations an entry), read linearly per point and node; the rim
-sum runs in float32 real arithmetic (half the float64 complex sum's time), which pays for them. The fit, ~0.6 ms
-(:func:`fit_pupil_phase`: the normal equations, no tall LAPACK solve). Where the bright part is wide the estimate depends on which of its points are
+Cost (numpy, a shared 2-core host at load ~2.5, CPU time, min of 7; the first sum on the quadratic profile in
+brackets): 1.0-1.1 ms (1.0-1.1) a phase of rim slopes up to ~40 rad (radial, coma; the quadratic path); traced: 2.0
+ms (2.0) at 100 rad and 2.3 ms (2.5) at 140 rad (25 / 35 rho^4 at N_F 57), 2.4 ms (1.8) and 5.2 ms (4.4) for 3x / 6x
+the tests' coma at N_F 54.5; 16-40 ms at 300 rad (before: beyond the sampling limit, the scalar law). The planner's
+whole estimate per source on the A489 (21 sources, 0-10 deg, three wavelengths, all on the quadratic path): 2.4-2.5
+ms (2.6-3.0). The traced terms cost a table per rim node (its projections t . n every :data:`TAU_STEP`, ~80 array
+operations an entry), read linearly per point and node; the rim sum runs in float32 real arithmetic (half the
+float64 complex sum's time), which pays for most of them. The fit, ~0.6 ms (:func:`fit_pupil_phase`: the normal
+equations, no tall LAPACK solve). Where the bright part is wide the estimate depends on which of its points are
 observed: on the A489 beams 5-10 deg off axis, observing all of the bright part read up to 2-4.5x the values of the
 first version (d8e73cb: the 1024 brightest points on the pi / 4 grid), which the point selection used here reads
 0.57-2.5x (before the traced rays); the plan's note flags slopes beyond
-:data:`rwwarp.wave.model_error.CHECKED_SLOPE_RAD` (off the axis :data:`~rwwarp.wave.model_error.CHECKED_OFF_AXIS_SLOPE_RAD`).
+:data:`rwwarp.wave.model_error.CHECKED_SLOPE_RAD` (off the axis
+:data:`~rwwarp.wave.model_error.CHECKED_OFF_AXIS_SLOPE_RAD`).
 """
 from __future__ import annotations
 
