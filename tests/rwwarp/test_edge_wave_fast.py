@@ -2,7 +2,8 @@
 around its maxima, a few hundred observation points, rim nodes from the integrand's bandwidth) against a brute-force
 evaluation of the same equations written here (module docstring of rwwarp.wave.edge_wave): U on the whole pi / 4
 tilt grid by a dense zero-padded FFT on a finer pupil grid, dU on every near or bright point with 1024 rim nodes (5-20x
-the fast path's), the steep rim's rays traced to convergence with the phase's own 2-D derivatives; and the planner's memo of the estimate (rwwarp.wave.model_error.estimate_for_raywave)."""
+the fast path's), the steep rim's rays traced to convergence with the phase's own 2-D derivatives; and the planner's
+memo of the estimate (rwwarp.wave.model_error.estimate_for_raywave)."""
 from __future__ import annotations
 
 import math
