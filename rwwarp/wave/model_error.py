@@ -53,37 +53,56 @@ high at N_F 20.5, S 12 and 4.3x at N_F 9.1; the sum 0.92x / 0.90x. (b) Off axis 
 beam's own centre has coma and astigmatism; the rim phase ``Phi(n(theta))`` then varies around the rim, the rim's
 edge waves reach no sensor point in phase, and the radial slope's RMS (the law's ``S``) overstates them: a = 1.5
 mm, 20 mm (N_F 54.5), 0.5 deg (the beam 0.44 of its radius off the DOE's centre), the law 4.0x, the sum 1.00x (the
-beam's own tilt is a shift of ``t``: it moves the spot and changes nothing). The law remains the fallback for a
-phase too steep for the sum's sampling (slopes beyond ~180 rad: the estimate's note says so) and the ``S`` in
-the plan's line. The sum was checked up to rim slopes of 32 rad (below); beyond :data:`CHECKED_SLOPE_RAD` the
-note says so (the A489's beams 5-10 deg off axis reach 36-103 rad; there the sum reads 0.09-0.4x the one-step vs
-wave-path difference, which is no reference either: docs/propagation.md; those figures are the first evaluation's,
-d8e73cb, and the present one reads 0.57-2.5x its values on such beams, :mod:`rwwarp.wave.edge_wave` says why).
+beam's own tilt is a shift of ``t``: it moves the spot and changes nothing). (c) Steep rims: the edge wave's reach
+is a shift of ``S / (2 pi N_F)`` of the beam's radius (0.3-0.9 at S 100-300 rad, N_F 20-57), over which the rim's
+profile is no longer quadratic; the sum carries each rim point's edge wave by the ray traced back over the reduced
+distance (:mod:`rwwarp.wave.edge_wave`, "Steep rims"), which the first sum, on the quadratic profile, left out (it read
+0.16-0.6x on ``c rho^4`` at N_F 55-57, S 100-140 rad, and 2-12x on ``rho^6`` / ``rho^8``). The law remains the
+fallback for a phase too steep for the sum's sampling (slopes beyond :data:`rwwarp.wave.edge_wave.MAX_SLOPE_RAD`, 400
+rad: the estimate's note says so) and the ``S`` in the plan's line. The sum was checked on radial wave truths up to
+rim slopes of 300 rad (:data:`CHECKED_SLOPE_RAD`; beyond it the note says so) and off the axis up to the pilot's RMS
+rim slope of 206 rad at 0.5 deg (:data:`CHECKED_OFF_AXIS_SLOPE_RAD`; below).
+The A489's beams 5-10 deg off axis (36-135 rad, coma and astigmatism about the beam's centre) lie inside the checked
+slopes but not in a checked geometry (off axis, steep): there the sum is checked only against the brute-force
+evaluation of its own equations; docs/propagation.md's comparison with the one-step vs wave-path difference (0.09-0.4x,
+no reference either) was made with the first evaluation (d8e73cb) and not rerun.
 
 Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact
 angular spectrum, thin lens f = 50 mm, 0.55 um, sensor at the lens focus, DOE pupil phase ``sum_i c_i rho^(2i)``;
-off axis the 2-D angular-spectrum truth against the 2-D geometric model; estimate / measured):
+off axis the 2-D angular-spectrum truth against the 2-D geometric model; estimate / measured; "before": the sum on
+the quadratic profile, "now": with the traced rays):
 
-=======================================  =======  =====  ========  ===============  ==========  =====
-case (a mm, DOE-to-sensor mm, phase)     N_F      S      measured  law (before)     sum (now)   now/m
-=======================================  =======  =====  ========  ===============  ==========  =====
-2.5, 10, 3 rho^4 (law calibration)       56.8     12     4.13e-2   6.5e-2 (1.57)    3.98e-2     0.96
-2.5, 35, 3 rho^4 (law calibration)       530      12     5.56e-3   7.0e-3 (1.25)    5.37e-3     0.97
-2.5, 10, 8 rho^4 (law calibration)       56.8     32     0.446     0.37 (0.83)      0.417       0.94
-2.5, 20, 3 rho^4                         152      12     1.76e-2   2.4e-2 (1.38)    1.75e-2     0.99
-2.5, 45, 2 rho^2                         2045     4      3.41e-4   5.0e-4 (1.47)    4.00e-4     1.17
-1.5, 35, -3 rho^2 + 3 rho^4              191      6      8.37e-3   8.3e-3 (0.99)    8.87e-3     1.06
-1.5, 35, 3 rho^6                         191      18     2.71e-2   3.6e-2 (1.32)    2.67e-2     0.99
-1.5, 10, 3 rho^4                         20.5     12     7.94e-2   0.18 (2.27)      7.33e-2     0.92
-1.0, 10, 3 rho^4                         9.1      12     9.39e-2   0.41 (4.33)      8.46e-2     0.90
-1.5, 14, 4 rho^4                         31.8     16     0.218     0.18 (0.81)      0.211       0.97
-1.5, 20, 3 rho^4, 0.3 deg (2-D)          54.5     13.7   6.34e-2   8.2e-2 (1.29)    7.66e-2     1.21
-1.5, 20, 3 rho^4, 0.5 deg (2-D)          54.5     17.7   3.04e-2   0.122 (4.01)     3.05e-2     1.00
-1.5, 20, 3 rho^4, 0.7 deg (2-D)          54.5     23.3   3.56e-2   0.199 (5.6)      3.32e-2     0.93
-=======================================  =======  =====  ========  ===============  ==========  =====
+=======================================  =======  =====  ========  ===============  ===========  =========
+case (a mm, DOE-to-sensor mm, phase)     N_F      S      measured  law (before)     sum before   sum now
+=======================================  =======  =====  ========  ===============  ===========  =========
+2.5, 10, 3 rho^4 (law calibration)       56.8     12     4.13e-2   6.5e-2 (1.57)    0.96         1.02
+2.5, 35, 3 rho^4 (law calibration)       530      12     5.56e-3   7.0e-3 (1.25)    0.97         0.97
+2.5, 10, 8 rho^4 (law calibration)       56.8     32     0.446     0.37 (0.83)      0.94         0.95
+2.5, 20, 3 rho^4                         152      12     1.76e-2   2.4e-2 (1.38)    0.99         1.01
+2.5, 45, 2 rho^2                         2045     4      3.41e-4   5.0e-4 (1.47)    1.17         1.18
+1.5, 35, -3 rho^2 + 3 rho^4              191      6      8.37e-3   8.3e-3 (0.99)    1.06         1.05
+1.5, 35, 3 rho^6                         191      18     2.71e-2   3.6e-2 (1.32)    0.99         1.02
+1.5, 10, 3 rho^4                         20.5     12     7.94e-2   0.18 (2.27)      0.92         1.09
+1.0, 10, 3 rho^4                         9.1      12     9.39e-2   0.41 (4.33)      0.90         1.35
+1.5, 14, 4 rho^4                         31.8     16     0.218     0.18 (0.81)      0.97         1.00
+1.5, 20, 3 rho^4, 0.3 deg (2-D)          54.5     13.7   6.34e-2   8.2e-2 (1.29)    1.21         1.23
+1.5, 20, 3 rho^4, 0.5 deg (2-D)          54.5     17.7   3.04e-2   0.122 (4.01)     1.00         1.02
+1.5, 20, 3 rho^4, 0.7 deg (2-D)          54.5     23.3   3.56e-2   0.199 (5.6)      0.93         0.95
+steep (truth with the widened band):
+1.5, 20, 25 rho^4                        54.5     100    0.116     -                0.39         0.93
+1.0, 10, 10 rho^4                        9.1      40     0.609     -                1.03         1.25
+1.5, 10, 25 rho^4                        20.5     100    0.278     -                0.62         0.76
+2.5, 10, -50 rho^2 + 50 rho^4            56.8     100    4.43e-2   -                1.49         0.71
+2.5, 10, 25 rho^6                        56.8     150    6.37e-2   -                2.01         1.34
+1.5, 20, 50 rho^4                        54.5     200    0.234     (2.5e2)          (the law)    1.02
+2.5, 10, 20 rho^8                        56.8     160    8.40e-3   -                12.5         1.26
+1.5, 20, 75 rho^4                        54.5     300    0.247     -                (the law)    1.07
+1.5, 20, 25 rho^4, 0.5 deg (2-D)         54.5     147    5.78e-2   -                (the law)    0.96
+1.5, 20, 35 rho^4, 0.5 deg (2-D)         54.5     206    6.85e-2   -                (the law)    0.96
+=======================================  =======  =====  ========  ===============  ===========  =========
 
 (``S``: the analytic rim slope on the axis, the pilot's RMS rim slope off axis. The 2-D truth's own error is
-~7e-4 of the peak. Other radial cases measured while deriving it, not in the tests: 0.82 .. 1.02, among them
+~7e-4 of the peak. Other radial cases measured while deriving the first sum, not in the tests: 0.82 .. 1.02, among them
 6 rho^4 at N_F 20.5 (S 24) 0.82 and 8 rho^4 at N_F 25 (S 32, error 1.15 of the peak) 0.86.)
 
 Other orders. A wrapped relief away from its design wavelength transmits ``sum_m c_m exp(i m phi0)``
@@ -131,9 +150,12 @@ from .edge_wave import edge_wave_error, fit_pupil_phase
 #: E = C S / N_F (1 + (S / S0)^2)
 MODEL_ERROR_C = 0.25
 MODEL_ERROR_S0 = 25.0
-#: the largest rim slope (rad) at which the edge-wave estimate was checked against a wave truth (module docstring);
-#: beyond it the plan's note says so
-CHECKED_SLOPE_RAD = 35.0
+#: the largest rim slope (rad) at which the edge-wave estimate was checked against a wave truth (radial truths, module
+#: docstring and :mod:`rwwarp.wave.edge_wave`, "Steep rims"); beyond it the plan's note says so
+CHECKED_SLOPE_RAD = 300.0
+#: ... and off the DOE's axis (a decentred DOE's coma and astigmatism about the beam's centre: the 2-D truth at 0.5 deg,
+#: the pilot's RMS rim slope up to 206 rad); a beam off the axis beyond it gets the note too
+CHECKED_OFF_AXIS_SLOPE_RAD = 200.0
 #: rim rays: pilot points at least this share of the footprint's largest radius from its centre
 RIM_SHARE = 0.9
 
@@ -486,9 +508,11 @@ def _estimate_for_raywave(rw) -> list:
                 note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
             else:
                 main = ew
-                if slope > CHECKED_SLOPE_RAD:
-                    note = "; ".join(x for x in (note, f"rim slope {slope:.3g} rad: beyond the {CHECKED_SLOPE_RAD:g} rad "
-                                                 "checked against a wave truth") if x)
+                off = float(np.hypot(*xc)) >= AXIS_SHARE * beam_r
+                limit = CHECKED_OFF_AXIS_SLOPE_RAD if off else CHECKED_SLOPE_RAD
+                if slope > limit:
+                    note = "; ".join(x for x in (note, f"rim slope {slope:.3g} rad: beyond the {limit:g} rad checked "
+                                                 f"against a wave truth{' off the axis' if off else ''}") if x)
         other = 0.0
         if grad is not None and math.isfinite(nf):
             dist = rw.z_sensor - rw.z_plane

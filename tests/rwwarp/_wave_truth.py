@@ -51,8 +51,8 @@ _LENS_SPECTRA = {}
 
 
 def _lens_spectrum(a_mm, q, nu, dens):
-    """The converging wave's angular spectrum on the stop (independent of the DOE's place: kept per (a, q))."""
-    key = (float(a_mm), float(q))
+    """The converging wave's angular spectrum on the stop (independent of the DOE's place: kept per (a, q, nodes))."""
+    key = (float(a_mm), float(q), len(nu), float(nu[-1]))
     if key not in _LENS_SPECTRA:
         k = 2 * np.pi / LAM_MM
         r0, w0 = _gl(0.0, a_mm, dens)
@@ -60,20 +60,28 @@ def _lens_spectrum(a_mm, q, nu, dens):
     return _LENS_SPECTRA[key]
 
 
-def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0, alpha=None, sensor_mm=None):
+def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0, alpha=None, sensor_mm=None, band=None, taper=0.0):
     """(truth, model) sensor irradiance at the radii ``rho_mm`` (power per mm^2 over the power entering the
     stop of radius ``a_mm``): thin lens F_MM, DOE ``sum_i c_i (r / r_b)^(2 i)`` (rad, ``r_b = s a`` the beam's
     radius on the DOE plane) ``d2_mm`` before the lens focus, the sensor ``sensor_mm`` behind the DOE (None:
     at the lens focus). ``alpha`` (None: the phase as it is): a wrapped relief used at ``alpha`` times its
-    design wavelength's phase, the transmission ``exp(1j alpha (phi0 mod 2 pi))``, every diffraction order."""
+    design wavelength's phase, the transmission ``exp(1j alpha (phi0 mod 2 pi))``, every diffraction order.
+    ``band`` (cycles/mm, None: ``2 NA / lambda``): the angular spectrum's band, for a DOE whose slope takes the light
+    beyond it (:func:`steep_band`); ``taper`` (0: a hard cut): the spectrum rolled off as ``cos^2`` over this share of
+    the band at its top (the cut's end-point ringing on a steep DOE's weak, wide PSF is else of the order of its
+    error)."""
     k = 2 * np.pi / LAM_MM
     z1, s = F_MM - d2_mm, d2_mm / F_MM
     na = a_mm / np.hypot(a_mm, F_MM)
-    V = 2.0 * na / LAM_MM                          # the angular spectrum's band (cycles/mm)
+    V = 2.0 * na / LAM_MM if band is None else float(band)   # the angular spectrum's band (cycles/mm)
     rb, d = s * a_mm, z1 * d2_mm / F_MM
     dens = q * (na / LAM_MM + V)                   # nodes per mm on the planes: the phase's and J0's oscillations
     nu, wnu = _gl(0.0, V, q * (a_mm + F_MM * V * LAM_MM))   # spectrum nodes: the field's extent after propagation
-    H = lambda z: np.exp(2j * np.pi * z * np.sqrt(1 / LAM_MM ** 2 - nu ** 2))
+    win = np.ones_like(nu)
+    if taper > 0:
+        x = np.clip((nu - V * (1.0 - taper)) / (V * taper), 0.0, 1.0)
+        win = np.cos(0.5 * np.pi * x) ** 2
+    H = lambda z: win * np.exp(2j * np.pi * z * np.sqrt(1 / LAM_MM ** 2 - nu ** 2))
     W0 = lambda r: sum(c * (r / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
     W = W0 if alpha is None else (lambda r: alpha * np.mod(W0(r), 2 * np.pi))
     z2 = d2_mm if sensor_mm is None else float(sensor_mm)
@@ -89,11 +97,31 @@ def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0, alpha=None, sensor_mm=None)
     return to_sensor(f1, r1, w1), to_sensor(np.exp(-1j * k * np.hypot(rg, d2_mm)) / s, rg, wg)
 
 
-def measured_error(a_mm, d2_mm, coeffs):
-    """max |model - truth| / max truth of :func:`radial_truth` on the radii 0..40 um."""
-    rho = np.linspace(0.0, 0.04, 161)
-    truth, model = radial_truth(a_mm, d2_mm, coeffs, rho)
+def measured_error(a_mm, d2_mm, coeffs, rho_mm=None, band=None, taper=0.0, q=3.0):
+    """max |model - truth| / max truth of :func:`radial_truth` on the radii ``rho_mm`` (None: 0..40 um, 161)."""
+    rho = np.linspace(0.0, 0.04, 161) if rho_mm is None else np.asarray(rho_mm, float)
+    truth, model = radial_truth(a_mm, d2_mm, coeffs, rho, q=q, band=band, taper=taper)
     return float(np.max(np.abs(model - truth)) / truth.max())
+
+
+def steep_band(a_mm, d2_mm, coeffs, margin=1.0):
+    """The band (cycles/mm) for a steep DOE: ``2 NA / lambda`` plus ``margin`` times the DOE's largest frequency
+    on the beam, ``max |dW/dr| / (2 pi)`` (the light it deflects beyond the lens's cone)."""
+    rb = a_mm * d2_mm / F_MM
+    na = a_mm / np.hypot(a_mm, F_MM)
+    r = np.linspace(0.0, 1.0, 201)
+    slope = np.abs(sum(2 * (i + 1) * c * r ** (2 * i + 1) for i, c in enumerate(coeffs)))
+    return 2.0 * na / LAM_MM + margin * float(slope.max()) / (2 * np.pi * rb)
+
+
+def steep_radii(a_mm, d2_mm, coeffs, step_mm=0.5e-3, margin=1.3):
+    """Sensor radii (mm) covering the geometric spot of a steep DOE (its rays' largest landing radius, ``lambda d2
+    max |dW/dr| / (2 pi)``, ``margin`` times over, plus 20 um) on the step ``step_mm``."""
+    rb = a_mm * d2_mm / F_MM
+    r = np.linspace(0.0, 1.0, 201)
+    slope = np.abs(sum(2 * (i + 1) * c * r ** (2 * i + 1) for i, c in enumerate(coeffs)))
+    top = margin * LAM_MM * d2_mm * float(slope.max()) / (2 * np.pi * rb) + 0.02
+    return np.arange(0.0, top + step_mm, step_mm)
 
 
 def analytic_inputs(a_mm, d2_mm, coeffs):

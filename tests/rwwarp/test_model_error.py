@@ -15,16 +15,20 @@ from rwwarp.wave import model_error as me
 from rwwarp.wave.edge_wave import PupilPhase, edge_wave_error, fit_pupil_phase, radial_pupil_phase
 from rwwarp.lens import Lens, Sensor, Surface
 
-from _wave_truth import F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, thin_lens_doe
+from _wave_truth import (F_MM, LAM_MM, analytic_inputs, measured_error, radial_truth, steep_band, steep_radii,
+                         thin_lens_doe)
 from _wave_truth import pixel_truth as _pixel_truth
 
 
 # The main order's estimate (rwwarp.wave.edge_wave: the rim's edge waves on the pupil phase) has no fitted constant:
-# every case is held out. Measured estimate / error: 0.96 / 0.97 / 0.94 (a 2.5, rho^4 3 / 3 / 8 rad, 10 / 35 / 10 mm:
-# the old law's calibration cases, not tested here), 0.99 (a 2.5, rho^4 3 rad, 20 mm, N_F 152), 1.17 (defocus 2 rad,
-# 45 mm, N_F 2045), 1.06 (a 1.5, rho^2 + rho^4, 35 mm, N_F 191), 0.99 (a 1.5, rho^6 3 rad, 35 mm, N_F 191). Below N_F ~ 50 (the old law
-# C S / N_F (1 + (S / S0)^2) read 2.27x / 4.33x / 0.81x there): 0.92 (a 1.5, 3 rho^4, 10 mm, N_F 20.5, S 12), 0.90
-# (a 1.0, 10 mm, N_F 9.1, S 12), 0.97 (a 1.5, 4 rho^4, 14 mm, N_F 31.8, S 16).
+# every case is held out (the one choice made on truths, the traced amplitude's blend, was taken on steep rims: a 2.5,
+# 10 mm, c rho^4, c = 10 .. 35). Measured estimate / error (before the traced rays of steep rims in brackets):
+# 1.03 / 1.00 / 0.94 (a 2.5, rho^4 3 / 3 / 8 rad, 10 / 35 / 10 mm: the old law's calibration cases, not tested here;
+# 0.97 / 0.99 / 0.95), 1.01 (0.99; a 2.5, rho^4 3 rad, 20 mm, N_F 152), 1.18 (1.17; defocus 2 rad, 45 mm, N_F 2045),
+# 1.05 (1.06; a 1.5, rho^2 + rho^4, 35 mm, N_F 191), 1.02 (0.99; a 1.5, rho^6 3 rad, 35 mm, N_F 191). Below N_F ~ 50
+# (the old law C S / N_F (1 + (S / S0)^2) read 2.27x / 4.33x / 0.81x there): 1.09 (0.92; a 1.5, 3 rho^4, 10 mm, N_F
+# 20.5, S 12), 1.35 (0.90; a 1.0, 10 mm, N_F 9.1, S 12: the edge wave's ray shifts 0.21 of the radius, and the
+# amplitude the traced ray brings is blended in), 1.00 (0.97; a 1.5, 4 rho^4, 14 mm, N_F 31.8, S 16).
 HELD_OUT = [(2.5, 20.0, (0.0, 3.0)), (2.5, 45.0, (2.0, 0.0)), (1.5, 35.0, (-3.0, 3.0)), (1.5, 35.0, (0.0, 0.0, 3.0)),
             (1.5, 10.0, (0.0, 3.0)), (1.0, 10.0, (0.0, 3.0)), (1.5, 14.0, (0.0, 4.0))]
 
@@ -36,11 +40,60 @@ def test_estimate_is_within_a_factor_2_of_the_measured_model_error(a_mm, d2_mm, 
     est, info = edge_wave_error(nf, radial_pupil_phase(coeffs))
     print(f"a {a_mm} d2 {d2_mm} {coeffs}: N_F {nf:.1f} S {slope:.0f} estimate {est:.3e} measured {err:.3e} "
           f"ratio {est / err:.2f} (the old scalar law {me.model_error(nf, slope) / err:.2f})")
-    # the claim is a factor 2; measured 0.90 .. 1.17 over these cases (comment above)
+    # the claim is a factor 2; measured 1.00 .. 1.35 over these cases (comment above)
     assert 0.5 <= est / err <= 2.0, (est, err)
-    assert 0.8 <= est / err <= 1.25, (est, err)
+    assert 0.8 <= est / err <= 1.45, (est, err)
     # a model error well above the truth's own uncertainty (the band: 3 % of the error, module docstring)
     assert err > 1e-4
+
+
+# Steep rims (S 40 .. 300 rad; rwwarp.wave.edge_wave, "Steep rims"): the truth's band widened by the DOE's largest
+# frequency 1.5 times over and rolled off (taper 0.3: a hard cut's end-point ringing is of the order of these weak,
+# wide PSFs' errors), 4 nodes per oscillation, radii over the whole geometric spot (steep_band / steep_radii): the
+# measured error moved by < 1 % against 2.5x the extra band, 5-6 nodes and half the radial step (a 2.5, 25 rho^4,
+# 10 mm). Held out (the only choice made on truths, the amplitude's blend, was taken on a 2.5, 10 mm, rho^4 of
+# 10 / 15 / 25 / 35 rad: 1.08 / 1.00 / 0.86 / 1.02). Measured estimate / error, now (before the traced rays):
+# a 1.5, 20 mm, 25 rho^4 (N_F 54.5, S 100): 0.93 (0.39); a 1.0, 10 mm, 10 rho^4 (N_F 9.1, S 40, the ray shifted 0.7
+# of the radius): 1.25 (1.03); a 1.5, 10 mm, 25 rho^4 (N_F 20.5, S 100): 0.76 (0.62); a 2.5, 10 mm, -50 rho^2 +
+# 50 rho^4 (N_F 56.8, S 100): 0.71 (1.49); 25 rho^6 (S 150): 1.34 (2.01); a 1.5, 20 mm, 40 / 50 rho^4 (S 160 / 200):
+# 1.02 / 1.02 (1.64 / 0.74, the latter beyond the old 180 rad sampling limit); a 2.5, 10 mm, 20 rho^8 (S 160): 1.26
+# (12.5)
+STEEP_HELD_OUT = [(1.5, 20.0, (0.0, 25.0)), (1.0, 10.0, (0.0, 10.0)), (1.5, 10.0, (0.0, 25.0)),
+                  pytest.param(2.5, 10.0, (-50.0, 50.0), marks=pytest.mark.slow),
+                  pytest.param(2.5, 10.0, (0.0, 0.0, 25.0), marks=pytest.mark.slow),
+                  pytest.param(1.5, 20.0, (0.0, 50.0), marks=pytest.mark.slow),
+                  pytest.param(2.5, 10.0, (0.0, 0.0, 0.0, 20.0), marks=pytest.mark.slow),
+                  # S 300, the ray shifted 0.88 of the radius: 1.07 (before: beyond the sampling limit, the scalar law)
+                  (1.5, 20.0, (0.0, 75.0))]
+
+
+@pytest.mark.parametrize("a_mm,d2_mm,coeffs", STEEP_HELD_OUT)
+def test_steep_rims_the_estimate_is_within_a_factor_2_of_the_measured_model_error(a_mm, d2_mm, coeffs):
+    rho = steep_radii(a_mm, d2_mm, coeffs)
+    err = measured_error(a_mm, d2_mm, coeffs, rho_mm=rho, band=steep_band(a_mm, d2_mm, coeffs, 1.5), taper=0.3, q=4.0)
+    nf, slope = analytic_inputs(a_mm, d2_mm, coeffs)
+    est, info = edge_wave_error(nf, radial_pupil_phase(coeffs))
+    print(f"a {a_mm} d2 {d2_mm} {coeffs}: N_F {nf:.1f} S {slope:.0f} estimate {est:.3e} measured {err:.3e} "
+          f"ratio {est / err:.2f}")
+    assert slope >= 40
+    # the claim is a factor 2; measured 0.71 .. 1.34 over these cases (comment above and beside)
+    assert 0.5 <= est / err <= 2.0, (est, err)
+    assert 0.6 <= est / err <= 1.6, (est, err)
+
+
+def test_steep_rims_the_plans_estimate_is_within_a_factor_2_of_the_measured_error():
+    # the whole chain on a steep rim (what --explain prints): rwwarp's pilot trace -> the fitted pupil phase, N_F ->
+    # the traced edge waves, against the steep truth's measured error (a 1.5, 20 mm, 25 rho^4: N_F 54.5, the pilot's
+    # rim slope 94 rad; measured 1.158e-1, estimate 1.078e-1, 0.93x; the same as on the analytic phase: the degree-6
+    # fit holds the rho^4 phase exactly), and no note below the checked slope
+    a_mm, d2_mm, coeffs = 1.5, 20.0, (0.0, 25.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = rw.plan_psf(thin_lens_doe(d2_mm, a_mm, coeffs), 0.0, 0.55, size=32, method="focal").model_error
+    rho = steep_radii(a_mm, d2_mm, coeffs)
+    err = measured_error(a_mm, d2_mm, coeffs, rho_mm=rho, band=steep_band(a_mm, d2_mm, coeffs, 1.5), taper=0.3, q=4.0)
+    assert got["rim_slope_rad"] > 80 and "checked against a wave truth" not in got["note"]
+    assert 0.5 <= got["estimate"] / err <= 2.0, (got["estimate"], err)
 
 
 def test_the_edge_wave_estimate_vanishes_without_a_phase_and_ignores_a_tilt():
@@ -298,6 +351,60 @@ def test_off_axis_the_estimate_against_a_2d_truth(field_deg):
     print(f"{field_deg} deg: measured {err:.3e}, estimate {got['estimate']:.3e} ({got['estimate'] / err:.2f}x), "
           f"old law {me.model_error(got['fresnel_number'], got['rim_slope_rad']) / err:.2f}x")
     # the claim: a factor 2 (measured 0.93 .. 1.21x, above)
+    assert 0.5 <= got["estimate"] / err <= 2.0, (got["estimate"], err)
+
+
+def truth_2d_on_grid(a_mm, d2_mm, coeffs, field_deg, half_mm, h=3e-3, npad=2048):
+    """:func:`truth_2d`'s two fields (the same equations: the stop's disc, the exact angular spectrum over z1, the
+    radial DOE, over d2), read on the grid's own samples (one inverse FFT, no pixel integration) within ``half_mm`` of
+    the chief ray's landing point: ``(truth, model)`` irradiance (the same arbitrary unit)."""
+    k = 2 * np.pi / LAM_MM
+    z1, rb = F_MM - d2_mm, a_mm * d2_mm / F_MM
+    x = (np.arange(npad) - npad // 2) * h
+    X, Y = np.meshgrid(x, x, indexing="xy")
+    yT = F_MM * np.tan(np.radians(field_deg))
+    nu = np.fft.fftfreq(npad, h)
+    NX, NY = np.meshgrid(nu, nu, indexing="xy")
+    w = np.sqrt(np.maximum(1 / LAM_MM ** 2 - NX ** 2 - NY ** 2, 0.0))
+    u0 = _disc_2d(X, Y, 0.0, 0.0, a_mm, h) * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + F_MM ** 2))
+    fields = [np.fft.ifft2(np.fft.fft2(u0) * np.exp(2j * np.pi * z1 * w)),
+              _disc_2d(X, Y, 0.0, yT * z1 / F_MM, rb, h) * (F_MM / d2_mm)
+              * np.exp(-1j * k * np.sqrt(X ** 2 + (Y - yT) ** 2 + d2_mm ** 2))]
+    del u0
+    W = sum(c * (np.hypot(X, Y) / rb) ** (2 * (i + 1)) for i, c in enumerate(coeffs))
+    rows = np.abs(x - yT) <= half_mm
+    cols = np.abs(x) <= half_mm
+    out = []
+    for u1 in fields:
+        U = np.fft.ifft2(np.fft.fft2(u1 * np.exp(1j * W)) * np.exp(2j * np.pi * d2_mm * w))
+        out.append(np.abs(U[np.ix_(rows, cols)]) ** 2)
+    return tuple(out)
+
+
+@pytest.mark.parametrize("coeffs,h_mm,npad", [((0.0, 10.0), 3e-3, 2048), ((0.0, 25.0), 3e-3, 2048),
+                                           pytest.param((0.0, 35.0), 2e-3, 3072, marks=pytest.mark.slow)])
+def test_steep_rims_off_axis_the_estimate_against_a_2d_truth(coeffs, h_mm, npad):
+    # a = 1.5 mm, DOE c rho^4 20 mm before the sensor (N_F 54.5), 0.5 deg: the beam 0.44 of its radius off the DOE's
+    # centre, so its phase about its own centre has coma and astigmatism (the geometry of the A489's beams off axis),
+    # and steep: the pilot's RMS rim slope 59 / 147 rad (10 / 25 rho^4). The model error measured on the 2-D truth
+    # against the 2-D geometric model on the grid's 3 um samples over the whole spot: 4.27e-2 / 5.78e-2 (with
+    # truth_2d's 4 um pixels 3.86e-2 / 5.60e-2; 5.60e-2 again at h = 2 um, 3072 samples). The estimate: 4.12e-2 /
+    # 5.53e-2, 0.96x / 0.96x (1.07x / 0.99x of the pixel figures); before the traced rays 0.92x / the scalar law's
+    # ~420x (the phase was beyond the old 180 rad sampling limit). 35 rho^4 (206 rad; the light reaches 166 cycles/mm,
+    # the 3 um grid's Nyquist limit: 2 um, 3072 samples; 30 rho^4 moved by 7 % from 3 to 2 um): measured 6.85e-2, the
+    # estimate 6.59e-2, 0.96x (before: the scalar law)
+    lens = thin_lens_doe(20.0, 1.5, coeffs, pixel=4e-3, doe_share=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = rw.plan_psf(lens, 0.5, 0.55, size=32, method="asm").model_error
+    assert got["rim_slope_rad"] > 40
+    rb = 1.5 * 20.0 / F_MM
+    spot = 1.3 * LAM_MM * 20.0 * 4 * coeffs[1] / (2 * np.pi * rb) + 0.03
+    T, M = truth_2d_on_grid(1.5, 20.0, coeffs, 0.5, spot, h=h_mm, npad=npad)
+    err = float(np.max(np.abs(M - T)) / T.max())
+    print(f"{coeffs}: measured {err:.3e}, estimate {got['estimate']:.3e} ({got['estimate'] / err:.2f}x), "
+          f"rim slope {got['rim_slope_rad']:.0f} rad")
+    # the claim: a factor 2 (measured 0.96x, 0.96x, 0.96x)
     assert 0.5 <= got["estimate"] / err <= 2.0, (got["estimate"], err)
 
 
