@@ -65,9 +65,10 @@ N_TERMS = 23
 #: in the intensity: 2 x the Gaussian gridding's 1.7e-3 at REST_SPREAD (the Rayleigh-Sommerfeld test's error / eps:
 #: 1.0e-3, 1.3e-3, 2.1e-3 at eps 0.023, 0.0058, 0.0015: below it)
 KIRCHHOFF_REST_ERROR = 3.4e-3
-#: :func:`kirchhoff_error_estimate`: the pupil quadrature's share at ``RAY_MIN`` (600) rays across, falling as
-#: ``(600 / N_r)^2``: the Cooke triplet at 14 deg, 300 rays across, 4.1e-4 of the peak against the full computation
-#: less its tile part (1.1e-4), / (600 / 300)^2
+#: :func:`kirchhoff_error_estimate`: the pupil quadrature's share (the rays as point samples of whole cells, the rim a
+#: staircase of them), with the reference's own convergence (~1e-4: docs "What the error follows"): the calibration
+#: cases' measured error less their tile part, their median (module docstring of rwwarp.wave.pixel_scale). It did not
+#: follow the rays across: 0.6-1.1e-4 at 300 rays (A489, Cooke triplet), 0.5-4e-4 at 600
 KIRCHHOFF_QUAD_ERROR = 7.5e-5
 #: :func:`kirchhoff_error_estimate`: the Debye samples beyond the near tiles, this fraction of the Debye form's
 #: estimate (measured against the Kirchhoff form on every tile: EF35 / EF50 at 64 px 7.6e-6 / 1.4e-6, A489 9 px
@@ -86,7 +87,8 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
       corrections' NUFFT at ``REST_SPREAD`` (``KIRCHHOFF_REST_ERROR eps``), each doubled in the intensity:
       ``eps^3 / 3 + cubic^2 + KIRCHHOFF_REST_ERROR eps``;
     * ``quadrature``: the pupil grid's cells as point samples (whole cells at the rim; the lattice's aliases beyond
-      the grid): ``KIRCHHOFF_QUAD_ERROR (ray_min / ray_grid)^2``, ``ray_grid`` rays across the pupil;
+      the grid, ``ray_grid >= ray_min`` rays across the pupil: ``RAY_MIN``), calibrated: ``KIRCHHOFF_QUAD_ERROR``
+      (``(ray_min / ray_grid)^2`` times it below ``ray_min``, where the aliases' skirts come near);
     * ``far``: where the Debye form's samples are kept beyond the near tiles (``debye_estimate`` given,
       :func:`rwwarp.wave.pixel_scale.pixel_error_estimate`), ``KIRCHHOFF_FAR_SHARE`` of it.
 
@@ -94,7 +96,7 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
     :mod:`rwwarp.wave.pixel_scale`). Returns ``estimate`` (the sum) and the parts (dimensionless)."""
     eps, cub = abs(float(eps_rad)), abs(float(cubic_rad))
     tile = eps ** 3 / 3.0 + cub ** 2 + KIRCHHOFF_REST_ERROR * eps
-    quad = KIRCHHOFF_QUAD_ERROR * (float(ray_min) / max(int(ray_grid), 1)) ** 2
+    quad = KIRCHHOFF_QUAD_ERROR * max(1.0, float(ray_min) / max(int(ray_grid), 1)) ** 2
     far = KIRCHHOFF_FAR_SHARE * float(debye_estimate) if debye_estimate is not None else 0.0
     return {"estimate": float(tile + quad + far), "tile": float(tile), "quadrature": float(quad), "far": float(far)}
 

@@ -539,7 +539,7 @@ def form_line(form: str, field: dict, cost: dict, err: dict, nf: float, slope: f
         from .pixel_kirchhoff import KIRCHHOFF_QUAD_ERROR, KIRCHHOFF_REST_ERROR
         why = (f"tiles eps^3 / 3 + cubic^2 + {KIRCHHOFF_REST_ERROR:g} eps = {err['tile']:.2g} (eps {field['eps']:.3g}, "
                f"cubic {field['cubic']:.2g} rad at a corner of its {field['near']} tile(s) of {field['tile']}^2); "
-               f"quadrature {KIRCHHOFF_QUAD_ERROR:g} ({RAY_MIN} / N_r)^2 = {err['quadrature']:.2g}"
+               f"quadrature {KIRCHHOFF_QUAD_ERROR:g} x max(1, {RAY_MIN} / N_r)^2 = {err['quadrature']:.2g}"
                + (f"; Debye beyond the tiles {err['far']:.2g}" if field.get("reach_mm") is not None else ""))
     return (f"{form} form: error ~{err['estimate']:.2g} of the peak ({why}), {cost['memory_bytes'] / 2 ** 30:.3g} GiB, "
             f"{cost['flops'] / 1e9:.3g} GFLOP")
