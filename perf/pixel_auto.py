@@ -39,7 +39,8 @@ def _lens(name):
 def _reference(lens, field, p, sub, center):
     """The full computation on ``sub`` px of ``p`` mm centred at ``center``: focal at 9x finer pixels, box-summed."""
     import rwwarp as rw
-    fine = rw.psf(lens, field, 0.55, size=sub * 9, pixel_mm=p / 9, method="focal", center_mm=center)
+    fine = rw.psf(lens, field, 0.55, size=sub * 9, pixel_mm=p / 9, method="focal", center_mm=center,
+                  memory_budget_gb=8.0)      # not half the memory available at the time: other jobs share it
     return fine.data.reshape(sub, 9, sub, 9).sum(axis=(1, 3))
 
 

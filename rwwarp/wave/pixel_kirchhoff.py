@@ -87,8 +87,9 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
       corrections' NUFFT at ``REST_SPREAD`` (``KIRCHHOFF_REST_ERROR eps``), each doubled in the intensity:
       ``eps^3 / 3 + cubic^2 + KIRCHHOFF_REST_ERROR eps``;
     * ``quadrature``: the pupil grid's cells as point samples (whole cells at the rim; the lattice's aliases beyond
-      the grid, ``ray_grid >= ray_min`` rays across the pupil: ``RAY_MIN``), calibrated: ``KIRCHHOFF_QUAD_ERROR``
-      (``(ray_min / ray_grid)^2`` times it below ``ray_min``, where the aliases' skirts come near);
+      the grid), calibrated: ``KIRCHHOFF_QUAD_ERROR``; measured alike at 300 and 600 rays across (``ray_grid``,
+      ``ray_min``: kept in the signature, not used: the planner takes ``RAY_MIN`` = 600 or more; the Debye form's
+      aliases' skirts grew its error below ~300);
     * ``far``: where the Debye form's samples are kept beyond the near tiles (``debye_estimate`` given,
       :func:`rwwarp.wave.pixel_scale.pixel_error_estimate`), ``KIRCHHOFF_FAR_SHARE`` of it.
 
@@ -96,7 +97,7 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
     :mod:`rwwarp.wave.pixel_scale`). Returns ``estimate`` (the sum) and the parts (dimensionless)."""
     eps, cub = abs(float(eps_rad)), abs(float(cubic_rad))
     tile = eps ** 3 / 3.0 + cub ** 2 + KIRCHHOFF_REST_ERROR * eps
-    quad = KIRCHHOFF_QUAD_ERROR * max(1.0, float(ray_min) / max(int(ray_grid), 1)) ** 2
+    quad = KIRCHHOFF_QUAD_ERROR
     far = KIRCHHOFF_FAR_SHARE * float(debye_estimate) if debye_estimate is not None else 0.0
     return {"estimate": float(tile + quad + far), "tile": float(tile), "quadrature": float(quad), "far": float(far)}
 

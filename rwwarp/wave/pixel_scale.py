@@ -30,8 +30,9 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.76 GiB, 22.0 GFLOP (the Kirchhoff form on
-the 4 of 100 tiles near the spot; docs/propagation.md "Large pixels", "64 px patches"); :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.73 GiB, 19.9 GFLOP (the Kirchhoff form on
+4 tiles of 134^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; ``perf/pixel_auto.py``);
+:func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
 
 Error against the full computation (the same rays' field splatted on the wave plane and propagated exactly),
@@ -45,13 +46,26 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
   reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
   (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
-  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2; "auto" takes
-  it where the grid needs at most ``KIRCHHOFF_MAX_TILES`` tiles, decided at planning (:func:`plan_field`, in
-  ``Plan.pixel_field``); the cost model (:func:`pixel_cost`) is the planned form's, the error estimate here the
-  Debye form's (an upper bound for the Kirchhoff form);
+  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2, on the tiles
+  over the spot's region only (the pilot landings' box + ``KIRCHHOFF_MARGIN / B`` a side, the fewest tiles that
+  cover it), the Debye form's samples elsewhere; its own estimate:
+  :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate` (the kernel's expansion over a tile, the corrections'
+  NUFFT, the pupil quadrature, the Debye samples beyond the tiles);
 * the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
   ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
   samples) are below that.
+
+**Which form, and whether** (:func:`plan_forms`, :func:`choose_form`, :func:`consider_pixel`). Both forms are
+planned from the pilot (:func:`plan_field`: tiling, points; :func:`pixel_cost`) with their error estimates; the form
+that runs is the one of fewer flops whose estimate is within the tolerance (``rw.psf(..., tolerance=)``, default
+``DEFAULT_TOLERANCE`` = 1e-3 of the peak) and whose memory fits the budget (``FIELD_FORM`` "debye" / "kirchhoff"
+forces one). ``method="auto"`` then runs the pixel method where that form exists, the pixel spans at least
+``MIN_PIXEL_AIRY`` Airy radii, the wave step is not wanted and it plans fewer flops than the focal / ASM plan;
+``--explain`` (``plan.explain()``) shows a line per form (``debye form: error ~..., GiB, GFLOP`` with the estimate's
+parts), the form chosen and why (``sensor field form kirchhoff: the form of fewer flops whose error estimate is
+within the tolerance 0.001 (debye ~0.0016 / 8.5 GFLOP, kirchhoff ~0.00013 / 15.5 GFLOP)``) and ``method auto: pixel
+(...)`` or ``pixel method not chosen: ...``. An explicit ``method="pixel"`` with no form within the tolerance runs
+the Kirchhoff form where it needs at most ``KIRCHHOFF_MAX_TILES`` tiles, else the Debye form (as before).
 
 Not handled: DOEs (their diffraction orders); ``method="auto"`` does not pick it for a lens with a DOE that
 is not blank. Units: mm, um for wavelengths at the public interface, cycles/mm. Arrays: numpy or CuPy
@@ -536,10 +550,10 @@ def form_line(form: str, field: dict, cost: dict, err: dict, nf: float, slope: f
         why = (f"{PIXEL_ERROR_C:g} S / sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S "
                f"{slope:.3g} rad, N_F {nf:.4g} seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}")
     else:
-        from .pixel_kirchhoff import KIRCHHOFF_QUAD_ERROR, KIRCHHOFF_REST_ERROR
+        from .pixel_kirchhoff import KIRCHHOFF_REST_ERROR
         why = (f"tiles eps^3 / 3 + cubic^2 + {KIRCHHOFF_REST_ERROR:g} eps = {err['tile']:.2g} (eps {field['eps']:.3g}, "
                f"cubic {field['cubic']:.2g} rad at a corner of its {field['near']} tile(s) of {field['tile']}^2); "
-               f"quadrature {KIRCHHOFF_QUAD_ERROR:g} x max(1, {RAY_MIN} / N_r)^2 = {err['quadrature']:.2g}"
+               f"quadrature {err['quadrature']:.2g}"
                + (f"; Debye beyond the tiles {err['far']:.2g}" if field.get("reach_mm") is not None else ""))
     return (f"{form} form: error ~{err['estimate']:.2g} of the peak ({why}), {cost['memory_bytes'] / 2 ** 30:.3g} GiB, "
             f"{cost['flops'] / 1e9:.3g} GFLOP")
