@@ -53,10 +53,12 @@ def _reference(lens, field, p, sub, center, budget_gb=10.0):
     raise MemoryBudgetError(f"the full computation over {budget_gb} GiB even on 5 px at 3x finer pixels")
 
 
-def _estimate(plan):
+def _estimate(plan, what="kirchhoff form: error ~"):
+    """The error estimate in the plan's reason that starts with ``what`` ("kirchhoff form: error ~", "debye form: error
+    ~", or "pixel method: error ~": the form that runs), None where there is none."""
     for r in plan["reasons"] if isinstance(plan, dict) else plan.reasons:
-        if "kirchhoff form: error ~" in r:
-            return float(r.split("kirchhoff form: error ~")[1].split()[0])
+        if r.startswith(what):
+            return float(r[len(what):].split()[0])
     return None
 
 
@@ -86,6 +88,8 @@ def _one(a):
         rec.update(size=64, method=pl.method, form=(pl.pixel_field or {}).get("form"), wall_s=time.time() - t,
                    cpu_s=time.process_time() - c, planned_gflop=pl.estimate["flops"] / 1e9,
                    planned_gib=pl.estimate["memory_bytes"] / 2 ** 30, estimate=_estimate(pl),
+                   estimate_debye=_estimate(pl, "debye form: error ~"),
+                   estimate_chosen=_estimate(pl, "pixel method: error ~") if pl.method == "pixel" else None,
                    peak_rss_gib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20,
                    pixel_field={k: v for k, v in (pl.pixel_field or {}).items() if k != "region"},
                    choice=[r for r in pl.reasons if r.startswith("method auto")])
