@@ -96,7 +96,7 @@ def _one(a):
         if a.ref:
             from rwwarp.wave.plan import MemoryBudgetError
             try:
-                ref, sub, k = _reference(lens, a.field, p, a.sub, psf.center_mm)
+                ref, sub, k = _reference(lens, a.field, p, a.sub, psf.center_mm, a.ref_budget_gb)
                 lo = 64 // 2 - sub // 2
                 rec.update(ref_px=sub, ref_fine=k,
                            measured=float(np.max(np.abs(psf.data[lo:lo + sub, lo:lo + sub] - ref)) / ref.max()))
@@ -112,6 +112,7 @@ def main(argv=None):
     ap.add_argument("--fields", default="0,10")
     ap.add_argument("--sub", type=int, default=9)
     ap.add_argument("--ref", action="store_true")
+    ap.add_argument("--ref-budget-gb", type=float, default=10.0, help="the full computation's memory budget")
     ap.add_argument("--json", help="write the records here (with the commit and the machine)")
     ap.add_argument("--lens", help=argparse.SUPPRESS)
     ap.add_argument("--field", type=float, help=argparse.SUPPRESS)
@@ -121,7 +122,8 @@ def main(argv=None):
     recs = []
     for name in a.lenses.split(","):
         for f in a.fields.split(","):
-            cmd = [sys.executable, __file__, "--mode", a.mode, "--lens", name, "--field", f, "--sub", str(a.sub)]
+            cmd = [sys.executable, __file__, "--mode", a.mode, "--lens", name, "--field", f, "--sub", str(a.sub),
+                   "--ref-budget-gb", str(a.ref_budget_gb)]
             out = subprocess.run(cmd + (["--ref"] if a.ref else []), capture_output=True, text=True)
             line = [s for s in out.stdout.splitlines() if s.startswith("{")]
             rec = json.loads(line[-1]) if line else {"lens": name, "field_deg": float(f), "failed": out.stderr[-800:]}
