@@ -484,9 +484,9 @@ def field_reason(field: dict, cost: dict) -> str:
     """The plan's line saying which sensor-field form runs (:func:`plan_field`) and what it costs (:func:`pixel_cost`)."""
     if field["form"] == "kirchhoff":
         what = (f"the Kirchhoff (Rayleigh-Sommerfeld) sum of the wave-plane field (rwwarp.wave.pixel_kirchhoff): "
-                f"{field['tiles']} x {field['tiles']} tiles of {field['tile']}^2 (the kernel's curvature)"
-                + (f", the {field['near']} within the spot's reach {field['reach_mm'] * 1e3:.4g} um of the centre over the "
-                   f"Debye form's samples" if field.get("reach_mm") is not None else "")
+                f"{field['near']} tiles of {field['tile']}^2 (at most the kernel's curvature allows)"
+                + (f" over the spot's region (the pilot landings' box + {KIRCHHOFF_MARGIN:g} / B a side), the Debye form's "
+                   f"samples elsewhere" if field.get("reach_mm") is not None else " over the whole grid")
                 + f", {field['vectors']} NUFFTs of ~{field['points']} wave-plane samples a tile, {cost['chunk']} at a time")
     else:
         what = (f"the Debye plane waves of the rays: {field['tiles']} x {field['tiles']} tiles of {field['tile']}^2, "
