@@ -30,7 +30,7 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.73 GiB, 19.9 GFLOP (the Kirchhoff form on
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.73 GiB, 19.7 GFLOP (the Kirchhoff form on
 4 tiles of 134^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; ``perf/pixel_auto.py``);
 :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
@@ -564,8 +564,9 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     """Plan ``method="pixel"`` beside the plan a :class:`rwwarp.wave.raywave.RayWave` (``rw``, at the end of its
     planning) chose, and switch ``rw`` to it where it should run. ``explicit``: ``method="pixel"`` was asked for
     (it runs; a DOE that is not blank is refused with ``ValueError``). Otherwise (``"auto"``) it runs where the
-    lens has no DOE (or a blank one), the pixel spans at least ``MIN_PIXEL_AIRY`` Airy radii, its error
-    estimate (:func:`pixel_error_estimate`) is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``), the model's own
+    lens has no DOE (or a blank one), the pixel spans at least ``MIN_PIXEL_AIRY`` Airy radii, a sensor-field form's
+    error estimate is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``; the form of fewer flops among those:
+    :func:`plan_forms`, :func:`choose_form`), the model's own
     error (:mod:`rwwarp.wave.model_error`) does not ask for the wave step (a given ``tolerance`` below it), it fits
     ``memory_budget_bytes`` and it plans fewer flops than ``rw.plan``. Pilot arrays as ``RayWave`` holds them
     (mm, (S, N, 3)); ``carrier`` (S, 2) the chief rays' frequencies (cycles/mm), ``centers`` (S, 2) their patch
