@@ -51,9 +51,9 @@ CPU): 64 px at the lens's own 15.3 um pixel, the Kirchhoff form where "auto" too
 EF85 10 deg 8.5e-4 against 2.4e-4, RF50 10 deg 5.7e-5 against 2.7e-4); the A489 on axis, 5 px, 300 rays, 7.6e-5 (est
 1.7e-4, ``tests/rwwarp/test_pixel_scale.py``). So the estimate is 0.3-8x the measured error: a scale (1e-4 to 3e-4),
 not a bound; every measured error of the form is below 1e-3 (largest 8.5e-4, EF85 10 deg on 9 px at 601 rays; 2.6e-4
-at 64 px, 672 rays, in the Debye form that "auto" takes there). What it misses is the rays: on the f/2.8 lenses, where
-the planner takes ``RAY_MIN`` = 601 across, the error falls with more rays (EF100 on axis: 4.3e-4 / 2.7e-4 / 1.5e-4
-at 601 / 721 / 901), which the quadrature part (a constant) does not follow.
+at 64 px, 672 rays, in the Debye form that "auto" takes there). What it misses: on the f/2.8 lenses at ``RAY_MIN`` =
+601 rays across, 1.7-4.3e-4, moving with the rays but not monotonically (:data:`KIRCHHOFF_QUAD_ERROR`), at the level
+the full computation itself is converged to; not resolved here.
 """
 from __future__ import annotations
 
@@ -93,9 +93,10 @@ KIRCHHOFF_REST_ERROR = 3.4e-3
 #: :func:`kirchhoff_error_estimate`: the pupil quadrature's share (the rays as point samples of whole cells, the rim a
 #: staircase of them), with the reference's own convergence (~1e-4: docs "What the error follows"): the calibration
 #: cases' measured error less their tile part, their median (module docstring). Not a model of the rays: 0.6-1.1e-4
-#: at 300 rays across (A489, Cooke triplet, small patches), but on the f/2.8 camera lenses at 600 it is 2-4e-4 and falls
-#: with more (EF100 on axis, 64 px: 4.3e-4 / 2.7e-4 / 1.5e-4 at 601 / 721 / 901 rays; the f/1.8 lenses at 630-760
-#: rays: 3-5e-5): the one part of the estimate that under-estimates (2-3x there)
+#: at 300 rays across (A489, Cooke triplet, small patches); on the f/2.8 camera lenses on axis, 64 px, 1.7-4.3e-4 at 601
+#: rays and not monotonic in them (601 / 721 / 901: EF100 4.3 / 2.7 / 1.5e-4, EF40 3.2 / 2.7 / 0.98e-4, Sigma 70
+#: 1.7 / 1.9 / 3.5e-4), the level the reference itself is converged to (~1e-4: docs "What the error follows"); the f/1.8
+#: lenses at 630-760 rays 3-5e-5. The part of the estimate that under-estimates there (2-3x)
 KIRCHHOFF_QUAD_ERROR = 7.5e-5
 #: :func:`kirchhoff_error_estimate`: the Debye samples beyond the near tiles, this fraction of the Debye form's
 #: estimate (measured against the Kirchhoff form on every tile: EF35 / EF50 at 64 px 7.6e-6 / 1.4e-6, A489 9 px
