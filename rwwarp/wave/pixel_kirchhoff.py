@@ -29,6 +29,31 @@ spread, the corrections at ``REST_SPREAD``; tiles ``2 a`` wide with ``k0 n 2 a^2
 most ``KIRCHHOFF_TILE_MAX``). The spreading is most of it (EF35 f/2 at 15.3 um, 64 px: 9 x 9 tiles of 220, ~0.29 M
 samples each). Memory: one tile at a time, its vectors in chunks whose grids fit ``KIRCHHOFF_GRID_BYTES``. Arrays:
 numpy or CuPy (``xp``).
+
+Where it runs (:func:`rwwarp.wave.pixel_scale.plan_field`): on the fewest tiles (:func:`region_tiles`, each at most
+:func:`tile_limit` a side, the curvature seen from the region's corners) that cover the spot's region, the pilot
+landings' box widened by 12 / B a side; the Debye form's samples elsewhere (the two differ by < 2e-6 of the peak
+there on the A489 test). A tile only as large as the region needs has a smaller rest than ``KIRCHHOFF_EPS``: EF35 f/2
+on axis, 64 px, 4 tiles of 112 (eps 0.013 rad) against 5 of 220 (0.05) before: 14.9 against 19.3 GFLOP, and 3.7e-5
+against 1.43e-4 of the peak off the full computation on the central 9 px.
+
+Error estimate (:func:`kirchhoff_error_estimate`; "auto" compares it with the tolerance, ``--explain`` prints its
+parts): the tile part ``eps^3 / 3 + cubic^2 + 3.4e-3 eps`` from the planned tiles (derived: the expansion's rests and
+the corrections' NUFFT; the Rayleigh-Sommerfeld test measures 0.3-0.6 of its NUFFT term), a quadrature part 7.5e-5
+(calibrated: the median of the calibration cases' measured error less their tile part: EF35 f/2 on axis and 2 deg,
+EF50 f/1.8 and RF50 f/1.8 on axis (5 px), RF50 2 deg, Cooke triplet 0 / 14 deg (9 px): 0.8-3.2x the measured), and
+1 % of the Debye form's estimate where its samples are kept beyond the tiles. Against measured errors on cases not
+used (``perf/pixel_auto.py``; the full computation on the central 9 px, focal at 9x finer pixels box-summed; this
+CPU): 64 px at the lens's own 15.3 um pixel, the Kirchhoff form where "auto" took it: EF50 f/1.8 0 deg 4.2e-5 (est
+1.5e-4), EF35 f/2 0 deg 3.7e-5 (1.4e-4), EF85 f/1.8 0 deg 2.9e-5 (2.4e-4), RF50 10 deg 9.9e-5 (2.7e-4), EF100 f/2.8
+0 deg 4.3e-4 (1.5e-4), 10 deg 1.0e-4 (1.7e-4), EF40 f/2.8 0 deg 3.2e-4 (1.6e-4), Sigma 70 f/2.8 0 deg 1.7e-4
+(1.3e-4); 9 px patches in the Kirchhoff form: 5.7e-5 to 4.3e-4 against estimates 1.3-2.8e-4 (within 3x in 10 of 12;
+EF85 10 deg 8.5e-4 against 2.4e-4, RF50 10 deg 5.7e-5 against 2.7e-4); the A489 on axis, 5 px, 300 rays, 7.6e-5 (est
+1.7e-4, ``tests/rwwarp/test_pixel_scale.py``). So the estimate is 0.3-8x the measured error: a scale (1e-4 to 3e-4),
+not a bound; every measured error of the form is below 1e-3 (largest 8.5e-4, EF85 10 deg on 9 px at 601 rays; 2.6e-4
+at 64 px, 672 rays, in the Debye form that "auto" takes there). What it misses: on the f/2.8 lenses at ``RAY_MIN`` =
+601 rays across, 1.7-4.3e-4, moving with the rays but not monotonically (:data:`KIRCHHOFF_QUAD_ERROR`), at the level
+the full computation itself is converged to; not resolved here.
 """
 from __future__ import annotations
 
@@ -59,6 +84,68 @@ REST_SPREAD = 3
 #: the terms of one tile, each a NUFFT weight vector: U's 1 (the plane waves), 4 + 10 (the quadratic rest to second
 #: order), 2 (the amplitude's first-order change), 6 (the cubic phase); U_w ("flux") one more
 N_TERMS = 23
+
+
+#: :func:`kirchhoff_error_estimate`: the corrections' NUFFT error per unit of their size at a tile's corner (rad),
+#: in the intensity: 2 x the Gaussian gridding's 1.7e-3 at REST_SPREAD (the Rayleigh-Sommerfeld test's error / eps:
+#: 1.0e-3, 1.3e-3, 2.1e-3 at eps 0.023, 0.0058, 0.0015: below it)
+KIRCHHOFF_REST_ERROR = 3.4e-3
+#: :func:`kirchhoff_error_estimate`: the pupil quadrature's share (the rays as point samples of whole cells, the rim a
+#: staircase of them), with the reference's own convergence (~1e-4: docs "What the error follows"): the calibration
+#: cases' measured error less their tile part, their median (module docstring). Not a model of the rays: 0.6-1.1e-4
+#: at 300 rays across (A489, Cooke triplet, small patches); on the f/2.8 camera lenses on axis, 64 px, 1.7-4.3e-4 at 601
+#: rays and not monotonic in them (601 / 721 / 901: EF100 4.3 / 2.7 / 1.5e-4, EF40 3.2 / 2.7 / 0.98e-4, Sigma 70
+#: 1.7 / 1.9 / 3.5e-4), the level the reference itself is converged to (~1e-4: docs "What the error follows"); the f/1.8
+#: lenses at 630-760 rays 3-5e-5. The part of the estimate that under-estimates there (2-3x)
+KIRCHHOFF_QUAD_ERROR = 7.5e-5
+#: :func:`kirchhoff_error_estimate`: the Debye samples beyond the near tiles, this fraction of the Debye form's
+#: estimate (measured against the Kirchhoff form on every tile: EF35 / EF50 at 64 px 7.6e-6 / 1.4e-6, A489 9 px
+#: 7.6e-7: 0.005 / 0.0008 / 0.002 of their Debye estimates)
+KIRCHHOFF_FAR_SHARE = 0.01
+
+
+def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, debye_estimate: float | None = None,
+                             ray_min: int = 600) -> dict:
+    """The estimated error of the Kirchhoff form (``method="pixel"``, :func:`kirchhoff_samples`) against the full
+    computation (the same rays' wave-plane field propagated exactly), max |difference| over the PSF's peak, and its
+    parts. The form sums the wave-plane field with the exact kernel, so what is left is what it approximates:
+
+    * ``tile``: the kernel's expansion over a tile (the quadratic rest ``eps_rad`` at the tile's corner to second
+      order: ``eps^3 / 6`` of the field; the cubic phase ``cubic_rad`` there to first: ``cubic^2 / 2``), and the
+      corrections' NUFFT at ``REST_SPREAD`` (``KIRCHHOFF_REST_ERROR eps``), each doubled in the intensity:
+      ``eps^3 / 3 + cubic^2 + KIRCHHOFF_REST_ERROR eps``;
+    * ``quadrature``: the pupil grid's cells as point samples (whole cells at the rim; the lattice's aliases beyond
+      the grid), calibrated: ``KIRCHHOFF_QUAD_ERROR``; measured alike at 300 and 600 rays across (``ray_grid``,
+      ``ray_min``: kept in the signature, not used: the planner takes ``RAY_MIN`` = 600 or more; the Debye form's
+      aliases' skirts grew its error below ~300);
+    * ``far``: where the Debye form's samples are kept beyond the near tiles (``debye_estimate`` given,
+      :func:`rwwarp.wave.pixel_scale.pixel_error_estimate`), ``KIRCHHOFF_FAR_SHARE`` of it.
+
+    Validated against measured errors in ``perf/pixel_auto.py`` (the table in the module docstring of
+    :mod:`rwwarp.wave.pixel_scale`). Returns ``estimate`` (the sum) and the parts (dimensionless)."""
+    eps, cub = abs(float(eps_rad)), abs(float(cubic_rad))
+    tile = eps ** 3 / 3.0 + cub ** 2 + KIRCHHOFF_REST_ERROR * eps
+    quad = KIRCHHOFF_QUAD_ERROR
+    far = KIRCHHOFF_FAR_SHARE * float(debye_estimate) if debye_estimate is not None else 0.0
+    return {"estimate": float(tile + quad + far), "tile": float(tile), "quadrature": float(quad), "far": float(far)}
+
+
+def tile_rests(P, T, lam_mm: float, n_med: float, h_mm: float, nt: int, norm: float) -> tuple:
+    """``(eps, cubic)`` (rad) at the corners of a tile of ``nt`` samples of ``h_mm`` centred at ``T`` (3,) (mm): the
+    quadratic rest ``k0 n 2 a^2 norm`` (``a`` the half side, ``norm`` from :func:`tile_limit`) and the largest cubic
+    phase ``k0 n |u.D| (|D|^2 - (u.D)^2) / (2 r^2)`` over the wave-plane samples ``P`` (J, 3) (mm) and the corners and
+    edge midpoints ``D``. numpy."""
+    kn = 2.0 * math.pi / lam_mm * n_med
+    a = 0.5 * int(nt) * h_mm
+    P = np.asarray(P, float)
+    d = np.asarray(T, float) - P
+    r = np.sqrt(np.sum(d * d, -1))
+    u = d / r[:, None]
+    cub = 0.0
+    for Dx, Dy in ((a, a), (a, -a), (a, 0.0), (0.0, a)):
+        ud = u[:, 0] * Dx + u[:, 1] * Dy
+        cub = max(cub, float(np.max(kn * np.abs(ud) * (Dx * Dx + Dy * Dy - ud * ud) / (2.0 * r * r))))
+    return kn * 2.0 * a * a * float(norm), cub
 
 
 def n_vectors(flux: bool) -> int:
@@ -97,18 +184,42 @@ def _rest_norm(g, xp):
     return float(xp.max(xp.abs(0.5 * (a + c)) + xp.sqrt(0.25 * (a - c) ** 2 + b * b)))
 
 
+def tile_limit(P, points_T, lam_mm: float, n_med: float, h_mm: float, tile_max: int = KIRCHHOFF_TILE_MAX,
+               xp=np) -> tuple:
+    """``(nt_max, norm)``: the largest even tile side (samples of ``h_mm``) whose quadratic rest stays below
+    ``KIRCHHOFF_EPS`` rad at its corners (``k0 n 2 a^2 norm``, ``a`` the half side, ``norm`` (1/mm) the rest's largest
+    spread over the wave-plane samples ``P`` (J, 3) (mm), :func:`_rest_norm`), seen from each point of ``points_T``
+    ((m, 3) mm: the tiles' centres or their region's corners; the largest norm), at most ``tile_max``."""
+    k0 = 2.0 * math.pi / lam_mm
+    P = xp.asarray(P, dtype=xp.float64)
+    norm = 0.0
+    for T in np.atleast_2d(np.asarray(points_T, float)):
+        Tx = xp.asarray(T)
+        r0 = xp.sqrt(xp.sum((Tx - P) ** 2, -1))
+        norm = max(norm, _rest_norm(_coefficients(r0, (Tx - P) / r0[:, None], xp), xp))
+    half = math.sqrt(KIRCHHOFF_EPS / (k0 * n_med * 2.0 * max(norm, 1e-30)))     # a: |D|^2 <= 2 a^2
+    return max(8, min(int(tile_max), 2 * int(half / h_mm))), norm
+
+
+def region_tiles(region, nt_max: int, n: int) -> tuple:
+    """``(nt, origins)``: the fewest square tiles of at most ``nt_max`` (even) samples a side that cover ``region``
+    ``(y0, y1, x0, x1)`` (sample indices of the ``n``-sample grid, half-open), all of one side ``nt`` (even, the
+    smallest that covers it in that count), ``origins`` their first samples ``(sy, sx)`` (kept inside the grid:
+    a last tile may overlap its neighbour)."""
+    y0, y1, x0, x1 = (int(v) for v in region)
+    wy, wx = max(1, y1 - y0), max(1, x1 - x0)
+    ty, tx = math.ceil(wy / nt_max), math.ceil(wx / nt_max)
+    nt = min(nt_max, 2 * math.ceil(max(wy / ty, wx / tx) / 2), 2 * (n // 2))
+    fit = lambda s: max(0, min(int(s), n - nt))
+    return nt, tuple((fit(y0 + i * nt), fit(x0 + j * nt)) for i in range(ty) for j in range(tx))
+
+
 def kirchhoff_tiles(P, T, lam_mm: float, n_med: float, h_mm: float, n: int, tile_max: int = KIRCHHOFF_TILE_MAX,
                     xp=np):
     """``(n_t, t)``: the sensor grid of ``n`` samples a side in ``t x t`` tiles of ``n_t`` (even) for
     :func:`kirchhoff_samples`: the quadratic term's rest, spread over the wave-plane samples ``P`` (J, 3) (mm)
     seen from the patch centre ``T`` (3,), below ``KIRCHHOFF_EPS`` rad at a tile's corner; ``n_t <= tile_max``."""
-    k0 = 2.0 * math.pi / lam_mm
-    P = xp.asarray(P, dtype=xp.float64)
-    Tx = xp.asarray(np.asarray(T, float))
-    r0 = xp.sqrt(xp.sum((Tx - P) ** 2, -1))
-    norm = _rest_norm(_coefficients(r0, (Tx - P) / r0[:, None], xp), xp)
-    half = math.sqrt(KIRCHHOFF_EPS / (k0 * n_med * 2.0 * max(norm, 1e-30)))     # a: |D|^2 <= 2 a^2
-    nt = max(8, min(int(tile_max), 2 * int(half / h_mm)))
+    nt, _ = tile_limit(P, [T], lam_mm, n_med, h_mm, tile_max, xp)
     t = max(1, int(math.ceil(n / nt)))
     return 2 * int(math.ceil(n / (2 * t))), t
 
@@ -167,7 +278,7 @@ def near_tiles(n: int, nt: int, t: int, h_mm: float, reach_mm: float | None):
 
 def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_mm: float, n: int, flux: bool,
                       xp=np, tile_max: int = KIRCHHOFF_TILE_MAX, grid_bytes: int | None = None, base=None,
-                      reach_mm: float | None = None):
+                      reach_mm: float | None = None, tiling=None):
     """``|U|^2`` (``flux`` False) or ``Re(conj(U) U_w)`` on the sensor grid ``T + (m - n/2) h`` (mm; ``m = 0 ..
     n-1`` per axis, array ``[y, x]``), ``U`` the Rayleigh-Sommerfeld sum of the wave-plane samples.
 
@@ -178,22 +289,30 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     :func:`kirchhoff_tiles` (``tile_max``), one after the other; a tile's weight vectors go through the NUFFT in
     chunks (:func:`chunk_vectors`, ``grid_bytes``), so memory is bounded whatever ``n``. ``reach_mm``: only the tiles
     within it of ``T`` (:func:`near_tiles`), the others taken from ``base`` ((n, n), e.g. the Debye form's samples;
-    not changed). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
+    not changed). ``tiling``: ``(nt, origins)`` (:func:`region_tiles`: tiles of ``nt`` samples starting at
+    ``origins`` ``(sy, sx)``, the planned region near the spot) instead of the regular tiles; the samples beyond them
+    from ``base`` (zeros where None). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
     grid's band."""
     from . import nufft
     k0 = 2.0 * math.pi / lam_mm
     kn = k0 * n_med
     P = xp.asarray(P, dtype=xp.float64)
     T = np.asarray(T, float)
-    nt, t = kirchhoff_tiles(P, T, lam_mm, n_med, h_mm, n, tile_max, xp)
+    if tiling is not None:
+        nt, origins = int(tiling[0]), [tuple(int(v) for v in o) for o in tiling[1]]
+        if nt % 2 or nt > n or any(min(o) < 0 or max(o) > n - nt for o in origins):
+            raise ValueError(f"kirchhoff_samples: tiling {nt} samples at {origins} does not fit the {n}-sample grid")
+    else:
+        nt, t = kirchhoff_tiles(P, T, lam_mm, n_med, h_mm, n, tile_max, xp)
+        origins = [(ay * nt, ax * nt) for ay, ax in near_tiles(n, nt, t, h_mm, reach_mm)]
     kc = chunk_vectors(nt, len(P), flux, grid_bytes)
     if reach_mm is not None and base is None:
         raise ValueError("kirchhoff_samples: reach_mm needs base, the samples of the tiles beyond it")
-    out = xp.zeros((n, n)) if reach_mm is None else xp.array(base, dtype=xp.float64, copy=True)
+    out = xp.zeros((n, n)) if base is None else xp.array(base, dtype=xp.float64, copy=True)
     m = xp.asarray(np.arange(-nt // 2, nt // 2) * h_mm)
     Dy, Dx = m[:, None], m[None, :]
-    for ay, ax in near_tiles(n, nt, t, h_mm, reach_mm):
-        m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
+    for sy, sx in origins:
+        m0y, m0x = sy + nt // 2 - n // 2, sx + nt // 2 - n // 2
         X = xp.asarray([T[0] + m0x * h_mm, T[1] + m0y * h_mm, T[2]])
         d = X - P
         r = xp.sqrt(xp.sum(d * d, -1))
@@ -227,8 +346,8 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
             del N
         It = xp.real(xp.conj(U) * Uw) if flux else xp.abs(U) ** 2
         del U, Uw, terms, w, r, u, tx, ty
-        hy, hx = min(nt, n - ay * nt), min(nt, n - ax * nt)
-        out[ay * nt:ay * nt + hy, ax * nt:ax * nt + hx] = It[:hy, :hx]
+        hy, hx = min(nt, n - sy), min(nt, n - sx)
+        out[sy:sy + hy, sx:sx + hx] = It[:hy, :hx]
     return out
 
 

@@ -30,8 +30,9 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.76 GiB, 22.0 GFLOP (the Kirchhoff form on
-the 4 of 100 tiles near the spot; docs/propagation.md "Large pixels", "64 px patches"); :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.73 GiB, 19.7 GFLOP (the Kirchhoff form on
+4 tiles of 134^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; ``perf/pixel_auto.py``);
+:func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
 
 Error against the full computation (the same rays' field splatted on the wave plane and propagated exactly),
@@ -45,13 +46,26 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
   reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
   (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
-  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2; "auto" takes
-  it where the grid needs at most ``KIRCHHOFF_MAX_TILES`` tiles, decided at planning (:func:`plan_field`, in
-  ``Plan.pixel_field``); the cost model (:func:`pixel_cost`) is the planned form's, the error estimate here the
-  Debye form's (an upper bound for the Kirchhoff form);
+  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2, on the tiles
+  over the spot's region only (the pilot landings' box + ``KIRCHHOFF_MARGIN / B`` a side, the fewest tiles that
+  cover it), the Debye form's samples elsewhere; its own estimate:
+  :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate` (the kernel's expansion over a tile, the corrections'
+  NUFFT, the pupil quadrature, the Debye samples beyond the tiles);
 * the quadrature: the aliases of the ray lattice (beyond the grid by construction, their skirts kept off by
   ``RAY_MIN``), the pupil rim as whole cells; the NUFFT (1e-6) and the box weights (exact for the band-limited
   samples) are below that.
+
+**Which form, and whether** (:func:`plan_forms`, :func:`choose_form`, :func:`consider_pixel`). Both forms are
+planned from the pilot (:func:`plan_field`: tiling, points; :func:`pixel_cost`) with their error estimates; the form
+that runs is the one of fewer flops whose estimate is within the tolerance (``rw.psf(..., tolerance=)``, default
+``DEFAULT_TOLERANCE`` = 1e-3 of the peak) and whose memory fits the budget (``FIELD_FORM`` "debye" / "kirchhoff"
+forces one). ``method="auto"`` then runs the pixel method where that form exists, the pixel spans at least
+``MIN_PIXEL_AIRY`` Airy radii, the wave step is not wanted and it plans fewer flops than the focal / ASM plan;
+``--explain`` (``plan.explain()``) shows a line per form (``debye form: error ~..., GiB, GFLOP`` with the estimate's
+parts), the form chosen and why (``sensor field form kirchhoff: the form of fewer flops whose error estimate is
+within the tolerance 0.001 (debye ~0.0016 / 8.5 GFLOP, kirchhoff ~0.00013 / 15.5 GFLOP)``) and ``method auto: pixel
+(...)`` or ``pixel method not chosen: ...``. An explicit ``method="pixel"`` with no form within the tolerance runs
+the Kirchhoff form where it needs at most ``KIRCHHOFF_MAX_TILES`` tiles, else the Debye form (as before).
 
 Not handled: DOEs (their diffraction orders); ``method="auto"`` does not pick it for a lens with a DOE that
 is not blank. Units: mm, um for wavelengths at the public interface, cycles/mm. Arrays: numpy or CuPy
@@ -92,6 +106,14 @@ KIRCHHOFF_MAX_TILES = 4
 #: the Kirchhoff form only on the tiles within the spot's reach (the pilot landings' largest offset from the patch
 #: centre + 12 / B) of the patch centre, the Debye form's samples elsewhere (``KIRCHHOFF_MAX_TILES`` counts those tiles)
 KIRCHHOFF_NEAR = True
+#: the Kirchhoff tiles' region: the pilot landings' box about the patch centre widened by this many 1 / B a side
+#: (:func:`plan_field`)
+KIRCHHOFF_MARGIN = 12.0
+#: the Gaussian gridding's half-width (cells) of the Debye samples kept beyond the Kirchhoff tiles: their relative error
+#: exp(-pi 5 (R - 1/2) / R) ~ 7.6e-6 of the field's norm (1e-6 at NUFFT_SPREAD = 6), at most ~1.5e-5 of the peak in
+#: the intensity there (where the light is, the Kirchhoff tiles' own NUFFTs at the full spread); 100 cells a point
+#: instead of 144
+DEBYE_FAR_SPREAD = 5
 
 
 # ---------------------------------------------------------------------------------------------- numerics
@@ -211,7 +233,7 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     )
     nt, t = tiles(n)
     plan = Plan(h, n, NUFFT_OVERSAMPLE * nt, ray_grid, "auto", False, reasons, "pixel", h, n, NUFFT_OVERSAMPLE * nt)
-    return plan, {"band": band, "airy_mm": airy, "reach_mm": reach}
+    return plan, {"band": band, "airy_mm": airy, "reach_mm": reach, "margin_mm": KIRCHHOFF_MARGIN / band}
 
 
 def tiles(n: int):
@@ -223,45 +245,72 @@ def tiles(n: int):
 
 def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sensor: float, h_mm: float, n: int,
                ray_grid: int, flux: bool, form: str | None = None, pupil_fill: float = math.pi / 4,
-               reach_mm: float | None = None) -> dict:
+               reach_mm: float | None = None, margin_mm: float | None = None) -> dict:
     """The sensor field's form of a ``method="pixel"`` batch and its tiling, from the pilot trace.
 
     The pilot rays (``pos_s`` (S, N, 3) their sensor landings, ``dir_s`` (S, N, 3) directions, ``ok`` (S, N)) are
-    continued back to the wave plane ``z_plane`` (mm); the Kirchhoff form's tiles as
-    :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_tiles` seen from each patch centre (``centers`` (S, 2) mm, on
-    ``z_sensor``), the worst source's; its points: the pilot's valid fraction of ``pupil_fill ray_grid^2``
-    (``pupil_fill``: the share of the square pupil grid inside the pupil, pi / 4 for a circle). ``form`` (None:
-    ``FIELD_FORM``): "kirchhoff", "debye" or "auto" (kirchhoff where it takes at most ``KIRCHHOFF_MAX_TILES`` tiles).
-    ``reach_mm``: the spot's reach from the patch centre; with ``KIRCHHOFF_NEAR`` the Kirchhoff form covers only the
-    tiles within it (:func:`rwwarp.wave.pixel_kirchhoff.near_tiles`) over the Debye form's samples.
+    continued back to the wave plane ``z_plane`` (mm); its points: the pilot's valid fraction of ``pupil_fill
+    ray_grid^2`` (``pupil_fill``: the share of the square pupil grid inside the pupil, pi / 4 for a circle). ``form``
+    (None: ``FIELD_FORM``): "kirchhoff", "debye" or "auto" (kirchhoff where it takes at most ``KIRCHHOFF_MAX_TILES``
+    tiles; :func:`consider_pixel` chooses by the error estimates and the tolerance instead).
+
+    The Kirchhoff form's region: with ``KIRCHHOFF_NEAR``, the pilot landings' bounding box about each patch centre
+    (``centers`` (S, 2) mm, on ``z_sensor``) widened by ``margin_mm`` a side (the union over the sources; where
+    ``margin_mm`` is None, the square of half side ``reach_mm``), the Debye form's samples elsewhere; else (or where
+    ``reach_mm`` is None) the whole grid. It is covered by the fewest tiles of one side whose quadratic rest stays below
+    ``KIRCHHOFF_EPS`` (:func:`rwwarp.wave.pixel_kirchhoff.tile_limit`, seen from the region's corners;
+    :func:`~rwwarp.wave.pixel_kirchhoff.region_tiles`), each as small as covers it in that count.
     Returns ``{"form", "tile", "tiles", "points", "vectors", "near", "reach_mm"}`` (``tile`` samples a side,
-    ``tiles`` a side of the grid, ``vectors`` the NUFFT weight vectors a tile: the chosen form's; ``near`` the
-    Kirchhoff tiles, ``reach_mm`` None where all are)."""
-    from .pixel_kirchhoff import kirchhoff_tiles, n_vectors, near_tiles
+    ``tiles`` a side of the grid in tiles of ``tile``, ``vectors`` the NUFFT weight vectors a tile: the chosen
+    form's; ``near`` the Kirchhoff tiles, ``reach_mm`` None where they cover the grid) and for the Kirchhoff form
+    ``origins`` (the tiles' first samples), ``eps`` and ``cubic`` (rad: the kernel's rests at a tile's corner,
+    :func:`~rwwarp.wave.pixel_kirchhoff.tile_rests`)."""
+    from .pixel_kirchhoff import n_vectors, region_tiles, tile_limit, tile_rests
     form = FIELD_FORM if form is None else form
     if form not in ("auto", "kirchhoff", "debye"):
         raise ValueError(f"pixel method: the sensor field's form must be 'auto', 'kirchhoff' or 'debye', got {form!r}")
-    nt, t, pts = 8, 0, 0
+    near_only = KIRCHHOFF_NEAR and reach_mm is not None
+    lo, hi, pts, wave = np.full(2, np.inf), np.full(2, -np.inf), 0, []
     for k in range(len(centers)):
         sel = np.asarray(ok[k], bool)
         p, dd = np.asarray(pos_s[k], float)[sel], np.asarray(dir_s[k], float)[sel]
         P = p + ((float(z_plane) - p[:, 2]) / dd[:, 2])[:, None] * dd
-        T = (float(centers[k][0]), float(centers[k][1]), float(z_sensor))
-        nk, tk = kirchhoff_tiles(P, T, float(lam_mm[k]), float(n_after[k]), h_mm, n)
-        if tk > t:
-            nt, t = nk, tk
+        T = np.array([float(centers[k][0]), float(centers[k][1]), float(z_sensor)])
+        off = p[:, :2] - T[:2]
+        if margin_mm is None:
+            lo, hi = np.minimum(lo, -float(reach_mm or 0.0)), np.maximum(hi, float(reach_mm or 0.0))
+        else:
+            lo, hi = np.minimum(lo, off.min(0) - margin_mm), np.maximum(hi, off.max(0) + margin_mm)
+        wave.append((P, T, float(lam_mm[k]), float(n_after[k])))
         pts = max(pts, int(math.ceil(float(np.mean(sel)) * pupil_fill * ray_grid ** 2)))
-    reach = float(reach_mm) if KIRCHHOFF_NEAR and reach_mm is not None else None
-    near = len(near_tiles(n, nt, t, h_mm, reach))
-    reach = None if near == t * t else reach          # every tile near: no Debye samples under them
+    # the region in samples (sample m at (m - n / 2) h from the patch centre), the whole grid where not near_only
+    region = (0, n, 0, n)
+    if near_only:
+        region = (max(0, math.floor(n / 2 + lo[1] / h_mm)), min(n, math.ceil(n / 2 + hi[1] / h_mm) + 1),
+                  max(0, math.floor(n / 2 + lo[0] / h_mm)), min(n, math.ceil(n / 2 + hi[0] / h_mm) + 1))
+    nt_max, norms = 1 << 30, []
+    for P, T, lam, nm in wave:     # the rest's spread seen from the region's corners (and the centre): the largest
+        pts_T = [T] + [T + np.array([(region[2 + c] - n / 2) * h_mm, (region[r] - n / 2) * h_mm, 0.0])
+                       for r in (0, 1) for c in (0, 1)]
+        ntk, normk = tile_limit(P, pts_T, lam, nm, h_mm)
+        nt_max, norms = min(nt_max, ntk), norms + [normk]
+    nt, origins = region_tiles(region, nt_max, n)
+    eps, cub = 0.0, 0.0
+    for (P, T, lam, nm), normk in zip(wave, norms):
+        e, c = tile_rests(P, T, lam, nm, h_mm, nt, normk)
+        eps, cub = max(eps, e), max(cub, c)
+    near = len(origins)
+    whole = region == (0, n, 0, n)
+    reach = None if whole else (float(reach_mm) if reach_mm is not None else None)
     if form == "auto":
         form = "kirchhoff" if near <= KIRCHHOFF_MAX_TILES else "debye"
     if form == "debye":
-        nt, t = tiles(n)
-        near, reach = 0, None
-    return {"form": form, "tile": int(nt), "tiles": int(t), "points": pts,
-            "vectors": n_vectors(flux) if form == "kirchhoff" else (2 if flux else 1), "near": int(near),
-            "reach_mm": reach}
+        nd, td = tiles(n)
+        return {"form": "debye", "tile": int(nd), "tiles": int(td), "points": pts, "vectors": 2 if flux else 1,
+                "near": 0, "reach_mm": None}
+    return {"form": "kirchhoff", "tile": int(nt), "tiles": int(math.ceil(n / nt)), "points": pts,
+            "vectors": n_vectors(flux), "near": int(near), "reach_mm": reach, "origins": origins,
+            "eps": float(eps), "cubic": float(cub)}
 
 
 def pixel_cost(plan, n_sources: int, size: int) -> dict:
@@ -289,10 +338,10 @@ def pixel_cost(plan, n_sources: int, size: int) -> dict:
     nt, t, J, K = int(f["tile"]), int(f["tiles"]), int(f["points"]), int(f["vectors"])
     mem = rays * 232 + plan.ray_grid ** 2 * 8 * 40 + 8 * n * n
     flops = rays * 4000.0 + n_sources * 4.0 * (n * n * size + n * size * size)
-    def debye(K):         # memory, NUFFT flops, flops of the Debye form on the whole grid, its own tiles
+    def debye(K, spread=None):    # memory, NUFFT flops, flops of the Debye form on the whole grid, its own tiles
         nd, td = tiles(n)
         M = NUFFT_OVERSAMPLE * nd
-        nu = n_sources * td * td * K * nufft_flops(J, 1, nd)
+        nu = n_sources * td * td * K * nufft_flops(J, 1, nd, spread)
         return GRID_CELL_BYTES * M * M + 3 * 16 * nd * nd, nu, nu + n_sources * td * td * 10.0 * J
     if f["form"] == "kirchhoff":
         near = int(f.get("near", t * t))
@@ -301,7 +350,7 @@ def pixel_cost(plan, n_sources: int, size: int) -> dict:
         flops += n_sources * near * tc["flops"]
         tile_mem = tc["memory_bytes"]
         if f.get("reach_mm") is not None:
-            dm, dn, df = debye(K - N_TERMS + 1)
+            dm, dn, df = debye(K - N_TERMS + 1, DEBYE_FAR_SPREAD)
             tile_mem, nufft, flops = max(tile_mem, dm) + 8 * n * n, nufft + dn, flops + df
         mem += tile_mem
     else:
@@ -380,7 +429,8 @@ def pixel_psf(rw):
         if form == "kirchhoff":
             # the wave-plane field summed with the exact kernel (rwwarp.wave.pixel_kirchhoff): its rim's boundary wave;
             # with reach, on the tiles near the spot only, the Debye form's samples elsewhere
-            I0 = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n) if reach is not None else None
+            I0 = (_debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n, DEBYE_FAR_SPREAD) if reach is not None
+                  else None)
             del amp, phase
             dA = tube_areas(Pw[None, ..., :2], valid[k][None], xp)[0]
             ok = valid[k] & (dA > 0) & (q[k] > 0)
@@ -388,8 +438,11 @@ def pixel_psf(rw):
             # |W|^2 d_z dA = q: the flux through the wave plane is the ray's power; "intensity" takes the power
             # spectrum as q without the obliquity (as the Debye form's |B|^2 dA_f = q): W sqrt(d_z)
             aw = xp.sqrt(xp.where(ok, q[k] * dA / (d[k, ..., 2] if flux else 1.0), 0.0))[ok]
+            f = pl.pixel_field or {}
+            tiling = (f["tile"], f["origins"]) if f.get("origins") else None     # the planned region (plan_field)
             I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
-                                  Tk, rw.carrier[k], h, n, flux, xp, base=I0, reach_mm=reach)
+                                  Tk, rw.carrier[k], h, n, flux, xp, base=I0,
+                                  reach_mm=None if tiling else reach, tiling=tiling)
             del dA, ok, Lw, aw, I0
         else:
             I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
@@ -402,8 +455,9 @@ def pixel_psf(rw):
     return out
 
 
-def _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n):
-    """The Debye form's ``|U|^2`` / ``Re(conj(U) U_w)`` on the sensor grid (:func:`pixel_psf`)."""
+def _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n, spread=None):
+    """The Debye form's ``|U|^2`` / ``Re(conj(U) U_w)`` on the sensor grid (:func:`pixel_psf`; ``spread`` the
+    gridding's half-width, None: ``NUFFT_SPREAD``)."""
     c = (amp * xp.exp(1j * phase))[use]
     cw = c * cos[use] if flux else None
     nt, t = tiles(n)
@@ -413,9 +467,9 @@ def _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n):
             # the tile's samples m0 + m', |m'| <= nt / 2: the points' phases shifted by m0 . theta
             m0y, m0x = ay * nt + nt // 2 - n // 2, ax * nt + nt // 2 - n // 2
             shift = xp.exp(1j * (m0x * tx + m0y * ty))
-            U = nufft.nufft_type1(tx, ty, c * shift, nt, xp)
+            U = nufft.nufft_type1(tx, ty, c * shift, nt, xp, spread=spread)
             if flux:
-                Uw = nufft.nufft_type1(tx, ty, cw * shift, nt, xp)
+                Uw = nufft.nufft_type1(tx, ty, cw * shift, nt, xp, spread=spread)
                 It = xp.real(xp.conj(U) * Uw)
                 del Uw
             else:
@@ -430,15 +484,78 @@ def field_reason(field: dict, cost: dict) -> str:
     """The plan's line saying which sensor-field form runs (:func:`plan_field`) and what it costs (:func:`pixel_cost`)."""
     if field["form"] == "kirchhoff":
         what = (f"the Kirchhoff (Rayleigh-Sommerfeld) sum of the wave-plane field (rwwarp.wave.pixel_kirchhoff): "
-                f"{field['tiles']} x {field['tiles']} tiles of {field['tile']}^2 (the kernel's curvature)"
-                + (f", the {field['near']} within the spot's reach {field['reach_mm'] * 1e3:.4g} um of the centre over the "
-                   f"Debye form's samples" if field.get("reach_mm") is not None else "")
+                f"{field['near']} tiles of {field['tile']}^2 (at most the kernel's curvature allows)"
+                + (f" over the spot's region (the pilot landings' box + {KIRCHHOFF_MARGIN:g} / B a side), the Debye form's "
+                   f"samples elsewhere" if field.get("reach_mm") is not None else " over the whole grid")
                 + f", {field['vectors']} NUFFTs of ~{field['points']} wave-plane samples a tile, {cost['chunk']} at a time")
     else:
         what = (f"the Debye plane waves of the rays: {field['tiles']} x {field['tiles']} tiles of {field['tile']}^2, "
                 f"{field['vectors']} NUFFT(s) of ~{field['points']} rays a tile")
-    return (f"sensor field form {field['form']} (FIELD_FORM {FIELD_FORM!r}: auto takes kirchhoff where it needs <= "
-            f"{KIRCHHOFF_MAX_TILES} tiles{' near the spot' if KIRCHHOFF_NEAR else ''}): {what}; NUFFTs {cost['nufft_flops'] / 1e9:.3g} of "
+    return (f"sensor field form {field['form']} (FIELD_FORM {FIELD_FORM!r}): {what}; NUFFTs {cost['nufft_flops'] / 1e9:.3g} of "
+            f"{cost['flops'] / 1e9:.3g} GFLOP")
+
+
+def plan_forms(ppl, info, pos_s, dir_s, ok, centers, lam_mm, n_after, rw, nf: float, slope: float) -> dict:
+    """Each sensor-field form of ``method="pixel"`` planned for the batch ``rw`` (a
+    :class:`rwwarp.wave.batch_plan.BatchPlan`) on the pixel plan ``ppl`` (:func:`plan_pixel`, ``info`` its second
+    value): ``{"debye": (field, cost, error), "kirchhoff": (...)}``, ``field`` from :func:`plan_field`, ``cost`` from
+    :func:`pixel_cost`, ``error`` the form's estimate against the full computation (:func:`pixel_error_estimate` from
+    the beam's Fresnel number ``nf`` seen from the patch and the rim slope ``slope`` (rad);
+    :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate` from the planned tiles' rests, the rays across the
+    pupil and, where the Debye form's samples are kept beyond the near tiles, the Debye estimate)."""
+    from dataclasses import replace
+    from .pixel_kirchhoff import kirchhoff_error_estimate
+    debye_err = pixel_error_estimate(nf, slope, rw.pixel, info["airy_mm"])
+    out = {}
+    for form in ("debye", "kirchhoff"):
+        field = plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, rw.z_plane, rw.z_sensor, ppl.sensor_pitch_mm,
+                           ppl.n_sensor, ppl.ray_grid, rw.pixel_values == "flux", form=form,
+                           pupil_fill=math.pi / 4 if rw.src["shape"] == "circle" else 1.0, reach_mm=info["reach_mm"],
+                           margin_mm=info["margin_mm"])
+        cost = pixel_cost(replace(ppl, pixel_field=field), rw.nsrc, rw.size)
+        err = debye_err if form == "debye" else kirchhoff_error_estimate(
+            field["eps"], field["cubic"], ppl.ray_grid, debye_err["estimate"] if field["reach_mm"] is not None else None,
+            RAY_MIN)
+        out[form] = (field, cost, err)
+    return out
+
+
+def choose_form(forms: dict, tolerance: float, explicit: bool, memory_budget_bytes=None) -> tuple:
+    """The sensor-field form that runs (``FIELD_FORM`` where it names one; "auto": of the forms :func:`plan_forms`
+    planned whose error estimate is within ``tolerance`` and whose memory fits ``memory_budget_bytes``, the one of
+    fewer flops; none: the Kirchhoff form for ``"auto"`` (the more accurate: the method is not chosen then), and for
+    an explicit ``method="pixel"`` the Kirchhoff form where at most ``KIRCHHOFF_MAX_TILES`` of its tiles are needed,
+    else the Debye form). Returns ``(form, reason)``."""
+    est = {f: v[2]["estimate"] for f, v in forms.items()}
+    flops = {f: v[1]["flops"] for f, v in forms.items()}
+    say = ", ".join(f"{f} ~{est[f]:.2g} / {flops[f] / 1e9:.3g} GFLOP" for f in forms)
+    if FIELD_FORM in ("debye", "kirchhoff"):
+        return FIELD_FORM, f"sensor field form {FIELD_FORM}: FIELD_FORM names it ({say})"
+    meet = [f for f in forms if est[f] <= tolerance and (memory_budget_bytes is None
+                                                          or forms[f][1]["memory_bytes"] <= memory_budget_bytes)]
+    if meet:
+        form = min(meet, key=lambda f: flops[f])
+        return form, (f"sensor field form {form}: the form of fewer flops whose error estimate is within the "
+                      f"tolerance {tolerance:.2g} ({say})")
+    if not explicit:
+        return "kirchhoff", f"sensor field form kirchhoff: no form's estimate within the tolerance {tolerance:.2g} ({say})"
+    form = "kirchhoff" if forms["kirchhoff"][0]["near"] <= KIRCHHOFF_MAX_TILES else "debye"
+    return form, (f"sensor field form {form}: no form's estimate within the tolerance {tolerance:.2g} ({say}); "
+                  f"method='pixel' asked for: kirchhoff where it needs <= {KIRCHHOFF_MAX_TILES} tiles")
+
+
+def form_line(form: str, field: dict, cost: dict, err: dict, nf: float, slope: float, ratio: float) -> str:
+    """The plan's line of one sensor-field form (:func:`plan_forms`): its error estimate and its parts, its cost."""
+    if form == "debye":
+        why = (f"{PIXEL_ERROR_C:g} S / sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S "
+               f"{slope:.3g} rad, N_F {nf:.4g} seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}")
+    else:
+        from .pixel_kirchhoff import KIRCHHOFF_REST_ERROR
+        why = (f"tiles eps^3 / 3 + cubic^2 + {KIRCHHOFF_REST_ERROR:g} eps = {err['tile']:.2g} (eps {field['eps']:.3g}, "
+               f"cubic {field['cubic']:.2g} rad at a corner of its {field['near']} tile(s) of {field['tile']}^2); "
+               f"quadrature {err['quadrature']:.2g}"
+               + (f"; Debye beyond the tiles {err['far']:.2g}" if field.get("reach_mm") is not None else ""))
+    return (f"{form} form: error ~{err['estimate']:.2g} of the peak ({why}), {cost['memory_bytes'] / 2 ** 30:.3g} GiB, "
             f"{cost['flops'] / 1e9:.3g} GFLOP")
 
 
@@ -447,8 +564,9 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     """Plan ``method="pixel"`` beside the plan a :class:`rwwarp.wave.raywave.RayWave` (``rw``, at the end of its
     planning) chose, and switch ``rw`` to it where it should run. ``explicit``: ``method="pixel"`` was asked for
     (it runs; a DOE that is not blank is refused with ``ValueError``). Otherwise (``"auto"``) it runs where the
-    lens has no DOE (or a blank one), the pixel spans at least ``MIN_PIXEL_AIRY`` Airy radii, its error
-    estimate (:func:`pixel_error_estimate`) is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``), the model's own
+    lens has no DOE (or a blank one), the pixel spans at least ``MIN_PIXEL_AIRY`` Airy radii, a sensor-field form's
+    error estimate is at most ``tolerance`` (None: ``DEFAULT_TOLERANCE``; the form of fewer flops among those:
+    :func:`plan_forms`, :func:`choose_form`), the model's own
     error (:mod:`rwwarp.wave.model_error`) does not ask for the wave step (a given ``tolerance`` below it), it fits
     ``memory_budget_bytes`` and it plans fewer flops than ``rw.plan``. Pilot arrays as ``RayWave`` holds them
     (mm, (S, N, 3)); ``carrier`` (S, 2) the chief rays' frequencies (cycles/mm), ``centers`` (S, 2) their patch
@@ -474,10 +592,6 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     n_after, lam_mm = np.asarray(rw.n_after, float), np.asarray(rw.lam_mm, float)
     freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
     ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
-    field = plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, rw.z_plane, rw.z_sensor, ppl.sensor_pitch_mm,
-                       ppl.n_sensor, ppl.ray_grid, rw.pixel_values == "flux",
-                       pupil_fill=math.pi / 4 if rw.src["shape"] == "circle" else 1.0, reach_mm=info["reach_mm"])
-    ppl = replace(ppl, pixel_field=field)
     ratio = rw.pixel / info["airy_mm"]
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
@@ -486,14 +600,17 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
         model = estimate_for_raywave(replace(rw, centers=centers))   # the rim slope against the sphere to the chief ray's patch
     slope = max(e.rim_slope_rad for e in model)
     model_err = max(e.estimate for e in model)
-    err = pixel_error_estimate(nf, slope, rw.pixel, info["airy_mm"])
-    cost = pixel_cost(ppl, rw.nsrc, rw.size)
     tol = DEFAULT_TOLERANCE if tolerance is None else float(tolerance)
-    line = (f"pixel method: error ~{err['estimate']:.2g} of the peak against the full computation ({PIXEL_ERROR_C:g} S "
-            f"/ sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S {slope:.3g} rad, N_F {nf:.4g} "
-            f"seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}), "
+    forms = plan_forms(ppl, info, pos_s, dir_s, ok, centers, lam_mm, n_after, rw, nf, slope)
+    form, why_form = choose_form(forms, tol, explicit, memory_budget_bytes)
+    field, cost, est = forms[form]
+    err = est
+    ppl = replace(ppl, pixel_field=field)
+    line = (f"pixel method: error ~{est['estimate']:.2g} of the peak against the full computation ({form} form), "
             f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, {cost['flops'] / 1e9:.3g} GFLOP")
-    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line, field_reason(field, cost))
+    form_lines = [form_line(f, *forms[f], nf, slope, ratio) for f in ("debye", "kirchhoff")]
+    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line, *form_lines, why_form)
+    ppl = ppl.with_reasons(field_reason(field, cost))
     if not explicit:
         why = []
         if ratio < MIN_PIXEL_AIRY:
@@ -512,7 +629,8 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
             if ratio >= MIN_PIXEL_AIRY:   # named where the chosen plan is over the memory budget
                 alt = (f"; or the pixel method ({cost['memory_bytes'] / 2 ** 30:.3g} GiB, error "
                        f"~{err['estimate']:.2g} of the peak): method='pixel' or tolerance >= {err['estimate']:.2g}")
-            return replace(rw, plan=pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})"),
+            return replace(rw, plan=pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})",
+                                                    *form_lines),
                            pixel_alternative=alt), False
         ppl = ppl.with_reasons(f"method auto: pixel ({ratio:.3g} Airy radii, error ~{err['estimate']:.2g} <= tolerance "
                                f"{tol:.2g}, {cost['flops'] / 1e9:.3g} GFLOP against {pl.method} "

@@ -83,15 +83,25 @@ def test_plan_cost_is_the_run_debye(nufft_calls):
     assert "sensor field form debye" in pl.explain()
 
 
-@pytest.mark.parametrize("size", [5, 15])     # 5 px: every tile near the spot; 15 px: 12 of 6 x 6 over the Debye form
-def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch, size):
+# 5 px, KIRCHHOFF_NEAR off: tiles over the whole grid (4 x 4 of 44, the last overlapping); 15 px: 9 tiles of 38 over the spot's region (the
+# pilot landings' box + 12 / B a side), the Debye form elsewhere
+@pytest.mark.parametrize("size,near_only", [(5, False), (15, True)])
+def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch, size, near_only):
     monkeypatch.setattr(ps, "FIELD_FORM", "kirchhoff")
+    monkeypatch.setattr(ps, "KIRCHHOFF_NEAR", near_only)
     lens = load_lens("a489_doe")
     kw = dict(size=size, pixel_mm=0.016, method="pixel", rays_per_sample=0.2)     # 121 rays across: the count only
     pl = rw.plan_psf(lens, 0.0, 0.55, **kw)
     f = pl.pixel_field
     assert f["form"] == "kirchhoff" == pl.estimate["form"] and f["vectors"] == 24
-    assert (f["reach_mm"] is None) == (size == 5) and f["near"] == (9 if size == 5 else 12)
+    assert (f["reach_mm"] is None) == (not near_only) and f["near"] == len(f["origins"]) == (16 if size == 5 else 9)
+    # the tiles lie inside the grid and, where all are Kirchhoff, cover it
+    n, nt = pl.n_sensor, f["tile"]
+    cover = np.zeros((n, n), bool)
+    for sy, sx in f["origins"]:
+        assert 0 <= sy <= n - nt and 0 <= sx <= n - nt
+        cover[sy:sy + nt, sx:sx + nt] = True
+    assert cover.all() == (not near_only)
     rw.psf(lens, 0.0, 0.55, **kw)
     kirch = [c for c in nufft_calls if c[2] == f["tile"]]
     debye = [c for c in nufft_calls if c[2] != f["tile"]]
@@ -99,6 +109,7 @@ def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch, size):
     # not every tile is near, the Debye form's U and U_w on the whole grid first (one tile of n_sensor)
     assert sum(c[1] for c in kirch) == 24 * f["near"]
     assert [(c[1], c[2]) for c in debye] == ([] if size == 5 else [(1, pl.n_sensor)] * 2)
+    assert all(c[3] == ps.DEBYE_FAR_SPREAD for c in debye)      # the Debye samples beyond the tiles: the narrower spread
     work = sum(_nufft_work(*c) for c in nufft_calls)
     assert pl.estimate["nufft_flops"] == pytest.approx(work, rel=0.01)
     ex = pl.explain()

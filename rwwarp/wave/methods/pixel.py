@@ -39,9 +39,10 @@ class Pixel(Propagation):
             return (f"sensor grid {plan.n_sensor}^2 at {plan.sensor_pitch_mm * 1e3:.4g} um, "
                     f"FFT {plan.n_sensor_fft}^2, ")
         from ..pixel_scale import NUFFT_OVERSAMPLE
+        kir = f["form"] == "kirchhoff" and f.get("origins")
         return (f"sensor grid {plan.n_sensor}^2 at {plan.sensor_pitch_mm * 1e3:.4g} um, {f['form']} sensor field in "
-                f"{f['tiles']} x {f['tiles']} tiles of {f['tile']}^2"
-                + (f" ({f['near']} near the spot, Debye elsewhere)" if f.get("reach_mm") is not None else "")
+                + (f"{f['near']} tiles of {f['tile']}^2" if kir else f"{f['tiles']} x {f['tiles']} tiles of {f['tile']}^2")
+                + (" (near the spot, Debye elsewhere)" if f.get("reach_mm") is not None else "")
                 + f", {f['vectors']} NUFFT(s) a tile (FFT "
                 f"{NUFFT_OVERSAMPLE * f['tile']}^2), ")
 
