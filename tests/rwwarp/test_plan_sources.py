@@ -224,10 +224,13 @@ def test_psf_map_bits_as_the_per_source_plans(monkeypatch):
     assert not _diff([b["plans"] for b in new.info["batches"]], [b["plans"] for b in old.info["batches"]])
 
 
-def test_a_batch_estimates_each_source_on_its_own():
+def test_a_batch_estimates_each_source_on_its_own(monkeypatch):
     """A batch's model-error estimates are each source's own (its notes did run on into the next sources'): a plan
     of two sources (pupils at their own wavelengths) has the estimate each has alone, notes included; the first
-    source (10 deg, 0.45 um) has a note, the second (on axis) none."""
+    source (10 deg, 0.45 um, rim slope 62 rad) has a note, the second (on axis) none. The checked slope range is
+    set to 35 rad here (its value before the steep-rim truths) so that the first source carries a note."""
+    monkeypatch.setattr(model_error, "CHECKED_SLOPE_RAD", 35.0)
+    monkeypatch.setattr(model_error, "CHECKED_OFF_AXIS_SLOPE_RAD", 35.0)
     lens = rw.load_lens("a489_doe")
     model_error._MEMO.clear()
     both = plan_batch(lens, [10.0, 0.0], [0.45, 0.55], 32, 0.002, method="focal", own_pupils=True)
