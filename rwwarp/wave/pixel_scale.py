@@ -593,6 +593,10 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
     ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
     ratio = rw.pixel / info["airy_mm"]
+    if not explicit and ratio < MIN_PIXEL_AIRY:
+        # auto never takes it for a pixel this small: its forms are not planned (half a map's planning was theirs)
+        return replace(rw, plan=pl.with_reasons(f"pixel method not chosen: pixel {ratio:.3g} < {MIN_PIXEL_AIRY:g} "
+                                                "Airy radii")), False
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
     nf = float(np.min(n_after * r_w ** 2 / (lam_mm * abs(rw.z_sensor - rw.z_plane))))
