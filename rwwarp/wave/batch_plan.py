@@ -294,7 +294,7 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
     # rim weighting (focal plans, energy convention, circular pupil): every pupil cell the disc touches
     # is traced from the centroid of its part inside the disc, weighted by that part (the splat gives it
     # that part of the tube; tube areas from the actual pupil steps), so the aperture edge is not a
-    # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
+    # staircase of cells: the focal method's error followed that staircase (docs/accuracy.md). The
     # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
     rim = amplitude == "energy" and src["shape"] == "circle" and get_method(pl.method).rim_weighted
     bp = BatchPlan(lens=lens, fields=list(fields), wls=list(wls), size=size, pixel=pixel, device=device, dtype=dtype,
@@ -340,7 +340,7 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
     # while small; the focal path takes over where the ASM's plan grows with the beam (Cooke
     # triplet: 11.8 GiB planned). On the CPU the arithmetic is the cost: the plan of fewer flops runs
     # (A489 map at 32 px: focal 0.4-1.3 GFLOP and 255-401^2 rays against asm 3.2-7.8 GFLOP and
-    # 533-790^2 rays a source). Both meet the refractive truths alike (docs/propagation.md).
+    # 533-790^2 rays a source). Both meet the refractive truths alike (docs/accuracy.md).
     small_asm = small_first and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
     # a plan over the memory budget cannot run: the one that fits wins whatever its work
     fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes

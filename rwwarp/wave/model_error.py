@@ -57,7 +57,7 @@ beam's own tilt is a shift of ``t``: it moves the spot and changes nothing). The
 phase too steep for the sum's sampling (slopes beyond ~180 rad: the estimate's note says so) and the ``S`` in
 the plan's line. The sum was checked up to rim slopes of 32 rad (below); beyond :data:`CHECKED_SLOPE_RAD` the
 note says so (the A489's beams 5-10 deg off axis reach 36-103 rad; there the sum reads 0.09-0.4x the one-step vs
-wave-path difference, which is no reference either: docs/propagation.md; those figures are the first evaluation's,
+wave-path difference, which is no reference either: docs/accuracy.md; those figures are the first evaluation's,
 d8e73cb, and the present one reads 0.57-2.5x its values on such beams, :mod:`rwwarp.wave.edge_wave` says why).
 
 Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact

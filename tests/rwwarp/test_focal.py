@@ -332,7 +332,7 @@ def test_wrapped_doe_off_design_wavelength_against_the_converged_asm():
     focal method was 1.43e-2 off with the integer-order series everywhere (the series converges slowly near
     the axis, where phi0 touches the wrap boundary 0 without crossing it); with the chief ray's zone exact,
     2.87e-3. Tolerance 6e-3 (about twice): the rest is the order series at the real zone edges (open,
-    docs/propagation.md)."""
+    docs/accuracy.md)."""
     import warnings
     from rwwarp.wave.plan import Plan, nice_fft_length
     lens = _cooke_with_doe(-30000.0, 0.0)
