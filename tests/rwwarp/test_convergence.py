@@ -15,7 +15,7 @@ from rwwarp.ground_truth import rs_lens_psf, rs_thin_lens_psf
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.wave.plan import Plan
 
-from _mirror import mirrored_truth
+from _mirror import mirrored_patch_truth, mirrored_truth
 
 WL = 0.55
 SIZE = 32
@@ -58,8 +58,10 @@ def rs_truth(lens, psf):
                                                               lens.surfaces[0].semi_diameter, WL,
                                                               lens.surfaces[1].thickness, qx, qy, psf.pixel_mm),
                               cx, cy)
-    return rs_lens_psf(lens, 0.0, WL, psf.center_mm, SIZE, psf.pixel_mm, radial_nodes=24, angular_nodes=96,
-                       pixel_nodes=3, include_doe=True)
+    # the DOEs here are even polynomials: the same symmetry, the truth on one quadrant of the patch, mirrored
+    return mirrored_patch_truth(lambda c, n: rs_lens_psf(lens, 0.0, WL, c, n, psf.pixel_mm, radial_nodes=24,
+                                                         angular_nodes=96, pixel_nodes=3, include_doe=True),
+                                psf.center_mm, SIZE, psf.pixel_mm)
 
 
 @pytest.fixture(scope="module")
