@@ -1,6 +1,6 @@
 """The ray-wave model's own error against the Fresnel number (issue 27): computed, not copied.
 
-Scene (docs/propagation.md, "The model's own error and the wave step"): ideal thin lens f = 50 mm, round stop
+Scene (docs/accuracy.md, "The model's own error and the wave step"): ideal thin lens f = 50 mm, round stop
 a = 5 mm (EPD 10), a radial DOE ``3 rho^4`` (rad) on the beam, sensor at the lens focus, 48 px of 0.5 um,
 0.55 um, on axis; the DOE 5 .. 45 mm before the sensor. For each distance:
 

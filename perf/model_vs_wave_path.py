@@ -16,7 +16,7 @@ which method ``"auto"`` picks and whether ``"auto"`` with ``tolerance=TOLERANCE`
 relative change of the peak intensity (Strehl-like: ``rwwarp.metrics.strehl.peak_intensity_from_psf``), of the
 RMS radius and of the 80 % encircled-energy radius, the power in the patch, the wave step's second-order
 shift ``s`` of the lens's own aberration (the plan's reasons) and the phase error it brings, ``pi s^2 / (lambda
-d)`` (rad; the wave path is taken as a reference only where it is below ``STEP_PHASE_MAX``: docs/propagation.md),
+d)`` (rad; the wave path is taken as a reference only where it is below ``STEP_PHASE_MAX``: docs/accuracy.md),
 and both times. For a lens whose DOE is flat it also moves the wave plane to the last refracting surface (the DOE
 removed) and reports how much that changes the one-step PSF: a part of the model's error that needs no step.
 ``--grid-check`` adds the one-step PSF on the wave path's own plan (the step apart from its finer grid).

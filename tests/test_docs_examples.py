@@ -1,8 +1,9 @@
 """The command-line examples of ``docs/cli/*.md`` run as written (each page's ``bash`` blocks in order, in an
-empty folder, ``.venv/bin/`` read as this interpreter's folder), and write what they name (76 s for the six
-pages on 2 cores). The design and validate pages run for minutes each and are left out of CI: the design
-page's commands (detach, status, pack, resume) are tested on a smaller config by
-tests/torch_bridge/test_runs.py; ``validate --quick`` itself is not run in CI."""
+empty folder, ``.venv/bin/`` read as this interpreter's folder), and write what they name (84 s for the six
+pages on 2 cores shared with other jobs; the report page's example reports two fields to keep it near 20 s).
+The design and validate pages run for minutes each and are left out of CI: the design page's commands
+(detach, status, pack, resume) are tested on a smaller config by tests/torch_bridge/test_runs.py;
+``validate --quick`` itself is not run in CI."""
 from __future__ import annotations
 
 import os

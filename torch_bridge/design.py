@@ -14,7 +14,7 @@ power entering the pupil per sensor pixel, rows along +y, for one wavelength per
   (:func:`rwwarp.psf.paraxial_equivalent`: an ideal thin lens at the DOE plane), which is how
   DOEs are designed when the refractive lens is idealised.
   With the module's ``method="two-step"`` the wave step (:mod:`rwwarp.wave.wave_step`) is applied to the
-  geometric field once, when it is cached (it does not depend on the DOE behind it): docs/propagation.md
+  geometric field once, when it is cached (it does not depend on the DOE behind it): docs/accuracy.md
   "In the design loop".
 
 Ray model (:class:`RaySpot`, :func:`paraxial_efl`, :func:`paraxial_achromat`): in

@@ -304,7 +304,7 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
     # rim weighting (focal plans, energy convention, circular pupil): every pupil cell the disc touches
     # is traced from the centroid of its part inside the disc, weighted by that part (the splat gives it
     # that part of the tube; tube areas from the actual pupil steps), so the aperture edge is not a
-    # staircase of cells: the focal method's error followed that staircase (docs/propagation.md). The
+    # staircase of cells: the focal method's error followed that staircase (docs/accuracy.md). The
     # ASM keeps whole cells: its converged Airy reference moved from 2.0e-5 to 5.8e-5 with it
     rim = amplitude == "energy" and src["shape"] == "circle" and get_method(pl.method).rim_weighted
     bp = BatchPlan(lens=lens, fields=list(fields), wls=list(wls), size=size, pixel=pixel, device=device, dtype=dtype,
@@ -352,7 +352,7 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
     # an uncached focal PSF is as fast (H100, c3f59eb, A489 at 0 / 10 deg, 64 px: focal 13.5 / 14.6 ms median
     # against the ASM's 15.7 / 15.7), a replayed one faster (2.2 / 1.9 against 3.9 / 4.0 ms), and a map's focal
     # members propagate as stacked operators (rwwarp.wave.focal_packed.run_focal_members). "small-asm" keeps the
-    # old rule by name. Both meet the refractive truths alike (docs/propagation.md).
+    # old rule by name. Both meet the refractive truths alike (docs/accuracy.md).
     small_asm = small_first and pl.estimate["memory_bytes"] <= 2 ** 30 and pl.estimate["flops"] <= 2e10
     # a plan over the memory budget cannot run: the one that fits wins whatever its work
     fits = [memory_budget_bytes is None or e["memory_bytes"] <= memory_budget_bytes

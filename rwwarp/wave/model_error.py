@@ -64,7 +64,7 @@ rim slopes of 300 rad (:data:`CHECKED_SLOPE_RAD`; beyond it the note says so) an
 rim slope of 206 rad at 0.5 deg (:data:`CHECKED_OFF_AXIS_SLOPE_RAD`; below).
 The A489's beams 5-10 deg off axis (36-135 rad, coma and astigmatism about the beam's centre) lie inside the checked
 slopes but not in a checked geometry (off axis, steep): there the sum is checked only against the brute-force
-evaluation of its own equations; docs/propagation.md's comparison with the one-step vs wave-path difference (0.09-0.4x,
+evaluation of its own equations; docs/accuracy.md's comparison with the one-step vs wave-path difference (0.09-0.4x,
 no reference either) was made with the first evaluation (d8e73cb) and not rerun.
 
 Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact

@@ -4,7 +4,7 @@ defocused on the sensor; their edge waves reach the patch centre and the rim's d
 model leaves out) turns them by their Fresnel phase. Checked against the independent Gauss-Hankel truth
 (``_wave_truth.radial_truth`` with the wrapped transmission ``exp(1j alpha (phi0 mod 2 pi))``, every order) and
 against the one-step vs wave-path difference on the stored Cooke design off its design wavelength (the case
-docs/propagation.md reported the main-order estimate missing by 20x / 4x). No constant of this part is fitted.
+docs/accuracy.md reported the main-order estimate missing by 20x / 4x). No constant of this part is fitted.
 """
 import sys
 import warnings

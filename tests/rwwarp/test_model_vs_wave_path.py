@@ -8,7 +8,7 @@ measurement, each against an independent reference.
 * the script's one-step vs wave-path difference (and, with ``grid_check``, that it is the step's and not the
   wave path's grid's) on the calibrated thin-lens scene (``_wave_truth.thin_lens_doe``,
   DOE 20 mm before the sensor, where the independent Gauss-Hankel truth puts the one-step error at 5.0e-3 and the
-  wave step within 2.4e-4 of it: docs/propagation.md) against the model-error estimate, within the documented
+  wave step within 2.4e-4 of it: docs/accuracy.md) against the model-error estimate, within the documented
   factor 2.
 """
 from __future__ import annotations

@@ -10,6 +10,18 @@ from rwwarp.lens import Lens, Surface
 from rwwarp.trace import disc_cell_fractions, disc_cells
 
 
+def _subsampled_fraction(x0, y0, h, m):
+    """Share of the m x m midpoint samples of the cell [x0, x0 + h] x [y0, y0 + h] inside the unit disc, counted
+    column by column: in column x the samples y_i = y0 + (i + 1/2) h / m with |y_i| <= sqrt(1 - x^2) are the
+    integers i between two bounds. The same count as the m x m mask ``x^2 + y^2 <= 1`` (identical on all 81
+    cells of the test below, measured), in O(m) instead of O(m^2)."""
+    x = x0 + (np.arange(m) + 0.5) / m * h
+    half = np.sqrt(np.maximum(1.0 - x * x, 0.0))
+    lo = np.maximum(np.ceil((-half - y0) * m / h - 0.5), 0)
+    hi = np.minimum(np.floor((half - y0) * m / h - 0.5), m - 1)
+    return np.where(x * x <= 1.0, np.maximum(hi - lo + 1, 0), 0).sum() / m ** 2
+
+
 def test_cell_fractions_are_exact():
     """The fractions add up to the disc's area pi (measured to 1.3e-15 for n up to 2001; tolerance
     1e-13) and match a 3000 x 3000 sub-sampling of every cell (whose own error is ~3e-6; tolerance 1e-5)."""
@@ -18,11 +30,9 @@ def test_cell_fractions_are_exact():
     n, m = 9, 3000
     h = 2.0 / n
     f = disc_cell_fractions(n)
-    t = (np.arange(m) + 0.5) / m * h
     for k in range(n * n):
         r, c = divmod(k, n)
-        X, Y = np.meshgrid(-1.0 + c * h + t, -1.0 + r * h + t)
-        assert abs(np.mean(X * X + Y * Y <= 1.0) - f[k]) < 1e-5
+        assert abs(_subsampled_fraction(-1.0 + c * h, -1.0 + r * h, h, m) - f[k]) < 1e-5
 
 
 def test_centroids_of_the_parts_inside():

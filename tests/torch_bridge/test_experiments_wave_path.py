@@ -48,7 +48,7 @@ def test_mirrored_fields_give_transposed_psfs_and_the_same_difference(cooke):
     # the asymmetry of either path measured 9e-8 of the peak (float sums of the splat): 1e-6
     assert asym < 1e-6
     # the step's difference (1.7e-3 measured) is resolved: over 1000 x the paths' own asymmetry, and below the
-    # model-error estimate for this beam (a 10-30x upper bound on the Cooke at 4 um pixels, docs/propagation.md)
+    # model-error estimate for this beam (a 10-30x upper bound on the Cooke at 4 um pixels, docs/accuracy.md)
     assert diff > 1000 * asym
     assert abs(diff - diff_m) < 2 * asym
     est = rw.plan_psf(lens, (1.0, 3.0), 0.55, size=31, pixel_mm=4e-3, nyquist_safety=1.0,
