@@ -1,7 +1,8 @@
 """Where a GPU's time goes in the issue-25 figures (on a GPU machine):
 (1) the floor of a cooke_hybrid design step set by its network alone: NAFNet `paper`, batch 8 x 3 x 256^2, forward +
 L1 loss + backward + Adam step, fp32 and bf16 autocast, eager (median ms of 10 after 3 warm-up);
-(2) the 10 x 10 x 3 A489 + DOE map, 64 px: wall of two warm calls, planning alone (rwwarp.wave.packed.source_plans of
+(2) the 10 x 10 x 3 A489 + DOE map, 64 px: wall of two warm calls, of calls with a rw.PlanCache (the first plans, the
+next replay), planning alone (rwwarp.wave.packed.source_plans of
 the 300 sources, warm), and a cProfile of one warm call (cumulative, rwwarp's functions).
     python perf/tools/gpu_breakdown.py [--out FILE.json]"""
 import argparse, cProfile, io, json, os, pstats, time, warnings
@@ -40,6 +41,11 @@ def map_breakdown():
     walls = []
     for _ in range(2):
         t0 = time.perf_counter(); rw.psf_map(lens, fields, wls, device="cuda", size=64); walls.append(time.perf_counter() - t0)
+    cache = rw.PlanCache()
+    cached = []
+    for _ in range(3):   # a map of a fixed lens: planned once, then its kept batches replayed
+        t0 = time.perf_counter(); rw.psf_map(lens, fields, wls, device="cuda", size=64, cache=cache)
+        cached.append(time.perf_counter() - t0)
     ff = [f for f in fields for _ in wls]; ww = [w for _ in fields for w in wls]
     pixel = lens.sensor.pixel_pitch
     source_plans(lens, ff, ww, 64, pixel, device="cuda")
@@ -48,6 +54,7 @@ def map_breakdown():
     s = io.StringIO(); pstats.Stats(pr, stream=s).sort_stats("cumulative").print_stats("rwwarp|warp/_src/context|cupy", 45)
     s2 = io.StringIO(); pstats.Stats(pr, stream=s2).sort_stats("tottime").print_stats(30)
     return {"psfs": 300, "map_wall_s": walls, "psf_per_s": 300 / min(walls), "plan_300_s": t_plan,
+            "cached_map_wall_s": cached, "cached_psf_per_s": 300 / min(cached[1:]),
             "plan_ms_per_source": 1e3 * t_plan / 300}, s.getvalue() + "\n" + s2.getvalue()
 
 
