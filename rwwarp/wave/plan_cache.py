@@ -159,7 +159,7 @@ def held_bytes(batches) -> int:
                 total += int(op.nbytes)
             for _, value in (getattr(m, "_memo", None) or {}).values():
                 total += _array_bytes(value)
-            tr = getattr(m, "tracer", None)
+            tr = m.tracer_made() if hasattr(m, "tracer_made") else getattr(m, "tracer", None)
             if tr is not None and id(tr) not in seen:
                 seen.add(id(tr))
                 total += int(tr.params_np.nbytes + tr.index_np.nbytes)

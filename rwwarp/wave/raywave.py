@@ -138,6 +138,12 @@ class RayWave:
         t = self._tracer
         return t.get() if isinstance(t, _TracerOnUse) else t
 
+    def tracer_made(self) -> Tracer | None:
+        """The tracer if it exists, None where it is made on first use (:meth:`from_plan` ``tracer_on_use``) and
+        nothing used it yet: what reads what is held (:func:`rwwarp.wave.plan_cache.held_bytes`) without making it."""
+        t = self._tracer
+        return t.tracer if isinstance(t, _TracerOnUse) else t
+
     def use_plan(self, batch_plan: BatchPlan) -> None:
         """Run ``batch_plan`` from now on (a new plan of the same sources and lens: :meth:`recentre`,
         :func:`rwwarp.wave.wave_step.plan_wave_step`); what was derived from the old one (the focal operator)

@@ -252,3 +252,17 @@ def test_cuda_hit_gives_the_bits_of_the_uncached_call(name, field, method):
     assert p.info["cache"] == "miss"
     assert float(np.max(np.abs(p.data - rw.psf(lens, field, 0.55, **kw).data))) <= 2.0 * noise
     assert float(np.max(np.abs(p.data[:ref.shape[0], :ref.shape[1]] - ref))) > 2.0 * noise   # the change shows
+
+
+def test_held_bytes_makes_no_tracer():
+    """Counting what a kept batch holds reads the members' tracers only where they exist: members planned with
+    their tracer made on first use (rwwarp.wave.packed.source_plans) are not given one by the count."""
+    from rwwarp.wave.packed import PackedRayWave, source_plans
+    from rwwarp.wave.plan_cache import held_bytes
+    lens = rw.load_lens("a489_doe")
+    ms = source_plans(lens, [0.0, 5.0], [0.55, 0.55], 16, lens.sensor.pixel_pitch, method="focal")
+    assert all(m.tracer_made() is None for m in ms)
+    packed = PackedRayWave(ms, hold=True)
+    n = held_bytes([(None, packed)])
+    assert n >= packed.tracer.params_np.nbytes > 0
+    assert all(m.tracer_made() is None for m in ms)
