@@ -138,6 +138,8 @@ def test_one_process_traces_each_sources_pilot_once(monkeypatch):
         return real(tr, src, plane, wls, pupil_wls, dtype)
     monkeypatch.setattr(P, "pilot_from_tracer", counting)
     monkeypatch.setattr(BP, "pilot_from_tracer", counting)
+    import rwwarp.wave.plan_sources as PS      # plan_sources (the map's planner) holds its own name for it
+    monkeypatch.setattr(PS, "pilot_from_tracer", counting)
     fields, wls = [0.0, 0.5, 0.8], [0.45, 0.65]
     m = D.psf_map(doe_lens(), fields, wls, size=SIZE, batch=2)
     assert traced == {(f, w): 1 for f in fields for w in wls}
