@@ -412,7 +412,36 @@ def packed_orders_factor(members, phi0, xp=np):
     return exact_zone(out, phi0, zt[:, 0, None, None], zt[:, 1, None, None], xp)
 
 
-def run_focal_members(members, u_all, precision: str, keep: dict | None = None, waste: float = 1.5) -> list:
+#: Bytes the stacked operators of one group may hold at once (:func:`run_focal_members` splits a group above it):
+#: the members' own path holds one member's operator at a time, a stack holds its group's together.
+STACK_MAX_BYTES = 2 << 30
+
+
+def stacked_bytes(shape, count: int) -> int:
+    """Bytes of ``count`` members stacked in one :class:`PackedFocalPropagator` padded to ``shape`` = (wave-plane
+    grid, sensor-side grid, FFT length, output nodes a side) (:func:`_shape`): step 1's two factors, the matrix DFT,
+    the transfer and band arrays, the output factors and the forward's work arrays, complex128."""
+    n, ns, nf, m = (int(v) for v in shape)
+    return int(count) * 16 * (2 * ns * n + nf * ns + 6 * nf * nf + 2 * m * nf + m * m + ns * ns)
+
+
+def _chunks(group, shapes, max_bytes):
+    """``group`` (indices) split in order so that each part's stacked operators stay within ``max_bytes``."""
+    out, cur, top = [], [], None
+    for k in group:
+        pad = shapes[k] if top is None else tuple(max(a, b) for a, b in zip(top, shapes[k]))
+        if cur and stacked_bytes(pad, len(cur) + 1) > max_bytes:
+            out.append(cur)
+            cur, pad = [], shapes[k]
+        cur.append(k)
+        top = pad
+    if cur:
+        out.append(cur)
+    return out
+
+
+def run_focal_members(members, u_all, precision: str, keep: dict | None = None, waste: float = 1.5,
+                      max_bytes: int = STACK_MAX_BYTES) -> list:
     """Pixel values (not normalised; each (1, size, size), in the order of ``members``) of single-source focal
     RayWaves (one lens, patch size and pixel, no wave step) from their wave-plane fields ``u_all`` ((S, n, n),
     member k's field in row k, zero past its own grid; numpy or CuPy), propagated as a few stacked operators
@@ -420,7 +449,9 @@ def run_focal_members(members, u_all, precision: str, keep: dict | None = None, 
     group's DOE transmission in one batch (:func:`packed_doe_phase`, :func:`packed_orders_factor`). Each
     member's values are its own :meth:`~rwwarp.wave.raywave.RayWave.focal_intensity` up to the order of the
     floating-point sums. ``keep``: a dict in which the operators and DOE factors are kept for the next run with
-    the same members (a kept batch), else built for this run only. Arrays stay where ``u_all`` is."""
+    the same members (a kept batch), else built for this run only. ``max_bytes``: a group whose stacked operators
+    would hold more (:func:`stacked_bytes`) is run in parts within it (a member alone may exceed it: its own plan
+    was checked against the memory budget). Arrays stay where ``u_all`` is."""
     from .focal import pixel_flux, pixel_power
     xp = np if isinstance(u_all, np.ndarray) else __import__("cupy")
     m0 = members[0]
@@ -429,28 +460,31 @@ def run_focal_members(members, u_all, precision: str, keep: dict | None = None, 
     for k, m in enumerate(members):
         by_nodes.setdefault(int(m.gauss_nodes), []).append(k)
     out = [None] * len(members)
+    shapes = [_shape(m) for m in members]
+    parts = []
     for gn, idx in by_nodes.items():
         for sub in focal_groups([members[k] for k in idx], waste):
-            g = [idx[i] for i in sub]
-            ms = [members[k] for k in g]
-            key = (tuple(g), precision, z)
-            hit = None if keep is None else keep.get(key)
-            n = max(int(m.plan.n_grid) for m in ms)
-            if hit is None:
-                op = PackedFocalPropagator.from_members(ms, z, precision, xp)
-                phi0 = packed_doe_phase(ms, n, xp)
-                fac = None if phi0 is None else packed_orders_factor(ms, phi0, xp)
-                hit = (op, fac, xp.asarray(np.array(g)))
-                if keep is not None:
-                    keep[key] = hit
-            op, fac, rows = hit
-            u = u_all[rows, :n, :n]
-            if fac is not None:
-                u = u * fac
-            if m0.pixel_values == "flux":
-                vals = pixel_flux(*op.forward_pair(u), gn, m0.pixel, m0.size, xp=xp)
-            else:
-                vals = pixel_power(op.forward(u), gn, m0.pixel, m0.size, xp=xp)
-            for i, k in enumerate(g):
-                out[k] = vals[i:i + 1]
+            parts += [(gn, c) for c in _chunks([idx[i] for i in sub], shapes, max_bytes)]
+    for gn, g in parts:
+        ms = [members[k] for k in g]
+        key = (tuple(g), precision, z)
+        hit = None if keep is None else keep.get(key)
+        n = max(int(m.plan.n_grid) for m in ms)
+        if hit is None:
+            op = PackedFocalPropagator.from_members(ms, z, precision, xp)
+            phi0 = packed_doe_phase(ms, n, xp)
+            fac = None if phi0 is None else packed_orders_factor(ms, phi0, xp)
+            hit = (op, fac, xp.asarray(np.array(g)))
+            if keep is not None:
+                keep[key] = hit
+        op, fac, rows = hit
+        u = u_all[rows, :n, :n]
+        if fac is not None:
+            u = u * fac
+        if m0.pixel_values == "flux":
+            vals = pixel_flux(*op.forward_pair(u), gn, m0.pixel, m0.size, xp=xp)
+        else:
+            vals = pixel_power(op.forward(u), gn, m0.pixel, m0.size, xp=xp)
+        for i, k in enumerate(g):
+            out[k] = vals[i:i + 1]
     return out

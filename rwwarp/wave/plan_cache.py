@@ -146,8 +146,8 @@ def _array_bytes(a) -> int:
 
 
 def held_bytes(batches) -> int:
-    """Device (and host) bytes the kept batches hold between calls: the members' focal operators and kept DOE
-    factors / phases, and each tracer's parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`)."""
+    """Device (and host) bytes the kept batches hold between calls: the members' focal operators, a batch's stacked
+    focal operators (:func:`rwwarp.wave.focal_packed.run_focal_members`) and kept DOE factors / phases, and each tracer's parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`)."""
     total = 0
     seen = set()
     for _, packed in batches:
@@ -159,6 +159,10 @@ def held_bytes(batches) -> int:
                 total += int(op.nbytes)
             for _, value in (getattr(m, "_memo", None) or {}).values():
                 total += _array_bytes(value)
+            for op, fac, rows in (m.__dict__.get("_stacked_ops") or {}).values():   # stacked focal operators
+                if id(op) not in seen:
+                    seen.add(id(op))
+                    total += int(op.nbytes) + _array_bytes(fac) + _array_bytes(rows)
             tr = m.tracer_made() if hasattr(m, "tracer_made") else getattr(m, "tracer", None)
             if tr is not None and id(tr) not in seen:
                 seen.add(id(tr))

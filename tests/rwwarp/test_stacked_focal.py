@@ -106,3 +106,26 @@ def test_cuda_map_stacks_its_focal_members_and_matches_each_alone():
         m2 = rw.psf_map(rw.load_lens("a489_doe"), fields, [0.45, 0.65], size=32, device="cuda", deterministic=True,
                         focal_precision="double", cache=cache)
         assert np.array_equal(m1.data, m2.data)
+
+
+def test_a_group_over_the_byte_bound_runs_in_parts():
+    """run_focal_members splits a group whose stacked operators would exceed max_bytes: with a bound below two
+    members' stack every member runs alone (the same values to the rounding); the estimate of a stack's bytes bounds
+    what the operator built for it holds."""
+    from rwwarp.wave.focal_packed import (PackedFocalPropagator, _chunks, _shape, focal_groups, run_focal_members,
+                                          stacked_bytes)
+    lens = rw.load_lens("a489_doe")
+    ms = source_plans(lens, [(0.0, 0.0), (0.0, 5.0), (0.0, 10.0)], [0.55, 0.55, 0.65], 16, lens.sensor.pixel_pitch,
+                      method="focal")
+    p = PackedRayWave(ms, stacked=True)
+    u = p.field_array()
+    whole = np.concatenate(run_focal_members(ms, u, "double"))
+    shapes = [_shape(m) for m in ms]
+    one = min(stacked_bytes(s, 1) for s in shapes)
+    assert _chunks([0, 1, 2], shapes, one) == [[0], [1], [2]] and _chunks([0, 1, 2], shapes, 2 ** 40) == [[0, 1, 2]]
+    alone = np.concatenate(run_focal_members(ms, u, "double", max_bytes=one))
+    assert _rel(alone, whole) < TOL
+    g = max(focal_groups(ms), key=len)
+    pad = tuple(max(shapes[k][i] for k in g) for i in range(4))
+    op = PackedFocalPropagator.from_members([ms[k] for k in g], float(ms[0].z_sensor - ms[0].z_plane))
+    assert op.nbytes <= stacked_bytes(pad, len(g))
