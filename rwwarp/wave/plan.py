@@ -74,7 +74,27 @@ class Plan:
 
     def with_reasons(self, *more) -> "Plan":
         """A copy with ``more`` reasons appended."""
-        return replace(self, reasons=tuple(self.reasons) + tuple(more))
+        return self.evolved(reasons=tuple(self.reasons) + tuple(more))
+
+    def evolved(self, **changes) -> "Plan":
+        """``dataclasses.replace(self, **changes)`` without re-running every field through ``__init__``: the same
+        plan (``reasons`` made a tuple, a new ``method`` checked), made with one dict copy (the planners make
+        several a source)."""
+        bad = set(changes).difference(self.__dataclass_fields__)
+        if bad:
+            raise TypeError(f"Plan.evolved: no field(s) {', '.join(sorted(bad))}")
+        new = object.__new__(Plan)
+        d = new.__dict__
+        d.update(self.__dict__)
+        d.update(changes)
+        if "reasons" in changes:
+            d["reasons"] = tuple(d["reasons"])
+        if "method" in changes:
+            from .methods import names
+            if d["method"] not in names():
+                raise ValueError(f"Plan.method must be a registered propagation method "
+                                 f"({', '.join(map(repr, names()))}), got {d['method']!r}")
+        return new
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -12,8 +12,6 @@ independent reference and what a single :class:`~rwwarp.wave.raywave.RayWave` pl
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from ..errors import LensError
@@ -201,11 +199,13 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
         main = planned["asm" if method == "compare" else method]
         pl, carrier, centers, lo, hi, focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
         gn = gauss_nodes
+        more = ()
         if gn is None:
             gn = _gauss_nodes_one(dir_s[k, ok[k], :2], n_img[k], lam_mm[k], pixel)
-            pl = pl.with_reasons(f"pixel integration: {gn} x {gn} Gauss-Legendre nodes per pixel "
-                                 f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
-        pl = replace(pl, estimate=estimate_cost(pl, 1, size, gn))
+            more = (f"pixel integration: {gn} x {gn} Gauss-Legendre nodes per pixel "
+                    f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)",)
+        # the reasons and the estimate in one copy (estimate_cost reads neither)
+        pl = pl.evolved(reasons=pl.reasons + more, estimate=estimate_cost(pl, 1, size, gn))
         if method == "compare":
             pl, chosen_focal = _choose_auto(pl, planned["focal"], 1, size, gn, auto_rule, device,
                                             memory_budget_bytes)
