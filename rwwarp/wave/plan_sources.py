@@ -236,13 +236,14 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     # ---- the methods planned beside (pixel), with every source's model error against its chief patch in one call
     from .model_error import estimate_sources
     chosen_late = [None] * nsrc
+    key_states = {}   # each source's memo-key digest after its pilot rows, hashed once for both calls
     if may_beside:
         from ..doe import is_flat_profile
         s_pl = lens.surfaces[plane]
         # consider_pixel reads the model error only where the lens has no DOE (or a blank one)
         ests = [None] * nsrc if s_pl.type == "doe" and not is_flat_profile(s_pl.profile) else \
             estimate_sources(lens, plane, pilot, [b["centers"] for b in beside], target, wls, n_after, lam_mm,
-                             z_plane, z_sensor)
+                             z_plane, z_sensor, key_states=key_states)
         for k in range(nsrc):
             bp = plans[k]
             pilot_s = dict(beside[k], model_error=None if ests[k] is None else [ests[k]])
@@ -257,7 +258,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     # ---- the model error of every source's plan in one call, then each one's wave step
     from . import wave_step as _ws
     ests = estimate_sources(lens, plane, pilot, [bp.centers for bp in plans], target, wls, n_after, lam_mm,
-                            z_plane, z_sensor)
+                            z_plane, z_sensor, key_states=key_states)
     out = []
     for k, bp in enumerate(plans):
         req = chosen_late[k] if chosen_late[k] is not None else requested
