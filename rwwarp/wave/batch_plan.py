@@ -355,7 +355,7 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
     and the memory budget; returns (the chosen plan with the reason, True when focal)."""
     from .plan import estimate_cost
     fpl = f.plan
-    fpl = replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
+    fpl = fpl.evolved(estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
     small_first = auto_rule == "small-asm"
     rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if small_first else
             "the plan of fewer flops")
