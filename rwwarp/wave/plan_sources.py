@@ -173,6 +173,17 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                      "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
                      "nyquist_safety" + (", the padded FFT n_pad" if get_method(pl.method).fft_padded else "") + alt)
 
+    # the focal plans of a wave plane without a DOE (one order), every source's at once where its rays allow
+    focal_fast = {}
+    if method0 in ("focal", "compare") and isinstance(plan, str):
+        from ..doe import is_flat_profile
+        s_pl = lens.surfaces[plane]
+        if not (s_pl.type == "doe" and not is_flat_profile(s_pl.profile)):
+            from .focal_sources import focal_plans_one_order
+            focal_fast = focal_plans_one_order(
+                pos_p, dir_s, ok, chief_plane0, chief_dir, n_after, lam_mm, z_sensor - z_plane,
+                None if center_mm is None else centers0, widths, size, pixel, res, lo0, hi0, rays_per_sample,
+                nyquist_safety, square_pupil)
     # the sources' launch arrays, one row each (wavelength index 0: each plan's tracer is of its own wavelength)
     wl0 = np.zeros(1, dtype=np.int32)
     shared = {}   # the methods' per-call constants (the DOE profile, its scale per wavelength), PlanContext.shared
@@ -195,7 +206,8 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                           carrier=carrier, centers=centers, rays_per_sample=rays_per_sample,
                           nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol, straight_edges=square_pupil,
                           shared=shared)
-        planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
+        planned = {m: focal_fast[k] if m == "focal" and k in focal_fast else get_method(m).plan(ctx)
+                   for m in (AUTO_PAIR if method == "compare" else (method,))}
         main = planned["asm" if method == "compare" else method]
         pl, carrier, centers, lo, hi, focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
         gn = gauss_nodes
