@@ -60,7 +60,7 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
         centers = np.stack([snap_to_pixel(land[:, 0], pixel, resolution[0]),
                             snap_to_pixel(land[:, 1], pixel, resolution[1])], axis=1)
     else:
-        centers = np.asarray(centers_given, dtype=np.float64)
+        centers = np.array(centers_given, dtype=np.float64)   # a copy: set read-only below
     LLO, LHI = Ls.min(axis=1), Ls.max(axis=1)
     band = np.maximum(1e-9, np.max(np.abs(F - f_c[:, None, :]), axis=(1, 2)))
     margin = mb / band
@@ -90,13 +90,15 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
     box_lo = centers - half_w - shifts[:, None] - margin_k[:, None]
     box_hi = centers + half_w + shifts[:, None] + margin_k[:, None]
     out = {}
+    for a in (band, shifts, g_fit, q_fit, lit, f_c, centers):   # each plan keeps read-only views of its rows
+        a.flags.writeable = False
     for k in go:
         sl = slice(k, k + 1)
-        pl, geo = focal_plan_from([(box_lo[k], box_hi[k])], [[(0, 1 + 0j)]], np.zeros(1), band[sl].copy(),
-                                  shifts[sl].copy(), g_fit[sl].copy(), q_fit[sl].copy(), lit[sl].copy(),
+        pl, geo = focal_plan_from([(box_lo[k], box_hi[k])], [[(0, 1 + 0j)]], np.zeros(1), band[sl],
+                                  shifts[sl], g_fit[sl], q_fit[sl], lit[sl],
                                   float(spread[k]), float(spread_main[k]), float(ray_spread[k]), z, half_w, mb,
                                   float(widths[k]), rays_per_sample, nyquist_safety, straight_edges)
         geo["profile"] = None
         geo["central_zone"] = [None]
-        out[int(k)] = Planned(pl, f_c[sl].copy(), centers[sl].copy(), lo[sl], hi[sl], geo)
+        out[int(k)] = Planned(pl, f_c[sl], centers[sl], lo[sl], hi[sl], geo)
     return out

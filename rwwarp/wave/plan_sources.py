@@ -44,6 +44,12 @@ def _pilot_row(pilot: Pilot, k: int) -> Pilot:
     return p
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a`` set read-only (in place; an array made here) and returned."""
+    a.flags.writeable = False
+    return a
+
+
 def _gauss_nodes_one(d, n_img: float, lam_mm: float, pixel: float, tol: float = 1e-7) -> int:
     """:func:`rwwarp.wave.sensor_grid.auto_gauss_nodes` of one source (``d``: its valid pilot rays' direction
     cosines (N, 2)): the same arithmetic."""
@@ -189,10 +195,16 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     shared = {}   # the methods' per-call constants (the DOE profile, its scale per wavelength), PlanContext.shared
     shape, od = src_all["shape"], src_all["object_distance"]
     plans, beside = [], []
+    # the per-source arrays the plans keep, read-only once: each plan's rows are read-only views of them, which a
+    # BatchPlan keeps as they are (it copies a writeable array), the same values
+    launch = {key: _frozen(np.array(src_all[key])) for key in ("pos", "dir", "finite", "aim", "half_x", "half_y")}
+    for a in (wl0, n_after, lam_mm, chief_plane1, chief_sensor, opl_chief, chief_ok, target, carrier0, centers0, lo0,
+              hi0):
+        _frozen(a)
     for k in range(nsrc):
         sl = slice(k, k + 1)
-        src = {"pos": src_all["pos"][sl], "dir": src_all["dir"][sl], "finite": src_all["finite"][sl],
-               "aim": src_all["aim"][sl], "half_x": src_all["half_x"][sl], "half_y": src_all["half_y"][sl],
+        src = {"pos": launch["pos"][sl], "dir": launch["dir"][sl], "finite": launch["finite"][sl],
+               "aim": launch["aim"][sl], "half_x": launch["half_x"][sl], "half_y": launch["half_y"][sl],
                "wl": wl0, "shape": shape, "fields": [fields[k]], "object_distance": od,
                "relative_opl": bool(use_reference)}   # the keys in Tracer.sources' order
         width = float(widths[k])
