@@ -140,7 +140,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, asdict
+from dataclasses import dataclass, fields as _dc_fields
 
 import numpy as np
 
@@ -243,7 +243,9 @@ class ModelError:
     main_estimate: float = 0.0
 
     def to_dict(self) -> dict:
-        return {k: (v if isinstance(v, str) else float(v)) for k, v in asdict(self).items()}
+        """The fields by name, numbers as floats (its fields are numbers and text: no deep copy needed)."""
+        return {f.name: (v if isinstance(v, str) else float(v))
+                for f in _ME_FIELDS for v in (getattr(self, f.name),)}
 
     def text(self) -> str:
         """One line for the plan's reasons and ``--explain``."""
@@ -255,6 +257,9 @@ class ModelError:
                 + (f" + the DOE's other orders' halo {self.orders_estimate:.2g}" if self.orders_estimate > 0 else "")
                 + ", rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
+
+
+_ME_FIELDS = _dc_fields(ModelError)
 
 
 def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
