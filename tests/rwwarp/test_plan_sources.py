@@ -251,8 +251,9 @@ def test_orders_partly_evanescent():
 def test_focal_plans_without_doe_at_once_and_alone(monkeypatch):
     """Without a DOE on the wave plane the focal plans of all sources are made at once
     (rwwarp.wave.focal_sources); a source whose beam misses its given patch (its main order's landing box far from
-    it) is left to the per-source planner (which keeps its main order: a dark patch). Both kinds in one call, compared with
-    the per-source reference field by field; the spy checks which sources went which way (3 at once, 1 alone)."""
+    it) is left to the per-source planner (which keeps its main order: a dark patch). Both kinds in one call,
+    compared with the per-source reference field by field; the spy checks which sources went which way (3 at once,
+    1 alone)."""
     from rwwarp.wave import focal_sources
     taken = []
     orig = focal_sources.focal_plans_one_order
