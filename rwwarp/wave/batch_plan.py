@@ -132,6 +132,22 @@ class BatchPlan:
             if ro is not v:
                 object.__setattr__(self, name, ro)
 
+    def evolved(self, **changes) -> "BatchPlan":
+        """``dataclasses.replace(self, **changes)`` without re-running every field through ``__init__`` and
+        ``__post_init__``: the same plan (the changed values made read-only as ``__post_init__`` makes them; the
+        others are already), made with one dict copy (the planners make several a source)."""
+        bad = set(changes).difference(self.__dataclass_fields__)
+        if bad:
+            raise TypeError(f"BatchPlan.evolved: no field(s) {', '.join(sorted(bad))}")
+        new = object.__new__(BatchPlan)
+        d = new.__dict__
+        d.update(self.__dict__)
+        for name, v in changes.items():
+            t = type(v)
+            d[name] = v if (v is None or t in _KEPT_TYPES or t is FrozenDict
+                            or (t is np.ndarray and not v.flags.writeable)) else _read_only(v)
+        return new
+
     def snapped_centres(self, center_mm) -> np.ndarray:
         """The patch centres ((nsrc, 2) mm) of ``center_mm`` ((x, y) mm, one pair or one per source) snapped to
         the sensor's pixel centres as :func:`plan_batch` snaps them."""
@@ -339,7 +355,7 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
     and the memory budget; returns (the chosen plan with the reason, True when focal)."""
     from .plan import estimate_cost
     fpl = f.plan
-    fpl = replace(fpl, estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
+    fpl = fpl.evolved(estimate=estimate_cost(fpl, nsrc, size, gauss_nodes), reasons=fpl.reasons + pl.reasons[-1:])
     small_first = auto_rule == "small-asm"
     rule = ("asm while its plan is under 1 GiB and 20 GFLOP" if small_first else
             "the plan of fewer flops")

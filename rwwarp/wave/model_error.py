@@ -140,7 +140,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, asdict
+from dataclasses import dataclass, fields as _dc_fields
 
 import numpy as np
 
@@ -243,7 +243,9 @@ class ModelError:
     main_estimate: float = 0.0
 
     def to_dict(self) -> dict:
-        return {k: (v if isinstance(v, str) else float(v)) for k, v in asdict(self).items()}
+        """The fields by name, numbers as floats (its fields are numbers and text: no deep copy needed)."""
+        return {f.name: (v if isinstance(v, str) else float(v))
+                for f in _ME_FIELDS for v in (getattr(self, f.name),)}
 
     def text(self) -> str:
         """One line for the plan's reasons and ``--explain``."""
@@ -255,6 +257,9 @@ class ModelError:
                 + (f" + the DOE's other orders' halo {self.orders_estimate:.2g}" if self.orders_estimate > 0 else "")
                 + ", rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
+
+
+_ME_FIELDS = _dc_fields(ModelError)
 
 
 def stop_to_plane_mm(lens, plane: int, wavelength_um: float) -> float:
@@ -367,12 +372,30 @@ _MEMO: "OrderedDict[bytes, tuple]" = OrderedDict()
 def _memo_key(rw, lens_fp: bytes | None = None) -> bytes:
     """A digest of what :func:`_estimate_for_raywave` reads from ``rw``; ``lens_fp``: its lens's
     :func:`rwwarp.wave.plan_cache.lens_fingerprint` when already computed."""
+    return _memo_key_from(_memo_prefix(rw.pilot), rw, lens_fp)
+
+
+def _memo_prefix(pilot):
+    """The digest state of :func:`_memo_key` after the pilot's rows (``pos_p``, ``dir_s``, ``ok``): the bulk of
+    the hashed bytes, the same for every key of the same pilot rows (:func:`estimate_sources` keeps it across
+    calls)."""
     import hashlib
     h = hashlib.blake2b(digest_size=20)
-    for arr in (rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok, rw.centers, rw.target, rw.wls, rw.n_after, rw.lam_mm):
+    _memo_update(h, (pilot.pos_p, pilot.dir_s, pilot.ok))
+    return h
+
+
+def _memo_update(h, arrays):
+    """Feed each array's dtype, shape and bytes to the digest ``h``."""
+    for arr in arrays:
         a = np.ascontiguousarray(arr)
         h.update(repr((a.dtype.str, a.shape)).encode())
         h.update(a.tobytes())
+
+
+def _memo_key_from(h, rw, lens_fp: bytes | None) -> bytes:
+    """:func:`_memo_key` from the state ``h`` after the pilot's rows (:func:`_memo_prefix`, updated here)."""
+    _memo_update(h, (rw.centers, rw.target, rw.wls, rw.n_after, rw.lam_mm))
     from .plan_cache import lens_fingerprint
     # the whole lens by value (every surface field, the DOE profile, the glasses' data), never by identity: a new
     # lens may reuse a collected one's id()
@@ -382,7 +405,7 @@ def _memo_key(rw, lens_fp: bytes | None = None) -> bytes:
 
 
 def estimate_sources(lens, plane: int, pilot, centers, target, wls, n_after, lam_mm, z_plane: float,
-                     z_sensor: float) -> list:
+                     z_sensor: float, key_states: dict | None = None) -> list:
     """:class:`ModelError` of each of ``S`` sources of one lens, each planned on its own, in one call: source ``k``'s
     is what :func:`estimate_for_raywave` gives its single-source plan, and it is kept in (and read from) the same
     memo under the same key. The sources the memo does not hold are estimated together (the lens's fingerprint
@@ -390,7 +413,8 @@ def estimate_sources(lens, plane: int, pilot, centers, target, wls, n_after, lam
     on its own rows). ``pilot``: the sources' :class:`rwwarp.wave.pilot.Pilot` (S rows), ``centers`` (S, 2) mm
     patch centres (a sequence of (1, 2) or (2,) rows), ``target`` (S, 3) mm reference-sphere centres, ``wls`` um,
     ``n_after`` (S,) the index behind the wave plane (surface ``plane``), ``lam_mm`` (S,) mm; ``z_plane``,
-    ``z_sensor`` mm."""
+    ``z_sensor`` mm. ``key_states``: a dict the caller keeps across calls with the same ``pilot`` (source index ->
+    the memo key's digest state after that source's pilot rows), so each source's rows are hashed once."""
     from types import SimpleNamespace
     from .plan_cache import lens_fingerprint
     S = len(wls)
@@ -405,7 +429,13 @@ def estimate_sources(lens, plane: int, pilot, centers, target, wls, n_after, lam
         row = SimpleNamespace(pilot=SimpleNamespace(pos_p=pilot.pos_p[sl], dir_s=pilot.dir_s[sl], ok=pilot.ok[sl]),
                               centers=centers[sl], target=target[sl], wls=(wls[k],), n_after=n_after[sl],
                               lam_mm=lam_mm[sl], plane=plane, z_plane=z_plane, z_sensor=z_sensor, nsrc=1)
-        keys[k] = _memo_key(row, fp)
+        if key_states is None:
+            keys[k] = _memo_key(row, fp)
+        else:
+            st = key_states.get(k)
+            if st is None:
+                st = key_states[k] = _memo_prefix(row.pilot)
+            keys[k] = _memo_key_from(st.copy(), row, fp)
         hit = _MEMO.get(keys[k])
         if hit is not None:
             _MEMO.move_to_end(keys[k])

@@ -595,7 +595,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     ratio = rw.pixel / info["airy_mm"]
     if not explicit and ratio < MIN_PIXEL_AIRY:
         # auto never takes it for a pixel this small: its forms are not planned (half a map's planning was theirs)
-        return replace(rw, plan=pl.with_reasons(f"pixel method not chosen: pixel {ratio:.3g} < {MIN_PIXEL_AIRY:g} "
+        return rw.evolved(plan=pl.with_reasons(f"pixel method not chosen: pixel {ratio:.3g} < {MIN_PIXEL_AIRY:g} "
                                                 "Airy radii")), False
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
@@ -609,11 +609,11 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     form, why_form = choose_form(forms, tol, explicit, memory_budget_bytes)
     field, cost, est = forms[form]
     err = est
-    ppl = replace(ppl, pixel_field=field)
+    ppl = ppl.evolved(pixel_field=field)
     line = (f"pixel method: error ~{est['estimate']:.2g} of the peak against the full computation ({form} form), "
             f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, {cost['flops'] / 1e9:.3g} GFLOP")
     form_lines = [form_line(f, *forms[f], nf, slope, ratio) for f in ("debye", "kirchhoff")]
-    ppl = replace(ppl, estimate=cost, model_error=pl.model_error).with_reasons(line, *form_lines, why_form)
+    ppl = ppl.evolved(estimate=cost, model_error=pl.model_error).with_reasons(line, *form_lines, why_form)
     ppl = ppl.with_reasons(field_reason(field, cost))
     if not explicit:
         why = []
@@ -633,7 +633,7 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
             if ratio >= MIN_PIXEL_AIRY:   # named where the chosen plan is over the memory budget
                 alt = (f"; or the pixel method ({cost['memory_bytes'] / 2 ** 30:.3g} GiB, error "
                        f"~{err['estimate']:.2g} of the peak): method='pixel' or tolerance >= {err['estimate']:.2g}")
-            return replace(rw, plan=pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})",
+            return rw.evolved(plan=pl.with_reasons(f"pixel method not chosen: {'; '.join(why)} ({line})",
                                                     *form_lines),
                            pixel_alternative=alt), False
         ppl = ppl.with_reasons(f"method auto: pixel ({ratio:.3g} Airy radii, error ~{err['estimate']:.2g} <= tolerance "
@@ -645,5 +645,5 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
         check_budget(cost, int(memory_budget_bytes), f"the pixel method ({ppl.ray_grid}^2 rays, sensor grid "
                      f"{ppl.n_sensor}^2, FFT {ppl.n_sensor_fft}^2)", "size (patch pixels), the beam's NA (band B), "
                      "rays_per_sample")
-    return replace(rw, plan=ppl, method="pixel", focal=None, rim=False, carrier=np.array(carrier, float),
+    return rw.evolved(plan=ppl, method="pixel", focal=None, rim=False, carrier=np.array(carrier, float),
                    centers=np.array(centers, float)), True

@@ -74,7 +74,27 @@ class Plan:
 
     def with_reasons(self, *more) -> "Plan":
         """A copy with ``more`` reasons appended."""
-        return replace(self, reasons=tuple(self.reasons) + tuple(more))
+        return self.evolved(reasons=tuple(self.reasons) + tuple(more))
+
+    def evolved(self, **changes) -> "Plan":
+        """``dataclasses.replace(self, **changes)`` without re-running every field through ``__init__``: the same
+        plan (``reasons`` made a tuple, a new ``method`` checked), made with one dict copy (the planners make
+        several a source)."""
+        bad = set(changes).difference(self.__dataclass_fields__)
+        if bad:
+            raise TypeError(f"Plan.evolved: no field(s) {', '.join(sorted(bad))}")
+        new = object.__new__(Plan)
+        d = new.__dict__
+        d.update(self.__dict__)
+        d.update(changes)
+        if "reasons" in changes:
+            d["reasons"] = tuple(d["reasons"])
+        if "method" in changes:
+            from .methods import names
+            if d["method"] not in names():
+                raise ValueError(f"Plan.method must be a registered propagation method "
+                                 f"({', '.join(map(repr, names()))}), got {d['method']!r}")
+        return new
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -399,6 +419,17 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         boxes.append((lo, hi))
         kept.append(keep)
         bands[k] = band
+    return focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread,
+                           z, half_w, mb, width_mm, rays_per_sample, nyquist_safety, straight_edges)
+
+
+def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread, z, half_w,
+                    mb, width_mm, rays_per_sample, nyquist_safety, straight_edges):
+    """The last part of :func:`plan_focal`: its grids, reasons and geometry from the per-source results of its
+    loop (``boxes``: the sensor-side boxes ``(lo, hi)`` (2,) mm; ``kept`` orders, ``lost`` power, ``bands``
+    cycles/mm, ``shifts`` mm, the fitted transfer ``g_fit`` / ``q_fit`` (S, 2), ``lit`` (S,) bool; ``spread``,
+    ``spread_main``, ``ray_spread`` mm over the sources; ``z`` mm, ``half_w`` mm the patch's half width, ``mb``
+    the margin in 1 / B). Also used by :mod:`rwwarp.wave.focal_sources` (many sources, each its own plan)."""
     A = np.abs(1.0 / (z * q_fit))
     box = max(float(np.max(hi - lo)) for lo, hi in boxes)
 

@@ -12,8 +12,6 @@ independent reference and what a single :class:`~rwwarp.wave.raywave.RayWave` pl
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from ..errors import LensError
@@ -44,6 +42,12 @@ def _pilot_row(pilot: Pilot, k: int) -> Pilot:
     for name in ("object_distance_mm", "relative_opl", "dtype", "plane"):
         set_(p, name, getattr(pilot, name))
     return p
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a`` set read-only (in place; an array made here) and returned."""
+    a.flags.writeable = False
+    return a
 
 
 def _gauss_nodes_one(d, n_img: float, lam_mm: float, pixel: float, tol: float = 1e-7) -> int:
@@ -175,15 +179,32 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                      "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
                      "nyquist_safety" + (", the padded FFT n_pad" if get_method(pl.method).fft_padded else "") + alt)
 
+    # the focal plans of a wave plane without a DOE (one order), every source's at once where its rays allow
+    focal_fast = {}
+    if method0 in ("focal", "compare") and isinstance(plan, str):
+        from ..doe import is_flat_profile
+        s_pl = lens.surfaces[plane]
+        if not (s_pl.type == "doe" and not is_flat_profile(s_pl.profile)):
+            from .focal_sources import focal_plans_one_order
+            focal_fast = focal_plans_one_order(
+                pos_p, dir_s, ok, chief_plane0, chief_dir, n_after, lam_mm, z_sensor - z_plane,
+                None if center_mm is None else centers0, widths, size, pixel, res, lo0, hi0, rays_per_sample,
+                nyquist_safety, square_pupil)
     # the sources' launch arrays, one row each (wavelength index 0: each plan's tracer is of its own wavelength)
     wl0 = np.zeros(1, dtype=np.int32)
     shared = {}   # the methods' per-call constants (the DOE profile, its scale per wavelength), PlanContext.shared
     shape, od = src_all["shape"], src_all["object_distance"]
     plans, beside = [], []
+    # the per-source arrays the plans keep, read-only once: each plan's rows are read-only views of them, which a
+    # BatchPlan keeps as they are (it copies a writeable array), the same values
+    launch = {key: _frozen(np.array(src_all[key])) for key in ("pos", "dir", "finite", "aim", "half_x", "half_y")}
+    for a in (wl0, n_after, lam_mm, chief_plane1, chief_sensor, opl_chief, chief_ok, target, carrier0, centers0, lo0,
+              hi0):
+        _frozen(a)
     for k in range(nsrc):
         sl = slice(k, k + 1)
-        src = {"pos": src_all["pos"][sl], "dir": src_all["dir"][sl], "finite": src_all["finite"][sl],
-               "aim": src_all["aim"][sl], "half_x": src_all["half_x"][sl], "half_y": src_all["half_y"][sl],
+        src = {"pos": launch["pos"][sl], "dir": launch["dir"][sl], "finite": launch["finite"][sl],
+               "aim": launch["aim"][sl], "half_x": launch["half_x"][sl], "half_y": launch["half_y"][sl],
                "wl": wl0, "shape": shape, "fields": [fields[k]], "object_distance": od,
                "relative_opl": bool(use_reference)}   # the keys in Tracer.sources' order
         width = float(widths[k])
@@ -197,15 +218,18 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                           carrier=carrier, centers=centers, rays_per_sample=rays_per_sample,
                           nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol, straight_edges=square_pupil,
                           shared=shared)
-        planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
+        planned = {m: focal_fast[k] if m == "focal" and k in focal_fast else get_method(m).plan(ctx)
+                   for m in (AUTO_PAIR if method == "compare" else (method,))}
         main = planned["asm" if method == "compare" else method]
         pl, carrier, centers, lo, hi, focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
         gn = gauss_nodes
+        more = ()
         if gn is None:
             gn = _gauss_nodes_one(dir_s[k, ok[k], :2], n_img[k], lam_mm[k], pixel)
-            pl = pl.with_reasons(f"pixel integration: {gn} x {gn} Gauss-Legendre nodes per pixel "
-                                 f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
-        pl = replace(pl, estimate=estimate_cost(pl, 1, size, gn))
+            more = (f"pixel integration: {gn} x {gn} Gauss-Legendre nodes per pixel "
+                    f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)",)
+        # the reasons and the estimate in one copy (estimate_cost reads neither)
+        pl = pl.evolved(reasons=pl.reasons + more, estimate=estimate_cost(pl, 1, size, gn))
         if method == "compare":
             pl, chosen_focal = _choose_auto(pl, planned["focal"], 1, size, gn, auto_rule, device,
                                             memory_budget_bytes)
@@ -236,13 +260,14 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     # ---- the methods planned beside (pixel), with every source's model error against its chief patch in one call
     from .model_error import estimate_sources
     chosen_late = [None] * nsrc
+    key_states = {}   # each source's memo-key digest after its pilot rows, hashed once for both calls
     if may_beside:
         from ..doe import is_flat_profile
         s_pl = lens.surfaces[plane]
         # consider_pixel reads the model error only where the lens has no DOE (or a blank one)
         ests = [None] * nsrc if s_pl.type == "doe" and not is_flat_profile(s_pl.profile) else \
             estimate_sources(lens, plane, pilot, [b["centers"] for b in beside], target, wls, n_after, lam_mm,
-                             z_plane, z_sensor)
+                             z_plane, z_sensor, key_states=key_states)
         for k in range(nsrc):
             bp = plans[k]
             pilot_s = dict(beside[k], model_error=None if ests[k] is None else [ests[k]])
@@ -257,7 +282,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     # ---- the model error of every source's plan in one call, then each one's wave step
     from . import wave_step as _ws
     ests = estimate_sources(lens, plane, pilot, [bp.centers for bp in plans], target, wls, n_after, lam_mm,
-                            z_plane, z_sensor)
+                            z_plane, z_sensor, key_states=key_states)
     out = []
     for k, bp in enumerate(plans):
         req = chosen_late[k] if chosen_late[k] is not None else requested

@@ -254,16 +254,15 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     ``STEP_PHASE_MAX`` rad). ``estimate``: the model error of ``rw`` already computed (a list of
     :class:`~rwwarp.wave.model_error.ModelError` per source, :func:`rwwarp.wave.model_error.estimate_sources`), else
     computed here."""
-    from dataclasses import replace
     from .model_error import estimate_for_raywave, worst
     from .plan import check_budget, estimate_cost
     est = estimate_for_raywave(rw) if estimate is None else list(estimate)
-    bp = replace(rw, model_errors=tuple(est), wave_step=np.zeros(rw.nsrc))
+    base = {"model_errors": tuple(est), "wave_step": np.zeros(rw.nsrc)}   # every returned plan's (one copy of rw)
     w = worst(est)
     pl = rw.plan
     if w is None:
-        return bp
-    pl = replace(pl, model_error=w.to_dict()).with_reasons(w.text())
+        return rw.evolved(**base)
+    pl = pl.evolved(model_error=w.to_dict(), reasons=pl.reasons + (w.text(),))
     want = method_requested == "two-step" or (method_requested == "auto" and tolerance is not None
                                               and w.estimate > tolerance)
     if want:
@@ -272,10 +271,10 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
         phases = step_phase_rad(rw, d)
         phi = float(np.max(phases)) if phases.size else 0.0
         e_step = step_error(phi)
-        pl = replace(pl, model_error={**pl.model_error, "step_phase_rad": phi, "step_error": e_step})
+        pl = pl.evolved(model_error={**pl.model_error, "step_phase_rad": phi, "step_error": e_step})
         step_bad = (tolerance is not None and e_step > tolerance) or (tolerance is None and phi > STEP_PHASE_MAX)
         if edge > 0 and step_bad and method_requested == "auto":
-            return replace(bp, plan=pl.with_reasons(
+            return rw.evolved(**base, plan=pl.with_reasons(
                 f"wave step refused: its own error ~{e_step:.2g} of the peak (the beam's aberration before the DOE "
                 f"transported twice: phase pi s^2 / (lambda d) up to {phi:.3g} rad, E_step = phi^2 / {STEP_ERROR_DIV:g}) "
                 f"exceeds the tolerance {tolerance:.2g}; the one-step model is kept (its estimate "
@@ -308,23 +307,23 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
                        f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um), "
                        f"a phase error pi s^2 / (lambda d) <= {phi:.3g} rad: the step's own error "
                        f"~{e_step:.2g} of the peak (phi^2 / {STEP_ERROR_DIV:g}, rwwarp.wave.wave_step)")
-            pl = replace(pl, pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
+            pl = pl.evolved(pitch_mm=pitch, n_grid=n_grid, n_pad=n_pad, ray_grid=ray_grid,
                          wave_step_mm=float(np.max(np.abs(d)))).with_reasons(*why)
             pad = _wave_step_pad(n_grid, extra)
             cost = dict(estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
             # the step's padded field and spectrum (complex128) and its FFT pair, per source
             cost["memory_bytes"] = int(cost["memory_bytes"] + 2 * 16 * pad * pad)
             cost["flops"] = float(cost["flops"] + rw.nsrc * 2 * 5 * pad * pad * math.log2(pad * pad))
-            pl = replace(pl, estimate=cost)
+            pl = pl.evolved(estimate=cost)
             if memory_budget_bytes is not None and cost["memory_bytes"] > memory_budget_bytes:
                 if method_requested == "two-step":
                     check_budget(cost, int(memory_budget_bytes), f"the wave step's plan ({n_grid}^2 samples, FFT "
                                  f"{pad}^2)", "the reduced distance (edge width sqrt(lambda d)), the beam footprint")
-                return replace(bp, plan=one_step.with_reasons(f"wave step left out: its plan needs "
+                return rw.evolved(**base, plan=one_step.with_reasons(f"wave step left out: its plan needs "
                                                               f"{cost['memory_bytes'] / 2 ** 30:.3g} GiB, over the memory budget"))
             from .doe_sampling import doe_pixel_origin
             mid = 0.5 * (rw.lo + rw.hi)
             origin = doe_pixel_origin(rw.lens, rw.plane, mid - 0.5 * (n_grid - 1) * pitch, pl.pitch_mm)
-            return replace(bp, plan=pl, wave_step=d, wave_step_pad=pad, origin=origin,
-                           pupil=(None, None, (2.0 / ray_grid) ** 2))
-    return replace(bp, plan=pl)
+            return rw.evolved(**dict(base, plan=pl, wave_step=d, wave_step_pad=pad, origin=origin,
+                           pupil=(None, None, (2.0 / ray_grid) ** 2)))
+    return rw.evolved(**base, plan=pl)

@@ -210,3 +210,33 @@ def test_a_tracer_made_on_use_gives_the_same_bits(monkeypatch):
     out = lazy.run()
     assert made == [1] and twin.tracer is lazy.tracer
     assert np.array_equal(out["data"], r.run()["data"])
+
+
+def test_evolved_is_dataclasses_replace():
+    """BatchPlan.evolved / Plan.evolved (one dict copy) give what dataclasses.replace gives: every field the same
+    object or the same bits, a changed array copied read-only (the caller's stays writeable), dicts frozen; the old
+    plan unchanged; an unknown field or an unregistered method refused by name."""
+    bp = _rw("focal").batch_plan
+    snap = _snapshot(bp)
+    lo = np.asarray(bp.lo) - 0.25
+    changes = dict(lo=lo, focal=dict(bp.focal), model_errors=[1, 2], method="asm")
+    a, b = bp.evolved(**changes), dataclasses.replace(bp, **changes)
+    for f in dataclasses.fields(BatchPlan):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        assert type(x) is type(y), f.name
+        if isinstance(x, np.ndarray):
+            assert np.array_equal(x, y) and not x.flags.writeable, f.name
+        elif f.name != "focal":
+            assert x is y or x == y, f.name
+    assert isinstance(a.focal, FrozenDict) and list(a.focal) == list(b.focal)
+    assert lo.flags.writeable and a.lo is not lo
+    _unchanged(bp, snap)
+    pl = bp.plan
+    assert pl.evolved(reasons=["x"], n_grid=7) == dataclasses.replace(pl, reasons=["x"], n_grid=7)
+    assert pl.with_reasons("y").reasons == pl.reasons + ("y",)
+    with pytest.raises(TypeError, match="no_such"):
+        bp.evolved(no_such=1)
+    with pytest.raises(TypeError, match="no_such"):
+        pl.evolved(no_such=1)
+    with pytest.raises(ValueError, match="registered propagation method"):
+        pl.evolved(method="nope")

@@ -246,3 +246,31 @@ def test_orders_partly_evanescent():
     lens = _cooke_with_doe(-8e4)
     got = _check(lens, [0.0, 5.0], [0.5876, 0.45], 32, lens.sensor.pixel_pitch, method="focal", focal_patch_tol=1e-9)
     assert len(got[1].focal["orders"][0]) == 1 and got[1].focal["lost_power"][0] > 0.1
+
+
+def test_focal_plans_without_doe_at_once_and_alone(monkeypatch):
+    """Without a DOE on the wave plane the focal plans of all sources are made at once
+    (rwwarp.wave.focal_sources); a source whose beam misses its given patch (its main order's landing box far from
+    it) is left to the per-source planner (which keeps its main order: a dark patch). Both kinds in one call,
+    compared with the per-source reference field by field; the spy checks which sources went which way (3 at once,
+    1 alone)."""
+    from rwwarp.wave import focal_sources
+    taken = []
+    orig = focal_sources.focal_plans_one_order
+
+    def spy(*a, **kw):
+        out = orig(*a, **kw)
+        taken.append(sorted(out))
+        return out
+    monkeypatch.setattr(focal_sources, "focal_plans_one_order", spy)
+    lens = rw.load_lens("cooke_triplet")
+    fields, wls = [0.0, 14.0, (3.0, 12.0), 10.0], [0.55, 0.45, 0.65, 0.55]
+    # the chief rays land at (0, 0), (0, 12.42), (2.61, 10.59), (0, 8.78) mm: patches there, but source 3's 3 mm
+    # beside its beam, which misses it
+    centers = np.array([[0.0, 0.0], [0.0, 12.4], [2.6, 10.6], [3.0, 8.78]])
+    got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, centers=centers, method="focal")
+    assert taken == [[0, 1, 2]]
+    assert got[3].focal["lost_power"][0] == 0.0 and got[3].method == "focal"
+    taken.clear()
+    _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, method="auto", allow_pixel=True)
+    assert taken == [[0, 1, 2, 3]]
