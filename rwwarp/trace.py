@@ -315,6 +315,16 @@ class Tracer:
         out[-1, ktrace.P_SD] = -1.0
         return out
 
+    def own_params(self):
+        """Give this tracer parameter arrays of its own before they are written in place
+        (:meth:`rwwarp.wave.raywave.RayWave.load_params`): without gradients they are read-only views of a cached
+        upload (:func:`rwwarp.device_upload.upload_packed`) that every tracer of the same values shares, and a write
+        there changed every later tracer of that lens (a test's moved wave plane changed another test's plans)."""
+        if getattr(self, "_own_params", False) or self.requires_grad:
+            return
+        self.params = [wp.clone(a) for a in self.params]
+        self._own_params = True
+
     def _upload(self):
         """Surface parameters and index tables to the device: one upload (read-only views) without
         gradients; separate parameter arrays (each with its gradient) with ``requires_grad``."""

@@ -355,6 +355,7 @@ class RayWave:
             raise ValueError(f"parameter table must be {(len(tr.params), ktrace.N_PARAMS)}, got {tab.shape}")
         if not np.all(np.isfinite(tab)):
             raise ValueError("parameter table has non-finite entries")
+        tr.own_params()   # a tracer without gradients reads shared views of a cached upload: never written
         if device_table is not None:
             if tuple(device_table.shape) != tab.shape or device_table.dtype != tr.scalar:
                 raise ValueError(f"device_table must be {tab.shape} of {tr.scalar.__name__}, got "

@@ -240,3 +240,20 @@ def test_evolved_is_dataclasses_replace():
         pl.evolved(no_such=1)
     with pytest.raises(ValueError, match="registered propagation method"):
         pl.evolved(method="nope")
+
+
+def test_loading_parameters_leaves_other_tracers_of_the_lens_alone():
+    """A tracer without gradients reads shared views of a cached upload; load_params writes the batch's own copy:
+    a later tracer (and plan) of the same lens sees the lens's values, not the moved wave plane (a map planned after
+    such a change had its pitches moved by 7e-5 relative: test_map's plans against own_plans)."""
+    from rwwarp.kernels.trace import P_Z
+    from rwwarp.trace import Tracer
+    lens = doe_lens()
+    before = Tracer(lens, [0.45]).params_np.copy()
+    r = _rw("focal")
+    table = r.tracer.params_np.copy()
+    table[r.plane, P_Z] += 0.01
+    r.load_params(table)
+    assert np.array_equal(np.stack([a.numpy() for a in r.tracer.params]), table)
+    fresh = Tracer(lens, [0.45])
+    assert np.array_equal(np.stack([a.numpy() for a in fresh.params]), before)
