@@ -249,11 +249,11 @@ def test_loading_parameters_leaves_other_tracers_of_the_lens_alone():
     from rwwarp.kernels.trace import P_Z
     from rwwarp.trace import Tracer
     lens = doe_lens()
-    before = Tracer(lens, [0.45]).params_np.copy()
+    before = Tracer(lens, [0.45, 0.65]).params_np.copy()   # the wavelengths of _rw: the same cached upload
     r = _rw("focal")
     table = r.tracer.params_np.copy()
     table[r.plane, P_Z] += 0.01
     r.load_params(table)
     assert np.array_equal(np.stack([a.numpy() for a in r.tracer.params]), table)
-    fresh = Tracer(lens, [0.45])
+    fresh = Tracer(lens, [0.45, 0.65])
     assert np.array_equal(np.stack([a.numpy() for a in fresh.params]), before)
