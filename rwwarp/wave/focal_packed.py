@@ -412,17 +412,22 @@ def packed_orders_factor(members, phi0, xp=np):
     return exact_zone(out, phi0, zt[:, 0, None, None], zt[:, 1, None, None], xp)
 
 
-#: Bytes the stacked operators of one group may hold at once (:func:`run_focal_members` splits a group above it):
-#: the members' own path holds one member's operator at a time, a stack holds its group's together.
+#: Bytes the stacked operators and wave-plane arrays of one group may hold at once (:func:`run_focal_members` splits
+#: a group above it): the members' own path holds one member's at a time, a stack its group's together, so a batch
+#: on the stacked path may use up to this much beyond the largest member's propagation that its memory plan counts
+#: (:func:`rwwarp.wave.packed.packed_bytes`).
 STACK_MAX_BYTES = 2 << 30
 
 
 def stacked_bytes(shape, count: int) -> int:
     """Bytes of ``count`` members stacked in one :class:`PackedFocalPropagator` padded to ``shape`` = (wave-plane
     grid, sensor-side grid, FFT length, output nodes a side) (:func:`_shape`): step 1's two factors, the matrix DFT,
-    the transfer and band arrays, the output factors and the forward's work arrays, complex128."""
+    the transfer and band arrays, the output factors and the forward's work arrays, complex128; and the group's
+    wave-plane arrays, ``6 n^2`` complex128 a member (its field slice, the DOE phase, ``exp(i phi0)``, the order sum
+    and the modulated field: :func:`run_focal_members`), which dominate where the grid is large (the Cooke hybrid's
+    ~2300^2: 0.5 GB a member)."""
     n, ns, nf, m = (int(v) for v in shape)
-    return int(count) * 16 * (2 * ns * n + nf * ns + 6 * nf * nf + 2 * m * nf + m * m + ns * ns)
+    return int(count) * 16 * (2 * ns * n + nf * ns + 6 * nf * nf + 2 * m * nf + m * m + ns * ns + 6 * n * n)
 
 
 def _chunks(group, shapes, max_bytes):
