@@ -202,13 +202,7 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
         import warnings
         warnings.warn("a RayWave traces each phase surface in its diffraction_order only: Surface.diffraction_orders "
                       "is summed by rwwarp.psf / rwwarp.psf_map (rwwarp.phase_orders)", UserWarning, stacklevel=3)
-    if auto_rule not in ("device", "small-asm", "flops"):
-        raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
-    check_method(method, "RayWave")
-    requested, method = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
-    from .propagate_setup import check_pixel_values
-    pixel_values = check_pixel_values(pixel_values, "RayWave")
-    deterministic = bool(deterministic)
+    requested, method, pixel_values, deterministic = check_plan_args(method, auto_rule, pixel_values, deterministic)
 
     plane = lens.wave_plane_index()
     uniq = sorted(set(wls))
@@ -233,26 +227,10 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
                         f"Pilot.subset) or None, got {type(pilot).__name__}")
     else:
         pilot.check_for(fields, wls, pupil_wls, src["object_distance"], use_reference, dtype, plane)
-    pos_p, pos_s, dir_s = pilot.pos_p, pilot.pos_s, pilot.dir_s
-    opl_p = pilot.opl_p
-    # a curved last surface: carry the rays on to its vertex plane (straight, in the image medium,
-    # OPL included) so the field is formed on a true plane
-    curved_plane = _is_curved(lens.surfaces[plane])
-    if curved_plane:
-        t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
-        pos_p = pos_p + t[..., None] * dir_s
-        opl_p = opl_p + n_after[:, None] * t
-    ok = pilot.ok
-    counts = ok.sum(1)
-    for k in np.flatnonzero(counts < 3):
-        raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
-                        file=lens.source, field=_fmt_field(fields[k]))
-    chief_plane, chief_sensor, chief_dir = _chief_rays(pos_p, pos_s, dir_s, ok)
-    carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
-    # local frequencies of the field relative to the carrier, and the footprint
-    fmax, lo, hi = _footprints(pos_p, dir_s, ok, n_after, lam_mm, carrier)
-    xy_plane = [pos_p[k, ok[k], :2] for k in range(nsrc)]
-    f_doe, feature = doe_max_frequency(lens, plane, xy_plane, wls)
+    pa = pilot_arrays(lens, plane, pilot, fields, wls, n_after, lam_mm, z_plane)
+    pos_p, pos_s, dir_s, opl_p, ok = pa["pos_p"], pa["pos_s"], pa["dir_s"], pa["opl_p"], pa["ok"]
+    curved_plane, chief_plane, chief_sensor, chief_dir = pa["curved"], pa["chief_plane"], pa["chief_sensor"], pa["chief_dir"]
+    carrier, fmax, lo, hi, f_doe, feature = pa["carrier"], pa["fmax"], pa["lo"], pa["hi"], pa["f_doe"], pa["feature"]
     width = float(np.max(hi - lo))
     pilot_cell = width / 31.0
     if center_mm is None:
@@ -384,6 +362,51 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
                                  and fpl.estimate["flops"] <= pl.estimate["flops"]))):
         return fpl.with_reasons(why + " -> focal"), True
     return pl.with_reasons(why + " -> asm"), False
+
+
+def check_plan_args(method: str, auto_rule: str, pixel_values: str, deterministic) -> tuple:
+    """The planners' argument checks (:func:`plan_batch`, :func:`rwwarp.wave.plan_sources.plan_sources`): ``auto_rule``
+    and ``method`` known (``ValueError`` naming them), ``pixel_values`` resolved. Returns ``(requested, method,
+    pixel_values, deterministic)``: the method asked for and the one planned ("two-step" plans as "auto",
+    :mod:`rwwarp.wave.wave_step`)."""
+    if auto_rule not in ("device", "small-asm", "flops"):
+        raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
+    check_method(method, "RayWave")
+    from .propagate_setup import check_pixel_values
+    return method, ("auto" if method == "two-step" else method), check_pixel_values(pixel_values, "RayWave"), \
+        bool(deterministic)
+
+
+def pilot_arrays(lens, plane, pilot, fields, wls, n_after, lam_mm, z_plane) -> dict:
+    """What the planning reads from a pilot trace, for every source at once (row k: source k; lengths mm): the rays
+    on the wave plane (``pos_p``, a curved last surface's carried straight on to its vertex plane, OPL included, so
+    the field is formed on a true plane; ``curved``), at the sensor (``pos_s``, ``dir_s``), their paths ``opl_p``
+    and validity ``ok``; the chief rays (``chief_plane``, ``chief_sensor``, ``chief_dir``: :func:`_chief_rays`), the
+    carrier ``n d_xy / lambda`` of the chief ray (cycles/mm), the footprint (``fmax`` cycles/mm after the carrier,
+    ``lo`` / ``hi`` mm: :func:`_footprints`) and the DOE's largest frequency and feature (``f_doe``, ``feature``:
+    :func:`rwwarp.wave.doe_sampling.doe_max_frequency`). ``LensError`` naming the field where fewer than 3 rays reach
+    the sensor. The one home of these steps for :func:`plan_batch` and :func:`rwwarp.wave.plan_sources.plan_sources`."""
+    pos_p, pos_s, dir_s = pilot.pos_p, pilot.pos_s, pilot.dir_s
+    opl_p = pilot.opl_p
+    curved_plane = _is_curved(lens.surfaces[plane])
+    if curved_plane:
+        t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
+        pos_p = pos_p + t[..., None] * dir_s
+        opl_p = opl_p + n_after[:, None] * t
+    ok = pilot.ok
+    counts = ok.sum(1)
+    for k in np.flatnonzero(counts < 3):
+        raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
+                        file=lens.source, field=_fmt_field(fields[k]))
+    chief_plane, chief_sensor, chief_dir = _chief_rays(pos_p, pos_s, dir_s, ok)
+    carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
+    # local frequencies of the field relative to the carrier, and the footprint
+    fmax, lo, hi = _footprints(pos_p, dir_s, ok, n_after, lam_mm, carrier)
+    xy_plane = [pos_p[k, ok[k], :2] for k in range(len(fields))]
+    f_doe, feature = doe_max_frequency(lens, plane, xy_plane, wls)
+    return {"pos_p": pos_p, "pos_s": pos_s, "dir_s": dir_s, "opl_p": opl_p, "ok": ok, "curved": curved_plane,
+            "chief_plane": chief_plane, "chief_sensor": chief_sensor, "chief_dir": chief_dir, "carrier": carrier,
+            "fmax": fmax, "lo": lo, "hi": hi, "f_doe": f_doe, "feature": feature}
 
 
 def _chief_rays(pos_p, pos_s, dir_s, ok):

@@ -17,11 +17,9 @@ import numpy as np
 from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
 from ..trace import Tracer, as_field_list
-from ..trace import field_label as _fmt_field
-from .batch_plan import (AUTO_PAIR, BatchPlan, _choose_auto, _chief_rays, _footprints, _is_curved,
-                         _ray_focus)
-from .doe_sampling import doe_max_frequency, doe_pixel_origin
-from .methods import PlanContext, check_method, names
+from .batch_plan import AUTO_PAIR, BatchPlan, _choose_auto, _ray_focus, check_plan_args, pilot_arrays
+from .doe_sampling import doe_pixel_origin
+from .methods import PlanContext, names
 from .methods import get as get_method
 from .pilot import Pilot, PILOT_GRID, own_pupil_sources, pilot_from_tracer
 from .plan import Plan
@@ -81,13 +79,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     Where a source cannot be planned (vignetted, over the memory budget, ...) the error is the one
     ``plan_batch`` raises for it; with several such sources, the pilot's checks (vignetting) of every source come
     before the other checks of the first."""
-    if auto_rule not in ("device", "small-asm", "flops"):
-        raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
-    check_method(method, "RayWave")
-    requested, method0 = method, ("auto" if method == "two-step" else method)   # rwwarp.wave.wave_step
-    from .propagate_setup import check_pixel_values
-    pixel_values = check_pixel_values(pixel_values, "RayWave")
-    deterministic = bool(deterministic)
+    requested, method0, pixel_values, deterministic = check_plan_args(method, auto_rule, pixel_values, deterministic)
     fields = as_field_list(fields)
     wls = [float(w) for w in wls]
     nsrc = len(fields)
@@ -127,23 +119,10 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     lam_mm = np.array(wls) * 1e-3
 
     # ---- every source's pilot-derived arrays at once (row k: what plan_batch computes for source k alone)
-    pos_p, pos_s, dir_s = pilot.pos_p, pilot.pos_s, pilot.dir_s
-    opl_p = pilot.opl_p
-    curved_plane = _is_curved(lens.surfaces[plane])
-    if curved_plane:
-        t = (z_plane - pos_p[..., 2]) / dir_s[..., 2]
-        pos_p = pos_p + t[..., None] * dir_s
-        opl_p = opl_p + n_after[:, None] * t
-    ok = pilot.ok
-    counts = ok.sum(1)
-    for k in np.flatnonzero(counts < 3):
-        raise LensError("no rays reach the sensor (the field is fully vignetted or misses a surface)",
-                        file=lens.source, field=_fmt_field(fields[k]))
-    chief_plane0, chief_sensor, chief_dir = _chief_rays(pos_p, pos_s, dir_s, ok)
-    carrier0 = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]
-    fmax, lo0, hi0 = _footprints(pos_p, dir_s, ok, n_after, lam_mm, carrier0)
-    xy_plane = [pos_p[k, ok[k], :2] for k in range(nsrc)]
-    f_doe, feature = doe_max_frequency(lens, plane, xy_plane, wls)
+    pa = pilot_arrays(lens, plane, pilot, fields, wls, n_after, lam_mm, z_plane)
+    pos_p, pos_s, dir_s, opl_p, ok = pa["pos_p"], pa["pos_s"], pa["dir_s"], pa["opl_p"], pa["ok"]
+    curved_plane, chief_plane0, chief_sensor, chief_dir = pa["curved"], pa["chief_plane"], pa["chief_sensor"], pa["chief_dir"]
+    carrier0, fmax, lo0, hi0, f_doe, feature = pa["carrier"], pa["fmax"], pa["lo"], pa["hi"], pa["f_doe"], pa["feature"]
     widths = np.max(hi0 - lo0, axis=1)
     res = lens.sensor.resolution
     if center_mm is None:

@@ -8,23 +8,11 @@ import numpy as np
 import pytest
 
 import rwwarp as rw
-from rwwarp.lens import Surface
 from rwwarp.wave.packed import PackedRayWave, source_plans
+from test_focal import _cooke_with_doe   # the Cooke triplet with a flat even-polynomial DOE 5 mm before the sensor
 
 # double precision: rounding of sums of ~1e3-1e5 terms in another order, 8x the largest measured (4.8e-16)
 TOL = 4e-15
-
-
-def _cooke_with_doe(a1, a2):
-    """The Cooke triplet with a flat even-polynomial DOE (a1 rho^2 + a2 rho^4 rad, rho = r / 15 mm, design 0.55 um)
-    5 mm before the sensor (as test_focal.py's)."""
-    lens = rw.load_lens("cooke_triplet")
-    surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
-    surfs[-1].thickness = lens.surfaces[-1].thickness - 5.0
-    surfs.append(Surface(type="doe", semi_diameter=15.0, shape="circle", thickness=5.0, design_wavelength_um=0.55,
-                         material="fused_silica", profile={"kind": "even_poly", "norm_radius": 15.0,
-                                                           "coefficients": [float(a1), float(a2)]}))
-    return lens.replace(surfaces=surfs)
 
 
 def _both(lens, fields, wls, precision="double", **kw):
