@@ -15,15 +15,24 @@ from .sampling import (
 )
 
 
-def _subpixel_inside(n, pixel_mm, center_rel_mm, inside, sub=16):
-    """Fraction of each pixel's area inside a region (``inside(dx, dy) -> bool``), by sub x sub
-    sub-samples per pixel; dx, dy relative to ``center_rel_mm`` (mm, relative to the patch centre)."""
+def _energy_inside(a, pixel_mm, center_rel_mm, key, limits, sub=16):
+    """Power of the patch ``a`` inside the regions ``key(dx, dy) <= limit`` for every ``limit`` of ``limits`` (one
+    array), each pixel's power uniform over its ``sub x sub`` sub-samples (dx, dy in mm relative to
+    ``center_rel_mm``, itself relative to the patch centre): ``sum(a * fraction of the pixel's sub-samples inside)``
+    for every region at once, the sub-samples sorted by ``key`` once and their powers summed cumulatively (a mask
+    per region before: 81 radii of a 64 px patch 0.20 -> 0.09 s, 6.4 s of a ``rwwarp report``). Regions nested by
+    ``limit`` (circles by radius squared, squares by half width): the same sub-samples counted as a mask per region;
+    the sums in another order (measured 1e-13 .. 8e-13 on 16-64 px patches)."""
+    n = a.shape[0]
     off = (np.arange(n) - n // 2) * pixel_mm
     s = ((np.arange(sub) + 0.5) / sub - 0.5) * pixel_mm
-    xs = (off[:, None] + s[None, :]).ravel() - center_rel_mm[0]  # (n*sub,)
+    xs = (off[:, None] + s[None, :]).ravel() - center_rel_mm[0]
     ys = (off[:, None] + s[None, :]).ravel() - center_rel_mm[1]
-    m = inside(xs[None, :], ys[:, None]).astype(np.float64)  # (n*sub rows=y, n*sub cols=x)
-    return m.reshape(n, sub, n, sub).mean(axis=(1, 3))
+    k = key(xs[None, :], ys[:, None]).ravel()                       # rows y, columns x
+    w = np.repeat(np.repeat(np.asarray(a, dtype=np.float64), sub, axis=0), sub, axis=1).ravel() / (sub * sub)
+    order = np.argsort(k, kind="stable")
+    cum = np.concatenate([[0.0], np.cumsum(w[order])])
+    return cum[np.searchsorted(k[order], np.asarray(limits, dtype=np.float64), side="right")]
 
 
 def _centroid_rel(a, pixel_mm):
@@ -46,8 +55,7 @@ def encircled_energy_from_psf(data, pixel_mm, radii_mm, total=None, center_rel_m
         raise ValueError("radii_mm must be >= 0")
     c = _centroid_rel(a, p) if center_rel_mm is None else tuple(float(v) for v in center_rel_mm)
     tot = a.sum() if total is None else _check_positive(total, "total")
-    out = np.array([(a * _subpixel_inside(a.shape[0], p, c, lambda x, y, R=R: x * x + y * y <= R * R, sub)).sum()
-                    for R in r]) / tot
+    out = _energy_inside(a, p, c, lambda x, y: x * x + y * y, r * r, sub) / tot
     return out.reshape(np.shape(radii_mm)) if np.ndim(radii_mm) else float(out[0])
 
 
@@ -62,9 +70,7 @@ def ensquared_energy_from_psf(data, pixel_mm, half_widths_mm, total=None, center
         raise ValueError("half_widths_mm must be >= 0")
     c = _centroid_rel(a, p) if center_rel_mm is None else tuple(float(v) for v in center_rel_mm)
     tot = a.sum() if total is None else _check_positive(total, "total")
-    out = np.array([(a * _subpixel_inside(a.shape[0], p, c,
-                                          lambda x, y, H=H: (np.abs(x) <= H) & (np.abs(y) <= H), sub)).sum()
-                    for H in h]) / tot
+    out = _energy_inside(a, p, c, lambda x, y: np.maximum(np.abs(x), np.abs(y)), h, sub) / tot
     return out.reshape(np.shape(half_widths_mm)) if np.ndim(half_widths_mm) else float(out[0])
 
 

@@ -354,3 +354,26 @@ def test_refracting_surface_behind_doe_refused():
         rw.field_curves(lens, [0.0, 1.0], WL)
     with pytest.raises(ValueError, match="eps"):
         rw.field_curves(thin(), [0.0], WL, eps=0.7)
+
+
+def test_energy_curves_equal_a_mask_per_region():
+    """The encircled / ensquared energy curves (all radii at once, sub-samples sorted) against the definition written
+    here: per radius / half width, the mask of the pixel sub-samples inside, each pixel's power times its fraction
+    inside. Random patch (16 x 16 sub-samples a pixel); the two sum in different orders: measured 1.4e-13 /
+    5.6e-14, tolerance 1e-12."""
+    from rwwarp.metrics.energy import encircled_energy_from_psf, ensquared_energy_from_psf
+    rng = np.random.default_rng(0)
+    n, p, sub = 16, 0.004, 16
+    a = rng.random((n, n)) ** 4
+    c = (0.0013, -0.0007)
+    off = (np.arange(n) - n // 2) * p
+    s = ((np.arange(sub) + 0.5) / sub - 0.5) * p
+    xs = (off[:, None] + s[None, :]).ravel() - c[0]
+    ys = (off[:, None] + s[None, :]).ravel() - c[1]
+    X, Y = xs[None, :], ys[:, None]
+    r = np.linspace(0.0, 0.8 * n * p, 41)
+    frac = lambda m: m.astype(float).reshape(n, sub, n, sub).mean(axis=(1, 3))
+    ee = [(a * frac(X * X + Y * Y <= R * R)).sum() / a.sum() for R in r]
+    sq = [(a * frac((np.abs(X) <= H) & (np.abs(Y) <= H))).sum() / a.sum() for H in r]
+    assert np.max(np.abs(encircled_energy_from_psf(a, p, r, center_rel_mm=c) - ee)) < 1e-12
+    assert np.max(np.abs(ensquared_energy_from_psf(a, p, r, center_rel_mm=c) - sq)) < 1e-12
