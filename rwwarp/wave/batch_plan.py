@@ -213,10 +213,7 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
     n_after = np.array([lens.indices(w)[plane] for w in wls])
     z_plane = lens.vertex_z[plane]
     z_sensor = lens.sensor_z
-    if not z_sensor > lens.vertex_z[plane]:
-        raise LensError(f"the wave models need the sensor behind the wave plane (surface {plane}); here it is "
-                        f"{lens.vertex_z[plane] - z_sensor:.6g} mm before it (a mirror or a negative last "
-                        "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
+    check_sensor_behind_plane(lens, plane)
     lam_mm = np.array(wls) * 1e-3
 
     # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor (rwwarp.wave.pilot)
@@ -362,6 +359,16 @@ def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budge
                                  and fpl.estimate["flops"] <= pl.estimate["flops"]))):
         return fpl.with_reasons(why + " -> focal"), True
     return pl.with_reasons(why + " -> asm"), False
+
+
+def check_sensor_behind_plane(lens, plane: int) -> None:
+    """``LensError`` (naming the lens file and surface) unless the sensor lies behind the wave plane ``plane``: the
+    wave models propagate forward from it (a mirror or a negative last thickness puts it before)."""
+    z_sensor = lens.sensor_z
+    if not z_sensor > lens.vertex_z[plane]:
+        raise LensError(f"the wave models need the sensor behind the wave plane (surface {plane}); here it is "
+                        f"{lens.vertex_z[plane] - z_sensor:.6g} mm before it (a mirror or a negative last "
+                        "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
 
 
 def check_plan_args(method: str, auto_rule: str, pixel_values: str, deterministic) -> tuple:

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import LensError
 from ..lens import snap_to_pixel as _snap_center
 from ..trace import Tracer, as_field_list
-from .batch_plan import AUTO_PAIR, BatchPlan, _choose_auto, _ray_focus, check_plan_args, pilot_arrays
+from .batch_plan import (AUTO_PAIR, BatchPlan, _choose_auto, _ray_focus, check_plan_args,
+                         check_sensor_behind_plane, pilot_arrays)
 from .doe_sampling import doe_pixel_origin
 from .methods import PlanContext, names
 from .methods import get as get_method
@@ -112,10 +112,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     n_img = np.array([idx[w][-1] for w in wls])
     z_plane = lens.vertex_z[plane]
     z_sensor = lens.sensor_z
-    if not z_sensor > lens.vertex_z[plane]:
-        raise LensError(f"the wave models need the sensor behind the wave plane (surface {plane}); here it is "
-                        f"{lens.vertex_z[plane] - z_sensor:.6g} mm before it (a mirror or a negative last "
-                        "thickness): use model='ray' or the ray trace", file=lens.source, surface=plane)
+    check_sensor_behind_plane(lens, plane)
     lam_mm = np.array(wls) * 1e-3
 
     # ---- every source's pilot-derived arrays at once (row k: what plan_batch computes for source k alone)
