@@ -67,8 +67,6 @@ if __name__ == "__main__":
         res["network_floor"] = network_floor(); print(json.dumps(res, indent=1), flush=True)
     m, prof = map_breakdown(); res["map"] = m
     print(json.dumps(m, indent=1)); print(prof)
-    if a.map_only:
-        print(prof[:9000])
     if a.out:
         json.dump(res, open(a.out, "w"), indent=1)
         open(a.out.replace(".json", "_profile.txt"), "w").write(prof)
