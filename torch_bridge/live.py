@@ -20,9 +20,11 @@ from .wave_step import add_wave_step
 def common_centres(module, fields_deg, wavelength_um: float, depth_mm=None, grid: int = 15) -> np.ndarray:
     """Sensor positions (mm, (n_fields, 2)) the PSF patches are centred on: the ray-model centroid at
     ``wavelength_um`` with the DOE's first-order deflection included (the tracer alone would miss it).
-    One centre per field for every wavelength, so lateral colour stays in the RGB PSFs."""
+    One centre per field for every wavelength, so lateral colour stays in the RGB PSFs. Traced on the CPU
+    (a few thousand rays: fewer launches and copies than on a GPU, and too few for torch's threads)."""
     with torch.no_grad():
-        return RaySpot(module, fields_deg, [wavelength_um], grid=grid, object_distance_mm=depth_mm).centroids()
+        return RaySpot(module, fields_deg, [wavelength_um], grid=grid, object_distance_mm=depth_mm,
+                       device="cpu").centroids()
 
 
 class LiveProvider:
