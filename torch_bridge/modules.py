@@ -56,6 +56,7 @@ from torch import nn
 
 from rwwarp import doe
 from rwwarp.lens import MAX_ASPHERIC, Lens
+from rwwarp.phase_orders import ORDER_TOL, multi_order_surfaces
 from rwwarp.wave.methods import check_method, get as get_method
 
 from .wave_step import wave_step
@@ -97,6 +98,11 @@ class HybridLens(LensTables, nn.Module):
     focal_patch_tol : float
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
+    order_tol : float
+        A lens whose phase surfaces keep several ``diffraction_orders`` (:mod:`rwwarp.phase_orders`): order
+        combinations of lower efficiency are skipped (default 1e-4). Its :meth:`psf` and :meth:`psf_map` sum the
+        kept orders coherently (:class:`torch_bridge.phase_orders.OrderSet`, one plan per order and source, as
+        :func:`rwwarp.psf`); the design providers (``torch_bridge.design``) follow the design order only.
     pixel_values : "flux" | "intensity"
         What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` (default) the power through it (the
         z-component of the Poynting vector, obliquity included), ``"intensity"`` ``|U|^2`` over it. The design
@@ -118,7 +124,8 @@ class HybridLens(LensTables, nn.Module):
     def __init__(self, lens: Lens, learn: dict | None = None, *, plan="auto", rays_per_sample: float = 1.0,
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
                  use_reference: bool = True, replan: bool = True, method: str = "auto",
-                 focal_patch_tol: float = 1e-5, deterministic: bool = False, pixel_values: str = "flux"):
+                 focal_patch_tol: float = 1e-5, deterministic: bool = False, pixel_values: str = "flux",
+                 order_tol: float = ORDER_TOL):
         super().__init__()
         self.deterministic = bool(deterministic)
         if pixel_values not in ("flux", "intensity"):
@@ -147,6 +154,10 @@ class HybridLens(LensTables, nn.Module):
         self.register_buffer("standard_mask", torch.tensor(std, dtype=torch.bool), persistent=False)
         self.register_buffer("thin_mask", torch.tensor(thin, dtype=torch.bool), persistent=False)
         self._phase_surfaces = _ph.phase_mask(lens)   # host copy, as _thin_surfaces
+        self._multi_order = bool(multi_order_surfaces(lens))   # phase surfaces with diffraction_orders
+        if not (np.isfinite(order_tol) and 0 <= order_tol < 1):
+            raise ValueError(f"order_tol must be in [0, 1), got {order_tol!r}")
+        self.order_tol = float(order_tol)
         self.register_buffer("phase_mask", torch.tensor(self._phase_surfaces, dtype=torch.bool), persistent=False)
         curv = [s.curvature if s.type == "standard" else 0.0 for s in surfs]
         asph = np.zeros((ns, MAX_ASPHERIC))
@@ -538,6 +549,9 @@ class HybridLens(LensTables, nn.Module):
         backward; same result), or chosen from ``memory_budget_bytes`` (:meth:`spatial_tile_for`). The source's
         estimated peak (:meth:`check_budget`) is checked against ``memory_budget_bytes`` (default: half the
         available memory of the device, :func:`rwwarp.wave.plan.default_memory_budget_bytes`) before tracing."""
+        if self._multi_order:
+            return self._psf_orders(field_deg, wavelength_um, size, object_distance_mm, pixel_mm, center_mm,
+                                    return_centers, spatial_tile, memory_budget_bytes)
         rw = self.raywave([field_deg], [wavelength_um], size, object_distance_mm=object_distance_mm,
                           pixel_mm=pixel_mm, center_mm=center_mm)
         budget = self.memory_budget(memory_budget_bytes)
@@ -546,6 +560,76 @@ class HybridLens(LensTables, nn.Module):
         self.check_budget(rw, budget, spatial_tile)
         out = self._psf_rw(rw, self.values(), spatial_tile=spatial_tile, tables={})[0]
         return (out, rw.centers[0].copy()) if return_centers else out
+
+    def order_set(self, field_deg, wavelength_um: float, size: int, *, object_distance_mm=None, pixel_mm=None,
+                  center_mm=None):
+        """The :class:`~torch_bridge.phase_orders.OrderSet` of one source (deg, um, px; mm) of a lens with
+        multi-order phase surfaces: one plan per kept order combination from the current values (cached per
+        request without ``replan``, as :meth:`raywave`)."""
+        from .phase_orders import OrderSet
+        if not self._multi_order:
+            raise ValueError("HybridLens.order_set: the lens has no phase surface with diffraction_orders")
+        self._once("finite", self.check_finite)
+        key = ("orders", tuple(field_pairs([field_deg])[0]), float(wavelength_um), int(size), object_distance_mm,
+               pixel_mm, None if center_mm is None else tuple(np.ravel(center_mm)), self.rw_device, self.method,
+               self.deterministic, self.pixel_values, self.order_tol)
+        if not self.replan and key in self._plans:
+            return self._plans[key]
+        lens = self._once("lens", self.to_lens)
+        opts = self._raywave_options(object_distance_mm)
+        opts.update(method=self.method, center_mm=center_mm)
+        if not isinstance(self.plan_policy, str):
+            raise ValueError("HybridLens: a lens with multi-order phase surfaces plans each order itself (plan='auto' "
+                             "or 'paper', not an explicit Plan)")
+        opts["plan"] = self.plan_policy
+        orders = OrderSet(lens, field_deg, float(wavelength_um), int(size), pixel_mm, order_tol=self.order_tol, **opts)
+        bridge_state(orders.rws[0])["base_table"] = orders.table.copy()
+        if not self.replan:
+            self._plans[key] = orders
+        return orders
+
+    def _psf_orders(self, field_deg, wavelength_um, size, object_distance_mm, pixel_mm, center_mm, return_centers,
+                    spatial_tile, memory_budget_bytes):
+        """:meth:`psf` of a lens with multi-order phase surfaces: the kept orders summed coherently at the pixels'
+        nodes (:meth:`order_set`); each order's plan is checked against the memory budget before it is traced."""
+        if spatial_tile is not None:
+            raise ValueError("HybridLens.psf: spatial_tile is not available for multi-order phase surfaces")
+        orders = self.order_set(field_deg, wavelength_um, size, object_distance_mm=object_distance_mm,
+                                pixel_mm=pixel_mm, center_mm=center_mm)
+        budget = self.memory_budget(memory_budget_bytes)
+        for rw in orders.rws:
+            self.check_budget(rw, budget)
+        rw0 = orders.rws[0]
+        out = orders.psf(self.param_table(rw0, self.values()))[0]
+        return (out, rw0.centers[0].copy()) if return_centers else out
+
+    def _psf_map_orders(self, fields, wls, size, object_distance_mm, pixel_mm, tile, memory_budget_bytes,
+                        checkpoint, progress, return_centers, spatial_tile):
+        """:meth:`psf_map` of a lens with multi-order phase surfaces: each source's orders on their own plans
+        (:meth:`order_set`), one source a tile (each a checkpoint when there are several: peak memory one
+        source's), every order's plan checked against the budget before anything is traced."""
+        if spatial_tile is not None or (tile is not None and int(tile) != 1):
+            raise ValueError("HybridLens.psf_map: multi-order phase surfaces run one source a tile (tile=1), without "
+                             "spatial_tile")
+        sets = [self.order_set(f, w, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
+                for f in fields for w in wls]
+        budget = self.memory_budget(memory_budget_bytes)
+        for o in sets:
+            for rw in o.rws:
+                self.check_budget(rw, budget)
+        values = self.values()
+        names = list(values)
+
+        def run(ch, *ts, record=True):
+            vals = dict(zip(names, ts))
+            with contextlib.nullcontext() if record else torch.no_grad():
+                return torch.cat([sets[k].psf(self.param_table(sets[k].rws[0], vals)) for k in ch], 0)
+        out = run_tiles([[k] for k in range(len(sets))], run, [values[q] for q in names], checkpoint=checkpoint,
+                        progress="PSF sources" if progress else None)
+        out = out.reshape(len(fields), len(wls), size, size)
+        if return_centers:
+            return out, np.stack([o.rws[0].centers[0] for o in sets]).reshape(len(fields), len(wls), 2)
+        return out
 
     def psf_map(self, fields, wavelengths_um, size: int = 64, *, object_distance_mm=None, pixel_mm=None,
                 tile: int | None = None, memory_budget_bytes: int | None = None, checkpoint: bool | None = None,
@@ -569,6 +653,9 @@ class HybridLens(LensTables, nn.Module):
         """
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
+        if self._multi_order:
+            return self._psf_map_orders(fields, wls, size, object_distance_mm, pixel_mm, tile, memory_budget_bytes,
+                                        checkpoint, progress, return_centers, spatial_tile)
         pairs = [(i, j) for i in range(len(fields)) for j in range(len(wls))]
         src_f = [fields[i] for i, _ in pairs]
         src_w = [wls[j] for _, j in pairs]
