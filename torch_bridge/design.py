@@ -161,6 +161,8 @@ class CachedProvider:
             raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
         if memory_budget_bytes is not None and not memory_budget_bytes > 0:
             raise ValueError(f"memory_budget_bytes must be > 0 or None, got {memory_budget_bytes!r}")
+        from .phase_orders import warn_design_order_only
+        warn_design_order_only(module, "CachedProvider")
         if cache_precision not in ("double", "single"):
             raise ValueError(f"cache_precision must be 'double' or 'single', got {cache_precision!r}")
         #: dtype of the cached DOE-plane fields (they are propagated in complex128 whatever it is)

@@ -90,6 +90,8 @@ class LiveProvider:
                  window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5,
                  record_budget_bytes: int | None = None, replan_rule: str = "calls", replan_drift: float = 0.05,
                  replan_drift_hard: float | None = None, replan_spread: int = 1):
+        from .phase_orders import warn_design_order_only
+        warn_design_order_only(module, "LiveProvider")
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile

@@ -21,7 +21,7 @@ import torch
 
 from rwwarp.phase_orders import ORDER_TOL, multi_order_surfaces, node_phase, order_combinations, order_lens
 
-__all__ = ["OrderSet"]
+__all__ = ["OrderSet", "warn_design_order_only"]
 
 
 class OrderSet:
@@ -82,3 +82,12 @@ class OrderSet:
                 acc_w = b * w if acc_w is None else acc_w + b * w
         power = node_pixels((acc_u, acc_w) if pair else acc_u, rw0)
         return power / power_sums(rw0, power.device)[0][:, None, None]
+
+
+def warn_design_order_only(module, who: str) -> None:
+    """Warn (``UserWarning``) that ``who`` (a design provider) computes the design order only where ``module``'s lens
+    has multi-order phase surfaces (:meth:`torch_bridge.HybridLens.psf` / ``psf_map`` sum the kept orders)."""
+    if getattr(module, "_multi_order", False):
+        import warnings
+        warnings.warn(f"{who}: the lens's phase surfaces keep several diffraction_orders; this provider computes the "
+                      "design order only (HybridLens.psf / psf_map sum the kept orders)", UserWarning, stacklevel=3)

@@ -106,3 +106,13 @@ def test_hybrid_lens_orders_refuse_what_they_cannot_do():
         tb.HybridLens(make((0, 1, 2), sensor=bfl()), order_tol=1.5)
     with pytest.raises(ValueError, match="no phase surface with diffraction_orders"):
         tb.HybridLens(make(None, sensor=bfl())).order_set(0.0, WL, SIZE)
+
+
+def test_design_providers_say_they_follow_the_design_order():
+    import torch_bridge as tb
+    from torch_bridge import design as dz
+    m = tb.HybridLens(make((0, 1, 2), sensor=bfl()), method="focal")
+    with pytest.warns(UserWarning, match="design order only"):
+        dz.LiveProvider(m, [0.0], SIZE, make().sensor.pixel_pitch)
+    with pytest.warns(UserWarning, match="design order only"):
+        dz.CachedProvider(m, [0.0], SIZE, make().sensor.pixel_pitch)
