@@ -35,8 +35,8 @@ Limits: the ray-wave model only (``"ray"`` and ``"paraxial-wave"`` refuse ``diff
 amplitude convention; no wave step; no ``cache``; the stop must be at or in front of every multi-order surface
 (all orders share the entrance pupil, hence the optical-path reference). Gradients:
 :class:`torch_bridge.phase_orders.OrderSet` (the same sum through the operators' adjoints; checked against finite
-differences), which ``torch_bridge.HybridLens.psf`` / ``psf_map`` use; the design loop's providers follow the design
-order only. Lengths mm, wavelengths
+differences), which ``torch_bridge.HybridLens.psf`` / ``psf_map`` and the design loop's ``LiveProvider`` use (``CachedProvider``
+follows the design order only, and warns). Lengths mm, wavelengths
 um.
 """
 from __future__ import annotations

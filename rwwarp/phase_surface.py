@@ -48,8 +48,8 @@ order alone is 0.185 off; ``tests/rwwarp/test_phase_orders.py``).
 Limits: without ``diffraction_orders`` only the traced order is kept: the relief's efficiency into that order
 (``sinc^2(s(lambda) - m)`` for a kinoform, see :mod:`rwwarp.doe`) and the light in the other orders are ignored
 (the flat wave-plane DOE keeps them). ``diffraction_orders`` is read by the ray-wave PSF and by
-:class:`torch_bridge.phase_orders.OrderSet` (its gradients; ``torch_bridge.HybridLens.psf`` / ``psf_map``) only (not the
-ray or paraxial-wave models, nor the design loop's providers, which follow the design order); a relief needs different indices on its two sides. A discontinuous profile (quantised levels, pixel maps, zones comparable to the wavelength) is not a
+:class:`torch_bridge.phase_orders.OrderSet` (its gradients; ``torch_bridge.HybridLens.psf`` / ``psf_map``, ``LiveProvider``) only (not
+the ray or paraxial-wave models, nor ``CachedProvider``, which follows the design order); a relief needs different indices on its two sides. A discontinuous profile (quantised levels, pixel maps, zones comparable to the wavelength) is not a
 smooth phase: its wraps diffract, and it needs a wave step (the wave-plane DOE), which is refused here. An
 evanescent order (``|n' d'_t| >= n'``) makes the ray invalid. Mirrors with a phase, and phases behind a mirror,
 are not supported. The tracer differentiates their terms (``wp.Tape``); ``torch_bridge.HybridLens`` learns their

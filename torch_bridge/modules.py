@@ -102,7 +102,7 @@ class HybridLens(LensTables, nn.Module):
         A lens whose phase surfaces keep several ``diffraction_orders`` (:mod:`rwwarp.phase_orders`): order
         combinations of lower efficiency are skipped (default 1e-4). Its :meth:`psf` and :meth:`psf_map` sum the
         kept orders coherently (:class:`torch_bridge.phase_orders.OrderSet`, one plan per order and source, as
-        :func:`rwwarp.psf`); the design providers (``torch_bridge.design``) follow the design order only.
+        :func:`rwwarp.psf`); the design loop's ``LiveProvider`` sums them too, ``CachedProvider`` follows the design order only.
     pixel_values : "flux" | "intensity"
         What a sensor pixel records, as :func:`rwwarp.psf`: ``"flux"`` (default) the power through it (the
         z-component of the Poynting vector, obliquity included), ``"intensity"`` ``|U|^2`` over it. The design

@@ -108,11 +108,28 @@ def test_hybrid_lens_orders_refuse_what_they_cannot_do():
         tb.HybridLens(make(None, sensor=bfl())).order_set(0.0, WL, SIZE)
 
 
-def test_design_providers_say_they_follow_the_design_order():
+def test_live_provider_sums_the_orders_and_the_cached_one_says_it_does_not():
+    """LiveProvider (the design loop with a learning lens) computes each node's kept orders (HybridLens.order_set at
+    the node's common centre): its PSFs equal HybridLens.psf at the same centres (the same arithmetic; the
+    provider's two checkpointed chunks run their forward without a tape: tolerance 1e-15 of the peak as the
+    map's), and its gradient equals the one through psf (1e-12 relative). CachedProvider (frozen refractive part)
+    keeps the design order only and warns."""
     import torch_bridge as tb
     from torch_bridge import design as dz
-    m = tb.HybridLens(make((0, 1, 2), sensor=bfl()), method="focal")
+    from torch_bridge.live import common_centres
+    m = tb.HybridLens(make((0, 1, 2), sensor=bfl()), learn={"phase": [(2, 0)]}, method="focal")
+    pitch = make().sensor.pixel_pitch
+    prov = dz.LiveProvider(m, [(0.0, 0.0), (0.0, 0.3)], SIZE, pitch, wavelength_ref_um=WL, tile=1)
+    out = prov.psfs([WL])
+    assert out.shape == (2, 1, SIZE, SIZE)
+    W = torch.tensor(np.random.default_rng(2).random((2, 1, SIZE, SIZE)))
+    (out * W).sum().backward()
+    g = float(m.phase.grad[0])
+    m.phase.grad = None
+    cen = common_centres(m, [(0.0, 0.0), (0.0, 0.3)], WL)
+    ref = torch.stack([m.psf((0.0, f), WL, SIZE, center_mm=tuple(c)) for f, c in zip((0.0, 0.3), cen)])[:, None]
+    assert (out - ref).abs().max() < 1e-15 * ref.max()
+    (ref * W).sum().backward()
+    assert g != 0.0 and g == pytest.approx(float(m.phase.grad[0]), rel=1e-12)
     with pytest.warns(UserWarning, match="design order only"):
-        dz.LiveProvider(m, [0.0], SIZE, make().sensor.pixel_pitch)
-    with pytest.warns(UserWarning, match="design order only"):
-        dz.CachedProvider(m, [0.0], SIZE, make().sensor.pixel_pitch)
+        dz.CachedProvider(m, [0.0], SIZE, pitch)
