@@ -87,6 +87,21 @@ def cooke_case():
     return old, new, len(fields)
 
 
+def cooke_estimate_case():
+    """(old, new, n): the cooke_hybrid design step's 48 sources through raywaves_alone with the model-error estimate
+    (``HybridLens(estimate_model_error=True)``, "old") and without it (the design configs' default, "new")."""
+    from time_plan_cooke import setup
+    m, fields, ws, centres, size, pixel = setup()
+
+    def run(flag):
+        m.estimate_model_error = flag
+        try:
+            return m.raywaves_alone(fields, ws, size, centers_mm=centres, pixel_mm=pixel, method="focal")
+        finally:
+            m.estimate_model_error = True
+    return (lambda: run(True)), (lambda: run(False)), len(fields)
+
+
 def timed(fns, runs, miss):
     """Per callable of ``fns``, called in turn (interleaved, so that other load on the machine falls on all alike)
     ``runs`` times: (min wall s, min process CPU s, median process CPU s); ``miss``: the model-error memo emptied
@@ -107,12 +122,13 @@ def timed(fns, runs, miss):
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--runs", type=int, default=7)
-    ap.add_argument("--case", choices=("a489", "cooke", "both"), default="both")
+    ap.add_argument("--case", choices=("a489", "cooke", "cooke_estimate", "both"), default="both",
+                    help="cooke_estimate: the Cooke sources with the model-error estimate (old) and without (new)")
     args = ap.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    cases = [("a489", a489_case), ("cooke", cooke_case)]
+    cases = [("a489", a489_case), ("cooke", cooke_case), ("cooke_estimate", cooke_estimate_case)]
     for name, make in cases:
-        if args.case not in (name, "both"):
+        if args.case != name and not (args.case == "both" and name != "cooke_estimate"):
             continue
         old, new, n = make()
         old(), new()   # kernel builds, imports

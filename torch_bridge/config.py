@@ -153,6 +153,7 @@ SCHEMA = {
         "focal_patch_tol": _num(0, 1),
         "deterministic": _bool(),
         "pixel_values": _choice("flux", "intensity"),
+        "model_error_estimate": _bool(),
     },
     "render": {
         "mode": _choice("patch", "full"),
@@ -237,7 +238,7 @@ DEFAULTS = {
                "check_sampling_every": 10, "live_replan_every": 1, "live_replan_rule": "drift",
                "live_replan_drift": 1.0, "live_replan_drift_hard": None, "live_replan_spread": 3, "live_pack": True,
                "memory_budget_gb": None, "cache_precision": "double", "propagation": "auto",
-               "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux"},
+               "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux", "model_error_estimate": False},
     "render": {"mode": "patch", "boundary": "reflect"},
     "data": {"root": None, "crop": 64, "scale": 1.0, "batch_size": 4, "eval_images": 8, "max_images": None,
              "linearize": False},

@@ -98,6 +98,10 @@ class HybridLens(LensTables, nn.Module):
     focal_patch_tol : float
         Focal method: least share of a source's power a DOE order other than the main one must put on
         the patch to be computed (:class:`rwwarp.psf.RayWave`; default 1e-5).
+    estimate_model_error : bool
+        Each plan's model-error estimate (:class:`rwwarp.wave.raywave.RayWave` ``estimate_model_error``): False
+        skips it where nothing decides by it (``method`` other than ``"two-step"``; the PSFs are the same). The
+        design configs' ``optics.model_error_estimate`` (default false: most of a re-planning step's planning time).
     order_tol : float
         A lens whose phase surfaces keep several ``diffraction_orders`` (:mod:`rwwarp.phase_orders`): order
         combinations of lower efficiency are skipped (default 1e-4). Its :meth:`psf` and :meth:`psf_map` sum the
@@ -125,7 +129,7 @@ class HybridLens(LensTables, nn.Module):
                  nyquist_safety: float = 2.0, amplitude: str = "energy", gauss_nodes: int | None = None,
                  use_reference: bool = True, replan: bool = True, method: str = "auto",
                  focal_patch_tol: float = 1e-5, deterministic: bool = False, pixel_values: str = "flux",
-                 order_tol: float = ORDER_TOL):
+                 order_tol: float = ORDER_TOL, estimate_model_error: bool = True):
         super().__init__()
         self.deterministic = bool(deterministic)
         if pixel_values not in ("flux", "intensity"):
@@ -158,6 +162,7 @@ class HybridLens(LensTables, nn.Module):
         if not (np.isfinite(order_tol) and 0 <= order_tol < 1):
             raise ValueError(f"order_tol must be in [0, 1), got {order_tol!r}")
         self.order_tol = float(order_tol)
+        self.estimate_model_error = bool(estimate_model_error)
         self.register_buffer("phase_mask", torch.tensor(self._phase_surfaces, dtype=torch.bool), persistent=False)
         curv = [s.curvature if s.type == "standard" else 0.0 for s in surfs]
         asph = np.zeros((ns, MAX_ASPHERIC))
@@ -395,7 +400,8 @@ class HybridLens(LensTables, nn.Module):
                     object_distance_mm=object_distance_mm, rays_per_sample=self.rays_per_sample,
                     use_reference=self.use_reference, gauss_nodes=self.gauss_nodes,
                     nyquist_safety=self.nyquist_safety, focal_patch_tol=self.focal_patch_tol,
-                    deterministic=self.deterministic, pixel_values=self.pixel_values, auto_rule="small-asm")
+                    deterministic=self.deterministic, pixel_values=self.pixel_values, auto_rule="small-asm",
+                    estimate_model_error=self.estimate_model_error)
 
     def raywaves_alone(self, fields, wavelengths_um, size, *, centers_mm, object_distance_mm=None, pixel_mm=None,
                        method: str | None = None, requires_grad: bool = True) -> list:

@@ -152,7 +152,8 @@ class Arm:
         self.module = tb.HybridLens(lens, learn=learn, nyquist_safety=o["nyquist_safety"],
                                     rays_per_sample=o["rays_per_sample"], method=o["propagation"],
                                     focal_patch_tol=o["focal_patch_tol"],
-                                    deterministic=o["deterministic"], pixel_values=o["pixel_values"]).to(self.device)
+                                    deterministic=o["deterministic"], pixel_values=o["pixel_values"],
+                                    estimate_model_error=o["model_error_estimate"]).to(self.device)
         self.pixel_mm = (o["pixel_um"] * 1e-3) if o["pixel_um"] else lens.sensor.pixel_pitch
         self.size = int(o["psf_size"])
         self.wls = [[float(w) for w in c] for c in o["wavelengths_um"]]

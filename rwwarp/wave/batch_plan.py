@@ -192,12 +192,14 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
                nyquist_safety=2.0, method="asm", memory_budget_bytes=None, focal_patch_tol=1e-5,
                deterministic: bool = False, own_pupils: bool = False, pilot: Pilot | None = None,
                pixel_values: str = "flux", model_tolerance: float | None = None, auto_rule: str = "device",
-               allow_pixel: bool = False, tracer: Tracer | None = None) -> BatchPlan:
+               allow_pixel: bool = False, tracer: Tracer | None = None, estimate_model_error: bool = True) -> BatchPlan:
     """The :class:`BatchPlan` of the sources ``fields`` (deg) x ``wls`` (um, one per field) with patches of
     ``size`` pixels of ``pixel`` mm: the arguments as :class:`rwwarp.wave.raywave.RayWave` takes them (which calls
     this). ``pilot`` (:func:`rwwarp.wave.pilot.trace_pilot` of these sources, or a subset): planned from it, else
     traced here. ``tracer``: a :class:`rwwarp.trace.Tracer` of ``lens`` at ``sorted(set(wls))`` to lay the
-    sources with (and trace the pilot with when none is given); None: one is made here (without gradients)."""
+    sources with (and trace the pilot with when none is given); None: one is made here (without gradients).
+    ``estimate_model_error=False``: the model-error estimate is skipped where no decision reads it
+    (:func:`rwwarp.wave.wave_step.model_error_needed`; the plan then records none)."""
     if any(getattr(s, "diffraction_orders", None) is not None for s in lens.surfaces):
         import warnings
         warnings.warn("a RayWave traces each phase surface in its diffraction_order only: Surface.diffraction_orders "
@@ -322,7 +324,9 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
         elif memory_budget_bytes is not None:
             budget_check(bp.plan, bp.pixel_alternative)
     from . import wave_step as _ws
-    return _ws.plan_wave_step(bp, model_tolerance, requested, memory_budget_bytes)   # model error; wave step
+    skip = not estimate_model_error and not _ws.model_error_needed(requested, model_tolerance)
+    return _ws.plan_wave_step(bp, model_tolerance, requested, memory_budget_bytes,   # model error; wave step
+                              estimate=[] if skip else None)
 
 
 def _choose_auto(pl, f, nsrc, size, gauss_nodes, auto_rule, device, memory_budget_bytes):

@@ -20,7 +20,8 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                  object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True,
                  gauss_nodes=None, nyquist_safety=2.0, method="asm", memory_budget_bytes=None,
                  focal_patch_tol=1e-5, deterministic: bool = False, pixel_values: str = "flux",
-                 model_tolerance: float | None = None, allow_pixel: bool = False, auto_rule: str = "device") -> list:
+                 model_tolerance: float | None = None, allow_pixel: bool = False, auto_rule: str = "device",
+                 estimate_model_error: bool = True) -> list:
     """Every source planned on its own: one :class:`RayWave` per (field, wavelength) pair (fields in deg,
     wavelengths in um, ``size`` px of ``pixel`` mm), each with the plan, windows and patch it has alone
     (entrance pupil at its own wavelength), from one pilot trace of all of them
@@ -33,7 +34,7 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     plans = plan_sources(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
                          rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method,
                          memory_budget_bytes, focal_patch_tol, deterministic, pixel_values, model_tolerance,
-                         auto_rule, allow_pixel)
+                         auto_rule, allow_pixel, estimate_model_error=estimate_model_error)
     # each member's tracer is made when it traces alone (a member computed in a PackedRayWave never does)
     return [RayWave.from_plan(bp, tracer_on_use=True) for bp in plans]
 

@@ -67,14 +67,15 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                  nyquist_safety=2.0, method="asm", memory_budget_bytes=None, focal_patch_tol=1e-5,
                  deterministic: bool = False, pixel_values: str = "flux", model_tolerance: float | None = None,
                  auto_rule: str = "device", allow_pixel: bool = False, pilot: Pilot | None = None,
-                 per_source_centers: bool = False) -> list:
+                 per_source_centers: bool = False, estimate_model_error: bool = True) -> list:
     """One :class:`~rwwarp.wave.batch_plan.BatchPlan` per source ``(fields[k], wls[k])`` (deg, um), each the plan
     :func:`~rwwarp.wave.batch_plan.plan_batch` gives that source alone with ``own_pupils=True`` (and the pilot
     rows of that source): ``size`` px of ``pixel`` mm; the other arguments as ``plan_batch`` takes them, the
     same for every source. ``center_mm``: None (each patch where its chief ray's main order lands), one ``(x,
     y)`` pair (mm) for every source, or, with ``per_source_centers``, one pair per source ((S, 2) mm). ``pilot``:
     the sources' pilot (:func:`rwwarp.wave.pilot.trace_pilot` with ``own_pupils=True``, checked), else traced
-    here in one set of launches. Returns the plans in source order.
+    here in one set of launches. ``estimate_model_error``: as ``plan_batch`` (False: skipped where no decision reads
+    it). Returns the plans in source order.
 
     Where a source cannot be planned (vignetted, over the memory budget, ...) the error is the one
     ``plan_batch`` raises for it; with several such sources, the pilot's checks (vignetting) of every source come
@@ -257,10 +258,11 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
             plans[k] = bp
     # ---- the model error of every source's plan in one call, then each one's wave step
     from . import wave_step as _ws
-    ests = estimate_sources(lens, plane, pilot, [bp.centers for bp in plans], target, wls, n_after, lam_mm,
-                            z_plane, z_sensor, key_states=key_states)
+    skip = not estimate_model_error and not _ws.model_error_needed(requested, model_tolerance)
+    ests = None if skip else estimate_sources(lens, plane, pilot, [bp.centers for bp in plans], target, wls,
+                                              n_after, lam_mm, z_plane, z_sensor, key_states=key_states)
     out = []
     for k, bp in enumerate(plans):
         req = chosen_late[k] if chosen_late[k] is not None else requested
-        out.append(_ws.plan_wave_step(bp, model_tolerance, req, memory_budget_bytes, estimate=[ests[k]]))
+        out.append(_ws.plan_wave_step(bp, model_tolerance, req, memory_budget_bytes, estimate=[] if skip else [ests[k]]))
     return out

@@ -79,6 +79,11 @@ class RayWave:
     (the rule GPUs had while launches bound both paths; :func:`rwwarp.wave.batch_plan._choose_auto` says why it
     changed).
 
+    ``estimate_model_error``: False skips the model-error estimate (:mod:`rwwarp.wave.model_error`) where no decision
+    reads it (``method`` neither ``"two-step"`` nor ``"auto"`` with a ``model_tolerance``): the plan records none. A
+    design loop that re-plans every step spends most of its planning there (the Cooke hybrid's 48 sources with
+    the estimates' memo missed: 57 % of the planning's CPU time).
+
     ``allow_pixel``: ``method="auto"`` may choose ``"pixel"`` (pixels many Airy radii wide,
     :mod:`rwwarp.wave.pixel_scale`; no wave-plane field, so nothing to differentiate): on for the public calls
     (:func:`rwwarp.psf`, :func:`rwwarp.psf_map`, :func:`rwwarp.plan_psf`), off by default so that a differentiable
@@ -90,7 +95,8 @@ class RayWave:
                  use_reference=True, gauss_nodes=None, nyquist_safety=2.0, requires_grad=False, method="asm",
                  memory_budget_bytes=None, focal_patch_tol=1e-5, deterministic: bool = False,
                  own_pupils: bool = False, pilot: Pilot | None = None, pixel_values: str = "flux",
-                 model_tolerance: float | None = None, auto_rule: str = "device", allow_pixel: bool = False):
+                 model_tolerance: float | None = None, auto_rule: str = "device", allow_pixel: bool = False,
+                 estimate_model_error: bool = True):
         if auto_rule not in ("device", "small-asm", "flops"):
             raise ValueError(f"auto_rule must be 'device', 'small-asm' or 'flops', got {auto_rule!r}")
         check_method(method, "RayWave")
@@ -99,7 +105,7 @@ class RayWave:
         bp = plan_batch(lens, fields, wls, size, pixel, device, plan, dtype, amplitude, object_distance_mm,
                         rays_per_sample, center_mm, use_reference, gauss_nodes, nyquist_safety, method,
                         memory_budget_bytes, focal_patch_tol, deterministic, own_pupils, pilot, pixel_values,
-                        model_tolerance, auto_rule, allow_pixel, tracer=tr)
+                        model_tolerance, auto_rule, allow_pixel, tracer=tr, estimate_model_error=estimate_model_error)
         self._start(bp, tr, device)
 
     def _start(self, batch_plan: BatchPlan, tracer: Tracer, device: str, deterministic: bool | None = None):

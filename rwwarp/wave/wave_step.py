@@ -237,6 +237,13 @@ def _caller_stacklevel() -> int:
     return level
 
 
+def model_error_needed(method_requested: str, tolerance) -> bool:
+    """Whether a plan's decisions read the model-error estimate: the wave step of ``"two-step"``, or ``"auto"``
+    with a ``tolerance`` (``plan_sources`` / ``plan_batch`` may skip the estimate elsewhere, where it would only
+    be recorded: ``estimate_model_error=False``)."""
+    return method_requested == "two-step" or (method_requested == "auto" and tolerance is not None)
+
+
 def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=None, estimate=None):
     """Estimate the model error of a :class:`rwwarp.wave.batch_plan.BatchPlan` ``rw`` (:func:`rwwarp.wave.model_error.estimate_for_raywave`),
     record it in its plan (``model_error``, a reason), and decide the wave step: on where
@@ -253,10 +260,14 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
     ``"two-step"`` takes it and warns (:class:`WaveStepWarning`; without a tolerance where the phase error exceeds
     ``STEP_PHASE_MAX`` rad). ``estimate``: the model error of ``rw`` already computed (a list of
     :class:`~rwwarp.wave.model_error.ModelError` per source, :func:`rwwarp.wave.model_error.estimate_sources`), else
-    computed here."""
+    computed here; an empty list: not estimated (only where :func:`model_error_needed` is False: nothing recorded,
+    no step)."""
     from .model_error import estimate_for_raywave, worst
     from .plan import check_budget, estimate_cost
     est = estimate_for_raywave(rw) if estimate is None else list(estimate)
+    if not est and model_error_needed(method_requested, tolerance):
+        raise ValueError(f"plan_wave_step: method {method_requested!r} with tolerance {tolerance!r} needs the model-error "
+                         "estimate; none was given")
     base = {"model_errors": tuple(est), "wave_step": np.zeros(rw.nsrc)}   # every returned plan's (one copy of rw)
     w = worst(est)
     pl = rw.plan

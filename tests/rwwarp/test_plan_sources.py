@@ -274,3 +274,34 @@ def test_focal_plans_without_doe_at_once_and_alone(monkeypatch):
     taken.clear()
     _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, method="auto", allow_pixel=True)
     assert taken == [[0, 1, 2, 3]]
+
+
+@pytest.mark.parametrize("method", ["focal", "auto", "two-step"])
+def test_skipping_the_model_error_estimate_changes_nothing_else(method):
+    """``estimate_model_error=False`` (the design loop's default): the plans are those with the estimate except the
+    estimate itself and its reason (compared bit for bit with those two fields put back), in plan_sources and
+    plan_batch alike; where a decision reads it ("two-step"; "auto" with a tolerance) it is made anyway."""
+    lens = _cooke_with_doe(-30000.0)
+    fields, wls = _grid([0.0, 10.0], [0.5, 0.6])
+    for tol in ((None, 1e-2) if method == "auto" else (None,)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model_error._MEMO.clear()
+            full = plan_sources(lens, fields, wls, 24, 0.004, method=method, model_tolerance=tol)
+            model_error._MEMO.clear()
+            lean = plan_sources(lens, fields, wls, 24, 0.004, method=method, model_tolerance=tol,
+                                estimate_model_error=False)
+            one = plan_batch(lens, [fields[1]], [wls[1]], 24, 0.004, method=method, model_tolerance=tol,
+                             own_pupils=True, estimate_model_error=False)
+        needed = method == "two-step" or tol is not None
+        for k, (a, b) in enumerate(zip(full, lean)):
+            assert a.model_errors and a.plan.model_error is not None
+            if needed:
+                assert not _diff(a, b), (method, tol, k)
+                continue
+            assert b.model_errors == () and b.plan.model_error is None
+            put_back = b.evolved(model_errors=a.model_errors, plan=b.plan.evolved(model_error=a.plan.model_error,
+                                                                                 reasons=a.plan.reasons))
+            assert not _diff(a, put_back), (method, tol, k, _diff(a, put_back)[:3])
+            assert len(a.plan.reasons) == len(b.plan.reasons) + 1
+        assert (one.model_errors == ()) is not needed

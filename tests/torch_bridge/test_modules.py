@@ -132,6 +132,20 @@ def test_psf_equals_rwwarp_psf():
     np.testing.assert_allclose(center, ref.center_mm)
 
 
+def test_skipping_the_model_error_estimate_gives_the_same_psf_and_gradient():
+    """HybridLens(estimate_model_error=False) (the design configs' default) plans without the estimate and gives the
+    same PSF and gradient bit for bit (only the plan's record differs: tests/rwwarp/test_plan_sources.py)."""
+    lens = singlet(EVEN)
+    out = []
+    for flag in (True, False):
+        hl = tb.HybridLens(lens, learn={"curvature": [1]}, estimate_model_error=flag)
+        p = hl.psf(FIELD, 0.55, 16)
+        p.square().sum().backward()
+        out.append((p.detach().numpy(), hl.curvature.grad.numpy().copy()))
+    assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
+    assert out[0][1][0] != 0.0
+
+
 def fd_errors(hl, loss, entries):
     """Relative errors of autograd against the 4-point central difference (truncation O(h^4)) of ``loss()`` for
     parameter entries ``(name, k, h)`` (``h`` the step, in the entry's units)."""
