@@ -29,7 +29,7 @@ smoke)
   rc=0
   configs=$(echo $parts | tr ' ' '\n' | grep -v '^tests$' | tr '\n' ' ')
   if [ -n "$configs" ]; then
-    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs --out "$RWWARP_RESULTS" 2>&1 | grep -v use_ai2
+    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs --out "$RWWARP_RESULTS" 2>&1 | grep --line-buffered -v use_ai2
     rc=${PIPESTATUS[0]}
   fi
   if echo " $parts " | grep -q " tests "; then
