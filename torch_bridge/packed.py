@@ -110,7 +110,8 @@ def packed_doe_factor(tile, phi0):
     ``c exp(1j m phi0)``, or a blank DOE as the one order ``(alpha, 1)``, ``alpha`` the wavelength remap of
     :func:`torch_bridge.functions.doe_scale`) in one product, each member's chief-ray wrap zone exact. Its host
     tables are built once per tile (:func:`rwwarp.wave.focal_packed.member_order_tables`) and uploaded once per
-    device (:func:`torch_bridge.functions._on_device`)."""
+    device (:func:`torch_bridge.functions._on_device`). No member is evaluated alone: one keeping several orders
+    not all integers (none the planner makes) is a sum of terms in the same call."""
     if phi0 is None:
         return None
     from rwwarp.wave.focal import batch_order_series
