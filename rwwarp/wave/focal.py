@@ -235,10 +235,12 @@ def batch_order_series(phi0, tables: OrderTables, xp=np, put=None):
     (S, n, n)) in the array namespace ``xp`` (numpy, CuPy, or torch, differentiable in ``phi0``, on any device);
     ``tables``: :func:`order_tables`. The series members share one Horner recursion in ``exp(1j phi0)``
     (:func:`order_series_horner`) over the union of their orders; the others are ``sum c exp(1j m phi0)``;
-    zones by :func:`exact_zone`, one zone and remap per member, in the parts that have one. ``put(name,
-    host)``: a host table (float64, or int64 row indices) as an array of ``xp`` beside ``phi0`` (default
-    ``xp.asarray``, moved to ``phi0``'s device where the arrays have ``.to``, as torch's; torch_bridge passes
-    its upload cache). Computed on ``phi0``'s device."""
+    zones by :func:`exact_zone`, one zone and remap per member, in the parts that have one. Phases by
+    ``xp.exp(1j x)`` (numpy 2.4's complex exp is faster than :func:`_cis`'s cos + i sin here, 16 vs 20 ms for
+    2 x 459^2, the same values). ``put(name, host)``: a host table (float64, or int64 row indices) as an array
+    of ``xp`` beside ``phi0`` (default ``xp.asarray``, moved to ``phi0``'s device where the arrays have ``.to``,
+    as torch's; torch_bridge passes its upload cache). Computed on ``phi0``'s device (nothing is copied to the
+    host): device-generic, run here on the CPU only (numpy, torch)."""
     if put is None:
         put = _put_beside(phi0, xp)
     S = tables.size
@@ -253,12 +255,13 @@ def batch_order_series(phi0, tables: OrderTables, xp=np, put=None):
         if name == "series":
             t = put("coefs", tables.coefs)
             c = t[..., 0] + 1j * t[..., 1]
-            acc = order_series_horner(_cis(p, xp), [c[:, j, None, None] for j in range(c.shape[1])], tables.lo, xp)
+            e = xp.exp(1j * p)
+            acc = order_series_horner(e, [c[:, j, None, None] for j in range(c.shape[1])], tables.lo, xp)
         else:
             t = put("terms_mc", tables.terms_mc)
             acc = None
             for j in range(t.shape[1]):
-                term = (t[:, j, 1] + 1j * t[:, j, 2])[:, None, None] * _cis(t[:, j, 0, None, None] * p, xp)
+                term = (t[:, j, 1] + 1j * t[:, j, 2])[:, None, None] * xp.exp(1j * t[:, j, 0, None, None] * p)
                 acc = term if acc is None else acc + term
         if zones is not None:
             z = put(name + "_zones", zones)
