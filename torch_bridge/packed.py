@@ -22,9 +22,8 @@ import contextlib
 import numpy as np
 import torch
 from rwwarp.trace import COLUMNS as COL
-from rwwarp.wave.focal import exact_zone, order_series_horner
 
-from .functions import _on_device, _streams, bridge_state, focal_doe_factor, paper_amplitude, upload
+from .functions import _on_device, _streams, bridge_state, paper_amplitude, upload
 from .functions import power_sums, trace_splat
 
 __all__ = ["PackedFocalPropagate", "PackedTile", "packed_doe_factor", "packed_psfs", "packed_recorded_bytes"]
@@ -49,6 +48,7 @@ class PackedTile:
         self.groups = focal_groups(self.members, waste)
         self._ops = None
         self._base = {}   # precision -> the first operators built (their distance-free factors are shared)
+        self._order_tables = None   # the members' DOE order tables (packed_doe_factor), built on first use
 
     def operators(self, distance_mm: float, precision: str = "double") -> list:
         """One :class:`rwwarp.wave.focal_packed.PackedFocalPropagator` per group at ``distance_mm`` (mm), built once
@@ -104,99 +104,31 @@ class _Sized:
 def packed_doe_factor(tile, phi0):
     """The DOE's transmission on each member's wave-plane window, (S, n, n) complex128 (``n`` the tile's slot
     side), or None without a DOE: per member what :func:`torch_bridge.functions.focal_doe_factor` gives it
-    alone. ``phi0``: the unwrapped DOE phase on the tile's windows (rad, (S, n, n)), differentiable. Members
-    are evaluated in two batches: those whose plan keeps several integer DOE orders, in one Horner recursion
-    in ``exp(1j phi0)`` over the union of their orders (a member's missing orders have zero coefficients)
-    with each member's exact chief-ray wrap zone; those with one order ``c exp(1j m phi0)`` (a relief that
-    does not wrap in the beam: ``m`` the wavelength remap) or a blank DOE (``exp(1j alpha phi0)``), in one
-    product. Any other member (none the planner makes) is evaluated alone."""
+    alone. ``phi0``: the unwrapped DOE phase on the tile's windows (rad, (S, n, n)), differentiable, on any
+    device. rwwarp's one batched evaluation, :func:`rwwarp.wave.focal.batch_order_series`, in torch: the members
+    with several integer orders in one Horner recursion over the union of their orders, the others (one order
+    ``c exp(1j m phi0)``, or a blank DOE as the one order ``(alpha, 1)``, ``alpha`` the wavelength remap of
+    :func:`torch_bridge.functions.doe_scale`) in one product, each member's chief-ray wrap zone exact. Its host
+    tables are built once per tile (:func:`rwwarp.wave.focal_packed.member_order_tables`) and uploaded once per
+    device (:func:`torch_bridge.functions._on_device`). No member is evaluated alone: one keeping several orders
+    not all integers (none the planner makes) is a sum of terms in the same call."""
     if phi0 is None:
         return None
-    members = tile.members
-    S = len(members)
-    kinds = [_factor_kind(m) for m in members]
-    parts, seq = [], []
-    for kind, make in (("series", _series_factor), ("single", _single_factor)):
-        idx = [k for k in range(S) if kinds[k] == kind]
-        if idx:
-            p = phi0 if len(idx) == S else phi0[upload(idx, torch.long, phi0.device)]
-            parts.append(make(tile, idx, p))
-            seq += idx
-    for k in range(S):
-        if kinds[k] is None:
-            parts.append(focal_doe_factor(members[k], phi0[k:k + 1]))
-            seq.append(k)
-    out = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
-    if seq != list(range(S)):
-        out = out[upload(np.argsort(seq), torch.long, out.device)]
-    return out
+    from rwwarp.wave.focal import batch_order_series
+    from rwwarp.wave.focal_packed import member_order_tables
+    tables = tile._order_tables
+    if tables is None:
+        from .functions import doe_scale
+        # a blank DOE (planned flat, no orders): exp(1j alpha phi0), one order m = alpha, c = 1, no zone
+        tables = tile._order_tables = member_order_tables(tile.members,
+                                                          blank=lambda m: [(float(doe_scale(m)[0]), 1.0)])
+    rw, dev = tile.raywave, phi0.device
 
-
-def _factor_kind(m):
-    """How a member's DOE transmission is batched: "series" (several integer orders), "single" (one order, or a
-    blank DOE), None (alone)."""
-    if m.focal["profile"] is None:
-        return "single"
-    orders = m.focal["orders"][0]
-    if len(orders) == 1:
-        return "single"
-    if all(float(o) == int(o) for o, _ in orders):
-        return "series"
-    return None
-
-
-def _single_factor(tile, idx, p):
-    """``c exp(1j m p)`` for the members ``idx`` with one kept order ``(m, c)`` (as
-    :func:`rwwarp.wave.focal.doe_order_series`), or ``exp(1j alpha p)`` for a blank DOE (``alpha``: the wavelength
-    remap, :func:`torch_bridge.functions.doe_scale`), each member's chief-ray zone exact where it has one."""
-    from .functions import doe_scale
-    rows = []
-    for k in idx:
-        mb = tile.members[k]
-        if mb.focal["profile"] is None:
-            rows.append((float(doe_scale(mb)[0]), 1.0, 0.0))
-        else:
-            (o, c), = mb.focal["orders"][0]
-            rows.append((float(o), complex(c).real, complex(c).imag))
-    key = f"packed_single_{tuple(idx)}"
-    t = _on_device(tile.raywave, key, np.array(rows, dtype=np.float64), p.device)
-    m = t[:, 0, None, None]
-    c = torch.complex(t[:, 1], t[:, 2])[:, None, None]
-    acc = c * torch.exp(1j * m * p)
-    zones = [tile.members[k].focal.get("central_zone") if tile.members[k].focal["profile"] is not None else None
-             for k in idx]
-    return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
-
-
-def _zones(tile, key, zones, p, acc):
-    """``acc`` with each member's chief-ray wrap zone ``(k_c, alpha)`` (or None) computed exactly as
-    ``exp(1j alpha (p - 2 pi k_c))`` where ``floor(p / 2 pi) == k_c`` (:func:`rwwarp.wave.focal.exact_zone`, the
-    function :func:`rwwarp.wave.focal.doe_order_series` uses, with a zone and remap per member)."""
-    if all(z is None for z in zones):
-        return acc
-    # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
-    zt = np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones])
-    zd = _on_device(tile.raywave, key + "_zones", zt, p.device)
-    return exact_zone(acc, p, zd[:, 0, None, None], zd[:, 1, None, None], torch)
-
-
-def _series_factor(tile, idx, p):
-    """``sum_m c_m exp(1j m p)`` for the members ``idx`` (integer orders), with each member's chief-ray wrap
-    zone exact (:func:`rwwarp.wave.focal.order_series_horner` and :func:`~rwwarp.wave.focal.exact_zone`, as
-    :func:`rwwarp.wave.focal.doe_order_series`, batched over the members)."""
-    members = [tile.members[k] for k in idx]
-    coefs = [{int(m): complex(c) for m, c in mb.focal["orders"][0]} for mb in members]
-    lo = min(min(c) for c in coefs)
-    hi = max(max(c) for c in coefs)
-    table = np.zeros((len(members), hi - lo + 1, 2))
-    for k, c in enumerate(coefs):
-        for m, v in c.items():
-            table[k, m - lo] = (v.real, v.imag)
-    key = f"packed_series_{tuple(idx)}"
-    c = torch.view_as_complex(_on_device(tile.raywave, key, table, p.device))
-    acc = order_series_horner(torch.exp(1j * p), [c[:, j, None, None] for j in range(hi - lo + 1)], lo, torch)
-    zones = [mb.focal.get("central_zone") for mb in members]
-    return _zones(tile, key, [None if z is None else z[0] for z in zones], p, acc)
+    def put(name, host):
+        if host.dtype.kind == "i":          # row indices: a small non-blocking upload (functions.upload)
+            return upload(host, torch.long, dev)
+        return _on_device(rw, f"packed_orders_{name}_{host.shape}", host, dev)
+    return batch_order_series(phi0, tables, torch, put)
 
 
 class PackedFocalPropagate:

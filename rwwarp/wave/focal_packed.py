@@ -24,7 +24,7 @@ from .focal import (
     transfer_curvature,
 )
 
-__all__ = ["PackedFocalPropagator", "focal_groups", "member_nodes"]
+__all__ = ["PackedFocalPropagator", "focal_groups", "member_nodes", "member_order_tables"]
 
 #: Output node coordinates ``(nx, ny)`` (mm) of a single-source focal RayWave (its patch's Gauss-Legendre nodes)
 member_nodes = gauss_nodes_xy
@@ -367,49 +367,25 @@ def packed_doe_phase(members, n: int, xp=np):
                          design_wavelength_um=s.design_wavelength_um, xp=xp)
 
 
-def packed_orders_factor(members, phi0, xp=np):
-    """``sum_m c_m exp(1j m phi0)`` of each member's kept DOE orders with its chief-ray wrap zone exact, (S, n, n),
-    from ``phi0`` (:func:`packed_doe_phase`): what :func:`rwwarp.wave.focal.doe_order_series` gives each member alone,
-    evaluated for the batch at once. Members whose orders are all integers share one Horner recursion
-    (:func:`~rwwarp.wave.focal.order_series_horner`) over the union of their orders (a missing order's coefficient
-    is zero); the others (one order each, e.g. a wavelength remap ``m`` not an integer) are ``c exp(1j m phi0)``.
-    Zones by :func:`~rwwarp.wave.focal.exact_zone` with one zone and remap per member."""
-    from .focal import exact_zone, order_series_horner
-    orders = [m.focal["orders"][0] for m in members]
-    series = [k for k, ol in enumerate(orders) if len(ol) > 1 and all(float(o) == int(o) for o, _ in ol)]
-    parts, seq = [], []
-    if series:
-        coefs = [{int(o): complex(c) for o, c in orders[k]} for k in series]
-        lo, hi = min(min(c) for c in coefs), max(max(c) for c in coefs)
-        table = np.zeros((len(series), hi - lo + 1), dtype=np.complex128)
-        for i, c in enumerate(coefs):
-            for o, v in c.items():
-                table[i, o - lo] = v
-        t = xp.asarray(table)
-        p = phi0 if len(series) == len(members) else phi0[xp.asarray(np.array(series))]
-        parts.append(order_series_horner(xp.exp(1j * p), [t[:, j, None, None] for j in range(hi - lo + 1)], lo, xp))
-        seq += series
-    single = [k for k in range(len(members)) if k not in set(series)]
-    if single:
-        if any(len(orders[k]) != 1 for k in single):
-            raise ValueError("packed_orders_factor: a member keeps several orders, not all integers")
-        mc = np.array([[float(orders[k][0][0]), complex(orders[k][0][1]).real, complex(orders[k][0][1]).imag]
-                       for k in single])
-        t = xp.asarray(mc)
-        p = phi0 if len(single) == len(members) else phi0[xp.asarray(np.array(single))]
-        c = (t[:, 1] + 1j * t[:, 2])[:, None, None]
-        parts.append(c * xp.exp(1j * t[:, 0, None, None] * p))
-        seq += single
-    out = parts[0] if len(parts) == 1 else xp.concatenate(parts, 0)
-    if seq != list(range(len(members))):
-        out = out[xp.asarray(np.argsort(seq))]
-    zones = [m.focal.get("central_zone") for m in members]
-    zones = [None if z is None else z[0] for z in zones]
-    if all(z is None for z in zones):
-        return out
-    # a member without a zone gets one no phase reaches (2^60 zones of 2 pi): its exact term is never taken
-    zt = xp.asarray(np.array([[2.0 ** 60, 0.0] if z is None else [float(z[0]), float(z[1])] for z in zones]))
-    return exact_zone(out, phi0, zt[:, 0, None, None], zt[:, 1, None, None], xp)
+def member_order_tables(members, blank=None):
+    """The host tables (:func:`rwwarp.wave.focal.order_tables`) of single-source focal RayWaves' kept DOE orders
+    (each plan's ``focal["orders"][0]``) and chief-ray wrap zones (``focal["central_zone"][0]``), for
+    :func:`rwwarp.wave.focal.batch_order_series`. ``blank``: ``blank(member)``, the orders standing for a DOE a
+    member's plan has no profile for (torch_bridge: a blank DOE about to learn, ``[(alpha, 1)]``,
+    ``exp(1j alpha phi0)`` with ``alpha`` the wavelength remap; no zone); without it such a member is an error."""
+    from .focal import order_tables
+    orders, zones = [], []
+    for k, m in enumerate(members):
+        if m.focal["profile"] is None:
+            if blank is None:
+                raise ValueError(f"member_order_tables: member {k}'s plan has no DOE profile")
+            orders.append(blank(m))
+            zones.append(None)
+            continue
+        orders.append(m.focal["orders"][0])
+        z = m.focal.get("central_zone")
+        zones.append(None if z is None else z[0])
+    return order_tables(orders, zones)
 
 
 #: Bytes the stacked operators and wave-plane arrays of one group may hold at once (:func:`run_focal_members` splits
@@ -451,13 +427,14 @@ def run_focal_members(members, u_all, precision: str, keep: dict | None = None, 
     RayWaves (one lens, patch size and pixel, no wave step) from their wave-plane fields ``u_all`` ((S, n, n),
     member k's field in row k, zero past its own grid; numpy or CuPy), propagated as a few stacked operators
     (:class:`PackedFocalPropagator`, members grouped by their Gauss node count and :func:`focal_groups`), each
-    group's DOE transmission in one batch (:func:`packed_doe_phase`, :func:`packed_orders_factor`). Each
+    group's DOE transmission in one batch (:func:`packed_doe_phase`, :func:`member_order_tables`,
+    :func:`rwwarp.wave.focal.batch_order_series`). Each
     member's values are its own :meth:`~rwwarp.wave.raywave.RayWave.focal_intensity` up to the order of the
     floating-point sums. ``keep``: a dict in which the operators and DOE factors are kept for the next run with
     the same members (a kept batch), else built for this run only. ``max_bytes``: a group whose stacked operators
     would hold more (:func:`stacked_bytes`) is run in parts within it (a member alone may exceed it: its own plan
     was checked against the memory budget). Arrays stay where ``u_all`` is."""
-    from .focal import pixel_flux, pixel_power
+    from .focal import batch_order_series, pixel_flux, pixel_power
     xp = np if isinstance(u_all, np.ndarray) else __import__("cupy")
     m0 = members[0]
     z = float(m0.z_sensor - m0.z_plane)
@@ -478,7 +455,7 @@ def run_focal_members(members, u_all, precision: str, keep: dict | None = None, 
         if hit is None:
             op = PackedFocalPropagator.from_members(ms, z, precision, xp)
             phi0 = packed_doe_phase(ms, n, xp)
-            fac = None if phi0 is None else packed_orders_factor(ms, phi0, xp)
+            fac = None if phi0 is None else batch_order_series(phi0, member_order_tables(ms), xp)
             hit = (op, fac, xp.asarray(np.array(g)))
             if keep is not None:
                 keep[key] = hit

@@ -21,7 +21,7 @@ from torch_bridge import design as dz
 
 def _doe_lens(levels, coefficients=(-30.0,)):
     """The A489 + DOE with a DOE that wraps in the beam (-30 rad at the 1.5 mm norm radius, r^2): on axis the
-    relief stays in one zone at 0.5 and 0.6 um (one non-integer order: computed alone), at 5 deg it wraps
+    relief stays in one zone at 0.5 and 0.6 um (one non-integer order: c exp(1j m phi0)), at 5 deg it wraps
     (integer orders, different sets per wavelength, the chief ray's zone exact: the batched recursion)."""
     lens = rw.load_lens("a489_doe")
     s = lens.surfaces[lens.doe_index]
