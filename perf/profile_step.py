@@ -143,6 +143,7 @@ def main():
             say(f"{n:6d}  {site}")
     if a.out:
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{'_pack' if a.pack else ''}.txt"
+        p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("\n".join(lines) + "\n")
         import json
         import os
