@@ -152,8 +152,7 @@ def test_blank_doe_learns_through_the_focal_path_and_is_replanned_once_it_grows(
     differences on the frozen plan (the transmission exp(1j alpha phi0) is exact at phi0 = 0, its
     derivative too; measured 1.8e-10 and 2.6e-12 relative at h = 1e-5 on the coarse plan, nyquist_safety 1, as
     the gradient test through orders: 3x faster than the default plan, which measured 2.7e-11 and 2.2e-10); once
-    the DOE has grown,
-    check_sampling replans the entry (its first-order focus moved the light)."""
+    the DOE has grown, check_sampling replans the entry (its first-order focus moved the light)."""
     lens = _thin_lens_doe([0.0, 0.0])
     m = tb.HybridLens(lens, learn={"doe": "all"}, replan=False, method="focal", rays_per_sample=0.5,
                       nyquist_safety=1.0)
