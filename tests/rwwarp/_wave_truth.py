@@ -35,11 +35,22 @@ def _gl(a, b, per_mm, per_panel=16):
     return ((0.5 * (e[1:] + e[:-1]))[:, None] + h[:, None] * t[None]).ravel(), (h[:, None] * w[None]).ravel()
 
 
+def _rmatmul(J, x):
+    """``J @ x`` for a real matrix ``J`` and a real or complex vector / matrix ``x``, the real and imaginary parts as
+    real columns (a complex ``x`` would make numpy copy ``J`` into a complex matrix, twice its memory and time)."""
+    x = np.asarray(x)
+    if not np.iscomplexobj(x):
+        return J @ x
+    xr = np.ascontiguousarray(x, dtype=np.complex128).view(np.float64).reshape(x.shape[0], -1)
+    y = np.ascontiguousarray(J @ xr).view(np.complex128)
+    return y.reshape((J.shape[0],) + x.shape[1:])
+
+
 def _j0_sum(out_pts, in_pts, weighted):
     """``2 pi sum_j J0(2 pi out_i in_j) weighted_j`` for every output point, in row chunks."""
-    res = np.empty(len(out_pts), dtype=np.result_type(weighted, np.float64))
+    res = np.empty((len(out_pts),) + np.shape(weighted)[1:], dtype=np.result_type(weighted, np.float64))
     for i in range(0, len(out_pts), _CHUNK):
-        res[i:i + _CHUNK] = j0(2 * np.pi * np.outer(out_pts[i:i + _CHUNK], in_pts)) @ weighted
+        res[i:i + _CHUNK] = _rmatmul(j0(2 * np.pi * np.outer(out_pts[i:i + _CHUNK], in_pts)), weighted)
     return 2 * np.pi * res
 
 
@@ -87,14 +98,23 @@ def radial_truth(a_mm, d2_mm, coeffs, rho_mm, q=3.0, alpha=None, sensor_mm=None,
     z2 = d2_mm if sensor_mm is None else float(sensor_mm)
     F0 = _lens_spectrum(a_mm, q, nu, dens)
     r1, w1 = _gl(0.0, rb + 0.15 * rb + 30 * np.sqrt(LAM_MM * d), dens)   # the beam and its edge's ringing
-    f1 = _j0_sum(r1, nu, F0 * H(z1) * nu * wnu)
-
-    def to_sensor(u, r, w):
-        F1 = _hankel(u * np.exp(1j * W(r)), r, w, nu)
-        return np.abs(_j0_sum(np.asarray(rho_mm, float), nu, F1 * H(z2) * nu * wnu)) ** 2 / (np.pi * a_mm ** 2)
-
+    # truth: the field on the DOE plane f1(r) = 2 pi sum_nu J0(2 pi r nu) F0 H(z1) nu w_nu, the DOE applied, and its
+    # spectrum F1(nu) = 2 pi sum_r J0(2 pi nu r) f1 e^{iW} r w_r: both sums read the same J0 matrix (transposed), so
+    # it is formed once per chunk of rows r (each row's f1 needs only its own row); the same sums as two passes
+    # in another order (rounding: the truth and the model moved by <= 4e-15 of their peaks, measured)
+    g1 = F0 * H(z1) * nu * wnu
+    F1 = np.zeros(len(nu), dtype=complex)
+    for i in range(0, len(r1), _CHUNK):
+        r, w = r1[i:i + _CHUNK], w1[i:i + _CHUNK]
+        J = j0(2 * np.pi * np.outer(r, nu))
+        F1 += _rmatmul(J.T, 2 * np.pi * _rmatmul(J, g1) * np.exp(1j * W(r)) * r * w)
+    F1 *= 2 * np.pi
     rg, wg = _gl(0.0, rb, dens)
-    return to_sensor(f1, r1, w1), to_sensor(np.exp(-1j * k * np.hypot(rg, d2_mm)) / s, rg, wg)
+    Fm = _hankel(np.exp(-1j * k * np.hypot(rg, d2_mm)) / s * np.exp(1j * W(rg)), rg, wg, nu)
+    # truth and model to the sensor through one J0 matrix (two columns)
+    both = _j0_sum(np.asarray(rho_mm, float), nu, np.stack([F1, Fm], 1) * (H(z2) * nu * wnu)[:, None])
+    I = np.abs(both) ** 2 / (np.pi * a_mm ** 2)
+    return I[:, 0], I[:, 1]
 
 
 def measured_error(a_mm, d2_mm, coeffs, rho_mm=None, band=None, taper=0.0, q=3.0):

@@ -47,22 +47,27 @@ CASES = {"cached": (CFG, "CachedProvider"), "live": (CFG_LIVE, "LiveProvider")}
 
 
 def _worker():
-    """Rank r: the distributed step of each case; rank 0 then also the single-process step (same seed)
-    to compare. Both cases in one launch: a launch starts two fresh interpreters (torch, warp and
+    """Rank r: the distributed step of each case, then the single-process step (same seed) of case r to
+    compare (rank 0 the first case's, rank 1 the second's: the two references at once, not one after the
+    other on rank 0). Both cases in one launch: a launch starts two fresh interpreters (torch, warp and
     OpenCL imported and initialised in each), which cost more than a case's step itself."""
     from torch_bridge.distributed import current_group
     g = current_group("cpu", timeout_s=300)
-    out = {}
-    for name, args in CASES.items():
-        dist = _step(g, *args)
-        out[name] = (dist, _step(None, *args)) if g.rank == 0 else None
-    return out
+    dist = {name: _step(g, *args) for name, args in CASES.items()}
+    single = {name: _step(None, *args) for name, args in list(CASES.items())[g.rank::g.size]}
+    return single, dist if g.rank == 0 else None
 
 
 @pytest.fixture(scope="module")
 def steps():
+    """{case: (distributed step, single-process step)}: the distributed step as rank 0 computed it (every
+    rank ends it with the same all-reduced gradients), the single-process one from the rank that made it."""
     from rwwarp.distributed import launch
-    return launch(_worker, 2)[0]
+    ranks = launch(_worker, 2)
+    dist = ranks[0][1]
+    got = {name: (dist[name], ref) for single, _ in ranks for name, ref in single.items()}
+    assert sorted(got) == sorted(CASES)
+    return got
 
 
 @pytest.mark.parametrize("case", list(CASES))
