@@ -53,6 +53,9 @@ class OrderSet:
                 o["gauss_nodes"] = self.rws[0].gauss_nodes
             self.rws.append(RayWave(order_lens(lens, d["orders"]), [field_deg], [float(wavelength_um)], size, pixel,
                                     requires_grad=True, **o))
+        if any(np.any(getattr(rw, "wave_step", 0.0)) for rw in self.rws):
+            raise ValueError("OrderSet: the wave step (method='two-step', or 'auto' with a model tolerance) is not "
+                             "supported with diffraction_orders")
         self.table = np.array(self.rws[0].tracer.params_np, dtype=np.float64)
         # each order's own columns (its diffraction orders, the thin lenses' conjugates behind it): constant offsets
         self._delta = [np.array(rw.tracer.params_np, dtype=np.float64) - self.table for rw in self.rws]

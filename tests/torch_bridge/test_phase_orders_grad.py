@@ -104,6 +104,8 @@ def test_hybrid_lens_orders_refuse_what_they_cannot_do():
         m.psf_map([0.0], [WL], SIZE, tile=2)
     with pytest.raises(ValueError, match="order_tol"):
         tb.HybridLens(make((0, 1, 2), sensor=bfl()), order_tol=1.5)
+    with pytest.raises(ValueError, match="wave step"):
+        tb.HybridLens(make((0, 1, 2), sensor=bfl()), method="two-step").psf(0.0, WL, SIZE)
     with pytest.raises(ValueError, match="no phase surface with diffraction_orders"):
         tb.HybridLens(make(None, sensor=bfl())).order_set(0.0, WL, SIZE)
 
