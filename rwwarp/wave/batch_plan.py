@@ -23,7 +23,7 @@ from ..trace import field_label as _fmt_field
 from .doe_sampling import doe_max_frequency, doe_pixel_origin
 from .methods import PlanContext, check_method, names
 from .methods import get as get_method
-from .pilot import Pilot, batch_sources, pilot_from_tracer
+from .pilot import Pilot, batch_sources, pilot_or_trace
 from .plan import Plan
 from .sensor_grid import auto_gauss_nodes as _auto_gauss_nodes, n_img_all
 from .sensor_grid import snap_centers as _snap_centers
@@ -219,13 +219,7 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
     lam_mm = np.array(wls) * 1e-3
 
     # ---- pilot trace: chief ray + coarse grid, to the plane and on to the sensor (rwwarp.wave.pilot)
-    if pilot is None:
-        pilot = pilot_from_tracer(tr, src, plane, wls, pupil_wls, dtype)
-    elif not isinstance(pilot, Pilot):
-        raise TypeError(f"RayWave: pilot must be a rwwarp.wave.pilot.Pilot (rwwarp.wave.pilot.trace_pilot, "
-                        f"Pilot.subset) or None, got {type(pilot).__name__}")
-    else:
-        pilot.check_for(fields, wls, pupil_wls, src["object_distance"], use_reference, dtype, plane)
+    pilot = pilot_or_trace(pilot, tr, src, plane, fields, wls, pupil_wls, use_reference, dtype, "RayWave")
     pa = pilot_arrays(lens, plane, pilot, fields, wls, n_after, lam_mm, z_plane)
     pos_p, pos_s, dir_s, opl_p, ok = pa["pos_p"], pa["pos_s"], pa["dir_s"], pa["opl_p"], pa["ok"]
     curved_plane, chief_plane, chief_sensor, chief_dir = pa["curved"], pa["chief_plane"], pa["chief_sensor"], pa["chief_dir"]

@@ -206,6 +206,20 @@ def pilot_from_tracer(tr, src, plane: int, wls, pupil_wls, dtype: str) -> Pilot:
                  dtype=dtype, plane=plane)
 
 
+def pilot_or_trace(pilot, tr, src, plane: int, fields, wls, pupil_wls, use_reference: bool, dtype: str,
+                   where: str) -> Pilot:
+    """The planners' pilot: ``pilot`` checked against these sources (:meth:`Pilot.check_for`; ``TypeError`` for
+    another type, both naming ``where``), or, where it is None, traced with ``tr`` (:func:`pilot_from_tracer`).
+    Arguments as those two take them."""
+    if pilot is None:
+        return pilot_from_tracer(tr, src, plane, wls, pupil_wls, dtype)
+    if not isinstance(pilot, Pilot):
+        raise TypeError(f"{where}: pilot must be a rwwarp.wave.pilot.Pilot (rwwarp.wave.pilot.trace_pilot, "
+                        f"Pilot.subset) or None, got {type(pilot).__name__}")
+    pilot.check_for(fields, wls, pupil_wls, src["object_distance"], use_reference, dtype, plane, where)
+    return pilot
+
+
 def trace_pilot(lens, fields, wls, device: str = "cpu", dtype: str = "float64", object_distance_mm=None,
                 own_pupils: bool = False, use_reference: bool = True) -> Pilot:
     """The :class:`Pilot` of a batch of sources, traced once (one set of launches for all of them, not one

@@ -21,7 +21,7 @@ from .batch_plan import (AUTO_PAIR, BatchPlan, _choose_auto, _ray_focus, check_p
 from .doe_sampling import doe_pixel_origin
 from .methods import PlanContext, names
 from .methods import get as get_method
-from .pilot import Pilot, PILOT_GRID, own_pupil_sources, pilot_from_tracer
+from .pilot import Pilot, PILOT_GRID, own_pupil_sources, pilot_or_trace
 from .plan import Plan
 from .sensor_grid import snap_centers as _snap_centers
 
@@ -100,13 +100,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     tr = Tracer(lens, uniq, device=device, dtype=dtype)
     src_all = own_pupil_sources(tr, fields, wls, uniq, object_distance_mm)
     src_all["relative_opl"] = bool(use_reference)
-    if pilot is None:
-        pilot = pilot_from_tracer(tr, src_all, plane, wls, wls, dtype)
-    elif not isinstance(pilot, Pilot):
-        raise TypeError(f"plan_sources: pilot must be a rwwarp.wave.pilot.Pilot (rwwarp.wave.pilot.trace_pilot) or "
-                        f"None, got {type(pilot).__name__}")
-    else:
-        pilot.check_for(fields, wls, wls, src_all["object_distance"], use_reference, dtype, plane, "plan_sources")
+    pilot = pilot_or_trace(pilot, tr, src_all, plane, fields, wls, wls, use_reference, dtype, "plan_sources")
     # per wavelength: the index behind the plane and the image space's (lens.indices once a wavelength)
     idx = {w: lens.indices(w) for w in uniq}
     n_after = np.array([idx[w][plane] for w in wls])

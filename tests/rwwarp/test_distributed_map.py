@@ -125,9 +125,9 @@ def test_one_process_plans_as_rw_psf_map_where_auto_picks_the_pixel_method():
 def test_one_process_traces_each_sources_pilot_once(monkeypatch):
     # the units are planned once (to cost and assign them) and those plans are run: every source's pilot is traced
     # once. Counted at the one place every pilot trace goes through (pilot_from_tracer: trace_pilot's and a
-    # RayWave's own), per source; the map planned each unit again before (every source traced twice)
+    # planners' own through pilot_or_trace), per source; the map planned each unit again before (every source
+    # traced twice)
     import rwwarp.wave.pilot as P
-    import rwwarp.wave.batch_plan as BP
     traced = {}
     real = P.pilot_from_tracer
 
@@ -137,9 +137,6 @@ def test_one_process_traces_each_sources_pilot_once(monkeypatch):
             traced[key] = traced.get(key, 0) + 1
         return real(tr, src, plane, wls, pupil_wls, dtype)
     monkeypatch.setattr(P, "pilot_from_tracer", counting)
-    monkeypatch.setattr(BP, "pilot_from_tracer", counting)
-    import rwwarp.wave.plan_sources as PS      # plan_sources (the map's planner) holds its own name for it
-    monkeypatch.setattr(PS, "pilot_from_tracer", counting)
     fields, wls = [0.0, 0.5, 0.8], [0.45, 0.65]
     m = D.psf_map(doe_lens(), fields, wls, size=SIZE, batch=2)
     assert traced == {(f, w): 1 for f in fields for w in wls}

@@ -10,7 +10,7 @@ import pytest
 
 import rwwarp as rw
 from rwwarp.trace import Tracer
-from rwwarp.wave import plan_sources as plan_sources_mod
+from rwwarp.wave import pilot as pilot_mod
 from rwwarp.wave.pilot import PILOT_GRID, Pilot, trace_pilot
 from rwwarp.wave.raywave import RayWave
 
@@ -140,10 +140,10 @@ def test_raywave_refuses_a_pilot_of_other_sources(lens):
 
 def _count_pilots(monkeypatch):
     """Count the pilot traces (Tracer._run with a kept surface and an explicit pupil: the pilot's signature;
-    the field traces generate their grid on the device) and the pilot traces of source_plans (its
-    rwwarp.wave.plan_sources.plan_sources traces the pilot with pilot_from_tracer, as trace_pilot does)."""
+    the field traces generate their grid on the device) and the pilot traces (every one goes through
+    rwwarp.wave.pilot.pilot_from_tracer: trace_pilot's and the planners' own, pilot_or_trace)."""
     calls = {"launch_sets": [], "trace_pilot": 0}
-    run, tp = Tracer._run, plan_sources_mod.pilot_from_tracer
+    run, tp = Tracer._run, pilot_mod.pilot_from_tracer
 
     def counted_run(self, src, u, v, cell=1.0, upto=None, keep=False, **kw):
         if keep and keep is not True and kw.get("grid_n", 0) == 0 and kw.get("grids") is None:
@@ -154,7 +154,7 @@ def _count_pilots(monkeypatch):
         calls["trace_pilot"] += 1
         return tp(*a, **k)
     monkeypatch.setattr(Tracer, "_run", counted_run)
-    monkeypatch.setattr(plan_sources_mod, "pilot_from_tracer", counted_tp)
+    monkeypatch.setattr(pilot_mod, "pilot_from_tracer", counted_tp)
     return calls
 
 
