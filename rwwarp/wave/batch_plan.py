@@ -187,6 +187,21 @@ def _is_curved(surface) -> bool:
     return bool(surface.curvature) or bool(getattr(surface, "a2", 0.0)) or any(float(a) for a in (surface.aspheric or []))
 
 
+def planned_method(method: str, plan, lens, plane: int) -> str:
+    """What the planners plan for ``method``: "auto" becomes "compare" (both plans from the same pilot; the
+    cheaper one, by planned work, runs), "asm" under ``plan="paper"`` or for a pixel-map DOE on the wave plane
+    (discontinuous: no smooth diffraction orders to factor), an explicit :class:`Plan`'s own method; any other
+    method is kept."""
+    if method != "auto":
+        return method
+    if isinstance(plan, Plan):
+        return plan.method
+    s_pl = lens.surfaces[plane]
+    if (isinstance(plan, str) and plan == "paper") or (s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map"):
+        return "asm"
+    return "compare"
+
+
 def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
                object_distance_mm=None, rays_per_sample=1.0, center_mm=None, use_reference=True, gauss_nodes=None,
                nyquist_safety=2.0, method="asm", memory_budget_bytes=None, focal_patch_tol=1e-5,
@@ -233,14 +248,7 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
         centers = _snap_centers(center_mm, pixel, lens.sensor.resolution, nsrc)
     out_width = size * pixel
     chief_carrier, chief_centers = carrier.copy(), centers.copy()
-    if method == "auto":
-        # both plans from the same pilot; the cheaper one (planned work) runs
-        method = "asm" if (isinstance(plan, str) and plan == "paper") else "compare"
-        if isinstance(plan, Plan):
-            method = plan.method
-        s_pl = lens.surfaces[plane]
-        if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
-            method = "asm"  # discontinuous: no smooth diffraction orders to factor
+    method = planned_method(method, plan, lens, plane)
     # a square pupil (stop) bounds the beam with straight edges: their 1 / r diffraction tails alias more
     square_pupil = src["shape"] != "circle"
     # ---- plan: each registered method plans its part (rwwarp.wave.methods); "compare" plans both of auto's

@@ -16,13 +16,12 @@ import numpy as np
 
 from ..lens import snap_to_pixel as _snap_center
 from ..trace import Tracer, as_field_list
-from .batch_plan import (AUTO_PAIR, BatchPlan, _choose_auto, _ray_focus, check_plan_args,
+from .batch_plan import (AUTO_PAIR, BatchPlan, _choose_auto, _ray_focus, check_plan_args, planned_method,
                          check_sensor_behind_plane, pilot_arrays)
 from .doe_sampling import doe_pixel_origin
 from .methods import PlanContext, names
 from .methods import get as get_method
 from .pilot import Pilot, PILOT_GRID, own_pupil_sources, pilot_or_trace
-from .plan import Plan
 from .sensor_grid import snap_centers as _snap_centers
 
 __all__ = ["plan_sources"]
@@ -129,13 +128,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     target = _ray_focus(pos_p, dir_s, ok, chief_plane1)
 
     # ---- per call: the method choice, the pupil's shape, the methods planned beside
-    if method0 == "auto":
-        method0 = "asm" if (isinstance(plan, str) and plan == "paper") else "compare"
-        if isinstance(plan, Plan):
-            method0 = plan.method
-        s_pl = lens.surfaces[plane]
-        if s_pl.type == "doe" and s_pl.profile.get("kind") == "pixel_map" and not isinstance(plan, Plan):
-            method0 = "asm"
+    method0 = planned_method(method0, plan, lens, plane)
     square_pupil = src_all["shape"] != "circle"
     late = [get_method(requested)] if requested in names() and get_method(requested).planned_beside else \
         [get_method(m) for m in names() if get_method(m).planned_beside] if requested == "auto" and allow_pixel else []
