@@ -266,8 +266,10 @@ class LiveProvider:
         tile = n if not self.tile else max(1, min(int(self.tile), n))
         values = m.values()
         names = list(values)
-        if m._multi_order:
-            out = self._order_psfs(src_f, src_w, src_c, depth_mm, tile, values)
+        if m._multi_order:   # each source's kept orders (HybridLens.order_set at its node's centre); no packing
+            sets = [m.order_set(f, w, self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
+                                center_mm=tuple(float(v) for v in c)) for f, w, c in zip(src_f, src_w, src_c)]
+            out = m.order_psfs(sets, tile, self.memory_budget_bytes, checkpoint=tile < n)
             return out.reshape(len(fields), len(wls), self.size, self.size)
         tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
         dropped = []  # (key, RayWave, its rays outside the window): read once all sources are queued
@@ -314,31 +316,6 @@ class LiveProvider:
                 elif d - e[2] > self.window_tol * r.nsrc * r.plan.ray_grid ** 2:
                     e[3] = True
         return out.reshape(len(fields), len(wls), self.size, self.size)
-
-    def _order_psfs(self, src_f, src_w, src_c, depth_mm, tile, values):
-        """The sources of a lens with multi-order phase surfaces: each one's kept orders summed coherently
-        (:meth:`torch_bridge.HybridLens.order_set`, centred on its node's common centre), every order's plan
-        checked against the memory budget before anything is traced, ``tile`` sources a checkpointed chunk.
-        Plans are made every call (the module's ``replan=False`` keeps them); no packing."""
-        import contextlib
-
-        from torch_bridge.tiles import run_tiles
-        m = self.module
-        sets = [m.order_set(f, w, self.size, object_distance_mm=depth_mm, pixel_mm=self.pixel_mm,
-                            center_mm=tuple(float(v) for v in c)) for f, w, c in zip(src_f, src_w, src_c)]
-        budget = m.memory_budget(self.memory_budget_bytes)
-        for o in sets:
-            for rw in o.rws:
-                m.check_budget(rw, budget)
-        names = list(values)
-
-        def run(chunk, *ts, record=True):
-            vals = dict(zip(names, ts))
-            with contextlib.nullcontext() if record else torch.no_grad():
-                return torch.cat([sets[k].psf(m.param_table(sets[k].rws[0], vals)) for k in chunk], 0)
-        n = len(sets)
-        chunks = [list(range(k, min(k + tile, n))) for k in range(0, n, tile)]
-        return run_tiles(chunks, run, [values[q] for q in names], checkpoint=tile < n)
 
     def _chunks(self, n, tile, src_f, src_w, src_c, depth_mm, packs):
         """The ``n`` sources of a call in chunks of ``tile``, each planned (kept plans reused, new ones made) when

@@ -602,23 +602,14 @@ class HybridLens(LensTables, nn.Module):
             raise ValueError("HybridLens.psf: spatial_tile is not available for multi-order phase surfaces")
         orders = self.order_set(field_deg, wavelength_um, size, object_distance_mm=object_distance_mm,
                                 pixel_mm=pixel_mm, center_mm=center_mm)
-        budget = self.memory_budget(memory_budget_bytes)
-        for rw in orders.rws:
-            self.check_budget(rw, budget)
-        rw0 = orders.rws[0]
-        out = orders.psf(self.param_table(rw0, self.values()))[0]
-        return (out, rw0.centers[0].copy()) if return_centers else out
+        out = self.order_psfs([orders], 1, memory_budget_bytes)[0]
+        return (out, orders.rws[0].centers[0].copy()) if return_centers else out
 
-    def _psf_map_orders(self, fields, wls, size, object_distance_mm, pixel_mm, tile, memory_budget_bytes,
-                        checkpoint, progress, return_centers, spatial_tile):
-        """:meth:`psf_map` of a lens with multi-order phase surfaces: each source's orders on their own plans
-        (:meth:`order_set`), one source a tile (each a checkpoint when there are several: peak memory one
-        source's), every order's plan checked against the budget before anything is traced."""
-        if spatial_tile is not None or (tile is not None and int(tile) != 1):
-            raise ValueError("HybridLens.psf_map: multi-order phase surfaces run one source a tile (tile=1), without "
-                             "spatial_tile")
-        sets = [self.order_set(f, w, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
-                for f in fields for w in wls]
+    def order_psfs(self, sets, tile: int, memory_budget_bytes=None, checkpoint=None, progress=None) -> torch.Tensor:
+        """PSFs (S, size, size) of the :meth:`order_set` s ``sets`` (one a source) from the current values, ``tile``
+        sources a chunk (each a checkpoint when there are several, :func:`torch_bridge.tiles.run_tiles`:
+        ``checkpoint``, ``progress``); every order's plan is checked against ``memory_budget_bytes`` (bytes; None:
+        :meth:`memory_budget`'s default) before anything is traced."""
         budget = self.memory_budget(memory_budget_bytes)
         for o in sets:
             for rw in o.rws:
@@ -630,8 +621,21 @@ class HybridLens(LensTables, nn.Module):
             vals = dict(zip(names, ts))
             with contextlib.nullcontext() if record else torch.no_grad():
                 return torch.cat([sets[k].psf(self.param_table(sets[k].rws[0], vals)) for k in ch], 0)
-        out = run_tiles([[k] for k in range(len(sets))], run, [values[q] for q in names], checkpoint=checkpoint,
-                        progress="PSF sources" if progress else None)
+        n = len(sets)
+        chunks = [list(range(k, min(k + int(tile), n))) for k in range(0, n, int(tile))]
+        return run_tiles(chunks, run, [values[q] for q in names], checkpoint=checkpoint, progress=progress)
+
+    def _psf_map_orders(self, fields, wls, size, object_distance_mm, pixel_mm, tile, memory_budget_bytes,
+                        checkpoint, progress, return_centers, spatial_tile):
+        """:meth:`psf_map` of a lens with multi-order phase surfaces: each source's orders on their own plans
+        (:meth:`order_set`), one source a tile (each a checkpoint when there are several: peak memory one
+        source's), every order's plan checked against the budget before anything is traced."""
+        if spatial_tile is not None or (tile is not None and int(tile) != 1):
+            raise ValueError("HybridLens.psf_map: multi-order phase surfaces run one source a tile (tile=1), without "
+                             "spatial_tile")
+        sets = [self.order_set(f, w, size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
+                for f in fields for w in wls]
+        out = self.order_psfs(sets, 1, memory_budget_bytes, checkpoint, "PSF sources" if progress else None)
         out = out.reshape(len(fields), len(wls), size, size)
         if return_centers:
             return out, np.stack([o.rws[0].centers[0] for o in sets]).reshape(len(fields), len(wls), 2)
