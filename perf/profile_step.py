@@ -36,6 +36,9 @@ def main():
                     help="live focal sources one at a time (optics.live_pack false), for an A/B against packed tiles")
     ap.add_argument("--budget-gb", type=float, default=None,
                     help="override the config's optics.memory_budget_gb (sets the live PSF tile)")
+    ap.add_argument("--live-tile", type=int, default=None,
+                    help="sources per live PSF tile, overriding the budget's choice (a tile of every source: no "
+                         "checkpoint, no recompute in the backward pass)")
     a = ap.parse_args()
 
     import torch
@@ -55,6 +58,8 @@ def main():
         cfg["optics"] = dict(cfg["optics"], memory_budget_gb=a.budget_gb)
     _seed_all(int(cfg["seed"]))
     arm = Arm(arm_cfg["name"], cfg, exp["source"], Path("unused"), progress=False)
+    if a.live_tile is not None:
+        arm.provider.tile = int(a.live_tile)
     cuda = a.device.startswith("cuda")
 
     def step(k):
@@ -66,7 +71,8 @@ def main():
 
     lines = []
     summary = {"config": a.config, "preset": a.preset, "device": a.device, "arm": arm_cfg["name"],
-               "live_pack": cfg["optics"].get("live_pack"), "pixel_values": cfg["optics"].get("pixel_values")}
+               "live_pack": cfg["optics"].get("live_pack"), "pixel_values": cfg["optics"].get("pixel_values"),
+               "live_tile": getattr(arm.provider, "tile", None)}
 
     def say(s):
         print(s, flush=True)
@@ -142,7 +148,8 @@ def main():
         for site, n in _count_syncs(lambda: step(a.steps + 3))[:25]:
             say(f"{n:6d}  {site}")
     if a.out:
-        p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{'_pack' if a.pack else ''}.txt"
+        tag = ("_pack" if a.pack else "") + (f"_tile{a.live_tile}" if a.live_tile is not None else "")
+        p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{tag}.txt"
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("\n".join(lines) + "\n")
         import json
