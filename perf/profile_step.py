@@ -110,6 +110,13 @@ def main():
         c_pool = cupy.get_default_memory_pool().total_bytes() / 1e9
         summary.update(card=torch.cuda.get_device_name(), device_used_peak_gib=mem.peak / 1024,
                        torch_peak_gb=t_peak, warp_pool_peak_gb=w_peak, cupy_pool_gb=c_pool)
+        # CuPy's cuFFT plan cache (rwwarp.wave.backend.ensure_cufft_plan_cache): a miss builds a plan (~6 ms)
+        buf = io.StringIO()
+        import contextlib
+        with contextlib.redirect_stdout(buf):
+            cupy.fft.config.get_plan_cache().show_info()
+        summary["cufft_plan_cache"] = buf.getvalue().strip()
+        say("cuFFT plan cache after the timed steps: " + " | ".join(x.strip() for x in buf.getvalue().splitlines()[1:]))
         say(f"peak memory over the timed steps: torch allocator (with Warp and CuPy inside bridge calls) "
             f"{t_peak:.2f} GB, Warp's own pool high-water {w_peak:.2f} GB, CuPy's own pool {c_pool:.2f} GB, "
             f"sum {t_peak + w_peak + c_pool:.2f} GB (an upper bound of the concurrent peak); device used "

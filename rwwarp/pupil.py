@@ -26,17 +26,18 @@ def disc_cell_fractions(n: int) -> np.ndarray:
 def _disc_cell_fractions(n: int) -> np.ndarray:
     h = 2.0 / n
     g = -1.0 + h * np.arange(n)                      # lower cell edges
-    x0, y0 = np.meshgrid(g, g, indexing="xy")
-    x0, y0 = x0.ravel(), y0.ravel()
-    x1, y1 = x0 + h, y0 + h
-    near = np.minimum(np.abs(x0), np.abs(x1)) * (x0 * x1 > 0)   # nearest |x| in the cell (0 if it spans 0)
-    neary = np.minimum(np.abs(y0), np.abs(y1)) * (y0 * y1 > 0)
-    far = np.maximum(np.abs(x0), np.abs(x1)) ** 2 + np.maximum(np.abs(y0), np.abs(y1)) ** 2
-    out = np.where(far <= 1.0, 1.0, 0.0)
-    cut = (near ** 2 + neary ** 2 < 1.0) & (far > 1.0)
-    k = np.flatnonzero(cut)
+    g1 = g + h                                       # upper cell edges
+    # per axis: the nearest |x| in a cell (0 if it spans 0) and the farthest |x|^2; a cell's nearest and
+    # farthest squared radius are sums over the two axes (an outer sum: rows +v, columns +u)
+    near2 = (np.minimum(np.abs(g), np.abs(g1)) * (g * g1 > 0)) ** 2
+    far1 = np.maximum(np.abs(g), np.abs(g1)) ** 2
+    far = far1[None, :] + far1[:, None]
+    out = np.where(far <= 1.0, 1.0, 0.0).ravel()
+    cut = (near2[None, :] + near2[:, None] < 1.0) & (far > 1.0)
+    k = np.flatnonzero(cut)                          # the cells the circle crosses
     if k.size:
-        a, b, c, d = x0[k], x1[k], y0[k], y1[k]
+        row, col = np.divmod(k, n)
+        a, b, c, d = g[col], g1[col], g[row], g1[row]
 
         def F(x):   # int sqrt(1 - x^2) dx
             x = np.clip(x, -1.0, 1.0)
