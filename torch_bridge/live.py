@@ -402,25 +402,43 @@ class LiveProvider:
             r = rws[j]
             sets.setdefault((float(r.z_plane), r.wls[0] if any(m._thin_surfaces) else None), []).append(j)
         budget = self.record_budget_bytes or m.memory_budget(self.memory_budget_bytes)
+        fits = lambda g: packed_recorded_bytes(m, [rws[i] for i in g]) <= budget
         for js in sets.values():
-            cur = []
-            for j in js + [None]:
-                if j is not None and (not cur or packed_recorded_bytes(m, [rws[i] for i in cur + [j]]) <= budget):
-                    cur.append(j)
-                    continue
+            for cur in pack_groups(js, fits):
                 if len(cur) == 1:
                     units.append(("rw", rws[cur[0]], cur))
-                else:
-                    members = [rws[i] for i in cur]
-                    key = tuple(id(r) for r in members)
-                    hit = self._packed.get(key) or packs.get(key)
-                    if hit is None or any(a is not b for a, b in zip(hit[0], members)):
-                        hit = (members, PackedTile(members, self.pack_waste))
-                        self.packs_made += 1
-                    packs[key] = hit
-                    units.append(("packed", hit[1], cur))
-                cur = [j] if j is not None else []
+                    continue
+                members = [rws[i] for i in cur]
+                key = tuple(id(r) for r in members)
+                hit = self._packed.get(key) or packs.get(key)
+                if hit is None or any(a is not b for a, b in zip(hit[0], members)):
+                    hit = (members, PackedTile(members, self.pack_waste))
+                    self.packs_made += 1
+                packs[key] = hit
+                units.append(("packed", hit[1], cur))
         return units
+
+
+def pack_groups(js, fits) -> list:
+    """``js`` (sources, in order) cut into consecutive groups that each ``fits(group)`` (a packed tile's recorded
+    bytes within the budget), as few as the greedy cut gives and as even as the budget allows: the greedy cut
+    (each group as long as it fits) can leave a short last group, often a single source, which then runs on its
+    own path (its own trace and splat launches, a cuFFT plan of its own size); the same number of groups of
+    near-equal length is taken where each of them fits. A group of one is a source that fits with no other."""
+    greedy, cur = [], []
+    for j in js:
+        if cur and not fits(cur + [j]):
+            greedy.append(cur)
+            cur = []
+        cur.append(j)
+    if cur:
+        greedy.append(cur)
+    n, t = len(js), len(greedy)
+    if t < 2 or max(map(len, greedy)) - min(map(len, greedy)) <= 1:
+        return greedy
+    sizes = [n // t + (i < n % t) for i in range(t)]
+    even = [list(js[sum(sizes[:i]):sum(sizes[:i + 1])]) for i in range(t)]
+    return even if all(len(g) == 1 or fits(g) for g in even) else greedy
 
 
 def _recentred(rw, center_mm):

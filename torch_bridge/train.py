@@ -244,9 +244,12 @@ class Arm:
             # a tile's recorded sources take half the budget; the network's activations and the allocator's
             # slack the other half (as a cached provider's step: CachedProvider.step_budget_bytes). A packed
             # tile (every member in the slots of the largest) is held to the same half.
+            # The tile is what one recorded source of the outer field takes with its propagation's output side
+            # (what torch_bridge.packed.packed_recorded_bytes counts a packed member): a tile that fits is then one
+            # packed tile, not one of the budget's size less a member that runs alone.
             record = int(o["memory_budget_gb"] * 1e9 / 2)
-            tile = max(1, record // max(1, module.bytes_per_source(
-                module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm))))
+            probe = module.raywave(self.fields[-1:], [self.wls[-1][0]], self.size, pixel_mm=self.pixel_mm)
+            tile = max(1, record // max(1, module.bytes_per_source(probe) + module.output_bytes_per_source(probe)))
         return dz.LiveProvider(module, self.fields, self.size, self.pixel_mm, wavelength_ref_um=self.wl_ref,
                                tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"],
                                pack=o["live_pack"], record_budget_bytes=record, replan_rule=o["live_replan_rule"],

@@ -319,3 +319,36 @@ def test_sources_planned_together_equal_each_planned_alone():
         assert r.plan == alone.plan
         a, b = alone.run("double")["data"], r.run("double")["data"]
         assert np.max(np.abs(a - b)) <= 1e-14 * np.max(a), k
+
+
+def test_pack_groups_even_where_the_budget_allows():
+    """live.pack_groups: the greedy cut's number of groups, near-equal lengths where each fits, else the greedy cut
+    itself. ``fits`` as packed_recorded_bytes counts a tile: every member at the largest member's size."""
+    from torch_bridge.live import pack_groups
+
+    def rule(w, budget):
+        return lambda g: len(g) * max(w[i] for i in g) <= budget
+    w = [1.0] * 8
+    assert pack_groups(list(range(8)), rule(w, 7)) == [[0, 1, 2, 3], [4, 5, 6, 7]]      # greedy: 7 + 1
+    assert pack_groups(list(range(8)), rule(w, 8)) == [list(range(8))]
+    assert pack_groups(list(range(7)), rule(w, 3)) == [[0, 1, 2], [3, 4], [5, 6]]        # greedy: 3 + 3 + 1
+    w = [1.0] * 5 + [2.0]
+    # greedy 5 + 1; the even cut 3 + 3 puts the large member with two others (3 x 2 > 5): greedy kept
+    assert pack_groups(list(range(6)), rule(w, 5)) == [[0, 1, 2, 3, 4], [5]]
+    assert pack_groups([], rule(w, 5)) == []
+    assert pack_groups([4], rule(w, 0)) == [[4]]                                          # alone, whatever fits
+
+
+def test_a_chunk_over_the_budget_splits_into_even_packed_tiles():
+    """The A489 + DOE, 4 focal sources under a record budget that holds 3 packed members but not 4: two packed
+    tiles of 2 (not 3 + 1, whose single source would run on its own path)."""
+    from torch_bridge.packed import packed_recorded_bytes
+    lens = _doe_lens(8)
+    m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
+    members = [m.raywave([f], [w], 12, pixel_mm=lens.sensor.pixel_pitch, method="focal")
+               for f in (0.0, 5.0) for w in (0.5, 0.6)]
+    budget = max(packed_recorded_bytes(m, [members[i] for i in c]) for c in ((0, 1, 2), (1, 2, 3), (0, 1, 3), (0, 2, 3)))
+    assert packed_recorded_bytes(m, members) > budget
+    prov = dz.LiveProvider(m, [0.0, 5.0], 12, lens.sensor.pixel_pitch, record_budget_bytes=budget)
+    units = prov._units([0, 1, 2, 3], dict(enumerate(members)), [], {})
+    assert [(kind, rows) for kind, _, rows in units] == [("packed", [0, 1]), ("packed", [2, 3])]
