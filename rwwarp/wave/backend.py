@@ -545,7 +545,9 @@ def ensure_cufft_plan_cache():
     """Raise CuPy's cuFFT plan cache on the current device to :data:`CUFFT_PLAN_CACHE` plans (at most
     :data:`CUFFT_PLAN_CACHE_BYTES` of work areas) where it is smaller. A design step plans each focal
     source on its own grid (dozens of FFT shapes), which CuPy's default cache of 16 plans cycles through
-    without a hit (0.23 s of host time a step of the Cooke hybrid on an H100)."""
+    without a hit (0.23 s of host time a step of the Cooke hybrid on an H100). CuPy keeps one cache per thread
+    and device, and torch runs a backward pass on a device thread of its own: call it in the thread that runs
+    the FFTs (:class:`rwwarp.wave.focal.FocalPropagator` does, before each; it costs a few microseconds)."""
     import cupy
     cache = cupy.fft.config.get_plan_cache()
     if cache.get_size() < CUFFT_PLAN_CACHE:

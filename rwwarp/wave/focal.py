@@ -62,6 +62,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .backend import ensure_cufft_plan_cache
 from .doe_phase import wrap_zone, zone_relief_phase
 
 #: candidate DOE orders of the focal method: -FOCAL_MAX_ORDER .. FOCAL_MAX_ORDER about the main order (the
@@ -560,10 +561,14 @@ class FocalPropagator:
 
     def _fft(self, v):
         """Step 2's zero-padded FFT of the sensor-side field: (S, ns, ns) -> (S, nf, nf)."""
+        if self.xp is not np:
+            ensure_cufft_plan_cache()   # in the thread that runs it (torch's backward runs on a thread of its own)
         return self.xp.fft.fft2(v, s=(self.nf, self.nf))
 
     def _fft_adjoint(self, b):
         """Adjoint of :meth:`_fft`: (S, nf, nf) -> (S, ns, ns)."""
+        if self.xp is not np:
+            ensure_cufft_plan_cache()
         return (self.xp.fft.ifft2(b) * (self.nf * self.nf))[:, :self.ns, :self.ns]
 
     def distance_derivative(self, field):
