@@ -297,9 +297,10 @@ class LiveProvider:
                                    for i, (j, r) in enumerate(zip(row, u.members)))
                 else:
                     dropped.append((keys[row[0] - sl.start], u, u.dropped, None))
-        # the chunks, each a checkpoint when there are several (torch_bridge.tiles)
+        # the chunks, each a checkpoint when there are several but the last, whose tape is used first in the
+        # backward pass (torch_bridge.tiles; a design step gives the network the budget's other share)
         out = run_tiles(self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs), run, [values[q] for q in names],
-                        checkpoint=tile < n, total=-(-n // tile), after=after)
+                        checkpoint=tile < n, total=-(-n // tile), after=after, keep_last=True)
         self._packed = packs   # the tiles of this call (a tile of the last call not used again is freed)
         # read after every source was queued (a read waits for the device: once, not once per source)
         host = {}

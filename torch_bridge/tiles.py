@@ -25,7 +25,7 @@ def wants_grad(tensors) -> bool:
 
 
 def run_tiles(tiles, run, tensors, *, checkpoint: bool | None = None, progress: str | None = None,
-              total: int | None = None, after=None, unit: str = "tile") -> torch.Tensor:
+              total: int | None = None, after=None, unit: str = "tile", keep_last: bool = False) -> torch.Tensor:
     """Outputs of ``run(tile, *tensors, record=...)`` for every tile of ``tiles``, concatenated along the first
     axis (one tile: its output itself).
 
@@ -36,7 +36,11 @@ def run_tiles(tiles, run, tensors, *, checkpoint: bool | None = None, progress: 
     (default): when there is more than one tile (a sequence's length, else ``total``). Without a checkpoint a
     tile runs with ``record=torch.is_grad_enabled()``. ``progress``: a tqdm bar with this description (its
     ``unit``; ``total`` for an iterable). ``after(tile, out)``: called after each tile's forward (the caller's
-    per-tile logging)."""
+    per-tile logging). ``keep_last``: with checkpoints, the last tile is recorded as it runs, not checkpointed
+    (its forward runs once): its tape lives from its forward to its backward, which comes first in the backward
+    pass, so the peak is one recorded tile beside whatever the caller runs between (a design step's network,
+    which the caller's budget gives the other share: :class:`torch_bridge.live.LiveProvider`); the tile count
+    must be known (a sequence, or ``total``)."""
     from .functions import Recompute
     tensors = list(tensors)
     n = len(tiles) if hasattr(tiles, "__len__") else total
@@ -49,9 +53,11 @@ def run_tiles(tiles, run, tensors, *, checkpoint: bool | None = None, progress: 
     if progress:
         from tqdm.auto import tqdm
         it = tqdm(tiles, desc=progress, unit=unit, total=n)
+    if keep_last and ckpt and n is None:
+        raise ValueError("run_tiles: keep_last needs the tile count (a sequence, or total=)")
     outs = []
-    for tile in it:
-        if ckpt:
+    for k, tile in enumerate(it):
+        if ckpt and not (keep_last and k == n - 1):
             out = Recompute.apply(functools.partial(run, tile), *tensors)
         else:
             out = run(tile, *tensors, record=torch.is_grad_enabled())

@@ -42,6 +42,16 @@ def test_run_tiles_checkpoints_each_tile_once_and_recomputes_it_once():
             assert {r: calls[(tuple(t), r)] for r in (False, True) if calls[(tuple(t), r)]} == want
         assert torch.equal(y.detach(), x.detach() ** 3)
         assert torch.equal(x.grad, 3 * x.detach() ** 2)
+    # keep_last: the last tile recorded as it runs (once), the others checkpointed (twice); a generator with total=
+    for tiles_in in (tiles, iter(tiles)):
+        calls = collections.Counter()
+        x.grad = None
+        y = run_tiles(tiles_in, run, [x], checkpoint=True, total=3, keep_last=True)
+        y.sum().backward()
+        assert dict(calls) == {**{(tuple(t), r): 1 for t in tiles[:2] for r in (False, True)}, ((7, 8, 9), True): 1}
+        assert torch.equal(x.grad, 3 * x.detach() ** 2)
+    with pytest.raises(ValueError, match="keep_last needs the tile count"):
+        run_tiles(iter(tiles), run, [x], checkpoint=True, keep_last=True)
     # no gradient wanted: no checkpoint, one plain forward a tile; a generator needs its count for the default
     with torch.no_grad():
         calls.clear()
