@@ -16,7 +16,7 @@ from .methods.registry import Planned
 from .plan import (FOCAL_EDGE_MARGIN_B, FOCAL_LIT_SHIFT_MARGIN, FOCAL_MARGIN_B, FOCAL_SHIFT_MARGIN,
                    FOCAL_TAPER_GUARD, fit_quadratic_transfer, focal_plan_from)
 
-__all__ = ["focal_plans_one_order"]
+__all__ = ["focal_plans_one_order", "focal_plans_orders"]
 
 
 def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, distance_mm, centers_given,
@@ -101,4 +101,277 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
         geo["profile"] = None
         geo["central_zone"] = [None]
         out[int(k)] = Planned(pl, f_c[sl], centers[sl], lo[sl], hi[sl], geo)
+    return out
+
+
+# ------------------------------------------------------------------------------ a DOE on the wave plane: many orders
+ORDERS_CHUNK_ELEMENTS = 1 << 18   # per (sources x orders x rays) array of one chunk: 2 MiB in float64
+ORDERS_PAD_RATIO = 2.0            # a source joins a chunk whose sources carry up to this many times its live orders
+
+
+class _Orders:
+    """One source's diffraction orders as :func:`rwwarp.wave.plan.plan_focal` walks them: ``orders`` (every
+    ``(m, c_m)``), the main order ``main_m``, the live ones (``|c_m|^2 >= order_tol``) with their ``p = |c_m|^2``,
+    kept entries and whether each is the main one, and ``lost0``: the power of the others, summed in order."""
+    __slots__ = ("orders", "main_m", "main_c", "live_m", "p", "entry", "is_main", "lost0")
+
+    def __init__(self, orders, order_tol):
+        from .plan import _order_index
+        self.orders = orders
+        self.main_m, self.main_c = max(orders, key=lambda mc: abs(mc[1]))
+        self.live_m, self.p, self.entry, self.is_main = [], [], [], []
+        lost = 0.0
+        for m, c in orders:
+            p = abs(c) ** 2
+            if p < order_tol:
+                lost += p
+                continue
+            self.live_m.append(m)
+            self.p.append(p)
+            self.entry.append((_order_index(m), complex(c)))
+            self.is_main.append(m == self.main_m)
+        self.lost0 = lost
+
+
+def focal_plans_orders(lens, plane, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, distance_mm,
+                       centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
+                       straight_edges, patch_tol, shared=None, order_tol=1e-8) -> dict:
+    """Per source ``k`` of ``S``: the :class:`~rwwarp.wave.methods.registry.Planned` focal plan that
+    ``plan_focal_batch`` makes for it alone where the wave plane (surface ``plane`` of ``lens``) is a DOE with a
+    smooth relief (several diffraction orders, or one order of non-integer index where the relief does not wrap
+    inside the beam), ``plan="auto"``. The arguments as :func:`focal_plans_one_order` takes them, and ``wls`` (S,)
+    um, ``patch_tol`` (the focal planner's ``patch_tol``), ``shared`` (the per-call dict of
+    :class:`~rwwarp.wave.methods.PlanContext`: the DOE profile and its phase scale per wavelength are read from and
+    kept in it, as the per-source planner does). The DOE's gradient and phase at every source's pilot rays come
+    from one evaluation (a smooth relief's are elementwise arithmetic: each point's value is the per-source
+    call's), each wavelength's order coefficients once; then every source's orders at once, in chunks of sources
+    of similar order counts (``ORDERS_CHUNK_ELEMENTS``, ``ORDERS_PAD_RATIO``): a source's orders padded with copies
+    of its first live order and its rays with copies of its first ray, whose results no decision, maximum or
+    minimum sees. Returns ``{k: Planned}`` for the sources planned here: those whose every live order's pilot rays
+    land, whose chief ray's main order lands, and which keep at least one order; the others (and every source of a
+    pixel-map relief, which has no gradient) are left to the per-source planner, which plans them (or raises
+    their error) as before."""
+    from .. import doe
+    from ..doe import is_flat_profile
+    from .doe_phase import SMOOTH_KINDS
+    from .doe_sampling import branch_of_range, chief_zone, lens_dir
+    from .focal import FOCAL_MAX_ORDER, doe_order_coefficients, transfer_curvature
+    s = lens.surfaces[plane]
+    shared = {} if shared is None else shared
+    prof = shared.get("focal_profile", False)
+    if prof is False:   # as plan_focal_batch reads it: once per call, kept for the per-source planner
+        prof = None
+        if s.type == "doe" and not is_flat_profile(s.profile):
+            prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
+        shared["focal_profile"] = prof
+    if prof is None or getattr(prof, "kind", None) not in SMOOTH_KINDS:
+        return {}
+    S, R = ok.shape
+    counts = ok.sum(1)
+    if not counts.any():
+        return {}
+    z = float(distance_mm)
+    dwl = s.design_wavelength_um
+    half_w = 0.5 * size * pixel
+    mb = FOCAL_EDGE_MARGIN_B if straight_edges else FOCAL_MARGIN_B
+    inv_lam = n_after / lam_mm
+    inv2 = np.array([inv_lam[k] ** 2 for k in range(S)])          # as landing_points squares its scalar inv_lam
+    # each source's valid rays first, in their order, then copies of its first valid ray (seen by no max / min)
+    order = np.argsort(~ok, axis=1, kind="stable")
+    rank = np.arange(R)[None, :]
+    inside = rank < counts[:, None]
+    idx = np.where(inside, order, order[:, :1])
+    rows = np.arange(S)[:, None]
+    xy = pos_p[rows, idx, :2]
+    freq = n_after[:, None, None] * dir_s[rows, idx, :2] / lam_mm[:, None, None]
+    # the relief's gradient (and phase) at every source's valid rays in one call, source after source
+    xyv = xy[inside]
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    flat = np.minimum(start[:, None] + np.where(inside, rank, 0), len(xyv) - 1)   # a source without rays: any
+    gx, gy = prof.gradient(xyv[:, 0], xyv[:, 1], dwl)
+    doe_f = (np.stack([gx, gy], 1) / (2 * np.pi))[flat]
+    by_axis = [np.ascontiguousarray(np.moveaxis(a, -1, 0)) for a in (xy, freq, doe_f)]   # (2, S, R) each
+    cx, cy = prof.gradient(chief_plane[:, 0].copy(), chief_plane[:, 1].copy(), dwl)
+    phv = None if s.levels else prof.phase(xyv[:, 0], xyv[:, 1], dwl)
+    if phv is not None:
+        ph = phv[flat]
+        ph_fin = np.isfinite(ph).all(axis=1)
+        ph_min, ph_max = ph.min(axis=1), ph.max(axis=1)
+    # each source's orders: per wavelength (the relief wraps inside the beam), or one exact term (it does not)
+    scales = shared.setdefault("focal_alpha", {})
+    series = {}
+    infos, central, coef = [], [], np.zeros(S)
+    for k in range(S):
+        alpha = scales.get(wls[k])
+        if alpha is None:
+            alpha = scales[wls[k]] = doe.wavelength_scale(s.material, s.design_wavelength_um, wls[k])
+        branch = None
+        if phv is not None and counts[k] and ph_fin[k]:
+            branch = branch_of_range(ph_min[k], ph_max[k])
+        if branch is not None:
+            infos.append(_Orders([(float(alpha), complex(np.exp(-2j * np.pi * alpha * branch)))], order_tol))
+            central.append(None)
+            coef[k] = alpha
+            continue
+        if wls[k] not in series:
+            ms = set(range(-FOCAL_MAX_ORDER, FOCAL_MAX_ORDER + 1))
+            if s.levels:
+                ms |= {1 + j * int(s.levels) for j in (-2, -1, 1, 2)}
+            ms = np.array(sorted(ms))
+            cm = doe_order_coefficients(alpha, s.levels, ms)
+            series[wls[k]] = (_Orders(list(zip(ms.tolist(), cm.tolist())), order_tol), int(ms[np.argmax(np.abs(cm))]))
+        info, m0 = series[wls[k]]
+        infos.append(info)
+        coef[k] = m0
+        central.append(None if s.levels or not counts[k] else
+                       (chief_zone(phv[start[k]:start[k] + counts[k]], xy[k, :counts[k]], chief_plane[k, :2]),
+                        float(alpha)))
+    f_c = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]
+    f_c += coef[:, None] * np.stack([cx, cy], 1) / (2 * np.pi)
+    go = (counts > 0) & np.array([len(i.live_m) > 0 for i in infos])
+    if centers_given is None:
+        cw2 = inv2 - np.sum(f_c * f_c, axis=-1)
+        land = chief_plane[:, :2] + z * f_c / np.sqrt(np.where(cw2 > 0, cw2, np.nan))[:, None]
+        go &= np.isfinite(land).all(axis=1)
+        land = np.where(np.isfinite(land), land, 0.0)
+        centers = np.stack([snap_to_pixel(land[:, 0], pixel, resolution[0]),
+                            snap_to_pixel(land[:, 1], pixel, resolution[1])], axis=1)
+    else:
+        centers = np.array(centers_given, dtype=np.float64)   # a copy: set read-only below
+    _, g, q = transfer_curvature(f_c, inv_lam)
+    res = {}
+    for sel in _order_chunks(np.flatnonzero(go), [len(i.live_m) for i in infos], R):
+        res.update(_orders_chunk(sel, infos, *by_axis, counts, f_c, centers, inv2, g, q, z, half_w, mb,
+                                 patch_tol))
+    out = {}
+    for a in (f_c, centers):   # each plan keeps read-only views of its rows
+        a.flags.writeable = False
+    for k, (keep, lost, band, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread, box) in res.items():
+        sl = slice(k, k + 1)
+        pl, geo = focal_plan_from([box], [keep], lost, band, shifts, g_fit, q_fit, lit, spread, spread_main,
+                                  ray_spread, z, half_w, mb, float(widths[k]), rays_per_sample, nyquist_safety,
+                                  straight_edges)
+        geo["profile"] = prof
+        geo["central_zone"] = [central[k]]
+        out[int(k)] = Planned(pl, f_c[sl], centers[sl], lo[sl], hi[sl], geo)
+    return out
+
+
+def _order_chunks(ks, n_live, R):
+    """The sources ``ks`` in chunks: by decreasing live-order count, a chunk's sources carrying more than 1 /
+    ``ORDERS_PAD_RATIO`` of its most orders, its arrays within ``ORDERS_CHUNK_ELEMENTS``."""
+    ks = sorted(ks, key=lambda k: -n_live[k])
+    out, cur = [], []
+    for k in ks:
+        if cur and (n_live[k] * ORDERS_PAD_RATIO <= n_live[cur[0]]
+                    or (len(cur) + 1) * n_live[cur[0]] * R > ORDERS_CHUNK_ELEMENTS):
+            out.append(np.array(sorted(cur)))
+            cur = []
+        cur.append(k)
+    if cur:
+        out.append(np.array(sorted(cur)))
+    return out
+
+
+def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q, z, half_w, mb, patch_tol):
+    """:func:`rwwarp.wave.plan.plan_focal`'s loop for the sources ``sel`` at once (``xy``, ``freq``, ``doe_f``: (2,
+    S, R) by component, the other arrays' rows ``sel``; ``infos``: each source's :class:`_Orders`): ``{k: (kept
+    orders, lost power (1,), band (1,), shifts (1,), g_fit (1, 2), q_fit (1, 2), lit (1,), spread, spread_main,
+    ray_spread, (box_lo, box_hi))}`` for those whose every live order lands and which keep one. Every value is the
+    per-source loop's: elementwise arithmetic, maxima and minima over the same values (padding masked out or
+    copies), sums and products of the two components (``a + b`` in either order), the same decisions, the fit per
+    source. The arrays are (n, M, R) per component (contiguous reductions over the rays)."""
+    n = len(sel)
+    M = max(len(infos[k].live_m) for k in sel)
+    ms = np.empty((n, M), dtype=doe_f.dtype)    # m * doe_freq in doe_freq's precision, as plan_focal multiplies it
+    valid = np.zeros((n, M), dtype=bool)
+    main = np.zeros((n, M), dtype=bool)
+    P = np.zeros((n, M))
+    for i, k in enumerate(sel):
+        inf = infos[k]
+        L = len(inf.live_m)
+        ms[i, :L] = inf.live_m
+        ms[i, L:] = inf.live_m[0]                 # padding: copies of the first live order, never read
+        valid[i, :L] = True
+        main[i, :L] = inf.is_main
+        P[i, :L] = inf.p
+    T, fc, r1 = centers[sel], f_c[sel], np.arange(n)
+    X = [xy[a][sel][:, None, :] for a in range(2)]                                         # (n, 1, R)
+    F = [freq[a][sel][:, None, :] + ms[:, :, None] * doe_f[a][sel][:, None, :] for a in range(2)]   # (n, M, R)
+    w2 = inv2[sel][:, None, None] - (F[0] * F[0] + F[1] * F[1])
+    w = np.sqrt(np.where(w2 > 0, w2, np.nan))
+    Ls = [X[a] + z * F[a] / w for a in range(2)]
+    full = np.isfinite(Ls[0]).all(axis=2) & np.isfinite(Ls[1]).all(axis=2)
+    whole = ~(valid & ~full).any(axis=1)        # every live order lands, every ray
+    LLO = np.stack([L.min(axis=2) for L in Ls], axis=-1)     # (n, M, 2)
+    LHI = np.stack([L.max(axis=2) for L in Ls], axis=-1)
+    o_band = np.maximum(np.max(np.abs(F[0] - fc[:, 0, None, None]), axis=2),
+                        np.max(np.abs(F[1] - fc[:, 1, None, None]), axis=2))
+    band = np.maximum(1e-9, np.max(np.where(valid, o_band, -np.inf), axis=1))
+    margin = mb / band
+    up = T + half_w + margin[:, None]
+    dn = T - half_w - margin[:, None]
+    miss = np.any(LLO > up[:, None], axis=2) | np.any(LHI < dn[:, None], axis=2)
+    ext = LHI - LLO
+    reach = np.prod(np.minimum(ext, (2 * (half_w + margin))[:, None, None]) + 1e-12, axis=2)
+    area = np.prod(ext + 1e-12, axis=2)
+    share = reach / area
+    used = valid & ~miss & (main | ~(P * share < patch_tol))
+    whole &= used.any(axis=1)                   # nothing reaches the patch: the per-source planner's dark patch
+    if not whole.any():
+        return {}
+    mu = (used & main).any(axis=1)              # the main order is kept
+    jm = np.argmax(main, axis=1)
+    mLLO, mLHI = LLO[r1, jm], LHI[r1, jm]
+    ray_spread = np.where(mu, np.maximum(0.0, np.max(mLHI - mLLO, axis=1)), 0.0)
+    # the kept orders alone from here: each source's first K, padded with copies of its first (masked out)
+    nu = used.sum(axis=1)
+    K = int(nu.max())
+    ju = np.argsort(~used, axis=1, kind="stable")[:, :K]
+    ju = np.where(np.arange(K)[None, :] < nu[:, None], ju, ju[:, :1])
+    uk = np.arange(K)[None, :] < nu[:, None]                 # (n, K): a kept order, not padding
+    mk = uk & main[r1[:, None], ju]                          # ... the main one
+    FU = [F[a][r1[:, None], ju] for a in range(2)]           # (n, K, R)
+    LU = [Ls[a][r1[:, None], ju] for a in range(2)]
+    g_fit, q_fit = g[sel].copy(), q[sel].copy()
+    for i in np.flatnonzero(whole):
+        k = sel[i]
+        c, kk = counts[k], nu[i]
+        Fk = np.stack([FU[0][i, :kk, :c], FU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
+        Lk = np.stack([LU[0][i, :kk, :c], LU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
+        Xk = np.broadcast_to(np.stack([xy[0][k, :c], xy[1][k, :c]], axis=-1), (kk, c, 2)).reshape(-1, 2)
+        g_fit[i], q_fit[i] = fit_quadratic_transfer([Fk], [Lk], [Xk], fc[i], g[k], q[k], z)
+    # landings under the quadratic transfer, the remainder's displacement, their boxes
+    LG = [X[a] - z * (g_fit[:, a, None, None] + (FU[a] - fc[:, a, None, None]) * q_fit[:, a, None, None])
+          for a in range(2)]
+    dev = np.maximum(np.max(np.abs(LU[0] - LG[0]), axis=2), np.max(np.abs(LU[1] - LG[1]), axis=2))
+    shifts = np.maximum(0.0, np.max(np.where(uk, dev, 0.0), axis=1))
+    LGlo = np.stack([L.min(axis=2) for L in LG], axis=-1)    # (n, K, 2)
+    LGhi = np.stack([L.max(axis=2) for L in LG], axis=-1)
+    u3, m3 = uk[..., None], mk[..., None]
+    lo_g = np.minimum(T - half_w, np.min(np.where(u3, LGlo, np.inf), axis=1))
+    hi_g = np.maximum(T + half_w, np.max(np.where(u3, LGhi, -np.inf), axis=1))
+    mlo = np.minimum(T - half_w, np.min(np.where(m3, LGlo, np.inf), axis=1))
+    mhi = np.maximum(T + half_w, np.max(np.where(m3, LGhi, -np.inf), axis=1))
+    guard = half_w + FOCAL_TAPER_GUARD * shifts + 3.0 / band
+    lit = mu & (np.any(mLLO < T - guard[:, None], axis=1) | np.any(mLHI > T + guard[:, None], axis=1))
+    margin_k = margin + np.where(lit, FOCAL_LIT_SHIFT_MARGIN, FOCAL_SHIFT_MARGIN) * shifts
+    lo_s = np.minimum(lo_g, T - half_w - shifts[:, None]) - margin_k[:, None]
+    hi_s = np.maximum(hi_g, T + half_w + shifts[:, None]) + margin_k[:, None]
+    spread = np.maximum(0.0, np.max(hi_s - lo_s, axis=1))
+    spread_main = np.maximum(0.0, np.max(mhi - mlo, axis=1) + 2.0 * margin_k)
+    box_lo = T - half_w - shifts[:, None] - margin_k[:, None]
+    box_hi = T + half_w + shifts[:, None] + margin_k[:, None]
+    for a in (band, shifts, g_fit, q_fit, lit):   # each plan keeps read-only views of its rows
+        a.flags.writeable = False
+    out = {}
+    for i in np.flatnonzero(whole):
+        inf = infos[sel[i]]
+        lost = inf.lost0
+        for j in np.flatnonzero(valid[i] & ~used[i]):   # in order, as plan_focal adds them
+            lost += inf.p[j]
+        sl = slice(i, i + 1)
+        out[int(sel[i])] = ([inf.entry[j] for j in np.flatnonzero(used[i])], np.array([lost]), band[sl],
+                            shifts[sl], g_fit[sl], q_fit[sl], lit[sl], float(spread[i]), float(spread_main[i]),
+                            float(ray_spread[i]), (box_lo[i], box_hi[i]))
     return out
