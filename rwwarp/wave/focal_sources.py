@@ -105,7 +105,7 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
 
 
 # ------------------------------------------------------------------------------ a DOE on the wave plane: many orders
-ORDERS_CHUNK_ELEMENTS = 1 << 18   # per (sources x orders x rays) array of one chunk: 2 MiB in float64
+ORDERS_CHUNK_ELEMENTS = 1 << 16   # per (sources x orders x rays) array of one chunk: 512 KiB in float64 (in cache)
 ORDERS_PAD_RATIO = 2.0            # a source joins a chunk whose sources carry up to this many times its live orders
 
 
@@ -297,16 +297,32 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
         P[i, :L] = inf.p
     T, fc, r1 = centers[sel], f_c[sel], np.arange(n)
     X = [xy[a][sel][:, None, :] for a in range(2)]                                         # (n, 1, R)
-    F = [freq[a][sel][:, None, :] + ms[:, :, None] * doe_f[a][sel][:, None, :] for a in range(2)]   # (n, M, R)
-    w2 = inv2[sel][:, None, None] - (F[0] * F[0] + F[1] * F[1])
-    w = np.sqrt(np.where(w2 > 0, w2, np.nan))
-    Ls = [X[a] + z * F[a] / w for a in range(2)]
-    full = np.isfinite(Ls[0]).all(axis=2) & np.isfinite(Ls[1]).all(axis=2)
-    whole = ~(valid & ~full).any(axis=1)        # every live order lands, every ray
+    F = []
+    for a in range(2):                          # freq + m * doe_freq (n, M, R), in place where it can be
+        f = ms[:, :, None] * doe_f[a][sel][:, None, :]
+        f += freq[a][sel][:, None, :]
+        F.append(f)
+    w = F[0] * F[0]
+    w += F[1] * F[1]                            # the sum over the two components, a + b in either order
+    np.subtract(inv2[sel][:, None, None], w, out=w)
+    w[~(w > 0)] = np.nan                        # evanescent (or grazing) rays: NaN, as landing_points has them
+    np.sqrt(w, out=w)
+    Ls = []
+    for a in range(2):                          # xy + z f / w
+        L = z * F[a]
+        L /= w
+        L += X[a]
+        Ls.append(L)
     LLO = np.stack([L.min(axis=2) for L in Ls], axis=-1)     # (n, M, 2)
     LHI = np.stack([L.max(axis=2) for L in Ls], axis=-1)
-    o_band = np.maximum(np.max(np.abs(F[0] - fc[:, 0, None, None]), axis=2),
-                        np.max(np.abs(F[1] - fc[:, 1, None, None]), axis=2))
+    # every ray of an order lands iff its landings' least and greatest are finite (NaN reaches both)
+    full = np.isfinite(LLO).all(axis=2) & np.isfinite(LHI).all(axis=2)
+    whole = ~(valid & ~full).any(axis=1)        # every live order lands, every ray
+    # max |f - f_c| from the least and greatest f (a rounded difference is monotone in f: the same value)
+    o_band = np.zeros((n, M))
+    for a in range(2):
+        o_band = np.maximum(o_band, np.maximum(np.abs(F[a].max(axis=2) - fc[:, a, None]),
+                                               np.abs(F[a].min(axis=2) - fc[:, a, None])))
     band = np.maximum(1e-9, np.max(np.where(valid, o_band, -np.inf), axis=1))
     margin = mb / band
     up = T + half_w + margin[:, None]
