@@ -287,13 +287,24 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     LHI = np.stack([L.max(axis=2) for L in Ls], axis=-1)
     # every ray of an order lands iff its landings' least and greatest are finite (NaN reaches both)
     full = np.isfinite(LLO).all(axis=2) & np.isfinite(LHI).all(axis=2)
-    whole = ~(valid & ~full).any(axis=1)        # every live order lands, every ray
+    landed, okr = valid, None
+    if (valid & ~full).any():
+        # an order some of whose rays do not land (evanescent): its landing rays' box and band, as plan_focal's
+        okr = np.isfinite(Ls[0]) & np.isfinite(Ls[1])          # (n, M, R) the rays that land
+        landed = valid & okr.any(axis=2)
+        LLO = np.stack([np.where(okr, L, np.inf).min(axis=2) for L in Ls], axis=-1)
+        LHI = np.stack([np.where(okr, L, -np.inf).max(axis=2) for L in Ls], axis=-1)
+        LLO[~landed] = 0.0                                      # no ray lands: never read
+        LHI[~landed] = 0.0
+        Fhi = [np.where(okr, f, -np.inf).max(axis=2) for f in F]
+        Flo = [np.where(okr, f, np.inf).min(axis=2) for f in F]
+    else:
+        Fhi, Flo = [f.max(axis=2) for f in F], [f.min(axis=2) for f in F]
     # max |f - f_c| from the least and greatest f (a rounded difference is monotone in f: the same value)
     o_band = np.zeros((n, M))
     for a in range(2):
-        o_band = np.maximum(o_band, np.maximum(np.abs(F[a].max(axis=2) - fc[:, a, None]),
-                                               np.abs(F[a].min(axis=2) - fc[:, a, None])))
-    band = np.maximum(1e-9, np.max(np.where(valid, o_band, -np.inf), axis=1))
+        o_band = np.maximum(o_band, np.maximum(np.abs(Fhi[a] - fc[:, a, None]), np.abs(Flo[a] - fc[:, a, None])))
+    band = np.maximum(1e-9, np.max(np.where(landed, o_band, -np.inf), axis=1))
     margin = mb / band
     up = T + half_w + margin[:, None]
     dn = T - half_w - margin[:, None]
@@ -302,8 +313,8 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     reach = np.prod(np.minimum(ext, (2 * (half_w + margin))[:, None, None]) + 1e-12, axis=2)
     area = np.prod(ext + 1e-12, axis=2)
     share = reach / area
-    used = valid & ~miss & (main | ~(P * share < patch_tol))
-    whole &= used.any(axis=1)                   # nothing reaches the patch: the per-source planner's dark patch
+    used = landed & ~miss & (main | ~(P * share < patch_tol))
+    whole = used.any(axis=1)                    # nothing reaches the patch: the per-source planner's dark patch
     if not whole.any():
         return {}
     mu = (used & main).any(axis=1)              # the main order is kept
@@ -319,21 +330,35 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     mk = uk & main[r1[:, None], ju]                          # ... the main one
     FU = [F[a][r1[:, None], ju] for a in range(2)]           # (n, K, R)
     LU = [Ls[a][r1[:, None], ju] for a in range(2)]
+    OKU = None if okr is None else okr[r1[:, None], ju]      # the kept orders' rays that land
     g_fit, q_fit = g[sel].copy(), q[sel].copy()
     for i in np.flatnonzero(whole):
+        # the kept orders' rays (those that land), order after order, as plan_focal concatenates them
         k = sel[i]
         c, kk = counts[k], nu[i]
-        Fk = np.stack([FU[0][i, :kk, :c], FU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
-        Lk = np.stack([LU[0][i, :kk, :c], LU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
-        Xk = np.broadcast_to(np.stack([xy[0][k, :c], xy[1][k, :c]], axis=-1), (kk, c, 2)).reshape(-1, 2)
+        if OKU is None:
+            Fk = np.stack([FU[0][i, :kk, :c], FU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
+            Lk = np.stack([LU[0][i, :kk, :c], LU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
+            Xk = np.broadcast_to(np.stack([xy[0][k, :c], xy[1][k, :c]], axis=-1), (kk, c, 2)).reshape(-1, 2)
+        else:
+            m = OKU[i, :kk, :c]
+            Fk = np.stack([FU[0][i, :kk, :c][m], FU[1][i, :kk, :c][m]], axis=-1)
+            Lk = np.stack([LU[0][i, :kk, :c][m], LU[1][i, :kk, :c][m]], axis=-1)
+            Xk = np.stack([np.broadcast_to(xy[a][k, :c], (kk, c))[m] for a in range(2)], axis=-1)
         g_fit[i], q_fit[i] = fit_quadratic_transfer([Fk], [Lk], [Xk], fc[i], g[k], q[k], z)
     # landings under the quadratic transfer, the remainder's displacement, their boxes
     LG = [X[a] - z * (g_fit[:, a, None, None] + (FU[a] - fc[:, a, None, None]) * q_fit[:, a, None, None])
           for a in range(2)]
-    dev = np.maximum(np.max(np.abs(LU[0] - LG[0]), axis=2), np.max(np.abs(LU[1] - LG[1]), axis=2))
+    if OKU is None:
+        dev = np.maximum(np.max(np.abs(LU[0] - LG[0]), axis=2), np.max(np.abs(LU[1] - LG[1]), axis=2))
+        LGlo = np.stack([L.min(axis=2) for L in LG], axis=-1)    # (n, K, 2)
+        LGhi = np.stack([L.max(axis=2) for L in LG], axis=-1)
+    else:                                       # over the rays that land alone
+        dev = np.maximum(np.max(np.where(OKU, np.abs(LU[0] - LG[0]), 0.0), axis=2),
+                         np.max(np.where(OKU, np.abs(LU[1] - LG[1]), 0.0), axis=2))
+        LGlo = np.stack([np.where(OKU, L, np.inf).min(axis=2) for L in LG], axis=-1)
+        LGhi = np.stack([np.where(OKU, L, -np.inf).max(axis=2) for L in LG], axis=-1)
     shifts = np.maximum(0.0, np.max(np.where(uk, dev, 0.0), axis=1))
-    LGlo = np.stack([L.min(axis=2) for L in LG], axis=-1)    # (n, K, 2)
-    LGhi = np.stack([L.max(axis=2) for L in LG], axis=-1)
     u3, m3 = uk[..., None], mk[..., None]
     lo_g = np.minimum(T - half_w, np.min(np.where(u3, LGlo, np.inf), axis=1))
     hi_g = np.maximum(T + half_w, np.max(np.where(u3, LGhi, -np.inf), axis=1))

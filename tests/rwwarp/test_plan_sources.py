@@ -360,19 +360,41 @@ def test_a489_doe_orders_planned_at_once(monkeypatch, levels):
     assert min(kept) == 1 and max(kept) > 2, kept
 
 
-def test_doe_orders_partly_evanescent_planned_alone(monkeypatch):
+def test_doe_orders_partly_evanescent_at_once_and_a_missed_patch_alone(monkeypatch):
     """A strong DOE (-8e4 rad at the 15 mm norm radius, test_orders_partly_evanescent): the sources at 5 deg, 0.45
-    and 0.65 um have orders that land only in part (the rest evanescent); they are left to the per-source planner,
-    the others (17 kept orders on axis at 0.5876 / 0.45 um, one at the design wavelength) planned at once. Every
-    plan the per-source planner's, bit for bit."""
+    and 0.65 um have orders that land only in part (the rest evanescent: their landing rays' boxes, bands and fit
+    taken), planned at once with the others (17 kept orders on axis at 0.5876 / 0.45 um, one at the design
+    wavelength); then the same sources with each patch where the first call centred it but the design-wavelength
+    source's 3 mm beside it, which its one order misses: that source is left to the per-source planner (which keeps
+    its main order: a dark patch). Every plan the per-source planner's, bit for bit."""
     lens = _cooke_with_doe(-8e4)
     fields, wls = [0.0, 5.0, 2.0, 5.0, 0.0], [0.5876, 0.45, 0.55, 0.65, 0.45]
     at_once, alone = _focal_paths(monkeypatch)
     got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, method="focal", focal_patch_tol=1e-9)
-    assert at_once == [[0, 2, 4]]
-    assert len(alone) == len(fields) + 2    # the reference's, then sources 1 and 3 alone
+    assert at_once == [[0, 1, 2, 3, 4]] and len(alone) == len(fields)
     assert [len(p.focal["orders"][0]) for p in got] == [17, 1, 1, 1, 17]
     assert got[1].focal["lost_power"][0] > 0.1 and got[3].focal["lost_power"][0] > 0.05
+    centers = np.concatenate([p.centers for p in got])
+    centers[2, 0] += 3.0
+    at_once.clear()
+    alone.clear()
+    got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, centers=centers, method="focal",
+                 focal_patch_tol=1e-9)
+    assert at_once == [[0, 1, 3, 4]] and len(alone) == len(fields) + 1
+    assert got[2].focal["lost_power"][0] == 0.0 and got[2].focal["orders"][0] == [(1, 1 + 0j)]
+
+
+def test_doe_orders_landing_in_part_kept_at_once(monkeypatch):
+    """The strong DOE at 5 deg, 0.45 um, its patch given 8 mm below the axis, where orders 5 and 6 land with the
+    rays of theirs that are not evanescent (their main order misses it): the orders kept land only in part, and
+    the fit, the landings under the quadratic transfer, the displacement and the box are taken over their landing
+    rays, at once with a source on axis (17 orders); bit for bit the per-source planner's."""
+    lens = _cooke_with_doe(-8e4)
+    at_once, alone = _focal_paths(monkeypatch)
+    got = _check(lens, [5.0, 0.0], [0.45, 0.5876], 32, lens.sensor.pixel_pitch, centers=np.array([[0.0, -8.0],
+                 [0.0, 0.0]]), method="focal", focal_patch_tol=1e-9)
+    assert at_once == [[0, 1]] and len(alone) == 2
+    assert [m for m, _ in got[0].focal["orders"][0]] == [5, 6] and len(got[1].focal["orders"][0]) == 17
 
 
 @pytest.mark.parametrize("pad_ratio,chunk", [(math.inf, 1 << 30), (2.0, 1)])
