@@ -8,12 +8,14 @@ operations; only elementwise operations, maxima / minima over a source's rays an
 components run across sources (the same values: each source's rays padded with copies of its own first ray, its
 orders with copies of its first live order, which no decision, maximum or minimum sees); the least-squares fit of
 the transfer, the chief ray's wrap zone and the plan's grids and reasons stay per source, on that source's own
-values. The sources the common case does not cover (an order some of whose rays are evanescent, a beam that misses
-its patch, an evanescent chief ray, a pixel-map relief) are left to the per-source planner.
+values; an order some of whose rays are evanescent is taken over the rays that land (masked), as the per-source
+planner takes it. The sources the common case does not cover (a beam that misses its patch, an evanescent chief ray,
+a source without rays, a pixel-map relief) are left to the per-source planner.
 Used by :func:`rwwarp.wave.plan_sources.plan_sources`; tests/rwwarp/test_plan_sources.py compares every plan with
-the per-source planner's, bit for bit. On this CPU the Cooke triplet's design step (48 sources, 17 live orders at
-two of its three wavelengths) plans its focal part in ~0.6 ms a source instead of ~2.6 (perf/time_plan_sources.py
---case cooke: 3.1 -> 2.0 ms a source in all, warm). Lengths in mm, frequencies in cycles/mm."""
+the per-source planner's, bit for bit. On the 2-core CPU of issue 25 the Cooke triplet's design step (48 sources,
+17 live orders at two of its three wavelengths) plans its focal part in 0.64 ms a source instead of 1.78
+(perf/time_plan_sources.py --case cooke: 3.1 -> 2.0 ms a source in all, warm memo). Lengths in mm, frequencies in
+cycles/mm."""
 from __future__ import annotations
 
 import numpy as np
@@ -83,8 +85,8 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
     None (each patch where its chief ray lands) or (S, 2) mm patch centres already snapped; ``widths`` (S,) mm beam
     footprints; ``size`` px of ``pixel`` mm on a sensor of ``resolution`` pixels; ``lo`` / ``hi`` (S, 2) mm the
     footprint corners; the sampling knobs as ``plan_focal`` takes them. Returns ``{k: Planned}`` for the sources
-    planned here: those whose every pilot ray lands and whose landing box comes near the patch; the others
-    (an evanescent ray, a beam that misses its patch, an evanescent chief ray) are left to the per-source planner,
+    planned here: those whose landing box (of the rays that land) comes near the patch; the others (a beam that
+    misses its patch or whose every ray is evanescent, an evanescent chief ray) are left to the per-source planner,
     which plans them (or raises their error) as before."""
     S = ok.shape[0]
     counts, _, _, xy, freq = _rays(pos_p, dir_s, ok, n_after, lam_mm)
@@ -110,10 +112,10 @@ def focal_plans_orders(lens, plane, pos_p, dir_s, ok, chief_plane, chief_dir, n_
     call's), each wavelength's order coefficients once; then every source's orders at once, in chunks of sources
     of similar order counts (``ORDERS_CHUNK_ELEMENTS``, ``ORDERS_PAD_RATIO``): a source's orders padded with copies
     of its first live order and its rays with copies of its first ray, whose results no decision, maximum or
-    minimum sees. Returns ``{k: Planned}`` for the sources planned here: those whose every live order's pilot rays
-    land, whose chief ray's main order lands, and which keep at least one order; the others (and every source of a
-    pixel-map relief, which has no gradient) are left to the per-source planner, which plans them (or raises
-    their error) as before."""
+    minimum sees (an order some of whose rays are evanescent: over the rays that land). Returns ``{k: Planned}``
+    for the sources planned here: those whose chief ray's main order lands and which keep at least one order; the
+    others (and every source of a pixel-map relief, which has no gradient) are left to the per-source planner,
+    which plans them (or raises their error) as before."""
     from .. import doe
     from ..doe import is_flat_profile
     from .doe_phase import SMOOTH_KINDS
@@ -247,10 +249,10 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     """:func:`rwwarp.wave.plan.plan_focal`'s loop for the sources ``sel`` at once (``xy``, ``freq``, ``doe_f``: (2,
     S, R) by component, the other arrays' rows ``sel``; ``infos``: each source's :class:`_Orders`): ``{k: (kept
     orders, lost power (1,), band (1,), shifts (1,), g_fit (1, 2), q_fit (1, 2), lit (1,), spread, spread_main,
-    ray_spread, (box_lo, box_hi))}`` for those whose every live order lands and which keep one. Every value is the
-    per-source loop's: elementwise arithmetic, maxima and minima over the same values (padding masked out or
-    copies), sums and products of the two components (``a + b`` in either order), the same decisions, the fit per
-    source. The arrays are (n, M, R) per component (contiguous reductions over the rays)."""
+    ray_spread, (box_lo, box_hi))}`` for those which keep an order. Every value is the per-source loop's:
+    elementwise arithmetic, maxima and minima over the same values (padding and rays that do not land masked out,
+    or copies), sums and products of the two components (``a + b`` in either order), the same decisions, the fit
+    per source. The arrays are (n, M, R) per component (contiguous reductions over the rays)."""
     n = len(sel)
     M = max(len(infos[k].live_m) for k in sel)
     ms = np.empty((n, M), dtype=doe_f.dtype)    # m * doe_freq in doe_freq's precision, as plan_focal multiplies it
