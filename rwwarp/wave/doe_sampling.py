@@ -12,7 +12,8 @@ import numpy as np
 from ..doe import is_flat_profile as _is_flat_profile
 from .doe_phase import wrap_zone
 
-__all__ = ["branch_of_range", "chief_zone", "doe_max_frequency", "doe_phase_grid", "doe_pixel_origin", "lens_dir", "one_branch"]
+__all__ = ["branch_of_range", "chief_zone", "doe_max_frequency", "doe_phase_grid", "doe_pixel_origin", "lens_dir",
+           "one_branch"]
 
 
 def lens_dir(lens):
