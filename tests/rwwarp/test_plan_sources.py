@@ -307,7 +307,7 @@ def test_skipping_the_model_error_estimate_changes_nothing_else(method):
         assert (one.model_errors == ()) is not needed
 
 
-# ---------------------------------------------------------------- the focal plans of a DOE's orders, many sources at once
+# ------------------------------------------------------- the focal plans of a DOE's orders, many sources at once
 def _a489_with_doe(a1, levels=None):
     """The A489+DOE lens with its (blank) DOE given the relief ``a1 rho^2`` rad (rho = r / 1.5 mm, design 0.55 um):
     a1 = -100 wraps ~16 zones inside the aperture, so off the design wavelength a beam carries several orders
