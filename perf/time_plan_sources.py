@@ -4,6 +4,8 @@ against :func:`rwwarp.wave.plan_sources.plan_sources` (what they call now), for 
 
 * ``a489``: the A489+DOE map of :func:`rwwarp.psf_map` (its options: ``method="auto"``, ``allow_pixel``, the CPU's
   memory budget), 10 fields 0..10 deg x 0.45 / 0.55 / 0.65 um = 30 sources, 64 px of 2 um;
+* ``a489_relief``: the same with a DOE relief that wraps ~16 zones inside the aperture (``a1 = -100`` rad at the
+  1.5 mm norm radius): up to 17 diffraction orders a source at 0.45 / 0.65 um (rwwarp.wave.focal_sources plans them);
 * ``cooke``: the ``cooke_hybrid`` design step's 48 sources (``perf/time_plan_cooke.py``'s setup: 16 nodes x 3
   wavelengths, ``method="focal"``, common patch centres) through ``HybridLens.raywaves_alone``.
 
@@ -24,8 +26,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def a489_case():
-    """(old, new, n): callables planning the A489 map's 30 sources the old way and the new."""
+def a489_case(relief=None):
+    """(old, new, n): callables planning the A489 map's 30 sources the old way and the new; ``relief``: the DOE's
+    ``a1 rho^2`` (rad, rho = r / 1.5 mm) in place of the lens file's blank DOE (its orders then planned)."""
     import numpy as np
     import rwwarp as rw
     from rwwarp.map_run import map_args
@@ -33,6 +36,12 @@ def a489_case():
     from rwwarp.wave.raywave import RayWave
     from rwwarp.wave.pilot import trace_pilot
     lens = rw.load_lens("a489_doe")
+    if relief is not None:
+        from rwwarp.lens import Surface
+        p = lens.wave_plane_index()
+        surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
+        surfs[p].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": [float(relief), 0.0, 0.0, 0.0]}
+        lens = lens.replace(surfaces=surfs)
     fields = [float(f) for f in np.linspace(0.0, 10.0, 10)]
     wl = [0.45, 0.55, 0.65]
     F = [f for f in fields for _ in wl]
@@ -122,13 +131,14 @@ def timed(fns, runs, miss):
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--runs", type=int, default=7)
-    ap.add_argument("--case", choices=("a489", "cooke", "cooke_estimate", "both"), default="both",
+    ap.add_argument("--case", choices=("a489", "a489_relief", "cooke", "cooke_estimate", "both"), default="both",
                     help="cooke_estimate: the Cooke sources with the model-error estimate (old) and without (new)")
     args = ap.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    cases = [("a489", a489_case), ("cooke", cooke_case), ("cooke_estimate", cooke_estimate_case)]
+    cases = [("a489", a489_case), ("a489_relief", lambda: a489_case(-100.0)), ("cooke", cooke_case),
+             ("cooke_estimate", cooke_estimate_case)]
     for name, make in cases:
-        if args.case != name and not (args.case == "both" and name != "cooke_estimate"):
+        if args.case != name and not (args.case == "both" and name in ("a489", "cooke")):
             continue
         old, new, n = make()
         old(), new()   # kernel builds, imports

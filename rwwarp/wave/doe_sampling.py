@@ -12,7 +12,8 @@ import numpy as np
 from ..doe import is_flat_profile as _is_flat_profile
 from .doe_phase import wrap_zone
 
-__all__ = ["chief_zone", "doe_max_frequency", "doe_phase_grid", "doe_pixel_origin", "lens_dir", "one_branch"]
+__all__ = ["branch_of_range", "chief_zone", "doe_max_frequency", "doe_phase_grid", "doe_pixel_origin", "lens_dir",
+           "one_branch"]
 
 
 def lens_dir(lens):
@@ -28,9 +29,16 @@ def one_branch(phi, tol=1e-9):
     phi = np.asarray(phi, dtype=np.float64)
     if phi.size == 0 or not np.all(np.isfinite(phi)):
         return None
-    k = math.floor(float(phi.min()) / (2 * math.pi) + tol)
+    return branch_of_range(phi.min(), phi.max(), tol)
+
+
+def branch_of_range(phi_min, phi_max, tol=1e-9):
+    """:func:`one_branch` of finite phases (rad) whose least is ``phi_min`` and greatest ``phi_max``: ``k`` when
+    both lie in one branch ``[2 pi k, 2 pi (k + 1)]`` (within ``tol``), else None. Also used by
+    :mod:`rwwarp.wave.focal_sources` (every source's range at once)."""
+    k = math.floor(float(phi_min) / (2 * math.pi) + tol)
     lo, hi = 2 * math.pi * k, 2 * math.pi * (k + 1)
-    if phi.min() >= lo - tol and phi.max() <= hi + tol:
+    if phi_min >= lo - tol and phi_max <= hi + tol:
         return k
     return None
 

@@ -143,7 +143,9 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                      "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
                      "nyquist_safety" + (", the padded FFT n_pad" if get_method(pl.method).fft_padded else "") + alt)
 
-    # the focal plans of a wave plane without a DOE (one order), every source's at once where its rays allow
+    shared = {}   # the methods' per-call constants (the DOE profile, its scale per wavelength), PlanContext.shared
+    # the focal plans, every source's at once where its rays allow: a wave plane without a DOE (one order) or
+    # with one (its diffraction orders)
     focal_fast = {}
     if method0 in ("focal", "compare") and isinstance(plan, str):
         from ..doe import is_flat_profile
@@ -154,9 +156,14 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                 pos_p, dir_s, ok, chief_plane0, chief_dir, n_after, lam_mm, z_sensor - z_plane,
                 None if center_mm is None else centers0, widths, size, pixel, res, lo0, hi0, rays_per_sample,
                 nyquist_safety, square_pupil)
+        else:
+            from .focal_sources import focal_plans_orders
+            focal_fast = focal_plans_orders(
+                lens, plane, pos_p, dir_s, ok, chief_plane0, chief_dir, n_after, lam_mm, wls, z_sensor - z_plane,
+                None if center_mm is None else centers0, widths, size, pixel, res, lo0, hi0, rays_per_sample,
+                nyquist_safety, square_pupil, focal_patch_tol, shared)
     # the sources' launch arrays, one row each (wavelength index 0: each plan's tracer is of its own wavelength)
     wl0 = np.zeros(1, dtype=np.int32)
-    shared = {}   # the methods' per-call constants (the DOE profile, its scale per wavelength), PlanContext.shared
     shape, od = src_all["shape"], src_all["object_distance"]
     plans, beside = [], []
     # the per-source arrays the plans keep, read-only once: each plan's rows are read-only views of them, which a

@@ -305,3 +305,134 @@ def test_skipping_the_model_error_estimate_changes_nothing_else(method):
             assert not _diff(a, put_back), (method, tol, k, _diff(a, put_back)[:3])
             assert len(a.plan.reasons) == len(b.plan.reasons) + 1
         assert (one.model_errors == ()) is not needed
+
+
+# ------------------------------------------------------- the focal plans of a DOE's orders, many sources at once
+def _a489_with_doe(a1, levels=None):
+    """The A489+DOE lens with its (blank) DOE given the relief ``a1 rho^2`` rad (rho = r / 1.5 mm, design 0.55 um):
+    a1 = -100 wraps ~16 zones inside the aperture, so off the design wavelength a beam carries several orders
+    (and where it crosses no wrap, one exact term of non-integer index)."""
+    lens = rw.load_lens("a489_doe")
+    p = lens.wave_plane_index()
+    surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
+    surfs[p].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": [float(a1), 0.0, 0.0, 0.0]}
+    surfs[p].levels = levels
+    return lens.replace(surfaces=surfs)
+
+
+def _focal_paths(monkeypatch):
+    """Spies: the sources each rwwarp.wave.focal_sources.focal_plans_orders call planned at once (a list a call),
+    and the sources the per-source planner (rwwarp.wave.plan.plan_focal, one call a source) planned."""
+    import rwwarp.wave.plan as plan_mod
+    from rwwarp.wave import focal_sources
+    at_once, alone = [], []
+    orig, orig_pf = focal_sources.focal_plans_orders, plan_mod.plan_focal
+
+    def spy(*a, **kw):
+        out = orig(*a, **kw)
+        at_once.append(sorted(out))
+        return out
+
+    def spy_pf(*a, **kw):
+        alone.append(len(a[0]))
+        return orig_pf(*a, **kw)
+    monkeypatch.setattr(focal_sources, "focal_plans_orders", spy)
+    monkeypatch.setattr(plan_mod, "plan_focal", spy_pf)
+    return at_once, alone
+
+
+@pytest.mark.parametrize("levels", [None, 8])
+def test_a489_doe_orders_planned_at_once(monkeypatch, levels):
+    """The A489 map's options with a DOE that wraps inside the beam (smooth and 8 levels), 0..10 deg x 0.45 / 0.55
+    / 0.65 um, 32 px of 2 um: every source's focal plan is made at once (rwwarp.wave.focal_sources) and is the
+    per-source planner's, bit for bit; plan_sources calls the per-source planner for none of them (it runs once a
+    source, for the reference alone). The sources carry different numbers of orders (one exact term on axis, up
+    to 18 off the design wavelength), several of them kept."""
+    from rwwarp.map_run import map_args
+    lens = _a489_with_doe(-100.0, levels)
+    fields, wls = _grid([0.0, 2.0, 5.0, 10.0], [0.45, 0.55, 0.65])
+    opts = map_args(lens, fields, [0.55], size=32, pixel_mm=0.002).opts
+    at_once, alone = _focal_paths(monkeypatch)
+    got = _check(lens, fields, wls, 32, 0.002, **opts)
+    assert at_once == [list(range(len(fields)))]
+    assert len(alone) == len(fields)        # the reference's calls (one a source, each of one source) alone
+    kept = [len(p.focal["orders"][0]) for p in got]
+    assert min(kept) == 1 and max(kept) > 2, kept
+
+
+def test_doe_orders_partly_evanescent_at_once_and_a_missed_patch_alone(monkeypatch):
+    """A strong DOE (-8e4 rad at the 15 mm norm radius, test_orders_partly_evanescent): the sources at 5 deg, 0.45
+    and 0.65 um have orders that land only in part (the rest evanescent: their landing rays' boxes, bands and fit
+    taken), planned at once with the others (17 kept orders on axis at 0.5876 / 0.45 um, one at the design
+    wavelength); then the same sources with each patch where the first call centred it but the design-wavelength
+    source's 3 mm beside it, which its one order misses: that source is left to the per-source planner (which keeps
+    its main order: a dark patch). Every plan the per-source planner's, bit for bit."""
+    lens = _cooke_with_doe(-8e4)
+    fields, wls = [0.0, 5.0, 2.0, 5.0, 0.0], [0.5876, 0.45, 0.55, 0.65, 0.45]
+    at_once, alone = _focal_paths(monkeypatch)
+    got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, method="focal", focal_patch_tol=1e-9)
+    assert at_once == [[0, 1, 2, 3, 4]] and len(alone) == len(fields)
+    assert [len(p.focal["orders"][0]) for p in got] == [17, 1, 1, 1, 17]
+    assert got[1].focal["lost_power"][0] > 0.1 and got[3].focal["lost_power"][0] > 0.05
+    centers = np.concatenate([p.centers for p in got])
+    centers[2, 0] += 3.0
+    at_once.clear()
+    alone.clear()
+    got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, centers=centers, method="focal",
+                 focal_patch_tol=1e-9)
+    assert at_once == [[0, 1, 3, 4]] and len(alone) == len(fields) + 1
+    assert got[2].focal["lost_power"][0] == 0.0 and got[2].focal["orders"][0] == [(1, 1 + 0j)]
+
+
+def test_doe_orders_landing_in_part_kept_at_once(monkeypatch):
+    """The strong DOE at 5 deg, 0.45 um, its patch given 8 mm below the axis, where orders 5 and 6 land with the
+    rays of theirs that are not evanescent (their main order misses it): the orders kept land only in part, and
+    the fit, the landings under the quadratic transfer, the displacement and the box are taken over their landing
+    rays, at once with a source on axis (17 orders); bit for bit the per-source planner's."""
+    lens = _cooke_with_doe(-8e4)
+    at_once, alone = _focal_paths(monkeypatch)
+    got = _check(lens, [5.0, 0.0], [0.45, 0.5876], 32, lens.sensor.pixel_pitch, centers=np.array([[0.0, -8.0],
+                 [0.0, 0.0]]), method="focal", focal_patch_tol=1e-9)
+    assert at_once == [[0, 1]] and len(alone) == 2
+    assert [m for m, _ in got[0].focal["orders"][0]] == [5, 6] and len(got[1].focal["orders"][0]) == 17
+
+
+@pytest.mark.parametrize("pad_ratio,chunk", [(math.inf, 1 << 30), (2.0, 1)])
+def test_doe_orders_padded_and_chunked(monkeypatch, pad_ratio, chunk):
+    """Sources with different numbers of live orders (17 off the design wavelength, 1 at it: the Cooke triplet's
+    wrapping DOE) planned in one chunk, the fewer orders padded (``ORDERS_PAD_RATIO`` unbounded), or one source a
+    chunk (``ORDERS_CHUNK_ELEMENTS`` = 1): the plans are the per-source planner's either way, bit for bit."""
+    from rwwarp.wave import focal_sources
+    monkeypatch.setattr(focal_sources, "ORDERS_PAD_RATIO", pad_ratio)
+    monkeypatch.setattr(focal_sources, "ORDERS_CHUNK_ELEMENTS", chunk)
+    chunks = []
+    orig = focal_sources._orders_chunk
+
+    def spy(sel, infos, *a, **kw):
+        chunks.append([len(infos[k].live_m) for k in sel])
+        return orig(sel, infos, *a, **kw)
+    monkeypatch.setattr(focal_sources, "_orders_chunk", spy)
+    at_once, alone = _focal_paths(monkeypatch)
+    lens = _cooke_with_doe(-30000.0)
+    fields, wls = _grid([0.0, 2.0, 4.0], [0.55, 0.5876, 0.5])
+    got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, method="focal")
+    assert at_once == [list(range(len(fields)))] and len(alone) == len(fields)
+    if chunk == 1:
+        assert len(chunks) == len(fields) and all(len(c) == 1 for c in chunks)
+    else:
+        assert len(chunks) == 1 and sorted(set(chunks[0])) == [1, 17]    # padded: 1 live order among 17
+    kept = {len(p.focal["orders"][0]) for p in got}
+    assert 1 in kept and len(kept) > 1
+
+
+def test_doe_orders_vignetted_sources_at_once(monkeypatch):
+    """Sources of different ray counts (the Cooke triplet at 18 deg vignettes 60 of its 750 pilot rays) with a
+    DOE (-6000 rad at the 15 mm norm radius; on axis 17 orders kept at ``focal_patch_tol`` 1e-12), planned at once:
+    each source's rays padded with copies of one of its own, the plans the per-source planner's, bit for bit."""
+    lens = _cooke_with_doe(-6000.0)
+    fields, wls = [0.0, 18.0, 17.0, 18.0], [0.5876, 0.5876, 0.55, 0.45]
+    assert len(set(trace_pilot(lens, fields, wls, own_pupils=True).ok.sum(1).tolist())) > 1   # ragged
+    at_once, alone = _focal_paths(monkeypatch)
+    got = _check(lens, fields, wls, 32, lens.sensor.pixel_pitch, method="focal", focal_patch_tol=1e-12)
+    assert at_once == [[0, 1, 2, 3]] and len(alone) == len(fields)
+    assert len(got[0].focal["orders"][0]) == 17
