@@ -84,13 +84,26 @@ def main():
     import sys
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from _common import GpuMemory
+    empties = [0]
     if cuda:
         torch.cuda.reset_peak_memory_stats()
+        # torch's cache emptied (rwwarp's release hook when a propagation allocation fails: a synchronisation, and
+        # torch's next allocations go to the driver)
+        _empty = torch.cuda.empty_cache
+
+        def counted_empty():
+            empties[0] += 1
+            _empty()
+        torch.cuda.empty_cache = counted_empty
     with GpuMemory(0.05) as mem:
         for k in range(1, a.steps + 1):
             t = time.perf_counter()
             step(k)
             times.append(time.perf_counter() - t)
+    if cuda:
+        torch.cuda.empty_cache = _empty
+        summary["empty_cache_calls"] = empties[0]
+        say(f"torch.cuda.empty_cache calls over the timed steps: {empties[0]}")
     summary.update(step_wall_s=times, step_median_s=float(sorted(times)[len(times) // 2]), nodes=len(arm.fields))
     say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
     prov = arm.provider

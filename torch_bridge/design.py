@@ -757,6 +757,8 @@ class CachedProvider:
         thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
         # every wavelength's graph lives until the step's backward: each gets an equal share of the budget
         share = self.step_budget_bytes() // max(1, len(wavelengths_um))
+        # a learning distance's value on the host once per call (a read waits for the device), not once per chunk
+        thick_host = None if thick is None else float(thick.detach())
         out = []
         for w in wavelengths_um:
             key = self._key(w, depth_mm)
@@ -776,13 +778,15 @@ class CachedProvider:
             self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),
                                   "bytes_per_source": self.step_bytes_per_source(rw)})
             del self.step_log[:-64]
-            def run(part_, doe_t, thick_t=None, record=True, dist=dist, u=u, geo=geo):
+            # the distance on the host: the cached entry's own (dist holds it on the device), or the learning one
+            d_host = float(rw.z_sensor - rw.z_plane) if thick is None else thick_host
+            def run(part_, doe_t, thick_t=None, record=True, dist=dist, u=u, geo=geo, d_host=d_host):
                 sl, sub = part_
                 ctx = torch.enable_grad() if record else torch.no_grad()
                 with ctx:
                     d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
                     phi0 = geo.doe_phase(sub, {"doe": doe_t})
-                    return propagate(u[sl].to(torch.complex128), phi0, d, sub)
+                    return propagate(u[sl].to(torch.complex128), phi0, d, sub, distance_host=d_host)
             # a chunk a tile, checkpointed when there are several (torch_bridge.tiles)
             power = run_tiles(parts, run, [doe] if thick is None else [doe, thick])
             out.append(power / entering[:, None, None])

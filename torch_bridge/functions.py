@@ -466,6 +466,8 @@ class Propagate(torch.autograd.Function):
     ``(r0, r1, c0, c1)`` of sensor pixel rows / columns (output (S, r1 - r0, c1 - c0), evaluated
     with the whole patch's window centre, so equal to those pixels of the whole patch), and
     ``keep_nodes=False`` to keep no node field for backward (recomputed there: a checkpoint).
+    ``Propagate.apply(..., distance_host)``: the distance's value on the host (mm, a float or (S,)), so that the
+    forward pass does not read ``distance`` back from the device (a read waits for every queued kernel).
 
     The operator (:func:`sensor_operator`, a :class:`rwwarp.wave.propagate.SensorPropagator`) is made once in
     the forward pass and kept for the backward pass: its :meth:`~rwwarp.wave.propagate.SensorPropagator.adjoint`
@@ -479,10 +481,10 @@ class Propagate(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, field, phi0, distance, rw, tile=None, keep_nodes=True):
+    def forward(ctx, field, phi0, distance, rw, tile=None, keep_nodes=True, distance_host=None):
         f_h = _as_backend_array(field.to(torch.complex128), rw)
         p_h = _as_backend_array(phi0.to(torch.float64), rw) if phi0 is not None else None
-        d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()
+        d_h = _distance_on_host(distance, distance_host)
         op = sensor_operator(rw, d_h, tile, with_doe=phi0 is not None)
         be = op.backend
         with _streams(rw):
@@ -507,7 +509,7 @@ class Propagate(torch.autograd.Function):
             gf_d = gp_d = None
             if need_d:
                 gf_d, gp_d, gd_h = op.distance_adjoint(g_h, f_h, p_h, nodes=ctx.nodes, need_field=need_f or need_p)
-                gd = torch.from_numpy(gd_h).to(ctx.devices[2])
+                gd = upload(gd_h, torch.float64, ctx.devices[2])
             elif need_f or need_p:
                 gf_d, gp_d = op.adjoint(g_h, f_h, p_h, nodes=ctx.nodes)
             if need_f:
@@ -515,27 +517,39 @@ class Propagate(torch.autograd.Function):
             if need_p and gp_d is not None:
                 gp = _to_torch(be, gp_d, ctx.devices[1])
         ctx.nodes = None
-        return gf, gp, gd, None, None, None
+        return gf, gp, gd, None, None, None, None
 
 
-def propagate(field, phi0, distance, rw, tile_px=None):
+def _distance_on_host(distance, distance_host):
+    """The distance (mm) as a float64 host array of ``distance``'s shape: ``distance_host`` broadcast to it where
+    given (no read from the device), else ``distance`` read back; None without a distance."""
+    if distance is None:
+        return None
+    if distance_host is not None:
+        return np.broadcast_to(np.asarray(distance_host, dtype=np.float64), tuple(distance.shape)).copy()
+    return distance.detach().to("cpu", torch.float64).numpy()
+
+
+def propagate(field, phi0, distance, rw, tile_px=None, distance_host=None):
     """:class:`Propagate` where a gradient is wanted, else a plain forward (no saved node field).
 
     ``tile_px``: evaluate the sensor patch in spatial tiles of ``tile_px`` x ``tile_px`` pixels (the
     matrix DFT evaluates any subset of output points; each tile keeps the whole patch's window
     centre, so the result equals the untiled one). Each tile is its own :class:`Propagate` that keeps
     no node field (its backward recomputes the tile: one more pruned FFT of the field per tile), so
-    the output-side work space (nodes, DFT factors, GEMM temporaries) is one tile's. None: one call."""
+    the output-side work space (nodes, DFT factors, GEMM temporaries) is one tile's. None: one call.
+    ``distance_host``: the distance's value on the host (mm, a float or one per source), read from it instead of
+    from the device."""
     tiles = spatial_tiles(rw.size, tile_px)
     wants = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (field, phi0, distance))
     if wants:
         if tiles == [None]:
-            return Propagate.apply(field, phi0, distance, rw)
-        parts = [Propagate.apply(field, phi0, distance, rw, t, False) for t in tiles]
+            return Propagate.apply(field, phi0, distance, rw, None, True, distance_host)
+        parts = [Propagate.apply(field, phi0, distance, rw, t, False, distance_host) for t in tiles]
     else:
         f_h = _as_backend_array(field.to(torch.complex128), rw)
         p_h = None if phi0 is None else _as_backend_array(phi0.to(torch.float64), rw)
-        d_h = None if distance is None else distance.detach().to("cpu", torch.float64).numpy()
+        d_h = _distance_on_host(distance, distance_host)
         parts = []
         for t in tiles:
             be, p = sensor_power(rw, f_h, p_h, d_h, t)

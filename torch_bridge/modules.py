@@ -493,7 +493,7 @@ class HybridLens(LensTables, nn.Module):
             elif method.torch_path == "operator":   # any method's operator (torch_bridge.operator_function)
                 power = operator_propagate(u, dist, rw, d_host, phi0=self.doe_phase(rw, values))
             else:
-                power = propagate(u, phi0, dist, rw, spatial_tile)
+                power = propagate(u, phi0, dist, rw, spatial_tile, distance_host=d_host)
             return power / power_sums(rw, power.device)[0][:, None, None]
 
     def _psf_packed(self, tile, values, record: bool = True, tables: dict | None = None):
