@@ -5,12 +5,27 @@
   ``PLATFORM[:DEVICE]`` (case-insensitive substrings of the platform and device names, or their
   indices), e.g. ``PYOPENCL_TEST=portable:cpu`` or ``PYOPENCL_TEST=0:0``.
 * ``dtype``: parametrises a test over complex128 and complex64.
+
+Under pytest-xdist (``pytest -n N``, what ``.ci/test`` runs) each worker process gets its share of the
+cores for its thread pools (OpenMP/BLAS/torch, PoCL's pthread device): ``cores // N`` threads each (at
+least 1), unless the environment already sets the variable. Set here, before numpy, torch or pyopencl
+are imported in the worker, and inherited by the subprocesses the tests start.
 """
 
 import os
 
-import numpy as np
-import pytest
+if os.environ.get("PYTEST_XDIST_WORKER"):  # a pytest-xdist worker: N of these share the cores
+    try:
+        _cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        _cores = os.cpu_count() or 1
+    _threads = str(max(1, _cores // max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))))
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                 "POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_COUNT"):  # PoCL 3 / PoCL >= 4 name
+        os.environ.setdefault(_var, _threads)
+
+import numpy as np  # noqa: E402 (after the thread counts above)
+import pytest  # noqa: E402
 
 try:  # hypothesis profiles of the fuzz suite (tests/fuzz): ``ci`` by default, ``long`` on request
     from hypothesis import HealthCheck, settings
@@ -59,3 +74,25 @@ def cl_backend():
 def dtype(request):
     """Complex dtype under test: complex128 and complex64."""
     return np.dtype(request.param)
+
+
+# pytest-xdist: the fuzz suite's counts (tests/fuzz/conftest.py) are counted in the workers; the controller
+# sums what each worker reports when it finishes and prints the line the serial run prints.
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    got = getattr(node, "workeroutput", {}).get("fuzz_stats")
+    if got:
+        total = node.config.stash.setdefault(_FUZZ_STATS, {"profile": got["profile"], "keys": got["keys"],
+                                                            "counts": {}})
+        for k, v in got["counts"].items():
+            total["counts"][k] = total["counts"].get(k, 0) + v
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    total = config.stash.get(_FUZZ_STATS, None)
+    if total:
+        terminalreporter.write_line(f"fuzz (profile {total['profile']}, all workers): " +
+                                    ", ".join(f"{k} {total['counts'].get(k, 0)}" for k in total["keys"]))
+
+
+_FUZZ_STATS = pytest.StashKey[dict]()

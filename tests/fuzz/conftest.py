@@ -13,14 +13,34 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.fuzz)
 
 
-def pytest_terminal_summary(terminalreporter, exitstatus, config):
+KEYS = ["cases", "files_loaded", "files_refused", "psfs", "arg_cases", "arg_refused", "arg_ok",
+        "refusals", "crashes", "hangs", "nan_escapes"]
+
+
+def _stats():
+    """(profile name, this process's counts) or None when no fuzz test ran here."""
     try:
         from fuzz_strategies import STATS
     except ImportError:
-        return
-    if STATS:
-        from hypothesis import settings
-        keys = ["cases", "files_loaded", "files_refused", "psfs", "arg_cases", "arg_refused", "arg_ok",
-                "refusals", "crashes", "hangs", "nan_escapes"]
-        terminalreporter.write_line(f"fuzz (profile {settings._current_profile}): " +
-                                    ", ".join(f"{k} {STATS.get(k, 0)}" for k in keys))
+        return None
+    if not STATS:
+        return None
+    from hypothesis import settings
+    return settings._current_profile, dict(STATS)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    got = _stats()
+    if got:
+        profile, stats = got
+        terminalreporter.write_line(f"fuzz (profile {profile}): " +
+                                    ", ".join(f"{k} {stats.get(k, 0)}" for k in KEYS))
+
+
+def pytest_sessionfinish(session):
+    """Under pytest-xdist: this worker's counts go to the controller, which sums and prints them
+    (tests/conftest.py; the controller runs no test, so it has none of its own)."""
+    out = getattr(session.config, "workeroutput", None)
+    got = _stats()
+    if out is not None and got:
+        out["fuzz_stats"] = {"profile": got[0], "keys": KEYS, "counts": got[1]}
