@@ -718,5 +718,6 @@ def raywave_psf(rw, table, phi0=None, distance=None):
         u = paper_amplitude(u, rw)
     if distance is None:
         distance = distance_from_table(rw, table)
-    power = propagate(u, phi0, distance, rw)
+    from .operator_function import operator_propagate
+    power = operator_propagate(u, distance, rw, phi0=phi0)
     return power / power_sums(rw, power.device)[0][:, None, None]

@@ -478,7 +478,7 @@ class HybridLens(LensTables, nn.Module):
             table = self.param_table(rw, values)
             host = self.host_table(rw, table, tables)
             method = get_method(rw.plan.method)
-            phi0 = self.doe_phase(rw, values) if method.doe_in_propagator else None
+            phi0 = self.doe_phase(rw, values) if method.torch_path == "operator" else None
             dist = (table[-1, COL.z] - table[rw.plane, COL.z]).expand(rw.nsrc)
             u = trace_splat(table, rw, host)
             if rw.amplitude != "energy":
@@ -490,10 +490,9 @@ class HybridLens(LensTables, nn.Module):
                 if fac is not None:
                     u = u * fac
                 power = focal_propagate(u, dist, rw, d_host)
-            elif method.torch_path == "operator":   # any method's operator (torch_bridge.operator_function)
-                power = operator_propagate(u, dist, rw, d_host, phi0=self.doe_phase(rw, values))
-            else:
-                power = propagate(u, phi0, dist, rw, spatial_tile, distance_host=d_host)
+            else:   # any method's operator, the ASM's included (torch_bridge.operator_function)
+                power = operator_propagate(u, dist, rw, d_host, phi0=phi0,
+                                           tile_px=spatial_tile if method.spatial_tiles else None)
             return power / power_sums(rw, power.device)[0][:, None, None]
 
     def _psf_packed(self, tile, values, record: bool = True, tables: dict | None = None):
