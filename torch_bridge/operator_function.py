@@ -91,6 +91,12 @@ class OperatorApply(torch.autograd.Function):
         gs = [_xp_of(g.to(torch.complex128))[1] for g in grads]
         gf = gd = None
         with _on_streams(ctx.rw):
+            if need_d and ctx.phase_free and hasattr(op, "adjoint_distance"):
+                # one pass for both (the ASM's: the band's gradient contracted with the band spectrum)
+                g, dl = op.adjoint_distance(gs, ctx.f, need_field=bool(need_f))
+                gd = _gradient_like(_from_xp(dl, ctx.devices[1]), ctx.distance_shape)
+                gf = _from_xp(g, ctx.devices[0]) if need_f else None
+                need_d = need_f = False
             if need_d:
                 try:
                     du = _distance_derivative(op, ctx.f, ctx.pair, ctx.phase_free)

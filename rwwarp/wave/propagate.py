@@ -178,6 +178,30 @@ class PointPropagator:
         points: torch's convention, ``dL/dRe U + 1j dL/dIm U``). ``grad_weighted``: also the gradient of the
         direction-cosine-weighted field ``U_w`` (:meth:`forward_weighted`), whose adjoint ``c A^H`` adds on the
         band (pixel_values "flux")."""
+        st, band_grad, h, _ = self._band_gradient(grad_out, field, doe_phase, grad_weighted, need_band=False)
+        return _band_adjoint_to_field(st, band_grad, h)
+
+    def distance_adjoint(self, grad_out, field, doe_phase=None, grad_weighted=None, need_field=True):
+        """:meth:`adjoint` and the distance's gradient in one set-up: ``(grad_field or None, grad_doe_phase or None,
+        grad_distance)``, ``grad_distance`` numpy float64 (B,) (loss units per mm; one small device-to-host copy).
+        ``dL/dz = Re sum_band conj(G) 2 pi i (w - 1/lambda) C`` (``G`` the band's gradient, ``C`` the band spectrum,
+        ``dH/dz = 2 pi i w H``) for a loss that does not see a constant phase per source (pixel powers and fluxes):
+        the constant phase's term ``2 pi i / lambda`` is left out (zero for such a loss, ``1 / (1 - c)`` times the
+        rest, so only its rounding would remain). The band limits and points are held fixed (they move with z in
+        jumps of zero derivative almost everywhere). ``need_field=False``: only the distance's gradient."""
+        st, band_grad, h, band = self._band_gradient(grad_out, field, doe_phase, grad_weighted, need_band=True)
+        be = st.backend
+        partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
+        _launch(st, "band_distance_grad_kernel", (st.ky_max, st.batch, 1), band, band_grad, st.params_dev, st.kx_max,
+                st.ky_max, st.batch, 0, partial, local=(64, 1, 1))
+        grad_distance = np.asarray(be.to_host(partial), dtype=np.float64).sum(axis=1)
+        if not need_field:
+            return None, None, grad_distance
+        return (*_band_adjoint_to_field(st, band_grad, h), grad_distance)
+
+    def _band_gradient(self, grad_out, field, doe_phase, grad_weighted, need_band):
+        """``(st, band_grad, h, band or None)``: the set-up, ``G = A^H grad_out (+ c A^H grad_weighted)`` on the band
+        (workspace 'band_grad'), the adjoint's transfer function and, with ``need_band``, the band spectrum."""
         st, xs, ys, _, _ = self._prepare(field, doe_phase)
         shape = (st.batch, ys.shape[1], xs.shape[1])
         gs = [st.backend.to_device(a, st.dtype) for a in ((grad_out,) if grad_weighted is None
@@ -186,14 +210,17 @@ class PointPropagator:
             if tuple(g.shape) != shape:
                 raise ValueError(f"grad_out shape {tuple(g.shape)} != {shape}")
         coords = _upload_coords(st, xs, ys)
-        h = _transfer(st, 1.0 / (st.npx * st.npy))
+        if need_band:
+            band, h = _band_spectrum(st)
+        else:
+            band, h = None, _transfer(st, 1.0 / (st.npx * st.npy))
         ex, eyf = _dft_factors(st, coords, adjoint=True)
         band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
         _points_to_band(st, gs[0], ex, eyf, band_grad)
         if grad_weighted is not None:
             part = _points_to_band(st, gs[1], ex, eyf, st.backend.workspace("band_grad_w", band_grad.shape, st.dtype))
             _band_obliquity(st, part, 1, band_grad, accumulate=True)
-        return _band_adjoint_to_field(st, band_grad, h)
+        return st, band_grad, h, band
 
 
 def _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm, doe_phase,

@@ -200,6 +200,19 @@ class AsmOperator:
         return tuple(self._out(a) * dz for a in self.prop.forward_weighted(self._dev(field), self.phi0, (1, 2),
                                                                            minus_one=True))
 
+    def adjoint_distance(self, grads, field, need_field=True):
+        """The adjoint and the distance's gradient in one pass, for a loss that does not see a constant phase per
+        source (pixel powers and fluxes): ``(A^H g or None, dL/dz)`` with ``grads`` the output's gradient(s)
+        (``(g,)``, or ``(g_u, g_w)`` for :meth:`forward_pair`) and ``field`` the forward call's; ``dL/dz`` (S,) of
+        ``xp`` (loss units per mm) is ``Re sum conj(g) dU/dz`` without the constant phase's term, as
+        :meth:`distance_derivative_phase_free` gives it
+        (:meth:`~rwwarp.wave.propagate.PointPropagator.distance_adjoint`: the band's gradient contracted with the
+        band spectrum, no node field formed)."""
+        gw = self._dev(grads[1]) if len(grads) > 1 else None
+        g, _, gd = self.prop.distance_adjoint(self._dev(grads[0]), self._dev(field), self.phi0, grad_weighted=gw,
+                                              need_field=need_field)
+        return (None if g is None else self._out(g)), self.xp.asarray(gd)
+
     def _zero(self):
         n = self.rw.plan.n_grid
         return self._dev(self.xp.zeros((self.rw.nsrc, n, n), np.complex128))
