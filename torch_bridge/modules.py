@@ -63,8 +63,7 @@ from .wave_step import wave_step
 from . import budget as _budget
 from . import phase_params as _ph
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
-from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
-                        propagate, trace_splat)
+from .functions import backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude, trace_splat
 from .lens_tables import LensTables
 from .operator_function import operator_propagate
 from .tiles import run_tiles
@@ -656,7 +655,7 @@ class HybridLens(LensTables, nn.Module):
         so peak memory is one tile's, independent of the map size.
         ``return_centers``: also the centre-pixel sensor positions (n_fields, n_wavelengths, 2), mm.
         ``spatial_tile``: the propagation of each tile evaluates the sensor patches in spatial tiles of
-        that many pixels a side (:func:`torch_bridge.functions.propagate`; same result, each recomputed
+        that many pixels a side (:func:`torch_bridge.operator_function.operator_propagate`; same result, each recomputed
         in backward); with a budget and no ``spatial_tile``, chosen by :meth:`spatial_tile_for` when a
         large patch's output side would not fit.
         """

@@ -200,8 +200,10 @@ def operator_propagate(field, distance, rw, distance_host=None, precision="doubl
     one tile's. None: one call."""
     from rwwarp.wave.methods import get
 
-    from .functions import Recompute, doe_scale, spatial_tiles, upload
+    from .functions import Recompute, backend_for, doe_scale, spatial_tiles, upload
     m = get(rw.plan.method if method is None else method)
+    if field.device.type == "cuda":
+        backend_for(rw.device)   # the release hook: a failed propagation allocation empties torch's cache first
     if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
         # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
         raise ValueError(f"{m.name} propagation: the field is on {field.device} but its RayWave was planned "
