@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 
+import numpy as np
 import torch
 
 from .functions import _from_xp, _streams, _xp_of
@@ -61,7 +62,9 @@ class OperatorApply(torch.autograd.Function):
     powers and fluxes, :class:`NodePixels`), so where the operator has ``distance_derivative_phase_free`` (``_pair``;
     the ASM's) that form is used: the derivative without the constant phase's term ``i (2 pi / lambda) U``, whose
     contribution is zero but whose rounding is ``1 / (1 - cos theta)`` times the rest. The field is kept for backward
-    only when the distance needs its gradient; the operator is kept until backward has run once."""
+    only when the distance needs its gradient; the operator is kept until backward has run once, or for good when it
+    says it is light (``keep_for_backward``, the ASM's: only its geometry; backward may then run again, as with
+    ``retain_graph``)."""
 
     @staticmethod
     def forward(ctx, field, distance, operator, pair=False, rw=None, name=None, phase_invariant=False):
@@ -75,6 +78,7 @@ class OperatorApply(torch.autograd.Function):
             out = tuple(_from_xp(a, field.device) for a in (u if pair else (u,)))
         ctx.op, ctx.pair, ctx.rw, ctx.xp = operator, bool(pair), rw, xp
         ctx.phase_free = bool(phase_invariant)
+        ctx.keep = bool(getattr(operator, "keep_for_backward", False))
         ctx.f = f if need_d else None              # the field: for d/d(distance) only
         ctx.devices = (field.device, None if distance is None else distance.device)
         ctx.distance_shape = None if distance is None else distance.shape
@@ -106,7 +110,8 @@ class OperatorApply(torch.autograd.Function):
                 gd = _gradient_like(_from_xp(dl, ctx.devices[1]), ctx.distance_shape)
             if need_f:
                 gf = _from_xp(op.adjoint_pair(*gs) if ctx.pair else op.adjoint(gs[0]), ctx.devices[0])
-        ctx.op = ctx.f = ctx.rw = None
+        if not ctx.keep:
+            ctx.op = ctx.f = ctx.rw = None
         return gf, gd, None, None, None, None, None
 
 
@@ -133,7 +138,8 @@ class NodePixels(torch.autograd.Function):
     the direction-cosine-weighted field (pixel_values "flux": ``Re(conj(U) U_w)`` integrated) or None
     (``|U|^2`` integrated); ``pixel_mm`` the pixel pitch (mm); ``rw`` the RayWave whose streams and allocator
     it runs on (None: the current ones). Returns float64 (S, size, size), field units^2
-    mm^2 per pixel."""
+    mm^2 per pixel (a part of a patch, (S, rows g, cols g) nodes: (S, rows, cols)). The node fields are saved for
+    backward by torch (freed after it unless ``retain_graph``)."""
 
     @staticmethod
     def forward(ctx, u, u_w, gauss_nodes, pixel_mm, size, rw=None):
@@ -144,17 +150,17 @@ class NodePixels(torch.autograd.Function):
             out = (pixel_power(a, gauss_nodes, pixel_mm, size, xp=xp) if b is None
                    else pixel_flux(a, b, gauss_nodes, pixel_mm, size, xp=xp))
             out = _from_xp(out, u.device)
-        ctx.xp, ctx.a, ctx.b, ctx.args, ctx.rw = xp, a, b, (int(gauss_nodes), float(pixel_mm)), rw
+        ctx.args, ctx.rw = (int(gauss_nodes), float(pixel_mm)), rw
         ctx.devices = (u.device, None if u_w is None else u_w.device)
+        ctx.save_for_backward(u.to(torch.complex128), None if u_w is None else u_w.to(torch.complex128))
         return out
 
     @staticmethod
     def backward(ctx, grad):
         from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
-        xp, a, b = ctx.xp, ctx.a, ctx.b
-        if a is None:
-            raise RuntimeError("NodePixels' backward ran twice; it frees its node fields after one (retain_graph is "
-                               "not supported)")
+        ua, ub = ctx.saved_tensors
+        xp, a = _xp_of(ua)
+        b = None if ub is None else _xp_of(ub)[1]
         _, g = _xp_of(grad.to(torch.float64))
         with _on_streams(ctx.rw):
             if b is None:
@@ -163,7 +169,6 @@ class NodePixels(torch.autograd.Function):
                 ga, gb = pixel_flux_adjoint(a, b, g, *ctx.args, xp=xp)
             ga = _from_xp(ga, ctx.devices[0]) if ctx.needs_input_grad[0] else None
             gb = _from_xp(gb, ctx.devices[1]) if gb is not None and ctx.needs_input_grad[1] else None
-        ctx.a = ctx.b = ctx.rw = None
         return ga, gb, None, None, None, None
 
 
@@ -175,6 +180,24 @@ def node_pixels(u, rw, gauss_nodes=None):
     return NodePixels.apply(a, b, g, rw.pixel, rw.size, rw)
 
 
+def _distance_value(distance, distance_host, m):
+    """The distance (mm) the operator is built for: a float, or with different values per source an (S,) array for a
+    method with ``per_source_distances`` (else an error naming the method); None for the RayWave's own.
+    ``distance_host`` (a float or one per source) is read instead of the device's ``distance``."""
+    if distance_host is None and distance is None:
+        return None
+    if distance_host is not None:
+        zs = np.asarray(distance_host, dtype=np.float64).reshape(-1)
+    else:
+        zs = distance.detach().to("cpu", torch.float64).reshape(-1).numpy()
+    if np.all(zs == zs[0]):
+        return float(zs[0])
+    if not getattr(m, "per_source_distances", False):
+        raise ValueError(f"propagation method {m.name!r} propagates a batch over one distance, got different ones "
+                         f"per source ({zs.min():.6g} .. {zs.max():.6g} mm); one lens has one sensor distance")
+    return zs.copy()
+
+
 def operator_propagate(field, distance, rw, distance_host=None, precision="double", method=None, phi0=None,
                        tile_px=None):
     """Power per sensor pixel (S, size, size) of ``rw`` (a :class:`~rwwarp.wave.raywave.RayWave`) from its
@@ -183,8 +206,9 @@ def operator_propagate(field, distance, rw, distance_host=None, precision="doubl
     the generic differentiable path of any registered method (``method``: its name, default ``rw.plan.method``).
 
     ``field`` complex (S, n, n), carrier removed; ``distance`` the wave-plane to sensor distance (mm, float64 (S,)
-    or 0-d, differentiable) or None (the RayWave's own, no gradient); ``distance_host``: its value as a float
-    (mm) when the caller has it on the host (the operator's set-up does not wait for the device); ``precision``
+    or 0-d, differentiable; different values per source only for a method with ``per_source_distances``, the ASM)
+    or None (the RayWave's own, no gradient); ``distance_host``: its value (mm, a float or one per source) when the
+    caller has it on the host (the operator's set-up does not wait for the device); ``precision``
     the operator's ("double" for gradients). ``phi0``: the DOE's relief phase on the windows (rad, (S, n, n),
     differentiable; :meth:`torch_bridge.HybridLens.doe_phase`) or None (no DOE): for a method that takes the field
     with the DOE applied (``doe_in_propagator = False``) or whose operator can leave the planned DOE out
@@ -216,10 +240,7 @@ def operator_propagate(field, distance, rw, distance_host=None, precision="doubl
                              f"bridge then applies exp(1j alpha phi0) to the field) or doe_separable")
         alpha = upload(doe_scale(rw), torch.float64, phi0.device)
         field = field * torch.exp(1j * alpha[:, None, None] * phi0)
-    if distance_host is not None:
-        z = float(distance_host)
-    else:
-        z = float(distance.detach().reshape(-1)[0]) if distance is not None else None
+    z = _distance_value(distance, distance_host, m)
     pair = rw.pixel_values == "flux"
     tiles = spatial_tiles(rw.size, tile_px)
     if tiles != [None] and not getattr(m, "spatial_tiles", False):

@@ -80,6 +80,7 @@ class AngularSpectrum(Propagation):
     doe_in_propagator = True
     doe_separable = True
     spatial_tiles = True
+    per_source_distances = True
     fft_padded = True
 
     def plan(self, ctx):
@@ -110,13 +111,16 @@ class AngularSpectrum(Propagation):
 class AsmOperator:
     """The ASM's linear map, wave-plane field (S, n, n) (carrier removed, wave step applied; the DOE phase of
     ``rw`` applied inside unless ``doe=False``) -> the field at the pixels' Gauss nodes (S, size g, size g),
-    carrier restored (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm; default the
-    lens's). ``tile = (r0, r1, c0, c1)``: the nodes of those sensor pixel rows / columns only (S, (r1 - r0) g,
+    carrier restored (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm, a float or one per
+    source; default the lens's). ``tile = (r0, r1, c0, c1)``: the nodes of those sensor pixel rows / columns only (S, (r1 - r0) g,
     (c1 - c0) g), with the whole patch's window centre (so its band limits, and its values, are the whole
     patch's). Arrays in and out are of the operator's namespace ``xp``: numpy on the CPU and OpenCL devices (the
     OpenCL result is copied to the host), CuPy on CUDA (device memory, no copy). :meth:`distance_derivative` is
     the exact d/dz at the fixed band limits (``dH/dz = 2 pi i w H``); the ``*_pair`` methods add the
-    direction-cosine-weighted field ``U_w`` (pixel_values "flux")."""
+    direction-cosine-weighted field ``U_w`` (pixel_values "flux"). ``keep_for_backward``: it holds only its
+    geometry (the FFT plans and work arrays are the backend's caches), so an autograd Function may keep it."""
+
+    keep_for_backward = True
 
     def __init__(self, rw, distance_mm=None, doe=True, tile=None):
         from .. import backend as bk
@@ -130,7 +134,8 @@ class AsmOperator:
             self.xp = cupy
         else:
             self.xp = np
-        self.z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
+        z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else distance_mm
+        self.z = np.broadcast_to(np.asarray(z, dtype=np.float64), (rw.nsrc,)).copy()   # mm, one per source
         nx, ny = gauss_nodes_xy(rw)
         phi0, scale = rw.doe_phase() if doe else (None, None)
         self.phi0 = phi0
@@ -147,7 +152,7 @@ class AsmOperator:
         self.tile = None if tile is None else (r0, r1, c0, c1)
         lam_um = np.array(rw.wls, dtype=np.float64) / rw.n_after       # in the medium after the plane
         self._dz = 2j * np.pi / (lam_um * 1e-3)                          # 2 pi i / lambda (rad/mm), (S,)
-        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, lam_um, np.full(rw.nsrc, self.z),
+        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, lam_um, self.z,
                             nx, ny, doe_scale=scale, carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad,
                             window_center_mm=center)
         self.prop = PointPropagator(self.be, geo)

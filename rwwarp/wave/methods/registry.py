@@ -115,6 +115,8 @@ class Propagation:
     * ``spatial_tiles``: its operator evaluates a part of the patch, ``operator(..., tile=(r0, r1, c0, c1))`` (those
       pixel rows / columns, equal to the same pixels of the whole patch): :mod:`torch_bridge` propagates in spatial
       tiles to bound the output side's memory (``asm``).
+    * ``per_source_distances``: its operator takes one distance per source (``distance_mm`` of shape (S,)), so the
+      sources of a batch may be propagated over different distances (``asm``); else one distance for all.
     * ``fft_padded``: the plan's ``n_pad`` is a padded FFT the memory budget names.
     * ``rim_weighted``: the energy convention traces the circular pupil's rim cells by their part (``focal``).
     * ``per_source_plans``: its grids follow each source's patch: batches plan their sources alone (``focal``).
@@ -134,6 +136,7 @@ class Propagation:
     doe_in_propagator = True
     doe_separable = False
     spatial_tiles = False
+    per_source_distances = False
     fft_padded = False
     rim_weighted = False
     per_source_plans = False
