@@ -47,7 +47,8 @@ def _gradient_like(gd, shape):
 class OperatorApply(torch.autograd.Function):
     """Wave-plane field -> complex field at the pixels' Gauss nodes through a method's operator.
 
-    ``OperatorApply.apply(field, distance, operator, pair=False, rw=None, name=None, phase_invariant=False)``: ``field`` complex (S, n, n)
+    ``OperatorApply.apply(field, distance, operator, pair=False, rw=None, name=None, phase_invariant=False)``:
+    ``field`` complex (S, n, n)
     (carrier removed, DOE applied as the method does; on the operator's device); ``distance`` the wave-plane to
     sensor distance (mm), a float64 tensor (S,) or 0-d with the value the operator was built for, or None (no
     distance gradient); ``operator`` an object with ``forward`` / ``adjoint`` (and ``distance_derivative`` where
@@ -61,7 +62,9 @@ class OperatorApply(torch.autograd.Function):
     nodes held fixed). ``phase_invariant``: the loss does not see a constant phase per source of the output (pixel
     powers and fluxes, :class:`NodePixels`), so where the operator has ``distance_derivative_phase_free`` (``_pair``;
     the ASM's) that form is used: the derivative without the constant phase's term ``i (2 pi / lambda) U``, whose
-    contribution is zero but whose rounding is ``1 / (1 - cos theta)`` times the rest. The field is kept for backward
+    contribution is zero but whose rounding is ``1 / (1 - cos theta)`` times the rest, and where it has
+    ``adjoint_distance(grads, field, need_field)`` (the ASM's: the band's gradient contracted with the band
+    spectrum, no node field formed) both gradients come from that one pass. The field is kept for backward
     only when the distance needs its gradient; the operator is kept until backward has run once, or for good when it
     says it is light (``keep_for_backward``, the ASM's: only its geometry; backward may then run again, as with
     ``retain_graph``)."""

@@ -1,5 +1,5 @@
-"""The ASM through the generic operator path (issue 25 item 1): :func:`torch_bridge.operator_function.operator_propagate`
-over :class:`rwwarp.wave.methods.asm.AsmOperator` (PointPropagator; the DOE phase applied in torch as
+"""The ASM through the generic operator path (issue 25 item 1):
+:func:`torch_bridge.operator_function.operator_propagate` over :class:`rwwarp.wave.methods.asm.AsmOperator` (PointPropagator; the DOE phase applied in torch as
 ``exp(1j alpha phi0)``) against an independent reference written here from rwwarp's other ASM implementation,
 :class:`rwwarp.wave.propagate.SensorPropagator` (its own node reduction and adjoint kernels, the DOE phase applied
 inside its pad kernel, its distance gradient a band reduction): the PSF, and the gradients of the DOE phase, of every

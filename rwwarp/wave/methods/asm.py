@@ -111,14 +111,15 @@ class AngularSpectrum(Propagation):
 class AsmOperator:
     """The ASM's linear map, wave-plane field (S, n, n) (carrier removed, wave step applied; the DOE phase of
     ``rw`` applied inside unless ``doe=False``) -> the field at the pixels' Gauss nodes (S, size g, size g),
-    carrier restored (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm, a float or one per
-    source; default the lens's). ``tile = (r0, r1, c0, c1)``: the nodes of those sensor pixel rows / columns only (S, (r1 - r0) g,
-    (c1 - c0) g), with the whole patch's window centre (so its band limits, and its values, are the whole
-    patch's). Arrays in and out are of the operator's namespace ``xp``: numpy on the CPU and OpenCL devices (the
-    OpenCL result is copied to the host), CuPy on CUDA (device memory, no copy). :meth:`distance_derivative` is
-    the exact d/dz at the fixed band limits (``dH/dz = 2 pi i w H``); the ``*_pair`` methods add the
-    direction-cosine-weighted field ``U_w`` (pixel_values "flux"). ``keep_for_backward``: it holds only its
-    geometry (the FFT plans and work arrays are the backend's caches), so an autograd Function may keep it."""
+    carrier restored (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm, a float or one
+    per source; default the lens's). ``tile = (r0, r1, c0, c1)``: the nodes of those sensor pixel rows / columns
+    only (S, (r1 - r0) g, (c1 - c0) g), with the whole patch's window centre (so its band limits, and its values,
+    are the whole patch's). Arrays in and out are of the operator's namespace ``xp``: numpy on the CPU and OpenCL
+    devices (the OpenCL result is copied to the host), CuPy on CUDA (device memory, no copy).
+    :meth:`distance_derivative` is the exact d/dz at the fixed band limits (``dH/dz = 2 pi i w H``); the ``*_pair``
+    methods add the direction-cosine-weighted field ``U_w`` (pixel_values "flux"). ``keep_for_backward``: it holds
+    only its geometry (the FFT plans and work arrays are the backend's caches), so an autograd Function may keep
+    it."""
 
     keep_for_backward = True
 
@@ -190,9 +191,9 @@ class AsmOperator:
         return tuple(self._out(a) * dz for a in self.prop.forward_weighted(self._dev(field), self.phi0, (1, 2)))
 
     def distance_derivative_phase_free(self, field):
-        """``d [exp(-2 pi i z / lambda) forward(field)] / d distance_mm`` (S, My, Mx) of ``xp``: the distance derivative
-        without its constant phase's term ``(2 pi i / lambda) forward`` (``(2 pi i / lambda) F^-1[(c - 1) C]``, ``c - 1``
-        formed without cancellation), which a loss invariant to a constant phase per source (pixel powers and
+        """``d [exp(-2 pi i z / lambda) forward(field)] / d distance_mm`` (S, My, Mx) of ``xp``: the distance
+        derivative without its constant phase's term ``(2 pi i / lambda) forward``
+        (``(2 pi i / lambda) F^-1[(c - 1) C]``, ``c - 1`` formed without cancellation), which a loss invariant to a constant phase per source (pixel powers and
         fluxes) does not see; that term is ``1 / (1 - c)`` times the rest near the axis, so its rounding would
         dominate (:class:`torch_bridge.operator_function.OperatorApply` uses this form)."""
         u = self._out(self.prop.forward_weighted(self._dev(field), self.phi0, (1,), minus_one=True))
