@@ -14,7 +14,6 @@ Units: mm, um (wavelengths), degrees (fields), radians (phases). See :mod:`torch
 """
 from .functions import (
     MixedPrecision,
-    Propagate,
     QuantizeSTE,
     TraceSplat,
     mixed_precision,
@@ -23,5 +22,5 @@ from .functions import (
 )
 from .modules import QUANTITIES, HybridLens
 
-__all__ = ["QUANTITIES", "HybridLens", "MixedPrecision", "Propagate", "QuantizeSTE", "TraceSplat", "mixed_precision",
+__all__ = ["QUANTITIES", "HybridLens", "MixedPrecision", "QuantizeSTE", "TraceSplat", "mixed_precision",
            "quantize_ste", "raywave_psf"]

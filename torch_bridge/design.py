@@ -31,7 +31,7 @@ import torch
 
 from rwwarp.wave.methods import PLANNER_CHOICES, get as get_method, names
 
-from .functions import Propagate, mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
+from .functions import mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
 from .live import LiveProvider, _recentred, common_centres  # noqa: F401  (their home: live)
 from .ray_spot import RaySpot, paraxial_achromat, paraxial_efl  # noqa: F401  (their home: ray_spot)
 from .wave_step import add_wave_step
@@ -751,7 +751,7 @@ class CachedProvider:
         distributed step, the same values the whole call gives those nodes."""
         if part is not None and chunk is None:
             raise ValueError("CachedProvider.psfs: part needs chunk (the share's size in nodes)")
-        from torch_bridge.functions import propagate
+        from torch_bridge.operator_function import operator_propagate
         from torch_bridge.tiles import run_tiles
         doe = self.module.value("doe")
         thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
@@ -786,7 +786,7 @@ class CachedProvider:
                 with ctx:
                     d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
                     phi0 = geo.doe_phase(sub, {"doe": doe_t})
-                    return propagate(u[sl].to(torch.complex128), phi0, d, sub, distance_host=d_host)
+                    return operator_propagate(u[sl].to(torch.complex128), d, sub, d_host, phi0=phi0)
             # a chunk a tile, checkpointed when there are several (torch_bridge.tiles)
             power = run_tiles(parts, run, [doe] if thick is None else [doe, thick])
             out.append(power / entering[:, None, None])

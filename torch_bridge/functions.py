@@ -5,9 +5,10 @@ fixed sampling plan) and runs in float64 unless said otherwise:
 
 * :class:`TraceSplat`: surface-parameter table -> complex field on the DOE-plane windows
   (Warp coherent trace + splat, recorded on a ``wp.Tape``; backward replays the tape).
-* :class:`Propagate`: field (+ DOE phase phi0, + DOE-to-sensor distance) -> power per sensor pixel
-  (band-limited ASM + pixel integration, OpenCL/CUDA kernels: a
-  :class:`rwwarp.wave.propagate.SensorPropagator`; backward is its analytic adjoint on the same cached plans).
+* the propagation to the sensor of every method, the ASM's included (band-limited ASM: its registered operator
+  :class:`rwwarp.wave.methods.asm.AsmOperator`, the DOE phase applied as ``exp(1j alpha phi0)`` in torch), by the
+  generic operator Functions of :mod:`torch_bridge.operator_function`
+  (:func:`~torch_bridge.operator_function.operator_propagate`).
 * :class:`FocalPropagate`: field on a focal plan's wave-plane grid (+ distance) -> power per sensor
   pixel (:class:`rwwarp.wave.focal.FocalPropagator`: the converging wave handled analytically; backward is
   the operator's adjoint and its exact distance derivative), by the generic operator Functions of
@@ -58,7 +59,6 @@ from rwwarp.trace import COLUMNS as COL
 __all__ = [
     "FocalPropagate",
     "MixedPrecision",
-    "Propagate",
     "QuantizeSTE",
     "TraceSplat",
     "distance_from_table",
@@ -68,7 +68,6 @@ __all__ = [
     "focal_propagate",
     "load_table",
     "mixed_precision",
-    "propagate",
     "quantize_ste",
     "raywave_psf",
     "trace_splat",
@@ -374,30 +373,6 @@ def paper_amplitude(u, rw):
 
 
 # ---------------------------------------------------------------------------------------------- propagation
-def sensor_operator(rw, distance=None, tile=None, with_doe=False):
-    """The :class:`rwwarp.wave.propagate.SensorPropagator` of a RayWave's patches: ``distance`` (mm, (S,) or
-    None for the RayWave's own) replaces the plane-to-sensor distance; with ``tile = (r0, r1, c0, c1)``
-    only those sensor pixel rows / columns, evaluated with the whole patch's window centre (so that
-    the tile has the whole patch's band limits and equals its pixels; cached per RayWave and its
-    centres); ``with_doe``: the DOE wavelength remap goes with a DOE phase."""
-    from rwwarp.wave.propagate import SensorPropagator, sensor_window_center
-    g = rw.sensor_geometry(doe_scale(rw) if with_doe else None)
-    if distance is not None:
-        g = g.with_(distance_mm=np.broadcast_to(np.asarray(distance, dtype=np.float64), (rw.nsrc,)).copy())
-    if tile is not None:
-        st = bridge_state(rw)
-        cached = st.get("window_center")
-        if cached is None or cached[0] is not rw.centers:      # RayWave.recentre assigns new centres
-            c = sensor_window_center(np.atleast_2d(g.pixel_centers_x_mm), np.atleast_2d(g.pixel_centers_y_mm),
-                                     g.pixel_pitch_mm, rw.gauss_nodes)
-            cached = st["window_center"] = (rw.centers, c)
-        r0, r1, c0, c1 = tile
-        g = g.with_(pixel_centers_x_mm=np.ascontiguousarray(np.atleast_2d(g.pixel_centers_x_mm)[:, c0:c1]),
-                    pixel_centers_y_mm=np.ascontiguousarray(np.atleast_2d(g.pixel_centers_y_mm)[:, r0:r1]),
-                    window_center_mm=cached[1])
-    return SensorPropagator(backend_for(rw.device), g)
-
-
 def spatial_tiles(size: int, tile_px: int | None):
     """Tiles ``(r0, r1, c0, c1)`` of a ``size`` x ``size`` sensor patch, ``tile_px`` pixels a side (the
     last ones ragged); ``[None]`` (one untiled call) when ``tile_px`` is None or covers the patch."""
@@ -405,28 +380,6 @@ def spatial_tiles(size: int, tile_px: int | None):
         return [None]
     t = max(1, int(tile_px))
     return [(r, min(r + t, size), c, min(c + t, size)) for r in range(0, size, t) for c in range(0, size, t)]
-
-
-def _as_backend_array(t, rw):
-    """A tensor for the wave backend: a numpy view on CPU (shared memory), a CuPy view of the same
-    device memory on CUDA (DLPack, no copy)."""
-    if t is None:
-        return None
-    t = t.detach().contiguous()
-    if t.is_cuda:
-        import cupy
-        return cupy.from_dlpack(t)  # zero-copy view of the same device memory
-    return t.numpy()
-
-
-def _to_torch(be, arr, device):
-    """A backend array as a torch tensor: CuPy arrays through DLPack (zero-copy, stays on the GPU),
-    OpenCL arrays through host memory (on PoCL that is where they live)."""
-    if isinstance(arr, np.ndarray):
-        return torch.from_numpy(arr).to(device)
-    if getattr(be, "kind", "") == "cuda":
-        return torch.from_dlpack(arr)
-    return torch.from_numpy(be.to_host(arr)).to(device)
 
 
 def _torch_release():
@@ -444,121 +397,6 @@ def backend_for(device: str):
     if be.kind == "cuda":
         be.add_release_hook(_torch_release)
     return be
-
-
-def sensor_power(rw, field, phi0=None, distance=None, tile=None):
-    """Power per sensor pixel (S, size, size) without gradients (numpy in, backend array out); with
-    ``tile = (r0, r1, c0, c1)`` those pixels only (S, r1 - r0, c1 - c0)."""
-    op = sensor_operator(rw, distance, tile, with_doe=phi0 is not None)
-    return op.backend, op.forward(field, phi0)
-
-
-class Propagate(torch.autograd.Function):
-    """DOE-plane field -> power per sensor pixel of a RayWave's sensor patches.
-
-    ``Propagate.apply(field, phi0, distance, rw)``: ``field`` complex128 (S, n, n) on the windows,
-    ``phi0`` the DOE phase (rad) float64 (S, n, n) or None (no DOE), ``distance`` the DOE-plane to
-    sensor distance in mm, float64 (S,) or None (the RayWave's own). Returns float64 (S, size, size):
-    the pixel values ``rw.pixel_values`` names (the z-flux or ``|U|^2``) integrated over each pixel (field
-    units^2 mm^2; divide by ``rw.entering`` for the fraction of entering power).
-
-    ``Propagate.apply(field, phi0, distance, rw, tile, keep_nodes)``: optional spatial tile
-    ``(r0, r1, c0, c1)`` of sensor pixel rows / columns (output (S, r1 - r0, c1 - c0), evaluated
-    with the whole patch's window centre, so equal to those pixels of the whole patch), and
-    ``keep_nodes=False`` to keep no node field for backward (recomputed there: a checkpoint).
-    ``Propagate.apply(..., distance_host)``: the distance's value on the host (mm, a float or (S,)), so that the
-    forward pass does not read ``distance`` back from the device (a read waits for every queued kernel).
-
-    The operator (:func:`sensor_operator`, a :class:`rwwarp.wave.propagate.SensorPropagator`) is made once in
-    the forward pass and kept for the backward pass: its :meth:`~rwwarp.wave.propagate.SensorPropagator.adjoint`
-    (conjugate transfer function on the same cached FFT plans, reusing the node field of the forward
-    pass) for ``field`` and ``phi0``; when the distance needs a gradient, its
-    :meth:`~rwwarp.wave.propagate.SensorPropagator.distance_adjoint` instead, which also returns the
-    analytic d/d(distance): ``dH/dz = 2 pi i w H``
-    (``w = sqrt(1/lambda^2 - fx^2 - fy^2)``), contracted with the band spectrum and its gradient on
-    the device (one extra pruned FFT of the field; the band limits, which move with z in jumps, are
-    held fixed).
-    """
-
-    @staticmethod
-    def forward(ctx, field, phi0, distance, rw, tile=None, keep_nodes=True, distance_host=None):
-        f_h = _as_backend_array(field.to(torch.complex128), rw)
-        p_h = _as_backend_array(phi0.to(torch.float64), rw) if phi0 is not None else None
-        d_h = _distance_on_host(distance, distance_host)
-        op = sensor_operator(rw, d_h, tile, with_doe=phi0 is not None)
-        be = op.backend
-        with _streams(rw):
-            res = op.forward(f_h, p_h, return_nodes=keep_nodes)
-            inten, nodes = res if keep_nodes else (res, None)
-            out = _to_torch(be, inten, field.device)
-        ctx.rw, ctx.op, ctx.nodes = rw, op, nodes
-        ctx.host = (f_h, p_h)
-        ctx.devices = (field.device, None if phi0 is None else phi0.device,
-                       None if distance is None else distance.device)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        rw, op = ctx.rw, ctx.op
-        be = op.backend
-        f_h, p_h = ctx.host
-        need_f, need_p, need_d = ctx.needs_input_grad[:3]
-        g_h = _as_backend_array(grad_out.to(torch.float64), rw)
-        gf = gp = gd = None
-        with _streams(rw):
-            gf_d = gp_d = None
-            if need_d:
-                gf_d, gp_d, gd_h = op.distance_adjoint(g_h, f_h, p_h, nodes=ctx.nodes, need_field=need_f or need_p)
-                gd = upload(gd_h, torch.float64, ctx.devices[2])
-            elif need_f or need_p:
-                gf_d, gp_d = op.adjoint(g_h, f_h, p_h, nodes=ctx.nodes)
-            if need_f:
-                gf = _to_torch(be, gf_d, ctx.devices[0])
-            if need_p and gp_d is not None:
-                gp = _to_torch(be, gp_d, ctx.devices[1])
-        ctx.nodes = None
-        return gf, gp, gd, None, None, None, None
-
-
-def _distance_on_host(distance, distance_host):
-    """The distance (mm) as a float64 host array of ``distance``'s shape: ``distance_host`` broadcast to it where
-    given (no read from the device), else ``distance`` read back; None without a distance."""
-    if distance is None:
-        return None
-    if distance_host is not None:
-        return np.broadcast_to(np.asarray(distance_host, dtype=np.float64), tuple(distance.shape)).copy()
-    return distance.detach().to("cpu", torch.float64).numpy()
-
-
-def propagate(field, phi0, distance, rw, tile_px=None, distance_host=None):
-    """:class:`Propagate` where a gradient is wanted, else a plain forward (no saved node field).
-
-    ``tile_px``: evaluate the sensor patch in spatial tiles of ``tile_px`` x ``tile_px`` pixels (the
-    matrix DFT evaluates any subset of output points; each tile keeps the whole patch's window
-    centre, so the result equals the untiled one). Each tile is its own :class:`Propagate` that keeps
-    no node field (its backward recomputes the tile: one more pruned FFT of the field per tile), so
-    the output-side work space (nodes, DFT factors, GEMM temporaries) is one tile's. None: one call.
-    ``distance_host``: the distance's value on the host (mm, a float or one per source), read from it instead of
-    from the device."""
-    tiles = spatial_tiles(rw.size, tile_px)
-    wants = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (field, phi0, distance))
-    if wants:
-        if tiles == [None]:
-            return Propagate.apply(field, phi0, distance, rw, None, True, distance_host)
-        parts = [Propagate.apply(field, phi0, distance, rw, t, False, distance_host) for t in tiles]
-    else:
-        f_h = _as_backend_array(field.to(torch.complex128), rw)
-        p_h = None if phi0 is None else _as_backend_array(phi0.to(torch.float64), rw)
-        d_h = _distance_on_host(distance, distance_host)
-        parts = []
-        for t in tiles:
-            be, p = sensor_power(rw, f_h, p_h, d_h, t)
-            parts.append(_to_torch(be, p, field.device))
-        if tiles == [None]:
-            return parts[0]
-    n_col = len({(t[2], t[3]) for t in tiles})
-    rows = [torch.cat(parts[k:k + n_col], dim=2) for k in range(0, len(parts), n_col)]
-    return torch.cat(rows, dim=1)
 
 
 # ---------------------------------------------------------------------------------------------- focal propagation
@@ -718,5 +556,6 @@ def raywave_psf(rw, table, phi0=None, distance=None):
         u = paper_amplitude(u, rw)
     if distance is None:
         distance = distance_from_table(rw, table)
-    power = propagate(u, phi0, distance, rw)
+    from .operator_function import operator_propagate
+    power = operator_propagate(u, distance, rw, phi0=phi0)
     return power / power_sums(rw, power.device)[0][:, None, None]

@@ -63,8 +63,7 @@ from .wave_step import wave_step
 from . import budget as _budget
 from . import phase_params as _ph
 from .budget import default_memory_budget_bytes  # noqa: F401  (its home: budget)
-from .functions import (backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude,
-                        propagate, trace_splat)
+from .functions import backend_for, bridge_state, focal_doe_factor, focal_propagate, paper_amplitude, trace_splat
 from .lens_tables import LensTables
 from .operator_function import operator_propagate
 from .tiles import run_tiles
@@ -478,7 +477,7 @@ class HybridLens(LensTables, nn.Module):
             table = self.param_table(rw, values)
             host = self.host_table(rw, table, tables)
             method = get_method(rw.plan.method)
-            phi0 = self.doe_phase(rw, values) if method.doe_in_propagator else None
+            phi0 = self.doe_phase(rw, values) if method.torch_path == "operator" else None
             dist = (table[-1, COL.z] - table[rw.plane, COL.z]).expand(rw.nsrc)
             u = trace_splat(table, rw, host)
             if rw.amplitude != "energy":
@@ -490,10 +489,9 @@ class HybridLens(LensTables, nn.Module):
                 if fac is not None:
                     u = u * fac
                 power = focal_propagate(u, dist, rw, d_host)
-            elif method.torch_path == "operator":   # any method's operator (torch_bridge.operator_function)
-                power = operator_propagate(u, dist, rw, d_host, phi0=self.doe_phase(rw, values))
-            else:
-                power = propagate(u, phi0, dist, rw, spatial_tile, distance_host=d_host)
+            else:   # any method's operator, the ASM's included (torch_bridge.operator_function)
+                power = operator_propagate(u, dist, rw, d_host, phi0=phi0,
+                                           tile_px=spatial_tile if method.spatial_tiles else None)
             return power / power_sums(rw, power.device)[0][:, None, None]
 
     def _psf_packed(self, tile, values, record: bool = True, tables: dict | None = None):
@@ -657,7 +655,7 @@ class HybridLens(LensTables, nn.Module):
         so peak memory is one tile's, independent of the map size.
         ``return_centers``: also the centre-pixel sensor positions (n_fields, n_wavelengths, 2), mm.
         ``spatial_tile``: the propagation of each tile evaluates the sensor patches in spatial tiles of
-        that many pixels a side (:func:`torch_bridge.functions.propagate`; same result, each recomputed
+        that many pixels a side (:func:`torch_bridge.operator_function.operator_propagate`; same result, each recomputed
         in backward); with a budget and no ``spatial_tile``, chosen by :meth:`spatial_tile_for` when a
         large patch's output side would not fit.
         """

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 
+import numpy as np
 import torch
 
 from .functions import _from_xp, _streams, _xp_of
@@ -46,7 +47,8 @@ def _gradient_like(gd, shape):
 class OperatorApply(torch.autograd.Function):
     """Wave-plane field -> complex field at the pixels' Gauss nodes through a method's operator.
 
-    ``OperatorApply.apply(field, distance, operator, pair=False, rw=None, name=None)``: ``field`` complex (S, n, n)
+    ``OperatorApply.apply(field, distance, operator, pair=False, rw=None, name=None, phase_invariant=False)``:
+    ``field`` complex (S, n, n)
     (carrier removed, DOE applied as the method does; on the operator's device); ``distance`` the wave-plane to
     sensor distance (mm), a float64 tensor (S,) or 0-d with the value the operator was built for, or None (no
     distance gradient); ``operator`` an object with ``forward`` / ``adjoint`` (and ``distance_derivative`` where
@@ -57,11 +59,18 @@ class OperatorApply(torch.autograd.Function):
 
     Backward: ``operator.adjoint(g)`` (``adjoint_pair(g_u, g_w)``) for ``field``; for ``distance``, only when it
     requires grad, ``Re sum conj(g) * operator.distance_derivative(field)`` per source (the plan, band limits and
-    nodes held fixed). The field is kept for backward only when the distance needs its gradient; the operator is
-    kept until backward has run once."""
+    nodes held fixed). ``phase_invariant``: the loss does not see a constant phase per source of the output (pixel
+    powers and fluxes, :class:`NodePixels`), so where the operator has ``distance_derivative_phase_free`` (``_pair``;
+    the ASM's) that form is used: the derivative without the constant phase's term ``i (2 pi / lambda) U``, whose
+    contribution is zero but whose rounding is ``1 / (1 - cos theta)`` times the rest, and where it has
+    ``adjoint_distance(grads, field, need_field)`` (the ASM's: the band's gradient contracted with the band
+    spectrum, no node field formed) both gradients come from that one pass. The field is kept for backward
+    only when the distance needs its gradient; the operator is kept until backward has run once, or for good when it
+    says it is light (``keep_for_backward``, the ASM's: only its geometry; backward may then run again, as with
+    ``retain_graph``)."""
 
     @staticmethod
-    def forward(ctx, field, distance, operator, pair=False, rw=None, name=None):
+    def forward(ctx, field, distance, operator, pair=False, rw=None, name=None, phase_invariant=False):
         ctx.name = name or type(operator).__name__
         need_d = bool(ctx.needs_input_grad[1]) if distance is not None else False
         if need_d and not hasattr(operator, "distance_derivative_pair" if pair else "distance_derivative"):
@@ -71,6 +80,8 @@ class OperatorApply(torch.autograd.Function):
             u = operator.forward_pair(f) if pair else operator.forward(f)
             out = tuple(_from_xp(a, field.device) for a in (u if pair else (u,)))
         ctx.op, ctx.pair, ctx.rw, ctx.xp = operator, bool(pair), rw, xp
+        ctx.phase_free = bool(phase_invariant)
+        ctx.keep = bool(getattr(operator, "keep_for_backward", False))
         ctx.f = f if need_d else None              # the field: for d/d(distance) only
         ctx.devices = (field.device, None if distance is None else distance.device)
         ctx.distance_shape = None if distance is None else distance.shape
@@ -87,17 +98,33 @@ class OperatorApply(torch.autograd.Function):
         gs = [_xp_of(g.to(torch.complex128))[1] for g in grads]
         gf = gd = None
         with _on_streams(ctx.rw):
+            if need_d and ctx.phase_free and hasattr(op, "adjoint_distance"):
+                # one pass for both (the ASM's: the band's gradient contracted with the band spectrum)
+                g, dl = op.adjoint_distance(gs, ctx.f, need_field=bool(need_f))
+                gd = _gradient_like(_from_xp(dl, ctx.devices[1]), ctx.distance_shape)
+                gf = _from_xp(g, ctx.devices[0]) if need_f else None
+                need_d = need_f = False
             if need_d:
                 try:
-                    du = op.distance_derivative_pair(ctx.f) if ctx.pair else (op.distance_derivative(ctx.f),)
+                    du = _distance_derivative(op, ctx.f, ctx.pair, ctx.phase_free)
                 except NotImplementedError as exc:
                     raise NotImplementedError(f"{_no_distance(ctx.name, ctx.pair)}: {exc}") from exc
                 dl = sum(xp.real(xp.sum(xp.conj(a) * b, axis=(1, 2))) for a, b in zip(gs, du))
                 gd = _gradient_like(_from_xp(dl, ctx.devices[1]), ctx.distance_shape)
             if need_f:
                 gf = _from_xp(op.adjoint_pair(*gs) if ctx.pair else op.adjoint(gs[0]), ctx.devices[0])
-        ctx.op = ctx.f = ctx.rw = None
-        return gf, gd, None, None, None, None
+        if not ctx.keep:
+            ctx.op = ctx.f = ctx.rw = None
+        return gf, gd, None, None, None, None, None
+
+
+def _distance_derivative(op, f, pair, phase_free):
+    """The operator's distance derivative(s) of ``f`` as a tuple: the ``*_phase_free`` form where allowed and there."""
+    name = "distance_derivative_pair" if pair else "distance_derivative"
+    if phase_free and hasattr(op, name + "_phase_free"):
+        name += "_phase_free"
+    du = getattr(op, name)(f)
+    return tuple(du) if pair else (du,)
 
 
 def _no_distance(name, pair):
@@ -114,7 +141,8 @@ class NodePixels(torch.autograd.Function):
     the direction-cosine-weighted field (pixel_values "flux": ``Re(conj(U) U_w)`` integrated) or None
     (``|U|^2`` integrated); ``pixel_mm`` the pixel pitch (mm); ``rw`` the RayWave whose streams and allocator
     it runs on (None: the current ones). Returns float64 (S, size, size), field units^2
-    mm^2 per pixel."""
+    mm^2 per pixel (a part of a patch, (S, rows g, cols g) nodes: (S, rows, cols)). The node fields are saved for
+    backward by torch (freed after it unless ``retain_graph``)."""
 
     @staticmethod
     def forward(ctx, u, u_w, gauss_nodes, pixel_mm, size, rw=None):
@@ -125,17 +153,17 @@ class NodePixels(torch.autograd.Function):
             out = (pixel_power(a, gauss_nodes, pixel_mm, size, xp=xp) if b is None
                    else pixel_flux(a, b, gauss_nodes, pixel_mm, size, xp=xp))
             out = _from_xp(out, u.device)
-        ctx.xp, ctx.a, ctx.b, ctx.args, ctx.rw = xp, a, b, (int(gauss_nodes), float(pixel_mm)), rw
+        ctx.args, ctx.rw = (int(gauss_nodes), float(pixel_mm)), rw
         ctx.devices = (u.device, None if u_w is None else u_w.device)
+        ctx.save_for_backward(u.to(torch.complex128), None if u_w is None else u_w.to(torch.complex128))
         return out
 
     @staticmethod
     def backward(ctx, grad):
         from rwwarp.wave.focal import pixel_flux_adjoint, pixel_power_adjoint
-        xp, a, b = ctx.xp, ctx.a, ctx.b
-        if a is None:
-            raise RuntimeError("NodePixels' backward ran twice; it frees its node fields after one (retain_graph is "
-                               "not supported)")
+        ua, ub = ctx.saved_tensors
+        xp, a = _xp_of(ua)
+        b = None if ub is None else _xp_of(ub)[1]
         _, g = _xp_of(grad.to(torch.float64))
         with _on_streams(ctx.rw):
             if b is None:
@@ -144,7 +172,6 @@ class NodePixels(torch.autograd.Function):
                 ga, gb = pixel_flux_adjoint(a, b, g, *ctx.args, xp=xp)
             ga = _from_xp(ga, ctx.devices[0]) if ctx.needs_input_grad[0] else None
             gb = _from_xp(gb, ctx.devices[1]) if gb is not None and ctx.needs_input_grad[1] else None
-        ctx.a = ctx.b = ctx.rw = None
         return ga, gb, None, None, None, None
 
 
@@ -156,44 +183,95 @@ def node_pixels(u, rw, gauss_nodes=None):
     return NodePixels.apply(a, b, g, rw.pixel, rw.size, rw)
 
 
-def operator_propagate(field, distance, rw, distance_host=None, precision="double", method=None, phi0=None):
+def _distance_value(distance, distance_host, m):
+    """The distance (mm) the operator is built for: a float, or with different values per source an (S,) array for a
+    method with ``per_source_distances`` (else an error naming the method); None for the RayWave's own.
+    ``distance_host`` (a float or one per source) is read instead of the device's ``distance``."""
+    if distance_host is None and distance is None:
+        return None
+    if distance_host is not None:
+        zs = np.asarray(distance_host, dtype=np.float64).reshape(-1)
+    else:
+        zs = distance.detach().to("cpu", torch.float64).reshape(-1).numpy()
+    if np.all(zs == zs[0]):
+        return float(zs[0])
+    if not getattr(m, "per_source_distances", False):
+        raise ValueError(f"propagation method {m.name!r} propagates a batch over one distance, got different ones "
+                         f"per source ({zs.min():.6g} .. {zs.max():.6g} mm); one lens has one sensor distance")
+    return zs.copy()
+
+
+def operator_propagate(field, distance, rw, distance_host=None, precision="double", method=None, phi0=None,
+                       tile_px=None):
     """Power per sensor pixel (S, size, size) of ``rw`` (a :class:`~rwwarp.wave.raywave.RayWave`) from its
     wave-plane field through its method's operator (:meth:`~rwwarp.wave.methods.Propagation.operator` at the
     distance, :class:`OperatorApply`) and the pixel integration ``rw.pixel_values`` names (:class:`NodePixels`):
     the generic differentiable path of any registered method (``method``: its name, default ``rw.plan.method``).
 
     ``field`` complex (S, n, n), carrier removed; ``distance`` the wave-plane to sensor distance (mm, float64 (S,)
-    or 0-d, differentiable) or None (the RayWave's own, no gradient); ``distance_host``: its value as a float
-    (mm) when the caller has it on the host (the operator's set-up does not wait for the device); ``precision``
+    or 0-d, differentiable; different values per source only for a method with ``per_source_distances``, the ASM)
+    or None (the RayWave's own, no gradient); ``distance_host``: its value (mm, a float or one per source) when the
+    caller has it on the host (the operator's set-up does not wait for the device); ``precision``
     the operator's ("double" for gradients). ``phi0``: the DOE's relief phase on the windows (rad, (S, n, n),
-    differentiable; :meth:`torch_bridge.HybridLens.doe_phase`) or None: for a method that takes the field with
-    the DOE applied (``doe_in_propagator = False``) the transmission ``exp(1j alpha phi0)`` (``alpha`` the
-    wavelength remap, :func:`torch_bridge.functions.doe_scale`) multiplies the field first; a method whose
-    operator applies the planned DOE itself is refused with a phase (its gradient would be lost)."""
+    differentiable; :meth:`torch_bridge.HybridLens.doe_phase`) or None (no DOE): for a method that takes the field
+    with the DOE applied (``doe_in_propagator = False``) or whose operator can leave the planned DOE out
+    (``doe_separable``, the ASM: its operator is then built with ``doe=False``) the transmission
+    ``exp(1j alpha phi0)`` (``alpha`` the wavelength remap, :func:`torch_bridge.functions.doe_scale`) multiplies
+    the field first; a method whose operator applies the planned DOE itself is refused with a phase (its
+    gradient would be lost).
+
+    ``tile_px``: evaluate the patch in spatial tiles of ``tile_px`` x ``tile_px`` pixels (methods with
+    ``spatial_tiles``, the ASM: each tile keeps the whole patch's band limits, so the result equals the untiled
+    one): where a gradient is wanted each tile is a checkpoint (:class:`torch_bridge.functions.Recompute`) that
+    keeps no node field and recomputes its tile in backward, so the output side's memory (nodes, DFT factors) is
+    one tile's. None: one call."""
     from rwwarp.wave.methods import get
 
-    from .functions import doe_scale, upload
+    from .functions import Recompute, backend_for, doe_scale, spatial_tiles, upload
     m = get(rw.plan.method if method is None else method)
+    if field.device.type == "cuda":
+        backend_for(rw.device)   # the release hook: a failed propagation allocation empties torch's cache first
     if (field.device.type == "cuda") != str(rw.tracer.device).startswith("cuda"):
         # the operator works in its plan's array namespace (numpy for a CPU plan, CuPy for CUDA)
         raise ValueError(f"{m.name} propagation: the field is on {field.device} but its RayWave was planned "
                          f"on {rw.tracer.device}; plan on the field's device (HybridLens.to(device))")
+    separate = m.doe_in_propagator and getattr(m, "doe_separable", False)
     if phi0 is not None:
-        if m.doe_in_propagator:
+        if m.doe_in_propagator and not separate:
             raise ValueError(f"propagation method {m.name!r} applies the planned DOE inside its operator, so the "
                              f"DOE phase cannot be differentiated through it: set doe_in_propagator = False (the "
-                             f"bridge then applies exp(1j alpha phi0) to the field)")
+                             f"bridge then applies exp(1j alpha phi0) to the field) or doe_separable")
         alpha = upload(doe_scale(rw), torch.float64, phi0.device)
         field = field * torch.exp(1j * alpha[:, None, None] * phi0)
-    if distance_host is not None:
-        z = float(distance_host)
-    else:
-        z = float(distance.detach().reshape(-1)[0]) if distance is not None else None
+    z = _distance_value(distance, distance_host, m)
     pair = rw.pixel_values == "flux"
-    with _streams(rw):
-        op = m.operator(rw, z, precision)
-    if pair and not hasattr(op, "forward_pair"):
-        raise ValueError(f"propagation method {m.name!r}: pixel_values='flux' needs its operator's forward_pair "
-                         f"and adjoint_pair (the field and its direction-cosine-weighted field); plan with "
-                         f"pixel_values='intensity' or implement them")
-    return node_pixels(OperatorApply.apply(field, distance, op, pair, rw, m.name), rw)
+    tiles = spatial_tiles(rw.size, tile_px)
+    if tiles != [None] and not getattr(m, "spatial_tiles", False):
+        raise ValueError(f"propagation method {m.name!r} has no spatial tiles (its operator takes no tile=); "
+                         f"propagate without spatial_tile")
+    kw = {"doe": False} if separate else {}
+
+    def run(f, d, tile=None, record=True):
+        with _streams(rw):
+            op = m.operator(rw, z, precision, **kw) if tile is None else m.operator(rw, z, precision, tile=tile, **kw)
+        if pair and not hasattr(op, "forward_pair"):
+            raise ValueError(f"propagation method {m.name!r}: pixel_values='flux' needs its operator's forward_pair "
+                             f"and adjoint_pair (the field and its direction-cosine-weighted field); plan with "
+                             f"pixel_values='intensity' or implement them")
+        with (contextlib.nullcontext() if record else torch.no_grad()):
+            return node_pixels(OperatorApply.apply(f, d, op, pair, rw, m.name, True), rw)
+
+    if tiles == [None]:
+        return run(field, distance)
+    wants = torch.is_grad_enabled() and (field.requires_grad or (distance is not None and distance.requires_grad))
+    parts = []
+    for t in tiles:
+        if not wants:
+            parts.append(run(field, distance, t, record=False))
+        elif distance is None:
+            parts.append(Recompute.apply(lambda f, record, t=t: run(f, None, t, record), field))
+        else:
+            parts.append(Recompute.apply(lambda f, d, record, t=t: run(f, d, t, record), field, distance))
+    n_col = len({(t[2], t[3]) for t in tiles})
+    rows = [torch.cat(parts[k:k + n_col], dim=2) for k in range(0, len(parts), n_col)]
+    return torch.cat(rows, dim=1)

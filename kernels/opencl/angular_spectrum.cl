@@ -228,11 +228,13 @@ __kernel void band_distance_grad_kernel(__global const cplx_t* restrict band,
 /* Direction-cosine weight on the band (pixel_values "flux"): out = c^power src (+ out when accumulate),
  * c = lambda w = sqrt(1 - lambda^2 (u^2 + v^2)) = k_z / k, the cosine of the plane wave's angle to z (lambda in
  * the medium); 0 outside the band and for evanescent (u, v), where C is 0 too. The weight is real, so the same
- * launch is its own adjoint. Global (kx_max, ky_max, batch). */
+ * launch is its own adjoint. minus_one (power >= 1): the weight c^(power-1) (c - 1) instead, c - 1 formed as
+ * -lambda^2 rho^2 / (1 + c) (no cancellation near the axis: the distance derivative without the constant phase
+ * 2 pi z / lambda). Global (kx_max, ky_max, batch). */
 __kernel void band_obliquity_kernel(__global const cplx_t* restrict src,
                                     __global const phase_t* restrict params,
                                     const int kx_max, const int ky_max, const int batch,
-                                    const int power, const int accumulate,
+                                    const int power, const int accumulate, const int minus_one,
                                     __global cplx_t* restrict band_out)
 {
     const int kx = get_global_id(0);
@@ -250,8 +252,10 @@ __kernel void band_obliquity_kernel(__global const cplx_t* restrict src,
         if (s2 < (phase_t)1) {
             const phase_t c = sqrt((phase_t)1 - s2);
             wgt = (phase_t)1;
-            for (int k = 0; k < (power < 0 ? -power : power); ++k) wgt *= c;
-            if (power < 0) wgt = (phase_t)1 / wgt;
+            const int np_ = minus_one ? power - 1 : power;
+            for (int k = 0; k < (np_ < 0 ? -np_ : np_); ++k) wgt *= c;
+            if (np_ < 0) wgt = (phase_t)1 / wgt;
+            if (minus_one) wgt *= -s2 / ((phase_t)1 + c);
         }
     }
     cplx_t v = c_scale(src[ib], (real_t)wgt);

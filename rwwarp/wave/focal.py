@@ -633,10 +633,11 @@ def pixel_weights(gauss_nodes: int, pixel_mm: float) -> np.ndarray:
 
 def pixel_power(u_nodes, gauss_nodes: int, pixel_mm: float, size: int, xp=np):
     """Power per pixel from the field at ``g x g`` Gauss-Legendre nodes per pixel: ``u_nodes`` (S, size*g,
-    size*g) ordered pixel-major (pixel i, node a at column ``i*g + a``). Returns (S, size, size)."""
+    size*g) ordered pixel-major (pixel i, node a at column ``i*g + a``). Returns (S, size, size). A part of a
+    patch (S, rows g, cols g) gives (S, rows, cols): the pixel counts are read from the node array's shape."""
     g = int(gauss_nodes)
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
-    inten = (u_nodes.real ** 2 + u_nodes.imag ** 2).reshape(u_nodes.shape[0], size, g, size, g)
+    inten = (u_nodes.real ** 2 + u_nodes.imag ** 2).reshape(_pixel_grid(u_nodes, g))
     return _node_sum(inten, w2)
 
 
@@ -645,10 +646,10 @@ def pixel_power_adjoint(u_nodes, grad_power, gauss_nodes: int, pixel_mm: float, 
     convention for complex inputs (``2 dL/d conj(u)``): ``2 w_ab grad_power[i, j] u`` at node (i a, j b).
     ``u_nodes`` (S, size g, size g), ``grad_power`` (S, size, size)."""
     g = int(gauss_nodes)
-    S, size = grad_power.shape[0], grad_power.shape[1]
+    S, rows, cols = grad_power.shape
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     wg = grad_power[:, :, None, :, None] * w2[None, None, :, None, :]
-    return 2.0 * wg.reshape(S, size * g, size * g) * u_nodes
+    return 2.0 * wg.reshape(S, rows * g, cols * g) * u_nodes
 
 
 def focal_pixels(op, field, pixel_values: str, gauss_nodes: int, pixel_mm: float, size: int):
@@ -669,8 +670,17 @@ def pixel_flux(u_nodes, u_w_nodes, gauss_nodes: int, pixel_mm: float, size: int,
     g = int(gauss_nodes)
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
     flux = u_nodes.real * u_w_nodes.real + u_nodes.imag * u_w_nodes.imag
-    flux = flux.reshape(u_nodes.shape[0], size, g, size, g)
+    flux = flux.reshape(_pixel_grid(u_nodes, g))
     return _node_sum(flux, w2)
+
+
+def _pixel_grid(u_nodes, g: int):
+    """``(S, rows, g, cols, g)``: the node array's shape split into pixels of ``g x g`` nodes."""
+    S, my, mx = u_nodes.shape
+    if my % g or mx % g:
+        raise ValueError(f"node field shape {tuple(u_nodes.shape)} is not a whole number of pixels of {g} x {g} "
+                         "Gauss nodes")
+    return S, my // g, g, mx // g, g
 
 
 def _node_sum(v, w2):
@@ -685,7 +695,7 @@ def pixel_flux_adjoint(u_nodes, u_w_nodes, grad_power, gauss_nodes: int, pixel_m
     ``u_w_nodes`` in torch's convention (``2 dL/d conj(u)``): ``(w_ab grad_power[i, j] U_w, w_ab grad_power[i, j] U)``
     at node (i a, j b) (``Re(conj(a) b) = (conj(a) b + a conj(b)) / 2``)."""
     g = int(gauss_nodes)
-    S, size = grad_power.shape[0], grad_power.shape[1]
+    S, rows, cols = grad_power.shape
     w2 = xp.asarray(pixel_weights(g, pixel_mm))
-    wg = (grad_power[:, :, None, :, None] * w2[None, None, :, None, :]).reshape(S, size * g, size * g)
+    wg = (grad_power[:, :, None, :, None] * w2[None, None, :, None, :]).reshape(S, rows * g, cols * g)
     return wg * u_w_nodes, wg * u_nodes

@@ -76,7 +76,7 @@ from .propagate_sensor import (
 )
 from .propagate_setup import (
     band_limits, gauss_legendre, next_fft_size, _P_LPX, _batch_of, _center_extent, _check_window, _coords,
-    _per_batch, _setup,
+    _per_batch, _setup, _window_center,
 )
 from .propagate_stages import (
     _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _crop_demodulate_adjoint,
@@ -101,8 +101,9 @@ __all__ = [
 class PointGeometry:
     """What :class:`PointPropagator` needs: the sampled field's grid (``pitch_mm``, ``origin_mm``
     (x, y) of sample (0, 0)), ``wavelength_um``, ``distance_mm``, the output points ``out_x_mm`` /
-    ``out_y_mm`` ((M,) or (B, M), absolute mm), and ``doe_scale``, ``carrier_cpmm``, ``pad_to``, ``dtype``
-    (as :class:`SensorGeometry` documents them)."""
+    ``out_y_mm`` ((M,) or (B, M), absolute mm), and ``doe_scale``, ``carrier_cpmm``, ``pad_to``, ``dtype``,
+    ``window_center_mm`` (as :class:`SensorGeometry` documents them: a part of a larger set of points keeps the
+    whole set's window centre, hence its band limits and its values)."""
     pitch_mm: object
     origin_mm: object
     wavelength_um: object
@@ -113,6 +114,7 @@ class PointGeometry:
     carrier_cpmm: object = None
     pad_to: object = None
     dtype: object = None
+    window_center_mm: object = None
 
 
 class PointPropagator:
@@ -131,6 +133,7 @@ class PointPropagator:
         xs = _coords(g.out_x_mm, batch, "out_x_mm")
         ys = _coords(g.out_y_mm, batch, "out_y_mm")
         center, ex, ey = _center_extent(xs, ys)
+        center = _window_center(center, g.window_center_mm, batch)
         st = _setup(self.backend, field, g.pitch_mm, g.origin_mm, g.wavelength_um, g.distance_mm,
                     doe_phase=doe_phase, doe_scale=g.doe_scale, carrier_cpmm=g.carrier_cpmm, pad_to=g.pad_to,
                     dtype=g.dtype, out_center_mm=center)
@@ -147,34 +150,77 @@ class PointPropagator:
         out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
         return _band_to_points(st, band, ext, eyf, out)
 
-    def forward_weighted(self, field, doe_phase=None):
+    def forward_weighted(self, field, doe_phase=None, powers=(1,), minus_one=False):
         """``U_w`` at the output points, (B, My, Mx) complex device array: the field of the band spectrum
         weighted by the direction cosine ``c = lambda w = k_z / k`` of each plane wave (``w = sqrt(1/lambda^2 -
         u^2 - v^2)`` cycles/mm, lambda in the medium, mm). Since ``dH/dz = 2 pi i w H`` (the transfer function
         carries the whole ``exp(2 pi i z w)``), ``d forward / d distance_mm = (2 pi i / lambda) U_w`` at fixed
-        band limits and points (:meth:`rwwarp.wave.methods.asm.AsmOperator.distance_derivative`)."""
+        band limits and points (:meth:`rwwarp.wave.methods.asm.AsmOperator.distance_derivative`).
+        ``powers``: the powers ``p`` of ``c`` whose fields ``F^-1[c^p C]`` are formed from one band spectrum
+        (0: the field itself); with more than one, a tuple of them in that order. ``minus_one``: the weights
+        ``c^(p-1) (c - 1)`` instead (each ``p >= 1``; ``c - 1`` without cancellation): ``(2 pi i / lambda)`` times
+        them is the distance derivative of the field with its constant phase ``exp(2 pi i z / lambda)`` removed."""
         st, xs, ys, ex, ey = self._prepare(field, doe_phase)
         _check_window(st, ex, ey, "propagate")
         coords = _upload_coords(st, xs, ys)
         band, _ = _band_spectrum(st)
-        wb = _band_obliquity(st, band, 1, st.backend.workspace("band_w", band.shape, st.dtype))
         ext, eyf = _dft_factors(st, coords)
-        out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
-        return _band_to_points(st, wb, ext, eyf, out)
+        outs = []
+        for p in powers:
+            wb = band if int(p) == 0 and not minus_one else _band_obliquity(
+                st, band, int(p), st.backend.workspace("band_w", band.shape, st.dtype), minus_one=minus_one)
+            out = st.backend.empty((st.batch, ys.shape[1], xs.shape[1]), st.dtype)
+            outs.append(_band_to_points(st, wb, ext, eyf, out))
+        return outs[0] if len(outs) == 1 else tuple(outs)
 
-    def adjoint(self, grad_out, field, doe_phase=None):
+    def adjoint(self, grad_out, field, doe_phase=None, grad_weighted=None):
         """``(grad_field, grad_doe_phase or None)`` for a real loss's gradient ``grad_out`` at the output
-        points: torch's convention, ``dL/dRe U + 1j dL/dIm U``)."""
+        points: torch's convention, ``dL/dRe U + 1j dL/dIm U``). ``grad_weighted``: also the gradient of the
+        direction-cosine-weighted field ``U_w`` (:meth:`forward_weighted`), whose adjoint ``c A^H`` adds on the
+        band (pixel_values "flux")."""
+        st, band_grad, h, _ = self._band_gradient(grad_out, field, doe_phase, grad_weighted, need_band=False)
+        return _band_adjoint_to_field(st, band_grad, h)
+
+    def distance_adjoint(self, grad_out, field, doe_phase=None, grad_weighted=None, need_field=True):
+        """:meth:`adjoint` and the distance's gradient in one set-up: ``(grad_field or None, grad_doe_phase or None,
+        grad_distance)``, ``grad_distance`` numpy float64 (B,) (loss units per mm; one small device-to-host copy).
+        ``dL/dz = Re sum_band conj(G) 2 pi i (w - 1/lambda) C`` (``G`` the band's gradient, ``C`` the band spectrum,
+        ``dH/dz = 2 pi i w H``) for a loss that does not see a constant phase per source (pixel powers and fluxes):
+        the constant phase's term ``2 pi i / lambda`` is left out (zero for such a loss, ``1 / (1 - c)`` times the
+        rest, so only its rounding would remain). The band limits and points are held fixed (they move with z in
+        jumps of zero derivative almost everywhere). ``need_field=False``: only the distance's gradient."""
+        st, band_grad, h, band = self._band_gradient(grad_out, field, doe_phase, grad_weighted, need_band=True)
+        be = st.backend
+        partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
+        _launch(st, "band_distance_grad_kernel", (st.ky_max, st.batch, 1), band, band_grad, st.params_dev, st.kx_max,
+                st.ky_max, st.batch, 0, partial, local=(64, 1, 1))
+        grad_distance = np.asarray(be.to_host(partial), dtype=np.float64).sum(axis=1)
+        if not need_field:
+            return None, None, grad_distance
+        return (*_band_adjoint_to_field(st, band_grad, h), grad_distance)
+
+    def _band_gradient(self, grad_out, field, doe_phase, grad_weighted, need_band):
+        """``(st, band_grad, h, band or None)``: the set-up, ``G = A^H grad_out (+ c A^H grad_weighted)`` on the band
+        (workspace 'band_grad'), the adjoint's transfer function and, with ``need_band``, the band spectrum."""
         st, xs, ys, _, _ = self._prepare(field, doe_phase)
-        g = st.backend.to_device(grad_out, st.dtype)
-        if tuple(g.shape) != (st.batch, ys.shape[1], xs.shape[1]):
-            raise ValueError(f"grad_out shape {tuple(g.shape)} != {(st.batch, ys.shape[1], xs.shape[1])}")
+        shape = (st.batch, ys.shape[1], xs.shape[1])
+        gs = [st.backend.to_device(a, st.dtype) for a in ((grad_out,) if grad_weighted is None
+                                                          else (grad_out, grad_weighted))]
+        for g in gs:
+            if tuple(g.shape) != shape:
+                raise ValueError(f"grad_out shape {tuple(g.shape)} != {shape}")
         coords = _upload_coords(st, xs, ys)
-        h = _transfer(st, 1.0 / (st.npx * st.npy))
+        if need_band:
+            band, h = _band_spectrum(st)
+        else:
+            band, h = None, _transfer(st, 1.0 / (st.npx * st.npy))
         ex, eyf = _dft_factors(st, coords, adjoint=True)
         band_grad = st.backend.workspace("band_grad", (st.batch, st.ky_max, st.kx_max), st.dtype)
-        _points_to_band(st, g, ex, eyf, band_grad)
-        return _band_adjoint_to_field(st, band_grad, h)
+        _points_to_band(st, gs[0], ex, eyf, band_grad)
+        if grad_weighted is not None:
+            part = _points_to_band(st, gs[1], ex, eyf, st.backend.workspace("band_grad_w", band_grad.shape, st.dtype))
+            _band_obliquity(st, part, 1, band_grad, accumulate=True)
+        return st, band_grad, h, band
 
 
 def _grid_setup(backend, field, pitch_mm, origin_mm, wavelength_um, distance_mm, out_origin_mm, doe_phase,

@@ -190,11 +190,14 @@ def _band_spectrum(st):
     return band, h
 
 
-def _band_obliquity(st, src, power, out, accumulate=False):
+def _band_obliquity(st, src, power, out, accumulate=False, minus_one=False):
     """``out = c^power src`` on the band (``+ out`` with ``accumulate``), ``c = lambda w = k_z / k`` the direction
-    cosine of each plane wave (pixel_values "flux"; real, so it is its own adjoint). Returns ``out``."""
+    cosine of each plane wave (pixel_values "flux"; real, so it is its own adjoint). ``minus_one`` (``power >= 1``):
+    ``c^(power-1) (c - 1) src`` instead, ``c - 1`` formed without cancellation. Returns ``out``."""
+    if minus_one and int(power) < 1:
+        raise ValueError(f"_band_obliquity: minus_one needs power >= 1, got {power}")
     _launch(st, "band_obliquity_kernel", (st.kx_max, st.ky_max, st.batch), src, st.params_dev, st.kx_max,
-            st.ky_max, st.batch, int(power), int(bool(accumulate)), out)
+            st.ky_max, st.batch, int(power), int(bool(accumulate)), int(bool(minus_one)), out)
     return out
 
 

@@ -16,7 +16,8 @@ import torch_bridge as tb
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.wave.plan import Plan
 from rwwarp.psf import RayWave
-from torch_bridge.functions import FocalPropagate, Propagate
+from torch_bridge.functions import FocalPropagate
+from torch_bridge.operator_function import operator_propagate
 
 
 def _thin_lens():
@@ -38,26 +39,27 @@ def small_rw(request):
 
 
 def test_propagate_flux_gradcheck(small_rw):
-    """Propagate (band-limited ASM) in both conventions: field, DOE phase and distance pass gradcheck."""
+    """The ASM's propagation (the generic operator path over AsmOperator) in both conventions: field, DOE phase
+    and distance pass gradcheck."""
     rw_ = small_rw
     torch.manual_seed(0)
     n = rw_.plan.n_grid
     field = torch.randn(rw_.nsrc, n, n, dtype=torch.complex128, requires_grad=True)
     phi0 = (2 * math.pi * torch.rand(rw_.nsrc, n, n, dtype=torch.float64)).requires_grad_()
     dist = torch.full((rw_.nsrc,), rw_.z_sensor - rw_.z_plane, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda f, p, d: Propagate.apply(f, p, d, rw_), (field, phi0, dist),
+    assert torch.autograd.gradcheck(lambda f, p, d: operator_propagate(f, d, rw_, phi0=p), (field, phi0, dist),
                                     eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
 def test_propagate_pixel_values_by_name_against_rwwarp(small_rw):
-    """Propagate equals rwwarp's SensorPropagator of the same geometry and pixel values; flux and intensity
+    """The ASM's torch path equals rwwarp's SensorPropagator of the same geometry and pixel values; flux and intensity
     differ by the obliquity (the sources are 20-25 deg off axis)."""
     from rwwarp.wave.propagate import SensorPropagator
     rw_ = small_rw
     torch.manual_seed(1)
     n = rw_.plan.n_grid
     field = torch.randn(rw_.nsrc, n, n, dtype=torch.complex128)
-    got = Propagate.apply(field, None, None, rw_).numpy()
+    got = operator_propagate(field, None, rw_).numpy()
     ref = np.asarray(SensorPropagator("cpu", rw_.sensor_geometry()).forward(field.numpy()).get())
     assert np.max(np.abs(got - ref)) < 1e-13 * np.abs(ref).max()
     other = "intensity" if rw_.pixel_values == "flux" else "flux"

@@ -14,7 +14,8 @@ import torch_bridge as tb
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.wave.plan import Plan
 from rwwarp.psf import RayWave
-from torch_bridge.functions import Propagate, TraceSplat
+from torch_bridge.functions import TraceSplat
+from torch_bridge.operator_function import operator_propagate
 
 
 def thin_lens_doe():
@@ -66,16 +67,18 @@ def test_trace_splat_gradcheck(small_rw):
 
 
 def test_propagate_gradcheck(small_rw):
+    """The ASM's propagation (the generic operator path: AsmOperator, the DOE as exp(1j alpha phi0) in torch):
+    field, DOE phase and distance gradients against gradcheck's finite differences."""
     rw = small_rw
     torch.manual_seed(0)
     n = rw.plan.n_grid
     field = torch.randn(rw.nsrc, n, n, dtype=torch.complex128, requires_grad=True)
     phi0 = (2 * math.pi * torch.rand(rw.nsrc, n, n, dtype=torch.float64)).requires_grad_()
     dist = torch.full((rw.nsrc,), rw.z_sensor - rw.z_plane, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda f, p, d: Propagate.apply(f, p, d, rw), (field, phi0, dist),
+    assert torch.autograd.gradcheck(lambda f, p, d: operator_propagate(f, d, rw, phi0=p), (field, phi0, dist),
                                     eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
     # no DOE, fixed distance
-    assert torch.autograd.gradcheck(lambda f: Propagate.apply(f, None, None, rw), (field,), eps=1e-6, atol=1e-6,
+    assert torch.autograd.gradcheck(lambda f: operator_propagate(f, None, rw), (field,), eps=1e-6, atol=1e-6,
                                     rtol=1e-4, fast_mode=True)
 
 

@@ -8,7 +8,7 @@ torch = pytest.importorskip("torch")
 from rwwarp.lens import Lens, Sensor, Surface
 from rwwarp.psf import RayWave
 from rwwarp.trace import as_field_list
-from torch_bridge.functions import propagate
+from torch_bridge.operator_function import operator_propagate
 from torch_bridge.wave_step import WaveStep, wave_step
 
 
@@ -38,7 +38,7 @@ def test_gradients_through_the_wave_step_and_the_doe_match_finite_differences(rw
     wts = torch.from_numpy(rng.uniform(0.5, 1.5, (1, rw.size, rw.size)))
 
     def loss(u, p):
-        return (wts * propagate(WaveStep.apply(u, rw), p, None, rw)).sum()
+        return (wts * operator_propagate(WaveStep.apply(u, rw), None, rw, phi0=p)).sum()
 
     u = u0.clone().requires_grad_(True)
     p = phi0.clone().requires_grad_(True)

@@ -72,11 +72,15 @@ def wave_plane_cost(plan, n_sources: int):
 class AngularSpectrum(Propagation):
     """The band-limited (shifted, Matsushima) angular spectrum over the whole beam's padded FFT, a matrix DFT
     to the pixels' Gauss nodes (:class:`rwwarp.wave.propagate_sensor.SensorPropagator`); the DOE phase goes in
-    with the field."""
+    with the field (its operator applies the planned one, or leaves it to the caller: ``doe=False``, which
+    :mod:`torch_bridge` uses to differentiate the DOE phase)."""
 
     name = "asm"
-    torch_path = "asm"
+    torch_path = "operator"
     doe_in_propagator = True
+    doe_separable = True
+    spatial_tiles = True
+    per_source_distances = True
     fft_padded = True
 
     def plan(self, ctx):
@@ -93,8 +97,11 @@ class AngularSpectrum(Propagation):
     def explain_grids(self, plan):
         return super().explain_grids(plan) + f"FFT {plan.n_pad}^2, "
 
-    def operator(self, rw, distance_mm=None, precision="double"):
-        return AsmOperator(rw, distance_mm)
+    def operator(self, rw, distance_mm=None, precision="double", doe=True, tile=None):
+        """:class:`AsmOperator` of ``rw`` over ``distance_mm`` (mm; None: the lens's); ``doe=False`` leaves the
+        planned DOE out (the field comes with it applied); ``tile = (r0, r1, c0, c1)``: those sensor pixel rows /
+        columns only, with the whole patch's band limits (equal to those pixels of the whole patch)."""
+        return AsmOperator(rw, distance_mm, doe=doe, tile=tile)
 
     def pixels(self, rw, field, precision="double", to_host=True):
         phi0, scale = rw.doe_phase()
@@ -103,15 +110,23 @@ class AngularSpectrum(Propagation):
 
 class AsmOperator:
     """The ASM's linear map, wave-plane field (S, n, n) (carrier removed, wave step applied; the DOE phase of
-    ``rw`` applied inside) -> the field at the pixels' Gauss nodes (S, size g, size g), carrier restored
-    (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm; default the lens's). Arrays in
-    and out are of the operator's namespace ``xp``: numpy on the CPU and OpenCL devices (the OpenCL result is
-    copied to the host), CuPy on CUDA (device memory, no copy). :meth:`distance_derivative` is the exact
-    d/dz at the fixed band limits (``dH/dz = 2 pi i w H``)."""
+    ``rw`` applied inside unless ``doe=False``) -> the field at the pixels' Gauss nodes (S, size g, size g),
+    carrier restored (:class:`rwwarp.wave.propagate.PointPropagator`), over ``distance_mm`` (mm, a float or one
+    per source; default the lens's). ``tile = (r0, r1, c0, c1)``: the nodes of those sensor pixel rows / columns
+    only (S, (r1 - r0) g, (c1 - c0) g), with the whole patch's window centre (so its band limits, and its values,
+    are the whole patch's). Arrays in and out are of the operator's namespace ``xp``: numpy on the CPU and OpenCL
+    devices (the OpenCL result is copied to the host), CuPy on CUDA (device memory, no copy).
+    :meth:`distance_derivative` is the exact d/dz at the fixed band limits (``dH/dz = 2 pi i w H``); the ``*_pair``
+    methods add the direction-cosine-weighted field ``U_w`` (pixel_values "flux"). ``keep_for_backward``: it holds
+    only its geometry (the FFT plans and work arrays are the backend's caches), so an autograd Function may keep
+    it."""
 
-    def __init__(self, rw, distance_mm=None):
+    keep_for_backward = True
+
+    def __init__(self, rw, distance_mm=None, doe=True, tile=None):
         from .. import backend as bk
         from ..propagate import PointGeometry, PointPropagator
+        from ..propagate_setup import _center_extent
         from .registry import gauss_nodes_xy
         self.rw = rw
         self.be = bk.get_backend(rw.device)
@@ -120,25 +135,46 @@ class AsmOperator:
             self.xp = cupy
         else:
             self.xp = np
-        self.z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else float(distance_mm)
+        z = float(rw.z_sensor - rw.z_plane) if distance_mm is None else distance_mm
+        self.z = np.broadcast_to(np.asarray(z, dtype=np.float64), (rw.nsrc,)).copy()   # mm, one per source
         nx, ny = gauss_nodes_xy(rw)
-        phi0, scale = rw.doe_phase()
+        phi0, scale = rw.doe_phase() if doe else (None, None)
         self.phi0 = phi0
+        center = None
+        if tile is not None:
+            r0, r1, c0, c1 = (int(t) for t in tile)
+            size = int(rw.size)
+            if not (0 <= r0 < r1 <= size and 0 <= c0 < c1 <= size):
+                raise ValueError(f"AsmOperator: tile {tuple(tile)} is not inside the {size} x {size} pixel patch")
+            g = int(rw.gauss_nodes)
+            center = _center_extent(nx, ny)[0]          # the whole patch's window centre
+            nx = np.ascontiguousarray(nx[:, c0 * g:c1 * g])
+            ny = np.ascontiguousarray(ny[:, r0 * g:r1 * g])
+        self.tile = None if tile is None else (r0, r1, c0, c1)
         lam_um = np.array(rw.wls, dtype=np.float64) / rw.n_after       # in the medium after the plane
         self._dz = 2j * np.pi / (lam_um * 1e-3)                          # 2 pi i / lambda (rad/mm), (S,)
-        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, lam_um, np.full(rw.nsrc, self.z),
-                            nx, ny, doe_scale=scale, carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad)
+        geo = PointGeometry(rw.plan.pitch_mm, rw.origin, lam_um, self.z,
+                            nx, ny, doe_scale=scale, carrier_cpmm=rw.carrier, pad_to=rw.plan.n_pad,
+                            window_center_mm=center)
         self.prop = PointPropagator(self.be, geo)
 
     def forward(self, field):
         """The field at the nodes (S, My, Mx) of ``xp``."""
         return self._out(self.prop.forward(self._dev(field), self.phi0))
 
+    def forward_pair(self, field):
+        """``(U, U_w)`` at the nodes (S, My, Mx) of ``xp``: the field and the field of its direction-cosine-weighted
+        band spectrum (``c = k_z / k``; pixel_values "flux" integrates ``Re(conj(U) U_w)``), one band spectrum."""
+        return tuple(self._out(a) for a in self.prop.forward_weighted(self._dev(field), self.phi0, (0, 1)))
+
     def adjoint(self, grad):
         """``A^H grad``: (S, My, Mx) -> (S, n, n) of ``xp`` (the map is linear in the field)."""
-        n = self.rw.plan.n_grid
-        zero = self._dev(self.xp.zeros((self.rw.nsrc, n, n), np.complex128))
-        g, _ = self.prop.adjoint(self._dev(grad), zero, self.phi0)
+        g, _ = self.prop.adjoint(self._dev(grad), self._zero(), self.phi0)
+        return self._out(g)
+
+    def adjoint_pair(self, grad_u, grad_w):
+        """``A^H grad_u + A_w^H grad_w`` (S, n, n) of ``xp``: the adjoint of :meth:`forward_pair`."""
+        g, _ = self.prop.adjoint(self._dev(grad_u), self._zero(), self.phi0, grad_weighted=self._dev(grad_w))
         return self._out(g)
 
     def distance_derivative(self, field):
@@ -147,6 +183,45 @@ class AsmOperator:
         band limits and nodes held fixed (they move with z in jumps of zero derivative almost everywhere)."""
         u_w = self._out(self.prop.forward_weighted(self._dev(field), self.phi0))
         return u_w * self.xp.asarray(self._dz)[:, None, None]
+
+    def distance_derivative_pair(self, field):
+        """``(dU/dz, dU_w/dz)`` (mm^-1) of :meth:`forward_pair`: ``(2 pi i / lambda) (U_w, U_ww)``, ``U_ww`` the field
+        of ``c^2`` times the band spectrum (the band limits and nodes held fixed)."""
+        dz = self.xp.asarray(self._dz)[:, None, None]
+        return tuple(self._out(a) * dz for a in self.prop.forward_weighted(self._dev(field), self.phi0, (1, 2)))
+
+    def distance_derivative_phase_free(self, field):
+        """``d [exp(-2 pi i z / lambda) forward(field)] / d distance_mm`` (S, My, Mx) of ``xp``: the distance
+        derivative without its constant phase's term ``(2 pi i / lambda) forward``
+        (``(2 pi i / lambda) F^-1[(c - 1) C]``, ``c - 1`` formed without cancellation), which a loss invariant to a constant phase per source (pixel powers and
+        fluxes) does not see; that term is ``1 / (1 - c)`` times the rest near the axis, so its rounding would
+        dominate (:class:`torch_bridge.operator_function.OperatorApply` uses this form)."""
+        u = self._out(self.prop.forward_weighted(self._dev(field), self.phi0, (1,), minus_one=True))
+        return u * self.xp.asarray(self._dz)[:, None, None]
+
+    def distance_derivative_pair_phase_free(self, field):
+        """:meth:`distance_derivative_pair` without the constant phase's term (as
+        :meth:`distance_derivative_phase_free`): ``(2 pi i / lambda) F^-1[(c - 1) C, c (c - 1) C]``."""
+        dz = self.xp.asarray(self._dz)[:, None, None]
+        return tuple(self._out(a) * dz for a in self.prop.forward_weighted(self._dev(field), self.phi0, (1, 2),
+                                                                           minus_one=True))
+
+    def adjoint_distance(self, grads, field, need_field=True):
+        """The adjoint and the distance's gradient in one pass, for a loss that does not see a constant phase per
+        source (pixel powers and fluxes): ``(A^H g or None, dL/dz)`` with ``grads`` the output's gradient(s)
+        (``(g,)``, or ``(g_u, g_w)`` for :meth:`forward_pair`) and ``field`` the forward call's; ``dL/dz`` (S,) of
+        ``xp`` (loss units per mm) is ``Re sum conj(g) dU/dz`` without the constant phase's term, as
+        :meth:`distance_derivative_phase_free` gives it
+        (:meth:`~rwwarp.wave.propagate.PointPropagator.distance_adjoint`: the band's gradient contracted with the
+        band spectrum, no node field formed)."""
+        gw = self._dev(grads[1]) if len(grads) > 1 else None
+        g, _, gd = self.prop.distance_adjoint(self._dev(grads[0]), self._dev(field), self.phi0, grad_weighted=gw,
+                                              need_field=need_field)
+        return (None if g is None else self._out(g)), self.xp.asarray(gd)
+
+    def _zero(self):
+        n = self.rw.plan.n_grid
+        return self._dev(self.xp.zeros((self.rw.nsrc, n, n), np.complex128))
 
     def _out(self, a):
         return a if self.xp is not np else np.asarray(self.be.to_host(a))

@@ -103,12 +103,20 @@ class Propagation:
     * ``forms_field``: the method propagates a splatted wave-plane field (False: it forms its own, ``pixel``).
     * ``torch_path``: the :mod:`torch_bridge` autograd path that differentiates it, ``"operator"`` (the generic
       one over :meth:`operator`: :func:`torch_bridge.operator_function.operator_propagate`, the DOE applied as
-      ``exp(1j alpha phi0)`` first where ``doe_in_propagator`` is False), ``"asm"`` (the field and the DOE phase
-      through :func:`torch_bridge.functions.propagate`) or ``"focal"`` (the DOE-orders factor, then the generic
-      path over the focal operator), or None; ``differentiable``: it has one.
+      ``exp(1j alpha phi0)`` first where ``doe_in_propagator`` is False or ``doe_separable`` True; the ASM's
+      path) or ``"focal"`` (the DOE-orders factor, then the generic path over the focal operator), or None;
+      ``differentiable``: it has one.
     * ``packable``: :class:`~rwwarp.wave.packed.PackedRayWave` may batch its members (one trace and splat).
     * ``doe_in_propagator``: the DOE phase ``phi0`` goes into the propagation with the field (the ASM's
       ``doe_phase``); False: the caller multiplies the field by the DOE-orders factor first (``focal``).
+    * ``doe_separable``: its operator applies the planned DOE but leaves it out with ``operator(..., doe=False)``:
+      :mod:`torch_bridge` then multiplies the field by ``exp(1j alpha phi0)`` itself, so the DOE phase is
+      differentiated (``asm``).
+    * ``spatial_tiles``: its operator evaluates a part of the patch, ``operator(..., tile=(r0, r1, c0, c1))`` (those
+      pixel rows / columns, equal to the same pixels of the whole patch): :mod:`torch_bridge` propagates in spatial
+      tiles to bound the output side's memory (``asm``).
+    * ``per_source_distances``: its operator takes one distance per source (``distance_mm`` of shape (S,)), so the
+      sources of a batch may be propagated over different distances (``asm``); else one distance for all.
     * ``fft_padded``: the plan's ``n_pad`` is a padded FFT the memory budget names.
     * ``rim_weighted``: the energy convention traces the circular pupil's rim cells by their part (``focal``).
     * ``per_source_plans``: its grids follow each source's patch: batches plan their sources alone (``focal``).
@@ -126,6 +134,9 @@ class Propagation:
     torch_path = None
     packable = True
     doe_in_propagator = True
+    doe_separable = False
+    spatial_tiles = False
+    per_source_distances = False
     fft_padded = False
     rim_weighted = False
     per_source_plans = False
