@@ -59,8 +59,10 @@ def smoke_config(name: str, steps: int, eval_images: int, budget_gb: float | Non
 
 
 def run_arm(cfg_path: Path, arm: str, out: Path, timeout: float) -> dict:
-    """One arm in its own process; returns exit code, wall time, peak used memory (MiB) and the log tail."""
-    cmd = [sys.executable, "-m", "torch_bridge.train", str(cfg_path), "--preset", "gpu", "--arm", arm,
+    """One arm in its own process; returns exit code, wall time, peak used memory (MiB) and the log tail. The arm
+    runs with Python's fault handler on (a crash prints every thread's Python stack) and its whole log is kept
+    as ``out / arm / run.log``."""
+    cmd = [sys.executable, "-X", "faulthandler", "-m", "torch_bridge.train", str(cfg_path), "--preset", "gpu", "--arm", arm,
            "--out", str(out), "--fresh", "--no-progress"]
     t0 = time.perf_counter()
     with GpuMemory() as mem:
@@ -69,8 +71,11 @@ def run_arm(cfg_path: Path, arm: str, out: Path, timeout: float) -> dict:
             rc, log = p.returncode, p.stdout + p.stderr
         except subprocess.TimeoutExpired as e:
             rc, log = 124, (e.stdout or b"").decode(errors="replace") + (e.stderr or b"").decode(errors="replace")
+    (out / arm).mkdir(parents=True, exist_ok=True)
+    (out / arm / "run.log").write_text(log)
+    keep = 40 if rc < 0 else 12   # a crash: room for the fault handler's stacks
     return {"rc": rc, "wall_s": round(time.perf_counter() - t0, 2), "peak_mib": mem.peak,
-            "log_tail": [ln for ln in log.splitlines() if "Warning" not in ln][-12:]}
+            "log_tail": [ln for ln in log.splitlines() if "Warning" not in ln][-keep:]}
 
 
 def main(argv=None) -> int:

@@ -430,10 +430,7 @@ class RayWave:
             from .focal import FocalPropagator
             xp = np
             if self.tracer.device.startswith("cuda"):
-                import cupy as xp
-
-                from .backend import ensure_cufft_plan_cache
-                ensure_cufft_plan_cache()       # on the current device, where the operator's FFTs run
+                import cupy as xp   # (FocalPropagator sizes CuPy's cuFFT plan cache in the thread of each FFT)
             nx, ny = gauss_nodes_xy(self)
             pl = self.plan
             self._focal_op = FocalPropagator(self.origin, pl.pitch_mm, pl.n_grid, self.lam_mm / self.n_after,
