@@ -47,6 +47,7 @@ parameter gradients) while one DOE-plane field is 7.9 MB.
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import sys
 import weakref
@@ -128,6 +129,21 @@ class TorchAllocator:
 
 
 _ALLOCATORS: dict = {}
+
+
+def _release_at_exit() -> None:
+    """At exit, before the interpreter's teardown: rwwarp's backends release their caches
+    (:func:`rwwarp.wave.backend.release_all`: CuPy arrays drawn from torch's pool through :class:`TorchAllocator`
+    among them), then torch waits for its devices and empties its cache. Without it a design command on one H200
+    ended with SIGSEGV after its work (``perf/tools/exit_probe.py``)."""
+    from rwwarp.wave.backend import release_all
+    release_all()
+    if _ALLOCATORS and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+        torch.cuda.empty_cache()
+
+
+atexit.register(_release_at_exit)
 
 
 @contextlib.contextmanager
