@@ -215,18 +215,21 @@ class LiveProvider:
             self.judged.append((key, d, age, k in now, forced))
         self.drift_seconds += time.perf_counter() - t0
 
-    def _plan_alone(self, todo, src_f, src_w, src_c, depth_mm) -> list:
-        """Plan the sources ``todo`` (``[(j, check)]``, source indices in order) each on its own (focal), all from
-        one pilot trace (:meth:`~torch_bridge.HybridLens.raywaves_alone`: a source's pilot rows, and so its plan,
-        are what a trace of it alone gives). With ``method="two-step"`` each gets its wave step
-        (:func:`torch_bridge.wave_step.add_wave_step`); ``check``: its recorded peak is checked against the budget
-        (a source planned again alone, without its chunk's joint check). Returns the plans in ``todo``'s order."""
+    def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check=False) -> list:
+        """Plan sources ``js`` (indices into ``src_f`` (deg), ``src_w`` (um), ``src_c`` (mm, (S, 2) patch centres))
+        each on its own (focal), all from one pilot trace (:meth:`~torch_bridge.HybridLens.raywaves_alone`: a
+        source's pilot rows, and so its plan, are what a trace of it alone gives). With ``method="two-step"`` each
+        gets its wave step (:func:`torch_bridge.wave_step.add_wave_step`); ``check`` (one bool, or one per source):
+        its recorded peak is checked against the budget (a source planned again alone, without its chunk's joint
+        check). Returns the plans in ``js``'s order."""
+        checks = [bool(check)] * len(js) if np.ndim(check) == 0 else [bool(c) for c in check]
+        if len(checks) != len(js):
+            raise ValueError(f"LiveProvider._plan_sources: {len(checks)} checks for {len(js)} sources")
         m = self.module
         t0 = time.perf_counter()
-        js = [j for j, _ in todo]
         rs = m.raywaves_alone([src_f[j] for j in js], [src_w[j] for j in js], self.size, centers_mm=src_c[js],
                               object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, method="focal")
-        for r, (_, check) in zip(rs, todo):
+        for r, check in zip(rs, checks):
             if m.method == "two-step":
                 # each source's focal plan with the wave step "two-step" plans (a joint plan's RayWave has it
                 # already): torch_bridge.wave_step.add_wave_step
@@ -343,7 +346,7 @@ class LiveProvider:
         (:meth:`_usable`; moved along with its patch), is planned again on its own when it was planned focal
         before, or is new: the chunk's new sources get one joint plan, which decides the method and checks the
         budget (a band-limited batch serves them together; focal ones are planned on their own). All the sources
-        planned on their own in this call are planned at once, from one pilot trace (:meth:`_plan_alone`): each
+        planned on their own in this call are planned at once, from one pilot trace (:meth:`_plan_sources`): each
         plan is what planning that source alone gives (its pilot rows do not depend on the other sources), so
         the PSFs are those of planning chunk by chunk. Which plans are kept or made, and the counts, are as when
         each chunk was planned as the loop reached it (a source repeated in a later chunk takes the plan made
@@ -404,7 +407,8 @@ class LiveProvider:
                     self._focal_rws[key] = e
             chunks.append((sl, keys, rws, fresh))
         if todo:
-            for (rws, j, e), r in zip(made, self._plan_alone(todo, src_f, src_w, src_c, depth_mm)):
+            plans = self._plan_sources([j for j, _ in todo], src_f, src_w, src_c, depth_mm, check=[c for _, c in todo])
+            for (rws, j, e), r in zip(made, plans):
                 rws[j] = r
                 if e is not None:
                     e[0] = r
