@@ -3,7 +3,8 @@ gpu preset's e2e arm (``perf/time_plan_cooke.py``'s setup: the paraxial achromat
 field nodes x one wavelength per colour channel, ``--size`` px of 4 um, chunks of ``--tile`` sources, every source
 planned again every call (``replan_every=1``: the steady state of a step whose plans are all made again; the
 drift rule makes ~30 of 48 again). Per call (no gradients): the wall time of ``psfs`` (s), the provider's planning
-seconds (:attr:`~torch_bridge.live.LiveProvider.plan_seconds`, host), the pilot traces made
+seconds (:attr:`~torch_bridge.live.LiveProvider.plan_seconds`, host), the host seconds spent in ``LiveProvider._chunks``
+(planning and packed tiles, without the tiles' runs), the pilot traces made
 (:func:`rwwarp.wave.pilot.pilot_from_tracer` calls) and the ``raywaves_alone`` calls. The first call (kernel builds,
 first plans) is reported apart. Compare trees by alternating ``PYTHONPATH=TREE python perf/tools/time_live_plan.py``.
 """
@@ -42,21 +43,38 @@ def main():
     PS.pilot_from_tracer = counted("pilot", P.pilot_from_tracer)   # plan_sources' pilot (imported by name)
     P.pilot_from_tracer = PS.pilot_from_tracer
     TM.HybridLens.raywaves_alone = counted("alone", TM.HybridLens.raywaves_alone)
+    spent = [0.0]   # host seconds inside LiveProvider._chunks (planning, packed tiles; not the tiles' runs)
+    chunks = LiveProvider._chunks
+
+    def timed(self, *args):
+        it = chunks(self, *args)
+        while True:
+            t0 = time.perf_counter()
+            try:
+                c = next(it)
+            except StopIteration:
+                spent[0] += time.perf_counter() - t0
+                return
+            spent[0] += time.perf_counter() - t0
+            yield c
+    LiveProvider._chunks = timed
     prov = LiveProvider(m, nodes, a.size, pixel, wavelength_ref_um=0.55, tile=a.tile)
     with torch.no_grad():
         t0 = time.perf_counter()
         prov.psfs(wls)
         print(f"first call {time.perf_counter() - t0:.2f} s ({len(nodes) * len(wls)} sources, tile {a.tile})")
-        wall, plan = [], []
+        wall, plan, chk = [], [], []
         for _ in range(a.runs):
-            c0, p0 = dict(count), prov.plan_seconds
+            c0, p0, s0 = dict(count), prov.plan_seconds, spent[0]
             t0 = time.perf_counter()
             prov.psfs(wls)
             wall.append(time.perf_counter() - t0)
             plan.append(prov.plan_seconds - p0)
-            print(f"call: {wall[-1]:.3f} s, planning {plan[-1]:.3f} s, pilot traces {count['pilot'] - c0['pilot']}, "
+            chk.append(spent[0] - s0)
+            print(f"call: {wall[-1]:.3f} s, planning {plan[-1]:.3f} s, _chunks {chk[-1]:.3f} s, pilot traces {count['pilot'] - c0['pilot']}, "
                   f"raywaves_alone calls {count['alone'] - c0['alone']}")
-    print(f"median: call {statistics.median(wall):.3f} s, planning {statistics.median(plan):.3f} s")
+    print(f"median: call {statistics.median(wall):.3f} s, planning {statistics.median(plan):.3f} s, "
+          f"_chunks {statistics.median(chk):.3f} s")
 
 
 if __name__ == "__main__":
