@@ -92,7 +92,7 @@ def upload_arrays(xp, arrays, pack: bool | None = None) -> list:
     (each view keeps the buffer alive: upload arrays that live and die together) instead of one copy, and one
     host wait, each. With numpy they are returned as they are (``np.asarray``) unless ``pack`` is True (the
     packed path on the host, for tests); ``pack`` False: one ``xp.asarray`` each."""
-    host = [np.ascontiguousarray(a) for a in arrays]
+    host = [np.asarray(a, order="C") for a in arrays]
     if pack is None:
         pack = xp is not np
     if not pack:

@@ -89,6 +89,17 @@ def _sensor_tapers(p, n_own, lo, hi) -> np.ndarray:
     return np.where(own, 1.0 - e(t) / (e(t) + e(1.0 - t)), 1.0)
 
 
+def _fft_freqs(n_fft, pitch_mm, width: int) -> np.ndarray:
+    """``numpy.fft.fftfreq(n_fft[k], pitch_mm[k])`` (cycles/mm) of every member in row ``k`` of an (S, ``width``)
+    array, zero past its own ``n_fft[k]`` (the same arithmetic: index ``m``, or ``m - n`` past ``(n - 1) // 2``,
+    times ``1 / (n d)``)."""
+    n = np.asarray(n_fft, dtype=np.int64)[:, None]
+    m = np.arange(int(width))[None, :]
+    idx = np.where(m <= (n - 1) // 2, m, m - n)
+    val = 1.0 / (n[:, 0] * np.asarray(pitch_mm, dtype=np.float64))
+    return np.where(m < n, idx * val[:, None], 0.0)
+
+
 class PackedFocalPropagator:
     """The focal propagation (:class:`~rwwarp.wave.focal.FocalPropagator`) of several sources at one distance, each
     with its own wave-plane pitch and grid, sensor-side pitch, grid and FFT length, transfer, taper and output
@@ -165,11 +176,8 @@ class PackedFocalPropagator:
         self._host = {"origin": origin, "s0": s0, "g": g, "q": q, "row_in": row_in, "col_in": col_in,
                       "taper": np.where(row_in[None], taper, 0.0)}
         # step 2 per source: its own FFT length and sensor pitch set its frequencies and padding room
-        # (numpy's fftfreq, the members at once: index m (m - n past n // 2) times 1 / (n d))
         f_in = np.arange(NF)[None, :] < nf_k[:, None]                      # (S, NF): a member's own frequencies
-        idx = np.arange(NF)[None, :]
-        idx = np.where(idx <= (nf_k[:, None] - 1) // 2, idx, idx - nf_k[:, None])
-        nu_h = np.where(f_in, idx * (1.0 / (nf_k * hs))[:, None], 0.0)
+        nu_h = _fft_freqs(nf_k, hs, NF)
         # output factors' offsets from each member's sensor origin (zero past a member's nodes)
         d_out, ok_out = [], []
         for ax, nodes in enumerate((nodes_x, nodes_y)):
