@@ -350,7 +350,17 @@ class LiveProvider:
         plan is what planning that source alone gives (its pilot rows do not depend on the other sources), so
         the PSFs are those of planning chunk by chunk. Which plans are kept or made, and the counts, are as when
         each chunk was planned as the loop reached it (a source repeated in a later chunk takes the plan made
-        for it earlier in the call)."""
+        for it earlier in the call). Should planning fail, the kept plans are left as they were."""
+        rws_before, keys_before = dict(self._focal_rws), set(self._focal_keys)
+        try:
+            return self._plan_chunks(n, tile, src_f, src_w, src_c, depth_mm)
+        except BaseException:
+            # no entry left waiting for a plan that was not made
+            self._focal_rws, self._focal_keys = rws_before, keys_before
+            raise
+
+    def _plan_chunks(self, n, tile, src_f, src_w, src_c, depth_mm) -> list:
+        """:meth:`_plan_call`'s work (its arguments and result)."""
         m = self.module
         chunks, todo, made, kept = [], [], [], []
         for k in range(0, n, tile):

@@ -156,3 +156,27 @@ def test_a_sources_pilot_rows_in_a_batch_are_its_own_trace():
         one, sub = P.trace_pilot(lens, [fields[k]], [wls[k]], own_pupils=True), batch.subset([k])
         for name in ("pos_p", "pos_s", "dir_s", "opl_p", "ok", "valid_plane"):
             assert np.array_equal(getattr(sub, name), getattr(one, name)), (k, name)
+
+
+def test_a_failed_planning_leaves_the_kept_plans_as_they_were(monkeypatch):
+    """Planning that fails (here raywaves_alone raising) leaves no entry waiting for a plan: the provider's kept plans
+    are those before the call, and the next call plans the source given up and gives the same PSFs."""
+    lens = rw.load_lens("cooke_triplet")
+    m = tb.HybridLens(lens, learn={"curvature": [0]}, method="focal", rays_per_sample=0.5)
+    prov = dz.LiveProvider(m, [0.0, 5.0], 12, lens.sensor.pixel_pitch, tile=1, replan_every=3)
+    with torch.no_grad():
+        a = prov.psfs([0.55])
+        before = {k: e[0] for k, e in prov._focal_rws.items()}
+        next(iter(prov._focal_rws.values()))[3] = True
+
+        def fail(*args, **kw):
+            raise RuntimeError("planning failed")
+        monkeypatch.setattr(tb.HybridLens, "raywaves_alone", fail)
+        with pytest.raises(RuntimeError, match="planning failed"):
+            prov.psfs([0.55])
+        assert {k: e[0] for k, e in prov._focal_rws.items()} == before
+        monkeypatch.undo()
+        made = prov.plans_made
+        b = prov.psfs([0.55])
+        assert prov.plans_made == made + 1
+    assert torch.equal(a, b)
