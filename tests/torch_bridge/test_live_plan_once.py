@@ -180,3 +180,21 @@ def test_a_failed_planning_leaves_the_kept_plans_as_they_were(monkeypatch):
         b = prov.psfs([0.55])
         assert prov.plans_made == made + 1
     assert torch.equal(a, b)
+
+
+def test_drift_rule_replans_of_several_chunks_share_one_pilot_trace(monkeypatch):
+    """Rule "drift", 4 sources in chunks of 1, a curvature step past the tolerance: every plan is due, the spreading
+    (replan_spread 2, none forced: the hard bound set far) makes 2 again this call, in one raywaves_alone of those 2 (one pilot trace), not one a chunk."""
+    lens = rw.load_lens("cooke_triplet")
+    m = tb.HybridLens(lens, learn={"curvature": [0]}, method="focal", rays_per_sample=0.5)
+    fields = [(10.0, 0.0), (0.0, 10.0), (-10.0, 0.0), (0.0, -10.0)]
+    prov = dz.LiveProvider(m, fields, 12, lens.sensor.pixel_pitch, tile=1, replan_every=8, replan_rule="drift",
+                           replan_drift=1e-3, replan_drift_hard=1e6, replan_spread=2)
+    c = _Counts(monkeypatch)
+    with torch.no_grad():
+        prov.psfs([0.55])
+        c.take()
+        m.curvature[0] *= 1.0 + 1e-3
+        prov.psfs([0.55])
+        assert c.take() == (1, [2])
+        assert prov.replans["drift"] == 2 and prov.replans_deferred == 2 and prov.plans_made == 4 + 2
