@@ -20,7 +20,7 @@ import numpy as np
 from .sensor_grid import gauss_nodes_xy
 
 from .focal import (
-    _cis, distance_factors, focal_adjoint, focal_distance_derivative, sensor_taper, spectrum_to_nodes,
+    _cis, distance_factors, focal_adjoint, focal_distance_derivative, spectrum_to_nodes,
     transfer_curvature,
 )
 
@@ -211,12 +211,11 @@ class PackedFocalPropagator:
         qx, qy = q_d[:, None, None, 0], q_d[:, None, None, 1]
         wg = w_c_d[:, None, None] + gx * nux + gy * nuy + 0.5 * (qx * nux ** 2 + qy * nuy ** 2)
         ws = xp.where(arg > 0, w, 1.0)
-        fin = f_in_d
         room = room_d[:, None, None]
         # the band: propagating and (at distance z) displaced by at most the padding room,
         # |z (fx / w + g + q nu)| <= room on both axes: kept where z <= room / |slope|
         slope = xp.maximum(xp.abs(fx / ws + gx + qx * nux), xp.abs(fy / ws + gy + qy * nuy))
-        self._band = {"ok": (arg > 0) & fin[:, None, :] & fin[:, :, None], "slope": slope, "room": room,
+        self._band = {"ok": (arg > 0) & f_in_d[:, None, :] & f_in_d[:, :, None], "slope": slope, "room": room,
                       "rem": w - wg, "c": w / inv_lam_d[:, None, None]}
         # output factors: U(p) = 1/nf sum_m B_m exp(2 pi i nu_m (p - s0)) per axis, zero past a member's nodes
         def out_factor(d, ok):
