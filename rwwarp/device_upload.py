@@ -1,5 +1,6 @@
 """Several small host arrays uploaded to a Warp device in one copy (:func:`upload_packed`), with a small LRU of
-recent packs (surface tables of a lens, a source's inputs, the pilot pupil)."""
+recent packs (surface tables of a lens, a source's inputs, the pilot pupil); and to an array namespace's device
+(CuPy) in one copy (:func:`upload_arrays`)."""
 from __future__ import annotations
 
 import threading
@@ -8,7 +9,7 @@ from collections import OrderedDict
 import numpy as np
 import warp as wp
 
-__all__ = ["upload_packed", "recording_uploads"]
+__all__ = ["upload_packed", "recording_uploads", "upload_arrays"]
 
 
 _UPLOADS: OrderedDict = OrderedDict()  # packed bytes -> views, for upload_packed(..., cache=True)
@@ -82,3 +83,26 @@ def upload_packed(parts, device: str, cache: bool = False):
             while len(_UPLOADS) > _UPLOADS_MAX:
                 _UPLOADS.popitem(last=False)
     return _recorded(out)
+
+
+def upload_arrays(xp, arrays, pack: bool | None = None) -> list:
+    """Host arrays ``arrays`` (numpy, any dtypes and shapes) as arrays of the namespace ``xp`` (numpy, CuPy), the
+    same values, dtypes and shapes, in order. On a device (``xp`` not numpy) they go in one host-to-device copy:
+    packed into one byte buffer (each part 16-byte aligned), uploaded once and returned as typed views into it
+    (each view keeps the buffer alive: upload arrays that live and die together) instead of one copy, and one
+    host wait, each. With numpy they are returned as they are (``np.asarray``) unless ``pack`` is True (the
+    packed path on the host, for tests); ``pack`` False: one ``xp.asarray`` each."""
+    host = [np.asarray(a, order="C") for a in arrays]
+    if pack is None:
+        pack = xp is not np
+    if not pack:
+        return [xp.asarray(h) for h in host]
+    offsets, total = [], 0
+    for h in host:
+        offsets.append(total)
+        total += -(-max(h.nbytes, 1) // 16) * 16
+    buf = np.zeros(max(total, 16), dtype=np.uint8)
+    for h, off in zip(host, offsets):
+        buf[off:off + h.nbytes] = h.reshape(-1).view(np.uint8)
+    dev = xp.asarray(buf)
+    return [dev[off:off + h.nbytes].view(h.dtype).reshape(h.shape) for h, off in zip(host, offsets)]

@@ -215,15 +215,21 @@ class LiveProvider:
             self.judged.append((key, d, age, k in now, forced))
         self.drift_seconds += time.perf_counter() - t0
 
-    def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check: bool = False) -> list:
-        """Plan sources ``js`` each on its own (focal), from one pilot trace of all of them
-        (:meth:`~torch_bridge.HybridLens.raywaves_alone`); ``check``: each one's recorded peak is checked
-        against the budget first (sources planned again alone, without their chunk's check)."""
+    def _plan_sources(self, js, src_f, src_w, src_c, depth_mm, check=False) -> list:
+        """Plan sources ``js`` (indices into ``src_f`` (deg), ``src_w`` (um), ``src_c`` (mm, (S, 2) patch centres))
+        each on its own (focal), all from one pilot trace (:meth:`~torch_bridge.HybridLens.raywaves_alone`: a
+        source's pilot rows, and so its plan, are what a trace of it alone gives). With ``method="two-step"`` each
+        gets its wave step (:func:`torch_bridge.wave_step.add_wave_step`); ``check`` (one bool, or one per source):
+        its recorded peak is checked against the budget (a source planned again alone, without its chunk's joint
+        check). Returns the plans in ``js``'s order."""
+        checks = [bool(check)] * len(js) if np.ndim(check) == 0 else [bool(c) for c in check]
+        if len(checks) != len(js):
+            raise ValueError(f"LiveProvider._plan_sources: {len(checks)} checks for {len(js)} sources")
         m = self.module
         t0 = time.perf_counter()
         rs = m.raywaves_alone([src_f[j] for j in js], [src_w[j] for j in js], self.size, centers_mm=src_c[js],
                               object_distance_mm=depth_mm, pixel_mm=self.pixel_mm, method="focal")
-        for r in rs:
+        for r, check in zip(rs, checks):
             if m.method == "two-step":
                 # each source's focal plan with the wave step "two-step" plans (a joint plan's RayWave has it
                 # already): torch_bridge.wave_step.add_wave_step
@@ -319,11 +325,44 @@ class LiveProvider:
         return out.reshape(len(fields), len(wls), self.size, self.size)
 
     def _chunks(self, n, tile, src_f, src_w, src_c, depth_mm, packs):
-        """The ``n`` sources of a call in chunks of ``tile``, each planned (kept plans reused, new ones made) when
-        the tile loop reaches it and cut into its work (:meth:`_units`; ``packs``: this call's packed tiles,
-        filled): yields ``(units, perm, keys, sl)``, ``perm`` the order of the units' rows back to the sources'
-        (None: already in order), ``keys`` the sources' (field, wavelength, depth), ``sl`` their slice."""
+        """The ``n`` sources of a call in chunks of ``tile``, every chunk planned first (:meth:`_plan_call`: kept plans
+        reused, the new ones made together), then each cut into its work when the tile loop reaches it
+        (:meth:`_units`; ``packs``: this call's packed tiles, filled): yields ``(units, perm, keys, sl)``, ``perm``
+        the order of the units' rows back to the sources' (None: already in order), ``keys`` the sources' (field,
+        wavelength, depth), ``sl`` their slice."""
+        for sl, keys, rws, fresh in self._plan_call(n, tile, src_f, src_w, src_c, depth_mm):
+            # the chunk's RayWaves in source order; a band-limited batch of new sources gives their rows together;
+            # single-source focal plans are computed together in packed tiles (torch_bridge.packed)
+            order = sorted(rws)
+            units = self._units(order, rws, fresh, packs)
+            flat = [j for _, _, row in units for j in row]
+            perm = None if flat == sorted(flat) else torch.as_tensor(np.argsort(flat))
+            yield units, perm, keys, sl
+
+    def _plan_call(self, n, tile, src_f, src_w, src_c, depth_mm) -> list:
+        """Every chunk's plans of a call, before its tile loop: ``[(sl, keys, rws, fresh)]`` a chunk of ``tile``
+        sources (``sl`` their slice, ``keys`` their (field, wavelength, depth), ``rws`` source index -> RayWave,
+        ``fresh`` the sources seen for the first time). Chunk by chunk, in source order, a source keeps its plan
+        (:meth:`_usable`; moved along with its patch), is planned again on its own when it was planned focal
+        before, or is new: the chunk's new sources get one joint plan, which decides the method and checks the
+        budget (a band-limited batch serves them together; focal ones are planned on their own). All the sources
+        planned on their own in this call are planned at once, from one pilot trace (:meth:`_plan_sources`): each
+        plan is what planning that source alone gives (its pilot rows do not depend on the other sources), so
+        the PSFs are those of planning chunk by chunk. Which plans are kept or made, and the counts, are as when
+        each chunk was planned as the loop reached it (a source repeated in a later chunk takes the plan made
+        for it earlier in the call). Should planning fail, the kept plans are left as they were."""
+        rws_before, keys_before = dict(self._focal_rws), set(self._focal_keys)
+        try:
+            return self._plan_chunks(n, tile, src_f, src_w, src_c, depth_mm)
+        except BaseException:
+            # no entry left waiting for a plan that was not made
+            self._focal_rws, self._focal_keys = rws_before, keys_before
+            raise
+
+    def _plan_chunks(self, n, tile, src_f, src_w, src_c, depth_mm) -> list:
+        """:meth:`_plan_call`'s work (its arguments and result)."""
         m = self.module
+        chunks, todo, made, kept = [], [], [], []
         for k in range(0, n, tile):
             sl = slice(k, min(k + tile, n))
             keys = [(tuple(np.ravel(src_f[j])), src_w[j], depth_mm) for j in range(sl.start, sl.stop)]
@@ -331,23 +370,20 @@ class LiveProvider:
             for j, key in zip(range(sl.start, sl.stop), keys):
                 e = self._focal_rws.get(key)
                 if e is not None and self._usable(e):
-                    if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
-                        # the patch moved to another pixel: its grids move along (a copy: a graph of an
-                        # earlier call that still holds the plan keeps its own patch)
-                        e[0] = _recentred(e[0], src_c[j])
-                    rws[j] = e[0]
+                    kept.append((rws, j, e))   # moved along with its patch once every plan is made (below)
                     self.plans_reused += 1
                 elif key in self._focal_keys:
                     # planned focal before: planned again on its own (no joint plan of the chunk first)
                     again.append(j)
                 else:
                     fresh.append(j)
-            if again:
-                # every source planned again in this chunk from one pilot trace, each on its own plan
-                for j, r in zip(again, self._plan_sources(again, src_f, src_w, src_c, depth_mm, check=True)):
-                    rws[j] = r
-                    if self.replan_every > 1:
-                        self._focal_rws[(tuple(np.ravel(src_f[j])), src_w[j], depth_mm)] = self._entry(r)
+            entries = []   # (key, entry) of the plans made in this chunk (rules with kept plans)
+            for j in again:
+                # planned below with the others (its recorded peak checked alone)
+                e = self._entry(None) if self.replan_every > 1 else None
+                todo.append((j, True))
+                made.append((rws, j, e))
+                entries.append((keys[j - sl.start], e))
             if fresh:
                 # sources not seen before: one joint plan decides the method and checks the budget
                 t0 = time.perf_counter()
@@ -358,26 +394,41 @@ class LiveProvider:
                 per_source = get_method(rw.plan.method).per_source_plans
                 m.check_budget(rw, m.memory_budget(self.memory_budget_bytes), sources=1 if per_source else rw.nsrc)
                 if per_source:
-                    # focal grids follow each source's patch and DOE orders: one plan per source
-                    alone = [rw] if len(fresh) == 1 else self._plan_sources(fresh, src_f, src_w, src_c, depth_mm)
-                    for j, r in zip(fresh, alone):
-                        key = (tuple(np.ravel(src_f[j])), src_w[j], depth_mm)
+                    # focal grids follow each source's patch and DOE orders: one plan per source (a single new
+                    # source's is the joint plan; the others planned below, without a check of their own)
+                    for j in fresh:
+                        key = keys[j - sl.start]
                         self._focal_keys.add(key)
-                        rws[j] = r
-                        if self.replan_every > 1:
-                            self._focal_rws[key] = self._entry(rws[j])
+                        e = self._entry(rw if len(fresh) == 1 else None) if self.replan_every > 1 else None
+                        if len(fresh) == 1:
+                            rws[j] = rw
+                        else:
+                            todo.append((j, False))
+                            made.append((rws, j, e))
+                        entries.append((key, e))
                     if len(fresh) == 1:
                         self.plans_made += 1
                 else:
                     rws[fresh[0]] = rw   # one band-limited batch for the new sources
                     self.plans_made += 1
-            # the chunk's RayWaves in source order; a band-limited batch of new sources gives their rows together;
-            # single-source focal plans are computed together in packed tiles (torch_bridge.packed)
-            order = sorted(rws)
-            units = self._units(order, rws, fresh, packs)
-            flat = [j for _, _, row in units for j in row]
-            perm = None if flat == sorted(flat) else torch.as_tensor(np.argsort(flat))
-            yield units, perm, keys, sl
+            # the chunk's new entries in place before the next chunk looks its sources up (plans filled below)
+            for key, e in entries:
+                if e is not None:
+                    self._focal_rws[key] = e
+            chunks.append((sl, keys, rws, fresh))
+        if todo:
+            plans = self._plan_sources([j for j, _ in todo], src_f, src_w, src_c, depth_mm, check=[c for _, c in todo])
+            for (rws, j, e), r in zip(made, plans):
+                rws[j] = r
+                if e is not None:
+                    e[0] = r
+        for rws, j, e in kept:
+            if not np.array_equal(e[0].snapped_centres(src_c[j]), e[0].centers):
+                # the patch moved to another pixel: its grids move along (a copy: a graph of an earlier call that
+                # still holds the plan keeps its own patch)
+                e[0] = _recentred(e[0], src_c[j])
+            rws[j] = e[0]
+        return chunks
 
     def _units(self, order, rws, fresh, packs) -> list:
         """The work of one chunk: ``[(kind, object, rows)]`` with ``kind`` "packed" (a

@@ -20,7 +20,7 @@ import numpy as np
 from .sensor_grid import gauss_nodes_xy
 
 from .focal import (
-    _cis, distance_factors, focal_adjoint, focal_distance_derivative, sensor_taper, spectrum_to_nodes,
+    _cis, distance_factors, focal_adjoint, focal_distance_derivative, spectrum_to_nodes,
     transfer_curvature,
 )
 
@@ -66,6 +66,38 @@ def focal_groups(members, waste: float = 1.5) -> list:
     if cur:
         groups.append(sorted(cur))
     return sorted(groups, key=lambda g: g[0])
+
+
+def _sensor_tapers(p, n_own, lo, hi) -> np.ndarray:
+    """:func:`rwwarp.wave.focal.sensor_taper` of several members at once, each over its own first ``n_own[k]``
+    sensor-side grid points ``p[k, :n_own[k]]`` (mm; its grid's ends: its first and its own last point), ``lo``,
+    ``hi`` (S,) mm: the same arithmetic element by element (the same values); 1 past a member's own points."""
+    p = np.asarray(p, dtype=np.float64)
+    S, ns = p.shape
+    own = np.arange(ns)[None, :] < np.asarray(n_own)[:, None]
+    first = p[:, :1]
+    last = p[np.arange(S), np.asarray(n_own) - 1][:, None]
+    lo, hi = np.asarray(lo, dtype=np.float64)[:, None], np.asarray(hi, dtype=np.float64)[:, None]
+    t = np.zeros_like(p)
+    below, above = own & (p < lo), own & (p > hi)
+    np.divide(lo - p, np.broadcast_to(lo - first, p.shape), out=t, where=below)
+    np.divide(p - hi, np.broadcast_to(last - hi, p.shape), out=t, where=above)
+    t = np.clip(t, 0.0, 1.0)
+
+    def e(u):
+        return np.where(u > 0, np.exp(-1.0 / np.where(u > 0, u, 1.0)), 0.0)
+    return np.where(own, 1.0 - e(t) / (e(t) + e(1.0 - t)), 1.0)
+
+
+def _fft_freqs(n_fft, pitch_mm, width: int) -> np.ndarray:
+    """``numpy.fft.fftfreq(n_fft[k], pitch_mm[k])`` (cycles/mm) of every member in row ``k`` of an (S, ``width``)
+    array, zero past its own ``n_fft[k]`` (the same arithmetic: index ``m``, or ``m - n`` past ``(n - 1) // 2``,
+    times ``1 / (n d)``)."""
+    n = np.asarray(n_fft, dtype=np.int64)[:, None]
+    m = np.arange(int(width))[None, :]
+    idx = np.where(m <= (n - 1) // 2, m, m - n)
+    val = 1.0 / (n[:, 0] * np.asarray(pitch_mm, dtype=np.float64))
+    return np.where(m < n, idx * val[:, None], 0.0)
 
 
 class PackedFocalPropagator:
@@ -132,56 +164,65 @@ class PackedFocalPropagator:
         row_in = np.arange(NS)[None, :] < ns_k[:, None]          # (S, NS): a member's own sensor-side rows
         col_in = np.arange(N)[None, :] < n_k[:, None]            # (S, N): its own wave-plane samples
         taper = np.ones((2, S, NS))
-        for k, gk in enumerate(guards):
-            if gk is not None:   # the taper over the member's own sensor-side grid (its ends set it)
-                m = int(ns_k[k])
-                for ax, nodes in enumerate((nodes_x, nodes_y)):
-                    nd = nodes[k]
-                    taper[ax, k, :m] = sensor_taper(ps[k:k + 1, :m, ax], np.array([nd.min() - float(gk)]),
-                                                    np.array([nd.max() + float(gk)]))[0]
+        tapered = [k for k, gk in enumerate(guards) if gk is not None]
+        if tapered:
+            # the taper over each member's own sensor-side grid (its ends set it), the members at once
+            kk = np.array(tapered)
+            gk = np.array([float(guards[k]) for k in tapered])
+            for ax, nodes in enumerate((nodes_x, nodes_y)):
+                lo = np.array([nodes[k].min() for k in tapered]) - gk
+                hi = np.array([nodes[k].max() for k in tapered]) + gk
+                taper[ax, kk] = _sensor_tapers(ps[kk, :, ax], ns_k[kk], lo, hi)
         self._host = {"origin": origin, "s0": s0, "g": g, "q": q, "row_in": row_in, "col_in": col_in,
-                      "taper": np.where(row_in[None], taper, 0.0), "xs": xs, "ps": ps}
-        self._toe = xp.arange(NS)[:, None] - xp.arange(N)[None, :] + (N - 1)
+                      "taper": np.where(row_in[None], taper, 0.0)}
         # step 2 per source: its own FFT length and sensor pitch set its frequencies and padding room
-        nu_h = np.zeros((S, NF))
-        for k in range(S):
-            nu_h[k, :nf_k[k]] = np.fft.fftfreq(int(nf_k[k]), d=float(hs[k]))
         f_in = np.arange(NF)[None, :] < nf_k[:, None]                      # (S, NF): a member's own frequencies
-        # the zero-padded FFT as a matrix: W[m, j] = exp(-2 pi i (m j mod nf) / nf) (exact integer phase index)
-        # (formed on the operator's device from index vectors: no (S, nf, ns) host array or copy)
-        nfd = xp.asarray(nf_k)[:, None, None]
-        mj = (xp.arange(NF)[:, None] * xp.arange(NS)[None, :])[None] % nfd
-        W = _cis(-2.0 * np.pi * mj / nfd, xp)
-        self._W = xp.where(xp.asarray(f_in)[:, :, None] & xp.asarray(row_in)[:, None, :], W, 0.0)
-        nu = xp.asarray(nu_h)
-        fx = xp.asarray(f_c[:, 0:1, None]) + nu[:, None, :]
-        fy = xp.asarray(f_c[:, 1:2, None]) + nu[:, :, None]
-        arg = xp.asarray(inv_lam[:, None, None]) ** 2 - fx ** 2 - fy ** 2
-        w = xp.sqrt(xp.maximum(arg, 0.0))
-        nux, nuy = nu[:, None, :], nu[:, :, None]
-        gd, qd = xp.asarray(g), xp.asarray(q)
-        gx, gy = gd[:, None, None, 0], gd[:, None, None, 1]
-        qx, qy = qd[:, None, None, 0], qd[:, None, None, 1]
-        wg = xp.asarray(w_c)[:, None, None] + gx * nux + gy * nuy + 0.5 * (qx * nux ** 2 + qy * nuy ** 2)
-        ws = xp.where(arg > 0, w, 1.0)
-        fin = xp.asarray(f_in)
-        room = xp.asarray((nf_k - ns_k) * hs)[:, None, None]
-        # the band: propagating and (at distance z) displaced by at most the padding room,
-        # |z (fx / w + g + q nu)| <= room on both axes: kept where z <= room / |slope|
-        slope = xp.maximum(xp.abs(fx / ws + gx + qx * nux), xp.abs(fy / ws + gy + qy * nuy))
-        self._band = {"ok": (arg > 0) & fin[:, None, :] & fin[:, :, None], "slope": slope, "room": room,
-                      "rem": w - wg, "c": w / xp.asarray(inv_lam)[:, None, None]}
-        # output factors: U(p) = 1/nf sum_m B_m exp(2 pi i nu_m (p - s0)) per axis, zero past a member's nodes
-        def out_factor(nodes, ax):
+        nu_h = _fft_freqs(nf_k, hs, NF)
+        # output factors' offsets from each member's sensor origin (zero past a member's nodes)
+        d_out, ok_out = [], []
+        for ax, nodes in enumerate((nodes_x, nodes_y)):
             d = np.zeros((S, M))
             ok = np.zeros((S, M), dtype=bool)
             for k, v in enumerate(nodes):
                 d[k, :len(v)] = v - s0[k, ax]
                 ok[k, :len(v)] = True
-            F = _cis(2.0 * np.pi * nu[:, None, :] * xp.asarray(d)[:, :, None], xp) / xp.asarray(nf_k)[:, None, None]
-            return xp.where(xp.asarray(ok)[:, :, None], F, 0.0)
-        self._Fx = out_factor(nodes_x, 0)
-        self._Fy = out_factor(nodes_y, 1)
+            d_out.append(d)
+            ok_out.append(ok)
+        # every small host array in one copy to the device (rwwarp.device_upload.upload_arrays); the geometry
+        # (wave-plane and sensor-side grids, transfer gradient) kept there for every distance's factors
+        from ..device_upload import upload_arrays
+        (nf_d, f_in_d, row_in_d, nu, f_c_d, inv_lam_d, g_d, q_d, w_c_d, room_d, dx_d, dy_d, okx_d, oky_d, xs_d,
+         ps_d) = upload_arrays(xp, [nf_k, f_in, row_in, nu_h, f_c, inv_lam, g, q, w_c, (nf_k - ns_k) * hs,
+                                    d_out[0], d_out[1], ok_out[0], ok_out[1], xs, ps])
+        self._dev = {"xs": xs_d, "ps": ps_d, "g": g_d}
+        self._toe = xp.arange(NS)[:, None] - xp.arange(N)[None, :] + (N - 1)
+        # the zero-padded FFT as a matrix: W[m, j] = exp(-2 pi i (m j mod nf) / nf) (exact integer phase index)
+        # (formed on the operator's device from index vectors: no (S, nf, ns) host array or copy)
+        nfd = nf_d[:, None, None]
+        mj = (xp.arange(NF)[:, None] * xp.arange(NS)[None, :])[None] % nfd
+        W = _cis(-2.0 * np.pi * mj / nfd, xp)
+        self._W = xp.where(f_in_d[:, :, None] & row_in_d[:, None, :], W, 0.0)
+        fx = f_c_d[:, 0:1, None] + nu[:, None, :]
+        fy = f_c_d[:, 1:2, None] + nu[:, :, None]
+        arg = inv_lam_d[:, None, None] ** 2 - fx ** 2 - fy ** 2
+        w = xp.sqrt(xp.maximum(arg, 0.0))
+        nux, nuy = nu[:, None, :], nu[:, :, None]
+        gx, gy = g_d[:, None, None, 0], g_d[:, None, None, 1]
+        qx, qy = q_d[:, None, None, 0], q_d[:, None, None, 1]
+        wg = w_c_d[:, None, None] + gx * nux + gy * nuy + 0.5 * (qx * nux ** 2 + qy * nuy ** 2)
+        ws = xp.where(arg > 0, w, 1.0)
+        room = room_d[:, None, None]
+        # the band: propagating and (at distance z) displaced by at most the padding room,
+        # |z (fx / w + g + q nu)| <= room on both axes: kept where z <= room / |slope|
+        slope = xp.maximum(xp.abs(fx / ws + gx + qx * nux), xp.abs(fy / ws + gy + qy * nuy))
+        self._band = {"ok": (arg > 0) & f_in_d[:, None, :] & f_in_d[:, :, None], "slope": slope, "room": room,
+                      "rem": w - wg, "c": w / inv_lam_d[:, None, None]}
+        # output factors: U(p) = 1/nf sum_m B_m exp(2 pi i nu_m (p - s0)) per axis, zero past a member's nodes
+        def out_factor(d, ok):
+            F = _cis(2.0 * np.pi * nu[:, None, :] * d[:, :, None], xp) / nf_d[:, None, None]
+            return xp.where(ok[:, :, None], F, 0.0)
+        self._Fx = out_factor(dx_d, okx_d)
+        self._Fy = out_factor(dy_d, oky_d)
         self._set_distance(z)
 
     def _set_distance(self, z: float):
@@ -193,14 +234,13 @@ class PackedFocalPropagator:
         h, hs = self.pitch, self.spitch
         self.z = z
         A = 1.0 / (z * H["q"])
-        self._geo = {k: xp.asarray(v) for k, v in (("xs", H["xs"]), ("ps", H["ps"]), ("g", H["g"]), ("A", A))}
         cdt = np.complex64 if self.precision == "single" else np.complex128
         # ---- step 1: FocalPropagator's factors, each source with its own pitches (focal.py gives the split)
         jj = np.arange(NS, dtype=np.float64)
         ii = np.arange(N, dtype=np.float64)
         mm = np.arange(-(N - 1), NS, dtype=np.float64)
         hc, hsc = h[:, None], hs[:, None]
-        self._E = []
+        host = [A]
         for ax in range(2):
             a = np.pi * A[:, ax:ax + 1]
             u0 = H["s0"][:, ax:ax + 1] + z * H["g"][:, ax:ax + 1]
@@ -212,9 +252,15 @@ class PackedFocalPropagator:
             Q = -a * x * x + 2.0 * a * u0 * hc * ii[None, :] + b * ii[None, :] ** 2
             K = -b * mm[None, :] ** 2
             amp = np.sqrt(np.abs(A[:, ax:ax + 1])) * hc
-            Pd = xp.asarray((amp * _cis(P, np) * H["taper"][ax]).astype(cdt))
-            Qd = xp.asarray(np.where(H["col_in"], _cis(Q, np), 0.0).astype(cdt))
-            Kd = xp.asarray(_cis(K, np).astype(cdt))
+            host += [(amp * _cis(P, np) * H["taper"][ax]).astype(cdt), np.where(H["col_in"], _cis(Q, np), 0.0).astype(cdt),
+                     _cis(K, np).astype(cdt)]
+        # the distance's host factors in one copy to the device (rwwarp.device_upload.upload_arrays)
+        from ..device_upload import upload_arrays
+        Ad, *fac = upload_arrays(xp, host)
+        self._geo = {"xs": self._dev["xs"], "ps": self._dev["ps"], "g": self._dev["g"], "A": Ad}
+        self._E = []
+        for ax in range(2):
+            Pd, Qd, Kd = fac[3 * ax:3 * ax + 3]
             self._E.append(Kd[:, self._toe] * Pd[:, :, None] * Qd[:, None, :])
         self._dE = None
         bd = self._band
