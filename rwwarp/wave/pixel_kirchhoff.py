@@ -81,9 +81,19 @@ SPREAD_ROW_BYTES = 44
 #: term's own size) is ~1e-4 of the field; the Rayleigh-Sommerfeld test's error stayed 2.4e-5 / 7.4e-6 (6: 2.5e-5 /
 #: 7.5e-6). 36 cells a point instead of 144: the spreading, most of the work, ~3x less
 REST_SPREAD = 3
-#: the terms of one tile, each a NUFFT weight vector: U's 1 (the plane waves), 4 + 10 (the quadratic rest to second
-#: order), 2 (the amplitude's first-order change), 6 (the cubic phase); U_w ("flux") one more
-N_TERMS = 23
+#: the terms of one tile, each a NUFFT weight vector: U's 1 (the plane waves), 3 + 6 (the quadratic rest to second
+#: order, on the 3 quadratic monomials D_x^2, D_x D_y, D_y^2), 2 (the amplitude's first-order change), 4 (the cubic
+#: phase, on the 4 cubic monomials); U_w ("flux") one more. (Before: 4 + 10 and 6 on the redundant basis |D|^2, D_x^2,
+#: D_x D_y, D_y^2 and |D|^2 D_x, ...: 23 terms for the same sums.)
+N_TERMS = 16
+#: the NUFFT spreads of a tile's correction groups (:func:`group_spreads`): each group (``lin``: the quadratic rest to
+#: first order, size ``eps``; ``quad``: second order, ``eps^2 / 2``; ``amp``; ``cub``) the narrowest spread (at least
+#: ``MIN_SPREAD``) whose Gaussian gridding error ``2 exp(-pi s (R - 1/2) / R)`` of the field (R = 2; REST_SPREAD's
+#: 1.7e-3 at 3), times the group's size and doubled in the intensity, stays below this (of the peak)
+KIRCHHOFF_NUFFT_ERROR = 3e-5
+MIN_SPREAD = 2
+#: the correction groups, in the order of their vectors (:func:`_terms`)
+GROUPS = ("lin", "quad", "amp", "cub")
 
 
 #: :func:`kirchhoff_error_estimate`: the corrections' NUFFT error per unit of their size at a tile's corner (rad),
@@ -104,16 +114,43 @@ KIRCHHOFF_QUAD_ERROR = 7.5e-5
 KIRCHHOFF_FAR_SHARE = 0.01
 
 
+def gridding_error(spread: int) -> float:
+    """The Gaussian gridding's error of :func:`rwwarp.wave.nufft.nufft_type1` at half-width ``spread`` (cells, R = 2),
+    relative to the term's own size in the field: ``2 exp(-pi spread 3 / 4)`` (1.7e-3 at 3, 1.6e-4 at 4)."""
+    return 2.0 * math.exp(-0.75 * math.pi * int(spread))
+
+
+def group_sizes(eps_rad: float, cubic_rad: float, amp: float) -> dict:
+    """The largest size (of the field's terms, at a tile's corner) of each correction group: ``lin`` ``eps``, ``quad``
+    ``eps^2 / 2``, ``amp`` the amplitude's change ``amp``, ``cub`` the cubic phase."""
+    e = abs(float(eps_rad))
+    return {"lin": e, "quad": 0.5 * e * e, "amp": abs(float(amp)), "cub": abs(float(cubic_rad))}
+
+
+def group_spreads(eps_rad: float, cubic_rad: float, amp: float) -> dict:
+    """The NUFFT spread of each correction group (:data:`GROUPS`): the narrowest (``MIN_SPREAD`` .. ``REST_SPREAD``
+    + 2) with ``2 size gridding_error(s) <= KIRCHHOFF_NUFFT_ERROR`` (:func:`group_sizes`)."""
+    out = {}
+    for g, size in group_sizes(eps_rad, cubic_rad, amp).items():
+        s = MIN_SPREAD
+        while s < REST_SPREAD + 2 and 2.0 * size * gridding_error(s) > KIRCHHOFF_NUFFT_ERROR:
+            s += 1
+        out[g] = s
+    return out
+
+
 def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, debye_estimate: float | None = None,
-                             ray_min: int = 600) -> dict:
+                             ray_min: int = 600, amp: float = 0.0, spreads: dict | None = None) -> dict:
     """The estimated error of the Kirchhoff form (``method="pixel"``, :func:`kirchhoff_samples`) against the full
     computation (the same rays' wave-plane field propagated exactly), max |difference| over the PSF's peak, and its
     parts. The form sums the wave-plane field with the exact kernel, so what is left is what it approximates:
 
     * ``tile``: the kernel's expansion over a tile (the quadratic rest ``eps_rad`` at the tile's corner to second
-      order: ``eps^3 / 6`` of the field; the cubic phase ``cubic_rad`` there to first: ``cubic^2 / 2``), and the
-      corrections' NUFFT at ``REST_SPREAD`` (``KIRCHHOFF_REST_ERROR eps``), each doubled in the intensity:
-      ``eps^3 / 3 + cubic^2 + KIRCHHOFF_REST_ERROR eps``;
+      order: ``eps^3 / 6`` of the field; the cubic phase ``cubic_rad`` there to first: ``cubic^2 / 2``; the amplitude's
+      change ``amp`` and the cubic phase are not multiplied by the quadratic rest: ``eps (amp + cubic)``), and the
+      corrections' NUFFT (each group at its spread, ``spreads`` from :func:`group_spreads`; None: all at
+      ``REST_SPREAD``: ``size gridding_error(spread)``), each doubled in the intensity:
+      ``eps^3 / 3 + cubic^2 + 2 eps (amp + cubic) + 2 sum_groups size gridding_error``;
     * ``quadrature``: the pupil grid's cells as point samples (whole cells at the rim; the lattice's aliases beyond
       the grid), calibrated: ``KIRCHHOFF_QUAD_ERROR``; measured alike at 300 and 600 rays across (``ray_grid``,
       ``ray_min``: kept in the signature, not used: the planner takes ``RAY_MIN`` = 600 or more; the Debye form's
@@ -122,30 +159,53 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
       :func:`rwwarp.wave.pixel_scale.pixel_error_estimate`), ``KIRCHHOFF_FAR_SHARE`` of it.
 
     Validated against measured errors in ``perf/pixel_auto.py`` (the table in the module docstring of
-    :mod:`rwwarp.wave.pixel_scale`). Returns ``estimate`` (the sum) and the parts (dimensionless)."""
-    eps, cub = abs(float(eps_rad)), abs(float(cubic_rad))
-    tile = eps ** 3 / 3.0 + cub ** 2 + KIRCHHOFF_REST_ERROR * eps
+    :mod:`rwwarp.wave.pixel_scale`). Returns ``estimate`` (the sum) and the parts (dimensionless): ``tile`` (with
+    ``expansion`` and ``nufft``, its two shares)."""
+    eps, cub, am = abs(float(eps_rad)), abs(float(cubic_rad)), abs(float(amp))
+    sizes = group_sizes(eps, cub, am)
+    sp = spreads if spreads is not None else {g: REST_SPREAD for g in GROUPS}
+    nufft = 2.0 * sum(sizes[g] * gridding_error(sp[g]) for g in GROUPS)
+    expansion = eps ** 3 / 3.0 + cub ** 2 + 2.0 * eps * (am + cub)
+    tile = expansion + nufft
     quad = KIRCHHOFF_QUAD_ERROR
     far = KIRCHHOFF_FAR_SHARE * float(debye_estimate) if debye_estimate is not None else 0.0
-    return {"estimate": float(tile + quad + far), "tile": float(tile), "quadrature": float(quad), "far": float(far)}
+    return {"estimate": float(tile + quad + far), "tile": float(tile), "expansion": float(expansion),
+            "nufft": float(nufft), "quadrature": float(quad), "far": float(far)}
 
 
 def tile_rests(P, T, lam_mm: float, n_med: float, h_mm: float, nt: int, norm: float) -> tuple:
-    """``(eps, cubic)`` (rad) at the corners of a tile of ``nt`` samples of ``h_mm`` centred at ``T`` (3,) (mm): the
-    quadratic rest ``k0 n 2 a^2 norm`` (``a`` the half side, ``norm`` from :func:`tile_limit`) and the largest cubic
-    phase ``k0 n |u.D| (|D|^2 - (u.D)^2) / (2 r^2)`` over the wave-plane samples ``P`` (J, 3) (mm) and the corners and
-    edge midpoints ``D``. numpy."""
+    """``(eps, cubic, amp)`` at the corners of a tile of ``nt`` samples of ``h_mm`` centred at ``T`` (3,) (mm): the
+    quadratic rest ``k0 n 2 a^2 norm`` (rad; ``a`` the half side, ``norm`` from :func:`tile_limit`), the largest cubic
+    phase ``k0 n |u.D| (|D|^2 - (u.D)^2) / (2 r^2)`` (rad) and the largest first-order change of the amplitude
+    ``2 |u.D| / r`` over the wave-plane samples ``P`` (J, 3) (mm) and the corners and edge midpoints ``D``. numpy."""
     kn = 2.0 * math.pi / lam_mm * n_med
     a = 0.5 * int(nt) * h_mm
     P = np.asarray(P, float)
     d = np.asarray(T, float) - P
     r = np.sqrt(np.sum(d * d, -1))
     u = d / r[:, None]
-    cub = 0.0
+    cub, amp = 0.0, 0.0
     for Dx, Dy in ((a, a), (a, -a), (a, 0.0), (0.0, a)):
         ud = u[:, 0] * Dx + u[:, 1] * Dy
         cub = max(cub, float(np.max(kn * np.abs(ud) * (Dx * Dx + Dy * Dy - ud * ud) / (2.0 * r * r))))
-    return kn * 2.0 * a * a * float(norm), cub
+        amp = max(amp, float(np.max(2.0 * np.abs(ud) / r)))
+    return kn * 2.0 * a * a * float(norm), cub, amp
+
+
+#: the vectors of each correction group (:func:`_terms`)
+GROUP_VECTORS = {"lin": 3, "quad": 6, "amp": 2, "cub": 4}
+
+
+def calls(kc: int, spreads: dict | None = None) -> list:
+    """The correction NUFFT calls of one tile: ``[(vectors, spread), ...]``, the groups (:data:`GROUPS`) of one spread
+    together (``spreads``: group -> spread, :func:`group_spreads`; None: all at ``REST_SPREAD``), in chunks of at most
+    ``kc`` vectors. The plane waves (1, or 2 for "flux") go first in their own call at ``NUFFT_SPREAD``."""
+    sp = spreads if spreads is not None else {g: REST_SPREAD for g in GROUPS}
+    out = []
+    for s in sorted({int(sp[g]) for g in GROUPS}, reverse=True):
+        k = sum(GROUP_VECTORS[g] for g in GROUPS if int(sp[g]) == s)
+        out += [(min(kc, k - c0), s) for c0 in range(0, k, kc)]
+    return out
 
 
 def n_vectors(flux: bool) -> int:
@@ -164,23 +224,24 @@ def chunk_vectors(nt: int, points: int, flux: bool, grid_bytes: int | None = Non
 
 
 def _coefficients(r, u, xp):
-    """(4, J): ``g = (1 / (2 r), u_x^2 / (2 r), u_x u_y / r, u_y^2 / (2 r))`` (1/mm) of the quadratic term
-    ``sum_a g_a b_a(D)``, ``b = (|D|^2, -D_x^2, -D_x D_y, -D_y^2)``."""
-    return xp.stack([0.5 / r, 0.5 * u[:, 0] ** 2 / r, u[:, 0] * u[:, 1] / r, 0.5 * u[:, 1] ** 2 / r])
+    """(3, J): ``g = ((1 - u_x^2) / (2 r), -u_x u_y / r, (1 - u_y^2) / (2 r))`` (1/mm) of the quadratic term
+    ``(|D|^2 - (u.D)^2) / (2 r) = sum_a g_a b_a(D)`` on the monomials ``b = (D_x^2, D_x D_y, D_y^2)``."""
+    ux, uy = u[:, 0], u[:, 1]
+    return xp.stack([0.5 * (1.0 - ux * ux) / r, -ux * uy / r, 0.5 * (1.0 - uy * uy) / r])
 
 
 def _cubic(r, u, xp=np):
-    """The six coefficients (1/mm^2) of the third-order phase ``-(u.D) (|D|^2 - (u.D)^2) / (2 r^2)`` on the basis
-    ``(-D_x |D|^2, -D_y |D|^2, D_x^3, D_x^2 D_y, D_x D_y^2, D_y^3)``."""
+    """The four coefficients (1/mm^2) of the third-order phase ``-(u.D) (|D|^2 - (u.D)^2) / (2 r^2)`` on the
+    monomials ``(D_x^3, D_x^2 D_y, D_x D_y^2, D_y^3)``: ``c ((u.D)^3 - (u.D) |D|^2)``, ``c = 1 / (2 r^2)``."""
     ux, uy, c = u[:, 0], u[:, 1], 0.5 / (r * r)
-    return (c * ux, c * uy, c * ux ** 3, 3.0 * c * ux ** 2 * uy, 3.0 * c * ux * uy ** 2, c * uy ** 3)
+    return (c * (ux ** 3 - ux), c * (3.0 * ux * ux * uy - uy), c * (3.0 * ux * uy * uy - ux), c * (uy ** 3 - uy))
 
 
 def _rest_norm(g, xp):
     """The largest ``|sum_a (g_a - mid g_a) b_a(D)| / |D|^2`` over the rays and directions (1/mm): the spectral norm
-    of the rest's 2 x 2 form ``[[d1 - d2, -d3 / 2], [-d3 / 2, d1 - d4]]``, ``mid``: the midrange over the rays."""
+    of the rest's 2 x 2 form ``[[d0, d1 / 2], [d1 / 2, d2]]``, ``mid``: the midrange over the rays."""
     d = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
-    a, c, b = d[0] - d[1], d[0] - d[3], -0.5 * d[2]
+    a, c, b = d[0], d[2], 0.5 * d[1]
     return float(xp.max(xp.abs(0.5 * (a + c)) + xp.sqrt(0.25 * (a - c) ** 2 + b * b)))
 
 
@@ -229,13 +290,13 @@ def _terms(w, r, u, flux, xp):
     complex vector (made when its chunk runs), ``key`` what it multiplies in ``U`` / ``U_w``."""
     g = _coefficients(r, u, xp)
     g = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
-    pairs = [(a, b) for a in range(4) for b in range(a, 4)]
+    pairs = [(a, b) for a in range(3) for b in range(a, 3)]
     cub = _cubic(r, u, xp)
     out = [(lambda: w, ("one",))]
-    out += [(lambda a=a: w * g[a], ("lin", a)) for a in range(4)]
+    out += [(lambda a=a: w * g[a], ("lin", a)) for a in range(3)]
     out += [(lambda a=a, b=b: w * g[a] * g[b], ("quad", a, b)) for a, b in pairs]
     out += [(lambda i=i: w * u[:, i] / r, ("amp", i)) for i in range(2)]
-    out += [(lambda i=i: w * cub[i], ("cub", i)) for i in range(6)]
+    out += [(lambda i=i: w * cub[i], ("cub", i)) for i in range(4)]
     out += [(lambda: w * u[:, 2], ("flux",))] if flux else []
     return out
 
@@ -243,7 +304,7 @@ def _terms(w, r, u, flux, xp):
 def _coefficient(key, Dx, Dy, kn):
     """What the NUFFT of the term ``key`` (:func:`_terms`) multiplies in ``U`` at ``D = (Dx, Dy)`` (mm; arrays that
     broadcast to the tile), and the factor its share of ``U_w`` takes beside the rays' mean ``u_z``."""
-    basis = lambda a: (Dx ** 2 + Dy ** 2, -Dx ** 2, -Dx * Dy, -Dy ** 2)[a]
+    basis = lambda a: (Dx ** 2, Dx * Dy, Dy ** 2)[a]
     if key[0] == "one":
         return 1.0, 0.0
     if key[0] == "lin":        # exp(i eps) to second order: 1 + i eps - eps^2 / 2, eps = kn sum_a g_a b_a
@@ -256,8 +317,7 @@ def _coefficient(key, Dx, Dy, kn):
     if key[0] == "cub":
         # the third-order phase -(u.D) (|D|^2 - (u.D)^2) / (2 r^2), to first order (< 0.01 rad: a u-odd phase, a
         # shift of the spot between tiles, measured 6e-3 of the peak on an f/10 lens with 0.33 mm tiles without it)
-        s2 = Dx ** 2 + Dy ** 2
-        return (1j * kn) * (-Dx * s2, -Dy * s2, Dx ** 3, Dx ** 2 * Dy, Dx * Dy ** 2, Dy ** 3)[key[1]], 1.0
+        return (1j * kn) * (Dx ** 3, Dx ** 2 * Dy, Dx * Dy ** 2, Dy ** 3)[key[1]], 1.0
     return 0.0, None            # "flux": U_w's plane waves, times 1
 
 
@@ -278,7 +338,7 @@ def near_tiles(n: int, nt: int, t: int, h_mm: float, reach_mm: float | None):
 
 def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_mm: float, n: int, flux: bool,
                       xp=np, tile_max: int = KIRCHHOFF_TILE_MAX, grid_bytes: int | None = None, base=None,
-                      reach_mm: float | None = None, tiling=None):
+                      reach_mm: float | None = None, tiling=None, spreads: dict | None = None):
     """``|U|^2`` (``flux`` False) or ``Re(conj(U) U_w)`` on the sensor grid ``T + (m - n/2) h`` (mm; ``m = 0 ..
     n-1`` per axis, array ``[y, x]``), ``U`` the Rayleigh-Sommerfeld sum of the wave-plane samples.
 
@@ -291,7 +351,8 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     within it of ``T`` (:func:`near_tiles`), the others taken from ``base`` ((n, n), e.g. the Debye form's samples;
     not changed). ``tiling``: ``(nt, origins)`` (:func:`region_tiles`: tiles of ``nt`` samples starting at
     ``origins`` ``(sy, sx)``, the planned region near the spot) instead of the regular tiles; the samples beyond them
-    from ``base`` (zeros where None). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
+    from ``base`` (zeros where None). ``spreads``: the correction groups' NUFFT spreads (:func:`group_spreads`, as
+    planned; None: all at ``REST_SPREAD``). Returns (n, n) float64 in ``xp``. Raises ``FloatingPointError`` where a frequency lies beyond the
     grid's band."""
     from . import nufft
     k0 = 2.0 * math.pi / lam_mm
@@ -331,8 +392,11 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
         U = xp.zeros((nt, nt), dtype=xp.complex128)
         Uw = xp.zeros((nt, nt), dtype=xp.complex128) if flux else None
         main = [q for q in terms if q[1][0] in ("one", "flux")]
-        rest = [q for q in terms if q[1][0] not in ("one", "flux")]
-        parts = [(main, None)] + [(rest[c0:c0 + kc], REST_SPREAD) for c0 in range(0, len(rest), kc)]
+        sp = spreads if spreads is not None else {g: REST_SPREAD for g in GROUPS}
+        parts = [(main, None)]          # the corrections by spread, as calls() counts them
+        for sv in sorted({int(sp[g]) for g in GROUPS}, reverse=True):
+            rest = [q for q in terms if q[1][0] in GROUPS and int(sp[q[1][0]]) == sv]
+            parts += [(rest[c0:c0 + kc], sv) for c0 in range(0, len(rest), kc)]
         for part, spread in parts:
             N = nufft.nufft_type1(tx, ty, xp.stack([make() for make, _ in part]), nt, xp, spread=spread)
             for (_, key), Nq in zip(part, N):
@@ -351,23 +415,23 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
     return out
 
 
-def tile_cost(nt: int, points: int, flux: bool, grid_bytes: int | None = None) -> dict:
+def tile_cost(nt: int, points: int, flux: bool, grid_bytes: int | None = None, spreads: dict | None = None) -> dict:
     """Peak memory (bytes) and work (flops) of one tile of :func:`kirchhoff_samples`: ``nt`` samples a side,
     ``points`` wave-plane samples. Memory: ``POINT_BYTES`` a sample, and the larger NUFFT call's vectors (16 bytes a
     sample), grids (``GRID_CELL_BYTES`` a cell of the ``(2 nt)^2`` grid) and spreading arrays (``SPREAD_ROW_BYTES``
     a sample and footprint row), ~3 complex ``nt^2`` arrays (``U``, ``U_w``, a coefficient,
     products). Flops of the NUFFTs (:func:`rwwarp.wave.nufft.nufft_flops`: one call for the plane waves of ``U``
-    and ``U_w``, one a chunk of the corrections at ``REST_SPREAD``) and ~10 a term and sample to form the vectors and
+    and ``U_w``, one a chunk of the corrections at their group's spread, :func:`calls`; ``spreads`` None: all at
+    ``REST_SPREAD``) and ~10 a term and sample to form the vectors and
     combine them (``nt^2``)."""
     from .nufft import NUFFT_OVERSAMPLE, nufft_flops
     K, kc = n_vectors(flux), chunk_vectors(nt, points, flux, grid_bytes)
     M = NUFFT_OVERSAMPLE * int(nt)
     main = 2 if flux else 1                      # the plane waves of U (and U_w): one call at NUFFT_SPREAD
-    full, last = divmod(K - main, kc)
-    nufft = (nufft_flops(points, main, nt) + full * nufft_flops(points, kc, nt, REST_SPREAD)
-             + (nufft_flops(points, last, nt, REST_SPREAD) if last else 0.0))
+    rest = calls(kc, spreads)
+    nufft = nufft_flops(points, main, nt) + sum(nufft_flops(points, k, nt, sp) for k, sp in rest)
     from .nufft import NUFFT_SPREAD
     call = lambda k, spread: k * (GRID_CELL_BYTES * M * M + 16 * points) + SPREAD_ROW_BYTES * 2 * spread * points
-    mem = POINT_BYTES * points + max(call(main, NUFFT_SPREAD), call(kc, REST_SPREAD)) + 3 * 16 * nt * nt
+    mem = POINT_BYTES * points + max([call(main, NUFFT_SPREAD)] + [call(k, sp) for k, sp in rest]) + 3 * 16 * nt * nt
     return {"memory_bytes": int(mem), "flops": float(nufft + 10.0 * K * (points + nt * nt) + 200.0 * points),
-            "nufft_flops": float(nufft), "vectors": K, "chunk": kc}
+            "nufft_flops": float(nufft), "vectors": K, "chunk": kc, "calls": rest}

@@ -274,13 +274,20 @@ def _rs_case():
 
 
 @pytest.mark.parametrize("tile_max", [1536, 16])     # tiles set by the curvature (2 x 2), or 4 x 4
-def test_kirchhoff_samples_are_the_rayleigh_sommerfeld_sum(tile_max):
-    from rwwarp.wave.pixel_kirchhoff import kirchhoff_samples
+@pytest.mark.parametrize("planned", [False, True])   # corrections all at REST_SPREAD, or each group at group_spreads'
+def test_kirchhoff_samples_are_the_rayleigh_sommerfeld_sum(tile_max, planned):
+    from rwwarp.wave import pixel_kirchhoff as pk
     P, L, amp, T, h, n, ref = _rs_case()
-    got = kirchhoff_samples(P, L, amp, 0.55e-3, 1.0, T, np.zeros(2), h, n, False, tile_max=tile_max)
+    spreads = None
+    if planned:
+        nt, _ = pk.kirchhoff_tiles(P, T, 0.55e-3, 1.0, h, n, tile_max)
+        _, norm = pk.tile_limit(P, [T], 0.55e-3, 1.0, h, tile_max)
+        spreads = pk.group_spreads(*pk.tile_rests(P, T, 0.55e-3, 1.0, h, nt, norm))
+    got = pk.kirchhoff_samples(P, L, amp, 0.55e-3, 1.0, T, np.zeros(2), h, n, False, tile_max=tile_max, spreads=spreads)
     # the expansion's rests (quadratic to second order below 0.1 rad, cubic and amplitude to first) and the NUFFT
-    # (~1e-6; the corrections' at REST_SPREAD, < 1e-4 of each): measured 2.5e-5 / 7.5e-6 of the peak (2 x 2 tiles, the spot at their corner / 4 x 4 of 16 samples);
-    # without the cubic term 5.8e-5
+    # (~1e-6; the corrections' at their spreads, < 1e-4 of each): measured 2.4e-5 / 7.5e-6 of the peak (2 x 2 tiles, the
+    # spot at their corner / 4 x 4 of 16 samples), 2.3e-5 / 7.4e-6 at the planned spreads (lin 4 / 3, quad 2, amp 3,
+    # cub 2); without the cubic term 5.8e-5
     assert np.max(np.abs(got - ref)) < 4e-5 * ref.max()
 
 
