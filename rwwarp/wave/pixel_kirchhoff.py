@@ -62,7 +62,7 @@ import math
 import numpy as np
 
 #: the largest phase rest (rad) at a tile's corner, taken to second order (error eps^3 / 6): the tile's size
-KIRCHHOFF_EPS = 0.05
+KIRCHHOFF_EPS = 0.12
 #: largest tile side (samples): one weight vector's NUFFT grids ((2 x 1024)^2 cells, GRID_CELL_BYTES a cell) stay ~220 MiB
 KIRCHHOFF_TILE_MAX = 1024
 #: bytes the NUFFT grids of one tile may take at once: its weight vectors go through in chunks that fit
@@ -90,7 +90,7 @@ N_TERMS = 16
 #: first order, size ``eps``; ``quad``: second order, ``eps^2 / 2``; ``amp``; ``cub``) the narrowest spread (at least
 #: ``MIN_SPREAD``) whose Gaussian gridding error ``2 exp(-pi s (R - 1/2) / R)`` of the field (R = 2; REST_SPREAD's
 #: 1.7e-3 at 3), times the group's size and doubled in the intensity, stays below this (of the peak)
-KIRCHHOFF_NUFFT_ERROR = 3e-5
+KIRCHHOFF_NUFFT_ERROR = 4e-5
 MIN_SPREAD = 2
 #: the correction groups, in the order of their vectors (:func:`_terms`)
 GROUPS = ("lin", "quad", "amp", "cub")
@@ -112,6 +112,12 @@ KIRCHHOFF_QUAD_ERROR = 7.5e-5
 #: estimate (measured against the Kirchhoff form on every tile: EF35 / EF50 at 64 px 7.6e-6 / 1.4e-6, A489 9 px
 #: 7.6e-7: 0.005 / 0.0008 / 0.002 of their Debye estimates)
 KIRCHHOFF_FAR_SHARE = 0.01
+#: :func:`kirchhoff_error_estimate`: the share of the bound ``eps^3 / 3`` (two families of rays interfering, each with
+#: its own third-order rest) that the tiles' expansion was measured to leave (calibration in its docstring)
+KIRCHHOFF_INTERFERENCE = 0.3
+#: the tiles' side: the largest whose expansion's estimated error (:func:`kirchhoff_error_estimate`'s ``expansion``)
+#: is within this (of the peak), its quadratic rest at most KIRCHHOFF_EPS (rwwarp.wave.pixel_scale.plan_field)
+KIRCHHOFF_EXPANSION_MAX = 4e-4
 
 
 def gridding_error(spread: int) -> float:
@@ -145,12 +151,16 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
     computation (the same rays' wave-plane field propagated exactly), max |difference| over the PSF's peak, and its
     parts. The form sums the wave-plane field with the exact kernel, so what is left is what it approximates:
 
-    * ``tile``: the kernel's expansion over a tile (the quadratic rest ``eps_rad`` at the tile's corner to second
-      order: ``eps^3 / 6`` of the field; the cubic phase ``cubic_rad`` there to first: ``cubic^2 / 2``; the amplitude's
-      change ``amp`` and the cubic phase are not multiplied by the quadratic rest: ``eps (amp + cubic)``), and the
-      corrections' NUFFT (each group at its spread, ``spreads`` from :func:`group_spreads`; None: all at
-      ``REST_SPREAD``: ``size gridding_error(spread)``), each doubled in the intensity:
-      ``eps^3 / 3 + cubic^2 + 2 eps (amp + cubic) + 2 sum_groups size gridding_error``;
+    * ``tile``: the kernel's expansion over a tile, ``expansion``: the quadratic rest (``eps_rad`` at the tile's
+      corner) to second order, the cubic phase's rest (``cubic_rad``) and the amplitude's rest (``amp``) to first,
+      neither multiplied by the quadratic rest. Where one family of rays makes the field at a sample (one stationary
+      point), their truncation is a phase error and an amplitude error of that family: in ``|U|^2``
+      ``|1 + i e - e^2 / 2|^2 - 1 = e^4 / 4``, ``2 eps cubic + cubic^2`` (the cubic phase's missing product with the
+      quadratic one, and its square) and ``2 amp eps^2``: derived. Where two families interfere, the third-order term
+      ``eps^3 / 6`` of each differs and enters their interference to first order: at most ``eps^3 / 3``; measured 40x
+      below that (``KIRCHHOFF_INTERFERENCE``, calibrated, with its cases). Then the corrections' NUFFT (each group at
+      its spread, ``spreads`` from :func:`group_spreads`; None: all at ``REST_SPREAD``), ``nufft``:
+      ``2 sum_groups size gridding_error(spread)``;
     * ``quadrature``: the pupil grid's cells as point samples (whole cells at the rim; the lattice's aliases beyond
       the grid), calibrated: ``KIRCHHOFF_QUAD_ERROR``; measured alike at 300 and 600 rays across (``ray_grid``,
       ``ray_min``: kept in the signature, not used: the planner takes ``RAY_MIN`` = 600 or more; the Debye form's
@@ -165,7 +175,8 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
     sizes = group_sizes(eps, cub, am)
     sp = spreads if spreads is not None else {g: REST_SPREAD for g in GROUPS}
     nufft = 2.0 * sum(sizes[g] * gridding_error(sp[g]) for g in GROUPS)
-    expansion = eps ** 3 / 3.0 + cub ** 2 + 2.0 * eps * (am + cub)
+    expansion = (KIRCHHOFF_INTERFERENCE * eps ** 3 / 3.0 + eps ** 4 / 4.0 + 2.0 * eps * cub + cub ** 2
+                 + 2.0 * am * eps ** 2 + am ** 2)
     tile = expansion + nufft
     quad = KIRCHHOFF_QUAD_ERROR
     far = KIRCHHOFF_FAR_SHARE * float(debye_estimate) if debye_estimate is not None else 0.0
@@ -177,18 +188,24 @@ def tile_rests(P, T, lam_mm: float, n_med: float, h_mm: float, nt: int, norm: fl
     """``(eps, cubic, amp)`` at the corners of a tile of ``nt`` samples of ``h_mm`` centred at ``T`` (3,) (mm): the
     quadratic rest ``k0 n 2 a^2 norm`` (rad; ``a`` the half side, ``norm`` from :func:`tile_limit`), the largest cubic
     phase ``k0 n |u.D| (|D|^2 - (u.D)^2) / (2 r^2)`` (rad) and the largest first-order change of the amplitude
-    ``2 |u.D| / r`` over the wave-plane samples ``P`` (J, 3) (mm) and the corners and edge midpoints ``D``. numpy."""
+    ``2 |u.D| / r`` over the wave-plane samples ``P`` (J, 3) (mm) and the corners and edge midpoints ``D``, the last two
+    less their midrange over the samples (:func:`kirchhoff_samples` takes the midrange of the cubic phase as a phase
+    common to the tile's samples, unseen in ``|U|^2``, and that of the amplitude's change as a common factor). numpy."""
     kn = 2.0 * math.pi / lam_mm * n_med
     a = 0.5 * int(nt) * h_mm
     P = np.asarray(P, float)
     d = np.asarray(T, float) - P
     r = np.sqrt(np.sum(d * d, -1))
     u = d / r[:, None]
+    mid = lambda v: v - 0.5 * (np.max(v, -1, keepdims=True) + np.min(v, -1, keepdims=True))
+    c = mid(np.stack(_cubic(r, u)))             # the cubic phase less its midrange (common: dropped, unseen in |U|^2)
+    al = u[:, :2] / r[:, None]                  # the amplitude's change -2 a.D less its midrange (a common factor)
+    alm = 0.5 * (al.max(0) + al.min(0))
     cub, amp = 0.0, 0.0
     for Dx, Dy in ((a, a), (a, -a), (a, 0.0), (0.0, a)):
-        ud = u[:, 0] * Dx + u[:, 1] * Dy
-        cub = max(cub, float(np.max(kn * np.abs(ud) * (Dx * Dx + Dy * Dy - ud * ud) / (2.0 * r * r))))
-        amp = max(amp, float(np.max(2.0 * np.abs(ud) / r)))
+        m = np.array([Dx ** 3, Dx * Dx * Dy, Dx * Dy * Dy, Dy ** 3])
+        cub = max(cub, float(np.max(kn * np.abs(m @ c))))
+        amp = max(amp, float(np.max(2.0 * np.abs((al - alm) @ np.array([Dx, Dy])))))
     return kn * 2.0 * a * a * float(norm), cub, amp
 
 
@@ -291,11 +308,13 @@ def _terms(w, r, u, flux, xp):
     g = _coefficients(r, u, xp)
     g = g - 0.5 * (xp.max(g, 1) + xp.min(g, 1))[:, None]
     pairs = [(a, b) for a in range(3) for b in range(a, 3)]
-    cub = _cubic(r, u, xp)
+    mid = lambda v: v - 0.5 * (xp.max(v) + xp.min(v))
+    cub = [mid(c) for c in _cubic(r, u, xp)]    # less the midrange: a phase common to the tile, unseen in |U|^2
+    al = [mid(u[:, i] / r) for i in range(2)]   # less the midrange: the common factor amp_factor() applies
     out = [(lambda: w, ("one",))]
     out += [(lambda a=a: w * g[a], ("lin", a)) for a in range(3)]
     out += [(lambda a=a, b=b: w * g[a] * g[b], ("quad", a, b)) for a, b in pairs]
-    out += [(lambda i=i: w * u[:, i] / r, ("amp", i)) for i in range(2)]
+    out += [(lambda i=i: w * al[i], ("amp", i)) for i in range(2)]
     out += [(lambda i=i: w * cub[i], ("cub", i)) for i in range(4)]
     out += [(lambda: w * u[:, 2], ("flux",))] if flux else []
     return out
@@ -408,6 +427,16 @@ def kirchhoff_samples(P, L, amp_dA, lam_mm: float, n_med: float, T, carrier, h_m
                 if flux and cw:
                     Uw += (cw * uz) * cu * Nq
             del N
+        # the amplitude's common change (a: the midrange of u_xy / r over the samples; each sample's first-order rest
+        # in the "amp" terms): dz / r^2 at X + D times r^2 / |R + D|^2 (1 - 2 a.D to first order), U_w's obliquity
+        # dz / r once more
+        # (exactly for a sample at the midrange's r and u: |R + D|^2 / r^2 = 1 + 2 a.D + |D|^2 / r^2)
+        al = [0.5 * float(xp.max(u[:, i] / r) + xp.min(u[:, i] / r)) for i in range(2)]
+        rm = 0.5 * float(xp.max(r) + xp.min(r))
+        q = 1.0 + 2.0 * (al[0] * Dx + al[1] * Dy) + (Dx * Dx + Dy * Dy) / (rm * rm)
+        U /= q
+        if flux:
+            Uw /= q * xp.sqrt(q)
         It = xp.real(xp.conj(U) * Uw) if flux else xp.abs(U) ** 2
         del U, Uw, terms, w, r, u, tx, ty
         hy, hx = min(nt, n - sy), min(nt, n - sx)

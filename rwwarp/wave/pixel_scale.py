@@ -259,14 +259,17 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
     ``margin_mm`` is None, the square of half side ``reach_mm``), the Debye form's samples elsewhere; else (or where
     ``reach_mm`` is None) the whole grid. It is covered by the fewest tiles of one side whose quadratic rest stays below
     ``KIRCHHOFF_EPS`` (:func:`rwwarp.wave.pixel_kirchhoff.tile_limit`, seen from the region's corners;
-    :func:`~rwwarp.wave.pixel_kirchhoff.region_tiles`), each as small as covers it in that count.
+    :func:`~rwwarp.wave.pixel_kirchhoff.region_tiles`) and whose expansion's estimated error (the ``expansion`` part
+    of :func:`~rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate`) stays within ``KIRCHHOFF_EXPANSION_MAX``, each as
+    small as covers it in that count.
     Returns ``{"form", "tile", "tiles", "points", "vectors", "near", "reach_mm"}`` (``tile`` samples a side,
     ``tiles`` a side of the grid in tiles of ``tile``, ``vectors`` the NUFFT weight vectors a tile: the chosen
     form's; ``near`` the Kirchhoff tiles, ``reach_mm`` None where they cover the grid) and for the Kirchhoff form
     ``origins`` (the tiles' first samples), ``eps`` and ``cubic`` (rad: the kernel's rests at a tile's corner), ``amp``
     (the amplitude's first-order change there; :func:`~rwwarp.wave.pixel_kirchhoff.tile_rests`) and ``spreads`` (the
     correction groups' NUFFT spreads, :func:`~rwwarp.wave.pixel_kirchhoff.group_spreads`)."""
-    from .pixel_kirchhoff import group_spreads, n_vectors, region_tiles, tile_limit, tile_rests
+    from .pixel_kirchhoff import (KIRCHHOFF_EXPANSION_MAX, group_spreads, kirchhoff_error_estimate, n_vectors,
+                                  region_tiles, tile_limit, tile_rests)
     form = FIELD_FORM if form is None else form
     if form not in ("auto", "kirchhoff", "debye"):
         raise ValueError(f"pixel method: the sensor field's form must be 'auto', 'kirchhoff' or 'debye', got {form!r}")
@@ -295,11 +298,15 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
                        for r in (0, 1) for c in (0, 1)]
         ntk, normk = tile_limit(P, pts_T, lam, nm, h_mm)
         nt_max, norms = min(nt_max, ntk), norms + [normk]
-    nt, origins = region_tiles(region, nt_max, n)
-    eps, cub, amp = 0.0, 0.0, 0.0
-    for (P, T, lam, nm), normk in zip(wave, norms):
-        e, c, a = tile_rests(P, T, lam, nm, h_mm, nt, normk)
-        eps, cub, amp = max(eps, e), max(cub, c), max(amp, a)
+    while True:     # the fewest tiles whose expansion's estimated error is within KIRCHHOFF_EXPANSION_MAX
+        nt, origins = region_tiles(region, nt_max, n)
+        eps, cub, amp = 0.0, 0.0, 0.0
+        for (P, T, lam, nm), normk in zip(wave, norms):
+            e, c, a = tile_rests(P, T, lam, nm, h_mm, nt, normk)
+            eps, cub, amp = max(eps, e), max(cub, c), max(amp, a)
+        if nt <= 8 or kirchhoff_error_estimate(eps, cub, ray_grid, amp=amp)["expansion"] <= KIRCHHOFF_EXPANSION_MAX:
+            break
+        nt_max = max(8, 2 * int(0.45 * nt))
     near = len(origins)
     whole = region == (0, n, 0, n)
     reach = None if whole else (float(reach_mm) if reach_mm is not None else None)
@@ -552,7 +559,9 @@ def form_line(form: str, field: dict, cost: dict, err: dict, nf: float, slope: f
                f"{slope:.3g} rad, N_F {nf:.4g} seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}")
     else:
         sp = field.get("spreads") or {}
-        why = (f"tiles eps^3 / 3 + cubic^2 + 2 eps (amp + cubic) = {err['expansion']:.2g} (eps {field['eps']:.3g}, "
+        from .pixel_kirchhoff import KIRCHHOFF_INTERFERENCE
+        why = (f"tiles {KIRCHHOFF_INTERFERENCE:g} eps^3 / 3 + eps^4 / 4 + 2 eps cubic + cubic^2 + 2 amp eps^2 + amp^2 = "
+               f"{err['expansion']:.2g} (eps {field['eps']:.3g}, "
                f"cubic {field['cubic']:.2g} rad, amp {field.get('amp', 0.0):.2g} at a corner of its {field['near']} "
                f"tile(s) of {field['tile']}^2) + the corrections' NUFFT {err['nufft']:.2g} (spreads "
                + ", ".join(f"{g} {v}" for g, v in sp.items()) + "); "
