@@ -57,3 +57,45 @@ def test_group_spreads_meet_the_nufft_error_and_are_the_narrowest():
         assert 2 * sizes[g] * pk.gridding_error(s) <= pk.KIRCHHOFF_NUFFT_ERROR
         assert s == pk.MIN_SPREAD or 2 * sizes[g] * pk.gridding_error(s - 1) > pk.KIRCHHOFF_NUFFT_ERROR
     assert sp["lin"] >= sp["quad"] >= sp["cub"]
+
+
+def _estimate_line(pl, what="kirchhoff form: error ~"):
+    return [r for r in pl.reasons if r.startswith(what)][0]
+
+
+def test_tiles_are_as_large_as_the_expansion_estimate_allows(monkeypatch):
+    """The A489 on axis, 16 um, 5 px, 300 rays across (plans only): KIRCHHOFF_EPS alone would allow 4 tiles of 56 (eps
+    0.054 rad), whose expansion estimate (the cubic phase 0.0052 rad at their corners: 2 eps cubic 5.6e-4) is over
+    KIRCHHOFF_EXPANSION_MAX: the planner takes 9 tiles of 38 (eps 0.025, expansion 9.2e-5) instead."""
+    import rwwarp as rw
+    import rwwarp.wave.pixel_scale as ps
+    from rwwarp.io import load_lens
+    monkeypatch.setattr(ps, "FIELD_FORM", "kirchhoff")
+    lens = load_lens("a489_doe")
+    kw = dict(size=5, pixel_mm=0.016, method="pixel", rays_per_sample=0.5)
+    f = rw.plan_psf(lens, 0.0, 0.55, **kw).pixel_field
+    exp = pk.kirchhoff_error_estimate(f["eps"], f["cubic"], 300, amp=f["amp"])["expansion"]
+    cap = pk.KIRCHHOFF_EXPANSION_MAX
+    assert exp <= cap and f["eps"] <= pk.KIRCHHOFF_EPS
+    monkeypatch.setattr(pk, "KIRCHHOFF_EXPANSION_MAX", 1.0)     # the quadratic rest's cap alone
+    g = rw.plan_psf(lens, 0.0, 0.55, **kw).pixel_field
+    assert g["near"] < f["near"] and g["tile"] > f["tile"]
+    assert pk.kirchhoff_error_estimate(g["eps"], g["cubic"], 300, amp=g["amp"])["expansion"] > cap
+
+
+def test_ef50_at_10_deg_plans_within_the_issue_budget():
+    """Issue 27 item 5's budget for the DeepLens EF50 f/1.8 at 10 deg, its own 15.3 um pixel, 64 px (plans only):
+    <= 20 GFLOP and 1 GiB, the error estimate within the 1e-3 tolerance: auto takes the pixel method in the Kirchhoff
+    form (4 tiles of 242 over the coma spot; 12 of 148 and 39.5 GFLOP before; measured against the full computation:
+    docs/propagation.md)."""
+    import rwwarp as rw
+    from rwwarp.io import load_lens
+    path = __import__("pathlib").Path(__file__).resolve().parents[1] / "data/third_party/files/DeepLens"
+    path = path / "camera__ef50mm_f1.8.json"
+    if not path.exists():
+        pytest.skip("DeepLens lens files not present")
+    pl = rw.plan_psf(load_lens(str(path)), 10.0, 0.55, size=64)
+    assert pl.method == "pixel" and pl.pixel_field["form"] == "kirchhoff"
+    assert pl.estimate["flops"] <= 2e10 and pl.estimate["memory_bytes"] <= 2 ** 30
+    est = float(_estimate_line(pl, "pixel method: error ~").split("~")[1].split()[0])
+    assert est <= 1e-3
