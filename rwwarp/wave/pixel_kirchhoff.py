@@ -14,21 +14,27 @@ form sums the wave-plane field itself, rim included, with the exact kernel
   ``X + D`` (``D`` in the sensor plane) is at ``|X + D - p| = r + u.D + (|D|^2 - (u.D)^2) / (2 r) - (u.D) (|D|^2 -
   (u.D)^2) / (2 r^2) + ...``. The linear term is a plane wave of frequency ``n u_xy / lambda``: the type-1
   non-uniform FFT onto the tile. The quadratic one, ``eps_j(D) = k0 n sum_a g_a,j b_a(D)`` with
-  ``g = (1 / (2 r), u_x^2 / (2 r), u_x u_y / r, u_y^2 / (2 r))`` and ``b = (|D|^2, -D_x^2, -D_x D_y, -D_y^2)``, is
-  split into its midrange over the rays (a phase common to the tile's samples, which ``|U|^2`` and
-  ``Re(conj(U) U_w)`` do not see) and the rest, taken to second order (``exp(i eps) ~ 1 + i eps - eps^2 / 2``: 4 + 10
-  more transforms); the cubic term (6) and the amplitude's change ``dz / r^2`` (2) to first order. The tile is made
-  small enough that the rest stays below ``KIRCHHOFF_EPS`` rad at its corners.
+  ``g = ((1 - u_x^2) / (2 r), -u_x u_y / r, (1 - u_y^2) / (2 r))`` on the monomials ``b = (D_x^2, D_x D_y, D_y^2)``,
+  is split into its midrange over the rays (a phase common to the tile's samples, which ``|U|^2`` and
+  ``Re(conj(U) U_w)`` do not see) and the rest, taken to second order (``exp(i eps) ~ 1 + i eps - eps^2 / 2``: 3 + 6
+  more transforms); the cubic term on its 4 monomials (4; its midrange dropped likewise) and the amplitude's change
+  ``dz / r^2`` to first order (2: each sample's rest from the midrange of ``u_xy / r``; the common change, exactly
+  ``r^2 / |R + D|^2`` for the midrange's sample, multiplies the tile). (Before: the quadratic term on 4 coefficients
+  of the redundant basis ``|D|^2, -D_x^2, -D_x D_y, -D_y^2`` and the cubic one on 6: 4 + 10 + 6 transforms for the
+  same sums, and the common amplitude change to first order only: 2.5e-5 of the peak off the Rayleigh-Sommerfeld test,
+  now 1.9e-6.)
 * ``U_w`` (for ``pixel_values="flux"``): each term times ``u_z``, the obliquity towards the tile (its first-order
   rest with the rays' mean ``u_z``).
 
 The quadrature over the pupil grid's cells has its aliases ``lambda z / (n delta_p)`` away (0.65 mm on the EF35 at
 601 rays), beyond the grid as the Debye form's. Cost (:func:`tile_cost`, :func:`rwwarp.wave.pixel_scale.pixel_cost`):
-per tile ``N_TERMS`` (23; 24 for ``U_w``) NUFFTs of every wave-plane sample, the plane waves at the NUFFT's full
-spread, the corrections at ``REST_SPREAD``; tiles ``2 a`` wide with ``k0 n 2 a^2 max|g - mid g| <= KIRCHHOFF_EPS`` (at
-most ``KIRCHHOFF_TILE_MAX``). The spreading is most of it (EF35 f/2 at 15.3 um, 64 px: 9 x 9 tiles of 220, ~0.29 M
-samples each). Memory: one tile at a time, its vectors in chunks whose grids fit ``KIRCHHOFF_GRID_BYTES``. Arrays:
-numpy or CuPy (``xp``).
+per tile ``N_TERMS`` (16; 17 for ``U_w``) NUFFTs of every wave-plane sample, the plane waves at the NUFFT's full
+spread, each group of corrections at the narrowest spread its size allows (:func:`group_spreads`: the gridding error
+times the group's size within ``KIRCHHOFF_NUFFT_ERROR``); tiles ``2 a`` wide with ``k0 n 2 a^2 max|g - mid g| <=
+KIRCHHOFF_EPS`` (at most ``KIRCHHOFF_TILE_MAX``) and the expansion's estimated error within
+``KIRCHHOFF_EXPANSION_MAX``. The spreading is most of it (every tile takes every wave-plane sample: ~0.39 M on the
+EF50 f/1.8 at 15.3 um, 64 px). Memory: one tile at a time, its vectors in chunks whose grids fit
+``KIRCHHOFF_GRID_BYTES``. Arrays: numpy or CuPy (``xp``).
 
 Where it runs (:func:`rwwarp.wave.pixel_scale.plan_field`): on the fewest tiles (:func:`region_tiles`, each at most
 :func:`tile_limit` a side, the curvature seen from the region's corners) that cover the spot's region, the pilot
@@ -61,7 +67,9 @@ import math
 
 import numpy as np
 
-#: the largest phase rest (rad) at a tile's corner, taken to second order (error eps^3 / 6): the tile's size
+#: the largest phase rest (rad) at a tile's corner, taken to second order: the tile's largest size (0.05 before: the
+#: EF50 f/1.8 at 10 deg in 12 tiles of 148, 39.5 GFLOP; at 0.12 4 of 242, the expansion's estimate within
+#: KIRCHHOFF_EXPANSION_MAX deciding; docs/propagation.md)
 KIRCHHOFF_EPS = 0.12
 #: largest tile side (samples): one weight vector's NUFFT grids ((2 x 1024)^2 cells, GRID_CELL_BYTES a cell) stay ~220 MiB
 KIRCHHOFF_TILE_MAX = 1024
@@ -96,9 +104,8 @@ MIN_SPREAD = 2
 GROUPS = ("lin", "quad", "amp", "cub")
 
 
-#: :func:`kirchhoff_error_estimate`: the corrections' NUFFT error per unit of their size at a tile's corner (rad),
-#: in the intensity: 2 x the Gaussian gridding's 1.7e-3 at REST_SPREAD (the Rayleigh-Sommerfeld test's error / eps:
-#: 1.0e-3, 1.3e-3, 2.1e-3 at eps 0.023, 0.0058, 0.0015: below it)
+#: the corrections' NUFFT error per unit of their size at REST_SPREAD, in the intensity: 2 gridding_error(3) (kept for
+#: callers; the estimate takes each group at its own spread now)
 KIRCHHOFF_REST_ERROR = 3.4e-3
 #: :func:`kirchhoff_error_estimate`: the pupil quadrature's share (the rays as point samples of whole cells, the rim a
 #: staircase of them), with the reference's own convergence (~1e-4: docs "What the error follows"): the calibration
@@ -113,7 +120,12 @@ KIRCHHOFF_QUAD_ERROR = 7.5e-5
 #: 7.6e-7: 0.005 / 0.0008 / 0.002 of their Debye estimates)
 KIRCHHOFF_FAR_SHARE = 0.01
 #: :func:`kirchhoff_error_estimate`: the share of the bound ``eps^3 / 3`` (two families of rays interfering, each with
-#: its own third-order rest) that the tiles' expansion was measured to leave (calibration in its docstring)
+#: its own third-order rest) taken for the tiles' expansion. Calibrated: the largest tiles against tiles 2-4x smaller
+#: (FIELD_FORM "kirchhoff", the same rays; max |difference| / peak): EF50 f/1.8 64 px 0 deg 6.2e-7 (eps 0.068 against
+#: 0.017 rad), 10 deg 1.1e-5 (0.113 / 0.042); EF35 f/2 0 deg 2.7e-6 (0.052 / 0.013); EF100 f/2.8 10 deg 5.9e-6 (0.088 /
+#: 0.017); RF50 f/1.8 10 deg 8.5e-6 (0.046 / 0.015); A489 9 px 3.5e-5 (0.054 / 0.013): 0.002-0.27 of eps^3 / 3 (the
+#: A489's 0.67 within its derived cubic part, 2 eps cubic = 5.6e-4); the whole difference taken as this term, 0.3 is
+#: above each. (A field of one family of rays sees the truncation as a phase error: e^4 / 4 in |U|^2, derived.)
 KIRCHHOFF_INTERFERENCE = 0.3
 #: the tiles' side: the largest whose expansion's estimated error (:func:`kirchhoff_error_estimate`'s ``expansion``)
 #: is within this (of the peak), its quadratic rest at most KIRCHHOFF_EPS (rwwarp.wave.pixel_scale.plan_field)
