@@ -30,8 +30,9 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.73 GiB, 19.7 GFLOP (the Kirchhoff form on
-4 tiles of 134^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; ``perf/pixel_auto.py``);
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.67 GiB, 12.5 GFLOP (the Kirchhoff form on
+1 tile of 268^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; at 10 deg 4 tiles of 242^2 over its
+coma spot, 19.4 GFLOP; ``perf/pixel_auto.py``);
 :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
 
@@ -46,7 +47,7 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
   reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
   (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
-  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2, on the tiles
+  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at 16-17 transforms per tile against 2, on the tiles
   over the spot's region only (the pilot landings' box + ``KIRCHHOFF_MARGIN / B`` a side, the fewest tiles that
   cover it), the Debye form's samples elsewhere; its own estimate:
   :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate` (the kernel's expansion over a tile, the corrections'
