@@ -37,29 +37,28 @@ EF50 f/1.8 at 15.3 um, 64 px). Memory: one tile at a time, its vectors in chunks
 ``KIRCHHOFF_GRID_BYTES``. Arrays: numpy or CuPy (``xp``).
 
 Where it runs (:func:`rwwarp.wave.pixel_scale.plan_field`): on the fewest tiles (:func:`region_tiles`, each at most
-:func:`tile_limit` a side, the curvature seen from the region's corners) that cover the spot's region, the pilot
-landings' box widened by 12 / B a side; the Debye form's samples elsewhere (the two differ by < 2e-6 of the peak
-there on the A489 test). A tile only as large as the region needs has a smaller rest than ``KIRCHHOFF_EPS``: EF35 f/2
-on axis, 64 px, 4 tiles of 112 (eps 0.013 rad) against 5 of 220 (0.05) before: 14.9 against 19.3 GFLOP, and 3.7e-5
-against 1.43e-4 of the peak off the full computation on the central 9 px.
+:func:`tile_limit` a side, the curvature seen from the region's corners, and as large as keeps the expansion's
+estimate within ``KIRCHHOFF_EXPANSION_MAX``) that cover the spot's region, the pilot landings' box widened by 12 / B a
+side; the Debye form's samples elsewhere (the two differ by < 2e-6 of the peak there on the A489 test). EF50 f/1.8 at
+10 deg, 15.3 um, 64 px: 4 tiles of 242 (eps 0.113 rad), 19.4 GFLOP, against 12 of 148 (eps 0.042, 23 + 1 NUFFTs,
+all corrections at ``REST_SPREAD``), 39.5 GFLOP, before; the two differ by at most 1.1e-5 of the peak.
 
 Error estimate (:func:`kirchhoff_error_estimate`; "auto" compares it with the tolerance, ``--explain`` prints its
-parts): the tile part ``eps^3 / 3 + cubic^2 + 3.4e-3 eps`` from the planned tiles (derived: the expansion's rests and
-the corrections' NUFFT; the Rayleigh-Sommerfeld test measures 0.3-0.6 of its NUFFT term), a quadrature part 7.5e-5
+parts): the tile part from the planned tiles' rests (the expansion's single-family terms derived, its interference
+term calibrated: ``KIRCHHOFF_INTERFERENCE``; the corrections' NUFFT per group), a quadrature part 7.5e-5
 (calibrated: the median of the calibration cases' measured error less their tile part: EF35 f/2 on axis and 2 deg,
 EF50 f/1.8 and RF50 f/1.8 on axis (5 px), RF50 2 deg, Cooke triplet 0 / 14 deg (9 px): 0.8-3.2x the measured), and
-1 % of the Debye form's estimate where its samples are kept beyond the tiles. Against measured errors on cases not
-used (``perf/pixel_auto.py``; the full computation on the central 9 px, focal at 9x finer pixels box-summed; this
-CPU): 64 px at the lens's own 15.3 um pixel, the Kirchhoff form where "auto" took it: EF50 f/1.8 0 deg 4.2e-5 (est
-1.5e-4), EF35 f/2 0 deg 3.7e-5 (1.4e-4), EF85 f/1.8 0 deg 2.9e-5 (2.4e-4), RF50 10 deg 9.9e-5 (2.7e-4), EF100 f/2.8
-0 deg 4.3e-4 (1.5e-4), 10 deg 1.0e-4 (1.7e-4), EF40 f/2.8 0 deg 3.2e-4 (1.6e-4), Sigma 70 f/2.8 0 deg 1.7e-4
-(1.3e-4); 9 px patches in the Kirchhoff form: 5.7e-5 to 4.3e-4 against estimates 1.3-2.8e-4 (within 3x in 10 of 12;
-EF85 10 deg 8.5e-4 against 2.4e-4, RF50 10 deg 5.7e-5 against 2.7e-4); the A489 on axis, 5 px, 300 rays, 7.6e-5 (est
-1.7e-4, ``tests/rwwarp/test_pixel_scale.py``). So the estimate is 0.3-8x the measured error: a scale (1e-4 to 3e-4),
-not a bound; every measured error of the form is below 1e-3 (largest 8.5e-4, EF85 10 deg on 9 px at 601 rays; 2.6e-4
-at 64 px, 672 rays, in the Debye form that "auto" takes there). What it misses: on the f/2.8 lenses at ``RAY_MIN`` =
-601 rays across, 1.7-4.3e-4, moving with the rays but not monotonically (:data:`KIRCHHOFF_QUAD_ERROR`), at the level
-the full computation itself is converged to; not resolved here.
+1 % of the Debye form's estimate where its samples are kept beyond the tiles. Against measured errors
+(``perf/pixel_auto.py``; the full computation on the central 9 px, focal at 9x finer pixels box-summed; this CPU;
+at 6ae611f): 64 px at the lens's own 15.3 um pixel, the Kirchhoff form where "auto" takes it: EF50 f/1.8 0 deg
+4.6e-5 (est 2.9e-4), 10 deg 4.8e-5 (5.4e-4), EF35 f/2 0 deg 3.8e-5 (2.4e-4), 10 deg 2.7e-4 (4.0e-4), EF85 f/1.8 0 deg
+2.9e-5 (2.0e-4), RF50 10 deg 1.0e-4 (2.0e-4), EF100 f/2.8 0 deg 4.3e-4 (1.3e-4), 10 deg 1.05e-4 (3.2e-4), EF40 f/2.8
+0 deg 3.2e-4 (1.5e-4), Sigma 70 f/2.8 0 deg 1.7e-4 (1.2e-4); the A489 on axis, 5 px, 300 rays, 6.5e-5 (est 2.0e-4,
+``tests/rwwarp/test_pixel_scale.py``). So the estimate is 0.3-11x the measured error: a scale (1e-4 to 5e-4), not a
+bound; every measured error of the form is below 1e-3 (largest 8.5e-4, EF85 10 deg on 9 px at 601 rays, before these
+changes; 2.6e-4 at 64 px, 672 rays, in the Debye form that "auto" takes there). What it misses: on the f/2.8 lenses
+at ``RAY_MIN`` = 601 rays across, 1.7-4.3e-4, moving with the rays but not monotonically
+(:data:`KIRCHHOFF_QUAD_ERROR`), at the level the full computation itself is converged to; not resolved here.
 """
 from __future__ import annotations
 

@@ -375,7 +375,7 @@ def test_kirchhoff_estimate_against_a_held_out_measured_error(monkeypatch):
     spot), against the full computation box-summed. Measured 6.5e-5 (7.6e-5 before the amplitude's common change was
     taken exactly), estimated 2.0e-4 (expansion 9.2e-5, of it the derived single-family bound 2 eps cubic 7.9e-5: eps
     0.025 rad, cubic 0.0016 rad at the tiles' corners; NUFFT 3.2e-5; quadrature 7.5e-5): 3.1x. The estimate is to stay
-    above the measured error and within a factor 4 of it (the camera lenses: 0.35-8x, pixel_scale's docstring)."""
+    above the measured error and within a factor 4 of it (the camera lenses at 64 px: 0.3-11x, pixel_kirchhoff's docstring)."""
     import rwwarp.wave.pixel_scale as ps
     monkeypatch.setattr(ps, "FIELD_FORM", "kirchhoff")
     lens = load_lens("a489_doe")
