@@ -168,8 +168,9 @@ def kirchhoff_error_estimate(eps_rad: float, cubic_rad: float, ray_grid: int, de
       point), their truncation is a phase error and an amplitude error of that family: in ``|U|^2``
       ``|1 + i e - e^2 / 2|^2 - 1 = e^4 / 4``, ``2 eps cubic + cubic^2`` (the cubic phase's missing product with the
       quadratic one, and its square) and ``2 amp eps^2``: derived. Where two families interfere, the third-order term
-      ``eps^3 / 6`` of each differs and enters their interference to first order: at most ``eps^3 / 3``; measured 40x
-      below that (``KIRCHHOFF_INTERFERENCE``, calibrated, with its cases). Then the corrections' NUFFT (each group at
+      ``eps^3 / 6`` of each differs and enters their interference to first order: at most ``eps^3 / 3``; measured
+      0.002-0.27 of that, ``KIRCHHOFF_INTERFERENCE`` = 0.3 of it taken (calibrated; its cases where it is defined).
+      (The amplitude's term is conservative by 2: ``|(1 + a) e^(i e)|^2`` less the truncated sum's is ``a e^2``.) Then the corrections' NUFFT (each group at
       its spread, ``spreads`` from :func:`group_spreads`; None: all at ``REST_SPREAD``), ``nufft``:
       ``2 sum_groups size gridding_error(spread)``;
     * ``quadrature``: the pupil grid's cells as point samples (whole cells at the rim; the lattice's aliases beyond
