@@ -30,8 +30,9 @@ The method (scalar, the same ray picture as the other methods, propagation in th
 Costs: rays ``N_r^2`` with ``N_r = rays_per_sample max(RAY_MIN, 1.25 x 2 B (w / 2 + s))`` (``w``: the sensor
 grid's width, ``s``: the spot's reach from ``T``: the quadrature's aliases, at ``1 / delta_f`` from the light,
 fall beyond the grid), the sensor grid ``(w / h)^2`` and the twice-oversampled FFTs of its tiles (``TILE``).
-EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.73 GiB, 19.7 GFLOP (the Kirchhoff form on
-4 tiles of 134^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; ``perf/pixel_auto.py``);
+EF50 f/1.8 at 15.3 um, 64 px: 0.58 GiB, 10.9 GFLOP (the Debye form), 0.67 GiB, 12.5 GFLOP (the Kirchhoff form on
+1 tile of 268^2 over the spot, the Debye samples beyond at ``DEBYE_FAR_SPREAD``; at 10 deg 4 tiles of 242^2 over its
+coma spot, 19.4 GFLOP; ``perf/pixel_auto.py``);
 :func:`pixel_cost`. The pupil is taken as whole cells (rays at cell centres inside the disc): weighting the rim
 cells by their covered part changed nothing on the EF35 and made the ideal lens's Airy test 4x worse.
 
@@ -46,7 +47,7 @@ max |difference| over the PSF's peak, :func:`pixel_error_estimate`:
   fall with more rays, nor move with the grid's margin, the gridding kernel or the tiles (< 1e-4 each, while the
   reference is converged to ~1e-4: ``perf/pixel_study.py``, docs "What the error follows"). The Kirchhoff form
   (:mod:`rwwarp.wave.pixel_kirchhoff`, ``FIELD_FORM``) sums the wave-plane field with the exact kernel instead:
-  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at ~25 transforms per tile against 2, on the tiles
+  EF35 on axis 1.2e-3 -> 1.4e-4, Cooke 14 deg 1.9e-3 -> 9.6e-5, at 16-17 transforms per tile against 2, on the tiles
   over the spot's region only (the pilot landings' box + ``KIRCHHOFF_MARGIN / B`` a side, the fewest tiles that
   cover it), the Debye form's samples elsewhere; its own estimate:
   :func:`rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate` (the kernel's expansion over a tile, the corrections'
@@ -259,13 +260,17 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
     ``margin_mm`` is None, the square of half side ``reach_mm``), the Debye form's samples elsewhere; else (or where
     ``reach_mm`` is None) the whole grid. It is covered by the fewest tiles of one side whose quadratic rest stays below
     ``KIRCHHOFF_EPS`` (:func:`rwwarp.wave.pixel_kirchhoff.tile_limit`, seen from the region's corners;
-    :func:`~rwwarp.wave.pixel_kirchhoff.region_tiles`), each as small as covers it in that count.
+    :func:`~rwwarp.wave.pixel_kirchhoff.region_tiles`) and whose expansion's estimated error (the ``expansion`` part
+    of :func:`~rwwarp.wave.pixel_kirchhoff.kirchhoff_error_estimate`) stays within ``KIRCHHOFF_EXPANSION_MAX``, each as
+    small as covers it in that count.
     Returns ``{"form", "tile", "tiles", "points", "vectors", "near", "reach_mm"}`` (``tile`` samples a side,
     ``tiles`` a side of the grid in tiles of ``tile``, ``vectors`` the NUFFT weight vectors a tile: the chosen
     form's; ``near`` the Kirchhoff tiles, ``reach_mm`` None where they cover the grid) and for the Kirchhoff form
-    ``origins`` (the tiles' first samples), ``eps`` and ``cubic`` (rad: the kernel's rests at a tile's corner,
-    :func:`~rwwarp.wave.pixel_kirchhoff.tile_rests`)."""
-    from .pixel_kirchhoff import n_vectors, region_tiles, tile_limit, tile_rests
+    ``origins`` (the tiles' first samples), ``eps`` and ``cubic`` (rad: the kernel's rests at a tile's corner), ``amp``
+    (the amplitude's first-order change there; :func:`~rwwarp.wave.pixel_kirchhoff.tile_rests`) and ``spreads`` (the
+    correction groups' NUFFT spreads, :func:`~rwwarp.wave.pixel_kirchhoff.group_spreads`)."""
+    from .pixel_kirchhoff import (KIRCHHOFF_EXPANSION_MAX, group_spreads, kirchhoff_error_estimate, n_vectors,
+                                  region_tiles, tile_limit, tile_rests)
     form = FIELD_FORM if form is None else form
     if form not in ("auto", "kirchhoff", "debye"):
         raise ValueError(f"pixel method: the sensor field's form must be 'auto', 'kirchhoff' or 'debye', got {form!r}")
@@ -294,11 +299,15 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
                        for r in (0, 1) for c in (0, 1)]
         ntk, normk = tile_limit(P, pts_T, lam, nm, h_mm)
         nt_max, norms = min(nt_max, ntk), norms + [normk]
-    nt, origins = region_tiles(region, nt_max, n)
-    eps, cub = 0.0, 0.0
-    for (P, T, lam, nm), normk in zip(wave, norms):
-        e, c = tile_rests(P, T, lam, nm, h_mm, nt, normk)
-        eps, cub = max(eps, e), max(cub, c)
+    while True:     # the fewest tiles whose expansion's estimated error is within KIRCHHOFF_EXPANSION_MAX
+        nt, origins = region_tiles(region, nt_max, n)
+        eps, cub, amp = 0.0, 0.0, 0.0
+        for (P, T, lam, nm), normk in zip(wave, norms):
+            e, c, a = tile_rests(P, T, lam, nm, h_mm, nt, normk)
+            eps, cub, amp = max(eps, e), max(cub, c), max(amp, a)
+        if nt <= 8 or kirchhoff_error_estimate(eps, cub, ray_grid, amp=amp)["expansion"] <= KIRCHHOFF_EXPANSION_MAX:
+            break
+        nt_max = max(8, 2 * int(0.45 * nt))
     near = len(origins)
     whole = region == (0, n, 0, n)
     reach = None if whole else (float(reach_mm) if reach_mm is not None else None)
@@ -310,7 +319,7 @@ def plan_field(pos_s, dir_s, ok, centers, lam_mm, n_after, z_plane: float, z_sen
                 "near": 0, "reach_mm": None}
     return {"form": "kirchhoff", "tile": int(nt), "tiles": int(math.ceil(n / nt)), "points": pts,
             "vectors": n_vectors(flux), "near": int(near), "reach_mm": reach, "origins": origins,
-            "eps": float(eps), "cubic": float(cub)}
+            "eps": float(eps), "cubic": float(cub), "amp": float(amp), "spreads": group_spreads(eps, cub, amp)}
 
 
 def pixel_cost(plan, n_sources: int, size: int) -> dict:
@@ -345,7 +354,7 @@ def pixel_cost(plan, n_sources: int, size: int) -> dict:
         return GRID_CELL_BYTES * M * M + 3 * 16 * nd * nd, nu, nu + n_sources * td * td * 10.0 * J
     if f["form"] == "kirchhoff":
         near = int(f.get("near", t * t))
-        tc = tile_cost(nt, J, K > N_TERMS)
+        tc = tile_cost(nt, J, K > N_TERMS, spreads=f.get("spreads"))
         nufft, kc = n_sources * near * tc["nufft_flops"], tc["chunk"]
         flops += n_sources * near * tc["flops"]
         tile_mem = tc["memory_bytes"]
@@ -442,7 +451,7 @@ def pixel_psf(rw):
             tiling = (f["tile"], f["origins"]) if f.get("origins") else None     # the planned region (plan_field)
             I = kirchhoff_samples(Pw[ok], Lw, aw.astype(xp.complex128), float(rw.lam_mm[k]), float(rw.n_after[k]),
                                   Tk, rw.carrier[k], h, n, flux, xp, base=I0,
-                                  reach_mm=None if tiling else reach, tiling=tiling)
+                                  reach_mm=None if tiling else reach, tiling=tiling, spreads=f.get("spreads"))
             del dA, ok, Lw, aw, I0
         else:
             I = _debye_samples(xp, amp, phase, use, cos, flux, tx, ty, n)
@@ -515,7 +524,7 @@ def plan_forms(ppl, info, pos_s, dir_s, ok, centers, lam_mm, n_after, rw, nf: fl
         cost = pixel_cost(replace(ppl, pixel_field=field), rw.nsrc, rw.size)
         err = debye_err if form == "debye" else kirchhoff_error_estimate(
             field["eps"], field["cubic"], ppl.ray_grid, debye_err["estimate"] if field["reach_mm"] is not None else None,
-            RAY_MIN)
+            RAY_MIN, amp=field.get("amp", 0.0), spreads=field.get("spreads"))
         out[form] = (field, cost, err)
     return out
 
@@ -550,9 +559,13 @@ def form_line(form: str, field: dict, cost: dict, err: dict, nf: float, slope: f
         why = (f"{PIXEL_ERROR_C:g} S / sqrt(N_F) (r_A / p)^{PIXEL_ERROR_POWER:g} = {err['debye']:.2g}: rim slope S "
                f"{slope:.3g} rad, N_F {nf:.4g} seen from the patch, p / r_A {ratio:.3g}; + floor {PIXEL_ERROR_FLOOR:g}")
     else:
-        from .pixel_kirchhoff import KIRCHHOFF_REST_ERROR
-        why = (f"tiles eps^3 / 3 + cubic^2 + {KIRCHHOFF_REST_ERROR:g} eps = {err['tile']:.2g} (eps {field['eps']:.3g}, "
-               f"cubic {field['cubic']:.2g} rad at a corner of its {field['near']} tile(s) of {field['tile']}^2); "
+        sp = field.get("spreads") or {}
+        from .pixel_kirchhoff import KIRCHHOFF_INTERFERENCE
+        why = (f"tiles {KIRCHHOFF_INTERFERENCE:g} eps^3 / 3 + eps^4 / 4 + 2 eps cubic + cubic^2 + 2 amp eps^2 + amp^2 = "
+               f"{err['expansion']:.2g} (eps {field['eps']:.3g}, "
+               f"cubic {field['cubic']:.2g} rad, amp {field.get('amp', 0.0):.2g} at a corner of its {field['near']} "
+               f"tile(s) of {field['tile']}^2) + the corrections' NUFFT {err['nufft']:.2g} (spreads "
+               + ", ".join(f"{g} {v}" for g, v in sp.items()) + "); "
                f"quadrature {err['quadrature']:.2g}"
                + (f"; Debye beyond the tiles {err['far']:.2g}" if field.get("reach_mm") is not None else ""))
     return (f"{form} form: error ~{err['estimate']:.2g} of the peak ({why}), {cost['memory_bytes'] / 2 ** 30:.3g} GiB, "

@@ -44,23 +44,32 @@ def _synthetic(J, z, seed=1):
     return P, -np.linalg.norm(T - P, axis=1), rng.uniform(0.5, 1.5, J) + 0j, T
 
 
-@pytest.mark.parametrize("J,z,h,n,tile_max,grid_bytes", [(3000, 5.0, 0.0008, 48, 24, 2 * 2 ** 20),
-                                                         (1500, 200.0, 0.004, 160, 160, None)])
-def test_kirchhoff_tile_cost_is_the_work_and_memory_of_its_loop(nufft_calls, J, z, h, n, tile_max, grid_bytes):
+_SPREADS = {"lin": 4, "quad": 3, "amp": 3, "cub": 2}     # as group_spreads gives for eps ~0.04 (EF50 f/1.8, 10 deg)
+
+
+@pytest.mark.parametrize("J,z,h,n,tile_max,grid_bytes,spreads", [(3000, 5.0, 0.0008, 48, 24, 2 * 2 ** 20, None),
+                                                                 (1500, 200.0, 0.004, 160, 160, None, None),
+                                                                 (3000, 5.0, 0.0008, 48, 24, 2 * 2 ** 20, _SPREADS)])
+def test_kirchhoff_tile_cost_is_the_work_and_memory_of_its_loop(nufft_calls, J, z, h, n, tile_max, grid_bytes, spreads):
     P, L, amp, T = _synthetic(J, z)
     nt, t = pk.kirchhoff_tiles(P, T, 0.55e-3, 1.0, h, n, tile_max)
     tracemalloc.start()
     base = tracemalloc.get_traced_memory()[0]
-    pk.kirchhoff_samples(P, L, amp, 0.55e-3, 1.0, T, np.zeros(2), h, n, True, tile_max=tile_max, grid_bytes=grid_bytes)
+    pk.kirchhoff_samples(P, L, amp, 0.55e-3, 1.0, T, np.zeros(2), h, n, True, tile_max=tile_max, grid_bytes=grid_bytes,
+                         spreads=spreads)
     peak = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
-    model = pk.tile_cost(nt, J, True, grid_bytes)
-    # every tile takes every point into 24 weight vectors: the plane waves of U and U_w in one call at the full spread,
-    # the 22 corrections in chunks at the narrower one
-    assert sum(c[1] for c in nufft_calls) == t * t * 24 and all(c[0] == J and c[2] == nt for c in nufft_calls)
-    assert len(nufft_calls) == t * t * (1 + math.ceil(22 / model["chunk"]))
-    per_tile = [(2, ps.NUFFT_SPREAD)] + [(None, pk.REST_SPREAD)] * math.ceil(22 / model["chunk"])
-    assert [(c[1] if s is not None else None, c[3]) for c, (s, _) in zip(nufft_calls, per_tile * t * t)] == per_tile * t * t
+    model = pk.tile_cost(nt, J, True, grid_bytes, spreads=spreads)
+    # every tile takes every point into 17 weight vectors: the plane waves of U and U_w in one call at the full spread,
+    # the 15 corrections (quadratic rest 3 + 6, amplitude 2, cubic 4) in chunks, each group at its spread (all at
+    # REST_SPREAD where spreads is None), the wider spreads first
+    assert sum(c[1] for c in nufft_calls) == t * t * 17 and all(c[0] == J and c[2] == nt for c in nufft_calls)
+    sp = spreads or {g: pk.REST_SPREAD for g in pk.GROUPS}
+    per_tile = [(2, ps.NUFFT_SPREAD)]
+    for s in sorted(set(sp.values()), reverse=True):
+        k = sum({"lin": 3, "quad": 6, "amp": 2, "cub": 4}[g] for g in sp if sp[g] == s)
+        per_tile += [(min(model["chunk"], k - c0), s) for c0 in range(0, k, model["chunk"])]
+    assert [(c[1], c[3]) for c in nufft_calls] == per_tile * t * t
     work = sum(_nufft_work(*c) for c in nufft_calls)
     assert t * t * model["nufft_flops"] == pytest.approx(work, rel=1e-9)
     # the rest (forming the vectors, combining them) is a small share: the model's total within 25% of the NUFFTs
@@ -93,7 +102,7 @@ def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch, size, near_onl
     kw = dict(size=size, pixel_mm=0.016, method="pixel", rays_per_sample=0.2)     # 121 rays across: the count only
     pl = rw.plan_psf(lens, 0.0, 0.55, **kw)
     f = pl.pixel_field
-    assert f["form"] == "kirchhoff" == pl.estimate["form"] and f["vectors"] == 24
+    assert f["form"] == "kirchhoff" == pl.estimate["form"] and f["vectors"] == 17
     assert (f["reach_mm"] is None) == (not near_only) and f["near"] == len(f["origins"]) == (16 if size == 5 else 9)
     # the tiles lie inside the grid and, where all are Kirchhoff, cover it
     n, nt = pl.n_sensor, f["tile"]
@@ -105,9 +114,11 @@ def test_plan_cost_is_the_run_kirchhoff(nufft_calls, monkeypatch, size, near_onl
     rw.psf(lens, 0.0, 0.55, **kw)
     kirch = [c for c in nufft_calls if c[2] == f["tile"]]
     debye = [c for c in nufft_calls if c[2] != f["tile"]]
-    # the tiling planned from the pilot is the run's: 24 vectors of every wave-plane sample on each near tile; where
-    # not every tile is near, the Debye form's U and U_w on the whole grid first (one tile of n_sensor)
-    assert sum(c[1] for c in kirch) == 24 * f["near"]
+    # the tiling planned from the pilot is the run's: 17 vectors of every wave-plane sample on each near tile, the
+    # corrections at the planned groups' spreads; where not every tile is near, the Debye form's U and U_w on the whole
+    # grid first (one tile of n_sensor)
+    assert sum(c[1] for c in kirch) == 17 * f["near"]
+    assert sorted({c[3] for c in kirch}) == sorted({ps.NUFFT_SPREAD, *f["spreads"].values()})
     assert [(c[1], c[2]) for c in debye] == ([] if size == 5 else [(1, pl.n_sensor)] * 2)
     assert all(c[3] == ps.DEBYE_FAR_SPREAD for c in debye)      # the Debye samples beyond the tiles: the narrower spread
     work = sum(_nufft_work(*c) for c in nufft_calls)
