@@ -458,31 +458,18 @@ def _ray_focus(pos_p, dir_s, ok, chief_plane):
     at that depth (``chief_plane``: on the plane, the pupil centre's ray where it reaches the plane), so the residual
     phase splatted is only the aberration (not defocus). Collimated beams (var(m) ~ 0) get a centre 1 m along
     the chief ray (a nearly plane reference).
-
-    Every source at once: the means and sums over each source's valid rays are added in the rays' order
-    (:func:`rwwarp.wave.plan.sequential_sum`, invalid rays masked by ``-0.0``), so a source's centre is the same
-    bits alone (``plan_batch``) and among others (:func:`rwwarp.wave.plan_sources.plan_sources`).
     """
-    from .plan import sequential_sum
-    okf = np.asarray(ok, dtype=bool)
-    n = np.maximum(okf.sum(axis=1), 1)[:, None]                      # (S, 1); fewer than 3 rays are refused before
-    with np.errstate(invalid="ignore", divide="ignore"):
-        p = np.moveaxis(np.asarray(pos_p[..., :2], dtype=np.float64), -1, 1)   # (S, 2, R), float64
-        d = np.moveaxis(np.asarray(dir_s, dtype=np.float64), -1, 1)            # (S, 3, R)
-        m = d[:, :2] / d[:, 2:3]                                      # slopes d_xy / d_z
-        okm = okf[:, None, :]
-
-        def mean(a):
-            return sequential_sum(np.where(okm, a, -0.0)) / n
-
-        pc = p - mean(p)[..., None]
-        mc = m - mean(m)[..., None]
-        smm = sequential_sum(np.where(okm, mc * mc, -0.0))            # (S, 2)
-        spm = sequential_sum(np.where(okm, pc * mc, -0.0))
-        var = smm[:, 0] + smm[:, 1]
-        t = np.where(var > 1e-18, -(spm[:, 0] + spm[:, 1]) / np.where(var > 1e-18, var, 1.0), np.inf)
-    # collimated: a nearly plane reference (residual curvature < 1e-2 rad over 1 mm)
-    t = np.where(np.isfinite(t) & (np.abs(t) <= 1e6), t, 1e6)
-    dc = np.where(okf[:, :1], d[:, :, 0], mean(d))                     # the chief ray's direction, else the mean
-    c0 = np.asarray(chief_plane, dtype=np.float64)
-    return np.stack([c0[:, 0] + t * dc[:, 0] / dc[:, 2], c0[:, 1] + t * dc[:, 1] / dc[:, 2], c0[:, 2] + t], axis=1)
+    nsrc = ok.shape[0]
+    out = np.zeros((nsrc, 3))
+    for k in range(nsrc):
+        p = pos_p[k, ok[k], :2]
+        m = dir_s[k, ok[k], :2] / dir_s[k, ok[k], 2:3]
+        pc, mc = p - p.mean(0), m - m.mean(0)
+        var = float(np.sum(mc * mc))
+        t = -float(np.sum(pc * mc)) / var if var > 1e-18 else np.inf
+        if not np.isfinite(t) or abs(t) > 1e6:
+            t = 1e6  # collimated: a nearly plane reference (residual curvature < 1e-2 rad over 1 mm)
+        c0 = chief_plane[k]
+        dc = dir_s[k, 0] if ok[k, 0] else dir_s[k, ok[k]].mean(0)
+        out[k] = [c0[0] + t * dc[0] / dc[2], c0[1] + t * dc[1] / dc[2], c0[2] + t]
+    return out

@@ -205,14 +205,24 @@ def landing_points(xy, f, inv_lam, distance_mm):
     return xy + distance_mm * f / w[..., None]
 
 
-def sequential_sum(a):
-    """The sum of ``a`` (..., P) over its last axis, added in order from the first element to the last
-    (``np.cumsum``'s last element): unlike ``np.sum``'s pairwise summation, whose rounding depends on the length
-    and layout of the row, the result is the same bits however many ``-0.0`` pads (the exact additive identity)
-    sit between or after the summed values, so a source's sums are the same alone and in a padded batch."""
-    if a.shape[-1] == 0:
-        return np.zeros(a.shape[:-1], dtype=a.dtype)
-    return np.cumsum(a, axis=-1)[..., -1]
+def sequential_sum(a, axis=-1):
+    """The sum of ``a`` over ``axis``, added in order from the first element to the last: unlike ``np.sum``'s
+    pairwise summation of a contiguous row, whose rounding depends on the row's length, the result is the same bits
+    however many ``-0.0`` pads (the exact additive identity) sit between or after the summed values, so a source's
+    sums are the same alone and in a padded batch. Computed as ``np.add.reduce`` over the first axis of a
+    C-contiguous array with at least 2 elements a row (numpy adds such an array row after row, vectorised across
+    the row; a lone column it would sum pairwise, so one is added): fastest where ``axis=0`` of a C-contiguous
+    array (no copy). tests/rwwarp/test_fit_transfer.py checks the bits against ``np.cumsum``'s last element."""
+    b = np.ascontiguousarray(np.moveaxis(np.asarray(a), axis, 0))
+    rest = b.shape[1:]
+    if b.shape[0] == 0:
+        return np.zeros(rest, dtype=b.dtype)
+    X = int(np.prod(rest, dtype=np.int64))
+    if X >= 2:
+        return np.add.reduce(b, axis=0)
+    c = np.zeros((b.shape[0], 2), dtype=b.dtype)
+    c[:, :X] = b.reshape(b.shape[0], X)
+    return np.add.reduce(c, axis=0)[:X].reshape(rest)
 
 
 def fit_quadratic_transfers(u, t, ok, g, q):
@@ -227,25 +237,28 @@ def fit_quadratic_transfers(u, t, ok, g, q):
     has fewer than 3 points or no spread in ``u`` (``max u - min u <= 0``, or NaN), or where ``c0`` / ``c1`` are not
     finite or the fit would not focus (``c1 >= 0``). Computed in float64. Returns ``(g_fit, q_fit)``, (S,) each:
     ``c0`` (the slope ``g`` of ``w_G``) and ``c1`` (its curvature ``q``, mm)."""
-    u = np.asarray(u, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
-    ok = np.asarray(ok, dtype=bool)
+    u, t, ok = np.asarray(u), np.asarray(t), np.asarray(ok)
     g = np.asarray(g, dtype=np.float64)
     q = np.asarray(q, dtype=np.float64)
     if u.ndim != 2 or u.shape != t.shape or u.shape != ok.shape or g.shape != u.shape[:1] or q.shape != g.shape:
         raise ValueError(f"fit_quadratic_transfers: u, t, ok must be (S, P) arrays alike and g, q (S,), got "
                          f"{u.shape}, {t.shape}, {ok.shape}, {g.shape}, {q.shape}")
-    n = ok.sum(axis=1)
+    # points first, (P, S) contiguous: the sums over the points run down the rows (sequential_sum without a copy)
+    U = np.ascontiguousarray(u.T, dtype=np.float64)
+    T = np.ascontiguousarray(t.T, dtype=np.float64)
+    OK = np.ascontiguousarray(ok.T, dtype=bool)
+    n = OK.sum(axis=0)
     nz = np.maximum(n, 1)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        spread = np.max(np.where(ok, u, -np.inf), axis=1, initial=-np.inf) - \
-            np.min(np.where(ok, u, np.inf), axis=1, initial=np.inf)
-        mu = sequential_sum(np.where(ok, u, -0.0)) / nz
-        mt = sequential_sum(np.where(ok, t, -0.0)) / nz
-        du = u - mu[:, None]
-        dt = t - mt[:, None]
-        suu = sequential_sum(np.where(ok, du * du, -0.0))
-        sut = sequential_sum(np.where(ok, du * dt, -0.0))
+        spread = np.max(np.where(OK, U, -np.inf), axis=0, initial=-np.inf) - \
+            np.min(np.where(OK, U, np.inf), axis=0, initial=np.inf)
+        mu = sequential_sum(np.where(OK, U, -0.0), 0) / nz
+        mt = sequential_sum(np.where(OK, T, -0.0), 0) / nz
+        U -= mu
+        T -= mt
+        suu = sequential_sum(np.where(OK, U * U, -0.0), 0)
+        T *= U
+        sut = sequential_sum(np.where(OK, T, -0.0), 0)
         c1 = sut / suu
         c0 = mt - c1 * mu
     good = (n >= 3) & (spread > 0) & np.isfinite(c0) & np.isfinite(c1) & (c1 < 0)

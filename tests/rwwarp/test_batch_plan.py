@@ -169,40 +169,6 @@ def test_vectorised_planning_steps_follow_the_equations():
         assert np.array_equal(lo[k], pos_p[k, v, :2].min(0)) and np.array_equal(hi[k], pos_p[k, v, :2].max(0))
 
 
-def test_ray_focus_at_once_follows_the_equations_and_gives_each_source_its_bits_alone():
-    """The reference-sphere centres of every source at once (_ray_focus, sums added in the rays' order) against the
-    least-squares focus written out here per source (t* = -cov(p, m) / var(m) over the valid rays, numpy's own
-    means and sums; the chief ray's point at that depth), a collimated beam (var(m) = 0: 1e6 mm along the chief
-    ray) and a vignetted chief ray (the valid rays' mean direction); and each source alone gives the same bits."""
-    from rwwarp.wave.batch_plan import _ray_focus
-    rng = np.random.default_rng(5)
-    S, R = 5, 300
-    pos_p = rng.normal(size=(S, R, 3))
-    d = rng.normal(size=(S, R, 3)) * [0.1, 0.1, 1.0] + [0, 0, 3.0]
-    d[:, :, :2] -= 0.05 * pos_p[:, :, :2]            # converging beams
-    d[3] = [0.01, -0.02, 1.0]                         # collimated: every ray alike
-    dir_s = d / np.linalg.norm(d, axis=2, keepdims=True)
-    ok = rng.random((S, R)) > 0.3
-    ok[1, 0] = False                                  # a vignetted chief ray
-    ok[:, 1:4] = True
-    chief = pos_p[:, 0] + 0.01
-    got = _ray_focus(pos_p, dir_s, ok, chief)
-    for k in range(S):
-        v = ok[k]
-        p, m = pos_p[k, v, :2], dir_s[k, v, :2] / dir_s[k, v, 2:3]
-        pc, mc = p - p.mean(0), m - m.mean(0)
-        var = np.sum(mc * mc)
-        t = -np.sum(pc * mc) / var if var > 1e-18 else 1e6
-        dc = dir_s[k, 0] if v[0] else dir_s[k, v].mean(0)
-        want = chief[k] + t * np.array([dc[0] / dc[2], dc[1] / dc[2], 1.0])
-        # measured over 250 such random sources (50 seeds): at most 1.9e-14 of |t| (the order of the sums, through
-        # the cancellation in cov / var); 5x that
-        assert np.max(np.abs(got[k] - want)) <= 1e-13 * max(abs(t), 1.0), k
-        alone = _ray_focus(pos_p[k:k + 1], dir_s[k:k + 1], ok[k:k + 1], chief[k:k + 1])
-        assert np.array_equal(alone[0], got[k])
-    assert got[3, 2] == chief[3, 2] + 1e6
-
-
 def test_the_model_errors_orders_at_once_are_the_orders_one_by_one():
     """The model error's other orders (rwwarp.wave.model_error), all at once: whether each lights the patch and its
     rim slope are the values of the per-order functions bit for bit (an order with an evanescent ray included)."""

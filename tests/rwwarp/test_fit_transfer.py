@@ -120,3 +120,18 @@ def test_bad_shapes_are_refused():
         fit_quadratic_transfers(np.zeros((2, 5)), np.zeros((2, 4)), np.ones((2, 5), bool), np.zeros(2), np.zeros(2))
     with pytest.raises(ValueError, match="fit_quadratic_transfers"):
         fit_quadratic_transfers(np.zeros((2, 5)), np.zeros((2, 5)), np.ones((2, 5), bool), np.zeros(3), np.zeros(3))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (3, 1), (1, 2000), (4, 3, 500), (250, 961)])
+def test_sequential_sum_adds_in_order(shape):
+    """sequential_sum is the running sum's last element (np.cumsum: added first to last), bit for bit, whatever
+    the number of rows (one row included: numpy would sum a lone column pairwise)."""
+    from rwwarp.wave.plan import sequential_sum
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=shape) * 10.0 ** rng.uniform(-6, 6, size=shape)
+    a_in = a.copy()
+    got = sequential_sum(a)
+    assert got.shape == shape[:-1] and np.array_equal(got, np.cumsum(a, axis=-1)[..., -1])
+    assert np.array_equal(a, a_in)
+    if shape[-1] >= 500:   # so the check can fail: numpy's pairwise sum of these rows differs somewhere
+        assert not np.array_equal(np.sum(a, axis=-1), got)
