@@ -212,7 +212,7 @@ def sequential_sum(a, axis=-1):
     sums are the same alone and in a padded batch. Computed as ``np.add.reduce`` over the first axis of a
     C-contiguous array with at least 2 elements a row (numpy adds such an array row after row, vectorised across
     the row; a lone column it would sum pairwise, so one is added): fastest where ``axis=0`` of a C-contiguous
-    array (no copy). tests/rwwarp/test_fit_transfer.py checks the bits against ``np.cumsum``'s last element."""
+    array (no copy). tests/rwwarp/test_batched_planning.py checks the bits against ``np.cumsum``'s last element."""
     b = np.ascontiguousarray(np.moveaxis(np.asarray(a), axis, 0))
     rest = b.shape[1:]
     if b.shape[0] == 0:
