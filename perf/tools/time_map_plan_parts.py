@@ -22,7 +22,7 @@ PARTS = [  # (module, attribute, where it is looked up from by the planner: modu
     ("rwwarp.wave.focal_sources", "focal_plans_orders", []),
     ("rwwarp.wave.focal_sources", "_orders_chunk", []),
     ("rwwarp.wave.plan", "focal_plan_from", ["rwwarp.wave.focal_sources"]),
-    ("rwwarp.wave.plan_sources", "_gauss_nodes_all", []),
+    ("rwwarp.wave.plan_sources", "_gauss_nodes_one", []),
     ("rwwarp.wave.pixel_scale", "plan_pixel", []),
     ("rwwarp.wave.plan_sources", "BatchPlan", []),
     ("rwwarp.wave.plan_sources", "estimate_cost", []),

@@ -47,45 +47,18 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _beam_na_all(dir_s, ok):
-    """Every source's beam NA as :func:`rwwarp.wave.sensor_grid.auto_gauss_nodes` takes it, ``max |d - <d>|`` over its
-    valid rays' direction sines ``d`` (``dir_s`` (S, R, 3), ``ok`` (S, R)), the same bits: ``np.mean`` of the (N, 2)
-    array of a source's valid rays adds its rows one after another, and :func:`rwwarp.wave.plan.sequential_sum`
-    adds the masked (R, S, 2) array's (invalid rays ``-0.0``) in that order. Returns ``(na, counts)``, (S,) each
-    (``na`` -inf where a source has no valid ray)."""
-    from .plan import sequential_sum
-    okf = np.asarray(ok, dtype=bool)
-    n = okf.sum(axis=1)
-    okm = np.ascontiguousarray(okf.T)[:, :, None]                                 # (R, S, 1)
-    d = np.ascontiguousarray(dir_s[..., :2].transpose(1, 0, 2))                    # (R, S, 2), rays first
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d -= sequential_sum(np.where(okm, d, -0.0), 0) / np.maximum(n, 1)[:, None]
-    np.abs(d, out=d)
-    return np.max(np.where(okm, d, -np.inf), axis=(0, 2)), n
-
-
-def _gauss_nodes_all(dir_s, ok, n_img, lam_mm, pixel: float, tol: float = 1e-7) -> list:
-    """:func:`rwwarp.wave.sensor_grid.auto_gauss_nodes` of each source alone (``dir_s`` (S, R, 3) the pilot rays'
-    directions, ``ok`` (S, R), ``n_img`` / ``lam_mm`` (S,) the image-space index and wavelength in mm, ``pixel``
-    mm): the same arithmetic on every source's values at once. Its NA is ``max |d - <d>|`` over the valid rays'
-    direction sines ``d``, whose mean ``auto_gauss_nodes`` takes as ``np.mean`` of an (N, 2) array: numpy adds such
-    an array's rows one after another, and :func:`rwwarp.wave.plan.sequential_sum` adds the masked (R, S, 2) array's
-    (invalid rays ``-0.0``) in the same order, so each mean, NA and node count is the same bits. The node count per
-    source from its phase (``gauss_legendre_exp_error`` below ``tol``) stays a scalar loop. Returns (S,) ints."""
+def _gauss_nodes_one(d, n_img: float, lam_mm: float, pixel: float, tol: float = 1e-7) -> int:
+    """:func:`rwwarp.wave.sensor_grid.auto_gauss_nodes` of one source (``d``: its valid pilot rays' direction
+    cosines (N, 2)): the same arithmetic."""
     from ..analytic import gauss_legendre_exp_error
-    na, n = _beam_na_all(dir_s, ok)
-    with np.errstate(invalid="ignore"):
-        x = 2.0 * np.pi * pixel * 2.0 * n_img * na / lam_mm
-    worst = np.where((n > 0) & (x > 0.0), x, 0.0)            # max(0.0, x) as auto_gauss_nodes takes it
-    out = []
-    for w in worst.tolist():
-        gn = 16
-        for g in range(3, 17):
-            if gauss_legendre_exp_error(g, w / 2.0) < tol:
-                gn = g
-                break
-        out.append(gn)
-    return out
+    worst = 0.0
+    if len(d):
+        na = float(np.max(np.abs(d - d.mean(0))))
+        worst = max(worst, 2.0 * np.pi * pixel * 2.0 * n_img * na / lam_mm)
+    for g in range(3, 17):
+        if gauss_legendre_exp_error(g, worst / 2.0) < tol:
+            return g
+    return 16
 
 
 def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype="float64", amplitude="energy",
@@ -199,7 +172,6 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     for a in (wl0, n_after, lam_mm, chief_plane1, chief_sensor, opl_chief, chief_ok, target, carrier0, centers0, lo0,
               hi0):
         _frozen(a)
-    gauss_all = _gauss_nodes_all(dir_s, ok, n_img, lam_mm, pixel) if gauss_nodes is None else None
     for k in range(nsrc):
         sl = slice(k, k + 1)
         src = {"pos": launch["pos"][sl], "dir": launch["dir"][sl], "finite": launch["finite"][sl],
@@ -224,7 +196,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
         gn = gauss_nodes
         more = ()
         if gn is None:
-            gn = gauss_all[k]
+            gn = _gauss_nodes_one(dir_s[k, ok[k], :2], n_img[k], lam_mm[k], pixel)
             more = (f"pixel integration: {gn} x {gn} Gauss-Legendre nodes per pixel "
                     f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)",)
         # the reasons and the estimate in one copy (estimate_cost reads neither)

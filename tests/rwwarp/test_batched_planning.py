@@ -3,8 +3,7 @@
 checked against an independent least-squares reference written here (numpy.linalg.lstsq on the design matrix
 [1, u], the fit the planner made per source and axis before issue 25), with masked points, the fallbacks to the
 Taylor values and the degenerate cases; and the property the batched planner relies on: a source's fit is the
-same bits alone and among other sources with any padding between its points (sequential_sum). plan_sources' Gauss
-node counts of all sources at once against auto_gauss_nodes of each alone."""
+same bits alone and among other sources with any padding between its points (sequential_sum)."""
 import numpy as np
 import pytest
 
@@ -137,28 +136,3 @@ def test_sequential_sum_adds_in_order(shape):
     assert np.array_equal(a, a_in)
     if shape[-1] >= 500:   # so the check can fail: numpy's pairwise sum of these rows differs somewhere
         assert not np.array_equal(np.sum(a, axis=-1), got)
-
-
-def test_gauss_nodes_of_every_source_at_once_are_each_ones_alone():
-    """plan_sources' node counts of all sources at once (_gauss_nodes_all) against auto_gauss_nodes of each source
-    alone (rwwarp.wave.sensor_grid, its own loop), over beams whose NA spans node counts 3..16, masked rays and a
-    source with a vignetted first ray; and the NA behind them is numpy's per source, bit for bit."""
-    from rwwarp.wave.plan_sources import _beam_na_all, _gauss_nodes_all
-    from rwwarp.wave.sensor_grid import auto_gauss_nodes
-    rng = np.random.default_rng(4)
-    S, R = 40, 300
-    spread = 10.0 ** np.linspace(-3.5, -0.5, S)
-    d = rng.normal(size=(S, R, 3)) * np.stack([spread, spread, np.ones(S)], 1)[:, None, :] + [0.0, 0.0, 1.0]
-    dir_s = d / np.linalg.norm(d, axis=2, keepdims=True)
-    ok = rng.random((S, R)) > 0.25
-    ok[3, 0] = False
-    n_img, lam = np.full(S, 1.0), np.full(S, 5.5e-4)
-    pixel = 0.002
-    want = [auto_gauss_nodes(dir_s[k:k + 1], ok[k:k + 1], n_img[k:k + 1], lam[k:k + 1], pixel) for k in range(S)]
-    got = _gauss_nodes_all(dir_s, ok, n_img, lam, pixel)
-    assert got == want and len(set(got)) > 8
-    # the NA behind the counts, bit for bit: numpy's mean of each source's valid (N, 2) rays (rows added in order)
-    na, n = _beam_na_all(dir_s, ok)
-    for k in range(S):
-        d_k = dir_s[k, ok[k], :2]
-        assert na[k] == np.max(np.abs(d_k - d_k.mean(0))) and n[k] == ok[k].sum()
