@@ -2,7 +2,8 @@
 x 0.45 / 0.55 / 0.65 um, ``--size`` px of the sensor's pixel, as psf_map's defaults): :func:`rwwarp.wave.packed.source_plans` as :func:`rwwarp.psf_map` calls it
 (the pilot trace, every source's plan, warm: kernels built, the model-error memo filled), ms per source (least
 process CPU time and least wall time of ``--runs`` calls), and with ``--profile`` a cProfile of one call (by
-tottime and cumtime). ``--save PATH``: the map's PSFs (``rw.psf_map``, same options) to an .npy, to compare trees.
+tottime and cumtime). ``--save PATH``: the map's PSFs (``rw.psf_map``, same options, ``--precision``) to an .npy, ``--transfer PATH``: every
+plan's fitted quadratic transfer (g, q), to compare trees.
 
     PYTHONPATH=. python perf/tools/time_map_plan.py [--grid 10] [--runs 5] [--profile] [--save /tmp/map.npy]
 """
@@ -36,6 +37,8 @@ def main():
     ap.add_argument("--top", type=int, default=30)
     ap.add_argument("--save", default=None)
     ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--precision", default="auto", help="psf_map's focal_precision for --save (auto: single on CPU)")
+    ap.add_argument("--transfer", default=None, help="save every plan's fitted (g, q) (S, 2, 2) to this .npy")
     a = ap.parse_args()
     warnings.simplefilter("ignore")
     lens, fields, wls, ma = setup(a.grid, a.size)
@@ -47,9 +50,13 @@ def main():
         return source_plans(lens, F, W, a.size, ma.pixel, **ma.opts)
     plan()   # kernel builds, memo
     if a.save:
-        m = rw.psf_map(lens, fields, wls, size=a.size, device="cpu")
+        m = rw.psf_map(lens, fields, wls, size=a.size, device="cpu", focal_precision=a.precision)
         np.save(a.save, np.asarray(m.data))
         print("saved", a.save, np.asarray(m.data).shape)
+    if a.transfer:
+        tq = [np.stack(p.focal["transfer"])[:, 0] for p in plan()]
+        np.save(a.transfer, np.array(tq))
+        print("saved", a.transfer)
     wall, cpu = [], []
     for _ in range(a.runs):
         t0, c0 = time.perf_counter(), time.process_time()
