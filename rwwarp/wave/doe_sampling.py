@@ -88,9 +88,12 @@ def doe_max_frequency(lens, plane, xy, wavelengths):
         feat = doe.surface_feature_size_mm(s, lens.source)
         return np.zeros(len(wavelengths)), feat
     out = np.zeros(len(wavelengths))
+    scales = {}   # the phase scale once a wavelength (a map's sources share a few; the same value each call)
     for k, w in enumerate(wavelengths):
         gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
-        sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+        sc = scales.get(w)
+        if sc is None:
+            sc = scales[w] = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
         out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
     return out, feat
 
