@@ -2,7 +2,7 @@
 x 0.45 / 0.55 / 0.65 um, ``--size`` px of the sensor's pixel, as psf_map's defaults): :func:`rwwarp.wave.packed.source_plans` as :func:`rwwarp.psf_map` calls it
 (the pilot trace, every source's plan, warm: kernels built, the model-error memo filled), ms per source (least
 process CPU time and least wall time of ``--runs`` calls), and with ``--profile`` a cProfile of one call (by
-tottime and cumtime). ``--save PATH``: the map's PSFs (``rw.psf_map``, same options, ``--precision``) to an .npy, ``--transfer PATH``: every
+tottime and cumtime). ``--map-runs N``: the warm map's PSF/s (least of N calls). ``--save PATH``: the map's PSFs (``rw.psf_map``, same options, ``--precision``) to an .npy, ``--transfer PATH``: every
 plan's fitted quadratic transfer (g, q), to compare trees.
 
     PYTHONPATH=. python perf/tools/time_map_plan.py [--grid 10] [--runs 5] [--profile] [--save /tmp/map.npy]
@@ -29,6 +29,12 @@ def setup(grid, size=64):
     return lens, fields, wls, map_args(lens, fields, wls, size=size)
 
 
+def _timed(fn):
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--grid", type=int, default=10)
@@ -39,6 +45,7 @@ def main():
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--precision", default="auto", help="psf_map's focal_precision for --save (auto: single on CPU)")
     ap.add_argument("--transfer", default=None, help="save every plan's fitted (g, q) (S, 2, 2) to this .npy")
+    ap.add_argument("--map-runs", type=int, default=0, help="also time this many warm psf_map calls (PSF/s)")
     a = ap.parse_args()
     warnings.simplefilter("ignore")
     lens, fields, wls, ma = setup(a.grid, a.size)
@@ -65,6 +72,11 @@ def main():
         cpu.append(time.process_time() - c0)
     print(f"planning {n} sources: process CPU {min(cpu) / n * 1e3:.3f} ms/source (median "
           f"{sorted(cpu)[len(cpu) // 2] / n * 1e3:.3f}), wall {min(wall) / n * 1e3:.3f} ms/source", flush=True)
+    if a.map_runs:
+        rw.psf_map(lens, fields, wls, size=a.size, device="cpu")   # warm: FFT plans, operators
+        best = min(_timed(lambda: rw.psf_map(lens, fields, wls, size=a.size, device="cpu")) for _ in range(a.map_runs))
+        print(f"warm psf_map {a.grid}x{a.grid}x{len(wls)} at {a.size} px: {best:.2f} s (least of {a.map_runs}), "
+              f"{n / best:.1f} PSF/s", flush=True)
     if a.profile:
         pr = cProfile.Profile()
         pr.enable()
