@@ -205,24 +205,7 @@ def landing_points(xy, f, inv_lam, distance_mm):
     return xy + distance_mm * f / w[..., None]
 
 
-def sequential_sum(a, axis=-1):
-    """The sum of ``a`` over ``axis``, added in order from the first element to the last: unlike ``np.sum``'s
-    pairwise summation of a contiguous row, whose rounding depends on the row's length, the result is the same bits
-    however many ``-0.0`` pads (the exact additive identity) sit between or after the summed values, so a source's
-    sums are the same alone and in a padded batch. Computed as ``np.add.reduce`` over the first axis of a
-    C-contiguous array with at least 2 elements a row (numpy adds such an array row after row, vectorised across
-    the row; a lone column it would sum pairwise, so one is added): fastest where ``axis=0`` of a C-contiguous
-    array (no copy). tests/rwwarp/test_batched_planning.py checks the bits against ``np.cumsum``'s last element."""
-    b = np.ascontiguousarray(np.moveaxis(np.asarray(a), axis, 0))
-    rest = b.shape[1:]
-    if b.shape[0] == 0:
-        return np.zeros(rest, dtype=b.dtype)
-    X = int(np.prod(rest, dtype=np.int64))
-    if X >= 2:
-        return np.add.reduce(b, axis=0)
-    c = np.zeros((b.shape[0], 2), dtype=b.dtype)
-    c[:, :X] = b.reshape(b.shape[0], X)
-    return np.add.reduce(c, axis=0)[:X].reshape(rest)
+FIT_WIDE = 16   # fit_quadratic_transfers: from this many sources on, its sums run down the points of a (P, S) copy
 
 
 def fit_quadratic_transfers(u, t, ok, g, q):
@@ -232,33 +215,51 @@ def fit_quadratic_transfers(u, t, ok, g, q):
     (``u``: frequency offsets ``f_a - f_c,a`` (cycles/mm), ``t``: ``d w / d f_a = (x_a - L_a) / z`` (dimensionless);
     (S, P) arrays, ``ok`` (S, P) bool: the points of each source, the others padding that no sum sees), in closed
     form: ``c1 = sum (u - <u>) (t - <t>) / sum (u - <u>)^2``, ``c0 = <t> - c1 <u>`` over the source's points (means
-    ``<.>``), each sum added in the points' order (:func:`sequential_sum`): a source's values are the same bits
-    alone and in any padded batch. Falls back to the Taylor values ``g[k]``, ``q[k]`` (mm^0 and mm) where the source
+    ``<.>``), each sum added in the points' order, first to last (unlike ``np.sum``'s pairwise summation, whose
+    rounding depends on a row's length; padding enters as ``-0.0``, the exact additive identity): a source's values
+    are the same bits alone and in any padded batch. Few sources: each row's running sum (``np.cumsum``); from
+    ``FIT_WIDE`` sources on, ``np.add.reduce`` down the points of a C-contiguous (P, S) copy, which numpy adds row
+    after row, vectorised across the sources (the same bits; a narrow one spends its time in per-row calls). Falls back to the Taylor values ``g[k]``, ``q[k]`` (mm^0 and mm) where the source
     has fewer than 3 points or no spread in ``u`` (``max u - min u <= 0``, or NaN), or where ``c0`` / ``c1`` are not
     finite or the fit would not focus (``c1 >= 0``). Computed in float64. Returns ``(g_fit, q_fit)``, (S,) each:
     ``c0`` (the slope ``g`` of ``w_G``) and ``c1`` (its curvature ``q``, mm)."""
-    u, t, ok = np.asarray(u), np.asarray(t), np.asarray(ok)
+    u, t, ok = np.asarray(u), np.asarray(t), np.asarray(ok, dtype=bool)
     g = np.asarray(g, dtype=np.float64)
     q = np.asarray(q, dtype=np.float64)
     if u.ndim != 2 or u.shape != t.shape or u.shape != ok.shape or g.shape != u.shape[:1] or q.shape != g.shape:
         raise ValueError(f"fit_quadratic_transfers: u, t, ok must be (S, P) arrays alike and g, q (S,), got "
                          f"{u.shape}, {t.shape}, {ok.shape}, {g.shape}, {q.shape}")
-    # points first, (P, S) contiguous: the sums over the points run down the rows (sequential_sum without a copy)
-    U = np.ascontiguousarray(u.T, dtype=np.float64)
-    T = np.ascontiguousarray(t.T, dtype=np.float64)
-    OK = np.ascontiguousarray(ok.T, dtype=bool)
-    n = OK.sum(axis=0)
+    n = ok.sum(axis=1)
     nz = np.maximum(n, 1)
+    wide = len(n) >= FIT_WIDE
+    pts = 0 if wide else 1          # the points' axis
+    if wide:                        # points first, (P, S) contiguous: every sum one row-after-row reduction
+        u, t, ok = (np.ascontiguousarray(x.T) for x in (u, t, ok))
+
+        def ssum(x):
+            return np.add.reduce(x, axis=0)
+
+        def col(v):
+            return v[None, :]
+    else:                           # few sources: (S, P), each row's running sum
+        def ssum(x):
+            return np.cumsum(x, axis=1)[:, -1]
+
+        def col(v):
+            return v[:, None]
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        spread = np.max(np.where(OK, U, -np.inf), axis=0, initial=-np.inf) - \
-            np.min(np.where(OK, U, np.inf), axis=0, initial=np.inf)
-        mu = sequential_sum(np.where(OK, U, -0.0), 0) / nz
-        mt = sequential_sum(np.where(OK, T, -0.0), 0) / nz
-        U -= mu
-        T -= mt
-        suu = sequential_sum(np.where(OK, U * U, -0.0), 0)
+        U = np.where(ok, u, -0.0).astype(np.float64, copy=False)   # padding: -0.0, seen by no sum
+        T = np.where(ok, t, -0.0).astype(np.float64, copy=False)
+        spread = np.max(np.where(ok, U, -np.inf), axis=pts, initial=-np.inf) - \
+            np.min(np.where(ok, U, np.inf), axis=pts, initial=np.inf)
+        mu = ssum(U) / nz
+        mt = ssum(T) / nz
+        U -= col(mu)
+        T -= col(mt)
         T *= U
-        sut = sequential_sum(np.where(OK, T, -0.0), 0)
+        U *= U
+        suu = ssum(np.where(ok, U, -0.0))
+        sut = ssum(np.where(ok, T, -0.0))
         c1 = sut / suu
         c0 = mt - c1 * mu
     good = (n >= 3) & (spread > 0) & np.isfinite(c0) & np.isfinite(c1) & (c1 < 0)
