@@ -8,9 +8,9 @@ operations; only elementwise operations, maxima / minima over a source's rays an
 components run across sources (the same values: each source's rays padded with copies of its own first ray, its
 orders with copies of its first live order, which no decision, maximum or minimum sees); the least-squares fit of
 the transfer runs for all sources at once too (:func:`rwwarp.wave.plan.fit_quadratic_transfers`, whose sums are
-added in order, padding masked out: a source's fit is the same bits alone and in a batch), the chief ray's wrap zone
-and the plan's grids and reasons stay per source, on that source's own values; an order some of whose rays are evanescent is taken over the rays that land (masked), as the per-source
-planner takes it. The sources the common case does not cover (a beam that misses its patch, an evanescent chief ray,
+added in order, padding masked out: a source's fit is the same bits alone and in a batch); the chief ray's wrap
+zone and the plan's grids and reasons stay per source, on that source's own values; an order some of whose rays are
+evanescent is taken over the rays that land (masked), as the per-source planner takes it. The sources the common case does not cover (a beam that misses its patch, an evanescent chief ray,
 a source without rays, a pixel-map relief) are left to the per-source planner.
 Used by :func:`rwwarp.wave.plan_sources.plan_sources`; tests/rwwarp/test_plan_sources.py compares every plan with
 the per-source planner's, bit for bit. On the 2-core CPU of issue 25 the Cooke triplet's design step (48 sources,
