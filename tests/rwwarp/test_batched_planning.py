@@ -146,3 +146,31 @@ def test_gauss_legendre_bound_with_its_constant_kept_is_the_formula():
         assert gauss_legendre_exp_error(n, w) == formula(n, w)
         assert gauss_legendre_exp_error(n, -w) == formula(n, w)
     assert gauss_legendre_exp_error(5, 0.0) == 0.0
+
+
+def test_blank_doe_adds_no_frequency_without_evaluating_its_gradient(monkeypatch):
+    """doe_max_frequency returns zeros for a blank relief (a489_doe: every coefficient zero) without reading the
+    points: the values the gradient path gives (run here by hiding the blank check), bit for bit; a relief with a
+    phase still reads its points and gives a positive frequency."""
+    import rwwarp as rw
+    import rwwarp.doe as doe_mod
+    from rwwarp.lens import Surface
+    from rwwarp.wave.doe_sampling import doe_max_frequency
+    lens = rw.load_lens("a489_doe")
+    p = lens.wave_plane_index()
+    rng = np.random.default_rng(1)
+    pts = [rng.uniform(-1.0, 1.0, (50, 2)) for _ in range(3)]
+    wls = [0.45, 0.55, 0.65]
+
+    class Unread(list):
+        def __getitem__(self, k):
+            raise AssertionError("a blank relief's points were read")
+    fast, feat = doe_max_frequency(lens, p, Unread(pts), wls)
+    with monkeypatch.context() as m:
+        m.setattr(doe_mod, "is_flat_profile", lambda profile: False)
+        slow, feat_slow = doe_max_frequency(lens, p, pts, wls)
+    assert np.array_equal(fast, slow) and np.all(fast == 0.0) and feat is None and feat_slow is None
+    surfs = [Surface(**{k: getattr(s, k) for k in s.__dataclass_fields__}) for s in lens.surfaces]
+    surfs[p].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": [-100.0, 0.0, 0.0, 0.0]}
+    f, _ = doe_max_frequency(lens.replace(surfaces=surfs), p, pts, wls)
+    assert np.all(f > 0.0)
