@@ -1,9 +1,11 @@
-"""Planning time of the A489 + DOE map (``rw.load_lens("a489_doe")``, ``--grid`` x ``--grid`` fields over +-9 deg
-x 0.45 / 0.55 / 0.65 um, ``--size`` px of the sensor's pixel, as psf_map's defaults): :func:`rwwarp.wave.packed.source_plans` as :func:`rwwarp.psf_map` calls it
-(the pilot trace, every source's plan, warm: kernels built, the model-error memo filled), ms per source (least
-process CPU time and least wall time of ``--runs`` calls), and with ``--profile`` a cProfile of one call (by
-tottime and cumtime). ``--map-runs N``: the warm map's PSF/s (least of N calls). ``--save PATH``: the map's PSFs (``rw.psf_map``, same options, ``--precision``) to an .npy, ``--transfer PATH``: every
-plan's fitted quadratic transfer (g, q), to compare trees.
+"""Planning time of the A489 + DOE map (``rw.load_lens("a489_doe")``, ``--grid`` x ``--grid`` fields over +-9 deg x
+0.45 / 0.55 / 0.65 um, ``--size`` px of the sensor's pixel, as psf_map's defaults):
+:func:`rwwarp.wave.packed.source_plans` as :func:`rwwarp.psf_map` calls it (the pilot trace, every source's
+plan, warm: kernels built, the model-error memo filled), ms per source (least process CPU time and least wall
+time of ``--runs`` calls), and with ``--profile`` a cProfile of one call (by tottime and cumtime). ``--map-runs
+N``: the warm map's PSF/s (least of N calls). ``--save PATH``: the map's PSFs (``rw.psf_map``, same options,
+``--precision``) to an .npy, ``--transfer PATH``: every plan's fitted quadratic transfer (g, q), to compare
+trees.
 
     PYTHONPATH=. python perf/tools/time_map_plan.py [--grid 10] [--runs 5] [--profile] [--save /tmp/map.npy]
 """

@@ -9,9 +9,10 @@ components run across sources (the same values: each source's rays padded with c
 orders with copies of its first live order, which no decision, maximum or minimum sees); the least-squares fit of
 the transfer runs for all sources at once too (:func:`rwwarp.wave.plan.fit_quadratic_transfers`, whose sums are
 added in order, padding masked out: a source's fit is the same bits alone and in a batch); the chief ray's wrap
-zone and the plan's grids and reasons stay per source, on that source's own values; an order some of whose rays are
-evanescent is taken over the rays that land (masked), as the per-source planner takes it. The sources the common case does not cover (a beam that misses its patch, an evanescent chief ray,
-a source without rays, a pixel-map relief) are left to the per-source planner.
+zone and the plan's grids and reasons stay per source, on that source's own values; an order some of whose rays
+are evanescent is taken over the rays that land (masked), as the per-source planner takes it. The sources the
+common case does not cover (a beam that misses its patch, an evanescent chief ray, a source without rays, a
+pixel-map relief) are left to the per-source planner.
 Used by :func:`rwwarp.wave.plan_sources.plan_sources`; tests/rwwarp/test_plan_sources.py compares every plan with
 the per-source planner's, bit for bit. On the 2-core CPU of issue 25 the Cooke triplet's design step (48 sources,
 17 live orders at two of its three wavelengths) plans its focal part in 0.64 ms a source instead of 1.78
@@ -253,8 +254,9 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     ray_spread, (box_lo, box_hi))}`` for those which keep an order. Every value is the per-source loop's:
     elementwise arithmetic, maxima and minima over the same values (padding and rays that do not land masked out,
     or copies), sums and products of the two components (``a + b`` in either order), the same decisions, the fit
-    of every source at once (:func:`rwwarp.wave.plan.fit_quadratic_transfers`: sums in the points' order, the padding
-    masked out, the same bits as plan_focal's). The arrays are (n, M, R) per component (contiguous reductions over the rays)."""
+    of every source at once (:func:`rwwarp.wave.plan.fit_quadratic_transfers`: sums in the points' order, the
+    padding masked out, the same bits as plan_focal's). The arrays are (n, M, R) per component (contiguous
+    reductions over the rays)."""
     n, R = len(sel), xy.shape[2]
     M = max(len(infos[k].live_m) for k in sel)
     ms = np.empty((n, M), dtype=doe_f.dtype)    # m * doe_freq in doe_freq's precision, as plan_focal multiplies it

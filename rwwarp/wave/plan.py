@@ -216,10 +216,11 @@ def fit_quadratic_transfers(u, t, ok, g, q):
     (S, P) arrays, ``ok`` (S, P) bool: the points of each source, the others padding that no sum sees), in closed
     form: ``c1 = sum (u - <u>) (t - <t>) / sum (u - <u>)^2``, ``c0 = <t> - c1 <u>`` over the source's points (means
     ``<.>``), each sum added in the points' order, first to last (unlike ``np.sum``'s pairwise summation, whose
-    rounding depends on a row's length; padding enters as ``-0.0``, the exact additive identity): a source's values
-    are the same bits alone and in any padded batch. Few sources: each row's running sum (``np.cumsum``); from
-    ``FIT_WIDE`` sources on, ``np.add.reduce`` down the points of a C-contiguous (P, S) copy, which numpy adds row
-    after row, vectorised across the sources (the same bits; a narrow one spends its time in per-row calls). Falls back to the Taylor values ``g[k]``, ``q[k]`` (mm^0 and mm) where the source
+    rounding depends on a row's length; padding enters as ``-0.0``, the exact additive identity): a source's
+    values are the same bits alone and in any padded batch. Few sources: each row's running sum (``np.cumsum``);
+    from ``FIT_WIDE`` sources on, ``np.add.reduce`` down the points of a C-contiguous (P, S) copy, which numpy
+    adds row after row, vectorised across the sources (the same bits; a narrow one spends its time in per-row
+    calls). Falls back to the Taylor values ``g[k]``, ``q[k]`` (mm^0 and mm) where the source
     has fewer than 3 points or no spread in ``u`` (``max u - min u <= 0``, or NaN), or where ``c0`` / ``c1`` are not
     finite or the fit would not focus (``c1 >= 0``). Computed in float64. Returns ``(g_fit, q_fit)``, (S,) each:
     ``c0`` (the slope ``g`` of ``w_G``) and ``c1`` (its curvature ``q``, mm)."""
