@@ -415,11 +415,25 @@ def pilot_arrays(lens, plane, pilot, fields, wls, n_after, lam_mm, z_plane) -> d
     carrier = n_after[:, None] * chief_dir[:, :2] / lam_mm[:, None]  # cycles/mm
     # local frequencies of the field relative to the carrier, and the footprint
     fmax, lo, hi = _footprints(pos_p, dir_s, ok, n_after, lam_mm, carrier)
-    xy_plane = [pos_p[k, ok[k], :2] for k in range(len(fields))]
-    f_doe, feature = doe_max_frequency(lens, plane, xy_plane, wls)
+    f_doe, feature = doe_max_frequency(lens, plane, _ValidRows(pos_p, ok), wls)
     return {"pos_p": pos_p, "pos_s": pos_s, "dir_s": dir_s, "opl_p": opl_p, "ok": ok, "curved": curved_plane,
             "chief_plane": chief_plane, "chief_sensor": chief_sensor, "chief_dir": chief_dir, "carrier": carrier,
             "fmax": fmax, "lo": lo, "hi": hi, "f_doe": f_doe, "feature": feature}
+
+
+class _ValidRows:
+    """``rows[k]``: source ``k``'s valid points on the plane, ``pos_p[k, ok[k], :2]`` (mm), made when read (a DOE
+    without a phase reads none)."""
+    __slots__ = ("pos_p", "ok")
+
+    def __init__(self, pos_p, ok):
+        self.pos_p, self.ok = pos_p, ok
+
+    def __len__(self):
+        return len(self.ok)
+
+    def __getitem__(self, k):
+        return self.pos_p[k, self.ok[k], :2]
 
 
 def _chief_rays(pos_p, pos_s, dir_s, ok):

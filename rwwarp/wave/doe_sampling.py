@@ -77,7 +77,9 @@ def doe_phase_grid(lens, plane, origin, pitch, n):
 
 
 def doe_max_frequency(lens, plane, xy, wavelengths):
-    """Largest local spatial frequency (cycles/mm) the DOE adds at the points ``xy`` (per source)."""
+    """Largest local spatial frequency (cycles/mm) the DOE adds at the points ``xy`` (per source: ``xy[k]`` (N_k, 2)
+    mm, read only where the relief has a phase) at ``wavelengths`` (um, per source); and the DOE's feature size (mm)
+    where its relief has steps, else None. Returns ``(f_max (S,), feature)``."""
     s = lens.surfaces[plane]
     if s.type != "doe":
         return np.zeros(len(wavelengths)), None
@@ -87,10 +89,15 @@ def doe_max_frequency(lens, plane, xy, wavelengths):
     if doe.surface_has_steps(s, lens.source):  # (a quantised flat phase has none: issue 11 defect 6)
         feat = doe.surface_feature_size_mm(s, lens.source)
         return np.zeros(len(wavelengths)), feat
+    if doe.is_flat_profile(s.profile):   # a blank relief (no phase) adds no frequency: the zeros its gradient gives
+        return np.zeros(len(wavelengths)), feat
     out = np.zeros(len(wavelengths))
+    scales = {}   # the phase scale once a wavelength (a map's sources share a few; the same value each call)
     for k, w in enumerate(wavelengths):
         gx, gy = prof.gradient(xy[k][:, 0], xy[k][:, 1], s.design_wavelength_um)
-        sc = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
+        sc = scales.get(w)
+        if sc is None:
+            sc = scales[w] = doe.wavelength_scale(s.material, s.design_wavelength_um, w)
         out[k] = sc * np.max(np.hypot(gx, gy)) / (2 * np.pi) if len(gx) else 0.0
     return out, feat
 

@@ -7,10 +7,12 @@ quadratic transfer and the remainder's displacement are computed for all sources
 operations; only elementwise operations, maxima / minima over a source's rays and orders and sums of the two
 components run across sources (the same values: each source's rays padded with copies of its own first ray, its
 orders with copies of its first live order, which no decision, maximum or minimum sees); the least-squares fit of
-the transfer, the chief ray's wrap zone and the plan's grids and reasons stay per source, on that source's own
-values; an order some of whose rays are evanescent is taken over the rays that land (masked), as the per-source
-planner takes it. The sources the common case does not cover (a beam that misses its patch, an evanescent chief ray,
-a source without rays, a pixel-map relief) are left to the per-source planner.
+the transfer runs for all sources at once too (:func:`rwwarp.wave.plan.fit_quadratic_transfers`, whose sums are
+added in order, padding masked out: a source's fit is the same bits alone and in a batch); the chief ray's wrap
+zone and the plan's grids and reasons stay per source, on that source's own values; an order some of whose rays
+are evanescent is taken over the rays that land (masked), as the per-source planner takes it. The sources the
+common case does not cover (a beam that misses its patch, an evanescent chief ray, a source without rays, a
+pixel-map relief) are left to the per-source planner.
 Used by :func:`rwwarp.wave.plan_sources.plan_sources`; tests/rwwarp/test_plan_sources.py compares every plan with
 the per-source planner's, bit for bit. On the 2-core CPU of issue 25 the Cooke triplet's design step (48 sources,
 17 live orders at two of its three wavelengths) plans its focal part in 0.64 ms a source instead of 1.78
@@ -23,7 +25,7 @@ import numpy as np
 from ..lens import snap_to_pixel
 from .methods.registry import Planned
 from .plan import (FOCAL_EDGE_MARGIN_B, FOCAL_LIT_SHIFT_MARGIN, FOCAL_MARGIN_B, FOCAL_SHIFT_MARGIN,
-                   FOCAL_TAPER_GUARD, fit_quadratic_transfer, focal_plan_from)
+                   FOCAL_TAPER_GUARD, fit_quadratic_transfers, focal_plan_from)
 
 __all__ = ["focal_plans_one_order", "focal_plans_orders"]
 
@@ -252,8 +254,10 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     ray_spread, (box_lo, box_hi))}`` for those which keep an order. Every value is the per-source loop's:
     elementwise arithmetic, maxima and minima over the same values (padding and rays that do not land masked out,
     or copies), sums and products of the two components (``a + b`` in either order), the same decisions, the fit
-    per source. The arrays are (n, M, R) per component (contiguous reductions over the rays)."""
-    n = len(sel)
+    of every source at once (:func:`rwwarp.wave.plan.fit_quadratic_transfers`: sums in the points' order, the
+    padding masked out, the same bits as plan_focal's). The arrays are (n, M, R) per component (contiguous
+    reductions over the rays)."""
+    n, R = len(sel), xy.shape[2]
     M = max(len(infos[k].live_m) for k in sel)
     ms = np.empty((n, M), dtype=doe_f.dtype)    # m * doe_freq in doe_freq's precision, as plan_focal multiplies it
     valid = np.zeros((n, M), dtype=bool)
@@ -333,21 +337,17 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     FU = [F[a][r1[:, None], ju] for a in range(2)]           # (n, K, R)
     LU = [Ls[a][r1[:, None], ju] for a in range(2)]
     OKU = None if okr is None else okr[r1[:, None], ju]      # the kept orders' rays that land
-    g_fit, q_fit = g[sel].copy(), q[sel].copy()
-    for i in np.flatnonzero(whole):
-        # the kept orders' rays (those that land), order after order, as plan_focal concatenates them
-        k = sel[i]
-        c, kk = counts[k], nu[i]
-        if OKU is None:
-            Fk = np.stack([FU[0][i, :kk, :c], FU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
-            Lk = np.stack([LU[0][i, :kk, :c], LU[1][i, :kk, :c]], axis=-1).reshape(-1, 2)
-            Xk = np.broadcast_to(np.stack([xy[0][k, :c], xy[1][k, :c]], axis=-1), (kk, c, 2)).reshape(-1, 2)
-        else:
-            m = OKU[i, :kk, :c]
-            Fk = np.stack([FU[0][i, :kk, :c][m], FU[1][i, :kk, :c][m]], axis=-1)
-            Lk = np.stack([LU[0][i, :kk, :c][m], LU[1][i, :kk, :c][m]], axis=-1)
-            Xk = np.stack([np.broadcast_to(xy[a][k, :c], (kk, c))[m] for a in range(2)], axis=-1)
-        g_fit[i], q_fit[i] = fit_quadratic_transfer([Fk], [Lk], [Xk], fc[i], g[k], q[k], z)
+    # the transfer fitted to every source's kept orders' rays (those that land) at once, each source's points in
+    # plan_focal's order (order after order), the padding masked out: the same bits as plan_focal's fit
+    pts = uk[:, :, None] & (np.arange(R)[None, None, :] < counts[sel][:, None, None])
+    if OKU is not None:
+        pts = pts & OKU
+    pts = pts.reshape(n, K * R)
+    g_fit, q_fit = np.empty((n, 2)), np.empty((n, 2))
+    for a in range(2):
+        u = (FU[a] - fc[:, a, None, None]).reshape(n, K * R)
+        t = ((X[a] - LU[a]) / z).reshape(n, K * R)
+        g_fit[:, a], q_fit[:, a] = fit_quadratic_transfers(u, t, pts, g[sel, a], q[sel, a])
     # landings under the quadratic transfer, the remainder's displacement, their boxes
     LG = [X[a] - z * (g_fit[:, a, None, None] + (FU[a] - fc[:, a, None, None]) * q_fit[:, a, None, None])
           for a in range(2)]

@@ -192,6 +192,15 @@ def pixel_error_estimate(fresnel_number_focus: float, rim_slope_rad: float, pixe
 
 
 # ---------------------------------------------------------------------------------------------- plan
+def pixel_band(ok, freq, carrier) -> float:
+    """The band ``B`` of :func:`plan_pixel` (cycles/mm): the largest ``|f - f_c|`` (one component) over every source's
+    valid pilot rays (``ok`` (S, N), ``freq`` (S, N, 2) cycles/mm, ``carrier`` (S, 2)), at least 1e-9."""
+    band = 1e-9
+    for k in range(len(carrier)):
+        band = max(band, float(np.max(np.abs(freq[k][ok[k]] - carrier[k]))))
+    return band
+
+
 def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, rays_per_sample: float = 1.0):
     """Sampling of ``method="pixel"`` for a batch, from its pilot trace.
 
@@ -211,12 +220,10 @@ def plan_pixel(pos_s, ok, freq, carrier, centers, size: int, pixel_mm: float, ra
     ``band``, ``airy_mm``, ``reach_mm``."""
     from .plan import Plan
     S = len(centers)
-    band = 1e-9
+    band = pixel_band(ok, freq, carrier)
     reach = 0.0
     for k in range(S):
-        sel = ok[k]
-        band = max(band, float(np.max(np.abs(freq[k][sel] - carrier[k]))))
-        reach = max(reach, float(np.max(np.abs(pos_s[k][sel, :2] - centers[k]))))
+        reach = max(reach, float(np.max(np.abs(pos_s[k][ok[k], :2] - centers[k]))))
     h = 1.0 / (4.0 * GRID_MARGIN * band)
     half = 0.5 * size * pixel_mm + pixel_mm + 32.0 * h
     n = 2 * int(math.ceil(half / h))
@@ -604,12 +611,15 @@ def consider_pixel(rw, explicit: bool, pos_s, dir_s, ok, carrier, centers, beam_
     pl = rw.plan
     n_after, lam_mm = np.asarray(rw.n_after, float), np.asarray(rw.lam_mm, float)
     freq = (n_after[:, None, None] / lam_mm[:, None, None]) * dir_s[..., :2]
-    ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
-    ratio = rw.pixel / info["airy_mm"]
+    # the pixel in Airy radii (0.61 / B, as plan_pixel has it) first: auto never takes a pixel this small, and its
+    # plan is not made (its reasons' formatting was most of this call's time in a map of small pixels)
+    ratio = rw.pixel / (0.61 / pixel_band(ok, freq, carrier))
     if not explicit and ratio < MIN_PIXEL_AIRY:
         # auto never takes it for a pixel this small: its forms are not planned (half a map's planning was theirs)
         return rw.evolved(plan=pl.with_reasons(f"pixel method not chosen: pixel {ratio:.3g} < {MIN_PIXEL_AIRY:g} "
                                                 "Airy radii")), False
+    ppl, info = plan_pixel(pos_s, ok, freq, carrier, centers, rw.size, rw.pixel, rays_per_sample)
+    ratio = rw.pixel / info["airy_mm"]
     # the beam seen from the patch: N_F = n r_w^2 / (lambda R), r_w half the footprint (31 pilot cells: +1/30)
     r_w = 0.5 * beam_width_mm * 31.0 / 30.0
     nf = float(np.min(n_after * r_w ** 2 / (lam_mm * abs(rw.z_sensor - rw.z_plane))))

@@ -205,6 +205,68 @@ def landing_points(xy, f, inv_lam, distance_mm):
     return xy + distance_mm * f / w[..., None]
 
 
+FIT_WIDE = 16   # fit_quadratic_transfers: from this many sources on, its sums run down the points of a (P, S) copy
+
+
+def fit_quadratic_transfers(u, t, ok, g, q):
+    """:func:`fit_quadratic_transfer`'s least-squares fit along one axis, for ``S`` sources at once.
+
+    Per source ``k``: the line ``t = c0 + c1 u`` through the points ``(u[k, i], t[k, i])`` with ``ok[k, i]``
+    (``u``: frequency offsets ``f_a - f_c,a`` (cycles/mm), ``t``: ``d w / d f_a = (x_a - L_a) / z`` (dimensionless);
+    (S, P) arrays, ``ok`` (S, P) bool: the points of each source, the others padding that no sum sees), in closed
+    form: ``c1 = sum (u - <u>) (t - <t>) / sum (u - <u>)^2``, ``c0 = <t> - c1 <u>`` over the source's points (means
+    ``<.>``), each sum added in the points' order, first to last (unlike ``np.sum``'s pairwise summation, whose
+    rounding depends on a row's length; padding enters as ``-0.0``, the exact additive identity): a source's
+    values are the same bits alone and in any padded batch. Few sources: each row's running sum (``np.cumsum``);
+    from ``FIT_WIDE`` sources on, ``np.add.reduce`` down the points of a C-contiguous (P, S) copy, which numpy
+    adds row after row, vectorised across the sources (the same bits; a narrow one spends its time in per-row
+    calls). Falls back to the Taylor values ``g[k]``, ``q[k]`` (mm^0 and mm) where the source
+    has fewer than 3 points or no spread in ``u`` (``max u - min u <= 0``, or NaN), or where ``c0`` / ``c1`` are not
+    finite or the fit would not focus (``c1 >= 0``). Computed in float64. Returns ``(g_fit, q_fit)``, (S,) each:
+    ``c0`` (the slope ``g`` of ``w_G``) and ``c1`` (its curvature ``q``, mm)."""
+    u, t, ok = np.asarray(u), np.asarray(t), np.asarray(ok, dtype=bool)
+    g = np.asarray(g, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    if u.ndim != 2 or u.shape != t.shape or u.shape != ok.shape or g.shape != u.shape[:1] or q.shape != g.shape:
+        raise ValueError(f"fit_quadratic_transfers: u, t, ok must be (S, P) arrays alike and g, q (S,), got "
+                         f"{u.shape}, {t.shape}, {ok.shape}, {g.shape}, {q.shape}")
+    n = ok.sum(axis=1)
+    nz = np.maximum(n, 1)
+    wide = len(n) >= FIT_WIDE
+    pts = 0 if wide else 1          # the points' axis
+    if wide:                        # points first, (P, S) contiguous: every sum one row-after-row reduction
+        u, t, ok = (np.ascontiguousarray(x.T) for x in (u, t, ok))
+
+        def ssum(x):
+            return np.add.reduce(x, axis=0)
+
+        def col(v):
+            return v[None, :]
+    else:                           # few sources: (S, P), each row's running sum
+        def ssum(x):
+            return np.cumsum(x, axis=1)[:, -1]
+
+        def col(v):
+            return v[:, None]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        U = np.where(ok, u, -0.0).astype(np.float64, copy=False)   # padding: -0.0, seen by no sum
+        T = np.where(ok, t, -0.0).astype(np.float64, copy=False)
+        spread = np.max(np.where(ok, U, -np.inf), axis=pts, initial=-np.inf) - \
+            np.min(np.where(ok, U, np.inf), axis=pts, initial=np.inf)
+        mu = ssum(U) / nz
+        mt = ssum(T) / nz
+        U -= col(mu)
+        T -= col(mt)
+        T *= U
+        U *= U
+        suu = ssum(np.where(ok, U, -0.0))
+        sut = ssum(np.where(ok, T, -0.0))
+        c1 = sut / suu
+        c0 = mt - c1 * mu
+    good = (n >= 3) & (spread > 0) & np.isfinite(c0) & np.isfinite(c1) & (c1 < 0)
+    return np.where(good, c0, g), np.where(good, c1, q)
+
+
 def fit_quadratic_transfer(freqs, landings, points, f_c, g, q, distance_mm):
     """The separable quadratic transfer that best matches a beam's straight-ray landings (least squares).
 
@@ -213,21 +275,17 @@ def fit_quadratic_transfer(freqs, landings, points, f_c, g, q, distance_mm):
     remainder. Any ``g`` and (negative) ``q`` keep the split exact; they only decide how far the remainder
     moves light, ``z |grad w(f) - g - q (f - f_c)|``, and so how wide the sensor-side box must be. The Taylor
     choice at ``f_c`` leaves the cubic term of ``w`` (159 um on the Cooke triplet at 14 deg); fitting
-    ``-grad w = (L - x) / z`` over the beam's rays per axis (``L``: exact landings, ``x``: wave-plane points,
-    ``f``: frequencies, lists over the kept orders) halves it or better. Falls back to the Taylor values
-    ``g, q`` ((2,) each) where the fit is degenerate or would not focus (``q >= 0``). Returns ``(g, q)``."""
+    ``-grad w = (L - x) / z`` over the beam's rays per axis (``L``: exact landings (mm), ``x``: wave-plane points
+    (mm), ``f``: frequencies (cycles/mm), lists over the kept orders; ``f_c`` (2,) cycles/mm, ``distance_mm``
+    ``z``) halves it or better. Falls back to the Taylor values ``g, q`` ((2,) each; dimensionless and mm)
+    where the fit is degenerate or would not focus (``q >= 0``). One source of
+    :func:`fit_quadratic_transfers` (the same bits as in any batch of them). Returns ``(g, q)``."""
     f = np.concatenate(freqs) - f_c
     t = np.concatenate([(x - L) / distance_mm for L, x in zip(landings, points)])      # = grad w(f)
-    g_out, q_out = np.array(g, float), np.array(q, float)
-    for a in range(2):
-        u = f[:, a]
-        if len(u) < 3 or np.ptp(u) <= 0:
-            continue
-        M = np.stack([np.ones_like(u), u], 1)
-        (c0, c1), *_ = np.linalg.lstsq(M, t[:, a], rcond=None)
-        if np.isfinite(c0) and np.isfinite(c1) and c1 < 0:
-            g_out[a], q_out[a] = c0, c1
-    return g_out, q_out
+    g, q = np.asarray(g, dtype=np.float64), np.asarray(q, dtype=np.float64)
+    ok = np.ones((1, len(f)), dtype=bool)
+    out = [fit_quadratic_transfers(f[None, :, a], t[None, :, a], ok, g[a:a + 1], q[a:a + 1]) for a in range(2)]
+    return np.array([out[0][0][0], out[1][0][0]]), np.array([out[0][1][0], out[1][1][0]])
 
 
 def _order_index(m):
