@@ -13,10 +13,10 @@ for tree in base new; do
   if [ $tree = base ]; then src=$old; commit=$base; else src=$here; commit=${RWWARP_COMMIT:-worktree}; fi
   mkdir -p "$out/ab_$tree"
   echo "== cooke_hybrid step at $commit ($tree)"
-  (cd "$src" && RWWARP_COMMIT=$commit PYTHONPATH=$src timeout 200 python3 perf/profile_step.py --config cooke_hybrid \
+  (cd "$src" && RWWARP_COMMIT=$commit PYTHONPATH=$src${PYTHONPATH:+:$PYTHONPATH} timeout 200 python3 perf/profile_step.py --config cooke_hybrid \
      --preset gpu --device cuda --steps "$steps" --out "$out/ab_$tree" 2>&1 \
-     | grep -v "use_ai2\|Warning\|arm = Arm\|warnings.warn" | head -8)
+     | grep -v "use_ai2\|Warning\|arm = Arm\|warnings.warn" | awk "NR<=8")
   echo "== map at $commit ($tree)"
-  (cd "$src/perf" && RWWARP_COMMIT=$commit PYTHONPATH=$src timeout 150 python3 bench_map.py --device cuda --batch 0 \
+  (cd "$src/perf" && RWWARP_COMMIT=$commit PYTHONPATH=$src${PYTHONPATH:+:$PYTHONPATH} timeout 150 python3 bench_map.py --device cuda --batch 0 \
      --no-deeplens --out "$out/ab_$tree" 2>&1 | grep -v use_ai2 | tail -4)
 done
