@@ -79,8 +79,8 @@ from .propagate_setup import (
     _per_batch, _setup, _window_center,
 )
 from .propagate_stages import (
-    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _crop_demodulate_adjoint,
-    _dft_factors, _launch, _pad_fft, _points_to_band, _transfer, _upload_coords,
+    _band_adjoint_to_field, _band_distance_adjoint, _band_obliquity, _band_spectrum, _band_to_points,
+    _crop_demodulate_adjoint, _dft_factors, _launch, _pad_fft, _points_to_band, _transfer, _upload_coords,
 )
 
 __all__ = [
@@ -190,14 +190,7 @@ class PointPropagator:
         rest, so only its rounding would remain). The band limits and points are held fixed (they move with z in
         jumps of zero derivative almost everywhere). ``need_field=False``: only the distance's gradient."""
         st, band_grad, h, band = self._band_gradient(grad_out, field, doe_phase, grad_weighted, need_band=True)
-        be = st.backend
-        partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
-        _launch(st, "band_distance_grad_kernel", (st.ky_max, st.batch, 1), band, band_grad, st.params_dev, st.kx_max,
-                st.ky_max, st.batch, 0, partial, local=(64, 1, 1))
-        grad_distance = np.asarray(be.to_host(partial), dtype=np.float64).sum(axis=1)
-        if not need_field:
-            return None, None, grad_distance
-        return (*_band_adjoint_to_field(st, band_grad, h), grad_distance)
+        return _band_distance_adjoint(st, band, band_grad, h, need_field)
 
     def _band_gradient(self, grad_out, field, doe_phase, grad_weighted, need_band):
         """``(st, band_grad, h, band or None)``: the set-up, ``G = A^H grad_out (+ c A^H grad_weighted)`` on the band

@@ -20,7 +20,7 @@ from .propagate_setup import (
     check_pixel_values, gauss_legendre, _batch_of, _center_extent, _check_window, _coords, _setup, _window_center,
 )
 from .propagate_stages import (
-    _band_adjoint_to_field, _band_obliquity, _band_spectrum, _band_to_points, _dft_factors, _launch,
+    _band_adjoint_to_field, _band_distance_adjoint, _band_obliquity, _band_spectrum, _band_to_points, _dft_factors, _launch,
     _points_to_band, _transfer, _upload_coords,
 )
 
@@ -264,13 +264,5 @@ class SensorPropagator:
             loss units per mm (one small device-to-host copy of B x ky partial sums).
         """
         st, band_grad, h, band = self._band_gradient(grad_intensity, field, doe_phase, nodes, need_band=True)
-        be = st.backend
-        partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
-        _launch(st, "band_distance_grad_kernel", (st.ky_max, st.batch, 1), band, band_grad, st.params_dev, st.kx_max,
-                st.ky_max, st.batch, 0, partial, local=(64, 1, 1))
-        grad_distance = np.asarray(be.to_host(partial), dtype=np.float64).sum(axis=1)
-        if not need_field:
-            return None, None, grad_distance
-        grad_field, grad_phase = _band_adjoint_to_field(st, band_grad, h)
-        return grad_field, grad_phase, grad_distance
+        return _band_distance_adjoint(st, band, band_grad, h, need_field)
 

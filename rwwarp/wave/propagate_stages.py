@@ -329,6 +329,23 @@ def _points_to_band(st, grad, ex, ey, out):
     return out
 
 
+def _band_distance_adjoint(st, band, band_grad, h, need_field):
+    """The distance's gradient from the band spectrum ``band`` and its gradient ``band_grad`` (one launch of
+    ``band_distance_grad_kernel``, partial sums per row, one small device-to-host copy: numpy float64 (B,), loss
+    units per mm), and with ``need_field`` the field's and DOE phase's gradients (:func:`_band_adjoint_to_field`).
+    Returns ``(grad_field or None, grad_doe_phase or None, grad_distance)``; shared by the point and sensor
+    propagators' ``distance_adjoint``."""
+    be = st.backend
+    partial = be.empty((st.batch, st.ky_max), be.phase_dtype)
+    _launch(st, "band_distance_grad_kernel", (st.ky_max, st.batch, 1), band, band_grad, st.params_dev, st.kx_max,
+            st.ky_max, st.batch, 0, partial, local=(64, 1, 1))
+    grad_distance = np.asarray(be.to_host(partial), dtype=np.float64).sum(axis=1)
+    if not need_field:
+        return None, None, grad_distance
+    grad_field, grad_phase = _band_adjoint_to_field(st, band_grad, h)
+    return grad_field, grad_phase, grad_distance
+
+
 def _band_adjoint_to_field(st, band_grad, h):
     """From the gradient of the band spectrum to (grad_field, grad_doe_phase): the transposed
     pruned FFT (scatter with conj(H) * npx * npy, y inverse FFT of the band columns, scatter the
