@@ -1,0 +1,189 @@
+"""HybridLens.psf_map plans every source from one pilot trace (HybridLens.raywaves_alone) and computes the focal
+sources of a tile together (torch_bridge.packed.PackedTile, cut by torch_bridge.packed.pack_units, the cutter
+LiveProvider uses too).
+
+The reference is each source computed alone by HybridLens.psf: its own plan (HybridLens.raywave: the single-source
+planner rwwarp.wave.batch_plan.plan_batch and its own pilot trace) and its own path (HybridLens._psf_rw, whose
+gradients tests/torch_bridge/test_focal_bridge.py checks against finite differences). A source's pilot rays do not
+depend on the others traced beside it, so the plans are the same bits; the packed tile sums the same terms in
+another order (one trace of all members, batched matrix products), so PSFs and gradients agree to rounding."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import rwwarp as rw
+import rwwarp.wave.pilot as P
+import torch_bridge as tb
+
+FIELDS = [(0.0, 0.0), (0.0, 5.0), (3.0, 2.0)]
+WLS = [0.5, 0.6]
+SIZE = 12
+
+
+def _doe_lens():
+    """The A489 + DOE with a DOE that wraps in the beam (-30 rad at its 1.5 mm norm radius): sources at 0 and
+    5 deg get different DOE orders and windows (test_packed_live's lens)."""
+    lens = rw.load_lens("a489_doe")
+    s = lens.surfaces[lens.doe_index]
+    s.profile = dict(s.profile, coefficients=[-30.0])
+    return lens
+
+
+def _module(lens, **kw):
+    # the coarse plan (nyquist_safety 1): the orchestration is compared, not the sampling
+    opts = dict(method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3, nyquist_safety=1.0)
+    opts.update(kw)
+    return tb.HybridLens(lens, learn={"curvature": "all", "doe": "all", "thickness": "all"}, **opts)
+
+
+def _grads(m):
+    return {q: getattr(m, q).grad.detach().clone() for q in ("curvature", "doe", "thickness")}
+
+
+def _diff(a, b, path="plan"):
+    """Where ``a`` and ``b`` differ, exactly (arrays: dtype, shape and bits; dataclasses, dicts, sequences member by
+    member; the lens and the pilot skipped: another object each, the pilot's rows compared apart; the flag
+    ``own_pupils``, which names how a batch lays its pupils: a single source's is at its own wavelength either way,
+    the batch's shortest)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a2, b2 = np.asarray(a), np.asarray(b)
+        ok = a2.dtype == b2.dtype and a2.shape == b2.shape and np.array_equal(a2, b2, equal_nan=a2.dtype.kind in "fc")
+        return [] if ok else [path]
+    if isinstance(a, float) and isinstance(b, float):   # np.float64 or float (the single-source planner's kind)
+        return [] if (a == b or (math.isnan(a) and math.isnan(b))) else [path]
+    if type(a) is not type(b):
+        return [f"{path}: type"]
+    if dataclasses.is_dataclass(a):
+        return [d for f in dataclasses.fields(a) if f.name not in ("lens", "pilot", "own_pupils")
+                for d in _diff(getattr(a, f.name), getattr(b, f.name), f"{path}.{f.name}")]
+    if isinstance(a, dict):
+        return [f"{path}: keys"] if list(a) != list(b) else [d for k in a for d in _diff(a[k], b[k], f"{path}[{k!r}]")]
+    if isinstance(a, (list, tuple)):
+        return [f"{path}: length"] if len(a) != len(b) else \
+            [d for i, (x, y) in enumerate(zip(a, b)) for d in _diff(x, y, f"{path}[{i}]")]
+    if hasattr(a, "__dict__") and not isinstance(a, (int, str, bool)):
+        return _diff(vars(a), vars(b), f"{path}<{type(a).__name__}>")
+    return [] if a == b else [path]
+
+
+def test_map_plans_are_each_sources_own_plan():
+    """The plans psf_map uses (raywaves_alone without centres: one pilot trace) against HybridLens.raywave of each
+    source alone (its own pilot trace, its own patch centre): every field of every plan the same bits, the
+    pilot's rows too (a float may be a numpy float64 on one side: the values are compared)."""
+    lens = _doe_lens()
+    m = _module(lens)
+    f = [x for x in FIELDS for _ in WLS]
+    w = [y for _ in FIELDS for y in WLS]
+    got = m.raywaves_alone(f, w, SIZE, centers_mm=None)
+    for k, r in enumerate(got):
+        ref = m.raywave([f[k]], [w[k]], SIZE)
+        d = _diff(ref.batch_plan, r.batch_plan)
+        assert not d, (k, d[:4])
+        for name in ("pos_p", "pos_s", "dir_s", "opl_p", "ok", "valid_plane"):
+            assert np.array_equal(getattr(ref.batch_plan.pilot, name), getattr(r.batch_plan.pilot, name)), name
+    # the check compares plans that differ between sources (patches of their own: 5 centres for 6 sources, the
+    # lateral colour moving some by a pixel)
+    assert len({tuple(r.centers[0]) for r in got}) >= len(FIELDS)
+
+
+@pytest.mark.parametrize("tile,budget,packs", [(None, None, [6]), (4, None, [4, 2]), (3, 100 * 2**20, [2, 3])],
+                         ids=["one-tile", "tiles-of-4", "budget"])
+def test_map_equals_each_source_alone(tile, budget, packs, monkeypatch):
+    """A489 + wrapping DOE, 3 fields x 2 wavelengths (6 focal sources, each on its own plan), curvatures, DOE and
+    thicknesses learning: psf_map (one packed tile; tiles of 4 sources, checkpointed: a packed tile of 4 and one
+    of 2; tiles of 3 sources under a 100 MiB budget, checkpointed, each cut into packed tiles whose estimate fits
+    the 74 MiB left for tiles: the first tile's sources estimated 17.6 MiB packed by two, 97 MiB by three (the 5 deg
+    source at 0.5 um needs 32 MiB alone), so a packed tile of 2 and the third source alone; the second tile's 54
+    MiB, one packed tile) against HybridLens.psf of each source, and the gradient of a weighted sum of the map against the
+    sum of each source's. Measured on the CPU: PSFs 6.7e-16 of each PSF's peak, gradients 1.4e-14 (curvature),
+    2.6e-15 (DOE) and 4.6e-13 (thickness: the wave plane's z gradient, a sum of terms 1e4 times its value that
+    cancels, test_packed_live) of the largest; tolerances 1e-12 (PSFs, curvature, DOE) and 5e-12 (thickness). The
+    centres are those of each source alone."""
+    lens = _doe_lens()
+    weights = torch.as_tensor(np.random.default_rng(4).standard_normal((len(FIELDS), len(WLS), SIZE, SIZE)))
+    import torch_bridge.packed as tp
+    made = []
+
+    class Counted(tp.PackedTile):
+        def __init__(self, members, *a, **k):
+            made.append(len(members))
+            super().__init__(members, *a, **k)
+    monkeypatch.setattr(tp, "PackedTile", Counted)
+    m = _module(lens)
+    out, centers = m.psf_map(FIELDS, WLS, SIZE, tile=tile, memory_budget_bytes=budget, return_centers=True)
+    assert made == packs
+    (out * weights).sum().backward()
+    got = _grads(m)
+    ref = _module(lens)
+    for i, f in enumerate(FIELDS):
+        for j, w in enumerate(WLS):
+            p, c = ref.psf(f, w, SIZE, return_centers=True)
+            (p * weights[i, j]).sum().backward()
+            peak = float(p.detach().abs().max())
+            assert float((out[i, j].detach() - p.detach()).abs().max()) <= 1e-12 * peak, (f, w)
+            assert np.array_equal(centers[i, j], c), (f, w)
+    want = _grads(ref)
+    for q, g in want.items():
+        scale = float(g.abs().max())
+        assert scale > 0, q
+        assert float((got[q] - g).abs().max()) <= (5e-12 if q == "thickness" else 1e-12) * scale, q
+    # the sources differ (the comparison is not of equal numbers)
+    assert float((out[0, 0] - out[1, 0]).abs().max()) > 1e-3 * float(out[0, 0].abs().max())
+
+
+class _Counts:
+    """Counts of pilot traces (rwwarp.wave.pilot.pilot_from_tracer: every planner's) and of warp.launch calls."""
+
+    def __init__(self, monkeypatch):
+        import warp as wp
+        self.pilots = self.launches = 0
+        trace, launch = P.pilot_from_tracer, wp.launch
+
+        def pilot(*a, **k):
+            self.pilots += 1
+            return trace(*a, **k)
+
+        def counted(*a, **k):
+            self.launches += 1
+            return launch(*a, **k)
+        monkeypatch.setattr(P, "pilot_from_tracer", pilot)
+        monkeypatch.setattr(wp, "launch", counted)
+
+    def take(self):
+        out = (self.pilots, self.launches)
+        self.pilots = self.launches = 0
+        return out
+
+
+def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypatch):
+    """A psf_map call that plans (replan=True) traces one pilot for all its sources, however many; forward +
+    backward of 1 x 2, 2 x 2 and 3 x 2 focal sources (one packed tile each) make the same number of Warp
+    launches (measured 35 each, 15 of them the plans': the pilot trace and the model error's; one source at a
+    time before the packing: 35 per 2 sources more). With kept plans (replan=False) each source is planned alone
+    (raywave's cache), once: one pilot trace a source on the first call, none on the next, and the launches of the
+    next call are again those of one packed tile whatever the sources."""
+    lens = _doe_lens()
+    count = _Counts(monkeypatch)
+    m = _module(lens)
+    launches = {}
+    for n in (1, 2, 3):
+        m.zero_grad()
+        m.psf_map(FIELDS[:n], WLS, SIZE).sum().backward()
+        pilots, launches[n] = count.take()
+        assert pilots == 1, n
+    assert launches[1] == launches[2] == launches[3], launches
+    kept = _module(lens, replan=False)
+    kept.psf_map(FIELDS, WLS, SIZE).sum().backward()
+    assert count.take()[0] == len(FIELDS) * len(WLS)
+    steady = {}
+    for n in (2, 3):
+        kept.zero_grad()
+        kept.psf_map(FIELDS[:n], WLS, SIZE).sum().backward()
+        pilots, steady[n] = count.take()
+        assert pilots == 0, n
+    assert steady[2] == steady[3] < launches[3], steady
