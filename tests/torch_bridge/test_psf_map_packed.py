@@ -189,3 +189,30 @@ def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypat
         pilots, steady[n] = count.take()
         assert pilots == 0, n
     assert steady[2] == steady[3] < launches[3], steady
+
+
+def test_sources_not_packable_run_alone_in_the_maps_order(monkeypatch):
+    """Sources that cannot be packed (here the 0.5 um ones, declared so: in use a band-limited method or a wave
+    step) run alone, the others in one packed tile; the tile's work is the alone ones first, so the rows are put
+    back in the sources' order: against HybridLens.psf of each source, PSFs to 1e-14 of the peak (measured
+    8.0e-16, test_map_equals_each_source_alone) and the same patch centres."""
+    import torch_bridge.packed as tp
+    real = tp.packable
+    monkeypatch.setattr(tp, "packable", lambda r: real(r) and r.wls[0] != 0.5)
+    lens = _doe_lens()
+    made = []
+
+    class Counted(tp.PackedTile):
+        def __init__(self, members, *a, **k):
+            made.append([r.wls[0] for r in members])
+            super().__init__(members, *a, **k)
+    monkeypatch.setattr(tp, "PackedTile", Counted)
+    m = _module(lens)
+    with torch.no_grad():
+        out, centers = m.psf_map(FIELDS, WLS, SIZE, return_centers=True)
+        assert made == [[0.6] * len(FIELDS)]
+        for i, f in enumerate(FIELDS):
+            for j, w in enumerate(WLS):
+                p, c = m.psf(f, w, SIZE, return_centers=True)
+                assert float((out[i, j] - p).abs().max()) <= 1e-14 * float(p.abs().max()), (f, w)
+                assert np.array_equal(centers[i, j], c), (f, w)
