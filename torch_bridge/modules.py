@@ -643,7 +643,8 @@ class HybridLens(LensTables, nn.Module):
 
     def psf_map(self, fields, wavelengths_um, size: int = 64, *, object_distance_mm=None, pixel_mm=None,
                 tile: int | None = None, memory_budget_bytes: int | None = None, checkpoint: bool | None = None,
-                progress: bool = False, return_centers: bool = False, spatial_tile: int | None = None):
+                progress: bool = False, return_centers: bool = False, spatial_tile: int | None = None,
+                slot_waste: float | None = 1.5):
         """Differentiable PSF map (n_fields, n_wavelengths, size, size), float64.
 
         Every (field, wavelength) source is computed on its own plan, as :func:`rwwarp.psf` plans it alone
@@ -654,7 +655,10 @@ class HybridLens(LensTables, nn.Module):
         launch set, the focal propagations as batched matrix products; per source the PSF and gradients of the
         source alone up to the order of floating-point sums), cut by :func:`torch_bridge.packed.pack_units` (as
         :class:`torch_bridge.live.LiveProvider`'s) so that each packed tile's recorded peak fits the budget
-        below; the other sources (a band-limited method, a wave step) run one at a time. ``memory_budget_bytes``
+        below and that the padding of its members to the slots of its largest (ray grid, window) costs at most
+        ``slot_waste`` times their own work (:func:`torch_bridge.packed.slot_sets`; None: no bound, one packed tile
+        for all that fit the budget: fewest launches); the other sources (a band-limited method, a wave step) run
+        one at a time. ``memory_budget_bytes``
         (bytes) caps the transfer-function cache at a quarter of the budget and chooses the tile from what
         is left after the map's fixed needs (:meth:`bytes_fixed`) and an estimate of the bytes one
         source needs (:meth:`bytes_per_source`: rays and their gradients for every traced surface,
@@ -671,6 +675,8 @@ class HybridLens(LensTables, nn.Module):
         """
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
+        if slot_waste is not None and not (np.isfinite(slot_waste) and slot_waste >= 1):
+            raise ValueError(f"HybridLens.psf_map: slot_waste must be >= 1 or None, got {slot_waste!r}")
         if self._multi_order:
             return self._psf_map_orders(fields, wls, size, object_distance_mm, pixel_mm, tile, memory_budget_bytes,
                                         checkpoint, progress, return_centers, spatial_tile)
@@ -710,7 +716,7 @@ class HybridLens(LensTables, nn.Module):
         def work(ch):
             # a chunk's work, cut when the tile loop reaches it: its packed tiles and its sources alone, and the
             # order of their rows back to the sources' (None: in order)
-            units = self._map_units(ch, rws, pack_budget, spatial_tile)
+            units = self._map_units(ch, rws, pack_budget, spatial_tile, slot_waste)
             flat = [j for _, _, row in units for j in row]
             return units, None if flat == ch else torch.as_tensor(np.argsort(flat))
 
@@ -729,11 +735,12 @@ class HybridLens(LensTables, nn.Module):
             return out, centers.reshape(len(fields), len(wls), 2)
         return out
 
-    def _map_units(self, chunk, rws, budget_bytes, spatial_tile=None) -> list:
+    def _map_units(self, chunk, rws, budget_bytes, spatial_tile=None, slot_waste=None) -> list:
         """:meth:`psf_map`'s work for the sources ``chunk`` (indices into ``rws``, in order): ``[(kind, object,
         rows)]``, the sources that cannot be packed (:func:`torch_bridge.packed.packable`) alone (``"rw"``), then the
         others cut into packed tiles whose recorded peak fits ``budget_bytes`` (bytes) by
-        :func:`torch_bridge.packed.pack_units`. Without ``replan`` (kept plans) a tile is kept with its members
+        :func:`torch_bridge.packed.pack_units` (``slot_waste``: its bound on the slots' padding). Without ``replan``
+        (kept plans) a tile is kept with its members
         (in the plan cache, :meth:`clear_plans`) and built again only when one of them changes."""
         from .packed import PackedTile, pack_units, packable
 
@@ -747,7 +754,7 @@ class HybridLens(LensTables, nn.Module):
             return hit[1]
         alone = [("rw", rws[j], [j]) for j in chunk if not packable(rws[j])]
         return alone + pack_units(self, [j for j in chunk if packable(rws[j])], rws, budget_bytes,
-                                  spatial_tile=spatial_tile, tile_for=tile_for)
+                                  spatial_tile=spatial_tile, tile_for=tile_for, slot_waste=slot_waste)
 
     def bytes_per_source(self, rw, record: bool = True) -> int:
         """:func:`torch_bridge.budget.bytes_per_source` (bytes)."""

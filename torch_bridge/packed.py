@@ -27,7 +27,7 @@ from .functions import _on_device, _streams, bridge_state, paper_amplitude, uplo
 from .functions import power_sums, trace_splat
 
 __all__ = ["PackedFocalPropagate", "PackedTile", "pack_groups", "pack_units", "packable", "packed_doe_factor",
-           "packed_psfs", "packed_recorded_bytes"]
+           "packed_psfs", "packed_recorded_bytes", "slot_sets"]
 
 
 class PackedTile:
@@ -87,7 +87,8 @@ def packable(rw) -> bool:
             and not np.any(getattr(rw, "wave_step", 0.0)))
 
 
-def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatial_tile=None, tile_for=None) -> list:
+def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatial_tile=None, tile_for=None,
+               slot_waste: float | None = None) -> list:
     """The one place that cuts sources into packed tiles (:meth:`torch_bridge.HybridLens.psf_map` and
     :class:`torch_bridge.live.LiveProvider`): the sources ``js`` (indices into ``rws``, each a :func:`packable`
     single-source focal RayWave of ``module``, in order) as ``[(kind, object, rows)]``: ``("packed", PackedTile,
@@ -96,7 +97,10 @@ def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatia
     tracer's first wavelength), the wavelength; each set is cut by :func:`pack_groups` so that a tile's recorded
     peak (:func:`packed_recorded_bytes` at ``spatial_tile``) stays within ``budget_bytes`` (bytes). ``waste``: the
     padding allowed when stacking members into one focal operator (:class:`PackedTile`). ``tile_for(members)``:
-    the tile of those members (the caller's cache of tiles), default a new :class:`PackedTile`."""
+    the tile of those members (the caller's cache of tiles), default a new :class:`PackedTile`. ``slot_waste``
+    (None: no bound): the members of a tile are traced and splatted in the slots of the largest (its ray grid, its
+    window), so each set is first split by :func:`slot_sets` into sets whose padded work is at most ``slot_waste``
+    times their own (where the work, not the launches, sets the time: a CPU)."""
     sets = {}
     for j in js:
         r = rws[j]
@@ -104,9 +108,12 @@ def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatia
             raise ValueError(f"pack_units: source {j} is not packable (method {r.plan.method!r}, {r.nsrc} source(s), "
                              "wave step or not): run it on its own")
         sets.setdefault((float(r.z_plane), r.wls[0] if any(module._thin_surfaces) else None), []).append(j)
+    groups = list(sets.values())
+    if slot_waste is not None:
+        groups = [g for s in groups for g in slot_sets(s, [rws[j] for j in s], slot_waste)]
     fits = lambda g: packed_recorded_bytes(module, [rws[i] for i in g], spatial_tile) <= budget_bytes
     units = []
-    for group in sets.values():
+    for group in groups:
         for cur in pack_groups(group, fits):
             if len(cur) == 1:
                 units.append(("rw", rws[cur[0]], cur))
@@ -114,6 +121,36 @@ def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatia
             members = [rws[i] for i in cur]
             units.append(("packed", PackedTile(members, waste) if tile_for is None else tile_for(members), cur))
     return units
+
+
+def _slot_work(ray_grid: int, n_grid: int) -> int:
+    """Work of one packed slot, in the bytes its traced rays and window take (:func:`rwwarp.wave.packed.packed_bytes`'s
+    per-source terms: 232 bytes a ray, 64 a window sample)."""
+    return int(ray_grid) ** 2 * 232 + int(n_grid) ** 2 * 64
+
+
+def slot_sets(js, members, waste: float) -> list:
+    """``js`` (sources, in order; ``members`` their single-source RayWaves) split into sets whose packed trace and
+    splat, every member in the slots of the set's largest ray grid and window (:func:`_slot_work`), is at most
+    ``waste`` (>= 1) times the members' own: the members taken largest first, each joining the first set it keeps
+    within the bound (else a new set). Each set in source order; the sets in the order of their first source."""
+    if not (np.isfinite(waste) and waste >= 1):
+        raise ValueError(f"slot_sets: waste must be >= 1, got {waste!r}")
+    size = {j: (int(m.plan.ray_grid), int(m.plan.n_grid)) for j, m in zip(js, members)}
+    sets = []   # [members, largest ray grid, largest window, own work]
+    for j in sorted(js, key=lambda j: (-size[j][0], -size[j][1])):
+        rg, ng = size[j]
+        for s in sets:
+            r2, n2 = max(s[1], rg), max(s[2], ng)
+            if (len(s[0]) + 1) * _slot_work(r2, n2) <= waste * (s[3] + _slot_work(rg, ng)):
+                s[0].append(j)
+                s[1], s[2], s[3] = r2, n2, s[3] + _slot_work(rg, ng)
+                break
+        else:
+            sets.append([[j], rg, ng, _slot_work(rg, ng)])
+    pos = {j: k for k, j in enumerate(js)}
+    out = [sorted(s[0], key=pos.get) for s in sets]
+    return sorted(out, key=lambda g: pos[g[0]])
 
 
 def pack_groups(js, fits) -> list:

@@ -91,11 +91,14 @@ def test_map_plans_are_each_sources_own_plan():
     assert len({tuple(r.centers[0]) for r in got}) >= len(FIELDS)
 
 
-@pytest.mark.parametrize("tile,budget,packs", [(None, None, [6]), (4, None, [4, 2]), (3, 100 * 2**20, [2, 3])],
-                         ids=["one-tile", "tiles-of-4", "budget"])
-def test_map_equals_each_source_alone(tile, budget, packs, monkeypatch):
+@pytest.mark.parametrize("tile,budget,slot_waste,packs", [(None, None, None, [6]), (None, None, 1.5, [4, 2]),
+                                                          (4, None, None, [4, 2]), (3, 100 * 2**20, None, [2, 3])],
+                         ids=["one-tile", "slot-sets", "tiles-of-4", "budget"])
+def test_map_equals_each_source_alone(tile, budget, slot_waste, packs, monkeypatch):
     """A489 + wrapping DOE, 3 fields x 2 wavelengths (6 focal sources, each on its own plan), curvatures, DOE and
-    thicknesses learning: psf_map (one packed tile; tiles of 4 sources, checkpointed: a packed tile of 4 and one
+    thicknesses learning: psf_map (one packed tile, slot_waste None; the default slot_waste 1.5: the sources by their ray grids and
+    windows (48-103 rays a side, 102-220 samples), a packed tile of the 1st, 2nd, 4th and 6th sources and one of
+    the 3rd and 5th, the rows put back in order); tiles of 4 sources, checkpointed: a packed tile of 4 and one
     of 2; tiles of 3 sources under a 100 MiB budget, checkpointed, each cut into packed tiles whose estimate fits
     the 74 MiB left for tiles: the first tile's sources estimated 17.6 MiB packed by two, 97 MiB by three (the 5 deg
     source at 0.5 um needs 32 MiB alone), so a packed tile of 2 and the third source alone; the second tile's 54
@@ -116,7 +119,8 @@ def test_map_equals_each_source_alone(tile, budget, packs, monkeypatch):
             super().__init__(members, *a, **k)
     monkeypatch.setattr(tp, "PackedTile", Counted)
     m = _module(lens)
-    out, centers = m.psf_map(FIELDS, WLS, SIZE, tile=tile, memory_budget_bytes=budget, return_centers=True)
+    out, centers = m.psf_map(FIELDS, WLS, SIZE, tile=tile, memory_budget_bytes=budget, return_centers=True,
+                             slot_waste=slot_waste)
     assert made == packs
     (out * weights).sum().backward()
     got = _grads(m)
@@ -163,7 +167,7 @@ class _Counts:
 
 def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypatch):
     """A psf_map call that plans (replan=True) traces one pilot for all its sources, however many; forward +
-    backward of 1 x 2, 2 x 2 and 3 x 2 focal sources (one packed tile each) make the same number of Warp
+    backward of 1 x 2, 2 x 2 and 3 x 2 focal sources (one packed tile each: slot_waste None) make the same number of Warp
     launches (measured 36 each, planning included; one source at a time before the packing: 72, 144 and 216, 36 a
     source, with one pilot trace a source). With kept plans (replan=False) each source is planned alone
     (HybridLens.raywave's cache), once: one pilot trace a source on the first call, none on the next, whose
@@ -175,17 +179,17 @@ def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypat
     launches = {}
     for n in (1, 2, 3):
         m.zero_grad()
-        m.psf_map(FIELDS[:n], WLS, SIZE).sum().backward()
+        m.psf_map(FIELDS[:n], WLS, SIZE, slot_waste=None).sum().backward()
         pilots, launches[n] = count.take()
         assert pilots == 1, n
     assert launches[1] == launches[2] == launches[3], launches
     kept = _module(lens, replan=False)
-    kept.psf_map(FIELDS, WLS, SIZE).sum().backward()
+    kept.psf_map(FIELDS, WLS, SIZE, slot_waste=None).sum().backward()
     assert count.take()[0] == len(FIELDS) * len(WLS)
     steady = {}
     for n in (2, 3):
         kept.zero_grad()
-        kept.psf_map(FIELDS[:n], WLS, SIZE).sum().backward()
+        kept.psf_map(FIELDS[:n], WLS, SIZE, slot_waste=None).sum().backward()
         pilots, steady[n] = count.take()
         assert pilots == 0, n
     assert steady[2] == steady[3] < launches[3], steady
@@ -209,10 +213,39 @@ def test_sources_not_packable_run_alone_in_the_maps_order(monkeypatch):
     monkeypatch.setattr(tp, "PackedTile", Counted)
     m = _module(lens)
     with torch.no_grad():
-        out, centers = m.psf_map(FIELDS, WLS, SIZE, return_centers=True)
+        out, centers = m.psf_map(FIELDS, WLS, SIZE, return_centers=True, slot_waste=None)
         assert made == [[0.6] * len(FIELDS)]
         for i, f in enumerate(FIELDS):
             for j, w in enumerate(WLS):
                 p, c = m.psf(f, w, SIZE, return_centers=True)
                 assert float((out[i, j] - p).abs().max()) <= 1e-14 * float(p.abs().max()), (f, w)
                 assert np.array_equal(centers[i, j], c), (f, w)
+
+
+def test_slot_sets_bound_the_padding():
+    """torch_bridge.packed.slot_sets on random ray grids and windows: every set's packed work (each member in the
+    slots of the set's largest ray grid and largest window, 232 bytes a ray and 64 a sample, written here from the
+    definition) is at most ``waste`` times the members' own, every source in exactly one set, each set in source
+    order; equal members make one set, and waste 1 keeps only equal sizes together."""
+    from types import SimpleNamespace as NS
+
+    from torch_bridge.packed import slot_sets
+    work = lambda rg, n: rg * rg * 232 + n * n * 64
+    rng = np.random.default_rng(7)
+    for waste in (1.0, 1.25, 1.5, 3.0):
+        rg, ng = rng.integers(40, 400, 30), rng.integers(100, 900, 30)
+        members = [NS(plan=NS(ray_grid=int(a), n_grid=int(b))) for a, b in zip(rg, ng)]
+        js = list(range(100, 130))
+        sets = slot_sets(js, members, waste)
+        assert sorted(j for s in sets for j in s) == js
+        for s in sets:
+            assert s == sorted(s)
+            k = [j - 100 for j in s]
+            padded = len(k) * work(int(rg[k].max()), int(ng[k].max()))
+            assert padded <= waste * sum(work(int(rg[i]), int(ng[i])) for i in k)
+        if waste == 3.0:
+            assert len(sets) < 15   # the bound lets sizes share a set (the check above is not of singletons only)
+    same = [NS(plan=NS(ray_grid=100, n_grid=300))] * 5
+    assert slot_sets(list(range(5)), same, 1.0) == [list(range(5))]
+    with pytest.raises(ValueError, match="waste"):
+        slot_sets([0], same[:1], 0.5)
