@@ -2,10 +2,12 @@
 sources, size 16 px): host seconds and Warp launches of one call (plans made in the call: replan=True).
 
 Run under the PYTHONPATH of the code to time (e.g. the tree before and after a change, alternately: the machine
-is shared): ``python perf/bench_psf_map_orch.py [repeats]``. Prints one line per repeat: seconds, launches.
+is shared): ``python perf/bench_psf_map_orch.py [repeats [size [method]]]`` (environment ``BENCH_SLOT_WASTE``: psf_map's
+``slot_waste``, "none" for None). Prints one line per repeat: seconds, launches.
 Units: s."""
 from __future__ import annotations
 
+import os
 import sys
 import time
 
@@ -30,12 +32,15 @@ def main(repeats: int = 3, size: int = 16, method: str = "focal"):
         count[0] += 1
         return real(*a, **k)
     wp.launch = counting
-    m.psf_map(fields, wls, size)   # warm-up (kernels compiled, caches)
+    # BENCH_SLOT_WASTE: psf_map's slot_waste ("none": None; unset: the default, and the only choice before it existed)
+    sw = os.environ.get("BENCH_SLOT_WASTE")
+    kw = {} if sw is None else {"slot_waste": None if sw == "none" else float(sw)}
+    m.psf_map(fields, wls, size, **kw)   # warm-up (kernels compiled, caches)
     for _ in range(int(repeats)):
         m.zero_grad()
         count[0] = 0
         t0 = time.perf_counter()
-        out = m.psf_map(fields, wls, size)
+        out = m.psf_map(fields, wls, size, **kw)
         (out * g).sum().backward()
         dt = time.perf_counter() - t0
         print(f"{dt:.3f} s  {count[0]} launches  sum {float(out.detach().sum()):.15g}  "

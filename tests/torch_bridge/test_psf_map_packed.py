@@ -193,6 +193,19 @@ def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypat
         pilots, steady[n] = count.take()
         assert pilots == 0, n
     assert steady[2] == steady[3] < launches[3], steady
+    # the kept tile follows the values: after a curvature step the map equals each source on its kept plan
+    # (HybridLens.psf: the same cached RayWave, computed alone), to 1e-14 of the peak (measured 8.0e-16 above)
+    with torch.no_grad():
+        prev = kept.psf_map(FIELDS, WLS, SIZE, slot_waste=None)
+        kept.curvature[0] *= 1.0 + 1e-4
+        out = kept.psf_map(FIELDS, WLS, SIZE, slot_waste=None)
+        assert count.take()[0] == 0
+        for i, f in enumerate(FIELDS):
+            for j, w in enumerate(WLS):
+                p = kept.psf(f, w, SIZE)
+                assert float((out[i, j] - p).abs().max()) <= 1e-14 * float(p.abs().max()), (f, w)
+    # the step moved the PSFs (the comparison above is not of the values before it)
+    assert float((out - prev).abs().max()) > 1e-6 * float(prev.abs().max())
 
 
 def test_sources_not_packable_run_alone_in_the_maps_order(monkeypatch):
