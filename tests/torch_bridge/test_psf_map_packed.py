@@ -96,8 +96,8 @@ def test_map_plans_are_each_sources_own_plan():
                          ids=["one-tile", "slot-sets", "tiles-of-4", "budget"])
 def test_map_equals_each_source_alone(tile, budget, slot_waste, packs, monkeypatch):
     """A489 + wrapping DOE, 3 fields x 2 wavelengths (6 focal sources, each on its own plan), curvatures, DOE and
-    thicknesses learning: psf_map (one packed tile, slot_waste None; the default slot_waste 1.5: the sources by their ray grids and
-    windows (48-103 rays a side, 102-220 samples), a packed tile of the 1st, 2nd, 4th and 6th sources and one of
+    thicknesses learning: psf_map (one packed tile, slot_waste None; the default slot_waste 1.5: the sources by
+    their ray grids and windows (48-103 rays a side, 102-220 samples), a packed tile of the 1st, 2nd, 4th and 6th sources and one of
     the 3rd and 5th, the rows put back in order); tiles of 4 sources, checkpointed: a packed tile of 4 and one
     of 2; tiles of 3 sources under a 100 MiB budget, checkpointed, each cut into packed tiles whose estimate fits
     the 74 MiB left for tiles: the first tile's sources estimated 17.6 MiB packed by two, 97 MiB by three (the 5 deg
@@ -167,8 +167,8 @@ class _Counts:
 
 def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypatch):
     """A psf_map call that plans (replan=True) traces one pilot for all its sources, however many; forward +
-    backward of 1 x 2, 2 x 2 and 3 x 2 focal sources (one packed tile each: slot_waste None) make the same number of Warp
-    launches (measured 36 each, planning included; one source at a time before the packing: 72, 144 and 216, 36 a
+    backward of 1 x 2, 2 x 2 and 3 x 2 focal sources (one packed tile each: slot_waste None) make the same number
+    of Warp launches (measured 36 each, planning included; one source at a time before the packing: 72, 144 and 216, 36 a
     source, with one pilot trace a source). With kept plans (replan=False) each source is planned alone
     (HybridLens.raywave's cache), once: one pilot trace a source on the first call, none on the next, whose
     launches are again those of one packed tile whatever the sources (measured 28 for 4 and 6 sources; before:
