@@ -79,7 +79,11 @@ class LiveProvider:
     A tile's recorded peak (:func:`torch_bridge.packed.packed_recorded_bytes`: every member in the slots of
     the largest) is checked against ``record_budget_bytes`` (bytes one chunk's recorded sources may take;
     default the whole ``memory_budget_bytes``: a training step passes its share, the rest being the network's
-    and the allocator's); a chunk over it is split into tiles that fit. False: one source at a time
+    and the allocator's); a chunk over it is split into tiles that fit. ``slot_waste`` (None, default: no bound):
+    members are first split into sets whose padding to the slots of their largest (ray grid, window) costs at most
+    that many times their own work (:func:`torch_bridge.packed.slot_sets`; :meth:`~torch_bridge.HybridLens.psf_map`
+    uses 1.5: on a CPU the padded work, not the launches, sets the time). The tiles are cut by
+    :func:`torch_bridge.packed.pack_units`, as the map's. False: one source at a time
     (:meth:`~torch_bridge.HybridLens._psf_rw`).
 
     A module with ``method="two-step"`` gives every source its wave step (:mod:`rwwarp.wave.wave_step`): a source
@@ -90,7 +94,7 @@ class LiveProvider:
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
                  window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5,
                  record_budget_bytes: int | None = None, replan_rule: str = "calls", replan_drift: float = 0.05,
-                 replan_drift_hard: float | None = None, replan_spread: int = 1):
+                 replan_drift_hard: float | None = None, replan_spread: int = 1, slot_waste: float | None = None):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
@@ -141,6 +145,9 @@ class LiveProvider:
         if not (np.isfinite(pack_waste) and pack_waste >= 1):
             raise ValueError(f"LiveProvider: pack_waste must be >= 1, got {pack_waste!r}")
         self.pack, self.pack_waste = bool(pack), float(pack_waste)
+        if slot_waste is not None and not (np.isfinite(slot_waste) and slot_waste >= 1):
+            raise ValueError(f"LiveProvider: slot_waste must be >= 1 or None, got {slot_waste!r}")
+        self.slot_waste = None if slot_waste is None else float(slot_waste)
         # (id of each member, ...) -> (members, PackedTile) of the last call (see _units)
         self._packed = {}
         #: packed tiles built (a tile is built again only when its members change)
@@ -458,7 +465,8 @@ class LiveProvider:
             packs[key] = hit
             return hit[1]
         budget = self.record_budget_bytes or m.memory_budget(self.memory_budget_bytes)
-        return units + pack_units(m, focal, rws, budget, waste=self.pack_waste, tile_for=tile_for)
+        return units + pack_units(m, focal, rws, budget, waste=self.pack_waste, tile_for=tile_for,
+                                  slot_waste=self.slot_waste)
 
 
 def _recentred(rw, center_mm):

@@ -262,3 +262,23 @@ def test_slot_sets_bound_the_padding():
     assert slot_sets(list(range(5)), same, 1.0) == [list(range(5))]
     with pytest.raises(ValueError, match="waste"):
         slot_sets([0], same[:1], 0.5)
+
+
+def test_live_provider_slot_sets_equal_its_per_source_path():
+    """LiveProvider(slot_waste=1.5) cuts its chunk by the same torch_bridge.packed.pack_units as psf_map: the six
+    sources above in 2 packed tiles (None: 1), the PSFs those of LiveProvider(pack=False), each source on its own
+    path, to 1e-14 of each peak (measured 6.5e-16 both ways)."""
+    from torch_bridge import design as dz
+    lens = _doe_lens()
+    pix = lens.sensor.pixel_pitch
+    fields = FIELDS
+    with torch.no_grad():
+        ref = dz.LiveProvider(_module(lens), fields, SIZE, pix, pack=False).psfs(WLS)
+        for sw, packs in ((1.5, 2), (None, 1)):
+            prov = dz.LiveProvider(_module(lens), fields, SIZE, pix, slot_waste=sw)
+            out = prov.psfs(WLS)
+            assert prov.packs_made == packs, sw
+            peak = ref.abs().amax((2, 3), keepdim=True)
+            assert float(((out - ref).abs() / peak).max()) <= 1e-14, sw
+    with pytest.raises(ValueError, match="slot_waste"):
+        dz.LiveProvider(_module(lens), fields, SIZE, pix, slot_waste=0.5)
