@@ -13,6 +13,7 @@ import torch
 
 from rwwarp.wave.methods import get as get_method
 
+from .packed import pack_groups  # noqa: F401  (its home was here)
 from .ray_spot import RaySpot
 from .wave_step import add_wave_step
 
@@ -78,7 +79,11 @@ class LiveProvider:
     A tile's recorded peak (:func:`torch_bridge.packed.packed_recorded_bytes`: every member in the slots of
     the largest) is checked against ``record_budget_bytes`` (bytes one chunk's recorded sources may take;
     default the whole ``memory_budget_bytes``: a training step passes its share, the rest being the network's
-    and the allocator's); a chunk over it is split into tiles that fit. False: one source at a time
+    and the allocator's); a chunk over it is split into tiles that fit. ``slot_waste`` (None, default: no bound):
+    members are first split into sets whose padding to the slots of their largest (ray grid, window) costs at most
+    that many times their own work (:func:`torch_bridge.packed.slot_sets`; :meth:`~torch_bridge.HybridLens.psf_map`
+    uses 1.5: on a CPU the padded work, not the launches, sets the time). The tiles are cut by
+    :func:`torch_bridge.packed.pack_units`, as the map's. False: one source at a time
     (:meth:`~torch_bridge.HybridLens._psf_rw`).
 
     A module with ``method="two-step"`` gives every source its wave step (:mod:`rwwarp.wave.wave_step`): a source
@@ -89,7 +94,7 @@ class LiveProvider:
                  tile: int | None = None, memory_budget_bytes: int | None = None, replan_every: int = 1,
                  window_tol: float = 1e-5, pack: bool = True, pack_waste: float = 1.5,
                  record_budget_bytes: int | None = None, replan_rule: str = "calls", replan_drift: float = 0.05,
-                 replan_drift_hard: float | None = None, replan_spread: int = 1):
+                 replan_drift_hard: float | None = None, replan_spread: int = 1, slot_waste: float | None = None):
         self.module, self.fields, self.size, self.pixel_mm = module, list(fields_deg), int(size), float(pixel_mm)
         self.wl_ref = float(wavelength_ref_um)
         self.tile = tile
@@ -140,6 +145,9 @@ class LiveProvider:
         if not (np.isfinite(pack_waste) and pack_waste >= 1):
             raise ValueError(f"LiveProvider: pack_waste must be >= 1, got {pack_waste!r}")
         self.pack, self.pack_waste = bool(pack), float(pack_waste)
+        if slot_waste is not None and not (np.isfinite(slot_waste) and slot_waste >= 1):
+            raise ValueError(f"LiveProvider: slot_waste must be >= 1 or None, got {slot_waste!r}")
+        self.slot_waste = None if slot_waste is None else float(slot_waste)
         # (id of each member, ...) -> (members, PackedTile) of the last call (see _units)
         self._packed = {}
         #: packed tiles built (a tile is built again only when its members change)
@@ -433,64 +441,32 @@ class LiveProvider:
     def _units(self, order, rws, fresh, packs) -> list:
         """The work of one chunk: ``[(kind, object, rows)]`` with ``kind`` "packed" (a
         :class:`~torch_bridge.packed.PackedTile` of single-source focal plans, rows in its members' order) or
-        "rw" (one RayWave: a band-limited batch of the new sources ``fresh``, or a source not packed). Tiles
-        come from the last call's when their members are the same objects (``packs``: this call's, filled)."""
-        from .packed import PackedTile, packed_recorded_bytes
+        "rw" (one RayWave: a band-limited batch of the new sources ``fresh``, or a source not packed). The packed
+        tiles are cut by :func:`torch_bridge.packed.pack_units` (as :meth:`~torch_bridge.HybridLens.psf_map`'s);
+        they come from the last call's when their members are the same objects (``packs``: this call's, filled)."""
+        from .packed import PackedTile, pack_units, packable
         m = self.module
         units, focal = [], []
         for j in order:
             r = rws[j]
             if r.nsrc > 1:
                 units.append(("rw", r, list(fresh)))
-            elif self.pack and get_method(r.plan.method).torch_path == "focal" and not np.any(getattr(r, "wave_step", 0.0)):
-                # (a packed tile has no wave step: a source with one runs alone, HybridLens._psf_rw)
+            elif self.pack and packable(r):
                 focal.append(j)
             else:
                 units.append(("rw", r, [j]))
-        # members of one tile share the wave plane's z (one lens state) and, with thin lenses (whose table
-        # columns follow the tracer's first wavelength), the wavelength
-        sets = {}
-        for j in focal:
-            r = rws[j]
-            sets.setdefault((float(r.z_plane), r.wls[0] if any(m._thin_surfaces) else None), []).append(j)
+
+        def tile_for(members):
+            key = tuple(id(r) for r in members)
+            hit = self._packed.get(key) or packs.get(key)
+            if hit is None or any(a is not b for a, b in zip(hit[0], members)):
+                hit = (members, PackedTile(members, self.pack_waste))
+                self.packs_made += 1
+            packs[key] = hit
+            return hit[1]
         budget = self.record_budget_bytes or m.memory_budget(self.memory_budget_bytes)
-        fits = lambda g: packed_recorded_bytes(m, [rws[i] for i in g]) <= budget
-        for js in sets.values():
-            for cur in pack_groups(js, fits):
-                if len(cur) == 1:
-                    units.append(("rw", rws[cur[0]], cur))
-                    continue
-                members = [rws[i] for i in cur]
-                key = tuple(id(r) for r in members)
-                hit = self._packed.get(key) or packs.get(key)
-                if hit is None or any(a is not b for a, b in zip(hit[0], members)):
-                    hit = (members, PackedTile(members, self.pack_waste))
-                    self.packs_made += 1
-                packs[key] = hit
-                units.append(("packed", hit[1], cur))
-        return units
-
-
-def pack_groups(js, fits) -> list:
-    """``js`` (sources, in order) cut into consecutive groups that each ``fits(group)`` (a packed tile's recorded
-    bytes within the budget), as few as the greedy cut gives and as even as the budget allows: the greedy cut
-    (each group as long as it fits) can leave a short last group, often a single source, which then runs on its
-    own path (its own trace and splat launches, a cuFFT plan of its own size); the same number of groups of
-    near-equal length is taken where each of them fits. A group of one is a source that fits with no other."""
-    greedy, cur = [], []
-    for j in js:
-        if cur and not fits(cur + [j]):
-            greedy.append(cur)
-            cur = []
-        cur.append(j)
-    if cur:
-        greedy.append(cur)
-    n, t = len(js), len(greedy)
-    if t < 2 or max(map(len, greedy)) - min(map(len, greedy)) <= 1:
-        return greedy
-    sizes = [n // t + (i < n % t) for i in range(t)]
-    even = [list(js[sum(sizes[:i]):sum(sizes[:i + 1])]) for i in range(t)]
-    return even if all(len(g) == 1 or fits(g) for g in even) else greedy
+        return units + pack_units(m, focal, rws, budget, waste=self.pack_waste, tile_for=tile_for,
+                                  slot_waste=self.slot_waste)
 
 
 def _recentred(rw, center_mm):

@@ -406,15 +406,17 @@ class HybridLens(LensTables, nn.Module):
                        method: str | None = None, requires_grad: bool = True) -> list:
         """One :class:`rwwarp.psf.RayWave` per source (``fields`` x ``wavelengths_um`` paired element-wise; deg,
         um), each with the plan :meth:`raywave` gives that source alone (``centers_mm`` (S, 2): its patch
-        centre, mm), from one pilot trace of all of them (:func:`rwwarp.wave.pilot.trace_pilot`: a source's pilot rays,
-        its pupil at its own wavelength, do not depend on the others): one set of trace launches, no plan of them
-        all. Without ``replan`` (kept plans) each is :meth:`raywave` of that source."""
+        centre, mm; None: each patch where its chief ray's main order lands, as :meth:`raywave` without
+        ``center_mm`` places it), from one pilot trace of all of them (:func:`rwwarp.wave.pilot.trace_pilot`: a
+        source's pilot rays, its pupil at its own wavelength, do not depend on the others): one set of trace
+        launches, no plan of them all. Without ``replan`` (kept plans) each is :meth:`raywave` of that source."""
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
-        centers = np.asarray(centers_mm, dtype=np.float64).reshape(len(fields), 2)
+        centers = None if centers_mm is None else np.asarray(centers_mm, dtype=np.float64).reshape(len(fields), 2)
         if len(fields) < 2 or not self.replan:
             return [self.raywave([f], [w], size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm,
-                                 center_mm=centers[k:k + 1], method=method, requires_grad=requires_grad)
+                                 center_mm=None if centers is None else centers[k:k + 1], method=method,
+                                 requires_grad=requires_grad)
                     for k, (f, w) in enumerate(zip(fields, wls))]
         from rwwarp.psf import RayWave
         self._once("finite", self.check_finite)
@@ -426,7 +428,7 @@ class HybridLens(LensTables, nn.Module):
         # every source planned on its own from one pilot trace of all of them (each entrance pupil at its own
         # wavelength), the per-source arrays computed together: each plan is what plan_batch gives it alone
         plans = plan_sources(lens, fields, wls, int(size), pixel, plan=self.plan_policy, center_mm=centers,
-                             per_source_centers=True, method=method or self.method, **opts)
+                             per_source_centers=centers is not None, method=method or self.method, **opts)
         # one tracer a wavelength for the parameter tables (as each RayWave's own); a RayWave's is made when it
         # traces alone
         layers, out = {}, []
@@ -641,44 +643,57 @@ class HybridLens(LensTables, nn.Module):
 
     def psf_map(self, fields, wavelengths_um, size: int = 64, *, object_distance_mm=None, pixel_mm=None,
                 tile: int | None = None, memory_budget_bytes: int | None = None, checkpoint: bool | None = None,
-                progress: bool = False, return_centers: bool = False, spatial_tile: int | None = None):
+                progress: bool = False, return_centers: bool = False, spatial_tile: int | None = None,
+                slot_waste: float | None = 1.5):
         """Differentiable PSF map (n_fields, n_wavelengths, size, size), float64.
 
         Every (field, wavelength) source is computed on its own plan, as :func:`rwwarp.psf` plans it alone
-        (so a PSF does not depend on the map it is in, nor on the tiling). Sources are
-        computed in tiles of ``tile`` (field, wavelength) pairs; ``memory_budget_bytes`` (bytes)
-        caps the transfer-function cache at a quarter of the budget and chooses the tile from what
+        (so a PSF does not depend on the map it is in, nor on the tiling); all the plans are made from one pilot
+        trace of all the sources (:meth:`raywaves_alone`, each patch where its chief ray's main order lands).
+        Sources are computed in tiles of ``tile`` (field, wavelength) pairs; in a tile the single-source focal
+        plans are computed together in packed tiles (:class:`torch_bridge.packed.PackedTile`: one trace + splat
+        launch set, the focal propagations as batched matrix products; per source the PSF and gradients of the
+        source alone up to the order of floating-point sums), cut by :func:`torch_bridge.packed.pack_units` (as
+        :class:`torch_bridge.live.LiveProvider`'s) so that each packed tile's recorded peak fits the budget
+        below and that the padding of its members to the slots of its largest (ray grid, window) costs at most
+        ``slot_waste`` times their own work (:func:`torch_bridge.packed.slot_sets`; None: no bound, one packed tile
+        for all that fit the budget: fewest launches); the other sources (a band-limited method, a wave step) run
+        one at a time. ``memory_budget_bytes``
+        (bytes) caps the transfer-function cache at a quarter of the budget and chooses the tile from what
         is left after the map's fixed needs (:meth:`bytes_fixed`) and an estimate of the bytes one
         source needs (:meth:`bytes_per_source`: rays and their gradients for every traced surface,
-        the DOE-plane grid, the padded FFT work space). With ``checkpoint`` (default: on when the map has more than one tile) each tile runs
+        the DOE-plane grid, the padded FFT work space); what is left also bounds a packed tile's estimate
+        (:func:`torch_bridge.packed.packed_recorded_bytes`; without a budget the device default,
+        :meth:`memory_budget`). With ``checkpoint`` (default: on when the map has more than one tile) each tile runs
         without a tape on the way forward and is recomputed under a fresh tape in the backward pass,
         so peak memory is one tile's, independent of the map size.
         ``return_centers``: also the centre-pixel sensor positions (n_fields, n_wavelengths, 2), mm.
         ``spatial_tile``: the propagation of each tile evaluates the sensor patches in spatial tiles of
         that many pixels a side (:func:`torch_bridge.operator_function.operator_propagate`; same result, each recomputed
-        in backward); with a budget and no ``spatial_tile``, chosen by :meth:`spatial_tile_for` when a
-        large patch's output side would not fit.
+        in backward; the focal propagation has no spatial tiles); with a budget and no ``spatial_tile``, chosen by
+        :meth:`spatial_tile_for` when a large patch's output side would not fit.
         """
         fields = field_pairs(fields)
         wls = [float(w) for w in wavelengths_um]
+        if slot_waste is not None and not (np.isfinite(slot_waste) and slot_waste >= 1):
+            raise ValueError(f"HybridLens.psf_map: slot_waste must be >= 1 or None, got {slot_waste!r}")
         if self._multi_order:
             return self._psf_map_orders(fields, wls, size, object_distance_mm, pixel_mm, tile, memory_budget_bytes,
                                         checkpoint, progress, return_centers, spatial_tile)
         pairs = [(i, j) for i in range(len(fields)) for j in range(len(wls))]
-        src_f = [fields[i] for i, _ in pairs]
-        src_w = [wls[j] for _, j in pairs]
-        # each source planned alone (its own pilot, window, pitch, rays and method)
-        rws = [self.raywave([f], [w], size, object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
-               for f, w in zip(src_f, src_w)]
+        # each source planned alone (its own pilot rows, window, pitch, rays and method), all from one pilot trace
+        rws = self.raywaves_alone([fields[i] for i, _ in pairs], [wls[j] for _, j in pairs], size, centers_mm=None,
+                                  object_distance_mm=object_distance_mm, pixel_mm=pixel_mm)
         full = max(rws, key=self.bytes_per_source)    # the largest source sizes the tiles and the budget check
-        if tile is None:
-            if memory_budget_bytes is None:
-                tile = len(pairs)
-            else:
-                # the budget holds the tiles, the transfer-function cache (capped at a quarter of it) and
-                # what does not depend on the tile (the map's pilot trace, the output)
-                need = self.bytes_per_source(full)
-                avail = memory_budget_bytes - memory_budget_bytes // 4 - self.bytes_fixed(full)
+        budget = self.memory_budget(memory_budget_bytes)
+        pack_budget = budget   # bytes a packed tile's recorded peak may take
+        if memory_budget_bytes is not None:
+            # the budget holds the tiles, the transfer-function cache (capped at a quarter of it) and
+            # what does not depend on the tile (the map's pilot trace, the output)
+            need = self.bytes_per_source(full)
+            avail = memory_budget_bytes - memory_budget_bytes // 4 - self.bytes_fixed(full)
+            pack_budget = max(avail, 0)
+            if tile is None:
                 tile = max(1, int(avail // max(need, 1)))
                 if need > avail:
                     warnings.warn(f"memory_budget_bytes = {memory_budget_bytes / 2**20:.0f} MiB leaves "
@@ -687,28 +702,59 @@ class HybridLens(LensTables, nn.Module):
                                   f"output), below the estimated need of one source ({need / 2**20:.0f} MiB): running "
                                   "one source per tile (fewer rays_per_sample or a smaller plan would fit)",
                                   ResourceWarning, stacklevel=2)
-        tile = max(1, min(int(tile), len(pairs)))
+        tile = len(pairs) if tile is None else max(1, min(int(tile), len(pairs)))
         if spatial_tile is None and memory_budget_bytes is not None:
             spatial_tile = self.spatial_tile_for(full, memory_budget_bytes, tile)
         # one source of the map's plan must fit the budget (checkpointed tiles keep one tile's graph at a time)
-        self.check_budget(full, self.memory_budget(memory_budget_bytes), spatial_tile)
+        self.check_budget(full, budget, spatial_tile)
         chunks = [list(range(k, min(k + tile, len(pairs)))) for k in range(0, len(pairs), tile)]
         values = self.values()
         names = list(values)
         centers = np.concatenate([rw.centers for rw in rws], 0)
         tables = {}   # host copies of the parameter table for these values (HybridLens.host_table)
 
-        def run(ch, *ts, record=True):
+        def work(ch):
+            # a chunk's work, cut when the tile loop reaches it: its packed tiles and its sources alone, and the
+            # order of their rows back to the sources' (None: in order)
+            units = self._map_units(ch, rws, pack_budget, spatial_tile, slot_waste)
+            flat = [j for _, _, row in units for j in row]
+            return units, None if flat == ch else torch.as_tensor(np.argsort(flat))
+
+        def run(chunk, *ts, record=True):
+            units, perm = chunk
             vals = dict(zip(names, ts))
-            return torch.cat([self._psf_rw(rws[k], vals, record=record, spatial_tile=spatial_tile, tables=tables)
-                              for k in ch], 0)
+            out = torch.cat([self._psf_packed(u, vals, record=record, tables=tables) if kind == "packed" else
+                             self._psf_rw(u, vals, record=record, spatial_tile=spatial_tile, tables=tables)
+                             for kind, u, _ in units], 0)
+            return out if perm is None else out[perm.to(out.device, non_blocking=True)]
         with self._cache_limit(memory_budget_bytes):   # the tiles, each a checkpoint (torch_bridge.tiles)
-            out = run_tiles(chunks, run, [values[q] for q in names], checkpoint=checkpoint,
-                            progress="PSF tiles" if progress else None)
+            out = run_tiles((work(ch) for ch in chunks), run, [values[q] for q in names], checkpoint=checkpoint,
+                            progress="PSF tiles" if progress else None, total=len(chunks))
         out = out.reshape(len(fields), len(wls), size, size)
         if return_centers:
             return out, centers.reshape(len(fields), len(wls), 2)
         return out
+
+    def _map_units(self, chunk, rws, budget_bytes, spatial_tile=None, slot_waste=None) -> list:
+        """:meth:`psf_map`'s work for the sources ``chunk`` (indices into ``rws``, in order): ``[(kind, object,
+        rows)]``, the sources that cannot be packed (:func:`torch_bridge.packed.packable`) alone (``"rw"``), then the
+        others cut into packed tiles whose recorded peak fits ``budget_bytes`` (bytes) by
+        :func:`torch_bridge.packed.pack_units` (``slot_waste``: its bound on the slots' padding). Without ``replan``
+        (kept plans) a tile is kept with its members
+        (in the plan cache, :meth:`clear_plans`) and built again only when one of them changes."""
+        from .packed import PackedTile, pack_units, packable
+
+        def tile_for(members):
+            if self.replan:
+                return PackedTile(members)
+            key = ("packed", tuple(id(r) for r in members))
+            hit = self._plans.get(key)
+            if hit is None or any(a is not b for a, b in zip(hit[0], members)):
+                hit = self._plans[key] = (list(members), PackedTile(members))
+            return hit[1]
+        alone = [("rw", rws[j], [j]) for j in chunk if not packable(rws[j])]
+        return alone + pack_units(self, [j for j in chunk if packable(rws[j])], rws, budget_bytes,
+                                  spatial_tile=spatial_tile, tile_for=tile_for, slot_waste=slot_waste)
 
     def bytes_per_source(self, rw, record: bool = True) -> int:
         """:func:`torch_bridge.budget.bytes_per_source` (bytes)."""

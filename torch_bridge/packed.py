@@ -26,7 +26,8 @@ from rwwarp.trace import COLUMNS as COL
 from .functions import _on_device, _streams, bridge_state, paper_amplitude, upload
 from .functions import power_sums, trace_splat
 
-__all__ = ["PackedFocalPropagate", "PackedTile", "packed_doe_factor", "packed_psfs", "packed_recorded_bytes"]
+__all__ = ["PackedFocalPropagate", "PackedTile", "pack_groups", "pack_units", "packable", "packed_doe_factor",
+           "packed_psfs", "packed_recorded_bytes", "slot_sets"]
 
 
 class PackedTile:
@@ -74,6 +75,104 @@ class PackedTile:
     def dropped(self):
         """Rays per member that fell outside its window in the last trace (Warp int32 array (S,))."""
         return self.raywave.dropped
+
+
+def packable(rw) -> bool:
+    """RayWave ``rw`` may be a member of a :class:`PackedTile`: one source, a method whose torch path is the focal
+    one and that :class:`rwwarp.wave.packed.PackedRayWave` batches, and no wave step (a packed tile has none: a
+    source with one runs alone, :meth:`torch_bridge.HybridLens._psf_rw`)."""
+    from rwwarp.wave.methods import get as get_method
+    method = get_method(rw.plan.method)
+    return (rw.nsrc == 1 and method.torch_path == "focal" and method.packable
+            and not np.any(getattr(rw, "wave_step", 0.0)))
+
+
+def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatial_tile=None, tile_for=None,
+               slot_waste: float | None = None) -> list:
+    """The one place that cuts sources into packed tiles (:meth:`torch_bridge.HybridLens.psf_map` and
+    :class:`torch_bridge.live.LiveProvider`): the sources ``js`` (indices into ``rws``, each a :func:`packable`
+    single-source focal RayWave of ``module``, in order) as ``[(kind, object, rows)]``: ``("packed", PackedTile,
+    rows)`` for the members of one tile, ``("rw", RayWave, [j])`` for a source that fits with no other. Members
+    of one tile share the wave plane's z (one lens state) and, with thin lenses (whose table columns follow the
+    tracer's first wavelength), the wavelength; each set is cut by :func:`pack_groups` so that a tile's recorded
+    peak (:func:`packed_recorded_bytes` at ``spatial_tile``) stays within ``budget_bytes`` (bytes). ``waste``: the
+    padding allowed when stacking members into one focal operator (:class:`PackedTile`). ``tile_for(members)``:
+    the tile of those members (the caller's cache of tiles), default a new :class:`PackedTile`. ``slot_waste``
+    (None: no bound): the members of a tile are traced and splatted in the slots of the largest (its ray grid, its
+    window), so each set is first split by :func:`slot_sets` into sets whose padded work is at most ``slot_waste``
+    times their own (where the work, not the launches, sets the time: a CPU)."""
+    sets = {}
+    for j in js:
+        r = rws[j]
+        if not packable(r):
+            raise ValueError(f"pack_units: source {j} is not packable (method {r.plan.method!r}, {r.nsrc} source(s), "
+                             "wave step or not): run it on its own")
+        sets.setdefault((float(r.z_plane), r.wls[0] if any(module._thin_surfaces) else None), []).append(j)
+    groups = list(sets.values())
+    if slot_waste is not None:
+        groups = [g for s in groups for g in slot_sets(s, [rws[j] for j in s], slot_waste)]
+    fits = lambda g: packed_recorded_bytes(module, [rws[i] for i in g], spatial_tile) <= budget_bytes
+    units = []
+    for group in groups:
+        for cur in pack_groups(group, fits):
+            if len(cur) == 1:
+                units.append(("rw", rws[cur[0]], cur))
+                continue
+            members = [rws[i] for i in cur]
+            units.append(("packed", PackedTile(members, waste) if tile_for is None else tile_for(members), cur))
+    return units
+
+
+def _slot_work(ray_grid: int, n_grid: int) -> int:
+    """Work of one packed slot, in the bytes its traced rays and window take (:func:`rwwarp.wave.packed.packed_bytes`'s
+    per-source terms: 232 bytes a ray, 64 a window sample)."""
+    return int(ray_grid) ** 2 * 232 + int(n_grid) ** 2 * 64
+
+
+def slot_sets(js, members, waste: float) -> list:
+    """``js`` (sources, in order; ``members`` their single-source RayWaves) split into sets whose packed trace and
+    splat, every member in the slots of the set's largest ray grid and window (:func:`_slot_work`), is at most
+    ``waste`` (>= 1) times the members' own: the members taken largest first, each joining the first set it keeps
+    within the bound (else a new set). Each set in source order; the sets in the order of their first source."""
+    if not (np.isfinite(waste) and waste >= 1):
+        raise ValueError(f"slot_sets: waste must be >= 1, got {waste!r}")
+    size = {j: (int(m.plan.ray_grid), int(m.plan.n_grid)) for j, m in zip(js, members)}
+    sets = []   # [members, largest ray grid, largest window, own work]
+    for j in sorted(js, key=lambda j: (-size[j][0], -size[j][1])):
+        rg, ng = size[j]
+        for s in sets:
+            r2, n2 = max(s[1], rg), max(s[2], ng)
+            if (len(s[0]) + 1) * _slot_work(r2, n2) <= waste * (s[3] + _slot_work(rg, ng)):
+                s[0].append(j)
+                s[1], s[2], s[3] = r2, n2, s[3] + _slot_work(rg, ng)
+                break
+        else:
+            sets.append([[j], rg, ng, _slot_work(rg, ng)])
+    pos = {j: k for k, j in enumerate(js)}
+    out = [sorted(s[0], key=pos.get) for s in sets]
+    return sorted(out, key=lambda g: pos[g[0]])
+
+
+def pack_groups(js, fits) -> list:
+    """``js`` (sources, in order) cut into consecutive groups that each ``fits(group)`` (a packed tile's recorded
+    bytes within the budget), as few as the greedy cut gives and as even as the budget allows: the greedy cut
+    (each group as long as it fits) can leave a short last group, often a single source, which then runs on its
+    own path (its own trace and splat launches, a cuFFT plan of its own size); the same number of groups of
+    near-equal length is taken where each of them fits. A group of one is a source that fits with no other."""
+    greedy, cur = [], []
+    for j in js:
+        if cur and not fits(cur + [j]):
+            greedy.append(cur)
+            cur = []
+        cur.append(j)
+    if cur:
+        greedy.append(cur)
+    n, t = len(js), len(greedy)
+    if t < 2 or max(map(len, greedy)) - min(map(len, greedy)) <= 1:
+        return greedy
+    sizes = [n // t + (i < n % t) for i in range(t)]
+    even = [list(js[sum(sizes[:i]):sum(sizes[:i + 1])]) for i in range(t)]
+    return even if all(len(g) == 1 or fits(g) for g in even) else greedy
 
 
 def packed_recorded_bytes(module, members, spatial_tile=None) -> int:
