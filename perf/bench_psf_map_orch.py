@@ -2,7 +2,7 @@
 sources, size 16 px): host seconds and Warp launches of one call (plans made in the call: replan=True).
 
 Run under the PYTHONPATH of the code to time (e.g. the tree before and after a change, alternately: the machine
-is shared): ``python perf/bench_psf_map_orch.py [repeats [size [method]]]`` (environment ``BENCH_SLOT_WASTE``: psf_map's
+is shared): ``python perf/bench_psf_map_orch.py [repeats [size [method [device]]]]`` (environment ``BENCH_SLOT_WASTE``: psf_map's
 ``slot_waste``, "none" for None). Prints one line per repeat: seconds, launches.
 Units: s."""
 from __future__ import annotations
@@ -19,13 +19,13 @@ import rwwarp as rw
 import torch_bridge as tb
 
 
-def main(repeats: int = 3, size: int = 16, method: str = "focal"):
+def main(repeats: int = 3, size: int = 16, method: str = "focal", device: str = "cpu"):
     lens = rw.load_lens("a489_doe")
     m = tb.HybridLens(lens, learn={"curvature": "all", "doe": "all"}, method=method, rays_per_sample=0.5,
-                      focal_patch_tol=1e-3)
+                      focal_patch_tol=1e-3).to(device)
     fields = [(x, y) for y in (0.0, 2.5, 5.0) for x in (0.0, 2.5, 5.0)]
     wls = [0.5, 0.55, 0.6]
-    g = torch.as_tensor(np.random.default_rng(0).standard_normal((len(fields), len(wls), size, size)))
+    g = torch.as_tensor(np.random.default_rng(0).standard_normal((len(fields), len(wls), size, size)), device=device)
     count, real = [0], wp.launch
 
     def counting(*a, **k):
@@ -42,10 +42,12 @@ def main(repeats: int = 3, size: int = 16, method: str = "focal"):
         t0 = time.perf_counter()
         out = m.psf_map(fields, wls, size, **kw)
         (out * g).sum().backward()
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
         dt = time.perf_counter() - t0
         print(f"{dt:.3f} s  {count[0]} launches  sum {float(out.detach().sum()):.15g}  "
               f"grad {float(m.curvature.grad.abs().sum()):.15g}", flush=True)
 
 
 if __name__ == "__main__":
-    main(*(int(a) for a in sys.argv[1:2]), *(sys.argv[2:3] and [int(sys.argv[2])]), *sys.argv[3:4])
+    main(*(int(a) for a in sys.argv[1:2]), *(sys.argv[2:3] and [int(sys.argv[2])]), *sys.argv[3:5])
