@@ -724,12 +724,8 @@ _MADE: list = []   # every backend made, in order (release_all)
 
 
 def release_all() -> None:
-    """Wait for every backend made in this process and release its caches (workspaces, FFT plans, transfer
-    functions, the pool's unused blocks), then collect garbage: device memory goes back while every library that
-    owns some of it (CuPy, torch's allocator, Warp) is still alive. Registered with :mod:`atexit`: on one H200 a
-    design command whose backend caches still held CuPy arrays and plans at exit ended with SIGSEGV in the
-    interpreter's teardown, after its work (``perf/tools/exit_probe.py``); releasing them first ends it with 0.
-    Safe to call at any time (the caches refill on use)."""
+    """Wait for every backend made, release its caches and collect garbage while CuPy, torch and Warp are alive. Run
+    at exit (left to the teardown they ended a GPU design command with SIGSEGV). Safe at any time (caches refill)."""
     for b in list(_MADE):
         try:
             b.synchronize()
@@ -744,9 +740,8 @@ atexit.register(release_all)
 
 @functools.cache
 def _make_backend(device: str) -> Backend:
-    b = _new_backend(device)
-    _MADE.append(b)
-    return b
+    _MADE.append(_new_backend(device))
+    return _MADE[-1]
 
 
 def _new_backend(device: str) -> Backend:

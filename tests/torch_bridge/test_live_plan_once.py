@@ -15,15 +15,9 @@ import rwwarp as rw
 import rwwarp.wave.pilot as P
 import torch_bridge as tb
 from torch_bridge import design as dz
+from _lenses import wrapping_doe_lens
 
 
-def _doe_lens():
-    """The A489 + DOE with a DOE that wraps in the beam (-30 rad at its 1.5 mm norm radius): sources at 0, 3 and
-    5 deg get different DOE orders and windows (test_packed_live's lens)."""
-    lens = rw.load_lens("a489_doe")
-    s = lens.surfaces[lens.doe_index]
-    s.profile = dict(s.profile, coefficients=[-30.0])
-    return lens
 
 
 def _module(lens):
@@ -113,7 +107,7 @@ def test_plans_made_together_give_the_psfs_and_gradients_of_each_source_planned_
     provider whose raywaves_alone plans each source alone: the first call (new sources), then a call with 3 plans
     given up in 3 chunks (planned again together) after a curvature step. PSFs and gradients equal bit for bit
     (measured: equal), the counts alike."""
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     fields, wls, pix = [0.0, 3.0, 5.0], [0.5, 0.6], lens.sensor.pixel_pitch
     g = torch.as_tensor(np.random.default_rng(5).standard_normal((3, 2, 12, 12)))
     runs = []
@@ -148,7 +142,7 @@ def test_plans_made_together_give_the_psfs_and_gradients_of_each_source_planned_
 def test_a_sources_pilot_rows_in_a_batch_are_its_own_trace():
     """rwwarp.wave.pilot.trace_pilot(own_pupils=True) of the 6 sources above in one batch: each source's rows (Pilot.subset)
     are the bits of a trace of that source alone (rays are independent)."""
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     fields = [f for f in (0.0, 3.0, 5.0) for _ in (0.5, 0.6)]
     wls = [w for _ in range(3) for w in (0.5, 0.6)]
     batch = P.trace_pilot(lens, fields, wls, own_pupils=True)

@@ -17,17 +17,9 @@ import torch_bridge as tb
 from rwwarp.wave.focal_packed import PackedFocalPropagator, focal_groups
 from rwwarp.wave.packed import source_plans
 from torch_bridge import design as dz
+from _lenses import wrapping_doe_lens
 
 
-def _doe_lens(levels, coefficients=(-30.0,)):
-    """The A489 + DOE with a DOE that wraps in the beam (-30 rad at the 1.5 mm norm radius, r^2): on axis the
-    relief stays in one zone at 0.5 and 0.6 um (one non-integer order: c exp(1j m phi0)), at 5 deg it wraps
-    (integer orders, different sets per wavelength, the chief ray's zone exact: the batched recursion)."""
-    lens = rw.load_lens("a489_doe")
-    s = lens.surfaces[lens.doe_index]
-    s.profile = dict(s.profile, coefficients=list(coefficients))
-    s.levels = levels
-    return lens
 
 
 def _run(lens, pack, learn, fields, wls, size=12, seed=3, device="cpu", amplitude="energy", nyquist_safety=2.0):
@@ -52,7 +44,7 @@ def _reference(levels, coefficients=(-30.0,)):
     deterministic run, read only."""
     key = (levels, tuple(coefficients))
     if key not in _REFERENCE:
-        a, ga, pa = _run(_doe_lens(levels, coefficients), False, ALL, [0.0, 5.0], [0.5, 0.6])
+        a, ga, pa = _run(wrapping_doe_lens(levels, coefficients), False, ALL, [0.0, 5.0], [0.5, 0.6])
         assert pa.packs_made == 0
         _REFERENCE[key] = (a, ga)
     return _REFERENCE[key]
@@ -69,7 +61,7 @@ def test_packed_psfs_and_gradients_equal_the_per_source_path(levels, coefficient
     whose z gradient holds the reference-sphere term: a sum over the windows of terms up to 1.3e4 times the
     field's (the factor k n dz / r) that cancels to order 1, so the order of its sums shows, 7.2e-13 of the
     largest thickness gradient (the sensor distance alone: 1.1e-15); tolerance 5e-12 there."""
-    lens = _doe_lens(levels, coefficients)
+    lens = wrapping_doe_lens(levels, coefficients)
     learn = ALL
     a, ga = _reference(levels, coefficients)
     b, gb, pb = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6])
@@ -88,7 +80,7 @@ def test_packed_paper_amplitude_equals_the_per_source_path():
     """The paper's amplitude convention (one power scale per member at its own pitch, in torch): A489 + DOE
     (8 levels), 4 sources, curvatures and DOE learning; measured 5.3e-16 of the peak (PSFs), 6.2e-15 and 0
     (gradients); tolerance 1e-12."""
-    lens = _doe_lens(8)
+    lens = wrapping_doe_lens(8)
     learn = {"curvature": "all", "doe": "all"}
     a, ga, _ = _run(lens, False, learn, [0.0, 5.0], [0.5, 0.6], amplitude="paper")
     b, gb, pb = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6], amplitude="paper")
@@ -182,7 +174,7 @@ def test_a_packed_step_makes_a_bounded_number_of_launches(monkeypatch):
     areas, splat, finalize, power sums, and the adjoints of the recorded ones). Bound: 8 launches per surface
     (7 measured: trace, copies and their adjoints, the centres' trace) plus 12 for the stages (11 measured),
     independent of the number of sources."""
-    lens = _doe_lens(None)
+    lens = wrapping_doe_lens(None)
     count = _count_launches(monkeypatch)
     got, torch_ops = {}, {}
     for pack in (False, True):
@@ -237,7 +229,7 @@ def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():
     (a training step's share of its budget) splits it alike. PSFs and gradients as one at a time: measured as the first test (<= 5e-16 of the peak,
     <= 4.4e-13 of the largest thickness gradient); tolerances as there."""
     from torch_bridge.packed import packed_recorded_bytes
-    lens = _doe_lens(8)
+    lens = wrapping_doe_lens(8)
     learn = ALL
     fields, wls = [0.0, 5.0], [0.5, 0.6]
     a, ga = _reference(8)                     # the one-at-a-time run of these sources (shared)
@@ -266,7 +258,7 @@ def test_packed_on_cuda_equals_the_per_source_path_and_the_cpu():
     allocator): packed against one at a time on the GPU (tolerances as on the CPU), and against the CPU's
     packed PSFs (1e-10 of the peak: the splat's atomic float sums on the GPU add in another order; not run
     here: no GPU was available when this was written)."""
-    lens = _doe_lens(None)
+    lens = wrapping_doe_lens(None)
     learn = {"curvature": "all", "doe": "all", "thickness": "all"}
     a, ga, _ = _run(lens, False, learn, [0.0, 5.0], [0.5, 0.6], device="cuda")
     b, gb, pb = _run(lens, True, learn, [0.0, 5.0], [0.5, 0.6], device="cuda")
@@ -306,7 +298,7 @@ def test_sources_planned_together_equal_each_planned_alone():
     against HybridLens.raywave of each source alone: the A489 + DOE at 0 / 5 deg x 0.5 / 0.6 um, each with its
     own patch centre. A source's pilot rays do not depend on the others, so the plans are equal and the PSFs
     the same numbers (measured 0.0; tolerance 1e-14 of the peak for the splat's summation order)."""
-    lens = _doe_lens(None)
+    lens = wrapping_doe_lens(None)
     m = tb.HybridLens(lens, learn={"curvature": "all"}, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
     fields, wls = [0.0, 0.0, 5.0, 5.0], [0.5, 0.6, 0.5, 0.6]
     cen = dz.common_centres(m, [0.0, 5.0], 0.55)
@@ -343,7 +335,7 @@ def test_a_chunk_over_the_budget_splits_into_even_packed_tiles():
     """The A489 + DOE, 4 focal sources under a record budget that holds 3 packed members but not 4: two packed
     tiles of 2 (not 3 + 1, whose single source would run on its own path)."""
     from torch_bridge.packed import packed_recorded_bytes
-    lens = _doe_lens(8)
+    lens = wrapping_doe_lens(8)
     m = tb.HybridLens(lens, learn={"doe": "all"}, method="focal", rays_per_sample=0.5, focal_patch_tol=1e-3)
     members = [m.raywave([f], [w], 12, pixel_mm=lens.sensor.pixel_pitch, method="focal")
                for f in (0.0, 5.0) for w in (0.5, 0.6)]

@@ -16,22 +16,15 @@ import numpy as np
 import pytest
 import torch
 
-import rwwarp as rw
 import rwwarp.wave.pilot as P
 import torch_bridge as tb
+from _lenses import wrapping_doe_lens
 
 FIELDS = [(0.0, 0.0), (0.0, 5.0), (3.0, 2.0)]
 WLS = [0.5, 0.6]
 SIZE = 12
 
 
-def _doe_lens():
-    """The A489 + DOE with a DOE that wraps in the beam (-30 rad at its 1.5 mm norm radius): sources at 0 and
-    5 deg get different DOE orders and windows (test_packed_live's lens)."""
-    lens = rw.load_lens("a489_doe")
-    s = lens.surfaces[lens.doe_index]
-    s.profile = dict(s.profile, coefficients=[-30.0])
-    return lens
 
 
 def _module(lens, **kw):
@@ -75,7 +68,7 @@ def test_map_plans_are_each_sources_own_plan():
     """The plans psf_map uses (raywaves_alone without centres: one pilot trace) against HybridLens.raywave of each
     source alone (its own pilot trace, its own patch centre): every field of every plan the same bits, the
     pilot's rows too (a float may be a numpy float64 on one side: the values are compared)."""
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     m = _module(lens)
     f = [x for x in FIELDS for _ in WLS]
     w = [y for _ in FIELDS for y in WLS]
@@ -108,7 +101,7 @@ def test_map_equals_each_source_alone(tile, budget, slot_waste, packs, monkeypat
     of terms 1e4 times its value that cancels, test_packed_live) of the largest; tolerances about 10x those: 1e-14
     (PSFs), 2e-13 (curvature, DOE), 2e-12 (thickness). The
     centres are those of each source alone."""
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     weights = torch.as_tensor(np.random.default_rng(4).standard_normal((len(FIELDS), len(WLS), SIZE, SIZE)))
     import torch_bridge.packed as tp
     made = []
@@ -173,7 +166,7 @@ def test_one_pilot_trace_a_map_and_launches_independent_of_the_sources(monkeypat
     (HybridLens.raywave's cache), once: one pilot trace a source on the first call, none on the next, whose
     launches are again those of one packed tile whatever the sources (measured 28 for 4 and 6 sources; before:
     128 and 184)."""
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     count = _Counts(monkeypatch)
     m = _module(lens)
     launches = {}
@@ -216,7 +209,7 @@ def test_sources_not_packable_run_alone_in_the_maps_order(monkeypatch):
     import torch_bridge.packed as tp
     real = tp.packable
     monkeypatch.setattr(tp, "packable", lambda r: real(r) and r.wls[0] != 0.5)
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     made = []
 
     class Counted(tp.PackedTile):
@@ -269,7 +262,7 @@ def test_live_provider_slot_sets_equal_its_per_source_path():
     sources above in 2 packed tiles (None: 1), the PSFs those of LiveProvider(pack=False), each source on its own
     path, to 1e-14 of each peak (measured 6.5e-16 both ways)."""
     from torch_bridge import design as dz
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     pix = lens.sensor.pixel_pitch
     fields = FIELDS
     with torch.no_grad():
@@ -293,7 +286,7 @@ def test_map_options_equal_each_source_alone(opts):
     PSFs to 1e-14 of each peak (measured 7.9e-16, 6.7e-16, 5.8e-16). "two-step": every source planned ASM with
     a wave step (2.0-2.06 mm), none packable: each runs alone on the plan it has alone (measured equal, 0)."""
     import warnings
-    lens = _doe_lens()
+    lens = wrapping_doe_lens()
     m = _module(lens, **opts)
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")     # a two-step plan's WaveStepWarning, alike in both
