@@ -596,23 +596,28 @@ class FocalPropagator:
                              self.xp)
 
 
-def sensor_taper(p, lo, hi):
+def sensor_taper(p, lo, hi, n_own=None):
     """A C-infinity window over sensor-grid points ``p`` (S, ns) mm: 1 on ``[lo, hi]`` ((S,) mm each), falling
     to 0 at the grid's ends as ``1 - s(t)``, ``s(t) = e(t) / (e(t) + e(1 - t))``, ``e(t) = exp(-1 / t)``
-    (``t``: 0 at ``lo`` or ``hi``, 1 at the grid's end). Returns (S, ns) floats in [0, 1]."""
+    (``t``: 0 at ``lo`` or ``hi``, 1 at the grid's end). ``n_own`` (S,) ints: row ``k``'s grid is its first
+    ``n_own[k]`` points (its end the last of them; 1 past them), as packed members' grids of several lengths are
+    (None: every row's whole). Returns (S, ns) floats in [0, 1]."""
     p = np.asarray(p, dtype=np.float64)
     lo = np.asarray(lo, dtype=np.float64)[:, None]
     hi = np.asarray(hi, dtype=np.float64)[:, None]
-    first, last = p[:, :1], p[:, -1:]
+    S, ns = p.shape
+    n = np.full(S, ns) if n_own is None else np.asarray(n_own, dtype=np.int64)
+    own = np.arange(ns)[None, :] < n[:, None]
+    first, last = p[:, :1], p[np.arange(S), n - 1][:, None]
     t = np.zeros_like(p)
-    below, above = p < lo, p > hi
+    below, above = own & (p < lo), own & (p > hi)
     np.divide(lo - p, np.broadcast_to(lo - first, p.shape), out=t, where=below)
     np.divide(p - hi, np.broadcast_to(last - hi, p.shape), out=t, where=above)
     t = np.clip(t, 0.0, 1.0)
 
     def e(u):
         return np.where(u > 0, np.exp(-1.0 / np.where(u > 0, u, 1.0)), 0.0)
-    return 1.0 - e(t) / (e(t) + e(1.0 - t))
+    return np.where(own, 1.0 - e(t) / (e(t) + e(1.0 - t)), 1.0)
 
 
 _PIXEL_WEIGHTS: dict = {}   # (gauss_nodes, pixel_mm) -> weights, computed once (a few dozen entries at most)

@@ -20,7 +20,7 @@ import numpy as np
 from .sensor_grid import gauss_nodes_xy
 
 from .focal import (
-    _cis, distance_factors, focal_adjoint, focal_distance_derivative, spectrum_to_nodes,
+    _cis, distance_factors, focal_adjoint, focal_distance_derivative, sensor_taper, spectrum_to_nodes,
     transfer_curvature,
 )
 
@@ -66,27 +66,6 @@ def focal_groups(members, waste: float = 1.5) -> list:
     if cur:
         groups.append(sorted(cur))
     return sorted(groups, key=lambda g: g[0])
-
-
-def _sensor_tapers(p, n_own, lo, hi) -> np.ndarray:
-    """:func:`rwwarp.wave.focal.sensor_taper` of several members at once, each over its own first ``n_own[k]``
-    sensor-side grid points ``p[k, :n_own[k]]`` (mm; its grid's ends: its first and its own last point), ``lo``,
-    ``hi`` (S,) mm: the same arithmetic element by element (the same values); 1 past a member's own points."""
-    p = np.asarray(p, dtype=np.float64)
-    S, ns = p.shape
-    own = np.arange(ns)[None, :] < np.asarray(n_own)[:, None]
-    first = p[:, :1]
-    last = p[np.arange(S), np.asarray(n_own) - 1][:, None]
-    lo, hi = np.asarray(lo, dtype=np.float64)[:, None], np.asarray(hi, dtype=np.float64)[:, None]
-    t = np.zeros_like(p)
-    below, above = own & (p < lo), own & (p > hi)
-    np.divide(lo - p, np.broadcast_to(lo - first, p.shape), out=t, where=below)
-    np.divide(p - hi, np.broadcast_to(last - hi, p.shape), out=t, where=above)
-    t = np.clip(t, 0.0, 1.0)
-
-    def e(u):
-        return np.where(u > 0, np.exp(-1.0 / np.where(u > 0, u, 1.0)), 0.0)
-    return np.where(own, 1.0 - e(t) / (e(t) + e(1.0 - t)), 1.0)
 
 
 def _fft_freqs(n_fft, pitch_mm, width: int) -> np.ndarray:
@@ -172,7 +151,7 @@ class PackedFocalPropagator:
             for ax, nodes in enumerate((nodes_x, nodes_y)):
                 lo = np.array([nodes[k].min() for k in tapered]) - gk
                 hi = np.array([nodes[k].max() for k in tapered]) + gk
-                taper[ax, kk] = _sensor_tapers(ps[kk, :, ax], ns_k[kk], lo, hi)
+                taper[ax, kk] = sensor_taper(ps[kk, :, ax], lo, hi, n_own=ns_k[kk])
         self._host = {"origin": origin, "s0": s0, "g": g, "q": q, "row_in": row_in, "col_in": col_in,
                       "taper": np.where(row_in[None], taper, 0.0)}
         # step 2 per source: its own FFT length and sensor pitch set its frequencies and padding room

@@ -10,7 +10,7 @@ import rwwarp as rw
 import rwwarp.device_upload as DU
 from rwwarp.device_upload import upload_arrays
 from rwwarp.wave.focal import sensor_taper
-from rwwarp.wave.focal_packed import PackedFocalPropagator, _fft_freqs, _sensor_tapers
+from rwwarp.wave.focal_packed import PackedFocalPropagator, _fft_freqs
 from rwwarp.wave.packed import source_plans
 
 
@@ -58,12 +58,21 @@ def test_member_tapers_and_fft_frequencies_equal_each_members_own():
     p = rng.uniform(-1, 1, (S, 1)) + np.arange(NS)[None, :] * pitch[:, None]
     lo = p[:, 0] + 0.3 * n_own * pitch
     hi = p[:, 0] + 0.7 * n_own * pitch
-    got = _sensor_tapers(p, n_own, lo, hi)
+    got = sensor_taper(p, lo, hi, n_own=n_own)
     for k in range(S):
         m = int(n_own[k])
         own = sensor_taper(p[k:k + 1, :m], lo[k:k + 1], hi[k:k + 1])[0]
         assert np.array_equal(got[k, :m], own) and np.all(got[k, m:] == 1.0)
         assert own.min() < 1e-3 and own.max() == 1.0      # the taper falls to ~0 at both ends
+        # the window written out from its definition: 1 - e(t) / (e(t) + e(1 - t)), e(t) = exp(-1 / t), t from
+        # lo / hi (0) to the member's own first / last point (1)
+        x = p[k, :m]
+        t = np.clip(np.where(x < lo[k], (lo[k] - x) / (lo[k] - x[0]), np.where(x > hi[k], (x - hi[k]) / (x[-1] - hi[k]),
+                                                                             0.0)), 0.0, 1.0)
+        with np.errstate(divide="ignore"):
+            e = lambda v: np.where(v > 0, np.exp(-1.0 / v), 0.0)
+            want = 1.0 - e(t) / (e(t) + e(1.0 - t))
+        assert np.max(np.abs(got[k, :m] - want)) < 1e-15   # measured 0 (the same operations)
     n_fft = n_own + rng.integers(20, 100, S)
     nu = _fft_freqs(n_fft, pitch, int(n_fft.max()))
     for k in range(S):
