@@ -123,17 +123,13 @@ def pack_units(module, js, rws, budget_bytes: int, *, waste: float = 1.5, spatia
     return units
 
 
-def _slot_work(ray_grid: int, n_grid: int) -> int:
-    """Work of one packed slot, in the bytes its traced rays and window take (:func:`rwwarp.wave.packed.packed_bytes`'s
-    per-source terms: 232 bytes a ray, 64 a window sample)."""
-    return int(ray_grid) ** 2 * 232 + int(n_grid) ** 2 * 64
-
-
 def slot_sets(js, members, waste: float) -> list:
     """``js`` (sources, in order; ``members`` their single-source RayWaves) split into sets whose packed trace and
-    splat, every member in the slots of the set's largest ray grid and window (:func:`_slot_work`), is at most
+    splat, every member in the slots of the set's largest ray grid and window
+    (:func:`rwwarp.wave.packed.slot_bytes`), is at most
     ``waste`` (>= 1) times the members' own: the members taken largest first, each joining the first set it keeps
     within the bound (else a new set). Each set in source order; the sets in the order of their first source."""
+    from rwwarp.wave.packed import slot_bytes
     if not (np.isfinite(waste) and waste >= 1):
         raise ValueError(f"slot_sets: waste must be >= 1, got {waste!r}")
     size = {j: (int(m.plan.ray_grid), int(m.plan.n_grid)) for j, m in zip(js, members)}
@@ -142,12 +138,12 @@ def slot_sets(js, members, waste: float) -> list:
         rg, ng = size[j]
         for s in sets:
             r2, n2 = max(s[1], rg), max(s[2], ng)
-            if (len(s[0]) + 1) * _slot_work(r2, n2) <= waste * (s[3] + _slot_work(rg, ng)):
+            if (len(s[0]) + 1) * slot_bytes(r2, n2) <= waste * (s[3] + slot_bytes(rg, ng)):
                 s[0].append(j)
-                s[1], s[2], s[3] = r2, n2, s[3] + _slot_work(rg, ng)
+                s[1], s[2], s[3] = r2, n2, s[3] + slot_bytes(rg, ng)
                 break
         else:
-            sets.append([[j], rg, ng, _slot_work(rg, ng)])
+            sets.append([[j], rg, ng, slot_bytes(rg, ng)])
     pos = {j: k for k, j in enumerate(js)}
     out = [sorted(s[0], key=pos.get) for s in sets]
     return sorted(out, key=lambda g: pos[g[0]])

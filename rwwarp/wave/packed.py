@@ -39,16 +39,21 @@ def source_plans(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     return [RayWave.from_plan(bp, tracer_on_use=True) for bp in plans]
 
 
+def slot_bytes(ray_grid: int, n_grid: int) -> int:
+    """Bytes one member's slot of a :class:`PackedRayWave` takes: its traced rays (232 bytes a ray) and its window
+    (64 bytes a sample), the traced-ray and field parts of :func:`rwwarp.wave.plan.estimate_cost`."""
+    return int(ray_grid) ** 2 * 232 + int(n_grid) ** 2 * 64
+
+
 def packed_bytes(members, size: int) -> int:
     """Planned peak memory (bytes) of computing ``members`` (single-source :class:`RayWave` s, ``size`` px
     patches) as one :class:`PackedRayWave`: every source's rays and window in slots of the largest (the
     traced-ray and field parts of :func:`rwwarp.wave.plan.estimate_cost`), plus the largest member's propagation
     (the members propagate one after the other)."""
-    rays = max(m.plan.ray_grid for m in members) ** 2
+    rg = max(m.plan.ray_grid for m in members)
     n = max(m.plan.n_grid for m in members)
-    fixed = [m.plan.ray_grid ** 2 * 232 + m.plan.n_grid ** 2 * 64 for m in members]
-    prop = max(m.plan.estimate["memory_bytes"] - f for m, f in zip(members, fixed))
-    return len(members) * (rays * 232 + n * n * 64) + prop
+    prop = max(m.plan.estimate["memory_bytes"] - slot_bytes(m.plan.ray_grid, m.plan.n_grid) for m in members)
+    return len(members) * slot_bytes(rg, n) + prop
 
 
 def packed_plan(members) -> BatchPlan:
