@@ -336,7 +336,9 @@ def fetch_image_set(name: str, dest, debs=None, table: dict | None = None) -> di
         missing = sorted(set(spec["packages"]) - set(by_pkg))
         if missing:
             raise FileNotFoundError(f"image set {name!r}: no .deb given for {missing} (given: {[str(d) for d in debs]})")
-        stage = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent if dest.parent.exists() else None))
+        # staged beside ``dest`` (same file system: the final rename is atomic); its parents are made here
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
         try:
             for sub in ("train", "valid"):
                 (stage / sub).mkdir()

@@ -216,6 +216,11 @@ def test_named_image_set_from_debian_packages(tmp_path):
     assert not (tmp_path / "set2").exists()            # nothing written on failure
     with pytest.raises(FileNotFoundError, match="pkgb"):
         fetch_image_set("toy", tmp_path / "set3", debs=debs[:1], table=table)
+    # a destination whose parent folders do not exist yet (the documented `--out data/debian-photos` on a
+    # fresh checkout): the parents are made, and the set lands complete
+    man4 = fetch_image_set("toy", tmp_path / "new" / "data" / "set", debs=debs, table=table)
+    assert man4["train"] == man["train"]
+    assert (tmp_path / "new" / "data" / "set" / "train" / "b3.png").read_bytes() == blobs[3]
 
 
 def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path):
