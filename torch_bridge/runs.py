@@ -40,6 +40,9 @@ PACK_FORMAT = "rwwarp-design-pack-1"
 # small files of a run folder that travel in a pack (the per-arm ones from each arm's folder)
 _RUN_FILES = ("config_resolved.json", "progress.json", "summary.json", "table.md", "table.csv")
 _ARM_FILES = ("metrics.csv", "result.json", "lens.json")
+# and of a finished arm, its evaluation's PSFs and sample crops: the table's figure (``designs.png``) is drawn
+# from them whenever the experiment runs again, also in a folder the pack was moved to
+_ARM_EVAL_FILES = ("eval_psfs.npz", "eval_sample_*.npz")
 
 
 def _utc() -> str:
@@ -346,6 +349,10 @@ def pack(run_dir, out=None, weights: str = "float32", optimizer: str = "full", p
             if (run_dir / n / f).exists():
                 files[f"{n}/{f}"] = (run_dir / n / f).read_bytes()
         if a["finished"] or not a["checkpoint"]:
+            if a["finished"]:
+                for pat in _ARM_EVAL_FILES:
+                    for f in sorted((run_dir / n).glob(pat)):
+                        files[f"{n}/{f.name}"] = f.read_bytes()
             info[n] = {"finished": a["finished"], "step": a.get("steps_done")}
             continue
         ck = torch.load(run_dir / n / "checkpoint.pt", map_location="cpu", weights_only=False)

@@ -112,6 +112,14 @@ def test_detached_run_killed_and_resumed_from_the_pack_equals_an_uninterrupted_r
     mtime = (tmp_path / "fresh" / "e2e" / "result.json").stat().st_mtime_ns
     assert main([str(cfg), "--out", str(tmp_path / "fresh"), "--no-progress"]) == 0
     assert (tmp_path / "fresh" / "e2e" / "result.json").stat().st_mtime_ns == mtime
+    # the finished run packed and moved once more: the experiment runs again there (it redraws the table's
+    # figure from the evaluation's PSFs and crops, which travel with a finished arm) and keeps the arm
+    pack(tmp_path / "fresh", tmp_path / "pack2")
+    assert main([str(cfg), "--out", str(tmp_path / "moved"), "--resume", str(tmp_path / "pack2"),
+                 "--no-progress"]) == 0
+    for f in ("eval_psfs.npz", "result.json"):
+        assert (tmp_path / "moved" / "e2e" / f).read_bytes() == (tmp_path / "fresh" / "e2e" / f).read_bytes(), f
+    assert (tmp_path / "moved" / "designs.png").exists()
 
 
 def test_resume_without_adam_state_and_bf16_weights(tmp_path):

@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# The paper's design experiments on a GPU machine: one arm and seed per GPU, in the background
+# (perf/results/design/PROTOCOL.md, sections 4 and 6), watched, stopped, packed and collected by later
+# device commands. Run from the repository root, after `source ~/rw-env.sh`.
+#
+#   bash perf/tools/arms_gpu.sh start EXPERIMENT SEED:ARM ...   # run k on GPU k, detached; a run whose pack
+#                                  # is in out/pack/<name>/ (pack.json + parts) resumes from it
+#   bash perf/tools/arms_gpu.sh watch SECONDS                   # every run's status every 30 s, for SECONDS
+#   bash perf/tools/arms_gpu.sh stop                            # SIGTERM every live run: it ends at once, its
+#                                  # last checkpoint (every 200 steps) is what a resume starts from
+#   bash perf/tools/arms_gpu.sh pack NAME                       # portable checkpoint of a stopped run (bfloat16
+#                                  # weights and Adam moments, parts of <= 15 MiB) in out/pack/NAME
+#   bash perf/tools/arms_gpu.sh send NAME FIRST COUNT           # parts FIRST.. of that pack (and pack.json) to $OUT
+#   bash perf/tools/arms_gpu.sh collect NAME ...                # each run's results and log, no checkpoints, as
+#                                  # $OUT/NAME.tar.gz
+#
+# Run folders: out/design/runs/<experiment>_gpu_s<seed>_<arm> (NAME is that last part). The protocol's
+# options are set on the command line; the configs stay as they are. Data: carry data/debian-photos.
+set -u
+RUNS=out/design/runs
+PACKS=out/pack
+DESIGN="python3 -m torch_bridge.train"
+protocol=(--preset ${ARMS_PRESET:-gpu} --set train.joint_steps=2000 --set train.finetune_steps=1000
+          --set train.checkpoint_every=200 --set train.log_every=20 --set train.image_every=500
+          --set data.root=data/debian-photos --set 'eval.grid=[10,10]' --set eval.node_chunk=16)
+# ARMS_SET: more options after the protocol's, e.g. ARMS_SET="--set train.finetune_steps=500" (the protocol's
+# rule when a step is slower than planned); ARMS_PRESET: another preset (the CPU rehearsal uses cpu)
+read -r -a extra <<< "${ARMS_SET:-}"
+cmd=${1:?start, watch, stop, pack, send or collect}; shift
+case $cmd in
+start)
+  exp=${1:?experiment}; shift
+  [ -f data/debian-photos/MANIFEST.json ] || { echo "data/debian-photos is missing: carry it" >&2; exit 2; }
+  ngpu=$(nvidia-smi -L | wc -l); k=0
+  for sa in "$@"; do
+    seed=${sa%%:*}; arm=${sa#*:}
+    [ $k -lt $ngpu ] || { echo "start: $ngpu GPU(s) for $# runs" >&2; exit 2; }
+    name=${exp}_gpu_s${seed}_${arm}
+    resume=()
+    [ -f $PACKS/$name/pack.json ] && resume=(--resume $PACKS/$name)
+    mkdir -p $RUNS
+    CUDA_VISIBLE_DEVICES=$k $DESIGN $exp --arm $arm "${protocol[@]}" "${extra[@]}" --set seed=$seed --out $RUNS/$name \
+      --no-progress "${resume[@]}" --detach || echo "start: $name did not start" >&2
+    echo "start: $name on GPU $k ${resume[*]}"
+    k=$((k + 1))
+  done
+  ;;
+watch)
+  secs=${1:-540}; t0=$(date +%s)
+  while :; do
+    for d in $RUNS/*/; do
+      [ -f $d/run.pid ] || continue
+      echo "$(date -u +%H:%M:%S) $(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"
+    done
+    alive=$(for d in $RUNS/*/; do $DESIGN status $d >/dev/null 2>&1 && echo x; done | wc -l)
+    [ $alive -gt 0 ] || { echo "watch: no run alive"; break; }
+    [ $(( $(date +%s) - t0 + 30 )) -lt $secs ] || break
+    sleep 30
+  done
+  nvidia-smi --query-gpu=index,memory.used,utilization.gpu --format=csv,noheader
+  ;;
+stop)
+  for d in $RUNS/*/; do
+    [ -f $d/run.pid ] || continue
+    if $DESIGN status $d >/dev/null 2>&1; then
+      pid=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['pid'])" $d/run.pid)
+      kill -TERM -- -$pid 2>/dev/null || kill -TERM $pid
+      echo "stop: $(basename $d) (pid $pid)"
+    fi
+  done
+  for i in $(seq 30); do
+    alive=$(for d in $RUNS/*/; do $DESIGN status $d >/dev/null 2>&1 && echo x; done | wc -l)
+    [ $alive -eq 0 ] && break; sleep 2
+  done
+  for d in $RUNS/*/; do echo "$(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"; done
+  ;;
+pack)
+  name=${1:?run name}
+  rm -rf $PACKS/$name.new
+  $DESIGN pack $RUNS/$name --weights bfloat16 --optimizer bfloat16 --out $PACKS/$name.new \
+    && rm -rf $PACKS/$name && mv $PACKS/$name.new $PACKS/$name && ls -l $PACKS/$name
+  ;;
+send)
+  name=${1:?run name}; first=${2:-0}; count=${3:-4}
+  mkdir -p $OUT/$name
+  cp $PACKS/$name/pack.json $OUT/$name/
+  for f in $(ls $PACKS/$name | grep '^pack\.part' | sort | tail -n +$((first + 1)) | head -$count); do
+    cp $PACKS/$name/$f $OUT/$name/
+  done
+  ls $OUT/$name
+  ;;
+collect)
+  for name in "$@"; do
+    tar czf $OUT/$name.tar.gz -C $RUNS --exclude='*.pt' --exclude=pack --exclude=run.pid $name && \
+      echo "collect: $name $(du -h $OUT/$name.tar.gz | cut -f1)"
+  done
+  ;;
+*) echo "unknown command $cmd" >&2; exit 2 ;;
+esac
