@@ -60,7 +60,11 @@ def write_json_atomic(path, obj) -> None:
 
 def git_commit(path=None) -> dict:
     """The git commit of the source tree this code runs from: ``{"commit": sha or None, "dirty": bool or
-    None}`` (None where git or the repository is absent, e.g. an installed wheel)."""
+    None}`` (None where git or the repository is absent, e.g. an installed wheel). ``$RWWARP_COMMIT``, when
+    set, is the commit (``dirty`` None): a working tree copied to another machine has no ``.git``, or a stale one."""
+    env = os.environ.get("RWWARP_COMMIT", "").strip()
+    if env:
+        return {"commit": env, "dirty": None}
     root = Path(path or Path(__file__).resolve().parents[1])
     try:
         sha = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,

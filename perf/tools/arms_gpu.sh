@@ -14,6 +14,7 @@
 #   bash perf/tools/arms_gpu.sh collect NAME ...                # each run's results and log, no checkpoints, as
 #                                  # $OUT/NAME.tar.gz
 #
+# Export RWWARP_COMMIT first: the copied tree has no .git, and each run records the commit it ran.
 # Run folders: out/design/runs/<experiment>_gpu_s<seed>_<arm> (NAME is that last part). The protocol's
 # options are set on the command line; the configs stay as they are. Data: carry data/debian-photos.
 set -u

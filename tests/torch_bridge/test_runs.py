@@ -288,3 +288,18 @@ def test_rwwarp_design_status_reads_a_run_without_importing_torch(tmp_path):
     out = status_rc()
     assert "not running" in out[0] and out[-1] == "False 1", out
     assert status(run)["state"] == "done"
+
+
+def test_git_commit_of_a_copied_tree_comes_from_rwwarp_commit(monkeypatch, tmp_path):
+    """A run on a machine that got a copy of the tree (no ``.git``) records ``$RWWARP_COMMIT``; without the
+    variable, a folder outside any repository records None, and this checkout its HEAD as git prints it."""
+    import subprocess
+    from torch_bridge.runs import git_commit
+    monkeypatch.setenv("RWWARP_COMMIT", "0123abc")
+    assert git_commit(tmp_path) == {"commit": "0123abc", "dirty": None}
+    monkeypatch.delenv("RWWARP_COMMIT")
+    assert git_commit(tmp_path)["commit"] is None
+    root = Path(__file__).resolve().parents[2]
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode == 0:
+        assert git_commit(root)["commit"] == head.stdout.strip()
