@@ -137,7 +137,8 @@ def main(argv=None) -> int:
                "schedule, seeds, GPU-hours, how a run moves between machines)."), ""]
     if keep:
         lines += [keep, ""]
-    folders = [p for p in root.iterdir() if p.is_dir() and ((p / "summary.json").exists() or is_seed_layout(p))]
+    folders = [p for p in root.iterdir()
+               if p.is_dir() and ((p / "summary.json").exists() or is_seed_layout(p))]
     for d in sorted(folders):
         if not (d / "summary.json").exists():
             # the GPU runs: one folder per arm and seed (design_seeds), aggregated over the seeds

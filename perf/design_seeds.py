@@ -122,7 +122,8 @@ def figures(result: dict) -> dict:
 
 
 def _schedule(run: dict | None, config: dict | None, arm: str, progress: dict | None):
-    """(joint, fine-tune) steps of the arm: from result["run"], else config_resolved.json, else progress.json."""
+    """(joint, fine-tune) steps of the arm: from result["run"], else config_resolved.json, else
+    progress.json; (None, None) when none says."""
     if run and run.get("joint_steps") is not None and run.get("finetune_steps") is not None:
         return int(run["joint_steps"]), int(run["finetune_steps"])
     for a in (config or {}).get("arms", []):
@@ -139,7 +140,9 @@ def read_run(folder) -> dict:
     """One run folder ``seed<S>_<arm>/``: a dict with ``folder``, ``seed``, ``arm``, ``state`` ("finished"
     or "in progress"), ``steps_done`` / ``steps_total`` / ``joint`` / ``finetune`` (steps), ``segments``
     (the run's segments: commit, card, start/end step, wall_s), ``wall_s`` (sum of the segments' wall time,
-    s; None when none are recorded), ``cards`` and ``commits`` (in order of first use),
+    s; for a result without a run record, training + evaluation time, ``wall_from`` says which; a segment
+    ends at its last checkpoint, so time a stopped process spent after it is not counted), ``cards`` and
+    ``commits`` (in order of first use),
     ``resumed_without_optimizer``, ``result`` (``summary.json[arm]`` or ``<arm>/result.json`` of a finished
     arm, else None), ``figures`` (:func:`figures`, finished arms only) and ``problems`` (strings; a run with
     a problem, e.g. a seed that differs from its folder name, is not used)."""
@@ -190,6 +193,10 @@ def read_run(folder) -> dict:
     segs = list(run.get("segments") or [])
     walls = [_num(s.get("wall_s")) for s in segs]
     wall = sum(w for w in walls if w is not None) if segs else None
+    wall_from = "segments" if segs else None
+    if wall is None and best is not None and _num(best.get("train_wall_s")) is not None:
+        # a result of an older version (no run record): training + evaluation of its one process
+        wall, wall_from = _num(best["train_wall_s"]) + (_num(best.get("eval_wall_s")) or 0.0), "train+eval"
     cards, commits = [], []
     for s in segs:
         c = s.get("card")
@@ -203,8 +210,9 @@ def read_run(folder) -> dict:
     return {"folder": folder.name, "path": folder, "seed": seed, "arm": arm,
             "state": "finished" if r is not None else "in progress",
             "steps_done": int(steps), "steps_total": None if total is None else int(total),
-            "joint": joint, "finetune": ft, "segments": segs, "wall_s": wall, "cards": cards,
-            "commits": commits, "resumed_without_optimizer": bool(run.get("resumed_without_optimizer")),
+            "joint": joint, "finetune": ft, "segments": segs, "wall_s": wall, "wall_from": wall_from,
+            "cards": cards, "commits": commits,
+            "resumed_without_optimizer": bool(run.get("resumed_without_optimizer")),
             "evaluated": r is not None, "result": r, "figures": figures(r) if r is not None else None,
             "problems": problems, "has_designs": (folder / "designs.png").exists()}
 
@@ -292,7 +300,8 @@ def verdict(diffs: dict, expected: int, waiting: list) -> str:
     if not diffs:
         return "not resolved (no seed finished)"
     if any(v is None for v in diffs.values()):
-        return "not resolved (no value for seed " + ", ".join(str(s) for s, v in diffs.items() if v is None) + ")"
+        return "not resolved (no value for seed " + ", ".join(str(s) for s, v in diffs.items() if v is None) \
+            + ")"
     signs = {(v > 0) - (v < 0) for v in diffs.values()}
     if signs == {expected}:
         return "holds"
@@ -332,7 +341,8 @@ def _compare(col, label, a, b, key, depth, expected, unit, fmt):
     v = verdict(diffs, expected, waiting)
     agg = aggregate(diffs) if not waiting else None
     return {"label": label, "a": a, "b": b, "key": key, "depth": depth, "expected": expected, "diffs": diffs,
-            "pairs": pairs, "verdict": v, "mean": None if agg is None else agg["mean"], "unit": unit, "fmt": fmt}
+            "pairs": pairs, "verdict": v, "mean": None if agg is None else agg["mean"], "unit": unit,
+            "fmt": fmt}
 
 
 def _depths(col, arms) -> list:
@@ -401,8 +411,9 @@ def section(folder, title: str | None = None, experiment: str | None = None) -> 
     exp = col["experiment"]
     seeds = col["seeds"]
     L = [f"## {title or exp}: GPU runs, one folder per arm and seed (`{folder.name}/`)", "",
-         (f"Each `seed<S>_<arm>/` is one run of `rwwarp design {exp} --preset gpu --arm <arm> --set seed=<S>` "
-          f"(`PROTOCOL.md`: seeds {', '.join(map(str, PROTOCOL_SEEDS))}). Values: the mean over the finished seeds "
+         (f"Each `seed<S>_<arm>/` is one run of `rwwarp design {exp} --preset gpu --arm <arm> "
+          f"--set seed=<S>` (`PROTOCOL.md`: seeds {', '.join(map(str, PROTOCOL_SEEDS))}). Values: the mean "
+          "over the finished seeds "
           "± half their range ((max - min) / 2), then each seed's value in seed order. Arms not finished "
           "are not used in any mean or verdict."), ""]
     if (folder / "README.md").exists():
@@ -413,8 +424,8 @@ def section(folder, title: str | None = None, experiment: str | None = None) -> 
         cells = [row["arm"], row["depth"] or "-", ", ".join(map(str, row["seeds"])) or "none finished"]
         cells += [_cell(row["values"][k], row["agg"][k], dg) for k, _, dg in FIGURES]
         L.append("| " + " | ".join(cells) + " |")
-    L += ["", "Runs (steps done of the schedule, joint + fine-tune; wall time = sum of the run's segments; "
-          "cards and commits of the segments):", "",
+    L += ["", "Runs (steps done of the schedule, joint + fine-tune; wall time = sum of the run's segments, "
+          "each up to its last checkpoint; cards and commits of the segments):", "",
           "| arm | seed | state | steps | wall time | cards | commits |", "|---|---|---|---|---|---|---|"]
     for arm in col["arms"]:
         for s in seeds:
@@ -425,32 +436,40 @@ def section(folder, title: str | None = None, experiment: str | None = None) -> 
                 continue
             sched = "" if r["joint"] is None else f" ({r['joint']} + {r['finetune']})"
             steps = f"{r['steps_done']} / {r['steps_total'] if r['steps_total'] is not None else '?'}{sched}"
-            st = _state_text(r) + ("; resumed without the Adam state" if r["resumed_without_optimizer"] else "")
-            L.append(f"| {arm} | {s} | {st} | {steps} | {_hours(r['wall_s'])} | {', '.join(r['cards']) or '-'} | "
+            st = _state_text(r) + ("; resumed without the Adam state" if r["resumed_without_optimizer"]
+                                   else "")
+            wall = _hours(r["wall_s"]) + (" (train + eval, no segments recorded)"
+                                          if r["wall_from"] == "train+eval" else "")
+            L.append(f"| {arm} | {s} | {st} | {steps} | {wall} | {', '.join(r['cards']) or '-'} | "
                      f"{', '.join(r['commits']) or '-'} |")
     totals = {(r["joint"], r["finetune"]) for r in col["runs"].values() if usable(r)}
     if len(totals) > 1:
         L += ["", "**The finished runs do not share one schedule** (joint + fine-tune): "
               + ", ".join(f"{j} + {f}" for j, f in sorted(totals, key=str)) + "."]
-    L += ["", "Paper's ranking, checked on every seed (a - b per seed; the verdict needs every seed to agree):", ""]
+    L += ["", "Paper's ranking, checked on every seed (a - b per seed; the verdict needs every seed to "
+          "agree):",
+          ""]
     for c in comparisons(col):
-        per = ", ".join(f"seed {s}: " + ("-" if v is None else f"{v:+{c['fmt']}}") for s, v in c["diffs"].items())
+        per = ", ".join(f"seed {s}: " + ("-" if v is None else f"{v:+{c['fmt']}}")
+                        for s, v in c["diffs"].items())
         if c["verdict"].startswith("waiting"):
             tail = f" (so far {per} {c['unit']})" if c["diffs"] else ""
             L.append(f"- {c['label']}: **{c['verdict']}**{tail}")
         else:
             mean = "" if c["mean"] is None else f"mean {c['mean']:+{c['fmt']}} {c['unit']}; "
             L.append(f"- {c['label']}: **{c['verdict']}** ({mean}{per})")
-    prog = [f"seed {s} of {a}: {_state_text(r)}" for (a, s), r in sorted(col["runs"].items(), key=lambda kv: kv[0])
+    runs = sorted(col["runs"].items(), key=lambda kv: kv[0])
+    prog = [f"seed {s} of {a}: {_state_text(r)}" for (a, s), r in runs
             if not usable(r)]
     if prog:
         L += ["", "Not used (in progress or with a problem): " + "; ".join(prog) + "."]
     if col["not_run"]:
-        L += ["", "Not run (protocol's arms x seeds): " + ", ".join(f"seed {s} of {a}" for a, s in col["not_run"])
+        L += ["", "Not run (protocol's arms x seeds): "
+              + ", ".join(f"seed {s} of {a}" for a, s in col["not_run"])
               + "."]
     if col["extra_arms"]:
         L += ["", "Arms not in the experiment's config: " + ", ".join(col["extra_arms"]) + "."]
-    figs = [r for (a, s), r in sorted(col["runs"].items(), key=lambda kv: kv[0]) if r["has_designs"]]
+    figs = [r for _, r in runs if r["has_designs"]]
     if figs:
         L += ["", "Figures: " + ", ".join(f"[{r['folder']}]({folder.name}/{r['folder']}/designs.png)"
                                            for r in figs)]

@@ -5,7 +5,9 @@ plus the ``run`` record with its segments), numbers made up here. The expected m
 and verdicts are worked out by hand in each test from the numbers it writes."""
 from __future__ import annotations
 
+import csv
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -32,7 +34,8 @@ def _depth(depth_mm, raw, rec, nodes=None):
     nodes = nodes or [((0.1875, 0.1875), rec[0] + 1.0), ((1.3125, 1.3125), rec[0] - 1.0)]
     return {"depth_mm": depth_mm,
             "nodes": [{"node": i, "position_mm": list(p), "field_deg": [p[0] * 7.1, p[1] * 7.1],
-                       "raw": _metric(v - 1.0, 0.5), "rec": _metric(v, 0.55)} for i, (p, v) in enumerate(nodes)],
+                       "raw": _metric(v - 1.0, 0.5), "rec": _metric(v, 0.55)}
+                      for i, (p, v) in enumerate(nodes)],
             "raw": _metric(*raw), "rec": _metric(*rec), "psf_energy": 0.99}
 
 
@@ -49,8 +52,10 @@ def _result(arm, seed, depths=None, rms=(7.5, 60.0, 30.0), steps_done=3000, step
     r = {"arm": arm, "method": method, "steps_done": steps_done, "steps_total": steps_total,
          "train_wall_s": 900.0, "last": {"step": steps_done - 1, "phase": "finetune", "loss": 0.006},
          "notes": [],
-         "run": {"commit": segments[-1]["commit"], "dirty": False, "device": "cuda:0", "card": segments[-1]["card"],
-                 "memory_gb": 85.0, "host": "gpu-host", "steps_done": steps_done, "steps_total": steps_total,
+         "run": {"commit": segments[-1]["commit"], "dirty": False, "device": "cuda:0",
+                 "card": segments[-1]["card"], "memory_gb": 85.0, "host": "gpu-host",
+                 "steps_done": steps_done,
+                 "steps_total": steps_total,
                  "joint_steps": joint, "finetune_steps": steps_total - joint, "seed": seed,
                  "wall_s_total": sum(s["wall_s"] for s in segments), "segments": segments,
                  "resumed_without_optimizer": False},
@@ -145,9 +150,11 @@ def _cooke(tmp_path):
     _write(e, "e2e_from_rms", 0, _result("e2e_from_rms", 0, d(26.0), rms=(4.0, 8.0, 5.0)))
     bad = _result("e2e_from_rms", 1, d(99.0), rms=(1.0, 1.0, 1.0), steps_done=1400)  # unfinished
     _write(e, "e2e_from_rms", 1, bad, result_json=False)
-    _write(e, "paraxial", 0, _result("paraxial", 0, d(24.0), rms=(9.0, 14.0, 11.0), method="paraxial_achromat"))
-    _write(e, "paraxial", 1, None, progress={"state": "dead", "arm": "paraxial", "phase": "joint", "step": 620,
-                                               "checkpoint_step": 600, "steps_total": 3000, "joint_steps": 2000})
+    _write(e, "paraxial", 0, _result("paraxial", 0, d(24.0), rms=(9.0, 14.0, 11.0),
+                                     method="paraxial_achromat"))
+    _write(e, "paraxial", 1, None, progress={"state": "dead", "arm": "paraxial", "phase": "joint",
+                                             "step": 620, "checkpoint_step": 600, "steps_total": 3000,
+                                             "joint_steps": 2000})
     return e
 
 
@@ -156,7 +163,8 @@ def test_unfinished_arms_are_excluded_and_verdicts_wait_for_them(tmp_path):
     assert col["arms"] == ["paraxial", "rms_spot", "e2e", "e2e_from_rms"]   # the config's arms, in order
     assert col["not_run"] == []
     runs = col["runs"]
-    assert runs[("e2e_from_rms", 1)]["state"] == "in progress" and runs[("e2e_from_rms", 1)]["steps_done"] == 1400
+    f1 = runs[("e2e_from_rms", 1)]
+    assert f1["state"] == "in progress" and f1["steps_done"] == 1400
     p = runs[("paraxial", 1)]                # killed: the last checkpoint is what a resume starts from
     assert (p["state"], p["steps_done"], p["steps_total"], p["joint"], p["finetune"]) == (
         "in progress", 600, 3000, 2000, 1000)
@@ -189,7 +197,6 @@ def test_unfinished_arms_are_excluded_and_verdicts_wait_for_them(tmp_path):
 
 def test_not_run_combinations_and_a_reversed_verdict(tmp_path):
     e = _cooke(tmp_path)
-    import shutil
     shutil.rmtree(e / "seed1_rms_spot")
     col = ds.collect(e, "cooke_hybrid")
     assert col["not_run"] == [("rms_spot", 1)]
@@ -285,3 +292,37 @@ def test_protocol_arms_are_the_configs():
     assert ds.protocol_arms("a489_aberration") == ["blank_doe", "e2e_doe"]
     assert ds.protocol_arms("cooke_hybrid") == ["paraxial", "rms_spot", "e2e", "e2e_from_rms"]
     assert ds.protocol_arms("a489_edof") == ["paraxial_doe", "raywave_doe"]
+
+
+def test_the_real_format_reads_as_its_table(tmp_path):
+    """The shortened GPU run of the repository (``a489_aberration_gpu_short``, written by ``rwwarp design``,
+    one run folder for both arms) split into seed folders: the figures read from ``summary.json`` are the
+    numbers of its ``table.csv`` (written from the same results by ``torch_bridge.report.write_table``);
+    without a ``run`` record (older version) the schedule comes from ``config_resolved.json`` and the wall
+    time is training + evaluation."""
+    src = ROOT / "perf" / "results" / "design" / "a489_aberration_gpu_short"
+    summ = json.loads((src / "summary.json").read_text())
+    e = tmp_path / "a489_aberration_gpu"
+    for arm, r in summ.items():
+        d = e / f"seed0_{arm}"
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text(json.dumps({arm: r}))
+        shutil.copy(src / "config_resolved.json", d / "config_resolved.json")
+    col = ds.collect(e, "a489_aberration")
+    with open(src / "table.csv", newline="") as f:
+        table = {row["design"]: row for row in csv.DictReader(f)}
+    cols = ("rms_on_um", "rms_off_um", "rms_avg_um", "psnr_raw", "ssim_raw", "psnr_rec", "ssim_rec")
+    for arm in summ:
+        rec = col["runs"][(arm, 0)]
+        assert ds.usable(rec) and (rec["steps_done"], rec["joint"], rec["finetune"]) == (180, 60, 120)
+        fig = rec["figures"]["default"]
+        for k in cols:              # table.csv holds repr(float): exact
+            assert fig[k] == float(table[arm][k]), (arm, k)
+        wall = float(table[arm]["train_wall_s"]) + summ[arm]["eval_wall_s"]
+        assert rec["wall_s"] == pytest.approx(wall, abs=TOL)
+        assert rec["wall_from"] == "train+eval" and rec["cards"] == []
+    assert col["not_run"] == [("blank_doe", 1), ("e2e_doe", 1)]
+    k = next(x for x in ds.comparisons(col) if x["label"].startswith("e2e_doe reconstructs"))
+    assert k["verdict"] == "waiting for seed 1 of e2e_doe (not run), seed 1 of blank_doe (not run)"
+    expect = float(table["e2e_doe"]["psnr_rec"]) - float(table["blank_doe"]["psnr_rec"])
+    assert k["diffs"][0] == pytest.approx(expect, abs=TOL)
