@@ -11,6 +11,12 @@ of ``summary.json`` (nothing is typed in by hand):
 * Aberration correction: does the end-to-end DOE beat the blank DOE?
 * For every arm: does the network improve on the raw image (reconstructed minus raw PSNR)?
 
+The GPU runs (``PROTOCOL.md``: every arm with seeds 0 and 1) land one folder per arm and seed,
+``<experiment>_gpu/seed<S>_<arm>/``; such a folder of folders gets a section from
+:func:`design_seeds.section`: per arm the mean over the finished seeds and half their range, each seed's
+value, the runs' steps, wall time, cards and commits, and the checks above per seed with a verdict
+("holds" / "reversed" only when every seed agrees; unfinished arms are listed, never used).
+
 The hand-written discussion between ``<!-- discussion -->`` and ``<!-- /discussion -->`` in an
 existing README is kept.
 
@@ -140,11 +146,12 @@ def main(argv=None) -> int:
     folders = [p for p in root.iterdir()
                if p.is_dir() and ((p / "summary.json").exists() or is_seed_layout(p))]
     for d in sorted(folders):
-        if not (d / "summary.json").exists():
+        if is_seed_layout(d):
             # the GPU runs: one folder per arm and seed (design_seeds), aggregated over the seeds
             exp = next((n for n in RUN if d.name.startswith(n + "_")), None)
             lines += section(d, RUN.get(exp, exp or d.name), exp)
-            continue
+            if not (d / "summary.json").exists():
+                continue
         exp, _, preset = d.name.rpartition("_")
         for name in RUN:
             if d.name.startswith(name + "_"):
