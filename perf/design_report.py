@@ -11,6 +11,12 @@ of ``summary.json`` (nothing is typed in by hand):
 * Aberration correction: does the end-to-end DOE beat the blank DOE?
 * For every arm: does the network improve on the raw image (reconstructed minus raw PSNR)?
 
+The GPU runs (``PROTOCOL.md``: every arm with seeds 0 and 1) land one folder per arm and seed,
+``<experiment>_gpu/seed<S>_<arm>/``; such a folder of folders gets a section from
+:func:`design_seeds.section`: per arm the mean over the finished seeds and half their range, each seed's
+value, the runs' steps, wall time, cards and commits, and the checks above per seed with a verdict
+("holds" / "reversed" only when every seed agrees; unfinished arms are listed, never used).
+
 The hand-written discussion between ``<!-- discussion -->`` and ``<!-- /discussion -->`` in an
 existing README is kept.
 
@@ -22,7 +28,11 @@ import argparse
 import json
 import math
 import re
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from design_seeds import is_seed_layout, outer_node, section  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "design"
@@ -80,11 +90,11 @@ def checks(experiment: str, s: dict) -> list[str]:
         p, w = done["paraxial_doe"], done["raywave_doe"]
         wins = []
         for i, (dp, dw) in enumerate(zip(p["eval"]["depths"], w["eval"]["depths"])):
-            rp, rw_ = dp["nodes"][-1]["rec"]["psnr"], dw["nodes"][-1]["rec"]["psnr"]
+            rp, rw_ = outer_node(dp)["rec"]["psnr"], outer_node(dw)["rec"]["psnr"]
             ap = dp["rec"]["psnr"]
             aw = dw["rec"]["psnr"]
             wins.append(rw_ > rp)
-            pos = dw["nodes"][-1].get("position_mm")
+            pos = outer_node(dw).get("position_mm")
             where = f" at {tuple(round(v, 2) for v in pos)} mm" if pos else ""
             out.append(f"- {_depth_tag(dw['depth_mm'])}: off-axis node{where}: ray-wave DOE {rw_:.2f} dB vs "
                        f"paraxial DOE {rp:.2f} dB (reconstructed); all nodes: {aw:.2f} vs {ap:.2f} dB")
@@ -133,7 +143,15 @@ def main(argv=None) -> int:
                "schedule, seeds, GPU-hours, how a run moves between machines)."), ""]
     if keep:
         lines += [keep, ""]
-    for d in sorted(p for p in root.iterdir() if p.is_dir() and (p / "summary.json").exists()):
+    folders = [p for p in root.iterdir()
+               if p.is_dir() and ((p / "summary.json").exists() or is_seed_layout(p))]
+    for d in sorted(folders):
+        if is_seed_layout(d):
+            # the GPU runs: one folder per arm and seed (design_seeds), aggregated over the seeds
+            exp = next((n for n in RUN if d.name.startswith(n + "_")), None)
+            lines += section(d, RUN.get(exp, exp or d.name), exp)
+            if not (d / "summary.json").exists():
+                continue
         exp, _, preset = d.name.rpartition("_")
         for name in RUN:
             if d.name.startswith(name + "_"):
