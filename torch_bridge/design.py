@@ -259,11 +259,7 @@ class CachedProvider:
                       pilot=pilot)
         pl = rw0.plan
         safety = geo.nyquist_safety
-        budget = self.doe_budget
-        if self.min_feature_mm is not None:
-            from rwwarp import doe as rdoe
-            f_lim = 1.0 / ((int(sd.levels) if sd.levels else 2) * self.min_feature_mm)
-            budget = max(budget, f_lim * rdoe.wavelength_scale(sd.material, sd.design_wavelength_um, wavelength_um))
+        budget = self._reserve_cpmm(sd, wavelength_um)
         pitch = 1.0 / (2.0 * safety * (1.0 / (2.0 * safety * pl.pitch_mm) + budget))
         _, step = self._doe_frequency(geo, rw0.origin, pl.pitch_mm, pl.n_grid, wavelength_um)
         if self.min_feature_mm is not None:
@@ -274,6 +270,18 @@ class CachedProvider:
         return Plan(pitch, n_grid, nice_fft_length(max(2 * n_grid, math.ceil(pl.n_pad * ratio))),
                     math.ceil(pl.ray_grid * ratio), "explicit", False,
                     list(pl.reasons) + [f"DOE budget {budget:g} cycles/mm reserved"])
+
+    def _reserve_cpmm(self, doe_surface, wavelength_um: float) -> float:
+        """Spatial frequency (cycles/mm) an entry's plan reserves for the DOE at ``wavelength_um`` (um): the
+        ``doe_budget_cpmm``, or with a fabrication limit at least what a DOE at the limit reaches (``1 /
+        (levels min_feature)``, ``1 / (2 min_feature)`` unquantised, times the wavelength's DOE scale)."""
+        budget = self.doe_budget
+        if self.min_feature_mm is not None:
+            from rwwarp import doe as rdoe
+            sd = doe_surface
+            f_lim = 1.0 / ((int(sd.levels) if sd.levels else 2) * self.min_feature_mm)
+            budget = max(budget, f_lim * rdoe.wavelength_scale(sd.material, sd.design_wavelength_um, wavelength_um))
+        return budget
 
     @staticmethod
     def _unify(plans):
@@ -421,13 +429,23 @@ class CachedProvider:
     def _uses_focal(self, key, pilot=None) -> bool:
         """Whether entry ``key`` propagates by the focal method: the module's ``method``, or for "auto"
         the choice :class:`rwwarp.psf.RayWave` makes for the entry's nodes (the band-limited ASM while its
-        plan is small, else focal), recorded in :attr:`plans`. ``pilot``: the entry's (:meth:`_pilot`) or None."""
+        plan is small, else focal), recorded in :attr:`plans`. ``pilot``: the entry's (:meth:`_pilot`) or None.
+
+        Under "auto" a learning DOE with a fabrication limit (``min_feature_mm``) takes the ASM: its entry is
+        planned once for every DOE within the limit (:meth:`_auto_plan`) and never rebuilt, while a focal plan
+        follows the current DOE's diffraction orders and windows and grows as the DOE develops. Measured on
+        the ``a489_aberration`` gpu preset (2 x 2 nodes, 0.55 um, CPU): the blank DOE's focal nodes hold one
+        order and 0.25 GB; at the feature limit they need orders -31..33 of the 16-level relief, a 0.29 um
+        instead of 0.92 um wave-plane pitch and 2.4 GB, and a call took 45x as long; on an H200 the 16-node
+        ``e2e_doe`` step went from 20 to 117 GB (budget 24 GB) and from ~0.9 to 4.3 s within 20 steps."""
         m = self.module.method
         if m not in PLANNER_CHOICES:   # "two-step": auto's choice, with the wave step (_build, _build_focal)
             return get_method(m).torch_path == "focal"
         rec = self.plans.get(key) or {}
         if rec.get("method") in names():
             return get_method(rec["method"]).torch_path == "focal"
+        if self.min_feature_mm is not None and self.module.doe_index.numel() > 0:
+            return False
         from rwwarp.psf import RayWave
         geo, fields, depth = self._geometry(key[1])
         probe = RayWave(geo.to_lens(), fields, [float(key[0])] * len(fields), self.size, self.pixel_mm,
@@ -606,7 +624,9 @@ class CachedProvider:
             pitch = rw.plan.pitch_mm
             f_doe, step = self._doe_frequency(geo if self.model == "ray-wave" else current(key[1])[0],
                                               rw.origin, pitch, rw.plan.n_grid, key[0])
-            f_field = max(1.0 / (2.0 * rec["safety"] * pitch) - self.doe_budget - rec["f_doe_cpmm"], 0.0)
+            lens_k = geo.to_lens()
+            reserve = self._reserve_cpmm(lens_k.surfaces[lens_k.doe_index], key[0])   # as _auto_plan reserved it
+            f_field = max(1.0 / (2.0 * rec["safety"] * pitch) - reserve - rec["f_doe_cpmm"], 0.0)
             if 2.0 * pitch * (f_field + f_doe) > 1.0 or pitch > 0.5 * step:
                 self.replan_log.append({"key": list(key), "reason": "sampling", "pitch_um": pitch * 1e3,
                                         "f_field_cpmm": f_field, "f_doe_cpmm": f_doe, "doe_step_um": step * 1e3})

@@ -87,3 +87,35 @@ def test_training_keeps_the_doe_within_the_limit(tmp_path):
     step = _smallest_step_mm(lens)
     assert 0.2 * (1 - 1e-6) <= step < 0.3, step     # at the limit: projected, not flattened
     assert res is not None
+
+
+def test_auto_takes_the_asm_for_a_learning_doe_under_a_feature_limit():
+    """At F/2.2 the design loop's "auto" probe picks the focal path for the A489's nodes; with a fabrication
+    limit and a learning DOE the cached provider takes the ASM instead (its plan covers every DOE within the
+    limit), and a DOE grown to the limit then needs no rebuild (the focal plan would: new orders, finer pitch)."""
+    lens = _lens([-20.0, 8.0, 3.0, -1.0])
+    lens = lens.replace(entrance_pupil_diameter=lens.efl(0.55) / 2.2)          # the gpu preset's F/2.2
+    m = tb.HybridLens(lens, learn={"doe": "all"}, nyquist_safety=1.5, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, [(0.0, 0.0)], 0.55)
+    free = dz.CachedProvider(m, fields, 63, 0.003, wavelength_ref_um=0.55)
+    lim = dz.CachedProvider(m, fields, 63, 0.003, wavelength_ref_um=0.55, min_feature_mm=0.001)
+    k = free._key(0.55, None)
+    assert free._uses_focal(k) and not lim._uses_focal(k)
+    frozen = tb.HybridLens(lens, nyquist_safety=1.5, rays_per_sample=1.2)       # nothing learns: the probe decides
+    assert dz.CachedProvider(frozen, fields, 63, 0.003, wavelength_ref_um=0.55, min_feature_mm=0.001)._uses_focal(k)
+
+
+def test_asm_entry_is_not_rebuilt_when_the_doe_grows_to_the_feature_limit():
+    lens = _lens([-20.0, 8.0, 3.0, -1.0])
+    m = tb.HybridLens(lens, learn={"doe": "all"}, nyquist_safety=1.0, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, [(0.0, 0.0)], 0.55)
+    feat = 0.006
+    p = dz.CachedProvider(m, fields, 15, 0.003, wavelength_ref_um=0.55, min_feature_mm=feat)
+    p.prepare([0.55], [None])
+    k = p._key(0.55, None)
+    plan = dict(p.plans[k])
+    with torch.no_grad():
+        m.doe.mul_(100.0)                          # far past the limit ...
+    assert m.limit_doe_feature(feat) < 1.0          # ... projected back onto it, as training does
+    assert _smallest_step_mm(m.to_lens()) == pytest.approx(feat, rel=1e-3)
+    assert p.check_sampling() == 0 and p.plans[k]["pitch_mm"] == plan["pitch_mm"]
