@@ -302,21 +302,24 @@ class CachedProvider:
                     ["recorded plan"])
 
     def budget_bytes(self) -> int:
-        """The memory budget (bytes) of one entry's field build: ``memory_budget_bytes`` or the
-        device default (:func:`~torch_bridge.budget.default_memory_budget_bytes`, read now)."""
-        from torch_bridge.budget import default_memory_budget_bytes
+        """The memory budget (bytes) of one entry's field build: ``memory_budget_bytes`` less what the device
+        holds outside torch's allocator (:func:`~torch_bridge.budget.device_overhead_bytes`: the CUDA context,
+        CuPy's and Warp's pools; 0 on the CPU; read now), or the device default
+        (:func:`~torch_bridge.budget.default_memory_budget_bytes`, read now)."""
+        from torch_bridge.budget import default_memory_budget_bytes, device_overhead_bytes
         if self.memory_budget_bytes is not None:
-            return self.memory_budget_bytes
+            return max(0, self.memory_budget_bytes - device_overhead_bytes(self.module.rw_device))
         return default_memory_budget_bytes(self.module.rw_device)
 
     def step_budget_bytes(self) -> int:
         """Bytes a training step's propagation graphs (every entry of one :meth:`psfs` call, held until the
-        backward) may take: half of what the memory budget leaves beside the cached fields (the other half
-        is the network's activations and the allocator's slack); without a budget, half the device default
+        backward) may take: half of what the memory budget leaves beside the cached fields and the device's
+        memory outside torch's allocator (:meth:`budget_bytes`; the other half is the network's activations and
+        the allocator's slack); without a budget, half the device default
         (:func:`~torch_bridge.budget.default_memory_budget_bytes`: half the free memory, read now)."""
         if self.memory_budget_bytes is None:
             return self.budget_bytes() // 2
-        return max(0, self.memory_budget_bytes - self.cache_bytes()) // 2
+        return max(0, self.budget_bytes() - self.cache_bytes()) // 2
 
     def build_batch(self, rw, budget_bytes: int | None = None) -> dict:
         """Sources per trace batch of a field build under the budget (bytes, default
