@@ -27,6 +27,20 @@ protocol=(--preset ${ARMS_PRESET:-gpu} --set train.joint_steps=2000 --set train.
 # ARMS_SET: more options after the protocol's, e.g. ARMS_SET="--set train.finetune_steps=500" (the protocol's
 # rule when a step is slower than planned); ARMS_PRESET: another preset (the CPU rehearsal uses cpu)
 read -r -a extra <<< "${ARMS_SET:-}"
+# alive RUN_DIR: exit 0 while the run's process lives (its pid and start time in run.pid, read from /proc with the
+# standard library only: a broken import of the project must not make a live run look stopped)
+alive() {
+  python3 - "$1/run.pid" <<'PY'
+import json, os, sys
+try:
+    r = json.load(open(sys.argv[1]))
+    stat = open(f"/proc/{int(r['pid'])}/stat").read()
+except (OSError, ValueError, KeyError):
+    sys.exit(1)
+f = stat[stat.rindex(")") + 2:].split()
+sys.exit(0 if f[0] != "Z" and int(f[19]) == int(r.get("start_ticks", f[19])) else 1)
+PY
+}
 cmd=${1:?start, watch, stop, pack, send or collect}; shift
 case $cmd in
 start)
@@ -53,8 +67,8 @@ watch)
       [ -f $d/run.pid ] || continue
       echo "$(date -u +%H:%M:%S) $(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"
     done
-    alive=$(for d in $RUNS/*/; do $DESIGN status $d >/dev/null 2>&1 && echo x; done | wc -l)
-    [ $alive -gt 0 ] || { echo "watch: no run alive"; break; }
+    n=$(for d in $RUNS/*/; do alive $d && echo x; done | wc -l)
+    [ $n -gt 0 ] || { echo "watch: no run alive"; break; }
     [ $(( $(date +%s) - t0 + 30 )) -lt $secs ] || break
     sleep 30
   done
@@ -63,15 +77,15 @@ watch)
 stop)
   for d in $RUNS/*/; do
     [ -f $d/run.pid ] || continue
-    if $DESIGN status $d >/dev/null 2>&1; then
+    if alive $d; then
       pid=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['pid'])" $d/run.pid)
       kill -TERM -- -$pid 2>/dev/null || kill -TERM $pid
       echo "stop: $(basename $d) (pid $pid)"
     fi
   done
   for i in $(seq 30); do
-    alive=$(for d in $RUNS/*/; do $DESIGN status $d >/dev/null 2>&1 && echo x; done | wc -l)
-    [ $alive -eq 0 ] && break; sleep 2
+    n=$(for d in $RUNS/*/; do alive $d && echo x; done | wc -l)
+    [ $n -eq 0 ] && break; sleep 2
   done
   for d in $RUNS/*/; do echo "$(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"; done
   ;;
