@@ -12,7 +12,18 @@ import torch
 from rwwarp.trace import COLUMNS as _COL
 
 __all__ = ["bytes_fixed", "bytes_per_source", "default_memory_budget_bytes", "device_overhead_bytes",
-           "output_bytes_per_source"]
+           "output_bytes_per_source", "over_budget"]
+
+
+def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:
+    """A message when ``memory_gb`` (GB = 1e9 bytes, the memory in use a training step measured) exceeds
+    ``budget_gb`` (GB; None or 0: no budget), else None. ``where`` names the run and step in the message. The design
+    loop warns with it once per arm and records it in ``progress.json``: a provider whose plans grow (a focal entry
+    rebuilt for new DOE orders went from 20 to 117 GB under a 24 GB budget on an H200) must not pass unseen."""
+    if not budget_gb or memory_gb is None or not memory_gb > float(budget_gb):
+        return None
+    return (f"{where}: {memory_gb:.3g} GB of memory in use, over the memory budget of {float(budget_gb):.3g} GB "
+            "(optics.memory_budget_gb): the plans or caches grew past what the budget was set for")
 
 
 def device_overhead_bytes(device) -> int:

@@ -83,6 +83,7 @@ from torch_bridge.config import (  # noqa: F401
     resolve_config,
     validate_config,
 )
+from torch_bridge.budget import over_budget
 from torch_bridge.evaluate import _blur_patch, _eval_provider, _noise, _psf_kernels, evaluate, objective
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 
@@ -532,6 +533,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         pf.update(state=state, arm=name, phase=phase, step=arm.step, steps_total=total, joint_steps=joint,
                   arm_wall_s=round(arm.wall_total(), 1), peak_gpu_gb=peak, **pf.rate(arm.step, total), **kw)
     t0 = time.perf_counter()
+    over = False          # warned that the memory in use exceeded optics.memory_budget_gb (once an arm)
     if pf is not None:
         pf.start_arm(arm.step)
         pf.rec["checkpoint_step"] = arm.step if resume_now else None
@@ -586,6 +588,12 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                     "lr_network": t_cfg["lr_network"] * f, "optics_step": int(optics_step),
                     "wall_s": time.perf_counter() - t0, "replans": getattr(arm.provider, "replans", 0),
                     "memory_gb": _memory_gb(arm.device)}
+            msg = None if over else over_budget(last["memory_gb"], cfg["optics"]["memory_budget_gb"],
+                                                f"design arm {name!r}, step {step} ({last['replans']} replans)")
+            if msg:
+                over = True
+                warnings.warn(msg, ResourceWarning, stacklevel=2)
+                report("running", phase, memory_over_budget=msg)
             if lead and (step % t_cfg["log_every"] == 0 or arm.step == total):
                 writer.writerow(last)
                 fcsv.flush()

@@ -303,3 +303,22 @@ def test_git_commit_of_a_copied_tree_comes_from_rwwarp_commit(monkeypatch, tmp_p
     head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
     if head.returncode == 0:
         assert git_commit(root)["commit"] == head.stdout.strip()
+
+
+def test_memory_over_the_budget_is_warned_once_and_recorded(tmp_path):
+    """The design loop compares the memory in use it measures after each step (here the process's peak RSS,
+    hundreds of MB) with ``optics.memory_budget_gb``: under a 1 MB budget it warns once per arm, naming the budget,
+    and ``progress.json`` keeps the message; under a budget above the measured memory, or none, nothing is said."""
+    import warnings
+    small = tiny(**{**OVER, "optics.memory_budget_gb": 0.001})
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        train(small, out_dir=tmp_path / "small", progress=False)
+    over = [w for w in got if issubclass(w.category, ResourceWarning) and "memory_budget_gb" in str(w.message)]
+    assert len(over) == 1 and "over the memory budget of 0.001 GB" in str(over[0].message)
+    rss_gb = float(str(over[0].message).split(": ")[1].split(" GB")[0])
+    assert rss_gb > 0.001                                     # what was measured, not the budget
+    assert "memory_budget_gb" in json.loads((tmp_path / "small" / "progress.json").read_text())["memory_over_budget"]
+    from torch_bridge.budget import over_budget
+    assert over_budget(rss_gb, 1000, "x") is None and over_budget(rss_gb, None, "x") is None   # under / no budget
+    assert over_budget(rss_gb, 0.5 * rss_gb, "x") is not None
