@@ -408,7 +408,9 @@ class CachedProvider:
         if f_doe is None:
             f_doe = self._doe_frequency(geo, rw.origin, plan.pitch_mm, plan.n_grid, wavelength_um)[0]
         self._cache[key] = (rw, u, dist, entering, geo)
-        self.plans[key] = {"pitch_mm": plan.pitch_mm, "n_grid": plan.n_grid, "n_pad": plan.n_pad,
+        # the method is recorded with the plan: "auto" decides from the DOE of the moment, and an entry built again
+        # (a resumed run's load_plans, release) must take the path it took, not the one today's DOE would get
+        self.plans[key] = {"method": "asm", "pitch_mm": plan.pitch_mm, "n_grid": plan.n_grid, "n_pad": plan.n_pad,
                            "ray_grid": plan.ray_grid, "centers": np.asarray(centres).tolist(),
                            "f_doe_cpmm": float(f_doe), "safety": float(geo.nyquist_safety)}
         return self._cache[key]

@@ -260,10 +260,13 @@ def format_status(st: dict) -> str:
         lines.append(f"  arm {p.get('arm')} ({p.get('arm_index', 0) + 1}/{p.get('arms_total')}), phase "
                      f"{p.get('phase')}, step {p.get('step')}/{p.get('steps_total')}, {f('steps_per_s', '.3f')} "
                      f"steps/s, ETA {f('eta_s', '.0f')} s, loss {f('loss', '.5f')}, PSNR {f('psnr_train', '.2f')} "
-                     f"dB, peak GPU {f('peak_gpu_gb', '.2f')} GB; last checkpoint at step {p.get('checkpoint_step', '-')}; "
-                     f"updated {p.get('updated_utc')}")
+                     f"dB, peak GPU {f('peak_gpu_gb', '.2f')} GB, memory in use {f('memory_gb', '.2f')} GB"
+                     f"{' (OVER BUDGET)' if p.get('memory_over_budget') else ''}; last checkpoint at step "
+                     f"{p.get('checkpoint_step', '-')}; updated {p.get('updated_utc')}")
         if p.get("error"):
             lines.append(f"  error: {p['error']}")
+        if p.get("memory_over_budget"):
+            lines.append(f"  warning: {p['memory_over_budget']}")
     for name, a in st["arms"].items():
         lines.append(f"  {name}: {'finished' if a['finished'] else 'unfinished'}"
                      + (f", checkpoint {a['checkpoint_mib']} MiB at {a['checkpoint_utc']}" if a["checkpoint"]

@@ -119,3 +119,25 @@ def test_asm_entry_is_not_rebuilt_when_the_doe_grows_to_the_feature_limit():
     assert m.limit_doe_feature(feat) < 1.0          # ... projected back onto it, as training does
     assert _smallest_step_mm(m.to_lens()) == pytest.approx(feat, rel=1e-3)
     assert p.check_sampling() == 0 and p.plans[k]["pitch_mm"] == plan["pitch_mm"]
+
+
+def test_a_rebuilt_entry_keeps_the_method_auto_chose_when_it_was_planned():
+    """"auto" decides an entry's path from the DOE of the moment (F/8 here: the ASM for the blank DOE, the focal
+    path once the DOE is strong). An entry built again from its record (a resumed run's load_plans) keeps the ASM
+    and its plan: a resumed design took the focal path and ended 0.4 dB off the uninterrupted run (session 19)."""
+    lens = _lens([0.0, 0.0, 0.0, 0.0])
+    lens = lens.replace(entrance_pupil_diameter=lens.efl(0.55) / 8.0)
+    m = tb.HybridLens(lens, learn={"doe": "all"}, nyquist_safety=1.0, rays_per_sample=1.2)
+    fields = dz.field_angles(lens, [(0.0, 0.0)], 0.55)
+    first = dz.CachedProvider(m, fields, 31, 0.003, wavelength_ref_um=0.55)
+    first.prepare([0.45], [None])
+    k = first._key(0.45, None)
+    assert k in first._cache and first.plans[k]["method"] == "asm"
+    with torch.no_grad():
+        m.doe.copy_(torch.tensor([-20.0, 5.0, 10.0, 10.0], dtype=m.doe.dtype))
+    assert dz.CachedProvider(m, fields, 31, 0.003, wavelength_ref_um=0.55)._uses_focal(k)   # a fresh choice: focal
+    resumed = dz.CachedProvider(m, fields, 31, 0.003, wavelength_ref_um=0.55)
+    resumed.load_plans(first.plans)
+    resumed.prepare([0.45], [None])
+    assert k in resumed._cache and k not in resumed._focal
+    assert resumed.plans[k]["pitch_mm"] == first.plans[k]["pitch_mm"]
