@@ -1,0 +1,142 @@
+"""The planner's model-error estimate on the A489 + DOE's own beams, against a wave-exact truth (issue 27, item 1).
+
+For each case (``rw.load_lens("a489_doe")``: the asphere, its 3 x 3 mm DOE 2.95 mm before the sensor, the source
+at the lens file's 10 m; stop radius 1.0 mm (F/4, the file's) or 0.5 mm (F/8); field 0 / 5 / 10 deg; 0.55 um; the
+DOE ``600 rho^2 + 200 rho^4`` rad, rho = r / 1.5 mm, continuous: at its design wavelength the wrapped relief
+transmits the same field; the planner's rim slopes 20-80 rad): the measured model error
+(``tests/rwwarp/_a489_truth.py``: the stop's disc propagated as a wave through the real lens, the angular spectrum
+in air and glass and the wave propagation method through the two surfaces' sag zones, written from the equations,
+numpy, no rwwarp code; against the geometric field traced to the DOE plane; the same DOE and exact angular spectrum to
+the sensor; max |difference| over the truth's peak on the spot's patch, 0.5 um samples), the estimate
+(``rw.plan_psf(...).model_error``, what ``--explain`` prints), their ratio, and the truth's convergence: the same case
+with the grid's pitch and the WPM's slice halved (F/8; at F/4 the slice halved and the pitch 0.7x), the front zone
+traced geometrically instead (its share of the error), and the smooth-pupil control (the stop's amplitude a cos^2
+over its whole radius: no edge, the truth against geometric optics). Writes perf/results/model_error_a489.json.
+CPU only. Usage: python perf/model_error_a489.py [--quick]  (--quick: F/8 only)
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "rwwarp"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import rwwarp as rw                                                    # noqa: E402
+from _common import device_name, save                                  # noqa: E402
+from _a489_truth import A489, measured_error, truth_and_model          # noqa: E402
+
+COEFFS = (600.0, 200.0)
+#: (stop radius mm, field deg, pitch mm, slice mm, the refined run's pitch and slice, the refined pair's front zone):
+#: F/8 refines the whole truth (pitch and slice halved); F/4 (a 2304^2 grid through the asphere's 0.13 mm sag zone,
+#: ~4 CPU-minutes a run here) refines with the front zone traced (the pair "geometric" at both samplings), the
+#: front zone's own share measured at the base sampling
+CASES = [(0.5, 0.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"), (0.5, 5.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"),
+         (0.5, 10.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"),
+         (1.0, 0.0, 1.0e-3, 1e-3, 0.7e-3, 0.5e-3, "geometric"), (1.0, 10.0, 1.0e-3, 1e-3, 0.7e-3, 0.5e-3, "geometric"),
+         (1.0, 5.0, 1.0e-3, 1e-3, 0.7e-3, 0.5e-3, "geometric")]
+#: a steeper DOE at F/8 (4x the coefficients: the plan's rim slopes ~60-80 rad at N_F 30), its 1.6x wider spectrum on
+#: a 0.75 um grid
+STEEP = (2400.0, 800.0)
+STEEP_CASES = [(0.5, f, 0.75e-3, 1e-3, 0.5e-3, 0.5e-3, "geometric") for f in (0.0, 5.0, 10.0)]
+
+
+def estimate(a_mm, field_deg, coeffs=COEFFS):
+    """The planner's model-error dict for the A489 + DOE with the stop radius ``a_mm`` and the DOE ``coeffs``."""
+    lens = rw.load_lens("a489_doe")
+    lens.surfaces[0].semi_diameter = a_mm
+    lens.surfaces[3].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": list(coeffs)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        me = rw.plan_psf(lens, field_deg, 0.55, size=64, method="focal").model_error
+    return {k: me[k] for k in ("estimate", "main_estimate", "fresnel_number", "rim_slope_rad",
+                               "reduced_distance_mm", "beam_radius_mm", "note")}
+
+
+def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=COEFFS):
+    lens = A489(a_mm=a_mm, coeffs=coeffs)
+    row = {"stop_radius_mm": a_mm, "f_number": round(7.95 / (2 * a_mm), 2), "field_deg": field_deg, "pitch_mm": h,
+           "slice_mm": dz, "doe_coefficients": list(coeffs), "doe_norm_mm": 1.5, "wavelength_um": 0.55}
+    c0 = time.process_time()
+    T, M, info = truth_and_model(lens, field_deg, h=h, dz=dz, front="wave")
+    row["cpu_s"] = time.process_time() - c0
+    err = measured_error(T, M)
+    row.update(measured=err, truth_peak=float(T.max()), model_peak=float(M.max()),
+               patch_half_mm=float(info["patch_x"][-1] - info["patch_x"][0]) / 2, patch_pitch_mm=0.5e-3,
+               grids=[info["NA_grid"], info["NB_grid"]], crop_loss=info["crop_loss"], doe_clipped=info["doe_clipped"],
+               power_stop=info["power_stop"], power_doe_truth=info["power_doe_truth"],
+               power_doe_model=info["power_doe_model"], spectrum_beyond_0p8_nyquist=info["band_edge"])
+    est = estimate(a_mm, field_deg, coeffs)
+    row.update(est)
+    row["ratio"] = est["estimate"] / err
+    print(f"F/{row['f_number']} {field_deg} deg DOE {coeffs}: measured {err:.4f} estimate {est['estimate']:.4f} ratio "
+          f"{row['ratio']:.2f} (N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) "
+          f"cpu {row['cpu_s']:.0f} s", flush=True)
+    half = row["patch_half_mm"]
+    centre = (float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half)
+    # the front zone traced geometrically: its share of the error
+    Tg, Mg, _ = truth_and_model(lens, field_deg, h=h, dz=dz, front="geometric", patch_half=half,
+                                patch_center=centre)
+    row["measured_front_geometric"] = measured_error(Tg, Mg)
+    # the smooth pupil: no edge, the truth against geometric optics
+    Ts, Ms, _ = truth_and_model(lens, field_deg, h=h, dz=dz, front=refine_front, soft=1.0)
+    row["smooth_pupil_difference"] = measured_error(Ts, Ms)
+    print(f"   front traced: {row['measured_front_geometric']:.4f}; smooth pupil ({refine_front} front): "
+          f"{row['smooth_pupil_difference']:.2e}", flush=True)
+    if refine:
+        c0 = time.process_time()
+        T2, M2, i2 = truth_and_model(lens, field_deg, h=h2, dz=dz2, front=refine_front, patch_half=half,
+                                     patch_center=centre)
+        row["refined"] = {"pitch_mm": h2, "slice_mm": dz2, "front": refine_front, "cpu_s": time.process_time() - c0}
+        err2 = measured_error(T2, M2)
+        T1 = T if refine_front == "wave" else Tg
+        row["refined"].update(measured=err2, truth_change=float(np.max(np.abs(T2 - T1)) / T2.max()),
+                              base_measured=measured_error(T1, M if refine_front == "wave" else Mg))
+        print(f"   refined (h {h2 * 1e3:.2f} um, dz {dz2 * 1e3:.2f} um): measured {err2:.4f}, the truth moved by "
+              f"{row['refined']['truth_change']:.2e} of its peak", flush=True)
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--no-refine", action="store_true")
+    ap.add_argument("--set", choices=("all", "main", "steep"), default="all",
+                    help="main: the 600 rho^2 + 200 rho^4 DOE at F/8 and F/4; steep: 4x it at F/8 (written to "
+                         "model_error_a489_<set>.json; --merge joins the two into model_error_a489.json)")
+    ap.add_argument("--merge", action="store_true")
+    args = ap.parse_args()
+    if args.merge:
+        import json
+        from _common import RESULTS
+        parts = [json.loads((RESULTS / f"model_error_a489_{s}.json").read_text()) for s in ("main", "steep")]
+        rows = parts[0]["rows"] + parts[1]["rows"]
+        r = np.array([x["ratio"] for x in rows])
+        print("wrote", save("model_error_a489", {"rows": rows, "ratio_min": float(r.min()), "ratio_max": float(r.max()),
+                                                 "wall_s": sum(p["wall_s"] for p in parts), "device": parts[0]["device"],
+                                                 "commit": parts[0]["commit"]}))
+        return
+    todo = ([(c, COEFFS) for c in CASES] if args.set in ("all", "main") else []) + \
+           ([(c, STEEP) for c in STEEP_CASES] if args.set in ("all", "steep") else [])
+    rows, t0 = [], time.time()
+    name = "model_error_a489" + ("" if args.set == "all" else "_" + args.set) + ("_quick" if args.quick else "")
+    for case, co in todo:
+        if args.quick and case[0] > 0.5:
+            continue
+        rows.append(run_case(*case, refine=not args.no_refine, coeffs=co))
+        save(name + "_partial", {"rows": rows})
+    r = np.array([x["ratio"] for x in rows])
+    out = {"rows": rows, "ratio_min": float(r.min()), "ratio_max": float(r.max()), "wall_s": time.time() - t0,
+           "device": device_name("cpu")}
+    print(f"estimate / measured: {r.min():.2f} .. {r.max():.2f} over {len(r)} cases")
+    print("wrote", save(name, out))
+
+
+if __name__ == "__main__":
+    main()
