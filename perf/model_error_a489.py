@@ -111,12 +111,40 @@ def main():
                     help="main: the 600 rho^2 + 200 rho^4 DOE at F/8 and F/4; steep: 4x it at F/8 (written to "
                          "model_error_a489_<set>.json; --merge joins the two into model_error_a489.json)")
     ap.add_argument("--merge", action="store_true")
+    ap.add_argument("--front-check", action="store_true",
+                    help="the WPM's slice through the asphere's sag zone halved (1 -> 0.5 um) on the cases whose "
+                         "refined pair traced the front zone: model_error_a489_front.json")
     args = ap.parse_args()
+    if args.front_check:
+        rows = []
+        for (a, f, h, dz, _, _, fr), co in [(c, COEFFS) for c in CASES] + [(c, STEEP) for c in STEEP_CASES]:
+            if fr != "geometric" or (args.quick and a > 0.5):
+                continue
+            lens = A489(a_mm=a, coeffs=co)
+            c0 = time.process_time()
+            T, M, info = truth_and_model(lens, f, h=h, dz=dz, front="wave")
+            half = float(info["patch_x"][-1] - info["patch_x"][0]) / 2
+            centre = (float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half)
+            T2, M2, _ = truth_and_model(lens, f, h=h, dz=0.5 * dz, front="wave", patch_half=half, patch_center=centre)
+            row = {"stop_radius_mm": a, "field_deg": f, "doe_coefficients": list(co), "pitch_mm": h, "slice_mm": dz,
+                   "measured": measured_error(T, M), "measured_half_slice": measured_error(T2, M2),
+                   "truth_change": float(np.max(np.abs(T2 - T)) / T2.max()), "cpu_s": time.process_time() - c0}
+            rows.append(row)
+            print(f"a {a} {f} deg {co}: slice {dz * 1e3:.2f} -> {dz * 5e2:.2f} um: measured {row['measured']:.4f} -> "
+                  f"{row['measured_half_slice']:.4f}, the truth moved by {row['truth_change']:.2e}", flush=True)
+            save("model_error_a489_front", {"rows": rows})
+        return
     if args.merge:
         import json
         from _common import RESULTS
         parts = [json.loads((RESULTS / f"model_error_a489_{s}.json").read_text()) for s in ("main", "steep")]
         rows = parts[0]["rows"] + parts[1]["rows"]
+        front = RESULTS / "model_error_a489_front.json"
+        for fr in (json.loads(front.read_text())["rows"] if front.exists() else []):
+            for row in rows:
+                if (row["stop_radius_mm"], row["field_deg"], row["doe_coefficients"]) == \
+                        (fr["stop_radius_mm"], fr["field_deg"], fr["doe_coefficients"]):
+                    row["front_slice_check"] = fr
         r = np.array([x["ratio"] for x in rows])
         print("wrote", save("model_error_a489", {"rows": rows, "ratio_min": float(r.min()), "ratio_max": float(r.max()),
                                                  "wall_s": sum(p["wall_s"] for p in parts), "device": parts[0]["device"],
