@@ -116,9 +116,13 @@ def main():
                          "refined pair traced the front zone: model_error_a489_front.json")
     args = ap.parse_args()
     if args.front_check:
-        rows = []
+        import json
+        from _common import RESULTS
+        prev = RESULTS / "model_error_a489_front.json"
+        rows = json.loads(prev.read_text())["rows"] if prev.exists() else []      # kept: a rerun adds the missing
+        done = {(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"])) for r in rows}
         for (a, f, h, dz, _, _, fr), co in [(c, COEFFS) for c in CASES] + [(c, STEEP) for c in STEEP_CASES]:
-            if fr != "geometric" or (args.quick and a > 0.5):
+            if fr != "geometric" or (args.quick and a > 0.5) or (a, f, tuple(co)) in done:
                 continue
             lens = A489(a_mm=a, coeffs=co)
             c0 = time.process_time()
