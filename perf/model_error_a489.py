@@ -11,8 +11,12 @@ the sensor; max |difference| over the truth's peak on the spot's patch, 0.5 um s
 (``rw.plan_psf(...).model_error``, what ``--explain`` prints), their ratio, and the truth's convergence: the same case
 with the grid's pitch and the WPM's slice halved (F/8; at F/4 the slice halved and the pitch 0.7x), the front zone
 traced geometrically instead (its share of the error), and the smooth-pupil control (the stop's amplitude a cos^2
-over its whole radius: no edge, the truth against geometric optics). Writes perf/results/model_error_a489.json.
-CPU only. Usage: python perf/model_error_a489.py [--quick]  (--quick: F/8 only)
+over its whole radius: no edge, the truth against geometric optics). A steeper DOE (4x) at F/8 (``--set steep``);
+``--front-check``: the WPM's slice through the asphere halved where the refined pair traced that zone; ``--f22``: one
+F/2.2 case on axis, unrefined; ``--merge``: the sets into perf/results/model_error_a489.json.
+CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min).
+Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--merge]
+(--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -44,6 +48,8 @@ CASES = [(0.5, 0.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"), (0.5, 5.0, 1.5e-3, 1
 #: a steeper DOE at F/8 (4x the coefficients: the plan's rim slopes ~60-80 rad at N_F 30), its 1.6x wider spectrum on
 #: a 0.75 um grid
 STEEP = (2400.0, 800.0)
+#: F/2.2 (--f22): a quarter of COEFFS, the plan's rim slope 92 rad on its 0.70 mm beam
+F22_COEFFS = (150.0, 50.0)
 STEEP_CASES = [(0.5, f, 0.75e-3, 1e-3, 0.5e-3, 0.5e-3, "geometric") for f in (0.0, 5.0, 10.0)]
 
 
@@ -114,7 +120,24 @@ def main():
     ap.add_argument("--front-check", action="store_true",
                     help="the WPM's slice through the asphere's sag zone halved (1 -> 0.5 um) on the cases whose "
                          "refined pair traced the front zone: model_error_a489_front.json")
+    ap.add_argument("--f22", action="store_true",
+                    help="one F/2.2 case (the experiments' aperture, stop radius 1.807 mm), axis, the DOE 150 rho^2 + 50 "
+                         "rho^4 (the plan's rim slope 92 rad), the asphere's zone traced, 0.8 um grid, no refinement: "
+                         "model_error_a489_f22.json (~25 CPU-minutes here)")
     args = ap.parse_args()
+    if args.f22:
+        co, a = F22_COEFFS, 7.95 / 4.4
+        est = estimate(a, 0.0, co)
+        c0 = time.process_time()
+        T, M, info = truth_and_model(A489(a_mm=a, coeffs=co), 0.0, h=0.8e-3, dz=1e-3, front="geometric")
+        err = measured_error(T, M)
+        row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": 0.0, "doe_coefficients": list(co), "pitch_mm": 0.8e-3,
+               "slice_mm": 1e-3, "front": "geometric", "measured": err, "ratio": est["estimate"] / err,
+               "cpu_s": time.process_time() - c0, "power_doe_truth_over_stop": info["power_doe_truth"] / info["power_stop"],
+               "crop_loss": info["crop_loss"], "grids": [info["NA_grid"], info["NB_grid"]], **est}
+        print(f"F/2.2 axis: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f}")
+        print("wrote", save("model_error_a489_f22", {"rows": [row]}))
+        return
     if args.front_check:
         import json
         from _common import RESULTS
@@ -143,6 +166,8 @@ def main():
         from _common import RESULTS
         parts = [json.loads((RESULTS / f"model_error_a489_{s}.json").read_text()) for s in ("main", "steep")]
         rows = parts[0]["rows"] + parts[1]["rows"]
+        f22 = RESULTS / "model_error_a489_f22.json"
+        extra = json.loads(f22.read_text())["rows"] if f22.exists() else []
         front = RESULTS / "model_error_a489_front.json"
         for fr in (json.loads(front.read_text())["rows"] if front.exists() else []):
             for row in rows:
@@ -150,7 +175,7 @@ def main():
                         (fr["stop_radius_mm"], fr["field_deg"], fr["doe_coefficients"]):
                     row["front_slice_check"] = fr
         r = np.array([x["ratio"] for x in rows])
-        print("wrote", save("model_error_a489", {"rows": rows, "ratio_min": float(r.min()), "ratio_max": float(r.max()),
+        print("wrote", save("model_error_a489", {"rows": rows, "f22_unrefined": extra, "ratio_min": float(r.min()), "ratio_max": float(r.max()),
                                                  "wall_s": sum(p["wall_s"] for p in parts), "device": parts[0]["device"],
                                                  "commit": parts[0]["commit"]}))
         return

@@ -175,7 +175,8 @@ class A489:
         x, _, _ = self.trace(np.zeros(1), np.zeros(1), theta_rad, z_plane, glass_plane)
         return float(x[0])
 
-    def geometric_field(self, X, Y, theta_rad, z_plane, glass_plane=False, h=None, soft=0.0, tol=1e-11):
+    def geometric_field(self, X, Y, theta_rad, z_plane, glass_plane=False, h=None, soft=0.0, tol=1e-11,
+                        chunk=1 << 20):
         """The geometric field at the plane ``z_plane`` on the samples (X, Y) (mm), carrier removed: each sample's
         ray found by Newton's method from the stop, amplitude ``sqrt(|d(xs, ys) / d(x, y)|)``, phase ``k`` times the path
         from the object point ``- 2 pi nu0 x``, cut by the stop (rim samples: the share of their cell, of side ``h``, inside;
@@ -188,8 +189,17 @@ class A489:
         x0, y0, _ = self.trace(np.array([0.0, e, 0.0]), np.array([0.0, 0.0, e]), theta_rad, z_plane, glass_plane)
         mx, my = (x0[1] - x0[0]) / e, (y0[2] - y0[0]) / e
         keep = np.hypot((X - x0[0]) / mx, Y / my) < 1.25 * self.a
-        xt, yt = X[keep], Y[keep]
-        xs, ys = (xt - x0[0]) / mx, yt / my
+        out = np.zeros(X.shape, complex)
+        idx = np.flatnonzero(keep)
+        for i in range(0, len(idx), chunk):          # in chunks: bounds the trace's temporaries
+            sel = idx[i:i + chunk]
+            out[sel] = self._geometric_samples(X[sel], Y[sel], (x0[0], mx, my), theta_rad, z_plane, glass_plane,
+                                               h, soft, tol, e)
+        return out.reshape(shape)
+
+    def _geometric_samples(self, xt, yt, guess, theta_rad, z_plane, glass_plane, h, soft, tol, e):
+        """:meth:`geometric_field` on the samples (xt, yt) (1-D), ``guess`` the affine first guess's (x0, mx, my)."""
+        xs, ys = (xt - guess[0]) / guess[1], yt / guess[2]
         for _ in range(40):
             x, y, _ = self.trace(xs, ys, theta_rad, z_plane, glass_plane)
             ax, ay, _ = self.trace(xs + e, ys, theta_rad, z_plane, glass_plane)
@@ -213,9 +223,7 @@ class A489:
             hs = h / np.sqrt(det)                  # the cell's side mapped back to the stop
             ap = np.clip(0.5 + (self.a - rs) / hs, 0.0, 1.0)
         nu0 = np.sin(theta_rad) / self.lam
-        out = np.zeros(X.shape, complex)
-        out[keep] = ap / np.sqrt(det) * np.exp(1j * (ph - 2 * np.pi * nu0 * xt))
-        return out.reshape(shape)
+        return ap / np.sqrt(det) * np.exp(1j * (ph - 2 * np.pi * nu0 * xt))
 
 
 class Grid:
