@@ -1,0 +1,199 @@
+"""The planner's model-error estimate on the A489 + DOE's own beams, against a wave-exact truth (issue 27, item 1).
+
+For each case (``rw.load_lens("a489_doe")``: the asphere, its 3 x 3 mm DOE 2.95 mm before the sensor, the source
+at the lens file's 10 m; stop radius 1.0 mm (F/4, the file's) or 0.5 mm (F/8); field 0 / 5 / 10 deg; 0.55 um; the
+DOE ``600 rho^2 + 200 rho^4`` rad, rho = r / 1.5 mm, continuous: at its design wavelength the wrapped relief
+transmits the same field; the planner's rim slopes 20-80 rad): the measured model error
+(``tests/rwwarp/_a489_truth.py``: the stop's disc propagated as a wave through the real lens, the angular spectrum
+in air and glass and the wave propagation method through the two surfaces' sag zones, written from the equations,
+numpy, no rwwarp code; against the geometric field traced to the DOE plane; the same DOE and exact angular spectrum to
+the sensor; max |difference| over the truth's peak on the spot's patch, 0.5 um samples), the estimate
+(``rw.plan_psf(...).model_error``, what ``--explain`` prints), their ratio, and the truth's convergence: the same case
+with the grid's pitch and the WPM's slice halved (F/8; at F/4 the slice halved and the pitch 0.7x), the front zone
+traced geometrically instead (its share of the error), and the smooth-pupil control (the stop's amplitude a cos^2
+over its whole radius: no edge, the truth against geometric optics). A steeper DOE (4x) at F/8 (``--set steep``);
+``--front-check``: the WPM's slice through the asphere halved where the refined pair traced that zone; ``--f22``: one
+F/2.2 case on axis, unrefined; ``--merge``: the sets into perf/results/model_error_a489.json.
+CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min).
+Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--merge]
+(--quick: F/8 only)
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "rwwarp"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import rwwarp as rw                                                    # noqa: E402
+from _common import device_name, save                                  # noqa: E402
+from _a489_truth import A489, measured_error, truth_and_model          # noqa: E402
+
+COEFFS = (600.0, 200.0)
+#: (stop radius mm, field deg, pitch mm, slice mm, the refined run's pitch and slice, the refined pair's front zone):
+#: F/8 refines the whole truth (pitch and slice halved); F/4 (a 2304^2 grid through the asphere's 0.13 mm sag zone,
+#: ~4 CPU-minutes a run here) refines with the front zone traced (the pair "geometric" at both samplings), the
+#: front zone's own share measured at the base sampling
+CASES = [(0.5, 0.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"), (0.5, 5.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"),
+         (0.5, 10.0, 1.5e-3, 1e-3, 0.75e-3, 0.5e-3, "wave"),
+         (1.0, 0.0, 1.0e-3, 1e-3, 0.7e-3, 0.5e-3, "geometric"), (1.0, 10.0, 1.0e-3, 1e-3, 0.7e-3, 0.5e-3, "geometric"),
+         (1.0, 5.0, 1.0e-3, 1e-3, 0.7e-3, 0.5e-3, "geometric")]
+#: a steeper DOE at F/8 (4x the coefficients: the plan's rim slopes ~60-80 rad at N_F 30), its 1.6x wider spectrum on
+#: a 0.75 um grid
+STEEP = (2400.0, 800.0)
+#: F/2.2 (--f22): a quarter of COEFFS, the plan's rim slope 92 rad on its 0.70 mm beam
+F22_COEFFS = (150.0, 50.0)
+STEEP_CASES = [(0.5, f, 0.75e-3, 1e-3, 0.5e-3, 0.5e-3, "geometric") for f in (0.0, 5.0, 10.0)]
+
+
+def estimate(a_mm, field_deg, coeffs=COEFFS):
+    """The planner's model-error dict for the A489 + DOE with the stop radius ``a_mm`` and the DOE ``coeffs``."""
+    lens = rw.load_lens("a489_doe")
+    lens.surfaces[0].semi_diameter = a_mm
+    lens.surfaces[3].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": list(coeffs)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        me = rw.plan_psf(lens, field_deg, 0.55, size=64, method="focal").model_error
+    return {k: me[k] for k in ("estimate", "main_estimate", "fresnel_number", "rim_slope_rad",
+                               "reduced_distance_mm", "beam_radius_mm", "note")}
+
+
+def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=COEFFS):
+    lens = A489(a_mm=a_mm, coeffs=coeffs)
+    row = {"stop_radius_mm": a_mm, "f_number": round(7.95 / (2 * a_mm), 2), "field_deg": field_deg, "pitch_mm": h,
+           "slice_mm": dz, "doe_coefficients": list(coeffs), "doe_norm_mm": 1.5, "wavelength_um": 0.55}
+    c0 = time.process_time()
+    T, M, info = truth_and_model(lens, field_deg, h=h, dz=dz, front="wave")
+    row["cpu_s"] = time.process_time() - c0
+    err = measured_error(T, M)
+    row.update(measured=err, truth_peak=float(T.max()), model_peak=float(M.max()),
+               patch_half_mm=float(info["patch_x"][-1] - info["patch_x"][0]) / 2, patch_pitch_mm=0.5e-3,
+               grids=[info["NA_grid"], info["NB_grid"]], crop_loss=info["crop_loss"], doe_clipped=info["doe_clipped"],
+               power_stop=info["power_stop"], power_doe_truth=info["power_doe_truth"],
+               power_doe_model=info["power_doe_model"], spectrum_beyond_0p8_nyquist=info["band_edge"])
+    est = estimate(a_mm, field_deg, coeffs)
+    row.update(est)
+    row["ratio"] = est["estimate"] / err
+    print(f"F/{row['f_number']} {field_deg} deg DOE {coeffs}: measured {err:.4f} estimate {est['estimate']:.4f} ratio "
+          f"{row['ratio']:.2f} (N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) "
+          f"cpu {row['cpu_s']:.0f} s", flush=True)
+    half = row["patch_half_mm"]
+    centre = (float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half)
+    # the front zone traced geometrically: its share of the error
+    Tg, Mg, _ = truth_and_model(lens, field_deg, h=h, dz=dz, front="geometric", patch_half=half,
+                                patch_center=centre)
+    row["measured_front_geometric"] = measured_error(Tg, Mg)
+    # the smooth pupil: no edge, the truth against geometric optics
+    Ts, Ms, _ = truth_and_model(lens, field_deg, h=h, dz=dz, front=refine_front, soft=1.0)
+    row["smooth_pupil_difference"] = measured_error(Ts, Ms)
+    print(f"   front traced: {row['measured_front_geometric']:.4f}; smooth pupil ({refine_front} front): "
+          f"{row['smooth_pupil_difference']:.2e}", flush=True)
+    if refine:
+        c0 = time.process_time()
+        T2, M2, i2 = truth_and_model(lens, field_deg, h=h2, dz=dz2, front=refine_front, patch_half=half,
+                                     patch_center=centre)
+        row["refined"] = {"pitch_mm": h2, "slice_mm": dz2, "front": refine_front, "cpu_s": time.process_time() - c0}
+        err2 = measured_error(T2, M2)
+        T1 = T if refine_front == "wave" else Tg
+        row["refined"].update(measured=err2, truth_change=float(np.max(np.abs(T2 - T1)) / T2.max()),
+                              base_measured=measured_error(T1, M if refine_front == "wave" else Mg))
+        print(f"   refined (h {h2 * 1e3:.2f} um, dz {dz2 * 1e3:.2f} um): measured {err2:.4f}, the truth moved by "
+              f"{row['refined']['truth_change']:.2e} of its peak", flush=True)
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--no-refine", action="store_true")
+    ap.add_argument("--set", choices=("all", "main", "steep"), default="all",
+                    help="main: the 600 rho^2 + 200 rho^4 DOE at F/8 and F/4; steep: 4x it at F/8 (written to "
+                         "model_error_a489_<set>.json; --merge joins the two into model_error_a489.json)")
+    ap.add_argument("--merge", action="store_true")
+    ap.add_argument("--front-check", action="store_true",
+                    help="the WPM's slice through the asphere's sag zone halved (1 -> 0.5 um) on the cases whose "
+                         "refined pair traced the front zone: model_error_a489_front.json")
+    ap.add_argument("--f22", action="store_true",
+                    help="one F/2.2 case (the experiments' aperture, stop radius 1.807 mm), axis, the DOE 150 rho^2 + 50 "
+                         "rho^4 (the plan's rim slope 92 rad), the asphere's zone traced, 0.8 um grid, no refinement: "
+                         "model_error_a489_f22.json (~25 CPU-minutes here)")
+    args = ap.parse_args()
+    if args.f22:
+        co, a = F22_COEFFS, 7.95 / 4.4
+        est = estimate(a, 0.0, co)
+        c0 = time.process_time()
+        T, M, info = truth_and_model(A489(a_mm=a, coeffs=co), 0.0, h=0.8e-3, dz=1e-3, front="geometric")
+        err = measured_error(T, M)
+        row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": 0.0, "doe_coefficients": list(co), "pitch_mm": 0.8e-3,
+               "slice_mm": 1e-3, "front": "geometric", "measured": err, "ratio": est["estimate"] / err,
+               "cpu_s": time.process_time() - c0, "power_doe_truth_over_stop": info["power_doe_truth"] / info["power_stop"],
+               "crop_loss": info["crop_loss"], "grids": [info["NA_grid"], info["NB_grid"]], **est}
+        print(f"F/2.2 axis: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f}")
+        print("wrote", save("model_error_a489_f22", {"rows": [row]}))
+        return
+    if args.front_check:
+        import json
+        from _common import RESULTS
+        prev = RESULTS / "model_error_a489_front.json"
+        rows = json.loads(prev.read_text())["rows"] if prev.exists() else []      # kept: a rerun adds the missing
+        done = {(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"])) for r in rows}
+        for (a, f, h, dz, _, _, fr), co in [(c, COEFFS) for c in CASES] + [(c, STEEP) for c in STEEP_CASES]:
+            if fr != "geometric" or (args.quick and a > 0.5) or (a, f, tuple(co)) in done:
+                continue
+            lens = A489(a_mm=a, coeffs=co)
+            c0 = time.process_time()
+            T, M, info = truth_and_model(lens, f, h=h, dz=dz, front="wave")
+            half = float(info["patch_x"][-1] - info["patch_x"][0]) / 2
+            centre = (float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half)
+            T2, M2, _ = truth_and_model(lens, f, h=h, dz=0.5 * dz, front="wave", patch_half=half, patch_center=centre)
+            row = {"stop_radius_mm": a, "field_deg": f, "doe_coefficients": list(co), "pitch_mm": h, "slice_mm": dz,
+                   "measured": measured_error(T, M), "measured_half_slice": measured_error(T2, M2),
+                   "truth_change": float(np.max(np.abs(T2 - T)) / T2.max()), "cpu_s": time.process_time() - c0}
+            rows.append(row)
+            print(f"a {a} {f} deg {co}: slice {dz * 1e3:.2f} -> {dz * 5e2:.2f} um: measured {row['measured']:.4f} -> "
+                  f"{row['measured_half_slice']:.4f}, the truth moved by {row['truth_change']:.2e}", flush=True)
+            save("model_error_a489_front", {"rows": rows})
+        return
+    if args.merge:
+        import json
+        from _common import RESULTS
+        parts = [json.loads((RESULTS / f"model_error_a489_{s}.json").read_text()) for s in ("main", "steep")]
+        rows = parts[0]["rows"] + parts[1]["rows"]
+        f22 = RESULTS / "model_error_a489_f22.json"
+        extra = json.loads(f22.read_text())["rows"] if f22.exists() else []
+        front = RESULTS / "model_error_a489_front.json"
+        for fr in (json.loads(front.read_text())["rows"] if front.exists() else []):
+            for row in rows:
+                if (row["stop_radius_mm"], row["field_deg"], row["doe_coefficients"]) == \
+                        (fr["stop_radius_mm"], fr["field_deg"], fr["doe_coefficients"]):
+                    row["front_slice_check"] = fr
+        r = np.array([x["ratio"] for x in rows])
+        print("wrote", save("model_error_a489", {"rows": rows, "f22_unrefined": extra, "ratio_min": float(r.min()), "ratio_max": float(r.max()),
+                                                 "wall_s": sum(p["wall_s"] for p in parts), "device": parts[0]["device"],
+                                                 "commit": parts[0]["commit"]}))
+        return
+    todo = ([(c, COEFFS) for c in CASES] if args.set in ("all", "main") else []) + \
+           ([(c, STEEP) for c in STEEP_CASES] if args.set in ("all", "steep") else [])
+    rows, t0 = [], time.time()
+    name = "model_error_a489" + ("" if args.set == "all" else "_" + args.set) + ("_quick" if args.quick else "")
+    for case, co in todo:
+        if args.quick and case[0] > 0.5:
+            continue
+        rows.append(run_case(*case, refine=not args.no_refine, coeffs=co))
+        save(name + "_partial", {"rows": rows})
+    r = np.array([x["ratio"] for x in rows])
+    out = {"rows": rows, "ratio_min": float(r.min()), "ratio_max": float(r.max()), "wall_s": time.time() - t0,
+           "device": device_name("cpu")}
+    print(f"estimate / measured: {r.min():.2f} .. {r.max():.2f} over {len(r)} cases")
+    print("wrote", save(name, out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""The model-error estimate on the A489 + DOE's own beams against a wave-exact truth through the real lens (issue 27).
+
+The truth (``_a489_truth.py`` beside this file: the stop's disc propagated as a wave through the asphere, the glass
+and the rear surface, written from the equations, no rwwarp code; its docstring states them) and the one-step model
+(the geometric field traced to the DOE plane) share the DOE and the exact angular spectrum to the sensor; their
+difference is the model's own error. ``perf/model_error_a489.py`` runs the full cases (F/4, F/8; 0, 5, 10 deg).
+The reduced case here: the stop radius 0.5 mm (F/8), on axis, 0.55 um, the DOE 600 rho^2 + 200 rho^4 rad (rho = r /
+1.5 mm), the grid's pitch 1.5 um, the WPM's slice 1 um.
+"""
+import warnings
+
+import numpy as np
+import pytest
+
+import rwwarp as rw
+
+from _a489_truth import A489, measured_error, truth_and_model
+
+COEFFS = (600.0, 200.0)
+
+
+@pytest.fixture(scope="module")
+def reduced():
+    lens = A489(a_mm=0.5, coeffs=COEFFS)
+    T, M, info = truth_and_model(lens, 0.0, h=1.5e-3, dz=1e-3, front="wave")
+    return lens, T, M, info
+
+
+def test_the_truth_keeps_the_power_through_the_lens(reduced):
+    # the angular spectrum is unitary on the band and the WPM's slices keep |U|^2 but for the sub-slice phase:
+    # measured: DOE plane / stop 0.99893 (the rear window's crop took 1.0e-3: the edge's widest-angle light), the
+    # geometric model 0.99827 (its rim samples' share of the cell); a lost or doubled slice, a wrong transfer
+    # function's sign in the glass, or a window moved by the wrong number of samples moves these by > 1e-2
+    _, _, _, info = reduced
+    assert info["power_doe_truth"] / info["power_stop"] == pytest.approx(1.0, abs=3e-3)
+    assert info["power_doe_model"] / info["power_stop"] == pytest.approx(1.0, abs=3e-3)
+    assert info["crop_loss"] < 3e-3
+    assert info["doe_clipped"] == 0.0
+
+
+def test_without_an_edge_the_truth_is_geometric_optics():
+    # the stop's amplitude a cos^2 over its whole radius (no edge to diffract): the wave through the real asphere,
+    # glass and rear surface against the traced geometric field, both with the DOE, on the spot: measured 7.8e-3 of
+    # the peak (the smooth pupil's own diffraction included), against 0.54 with the hard stop. A wrong surface sag,
+    # index, refraction or a lateral offset between the planes' windows shows here as a difference of order 1
+    lens = A489(a_mm=0.5, coeffs=COEFFS)
+    T, M, _ = truth_and_model(lens, 0.0, h=1.5e-3, dz=1e-3, front="wave", soft=1.0)
+    assert measured_error(T, M) < 1.6e-2
+
+
+def test_the_estimate_against_the_truth_on_the_reduced_case(reduced):
+    # the hard stop: measured 0.537 of the peak (N_F 30.4, the plan's rim slope 18.9 rad); the truth moved by 5.7e-3
+    # of its peak with its pitch and slice halved (perf/model_error_a489.py). The planner's estimate (what --explain
+    # prints) reads 0.539: 1.00x. Held out (nothing tuned on it); the claim is a factor 2, the bound below 1.25x
+    _, T, M, _ = reduced
+    err = measured_error(T, M)
+    lens = rw.load_lens("a489_doe")
+    lens.surfaces[0].semi_diameter = 0.5
+    lens.surfaces[3].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": list(COEFFS)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = rw.plan_psf(lens, 0.0, 0.55, size=64, method="focal").model_error["estimate"]
+    assert 0.4 < err < 0.7
+    assert 0.5 <= est / err <= 2.0, (est, err)
+    assert 0.8 <= est / err <= 1.25, (est, err)
+
+
+@pytest.mark.slow
+def test_the_front_zone_carries_about_one_percent_of_the_error(reduced):
+    # the asphere's sag zone (stop -> 0.13 mm) traced geometrically instead of the WPM: the edge's diffraction over
+    # it is ~1 % of the reduced distance (0.1 mm of air and <= 0.03 mm of glass at the stop's scale, against ~15 mm);
+    # measured 0.5329 against 0.5366 (0.7 %)
+    lens, T, M, _ = reduced
+    Tg, Mg, _ = truth_and_model(lens, 0.0, h=1.5e-3, dz=1e-3, front="geometric")
+    e, eg = measured_error(T, M), measured_error(Tg, Mg)
+    assert abs(eg / e - 1) < 0.02
+    assert np.isfinite(Tg).all()
