@@ -701,7 +701,7 @@ class HybridLens(LensTables, nn.Module):
                                   f"cache, {self.bytes_fixed(full) / 2**20:.0f} MiB to the map's pilot trace and "
                                   f"output), below the estimated need of one source ({need / 2**20:.0f} MiB): running "
                                   "one source per tile (fewer rays_per_sample or a smaller plan would fit)",
-                                  ResourceWarning, stacklevel=2)
+                                  RuntimeWarning, stacklevel=2)
         tile = len(pairs) if tile is None else max(1, min(int(tile), len(pairs)))
         if spatial_tile is None and memory_budget_bytes is not None:
             spatial_tile = self.spatial_tile_for(full, memory_budget_bytes, tile)

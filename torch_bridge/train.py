@@ -592,7 +592,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                                                 f"design arm {name!r}, step {step} ({last['replans']} replans)")
             if msg:
                 over = True
-                warnings.warn(msg, ResourceWarning, stacklevel=2)
+                warnings.warn(msg, RuntimeWarning, stacklevel=2)   # shown by default (ResourceWarning is not)
                 report("running", phase, memory_over_budget=msg)
             if lead and (step % t_cfg["log_every"] == 0 or arm.step == total):
                 writer.writerow(last)
