@@ -11,8 +11,32 @@ from __future__ import annotations
 import torch
 from rwwarp.trace import COLUMNS as _COL
 
-__all__ = ["bytes_fixed", "bytes_per_source", "default_memory_budget_bytes", "device_overhead_bytes",
-           "output_bytes_per_source", "over_budget"]
+__all__ = ["bytes_fixed", "bytes_per_source", "cached_step_bytes", "default_memory_budget_bytes",
+           "device_overhead_bytes", "focal_graph_bytes", "output_bytes_per_source", "over_budget"]
+
+
+def focal_graph_bytes(rw) -> int:
+    """Estimated bytes one focal node's autograd graph holds from its forward to its backward (a cached
+    provider's node, :class:`torch_bridge.design.CachedProvider`): the DOE phase and its polynomial intermediates
+    (8 real wave-plane arrays), the order series (one complex array per Horner step: the span of the kept orders
+    plus the shift to the lowest, and the stack), the modulated field and the operator's saved input (complex),
+    and its output nodes (4 complex arrays of ``(size G)^2``)."""
+    n2 = rw.plan.n_grid ** 2
+    orders = [int(round(float(m))) for m, _ in (rw.focal["orders"][0] if rw.focal["orders"] else [])]
+    steps = (max(orders) - min(orders) + abs(min(orders)) + 2) if len(orders) > 1 else 1
+    return int(n2 * (8 * 8 + 16 * (steps + 3)) + 16 * 4 * (rw.size * rw.gauss_nodes) ** 2)
+
+
+def cached_step_bytes(rw, doe_terms: int, upcast: bool) -> int:
+    """Estimated peak bytes one node of a cached provider's ASM entry adds to a training step (DOE phase applied
+    to its cached field, propagated, and back): the DOE phase and its autograd intermediates (about ``2 k + 8``
+    real arrays of the DOE-plane grid for a ``k = doe_terms``-term polynomial), the field and phase gradients (and,
+    ``upcast``, the complex128 copy of a complex64 cache), the padded FFT work space (3 complex arrays of
+    ``n_pad^2``) and the sensor nodes, times a safety factor of 2 (allocator slack, transient copies)."""
+    n, n_pad = rw.plan.n_grid, rw.plan.n_pad
+    per_sample = 8 * (2 * min(int(doe_terms), 16) + 8) + 16 * 2 + (16 if upcast else 0)
+    nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
+    return 2 * int(n * n * per_sample + n_pad * n_pad * 16 * 3 + nodes)
 
 
 def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:

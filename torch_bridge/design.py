@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from rwwarp.wave.methods import PLANNER_CHOICES, get as get_method, names
+from torch_bridge.budget import cached_step_bytes, focal_graph_bytes
 
 from .functions import mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
 from .live import LiveProvider, _recentred, common_centres  # noqa: F401  (their home: live)
@@ -438,11 +439,9 @@ class CachedProvider:
 
         Under "auto" a learning DOE with a fabrication limit (``min_feature_mm``) takes the ASM: its entry is
         planned once for every DOE within the limit (:meth:`_auto_plan`) and never rebuilt, while a focal plan
-        follows the current DOE's diffraction orders and windows and grows as the DOE develops. Measured on
-        the ``a489_aberration`` gpu preset (2 x 2 nodes, 0.55 um, CPU): the blank DOE's focal nodes hold one
-        order and 0.25 GB; at the feature limit they need orders -31..33 of the 16-level relief, a 0.29 um
-        instead of 0.92 um wave-plane pitch and 2.4 GB, and a call took 45x as long; on an H200 the 16-node
-        ``e2e_doe`` step went from 20 to 117 GB (budget 24 GB) and from ~0.9 to 4.3 s within 20 steps."""
+        follows the current DOE's diffraction orders and windows and grows as the DOE develops (a489_aberration
+        gpu preset: orders -31..33 of the 16-level relief at the limit, 10x the memory; on an H200 the e2e_doe
+        step went from 20 to 117 GB and 0.9 to 4.3 s within 20 steps: perf/results/session19_h200x4/)."""
         m = self.module.method
         if m not in PLANNER_CHOICES:   # "two-step": auto's choice, with the wave step (_build, _build_focal)
             return get_method(m).torch_path == "focal"
@@ -504,17 +503,8 @@ class CachedProvider:
                            "n_grid": [e["n_grid"] for e in log]}
         return self._focal[key]
 
-    @staticmethod
-    def focal_graph_bytes(rw) -> int:
-        """Estimated bytes one focal node's autograd graph holds from its forward to its backward: the DOE
-        phase and its polynomial intermediates (8 real wave-plane arrays), the order series (one complex
-        array per Horner step: the span of the kept orders plus the shift to the lowest, and the stack),
-        the modulated field and the operator's saved input (complex), and its output nodes (4 complex
-        arrays of ``(size G)^2``)."""
-        n2 = rw.plan.n_grid ** 2
-        orders = [int(round(float(m))) for m, _ in (rw.focal["orders"][0] if rw.focal["orders"] else [])]
-        steps = (max(orders) - min(orders) + abs(min(orders)) + 2) if len(orders) > 1 else 1
-        return int(n2 * (8 * 8 + 16 * (steps + 3)) + 16 * 4 * (rw.size * rw.gauss_nodes) ** 2)
+    #: estimated bytes of one focal node's autograd graph (:func:`torch_bridge.budget.focal_graph_bytes`)
+    focal_graph_bytes = staticmethod(focal_graph_bytes)
 
     def _focal_psfs(self, key, entry, doe, thick, budget_bytes: int | None = None):
         """(n_nodes, size, size) for a focal entry: DOE orders of the current DOE applied to each node's
@@ -703,16 +693,9 @@ class CachedProvider:
         return rebuilt
 
     def step_bytes_per_source(self, rw) -> int:
-        """Estimated peak bytes one node adds to a training step (DOE phase applied to its cached field,
-        propagated, and back): the DOE phase and its autograd intermediates (about ``2 k + 8`` real
-        arrays of the DOE-plane grid for a ``k``-term polynomial), the field and phase gradients (and the
-        complex128 copy of a complex64 cache), the padded FFT work space (3 complex arrays of ``n_pad^2``) and the sensor nodes, times a safety
-        factor of 2 (allocator slack, transient copies)."""
-        n, n_pad = rw.plan.n_grid, rw.plan.n_pad
+        """Estimated peak bytes one node adds to a training step (:func:`torch_bridge.budget.cached_step_bytes`)."""
         k = int(self.module.doe_base.numel()) if hasattr(self.module, "doe_base") else 8
-        per_sample = 8 * (2 * min(k, 16) + 8) + 16 * 2 + (16 if self.cache_dtype != torch.complex128 else 0)
-        nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
-        return 2 * int(n * n * per_sample + n_pad * n_pad * 16 * 3 + nodes)
+        return cached_step_bytes(rw, k, self.cache_dtype != torch.complex128)
 
     def step_chunk(self, rw, budget_bytes: int | None = None) -> int:
         """Nodes per propagation chunk of a step under the budget (bytes, default :meth:`step_budget_bytes`):
