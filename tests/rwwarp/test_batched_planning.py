@@ -50,16 +50,8 @@ def test_fit_is_the_least_squares_line_with_masked_points():
 def test_one_source_wrapper_on_an_exact_beam_matches_lstsq():
     """fit_quadratic_transfer (lists over orders, one source) on straight rays converging at 14 deg through NA 0.1,
     two 'orders' of rays: each axis is lstsq's line through -grad w = (L - x) / z."""
-    lam, z = 5.876e-4, 42.0
-    k = 1.0 / lam
-    rng = np.random.default_rng(0)
-    fc = np.array([0.0, np.sin(np.deg2rad(14.0)) * k])
-    r = 0.1 * k * np.sqrt(rng.uniform(0, 1, 3000))
-    a = rng.uniform(0, 2 * np.pi, 3000)
-    f = fc + np.stack([r * np.cos(a), r * np.sin(a)], 1)
-    w = np.sqrt(k * k - np.sum(f * f, 1))
-    x = rng.uniform(-4, 4, (3000, 2))
-    L = x + z * f / w[:, None]
+    from test_focal import converging_beam
+    lam, z, k, fc, f, x, L = converging_beam(3000)
     g0, q0 = np.array([0.1, 0.2]), np.array([-1.0, -1.0])
     gf, qf = fit_quadratic_transfer([f[:1000], f[1000:]], [L[:1000], L[1000:]], [x[:1000], x[1000:]], fc, g0, q0, z)
     for ax in range(2):

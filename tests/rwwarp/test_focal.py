@@ -288,23 +288,29 @@ def test_sensor_taper_is_one_inside_zero_at_the_ends_and_smooth():
     assert np.all(np.diff(w[p[0] > 0.4]) <= 0) and np.all(np.diff(w[p[0] < -0.2]) >= 0)
 
 
+def converging_beam(n, seed=0):
+    """An exact beam for the transfer fits: ``n`` straight rays converging at 14 deg through NA 0.1 (0.5876 um,
+    z = 42 mm), spatial frequencies ``f`` (cycles/mm) uniform over the pupil disc, start points ``x`` uniform over
+    8 x 8 mm, landing points ``L = x + z f / w``. Returns (lam, z, k, fc, f, x, L)."""
+    lam, z = 5.876e-4, 42.0
+    k = 1.0 / lam
+    rng = np.random.default_rng(seed)
+    fc = np.array([0.0, np.sin(np.deg2rad(14.0)) * k])
+    r = 0.1 * k * np.sqrt(rng.uniform(0, 1, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    f = fc + np.stack([r * np.cos(a), r * np.sin(a)], 1)
+    w = np.sqrt(k * k - np.sum(f * f, 1))
+    x = rng.uniform(-4, 4, (n, 2))
+    return lam, z, k, fc, f, x, x + z * f / w[:, None]
+
+
 def test_fitted_transfer_narrows_the_remainder_off_axis():
     """fit_quadratic_transfer on an exact beam (straight rays converging at 14 deg through NA 0.1): the
     largest remainder displacement z |grad w - g - q (f - f_c)| falls below the Taylor expansion's
     (computed here from w(f) = sqrt(k^2 - |f|^2) directly)."""
     from rwwarp.wave.plan import fit_quadratic_transfer
     from rwwarp.wave.focal import transfer_curvature
-    lam, z = 5.876e-4, 42.0
-    k = 1.0 / lam
-    rng = np.random.default_rng(0)
-    th = np.deg2rad(14.0)
-    fc = np.array([0.0, np.sin(th) * k])
-    r = 0.1 * k * np.sqrt(rng.uniform(0, 1, 4000))
-    a = rng.uniform(0, 2 * np.pi, 4000)
-    f = fc + np.stack([r * np.cos(a), r * np.sin(a)], 1)
-    w = np.sqrt(k * k - np.sum(f * f, 1))
-    x = rng.uniform(-4, 4, (4000, 2))
-    L = x + z * f / w[:, None]
+    lam, z, k, fc, f, x, L = converging_beam(4000)
     _, g, q = transfer_curvature(fc[None], np.array([k]))
     gf, qf = fit_quadratic_transfer([f], [L], [x], fc, g[0], q[0], z)
 
