@@ -46,7 +46,7 @@ case $cmd in
 start)
   exp=${1:?experiment}; shift
   [ -f data/debian-photos/MANIFEST.json ] || { echo "data/debian-photos is missing: carry it" >&2; exit 2; }
-  ngpu=$(nvidia-smi -L | wc -l); k=0
+  ngpu=$(nvidia-smi -L | wc -l); k=${ARMS_GPU0:-0}   # ARMS_GPU0: the first GPU to use (runs started by an earlier call hold the ones before it)
   for sa in "$@"; do
     seed=${sa%%:*}; arm=${sa#*:}
     [ $k -lt $ngpu ] || { echo "start: $ngpu GPU(s) for $# runs" >&2; exit 2; }
