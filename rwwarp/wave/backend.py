@@ -46,6 +46,7 @@ __all__ = [
     "kernel_source",
     "real_dtype",
     "release_warp_pool",
+    "strided_gemm",
 ]
 
 _COMPLEX_TO_REAL = {
@@ -193,6 +194,16 @@ class Backend:
     #: CUDA) to remake, so the count bound is generous: a map's batches can all keep theirs.
     max_fft_plans = 64
     max_fft_plan_bytes = 512 * 2**20
+
+    #: True where :meth:`gemm` runs the batched complex matrix products of the matrix DFTs through the vendor's
+    #: BLAS (CUDA: cuBLAS, whose FP64 GEMMs use the tensor cores); False: the OpenCL C kernels of
+    #: ``angular_spectrum.cl`` (``cgemm_batched_kernel``, ``cgemm_cpu_kernel``). An instance may set it False
+    #: to run the kernels instead (the GPU tests compare both).
+    vendor_gemm = False
+
+    def gemm(self, a, b, c, m, n, k, **kw) -> None:  # pragma: no cover - overridden where vendor_gemm
+        """Batched ``c = op(a) op(b)`` through the vendor BLAS (arguments of :func:`strided_gemm`)."""
+        raise NotImplementedError(f"{type(self).__name__} has no vendor GEMM (vendor_gemm is False)")
 
     def __init__(self, device: str):
         self.device = device
@@ -568,6 +579,15 @@ class CudaBackend(Backend):
     """
 
     kind = "cuda"
+    # cuBLAS for the matrix DFTs: on an H200 the a489_aberration e2e_doe step (48 ASM sources, complex128)
+    # spent 2.86 of its 3.47 s of device time in the OpenCL C kernel cgemm_batched_kernel (NVRTC),
+    # ~5 ms a product (perf/results/session20_h200x4/)
+    vendor_gemm = True
+
+    def gemm(self, a, b, c, m, n, k, **kw) -> None:
+        """Batched ``c = op(a) op(b)`` by cuBLAS on the current stream (:func:`strided_gemm` with CuPy)."""
+        with self.cuda_device:
+            strided_gemm(self.cp, a, b, c, m, n, k, **kw)
 
     def __init__(self, index: int, device: str):
         try:
@@ -763,6 +783,36 @@ def _new_backend(device: str) -> Backend:
             raise RuntimeError(f"device {device!r}: platform {p} has only {len(devs)} device(s)")
         return OpenCLBackend(devs[d], device)
     return CudaBackend(int(m.group(4) or 0), device)
+
+
+def strided_gemm(xp, a, b, c, m: int, n: int, k: int, *, batch: int, lda: int, ldb: int, ldc: int, sa: int, sb: int,
+                 sc: int, ta: int = 0, ca: int = 0, tb: int = 0, cb: int = 0) -> None:
+    """``c[i] = op(a[i]) @ op(b[i])`` for ``i < batch`` through the array module ``xp`` (numpy, or CuPy:
+    cuBLAS's strided batched GEMM), with the arguments of the OpenCL kernel ``cgemm_batched_kernel``
+    (``kernels/opencl/angular_spectrum.cl``): ``a``, ``b``, ``c`` contiguous complex arrays read as flat
+    buffers of row-major matrices; ``op(a)`` is ``m x k`` (stored ``k x m`` when ``ta``; conjugated when
+    ``ca``), ``op(b)`` is ``k x n`` (``tb``, ``cb`` likewise); ``lda``/``ldb``/``ldc`` the row strides and
+    ``sa``/``sb``/``sc`` the batch strides, in elements (a batch stride of 0 shares one matrix over the batch).
+    Written in place into ``c``; a view that would reach past a buffer is a ValueError (no out-of-bounds read)."""
+    as_strided = xp.lib.stride_tricks.as_strided
+
+    def view(x, rows, cols, ld, stride, name):
+        flat = x.reshape(-1)
+        last = (batch - 1) * stride + (rows - 1) * ld + cols
+        if ld < cols or stride < 0 or last > flat.size:
+            raise ValueError(f"strided_gemm: {name} ({rows} x {cols}, ld {ld}, batch stride {stride}, batch {batch}) "
+                             f"does not fit its buffer of {flat.size} elements")
+        isz = flat.itemsize
+        return as_strided(flat, (batch, rows, cols), (stride * isz, ld * isz, isz))
+
+    op_a = view(a, k, m, lda, sa, "a").swapaxes(1, 2) if ta else view(a, m, k, lda, sa, "a")
+    op_b = view(b, n, k, ldb, sb, "b").swapaxes(1, 2) if tb else view(b, k, n, ldb, sb, "b")
+    out = view(c, m, n, ldc, sc, "c")
+    op_a, op_b = (op_a.conj() if ca else op_a), (op_b.conj() if cb else op_b)
+    if ldc == n and (sc == m * n or batch == 1):
+        xp.matmul(op_a, op_b, out=out)   # c's rows are contiguous: the product lands in place
+    else:
+        out[...] = xp.matmul(op_a, op_b)
 
 
 def release_warp_pool(device) -> None:

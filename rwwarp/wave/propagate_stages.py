@@ -35,13 +35,18 @@ def _launch(st, name, gsize, *args, local=_LOCAL, defines=()):
 
 
 def _gemm(st, a, b, c, m, n, k, *, lda, ldb, ldc, sa, sb, sc, ta=0, ca=0, tb=0, cb=0):
-    """c[b] = op(a[b]) @ op(b[b]) over the batch: the explicitly vectorised kernel on CPU OpenCL
+    """c[b] = op(a[b]) @ op(b[b]) over the batch: the vendor BLAS where the backend has one
+    (``Backend.vendor_gemm``: cuBLAS on CUDA), else the explicitly vectorised kernel on CPU OpenCL
     devices, the local-memory tiled one on GPUs (same arguments, see angular_spectrum.cl). GPU tiles:
     32 x 32 outputs per work-group, 2 x 2 per work-item (k-step 32) when the problem has few
     tiles, 4 x 4 per work-item (k-step 16) when it fills the device several times over
     (measured on an H100: 1.3-1.5x faster there, slower on small problems)."""
-    args = (a, b, m, n, k, lda, ldb, ldc, sa, sb, sc, ta, ca, tb, cb, c)
     be = st.backend
+    if be.vendor_gemm:   # CUDA: cuBLAS (Backend.vendor_gemm)
+        be.gemm(a, b, c, m, n, k, batch=st.batch, lda=lda, ldb=ldb, ldc=ldc, sa=sa, sb=sb, sc=sc, ta=ta, ca=ca,
+                tb=tb, cb=cb)
+        return
+    args = (a, b, m, n, k, lda, ldb, ldc, sa, sb, sc, ta, ca, tb, cb, c)
     if getattr(be, "is_cpu", False) and not tb:
         _launch(
             st, "cgemm_cpu_kernel", (-(-n // 4), -(-m // _CPU_GEMM_ROWS), st.batch), *args, local=(16, 1, 1)

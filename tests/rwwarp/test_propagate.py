@@ -230,6 +230,43 @@ def test_gemm_kernels_match_numpy(backend, dtype, flags):
         c = backend.empty((bsz, m, n), dtype)
         backend.launch("angular_spectrum.cl", name, dtype, gsize, lsize, *args, c, defines=defines)
         assert rel_l2(backend.to_host(c), ref) < tol, name
+    if backend.vendor_gemm:   # CUDA: cuBLAS through strided_gemm, the path propagate_stages._gemm takes there
+        c = backend.empty((bsz, m, n), dtype)
+        backend.gemm(*args[:3], c, m, n, k, batch=bsz, lda=args[5], ldb=args[6], ldc=n, sa=args[8], sb=args[9],
+                     sc=m * n, ta=ta, ca=ca, tb=tb, cb=cb)
+        assert rel_l2(backend.to_host(c), ref) < tol, "vendor gemm"
+
+
+@pytest.mark.parametrize("flags", [(0, 0, 0, 0), (1, 1, 0, 0), (0, 0, 1, 1), (1, 0, 1, 1)])
+def test_strided_gemm_reads_the_kernel_layout(flags):
+    """strided_gemm (the vendor-BLAS GEMM's argument mapping, run here with numpy) against a plain loop over
+    the batch, with the layouts the OpenCL kernel takes: padded rows (ld > columns), a gap between batch
+    matrices, a matrix shared over the batch (batch stride 0) and an output with padded rows; and a view
+    that would reach past its buffer is refused."""
+    from rwwarp.wave.backend import strided_gemm
+    ta, ca, tb, cb = flags
+    rng = np.random.default_rng(3)
+    bsz, m, n, k = 3, 5, 7, 11
+    ra, rb = (k, m) if ta else (m, k), (n, k) if tb else (k, n)
+    lda, ldb, ldc = ra[1] + 2, rb[1] + 1, n + 3
+    sa, sb, sc = ra[0] * lda + 4, 0, m * ldc
+    a = _rand_complex(rng, (bsz * sa,))
+    b = _rand_complex(rng, (rb[0] * ldb,))
+    c = np.zeros(bsz * sc, complex)
+    strided_gemm(np, a, b, c, m, n, k, batch=bsz, lda=lda, ldb=ldb, ldc=ldc, sa=sa, sb=sb, sc=sc, ta=ta, ca=ca,
+                 tb=tb, cb=cb)
+    mat_b = b.reshape(rb[0], ldb)[:, :rb[1]]
+    mat_b = mat_b.T if tb else mat_b
+    for i in range(bsz):
+        mat_a = a[i * sa:i * sa + ra[0] * lda].reshape(ra[0], lda)[:, :ra[1]]
+        mat_a = mat_a.T if ta else mat_a
+        want = (np.conj(mat_a) if ca else mat_a) @ (np.conj(mat_b) if cb else mat_b)
+        got = c[i * sc:(i + 1) * sc].reshape(m, ldc)[:, :n]
+        assert np.max(np.abs(got - want)) < 1e-12 * np.max(np.abs(want))
+        assert not np.any(c[i * sc:(i + 1) * sc].reshape(m, ldc)[:, n:])   # the padding is not written
+    with pytest.raises(ValueError, match="does not fit"):
+        strided_gemm(np, a[:(bsz - 1) * sa + (ra[0] - 1) * lda + ra[1] - 1], b, c, m, n, k, batch=bsz, lda=lda, ldb=ldb, ldc=ldc, sa=sa, sb=sb, sc=sc,
+                     ta=ta, ca=ca, tb=tb, cb=cb)
 
 
 def test_next_fft_size():
