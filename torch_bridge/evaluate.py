@@ -107,11 +107,12 @@ def eval_nodes(arm):
     return pos, dz.field_angles(lens, pos, arm.wl_ref)
 
 
-def _eval_psfs(arm, depths, prov=None) -> tuple:
+def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
     """Per evaluation depth the (nodes, 3, k, k) ray-wave PSFs with the wavelengths of each channel
     averaged, the node positions (mm) and field angles (deg). On the training nodes (``prov`` or :func:`_eval_provider`), or,
     with ``eval.grid``, on that grid in chunks of ``eval.node_chunk`` nodes, each chunk's DOE-plane
-    fields cached only while its PSFs are made (memory follows the chunk, not the grid)."""
+    fields cached only while its PSFs are made (memory follows the chunk, not the grid). ``on_progress``:
+    called as ``on_progress(nodes_done, nodes_total)`` after each chunk of the grid (the run's progress file)."""
     from torch_bridge import design as dz
     dense = eval_nodes(arm)
 
@@ -141,14 +142,17 @@ def _eval_psfs(arm, depths, prov=None) -> tuple:
             for d in depths:
                 out[d].append(mean_psf(p, d))
         del p
+        if on_progress is not None:
+            on_progress(min(i + k, len(fields)), len(fields))
     return {d: torch.cat(v, 0) for d, v in out.items()}, list(pos), list(fields)
 
 
 @torch.no_grad()
-def evaluate(arm, prov=None) -> dict:
+def evaluate(arm, prov=None, on_progress=None) -> dict:
     """Evaluation of a trained arm with the ray-wave model (see the module docstring): per evaluation
     depth and node (the training nodes, or ``eval.grid``), PSNR (dB) / SSIM / 1-LPIPS of the raw and the
-    reconstructed fixed crops; the ray-model RMS spot radius (um); EFL (mm); DOE coefficients (rad)."""
+    reconstructed fixed crops; the ray-model RMS spot radius (um); EFL (mm); DOE coefficients (rad).
+    ``on_progress(nodes_done, nodes_total)``: called after each chunk of an ``eval.grid``'s PSFs."""
     from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import image_metrics
     cfg = arm.cfg
@@ -156,7 +160,7 @@ def evaluate(arm, prov=None) -> dict:
     depths = [_depth_value(d) for d in (ev["depths_mm"] or cfg["optics"]["depths_mm"])]
     # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
     from torch_bridge import design as dz
-    psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov)
+    psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress)
     n_nodes = len(positions)
     gt_all = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
     g = torch.Generator().manual_seed(int(ev["seed"]))

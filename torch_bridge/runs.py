@@ -263,6 +263,9 @@ def format_status(st: dict) -> str:
                      f"dB, peak GPU {f('peak_gpu_gb', '.2f')} GB, memory in use {f('memory_gb', '.2f')} GB"
                      f"{' (OVER BUDGET)' if p.get('memory_over_budget') else ''}; last checkpoint at step "
                      f"{p.get('checkpoint_step', '-')}; updated {p.get('updated_utc')}")
+        if p.get("phase") == "eval" and p.get("eval_nodes"):
+            lines.append(f"  evaluation PSFs: {p.get('eval_nodes_done')}/{p['eval_nodes']} nodes, ETA "
+                         f"{f('eval_eta_s', '.0f')} s (then the crops through the network)")
         if p.get("error"):
             lines.append(f"  error: {p['error']}")
         if p.get("memory_over_budget"):

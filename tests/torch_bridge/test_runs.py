@@ -231,13 +231,23 @@ def test_named_image_set_from_debian_packages(tmp_path):
     assert (tmp_path / "new" / "data" / "set" / "train" / "b3.png").read_bytes() == blobs[3]
 
 
-def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path):
+def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path, monkeypatch):
     """``eval.grid`` evaluates on its own node grid, in chunks of ``eval.node_chunk`` nodes: the training
     grid in one chunk gives the default evaluation's numbers; one node a chunk plans each node's sampling
-    alone, which moves the metrics by the sampling error only (here <= 0.05 dB at nyquist_safety 1)."""
+    alone, which moves the metrics by the sampling error only (here <= 0.05 dB at nyquist_safety 1). The
+    progress file follows the grid's chunks (nodes done of the grid, after each chunk)."""
     import numpy as np
 
     from torch_bridge.design import node_positions_mm
+    from torch_bridge.runs import ProgressFile
+    seen = []
+    update = ProgressFile.update
+
+    def spy(self, **kw):
+        if "eval_nodes_done" in kw:
+            seen.append((kw["eval_nodes_done"], kw["eval_nodes"], self.rec.get("phase", kw.get("phase"))))
+        update(self, **kw)
+    monkeypatch.setattr(ProgressFile, "update", spy)
     base = {"optics.nodes": {"layout": "grid", "grid": [2, 2], "region": "quadrant", "half_size_mm": 1.5},
             "train.joint_steps": 1, "train.finetune_steps": 1, "train.image_every": 0,
             "arms": [{"name": "fixed", "design": {"method": "fixed"}}], "data.eval_images": 2}
@@ -258,6 +268,9 @@ def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path)
                 assert abs(a[part]["psnr"] - b[part]["psnr"]) <= tol_db, (chunk, part, a[part], b[part])
         want = node_positions_mm("grid", 1.5, [2, 2], None, "quadrant")
         assert [tuple(n["position_mm"]) for n in ev["nodes"]] == [tuple(p) for p in want]
+        assert [s[:2] for s in seen] == [(min(d + chunk, 4), 4) for d in range(0, 4, chunk)], seen
+        assert all(s[2] == "eval" for s in seen)
+        seen.clear()
     bad = tiny(**base, **{"eval.grid": [2, 2], "render.mode": "full"})
     from torch_bridge.train import ConfigError
     with pytest.raises(ConfigError, match="eval.grid"):
