@@ -746,56 +746,80 @@ class CachedProvider:
                                  wave_step_pad=rw.wave_step_pad))
         return sub
 
+    def held_bytes_per_source(self, rw) -> int:
+        """Bytes one node's recorded propagation keeps from its forward to the step's backward: its node fields
+        (:class:`~torch_bridge.operator_function.NodePixels`; two with pixel_values "flux") and, with a learning
+        DOE-to-sensor distance, its modulated DOE-plane field (complex128, the distance's gradient reads it). The
+        DOE modulation itself is recomputed in backward (:meth:`psfs`) and the ASM operator keeps its geometry only."""
+        nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * (2 if rw.pixel_values == "flux" else 1)
+        return int(nodes + (16 * rw.plan.n_grid ** 2 if self.learn_distance else 0))
+
     def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None, part: int | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and
         propagated to the sensor (gradients reach the DOE coefficients and a learning DOE-to-sensor
         distance).
 
-        The nodes of a wavelength are propagated in chunks of ``chunk`` nodes (default
-        :meth:`step_chunk` under the memory budget, recorded in :attr:`step_log`); with more than one
-        chunk and a gradient wanted each chunk is a checkpoint (forward without graph, recomputed in
-        backward), so a step's peak memory is one chunk's whatever the node count. ``part`` (with
-        ``chunk``): only the ``part``-th chunk of nodes, (its nodes, ...) -- a rank's share in a
-        distributed step, the same values the whole call gives those nodes."""
+        The DOE modulation ``u exp(i alpha phi0)`` of a node's cached field is a checkpoint of its own
+        (:class:`~torch_bridge.functions.Recompute`: no phase, polynomial or modulated field is kept for the
+        backward pass, which recomputes them), so a recorded node keeps only :meth:`held_bytes_per_source` until
+        the backward pass and its propagation runs forward once. The nodes of a wavelength are propagated in
+        chunks of ``chunk`` nodes (default :meth:`step_chunk` under the step's budget: the chunk bounds the
+        propagation's transient memory, freed before the next chunk runs, so each chunk may use the whole
+        budget); only when the graphs kept until the backward pass (every node of the call) exceed the budget
+        is each chunk checkpointed as a whole (forward without graph, recomputed in backward), each wavelength
+        then taking an equal share. :attr:`step_log` records the choice. ``part`` (with ``chunk``): only the
+        ``part``-th chunk of nodes, (its nodes, ...) -- a rank's share in a distributed step, the same values the
+        whole call gives those nodes."""
         if part is not None and chunk is None:
             raise ValueError("CachedProvider.psfs: part needs chunk (the share's size in nodes)")
+        from torch_bridge.functions import Recompute, doe_scale, upload
         from torch_bridge.operator_function import operator_propagate
-        from torch_bridge.tiles import run_tiles
+        from torch_bridge.tiles import run_tiles, wants_grad
         doe = self.module.value("doe")
         thick = self.module.value("thickness")[self.plane] if self.learn_distance else None
-        # every wavelength's graph lives until the step's backward: each gets an equal share of the budget
-        share = self.step_budget_bytes() // max(1, len(wavelengths_um))
+        budget = self.step_budget_bytes()
         # a learning distance's value on the host once per call (a read waits for the device), not once per chunk
         thick_host = None if thick is None else float(thick.detach())
+        entries = [(w, self._key(w, depth_mm), self._entry(w, depth_mm)) for w in wavelengths_um]
+        held = sum(self.held_bytes_per_source(e[0]) * e[0].nsrc for _, k, e in entries if k not in self._focal)
+        whole = held <= budget     # the recorded graphs of the call fit: no chunk is checkpointed
         out = []
-        for w in wavelengths_um:
-            key = self._key(w, depth_mm)
-            entry = self._entry(w, depth_mm)
+        for w, key, entry in entries:
             if key in self._focal:
                 if part is not None:   # one plan a node: the share is a slice of the nodes
                     nodes, dist_f, geo_f = entry
                     entry = (nodes[part * chunk:(part + 1) * chunk], dist_f, geo_f)
-                out.append(self._focal_psfs(key, entry, doe, thick, share))
+                out.append(self._focal_psfs(key, entry, doe, thick, budget // max(1, len(wavelengths_um))))
                 continue
             rw, u, dist, entering, geo = entry
+            share = budget if whole else budget // max(1, len(wavelengths_um))
             c = self.step_chunk(rw, share) if chunk is None else max(1, int(chunk))
             parts = self._chunk_raywaves(key, rw, geo, c)
             if part is not None:
                 parts = [parts[part]]
                 entering = entering[parts[0][0]]
             self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),
-                                  "bytes_per_source": self.step_bytes_per_source(rw)})
+                                  "bytes_per_source": self.step_bytes_per_source(rw),
+                                  "held_bytes": held, "checkpointed": not whole and len(parts) > 1})
             del self.step_log[:-64]
             # the distance on the host: the cached entry's own (dist holds it on the device), or the learning one
             d_host = float(rw.z_sensor - rw.z_plane) if thick is None else thick_host
+
             def run(part_, doe_t, thick_t=None, record=True, dist=dist, u=u, geo=geo, d_host=d_host):
                 sl, sub = part_
-                ctx = torch.enable_grad() if record else torch.no_grad()
-                with ctx:
+
+                def modulate(doe_m, record=True):
+                    # the cached field (complex64 or complex128) times the DOE's transmission, in complex128
+                    with torch.enable_grad() if record else torch.no_grad():
+                        phi0 = geo.doe_phase(sub, {"doe": doe_m})
+                        alpha = upload(doe_scale(sub), torch.float64, phi0.device)
+                        return u[sl].to(torch.complex128) * torch.exp(1j * alpha[:, None, None] * phi0)
+                with torch.enable_grad() if record else torch.no_grad():
                     d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
-                    phi0 = geo.doe_phase(sub, {"doe": doe_t})
-                    return operator_propagate(u[sl].to(torch.complex128), d, sub, d_host, phi0=phi0)
-            # a chunk a tile, checkpointed when there are several (torch_bridge.tiles)
-            power = run_tiles(parts, run, [doe] if thick is None else [doe, thick])
+                    f = Recompute.apply(modulate, doe_t) if record and wants_grad([doe_t]) else \
+                        modulate(doe_t, record=False)
+                    return operator_propagate(f, d, sub, d_host)
+            # chunks recorded as they run, or (graphs over the budget) each a checkpoint (torch_bridge.tiles)
+            power = run_tiles(parts, run, [doe] if thick is None else [doe, thick], checkpoint=not whole)
             out.append(power / entering[:, None, None])
         return torch.stack(out, 1)

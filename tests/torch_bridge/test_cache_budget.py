@@ -78,9 +78,9 @@ def test_memory_budget_validated():
 
 
 def test_step_chunks_equal_one_chunk_values_and_gradients():
-    """A step propagated in checkpointed chunks of nodes gives the one-chunk PSFs and gradients
-    (DOE coefficients and the learning DOE-to-sensor distance), and the default chunk follows the
-    budget (bytes) through the library's own per-node estimate."""
+    """A step propagated in chunks of nodes, recorded or checkpointed, gives the one-chunk PSFs and gradients
+    (DOE coefficients and the learning DOE-to-sensor distance), and the default chunk follows the budget
+    (bytes) through the library's own per-node estimates."""
     lens = rw.load_lens("a489_doe")
     d = lens.doe_index
     lens = lens.with_surface(d, profile={**lens.surfaces[d].profile, "coefficients": [-20.0, 8.0, 3.0, -1.0]})
@@ -109,16 +109,32 @@ def test_step_chunks_equal_one_chunk_values_and_gradients():
         np.testing.assert_allclose(gc, g1, rtol=1e-10, atol=1e-12 * np.abs(g1).max())
         np.testing.assert_allclose(tc, t1, rtol=1e-10, atol=1e-12 * np.abs(t1).max())
     assert np.abs(g1).max() > 0 and np.abs(t1).max() > 0
-    # the default chunk: a step's graphs get half of what the budget leaves beside the cached fields,
-    # shared equally by the wavelengths of the call. A share of 2.5 nodes' estimate: 2 nodes, 2 chunks
+    # the default chunk: a step's propagation gets half of what the budget leaves beside the cached fields.
+    # A budget of 2.5 nodes' estimate: 2 nodes, 2 chunks, recorded as they run (what a recorded node keeps
+    # until backward is far below the budget)
     e = prov._entry(0.63, None)[0]
     per = prov.step_bytes_per_source(e)
     prov.memory_budget_bytes = prov.cache_bytes() + 2 * int(2.5 * per)
     prov.psfs([0.63])
     assert prov.step_log[-1]["chunk"] == 2 and prov.step_log[-1]["chunks"] == 2
-    # the same budget over two wavelengths of a call (the entry twice): 1.25 nodes each, 1 node a chunk
+    assert not prov.step_log[-1]["checkpointed"]
+    # two wavelengths of a call (the entry twice): a chunk's transient memory is freed before the next chunk
+    # runs, so each wavelength's chunks still take the whole budget
     prov.psfs([0.63, 0.63])
-    assert [r["chunk"] for r in prov.step_log[-2:]] == [1, 1]
+    assert [r["chunk"] for r in prov.step_log[-2:]] == [2, 2]
+    # a budget below what the recorded nodes keep until backward (4 nodes x two wavelengths): every chunk is
+    # checkpointed, each wavelength gets half the budget, and values and gradients stay those of one chunk
+    held = prov.held_bytes_per_source(e)
+    assert held >= 16 * e.plan.n_grid ** 2        # a learning distance keeps the modulated field
+    prov.memory_budget_bytes = prov.cache_bytes() + 2 * (7 * held)
+    m.zero_grad()
+    p = prov.psfs(wls)
+    (p * w).sum().backward()
+    assert [r["checkpointed"] for r in prov.step_log[-2:]] == [True, True]
+    assert all(r["chunk"] == 1 for r in prov.step_log[-2:])
+    np.testing.assert_allclose(p.detach().numpy(), p1, rtol=0, atol=1e-13 * p1.max())
+    np.testing.assert_allclose(m.doe.grad.numpy(), g1, rtol=1e-10, atol=1e-12 * np.abs(g1).max())
+    np.testing.assert_allclose(m.thickness.grad.numpy(), t1, rtol=1e-10, atol=1e-12 * np.abs(t1).max())
 
 
 def test_recentre_keeps_the_cached_field_and_matches_an_independent_psf():
@@ -175,3 +191,38 @@ def test_budget_leaves_aside_what_the_device_holds_outside_torch(monkeypatch):
     assert p.budget_bytes() == 23 * 10 ** 9
     monkeypatch.setattr(p, "cache_bytes", lambda: 9 * 10 ** 9)
     assert p.step_budget_bytes() == 7 * 10 ** 9                        # (24 - 1 - 9) / 2 GB
+
+
+def test_a_recorded_step_keeps_only_the_node_fields_until_backward():
+    """What a step's recorded graph keeps for the backward pass, measured with torch's saved-tensor hooks (the
+    distinct storages saved by every op and custom Function, bytes): the DOE modulation is recomputed in
+    backward, so a node keeps its node fields only, the library's estimate ``held_bytes_per_source`` (no
+    DOE-plane array: without the recomputed modulation the phase polynomial's intermediates, the transmission
+    and the modulated field, each ``n_grid^2`` samples, were kept: 50 MB against 7.3 MB here). Gradients equal those of the
+    chunks checkpointed whole (the path taken when the kept graphs exceed the budget)."""
+    m, fields = _setup()
+    prov = dz.CachedProvider(m, fields, 21, 0.003, wavelength_ref_um=0.55, memory_budget_bytes=10 ** 12)
+    wls = [0.47, 0.63]
+    prov.prepare(wls, [None])
+    seen = {}
+
+    def pack(t):
+        s = t.untyped_storage()
+        seen[s.data_ptr()] = s.nbytes()
+        return t
+    m.zero_grad()
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        p = prov.psfs(wls)
+    p.sum().backward()
+    g_rec = m.doe.grad.clone()
+    kept = sum(seen.values())
+    entries = [prov._entry(w, None)[0] for w in wls]
+    held = sum(prov.held_bytes_per_source(e) * e.nsrc for e in entries)
+    grid = max(e.plan.n_grid for e in entries) ** 2 * 8       # one real DOE-plane array of the larger entry
+    assert not any(r["checkpointed"] for r in prov.step_log[-2:])
+    assert held <= kept <= held + 2 * grid, (kept, held, grid)
+    prov.memory_budget_bytes = prov.cache_bytes() + held      # below what the two wavelengths keep: checkpoints
+    m.zero_grad()
+    prov.psfs(wls).sum().backward()
+    assert all(r["checkpointed"] for r in prov.step_log[-2:])
+    np.testing.assert_allclose(m.doe.grad.numpy(), g_rec.numpy(), rtol=1e-10, atol=1e-12 * g_rec.abs().max().item())
