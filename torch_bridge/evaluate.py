@@ -5,6 +5,8 @@ the rendering helpers the training loop shares with it (sensor noise, per-patch 
 ``arm`` arguments are :class:`torch_bridge.train.Arm` objects (not imported here: train imports this module)."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 
@@ -151,8 +153,10 @@ def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
 def evaluate(arm, prov=None, on_progress=None) -> dict:
     """Evaluation of a trained arm with the ray-wave model (see the module docstring): per evaluation
     depth and node (the training nodes, or ``eval.grid``), PSNR (dB) / SSIM / 1-LPIPS of the raw and the
-    reconstructed fixed crops; the ray-model RMS spot radius (um); EFL (mm); DOE coefficients (rad).
-    ``on_progress(nodes_done, nodes_total)``: called after each chunk of an ``eval.grid``'s PSFs."""
+    reconstructed fixed crops; the ray-model RMS spot radius (um); EFL (mm); DOE coefficients (rad); ``timing_s``,
+    the wall time (s) of its parts: ``psfs`` (field builds and PSFs), ``images`` (crops through the network,
+    metrics), ``rms`` (the ray model). ``on_progress(nodes_done, nodes_total)``: called after each chunk of an
+    ``eval.grid``'s PSFs."""
     from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import image_metrics
     cfg = arm.cfg
@@ -160,7 +164,10 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     depths = [_depth_value(d) for d in (ev["depths_mm"] or cfg["optics"]["depths_mm"])]
     # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
     from torch_bridge import design as dz
+    t0 = time.perf_counter()
     psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress)
+    timing = {"psfs": time.perf_counter() - t0}    # wall s: DOE-plane field builds and PSFs of the nodes
+    t0 = time.perf_counter()
     n_nodes = len(positions)
     gt_all = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
     g = torch.Generator().manual_seed(int(ev["seed"]))
@@ -205,6 +212,8 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     np.savez(arm.out / "eval_psfs.npz", **psf_store)
     arm.net.train()
     res = {"depths": rows}
+    timing["images"] = time.perf_counter() - t0    # blurring, noise, network and metrics of every node's crops
+    t0 = time.perf_counter()
     # ray-model RMS spot radius (um): on axis, outermost, average over the diagonal fractions
     lens = arm.module.to_lens()
     kind = lens.surfaces[lens.doe_index].profile.get("kind")
@@ -227,4 +236,6 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     res["efl_mm"] = float(lens.efl(arm.wl_ref))
     res["doe_coefficients"] = arm.module.value("doe").detach().cpu().tolist()
     res["sensor_distance_mm"] = float(lens.surfaces[-1].thickness)
+    timing["rms"] = time.perf_counter() - t0
+    res["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
     return res

@@ -261,6 +261,9 @@ def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path,
         res = train(tiny(**base, **{"eval.grid": [2, 2], "eval.node_chunk": chunk}), out_dir=tmp_path / f"g{chunk}")
         ev = res["fixed"]["eval"]["depths"][0]
         assert res["fixed"]["run"]["segments"][-1]["start_step"] == 2        # resumed finished: no training
+        timing = res["fixed"]["eval"]["timing_s"]     # the evaluation's parts, wall s
+        assert set(timing) == {"psfs", "images", "rms", "training_nodes", "objective"}
+        assert all(v >= 0 for v in timing.values()) and timing["psfs"] > 0
         assert len(ev["nodes"]) == 4
         for a, b in zip(ev["nodes"], ref["nodes"]):
             assert np.allclose(a["position_mm"], b["position_mm"], rtol=0, atol=1e-12)
