@@ -103,20 +103,31 @@ def sync_fn(device: str):
 
 class GpuMemory:
     """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread:
-    ``peaks`` {index: MiB}, ``peak`` that of the process's first visible GPU (nvidia-smi numbers the physical
-    GPUs whatever ``CUDA_VISIBLE_DEVICES`` says: its first entry when it is set, else GPU 0). Without nvidia-smi
+    ``peaks`` {index: MiB} and ``peak_times`` {index: s after the sampler started, when the peak was first seen},
+    ``peak`` / ``peak_at_s`` those of the process's first visible GPU (nvidia-smi numbers the physical GPUs
+    whatever ``CUDA_VISIBLE_DEVICES`` says: its first entry when it is set, else GPU 0). Without nvidia-smi
     nothing is sampled."""
 
     def __init__(self, period=0.05):
         import threading
-        self.period, self.peaks, self._stop = period, {}, threading.Event()
+        self.period, self.peaks, self.peak_times, self._stop = period, {}, {}, threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
+        self._t0 = time.perf_counter()
+
+    @staticmethod
+    def _first():
+        import os
+        first = (os.environ.get("CUDA_VISIBLE_DEVICES") or "0").split(",")[0].strip()
+        return int(first) if first.isdigit() else 0
 
     @property
     def peak(self) -> int:
-        import os
-        first = (os.environ.get("CUDA_VISIBLE_DEVICES") or "0").split(",")[0].strip()
-        return self.peaks.get(int(first) if first.isdigit() else 0, 0)
+        return self.peaks.get(self._first(), 0)
+
+    @property
+    def peak_at_s(self):
+        """Seconds from the sampler's start to the first sample at the peak (of the first visible GPU), or None."""
+        return self.peak_times.get(self._first())
 
     def _run(self):
         while not self._stop.is_set():
@@ -127,10 +138,13 @@ class GpuMemory:
                 return
             for line in out.strip().splitlines():
                 i, used = (int(x) for x in line.split(","))
-                self.peaks[i] = max(self.peaks.get(i, 0), used)
+                if used > self.peaks.get(i, -1):
+                    self.peaks[i] = used
+                    self.peak_times[i] = round(time.perf_counter() - self._t0, 2)
             time.sleep(self.period)
 
     def __enter__(self):
+        self._t0 = time.perf_counter()
         self._t.start()
         return self
 
