@@ -248,10 +248,18 @@ def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path,
             seen.append((kw["eval_nodes_done"], kw["eval_nodes"], self.rec.get("phase", kw.get("phase"))))
         update(self, **kw)
     monkeypatch.setattr(ProgressFile, "update", spy)
+    from torch_bridge.design import CachedProvider
+    released, release = [], CachedProvider.release
+
+    def spy_release(self):
+        released.append(len(self._cache))           # entries held when let go
+        release(self)
+    monkeypatch.setattr(CachedProvider, "release", spy_release)
     base = {"optics.nodes": {"layout": "grid", "grid": [2, 2], "region": "quadrant", "half_size_mm": 1.5},
             "train.joint_steps": 1, "train.finetune_steps": 1, "train.image_every": 0,
             "arms": [{"name": "fixed", "design": {"method": "fixed"}}], "data.eval_images": 2}
     ref = train(tiny(**base), out_dir=tmp_path / "ref")["fixed"]["eval"]["depths"][0]
+    assert not released                             # no eval.grid: the training nodes' fields are what it evaluates
     for chunk, tol_db in ((4, 1e-9), (1, 0.05)):
         # the same trained arm evaluated on the eval grid: the reference's final checkpoint (its network
         # and optics bit for bit, as the resume tests show) resumes at its last step, so the run only
@@ -261,6 +269,9 @@ def test_dense_evaluation_grid_equals_the_training_grid_and_is_chunked(tmp_path,
         res = train(tiny(**base, **{"eval.grid": [2, 2], "eval.node_chunk": chunk}), out_dir=tmp_path / f"g{chunk}")
         ev = res["fixed"]["eval"]["depths"][0]
         assert res["fixed"]["run"]["segments"][-1]["start_step"] == 2        # resumed finished: no training
+        # the training nodes' fields are let go before the grid's chunks build theirs (not held beside them)
+        assert released and released[0] > 0, released
+        released.clear()
         timing = res["fixed"]["eval"]["timing_s"]     # the evaluation's parts, wall s
         assert set(timing) == {"psfs", "images", "rms", "training_nodes", "objective"}
         assert all(v >= 0 for v in timing.values()) and timing["psfs"] > 0
