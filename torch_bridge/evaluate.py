@@ -5,6 +5,7 @@ the rendering helpers the training loop shares with it (sensor noise, per-patch 
 ``arm`` arguments are :class:`torch_bridge.train.Arm` objects (not imported here: train imports this module)."""
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -239,3 +240,44 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     timing["rms"] = time.perf_counter() - t0
     res["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
     return res
+
+
+def evaluate_arm(arm, result: dict, out, report, default=None) -> dict:
+    """The end of a finished arm: its lens (``lens.json``) and network (``network.pt``) saved in ``out``, the final
+    objective on the training nodes (:func:`objective`, beside ``arm.objective_initial``), :func:`evaluate` (on the
+    training nodes or the ``eval.grid``: the training nodes' fields are let go first, so the grid's chunks build
+    theirs under the memory budget alone), the run's times, and ``result.json`` written atomically (``default``:
+    the JSON encoder's fallback). ``report(state, phase, **kw)`` writes the run's progress file; the grid's chunks
+    report their progress and ETA through it. Updates and returns ``result``."""
+    import json
+
+    from torch_bridge.runs import _utc
+    arm.module.save_lens(out / "lens.json")
+    torch.save(arm.net.state_dict(), out / "network.pt")
+    t1 = time.perf_counter()
+    prov = _eval_provider(arm)
+    t_prov = time.perf_counter() - t1
+
+    def eval_progress(done, n_nodes, t_eval=time.perf_counter()):
+        # the grid's PSFs are most of an evaluation's time (the A489's 10 x 10 grid at F/2.2: ~9 minutes on an H200)
+        el = time.perf_counter() - t_eval
+        report("evaluating", "eval", eval_nodes_done=done, eval_nodes=n_nodes,
+               eval_eta_s=round(el * (n_nodes - done) / max(done, 1), 1))
+    result["objective_initial"] = arm.objective_initial
+    t2 = time.perf_counter()
+    result["objective_final"] = objective(arm, prov)
+    t_obj = time.perf_counter() - t2
+    if eval_nodes(arm) is not None:
+        prov.release()   # the training nodes' fields (9.5 GB for the A489 at F/2.2) are not held beside the grid's
+    result["eval"] = evaluate(arm, prov, on_progress=eval_progress)
+    # wall s of the evaluation's parts besides evaluate()'s own: the training nodes' fields, the objective
+    result["eval"]["timing_s"].update(training_nodes=round(t_prov, 2), objective=round(t_obj, 2))
+    result["eval_wall_s"] = time.perf_counter() - t1
+    result["rms_design_log"] = arm.rms_log[-1:] if arm.rms_log else []
+    result["run"]["wall_s_total"] = round(arm.wall_total(), 3)
+    result["run"]["segments"] = arm.segments()
+    result["run"]["finished_utc"] = _utc()
+    tmp = out / ".result.json.tmp"
+    tmp.write_text(json.dumps(result, indent=1, default=default))
+    tmp.replace(out / "result.json")
+    return result

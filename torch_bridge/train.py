@@ -84,8 +84,7 @@ from torch_bridge.config import (  # noqa: F401
     validate_config,
 )
 from torch_bridge.budget import over_budget
-from torch_bridge.evaluate import (_blur_patch, _eval_provider, _noise, _psf_kernels, eval_nodes, evaluate,
-                                   objective)
+from torch_bridge.evaluate import _blur_patch, _eval_provider, _noise, _psf_kernels, evaluate_arm, objective
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 
 __all__ = [
@@ -638,44 +637,9 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
             result["stopped_early"] = True
         return result
     report("evaluating", "eval")
-    arm.module.save_lens(out / "lens.json")
-    torch.save(arm.net.state_dict(), out / "network.pt")
-    t1 = time.perf_counter()
-    prov = _eval_provider(arm)
-    t_prov = time.perf_counter() - t1
-
-    def eval_progress(done, n_nodes, t_eval=time.perf_counter()):
-        # the PSFs of the evaluation grid are most of an evaluation's time (a 10 x 10 grid of the A489 at F/2.2:
-        # ~9 minutes on an H200): its progress and ETA go to the progress file like the steps'
-        el = time.perf_counter() - t_eval
-        report("evaluating", "eval", eval_nodes_done=done, eval_nodes=n_nodes,
-               eval_eta_s=round(el * (n_nodes - done) / max(done, 1), 1))
-    result["objective_initial"] = arm.objective_initial
-    t2 = time.perf_counter()
-    result["objective_final"] = objective(arm, prov)
-    t_obj = time.perf_counter() - t2
-    if eval_nodes(arm) is not None:
-        # an eval.grid builds its own fields chunk by chunk under the memory budget: the training nodes' fields
-        # (9.5 GB for the A489 at F/2.2) are let go first, not held beside them
-        prov.release()
-    result["eval"] = evaluate(arm, prov, on_progress=eval_progress)
-    # wall s of the evaluation's parts besides evaluate()'s own: the training nodes' fields, the objective
-    result["eval"]["timing_s"].update(training_nodes=round(t_prov, 2), objective=round(t_obj, 2))
-    result["eval_wall_s"] = time.perf_counter() - t1
-    result["rms_design_log"] = arm.rms_log[-1:] if arm.rms_log else []
-    result["run"]["wall_s_total"] = round(arm.wall_total(), 3)
-    result["run"]["segments"] = arm.segments()
-    result["run"]["finished_utc"] = _utc_now()
-    tmp = out / ".result.json.tmp"
-    tmp.write_text(json.dumps(result, indent=1, default=_json_default))
-    tmp.replace(out / "result.json")
+    evaluate_arm(arm, result, out, report, default=_json_default)
     report("running", "done")
     return result
-
-
-def _utc_now() -> str:
-    from torch_bridge.runs import _utc
-    return _utc()
 
 
 def _memory_gb(device) -> float:

@@ -29,13 +29,13 @@ import atexit
 import functools
 import gc
 import sys
-import importlib.util
 import re
 import threading
 from collections import OrderedDict
-from pathlib import Path
 
 import numpy as np
+
+from .kernel_source import _kernel_signatures, kernel_source
 
 __all__ = [
     "Backend",
@@ -46,7 +46,6 @@ __all__ = [
     "kernel_source",
     "real_dtype",
     "release_warp_pool",
-    "strided_gemm",
 ]
 
 _COMPLEX_TO_REAL = {
@@ -71,66 +70,6 @@ def complex_dtype(dtype) -> np.dtype:
 def real_dtype(dtype) -> np.dtype:
     """The real dtype of the same precision as the complex ``dtype``."""
     return _COMPLEX_TO_REAL[complex_dtype(dtype)]
-
-
-def _kernel_dir() -> Path:
-    """Folder of the OpenCL C sources: ``rwwarp.kernels/opencl`` when installed, else the
-    repository's ``kernels/opencl``."""
-    try:
-        spec = importlib.util.find_spec("rwwarp.kernels")
-    except (ImportError, ValueError):
-        spec = None
-    if spec is not None and spec.submodule_search_locations:
-        for loc in spec.submodule_search_locations:
-            cand = Path(loc) / "opencl"
-            if cand.is_dir():
-                return cand
-    cand = Path(__file__).resolve().parents[2] / "kernels" / "opencl"
-    if cand.is_dir():
-        return cand
-    raise FileNotFoundError("cannot find the OpenCL kernel sources (kernels/opencl)")
-
-
-_INCLUDE_RE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.MULTILINE)
-
-
-@functools.cache
-def kernel_source(name: str) -> str:
-    """Text of ``kernels/opencl/<name>`` with its ``#include "..."`` lines expanded in place
-    (each header once), so that both compilers get one self-contained source."""
-    folder = _kernel_dir()
-    seen: set[str] = set()
-
-    def expand(fname: str) -> str:
-        if fname in seen:
-            return ""
-        seen.add(fname)
-        text = (folder / fname).read_text()
-        return _INCLUDE_RE.sub(lambda m: expand(m.group(1)), text)
-
-    return expand(name)
-
-
-_KERNEL_RE = re.compile(r"__kernel\s+void\s+(\w+)\s*\(([^)]*)\)", re.MULTILINE)
-
-
-@functools.cache
-def _kernel_signatures(name: str) -> dict:
-    """Argument kinds of each ``__kernel`` in a source: 'buf' for pointers, else the scalar type
-    name (int, real_t, phase_t, idx_t)."""
-    src = re.sub(r"/\*.*?\*/", "", kernel_source(name), flags=re.DOTALL)
-    out = {}
-    for kname, args in _KERNEL_RE.findall(src):
-        kinds = []
-        for arg in args.split(","):
-            arg = arg.strip()
-            if "*" in arg:
-                kinds.append("buf")
-                continue
-            toks = arg.replace("const", "").split()
-            kinds.append(toks[0])
-        out[kname] = tuple(kinds)
-    return out
 
 
 def _round_up(n: int, m: int) -> int:
@@ -586,6 +525,7 @@ class CudaBackend(Backend):
 
     def gemm(self, a, b, c, m, n, k, **kw) -> None:
         """Batched ``c = op(a) op(b)`` by cuBLAS on the current stream (:func:`strided_gemm` with CuPy)."""
+        from .blas import strided_gemm
         with self.cuda_device:
             strided_gemm(self.cp, a, b, c, m, n, k, **kw)
 
@@ -783,36 +723,6 @@ def _new_backend(device: str) -> Backend:
             raise RuntimeError(f"device {device!r}: platform {p} has only {len(devs)} device(s)")
         return OpenCLBackend(devs[d], device)
     return CudaBackend(int(m.group(4) or 0), device)
-
-
-def strided_gemm(xp, a, b, c, m: int, n: int, k: int, *, batch: int, lda: int, ldb: int, ldc: int, sa: int, sb: int,
-                 sc: int, ta: int = 0, ca: int = 0, tb: int = 0, cb: int = 0) -> None:
-    """``c[i] = op(a[i]) @ op(b[i])`` for ``i < batch`` through the array module ``xp`` (numpy, or CuPy:
-    cuBLAS's strided batched GEMM), with the arguments of the OpenCL kernel ``cgemm_batched_kernel``
-    (``kernels/opencl/angular_spectrum.cl``): ``a``, ``b``, ``c`` contiguous complex arrays read as flat
-    buffers of row-major matrices; ``op(a)`` is ``m x k`` (stored ``k x m`` when ``ta``; conjugated when
-    ``ca``), ``op(b)`` is ``k x n`` (``tb``, ``cb`` likewise); ``lda``/``ldb``/``ldc`` the row strides and
-    ``sa``/``sb``/``sc`` the batch strides, in elements (a batch stride of 0 shares one matrix over the batch).
-    Written in place into ``c``; a view that would reach past a buffer is a ValueError (no out-of-bounds read)."""
-    as_strided = xp.lib.stride_tricks.as_strided
-
-    def view(x, rows, cols, ld, stride, name):
-        flat = x.reshape(-1)
-        last = (batch - 1) * stride + (rows - 1) * ld + cols
-        if ld < cols or stride < 0 or last > flat.size:
-            raise ValueError(f"strided_gemm: {name} ({rows} x {cols}, ld {ld}, batch stride {stride}, batch {batch}) "
-                             f"does not fit its buffer of {flat.size} elements")
-        isz = flat.itemsize
-        return as_strided(flat, (batch, rows, cols), (stride * isz, ld * isz, isz))
-
-    op_a = view(a, k, m, lda, sa, "a").swapaxes(1, 2) if ta else view(a, m, k, lda, sa, "a")
-    op_b = view(b, n, k, ldb, sb, "b").swapaxes(1, 2) if tb else view(b, k, n, ldb, sb, "b")
-    out = view(c, m, n, ldc, sc, "c")
-    op_a, op_b = (op_a.conj() if ca else op_a), (op_b.conj() if cb else op_b)
-    if ldc == n and (sc == m * n or batch == 1):
-        xp.matmul(op_a, op_b, out=out)   # c's rows are contiguous: the product lands in place
-    else:
-        out[...] = xp.matmul(op_a, op_b)
 
 
 def release_warp_pool(device) -> None:

@@ -243,7 +243,7 @@ def test_strided_gemm_reads_the_kernel_layout(flags):
     the batch, with the layouts the OpenCL kernel takes: padded rows (ld > columns), a gap between batch
     matrices, a matrix shared over the batch (batch stride 0) and an output with padded rows; and a view
     that would reach past its buffer is refused."""
-    from rwwarp.wave.backend import strided_gemm
+    from rwwarp.wave.blas import strided_gemm
     ta, ca, tb, cb = flags
     rng = np.random.default_rng(3)
     bsz, m, n, k = 3, 5, 7, 11
