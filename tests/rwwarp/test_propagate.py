@@ -232,7 +232,7 @@ def test_gemm_kernels_match_numpy(backend, dtype, flags):
         assert rel_l2(backend.to_host(c), ref) < tol, name
     if backend.vendor_gemm:   # CUDA: cuBLAS through strided_gemm, the path propagate_stages._gemm takes there
         c = backend.empty((bsz, m, n), dtype)
-        backend.gemm(*args[:3], c, m, n, k, batch=bsz, lda=args[5], ldb=args[6], ldc=n, sa=args[8], sb=args[9],
+        backend.gemm(args[0], args[1], c, m, n, k, batch=bsz, lda=args[5], ldb=args[6], ldc=n, sa=args[8], sb=args[9],
                      sc=m * n, ta=ta, ca=ca, tb=tb, cb=cb)
         assert rel_l2(backend.to_host(c), ref) < tol, "vendor gemm"
 
