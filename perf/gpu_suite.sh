@@ -33,7 +33,9 @@ smoke)
     rc=${PIPESTATUS[0]}
   fi
   if echo " $parts " | grep -q " tests "; then
-    echo "== GPU tests"; (cd ../tests && timeout 300 python3 -m pytest -q -p no:cacheprovider -m gpu 2>&1 | tail -5; exit ${PIPESTATUS[0]}) || rc=1
+    # the whole pytest log is kept (session 20's smoke kept only its tail and lost the failures' reasons)
+    echo "== GPU tests"; (cd ../tests && timeout 300 python3 -m pytest -q -p no:cacheprovider -m gpu -rf 2>&1 \
+      | tee "$RWWARP_RESULTS/pytest_gpu.log" | grep -E "^(FAILED|ERROR)|passed|failed" | tail -20; exit ${PIPESTATUS[0]}) || rc=1
   fi
   echo "smoke: $([ $rc = 0 ] && echo passed || echo FAILED) (parts: $parts)"
   exit $rc
