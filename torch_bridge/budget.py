@@ -11,8 +11,9 @@ from __future__ import annotations
 import torch
 from rwwarp.trace import COLUMNS as _COL
 
-__all__ = ["bytes_fixed", "bytes_per_source", "cached_step_bytes", "default_memory_budget_bytes",
-           "device_overhead_bytes", "focal_graph_bytes", "output_bytes_per_source", "over_budget"]
+__all__ = ["bytes_fixed", "bytes_per_source", "cached_held_bytes", "cached_step_bytes",
+           "default_memory_budget_bytes", "device_overhead_bytes", "focal_graph_bytes", "output_bytes_per_source",
+           "over_budget"]
 
 
 def focal_graph_bytes(rw) -> int:
@@ -37,6 +38,16 @@ def cached_step_bytes(rw, doe_terms: int, upcast: bool) -> int:
     per_sample = 8 * (2 * min(int(doe_terms), 16) + 8) + 16 * 2 + (16 if upcast else 0)
     nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * 3
     return 2 * int(n * n * per_sample + n_pad * n_pad * 16 * 3 + nodes)
+
+
+def cached_held_bytes(rw, learn_distance: bool) -> int:
+    """Bytes one node of a cached provider's ASM entry keeps from its recorded forward to the step's backward: its
+    node fields (:class:`~torch_bridge.operator_function.NodePixels`, complex128 at the pixels' Gauss nodes; two with
+    pixel_values "flux") and, with a learning DOE-to-sensor distance (``learn_distance``), its modulated DOE-plane
+    field (complex128, ``n_grid^2``: the distance's gradient reads it). The DOE modulation is recomputed in backward
+    (:meth:`torch_bridge.design.CachedProvider.psfs`) and the ASM operator keeps its geometry only."""
+    nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * (2 if rw.pixel_values == "flux" else 1)
+    return int(nodes + (16 * rw.plan.n_grid ** 2 if learn_distance else 0))
 
 
 def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from rwwarp.wave.methods import PLANNER_CHOICES, get as get_method, names
-from torch_bridge.budget import cached_step_bytes, focal_graph_bytes
+from torch_bridge.budget import cached_held_bytes, cached_step_bytes, focal_graph_bytes
 
 from .functions import mixed_precision  # noqa: F401  (mixed_precision re-exported for train)
 from .live import LiveProvider, _recentred, common_centres  # noqa: F401  (their home: live)
@@ -693,12 +693,9 @@ class CachedProvider:
         return sub
 
     def held_bytes_per_source(self, rw) -> int:
-        """Bytes one node's recorded propagation keeps from its forward to the step's backward: its node fields
-        (:class:`~torch_bridge.operator_function.NodePixels`; two with pixel_values "flux") and, with a learning
-        DOE-to-sensor distance, its modulated DOE-plane field (complex128, the distance's gradient reads it). The
-        DOE modulation itself is recomputed in backward (:meth:`psfs`) and the ASM operator keeps its geometry only."""
-        nodes = (rw.size * rw.gauss_nodes) ** 2 * 16 * (2 if rw.pixel_values == "flux" else 1)
-        return int(nodes + (16 * rw.plan.n_grid ** 2 if self.learn_distance else 0))
+        """Bytes one node's recorded propagation keeps until the step's backward
+        (:func:`torch_bridge.budget.cached_held_bytes`)."""
+        return cached_held_bytes(rw, self.learn_distance)
 
     def psfs(self, wavelengths_um, depth_mm=None, chunk: int | None = None, part: int | None = None) -> torch.Tensor:
         """(n_nodes, len(wavelengths_um), size, size): DOE phase applied to the cached fields and
@@ -744,9 +741,10 @@ class CachedProvider:
             if part is not None:
                 parts = [parts[part]]
                 entering = entering[parts[0][0]]
+            tensors = [doe] if thick is None else [doe, thick]
             self.step_log.append({"key": list(key), "chunk": c, "chunks": len(parts),
                                   "bytes_per_source": self.step_bytes_per_source(rw),
-                                  "held_bytes": held, "checkpointed": not whole and len(parts) > 1})
+                                  "held_bytes": held, "checkpointed": not whole and wants_grad(tensors)})
             del self.step_log[:-64]
             # the distance on the host: the cached entry's own (dist holds it on the device), or the learning one
             d_host = float(rw.z_sensor - rw.z_plane) if thick is None else thick_host
@@ -766,6 +764,6 @@ class CachedProvider:
                         modulate(doe_t, record=False)
                     return operator_propagate(f, d, sub, d_host)
             # chunks recorded as they run, or (graphs over the budget) each a checkpoint (torch_bridge.tiles)
-            power = run_tiles(parts, run, [doe] if thick is None else [doe, thick], checkpoint=not whole)
+            power = run_tiles(parts, run, tensors, checkpoint=not whole)
             out.append(power / entering[:, None, None])
         return torch.stack(out, 1)
