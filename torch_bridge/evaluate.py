@@ -249,8 +249,6 @@ def evaluate_arm(arm, result: dict, out, report, default=None) -> dict:
     theirs under the memory budget alone), the run's times, and ``result.json`` written atomically (``default``:
     the JSON encoder's fallback). ``report(state, phase, **kw)`` writes the run's progress file; the grid's chunks
     report their progress and ETA through it. Updates and returns ``result``."""
-    import json
-
     from torch_bridge.runs import _utc
     arm.module.save_lens(out / "lens.json")
     torch.save(arm.net.state_dict(), out / "network.pt")
