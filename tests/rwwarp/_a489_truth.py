@@ -91,6 +91,8 @@ class A489:
         surfs = spec["surfaces"]
         s1, s2, doe = surfs[1], surfs[2], surfs[3]
         self.a, self.lam = float(a_mm), float(lam_mm)
+        if not np.isfinite(self.lam) or self.lam <= 0:
+            raise ValueError(f"A489: wavelength lam_mm={lam_mm!r} (mm) must be a positive number")
         self.k = 2 * np.pi / lam_mm
         self.z1 = float(surfs[0]["thickness"])
         self.c1, self.k1 = 1.0 / float(s1["radius"]), float(s1.get("conic", 0.0))
@@ -100,8 +102,6 @@ class A489:
         self.zD = self.z2 + float(s2["thickness"])
         self.zS = self.zD + float(doe["thickness"])
         self.doe_half = float(doe["semi_diameter"])
-        if not np.isfinite(self.lam) or self.lam <= 0:
-            raise ValueError(f"A489: wavelength lam_mm={lam_mm!r} (mm) must be a positive number")
         self.n = catalogue_index(s1["material"], lam_mm)
         # the DOE's relief at this wavelength (module docstring): s = 1 exactly at its design wavelength
         self.doe_lam = float(doe["design_wavelength_um"]) * 1e-3
