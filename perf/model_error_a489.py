@@ -13,10 +13,14 @@ with the grid's pitch and the WPM's slice halved (F/8; at F/4 the slice halved a
 traced geometrically instead (its share of the error), and the smooth-pupil control (the stop's amplitude a cos^2
 over its whole radius: no edge, the truth against geometric optics). A steeper DOE (4x) at F/8 (``--set steep``);
 ``--front-check``: the WPM's slice through the asphere halved where the refined pair traced that zone; ``--f22``: one
-F/2.2 case on axis, unrefined; ``--merge``: the sets into perf/results/model_error_a489.json.
-CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min).
-Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--merge]
-(--quick: F/8 only)
+F/2.2 case on axis, unrefined; ``--f22-off``: the same at 5 and 10 deg; ``--wavelengths``: F/4 on axis and at 10 deg
+at 0.45 and 0.65 um (the truth's glass index and the DOE's wrapped relief at that wavelength, every order:
+``_a489_truth.py``; the estimate at that wavelength), the base runs first, then their checks unless ``--no-checks``;
+``--merge``: the sets into perf/results/model_error_a489.json.
+CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min a field, wavelengths
+~2 min a base run, ~8 min a case's checks).
+Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--f22-off]
+[--wavelengths [--no-checks]] [--merge] (--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -92,10 +96,14 @@ def estimate(a_mm, field_deg, coeffs=COEFFS, wavelength_um=0.55):
 
 
 def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=COEFFS, wavelength_um=0.55,
-             checks=True):
+             checks=True, main_order_only=False):
     """One case (module docstring): the base run's measured error and the estimate; ``checks``: then the front
-    zone traced, the smooth pupil and (``refine``) the refined pair (:func:`case_checks`). Lengths mm, deg, um."""
+    zone traced, the smooth pupil and (``refine``) the refined pair (:func:`case_checks`). Lengths mm, deg, um.
+    ``main_order_only``: a diagnostic, the DOE transmitting its main order alone (``exp(i phi0)``, no wrapped
+    relief) at any wavelength; compare with the estimate's ``main_estimate`` (``ratio_main``)."""
     lens = A489(a_mm=a_mm, coeffs=coeffs, lam_mm=wavelength_um * 1e-3)
+    if main_order_only:
+        lens.doe_scale = 1.0
     row = {"stop_radius_mm": a_mm, "f_number": round(7.95 / (2 * a_mm), 2), "field_deg": field_deg, "pitch_mm": h,
            "slice_mm": dz, "doe_coefficients": list(coeffs), "doe_norm_mm": 1.5, "wavelength_um": wavelength_um,
            "doe_scale": lens.doe_scale, "glass_index": lens.n}
@@ -111,6 +119,9 @@ def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=
     est = estimate(a_mm, field_deg, coeffs, wavelength_um)
     row.update(est)
     row["ratio"] = est["estimate"] / err
+    row["ratio_main"] = est["main_estimate"] / err
+    if main_order_only:
+        row["doe"] = "main order only (exp(i phi0)), a diagnostic"
     half = row["patch_half_mm"]
     row["patch_center_mm"] = [float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half]
     print(f"F/{row['f_number']} {field_deg} deg {wavelength_um} um DOE {coeffs}: measured {err:.4f} estimate "
@@ -166,6 +177,9 @@ def main():
                          "model_error_a489_wavelengths.json; the base runs of every case first, then their checks "
                          "(front traced, smooth pupil, refined pair) unless --no-checks (a rerun adds the missing)")
     ap.add_argument("--no-checks", action="store_true")
+    ap.add_argument("--main-order-only", action="store_true",
+                    help="with --wavelengths: a diagnostic, the DOE's main order alone (no wrapped relief's other "
+                         "orders), base runs only: model_error_a489_wavelengths_main_order.json")
     ap.add_argument("--front-check", action="store_true",
                     help="the WPM's slice through the asphere's sag zone halved (1 -> 0.5 um) on the cases whose "
                          "refined pair traced the front zone: model_error_a489_front.json")
@@ -181,7 +195,9 @@ def main():
         import json
         from _common import RESULTS, git_commit
         commit = git_commit()
-        name = "model_error_a489_f22_off" if args.f22_off else "model_error_a489_wavelengths"
+        name = "model_error_a489_f22_off" if args.f22_off else \
+            "model_error_a489_wavelengths" + ("_main_order" if args.main_order_only else "")
+        args.no_checks = args.no_checks or args.main_order_only
         prev = RESULTS / f"{name}.json"
         rows = json.loads(prev.read_text())["rows"] if prev.exists() else []      # kept: a rerun adds the missing
         out = lambda: save(name, {"rows": rows, "device": device_name("cpu")})     # noqa: E731
@@ -194,8 +210,8 @@ def main():
             todo = [(w, c) for w in WAVELENGTHS for c in WAVELENGTH_CASES]
             for w, c in todo:                          # the base runs first
                 if not any((r["wavelength_um"], r["field_deg"]) == (w, c[1]) for r in rows):
-                    rows.append({**run_case(*c, refine=not args.no_refine, wavelength_um=w, checks=False),
-                                 "commit": commit})
+                    rows.append({**run_case(*c, refine=not args.no_refine, wavelength_um=w, checks=False,
+                                            main_order_only=args.main_order_only), "commit": commit})
                     out()
             for w, c in ([] if args.no_checks else todo):
                 row = next(r for r in rows if (r["wavelength_um"], r["field_deg"]) == (w, c[1]))
