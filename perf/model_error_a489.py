@@ -13,10 +13,14 @@ with the grid's pitch and the WPM's slice halved (F/8; at F/4 the slice halved a
 traced geometrically instead (its share of the error), and the smooth-pupil control (the stop's amplitude a cos^2
 over its whole radius: no edge, the truth against geometric optics). A steeper DOE (4x) at F/8 (``--set steep``);
 ``--front-check``: the WPM's slice through the asphere halved where the refined pair traced that zone; ``--f22``: one
-F/2.2 case on axis, unrefined; ``--merge``: the sets into perf/results/model_error_a489.json.
-CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min).
-Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--merge]
-(--quick: F/8 only)
+F/2.2 case on axis, unrefined; ``--f22-off``: the same at 5 and 10 deg; ``--wavelengths``: F/4 on axis and at 10 deg
+at 0.45 and 0.65 um (the truth's glass index and the DOE's wrapped relief at that wavelength, every order:
+``_a489_truth.py``; the estimate at that wavelength), the base runs first, then their checks unless ``--no-checks``;
+``--merge``: the sets into perf/results/model_error_a489.json.
+CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min a field, wavelengths
+~2 min a base run, ~8 min a case's checks).
+Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--f22-off]
+[--wavelengths [--no-checks]] [--merge] (--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -51,24 +55,58 @@ STEEP = (2400.0, 800.0)
 #: F/2.2 (--f22): a quarter of COEFFS, the plan's rim slope 92 rad on its 0.70 mm beam
 F22_COEFFS = (150.0, 50.0)
 STEEP_CASES = [(0.5, f, 0.75e-3, 1e-3, 0.5e-3, 0.5e-3, "geometric") for f in (0.0, 5.0, 10.0)]
+#: --f22-off: the --f22 case's settings off the axis (deg)
+F22_OFF_FIELDS = (5.0, 10.0)
+#: --wavelengths: the F/4 cases on axis and at 10 deg (CASES' settings) at these wavelengths (um), the DOE's relief
+#: (COEFFS at its 0.55 um design wavelength) remapped: every order of the wrapped relief (``_a489_truth.py``)
+WAVELENGTHS = (0.45, 0.65)
+WAVELENGTH_CASES = [c for c in CASES if c[0] == 1.0 and c[1] in (0.0, 10.0)]
 
 
-def estimate(a_mm, field_deg, coeffs=COEFFS):
-    """The planner's model-error dict for the A489 + DOE with the stop radius ``a_mm`` and the DOE ``coeffs``."""
+def run_f22(field_deg, co=F22_COEFFS):
+    """The --f22 case (stop radius 1.807 mm, 0.8 um grid, 1 um slices, the asphere's zone traced, not refined) at
+    ``field_deg`` (deg), 0.55 um: its row."""
+    a = 7.95 / 4.4
+    est = estimate(a, field_deg, co)
+    c0 = time.process_time()
+    T, M, info = truth_and_model(A489(a_mm=a, coeffs=co), field_deg, h=0.8e-3, dz=1e-3, front="geometric")
+    err = measured_error(T, M)
+    row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": field_deg, "wavelength_um": 0.55,
+           "doe_coefficients": list(co), "pitch_mm": 0.8e-3, "slice_mm": 1e-3, "front": "geometric", "measured": err,
+           "ratio": est["estimate"] / err, "cpu_s": time.process_time() - c0,
+           "power_doe_truth_over_stop": info["power_doe_truth"] / info["power_stop"], "crop_loss": info["crop_loss"],
+           "doe_clipped": info["doe_clipped"], "spectrum_beyond_0p8_nyquist": info["band_edge"],
+           "grids": [info["NA_grid"], info["NB_grid"]], **est}
+    print(f"F/2.2 {field_deg} deg: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f} "
+          f"(N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) cpu {row['cpu_s']:.0f} s", flush=True)
+    return row
+
+
+def estimate(a_mm, field_deg, coeffs=COEFFS, wavelength_um=0.55):
+    """The planner's model-error dict for the A489 + DOE with the stop radius ``a_mm`` (mm), the field ``field_deg``
+    (deg), the DOE ``coeffs`` (rad, its design phase at 0.55 um) at ``wavelength_um`` (um)."""
     lens = rw.load_lens("a489_doe")
     lens.surfaces[0].semi_diameter = a_mm
     lens.surfaces[3].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": list(coeffs)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        me = rw.plan_psf(lens, field_deg, 0.55, size=64, method="focal").model_error
-    return {k: me[k] for k in ("estimate", "main_estimate", "fresnel_number", "rim_slope_rad",
+        me = rw.plan_psf(lens, field_deg, wavelength_um, size=64, method="focal").model_error
+    return {k: me[k] for k in ("estimate", "main_estimate", "orders_estimate", "fresnel_number", "rim_slope_rad",
                                "reduced_distance_mm", "beam_radius_mm", "note")}
 
 
-def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=COEFFS):
-    lens = A489(a_mm=a_mm, coeffs=coeffs)
+def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=COEFFS, wavelength_um=0.55,
+             checks=True, main_order_only=False):
+    """One case (module docstring): the base run's measured error and the estimate; ``checks``: then the front
+    zone traced, the smooth pupil and (``refine``) the refined pair (:func:`case_checks`). Lengths mm, deg, um.
+    ``main_order_only``: a diagnostic, the DOE transmitting its main order alone (``exp(i phi0)``, no wrapped
+    relief) at any wavelength; compare with the estimate's ``main_estimate`` (``ratio_main``)."""
+    lens = A489(a_mm=a_mm, coeffs=coeffs, lam_mm=wavelength_um * 1e-3)
+    if main_order_only:
+        lens.doe_scale = 1.0
     row = {"stop_radius_mm": a_mm, "f_number": round(7.95 / (2 * a_mm), 2), "field_deg": field_deg, "pitch_mm": h,
-           "slice_mm": dz, "doe_coefficients": list(coeffs), "doe_norm_mm": 1.5, "wavelength_um": 0.55}
+           "slice_mm": dz, "doe_coefficients": list(coeffs), "doe_norm_mm": 1.5, "wavelength_um": wavelength_um,
+           "doe_scale": lens.doe_scale, "glass_index": lens.n}
     c0 = time.process_time()
     T, M, info = truth_and_model(lens, field_deg, h=h, dz=dz, front="wave")
     row["cpu_s"] = time.process_time() - c0
@@ -78,14 +116,27 @@ def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=
                grids=[info["NA_grid"], info["NB_grid"]], crop_loss=info["crop_loss"], doe_clipped=info["doe_clipped"],
                power_stop=info["power_stop"], power_doe_truth=info["power_doe_truth"],
                power_doe_model=info["power_doe_model"], spectrum_beyond_0p8_nyquist=info["band_edge"])
-    est = estimate(a_mm, field_deg, coeffs)
+    est = estimate(a_mm, field_deg, coeffs, wavelength_um)
     row.update(est)
     row["ratio"] = est["estimate"] / err
-    print(f"F/{row['f_number']} {field_deg} deg DOE {coeffs}: measured {err:.4f} estimate {est['estimate']:.4f} ratio "
-          f"{row['ratio']:.2f} (N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) "
-          f"cpu {row['cpu_s']:.0f} s", flush=True)
+    row["ratio_main"] = est["main_estimate"] / err
+    if main_order_only:
+        row["doe"] = "main order only (exp(i phi0)), a diagnostic"
     half = row["patch_half_mm"]
-    centre = (float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half)
+    row["patch_center_mm"] = [float(info["patch_x"][0]) + half, float(info["patch_y"][0]) + half]
+    print(f"F/{row['f_number']} {field_deg} deg {wavelength_um} um DOE {coeffs}: measured {err:.4f} estimate "
+          f"{est['estimate']:.4f} ratio {row['ratio']:.2f} (N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) "
+          f"cpu {row['cpu_s']:.0f} s", flush=True)
+    if checks:
+        case_checks(row, lens, h, dz, h2, dz2, refine_front, refine, T, M)
+    return row
+
+
+def case_checks(row, lens, h, dz, h2, dz2, refine_front, refine=True, T=None, M=None):
+    """The base run's checks added to ``row`` (its patch): the front zone traced, the smooth pupil, and (``refine``)
+    the refined pair (pitch ``h2``, slice ``dz2``, mm; ``refine_front``); ``T``, ``M``: the base run's irradiances
+    (None: recomputed, only where the refined pair's front is "wave")."""
+    field_deg, half, centre = row["field_deg"], row["patch_half_mm"], tuple(row["patch_center_mm"])
     # the front zone traced geometrically: its share of the error
     Tg, Mg, _ = truth_and_model(lens, field_deg, h=h, dz=dz, front="geometric", patch_half=half,
                                 patch_center=centre)
@@ -101,6 +152,8 @@ def run_case(a_mm, field_deg, h, dz, h2, dz2, refine_front, refine=True, coeffs=
                                      patch_center=centre)
         row["refined"] = {"pitch_mm": h2, "slice_mm": dz2, "front": refine_front, "cpu_s": time.process_time() - c0}
         err2 = measured_error(T2, M2)
+        if refine_front == "wave" and T is None:
+            T, M, _ = truth_and_model(lens, field_deg, h=h, dz=dz, front="wave", patch_half=half, patch_center=centre)
         T1 = T if refine_front == "wave" else Tg
         row["refined"].update(measured=err2, truth_change=float(np.max(np.abs(T2 - T1)) / T2.max()),
                               base_measured=measured_error(T1, M if refine_front == "wave" else Mg))
@@ -117,6 +170,16 @@ def main():
                     help="main: the 600 rho^2 + 200 rho^4 DOE at F/8 and F/4; steep: 4x it at F/8 (written to "
                          "model_error_a489_<set>.json; --merge joins the two into model_error_a489.json)")
     ap.add_argument("--merge", action="store_true")
+    ap.add_argument("--f22-off", action="store_true",
+                    help="the --f22 case at 5 and 10 deg: model_error_a489_f22_off.json (a rerun adds the missing)")
+    ap.add_argument("--wavelengths", action="store_true",
+                    help="F/4 on axis and at 10 deg at 0.45 and 0.65 um (the DOE's relief remapped): "
+                         "model_error_a489_wavelengths.json; the base runs of every case first, then their checks "
+                         "(front traced, smooth pupil, refined pair) unless --no-checks (a rerun adds the missing)")
+    ap.add_argument("--no-checks", action="store_true")
+    ap.add_argument("--main-order-only", action="store_true",
+                    help="with --wavelengths: a diagnostic, the DOE's main order alone (no wrapped relief's other "
+                         "orders), base runs only: model_error_a489_wavelengths_main_order.json")
     ap.add_argument("--front-check", action="store_true",
                     help="the WPM's slice through the asphere's sag zone halved (1 -> 0.5 um) on the cases whose "
                          "refined pair traced the front zone: model_error_a489_front.json")
@@ -126,17 +189,39 @@ def main():
                          "model_error_a489_f22.json (~25 CPU-minutes here)")
     args = ap.parse_args()
     if args.f22:
-        co, a = F22_COEFFS, 7.95 / 4.4
-        est = estimate(a, 0.0, co)
-        c0 = time.process_time()
-        T, M, info = truth_and_model(A489(a_mm=a, coeffs=co), 0.0, h=0.8e-3, dz=1e-3, front="geometric")
-        err = measured_error(T, M)
-        row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": 0.0, "doe_coefficients": list(co), "pitch_mm": 0.8e-3,
-               "slice_mm": 1e-3, "front": "geometric", "measured": err, "ratio": est["estimate"] / err,
-               "cpu_s": time.process_time() - c0, "power_doe_truth_over_stop": info["power_doe_truth"] / info["power_stop"],
-               "crop_loss": info["crop_loss"], "grids": [info["NA_grid"], info["NB_grid"]], **est}
-        print(f"F/2.2 axis: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f}")
-        print("wrote", save("model_error_a489_f22", {"rows": [row]}))
+        print("wrote", save("model_error_a489_f22", {"rows": [run_f22(0.0)]}))
+        return
+    if args.f22_off or args.wavelengths:
+        import json
+        from _common import RESULTS, git_commit
+        commit = git_commit()
+        name = "model_error_a489_f22_off" if args.f22_off else \
+            "model_error_a489_wavelengths" + ("_main_order" if args.main_order_only else "")
+        args.no_checks = args.no_checks or args.main_order_only
+        prev = RESULTS / f"{name}.json"
+        rows = json.loads(prev.read_text())["rows"] if prev.exists() else []      # kept: a rerun adds the missing
+        out = lambda: save(name, {"rows": rows, "device": device_name("cpu")})     # noqa: E731
+        if args.f22_off:
+            for f in F22_OFF_FIELDS:
+                if f not in [r["field_deg"] for r in rows]:
+                    rows.append({**run_f22(f), "commit": commit})
+                    out()
+        else:
+            todo = [(w, c) for w in WAVELENGTHS for c in WAVELENGTH_CASES]
+            for w, c in todo:                          # the base runs first
+                if not any((r["wavelength_um"], r["field_deg"]) == (w, c[1]) for r in rows):
+                    rows.append({**run_case(*c, refine=not args.no_refine, wavelength_um=w, checks=False,
+                                            main_order_only=args.main_order_only), "commit": commit})
+                    out()
+            for w, c in ([] if args.no_checks else todo):
+                row = next(r for r in rows if (r["wavelength_um"], r["field_deg"]) == (w, c[1]))
+                if "smooth_pupil_difference" not in row:
+                    c0 = time.process_time()
+                    lens = A489(a_mm=c[0], coeffs=COEFFS, lam_mm=w * 1e-3)
+                    case_checks(row, lens, *c[2:], refine=not args.no_refine)
+                    row["checks_cpu_s"], row["checks_commit"] = time.process_time() - c0, commit
+                    out()
+        print("wrote", out())
         return
     if args.front_check:
         import json
@@ -175,7 +260,16 @@ def main():
                         (fr["stop_radius_mm"], fr["field_deg"], fr["doe_coefficients"]):
                     row["front_slice_check"] = fr
         r = np.array([x["ratio"] for x in rows])
-        print("wrote", save("model_error_a489", {"rows": rows, "f22_unrefined": extra, "ratio_min": float(r.min()), "ratio_max": float(r.max()),
+        more = {}
+        for key, part in (("f22_off_unrefined", "f22_off"), ("wavelengths", "wavelengths")):
+            f = RESULTS / f"model_error_a489_{part}.json"
+            if f.exists():
+                more[key] = json.loads(f.read_text())["rows"]
+        r_all = np.array([x["ratio"] for x in rows + extra + sum(more.values(), [])])
+        print("wrote", save("model_error_a489", {"rows": rows, "f22_unrefined": extra, **more,
+                                                 "ratio_min": float(r.min()), "ratio_max": float(r.max()),
+                                                 "ratio_min_all_sets": float(r_all.min()),
+                                                 "ratio_max_all_sets": float(r_all.max()),
                                                  "wall_s": sum(p["wall_s"] for p in parts), "device": parts[0]["device"],
                                                  "commit": parts[0]["commit"]}))
         return

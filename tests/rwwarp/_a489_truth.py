@@ -7,8 +7,13 @@ Geometry (z from the stop, mm): stop of radius ``a`` at 0; the asphere's vertex 
 spherical rear surface at 7.6; the DOE plane 0.7098 behind it; the sensor 2.9472 behind the DOE. The point source of
 field angle ``theta`` (tilted in x) at the lens file's object distance (10 m) fills the stop. Fields are ``U ~ exp(+i k OPL)``, free space multiplies the
 angular spectrum by ``exp(2 pi i z sqrt(n^2 / lambda^2 - nu^2))`` (exact, no Fresnel approximation), the DOE by
-``exp(+i phi)`` (``phi = sum_i c_i (r / R)^(2i)`` about the lens's axis, continuous: at its design wavelength
-0.55 um the wrapped relief transmits the same field).
+``exp(+i phi)`` (``phi0 = sum_i c_i (r / R)^(2i)`` about the lens's axis, the design phase; at its design wavelength
+``lambda0`` (the file's 0.55 um) the wrapped relief transmits the same field, ``phi = phi0``; at another wavelength
+the relief (a surface relief of the file's substrate, fused silica, in air, height ``wrap(phi0) lambda0 / (2 pi
+(n0 - 1))``, unquantised) gives ``phi = s wrap(phi0)``, ``wrap`` to [0, 2 pi), ``s = (n_s(lambda) - 1) / (n_s(lambda0)
+- 1) lambda0 / lambda`` the thin relief's path difference ``(n_s - 1) height`` in waves: every diffraction order of
+the wrapped relief, not its main order alone). The indices (the lens's glass and the DOE's substrate) at the
+wavelength ``lam_mm`` from their dispersion formulas' catalogue coefficients (:func:`catalogue_index`).
 
 * truth ("two-step"): the stop's disc propagated as a wave all the way to the DOE plane:
   - front zone (``front="wave"``): the angular spectrum in air to the asphere's vertex plane, then the wave
@@ -49,26 +54,45 @@ def _ifft2(a):
     return scipy.fft.ifft2(a, workers=-1)
 
 
-def schott_index(glass: str, lam_mm: float = LAM_MM) -> float:
-    """The glass's index from its Schott formula in rwwarp's catalogue data (``n^2 = a0 + a1 l^2 + a2 l^-2 + a3
-    l^-4 + a4 l^-6 + a5 l^-8``, l in um): the data, not rwwarp's code."""
+def catalogue_index(glass: str, lam_mm: float = LAM_MM) -> float:
+    """The glass's index at the wavelength ``lam_mm`` (mm) from its dispersion formula's coefficients in rwwarp's
+    catalogue data (the data, not rwwarp's code; l in um): Schott ``n^2 = a0 + a1 l^2 + a2 l^-2 + a3 l^-4 + a4 l^-6
+    + a5 l^-8``, Sellmeier1 ``n^2 - 1 = sum_i B_i l^2 / (l^2 - C_i)`` (coefficients ``[B1, C1, B2, C2, B3, C3]``, C in
+    um^2). ValueError naming the glass for another formula or a wavelength outside its catalogue range."""
     cat = json.loads((ROOT / "rwwarp" / "data" / "glasses.json").read_text())
     g = cat["glasses"][glass]
-    if g["formula"] != "Schott":
-        raise ValueError(f"{glass}: formula {g['formula']!r}, only Schott is written here")
-    c, l2 = g["coefficients"], (lam_mm * 1e3) ** 2
-    return float(np.sqrt(c[0] + c[1] * l2 + c[2] / l2 + c[3] / l2 ** 2 + c[4] / l2 ** 3 + c[5] / l2 ** 4))
+    lam_um = lam_mm * 1e3
+    lo, hi = g.get("range_um", (0.0, np.inf))
+    if not lo <= lam_um <= hi:
+        raise ValueError(f"{glass}: {lam_um} um outside its catalogue range {lo}-{hi} um")
+    c, l2 = g["coefficients"], lam_um ** 2
+    if g["formula"] == "Schott":
+        return float(np.sqrt(c[0] + c[1] * l2 + c[2] / l2 + c[3] / l2 ** 2 + c[4] / l2 ** 3 + c[5] / l2 ** 4))
+    if g["formula"] == "Sellmeier1":
+        return float(np.sqrt(1.0 + sum(c[2 * i] * l2 / (l2 - c[2 * i + 1]) for i in range(3))))
+    raise ValueError(f"{glass}: formula {g['formula']!r}, only Schott and Sellmeier1 are written here")
+
+
+def schott_index(glass: str, lam_mm: float = LAM_MM) -> float:
+    """:func:`catalogue_index` of a glass whose formula is Schott (ValueError naming the glass otherwise)."""
+    cat = json.loads((ROOT / "rwwarp" / "data" / "glasses.json").read_text())
+    if cat["glasses"][glass]["formula"] != "Schott":
+        raise ValueError(f"{glass}: formula {cat['glasses'][glass]['formula']!r}, not Schott")
+    return catalogue_index(glass, lam_mm)
 
 
 class A489:
     """The A489's surfaces as numbers (from ``rw.load_lens("a489_doe")``'s JSON, read here), stop radius ``a_mm``
-    (1.0: the lens file's, F/4), DOE ``coeffs`` on ``norm_mm``."""
+    (1.0: the lens file's, F/4), DOE ``coeffs`` (rad, the design phase at the file's design wavelength) on
+    ``norm_mm``, the wavelength ``lam_mm`` (mm; the glass's index and the DOE's relief at it: module docstring)."""
 
     def __init__(self, a_mm=1.0, coeffs=(600.0, 200.0), norm_mm=1.5, lam_mm=LAM_MM):
         spec = json.loads((ROOT / "rwwarp" / "lenses" / "a489_doe.json").read_text())
         surfs = spec["surfaces"]
         s1, s2, doe = surfs[1], surfs[2], surfs[3]
         self.a, self.lam = float(a_mm), float(lam_mm)
+        if not np.isfinite(self.lam) or self.lam <= 0:
+            raise ValueError(f"A489: wavelength lam_mm={lam_mm!r} (mm) must be a positive number")
         self.k = 2 * np.pi / lam_mm
         self.z1 = float(surfs[0]["thickness"])
         self.c1, self.k1 = 1.0 / float(s1["radius"]), float(s1.get("conic", 0.0))
@@ -78,7 +102,15 @@ class A489:
         self.zD = self.z2 + float(s2["thickness"])
         self.zS = self.zD + float(doe["thickness"])
         self.doe_half = float(doe["semi_diameter"])
-        self.n = schott_index(s1["material"], lam_mm)
+        self.n = catalogue_index(s1["material"], lam_mm)
+        # the DOE's relief at this wavelength (module docstring): s = 1 exactly at its design wavelength
+        self.doe_lam = float(doe["design_wavelength_um"]) * 1e-3
+        self.doe_substrate = str(doe["material"])
+        if abs(self.lam - self.doe_lam) <= 1e-9 * self.doe_lam:
+            self.doe_scale = 1.0
+        else:
+            n0, ns = catalogue_index(self.doe_substrate, self.doe_lam), catalogue_index(self.doe_substrate, self.lam)
+            self.doe_scale = (ns - 1.0) / (n0 - 1.0) * self.doe_lam / self.lam
         self.coeffs, self.norm = tuple(float(c) for c in coeffs), float(norm_mm)
         od = spec.get("object_distance", "inf")
         self.D = np.inf if od == "inf" else float(od)       # the object point's distance before the stop (mm)
@@ -108,8 +140,13 @@ class A489:
         return c / np.sqrt(1 - c * c * r2)
 
     def doe_phase(self, x, y):
+        """The DOE's phase (rad) at (x, y) (mm) at this wavelength: the design phase ``phi0`` at the design
+        wavelength (the wrapped relief's field, unwrapped), ``doe_scale * wrap(phi0)`` at another (the relief)."""
         rho2 = (x * x + y * y) / self.norm ** 2
-        return sum(c * rho2 ** (i + 1) for i, c in enumerate(self.coeffs))
+        phi0 = sum(c * rho2 ** (i + 1) for i, c in enumerate(self.coeffs))
+        if self.doe_scale == 1.0:
+            return phi0
+        return self.doe_scale * np.mod(phi0, 2 * np.pi)
 
     # -- rays -------------------------------------------------------------------------------------------------
     @staticmethod
