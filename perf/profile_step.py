@@ -29,6 +29,11 @@ def main():
     ap.add_argument("--arm", default=None, help="the arm to step (default: the first whose design method is e2e)")
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--memory", action="store_true",
+                    help="one more step (CUDA) with the memory at its phases: allocated, reserved and the peak since "
+                         "the previous mark, at the PSFs' forward, the network's forward, the backward and the "
+                         "optimisers; and what is held beside them (cached fields, network and Adam state, the "
+                         "backend's work arrays, transfer-function cache and FFT plans)")
     ap.add_argument("--find-syncs", action="store_true",
                     help="one more step counting the host reads of device data (each waits for the device) by call site")
     ap.add_argument("--pack", action="store_true", help="packed live tiles on (optics.live_pack = true)")
@@ -163,6 +168,8 @@ def main():
             cp = [e for e in ev if e.name.startswith(f"Memcpy {kind}")]
             say(f"Memcpy {kind}: {len(cp)} copies, {sum(e.device_time for e in cp) / 1e3:.2f} ms of device time")
         say(prof.key_averages().table(sort_by="device_time_total", row_limit=30, max_name_column_width=70))
+    if cuda and a.memory:
+        summary["memory_phases"] = _memory_phases(arm, step, a.steps + 3, say)
     if cuda and a.find_syncs:
         say("== host reads of device data in one step, by call site (project frames)")
         for site, n in _count_syncs(lambda: step(a.steps + 3))[:25]:
@@ -177,6 +184,75 @@ def main():
         summary["commit"] = os.environ.get("RWWARP_COMMIT") or _git_commit()
         p.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
         print("written to", p, "and", p.with_suffix(".json"))
+
+
+def _memory_phases(arm, step, k, say) -> dict:
+    """Step ``k`` with the CUDA memory (GB = 1e9 bytes) marked at its phases: after the PSFs' forward
+    (``arm.psfs``), after the network's forward (the rendering and noise before it), after the loss's backward
+    (the network's and the optics' gradients: ``train_step`` returns) and after the optimisers. Each mark: torch's
+    allocated and reserved memory, the peak allocated since the previous mark and the device's used memory
+    (``mem_get_info``). Then the memory held beside the step: the provider's cached fields, the network's weights
+    and Adam state, the backend's work arrays (outside torch's allocator), its transfer-function cache and FFT
+    plans. Printed with ``say``; returned as a dict."""
+    import torch
+
+    from rwwarp.wave.backend import get_backend
+    marks = []
+
+    def mark(name):
+        torch.cuda.synchronize()
+        free, total = torch.cuda.mem_get_info()
+        marks.append({"phase": name, "allocated_gb": torch.cuda.memory_allocated() / 1e9,
+                      "reserved_gb": torch.cuda.memory_reserved() / 1e9,
+                      "peak_since_previous_gb": torch.cuda.max_memory_allocated() / 1e9,
+                      "device_used_gb": (total - free) / 1e9})
+        torch.cuda.reset_peak_memory_stats()
+    psfs, forward = arm.psfs, arm.net.forward
+
+    def psfs_marked(*args, **kw):
+        mark("start of the step")
+        out = psfs(*args, **kw)
+        mark("PSFs' forward")
+        return out
+
+    def forward_marked(*args, **kw):
+        mark("rendering and noise")
+        out = forward(*args, **kw)
+        mark("network's forward")
+        return out
+    arm.psfs, arm.net.forward = psfs_marked, forward_marked
+    try:
+        torch.cuda.reset_peak_memory_stats()
+        k_opt = [0]
+        _step_opt = arm.opt_net.step
+
+        def opt_step(*args, **kw):
+            if not k_opt[0]:
+                mark("loss and backward (network and optics)")
+            k_opt[0] += 1
+            return _step_opt(*args, **kw)
+        arm.opt_net.step = opt_step
+        step(k)
+        mark("optimisers")
+    finally:
+        arm.psfs, arm.net.forward = psfs, forward
+        arm.opt_net.step = _step_opt
+    prov = arm.provider
+    be = get_backend(str(arm.module.rw_device))
+    params = sum(p.numel() * p.element_size() for p in arm.net.parameters())
+    adam = sum(t.numel() * t.element_size() for st in arm.opt_net.state.values() for t in st.values()
+               if torch.is_tensor(t))
+    held = {"cached_fields_gb": (prov.cache_bytes() if hasattr(prov, "cache_bytes") else 0) / 1e9,
+            "network_weights_gb": params / 1e9, "network_adam_state_gb": adam / 1e9,
+            "backend_work_arrays_gb": sum(e[0].nbytes for e in be._workspace.values()) / 1e9,
+            "backend_transfer_cache_gb": be.cache.nbytes / 1e9, "backend_fft_plans_gb": be._plan_bytes / 1e9}
+    say("== memory at the phases of one step (GB): allocated / reserved / peak allocated since the previous mark / "
+        "device used")
+    for m in marks:
+        say(f"  {m['phase']:42s} {m['allocated_gb']:7.2f} {m['reserved_gb']:7.2f} {m['peak_since_previous_gb']:7.2f} "
+            f"{m['device_used_gb']:7.2f}")
+    say("  held beside the step: " + ", ".join(f"{k} {v:.3f}" for k, v in held.items()))
+    return {"marks": marks, "held": held}
 
 
 def _count_syncs(fn):
