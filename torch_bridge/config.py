@@ -149,6 +149,7 @@ SCHEMA = {
         "live_pack": _bool(),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
         "cache_precision": _choice("double", "single"),
+        "cache_device": _choice("device", "host"),
         "propagation": _choice(*method_choices(differentiable=True)),   # rwwarp.wave.methods
         "focal_patch_tol": _num(0, 1),
         "deterministic": _bool(),
@@ -237,7 +238,7 @@ DEFAULTS = {
                "min_feature_um": None,
                "check_sampling_every": 10, "live_replan_every": 1, "live_replan_rule": "drift",
                "live_replan_drift": 1.0, "live_replan_drift_hard": None, "live_replan_spread": 3, "live_pack": True,
-               "memory_budget_gb": None, "cache_precision": "double", "propagation": "auto",
+               "memory_budget_gb": None, "cache_precision": "double", "cache_device": "device", "propagation": "auto",
                "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux", "model_error_estimate": False},
     "render": {"mode": "patch", "boundary": "reflect"},
     "data": {"root": None, "crop": 64, "scale": 1.0, "batch_size": 4, "eval_images": 8, "max_images": None,

@@ -84,6 +84,13 @@ class CachedProvider:
         on the A489 + DOE (4 nodes, 2 wavelengths) PSFs by 2.6e-10 / 5.1e-10 of the peak and DOE gradients by
         1.3e-8 / 1.2e-10 (focal / ASM), far under the plans' 1e-4 sampling error; a focal entry's operators
         stay complex128, so it saves less there).
+    cache_device : "device" | "host"
+        Where the band-limited (ASM) entries' fields are kept: on the module's device, or (a CUDA module) in
+        page-locked host memory, each node's field uploaded (asynchronously, on the current stream) when its
+        propagation runs and again when its DOE modulation is recomputed in backward. A step then holds only the
+        fields of the node being propagated, not every wavelength's entry: the a489_aberration gpu preset's nine
+        entries are 9.5 GB, of which a step uses three, at the cost of ~6.4 GB of host-to-device copies a step.
+        Focal entries stay on the device. On the CPU the two are the same.
     memory_budget_bytes : int, optional
         Peak bytes one entry's field build may use (default
         :func:`~torch_bridge.budget.default_memory_budget_bytes`: half the free memory of a CUDA
@@ -103,7 +110,7 @@ class CachedProvider:
 
     def __init__(self, module, fields_deg, size: int, pixel_mm: float, model: str = "ray-wave",
                  wavelength_ref_um: float = 0.55, doe_budget_cpmm: float = 0.0, memory_budget_bytes: int | None = None,
-                 min_feature_mm: float | None = None, cache_precision: str = "double"):
+                 min_feature_mm: float | None = None, cache_precision: str = "double", cache_device: str = "device"):
         if model not in ("ray-wave", "paraxial-wave"):
             raise ValueError(f"model must be 'ray-wave' or 'paraxial-wave', got {model!r}")
         if memory_budget_bytes is not None and not memory_budget_bytes > 0:
@@ -114,6 +121,10 @@ class CachedProvider:
             raise ValueError(f"cache_precision must be 'double' or 'single', got {cache_precision!r}")
         #: dtype of the cached DOE-plane fields (they are propagated in complex128 whatever it is)
         self.cache_dtype = torch.complex128 if cache_precision == "double" else torch.complex64
+        if cache_device not in ("device", "host"):
+            raise ValueError(f"cache_device must be 'device' or 'host', got {cache_device!r}")
+        #: the ASM entries' fields in page-locked host memory (a CUDA module with cache_device "host")
+        self.cache_on_host = cache_device == "host" and module.thickness_base.device.type == "cuda"
         if min_feature_mm is not None and not min_feature_mm > 0:
             raise ValueError(f"min_feature_mm must be > 0 or None, got {min_feature_mm!r}")
         self.min_feature_mm = None if min_feature_mm is None else float(min_feature_mm)
@@ -333,9 +344,12 @@ class CachedProvider:
             # the wave step (method "two-step", where the plan has one) does not depend on the DOE behind it:
             # the field is cached after it (rwwarp.wave.wave_step)
             u = self._to_torch(rw.wave_stepped(rw.field_array()), dev, self.cache_dtype)
+            if self.cache_on_host:
+                u = u.to("cpu").pin_memory()
             entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
         else:
-            u = torch.empty((rw.nsrc, n, n), dtype=self.cache_dtype, device=dev)
+            u = torch.empty((rw.nsrc, n, n), dtype=self.cache_dtype,
+                            **({"device": "cpu", "pin_memory": True} if self.cache_on_host else {"device": dev}))
             entering = torch.empty(rw.nsrc, dtype=torch.float64, device=dev)
             for k in range(0, rw.nsrc, b):
                 sl = slice(k, min(k + b, rw.nsrc))
@@ -538,11 +552,13 @@ class CachedProvider:
             release_warp_pool(dev)
 
     def cache_bytes(self) -> int:
-        """Bytes held by the cached fields and, for focal entries, the nodes' focal operators once built
-        (their factors are of the order of the field: :attr:`rwwarp.wave.focal.FocalPropagator.nbytes`)."""
+        """Device bytes held by the cached fields (host-kept ones, ``cache_device="host"``, are not counted) and,
+        for focal entries, the nodes' focal operators once built (their factors are of the order of the field:
+        :attr:`rwwarp.wave.focal.FocalPropagator.nbytes`)."""
         ops = sum(op.nbytes for nodes, _, _ in self._focal.values() for rw, _, _ in nodes
                   if (op := getattr(rw, "_focal_op", None)) is not None)
-        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values()) + ops + \
+        dev = self.module.thickness_base.device
+        return sum(e[1].numel() * e[1].element_size() for e in self._cache.values() if e[1].device == dev) + ops + \
             sum(u.numel() * u.element_size() for nodes, _, _ in self._focal.values() for _, u, _ in nodes)
 
     def check_sampling(self) -> int:
@@ -757,7 +773,9 @@ class CachedProvider:
                     with torch.enable_grad() if record else torch.no_grad():
                         phi0 = geo.doe_phase(sub, {"doe": doe_m})
                         alpha = upload(doe_scale(sub), torch.float64, phi0.device)
-                        return u[sl].to(torch.complex128) * torch.exp(1j * alpha[:, None, None] * phi0)
+                        # a host-kept field (cache_device "host") goes up now, asynchronously from page-locked memory
+                        us = u[sl].to(phi0.device, non_blocking=True)
+                        return us.to(torch.complex128) * torch.exp(1j * alpha[:, None, None] * phi0)
                 with torch.enable_grad() if record else torch.no_grad():
                     d = dist[sl] if thick_t is None else thick_t.expand(sl.stop - sl.start)
                     f = Recompute.apply(modulate, doe_t) if record and wants_grad([doe_t]) else \

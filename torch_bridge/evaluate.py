@@ -53,7 +53,8 @@ def _eval_provider(arm):
     prov = dz.CachedProvider(arm.module, arm.fields, arm.size, arm.pixel_mm, model="ray-wave",
                              wavelength_ref_um=arm.wl_ref, memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
                              min_feature_mm=_feature_mm(arm.cfg["optics"]),
-                             cache_precision=arm.cfg["optics"]["cache_precision"])
+                             cache_precision=arm.cfg["optics"]["cache_precision"],
+                             cache_device=arm.cfg["optics"]["cache_device"])
     ev = arm.cfg["eval"]["depths_mm"] or arm.cfg["optics"]["depths_mm"]
     prov.prepare(sorted({w for c in arm.wls for w in c}), [_depth_value(d) for d in ev], progress=False)
     return prov
@@ -139,7 +140,8 @@ def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
                               wavelength_ref_um=arm.wl_ref, doe_budget_cpmm=arm.cfg["optics"]["doe_budget_cpmm"],
                               memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
                               min_feature_mm=_feature_mm(arm.cfg["optics"]),
-                              cache_precision=arm.cfg["optics"]["cache_precision"])
+                              cache_precision=arm.cfg["optics"]["cache_precision"],
+                              cache_device=arm.cfg["optics"]["cache_device"])
         p.prepare(allw, depths, progress=False)
         with torch.no_grad():
             for d in depths:

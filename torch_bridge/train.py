@@ -239,7 +239,7 @@ class Arm:
             return dz.CachedProvider(module, self.fields, self.size, self.pixel_mm, model=model,
                                      wavelength_ref_um=self.wl_ref, doe_budget_cpmm=o["doe_budget_cpmm"],
                                      memory_budget_bytes=_budget_bytes(o), min_feature_mm=_feature_mm(o),
-                                     cache_precision=o["cache_precision"])
+                                     cache_precision=o["cache_precision"], cache_device=o["cache_device"])
         tile = record = None
         if o["memory_budget_gb"]:
             # a tile's recorded sources take half the budget; the network's activations and the allocator's

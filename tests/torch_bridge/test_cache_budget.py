@@ -69,6 +69,12 @@ def test_budget_too_small_warns_and_traces_one_source_at_a_time():
 
 def test_memory_budget_validated():
     m, fields = _setup()
+    with pytest.raises(ValueError, match="cache_device"):
+        dz.CachedProvider(m, fields, 21, 0.003, cache_device="gpu")
+    # on the CPU the host is the device: the fields stay where they are and count against the budget
+    assert not dz.CachedProvider(m, fields, 21, 0.003, cache_device="host").cache_on_host
+    with pytest.raises(ConfigError, match="cache_device"):
+        load_config({"lens": {"file": "a489_doe"}, "optics": {"cache_device": "gpu"}})
     with pytest.raises(ValueError, match="memory_budget_bytes"):
         dz.CachedProvider(m, fields, 21, 0.003, memory_budget_bytes=0)
     base = {"lens": {"file": "a489_doe"}, "optics": {"memory_budget_gb": -1}}
