@@ -29,6 +29,9 @@ def main():
     ap.add_argument("--arm", default=None, help="the arm to step (default: the first whose design method is e2e)")
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--cache-device", choices=("device", "host"), default=None,
+                    help="override the config's optics.cache_device (a cached provider's fields on the device or in "
+                         "page-locked host memory)")
     ap.add_argument("--memory", action="store_true",
                     help="one more step (CUDA) with the memory at its phases: allocated, reserved and the peak since "
                          "the previous mark, at the PSFs' forward, the network's forward, the backward and the "
@@ -61,6 +64,8 @@ def main():
         cfg["optics"] = dict(cfg["optics"], live_pack=True)
     if a.budget_gb is not None:
         cfg["optics"] = dict(cfg["optics"], memory_budget_gb=a.budget_gb)
+    if a.cache_device is not None:
+        cfg["optics"] = dict(cfg["optics"], cache_device=a.cache_device)
     _seed_all(int(cfg["seed"]))
     arm = Arm(arm_cfg["name"], cfg, exp["source"], Path("unused"), progress=False)
     if a.live_tile is not None:
@@ -175,7 +180,8 @@ def main():
         for site, n in _count_syncs(lambda: step(a.steps + 3))[:25]:
             say(f"{n:6d}  {site}")
     if a.out:
-        tag = ("_pack" if a.pack else "") + (f"_tile{a.live_tile}" if a.live_tile is not None else "")
+        tag = ("_pack" if a.pack else "") + (f"_tile{a.live_tile}" if a.live_tile is not None else "") + \
+            (f"_cache_{a.cache_device}" if a.cache_device else "")
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{tag}.txt"
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("\n".join(lines) + "\n")
