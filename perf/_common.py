@@ -112,7 +112,6 @@ class GpuMemory:
         import threading
         self.period, self.peaks, self.peak_times, self._stop = period, {}, {}, threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
-        self._t0 = time.perf_counter()
 
     @staticmethod
     def _first():

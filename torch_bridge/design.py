@@ -344,8 +344,8 @@ class CachedProvider:
             # the wave step (method "two-step", where the plan has one) does not depend on the DOE behind it:
             # the field is cached after it (rwwarp.wave.wave_step)
             u = self._to_torch(rw.wave_stepped(rw.field_array()), dev, self.cache_dtype)
-            if self.cache_on_host:
-                u = u.to("cpu").pin_memory()
+            if self.cache_on_host:   # one copy into page-locked memory (no pageable copy in between)
+                u = torch.empty(u.shape, dtype=u.dtype, pin_memory=True).copy_(u)
             entering = torch.as_tensor(rw.entering, dtype=torch.float64, device=dev)
         else:
             u = torch.empty((rw.nsrc, n, n), dtype=self.cache_dtype,

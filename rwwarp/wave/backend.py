@@ -137,7 +137,7 @@ class Backend:
     #: True where :meth:`gemm` runs the batched complex matrix products of the matrix DFTs through the vendor's
     #: BLAS (CUDA: cuBLAS, whose FP64 GEMMs use the tensor cores); False: the OpenCL C kernels of
     #: ``angular_spectrum.cl`` (``cgemm_batched_kernel``, ``cgemm_cpu_kernel``). An instance may set it False
-    #: to run the kernels instead (the GPU tests compare both).
+    #: to run the kernels instead; the CUDA GEMM test checks both against numpy.
     vendor_gemm = False
 
     def gemm(self, a, b, c, m, n, k, **kw) -> None:  # pragma: no cover - overridden where vendor_gemm
