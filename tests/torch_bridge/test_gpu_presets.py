@@ -87,7 +87,8 @@ def test_paraxial_wave_cached_focal_path_on_cuda_equals_the_cpu():
 def test_a489_step_propagation_stays_inside_its_share_of_the_budget():
     """The A489 + DOE at the gpu preset's F/2.2, 2 x 2 nodes, three wavelengths (one per colour) through the
     cached provider on CUDA with gradients (ASM entries: the learning DOE under its fabrication limit). With a
-    step budget of two and a half nodes' estimate, each entry runs in chunks of two nodes recorded as they run: the peak
+    step budget of two and a half nodes' estimate (the largest entry's), each entry runs in chunks of as many of its
+    nodes as fit (two for the largest) recorded as they run: the peak
     torch-pool memory the step adds (forward and backward; Warp and CuPy allocate from that pool inside bridge
     calls) stays inside the budget plus what the recorded nodes keep until backward (``held_bytes_per_source``).
     With a budget below what they keep, every chunk is a checkpoint of one node: the peak stays inside the budget
@@ -106,8 +107,12 @@ def test_a489_step_propagation_stays_inside_its_share_of_the_budget():
     node = max(prov.step_bytes_per_source(e) for e in entries)     # the library's per-node step estimate
     held = sum(prov.held_bytes_per_source(e) * e.nsrc for e in entries)
 
-    def measured(budget):
-        prov.memory_budget_bytes = prov.cache_bytes() + 2 * budget      # the step gets half of what is left
+    def measured(target):
+        # the step gets half of what the budget leaves beside the cache and the device's memory outside torch's
+        # allocator (the CUDA context, Warp's pool): a budget is set that gives the step a share of ``target``
+        prov.memory_budget_bytes = prov.cache_bytes() + 2 * target
+        outside = target - prov.step_budget_bytes()
+        prov.memory_budget_bytes = prov.cache_bytes() + 2 * (target + outside)
         share = prov.step_budget_bytes()
         base = torch.cuda.memory_allocated()
         torch.cuda.reset_peak_memory_stats()
@@ -120,10 +125,16 @@ def test_a489_step_propagation_stays_inside_its_share_of_the_budget():
         np.testing.assert_allclose(g2, g1, rtol=1e-12, atol=1e-12 * np.abs(g1).max())
         return share, added
 
-    # two and a half nodes' estimate: two nodes a chunk whatever part of a node the device's memory outside torch's
-    # allocator (read when the step plans its chunks; the CUDA context, Warp's pool) takes from the budget
+    # a share of two and a half nodes' estimate (the largest entry's). Each wavelength's entry has its own per-node
+    # estimate (session 21 on an H200: 9.0 / 11.5 / 15.6 GB at 0.63 / 0.55 / 0.47 um), so its chunk is the number of
+    # its nodes that fit the share (read again when the step plans its chunks: a quarter node of slack): 2 for the
+    # largest, 3 for the smallest.
     share, added = measured(2 * node + node // 2)
-    assert all(r["chunk"] == 2 and r["chunks"] == 2 and not r["checkpointed"] for r in prov.step_log[-3:])
+    for r in prov.step_log[-3:]:
+        c, per = r["chunk"], r["bytes_per_source"]
+        assert not r["checkpointed"] and r["chunks"] == -(-4 // c)
+        assert c * per <= share + node // 4 and (c == 4 or (c + 1) * per > share - node // 4), r
+    assert max(prov.step_log[-3:], key=lambda r: r["bytes_per_source"])["chunk"] == 2
     assert added <= share + held
     share, added = measured(held // 2)
     assert all(r["chunk"] == 1 and r["checkpointed"] for r in prov.step_log[-3:])
