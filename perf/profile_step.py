@@ -87,6 +87,13 @@ def main():
     def say(s):
         print(s, flush=True)
         lines.append(s)
+    from torch_bridge.design import CachedProvider
+    if isinstance(arm.provider, CachedProvider):
+        # every wavelength entry's field built first, as the design loop does (torch_bridge.train): a step then meets
+        # only built entries (without it a step that draws a new wavelength builds its entry, seconds on a GPU)
+        t = time.perf_counter()
+        arm.provider.prepare(sorted({w for c in arm.wls for w in c}), arm.depths, progress=False)
+        say(f"cached provider's wavelength entries built first: {time.perf_counter() - t:.2f} s")
     t = time.perf_counter()
     step(0)
     say(f"first step (plans, kernel builds) {time.perf_counter() - t:.2f} s")
@@ -105,17 +112,29 @@ def main():
             empties[0] += 1
             _empty()
         torch.cuda.empty_cache = counted_empty
+    from rwwarp.wave.backend import get_backend
+    be = get_backend(arm.provider.module.rw_device)
+    per_step = []   # FFT plans built (VkFFT kernel builds) and a cached provider's wavelength entries, each step
+
+    def entries():
+        return len(getattr(arm.provider, "_cache", {})) + len(getattr(arm.provider, "_focal", {}))
     with GpuMemory(0.05) as mem:
         for k in range(1, a.steps + 1):
+            built, n_entries = be.fft_plans_built, entries()
             t = time.perf_counter()
             step(k)
             times.append(time.perf_counter() - t)
+            per_step.append({"fft_plans_built": be.fft_plans_built - built, "new_entries": entries() - n_entries})
     if cuda:
         torch.cuda.empty_cache = _empty
         summary["empty_cache_calls"] = empties[0]
         say(f"torch.cuda.empty_cache calls over the timed steps: {empties[0]}")
     summary.update(step_wall_s=times, step_median_s=float(sorted(times)[len(times) // 2]), nodes=len(arm.fields))
     say(f"steps {[round(x, 3) for x in times]} s; nodes {len(arm.fields)}, sources per step {3 * len(arm.fields)}")
+    summary["per_step"] = per_step
+    say(f"FFT plans built a step {[r['fft_plans_built'] for r in per_step]} (kept {be.memory_report()['fft_plans']}, "
+        f"{be.memory_report()['fft_plan_bytes'] / 1e9:.2f} GB of temporary buffers; dropped by the bounds so far "
+        f"{be.fft_plans_dropped}); new cached wavelength entries a step {[r['new_entries'] for r in per_step]}")
     prov = arm.provider
     if hasattr(prov, "plans_made"):
         say(f"live plans made {prov.plans_made}, reused {prov.plans_reused} (replan_every {prov.replan_every}; "

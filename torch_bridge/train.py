@@ -560,6 +560,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
         if new_csv:
             writer.writeheader()
     stop_after = t_cfg["stop_after"]
+    from rwwarp.wave.backend import get_backend
+    fft_backend = get_backend(arm.module.rw_device)   # its FFT plan builds go into the metrics
     psf_cache = {}
     it = range(arm.step, total)
     if arm.progress:
@@ -587,7 +589,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                     "perceptual": s["parts"]["perceptual"], "psnr_train": s["psnr"],
                     "lr_network": t_cfg["lr_network"] * f, "optics_step": int(optics_step),
                     "wall_s": time.perf_counter() - t0, "replans": getattr(arm.provider, "replans", 0),
-                    "memory_gb": _memory_gb(arm.device)}
+                    "memory_gb": _memory_gb(arm.device), "fft_plans_built": fft_backend.fft_plans_built}
             msg = None if over else over_budget(last["memory_gb"], cfg["optics"]["memory_budget_gb"],
                                                 f"design arm {name!r}, step {step} ({last['replans']} replans)")
             if msg:
@@ -655,8 +657,10 @@ def _memory_gb(device) -> float:
     return round(rss * (1 if sys.platform == "darwin" else 1024) / 1e9, 3)
 
 
+# fft_plans_built: the wave backend's FFT plans built since the process started (each a VkFFT kernel build, NVRTC on
+# CUDA, 0.3-1 s at lengths of a few thousand); it stops growing once every plan a step needs is kept
 _CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
-               "replans", "memory_gb"]
+               "replans", "memory_gb", "fft_plans_built"]
 
 
 def _truncate_csv(path: Path, step: int, fields=None):

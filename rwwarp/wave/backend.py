@@ -150,6 +150,11 @@ class Backend:
         self._workspace: dict = {}  # (tag, dtype) -> (flat device array, {shape: view}), grown on demand
         self._plans: OrderedDict = OrderedDict()  # key -> (plan, estimated bytes), LRU order
         self._plan_bytes = 0
+        #: FFT plans built since the backend was made (each a VkFFT kernel build: NVRTC on CUDA), and those of them
+        #: dropped by the count or byte bound (:attr:`max_fft_plans`, :attr:`max_fft_plan_bytes`): a plan dropped and
+        #: needed again is built again, so a growing count over kept plans shows plans cycling
+        self.fft_plans_built = 0
+        self.fft_plans_dropped = 0
         self._programs: dict = {}
         self._lock = threading.Lock()
         self._release_hooks: list = []  # callables that free device memory held by other allocators
@@ -250,10 +255,12 @@ class Backend:
         with self._lock:
             self._plans[key] = (plan, int(nbytes))
             self._plan_bytes += int(nbytes)
+            self.fft_plans_built += 1
             while len(self._plans) > 1 and (len(self._plans) > self.max_fft_plans
                                             or self._plan_bytes > self.max_fft_plan_bytes):
                 _, (_, old) = self._plans.popitem(last=False)
                 self._plan_bytes -= old
+                self.fft_plans_dropped += 1
         return plan
 
     def allocated_bytes(self) -> int:
@@ -266,12 +273,14 @@ class Backend:
     def memory_report(self) -> dict:
         """Bookkeeping of held device memory, bytes: ``workspace_bytes`` (per tag in
         ``workspaces``), ``cache_bytes`` (transfer functions and the like, ``cache_entries``),
-        ``fft_plan_bytes`` (VkFFT temporary buffers) and ``fft_plans`` (count)."""
+        ``fft_plan_bytes`` (VkFFT temporary buffers) and ``fft_plans`` (count); ``fft_plans_built`` and
+        ``fft_plans_dropped``: counts since the backend was made."""
         with self._lock:
             ws = {f"{tag}:{dt}": int(e[0].nbytes) for (tag, dt), e in self._workspace.items()}
             return {"workspace_bytes": sum(ws.values()), "workspaces": ws, "cache_bytes": self.cache.nbytes,
                     "cache_entries": len(self.cache), "fft_plan_bytes": self._plan_bytes,
-                    "fft_plans": len(self._plans)}
+                    "fft_plans": len(self._plans), "fft_plans_built": self.fft_plans_built,
+                    "fft_plans_dropped": self.fft_plans_dropped}
 
     def clear_caches(self):
         """Release cached workspaces, FFT plans and transfer functions (compiled programs stay), and

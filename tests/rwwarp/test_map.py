@@ -231,12 +231,17 @@ def test_fft_plan_cache_is_an_lru_with_a_count_bound_and_stays_correct():
     be.max_fft_plans = 2
     try:
         rng = np.random.default_rng(1)
-        for n in (8, 12, 16, 8, 20):
+        built, dropped = be.fft_plans_built, be.fft_plans_dropped
+        # sizes 8, 12, 16, 8, 8, 20 with two plans kept (least recently used dropped): 8 built, 12 built, 16 built
+        # (drops 8), 8 built again (drops 12), 8 kept, 20 built (drops 16): five builds, three drops
+        for n in (8, 12, 16, 8, 8, 20):
             x = rng.standard_normal((2, n, n)) + 1j * rng.standard_normal((2, n, n))
             d = be.to_device(x)
             be.fft2(d)
             np.testing.assert_allclose(be.to_host(d), np.fft.fft2(x), rtol=0, atol=1e-12 * n * n)
             assert be.memory_report()["fft_plans"] <= 2
+        assert (be.fft_plans_built - built, be.fft_plans_dropped - dropped) == (5, 3)
+        assert be.memory_report()["fft_plans_built"] == be.fft_plans_built
     finally:
         be.max_fft_plans = keep
         be.clear_caches()

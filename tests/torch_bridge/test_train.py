@@ -75,6 +75,10 @@ def test_tiny_design_end_to_end(tmp_path):
     rows = _rows(out / "metrics.csv")
     assert [int(r["step"]) for r in rows] == list(range(10))
     assert {r["phase"] for r in rows} == {"joint", "finetune"}
+    # the wave backend's FFT plan builds, counted since the process started: whole, never decreasing, and every
+    # plan the first step needed built by then
+    built = [int(r["fft_plans_built"]) for r in rows]
+    assert built[0] >= 1 and built == sorted(built)
     # the designed lens file loads and keeps the quantised DOE
     lens = rw.load_lens(out / "lens.json")
     assert lens.surfaces[lens.doe_index].levels == 16
