@@ -4,7 +4,9 @@
 # device commands. Run from the repository root, after `source ~/rw-env.sh`.
 #
 #   bash perf/tools/arms_gpu.sh start EXPERIMENT SEED:ARM ...   # run k on GPU k, detached; a run whose pack
-#                                  # is in out/pack/<name>/ (pack.json + parts) resumes from it
+#                                  # is in out/pack/<name>/ (pack.json + parts) resumes from it. ARMS_PROCS=N: each
+#                                  # run on N GPUs (rwwarp design --procs N: its PSF nodes and batch split over N ranks),
+#                                  # run k on GPUs kN .. kN+N-1 (after ARMS_GPU0)
 #   bash perf/tools/arms_gpu.sh watch SECONDS                   # every run's status every 30 s, for SECONDS
 #   bash perf/tools/arms_gpu.sh stop                            # SIGTERM every live run: it ends at once, its
 #                                  # last checkpoint (every 200 steps) is what a resume starts from
@@ -46,18 +48,21 @@ case $cmd in
 start)
   exp=${1:?experiment}; shift
   [ -f data/debian-photos/MANIFEST.json ] || { echo "data/debian-photos is missing: carry it" >&2; exit 2; }
-  ngpu=$(nvidia-smi -L | wc -l); k=${ARMS_GPU0:-0}   # ARMS_GPU0: the first GPU to use (runs started by an earlier call hold the ones before it)
+  # ARMS_GPU0: the first GPU to use (runs started by an earlier call hold the ones before it); ARMS_NGPU: the GPUs
+  # there are (default: nvidia-smi's count; the CPU rehearsal sets it, the ranks then run on the CPU with gloo)
+  ngpu=${ARMS_NGPU:-$(nvidia-smi -L | wc -l)}; k=${ARMS_GPU0:-0}; procs=${ARMS_PROCS:-1}
   for sa in "$@"; do
     seed=${sa%%:*}; arm=${sa#*:}
-    [ $k -lt $ngpu ] || { echo "start: $ngpu GPU(s) for $# runs" >&2; exit 2; }
+    [ $((k + procs)) -le $ngpu ] || { echo "start: $ngpu GPU(s) for $# runs of $procs GPU(s) each" >&2; exit 2; }
     name=${exp}_gpu_s${seed}_${arm}
     resume=()
     [ -f $PACKS/$name/pack.json ] && resume=(--resume $PACKS/$name)
     mkdir -p $RUNS
-    CUDA_VISIBLE_DEVICES=$k $DESIGN $exp --arm $arm "${protocol[@]}" "${extra[@]}" --set seed=$seed --out $RUNS/$name \
-      --no-progress "${resume[@]}" --detach || echo "start: $name did not start" >&2
-    echo "start: $name on GPU $k ${resume[*]}"
-    k=$((k + 1))
+    gpus=$(seq -s, $k $((k + procs - 1)))
+    CUDA_VISIBLE_DEVICES=$gpus $DESIGN $exp --arm $arm "${protocol[@]}" "${extra[@]}" --set seed=$seed --out $RUNS/$name \
+      --no-progress --procs $procs "${resume[@]}" --detach || echo "start: $name did not start" >&2
+    echo "start: $name on GPU(s) $gpus ${resume[*]}"
+    k=$((k + procs))
   done
   ;;
 watch)
