@@ -40,11 +40,20 @@ def main():
     ap.add_argument("--reference", action="store_true",
                     help="alternate with the reference image loop (tests/torch_bridge/_eval_reference.py)")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (1: steadier timings on a "
+                    "shared machine)")
+    ap.add_argument("--parts", action="store_true",
+                    help="time one node's image parts alone at the config's crop and eval_images (no PSF build: a "
+                         "Gaussian kernel), the reference's against the batched: blur (crop by crop / one call), "
+                         "noise, network (eval.batch_size batches), PSNR + SSIM of the raw and reconstructed crops "
+                         "(scikit-image on the host / torch float64); --repeat times, medians")
     ap.add_argument("--out", default=None, help="write the figures as JSON here")
     a = ap.parse_args()
 
     import torch
 
+    if a.threads:
+        torch.set_num_threads(a.threads)
     import torch_bridge
     from torch_bridge.evaluate import evaluate
     from torch_bridge.runs import git_commit
@@ -76,12 +85,15 @@ def main():
              "wavelengths": sum(len(c) for c in arm.wls), "eval_batch": cfg["eval"]["batch_size"],
              "threads": torch.get_num_threads(), **git_commit()}
     print(json.dumps(sizes))
+    if a.parts:
+        sizes["parts"] = parts(arm, a.repeat)
+        print(json.dumps(sizes["parts"], indent=1))
     ref = None
     if a.reference:
         sys.path.insert(0, str(ROOT / "tests" / "torch_bridge"))
         from _eval_reference import evaluate_reference as ref
     runs = []
-    for r in range(a.repeat):
+    for r in range(a.repeat if not a.parts else 0):
         for name, fn in (("new", evaluate), ("reference", ref)):
             if fn is None:
                 continue
@@ -108,6 +120,53 @@ def main():
     if a.out:
         Path(a.out).write_text(json.dumps({"sizes": sizes, "runs": [{k: v for k, v in x.items() if k != "nodes"}
                                                                     for x in runs]}, indent=1))
+
+
+def parts(arm, repeat: int) -> dict:
+    """Median wall s of one node's image parts (see --parts), each timed alone, reference and batched alternated."""
+    import statistics
+
+    import torch
+
+    from torch_bridge.evaluate import _blur_one, _blur_patch, _eval_noise, _noise
+    from torch_bridge.losses import image_metrics_per_image
+    sys.path.insert(0, str(ROOT / "tests" / "torch_bridge"))
+    from _eval_reference import image_metrics_skimage
+    cfg = arm.cfg
+    ev = cfg["eval"]
+    gt = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
+    k = arm.size
+    x = torch.arange(k, dtype=torch.float32) - k // 2
+    ker = torch.exp(-(x[:, None] ** 2 + x[None, :] ** 2) / 8.0)
+    ker = (ker / ker.sum()).expand(3, k, k).to(arm.device)
+    bnd = cfg["render"]["boundary"]
+    g = torch.Generator().manual_seed(0)
+    sync = torch.cuda.synchronize if arm.device.type == "cuda" else (lambda: None)
+    raw = _blur_one(gt, ker, bnd)
+    arm.net.eval()
+    with torch.no_grad():
+        rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0], ev["batch_size"])])
+    jobs = {
+        "blur_reference": lambda: _blur_patch(gt, ker[None].expand(gt.shape[0], -1, -1, -1), bnd),
+        "blur_batched": lambda: _blur_one(gt, ker, bnd),
+        "noise_reference": lambda: _noise(raw, ev["noise"], g),
+        "noise_batched": lambda: _eval_noise(raw, ev["noise"], g),
+        "network": lambda: torch.cat([arm.net(raw[i:i + ev["batch_size"]])
+                                      for i in range(0, raw.shape[0], ev["batch_size"])]),
+        "metrics_reference": lambda: (image_metrics_skimage(raw, gt), image_metrics_skimage(rec, gt)),
+        "metrics_batched": lambda: (image_metrics_per_image(raw, gt, "torch"), image_metrics_per_image(rec, gt, "torch")),
+    }
+    times = {name: [] for name in jobs}
+    with torch.no_grad():
+        for _ in range(max(1, repeat)):
+            for name, fn in jobs.items():
+                sync()
+                t0 = time.perf_counter()
+                fn()
+                sync()
+                times[name].append(time.perf_counter() - t0)
+    arm.net.train()
+    return {name: round(statistics.median(v), 4) for name, v in times.items()}
 
 
 if __name__ == "__main__":

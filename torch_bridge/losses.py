@@ -27,6 +27,7 @@ Images are (B, 3, H, W) tensors with values in [0, 1].
 """
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from pathlib import Path
@@ -262,6 +263,19 @@ def _metric_taps(sigma: float = 1.5, truncate: float = 3.5) -> np.ndarray:
     return phi / phi.sum()
 
 
+@functools.lru_cache(maxsize=16)
+def _metric_band(n: int, device: str) -> torch.Tensor:
+    """(n - k + 1, n) float64 on ``device``: row i holds :func:`_metric_taps` (k of them) at columns i..i+k-1, the
+    'valid' correlation along an axis of n px as a matrix product. Kept per size and device: made and uploaded once
+    (an upload from pageable memory waits for the device)."""
+    taps = _metric_taps()
+    k = taps.size
+    m = np.zeros((n - k + 1, n))
+    for j in range(k):
+        m[np.arange(n - k + 1), np.arange(n - k + 1) + j] = taps[j]
+    return torch.as_tensor(m, dtype=torch.float64, device=device)
+
+
 def image_metrics_per_image(out: torch.Tensor, gt: torch.Tensor, method: str = "auto", chunk: int = 16) -> tuple:
     """PSNR (dB) and SSIM of each of the (B, 3, H, W) images ``out`` against ``gt``, both clipped to [0, 1] (as
     float32, then float64): two (B,) float64 tensors on the images' device.
@@ -294,16 +308,8 @@ def image_metrics_per_image(out: torch.Tensor, gt: torch.Tensor, method: str = "
         ps = [p if math.isfinite(p) else 100.0 for p in ps]
         return (torch.tensor(ps, dtype=torch.float64).to(out.device),
                 torch.tensor(ss, dtype=torch.float64).to(out.device))
-    dev = out.device
-    k = taps.size
     H, W = out.shape[-2:]
-
-    def band(n):   # (n - k + 1, n): row i holds the taps at columns i..i+k-1 ('valid' correlation)
-        m = np.zeros((n - k + 1, n))
-        for j in range(k):
-            m[np.arange(n - k + 1), np.arange(n - k + 1) + j] = taps[j]
-        return torch.as_tensor(m, dtype=torch.float64, device=dev)
-    my, mxt = band(H), band(W).T
+    my, mxt = _metric_band(H, str(out.device)), _metric_band(W, str(out.device)).T
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     ps, ss = [], []
     for i in range(0, out.shape[0], int(chunk)):
