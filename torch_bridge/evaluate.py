@@ -131,7 +131,7 @@ def objective(arm, prov=None) -> dict:
                                          boundary=cfg["render"]["boundary"])
         else:
             raw = _blur_one(gt, kern[v], cfg["render"]["boundary"])
-        raw = _noise(raw, ev["noise"], g)
+        raw = _eval_noise(raw, ev["noise"], g)
         rec = arm.net(raw)
         loss, parts = arm.criterion(rec, gt)
         tot += float(loss)
@@ -201,7 +201,7 @@ def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
 
 def _patch_nodes(arm, kern, gt_all, gen, positions, fields) -> tuple:
     """The evaluation rows of patch rendering at one depth: for each node ``n`` (in order), the fixed crops
-    ``gt_all`` (B, 3, H, W) blurred by the node's kernel ``kern[n]`` (all crops in one FFT convolution), seeded
+    ``gt_all`` (B, 3, H, W) blurred by the node's kernel ``kern[n]`` (:func:`_blur_one`: 8 crops an FFT convolution), seeded
     noise (``gen``, drawn node after node as before), the network in ``eval.batch_size`` batches, PSNR / SSIM per
     crop on the device (:func:`~torch_bridge.losses.image_metrics_per_image`; 1 - LPIPS on the host when the arm
     has an LPIPS). The per-crop figures stay on the device until every node is done: one host read for the grid,
@@ -327,7 +327,8 @@ def evaluate_arm(arm, result: dict, out, report, default=None) -> dict:
     t_prov = time.perf_counter() - t1
 
     def eval_progress(done, n_nodes, t_eval=time.perf_counter()):
-        # the grid's PSFs are most of an evaluation's time (the A489's 10 x 10 grid at F/2.2: ~9 minutes on an H200)
+        # the grid's PSFs are most of an evaluation's time since the crops' metrics moved to the device (the A489's
+        # 10 x 10 grid at F/2.2: 9 minutes on an H200 before, ~2/3 of it the crops' SSIM on the host; PROTOCOL.md)
         el = time.perf_counter() - t_eval
         report("evaluating", "eval", eval_nodes_done=done, eval_nodes=n_nodes,
                eval_eta_s=round(el * (n_nodes - done) / max(done, 1), 1))
