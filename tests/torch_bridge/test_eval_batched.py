@@ -152,3 +152,35 @@ def test_batched_evaluation_equals_the_node_by_node_reference(tmp_path, monkeypa
         sample = dict(np.load(next(tmp_path.glob("eval_sample_*.npz"))))
         for k in ("gt", "raw", "rec"):
             assert np.array_equal(sample[k], sample_ref[k]), k
+
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (written, not run: no GPU here)")
+
+
+@CUDA
+def test_cuda_noise_and_metrics_equal_the_host_ones():
+    """On a CUDA device: the evaluation's noise (draws uploaded from page-locked memory, the formula on the device)
+    equals the host round trip it replaced (_noise: the image down, sensor_noise, back up) to float32 rounding
+    (IEEE add / multiply / divide / sqrt are correctly rounded on both: expected equal; 2 ulp of values <= 1.2 allowed),
+    and the device's PSNR / SSIM equal scikit-image's to the CPU test's tolerances (cuBLAS sums in another order)."""
+    from skimage.metrics import structural_similarity
+
+    from torch_bridge.evaluate import _eval_noise, _noise
+    from torch_bridge.losses import image_metrics_per_image
+    img = _pair((4, 3, 48, 40), 4)[0].cuda()
+    for noise in ({"read_std": 0.01, "photons": None}, {"read_std": 0.02, "photons": 800.0}):
+        g1, g2 = torch.Generator().manual_seed(9), torch.Generator().manual_seed(9)
+        a = _eval_noise(img, noise, g1)
+        b = _noise(img, noise, g2)
+        assert a.device == img.device and b.device == img.device
+        assert float((a - b).abs().max()) <= 2.5e-7
+    out, gt = _pair((5, 3, 40, 52), 6)
+    p, s = image_metrics_per_image(out.cuda(), gt.cuda())
+    assert p.device.type == "cuda"
+    a = out.float().clamp(0, 1).numpy().transpose(0, 2, 3, 1).astype(np.float64)
+    b = gt.float().clamp(0, 1).numpy().transpose(0, 2, 3, 1).astype(np.float64)
+    sr = [structural_similarity(b[i], a[i], data_range=1.0, channel_axis=2, gaussian_weights=True, sigma=1.5,
+                                use_sample_covariance=False) for i in range(5)]
+    pr = [10 * np.log10(1.0 / np.mean((b[i] - a[i]) ** 2)) for i in range(5)]
+    assert np.max(np.abs(s.cpu().numpy() - sr)) <= 3e-15
+    assert np.max(np.abs(p.cpu().numpy() - pr)) <= 1.5e-14
