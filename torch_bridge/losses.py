@@ -288,8 +288,8 @@ def image_metrics_per_image(out: torch.Tensor, gt: torch.Tensor, method: str = "
     over the pixels at least the Gaussian window's radius (5 px) from the edges -- the region scikit-image keeps,
     which the border mode of its filter never reaches, so the filters here are 'valid' separable correlations,
     done as products with banded matrices -- then the channels averaged) or ``"auto"``: scikit-image on the CPU
-    (its line-by-line filters are ~3x faster there than torch's), torch elsewhere. The two agree to the rounding
-    of the sums (~1e-16, tests/torch_bridge/test_eval_batched.py). ``chunk``: images filtered at once by the torch
+    (its line-by-line filters are ~2.5x faster there than torch's), torch elsewhere. The two agree to the rounding
+    of the sums (~1e-15, tests/torch_bridge/test_eval_batched.py). ``chunk``: images filtered at once by the torch
     method (memory: ~150 chunk C H W bytes)."""
     if out.shape != gt.shape or out.ndim != 4:
         raise ValueError(f"out and gt must be (B, C, H, W) of one shape, got {tuple(out.shape)}, {tuple(gt.shape)}")
