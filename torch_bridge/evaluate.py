@@ -25,6 +25,53 @@ def _noise(image, noise: dict, gen):
                         generator=gen).to(image.device)
 
 
+def _noise_draws(shape, dtype, noise: dict, gen, pin: bool = False) -> list:
+    """The standard normal draws :func:`~torch_bridge.imaging.sensor_noise` makes for an image of ``shape`` and
+    ``dtype`` with ``noise``, in its order (shot noise, then read noise), from the CPU generator ``gen``: the same
+    values. ``pin``: into page-locked host memory (an asynchronous upload that does not wait for the device)."""
+    out = []
+    for on in (noise["photons"] is not None, bool(noise["read_std"])):
+        if on:
+            t = torch.empty(shape, dtype=dtype, pin_memory=pin)
+            out.append(t.normal_(generator=gen))
+    return out
+
+
+def _noise_from_draws(image, draws: list, noise: dict):
+    """:func:`~torch_bridge.imaging.sensor_noise`'s formula with its draws given (:func:`_noise_draws`, on the
+    image's device): ``image + sqrt(max(image, 0) / photons + 1e-2 / photons^2) n1 + read_std n2``."""
+    out, k = image, 0
+    if noise["photons"] is not None:
+        photons = float(noise["photons"])
+        var = torch.clamp(image, min=0.0) / photons
+        out = out + torch.sqrt(var + 1e-2 / photons ** 2) * draws[k]
+        k += 1
+    if noise["read_std"]:
+        out = out + float(noise["read_std"]) * draws[k]
+    return out
+
+
+def _eval_noise(image, noise: dict, gen):
+    """Sensor noise of the evaluation: :func:`_noise`'s values (the CPU generator ``gen``'s draws), but on a CUDA
+    device only the draws go up (from page-locked memory, asynchronously) and the image stays there: no copy of the
+    image to the host and back, no wait for the device."""
+    if image.device.type != "cuda":
+        return _noise(image, noise, gen)
+    draws = [d.to(image.device, non_blocking=True)
+             for d in _noise_draws(image.shape, image.dtype, noise, gen, pin=True)]
+    return _noise_from_draws(image, draws, noise)
+
+
+def _blur_one(images, kernel, boundary, chunk: int = 8):
+    """Blur every image (B, C, H, W) with the one kernel (C, k, k) (image orientation): :func:`_blur_patch` with
+    that kernel for every image, in FFT convolutions of ``chunk`` images each instead of one an image (on a GPU the
+    per-image calls were bound by their launches; on the CPU larger batches were slower: 64 crops of 256^2 px in
+    one call took 2-5x the time of 8 calls of 8, their work arrays out of cache, perf/profile_eval.py --parts)."""
+    from torch_bridge.imaging import spatially_varying_blur
+    return torch.cat([spatially_varying_blur(images[i:i + chunk], kernel[None, None], boundary=boundary)
+                      for i in range(0, images.shape[0], int(chunk))])
+
+
 def _blur_patch(images, kernels, boundary):
     """Blur each image (B, C, H, W) with its own kernel (B, C, k, k) (image orientation), FFT."""
     from torch_bridge.imaging import spatially_varying_blur
@@ -83,8 +130,8 @@ def objective(arm, prov=None) -> dict:
             raw = spatially_varying_blur(gt, kern.reshape(gy, gx, 3, arm.size, arm.size),
                                          boundary=cfg["render"]["boundary"])
         else:
-            raw = _blur_patch(gt, kern[[v] * gt.shape[0]], cfg["render"]["boundary"])
-        raw = _noise(raw, ev["noise"], g)
+            raw = _blur_one(gt, kern[v], cfg["render"]["boundary"])
+        raw = _eval_noise(raw, ev["noise"], g)
         rec = arm.net(raw)
         loss, parts = arm.criterion(rec, gt)
         tot += float(loss)
@@ -152,6 +199,39 @@ def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
     return {d: torch.cat(v, 0) for d, v in out.items()}, list(pos), list(fields)
 
 
+def _patch_nodes(arm, kern, gt_all, gen, positions, fields) -> tuple:
+    """The evaluation rows of patch rendering at one depth: for each node ``n`` (in order), the fixed crops
+    ``gt_all`` (B, 3, H, W) blurred by the node's kernel ``kern[n]`` (:func:`_blur_one`: 8 crops an FFT convolution), seeded
+    noise (``gen``, drawn node after node as before), the network in ``eval.batch_size`` batches, PSNR / SSIM per
+    crop on the device (:func:`~torch_bridge.losses.image_metrics_per_image`; 1 - LPIPS on the host when the arm
+    has an LPIPS). The per-crop figures stay on the device until every node is done: one host read for the grid,
+    not one (or more) a node. Returns ``(node_rows, sample)``: rows as :func:`image_metrics` averages them (mean
+    over the crops), and the last node's first two crops (gt, raw, rec) on the host."""
+    from torch_bridge.losses import image_metrics_per_image
+    cfg = arm.cfg
+    ev = cfg["eval"]
+    bs = ev["batch_size"]
+    per, lp = [], []
+    sample = None
+    for n in range(kern.shape[0]):
+        raw = _blur_one(gt_all, kern[n], cfg["render"]["boundary"])
+        raw = _eval_noise(raw, ev["noise"], gen)
+        rec = torch.cat([arm.net(raw[i:i + bs]) for i in range(0, raw.shape[0], bs)])
+        per.append(torch.stack([*image_metrics_per_image(raw, gt_all), *image_metrics_per_image(rec, gt_all)]))
+        if arm.lpips is not None:
+            lp.append([float(1.0 - arm.lpips(x.detach().float().clamp(0, 1).cpu(), gt_all.float().cpu()).mean())
+                       for x in (raw, rec)])
+        if n == kern.shape[0] - 1:
+            sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
+    vals = torch.stack(per).cpu().numpy()               # (nodes, 4 [psnr raw, ssim raw, psnr rec, ssim rec], B)
+    rows = []
+    for n in range(kern.shape[0]):
+        m = {part: {"psnr": float(np.mean(vals[n, 2 * j])), "ssim": float(np.mean(vals[n, 2 * j + 1])),
+                    "one_minus_lpips": lp[n][j] if lp else float("nan")} for j, part in enumerate(("raw", "rec"))}
+        rows.append({"node": n, "position_mm": positions[n], "field_deg": fields[n], **m})
+    return rows, sample
+
+
 @torch.no_grad()
 def evaluate(arm, prov=None, on_progress=None) -> dict:
     """Evaluation of a trained arm with the ray-wave model (see the module docstring): per evaluation
@@ -171,7 +251,6 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress)
     timing = {"psfs": time.perf_counter() - t0}    # wall s: DOE-plane field builds and PSFs of the nodes
     t0 = time.perf_counter()
-    n_nodes = len(positions)
     gt_all = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
     g = torch.Generator().manual_seed(int(ev["seed"]))
     arm.net.eval()
@@ -181,27 +260,16 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
         psf = psf_by_depth[depth]
         psf_store[str(depth)] = psf.cpu().numpy()
         kern = _psf_kernels(psf.float()).to(arm.device)
-        node_rows = []
         if cfg["render"]["mode"] == "patch":
-            for n in range(n_nodes):
-                raw = _blur_patch(gt_all, kern[[n] * gt_all.shape[0]], cfg["render"]["boundary"])
-                raw = _noise(raw, ev["noise"], g)
-                rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0],
-                                                                                      ev["batch_size"])])
-                m_raw = image_metrics(raw, gt_all, arm.lpips)
-                m_rec = image_metrics(rec, gt_all, arm.lpips)
-                node_rows.append({"node": n, "position_mm": positions[n], "field_deg": fields[n],
-                                  "raw": m_raw, "rec": m_rec})
-                if n == n_nodes - 1:
-                    sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
+            node_rows, sample = _patch_nodes(arm, kern, gt_all, g, positions, fields)
         else:
             gy, gx = arm.grid
             raw = spatially_varying_blur(gt_all, kern.reshape(gy, gx, 3, arm.size, arm.size),
                                          boundary=cfg["render"]["boundary"])
             raw = _noise(raw, ev["noise"], g)
             rec = torch.cat([arm.net(raw[i:i + ev["batch_size"]]) for i in range(0, raw.shape[0], ev["batch_size"])])
-            node_rows.append({"node": "all", "raw": image_metrics(raw, gt_all, arm.lpips),
-                              "rec": image_metrics(rec, gt_all, arm.lpips)})
+            node_rows = [{"node": "all", "raw": image_metrics(raw, gt_all, arm.lpips),
+                          "rec": image_metrics(rec, gt_all, arm.lpips)}]
             sample = (gt_all[:2].cpu(), raw[:2].cpu(), rec[:2].cpu())
 
         def avg(part, key, node_rows=node_rows):
@@ -259,7 +327,8 @@ def evaluate_arm(arm, result: dict, out, report, default=None) -> dict:
     t_prov = time.perf_counter() - t1
 
     def eval_progress(done, n_nodes, t_eval=time.perf_counter()):
-        # the grid's PSFs are most of an evaluation's time (the A489's 10 x 10 grid at F/2.2: ~9 minutes on an H200)
+        # the grid's PSFs are most of an evaluation's time since the crops' metrics moved to the device (the A489's
+        # 10 x 10 grid at F/2.2: 9 minutes on an H200 before, ~2/3 of it the crops' SSIM on the host; PROTOCOL.md)
         el = time.perf_counter() - t_eval
         report("evaluating", "eval", eval_nodes_done=done, eval_nodes=n_nodes,
                eval_eta_s=round(el * (n_nodes - done) / max(done, 1), 1))
