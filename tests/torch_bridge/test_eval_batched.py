@@ -154,9 +154,10 @@ def test_batched_evaluation_equals_the_node_by_node_reference(tmp_path, monkeypa
             assert np.array_equal(sample[k], sample_ref[k]), k
 
 
-CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (written, not run: no GPU here)")
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 
 
+@pytest.mark.gpu
 @CUDA
 def test_cuda_noise_and_metrics_equal_the_host_ones():
     """On a CUDA device: the evaluation's noise (draws uploaded from page-locked memory, the formula on the device)
