@@ -158,12 +158,17 @@ def eval_nodes(arm):
     return pos, dz.field_angles(lens, pos, arm.wl_ref)
 
 
-def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
+def _eval_psfs(arm, depths, prov=None, on_progress=None, group=None) -> tuple:
     """Per evaluation depth the (nodes, 3, k, k) ray-wave PSFs with the wavelengths of each channel
     averaged, the node positions (mm) and field angles (deg). On the training nodes (``prov`` or :func:`_eval_provider`), or,
     with ``eval.grid``, on that grid in chunks of ``eval.node_chunk`` nodes, each chunk's DOE-plane
     fields cached only while its PSFs are made (memory follows the chunk, not the grid). ``on_progress``:
-    called as ``on_progress(nodes_done, nodes_total)`` after each chunk of the grid (the run's progress file)."""
+    called as ``on_progress(nodes_done, nodes_total)`` after each chunk of the grid (the run's progress file).
+
+    ``group`` (:class:`torch_bridge.distributed.Group`, an ``eval.grid`` only): every rank calls this; the grid's
+    chunks are dealt out round robin (chunk ``j`` on rank ``j mod ranks``), each rank computes its own, and the
+    PSFs are all-gathered: every rank returns the whole grid's. The chunks are the single process's, so the PSFs are
+    too (a chunk's plan is shared by its nodes: the chunking, not the rank, decides it)."""
     from torch_bridge import design as dz
     dense = eval_nodes(arm)
 
@@ -178,11 +183,13 @@ def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
     k = int(arm.cfg["eval"]["node_chunk"])
     out = {d: [] for d in depths}
     allw = sorted({w for c in arm.wls for w in c})
-    chunks = range(0, len(fields), k)
+    starts = list(range(0, len(fields), k))
+    ranks, rank = (1, 0) if group is None else (group.size, group.rank)
+    chunks = starts[rank::ranks]
     if arm.progress:
         from tqdm.auto import tqdm
         chunks = tqdm(chunks, desc=f"{arm.name}: eval grid {arm.cfg['eval']['grid']}", unit="chunk", leave=False)
-    for i in chunks:
+    for j, i in enumerate(chunks):
         p = dz.CachedProvider(arm.module, fields[i:i + k], arm.size, arm.pixel_mm, model="ray-wave",
                               wavelength_ref_um=arm.wl_ref, doe_budget_cpmm=arm.cfg["optics"]["doe_budget_cpmm"],
                               memory_budget_bytes=_budget_bytes(arm.cfg["optics"]),
@@ -194,9 +201,28 @@ def _eval_psfs(arm, depths, prov=None, on_progress=None) -> tuple:
             for d in depths:
                 out[d].append(mean_psf(p, d))
         del p
-        if on_progress is not None:
-            on_progress(min(i + k, len(fields)), len(fields))
+        if on_progress is not None:   # this rank's chunks, the others' taken to keep pace
+            on_progress(min((j + 1) * k * ranks, len(fields)), len(fields))
+    if group is not None:
+        empty = torch.zeros((0, len(arm.wls), arm.size, arm.size), dtype=torch.float64, device=arm.device)
+        return ({d: _gather_chunks(group, v or [empty], starts, len(fields), k) for d, v in out.items()},
+                list(pos), list(fields))
     return {d: torch.cat(v, 0) for d, v in out.items()}, list(pos), list(fields)
+
+
+def _gather_chunks(group, mine: list, starts: list, n_nodes: int, k: int):
+    """The grid's (n_nodes, ...) PSFs from every rank's chunks (``mine``: this rank's tensors in order, at least one,
+    possibly with no nodes; chunk ``j`` of ``starts`` was computed by rank ``j mod ranks``): each rank's chunks
+    padded to ``ceil(chunks / ranks) k`` nodes for one all-gather (NCCL needs equal shapes), then put back in grid
+    order."""
+    per = -(-len(starts) // group.size) * k
+    parts = group.gather_psfs(torch.cat(mine, 0), per * group.size, per)
+    parts = parts.reshape(group.size, per, *parts.shape[1:])
+    out = []
+    for j, i in enumerate(starts):
+        r, q = j % group.size, j // group.size
+        out.append(parts[r, q * k:q * k + min(k, n_nodes - i)])
+    return torch.cat(out, 0)
 
 
 def _patch_nodes(arm, kern, gt_all, gen, positions, fields) -> tuple:
@@ -233,13 +259,14 @@ def _patch_nodes(arm, kern, gt_all, gen, positions, fields) -> tuple:
 
 
 @torch.no_grad()
-def evaluate(arm, prov=None, on_progress=None) -> dict:
+def evaluate(arm, prov=None, on_progress=None, group=None) -> dict:
     """Evaluation of a trained arm with the ray-wave model (see the module docstring): per evaluation
     depth and node (the training nodes, or ``eval.grid``), PSNR (dB) / SSIM / 1-LPIPS of the raw and the
     reconstructed fixed crops; the ray-model RMS spot radius (um); EFL (mm); DOE coefficients (rad); ``timing_s``,
     the wall time (s) of its parts: ``psfs`` (field builds and PSFs), ``images`` (crops through the network,
     metrics), ``rms`` (the ray model). ``on_progress(nodes_done, nodes_total)``: called after each chunk of an
-    ``eval.grid``'s PSFs."""
+    ``eval.grid``'s PSFs. ``group`` (a distributed run's, on its lead rank; the other ranks call
+    :func:`eval_share`): the grid's PSFs are computed by every rank (:func:`_eval_psfs`), the rest by this one."""
     from torch_bridge.imaging import spatially_varying_blur
     from torch_bridge.losses import image_metrics
     cfg = arm.cfg
@@ -248,7 +275,8 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
     from torch_bridge import design as dz
     t0 = time.perf_counter()
-    psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress)
+    psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress,
+                                                 group if eval_nodes(arm) is not None else None)
     timing = {"psfs": time.perf_counter() - t0}    # wall s: DOE-plane field builds and PSFs of the nodes
     t0 = time.perf_counter()
     gt_all = arm.valid_set.fixed_crops(cfg["data"]["eval_images"], seed=ev["seed"]).to(arm.device)
@@ -312,13 +340,28 @@ def evaluate(arm, prov=None, on_progress=None) -> dict:
     return res
 
 
-def evaluate_arm(arm, result: dict, out, report, default=None) -> dict:
+@torch.no_grad()
+def eval_share(arm, group) -> None:
+    """A distributed run's rank other than the lead at the end of a finished arm: its share of the ``eval.grid``'s
+    PSFs (:func:`_eval_psfs`), gathered by the lead's :func:`evaluate`; nothing without an ``eval.grid`` (the lead
+    evaluates the training nodes alone). The training provider's fields are let go first, as on the lead."""
+    if eval_nodes(arm) is None:
+        return
+    if hasattr(arm.provider, "release"):
+        arm.provider.release()
+    cfg = arm.cfg
+    depths = [_depth_value(d) for d in (cfg["eval"]["depths_mm"] or cfg["optics"]["depths_mm"])]
+    _eval_psfs(arm, depths, group=group)
+
+
+def evaluate_arm(arm, result: dict, out, report, default=None, group=None) -> dict:
     """The end of a finished arm: its lens (``lens.json``) and network (``network.pt``) saved in ``out``, the final
     objective on the training nodes (:func:`objective`, beside ``arm.objective_initial``), :func:`evaluate` (on the
     training nodes or the ``eval.grid``: the training nodes' fields are let go first, so the grid's chunks build
     theirs under the memory budget alone), the run's times, and ``result.json`` written atomically (``default``:
     the JSON encoder's fallback). ``report(state, phase, **kw)`` writes the run's progress file; the grid's chunks
-    report their progress and ETA through it. Updates and returns ``result``."""
+    report their progress and ETA through it. ``group``: a distributed run's, on its lead rank (the grid's PSFs are
+    shared out: the other ranks call :func:`eval_share`). Updates and returns ``result``."""
     from torch_bridge.runs import _utc
     arm.module.save_lens(out / "lens.json")
     torch.save(arm.net.state_dict(), out / "network.pt")
@@ -338,7 +381,7 @@ def evaluate_arm(arm, result: dict, out, report, default=None) -> dict:
     t_obj = time.perf_counter() - t2
     if eval_nodes(arm) is not None:
         prov.release()   # the training nodes' fields (9.5 GB for the A489 at F/2.2) are not held beside the grid's
-    result["eval"] = evaluate(arm, prov, on_progress=eval_progress)
+    result["eval"] = evaluate(arm, prov, on_progress=eval_progress, group=group)
     # wall s of the evaluation's parts besides evaluate()'s own: the training nodes' fields, the objective
     result["eval"]["timing_s"].update(training_nodes=round(t_prov, 2), objective=round(t_obj, 2))
     result["eval_wall_s"] = time.perf_counter() - t1

@@ -84,7 +84,7 @@ from torch_bridge.config import (  # noqa: F401
     validate_config,
 )
 from torch_bridge.budget import over_budget
-from torch_bridge.evaluate import _blur_patch, _eval_provider, _noise, _psf_kernels, evaluate_arm, objective
+from torch_bridge.evaluate import _blur_patch, _eval_provider, _noise, _psf_kernels, eval_share, evaluate_arm, objective
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 
 __all__ = [
@@ -637,9 +637,11 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     if arm.step < total or not lead:
         if arm.step < total:
             result["stopped_early"] = True
+        elif group is not None:
+            eval_share(arm, group)     # this rank's share of the evaluation grid's PSFs, gathered by the lead
         return result
     report("evaluating", "eval")
-    evaluate_arm(arm, result, out, report, default=_json_default)
+    evaluate_arm(arm, result, out, report, default=_json_default, group=group)
     report("running", "done")
     return result
 

@@ -46,16 +46,38 @@ def _step(group, cfg0=CFG, provider="CachedProvider"):
 CASES = {"cached": (CFG, "CachedProvider"), "live": (CFG_LIVE, "LiveProvider")}
 
 
+# the evaluation grid's PSFs shared out: a 2 x 3 grid in chunks of 2 nodes (3 chunks: two on rank 0, one on rank 1,
+# so one rank's share is padded for the all-gather)
+CFG_EVAL = copy.deepcopy(CFG)
+CFG_EVAL["eval"].update({"grid": [2, 3], "node_chunk": 2})
+
+
+def _eval_grid(group):
+    """The evaluation grid's per-depth PSFs of a fresh arm of CFG_EVAL (the distributed ones with ``group``)."""
+    from torch_bridge.evaluate import _depth_value, _eval_psfs
+    from torch_bridge.train import Arm, _seed_all, load_config
+    exp = load_config(CFG_EVAL)
+    cfg = exp["arms"][0]["config"]
+    _seed_all(int(cfg["seed"]))
+    arm = Arm("e2e", cfg, exp["source"], Path("unused"), progress=False)
+    depths = [_depth_value(d) for d in (cfg["eval"]["depths_mm"] or cfg["optics"]["depths_mm"])]
+    psfs, pos, fields = _eval_psfs(arm, depths, group=group)
+    return {d: v.cpu() for d, v in psfs.items()}, pos
+
+
 def _worker():
     """Rank r: the distributed step of each case, then the single-process step (same seed) of case r to
     compare (rank 0 the first case's, rank 1 the second's: the two references at once, not one after the
     other on rank 0). Both cases in one launch: a launch starts two fresh interpreters (torch, warp and
-    OpenCL imported and initialised in each), which cost more than a case's step itself."""
+    OpenCL imported and initialised in each), which cost more than a case's step itself. Then the evaluation
+    grid's PSFs, shared out (every rank) and in one process (rank 1)."""
     from torch_bridge.distributed import current_group
     g = current_group("cpu", timeout_s=300)
     dist = {name: _step(g, *args) for name, args in CASES.items()}
     single = {name: _step(None, *args) for name, args in list(CASES.items())[g.rank::g.size]}
-    return single, dist if g.rank == 0 else None
+    grid = _eval_grid(g)
+    grid_single = _eval_grid(None) if g.rank == 1 else None
+    return single, dist if g.rank == 0 else None, grid, grid_single
 
 
 @pytest.fixture(scope="module")
@@ -65,9 +87,21 @@ def steps():
     from rwwarp.distributed import launch
     ranks = launch(_worker, 2)
     dist = ranks[0][1]
-    got = {name: (dist[name], ref) for single, _ in ranks for name, ref in single.items()}
+    got = {name: (dist[name], ref) for single, _, _, _ in ranks for name, ref in single.items()}
     assert sorted(got) == sorted(CASES)
+    got["eval_grid"] = (ranks[0][2], ranks[1][2], ranks[1][3])
     return got
+
+
+def test_the_evaluation_grid_shared_out_gives_the_single_process_psfs(steps):
+    """The evaluation grid's PSFs computed by 2 ranks (chunks dealt out round robin, all-gathered) are the
+    single process's on both ranks, node for node: the chunks are the same, so the numbers are bit for bit the
+    same (measured: equal)."""
+    (d0, pos0), (d1, pos1), (single, pos) = steps["eval_grid"]
+    assert pos0 == pos and pos1 == pos and len(pos) == 6
+    for depth, ref in single.items():
+        assert ref.shape[0] == 6 and float(ref.abs().max()) > 0
+        assert torch.equal(d0[depth], ref) and torch.equal(d1[depth], ref), depth
 
 
 @pytest.mark.parametrize("case", list(CASES))
