@@ -589,7 +589,8 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                     "perceptual": s["parts"]["perceptual"], "psnr_train": s["psnr"],
                     "lr_network": t_cfg["lr_network"] * f, "optics_step": int(optics_step),
                     "wall_s": time.perf_counter() - t0, "replans": getattr(arm.provider, "replans", 0),
-                    "memory_gb": _memory_gb(arm.device), "fft_plans_built": fft_backend.fft_plans_built}
+                    "memory_gb": _memory_gb(arm.device), **_torch_gb(arm.device),
+                    "fft_plans_built": fft_backend.fft_plans_built}
             msg = None if over else over_budget(last["memory_gb"], cfg["optics"]["memory_budget_gb"],
                                                 f"design arm {name!r}, step {step} ({last['replans']} replans)")
             if msg:
@@ -661,8 +662,20 @@ def _memory_gb(device) -> float:
 
 # fft_plans_built: the wave backend's FFT plans built since the process started (each a VkFFT kernel build, NVRTC on
 # CUDA, 0.3-1 s at lengths of a few thousand); it stops growing once every plan a step needs is kept
+# torch_gb / torch_peak_gb (CUDA; empty on the CPU): torch's allocator after the step (what is held between steps:
+# growth there is something kept) and its peak since the run started (the row where it jumps is the step that raised it)
 _CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
-               "replans", "memory_gb", "fft_plans_built"]
+               "replans", "memory_gb", "torch_gb", "torch_peak_gb", "fft_plans_built"]
+
+
+def _torch_gb(device) -> dict:
+    """``torch_gb`` and ``torch_peak_gb`` (GB = 1e9 bytes) of torch's CUDA allocator on ``device`` (memory allocated
+    now, and the most allocated since the process started or its last peak reset); empty strings on the CPU."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return {"torch_gb": "", "torch_peak_gb": ""}
+    return {"torch_gb": round(torch.cuda.memory_allocated(dev) / 1e9, 3),
+            "torch_peak_gb": round(torch.cuda.max_memory_allocated(dev) / 1e9, 3)}
 
 
 def _truncate_csv(path: Path, step: int, fields=None):
