@@ -4,7 +4,9 @@ The per-source figures of a :class:`rwwarp.psf.RayWave` batch recorded for gradi
 (:func:`bytes_per_source`), of the propagation's output side (:func:`output_bytes_per_source`), of what a
 PSF map needs whatever its tiling (:func:`bytes_fixed`), and the default budget of a device
 (:func:`default_memory_budget_bytes`). :class:`torch_bridge.HybridLens` and the design providers call
-these; each docstring gives the measurement the estimate was checked against.
+these; each docstring gives the measurement the estimate was checked against. What a design step measured
+(:func:`memory_gb`, :func:`torch_gb`: GB in use) is read here too, and checked against the budget by
+:func:`over_budget`.
 """
 from __future__ import annotations
 
@@ -12,8 +14,8 @@ import torch
 from rwwarp.trace import COLUMNS as _COL
 
 __all__ = ["bytes_fixed", "bytes_per_source", "cached_held_bytes", "cached_step_bytes",
-           "default_memory_budget_bytes", "device_overhead_bytes", "focal_graph_bytes", "output_bytes_per_source",
-           "over_budget"]
+           "default_memory_budget_bytes", "device_overhead_bytes", "focal_graph_bytes", "memory_gb",
+           "output_bytes_per_source", "over_budget", "torch_gb"]
 
 
 def focal_graph_bytes(rw) -> int:
@@ -144,3 +146,26 @@ def bytes_fixed(rw) -> int:
     pilot = rw.nsrc * (31 * 31 + 1) * n_surf * 128
     maps = rw.nsrc * rw.size ** 2 * 8 * 3
     return int(pilot + 2 * maps)
+
+
+def memory_gb(device) -> float:
+    """Memory in use (GB = 1e9 bytes) after a step: on CUDA the whole device's used memory (total - free,
+    so torch, Warp and CuPy pools all count), on the CPU the process's peak resident set size."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        free, total = torch.cuda.mem_get_info(dev)
+        return round((total - free) / 1e9, 3)
+    import resource
+    import sys
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss          # kB on Linux, bytes on macOS
+    return round(rss * (1 if sys.platform == "darwin" else 1024) / 1e9, 3)
+
+
+def torch_gb(device) -> dict:
+    """``torch_gb`` and ``torch_peak_gb`` (GB = 1e9 bytes) of torch's CUDA allocator on ``device`` (memory allocated
+    now, and the most allocated since the process started or its last peak reset); empty strings on the CPU."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return {"torch_gb": "", "torch_peak_gb": ""}
+    return {"torch_gb": round(torch.cuda.memory_allocated(dev) / 1e9, 3),
+            "torch_peak_gb": round(torch.cuda.max_memory_allocated(dev) / 1e9, 3)}

@@ -83,7 +83,7 @@ from torch_bridge.config import (  # noqa: F401
     resolve_config,
     validate_config,
 )
-from torch_bridge.budget import over_budget
+from torch_bridge.budget import memory_gb as _memory_gb, over_budget, torch_gb as _torch_gb
 from torch_bridge.evaluate import _blur_patch, _eval_provider, _noise, _psf_kernels, eval_share, evaluate_arm, objective
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 
@@ -647,35 +647,12 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     return result
 
 
-def _memory_gb(device) -> float:
-    """Memory in use (GB = 1e9 bytes) after a step: on CUDA the whole device's used memory (total - free,
-    so torch, Warp and CuPy pools all count), on the CPU the process's peak resident set size."""
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        free, total = torch.cuda.mem_get_info(dev)
-        return round((total - free) / 1e9, 3)
-    import resource
-    import sys
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss          # kB on Linux, bytes on macOS
-    return round(rss * (1 if sys.platform == "darwin" else 1024) / 1e9, 3)
-
-
 # fft_plans_built: the wave backend's FFT plans built since the process started (each a VkFFT kernel build, NVRTC on
 # CUDA, 0.3-1 s at lengths of a few thousand); it stops growing once every plan a step needs is kept
 # torch_gb / torch_peak_gb (CUDA; empty on the CPU): torch's allocator after the step (what is held between steps:
 # growth there is something kept) and its peak since the run started (the row where it jumps is the step that raised it)
 _CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
                "replans", "memory_gb", "torch_gb", "torch_peak_gb", "fft_plans_built"]
-
-
-def _torch_gb(device) -> dict:
-    """``torch_gb`` and ``torch_peak_gb`` (GB = 1e9 bytes) of torch's CUDA allocator on ``device`` (memory allocated
-    now, and the most allocated since the process started or its last peak reset); empty strings on the CPU."""
-    dev = torch.device(device)
-    if dev.type != "cuda":
-        return {"torch_gb": "", "torch_peak_gb": ""}
-    return {"torch_gb": round(torch.cuda.memory_allocated(dev) / 1e9, 3),
-            "torch_peak_gb": round(torch.cuda.max_memory_allocated(dev) / 1e9, 3)}
 
 
 def _truncate_csv(path: Path, step: int, fields=None):
