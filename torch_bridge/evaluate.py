@@ -102,8 +102,7 @@ def _eval_provider(arm):
                              min_feature_mm=_feature_mm(arm.cfg["optics"]),
                              cache_precision=arm.cfg["optics"]["cache_precision"],
                              cache_device=arm.cfg["optics"]["cache_device"])
-    ev = arm.cfg["eval"]["depths_mm"] or arm.cfg["optics"]["depths_mm"]
-    prov.prepare(sorted({w for c in arm.wls for w in c}), [_depth_value(d) for d in ev], progress=False)
+    prov.prepare(sorted({w for c in arm.wls for w in c}), eval_depths(arm.cfg), progress=False)
     return prov
 
 
@@ -115,7 +114,7 @@ def objective(arm, prov=None) -> dict:
     from torch_bridge.imaging import spatially_varying_blur
     cfg = arm.cfg
     ev = cfg["eval"]
-    depth = _depth_value((ev["depths_mm"] or cfg["optics"]["depths_mm"])[0])
+    depth = eval_depths(cfg)[0]
     prov = prov or _eval_provider(arm)
     psf = torch.stack([prov.psfs([c[j] for c in arm.wls], depth) for j in range(len(arm.wls[0]))], 0).mean(0)
     kern = _psf_kernels(psf.float()).to(arm.device)
@@ -271,7 +270,7 @@ def evaluate(arm, prov=None, on_progress=None, group=None) -> dict:
     from torch_bridge.losses import image_metrics
     cfg = arm.cfg
     ev = cfg["eval"]
-    depths = [_depth_value(d) for d in (ev["depths_mm"] or cfg["optics"]["depths_mm"])]
+    depths = eval_depths(cfg)
     # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
     from torch_bridge import design as dz
     t0 = time.perf_counter()
@@ -340,6 +339,12 @@ def evaluate(arm, prov=None, on_progress=None, group=None) -> dict:
     return res
 
 
+def eval_depths(cfg) -> list:
+    """The object distances (mm; None: at infinity) an arm is evaluated at: ``eval.depths_mm``, else the training's
+    ``optics.depths_mm``."""
+    return [_depth_value(d) for d in (cfg["eval"]["depths_mm"] or cfg["optics"]["depths_mm"])]
+
+
 @torch.no_grad()
 def eval_share(arm, group) -> None:
     """A distributed run's rank other than the lead at the end of a finished arm: its share of the ``eval.grid``'s
@@ -349,9 +354,7 @@ def eval_share(arm, group) -> None:
         return
     if hasattr(arm.provider, "release"):
         arm.provider.release()
-    cfg = arm.cfg
-    depths = [_depth_value(d) for d in (cfg["eval"]["depths_mm"] or cfg["optics"]["depths_mm"])]
-    _eval_psfs(arm, depths, group=group)
+    _eval_psfs(arm, eval_depths(arm.cfg), group=group)
 
 
 def evaluate_arm(arm, result: dict, out, report, default=None, group=None) -> dict:

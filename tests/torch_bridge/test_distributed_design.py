@@ -54,14 +54,13 @@ CFG_EVAL["eval"].update({"grid": [2, 3], "node_chunk": 2})
 
 def _eval_grid(group):
     """The evaluation grid's per-depth PSFs of a fresh arm of CFG_EVAL (the distributed ones with ``group``)."""
-    from torch_bridge.evaluate import _depth_value, _eval_psfs
+    from torch_bridge.evaluate import _eval_psfs, eval_depths
     from torch_bridge.train import Arm, _seed_all, load_config
     exp = load_config(CFG_EVAL)
     cfg = exp["arms"][0]["config"]
     _seed_all(int(cfg["seed"]))
     arm = Arm("e2e", cfg, exp["source"], Path("unused"), progress=False)
-    depths = [_depth_value(d) for d in (cfg["eval"]["depths_mm"] or cfg["optics"]["depths_mm"])]
-    psfs, pos, fields = _eval_psfs(arm, depths, group=group)
+    psfs, pos, fields = _eval_psfs(arm, eval_depths(cfg), group=group)
     return {d: v.cpu() for d, v in psfs.items()}, pos
 
 
