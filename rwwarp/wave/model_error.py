@@ -144,7 +144,7 @@ from dataclasses import dataclass, fields as _dc_fields
 
 import numpy as np
 
-from .edge_wave import edge_wave_error, fit_pupil_phase
+from .edge_wave import MAX_SLOPE_RAD, edge_wave_error, edge_wave_orders_error, fit_pupil_phase, max_slope
 
 #: calibration of the scalar law :func:`model_error` (module docstring; now the fallback and the small-psi limit):
 #: E = C S / N_F (1 + (S / S0)^2)
@@ -237,7 +237,8 @@ class ModelError:
     rim_slope_rad: float
     wavelength_um: float
     note: str = ""
-    #: the other kept DOE orders' share of ``estimate`` (:func:`other_orders_error`; 0 for one order)
+    #: the other DOE orders' share of ``estimate``: the estimate with every order that lights the patch, summed
+    #: coherently, less the main order's alone (signed: a focused order's peak lowers the relative error; 0 for one order)
     orders_estimate: float = 0.0
     #: the main order's share: the rim's edge waves on the beam's pupil phase (:mod:`rwwarp.wave.edge_wave`)
     main_estimate: float = 0.0
@@ -254,7 +255,8 @@ class ModelError:
                 f"behind the stop's image, focus {self.plane_to_focus_mm:.4g} mm on, reduced distance "
                 f"{self.reduced_distance_mm:.4g} mm; rim slope {self.rim_slope_rad:.3g} rad; "
                 f"the rim's edge waves on the pupil phase {self.main_estimate:.2g}"
-                + (f" + the DOE's other orders' halo {self.orders_estimate:.2g}" if self.orders_estimate > 0 else "")
+                + (f"; with the DOE's other orders {self.estimate:.2g} (their share {self.orders_estimate:+.2g})"
+                   if self.orders_estimate != 0 else "")
                 + ", rwwarp.wave.model_error)"
                 + (f"; {self.note}" if self.note else ""))
 
@@ -528,13 +530,15 @@ def _estimate_for_raywave(rw) -> list:
         d = reduced_distance_mm(z1, R)
         nf = fresnel_number(beam_r, z1, R, w, n)
         main = model_error(nf, slope)
+        ph = None
         if math.isfinite(nf) and len(xy) >= 6:
             # the rim's edge waves summed on the beam's own pupil phase (rwwarp.wave.edge_wave): on and off the
             # DOE's axis, no constant fitted; the scalar law above only where the phase is too steep to sample
-            dfm = (f - f_sph) - (f - f_sph).mean(0)
-            ph = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * dfm)
+            tilt = (f - f_sph).mean(0)
+            ph = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * ((f - f_sph) - tilt))
             ew, _ = edge_wave_error(nf, ph)
             if ew is None:
+                ph = None
                 note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
             else:
                 main = ew
@@ -551,14 +555,26 @@ def _estimate_for_raywave(rw) -> list:
             fm = _order_frequencies(f, grad, [m - m0 for m, _ in cand])
             reach = _reaches_patch_orders(xy, fm, inv_lam, dist, T[:2], rr, rim)
             orders = [(m, c) for (m, c), r in zip(cand, reach) if r]
-            # a beam centred on the DOE's axis and focused on it: every rim point's edge wave reaches the patch
-            # centre in phase, and the orders' waves add coherently to the main order's peak
-            on_axis = (float(np.hypot(*xc)) < AXIS_SHARE * beam_r and float(np.hypot(*T[:2])) < AXIS_SHARE * beam_r)
-            if orders and on_axis:
-                other = other_orders_on_axis(nf, [(m0, 1.0 + 0j, f - f_sph)]
-                                             + [(m, c, f + (m - m0) * grad - f_sph) for m, c in orders],
-                                             xy, xc, beam_r)
+            if orders and ph is not None:
+                # every order that lights the patch, coherently with the main one (module docstring, "Other
+                # orders"): each order's pupil phase against the same sphere, less the main order's tilt (an order's
+                # own tilt is its offset on the sensor)
+                parts, left = [(1.0 + 0j, ph)], []
+                for (m, c), fmj in zip(orders, fm[reach]):
+                    phm = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * ((fmj - f_sph) - tilt))
+                    if max_slope(phm) > MAX_SLOPE_RAD:
+                        left.append((m, abs(c)))
+                    else:
+                        parts.append((c, phm))
+                e_all, _ = edge_wave_orders_error(nf, parts)
+                other = e_all - main
+                if left:
+                    note = "; ".join(x for x in (note, f"{len(left)} DOE order(s) steeper than {MAX_SLOPE_RAD:g} rad left "
+                                                 f"out (amplitude <= {max(a for _, a in left):.2g} of the main order's)")
+                                     if x)
             elif orders:
+                # the main order on the scalar law (its phase too steep to sample): each order adds at most its
+                # edge wave in phase with the core (an upper bound)
                 slopes = _rim_slopes(xy, xc, rr, rim, beam_r, fm[reach] - f_sph)
                 for (m, c), sl in zip(orders, slopes):
                     other += other_orders_error(nf, sl, abs(c) ** 2)
@@ -566,56 +582,9 @@ def _estimate_for_raywave(rw) -> list:
     return out
 
 
-#: a beam counts as on the DOE's axis (:func:`other_orders_on_axis`) where its centre and its patch's lie
+#: a beam counts as on the DOE's axis (the checked slope's limit, :data:`CHECKED_SLOPE_RAD`) where its centre lies
 #: within this share of its radius from the axis
 AXIS_SHARE = 0.05
-#: radial polynomial of the orders' phases (:func:`radial_phase`): rho^2 .. rho^(2 RADIAL_TERMS)
-RADIAL_TERMS = 4
-
-
-def radial_phase(xy, xc, beam_r, df) -> np.ndarray:
-    """Coefficients ``a_j`` (rad) of a rotationally symmetric phase ``Phi(rho) = sum_j a_j rho^(2j)``, ``j = 1 ..
-    RADIAL_TERMS`` (``rho = |x - x_c| / r_w``), least-squares fitted to rays' frequencies ``df`` (cycles/mm,
-    against the sphere to the patch) through ``rho dPhi/drho = 2 pi (x - x_c) . df``."""
-    rho = np.linalg.norm(xy - xc, axis=1) / beam_r
-    y = 2 * math.pi * np.sum((xy - xc) * df, axis=1)
-    j = np.arange(1, RADIAL_TERMS + 1)
-    A = 2 * j[None, :] * rho[:, None] ** (2 * j[None, :])
-    return np.linalg.lstsq(A, y, rcond=None)[0]
-
-
-def other_orders_on_axis(fresnel_number_: float, orders, xy, xc, beam_r) -> float:
-    """The other orders' error for a beam on the DOE's axis (module docstring, "Other orders"): the change of the
-    on-axis intensity over the one-step model's, ``|2 Re(conj(U) dU) + |dU|^2| / |U|^2``, with ``U = sum_m c_m
-    int_0^1 exp(i Phi_m) 2 rho drho`` (all orders, ``c_m`` over the main order's) and ``dU = sum_(m != main)
-    c_m 2 exp(i Phi_m(1)) / (i S_m) (exp(-i S_m^2 / (4 pi N_F)) - 1)``: each order's edge wave turned by the
-    Fresnel phase of its rim frequency over the reduced distance. ``orders``: ``[(m, c_m / c_0, df)]``, the main
-    order first, ``df`` its rays' frequencies against the sphere to the patch (cycles/mm, at ``xy``, mm);
-    ``Phi_m`` their :func:`radial_phase`, ``S_m = rho dPhi_m/drho`` at the rim (rad)."""
-    t, wq = np.polynomial.legendre.leggauss(256)
-    rho = 0.5 * (t + 1.0)
-    j = np.arange(1, RADIAL_TERMS + 1)
-    U, dU = 0j, 0j
-    for i, (m, c, df) in enumerate(orders):
-        a = radial_phase(xy, xc, beam_r, df - df.mean(0))
-        phi = (rho[:, None] ** (2 * j[None, :])) @ a
-        U += c * np.sum(wq * 0.5 * 2 * rho * np.exp(1j * phi))
-        sm = float(np.sum(2 * j * a))
-        if i == 0 or sm == 0:
-            continue
-        # the edge wave's Fresnel phase over d: S^2 / (4 pi N_F) for a plane-wave edge, exactly S^2 / (4 pi N_F +
-        # 2 S) for a defocused order (module docstring, "Other orders"); an order focused at the plane (4 pi N_F
-        # + 2 S = 0) is a point there: its light is spread on the patch, its edge wave left out
-        den = 4 * math.pi * fresnel_number_ + 2 * sm
-        if den <= 0:
-            continue
-        psi = sm * sm / den
-        dU += c * 2 * np.exp(1j * float(np.sum(a))) / (1j * sm) * (np.exp(-1j * psi) - 1.0)
-    if abs(U) == 0:
-        return 0.0
-    return float(abs(2 * (np.conj(U) * dU).real + abs(dU) ** 2) / abs(U) ** 2)
-
-
 def _order_frequencies(f, grad, dm) -> np.ndarray:
     """``f + dm_j grad`` for each order offset ``dm_j`` (M,): (M, N, 2) cycles/mm (each row as ``f + dm * grad``)."""
     if not len(dm):
