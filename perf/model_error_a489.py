@@ -18,9 +18,9 @@ at 0.45 and 0.65 um (the truth's glass index and the DOE's wrapped relief at tha
 ``_a489_truth.py``; the estimate at that wavelength), the base runs first, then their checks unless ``--no-checks``;
 ``--merge``: the sets into perf/results/model_error_a489.json.
 CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min a field, wavelengths
-~2 min a base run, ~8 min a case's checks).
+~2 min a base run, ~8 min a case's checks; --wavelengths-f8 ~1 min a case).
 Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--f22-off]
-[--wavelengths [--no-checks]] [--merge] (--quick: F/8 only)
+[--wavelengths [--no-checks]] [--wavelengths-f8] [--reestimate] [--merge] (--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -61,6 +61,31 @@ F22_OFF_FIELDS = (5.0, 10.0)
 #: (COEFFS at its 0.55 um design wavelength) remapped: every order of the wrapped relief (``_a489_truth.py``)
 WAVELENGTHS = (0.45, 0.65)
 WAVELENGTH_CASES = [c for c in CASES if c[0] == 1.0 and c[1] in (0.0, 10.0)]
+#: --wavelengths-f8: the F/8 cases on axis and at 10 deg (CASES' settings: the whole truth refined) at WAVELENGTHS,
+#: held out from the estimate's orders term (nothing set on them): model_error_a489_wavelengths_f8.json
+WAVELENGTH_F8_CASES = [c for c in CASES if c[0] == 0.5 and c[1] in (0.0, 10.0)]
+
+
+def reestimate(name):
+    """Recompute the planner's estimate on the stored rows of ``perf/results/<name>.json`` (the truths unchanged: their
+    code is not touched by the estimate's), the previous estimate kept as ``before`` with its ratio."""
+    import json
+    from _common import RESULTS, git_commit
+    path = RESULTS / f"{name}.json"
+    d = json.loads(path.read_text())
+    for r in d["rows"]:
+        if "before" not in r:
+            r["before"] = {k: r[k] for k in ("estimate", "main_estimate", "orders_estimate", "ratio", "commit") if k in r}
+        est = estimate(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"]), r["wavelength_um"])
+        r.update(est)
+        r["ratio"] = est["estimate"] / r["measured"]
+        r["ratio_main"] = est["main_estimate"] / r["measured"]
+        r["estimate_commit"] = git_commit()
+        print(f"F/{r['f_number']} {r['field_deg']} deg {r['wavelength_um']} um: measured {r['measured']:.4f} estimate "
+              f"{r['before']['estimate']:.4f} -> {est['estimate']:.4f} (ratio {r['before']['ratio']:.2f} -> "
+              f"{r['ratio']:.2f})", flush=True)
+    path.write_text(json.dumps(d, indent=1))
+    return path
 
 
 def run_f22(field_deg, co=F22_COEFFS):
@@ -177,6 +202,12 @@ def main():
                          "model_error_a489_wavelengths.json; the base runs of every case first, then their checks "
                          "(front traced, smooth pupil, refined pair) unless --no-checks (a rerun adds the missing)")
     ap.add_argument("--no-checks", action="store_true")
+    ap.add_argument("--wavelengths-f8", action="store_true",
+                    help="as --wavelengths on the F/8 cases (0 and 10 deg), every check: "
+                         "model_error_a489_wavelengths_f8.json (~1 min a case here)")
+    ap.add_argument("--reestimate", action="store_true",
+                    help="the planner's estimate recomputed on the stored wavelength rows (--wavelengths, "
+                         "--wavelengths-f8 and the main-order diagnostic's), the previous kept as 'before'")
     ap.add_argument("--main-order-only", action="store_true",
                     help="with --wavelengths: a diagnostic, the DOE's main order alone (no wrapped relief's other "
                          "orders), base runs only: model_error_a489_wavelengths_main_order.json")
@@ -191,12 +222,20 @@ def main():
     if args.f22:
         print("wrote", save("model_error_a489_f22", {"rows": [run_f22(0.0)]}))
         return
-    if args.f22_off or args.wavelengths:
+    if args.reestimate:
+        from _common import RESULTS
+        for name in ("model_error_a489_wavelengths", "model_error_a489_wavelengths_main_order",
+                     "model_error_a489_wavelengths_f8"):
+            if (RESULTS / f"{name}.json").exists():
+                print("wrote", reestimate(name))
+        return
+    if args.f22_off or args.wavelengths or args.wavelengths_f8:
         import json
         from _common import RESULTS, git_commit
         commit = git_commit()
         name = "model_error_a489_f22_off" if args.f22_off else \
-            "model_error_a489_wavelengths" + ("_main_order" if args.main_order_only else "")
+            "model_error_a489_wavelengths" + ("_f8" if args.wavelengths_f8 else "") + \
+            ("_main_order" if args.main_order_only else "")
         args.no_checks = args.no_checks or args.main_order_only
         prev = RESULTS / f"{name}.json"
         rows = json.loads(prev.read_text())["rows"] if prev.exists() else []      # kept: a rerun adds the missing
@@ -207,7 +246,7 @@ def main():
                     rows.append({**run_f22(f), "commit": commit})
                     out()
         else:
-            todo = [(w, c) for w in WAVELENGTHS for c in WAVELENGTH_CASES]
+            todo = [(w, c) for w in WAVELENGTHS for c in (WAVELENGTH_F8_CASES if args.wavelengths_f8 else WAVELENGTH_CASES)]
             for w, c in todo:                          # the base runs first
                 if not any((r["wavelength_um"], r["field_deg"]) == (w, c[1]) for r in rows):
                     rows.append({**run_case(*c, refine=not args.no_refine, wavelength_um=w, checks=False,
@@ -261,7 +300,8 @@ def main():
                     row["front_slice_check"] = fr
         r = np.array([x["ratio"] for x in rows])
         more = {}
-        for key, part in (("f22_off_unrefined", "f22_off"), ("wavelengths", "wavelengths")):
+        for key, part in (("f22_off_unrefined", "f22_off"), ("wavelengths", "wavelengths"),
+                          ("wavelengths_f8", "wavelengths_f8")):
             f = RESULTS / f"model_error_a489_{part}.json"
             if f.exists():
                 more[key] = json.loads(f.read_text())["rows"]
