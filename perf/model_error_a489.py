@@ -20,7 +20,7 @@ at 0.45 and 0.65 um (the truth's glass index and the DOE's wrapped relief at tha
 CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min a field, wavelengths
 ~2 min a base run, ~8 min a case's checks; --wavelengths-f8 ~1 min a case).
 Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--f22-off]
-[--wavelengths [--no-checks]] [--wavelengths-f8] [--reestimate] [--pupil-check] [--merge] (--quick: F/8 only)
+[--wavelengths [--no-checks]] [--wavelengths-f8] [--reestimate] [--pupil-check] [--f22-wavelengths] [--merge] (--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -126,21 +126,23 @@ def reestimate(name):
     return path
 
 
-def run_f22(field_deg, co=F22_COEFFS):
+def run_f22(field_deg, co=F22_COEFFS, wavelength_um=0.55):
     """The --f22 case (stop radius 1.807 mm, 0.8 um grid, 1 um slices, the asphere's zone traced, not refined) at
-    ``field_deg`` (deg), 0.55 um: its row."""
+    ``field_deg`` (deg) and ``wavelength_um`` (um; off 0.55 the glass at that wavelength and the DOE's wrapped relief,
+    every order): its row."""
     a = 7.95 / 4.4
-    est = estimate(a, field_deg, co)
+    est = estimate(a, field_deg, co, wavelength_um)
     c0 = time.process_time()
-    T, M, info = truth_and_model(A489(a_mm=a, coeffs=co), field_deg, h=0.8e-3, dz=1e-3, front="geometric")
+    T, M, info = truth_and_model(A489(a_mm=a, coeffs=co, lam_mm=wavelength_um * 1e-3), field_deg, h=0.8e-3, dz=1e-3,
+                                 front="geometric")
     err = measured_error(T, M)
-    row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": field_deg, "wavelength_um": 0.55,
+    row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": field_deg, "wavelength_um": wavelength_um,
            "doe_coefficients": list(co), "pitch_mm": 0.8e-3, "slice_mm": 1e-3, "front": "geometric", "measured": err,
            "ratio": est["estimate"] / err, "cpu_s": time.process_time() - c0,
            "power_doe_truth_over_stop": info["power_doe_truth"] / info["power_stop"], "crop_loss": info["crop_loss"],
            "doe_clipped": info["doe_clipped"], "spectrum_beyond_0p8_nyquist": info["band_edge"],
            "grids": [info["NA_grid"], info["NB_grid"]], **est}
-    print(f"F/2.2 {field_deg} deg: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f} "
+    print(f"F/2.2 {field_deg} deg {wavelength_um} um: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f} "
           f"(N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) cpu {row['cpu_s']:.0f} s", flush=True)
     return row
 
@@ -243,6 +245,9 @@ def main():
     ap.add_argument("--wavelengths-f8", action="store_true",
                     help="as --wavelengths on the F/8 cases (0 and 10 deg), every check: "
                          "model_error_a489_wavelengths_f8.json (~1 min a case here)")
+    ap.add_argument("--f22-wavelengths", action="store_true",
+                    help="the --f22 case on axis at 0.45 and 0.65 um (every order of the wrapped relief): "
+                         "model_error_a489_f22_wavelengths.json (a rerun adds the missing; ~5 CPU-minutes a case)")
     ap.add_argument("--pupil-check", action="store_true",
                     help="the edge-wave sum against the exact diffraction of its own fitted pupil phase (F/4: 10 deg at "
                          "0.45 / 0.55 / 0.65 um, axis at 0.55 um): model_error_a489_pupil_check.json (~1 min)")
@@ -273,6 +278,16 @@ def main():
                      "model_error_a489_wavelengths_f8"):
             if (RESULTS / f"{name}.json").exists():
                 print("wrote", reestimate(name))
+        return
+    if args.f22_wavelengths:
+        import json
+        from _common import RESULTS, git_commit
+        prev = RESULTS / "model_error_a489_f22_wavelengths.json"
+        rows = json.loads(prev.read_text())["rows"] if prev.exists() else []
+        for w in WAVELENGTHS:
+            if w not in [r["wavelength_um"] for r in rows]:
+                rows.append({**run_f22(0.0, wavelength_um=w), "commit": git_commit()})
+                save("model_error_a489_f22_wavelengths", {"rows": rows, "device": device_name("cpu")})
         return
     if args.f22_off or args.wavelengths or args.wavelengths_f8:
         import json
