@@ -86,6 +86,12 @@ points of the largest change and of the largest truth intensity (``U`` there sum
 the tests' cases this reads the same as the full ``pi / 4`` grid (to 1.3 %). Phases in rad, lengths over the beam's
 radius (dimensionless).
 
+Several coherent parts (:func:`edge_wave_orders_error`: a wrapped DOE's diffraction orders, each with its own pupil
+phase and weight ``c_m``): ``U`` is the FFT of ``sum_m c_m exp(i Phi_m)`` on the samples set by the steepest part,
+``dU = sum_m c_m dU_m`` with each part's rim sum as above, the observation points chosen on the sum's ``|U|^2``; the
+derivation is :mod:`rwwarp.wave.model_error`'s "Other orders". One part gives :func:`edge_wave_error` exactly (the same
+arithmetic).
+
 Cost (numpy, a shared 2-core host at load ~2.5, CPU time, min of 7; the first sum on the quadratic profile in
 brackets): 1.0-1.1 ms (1.0-1.1) a phase of rim slopes up to ~40 rad (radial, coma; the quadratic path); traced: 2.0
 ms (2.0) at 100 rad and 2.3 ms (2.5) at 140 rad (25 / 35 rho^4 at N_F 57), 2.4 ms (1.8) and 5.2 ms (4.4) for 3x / 6x
