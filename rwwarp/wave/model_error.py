@@ -65,8 +65,8 @@ rim slope of 206 rad at 0.5 deg (:data:`CHECKED_OFF_AXIS_SLOPE_RAD`; below).
 The A489's own beams (its stop diffracted as a wave through the asphere to the DOE plane: ``tests/rwwarp/_a489_truth.py``,
 ``perf/model_error_a489.py``) at F/8, F/4 and F/2.2, 0-10 deg, continuous even-polynomial DOEs with rim slopes 15-92
 rad: estimate / measured 0.50-1.33 over 10 cases (0.50 at F/8 on axis with the steep DOE); F/2.2 at 5 / 10 deg 1.13x /
-0.64x; at 0.45 / 0.65 um with every order of the wrapped relief, F/4 and F/8, 0 and 10 deg: 0.89-1.12x, but 2.9x
-at F/4, 0.45 um, 10 deg ("Other orders" below).
+0.64x; at 0.45 / 0.65 um with every order of the wrapped relief, F/4 and F/8, 0 and 10 deg, F/2.2 on axis: 0.64-1.34x,
+but 2.9x at F/4, 0.45 um, 10 deg ("Other orders" below).
 
 Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact
 angular spectrum, thin lens f = 50 mm, 0.55 um, sensor at the lens focus, DOE pupil phase ``sum_i c_i rho^(2i)``;
