@@ -18,9 +18,9 @@ at 0.45 and 0.65 um (the truth's glass index and the DOE's wrapped relief at tha
 ``_a489_truth.py``; the estimate at that wavelength), the base runs first, then their checks unless ``--no-checks``;
 ``--merge``: the sets into perf/results/model_error_a489.json.
 CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min a field, wavelengths
-~2 min a base run, ~8 min a case's checks).
+~2 min a base run, ~8 min a case's checks; --wavelengths-f8 ~1 min a case).
 Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--f22-off]
-[--wavelengths [--no-checks]] [--merge] (--quick: F/8 only)
+[--wavelengths [--no-checks]] [--wavelengths-f8] [--reestimate] [--pupil-check] [--f22-wavelengths] [--merge] (--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -61,23 +61,90 @@ F22_OFF_FIELDS = (5.0, 10.0)
 #: (COEFFS at its 0.55 um design wavelength) remapped: every order of the wrapped relief (``_a489_truth.py``)
 WAVELENGTHS = (0.45, 0.65)
 WAVELENGTH_CASES = [c for c in CASES if c[0] == 1.0 and c[1] in (0.0, 10.0)]
+#: --wavelengths-f8: the F/8 cases on axis and at 10 deg (CASES' settings: the whole truth refined) at WAVELENGTHS,
+#: held out from the estimate's orders term (nothing set on them): model_error_a489_wavelengths_f8.json
+WAVELENGTH_F8_CASES = [c for c in CASES if c[0] == 0.5 and c[1] in (0.0, 10.0)]
 
 
-def run_f22(field_deg, co=F22_COEFFS):
+def pupil_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS, n=2048, span=8.0):
+    """A diagnostic of the estimate's own picture (--pupil-check): the main order's pupil phase the planner fits
+    (captured from :mod:`rwwarp.wave.model_error`) and its Fresnel number, the uniform disc diffracted over the reduced
+    distance exactly (2-D FFT, ``n`` samples over ``span`` beam radii, transfer ``exp(-i pi nu^2 / N_F)``) and
+    multiplied by that phase, against the disc with the phase: max |difference| over the peak, beside the edge-wave
+    sum's value on the same phase (``main_estimate``). Equal where the sum is faithful to its one-edge picture."""
+    import math
+    from rwwarp.wave import model_error as me
+    got = {}
+    fit, ewe = me.fit_pupil_phase, me.edge_wave_error
+    me.fit_pupil_phase = lambda u, g, *a: got.setdefault("phase", fit(u, g, *a))
+    me.edge_wave_error = lambda nf, ph, *a: (got.setdefault("nf", nf), ewe(nf, ph, *a))[1]
+    try:
+        me._MEMO.clear()
+        est = estimate(a_mm, field_deg, coeffs, wavelength_um)
+    finally:
+        me.fit_pupil_phase, me.edge_wave_error = fit, ewe
+    ph, nf = got["phase"], got["nf"]
+    h = span / n
+    x = (np.arange(n) - n // 2) * h
+    X, Y = np.meshgrid(x, x)
+    r = np.hypot(X, Y)
+    disc = np.clip((1.0 - r) / h + 0.5, 0.0, 1.0)
+    f = np.fft.fftfreq(n, h)
+    FX, FY = np.meshgrid(f, f)
+    blurred = np.fft.ifft2(np.fft.fft2(disc) * np.exp(-1j * math.pi * (FX ** 2 + FY ** 2) / nf))
+    inside = r <= 1.6
+    phase = np.where(inside, ph.value(np.where(inside, X, 0.0), np.where(inside, Y, 0.0)), 0.0)
+    Im = np.abs(np.fft.fft2(disc * np.exp(1j * phase))) ** 2
+    It = np.abs(np.fft.fft2(np.where(inside, blurred, 0.0) * np.exp(1j * phase))) ** 2
+    row = {"stop_radius_mm": a_mm, "field_deg": field_deg, "wavelength_um": wavelength_um, "fresnel_number": nf,
+           "main_estimate": est["main_estimate"], "pupil_truth": float(np.max(np.abs(It - Im)) / It.max()),
+           "peak_truth_over_model": float(It.max() / Im.max()), "samples": n, "span_radii": span}
+    print(f"F/{7.95 / (2 * a_mm):.2f} {field_deg} deg {wavelength_um} um: edge-wave sum {row['main_estimate']:.3f}, the "
+          f"disc diffracted exactly with the same phase {row['pupil_truth']:.3f} (N_F {nf:.1f})", flush=True)
+    return row
+
+
+def reestimate(name):
+    """Recompute the planner's estimate on the stored rows of ``perf/results/<name>.json`` (the truths unchanged: their
+    code is not touched by the estimate's), the previous estimate kept as ``before`` with its ratio."""
+    import json
+    from _common import RESULTS, git_commit
+    path = RESULTS / f"{name}.json"
+    d = json.loads(path.read_text())
+    for r in d["rows"]:
+        if "before" not in r:
+            r["before"] = {k: r[k] for k in ("estimate", "main_estimate", "orders_estimate", "ratio", "commit") if k in r}
+        est = estimate(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"]), r["wavelength_um"])
+        r.update(est)
+        r["ratio"] = est["estimate"] / r["measured"]
+        r["ratio_main"] = est["main_estimate"] / r["measured"]
+        r["estimate_commit"] = git_commit()
+        print(f"F/{r['f_number']} {r['field_deg']} deg {r['wavelength_um']} um: measured {r['measured']:.4f} estimate "
+              f"{r['before']['estimate']:.4f} -> {est['estimate']:.4f} (ratio {r['before']['ratio']:.2f} -> "
+              f"{r['ratio']:.2f})", flush=True)
+    path.write_text(json.dumps(d, indent=1))
+    return path
+
+
+def run_f22(field_deg, co=F22_COEFFS, wavelength_um=0.55, main_order_only=False):
     """The --f22 case (stop radius 1.807 mm, 0.8 um grid, 1 um slices, the asphere's zone traced, not refined) at
-    ``field_deg`` (deg), 0.55 um: its row."""
+    ``field_deg`` (deg) and ``wavelength_um`` (um; off 0.55 the glass at that wavelength and the DOE's wrapped relief,
+    every order; ``main_order_only``: the diagnostic of :func:`run_case`): its row."""
     a = 7.95 / 4.4
-    est = estimate(a, field_deg, co)
+    est = estimate(a, field_deg, co, wavelength_um)
     c0 = time.process_time()
-    T, M, info = truth_and_model(A489(a_mm=a, coeffs=co), field_deg, h=0.8e-3, dz=1e-3, front="geometric")
+    lens = A489(a_mm=a, coeffs=co, lam_mm=wavelength_um * 1e-3)
+    if main_order_only:
+        lens.doe_scale = 1.0
+    T, M, info = truth_and_model(lens, field_deg, h=0.8e-3, dz=1e-3, front="geometric")
     err = measured_error(T, M)
-    row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": field_deg, "wavelength_um": 0.55,
+    row = {"stop_radius_mm": a, "f_number": 2.2, "field_deg": field_deg, "wavelength_um": wavelength_um,
            "doe_coefficients": list(co), "pitch_mm": 0.8e-3, "slice_mm": 1e-3, "front": "geometric", "measured": err,
            "ratio": est["estimate"] / err, "cpu_s": time.process_time() - c0,
            "power_doe_truth_over_stop": info["power_doe_truth"] / info["power_stop"], "crop_loss": info["crop_loss"],
            "doe_clipped": info["doe_clipped"], "spectrum_beyond_0p8_nyquist": info["band_edge"],
            "grids": [info["NA_grid"], info["NB_grid"]], **est}
-    print(f"F/2.2 {field_deg} deg: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f} "
+    print(f"F/2.2 {field_deg} deg {wavelength_um} um: measured {err:.4f} estimate {est['estimate']:.4f} ratio {row['ratio']:.2f} "
           f"(N_F {est['fresnel_number']:.1f}, S {est['rim_slope_rad']:.1f} rad) cpu {row['cpu_s']:.0f} s", flush=True)
     return row
 
@@ -177,6 +244,18 @@ def main():
                          "model_error_a489_wavelengths.json; the base runs of every case first, then their checks "
                          "(front traced, smooth pupil, refined pair) unless --no-checks (a rerun adds the missing)")
     ap.add_argument("--no-checks", action="store_true")
+    ap.add_argument("--wavelengths-f8", action="store_true",
+                    help="as --wavelengths on the F/8 cases (0 and 10 deg), every check: "
+                         "model_error_a489_wavelengths_f8.json (~1 min a case here)")
+    ap.add_argument("--f22-wavelengths", action="store_true",
+                    help="the --f22 case on axis at 0.45 and 0.65 um (every order of the wrapped relief): "
+                         "model_error_a489_f22_wavelengths.json (a rerun adds the missing; ~5 CPU-minutes a case)")
+    ap.add_argument("--pupil-check", action="store_true",
+                    help="the edge-wave sum against the exact diffraction of its own fitted pupil phase (F/4: 10 deg at "
+                         "0.45 / 0.55 / 0.65 um, axis at 0.55 um): model_error_a489_pupil_check.json (~1 min)")
+    ap.add_argument("--reestimate", action="store_true",
+                    help="the planner's estimate recomputed on the stored wavelength rows (--wavelengths, "
+                         "--wavelengths-f8 and the main-order diagnostic's), the previous kept as 'before'")
     ap.add_argument("--main-order-only", action="store_true",
                     help="with --wavelengths: a diagnostic, the DOE's main order alone (no wrapped relief's other "
                          "orders), base runs only: model_error_a489_wavelengths_main_order.json")
@@ -191,12 +270,40 @@ def main():
     if args.f22:
         print("wrote", save("model_error_a489_f22", {"rows": [run_f22(0.0)]}))
         return
-    if args.f22_off or args.wavelengths:
+    if args.pupil_check:
+        rows = [pupil_check(1.0, f, w) for f, w in ((10.0, 0.45), (10.0, 0.55), (10.0, 0.65), (0.0, 0.55))]
+        print("wrote", save("model_error_a489_pupil_check", {"rows": rows, "device": device_name("cpu")}))
+        return
+    if args.reestimate:
+        from _common import RESULTS
+        for name in ("model_error_a489_wavelengths", "model_error_a489_wavelengths_main_order",
+                     "model_error_a489_wavelengths_f8"):
+            if (RESULTS / f"{name}.json").exists():
+                print("wrote", reestimate(name))
+        return
+    if args.f22_wavelengths:
+        import json
+        from _common import RESULTS, git_commit
+        name = "model_error_a489_f22_wavelengths" + ("_main_order" if args.main_order_only else "")
+        prev = RESULTS / f"{name}.json"
+        rows = json.loads(prev.read_text())["rows"] if prev.exists() else []
+        # the main-order diagnostic at 0.65 um only (where the orders lower the estimate)
+        for w in ((0.65,) if args.main_order_only else WAVELENGTHS):
+            if w not in [r["wavelength_um"] for r in rows]:
+                row = run_f22(0.0, wavelength_um=w, main_order_only=args.main_order_only)
+                if args.main_order_only:
+                    row["doe"] = "main order only (exp(i phi0)), a diagnostic"
+                    row["ratio_main"] = row["main_estimate"] / row["measured"]
+                rows.append({**row, "commit": git_commit()})
+                save(name, {"rows": rows, "device": device_name("cpu")})
+        return
+    if args.f22_off or args.wavelengths or args.wavelengths_f8:
         import json
         from _common import RESULTS, git_commit
         commit = git_commit()
         name = "model_error_a489_f22_off" if args.f22_off else \
-            "model_error_a489_wavelengths" + ("_main_order" if args.main_order_only else "")
+            "model_error_a489_wavelengths" + ("_f8" if args.wavelengths_f8 else "") + \
+            ("_main_order" if args.main_order_only else "")
         args.no_checks = args.no_checks or args.main_order_only
         prev = RESULTS / f"{name}.json"
         rows = json.loads(prev.read_text())["rows"] if prev.exists() else []      # kept: a rerun adds the missing
@@ -207,7 +314,7 @@ def main():
                     rows.append({**run_f22(f), "commit": commit})
                     out()
         else:
-            todo = [(w, c) for w in WAVELENGTHS for c in WAVELENGTH_CASES]
+            todo = [(w, c) for w in WAVELENGTHS for c in (WAVELENGTH_F8_CASES if args.wavelengths_f8 else WAVELENGTH_CASES)]
             for w, c in todo:                          # the base runs first
                 if not any((r["wavelength_um"], r["field_deg"]) == (w, c[1]) for r in rows):
                     rows.append({**run_case(*c, refine=not args.no_refine, wavelength_um=w, checks=False,
@@ -261,7 +368,8 @@ def main():
                     row["front_slice_check"] = fr
         r = np.array([x["ratio"] for x in rows])
         more = {}
-        for key, part in (("f22_off_unrefined", "f22_off"), ("wavelengths", "wavelengths")):
+        for key, part in (("f22_off_unrefined", "f22_off"), ("wavelengths", "wavelengths"),
+                          ("wavelengths_f8", "wavelengths_f8")):
             f = RESULTS / f"model_error_a489_{part}.json"
             if f.exists():
                 more[key] = json.loads(f.read_text())["rows"]

@@ -86,6 +86,12 @@ points of the largest change and of the largest truth intensity (``U`` there sum
 the tests' cases this reads the same as the full ``pi / 4`` grid (to 1.3 %). Phases in rad, lengths over the beam's
 radius (dimensionless).
 
+Several coherent parts (:func:`edge_wave_orders_error`: a wrapped DOE's diffraction orders, each with its own pupil
+phase and weight ``c_m``): ``U`` is the FFT of ``sum_m c_m exp(i Phi_m)`` on the samples set by the steepest part,
+``dU = sum_m c_m dU_m`` with each part's rim sum as above, the observation points chosen on the sum's ``|U|^2``; the
+derivation is :mod:`rwwarp.wave.model_error`'s "Other orders". One part gives :func:`edge_wave_error` exactly (the same
+arithmetic).
+
 Cost (numpy, a shared 2-core host at load ~2.5, CPU time, min of 7; the first sum on the quadratic profile in
 brackets): 1.0-1.1 ms (1.0-1.1) a phase of rim slopes up to ~40 rad (radial, coma; the quadratic path); traced: 2.0
 ms (2.0) at 100 rad and 2.3 ms (2.5) at 140 rad (25 / 35 rho^4 at N_F 57), 2.4 ms (1.8) and 5.2 ms (4.4) for 3x / 6x
@@ -311,78 +317,32 @@ def radial_pupil_phase(coeffs) -> PupilPhase:
     return PupilPhase(np.array(keys, int).reshape(-1, 2), np.array([terms[k] for k in keys], float))
 
 
-def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float = SEARCH_RAD):
-    """The main order's model error ``E = max_t |2 Re(conj(U) dU) + |dU|^2| / max_t |U + dU|^2`` (dimensionless,
-    over the truth PSF's peak) for the pupil ``phase`` (:class:`PupilPhase`, rad, against the sphere to the patch) and the
-    Fresnel number ``N_F`` of the rim over the reduced distance (module docstring). Returns ``(E, info)``,
-    ``info`` a dict: ``peak_tilt`` (rad per unit u, where ``|U|`` peaks), ``strehl`` / ``strehl_true`` (``max |U|^2`` /
-    ``max |U + dU|^2``, over the unaberrated peak), ``max_psi_rad`` (the largest Fresnel phase of the rim's edge wave
-    at the peak, on the quadratic profile), ``samples`` (across the beam), ``rim_nodes``, ``points`` (observation
-    points), ``traced`` (whether the rays were traced back to the rim: module docstring, "Steep rims"); ``(None, info)``
-    where the phase's largest slope exceeds :data:`MAX_SLOPE_RAD`. 0 for ``N_F = inf``. Cost: module docstring."""
-    nf = float(fresnel_number_)
-    if not nf > 0:
-        raise ValueError(f"edge_wave_error: need a Fresnel number > 0, got {fresnel_number_!r}")
-    if math.isinf(nf):
-        return 0.0, {"peak_tilt": (0.0, 0.0), "strehl": 1.0, "max_psi_rad": 0.0, "samples": 0}
-    # the phase's largest slope sets the sampling
+def max_slope(phase: PupilPhase) -> float:
+    """The largest ``|grad Phi|`` (rad per unit u) of the pupil ``phase`` over the beam (9 radii x 96 azimuths: the
+    sampling's measure, compared with :data:`MAX_SLOPE_RAD`); :class:`ValueError` where it is not finite."""
     th = np.linspace(0.0, 2 * math.pi, 97)[:-1]
     rr = np.linspace(0.0, 1.0, 9)
     gx, gy = phase.gradient(np.outer(rr, np.cos(th)), np.outer(rr, np.sin(th)))
-    gmax = float(np.sqrt(np.max(gx * gx + gy * gy)))
-    if not math.isfinite(gmax):
+    g = float(np.sqrt(np.max(gx * gx + gy * gy)))
+    if not math.isfinite(g):
         raise ValueError("edge_wave_error: the pupil phase is not finite on the beam")
-    if gmax > MAX_SLOPE_RAD:
-        return None, {"peak_tilt": (0.0, 0.0), "strehl": float("nan"), "max_psi_rad": float("nan"),
-                      "samples": 0, "max_slope_rad": gmax}
-    # the samples' period in tilt, pi n, holds the spot (|t| <= gmax about its centre) and its neighbourhood
-    # twice over (2.5 gmax + 40 rad): the sampled pupil's aliases of U fall outside the observed tilts
-    n = sfft.next_fast_len(max(MIN_SAMPLES, int(math.ceil((2.5 * gmax + 40.0) / math.pi))))
-    h = 2.0 / n
-    x = -1.0 + h * (np.arange(n) + 0.5)
-    val = phase._grid(x)
-    w = np.clip((1.0 - np.sqrt(x[None, :] ** 2 + x[:, None] ** 2)) / h + 0.5, 0.0, 1.0)   # the cell's share inside the rim
-    g = w * np.exp(1j * val)
-    # coarse: the FFT on the tilt step pi / 2 (twice the samples' span)
-    m = 2 * n
-    F = sfft.fft(sfft.fft(g, n=m, axis=1), n=m, axis=0)           # rows: t_y, columns: t_x; U pi / h^2
-    t = 2 * math.pi * sfft.fftfreq(m, h)
-    # the samples start at u = x[0], not 0: exp(-i t . u) = exp(-i t x[0]) exp(-2 pi i k j / m)
-    ph = np.exp(-1j * t * x[0])
-    I = (F.real ** 2 + F.imag ** 2).ravel()                       # |U|^2 pi^2 / h^4 (ph has modulus 1)
-    k = int(np.argmax(I))
-    iy, ix = divmod(k, m)
-    # the observation points: the tilts near the peak and the PSF's bright part (an aberrated PSF's largest
-    # change may lie away from its peak), at most MAX_POINTS of them, the brightest
-    r = int(math.ceil(search_rad / FINE_STEP + 1e-9))
-    dy, dx = np.divmod(np.arange((2 * r + 1) ** 2), 2 * r + 1)
-    dy, dx = dy - r, dx - r
-    close = (dx * dx + dy * dy) * FINE_STEP ** 2 <= (search_rad + 1e-9) ** 2
-    dy, dx = dy[close], dx[close]
-    coarse = (dy % 2 == 0) & (dx % 2 == 0)
-    near = ((iy + dy[coarse] // 2) % m) * m + (ix + dx[coarse] // 2) % m
-    mask = I >= BRIGHT_SHARE * float(I[k])
-    mask[near] = True
-    sel = np.flatnonzero(mask)
-    levels = [FINE_STEP]
-    if len(sel) > MAX_POINTS:
-        # a wide bright part: every other coarse point (step pi, aligned with the peak), the near ones kept; the
-        # refinement below then climbs pi / 2 -> pi / 4
-        sy, sx = np.divmod(sel, m)
-        sel = np.union1d(sel[((sy - iy) % 2 == 0) & ((sx - ix) % 2 == 0)], near)
-        levels = [2 * FINE_STEP, FINE_STEP]
-    if len(sel) > MAX_POINTS:
-        sel = sel[np.argpartition(I[sel], len(sel) - MAX_POINTS)[-MAX_POINTS:]]
-    sy, sx = np.divmod(sel, m)
-    tx, ty = t[sx], t[sy]
-    Uk = F.ravel()[sel] * (ph[sy] * ph[sx] * (h * h / math.pi))
+    return g
+
+
+def _rim_summer(nf: float, phase: PupilPhase, tobs: float):
+    """The rim's edge-wave sum ``dU(t)`` of one pupil ``phase`` (module docstring) as a function of the tilts
+    ``(tx, ty)`` (rad per unit u), set up for observed tilts up to ``|t| = tobs`` (the trapezoid nodes and the traced
+    rays' tables; the refinement's rings reach a few :data:`FINE_STEP` further). Returns ``(rim_sum, s0, den, cx, cy, traced)``:
+    the function, on its rim nodes the radial slope, the Fresnel phase's denominator and the normal, and whether
+    the rays are traced ("Steep rims")."""
     # the rim: nodes enough for the integrand's turns around it (|dPhi/dtheta| + |t|; the trapezoid rule on a
     # periodic integrand is exact for harmonics below the node count), 1.25 times over (the estimates unchanged to 4
     # digits against twice and against the 8 times over first used)
+    th = np.linspace(0.0, 2 * math.pi, 97)[:-1]
     cx, cy = np.cos(th), np.sin(th)
     g1x, g1y = phase.gradient(cx, cy)
     dth = np.abs(g1y * cx - g1x * cy)                              # |dPhi/dtheta| on the rim
-    nth = int(min(4096, 1.25 * (float(dth.max()) + float(np.max(np.hypot(tx, ty))) + 4 * FINE_STEP) + 32))
+    nth = int(min(4096, 1.25 * (float(dth.max()) + tobs + 4 * FINE_STEP) + 32))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     # the phase along each rim node's radius, p(r) = Phi(r n) = sum_j prof[j] r^j (exact: Phi is a polynomial), and
@@ -404,7 +364,7 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
     amp1 = np.sqrt(np.maximum(1 + c / kf, 0.5) / np.maximum(1 + ctt1 / kf, 0.5))
     # the quadratic profile (the rim's slope and curvature) is exact to QUAD_PHASE_RAD where the shift's higher
     # powers, sum_(j >= 3) |p^(j)(1)| eps^j / j!, stay below it: then no ray is traced
-    tmax = float(np.max(np.hypot(tx, ty))) + 4 * FINE_STEP
+    tmax = tobs + 4 * FINE_STEP
     eps_max = (float(np.max(np.abs(s0))) + tmax) / (0.5 * float(np.min(den)))
     hi, dj, fact = 0.0, ddprof, 2.0
     for j in range(3, len(prof)):
@@ -489,6 +449,108 @@ def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float
             c, sn = np.cos(arg), np.sin(arg)
             out.real[a:a + step] = np.mean(re * c - im * sn, axis=1, dtype=np.float64)
             out.imag[a:a + step] = np.mean(re * sn + im * c, axis=1, dtype=np.float64)
+        return out
+
+    return rim_sum, s0, den, cx, cy, traced
+
+
+def edge_wave_error(fresnel_number_: float, phase: PupilPhase, search_rad: float = SEARCH_RAD):
+    """The main order's model error ``E = max_t |2 Re(conj(U) dU) + |dU|^2| / max_t |U + dU|^2`` (dimensionless,
+    over the truth PSF's peak) for the pupil ``phase`` (:class:`PupilPhase`, rad, against the sphere to the patch) and the
+    Fresnel number ``N_F`` of the rim over the reduced distance (module docstring). Returns ``(E, info)``,
+    ``info`` a dict: ``peak_tilt`` (rad per unit u, where ``|U|`` peaks), ``strehl`` / ``strehl_true`` (``max |U|^2`` /
+    ``max |U + dU|^2``, over the unaberrated peak), ``max_psi_rad`` (the largest Fresnel phase of the rim's edge wave
+    at the peak, on the quadratic profile), ``samples`` (across the beam), ``rim_nodes``, ``points`` (observation
+    points), ``traced`` (whether the rays were traced back to the rim: module docstring, "Steep rims"); ``(None, info)``
+    where the phase's largest slope exceeds :data:`MAX_SLOPE_RAD`. 0 for ``N_F = inf``. Cost: module docstring.
+    :func:`edge_wave_orders_error` with one order."""
+    return edge_wave_orders_error(fresnel_number_, [(1.0, phase)], search_rad)
+
+
+def edge_wave_orders_error(fresnel_number_: float, orders, search_rad: float = SEARCH_RAD):
+    """The model error of a field made of several coherent parts, each with its own pupil phase: a wrapped DOE's
+    diffraction orders (:mod:`rwwarp.wave.model_error`, "Other orders"). ``orders``: ``[(w_m, phase_m)]``, the main
+    order first (``w`` its complex weight, 1 for it; the others ``c_m / c_main``), each ``phase_m`` (:class:`PupilPhase`,
+    rad) against the same sphere to the patch and with the same tilt removed (an order's own tilt, its lateral
+    offset on the sensor, is kept). The fields add, ``U = sum_m w_m U_m`` and ``dU = sum_m w_m dU_m`` (the edge's
+    diffraction acts on the field before the DOE, linear in the DOE's transmission: each order's rim edge wave turns
+    by its own slope's Fresnel phase), and ``E = max_t |2 Re(conj(U) dU) + |dU|^2| / max_t |U + dU|^2``: the change
+    over the truth's peak, whichever order makes it (a focused zero order's peak included). The observation points
+    are chosen on ``|U|^2`` of all the orders. Returns ``(E, info)`` as :func:`edge_wave_error` (``max_psi_rad`` the
+    main order's); ``(None, info)`` where the main order's largest slope exceeds :data:`MAX_SLOPE_RAD`; the other
+    orders must stay within it (:class:`ValueError`). 0 for ``N_F = inf``."""
+    nf = float(fresnel_number_)
+    if not nf > 0:
+        raise ValueError(f"edge_wave_error: need a Fresnel number > 0, got {fresnel_number_!r}")
+    if not orders:
+        raise ValueError("edge_wave_orders_error: need at least the main order")
+    if math.isinf(nf):
+        return 0.0, {"peak_tilt": (0.0, 0.0), "strehl": 1.0, "max_psi_rad": 0.0, "samples": 0}
+    weights = [complex(w) for w, _ in orders]
+    phases = [ph for _, ph in orders]
+    # the phases' largest slopes set the sampling
+    gmaxes = [max_slope(ph_) for ph_ in phases]
+    gmax = max(gmaxes)
+    if gmaxes[0] > MAX_SLOPE_RAD:
+        return None, {"peak_tilt": (0.0, 0.0), "strehl": float("nan"), "max_psi_rad": float("nan"),
+                      "samples": 0, "max_slope_rad": gmaxes[0]}
+    if gmax > MAX_SLOPE_RAD:
+        raise ValueError(f"edge_wave_orders_error: an order's phase slope {gmax:.4g} rad exceeds MAX_SLOPE_RAD "
+                         f"({MAX_SLOPE_RAD:g})")
+    # the samples' period in tilt, pi n, holds the spot (|t| <= gmax about its centre) and its neighbourhood
+    # twice over (2.5 gmax + 40 rad): the sampled pupil's aliases of U fall outside the observed tilts
+    n = sfft.next_fast_len(max(MIN_SAMPLES, int(math.ceil((2.5 * gmax + 40.0) / math.pi))))
+    h = 2.0 / n
+    x = -1.0 + h * (np.arange(n) + 0.5)
+    w = np.clip((1.0 - np.sqrt(x[None, :] ** 2 + x[:, None] ** 2)) / h + 0.5, 0.0, 1.0)   # the cell's share inside the rim
+    g = w * np.exp(1j * phases[0]._grid(x))
+    if weights[0] != 1.0:
+        g = weights[0] * g
+    for wt, ph_ in zip(weights[1:], phases[1:]):
+        g = g + wt * w * np.exp(1j * ph_._grid(x))
+    # coarse: the FFT on the tilt step pi / 2 (twice the samples' span)
+    m = 2 * n
+    F = sfft.fft(sfft.fft(g, n=m, axis=1), n=m, axis=0)           # rows: t_y, columns: t_x; U pi / h^2
+    t = 2 * math.pi * sfft.fftfreq(m, h)
+    # the samples start at u = x[0], not 0: exp(-i t . u) = exp(-i t x[0]) exp(-2 pi i k j / m)
+    ph = np.exp(-1j * t * x[0])
+    I = (F.real ** 2 + F.imag ** 2).ravel()                       # |U|^2 pi^2 / h^4 (ph has modulus 1)
+    k = int(np.argmax(I))
+    iy, ix = divmod(k, m)
+    # the observation points: the tilts near the peak and the PSF's bright part (an aberrated PSF's largest
+    # change may lie away from its peak), at most MAX_POINTS of them, the brightest
+    r = int(math.ceil(search_rad / FINE_STEP + 1e-9))
+    dy, dx = np.divmod(np.arange((2 * r + 1) ** 2), 2 * r + 1)
+    dy, dx = dy - r, dx - r
+    close = (dx * dx + dy * dy) * FINE_STEP ** 2 <= (search_rad + 1e-9) ** 2
+    dy, dx = dy[close], dx[close]
+    coarse = (dy % 2 == 0) & (dx % 2 == 0)
+    near = ((iy + dy[coarse] // 2) % m) * m + (ix + dx[coarse] // 2) % m
+    mask = I >= BRIGHT_SHARE * float(I[k])
+    mask[near] = True
+    sel = np.flatnonzero(mask)
+    levels = [FINE_STEP]
+    if len(sel) > MAX_POINTS:
+        # a wide bright part: every other coarse point (step pi, aligned with the peak), the near ones kept; the
+        # refinement below then climbs pi / 2 -> pi / 4
+        sy, sx = np.divmod(sel, m)
+        sel = np.union1d(sel[((sy - iy) % 2 == 0) & ((sx - ix) % 2 == 0)], near)
+        levels = [2 * FINE_STEP, FINE_STEP]
+    if len(sel) > MAX_POINTS:
+        sel = sel[np.argpartition(I[sel], len(sel) - MAX_POINTS)[-MAX_POINTS:]]
+    sy, sx = np.divmod(sel, m)
+    tx, ty = t[sx], t[sy]
+    Uk = F.ravel()[sel] * (ph[sy] * ph[sx] * (h * h / math.pi))
+    # each order's rim sum, set up for the coarse points' tilts
+    tobs = float(np.max(np.hypot(tx, ty)))
+    summers = [_rim_summer(nf, ph_, tobs) for ph_ in phases]
+    _, s0, den, cx, cy, traced = summers[0]
+    nth = len(cx)
+
+    def rim_sum(tx, ty):
+        out = weights[0] * summers[0][0](tx, ty) if weights[0] != 1.0 else summers[0][0](tx, ty)
+        for wt, sm in zip(weights[1:], summers[1:]):
+            out = out + wt * sm[0](tx, ty)
         return out
 
     dU = rim_sum(tx, ty)

@@ -75,3 +75,55 @@ def test_the_front_zone_carries_about_one_percent_of_the_error(reduced):
     e, eg = measured_error(T, M), measured_error(Tg, Mg)
     assert abs(eg / e - 1) < 0.02
     assert np.isfinite(Tg).all()
+
+
+@pytest.mark.parametrize("w_um", [0.45, 0.65])
+def test_the_estimate_with_the_wrapped_reliefs_orders_at_other_wavelengths(w_um):
+    # F/8 on axis at 0.45 / 0.65 um: the truth takes the glass's index there and the DOE as its wrapped relief
+    # s wrap(phi0) (s = 1.237 / 0.840: every order, sinc^2(m - s) of the light in order m; _a489_truth.py). Held out:
+    # no constant of the estimate was set on these (nor on any A489 case). Measured: the error with every order 0.224 /
+    # 0.734 of the truth's peak, with the main order alone (exp(i phi0)) 0.121 / 0.167: the other orders' light on the
+    # patch changes it by 1.9x / 4.4x. The estimate sums every order that lights the patch coherently (each order's
+    # rim edge wave turned by its own slope's Fresnel phase, the error over the peak of all of them): 0.201 / 0.756,
+    # 0.90x / 1.03x; the estimate before (the main order's error over its own peak plus an on-axis orders term) read
+    # 0.527 / 0.167, 2.35x / 0.23x. The truth moved by 8.3e-3 / 9.4e-3 of its peak with its pitch and slice halved
+    # (the measured error by 1.1 % / 0.5 %; the smooth-pupil control 2.1e-2 / 3.0e-2: perf/model_error_a489.py
+    # --wavelengths-f8). The claim is the factor 2, asserted first; the bound 0.8-1.25 (the reduced case's above) holds
+    # the measured 0.90 / 1.03 with twice their distance from 1 and the truth's 1 % on top
+    lens = A489(a_mm=0.5, coeffs=COEFFS, lam_mm=w_um * 1e-3)
+    T, M, _ = truth_and_model(lens, 0.0, h=1.5e-3, dz=1e-3, front="wave")
+    err = measured_error(T, M)
+    lens.doe_scale = 1.0                                   # the main order alone: a diagnostic
+    T1, M1, _ = truth_and_model(lens, 0.0, h=1.5e-3, dz=1e-3, front="wave")
+    err_main = measured_error(T1, M1)
+    rl = rw.load_lens("a489_doe")
+    rl.surfaces[0].semi_diameter = 0.5
+    rl.surfaces[3].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": list(COEFFS)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        me = rw.plan_psf(rl, 0.0, w_um, size=64, method="focal").model_error
+    # the other orders matter in the truth (measured 1.9x / 4.4x)
+    assert err / err_main > 1.5, (err, err_main)
+    assert 0.5 <= me["estimate"] / err <= 2.0, (me, err)
+    assert 0.8 <= me["estimate"] / err <= 1.25, (me, err)
+    # the main order's own part against the main-order truth: measured 1.03x / 1.00x
+    assert 0.8 <= me["main_estimate"] / err_main <= 1.25, (me, err_main)
+    assert me["estimate"] == pytest.approx(me["main_estimate"] + me["orders_estimate"])
+
+
+def test_the_note_names_the_beams_own_aberration_where_it_diffracts_again():
+    # F/4 at 10 deg (0.45 um: the estimate 2.9x the measured error, the one A489 case outside the factor 2): the beam's
+    # aberration before the DOE diffracts over d with a phase pi |d| |m - m_T|^2 / lambda of 0.75 rad (the wave step's
+    # own phase error there, rwwarp.wave.wave_step.step_phase_rad on the two-step plan: 0.747 rad); on axis ~1e-3 rad
+    # (no note). The edge waves take that aberration as applied at the plane
+    def plan(a, field, w):
+        lens = rw.load_lens("a489_doe")
+        lens.surfaces[0].semi_diameter = a
+        lens.surfaces[3].profile = {"kind": "even_poly", "norm_radius": 1.5, "coefficients": list(COEFFS)}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return rw.plan_psf(lens, field, w, size=64, method="two-step").model_error
+    off, on = plan(1.0, 10.0, 0.45), plan(1.0, 0.0, 0.45)
+    assert "diffracts again over d (phase up to 0.75 rad)" in off["note"]
+    assert off["step_phase_rad"] == pytest.approx(0.75, abs=0.01)
+    assert "diffracts again" not in on["note"] and on["step_phase_rad"] < 0.1
