@@ -138,10 +138,11 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
     method : "auto" | "focal" | "asm" | "two-step" | "pixel" | "direct" | any registered method
         Wave propagation (ray-wave model). ``"focal"`` handles the wave converging to the patch
         analytically and samples only what reaches the patch (:mod:`rwwarp.wave.focal`); ``"asm"`` is the
-        band-limited angular spectrum over the whole converging beam (the reference path; its cost grows
-        with footprint x NA / lambda). ``"auto"``: both are planned from one pilot trace; on the CPU the plan
-        of fewer flops runs; on a GPU the ASM runs while its plan is under 1 GiB and 20 GFLOP (fewer,
-        larger launches), the focal method beyond; pixel-map DOEs and ``plan="paper"`` always use the ASM.
+        band-limited angular spectrum over the whole converging beam (its cost grows with footprint x NA /
+        lambda; not a reference where the geometric spot is wider than the patch: docs/accuracy.md).
+        ``"auto"``: both are planned from one pilot trace and the plan of fewer flops runs, on every device
+        (:class:`rwwarp.wave.raywave.RayWave`'s ``auto_rule``); pixel-map DOEs and ``plan="paper"`` always use
+        the ASM.
         With ``tolerance`` "auto" adds the wave step (:mod:`rwwarp.wave.wave_step`) where the model's own error
         estimate exceeds it. ``"two-step"``: the method "auto" picks, always with the wave step: the
         geometric field's edge is diffracted as a wave from the stop's image to the DOE plane before the DOE.
