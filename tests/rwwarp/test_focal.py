@@ -246,12 +246,13 @@ def test_a489_off_axis_focal_against_truth():
     """The A489 at 10 deg (an aberrated beam, 10 % of its power outside a 64 px patch): the focal path
     measures 1.13e-4 against rs_lens_psf (16 px; max / peak 1.48e-4): the main order's ray-landing extent sets
     the wave-plane period (FOCAL_RAY_SPREAD; 5.8e-4 with the spread rules alone, 1.4e-3 before the fitted
-    transfer and taper, the ASM 6.2e-4). Tolerance about twice."""
+    transfer and taper, the ASM 6.2e-4). Tolerance about twice; max / peak at issue 27's target for refractive
+    lenses, 2e-4 (1.35x the measured)."""
     lens = rw.load_lens("a489_doe")
     f = rw.psf(lens, 10.0, 0.55, size=16, method="focal")
     truth = rs_lens_psf(lens, 10.0, 0.55, f.center_mm, 16, f.pixel_mm, radial_nodes=32, angular_nodes=128)
     assert _rel(f.data, truth) < 2.5e-4
-    assert float(np.abs(f.data - truth).max() / truth.max()) < 3e-4
+    assert float(np.abs(f.data - truth).max() / truth.max()) < 2e-4
 
 
 @pytest.mark.parametrize("fitted", [False, True])

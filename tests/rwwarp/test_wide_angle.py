@@ -25,11 +25,12 @@ def _singlet():
     return Lens(surfs, Sensor(0.002, (4000, 4000)), wavelengths_um=[0.55])
 
 
-@pytest.mark.parametrize("field,tol", [(35.0, 2.5e-4), (40.0, 1.2e-4)])
+@pytest.mark.parametrize("field,tol", [(35.0, 2e-4), (40.0, 1.2e-4)])
 def test_singlet_wide_angle_focal_against_rs_truth(field, tol):
     """The focal path (16 px of 2 um, flux) against rs_lens_psf, max |error| / peak. Measured 1.1e-4 (35 deg)
     and 5.4e-5 (40 deg); before the ray-landing rules 6.9e-4 / 6.4e-4 (the wave-plane period too short for the
-    rim's phase slope; at 40 deg also V's taper cut through the lit spot). Tolerance about twice."""
+    rim's phase slope; at 40 deg also V's taper cut through the lit spot). Tolerance about twice, at most issue 27's
+    target for refractive lenses (2e-4)."""
     lens = _singlet()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
