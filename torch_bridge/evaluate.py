@@ -272,7 +272,6 @@ def evaluate(arm, prov=None, on_progress=None, group=None) -> dict:
     ev = cfg["eval"]
     depths = eval_depths(cfg)
     # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
-    from torch_bridge import design as dz
     t0 = time.perf_counter()
     psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress,
                                                  group if eval_nodes(arm) is not None else None)
@@ -312,6 +311,21 @@ def evaluate(arm, prov=None, on_progress=None, group=None) -> dict:
     res = {"depths": rows}
     timing["images"] = time.perf_counter() - t0    # blurring, noise, network and metrics of every node's crops
     t0 = time.perf_counter()
+    res.update(ray_figures(arm))
+    timing["rms"] = time.perf_counter() - t0
+    res["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
+    return res
+
+
+def ray_figures(arm) -> dict:
+    """The designed lens's ray-model figures of an evaluation: ``rms_um``, the RMS spot radius (um) at
+    ``eval.rms_fractions`` of the nodes' half size on the diagonal (on axis, outermost, average; for an even or
+    general polynomial DOE only; a vignetted field gives ``{"error": ...}``), ``efl_mm`` (mm, at the reference
+    wavelength), ``doe_coefficients`` (rad) and ``sensor_distance_mm`` (mm, the last gap)."""
+    from torch_bridge import design as dz
+    cfg = arm.cfg
+    ev = cfg["eval"]
+    res = {}
     # ray-model RMS spot radius (um): on axis, outermost, average over the diagonal fractions
     lens = arm.module.to_lens()
     kind = lens.surfaces[lens.doe_index].profile.get("kind")
@@ -334,8 +348,6 @@ def evaluate(arm, prov=None, on_progress=None, group=None) -> dict:
     res["efl_mm"] = float(lens.efl(arm.wl_ref))
     res["doe_coefficients"] = arm.module.value("doe").detach().cpu().tolist()
     res["sensor_distance_mm"] = float(lens.surfaces[-1].thickness)
-    timing["rms"] = time.perf_counter() - t0
-    res["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
     return res
 
 

@@ -1,6 +1,7 @@
 """The evaluation as it was before the batched image loop (torch_bridge/evaluate.py at ca62915, verbatim but for
-the names): node after node, each crop blurred alone, the noise drawn on the host (a CUDA image copied down and
-back), PSNR / SSIM by scikit-image on host copies, one host read per node. The reference the batched evaluation
+the names; the ray model's figures, which the change left as they were, from
+:func:`torch_bridge.evaluate.ray_figures`): node after node, each crop blurred alone, the noise drawn on the host (a
+CUDA image copied down and back), PSNR / SSIM by scikit-image on host copies, one host read per node. The reference the batched evaluation
 (:func:`torch_bridge.evaluate.evaluate`) is tested against (test_eval_batched.py) and timed against
 (perf/profile_eval.py --reference). Its PSFs come from the same ``_eval_psfs`` (not changed)."""
 from __future__ import annotations
@@ -12,7 +13,7 @@ import numpy as np
 import torch
 
 from torch_bridge.config import _depth_tag, _depth_value
-from torch_bridge.evaluate import _eval_psfs, _psf_kernels
+from torch_bridge.evaluate import _eval_psfs, _psf_kernels, ray_figures
 
 
 def _noise(image, noise: dict, gen):
@@ -64,7 +65,6 @@ def evaluate_reference(arm, prov=None, on_progress=None) -> dict:
     ev = cfg["eval"]
     depths = [_depth_value(d) for d in (ev["depths_mm"] or cfg["optics"]["depths_mm"])]
     # ray-wave PSFs of the designed lens (its refractive part is frozen now: fields may be cached)
-    from torch_bridge import design as dz
     t0 = time.perf_counter()
     psf_by_depth, positions, fields = _eval_psfs(arm, depths, prov, on_progress)
     timing = {"psfs": time.perf_counter() - t0}    # wall s: DOE-plane field builds and PSFs of the nodes
@@ -115,28 +115,7 @@ def evaluate_reference(arm, prov=None, on_progress=None) -> dict:
     res = {"depths": rows}
     timing["images"] = time.perf_counter() - t0    # blurring, noise, network and metrics of every node's crops
     t0 = time.perf_counter()
-    # ray-model RMS spot radius (um): on axis, outermost, average over the diagonal fractions
-    lens = arm.module.to_lens()
-    kind = lens.surfaces[lens.doe_index].profile.get("kind")
-    if kind in ("even_poly", "poly"):
-        nd = cfg["optics"]["nodes"]
-        half = nd["half_size_mm"] or [0.5 * lens.sensor.resolution[0] * lens.sensor.pixel_pitch,
-                                      0.5 * lens.sensor.resolution[1] * lens.sensor.pixel_pitch]
-        hx, hy = (half, half) if np.ndim(half) == 0 else half
-        fr = ev["rms_fractions"]
-        pos = [(f * hx, f * hy) for f in fr]
-        fl = dz.field_angles(lens, pos, arm.wl_ref)
-        wls = cfg["design"]["rms"]["wavelengths_um"] or [c[len(c) // 2] for c in arm.wls]
-        try:
-            with torch.enable_grad():
-                r = dz.RaySpot(arm.module, fl, wls, grid=ev["rms_grid"]).rms().detach().cpu().numpy() * 1e3
-            res["rms_um"] = {"fractions": list(fr), "per_field": r.tolist(), "on_axis": float(r[0]),
-                             "off_axis": float(r[-1]), "avg": float(np.mean(r))}
-        except Exception as e:  # noqa: BLE001 - a vignetted field must not lose the evaluation
-            res["rms_um"] = {"error": str(e)}
-    res["efl_mm"] = float(lens.efl(arm.wl_ref))
-    res["doe_coefficients"] = arm.module.value("doe").detach().cpu().tolist()
-    res["sensor_distance_mm"] = float(lens.surfaces[-1].thickness)
+    res.update(ray_figures(arm))    # the ray model's figures: unchanged, not what this reference is for
     timing["rms"] = time.perf_counter() - t0
     res["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
     return res
