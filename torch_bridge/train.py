@@ -685,9 +685,22 @@ def train(config, preset: str | None = None, arms=None, out_dir=None, resume: bo
     Under ``torchrun`` (``WORLD_SIZE`` > 1) or with ``group``, each arm runs on all ranks
     (:mod:`torch_bridge.distributed`); rank 0 writes the outputs, the other ranks return ``{}``."""
     exp = load_config(config, preset, overrides)
+    owned = False
     if group is None:
         from torch_bridge.distributed import current_group
+        was = torch.distributed.is_available() and torch.distributed.is_initialized()
         group = current_group(str(exp["base"]["device"]))
+        owned = group is not None and not was
+    try:
+        return _train(exp, preset, arms, out_dir, resume, progress, group)
+    finally:
+        if owned and torch.distributed.is_initialized():
+            # the group this call made ends with it: NCCL's communicators are freed, not leaked at exit
+            torch.distributed.destroy_process_group()
+
+
+def _train(exp: dict, preset, arms, out_dir, resume, progress, group) -> dict:
+    """The body of :func:`train` once the config is loaded and the group (or None) is known."""
     base = exp["base"]
     out = run_folder(exp, preset, out_dir)
     chosen = exp["arms"] if arms is None else [a for a in exp["arms"] if a["name"] in set(arms)]

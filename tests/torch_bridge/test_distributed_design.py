@@ -115,3 +115,25 @@ def test_one_distributed_design_step_equals_the_single_process_step(steps, case)
     for k in optics1:
         scale = float(optics1[k].abs().max())
         assert scale > 0 and float((optics[k] - optics1[k]).abs().max()) <= 1e-10 * scale, k
+
+
+def _failed_run_worker(root):
+    """Rank r: a design run that stops at its pre-flight check (a missing data folder) after it made the
+    process group itself; returns (the error's message, whether a group is still initialised afterwards)."""
+    from torch_bridge.train import ConfigError, train
+    cfg = copy.deepcopy(CFG)
+    cfg["data"]["root"] = str(Path(root) / "missing")
+    try:
+        train(cfg, out_dir=str(Path(root) / "run"))
+    except ConfigError as e:
+        return str(e), torch.distributed.is_initialized()
+    return "no error", torch.distributed.is_initialized()
+
+
+def test_a_run_ends_the_process_group_it_made(tmp_path):
+    """``train`` under a launcher makes the process group (gloo here, NCCL on GPUs) and ends it when it returns
+    or fails, so no rank leaves its communicators to the interpreter's exit (NCCL warns of a leak then). Two
+    fresh ranks: each run fails its pre-flight check after the group exists."""
+    from rwwarp.distributed import launch
+    ranks = launch(_failed_run_worker, 2, str(tmp_path))
+    assert [("data.root" in msg, alive) for msg, alive in ranks] == [(True, False), (True, False)]
