@@ -200,6 +200,8 @@ def read_run(folder) -> dict:
     cards, commits = [], []
     for s in segs:
         c = s.get("card")
+        if c and int(s.get("ranks") or 1) > 1:
+            c = f"{c} x {int(s['ranks'])}"   # one arm on several cards (--procs N), recorded since session 22
         if c and c not in cards:
             cards.append(c)
         h = s.get("commit")

@@ -718,7 +718,8 @@ def _train(exp: dict, preset, arms, out_dir, resume, progress, group) -> dict:
         from torch_bridge.runs import ProgressFile, device_info, git_commit
         pf = ProgressFile(out / "progress.json", experiment=exp["experiment"], preset=preset,
                           arms=[a["name"] for a in chosen], arms_total=len(chosen))
-        info = {**git_commit(), **device_info(base["device"] if group is None else group.device(base["device"]))}
+        info = {**git_commit(), **device_info(base["device"] if group is None else group.device(base["device"])),
+                "ranks": 1 if group is None else group.size}
     try:
         for i, a in enumerate(chosen):
             cfg = copy.deepcopy(a["config"])

@@ -39,10 +39,11 @@ def _depth(depth_mm, raw, rec, nodes=None):
             "raw": _metric(*raw), "rec": _metric(*rec), "psf_energy": 0.99}
 
 
-def _segment(commit, card, start, end, wall, dirty=False):
-    return {"commit": commit, "dirty": dirty, "device": "cuda:0", "card": card, "memory_gb": 85.0,
-            "host": "gpu-host", "start_step": start, "started_utc": "2026-11-27T10:00:00Z", "end_step": end,
-            "wall_s": wall}
+def _segment(commit, card, start, end, wall, dirty=False, ranks=None):
+    seg = {"commit": commit, "dirty": dirty, "device": "cuda:0", "card": card, "memory_gb": 85.0,
+           "host": "gpu-host", "start_step": start, "started_utc": "2026-11-27T10:00:00Z", "end_step": end,
+           "wall_s": wall}
+    return seg if ranks is None else {**seg, "ranks": ranks}   # segments before session 22 have no "ranks"
 
 
 def _result(arm, seed, depths=None, rms=(7.5, 60.0, 30.0), steps_done=3000, steps_total=3000, joint=2000,
@@ -96,7 +97,7 @@ def _aberration(tmp_path):
     """Both arms, both seeds finished; e2e_doe beats blank_doe in both seeds."""
     e = tmp_path / "a489_aberration_gpu"
     segs = [_segment("abcdef1" + "0" * 33, H100, 0, 1400, 1200.5),
-            _segment("1234567" + "0" * 33, H200, 1400, 3000, 3000.25, dirty=True)]
+            _segment("1234567" + "0" * 33, H200, 1400, 3000, 3000.25, dirty=True, ranks=4)]
     _write(e, "e2e_doe", 0, _result("e2e_doe", 0, [_depth(None, (24.0, 0.61), (23.0, 0.630))],
                                     rms=(7.4, 56.0, 27.0), segments=segs))
     _write(e, "e2e_doe", 1, _result("e2e_doe", 1, [_depth(None, (24.2, 0.62), (23.4, 0.640))],
@@ -133,7 +134,7 @@ def test_means_spreads_and_a_verdict_that_holds(tmp_path):
     # the run record: segments' wall time summed, cards and commits in order of first use
     r = col["runs"][("e2e_doe", 0)]
     assert r["wall_s"] == pytest.approx(4200.75, abs=TOL)
-    assert r["cards"] == [H100, H200] and r["commits"] == ["abcdef1", "1234567+dirty"]
+    assert r["cards"] == [H100, f"{H200} x 4"] and r["commits"] == ["abcdef1", "1234567+dirty"]
     assert (r["steps_done"], r["steps_total"], r["joint"], r["finetune"]) == (3000, 3000, 2000, 1000)
 
 
