@@ -284,7 +284,7 @@ def test_report_writes_the_seed_sections_and_keeps_the_discussion(tmp_path):
     assert "GPU runs, one folder per arm and seed (`cooke_hybrid_gpu/`)" in text
     assert "e2e_doe reconstructs better than blank_doe (reconstructed PSNR, depth default): **holds** " \
            "(mean +0.65 dB; seed 0: +0.50, seed 1: +0.80)" in text
-    assert "| e2e_doe | 0 | finished | 3000 / 3000 (2000 + 1000) | 1.17 h | " + f"{H100}, {H200} | " \
+    assert "| e2e_doe | 0 | finished | 3000 / 3000 (2000 + 1000) | 1.17 h | " + f"{H100}, {H200} x 4 | " \
            "abcdef1, 1234567+dirty |" in text
     assert "nan" not in text.lower()         # the NaN 1-LPIPS of the files is not a figure shown
 
