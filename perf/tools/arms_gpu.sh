@@ -8,6 +8,8 @@
 #                                  # run on N GPUs (rwwarp design --procs N: its PSF nodes and batch split over N ranks),
 #                                  # run k on GPUs kN .. kN+N-1 (after ARMS_GPU0)
 #   bash perf/tools/arms_gpu.sh watch SECONDS                   # every run's status every 30 s, for SECONDS
+#   bash perf/tools/arms_gpu.sh wait SECONDS                    # until every run's process has ended (or SECONDS),
+#                                  # then each run's status: finish an arm and collect it in the same call
 #   bash perf/tools/arms_gpu.sh stop                            # SIGTERM every live run: it ends at once, its
 #                                  # last checkpoint (every 200 steps) is what a resume starts from
 #   bash perf/tools/arms_gpu.sh pack NAME                       # portable checkpoint of a stopped run (bfloat16
@@ -43,7 +45,12 @@ f = stat[stat.rindex(")") + 2:].split()
 sys.exit(0 if f[0] != "Z" and int(f[19]) == int(r.get("start_ticks", f[19])) else 1)
 PY
 }
-cmd=${1:?start, watch, stop, pack, send or collect}; shift
+cmd=${1:?start, watch, wait, stop, pack, send or collect}; shift
+case $cmd in start|watch|wait|stop|pack)
+  # the project and its GPU wheels come from ~/rw-env.sh; without it every status line is an ImportError traceback
+  python3 -c "import torch_bridge, warp" 2>/dev/null \
+    || { echo "arms_gpu: torch_bridge or warp does not import: run 'source \$HOME/rw-env.sh' first" >&2; exit 2; } ;;
+esac
 case $cmd in
 start)
   exp=${1:?experiment}; shift
@@ -78,6 +85,20 @@ watch)
     sleep 30
   done
   nvidia-smi --query-gpu=index,memory.used,utilization.gpu --format=csv,noheader
+  ;;
+wait)
+  # block until every run has ended (its process gone) or SECONDS have passed, then print each run's status
+  secs=${1:-540}; t0=$(date +%s)
+  while [ $(( $(date +%s) - t0 + 10 )) -lt $secs ]; do
+    n=$(for d in $RUNS/*/; do [ -f $d/run.pid ] && alive $d && echo x; done | wc -l)
+    [ $n -gt 0 ] || break
+    sleep 10
+  done
+  for d in $RUNS/*/; do
+    if [ -f $d/run.pid ]; then
+      echo "$(date -u +%H:%M:%S) $(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"
+    fi
+  done
   ;;
 stop)
   for d in $RUNS/*/; do
