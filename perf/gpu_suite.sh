@@ -11,7 +11,11 @@
 #                              # all): any of cooke_hybrid a489_aberration a489_edof tests; each part fits one
 #                              # 10-minute device command, e.g. `smoke cooke_hybrid a489_aberration` then
 #                              # `smoke a489_edof tests`. Exits non-zero when anything fails.
-#   bash perf/gpu_suite.sh smoke-parallel [PARTS]  # the same parts at once, part k alone on GPU k
+#   bash perf/gpu_suite.sh smoke-parallel [PARTS]  # the same parts at once, part k alone on GPU k; a part may
+#                              # name one arm (CONFIG:ARM) and parts joined by + share a GPU one after the other,
+#                              # e.g. the balanced four-GPU smoke (~230 s against 320 s, by session 22's part times):
+#                              #   smoke-parallel cooke_hybrid a489_aberration+a489_edof:raywave_doe \
+#                              #                  a489_edof:paraxial_doe tests
 #                              # (CUDA_VISIBLE_DEVICES; a machine with >= as many GPUs as parts, e.g. nvidia-h100-x4):
 #                              # each part keeps one whole card, so its peak is what it is on one H100; logs in
 #                              # $RWWARP_RESULTS/smoke_<part>.log, results in $RWWARP_RESULTS/smoke_<part>/
@@ -27,9 +31,12 @@ smoke)
   shift
   parts=${*:-cooke_hybrid a489_aberration a489_edof tests}
   rc=0
-  configs=$(echo $parts | tr ' ' '\n' | grep -v '^tests$' | tr '\n' ' ')
+  # a part is a config (all its arms), CONFIG:ARM (that arm alone) or tests
+  configs=$(echo $parts | tr ' ' '\n' | grep -v '^tests$' | cut -d: -f1 | awk '!seen[$0]++' | tr '\n' ' ')
+  arms=$(echo $parts | tr ' ' '\n' | grep ':' | tr '\n' ' ')
   if [ -n "$configs" ]; then
-    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs --out "$RWWARP_RESULTS" 2>&1 | grep --line-buffered -v use_ai2
+    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs ${arms:+--arms $arms} --out "$RWWARP_RESULTS" 2>&1 \
+      | grep --line-buffered -v use_ai2
     rc=${PIPESTATUS[0]}
   fi
   if echo " $parts " | grep -q " tests "; then
@@ -45,16 +52,21 @@ smoke-parallel)
   parts=${*:-cooke_hybrid a489_aberration a489_edof tests}
   ngpu=$(nvidia-smi -L | wc -l)
   k=0; pids=()
+  # PARTS joined by + run one after the other on one GPU (e.g. a489_aberration+a489_edof:raywave_doe); file names
+  # take the part with : and + replaced by - (the device tool brings back plain names only)
   for p in $parts; do
     [ $k -lt $ngpu ] || { echo "smoke-parallel: $ngpu GPU(s) for the parts $parts" >&2; exit 2; }
-    mkdir -p "$RWWARP_RESULTS/smoke_$p"
-    OUT="$RWWARP_RESULTS/smoke_$p" CUDA_VISIBLE_DEVICES=$k bash "$SELF" smoke $p > "$RWWARP_RESULTS/smoke_$p.log" 2>&1 &
+    f=$(echo "$p" | tr ':+' '--')
+    mkdir -p "$RWWARP_RESULTS/smoke_$f"
+    OUT="$RWWARP_RESULTS/smoke_$f" CUDA_VISIBLE_DEVICES=$k bash "$SELF" smoke $(echo "$p" | tr '+' ' ') \
+      > "$RWWARP_RESULTS/smoke_$f.log" 2>&1 &
     pids+=($!); k=$((k + 1))
   done
   rc=0; k=0
   for p in $parts; do
     wait ${pids[$k]} || rc=1
-    echo "== $p (GPU $k)"; grep -v "^ *$" "$RWWARP_RESULTS/smoke_$p.log" | tail -12
+    f=$(echo "$p" | tr ':+' '--')
+    echo "== $p (GPU $k)"; grep -v "^ *$" "$RWWARP_RESULTS/smoke_$f.log" | tail -12
     k=$((k + 1))
   done
   echo "smoke-parallel: $([ $rc = 0 ] && echo passed || echo FAILED) (parts: $parts)"

@@ -78,10 +78,25 @@ def run_arm(cfg_path: Path, arm: str, out: Path, timeout: float) -> dict:
             "log_tail": [ln for ln in log.splitlines() if "Warning" not in ln][-keep:]}
 
 
+def wanted(config: str, arm: str, arms) -> bool:
+    """Whether ``--arms`` selects ``arm`` of ``config``: no list selects all; ``CONFIG:ARM`` entries select only
+    their config's arms (a config not named in any of them keeps all its arms unless a plain ``ARM`` entry
+    names some other arm); plain ``ARM`` entries select that arm in any config."""
+    if not arms:
+        return True
+    scoped = [x.split(":", 1) for x in arms if ":" in x]
+    plain = [x for x in arms if ":" not in x]
+    if any(c == config for c, _ in scoped):
+        return [config, arm] in [list(x) for x in scoped] or arm in plain
+    return arm in plain if plain else True
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS))
-    ap.add_argument("--arms", nargs="+", default=None, help="only these arms (default: every arm)")
+    ap.add_argument("--arms", nargs="+", default=None,
+                    help="only these arms (default: every arm): ARM (in every config that has it) or CONFIG:ARM (only "
+                         "that config's; a config none of whose arms is named this way runs all its arms)")
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--eval-images", type=int, default=2)
     ap.add_argument("--budget-gb", type=float, default=None,
@@ -111,7 +126,7 @@ def main(argv=None) -> int:
         exp = load_config(copy.deepcopy(c), "gpu")
         budget = exp["base"]["optics"].get("memory_budget_gb")
         for arm in exp["arms"]:
-            if a.arms and arm["name"] not in a.arms:
+            if not wanted(name, arm["name"], a.arms):
                 continue
             r = run_arm(cfg_path, arm["name"], work / name, a.timeout)
             rows = []
