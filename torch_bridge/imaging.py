@@ -85,20 +85,30 @@ def _fast_len(n: int) -> int:
     return next_fft_size(n)
 
 
-def spatially_varying_blur(image: torch.Tensor, psfs: torch.Tensor, *, boundary: str = "zero") -> torch.Tensor:
+def spatially_varying_blur(image: torch.Tensor, psfs: torch.Tensor, *, boundary: str = "zero",
+                           per_image: bool = False) -> torch.Tensor:
     """Blur ``image`` (..., C, H, W) with a grid of PSFs ``psfs`` (gy, gx, [C,] kh, kw).
 
     Patch-wise FFT convolution with raised-cosine blending between neighbouring nodes (see the
     module docstring). ``boundary``: ``"zero"`` (the scene is dark outside the frame; energy that
     spills out is lost), ``"reflect"`` or ``"replicate"`` (the scene continues beyond the frame by
-    the PSF half size). Returns a tensor of the image's shape (dtype of the promotion of both),
-    differentiable in the image and the PSFs.
+    the PSF half size). ``per_image``: ``image`` is a batch (B, C, H, W) and ``psfs`` (B, [C,] kh, kw) one
+    kernel for each image, blurred over the whole frame (a one-node grid each) in one batched FFT
+    convolution: the values of a call per image. Returns a tensor of the image's shape (dtype of the
+    promotion of both), differentiable in the image and the PSFs. Pixel units throughout.
     """
-    if psfs.ndim == 4:
-        psfs = psfs.unsqueeze(2)
-    if psfs.ndim != 5:
-        raise ValueError(f"psfs must be (gy, gx, [C,] kh, kw), got shape {tuple(psfs.shape)}")
-    gy, gx, pc, kh, kw = psfs.shape
+    if per_image:
+        if image.ndim != 4 or psfs.ndim not in (3, 4) or psfs.shape[0] != image.shape[0]:
+            raise ValueError(f"per_image: image must be (B, C, H, W) and psfs (B, [C,] kh, kw) with the same B, got "
+                             f"{tuple(image.shape)} and {tuple(psfs.shape)}")
+        psfs = (psfs if psfs.ndim == 4 else psfs.unsqueeze(1))[None, None]     # (1, 1, B, pc, kh, kw)
+        gy, gx, _, pc, kh, kw = psfs.shape
+    else:
+        if psfs.ndim == 4:
+            psfs = psfs.unsqueeze(2)
+        if psfs.ndim != 5:
+            raise ValueError(f"psfs must be (gy, gx, [C,] kh, kw), got shape {tuple(psfs.shape)}")
+        gy, gx, pc, kh, kw = psfs.shape
     if image.ndim < 3:
         raise ValueError(f"image must be (..., C, H, W), got shape {tuple(image.shape)}")
     C, H, W = image.shape[-3:]
@@ -142,7 +152,7 @@ def spatially_varying_blur(image: torch.Tensor, psfs: torch.Tensor, *, boundary:
             cols.append(padded[..., ya:ya + ph, xa:xa + pw] * w)
         rows.append(torch.stack(cols, 0))
     patches = torch.stack(rows, 0)                                     # (gy, gx, ..., C, ph, pw)
-    kern = psfs.reshape((gy, gx) + (1,) * len(lead) + (pc, kh, kw))
+    kern = psfs if per_image else psfs.reshape((gy, gx) + (1,) * len(lead) + (pc, kh, kw))
     spec = torch.fft.rfft2(patches, s=(fy, fx)) * torch.fft.rfft2(kern, s=(fy, fx))
     conv = torch.fft.irfft2(spec, s=(fy, fx))[..., :ph + kh - 1, :pw + kw - 1]
     # overlap-add into the 'full' canvas, then crop the frame

@@ -84,7 +84,8 @@ from torch_bridge.config import (  # noqa: F401
     validate_config,
 )
 from torch_bridge.budget import memory_gb as _memory_gb, over_budget, torch_gb as _torch_gb
-from torch_bridge.evaluate import _blur_patch, _eval_provider, _noise, _psf_kernels, eval_share, evaluate_arm, objective
+from torch_bridge.evaluate import (_blur_patch, _eval_noise, _eval_provider, _psf_kernels, eval_share,
+                                   evaluate_arm, objective)
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 
 __all__ = [
@@ -407,7 +408,7 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     choice = [int(torch.randint(len(c), (1,), generator=arm.gen)) for c in arm.wls]
     wls = [c[k] for c, k in zip(arm.wls, choice)]
     depth = arm.depths[int(torch.randint(len(arm.depths), (1,), generator=arm.gen))]
-    gt = arm.train_set.sample(B, arm.gen).to(arm.device, net_dtype)
+    gt = arm.train_set.sample(B, arm.gen)                                # the whole batch's crops, on the host
     perm = torch.randperm(n_nodes, generator=arm.gen)
     nodes = [int(perm[b % n_nodes]) for b in range(B)]
     noisy = phase == "finetune" or t_cfg["noise_in_joint"]
@@ -437,16 +438,18 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     else:
         psf_img = psf.to(net_dtype)
     kern = _psf_kernels(psf_img).to(arm.device)
+    # ---- rendering, network and loss: this rank's slice of the batch (each crop is blurred and noised alone, and
+    # the noise draws are made for the whole batch, so a slice gets the values the whole batch has there)
+    sl = slice(0, B) if group is None else group.batch_slice(B)
+    gt = gt[sl].to(arm.device, net_dtype)
     if cfg["render"]["mode"] == "patch":
-        raw = _blur_patch(gt, kern[nodes], cfg["render"]["boundary"])
+        raw = _blur_patch(gt, kern[nodes[sl]], cfg["render"]["boundary"])
     else:
         gy, gx = arm.grid
         raw = spatially_varying_blur(gt, kern.reshape(gy, gx, 3, arm.size, arm.size),
                                      boundary=cfg["render"]["boundary"])
     if noisy:
-        raw = _noise(raw, t_cfg["noise"], arm.gen)
-    # ---- network and loss (this rank's slice of the batch)
-    sl = slice(0, B) if group is None else group.batch_slice(B)
+        raw = _eval_noise(raw, t_cfg["noise"], arm.gen, batch=B, rows=sl)
     net = arm.net if group is None else group.ddp(arm.net)
     f = _lr_factor(t_cfg["lr_decay"], step, total)
     for g in arm.opt_net.param_groups:
@@ -454,7 +457,6 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     arm.opt_net.zero_grad(set_to_none=True)
     if arm.opt_optics is not None:
         arm.opt_optics.zero_grad(set_to_none=True)
-    gt, raw = gt[sl], raw[sl]
     rec = net(raw)
     loss, parts = arm.criterion(rec, gt)
     efl = 0.0
