@@ -101,6 +101,80 @@ def sync_fn(device: str):
     return sync
 
 
+def process_tree(pid: int) -> set:
+    """``pid`` and every process below it (Linux ``/proc/<pid>/task/<tid>/children``); the pids that have gone are
+    left out, so a tree read while processes end is what was alive."""
+    out, todo = set(), [int(pid)]
+    while todo:
+        p = todo.pop()
+        if p in out:
+            continue
+        out.add(p)
+        try:
+            tasks = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for t in tasks:
+            try:
+                with open(f"/proc/{p}/task/{t}/children") as f:
+                    todo += [int(c) for c in f.read().split()]
+            except OSError:
+                pass
+    return out
+
+
+class ProcessGpuMemory:
+    """GPU memory (MiB) used by one process and its children, sampled every ``period`` s by ``nvidia-smi
+    --query-compute-apps`` in a thread: the sum over the tree's processes of what the driver reports for each (its
+    context and every allocation: torch's, Warp's and CuPy's pools), on every GPU. Other processes on the same
+    GPUs (a design run beside a smoke run) do not count, unlike :class:`GpuMemory`'s device-wide figure.
+
+    ``peak`` / ``peak_at_s``: the largest sum and when it was first seen (s after the sampler started);
+    ``matched``: whether any sample listed one of the tree's processes. Where nvidia-smi lists other pids than this
+    system's (a container in another PID namespace) nothing matches: a caller must treat ``matched`` False after a
+    process ran on a GPU as "not measured", not as zero. Without nvidia-smi nothing is sampled."""
+
+    def __init__(self, pid: int, period=0.05):
+        import threading
+        self.pid, self.period = int(pid), period
+        self.peak, self.peak_at_s, self.matched = 0, None, False
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def sample(self) -> int | None:
+        """One reading: MiB used by the tree now (0 when none of its processes is listed), None without nvidia-smi."""
+        try:
+            out = subprocess.run(["nvidia-smi", "--query-compute-apps=pid,used_memory", "--format=csv,noheader,nounits"],
+                                 capture_output=True, text=True, timeout=5).stdout
+        except Exception:  # noqa: BLE001 (no nvidia-smi)
+            return None
+        tree, used = process_tree(self.pid), 0
+        for line in out.strip().splitlines():
+            parts = [x.strip() for x in line.split(",")]
+            if len(parts) == 2 and parts[0].isdigit() and parts[1].isdigit() and int(parts[0]) in tree:
+                used += int(parts[1])
+                self.matched = True
+        return used
+
+    def _run(self):
+        while not self._stop.is_set():
+            used = self.sample()
+            if used is None:
+                return
+            if used > self.peak:
+                self.peak, self.peak_at_s = used, round(time.perf_counter() - self._t0, 2)
+            self._stop.wait(self.period)
+
+    def __enter__(self):
+        self._t0 = time.perf_counter()
+        self._t.start()
+        return self
+
+    def __exit__(self, *a):
+        self._stop.set()
+        self._t.join()
+
+
 class GpuMemory:
     """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread:
     ``peaks`` {index: MiB} and ``peak_times`` {index: s after the sampler started, when the peak was first seen},

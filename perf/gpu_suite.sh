@@ -16,6 +16,9 @@
 #                              # e.g. the balanced four-GPU smoke (~230 s against 320 s, by session 22's part times):
 #                              #   smoke-parallel cooke_hybrid a489_aberration+a489_edof:raywave_doe \
 #                              #                  a489_edof:paraxial_doe tests
+#                              # Memory is checked per process (the arm's own, from the driver's per-process figures),
+#                              # so the smoke may share the GPUs with design runs started before it (arms_gpu.sh);
+#                              # SMOKE_MEMORY=device checks the whole device's used memory instead (GPUs to itself).
 #                              # (CUDA_VISIBLE_DEVICES; a machine with >= as many GPUs as parts, e.g. nvidia-h100-x4):
 #                              # each part keeps one whole card, so its peak is what it is on one H100; logs in
 #                              # $RWWARP_RESULTS/smoke_<part>.log, results in $RWWARP_RESULTS/smoke_<part>/
@@ -35,7 +38,8 @@ smoke)
   configs=$(echo $parts | tr ' ' '\n' | grep -v '^tests$' | cut -d: -f1 | awk '!seen[$0]++' | tr '\n' ' ')
   arms=$(echo $parts | tr ' ' '\n' | grep ':' | tr '\n' ' ')
   if [ -n "$configs" ]; then
-    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs ${arms:+--arms $arms} --out "$RWWARP_RESULTS" 2>&1 \
+    PYTHONUNBUFFERED=1 python3 smoke_presets.py --configs $configs ${arms:+--arms $arms} --memory ${SMOKE_MEMORY:-process} \
+      --out "$RWWARP_RESULTS" 2>&1 \
       | grep --line-buffered -v use_ai2
     rc=${PIPESTATUS[0]}
   fi
