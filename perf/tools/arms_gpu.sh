@@ -16,7 +16,7 @@
 #                                  # weights and Adam moments, parts of <= 15 MiB) in out/pack/NAME
 #   bash perf/tools/arms_gpu.sh send NAME FIRST COUNT           # parts FIRST.. of that pack (and pack.json) to $OUT
 #   bash perf/tools/arms_gpu.sh collect NAME ...                # each run's results and log, no checkpoints, as
-#                                  # $OUT/NAME.tar.gz
+#                                  # $OUT/NAME.tar.gz.part00 ... (15 MB parts: cat them to NAME.tar.gz)
 #
 # Export RWWARP_COMMIT first: the copied tree has no .git, and each run records the commit it ran.
 # Run folders: out/design/runs/<experiment>_gpu_s<seed>_<arm> (NAME is that last part). The protocol's
@@ -131,9 +131,13 @@ send)
   ls $OUT/$name
   ;;
 collect)
+  # the device tool brings back files under ~16 MB (session 22: a 17 MB tar did not come back): the tar goes in
+  # parts of 15 MB, NAME.tar.gz.part00 ..., joined here with: cat NAME.tar.gz.part* > NAME.tar.gz
   for name in "$@"; do
-    tar czf $OUT/$name.tar.gz -C $RUNS --exclude='*.pt' --exclude=pack --exclude=run.pid $name && \
-      echo "collect: $name $(du -h $OUT/$name.tar.gz | cut -f1)"
+    tar czf /tmp/$name.tar.gz -C $RUNS --exclude='*.pt' --exclude=pack --exclude=run.pid $name && \
+      split -b 15000000 -d /tmp/$name.tar.gz $OUT/$name.tar.gz.part && \
+      echo "collect: $name $(du -h /tmp/$name.tar.gz | cut -f1) in $(ls $OUT/$name.tar.gz.part* | wc -l) part(s)," \
+           "sha256 $(sha256sum /tmp/$name.tar.gz | cut -c1-16)" && rm -f /tmp/$name.tar.gz
   done
   ;;
 *) echo "unknown command $cmd" >&2; exit 2 ;;
