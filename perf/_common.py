@@ -123,7 +123,29 @@ def process_tree(pid: int) -> set:
     return out
 
 
-class ProcessGpuMemory:
+class _Sampler:
+    """A thread that runs ``self._run`` while the ``with`` block runs (``self._t0``: its start, ``perf_counter``
+    s; ``self._stop``: set at the block's end)."""
+
+    def __init__(self, period=0.05):
+        import threading
+        self.period, self._stop = period, threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        raise NotImplementedError
+
+    def __enter__(self):
+        self._t0 = time.perf_counter()
+        self._t.start()
+        return self
+
+    def __exit__(self, *a):
+        self._stop.set()
+        self._t.join()
+
+
+class ProcessGpuMemory(_Sampler):
     """GPU memory (MiB) used by one process and its children, sampled every ``period`` s by ``nvidia-smi
     --query-compute-apps`` in a thread: the sum over the tree's processes of what the driver reports for each (its
     context and every allocation: torch's, Warp's and CuPy's pools), on every GPU. Other processes on the same
@@ -135,11 +157,8 @@ class ProcessGpuMemory:
     process ran on a GPU as "not measured", not as zero. Without nvidia-smi nothing is sampled."""
 
     def __init__(self, pid: int, period=0.05):
-        import threading
-        self.pid, self.period = int(pid), period
-        self.peak, self.peak_at_s, self.matched = 0, None, False
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
+        super().__init__(period)
+        self.pid, self.peak, self.peak_at_s, self.matched = int(pid), 0, None, False
 
     def sample(self) -> int | None:
         """One reading: MiB used by the tree now (0 when none of its processes is listed), None without nvidia-smi."""
@@ -165,17 +184,8 @@ class ProcessGpuMemory:
                 self.peak, self.peak_at_s = used, round(time.perf_counter() - self._t0, 2)
             self._stop.wait(self.period)
 
-    def __enter__(self):
-        self._t0 = time.perf_counter()
-        self._t.start()
-        return self
 
-    def __exit__(self, *a):
-        self._stop.set()
-        self._t.join()
-
-
-class GpuMemory:
+class GpuMemory(_Sampler):
     """Used memory (MiB) of every GPU sampled every ``period`` s by ``nvidia-smi`` in a thread:
     ``peaks`` {index: MiB} and ``peak_times`` {index: s after the sampler started, when the peak was first seen},
     ``peak`` / ``peak_at_s`` those of the process's first visible GPU (nvidia-smi numbers the physical GPUs
@@ -183,9 +193,8 @@ class GpuMemory:
     nothing is sampled."""
 
     def __init__(self, period=0.05):
-        import threading
-        self.period, self.peaks, self.peak_times, self._stop = period, {}, {}, threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
+        super().__init__(period)
+        self.peaks, self.peak_times = {}, {}
 
     @staticmethod
     def _first():
@@ -215,12 +224,3 @@ class GpuMemory:
                     self.peaks[i] = used
                     self.peak_times[i] = round(time.perf_counter() - self._t0, 2)
             time.sleep(self.period)
-
-    def __enter__(self):
-        self._t0 = time.perf_counter()
-        self._t.start()
-        return self
-
-    def __exit__(self, *a):
-        self._stop.set()
-        self._t.join()
