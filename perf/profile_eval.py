@@ -128,7 +128,7 @@ def parts(arm, repeat: int) -> dict:
 
     import torch
 
-    from torch_bridge.evaluate import _blur_one, _blur_patch, _eval_noise, _noise
+    from torch_bridge.evaluate import _blur_one, _blur_patch, _device_noise, _noise
     from torch_bridge.losses import image_metrics_per_image
     sys.path.insert(0, str(ROOT / "tests" / "torch_bridge"))
     from _eval_reference import image_metrics_skimage
@@ -150,7 +150,7 @@ def parts(arm, repeat: int) -> dict:
         "blur_reference": lambda: _blur_patch(gt, ker[None].expand(gt.shape[0], -1, -1, -1), bnd),
         "blur_batched": lambda: _blur_one(gt, ker, bnd),
         "noise_reference": lambda: _noise(raw, ev["noise"], g),
-        "noise_batched": lambda: _eval_noise(raw, ev["noise"], g),
+        "noise_batched": lambda: _device_noise(raw, ev["noise"], g),
         "network": lambda: torch.cat([arm.net(raw[i:i + ev["batch_size"]])
                                       for i in range(0, raw.shape[0], ev["batch_size"])]),
         "metrics_reference": lambda: (image_metrics_skimage(raw, gt), image_metrics_skimage(rec, gt)),

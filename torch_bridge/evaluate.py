@@ -51,7 +51,7 @@ def _noise_from_draws(image, draws: list, noise: dict):
     return out
 
 
-def _eval_noise(image, noise: dict, gen, batch: int | None = None, rows: slice | None = None):
+def _device_noise(image, noise: dict, gen, batch: int | None = None, rows: slice | None = None):
     """Sensor noise: :func:`_noise`'s values (the CPU generator ``gen``'s draws), but on a CUDA device only the
     draws go up (from page-locked memory, asynchronously) and the image stays there: no copy of the image to the
     host and back, no wait for the device.
@@ -140,7 +140,7 @@ def objective(arm, prov=None) -> dict:
                                          boundary=cfg["render"]["boundary"])
         else:
             raw = _blur_one(gt, kern[v], cfg["render"]["boundary"])
-        raw = _eval_noise(raw, ev["noise"], g)
+        raw = _device_noise(raw, ev["noise"], g)
         rec = arm.net(raw)
         loss, parts = arm.criterion(rec, gt)
         tot += float(loss)
@@ -250,7 +250,7 @@ def _patch_nodes(arm, kern, gt_all, gen, positions, fields) -> tuple:
     sample = None
     for n in range(kern.shape[0]):
         raw = _blur_one(gt_all, kern[n], cfg["render"]["boundary"])
-        raw = _eval_noise(raw, ev["noise"], gen)
+        raw = _device_noise(raw, ev["noise"], gen)
         rec = torch.cat([arm.net(raw[i:i + bs]) for i in range(0, raw.shape[0], bs)])
         per.append(torch.stack([*image_metrics_per_image(raw, gt_all), *image_metrics_per_image(rec, gt_all)]))
         if arm.lpips is not None:

@@ -84,7 +84,7 @@ from torch_bridge.config import (  # noqa: F401
     validate_config,
 )
 from torch_bridge.budget import memory_gb as _memory_gb, over_budget, torch_gb as _torch_gb
-from torch_bridge.evaluate import (_blur_patch, _eval_noise, _eval_provider, _psf_kernels, eval_share,
+from torch_bridge.evaluate import (_blur_patch, _device_noise, _eval_provider, _psf_kernels, eval_share,
                                    evaluate_arm, objective)
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 
@@ -449,7 +449,7 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
         raw = spatially_varying_blur(gt, kern.reshape(gy, gx, 3, arm.size, arm.size),
                                      boundary=cfg["render"]["boundary"])
     if noisy:
-        raw = _eval_noise(raw, t_cfg["noise"], arm.gen, batch=B, rows=sl)
+        raw = _device_noise(raw, t_cfg["noise"], arm.gen, batch=B, rows=sl)
     net = arm.net if group is None else group.ddp(arm.net)
     f = _lr_factor(t_cfg["lr_decay"], step, total)
     for g in arm.opt_net.param_groups:

@@ -202,12 +202,12 @@ def test_cuda_noise_and_metrics_equal_the_host_ones():
     and the device's PSNR / SSIM equal scikit-image's to the CPU test's tolerances (cuBLAS sums in another order)."""
     from skimage.metrics import structural_similarity
 
-    from torch_bridge.evaluate import _eval_noise, _noise
+    from torch_bridge.evaluate import _device_noise, _noise
     from torch_bridge.losses import image_metrics_per_image
     img = _pair((4, 3, 48, 40), 4)[0].cuda()
     for noise in ({"read_std": 0.01, "photons": None}, {"read_std": 0.02, "photons": 800.0}):
         g1, g2 = torch.Generator().manual_seed(9), torch.Generator().manual_seed(9)
-        a = _eval_noise(img, noise, g1)
+        a = _device_noise(img, noise, g1)
         b = _noise(img, noise, g2)
         assert a.device == img.device and b.device == img.device
         assert float((a - b).abs().max()) <= 2.5e-7
