@@ -387,7 +387,8 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     """One training step up to the gradients (no optimiser step): the draws (all from the arm's
     generator, in a fixed order), the PSFs, the rendering, the loss and its backward pass. Returns
     ``phase``, ``optics_step``, ``loss`` (float: the whole batch's), ``parts`` (``mse``, ``perceptual``),
-    ``psnr``, ``lr_factor`` and, for snapshots, ``psf``, ``gt``, ``raw``, ``rec`` (this rank's crops).
+    ``psnr``, ``lr_factor`` and, for snapshots, ``psf``, ``gt``, ``raw``, ``rec`` (this rank's crops; detached, so
+    nothing of the step's graph outlives it).
 
     ``group`` (:class:`torch_bridge.distributed.Group`, None in one process): every rank draws the
     whole batch and trains on its slice; PSF nodes are shared out and their optics gradients
@@ -473,8 +474,11 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
         img, mse, per_, p_snr = group.mean(loss_f - efl, parts["mse"], parts["perceptual"], p_snr)
         efl = group.broadcast(efl)
         loss_f, parts = img + efl, {"mse": mse, "perceptual": per_}
+    # detached: the caller keeps the result until the next step's returns (the design loop's ``s``), and a tensor with
+    # its graph would keep the step's recorded tapes alive until then (a TraceSplat node holds its Warp tape, the
+    # rays and their gradients, after its backward: the kept last chunk's, up to the live provider's record share)
     return {"phase": phase, "optics_step": optics_step, "loss": loss_f, "parts": parts, "psnr": p_snr,
-            "lr_factor": f, "psf": psf, "gt": gt, "raw": raw, "rec": rec}
+            "lr_factor": f, "psf": psf.detach(), "gt": gt, "raw": raw.detach(), "rec": rec.detach()}
 
 
 def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = True, progress: bool = True,
