@@ -3,7 +3,8 @@
     python perf/memory_steps.py --config cooke_hybrid --preset cpu_lens --steps 20 \\
         --set optics.psf_size=15 optics.rays_per_sample=0.5 optics.live_replan_rule=drift \\
               optics.live_replan_every=8 optics.live_replan_drift=0.05 optics.live_replan_spread=1 \\
-              optics.memory_budget_gb=2.0 'optics.nodes.fractions=[0.0,0.5,0.9]' train.optics_every=1
+              optics.memory_budget_gb=2.0 'optics.nodes.fractions=[0.0,0.5,0.9]' train.optics_every=1 \\
+              data.crop=32 data.batch_size=2
 
 Runs the arm's steps as ``torch_bridge.train`` does (the step's result kept until the next step's returns) and
 prints per step (MB = 1e6 bytes): what is held after it (after garbage collection: the bytes malloc has in use,

@@ -344,7 +344,8 @@ class LiveProvider:
                 else:
                     dropped.append((keys[row[0] - sl.start], u, u.dropped, None))
         # the chunks, each a checkpoint when there are several but the last, whose tape is used first in the
-        # backward pass (torch_bridge.tiles; a design step gives the network the budget's other share)
+        # backward pass and freed there (torch_bridge.tiles.RecordedOnce; a design step gives the network the budget's
+        # other share)
         chunks, order = self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs)
         out = run_tiles(chunks, run, [values[q] for q in names], checkpoint=len(chunks) > 1, after=after,
                         keep_last=True)
