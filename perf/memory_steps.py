@@ -65,8 +65,6 @@ def main():
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--set", nargs="*", default=[], help="config overrides KEY=VALUE (as rwwarp design --set)")
     a = ap.parse_args()
-    import torch
-
     import torch_bridge
     from torch_bridge.config import parse_overrides
     from torch_bridge.train import Arm, _provider_gb, _seed_all, load_config, train_step

@@ -24,7 +24,6 @@ import weakref
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
 import torch_bridge as tb
