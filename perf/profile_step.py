@@ -37,6 +37,11 @@ def main():
                          "the previous mark, at the PSFs' forward, the network's forward, the backward and the "
                          "optimisers; and what is held beside them (cached fields, network and Adam state, the "
                          "backend's work arrays, transfer-function cache and FFT plans)")
+    ap.add_argument("--track-memory", action="store_true",
+                    help="each timed step's memory (GB; CUDA: torch's allocated after the step, its peak in the step, "
+                         "reserved, device used; every device: what the provider keeps, LiveProvider.held_bytes, and "
+                         "the estimated recorded peak of its largest checkpoint unit, with the re-plans so far): held "
+                         "memory that grows with the steps is something kept; a peak that grows follows the plans")
     ap.add_argument("--find-syncs", action="store_true",
                     help="one more step counting the host reads of device data (each waits for the device) by call site")
     ap.add_argument("--pack", action="store_true", help="packed live tiles on (optics.live_pack = true)")
@@ -72,8 +77,11 @@ def main():
         arm.provider.tile = int(a.live_tile)
     cuda = a.device.startswith("cuda")
 
+    last = [None]
+
     def step(k):
-        train_step(arm, k, {}, None)
+        # the result kept until the next step's returns, as the design loop keeps it (torch_bridge.train.train_arm)
+        last[0] = train_step(arm, k, {}, None)
         arm.opt_net.step()
         arm.opt_optics.step()
         if cuda:
@@ -121,10 +129,15 @@ def main():
     with GpuMemory(0.05) as mem:
         for k in range(1, a.steps + 1):
             built, n_entries = be.fft_plans_built, entries()
+            if cuda and a.track_memory:
+                torch.cuda.reset_peak_memory_stats()
             t = time.perf_counter()
             step(k)
             times.append(time.perf_counter() - t)
             per_step.append({"fft_plans_built": be.fft_plans_built - built, "new_entries": entries() - n_entries})
+            if a.track_memory:
+                per_step[-1].update(_step_memory(arm, cuda))
+                say(f"step {k}: " + ", ".join(f"{q} {v}" for q, v in per_step[-1].items()))
     if cuda:
         torch.cuda.empty_cache = _empty
         summary["empty_cache_calls"] = empties[0]
@@ -209,6 +222,28 @@ def main():
         summary["commit"] = os.environ.get("RWWARP_COMMIT") or _git_commit()
         p.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
         print("written to", p, "and", p.with_suffix(".json"))
+
+
+def _step_memory(arm, cuda: bool) -> dict:
+    """The memory after a step (GB = 1e9 bytes, see ``--track-memory``): on CUDA torch's allocated (what is held
+    between steps), its peak since the last reset (the step's), reserved and the device's used memory; on every device
+    the provider's held bytes and its largest checkpoint unit's estimate (torch_bridge.train's metrics columns), and
+    the live re-plans so far."""
+    import torch
+
+    from torch_bridge.train import _provider_gb
+    out = {}
+    if cuda:
+        torch.cuda.synchronize()
+        free, total = torch.cuda.mem_get_info()
+        out.update(torch_gb=round(torch.cuda.memory_allocated() / 1e9, 3),
+                   torch_step_peak_gb=round(torch.cuda.max_memory_allocated() / 1e9, 3),
+                   reserved_gb=round(torch.cuda.memory_reserved() / 1e9, 3), device_used_gb=round((total - free) / 1e9, 3))
+    out.update(_provider_gb(arm.provider))
+    r = getattr(arm.provider, "replans", None)
+    if r is not None:
+        out["replans"] = sum(r.values()) if isinstance(r, dict) else r
+    return out
 
 
 def _memory_phases(arm, step, k, say) -> dict:

@@ -152,6 +152,38 @@ class LiveProvider:
         self._packed = {}
         #: packed tiles built (a tile is built again only when its members change)
         self.packs_made = 0
+        self.unit_record_bytes = []
+
+    def held_bytes(self) -> int:
+        """Bytes (on the module's device) the provider keeps between calls: the operators its packed tiles of the
+        last call keep (distance-free factors shared across distances, and those of the last distance; the
+        members' own focal operators are released at each call) and the parameter tables of the kept plans' and
+        tiles' tracers (:func:`rwwarp.wave.plan_cache.held_bytes` counts the same parts of a plan cache). What a call
+        records and frees (rays, fields, gradients) is not held."""
+        seen, total = set(), 0
+
+        def ops_bytes(ops):
+            nonlocal total
+            for op in ops or ():
+                if id(op) not in seen:
+                    seen.add(id(op))
+                    total += int(op.nbytes)
+        for _, t in self._packed.values():
+            for ops in t._base.values():
+                ops_bytes(ops)
+            if t._ops is not None:
+                ops_bytes(t._ops[1])
+        rws = [e[0] for e in self._focal_rws.values() if e[0] is not None] + \
+              [t.raywave for _, t in self._packed.values()]
+        for r in rws:
+            op = getattr(r, "_focal_op", None)
+            if op is not None:
+                ops_bytes([op])
+            tr = r.tracer_made() if hasattr(r, "tracer_made") else None
+            if tr is not None and id(tr) not in seen:
+                seen.add(id(tr))
+                total += int(tr.params_np.nbytes + tr.index_np.nbytes)
+        return total
 
     def _usable(self, e) -> bool:
         """A kept focal plan ``e`` (entry of :attr:`_focal_rws`) may serve again (else counted in
@@ -312,9 +344,13 @@ class LiveProvider:
                 else:
                     dropped.append((keys[row[0] - sl.start], u, u.dropped, None))
         # the chunks, each a checkpoint when there are several but the last, whose tape is used first in the
-        # backward pass (torch_bridge.tiles; a design step gives the network the budget's other share)
-        out = run_tiles(self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs), run, [values[q] for q in names],
-                        checkpoint=tile < n, total=-(-n // tile), after=after, keep_last=True)
+        # backward pass and freed there (torch_bridge.tiles.RecordedOnce; a design step gives the network the budget's
+        # other share)
+        chunks, order = self._chunks(n, tile, src_f, src_w, src_c, depth_mm, packs)
+        out = run_tiles(chunks, run, [values[q] for q in names], checkpoint=len(chunks) > 1, after=after,
+                        keep_last=True)
+        if order is not None:   # the chunks' rows back to the sources' order
+            out = out[order.to(out.device, non_blocking=True)]
         self._packed = packs   # the tiles of this call (a tile of the last call not used again is freed)
         # read after every source was queued (a read waits for the device: once, not once per source)
         host = {}
@@ -334,18 +370,54 @@ class LiveProvider:
 
     def _chunks(self, n, tile, src_f, src_w, src_c, depth_mm, packs):
         """The ``n`` sources of a call in chunks of ``tile``, every chunk planned first (:meth:`_plan_call`: kept plans
-        reused, the new ones made together), then each cut into its work when the tile loop reaches it
-        (:meth:`_units`; ``packs``: this call's packed tiles, filled): yields ``(units, perm, keys, sl)``, ``perm``
-        the order of the units' rows back to the sources' (None: already in order), ``keys`` the sources' (field,
-        wavelength, depth), ``sl`` their slice."""
+        reused, the new ones made together), then each cut into its work (:meth:`_units`; ``packs``: this call's packed
+        tiles, filled). Returns ``(chunks, order)``: ``chunks`` the checkpoint units, each ``(units, None, keys, sl)``
+        (``keys`` the (field, wavelength, depth) of its planning chunk's sources, ``sl`` their slice), ``order`` the
+        permutation (a tensor) that puts the concatenated rows of the chunks back in source order (None: already in
+        order).
+
+        With a tile (:attr:`tile` set: a design step's budget) a planning chunk's work is cut again into checkpoint
+        units whose estimated recorded bytes (:func:`torch_bridge.packed.packed_recorded_bytes` of a packed tile, the
+        :meth:`~torch_bridge.HybridLens.check_budget` figure of a source alone) add up to at most the record budget
+        (``record_budget_bytes``, else the memory budget): the tile's source count was set from one source's estimate
+        when the provider was made, and the plans of a learning lens grow (the Cooke hybrid's wave-plane grids from
+        ~500 to ~1,100 samples a side in 10 optimiser steps on the CPU), so a chunk of ``tile`` sources came to hold
+        several packed tiles, each within the budget, all recorded at once in its checkpoint's recomputation. A unit
+        over the budget on its own is a checkpoint unit of its own. The estimates of the last call's checkpoint units
+        are :attr:`unit_record_bytes`."""
+        from .packed import packed_recorded_bytes
+        m = self.module
+        budget = self.record_budget_bytes or m.memory_budget(self.memory_budget_bytes)
+        chunks, rows, est_all = [], [], []
         for sl, keys, rws, fresh in self._plan_call(n, tile, src_f, src_w, src_c, depth_mm):
             # the chunk's RayWaves in source order; a band-limited batch of new sources gives their rows together;
             # single-source focal plans are computed together in packed tiles (torch_bridge.packed)
-            order = sorted(rws)
-            units = self._units(order, rws, fresh, packs)
-            flat = [j for _, _, row in units for j in row]
-            perm = None if flat == sorted(flat) else torch.as_tensor(np.argsort(flat))
-            yield units, perm, keys, sl
+            units = self._units(sorted(rws), rws, fresh, packs)
+            if self.tile is None:
+                groups = [units]
+                ests = [None]
+            else:
+                groups, ests, cur, cur_est = [], [], [], 0
+                for u in units:
+                    kind, obj, _ = u
+                    e = packed_recorded_bytes(m, obj.members) if kind == "packed" else \
+                        obj.nsrc * (m.bytes_per_source(obj) + m.output_bytes_per_source(obj))
+                    if cur and cur_est + e > budget:
+                        groups.append(cur)
+                        ests.append(cur_est)
+                        cur, cur_est = [], 0
+                    cur.append(u)
+                    cur_est += e
+                groups.append(cur)
+                ests.append(cur_est)
+            for g, e in zip(groups, ests):
+                chunks.append((g, None, keys, sl))
+                rows.extend(j for _, _, row in g for j in row)
+                est_all.append(e)
+        #: estimated recorded bytes (forward + backward) of each checkpoint unit of the last call (None without a tile)
+        self.unit_record_bytes = est_all
+        order = None if rows == sorted(rows) else torch.as_tensor(np.argsort(rows))
+        return chunks, order
 
     def _plan_call(self, n, tile, src_f, src_w, src_c, depth_mm) -> list:
         """Every chunk's plans of a call, before its tile loop: ``[(sl, keys, rws, fresh)]`` a chunk of ``tile``

@@ -16,7 +16,35 @@ import functools
 
 import torch
 
-__all__ = ["run_tiles", "wants_grad"]
+__all__ = ["RecordedOnce", "run_tiles", "wants_grad"]
+
+
+class RecordedOnce(torch.autograd.Function):
+    """The last tile of :func:`run_tiles` with ``keep_last``: ``RecordedOnce.apply(run, *tensors)`` records
+    ``run(*tensors, record=True)`` in the forward pass (run once, not recomputed) and keeps its graph (the Warp tapes
+    of its trace and splat: rays and their gradients) only until its backward has run: freed there, not with the
+    caller's graph, so the checkpointed tiles recomputed after it in the backward pass do not find it still held
+    (a recorded tile of a learning lens can take the record share of a design step's budget alone). A second
+    backward raises (``retain_graph`` is not supported)."""
+
+    @staticmethod
+    def forward(ctx, run, *tensors):
+        ts = [t.detach().requires_grad_(t.requires_grad) for t in tensors]
+        with torch.enable_grad():
+            out = run(*ts, record=True)
+        ctx.graph = (out, ts)
+        return out.detach()
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        if ctx.graph is None:
+            raise RuntimeError("run_tiles: the recorded last tile's backward ran twice; its graph is freed after one "
+                               "(retain_graph is not supported)")
+        out, ts = ctx.graph
+        ctx.graph = None
+        need = [t for t in ts if t.requires_grad]
+        got = iter(torch.autograd.grad(out, need, grad_out, allow_unused=True)) if need else iter(())
+        return (None, *[next(got) if t.requires_grad else None for t in ts])
 
 
 def wants_grad(tensors) -> bool:
@@ -37,10 +65,11 @@ def run_tiles(tiles, run, tensors, *, checkpoint: bool | None = None, progress: 
     tile runs with ``record=torch.is_grad_enabled()``. ``progress``: a tqdm bar with this description (its
     ``unit``; ``total`` for an iterable). ``after(tile, out)``: called after each tile's forward (the caller's
     per-tile logging). ``keep_last``: with checkpoints, the last tile is recorded as it runs, not checkpointed
-    (its forward runs once): its tape lives from its forward to its backward, which comes first in the backward
-    pass, so the peak is one recorded tile beside whatever the caller runs between (a design step's network,
-    which the caller's budget gives the other share: :class:`torch_bridge.live.LiveProvider`); the tile count
-    must be known (a sequence, or ``total``)."""
+    (its forward runs once, :class:`RecordedOnce`): its tape lives from its forward to its backward, which comes first
+    in the backward pass, and is freed there, before the other tiles are recomputed, so the peak is one recorded tile
+    beside whatever the caller runs between (a design step's network, which the caller's budget gives the other
+    share: :class:`torch_bridge.live.LiveProvider`); the tile count must be known (a sequence, or ``total``). The
+    backward pass then runs once (``retain_graph`` is not supported)."""
     from .functions import Recompute
     tensors = list(tensors)
     n = len(tiles) if hasattr(tiles, "__len__") else total
@@ -59,6 +88,8 @@ def run_tiles(tiles, run, tensors, *, checkpoint: bool | None = None, progress: 
     for k, tile in enumerate(it):
         if ckpt and not (keep_last and k == n - 1):
             out = Recompute.apply(functools.partial(run, tile), *tensors)
+        elif ckpt:
+            out = RecordedOnce.apply(functools.partial(run, tile), *tensors)
         else:
             out = run(tile, *tensors, record=torch.is_grad_enabled())
         outs.append(out)

@@ -388,7 +388,8 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     """One training step up to the gradients (no optimiser step): the draws (all from the arm's
     generator, in a fixed order), the PSFs, the rendering, the loss and its backward pass. Returns
     ``phase``, ``optics_step``, ``loss`` (float: the whole batch's), ``parts`` (``mse``, ``perceptual``),
-    ``psnr``, ``lr_factor`` and, for snapshots, ``psf``, ``gt``, ``raw``, ``rec`` (this rank's crops).
+    ``psnr``, ``lr_factor`` and, for snapshots, ``psf``, ``gt``, ``raw``, ``rec`` (this rank's crops; detached, so
+    nothing of the step's graph outlives it).
 
     ``group`` (:class:`torch_bridge.distributed.Group`, None in one process): every rank draws the
     whole batch and trains on its slice; PSF nodes are shared out and their optics gradients
@@ -475,8 +476,11 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
         img, mse, per_, p_snr = group.mean(loss_f - efl, parts["mse"], parts["perceptual"], p_snr)
         efl = group.broadcast(efl)
         loss_f, parts = img + efl, {"mse": mse, "perceptual": per_}
+    # detached: the caller keeps the result until the next step's returns (the design loop's ``s``), and a tensor with
+    # its graph would keep the step's recorded tapes alive until then (a TraceSplat node holds its Warp tape, the
+    # rays and their gradients, after its backward: the kept last chunk's, up to the live provider's record share)
     return {"phase": phase, "optics_step": optics_step, "loss": loss_f, "parts": parts, "psnr": p_snr,
-            "lr_factor": f, "psf": psf, "gt": gt, "raw": raw, "rec": rec}
+            "lr_factor": f, "psf": psf.detach(), "gt": gt, "raw": raw.detach(), "rec": rec.detach()}
 
 
 def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = True, progress: bool = True,
@@ -592,7 +596,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                     "lr_network": t_cfg["lr_network"] * f, "optics_step": int(optics_step),
                     "wall_s": time.perf_counter() - t0, "replans": getattr(arm.provider, "replans", 0),
                     "memory_gb": _memory_gb(arm.device), **_torch_gb(arm.device),
-                    "fft_plans_built": fft_backend.fft_plans_built}
+                    "fft_plans_built": fft_backend.fft_plans_built, **_provider_gb(arm.provider)}
             msg = None if over else over_budget(last["memory_gb"], cfg["optics"]["memory_budget_gb"],
                                                 f"design arm {name!r}, step {step} ({last['replans']} replans)")
             if msg:
@@ -653,8 +657,24 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
 # CUDA, 0.3-1 s at lengths of a few thousand); it stops growing once every plan a step needs is kept
 # torch_gb / torch_peak_gb (CUDA; empty on the CPU): torch's allocator after the step (what is held between steps:
 # growth there is something kept) and its peak since the run started (the row where it jumps is the step that raised it)
+# provider_held_gb: what the PSF provider keeps between steps (GB = 1e9 bytes; a live provider's packed tiles' operators
+# and plan tables, LiveProvider.held_bytes; a cached provider's fields and operators, CachedProvider.cache_bytes)
+# live_unit_gb: the estimated recorded peak (forward + backward, GB) of the largest checkpoint unit of the last live
+# call (LiveProvider.unit_record_bytes; held to the record share, half of optics.memory_budget_gb): the plans of a
+# learning lens grow, and this is where the step's peak follows them (empty without a live tile)
 _CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
-               "replans", "memory_gb", "torch_gb", "torch_peak_gb", "fft_plans_built"]
+               "replans", "memory_gb", "torch_gb", "torch_peak_gb", "fft_plans_built", "provider_held_gb",
+               "live_unit_gb"]
+
+
+def _provider_gb(provider) -> dict:
+    """``provider_held_gb`` and ``live_unit_gb`` of the metrics (GB = 1e9 bytes; see ``_CSV_FIELDS``), empty strings
+    where the provider has no such figure."""
+    held = provider.held_bytes() if hasattr(provider, "held_bytes") else \
+        provider.cache_bytes() if hasattr(provider, "cache_bytes") else None
+    units = [b for b in getattr(provider, "unit_record_bytes", None) or [] if b is not None]
+    return {"provider_held_gb": "" if held is None else round(held / 1e9, 6),
+            "live_unit_gb": round(max(units) / 1e9, 6) if units else ""}
 
 
 def _truncate_csv(path: Path, step: int, fields=None):

@@ -80,6 +80,9 @@ def test_tiny_design_end_to_end(tmp_path):
     built = [int(r["fft_plans_built"]) for r in rows]
     assert built[0] >= 1 and built == sorted(built)
     assert all(r["torch_gb"] == "" and r["torch_peak_gb"] == "" for r in rows)   # CUDA's allocator only
+    # what the (cached) provider keeps: its fields, built before step 0, the same at every step; no live units
+    held = {r["provider_held_gb"] for r in rows}
+    assert len(held) == 1 and float(held.pop()) > 0 and all(r["live_unit_gb"] == "" for r in rows)
     # the designed lens file loads and keeps the quantised DOE
     lens = rw.load_lens(out / "lens.json")
     assert lens.surfaces[lens.doe_index].levels == 16
