@@ -218,8 +218,9 @@ def main():
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("\n".join(lines) + "\n")
         import json
-        import os
-        summary["commit"] = os.environ.get("RWWARP_COMMIT") or _git_commit()
+
+        from _common import git_commit
+        summary["commit"] = git_commit()      # $RWWARP_COMMIT when set, else git's HEAD
         p.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
         print("written to", p, "and", p.with_suffix(".json"))
 
