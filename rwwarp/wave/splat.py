@@ -12,6 +12,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels.splat import make_splat_kernels
+from ..kernels.splat_forward import make_splat_forward_kernel
 from .reduce import source_sums
 from ..trace import run_chunks
 
@@ -98,26 +99,33 @@ class Splatter:
             self._fixed(splat_in, s_re, s_im, dropped, n_src, n_grid)
             return s_re, s_im, dropped
         chunks = tr._chunks(n_rays)
+        # the CPU's forward energy splat: the separable form (rwwarp.kernels.splat_forward, the same sums to a few
+        # units of the last place; no adjoint, none is recorded here)
+        forward = dev == "cpu" and not g and splat_in[15] >= 1
+
+        def launch(first: int, count: int, out):
+            if forward:
+                wp.launch(make_splat_forward_kernel(tr.scalar), dim=count, inputs=splat_in + [first],
+                          outputs=list(out[:3]), device=dev)
+            else:
+                wp.launch(K.splat_kernel, dim=count, inputs=splat_in + [first, 0, nb],
+                          outputs=list(out[:3]) + [na, na, nv], device=dev)
         if len(chunks) == 1:
-            wp.launch(K.splat_kernel, dim=n_rays, inputs=splat_in + [0, 0, nb],
-                      outputs=[s_re, s_im, dropped, na, na, nv], device=dev)
+            launch(0, n_rays, (s_re, s_im, dropped))
             return s_re, s_im, dropped
         groups = source_groups(source_work, n_src, len(chunks)) if source_work is not None else None
         if groups is not None:
             # CPU threads take whole sources: a source's rays add only into its own window and counter, so the
             # threads share the sums with no race, and each sample adds its rays in the order one launch does
             npup = n_rays // n_src
-            run_chunks(lambda c, _: wp.launch(K.splat_kernel, dim=(c[1] - c[0]) * npup,
-                                              inputs=splat_in + [c[0] * npup, 0, nb],
-                                              outputs=[s_re, s_im, dropped, na, na, nv], device=dev),
+            run_chunks(lambda c, _: launch(c[0] * npup, (c[1] - c[0]) * npup, (s_re, s_im, dropped)),
                        groups, [None] * len(groups))
             return s_re, s_im, dropped
         # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
         parts = [(s_re, s_im, dropped)] + [
             (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
              wp.zeros(n_src, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
-        run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0], 0, nb],
-                                            outputs=list(out) + [na, na, nv], device=dev), chunks, parts)
+        run_chunks(lambda c, out: launch(c[0], c[1] - c[0], out), chunks, parts)
         for a, b, d in parts[1:]:
             s_re.numpy()[:] += a.numpy()
             s_im.numpy()[:] += b.numpy()
