@@ -431,7 +431,7 @@ class RayWave:
         if op is None or op.z != z or op.precision != precision:
             from .focal import FocalPropagator
             xp = np
-            if self.tracer.device.startswith("cuda"):
+            if str(self.device).startswith("cuda"):   # (no tracer made for it: a packed member never traces)
                 import cupy as xp   # (FocalPropagator sizes CuPy's cuFFT plan cache in the thread of each FFT)
             nx, ny = gauss_nodes_xy(self)
             pl = self.plan
