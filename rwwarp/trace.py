@@ -253,7 +253,8 @@ class Tracer:
         #: None, or a dict of work arrays reused by every forward-only launch sequence of this tracer (its traces,
         #: and the splat's and reductions' arrays of :meth:`rwwarp.wave.raywave.RayWave.field`): set on a batch kept
         #: for repeated runs (:class:`rwwarp.wave.plan_cache.PlanCache`), whose rays and sums are read before the
-        #: next run; the rays and arrays a run returns are then overwritten by the next
+        #: next run, and shared by the batches of a CPU map (:func:`rwwarp.map_run._wave_map`), each batch's read before
+        #: the next runs; the rays and arrays a run returns are then overwritten by the next
         self.pool = None
         wl0 = self.wavelengths_um[0]
         self.pupils = paraxial.pupils(lens, wl0)

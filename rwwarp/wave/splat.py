@@ -2,7 +2,9 @@
 complex field sampled on each source's wave-plane window.
 
 :class:`Splatter` owns the launches of one tracer's device: ray-tube areas, the splat into per-sample
-sums (float atomics; parallel private sums on CPU threads; or the deterministic fixed-point passes), and
+sums (float atomics; on CPU threads whole sources a thread, or private sums of ray ranges for fewer sources than
+threads; the CPU's forward energy splat in separable form, :mod:`rwwarp.kernels.splat_forward`; or the deterministic
+fixed-point passes), and
 the finalize step (reference sphere and carrier). :meth:`rwwarp.wave.raywave.RayWave.field` calls it. Lengths
 in mm.
 """
