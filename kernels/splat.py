@@ -389,6 +389,8 @@ def make_splat_kernels(scalar):
         n_grid: int,                          # > 0: every window n_grid^2; < 0: windows of grid_src[s]^2 in
                                               # slots of -n_grid x -n_grid (packed batch; the rest is zero)
         grid_src: wp.array(dtype=wp.int32),   # (n_src,) with n_grid < 0, else (1,)
+        skip_zero: int,                       # 1: a sample whose sums are both 0 is written 0 without its phase
+                                              # (the same value; forward only: no adjoint reads it)
         offset: int,                          # first sample of this launch (CPU threads finalize ranges)
         # outputs
         field_out: wp.array(dtype=wp.vec2d),  # (re, im)
@@ -410,6 +412,10 @@ def make_splat_kernels(scalar):
         o = origin[s]
         re = s_re[k]
         im = s_im[k]
+        if skip_zero == 1:
+            if re == f64(0.0) and im == f64(0.0):
+                field_out[k] = wp.vec2d()   # no ray reached it: 0 times the phase factor
+                return
         if energy >= 1:
             re = re / (h * h)
             im = im / (h * h)

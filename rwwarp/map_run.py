@@ -154,7 +154,7 @@ def plan_units(lens, a: MapArgs, pairs, object_distance_mm=None) -> list:
     out = []
     for members, sys_pairs in wave_members(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel,
                                            object_distance_mm, a.opts):
-        for idx in pack_sources(members, a.size, a.batch, a.budget):
+        for idx in pack_sources(members, a.size, a.batch, batch_budget(a.device, a.batch, a.budget)):
             out.append(([sys_pairs[q] for q in idx], sum(float(members[q].plan.estimate["flops"]) for q in idx),
                         [members[q] for q in idx]))
     return out
@@ -254,11 +254,12 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
             store(chunk, res)
     else:
         keep = cache is not None
+        work_pool = {}
         run_lens = copy.deepcopy(lens) if keep else lens   # kept batches see no later change of the caller's lens
         new, need, held = [], 0, 0
         for members, sys_pairs in wave_members(run_lens, fields, wavelengths_um, pairs, model, size, pixel,
                                                object_distance_mm, opts):
-            for chunk_idx in pack_sources(members, size, batch, budget):
+            for chunk_idx in pack_sources(members, size, batch, batch_budget(opts.get("device", "cpu"), batch, budget)):
                 if not get_method(members[chunk_idx[0]].plan.method).packable:
                     # no wave-plane field to pack: computed alone, and a call with such a member keeps nothing
                     store([sys_pairs[k] for k in chunk_idx], members[chunk_idx[0]].run(focal_precision))
@@ -266,6 +267,10 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
                     members[chunk_idx[0]] = None
                     continue
                 packed = PackedRayWave([members[k] for k in chunk_idx], hold=keep)
+                if not keep and str(packed.device) == "cpu":
+                    # the CPU's batches share their work arrays (rays, splat sums, field; Tracer.work_array), each
+                    # batch's read before the next runs: no allocation and first touch of fresh pages a batch
+                    packed.tracer.pool = work_pool
                 res = packed.run(focal_precision, keep_operators=keep)
                 store([sys_pairs[k] for k in chunk_idx], res)
                 if keep:
@@ -298,6 +303,21 @@ def wave_members(lens, fields, wavelengths_um, pairs, model, size, pixel, object
         eq, eq_fields = paraxial_equivalent(lens, [fields[i] for i, _ in sub], [w], object_distance_mm)
         out.append((source_plans(eq, list(eq_fields), [w] * len(sub), size, pixel, **opts), sub))
     return out
+
+
+#: On the CPU, without ``batch``, a packed batch's planned bytes (:func:`rwwarp.wave.packed.packed_bytes`) are kept
+#: under this as well as the memory budget: its threads take whole sources (rwwarp.wave.splat.Splatter.sums) and its
+#: launches cost little, so a larger batch only adds memory (the 10 x 10 x 3 A489 + DOE map at 32 px held 6.3 GiB
+#: in batches up to the budget)
+CPU_BATCH_BYTES = 512 * 2 ** 20
+
+
+def batch_budget(device: str, batch: int | None, budget_bytes: int) -> int:
+    """The bytes a packed batch may plan (:func:`pack_sources`): ``budget_bytes``, and on the CPU without ``batch``
+    at most :data:`CPU_BATCH_BYTES` (a member larger than that alone still runs, alone)."""
+    if batch is None and str(device) == "cpu":
+        return min(int(budget_bytes), CPU_BATCH_BYTES)
+    return int(budget_bytes)
 
 
 def pack_sources(members, size: int, batch: int | None, budget_bytes: int) -> list:

@@ -249,7 +249,7 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     sized to its largest member (the extra rays invalid, the extra samples zero), then propagates each by
     its own plan; batches take members of one propagation method, largest first, within the memory budget
     (:func:`pack_sources`). ``batch`` limits the number of sources per batch (default no limit but the
-    budget); ``progress`` shows a tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields,
+    budget, and on the CPU :data:`rwwarp.map_run.CPU_BATCH_BYTES` a batch); ``progress`` shows a tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields,
     n_wavelengths, size, size); ``info["batches"]`` lists each batch's (field, wavelength) index pairs,
     ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
     ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values

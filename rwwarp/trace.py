@@ -253,7 +253,8 @@ class Tracer:
         #: None, or a dict of work arrays reused by every forward-only launch sequence of this tracer (its traces,
         #: and the splat's and reductions' arrays of :meth:`rwwarp.wave.raywave.RayWave.field`): set on a batch kept
         #: for repeated runs (:class:`rwwarp.wave.plan_cache.PlanCache`), whose rays and sums are read before the
-        #: next run; the rays and arrays a run returns are then overwritten by the next
+        #: next run, and shared by the batches of a CPU map (:func:`rwwarp.map_run._wave_map`), each batch's read before
+        #: the next runs; the rays and arrays a run returns are then overwritten by the next
         self.pool = None
         wl0 = self.wavelengths_um[0]
         self.pupils = paraxial.pupils(lens, wl0)
@@ -724,15 +725,23 @@ class Tracer:
         return rows, r - 1
 
     def work_array(self, tag, shape, dtype, zero: bool = False):
-        """A forward-only work array (no gradient): from :attr:`pool` when set (made on first use under ``(tag, shape,
-        dtype)``, zeroed again when ``zero``), else a new ``wp.zeros`` / ``wp.empty`` on the tracer's device."""
+        """A forward-only work array (no gradient): from :attr:`pool` when set, else a new ``wp.zeros`` /
+        ``wp.empty`` on the tracer's device. In the pool a 1-D array (``shape`` an int) is kept under ``(tag,
+        dtype)`` and handed out as its first ``shape`` elements, grown (made again) when a larger one is asked
+        for, so the batches of a map share one array per tag (:func:`rwwarp.map_run._wave_map` on the CPU); other
+        shapes under ``(tag, shape, dtype)``. Zeroed again when ``zero``."""
         if self.pool is None:
             return (wp.zeros if zero else wp.empty)(shape, dtype=dtype, device=self.device)
-        key = (tag, shape, dtype)
+        flat = isinstance(shape, (int, np.integer))
+        key = (tag, dtype) if flat else (tag, shape, dtype)
         a = self.pool.get(key)
-        if a is None:
+        if a is None or (flat and a.shape[0] < int(shape)):
+            self.pool.pop(key, None)   # the smaller one goes before the larger is made
             a = self.pool[key] = _with_release(self.device, lambda: wp.zeros(shape, dtype=dtype, device=self.device))
-        elif zero:
+            return a
+        if flat and a.shape[0] != int(shape):
+            a = a[:int(shape)]
+        if zero:
             a.zero_()
         return a
 

@@ -184,7 +184,9 @@ class PackedRayWave(RayWave):
         data = []
         for k, m in enumerate(self.members):
             n = m.plan.n_grid
-            u = u_all[k:k + 1, :n, :n].copy()
+            u = u_all[k:k + 1, :n, :n]
+            if not (isinstance(u, np.ndarray) and m.plan.method == "focal"):
+                u = u.copy()   # (the CPU's focal step reads the view into its own single-precision copy)
             d = get(m.plan.method).pixels(m, u, focal_precision, to_host=to_host)
             if not keep_operators:
                 m.release_operators()

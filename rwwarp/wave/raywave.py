@@ -224,7 +224,9 @@ class RayWave:
         geo = [origin, pitch, chief, target, index]
         splat_in = [rays.pos, rays.dir, rays.opl, rays.valid, rays.weight, area, half] + geo + \
                    [opl_c, k_wave, int(self.use_reference), energy, n_arg, npup, *rim_args, grid_src, frac_stride]
-        s_re, s_im, self.dropped = sp.sums(splat_in, nsrc, n)
+        # CPU threads take whole sources where there are enough (each source's cost: its window's samples)
+        s_re, s_im, self.dropped = sp.sums(splat_in, nsrc, n,
+                                           source_work=np.asarray(lay["grids"], dtype=np.float64) ** 2)
         field = sp.finalize([s_re, s_im] + geo + [k_wave, carrier, int(self.use_reference), energy, n_arg, grid_src],
                             nsrc * n * n)
         return field, rays
@@ -429,7 +431,7 @@ class RayWave:
         if op is None or op.z != z or op.precision != precision:
             from .focal import FocalPropagator
             xp = np
-            if self.tracer.device.startswith("cuda"):
+            if str(self.device).startswith("cuda"):   # (no tracer made for it: a packed member never traces)
                 import cupy as xp   # (FocalPropagator sizes CuPy's cuFFT plan cache in the thread of each FFT)
             nx, ny = gauss_nodes_xy(self)
             pl = self.plan

@@ -2,7 +2,9 @@
 complex field sampled on each source's wave-plane window.
 
 :class:`Splatter` owns the launches of one tracer's device: ray-tube areas, the splat into per-sample
-sums (float atomics; parallel private sums on CPU threads; or the deterministic fixed-point passes), and
+sums (float atomics; on CPU threads whole sources a thread, or private sums of ray ranges for fewer sources than
+threads; the CPU's forward energy splat in separable form, :mod:`rwwarp.kernels.splat_forward`; or the deterministic
+fixed-point passes), and
 the finalize step (reference sphere and carrier). :meth:`rwwarp.wave.raywave.RayWave.field` calls it. Lengths
 in mm.
 """
@@ -12,6 +14,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels.splat import make_splat_kernels
+from ..kernels.splat_forward import make_splat_forward_kernel
 from .reduce import source_sums
 from ..trace import run_chunks
 
@@ -75,11 +78,13 @@ class Splatter:
                       outputs=[area, half], device=dev)
         return area, half
 
-    def sums(self, splat_in, n_src: int, n_grid: int):
+    def sums(self, splat_in, n_src: int, n_grid: int, source_work=None):
         """``(s_re, s_im, dropped)``: the splat's per-sample sums (n_src * n_grid^2 float64 each) and the rays
         per source that fell outside the window. ``splat_in``: the splat kernel's inputs up to its
         ``frac_stride`` argument (:meth:`rwwarp.wave.raywave.RayWave.field` forms them). ``n_grid``: the windows'
-        side (a packed batch: the slots' side; its own sides are in ``splat_in``)."""
+        side (a packed batch: the slots' side; its own sides are in ``splat_in``). ``source_work`` (CPU threads;
+        None: ray ranges): each source's relative cost, (n_src,); with at least as many sources as threads the
+        threads take whole sources (:func:`source_groups`) and add into the one set of sums."""
         tr, K = self.tracer, self.K
         dev, g = tr.device, tr.requires_grad
         n_rays = splat_in[0].shape[0]
@@ -96,16 +101,33 @@ class Splatter:
             self._fixed(splat_in, s_re, s_im, dropped, n_src, n_grid)
             return s_re, s_im, dropped
         chunks = tr._chunks(n_rays)
+        # the CPU's forward energy splat: the separable form (rwwarp.kernels.splat_forward, the same sums to a few
+        # units of the last place; no adjoint, none is recorded here)
+        forward = dev == "cpu" and not g and splat_in[15] >= 1
+
+        def launch(first: int, count: int, out):
+            if forward:
+                wp.launch(make_splat_forward_kernel(tr.scalar), dim=count, inputs=splat_in + [first],
+                          outputs=list(out[:3]), device=dev)
+            else:
+                wp.launch(K.splat_kernel, dim=count, inputs=splat_in + [first, 0, nb],
+                          outputs=list(out[:3]) + [na, na, nv], device=dev)
         if len(chunks) == 1:
-            wp.launch(K.splat_kernel, dim=n_rays, inputs=splat_in + [0, 0, nb],
-                      outputs=[s_re, s_im, dropped, na, na, nv], device=dev)
+            launch(0, n_rays, (s_re, s_im, dropped))
+            return s_re, s_im, dropped
+        groups = source_groups(source_work, n_src, len(chunks)) if source_work is not None else None
+        if groups is not None:
+            # CPU threads take whole sources: a source's rays add only into its own window and counter, so the
+            # threads share the sums with no race, and each sample adds its rays in the order one launch does
+            npup = n_rays // n_src
+            run_chunks(lambda c, _: launch(c[0] * npup, (c[1] - c[0]) * npup, (s_re, s_im, dropped)),
+                       groups, [None] * len(groups))
             return s_re, s_im, dropped
         # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
         parts = [(s_re, s_im, dropped)] + [
             (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
              wp.zeros(n_src, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
-        run_chunks(lambda c, out: wp.launch(K.splat_kernel, dim=c[1] - c[0], inputs=splat_in + [c[0], 0, nb],
-                                            outputs=list(out) + [na, na, nv], device=dev), chunks, parts)
+        run_chunks(lambda c, out: launch(c[0], c[1] - c[0], out), chunks, parts)
         for a, b, d in parts[1:]:
             s_re.numpy()[:] += a.numpy()
             s_im.numpy()[:] += b.numpy()
@@ -145,10 +167,31 @@ class Splatter:
         field = wp.zeros(total, dtype=wp.vec2d, device=dev, requires_grad=True) if g else \
             tr.work_array("field", total, wp.vec2d)
         chunks = tr._chunks(total)
+        # forward only: a sample no ray reached is written 0 without forming its phase (the same value)
+        skip = 0 if g else 1
         run_chunks(lambda c, _: wp.launch(K.finalize_kernel, dim=total if c is None else c[1] - c[0],
-                                          inputs=fin_in + [0 if c is None else c[0]], outputs=[field], device=dev),
+                                          inputs=fin_in + [skip, 0 if c is None else c[0]], outputs=[field],
+                                          device=dev),
                    chunks, [None] * len(chunks))
         return field
+
+
+def source_groups(work, n_src: int, n_threads: int):
+    """Contiguous source ranges ``[(lo, hi), ...]``, one per CPU thread, of about equal summed ``work``
+    ((n_src,) relative cost of each source, e.g. its window's samples); None when there are fewer sources than
+    threads (the caller splits rays instead)."""
+    if n_threads <= 1 or n_src < n_threads:
+        return None
+    w = np.maximum(np.asarray(work, dtype=np.float64).reshape(n_src), 0.0)
+    c = np.concatenate([[0.0], np.cumsum(w)])
+    if not c[-1] > 0:
+        c = np.arange(n_src + 1, dtype=np.float64)
+    cuts = [0]
+    for t in range(1, n_threads):
+        k = int(np.searchsorted(c, c[-1] * t / n_threads))
+        cuts.append(min(max(k, cuts[-1] + 1), n_src - (n_threads - t)))
+    cuts.append(n_src)
+    return [(cuts[t], cuts[t + 1]) for t in range(n_threads)]
 
 
 def paper_rescale(u, traced_power, pitch_mm: float, xp, cosines=None):

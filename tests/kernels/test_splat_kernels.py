@@ -67,7 +67,7 @@ def _splat(device, rays, src, n_grid, energy, use_reference, fixed=False):
     field = wp.zeros(nsrc * n_grid * n_grid, dtype=wp.vec2d, device=device)
     wp.launch(ks.make_splat_kernels(F64).finalize_kernel, dim=nsrc * n_grid * n_grid,
               inputs=[s_re, s_im, *per_src, _a(src["k"], F64, device), _a(src["carrier"], wp.vec2d, device),
-                      use_reference, energy, n_grid, _ph(device), 0],
+                      use_reference, energy, n_grid, _ph(device), 0, 0],
               outputs=[field], device=device)
     S = (s_re.numpy() + 1j * s_im.numpy()).reshape(nsrc, n_grid, n_grid)
     f = field.numpy()
