@@ -243,6 +243,9 @@ class Tracer:
         self.np_dtype = np.float64 if self.scalar == wp.float64 else np.float32
         self.K = ktrace.make_trace_kernels(self.scalar)
         self.requires_grad = requires_grad
+        # True inside without_gradients() of a tracer built with requires_grad: its forward-only pass must give the
+        # bits its recorded pass gives (a checkpointed tile is run both ways), so no forward-only kernel variant
+        self.recordable_pass = False
         if grad_replicas is None:
             grad_replicas = GRAD_REPLICAS_CPU if self.device == "cpu" else GRAD_REPLICAS_GPU
         r = int(grad_replicas)
@@ -360,12 +363,12 @@ class Tracer:
         """Within the block the tracer traces as if built without ``requires_grad``: no gradient buffers, no
         parameter-row copies, ray states reused between surfaces (a pilot trace, a forward-only pass). The
         rays are the same as with gradients."""
-        keep = self.requires_grad
-        self.requires_grad = False
+        keep, keep_pass = self.requires_grad, self.recordable_pass
+        self.requires_grad, self.recordable_pass = False, keep or keep_pass
         try:
             yield self
         finally:
-            self.requires_grad = keep
+            self.requires_grad, self.recordable_pass = keep, keep_pass
 
     def sources(self, fields_deg, wavelength_index=0, ray_aiming: bool = False, object_distance=None):
         """Per-source arrays for the generation kernel.

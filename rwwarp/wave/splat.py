@@ -102,8 +102,10 @@ class Splatter:
             return s_re, s_im, dropped
         chunks = tr._chunks(n_rays)
         # the CPU's forward energy splat: the separable form (rwwarp.kernels.splat_forward, the same sums to a few
-        # units of the last place; no adjoint, none is recorded here)
-        forward = dev == "cpu" and not g and splat_in[15] >= 1
+        # units of the last place; no adjoint, none is recorded here). Not in the forward-only pass of a tracer built
+        # for gradients (Tracer.recordable_pass): a checkpointed tile recomputes it under a tape with splat_kernel,
+        # and its two passes give the same bits
+        forward = dev == "cpu" and not g and not tr.recordable_pass and splat_in[15] >= 1
 
         def launch(first: int, count: int, out):
             if forward:
