@@ -21,11 +21,13 @@ Sizes are MiB = 2**20 bytes; times are seconds (wall clock).
 """
 from __future__ import annotations
 
+import csv
 import datetime as _dt
 import hashlib
 import io
 import json
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -444,3 +446,43 @@ def unpack(pack_path, run_dir) -> dict:
         torch.save(st, tmp)
         os.replace(tmp, d / "checkpoint.pt")
     return man
+
+
+# ---------------------------------------------------------------------------------------------- resume helpers
+def rng_state(gen) -> dict:
+    """The random states a checkpoint keeps: Python's, numpy's, torch's (CPU and every CUDA device) and the arm's
+    generator ``gen``'s."""
+    import numpy as np
+    import torch
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            "gen": gen.get_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
+
+
+def set_rng_state(st: dict, gen) -> None:
+    """Restore the states :func:`rng_state` returned (``gen``: the arm's generator); CUDA's where the machine has it."""
+    import numpy as np
+    import torch
+    random.setstate(st["python"])
+    np.random.set_state(st["numpy"])
+    torch.set_rng_state(st["torch"])
+    gen.set_state(st["gen"])
+    if st.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(st["cuda"])
+
+
+def truncate_csv(path: Path, step: int, fields=None):
+    """Drop rows at or after ``step`` (a resumed run rewrites them). With ``fields``, the file is
+    rewritten with those columns (a CSV of an older version gets the new ones, empty in old rows)."""
+    if not path.exists():
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+        old = list(rows[0].keys()) if rows else None
+    if old is None:
+        return
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(fields or old), restval="", extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            if int(r["step"]) < step:
+                w.writerow(r)

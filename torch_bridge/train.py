@@ -87,6 +87,7 @@ from torch_bridge.budget import memory_gb as _memory_gb, over_budget, torch_gb a
 from torch_bridge.evaluate import (_blur_patch, _device_noise, _eval_provider, _psf_kernels, eval_share,
                                    evaluate_arm, objective)
 from torch_bridge.report import _designs_figure, _snapshot, write_table
+from torch_bridge.runs import rng_state as _rng_state, set_rng_state as _set_rng_state, truncate_csv as _truncate_csv
 
 __all__ = [
     "DEFAULTS",
@@ -105,20 +106,6 @@ def _seed_all(seed: int):
     random.seed(seed)
     np.random.seed(seed % (2 ** 32))
     torch.manual_seed(seed)
-
-
-def _rng_state(gen):
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "gen": gen.get_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
-
-
-def _set_rng_state(st, gen):
-    random.setstate(st["python"])
-    np.random.set_state(st["numpy"])
-    torch.set_rng_state(st["torch"])
-    gen.set_state(st["gen"])
-    if st.get("cuda") is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(st["cuda"])
 
 
 def _lr_factor(kind, step, total):
@@ -675,24 +662,6 @@ def _provider_gb(provider) -> dict:
     units = [b for b in getattr(provider, "unit_record_bytes", None) or [] if b is not None]
     return {"provider_held_gb": "" if held is None else round(held / 1e9, 6),
             "live_unit_gb": round(max(units) / 1e9, 6) if units else ""}
-
-
-def _truncate_csv(path: Path, step: int, fields=None):
-    """Drop rows at or after ``step`` (a resumed run rewrites them). With ``fields``, the file is
-    rewritten with those columns (a CSV of an older version gets the new ones, empty in old rows)."""
-    if not path.exists():
-        return
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-        old = list(rows[0].keys()) if rows else None
-    if old is None:
-        return
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(fields or old), restval="", extrasaction="ignore")
-        w.writeheader()
-        for r in rows:
-            if int(r["step"]) < step:
-                w.writerow(r)
 
 
 # ============================================================================================== experiment
