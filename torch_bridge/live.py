@@ -401,7 +401,7 @@ class LiveProvider:
                 for u in units:
                     kind, obj, _ = u
                     e = packed_recorded_bytes(m, obj.members) if kind == "packed" else \
-                        obj.nsrc * (m.bytes_per_source(obj) + m.output_bytes_per_source(obj))
+                        m.recorded_bytes(obj, sources=obj.nsrc)
                     if cur and cur_est + e > budget:
                         groups.append(cur)
                         ests.append(cur_est)

@@ -519,13 +519,19 @@ class HybridLens(LensTables, nn.Module):
         raises :class:`rwwarp.wave.plan.MemoryBudgetError` naming the estimate and the knobs when it exceeds
         ``budget_bytes``, before anything is traced. Returns the estimate."""
         from rwwarp.wave.plan import check_budget
-        est = sources * (self.bytes_per_source(rw) + self.output_bytes_per_source(rw, spatial_tile))
+        est = self.recorded_bytes(rw, spatial_tile, sources)
         check_budget({"memory_bytes": est}, int(budget_bytes),
                      f"a differentiable ray-wave PSF ({sources} source(s), {rw.plan.method}: {rw.plan.ray_grid}^2 rays "
                      f"with gradients, wave-plane grid {rw.plan.n_grid}^2)",
                      "size (patch pixels), the field angle and aperture (beam footprint), rays_per_sample, "
                      "nyquist_safety; psf_map tiles sources (tile=) and checkpoints them")
         return est
+
+    def recorded_bytes(self, rw, spatial_tile=None, sources: int = 1) -> int:
+        """Estimated peak bytes of ``sources`` recorded sources of ``rw`` (forward + backward): the trace with
+        gradients (:meth:`bytes_per_source`) plus the propagation's output side at ``spatial_tile``
+        (:meth:`output_bytes_per_source`). The figure :meth:`check_budget` checks."""
+        return sources * (self.bytes_per_source(rw) + self.output_bytes_per_source(rw, spatial_tile))
 
     def output_bytes_per_source(self, rw, tile_px=None) -> int:
         """:func:`torch_bridge.budget.output_bytes_per_source` (bytes)."""
