@@ -47,9 +47,12 @@ PY
 }
 cmd=${1:?start, watch, wait, stop, pack, send or collect}; shift
 case $cmd in start|watch|wait|stop|pack)
+  # the device tool copies the tree afresh each call, without the rwwarp/kernels link the checkout's setup made
+  [ -d rwwarp ] && [ ! -e rwwarp/kernels ] && ln -sfn ../kernels rwwarp/kernels
   # the project and its GPU wheels come from ~/rw-env.sh; without it every status line is an ImportError traceback
   python3 -c "import torch_bridge, warp" 2>/dev/null \
-    || { echo "arms_gpu: torch_bridge or warp does not import: run 'source \$HOME/rw-env.sh' first" >&2; exit 2; } ;;
+    || { echo "arms_gpu: torch_bridge or warp does not import (run 'source \$HOME/rw-env.sh' first):" >&2
+         python3 -c "import torch_bridge, warp" 2>&1 | tail -1 >&2; exit 2; } ;;
 esac
 case $cmd in
 start)
@@ -63,6 +66,12 @@ start)
     [ $((k + procs)) -le $ngpu ] || { echo "start: $ngpu GPU(s) for $# runs of $procs GPU(s) each" >&2; exit 2; }
     name=${exp}_gpu_s${seed}_${arm}
     resume=()
+    # a pack folder without its pack.json is a trip cut short (session 23: two of three carrying calls were refused
+    # and the run silently started from step 0): refuse, rather than throw the pack's steps away
+    if [ -d $PACKS/$name ] && [ ! -f $PACKS/$name/pack.json ]; then
+      echo "start: $PACKS/$name holds $(ls $PACKS/$name | wc -l) file(s) but no pack.json: send the rest of the pack" \
+           "(perf/tools/pack_out.sh) or remove the folder to start $name from step 0" >&2; exit 2
+    fi
     [ -f $PACKS/$name/pack.json ] && resume=(--resume $PACKS/$name)
     mkdir -p $RUNS
     gpus=$(seq -s, $k $((k + procs - 1)))
