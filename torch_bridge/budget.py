@@ -56,11 +56,14 @@ def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:
     """A message when ``memory_gb`` (GB = 1e9 bytes, the memory in use a training step measured) exceeds
     ``budget_gb`` (GB; None or 0: no budget), else None. ``where`` names the run and step in the message. The design
     loop warns with it once per arm and records it in ``progress.json``: a provider whose plans grow (a focal entry
-    rebuilt for new DOE orders went from 20 to 117 GB under a 24 GB budget on an H200) must not pass unseen."""
+    rebuilt for new DOE orders went from 20 to 117 GB under a 24 GB budget on an H200) must not pass unseen. On a GPU ``memory_gb`` is the device's (:func:`memory_gb`), so a process sharing the card
+    (session 23: the GPU smoke beside a design run, 25.2 GB against 24 at the run's first step) trips it too: the
+    message says so."""
     if not budget_gb or memory_gb is None or not memory_gb > float(budget_gb):
         return None
     return (f"{where}: {memory_gb:.3g} GB of memory in use, over the memory budget of {float(budget_gb):.3g} GB "
-            "(optics.memory_budget_gb): the plans or caches grew past what the budget was set for")
+            "(optics.memory_budget_gb): the plans or caches grew past what the budget was set for, or, on a GPU, "
+            "other processes share it (the figure is the device's used memory: a smoke run beside this one counts)")
 
 
 def device_overhead_bytes(device) -> int:
