@@ -17,6 +17,11 @@
 #   bash perf/tools/arms_gpu.sh send NAME FIRST COUNT           # parts FIRST.. of that pack (and pack.json) to $OUT
 #   bash perf/tools/arms_gpu.sh collect NAME ...                # each run's results and log, no checkpoints, as
 #                                  # $OUT/NAME.tar.gz.part00 ... (15 MB parts: cat them to NAME.tar.gz)
+#   bash perf/tools/arms_gpu.sh smoke [PARTS]                   # the GPU smoke (perf/gpu_suite.sh smoke-parallel,
+#                                  # default: the balanced four parts) detached beside the runs, in out/smoke/; `wait`
+#                                  # and `watch` print its state; its memory check is per process, so the runs' do not count
+#   bash perf/tools/arms_gpu.sh smoke-collect                   # its JSON, logs and pytest log as $OUT/smoke.tgz (the
+#                                  # folder itself holds ~2 GB of its runs' checkpoints)
 #
 # Export RWWARP_COMMIT first: the copied tree has no .git, and each run records the commit it ran.
 # Run folders: out/design/runs/<experiment>_gpu_s<seed>_<arm> (NAME is that last part). The protocol's
@@ -45,8 +50,16 @@ f = stat[stat.rindex(")") + 2:].split()
 sys.exit(0 if f[0] != "Z" and int(f[19]) == int(r.get("start_ticks", f[19])) else 1)
 PY
 }
-cmd=${1:?start, watch, wait, stop, pack, send or collect}; shift
-case $cmd in start|watch|wait|stop|pack)
+cmd=${1:?start, watch, wait, stop, pack, send, collect, smoke or smoke-collect}; shift
+SMOKE=out/smoke
+# smoke_state: one line, the detached smoke's state (nothing when none was started)
+smoke_state() {
+  [ -f $SMOKE/smoke.pid ] || return 0
+  if kill -0 $(cat $SMOKE/smoke.pid) 2>/dev/null; then echo "smoke: running ($(grep -c '^PASS\|^FAIL' $SMOKE/*.log 2>/dev/null \
+    | awk -F: '{s += $2} END {print s + 0}') arm(s) done)"
+  else tail -1 $SMOKE/smoke.txt 2>/dev/null; fi
+}
+case $cmd in start|watch|wait|stop|pack|smoke)
   # the device tool copies the tree afresh each call, without the rwwarp/kernels link the checkout's setup made
   [ -d rwwarp ] && [ ! -e rwwarp/kernels ] && ln -sfn ../kernels rwwarp/kernels
   # the project and its GPU wheels come from ~/rw-env.sh; without it every status line is an ImportError traceback
@@ -88,6 +101,7 @@ watch)
       [ -f $d/run.pid ] || continue
       echo "$(date -u +%H:%M:%S) $(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"
     done
+    smoke_state
     n=$(for d in $RUNS/*/; do alive $d && echo x; done | wc -l)
     [ $n -gt 0 ] || { echo "watch: no run alive"; break; }
     [ $(( $(date +%s) - t0 + 30 )) -lt $secs ] || break
@@ -108,6 +122,21 @@ wait)
       echo "$(date -u +%H:%M:%S) $(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"
     fi
   done
+  smoke_state
+  ;;
+smoke)
+  parts=${*:-cooke_hybrid a489_aberration+a489_edof:raywave_doe a489_edof:paraxial_doe tests}
+  [ -f $SMOKE/smoke.pid ] && kill -0 $(cat $SMOKE/smoke.pid) 2>/dev/null && { echo "smoke: already running" >&2; exit 2; }
+  rm -rf $SMOKE; mkdir -p $SMOKE
+  OUT=$PWD/$SMOKE setsid nohup bash perf/gpu_suite.sh smoke-parallel $parts > $SMOKE/smoke.txt 2>&1 < /dev/null &
+  echo $! > $SMOKE/smoke.pid
+  echo "smoke: started (pid $(cat $SMOKE/smoke.pid); parts $parts); log $SMOKE/smoke.txt"
+  ;;
+smoke-collect)
+  [ -d $SMOKE ] || { echo "smoke-collect: no $SMOKE (run 'smoke' first)" >&2; exit 2; }
+  smoke_state
+  (cd $SMOKE && find . -type f -size -3M \( -name '*.json' -o -name '*.log' -o -name '*.txt' \) | tar czf $OUT/smoke.tgz -T -)
+  echo "smoke-collect: $OUT/smoke.tgz $(du -h $OUT/smoke.tgz | cut -f1)"
   ;;
 stop)
   for d in $RUNS/*/; do
