@@ -12,8 +12,9 @@
 #                                  # then each run's status: finish an arm and collect it in the same call
 #   bash perf/tools/arms_gpu.sh stop                            # SIGTERM every live run: it ends at once, its
 #                                  # last checkpoint (every 200 steps) is what a resume starts from
-#   bash perf/tools/arms_gpu.sh pack NAME                       # portable checkpoint of a stopped run (bfloat16
-#                                  # weights and Adam moments, parts of <= 15 MiB) in out/pack/NAME
+#   bash perf/tools/arms_gpu.sh pack NAME [OPTIONS]             # portable checkpoint of a stopped run (bfloat16
+#                                  # weights and Adam moments, parts of <= 15 MiB; OPTIONS replace those of
+#                                  # `rwwarp design pack`, e.g. --weights bfloat16 --optimizer none) in out/pack/NAME
 #   bash perf/tools/arms_gpu.sh send NAME FIRST COUNT           # parts FIRST.. of that pack (and pack.json) to $OUT
 #   bash perf/tools/arms_gpu.sh collect NAME ...                # each run's results and log, no checkpoints, as
 #                                  # $OUT/NAME.tar.gz.part00 ... (15 MB parts: cat them to NAME.tar.gz)
@@ -154,9 +155,12 @@ stop)
   for d in $RUNS/*/; do echo "$(basename $d): $($DESIGN status $d 2>&1 | head -2 | tr '\n' ' ')"; done
   ;;
 pack)
-  name=${1:?run name}
+  name=${1:?run name}; shift
+  # more options after NAME replace the defaults, e.g. `pack NAME --weights bfloat16 --optimizer none` (33 MiB: a
+  # fixed-optics arm's network, Adam restarts on resume; PROTOCOL.md section 6's table)
+  opts=(--weights bfloat16 --optimizer bfloat16); [ $# -gt 0 ] && opts=("$@")
   rm -rf $PACKS/$name.new
-  $DESIGN pack $RUNS/$name --weights bfloat16 --optimizer bfloat16 --out $PACKS/$name.new \
+  $DESIGN pack $RUNS/$name "${opts[@]}" --out $PACKS/$name.new \
     && rm -rf $PACKS/$name && mv $PACKS/$name.new $PACKS/$name && ls -l $PACKS/$name
   ;;
 send)
