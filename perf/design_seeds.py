@@ -33,6 +33,8 @@ import math
 import re
 from pathlib import Path
 
+from paper_tables import side_by_side
+
 HERE = Path(__file__).resolve().parent
 CONFIGS = HERE.parent / "torch_bridge" / "configs"
 
@@ -426,7 +428,8 @@ def section(folder, title: str | None = None, experiment: str | None = None) -> 
         cells = [row["arm"], row["depth"] or "-", ", ".join(map(str, row["seeds"])) or "none finished"]
         cells += [_cell(row["values"][k], row["agg"][k], dg) for k, _, dg in FIGURES]
         L.append("| " + " | ".join(cells) + " |")
-    L += ["", "Runs (steps done of the schedule, joint + fine-tune; wall time = sum of the run's segments, "
+    L += [""] + side_by_side(exp, arm_table(col))
+    L += ["Runs (steps done of the schedule, joint + fine-tune; wall time = sum of the run's segments, "
           "each up to its last checkpoint; cards and commits of the segments):", "",
           "| arm | seed | state | steps | wall time | cards | commits |", "|---|---|---|---|---|---|---|"]
     for arm in col["arms"]:

@@ -327,3 +327,29 @@ def test_the_real_format_reads_as_its_table(tmp_path):
     assert k["verdict"] == "waiting for seed 1 of e2e_doe (not run), seed 1 of blank_doe (not run)"
     expect = float(table["e2e_doe"]["psnr_rec"]) - float(table["blank_doe"]["psnr_rec"])
     assert k["diffs"][0] == pytest.approx(expect, abs=TOL)
+
+
+def test_side_by_side_with_the_paper():
+    """Ours beside the paper's rows (``perf/paper_tables.py``) and the margins, worked out by hand: e2e_doe
+    27.0 / 29.0 dB raw / rec against blank_doe 26.5 / 27.5 -> +0.50 / +1.50 dB; the paper's asphe_score rows
+    24.7 - 24.4 = +0.30 raw, 32.5 - 28.8 = +3.70 rec. An arm the paper has no row for is left out; the EDoF rows
+    are matched per depth."""
+    import paper_tables as pt
+
+    def row(arm, depth, **means):
+        return {"arm": arm, "depth": depth, "agg": {k: {"mean": v} for k, v in means.items()}}
+
+    rows = [row("blank_doe", "default", psnr_raw=26.5, psnr_rec=27.5, ssim_raw=0.6, ssim_rec=0.7),
+            row("e2e_doe", "default", psnr_raw=27.0, psnr_rec=29.0, ssim_raw=0.61, ssim_rec=0.72),
+            row("other_arm", "default", psnr_raw=1.0, psnr_rec=1.0)]
+    text = "\n".join(pt.side_by_side("a489_aberration", rows))
+    assert "| blank_doe | default | Refractive lens | 26.50 | 24.4 | 0.600 | 0.702 | 27.50 | 28.8 |" in text
+    assert "| e2e_doe | default | Hybrid lens (ours) | 27.00 | 24.7 |" in text
+    assert "other_arm" not in text
+    assert "- e2e_doe - blank_doe: raw +0.50 (paper +0.30), reconstructed +1.50 (paper +3.70) dB" in text
+    edof = [row("paraxial_doe", "300mm", psnr_raw=20.0, psnr_rec=21.0),
+            row("raywave_doe", "300mm", psnr_raw=20.5, psnr_rec=23.0)]
+    text = "\n".join(pt.side_by_side("a489_edof", edof))
+    # 22.4 - 19.0 = +3.40 raw, 28.9 - 18.7 = +10.20 rec at 30 cm
+    assert "raywave_doe - paraxial_doe at 300mm: raw +0.50 (paper +3.40), reconstructed +2.00 (paper +10.20) dB" in text
+    assert pt.side_by_side("no_such_experiment", rows) == []
