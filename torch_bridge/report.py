@@ -95,8 +95,43 @@ def _node_fields(result, key) -> list:
     return []
 
 
+# at most this many nodes are drawn one panel each; a larger evaluation grid (the gpu presets' 10 x 10) is drawn as
+# one mosaic placed by field position, plus single panels of a few nodes from the axis to the corner
+SINGLE_PANELS = 8
+
+
+def _grid_layout(fields) -> tuple | None:
+    """Row and column of each node in a regular grid of its field angles ``fields`` ([(x, y)] deg), rows from the
+    top (largest y first); None when the nodes do not form a full grid (every (x, y) pair once)."""
+    if not fields or any(f is None for f in fields):
+        return None
+    xs = sorted({round(float(f[0]), 6) for f in fields})
+    ys = sorted({round(float(f[1]), 6) for f in fields}, reverse=True)
+    if len(xs) * len(ys) != len(fields):
+        return None
+    at = [(ys.index(round(float(f[1]), 6)), xs.index(round(float(f[0]), 6))) for f in fields]
+    return (at, len(ys), len(xs)) if len(set(at)) == len(at) else None
+
+
+def psf_mosaic(psfs, fields, gap: int = 2):
+    """One display image of many PSFs: ``psfs`` (N, 3, k, k) placed by their field angles ``fields`` ([(x, y)] deg,
+    a full grid), each tile RGB, sqrt scale over its own maximum (:func:`_rgb_psf`), ``gap`` px of white between
+    tiles. Returns (image (H, W, 3) in [0, 1], rows, cols), or None when the nodes do not form a grid."""
+    lay = _grid_layout(fields)
+    if lay is None:
+        return None
+    at, nr, nc = lay
+    k = psfs.shape[-1]
+    img = np.ones((nr * (k + gap) - gap, nc * (k + gap) - gap, 3))
+    for p, (r, c) in zip(psfs, at):
+        img[r * (k + gap):r * (k + gap) + k, c * (k + gap):c * (k + gap) + k] = _rgb_psf(p)
+    return img, nr, nc
+
+
 def _designs_figure(results: dict, out: Path):
-    """One row per arm: DOE phase, evaluation PSFs (RGB, sqrt scale) of the nodes, raw / rec crop."""
+    """One row per arm: DOE phase, evaluation PSFs (RGB, sqrt scale) of the nodes, raw / rec crop. More than
+    ``SINGLE_PANELS`` nodes on a grid: one mosaic of all of them by field position and single panels of the
+    diagonal's nodes (at most 4, from the axis to the corner)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -109,7 +144,16 @@ def _designs_figure(results: dict, out: Path):
     first = psfs[arms[0]]
     key0 = next(iter(first.keys()))
     nn_ = first[key0].shape[0]
-    ncol = 1 + nn_ + 2
+    fields0 = _node_fields(results.get(arms[0]), key0)
+    mosaic = nn_ > SINGLE_PANELS and _grid_layout(fields0) is not None
+    if mosaic:
+        at, nr, nc = _grid_layout(fields0)
+        diag = [at.index((nr - 1 - i * (nr - 1) // 3, i * (nc - 1) // 3)) for i in range(4)
+                if (nr - 1 - i * (nr - 1) // 3, i * (nc - 1) // 3) in at]
+        shown = list(dict.fromkeys(diag))
+    else:
+        shown = list(range(nn_))
+    ncol = 1 + int(mosaic) + len(shown) + 2
     fig, ax = plt.subplots(len(arms), ncol, figsize=(2.0 * ncol, 2.1 * len(arms)), squeeze=False)
     for i, a in enumerate(arms):
         for j in range(ncol):
@@ -127,11 +171,26 @@ def _designs_figure(results: dict, out: Path):
         cb.ax.tick_params(labelsize=5)
         p = psfs[a][key0]
         nodes = _node_fields(results.get(a), key0)
-        for j in range(nn_):
-            ax[i, 1 + j].imshow(_rgb_psf(p[j]))
+        c0 = 1
+        if mosaic:
+            m = psf_mosaic(p, nodes)
+            if m is not None:
+                xs, ys = [f[0] for f in nodes], [f[1] for f in nodes]
+                dx = (max(xs) - min(xs)) / max(m[2] - 1, 1) / 2     # half a tile: the extent covers the tiles
+                dy = (max(ys) - min(ys)) / max(m[1] - 1, 1) / 2
+                ax[i, 1].imshow(m[0], extent=(min(xs) - dx, max(xs) + dx, min(ys) - dy, max(ys) + dy))
+                ax[i, 1].axis("on")
+                ax[i, 1].tick_params(labelsize=5)
+                ax[i, 1].set_xlabel("field x (deg)", fontsize=6)
+                ax[i, 1].set_ylabel("field y (deg)", fontsize=6)
+                ax[i, 1].set_title(f"PSFs of the {m[1]} x {m[2]} nodes\n{_object_label(key0, lens.object_distance)}; "
+                                   "RGB, sqrt, / tile max", fontsize=6)
+            c0 = 2
+        for jj, j in enumerate(shown):
+            ax[i, c0 + jj].imshow(_rgb_psf(p[j]))
             where = f"node {j}" if j >= len(nodes) or nodes[j] is None else \
                 f"node {j}: ({nodes[j][0]:.1f}, {nodes[j][1]:.1f}) deg"
-            ax[i, 1 + j].set_title(f"PSF {where}\n{_object_label(key0, lens.object_distance)}; RGB, sqrt, / tile max", fontsize=6)
+            ax[i, c0 + jj].set_title(f"PSF {where}\n{_object_label(key0, lens.object_distance)}; RGB, sqrt, / tile max", fontsize=6)
         smp = sorted((out / a).glob("eval_sample_*.npz"))
         if smp:
             s = np.load(smp[0])
