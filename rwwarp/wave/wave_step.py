@@ -226,14 +226,16 @@ def rim_obliquity(rw) -> np.ndarray:
         # the pilot points carried along their rays to the plane's vertex (as the estimate does)
         xy = p3[:, :2] + ((rw.z_plane - p3[:, 2]) / m[:, 2])[:, None] * m[:, :2]
         xc = xy.mean(0)
-        beam_r = 0.5 * float(np.min(xy.max(0) - xy.min(0))) * 31.0 / 30.0   # the pilot's cell-centre grid's edge
         rr = np.linalg.norm(xy - xc, axis=1)
-        rim = rr >= RIM_SHARE * rr.max()
-        if not np.any(rim) or rr.max() <= 0:
+        if rr.max() <= 0:
             continue
+        rim = rr >= RIM_SHARE * rr.max()
+        # the pilot's 31 x 31 cell-centre grid: its outermost points lie half a cell (1 / 30 of their span) inside
+        # the beam's edge; the wider span (a beam cut on one side, e.g. by the DOE's own rim, keeps the other's)
+        edge_r = 0.5 * float(np.max(xy.max(0) - xy.min(0))) * 31.0 / 30.0
         nrm = (xy[rim] - xc) / rr[rim, None]
         mt0 = m[:, :2].mean(0)
-        mt = mt0 + (m[rim, :2] - mt0) * (beam_r / rr[rim])[:, None]
+        mt = mt0 + (m[rim, :2] - mt0) * (edge_r / rr[rim])[:, None]
         mz2 = np.clip(1.0 - np.sum(mt * mt, axis=1), 1e-12, None)
         mz = np.sqrt(mz2)
         out[k] = float(np.mean((1.0 + np.sum(nrm * mt, axis=1) ** 2 / mz2) / mz))
