@@ -223,10 +223,11 @@ def test_wave_step_matches_the_two_step_truth(d2_mm, method):
             ws.plan_wave_step = orig
         assert two.plan["method"] == "focal"
     assert two.plan["wave_step_mm"] == pytest.approx((F_MM - d2_mm) * d2_mm / F_MM, rel=1e-3)
-    # measured: 6.6e-4 (asm, 10 mm: its own sampling, as above), 2.9e-4 (focal, 10 mm), 2.6e-4 (focal, 5 mm)
+    # measured (CPU): 7.5e-5 (asm, 10 mm), 7.5e-5 (focal, 10 mm), 1.2e-4 (focal, 5 mm); over the paraxial reduced
+    # distance (no obliquity stretch, rwwarp.wave.wave_step): 1.8e-4 / 1.8e-4 / 2.4e-4
     e_two = np.max(np.abs(two.data - T)) / peak
     print(f"d2 {d2_mm} {method}: one-step vs model {e_one_model:.2e}, vs truth {e_one:.2e}; two-step vs truth {e_two:.2e}")
-    assert e_two < 1e-3
+    assert e_two < 3e-4
 
 
 def test_wave_step_meets_issue_27s_target_at_the_issues_error_level():
