@@ -76,7 +76,8 @@ class BatchPlan:
     ``lam_mm`` vacuum wavelength (mm), ``chief_plane`` / ``chief_sensor`` (S, 3) mm, ``carrier`` (S, 2)
     cycles/mm, ``centers`` (S, 2) mm patch centres, ``lo`` / ``hi`` (S, 2) mm footprint corners, ``origin``
     (S, 2) mm window origins, ``opl_chief`` (S,) mm, ``chief_ok`` (S,), ``target`` (S, 3) mm reference-sphere
-    centres, ``wave_step`` (S,) mm reduced distances (zeros: none)."""
+    centres, ``wave_step`` (S,) mm: the distances the wave step propagates over, the reduced distances stretched for the
+    rim's obliquity (:func:`rwwarp.wave.wave_step.rim_obliquity`; zeros: none)."""
 
     lens: Any
     fields: tuple

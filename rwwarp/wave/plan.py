@@ -43,8 +43,8 @@ class Plan:
     grid ``sensor_pitch_mm`` x ``n_sensor`` and its FFT length ``n_sensor_fft``. ``estimate``: the
     planner's cost estimate (``memory_bytes``, ``flops``) for the whole batch, or None. ``model_error``: the
     ray-wave model's own error estimated from the scene (:mod:`rwwarp.wave.model_error`; the worst source's
-    :meth:`~rwwarp.wave.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm) of
-    the wave step that replaces the geometric field's edge by the diffracted one before the DOE
+    :meth:`~rwwarp.wave.model_error.ModelError.to_dict`), or None. ``wave_step_mm``: the reduced distance (mm; it propagates over
+    it stretched for the rim's obliquity, :func:`rwwarp.wave.wave_step.rim_obliquity`) of the wave step that replaces the geometric field's edge by the diffracted one before the DOE
     (:func:`rwwarp.wave.wave_step.apply_wave_step`), or None (the one-step model). ``pixel_field``: for
     ``method="pixel"``, the sensor field's form and its tiling (:func:`rwwarp.wave.pixel_scale.plan_field`), else None.
     """

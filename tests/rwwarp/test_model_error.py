@@ -223,10 +223,33 @@ def test_wave_step_matches_the_two_step_truth(d2_mm, method):
             ws.plan_wave_step = orig
         assert two.plan["method"] == "focal"
     assert two.plan["wave_step_mm"] == pytest.approx((F_MM - d2_mm) * d2_mm / F_MM, rel=1e-3)
-    # measured: 6.6e-4 (asm, 10 mm: its own sampling, as above), 2.9e-4 (focal, 10 mm), 2.6e-4 (focal, 5 mm)
+    # measured (CPU): 7.5e-5 (asm, 10 mm), 7.5e-5 (focal, 10 mm), 1.2e-4 (focal, 5 mm); over the paraxial reduced
+    # distance (no obliquity stretch, rwwarp.wave.wave_step): 1.8e-4 / 1.8e-4 / 2.4e-4
     e_two = np.max(np.abs(two.data - T)) / peak
     print(f"d2 {d2_mm} {method}: one-step vs model {e_one_model:.2e}, vs truth {e_one:.2e}; two-step vs truth {e_two:.2e}")
-    assert e_two < 1e-3
+    assert e_two < 3e-4
+
+
+def test_wave_step_meets_issue_27s_target_at_the_issues_error_level():
+    # issue 27's scene at its own error level (perf/model_error_issue_level.py): thin lens f = 50 mm, a = 5 mm (NA
+    # 0.0995), DOE 4 rho^4 5 mm before the sensor (N_F 101), 64 px of 0.5 um; method "auto" with the tolerance 1e-3
+    # adds the wave step. The step propagates over the reduced distance stretched for the rim ray's obliquity
+    # (rwwarp.wave.wave_step, "Obliquity": 4.5 mm x 1 / m_z^3 = 4.568 mm); over the paraxial 4.5 mm it left 1.12e-3
+    # (the target's 1e-3 missed: the edge wave 1.5 NA^2 = 1.5 % short of the 9.0e-2 one-step error it removes).
+    # Measured (CPU): one-step 9.0e-2, with the step 1.2e-4 (the radial truth's own step with d / m_z^3: 3.7e-5)
+    lens = thin_lens_doe(5.0, 5.0, (0.0, 4.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        two = rw.psf(lens, 0.0, 0.55, size=64, method="auto", tolerance=1e-3)
+    assert two.plan["wave_step_mm"] == pytest.approx(4.5, rel=1e-3)
+    assert two.plan["model_error"]["estimate"] > 5e-2          # the one-step model's error, estimated (9.1e-2)
+    x, y = two.coords_mm()
+    rho = np.linspace(0.0, 1.5 * np.hypot(np.abs(x).max(), np.abs(y).max()) + two.pixel_mm, 1201)
+    truth, _ = radial_truth(5.0, 5.0, (0.0, 4.0), rho)
+    T = _pixel_truth(truth, rho, x, y, two.pixel_mm)
+    e_two = float(np.max(np.abs(two.data - T)) / T.max())
+    print(f"issue level, 5 mm: auto + tolerance 1e-3 vs truth {e_two:.2e}")
+    assert e_two < 3e-4          # 2.5x the measured 1.2e-4; the paraxial distance's 1.12e-3 fails it
 
 
 @pytest.mark.parametrize("name", ["cooke_triplet", "a489_doe"])
