@@ -492,6 +492,14 @@ def _estimate_for_raywave(rw) -> list:
         prof, note = None, "a DOE with steps (pixel map): its phase slope is not counted"
     out = []
     pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
+    # the pilot's pupil coordinates (its chief ray, then the cell-centre grid on the unit disc): where the rays are
+    # these, the rim is the pupil's rim imaged
+    from ..pupil import pupil_grid
+    from .pilot import PILOT_GRID
+    pu, pv, _ = pupil_grid(PILOT_GRID, "circle")
+    pupil_uv = np.stack([np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])], 1)
+    if pos.shape[1] != len(pupil_uv):
+        pupil_uv = None
     stop_image = {}   # per wavelength (um): the stop's image distance, one paraxial trace each
     alphas = {}       # per wavelength (um): the DOE relief's phase scale
     lens_note = note
@@ -519,6 +527,9 @@ def _estimate_for_raywave(rw) -> list:
         # span) inside the beam's edge
         beam_r = 0.5 * float(np.min(xy.max(0) - xy.min(0))) * 31.0 / 30.0
         f = inv_lam * dirs[k, sel, :2]
+        # the beam's rim: the pupil's rim imaged onto the plane by the pilot rays (where every ray arrived and the
+        # pupil grid is the pilot's); None: the circle of radius beam_r about xc
+        rim_h = _rim_harmonics(pupil_uv[sel], xy, xc, beam_r) if pupil_uv is not None and bool(np.all(sel)) else None
         grad = None
         if prof is not None:
             gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
@@ -560,7 +571,7 @@ def _estimate_for_raywave(rw) -> list:
             # DOE's axis, no constant fitted; the scalar law above only where the phase is too steep to sample
             tilt = (f - f_sph).mean(0)
             ph = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * ((f - f_sph) - tilt))
-            ew, _ = edge_wave_error(nf, ph)
+            ew, _ = edge_wave_error(nf, ph, rim=rim_h)
             if ew is None:
                 ph = None
                 note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
@@ -590,7 +601,7 @@ def _estimate_for_raywave(rw) -> list:
                         left.append((m, abs(c)))
                     else:
                         parts.append((c, phm))
-                e_all, _ = edge_wave_orders_error(nf, parts)
+                e_all, _ = edge_wave_orders_error(nf, parts, rim=rim_h)
                 other = e_all - main
                 if left:
                     note = "; ".join(x for x in (note, f"{len(left)} DOE order(s) steeper than {MAX_SLOPE_RAD:g} rad left "
@@ -604,6 +615,40 @@ def _estimate_for_raywave(rw) -> list:
                     other += other_orders_error(nf, sl, abs(c) ** 2)
         out.append(ModelError(main + other, nf, z1, R, d, beam_r, slope, w, note, other, main))
     return out
+
+
+#: the pupil-to-plane map's polynomial degree and the rim radius's harmonics (:func:`_rim_harmonics`)
+RIM_MAP_DEGREE = 4
+RIM_HARMONICS = 8
+
+
+def _rim_harmonics(uv, xy, xc, beam_r: float):
+    """The beam's rim on the wave plane, the pupil's rim imaged (the aperture's edge that diffracts), as harmonics of
+    its radius over ``beam_r`` about ``xc`` (mm) (:func:`rwwarp.wave.edge_wave.rim_radius`): the map from the pilot
+    rays' pupil coordinates ``uv`` (N, 2, the unit disc) to their points ``xy`` (N, 2) mm on the plane fitted by a
+    polynomial of degree :data:`RIM_MAP_DEGREE` (least squares) and evaluated on the unit circle. The circle the
+    estimate took before (radius ``beam_r``, half the footprint's smaller extent) is its value for a linear map; an
+    oblique beam's footprint is not a circle (the A489 at 10 deg: radii 0.977-1.030 of ``beam_r``). None where the
+    rays are too few for the fit."""
+    uv, xy = np.asarray(uv, float), np.asarray(xy, float)
+    P = _map_powers(RIM_MAP_DEGREE)
+    if len(uv) < 3 * len(P) or beam_r <= 0:
+        return None
+    A = np.prod(uv[:, None, :] ** P[None], axis=2)
+    coef = np.linalg.lstsq(A, xy, rcond=None)[0]
+    a = 2 * math.pi * np.arange(256) / 256
+    rim = np.prod(np.stack([np.cos(a), np.sin(a)], 1)[:, None, :] ** P[None], axis=2) @ coef
+    u = (rim - np.asarray(xc, float)) / beam_r
+    th, rho = np.arctan2(u[:, 1], u[:, 0]), np.hypot(u[:, 0], u[:, 1])
+    m = np.arange(RIM_HARMONICS + 1)
+    B = np.concatenate([np.cos(np.outer(th, m)), np.sin(np.outer(th, m[1:]))], 1)
+    c = np.linalg.lstsq(B, rho, rcond=None)[0]
+    return np.concatenate([[c[0]], c[1:RIM_HARMONICS + 1] - 1j * c[RIM_HARMONICS + 1:]])
+
+
+def _map_powers(degree: int) -> np.ndarray:
+    """The monomials ``u^i v^j``, ``i + j <= degree``, as (K, 2) powers."""
+    return np.array([(i, n - i) for n in range(degree + 1) for i in range(n, -1, -1)], int)
 
 
 #: the phase (rad) with which the beam's aberration before the DOE diffracts again over the reduced distance
