@@ -105,23 +105,39 @@ def pupil_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS, n=2048, span=8.0)
 
 
 def reestimate(name):
-    """Recompute the planner's estimate on the stored rows of ``perf/results/<name>.json`` (the truths unchanged: their
-    code is not touched by the estimate's), the previous estimate kept as ``before`` with its ratio."""
+    """Recompute the planner's estimate on the stored rows of ``perf/results/<name>.json`` (every list of rows in it;
+    the truths unchanged: their code is not touched by the estimate's), the previous estimate kept as ``before_rim``
+    (the estimate before the rim was the pupil's rim imaged, commit 365c3c9) with its ratio, and as ``before`` where
+    that was not yet kept (the orders' change)."""
     import json
     from _common import RESULTS, git_commit
     path = RESULTS / f"{name}.json"
     d = json.loads(path.read_text())
-    for r in d["rows"]:
-        if "before" not in r:
-            r["before"] = {k: r[k] for k in ("estimate", "main_estimate", "orders_estimate", "ratio", "commit") if k in r}
-        est = estimate(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"]), r["wavelength_um"])
-        r.update(est)
-        r["ratio"] = est["estimate"] / r["measured"]
-        r["ratio_main"] = est["main_estimate"] / r["measured"]
-        r["estimate_commit"] = git_commit()
-        print(f"F/{r['f_number']} {r['field_deg']} deg {r['wavelength_um']} um: measured {r['measured']:.4f} estimate "
-              f"{r['before']['estimate']:.4f} -> {est['estimate']:.4f} (ratio {r['before']['ratio']:.2f} -> "
-              f"{r['ratio']:.2f})", flush=True)
+    commit = git_commit()
+    for key, rows in d.items():
+        if not (isinstance(rows, list) and rows and isinstance(rows[0], dict) and "measured" in rows[0]):
+            continue
+        for r in rows:
+            prev = {k: r[k] for k in ("estimate", "main_estimate", "orders_estimate", "ratio", "estimate_commit",
+                                      "commit") if k in r}
+            r.setdefault("before", prev)
+            r.setdefault("before_rim", prev)
+            w = r.get("wavelength_um", 0.55)
+            est = estimate(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"]), w)
+            r.update(est)
+            r["ratio"] = est["estimate"] / r["measured"]
+            r["ratio_main"] = est["main_estimate"] / r["measured"]
+            r["estimate_commit"] = commit
+            print(f"{name}[{key}] F/{r.get('f_number', round(7.95 / (2 * r['stop_radius_mm']), 2))} {r['field_deg']} deg "
+                  f"{w} um: measured {r['measured']:.4f} estimate {r['before_rim']['estimate']:.4f} -> "
+                  f"{est['estimate']:.4f} (ratio {r['before_rim']['estimate'] / r['measured']:.2f} -> {r['ratio']:.2f})",
+                  flush=True)
+    if "ratio_min" in d:
+        d["ratio_min"] = min(r["ratio"] for r in d["rows"])
+        d["ratio_max"] = max(r["ratio"] for r in d["rows"])
+    if "ratio_min_all_sets" in d:
+        allr = [r["ratio"] for v in d.values() if isinstance(v, list) for r in v if isinstance(r, dict) and "ratio" in r]
+        d["ratio_min_all_sets"], d["ratio_max_all_sets"] = min(allr), max(allr)
     path.write_text(json.dumps(d, indent=1))
     return path
 
@@ -254,8 +270,8 @@ def main():
                     help="the edge-wave sum against the exact diffraction of its own fitted pupil phase (F/4: 10 deg at "
                          "0.45 / 0.55 / 0.65 um, axis at 0.55 um): model_error_a489_pupil_check.json (~1 min)")
     ap.add_argument("--reestimate", action="store_true",
-                    help="the planner's estimate recomputed on the stored wavelength rows (--wavelengths, "
-                         "--wavelengths-f8 and the main-order diagnostic's), the previous kept as 'before'")
+                    help="the planner's estimate recomputed on every stored row (the main set, steep, F/2.2, the "
+                         "wavelengths' and the main-order diagnostics'), the previous kept as 'before_rim'")
     ap.add_argument("--main-order-only", action="store_true",
                     help="with --wavelengths: a diagnostic, the DOE's main order alone (no wrapped relief's other "
                          "orders), base runs only: model_error_a489_wavelengths_main_order.json")
@@ -276,8 +292,11 @@ def main():
         return
     if args.reestimate:
         from _common import RESULTS
-        for name in ("model_error_a489_wavelengths", "model_error_a489_wavelengths_main_order",
-                     "model_error_a489_wavelengths_f8"):
+        for name in ("model_error_a489", "model_error_a489_main", "model_error_a489_steep", "model_error_a489_f22",
+                     "model_error_a489_f22_off", "model_error_a489_f22_wavelengths",
+                     "model_error_a489_f22_wavelengths_main_order", "model_error_a489_wavelengths",
+                     "model_error_a489_wavelengths_main_order", "model_error_a489_wavelengths_f8",
+                     "model_error_a489_wavelengths_f8_main_order"):
             if (RESULTS / f"{name}.json").exists():
                 print("wrote", reestimate(name))
         return
