@@ -86,6 +86,15 @@ points of the largest change and of the largest truth intensity (``U`` there sum
 the tests' cases this reads the same as the full ``pi / 4`` grid (to 1.3 %). Phases in rad, lengths over the beam's
 radius (dimensionless).
 
+*A rim that is not the unit circle* (``rim``: harmonics of its radius ``rho(theta)``, :func:`rim_radius`; the pupil's
+rim imaged onto the plane by the pilot rays, :mod:`rwwarp.wave.model_error`, "The rim"): ``U`` is the FFT over its
+inside (the samples widened to its largest radius at the same pitch), and each rim node sits at ``rho n``: in ``r' = r
+/ rho`` its radial profile is ``p(rho r')``, its tilt projection ``rho t . n``, its Fresnel number ``rho^2 N_F`` and its
+weight ``rho^2`` (the polar boundary term ``rho exp(i Phi) / (i dPhi/dr)``), which for a circle of radius ``rho0`` is
+the unit circle's sum on ``Phi(rho0 u)`` at ``rho0^2 N_F`` (``tests/rwwarp/test_edge_wave_fast.py``: 0.1-1.1 % apart,
+the observation grid not scaled). The rim's tilt against the radius (``rho' / rho``, 0.05 at most on the A489) is left
+out.
+
 Several coherent parts (:func:`edge_wave_orders_error`: a wrapped DOE's diffraction orders, each with its own pupil
 phase and weight ``c_m``): ``U`` is the FFT of ``sum_m c_m exp(i Phi_m)`` on the samples set by the steepest part,
 ``dU = sum_m c_m dU_m`` with each part's rim sum as above, the observation points chosen on the sum's ``|U|^2``; the
