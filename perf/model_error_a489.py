@@ -166,6 +166,17 @@ def rim_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS):
            "picture_real_footprint_fitted_phase": pic(np.abs(Vm), fitted, 1.0),
            "picture_circle_traced_phase": pic(circle, real, tdoe),
            "picture_circle_fitted_phase": pic(circle, fitted, 1.0)}
+    # which part of the footprint: its shape with a uniform amplitude; discs about the pilot's centre of the traced
+    # rim's mean and largest radius (the traced phase / the fitted phase)
+    th = np.radians(field_deg)
+    t = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    xr, yr, _ = lens.trace(a_mm * np.cos(t), a_mm * np.sin(t), th, lens.zD)
+    rim = np.hypot(xr - xc[0], yr - xc[1]) / br
+    share = np.where(np.abs(Vext) > 0, np.abs(Vm) / np.where(np.abs(Vext) > 0, np.abs(Vext), 1.0), 0.0)
+    row["picture_real_footprint_uniform_amplitude"] = [pic(share, real, tdoe), pic(share, fitted, 1.0)]
+    for name, rad in (("mean", rim.mean()), ("largest", rim.max())):
+        disc = np.clip((rad * br - R) / g.h + 0.5, 0.0, 1.0)
+        row[f"picture_disc_rim_{name}_radius"] = [pic(disc, real, tdoe), pic(disc, fitted, 1.0)]
     # the fit's residual on the footprint (less piston and tilt)
     m = np.abs(Vm) > 0.5 * np.abs(Vm).max()
     res = real * tdoe / sph * np.exp(-1j * Pf)
@@ -177,7 +188,6 @@ def rim_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS):
     t = np.linspace(0, 2 * np.pi, 64, endpoint=False)
     rs = np.sqrt(np.linspace(0.01, 1.0, 20))
     xs, ys = (a_mm * rs[:, None] * np.cos(t)).ravel(), (a_mm * rs[:, None] * np.sin(t)).ravel()
-    th = np.radians(field_deg)
     x1, y1, _ = lens.trace(xs, ys, th, lens.zD)
     x2, y2, _ = lens.trace(xs, ys, th, lens.zD + 1.0)
     dv = np.stack([x2 - x1, y2 - y1, np.ones_like(x1)])
@@ -189,8 +199,6 @@ def rim_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS):
     Vws = prop(Vm / s_in) * s_in
     row.update(wave_step_vs_model=float(np.max(np.abs(sensor(Vws, tdoe) - M)) / sensor(Vws, tdoe).max()),
                wave_step_field_difference=float(np.max(np.abs(Vws - V)) / np.max(np.abs(V))))
-    xr, yr, _ = lens.trace(a_mm * np.cos(t), a_mm * np.sin(t), th, lens.zD)
-    rim = np.hypot(xr - xc[0], yr - xc[1]) / br
     row.update(rim_radius_min=float(rim.min()), rim_radius_max=float(rim.max()), rim_radius_mean=float(rim.mean()),
                cpu_s=time.process_time() - c0)
     print(f"F/{7.95 / (2 * a_mm):.2f} {field_deg} deg {wavelength_um} um: main-order truth {row['measured_main_order']:.3f}, "
