@@ -345,9 +345,12 @@ def rim_radius(rim, theta) -> np.ndarray:
     if rim is None:
         return np.ones_like(theta)
     c = np.asarray(rim, complex)
-    out = np.zeros_like(theta)
-    for m, cm in enumerate(c):
-        out = out + (cm * np.exp(1j * m * theta)).real
+    z = np.exp(1j * theta)
+    zm = np.ones_like(z)
+    out = np.full(theta.shape, c[0].real)
+    for cm in c[1:]:                                   # exp(i m theta) by repeated products
+        zm = zm * z
+        out = out + (cm * zm).real
     return out
 
 
@@ -383,7 +386,8 @@ def _rim_summer(nf: float, phase: PupilPhase, tobs: float, rim=None):
     cx, cy = np.cos(th), np.sin(th)
     g1x, g1y = phase.gradient(cx, cy)
     dth = np.abs(g1y * cx - g1x * cy)                              # |dPhi/dtheta| on the rim
-    nth = int(min(4096, 1.25 * (float(dth.max()) + tobs + 4 * FINE_STEP) + 32))
+    r_top = 1.0 if rim is None else float(np.max(rim_radius(rim, th)))   # a wider rim: the tilt's turns grow
+    nth = int(min(4096, 1.25 * (float(dth.max()) * r_top ** 2 + (tobs + 4 * FINE_STEP) * r_top) + 32))
     th = 2 * math.pi * np.arange(nth) / nth
     cx, cy = np.cos(th), np.sin(th)
     # the phase along each rim node's radius, p(r) = Phi(r n) = sum_j prof[j] r^j (exact: Phi is a polynomial), and

@@ -645,7 +645,7 @@ def _rim_harmonics(uv, xy, xc, beam_r: float):
     polynomial of degree :data:`RIM_MAP_DEGREE` (least squares) and evaluated on the unit circle. The circle the
     estimate took before (radius ``beam_r``, half the footprint's smaller extent) is its value for a linear map; an
     oblique beam's footprint is not a circle (the A489 at 10 deg: radii 0.977-1.030 of ``beam_r``). None where the
-    rays are too few for the fit."""
+    rays are too few for the fit, where the rim is that circle (to 1e-9) or where it leaves 0.5-1.5 of ``beam_r``."""
     uv, xy = np.asarray(uv, float), np.asarray(xy, float)
     P = _map_powers(RIM_MAP_DEGREE)
     if len(uv) < 3 * len(P) or beam_r <= 0:
@@ -659,6 +659,10 @@ def _rim_harmonics(uv, xy, xc, beam_r: float):
     m = np.arange(RIM_HARMONICS + 1)
     B = np.concatenate([np.cos(np.outer(th, m)), np.sin(np.outer(th, m[1:]))], 1)
     c = np.linalg.lstsq(B, rho, rcond=None)[0]
+    if np.max(np.abs(rho - 1.0)) < 1e-9:
+        return None                                    # the circle itself (a linear map)
+    if rho.min() < 0.5 or rho.max() > 1.5 or not np.all(np.isfinite(c)):
+        return None                                    # no smooth rim about the centre: the circle kept
     return np.concatenate([[c[0]], c[1:RIM_HARMONICS + 1] - 1j * c[RIM_HARMONICS + 1:]])
 
 
