@@ -107,7 +107,7 @@ ms (2.0) at 100 rad and 2.3 ms (2.5) at 140 rad (25 / 35 rho^4 at N_F 57), 2.4 m
 the tests' coma at N_F 54.5; 16-40 ms at 300 rad (before: beyond the sampling limit, the scalar law). The planner's
 whole estimate per source on the A489 (21 sources, 0-10 deg, three wavelengths, all on the quadratic path): 2.4-2.5
 ms (2.6-3.0); with the rim imaged (:mod:`rwwarp.wave.model_error`, "The rim") 6.9 ms against 4.9 ms on the circle,
-measured together at a host load ~3 (the map's fit and the rim's harmonics ~0.5 ms, the rest the rim's mask and
+measured together at a host load ~3 (the map's fit and the rim's harmonics ~0.8 ms, the rest the rim's mask and
 per-node arrays). The traced terms cost a table per rim node (its projections t . n every :data:`TAU_STEP`, ~80 array
 operations an entry), read linearly per point and node; the rim sum runs in float32 real arithmetic (half the
 float64 complex sum's time), which pays for most of them. The fit, ~0.6 ms (:func:`fit_pupil_phase`: the normal
