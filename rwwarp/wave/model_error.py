@@ -42,20 +42,21 @@ frequencies after the DOE against the sphere to the patch (:func:`rwwarp.wave.ed
 decentred DOE off axis (coma, astigmatism about the beam's own centre) is read as it is. Nothing is fitted.
 
 *The rim.* The edge that diffracts is the pupil's rim imaged onto the plane, and the sum runs on it: the pilot rays'
-map from their pupil coordinates to the plane (a polynomial of degree :data:`RIM_MAP_DEGREE`, least squares) evaluated
-on the pupil's rim, its radius about the beam's centre as harmonics (:func:`_rim_harmonics`,
-:func:`rwwarp.wave.edge_wave.rim_radius`); the pupil's samples are its inside. Where the map is linear (the thin
-lens, any paraxial beam) that rim is the circle of radius ``beam_r`` (half the footprint's smaller extent) the sum took
-before, to 1e-15; an oblique beam through a real lens is not a circle: the A489 at F/4 and 10 deg, radii 0.977-1.030 of
-``beam_r`` at 0.45 um (the stop's rim traced by the truth's own rays: the same to 6e-5). The error is a coherent sum of
-edge waves whose phase at the rim moves by ``S`` rad per unit of radius, so a rim misplaced by 1-3 % of the radius (0.3-1
-rad at ``S`` 34 rad) changes it by a factor: on that beam the circle read 0.384 against the truth's 0.131 (2.93x; 2.71x
-against the main-order truth), the imaged rim reads 0.171 (1.30x / 1.20x). Measured on the beam itself
-(``perf/model_error_a489.py --rim-check``): the footprint's amplitude diffracted over ``d`` by the exact angular
-spectrum and the traced phase applied after it (this module's picture, the beam's aberration before the DOE taken as
-applied at the plane) reproduces the main-order truth on the real footprint (0.131 against 0.142; 0.95x / 1.04x at
-0.55 / 0.65 um) and reads 0.326 (2.3x) on the circle; the fitted phase's residual there is 0.03 rad RMS. Where a pilot ray is lost (vignetting) or the pilot is not
-the circular pupil grid, the circle is kept.
+map from their pupil coordinates to the plane (a polynomial of degree :data:`rwwarp.wave.edge_wave.RIM_MAP_DEGREE`,
+least squares) evaluated on the pupil's rim, its radius about the beam's centre as harmonics
+(:func:`rwwarp.wave.edge_wave.fit_rim`, :func:`rwwarp.wave.edge_wave.rim_radius`); the pupil's samples are its inside.
+Where the map is linear (the thin lens) that rim is the circle of radius ``beam_r`` (half the footprint's smaller
+extent) the sum took before, to 1e-15 (within 1e-9 the circle itself is used: those estimates are unchanged); an
+oblique beam through a real lens is not a circle: the A489 at F/4 and 10 deg, radii 0.977-1.030 of ``beam_r`` at 0.45
+um (the stop's rim traced by the truth's own rays: the same to 6e-5). The error is a coherent sum of edge waves whose
+phase at the rim moves by ``S`` rad per unit of radius, so a rim misplaced by 1-3 % of the radius (0.3-1 rad at ``S``
+34 rad) changes it by a factor: on that beam the circle read 0.384 against the truth's 0.131 (2.93x; 2.71x against the
+main-order truth), the imaged rim reads 0.171 (1.30x / 1.20x). Measured on the beam itself (``perf/model_error_a489.py
+--rim-check``): the footprint's amplitude diffracted over ``d`` by the exact angular spectrum and the traced phase
+applied after it (this module's picture, the beam's aberration before the DOE taken as applied at the plane)
+reproduces the main-order truth on the real footprint (0.131 against 0.142; 0.95x / 1.04x at 0.55 / 0.65 um) and reads
+0.326 (2.3x) on the circle; the fitted phase's residual there is 0.03 rad RMS. Where a pilot ray is lost (vignetting)
+or the pilot is not the circular pupil grid, the circle is kept.
 
 *Why the old scalar law failed, and its place now.* To first order in ``psi`` and for a radial phase on the axis,
 ``dU = -S / (2 pi N_F) exp(i Phi(1))``: the error ``E = S / (pi N_F)`` of a rim slope ``S``, the law :func:`model_error`
@@ -179,7 +180,7 @@ from dataclasses import dataclass, fields as _dc_fields
 
 import numpy as np
 
-from .edge_wave import MAX_SLOPE_RAD, edge_wave_error, edge_wave_orders_error, fit_pupil_phase, max_slope
+from .edge_wave import MAX_SLOPE_RAD, edge_wave_error, edge_wave_orders_error, fit_pupil_phase, fit_rim, max_slope
 
 #: calibration of the scalar law :func:`model_error` (module docstring; now the fallback and the small-psi limit):
 #: E = C S / N_F (1 + (S / S0)^2)
@@ -633,64 +634,6 @@ def _estimate_for_raywave(rw) -> list:
     return out
 
 
-#: the pupil-to-plane map's polynomial degree and the rim radius's harmonics (:func:`_rim_harmonics`)
-RIM_MAP_DEGREE = 4
-RIM_HARMONICS = 8
-
-
-def _rim_harmonics(uv, xy, xc, beam_r: float):
-    """The beam's rim on the wave plane, the pupil's rim imaged (the aperture's edge that diffracts), as harmonics of
-    its radius over ``beam_r`` about ``xc`` (mm) (:func:`rwwarp.wave.edge_wave.rim_radius`): the map from the pilot
-    rays' pupil coordinates ``uv`` (N, 2, the unit disc) to their points ``xy`` (N, 2) mm on the plane fitted by a
-    polynomial of degree :data:`RIM_MAP_DEGREE` (least squares) and evaluated on the unit circle. The circle the
-    estimate took before (radius ``beam_r``, half the footprint's smaller extent) is its value for a linear map; an
-    oblique beam's footprint is not a circle (the A489 at 10 deg: radii 0.977-1.030 of ``beam_r``). None where the
-    rays are too few for the fit, where the rim is that circle (to 1e-9) or where it leaves 0.5-1.5 of ``beam_r``."""
-    uv, xy = np.asarray(uv, float), np.asarray(xy, float)
-    P = _map_powers(RIM_MAP_DEGREE)
-    if len(uv) < 3 * len(P) or beam_r <= 0:
-        return None
-    coef = _lsq(_monomials(uv, P), xy)
-    a = 2 * math.pi * np.arange(256) / 256
-    rim = _monomials(np.stack([np.cos(a), np.sin(a)], 1), P) @ coef
-    u = (rim - np.asarray(xc, float)) / beam_r
-    rho = np.hypot(u[:, 0], u[:, 1])
-    z = (u[:, 0] + 1j * u[:, 1]) / rho                          # exp(i theta)
-    zm = np.cumprod(np.repeat(z[:, None], RIM_HARMONICS, 1), axis=1)   # exp(i m theta), m = 1 ..
-    B = np.concatenate([np.ones((len(z), 1)), zm.real, zm.imag], 1)
-    c = _lsq(B, rho)
-    if np.max(np.abs(rho - 1.0)) < 1e-9:
-        return None                                    # the circle itself (a linear map)
-    if rho.min() < 0.5 or rho.max() > 1.5 or not np.all(np.isfinite(c)):
-        return None                                    # no smooth rim about the centre: the circle kept
-    return np.concatenate([[c[0]], c[1:RIM_HARMONICS + 1] - 1j * c[RIM_HARMONICS + 1:]])
-
-
-def _lsq(A, b):
-    """Least squares ``A x = b`` (``b`` (N,) or (N, K)) by the normal equations of the column-scaled system with one
-    step of iterative refinement (a LAPACK least-squares solve cost ~15 ms a call on a loaded 2-core host, this
-    ~0.1 ms: :func:`rwwarp.wave.edge_wave.fit_pupil_phase`)."""
-    scale = np.maximum(np.sqrt(np.sum(A * A, 0)), 1e-300)
-    A = A / scale
-    G = A.T @ A
-    x = np.linalg.solve(G, A.T @ b)
-    x = x + np.linalg.solve(G, A.T @ (b - A @ x))
-    return x / (scale if np.ndim(b) == 1 else scale[:, None])
-
-
-def _monomials(uv, P) -> np.ndarray:
-    """``u^i v^j`` (N, K) of the points ``uv`` (N, 2) for the powers ``P`` (K, 2) (tables of repeated products)."""
-    d = int(P.max()) if len(P) else 0
-    U = np.cumprod(np.concatenate([np.ones((len(uv), 1)), np.repeat(uv[:, :1], d, 1)], 1), axis=1)
-    V = np.cumprod(np.concatenate([np.ones((len(uv), 1)), np.repeat(uv[:, 1:2], d, 1)], 1), axis=1)
-    return U[:, P[:, 0]] * V[:, P[:, 1]]
-
-
-def _map_powers(degree: int) -> np.ndarray:
-    """The monomials ``u^i v^j``, ``i + j <= degree``, as (K, 2) powers."""
-    return np.array([(i, n - i) for n in range(degree + 1) for i in range(n, -1, -1)], int)
-
-
 #: the phase (rad) with which the beam's aberration before the DOE diffracts again over the reduced distance
 #: (:func:`_pre_doe_phase_rad`) beyond which the plan's note says the edge waves leave it out: the wave step's own
 #: criterion (:data:`rwwarp.wave.wave_step.STEP_PHASE_MAX`, E_step <= 1e-3)
@@ -711,6 +654,9 @@ def _pre_doe_phase_rad(dirs, pts, target, z_plane: float, lam_medium_mm: float, 
     a2 = float(np.max(np.sum((dirs[:, :2] - to_t[:, :2]) ** 2, axis=1)))
     return math.pi * abs(d_mm) * a2 / lam_medium_mm
 
+
+#: the beam's rim from the pilot rays (:func:`rwwarp.wave.edge_wave.fit_rim`; a module name, so a diagnostic can read it)
+_rim_harmonics = fit_rim
 
 #: a beam counts as on the DOE's axis (the checked slope's limit, :data:`CHECKED_SLOPE_RAD`) where its centre lies
 #: within this share of its radius from the axis
