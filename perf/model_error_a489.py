@@ -20,7 +20,7 @@ at 0.45 and 0.65 um (the truth's glass index and the DOE's wrapped relief at tha
 CPU only (2 shared cores: main set ~35 min, steep ~15 min, front check ~25 min, F/2.2 ~25 min a field, wavelengths
 ~2 min a base run, ~8 min a case's checks; --wavelengths-f8 ~1 min a case).
 Usage: python perf/model_error_a489.py [--quick] [--set all|main|steep] [--front-check] [--f22] [--f22-off]
-[--wavelengths [--no-checks]] [--wavelengths-f8] [--reestimate] [--pupil-check] [--f22-wavelengths] [--merge] (--quick: F/8 only)
+[--wavelengths [--no-checks]] [--wavelengths-f8] [--reestimate] [--pupil-check] [--rim-check] [--f22-wavelengths] [--merge] (--quick: F/8 only)
 """
 from __future__ import annotations
 
@@ -104,24 +104,145 @@ def pupil_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS, n=2048, span=8.0)
     return row
 
 
+def rim_check(a_mm, field_deg, wavelength_um, coeffs=COEFFS):
+    """A diagnostic of the estimate's picture on the real beam (--rim-check): the main-order truth (the DOE's main
+    order alone) and its fields on the DOE plane, and the picture (the geometric field's amplitude diffracted over the
+    reduced distance ``d`` by the exact angular spectrum, its phase applied after: the beam's aberration before the
+    DOE taken as applied at the plane) on the same grid and the same propagation to the sensor, with (1) the
+    footprint's real amplitude or the estimate's circle (radius ``beam_r`` about the pilot's centre) and (2) the
+    traced phase or the estimate's fitted pupil phase; beside them the wave step (the aberration diffracted over
+    ``d`` as well), the fit's residual and the rim's radii (the stop's rim traced, over ``beam_r``). Returns its row."""
+    import math
+    from rwwarp.wave import model_error as me
+    lam = wavelength_um * 1e-3
+    lens = A489(a_mm=a_mm, coeffs=coeffs, lam_mm=lam)
+    lens.doe_scale = 1.0
+    c0 = time.process_time()
+    T, M, info = truth_and_model(lens, field_deg, h=1e-3, dz=1e-3, front="wave", keep_fields=True)
+    V, Vm = info["doe_fields"]
+    g, Hs, tdoe, (ey, ex) = info["grid"], info["sensor_transfer"], info["doe_transmission"], info["patch_dft"]
+    got, fit, rh = {}, me.fit_pupil_phase, me._rim_harmonics
+    me.fit_pupil_phase = lambda u, gr, *a: got.setdefault("phase", fit(u, gr, *a))
+    me._rim_harmonics = lambda uv, xy, xc, br: (got.setdefault("xc", (xc, br)), rh(uv, xy, xc, br))[1]
+    try:
+        me._MEMO.clear()
+        est = estimate(a_mm, field_deg, coeffs, wavelength_um)
+    finally:
+        me.fit_pupil_phase, me._rim_harmonics = fit, rh
+        me._MEMO.clear()
+    ph, (xc, br), d = got["phase"], got["xc"], est["reduced_distance_mm"]
+    xc = np.array([xc[1], xc[0]])                      # rwwarp's field lies along y, the truth's along x
+    X, Y = g.mesh()
+    N, k = g.N, 2 * math.pi / lam
+    nu = np.fft.fftfreq(N, g.h)
+    NX, NY = np.meshgrid(nu, nu)
+    H = np.exp(2j * math.pi * d * (np.sqrt(np.maximum(1 / lam ** 2 - NX ** 2 - NY ** 2, 0)) - 1 / lam))
+
+    def prop(F):
+        return np.fft.ifft2(np.fft.fft2(F) * H)
+
+    def sensor(F, t):
+        return np.abs(ey @ (np.fft.fft2(F * t) * Hs) @ ex / N ** 2) ** 2
+
+    def pic(a, F, t):
+        Im, It = sensor(a * F, t), sensor(prop(a) * F, t)
+        return float(np.max(np.abs(It - Im)) / It.max())
+    wide = A489(a_mm=1.25 * a_mm, coeffs=coeffs, lam_mm=lam)
+    Vext = wide.geometric_field(X, Y, np.radians(field_deg), lens.zD, h=g.h)       # the phase beyond the rim
+    real = np.exp(1j * np.angle(np.where(np.abs(Vext) > 0, Vext, 1.0)))
+    R = np.hypot(X - xc[0], Y - xc[1])
+    circle = np.clip((br - R) / g.h + 0.5, 0.0, 1.0) * float(np.median(np.abs(Vm)[np.abs(Vm) > 0.5 * np.abs(Vm).max()]))
+    px, py = info["patch_x"], info["patch_y"]
+    Tp = np.array([0.5 * (px[0] + px[-1]), 0.5 * (py[0] + py[-1])])
+    sph = np.exp(-1j * k * np.sqrt((X - Tp[0]) ** 2 + (Y - Tp[1]) ** 2 + (lens.zS - lens.zD) ** 2)
+                 - 2j * math.pi * g.nu0 * X)
+    inside = R < 1.6 * br
+    Pf = np.where(inside, ph.value(np.where(inside, Y / br, 0.0), np.where(inside, (X - xc[0]) / br, 0.0)), 0.0)
+    fitted = np.exp(1j * Pf) * sph
+    row = {"stop_radius_mm": a_mm, "field_deg": field_deg, "wavelength_um": wavelength_um, "doe_coefficients": list(coeffs),
+           "measured_main_order": measured_error(T, M), "estimate_main": est["main_estimate"],
+           "fresnel_number": est["fresnel_number"], "reduced_distance_mm": d, "beam_radius_mm": br,
+           "picture_real_footprint_traced_phase": pic(np.abs(Vm), real, tdoe),
+           "picture_real_footprint_fitted_phase": pic(np.abs(Vm), fitted, 1.0),
+           "picture_circle_traced_phase": pic(circle, real, tdoe),
+           "picture_circle_fitted_phase": pic(circle, fitted, 1.0)}
+    # which part of the footprint: its shape with a uniform amplitude; discs about the pilot's centre of the traced
+    # rim's mean and largest radius (the traced phase / the fitted phase)
+    th = np.radians(field_deg)
+    t = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    xr, yr, _ = lens.trace(a_mm * np.cos(t), a_mm * np.sin(t), th, lens.zD)
+    rim = np.hypot(xr - xc[0], yr - xc[1]) / br
+    share = np.where(np.abs(Vext) > 0, np.abs(Vm) / np.where(np.abs(Vext) > 0, np.abs(Vext), 1.0), 0.0)
+    row["picture_real_footprint_uniform_amplitude"] = [pic(share, real, tdoe), pic(share, fitted, 1.0)]
+    for name, rad in (("mean", rim.mean()), ("largest", rim.max())):
+        disc = np.clip((rad * br - R) / g.h + 0.5, 0.0, 1.0)
+        row[f"picture_disc_rim_{name}_radius"] = [pic(disc, real, tdoe), pic(disc, fitted, 1.0)]
+    # the fit's residual on the footprint (less piston and tilt)
+    m = np.abs(Vm) > 0.5 * np.abs(Vm).max()
+    res = real * tdoe / sph * np.exp(-1j * Pf)
+    r = np.angle(res * np.conj(np.mean(res[m])))
+    A = np.stack([np.ones(m.sum()), X[m], Y[m]], 1)
+    rr = r[m] - A @ np.linalg.lstsq(A, r[m], rcond=None)[0]
+    row.update(fit_residual_rms_rad=float(rr.std()), fit_residual_max_rad=float(np.abs(rr).max()))
+    # the wave step: the aberration before the DOE diffracted over d too (the sphere to the incoming focus removed)
+    t = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    rs = np.sqrt(np.linspace(0.01, 1.0, 20))
+    xs, ys = (a_mm * rs[:, None] * np.cos(t)).ravel(), (a_mm * rs[:, None] * np.sin(t)).ravel()
+    x1, y1, _ = lens.trace(xs, ys, th, lens.zD)
+    x2, y2, _ = lens.trace(xs, ys, th, lens.zD + 1.0)
+    dv = np.stack([x2 - x1, y2 - y1, np.ones_like(x1)])
+    dv /= np.linalg.norm(dv, axis=0)
+    P = np.stack([x1, y1, np.full_like(x1, lens.zD)])
+    Q = np.eye(3)[None] - np.einsum("in,jn->nij", dv, dv)
+    F = np.linalg.solve(Q.sum(0), np.einsum("nij,jn->i", Q, P))
+    s_in = np.exp(-1j * k * np.sqrt((X - F[0]) ** 2 + (Y - F[1]) ** 2 + (F[2] - lens.zD) ** 2) - 2j * math.pi * g.nu0 * X)
+    Vws = prop(Vm / s_in) * s_in
+    row.update(wave_step_vs_model=float(np.max(np.abs(sensor(Vws, tdoe) - M)) / sensor(Vws, tdoe).max()),
+               wave_step_field_difference=float(np.max(np.abs(Vws - V)) / np.max(np.abs(V))))
+    row.update(rim_radius_min=float(rim.min()), rim_radius_max=float(rim.max()), rim_radius_mean=float(rim.mean()),
+               cpu_s=time.process_time() - c0)
+    print(f"F/{7.95 / (2 * a_mm):.2f} {field_deg} deg {wavelength_um} um: main-order truth {row['measured_main_order']:.3f}, "
+          f"estimate {row['estimate_main']:.3f}; picture: footprint {row['picture_real_footprint_traced_phase']:.3f} / "
+          f"{row['picture_real_footprint_fitted_phase']:.3f}, circle {row['picture_circle_traced_phase']:.3f} / "
+          f"{row['picture_circle_fitted_phase']:.3f} (traced / fitted phase); wave step {row['wave_step_vs_model']:.3f}; "
+          f"rim {rim.min():.4f}-{rim.max():.4f}", flush=True)
+    return row
+
+
 def reestimate(name):
-    """Recompute the planner's estimate on the stored rows of ``perf/results/<name>.json`` (the truths unchanged: their
-    code is not touched by the estimate's), the previous estimate kept as ``before`` with its ratio."""
+    """Recompute the planner's estimate on the stored rows of ``perf/results/<name>.json`` (every list of rows in it;
+    the truths unchanged: their code is not touched by the estimate's), the previous estimate kept as ``before_rim``
+    (the estimate before the rim was the pupil's rim imaged, commit 365c3c9) with its ratio, and as ``before`` where
+    that was not yet kept (the orders' change)."""
     import json
     from _common import RESULTS, git_commit
     path = RESULTS / f"{name}.json"
     d = json.loads(path.read_text())
-    for r in d["rows"]:
-        if "before" not in r:
-            r["before"] = {k: r[k] for k in ("estimate", "main_estimate", "orders_estimate", "ratio", "commit") if k in r}
-        est = estimate(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"]), r["wavelength_um"])
-        r.update(est)
-        r["ratio"] = est["estimate"] / r["measured"]
-        r["ratio_main"] = est["main_estimate"] / r["measured"]
-        r["estimate_commit"] = git_commit()
-        print(f"F/{r['f_number']} {r['field_deg']} deg {r['wavelength_um']} um: measured {r['measured']:.4f} estimate "
-              f"{r['before']['estimate']:.4f} -> {est['estimate']:.4f} (ratio {r['before']['ratio']:.2f} -> "
-              f"{r['ratio']:.2f})", flush=True)
+    commit = git_commit()
+    for key, rows in d.items():
+        if not (isinstance(rows, list) and rows and isinstance(rows[0], dict) and "measured" in rows[0]):
+            continue
+        for r in rows:
+            prev = {k: r[k] for k in ("estimate", "main_estimate", "orders_estimate", "ratio", "estimate_commit",
+                                      "commit") if k in r}
+            r.setdefault("before", prev)
+            r.setdefault("before_rim", prev)
+            w = r.get("wavelength_um", 0.55)
+            est = estimate(r["stop_radius_mm"], r["field_deg"], tuple(r["doe_coefficients"]), w)
+            r.update(est)
+            r["ratio"] = est["estimate"] / r["measured"]
+            r["ratio_main"] = est["main_estimate"] / r["measured"]
+            r["estimate_commit"] = commit
+            print(f"{name}[{key}] F/{r.get('f_number', round(7.95 / (2 * r['stop_radius_mm']), 2))} {r['field_deg']} deg "
+                  f"{w} um: measured {r['measured']:.4f} estimate {r['before_rim']['estimate']:.4f} -> "
+                  f"{est['estimate']:.4f} (ratio {r['before_rim']['estimate'] / r['measured']:.2f} -> {r['ratio']:.2f})",
+                  flush=True)
+    if "ratio_min" in d:
+        d["ratio_min"] = min(r["ratio"] for r in d["rows"])
+        d["ratio_max"] = max(r["ratio"] for r in d["rows"])
+    if "ratio_min_all_sets" in d:
+        allr = [r["ratio"] for v in d.values() if isinstance(v, list) for r in v if isinstance(r, dict) and "ratio" in r]
+        d["ratio_min_all_sets"], d["ratio_max_all_sets"] = min(allr), max(allr)
     path.write_text(json.dumps(d, indent=1))
     return path
 
@@ -253,9 +374,13 @@ def main():
     ap.add_argument("--pupil-check", action="store_true",
                     help="the edge-wave sum against the exact diffraction of its own fitted pupil phase (F/4: 10 deg at "
                          "0.45 / 0.55 / 0.65 um, axis at 0.55 um): model_error_a489_pupil_check.json (~1 min)")
+    ap.add_argument("--rim-check", action="store_true",
+                    help="the estimate's picture on the real beam at F/4, 10 deg, 0.45 / 0.55 / 0.65 um (the main-order "
+                         "truth, the footprint or the circle, the traced or the fitted phase, the wave step): "
+                         "model_error_a489_rim_check.json (~4 CPU-minutes a case)")
     ap.add_argument("--reestimate", action="store_true",
-                    help="the planner's estimate recomputed on the stored wavelength rows (--wavelengths, "
-                         "--wavelengths-f8 and the main-order diagnostic's), the previous kept as 'before'")
+                    help="the planner's estimate recomputed on every stored row (the main set, steep, F/2.2, the "
+                         "wavelengths' and the main-order diagnostics'), the previous kept as 'before_rim'")
     ap.add_argument("--main-order-only", action="store_true",
                     help="with --wavelengths: a diagnostic, the DOE's main order alone (no wrapped relief's other "
                          "orders), base runs only: model_error_a489_wavelengths_main_order.json")
@@ -274,10 +399,19 @@ def main():
         rows = [pupil_check(1.0, f, w) for f, w in ((10.0, 0.45), (10.0, 0.55), (10.0, 0.65), (0.0, 0.55))]
         print("wrote", save("model_error_a489_pupil_check", {"rows": rows, "device": device_name("cpu")}))
         return
+    if args.rim_check:
+        rows = []
+        for w in (0.45, 0.55, 0.65):
+            rows.append(rim_check(1.0, 10.0, w))
+            save("model_error_a489_rim_check", {"rows": rows, "device": device_name("cpu")})
+        return
     if args.reestimate:
         from _common import RESULTS
-        for name in ("model_error_a489_wavelengths", "model_error_a489_wavelengths_main_order",
-                     "model_error_a489_wavelengths_f8"):
+        for name in ("model_error_a489", "model_error_a489_main", "model_error_a489_steep", "model_error_a489_f22",
+                     "model_error_a489_f22_off", "model_error_a489_f22_wavelengths",
+                     "model_error_a489_f22_wavelengths_main_order", "model_error_a489_wavelengths",
+                     "model_error_a489_wavelengths_main_order", "model_error_a489_wavelengths_f8",
+                     "model_error_a489_wavelengths_f8_main_order"):
             if (RESULTS / f"{name}.json").exists():
                 print("wrote", reestimate(name))
         return

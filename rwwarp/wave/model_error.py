@@ -41,6 +41,23 @@ over the PSF's peak and its bright part. ``Phi`` is a 2-D polynomial (degree 6) 
 frequencies after the DOE against the sphere to the patch (:func:`rwwarp.wave.edge_wave.fit_pupil_phase`), so a
 decentred DOE off axis (coma, astigmatism about the beam's own centre) is read as it is. Nothing is fitted.
 
+*The rim.* The edge that diffracts is the pupil's rim imaged onto the plane, and the sum runs on it: the pilot rays'
+map from their pupil coordinates to the plane (a polynomial of degree :data:`rwwarp.wave.edge_wave.RIM_MAP_DEGREE`,
+least squares) evaluated on the pupil's rim, its radius about the beam's centre as harmonics
+(:func:`rwwarp.wave.edge_wave.fit_rim`, :func:`rwwarp.wave.edge_wave.rim_radius`); the pupil's samples are its inside.
+Where the map is linear (the thin lens) that rim is the circle of radius ``beam_r`` (half the footprint's smaller
+extent) the sum took before, to 1e-15 (within 1e-9 the circle itself is used: those estimates are unchanged); an
+oblique beam through a real lens is not a circle: the A489 at F/4 and 10 deg, radii 0.977-1.030 of ``beam_r`` at 0.45
+um (the stop's rim traced by the truth's own rays: the same to 6e-5). The error is a coherent sum of edge waves whose
+phase at the rim moves by ``S`` rad per unit of radius, so a rim misplaced by 1-3 % of the radius (0.3-1 rad at ``S``
+34 rad) changes it by a factor: on that beam the circle read 0.384 against the truth's 0.131 (2.93x; 2.71x against the
+main-order truth), the imaged rim reads 0.171 (1.30x / 1.20x). Measured on the beam itself (``perf/model_error_a489.py
+--rim-check``): the footprint's amplitude diffracted over ``d`` by the exact angular spectrum and the traced phase
+applied after it (this module's picture, the beam's aberration before the DOE taken as applied at the plane)
+reproduces the main-order truth on the real footprint (0.131 against 0.142; 0.95x / 1.04x at 0.55 / 0.65 um) and reads
+0.326 (2.3x) on the circle; the fitted phase's residual there is 0.03 rad RMS. Where a pilot ray is lost (vignetting)
+or the pilot is not the circular pupil grid, the circle is kept.
+
 *Why the old scalar law failed, and its place now.* To first order in ``psi`` and for a radial phase on the axis,
 ``dU = -S / (2 pi N_F) exp(i Phi(1))``: the error ``E = S / (pi N_F)`` of a rim slope ``S``, the law :func:`model_error`
 ``E = C S / N_F (1 + (S / S0)^2)`` with ``C = 0.25``, ``S0 = 25`` rad calibrated on a = 2.5 mm, ``A rho^4`` (A = 1,
@@ -64,9 +81,9 @@ rim slopes of 300 rad (:data:`CHECKED_SLOPE_RAD`; beyond it the note says so) an
 rim slope of 206 rad at 0.5 deg (:data:`CHECKED_OFF_AXIS_SLOPE_RAD`; below).
 The A489's own beams (its stop diffracted as a wave through the asphere to the DOE plane: ``tests/rwwarp/_a489_truth.py``,
 ``perf/model_error_a489.py``) at F/8, F/4 and F/2.2, 0-10 deg, continuous even-polynomial DOEs with rim slopes 15-92
-rad: estimate / measured 0.50-1.33 over 10 cases (0.50 at F/8 on axis with the steep DOE); F/2.2 at 5 / 10 deg 1.13x /
-0.64x; at 0.45 / 0.65 um with every order of the wrapped relief, F/4 and F/8, 0 and 10 deg, F/2.2 on axis: 0.64-1.34x,
-but 2.9x at F/4, 0.45 um, 10 deg ("Other orders" below).
+rad: estimate / measured 0.51-1.18 over 10 cases (0.51 at F/8 on axis with the steep DOE); F/2.2 at 5 / 10 deg 0.89x /
+0.64x; at 0.45 / 0.65 um with every order of the wrapped relief, F/4 and F/8, 0 and 10 deg, F/2.2 on axis: 0.59-1.37x
+(F/4, 0.45 um, 10 deg: 1.30x; 2.93x on the circle before the rim was imaged, "The rim" above).
 
 Checks (``tests/rwwarp/test_model_error.py``; truths: the radially symmetric Gauss-Hankel quadrature of the exact
 angular spectrum, thin lens f = 50 mm, 0.55 um, sensor at the lens focus, DOE pupil phase ``sum_i c_i rho^(2i)``;
@@ -145,10 +162,10 @@ axis is not its peak (``|U(0)|^2 = (sin(S / 4) / (S / 4))^2`` for a defocus), so
 one-step vs wave-path difference 1.06e-2 / 1.11e-2: 1.89e-2 / 1.27e-2 (1.78x / 1.15x; before 1.74x / 1.28x); the
 A489 + DOE (``tests/rwwarp/_a489_truth.py``, every order of its relief, the glass at the wavelength) at 0.45 / 0.65
 um, F/4 and F/8, on axis and at 10 deg: docs/accuracy.md ("Other wavelengths"; the F/4 case at 0.45 um and 10 deg
-stays 2.9x: its main order alone reads 2.7x the main-order truth, not an orders effect; the edge-wave sum matches
-the exact diffraction of its own fitted pupil phase there, 0.384 against 0.364: what its picture leaves out is the
-beam's aberration before the DOE diffracting over ``d``, 0.75 rad there, which the plan's note reports beyond
-:data:`PRE_DOE_PHASE_RAD`).
+read 2.9x on the circle, not an orders effect (the main order alone 2.7x the main-order truth) nor the beam's
+aberration before the DOE diffracting over ``d`` (0.75 rad there, which the plan's note reports beyond
+:data:`PRE_DOE_PHASE_RAD`): the picture that leaves that out reproduces the truth on the real footprint; the rim's
+shape, "The rim" above: 1.30x now).
 
 Scope of the scene reading (:func:`estimate_for_raywave`): the limiting aperture is the stop, imaged into
 the space in front of the wave plane (paraxially, through the refracting surfaces between them); apertures
@@ -163,7 +180,7 @@ from dataclasses import dataclass, fields as _dc_fields
 
 import numpy as np
 
-from .edge_wave import MAX_SLOPE_RAD, edge_wave_error, edge_wave_orders_error, fit_pupil_phase, max_slope
+from .edge_wave import MAX_SLOPE_RAD, edge_wave_error, edge_wave_orders_error, fit_pupil_phase, fit_rim, max_slope
 
 #: calibration of the scalar law :func:`model_error` (module docstring; now the fallback and the small-psi limit):
 #: E = C S / N_F (1 + (S / S0)^2)
@@ -492,6 +509,14 @@ def _estimate_for_raywave(rw) -> list:
         prof, note = None, "a DOE with steps (pixel map): its phase slope is not counted"
     out = []
     pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
+    # the pilot's pupil coordinates (its chief ray, then the cell-centre grid on the unit disc): where the rays are
+    # these, the rim is the pupil's rim imaged
+    from ..pupil import pupil_grid
+    from .pilot import PILOT_GRID
+    pu, pv, _ = pupil_grid(PILOT_GRID, "circle")
+    pupil_uv = np.stack([np.concatenate([[0.0], pu]), np.concatenate([[0.0], pv])], 1)
+    if pos.shape[1] != len(pupil_uv):
+        pupil_uv = None
     stop_image = {}   # per wavelength (um): the stop's image distance, one paraxial trace each
     alphas = {}       # per wavelength (um): the DOE relief's phase scale
     lens_note = note
@@ -519,6 +544,9 @@ def _estimate_for_raywave(rw) -> list:
         # span) inside the beam's edge
         beam_r = 0.5 * float(np.min(xy.max(0) - xy.min(0))) * 31.0 / 30.0
         f = inv_lam * dirs[k, sel, :2]
+        # the beam's rim: the pupil's rim imaged onto the plane by the pilot rays (where every ray arrived and the
+        # pupil grid is the pilot's); None: the circle of radius beam_r about xc
+        rim_h = _rim_harmonics(pupil_uv[sel], xy, xc, beam_r) if pupil_uv is not None and bool(np.all(sel)) else None
         grad = None
         if prof is not None:
             gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
@@ -552,7 +580,7 @@ def _estimate_for_raywave(rw) -> list:
         if pre > PRE_DOE_PHASE_RAD:
             note = "; ".join(x for x in (note, f"the beam's aberration before the DOE diffracts again over d (phase up to "
                                          f"{pre:.2g} rad), which the edge waves leave out: on the A489 the estimate read "
-                                         "0.64-2.9x the measured error at 0.5-3.3 rad (0.50-1.27x below 0.11 rad)") if x)
+                                         "0.64-1.37x the measured error at 0.5-3.3 rad (0.51-1.27x below 0.11 rad)") if x)
         main = model_error(nf, slope)
         ph = None
         if math.isfinite(nf) and len(xy) >= 6:
@@ -560,7 +588,7 @@ def _estimate_for_raywave(rw) -> list:
             # DOE's axis, no constant fitted; the scalar law above only where the phase is too steep to sample
             tilt = (f - f_sph).mean(0)
             ph = fit_pupil_phase((xy - xc) / beam_r, 2 * math.pi * beam_r * ((f - f_sph) - tilt))
-            ew, _ = edge_wave_error(nf, ph)
+            ew, _ = edge_wave_error(nf, ph, rim=rim_h)
             if ew is None:
                 ph = None
                 note = "; ".join(x for x in (note, "pupil phase too steep for the edge-wave sum: the scalar law") if x)
@@ -590,7 +618,7 @@ def _estimate_for_raywave(rw) -> list:
                         left.append((m, abs(c)))
                     else:
                         parts.append((c, phm))
-                e_all, _ = edge_wave_orders_error(nf, parts)
+                e_all, _ = edge_wave_orders_error(nf, parts, rim=rim_h)
                 other = e_all - main
                 if left:
                     note = "; ".join(x for x in (note, f"{len(left)} DOE order(s) steeper than {MAX_SLOPE_RAD:g} rad left "
@@ -626,6 +654,9 @@ def _pre_doe_phase_rad(dirs, pts, target, z_plane: float, lam_medium_mm: float, 
     a2 = float(np.max(np.sum((dirs[:, :2] - to_t[:, :2]) ** 2, axis=1)))
     return math.pi * abs(d_mm) * a2 / lam_medium_mm
 
+
+#: the beam's rim from the pilot rays (:func:`rwwarp.wave.edge_wave.fit_rim`; a module name, so a diagnostic can read it)
+_rim_harmonics = fit_rim
 
 #: a beam counts as on the DOE's axis (the checked slope's limit, :data:`CHECKED_SLOPE_RAD`) where its centre lies
 #: within this share of its radius from the axis

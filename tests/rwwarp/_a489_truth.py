@@ -333,7 +333,7 @@ def _rim_rays(lens, theta, z, glass_plane, m=256):
 
 
 def truth_and_model(lens: A489, field_deg: float, h=1.0e-3, dz=0.5e-3, front="wave", soft=0.0, margin=0.15,
-                    patch_pitch=0.5e-3, patch_half=None, patch_center=None, with_model=True):
+                    patch_pitch=0.5e-3, patch_half=None, patch_center=None, with_model=True, keep_fields=False):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the stop's plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
     the planes, the window's losses, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm),
@@ -341,7 +341,9 @@ def truth_and_model(lens: A489, field_deg: float, h=1.0e-3, dz=0.5e-3, front="wa
     behind it), ``soft``: the stop's cos^2 roll-off share (0: the hard stop; > 0: the edge's diffraction suppressed,
     the truth's own error against the geometric field), ``margin`` (mm): the windows beyond the beam's diameter,
     ``patch_pitch`` / ``patch_half`` (mm; None: the truth's spot, where it exceeds 1 % of its peak, plus 10 um),
-    ``patch_center`` (x, y) mm (None: the truth's peak on the grid)."""
+    ``patch_center`` (x, y) mm (None: the truth's peak on the grid); ``keep_fields``: ``info["doe_fields"]`` the
+    truth's and the model's fields on the DOE plane (carrier removed, before the DOE) and ``info["grid"]`` their
+    :class:`Grid` (a diagnostic; nothing computed changes)."""
     import time
     t0 = time.perf_counter()
     th = np.radians(field_deg)
@@ -429,6 +431,8 @@ def truth_and_model(lens: A489, field_deg: float, h=1.0e-3, dz=0.5e-3, front="wa
     ex = np.exp(2j * np.pi * np.outer(nu, px - gB.x[0]))            # (N, Px)
     ey = np.exp(2j * np.pi * np.outer(py - gB.y[0], nu))            # (Py, N)
     out = [np.abs(ey @ S @ ex / NB ** 2) ** 2 for S in spectra]
+    if keep_fields:
+        info.update(doe_fields=fields, grid=gB, sensor_transfer=Hs, doe_transmission=tdoe, patch_dft=(ey, ex))
     info.update(patch_x=px, patch_y=py, NA_grid=NA_, NB_grid=NB, zb=zb, zc=zc, t_total_s=time.perf_counter() - t0,
                 band_edge=float(np.sum(np.abs(spectra[0][np.abs(gB.NX - nu0) > 0.8 / (2 * h)]) ** 2)
                                 / np.sum(np.abs(spectra[0]) ** 2)))
