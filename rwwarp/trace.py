@@ -657,7 +657,9 @@ class Tracer:
             steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n), n_in, n_out,
                           t_buf))
         chunks = self._chunks(n)
-        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c), chunks, [None] * len(chunks))
+        # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
+        fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
+        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c, fused), chunks, [None] * len(chunks))
         pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
         if keep is True:
@@ -758,9 +760,36 @@ class Tracer:
         b = np.linspace(0, n, t + 1).astype(np.int64)
         return [(int(b[k]), int(b[k + 1])) for k in range(t)]
 
-    def _trace_range(self, steps, gen, outs, wl, rng):
+    def _fused_steps(self, steps):
+        """The tables of :mod:`rwwarp.kernels.trace_steps` for ``steps`` (``_run``'s ``(kind, rows, rmask, n_in,
+        n_out, t_buf)``): ``(rows, kinds, n_in, n_out)`` Warp arrays on the CPU, or None where the fused kernel
+        does not apply (no step, a phase surface, replicated gradient rows). From :attr:`pool` on a kept batch
+        (written again each run: the values of the moment)."""
+        if not steps or any(k == ktrace.KIND_PHASE or rmask != 0 for k, _, rmask, _, _, _ in steps):
+            return None
+        sc, nw = self.scalar, int(steps[0][3].shape[0])
+        tabs = (np.stack([r.numpy().reshape(-1) for _, r, _, _, _, _ in steps]),
+                np.array([k for k, _, _, _, _, _ in steps], dtype=np.int32),
+                np.stack([a.numpy().reshape(-1) for _, _, _, a, _, _ in steps]),
+                np.stack([b.numpy().reshape(-1) for _, _, _, _, b, _ in steps]))
+        if any(t.shape[1] != nw for t in (tabs[2], tabs[3])):
+            return None
+        dts = (sc, wp.int32, sc, sc)
+        if self.pool is None:
+            return tuple(wp.array(t, dtype=dt, device=self.device) for t, dt in zip(tabs, dts))
+        out = []
+        for tag, t, dt in zip(("rows", "kinds", "n_in", "n_out"), tabs, dts):
+            a = self.work_array(("trace_steps", tag), t.shape, dt)
+            a.numpy()[...] = t
+            out.append(a)
+        return tuple(out)
+
+    def _trace_range(self, steps, gen, outs, wl, rng, fused=None):
         """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if
-        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch."""
+        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch. ``fused``
+        (:meth:`_fused_steps`' tables): every step in one launch of
+        :func:`rwwarp.kernels.trace_steps.make_trace_steps_kernel` (the same bits), its state into the last
+        step's arrays."""
         K, dev = self.K, self.device
 
         def cut(a):
@@ -768,6 +797,11 @@ class Tracer:
         n = gen[0].shape[0] if rng is None else rng[1] - rng[0]
         state = tuple(cut(a) for a in gen)
         wlc = cut(wl)
+        if fused is not None:
+            from .kernels.trace_steps import make_trace_steps_kernel
+            wp.launch(make_trace_steps_kernel(self.scalar), dim=n, inputs=[*state, wlc, *fused, len(steps)],
+                      outputs=[cut(a) for a in outs[-1]], device=dev, record_tape=False)
+            return
         for (kind, rows, rmask, n_in, n_out, t_buf), out in zip(steps, outs):
             nxt = tuple(cut(a) for a in out)
             tc = cut(t_buf) if kind in _CURVED else t_buf
