@@ -5,6 +5,7 @@ CPU, ``method="auto"``, everything else psf_map's defaults; called twice through
 the second call's launches counted (``warp.launch`` wrapped; every thread).
 
     python perf/count_map_launches.py [--save PSFS.npz] [--compare PSFS.npz] [--json OUT.json] [--time N]
+        [--machine WORDS]
 
 ``--save``: the second call's PSFs (``data``, shape (10, 3, 32, 32)) to an .npz; ``--compare``: the largest
 difference from such a file (relative to each PSF's peak); ``--time N``: N further warm calls timed (s each).
@@ -59,6 +60,7 @@ def main(argv=None):
     p.add_argument("--compare")
     p.add_argument("--json")
     p.add_argument("--time", type=int, default=0)
+    p.add_argument("--machine", default="2-core CPU", help="the machine, in words, for --json")
     args = p.parse_args(argv)
     import warnings
     warnings.simplefilter("ignore")
@@ -91,9 +93,15 @@ def main(argv=None):
     if times:
         print(f"warm calls: {[round(t, 3) for t in times]}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"launches": n, "by_kernel": dict(counts),
-                                               "batches": [len(b["pairs"]) for b in m.info["batches"]],
-                                               "warm_s": times}, indent=1))
+        import subprocess
+        root = Path(rw.__file__).resolve().parents[1]
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True).stdout.strip()
+        Path(args.json).write_text(json.dumps({
+            "commit": commit, "machine": args.machine, "lens": "a489_doe", "fields_deg": FIELDS,
+            "wavelengths_um": WLS, "size_px": SIZE, "device": "cpu", "cache": m.info.get("cache"),
+            "launches_second_call": n, "by_kernel": dict(counts),
+            "batches": [len(b["pairs"]) for b in m.info["batches"]], "warm_s": times}, indent=1))
 
 
 if __name__ == "__main__":
