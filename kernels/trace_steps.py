@@ -6,7 +6,7 @@ without a phase (:data:`~rwwarp.kernels.trace.KIND_REFRACT`, ``KIND_REFLECT``, `
 for each, the converged intersection of ``intersect_kernel`` (curved surfaces) and then ``surface_kernel``'s
 step from it, written again with the ray's state in registers in place of the arrays between the launches
 (the same device functions, the same operations in the same order: the same bits; tests/kernels/
-test_trace_steps.py). Forward only (no adjoint: :meth:`rwwarp.trace.Tracer._trace_range` takes it only for a
+test_trace_steps.py); a ray once lost reads no further surface (the per-surface launches leave it as it is). Forward only (no adjoint: :meth:`rwwarp.trace.Tracer._trace_range` takes it only for a
 tracer without gradients, on the CPU, where a launch's threads run one after the other, so it keeps every
 ray's arithmetic and drops the launches and the intermediate states' memory traffic).
 
@@ -54,6 +54,8 @@ def make_trace_steps_kernel(scalar):
         ok = valid[i]
         w = wl[i]
         for s in range(n_steps):
+            if ok != 1:
+                break   # a lost (or padding) ray keeps its state through every later surface: nothing to read
             kind = kinds[s]
             sf = load_surface(rows[s])
             q = vec3(p0[0], p0[1], p0[2] - sf.z)
