@@ -761,28 +761,9 @@ class Tracer:
         return [(int(b[k]), int(b[k + 1])) for k in range(t)]
 
     def _fused_steps(self, steps):
-        """The tables of :mod:`rwwarp.kernels.trace_steps` for ``steps`` (``_run``'s ``(kind, rows, rmask, n_in,
-        n_out, t_buf)``): ``(rows, kinds, n_in, n_out)`` Warp arrays on the CPU, or None where the fused kernel
-        does not apply (no step, a phase surface, replicated gradient rows). From :attr:`pool` on a kept batch
-        (written again each run: the values of the moment)."""
-        if not steps or any(k == ktrace.KIND_PHASE or rmask != 0 for k, _, rmask, _, _, _ in steps):
-            return None
-        sc, nw = self.scalar, int(steps[0][3].shape[0])
-        tabs = (np.stack([r.numpy().reshape(-1) for _, r, _, _, _, _ in steps]),
-                np.array([k for k, _, _, _, _, _ in steps], dtype=np.int32),
-                np.stack([a.numpy().reshape(-1) for _, _, _, a, _, _ in steps]),
-                np.stack([b.numpy().reshape(-1) for _, _, _, _, b, _ in steps]))
-        if any(t.shape[1] != nw for t in (tabs[2], tabs[3])):
-            return None
-        dts = (sc, wp.int32, sc, sc)
-        if self.pool is None:
-            return tuple(wp.array(t, dtype=dt, device=self.device) for t, dt in zip(tabs, dts))
-        out = []
-        for tag, t, dt in zip(("rows", "kinds", "n_in", "n_out"), tabs, dts):
-            a = self.work_array(("trace_steps", tag), t.shape, dt)
-            a.numpy()[...] = t
-            out.append(a)
-        return tuple(out)
+        """:func:`rwwarp.trace_fused.fused_tables` of ``steps`` (None: the per-surface launches)."""
+        from .trace_fused import fused_tables
+        return fused_tables(self, steps)
 
     def _trace_range(self, steps, gen, outs, wl, rng, fused=None):
         """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if
