@@ -25,9 +25,13 @@ def _map(cache=None, **kw):
 
 @pytest.fixture
 def two_threads(monkeypatch):
-    """Tracers of 2 CPU threads whatever the machine (the launches a stage split over threads are counted)."""
+    """Tracers of 2 CPU threads whatever the machine (the launches a stage split over threads are counted), and
+    the default memory budget of a machine with 8 GiB available (4 GiB; the batches are then cut by the CPU's
+    batch bytes alone, not by what the machine has free at the moment)."""
     import rwwarp.trace as trace
+    import rwwarp.wave.plan as plan
     monkeypatch.setattr(trace, "cpu_threads", lambda: 2)
+    monkeypatch.setattr(plan, "default_memory_budget_bytes", lambda device="cpu": 4 * 2 ** 30)
 
 
 def test_warm_a489_map_launches(two_threads):
