@@ -619,6 +619,13 @@ def make_trace_kernels(scalar):
     K.surface_kernel = surface_kernel
     K.intersect_kernel = intersect_kernel
     K.phase_surface_kernel = phase_surface_kernel
+    # the device functions the CPU's fused trace (rwwarp.kernels.trace_steps) calls, as these kernels do
+    K.load_surface = load_surface
+    K.stable_start = stable_start
+    K.newton_step = newton_step
+    K.hit_and_normal = hit_and_normal
+    K.outside_aperture = outside_aperture
+    K.conv = conv
     return K
 
 

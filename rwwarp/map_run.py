@@ -267,16 +267,18 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
                     members[chunk_idx[0]] = None
                     continue
                 packed = PackedRayWave([members[k] for k in chunk_idx], hold=keep)
-                if not keep and str(packed.device) == "cpu":
+                if str(packed.device) == "cpu":
                     # the CPU's batches share their work arrays (rays, splat sums, field; Tracer.work_array), each
-                    # batch's read before the next runs: no allocation and first touch of fresh pages a batch
+                    # batch's read before the next runs: no allocation and first touch of fresh pages a batch. Kept
+                    # batches too (a hit runs them one after the other under the cache's lock, each read before the
+                    # next): the entry holds one set of work arrays, the largest batch's, not one a batch
                     packed.tracer.pool = work_pool
                 res = packed.run(focal_precision, keep_operators=keep)
                 store([sys_pairs[k] for k in chunk_idx], res)
                 if keep:
                     new.append(([sys_pairs[k] for k in chunk_idx], packed))
                     need = max(need, packed_bytes(packed.members, size))
-                    held += held_bytes(new[-1:])
+                    held = held_bytes(new)   # the whole entry: its batches share one CPU work pool
                     if held > cache.max_bytes:   # over the cache's bound: nothing of this call is kept
                         keep, new = False, []
                 for k in chunk_idx:

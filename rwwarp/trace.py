@@ -657,7 +657,9 @@ class Tracer:
             steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n), n_in, n_out,
                           t_buf))
         chunks = self._chunks(n)
-        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c), chunks, [None] * len(chunks))
+        # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
+        fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
+        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c, fused), chunks, [None] * len(chunks))
         pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
         if keep is True:
@@ -758,9 +760,17 @@ class Tracer:
         b = np.linspace(0, n, t + 1).astype(np.int64)
         return [(int(b[k]), int(b[k + 1])) for k in range(t)]
 
-    def _trace_range(self, steps, gen, outs, wl, rng):
+    def _fused_steps(self, steps):
+        """:func:`rwwarp.trace_fused.fused_tables` of ``steps`` (None: the per-surface launches)."""
+        from .trace_fused import fused_tables
+        return fused_tables(self, steps)
+
+    def _trace_range(self, steps, gen, outs, wl, rng, fused=None):
         """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if
-        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch."""
+        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch. ``fused``
+        (:meth:`_fused_steps`' tables): every step in one launch of
+        :func:`rwwarp.kernels.trace_steps.make_trace_steps_kernel` (the same bits), its state into the last
+        step's arrays."""
         K, dev = self.K, self.device
 
         def cut(a):
@@ -768,6 +778,11 @@ class Tracer:
         n = gen[0].shape[0] if rng is None else rng[1] - rng[0]
         state = tuple(cut(a) for a in gen)
         wlc = cut(wl)
+        if fused is not None:
+            from .kernels.trace_steps import make_trace_steps_kernel
+            wp.launch(make_trace_steps_kernel(self.scalar), dim=n, inputs=[*state, wlc, *fused, len(steps)],
+                      outputs=[cut(a) for a in outs[-1]], device=dev, record_tape=False)
+            return
         for (kind, rows, rmask, n_in, n_out, t_buf), out in zip(steps, outs):
             nxt = tuple(cut(a) for a in out)
             tc = cut(t_buf) if kind in _CURVED else t_buf

@@ -167,7 +167,9 @@ def held_bytes(batches) -> int:
             if tr is not None and id(tr) not in seen:
                 seen.add(id(tr))
                 total += int(tr.params_np.nbytes + tr.index_np.nbytes)
-                total += sum(_array_bytes(a) for a in (tr.pool or {}).values())   # rays, splat sums, field
+                if tr.pool is not None and id(tr.pool) not in seen:   # a map's CPU batches share one pool
+                    seen.add(id(tr.pool))
+                    total += sum(_array_bytes(a) for a in tr.pool.values())   # rays, splat sums, field
     return total
 
 
