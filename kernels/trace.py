@@ -363,6 +363,20 @@ def make_trace_kernels(scalar):
             tn = t - g / dg
         return tn
 
+    @wp.func
+    def converged_root(q: vec3, d: vec3, sf: Surface):
+        # the ray parameter t of the intersection of q + t d (lens frame, vertex at z = 0) with the surface:
+        # Newton from stable_start until a step moves t by <= conv (1 + |t|), at most NEWTON_STEPS steps (a
+        # conic's start is its exact root: one step); the surface kernel's own step from it restores full precision
+        t = stable_start(q, d, sf)
+        for it in range(NEWTON_STEPS):
+            tn = newton_step(q, d, t, sf)
+            done = wp.abs(tn - t) <= scalar(conv) * (scalar(1.0) + wp.abs(tn))
+            t = tn
+            if done:
+                break
+        return t
+
     @wp.kernel(module="unique")
     def intersect_kernel(
         pos: wp.array(dtype=vec3),
@@ -380,19 +394,8 @@ def make_trace_kernels(scalar):
         if valid[i] == 0:
             return
         sf = load_surface(params_rows[i & rmask])
-        d = dir[i]
         p0 = pos[i]
-        q = vec3(p0[0], p0[1], p0[2] - sf.z)
-        t = stable_start(q, d, sf)
-        for it in range(NEWTON_STEPS):
-            tn = newton_step(q, d, t, sf)
-            done = wp.abs(tn - t) <= scalar(conv) * (scalar(1.0) + wp.abs(tn))
-            t = tn
-            if done:
-                # converged (a conic's start is its exact root: one step): the surface kernel's own
-                # step from here restores full precision either way
-                break
-        t_out[i] = t
+        t_out[i] = converged_root(vec3(p0[0], p0[1], p0[2] - sf.z), dir[i], sf)
 
     @wp.func
     def ray_in(i: int, sf: Surface, pos: wp.array(dtype=vec3), dir: wp.array(dtype=vec3),
@@ -450,34 +453,18 @@ def make_trace_kernels(scalar):
             opl_out[i] = opl[i]
             valid_out[i] = 0
 
-    @wp.kernel(module="unique")
-    def surface_kernel(
-        pos: wp.array(dtype=vec3),
-        dir: wp.array(dtype=vec3),
-        opl: wp.array(dtype=scalar),
-        valid: wp.array(dtype=wp.int32),
-        wl: wp.array(dtype=wp.int32),
-        params_rows: wp.array2d(dtype=scalar),  # (R, N_PARAMS) copies of this surface's row (replicate_kernel)
-        rmask: int,                             # R - 1, R a power of two: ray i reads row i & rmask
-        n_in: wp.array(dtype=scalar),       # (n_wl,) index before the surface
-        n_out: wp.array(dtype=scalar),      # (n_wl,) index after the surface
-        kind: int,
-        t_start: wp.array(dtype=scalar),    # converged intersection parameter (refracting surfaces)
-        # outputs
-        pos_out: wp.array(dtype=vec3),
-        dir_out: wp.array(dtype=vec3),
-        opl_out: wp.array(dtype=scalar),
-        valid_out: wp.array(dtype=wp.int32),
-    ):
-        i = wp.tid()
-        sf = load_surface(params_rows[i & rmask])
-        p0, d, ok, w, n1, n2, q = ray_in(i, sf, pos, dir, valid, wl, n_in, n_out)
+    @wp.func
+    def surface_step(kind: int, q: vec3, d: vec3, t0: scalar, sf: Surface, n1: scalar, n2: scalar, ok_in: int):
+        # one surface's step for a ray at q (lens frame, vertex at z = 0) along d, from the converged root t0
+        # (curved surfaces): (t, the direction after, the surface's own path (a thin lens's), ok); the ray is
+        # lost (ok = 0) outside the aperture, on a miss or at total internal reflection; ok_in = 0: nothing to do
+        ok = ok_in
         t = scalar(0.0)
         newd = d
         extra = scalar(0.0)
         if ok == 1:
             if kind == KIND_REFRACT or kind == KIND_REFLECT:
-                t, x, nrm, cosi, ok = hit_and_normal(q, d, t_start[i], sf)
+                t, x, nrm, cosi, ok = hit_and_normal(q, d, t0, sf)
                 if ok == 1:
                     if kind == KIND_REFLECT:
                         newd = wp.normalize(d - scalar(2.0) * cosi * nrm)
@@ -525,6 +512,31 @@ def make_trace_kernels(scalar):
                         if vdist < scalar(0.0):
                             sv = scalar(-1.0)
                         extra = -inrel - sv * n2 * (wp.length(img - x) - wp.length(img - ctr))
+        return t, newd, extra, ok
+
+    @wp.kernel(module="unique")
+    def surface_kernel(
+        pos: wp.array(dtype=vec3),
+        dir: wp.array(dtype=vec3),
+        opl: wp.array(dtype=scalar),
+        valid: wp.array(dtype=wp.int32),
+        wl: wp.array(dtype=wp.int32),
+        params_rows: wp.array2d(dtype=scalar),  # (R, N_PARAMS) copies of this surface's row (replicate_kernel)
+        rmask: int,                             # R - 1, R a power of two: ray i reads row i & rmask
+        n_in: wp.array(dtype=scalar),       # (n_wl,) index before the surface
+        n_out: wp.array(dtype=scalar),      # (n_wl,) index after the surface
+        kind: int,
+        t_start: wp.array(dtype=scalar),    # converged intersection parameter (refracting surfaces)
+        # outputs
+        pos_out: wp.array(dtype=vec3),
+        dir_out: wp.array(dtype=vec3),
+        opl_out: wp.array(dtype=scalar),
+        valid_out: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        sf = load_surface(params_rows[i & rmask])
+        p0, d, ok, w, n1, n2, q = ray_in(i, sf, pos, dir, valid, wl, n_in, n_out)
+        t, newd, extra, ok = surface_step(kind, q, d, t_start[i], sf, n1, n2, ok)
         ray_out(i, ok, p0, d, q, t, sf.z, newd, n1, extra, opl, pos_out, dir_out, opl_out, valid_out)
 
     @wp.func
@@ -621,11 +633,8 @@ def make_trace_kernels(scalar):
     K.phase_surface_kernel = phase_surface_kernel
     # the device functions the CPU's fused trace (rwwarp.kernels.trace_steps) calls, as these kernels do
     K.load_surface = load_surface
-    K.stable_start = stable_start
-    K.newton_step = newton_step
-    K.hit_and_normal = hit_and_normal
-    K.outside_aperture = outside_aperture
-    K.conv = conv
+    K.converged_root = converged_root
+    K.surface_step = surface_step
     return K
 
 

@@ -4,8 +4,8 @@ not one a surface).
 ``trace_steps_kernel`` carries each ray through ``n_steps`` surfaces of the kinds ``surface_kernel`` handles
 without a phase (:data:`~rwwarp.kernels.trace.KIND_REFRACT`, ``KIND_REFLECT``, ``KIND_THIN``, ``KIND_PLANE``):
 for each, the converged intersection of ``intersect_kernel`` (curved surfaces) and then ``surface_kernel``'s
-step from it, written again with the ray's state in registers in place of the arrays between the launches
-(the same device functions, the same operations in the same order: the same bits; tests/kernels/
+step from it, through the same device functions (``converged_root``, ``surface_step``) with the ray's state in
+registers in place of the arrays between the launches (the same operations in the same order: the same bits; tests/kernels/
 test_trace_steps.py); a ray once lost reads no further surface (the per-surface launches leave it as it is). Forward only (no adjoint: :meth:`rwwarp.trace.Tracer._trace_range` takes it only for a
 tracer without gradients, on the CPU, where a launch's threads run one after the other, so it keeps every
 ray's arithmetic and drops the launches and the intermediate states' memory traffic).
@@ -17,7 +17,7 @@ import functools
 
 import warp as wp
 
-from .trace import KIND_REFLECT, KIND_REFRACT, KIND_THIN, NEWTON_STEPS, make_trace_kernels
+from .trace import KIND_REFLECT, KIND_REFRACT, make_trace_kernels
 
 
 @functools.cache
@@ -25,9 +25,7 @@ def make_trace_steps_kernel(scalar):
     """``trace_steps_kernel`` (module docstring) for rays of ``scalar`` (float32 or float64)."""
     K = make_trace_kernels(scalar)
     vec3 = K.vec3
-    conv = K.conv
-    load_surface, stable_start, newton_step = K.load_surface, K.stable_start, K.newton_step
-    hit_and_normal, outside_aperture = K.hit_and_normal, K.outside_aperture
+    load_surface, converged_root, surface_step = K.load_surface, K.converged_root, K.surface_step
 
     @wp.kernel(module="unique", enable_backward=False)
     def trace_steps_kernel(
@@ -62,63 +60,11 @@ def make_trace_steps_kernel(scalar):
             # intersect_kernel: the converged root (0 for an invalid ray; not read then)
             t_start = scalar(0.0)
             if ok == 1 and (kind == KIND_REFRACT or kind == KIND_REFLECT):
-                t_start = stable_start(q, d, sf)
-                for it in range(NEWTON_STEPS):
-                    tn = newton_step(q, d, t_start, sf)
-                    done = wp.abs(tn - t_start) <= scalar(conv) * (scalar(1.0) + wp.abs(tn))
-                    t_start = tn
-                    if done:
-                        break
+                t_start = converged_root(q, d, sf)
             # surface_kernel
             n1 = n_in[s, w]
             n2 = n_out[s, w]
-            t = scalar(0.0)
-            newd = d
-            extra = scalar(0.0)
-            if ok == 1:
-                if kind == KIND_REFRACT or kind == KIND_REFLECT:
-                    t, x, nrm, cosi, ok = hit_and_normal(q, d, t_start, sf)
-                    if ok == 1:
-                        if kind == KIND_REFLECT:
-                            newd = wp.normalize(d - scalar(2.0) * cosi * nrm)
-                        else:
-                            mu = n1 / n2
-                            kk = scalar(1.0) - mu * mu * (scalar(1.0) - cosi * cosi)
-                            if kk <= scalar(0.0):
-                                ok = 0  # total internal reflection
-                            else:
-                                newd = wp.normalize(mu * d + (wp.sqrt(kk) - mu * cosi) * nrm)
-                else:
-                    # plane at the vertex: aperture, DOE plane, sensor, thin lens
-                    t = -q[2] / d[2]
-                    x = q + t * d
-                    if outside_aperture(x[0], x[1], sf) == 1:
-                        ok = 0
-                    elif kind == KIND_THIN:
-                        pw = sf.power
-                        tx = (n1 * d[0] / d[2] - x[0] * pw) / n2
-                        ty = (n1 * d[1] / d[2] - x[1] * pw) / n2
-                        newd = wp.normalize(vec3(tx, ty, scalar(1.0)))
-                        ctr = vec3(scalar(0.0), scalar(0.0), x[2])
-                        uinv = sf.uinv
-                        inrel = scalar(0.0)
-                        if uinv == scalar(0.0):
-                            inrel = n1 * wp.dot(x - ctr, d)
-                        else:
-                            src = x - d * (scalar(1.0) / (uinv * d[2]))
-                            su = scalar(1.0)
-                            if uinv < scalar(0.0):
-                                su = scalar(-1.0)
-                            inrel = su * n1 * (wp.length(x - src) - wp.length(ctr - src))
-                        vdist = sf.v
-                        if vdist == scalar(0.0):
-                            extra = -inrel + n2 * wp.dot(x - ctr, newd)
-                        else:
-                            img = x + newd * (vdist / newd[2])
-                            sv = scalar(1.0)
-                            if vdist < scalar(0.0):
-                                sv = scalar(-1.0)
-                            extra = -inrel - sv * n2 * (wp.length(img - x) - wp.length(img - ctr))
+            t, newd, extra, ok = surface_step(kind, q, d, t_start, sf, n1, n2, ok)
             # ray_out: a lost ray keeps its input state
             if ok == 1:
                 p0 = vec3(q[0] + t * d[0], q[1] + t * d[1], q[2] + t * d[2] + sf.z)

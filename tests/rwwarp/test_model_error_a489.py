@@ -120,7 +120,11 @@ def test_the_note_names_the_beams_own_aberration_where_it_diffracts_again():
     # the rim's shape, test_the_f4_beam_at_10_deg_and_045um_against_its_stored_truth)
     off, on = _plan_error(1.0, 10.0, 0.45, "two-step"), _plan_error(1.0, 0.0, 0.45, "two-step")
     assert "diffracts again over d (phase up to 0.75 rad)" in off["note"]
-    assert off["step_phase_rad"] == pytest.approx(0.75, abs=0.01)
+    # the step itself propagates over d stretched by its rim rays' obliquity (rwwarp.wave.wave_step.rim_obliquity,
+    # a mean of (1 / m_z)(1 + (n.m_t)^2 / m_z^2) around the rim), so its own phase is the note's 0.747 rad times a
+    # factor between 1 and the steepest rim ray's 1 / m_z^3: at F/4 and 10 deg tan(theta) <= tan(10 deg) + 1 / 8 =
+    # 0.301, 1 / m_z^3 <= 1.139, bound 1.145 (measured 0.787 rad, 1.054x)
+    assert 0.747 <= off["step_phase_rad"] <= 0.747 * 1.145
     assert "diffracts again" not in on["note"] and on["step_phase_rad"] < 0.1
 
 
