@@ -1,0 +1,144 @@
+"""The wave step off axis at the issue's NA (issue 27): rwwarp's PSF (``method="auto", tolerance=1e-3``, which adds
+the wave step; with the rim's obliquity stretch and with it switched off) against the independent off-axis two-step
+truth of tests/rwwarp/_offaxis_truth.py (numpy FFTs from the equations, not rwwarp's code).
+
+Scene: the ideal thin lens f = 50 mm, stop radius 5 mm at the lens (NA 0.0995), 0.55 um, 64 px of 0.5 um; the DOE
+5 / 10 mm before the sensor at the lens focus. A DOE centred on the axis cannot keep the issue's ``4 rho^4`` (norm
+radius the on-axis beam's, 0.5 / 1 mm) on an off-axis beam (at 5 deg the beam lands 3.9 mm off the axis, 8 beam radii),
+so off axis the DOE is ``8 rho^2`` (the same norm radius, the same rim slope 16 rad as ``4 rho^4``): a quadratic phase
+is the same about every point, so each field's beam sees the same DOE (defocus plus a tilt), and only the beam's
+obliquity changes with the field; the DOE's clear radius 9 mm covers 10 deg. The control is the issue's own case
+(``4 rho^4``, on the axis, 5 mm). Metric: max |PSF - truth| / max truth over the 64 x 64 pixels (4 x 4 Gauss nodes
+each, ``|U|^2`` per pixel over the power entering the stop: ``rw.psf(..., pixel_values="intensity")``; the default
+"flux" PSF, the Poynting vector's z-component, is the truth times ~cos of the beam's angle, so it is compared after a
+least-squares scale, which is reported). The truth's convergence: its pitch
+halved (2 -> 1 um) and its disc's band doubled (60 -> 120 cycles/mm at 1.5 um), its DOE-plane cut widened 1.5x, on the
+10 deg cases.
+
+Writes perf/results/wave_step_off_axis.json. CPU (numpy + Warp CPU), about 6 minutes on a shared 2-core CPU (2.5 GB;
+the halved pitch's truths 8 GB).
+Usage: python perf/wave_step_off_axis.py [--no-convergence]
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "rwwarp"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import rwwarp as rw                                        # noqa: E402
+import rwwarp.wave.wave_step as ws                         # noqa: E402
+from rwwarp.lens import Lens, Sensor, Surface               # noqa: E402
+from _common import save                                   # noqa: E402
+from _offaxis_truth import F_MM, offaxis_truth              # noqa: E402
+
+A_MM, PIXEL, SIZE = 5.0, 0.5e-3, 64
+
+
+def lens_of(d2_mm: float, coeffs, semi_mm: float) -> Lens:
+    """Stop (radius A_MM) at the ideal thin lens F_MM, the DOE ``sum c_i (r / r_b)^(2 i)`` (``r_b = A d2 / F``, clear
+    radius ``semi_mm``) ``d2_mm`` before the sensor at the lens focus."""
+    rb = A_MM * d2_mm / F_MM
+    surfs = [Surface(type="aperture", semi_diameter=A_MM, shape="circle", stop=True),
+             Surface(type="thin_lens", focal_length=F_MM, semi_diameter=1.2 * A_MM, thickness=F_MM - d2_mm),
+             Surface(type="doe", semi_diameter=semi_mm, thickness=d2_mm, material="1.5/1e9",
+                     profile={"kind": "even_poly", "coefficients": list(coeffs), "norm_radius": rb})]
+    return Lens(surfs, Sensor(PIXEL, (40000, 40000)), wavelengths_um=[0.55])
+
+
+def psfs(lens, field_deg, pixel_values="intensity"):
+    """(one-step, auto + tolerance 1e-3 with the stretch, the same with the stretch off, the stretch factor); the
+    pixels ``|U|^2`` integrated (``pixel_values="intensity"``: the truth's scalar convention; the default "flux"
+    multiplies by the Poynting vector's z-component, 0.991 of it at 10 deg, 5 mm: reported apart)."""
+    kw = dict(size=SIZE, pixel_values=pixel_values)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = rw.psf(lens, field_deg, 0.55, method="asm", **kw)
+        two = rw.psf(lens, field_deg, 0.55, method="auto", tolerance=1e-3, **kw)
+        keep = ws.rim_obliquity
+        ws.rim_obliquity = lambda r: np.ones(r.nsrc)
+        try:
+            flat = rw.psf(lens, field_deg, 0.55, method="auto", tolerance=1e-3, **kw)
+        finally:
+            ws.rim_obliquity = keep
+    m = [re.search(r"\(x([0-9.]+) for the rim rays' obliquity", r) for r in two.plan["reasons"]]
+    stretch = [float(x.group(1)) for x in m if x]
+    m0 = [re.search(r"\(x([0-9.]+) for the rim rays' obliquity", r) for r in flat.plan["reasons"]]
+    assert [float(x.group(1)) for x in m0 if x] == [1.0], "the stretch was not switched off"
+    return one, two, flat, (stretch[0] if stretch else None)
+
+
+def err(p, T):
+    return float(np.max(np.abs(p - T)) / T.max())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--no-convergence", action="store_true")
+    args = ap.parse_args()
+    t00 = time.perf_counter()
+    cases = [("4 rho^4", (0.0, 4.0), 5.0, 0.0, 1.5 * A_MM * 5.0 / F_MM)]
+    for d2 in (5.0, 10.0):
+        for fld in (0.0, 5.0, 10.0):
+            cases.append(("8 rho^2", (8.0, 0.0), d2, fld, 9.0))
+    rows = []
+    for doe, coeffs, d2, fld, semi in cases:
+        t0 = time.perf_counter()
+        lens = lens_of(d2, coeffs, semi)
+        one, two, flat, stretch = psfs(lens, fld)
+        px, py = two.coords_mm()
+        t1 = time.perf_counter()
+        T = offaxis_truth(A_MM, d2, coeffs, A_MM * d2 / F_MM, fld, px, py, two.pixel_mm)
+        t2 = time.perf_counter()
+        # the one-step patch is centred on its own chief ray (without the DOE's deflection off axis): its own truth
+        ox, oy = one.coords_mm()
+        T1 = T if np.allclose(one.center_mm, two.center_mm) else offaxis_truth(A_MM, d2, coeffs, A_MM * d2 / F_MM, fld,
+                                                                               ox, oy, one.pixel_mm)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            flux = rw.psf(lens, fld, 0.55, size=SIZE, method="auto", tolerance=1e-3).data
+        scale = float(np.sum(flux * T) / np.sum(T * T))
+        row = {"doe": doe, "doe_to_sensor_mm": d2, "field_deg": fld, "stretch": stretch,
+               "wave_step_mm": two.plan.get("wave_step_mm"), "estimate": two.plan["model_error"]["estimate"],
+               "error_one_step": err(one.data, T1), "error_step": err(two.data, T), "error_step_no_stretch": err(flat.data, T),
+               "peak_ratio_step": float(two.data.max() / T.max()),
+               "flux_scale": scale, "error_step_flux_scaled": err(flux / scale, T), "psf_s": t1 - t0, "truth_s": t2 - t1}
+        if not args.no_convergence and fld == 10.0:
+            conv = {}
+            for name, kw in [("pitch 1 um", dict(h=1e-3)), ("band 120 at 1.5 um", dict(h=1.5e-3, band_disc=120.0)),
+                             ("cut 1.5x", dict(cut_share=1.5))]:
+                Tc = offaxis_truth(A_MM, d2, coeffs, A_MM * d2 / F_MM, fld, px, py, two.pixel_mm, **kw)
+                conv[name] = {"truth_change": err(Tc, T), "error_step": err(two.data, Tc),
+                              "error_step_no_stretch": err(flat.data, Tc)}
+                print(f"   {name}: truth moved {conv[name]['truth_change']:.2e}; step {conv[name]['error_step']:.2e}, "
+                      f"no stretch {conv[name]['error_step_no_stretch']:.2e}", flush=True)
+            row["convergence"] = conv
+        rows.append(row)
+        print(f"{doe} {d2:g} mm {fld:g} deg: stretch x{stretch}, one-step {row['error_one_step']:.2e}, step "
+              f"{row['error_step']:.2e}, no stretch {row['error_step_no_stretch']:.2e}, flux PSF x{scale:.5f} then "
+              f"{row['error_step_flux_scaled']:.2e} (psf {t1 - t0:.0f} s, truth "
+              f"{t2 - t1:.0f} s)", flush=True)
+    data = {"machine": "2-core CPU (shared), numpy + Warp CPU",
+            "scene": {"focal_length_mm": F_MM, "stop_radius_mm": A_MM, "wavelength_um": 0.55, "pixels": SIZE,
+                      "pixel_um": PIXEL * 1e3, "doe_norm_radius": "A d2 / F (the on-axis beam's radius)",
+                      "method": "auto, tolerance 1e-3 (adds the wave step); 'no stretch': rim_obliquity = 1",
+                      "pixel_values": "intensity (|U|^2, the truth's); flux_scale: the default flux PSF over the truth "
+                                      "(least squares), error_step_flux_scaled: its error after that scale"},
+            "truth": {"module": "tests/rwwarp/_offaxis_truth.py", "pitch_um": 2.0, "disc_band_cpmm": 60.0,
+                      "on_axis_vs_radial_truth": "7.8e-6 of the peak (4 rho^4, 5 mm; the radial truth on 12001 radii: "
+                                                 "on 1201 its linear interpolation reads the peak 1.07e-4 low)"},
+            "metric": "max |PSF - truth| / max truth over 64 x 64 px of 0.5 um", "rows": rows,
+            "total_s": time.perf_counter() - t00}
+    print("wrote", save("wave_step_off_axis", data))
+
+
+if __name__ == "__main__":
+    main()
