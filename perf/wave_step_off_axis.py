@@ -15,9 +15,11 @@ least-squares scale, which is reported). The truth's convergence: its pitch
 halved (2 -> 1 um) and its disc's band doubled (60 -> 120 cycles/mm at 1.5 um), its DOE-plane cut widened 1.5x, on the
 10 deg cases.
 
-Writes perf/results/wave_step_off_axis.json. CPU (numpy + Warp CPU), about 6 minutes on a shared 2-core CPU (2.5 GB;
-the halved pitch's truths 8 GB).
-Usage: python perf/wave_step_off_axis.py [--no-convergence]
+Writes perf/results/wave_step_off_axis.json. CPU (numpy + Warp CPU), about 9 minutes on a shared 2-core CPU (535 s with
+the convergence and the principle; 2.5 GB, the halved pitch's truths more).
+The principle (:func:`principle`, no rwwarp): the truth's own FFTs with the geometric field stepped over d, d times
+the isotropic mean stretch and a fitted tensor, to tell the isotropic transfer's share of the error.
+Usage: python perf/wave_step_off_axis.py [--no-convergence] [--no-principle]
 """
 from __future__ import annotations
 
@@ -36,22 +38,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import rwwarp as rw                                        # noqa: E402
 import rwwarp.wave.wave_step as ws                         # noqa: E402
-from rwwarp.lens import Lens, Sensor, Surface               # noqa: E402
 from _common import save                                   # noqa: E402
-from _offaxis_truth import F_MM, offaxis_truth              # noqa: E402
+from _offaxis_truth import F_MM, offaxis_truth, thin_lens_doe_off_axis   # noqa: E402
 
 A_MM, PIXEL, SIZE = 5.0, 0.5e-3, 64
 
 
-def lens_of(d2_mm: float, coeffs, semi_mm: float) -> Lens:
-    """Stop (radius A_MM) at the ideal thin lens F_MM, the DOE ``sum c_i (r / r_b)^(2 i)`` (``r_b = A d2 / F``, clear
-    radius ``semi_mm``) ``d2_mm`` before the sensor at the lens focus."""
-    rb = A_MM * d2_mm / F_MM
-    surfs = [Surface(type="aperture", semi_diameter=A_MM, shape="circle", stop=True),
-             Surface(type="thin_lens", focal_length=F_MM, semi_diameter=1.2 * A_MM, thickness=F_MM - d2_mm),
-             Surface(type="doe", semi_diameter=semi_mm, thickness=d2_mm, material="1.5/1e9",
-                     profile={"kind": "even_poly", "coefficients": list(coeffs), "norm_radius": rb})]
-    return Lens(surfs, Sensor(PIXEL, (40000, 40000)), wavelengths_um=[0.55])
+def lens_of(d2_mm: float, coeffs, semi_mm: float):
+    """The scene (tests/rwwarp/_offaxis_truth.py, ``thin_lens_doe_off_axis``) with A_MM and PIXEL."""
+    return thin_lens_doe_off_axis(A_MM, d2_mm, coeffs, semi_mm, PIXEL)
 
 
 def psfs(lens, field_deg, pixel_values="intensity"):
@@ -61,8 +56,10 @@ def psfs(lens, field_deg, pixel_values="intensity"):
     kw = dict(size=SIZE, pixel_values=pixel_values)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        one = rw.psf(lens, field_deg, 0.55, method="asm", **kw)
         two = rw.psf(lens, field_deg, 0.55, method="auto", tolerance=1e-3, **kw)
+        # the one-step patch on the step's centre (its own default centre off axis is the chief ray's landing
+        # without the DOE's deflection, 0.24 mm from the spot at 10 deg, 5 mm)
+        one = rw.psf(lens, field_deg, 0.55, method="asm", center_mm=two.center_mm, **kw)
         keep = ws.rim_obliquity
         ws.rim_obliquity = lambda r: np.ones(r.nsrc)
         try:
@@ -83,6 +80,7 @@ def err(p, T):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--no-convergence", action="store_true")
+    ap.add_argument("--no-principle", action="store_true")
     args = ap.parse_args()
     t00 = time.perf_counter()
     cases = [("4 rho^4", (0.0, 4.0), 5.0, 0.0, 1.5 * A_MM * 5.0 / F_MM)]
@@ -98,17 +96,14 @@ def main() -> None:
         t1 = time.perf_counter()
         T = offaxis_truth(A_MM, d2, coeffs, A_MM * d2 / F_MM, fld, px, py, two.pixel_mm)
         t2 = time.perf_counter()
-        # the one-step patch is centred on its own chief ray (without the DOE's deflection off axis): its own truth
-        ox, oy = one.coords_mm()
-        T1 = T if np.allclose(one.center_mm, two.center_mm) else offaxis_truth(A_MM, d2, coeffs, A_MM * d2 / F_MM, fld,
-                                                                               ox, oy, one.pixel_mm)
+        assert np.allclose(one.center_mm, two.center_mm)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             flux = rw.psf(lens, fld, 0.55, size=SIZE, method="auto", tolerance=1e-3).data
         scale = float(np.sum(flux * T) / np.sum(T * T))
         row = {"doe": doe, "doe_to_sensor_mm": d2, "field_deg": fld, "stretch": stretch,
                "wave_step_mm": two.plan.get("wave_step_mm"), "estimate": two.plan["model_error"]["estimate"],
-               "error_one_step": err(one.data, T1), "error_step": err(two.data, T), "error_step_no_stretch": err(flat.data, T),
+               "error_one_step": err(one.data, T), "error_step": err(two.data, T), "error_step_no_stretch": err(flat.data, T),
                "peak_ratio_step": float(two.data.max() / T.max()),
                "flux_scale": scale, "error_step_flux_scaled": err(flux / scale, T), "psf_s": t1 - t0, "truth_s": t2 - t1}
         if not args.no_convergence and fld == 10.0:
@@ -136,8 +131,54 @@ def main() -> None:
                       "on_axis_vs_radial_truth": "7.8e-6 of the peak (4 rho^4, 5 mm; the radial truth on 12001 radii: "
                                                  "on 1201 its linear interpolation reads the peak 1.07e-4 low)"},
             "metric": "max |PSF - truth| / max truth over 64 x 64 px of 0.5 um", "rows": rows,
+            "principle": None if args.no_principle else principle(),
             "total_s": time.perf_counter() - t00}
     print("wrote", save("wave_step_off_axis", data))
+
+
+
+def rim_stretch(d2_mm: float, field_deg: float, n_rim: int = 720):
+    """The rim's obliquity from the geometry (the stop's rim rays to T): per rim point ``(d / m_z)(1 + (n . m_t)^2 /
+    m_z^2)`` over ``d`` (module docstring of rwwarp.wave.wave_step, "Obliquity"), its mean (the isotropic stretch),
+    the least-squares tensor ``(s_x, s_y)`` fitted to it around the rim (``n^T diag(s_x, s_y) n``) and what is left."""
+    yT = F_MM * np.tan(np.radians(field_deg))
+    phi = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
+    n = np.stack([np.cos(phi), np.sin(phi)], 1)
+    v = np.stack([-A_MM * n[:, 0], yT - A_MM * n[:, 1], np.full(n_rim, F_MM)], 1)
+    m = v / np.linalg.norm(v, axis=1, keepdims=True)
+    t = (1.0 + np.sum(n * m[:, :2], 1) ** 2 / m[:, 2] ** 2) / m[:, 2]
+    A = np.stack([n[:, 0] ** 2, n[:, 1] ** 2], 1)
+    sx, sy = np.linalg.lstsq(A, t, rcond=None)[0]
+    return {"mean": float(t.mean()), "tensor": (float(sx), float(sy)), "min": float(t.min()), "max": float(t.max()),
+            "left_after_tensor": float(np.max(np.abs(A @ [sx, sy] - t)))}
+
+
+def principle(d2s=(5.0, 10.0), fields=(0.0, 5.0, 10.0)) -> list:
+    """The wave step's principle on the truth's own FFTs (no rwwarp): the truth against the geometric field stepped
+    over ``d``, ``d`` times the isotropic mean stretch, and the fitted tensor (:func:`rim_stretch`)."""
+    rows = []
+    for d2 in d2s:
+        d = (F_MM - d2) * d2 / F_MM
+        for fld in fields:
+            rs = rim_stretch(d2, fld)
+            yT = F_MM * np.tan(np.radians(fld))
+            c = (np.arange(SIZE) - SIZE // 2) * PIXEL
+            # the patch about the beam's landing point after the DOE's deflection (8 rho^2: 2 pi g = 64 c1 / r_b^2 ...)
+            rb = A_MM * d2 / F_MM
+            c1 = (F_MM - d2) * yT / F_MM
+            sin2 = np.sin(np.arctan2(yT, F_MM)) + 0.55e-3 * (2 * 8.0 * c1 / rb ** 2) / (2 * np.pi)
+            yc = c1 + d2 * sin2 / np.sqrt(1 - sin2 ** 2)
+            args = (A_MM, d2, (8.0, 0.0), rb, fld, c, c + yc, PIXEL)
+            T = offaxis_truth(*args)
+            e = {}
+            for name, D in [("d", (d, d)), ("d x mean", (d * rs["mean"],) * 2),
+                            ("d x tensor", (d * rs["tensor"][0], d * rs["tensor"][1]))]:
+                e[name] = err(offaxis_truth(*args, step=D), T)
+            rows.append({"doe_to_sensor_mm": d2, "field_deg": fld, "rim": rs, "error": e})
+            print(f"principle {d2:g} mm {fld:g} deg: stretch mean {rs['mean']:.4f} tensor ({rs['tensor'][0]:.4f}, "
+                  f"{rs['tensor'][1]:.4f}) range {rs['min']:.4f}..{rs['max']:.4f}: "
+                  + "  ".join(f"{k} {v:.2e}" for k, v in e.items()), flush=True)
+    return rows
 
 
 if __name__ == "__main__":

@@ -27,6 +27,19 @@ from scipy.special import j1
 F_MM, LAM_MM = 50.0, 0.55e-3
 
 
+def thin_lens_doe_off_axis(a_mm, d2_mm, coeffs, semi_mm, pixel=0.5e-3):
+    """The truth's scene in rwwarp: stop (radius ``a_mm``) at the ideal thin lens F_MM, the DOE ``sum c_i (r /
+    r_b)^(2 i)`` (``r_b = a d2 / F``, centred on the axis, clear radius ``semi_mm``; a dispersion-free substrate)
+    ``d2_mm`` before the sensor at the lens focus."""
+    from rwwarp.lens import Lens, Sensor, Surface
+    rb = a_mm * d2_mm / F_MM
+    surfs = [Surface(type="aperture", semi_diameter=a_mm, shape="circle", stop=True),
+             Surface(type="thin_lens", focal_length=F_MM, semi_diameter=1.2 * a_mm, thickness=F_MM - d2_mm),
+             Surface(type="doe", semi_diameter=semi_mm, thickness=d2_mm, material="1.5/1e9",
+                     profile={"kind": "even_poly", "coefficients": list(coeffs), "norm_radius": rb})]
+    return Lens(surfs, Sensor(pixel, (40000, 40000)), wavelengths_um=[0.55])
+
+
 def _w(fx, fy):
     return np.sqrt(np.maximum(1.0 / LAM_MM ** 2 - fx ** 2 - fy ** 2, 0.0))
 
@@ -45,12 +58,16 @@ def _disc_band_limited(n, h, a_mm, band):
 
 
 def offaxis_truth(a_mm, d2_mm, coeffs, norm_radius_mm, field_deg, px, py, pixel, h=2e-3, band_disc=60.0,
-                  margin_mm=0.4, nodes=4, cut_share=1.0, ray_amplitude=False):
+                  margin_mm=0.4, nodes=4, cut_share=1.0, ray_amplitude=False, step=None):
     """Power per pixel (over the power entering the stop) of the two-step truth (module docstring) at the pixel
     centres ``px`` (M,) x ``py`` (M,) (mm, absolute sensor coordinates; side ``pixel`` mm): stop radius ``a_mm``,
     DOE ``sum c_i (r / norm_radius_mm)^(2 i)`` ``d2_mm`` before the sensor at the lens focus, the beam at
     ``field_deg`` (y). ``h`` the grids' pitch (mm), ``band_disc`` the stop disc's band (cycles/mm), ``margin_mm``
-    the stop grid's margin beyond the disc, ``cut_share`` scales the DOE plane's cut radius."""
+    the stop grid's margin beyond the disc, ``cut_share`` scales the DOE plane's cut radius. ``step`` (None: the
+    truth) ``(D_x, D_y)`` mm: the wave step's principle instead of the exact field on the DOE plane, the geometric
+    field (``1 / s`` on the stop's shadow, radius ``s a`` about the chief point, band-limited to 70 cycles/mm) with the
+    sphere to T removed, propagated by the Fresnel transfer ``exp(-i pi lambda (D_x nu_x^2 + D_y nu_y^2))``, the
+    sphere put back (isotropic: ``D_x = D_y``)."""
     k = 2 * np.pi / LAM_MM
     z1, rb = F_MM - d2_mm, a_mm * d2_mm / F_MM
     d = z1 * d2_mm / F_MM
@@ -71,6 +88,13 @@ def offaxis_truth(a_mm, d2_mm, coeffs, norm_radius_mm, field_deg, px, py, pixel,
     del H
     # the DOE plane, the grid following the chief ray (its point c1 = (0, z1 tan theta) at sample n1 // 2)
     c1 = z1 * yT / F_MM
+    if step is not None:
+        g = _disc_band_limited(n1, h, rb, 70.0) * (F_MM / d2_mm)
+        P = np.exp(-1j * np.pi * LAM_MM * (step[0] * nu[None, :] ** 2 + step[1] * nu[:, None] ** 2))
+        u = scipy.fft.ifft2(scipy.fft.fft2(g, workers=-1) * P, workers=-1)
+        del g, P
+        u *= np.exp(1j * (-k * np.sqrt(x[None, :] ** 2 + (x[:, None] + c1 - yT) ** 2 + d2_mm ** 2)
+                          - 2 * np.pi * fc * x[:, None]))
     rcut = cut_share * (1.15 * rb + 30 * np.sqrt(LAM_MM * d))
     half = int(np.ceil((rcut + 0.05) / h))
     sl = slice(n1 // 2 - half, n1 // 2 + half)
