@@ -74,6 +74,7 @@ def psfs(lens, field_deg, pixel_values="intensity"):
 
 
 def err(p, T):
+    """max |p - T| / max T (of the truth's peak; both power per pixel over the power entering the stop)."""
     return float(np.max(np.abs(p - T)) / T.max())
 
 

@@ -41,6 +41,7 @@ def thin_lens_doe_off_axis(a_mm, d2_mm, coeffs, semi_mm, pixel=0.5e-3):
 
 
 def _w(fx, fy):
+    """The axial frequency sqrt(1 / lambda^2 - |f|^2) (cycles/mm; 0 where evanescent) of the transverse (fx, fy)."""
     return np.sqrt(np.maximum(1.0 / LAM_MM ** 2 - fx ** 2 - fy ** 2, 0.0))
 
 
