@@ -536,7 +536,10 @@ def make_trace_kernels(scalar):
         i = wp.tid()
         sf = load_surface(params_rows[i & rmask])
         p0, d, ok, w, n1, n2, q = ray_in(i, sf, pos, dir, valid, wl, n_in, n_out)
-        t, newd, extra, ok = surface_step(kind, q, d, t_start[i], sf, n1, n2, ok)
+        t0 = scalar(0.0)
+        if kind == KIND_REFRACT or kind == KIND_REFLECT:
+            t0 = t_start[i]   # only a curved surface's t_start has a slot a ray (else a (1,) placeholder)
+        t, newd, extra, ok = surface_step(kind, q, d, t0, sf, n1, n2, ok)
         ray_out(i, ok, p0, d, q, t, sf.z, newd, n1, extra, opl, pos_out, dir_out, opl_out, valid_out)
 
     @wp.func

@@ -27,6 +27,7 @@ from .device_upload import upload_packed  # noqa: F401  (also read as rwwarp.tra
 from .errors import GeometryError, LensError
 from .kernels import trace as ktrace
 from . import paraxial
+from .trace_fused import fused_tables, step_kernels
 from .pupil import device_disc_cells, disc_cell_fractions, disc_cells, pupil_grid  # noqa: F401  (re-exported)
 
 wp.config.quiet = True
@@ -94,12 +95,15 @@ def _pool(workers: int):
         return _POOL
 
 
-def run_chunks(fn, chunks, outs):
-    """Call ``fn(chunk, out)`` for each ``(lo, hi)`` chunk (or None: everything) with its ``out``, in the
-    module's thread pool when there are several (Warp's CPU kernels release the GIL)."""
+def run_chunks(fn, chunks, outs, kernels=(), device="cpu"):
+    """Call ``fn(chunk, out)`` for each ``(lo, hi)`` chunk (or None: everything) with its ``out``, in the module's
+    thread pool when there are several (Warp's CPU kernels release the GIL). ``kernels`` (launched by ``fn``) are
+    loaded on ``device`` first: two threads loading one module at their first launch can crash Warp (a cold map)."""
     if len(chunks) == 1:
         fn(chunks[0], outs[0])
         return
+    for k in kernels:
+        wp.load_module(k.module, device=device)   # ~3 us once loaded
     futures = [_pool(len(chunks)).submit(fn, c, o) for c, o in zip(chunks, outs)]
     for f in futures:
         f.result()
@@ -659,7 +663,8 @@ class Tracer:
         chunks = self._chunks(n)
         # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
         fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
-        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c, fused), chunks, [None] * len(chunks))
+        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c, fused), chunks, [None] * len(chunks),
+                   kernels=step_kernels(self, steps, fused), device=dev)
         pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
         if keep is True:
@@ -760,17 +765,14 @@ class Tracer:
         b = np.linspace(0, n, t + 1).astype(np.int64)
         return [(int(b[k]), int(b[k + 1])) for k in range(t)]
 
-    def _fused_steps(self, steps):
-        """:func:`rwwarp.trace_fused.fused_tables` of ``steps`` (None: the per-surface launches)."""
-        from .trace_fused import fused_tables
+    def _fused_steps(self, steps):   # rwwarp.trace_fused.fused_tables (None: the per-surface launches)
         return fused_tables(self, steps)
 
     def _trace_range(self, steps, gen, outs, wl, rng, fused=None):
-        """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if
-        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch. ``fused``
-        (:meth:`_fused_steps`' tables): every step in one launch of
-        :func:`rwwarp.kernels.trace_steps.make_trace_steps_kernel` (the same bits), its state into the last
-        step's arrays."""
+        """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if None); the
+        arrays are 1-D views of the chunk, so the kernels see an independent batch. ``fused`` (:meth:`_fused_steps`'
+        tables): every step in one launch of :func:`rwwarp.kernels.trace_steps.make_trace_steps_kernel` (the same
+        bits), its state into the last step's arrays."""
         K, dev = self.K, self.device
 
         def cut(a):
@@ -779,8 +781,7 @@ class Tracer:
         state = tuple(cut(a) for a in gen)
         wlc = cut(wl)
         if fused is not None:
-            from .kernels.trace_steps import make_trace_steps_kernel
-            wp.launch(make_trace_steps_kernel(self.scalar), dim=n, inputs=[*state, wlc, *fused, len(steps)],
+            wp.launch(step_kernels(self, steps, fused)[0], dim=n, inputs=[*state, wlc, *fused, len(steps)],
                       outputs=[cut(a) for a in outs[-1]], device=dev, record_tape=False)
             return
         for (kind, rows, rmask, n_in, n_out, t_buf), out in zip(steps, outs):
