@@ -257,6 +257,7 @@ def make_trace_kernels(scalar):
         grid_src: wp.array(dtype=wp.int32),     # (n_src,) with grid_n < 0, else unused ((1,))
         cell_src: wp.array(dtype=scalar),       # (n_src,) with grid_n < 0, else unused ((1,))
         frac_stride: int,                       # frac of source s, cell j at s * frac_stride + j (0: one table)
+        offset: int,                            # first ray of this launch (CPU threads generate ray ranges; else 0)
         # outputs
         pos_out: wp.array(dtype=vec3),
         dir_out: wp.array(dtype=vec3),
@@ -265,7 +266,7 @@ def make_trace_kernels(scalar):
         wl_out: wp.array(dtype=wp.int32),
         weight_out: wp.array(dtype=scalar),     # power of the ray for unit source radiance (mm^2 or sr)
     ):
-        i = wp.tid()
+        i = wp.tid() + offset
         s = i // n_pupil
         j = i - s * n_pupil
         c = aim[s]

@@ -623,14 +623,14 @@ class Tracer:
             g_src, c_src = self._placeholders()
         inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
                   int(src.get("relative_opl", False)), int(grid_n), npup, g_src, c_src, stride]
-        # off the tape: its inputs (pupil, sources) carry no gradients, so its adjoint would do nothing
-        wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev,
-                  record_tape=False)
+
+        def generate(c):   # rays of chunk c (None: all), each thread its own range before it traces them
+            wp.launch(K.generate_kernel, dim=n if c is None else c[1] - c[0], inputs=inputs + [0 if c is None else c[0]],
+                      outputs=list(gen) + [wl, weight], device=dev, record_tape=False)   # off the tape: no gradient
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto
         kept = set(range(last)) if keep is True else set(keep or ())
-        # a state is reused once the next surface has read it, unless the tape (every state) or the
-        # caller (``keep``) reads it again
+        # a state is reused once the next surface has read it, unless the tape (every state) or ``keep`` reads it again
         outs, spare, prev, prev_kept = [], [], gen, False
         for i in range(last):
             out = new() if (g or i in kept or not spare) else spare.pop()
@@ -663,8 +663,8 @@ class Tracer:
         chunks = self._chunks(n)
         # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
         fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
-        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c, fused), chunks, [None] * len(chunks),
-                   kernels=step_kernels(self, steps, fused), device=dev)
+        run_chunks(lambda c, _: (generate(c), self._trace_range(steps, gen, outs, wl, c, fused)), chunks,
+                   [None] * len(chunks), kernels=(K.generate_kernel, *step_kernels(self, steps, fused)), device=dev)
         pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
         if keep is True:

@@ -61,9 +61,9 @@ class Splatter:
         if g:
             area = wp.zeros(n, dtype=wp.float64, device=dev, requires_grad=g)
             half = wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=g)
-        else:   # from the tracer's pool on a kept batch (Tracer.work_array)
-            area = self.tracer.work_array("tube_area", n, wp.float64, zero=True)
-            half = self.tracer.work_array("tube_half", n, wp.vec2d, zero=True)
+        else:   # from the tracer's pool on a kept batch (Tracer.work_array); tube_area_kernel writes every ray's
+            area = self.tracer.work_array("tube_area", n, wp.float64)
+            half = self.tracer.work_array("tube_half", n, wp.vec2d)
         if packed is None:
             packed = (self.grid_placeholder(), 0, 0)
         if energy:
