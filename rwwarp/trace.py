@@ -520,8 +520,7 @@ class Tracer:
         read-only)."""
         return device_disc_cells(grid_n, self.device)
 
-    def _placeholders(self):
-        """The generate kernel's unused per-source grid and cell arrays ((1,) each)."""
+    def _placeholders(self):   # the generate kernel's unused per-source grid and cell arrays ((1,) each)
         a = self.__dict__.get("_ph_grid")
         if a is None:
             a = self._ph_grid = (wp.zeros(1, dtype=wp.int32, device=self.device),
@@ -536,19 +535,20 @@ class Tracer:
         return a
 
     def packed_rim_cells(self, grids, slots: int):
-        """The rim cells (:meth:`rim_cells`) of a packed batch whose source ``k`` has its own ``grids[k]`` pupil
-        grid in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s
-        table from ``k * slots`` (zeros past its own cells). Made once per grid list (cached on the tracer), on the
-        device from each grid's shared table (:meth:`rim_cells`) by one device copy per source: no host table (150
-        sources of 401^2 slots are 0.58 GB) and no upload."""
+        """The rim cells (:meth:`rim_cells`) of a packed batch whose source ``k`` has its own ``grids[k]`` pupil grid
+        in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s table from ``k *
+        slots`` (zeros past its own cells). Made once per grid list (cached on the tracer), on the device by one copy
+        per source: no host table (150 sources of 401^2 slots are 0.58 GB) and no upload."""
         key = (tuple(int(g) for g in grids), int(slots))
         cache = self.__dict__.setdefault("_packed_rim", {})
         a = cache.get(key)
         if a is None:
             cache.clear()   # one packed batch at a time
-            a = wp.zeros(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
-            for k, g in enumerate(key[0]):
+            a = wp.empty(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
+            for k, g in enumerate(key[0]):   # each source's cells, then zeros past them
                 wp.copy(a, self.rim_cells(g), dest_offset=k * key[1], src_offset=0, count=g * g)
+                if g * g < key[1]:
+                    a[k * key[1] + g * g:(k + 1) * key[1]].zero_()
             cache[key] = a
         return a
 
@@ -739,7 +739,7 @@ class Tracer:
         ``wp.empty`` on the tracer's device. In the pool a 1-D array (``shape`` an int) is kept under ``(tag,
         dtype)`` and handed out as its first ``shape`` elements, grown (made again) when a larger one is asked
         for, so the batches of a map share one array per tag (:func:`rwwarp.map_run._wave_map` on the CPU); other
-        shapes under ``(tag, shape, dtype)``. Zeroed again when ``zero``."""
+        shapes under ``(tag, shape, dtype)``. Zeroed (again) when ``zero``, else not (new: ``wp.empty``)."""
         if self.pool is None:
             return (wp.zeros if zero else wp.empty)(shape, dtype=dtype, device=self.device)
         flat = isinstance(shape, (int, np.integer))
@@ -747,7 +747,8 @@ class Tracer:
         a = self.pool.get(key)
         if a is None or (flat and a.shape[0] < int(shape)):
             self.pool.pop(key, None)   # the smaller one goes before the larger is made
-            a = self.pool[key] = _with_release(self.device, lambda: wp.zeros(shape, dtype=dtype, device=self.device))
+            a = self.pool[key] = _with_release(self.device, lambda: (wp.zeros if zero else wp.empty)(
+                shape, dtype=dtype, device=self.device))
             return a
         if flat and a.shape[0] != int(shape):
             a = a[:int(shape)]
@@ -765,8 +766,7 @@ class Tracer:
         b = np.linspace(0, n, t + 1).astype(np.int64)
         return [(int(b[k]), int(b[k + 1])) for k in range(t)]
 
-    def _fused_steps(self, steps):   # rwwarp.trace_fused.fused_tables (None: the per-surface launches)
-        return fused_tables(self, steps)
+    _fused_steps = fused_tables   # the tables of the fused trace (None: the per-surface launches)
 
     def _trace_range(self, steps, gen, outs, wl, rng, fused=None):
         """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if None); the
