@@ -535,10 +535,10 @@ class Tracer:
         return a
 
     def packed_rim_cells(self, grids, slots: int):
-        """The rim cells (:meth:`rim_cells`) of a packed batch whose source ``k`` has its own ``grids[k]`` pupil grid
-        in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s table from ``k *
-        slots`` (zeros past its own cells). Made once per grid list (cached on the tracer), on the device by one copy
-        per source: no host table (150 sources of 401^2 slots are 0.58 GB) and no upload."""
+        """The rim cells (:meth:`rim_cells`) of a packed batch whose source ``k`` has its own ``grids[k]`` pupil
+        grid in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s table
+        from ``k * slots`` (zeros past its own cells). Made once per grid list (cached on the tracer), on the device
+        by one copy per source: no host table (150 sources of 401^2 slots are 0.58 GB) and no upload."""
         key = (tuple(int(g) for g in grids), int(slots))
         cache = self.__dict__.setdefault("_packed_rim", {})
         a = cache.get(key)
@@ -625,7 +625,7 @@ class Tracer:
                   int(src.get("relative_opl", False)), int(grid_n), npup, g_src, c_src, stride]
 
         def generate(c):   # rays of chunk c (None: all), each thread its own range before it traces them
-            wp.launch(K.generate_kernel, dim=n if c is None else c[1] - c[0], inputs=inputs + [0 if c is None else c[0]],
+            wp.launch(K.generate_kernel, dim=n if c is None else c[1] - c[0], inputs=inputs + [c[0] if c else 0],
                       outputs=list(gen) + [wl, weight], device=dev, record_tape=False)   # off the tape: no gradient
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto
@@ -739,7 +739,7 @@ class Tracer:
         ``wp.empty`` on the tracer's device. In the pool a 1-D array (``shape`` an int) is kept under ``(tag,
         dtype)`` and handed out as its first ``shape`` elements, grown (made again) when a larger one is asked
         for, so the batches of a map share one array per tag (:func:`rwwarp.map_run._wave_map` on the CPU); other
-        shapes under ``(tag, shape, dtype)``. Zeroed (again) when ``zero``, else not (new: ``wp.empty``)."""
+        shapes under ``(tag, shape, dtype)``. Zeroed (again) when ``zero`` (a new CPU one is not zeroed otherwise)."""
         if self.pool is None:
             return (wp.zeros if zero else wp.empty)(shape, dtype=dtype, device=self.device)
         flat = isinstance(shape, (int, np.integer))
@@ -747,8 +747,8 @@ class Tracer:
         a = self.pool.get(key)
         if a is None or (flat and a.shape[0] < int(shape)):
             self.pool.pop(key, None)   # the smaller one goes before the larger is made
-            a = self.pool[key] = _with_release(self.device, lambda: (wp.zeros if zero else wp.empty)(
-                shape, dtype=dtype, device=self.device))
+            new = wp.empty if self.device == "cpu" and not zero else wp.zeros   # a CPU one: written before read
+            a = self.pool[key] = _with_release(self.device, lambda: new(shape, dtype=dtype, device=self.device))
             return a
         if flat and a.shape[0] != int(shape):
             a = a[:int(shape)]

@@ -41,6 +41,6 @@ def step_kernels(tracer, steps, fused):
         return (make_trace_steps_kernel(tracer.scalar),)
     kinds = {k for k, *_ in steps}
     K = tracer.K
-    return tuple(k for k, use in ((K.intersect_kernel, bool(kinds & {ktrace.KIND_REFRACT, ktrace.KIND_REFLECT, ktrace.KIND_PHASE})),
-                                  (K.phase_surface_kernel, ktrace.KIND_PHASE in kinds),
+    curved = bool(kinds & {ktrace.KIND_REFRACT, ktrace.KIND_REFLECT, ktrace.KIND_PHASE})   # an intersect launch
+    return tuple(k for k, use in ((K.intersect_kernel, curved), (K.phase_surface_kernel, ktrace.KIND_PHASE in kinds),
                                   (K.surface_kernel, bool(kinds - {ktrace.KIND_PHASE}))) if use)
