@@ -257,6 +257,7 @@ def make_trace_kernels(scalar):
         grid_src: wp.array(dtype=wp.int32),     # (n_src,) with grid_n < 0, else unused ((1,))
         cell_src: wp.array(dtype=scalar),       # (n_src,) with grid_n < 0, else unused ((1,))
         frac_stride: int,                       # frac of source s, cell j at s * frac_stride + j (0: one table)
+        offset: int,                            # first ray of this launch (CPU threads generate ray ranges; else 0)
         # outputs
         pos_out: wp.array(dtype=vec3),
         dir_out: wp.array(dtype=vec3),
@@ -265,7 +266,7 @@ def make_trace_kernels(scalar):
         wl_out: wp.array(dtype=wp.int32),
         weight_out: wp.array(dtype=scalar),     # power of the ray for unit source radiance (mm^2 or sr)
     ):
-        i = wp.tid()
+        i = wp.tid() + offset
         s = i // n_pupil
         j = i - s * n_pupil
         c = aim[s]
@@ -536,7 +537,10 @@ def make_trace_kernels(scalar):
         i = wp.tid()
         sf = load_surface(params_rows[i & rmask])
         p0, d, ok, w, n1, n2, q = ray_in(i, sf, pos, dir, valid, wl, n_in, n_out)
-        t, newd, extra, ok = surface_step(kind, q, d, t_start[i], sf, n1, n2, ok)
+        t0 = scalar(0.0)
+        if kind == KIND_REFRACT or kind == KIND_REFLECT:
+            t0 = t_start[i]   # only a curved surface's t_start has a slot a ray (else a (1,) placeholder)
+        t, newd, extra, ok = surface_step(kind, q, d, t0, sf, n1, n2, ok)
         ray_out(i, ok, p0, d, q, t, sf.z, newd, n1, extra, opl, pos_out, dir_out, opl_out, valid_out)
 
     @wp.func

@@ -27,6 +27,7 @@ from .device_upload import upload_packed  # noqa: F401  (also read as rwwarp.tra
 from .errors import GeometryError, LensError
 from .kernels import trace as ktrace
 from . import paraxial
+from .trace_fused import fused_tables, step_kernels
 from .pupil import device_disc_cells, disc_cell_fractions, disc_cells, pupil_grid  # noqa: F401  (re-exported)
 
 wp.config.quiet = True
@@ -94,12 +95,15 @@ def _pool(workers: int):
         return _POOL
 
 
-def run_chunks(fn, chunks, outs):
-    """Call ``fn(chunk, out)`` for each ``(lo, hi)`` chunk (or None: everything) with its ``out``, in the
-    module's thread pool when there are several (Warp's CPU kernels release the GIL)."""
+def run_chunks(fn, chunks, outs, kernels=(), device="cpu"):
+    """Call ``fn(chunk, out)`` for each ``(lo, hi)`` chunk (or None: everything) with its ``out``, in the module's
+    thread pool when there are several (Warp's CPU kernels release the GIL). ``kernels`` (launched by ``fn``) are
+    loaded on ``device`` first: two threads loading one module at their first launch can crash Warp (a cold map)."""
     if len(chunks) == 1:
         fn(chunks[0], outs[0])
         return
+    for k in kernels:
+        wp.load_module(k.module, device=device)   # ~3 us once loaded
     futures = [_pool(len(chunks)).submit(fn, c, o) for c, o in zip(chunks, outs)]
     for f in futures:
         f.result()
@@ -516,8 +520,7 @@ class Tracer:
         read-only)."""
         return device_disc_cells(grid_n, self.device)
 
-    def _placeholders(self):
-        """The generate kernel's unused per-source grid and cell arrays ((1,) each)."""
+    def _placeholders(self):   # the generate kernel's unused per-source grid and cell arrays ((1,) each)
         a = self.__dict__.get("_ph_grid")
         if a is None:
             a = self._ph_grid = (wp.zeros(1, dtype=wp.int32, device=self.device),
@@ -533,18 +536,19 @@ class Tracer:
 
     def packed_rim_cells(self, grids, slots: int):
         """The rim cells (:meth:`rim_cells`) of a packed batch whose source ``k`` has its own ``grids[k]`` pupil
-        grid in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s
-        table from ``k * slots`` (zeros past its own cells). Made once per grid list (cached on the tracer), on the
-        device from each grid's shared table (:meth:`rim_cells`) by one device copy per source: no host table (150
-        sources of 401^2 slots are 0.58 GB) and no upload."""
+        grid in ``slots`` ray slots: one device array of ``len(grids) * slots`` ``wp.vec3d``, source ``k``'s table
+        from ``k * slots`` (zeros past its own cells). Made once per grid list (cached on the tracer), on the device
+        by one copy per source: no host table (150 sources of 401^2 slots are 0.58 GB) and no upload."""
         key = (tuple(int(g) for g in grids), int(slots))
         cache = self.__dict__.setdefault("_packed_rim", {})
         a = cache.get(key)
         if a is None:
             cache.clear()   # one packed batch at a time
-            a = wp.zeros(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
-            for k, g in enumerate(key[0]):
+            a = wp.empty(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
+            for k, g in enumerate(key[0]):   # each source's cells, then zeros past them
                 wp.copy(a, self.rim_cells(g), dest_offset=k * key[1], src_offset=0, count=g * g)
+                if g * g < key[1]:
+                    a[k * key[1] + g * g:(k + 1) * key[1]].zero_()
             cache[key] = a
         return a
 
@@ -619,14 +623,14 @@ class Tracer:
             g_src, c_src = self._placeholders()
         inputs = [pu, pv, spos, sdir, sfin, saim, shx, shy, swl, self.n_obj, sc(cell), circle, frac,
                   int(src.get("relative_opl", False)), int(grid_n), npup, g_src, c_src, stride]
-        # off the tape: its inputs (pupil, sources) carry no gradients, so its adjoint would do nothing
-        wp.launch(K.generate_kernel, dim=n, inputs=inputs, outputs=list(gen) + [wl, weight], device=dev,
-                  record_tape=False)
+
+        def generate(c):   # rays of chunk c (None: all), each thread its own range before it traces them
+            wp.launch(K.generate_kernel, dim=n if c is None else c[1] - c[0], inputs=inputs + [c[0] if c else 0],
+                      outputs=list(gen) + [wl, weight], device=dev, record_tape=False)   # off the tape: no gradient
         nsurf = len(self.lens.surfaces)
         last = nsurf + 1 if upto is None else upto
         kept = set(range(last)) if keep is True else set(keep or ())
-        # a state is reused once the next surface has read it, unless the tape (every state) or the
-        # caller (``keep``) reads it again
+        # a state is reused once the next surface has read it, unless the tape (every state) or ``keep`` reads it again
         outs, spare, prev, prev_kept = [], [], gen, False
         for i in range(last):
             out = new() if (g or i in kept or not spare) else spare.pop()
@@ -659,7 +663,8 @@ class Tracer:
         chunks = self._chunks(n)
         # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
         fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
-        run_chunks(lambda c, _: self._trace_range(steps, gen, outs, wl, c, fused), chunks, [None] * len(chunks))
+        run_chunks(lambda c, _: (generate(c), self._trace_range(steps, gen, outs, wl, c, fused)), chunks,
+                   [None] * len(chunks), kernels=(K.generate_kernel, *step_kernels(self, steps, fused)), device=dev)
         pos, dr, opl, valid = outs[-1] if last else gen
         rays = Rays(pos, dr, opl, valid, wl, weight, nsrc, npup)
         if keep is True:
@@ -734,7 +739,7 @@ class Tracer:
         ``wp.empty`` on the tracer's device. In the pool a 1-D array (``shape`` an int) is kept under ``(tag,
         dtype)`` and handed out as its first ``shape`` elements, grown (made again) when a larger one is asked
         for, so the batches of a map share one array per tag (:func:`rwwarp.map_run._wave_map` on the CPU); other
-        shapes under ``(tag, shape, dtype)``. Zeroed again when ``zero``."""
+        shapes under ``(tag, shape, dtype)``. Zeroed (again) when ``zero`` (a new CPU one is not zeroed otherwise)."""
         if self.pool is None:
             return (wp.zeros if zero else wp.empty)(shape, dtype=dtype, device=self.device)
         flat = isinstance(shape, (int, np.integer))
@@ -742,7 +747,8 @@ class Tracer:
         a = self.pool.get(key)
         if a is None or (flat and a.shape[0] < int(shape)):
             self.pool.pop(key, None)   # the smaller one goes before the larger is made
-            a = self.pool[key] = _with_release(self.device, lambda: wp.zeros(shape, dtype=dtype, device=self.device))
+            new = wp.empty if self.device == "cpu" and not zero else wp.zeros   # a CPU one: written before read
+            a = self.pool[key] = _with_release(self.device, lambda: new(shape, dtype=dtype, device=self.device))
             return a
         if flat and a.shape[0] != int(shape):
             a = a[:int(shape)]
@@ -760,17 +766,13 @@ class Tracer:
         b = np.linspace(0, n, t + 1).astype(np.int64)
         return [(int(b[k]), int(b[k + 1])) for k in range(t)]
 
-    def _fused_steps(self, steps):
-        """:func:`rwwarp.trace_fused.fused_tables` of ``steps`` (None: the per-surface launches)."""
-        from .trace_fused import fused_tables
-        return fused_tables(self, steps)
+    _fused_steps = fused_tables   # the tables of the fused trace (None: the per-surface launches)
 
     def _trace_range(self, steps, gen, outs, wl, rng, fused=None):
-        """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if
-        None); the arrays are 1-D views of the chunk, so the kernels see an independent batch. ``fused``
-        (:meth:`_fused_steps`' tables): every step in one launch of
-        :func:`rwwarp.kernels.trace_steps.make_trace_steps_kernel` (the same bits), its state into the last
-        step's arrays."""
+        """Launch the intersection and surface kernels of every step for rays ``rng = (lo, hi)`` (all if None); the
+        arrays are 1-D views of the chunk, so the kernels see an independent batch. ``fused`` (:meth:`_fused_steps`'
+        tables): every step in one launch of :func:`rwwarp.kernels.trace_steps.make_trace_steps_kernel` (the same
+        bits), its state into the last step's arrays."""
         K, dev = self.K, self.device
 
         def cut(a):
@@ -779,8 +781,7 @@ class Tracer:
         state = tuple(cut(a) for a in gen)
         wlc = cut(wl)
         if fused is not None:
-            from .kernels.trace_steps import make_trace_steps_kernel
-            wp.launch(make_trace_steps_kernel(self.scalar), dim=n, inputs=[*state, wlc, *fused, len(steps)],
+            wp.launch(step_kernels(self, steps, fused)[0], dim=n, inputs=[*state, wlc, *fused, len(steps)],
                       outputs=[cut(a) for a in outs[-1]], device=dev, record_tape=False)
             return
         for (kind, rows, rmask, n_in, n_out, t_buf), out in zip(steps, outs):

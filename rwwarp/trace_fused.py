@@ -31,3 +31,16 @@ def fused_tables(tracer, steps):
         a.numpy()[...] = t
         out.append(a)
     return tuple(out)
+
+
+def step_kernels(tracer, steps, fused):
+    """The Warp kernels :meth:`rwwarp.trace.Tracer._trace_range` launches for ``steps`` (``fused``: the tables of
+    :func:`fused_tables`, or None), for :func:`rwwarp.trace.run_chunks` to load before its threads launch them."""
+    if fused is not None:
+        from .kernels.trace_steps import make_trace_steps_kernel
+        return (make_trace_steps_kernel(tracer.scalar),)
+    kinds = {k for k, *_ in steps}
+    K = tracer.K
+    curved = bool(kinds & {ktrace.KIND_REFRACT, ktrace.KIND_REFLECT, ktrace.KIND_PHASE})   # an intersect launch
+    return tuple(k for k, use in ((K.intersect_kernel, curved), (K.phase_surface_kernel, ktrace.KIND_PHASE in kinds),
+                                  (K.surface_kernel, bool(kinds - {ktrace.KIND_PHASE}))) if use)

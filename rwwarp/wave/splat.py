@@ -61,9 +61,9 @@ class Splatter:
         if g:
             area = wp.zeros(n, dtype=wp.float64, device=dev, requires_grad=g)
             half = wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=g)
-        else:   # from the tracer's pool on a kept batch (Tracer.work_array)
-            area = self.tracer.work_array("tube_area", n, wp.float64, zero=True)
-            half = self.tracer.work_array("tube_half", n, wp.vec2d, zero=True)
+        else:   # from the tracer's pool on a kept batch (Tracer.work_array); tube_area_kernel writes every ray's
+            area = self.tracer.work_array("tube_area", n, wp.float64)
+            half = self.tracer.work_array("tube_half", n, wp.vec2d)
         if packed is None:
             packed = (self.grid_placeholder(), 0, 0)
         if energy:
@@ -117,19 +117,20 @@ class Splatter:
         if len(chunks) == 1:
             launch(0, n_rays, (s_re, s_im, dropped))
             return s_re, s_im, dropped
+        kern = (make_splat_forward_kernel(tr.scalar) if forward else K.splat_kernel,)
         groups = source_groups(source_work, n_src, len(chunks)) if source_work is not None else None
         if groups is not None:
             # CPU threads take whole sources: a source's rays add only into its own window and counter, so the
             # threads share the sums with no race, and each sample adds its rays in the order one launch does
             npup = n_rays // n_src
             run_chunks(lambda c, _: launch(c[0] * npup, (c[1] - c[0]) * npup, (s_re, s_im, dropped)),
-                       groups, [None] * len(groups))
+                       groups, [None] * len(groups), kernels=kern, device=dev)
             return s_re, s_im, dropped
         # CPU threads splat ray ranges into private sums (Warp's CPU atomics are plain adds), then add
         parts = [(s_re, s_im, dropped)] + [
             (wp.zeros(total, dtype=wp.float64, device=dev), wp.zeros(total, dtype=wp.float64, device=dev),
              wp.zeros(n_src, dtype=wp.int32, device=dev)) for _ in chunks[1:]]
-        run_chunks(lambda c, out: launch(c[0], c[1] - c[0], out), chunks, parts)
+        run_chunks(lambda c, out: launch(c[0], c[1] - c[0], out), chunks, parts, kernels=kern, device=dev)
         for a, b, d in parts[1:]:
             s_re.numpy()[:] += a.numpy()
             s_im.numpy()[:] += b.numpy()
@@ -174,7 +175,7 @@ class Splatter:
         run_chunks(lambda c, _: wp.launch(K.finalize_kernel, dim=total if c is None else c[1] - c[0],
                                           inputs=fin_in + [skip, 0 if c is None else c[0]], outputs=[field],
                                           device=dev),
-                   chunks, [None] * len(chunks))
+                   chunks, [None] * len(chunks), kernels=(K.finalize_kernel,), device=dev)
         return field
 
 

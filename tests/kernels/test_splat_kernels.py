@@ -263,7 +263,7 @@ def test_energy_conservation_with_traced_rays(device, rays_per_cell, circle):
               inputs=[_a(np.zeros(1), F64, device), _a(np.zeros(1), F64, device), one([0.0, 0, 0], V3),
                       one([0.0, 0, 1], V3), one(0, wp.int32), one([0.0, 0, 0], V3), one(a), one(a), one(0, wp.int32),
                       one(1.0), (2.0 / g) ** 2, circle, _a(np.array([[1.0, 0.0, 0.0]]), wp.vec3d, device), 1, g, npup,
-                      _ph(device), _a(np.zeros(1), F64, device), 0],
+                      _ph(device), _a(np.zeros(1), F64, device), 0, 0],
               outputs=outs, device=device)
     pos, d, opl, valid, _, weight = outs
     area = wp.zeros(npup, dtype=F64, device=device)

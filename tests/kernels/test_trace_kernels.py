@@ -250,7 +250,7 @@ def test_generate_rays(device):
                       arr(finite, wp.int32), arr(aim, K.vec3), arr(half[:, 0]), arr(half[:, 1]),
                       arr(np.array([0, 0], np.int32), wp.int32), arr(np.array([n0])), cell, 1,
                       arr(np.array([[1.0, 0.0, 0.0]]), wp.vec3d), 1, g,
-                      npup, arr(np.zeros(1, np.int32), wp.int32), arr(np.zeros(1)), 0],
+                      npup, arr(np.zeros(1, np.int32), wp.int32), arr(np.zeros(1)), 0, 0],
               outputs=outs, device=device)
     pos, d, opl, valid, wl, weight = [o.numpy() for o in outs]
     u = -1.0 + (2.0 * np.arange(g) + 1.0) / g

@@ -35,10 +35,10 @@ def two_threads(monkeypatch):
 
 
 def test_warm_a489_map_launches(two_threads):
-    """The second call is a cache hit and makes 36 launches: 4 batches (the CPU's default batch bytes) x 9 =
-    the ray generation, the trace through every surface (kernels/trace_steps.py) and the splat and finalize on
-    each of the 2 threads, the tube areas, the power sums and their tree in one launch (power_tree_kernel). The
-    count is deterministic, so it is asserted exactly, kernel by kernel."""
+    """The second call is a cache hit and makes 40 launches: 4 batches (the CPU's default batch bytes) x 10 =
+    the ray generation of each thread's range, the trace through every surface (kernels/trace_steps.py) and the
+    splat and finalize on each of the 2 threads, the tube areas, the power sums and their tree in one launch
+    (power_tree_kernel). The count is deterministic, so it is asserted exactly, kernel by kernel."""
     cache = rw.PlanCache()
     first = _map(cache)
     counts = Counter()
@@ -54,9 +54,9 @@ def test_warm_a489_map_launches(two_threads):
         wp.launch = orig
     assert second.info["cache"] == "hit"
     assert len(second.info["batches"]) == 4
-    assert dict(counts) == {"generate_kernel": 4, "trace_steps_kernel": 8, "tube_area_kernel": 4,
+    assert dict(counts) == {"generate_kernel": 8, "trace_steps_kernel": 8, "tube_area_kernel": 4,
                             "splat_forward_kernel": 8, "finalize_kernel": 8, "power_tree_kernel": 4}, dict(counts)
-    assert sum(counts.values()) == 36
+    assert sum(counts.values()) == 40
     assert np.array_equal(first.data, second.data)
 
 
