@@ -3,7 +3,7 @@
 set -u
 out=$1; r=$2; reps=$3; shift 3
 py=/work/main/.venv/bin/python
-wr=$(cd "$(dirname "$0")" && pwd)/warm_repeats.py
+wr=$(cd "$(dirname "$0")/../../tools" && pwd)/map_warm_repeats.py
 for spec in "$@"; do
     IFS=: read -r name tree batch <<< "$spec"
     (cd "$tree" && PYTHONPATH="$tree" $py "$wr" --batch "$batch" --repeats "$reps" \

@@ -2,7 +2,7 @@
 process of the tree on PYTHONPATH: one cold map, then ``--repeats`` warm maps, each timed (wall and process CPU),
 host RSS peak. For min-of-N timing on a machine shared with other jobs (run from the tree's root).
 
-    PYTHONPATH=TREE python warm_repeats.py --batch 9 --repeats 2 --out x.json
+    PYTHONPATH=TREE python perf/tools/map_warm_repeats.py --batch 9 --repeats 2 --out x.json
 """
 import argparse, json, os, resource, subprocess, sys, time, warnings
 
@@ -33,7 +33,8 @@ for _ in range(a.repeats):
 commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
 out = {"commit": commit, "batch": batch, "grid": [a.grid, a.grid], "size_px": 32, "n_psfs": a.grid * a.grid * 3,
        "n_batches": len(m.info["batches"]), "cold_s": cold, "warm": runs,
-       "min_warm_s": min(r["wall_s"] for r in runs),
+       "min_warm_s": min((r["wall_s"] for r in runs), default=None),
+       "median_warm_s": float(np.median([r["wall_s"] for r in runs])) if runs else None,
        "max_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
        "patch_power_mean": float(m.data.sum(axis=(2, 3)).mean())}
 np.save(a.out[:-5] + ".npy", m.data)
