@@ -237,16 +237,6 @@ _NEWTON = 2
 
 
 def _radial_profiles(phase, cx, cy):
-    """``A`` (degree + 1, nth): ``Phi(r (cx, cy)) = sum_j A[j] r^j`` along each rim node's radius."""
-    P = np.asarray(phase.powers, int).reshape(-1, 2)
-    d = max(phase.degree, 0)
-    out = np.zeros((d + 1, len(cx)))
-    for (p, q), c in zip(P, np.asarray(phase.coeffs, float)):
-        out[p + q] += c * cx ** p * cy ** q
-    return out
-
-
-def _radial_profiles(phase, cx, cy):
     """``prof`` (degree + 1, nth): ``Phi(r (cx, cy)) = sum_j prof[j] r^j`` along each rim node's radius."""
     d = max(phase.degree, 0)
     P = np.asarray(phase.powers, int).reshape(-1, 2)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, asdict, replace
+from dataclasses import dataclass, asdict
 
 import numpy as np
 
@@ -541,7 +541,7 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     samples = width_mm / pitch
     ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), samples / 4))) + 1
     reasons = (
-        f"focal propagation: reference wave to the patch centre handled analytically (rwwarp.wave.focal)",
+        "focal propagation: reference wave to the patch centre handled analytically (rwwarp.wave.focal)",
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
