@@ -168,7 +168,7 @@ class RayWave:
         """
         tr, src, pl, plane, nsrc = self.tracer, self.src, self.plan, self.plane, self.nsrc
         import warp as wp
-        from .reduce import source_sums
+        from .reduce import power_source_sums
         u, v, cell = self.pupil
         # rim cells weighted by the part of them the pupil disc covers (energy convention)
         rim = self.rim
@@ -177,19 +177,10 @@ class RayWave:
         rays = tr._run(src, u, v, cell, upto=plane + 1, grid_n=pl.ray_grid, rim=rim, grids=lay["ray_grids"])
         if self.curved_plane:
             rays = tr.to_plane(rays, self.z_plane, plane)
-        K = self.splatter.K
-        # per source (entering, valid) power: a fixed summation tree, the same bits on every run
-        if tr.device == "cpu":   # the terms formed and summed in one launch (the same additions in the same order)
-            from .reduce import power_source_sums
-            self._sums_dev, self._sums = power_source_sums(
-                rays.valid, rays.weight, nsrc, npup, tr.scalar, tr.device,
-                work=tr.work_array if tr.pool is not None else None), None
-        else:
-            terms = tr.work_array("power_terms", nsrc * npup, K.vec4d)   # pooled on a kept batch
-            wp.launch(K.power_sums_kernel, dim=nsrc * npup, inputs=[rays.valid, rays.weight], outputs=[terms],
-                      device=tr.device, record_tape=False)   # not differentiated: off any active tape
-            self._sums_dev, self._sums = source_sums(terms, nsrc, wp.float64, tr.device,   # read when asked
-                                                     work=tr.work_array if tr.pool is not None else None), None
+        # per source (entering, valid) power: a fixed summation tree, the same bits on every run (on the CPU the terms
+        # formed and summed in one launch; elsewhere the terms kernel and the tree's passes), read when asked
+        self._sums_dev, self._sums = power_source_sums(rays.valid, rays.weight, nsrc, npup, tr.scalar, tr.device,
+                                                       work=tr.work_array if tr.pool is not None else None), None
         chief_plane, opl_p = self.chief_plane.copy(), self.opl_chief.copy()
         if not self.chief_ok.all():
             valid = rays.valid.numpy().reshape(nsrc, npup).astype(bool)
