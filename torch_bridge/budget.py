@@ -14,7 +14,8 @@ import torch
 from rwwarp.trace import COLUMNS as _COL
 
 __all__ = ["bytes_fixed", "bytes_per_source", "cached_held_bytes", "cached_step_bytes",
-           "default_memory_budget_bytes", "device_overhead_bytes", "focal_graph_bytes", "memory_gb",
+           "default_memory_budget_bytes", "device_overhead_bytes",
+           "overhead_from", "own_process_bytes", "process_device_bytes", "focal_graph_bytes", "memory_gb",
            "output_bytes_per_source", "over_budget", "torch_gb"]
 
 
@@ -66,18 +67,58 @@ def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:
             "other processes share it (the figure is the device's used memory: a smoke run beside this one counts)")
 
 
+def process_device_bytes(device) -> int | None:
+    """Bytes the driver reports this process using on the CUDA device ``device`` (its context and every
+    allocation: torch's, Warp's and CuPy's pools, cuFFT work areas), read now through NVML (``pynvml``, the
+    ``nvidia-ml-py`` package). None where that cannot be read: no CUDA, no NVML, the driver does not list this
+    process (a container in another PID namespace) or gives no figure for it. Other processes on the same card do
+    not count, unlike ``torch.cuda.mem_get_info``'s device-wide figure."""
+    import os
+    dev = str(device)
+    if not (dev.startswith("cuda") and torch.cuda.is_available()):
+        return None
+    try:
+        import pynvml
+        pynvml.nvmlInit()
+        uuid = str(torch.cuda.get_device_properties(torch.device(dev)).uuid)
+        handle = pynvml.nvmlDeviceGetHandleByUUID(uuid if uuid.startswith("GPU-") else "GPU-" + uuid)
+        procs = pynvml.nvmlDeviceGetComputeRunningProcesses(handle)
+    except Exception:  # noqa: BLE001 (no NVML, or a driver that cannot answer: the caller falls back)
+        return None
+    return own_process_bytes(procs, os.getpid())
+
+
+def own_process_bytes(processes, pid: int) -> int | None:
+    """The bytes NVML's process list ``processes`` (entries with ``pid`` and ``usedGpuMemory``, bytes or None)
+    gives the process ``pid``, summed over its entries; None where it is not listed or has no figure."""
+    used = [p.usedGpuMemory for p in processes if int(p.pid) == int(pid) and p.usedGpuMemory is not None]
+    return int(sum(used)) if used else None
+
+
+def overhead_from(total: int, free: int, reserved: int, own: int | None) -> int:
+    """Bytes (>= 0) a device holds outside torch's caching allocator on behalf of this process: ``own`` (this
+    process's use as the driver reports it, :func:`process_device_bytes`) less torch's ``reserved`` bytes; where
+    ``own`` is None, the device-wide figure ``total - free - reserved`` (which counts other processes too)."""
+    if own is not None:
+        return max(0, int(own) - int(reserved))
+    return max(0, int(total) - int(free) - int(reserved))
+
+
 def device_overhead_bytes(device) -> int:
-    """Bytes (>= 0) the CUDA device ``device`` has in use outside torch's caching allocator, read now: the total
-    less the free memory (``torch.cuda.mem_get_info``) less what torch's allocator reserves. That is the CUDA
-    context, CuPy's and Warp's own pools, cuFFT plans' work areas and any other process on the card: memory a
-    budget of the device's used memory (``optics.memory_budget_gb``, sampled by ``perf/smoke_presets.py``) has
-    to leave aside. 0 on the CPU. Measured on an H100 at d2b756b: without it the a489_aberration e2e_doe field
-    builds, estimated at 23.8 GB with the cached fields, peaked at 24.52 GB of device memory against 24."""
+    """Bytes (>= 0) the CUDA device ``device`` has in use for this process outside torch's caching allocator, read
+    now: the CUDA context, CuPy's and Warp's own pools, cuFFT plans' work areas: memory a budget of the process's
+    used memory (``optics.memory_budget_gb``, sampled per process by ``perf/smoke_presets.py``) has to leave aside.
+    0 on the CPU. This process's own figure comes from the driver (:func:`process_device_bytes`); other processes
+    on the card do not count (session 24: a profiling run sharing the GPU made a design run's device-wide
+    overhead exceed its 28 GB budget, and its first field build was refused at a budget of 0). Where the driver
+    cannot say, the device-wide figure is used (:func:`overhead_from`). Measured on an H100 at d2b756b: without
+    any overhead the a489_aberration e2e_doe field builds, estimated at 23.8 GB with the cached fields, peaked at
+    24.52 GB of device memory against 24."""
     dev = str(device)
     if dev.startswith("cuda") and torch.cuda.is_available():
         d = torch.device(dev)
         free, total = torch.cuda.mem_get_info(d)
-        return max(0, int(total) - int(free) - int(torch.cuda.memory_reserved(d)))
+        return overhead_from(total, free, torch.cuda.memory_reserved(d), process_device_bytes(dev))
     return 0
 
 

@@ -259,14 +259,27 @@ class CachedProvider:
         return Plan(rec["pitch_mm"], rec["n_grid"], rec["n_pad"], rec["ray_grid"], "explicit", False,
                     ["recorded plan"])
 
-    def budget_bytes(self) -> int:
+    def budget_bytes(self, strict: bool = True) -> int:
         """The memory budget (bytes) of one entry's field build: ``memory_budget_bytes`` less what the device
-        holds outside torch's allocator (:func:`~torch_bridge.budget.device_overhead_bytes`: the CUDA context,
-        CuPy's and Warp's pools; 0 on the CPU; read now), or the device default
-        (:func:`~torch_bridge.budget.default_memory_budget_bytes`, read now)."""
+        holds for this process outside torch's allocator (:func:`~torch_bridge.budget.device_overhead_bytes`: the
+        CUDA context, CuPy's and Warp's pools; 0 on the CPU; read now), or the device default
+        (:func:`~torch_bridge.budget.default_memory_budget_bytes`, read now). When the overhead alone reaches
+        the budget: ``strict`` raises :class:`~rwwarp.wave.plan.MemoryBudgetError` saying so (a field build), else
+        0 (a training step then checkpoints every chunk rather than stopping a run)."""
+        from rwwarp.wave.plan import MemoryBudgetError
         from torch_bridge.budget import default_memory_budget_bytes, device_overhead_bytes
         if self.memory_budget_bytes is not None:
-            return max(0, self.memory_budget_bytes - device_overhead_bytes(self.module.rw_device))
+            overhead = device_overhead_bytes(self.module.rw_device)
+            if overhead >= self.memory_budget_bytes:
+                if not strict:
+                    return 0
+                raise MemoryBudgetError(
+                    f"the memory budget of {self.memory_budget_bytes / 1e9:.3g} GB (optics.memory_budget_gb) leaves "
+                    f"nothing for the field builds: {overhead / 1e9:.3g} GB of {self.module.rw_device} is in use "
+                    "outside torch's allocator (the CUDA context, Warp's and CuPy's pools; where the driver cannot "
+                    "report this process's own use, other processes on the card count too). Raise the budget, or "
+                    "free the card")
+            return self.memory_budget_bytes - overhead
         return default_memory_budget_bytes(self.module.rw_device)
 
     def step_budget_bytes(self) -> int:
@@ -277,7 +290,7 @@ class CachedProvider:
         (:func:`~torch_bridge.budget.default_memory_budget_bytes`: half the free memory, read now)."""
         if self.memory_budget_bytes is None:
             return self.budget_bytes() // 2
-        return max(0, self.budget_bytes() - self.cache_bytes()) // 2
+        return max(0, self.budget_bytes(strict=False) - self.cache_bytes()) // 2
 
     def build_batch(self, rw, budget_bytes: int | None = None) -> dict:
         """Sources per trace batch of a field build under the budget (bytes, default

@@ -232,3 +232,43 @@ def test_a_recorded_step_keeps_only_the_node_fields_until_backward():
     prov.psfs(wls).sum().backward()
     assert all(r["checkpointed"] for r in prov.step_log[-2:])
     np.testing.assert_allclose(m.doe.grad.numpy(), g_rec.numpy(), rtol=1e-10, atol=1e-12 * g_rec.abs().max().item())
+
+
+def test_other_processes_on_the_card_do_not_eat_the_budget(monkeypatch):
+    """Session 24, on an H200: a profiling run on the same GPU (~31 GB) made a design run's device-wide overhead
+    exceed its 28 GB budget, and its first field build was refused "over the memory budget of 0 GiB". The overhead
+    is now this process's own figure from the driver (NVML), less torch's reserve; other processes' entries do
+    not count. Checked with a made-up NVML answering for this pid and another one."""
+    import os
+    import sys
+    import types
+    from torch_bridge import budget as bud
+    from rwwarp.wave.plan import MemoryBudgetError
+
+    class Proc:
+        def __init__(self, pid, used):
+            self.pid, self.usedGpuMemory = pid, used
+
+    listed = [Proc(os.getpid() + 1, 31 * 10 ** 9), Proc(os.getpid(), 17 * 10 ** 9)]
+    fake = types.SimpleNamespace(nvmlInit=lambda: None, nvmlDeviceGetHandleByUUID=lambda u: ("handle", u),
+                                 nvmlDeviceGetComputeRunningProcesses=lambda h: listed)
+    monkeypatch.setitem(sys.modules, "pynvml", fake)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_properties",
+                        lambda d: types.SimpleNamespace(uuid="1234-abcd"))
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda d=None: (80 * 10 ** 9, 141 * 10 ** 9))   # 61 GB used
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda d=None: 15 * 10 ** 9)
+    assert bud.process_device_bytes("cuda:0") == 17 * 10 ** 9
+    assert bud.device_overhead_bytes("cuda:0") == 2 * 10 ** 9        # 17 GB own - 15 GB reserved; not 61 - 15
+    # not listed (another PID namespace) or no figure: the device-wide reading, as before
+    assert bud.own_process_bytes([Proc(os.getpid() + 1, 5)], os.getpid()) is None
+    assert bud.own_process_bytes([Proc(os.getpid(), None)], os.getpid()) is None
+    assert bud.overhead_from(141, 80, 15, None) == 46
+    # an overhead that reaches the budget: a field build is refused with a message that says why; a step's share
+    # is 0 (it checkpoints every chunk) rather than stopping a run
+    m, fields = _setup()
+    p = dz.CachedProvider(m, fields, 21, 0.003, wavelength_ref_um=0.55, memory_budget_bytes=24 * 10 ** 9)
+    monkeypatch.setattr(bud, "device_overhead_bytes", lambda dev: 30 * 10 ** 9)
+    with pytest.raises(MemoryBudgetError, match="in use outside torch's allocator"):
+        p.budget_bytes()
+    assert p.step_budget_bytes() == 0
