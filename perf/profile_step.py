@@ -54,6 +54,11 @@ def main():
                          "checkpoint, no recompute in the backward pass)")
     a = ap.parse_args()
 
+    # the allocator `rwwarp design` runs with (torch_bridge/command.py), unless the caller set one: without it
+    # the step's varying tiles fragment torch's pool (session 24, H200, cb1c2af: cooke_hybrid e2e reserved 32 GB,
+    # 33 GB of the device, for a 19-21 GB step peak, against the design run's 28 GB budget)
+    import os
+    os.environ.setdefault("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
     import torch
 
     from torch_bridge.train import Arm, _seed_all, load_config, train_step

@@ -55,3 +55,8 @@ class PatchWarning(UserWarning):
     """A PSF does not fit its patch: less than 95 % of the power reaching the sensor lies inside it
     (:func:`rwwarp.psf_map` names the field, the wavelength and the fraction; pass a larger ``size``).
     Not a :class:`SamplingWarning`: the PSF inside the patch is right, the patch is too small."""
+
+
+class PerformanceWarning(UserWarning):
+    """Work that gives the right result at a needless cost the caller can remove (e.g. FFT plans rebuilt because
+    the plan cache's bounds are smaller than the work's set of plans)."""

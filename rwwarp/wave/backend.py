@@ -130,8 +130,10 @@ class Backend:
 
     #: FFT plans kept (least recently used dropped first), and the byte budget of their temporary buffers.
     #: Plans without a temporary buffer hold next to no device memory but cost a kernel build (NVRTC on
-    #: CUDA) to remake, so the count bound is generous: a map's batches can all keep theirs.
-    max_fft_plans = 64
+    #: CUDA) to remake, so the count bound is generous: a map's batches and a design step's nodes can all keep
+    #: theirs. Session 24 (H200, cb1c2af): at 64 the a489_edof gpu step (27 sources, three depths) cycled its
+    #: plans through the bound, rebuilding 1-13 a step at ~0.68 s each (7.4 of an 8.1 s step).
+    max_fft_plans = 512
     max_fft_plan_bytes = 512 * 2**20
 
     #: True where :meth:`gemm` runs the batched complex matrix products of the matrix DFTs through the vendor's
@@ -155,6 +157,10 @@ class Backend:
         #: needed again is built again, so a growing count over kept plans shows plans cycling
         self.fft_plans_built = 0
         self.fft_plans_dropped = 0
+        #: plans built again after the bound dropped them (the working set exceeds the bound: warned once)
+        self.fft_plans_rebuilt = 0
+        self._dropped_keys: OrderedDict = OrderedDict()  # keys the bound dropped (the last 4096), for the count above
+        self._cycling_warned = False  # the cycling warning is given once (again after clear_caches)
         self._programs: dict = {}
         self._lock = threading.Lock()
         self._release_hooks: list = []  # callables that free device memory held by other allocators
@@ -256,11 +262,26 @@ class Backend:
             self._plans[key] = (plan, int(nbytes))
             self._plan_bytes += int(nbytes)
             self.fft_plans_built += 1
+            cycling = self._dropped_keys.pop(key, None) is not None
+            if cycling:
+                self.fft_plans_rebuilt += 1
             while len(self._plans) > 1 and (len(self._plans) > self.max_fft_plans
                                             or self._plan_bytes > self.max_fft_plan_bytes):
-                _, (_, old) = self._plans.popitem(last=False)
+                old_key, (_, old) = self._plans.popitem(last=False)
                 self._plan_bytes -= old
                 self.fft_plans_dropped += 1
+                self._dropped_keys[old_key] = True
+                while len(self._dropped_keys) > 4096:
+                    self._dropped_keys.popitem(last=False)
+        if cycling and not self._cycling_warned:
+            self._cycling_warned = True
+            import warnings
+            from rwwarp.errors import PerformanceWarning
+            warnings.warn(f"FFT plans are cycling on {self.device}: a plan the cache dropped (bounds: "
+                          f"max_fft_plans={self.max_fft_plans}, max_fft_plan_bytes={self.max_fft_plan_bytes}) is "
+                          "built again; each build compiles a VkFFT kernel (~0.7 s on CUDA). The work's plans do "
+                          "not fit the bounds: raise them on the backend (rwwarp.wave.backend.get_backend(...))",
+                          PerformanceWarning, stacklevel=3)
         return plan
 
     def allocated_bytes(self) -> int:
@@ -274,13 +295,13 @@ class Backend:
         """Bookkeeping of held device memory, bytes: ``workspace_bytes`` (per tag in
         ``workspaces``), ``cache_bytes`` (transfer functions and the like, ``cache_entries``),
         ``fft_plan_bytes`` (VkFFT temporary buffers) and ``fft_plans`` (count); ``fft_plans_built`` and
-        ``fft_plans_dropped``: counts since the backend was made."""
+        ``fft_plans_dropped``, ``fft_plans_rebuilt`` (dropped, then needed again): counts since the backend was made."""
         with self._lock:
             ws = {f"{tag}:{dt}": int(e[0].nbytes) for (tag, dt), e in self._workspace.items()}
             return {"workspace_bytes": sum(ws.values()), "workspaces": ws, "cache_bytes": self.cache.nbytes,
                     "cache_entries": len(self.cache), "fft_plan_bytes": self._plan_bytes,
                     "fft_plans": len(self._plans), "fft_plans_built": self.fft_plans_built,
-                    "fft_plans_dropped": self.fft_plans_dropped}
+                    "fft_plans_dropped": self.fft_plans_dropped, "fft_plans_rebuilt": self.fft_plans_rebuilt}
 
     def clear_caches(self):
         """Release cached workspaces, FFT plans and transfer functions (compiled programs stay), and
@@ -288,6 +309,8 @@ class Backend:
         with self._lock:
             self._workspace.clear()
             self._plans.clear()
+            self._dropped_keys.clear()
+            self._cycling_warned = False
             self._plan_bytes = 0
         self.cache.clear()
         self._release_pool()
