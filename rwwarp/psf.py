@@ -174,8 +174,10 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         What a sensor pixel records (wave models). ``"flux"`` (default): the power through it, the
         z-component of the Poynting vector (obliquity included) of the field whose flux through the wave
         plane is the traced power, so a PSF that catches all the light sums to the traced fraction.
-        ``"intensity"``: ``|U|^2`` integrated over it, the convention before issue 27 (it differs from the
-        flux by ~1e-4 of the peak at 35-40 deg; docs/propagation.md "Pixel values").
+        ``"intensity"``: ``|U|^2`` integrated over it, the convention before issue 27. The two differ by the
+        Poynting vector's z-component: in scale by about the mean direction cosine of the light at the sensor
+        (0.991 at 10 deg with a strong DOE 5 mm before the sensor, docs/accuracy.md), in shape, once that scale
+        is removed, by ~1e-4 of the peak at 35-40 deg (docs/propagation.md "Pixel values").
     tolerance : float, optional
         The model error (max |error| over the PSF's peak) the caller accepts. The ray-wave model's own
         error (the geometric field at the DOE plane leaves out the rim's diffraction on the way there) is
