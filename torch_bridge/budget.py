@@ -57,14 +57,15 @@ def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:
     """A message when ``memory_gb`` (GB = 1e9 bytes, the memory in use a training step measured) exceeds
     ``budget_gb`` (GB; None or 0: no budget), else None. ``where`` names the run and step in the message. The design
     loop warns with it once per arm and records it in ``progress.json``: a provider whose plans grow (a focal entry
-    rebuilt for new DOE orders went from 20 to 117 GB under a 24 GB budget on an H200) must not pass unseen. On a GPU ``memory_gb`` is the device's (:func:`memory_gb`), so a process sharing the card
-    (session 23: the GPU smoke beside a design run, 25.2 GB against 24 at the run's first step) trips it too: the
-    message says so."""
+    rebuilt for new DOE orders went from 20 to 117 GB under a 24 GB budget on an H200) must not pass unseen. On a GPU ``memory_gb`` is this process's own figure where the driver reports it
+    (:func:`memory_gb`); where it does not, the device's, so a process sharing the card (session 23: the GPU smoke
+    beside a design run, 25.2 GB against 24 at the run's first step) trips it too: the message says so."""
     if not budget_gb or memory_gb is None or not memory_gb > float(budget_gb):
         return None
     return (f"{where}: {memory_gb:.3g} GB of memory in use, over the memory budget of {float(budget_gb):.3g} GB "
-            "(optics.memory_budget_gb): the plans or caches grew past what the budget was set for, or, on a GPU, "
-            "other processes share it (the figure is the device's used memory: a smoke run beside this one counts)")
+            "(optics.memory_budget_gb): the plans or caches grew past what the budget was set for, or, on a GPU "
+            "whose driver does not report this process's own use, other processes share it (the figure is then the "
+            "device's used memory: a smoke run beside this one counts)")
 
 
 def process_device_bytes(device) -> int | None:
@@ -193,10 +194,15 @@ def bytes_fixed(rw) -> int:
 
 
 def memory_gb(device) -> float:
-    """Memory in use (GB = 1e9 bytes) after a step: on CUDA the whole device's used memory (total - free,
-    so torch, Warp and CuPy pools all count), on the CPU the process's peak resident set size."""
+    """Memory in use (GB = 1e9 bytes) after a step: on CUDA this process's use of the device as the driver reports it
+    (:func:`process_device_bytes`: torch, Warp and CuPy pools and the context all count, other processes on the card
+    do not), or the whole device's used memory (total - free) where the driver cannot say; on the CPU the
+    process's peak resident set size."""
     dev = torch.device(device)
     if dev.type == "cuda":
+        own = process_device_bytes(str(dev) if dev.index is not None else f"cuda:{torch.cuda.current_device()}")
+        if own is not None:
+            return round(own / 1e9, 3)
         free, total = torch.cuda.mem_get_info(dev)
         return round((total - free) / 1e9, 3)
     import resource

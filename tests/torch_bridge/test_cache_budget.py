@@ -260,6 +260,7 @@ def test_other_processes_on_the_card_do_not_eat_the_budget(monkeypatch):
     monkeypatch.setattr(torch.cuda, "memory_reserved", lambda d=None: 15 * 10 ** 9)
     assert bud.process_device_bytes("cuda:0") == 17 * 10 ** 9
     assert bud.device_overhead_bytes("cuda:0") == 2 * 10 ** 9        # 17 GB own - 15 GB reserved; not 61 - 15
+    assert bud.memory_gb("cuda:0") == 17.0                             # a step's figure: this process's, not 61 GB
     # not listed (another PID namespace) or no figure: the device-wide reading, as before
     assert bud.own_process_bytes([Proc(os.getpid() + 1, 5)], os.getpid()) is None
     assert bud.own_process_bytes([Proc(os.getpid(), None)], os.getpid()) is None
