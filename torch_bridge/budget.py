@@ -68,6 +68,9 @@ def over_budget(memory_gb: float, budget_gb, where: str) -> str | None:
             "device's used memory: a smoke run beside this one counts)")
 
 
+_NVML_READY: list = []   # [True] once this process has initialised NVML
+
+
 def process_device_bytes(device) -> int | None:
     """Bytes the driver reports this process using on the CUDA device ``device`` (its context and every
     allocation: torch's, Warp's and CuPy's pools, cuFFT work areas), read now through NVML (``pynvml``, the
@@ -80,7 +83,9 @@ def process_device_bytes(device) -> int | None:
         return None
     try:
         import pynvml
-        pynvml.nvmlInit()
+        if not _NVML_READY:
+            pynvml.nvmlInit()          # once a process (NVML counts its initialisations)
+            _NVML_READY.append(True)
         uuid = str(torch.cuda.get_device_properties(torch.device(dev)).uuid)
         handle = pynvml.nvmlDeviceGetHandleByUUID(uuid if uuid.startswith("GPU-") else "GPU-" + uuid)
         procs = pynvml.nvmlDeviceGetComputeRunningProcesses(handle)
