@@ -276,6 +276,16 @@ def rim_profile(rw, d_mm) -> np.ndarray:
     return out
 
 
+def step_nodes(rw) -> int:
+    """The most propagation rows (FFT pairs) a source of ``rw``'s wave step takes: its :func:`rim_profile`'s node count
+    (1: the isotropic step, or no step)."""
+    prof = getattr(rw, "wave_step_rim", None)
+    d = np.asarray(getattr(rw, "wave_step", None) if getattr(rw, "wave_step", None) is not None else 0.0, float)
+    if prof is None or not np.any(d != 0):
+        return 1
+    return int(max(1, np.max(np.asarray(prof, float)[:, 3][np.broadcast_to(d != 0, (len(prof),))])))
+
+
 def _rim_range(row):
     """(D_min, D_max) mm of a :func:`rim_profile` row's rim distance over the rim (720 azimuths)."""
     phi = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
