@@ -56,7 +56,65 @@ def plan_window(ctx) -> Planned:
         hi = np.full_like(hi, half)
     else:
         raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
-    return Planned(pl, ctx.carrier, ctx.centers, lo, hi)
+    centers = ctx.centers
+    if ctx.center_mm is None:
+        centers, why = doe_landing_centres(ctx)
+        if why:
+            pl = pl.with_reasons(why)
+    return Planned(pl, ctx.carrier, centers, lo, hi)
+
+
+def doe_landing_centres(ctx):
+    """``(centers, reason)``: the patch centres ((S, 2) mm, snapped to pixels) where the beam lands after the DOE on
+    the wave plane (none or blank: ``ctx.centers``, the chief rays' landings, and an empty reason). The pilot rays on
+    the plane (``ctx.pos_p``, frequency ``n d_xy / lambda``) take the DOE's main order: its local frequency ``a grad
+    phi0 / 2 pi`` (``phi0`` the relief's phase at the design wavelength; ``a`` the wavelength's phase scale where the
+    relief does not wrap across the beam, one smooth order as :mod:`rwwarp.wave.methods.focal` has it, else the
+    order of the largest Fourier coefficient) is added, each goes straight to the sensor
+    (:func:`rwwarp.wave.plan.landing_points`) and the centre is their centroid (the pilot's rays sample the pupil
+    evenly). A source's centre moves only where that centroid lies over half a pixel from the chief ray's landing
+    (``ctx.centers``' pixel centre: a DOE symmetric about the chief ray leaves the centre where it was)."""
+    from ... import doe
+    from ...doe import is_flat_profile
+    from ...lens import snap_to_pixel
+    from ..doe_sampling import lens_dir, one_branch
+    from ..focal import FOCAL_MAX_ORDER, doe_order_coefficients
+    from ..plan import landing_points
+    lens, centers = ctx.lens, np.array(ctx.centers, float)
+    s = lens.surfaces[ctx.plane]
+    if s.type != "doe" or is_flat_profile(s.profile):
+        return ctx.centers, ""
+    prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
+    moved = []
+    for k in range(len(ctx.n_after)):
+        ok = ctx.ok[k]
+        xy = ctx.pos_p[k, ok, :2]
+        if len(xy) < 3:
+            continue
+        inv_lam = ctx.n_after[k] / ctx.lam_mm[k]
+        f = inv_lam * ctx.dir_s[k, ok, :2]
+        alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, ctx.wls[k])
+        if s.levels or one_branch(prof.phase(xy[:, 0], xy[:, 1], s.design_wavelength_um)) is None:
+            ms = np.arange(-FOCAL_MAX_ORDER, FOCAL_MAX_ORDER + 1)
+            a = float(ms[np.argmax(np.abs(doe_order_coefficients(alpha, s.levels, ms)))])
+        else:
+            a = float(alpha)
+        gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
+        land = landing_points(xy, f + a * np.stack([gx, gy], 1) / (2 * np.pi), inv_lam, ctx.distance_mm)
+        land = land[np.all(np.isfinite(land), axis=1)]
+        if len(land) < 3:
+            continue
+        c = land.mean(0)
+        if np.max(np.abs(c - centers[k])) <= 0.5 * ctx.pixel:
+            continue
+        res = lens.sensor.resolution
+        centers[k] = (snap_to_pixel(c[0], ctx.pixel, res[0]), snap_to_pixel(c[1], ctx.pixel, res[1]))
+        moved.append(float(np.hypot(*(centers[k] - ctx.centers[k]))))
+    if not moved:
+        return ctx.centers, ""
+    return centers, (f"patch centred where the beam lands after the DOE's main order (the pilot rays' centroid): "
+                     f"{len(moved)} source(s) moved up to {max(moved) * 1e3:.4g} um from the chief ray's landing "
+                     f"without the DOE (rwwarp.wave.methods.asm.doe_landing_centres)")
 
 
 def wave_plane_cost(plan, n_sources: int):
