@@ -66,7 +66,7 @@ def plan_window(ctx) -> Planned:
 
 def doe_landing_centres(ctx):
     """``(centers, reason)``: the patch centres ((S, 2) mm, snapped to pixels) where the beam lands after the DOE on
-    the wave plane (none or blank: ``ctx.centers``, the chief rays' landings, and an empty reason). The pilot rays on
+    the wave plane (none, blank or a pixel map: ``ctx.centers``, the chief rays' landings, and an empty reason). The pilot rays on
     the plane (``ctx.pos_p``, frequency ``n d_xy / lambda``) take the DOE's main order: its local frequency ``a grad
     phi0 / 2 pi`` (``phi0`` the relief's phase at the design wavelength; ``a`` the wavelength's phase scale where the
     relief does not wrap across the beam, one smooth order as :mod:`rwwarp.wave.methods.focal` has it, else the
@@ -82,8 +82,8 @@ def doe_landing_centres(ctx):
     from ..plan import landing_points
     lens, centers = ctx.lens, np.array(ctx.centers, float)
     s = lens.surfaces[ctx.plane]
-    if s.type != "doe" or is_flat_profile(s.profile):
-        return ctx.centers, ""
+    if s.type != "doe" or is_flat_profile(s.profile) or s.profile.get("kind") == "pixel_map":
+        return ctx.centers, ""        # (a pixel map's phase has steps, no gradient to deflect the rays by)
     prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
     moved = []
     for k in range(len(ctx.n_after)):
