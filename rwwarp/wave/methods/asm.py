@@ -66,55 +66,23 @@ def plan_window(ctx) -> Planned:
 
 def doe_landing_centres(ctx):
     """``(centers, reason)``: the patch centres ((S, 2) mm, snapped to pixels) where the beam lands after the DOE on
-    the wave plane (none, blank or a pixel map: ``ctx.centers``, the chief rays' landings, and an empty reason). The pilot rays on
-    the plane (``ctx.pos_p``, frequency ``n d_xy / lambda``) take the DOE's main order: its local frequency ``a grad
-    phi0 / 2 pi`` (``phi0`` the relief's phase at the design wavelength; ``a`` the wavelength's phase scale where the
-    relief does not wrap across the beam, one smooth order as :mod:`rwwarp.wave.methods.focal` has it, else the
-    order of the largest Fourier coefficient) is added, each goes straight to the sensor
-    (:func:`rwwarp.wave.plan.landing_points`) and the centre is their centroid (the pilot's rays sample the pupil
-    evenly). A source's centre moves only where that centroid lies over half a pixel from the chief ray's landing
-    (``ctx.centers``' pixel centre: a DOE symmetric about the chief ray leaves the centre where it was)."""
-    from ... import doe
+    the wave plane, as the focal method centres its patches (:func:`rwwarp.wave.methods.focal.main_order_centres`:
+    the chief ray on the DOE's main order, its local frequency added to the ray's; so the patch does not move with
+    the method "auto" chooses). None, blank or a pixel map (steps, no gradient to deflect the rays by): the chief
+    rays' landings ``ctx.centers`` and an empty reason."""
     from ...doe import is_flat_profile
-    from ...lens import snap_to_pixel
-    from ..doe_sampling import lens_dir, one_branch
-    from ..focal import FOCAL_MAX_ORDER, doe_order_coefficients
-    from ..plan import landing_points
-    lens, centers = ctx.lens, np.array(ctx.centers, float)
-    s = lens.surfaces[ctx.plane]
+    from .focal import doe_orders, main_order_centres
+    s = ctx.lens.surfaces[ctx.plane]
     if s.type != "doe" or is_flat_profile(s.profile) or s.profile.get("kind") == "pixel_map":
-        return ctx.centers, ""        # (a pixel map's phase has steps, no gradient to deflect the rays by)
-    prof = doe.profile_from_dict(s.profile, base=lens_dir(lens))
-    moved = []
-    for k in range(len(ctx.n_after)):
-        ok = ctx.ok[k]
-        xy = ctx.pos_p[k, ok, :2]
-        if len(xy) < 3:
-            continue
-        inv_lam = ctx.n_after[k] / ctx.lam_mm[k]
-        f = inv_lam * ctx.dir_s[k, ok, :2]
-        alpha = doe.wavelength_scale(s.material, s.design_wavelength_um, ctx.wls[k])
-        if s.levels or one_branch(prof.phase(xy[:, 0], xy[:, 1], s.design_wavelength_um)) is None:
-            ms = np.arange(-FOCAL_MAX_ORDER, FOCAL_MAX_ORDER + 1)
-            a = float(ms[np.argmax(np.abs(doe_order_coefficients(alpha, s.levels, ms)))])
-        else:
-            a = float(alpha)
-        gx, gy = prof.gradient(xy[:, 0], xy[:, 1], s.design_wavelength_um)
-        land = landing_points(xy, f + a * np.stack([gx, gy], 1) / (2 * np.pi), inv_lam, ctx.distance_mm)
-        land = land[np.all(np.isfinite(land), axis=1)]
-        if len(land) < 3:
-            continue
-        c = land.mean(0)
-        if np.max(np.abs(c - centers[k])) <= 0.5 * ctx.pixel:
-            continue
-        res = lens.sensor.resolution
-        centers[k] = (snap_to_pixel(c[0], ctx.pixel, res[0]), snap_to_pixel(c[1], ctx.pixel, res[1]))
-        moved.append(float(np.hypot(*(centers[k] - ctx.centers[k]))))
-    if not moved:
         return ctx.centers, ""
-    return centers, (f"patch centred where the beam lands after the DOE's main order (the pilot rays' centroid): "
-                     f"{len(moved)} source(s) moved up to {max(moved) * 1e3:.4g} um from the chief ray's landing "
-                     f"without the DOE (rwwarp.wave.methods.asm.doe_landing_centres)")
+    f_c = doe_orders(ctx)[3]
+    centers = main_order_centres(ctx, f_c)
+    moved = np.hypot(*(centers - np.asarray(ctx.centers, float)).T)
+    if not np.any(moved > 0):
+        return ctx.centers, ""
+    return centers, (f"patch centred where the chief ray lands on the DOE's main order (as the focal method): "
+                     f"{int(np.sum(moved > 0))} source(s) moved up to {float(moved.max()) * 1e3:.4g} um from its "
+                     f"landing without the DOE (rwwarp.wave.methods.asm.doe_landing_centres)")
 
 
 def wave_plane_cost(plan, n_sources: int):
