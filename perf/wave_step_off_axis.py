@@ -23,6 +23,7 @@ The principle (:func:`principle`, no rwwarp): the truth's own FFTs with the geom
 the isotropic mean stretch, a fitted tensor and rim-resolved (:func:`rim_resolved_step`), to tell the isotropic
 transfer's share of the error.
 Usage: python perf/wave_step_off_axis.py [--no-convergence] [--no-principle]
+"""
 from __future__ import annotations
 
 import argparse
@@ -53,7 +54,7 @@ def lens_of(d2_mm: float, coeffs, semi_mm: float):
 
 
 def psfs(lens, field_deg, pixel_values="intensity"):
-    """(one-step, auto + tolerance 1e-3 with the stretch, the same with the stretch off, the stretch factor); the
+    """(one-step, auto + tolerance 1e-3, the same with the stretch off, the same isotropic, the stretch factor); the
     pixels ``|U|^2`` integrated (``pixel_values="intensity"``: the truth's scalar convention; the default "flux"
     multiplies by the Poynting vector's z-component, 0.991 of it at 10 deg, 5 mm: reported apart)."""
     kw = dict(size=SIZE, pixel_values=pixel_values)
