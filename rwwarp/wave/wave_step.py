@@ -26,10 +26,40 @@ rim (its outward normal ``n`` on the plane, the direction in which the edge's pa
 
     d_eff = (d / m_z) (1 + (n . m_t)^2 / m_z^2)        (d / m_z^3 on the axis, where m_t is along n)
 
-and the step propagates over its mean around the rim (:func:`rim_obliquity`; one isotropic transfer function, so
-an off-axis rim's variation about the mean is left out: against an off-axis truth at NA 0.1, DOE ``8 rho^2``, the
-step leaves 1.5e-3 at 5 deg / 5 mm and 1.25e-3 at 10 deg / 10 mm, 2-5 % of the one-step error, and a tensor fitted to
-the rim's stretch lowers that by <= 30 %: docs/accuracy.md, "Off axis"). The paraxial ``d`` leaves a relative error ``~1.5 NA^2``
+and the step propagates over its mean around the rim (:func:`rim_obliquity`) where that is one number. Off the
+axis it is not (below).
+
+Rim-resolved step (issue 27, off axis). Off the axis the rim's stretch varies around the rim (the rim ray's ``1 /
+m_z`` and ``(n . m_t)^2`` are larger on the side away from the axis: 1.000 .. 1.053 at 5 deg, 1.008 .. 1.117 at 10
+deg, NA 0.1), and one transfer function (isotropic, or a tensor: a tensor is even in ``n`` and the variation is
+mostly odd) cannot give each part of the rim its own: against an off-axis truth at NA 0.1 the isotropic step left
+1.52e-3 at 5 deg / 5 mm and 1.25e-3 at 10 deg / 10 mm, and a fitted tensor <= 30 % less. The edge's pattern at a rim
+point and the edge wave it sends into the beam (to the points along its normal, the stationary ones of the Fresnel
+integral) both come from that point's neighbourhood, so the distance belongs to the *source* point: the step
+propagates with a kernel whose distance depends on where the light leaves,
+
+    P[G](y) = integral G(x) K_{D(x)}(y - x) dx,
+
+``K_D`` the Fresnel kernel of distance ``D``. ``D(x)`` is the rim's ``D(phi) = d t(phi)`` (:func:`rim_profile`:
+:func:`rim_obliquity`'s per-ray stretch fitted by ``RIM_HARMONICS`` harmonics around the rim) carried into the beam
+as its harmonic extension ``D_0 + sum_m r^m (a_m cos m phi + b_m sin m phi)`` (:func:`distance_field`): inside the
+beam ``G`` (the sphere removed) is smooth, and a harmonic ``D`` keeps the operator's first-order action there,
+``(i lambda / 4 pi) laplacian(D G)``, free of any term from ``D``'s own curvature (``laplacian D = 0``), so only the
+rim feels the varying distance. The kernel is interpolated in ``D``: with ``K`` Chebyshev nodes ``D_j`` across the
+rim's range and the Lagrange weights ``l_j``, ``K_{D(x)} ~ sum_j l_j(D(x)) K_{D_j}``, so
+
+    P[G] = sum_j P_{D_j}[l_j(D(x)) G]
+
+(``K`` padded FFTs forward and back instead of one each; the nodes' ASM pistons ``exp(2 pi i D_j / lambda_m)`` are
+taken back to the source's own, ``D`` being the Fresnel scaling's reduced distance, not a path). The interpolation's
+error in the transfer's phase at the edge's frequency ``1 / sqrt(lambda_m D)`` is ``2 (x / 2)^K / K!`` with ``x =
+pi (D_max - D_min) / (2 D_0)``; ``K`` is the least with that below ``RIM_NODE_TOL`` = 1e-2 (on the axis the range is
+0 and ``K = 1``: the isotropic step, bit for bit). At NA 0.1 and 5-10 deg ``K = 2``; on the truth's own FFTs (no
+rwwarp) 2, 3, 4 and 6 nodes give the same error to 3 digits (5 deg / 5 mm 1.35e-4, 10 deg / 10 mm 1.45e-4, against
+1.64e-3 / 1.23e-3 isotropic), and rwwarp's step then leaves 3.8e-4 / 2.3e-4 (perf/wave_step_off_axis.py,
+docs/accuracy.md, "Off axis"). The adjoint is ``sum_j l_j P_{D_j}^H`` (the weights real).
+
+On the axis, the paraxial ``d`` leaves a relative error ``~1.5 NA^2``
 in the edge wave, i.e. ``~1.5 NA^2`` of the one-step error it removes: thin lens f = 50 mm, a = 5 mm (NA 0.0995),
 DOE ``4 rho^4``, on the axis, the step on the radial Gauss-Hankel truth (exact angular spectrum,
 tests/rwwarp/_wave_truth.py) against the two-step truth, max over 0-40 um of the peak: DOE 5 / 10 / 20 / 35 / 45 mm
