@@ -309,11 +309,11 @@ def rim_profile(rw, d_mm) -> np.ndarray:
 def step_nodes(rw) -> int:
     """The most propagation rows (FFT pairs) a source of ``rw``'s wave step takes: its :func:`rim_profile`'s node count
     (1: the isotropic step, or no step)."""
-    prof = getattr(rw, "wave_step_rim", None)
-    d = np.asarray(getattr(rw, "wave_step", None) if getattr(rw, "wave_step", None) is not None else 0.0, float)
-    if prof is None or not np.any(d != 0):
+    prof, d = getattr(rw, "wave_step_rim", None), getattr(rw, "wave_step", None)
+    if prof is None or d is None:
         return 1
-    return int(max(1, np.max(np.asarray(prof, float)[:, 3][np.broadcast_to(d != 0, (len(prof),))])))
+    on = np.asarray(d, float) != 0
+    return int(max(1, np.max(np.asarray(prof, float)[on, 3], initial=1)))
 
 
 def _rim_range(row):

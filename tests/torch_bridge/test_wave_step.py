@@ -30,6 +30,8 @@ def rw_two_step():
     # the reduced distance z1 R / (z1 + R) = 40 * 10 / 50 mm, stretched for the rim ray's obliquity 1 / m_z^3 on
     # the axis (rwwarp.wave.wave_step, "Obliquity"), m_z = f / sqrt(a^2 + f^2) (measured: 2.7e-8 relative, the pilot rim extrapolated)
     assert rw.plan.method == "asm" and rw.wave_step[0] == pytest.approx(8.0 * (1 + (1.0 / 50.0) ** 2) ** 1.5, rel=1e-6)
+    from rwwarp.wave.wave_step import step_nodes
+    assert step_nodes(rw) == 1         # on the axis the rim's distance is one number: the isotropic step
     return rw
 
 
@@ -40,7 +42,8 @@ def rw_two_step_off_axis():
     # "Rim-resolved step"): two propagation rows, the transfer interpolated between two distances
     rw = RayWave(small_scene(a=2.0, coefficients=(2.0, 0.0), semi_mm=9.0), as_field_list([10.0]), [0.55], 16, 0.006,
                  method="two-step")
-    assert int(rw.wave_step_rim[0, 3]) == 2
+    from rwwarp.wave.wave_step import step_nodes
+    assert int(rw.wave_step_rim[0, 3]) == 2 and step_nodes(rw) == 2
     return rw
 
 
