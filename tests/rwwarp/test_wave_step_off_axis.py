@@ -29,7 +29,7 @@ def no_stretch(call):
         ws._rim_samples = keep
 
 
-def test_the_wave_step_at_10_deg_against_an_off_axis_truth():
+def test_the_wave_step_and_the_asm_patch_at_10_deg_against_an_off_axis_truth():
     # the ideal thin lens f = 50 mm, stop radius 5 mm (NA 0.0995), 0.55 um, the DOE 8 rho^2 (norm radius the on-axis
     # beam's 0.5 mm: every field's beam sees the same quadratic phase, rim slope 16 rad as the 4 rho^4) 5 mm
     # before the sensor; the beam at 10 deg lands 7.9 mm off the axis on the DOE. method "auto" with the tolerance
@@ -40,17 +40,44 @@ def test_the_wave_step_at_10_deg_against_an_off_axis_truth():
     # 2.75e-4), with the stretch removed 4.74e-4. The truth moved
     # by 6.5e-8 of its peak with its pitch halved (2 -> 1 um), 6.5e-8 with its disc's band doubled, 1e-8 with its
     # DOE-plane cut widened 1.5x; on the axis it meets the radial Gauss-Hankel truth to 7.8e-6.
+    #
+    # The default patch of method "asm" (no center_mm) on the same scene: the chief ray's landing without the DOE
+    # (8.816 mm) lay 236 um from the spot, which the DOE's power moves (the patch held none of it: the truth's
+    # largest pixel there is 7.6e-7 of the spot's peak); now the chief ray's landing on the DOE's main order, as the
+    # focal method centres its patch (rwwarp.wave.methods.asm.doe_landing_centres): 9.05225 mm, the pixel of the
+    # analytic landing 9.05212 mm (the truth's chief ray: c1 + d2 tan(theta_2)), the step's patch. Against the truth
+    # over a 128 px patch about it (the 64 px patch its middle; one truth for both checks): the truth's peak lies on
+    # the patch, 0.975 of the wide patch's power with it, and the one-step error is 1.438e-2 (measured, 2-core CPU;
+    # perf/results/wave_step_off_axis.json's error_one_step), within the model's own estimate 1.51e-2. Bound 1.3x.
     lens = thin_lens_doe_off_axis(A_MM, 5.0, (8.0, 0.0), 9.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         two = rw.psf(lens, 10.0, 0.55, size=64, method="auto", tolerance=1e-3, pixel_values="intensity")
         flat = no_stretch(lambda: rw.psf(lens, 10.0, 0.55, size=64, method="auto", tolerance=1e-3,
                                          pixel_values="intensity"))
+        one = rw.psf(lens, 10.0, 0.55, size=64, method="asm", pixel_values="intensity")
     assert two.plan["wave_step_mm"] == pytest.approx(4.5, rel=1e-3)
     assert any("x1.046" in r for r in two.plan["reasons"]), two.plan["reasons"]
     assert any("x1 for the rim" in r for r in flat.plan["reasons"]), flat.plan["reasons"]
+    assert any("doe_landing_centres" in r for r in one.plan["reasons"]), one.plan["reasons"]
+    yT = F_MM * np.tan(np.radians(10.0))
+    c1 = (F_MM - 5.0) * yT / F_MM
+    sin2 = np.sin(np.arctan2(yT, F_MM)) + 0.55e-3 * (2 * 8.0 * c1 / (A_MM * 5.0 / F_MM) ** 2) / (2 * np.pi)
+    assert abs(one.center_mm[1] - (c1 + 5.0 * sin2 / np.sqrt(1 - sin2 ** 2))) <= 0.5 * one.pixel_mm
+    assert np.allclose(one.center_mm, two.center_mm)
+    p = one.pixel_mm
+    wide = (np.arange(128) - 64) * p                  # coords_mm: pixel i at the centre + (i - 32) p
+    T2 = offaxis_truth(A_MM, 5.0, (8.0, 0.0), A_MM * 5.0 / F_MM, 10.0, one.center_mm[0] + wide,
+                       one.center_mm[1] + wide, p)
+    T = T2[32:96, 32:96]
     px, py = two.coords_mm()
-    T = offaxis_truth(A_MM, 5.0, (8.0, 0.0), A_MM * 5.0 / F_MM, 10.0, px, py, two.pixel_mm)
+    assert np.allclose(px, one.center_mm[0] + wide[32:96]) and np.allclose(py, one.center_mm[1] + wide[32:96])
+    assert T.max() == T2.max()                      # the spot's peak on the patch
+    assert T.sum() > 0.95 * T2.sum()                # measured 0.975
+    e_one = float(np.max(np.abs(one.data - T)) / T.max())
+    print(f"asm default patch at {one.center_mm}: error {e_one:.4e}, estimate {one.plan['model_error']['estimate']:.4g}")
+    assert e_one < 1.3 * 1.438e-2
+    assert e_one <= one.plan["model_error"]["estimate"]
     e_two = float(np.max(np.abs(two.data - T)) / T.max())
     e_flat = float(np.max(np.abs(flat.data - T)) / T.max())
     print(f"10 deg, 5 mm: the step {e_two:.2e}, without the stretch {e_flat:.2e}")
@@ -82,37 +109,3 @@ def test_the_rim_resolved_step_off_axis_against_the_truth(d2_mm, field_deg, meas
     assert e < 1.3 * measured
     assert 1.3 * measured < min(1e-3, isotropic)
 
-
-def test_the_asm_patch_is_centred_where_the_beam_lands_after_the_doe():
-    # The default patch of method "asm" (no center_mm) at 10 deg, DOE 8 rho^2 5 mm before the sensor: the chief ray's
-    # landing without the DOE (8.816 mm) lies 236 um from the spot, which the DOE's power moves (the patch held
-    # none of it: the truth's largest pixel there is 7.6e-7 of the spot's peak); now the chief ray's landing on the
-    # DOE's main order, as the focal method centres its patch (rwwarp.wave.methods.asm.doe_landing_centres): 9.05225
-    # mm, the pixel of the analytic landing 9.05212 mm (the truth's chief ray: c1 + d2 tan(theta_2)). Against the
-    # independent truth over a 128 px patch about it (the 64 px patch its middle): the truth's peak lies on the
-    # patch, 0.975 of the wide patch's power with it, and the one-step error is 1.438e-2 (measured, 2-core CPU;
-    # perf/results/wave_step_off_axis.json's error_one_step, the centre given there), within the model's own
-    # estimate 1.51e-2. Bound 1.3x.
-    lens = thin_lens_doe_off_axis(A_MM, 5.0, (8.0, 0.0), 9.0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        one = rw.psf(lens, 10.0, 0.55, size=64, method="asm", pixel_values="intensity")
-    assert any("doe_landing_centres" in r for r in one.plan["reasons"]), one.plan["reasons"]
-    yT = F_MM * np.tan(np.radians(10.0))
-    c1 = (F_MM - 5.0) * yT / F_MM
-    sin2 = np.sin(np.arctan2(yT, F_MM)) + 0.55e-3 * (2 * 8.0 * c1 / (A_MM * 5.0 / F_MM) ** 2) / (2 * np.pi)
-    assert abs(one.center_mm[1] - (c1 + 5.0 * sin2 / np.sqrt(1 - sin2 ** 2))) <= 0.5 * one.pixel_mm
-    p = one.pixel_mm
-    wide = (np.arange(128) - 64) * p                  # coords_mm: pixel i at the centre + (i - 32) p
-    T2 = offaxis_truth(A_MM, 5.0, (8.0, 0.0), A_MM * 5.0 / F_MM, 10.0, one.center_mm[0] + wide,
-                       one.center_mm[1] + wide, p)
-    T = T2[32:96, 32:96]
-    px, py = one.coords_mm()
-    assert np.allclose(px, one.center_mm[0] + wide[32:96]) and np.allclose(py, one.center_mm[1] + wide[32:96])
-    assert T.max() == T2.max()                      # the spot's peak on the patch
-    assert T.sum() > 0.95 * T2.sum()                # measured 0.975
-    e = float(np.max(np.abs(one.data - T)) / T.max())
-    print(f"share of the wide patch's power {T.sum() / T2.sum():.4f}")
-    print(f"asm default patch at {one.center_mm}: error {e:.4e}, estimate {one.plan['model_error']['estimate']:.4g}")
-    assert e < 1.3 * 1.438e-2
-    assert e <= one.plan["model_error"]["estimate"]
