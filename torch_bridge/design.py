@@ -312,7 +312,10 @@ class CachedProvider:
             # the wave step of a source (method "two-step"): its padded field, spectrum and transfer function
             # (complex128, FFT length rw.wave_step_pad) and the reference sphere's phase, its rotation and the
             # field without it (rwwarp.wave.wave_step.apply_wave_step: 8 + 16 + 16 bytes a wave-plane sample)
-            per += 3 * 16 * int(rw.wave_step_pad) ** 2 + 40 * rw.plan.n_grid ** 2
+            # (the rim-resolved step: one padded field and its weight per node, rwwarp.wave.wave_step.step_nodes)
+            from rwwarp.wave.wave_step import step_nodes
+            k = step_nodes(rw)
+            per += 3 * 16 * k * int(rw.wave_step_pad) ** 2 + (40 + 24 * (k - 1)) * rw.plan.n_grid ** 2
         fixed = int(m.bytes_fixed(rw)) + rw.nsrc * rw.plan.n_grid ** 2 * 16
         batch = int(max(1, min(rw.nsrc, (budget - fixed) // max(per, 1))))
         if fixed + per > budget:
@@ -717,8 +720,10 @@ class CachedProvider:
                                "entry's (internal error)")
         if stepped:
             from dataclasses import replace
+            rim = getattr(rw, "wave_step_rim", None)
             sub.use_plan(replace(sub.batch_plan, wave_step=np.asarray(rw.wave_step, float)[sl].copy(),
-                                 wave_step_pad=rw.wave_step_pad))
+                                 wave_step_pad=rw.wave_step_pad,
+                                 wave_step_rim=None if rim is None else np.asarray(rim, float)[sl].copy()))
         return sub
 
     def held_bytes_per_source(self, rw) -> int:

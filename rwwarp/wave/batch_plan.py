@@ -77,7 +77,8 @@ class BatchPlan:
     cycles/mm, ``centers`` (S, 2) mm patch centres, ``lo`` / ``hi`` (S, 2) mm footprint corners, ``origin``
     (S, 2) mm window origins, ``opl_chief`` (S,) mm, ``chief_ok`` (S,), ``target`` (S, 3) mm reference-sphere
     centres, ``wave_step`` (S,) mm: the distances the wave step propagates over, the reduced distances stretched for the
-    rim's obliquity (:func:`rwwarp.wave.wave_step.rim_obliquity`; zeros: none)."""
+    rim's obliquity (:func:`rwwarp.wave.wave_step.rim_obliquity`; zeros: none), ``wave_step_rim`` (S, RIM_COLS): their
+    variation around the rim (:func:`rwwarp.wave.wave_step.rim_profile`; None: the isotropic step)."""
 
     lens: Any
     fields: tuple
@@ -120,6 +121,7 @@ class BatchPlan:
     model_errors: tuple = ()
     wave_step: Any = None
     wave_step_pad: int | None = None
+    wave_step_rim: Any = None
     pixel_alternative: str = ""
 
     def __post_init__(self):

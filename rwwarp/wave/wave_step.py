@@ -26,10 +26,40 @@ rim (its outward normal ``n`` on the plane, the direction in which the edge's pa
 
     d_eff = (d / m_z) (1 + (n . m_t)^2 / m_z^2)        (d / m_z^3 on the axis, where m_t is along n)
 
-and the step propagates over its mean around the rim (:func:`rim_obliquity`; one isotropic transfer function, so
-an off-axis rim's variation about the mean is left out: against an off-axis truth at NA 0.1, DOE ``8 rho^2``, the
-step leaves 1.5e-3 at 5 deg / 5 mm and 1.25e-3 at 10 deg / 10 mm, 2-5 % of the one-step error, and a tensor fitted to
-the rim's stretch lowers that by <= 30 %: docs/accuracy.md, "Off axis"). The paraxial ``d`` leaves a relative error ``~1.5 NA^2``
+and the step propagates over its mean around the rim (:func:`rim_obliquity`) where that is one number. Off the
+axis it is not (below).
+
+Rim-resolved step (issue 27, off axis). Off the axis the rim's stretch varies around the rim (the rim ray's ``1 /
+m_z`` and ``(n . m_t)^2`` are larger on the side away from the axis: 1.000 .. 1.053 at 5 deg, 1.008 .. 1.117 at 10
+deg, NA 0.1), and one transfer function (isotropic, or a tensor: a tensor is even in ``n`` and the variation is
+mostly odd) cannot give each part of the rim its own: against an off-axis truth at NA 0.1 the isotropic step left
+1.52e-3 at 5 deg / 5 mm and 1.25e-3 at 10 deg / 10 mm, and a fitted tensor <= 30 % less. The edge's pattern at a rim
+point and the edge wave it sends into the beam (to the points along its normal, the stationary ones of the Fresnel
+integral) both come from that point's neighbourhood, so the distance belongs to the *source* point: the step
+propagates with a kernel whose distance depends on where the light leaves,
+
+    P[G](y) = integral G(x) K_{D(x)}(y - x) dx,
+
+``K_D`` the Fresnel kernel of distance ``D``. ``D(x)`` is the rim's ``D(phi) = d t(phi)`` (:func:`rim_profile`:
+:func:`rim_obliquity`'s per-ray stretch fitted by ``RIM_HARMONICS`` harmonics around the rim) carried into the beam
+as its harmonic extension ``D_0 + sum_m r^m (a_m cos m phi + b_m sin m phi)`` (:func:`distance_field`): inside the
+beam ``G`` (the sphere removed) is smooth, and a harmonic ``D`` keeps the operator's first-order action there,
+``(i lambda / 4 pi) laplacian(D G)``, free of any term from ``D``'s own curvature (``laplacian D = 0``), so only the
+rim feels the varying distance. The kernel is interpolated in ``D``: with ``K`` Chebyshev nodes ``D_j`` across the
+rim's range and the Lagrange weights ``l_j``, ``K_{D(x)} ~ sum_j l_j(D(x)) K_{D_j}``, so
+
+    P[G] = sum_j P_{D_j}[l_j(D(x)) G]
+
+(``K`` padded FFTs forward and back instead of one each; the nodes' ASM pistons ``exp(2 pi i D_j / lambda_m)`` are
+taken back to the source's own, ``D`` being the Fresnel scaling's reduced distance, not a path). The interpolation's
+error in the transfer's phase at the edge's frequency ``1 / sqrt(lambda_m D)`` is ``2 (x / 2)^K / K!`` with ``x =
+pi (D_max - D_min) / (2 D_0)``; ``K`` is the least with that below ``RIM_NODE_TOL`` = 1e-2 (on the axis the range is
+0 and ``K = 1``: the isotropic step, bit for bit). At NA 0.1 and 5-10 deg ``K = 2``; on the truth's own FFTs (no
+rwwarp) 2, 3, 4 and 6 nodes give the same error to 3 digits (5 deg / 5 mm 1.35e-4, 10 deg / 10 mm 1.45e-4, against
+1.64e-3 / 1.23e-3 isotropic), and rwwarp's step then leaves 3.8e-4 / 2.3e-4 (perf/wave_step_off_axis.py,
+docs/accuracy.md, "Off axis"). The adjoint is ``sum_j l_j P_{D_j}^H`` (the weights real).
+
+On the axis, the paraxial ``d`` leaves a relative error ``~1.5 NA^2``
 in the edge wave, i.e. ``~1.5 NA^2`` of the one-step error it removes: thin lens f = 50 mm, a = 5 mm (NA 0.0995),
 DOE ``4 rho^4``, on the axis, the step on the radial Gauss-Hankel truth (exact angular spectrum,
 tests/rwwarp/_wave_truth.py) against the two-step truth, max over 0-40 um of the peak: DOE 5 / 10 / 20 / 35 / 45 mm
@@ -127,35 +157,28 @@ def wave_step_geometry(rw):
     return chief, sign
 
 
+def _rotation(rw, n, xp):
+    """``exp(i phase)`` of :func:`reference_phase` on the batch's windows ((S, n, n))."""
+    chief, sign = wave_step_geometry(rw)
+    ph = reference_phase(np.asarray(rw.origin, float), rw.plan.pitch_mm, n, chief, np.asarray(rw.target, float),
+                         np.asarray(rw.n_after, float) * sign, np.asarray(rw.lam_mm, float),
+                         np.asarray(rw.carrier, float), xp)
+    return xp.exp(1j * ph)
+
+
 def apply_wave_step(rw, u, xp=np):
     """The wave step on a batch's wave-plane field ``u`` ((S, n, n) complex, baseband: the chief carrier
     removed, as :meth:`rwwarp.wave.raywave.RayWave.field_array` gives it; numpy or CuPy, ``xp``): ``S_T P_d[u /
-    S_T]`` per source with ``d = rw.wave_step[k]`` (mm; 0 leaves a source as it is). Returns a new array."""
-    from . import backend as bk
-    from .propagate import propagate_grid
+    S_T]`` per source with ``d = rw.wave_step[k]`` (mm; 0 leaves a source as it is), rim-resolved where the plan's
+    ``rw.wave_step_rim`` (:func:`rim_profile`) has more than one node: ``S_T sum_j P_{D_j}[l_j(D(x)) u / S_T]``
+    (module docstring, "Rim-resolved step"). Returns a new array."""
     d = np.asarray(rw.wave_step, float)
     if not np.any(d != 0):
         return u
-    pl = rw.plan
     n = u.shape[-1]
-    chief, sign = wave_step_geometry(rw)
-    ph = reference_phase(np.asarray(rw.origin, float), pl.pitch_mm, n, chief, np.asarray(rw.target, float),
-                         np.asarray(rw.n_after, float) * sign, np.asarray(rw.lam_mm, float),
-                         np.asarray(rw.carrier, float), xp)
-    rot = xp.exp(1j * ph)
+    rot = _rotation(rw, n, xp)
     g = u * xp.conj(rot)
-    be = bk.get_backend(rw.device)
-    src = be.wrap_host(np.ascontiguousarray(g)) if (xp is np and hasattr(be, "wrap_host")) else g
-    wl_med = np.asarray(rw.lam_mm, float) * 1e3 / np.asarray(rw.n_after, float)
-    pad = rw.wave_step_pad
-    with warnings.catch_warnings():
-        # propagate_grid's padding check counts the whole window; the field is zero in its EDGE_MARGIN margins
-        # and spreads about one margin over d, which the FFT length (window + PAD_MARGINS margins) holds
-        warnings.simplefilter("ignore", SamplingWarning)
-        out = propagate_grid(be, src, pl.pitch_mm, np.asarray(rw.origin, float), wl_med,
-                             np.where(d != 0, d, 1e-12), pad_to=pad)
-    out = be.to_host(out) if xp is np else xp.asarray(out)
-    out = out.reshape(u.shape)
+    out = _run_rows(rw, g, _step_rows(rw, n, xp), False, xp)
     out = xp.where(xp.asarray(d != 0)[:, None, None], out, g)
     return out * rot
 
@@ -163,30 +186,13 @@ def apply_wave_step(rw, u, xp=np):
 def apply_wave_step_adjoint(rw, grad_out, xp=np):
     """Adjoint of :func:`apply_wave_step` (linear in ``u``): ``grad_out`` (S, n, n) in the convention ``dL/dRe +
     1j dL/dIm`` -> the gradient of ``u`` in the same convention."""
-    from . import backend as bk
-    from .propagate import propagate_grid_adjoint
     d = np.asarray(rw.wave_step, float)
     if not np.any(d != 0):
         return grad_out
-    pl = rw.plan
     n = grad_out.shape[-1]
-    chief, sign = wave_step_geometry(rw)
-    ph = reference_phase(np.asarray(rw.origin, float), pl.pitch_mm, n, chief, np.asarray(rw.target, float),
-                         np.asarray(rw.n_after, float) * sign, np.asarray(rw.lam_mm, float),
-                         np.asarray(rw.carrier, float), xp)
-    rot = xp.exp(1j * ph)
+    rot = _rotation(rw, n, xp)
     g = grad_out * xp.conj(rot)          # adjoint of "* rot"
-    be = bk.get_backend(rw.device)
-    wl_med = np.asarray(rw.lam_mm, float) * 1e3 / np.asarray(rw.n_after, float)
-    src = be.wrap_host(np.ascontiguousarray(g)) if (xp is np and hasattr(be, "wrap_host")) else g
-    dummy = xp.zeros_like(grad_out)
-    dummy = be.wrap_host(np.ascontiguousarray(dummy)) if (xp is np and hasattr(be, "wrap_host")) else dummy
-    with warnings.catch_warnings():   # as in apply_wave_step
-        warnings.simplefilter("ignore", SamplingWarning)
-        gf, _ = propagate_grid_adjoint(be, src, dummy, pl.pitch_mm, np.asarray(rw.origin, float), wl_med,
-                                       np.where(d != 0, d, 1e-12), pad_to=rw.wave_step_pad)
-    gf = be.to_host(gf) if xp is np else xp.asarray(gf)
-    gf = gf.reshape(grad_out.shape)
+    gf = _run_rows(rw, g, _step_rows(rw, n, xp), True, xp)
     gf = xp.where(xp.asarray(d != 0)[:, None, None], gf, g)
     return gf * rot                        # adjoint of "* conj(rot)"
 
@@ -207,6 +213,34 @@ def _aberration_angle2(rw) -> np.ndarray:
     return out
 
 
+def _rim_samples(rw, k):
+    """Source ``k``'s rim rays on the wave plane (:func:`rim_obliquity`): ``(xc, edge_r, phi, t)``, the beam's centre
+    (2,) and edge radius (mm, plane coordinates), each rim ray's azimuth about the centre (rad) and its stretch ``t =
+    (1 / m_z)(1 + (n . m_t)^2 / m_z^2)``; None for a source with fewer than 3 valid rays or no extent."""
+    from .model_error import RIM_SHARE
+    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
+    p3, m = pos[k, ok[k]], dirs[k, ok[k]]
+    if len(p3) < 3:
+        return None
+    m = m / np.linalg.norm(m, axis=1, keepdims=True)
+    # the pilot points carried along their rays to the plane's vertex (as the estimate does)
+    xy = p3[:, :2] + ((rw.z_plane - p3[:, 2]) / m[:, 2])[:, None] * m[:, :2]
+    xc = xy.mean(0)
+    rr = np.linalg.norm(xy - xc, axis=1)
+    if rr.max() <= 0:
+        return None
+    rim = rr >= RIM_SHARE * rr.max()
+    # the pilot's 31 x 31 cell-centre grid: its outermost points lie half a cell (1 / 30 of their span) inside
+    # the beam's edge; the wider span (a beam cut on one side, e.g. by the DOE's own rim, keeps the other's)
+    edge_r = 0.5 * float(np.max(xy.max(0) - xy.min(0))) * 31.0 / 30.0
+    nrm = (xy[rim] - xc) / rr[rim, None]
+    mt0 = m[:, :2].mean(0)
+    mt = mt0 + (m[rim, :2] - mt0) * (edge_r / rr[rim])[:, None]
+    mz2 = np.clip(1.0 - np.sum(mt * mt, axis=1), 1e-12, None)
+    t = (1.0 + np.sum(nrm * mt, axis=1) ** 2 / mz2) / np.sqrt(mz2)
+    return xc, edge_r, np.arctan2(nrm[:, 1], nrm[:, 0]), t
+
+
 def rim_obliquity(rw) -> np.ndarray:
     """Per source (S,), the factor (>= 1) by which the wave step's distance exceeds the reduced distance ``d``: the
     rim's edge wave travels along the rim ray, tilted to the plane (module docstring, "Obliquity"):
@@ -216,31 +250,164 @@ def rim_obliquity(rw) -> np.ndarray:
     over the pilot's rim rays (``RIM_SHARE`` of the largest radius) before the DOE, ``m = (m_t, m_z)`` each ray's
     unit direction with its transverse part's deviation from the beam's mean carried from the pilot point out to the
     beam's edge (linear in the radius, as for a sphere), ``n`` the rim's outward normal on the plane. 1 for a
-    source with fewer than 3 valid rays."""
-    from .model_error import RIM_SHARE
+    source with fewer than 3 valid rays. Its variation around the rim: :func:`rim_profile`."""
     out = np.ones(rw.nsrc)
-    pos, dirs, ok = rw.pilot.pos_p, rw.pilot.dir_s, rw.pilot.ok
     for k in range(rw.nsrc):
-        p3, m = pos[k, ok[k]], dirs[k, ok[k]]
-        if len(p3) < 3:
+        got = _rim_samples(rw, k)
+        if got is not None:
+            out[k] = float(np.mean(got[3]))
+    return out
+
+
+#: harmonics of the rim's stretch around the rim kept by the rim-resolved step (:func:`rim_profile`)
+RIM_HARMONICS = 6
+#: the rim-resolved step interpolates the transfer function in the distance at Chebyshev nodes; their number is the
+#: least whose interpolation error at the edge's frequency ``1 / sqrt(lambda_m D)`` is below this (:func:`rim_profile`)
+RIM_NODE_TOL = 1e-2
+#: at most this many nodes (FFTs) a source
+RIM_MAX_NODES = 6
+#: columns of :func:`rim_profile`'s rows: centre x, y, edge radius, node count, then the harmonics' coefficients
+RIM_COLS = 5 + 2 * RIM_HARMONICS
+
+
+def rim_profile(rw, d_mm) -> np.ndarray:
+    """Per source, the rim-resolved step's distance field (module docstring, "Rim-resolved step"): a row of
+    ``RIM_COLS`` numbers ``(x_c, y_c, r_e, K, D_0, a_1, b_1, ..., a_M, b_M)`` (mm but K), the beam's centre and edge
+    radius on the wave plane and the rim's step distance ``D(phi) = D_0 + sum_m a_m cos(m phi) + b_m sin(m phi)`` (the
+    reduced distance ``d_mm`` (S,) times the rim's stretch, :func:`rim_obliquity`'s ``t`` fitted around the rim by
+    least squares, ``M = RIM_HARMONICS`` or fewer where the pilot has few rim rays), and ``K`` the number of distances
+    the step's transfer is interpolated between (1: the rim's variation is negligible, the step is the isotropic one
+    over ``rw.wave_step``; else the least number of Chebyshev nodes across the rim's range whose interpolation error
+    ``2 (x / 2)^K / K!`` of the transfer's phase ``x = pi lambda_m (D_max - D_min) / 2 * f_e^2`` at the edge's
+    frequency ``f_e^2 = 1 / (lambda_m D_0)`` is below ``RIM_NODE_TOL``, at most ``RIM_MAX_NODES``)."""
+    d = np.asarray(d_mm, float)
+    out = np.zeros((rw.nsrc, RIM_COLS))
+    out[:, 3] = 1.0
+    for k in range(rw.nsrc):
+        got = _rim_samples(rw, k) if d[k] != 0 else None
+        if got is None:
             continue
-        m = m / np.linalg.norm(m, axis=1, keepdims=True)
-        # the pilot points carried along their rays to the plane's vertex (as the estimate does)
-        xy = p3[:, :2] + ((rw.z_plane - p3[:, 2]) / m[:, 2])[:, None] * m[:, :2]
-        xc = xy.mean(0)
-        rr = np.linalg.norm(xy - xc, axis=1)
-        if rr.max() <= 0:
+        xc, edge_r, phi, t = got
+        M = int(min(RIM_HARMONICS, (len(t) - 1) // 4))
+        cols = [np.ones_like(phi)]
+        for m in range(1, M + 1):
+            cols += [np.cos(m * phi), np.sin(m * phi)]
+        coef = np.linalg.lstsq(np.stack(cols, 1), t, rcond=1e-10)[0] * d[k]
+        row = np.zeros(RIM_COLS)
+        row[:3] = (xc[0], xc[1], edge_r)
+        row[4:4 + len(coef)] = coef
+        lo, hi = _rim_range(row)
+        x = math.pi * 0.5 * (hi - lo) / max(abs(row[4]), 1e-300)
+        K = 1                   # (the nodes are distinct: K > 1 only where hi - lo > 0)
+        while K < RIM_MAX_NODES and 2.0 * (0.5 * x) ** K / math.factorial(K) > RIM_NODE_TOL:
+            K += 1
+        row[3] = K
+        out[k] = row
+    return out
+
+
+def step_nodes(rw) -> int:
+    """The most propagation rows (FFT pairs) a source of ``rw``'s wave step takes: its :func:`rim_profile`'s node count
+    (1: the isotropic step, or no step)."""
+    prof, d = getattr(rw, "wave_step_rim", None), getattr(rw, "wave_step", None)
+    if prof is None or d is None:
+        return 1
+    on = np.asarray(d, float) != 0
+    return int(max(1, np.max(np.asarray(prof, float)[on, 3], initial=1)))
+
+
+def _rim_range(row):
+    """(D_min, D_max) mm of a :func:`rim_profile` row's rim distance over the rim (720 azimuths)."""
+    phi = np.linspace(0.0, 2 * math.pi, 720, endpoint=False)
+    D = np.full_like(phi, row[4])
+    for m in range(1, RIM_HARMONICS + 1):
+        D += row[3 + 2 * m] * np.cos(m * phi) + row[4 + 2 * m] * np.sin(m * phi)
+    return float(D.min()), float(D.max())
+
+
+def distance_field(row, origin_mm, pitch_mm, n, xp=np):
+    """The step distance (mm, (n, n)) at each sample of a window (sample (0, 0) at ``origin_mm``, pitch ``pitch_mm``)
+    for a :func:`rim_profile` row: the harmonic extension of the rim's ``D(phi)`` into the beam, ``D_0 + sum_m
+    Re((a_m - i b_m) z^m)`` with ``z = (x - x_c + i (y - y_c)) / r_e`` (``|z|`` held at 1.3 outside, where the
+    geometric field is zero), clipped to the rim's range."""
+    g = xp.asarray(np.arange(n, dtype=np.float64))
+    z = ((origin_mm[0] + g[None, :] * pitch_mm - row[0]) + 1j * (origin_mm[1] + g[:, None] * pitch_mm - row[1])) / row[2]
+    a = xp.abs(z)
+    z = xp.where(a > 1.3, z * (1.3 / xp.maximum(a, 1e-300)), z)
+    D = xp.full((n, n), row[4])
+    zm = xp.ones_like(z)
+    for m in range(1, RIM_HARMONICS + 1):
+        zm = zm * z
+        if row[3 + 2 * m] or row[4 + 2 * m]:
+            D = D + (complex(row[3 + 2 * m], -row[4 + 2 * m]) * zm).real
+    lo, hi = _rim_range(row)
+    return xp.clip(D, lo, hi)
+
+
+def rim_nodes(row):
+    """The :func:`rim_profile` row's Chebyshev nodes (K,) mm across the rim's distance range."""
+    K = int(row[3])
+    lo, hi = _rim_range(row)
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * np.cos(math.pi * (np.arange(K) + 0.5) / K)
+
+
+def _step_rows(rw, n, xp):
+    """The propagation rows of the step: ``(source, distance_mm, weight)`` per row, ``weight`` the (n, n) Lagrange
+    weight of the row's node at each sample's :func:`distance_field` (None: the isotropic step over
+    ``rw.wave_step``, or a source without a step: distance 1e-12, replaced afterwards)."""
+    d = np.asarray(rw.wave_step, float)
+    prof = getattr(rw, "wave_step_rim", None)
+    rows = []
+    for k in range(rw.nsrc):
+        if d[k] == 0 or prof is None or int(prof[k, 3]) <= 1:
+            rows.append((k, d[k] if d[k] != 0 else 1e-12, None))
             continue
-        rim = rr >= RIM_SHARE * rr.max()
-        # the pilot's 31 x 31 cell-centre grid: its outermost points lie half a cell (1 / 30 of their span) inside
-        # the beam's edge; the wider span (a beam cut on one side, e.g. by the DOE's own rim, keeps the other's)
-        edge_r = 0.5 * float(np.max(xy.max(0) - xy.min(0))) * 31.0 / 30.0
-        nrm = (xy[rim] - xc) / rr[rim, None]
-        mt0 = m[:, :2].mean(0)
-        mt = mt0 + (m[rim, :2] - mt0) * (edge_r / rr[rim])[:, None]
-        mz2 = np.clip(1.0 - np.sum(mt * mt, axis=1), 1e-12, None)
-        mz = np.sqrt(mz2)
-        out[k] = float(np.mean((1.0 + np.sum(nrm * mt, axis=1) ** 2 / mz2) / mz))
+        D = distance_field(prof[k], np.asarray(rw.origin, float)[k], rw.plan.pitch_mm, n, xp)
+        nodes = rim_nodes(prof[k])
+        for j, Dj in enumerate(nodes):
+            w = xp.ones((n, n))
+            for i, Di in enumerate(nodes):
+                if i != j:
+                    w = w * ((D - Di) / (Dj - Di))
+            rows.append((k, float(Dj), w))
+    return rows
+
+
+def _run_rows(rw, g, rows, adjoint, xp):
+    """``sum_rows weight * P_D[g]`` (adjoint: ``sum_rows weight * P_D^H[g]``) per source for :func:`_step_rows`
+    ``rows`` (the forward weights the input, the adjoint the output); returns the (S, n, n) result."""
+    from . import backend as bk
+    from .propagate import propagate_grid, propagate_grid_adjoint
+    be = bk.get_backend(rw.device)
+    ks = [r[0] for r in rows]
+    if adjoint:
+        src = g[ks]
+    else:
+        src = xp.stack([g[k] if w is None else g[k] * w for k, _, w in rows])
+    wl_med = (np.asarray(rw.lam_mm, float) * 1e3 / np.asarray(rw.n_after, float))[ks]
+    origin = np.asarray(rw.origin, float)[ks]
+    dist = np.array([r[1] for r in rows])
+    wrap = (lambda a: be.wrap_host(np.ascontiguousarray(a))) if (xp is np and hasattr(be, "wrap_host")) else (lambda a: a)
+    with warnings.catch_warnings():
+        # propagate_grid's padding check counts the whole window; the field is zero in its EDGE_MARGIN margins
+        # and spreads about one margin over d, which the FFT length (window + PAD_MARGINS margins) holds
+        warnings.simplefilter("ignore", SamplingWarning)
+        if adjoint:
+            res, _ = propagate_grid_adjoint(be, wrap(src), wrap(xp.zeros_like(src)), rw.plan.pitch_mm, origin, wl_med,
+                                            dist, pad_to=rw.wave_step_pad)
+        else:
+            res = propagate_grid(be, wrap(src), rw.plan.pitch_mm, origin, wl_med, dist, pad_to=rw.wave_step_pad)
+    res = be.to_host(res) if xp is np else xp.asarray(res)
+    res = res.reshape(src.shape)
+    if len(rows) == g.shape[0] and all(w is None for _, _, w in rows):
+        return res
+    # the ASM's piston exp(2 pi i D / lambda_m) differs between a source's nodes: D is the Fresnel scaling's
+    # reduced distance, not a path, so each node's is taken back to the source's own (rw.wave_step[k])
+    d = np.asarray(rw.wave_step, float)
+    out = xp.zeros_like(g)
+    for i, (k, Dj, w) in enumerate(rows):
+        piston = complex(np.exp((-1j if not adjoint else 1j) * 2 * math.pi * (Dj - d[k]) / (wl_med[i] * 1e-3)))
+        out[k] += res[i] * piston if (w is None or not adjoint) else res[i] * (w * piston)
     return out
 
 
@@ -338,6 +505,8 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
         d_red = np.array([e.reduced_distance_mm if math.isfinite(e.reduced_distance_mm) else 0.0 for e in est])
         obl = rim_obliquity(rw)
         d = d_red * obl     # the distance the step propagates over on the plane (module docstring, "Obliquity")
+        prof = rim_profile(rw, d_red)      # its variation around the rim ("Rim-resolved step")
+        nodes = int(prof[:, 3].max()) if prof.size else 1
         edge = float(np.sqrt(np.max(rw.lam_mm / rw.n_after * np.abs(d)))) if np.any(d) else 0.0
         phases = step_phase_rad(rw, d)
         phi = float(np.max(phases)) if phases.size else 0.0
@@ -374,6 +543,11 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
             from .methods import get   # each method's rule (focal: >= samples / 4 rays across; asm: rays per sample)
             ray_grid, n_pad = get(pl.method).wave_step_sizes(pl, rw, pitch, extra)
             why.append(f"wave step: window widened by {EDGE_MARGIN:g} edge widths a side -> {n_grid}^2 samples")
+            if nodes > 1:
+                lo_hi = [_rim_range(r) for r in prof if r[3] > 1]
+                why.append(f"wave step rim-resolved: the rim's distance {min(a for a, _ in lo_hi):.4g} .. "
+                           f"{max(b for _, b in lo_hi):.4g} mm around it, the transfer interpolated between up to "
+                           f"{nodes} distances (rwwarp.wave.wave_step.rim_profile)")
             shift = double_transport_shift_mm(rw, d)
             why.append(f"wave step: the beam's own aberration before the DOE is carried by its rays and diffracted "
                        f"again over d: a second-order shift <= {shift * 1e3:.3g} um (pitch {pitch * 1e3:.3g} um), "
@@ -384,8 +558,9 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
             pad = _wave_step_pad(n_grid, extra)
             cost = dict(estimate_cost(pl, rw.nsrc, rw.size, rw.gauss_nodes))
             # the step's padded field and spectrum (complex128) and its FFT pair, per source
-            cost["memory_bytes"] = int(cost["memory_bytes"] + 2 * 16 * pad * pad)
-            cost["flops"] = float(cost["flops"] + rw.nsrc * 2 * 5 * pad * pad * math.log2(pad * pad))
+            # (the rim-resolved step: one padded field and FFT per node)
+            cost["memory_bytes"] = int(cost["memory_bytes"] + 2 * 16 * nodes * pad * pad)
+            cost["flops"] = float(cost["flops"] + float(np.sum(prof[:, 3])) * 2 * 5 * pad * pad * math.log2(pad * pad))
             pl = pl.evolved(estimate=cost)
             if memory_budget_bytes is not None and cost["memory_bytes"] > memory_budget_bytes:
                 if method_requested == "two-step":
@@ -396,6 +571,6 @@ def plan_wave_step(rw, tolerance, method_requested: str, memory_budget_bytes=Non
             from .doe_sampling import doe_pixel_origin
             mid = 0.5 * (rw.lo + rw.hi)
             origin = doe_pixel_origin(rw.lens, rw.plane, mid - 0.5 * (n_grid - 1) * pitch, pl.pitch_mm)
-            return rw.evolved(**dict(base, plan=pl, wave_step=d, wave_step_pad=pad, origin=origin,
+            return rw.evolved(**dict(base, plan=pl, wave_step=d, wave_step_pad=pad, origin=origin, wave_step_rim=prof,
                            pupil=(None, None, (2.0 / ray_grid) ** 2)))
     return rw.evolved(**base, plan=pl)

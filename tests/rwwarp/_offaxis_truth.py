@@ -68,7 +68,9 @@ def offaxis_truth(a_mm, d2_mm, coeffs, norm_radius_mm, field_deg, px, py, pixel,
     truth) ``(D_x, D_y)`` mm: the wave step's principle instead of the exact field on the DOE plane, the geometric
     field (``1 / s`` on the stop's shadow, radius ``s a`` about the chief point, band-limited to 70 cycles/mm) with the
     sphere to T removed, propagated by the Fresnel transfer ``exp(-i pi lambda (D_x nu_x^2 + D_y nu_y^2))``, the
-    sphere put back (isotropic: ``D_x = D_y``)."""
+    sphere put back (isotropic: ``D_x = D_y``); or a callable ``step(g, x, nu)`` that steps that geometric field ``g``
+    (n1 x n1, sample n1 // 2 on the chief point; ``x`` the grid's coordinates about it, mm, ``nu`` its FFT frequencies,
+    cycles/mm) itself (perf/wave_step_off_axis.py's rim-resolved principle)."""
     k = 2 * np.pi / LAM_MM
     z1, rb = F_MM - d2_mm, a_mm * d2_mm / F_MM
     d = z1 * d2_mm / F_MM
@@ -91,9 +93,13 @@ def offaxis_truth(a_mm, d2_mm, coeffs, norm_radius_mm, field_deg, px, py, pixel,
     c1 = z1 * yT / F_MM
     if step is not None:
         g = _disc_band_limited(n1, h, rb, 70.0) * (F_MM / d2_mm)
-        P = np.exp(-1j * np.pi * LAM_MM * (step[0] * nu[None, :] ** 2 + step[1] * nu[:, None] ** 2))
-        u = scipy.fft.ifft2(scipy.fft.fft2(g, workers=-1) * P, workers=-1)
-        del g, P
+        if callable(step):
+            u = step(g, x, nu)
+        else:
+            P = np.exp(-1j * np.pi * LAM_MM * (step[0] * nu[None, :] ** 2 + step[1] * nu[:, None] ** 2))
+            u = scipy.fft.ifft2(scipy.fft.fft2(g, workers=-1) * P, workers=-1)
+            del P
+        del g
         u *= np.exp(1j * (-k * np.sqrt(x[None, :] ** 2 + (x[:, None] + c1 - yT) ** 2 + d2_mm ** 2)
                           - 2 * np.pi * fc * x[:, None]))
     rcut = cut_share * (1.15 * rb + 30 * np.sqrt(LAM_MM * d))

@@ -56,7 +56,33 @@ def plan_window(ctx) -> Planned:
         hi = np.full_like(hi, half)
     else:
         raise ValueError(f"plan must be 'auto', 'paper' or a Plan, got {plan!r}")
-    return Planned(pl, ctx.carrier, ctx.centers, lo, hi)
+    centers = ctx.centers
+    if ctx.center_mm is None:
+        centers, why = doe_landing_centres(ctx)
+        if why:
+            pl = pl.with_reasons(why)
+    return Planned(pl, ctx.carrier, centers, lo, hi)
+
+
+def doe_landing_centres(ctx):
+    """``(centers, reason)``: the patch centres ((S, 2) mm, snapped to pixels) where the beam lands after the DOE on
+    the wave plane, as the focal method centres its patches (:func:`rwwarp.wave.methods.focal.main_order_centres`:
+    the chief ray on the DOE's main order, its local frequency added to the ray's; so the patch does not move with
+    the method "auto" chooses). None, blank or a pixel map (steps, no gradient to deflect the rays by): the chief
+    rays' landings ``ctx.centers`` and an empty reason."""
+    from ...doe import is_flat_profile
+    from .focal import doe_orders, main_order_centres
+    s = ctx.lens.surfaces[ctx.plane]
+    if s.type != "doe" or is_flat_profile(s.profile) or s.profile.get("kind") == "pixel_map":
+        return ctx.centers, ""
+    f_c = doe_orders(ctx)[3]
+    centers = main_order_centres(ctx, f_c)
+    moved = np.hypot(*(centers - np.asarray(ctx.centers, float)).T)
+    if not np.any(moved > 0):
+        return ctx.centers, ""
+    return centers, (f"patch centred where the chief ray lands on the DOE's main order (as the focal method): "
+                     f"{int(np.sum(moved > 0))} source(s) moved up to {float(moved.max()) * 1e3:.4g} um from its "
+                     f"landing without the DOE (rwwarp.wave.methods.asm.doe_landing_centres)")
 
 
 def wave_plane_cost(plan, n_sources: int):

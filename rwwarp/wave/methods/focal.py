@@ -17,18 +17,17 @@ from .asm import wave_plane_cost
 from .registry import Planned, Propagation, register
 
 
-def plan_focal_batch(ctx) -> Planned:
-    """Plan the focal propagation of a batch (:class:`~rwwarp.wave.methods.registry.PlanContext`): DOE orders,
-    carrier and patch centre after the main order, grids (:func:`rwwarp.wave.plan.plan_focal`); an explicit
-    focal :class:`~rwwarp.wave.plan.Plan` keeps its grids, centred where the planner centres them."""
+def doe_orders(ctx):
+    """The DOE orders a batch's beams carry (:class:`~rwwarp.wave.methods.registry.PlanContext`), per source:
+    ``(prof, xy, freq, f_c, orders, doe_freq, central)``: the DOE's profile (None: none or blank), the valid pilot
+    rays on the plane (mm) and their frequencies ``n d_xy / lambda`` (cycles/mm), the carrier ``f_c`` (S, 2) after the
+    chief ray's main order (cycles/mm), the orders ``[(m, c_m)]`` (one smooth order ``alpha`` where the relief does
+    not wrap inside the beam), the DOE's local frequencies at the rays and the chief ray's zone (or None)."""
     from ... import doe
     from ..focal import FOCAL_MAX_ORDER, doe_order_coefficients
-    from ..plan import Plan, landing_points, plan_focal
     lens, plane, pos_p, dir_s, ok = ctx.lens, ctx.plane, ctx.pos_p, ctx.dir_s, ctx.ok
-    chief_plane, n_after, lam_mm, wls, pixel = ctx.chief_plane, ctx.n_after, ctx.lam_mm, ctx.wls, ctx.pixel
-    dist = ctx.distance_mm
+    chief_plane, n_after, lam_mm, wls = ctx.chief_plane, ctx.n_after, ctx.lam_mm, ctx.wls
     nsrc = len(n_after)
-    inv_lam = n_after / lam_mm
     s = lens.surfaces[plane]
     shared = ctx.shared if ctx.shared is not None else {}
     prof = shared.get("focal_profile", False)
@@ -76,14 +75,35 @@ def plan_focal_batch(ctx) -> Planned:
                                        xy[k], chief_plane[k, :2]), float(alpha))
         m0 = int(ms[np.argmax(np.abs(cm))])
         f_c[k] += m0 * np.array([cx[0], cy[0]]) / (2 * np.pi)
+    return prof, xy, freq, f_c, orders, doe_freq, central
+
+
+def main_order_centres(ctx, f_c):
+    """The patch centres ((S, 2) mm, snapped to pixels) where the chief rays land after their main DOE order:
+    ``f_c`` (S, 2) cycles/mm the carriers of :func:`doe_orders`, straight from the chief points on the plane over
+    the distance to the sensor (:func:`rwwarp.wave.plan.landing_points`). LensError where that order is evanescent."""
+    from ..plan import landing_points
+    inv_lam = ctx.n_after / ctx.lam_mm
+    land = np.array([landing_points(ctx.chief_plane[k, :2], f_c[k], inv_lam[k], ctx.distance_mm)
+                     for k in range(len(ctx.n_after))])
+    if not np.all(np.isfinite(land)):
+        raise LensError("the chief ray's main diffraction order is evanescent behind the DOE", file=ctx.lens.source)
+    res = ctx.lens.sensor.resolution
+    return np.stack([snap_to_pixel(land[:, 0], ctx.pixel, res[0]), snap_to_pixel(land[:, 1], ctx.pixel, res[1])], axis=1)
+
+
+def plan_focal_batch(ctx) -> Planned:
+    """Plan the focal propagation of a batch (:class:`~rwwarp.wave.methods.registry.PlanContext`): DOE orders,
+    carrier and patch centre after the main order, grids (:func:`rwwarp.wave.plan.plan_focal`); an explicit
+    focal :class:`~rwwarp.wave.plan.Plan` keeps its grids, centred where the planner centres them."""
+    from ..plan import Plan, plan_focal
+    prof, xy, freq, f_c, orders, doe_freq, central = doe_orders(ctx)
+    inv_lam = ctx.n_after / ctx.lam_mm
+    dist, pixel, nsrc = ctx.distance_mm, ctx.pixel, len(ctx.n_after)
     if ctx.center_mm is None:
-        land = np.array([landing_points(chief_plane[k, :2], f_c[k], inv_lam[k], dist) for k in range(nsrc)])
-        if not np.all(np.isfinite(land)):
-            raise LensError("the chief ray's main diffraction order is evanescent behind the DOE", file=lens.source)
-        centers = np.stack([snap_to_pixel(land[:, 0], pixel, lens.sensor.resolution[0]),
-                            snap_to_pixel(land[:, 1], pixel, lens.sensor.resolution[1])], axis=1)
+        centers = main_order_centres(ctx, f_c)
     else:
-        centers = snap_centers(ctx.center_mm, pixel, lens.sensor.resolution, nsrc)
+        centers = snap_centers(ctx.center_mm, pixel, ctx.lens.sensor.resolution, nsrc)
     pl, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, ctx.width, ctx.size, pixel,
                          ctx.rays_per_sample, ctx.nyquist_safety, patch_tol=ctx.patch_tol,
                          straight_edges=ctx.straight_edges)
