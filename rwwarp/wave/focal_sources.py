@@ -78,7 +78,7 @@ def _rays(pos_p, dir_s, ok, n_after, lam_mm):
 
 def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, distance_mm, centers_given,
                           widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
-                          straight_edges) -> dict:
+                          straight_edges, sampling_tol=None) -> dict:
     """Per source ``k`` of ``S``: the :class:`~rwwarp.wave.methods.registry.Planned` focal plan that
     ``plan_focal_batch`` makes for it alone (``ctx`` of that source's rows) where the wave plane has no DOE (or a
     blank one: the single order ``(0, 1)``) and the plan is the planner's own (``plan="auto"``). ``pos_p`` /
@@ -97,12 +97,12 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
     # its frequencies: 0 * 0 + freq, the bits of plan_focal's freq + 0.0 (x + 0.0 = 0.0 + x, -0.0 included)
     return _plans(xy, freq, np.zeros_like(xy), counts, [one] * S, [None] * S, None, f_c, chief_plane, n_after,
                   lam_mm, distance_mm, centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample,
-                  nyquist_safety, straight_edges, 0.0)
+                  nyquist_safety, straight_edges, 0.0, sampling_tol)
 
 
 def focal_plans_orders(lens, plane, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, distance_mm,
                        centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
-                       straight_edges, patch_tol, shared=None, order_tol=1e-8) -> dict:
+                       straight_edges, patch_tol, shared=None, order_tol=1e-8, sampling_tol=None) -> dict:
     """Per source ``k`` of ``S``: the :class:`~rwwarp.wave.methods.registry.Planned` focal plan that
     ``plan_focal_batch`` makes for it alone where the wave plane (surface ``plane`` of ``lens``) is a DOE with a
     smooth relief (several diffraction orders, or one order of non-integer index where the relief does not wrap
@@ -183,12 +183,12 @@ def focal_plans_orders(lens, plane, pos_p, dir_s, ok, chief_plane, chief_dir, n_
     f_c += coef[:, None] * np.stack([cx, cy], 1) / (2 * np.pi)
     return _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_after, lam_mm, distance_mm,
                   centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
-                  straight_edges, patch_tol)
+                  straight_edges, patch_tol, sampling_tol)
 
 
 def _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_after, lam_mm, distance_mm,
            centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety, straight_edges,
-           patch_tol) -> dict:
+           patch_tol, sampling_tol=None) -> dict:
     """The plans of :func:`focal_plans_one_order` and :func:`focal_plans_orders` from every source's padded rays
     (:func:`_rays`; ``doe_f`` (S, R, 2) the DOE's frequency at them), orders (``infos``), chief zones
     (``central``), the profile ``prof`` and carriers ``f_c`` (S, 2): the patch centres, then every source's orders
@@ -224,7 +224,7 @@ def _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_af
         sl = slice(k, k + 1)
         pl, geo = focal_plan_from([box], [keep], lost, band, shifts, g_fit, q_fit, lit, spread, spread_main,
                                   ray_spread, z, half_w, mb, float(widths[k]), rays_per_sample, nyquist_safety,
-                                  straight_edges)
+                                  straight_edges, sampling_tol=sampling_tol)
         geo["profile"] = prof
         geo["central_zone"] = [central[k]]
         out[int(k)] = Planned(pl, f_c[sl], centers[sl], lo[sl], hi[sl], geo)

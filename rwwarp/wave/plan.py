@@ -307,10 +307,49 @@ FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ri
 FOCAL_RAY_SPREAD = 14.0    # wave-plane period over the main order's straight-ray landing extent, per nyquist_safety
 FOCAL_RAY_MAX_GRID = 2048  # ... while the wave-plane grid stays within this many samples a side
 FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays land beyond V's taper guard (lit taper)
+#: the sampling error (max |error| / peak) the focal rules above were set for: issue 27's target for refractive
+#: lenses, 2e-4 (measured against rs_lens_psf: 2e-5..1.5e-4 of the peak, tests/rwwarp/test_focal.py)
+SAMPLING_TOL = 2e-4
+#: the share of a requested ``tolerance`` that the focal plan's sampling may spend (the rest is the model's own)
+SAMPLING_SHARE = 0.25
+#: how far a requested tolerance relaxes the accuracy-driven focal rules at most (their error laws were measured
+#: up to here: perf/results/map_ab_cpu_session24/README.md)
+SAMPLING_RELAX_MAX = 16.0
+
+
+def sampling_relax(tolerance) -> float:
+    """How much coarser than its default the focal plan's accuracy-driven rules may sample for a requested
+    ``tolerance`` (max |error| / peak, or None): ``SAMPLING_SHARE x tolerance / SAMPLING_TOL``, between 1 (the
+    default rules; None gives 1) and ``SAMPLING_RELAX_MAX``. Dimensionless. The rules it relaxes
+    (:func:`focal_plan_from`): the main order's ray-landing period ``FOCAL_RAY_SPREAD`` (the rim's cell phase,
+    error ~ 1 / period^2: divided by ``sqrt(relax)``) and the rim's ray count ``FOCAL_RIM_RAYS`` (error first
+    order in the ray pitch: divided by ``relax``); the aliasing rules (spreads, sensor-side grid, margins) and
+    ``nyquist_safety`` stay (the error jumps by 200x from safety 1.5 to 1: not a smooth law)."""
+    if tolerance is None:
+        return 1.0
+    t = float(tolerance)
+    if not (t > 0 and math.isfinite(t)):
+        raise ValueError(f"sampling_relax: tolerance must be a positive number or None, got {tolerance!r}")
+    return min(max(SAMPLING_SHARE * t / SAMPLING_TOL, 1.0), SAMPLING_RELAX_MAX)
+
+
+#: the pixel integration's error bound (:func:`rwwarp.wave.sensor_grid.auto_gauss_nodes`) of the default plan
+GAUSS_TOL = 1e-7
+
+
+def gauss_tol(tolerance) -> float:
+    """The error bound (relative, dimensionless) the automatic pixel integration keeps for a requested
+    ``tolerance`` (max |error| / peak, or None): ``GAUSS_TOL`` (1e-7) by default, else the sampling budget
+    ``SAMPLING_TOL x sampling_relax(tolerance)`` where that relaxes. The bound (the highest intensity frequency's
+    Gauss-Legendre remainder, unit amplitude) exceeds the measured error by 100-1000x on the A489's beams (32 px,
+    against 10 nodes: 3 nodes 4.4e-6..7.1e-5 of the peak where the bound reads 3.8e-3..3.5e-2; 4 nodes <= 1.4e-6)."""
+    r = sampling_relax(tolerance)
+    return GAUSS_TOL if r == 1.0 else max(GAUSS_TOL, SAMPLING_TOL * r)
 
 
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
-               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5, straight_edges=False):
+               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5, straight_edges=False,
+               sampling_tol=None):
     """Sampling of the focal propagation (:mod:`rwwarp.wave.focal`) for one batch, from a pilot trace.
 
     Per source ``k``: ``xy[k]`` (N, 2) wave-plane points of the pilot rays (mm), ``freq[k]`` (N, 2) their
@@ -478,16 +517,20 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         kept.append(keep)
         bands[k] = band
     return focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread,
-                           z, half_w, mb, width_mm, rays_per_sample, nyquist_safety, straight_edges)
+                           z, half_w, mb, width_mm, rays_per_sample, nyquist_safety, straight_edges,
+                           sampling_tol=sampling_tol)
 
 
 def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread, z, half_w,
-                    mb, width_mm, rays_per_sample, nyquist_safety, straight_edges):
+                    mb, width_mm, rays_per_sample, nyquist_safety, straight_edges, sampling_tol=None):
     """The last part of :func:`plan_focal`: its grids, reasons and geometry from the per-source results of its
     loop (``boxes``: the sensor-side boxes ``(lo, hi)`` (2,) mm; ``kept`` orders, ``lost`` power, ``bands``
     cycles/mm, ``shifts`` mm, the fitted transfer ``g_fit`` / ``q_fit`` (S, 2), ``lit`` (S,) bool; ``spread``,
     ``spread_main``, ``ray_spread`` mm over the sources; ``z`` mm, ``half_w`` mm the patch's half width, ``mb``
-    the margin in 1 / B). Also used by :mod:`rwwarp.wave.focal_sources` (many sources, each its own plan)."""
+    the margin in 1 / B). Also used by :mod:`rwwarp.wave.focal_sources` (many sources, each its own plan).
+    ``sampling_tol``: the caller's ``tolerance`` (max |error| / peak) or None; above ``SAMPLING_TOL / SAMPLING_SHARE``
+    it relaxes the ray-landing period and the rim's ray count (:func:`sampling_relax`), else the default rules."""
+    relax = sampling_relax(sampling_tol)
     A = np.abs(1.0 / (z * q_fit))
     box = max(float(np.max(hi - lo)) for lo, hi in boxes)
 
@@ -527,7 +570,9 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     # 60 um patch) would ask for 16026^2 samples (90 GiB with gradients) where the rules above plan 4509^2; its
     # own error there, 3.4e-3 of the peak against 3 x the period (self-convergence), is stated in the reasons.
     window_mm = width_mm + 2.0 * width_mm / 31.0
-    want = FOCAL_RAY_SPREAD * ray_spread * nyquist_safety
+    ray_factor = FOCAL_RAY_SPREAD if relax == 1.0 else FOCAL_RAY_SPREAD / math.sqrt(relax)
+    rim_rays = FOCAL_RIM_RAYS if relax == 1.0 else FOCAL_RIM_RAYS / relax
+    want = ray_factor * ray_spread * nyquist_safety
     cap = max(period, (FOCAL_RAY_MAX_GRID - 3) / (window_mm * float(np.max(A))))
     ray_capped = want > cap
     period = max(period, min(want, cap))
@@ -539,7 +584,7 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     # 4 rays across); the pupil rim's error is first order in the ray pitch (on axis, 16 px: 1.5e-4 / 6.6e-5
     # at 179 / 357 rays across), so at least FOCAL_RIM_RAYS rays cross the pupil where the grid has that many
     samples = width_mm / pitch
-    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), samples / 4))) + 1
+    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, rim_rays), samples / 4))) + 1
     reasons = (
         "focal propagation: reference wave to the patch centre handled analytically (rwwarp.wave.focal)",
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
@@ -550,8 +595,10 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
         f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {FOCAL_RAY_MAX_GRID} samples: the rim may err by more than 2e-4 of the peak)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
-        f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 4) -> {ray_grid} across the pupil",
-    )
+        f"rays: {rays_per_sample} x max(min(samples, {rim_rays:.4g}), samples / 4) -> {ray_grid} across the pupil",
+    ) + ((f"sampling for the tolerance {float(sampling_tol):.3g}: ray-landing period {ray_factor:.3g} x safety "
+          f"landing extents, {rim_rays:.4g} rim rays ({relax:.3g}x the default rules' error budget "
+          f"{SAMPLING_TOL:g}, SAMPLING_SHARE {SAMPLING_SHARE:g} of the tolerance)",) if relax > 1.0 else ())
     plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
     return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost,
