@@ -312,25 +312,44 @@ FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays l
 SAMPLING_TOL = 2e-4
 #: the share of a requested ``tolerance`` that the focal plan's sampling may spend (the rest is the model's own)
 SAMPLING_SHARE = 0.25
-#: how far a requested tolerance relaxes the accuracy-driven focal rules at most (their error laws were measured
-#: up to here: perf/results/map_ab_cpu_session24/README.md)
+#: how far a requested tolerance relaxes the accuracy-driven focal rules at most (their error was measured up to
+#: here: perf/results/map_ab_cpu_session24/README.md)
 SAMPLING_RELAX_MAX = 16.0
+#: the relaxed plan's error grows as relax^SAMPLING_RELAX_POWER (measured on the A489's worst beam of the 10 x 10 x 3
+#: map, 14.3 deg at 0.45 um, 32 px, against a converged plan: 1.3e-4, 3.5e-4, 1.1e-3, 2.8e-3 of the peak at relax 1,
+#: 2, 4, 8: exponent 1.45)
+SAMPLING_RELAX_POWER = 1.5
 
 
 def sampling_relax(tolerance) -> float:
     """How much coarser than its default the focal plan's accuracy-driven rules may sample for a requested
-    ``tolerance`` (max |error| / peak, or None): ``SAMPLING_SHARE x tolerance / SAMPLING_TOL``, between 1 (the
+    ``tolerance`` (max |error| / peak, or None): the relaxation whose error, ``SAMPLING_TOL x
+    relax^SAMPLING_RELAX_POWER``, is the sampling's share of it, ``SAMPLING_SHARE x tolerance``; between 1 (the
     default rules; None gives 1) and ``SAMPLING_RELAX_MAX``. Dimensionless. The rules it relaxes
     (:func:`focal_plan_from`): the main order's ray-landing period ``FOCAL_RAY_SPREAD`` (the rim's cell phase,
     error ~ 1 / period^2: divided by ``sqrt(relax)``) and the rim's ray count ``FOCAL_RIM_RAYS`` (error first
-    order in the ray pitch: divided by ``relax``); the aliasing rules (spreads, sensor-side grid, margins) and
-    ``nyquist_safety`` stay (the error jumps by 200x from safety 1.5 to 1: not a smooth law)."""
+    order in the ray pitch: divided by ``relax``); from ``LIT_RELAX`` on a lit taper's margin
+    (:func:`lit_shift_margin`), and the pixel integration's bound (:func:`gauss_tol`). The aliasing rules (spreads,
+    the sensor-side pitch, the 1 / B margins) and ``nyquist_safety`` stay (the A489's corner beam erred 1.3e-4 /
+    2.0e-4 / 3.9e-2 of the peak at safety 2 / 1.5 / 1: not a smooth law)."""
     if tolerance is None:
         return 1.0
     t = float(tolerance)
     if not (t > 0 and math.isfinite(t)):
         raise ValueError(f"sampling_relax: tolerance must be a positive number or None, got {tolerance!r}")
-    return min(max(SAMPLING_SHARE * t / SAMPLING_TOL, 1.0), SAMPLING_RELAX_MAX)
+    return min(max((SAMPLING_SHARE * t / SAMPLING_TOL) ** (1.0 / SAMPLING_RELAX_POWER), 1.0), SAMPLING_RELAX_MAX)
+
+
+#: from this relaxation on (:func:`sampling_relax`) a lit taper's sensor-side margin is FOCAL_SHIFT_MARGIN displacements
+#: (its 3 displacements took a BK7 singlet at 40 deg from 2.7e-4 to 5.4e-5 of the peak, a budget of >= 8e-4 holds it)
+LIT_RELAX = 4.0
+
+
+def lit_shift_margin(tolerance) -> float:
+    """The sensor-side margin (in the remainder's largest displacements) where the main order's rays land beyond
+    ``V``'s taper guard, for a requested ``tolerance`` (or None): ``FOCAL_LIT_SHIFT_MARGIN`` unless
+    :func:`sampling_relax` reaches ``LIT_RELAX``, then ``FOCAL_SHIFT_MARGIN`` (the unlit margin)."""
+    return FOCAL_SHIFT_MARGIN if sampling_relax(tolerance) >= LIT_RELAX else FOCAL_LIT_SHIFT_MARGIN
 
 
 #: the pixel integration's error bound (:func:`rwwarp.wave.sensor_grid.auto_gauss_nodes`) of the default plan
@@ -339,8 +358,8 @@ GAUSS_TOL = 1e-7
 
 def gauss_tol(tolerance) -> float:
     """The error bound (relative, dimensionless) the automatic pixel integration keeps for a requested
-    ``tolerance`` (max |error| / peak, or None): ``GAUSS_TOL`` (1e-7) by default, else the sampling budget
-    ``SAMPLING_TOL x sampling_relax(tolerance)`` where that relaxes. The bound (the highest intensity frequency's
+    ``tolerance`` (max |error| / peak, or None): ``GAUSS_TOL`` (1e-7) by default, else ``SAMPLING_TOL x
+    sampling_relax(tolerance)`` where that relaxes. The bound (the highest intensity frequency's
     Gauss-Legendre remainder, unit amplitude) exceeds the measured error by 100-1000x on the A489's beams (32 px,
     against 10 nodes: 3 nodes 4.4e-6..7.1e-5 of the peak where the bound reads 3.8e-3..3.5e-2; 4 nodes <= 1.4e-6)."""
     r = sampling_relax(tolerance)
@@ -403,6 +422,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     spread = spread_main = 0.0   # the light's extent at the sensor under the quadratic transfer (all, main order)
     ray_spread = 0.0             # the main order's straight-ray landing extent (the geometric spot, no margins)
     lit = np.zeros(S, dtype=bool)  # per source: the main order's rays land beyond the taper guard
+    lit_margin = lit_shift_margin(sampling_tol)
     for k in range(S):
         T = centers[k]
         main_m, main_c = max(orders[k], key=lambda mc: abs(mc[1]))
@@ -504,7 +524,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         guard = half_w + FOCAL_TAPER_GUARD * shifts[k] + 3.0 / band
         if used and main_box is not None:
             lit[k] = bool(np.any(main_box[0] < T - guard) or np.any(main_box[1] > T + guard))
-        margin_k = margin + (FOCAL_LIT_SHIFT_MARGIN if lit[k] else FOCAL_SHIFT_MARGIN) * shifts[k]
+        margin_k = margin + (lit_margin if lit[k] else FOCAL_SHIFT_MARGIN) * shifts[k]
         lo = np.minimum(lo, T - half_w - shifts[k]) - margin_k
         hi = np.maximum(hi, T + half_w + shifts[k]) + margin_k
         # V is computed only near the patch: the remainder moves light at most shifts[k], so what lies farther
@@ -531,6 +551,7 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     ``sampling_tol``: the caller's ``tolerance`` (max |error| / peak) or None; above ``SAMPLING_TOL / SAMPLING_SHARE``
     it relaxes the ray-landing period and the rim's ray count (:func:`sampling_relax`), else the default rules."""
     relax = sampling_relax(sampling_tol)
+    lit_margin = lit_shift_margin(sampling_tol)
     A = np.abs(1.0 / (z * q_fit))
     box = max(float(np.max(hi - lo)) for lo, hi in boxes)
 
@@ -590,15 +611,17 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
-        f"margin {mb:g}/B + {FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
+        f"margin {mb:g}/B + {lit_margin if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (lit_margin if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
         f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {FOCAL_RAY_MAX_GRID} samples: the rim may err by more than 2e-4 of the peak)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
         f"rays: {rays_per_sample} x max(min(samples, {rim_rays:.4g}), samples / 4) -> {ray_grid} across the pupil",
     ) + ((f"sampling for the tolerance {float(sampling_tol):.3g}: ray-landing period {ray_factor:.3g} x safety "
-          f"landing extents, {rim_rays:.4g} rim rays ({relax:.3g}x the default rules' error budget "
-          f"{SAMPLING_TOL:g}, SAMPLING_SHARE {SAMPLING_SHARE:g} of the tolerance)",) if relax > 1.0 else ())
+          f"landing extents, {rim_rays:.4g} rim rays, a lit taper's margin {lit_margin:g} shifts, pixel integration "
+          f"bound {gauss_tol(sampling_tol):.3g} (relaxed {relax:.3g}x: the sampling error ~{SAMPLING_TOL:g} x "
+          f"{relax:.3g}^{SAMPLING_RELAX_POWER:g} = {SAMPLING_TOL * relax ** SAMPLING_RELAX_POWER:.2g} of the peak, "
+          f"SAMPLING_SHARE {SAMPLING_SHARE:g} of the tolerance or less)",) if relax > 1.0 else ())
     plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
     return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost,
