@@ -310,8 +310,9 @@ FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays l
 #: the sampling error (max |error| / peak) the focal rules above were set for: issue 27's target for refractive
 #: lenses, 2e-4 (measured against rs_lens_psf: 2e-5..1.5e-4 of the peak, tests/rwwarp/test_focal.py)
 SAMPLING_TOL = 2e-4
-#: the share of a requested ``tolerance`` that the focal plan's sampling may spend (the rest is the model's own)
-SAMPLING_SHARE = 0.25
+#: the share of a requested ``tolerance`` that the focal plan's sampling may spend (the rest is the model's own): a
+#: tenth, so that a tolerance up to 2e-3 keeps the default plan (tolerance=1e-3, the wave step's usual request, included)
+SAMPLING_SHARE = 0.1
 #: how far a requested tolerance relaxes the accuracy-driven focal rules at most (their error was measured up to
 #: here: perf/results/map_ab_cpu_session24/README.md)
 SAMPLING_RELAX_MAX = 16.0
