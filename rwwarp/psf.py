@@ -183,7 +183,11 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         error (the geometric field at the DOE plane leaves out the rim's diffraction on the way there) is
         estimated from the scene (:mod:`rwwarp.wave.model_error`; in the plan and ``--explain``); above
         ``tolerance``, ``method="auto"`` adds the wave step, and an explicit ``"asm"`` / ``"focal"`` warns
-        (:class:`rwwarp.wave.model_error.ModelErrorWarning`). None (default): estimate and report only.
+        (:class:`rwwarp.wave.model_error.ModelErrorWarning`). None (default): estimate and report only. It also
+        sets the focal plan's sampling: where a tenth of it (``rwwarp.wave.plan.SAMPLING_SHARE``) exceeds the
+        default rules' error (~2e-4 of the peak), the ray-landing period, the rim's ray count, a lit taper's margin
+        and the pixel integration relax (:func:`rwwarp.wave.plan.sampling_relax`, at most 16x) so that the sampling
+        error stays within that tenth (the plan's reasons say so); None or a tolerance up to 2e-3: the default plan.
     cache : rwwarp.PlanCache, optional
         Keep this call's pilot trace, plan, batches and propagation operators in the given
         :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens

@@ -260,13 +260,14 @@ def plan_batch(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtype=
                       center_mm=center_mm, size=size, pixel=pixel, width=width, pilot_cell=pilot_cell, lo=lo, hi=hi,
                       fmax=fmax, f_doe=f_doe, feature=feature, out_width=out_width, carrier=carrier, centers=centers,
                       rays_per_sample=rays_per_sample, nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol,
-                      straight_edges=square_pupil)
+                      straight_edges=square_pupil, sampling_tol=model_tolerance)
     planned = {m: get_method(m).plan(ctx) for m in (AUTO_PAIR if method == "compare" else (method,))}
     main = planned["asm" if method == "compare" else method]
     pl, carrier, centers, lo, hi, focal = main.plan, main.carrier, main.centers, main.lo, main.hi, main.geo
 
     if gauss_nodes is None:
-        gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel)
+        from .plan import gauss_tol
+        gauss_nodes = _auto_gauss_nodes(dir_s, ok, n_img_all(lens, wls), lam_mm, pixel, tol=gauss_tol(model_tolerance))
         pl = pl.with_reasons(f"pixel integration: {gauss_nodes} x {gauss_nodes} Gauss-Legendre nodes per pixel "
                              f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)")
     from .plan import estimate_cost, check_budget

@@ -25,7 +25,7 @@ import numpy as np
 from ..lens import snap_to_pixel
 from .methods.registry import Planned
 from .plan import (FOCAL_EDGE_MARGIN_B, FOCAL_LIT_SHIFT_MARGIN, FOCAL_MARGIN_B, FOCAL_SHIFT_MARGIN,
-                   FOCAL_TAPER_GUARD, fit_quadratic_transfers, focal_plan_from)
+                   FOCAL_TAPER_GUARD, fit_quadratic_transfers, focal_plan_from, lit_shift_margin)
 
 __all__ = ["focal_plans_one_order", "focal_plans_orders"]
 
@@ -78,7 +78,7 @@ def _rays(pos_p, dir_s, ok, n_after, lam_mm):
 
 def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, distance_mm, centers_given,
                           widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
-                          straight_edges) -> dict:
+                          straight_edges, sampling_tol=None) -> dict:
     """Per source ``k`` of ``S``: the :class:`~rwwarp.wave.methods.registry.Planned` focal plan that
     ``plan_focal_batch`` makes for it alone (``ctx`` of that source's rows) where the wave plane has no DOE (or a
     blank one: the single order ``(0, 1)``) and the plan is the planner's own (``plan="auto"``). ``pos_p`` /
@@ -97,12 +97,12 @@ def focal_plans_one_order(pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam
     # its frequencies: 0 * 0 + freq, the bits of plan_focal's freq + 0.0 (x + 0.0 = 0.0 + x, -0.0 included)
     return _plans(xy, freq, np.zeros_like(xy), counts, [one] * S, [None] * S, None, f_c, chief_plane, n_after,
                   lam_mm, distance_mm, centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample,
-                  nyquist_safety, straight_edges, 0.0)
+                  nyquist_safety, straight_edges, 0.0, sampling_tol)
 
 
 def focal_plans_orders(lens, plane, pos_p, dir_s, ok, chief_plane, chief_dir, n_after, lam_mm, wls, distance_mm,
                        centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
-                       straight_edges, patch_tol, shared=None, order_tol=1e-8) -> dict:
+                       straight_edges, patch_tol, shared=None, order_tol=1e-8, sampling_tol=None) -> dict:
     """Per source ``k`` of ``S``: the :class:`~rwwarp.wave.methods.registry.Planned` focal plan that
     ``plan_focal_batch`` makes for it alone where the wave plane (surface ``plane`` of ``lens``) is a DOE with a
     smooth relief (several diffraction orders, or one order of non-integer index where the relief does not wrap
@@ -183,12 +183,12 @@ def focal_plans_orders(lens, plane, pos_p, dir_s, ok, chief_plane, chief_dir, n_
     f_c += coef[:, None] * np.stack([cx, cy], 1) / (2 * np.pi)
     return _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_after, lam_mm, distance_mm,
                   centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety,
-                  straight_edges, patch_tol)
+                  straight_edges, patch_tol, sampling_tol)
 
 
 def _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_after, lam_mm, distance_mm,
            centers_given, widths, size, pixel, resolution, lo, hi, rays_per_sample, nyquist_safety, straight_edges,
-           patch_tol) -> dict:
+           patch_tol, sampling_tol=None) -> dict:
     """The plans of :func:`focal_plans_one_order` and :func:`focal_plans_orders` from every source's padded rays
     (:func:`_rays`; ``doe_f`` (S, R, 2) the DOE's frequency at them), orders (``infos``), chief zones
     (``central``), the profile ``prof`` and carriers ``f_c`` (S, 2): the patch centres, then every source's orders
@@ -215,7 +215,7 @@ def _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_af
     res = {}
     for sel in _order_chunks(np.flatnonzero(go), [len(i.live_m) for i in infos], R):
         res.update(_orders_chunk(sel, infos, *by_axis, counts, f_c, centers, inv2, g, q, z, half_w, mb,
-                                 patch_tol))
+                                 patch_tol, lit_shift_margin(sampling_tol)))
     out = {}
     for a in (f_c, centers):   # each plan keeps read-only views of its rows
         a.flags.writeable = False
@@ -224,7 +224,7 @@ def _plans(xy, freq, doe_f, counts, infos, central, prof, f_c, chief_plane, n_af
         sl = slice(k, k + 1)
         pl, geo = focal_plan_from([box], [keep], lost, band, shifts, g_fit, q_fit, lit, spread, spread_main,
                                   ray_spread, z, half_w, mb, float(widths[k]), rays_per_sample, nyquist_safety,
-                                  straight_edges)
+                                  straight_edges, sampling_tol=sampling_tol)
         geo["profile"] = prof
         geo["central_zone"] = [central[k]]
         out[int(k)] = Planned(pl, f_c[sl], centers[sl], lo[sl], hi[sl], geo)
@@ -247,7 +247,8 @@ def _order_chunks(ks, n_live, R):
     return out
 
 
-def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q, z, half_w, mb, patch_tol):
+def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q, z, half_w, mb, patch_tol,
+                  lit_margin=FOCAL_LIT_SHIFT_MARGIN):
     """:func:`rwwarp.wave.plan.plan_focal`'s loop for the sources ``sel`` at once (``xy``, ``freq``, ``doe_f``: (2,
     S, R) by component, the other arrays' rows ``sel``; ``infos``: each source's :class:`_Orders`): ``{k: (kept
     orders, lost power (1,), band (1,), shifts (1,), g_fit (1, 2), q_fit (1, 2), lit (1,), spread, spread_main,
@@ -256,7 +257,8 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     or copies), sums and products of the two components (``a + b`` in either order), the same decisions, the fit
     of every source at once (:func:`rwwarp.wave.plan.fit_quadratic_transfers`: sums in the points' order, the
     padding masked out, the same bits as plan_focal's). The arrays are (n, M, R) per component (contiguous
-    reductions over the rays)."""
+    reductions over the rays). ``lit_margin``: a lit taper's sensor-side margin in displacements
+    (:func:`rwwarp.wave.plan.lit_shift_margin` of the requested tolerance)."""
     n, R = len(sel), xy.shape[2]
     M = max(len(infos[k].live_m) for k in sel)
     ms = np.empty((n, M), dtype=doe_f.dtype)    # m * doe_freq in doe_freq's precision, as plan_focal multiplies it
@@ -368,7 +370,7 @@ def _orders_chunk(sel, infos, xy, freq, doe_f, counts, f_c, centers, inv2, g, q,
     mhi = np.maximum(T + half_w, np.max(np.where(m3, LGhi, -np.inf), axis=1))
     guard = half_w + FOCAL_TAPER_GUARD * shifts + 3.0 / band
     lit = mu & (np.any(mLLO < T - guard[:, None], axis=1) | np.any(mLHI > T + guard[:, None], axis=1))
-    margin_k = margin + np.where(lit, FOCAL_LIT_SHIFT_MARGIN, FOCAL_SHIFT_MARGIN) * shifts
+    margin_k = margin + np.where(lit, lit_margin, FOCAL_SHIFT_MARGIN) * shifts
     lo_s = np.minimum(lo_g, T - half_w - shifts[:, None]) - margin_k[:, None]
     hi_s = np.maximum(hi_g, T + half_w + shifts[:, None]) + margin_k[:, None]
     spread = np.maximum(0.0, np.max(hi_s - lo_s, axis=1))

@@ -307,10 +307,69 @@ FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ri
 FOCAL_RAY_SPREAD = 14.0    # wave-plane period over the main order's straight-ray landing extent, per nyquist_safety
 FOCAL_RAY_MAX_GRID = 2048  # ... while the wave-plane grid stays within this many samples a side
 FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays land beyond V's taper guard (lit taper)
+#: the sampling error (max |error| / peak) the focal rules above were set for: issue 27's target for refractive
+#: lenses, 2e-4 (measured against rs_lens_psf: 2e-5..1.5e-4 of the peak, tests/rwwarp/test_focal.py)
+SAMPLING_TOL = 2e-4
+#: the share of a requested ``tolerance`` that the focal plan's sampling may spend (the rest is the model's own): a
+#: tenth, so that a tolerance up to 2e-3 keeps the default plan (tolerance=1e-3, the wave step's usual request, included)
+SAMPLING_SHARE = 0.1
+#: how far a requested tolerance relaxes the accuracy-driven focal rules at most (their error was measured up to
+#: here: perf/results/map_ab_cpu_session24/README.md)
+SAMPLING_RELAX_MAX = 16.0
+#: the relaxed plan's error grows as relax^SAMPLING_RELAX_POWER (measured on the A489's worst beam of the 10 x 10 x 3
+#: map, 14.3 deg at 0.45 um, 32 px, against a converged plan: 1.3e-4, 3.5e-4, 1.1e-3, 2.8e-3 of the peak at relax 1,
+#: 2, 4, 8: exponent 1.45)
+SAMPLING_RELAX_POWER = 1.5
+
+
+def sampling_relax(tolerance) -> float:
+    """How much coarser than its default the focal plan's accuracy-driven rules may sample for a requested
+    ``tolerance`` (max |error| / peak, or None): the relaxation whose error, ``SAMPLING_TOL x
+    relax^SAMPLING_RELAX_POWER``, is the sampling's share of it, ``SAMPLING_SHARE x tolerance``; between 1 (the
+    default rules; None gives 1) and ``SAMPLING_RELAX_MAX``. Dimensionless. The rules it relaxes
+    (:func:`focal_plan_from`): the main order's ray-landing period ``FOCAL_RAY_SPREAD`` (the rim's cell phase,
+    error ~ 1 / period^2: divided by ``sqrt(relax)``) and the rim's ray count ``FOCAL_RIM_RAYS`` (error first
+    order in the ray pitch: divided by ``relax``); from ``LIT_RELAX`` on a lit taper's margin
+    (:func:`lit_shift_margin`), and the pixel integration's bound (:func:`gauss_tol`). The aliasing rules (spreads,
+    the sensor-side pitch, the 1 / B margins) and ``nyquist_safety`` stay (the A489's corner beam erred 1.3e-4 /
+    2.0e-4 / 3.9e-2 of the peak at safety 2 / 1.5 / 1: not a smooth law)."""
+    if tolerance is None:
+        return 1.0
+    t = float(tolerance)
+    if not (t > 0 and math.isfinite(t)):
+        raise ValueError(f"sampling_relax: tolerance must be a positive number or None, got {tolerance!r}")
+    return min(max((SAMPLING_SHARE * t / SAMPLING_TOL) ** (1.0 / SAMPLING_RELAX_POWER), 1.0), SAMPLING_RELAX_MAX)
+
+
+#: from this relaxation on (:func:`sampling_relax`) a lit taper's sensor-side margin is FOCAL_SHIFT_MARGIN displacements
+#: (its 3 displacements took a BK7 singlet at 40 deg from 2.7e-4 to 5.4e-5 of the peak, a budget of >= 8e-4 holds it)
+LIT_RELAX = 4.0
+
+
+def lit_shift_margin(tolerance) -> float:
+    """The sensor-side margin (in the remainder's largest displacements) where the main order's rays land beyond
+    ``V``'s taper guard, for a requested ``tolerance`` (or None): ``FOCAL_LIT_SHIFT_MARGIN`` unless
+    :func:`sampling_relax` reaches ``LIT_RELAX``, then ``FOCAL_SHIFT_MARGIN`` (the unlit margin)."""
+    return FOCAL_SHIFT_MARGIN if sampling_relax(tolerance) >= LIT_RELAX else FOCAL_LIT_SHIFT_MARGIN
+
+
+#: the pixel integration's error bound (:func:`rwwarp.wave.sensor_grid.auto_gauss_nodes`) of the default plan
+GAUSS_TOL = 1e-7
+
+
+def gauss_tol(tolerance) -> float:
+    """The error bound (relative, dimensionless) the automatic pixel integration keeps for a requested
+    ``tolerance`` (max |error| / peak, or None): ``GAUSS_TOL`` (1e-7) by default, else ``SAMPLING_TOL x
+    sampling_relax(tolerance)`` where that relaxes. The bound (the highest intensity frequency's
+    Gauss-Legendre remainder, unit amplitude) exceeds the measured error by 100-1000x on the A489's beams (32 px,
+    against 10 nodes: 3 nodes 4.4e-6..7.1e-5 of the peak where the bound reads 3.8e-3..3.5e-2; 4 nodes <= 1.4e-6)."""
+    r = sampling_relax(tolerance)
+    return GAUSS_TOL if r == 1.0 else max(GAUSS_TOL, SAMPLING_TOL * r)
 
 
 def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_mm, width_mm, size, pixel_mm,
-               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5, straight_edges=False):
+               rays_per_sample, nyquist_safety, order_tol=1e-8, patch_tol=1e-5, straight_edges=False,
+               sampling_tol=None):
     """Sampling of the focal propagation (:mod:`rwwarp.wave.focal`) for one batch, from a pilot trace.
 
     Per source ``k``: ``xy[k]`` (N, 2) wave-plane points of the pilot rays (mm), ``freq[k]`` (N, 2) their
@@ -364,6 +423,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
     spread = spread_main = 0.0   # the light's extent at the sensor under the quadratic transfer (all, main order)
     ray_spread = 0.0             # the main order's straight-ray landing extent (the geometric spot, no margins)
     lit = np.zeros(S, dtype=bool)  # per source: the main order's rays land beyond the taper guard
+    lit_margin = lit_shift_margin(sampling_tol)
     for k in range(S):
         T = centers[k]
         main_m, main_c = max(orders[k], key=lambda mc: abs(mc[1]))
@@ -465,7 +525,7 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         guard = half_w + FOCAL_TAPER_GUARD * shifts[k] + 3.0 / band
         if used and main_box is not None:
             lit[k] = bool(np.any(main_box[0] < T - guard) or np.any(main_box[1] > T + guard))
-        margin_k = margin + (FOCAL_LIT_SHIFT_MARGIN if lit[k] else FOCAL_SHIFT_MARGIN) * shifts[k]
+        margin_k = margin + (lit_margin if lit[k] else FOCAL_SHIFT_MARGIN) * shifts[k]
         lo = np.minimum(lo, T - half_w - shifts[k]) - margin_k
         hi = np.maximum(hi, T + half_w + shifts[k]) + margin_k
         # V is computed only near the patch: the remainder moves light at most shifts[k], so what lies farther
@@ -478,16 +538,21 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
         kept.append(keep)
         bands[k] = band
     return focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread,
-                           z, half_w, mb, width_mm, rays_per_sample, nyquist_safety, straight_edges)
+                           z, half_w, mb, width_mm, rays_per_sample, nyquist_safety, straight_edges,
+                           sampling_tol=sampling_tol)
 
 
 def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread, z, half_w,
-                    mb, width_mm, rays_per_sample, nyquist_safety, straight_edges):
+                    mb, width_mm, rays_per_sample, nyquist_safety, straight_edges, sampling_tol=None):
     """The last part of :func:`plan_focal`: its grids, reasons and geometry from the per-source results of its
     loop (``boxes``: the sensor-side boxes ``(lo, hi)`` (2,) mm; ``kept`` orders, ``lost`` power, ``bands``
     cycles/mm, ``shifts`` mm, the fitted transfer ``g_fit`` / ``q_fit`` (S, 2), ``lit`` (S,) bool; ``spread``,
     ``spread_main``, ``ray_spread`` mm over the sources; ``z`` mm, ``half_w`` mm the patch's half width, ``mb``
-    the margin in 1 / B). Also used by :mod:`rwwarp.wave.focal_sources` (many sources, each its own plan)."""
+    the margin in 1 / B). Also used by :mod:`rwwarp.wave.focal_sources` (many sources, each its own plan).
+    ``sampling_tol``: the caller's ``tolerance`` (max |error| / peak) or None; above ``SAMPLING_TOL / SAMPLING_SHARE``
+    it relaxes the ray-landing period and the rim's ray count (:func:`sampling_relax`), else the default rules."""
+    relax = sampling_relax(sampling_tol)
+    lit_margin = lit_shift_margin(sampling_tol)
     A = np.abs(1.0 / (z * q_fit))
     box = max(float(np.max(hi - lo)) for lo, hi in boxes)
 
@@ -527,7 +592,9 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     # 60 um patch) would ask for 16026^2 samples (90 GiB with gradients) where the rules above plan 4509^2; its
     # own error there, 3.4e-3 of the peak against 3 x the period (self-convergence), is stated in the reasons.
     window_mm = width_mm + 2.0 * width_mm / 31.0
-    want = FOCAL_RAY_SPREAD * ray_spread * nyquist_safety
+    ray_factor = FOCAL_RAY_SPREAD if relax == 1.0 else FOCAL_RAY_SPREAD / math.sqrt(relax)
+    rim_rays = FOCAL_RIM_RAYS if relax == 1.0 else FOCAL_RIM_RAYS / relax
+    want = ray_factor * ray_spread * nyquist_safety
     cap = max(period, (FOCAL_RAY_MAX_GRID - 3) / (window_mm * float(np.max(A))))
     ray_capped = want > cap
     period = max(period, min(want, cap))
@@ -539,19 +606,23 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     # 4 rays across); the pupil rim's error is first order in the ray pitch (on axis, 16 px: 1.5e-4 / 6.6e-5
     # at 179 / 357 rays across), so at least FOCAL_RIM_RAYS rays cross the pupil where the grid has that many
     samples = width_mm / pitch
-    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, FOCAL_RIM_RAYS), samples / 4))) + 1
+    ray_grid = int(math.ceil(rays_per_sample * max(min(samples, rim_rays), samples / 4))) + 1
     reasons = (
         "focal propagation: reference wave to the patch centre handled analytically (rwwarp.wave.focal)",
         f"DOE orders computed: {sorted({m for kk in kept for m, _ in kk})}; power in orders that miss the patch: "
         f"{float(np.max(lost)):.3g}",
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
-        f"margin {mb:g}/B + {FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (FOCAL_LIT_SHIFT_MARGIN if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
+        f"margin {mb:g}/B + {lit_margin if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (lit_margin if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
         f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {FOCAL_RAY_MAX_GRID} samples: the rim may err by more than 2e-4 of the peak)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
-        f"rays: {rays_per_sample} x max(min(samples, {FOCAL_RIM_RAYS}), samples / 4) -> {ray_grid} across the pupil",
-    )
+        f"rays: {rays_per_sample} x max(min(samples, {rim_rays:.4g}), samples / 4) -> {ray_grid} across the pupil",
+    ) + ((f"sampling for the tolerance {float(sampling_tol):.3g}: ray-landing period {ray_factor:.3g} x safety "
+          f"landing extents, {rim_rays:.4g} rim rays, a lit taper's margin {lit_margin:g} shifts, pixel integration "
+          f"bound {gauss_tol(sampling_tol):.3g} (relaxed {relax:.3g}x: the sampling error ~{SAMPLING_TOL:g} x "
+          f"{relax:.3g}^{SAMPLING_RELAX_POWER:g} = {SAMPLING_TOL * relax ** SAMPLING_RELAX_POWER:.2g} of the peak, "
+          f"SAMPLING_SHARE {SAMPLING_SHARE:g} of the tolerance or less)",) if relax > 1.0 else ())
     plan = Plan(pitch, n_grid, nf, ray_grid, "auto", False, reasons, "focal", hs, ns, nf)
     centre = np.array([0.5 * (lo + hi) for lo, hi in boxes])
     return plan, {"sensor_origin": sensor_origin, "sensor_center": centre, "orders": kept, "lost_power": lost,

@@ -155,13 +155,13 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
             focal_fast = focal_plans_one_order(
                 pos_p, dir_s, ok, chief_plane0, chief_dir, n_after, lam_mm, z_sensor - z_plane,
                 None if center_mm is None else centers0, widths, size, pixel, res, lo0, hi0, rays_per_sample,
-                nyquist_safety, square_pupil)
+                nyquist_safety, square_pupil, sampling_tol=model_tolerance)
         else:
             from .focal_sources import focal_plans_orders
             focal_fast = focal_plans_orders(
                 lens, plane, pos_p, dir_s, ok, chief_plane0, chief_dir, n_after, lam_mm, wls, z_sensor - z_plane,
                 None if center_mm is None else centers0, widths, size, pixel, res, lo0, hi0, rays_per_sample,
-                nyquist_safety, square_pupil, focal_patch_tol, shared)
+                nyquist_safety, square_pupil, focal_patch_tol, shared, sampling_tol=model_tolerance)
     # the sources' launch arrays, one row each (wavelength index 0: each plan's tracer is of its own wavelength)
     wl0 = np.zeros(1, dtype=np.int32)
     shape, od = src_all["shape"], src_all["object_distance"]
@@ -172,6 +172,8 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
     for a in (wl0, n_after, lam_mm, chief_plane1, chief_sensor, opl_chief, chief_ok, target, carrier0, centers0, lo0,
               hi0):
         _frozen(a)
+    from .plan import gauss_tol
+    g_tol = gauss_tol(model_tolerance)   # the pixel integration's error bound (1e-7 unless a tolerance relaxes it)
     for k in range(nsrc):
         sl = slice(k, k + 1)
         src = {"pos": launch["pos"][sl], "dir": launch["dir"][sl], "finite": launch["finite"][sl],
@@ -188,7 +190,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
                           lo=lo, hi=hi, fmax=fmax[sl], f_doe=f_doe[sl], feature=feature, out_width=out_width,
                           carrier=carrier, centers=centers, rays_per_sample=rays_per_sample,
                           nyquist_safety=nyquist_safety, patch_tol=focal_patch_tol, straight_edges=square_pupil,
-                          shared=shared)
+                          shared=shared, sampling_tol=model_tolerance)
         planned = {m: focal_fast[k] if m == "focal" and k in focal_fast else get_method(m).plan(ctx)
                    for m in (AUTO_PAIR if method == "compare" else (method,))}
         main = planned["asm" if method == "compare" else method]
@@ -196,7 +198,7 @@ def plan_sources(lens, fields, wls, size, pixel, device="cpu", plan="auto", dtyp
         gn = gauss_nodes
         more = ()
         if gn is None:
-            gn = _gauss_nodes_one(dir_s[k, ok[k], :2], n_img[k], lam_mm[k], pixel)
+            gn = _gauss_nodes_one(dir_s[k, ok[k], :2], n_img[k], lam_mm[k], pixel, tol=g_tol)
             more = (f"pixel integration: {gn} x {gn} Gauss-Legendre nodes per pixel "
                     f"(intensity band of the beam's NA across a {pixel * 1e3:.4g} um pixel)",)
         # the reasons and the estimate in one copy (estimate_cost reads neither)

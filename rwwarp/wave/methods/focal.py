@@ -106,7 +106,7 @@ def plan_focal_batch(ctx) -> Planned:
         centers = snap_centers(ctx.center_mm, pixel, ctx.lens.sensor.resolution, nsrc)
     pl, geo = plan_focal(xy, freq, doe_freq, orders, centers, f_c, inv_lam, dist, ctx.width, ctx.size, pixel,
                          ctx.rays_per_sample, ctx.nyquist_safety, patch_tol=ctx.patch_tol,
-                         straight_edges=ctx.straight_edges)
+                         straight_edges=ctx.straight_edges, sampling_tol=ctx.sampling_tol)
     plan = ctx.plan
     if isinstance(plan, Plan):  # an explicit focal plan: its grids, centred where the planner centres them
         if plan.n_sensor is None or plan.sensor_pitch_mm is None or plan.n_sensor_fft is None:

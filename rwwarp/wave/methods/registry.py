@@ -44,7 +44,8 @@ class PlanContext:
     ``lo`` / ``hi`` (S, 2) footprint corners, ``fmax`` (S,) its largest local frequency after the carrier
     (cycles/mm), ``f_doe`` / ``feature`` (the DOE's largest frequency, its feature size (mm) or None),
     ``out_width`` (mm, the patch); ``carrier`` (S, 2) cycles/mm and ``centers`` (S, 2) mm after the chief ray;
-    the knobs ``rays_per_sample``, ``nyquist_safety``, ``patch_tol``, ``straight_edges`` (a square pupil);
+    the knobs ``rays_per_sample``, ``nyquist_safety``, ``patch_tol``, ``straight_edges`` (a square pupil),
+    ``sampling_tol`` (the requested tolerance, or None);
     ``shared``: a dict the sources of one call share (per-lens and per-wavelength values a method computes once)
     or None."""
     lens: object
@@ -76,6 +77,9 @@ class PlanContext:
     nyquist_safety: float
     patch_tol: float = 1e-5
     straight_edges: bool = False
+    #: the caller's tolerance (max |error| / peak) or None: the focal plan's sampling follows it
+    #: (:func:`rwwarp.wave.plan.sampling_relax`)
+    sampling_tol: float | None = None
     #: per-call constants a method may keep across the sources of one call (same lens and request), e.g. the DOE
     #: profile and its wavelength scale per wavelength (:func:`rwwarp.wave.plan_sources.plan_sources`); None: none
     shared: dict | None = None
