@@ -335,7 +335,9 @@ class Tracer:
 
     def _upload(self):
         """Surface parameters and index tables to the device: one upload (read-only views) without
-        gradients; separate parameter arrays (each with its gradient) with ``requires_grad``."""
+        gradients; with ``requires_grad`` one (n_surfaces + 1, N_PARAMS) array with its gradient,
+        :attr:`params_block`, whose rows are :attr:`params` (views: the table is loaded, and its gradient read and
+        zeroed, in one operation each instead of one a surface)."""
         dev, sc, g = self.device, self.scalar, self.requires_grad
         fdt = self.np_dtype
         tables = [(self.n_obj_np, fdt, sc)] + [(self.index_np[i], fdt, sc) for i in range(self.index_np.shape[0])]
@@ -343,9 +345,12 @@ class Tracer:
         # kernel would be a float32 constant)
         tables.append((np.array(self.wavelengths_um, dtype=np.float64) * 1e-3 / (2.0 * math.pi), fdt, sc))
         if g:
-            self.params = [wp.array(p, dtype=sc, device=dev, requires_grad=True) for p in self.params_np]
+            self.params_block = wp.array(np.ascontiguousarray(self.params_np, dtype=fdt), dtype=sc, device=dev,
+                                         requires_grad=True)
+            self.params = [self.params_block[k] for k in range(self.params_block.shape[0])]
             views = upload_packed(tables, dev, cache=True)
         else:
+            self.params_block = None
             views = upload_packed([(p, fdt, sc) for p in self.params_np] + tables, dev, cache=True)
             self.params = views[:len(self.params_np)]
             views = views[len(self.params_np):]
