@@ -25,6 +25,7 @@ import warp as wp
 from .wave.backend import get_backend, release_warp_pool  # noqa: F401  (release_warp_pool: public here too)
 from .device_upload import upload_packed  # noqa: F401  (also read as rwwarp.trace.upload_packed)
 from .errors import GeometryError, LensError
+from .grad_block import GradBlock
 from .kernels import trace as ktrace
 from . import paraxial
 from .trace_fused import fused_tables, step_kernels
@@ -599,6 +600,13 @@ class Tracer:
 
         pooled = self.pool is not None and not g   # a kept batch's forward run: the same arrays every run
         made = [0]
+        nsurf = len(self.lens.surfaces)
+        last = nsurf + 1 if upto is None else upto
+        # recording: every state's and parameter-row copy's gradient from one zeroed block (one memset, not one an
+        # array; the deterministic mode's row sizes vary: their own arrays)
+        n_rows = 0 if self.deterministic else last * self.grad_replicas * ktrace.N_PARAMS
+        gb = GradBlock(dev, sc, (last + 1) * 7 * n + n_rows, lambda c: _with_release(
+            dev, lambda: wp.zeros(c, dtype=sc, device=dev))) if g else None
 
         def new():
             if pooled:
@@ -606,6 +614,11 @@ class Tracer:
                 tag = ("state", made[0])
                 return (self.work_array(tag + (0,), n, K.vec3), self.work_array(tag + (1,), n, K.vec3),
                         self.work_array(tag + (2,), n, sc), self.work_array(tag + (3,), n, wp.int32))
+            if gb is not None:
+                pos, dr, opl, valid = _with_release(dev, lambda: (
+                    wp.empty(n, dtype=K.vec3, device=dev), wp.empty(n, dtype=K.vec3, device=dev),
+                    wp.empty(n, dtype=sc, device=dev), wp.empty(n, dtype=wp.int32, device=dev)))
+                return gb.attach(pos), gb.attach(dr), gb.attach(opl), valid
             return _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=sc, device=dev, requires_grad=g),
@@ -632,8 +645,6 @@ class Tracer:
         def generate(c):   # rays of chunk c (None: all), each thread its own range before it traces them
             wp.launch(K.generate_kernel, dim=n if c is None else c[1] - c[0], inputs=inputs + [c[0] if c else 0],
                       outputs=list(gen) + [wl, weight], device=dev, record_tape=False)   # off the tape: no gradient
-        nsurf = len(self.lens.surfaces)
-        last = nsurf + 1 if upto is None else upto
         kept = set(range(last)) if keep is True else set(keep or ())
         # a state is reused once the next surface has read it, unless the tape (every state) or ``keep`` reads it again
         outs, spare, prev, prev_kept = [], [], gen, False
@@ -663,8 +674,8 @@ class Tracer:
                     t_dummy = self.work_array("t_dummy", 1, sc, zero=True) if pooled else \
                         wp.zeros(1, dtype=sc, device=dev)
                 t_buf = t_dummy
-            steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n), n_in, n_out,
-                          t_buf))
+            steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n, gb), n_in,
+                          n_out, t_buf))
         chunks = self._chunks(n)
         # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
         fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
@@ -708,12 +719,13 @@ class Tracer:
                                                    idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
         return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
 
-    def _param_rows(self, p, n_rays: int = 0):
+    def _param_rows(self, p, n_rays: int = 0, grads=None):
         """``(rows, rmask)`` the kernels read a surface's parameters from: without gradients the row
         itself as a (1, N_PARAMS) view; with them :attr:`grad_replicas` copies made by
         ``replicate_kernel`` (recorded on an active tape, whose adjoint sums them back into ``p.grad``).
         :attr:`deterministic`: a copy for each of the ``n_rays`` rays (the next power of two), so no two rays
-        add into one address, made in two levels whose adjoints sum in a fixed order."""
+        add into one address, made in two levels whose adjoints sum in a fixed order. ``grads``: a
+        :class:`rwwarp.grad_block.GradBlock` the copies' (zeroed) gradient comes from (not deterministic)."""
         if not self.requires_grad or not p.requires_grad:
             rows = getattr(p, "_rw_rows", None)   # the (1, N_PARAMS) view, made once per parameter array
             if rows is None:
@@ -723,7 +735,10 @@ class Tracer:
         if self.deterministic:
             r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())
         # every row is written by the replicate kernels (the gradient buffer starts at zero all the same)
-        rows = wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
+        if grads is not None and not self.deterministic:
+            rows = grads.attach(wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device))
+        else:
+            rows = wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
         if self.deterministic:
             # two levels, each adjoint summing in order and adding where no other thread adds: params -> G rows
             # (one thread a parameter) -> R rows (thread (j, g) owns row g of the first level)

@@ -1,7 +1,8 @@
 """Warp copies and memsets of a live design step (issue 25: on a GPU each is one more launch in a step bound by its
 launches): a tracer with gradients keeps its parameter rows as views of one array (loaded, read and zeroed in one
-operation each), and after a backward pass only those gradients are zeroed (the tape's other gradient arrays are
-the call's own and die with its graph; a replay of the graph zeroes them first)."""
+operation each), after a backward pass only those gradients are zeroed (the tape's other gradient arrays are
+the call's own and die with its graph; a replay of the graph zeroes them first), and a recorded trace takes its
+gradient buffers from one zeroed block (rwwarp.grad_block.GradBlock); the parameter table in fewer operations."""
 from __future__ import annotations
 
 import collections
@@ -88,8 +89,9 @@ def test_parameter_rows_are_views_of_one_array_loaded_in_one_copy():
 def test_a_packed_step_makes_a_bounded_number_of_copies_and_memsets(monkeypatch):
     """Forward and backward of a packed step on kept plans (A489 + DOE, 4 surfaces, 2 and 3 focal sources): Warp
     copies (``wp.copy``, ``array.assign`` through it) and memsets (``array.zero_`` / ``fill_``). Measured 12 copies
-    and 55 memsets for both (before: 24 and 86, the parameter rows copied one a surface and every gradient of the
-    tape zeroed after the backward pass). Bound: 12 copies and 70 copies and memsets."""
+    and 19 memsets for both (before: 24 and 86, the parameter rows copied one a surface, every gradient of the
+    tape zeroed after the backward pass and each ray state's and parameter-row copy's gradient zeroed on its own
+    instead of one block a trace, rwwarp.grad_block). Bound: 12 copies and 35 copies and memsets."""
     import warp as wp
     got = {}
     for fields in ((0.0, 5.0), (0.0, 2.5, 5.0)):
@@ -106,7 +108,7 @@ def test_a_packed_step_makes_a_bounded_number_of_copies_and_memsets(monkeypatch)
         got[len(fields)] = (c["copy"], c["zero_"] + c["fill_"])
     assert got[2] == got[3]
     copies, memsets = got[2]
-    assert copies <= 12 and copies + memsets <= 70
+    assert copies <= 12 and copies + memsets <= 35
 
 
 class _Ops:
@@ -171,3 +173,27 @@ def test_param_table_equals_the_tracers_table_and_its_gradient_is_the_selection(
         got = getattr(m, q).grad.reshape(-1)
         assert float(want.abs().max()) > 0
         assert float((got - want).abs().max()) <= 1e-15 * float(want.abs().max()), q
+
+
+def test_grad_block_hands_out_zeroed_disjoint_gradients():
+    """GradBlock: each attached array gets a zeroed gradient of its own shape and dtype, the views do not overlap
+    (a write through one shows in the block where it should and nowhere else), and it refuses an array past its
+    room or of another scalar type."""
+    import pytest
+    import warp as wp
+
+    from rwwarp.grad_block import GradBlock
+    gb = GradBlock("cpu", wp.float64, 3 * 4 + 5 + 2 * 3)
+    a = gb.attach(wp.empty(4, dtype=wp.vec3d, device="cpu"))
+    b = gb.attach(wp.empty(5, dtype=wp.float64, device="cpu"))
+    c = gb.attach(wp.empty((2, 3), dtype=wp.float64, device="cpu"))
+    assert a.requires_grad and a.grad.shape == (4,) and a.grad.dtype == wp.vec3d and c.grad.shape == (2, 3)
+    assert not np.any(gb.block.numpy())
+    b.grad.fill_(2.0)
+    c.grad.fill_(3.0)
+    a.grad.fill_(wp.vec3d(1.0, 1.0, 1.0))
+    assert np.array_equal(gb.block.numpy(), np.repeat([1.0, 2.0, 3.0], [12, 5, 6]))
+    with pytest.raises(ValueError, match="left"):
+        gb.attach(wp.empty(1, dtype=wp.float64, device="cpu"))
+    with pytest.raises(ValueError, match="cannot hold"):
+        GradBlock("cpu", wp.float64, 4).attach(wp.empty(1, dtype=wp.float32, device="cpu"))
