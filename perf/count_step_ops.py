@@ -25,7 +25,8 @@ Counted per stage (each timed step after the warm-up; the last one's breakdown s
 * ``aten``: every aten operation dispatched (a ``TorchDispatchMode``; forward and backward, views included) and
   ``aten_kernels``: those that launch work on a GPU (views, reshapes, ``empty`` and ``detach`` left out);
 * ``warp``: ``warp.launch`` calls (the tape's adjoint replays included), ``warp.copy`` calls and array
-  ``zero_``/``fill_`` calls (memsets on a GPU);
+  ``zero_``/``fill_`` calls (memsets on a GPU), and ``upload``: calls of ``torch_bridge.functions.upload`` naming a
+  device (a host-to-device copy on a GPU; none on the CPU);
 * ``backend``: wave-backend (OpenCL on the CPU, CuPy on CUDA) kernel enqueues, FFTs and GEMMs. The focal
   operators' element-wise work and matrix products run in numpy on the CPU and in CuPy on CUDA (one kernel each
   there); numpy is not counted here (see the README).
@@ -137,7 +138,21 @@ def install(counts):
             if name in vars(cls):
                 wrap(cls, name, f"backend_{name.strip('_')}")
 
+    # torch_bridge.functions.upload: host data to the module's device (a host-to-device copy on a GPU, none on the
+    # CPU, where it only wraps the array): counted where a device is named, through the profiler hook (the function
+    # is imported by name into several modules)
+    from torch_bridge import functions as TF
+    code = TF.upload.__code__
+    prev = sys.getprofile()
+
+    def prof(frame, event, arg):
+        if event == "call" and frame.f_code is code and frame.f_locals.get("device") is not None:
+            with lock:
+                counts.warp[counts.where() + "|upload"] += 1
+    sys.setprofile(prof)
+
     def restore():
+        sys.setprofile(prev)
         for owner, name, orig in reversed(undo):
             setattr(owner, name, orig)
     return restore
