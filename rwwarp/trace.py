@@ -550,11 +550,12 @@ class Tracer:
         a = cache.get(key)
         if a is None:
             cache.clear()   # one packed batch at a time
-            a = wp.empty(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
-            for k, g in enumerate(key[0]):   # each source's cells, then zeros past them
+            # zeros past each source's cells: one memset of the whole table, not one a source (on a GPU a launch
+            # each), where any source has fewer cells than slots
+            full = all(int(g) * int(g) >= key[1] for g in key[0])
+            a = (wp.empty if full else wp.zeros)(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
+            for k, g in enumerate(key[0]):   # each source's cells
                 wp.copy(a, self.rim_cells(g), dest_offset=k * key[1], src_offset=0, count=g * g)
-                if g * g < key[1]:
-                    a[k * key[1] + g * g:(k + 1) * key[1]].zero_()
             cache[key] = a
         return a
 

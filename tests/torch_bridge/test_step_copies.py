@@ -197,3 +197,32 @@ def test_grad_block_hands_out_zeroed_disjoint_gradients():
         gb.attach(wp.empty(1, dtype=wp.float64, device="cpu"))
     with pytest.raises(ValueError, match="cannot hold"):
         GradBlock("cpu", wp.float64, 4).attach(wp.empty(1, dtype=wp.float32, device="cpu"))
+
+
+def test_packed_rim_cells_are_each_sources_disc_cells_then_zeros(monkeypatch):
+    """Tracer.packed_rim_cells of sources with 3, 5 and 4 cell-grid sides in 25 slots each: source k's slots hold
+    rwwarp.pupil.disc_cells(side) (the host table) and zeros past it, exactly; made with one memset (not one a
+    source with fewer cells than slots) and one copy a source."""
+    import collections
+
+    import rwwarp as rw
+    import warp as wp
+    from rwwarp.pupil import disc_cells
+    from rwwarp.trace import Tracer
+    tr = Tracer(rw.load_lens("cooke_triplet"), [0.55])
+    sides = [3, 5, 4]
+    for g in sides:
+        tr.rim_cells(g)                                     # the per-size device tables, made before counting
+    c = collections.Counter()
+    for owner, name in ((wp, "copy"), (wp.array, "zero_"), (wp.array, "fill_")):
+        def counted(*a, _orig=getattr(owner, name), _name=name, **k):
+            c[_name] += 1
+            return _orig(*a, **k)
+        monkeypatch.setattr(owner, name, counted)
+    got = tr.packed_rim_cells(sides, 25).numpy().reshape(3, 25, 3)
+    monkeypatch.undo()
+    for k, g in enumerate(sides):
+        want = np.zeros((25, 3))
+        want[:g * g] = disc_cells(g)
+        assert np.array_equal(got[k], want), g
+    assert c["copy"] == 3 and c["zero_"] + c["fill_"] <= 1
