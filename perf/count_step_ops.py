@@ -338,15 +338,15 @@ def main(argv=None):
     finally:
         restore()
     prov = arm.provider
-    groups = [len(getattr(t, "groups", [])) for t in getattr(prov, "_tiles", {}).values()] \
-        if isinstance(getattr(prov, "_tiles", None), dict) else None
+    # the last call's packed tiles: members and focal-operator groups each (each group one set of operator calls)
+    tiles = [(len(t[1].members), len(t[1].groups)) for t in getattr(prov, "_packed", {}).values()]
     from _common import git_commit
     rec = {"commit": git_commit(), "machine": "CPU (2 shared cores), torch threads 1",
            "config": "cooke_hybrid gpu preset, e2e arm", "sizes": {"psf_size": a.psf, "crop": a.crop,
                                                                   "batch": cfg["data"]["batch_size"],
                                                                   "rays_per_sample": a.rays, "nyquist_safety": 1.0,
                                                                   "network": a.network, "live_tile": a.tile},
-           "sources_per_step": 3 * len(arm.fields), "focal_groups_per_tile": groups,
+           "sources_per_step": 3 * len(arm.fields), "tiles_members_and_groups": tiles,
            "wall_s_total": round(time.perf_counter() - t0, 1), "steps": steps}
     out = Path(a.out)
     data = json.loads(out.read_text()) if out.exists() else {}

@@ -226,3 +226,35 @@ def test_packed_rim_cells_are_each_sources_disc_cells_then_zeros(monkeypatch):
         want[:g * g] = disc_cells(g)
         assert np.array_equal(got[k], want), g
     assert c["copy"] == 3 and c["zero_"] + c["fill_"] <= 1
+
+
+def test_a_packed_step_on_kept_tiles_uploads_no_index_again():
+    """Forward and backward of a packed step on kept plans (A489 + DOE, 2 and 3 focal sources): the calls of
+    ``torch_bridge.functions.upload`` that name a device (each a host-to-device copy on a GPU). The tile's member
+    rows (its groups, their Gauss-node subsets, the output order) are uploaded once per tile (PackedTile.index),
+    not every call: measured 4 uploads a step from the second step on (before: 11); bound 4. The PSFs of the
+    third step equal the second's bit for bit (the same values, the same rows)."""
+    import sys
+
+    from torch_bridge import functions as TF
+    code = TF.upload.__code__
+    for fields in ((0.0, 5.0), (0.0, 2.5, 5.0)):
+        _, m, prov = _provider(fields)
+        got, outs = [], []
+        for _ in range(3):
+            n = [0]
+
+            def prof(frame, event, arg):
+                if event == "call" and frame.f_code is code and frame.f_locals.get("device") is not None:
+                    n[0] += 1
+            prev = sys.getprofile()
+            sys.setprofile(prof)
+            try:
+                out = prov.psfs([0.5, 0.6])
+                out.sum().backward()
+            finally:
+                sys.setprofile(prev)
+            got.append(n[0])
+            outs.append(out.detach())
+        assert got[1] == got[2] <= 4, got
+        assert torch.equal(outs[1], outs[2])
