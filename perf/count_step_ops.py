@@ -296,12 +296,18 @@ def main(argv=None):
     ap.add_argument("--rays", type=float, default=0.5)
     ap.add_argument("--tile", type=int, default=7)
     ap.add_argument("--network", default="paper")
+    ap.add_argument("--pack-waste", type=float, default=None,
+                    help="the live provider's pack_waste (default: its own, 1.5): members stacked into one focal "
+                         "operator while padding grows their work by at most this factor (fewer groups: fewer "
+                         "operator calls, more padded work)")
     ap.add_argument("--top", type=int, default=12, help="most frequent aten ops listed per stage")
     a = ap.parse_args(argv)
     import torch
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     arm, cfg = build(a)
+    if a.pack_waste is not None:
+        arm.provider.pack_waste = float(a.pack_waste)
     clip = cuda_structure(arm)
     counts = Counts()
     restore = install(counts)
@@ -345,7 +351,8 @@ def main(argv=None):
            "config": "cooke_hybrid gpu preset, e2e arm", "sizes": {"psf_size": a.psf, "crop": a.crop,
                                                                   "batch": cfg["data"]["batch_size"],
                                                                   "rays_per_sample": a.rays, "nyquist_safety": 1.0,
-                                                                  "network": a.network, "live_tile": a.tile},
+                                                                  "network": a.network, "live_tile": a.tile,
+                                                                  "pack_waste": arm.provider.pack_waste},
            "sources_per_step": 3 * len(arm.fields), "tiles_members_and_groups": tiles,
            "wall_s_total": round(time.perf_counter() - t0, 1), "steps": steps}
     out = Path(a.out)
