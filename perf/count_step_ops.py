@@ -27,9 +27,10 @@ Counted per stage (each timed step after the warm-up; the last one's breakdown s
 * ``warp``: ``warp.launch`` calls (the tape's adjoint replays included), ``warp.copy`` calls and array
   ``zero_``/``fill_`` calls (memsets on a GPU), and ``upload``: calls of ``torch_bridge.functions.upload`` naming a
   device (a host-to-device copy on a GPU; none on the CPU);
-* ``backend``: wave-backend (OpenCL on the CPU, CuPy on CUDA) kernel enqueues, FFTs and GEMMs. The focal
-  operators' element-wise work and matrix products run in numpy on the CPU and in CuPy on CUDA (one kernel each
-  there); numpy is not counted here (see the README).
+* ``backend``: wave-backend (OpenCL on the CPU, CuPy on CUDA) kernel enqueues, FFTs and GEMMs, and the calls of
+  the packed focal operators (``backend_focal_*``: built, moved to a distance, applied forward / adjoint /
+  distance derivative). Those run in numpy on the CPU and in CuPy on CUDA, where each call is several kernels
+  (matrix products, element-wise work); the numpy operations themselves are not counted (see the README).
 
 Backward operations are put in the stage whose forward created their autograd node (the node's sequence number
 against the ones taken at the stage boundaries); nodes made during the backward (the live tiles' checkpoint
@@ -138,6 +139,12 @@ def install(counts):
             if name in vars(cls):
                 wrap(cls, name, f"backend_{name.strip('_')}")
 
+    # the packed focal operators' calls (numpy on the CPU; on CUDA each is a set of CuPy kernels: matrix products
+    # and element-wise work): built (__init__: a new tile's group), moved to a distance, applied
+    from rwwarp.wave.focal_packed import PackedFocalPropagator as P
+    for name in ("__init__", "at_distance", "forward", "forward_pair", "adjoint", "adjoint_pair",
+                 "distance_derivative", "distance_derivative_pair"):
+        wrap(P, name, "backend_focal_" + name.strip("_"))
     # torch_bridge.functions.upload: host data to the module's device (a host-to-device copy on a GPU, none on the
     # CPU, where it only wraps the array): counted where a device is named, through the profiler hook (the function
     # is imported by name into several modules)
@@ -332,8 +339,12 @@ def main(argv=None):
                 if counts.aten[st] or w or b:
                     per[st] = {"aten": counts.aten[st], "aten_kernels": counts.kern[st], "warp": w, "backend": b,
                                "top": counts.names[st].most_common(a.top)}
+            focal = sum(n for key, n in counts.backend.items() if "|backend_focal_" in key)
             tot = {"aten": sum(counts.aten.values()), "aten_kernels": sum(counts.kern.values()),
-                   "warp": sum(counts.warp.values()), "backend": sum(counts.backend.values())}
+                   "warp": sum(counts.warp.values()), "backend": sum(counts.backend.values()) - focal,
+                   "focal_operator_calls": focal}
+            # each counted operation one launch (a lower bound on a GPU: see the module docstring); the focal
+            # operators' calls (several CuPy kernels each) apart
             tot["launch_estimate"] = tot["aten_kernels"] + tot["warp"] + tot["backend"]
             steps.append({"step": k, "wall_s": round(wall, 2), "plans_made": getattr(prov, "plans_made", 0) - made0,
                           "total": tot, "stages": per, "loss": row["loss"]})
