@@ -258,3 +258,20 @@ def test_a_packed_step_on_kept_tiles_uploads_no_index_again():
             outs.append(out.detach())
         assert got[1] == got[2] <= 4, got
         assert torch.equal(outs[1], outs[2])
+
+
+def test_live_pack_waste_reaches_the_live_provider():
+    """``optics.live_pack_waste`` (default 1.5) is the live provider's ``pack_waste``; the gpu preset's e2e arm
+    with it set to 3 (on the CPU, the cpu-sized network) builds its provider with that factor."""
+    from pathlib import Path
+
+    import torch_bridge
+    from torch_bridge.config import DEFAULTS
+    from torch_bridge.train import Arm, load_config
+    assert DEFAULTS["optics"]["live_pack_waste"] == 1.5
+    exp = load_config(str(Path(torch_bridge.__file__).resolve().parent / "configs" / "cooke_hybrid.yaml"),
+                      preset="cpu_lens", overrides={"optics": {"live_pack_waste": 3.0}})
+    arm_cfg = next(x for x in exp["arms"] if x["name"] == "e2e")
+    cfg = dict(arm_cfg["config"], device="cpu", progress=False)
+    arm = Arm("e2e", cfg, exp["source"], Path("unused"), progress=False)
+    assert isinstance(arm.provider, dz.LiveProvider) and arm.provider.pack_waste == 3.0
