@@ -25,6 +25,7 @@ import warp as wp
 from .wave.backend import get_backend, release_warp_pool  # noqa: F401  (release_warp_pool: public here too)
 from .device_upload import upload_packed  # noqa: F401  (also read as rwwarp.trace.upload_packed)
 from .errors import GeometryError, LensError
+from .grad_block import GradBlock
 from .kernels import trace as ktrace
 from . import paraxial
 from .trace_fused import fused_tables, step_kernels
@@ -335,7 +336,9 @@ class Tracer:
 
     def _upload(self):
         """Surface parameters and index tables to the device: one upload (read-only views) without
-        gradients; separate parameter arrays (each with its gradient) with ``requires_grad``."""
+        gradients; with ``requires_grad`` one (n_surfaces + 1, N_PARAMS) array with its gradient,
+        :attr:`params_block`, whose rows are :attr:`params` (views: the table is loaded, and its gradient read and
+        zeroed, in one operation each instead of one a surface)."""
         dev, sc, g = self.device, self.scalar, self.requires_grad
         fdt = self.np_dtype
         tables = [(self.n_obj_np, fdt, sc)] + [(self.index_np[i], fdt, sc) for i in range(self.index_np.shape[0])]
@@ -343,9 +346,12 @@ class Tracer:
         # kernel would be a float32 constant)
         tables.append((np.array(self.wavelengths_um, dtype=np.float64) * 1e-3 / (2.0 * math.pi), fdt, sc))
         if g:
-            self.params = [wp.array(p, dtype=sc, device=dev, requires_grad=True) for p in self.params_np]
+            self.params_block = wp.array(np.ascontiguousarray(self.params_np, dtype=fdt), dtype=sc, device=dev,
+                                         requires_grad=True)
+            self.params = [self.params_block[k] for k in range(self.params_block.shape[0])]
             views = upload_packed(tables, dev, cache=True)
         else:
+            self.params_block = None
             views = upload_packed([(p, fdt, sc) for p in self.params_np] + tables, dev, cache=True)
             self.params = views[:len(self.params_np)]
             views = views[len(self.params_np):]
@@ -544,11 +550,12 @@ class Tracer:
         a = cache.get(key)
         if a is None:
             cache.clear()   # one packed batch at a time
-            a = wp.empty(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
-            for k, g in enumerate(key[0]):   # each source's cells, then zeros past them
+            # zeros past each source's cells: one memset of the whole table, not one a source (on a GPU a launch
+            # each), where any source has fewer cells than slots
+            full = all(int(g) * int(g) >= key[1] for g in key[0])
+            a = (wp.empty if full else wp.zeros)(len(key[0]) * key[1], dtype=wp.vec3d, device=self.device)
+            for k, g in enumerate(key[0]):   # each source's cells
                 wp.copy(a, self.rim_cells(g), dest_offset=k * key[1], src_offset=0, count=g * g)
-                if g * g < key[1]:
-                    a[k * key[1] + g * g:(k + 1) * key[1]].zero_()
             cache[key] = a
         return a
 
@@ -594,6 +601,13 @@ class Tracer:
 
         pooled = self.pool is not None and not g   # a kept batch's forward run: the same arrays every run
         made = [0]
+        nsurf = len(self.lens.surfaces)
+        last = nsurf + 1 if upto is None else upto
+        # recording: every state's and parameter-row copy's gradient from one zeroed block (one memset, not one an
+        # array; the deterministic mode's row sizes vary: their own arrays)
+        n_rows = 0 if self.deterministic else last * self.grad_replicas * ktrace.N_PARAMS
+        gb = GradBlock(dev, sc, (last + 1) * 7 * n + n_rows, lambda c: _with_release(
+            dev, lambda: wp.zeros(c, dtype=sc, device=dev))) if g else None
 
         def new():
             if pooled:
@@ -601,6 +615,11 @@ class Tracer:
                 tag = ("state", made[0])
                 return (self.work_array(tag + (0,), n, K.vec3), self.work_array(tag + (1,), n, K.vec3),
                         self.work_array(tag + (2,), n, sc), self.work_array(tag + (3,), n, wp.int32))
+            if gb is not None:
+                pos, dr, opl, valid = _with_release(dev, lambda: (
+                    wp.empty(n, dtype=K.vec3, device=dev), wp.empty(n, dtype=K.vec3, device=dev),
+                    wp.empty(n, dtype=sc, device=dev), wp.empty(n, dtype=wp.int32, device=dev)))
+                return gb.attach(pos), gb.attach(dr), gb.attach(opl), valid
             return _with_release(dev, lambda: (wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=K.vec3, device=dev, requires_grad=g),
                                                wp.empty(n, dtype=sc, device=dev, requires_grad=g),
@@ -627,8 +646,6 @@ class Tracer:
         def generate(c):   # rays of chunk c (None: all), each thread its own range before it traces them
             wp.launch(K.generate_kernel, dim=n if c is None else c[1] - c[0], inputs=inputs + [c[0] if c else 0],
                       outputs=list(gen) + [wl, weight], device=dev, record_tape=False)   # off the tape: no gradient
-        nsurf = len(self.lens.surfaces)
-        last = nsurf + 1 if upto is None else upto
         kept = set(range(last)) if keep is True else set(keep or ())
         # a state is reused once the next surface has read it, unless the tape (every state) or ``keep`` reads it again
         outs, spare, prev, prev_kept = [], [], gen, False
@@ -658,8 +675,8 @@ class Tracer:
                     t_dummy = self.work_array("t_dummy", 1, sc, zero=True) if pooled else \
                         wp.zeros(1, dtype=sc, device=dev)
                 t_buf = t_dummy
-            steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n), n_in, n_out,
-                          t_buf))
+            steps.append((kind, *self._param_rows((self.params if params is None else params)[i], n, gb), n_in,
+                          n_out, t_buf))
         chunks = self._chunks(n)
         # the CPU without gradients and with no intermediate state read again: every surface in one launch a chunk
         fused = self._fused_steps(steps) if dev == "cpu" and not g and not kept else None
@@ -703,12 +720,13 @@ class Tracer:
                                                    idx, ktrace.KIND_PLANE, dummy], outputs=list(out), device=dev)
         return Rays(out[0], out[1], out[2], out[3], rays.wl, rays.weight, rays.n_sources, rays.n_pupil)
 
-    def _param_rows(self, p, n_rays: int = 0):
+    def _param_rows(self, p, n_rays: int = 0, grads=None):
         """``(rows, rmask)`` the kernels read a surface's parameters from: without gradients the row
         itself as a (1, N_PARAMS) view; with them :attr:`grad_replicas` copies made by
         ``replicate_kernel`` (recorded on an active tape, whose adjoint sums them back into ``p.grad``).
         :attr:`deterministic`: a copy for each of the ``n_rays`` rays (the next power of two), so no two rays
-        add into one address, made in two levels whose adjoints sum in a fixed order."""
+        add into one address, made in two levels whose adjoints sum in a fixed order. ``grads``: a
+        :class:`rwwarp.grad_block.GradBlock` the copies' (zeroed) gradient comes from (not deterministic)."""
         if not self.requires_grad or not p.requires_grad:
             rows = getattr(p, "_rw_rows", None)   # the (1, N_PARAMS) view, made once per parameter array
             if rows is None:
@@ -718,7 +736,10 @@ class Tracer:
         if self.deterministic:
             r = max(r, 1 << max(int(n_rays) - 1, 0).bit_length())
         # every row is written by the replicate kernels (the gradient buffer starts at zero all the same)
-        rows = wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
+        if grads is not None and not self.deterministic:
+            rows = grads.attach(wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device))
+        else:
+            rows = wp.empty((r, ktrace.N_PARAMS), dtype=self.scalar, device=self.device, requires_grad=True)
         if self.deterministic:
             # two levels, each adjoint summing in order and adding where no other thread adds: params -> G rows
             # (one thread a parameter) -> R rows (thread (j, g) owns row g of the first level)

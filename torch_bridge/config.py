@@ -147,6 +147,10 @@ SCHEMA = {
         "live_replan_drift_hard": _num(0, lo_open=True, none=True),
         "live_replan_spread": _num(1, integer=True),
         "live_pack": _bool(),
+        # a packed tile's members are stacked into one focal operator while padding grows their work by at most
+        # this factor (LiveProvider.pack_waste, rwwarp.wave.focal_packed.focal_groups): larger, fewer groups (fewer
+        # operator calls and launches a step, issue 25) and more padded work; the PSFs agree to rounding
+        "live_pack_waste": _num(1),
         "memory_budget_gb": _num(0, lo_open=True, none=True),
         "cache_precision": _choice("double", "single"),
         "cache_device": _choice("device", "host"),
@@ -238,6 +242,7 @@ DEFAULTS = {
                "min_feature_um": None,
                "check_sampling_every": 10, "live_replan_every": 1, "live_replan_rule": "drift",
                "live_replan_drift": 1.0, "live_replan_drift_hard": None, "live_replan_spread": 3, "live_pack": True,
+               "live_pack_waste": 1.5,
                "memory_budget_gb": None, "cache_precision": "double", "cache_device": "device", "propagation": "auto",
                "focal_patch_tol": 1e-5, "deterministic": False, "pixel_values": "flux", "model_error_estimate": False},
     "render": {"mode": "patch", "boundary": "reflect"},

@@ -346,12 +346,14 @@ class TraceSplat(torch.autograd.Function):
             # the adjoint kernels read the parameter arrays: restore this call's values (another forward
             # on the same RayWave may have loaded different ones since)
             load_table(rw, table, ctx.table_host)
+            if getattr(ctx, "replayed", False):
+                tape.zero()   # a second backward of this graph (retain_graph): every gradient from zero again
             g_wp = wp.from_torch(g_real.detach(), dtype=wp.vec2d)  # zero-copy view (CPU or CUDA)
             tape.backward(grads={field_wp: g_wp})
             # the parameter gradients stay on the device: zero-copy views of Warp's arrays, copied (to
-            # float64) before the tape is zeroed
-            grads = torch.stack([wp.to_torch(p.grad).to(torch.float64, copy=True) for p in rw.tracer.params])
-            tape.zero()  # the tape (and its arrays) is freed with the graph; zeroed it can be replayed
+            # float64) before they are zeroed
+            grads = _take_param_grads(rw.tracer)
+            ctx.replayed = True
         grads = grads.to(ctx.table_device)
         if rw.use_reference:
             fac = _reference_z_factor(rw, u.device)
@@ -359,6 +361,24 @@ class TraceSplat(torch.autograd.Function):
             grads[rw.plane, COL.z] = grads[rw.plane, COL.z] + dz.to(grads.device)
         ctx.table_host = None
         return grads, None, None
+
+
+def _take_param_grads(tracer):
+    """The gradients of ``tracer``'s parameter arrays as a float64 tensor (n_surfaces + 1, N_PARAMS) on its device,
+    and those arrays' gradients zeroed: they are the tracer's own, read by every later call, while the tape's other
+    gradient arrays belong to this call's rays and die with its graph (a replay zeroes them first: TraceSplat).
+    One copy and one zeroing for a tracer whose rows are views of one array (``params_block``), not one a
+    surface (issue 25: on a GPU each is a launch)."""
+    import warp as wp
+    block = getattr(tracer, "params_block", None)
+    if block is not None:
+        grads = wp.to_torch(block.grad).to(torch.float64, copy=True)
+        block.grad.zero_()
+        return grads
+    grads = torch.stack([wp.to_torch(p.grad).to(torch.float64, copy=True) for p in tracer.params])
+    for p in tracer.params:
+        p.grad.zero_()
+    return grads
 
 
 def trace_splat(table, rw, table_host=None):

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from rwwarp.trace import COLUMNS as COL
 
 from rwwarp import doe
@@ -23,6 +24,11 @@ from . import phase_params as _ph
 from .functions import bridge_state, quantize_ste, upload
 
 __all__ = ["LensTables"]
+
+# the table's first columns are z, curvature, conic and the aspheric terms, in that order (rwwarp.kernels.trace's
+# layout): param_table writes them as one block, [0, _HEAD)
+_HEAD = COL.asph0 + COL.n_asph
+_CONTIGUOUS = (COL.z == 0 and COL.curvature == 1 and COL.conic == 2 and COL.asph0 == 3 and COL.n_asph <= MAX_ASPHERIC)
 
 
 class LensTables:
@@ -44,15 +50,28 @@ class LensTables:
             base = on_dev[dev] = upload(st["base_table"], torch.float64, dev)
         t = v["thickness"]
         zero = torch.zeros(1, dtype=t.dtype, device=dev)
-        z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
-        std = torch.cat([self.standard_mask.to(dev), torch.zeros(1, dtype=torch.bool, device=dev)])
-        cols = [base[:, j] for j in range(COL.n_params)]
-        cols[COL.z] = z
-        cols[COL.curvature] = torch.where(std, torch.cat([v["curvature"], zero]), cols[COL.curvature])
-        cols[COL.conic] = torch.where(std, torch.cat([v["conic"], zero]), cols[COL.conic])
-        asph = torch.cat([v["aspheric"], torch.zeros(1, MAX_ASPHERIC, dtype=t.dtype, device=dev)])
-        for k in range(COL.n_asph):
-            cols[COL.asph0 + k] = torch.where(std, asph[:, k], cols[COL.asph0 + k])
+        std = self._std_rows(dev)
+        if _CONTIGUOUS:
+            # z, curvature, conic and the aspheric terms are the table's first columns: the standard surfaces'
+            # values put in by one selection over that block and the table joined in one concatenation (6
+            # operations, each a GPU launch, instead of ~22: issue 25); the same values as column by column
+            learned = F.pad(torch.cat([v["curvature"][:, None], v["conic"][:, None],
+                                       v["aspheric"][:, :COL.n_asph]], 1), (0, 0, 0, 1))
+            z = F.pad(torch.cumsum(t, 0), (1, 0))          # surfaces 0..n-1, then the sensor (at the sum)
+            mid = torch.where(std[:, None], learned, base[:, COL.curvature:_HEAD])
+            table = torch.cat([z[:, None], mid, base[:, _HEAD:]], 1)
+            if not (any(self._phase_surfaces) or any(self._thin_surfaces)):
+                return table
+            cols = list(table.unbind(1))
+        else:
+            z = torch.cat([zero, torch.cumsum(t, 0)])  # surfaces 0..n-1, then the sensor
+            cols = [base[:, j] for j in range(COL.n_params)]
+            cols[COL.z] = z
+            cols[COL.curvature] = torch.where(std, torch.cat([v["curvature"], zero]), cols[COL.curvature])
+            cols[COL.conic] = torch.where(std, torch.cat([v["conic"], zero]), cols[COL.conic])
+            asph = torch.cat([v["aspheric"], torch.zeros(1, MAX_ASPHERIC, dtype=t.dtype, device=dev)])
+            for k in range(COL.n_asph):
+                cols[COL.asph0 + k] = torch.where(std, asph[:, k], cols[COL.asph0 + k])
         if any(self._phase_surfaces):
             _ph.write_phase_columns(cols, v["phase"], self.phase_mask)
         if any(self._thin_surfaces):
@@ -68,6 +87,15 @@ class LensTables:
                 power = 1.0 / f
             cols[COL.power] = torch.where(thin, torch.cat([power, zero]), cols[COL.power])
         return torch.stack(cols, dim=1)
+
+    def _std_rows(self, dev) -> torch.Tensor:
+        """The standard surfaces' rows of the table (bool (n_surfaces + 1,), the sensor row False) on ``dev``, made
+        once per device."""
+        memo = self.__dict__.setdefault("_std_rows_on", {})
+        got = memo.get(dev)
+        if got is None or got.shape[0] != self.standard_mask.shape[0] + 1:
+            got = memo[dev] = torch.cat([self.standard_mask.to(dev), torch.zeros(1, dtype=torch.bool, device=dev)])
+        return got
 
     def _thin_lens_columns(self, rw, v):
         """Power 1/f (1/mm), object-side 1/u (1/mm, 0 = infinity) and image distance v (mm) of every

@@ -34,8 +34,40 @@ PRESETS = {
 }
 
 
+class _LayerNorm2dFunction(torch.autograd.Function):
+    """``w y + b`` with ``y = (x - mean_c x) / sqrt(var_c x + eps)`` over the channel axis of (B, C, H, W), with
+    its backward written out: on a GPU each operation is a kernel launch, and the step is bound by its launches
+    (issue 25), so the forward takes 6 operations (one ``var_mean`` reduction) instead of autograd's 10, and the
+    backward 10 instead of ~30.
+
+    Backward (per pixel, sums over the C channels, ``g`` the output's gradient, ``r = 1/sqrt(var + eps)``):
+    ``dL/dx = r (w g - mean(w g) - y mean(w g y))`` (the derivative of the normalisation: ``dy_i/dx_j =
+    r (delta_ij - 1/C - y_i y_j / C)``), ``dL/dw = sum_{b,h,w} g y``, ``dL/db = sum_{b,h,w} g``. First order only
+    (the design loop takes no second derivatives): a second backward through it raises."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, eps):
+        var, mu = torch.var_mean(x, 1, correction=0, keepdim=True)
+        r = torch.rsqrt(var + eps)
+        y = (x - mu) * r
+        ctx.save_for_backward(y, r, weight)
+        return torch.addcmul(bias[None, :, None, None], weight[None, :, None, None], y)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        y, r, weight = ctx.saved_tensors
+        gw = g * weight[None, :, None, None]
+        dx = r * torch.addcmul(gw - gw.mean(1, keepdim=True), y, (gw * y).mean(1, keepdim=True), value=-1.0)
+        dw = (g * y).sum((0, 2, 3)) if ctx.needs_input_grad[1] else None
+        db = g.sum((0, 2, 3)) if ctx.needs_input_grad[2] else None
+        return dx, dw, db, None
+
+
 class LayerNorm2d(nn.Module):
-    """Layer normalisation over the channel axis of a (B, C, H, W) tensor, per pixel."""
+    """Layer normalisation over the channel axis of a (B, C, H, W) tensor, per pixel (dimensionless):
+    ``weight * (x - mean) / sqrt(var + eps) + bias``, mean and (biased) variance over the C channels, by
+    :class:`_LayerNorm2dFunction` (its gradient written out: fewer operations, each a GPU launch)."""
 
     def __init__(self, channels: int, eps: float = 1e-6):
         super().__init__()
@@ -44,10 +76,10 @@ class LayerNorm2d(nn.Module):
         self.eps = eps
 
     def forward(self, x):
-        mu = x.mean(1, keepdim=True)
-        var = (x - mu).pow(2).mean(1, keepdim=True)
-        y = (x - mu) / torch.sqrt(var + self.eps)
-        return self.weight[None, :, None, None] * y + self.bias[None, :, None, None]
+        if x.ndim != 4 or x.shape[1] != self.weight.shape[0]:
+            raise ValueError(f"LayerNorm2d({self.weight.shape[0]}): expected (B, {self.weight.shape[0]}, H, W), got "
+                             f"{tuple(x.shape)}")
+        return _LayerNorm2dFunction.apply(x, self.weight, self.bias, float(self.eps))
 
 
 class SimpleGate(nn.Module):
@@ -84,9 +116,10 @@ class NAFBlock(nn.Module):
         x = self.sg(x)
         x = x * self.sca(x)
         x = self.drop1(self.conv3(x))
-        y = inp + x * self.beta
+        # inp + x beta and y + x gamma, each one fused operation (one launch, not two)
+        y = torch.addcmul(inp, x, self.beta)
         x = self.conv5(self.sg(self.conv4(self.norm2(y))))
-        return y + self.drop2(x) * self.gamma
+        return torch.addcmul(y, self.drop2(x), self.gamma)
 
 
 class NAFNet(nn.Module):

@@ -50,6 +50,7 @@ class PackedTile:
         self._ops = None
         self._base = {}   # precision -> the first operators built (their distance-free factors are shared)
         self._order_tables = None   # the members' DOE order tables (packed_doe_factor), built on first use
+        self._index = {}            # (rows, device) -> int64 tensor of member positions (index)
 
     def operators(self, distance_mm: float, precision: str = "double") -> list:
         """One :class:`rwwarp.wave.focal_packed.PackedFocalPropagator` per group at ``distance_mm`` (mm), built once
@@ -66,6 +67,16 @@ class PackedTile:
                 ops = [op.at_distance(key[0]) for op in base]
             self._ops = (key, ops)
         return self._ops[1]
+
+    def index(self, rows, device) -> torch.Tensor:
+        """``rows`` (a list of ints: member positions) as an int64 tensor on ``device``, uploaded once per tile and
+        device (the groups' and their Gauss-node subsets' rows are the tile's own: every call, and the recompute
+        of a checkpointed one, indexes with the same; on a GPU each upload is a host-to-device copy)."""
+        key = (tuple(int(r) for r in rows), str(device))
+        hit = self._index.get(key)
+        if hit is None:
+            hit = self._index[key] = upload(np.asarray(key[0], dtype=np.int64), torch.long, device)
+        return hit
 
     def release_operators(self):
         """Drop the operators built at the last distance (the next use builds the distance's factors again;
@@ -253,20 +264,20 @@ class PackedFocalPropagate:
             ops = tile.operators(float(distance_host), "double")
         parts, seq = [], []
         for g, op in zip(tile.groups, ops):
-            gi = upload(g, torch.long, dev)
+            gi = tile.index(g, dev)
             fg = field[gi, :op.n, :op.n]
-            dg = None if distance is None else distance[gi.to(distance.device)]
+            dg = None if distance is None else distance[tile.index(g, distance.device)]
             u = OperatorApply.apply(fg, dg, op, flux, prw, "focal")
             us = u if flux else (u, None)
             for sub, gn in _by_nodes(tile, g):
                 m = prw.size * gn
-                si = upload(sub, torch.long, dev)
+                si = tile.index(sub, dev)
                 parts.append(NodePixels.apply(us[0][si, :m, :m], None if us[1] is None else us[1][si, :m, :m],
                                               gn, prw.pixel, prw.size, prw))
                 seq += [g[i] for i in sub]
         out = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
         if seq != list(range(len(seq))):
-            out = out[upload(np.argsort(seq), torch.long, dev)]
+            out = out[tile.index(list(np.argsort(seq)), dev)]
         return out
 
 

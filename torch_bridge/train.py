@@ -243,7 +243,7 @@ class Arm:
                                tile=tile, memory_budget_bytes=_budget_bytes(o), replan_every=o["live_replan_every"],
                                pack=o["live_pack"], record_budget_bytes=record, replan_rule=o["live_replan_rule"],
                                replan_drift=o["live_replan_drift"], replan_drift_hard=o["live_replan_drift_hard"],
-                               replan_spread=o["live_replan_spread"])
+                               replan_spread=o["live_replan_spread"], pack_waste=o["live_pack_waste"])
 
     def limit_feature(self) -> float:
         """After an optics update: project the DOE onto ``optics.min_feature_um`` (a learning DOE only;

@@ -365,8 +365,14 @@ class RayWave:
             if tuple(device_table.shape) != tab.shape or device_table.dtype != tr.scalar:
                 raise ValueError(f"device_table must be {tab.shape} of {tr.scalar.__name__}, got "
                                  f"{tuple(device_table.shape)} of {getattr(device_table.dtype, '__name__', device_table.dtype)}")
-            for k, arr in enumerate(tr.params):
-                wp.copy(arr, device_table[k])
+            block = getattr(tr, "params_block", None)
+            if block is not None:       # a tracer with gradients: its rows are views of one array, one copy
+                wp.copy(block, device_table)
+            else:
+                for k, arr in enumerate(tr.params):
+                    wp.copy(arr, device_table[k])
+        elif getattr(tr, "params_block", None) is not None:
+            tr.params_block.assign(np.ascontiguousarray(tab, dtype=tr.np_dtype))
         else:
             for row, arr in zip(tab, tr.params):
                 arr.assign(np.ascontiguousarray(row, dtype=tr.np_dtype))

@@ -151,6 +151,7 @@ def test_resume_gives_the_same_next_step(tmp_path):
     ({"optics.nodes.fractions": [0.0, 1.5]}, "optics.nodes.fractions"),
     ({"eval.depths_mm": [300, -200]}, "eval.depths_mm"),
     ({"train.optics_every": 0}, "train.optics_every"),
+    ({"optics.live_pack_waste": 0.5}, "optics.live_pack_waste"),
     ({"train.lr_optics": {"curvature": 1e-5}}, "train.lr_optics"),
 ])
 def test_bad_config_fails_before_training_naming_the_key(tmp_path, over, key):
