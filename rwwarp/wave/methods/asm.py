@@ -66,12 +66,12 @@ def plan_window(ctx) -> Planned:
 
 def doe_landing_centres(ctx):
     """``(centers, reason)``: the patch centres ((S, 2) mm, snapped to pixels) where the beam lands after the DOE on
-    the wave plane, as the focal method centres its patches (:func:`rwwarp.wave.methods.focal.main_order_centres`:
+    the wave plane, as the focal method centres its patches (:func:`rwwarp.wave.methods.main_order.main_order_centres`:
     the chief ray on the DOE's main order, its local frequency added to the ray's; so the patch does not move with
     the method "auto" chooses). None, blank or a pixel map (steps, no gradient to deflect the rays by): the chief
     rays' landings ``ctx.centers`` and an empty reason."""
     from ...doe import is_flat_profile
-    from .focal import doe_orders, main_order_centres
+    from .main_order import doe_orders, main_order_centres
     s = ctx.lens.surfaces[ctx.plane]
     if s.type != "doe" or is_flat_profile(s.profile) or s.profile.get("kind") == "pixel_map":
         return ctx.centers, ""
