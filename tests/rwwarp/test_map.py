@@ -234,8 +234,8 @@ def test_fft_plan_cache_is_an_lru_with_a_count_bound_and_stays_correct():
         built, dropped = be.fft_plans_built, be.fft_plans_dropped
         # sizes 8, 12, 16, 8, 8, 20 with two plans kept (least recently used dropped): 8 built, 12 built, 16 built
         # (drops 8), 8 built again (drops 12), 8 kept, 20 built (drops 16): five builds, three drops
-        # 8 built again after its drop: the cache cycles, counted and warned once (session 24: the a489_edof step
-        # rebuilt 1-13 plans a step at ~0.68 s each through a bound of 64, unseen)
+        # 8 built again after its drop: the cache cycles, counted and warned once (a plan build is a VkFFT kernel
+        # compile, ~0.2-0.7 s on CUDA: a working set over the bound would cost that at every use, unseen)
         from rwwarp.errors import PerformanceWarning
         rebuilt = be.fft_plans_rebuilt
         with pytest.warns(PerformanceWarning, match="FFT plans are cycling"):
