@@ -21,7 +21,8 @@ Checks on the axis: the truth with its pitch and slice halved-ish (1.5 -> 1.0 um
 margin doubled, and the smooth-pupil control (the stop's amplitude a cos^2 over its radius: no edge; the truth
 against geometric optics). The test's reduced sampling (``test_model_error_cooke.py``) is measured here too.
 CPU only (2 shared cores): ~2 min a base case, ~8 min the refined one.
-Usage: python perf/model_error_cooke.py [--no-checks]
+Usage: python perf/model_error_cooke.py [--stage base|smooth|slice|pitch|margin|test] [--fields 0 5] (the results
+merged into perf/results/model_error_cooke.json)
 """
 from __future__ import annotations
 
@@ -87,11 +88,11 @@ def against_truth(sensor, psf, truth_lens: Cooke, field_deg: float) -> dict:
             "truth_peak_on_patch_fraction": float(T.max())}
 
 
-def run_case(field_deg: float, samp: dict, epd_mm=EPD, with_rw=True, soft=0.0) -> dict:
-    lens = Cooke(epd_mm=epd_mm)
+def run_case(field_deg: float, samp: dict, epd_mm=EPD, with_rw=True, soft=0.0, pupil="iris") -> dict:
+    lens = Cooke(epd_mm=epd_mm, pupil=pupil)
     c0, w0 = time.process_time(), time.perf_counter()
     T, M, info = truth_and_model(lens, field_deg, patch_pitch=0.5e-3, soft=soft, **samp)
-    row = {"field_deg": field_deg, "epd_mm": epd_mm, "iris_radius_mm": lens.a, "doe_coefficients": list(lens.coeffs),
+    row = {"field_deg": field_deg, "epd_mm": epd_mm, "pupil": pupil, "iris_radius_mm": lens.a, "doe_coefficients": list(lens.coeffs),
            "pitch_mm": samp["h"], "slice_mm": samp["dz"], "margin_mm": samp["margin"], "soft": soft,
            "measured": measured_error(T, M), "grid_n": info["grid_n"], "band_edge": info["band_edge"],
            "power_doe_truth_over_iris": info["power_doe_truth"] / info["power_iris"],
@@ -122,37 +123,48 @@ def plan_error(epd_mm, field_deg, coeffs) -> dict:
 
 
 def main():
+    import json
     ap = argparse.ArgumentParser()
-    ap.add_argument("--no-checks", action="store_true")
+    ap.add_argument("--stage", choices=("base", "smooth", "slice", "pitch", "margin", "test"), default="base")
+    ap.add_argument("--fields", type=float, nargs="+", default=[0.0, 5.0])
+    ap.add_argument("--pupil", choices=("iris", "entrance"), default="iris",
+                    help="the truth's pupil: the physical iris at the stop, or rwwarp's entrance-pupil disc (keys "
+                         "suffixed _entrance)")
     args = ap.parse_args()
+    from _common import RESULTS
+    prev = RESULTS / "model_error_cooke.json"
+    res = json.loads(prev.read_text()) if prev.exists() else {}
+    res.update({"device": device_name("cpu"), "lens": str(LENS_FILE.relative_to(ROOT)), "wavelength_um": WL,
+                "pixel_mm": PIX_MM, "size": SIZE})
     commit = git_commit()
-    res = {"commit": commit, "device": device_name("cpu"), "lens": str(LENS_FILE.relative_to(ROOT)),
-           "wavelength_um": WL, "pixel_mm": PIX_MM, "size": SIZE, "rows": []}
+    sfx = "" if args.pupil == "iris" else "_entrance"
     out = lambda: save("model_error_cooke", res)                        # noqa: E731
-    base = {}
-    for f in (0.0, 5.0):
-        row, tmi = run_case(f, BASE)
-        res["rows"].append(row)
-        base[f] = tmi
-        out()
-    if args.no_checks:
-        print("wrote", out())
-        return
-    # the test's reduced sampling, both fields
-    res["test_sampling"] = [run_case(f, TEST, with_rw=False)[0] for f in (0.0, 5.0)]
-    out()
-    # the smooth pupil on the axis
-    res["smooth_pupil"] = run_case(0.0, BASE, with_rw=False, soft=1.0)[0]
-    out()
-    # convergence on the axis: the margin doubled, the pitch and slice refined, on the base patch
-    T0, M0, i0 = base[0.0]
-    for key, samp in (("margin_doubled", {**BASE, "margin": 0.6}), ("refined", dict(h=1.0e-3, dz=0.5e-3, margin=0.3))):
-        t0 = time.perf_counter()
-        T, M, _ = truth_and_model(Cooke(epd_mm=EPD), 0.0, patch_x=i0["patch_x"], patch_y=i0["patch_y"],
-                                  patch_pitch=0.5e-3, **samp)
-        res[key] = {**samp, "measured": measured_error(T, M), "truth_change": float(np.max(np.abs(T - T0)) / T.max()),
-                    "model_change": float(np.max(np.abs(M - M0)) / M.max()), "wall_s": time.perf_counter() - t0}
-        print(key, res[key], flush=True)
+    for f in args.fields:
+        if args.stage == "base":
+            row, _ = run_case(f, BASE, pupil=args.pupil)
+            key = "rows" + sfx
+            res[key] = [r for r in res.get(key, []) if r["field_deg"] != f] + [{**row, "commit": commit}]
+        elif args.stage in ("smooth", "test"):
+            row, _ = run_case(f, TEST if args.stage == "test" else BASE, with_rw=False,
+                              soft=1.0 if args.stage == "smooth" else 0.0, pupil=args.pupil)
+            key = {"smooth": "smooth_pupil", "test": "test_sampling"}[args.stage] + sfx
+            res[key] = [r for r in res.get(key, []) if r["field_deg"] != f] + [{**row, "commit": commit}]
+        else:
+            # convergence: the base truth against one with the slice halved, the pitch 1.5 -> 1.0 um, or the
+            # window's margin doubled, on the base patch
+            samp = {"slice": {**BASE, "dz": 0.5e-3}, "pitch": {**BASE, "h": 1.0e-3},
+                    "margin": {**BASE, "margin": 0.6}}[args.stage]
+            T0, M0, i0 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_pitch=0.5e-3, **BASE)
+            t0 = time.perf_counter()
+            T, M, _ = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_x=i0["patch_x"], patch_y=i0["patch_y"],
+                                      patch_pitch=0.5e-3, **samp)
+            row = {"field_deg": f, **samp, "measured": measured_error(T, M), "base_measured": measured_error(T0, M0),
+                   "truth_change": float(np.max(np.abs(T - T0)) / T.max()),
+                   "model_change": float(np.max(np.abs(M - M0)) / M.max()), "wall_s": time.perf_counter() - t0,
+                   "commit": commit}
+            key = "convergence_" + args.stage + sfx
+            res[key] = [r for r in res.get(key, []) if r["field_deg"] != f] + [row]
+            print(key, row, flush=True)
         out()
     print("wrote", out())
 

@@ -50,9 +50,15 @@ class Cooke:
     """The Cooke hybrid's surfaces as numbers (``LENS_FILE``), entrance pupil diameter ``epd_mm`` (mm; the file's
     11.75 mm is F/4), the DOE's design phase ``coeffs`` (rad, even polynomial on ``norm_mm``), the wavelength
     ``lam_mm`` (mm). ``coeffs=None``: the quadratic term that puts the paraxial focus on the sensor
-    (:meth:`focusing_coefficient`), rounded to 1 rad."""
+    (:meth:`focusing_coefficient`), rounded to 1 rad. ``pupil``: "iris" (the physical stop: the rays through the
+    iris's disc) or "entrance" (the lens file's floating stop, as rwwarp traces it: the rays through the entrance
+    pupil's disc of radius ``epd / 2`` about the chief ray aimed at the stop surface's vertex; the edge still
+    diffracts from the iris's plane, where the truth starts)."""
 
-    def __init__(self, epd_mm=3.0, coeffs=None, norm_mm=4.0, lam_mm=LAM_MM):
+    def __init__(self, epd_mm=3.0, coeffs=None, norm_mm=4.0, lam_mm=LAM_MM, pupil="iris"):
+        if pupil not in ("iris", "entrance"):
+            raise ValueError(f"Cooke: pupil={pupil!r}, one of 'iris', 'entrance'")
+        self.pupil = pupil
         spec = json.loads(LENS_FILE.read_text())
         if not np.isfinite(lam_mm) or lam_mm <= 0:
             raise ValueError(f"Cooke: wavelength lam_mm={lam_mm!r} (mm) must be a positive number")
@@ -141,10 +147,12 @@ class Cooke:
         return n
 
     def chief(self, theta_rad):
-        """The entrance coordinate u (mm) of the chief ray (through the iris's centre; Newton)."""
+        """The entrance coordinate u (mm) of the chief ray (through the iris's centre, or for ``pupil="entrance"``
+        the stop surface's vertex; Newton)."""
         u, e = 0.0, 1e-5
+        zc = self.zI if self.pupil == "iris" else self.zv[self.stop]
         for _ in range(30):
-            x, _, _ = self._trace(np.array([u, u + e]), np.zeros(2), theta_rad, self.zI)
+            x, _, _ = self._trace(np.array([u, u + e]), np.zeros(2), theta_rad, zc)
             u -= x[0] / ((x[1] - x[0]) / e)
             if abs(x[0]) < 1e-12:
                 break
@@ -192,13 +200,15 @@ class Cooke:
         a1, a2, _ = tr(u + e, v, self.zI)
         b1, b2, _ = tr(u, v + e, self.zI)
         det_i = np.abs((a1 - xs) * (b2 - ys) - (b1 - xs) * (a2 - ys)) / e ** 2
-        rs = np.hypot(xs, ys)
+        if self.pupil == "iris":
+            rs, a, hs = np.hypot(xs, ys), self.a, h * np.sqrt(det_i / det)   # the cell's side mapped to the iris
+        else:
+            rs, a, hs = np.hypot(u - uc, v), 0.5 * self.epd, h / np.sqrt(det)  # ... to the entrance plane
         if soft > 0:
-            w = np.clip((rs - (1 - soft) * self.a) / (soft * self.a), 0.0, 1.0)
+            w = np.clip((rs - (1 - soft) * a) / (soft * a), 0.0, 1.0)
             ap = np.cos(0.5 * np.pi * w) ** 2
         else:
-            hs = h * np.sqrt(det_i / det)               # the cell's side mapped back to the iris
-            ap = np.clip(0.5 + (self.a - rs) / hs, 0.0, 1.0)
+            ap = np.clip(0.5 + (a - rs) / hs, 0.0, 1.0)
         nu0 = np.sin(theta_rad) / self.lam
         out[keep] = ap / np.sqrt(det) * np.exp(1j * (ph - 2 * np.pi * nu0 * xt))
         return out.reshape(shape)
