@@ -94,7 +94,9 @@ def run_case(field_deg: float, samp: dict, epd_mm=EPD, with_rw=True, soft=0.0, p
     T, M, info = truth_and_model(lens, field_deg, patch_pitch=0.5e-3, soft=soft, **samp)
     row = {"field_deg": field_deg, "epd_mm": epd_mm, "pupil": pupil, "iris_radius_mm": lens.a, "doe_coefficients": list(lens.coeffs),
            "pitch_mm": samp["h"], "slice_mm": samp["dz"], "margin_mm": samp["margin"], "soft": soft,
-           "measured": measured_error(T, M), "grid_n": info["grid_n"], "band_edge": info["band_edge"],
+           "measured": measured_error(T, M), "grid_n": info["grid_n"],
+           # a diagnostic: the truth scaled to the model's power on the DOE plane (the WPM's obliquity: see docs)
+           "measured_power_matched": measured_error(T * info["power_doe_model"] / info["power_doe_truth"], M), "band_edge": info["band_edge"],
            "power_doe_truth_over_iris": info["power_doe_truth"] / info["power_iris"],
            "power_doe_model_over_iris": info["power_doe_model"] / info["power_iris"],
            "truth_wall_s": info["t_truth_s"], "model_wall_s": info["t_model_s"],
@@ -156,9 +158,11 @@ def main():
                     "margin": {**BASE, "margin": 0.6}}[args.stage]
             T0, M0, i0 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_pitch=0.5e-3, **BASE)
             t0 = time.perf_counter()
-            T, M, _ = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_x=i0["patch_x"], patch_y=i0["patch_y"],
+            T, M, i1 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_x=i0["patch_x"], patch_y=i0["patch_y"],
                                       patch_pitch=0.5e-3, **samp)
             row = {"field_deg": f, **samp, "measured": measured_error(T, M), "base_measured": measured_error(T0, M0),
+                   "power_doe_truth_over_iris": i1["power_doe_truth"] / i1["power_iris"],
+                   "base_power_doe_truth_over_iris": i0["power_doe_truth"] / i0["power_iris"],
                    "truth_change": float(np.max(np.abs(T - T0)) / T.max()),
                    "model_change": float(np.max(np.abs(M - M0)) / M.max()), "wall_s": time.perf_counter() - t0,
                    "commit": commit}

@@ -215,7 +215,7 @@ class Cooke:
 
 
 def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
-                    patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True):
+                    patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave"):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
     the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm), ``soft``: the iris's cos^2
@@ -223,7 +223,9 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     beyond the beam's diameter at the iris. The patch: pixel centres ``patch_x`` / ``patch_y`` (mm; the truth's
     x is the field's direction) or, if None, the truth's spot (where it exceeds 1 % of its peak, plus 10 um) at
     ``patch_pitch`` (mm) about its peak; ``gauss`` > 1: each value the mean over a pixel of side ``patch_pitch`` by
-    ``gauss`` x ``gauss`` Gauss-Legendre nodes (a box-integrated pixel, divided by its area)."""
+    ``gauss`` x ``gauss`` Gauss-Legendre nodes (a box-integrated pixel, divided by its area). ``element``: "wave"
+    (the last element's two sag zones by the WPM) or "geometric" (a diagnostic: the truth starts from the traced
+    field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics)."""
     t0 = time.perf_counter()
     th = np.radians(field_deg)
     lam, nu0 = lens.lam, np.sin(th) / lens.lam
@@ -232,9 +234,10 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     if s5 != len(lens.zv) - 1:
         raise ValueError("Cooke: the truth expects two surfaces (one element) between the iris and the DOE")
     N = _fast((2 * lens.a + 2 * margin) / h)
-    g = Grid(N, h, lens.chief_x(th, lens.zI), nu0)
+    z0 = lens.zI if element == "wave" else lens.zv[s5] + 1e-3
+    g = Grid(N, h, lens.chief_x(th, z0), nu0)
     X, Y = g.mesh()
-    V = lens.geometric_field(X, Y, th, lens.zI, h, soft=soft)
+    V = lens.geometric_field(X, Y, th, z0, h, soft=soft)
     info["power_iris"] = float(np.sum(np.abs(V) ** 2) * h * h)
     # surface 4's sag zone (air -> glass) and surface 5's (glass -> air), their extents from the rim rays
     t = np.linspace(0, 2 * np.pi, 256, endpoint=False)
@@ -247,8 +250,8 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         rmax2 = float(np.max(xr ** 2 + yr ** 2)) + 0.05
         sg = float(lens.sag(i, rmax2))
         zones.append((min(lens.zv[i], lens.zv[i] + sg) - 1e-3, max(lens.zv[i], lens.zv[i] + sg) + 1e-3))
-    zprev = lens.zI
-    for (za, zb), i in zip(zones, (s4, s5)):
+    zprev = lens.zI if element == "wave" else z0
+    for (za, zb), i in (zip(zones, (s4, s5)) if element == "wave" else ()):
         V = g.propagate(V, lens.n_before[i], lam, za - zprev)
         V = g.move(V, lens.chief_x(th, za))
         X, Y = g.mesh()
