@@ -17,12 +17,16 @@ at 0.55 um, its design wavelength). For each case (0 and 5 deg):
   integrated by 3 x 3 Gauss-Legendre nodes, over the entering power ``pi (EPD / 2)^2``): max |difference| over the
   truth's largest pixel.
 
-Checks on the axis: the truth with its pitch and slice halved-ish (1.5 -> 1.0 um, 1 -> 0.5 um), with its window's
-margin doubled, and the smooth-pupil control (the stop's amplitude a cos^2 over its radius: no edge; the truth
-against geometric optics). The test's reduced sampling (``test_model_error_cooke.py``) is measured here too.
-CPU only (2 shared cores): ~2 min a base case, ~8 min the refined one.
-Usage: python perf/model_error_cooke.py [--stage base|smooth|slice|pitch|margin|test] [--fields 0 5] (the results
-merged into perf/results/model_error_cooke.json)
+Checks: the truth with its pitch or slice refined (1.5 -> 1.0 um, 1 -> 0.5 / 0.25 um), its window's margin doubled,
+and the smooth-pupil control (the stop's amplitude a cos^2 over its radius: no edge; the truth against geometric
+optics). The test's reduced sampling (``test_model_error_cooke.py``) is measured here too.
+CPU only (2 shared cores): ~2-3 min a base case, ~4-8 min a refined one.
+Stages: base (the cases with rwwarp's PSFs), smooth (the smooth pupil), test (the test's sampling), slice / pitch /
+margin (the truth refined against the base, on its patch), slice4 (the slice at 0.25 um on the stored base patch),
+element (a diagnostic: the last element traced instead of the WPM); ``--pupil entrance``: rwwarp's entrance-pupil
+disc instead of the physical iris (keys suffixed _entrance).
+Usage: python perf/model_error_cooke.py [--stage base|smooth|slice|pitch|margin|test|slice4|element] [--fields 0 5]
+[--pupil iris|entrance] (the results merged into perf/results/model_error_cooke.json)
 """
 from __future__ import annotations
 
@@ -88,15 +92,20 @@ def against_truth(sensor, psf, truth_lens: Cooke, field_deg: float) -> dict:
             "truth_peak_on_patch_fraction": float(T.max())}
 
 
-def run_case(field_deg: float, samp: dict, epd_mm=EPD, with_rw=True, soft=0.0, pupil="iris") -> dict:
+def run_case(field_deg: float, samp: dict, epd_mm=EPD, with_rw=True, soft=0.0, pupil="iris",
+             element="wave") -> tuple:
+    """One case: the truth against its one-step model, the estimate, rwwarp's PSFs (``with_rw``) -> (row, (T, M,
+    info)); ``samp``: the truth's pitch, slice and margin (mm), ``soft``/``pupil``/``element``: truth_and_model's."""
     lens = Cooke(epd_mm=epd_mm, pupil=pupil)
     c0, w0 = time.process_time(), time.perf_counter()
-    T, M, info = truth_and_model(lens, field_deg, patch_pitch=0.5e-3, soft=soft, **samp)
-    row = {"field_deg": field_deg, "epd_mm": epd_mm, "pupil": pupil, "iris_radius_mm": lens.a, "doe_coefficients": list(lens.coeffs),
+    T, M, info = truth_and_model(lens, field_deg, patch_pitch=0.5e-3, soft=soft, element=element, **samp)
+    row = {"field_deg": field_deg, "epd_mm": epd_mm, "pupil": pupil, "element": element, "iris_radius_mm": lens.a,
+           "doe_coefficients": list(lens.coeffs),
            "pitch_mm": samp["h"], "slice_mm": samp["dz"], "margin_mm": samp["margin"], "soft": soft,
            "measured": measured_error(T, M), "grid_n": info["grid_n"],
            # a diagnostic: the truth scaled to the model's power on the DOE plane (the WPM's obliquity: see docs)
-           "measured_power_matched": measured_error(T * info["power_doe_model"] / info["power_doe_truth"], M), "band_edge": info["band_edge"],
+           "measured_power_matched": measured_error(T * info["power_doe_model"] / info["power_doe_truth"], M),
+           "band_edge": info["band_edge"],
            "power_doe_truth_over_iris": info["power_doe_truth"] / info["power_iris"],
            "power_doe_model_over_iris": info["power_doe_model"] / info["power_iris"],
            "truth_wall_s": info["t_truth_s"], "model_wall_s": info["t_model_s"],
@@ -127,7 +136,8 @@ def plan_error(epd_mm, field_deg, coeffs) -> dict:
 def main():
     import json
     ap = argparse.ArgumentParser()
-    ap.add_argument("--stage", choices=("base", "smooth", "slice", "pitch", "margin", "test"), default="base")
+    ap.add_argument("--stage", choices=("base", "smooth", "slice", "pitch", "margin", "test",
+                                                  "element", "slice4"), default="base")
     ap.add_argument("--fields", type=float, nargs="+", default=[0.0, 5.0])
     ap.add_argument("--pupil", choices=("iris", "entrance"), default="iris",
                     help="the truth's pupil: the physical iris at the stop, or rwwarp's entrance-pupil disc (keys "
@@ -146,6 +156,28 @@ def main():
             row, _ = run_case(f, BASE, pupil=args.pupil)
             key = "rows" + sfx
             res[key] = [r for r in res.get(key, []) if r["field_deg"] != f] + [{**row, "commit": commit}]
+        elif args.stage == "slice4":
+            # the WPM's slice at a quarter (0.25 um), on the stored base row's patch (its truth not recomputed)
+            base = next(r for r in res["rows" + sfx] if r["field_deg"] == f)
+            c, half = base["patch_center_mm"], base["patch_half_mm"]
+            t0 = time.perf_counter()
+            T, M, i1 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f,
+                                      patch_x=c[0] + np.arange(-half, half + 1e-12, 0.5e-3),
+                                      patch_y=c[1] + np.arange(-half, half + 1e-12, 0.5e-3),
+                                      patch_pitch=0.5e-3, **{**BASE, "dz": 0.25e-3})
+            row = {"field_deg": f, **BASE, "dz": 0.25e-3, "measured": measured_error(T, M),
+                   "power_doe_truth_over_iris": i1["power_doe_truth"] / i1["power_iris"],
+                   "wall_s": time.perf_counter() - t0, "commit": commit}
+            res["convergence_slice_quarter" + sfx] = [row]
+            print(row, flush=True)
+        elif args.stage == "element":
+            # a diagnostic: the last element traced (the truth from the traced field behind it), hard and smooth
+            for soft in (0.0, 1.0):
+                row, _ = run_case(f, BASE, with_rw=False, soft=soft, pupil=args.pupil, element="geometric")
+                key = "element_geometric" + sfx
+                res[key] = [r for r in res.get(key, []) if (r["field_deg"], r["soft"]) != (f, soft)] + \
+                    [{**row, "commit": commit}]
+                out()
         elif args.stage in ("smooth", "test"):
             row, _ = run_case(f, TEST if args.stage == "test" else BASE, with_rw=False,
                               soft=1.0 if args.stage == "smooth" else 0.0, pupil=args.pupil)
@@ -158,7 +190,8 @@ def main():
                     "margin": {**BASE, "margin": 0.6}}[args.stage]
             T0, M0, i0 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_pitch=0.5e-3, **BASE)
             t0 = time.perf_counter()
-            T, M, i1 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_x=i0["patch_x"], patch_y=i0["patch_y"],
+            T, M, i1 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_x=i0["patch_x"],
+                                       patch_y=i0["patch_y"],
                                       patch_pitch=0.5e-3, **samp)
             row = {"field_deg": f, **samp, "measured": measured_error(T, M), "base_measured": measured_error(T0, M0),
                    "power_doe_truth_over_iris": i1["power_doe_truth"] / i1["power_iris"],

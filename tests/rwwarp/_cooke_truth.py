@@ -25,6 +25,12 @@ entrance pupil's radius ``epd / 2`` (so on the axis the iris cuts the entrance p
 * both: the same DOE (``exp(+i phi)``, ``phi = sum_i c_i (r / R)^(2i)`` about the axis, at its design wavelength),
   the same exact angular spectrum to the sensor (20 mm), evaluated on a patch by a matrix DFT.
 
+``pupil="entrance"`` (:class:`Cooke`): the rays cut as rwwarp cuts the lens file's floating stop instead, by the
+entrance pupil's disc (the edge still diffracts from the iris's plane). Convergence (perf/model_error_cooke.py): on the
+axis the base sampling (1.5 um, 1 um slices) and a 2 um grid give measured errors 2.5e-3 / 2.1e-3 of the peak (the
+smooth-pupil floor 1.0e-3); at 5 deg halving the WPM's slice moves the truth by 5e-3 of its peak: off axis it needs
+finer slices than the A489's.
+
 Fields are ``U ~ exp(+i k OPL)``; the carrier ``exp(2 pi i sin(theta) x / lambda)`` is taken out of every grid; each
 plane's window follows the chief ray (a roll of the periodic grid). Both fields keep ``int |U|^2 dA``. Lengths in mm,
 the wavelength in mm (``LAM_MM``), phases in rad.
@@ -83,7 +89,8 @@ class Cooke:
         self.zD, self.zS = z, z + float(doe["thickness"])
         self.doe_half = float(doe["semi_diameter"])
         if abs(float(doe["design_wavelength_um"]) * 1e-3 - self.lam) > 1e-9:
-            raise ValueError("Cooke: only the DOE's design wavelength is written here (its relief's other orders are not)")
+            raise ValueError("Cooke: only the DOE's design wavelength is written here (not its relief's other "
+                             "orders)")
         self.norm = float(norm_mm)
         # the iris: the on-axis marginal ray of the entrance pupil's rim (found with the iris at the vertex, then on
         # the plane where surface 3 meets the rim)
