@@ -137,7 +137,7 @@ def main():
     import json
     ap = argparse.ArgumentParser()
     ap.add_argument("--stage", choices=("base", "smooth", "slice", "pitch", "margin", "test",
-                                                  "element", "slice4"), default="base")
+                                                  "element", "slice4", "chief"), default="base")
     ap.add_argument("--fields", type=float, nargs="+", default=[0.0, 5.0])
     ap.add_argument("--pupil", choices=("iris", "entrance"), default="iris",
                     help="the truth's pupil: the physical iris at the stop, or rwwarp's entrance-pupil disc (keys "
@@ -170,6 +170,27 @@ def main():
                    "wall_s": time.perf_counter() - t0, "commit": commit}
             res["convergence_slice_quarter" + sfx] = [row]
             print(row, flush=True)
+        elif args.stage == "chief":
+            # the WPM's sub-slice phase at the chief ray's transverse frequency (not the carrier's): slices 1 and
+            # 0.5 um on the stored base patch
+            base = next(r for r in res["rows" + sfx] if r["field_deg"] == f)
+            c, half = base["patch_center_mm"], base["patch_half_mm"]
+            pxy = dict(patch_x=c[0] + np.arange(-half, half + 1e-12, 0.5e-3),
+                       patch_y=c[1] + np.arange(-half, half + 1e-12, 0.5e-3), patch_pitch=0.5e-3)
+            rows, Ts = [], []
+            for dzc in (1e-3, 0.5e-3):
+                t0 = time.perf_counter()
+                T, M, i1 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, sub_slice="chief",
+                                           **{**BASE, "dz": dzc}, **pxy)
+                Ts.append(T)
+                rows.append({"field_deg": f, **BASE, "dz": dzc, "sub_slice": "chief", "measured": measured_error(T, M),
+                             "power_doe_truth_over_iris": i1["power_doe_truth"] / i1["power_iris"],
+                             "wall_s": time.perf_counter() - t0, "commit": commit})
+                print(rows[-1], flush=True)
+            rows[-1]["truth_change_from_1um"] = float(np.max(np.abs(Ts[1] - Ts[0])) / Ts[1].max())
+            res["sub_slice_chief" + sfx] = [r for r in res.get("sub_slice_chief" + sfx, [])
+                                            if r["field_deg"] != f] + rows
+            print(rows[-1], flush=True)
         elif args.stage == "element":
             # a diagnostic: the last element traced (the truth from the traced field behind it), hard and smooth
             for soft in (0.0, 1.0):

@@ -222,7 +222,8 @@ class Cooke:
 
 
 def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
-                    patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave"):
+                    patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave",
+                    sub_slice="carrier"):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
     the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm), ``soft``: the iris's cos^2
@@ -232,7 +233,10 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     ``patch_pitch`` (mm) about its peak; ``gauss`` > 1: each value the mean over a pixel of side ``patch_pitch`` by
     ``gauss`` x ``gauss`` Gauss-Legendre nodes (a box-integrated pixel, divided by its area). ``element``: "wave"
     (the last element's two sag zones by the WPM) or "geometric" (a diagnostic: the truth starts from the traced
-    field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics)."""
+    field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics).
+    ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
+    taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
+    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis)."""
     t0 = time.perf_counter()
     th = np.radians(field_deg)
     lam, nu0 = lens.lam, np.sin(th) / lens.lam
@@ -262,8 +266,12 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         V = g.propagate(V, lens.n_before[i], lam, za - zprev)
         V = g.move(V, lens.chief_x(th, za))
         X, Y = g.mesh()
+        nu_s = nu0
+        if sub_slice == "chief":
+            *_, dch = lens._trace(np.array([lens.chief(th)]), np.zeros(1), th, za, direction=True)
+            nu_s = lens.n_before[i] * float(dch[0, 0]) / lam
         V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i], lam,
-                     dz, nu0)
+                     dz, nu_s)
         zprev = zb
     V = g.propagate(V, 1.0, lam, lens.zD - zprev)
     V = g.move(V, lens.chief_x(th, lens.zD))
