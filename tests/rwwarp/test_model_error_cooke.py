@@ -11,8 +11,8 @@ The reduced case here: the experiment's lens file (``torch_bridge/configs/lenses
 a 3 mm entrance pupil (the stop's radius 1.14 mm; the file's F/4 needs ~6000^2 samples and ~700 WPM slices), on the
 axis (there the physical iris and rwwarp's entrance-pupil disc cut the same rays), 0.55 um, the DOE's quadratic term
 that focuses on the sensor (-678 rho^2 rad, rho = r / 4 mm), the grid's pitch 2 um (the base runs' 1.5 um: the beam's
-NA at the DOE is 0.03, the 2 um grid's band reaches 0.14) and a 0.2 mm margin (0.3 mm there): ~65 s on 2 CPU cores,
-hence marked slow. Off axis the truth is not yet converged in its WPM slice (docs/accuracy.md, "The Cooke's own beams
+NA at the DOE is 0.03, the 2 um grid's band reaches 0.14) and a 0.2 mm margin (0.3 mm there): 50 s on 2 shared CPU cores
+(the truth ~40 s of it; one module-scope fixture). Off axis the truth is not yet converged in its WPM slice (docs/accuracy.md, "The Cooke's own beams
 against a truth"): no off-axis case here.
 """
 import sys
@@ -28,7 +28,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _cooke_truth import LENS_FILE, Cooke, measured_error, truth_and_model  # noqa: E402
 
 EPD = 3.0
-pytestmark = pytest.mark.slow      # the truth: ~50 s of the ~65 s on 2 shared cores (one module-scope fixture)
 
 
 def _rw_lens(coeffs):
