@@ -1,0 +1,333 @@
+"""A wave-exact truth through the Cooke-type hybrid of the paper's Cooke experiment for the ray-wave model's own error
+(issue 27), shared by ``tests/rwwarp/test_model_error_cooke.py`` and ``perf/model_error_cooke.py``. The structure of
+``_a489_truth.py`` (beside this file), whose lens-agnostic helpers it imports (the periodic :class:`Grid` with its
+exact angular-spectrum transfer functions, :func:`wpm_zone`, :func:`catalogue_index`, :func:`measured_error`, the
+ray-surface intersection and Snell's law); no rwwarp code. The lens is read as numbers from
+``torch_bridge/configs/lenses/cooke_hybrid.json`` (the experiment's lens: six spherical surfaces, N-SK16 for every
+element, the glass's Sellmeier coefficients from ``rwwarp/data/glasses.json``; the 8 x 8 mm DOE 23.17 mm behind the
+last surface, 20 mm before the sensor).
+
+Geometry (z from the first vertex, mm; the source at infinity, a plane wave of field angle ``theta`` tilted in x, |U| =
+1 on the plane ``z = -1``): the lens's aperture stop is surface 3 (the middle element's rear, R = 22.4 mm, 5.24 mm
+of air behind it). The experiment's lens file sets the beam by its entrance pupil (a floating stop); here the stop is
+a physical iris: a hard disc of radius ``a`` on the plane ``z_I = z_3 + sag_3(a)`` (the plane where surface 3 meets
+the iris's rim: inside the disc that plane lies in air), ``a`` the radius there of the on-axis real marginal ray of the
+entrance pupil's radius ``epd / 2`` (so on the axis the iris cuts the entrance pupil's rays exactly).
+
+* truth ("two-step"): the geometric field on the iris plane (elements 1 and 2 carry no aperture: the beam that
+  reaches the iris is smooth, edge-free) cut by the disc, then propagated as a wave all the way to the DOE plane: the
+  exact angular spectrum in air to surface 4's sag zone, the WPM through it (air -> N-SK16), the angular spectrum in
+  the glass, the WPM through surface 5's sag zone (N-SK16 -> air), the angular spectrum in air to the DOE plane;
+* model ("one-step", the ray-wave model's geometric field): rays traced from the entrance plane to the DOE plane
+  (Snell, exact intersections), the field ``sqrt(dA_0 / dA) exp(i k OPL)`` on the DOE grid (each sample's ray found by
+  Newton's method), cut where its ray crossed the iris plane outside the disc (the rim's samples weighted by the share
+  of their cell inside, the cell mapped back to the iris);
+* both: the same DOE (``exp(+i phi)``, ``phi = sum_i c_i (r / R)^(2i)`` about the axis, at its design wavelength),
+  the same exact angular spectrum to the sensor (20 mm), evaluated on a patch by a matrix DFT.
+
+``pupil="entrance"`` (:class:`Cooke`): the rays cut as rwwarp cuts the lens file's floating stop instead, by the
+entrance pupil's disc (the edge still diffracts from the iris's plane). Convergence (perf/model_error_cooke.py): on the
+axis the base sampling (1.5 um, 1 um slices) and a 2 um grid give measured errors 2.5e-3 / 2.1e-3 of the peak (the
+smooth-pupil floor 1.0e-3); at 5 deg the measured error reads 1.23e-2 / 7.3e-3 / 4.9e-3 at slices of 1 / 0.5 / 0.25
+um (first order in the slice; halving it from 1 um moves the truth by 5e-3 of its peak): off axis this truth needs
+far finer slices than the A489's (whose errors were 100x larger), or a better sub-slice rule.
+
+Fields are ``U ~ exp(+i k OPL)``; the carrier ``exp(2 pi i sin(theta) x / lambda)`` is taken out of every grid; each
+plane's window follows the chief ray (a roll of the periodic grid). Both fields keep ``int |U|^2 dA``. Lengths in mm,
+the wavelength in mm (``LAM_MM``), phases in rad.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from _a489_truth import A489, LAM_MM, Grid, _fast, _fft2, _ifft2, catalogue_index, measured_error, wpm_zone
+
+__all__ = ["Cooke", "truth_and_model", "measured_error", "LAM_MM", "LENS_FILE"]
+
+ROOT = Path(__file__).resolve().parents[2]
+LENS_FILE = ROOT / "torch_bridge" / "configs" / "lenses" / "cooke_hybrid.json"
+_hit, _refract = A489._hit, A489._refract
+
+
+class Cooke:
+    """The Cooke hybrid's surfaces as numbers (``LENS_FILE``), entrance pupil diameter ``epd_mm`` (mm; the file's
+    11.75 mm is F/4), the DOE's design phase ``coeffs`` (rad, even polynomial on ``norm_mm``), the wavelength
+    ``lam_mm`` (mm). ``coeffs=None``: the quadratic term that puts the paraxial focus on the sensor
+    (:meth:`focusing_coefficient`), rounded to 1 rad. ``pupil``: "iris" (the physical stop: the rays through the
+    iris's disc) or "entrance" (the lens file's floating stop, as rwwarp traces it: the rays through the entrance
+    pupil's disc of radius ``epd / 2`` about the chief ray aimed at the stop surface's vertex; the edge still
+    diffracts from the iris's plane, where the truth starts)."""
+
+    def __init__(self, epd_mm=3.0, coeffs=None, norm_mm=4.0, lam_mm=LAM_MM, pupil="iris"):
+        if pupil not in ("iris", "entrance"):
+            raise ValueError(f"Cooke: pupil={pupil!r}, one of 'iris', 'entrance'")
+        self.pupil = pupil
+        spec = json.loads(LENS_FILE.read_text())
+        if not np.isfinite(lam_mm) or lam_mm <= 0:
+            raise ValueError(f"Cooke: wavelength lam_mm={lam_mm!r} (mm) must be a positive number")
+        if not np.isfinite(epd_mm) or epd_mm <= 0:
+            raise ValueError(f"Cooke: entrance pupil diameter epd_mm={epd_mm!r} (mm) must be a positive number")
+        if spec.get("object_distance", "inf") != "inf":
+            raise ValueError("Cooke: the lens file's object must be at infinity")
+        self.lam, self.k, self.epd = float(lam_mm), 2 * np.pi / lam_mm, float(epd_mm)
+        surfs = spec["surfaces"]
+        self.zv, self.c, self.n_after = [], [], []
+        z = 0.0
+        for s in surfs[:-1]:
+            if s["type"] != "standard" or s.get("conic", 0.0) or s.get("aspheric"):
+                raise ValueError("Cooke: only spherical standard surfaces are written here")
+            self.zv.append(z)
+            self.c.append(1.0 / float(s["radius"]))
+            self.n_after.append(1.0 if s["material"] == "air" else catalogue_index(s["material"], lam_mm))
+            z += float(s["thickness"])
+        self.n_before = [1.0] + self.n_after[:-1]
+        self.stop = next(i for i, s in enumerate(surfs) if s.get("stop"))
+        doe = surfs[-1]
+        self.zD, self.zS = z, z + float(doe["thickness"])
+        self.doe_half = float(doe["semi_diameter"])
+        if abs(float(doe["design_wavelength_um"]) * 1e-3 - self.lam) > 1e-9:
+            raise ValueError("Cooke: only the DOE's design wavelength is written here (not its relief's other "
+                             "orders)")
+        self.norm = float(norm_mm)
+        # the iris: the on-axis marginal ray of the entrance pupil's rim (found with the iris at the vertex, then on
+        # the plane where surface 3 meets the rim)
+        self.a, self.zI = 1.0, self.zv[self.stop]
+        for _ in range(3):
+            x, _, _ = self._trace(np.array([0.5 * self.epd]), np.zeros(1), 0.0, self.zI)
+            self.a = float(abs(x[0]))
+            self.zI = self.zv[self.stop] + float(self.sag(self.stop, self.a ** 2)) + 1e-6
+        self.coeffs = (float(np.round(self.focusing_coefficient())),) if coeffs is None else \
+            tuple(float(c) for c in coeffs)
+
+    # -- surfaces ---------------------------------------------------------------------------------------------------
+    def sag(self, i, r2):
+        c = self.c[i]
+        return c * r2 / (1 + np.sqrt(1 - c * c * r2))
+
+    def dsag_over_r(self, i, r2):
+        """(d sag / dr) / r of surface ``i``."""
+        c = self.c[i]
+        return c / np.sqrt(1 - c * c * r2)
+
+    def doe_phase(self, x, y):
+        """The DOE's design phase (rad) at (x, y) (mm)."""
+        rho2 = (x * x + y * y) / self.norm ** 2
+        return sum(c * rho2 ** (i + 1) for i, c in enumerate(self.coeffs))
+
+    def focusing_coefficient(self):
+        """The DOE's quadratic coefficient (rad on ``norm_mm``) that moves the lens's paraxial focus (traced here, a
+        0.01 mm ray on the axis) onto the sensor: ``-pi R^2 / (lambda f_D)``, ``1 / f_D = 1 / (zS - zD) - 1 / L``."""
+        x, _, _, d = self._trace(np.array([1e-2]), np.zeros(1), 0.0, self.zD, direction=True)
+        L = -x[0] * d[2, 0] / d[0, 0]
+        return -np.pi * self.norm ** 2 / self.lam * (1.0 / (self.zS - self.zD) - 1.0 / L)
+
+    # -- rays ---------------------------------------------------------------------------------------------------------
+    def _trace(self, u, v, theta_rad, z_plane, direction=False):
+        """Rays of the plane wave entering at (u, v) on the plane z = -1 to the plane ``z_plane`` (every surface
+        whose vertex lies before it traced): (x, y, phase), phase ``k`` times the path from the entrance plane plus
+        ``k sin(theta) u`` (the entering wave's phase there); ``direction``: the rays' unit directions too."""
+        u, v = np.asarray(u, float), np.asarray(v, float)
+        p = np.stack([u, v, np.full_like(u, -1.0)])
+        d = np.stack([np.full_like(u, np.sin(theta_rad)), np.zeros_like(u), np.full_like(u, np.cos(theta_rad))])
+        opl, n = np.sin(theta_rad) * u, 1.0
+        for i, zv in enumerate(self.zv):
+            if zv >= z_plane:
+                break
+            t, p, N = _hit(p, d, zv, lambda r2, i=i: self.sag(i, r2), lambda r2, i=i: self.dsag_over_r(i, r2))
+            opl = opl + n * t
+            d = _refract(d, N, self.n_before[i] / self.n_after[i])
+            n = self.n_after[i]
+        t = (z_plane - p[2]) / d[2]
+        opl = opl + n * t
+        out = (p[0] + t * d[0], p[1] + t * d[1], self.k * opl)
+        return out + (d,) if direction else out
+
+    def medium(self, z):
+        """The index of the medium at ``z`` on the axis."""
+        n = 1.0
+        for i, zv in enumerate(self.zv):
+            if zv < z:
+                n = self.n_after[i]
+        return n
+
+    def chief(self, theta_rad):
+        """The entrance coordinate u (mm) of the chief ray (through the iris's centre, or for ``pupil="entrance"``
+        the stop surface's vertex; Newton)."""
+        u, e = 0.0, 1e-5
+        zc = self.zI if self.pupil == "iris" else self.zv[self.stop]
+        for _ in range(30):
+            x, _, _ = self._trace(np.array([u, u + e]), np.zeros(2), theta_rad, zc)
+            u -= x[0] / ((x[1] - x[0]) / e)
+            if abs(x[0]) < 1e-12:
+                break
+        return u
+
+    def chief_x(self, theta_rad, z_plane):
+        x, _, _ = self._trace(np.array([self.chief(theta_rad)]), np.zeros(1), theta_rad, z_plane)
+        return float(x[0])
+
+    def geometric_field(self, X, Y, theta_rad, z_plane, h, soft=0.0, tol=1e-11):
+        """The geometric field at the plane ``z_plane`` (air or glass, outside every sag zone) on the samples (X, Y)
+        (mm), carrier removed: each sample's ray found by Newton's method from the entrance plane, amplitude
+        ``sqrt(|d(u, v) / d(x, y)|)``, phase ``k`` times the path ``- 2 pi nu0 x``, cut by the iris (rim samples: the
+        share of their cell, of side ``h`` (mm), inside, the cell mapped back to the iris plane; ``soft`` > 0: a cos^2
+        roll-off of the amplitude over the iris's outer ``soft`` share of its radius instead of the hard rim)."""
+        shape = X.shape
+        X, Y = X.ravel(), Y.ravel()
+        e = 1e-5
+        uc = self.chief(theta_rad)
+        x0, y0, _ = self._trace(np.array([uc, uc + e, uc]), np.array([0.0, 0.0, e]), theta_rad, z_plane)
+        mx, my = (x0[1] - x0[0]) / e, (y0[2] - y0[0]) / e
+        xi0, yi0, _ = self._trace(np.array([uc, uc + e, uc]), np.array([0.0, 0.0, e]), theta_rad, self.zI)
+        ax_, ay_ = (xi0[1] - xi0[0]) / e, (yi0[2] - yi0[0]) / e      # entrance -> iris scale
+        keep = np.hypot((X - x0[0]) / mx * ax_, Y / my * ay_) < 1.25 * self.a
+        out = np.zeros(X.shape, complex)
+        xt, yt = X[keep], Y[keep]
+        u, v = uc + (xt - x0[0]) / mx, yt / my
+        tr = lambda uu, vv, z=z_plane: self._trace(uu, vv, theta_rad, z)      # noqa: E731
+        for _ in range(40):
+            x, y, _ = tr(u, v)
+            a1, a2, _ = tr(u + e, v)
+            b1, b2, _ = tr(u, v + e)
+            j11, j21, j12, j22 = (a1 - x) / e, (a2 - y) / e, (b1 - x) / e, (b2 - y) / e
+            rx, ry = x - xt, y - yt
+            det = j11 * j22 - j12 * j21
+            u = u - (j22 * rx - j12 * ry) / det
+            v = v - (-j21 * rx + j11 * ry) / det
+            if max(np.abs(rx).max(), np.abs(ry).max()) < tol:
+                break
+        x, y, ph = tr(u, v)
+        a1, a2, _ = tr(u + e, v)
+        b1, b2, _ = tr(u, v + e)
+        det = np.abs((a1 - x) * (b2 - y) - (b1 - x) * (a2 - y)) / e ** 2
+        xs, ys, _ = tr(u, v, self.zI)
+        a1, a2, _ = tr(u + e, v, self.zI)
+        b1, b2, _ = tr(u, v + e, self.zI)
+        det_i = np.abs((a1 - xs) * (b2 - ys) - (b1 - xs) * (a2 - ys)) / e ** 2
+        if self.pupil == "iris":
+            rs, a, hs = np.hypot(xs, ys), self.a, h * np.sqrt(det_i / det)   # the cell's side mapped to the iris
+        else:
+            rs, a, hs = np.hypot(u - uc, v), 0.5 * self.epd, h / np.sqrt(det)  # ... to the entrance plane
+        if soft > 0:
+            w = np.clip((rs - (1 - soft) * a) / (soft * a), 0.0, 1.0)
+            ap = np.cos(0.5 * np.pi * w) ** 2
+        else:
+            ap = np.clip(0.5 + (a - rs) / hs, 0.0, 1.0)
+        nu0 = np.sin(theta_rad) / self.lam
+        out[keep] = ap / np.sqrt(det) * np.exp(1j * (ph - 2 * np.pi * nu0 * xt))
+        return out.reshape(shape)
+
+
+def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
+                    patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave",
+                    sub_slice="carrier"):
+    """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
+    per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
+    the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm), ``soft``: the iris's cos^2
+    roll-off share (0: the hard iris; > 0: no edge, the truth against geometric optics), ``margin`` (mm): the window
+    beyond the beam's diameter at the iris. The patch: pixel centres ``patch_x`` / ``patch_y`` (mm; the truth's
+    x is the field's direction) or, if None, the truth's spot (where it exceeds 1 % of its peak, plus 10 um) at
+    ``patch_pitch`` (mm) about its peak; ``gauss`` > 1: each value the mean over a pixel of side ``patch_pitch`` by
+    ``gauss`` x ``gauss`` Gauss-Legendre nodes (a box-integrated pixel, divided by its area). ``element``: "wave"
+    (the last element's two sag zones by the WPM) or "geometric" (a diagnostic: the truth starts from the traced
+    field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics).
+    ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
+    taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
+    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis)."""
+    t0 = time.perf_counter()
+    th = np.radians(field_deg)
+    lam, nu0 = lens.lam, np.sin(th) / lens.lam
+    info = {}
+    s4, s5 = lens.stop + 1, lens.stop + 2
+    if s5 != len(lens.zv) - 1:
+        raise ValueError("Cooke: the truth expects two surfaces (one element) between the iris and the DOE")
+    N = _fast((2 * lens.a + 2 * margin) / h)
+    z0 = lens.zI if element == "wave" else lens.zv[s5] + 1e-3
+    g = Grid(N, h, lens.chief_x(th, z0), nu0)
+    X, Y = g.mesh()
+    V = lens.geometric_field(X, Y, th, z0, h, soft=soft)
+    info["power_iris"] = float(np.sum(np.abs(V) ** 2) * h * h)
+    # surface 4's sag zone (air -> glass) and surface 5's (glass -> air), their extents from the rim rays
+    t = np.linspace(0, 2 * np.pi, 256, endpoint=False)
+    zones = []
+    for i in (s4, s5):
+        uc = lens.chief(th)
+        # the iris's rim in entrance coordinates: scale from the axis (small field: the pupil's image is near a disc)
+        xr, yr, _ = lens._trace(uc + 0.5 * lens.epd * 1.05 * np.cos(t), 0.5 * lens.epd * 1.05 * np.sin(t), th,
+                                lens.zv[i] + 1e-9)
+        rmax2 = float(np.max(xr ** 2 + yr ** 2)) + 0.05
+        sg = float(lens.sag(i, rmax2))
+        zones.append((min(lens.zv[i], lens.zv[i] + sg) - 1e-3, max(lens.zv[i], lens.zv[i] + sg) + 1e-3))
+    zprev = lens.zI if element == "wave" else z0
+    for (za, zb), i in (zip(zones, (s4, s5)) if element == "wave" else ()):
+        V = g.propagate(V, lens.n_before[i], lam, za - zprev)
+        V = g.move(V, lens.chief_x(th, za))
+        X, Y = g.mesh()
+        nu_s = nu0
+        if sub_slice == "chief":
+            *_, dch = lens._trace(np.array([lens.chief(th)]), np.zeros(1), th, za, direction=True)
+            nu_s = lens.n_before[i] * float(dch[0, 0]) / lam
+        V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i], lam,
+                     dz, nu_s)
+        zprev = zb
+    V = g.propagate(V, 1.0, lam, lens.zD - zprev)
+    V = g.move(V, lens.chief_x(th, lens.zD))
+    X, Y = g.mesh()
+    info["power_doe_truth"] = float(np.sum(np.abs(V) ** 2) * h * h)
+    info["t_truth_s"] = time.perf_counter() - t0
+    fields = [V]
+    if with_model:
+        t1 = time.perf_counter()
+        Vm = lens.geometric_field(X, Y, th, lens.zD, h, soft=soft)
+        info["power_doe_model"] = float(np.sum(np.abs(Vm) ** 2) * h * h)
+        info["t_model_s"] = time.perf_counter() - t1
+        fields.append(Vm)
+    inside = (np.abs(X) <= lens.doe_half) & (np.abs(Y) <= lens.doe_half)
+    tdoe = np.exp(1j * lens.doe_phase(X, Y)) * inside
+    Hs = g.transfer(1.0, lam, lens.zS - lens.zD)
+    spectra = [_fft2(f * tdoe) * Hs for f in fields]
+    if patch_x is None:
+        Ic = np.abs(_ifft2(spectra[0])) ** 2
+        W = N * h
+        iy, ix = np.unravel_index(np.argmax(Ic), Ic.shape)
+        xg = lens.chief_x(th, lens.zS)
+        xpk, ypk = g.x[ix] + W * np.round((xg - g.x[ix]) / W), g.y[iy]
+        if patch_half is None:
+            m = Ic > 0.01 * Ic.max()
+            dxs = (X[m] - g.x[ix] + W / 2) % W - W / 2
+            patch_half = float(np.max(np.hypot(dxs, Y[m] - ypk))) + 0.01
+        patch_x = xpk + np.arange(-patch_half, patch_half + 1e-12, patch_pitch)
+        patch_y = ypk + np.arange(-patch_half, patch_half + 1e-12, patch_pitch)
+    gx0, gy0 = g.x[0], g.y[0]
+
+    def sensor(px, py, pitch, gauss_nodes=1):
+        """(truth, model) irradiance (power per mm^2) at the pixel centres ``px`` x ``py`` (mm), each the mean over
+        its pixel of side ``pitch`` (mm) by ``gauss_nodes``^2 Gauss-Legendre nodes (1: the centre's value)."""
+        px, py = np.asarray(px, float), np.asarray(py, float)
+        if gauss_nodes > 1:
+            gn, gw = np.polynomial.legendre.leggauss(gauss_nodes)
+            off, wts = 0.5 * pitch * gn, 0.5 * gw
+        else:
+            off, wts = np.zeros(1), np.ones(1)
+        qx = (px[:, None] + off[None, :]).ravel()
+        qy = (py[:, None] + off[None, :]).ravel()
+        nu = np.fft.fftfreq(N, h)
+        ex = np.exp(2j * np.pi * np.outer(nu, qx - gx0))
+        ey = np.exp(2j * np.pi * np.outer(qy - gy0, nu))
+        res = []
+        for S in spectra:
+            Iq = (np.abs(ey @ S @ ex / N ** 2) ** 2).reshape(len(py), len(off), len(px), len(off))
+            res.append(np.einsum("aibj,ij->ab", Iq, np.outer(wts, wts)))
+        return res[0], (res[1] if with_model else None)
+
+    out = sensor(patch_x, patch_y, patch_pitch, gauss)
+    info.update(patch_x=np.asarray(patch_x, float), patch_y=np.asarray(patch_y, float), grid_n=N, zones=zones,
+                iris_radius=lens.a, iris_z=lens.zI, sensor=sensor,
+                t_total_s=time.perf_counter() - t0,
+                band_edge=float(np.sum(np.abs(spectra[0][np.abs(g.NX - nu0) > 0.8 / (2 * h)]) ** 2)
+                                / np.sum(np.abs(spectra[0]) ** 2)))
+    return out[0], (out[1] if with_model else None), info
