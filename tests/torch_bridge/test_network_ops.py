@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from torch_bridge.network import LayerNorm2d, NAFBlock, build_network
+from _op_count import OpCounter  # noqa: E402
 
 
 def _ln_numpy(x, w, b, eps):
@@ -93,27 +94,6 @@ def test_nafblock_equals_the_written_out_block(dtype, tol):
         assert float((a - b).abs().max()) <= tol * float(b.abs().max())
 
 
-class _Ops:
-    """Counts the aten operations dispatched inside the block (forward and backward, views included)."""
-
-    def __init__(self):
-        from torch.utils._python_dispatch import TorchDispatchMode
-        outer = self
-
-        class Mode(TorchDispatchMode):
-            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-                outer.n += 1
-                return func(*args, **(kwargs or {}))
-        self.n, self._mode = 0, Mode()
-
-    def __enter__(self):
-        self._mode.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return self._mode.__exit__(*exc)
-
-
 def test_a_network_step_makes_a_bounded_number_of_operations():
     """Forward and backward of the ``small`` (7 NAFBlocks) and ``paper`` (36) networks on one 16 x 16 image: the
     aten operations (each a kernel launch on a GPU, views included here) a block adds. Measured 112.3 a block
@@ -123,7 +103,7 @@ def test_a_network_step_makes_a_bounded_number_of_operations():
     for preset in ("small", "paper"):
         net = build_network(preset, 3)
         x = torch.rand(1, 3, 16, 16)
-        with _Ops() as ops:
+        with OpCounter() as ops:
             net(x).sum().backward()
         counts[preset] = (ops.n, sum(isinstance(m, NAFBlock) for m in net.modules()))
     (n_s, b_s), (n_p, b_p) = counts["small"], counts["paper"]

@@ -18,6 +18,7 @@ from rwwarp.wave.focal_packed import PackedFocalPropagator, focal_groups
 from rwwarp.wave.packed import source_plans
 from torch_bridge import design as dz
 from _lenses import wrapping_doe_lens
+from _op_count import OpCounter  # noqa: E402
 
 
 
@@ -185,7 +186,7 @@ def test_a_packed_step_makes_a_bounded_number_of_launches(monkeypatch):
             prov = dz.LiveProvider(m, fields, 12, lens.sensor.pixel_pitch, pack=pack, replan_every=100)
             prov.psfs([0.5, 0.6])                          # plans (not counted)
             count[0] = 0
-            ops = _Ops()
+            ops = OpCounter()
             with ops:
                 prov.psfs([0.5, 0.6]).sum().backward()
             got[pack, len(fields)] = count[0]
@@ -198,27 +199,6 @@ def test_a_packed_step_makes_a_bounded_number_of_launches(monkeypatch):
     # transmission are the same (on axis one order, off axis a series: a batch each): 4 and 6 sources,
     # measured 571 and 571 (one at a time: 655 for 2 sources, 1281 for 4)
     assert torch_ops[True, 2] == torch_ops[True, 3] < torch_ops[False, 2]
-
-
-class _Ops:
-    """Counts the aten operations dispatched inside the block (forward and backward)."""
-
-    def __init__(self):
-        from torch.utils._python_dispatch import TorchDispatchMode
-        outer = self
-
-        class Mode(TorchDispatchMode):
-            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-                outer.n += 1
-                return func(*args, **(kwargs or {}))
-        self.n, self._mode = 0, Mode()
-
-    def __enter__(self):
-        self._mode.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return self._mode.__exit__(*exc)
 
 
 def test_checkpointed_and_budget_split_tiles_equal_the_per_source_path():

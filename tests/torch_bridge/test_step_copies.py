@@ -5,7 +5,6 @@ the call's own and die with its graph; a replay of the graph zeroes them first),
 gradient buffers from one zeroed block (rwwarp.grad_block.GradBlock); the parameter table in fewer operations."""
 from __future__ import annotations
 
-import collections
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ import torch
 import torch_bridge as tb
 from torch_bridge import design as dz
 from _lenses import wrapping_doe_lens
+from _op_count import OpCounter, count_warp_copies  # noqa: E402
 
 LEARN = {"curvature": "all", "doe": "all"}
 
@@ -92,44 +92,17 @@ def test_a_packed_step_makes_a_bounded_number_of_copies_and_memsets(monkeypatch)
     and 19 memsets for both (before: 24 and 86, the parameter rows copied one a surface, every gradient of the
     tape zeroed after the backward pass and each ray state's and parameter-row copy's gradient zeroed on its own
     instead of one block a trace, rwwarp.grad_block). Bound: 12 copies and 35 copies and memsets."""
-    import warp as wp
     got = {}
     for fields in ((0.0, 5.0), (0.0, 2.5, 5.0)):
         _, m, prov = _provider(fields)
         prov.psfs([0.5, 0.6])
-        c = collections.Counter()
-        for owner, name in ((wp, "copy"), (wp.array, "zero_"), (wp.array, "fill_")):
-            def counted(*a, _orig=getattr(owner, name), _name=name, **k):
-                c[_name] += 1
-                return _orig(*a, **k)
-            monkeypatch.setattr(owner, name, counted)
+        c = count_warp_copies(monkeypatch)
         prov.psfs([0.5, 0.6]).sum().backward()
         monkeypatch.undo()
         got[len(fields)] = (c["copy"], c["zero_"] + c["fill_"])
     assert got[2] == got[3]
     copies, memsets = got[2]
     assert copies <= 12 and copies + memsets <= 35
-
-
-class _Ops:
-    """Counts the aten operations dispatched inside the block (forward and backward, views included)."""
-
-    def __init__(self):
-        from torch.utils._python_dispatch import TorchDispatchMode
-        outer = self
-
-        class Mode(TorchDispatchMode):
-            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-                outer.n += 1
-                return func(*args, **(kwargs or {}))
-        self.n, self._mode = 0, Mode()
-
-    def __enter__(self):
-        self._mode.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return self._mode.__exit__(*exc)
 
 
 @pytest.mark.parametrize("name", ["cooke_triplet", "a489_doe"])
@@ -154,7 +127,7 @@ def test_param_table_equals_the_tracers_table_and_its_gradient_is_the_selection(
             p.add_(1e-3 * torch.randn(p.shape, dtype=p.dtype, generator=g) * p.abs().clamp_min(1e-2))
     rwv = m.raywave([0.0], [0.55], 12, pixel_mm=lens.sensor.pixel_pitch)
     values = m.values()
-    with _Ops() as ops:
+    with OpCounter() as ops:
         tab = m.param_table(rwv, values)
         W = torch.sin(torch.arange(tab.numel(), dtype=tab.dtype)).reshape(tab.shape)
         (tab * W).sum().backward()
@@ -203,22 +176,14 @@ def test_packed_rim_cells_are_each_sources_disc_cells_then_zeros(monkeypatch):
     """Tracer.packed_rim_cells of sources with 3, 5 and 4 cell-grid sides in 25 slots each: source k's slots hold
     rwwarp.pupil.disc_cells(side) (the host table) and zeros past it, exactly; made with one memset (not one a
     source with fewer cells than slots) and one copy a source."""
-    import collections
-
     import rwwarp as rw
-    import warp as wp
     from rwwarp.pupil import disc_cells
     from rwwarp.trace import Tracer
     tr = Tracer(rw.load_lens("cooke_triplet"), [0.55])
     sides = [3, 5, 4]
     for g in sides:
         tr.rim_cells(g)                                     # the per-size device tables, made before counting
-    c = collections.Counter()
-    for owner, name in ((wp, "copy"), (wp.array, "zero_"), (wp.array, "fill_")):
-        def counted(*a, _orig=getattr(owner, name), _name=name, **k):
-            c[_name] += 1
-            return _orig(*a, **k)
-        monkeypatch.setattr(owner, name, counted)
+    c = count_warp_copies(monkeypatch)
     got = tr.packed_rim_cells(sides, 25).numpy().reshape(3, 25, 3)
     monkeypatch.undo()
     for k, g in enumerate(sides):
