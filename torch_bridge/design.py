@@ -145,6 +145,7 @@ class CachedProvider:
         self.build_log = []
         self.step_log = []
         self._chunks = {}   # entry key -> {chunk size: [(slice, RayWave)]}
+        self._step_chunk = {}   # entry key -> the chunk size its steps use while it fits (step_chunk)
 
     # ------------------------------------------------------------------ geometry and plans
     def _geometry(self, depth_mm):
@@ -549,6 +550,7 @@ class CachedProvider:
         self._cache.clear()
         self._focal.clear()
         self._chunks.clear()
+        self._step_chunk.clear()
         self.plans = {k: dict(v) for k, v in plans.items()}
 
     def release(self):
@@ -558,6 +560,7 @@ class CachedProvider:
         self._cache.clear()
         self._focal.clear()
         self._chunks.clear()
+        self._step_chunk.clear()
         dev = str(self.module.rw_device)
         if dev.startswith("cuda"):
             import gc
@@ -605,6 +608,7 @@ class CachedProvider:
                                         "f_field_cpmm": f_field, "f_doe_cpmm": f_doe, "doe_step_um": step * 1e3})
                 self._cache.pop(key)
                 self._chunks.pop(key, None)
+                self._step_chunk.pop(key, None)
                 self.plans.pop(key, None)
                 self._build(key)
                 rebuilt += 1
@@ -675,11 +679,21 @@ class CachedProvider:
         k = int(self.module.doe_base.numel()) if hasattr(self.module, "doe_base") else 8
         return cached_step_bytes(rw, k, self.cache_dtype != torch.complex128)
 
-    def step_chunk(self, rw, budget_bytes: int | None = None) -> int:
+    def step_chunk(self, rw, budget_bytes: int | None = None, key=None) -> int:
         """Nodes per propagation chunk of a step under the budget (bytes, default :meth:`step_budget_bytes`):
-        ``budget // step_bytes_per_source`` (at least 1, at most all nodes)."""
+        ``budget // step_bytes_per_source`` (at least 1, at most all nodes). With an entry ``key`` the entry keeps
+        the chunk it had while that still fits and is more than half of what fits: on a GPU the budget is read
+        from the device's memory each step and wanders, and each new chunk size is new RayWaves and new FFT
+        shapes (VkFFT plans, compiled at ~0.2-0.7 s each: the a489_edof gpu step built 1-13 a step, session 24)."""
         budget = self.step_budget_bytes() if budget_bytes is None else int(budget_bytes)
-        return int(max(1, min(rw.nsrc, budget // max(self.step_bytes_per_source(rw), 1))))
+        fits = int(max(1, min(rw.nsrc, budget // max(self.step_bytes_per_source(rw), 1))))
+        if key is None:
+            return fits
+        kept = self._step_chunk.get(key)
+        if kept is not None and kept <= fits < 2 * kept:
+            return kept
+        self._step_chunk[key] = fits
+        return fits
 
     def _chunk_raywaves(self, key, rw, geo, chunk: int):
         """[(slice, RayWave of those nodes)] for propagation chunks of ``chunk`` nodes: RayWaves made
@@ -770,7 +784,7 @@ class CachedProvider:
                 continue
             rw, u, dist, entering, geo = entry
             share = budget if whole else budget // max(1, len(wavelengths_um))
-            c = self.step_chunk(rw, share) if chunk is None else max(1, int(chunk))
+            c = self.step_chunk(rw, share, key) if chunk is None else max(1, int(chunk))
             parts = self._chunk_raywaves(key, rw, geo, c)
             if part is not None:
                 parts = [parts[part]]

@@ -273,3 +273,30 @@ def test_other_processes_on_the_card_do_not_eat_the_budget(monkeypatch):
     with pytest.raises(MemoryBudgetError, match="in use outside torch's allocator"):
         p.budget_bytes()
     assert p.step_budget_bytes() == 0
+
+
+def test_a_wandering_step_budget_keeps_each_entrys_chunk():
+    """On a GPU the step's budget is read from the device each step and wanders (its overhead: Warp's and CuPy's
+    pools, cuFFT work areas); each new chunk size is new RayWaves and new FFT shapes, and on CUDA each new shape a
+    VkFFT compile (~0.2-0.7 s: the a489_edof gpu step built 1-13 plans a step on an H200, session 24). An entry
+    keeps its chunk while it still fits and is more than half of what fits; it shrinks at once when it no longer
+    fits. Checked on the a489 entries with made-up budgets, in units of the library's per-node step estimate, and
+    on two steps whose budgets differ by 20 %: one set of chunk RayWaves, the same PSFs."""
+    m, fields = _setup()
+    prov = dz.CachedProvider(m, fields, 21, 0.003, wavelength_ref_um=0.55, memory_budget_bytes=10 ** 12)
+    prov.prepare([0.55], [None])
+    rw_e = prov._entry(0.55, None)[0]
+    per = prov.step_bytes_per_source(rw_e)
+    assert rw_e.nsrc == 4
+    key = ("k",)
+    seq = [prov.step_chunk(rw_e, int(b * per), key) for b in (2.5, 3.9, 2.0, 1.4, 1.9, 4.0, 2.2)]
+    # 2 (fits 2); 3 fits: kept 2 (3 < 4); 2 kept; 1 fits: shrinks to 1; 1 fits: kept; 4 fits (>= 2 x 1): 4; 2 fits: 2
+    assert seq == [2, 2, 2, 1, 1, 4, 2], seq
+    assert [prov.step_chunk(rw_e, int(b * per)) for b in (2.5, 3.9)] == [2, 3]     # without a key: what fits
+    budgets = iter([int(2.5 * per), int(3.0 * per)])
+    prov.step_budget_bytes = lambda: next(budgets)
+    a = prov.psfs([0.55]).detach().clone()
+    b = prov.psfs([0.55]).detach().clone()
+    key55 = prov._key(0.55, None)
+    assert list(prov._chunks[key55]) == [2]      # the second step (3 nodes fit) reused the chunk of 2
+    np.testing.assert_array_equal(a.numpy(), b.numpy())
