@@ -131,6 +131,7 @@ def main():
 
     def entries():
         return len(getattr(arm.provider, "_cache", {})) + len(getattr(arm.provider, "_focal", {}))
+    seen = list(getattr(arm.provider, "step_log", []))   # log entries made before the timed steps (held: identity)
     with GpuMemory(0.05) as mem:
         for k in range(1, a.steps + 1):
             built, n_entries = be.fft_plans_built, entries()
@@ -140,6 +141,13 @@ def main():
             step(k)
             times.append(time.perf_counter() - t)
             per_step.append({"fft_plans_built": be.fft_plans_built - built, "new_entries": entries() - n_entries})
+            # a cached provider's chunk sizes this step (each new size is new RayWaves and FFT shapes): the log's
+            # entries made since the last step (it keeps its last 64; the step appends one an entry and call)
+            log = getattr(arm.provider, "step_log", None)
+            if log is not None:
+                new_entries = [r for r in log if not any(r is h for h in seen)]
+                per_step[-1]["chunks"] = sorted({int(r["chunk"]) for r in new_entries})
+                seen[:] = list(log)
             if a.track_memory:
                 per_step[-1].update(_step_memory(arm, cuda))
                 say(f"step {k}: " + ", ".join(f"{q} {v}" for q, v in per_step[-1].items()))

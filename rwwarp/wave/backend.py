@@ -130,11 +130,11 @@ class Backend:
 
     #: FFT plans kept (least recently used dropped first), and the byte budget of their temporary buffers.
     #: Plans without a temporary buffer hold next to no device memory but cost a kernel build (NVRTC on
-    #: CUDA) to remake, so the count bound is generous: a map's batches can all keep theirs. A plan the bound
-    #: dropped and built again is counted (:attr:`fft_plans_rebuilt`) and warned about once. (Session 24, H200: the
-    #: a489_edof gpu step builds 2-13 plans a step at ~0.2-0.7 s each, with none dropped at 64 or 512: new FFT shapes
-    #: each step, not plans cycling through the bound.)
-    max_fft_plans = 64
+    #: CUDA) to remake, so the count bound is generous: a map's batches and a design step's wavelength-depth
+    #: entries can all keep theirs (session 24, H200: the a489_edof gpu step, 27 entries drawn a few a step, had built
+    #: 76 plans after 12 steps, 12 of them dropped by a bound of 64, and was still building 1-13 a step at ~0.2-0.7
+    #: s each). A plan the bound dropped and built again is counted (:attr:`fft_plans_rebuilt`) and warned about once.
+    max_fft_plans = 512
     max_fft_plan_bytes = 512 * 2**20
 
     #: True where :meth:`gemm` runs the batched complex matrix products of the matrix DFTs through the vendor's
