@@ -19,7 +19,8 @@
 #                              # Memory is checked per process (the arm's own, from the driver's per-process figures),
 #                              # so the smoke may share the GPUs with design runs started before it (arms_gpu.sh);
 #                              # SMOKE_MEMORY=device checks the whole device's used memory instead (GPUs to itself).
-#                              # (CUDA_VISIBLE_DEVICES; a machine with >= as many GPUs as parts, e.g. nvidia-h100-x4):
+#                              # (CUDA_VISIBLE_DEVICES; a machine with >= as many GPUs as parts, e.g. nvidia-h100-x4;
+#                              # with fewer GPUs, part k queues on GPU k mod the GPU count, after the parts before it):
 #                              # each part keeps one whole card, so its peak is what it is on one H100; logs in
 #                              # $RWWARP_RESULTS/smoke_<part>.log, results in $RWWARP_RESULTS/smoke_<part>/
 # Results JSON under $OUT (device tool) or perf/results.
@@ -55,11 +56,19 @@ smoke-parallel)
   shift
   parts=${*:-cooke_hybrid a489_aberration a489_edof tests}
   ngpu=$(nvidia-smi -L | wc -l)
+  # more parts than GPUs: part k joins GPU (k mod ngpu)'s queue, one after the other there (session 25: one H200 was
+  # given three parts, part 0 started and the rest were refused, and the smoke looked passed on part 0 alone)
+  read -r -a plist <<< "$parts"
+  if [ ${#plist[@]} -gt $ngpu ]; then
+    groups=()
+    for i in "${!plist[@]}"; do g=$((i % ngpu)); groups[$g]="${groups[$g]:+${groups[$g]}+}${plist[$i]}"; done
+    echo "smoke-parallel: ${#plist[@]} parts on $ngpu GPU(s): ${groups[*]}"
+    parts="${groups[*]}"
+  fi
   k=0; pids=()
   # PARTS joined by + run one after the other on one GPU (e.g. a489_aberration+a489_edof:raywave_doe); file names
   # take the part with : and + replaced by - (the device tool brings back plain names only)
   for p in $parts; do
-    [ $k -lt $ngpu ] || { echo "smoke-parallel: $ngpu GPU(s) for the parts $parts" >&2; exit 2; }
     f=$(echo "$p" | tr ':+' '--')
     mkdir -p "$RWWARP_RESULTS/smoke_$f"
     OUT="$RWWARP_RESULTS/smoke_$f" CUDA_VISIBLE_DEVICES=$k bash "$SELF" smoke $(echo "$p" | tr '+' ' ') \
