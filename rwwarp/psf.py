@@ -187,7 +187,10 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         sets the focal plan's sampling: where a tenth of it (``rwwarp.wave.plan.SAMPLING_SHARE``) exceeds the
         default rules' error (~2e-4 of the peak), the ray-landing period, the rim's ray count, a lit taper's margin
         and the pixel integration relax (:func:`rwwarp.wave.plan.sampling_relax`, at most 16x) so that the sampling
-        error stays within that tenth (the plan's reasons say so); None or a tolerance up to 2e-3: the default plan.
+        error stays within that tenth (the plan's reasons say so); None or a tolerance up to 2e-3: the default plan. A
+        strongly defocused beam asks for a wave-plane grid beyond ``rwwarp.wave.plan.FOCAL_RAY_MAX_GRID`` samples; the
+        plan then caps it and states the rim's estimated error (a :class:`~rwwarp.errors.SamplingWarning` above
+        the tolerance, or 1e-3 without one), and with a tolerance the cap gives way to meet it (up to 16384 samples).
     cache : rwwarp.PlanCache, optional
         Keep this call's pilot trace, plan, batches and propagation operators in the given
         :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens

@@ -306,6 +306,18 @@ FOCAL_MARGIN_B = 6.0       # sensor-side margin beyond the patch and the remaind
 FOCAL_EDGE_MARGIN_B = 12.0 # ... with straight pupil edges (their 1 / r tails ring from a nearer cut)
 FOCAL_RAY_SPREAD = 14.0    # wave-plane period over the main order's straight-ray landing extent, per nyquist_safety
 FOCAL_RAY_MAX_GRID = 2048  # ... while the wave-plane grid stays within this many samples a side
+#: where the cap binds, the rim's sampling error grows as (wanted period / planned period)^FOCAL_RAY_CAP_POWER from the
+#: rules' ~SAMPLING_TOL: fitted on the Cooke triplet 5 mm defocused (0.532 um, on axis, 16 px of 5 um; against
+#: rs_lens_psf, converged to 1e-10): 7.7e-3 / 1.4e-3 / 2.5e-4 of the peak at a wanted/planned ratio 4.25 / 2.13 / 1.06
+#: (grids of 2258 / 4097 / 8193 samples) against 7.4e-3 / 1.3e-3 / 2.3e-4 by this law (2: 3.6e-3 / 9.1e-4 / 2.2e-4);
+#: checked on the Cooke with a 10 % weaker front curvature (ratio 3.55, 4509^2 planned: 3.4e-3 by self-convergence
+#: against 3x the period, 4.8e-3 by this law)
+FOCAL_RAY_CAP_POWER = 2.5
+#: with a ``tolerance``, the cap gives way up to this many samples a side (a complex128 grid of 4 GiB; the plan's memory
+#: estimate is then checked against the budget like any other)
+FOCAL_RAY_TOL_MAX_GRID = 16384
+#: without a ``tolerance``, a capped plan warns (:class:`SamplingWarning`) where its estimated rim error exceeds this
+FOCAL_RAY_CAP_WARN = 1e-3
 FOCAL_LIT_SHIFT_MARGIN = 3.0  # FOCAL_SHIFT_MARGIN where the main order's rays land beyond V's taper guard (lit taper)
 #: the sampling error (max |error| / peak) the focal rules above were set for: issue 27's target for refractive
 #: lenses, 2e-4 (measured against rs_lens_psf: 2e-5..1.5e-4 of the peak, tests/rwwarp/test_focal.py)
@@ -542,6 +554,15 @@ def plan_focal(xy, freq, doe_freq, orders, centers, carrier, inv_lam, distance_m
                            sampling_tol=sampling_tol)
 
 
+def capped_rim_error(want_mm: float, period_mm: float, relax: float = 1.0) -> float:
+    """The estimated sampling error (max |error| / peak) of a focal plan whose ray-landing period was capped:
+    ``want_mm`` the period the rules ask for, ``period_mm`` the one planned (both mm on the sensor side, the
+    periodic sum's period); the rules' error (``SAMPLING_TOL``, times ``relax^SAMPLING_RELAX_POWER`` for a relaxed
+    plan) grown by ``(want / period)^FOCAL_RAY_CAP_POWER``."""
+    base = SAMPLING_TOL * relax ** SAMPLING_RELAX_POWER
+    return base * (float(want_mm) / float(period_mm)) ** FOCAL_RAY_CAP_POWER
+
+
 def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread, spread_main, ray_spread, z, half_w,
                     mb, width_mm, rays_per_sample, nyquist_safety, straight_edges, sampling_tol=None):
     """The last part of :func:`plan_focal`: its grids, reasons and geometry from the per-source results of its
@@ -596,8 +617,24 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     rim_rays = FOCAL_RIM_RAYS if relax == 1.0 else FOCAL_RIM_RAYS / relax
     want = ray_factor * ray_spread * nyquist_safety
     cap = max(period, (FOCAL_RAY_MAX_GRID - 3) / (window_mm * float(np.max(A))))
+    if want > cap and sampling_tol is not None:
+        # the caller asked for an accuracy: the cap gives way, as far as FOCAL_RAY_TOL_MAX_GRID samples, to the period
+        # whose estimated rim error (capped_rim_error) meets the tolerance (or the default rules' error, if tighter)
+        target = max(float(sampling_tol), capped_rim_error(1.0, 1.0, relax))
+        need = want * (capped_rim_error(1.0, 1.0, relax) / target) ** (1.0 / FOCAL_RAY_CAP_POWER)
+        cap = max(cap, min(need, (FOCAL_RAY_TOL_MAX_GRID - 3) / (window_mm * float(np.max(A)))))
     ray_capped = want > cap
     period = max(period, min(want, cap))
+    rim_err = capped_rim_error(want, period, relax) if ray_capped else None
+    # (1e-9: a cap lifted for the tolerance meets it exactly)
+    if rim_err is not None and rim_err > (FOCAL_RAY_CAP_WARN if sampling_tol is None else float(sampling_tol)) * (1 + 1e-9):
+        warnings.warn(f"focal plan: the main order's rays land over {ray_spread * 1e3:.4g} um (a defocused or strongly "
+                      f"aberrated beam); their period {want * 1e3:.4g} um is capped at {FOCAL_RAY_MAX_GRID} wave-plane "
+                      f"samples ({period * 1e3:.4g} um), so the pupil rim's sampling error is ~{rim_err:.2g} of the peak "
+                      f"(the default rules' ~{SAMPLING_TOL:g}; "
+                      f"{'the tolerance ' + format(float(sampling_tol), '.3g') if sampling_tol is not None else 'warned above ' + format(FOCAL_RAY_CAP_WARN, 'g')}). "
+                      "The error follows the spread of the ray landings, not the patch: refocus, or accept it (the "
+                      "plan's reasons carry the estimate)", SamplingWarning, stacklevel=2)
     pitch = 1.0 / (float(np.max(A)) * period)
     window = width_mm + 2.0 * width_mm / 31.0
     n_grid = int(math.ceil(window / pitch)) + 3
@@ -614,7 +651,7 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
         f"sensor-side box {box * 1e3:.4g} um (patch {2 * half_w * 1e3:.4g} um, H_R shift {np.max(shifts) * 1e3:.3g} um, "
         f"margin {mb:g}/B + {lit_margin if lit.any() else FOCAL_SHIFT_MARGIN:g} shift{' (rays land in the taper)' if lit.any() else ''} = {mb * 1e3 / np.min(bands) + (lit_margin if lit.any() else FOCAL_SHIFT_MARGIN) * 1e3 * np.max(shifts):.3g} um) at {hs * 1e3:.4g} um (band B = {np.max(bands):.4g} cycles/mm, "
         f"safety {nyquist_safety}) -> {ns}^2, FFT {nf}^2",
-        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {FOCAL_RAY_MAX_GRID} samples: the rim may err by more than 2e-4 of the peak)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
+        f"wave-plane pitch 1 / (|A| period), period {period * 1e3:.4g} um (light spread {spread * 1e3:.4g} um, main order's ray landings {ray_spread * 1e3:.4g} um{f' (their period {want * 1e3:.4g} um capped at {n_grid} samples: the rim errs by ~{rim_err:.2g} of the peak, FOCAL_RAY_CAP_POWER)' if ray_capped else ''}{', straight pupil edges' if straight_edges else ''}) = {pitch * 1e3:.4g} um over the footprint "
         f"{width_mm:.4g} mm -> {n_grid}^2 samples (quadratic transfer fitted to the beam: H_R shift "
         f"{np.max(shifts) * 1e3:.3g} um)",
         f"rays: {rays_per_sample} x max(min(samples, {rim_rays:.4g}), samples / 4) -> {ray_grid} across the pupil",
