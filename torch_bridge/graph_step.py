@@ -105,7 +105,8 @@ class GraphedNetStep:
         gradient with respect to ``raw`` (the static buffer: use it before the next call). The network's
         gradients are in its parameters' ``.grad``."""
         if self.graph is None:
-            self._capture(raw, gt)
+            with torch.cuda.device(raw.device):      # the capture's stream and pool on the images' card
+                self._capture(raw, gt)
         else:
             if tuple(raw.shape) != self.shape or raw.dtype != self.dtype or tuple(gt.shape) != self.shape:
                 raise ValueError(f"GraphedNetStep was captured for images {self.shape} {self.dtype}; got "
@@ -114,7 +115,8 @@ class GraphedNetStep:
             with torch.no_grad():
                 self.raw.copy_(raw)
                 self.gt.copy_(gt)
-        self.graph.replay()
+        with torch.cuda.device(self.raw.device):
+            self.graph.replay()
         self.replays += 1
         return self.rec.clone(), self.vals.clone(), self.raw_grad
 
