@@ -34,7 +34,8 @@ cached plans sample that limit, so a DOE growing up to it never forces a replan.
 Rendering (``render.mode``): ``patch`` (each crop is a patch of the sensor at one PSF node,
 blurred by that node's PSF at the native pixel pitch: cheap, and the blur has its real size) or
 ``full`` (the crop covers the node grid's region and is blurred with a spatially varying PSF,
-:func:`torch_bridge.imaging.spatially_varying_blur`).
+:func:`torch_bridge.imaging.spatially_varying_blur`). ``train.cuda_graph`` (CUDA, one process; default off): the
+network's forward, loss, backward and PSNR are one replayed CUDA graph (:mod:`torch_bridge.graph_step`).
 
 Outputs in ``out_dir/<arm>/``: ``metrics.csv`` (one row per logged step), ``step_XXXXXX.png``
 (PSF map, DOE phase, raw and reconstructed crops), ``checkpoint.pt`` (everything needed to resume:

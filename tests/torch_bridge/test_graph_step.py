@@ -121,12 +121,11 @@ def test_design_loop_logging_every_4th_step_writes_the_same_values(tmp_path):
     every step), six steps, stopped before the evaluation: the rows at the common steps carry the same loss,
     MSE, perceptual term and PSNR (the values are read later, not computed otherwise), and the result's last
     row is floats."""
-    from torch_bridge.train import train_arm
+    from torch_bridge.train import load_config, train_arm
     res, rows = {}, {}
     for every in (1, 4):
         cfg0 = copy.deepcopy(TINY)
         cfg0["train"].update({"log_every": every, "image_every": 0, "stop_after": 6, "optics_every": 2})
-        from torch_bridge.train import load_config
         exp = load_config(cfg0)
         out = tmp_path / f"every{every}"
         res[every] = train_arm("e2e", exp["arms"][0]["config"], exp["source"], out, resume=False, progress=False)
@@ -137,7 +136,8 @@ def test_design_loop_logging_every_4th_step_writes_the_same_values(tmp_path):
             assert rows[4][k][col] == rows[1][k][col], (k, col)
     for every in (1, 4):
         last = res[every]["last"]
-        assert last["step"] == 5 and all(isinstance(last[c], float) for c in ("loss", "mse", "perceptual", "psnr_train"))
+        assert last["step"] == 5
+        assert all(isinstance(last[c], float) for c in ("loss", "mse", "perceptual", "psnr_train"))
     assert res[1]["last"]["loss"] == res[4]["last"]["loss"]
 
 
