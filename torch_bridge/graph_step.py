@@ -26,6 +26,12 @@ recipe), their gradients dropped. Memory: the graph's private pool keeps the ste
 (eager frees them), so the step's peak is held; :meth:`release` frees it (the design loop calls it before the
 evaluation).
 
+Precision: the network runs in its parameters' dtype (float32; the design loop uses no autocast); the PSFs'
+float64 -> float32 conversion (:func:`~torch_bridge.functions.mixed_precision`) is before the graph, eager.
+Adam is not captured (``capturable=True`` would make its step count and learning rate device tensors, which the
+checkpoints, the portable packs and the per-step learning-rate schedule would all have to follow; on CUDA its
+foreach step is ~15 operations a step against the ~4,200 captured here).
+
 Not graphed: DDP (``group`` given: the all-reduce hooks run per bucket from Python; the step stays eager, one
 note), the CPU (no graphs; the option is ignored with one note: presets are shared by CPU and GPU runs).
 """
@@ -60,8 +66,6 @@ class GraphedNetStep:
 
     def _capture(self, raw: torch.Tensor, gt: torch.Tensor):
         from torch_bridge.losses import psnr_tensor
-        if raw.device.type != "cuda":
-            raise ValueError(f"GraphedNetStep needs CUDA images, got {raw.device}")
         self.raw = torch.empty_like(raw, memory_format=torch.contiguous_format).requires_grad_(True)
         self.gt = torch.empty_like(gt, memory_format=torch.contiguous_format)
         with torch.no_grad():
@@ -105,6 +109,9 @@ class GraphedNetStep:
         gradient with respect to ``raw`` (the static buffer: use it before the next call). The network's
         gradients are in its parameters' ``.grad``."""
         if self.graph is None:
+            if raw.device.type != "cuda" or gt.device != raw.device:
+                raise ValueError(f"GraphedNetStep needs CUDA images and targets on one card, got {raw.device} and "
+                                 f"{gt.device}")
             with torch.cuda.device(raw.device):      # the capture's stream and pool on the images' card
                 self._capture(raw, gt)
         else:

@@ -202,6 +202,15 @@ def test_graph_branch_of_the_step_equals_the_eager_step_on_the_cpu(monkeypatch, 
             assert torch.equal(p0[n], p1[n]), (lazy, n)
 
 
+def test_graphed_net_step_refuses_cpu_images():
+    from torch_bridge.graph_step import GraphedNetStep
+    from torch_bridge.losses import ReconstructionLoss
+    from torch_bridge.network import build_network
+    step = GraphedNetStep(build_network("tiny", 3), ReconstructionLoss(0.1, "ssim"))
+    with pytest.raises(ValueError, match="needs CUDA images"):
+        step(torch.zeros(1, 3, 16, 16), torch.zeros(1, 3, 16, 16))
+
+
 def test_cuda_graph_key_is_validated():
     from torch_bridge.train import ConfigError, load_config
     cfg0 = copy.deepcopy(TINY)
