@@ -1,6 +1,6 @@
 """Where one joint design step of a config's ``e2e`` arm spends its time on a device.
 
-    python perf/profile_step.py --config cooke_hybrid --preset gpu --device cuda [--out DIR]
+    python perf/profile_step.py --config cooke_hybrid --preset gpu --device cuda [--out DIR] [--cuda-graph]
 
 Runs the arm's joint step as ``torch_bridge.train`` does (one wavelength per colour channel, live PSFs,
 render, network, backward, both optimisers): one warm-up step, ``--steps`` timed steps (synchronised),
@@ -44,6 +44,10 @@ def main():
                          "memory that grows with the steps is something kept; a peak that grows follows the plans")
     ap.add_argument("--find-syncs", action="store_true",
                     help="one more step counting the host reads of device data (each waits for the device) by call site")
+    ap.add_argument("--cuda-graph", action="store_true",
+                    help="train.cuda_graph on: the network's forward, loss, backward and PSNR replayed as one CUDA graph "
+                         "(torch_bridge.graph_step; captured in the warm-up step). Time both ways on one machine: run "
+                         "the script twice, without and with it")
     ap.add_argument("--pack", action="store_true", help="packed live tiles on (optics.live_pack = true)")
     ap.add_argument("--no-pack", action="store_true",
                     help="live focal sources one at a time (optics.live_pack false), for an A/B against packed tiles")
@@ -53,6 +57,9 @@ def main():
                     help="sources per live PSF tile, overriding the budget's choice (a tile of every source: no "
                          "checkpoint, no recompute in the backward pass)")
     a = ap.parse_args()
+    if a.cuda_graph and a.memory:
+        ap.error("--memory marks the network's forward (a Python call), which a graph replay does not make: run "
+                 "--memory without --cuda-graph")
 
     # the allocator `rwwarp design` runs with (torch_bridge/command.py), unless the caller set one: without it
     # the step's varying tiles fragment torch's pool (session 24, H200, cb1c2af: cooke_hybrid e2e reserved 32 GB,
@@ -76,6 +83,8 @@ def main():
         cfg["optics"] = dict(cfg["optics"], memory_budget_gb=a.budget_gb)
     if a.cache_device is not None:
         cfg["optics"] = dict(cfg["optics"], cache_device=a.cache_device)
+    if a.cuda_graph:
+        cfg["train"] = dict(cfg["train"], cuda_graph=True)
     _seed_all(int(cfg["seed"]))
     arm = Arm(arm_cfg["name"], cfg, exp["source"], Path("unused"), progress=False)
     if a.live_tile is not None:
@@ -85,8 +94,9 @@ def main():
     last = [None]
 
     def step(k):
-        # the result kept until the next step's returns, as the design loop keeps it (torch_bridge.train.train_arm)
-        last[0] = train_step(arm, k, {}, None)
+        # the result kept until the next step's returns, as the design loop keeps it (torch_bridge.train.train_arm);
+        # its values device tensors, read at the design loop's log steps only (lazy)
+        last[0] = train_step(arm, k, {}, None, lazy=True)
         arm.opt_net.step()
         arm.opt_optics.step()
         if cuda:
@@ -95,7 +105,7 @@ def main():
     lines = []
     summary = {"config": a.config, "preset": a.preset, "device": a.device, "arm": arm_cfg["name"],
                "live_pack": cfg["optics"].get("live_pack"), "pixel_values": cfg["optics"].get("pixel_values"),
-               "live_tile": getattr(arm.provider, "tile", None)}
+               "live_tile": getattr(arm.provider, "tile", None), "cuda_graph": bool(a.cuda_graph)}
 
     def say(s):
         print(s, flush=True)
@@ -226,7 +236,7 @@ def main():
             say(f"{n:6d}  {site}")
     if a.out:
         tag = ("_pack" if a.pack else "") + (f"_tile{a.live_tile}" if a.live_tile is not None else "") + \
-            (f"_cache_{a.cache_device}" if a.cache_device else "")
+            (f"_cache_{a.cache_device}" if a.cache_device else "") + ("_graph" if a.cuda_graph else "")
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{tag}.txt"
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("\n".join(lines) + "\n")

@@ -203,6 +203,9 @@ SCHEMA = {
         "image_every": _num(0, integer=True),
         "checkpoint_every": _num(0, integer=True),
         "stop_after": _num(0, integer=True, none=True),
+        # replay the network's forward, loss, backward and training PSNR as one CUDA graph (torch_bridge.graph_step;
+        # CUDA and one process only: ignored with one warning on the CPU and under DDP, where the step runs eager)
+        "cuda_graph": _bool(),
     },
     "design": {
         "method": _choice("fixed", "paraxial_achromat", "rms", "e2e"),
@@ -255,7 +258,7 @@ DEFAULTS = {
     "train": {"joint_steps": 100, "finetune_steps": 50, "lr_network": 1e-3, "lr_optics": {"doe": 0.5},
               "lr_decay": "cosine", "optics_every": 1, "noise": {"read_std": 0.01, "photons": None},
               "noise_in_joint": False, "grad_clip": 1.0, "log_every": 5, "image_every": 50,
-              "checkpoint_every": 25, "stop_after": None},
+              "checkpoint_every": 25, "stop_after": None, "cuda_graph": False},
     "design": {"method": "e2e", "init": None, "efl_mm": None, "efl_weight": 0.0,
                "rms": {"steps": 100, "grid": 31, "lr": {"doe": 1.0}, "wavelengths_um": None}},
     "eval": {"depths_mm": None, "noise": {"read_std": 0.01, "photons": None}, "seed": 1234,

@@ -47,6 +47,7 @@ __all__ = [
     "image_metrics",
     "image_metrics_per_image",
     "psnr",
+    "psnr_tensor",
     "ssim_torch",
 ]
 
@@ -202,13 +203,17 @@ class ReconstructionLoss(nn.Module):
         fell_back = perceptual == "vgg" and self.perceptual.active_kind != "vgg"
         self.alpha = float(fallback_alpha if (fell_back and fallback_alpha is not None) else alpha)
 
-    def forward(self, out, gt):
+    def forward(self, out, gt, tensors: bool = False):
+        """``(total, parts)``: the loss (0-d tensor with its graph) and ``parts`` (``mse``, ``perceptual``; floats, or
+        with ``tensors`` detached 0-d tensors on the images' device: no host read, which waits for the device)."""
         mse = F.mse_loss(out, gt)
         if self.alpha and self.perceptual.active_kind != "none":
             per = self.perceptual(out, gt)
         else:
             per = out.new_zeros(())
         total = mse + self.alpha * per
+        if tensors:
+            return total, {"mse": mse.detach(), "perceptual": per.detach()}
         return total, {"mse": float(mse.detach()), "perceptual": float(per.detach())}
 
 
@@ -249,8 +254,13 @@ class LPIPS(nn.Module):
 
 def psnr(out: torch.Tensor, gt: torch.Tensor) -> float:
     """Mean PSNR (dB) over the batch of images clipped to [0, 1] (torch, no scikit-image)."""
+    return float(psnr_tensor(out, gt))
+
+
+def psnr_tensor(out: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """:func:`psnr` as a 0-d tensor on the images' device (dB; no host read, which waits for the device)."""
     mse = ((out.clamp(0, 1) - gt) ** 2).flatten(1).mean(1)
-    return float((10.0 * torch.log10(1.0 / mse.clamp_min(1e-12))).mean())
+    return (10.0 * torch.log10(1.0 / mse.clamp_min(1e-12))).mean()
 
 
 def _metric_taps(sigma: float = 1.5, truncate: float = 3.5) -> np.ndarray:

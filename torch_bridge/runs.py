@@ -34,8 +34,8 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["PACK_MANIFEST", "ProgressFile", "cli_status", "detach", "git_commit", "pack", "process_alive",
-           "status", "unpack", "write_json_atomic"]
+__all__ = ["CSV_FIELDS", "PACK_MANIFEST", "ProgressFile", "cli_status", "detach", "git_commit", "pack", "process_alive",
+           "provider_gb", "read_row", "status", "unpack", "write_json_atomic"]
 
 PACK_MANIFEST = "pack.json"
 PACK_FORMAT = "rwwarp-design-pack-1"
@@ -486,3 +486,41 @@ def truncate_csv(path: Path, step: int, fields=None):
         for r in rows:
             if int(r["step"]) < step:
                 w.writerow(r)
+
+
+# ---------------------------------------------------------------------------------------------- metrics.csv rows
+# fft_plans_built: the wave backend's FFT plans built since the process started (each a VkFFT kernel build, NVRTC on
+# CUDA, 0.3-1 s at lengths of a few thousand); it stops growing once every plan a step needs is kept
+# torch_gb / torch_peak_gb (CUDA; empty on the CPU): torch's allocator after the step (what is held between steps:
+# growth there is something kept) and its peak since the run started (the row where it jumps is the step that raised it)
+# provider_held_gb: what the PSF provider keeps between steps (GB = 1e9 bytes; a live provider's packed tiles' operators
+# and plan tables, LiveProvider.held_bytes; a cached provider's fields and operators, CachedProvider.cache_bytes)
+# live_unit_gb: the estimated recorded peak (forward + backward, GB) of the largest checkpoint unit of the last live
+# call (LiveProvider.unit_record_bytes; held to the record share, half of optics.memory_budget_gb): the plans of a
+# learning lens grow, and this is where the step's peak follows them (empty without a live tile)
+CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
+               "replans", "memory_gb", "torch_gb", "torch_peak_gb", "fft_plans_built", "provider_held_gb",
+               "live_unit_gb"]
+
+
+def read_row(row):
+    """``row`` (a metrics row, dict, or None) with its device-tensor values (0-d) read as floats, all in one host read
+    (a read waits for the device: the design loop reads its rows at the log steps only)."""
+    if row is None:
+        return None
+    import torch
+    keys = [k for k, v in row.items() if torch.is_tensor(v)]
+    if not keys:
+        return row
+    vals = torch.stack([row[k].detach().reshape(()).double() for k in keys]).tolist()
+    return {**row, **dict(zip(keys, vals))}
+
+
+def provider_gb(provider) -> dict:
+    """``provider_held_gb`` and ``live_unit_gb`` of the metrics (GB = 1e9 bytes; see ``CSV_FIELDS``), empty strings
+    where the provider has no such figure."""
+    held = provider.held_bytes() if hasattr(provider, "held_bytes") else \
+        provider.cache_bytes() if hasattr(provider, "cache_bytes") else None
+    units = [b for b in getattr(provider, "unit_record_bytes", None) or [] if b is not None]
+    return {"provider_held_gb": "" if held is None else round(held / 1e9, 6),
+            "live_unit_gb": round(max(units) / 1e9, 6) if units else ""}

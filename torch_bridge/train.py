@@ -34,7 +34,8 @@ cached plans sample that limit, so a DOE growing up to it never forces a replan.
 Rendering (``render.mode``): ``patch`` (each crop is a patch of the sensor at one PSF node,
 blurred by that node's PSF at the native pixel pitch: cheap, and the blur has its real size) or
 ``full`` (the crop covers the node grid's region and is blurred with a spatially varying PSF,
-:func:`torch_bridge.imaging.spatially_varying_blur`).
+:func:`torch_bridge.imaging.spatially_varying_blur`). ``train.cuda_graph`` (CUDA, one process; default off): the
+network's forward, loss, backward and PSNR are one replayed CUDA graph (:mod:`torch_bridge.graph_step`).
 
 Outputs in ``out_dir/<arm>/``: ``metrics.csv`` (one row per logged step), ``step_XXXXXX.png``
 (PSF map, DOE phase, raw and reconstructed crops), ``checkpoint.pt`` (everything needed to resume:
@@ -88,6 +89,7 @@ from torch_bridge.evaluate import (_blur_patch, _device_noise, _eval_provider, _
                                    evaluate_arm, objective)
 from torch_bridge.report import _designs_figure, _snapshot, write_table
 from torch_bridge.runs import rng_state as _rng_state, set_rng_state as _set_rng_state, truncate_csv as _truncate_csv
+from torch_bridge.runs import CSV_FIELDS as _CSV_FIELDS, provider_gb as _provider_gb, read_row as _read  # noqa: F401
 
 __all__ = [
     "DEFAULTS",
@@ -371,12 +373,17 @@ class Arm:
         _set_rng_state(st["rng"], self.gen)
 
 
-def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
+def train_step(arm: Arm, step: int, psf_cache: dict, group=None, lazy: bool = False) -> dict:
     """One training step up to the gradients (no optimiser step): the draws (all from the arm's
     generator, in a fixed order), the PSFs, the rendering, the loss and its backward pass. Returns
     ``phase``, ``optics_step``, ``loss`` (float: the whole batch's), ``parts`` (``mse``, ``perceptual``),
     ``psnr``, ``lr_factor`` and, for snapshots, ``psf``, ``gt``, ``raw``, ``rec`` (this rank's crops; detached, so
-    nothing of the step's graph outlives it).
+    nothing of the step's graph outlives it). ``lazy`` (one process): ``loss``, ``parts`` and ``psnr`` are 0-d
+    device tensors, not floats (a float is a host read, which waits for the device; the design loop reads them at
+    its log steps, :func:`_read`).
+
+    ``train.cuda_graph`` (CUDA, one process): the network's forward, loss, backward and PSNR are a replayed CUDA
+    graph (:mod:`torch_bridge.graph_step`); the network's ``.grad`` are then the graph's, never set to None here.
 
     ``group`` (:class:`torch_bridge.distributed.Group`, None in one process): every rank draws the
     whole batch and trains on its slice; PSF nodes are shared out and their optics gradients
@@ -384,7 +391,8 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     network's dtype (float32: the PSFs go through :func:`~torch_bridge.functions.mixed_precision`)."""
     from torch_bridge.functions import mixed_precision
     from torch_bridge.imaging import spatially_varying_blur
-    from torch_bridge.losses import psnr
+    from torch_bridge.graph_step import arm_graph
+    from torch_bridge.losses import psnr, psnr_tensor
     cfg = arm.cfg
     t_cfg = cfg["train"]
     B = cfg["data"]["batch_size"]
@@ -439,24 +447,47 @@ def train_step(arm: Arm, step: int, psf_cache: dict, group=None) -> dict:
     if noisy:
         raw = _device_noise(raw, t_cfg["noise"], arm.gen, batch=B, rows=sl)
     net = arm.net if group is None else group.ddp(arm.net)
+    graphed = arm_graph(arm, group)
+    lazy = lazy and group is None
     f = _lr_factor(t_cfg["lr_decay"], step, total)
     for g in arm.opt_net.param_groups:
         g["lr"] = t_cfg["lr_network"] * f
-    arm.opt_net.zero_grad(set_to_none=True)
+    if graphed is None:
+        arm.opt_net.zero_grad(set_to_none=True)
     if arm.opt_optics is not None:
         arm.opt_optics.zero_grad(set_to_none=True)
-    rec = net(raw)
-    loss, parts = arm.criterion(rec, gt)
-    efl = 0.0
+    if graphed is None:
+        rec = net(raw)
+        loss, parts = arm.criterion(rec, gt, tensors=lazy)
+    else:
+        # the network's forward, loss, backward (its .grad and raw's gradient) and PSNR: one graph replay
+        rec, vals, g_raw = graphed(raw, gt)
+        loss, parts = vals[0], {"mse": vals[1], "perceptual": vals[2]}
+    efl = term = None
     if optics_step and cfg["design"]["efl_mm"] and cfg["design"]["efl_weight"] and (group is None or group.rank == 0):
         from torch_bridge.design import paraxial_efl
         term = cfg["design"]["efl_weight"] * (paraxial_efl(arm.module, arm.wl_ref).to(loss.dtype) -
                                               cfg["design"]["efl_mm"]) ** 2
-        loss = loss + term
-        efl = float(term.detach())
-    loss.backward()
-    p_snr = psnr(rec.detach(), gt)
-    loss_f = float(loss.detach())
+        loss = loss + (term if graphed is None else term.detach())
+        efl = term.detach() if lazy else float(term.detach())
+    if graphed is None:
+        loss.backward()
+        p_snr = psnr_tensor(rec.detach(), gt) if lazy else psnr(rec.detach(), gt)
+        loss_f = loss.detach() if lazy else float(loss.detach())
+    else:
+        # the optics' backward from the graph's gradient of raw (an optics step), and the EFL term's
+        roots, grads = [], []
+        if optics_step and raw.requires_grad:
+            roots, grads = [raw], [g_raw]
+        if term is not None:
+            roots, grads = roots + [term], grads + [torch.ones_like(term)]
+        if roots:
+            torch.autograd.backward(roots, grads)
+        loss_f, p_snr = loss.detach(), vals[3]
+        if not lazy:   # the four values in one host read
+            loss_f, mse, per_, p_snr = torch.stack([loss_f.double(), *vals[1:].double()]).tolist()
+            parts = {"mse": mse, "perceptual": per_}
+    efl = 0.0 if efl is None else efl
     if group is not None:
         if optics_step:
             group.optics_backward(arm, own, psf, own_nodes)
@@ -563,7 +594,7 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     last = None
     try:
         for step in it:
-            s = train_step(arm, step, psf_cache, group)
+            s = train_step(arm, step, psf_cache, group, lazy=True)
             phase, optics_step, f = s["phase"], s["optics_step"], s["lr_factor"]
             if t_cfg["grad_clip"]:
                 torch.nn.utils.clip_grad_norm_(arm.net.parameters(), t_cfg["grad_clip"])
@@ -590,12 +621,16 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
                 over = True
                 warnings.warn(msg, RuntimeWarning, stacklevel=2)   # shown by default (ResourceWarning is not)
                 report("running", phase, memory_over_budget=msg)
+            # the step's values are device tensors until a log step reads them (one host read, which waits for the
+            # device: none on the other steps; the progress bar's figures are the last log step's)
+            if step % t_cfg["log_every"] == 0 or arm.step in (joint, total):
+                last = _read(last)
+                if arm.progress:
+                    it.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr_train']:.2f}", phase=phase,
+                                    refresh=False)
             if lead and (step % t_cfg["log_every"] == 0 or arm.step == total):
                 writer.writerow(last)
                 fcsv.flush()
-            if arm.progress:
-                it.set_postfix(loss=f"{last['loss']:.4f}", psnr=f"{last['psnr_train']:.2f}", phase=phase,
-                                refresh=False)
             if pf is not None and (step % t_cfg["log_every"] == 0 or arm.step in (joint, total)):
                 report("running", "joint" if arm.step < joint else "finetune",
                        loss=last["loss"], psnr_train=last["psnr_train"], memory_gb=last["memory_gb"])
@@ -615,6 +650,10 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     finally:
         if fcsv is not None:
             fcsv.close()
+        if getattr(arm, "net_graph", None) is not None:
+            arm.net_graph.release()       # its pool (the step's activations) is not held through the evaluation
+            arm.net_graph = None
+    last = _read(last)
     result = {"arm": name, "method": arm.method, "steps_done": arm.step, "steps_total": total,
               "train_wall_s": time.perf_counter() - t0, "last": last, "notes": arm.notes,
               "run": {**run_info, "steps_done": arm.step, "steps_total": total, "joint_steps": joint,
@@ -638,30 +677,6 @@ def train_arm(name: str, cfg: dict, source=None, out_dir=None, resume: bool = Tr
     evaluate_arm(arm, result, out, report, default=_json_default, group=group)
     report("running", "done")
     return result
-
-
-# fft_plans_built: the wave backend's FFT plans built since the process started (each a VkFFT kernel build, NVRTC on
-# CUDA, 0.3-1 s at lengths of a few thousand); it stops growing once every plan a step needs is kept
-# torch_gb / torch_peak_gb (CUDA; empty on the CPU): torch's allocator after the step (what is held between steps:
-# growth there is something kept) and its peak since the run started (the row where it jumps is the step that raised it)
-# provider_held_gb: what the PSF provider keeps between steps (GB = 1e9 bytes; a live provider's packed tiles' operators
-# and plan tables, LiveProvider.held_bytes; a cached provider's fields and operators, CachedProvider.cache_bytes)
-# live_unit_gb: the estimated recorded peak (forward + backward, GB) of the largest checkpoint unit of the last live
-# call (LiveProvider.unit_record_bytes; held to the record share, half of optics.memory_budget_gb): the plans of a
-# learning lens grow, and this is where the step's peak follows them (empty without a live tile)
-_CSV_FIELDS = ["step", "phase", "loss", "mse", "perceptual", "psnr_train", "lr_network", "optics_step", "wall_s",
-               "replans", "memory_gb", "torch_gb", "torch_peak_gb", "fft_plans_built", "provider_held_gb",
-               "live_unit_gb"]
-
-
-def _provider_gb(provider) -> dict:
-    """``provider_held_gb`` and ``live_unit_gb`` of the metrics (GB = 1e9 bytes; see ``_CSV_FIELDS``), empty strings
-    where the provider has no such figure."""
-    held = provider.held_bytes() if hasattr(provider, "held_bytes") else \
-        provider.cache_bytes() if hasattr(provider, "cache_bytes") else None
-    units = [b for b in getattr(provider, "unit_record_bytes", None) or [] if b is not None]
-    return {"provider_held_gb": "" if held is None else round(held / 1e9, 6),
-            "live_unit_gb": round(max(units) / 1e9, 6) if units else ""}
 
 
 # ============================================================================================== experiment
