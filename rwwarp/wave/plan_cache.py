@@ -17,9 +17,16 @@ uncached call gives (same plans, same launches, same order of sums).
 Bounds, explicit: ``max_entries`` (least recently used entries go first) and ``max_bytes``, the memory the kept
 entries hold (the focal operators' factors, the kept DOE factors and phases, the batch tracers' tables and work
 arrays: rays, splat sums, field, reused by every run; :meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
-own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` (the default of the public calls) keeps
-nothing. Calls through one cache run one at a time (its lock is held for the whole wave computation: a kept
-batch's work arrays serve one run at a time). The ray model (``model="ray"``) has no plan and is not cached.
+own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` keeps nothing. Calls through one cache run
+one at a time (its lock is held for the whole wave computation: a kept batch's work arrays serve one run at a time).
+The ray model (``model="ray"``) has no plan and is not cached.
+
+The default of :func:`rwwarp.psf` (``cache="auto"``) is one process-wide cache, :func:`default_cache`: at most
+:data:`SHARED_MAX_ENTRIES` entries and :data:`SHARED_MAX_BYTES` held bytes. It is *shared*: a call that finds it
+busy (another thread is running through it) or a lens it cannot fingerprint runs uncached instead of waiting or
+failing, and a lens with multi-order phase surfaces is not cached. Turned off by ``cache=None`` (or False) on a
+call, for the whole process by :func:`set_default_cache(None) <set_default_cache>` or by the environment variable
+``RWWARP_PLAN_CACHE=0`` (read at every call). :func:`rwwarp.psf_map` keeps nothing unless given a cache.
 """
 from __future__ import annotations
 
@@ -33,11 +40,16 @@ from collections import OrderedDict
 
 import numpy as np
 
-__all__ = ["PlanCache", "lens_fingerprint"]
+__all__ = ["PlanCache", "lens_fingerprint", "default_cache", "set_default_cache", "resolve_cache"]
 
 #: default bounds of a :class:`PlanCache`
 DEFAULT_MAX_ENTRIES = 8
 DEFAULT_MAX_BYTES = 1 << 30
+#: bounds of the process-wide cache of :func:`default_cache` (what ``rw.psf`` keeps between calls by default)
+SHARED_MAX_ENTRIES = 4
+SHARED_MAX_BYTES = 256 << 20
+#: the environment variable that turns the default cache off (``0``, ``off``, ``false``, ``no``)
+ENV_VAR = "RWWARP_PLAN_CACHE"
 
 
 def _feed(h, v):
@@ -186,10 +198,14 @@ class PlanCache:
 
     ``graphs``: on a CUDA device a hit replays each kept batch's device work as a CUDA graph, recorded on its first
     hit (:mod:`rwwarp.wave.graph_replay`: the same bits, one launch instead of tens; the call's ``info["replay"]``
-    says "graph: trace and splat" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU."""
+    says "graph: trace and splat" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU.
+
+    ``shared``: a call that finds the cache busy (another thread runs through it), or a lens it cannot fingerprint,
+    runs uncached instead of waiting or raising (``info["cache"]`` "busy" / "off"); the process-wide
+    :func:`default_cache` is made so."""
 
     def __init__(self, max_entries: int = DEFAULT_MAX_ENTRIES, max_bytes: int = DEFAULT_MAX_BYTES,
-                 graphs: bool = True):
+                 graphs: bool = True, shared: bool = False):
         if isinstance(max_entries, bool) or not isinstance(max_entries, (int, np.integer)) or max_entries < 1:
             raise ValueError(f"PlanCache: max_entries must be an integer >= 1, got {max_entries!r}")
         if isinstance(max_bytes, bool) or not isinstance(max_bytes, (int, float, np.integer)) or \
@@ -200,6 +216,9 @@ class PlanCache:
         if not isinstance(graphs, (bool, np.bool_)):
             raise ValueError(f"PlanCache: graphs must be True or False, got {graphs!r}")
         self.graphs = bool(graphs)
+        if not isinstance(shared, (bool, np.bool_)):
+            raise ValueError(f"PlanCache: shared must be True or False, got {shared!r}")
+        self.shared = bool(shared)
         self._entries: OrderedDict = OrderedDict()   # key -> (batches, held bytes, budget check)
         self.hits = self.misses = self.evictions = 0
         self.lock = threading.RLock()
@@ -208,7 +227,7 @@ class PlanCache:
         return len(self._entries)
 
     def __repr__(self) -> str:
-        return (f"PlanCache({len(self)}/{self.max_entries} entries, {self.nbytes() / 2 ** 20:.3g} of "
+        return (f"PlanCache({'shared, ' if self.shared else ''}{len(self)}/{self.max_entries} entries, {self.nbytes() / 2 ** 20:.3g} of "
                 f"{self.max_bytes / 2 ** 20:.4g} MiB; {self.hits} hits, {self.misses} misses, {self.evictions} evicted)")
 
     def nbytes(self) -> int:
@@ -259,3 +278,54 @@ class PlanCache:
                 self._entries.popitem(last=False)
                 self.evictions += 1
             return True
+
+
+_DEFAULT = None
+_DEFAULT_SET = False
+_DEFAULT_LOCK = threading.Lock()
+
+
+def default_cache():
+    """The process-wide :class:`PlanCache` that ``rw.psf(..., cache="auto")`` (its default) uses: made on first use
+    with :data:`SHARED_MAX_ENTRIES` entries and :data:`SHARED_MAX_BYTES` bytes (256 MiB of kept device and host
+    arrays, counted as :meth:`PlanCache.nbytes` counts them) and ``shared=True``, or the one given to
+    :func:`set_default_cache`. None where the environment variable ``RWWARP_PLAN_CACHE`` is ``0`` / ``off`` /
+    ``false`` / ``no`` (read at every call) or :func:`set_default_cache` was given None."""
+    import os
+    if os.environ.get(ENV_VAR, "").strip().lower() in ("0", "off", "false", "no"):
+        return None
+    global _DEFAULT
+    with _DEFAULT_LOCK:
+        if _DEFAULT is None and not _DEFAULT_SET:
+            _DEFAULT = PlanCache(SHARED_MAX_ENTRIES, SHARED_MAX_BYTES, shared=True)
+        return _DEFAULT
+
+
+def set_default_cache(cache):
+    """Make ``cache`` what ``cache="auto"`` uses from now on: a :class:`PlanCache`, None (nothing kept), or ``"auto"``
+    (the built-in one of :func:`default_cache`, made anew on next use). The one it replaces is cleared. Returns the
+    setting it replaces (a cache, None, or "auto"), so that ``set_default_cache(old)`` restores it."""
+    if not (cache is None or isinstance(cache, PlanCache) or (isinstance(cache, str) and cache == "auto")):
+        raise TypeError(f"set_default_cache: a rwwarp.PlanCache, None or \"auto\", got {type(cache).__name__}")
+    global _DEFAULT, _DEFAULT_SET
+    with _DEFAULT_LOCK:
+        old = _DEFAULT if (_DEFAULT is not None or _DEFAULT_SET) else "auto"
+        if isinstance(cache, str):
+            _DEFAULT, _DEFAULT_SET = None, False
+        else:
+            _DEFAULT, _DEFAULT_SET = cache, True
+    if isinstance(old, PlanCache) and old is not cache:
+        old.clear()
+    return old
+
+
+def resolve_cache(cache):
+    """The :class:`PlanCache` (or None) a public call's ``cache`` argument names: ``"auto"``: :func:`default_cache`;
+    None or False: None; a :class:`PlanCache`: itself. Anything else: TypeError."""
+    if isinstance(cache, str) and cache == "auto":
+        return default_cache()
+    if cache is None or cache is False:
+        return None
+    if not isinstance(cache, PlanCache):
+        raise TypeError(f"cache must be a rwwarp.PlanCache, \"auto\" or None, got {type(cache).__name__}")
+    return cache

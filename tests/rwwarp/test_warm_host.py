@@ -74,3 +74,171 @@ def test_to_dict_is_a_copy():
     d["estimate"]["arr"][0] = 5.0
     d["model_error"]["estimate"] = 1.0
     _same_tree(_asdict_reference(p), before)
+
+
+# ------------------------------------------------------------------------------------------ the default cache
+# rw.psf's default cache="auto": the process-wide PlanCache (rwwarp.wave.plan_cache.default_cache). Small thin-lens +
+# DOE system of test_map, 16 px, the ASM (its kernels take almost nothing: the launches are the host's cost).
+KW = dict(size=16, method="asm")
+
+
+@pytest.fixture(autouse=True)
+def fresh_default():
+    """Every test starts from a new built-in default cache and leaves the setting it found."""
+    from rwwarp.wave.plan_cache import set_default_cache
+    old = set_default_cache("auto")
+    yield
+    set_default_cache(old)
+
+
+def test_default_warm_call_is_a_hit_with_few_launches():
+    """The second and third plain ``rw.psf`` calls (no cache argument) are hits: the uncached call's bits, and 6 Warp
+    launches (the PSF's own: generate, trace through every surface (the CPU's fused kernel), power sums, tube areas,
+    splat, finalize) against the uncached call's 11 (the pilot trace and planning). Before the default cache a
+    plain call planned every time (no ``info["cache"]``, 11 launches)."""
+    from test_map import warp_launches
+    lens = doe_lens()
+    n_off, ref = warp_launches(lambda: rw.psf(lens, 0.3, 0.55, cache=None, **KW))
+    n_off2, _ = warp_launches(lambda: rw.psf(lens, 0.3, 0.55, cache=None, **KW))
+    assert n_off == n_off2 and "cache" not in ref.info
+    runs = [warp_launches(lambda: rw.psf(lens, 0.3, 0.55, **KW)) for _ in range(3)]
+    assert [p.info["cache"] for _, p in runs] == ["miss", "hit", "hit"]
+    for _, p in runs:
+        assert np.array_equal(p.data, ref.data) and p.center_mm == ref.center_mm
+        assert p.plan == ref.plan
+    assert runs[0][0] == n_off
+    assert runs[1][0] == runs[2][0] <= 6 < n_off, (runs[1][0], n_off)
+
+
+def _changed(change):
+    """A new thin-lens + DOE system with ``change`` applied (None: as built)."""
+    lens = doe_lens()
+    if change == "focal_length":
+        lens.surfaces[1].focal_length *= 1.02
+    elif change == "doe_coefficient":
+        lens.surfaces[2].profile["coefficients"][0] += 4.0
+    elif change == "sensor_pitch":
+        lens.sensor.pixel_pitch *= 1.1
+    elif change == "thickness":
+        lens.surfaces[1].thickness += 0.05
+        lens.surfaces[2].thickness -= 0.05
+    return lens
+
+
+@pytest.mark.parametrize("change", ["focal_length", "doe_coefficient", "sensor_pitch", "thickness"])
+def test_default_cache_follows_an_in_place_change_of_the_lens(change):
+    """The lens changed in place after a cached call: the next plain call is a miss and gives what an uncached call of
+    a new lens object built with the change gives (bit for bit), not the earlier PSF."""
+    lens = _changed(None)
+    first = rw.psf(lens, 0.0, 0.55, **KW)
+    assert rw.psf(lens, 0.0, 0.55, **KW).info["cache"] == "hit"
+    # the same change made in place on the cached lens object
+    if change == "focal_length":
+        lens.surfaces[1].focal_length *= 1.02
+    elif change == "doe_coefficient":
+        lens.surfaces[2].profile["coefficients"][0] += 4.0
+    elif change == "sensor_pitch":
+        lens.sensor.pixel_pitch *= 1.1
+    else:
+        lens.surfaces[1].thickness += 0.05
+        lens.surfaces[2].thickness -= 0.05
+    again = rw.psf(lens, 0.0, 0.55, **KW)
+    fresh = rw.psf(_changed(change), 0.0, 0.55, cache=None, **KW)
+    assert again.info["cache"] == "miss"
+    assert np.array_equal(again.data, fresh.data) and again.center_mm == fresh.center_mm
+    assert not np.array_equal(again.data, first.data)   # the change moves the PSF: the check can fail
+
+
+@pytest.mark.parametrize("kw", [{"field_deg": 0.2}, {"wavelength_um": 0.5}, {"size": 12}, {"dtype": "float32"},
+                                {"pixel_values": "intensity"}, {"method": "focal"}, {"rays_per_sample": 1.5}])
+def test_default_cache_other_arguments_are_misses(kw):
+    """Another field, wavelength, size or option after a cached call: a miss that gives the uncached call of a new
+    lens object, not the earlier entry."""
+    lens = doe_lens()
+    rw.psf(lens, 0.0, 0.55, **KW)
+    args = dict(KW, **kw)
+    fd, wl = args.pop("field_deg", 0.0), args.pop("wavelength_um", 0.55)
+    p = rw.psf(lens, fd, wl, **args)
+    fresh = rw.psf(doe_lens(), fd, wl, cache=None, **args)
+    assert p.info["cache"] == "miss"
+    assert np.array_equal(p.data, fresh.data)
+
+
+def test_default_cache_can_be_turned_off(monkeypatch):
+    """cache=None / False on the call, set_default_cache(None) and RWWARP_PLAN_CACHE=0: nothing kept, no
+    ``info["cache"]``, the same bits."""
+    from rwwarp.wave import plan_cache as pc
+    lens = doe_lens()
+    ref = rw.psf(lens, 0.0, 0.55, cache=None, **KW)
+    p = rw.psf(lens, 0.0, 0.55, cache=False, **KW)
+    assert "cache" not in p.info and np.array_equal(p.data, ref.data)
+    monkeypatch.setenv("RWWARP_PLAN_CACHE", "0")
+    assert pc.default_cache() is None
+    for _ in range(2):
+        p = rw.psf(lens, 0.0, 0.55, **KW)
+        assert "cache" not in p.info and np.array_equal(p.data, ref.data)
+    monkeypatch.delenv("RWWARP_PLAN_CACHE")
+    assert pc.default_cache() is not None and len(pc.default_cache()) == 0
+    built_in = pc.default_cache()
+    assert pc.set_default_cache(None) is built_in
+    assert pc.default_cache() is None
+    p = rw.psf(lens, 0.0, 0.55, **KW)
+    assert "cache" not in p.info and np.array_equal(p.data, ref.data)
+    with pytest.raises(TypeError, match="cache"):
+        rw.psf(lens, 0.0, 0.55, cache="yes", **KW)
+
+
+def test_default_cache_bounds():
+    """The default cache keeps at most 4 entries and 256 MiB (PlanCache.nbytes: focal operators, DOE factors, tracer
+    tables and work arrays); six distinct calls leave the four latest, the oldest evicted first."""
+    from rwwarp.wave import plan_cache as pc
+    cache = pc.default_cache()
+    assert (cache.max_entries, cache.max_bytes, cache.shared) == (4, 256 * 2 ** 20, True)
+    lens = doe_lens()
+    wls = [0.45, 0.5, 0.55, 0.6, 0.65, 0.7]
+    for w in wls:
+        rw.psf(lens, 0.0, w, **KW)
+        assert 0 < cache.nbytes() <= cache.max_bytes
+    assert len(cache) == 4 and cache.evictions == 2
+    assert rw.psf(lens, 0.0, 0.7, **KW).info["cache"] == "hit"
+    assert rw.psf(lens, 0.0, 0.45, **KW).info["cache"] == "miss"
+
+
+def test_busy_default_cache_runs_uncached():
+    """Another thread running through the default cache (its lock held): a call does not wait, it runs uncached
+    (``info["cache"] == "busy"``) and gives the same bits."""
+    import threading
+    from rwwarp.wave import plan_cache as pc
+    lens = doe_lens()
+    ref = rw.psf(lens, 0.0, 0.55, cache=None, **KW)
+    cache = pc.default_cache()
+    held, done = threading.Event(), threading.Event()
+
+    def hold():
+        with cache.lock:
+            held.set()
+            done.wait(60)
+    t = threading.Thread(target=hold)
+    t.start()
+    try:
+        held.wait(60)
+        p = rw.psf(lens, 0.0, 0.55, **KW)
+    finally:
+        done.set()
+        t.join()
+    assert p.info["cache"] == "busy" and np.array_equal(p.data, ref.data)
+    assert len(cache) == 0
+    assert rw.psf(lens, 0.0, 0.55, **KW).info["cache"] == "miss"
+
+
+def test_multi_order_lens_runs_uncached_by_default():
+    """A lens with multi-order phase surfaces (not cacheable: rwwarp.phase_orders) runs through a plain call as with
+    cache=None (``info["cache"] == "off"``), the same bits; an explicit cache is still refused."""
+    from test_phase_orders import make
+    lens = make(orders=(0, 1))
+    kw = dict(size=16)
+    ref = rw.psf(lens, 0.0, 0.55, cache=None, **kw)
+    p = rw.psf(lens, 0.0, 0.55, **kw)
+    assert p.info["cache"] == "off" and np.array_equal(p.data, ref.data)
+    with pytest.raises(ValueError, match="cache"):
+        rw.psf(lens, 0.0, 0.55, cache=rw.PlanCache(), **kw)
