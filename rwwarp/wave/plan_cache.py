@@ -16,7 +16,8 @@ uncached call gives (same plans, same launches, same order of sums).
 
 Bounds, explicit: ``max_entries`` (least recently used entries go first) and ``max_bytes``, the memory the kept
 entries hold (the focal operators' factors, the kept DOE factors and phases, the batch tracers' tables and work
-arrays: rays, splat sums, field, reused by every run; :meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
+arrays: rays, splat sums, field, reused by every run; the arrays of the entry's private copy of the lens;
+:meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
 own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` keeps nothing. Calls through one cache run
 one at a time (its lock is held for the whole wave computation: a kept batch's work arrays serve one run at a time).
 The ray model (``model="ray"``) has no plan and is not cached.
@@ -36,6 +37,7 @@ import math
 import pickle
 import struct
 import threading
+import types
 from collections import OrderedDict
 
 import numpy as np
@@ -157,14 +159,46 @@ def _array_bytes(a) -> int:
     return int(n or 0)
 
 
+def _nested_array_bytes(v, seen: set, depth: int = 0) -> int:
+    """Bytes of the numpy arrays inside ``v`` (through dicts, lists, tuples and objects' attributes, 12 levels at
+    most; each array, and each container, counted once through ``seen``, a set of ids)."""
+    if v is None or isinstance(v, (str, bytes, int, float, complex, bool)) or depth > 12 or id(v) in seen:
+        return 0
+    seen.add(id(v))
+    if isinstance(v, np.ndarray):
+        return int(v.nbytes)
+    if isinstance(v, dict):
+        items = v.values()
+    elif isinstance(v, (list, tuple, set, frozenset)):
+        items = v
+    elif hasattr(v, "__dict__") and not isinstance(v, (type, types.ModuleType)) and not callable(v):
+        items = vars(v).values()
+    else:
+        return 0
+    return sum(_nested_array_bytes(x, seen, depth + 1) for x in items)
+
+
+def lens_bytes(lens, seen: set | None = None) -> int:
+    """Bytes of the numpy arrays a lens object holds (a pixel-map DOE's inline data, tabulated profiles, what its
+    surfaces and the lens keep): what a kept entry's private copy of the lens holds besides its plans."""
+    return _nested_array_bytes(lens, set() if seen is None else seen)
+
+
 def held_bytes(batches) -> int:
     """Device (and host) bytes the kept batches hold between calls: the members' focal operators, a batch's stacked
-    focal operators (:func:`rwwarp.wave.focal_packed.run_focal_members`) and kept DOE factors / phases, and each tracer's parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`)."""
+    focal operators (:func:`rwwarp.wave.focal_packed.run_focal_members`) and kept DOE factors / phases, each tracer's
+    parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`), and the arrays of the entry's private
+    copy of the lens (:func:`lens_bytes`: a pixel-map DOE's data)."""
     total = 0
     seen = set()
+    arrays_seen = set()
     for _, packed in batches:
         objs = [packed] + list(packed.members)
         for m in objs:
+            lens = getattr(m, "lens", None)
+            if lens is not None and id(lens) not in seen:
+                seen.add(id(lens))
+                total += lens_bytes(lens, arrays_seen)
             op = getattr(m, "_focal_op", None)
             if op is not None and id(op) not in seen:
                 seen.add(id(op))

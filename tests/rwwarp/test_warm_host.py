@@ -242,3 +242,25 @@ def test_multi_order_lens_runs_uncached_by_default():
     assert p.info["cache"] == "off" and np.array_equal(p.data, ref.data)
     with pytest.raises(ValueError, match="cache"):
         rw.psf(lens, 0.0, 0.55, cache=rw.PlanCache(), **kw)
+
+
+def test_kept_lens_arrays_are_counted():
+    """An entry holds a private copy of the lens: its arrays (here a 400 x 400 pixel-map DOE, 1.28 MB) are in the
+    entry's bytes (PlanCache.nbytes, what max_bytes bounds), counted once; lens_bytes sums the lens's arrays."""
+    from rwwarp.wave import plan_cache as pc
+    lens = doe_lens()
+    data = np.random.default_rng(2).uniform(0.0, 0.5, (400, 400))
+    lens.surfaces[2].profile = {"kind": "pixel_map", "pitch": 0.0025, "data": data}
+    assert pc.lens_bytes(lens) == data.nbytes
+    assert pc.lens_bytes(doe_lens()) == 0
+    cache = rw.PlanCache()
+    rw.psf(lens, 0.0, 0.55, cache=cache, **KW)
+    (batches, held, _), = cache._entries.values()
+    assert held == pc.held_bytes(batches) == cache.nbytes()
+    kept_lens = batches[0][1].members[0].lens
+    assert kept_lens is not lens and pc.lens_bytes(kept_lens) == data.nbytes   # the private copy
+    without = held - data.nbytes
+    assert without > 0   # the operators and tracer tables besides
+    small = rw.PlanCache(max_bytes=held - 1)   # the lens's bytes make the entry too large for this bound
+    p = rw.psf(lens, 0.0, 0.55, cache=small, **KW)
+    assert p.info["cache"] == "miss" and len(small) == 0
