@@ -193,7 +193,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens
         values and arguments (wave models; the same bits as without it; a lens changed in place is a miss: the key
         is a digest of its values, :func:`~rwwarp.wave.plan_cache.lens_fingerprint`). ``"auto"`` (default): the
-        process-wide :func:`~rwwarp.wave.plan_cache.default_cache` (at most 4 entries and 256 MiB of kept arrays;
+        process-wide :func:`~rwwarp.wave.plan_cache.default_cache` (at most 8 entries and 512 MiB of kept arrays;
         a call that finds it busy in another thread runs uncached). None or False: plan every call, keep nothing;
         ``RWWARP_PLAN_CACHE=0`` in the environment or ``rwwarp.wave.plan_cache.set_default_cache(None)`` turns
         the default off for the whole process. ``p.info["cache"]``: "hit", "miss", or where the default cache

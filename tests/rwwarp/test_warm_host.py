@@ -189,19 +189,21 @@ def test_default_cache_can_be_turned_off(monkeypatch):
 
 
 def test_default_cache_bounds():
-    """The default cache keeps at most 4 entries and 256 MiB (PlanCache.nbytes: focal operators, DOE factors, tracer
-    tables and work arrays); six distinct calls leave the four latest, the oldest evicted first."""
+    """The default cache keeps at most 8 entries and 512 MiB (PlanCache.nbytes: focal operators, DOE factors, tracer
+    tables and work arrays, the private lens copy's arrays); ten distinct calls leave the eight latest, the oldest
+    evicted first."""
     from rwwarp.wave import plan_cache as pc
     cache = pc.default_cache()
-    assert (cache.max_entries, cache.max_bytes, cache.shared) == (4, 256 * 2 ** 20, True)
+    assert (cache.max_entries, cache.max_bytes, cache.shared) == (8, 512 * 2 ** 20, True)
     lens = doe_lens()
-    wls = [0.45, 0.5, 0.55, 0.6, 0.65, 0.7]
+    wls = [0.45, 0.47, 0.5, 0.52, 0.55, 0.57, 0.6, 0.62, 0.65, 0.7]
     for w in wls:
         rw.psf(lens, 0.0, w, **KW)
         assert 0 < cache.nbytes() <= cache.max_bytes
-    assert len(cache) == 4 and cache.evictions == 2
+    assert len(cache) == 8 and cache.evictions == 2
     assert rw.psf(lens, 0.0, 0.7, **KW).info["cache"] == "hit"
-    assert rw.psf(lens, 0.0, 0.45, **KW).info["cache"] == "miss"
+    assert rw.psf(lens, 0.0, 0.5, **KW).info["cache"] == "hit"
+    assert rw.psf(lens, 0.0, 0.45, **KW).info["cache"] == "miss"   # evicted first
 
 
 def test_busy_default_cache_runs_uncached():
