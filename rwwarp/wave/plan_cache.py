@@ -28,6 +28,8 @@ busy (another thread is running through it) or a lens it cannot fingerprint runs
 failing, and a lens with multi-order phase surfaces is not cached. Turned off by ``cache=None`` (or False) on a
 call, for the whole process by :func:`set_default_cache(None) <set_default_cache>` or by the environment variable
 ``RWWARP_PLAN_CACHE=0`` (read at every call). :func:`rwwarp.psf_map` keeps nothing unless given a cache.
+Module-level settings outside a call's arguments (``rwwarp.wave.pixel_scale.FIELD_FORM``, a patched planner
+function) are not in the key: clear the cache (``default_cache().clear()``) or pass ``cache=None`` after changing one.
 """
 from __future__ import annotations
 
