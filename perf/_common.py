@@ -10,6 +10,11 @@ from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
+# rw.psf keeps its plans in a process-wide cache by default (rwwarp.wave.plan_cache.default_cache, issue 25): a
+# benchmark's repeated call would time a cache hit, not the planned computation it measured before. Off here unless
+# the environment says otherwise (RWWARP_PLAN_CACHE=1); a script that times the cache passes its own rw.PlanCache.
+os.environ.setdefault("RWWARP_PLAN_CACHE", "0")
+
 
 def count_warp_launches(fn) -> int:
     """Calls of ``warp.launch`` (every thread, backward included) while ``fn()`` runs."""

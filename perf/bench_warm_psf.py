@@ -71,7 +71,7 @@ def bench(reps):
     for name, field, size, rps in CONFIGS:
         lens = thin_doe_lens(rw) if name == "thin_doe_asm" else rw.load_lens(name)
         method = "asm" if name == "thin_doe_asm" else "auto"
-        modes = [("uncached", {})]
+        modes = [("uncached", {"cache": None})]   # (rw.psf's default caches since session 25)
         if hasattr(rw, "PlanCache"):
             modes.append(("cached", {"cache": rw.PlanCache()}))
         for mode, extra in modes:

@@ -23,6 +23,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+import os
+
+os.environ.setdefault("RWWARP_PLAN_CACHE", "0")   # time the planned call, not rw.psf's default cache (perf/_common.py)
 
 import numpy as np
 

@@ -26,6 +26,9 @@ import sys
 import time
 import warnings
 from pathlib import Path
+import os
+
+os.environ.setdefault("RWWARP_PLAN_CACHE", "0")   # time the planned call, not rw.psf's default cache (perf/_common.py)
 
 import numpy as np
 

@@ -6,6 +6,9 @@ import argparse
 import cProfile
 import pstats
 import time
+import os
+
+os.environ.setdefault("RWWARP_PLAN_CACHE", "0")   # time the planned call, not rw.psf's default cache (perf/_common.py)
 
 import numpy as np
 

@@ -2,6 +2,9 @@
 import cProfile
 import pstats
 import sys
+import os
+
+os.environ.setdefault("RWWARP_PLAN_CACHE", "0")   # time the planned call, not rw.psf's default cache (perf/_common.py)
 
 import rwwarp as rw
 

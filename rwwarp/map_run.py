@@ -182,6 +182,9 @@ def run_sources(lens, a: MapArgs, pairs, object_distance_mm, store, cache=None, 
     info = {} if info is None else info
     from .phase_orders import check_multi_order, multi_order_psf, multi_order_surfaces
     if multi_order_surfaces(lens):   # several orders of a phase surface, summed coherently (rwwarp.phase_orders)
+        if cache is not None and cache.shared:   # the default cache: not for these (check_multi_order refuses one)
+            cache = None
+            info["cache"] = "off"
         check_multi_order(lens, a.model, a.opts.get("amplitude", "energy"), cache)
         for pr in pairs:
             res = multi_order_psf(lens, [a.fields[pr[0]]], [a.wls[pr[1]]], a.size, a.pixel, a.opts,
@@ -190,9 +193,19 @@ def run_sources(lens, a: MapArgs, pairs, object_distance_mm, store, cache=None, 
             store([pr], res)
         return
     if a.model in WAVE_MODELS:
-        with (contextlib.nullcontext() if cache is None else cache.lock):   # a kept batch runs one call at a time
-            _wave_map(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, object_distance_mm, a.batch, a.budget,
-                      a.memory_budget_gb, a.focal_precision, a.opts, cache, info, store)
+        held = False
+        if cache is not None and cache.shared:
+            held = cache.lock.acquire(blocking=False)
+            if not held:   # a shared cache another thread is running through: this call runs uncached, not waiting
+                cache = None
+                info["cache"] = "busy"
+        try:
+            with (contextlib.nullcontext() if cache is None or held else cache.lock):   # a kept batch: one call at a time
+                _wave_map(lens, a.fields, a.wls, pairs, a.model, a.size, a.pixel, object_distance_mm, a.batch,
+                          a.budget, a.memory_budget_gb, a.focal_precision, a.opts, cache, info, store)
+        finally:
+            if held:
+                cache.lock.release()
         return
     from .ray_model import _ray_model
     for chunk, _ in map_units(lens, a, pairs, object_distance_mm):
@@ -242,7 +255,14 @@ def _wave_map(lens, fields, wavelengths_um, pairs, model, size, pixel, object_di
     if cache is not None:
         args = (model, fields, wavelengths_um, size, pixel, object_distance_mm, batch, focal_precision,
                 memory_budget_gb, tuple(sorted((k, v) for k, v in opts.items() if k != "memory_budget_bytes")))
-        key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
+        try:
+            key, kept = cache.lookup(lens, args, None if memory_budget_gb is not None else budget)
+        except TypeError:   # a value the fingerprint cannot read (rwwarp.wave.plan_cache.lens_fingerprint)
+            if not cache.shared:
+                raise
+            cache = None    # the default cache: this call runs uncached
+            info["cache"] = "off"
+    if cache is not None:
         info["cache"] = "miss" if kept is None else "hit"
     from .wave.plan_cache import held_bytes
     if kept is not None:

@@ -101,7 +101,7 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         use_reference: bool = True, gauss_nodes: int | None = None, nyquist_safety: float = 2.0,
         method: str = "auto", memory_budget_gb: float | None = None, focal_patch_tol: float = 1e-5,
         focal_precision: str = "auto", deterministic: bool = False, pixel_values: str = "flux",
-        tolerance: float | None = None, cache=None, order_tol: float = 1e-4) -> PSF:
+        tolerance: float | None = None, cache="auto", order_tol: float = 1e-4) -> PSF:
     """PSF of ``lens`` for one field point and wavelength.
 
     Parameters
@@ -191,10 +191,16 @@ def psf(lens, field_deg=0.0, wavelength_um: float = 0.55, model: str = "ray-wave
         strongly defocused beam asks for a wave-plane grid beyond ``rwwarp.wave.plan.FOCAL_RAY_MAX_GRID`` samples; the
         plan then caps it and states the rim's estimated error (a :class:`~rwwarp.errors.SamplingWarning` above
         the tolerance, or 1e-3 without one), and with a tolerance the cap gives way to meet it (up to 16384 samples).
-    cache : rwwarp.PlanCache, optional
-        Keep this call's pilot trace, plan, batches and propagation operators in the given
+    cache : "auto" | rwwarp.PlanCache | None
+        Keep this call's pilot trace, plan, batches and propagation operators in a
         :class:`~rwwarp.wave.plan_cache.PlanCache` and reuse them when a later call passes the same cache, lens
-        values and arguments (wave models; the same bits as without it). None (default): plan every call.
+        values and arguments (wave models; the same bits as without it; a lens changed in place is a miss: the key
+        is a digest of its values, :func:`~rwwarp.wave.plan_cache.lens_fingerprint`). ``"auto"`` (default): the
+        process-wide :func:`~rwwarp.wave.plan_cache.default_cache` (at most 8 entries and 512 MiB of kept arrays;
+        a call that finds it busy in another thread runs uncached). None or False: plan every call, keep nothing;
+        ``RWWARP_PLAN_CACHE=0`` in the environment or ``rwwarp.wave.plan_cache.set_default_cache(None)`` turns
+        the default off for the whole process. ``p.info["cache"]``: "hit", "miss", or where the default cache
+        was skipped "busy" / "off".
     order_tol : float
         Multi-order phase surfaces (``Surface.diffraction_orders``, :mod:`rwwarp.phase_orders`): an order
         combination whose efficiency is below this is skipped (named in the plan's reasons); default 1e-4.
@@ -261,7 +267,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
     budget, and on the CPU :data:`rwwarp.map_run.CPU_BATCH_BYTES` a batch); ``progress`` shows a tqdm bar. Returns :class:`PSFMap` with ``data`` of shape (n_fields,
     n_wavelengths, size, size); ``info["batches"]`` lists each batch's (field, wavelength) index pairs,
     ``plans`` (each member's plan) and ``plan`` (its last member's); ``info["plan"]`` is the last batch's
-    ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`): a repeated map of the same lens values
+    ``plan``. ``cache`` (a :class:`~rwwarp.wave.plan_cache.PlanCache`, or ``"auto"``: the process-wide one that
+    :func:`psf` uses by default; None, the default here: nothing kept): a repeated map of the same lens values
     and arguments reuses its pilot, plans, batches and operators (``info["cache"]``: "hit" or "miss"; on a hit
     ``info["replay"]``: per batch "graph: trace and splat" (replayed as a CUDA graph, :mod:`rwwarp.wave.graph_replay`) or why it ran eagerly).
     A lens with multi-order phase surfaces (``Surface.diffraction_orders``) computes each PSF as the coherent sum of
@@ -276,9 +283,8 @@ def psf_map(lens, fields, wavelengths_um, model: str = "ray-wave", size: int = 6
                  batch=batch, nyquist_safety=nyquist_safety, method=method, memory_budget_gb=memory_budget_gb,
                  focal_patch_tol=focal_patch_tol, focal_precision=focal_precision, deterministic=deterministic,
                  pixel_values=pixel_values, tolerance=tolerance, order_tol=order_tol)
-    from .wave.plan_cache import PlanCache
-    if cache is not None and not isinstance(cache, PlanCache):
-        raise TypeError(f"cache must be a rwwarp.PlanCache or None, got {type(cache).__name__}")
+    from .wave.plan_cache import resolve_cache
+    cache = resolve_cache(cache)   # "auto": the process-wide default cache; None / False: nothing kept
     fields, wavelengths_um, size = a.fields, a.wls, a.size
     pairs = [(i, j) for i in range(len(fields)) for j in range(len(wavelengths_um))]
     out = np.zeros((len(fields), len(wavelengths_um), size, size))

@@ -96,3 +96,15 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
 
 
 _FUZZ_STATS = pytest.StashKey[dict]()
+
+
+@pytest.fixture(autouse=True)
+def _fresh_default_plan_cache():
+    """``rw.psf`` keeps its plans in a process-wide cache by default (rwwarp.wave.plan_cache.default_cache): it is
+    emptied before every test, so that no test is served what another one computed (a test that changes a module
+    setting the cache key does not cover, e.g. rwwarp.wave.pixel_scale.FIELD_FORM, sees its own calls only)."""
+    import sys
+    pc = sys.modules.get("rwwarp.wave.plan_cache")
+    if pc is not None and pc._DEFAULT is not None:
+        pc._DEFAULT.clear()
+    yield

@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields as _dc_fields
 import numpy as np
 
 from ..trace import Tracer, pupil_grid
-from ..trace import _field_pair
+from ..fields import _field_pair
 
 __all__ = ["PILOT_GRID", "Pilot", "own_pupil_sources", "pilot_from_tracer", "trace_pilot"]
 

@@ -16,9 +16,10 @@ Every choice is recorded with its reason in :attr:`Plan.reasons`.
 """
 from __future__ import annotations
 
+import copy
 import math
 import warnings
-from dataclasses import dataclass, asdict
+from dataclasses import asdict, dataclass, is_dataclass
 
 import numpy as np
 
@@ -97,7 +98,11 @@ class Plan:
         return new
 
     def to_dict(self) -> dict:
-        d = asdict(self)
+        """The plan as a new dict of its fields (``reasons`` a list; nested dicts, lists and arrays copied: the
+        caller may change it), what ``dataclasses.asdict`` gives, made without its generic recursion (every PSF
+        result carries its plans' dicts; issue 25's warm call)."""
+        own = self.__dict__
+        d = {name: _plain(own[name]) for name in _PLAN_FIELDS}
         d["reasons"] = list(d["reasons"])
         return d
 
@@ -115,6 +120,23 @@ class Plan:
             lines.append(f"  estimate: peak memory {self.estimate['memory_bytes'] / 2 ** 30:.3g} GiB, "
                          f"{self.estimate['flops'] / 1e9:.3g} GFLOP")
         return "\n".join(lines + [f"  - {r}" for r in self.reasons])
+
+
+def _plain(v):
+    """``v`` as ``dataclasses.asdict`` copies a field's value: dicts, lists and tuples rebuilt (keys too), a dataclass
+    as a dict, immutable scalars kept, anything else deep-copied."""
+    if v is None or type(v) in (int, float, str, bool, complex):
+        return v
+    if type(v) is dict:
+        return {_plain(k): _plain(x) for k, x in v.items()}
+    if type(v) in (list, tuple):
+        return type(v)(_plain(x) for x in v)
+    if is_dataclass(v) and not isinstance(v, type):
+        return asdict(v)
+    return copy.deepcopy(v)
+
+
+_PLAN_FIELDS = tuple(Plan.__dataclass_fields__)   # in their order
 
 
 def check_explicit(plan: Plan, needed_pitch_mm: float, needed_pad: int, window_mm: float):

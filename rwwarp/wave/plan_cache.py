@@ -16,10 +16,20 @@ uncached call gives (same plans, same launches, same order of sums).
 
 Bounds, explicit: ``max_entries`` (least recently used entries go first) and ``max_bytes``, the memory the kept
 entries hold (the focal operators' factors, the kept DOE factors and phases, the batch tracers' tables and work
-arrays: rays, splat sums, field, reused by every run; :meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
-own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` (the default of the public calls) keeps
-nothing. Calls through one cache run one at a time (its lock is held for the whole wave computation: a kept
-batch's work arrays serve one run at a time). The ray model (``model="ray"``) has no plan and is not cached.
+arrays: rays, splat sums, field, reused by every run; the arrays of the entry's private copy of the lens;
+:meth:`PlanCache.nbytes`); an entry over ``max_bytes`` on its
+own is not kept. :meth:`PlanCache.clear` drops everything; ``cache=None`` keeps nothing. Calls through one cache run
+one at a time (its lock is held for the whole wave computation: a kept batch's work arrays serve one run at a time).
+The ray model (``model="ray"``) has no plan and is not cached.
+
+The default of :func:`rwwarp.psf` (``cache="auto"``) is one process-wide cache, :func:`default_cache`: at most
+:data:`SHARED_MAX_ENTRIES` entries and :data:`SHARED_MAX_BYTES` held bytes. It is *shared*: a call that finds it
+busy (another thread is running through it) or a lens it cannot fingerprint runs uncached instead of waiting or
+failing, and a lens with multi-order phase surfaces is not cached. Turned off by ``cache=None`` (or False) on a
+call, for the whole process by :func:`set_default_cache(None) <set_default_cache>` or by the environment variable
+``RWWARP_PLAN_CACHE=0`` (read at every call). :func:`rwwarp.psf_map` keeps nothing unless given a cache.
+Module-level settings outside a call's arguments (``rwwarp.wave.pixel_scale.FIELD_FORM``, a patched planner
+function) are not in the key: clear the cache (``default_cache().clear()``) or pass ``cache=None`` after changing one.
 """
 from __future__ import annotations
 
@@ -29,15 +39,23 @@ import math
 import pickle
 import struct
 import threading
+import types
 from collections import OrderedDict
 
 import numpy as np
 
-__all__ = ["PlanCache", "lens_fingerprint"]
+__all__ = ["PlanCache", "lens_fingerprint", "default_cache", "set_default_cache", "resolve_cache"]
 
 #: default bounds of a :class:`PlanCache`
 DEFAULT_MAX_ENTRIES = 8
 DEFAULT_MAX_BYTES = 1 << 30
+#: bounds of the process-wide cache of :func:`default_cache` (what ``rw.psf`` keeps between calls by default): the
+#: issue 25 PSFs at 64 px held 27-227 MiB an entry on an H100 (session 14: A489 0 / 10 deg 27 / 59, AC254 83, Cooke
+#: 0 / 14 deg 85 / 227), 480 MiB the five together, so all five stay kept when a caller goes round them
+SHARED_MAX_ENTRIES = 8
+SHARED_MAX_BYTES = 512 << 20
+#: the environment variable that turns the default cache off (``0``, ``off``, ``false``, ``no``)
+ENV_VAR = "RWWARP_PLAN_CACHE"
 
 
 def _feed(h, v):
@@ -145,14 +163,46 @@ def _array_bytes(a) -> int:
     return int(n or 0)
 
 
+def _nested_array_bytes(v, seen: set, depth: int = 0) -> int:
+    """Bytes of the numpy arrays inside ``v`` (through dicts, lists, tuples and objects' attributes, 12 levels at
+    most; each array, and each container, counted once through ``seen``, a set of ids)."""
+    if v is None or isinstance(v, (str, bytes, int, float, complex, bool)) or depth > 12 or id(v) in seen:
+        return 0
+    seen.add(id(v))
+    if isinstance(v, np.ndarray):
+        return int(v.nbytes)
+    if isinstance(v, dict):
+        items = v.values()
+    elif isinstance(v, (list, tuple, set, frozenset)):
+        items = v
+    elif hasattr(v, "__dict__") and not isinstance(v, (type, types.ModuleType)) and not callable(v):
+        items = vars(v).values()
+    else:
+        return 0
+    return sum(_nested_array_bytes(x, seen, depth + 1) for x in items)
+
+
+def lens_bytes(lens, seen: set | None = None) -> int:
+    """Bytes of the numpy arrays a lens object holds (a pixel-map DOE's inline data, tabulated profiles, what its
+    surfaces and the lens keep): what a kept entry's private copy of the lens holds besides its plans."""
+    return _nested_array_bytes(lens, set() if seen is None else seen)
+
+
 def held_bytes(batches) -> int:
     """Device (and host) bytes the kept batches hold between calls: the members' focal operators, a batch's stacked
-    focal operators (:func:`rwwarp.wave.focal_packed.run_focal_members`) and kept DOE factors / phases, and each tracer's parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`)."""
+    focal operators (:func:`rwwarp.wave.focal_packed.run_focal_members`) and kept DOE factors / phases, each tracer's
+    parameter and index tables and work arrays (:attr:`rwwarp.trace.Tracer.pool`), and the arrays of the entry's private
+    copy of the lens (:func:`lens_bytes`: a pixel-map DOE's data)."""
     total = 0
     seen = set()
+    arrays_seen = set()
     for _, packed in batches:
         objs = [packed] + list(packed.members)
         for m in objs:
+            lens = getattr(m, "lens", None)
+            if lens is not None and id(lens) not in seen:
+                seen.add(id(lens))
+                total += lens_bytes(lens, arrays_seen)
             op = getattr(m, "_focal_op", None)
             if op is not None and id(op) not in seen:
                 seen.add(id(op))
@@ -186,10 +236,14 @@ class PlanCache:
 
     ``graphs``: on a CUDA device a hit replays each kept batch's device work as a CUDA graph, recorded on its first
     hit (:mod:`rwwarp.wave.graph_replay`: the same bits, one launch instead of tens; the call's ``info["replay"]``
-    says "graph: trace and splat" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU."""
+    says "graph: trace and splat" or why a batch ran eagerly); False runs every hit eagerly. No effect on the CPU.
+
+    ``shared``: a call that finds the cache busy (another thread runs through it), or a lens it cannot fingerprint,
+    runs uncached instead of waiting or raising (``info["cache"]`` "busy" / "off"); the process-wide
+    :func:`default_cache` is made so."""
 
     def __init__(self, max_entries: int = DEFAULT_MAX_ENTRIES, max_bytes: int = DEFAULT_MAX_BYTES,
-                 graphs: bool = True):
+                 graphs: bool = True, shared: bool = False):
         if isinstance(max_entries, bool) or not isinstance(max_entries, (int, np.integer)) or max_entries < 1:
             raise ValueError(f"PlanCache: max_entries must be an integer >= 1, got {max_entries!r}")
         if isinstance(max_bytes, bool) or not isinstance(max_bytes, (int, float, np.integer)) or \
@@ -200,6 +254,9 @@ class PlanCache:
         if not isinstance(graphs, (bool, np.bool_)):
             raise ValueError(f"PlanCache: graphs must be True or False, got {graphs!r}")
         self.graphs = bool(graphs)
+        if not isinstance(shared, (bool, np.bool_)):
+            raise ValueError(f"PlanCache: shared must be True or False, got {shared!r}")
+        self.shared = bool(shared)
         self._entries: OrderedDict = OrderedDict()   # key -> (batches, held bytes, budget check)
         self.hits = self.misses = self.evictions = 0
         self.lock = threading.RLock()
@@ -208,7 +265,7 @@ class PlanCache:
         return len(self._entries)
 
     def __repr__(self) -> str:
-        return (f"PlanCache({len(self)}/{self.max_entries} entries, {self.nbytes() / 2 ** 20:.3g} of "
+        return (f"PlanCache({'shared, ' if self.shared else ''}{len(self)}/{self.max_entries} entries, {self.nbytes() / 2 ** 20:.3g} of "
                 f"{self.max_bytes / 2 ** 20:.4g} MiB; {self.hits} hits, {self.misses} misses, {self.evictions} evicted)")
 
     def nbytes(self) -> int:
@@ -259,3 +316,54 @@ class PlanCache:
                 self._entries.popitem(last=False)
                 self.evictions += 1
             return True
+
+
+_DEFAULT = None
+_DEFAULT_SET = False
+_DEFAULT_LOCK = threading.Lock()
+
+
+def default_cache():
+    """The process-wide :class:`PlanCache` that ``rw.psf(..., cache="auto")`` (its default) uses: made on first use
+    with :data:`SHARED_MAX_ENTRIES` entries and :data:`SHARED_MAX_BYTES` bytes (512 MiB of kept device and host
+    arrays, counted as :meth:`PlanCache.nbytes` counts them) and ``shared=True``, or the one given to
+    :func:`set_default_cache`. None where the environment variable ``RWWARP_PLAN_CACHE`` is ``0`` / ``off`` /
+    ``false`` / ``no`` (read at every call) or :func:`set_default_cache` was given None."""
+    import os
+    if os.environ.get(ENV_VAR, "").strip().lower() in ("0", "off", "false", "no"):
+        return None
+    global _DEFAULT
+    with _DEFAULT_LOCK:
+        if _DEFAULT is None and not _DEFAULT_SET:
+            _DEFAULT = PlanCache(SHARED_MAX_ENTRIES, SHARED_MAX_BYTES, shared=True)
+        return _DEFAULT
+
+
+def set_default_cache(cache):
+    """Make ``cache`` what ``cache="auto"`` uses from now on: a :class:`PlanCache`, None (nothing kept), or ``"auto"``
+    (the built-in one of :func:`default_cache`, made anew on next use). The one it replaces is cleared. Returns the
+    setting it replaces (a cache, None, or "auto"), so that ``set_default_cache(old)`` restores it."""
+    if not (cache is None or isinstance(cache, PlanCache) or (isinstance(cache, str) and cache == "auto")):
+        raise TypeError(f"set_default_cache: a rwwarp.PlanCache, None or \"auto\", got {type(cache).__name__}")
+    global _DEFAULT, _DEFAULT_SET
+    with _DEFAULT_LOCK:
+        old = _DEFAULT if (_DEFAULT is not None or _DEFAULT_SET) else "auto"
+        if isinstance(cache, str):
+            _DEFAULT, _DEFAULT_SET = None, False
+        else:
+            _DEFAULT, _DEFAULT_SET = cache, True
+    if isinstance(old, PlanCache) and old is not cache:
+        old.clear()
+    return old
+
+
+def resolve_cache(cache):
+    """The :class:`PlanCache` (or None) a public call's ``cache`` argument names: ``"auto"``: :func:`default_cache`;
+    None or False: None; a :class:`PlanCache`: itself. Anything else: TypeError."""
+    if isinstance(cache, str) and cache == "auto":
+        return default_cache()
+    if cache is None or cache is False:
+        return None
+    if not isinstance(cache, PlanCache):
+        raise TypeError(f"cache must be a rwwarp.PlanCache, \"auto\" or None, got {type(cache).__name__}")
+    return cache

@@ -13,6 +13,16 @@ from rwwarp.wave.plan_cache import lens_fingerprint
 from test_map import doe_lens, warp_launches
 
 
+@pytest.fixture(autouse=True)
+def _no_default_cache():
+    """These tests compare a given cache against the uncached calls: the process-wide default cache (rw.psf's
+    ``cache="auto"``) is off while they run (tests/rwwarp/test_warm_host.py tests it)."""
+    from rwwarp.wave.plan_cache import set_default_cache
+    old = set_default_cache(None)
+    yield
+    set_default_cache(old)
+
+
 def _same(a, b):
     """Bit equality of two PSF maps' data, centres, traced fractions and plans."""
     assert np.array_equal(a.data, b.data)
