@@ -13,6 +13,13 @@ from rwwarp.wave.plan import Plan
 from test_map import doe_lens
 
 
+@pytest.fixture(autouse=True)
+def _default_cache_on(monkeypatch):
+    """These tests are about the default cache: the perf scripts other tests import set RWWARP_PLAN_CACHE=0 in this
+    worker's environment (perf/_common.py: they time the planned call), which would turn it off here."""
+    monkeypatch.delenv("RWWARP_PLAN_CACHE", raising=False)
+
+
 def _asdict_reference(plan):
     """The dict ``Plan.to_dict`` gave before (the standard library's recursion, ``reasons`` as a list)."""
     d = dataclasses.asdict(plan)
