@@ -11,6 +11,7 @@ import rwwarp as rw
 from rwwarp.wave.plan_cache import lens_fingerprint
 
 from test_map import doe_lens, warp_launches
+from test_warm_host import change_in_place
 
 
 @pytest.fixture(autouse=True)
@@ -90,15 +91,8 @@ def test_an_in_place_change_of_the_lens_is_a_miss(change):
     first = rw.psf(lens, 0.0, 0.55, cache=cache, **kw)
     if change == "pixel_map_data":
         lens.surfaces[2].profile["data"][30, 30] += 1.0   # in place, in the numpy array
-    elif change == "radius":
-        lens.surfaces[1].focal_length *= 1.02
-    elif change == "doe_coefficient":
-        lens.surfaces[2].profile["coefficients"][0] += 4.0
-    elif change == "sensor_pitch":
-        lens.sensor.pixel_pitch *= 1.1
-    elif change == "thickness":
-        lens.surfaces[1].thickness += 0.05
-        lens.surfaces[2].thickness -= 0.05
+    else:
+        change_in_place(lens, "focal_length" if change == "radius" else change)
     again = rw.psf(lens, 0.0, 0.55, cache=cache, **kw)
     fresh = rw.psf(lens, 0.0, 0.55, **kw)
     assert again.info["cache"] == "miss"

@@ -117,9 +117,10 @@ def test_default_warm_call_is_a_hit_with_few_launches():
     assert runs[1][0] == runs[2][0] <= 6 < n_off, (runs[1][0], n_off)
 
 
-def _changed(change):
-    """A new thin-lens + DOE system with ``change`` applied (None: as built)."""
-    lens = doe_lens()
+def change_in_place(lens, change):
+    """Apply ``change`` in place to the thin-lens + DOE system of ``test_map.doe_lens`` (None: nothing):
+    "focal_length" (x 1.02), "doe_coefficient" (+4 rad), "sensor_pitch" (x 1.1), "thickness" (0.05 mm moved from
+    the DOE's gap to the lens's)."""
     if change == "focal_length":
         lens.surfaces[1].focal_length *= 1.02
     elif change == "doe_coefficient":
@@ -129,7 +130,14 @@ def _changed(change):
     elif change == "thickness":
         lens.surfaces[1].thickness += 0.05
         lens.surfaces[2].thickness -= 0.05
+    elif change is not None:
+        raise ValueError(f"unknown change {change!r}")
     return lens
+
+
+def _changed(change):
+    """A new thin-lens + DOE system with ``change`` applied (None: as built)."""
+    return change_in_place(doe_lens(), change)
 
 
 @pytest.mark.parametrize("change", ["focal_length", "doe_coefficient", "sensor_pitch", "thickness"])
@@ -139,16 +147,7 @@ def test_default_cache_follows_an_in_place_change_of_the_lens(change):
     lens = _changed(None)
     first = rw.psf(lens, 0.0, 0.55, **KW)
     assert rw.psf(lens, 0.0, 0.55, **KW).info["cache"] == "hit"
-    # the same change made in place on the cached lens object
-    if change == "focal_length":
-        lens.surfaces[1].focal_length *= 1.02
-    elif change == "doe_coefficient":
-        lens.surfaces[2].profile["coefficients"][0] += 4.0
-    elif change == "sensor_pitch":
-        lens.sensor.pixel_pitch *= 1.1
-    else:
-        lens.surfaces[1].thickness += 0.05
-        lens.surfaces[2].thickness -= 0.05
+    change_in_place(lens, change)   # the same change made in place on the cached lens object
     again = rw.psf(lens, 0.0, 0.55, **KW)
     fresh = rw.psf(_changed(change), 0.0, 0.55, cache=None, **KW)
     assert again.info["cache"] == "miss"
