@@ -648,18 +648,18 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     ray_capped = want > cap
     period = max(period, min(want, cap))
     rim_err = capped_rim_error(want, period, relax) if ray_capped else None
+    pitch = 1.0 / (float(np.max(A)) * period)
+    window = width_mm + 2.0 * width_mm / 31.0
+    n_grid = int(math.ceil(window / pitch)) + 3
     # (1e-9: a cap lifted for the tolerance meets it exactly)
     if rim_err is not None and rim_err > (FOCAL_RAY_CAP_WARN if sampling_tol is None else float(sampling_tol)) * (1 + 1e-9):
         warnings.warn(f"focal plan: the main order's rays land over {ray_spread * 1e3:.4g} um (a defocused or strongly "
-                      f"aberrated beam); their period {want * 1e3:.4g} um is capped at {FOCAL_RAY_MAX_GRID} wave-plane "
+                      f"aberrated beam); their period {want * 1e3:.4g} um is capped at {n_grid} wave-plane "
                       f"samples ({period * 1e3:.4g} um), so the pupil rim's sampling error is ~{rim_err:.2g} of the peak "
                       f"(the default rules' ~{SAMPLING_TOL:g}; "
                       f"{'the tolerance ' + format(float(sampling_tol), '.3g') if sampling_tol is not None else 'warned above ' + format(FOCAL_RAY_CAP_WARN, 'g')}). "
                       "The error follows the spread of the ray landings, not the patch: refocus, or accept it (the "
                       "plan's reasons carry the estimate)", SamplingWarning, stacklevel=2)
-    pitch = 1.0 / (float(np.max(A)) * period)
-    window = width_mm + 2.0 * width_mm / 31.0
-    n_grid = int(math.ceil(window / pitch)) + 3
     # rays: the splat is first order across a tube (its phase slope), so a tube may span several samples
     # (Cooke triplet, 14 deg, 64 px, against the stored truth: 2.14e-5 / 2.22e-5 / 2.37e-5 at samples / 2, 3,
     # 4 rays across); the pupil rim's error is first order in the ray pitch (on axis, 16 px: 1.5e-4 / 6.6e-5
