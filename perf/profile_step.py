@@ -1,4 +1,5 @@
-"""Where one joint design step of a config's ``e2e`` arm spends its time on a device.
+"""Where one joint design step of a config's ``e2e`` arm (or, with ``--arm``, any arm: one without optics to learn
+steps its network on its cached PSFs) spends its time on a device.
 
     python perf/profile_step.py --config cooke_hybrid --preset gpu --device cuda [--out DIR] [--cuda-graph]
 
@@ -92,13 +93,17 @@ def main():
     cuda = a.device.startswith("cuda")
 
     last = [None]
+    # the frozen optics' single-wavelength PSFs, kept across steps as the design loop keeps them (a learning arm's
+    # optics steps clear it): an arm without optics to learn (paraxial, rms_spot, blank_doe) times its network steps
+    psf_cache = {}
 
     def step(k):
         # the result kept until the next step's returns, as the design loop keeps it (torch_bridge.train.train_arm);
         # its values device tensors, read at the design loop's log steps only (lazy)
-        last[0] = train_step(arm, k, {}, None, lazy=True)
+        last[0] = train_step(arm, k, psf_cache, None, lazy=True)
         arm.opt_net.step()
-        arm.opt_optics.step()
+        if arm.opt_optics is not None:
+            arm.opt_optics.step()
         if cuda:
             torch.cuda.synchronize()
 
