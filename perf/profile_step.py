@@ -240,7 +240,7 @@ def main():
         for site, n in _count_syncs(lambda: step(a.steps + 3))[:25]:
             say(f"{n:6d}  {site}")
     if a.out:
-        tag = ("_pack" if a.pack else "") + (f"_tile{a.live_tile}" if a.live_tile is not None else "") + \
+        tag = (f"_{a.arm}" if a.arm else "") + ("_pack" if a.pack else "") + (f"_tile{a.live_tile}" if a.live_tile is not None else "") + \
             (f"_cache_{a.cache_device}" if a.cache_device else "") + ("_graph" if a.cuda_graph else "")
         p = Path(a.out) / f"profile_step_{a.config}_{a.device.replace(':', '')}{tag}.txt"
         p.parent.mkdir(parents=True, exist_ok=True)
