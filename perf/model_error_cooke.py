@@ -51,6 +51,9 @@ WL = 0.55
 PIX_MM, SIZE = 1e-3, 32
 BASE = dict(h=1.5e-3, dz=1e-3, margin=0.3)
 TEST = dict(h=2.0e-3, dz=1e-3, margin=0.2)        # the test's reduced sampling
+#: the guarded truth (``band``: the free-space steps' band, cycles/mm, about the carrier; the window's margin (mm)
+#: wide enough that no kept plane wave wraps back onto the beam: _cooke_truth.window_guard)
+GUARD = dict(margin=1.0, band=120.0)
 
 
 def rw_lens(epd_mm: float, coeffs) -> "rw.Lens":
@@ -137,8 +140,13 @@ def main():
     import json
     ap = argparse.ArgumentParser()
     ap.add_argument("--stage", choices=("base", "smooth", "slice", "pitch", "margin", "test",
-                                                  "element", "slice4", "chief"), default="base")
+                                                  "element", "slice4", "chief", "guard"), default="base")
     ap.add_argument("--fields", type=float, nargs="+", default=[0.0, 5.0])
+    ap.add_argument("--pitches", type=float, nargs="+", default=[2.0], help="stage guard: the pitches (um)")
+    ap.add_argument("--slices", type=float, nargs="+", default=[1.0], help="stage guard: the WPM slices (um)")
+    ap.add_argument("--rw", action="store_true", help="stage guard: rwwarp's PSFs against each truth")
+    ap.add_argument("--band", type=float, default=None, help="stage guard: the band (cycles/mm; GUARD's if unset)")
+    ap.add_argument("--margin", type=float, default=None, help="stage guard: the margin (mm; GUARD's if unset)")
     ap.add_argument("--pupil", choices=("iris", "entrance"), default="iris",
                     help="the truth's pupil: the physical iris at the stop, or rwwarp's entrance-pupil disc (keys "
                          "suffixed _entrance)")
@@ -156,6 +164,45 @@ def main():
             row, _ = run_case(f, BASE, pupil=args.pupil)
             key = "rows" + sfx
             res[key] = [r for r in res.get(key, []) if r["field_deg"] != f] + [{**row, "commit": commit}]
+        elif args.stage == "guard":
+            # the guarded truth (GUARD) at the pitches --pitches (um) and slices --slices (um), each on the first
+            # run's patch; each row: the measured error, the truth's and the model's change from the previous row
+            rows, prev_tm, pxy = [], None, {}
+            lens = Cooke(epd_mm=EPD, pupil=args.pupil)
+            me = plan_error(EPD, f, lens.coeffs)
+            for hp in args.pitches:
+                for dzs in args.slices:
+                    import resource
+                    samp = dict(h=hp * 1e-3, dz=dzs * 1e-3, **{**GUARD, **({"band": args.band} if args.band else {}),
+                                                               **({"margin": args.margin} if args.margin else {})})
+                    t0 = time.perf_counter()
+                    T, M, i1 = truth_and_model(lens, f, patch_pitch=0.5e-3, **samp, **pxy)
+                    pxy = pxy or dict(patch_x=i1["patch_x"], patch_y=i1["patch_y"])
+                    row = {"field_deg": f, "pupil": args.pupil, **samp, "grid_n": i1["grid_n"],
+                           "measured": measured_error(T, M),
+                           "measured_power_matched": measured_error(
+                               T * i1["power_doe_model"] / i1["power_doe_truth"], M),
+                           "estimate": me["estimate"], "ratio": me["estimate"] / measured_error(T, M),
+                           "power_doe_truth_over_iris": i1["power_doe_truth"] / i1["power_iris"],
+                           "power_doe_model_over_iris": i1["power_doe_model"] / i1["power_iris"],
+                           "wall_s": time.perf_counter() - t0,
+                           "max_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, "commit": commit}
+                    if prev_tm is not None:
+                        row["truth_change"] = float(np.max(np.abs(T - prev_tm[0])) / T.max())
+                        row["model_change"] = float(np.max(np.abs(M - prev_tm[1])) / M.max())
+                    if args.rw:
+                        ps = rw_psfs(rw_lens(EPD, lens.coeffs), f)
+                        for key in ("one_step", "wave_path"):
+                            row[key] = {**against_truth(i1["sensor"], ps[key], lens, f), "wall_s": ps[key + "_s"],
+                                        "wave_step_mm": ps[key].plan.get("wave_step_mm")}
+                    prev_tm = (T, M)
+                    rows.append(row)
+                    print(row, flush=True)
+                    key = "guarded" + sfx
+                    ident = ("field_deg", "h", "dz", "band", "margin")
+                    res[key] = [r for r in res.get(key, []) if tuple(r[i] for i in ident) !=
+                                tuple(row[i] for i in ident)] + [row]
+                    out()
         elif args.stage == "slice4":
             # the WPM's slice at a quarter (0.25 um), on the stored base row's patch (its truth not recomputed)
             base = next(r for r in res["rows" + sfx] if r["field_deg"] == f)

@@ -46,7 +46,7 @@ import numpy as np
 
 from _a489_truth import A489, LAM_MM, Grid, _fast, _fft2, _ifft2, catalogue_index, measured_error, wpm_zone
 
-__all__ = ["Cooke", "truth_and_model", "measured_error", "LAM_MM", "LENS_FILE"]
+__all__ = ["Cooke", "truth_and_model", "band_window", "window_guard", "measured_error", "LAM_MM", "LENS_FILE"]
 
 ROOT = Path(__file__).resolve().parents[2]
 LENS_FILE = ROOT / "torch_bridge" / "configs" / "lenses" / "cooke_hybrid.json"
@@ -222,9 +222,31 @@ class Cooke:
         return out.reshape(shape)
 
 
+def band_window(g: Grid, band=None, taper=0.3):
+    """The spectral window on the grid ``g`` (its frequencies, cycles/mm, carrier included): 1 within ``band`` -
+    ``taper`` share of it of the carrier, ``cos^2`` to 0 at ``band`` (cycles/mm); None: 1 (the grid's whole band)."""
+    if band is None:
+        return 1.0
+    if not np.isfinite(band) or band <= 0 or not 0 < taper <= 1:
+        raise ValueError(f"band_window: band={band!r} (cycles/mm) must be > 0 and taper={taper!r} in (0, 1]")
+    q = np.clip((np.hypot(g.NX - g.nu0, g.NY) - band * (1 - taper)) / (band * taper), 0.0, 1.0)
+    return np.cos(0.5 * np.pi * q) ** 2
+
+
+def window_guard(band, lam_mm, z_mm, window_mm, beam_mm, target_mm):
+    """The periodic window's guard (mm) for a free-space step: ``window_mm - beam_mm - target_mm - shift``, ``shift =
+    z tan(asin(lambda band))`` the farthest a kept plane wave moves over ``z_mm``; > 0: no kept light leaving the
+    beam (``beam_mm``: its half-width on the plane it leaves) re-enters the window within ``target_mm`` (the half-width
+    that must stay clean on the plane it reaches) of the centre. Lengths in mm, ``band`` in cycles/mm."""
+    s = lam_mm * band
+    if not 0 < s < 1:
+        raise ValueError(f"window_guard: lambda band = {s!r} must lie in (0, 1)")
+    return window_mm - beam_mm - target_mm - z_mm * s / np.sqrt(1 - s * s)
+
+
 def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
                     patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave",
-                    sub_slice="carrier"):
+                    sub_slice="carrier", band=None, taper=0.3):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
     the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm), ``soft``: the iris's cos^2
@@ -237,7 +259,14 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics).
     ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
-    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis)."""
+    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis). ``band`` (cycles/mm; None: the
+    grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
+    zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
+    carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
+    wide-angle light, which on the grid's full band crosses the window over the 32 mm to the DOE (or the DOE's 20 mm
+    to the sensor) and re-enters on its far side (a wrap that grows with the band, 1 / (2 h): the pitch-dependent
+    error of the earlier truth; :func:`window_guard` states the condition, ``test_cooke_truth_window.py`` the proof
+    on a case with an exact answer)."""
     t0 = time.perf_counter()
     th = np.radians(field_deg)
     lam, nu0 = lens.lam, np.sin(th) / lens.lam
@@ -248,6 +277,12 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     N = _fast((2 * lens.a + 2 * margin) / h)
     z0 = lens.zI if element == "wave" else lens.zv[s5] + 1e-3
     g = Grid(N, h, lens.chief_x(th, z0), nu0)
+    win = band_window(g, band, taper)
+
+    def prop(V, n, dz):
+        """The exact angular spectrum over ``dz`` (mm) in the index ``n``, on the band ``band``."""
+        return _ifft2(_fft2(V) * g.transfer(n, lam, dz) * win)
+
     X, Y = g.mesh()
     V = lens.geometric_field(X, Y, th, z0, h, soft=soft)
     info["power_iris"] = float(np.sum(np.abs(V) ** 2) * h * h)
@@ -264,7 +299,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         zones.append((min(lens.zv[i], lens.zv[i] + sg) - 1e-3, max(lens.zv[i], lens.zv[i] + sg) + 1e-3))
     zprev = lens.zI if element == "wave" else z0
     for (za, zb), i in (zip(zones, (s4, s5)) if element == "wave" else ()):
-        V = g.propagate(V, lens.n_before[i], lam, za - zprev)
+        V = prop(V, lens.n_before[i], za - zprev)
         V = g.move(V, lens.chief_x(th, za))
         X, Y = g.mesh()
         nu_s = nu0
@@ -274,7 +309,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i], lam,
                      dz, nu_s)
         zprev = zb
-    V = g.propagate(V, 1.0, lam, lens.zD - zprev)
+    V = prop(V, 1.0, lens.zD - zprev)
     V = g.move(V, lens.chief_x(th, lens.zD))
     X, Y = g.mesh()
     info["power_doe_truth"] = float(np.sum(np.abs(V) ** 2) * h * h)
@@ -288,7 +323,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         fields.append(Vm)
     inside = (np.abs(X) <= lens.doe_half) & (np.abs(Y) <= lens.doe_half)
     tdoe = np.exp(1j * lens.doe_phase(X, Y)) * inside
-    Hs = g.transfer(1.0, lam, lens.zS - lens.zD)
+    Hs = g.transfer(1.0, lam, lens.zS - lens.zD) * win
     spectra = [_fft2(f * tdoe) * Hs for f in fields]
     if patch_x is None:
         Ic = np.abs(_ifft2(spectra[0])) ** 2
