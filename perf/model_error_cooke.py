@@ -145,6 +145,8 @@ def main():
     ap.add_argument("--pitches", type=float, nargs="+", default=[2.0], help="stage guard: the pitches (um)")
     ap.add_argument("--slices", type=float, nargs="+", default=[1.0], help="stage guard: the WPM slices (um)")
     ap.add_argument("--rw", action="store_true", help="stage guard: rwwarp's PSFs against each truth")
+    ap.add_argument("--sub-slice", choices=("carrier", "chief", "local"), default="carrier",
+                    help="stage guard: the WPM's sub-slice frequency (truth_and_model's sub_slice)")
     ap.add_argument("--band", type=float, default=None, help="stage guard: the band (cycles/mm; GUARD's if unset)")
     ap.add_argument("--margin", type=float, default=None, help="stage guard: the margin (mm; GUARD's if unset)")
     ap.add_argument("--pupil", choices=("iris", "entrance"), default="iris",
@@ -173,7 +175,7 @@ def main():
             for hp in args.pitches:
                 for dzs in args.slices:
                     import resource
-                    samp = dict(h=hp * 1e-3, dz=dzs * 1e-3, **{**GUARD, **({"band": args.band} if args.band else {}),
+                    samp = dict(h=hp * 1e-3, dz=dzs * 1e-3, sub_slice=args.sub_slice, **{**GUARD, **({"band": args.band} if args.band else {}),
                                                                **({"margin": args.margin} if args.margin else {})})
                     t0 = time.perf_counter()
                     T, M, i1 = truth_and_model(lens, f, patch_pitch=0.5e-3, **samp, **pxy)
@@ -199,8 +201,8 @@ def main():
                     rows.append(row)
                     print(row, flush=True)
                     key = "guarded" + sfx
-                    ident = ("field_deg", "h", "dz", "band", "margin")
-                    res[key] = [r for r in res.get(key, []) if tuple(r[i] for i in ident) !=
+                    ident = ("field_deg", "h", "dz", "band", "margin", "sub_slice")
+                    res[key] = [r for r in res.get(key, []) if tuple(r.get(i, "carrier") for i in ident) !=
                                 tuple(row[i] for i in ident)] + [row]
                     out()
         elif args.stage == "slice4":

@@ -222,6 +222,54 @@ class Cooke:
         return out.reshape(shape)
 
 
+def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, dz, band=None):
+    """The WPM through the slab ``z_from .. z_to`` (mm) cut by the surface ``z = surf_z`` (mm, array on the grid), as
+    :func:`_a489_truth.wpm_zone` (each slice both media's exact transfer; a sample whose slice the surface cuts takes
+    the medium after's and the phase of its length ``g`` in the medium before) but with that phase
+    ``g (k_z,before(nu) - k_z,after(nu))`` at the sample's own transverse frequency ``nu`` (cycles/mm: the local
+    phase gradient of the field over 2 pi, from its neighbours, plus the carrier), not one frequency for the whole
+    beam: a tilted beam's local frequencies differ from the carrier by the converging beam's own spread, and the
+    carrier's phase is then wrong by ``g 2 pi lambda nu0 |1 / n_before - 1 / n_after| (nu - nu0)`` to first order, a
+    tilt across the beam proportional to the slice (the earlier truth's first-order slice error at 5 deg). ``band``
+    (cycles/mm, None: 0.9 times the medium's cut-off): the local frequency's largest offset from the carrier."""
+    nsl = max(1, int(np.ceil((z_to - z_from) / dz)))
+    dz = (z_to - z_from) / nsl
+    Hb, Ha = grid.transfer(n_before, lam, dz), grid.transfer(n_after, lam, dz)
+    nmin = min(n_before, n_after)
+    cap = 0.9 * nmin / lam if band is None else float(band)
+    h, nu0 = grid.h, grid.nu0
+
+    def kz(n, fx, fy):
+        return 2 * np.pi * np.sqrt(np.maximum((n / lam) ** 2 - fx * fx - fy * fy, 0.0))
+
+    for i in range(nsl):
+        z = z_from + i * dz
+        g = np.clip(surf_z - z, 0.0, dz)
+        A = _fft2(V)
+        if np.all(g >= dz):
+            V = _ifft2(A * Hb)
+            continue
+        if np.all(g <= 0):
+            V = _ifft2(A * Ha)
+            continue
+        cut = (g > 0) & (g < dz)
+        # the local frequency from the neighbours' phase difference (no unwrapping; the field is sampled well
+        # within its band), capped at ``cap`` from the carrier
+        fx = np.angle(np.roll(V, -1, axis=1) * np.conj(np.roll(V, 1, axis=1)))[cut] / (4 * np.pi * h)
+        fy = np.angle(np.roll(V, -1, axis=0) * np.conj(np.roll(V, 1, axis=0)))[cut] / (4 * np.pi * h)
+        r = np.hypot(fx, fy)
+        f = np.where(r > cap, cap / np.maximum(r, 1e-30), 1.0)
+        fx, fy = nu0 + fx * f, fy * f
+        Pa = _ifft2(A * Ha)
+        full = g >= dz
+        if full.any():
+            V = np.where(full, _ifft2(A * Hb), Pa)
+        else:
+            V = Pa
+        V[cut] *= np.exp(1j * g[cut] * (kz(n_before, fx, fy) - kz(n_after, fx, fy)))
+    return V
+
+
 def band_window(g: Grid, band=None, taper=0.3):
     """The spectral window on the grid ``g`` (its frequencies, cycles/mm, carrier included): 1 within ``band`` -
     ``taper`` share of it of the carrier, ``cos^2`` to 0 at ``band`` (cycles/mm); None: 1 (the grid's whole band)."""
@@ -259,7 +307,8 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics).
     ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
-    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis). ``band`` (cycles/mm; None: the
+    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis) or "local" (each sample's own,
+    :func:`wpm_zone_local`). ``band`` (cycles/mm; None: the
     grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
     zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
     carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
@@ -306,8 +355,12 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         if sub_slice == "chief":
             *_, dch = lens._trace(np.array([lens.chief(th)]), np.zeros(1), th, za, direction=True)
             nu_s = lens.n_before[i] * float(dch[0, 0]) / lam
-        V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i], lam,
-                     dz, nu_s)
+        if sub_slice == "local":
+            V = wpm_zone_local(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i],
+                               lens.n_after[i], lam, dz, band)
+        else:
+            V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i],
+                         lam, dz, nu_s)
         zprev = zb
     V = prop(V, 1.0, lens.zD - zprev)
     V = g.move(V, lens.chief_x(th, lens.zD))
