@@ -270,14 +270,15 @@ def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, 
     return V
 
 
-def band_window(g: Grid, band=None, taper=0.3):
+def band_window(g: Grid, band=None, taper=0.3, center=0.0):
     """The spectral window on the grid ``g`` (its frequencies, cycles/mm, carrier included): 1 within ``band`` -
-    ``taper`` share of it of the carrier, ``cos^2`` to 0 at ``band`` (cycles/mm); None: 1 (the grid's whole band)."""
+    ``taper`` share of it of the carrier plus ``center`` (cycles/mm, in x: the chief ray's frequency over the
+    carrier's), ``cos^2`` to 0 at ``band`` (cycles/mm); None: 1 (the grid's whole band)."""
     if band is None:
         return 1.0
     if not np.isfinite(band) or band <= 0 or not 0 < taper <= 1:
         raise ValueError(f"band_window: band={band!r} (cycles/mm) must be > 0 and taper={taper!r} in (0, 1]")
-    q = np.clip((np.hypot(g.NX - g.nu0, g.NY) - band * (1 - taper)) / (band * taper), 0.0, 1.0)
+    q = np.clip((np.hypot(g.NX - g.nu0 - center, g.NY) - band * (1 - taper)) / (band * taper), 0.0, 1.0)
     return np.cos(0.5 * np.pi * q) ** 2
 
 
@@ -326,11 +327,18 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     N = _fast((2 * lens.a + 2 * margin) / h)
     z0 = lens.zI if element == "wave" else lens.zv[s5] + 1e-3
     g = Grid(N, h, lens.chief_x(th, z0), nu0)
-    win = band_window(g, band, taper)
+    uc = lens.chief(th)
 
-    def prop(V, n, dz):
-        """The exact angular spectrum over ``dz`` (mm) in the index ``n``, on the band ``band``."""
-        return _ifft2(_fft2(V) * g.transfer(n, lam, dz) * win)
+    def chief_nu(z):
+        """The chief ray's transverse frequency over the carrier's at the plane ``z`` (cycles/mm)."""
+        *_, dch = lens._trace(np.array([uc]), np.zeros(1), th, z, direction=True)
+        return lens.medium(z) * float(dch[0, 0]) / lam - nu0
+
+    def prop(V, n, dz, z):
+        """The exact angular spectrum over ``dz`` (mm) in the index ``n`` from the plane ``z``, on the band ``band``
+        about the chief ray's frequency there (the 5 deg beam's rim reaches 88 cycles/mm over the carrier at the
+        iris: a band about the carrier would cut it)."""
+        return _ifft2(_fft2(V) * g.transfer(n, lam, dz) * band_window(g, band, taper, chief_nu(z + 1e-9)))
 
     X, Y = g.mesh()
     V = lens.geometric_field(X, Y, th, z0, h, soft=soft)
@@ -348,7 +356,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         zones.append((min(lens.zv[i], lens.zv[i] + sg) - 1e-3, max(lens.zv[i], lens.zv[i] + sg) + 1e-3))
     zprev = lens.zI if element == "wave" else z0
     for (za, zb), i in (zip(zones, (s4, s5)) if element == "wave" else ()):
-        V = prop(V, lens.n_before[i], za - zprev)
+        V = prop(V, lens.n_before[i], za - zprev, zprev)
         V = g.move(V, lens.chief_x(th, za))
         X, Y = g.mesh()
         nu_s = nu0
@@ -362,7 +370,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
             V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i],
                          lam, dz, nu_s)
         zprev = zb
-    V = prop(V, 1.0, lens.zD - zprev)
+    V = prop(V, 1.0, lens.zD - zprev, zprev)
     V = g.move(V, lens.chief_x(th, lens.zD))
     X, Y = g.mesh()
     info["power_doe_truth"] = float(np.sum(np.abs(V) ** 2) * h * h)
@@ -376,7 +384,11 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         fields.append(Vm)
     inside = (np.abs(X) <= lens.doe_half) & (np.abs(Y) <= lens.doe_half)
     tdoe = np.exp(1j * lens.doe_phase(X, Y)) * inside
-    Hs = g.transfer(1.0, lam, lens.zS - lens.zD) * win
+    # the sensor step's band about the chief ray's frequency behind the DOE (its phase's slope added)
+    xc = lens.chief_x(th, lens.zD)
+    e = 1e-4
+    nu_doe = (lens.doe_phase(xc + e, 0.0) - lens.doe_phase(xc - e, 0.0)) / (2 * e) / (2 * np.pi)
+    Hs = g.transfer(1.0, lam, lens.zS - lens.zD) * band_window(g, band, taper, chief_nu(lens.zD) + nu_doe)
     spectra = [_fft2(f * tdoe) * Hs for f in fields]
     if patch_x is None:
         Ic = np.abs(_ifft2(spectra[0])) ** 2
