@@ -17,11 +17,17 @@ at 0.55 um, its design wavelength). For each case (0 and 5 deg):
   integrated by 3 x 3 Gauss-Legendre nodes, over the entering power ``pi (EPD / 2)^2``): max |difference| over the
   truth's largest pixel.
 
-Checks: the truth with its pitch or slice refined (1.5 -> 1.0 um, 1 -> 0.5 / 0.25 um), its window's margin doubled,
+The truth is the guarded one (``band``: every free-space step's band about the chief ray, cycles/mm, and a margin
+that keeps the edge's wide-angle light from wrapping round the periodic window; rows before commit 59f8548 were
+computed on the whole band with a 0.3 mm margin: the pitch-dependent error docs/accuracy.md describes).
+Stage guard: the convergence in pitch, slice and band (``--pitches``, ``--slices``, ``--band``, ``--margin``,
+``--sub-slice``, ``--rw``). Checks: the truth with its pitch or slice refined (2 -> 1.0 um, 1 -> 0.5 / 0.25 um),
+its window's margin doubled,
 and the smooth-pupil control (the stop's amplitude a cos^2 over its radius: no edge; the truth against geometric
 optics). The test's reduced sampling (``test_model_error_cooke.py``) is measured here too.
 CPU only (2 shared cores): ~2-3 min a base case, ~4-8 min a refined one.
-Stages: base (the cases with rwwarp's PSFs), smooth (the smooth pupil), test (the test's sampling), slice / pitch /
+Stages: guard (the guarded truth's convergence, rows "guarded"), base (the cases with rwwarp's PSFs), smooth (the
+smooth pupil), test (the test's sampling), slice / pitch /
 margin (the truth refined against the base, on its patch), slice4 (the slice at 0.25 um on the stored base patch),
 element (a diagnostic: the last element traced instead of the WPM); ``--pupil entrance``: rwwarp's entrance-pupil
 disc instead of the physical iris (keys suffixed _entrance).
@@ -49,8 +55,8 @@ from _cooke_truth import LENS_FILE, Cooke, measured_error, truth_and_model  # no
 EPD = 3.0
 WL = 0.55
 PIX_MM, SIZE = 1e-3, 32
-BASE = dict(h=1.5e-3, dz=1e-3, margin=0.3)
-TEST = dict(h=2.0e-3, dz=1e-3, margin=0.2)        # the test's reduced sampling
+BASE = dict(h=2.0e-3, dz=1e-3, margin=1.0, band=120.0)   # the guarded truth (stage guard: its convergence)
+TEST = dict(h=3.0e-3, dz=1e-3, margin=0.8, band=120.0)   # the test's reduced sampling
 #: the guarded truth (``band``: the free-space steps' band, cycles/mm, about the carrier; the window's margin (mm)
 #: wide enough that no kept plane wave wraps back onto the beam: _cooke_truth.window_guard)
 GUARD = dict(margin=1.0, band=120.0)
@@ -104,7 +110,8 @@ def run_case(field_deg: float, samp: dict, epd_mm=EPD, with_rw=True, soft=0.0, p
     T, M, info = truth_and_model(lens, field_deg, patch_pitch=0.5e-3, soft=soft, element=element, **samp)
     row = {"field_deg": field_deg, "epd_mm": epd_mm, "pupil": pupil, "element": element, "iris_radius_mm": lens.a,
            "doe_coefficients": list(lens.coeffs),
-           "pitch_mm": samp["h"], "slice_mm": samp["dz"], "margin_mm": samp["margin"], "soft": soft,
+           "pitch_mm": samp["h"], "slice_mm": samp["dz"], "margin_mm": samp["margin"], "band": samp.get("band"),
+           "soft": soft,
            "measured": measured_error(T, M), "grid_n": info["grid_n"],
            # a diagnostic: the truth scaled to the model's power on the DOE plane (the WPM's obliquity: see docs)
            "measured_power_matched": measured_error(T * info["power_doe_model"] / info["power_doe_truth"], M),
@@ -160,6 +167,12 @@ def main():
                 "pixel_mm": PIX_MM, "size": SIZE})
     commit = git_commit()
     sfx = "" if args.pupil == "iris" else "_entrance"
+    gsfx = sfx                 # stage guard's rows: "guarded" + gsfx
+    sfx += "_guarded"          # the other stages' keys since BASE is guarded (keys without it: the earlier truth)
+    res["keys_note"] = ("keys without 'guarded' (rows, smooth_pupil, test_sampling, convergence_*, element_geometric, "
+                        "sub_slice_chief and their _entrance forms): the earlier truth on the grid's whole band with a "
+                        "0.3 mm margin (commits 31ad22e-24b45e1), whose error grew as the pitch fell (the wrap: "
+                        "docs/accuracy.md); 'guarded' and '*_guarded': the guarded truth (band about the chief ray)")
     out = lambda: save("model_error_cooke", res)                        # noqa: E731
     for f in args.fields:
         if args.stage == "base":
@@ -175,8 +188,9 @@ def main():
             for hp in args.pitches:
                 for dzs in args.slices:
                     import resource
-                    samp = dict(h=hp * 1e-3, dz=dzs * 1e-3, sub_slice=args.sub_slice, **{**GUARD, **({"band": args.band} if args.band else {}),
-                                                               **({"margin": args.margin} if args.margin else {})})
+                    over = {**({"band": args.band} if args.band else {}),
+                            **({"margin": args.margin} if args.margin else {})}
+                    samp = dict(h=hp * 1e-3, dz=dzs * 1e-3, sub_slice=args.sub_slice, **{**GUARD, **over})
                     t0 = time.perf_counter()
                     T, M, i1 = truth_and_model(lens, f, patch_pitch=0.5e-3, **samp, **pxy)
                     pxy = pxy or dict(patch_x=i1["patch_x"], patch_y=i1["patch_y"])
@@ -200,7 +214,7 @@ def main():
                     prev_tm = (T, M)
                     rows.append(row)
                     print(row, flush=True)
-                    key = "guarded" + sfx
+                    key = "guarded" + gsfx
                     ident = ("field_deg", "h", "dz", "band", "margin", "sub_slice")
                     res[key] = [r for r in res.get(key, []) if tuple(r.get(i, "carrier") for i in ident) !=
                                 tuple(row[i] for i in ident)] + [row]
@@ -257,7 +271,7 @@ def main():
             # convergence: the base truth against one with the slice halved, the pitch 1.5 -> 1.0 um, or the
             # window's margin doubled, on the base patch
             samp = {"slice": {**BASE, "dz": 0.5e-3}, "pitch": {**BASE, "h": 1.0e-3},
-                    "margin": {**BASE, "margin": 0.6}}[args.stage]
+                    "margin": {**BASE, "margin": 2 * BASE["margin"]}}[args.stage]
             T0, M0, i0 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_pitch=0.5e-3, **BASE)
             t0 = time.perf_counter()
             T, M, i1 = truth_and_model(Cooke(epd_mm=EPD, pupil=args.pupil), f, patch_x=i0["patch_x"],

@@ -26,11 +26,13 @@ entrance pupil's radius ``epd / 2`` (so on the axis the iris cuts the entrance p
   the same exact angular spectrum to the sensor (20 mm), evaluated on a patch by a matrix DFT.
 
 ``pupil="entrance"`` (:class:`Cooke`): the rays cut as rwwarp cuts the lens file's floating stop instead, by the
-entrance pupil's disc (the edge still diffracts from the iris's plane). Convergence (perf/model_error_cooke.py): on the
-axis the base sampling (1.5 um, 1 um slices) and a 2 um grid give measured errors 2.5e-3 / 2.1e-3 of the peak (the
-smooth-pupil floor 1.0e-3); at 5 deg the measured error reads 1.23e-2 / 7.3e-3 / 4.9e-3 at slices of 1 / 0.5 / 0.25
-um (first order in the slice; halving it from 1 um moves the truth by 5e-3 of its peak): off axis this truth needs
-far finer slices than the A489's (whose errors were 100x larger), or a better sub-slice rule.
+entrance pupil's disc (the edge still diffracts from the iris's plane).
+
+Convergence (perf/model_error_cooke.py, stage guard; docs/accuracy.md): the guarded truth (``band=120`` cycles/mm about the chief ray on every free-space step, a 1 mm margin) reads on the axis 3.39e-3
+of the peak at pitches of 2 and 1.5 um and slices of 1 and 0.5 um (the truth moved by 1e-6 / 9e-6 of its peak); at 5
+deg 12.4e-3 / 7.37e-3 / 4.90e-3 at slices of 1 / 0.5 / 0.25 um: first order in the slice (a Richardson extrapolation
+gives 2.4e-3), its source not found. Without the guard (``band=None``, the earlier truth) the hard edge's wide-angle
+light wraps round the periodic window and the error grows as the pitch falls (2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um).
 
 Fields are ``U ~ exp(+i k OPL)``; the carrier ``exp(2 pi i sin(theta) x / lambda)`` is taken out of every grid; each
 plane's window follows the chief ray (a roll of the periodic grid). Both fields keep ``int |U|^2 dA``. Lengths in mm,
@@ -285,8 +287,8 @@ def band_window(g: Grid, band=None, taper=0.3, center=0.0):
 def window_guard(band, lam_mm, z_mm, window_mm, beam_mm, target_mm):
     """The periodic window's guard (mm) for a free-space step: ``window_mm - beam_mm - target_mm - shift``, ``shift =
     z tan(asin(lambda band))`` the farthest a kept plane wave moves over ``z_mm``; > 0: no kept light leaving the
-    beam (``beam_mm``: its half-width on the plane it leaves) re-enters the window within ``target_mm`` (the half-width
-    that must stay clean on the plane it reaches) of the centre. Lengths in mm, ``band`` in cycles/mm."""
+    beam (``beam_mm``: its half-width on the plane it leaves) re-enters the window within ``target_mm`` (the
+    half-width that must stay clean on the plane it reaches) of the centre. Lengths in mm, ``band`` in cycles/mm."""
     s = lam_mm * band
     if not 0 < s < 1:
         raise ValueError(f"window_guard: lambda band = {s!r} must lie in (0, 1)")

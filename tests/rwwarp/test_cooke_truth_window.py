@@ -5,8 +5,8 @@ angular spectrum on a periodic grid. On the grid's whole band (``1 / (2 h)``) th
 crosses the window and re-enters on its far side; the finer the pitch, the more of it: the earlier truth's model
 error rose as its pitch fell (2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um on the Cooke's axis). The guard
 (``truth_and_model(band=..., margin=...)``): every free-space step keeps only the frequencies within ``band`` of the
-carrier (a ``cos^2`` roll-off, :func:`_cooke_truth.band_window`), and the window is wide enough that no kept plane wave
-wraps back onto the beam (:func:`_cooke_truth.window_guard` > 0).
+carrier (a ``cos^2`` roll-off, :func:`_cooke_truth.band_window`), and the window is wide enough that no kept plane
+wave wraps back onto the beam (:func:`_cooke_truth.window_guard` > 0).
 
 The case: the Cooke's iris (radius 1.141 mm, 0.55 um) with an ideal thin lens of 50 mm on it (a converging wave),
 the DOE plane 31.64 mm behind (the Cooke's iris-to-DOE distance), a quadratic DOE that moves the focus onto the

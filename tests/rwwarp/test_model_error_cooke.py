@@ -51,8 +51,8 @@ def reduced():
 
 def test_the_truth_keeps_the_power_through_the_last_element(reduced):
     # the angular spectrum is unitary on its band and the WPM's slices keep |U|^2 but for the sub-slice phase; the
-    # band (120 cycles/mm) drops the edge's wide-angle light. Measured (perf/results/model_error_cooke.json, "guarded"):
-    # DOE plane / iris 0.99919 / 0.99908 / 0.99940 (the truth at 2 / 1.5 / 3 um), 0.99952 / 0.99967 / 0.99927 (the
+    # band (120 cycles/mm) drops the edge's wide-angle light. Measured (perf/results/model_error_cooke.json,
+    # "guarded"): DOE plane / iris 0.99919 / 0.99908 / 0.99940 (the truth at 2 / 1.5 / 3 um), 0.99952 / 0.99967 / 0.99927 (the
     # geometric model: its rim samples' share of the cell). A lost or doubled slice, a wrong medium in a zone or a
     # window moved by the wrong number of samples moves these by > 1e-2
     _, _, _, info = reduced
