@@ -147,7 +147,8 @@ def main():
     import json
     ap = argparse.ArgumentParser()
     ap.add_argument("--stage", choices=("base", "smooth", "slice", "pitch", "margin", "test",
-                                                  "element", "slice4", "chief", "guard"), default="base")
+                                                  "element", "slice4", "chief", "guard", "zones"),
+                    default="base")
     ap.add_argument("--fields", type=float, nargs="+", default=[0.0, 5.0])
     ap.add_argument("--pitches", type=float, nargs="+", default=[2.0], help="stage guard: the pitches (um)")
     ap.add_argument("--slices", type=float, nargs="+", default=[1.0], help="stage guard: the WPM slices (um)")
@@ -219,6 +220,22 @@ def main():
                     res[key] = [r for r in res.get(key, []) if tuple(r.get(i, "carrier") for i in ident) !=
                                 tuple(row[i] for i in ident)] + [row]
                     out()
+        elif args.stage == "zones":
+            # which sag zone carries the 5 deg slice error: the slice halved in one zone only (guarded truth, 2 um)
+            lens = Cooke(epd_mm=EPD, pupil=args.pupil)
+            pxy, rows = {}, []
+            for pair in ((1e-3, 1e-3), (0.5e-3, 1e-3), (1e-3, 0.5e-3)):
+                t0 = time.perf_counter()
+                T, M, i1 = truth_and_model(lens, f, patch_pitch=0.5e-3, h=2e-3, dz=pair, **GUARD, **pxy)
+                pxy = pxy or dict(patch_x=i1["patch_x"], patch_y=i1["patch_y"])
+                rows.append({"field_deg": f, "h": 2e-3, "dz_zone4": pair[0], "dz_zone5": pair[1], **GUARD,
+                             "measured": measured_error(T, M), "wall_s": time.perf_counter() - t0, "commit": commit})
+                if len(rows) > 1:
+                    rows[-1]["truth_change_from_1um"] = float(np.max(np.abs(T - T0)) / T.max())
+                else:
+                    T0 = T
+                print(rows[-1], flush=True)
+            res["zones_guarded" + gsfx] = [r for r in res.get("zones_guarded" + gsfx, []) if r["field_deg"] != f] + rows
         elif args.stage == "slice4":
             # the WPM's slice at a quarter (0.25 um), on the stored base row's patch (its truth not recomputed)
             base = next(r for r in res["rows" + sfx] if r["field_deg"] == f)

@@ -300,7 +300,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
                     sub_slice="carrier", band=None, taper=0.3):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
-    the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm), ``soft``: the iris's cos^2
+    the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm; a pair: surface 4's zone's and surface 5's), ``soft``: the iris's cos^2
     roll-off share (0: the hard iris; > 0: no edge, the truth against geometric optics), ``margin`` (mm): the window
     beyond the beam's diameter at the iris. The patch: pixel centres ``patch_x`` / ``patch_y`` (mm; the truth's
     x is the field's direction) or, if None, the truth's spot (where it exceeds 1 % of its peak, plus 10 um) at
@@ -356,8 +356,9 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         rmax2 = float(np.max(xr ** 2 + yr ** 2)) + 0.05
         sg = float(lens.sag(i, rmax2))
         zones.append((min(lens.zv[i], lens.zv[i] + sg) - 1e-3, max(lens.zv[i], lens.zv[i] + sg) + 1e-3))
+    dzs = tuple(dz) if np.ndim(dz) else (dz, dz)          # the slice in surface 4's zone and in surface 5's
     zprev = lens.zI if element == "wave" else z0
-    for (za, zb), i in (zip(zones, (s4, s5)) if element == "wave" else ()):
+    for (za, zb), i, dz in (zip(zones, (s4, s5), dzs) if element == "wave" else ()):
         V = prop(V, lens.n_before[i], za - zprev, zprev)
         V = g.move(V, lens.chief_x(th, za))
         X, Y = g.mesh()
