@@ -224,7 +224,7 @@ class Cooke:
         return out.reshape(shape)
 
 
-def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, dz, band=None):
+def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, dz, band=None, nearest=False):
     """The WPM through the slab ``z_from .. z_to`` (mm) cut by the surface ``z = surf_z`` (mm, array on the grid), as
     :func:`_a489_truth.wpm_zone` (each slice both media's exact transfer; a sample whose slice the surface cuts takes
     the medium after's and the phase of its length ``g`` in the medium before) but with that phase
@@ -233,7 +233,10 @@ def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, 
     beam: a tilted beam's local frequencies differ from the carrier by the converging beam's own spread, and the
     carrier's phase is then wrong by ``g 2 pi lambda nu0 |1 / n_before - 1 / n_after| (nu - nu0)`` to first order, a
     tilt across the beam proportional to the slice (the earlier truth's first-order slice error at 5 deg). ``band``
-    (cycles/mm, None: 0.9 times the medium's cut-off): the local frequency's largest offset from the carrier."""
+    (cycles/mm, None: 0.9 times the medium's cut-off): the local frequency's largest offset from the carrier.
+    ``nearest``: a cut sample whose slice lies mostly before the surface (``g >= dz / 2``) takes the medium before's
+    transfer and the phase of its length ``dz - g`` in the medium after instead (each sample the medium it mostly
+    lies in)."""
     nsl = max(1, int(np.ceil((z_to - z_from) / dz)))
     dz = (z_to - z_from) / nsl
     Hb, Ha = grid.transfer(n_before, lam, dz), grid.transfer(n_after, lam, dz)
@@ -263,12 +266,14 @@ def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, 
         f = np.where(r > cap, cap / np.maximum(r, 1e-30), 1.0)
         fx, fy = nu0 + fx * f, fy * f
         Pa = _ifft2(A * Ha)
-        full = g >= dz
+        dk = kz(n_before, fx, fy) - kz(n_after, fx, fy)
+        full = (g >= dz) | ((g >= 0.5 * dz) if nearest else False)
         if full.any():
             V = np.where(full, _ifft2(A * Hb), Pa)
         else:
             V = Pa
-        V[cut] *= np.exp(1j * g[cut] * (kz(n_before, fx, fy) - kz(n_after, fx, fy)))
+        gc = g[cut]
+        V[cut] *= np.exp(1j * np.where(full[cut], gc - dz, gc) * dk)
     return V
 
 
@@ -311,7 +316,7 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
     ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis) or "local" (each sample's own,
-    :func:`wpm_zone_local`). ``band`` (cycles/mm; None: the
+    :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in). ``band`` (cycles/mm; None: the
     grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
     zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
     carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
@@ -366,9 +371,9 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         if sub_slice == "chief":
             *_, dch = lens._trace(np.array([lens.chief(th)]), np.zeros(1), th, za, direction=True)
             nu_s = lens.n_before[i] * float(dch[0, 0]) / lam
-        if sub_slice == "local":
+        if sub_slice in ("local", "nearest"):
             V = wpm_zone_local(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i],
-                               lens.n_after[i], lam, dz, band)
+                               lens.n_after[i], lam, dz, band, nearest=sub_slice == "nearest")
         else:
             V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i],
                          lam, dz, nu_s)
