@@ -26,11 +26,13 @@ entrance pupil's radius ``epd / 2`` (so on the axis the iris cuts the entrance p
   the same exact angular spectrum to the sensor (20 mm), evaluated on a patch by a matrix DFT.
 
 ``pupil="entrance"`` (:class:`Cooke`): the rays cut as rwwarp cuts the lens file's floating stop instead, by the
-entrance pupil's disc (the edge still diffracts from the iris's plane). Convergence (perf/model_error_cooke.py): on the
-axis the base sampling (1.5 um, 1 um slices) and a 2 um grid give measured errors 2.5e-3 / 2.1e-3 of the peak (the
-smooth-pupil floor 1.0e-3); at 5 deg the measured error reads 1.23e-2 / 7.3e-3 / 4.9e-3 at slices of 1 / 0.5 / 0.25
-um (first order in the slice; halving it from 1 um moves the truth by 5e-3 of its peak): off axis this truth needs
-far finer slices than the A489's (whose errors were 100x larger), or a better sub-slice rule.
+entrance pupil's disc (the edge still diffracts from the iris's plane).
+
+Convergence (perf/model_error_cooke.py, stage guard; docs/accuracy.md): the guarded truth (``band=120`` cycles/mm about the chief ray on every free-space step, a 1 mm margin) reads on the axis 3.39e-3
+of the peak at pitches of 2 and 1.5 um and slices of 1 and 0.5 um (the truth moved by 1e-6 / 9e-6 of its peak); at 5
+deg 12.4e-3 / 7.37e-3 / 4.90e-3 at slices of 1 / 0.5 / 0.25 um: first order in the slice (a Richardson extrapolation
+gives 2.4e-3), its source not found. Without the guard (``band=None``, the earlier truth) the hard edge's wide-angle
+light wraps round the periodic window and the error grows as the pitch falls (2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um).
 
 Fields are ``U ~ exp(+i k OPL)``; the carrier ``exp(2 pi i sin(theta) x / lambda)`` is taken out of every grid; each
 plane's window follows the chief ray (a roll of the periodic grid). Both fields keep ``int |U|^2 dA``. Lengths in mm,
@@ -46,7 +48,7 @@ import numpy as np
 
 from _a489_truth import A489, LAM_MM, Grid, _fast, _fft2, _ifft2, catalogue_index, measured_error, wpm_zone
 
-__all__ = ["Cooke", "truth_and_model", "measured_error", "LAM_MM", "LENS_FILE"]
+__all__ = ["Cooke", "truth_and_model", "band_window", "window_guard", "measured_error", "LAM_MM", "LENS_FILE"]
 
 ROOT = Path(__file__).resolve().parents[2]
 LENS_FILE = ROOT / "torch_bridge" / "configs" / "lenses" / "cooke_hybrid.json"
@@ -222,12 +224,88 @@ class Cooke:
         return out.reshape(shape)
 
 
+def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, dz, band=None, nearest=False):
+    """The WPM through the slab ``z_from .. z_to`` (mm) cut by the surface ``z = surf_z`` (mm, array on the grid), as
+    :func:`_a489_truth.wpm_zone` (each slice both media's exact transfer; a sample whose slice the surface cuts takes
+    the medium after's and the phase of its length ``g`` in the medium before) but with that phase
+    ``g (k_z,before(nu) - k_z,after(nu))`` at the sample's own transverse frequency ``nu`` (cycles/mm: the local
+    phase gradient of the field over 2 pi, from its neighbours, plus the carrier), not one frequency for the whole
+    beam: a tilted beam's local frequencies differ from the carrier by the converging beam's own spread, and the
+    carrier's phase is then wrong by ``g 2 pi lambda nu0 |1 / n_before - 1 / n_after| (nu - nu0)`` to first order, a
+    tilt across the beam proportional to the slice (the earlier truth's first-order slice error at 5 deg). ``band``
+    (cycles/mm, None: 0.9 times the medium's cut-off): the local frequency's largest offset from the carrier.
+    ``nearest``: a cut sample whose slice lies mostly before the surface (``g >= dz / 2``) takes the medium before's
+    transfer and the phase of its length ``dz - g`` in the medium after instead (each sample the medium it mostly
+    lies in)."""
+    nsl = max(1, int(np.ceil((z_to - z_from) / dz)))
+    dz = (z_to - z_from) / nsl
+    Hb, Ha = grid.transfer(n_before, lam, dz), grid.transfer(n_after, lam, dz)
+    nmin = min(n_before, n_after)
+    cap = 0.9 * nmin / lam if band is None else float(band)
+    h, nu0 = grid.h, grid.nu0
+
+    def kz(n, fx, fy):
+        return 2 * np.pi * np.sqrt(np.maximum((n / lam) ** 2 - fx * fx - fy * fy, 0.0))
+
+    for i in range(nsl):
+        z = z_from + i * dz
+        g = np.clip(surf_z - z, 0.0, dz)
+        A = _fft2(V)
+        if np.all(g >= dz):
+            V = _ifft2(A * Hb)
+            continue
+        if np.all(g <= 0):
+            V = _ifft2(A * Ha)
+            continue
+        cut = (g > 0) & (g < dz)
+        # the local frequency from the neighbours' phase difference (no unwrapping; the field is sampled well
+        # within its band), capped at ``cap`` from the carrier
+        fx = np.angle(np.roll(V, -1, axis=1) * np.conj(np.roll(V, 1, axis=1)))[cut] / (4 * np.pi * h)
+        fy = np.angle(np.roll(V, -1, axis=0) * np.conj(np.roll(V, 1, axis=0)))[cut] / (4 * np.pi * h)
+        r = np.hypot(fx, fy)
+        f = np.where(r > cap, cap / np.maximum(r, 1e-30), 1.0)
+        fx, fy = nu0 + fx * f, fy * f
+        Pa = _ifft2(A * Ha)
+        dk = kz(n_before, fx, fy) - kz(n_after, fx, fy)
+        full = (g >= dz) | ((g >= 0.5 * dz) if nearest else False)
+        if full.any():
+            V = np.where(full, _ifft2(A * Hb), Pa)
+        else:
+            V = Pa
+        gc = g[cut]
+        V[cut] *= np.exp(1j * np.where(full[cut], gc - dz, gc) * dk)
+    return V
+
+
+def band_window(g: Grid, band=None, taper=0.3, center=0.0):
+    """The spectral window on the grid ``g`` (its frequencies, cycles/mm, carrier included): 1 within ``band`` -
+    ``taper`` share of it of the carrier plus ``center`` (cycles/mm, in x: the chief ray's frequency over the
+    carrier's), ``cos^2`` to 0 at ``band`` (cycles/mm); None: 1 (the grid's whole band)."""
+    if band is None:
+        return 1.0
+    if not np.isfinite(band) or band <= 0 or not 0 < taper <= 1:
+        raise ValueError(f"band_window: band={band!r} (cycles/mm) must be > 0 and taper={taper!r} in (0, 1]")
+    q = np.clip((np.hypot(g.NX - g.nu0 - center, g.NY) - band * (1 - taper)) / (band * taper), 0.0, 1.0)
+    return np.cos(0.5 * np.pi * q) ** 2
+
+
+def window_guard(band, lam_mm, z_mm, window_mm, beam_mm, target_mm):
+    """The periodic window's guard (mm) for a free-space step: ``window_mm - beam_mm - target_mm - shift``, ``shift =
+    z tan(asin(lambda band))`` the farthest a kept plane wave moves over ``z_mm``; > 0: no kept light leaving the
+    beam (``beam_mm``: its half-width on the plane it leaves) re-enters the window within ``target_mm`` (the
+    half-width that must stay clean on the plane it reaches) of the centre. Lengths in mm, ``band`` in cycles/mm."""
+    s = lam_mm * band
+    if not 0 < s < 1:
+        raise ValueError(f"window_guard: lambda band = {s!r} must lie in (0, 1)")
+    return window_mm - beam_mm - target_mm - z_mm * s / np.sqrt(1 - s * s)
+
+
 def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
                     patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave",
-                    sub_slice="carrier"):
+                    sub_slice="carrier", band=None, taper=0.3):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
-    the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm), ``soft``: the iris's cos^2
+    the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm; a pair: surface 4's zone's and surface 5's), ``soft``: the iris's cos^2
     roll-off share (0: the hard iris; > 0: no edge, the truth against geometric optics), ``margin`` (mm): the window
     beyond the beam's diameter at the iris. The patch: pixel centres ``patch_x`` / ``patch_y`` (mm; the truth's
     x is the field's direction) or, if None, the truth's spot (where it exceeds 1 % of its peak, plus 10 um) at
@@ -237,7 +315,15 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     field 1 um behind the last surface's vertex instead, the iris-to-there distance left to geometric optics).
     ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
-    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis)."""
+    ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis) or "local" (each sample's own,
+    :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in). ``band`` (cycles/mm; None: the
+    grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
+    zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
+    carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
+    wide-angle light, which on the grid's full band crosses the window over the 32 mm to the DOE (or the DOE's 20 mm
+    to the sensor) and re-enters on its far side (a wrap that grows with the band, 1 / (2 h): the pitch-dependent
+    error of the earlier truth; :func:`window_guard` states the condition, ``test_cooke_truth_window.py`` the proof
+    on a case with an exact answer)."""
     t0 = time.perf_counter()
     th = np.radians(field_deg)
     lam, nu0 = lens.lam, np.sin(th) / lens.lam
@@ -248,6 +334,19 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     N = _fast((2 * lens.a + 2 * margin) / h)
     z0 = lens.zI if element == "wave" else lens.zv[s5] + 1e-3
     g = Grid(N, h, lens.chief_x(th, z0), nu0)
+    uc = lens.chief(th)
+
+    def chief_nu(z):
+        """The chief ray's transverse frequency over the carrier's at the plane ``z`` (cycles/mm)."""
+        *_, dch = lens._trace(np.array([uc]), np.zeros(1), th, z, direction=True)
+        return lens.medium(z) * float(dch[0, 0]) / lam - nu0
+
+    def prop(V, n, dz, z):
+        """The exact angular spectrum over ``dz`` (mm) in the index ``n`` from the plane ``z``, on the band ``band``
+        about the chief ray's frequency there (the 5 deg beam's rim reaches 88 cycles/mm over the carrier at the
+        iris: a band about the carrier would cut it)."""
+        return _ifft2(_fft2(V) * g.transfer(n, lam, dz) * band_window(g, band, taper, chief_nu(z + 1e-9)))
+
     X, Y = g.mesh()
     V = lens.geometric_field(X, Y, th, z0, h, soft=soft)
     info["power_iris"] = float(np.sum(np.abs(V) ** 2) * h * h)
@@ -262,19 +361,24 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         rmax2 = float(np.max(xr ** 2 + yr ** 2)) + 0.05
         sg = float(lens.sag(i, rmax2))
         zones.append((min(lens.zv[i], lens.zv[i] + sg) - 1e-3, max(lens.zv[i], lens.zv[i] + sg) + 1e-3))
+    dzs = tuple(dz) if np.ndim(dz) else (dz, dz)          # the slice in surface 4's zone and in surface 5's
     zprev = lens.zI if element == "wave" else z0
-    for (za, zb), i in (zip(zones, (s4, s5)) if element == "wave" else ()):
-        V = g.propagate(V, lens.n_before[i], lam, za - zprev)
+    for (za, zb), i, dz in (zip(zones, (s4, s5), dzs) if element == "wave" else ()):
+        V = prop(V, lens.n_before[i], za - zprev, zprev)
         V = g.move(V, lens.chief_x(th, za))
         X, Y = g.mesh()
         nu_s = nu0
         if sub_slice == "chief":
             *_, dch = lens._trace(np.array([lens.chief(th)]), np.zeros(1), th, za, direction=True)
             nu_s = lens.n_before[i] * float(dch[0, 0]) / lam
-        V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i], lam,
-                     dz, nu_s)
+        if sub_slice in ("local", "nearest"):
+            V = wpm_zone_local(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i],
+                               lens.n_after[i], lam, dz, band, nearest=sub_slice == "nearest")
+        else:
+            V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i],
+                         lam, dz, nu_s)
         zprev = zb
-    V = g.propagate(V, 1.0, lam, lens.zD - zprev)
+    V = prop(V, 1.0, lens.zD - zprev, zprev)
     V = g.move(V, lens.chief_x(th, lens.zD))
     X, Y = g.mesh()
     info["power_doe_truth"] = float(np.sum(np.abs(V) ** 2) * h * h)
@@ -288,7 +392,11 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         fields.append(Vm)
     inside = (np.abs(X) <= lens.doe_half) & (np.abs(Y) <= lens.doe_half)
     tdoe = np.exp(1j * lens.doe_phase(X, Y)) * inside
-    Hs = g.transfer(1.0, lam, lens.zS - lens.zD)
+    # the sensor step's band about the chief ray's frequency behind the DOE (its phase's slope added)
+    xc = lens.chief_x(th, lens.zD)
+    e = 1e-4
+    nu_doe = (lens.doe_phase(xc + e, 0.0) - lens.doe_phase(xc - e, 0.0)) / (2 * e) / (2 * np.pi)
+    Hs = g.transfer(1.0, lam, lens.zS - lens.zD) * band_window(g, band, taper, chief_nu(lens.zD) + nu_doe)
     spectra = [_fft2(f * tdoe) * Hs for f in fields]
     if patch_x is None:
         Ic = np.abs(_ifft2(spectra[0])) ** 2
