@@ -153,7 +153,7 @@ def main():
     ap.add_argument("--pitches", type=float, nargs="+", default=[2.0], help="stage guard: the pitches (um)")
     ap.add_argument("--slices", type=float, nargs="+", default=[1.0], help="stage guard: the WPM slices (um)")
     ap.add_argument("--rw", action="store_true", help="stage guard: rwwarp's PSFs against each truth")
-    ap.add_argument("--sub-slice", choices=("carrier", "chief", "local", "nearest"), default="carrier",
+    ap.add_argument("--sub-slice", choices=("carrier", "chief", "local", "nearest", "split"), default="carrier",
                     help="stage guard: the WPM's sub-slice frequency (truth_and_model's sub_slice)")
     ap.add_argument("--band", type=float, default=None, help="stage guard: the band (cycles/mm; GUARD's if unset)")
     ap.add_argument("--margin", type=float, default=None, help="stage guard: the margin (mm; GUARD's if unset)")
