@@ -31,7 +31,11 @@ entrance pupil's disc (the edge still diffracts from the iris's plane).
 Convergence (perf/model_error_cooke.py, stage guard; docs/accuracy.md): the guarded truth (``band=120`` cycles/mm about the chief ray on every free-space step, a 1 mm margin) reads on the axis 3.39e-3
 of the peak at pitches of 2 and 1.5 um and slices of 1 and 0.5 um (the truth moved by 1e-6 / 9e-6 of its peak); at 5
 deg 12.4e-3 / 7.37e-3 / 4.90e-3 at slices of 1 / 0.5 / 0.25 um: first order in the slice (a Richardson extrapolation
-gives 2.4e-3), its source not found. Without the guard (``band=None``, the earlier truth) the hard edge's wide-angle
+gives 2.4e-3). Its source: the WPM's cut-sample phase applied after the slice's step, so the refraction's frequency
+step comes at the slice's end (first order in the slice times the beam's tilt times the surface's slope; on a flat
+tilted interface against Snell, ``test_wpm_tilted_interface.py``); ``sub_slice="split"`` (:func:`wpm_zone_local`'s
+``split``) reads 3.16e-3 / 2.70e-3 at 1 / 0.5 um (the truth moved 4.7e-4 of its peak, 11x less), 3.37e-3 on the
+axis at 1 um. Without the guard (``band=None``, the earlier truth) the hard edge's wide-angle
 light wraps round the periodic window and the error grows as the pitch falls (2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um).
 
 Fields are ``U ~ exp(+i k OPL)``; the carrier ``exp(2 pi i sin(theta) x / lambda)`` is taken out of every grid; each
@@ -338,7 +342,8 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
     ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis) or "local" (each sample's own,
-    :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in). ``band`` (cycles/mm; None: the
+    :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in; "split": each sample's own, the phase split about the slice's
+    step, the rule that converges at 5 deg). ``band`` (cycles/mm; None: the
     grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
     zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
     carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
@@ -346,6 +351,9 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     to the sensor) and re-enters on its far side (a wrap that grows with the band, 1 / (2 h): the pitch-dependent
     error of the earlier truth; :func:`window_guard` states the condition, ``test_cooke_truth_window.py`` the proof
     on a case with an exact answer)."""
+    if sub_slice not in ("carrier", "chief", "local", "nearest", "split"):
+        raise ValueError(f"truth_and_model: sub_slice={sub_slice!r}, one of 'carrier', 'chief', 'local', 'nearest', "
+                         "'split'")
     t0 = time.perf_counter()
     th = np.radians(field_deg)
     lam, nu0 = lens.lam, np.sin(th) / lens.lam

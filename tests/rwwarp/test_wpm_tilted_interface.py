@@ -71,3 +71,9 @@ def test_split_and_nearest_exclusive():
     with pytest.raises(ValueError):
         wpm_zone_local(g, np.ones((16, 16), complex), 0.0, 1e-3, np.full((16, 16), 5e-4), 1.0, 1.5, LAM_MM, 5e-4,
                        nearest=True, split=True)
+
+
+def test_truth_rejects_unknown_sub_slice():
+    from _cooke_truth import Cooke, truth_and_model
+    with pytest.raises(ValueError):
+        truth_and_model(Cooke(), 0.0, sub_slice="middle")
