@@ -328,7 +328,7 @@ def window_guard(band, lam_mm, z_mm, window_mm, beam_mm, target_mm):
 
 def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
                     patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave",
-                    sub_slice="carrier", band=None, taper=0.3):
+                    sub_slice="split", band=None, taper=0.3):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
     the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm; a pair: surface 4's zone's and surface 5's), ``soft``: the iris's cos^2
