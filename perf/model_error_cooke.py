@@ -58,7 +58,7 @@ from _cooke_truth import LENS_FILE, Cooke, measured_error, truth_and_model  # no
 EPD = 3.0
 WL = 0.55
 PIX_MM, SIZE = 1e-3, 32
-BASE = dict(h=2.0e-3, dz=1e-3, margin=1.0, band=120.0, sub_slice="split")   # the guarded truth (stage guard: its convergence)
+BASE = dict(h=2.0e-3, dz=1e-3, margin=1.0, band=120.0, sub_slice="split")   # the guarded truth (stage guard)
 TEST = dict(h=3.0e-3, dz=1e-3, margin=0.8, band=120.0, sub_slice="split")   # the test's reduced sampling
 #: the guarded truth (``band``: the free-space steps' band, cycles/mm, about the carrier; the window's margin (mm)
 #: wide enough that no kept plane wave wraps back onto the beam: _cooke_truth.window_guard)
@@ -156,7 +156,8 @@ def main():
     ap.add_argument("--pitches", type=float, nargs="+", default=[2.0], help="stage guard: the pitches (um)")
     ap.add_argument("--slices", type=float, nargs="+", default=[1.0], help="stage guard: the WPM slices (um)")
     ap.add_argument("--rw", action="store_true", help="stage guard: rwwarp's PSFs against each truth")
-    ap.add_argument("--sub-slice", choices=("carrier", "chief", "local", "nearest", "split"), default="split",
+    ap.add_argument("--sub-slice", choices=("carrier", "chief", "local", "nearest", "split", "snell"),
+                    default="split",
                     help="stage guard: the WPM's sub-slice frequency (truth_and_model's sub_slice)")
     ap.add_argument("--band", type=float, default=None, help="stage guard: the band (cycles/mm; GUARD's if unset)")
     ap.add_argument("--margin", type=float, default=None, help="stage guard: the margin (mm; GUARD's if unset)")

@@ -229,7 +229,7 @@ class Cooke:
 
 
 def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, dz, band=None, nearest=False,
-                   split=False):
+                   split=False, snell=False):
     """The WPM through the slab ``z_from .. z_to`` (mm) cut by the surface ``z = surf_z`` (mm, array on the grid), as
     :func:`_a489_truth.wpm_zone` (each slice both media's exact transfer; a sample whose slice the surface cuts takes
     the medium after's and the phase of its length ``g`` in the medium before) but with that phase
@@ -248,9 +248,14 @@ def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, 
     phase comes after the step: the refracted frequency is then taken only at the slice's end and the tilted wave's
     phase over the slice is off by ``~ (dz - g) 2 pi tan(theta_after) d nu``, ``d nu = |grad surf_z| dk / (2 pi)``:
     a first-order slice error on a surface crossed obliquely (``test_wpm_tilted_interface.py``, against Snell on a
-    flat tilted interface)."""
+    flat tilted interface). ``snell`` (with ``split``; a trial): the post-step phase set so that a locally plane wave
+    gets ``g k_z,before(nu_1) + (dz - g) k_z,after(nu_2)`` over the slice exactly, ``nu_2`` Snell's refracted
+    frequency on the surface's local slope (``surf_z``'s gradient)."""
     if nearest and split:
         raise ValueError("wpm_zone_local: nearest and split are exclusive")
+    if snell and not split:
+        raise ValueError("wpm_zone_local: snell needs split")
+    gsy, gsx = np.gradient(np.asarray(surf_z, float) * np.ones(np.shape(V)), grid.h)
     nsl = max(1, int(np.ceil((z_to - z_from) / dz)))
     dz = (z_to - z_from) / nsl
     Hb, Ha = grid.transfer(n_before, lam, dz), grid.transfer(n_after, lam, dz)
@@ -290,7 +295,22 @@ def wpm_zone_local(grid: Grid, V, z_from, z_to, surf_z, n_before, n_after, lam, 
             pre[full_b] = 0.5 * dz * np.mean(dk)
             Pa = _ifft2(_fft2(V * np.exp(1j * pre)) * Ha)
             V = np.where(full_b, _ifft2(A * Hb), Pa) if full_b.any() else Pa
-            V[cut] *= np.exp(1j * 0.5 * gc * gc / dz * dk)
+            if snell:
+                # the post-step phase that makes the slice's phase g k_z,b(nu_1) + (dz - g) k_z,a(nu_2) on a locally
+                # plane wave: nu_2 the refracted frequency (Snell on the surface's local slope), the step's own
+                # phase dz k_z,a(nu_1 + dnu) at the frequency the pre-step phase's gradient gave
+                sx, sy = gsx[cut], gsy[cut]
+                k1 = kz(n_before, fx, fy)
+                f2x, f2y = fx, fy
+                for _ in range(30):
+                    k2 = kz(n_after, f2x, f2y)
+                    f2x, f2y = fx + sx * (k1 - k2) / (2 * np.pi), fy + sy * (k1 - k2) / (2 * np.pi)
+                w = (1 - gc / dz) * dk / (2 * np.pi)
+                q = (gc * k1 + (dz - gc) * kz(n_after, f2x, f2y) - dz * kz(n_after, fx + w * sx, fy + w * sy)
+                     - gc * (1 - 0.5 * gc / dz) * dk)
+                V[cut] *= np.exp(1j * q)
+            else:
+                V[cut] *= np.exp(1j * 0.5 * gc * gc / dz * dk)
             continue
         Pa = _ifft2(A * Ha)
         full = (g >= dz) | ((g >= 0.5 * dz) if nearest else False)
@@ -342,18 +362,18 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     ``sub_slice``: the transverse frequency at which the WPM's sub-slice phase ``g (k_z,before - k_z,after)`` is
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
     ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis) or "local" (each sample's own,
-    :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in; "split": each sample's own, the phase split about the slice's
-    step, the rule that converges at 5 deg). ``band`` (cycles/mm; None: the
-    grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
+    :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in; "split": each
+    sample's own, the phase split about the slice's step, the rule that converges at 5 deg, the default; "snell":
+    "split" with :func:`wpm_zone_local`'s ``snell``). ``band`` (cycles/mm; None: the grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
     zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
     carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
     wide-angle light, which on the grid's full band crosses the window over the 32 mm to the DOE (or the DOE's 20 mm
     to the sensor) and re-enters on its far side (a wrap that grows with the band, 1 / (2 h): the pitch-dependent
     error of the earlier truth; :func:`window_guard` states the condition, ``test_cooke_truth_window.py`` the proof
     on a case with an exact answer)."""
-    if sub_slice not in ("carrier", "chief", "local", "nearest", "split"):
+    if sub_slice not in ("carrier", "chief", "local", "nearest", "split", "snell"):
         raise ValueError(f"truth_and_model: sub_slice={sub_slice!r}, one of 'carrier', 'chief', 'local', 'nearest', "
-                         "'split'")
+                         "'split', 'snell'")
     t0 = time.perf_counter()
     th = np.radians(field_deg)
     lam, nu0 = lens.lam, np.sin(th) / lens.lam
@@ -401,10 +421,10 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
         if sub_slice == "chief":
             *_, dch = lens._trace(np.array([lens.chief(th)]), np.zeros(1), th, za, direction=True)
             nu_s = lens.n_before[i] * float(dch[0, 0]) / lam
-        if sub_slice in ("local", "nearest", "split"):
+        if sub_slice in ("local", "nearest", "split", "snell"):
             V = wpm_zone_local(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i],
                                lens.n_after[i], lam, dz, band, nearest=sub_slice == "nearest",
-                               split=sub_slice == "split")
+                               split=sub_slice in ("split", "snell"), snell=sub_slice == "snell")
         else:
             V = wpm_zone(g, V, za, zb, lens.zv[i] + lens.sag(i, X * X + Y * Y), lens.n_before[i], lens.n_after[i],
                          lam, dz, nu_s)

@@ -23,7 +23,7 @@ from _a489_truth import LAM_MM, Grid
 from _cooke_truth import wpm_zone_local
 
 
-def _tilted(dz_mm, n1, n2, split, a1_deg=8.0, s=0.15, N=256, h=1e-3):
+def _tilted(dz_mm, n1, n2, split, a1_deg=8.0, s=0.15, N=256, h=1e-3, snell=False):
     """(mean phase error, its tilt (rad/mm)) of the WPM through ``z = z_c + s x`` against Snell on the beam's
     centre; lengths in mm."""
     lam, a1 = LAM_MM, np.radians(a1_deg)
@@ -33,7 +33,7 @@ def _tilted(dz_mm, n1, n2, split, a1_deg=8.0, s=0.15, N=256, h=1e-3):
     V0 = np.exp(-(np.hypot(X, Y) / 0.085) ** 8).astype(complex)
     zc = 0.5 * s * N * h + 2e-3
     z1 = zc + 0.5 * s * N * h + 2e-3
-    V = wpm_zone_local(g, V0, 0.0, z1, zc + s * X, n1, n2, lam, dz_mm, split=split)
+    V = wpm_zone_local(g, V0, 0.0, z1, zc + s * X, n1, n2, lam, dz_mm, split=split, snell=snell)
     k = 2 * np.pi / lam
     k1 = k * n1 * np.array([np.sin(a1), 0.0, np.cos(a1)])
     nn, tt = np.array([-s, 0.0, 1.0]) / np.hypot(1, s), np.array([1.0, 0.0, s]) / np.hypot(1, s)
@@ -66,11 +66,24 @@ def test_earlier_rule_is_first_order_off_on_a_tilted_interface():
     assert abs(s1) < 0.5 * 0.024       # the split rule converges too (measured 0.0056 at 0.5 um)
 
 
+@pytest.mark.parametrize("n1, n2, a1, tol", [(1.62, 1.0, 8.0, 0.015), (1.0, 1.62, 8.0, 2.5e-4),
+                                             (1.62, 1.0, 0.0, 7e-4)])
+def test_snell_post_phase_on_a_tilted_interface(n1, n2, a1, tol):
+    # split + snell (the post-step phase from Snell's refracted frequency): measured at 1 um -0.0075 rad (glass to
+    # air, 8 deg), 1.1e-4 (air to glass), -3.5e-4 (glass to air along the axis: the split rule's slope^2 part, 0.0084,
+    # gone); tol 2x those (2.3x air to glass)
+    d0, _ = _tilted(1e-3, n1, n2, split=True, a1_deg=a1, snell=True)
+    assert abs(d0) < tol
+
+
 def test_split_and_nearest_exclusive():
     g = Grid(16, 1e-3, 0.0, 0.0)
     with pytest.raises(ValueError):
         wpm_zone_local(g, np.ones((16, 16), complex), 0.0, 1e-3, np.full((16, 16), 5e-4), 1.0, 1.5, LAM_MM, 5e-4,
                        nearest=True, split=True)
+    with pytest.raises(ValueError):
+        wpm_zone_local(g, np.ones((16, 16), complex), 0.0, 1e-3, np.full((16, 16), 5e-4), 1.0, 1.5, LAM_MM, 5e-4,
+                       snell=True)
 
 
 def test_truth_rejects_unknown_sub_slice():
