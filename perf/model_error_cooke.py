@@ -20,7 +20,8 @@ at 0.55 um, its design wavelength). For each case (0 and 5 deg):
 The truth is the guarded one (``band``: every free-space step's band about the chief ray, cycles/mm, and a margin
 that keeps the edge's wide-angle light from wrapping round the periodic window; rows before commit 59f8548 were
 computed on the whole band with a 0.3 mm margin: the pitch-dependent error docs/accuracy.md describes).
-The WPM's sub-slice rule is ``sub_slice="split"`` (BASE, TEST, ``--sub-slice``'s default since commit f92dd76;
+The WPM's sub-slice rule is ``sub_slice="snell"`` (BASE, TEST, ``--sub-slice``'s default since the commit after
+0421a16; "split" from f92dd76;
 rows without a ``sub_slice`` key and earlier rows: the carrier rule, first order in the slice at 5 deg --
 the refraction taken at the slice's end, docs/accuracy.md).
 Stage guard: the convergence in pitch, slice and band (``--pitches``, ``--slices``, ``--band``, ``--margin``,
@@ -58,8 +59,8 @@ from _cooke_truth import LENS_FILE, Cooke, measured_error, truth_and_model  # no
 EPD = 3.0
 WL = 0.55
 PIX_MM, SIZE = 1e-3, 32
-BASE = dict(h=2.0e-3, dz=1e-3, margin=1.0, band=120.0, sub_slice="split")   # the guarded truth (stage guard)
-TEST = dict(h=3.0e-3, dz=1e-3, margin=0.8, band=120.0, sub_slice="split")   # the test's reduced sampling
+BASE = dict(h=2.0e-3, dz=1e-3, margin=1.0, band=120.0, sub_slice="snell")   # the guarded truth (stage guard)
+TEST = dict(h=3.0e-3, dz=1e-3, margin=0.8, band=120.0, sub_slice="snell")   # the test's reduced sampling
 #: the guarded truth (``band``: the free-space steps' band, cycles/mm, about the carrier; the window's margin (mm)
 #: wide enough that no kept plane wave wraps back onto the beam: _cooke_truth.window_guard)
 GUARD = dict(margin=1.0, band=120.0)
@@ -157,7 +158,7 @@ def main():
     ap.add_argument("--slices", type=float, nargs="+", default=[1.0], help="stage guard: the WPM slices (um)")
     ap.add_argument("--rw", action="store_true", help="stage guard: rwwarp's PSFs against each truth")
     ap.add_argument("--sub-slice", choices=("carrier", "chief", "local", "nearest", "split", "snell"),
-                    default="split",
+                    default="snell",
                     help="stage guard: the WPM's sub-slice frequency (truth_and_model's sub_slice)")
     ap.add_argument("--band", type=float, default=None, help="stage guard: the band (cycles/mm; GUARD's if unset)")
     ap.add_argument("--margin", type=float, default=None, help="stage guard: the margin (mm; GUARD's if unset)")

@@ -35,8 +35,10 @@ gives 2.4e-3). Its source: the WPM's cut-sample phase applied after the slice's 
 step comes at the slice's end (first order in the slice times the beam's tilt times the surface's slope; on a flat
 tilted interface against Snell, ``test_wpm_tilted_interface.py``); ``sub_slice="split"`` (:func:`wpm_zone_local`'s
 ``split``) reads 3.16e-3 / 2.70e-3 at 1 / 0.5 um (the truth moved 4.7e-4 of its peak, 11x less), 3.37e-3 on the
-axis at 1 um. Without the guard (``band=None``, the earlier truth) the hard edge's wide-angle
-light wraps round the periodic window and the error grows as the pitch falls (2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um).
+axis at 1 um; ``sub_slice="snell"`` (the default: the post-step phase from Snell's refracted frequency) 2.58e-3 /
+2.54e-3 (the truth moved 4.3e-5), 3.35e-3 on the axis at 1 um. Without the guard (``band=None``, the earlier
+truth) the hard edge's wide-angle light wraps round the periodic window and the error grows as the pitch falls
+(2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um).
 
 Fields are ``U ~ exp(+i k OPL)``; the carrier ``exp(2 pi i sin(theta) x / lambda)`` is taken out of every grid; each
 plane's window follows the chief ray (a roll of the periodic grid). Both fields keep ``int |U|^2 dA``. Lengths in mm,
@@ -348,7 +350,7 @@ def window_guard(band, lam_mm, z_mm, window_mm, beam_mm, target_mm):
 
 def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, margin=0.3, patch_x=None,
                     patch_y=None, patch_pitch=0.5e-3, patch_half=None, gauss=1, with_model=True, element="wave",
-                    sub_slice="split", band=None, taper=0.3):
+                    sub_slice="snell", band=None, taper=0.3):
     """(truth, model, info): the sensor irradiance of the truth and of the one-step model on the same patch (power
     per mm^2; the entering plane wave has |U| = 1), and what was measured (``info``: the patch's axes, the powers on
     the planes, timings). ``h``: the grids' pitch (mm), ``dz``: the WPM's slice (mm; a pair: surface 4's zone's and surface 5's), ``soft``: the iris's cos^2
@@ -363,8 +365,10 @@ def truth_and_model(lens: Cooke, field_deg: float, h=1.5e-3, dz=1e-3, soft=0.0, 
     taken: "carrier" (the entering wave's, ``sin(theta) / lambda``, as ``_a489_truth.py``) or "chief" (the chief
     ray's in the medium before the surface, ``n d_x / lambda``; the same on the axis) or "local" (each sample's own,
     :func:`wpm_zone_local`; "nearest": the same, each cut sample in the medium it mostly lies in; "split": each
-    sample's own, the phase split about the slice's step, the rule that converges at 5 deg, the default; "snell":
-    "split" with :func:`wpm_zone_local`'s ``snell``). ``band`` (cycles/mm; None: the grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone, the glass, surface 5's
+    sample's own, the phase split about the slice's step (11x the earlier rule's convergence at 5 deg); "snell",
+    the default: "split" with :func:`wpm_zone_local`'s ``snell``, converged at 5 deg at a 1 um slice). ``band``
+    (cycles/mm; None: the grid's whole band, the earlier truth): every free-space step (iris to surface 4's zone,
+    the glass, surface 5's
     zone to the DOE plane, the DOE plane to the sensor) keeps only the transverse frequencies within ``band`` of the
     carrier, rolled off as ``cos^2`` over its top ``taper`` share: the periodic window's guard against the edge's
     wide-angle light, which on the grid's full band crosses the window over the 32 mm to the DOE (or the DOE's 20 mm
