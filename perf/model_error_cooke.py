@@ -20,8 +20,8 @@ at 0.55 um, its design wavelength). For each case (0 and 5 deg):
 The truth is the guarded one (``band``: every free-space step's band about the chief ray, cycles/mm, and a margin
 that keeps the edge's wide-angle light from wrapping round the periodic window; rows before commit 59f8548 were
 computed on the whole band with a 0.3 mm margin: the pitch-dependent error docs/accuracy.md describes).
-The WPM's sub-slice rule is ``sub_slice="snell"`` (BASE, TEST, ``--sub-slice``'s default since the commit after
-0421a16; "split" from f92dd76;
+The WPM's sub-slice rule is ``sub_slice="snell"`` (BASE, TEST, ``--sub-slice``'s default since commit a6b9c70;
+"split" from f92dd76;
 rows without a ``sub_slice`` key and earlier rows: the carrier rule, first order in the slice at 5 deg --
 the refraction taken at the slice's end, docs/accuracy.md).
 Stage guard: the convergence in pitch, slice and band (``--pitches``, ``--slices``, ``--band``, ``--margin``,
