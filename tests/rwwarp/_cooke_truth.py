@@ -36,7 +36,8 @@ step comes at the slice's end (first order in the slice times the beam's tilt ti
 tilted interface against Snell, ``test_wpm_tilted_interface.py``); ``sub_slice="split"`` (:func:`wpm_zone_local`'s
 ``split``) reads 3.16e-3 / 2.70e-3 at 1 / 0.5 um (the truth moved 4.7e-4 of its peak, 11x less), 3.37e-3 on the
 axis at 1 um; ``sub_slice="snell"`` (the default: the post-step phase from Snell's refracted frequency) 2.58e-3 /
-2.54e-3 / 2.45e-3 at 1 / 0.5 / 0.25 um (the truth moved 4.3e-5, then 1.6e-4), 3.35e-3 on the axis at 1 um. Without the guard (``band=None``, the earlier
+2.54e-3 / 2.45e-3 at 1 / 0.5 / 0.25 um (the truth moved 4.3e-5, then 1.6e-4), 3.35e-3 on the axis at
+1 um. Without the guard (``band=None``, the earlier
 truth) the hard edge's wide-angle light wraps round the periodic window and the error grows as the pitch falls
 (2.1 / 2.5 / 3.1e-3 at 2 / 1.5 / 1 um).
 
