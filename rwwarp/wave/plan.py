@@ -642,8 +642,9 @@ def focal_plan_from(boxes, kept, lost, bands, shifts, g_fit, q_fit, lit, spread,
     if want > cap and sampling_tol is not None:
         # the caller asked for an accuracy: the cap gives way, as far as FOCAL_RAY_TOL_MAX_GRID samples, to the period
         # whose estimated rim error (capped_rim_error) meets the tolerance (or the default rules' error, if tighter)
-        target = max(float(sampling_tol), capped_rim_error(1.0, 1.0, relax))
-        need = want * (capped_rim_error(1.0, 1.0, relax) / target) ** (1.0 / FOCAL_RAY_CAP_POWER)
+        rules = capped_rim_error(1.0, 1.0, relax)        # the rules' own error (the period they ask for)
+        target = max(float(sampling_tol), rules)
+        need = want * (rules / target) ** (1.0 / FOCAL_RAY_CAP_POWER)
         cap = max(cap, min(need, (FOCAL_RAY_TOL_MAX_GRID - 3) / (window_mm * float(np.max(A)))))
     ray_capped = want > cap
     period = max(period, min(want, cap))

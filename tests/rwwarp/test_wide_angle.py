@@ -8,6 +8,7 @@ summed to every pixel node, no FFT, no sampled field (converged here to 1.5e-11 
 lies inside the geometric spot, the case the focal planner's ray-landing rules are for
 (:func:`rwwarp.wave.plan.plan_focal`, ``FOCAL_RAY_SPREAD`` and ``FOCAL_LIT_SHIFT_MARGIN``).
 """
+import re
 import warnings
 
 import numpy as np
@@ -74,7 +75,6 @@ def test_cooke_defocused_capped_plan_states_its_error():
     err = float(np.abs(p.data - truth).max() / truth.max())
     sampling = [w for w in caught if issubclass(w.category, rw.SamplingWarning) and "capped" in str(w.message)]
     assert len(sampling) == 1, [str(w.message) for w in caught]
-    import re
     est = float(re.search(r"sampling error is ~([0-9.e+-]+) of the peak", str(sampling[0].message)).group(1))
     assert 0.5 < est / err < 2.0, (est, err)
     assert 3e-3 < err < 2e-2, err   # the capped plan's error is real: the warning is not a false alarm
